@@ -1,0 +1,1 @@
+"""Calibration of the projector-camera rig (camera, projector, stereo, phase-to-height)."""

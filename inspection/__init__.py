@@ -1,0 +1,1 @@
+"""Inspection against CAD: registration, segmentation, form evaluation, reports."""

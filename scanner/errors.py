@@ -1,0 +1,71 @@
+"""The scanner's exception hierarchy.
+
+Every message says what failed, where (file, key, device, frame index) and, where it can,
+what the user can do about it.
+"""
+
+from __future__ import annotations
+
+
+class ScannerError(Exception):
+    """Base of every error raised by the scanner core."""
+
+
+class ConfigError(ScannerError):
+    """A rig, scene or pattern configuration is missing, unreadable or invalid."""
+
+    def __init__(self, path: object, key: str | None, problem: str) -> None:
+        where = f"{path}" + (f", key '{key}'" if key else "")
+        super().__init__(f"{where}: {problem}")
+        self.path = path
+        self.key = key
+        self.problem = problem
+
+
+class DeviceError(ScannerError):
+    """A device failed or refused an operation."""
+
+    def __init__(self, device: str, problem: str) -> None:
+        super().__init__(f"{device}: {problem}")
+        self.device = device
+
+
+class DeviceTimeout(DeviceError):
+    """The caller stopped waiting: the device did not answer within the timeout."""
+
+
+class DeviceDisconnected(DeviceError):
+    """The device is gone (unplugged, powered off, or shut down)."""
+
+
+class UnsupportedSetting(DeviceError):
+    """The device cannot take the requested setting (value out of range or feature absent)."""
+
+
+class FrameError(DeviceError):
+    """A frame arrived wrong: the sequence can no longer be trusted."""
+
+    def __init__(self, device: str, problem: str, expected_index: int, got_index: int | None) -> None:
+        super().__init__(device, problem)
+        self.expected_index = expected_index
+        self.got_index = got_index
+
+
+class FrameDropped(FrameError):
+    """A frame of the sequence never arrived; a later one did."""
+
+
+class FrameOutOfOrder(FrameError):
+    """A frame arrived with the wrong index or pattern (including a repeated stale frame)."""
+
+
+class DecodeError(ScannerError):
+    """Fringe images cannot be decoded (wrong count, wrong size, inconsistent pattern set)."""
+
+
+class SessionError(ScannerError):
+    """A session folder is missing, unreadable or inconsistent."""
+
+
+class IncompleteSession(SessionError):
+    """A session has no complete manifest: the scan was interrupted or failed."""

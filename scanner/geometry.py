@@ -1,0 +1,200 @@
+"""Pinhole device models and the rig model: the plain data that calibration produces,
+the simulator takes as ground truth, and reconstruction consumes.
+
+Units: millimetres and radians; pixel coordinates follow OpenCV (the centre of pixel (0, 0)
+is at (0.0, 0.0)); frames follow the OpenCV camera convention (x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .errors import ConfigError
+
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
+
+
+@dataclass(frozen=True, eq=False)
+class Pinhole:
+    """A camera or projector as a pinhole with Brown-Conrady distortion.
+
+    `K` is the 3x3 intrinsic matrix in pixels; `dist` holds OpenCV's (k1, k2, p1, p2, k3).
+    """
+
+    width: int
+    height: int
+    K: np.ndarray
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "K", np.asarray(self.K, dtype=np.float64).reshape(3, 3))
+        d = np.zeros(5)
+        given = np.asarray(self.dist, dtype=np.float64).ravel()
+        d[: given.size] = given
+        object.__setattr__(self, "dist", d)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return (self.width, self.height)
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (N, 2) of points (N, 3) given in this device's frame (mm)."""
+        pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 1, 3)
+        px, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)
+        return px.reshape(-1, 2)
+
+    def normalized(self, pixels: np.ndarray) -> np.ndarray:
+        """Undistorted normalised coordinates (N, 2), i.e. (x/z, y/z), of pixels (N, 2)."""
+        px = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
+        if not self.dist.any():
+            out = (px.reshape(-1, 2) - self.K[:2, 2]) / np.diag(self.K)[:2]
+            return out
+        return cv2.undistortPoints(px, self.K, self.dist, R=None, P=None, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+
+    @cached_property
+    def ray_grid(self) -> np.ndarray:
+        """Ray directions (H, W, 3) as (x/z, y/z, 1) for every pixel centre, float32."""
+        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
+        xy = self.normalized(np.stack([u.ravel(), v.ravel()], axis=1))
+        rays = np.empty((self.height, self.width, 3), dtype=np.float32)
+        rays[..., :2] = xy.reshape(self.height, self.width, 2)
+        rays[..., 2] = 1.0
+        return rays
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"width": self.width, "height": self.height, "K": self.K.tolist(), "dist": self.dist.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], where: str = "pinhole") -> Pinhole:
+        try:
+            return cls(int(d["width"]), int(d["height"]), np.array(d["K"], float), np.array(d.get("dist", [0] * 5), float))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(where, None, f"invalid pinhole description: {exc}") from exc
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, hfov_deg: float, pixel_aspect: float = 1.0,
+                 principal: tuple[float, float] | None = None, dist: np.ndarray | None = None) -> Pinhole:
+        """A pinhole with the given horizontal field of view (degrees, human-facing) and
+        pixel aspect fy/fx; the principal point defaults to the image centre."""
+        fx = (width / 2.0) / np.tan(np.radians(hfov_deg) / 2.0)
+        cx, cy = principal if principal is not None else ((width - 1) / 2.0, (height - 1) / 2.0)
+        K = np.array([[fx, 0, cx], [0, fx * pixel_aspect, cy], [0, 0, 1.0]])
+        return cls(width, height, K, np.zeros(5) if dist is None else dist)
+
+
+def pose_from_dict(d: dict[str, Any]) -> np.ndarray:
+    """A 4x4 pose from {'rotation_rad': [rx, ry, rz] (Rodrigues), 'translation_mm': [x, y, z]}
+    or {'matrix': 4x4}."""
+    if "matrix" in d:
+        T = np.array(d["matrix"], dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError("matrix must be 4x4")
+        return T
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.array(d.get("rotation_rad", [0, 0, 0]), dtype=np.float64))[0]
+    T[:3, 3] = np.array(d.get("translation_mm", [0, 0, 0]), dtype=np.float64)
+    return T
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, -1.0, 0.0])) -> np.ndarray:
+    """Pose (device-to-world, 4x4) of a device at `eye` whose optical axis (+z) points at
+    `target`, with image 'up' (−y) as close to `up` as possible."""
+    z = np.asarray(target, float) - np.asarray(eye, float)
+    z /= np.linalg.norm(z)
+    x = np.cross(-np.asarray(up, float), z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], axis=1)
+    T[:3, 3] = eye
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class PhaseToHeight:
+    """Reference-plane phase-to-height model of seed 000, Eq. 17:
+    h = l·Δφ / (Δφ + 2π·d/λ0), with Δφ = φ_reference − φ_object (rad).
+
+    `l_mm`: camera centre to reference plane; `d_mm`: camera-projector centre distance;
+    `pitch_mm`: fringe pitch λ0 on the reference plane. `reference_phase` (H, W) is the
+    unwrapped phase of the reference plane (rad, in units of the fringe of pitch λ0);
+    `plane` is the reference plane (unit normal n toward the camera, offset c) with
+    n·X + c = 0 in the camera frame, used to place each height along its camera ray.
+    """
+
+    l_mm: float
+    d_mm: float
+    pitch_mm: float
+    reference_phase: np.ndarray
+    plane: np.ndarray
+
+    def height(self, phase: np.ndarray) -> np.ndarray:
+        """Height above the reference plane (mm) for an unwrapped phase map (rad)."""
+        dphi = self.reference_phase - phase
+        return self.l_mm * dphi / (dphi + 2.0 * np.pi * self.d_mm / self.pitch_mm)
+
+
+@dataclass(frozen=True, eq=False)
+class RigModel:
+    """Geometry and projector response of a projector-camera rig.
+
+    `cam_from_proj` maps projector-frame points to camera-frame points (4x4, mm).
+    `world_from_cam` places the camera in the rig's world frame (identity: world = camera).
+    `projector_gamma` is the projector's response exponent (displayed = command^gamma);
+    patterns are pre-compensated with its inverse so the projected fringes are sinusoidal.
+    """
+
+    camera: Pinhole
+    projector: Pinhole
+    cam_from_proj: np.ndarray
+    world_from_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+    projector_gamma: float = 1.0
+    phase_to_height: PhaseToHeight | None = None
+
+    @property
+    def proj_from_cam(self) -> np.ndarray:
+        return np.linalg.inv(self.cam_from_proj)
+
+    @property
+    def baseline_mm(self) -> float:
+        return float(np.linalg.norm(self.cam_from_proj[:3, 3]))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description (the phase-to-height reference map is stored separately)."""
+        d: dict[str, Any] = {
+            "camera": self.camera.to_dict(),
+            "projector": self.projector.to_dict(),
+            "cam_from_proj": self.cam_from_proj.tolist(),
+            "world_from_cam": self.world_from_cam.tolist(),
+            "projector_gamma": self.projector_gamma,
+        }
+        if self.phase_to_height is not None:
+            p = self.phase_to_height
+            d["phase_to_height"] = {"l_mm": p.l_mm, "d_mm": p.d_mm, "pitch_mm": p.pitch_mm, "plane": p.plane.tolist()}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], where: str = "rig model",
+                  reference_phase: np.ndarray | None = None) -> RigModel:
+        try:
+            p2h = None
+            if "phase_to_height" in d and reference_phase is not None:
+                p = d["phase_to_height"]
+                p2h = PhaseToHeight(float(p["l_mm"]), float(p["d_mm"]), float(p["pitch_mm"]),
+                                    reference_phase, np.array(p["plane"], float))
+            return cls(
+                camera=Pinhole.from_dict(d["camera"], f"{where}: camera"),
+                projector=Pinhole.from_dict(d["projector"], f"{where}: projector"),
+                cam_from_proj=np.array(d["cam_from_proj"], float).reshape(4, 4),
+                world_from_cam=np.array(d.get("world_from_cam", np.eye(4).tolist()), float).reshape(4, 4),
+                projector_gamma=float(d.get("projector_gamma", 1.0)),
+                phase_to_height=p2h,
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(where, None, f"invalid rig model: {exc!r}") from exc

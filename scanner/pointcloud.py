@@ -1,0 +1,97 @@
+"""Organised point clouds: (H, W, 3) points in mm with NaN where invalid, colours,
+normals, and PLY output."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+@dataclass(eq=False)
+class OrganisedCloud:
+    """Points (H, W, 3) float32 mm in the camera frame, NaN where invalid; colours (H, W)
+    uint8 grey from the texture; normals (H, W, 3) unit vectors facing the camera."""
+
+    points: np.ndarray
+    colors: np.ndarray
+    normals: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        return ~np.isnan(self.points[..., 2])
+
+    def __len__(self) -> int:
+        return int(self.valid.sum())
+
+    def flat(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(M, 3) points, (M,) colours and (M, 3) normals of the valid pixels, row-major."""
+        v = self.valid
+        return self.points[v], self.colors[v], self.normals[v]
+
+
+def organised_normals(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Unit normals (H, W, 3) from central differences of an organised cloud given as
+    coordinate planes (H, W) each, oriented toward the camera (negative z); NaN where a
+    neighbour is missing and on the image border."""
+    h, w = z.shape
+    row, col = (slice(1, -1), slice(2, None)), (slice(1, -1), slice(None, -2))
+    up, down = (slice(2, None), slice(1, -1)), (slice(None, -2), slice(1, -1))
+    ux, uy, uz = (np.subtract(p[row], p[col]) for p in (x, y, z))
+    vx, vy, vz = (np.subtract(p[up], p[down]) for p in (x, y, z))
+    nx = uy * vz
+    nx -= uz * vy
+    ny = uz * vx
+    ny -= ux * vz
+    nz = ux * vy
+    nz -= uy * vx
+    scale = np.square(nx) + np.square(ny)
+    scale += np.square(nz)
+    np.sqrt(scale, out=scale)
+    np.divide(np.float32(1.0), scale, out=scale)
+    np.copysign(scale, -nz, out=scale)  # unit length, facing the camera (normal z < 0)
+    n = np.full((h, w, 3), np.nan, dtype=np.float32)
+    for i, comp in enumerate((nx, ny, nz)):
+        np.multiply(comp, scale, out=n[1:-1, 1:-1, i])
+    return n
+
+
+def from_planes(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Interleave coordinate planes (H, W) into points (H, W, 3)."""
+    return cv2.merge([x, y, z])
+
+
+def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:
+    """Write the valid points as a binary little-endian PLY with grey colour and normals;
+    returns the number of points. The file appears complete or not at all."""
+    pts, col, nrm = cloud.flat()
+    nrm = np.nan_to_num(nrm)
+    dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
+                      ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    rec = np.empty(len(pts), dtype=dtype)
+    for i, k in enumerate("xyz"):
+        rec[k] = pts[:, i]
+        rec["n" + k] = nrm[:, i]
+    rec["red"] = rec["green"] = rec["blue"] = col
+    header = ("ply\nformat binary_little_endian 1.0\ncomment slscan organised cloud, mm, camera frame\n"
+              f"obj_info width {cloud.points.shape[1]} height {cloud.points.shape[0]}\n"
+              f"element vertex {len(pts)}\n"
+              + "".join(f"property float {k}\n" for k in ("x", "y", "z", "nx", "ny", "nz"))
+              + "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    with tmp.open("wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(rec.tobytes())
+    tmp.replace(path)
+    return len(pts)
+
+
+def read_ply_points(path: str | Path) -> np.ndarray:
+    """The (M, 3) vertex positions of a PLY file (any layout Open3D reads)."""
+    import open3d as o3d
+
+    pc = o3d.t.io.read_point_cloud(str(path))
+    return pc.point.positions.numpy().astype(np.float64)

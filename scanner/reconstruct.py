@@ -1,0 +1,207 @@
+"""Reconstruction: decoded projector coordinates to an organised point cloud.
+
+Triangulation intersects each camera ray with the projector's surface of constant
+coordinate. With projector distortion that surface is not a plane, so the intersection
+is iterated: the undistorted projector coordinate depends weakly on the point's other
+projector coordinate, read from a precomputed undistortion table.
+The second mode is the reference-plane phase-to-height model of seed 000, Eq. 17.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import cv2
+import numpy as np
+
+from .decode import DecodeResult
+from .errors import DecodeError
+from .geometry import Pinhole, RigModel
+from .pointcloud import OrganisedCloud, from_planes, organised_normals
+
+_TABLE_OVERSAMPLE = 4  # table samples per projector pixel along the coded axis
+_TABLE_ROWS = 257  # samples along the other normalised projector coordinate
+_MAX_PASSES = 4
+_CONVERGED = 1e-7  # change of the normalised projector coordinate (~2e-4 projector px)
+_REMAP_COLS = 4096
+
+
+class _UndistortTable:
+    """x_n(c, y_n): the undistorted normalised projector coordinate along the coded axis, for
+    a distorted pixel coordinate c and the normalised coordinate y_n across it."""
+
+    def __init__(self, projector: Pinhole, axis: int) -> None:
+        extent = projector.width if axis == 0 else projector.height
+        other = projector.height if axis == 0 else projector.width
+        K = projector.K
+        # range of the cross coordinate, with margin for points outside the projector image
+        corners = projector.normalized(np.array([[0, 0], [projector.width - 1, projector.height - 1]], float))
+        lo, hi = corners[:, 1 - axis].min(), corners[:, 1 - axis].max()
+        span = hi - lo
+        self.y0, self.dy = lo - 0.25 * span, 1.5 * span / (_TABLE_ROWS - 1)
+        c = np.arange(extent * _TABLE_OVERSAMPLE + 1) / _TABLE_OVERSAMPLE - 0.5
+        yn = self.y0 + self.dy * np.arange(_TABLE_ROWS)
+        cc, yy = np.meshgrid(c, yn)
+        # start from the ideal pinhole and solve distort(x_n, y_n)[axis] = x_d by Newton steps
+        f, ctr = K[axis, axis], K[axis, 2]
+        xd = (cc - ctr) / f
+        x = xd.copy()
+        k1, k2, p1, p2, k3 = projector.dist
+        if axis == 1:
+            p1, p2 = p2, p1  # swapping x and y swaps the tangential terms
+        for _ in range(20):
+            r2 = x * x + yy * yy
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            fx = x * radial + 2 * p1 * x * yy + p2 * (r2 + 2 * x * x) - xd
+            dradial = 2 * x * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
+            dfx = radial + x * dradial + 2 * p1 * yy + 6 * p2 * x
+            x -= fx / dfx
+        self.table = x.astype(np.float32)
+
+    def __call__(self, coord: np.ndarray, y_n: np.ndarray) -> np.ndarray:
+        """Table look-up (bilinear) for flat float32 arrays of equal length."""
+        n = coord.size
+        rows = -(-n // _REMAP_COLS)  # remap takes images below 32767 on a side
+        mx = np.empty(rows * _REMAP_COLS, np.float32)
+        my = np.zeros(rows * _REMAP_COLS, np.float32)
+        np.multiply(coord + np.float32(0.5), np.float32(_TABLE_OVERSAMPLE), out=mx[:n])
+        mx[n:] = 0
+        np.multiply(y_n - np.float32(self.y0), np.float32(1.0 / self.dy), out=my[:n])
+        out = cv2.remap(self.table, mx.reshape(rows, -1), my.reshape(rows, -1), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REPLICATE)
+        return out.ravel()[:n]
+
+
+@dataclass(eq=False)
+class Triangulator:
+    """Ray-surface triangulation for one rig; per-pixel constants are computed once."""
+
+    rig: RigModel
+
+    @cached_property
+    def _rays(self) -> np.ndarray:
+        return self.rig.camera.ray_grid
+
+    def _constants(self, axis: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[float, float, float, float]]:
+        """Per-pixel dot products of the camera ray with the projector axes (in the camera
+        frame), and the matching scalars for the projector centre."""
+        R, t = self.rig.cam_from_proj[:3, :3], self.rig.cam_from_proj[:3, 3]
+        a_axis, a_other, a_z = R[:, axis], R[:, 1 - axis], R[:, 2]
+        rays = self._rays
+        dots = [(rays @ v.astype(np.float32)) for v in (a_axis, a_other, a_z)]
+        return dots[0], dots[1], dots[2], (float(a_axis @ t), float(a_other @ t), float(a_z @ t), 0.0)
+
+    def _tables(self, orientation: str) -> tuple:
+        return self._vertical if orientation == "vertical" else self._horizontal
+
+    def prepare(self, orientations: tuple[str, ...]) -> None:
+        """Build the per-pixel constants and undistortion tables now rather than on first use."""
+        for o in orientations:
+            self._tables(o)
+        _ = self._ray_planes
+
+    @cached_property
+    def _vertical(self) -> tuple:
+        return self._constants(0) + (_UndistortTable(self.rig.projector, 0),)
+
+    @cached_property
+    def _horizontal(self) -> tuple:
+        return self._constants(1) + (_UndistortTable(self.rig.projector, 1),)
+
+    def depth_scale(self, coord: np.ndarray, orientation: str,
+                    sensitivity: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """Ray parameter s (= depth z in mm, since rays have z = 1) for every pixel with a
+        projector coordinate `coord` (NaN propagates); with `sensitivity`, also |dz/dcoord|
+        (mm per projector pixel), which says how well this orientation constrains depth."""
+        alpha, gamma, beta, (a0, c1, b0, _), table = self._tables(orientation)
+        if coord.shape != alpha.shape:
+            raise DecodeError(f"{orientation} coordinate map is {coord.shape[::-1]} (w, h) but the rig camera is "
+                              f"{alpha.shape[::-1]}")
+        K = self.rig.projector.K
+        axis = 0 if orientation == "vertical" else 1
+        shape = coord.shape
+        c, al, ga, be = coord.ravel(), alpha.ravel(), gamma.ravel(), beta.ravel()
+        a0, c1, b0 = np.float32(a0), np.float32(c1), np.float32(b0)
+        x_n = (c - np.float32(K[axis, 2])) * np.float32(1.0 / K[axis, axis])  # distortion-free start
+        for _ in range(_MAX_PASSES):
+            # the point lies on the surface X_p = x_n·Z_p of the projector frame, so along the
+            # camera ray s·(α − x_n·β) = a0 − x_n·b0; its cross coordinate y_n = Y_p / Z_p
+            s = np.subtract(a0, x_n * b0)
+            s /= al - x_n * be
+            y_n = s * ga
+            y_n -= c1
+            y_n /= s * be - b0
+            x_prev, x_n = x_n, table(c, y_n)
+            if np.nanmax(np.abs(x_n - x_prev)) < _CONVERGED:
+                break
+        denom = al - x_n * be
+        z = np.subtract(a0, x_n * b0)
+        z /= denom
+        z[~(z > 0)] = np.nan  # invalid coordinate, or behind the camera: no surface
+        if not sensitivity:
+            return z.reshape(shape)
+        dz = np.abs((be * a0 - al * b0) / (denom * denom)) / np.float32(K[axis, axis])
+        dz[np.isnan(z)] = np.nan
+        return z.reshape(shape), dz.reshape(shape)
+
+    @cached_property
+    def _ray_planes(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.ascontiguousarray(self._rays[..., 0]), np.ascontiguousarray(self._rays[..., 1])
+
+    def cloud(self, z: np.ndarray, colors: np.ndarray, with_normals: bool = True) -> OrganisedCloud:
+        """The organised cloud of depths z (H, W) along this rig's camera rays."""
+        return cloud_from_depth(z, *self._ray_planes, colors, with_normals)
+
+
+def to_texture8(texture: np.ndarray, bit_depth: int) -> np.ndarray:
+    """Grey 8-bit colours from a texture in DN."""
+    return np.clip(texture * (255.0 / (2 ** bit_depth - 1)), 0, 255).astype(np.uint8)
+
+
+def triangulate(decoded: DecodeResult, triangulator: Triangulator, with_normals: bool = True) -> OrganisedCloud:
+    """Organised cloud by triangulation; with both fringe orientations the two depths are
+    averaged, weighted by their expected precision."""
+    shape = decoded.valid.shape
+    if shape != (triangulator.rig.camera.height, triangulator.rig.camera.width):
+        raise DecodeError(f"decoded maps are {shape[1]} x {shape[0]} but the rig camera is "
+                          f"{triangulator.rig.camera.width} x {triangulator.rig.camera.height}")
+    if len(decoded.maps) == 1:
+        (orientation, m), = decoded.maps.items()
+        z = triangulator.depth_scale(m.coordinate, orientation)
+    else:
+        # inverse-variance average: phase precision times the geometric depth sensitivity
+        depths, weights = [], []
+        for orientation, m in decoded.maps.items():
+            zi, dz = triangulator.depth_scale(np.where(decoded.valid, m.coordinate, np.nan), orientation, True)
+            depths.append(zi)
+            weights.append(m.phase_weight * np.float32(m.period_px ** -2) / (dz * dz))
+        z = (depths[0] * weights[0] + depths[1] * weights[1]) / (weights[0] + weights[1])
+    return triangulator.cloud(z, to_texture8(decoded.texture, decoded.bit_depth), with_normals)
+
+
+def phase_to_height_cloud(decoded: DecodeResult, rig: RigModel, orientation: str = "vertical") -> OrganisedCloud:
+    """Organised cloud from the reference-plane model (seed 000, Eq. 17): the height above
+    the reference plane per pixel, placed along each camera ray."""
+    model = rig.phase_to_height
+    if model is None:
+        raise DecodeError("rig has no phase-to-height calibration; reconstruct by triangulation instead")
+    if orientation not in decoded.maps:
+        raise DecodeError(f"phase-to-height needs {orientation} fringes; the scan has {list(decoded.maps)}")
+    phase = decoded.maps[orientation].phase
+    if model.reference_phase.shape != phase.shape:
+        raise DecodeError(f"reference phase map is {model.reference_phase.shape} but the scan is {phase.shape}")
+    h = model.height(np.where(decoded.valid, phase, np.nan))
+    rays = rig.camera.ray_grid
+    n, c = model.plane[:3].astype(np.float32), np.float32(model.plane[3])
+    z = (h - c) / (rays @ n)  # n·X + c = h on the plane at height h; rays have unit z
+    return cloud_from_depth(z, np.ascontiguousarray(rays[..., 0]), np.ascontiguousarray(rays[..., 1]),
+                            to_texture8(decoded.texture, decoded.bit_depth))
+
+
+def cloud_from_depth(z: np.ndarray, ray_x: np.ndarray, ray_y: np.ndarray, colors: np.ndarray,
+                     with_normals: bool = True) -> OrganisedCloud:
+    """Organised cloud from depth z (H, W, mm) along rays (x/z, y/z, 1) given as planes."""
+    x, y = ray_x * z, ray_y * z
+    normals = organised_normals(x, y, z) if with_normals else np.full((*z.shape, 3), np.nan, np.float32)
+    return OrganisedCloud(from_planes(x, y, z), colors, normals)

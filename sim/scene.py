@@ -1,0 +1,344 @@
+"""Scenes for the simulator: what stands in front of the rig.
+
+A scene holds objects (triangle meshes from PLY/STL/OBJ files, or analytic primitives:
+sphere, plane rectangle, box) and an optional reference plane, all placed in the rig's
+world frame (= the camera frame: OpenCV convention, x right, y down, z forward; mm).
+
+Object ids, used in the ground-truth id map:
+    0      nothing (background: the ray leaves the scene)
+    1      the reference plane (whether or not the scene has one, objects start at 2)
+    2, 3…  the scene's objects, in the order they are listed
+
+Scene TOML format (every path relative to the TOML file; every length in mm, angle in rad):
+
+    name = "demo"                               # optional, default: file stem
+
+    [reference_plane]                           # optional: a large flat rectangle
+    distance_mm = 420.0                         # plane z = distance, facing the camera …
+    # pose = { rotation_rad = [rx, ry, rz], translation_mm = [x, y, z] }   # … or a pose
+    size_mm = [1000.0, 1000.0]                  # optional, default 1000 x 1000
+    albedo = 0.8                                # optional, default 0.8
+
+    [[objects]]                                 # any number, ids 2, 3, … in this order
+    name = "part"                               # optional
+    mesh = "../parts/demo_part.ply"             # exactly one of: mesh, sphere, plane, box
+    scale = 1.0                                 # mesh units -> mm (mesh only), default 1
+    albedo = 0.7                                # 0..1, default 0.7
+    pose = { rotation_rad = [3.14159, 0, 0], translation_mm = [0, 0, 420] }
+                                                # object -> world; or { matrix = 4x4 }; default identity
+
+    [[objects]]
+    sphere = { radius_mm = 20.0, center_mm = [0, 0, 400] }   # centre in the object frame (pose)
+
+    [[objects]]
+    plane = { size_mm = [100, 80] }             # rectangle on the object's z = 0, centred
+
+    [[objects]]
+    box = { size_mm = [40, 30, 20] }            # axis-aligned in the object frame, centred
+
+A pose places the object frame in the world: X_world = R X_object + t. A reference plane
+given by `pose` is the rectangle on the pose's local z = 0 plane.
+
+Primitives are exact (ray-cast analytically in float64): use them where a test needs a
+surface known to better than a micrometre. Meshes are exact as meshes (each hit is
+re-intersected with its triangle in float64).
+
+A bare mesh file (no TOML) makes a bench scene: the part's own +z ("up" in CAD) turned to
+face the camera (rotation of pi about x), its bounding box centred on the camera axis at
+the rig's working distance, and a reference plane perpendicular to the camera axis that
+touches the far side of the part (the table the part lies on).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from scanner.config import CONFIG_DIR, get, get_table, get_vector, load_toml, resolve
+from scanner.errors import ConfigError
+from scanner.geometry import pose_from_dict
+
+DEFAULT_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
+MESH_SUFFIXES = (".ply", ".stl", ".obj")
+KINDS = ("mesh", "sphere", "plane", "box")
+BACKGROUND_ID = 0
+REFERENCE_PLANE_ID = 1
+FIRST_OBJECT_ID = 2
+
+_OBJECT_KEYS = {"name", "albedo", "pose", "scale", *KINDS}
+_PLANE_KEYS = {"distance_mm", "pose", "size_mm", "albedo"}
+_SCENE_KEYS = {"name", "reference_plane", "objects"}
+_DEFAULT_PLANE_SIZE = (1000.0, 1000.0)
+
+
+@dataclass(frozen=True, eq=False)
+class SceneObject:
+    """One object. `pose` maps object-frame points to the world frame (4x4, mm).
+
+    `kind` is "mesh" (`vertices` (N, 3) float64 mm in the object frame, `triangles`
+    (M, 3) int32), "sphere" (`radius_mm`, centred on the object-frame origin), "plane"
+    (a `size_mm` = (w, h) rectangle on the object-frame z = 0, centred) or "box"
+    (`size_mm` = (x, y, z), centred)."""
+
+    name: str
+    kind: str
+    pose: np.ndarray
+    albedo: float
+    radius_mm: float | None = None
+    size_mm: tuple[float, ...] | None = None
+    vertices: np.ndarray | None = field(default=None, repr=False)
+    triangles: np.ndarray | None = field(default=None, repr=False)
+    source: Path | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown object kind {self.kind!r}; known: {KINDS}")
+        if not 0.0 <= self.albedo <= 1.0:
+            raise ValueError(f"{self.name}: albedo {self.albedo} outside 0..1")
+        pose = np.asarray(self.pose, dtype=np.float64)
+        if pose.shape != (4, 4) or not _is_rigid(pose):
+            raise ValueError(f"{self.name}: pose must be a rigid 4x4 transform")
+        object.__setattr__(self, "pose", pose)
+
+    def world_vertices(self) -> np.ndarray:
+        """Mesh vertices in the world frame (mesh objects only)."""
+        if self.vertices is None:
+            raise ValueError(f"{self.name} is a {self.kind}, not a mesh")
+        return self.vertices @ self.pose[:3, :3].T + self.pose[:3, 3]
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World-frame axis-aligned bounding box (lo, hi)."""
+        if self.kind == "mesh":
+            v = self.world_vertices()
+            return v.min(axis=0), v.max(axis=0)
+        if self.kind == "sphere":
+            c, r = self.pose[:3, 3], float(self.radius_mm)  # type: ignore[arg-type]
+            return c - r, c + r
+        half = np.array(list(self.size_mm) + ([0.0] if self.kind == "plane" else []), float) / 2  # type: ignore[arg-type]
+        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+        w = corners @ self.pose[:3, :3].T + self.pose[:3, 3]
+        return w.min(axis=0), w.max(axis=0)
+
+    def plane_equation(self) -> np.ndarray:
+        """(nx, ny, nz, c) with n·X + c = 0 for a plane object, n the unit normal turned
+        toward the world origin (the camera)."""
+        if self.kind != "plane":
+            raise ValueError(f"{self.name} is a {self.kind}, not a plane")
+        n = self.pose[:3, 2].copy()
+        p = self.pose[:3, 3]
+        if np.dot(n, -p) < 0:
+            n = -n
+        return np.array([*n, -np.dot(n, p)])
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """Objects (ids 2, 3, … in order) and an optional reference plane (id 1)."""
+
+    objects: tuple[SceneObject, ...]
+    reference_plane: SceneObject | None = None
+    name: str = "scene"
+    path: Path | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "objects", tuple(self.objects))
+        if self.reference_plane is not None and self.reference_plane.kind != "plane":
+            raise ValueError("the reference plane must be a plane object")
+
+    def by_id(self) -> dict[int, SceneObject]:
+        """Object id -> object, for every id present."""
+        out = {FIRST_OBJECT_ID + i: o for i, o in enumerate(self.objects)}
+        if self.reference_plane is not None:
+            out[REFERENCE_PLANE_ID] = self.reference_plane
+        return out
+
+    @property
+    def names(self) -> dict[int, str]:
+        """Object id -> name (0 is "background")."""
+        return {BACKGROUND_ID: "background", **{i: o.name for i, o in sorted(self.by_id().items())}}
+
+    def id_of(self, name: str) -> int:
+        for i, o in self.by_id().items():
+            if o.name == name:
+                return i
+        raise KeyError(f"no object named {name!r} in scene {self.name!r}; names: {sorted(self.names.values())}")
+
+    @classmethod
+    def load(cls, path: str | Path, working_distance_mm: float = 400.0) -> Scene:
+        """A scene TOML file, or a bare mesh file (placed at `working_distance_mm`)."""
+        path = Path(path)
+        if path.suffix.lower() in MESH_SUFFIXES:
+            return cls.from_mesh(path, working_distance_mm)
+        if path.suffix.lower() != ".toml":
+            raise ConfigError(path, None, f"not a scene: expected a .toml scene or a mesh ({', '.join(MESH_SUFFIXES)})")
+        return _load_toml_scene(path)
+
+    @classmethod
+    def from_mesh(cls, path: str | Path, working_distance_mm: float = 400.0, albedo: float = 0.7,
+                  plane_albedo: float = 0.8, plane_size_mm: tuple[float, float] = _DEFAULT_PLANE_SIZE) -> Scene:
+        """The bench scene for a bare part mesh (see the module docstring)."""
+        path = Path(path)
+        vertices, triangles = load_mesh(path, path, None)
+        flip = np.diag([1.0, -1.0, -1.0, 1.0])  # rotation of pi about x: CAD up faces the camera
+        turned = vertices @ flip[:3, :3].T
+        lo, hi = turned.min(axis=0), turned.max(axis=0)
+        pose = flip.copy()
+        pose[:3, 3] = np.array([0.0, 0.0, working_distance_mm]) - (lo + hi) / 2
+        part = SceneObject(name=path.stem, kind="mesh", pose=pose, albedo=albedo, vertices=vertices,
+                           triangles=triangles, source=path)
+        far = working_distance_mm + (hi[2] - lo[2]) / 2
+        plane = SceneObject(name="reference_plane", kind="plane", pose=_translation([0.0, 0.0, far]),
+                            albedo=plane_albedo, size_mm=tuple(float(s) for s in plane_size_mm))
+        return cls(objects=(part,), reference_plane=plane, name=path.stem, path=path)
+
+
+def load_scene(scene: Scene | str | Path | None, working_distance_mm: float = 400.0) -> Scene:
+    """A Scene as given, loaded from a TOML or mesh path, or the default demo scene."""
+    if isinstance(scene, Scene):
+        return scene
+    return Scene.load(DEFAULT_SCENE if scene is None else scene, working_distance_mm)
+
+
+def load_mesh(file: Path, where: Path, key: str | None, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices float64 mm, triangles int32) of a PLY/STL/OBJ file; errors name `where`/`key`."""
+    import open3d as o3d
+
+    if file.suffix.lower() not in MESH_SUFFIXES:
+        raise ConfigError(where, key, f"{file.name}: unsupported mesh format; use {', '.join(MESH_SUFFIXES)}")
+    if not file.is_file():
+        raise ConfigError(where, key, f"mesh file not found: {file}")
+    mesh = o3d.io.read_triangle_mesh(str(file))
+    v = np.asarray(mesh.vertices, dtype=np.float64) * scale
+    t = np.asarray(mesh.triangles, dtype=np.int32)
+    if len(t) == 0 or len(v) < 3:
+        raise ConfigError(where, key, f"{file}: no triangles could be read (unreadable or empty mesh)")
+    if not np.isfinite(v).all() or t.min() < 0 or t.max() >= len(v):
+        raise ConfigError(where, key, f"{file}: corrupt mesh (non-finite vertices or bad triangle indices)")
+    return v, t
+
+
+def _translation(t: list[float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = t
+    return T
+
+
+def _is_rigid(T: np.ndarray) -> bool:
+    R = T[:3, :3]
+    return bool(np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+                and np.allclose(T[3], [0, 0, 0, 1]) and np.isfinite(T).all())
+
+
+def _check_keys(table: dict[str, Any], allowed: set[str], path: Path, prefix: str) -> None:
+    for k in table:
+        if k not in allowed:
+            full = f"{prefix}.{k}" if prefix else k
+            raise ConfigError(path, full, f"unknown key; expected one of {sorted(allowed)}")
+
+
+def _pose(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
+    if "pose" not in table:
+        return np.eye(4)
+    d = get_table(table, "pose", path, prefix=prefix)
+    key = f"{prefix}.pose" if prefix else "pose"
+    _check_keys(d, {"rotation_rad", "translation_mm", "matrix"}, path, key)
+    if "matrix" in d and len(d) > 1:
+        raise ConfigError(path, key, "give either 'matrix' or 'rotation_rad'/'translation_mm', not both")
+    if "matrix" not in d:
+        get_vector(d, "rotation_rad", 3, path, [0.0] * 3, key)
+        get_vector(d, "translation_mm", 3, path, [0.0] * 3, key)
+    try:
+        T = pose_from_dict(d)
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(path, key, f"invalid pose: {exc}") from None
+    if not _is_rigid(T):
+        raise ConfigError(path, key, "pose matrix is not a rigid transform (rotation must be orthonormal, last row 0 0 0 1)")
+    return T
+
+
+def _albedo(table: dict[str, Any], path: Path, prefix: str, default: float) -> float:
+    a = get(table, "albedo", float, path, default, prefix)
+    if not 0.0 <= a <= 1.0:
+        raise ConfigError(path, f"{prefix}.albedo", f"{a} outside 0..1")
+    return a
+
+
+def _positive_vector(table: dict[str, Any], key: str, n: int, path: Path, prefix: str, default: Any = ...) -> tuple[float, ...]:
+    v = get_vector(table, key, n, path, default, prefix)
+    if not all(x > 0 for x in v):
+        raise ConfigError(path, f"{prefix}.{key}", f"every size must be > 0, got {v}")
+    return tuple(v)
+
+
+def _load_toml_scene(path: Path) -> Scene:
+    raw = load_toml(path)
+    _check_keys(raw, _SCENE_KEYS, path, "")
+    name = get(raw, "name", str, path, path.stem)
+    plane = None
+    if "reference_plane" in raw:
+        t = get_table(raw, "reference_plane", path)
+        pre = "reference_plane"
+        _check_keys(t, _PLANE_KEYS, path, pre)
+        if ("distance_mm" in t) == ("pose" in t):
+            raise ConfigError(path, pre, "give exactly one of 'distance_mm' or 'pose'")
+        if "distance_mm" in t:
+            dist = get(t, "distance_mm", float, path, prefix=pre)
+            if not dist > 0:
+                raise ConfigError(path, f"{pre}.distance_mm", f"must be > 0 (in front of the camera), got {dist}")
+            pose = _translation([0.0, 0.0, dist])
+        else:
+            pose = _pose(t, path, pre)
+        plane = SceneObject(name="reference_plane", kind="plane", pose=pose, albedo=_albedo(t, path, pre, 0.8),
+                            size_mm=_positive_vector(t, "size_mm", 2, path, pre, list(_DEFAULT_PLANE_SIZE)))
+    objects = []
+    entries = get(raw, "objects", list, path, [])
+    for i, t in enumerate(entries):
+        pre = f"objects[{i}]"
+        if not isinstance(t, dict):
+            raise ConfigError(path, pre, "expected a table ([[objects]])")
+        _check_keys(t, _OBJECT_KEYS, path, pre)
+        kinds = [k for k in KINDS if k in t]
+        if len(kinds) != 1:
+            raise ConfigError(path, pre, f"give exactly one of {list(KINDS)}, got {kinds or 'none'}")
+        kind = kinds[0]
+        if "scale" in t and kind != "mesh":
+            raise ConfigError(path, f"{pre}.scale", "only meshes take a scale")
+        pose = _pose(t, path, pre)
+        albedo = _albedo(t, path, pre, 0.7)
+        if kind == "mesh":
+            rel = get(t, "mesh", str, path, prefix=pre)
+            scale = get(t, "scale", float, path, 1.0, pre)
+            if not scale > 0:
+                raise ConfigError(path, f"{pre}.scale", f"must be > 0, got {scale}")
+            file = resolve(path, rel)
+            v, tri = load_mesh(file, path, f"{pre}.mesh", scale)
+            obj = SceneObject(name=get(t, "name", str, path, file.stem, pre), kind="mesh", pose=pose, albedo=albedo,
+                              vertices=v, triangles=tri, source=file)
+        else:
+            p = get_table(t, kind, path, prefix=pre)
+            kp = f"{pre}.{kind}"
+            if kind == "sphere":
+                _check_keys(p, {"radius_mm", "center_mm"}, path, kp)
+                r = get(p, "radius_mm", float, path, prefix=kp)
+                if not r > 0:
+                    raise ConfigError(path, f"{kp}.radius_mm", f"must be > 0, got {r}")
+                centre = get_vector(p, "center_mm", 3, path, [0.0] * 3, kp)
+                pose = pose @ _translation(centre)
+                obj = SceneObject(name=get(t, "name", str, path, f"sphere{i}", pre), kind="sphere", pose=pose,
+                                  albedo=albedo, radius_mm=r)
+            else:
+                _check_keys(p, {"size_mm"}, path, kp)
+                size = _positive_vector(p, "size_mm", 2 if kind == "plane" else 3, path, kp)
+                obj = SceneObject(name=get(t, "name", str, path, f"{kind}{i}", pre), kind=kind, pose=pose,
+                                  albedo=albedo, size_mm=size)
+        objects.append(obj)
+    names = [o.name for o in objects] + (["reference_plane"] if plane is not None else [])
+    dup = {n for n in names if names.count(n) > 1}
+    if dup:
+        raise ConfigError(path, "objects", f"object names must be unique; repeated: {sorted(dup)}")
+    if not objects and plane is None:
+        raise ConfigError(path, "objects", "the scene is empty: give at least one object or a reference plane")
+    return Scene(objects=tuple(objects), reference_plane=plane, name=name, path=path)
