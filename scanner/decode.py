@@ -27,13 +27,16 @@ class DecodeSettings:
     precise phase. `min_contrast`: B/A below this means no fringe reaches the pixel
     (projector shadow or outside the projected area). `order_tolerance`: an unwrapping
     residual above this fraction of π marks a fringe-order error. `spatial_check`: also
-    mask pixels that jump by more than half a fringe period from their 5x5 median.
+    cut the map where neighbours jump by more than half a fringe period and reject the
+    regions between cuts smaller than `min_region_fraction` of the image (clustered
+    order errors, which no per-pixel test sees).
     """
 
     min_modulation: float = 0.005
     min_contrast: float = 0.12
     order_tolerance: float = 0.5
     spatial_check: bool = True
+    min_region_fraction: float = 1e-4
 
 
 @dataclass(eq=False)
@@ -142,13 +145,25 @@ def _graycode_unwrap(ps: PatternSet, wrapped: np.ndarray, bits: np.ndarray, back
     return wrapped + TWO_PI * order.astype(np.float32)
 
 
-def _spatial_outliers(coordinate: np.ndarray, valid: np.ndarray, period_px: float) -> np.ndarray:
-    """Pixels more than half a fringe period from their 5x5 median (judged only where most
-    of the neighbourhood is valid)."""
-    filled = np.where(valid, coordinate, 0).astype(np.float32)
-    median = cv2.medianBlur(filled, 5)
-    support = cv2.boxFilter(valid.astype(np.float32), -1, (5, 5), normalize=True)
-    return valid & (support >= 0.6) & (np.abs(filled - median) > period_px / 2.0)
+def _unreliable_regions(coordinate: np.ndarray, valid: np.ndarray, period_px: float,
+                        min_region_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fringe-order errors that came in clusters, found spatially.
+
+    The coordinate map is cut wherever neighbours differ by more than half a fringe period
+    (a depth step or an order error); regions smaller than `min_region_px` left between the
+    cuts are order-error islands. Returns (islands, cut pixels)."""
+    c = np.where(valid, coordinate, np.float32(np.nan))
+    half = np.float32(period_px / 2.0)
+    cut = np.zeros(valid.shape, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        cut[:, :-1] |= np.abs(c[:, 1:] - c[:, :-1]) > half
+        cut[:-1, :] |= np.abs(c[1:, :] - c[:-1, :]) > half
+    cut &= valid
+    _, labels, stats, _ = cv2.connectedComponentsWithStats((valid & ~cut).view(np.uint8), connectivity=4,
+                                                           ltype=cv2.CV_32S)
+    small = stats[:, cv2.CC_STAT_AREA] < min_region_px
+    small[0] = False  # label 0: invalid or cut pixels
+    return small[labels], cut
 
 
 def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_size: tuple[int, int],
@@ -206,13 +221,16 @@ def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
         b_fine = modulation[finest]
         masks["shadow"] = b_fine < settings.min_contrast * np.maximum(background, 1e-6)
         masks["low_modulation"] = ~masks["shadow"] & (b_fine < settings.min_modulation * full_scale)
-        valid = ~(masks["saturated"] | masks["shadow"] | masks["low_modulation"] | masks["order_error"])
+        valid = ~(masks["saturated"] | masks["shadow"] | masks["low_modulation"])
+        masks["order_error"] &= valid  # reasons stay distinct: an order error is judged on a usable phase
+        valid &= ~masks["order_error"]
         coordinate = phase * np.float32(extent / (2.0 * np.pi * f_max))
         coordinate -= np.float32(0.5)
         if settings.spatial_check:
-            spatial = _spatial_outliers(coordinate, valid, extent / f_max)
-            masks["order_error"] |= spatial
-            valid &= ~spatial
+            min_region = max(1, int(settings.min_region_fraction * valid.size))
+            islands, masks["discontinuity"] = _unreliable_regions(coordinate, valid, extent / f_max, min_region)
+            masks["order_error"] |= islands
+            valid &= ~(islands | masks["discontinuity"])
         coordinate[~valid] = np.nan
         phase[~valid] = np.nan
         maps[orientation] = OrientationMaps(orientation, coordinate, phase, wrapped, modulation, background, weight,

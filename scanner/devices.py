@@ -244,8 +244,14 @@ class Projector(Device):
             raise UnsupportedSetting(self.name, "no patterns loaded")
         self._do_run_sequence(period_s, on_pattern)
 
+    def stop_sequence(self) -> None:
+        """Stop a running sequence, if any; harmless otherwise and after shutdown."""
+        self._do_stop_sequence()
+
     def describe(self) -> dict[str, object]:
         return {**super().describe(), "width": self.width, "height": self.height, "n_patterns": self._n_patterns}
+
+    def _do_stop_sequence(self) -> None: ...
 
     @abc.abstractmethod
     def _do_load_patterns(self, patterns: np.ndarray) -> None: ...
@@ -272,9 +278,15 @@ class TriggerSource(Device):
         self._check_alive()
         self._do_start()
 
+    def stop(self) -> None:
+        """Stop a running pulse train, if any; harmless otherwise and after shutdown."""
+        self._do_stop()
+
     @property
     def pulses_sent(self) -> int:
         return self._do_pulses_sent()
+
+    def _do_stop(self) -> None: ...
 
     @abc.abstractmethod
     def _do_arm(self, count: int, period_s: float, pulse_width_s: float) -> None: ...

@@ -34,6 +34,7 @@ class RigConfig:
     driver: str
     trigger: str
     timeout_s: float
+    period_s: float
     working_distance_mm: float
     patterns_path: Path
     camera: dict[str, Any]
@@ -54,9 +55,12 @@ class RigConfig:
         timeout = get(rig, "timeout_s", float, path, 2.0, "rig")
         if not timeout > 0:
             raise ConfigError(path, "rig.timeout_s", "must be > 0: every wait is finite")
+        period = get(rig, "period_s", float, path, 0.05, "rig")
+        if not 0 < period < timeout:
+            raise ConfigError(path, "rig.period_s", f"pattern period {period} s must be > 0 and below timeout_s")
         patterns = resolve(path, get(rig, "patterns", str, path, "../patterns/heterodyne_3x4.toml", "rig"))
         cfg = cls(path=path, name=get(rig, "name", str, path, path.stem, "rig"), driver=driver, trigger=trigger,
-                  timeout_s=timeout, working_distance_mm=get(rig, "working_distance_mm", float, path, 400.0, "rig"),
+                  timeout_s=timeout, period_s=period, working_distance_mm=get(rig, "working_distance_mm", float, path, 400.0, "rig"),
                   patterns_path=patterns, camera=get_table(raw, "camera", path),
                   projector=get_table(raw, "projector", path), raw=raw)
         cfg.nominal_model()  # validates the geometry keys now, naming the file

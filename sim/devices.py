@@ -171,7 +171,7 @@ class SimProjector(Projector):
             t.join(timeout_s)
         return not self.sequence_running
 
-    def stop_sequence(self) -> None:
+    def _do_stop_sequence(self) -> None:
         """Stop a running sequence (the current pattern stays on)."""
         self._seq_stop.set()
         t = self._seq_thread
@@ -512,7 +512,7 @@ class SimTriggerBox(TriggerSource):
             t.join(timeout_s)
         return not self.running
 
-    def stop(self) -> None:
+    def _do_stop(self) -> None:
         self._stop.set()
         t = self._thread
         if t is not None and t is not threading.current_thread():

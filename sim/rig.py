@@ -6,6 +6,7 @@
     rig.extras["renderer"]       # sim.render.Renderer (noise-free images, sensor model)
     rig.extras["sensor"]         # sim.render.SensorModel
     rig.extras["faults"]         # sim.devices.Faults in effect
+    rig.extras["session_files"]  # saves the ground truth (sim.evaluate.Truth) into each session
 
 Trigger wiring (`rig.trigger` in the rig TOML):
     software     camera software-triggered; no trigger source, no cable
@@ -24,7 +25,8 @@ from scanner.devices import TriggerMode, TriggerType
 from scanner.errors import ConfigError
 from scanner.rig import Rig, RigConfig
 
-from .devices import Faults, SimCamera, SimProjector, SimTriggerBox
+from .devices import Faults
+from .evaluate import GROUND_TRUTH_FILE, Truth, SimCamera, SimProjector, SimTriggerBox
 from .render import SUPPORTED_BIT_DEPTHS, Renderer, SensorModel
 from .scene import Scene, load_scene
 
@@ -74,6 +76,8 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
             if dev is not None:
                 dev.shutdown()
         raise
+    truth = Truth.of(renderer.ground_truth)
     extras = {"ground_truth": renderer.ground_truth, "scene": scene, "renderer": renderer, "sensor": sensor,
-              "faults": faults, "seed": seed}
+              "faults": faults, "seed": seed,
+              "session_files": [lambda root: truth.save(Path(root) / GROUND_TRUTH_FILE)]}
     return Rig(config=config, camera=camera, projector=projector, trigger=trigger, model=model, extras=extras)

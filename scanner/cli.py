@@ -1,0 +1,199 @@
+"""The `slscan` command line: scan, decode, bench, review, demo.
+
+The CLI sits above every package: it may import the simulator (lazily) to save and judge
+ground truth for simulated scans.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+from .config import CONFIG_DIR
+from .errors import ConfigError, ScannerError
+from .reconstruct import Triangulator
+from .rig import DEFAULT_RIG
+from .session import write_json
+
+DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
+
+
+class ProgressLine:
+    """A one-line progress display on stderr (plain lines when stderr is not a terminal)."""
+
+    def __init__(self, stream: Any = sys.stderr) -> None:
+        self.stream = stream
+        self.tty = stream.isatty()
+        self.last = ""
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        bar = "#" * int(20 * done / max(total, 1))
+        line = f"{stage:<12}[{bar:<20}] {done}/{total}"
+        if self.tty:
+            self.stream.write("\r" + line.ljust(len(self.last)))
+            if stage == "done":
+                self.stream.write("\n")
+        elif stage != self.last.split(" ")[0] or done == total:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+        self.last = line
+
+
+def _parse_faults(items: Sequence[str]) -> Any:
+    from sim.devices import Faults
+
+    table: dict[str, Any] = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        if not value:
+            raise ConfigError("--fault", item, "expected NAME=VALUE, e.g. drop_frame=3")
+        table[key] = float(value) if key == "delay_s" else int(value)
+    return Faults.from_table(table, "--fault", prefix="--fault")
+
+
+def cmd_scan(args: argparse.Namespace) -> int:
+    from .patterns import PatternSet
+    from .pipeline import scan
+    from .rig import RigConfig, open_rig
+
+    config = RigConfig.load(args.rig)
+    patterns = PatternSet.load(args.patterns or config.patterns_path)
+    options: dict[str, Any] = {}
+    if config.driver == "sim":
+        options = {"scene": args.scene or DEMO_SCENE, "seed": args.seed}
+        if args.fault:
+            options["faults"] = _parse_faults(args.fault)
+    elif args.scene or args.fault:
+        raise ConfigError(config.path, "rig.driver", "--scene and --fault apply to simulated rigs only")
+    out = Path(args.out)
+    print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
+          f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
+    with open_rig(config, **options) as rig:
+        result = scan(rig, patterns, out, ProgressLine())
+    report(result)
+    return 0
+
+
+def report(result: Any) -> None:
+    """Print what a processed session holds, and its accuracy when ground truth is there."""
+    s = result.session
+    t = result.timings_s
+    print(f"session   {s.root}")
+    print(f"cloud     {result.cloud_path}  ({len(result.cloud)} points, "
+          f"{result.decoded.valid.mean() * 100:.1f} % of pixels valid)")
+    print(f"recording {s.recording_path}   (view: slscan review {s.root})")
+    print(f"timings   decode {t['decode'] * 1e3:.0f} ms, reconstruct {t['reconstruct'] * 1e3:.0f} ms")
+    acc = sim_accuracy(result)
+    if acc is not None:
+        print(f"accuracy  {acc.summary()}")
+
+
+def sim_accuracy(result: Any) -> Any:
+    """Accuracy against the simulator's ground truth, if the session has it."""
+
+    from sim.evaluate import GROUND_TRUTH_FILE, Truth, evaluate
+    from sim.render import SensorModel
+
+    path = result.session.root / GROUND_TRUTH_FILE
+    if not path.exists() or len(result.decoded.maps) != 1:
+        return None
+
+    manifest = result.session.manifest
+    sensor = SensorModel.from_table(manifest["rig_config"]["camera"]["sensor"], result.session.root / "manifest.json")
+    acc = evaluate(result.decoded, result.cloud, Truth.load(path), sensor, Triangulator(result.session.rig_model()))
+    write_json(result.session.outputs / "accuracy.json", acc.as_dict())
+    return acc
+
+
+def cmd_decode(args: argparse.Namespace) -> int:
+    from .pipeline import reprocess
+    from .session import Session
+
+    result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode)
+    report(result)
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from .bench import format_table, run_bench
+
+    r = run_bench(args.width, args.height, Path(args.patterns) if args.patterns else None, repeats=args.repeats)
+    print(json.dumps(r) if args.json else format_table(r))
+    return 0
+
+
+def cmd_review(args: argparse.Namespace) -> int:
+    from .recording import review
+    from .session import RECORDING, Session
+
+    session = Session.open(args.session)
+    path = session.root / RECORDING
+    if not path.exists():
+        raise ScannerError(f"{path}: no recording; run `slscan decode {session.root}` to make one")
+    return review(path, port=args.port)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    out = args.out or f"sessions/demo-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[])
+    return cmd_scan(ns)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="slscan", description="Structured-light 3D scanner for a bench station.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("scan", help="scan a part into a session folder (raw frames, cloud PLY, Rerun recording)")
+    s.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML (default: the simulated bench rig)")
+    s.add_argument("--scene", help="simulated rigs: scene TOML or a mesh file (PLY/STL/OBJ)")
+    s.add_argument("--out", required=True, help="new session folder")
+    s.add_argument("--patterns", help="pattern set TOML (default: the rig's)")
+    s.add_argument("--seed", type=int, default=0, help="simulated rigs: noise seed")
+    s.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
+                   help="simulated rigs: inject a fault (drop_frame=K, delay_frame=K, delay_s=S, "
+                        "disconnect_after=N, stale_frame=K)")
+    s.set_defaults(func=cmd_scan)
+
+    d = sub.add_parser("decode", help="regenerate every output of a session from its raw frames")
+    d.add_argument("session")
+    d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation")
+    d.set_defaults(func=cmd_decode)
+
+    b = sub.add_parser("bench", help="decode + reconstruction time and peak memory")
+    b.add_argument("--width", type=int, default=2448)
+    b.add_argument("--height", type=int, default=2048)
+    b.add_argument("--patterns", help="pattern set TOML (default: 3 frequencies x 4 steps)")
+    b.add_argument("--repeats", type=int, default=5)
+    b.add_argument("--json", action="store_true", help="print a JSON object")
+    b.set_defaults(func=cmd_bench)
+
+    r = sub.add_parser("review", help="open a session's recording in the Rerun viewer (web when headless)")
+    r.add_argument("session")
+    r.add_argument("--port", type=int, default=9090)
+    r.set_defaults(func=cmd_review)
+
+    m = sub.add_parser("demo", help="scan the bundled part on the default simulated rig")
+    m.add_argument("--out", help="session folder (default: sessions/demo-<time>)")
+    m.add_argument("--seed", type=int, default=0)
+    m.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except ScannerError as exc:
+        print(f"\nslscan {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"\nslscan {args.command}: interrupted; frames already captured are kept", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

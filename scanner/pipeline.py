@@ -1,0 +1,155 @@
+"""The scan as data: capture into a session, then decode and reconstruct from its raw
+frames alone. Each stage takes arrays or small typed objects and returns the same."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .acquisition import AcquisitionSettings, acquire
+from .decode import DecodeResult, DecodeSettings, decode
+from .devices import Frame
+from .errors import ScannerError
+from .patterns import PatternSet
+from .pointcloud import OrganisedCloud, write_ply
+from .reconstruct import Triangulator, phase_to_height_cloud, triangulate
+from .recording import SessionRecording
+from .rig import Rig
+from .session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, write_json
+
+Progress = Callable[[str, int, int], None]  # (stage, done, total)
+
+
+def _quiet(stage: str, done: int, total: int) -> None:
+    pass
+
+
+@dataclass(eq=False)
+class ScanResult:
+    """What processing a session produced; figures in seconds and counts."""
+
+    session: Session
+    decoded: DecodeResult
+    cloud: OrganisedCloud
+    timings_s: dict[str, float]
+
+    @property
+    def cloud_path(self) -> Path:
+        return self.session.outputs / "cloud.ply"
+
+
+def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Progress = _quiet,
+            recording: SessionRecording | None = None) -> Session:
+    """Capture one scan into the writer's new session folder and return it, complete.
+
+    On any failure the frames already captured stay on disk, `error.json` says what
+    happened, the session has no manifest (so it is reported incomplete), and the error
+    is raised again."""
+    n = patterns.n_frames
+    specs = patterns.frames()
+    for save in rig.extras.get("session_files", ()):  # driver-specific data kept with the raw frames
+        save(writer.root)
+
+    def on_frame(k: int, frame: Frame) -> None:
+        writer.add_frame(k, frame)
+        if recording is not None:
+            recording.log_frame(k, frame, specs[k])
+        progress("capture", k + 1, n)
+
+    t0 = time.perf_counter()
+    try:
+        acquire(rig, patterns, AcquisitionSettings.for_rig(rig), on_frame)
+    except BaseException as exc:  # includes Ctrl-C: the capture is recorded as failed
+        writer.fail(exc, "capture")
+        raise
+    timings = {"capture": round(time.perf_counter() - t0, 4)}
+    devices = {name: dev.describe() for name, dev in
+               (("camera", rig.camera), ("projector", rig.projector), ("trigger", rig.trigger)) if dev is not None}
+    writer.finish(rig.config.raw, rig.model, patterns, devices, timings,
+                  {"rig_config_path": str(rig.config.path), "wiring": rig.config.trigger})
+    return Session.open(writer.root)
+
+
+def process(session: Session, progress: Progress = _quiet, recording: SessionRecording | None = None,
+            settings: DecodeSettings = DecodeSettings(), mode: str = "triangulation") -> ScanResult:
+    """Decode and reconstruct a complete session from its raw frames; write the outputs
+    (cloud PLY, maps, result JSON) beside them."""
+    if mode not in ("triangulation", "phase_to_height"):
+        raise ScannerError(f"unknown reconstruction mode '{mode}'; use triangulation or phase_to_height")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    progress("load", 0, 1)
+    stack = session.load_stack()
+    patterns = session.patterns
+    model = session.rig_model()
+    timings["load"] = time.perf_counter() - t0
+    progress("decode", 0, 1)
+    t0 = time.perf_counter()
+    decoded = decode(stack, patterns, session.bit_depth, model.projector.size, settings)
+    timings["decode"] = time.perf_counter() - t0
+    progress("reconstruct", 0, 1)
+    t0 = time.perf_counter()
+    if mode == "triangulation":
+        cloud = triangulate(decoded, Triangulator(model))
+    else:
+        cloud = phase_to_height_cloud(decoded, model)
+    timings["reconstruct"] = time.perf_counter() - t0
+    progress("write", 0, 1)
+    t0 = time.perf_counter()
+    out = session.root / OUTPUTS_DIR
+    out.mkdir(exist_ok=True)
+    n_points = write_ply(out / "cloud.ply", cloud)
+    save_maps(out / "maps.npz", decoded)
+    timings["write"] = time.perf_counter() - t0
+    timings = {k: round(v, 4) for k, v in timings.items()}
+    stats = {"points": n_points, "valid_fraction": round(float(decoded.valid.mean()), 5),
+             "rejected": {f"{o}/{k}": int(v.sum()) for o, m in decoded.maps.items() for k, v in m.masks.items()}}
+    write_json(out / "result.json", {"session_id": session.id, "mode": mode, "timings_s": timings, **stats})
+    if recording is not None:
+        recording.log_decode(decoded)
+        recording.log_cloud(cloud, model)
+        recording.log_metrics({**{f"{k}_s": v for k, v in timings.items()}, "valid_fraction": stats["valid_fraction"],
+                               "points": n_points})
+    progress("done", 1, 1)
+    return ScanResult(session, decoded, cloud, timings)
+
+
+def save_maps(path: Path, decoded: DecodeResult) -> None:
+    """The decoded maps as a compressed npz (float32 maps, bool masks), for later analysis."""
+    arrays: dict[str, np.ndarray] = {"texture": decoded.texture, "valid": decoded.valid}
+    for o, m in decoded.maps.items():
+        arrays[f"{o}/coordinate"] = m.coordinate
+        arrays[f"{o}/phase"] = m.phase
+        arrays[f"{o}/modulation"] = m.modulation[int(np.argmax(decoded.patterns.fringes))]
+        for name, mask in m.masks.items():
+            arrays[f"{o}/mask/{name}"] = mask
+    tmp = path.with_name(f".{path.name}.part.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(path)
+
+
+def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triangulation") -> ScanResult:
+    """Regenerate every output of a session, its Rerun recording included, from the raw
+    frames and manifest alone."""
+    stack = session.load_stack()
+    specs = session.patterns.frames()
+    with SessionRecording(session.recording_path, session.id) as rec:
+        rec.log_rig(session.rig_model())
+        for k, entry in enumerate(session.manifest["frames"]):
+            rec.log_frame(k, Frame(stack[k], entry["index"], entry["pattern_index"], entry["timestamp_s"],
+                                   entry["exposure_s"], entry["bit_depth"]), specs[k])
+        return process(session, progress, rec, mode=mode)
+
+
+def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress = _quiet) -> ScanResult:
+    """Capture, decode and reconstruct one scan, recording every stage to the session's
+    Rerun file."""
+    writer = SessionWriter.create(out_dir)
+    with SessionRecording(writer.root / RECORDING, writer.id) as rec:
+        rec.log_rig(rig.model)
+        session = capture(rig, patterns, writer, progress, rec)
+        return process(session, progress, rec)

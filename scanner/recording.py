@@ -1,0 +1,661 @@
+"""Rerun recording of a scan session: one `.rrd` file per session, beside the raw data.
+
+A `SessionRecording` wraps one explicit `rerun.RecordingStream` (never the global one, so
+several sessions can be recorded in one process) that streams into `<path>.part` and is
+renamed to `<path>` when it is closed, footer written: a `.rrd` that exists is complete.
+
+Entity paths are module constants and stay stable, because users build viewer layouts on
+them. Units are millimetres and radians; the 3D space `world` is the rig's world frame in
+the OpenCV convention (x right, y down, z forward).
+
+=========================================  ==========================================  ===============
+entity path                                content                                      timelines
+=========================================  ==========================================  ===============
+``world``                                  ViewCoordinates RDF                          static
+``world/camera``                           Transform3D world_from_cam + Pinhole         static
+``world/camera/image``                     raw frames, Image at their bit depth         pattern, scan
+``world/projector``                        Transform3D world_from_cam·cam_from_proj     static
+                                           + Pinhole
+``world/scan/cloud``                       Points3D in the world frame, grey colours    scan
+``world/scan/normals``                     Arrows3D, a subsample of the normals (opt.)  scan
+``frames/spec``                            TextLog: the pattern each frame shows        pattern, scan
+``rig``                                    TextDocument: the rig model as JSON          static
+``maps``                                   AnnotationContext naming the mask classes    static
+``maps/<orientation>/coordinate``          DepthImage: projector px, 0 where invalid    scan
+``maps/<orientation>/phase``               DepthImage: absolute phase, 0 where invalid  scan
+``maps/<orientation>/wrapped/<i>``         DepthImage: wrapped phase [0, 2π) of         scan
+                                           frequency i (index into PatternSet.fringes)
+``maps/<orientation>/modulation/<i>``      DepthImage: modulation B (DN) of frequency i scan
+``maps/<orientation>/background``          Image: background A (DN)                     scan
+``maps/<orientation>/masks``               SegmentationImage: rejection reason per px   scan
+``maps/texture``                           Image: mean intensity (DN)                   scan
+``maps/masks``                             SegmentationImage: reason over all           scan
+                                           orientations; class 0 == DecodeResult.valid
+``metrics/<name>``                         Scalars (timings in s, fractions, errors)    scan
+``events``                                 TextLog: session events and errors           as logged
+=========================================  ==========================================  ===============
+
+Timelines: ``pattern`` is the frame's index in its pattern sequence (`PatternSet.frames()`),
+``scan`` the scan's index in the session; Rerun adds ``log_time`` (wall clock) by itself.
+
+Mask classes (``maps/masks``, ``maps/<orientation>/masks``): 0 valid (transparent),
+1 saturated, 2 shadow, 3 low_modulation, 4 order_error, then any other reason `decode`
+reports, and 255 "rejected" for a pixel invalid without a named reason. A pixel rejected
+for several reasons shows the first in that order.
+
+Rerun images cannot carry NaN sensibly (the viewer's colour range skips NaN, but the GPU's
+colour of a NaN texel is undefined), so NaN map pixels are written as 0 with the colour
+range set from the valid pixels; the mask overlay in the blueprint marks them.
+
+Rerun places the centre of pixel (0, 0) at (0.5, 0.5) while OpenCV puts it at (0, 0): the
+logged pinholes have the principal point shifted by +0.5 px so 3D points land on the right
+pixel of the logged images.
+"""
+
+from __future__ import annotations
+
+import getpass
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+from urllib.parse import quote
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from .decode import DecodeResult, OrientationMaps
+from .errors import ScannerError
+from .geometry import Pinhole, RigModel
+from .patterns import FrameSpec, PatternSet
+from .pointcloud import OrganisedCloud
+
+APPLICATION_ID = "slscan"
+RECORDING_NAME = "recording.rrd"  # file name inside a session folder
+
+TIMELINE_PATTERN = "pattern"
+TIMELINE_SCAN = "scan"
+
+WORLD = "world"
+CAMERA = "world/camera"
+CAMERA_IMAGE = "world/camera/image"
+PROJECTOR = "world/projector"
+CLOUD = "world/scan/cloud"
+NORMALS = "world/scan/normals"
+FRAME_SPEC = "frames/spec"
+RIG_INFO = "rig"
+MAPS = "maps"
+MAP_TEXTURE = "maps/texture"
+MAP_MASKS = "maps/masks"
+METRICS = "metrics"
+EVENTS = "events"
+
+MAP_KINDS = ("coordinate", "phase", "wrapped", "modulation", "background", "masks")
+
+VALID_CLASS = 0
+REJECTED_CLASS = 255
+REASONS = ("saturated", "shadow", "low_modulation", "order_error")  # class ids 1, 2, ...
+_REASON_COLORS = {"saturated": (230, 40, 40, 255), "shadow": (70, 90, 200, 255),
+                  "low_modulation": (240, 160, 30, 255), "order_error": (220, 40, 220, 255)}
+_OTHER_REASON_COLOR = (120, 120, 120, 255)
+
+DEFAULT_WEB_PORT = 9090
+DEFAULT_GRPC_PORT = 9876
+
+
+class RecordingError(ScannerError):
+    """A recording cannot be written, or a `.rrd` file cannot be read back."""
+
+
+# ---------------------------------------------------------------- entity path helpers
+
+
+def map_path(kind: str, orientation: str | None = None, level: int | None = None) -> str:
+    """Entity path of a decoded map: `maps/<orientation>/<kind>[/<level>]`."""
+    if kind not in MAP_KINDS and kind != "texture":
+        raise ValueError(f"unknown map kind '{kind}'; known: {MAP_KINDS + ('texture',)}")
+    parts = [MAPS] + ([orientation] if orientation else []) + [kind] + ([str(level)] if level is not None else [])
+    return "/".join(parts)
+
+
+def metric_path(name: str) -> str:
+    """Entity path of a metric: `metrics/<name>` (`name` may contain '/' to group)."""
+    name = name.strip("/")
+    if not name:
+        raise ValueError("metric name is empty")
+    return f"{METRICS}/{name}"
+
+
+def spec_name(spec: FrameSpec) -> str:
+    """Short human-readable name of a frame's pattern, e.g. 'vertical phase f0 s2'."""
+    if spec.kind == "phase":
+        return f"{spec.orientation} phase f{spec.level} s{spec.step}"
+    return f"{spec.orientation} {spec.kind} b{spec.level}"
+
+
+def _rerun_pinhole(p: Pinhole, image_plane_mm: float | None) -> rr.Pinhole:
+    K = p.K.copy()
+    K[0, 2] += 0.5  # OpenCV pixel centres at integers, Rerun's at +0.5
+    K[1, 2] += 0.5
+    return rr.Pinhole(image_from_camera=K, resolution=[p.width, p.height], camera_xyz=rr.ViewCoordinates.RDF,
+                      image_plane_distance=image_plane_mm)
+
+
+def _transform(T: np.ndarray) -> rr.Transform3D:
+    T = np.asarray(T, dtype=np.float64)
+    return rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3])
+
+
+def _grey_rgba(grey: np.ndarray) -> np.ndarray:
+    """uint8 grey levels as packed 0xRRGGBBAA colours."""
+    c = grey.astype(np.uint32)
+    c *= np.uint32(0x01010100)
+    c |= np.uint32(0xFF)
+    return c
+
+
+def _finite_range(a: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, float] | None:
+    vals = a[valid] if valid is not None else a[np.isfinite(a)]
+    if vals.size == 0:
+        return None
+    lo, hi = float(vals.min()), float(vals.max())
+    return (lo, hi) if hi > lo else (lo - 1.0, hi + 1.0)
+
+
+def _reason_ids(names: Sequence[str]) -> dict[str, int]:
+    """Class id per rejection reason: the known reasons first, others after them."""
+    ordered = [r for r in REASONS if r in names] + sorted(n for n in names if n not in REASONS)
+    ids = {r: i + 1 for i, r in enumerate(REASONS)}
+    for n in ordered:
+        if n not in ids:
+            ids[n] = len(ids) + 1
+    if len(ids) >= REJECTED_CLASS:
+        raise RecordingError(f"too many rejection reasons to label ({len(ids)})")
+    return ids
+
+
+def _reason_image(masks: Mapping[str, np.ndarray], valid: np.ndarray, ids: Mapping[str, int]) -> np.ndarray:
+    """uint8 class image: 0 valid, else the first reason (in class id order) that applies."""
+    cls = np.zeros(valid.shape, dtype=np.uint8)
+    cls[~valid] = REJECTED_CLASS
+    for name in sorted(masks, key=lambda n: ids[n], reverse=True):  # lowest id written last, so it wins
+        cls[masks[name] & ~valid] = ids[name]
+    return cls
+
+
+def _annotation_context(ids: Mapping[str, int]) -> rr.AnnotationContext:
+    infos = [rr.AnnotationInfo(id=VALID_CLASS, label="valid", color=(0, 0, 0, 0)),
+             rr.AnnotationInfo(id=REJECTED_CLASS, label="rejected", color=_OTHER_REASON_COLOR)]
+    infos += [rr.AnnotationInfo(id=i, label=n, color=_REASON_COLORS.get(n, _OTHER_REASON_COLOR)) for n, i in ids.items()]
+    return rr.AnnotationContext(infos)
+
+
+# ---------------------------------------------------------------- blueprint
+
+
+def blueprint(orientations: Sequence[str] = ("vertical",), n_freq: int = 3) -> rrb.Blueprint:
+    """The default viewer layout: the 3D world and the metrics on the left; the camera image
+    and one tab of decoded maps per orientation (plus one for the combined maps) on the right."""
+
+    def overlay(origin: str, masks: str, name: str) -> rrb.Spatial2DView:
+        return rrb.Spatial2DView(origin=origin, contents=["$origin/**", masks], name=name)
+
+    tabs = []
+    for o in orientations:
+        masks = map_path("masks", o)
+        views = [overlay(map_path("coordinate", o), masks, f"{o} coordinate (px)"),
+                 overlay(map_path("phase", o), masks, f"{o} phase (rad)"),
+                 rrb.Spatial2DView(origin=masks, name=f"{o} rejected"),
+                 rrb.Spatial2DView(origin=map_path("background", o), name=f"{o} background")]
+        for i in range(n_freq):
+            views.append(rrb.Spatial2DView(origin=map_path("wrapped", o, i), name=f"{o} wrapped f{i}"))
+        for i in range(n_freq):
+            views.append(rrb.Spatial2DView(origin=map_path("modulation", o, i), name=f"{o} modulation f{i}"))
+        tabs.append(rrb.Grid(*views, name=o))
+    tabs.append(rrb.Grid(rrb.Spatial2DView(origin=MAP_TEXTURE, name="texture"),
+                         rrb.Spatial2DView(origin=MAP_MASKS, name="rejected (all)"), name="combined"))
+    left = rrb.Vertical(
+        rrb.Spatial3DView(origin=WORLD, name="3D"),
+        rrb.Tabs(rrb.TimeSeriesView(origin=METRICS, name="metrics"),
+                 rrb.TextLogView(origin="/", contents=[f"{FRAME_SPEC}/**", f"{EVENTS}/**"], name="log")),
+        row_shares=[3, 1])
+    right = rrb.Vertical(rrb.Spatial2DView(origin=CAMERA, name="camera"), rrb.Tabs(*tabs, name="maps"),
+                         row_shares=[1, 1])
+    return rrb.Blueprint(rrb.Horizontal(left, right, column_shares=[1, 1]),
+                         rrb.TimePanel(timeline=TIMELINE_SCAN), collapse_panels=False)
+
+
+# ---------------------------------------------------------------- the recording
+
+
+class SessionRecording:
+    """One session's Rerun recording, written to `path` (a `.rrd` file).
+
+    Use it as a context manager, or call `close()`: the file only gets its footer (and its
+    final name; until then it is `<path>.part`) when the recording is closed, which
+    happens even when the `with` block raises. Pass `patterns` to lay the maps out in the
+    default blueprint from the start; otherwise the layout follows the first decode logged.
+    """
+
+    def __init__(self, path: str | Path, session_id: str, *, patterns: PatternSet | None = None,
+                 send_blueprint: bool = True, application_id: str = APPLICATION_ID) -> None:
+        self.path = Path(path)
+        if not self.path.parent.is_dir():
+            raise RecordingError(f"{self.path}: folder does not exist; create the session folder first")
+        self.partial_path = self.path.with_name(self.path.name + ".part")
+        self.session_id = str(session_id)
+        self._world_from_cam = np.eye(4)
+        self._reason_ids: dict[str, int] = _reason_ids(REASONS)
+        self._blueprint_pending = send_blueprint
+        self._closed = False
+        self.stream = rr.RecordingStream(application_id, recording_id=self.session_id)
+        try:
+            self.stream.save(self.partial_path)
+            self.stream.send_recording_name(f"{application_id} {self.session_id}")
+            self.stream.log(MAPS, _annotation_context(self._reason_ids), static=True, strict=True)
+            if patterns is not None:
+                self._send_blueprint(patterns.orientations, len(patterns.fringes))
+        except Exception as exc:
+            self.stream.disconnect()
+            raise RecordingError(f"{self.partial_path}: cannot start the recording: {exc}") from exc
+
+    @classmethod
+    def for_session(cls, folder: str | Path, session_id: str, **kw: Any) -> SessionRecording:
+        """The recording of the session in `folder`, at `folder/recording.rrd`."""
+        return cls(Path(folder) / RECORDING_NAME, session_id, **kw)
+
+    # -- lifecycle
+
+    def __enter__(self) -> SessionRecording:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if exc is not None and not self._closed:
+            try:
+                self.event(f"session aborted: {exc_type.__name__ if exc_type else 'error'}: {exc}", level="ERROR")
+            except Exception:  # noqa: BLE001 — never mask the original exception
+                pass
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        """Flush, write the footer, and give the file its final name. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self._blueprint_pending:
+                self._send_blueprint(("vertical",), 0)
+            self.stream.flush()
+        finally:
+            self.stream.disconnect()  # closes the file sink: footer written
+        if self.partial_path.exists():
+            self.partial_path.replace(self.path)
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RecordingError(f"{self.path}: recording is closed")
+
+    def _send_blueprint(self, orientations: Sequence[str], n_freq: int) -> None:
+        # default only, not active: a layout the user made for this application stays in use
+        self.stream.send_blueprint(blueprint(orientations, n_freq), make_active=False, make_default=True)
+        self._blueprint_pending = False
+
+    def _at(self, scan: int | None = None, pattern: int | None = None) -> None:
+        """Set this thread's time context to exactly the given timelines."""
+        self.stream.reset_time()
+        if scan is not None:
+            self.stream.set_time(TIMELINE_SCAN, sequence=int(scan))
+        if pattern is not None:
+            self.stream.set_time(TIMELINE_PATTERN, sequence=int(pattern))
+
+    # -- content
+
+    def rig(self, model: RigModel, *, image_plane_mm: float | None = 100.0) -> None:
+        """The camera and the projector as posed pinholes under `world` (static)."""
+        self._check_open()
+        s = self.stream
+        self._world_from_cam = np.asarray(model.world_from_cam, dtype=np.float64)
+        s.log(WORLD, rr.ViewCoordinates.RDF, static=True, strict=True)
+        s.log(CAMERA, _transform(self._world_from_cam), _rerun_pinhole(model.camera, image_plane_mm),
+              static=True, strict=True)
+        s.log(PROJECTOR, _transform(self._world_from_cam @ model.cam_from_proj),
+              _rerun_pinhole(model.projector, image_plane_mm), static=True, strict=True)
+        text = "```json\n" + json.dumps(model.to_dict(), indent=1) + "\n```"
+        s.log(RIG_INFO, rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True, strict=True)
+
+    def frame(self, index: int, image: np.ndarray, spec: FrameSpec | None = None, *, scan: int = 0) -> None:
+        """One raw frame as it arrives: `index` is its place in the pattern sequence."""
+        self._check_open()
+        image = np.asarray(image)
+        if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
+            raise RecordingError(f"frame {index}: expected an (H, W) uint8 or uint16 image, "
+                                 f"got {image.dtype} {image.shape}")
+        self._at(scan, index)
+        self.stream.log(CAMERA_IMAGE, rr.Image(image), strict=True)
+        if spec is not None:
+            self.stream.log(FRAME_SPEC, rr.TextLog(f"{index}: {spec_name(spec)}", level="INFO"), strict=True)
+
+    def frames(self, stack: np.ndarray, specs: Sequence[FrameSpec] | None = None, *, scan: int = 0,
+               first_index: int = 0) -> None:
+        """A whole (N, H, W) stack at once (e.g. re-logged from a session folder), columnar."""
+        self._check_open()
+        stack = np.ascontiguousarray(stack)
+        if stack.ndim != 3 or stack.dtype not in (np.uint8, np.uint16):
+            raise RecordingError(f"expected an (N, H, W) uint8 or uint16 stack, got {stack.dtype} {stack.shape}")
+        n, h, w = stack.shape
+        if specs is not None and len(specs) != n:
+            raise RecordingError(f"{n} frames but {len(specs)} pattern specs")
+        idx = np.arange(first_index, first_index + n)
+        times = [rr.TimeColumn(TIMELINE_PATTERN, sequence=idx), rr.TimeColumn(TIMELINE_SCAN, sequence=np.full(n, scan))]
+        fmt = rr.components.ImageFormat(width=w, height=h, color_model="L",
+                                        channel_datatype="U8" if stack.dtype == np.uint8 else "U16")
+        self.stream.send_columns(CAMERA_IMAGE, times,
+                                 rr.Image.columns(buffer=stack.reshape(n, -1).view(np.uint8), format=[fmt] * n),
+                                 strict=True)
+        if specs is not None:
+            self.stream.send_columns(FRAME_SPEC, times, rr.TextLog.columns(
+                text=[f"{i}: {spec_name(s)}" for i, s in zip(idx, specs)], level=["INFO"] * n), strict=True)
+
+    def decoded(self, result: DecodeResult, *, scan: int = 0, detail: bool = True) -> None:
+        """The decoded maps as 2D images under `maps/`. `detail=False` logs only the
+        coordinates, masks and texture (the per-frequency maps are the bulk of the data)."""
+        self._check_open()
+        if self._blueprint_pending:
+            self._send_blueprint(tuple(result.maps), len(result.patterns.fringes))
+        names = sorted({n for m in result.maps.values() for n in m.masks})
+        ids = _reason_ids(names)
+        if ids != self._reason_ids:
+            self._reason_ids = ids
+            self.stream.log(MAPS, _annotation_context(ids), static=True, strict=True)
+        self._at(scan)
+        log = self.stream.log
+        for o, m in result.maps.items():
+            self._orientation_maps(o, m, ids, detail)
+        log(MAP_TEXTURE, rr.Image(np.asarray(result.texture, dtype=np.float32)), strict=True)
+        combined = np.zeros(result.valid.shape, dtype=np.uint8)
+        for m in result.maps.values():  # the first orientation that rejects a pixel names the reason
+            cls = _reason_image(m.masks, m.valid, ids)
+            np.copyto(combined, cls, where=(combined == VALID_CLASS))
+        combined[~result.valid & (combined == VALID_CLASS)] = REJECTED_CLASS
+        log(MAP_MASKS, rr.SegmentationImage(combined), strict=True)
+
+    def _orientation_maps(self, o: str, m: OrientationMaps, ids: Mapping[str, int], detail: bool) -> None:
+        log = self.stream.log
+        for kind, data in (("coordinate", m.coordinate), ("phase", m.phase)):
+            rng = _finite_range(data, m.valid)
+            img = np.where(m.valid, data, np.float32(0)).astype(np.float32, copy=False)
+            log(map_path(kind, o), rr.DepthImage(img, colormap="turbo", depth_range=rng), strict=True)
+        log(map_path("masks", o), rr.SegmentationImage(_reason_image(m.masks, m.valid, ids)), strict=True)
+        if not detail:
+            return
+        for i, (phi, b) in enumerate(zip(m.wrapped, m.modulation)):
+            log(map_path("wrapped", o, i), rr.DepthImage(np.asarray(phi, dtype=np.float32), colormap="twilight",
+                                                         depth_range=(0.0, 2.0 * np.pi)), strict=True)
+            b = np.asarray(b, dtype=np.float32)
+            log(map_path("modulation", o, i), rr.DepthImage(b, colormap="viridis",
+                                                            depth_range=(0.0, max(float(b.max()), 1.0))), strict=True)
+        log(map_path("background", o), rr.Image(np.asarray(m.background, dtype=np.float32)), strict=True)
+
+    def cloud(self, cloud: OrganisedCloud, *, scan: int = 0, world_from_cam: np.ndarray | None = None,
+              normals_step: int = 0, normal_length_mm: float = 2.0) -> int:
+        """The valid points, in the world frame, with their grey colours; returns the
+        number of points. `normals_step` > 0 also logs every n-th normal as an arrow."""
+        self._check_open()
+        pts, grey, nrm = cloud.flat()
+        T = self._world_from_cam if world_from_cam is None else np.asarray(world_from_cam, dtype=np.float64)
+        if not np.array_equal(T, np.eye(4)):
+            pts = pts @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
+            nrm = nrm @ T[:3, :3].T.astype(np.float32)
+        self._at(scan)
+        self.stream.log(CLOUD, rr.Points3D(np.ascontiguousarray(pts, dtype=np.float32), colors=_grey_rgba(grey)),
+                        strict=True)
+        if normals_step > 0:
+            sel = slice(None, None, int(normals_step))
+            o, v = pts[sel], nrm[sel]
+            ok = np.isfinite(v).all(axis=1)
+            self.stream.log(NORMALS, rr.Arrows3D(origins=o[ok], vectors=v[ok] * np.float32(normal_length_mm)),
+                            strict=True)
+        return len(pts)
+
+    def metrics(self, values: Mapping[str, float], *, scan: int = 0) -> None:
+        """Scalars under `metrics/<name>` on the scan timeline (seconds, fractions, mm, px)."""
+        self._check_open()
+        self._at(scan)
+        for name, value in values.items():
+            self.stream.log(metric_path(name), rr.Scalars(float(value)), strict=True)
+
+    def event(self, text: str, *, level: str = "INFO", scan: int | None = None) -> None:
+        """A line in the session's event log (`events`)."""
+        self._check_open()
+        self._at(scan)
+        self.stream.log(EVENTS, rr.TextLog(text, level=level), strict=True)
+
+
+# ---------------------------------------------------------------- reading back
+
+
+@dataclass(frozen=True)
+class EntitySummary:
+    """What one entity holds: row counts (temporal and static), timelines, components."""
+
+    rows: int = 0
+    static_rows: int = 0
+    timelines: frozenset[str] = frozenset()
+    components: frozenset[str] = frozenset()
+
+
+@dataclass(frozen=True)
+class RecordingSummary:
+    path: Path
+    application_id: str
+    recording_id: str
+    blueprints: int
+    entities: dict[str, EntitySummary] = field(default_factory=dict)
+
+    @property
+    def entity_paths(self) -> list[str]:
+        return sorted(self.entities)
+
+    @property
+    def timelines(self) -> set[str]:
+        return set().union(*(e.timelines for e in self.entities.values())) if self.entities else set()
+
+
+def _open_store(path: str | Path) -> tuple[Any, Any, int]:
+    from rerun.chunk import RrdReader
+
+    path = Path(path)
+    if not path.is_file():
+        part = path.with_name(path.name + ".part")
+        hint = f" (only {part.name} exists: the recording was never closed)" if part.exists() else ""
+        raise RecordingError(f"{path}: no such recording{hint}")
+    try:
+        reader = RrdReader(path)
+        entries = reader.recordings()
+        if not entries:
+            raise RecordingError(f"{path}: the file holds no recording")
+        return reader.store(store=entries[0]), entries[0], len(reader.blueprints())
+    except RecordingError:
+        raise
+    except Exception as exc:  # rerun raises RuntimeError for a file without its footer
+        raise RecordingError(f"{path}: cannot read the recording ({exc}); a file without its footer was not "
+                             f"closed properly — `rerun rrd migrate` or the viewer can still load it") from exc
+
+
+def _clean(entity_path: str) -> str:
+    return entity_path.lstrip("/")
+
+
+def read_summary(path: str | Path) -> RecordingSummary:
+    """Entities of a closed `.rrd` with their row counts, timelines and components.
+
+    Needs the file's footer (its chunk manifest): reading fails with `RecordingError`
+    on a recording that was not closed."""
+    store, entry, n_blueprints = _open_store(path)
+    acc: dict[str, dict[str, Any]] = {}
+    for chunk in store.stream():
+        e = acc.setdefault(_clean(chunk.entity_path), {"rows": 0, "static": 0, "tl": set(), "cols": set()})
+        if chunk.is_static:
+            e["static"] += chunk.num_rows
+        else:
+            e["rows"] += chunk.num_rows
+            e["tl"].update(chunk.timeline_names)
+        for f in chunk.to_record_batch().schema:
+            if (f.metadata or {}).get(b"rerun:kind") == b"data":
+                e["cols"].add(f.name)
+    entities = {k: EntitySummary(v["rows"], v["static"], frozenset(v["tl"]), frozenset(v["cols"]))
+                for k, v in acc.items() if not k.startswith("__")}
+    return RecordingSummary(Path(path), entry.application_id, entry.recording_id, n_blueprints, entities)
+
+
+def entity_paths(path: str | Path) -> list[str]:
+    """The entity paths of a closed `.rrd` (no leading '/')."""
+    return read_summary(path).entity_paths
+
+
+def read_component(path: str | Path, entity: str, component: str,
+                   timeline: str | None = TIMELINE_SCAN) -> list[tuple[int | None, np.ndarray]]:
+    """Every row of one component of one entity, as (time on `timeline`, flat numpy array),
+    ordered by time; e.g. `read_component(p, CLOUD, "Points3D:positions")`."""
+    import pyarrow as pa
+
+    store, _, _ = _open_store(path)
+    rows: list[tuple[int | None, np.ndarray]] = []
+    for chunk in store.stream():
+        if _clean(chunk.entity_path) != _clean(entity):
+            continue
+        batch = chunk.to_record_batch()
+        if component not in batch.schema.names:
+            continue
+        col = batch.column(component)
+        times = batch.column(timeline).to_pylist() if timeline and timeline in batch.schema.names else [None] * len(col)
+        for t, cell in zip(times, col):
+            if not cell.is_valid:
+                continue
+            values = cell.values
+            while isinstance(values, (pa.ListArray, pa.FixedSizeListArray, pa.LargeListArray)):
+                values = values.flatten()
+            rows.append((t, values.to_numpy(zero_copy_only=False)))
+    rows.sort(key=lambda r: (r[0] is None, r[0] if r[0] is not None else 0))
+    return rows
+
+
+def read_points(path: str | Path, entity: str = CLOUD) -> dict[int, np.ndarray]:
+    """The (M, 3) points of each scan's cloud, keyed by scan index."""
+    return {int(t) if t is not None else 0: a.reshape(-1, 3)
+            for t, a in read_component(path, entity, "Points3D:positions", TIMELINE_SCAN)}
+
+
+# ---------------------------------------------------------------- review
+
+
+def rerun_executable() -> list[str]:
+    """The Rerun viewer binary of the installed rerun-sdk.
+
+    The venv's `bin/rerun` is a Python wrapper that runs this binary as a child and does not
+    pass a terminate signal on, so stopping the wrapper would orphan the viewer: run the
+    binary itself when it is there."""
+    override = os.environ.get("RERUN_CLI_PATH")
+    if override:
+        return [override]
+    try:
+        import rerun_cli
+
+        binary = Path(rerun_cli.__file__).parent / ("rerun.exe" if sys.platform.startswith("win") else "rerun")
+        if binary.is_file() and os.access(binary, os.X_OK):
+            return [str(binary)]
+    except ImportError:
+        pass
+    venv_bin = Path(sys.executable).parent / "rerun"
+    if venv_bin.is_file():
+        return [str(venv_bin)]
+    found = shutil.which("rerun")
+    if found:
+        return [found]
+    raise RecordingError("cannot find the Rerun viewer: install rerun-sdk in this environment")
+
+
+def has_display(env: Mapping[str, str] | None = None) -> bool:
+    """True when a graphical session is reachable (X11 or Wayland)."""
+    env = os.environ if env is None else env
+    return bool(env.get("DISPLAY") or env.get("WAYLAND_DISPLAY"))
+
+
+def recording_file(path: str | Path) -> Path:
+    """The `.rrd` of a session folder, or `path` itself when it is a file."""
+    path = Path(path)
+    return path / RECORDING_NAME if path.is_dir() else path
+
+
+def review_command(path: str | Path, *, display: bool | None = None, web_port: int = DEFAULT_WEB_PORT,
+                   grpc_port: int = DEFAULT_GRPC_PORT, bind: str = "127.0.0.1") -> list[str]:
+    """The command line that shows a recording: the native viewer when there is a display,
+    otherwise a web viewer served over HTTP (`web_port`) fed by a gRPC server (`grpc_port`),
+    both listening on `bind` (loopback by default: reach them through an SSH tunnel)."""
+    rrd = str(recording_file(path))
+    if has_display() if display is None else display:
+        return [*rerun_executable(), rrd]
+    return [*rerun_executable(), "--serve-web", rrd, "--bind", bind,
+            "--web-viewer-port", str(web_port), "--port", str(grpc_port)]
+
+
+def web_url(web_port: int = DEFAULT_WEB_PORT, grpc_port: int = DEFAULT_GRPC_PORT, host: str = "localhost") -> str:
+    """The browser address of a web viewer started by `review_command(display=False)`."""
+    return f"http://{host}:{web_port}/?url=" + quote(f"rerun+http://{host}:{grpc_port}/proxy", safe="")
+
+
+def review_instructions(web_port: int = DEFAULT_WEB_PORT, grpc_port: int = DEFAULT_GRPC_PORT) -> str:
+    """What to open, and how to tunnel both ports from another machine."""
+    try:
+        login = f"{getpass.getuser()}@{socket.gethostname()}"
+    except Exception:  # noqa: BLE001 — only used in a hint
+        login = "USER@HOST"
+    return (f"No display here: serving the recording to a web browser.\n"
+            f"  Open:  {web_url(web_port, grpc_port)}\n"
+            f"  From another machine, first forward both ports over SSH:\n"
+            f"    ssh -N -L {web_port}:localhost:{web_port} -L {grpc_port}:localhost:{grpc_port} {login}\n"
+            f"  then open the same address there. Ctrl-C stops the server.")
+
+
+def start_review(path: str | Path, *, display: bool | None = None, web_port: int = DEFAULT_WEB_PORT,
+                 grpc_port: int = DEFAULT_GRPC_PORT, bind: str = "127.0.0.1",
+                 **popen_kw: Any) -> subprocess.Popen:
+    """Start the viewer or web server on a recording and return at once (see `review`)."""
+    rrd = recording_file(path)
+    if not rrd.is_file():
+        part = rrd.with_name(rrd.name + ".part")
+        hint = f"; {part.name} exists but was never closed (interrupted session)" if part.exists() else ""
+        raise RecordingError(f"{rrd}: no recording to review{hint}")
+    show = has_display() if display is None else display
+    cmd = review_command(rrd, display=show, web_port=web_port, grpc_port=grpc_port, bind=bind)
+    if not show:
+        print(review_instructions(web_port, grpc_port), flush=True)
+    return subprocess.Popen(cmd, **popen_kw)
+
+
+def review(path: str | Path, **kw: Any) -> int:
+    """`slscan review SESSION`: show the recording and block until the viewer or server
+    ends (Ctrl-C stops it); returns its exit code."""
+    proc = start_review(path, **kw)
+    try:
+        return proc.wait()
+    except KeyboardInterrupt:
+        proc.terminate()
+        try:
+            return proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            return proc.wait()
