@@ -25,8 +25,8 @@ from scanner.devices import TriggerMode, TriggerType
 from scanner.errors import ConfigError
 from scanner.rig import Rig, RigConfig
 
-from .devices import Faults
-from .evaluate import GROUND_TRUTH_FILE, Truth, SimCamera, SimProjector, SimTriggerBox
+from .devices import Faults, SimCamera, SimProjector, SimTriggerBox
+from .evaluate import GROUND_TRUTH_FILE, Truth
 from .render import SUPPORTED_BIT_DEPTHS, Renderer, SensorModel
 from .scene import Scene, load_scene
 
