@@ -124,11 +124,9 @@ def _temporal_unwrap(ps: PatternSet, wrapped: list[np.ndarray]) -> tuple[list[np
     p12 = _wrap_positive(wrapped[0] - wrapped[1])
     p23 = _wrap_positive(wrapped[1] - wrapped[2])
     p123 = _wrap_positive(p12 - p23)
-    f12, f23 = f[0] - f[1], f[1] - f[2]
-    a12 = _unwrap_step(p123, f12, p12, worst)
-    a23 = _unwrap_step(p123, f23, p23, worst)
-    return [_unwrap_step(a12, f[0] / f12, wrapped[0], worst), _unwrap_step(a12, f[1] / f12, wrapped[1], worst),
-            _unwrap_step(a23, f[2] / f23, wrapped[2], worst)], worst
+    f12 = f[0] - f[1]
+    a12 = _unwrap_step(p123, f12, p12, worst)  # the f1-f2 beat is the finer one: unwrap all three from it
+    return [_unwrap_step(a12, f[i] / f12, wrapped[i], worst) for i in range(3)], worst
 
 
 def _graycode_unwrap(ps: PatternSet, wrapped: np.ndarray, bits: np.ndarray, background: np.ndarray) -> np.ndarray:
@@ -145,19 +143,29 @@ def _graycode_unwrap(ps: PatternSet, wrapped: np.ndarray, bits: np.ndarray, back
     return wrapped + TWO_PI * order.astype(np.float32)
 
 
+def _typical_step(diff: np.ndarray) -> np.float32:
+    """Median |difference| between neighbours, from every 16th line (cheap, robust)."""
+    sample = np.abs(diff[::16])
+    sample = sample[~np.isnan(sample)]
+    return np.float32(np.median(sample)) if sample.size else np.float32(0.0)
+
+
 def _unreliable_regions(coordinate: np.ndarray, valid: np.ndarray, period_px: float,
                         min_region_px: int) -> tuple[np.ndarray, np.ndarray]:
     """Fringe-order errors that came in clusters, found spatially.
 
     The coordinate map is cut wherever neighbours differ by more than half a fringe period
-    (a depth step or an order error); regions smaller than `min_region_px` left between the
-    cuts are order-error islands. Returns (islands, cut pixels)."""
-    c = np.where(valid, coordinate, np.float32(np.nan))
+    beyond the map's typical neighbour step (a depth step or an order error); regions
+    smaller than `min_region_px` left between the cuts are order-error islands.
+    Returns (islands, cut pixels)."""
+    c = coordinate  # NaN where not valid
     half = np.float32(period_px / 2.0)
     cut = np.zeros(valid.shape, dtype=bool)
     with np.errstate(invalid="ignore"):
-        cut[:, :-1] |= np.abs(c[:, 1:] - c[:, :-1]) > half
-        cut[:-1, :] |= np.abs(c[1:, :] - c[:-1, :]) > half
+        dx = np.abs(c[:, 1:] - c[:, :-1])
+        cut[:, :-1] |= dx > half + _typical_step(dx)
+        dy = np.abs(c[1:, :] - c[:-1, :])
+        cut[:-1, :] |= dy > half + _typical_step(dy.T)
     cut &= valid
     _, labels, stats, _ = cv2.connectedComponentsWithStats((valid & ~cut).view(np.uint8), connectivity=4,
                                                            ltype=cv2.CV_32S)
@@ -226,13 +234,15 @@ def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
         valid &= ~masks["order_error"]
         coordinate = phase * np.float32(extent / (2.0 * np.pi * f_max))
         coordinate -= np.float32(0.5)
+        np.copyto(coordinate, np.float32(np.nan), where=~valid)
         if settings.spatial_check:
             min_region = max(1, int(settings.min_region_fraction * valid.size))
             islands, masks["discontinuity"] = _unreliable_regions(coordinate, valid, extent / f_max, min_region)
             masks["order_error"] |= islands
             valid &= ~(islands | masks["discontinuity"])
-        coordinate[~valid] = np.nan
-        phase[~valid] = np.nan
+        invalid = ~valid
+        np.copyto(coordinate, np.float32(np.nan), where=invalid)
+        np.copyto(phase, np.float32(np.nan), where=invalid)
         maps[orientation] = OrientationMaps(orientation, coordinate, phase, wrapped, modulation, background, weight,
                                             masks, valid, f_max, extent)
         backgrounds.append(background)

@@ -39,9 +39,9 @@ Timelines: ``pattern`` is the frame's index in its pattern sequence (`PatternSet
 ``scan`` the scan's index in the session; Rerun adds ``log_time`` (wall clock) by itself.
 
 Mask classes (``maps/masks``, ``maps/<orientation>/masks``): 0 valid (transparent),
-1 saturated, 2 shadow, 3 low_modulation, 4 order_error, then any other reason `decode`
-reports, and 255 "rejected" for a pixel invalid without a named reason. A pixel rejected
-for several reasons shows the first in that order.
+1 saturated, 2 shadow, 3 low_modulation, 4 order_error, 5 discontinuity, then any other
+reason `decode` reports (in name order), and 255 "rejected" for a pixel invalid without a
+named reason. A pixel rejected for several reasons shows the one with the lowest id.
 
 Rerun images cannot carry NaN sensibly (the viewer's colour range skips NaN, but the GPU's
 colour of a NaN texel is undefined), so NaN map pixels are written as 0 with the colour
@@ -58,9 +58,12 @@ import getpass
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
+import threading
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -73,6 +76,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from .decode import DecodeResult, OrientationMaps
+from .devices import Frame
 from .errors import ScannerError
 from .geometry import Pinhole, RigModel
 from .patterns import FrameSpec, PatternSet
@@ -102,9 +106,10 @@ MAP_KINDS = ("coordinate", "phase", "wrapped", "modulation", "background", "mask
 
 VALID_CLASS = 0
 REJECTED_CLASS = 255
-REASONS = ("saturated", "shadow", "low_modulation", "order_error")  # class ids 1, 2, ...
+REASONS = ("saturated", "shadow", "low_modulation", "order_error", "discontinuity")  # class ids 1, 2, ...
 _REASON_COLORS = {"saturated": (230, 40, 40, 255), "shadow": (70, 90, 200, 255),
-                  "low_modulation": (240, 160, 30, 255), "order_error": (220, 40, 220, 255)}
+                  "low_modulation": (240, 160, 30, 255), "order_error": (220, 40, 220, 255),
+                  "discontinuity": (40, 200, 200, 255)}
 _OTHER_REASON_COLOR = (120, 120, 120, 255)
 
 DEFAULT_WEB_PORT = 9090
@@ -256,6 +261,7 @@ class SessionRecording:
         self._reason_ids: dict[str, int] = _reason_ids(REASONS)
         self._blueprint_pending = send_blueprint
         self._closed = False
+        self._scan = 0  # the last scan index logged, for events
         self.stream = rr.RecordingStream(application_id, recording_id=self.session_id)
         try:
             self.stream.save(self.partial_path)
@@ -281,7 +287,7 @@ class SessionRecording:
                  tb: TracebackType | None) -> None:
         if exc is not None and not self._closed:
             try:
-                self.event(f"session aborted: {exc_type.__name__ if exc_type else 'error'}: {exc}", level="ERROR")
+                self.log_event(f"session aborted: {exc_type.__name__ if exc_type else 'error'}: {exc}", level="ERROR")
             except Exception:  # noqa: BLE001 — never mask the original exception
                 pass
         self.close()
@@ -297,7 +303,7 @@ class SessionRecording:
         self._closed = True
         try:
             if self._blueprint_pending:
-                self._send_blueprint(("vertical",), 0)
+                self._send_blueprint((), 0)
             self.stream.flush()
         finally:
             self.stream.disconnect()  # closes the file sink: footer written
@@ -317,13 +323,14 @@ class SessionRecording:
         """Set this thread's time context to exactly the given timelines."""
         self.stream.reset_time()
         if scan is not None:
+            self._scan = int(scan)
             self.stream.set_time(TIMELINE_SCAN, sequence=int(scan))
         if pattern is not None:
             self.stream.set_time(TIMELINE_PATTERN, sequence=int(pattern))
 
     # -- content
 
-    def rig(self, model: RigModel, *, image_plane_mm: float | None = 100.0) -> None:
+    def log_rig(self, model: RigModel, *, image_plane_mm: float | None = 100.0) -> None:
         """The camera and the projector as posed pinholes under `world` (static)."""
         self._check_open()
         s = self.stream
@@ -336,10 +343,12 @@ class SessionRecording:
         text = "```json\n" + json.dumps(model.to_dict(), indent=1) + "\n```"
         s.log(RIG_INFO, rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True, strict=True)
 
-    def frame(self, index: int, image: np.ndarray, spec: FrameSpec | None = None, *, scan: int = 0) -> None:
-        """One raw frame as it arrives: `index` is its place in the pattern sequence."""
+    def log_frame(self, index: int, frame: np.ndarray | Frame, spec: FrameSpec | None = None, *,
+                  scan: int = 0) -> None:
+        """One raw frame (an image, or a device `Frame`) as it arrives: `index` is its place
+        in the pattern sequence, `spec` the pattern it shows."""
         self._check_open()
-        image = np.asarray(image)
+        image = np.asarray(frame.image if isinstance(frame, Frame) else frame)
         if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
             raise RecordingError(f"frame {index}: expected an (H, W) uint8 or uint16 image, "
                                  f"got {image.dtype} {image.shape}")
@@ -348,7 +357,7 @@ class SessionRecording:
         if spec is not None:
             self.stream.log(FRAME_SPEC, rr.TextLog(f"{index}: {spec_name(spec)}", level="INFO"), strict=True)
 
-    def frames(self, stack: np.ndarray, specs: Sequence[FrameSpec] | None = None, *, scan: int = 0,
+    def log_frames(self, stack: np.ndarray, specs: Sequence[FrameSpec] | None = None, *, scan: int = 0,
                first_index: int = 0) -> None:
         """A whole (N, H, W) stack at once (e.g. re-logged from a session folder), columnar."""
         self._check_open()
@@ -369,7 +378,7 @@ class SessionRecording:
             self.stream.send_columns(FRAME_SPEC, times, rr.TextLog.columns(
                 text=[f"{i}: {spec_name(s)}" for i, s in zip(idx, specs)], level=["INFO"] * n), strict=True)
 
-    def decoded(self, result: DecodeResult, *, scan: int = 0, detail: bool = True) -> None:
+    def log_decode(self, result: DecodeResult, *, scan: int = 0, detail: bool = True) -> None:
         """The decoded maps as 2D images under `maps/`. `detail=False` logs only the
         coordinates, masks and texture (the per-frequency maps are the bulk of the data)."""
         self._check_open()
@@ -409,13 +418,15 @@ class SessionRecording:
                                                             depth_range=(0.0, max(float(b.max()), 1.0))), strict=True)
         log(map_path("background", o), rr.Image(np.asarray(m.background, dtype=np.float32)), strict=True)
 
-    def cloud(self, cloud: OrganisedCloud, *, scan: int = 0, world_from_cam: np.ndarray | None = None,
-              normals_step: int = 0, normal_length_mm: float = 2.0) -> int:
-        """The valid points, in the world frame, with their grey colours; returns the
-        number of points. `normals_step` > 0 also logs every n-th normal as an arrow."""
+    def log_cloud(self, cloud: OrganisedCloud, model: RigModel | None = None, *, scan: int = 0,
+                  normals_step: int = 0, normal_length_mm: float = 2.0) -> int:
+        """The valid points (camera frame in `cloud`) moved into the world frame with
+        `model.world_from_cam` (default: the rig logged with `log_rig`), with their grey
+        colours; returns the number of points. `normals_step` > 0 also logs every n-th
+        normal as an arrow of `normal_length_mm`."""
         self._check_open()
         pts, grey, nrm = cloud.flat()
-        T = self._world_from_cam if world_from_cam is None else np.asarray(world_from_cam, dtype=np.float64)
+        T = self._world_from_cam if model is None else np.asarray(model.world_from_cam, dtype=np.float64)
         if not np.array_equal(T, np.eye(4)):
             pts = pts @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
             nrm = nrm @ T[:3, :3].T.astype(np.float32)
@@ -430,17 +441,18 @@ class SessionRecording:
                             strict=True)
         return len(pts)
 
-    def metrics(self, values: Mapping[str, float], *, scan: int = 0) -> None:
+    def log_metrics(self, values: Mapping[str, float], *, scan: int = 0) -> None:
         """Scalars under `metrics/<name>` on the scan timeline (seconds, fractions, mm, px)."""
         self._check_open()
         self._at(scan)
         for name, value in values.items():
             self.stream.log(metric_path(name), rr.Scalars(float(value)), strict=True)
 
-    def event(self, text: str, *, level: str = "INFO", scan: int | None = None) -> None:
-        """A line in the session's event log (`events`)."""
+    def log_event(self, text: str, *, level: str = "INFO", scan: int | None = None) -> None:
+        """A line in the session's event log (`events`), at `scan` (default: the last scan
+        logged, so the line shows on the scan timeline)."""
         self._check_open()
-        self._at(scan)
+        self._at(self._scan if scan is None else scan)
         self.stream.log(EVENTS, rr.TextLog(text, level=level), strict=True)
 
 
@@ -483,7 +495,9 @@ def _open_store(path: str | Path) -> tuple[Any, Any, int]:
         hint = f" (only {part.name} exists: the recording was never closed)" if part.exists() else ""
         raise RecordingError(f"{path}: no such recording{hint}")
     try:
-        reader = RrdReader(path)
+        with warnings.catch_warnings():  # a missing footer is reported below, as an error
+            warnings.simplefilter("ignore")
+            reader = RrdReader(path)
         entries = reader.recordings()
         if not entries:
             raise RecordingError(f"{path}: the file holds no recording")
@@ -600,37 +614,37 @@ def recording_file(path: str | Path) -> Path:
     return path / RECORDING_NAME if path.is_dir() else path
 
 
-def review_command(path: str | Path, *, display: bool | None = None, web_port: int = DEFAULT_WEB_PORT,
+def review_command(path: str | Path, *, display: bool | None = None, port: int = DEFAULT_WEB_PORT,
                    grpc_port: int = DEFAULT_GRPC_PORT, bind: str = "127.0.0.1") -> list[str]:
     """The command line that shows a recording: the native viewer when there is a display,
-    otherwise a web viewer served over HTTP (`web_port`) fed by a gRPC server (`grpc_port`),
+    otherwise a web viewer served over HTTP (`port`) fed by a gRPC server (`grpc_port`),
     both listening on `bind` (loopback by default: reach them through an SSH tunnel)."""
     rrd = str(recording_file(path))
     if has_display() if display is None else display:
         return [*rerun_executable(), rrd]
     return [*rerun_executable(), "--serve-web", rrd, "--bind", bind,
-            "--web-viewer-port", str(web_port), "--port", str(grpc_port)]
+            "--web-viewer-port", str(port), "--port", str(grpc_port)]
 
 
-def web_url(web_port: int = DEFAULT_WEB_PORT, grpc_port: int = DEFAULT_GRPC_PORT, host: str = "localhost") -> str:
+def web_url(port: int = DEFAULT_WEB_PORT, grpc_port: int = DEFAULT_GRPC_PORT, host: str = "localhost") -> str:
     """The browser address of a web viewer started by `review_command(display=False)`."""
-    return f"http://{host}:{web_port}/?url=" + quote(f"rerun+http://{host}:{grpc_port}/proxy", safe="")
+    return f"http://{host}:{port}?url=" + quote(f"rerun+http://{host}:{grpc_port}/proxy", safe="")
 
 
-def review_instructions(web_port: int = DEFAULT_WEB_PORT, grpc_port: int = DEFAULT_GRPC_PORT) -> str:
+def review_instructions(port: int = DEFAULT_WEB_PORT, grpc_port: int = DEFAULT_GRPC_PORT) -> str:
     """What to open, and how to tunnel both ports from another machine."""
     try:
         login = f"{getpass.getuser()}@{socket.gethostname()}"
     except Exception:  # noqa: BLE001 — only used in a hint
         login = "USER@HOST"
     return (f"No display here: serving the recording to a web browser.\n"
-            f"  Open:  {web_url(web_port, grpc_port)}\n"
+            f"  Open:  {web_url(port, grpc_port)}\n"
             f"  From another machine, first forward both ports over SSH:\n"
-            f"    ssh -N -L {web_port}:localhost:{web_port} -L {grpc_port}:localhost:{grpc_port} {login}\n"
+            f"    ssh -N -L {port}:localhost:{port} -L {grpc_port}:localhost:{grpc_port} {login}\n"
             f"  then open the same address there. Ctrl-C stops the server.")
 
 
-def start_review(path: str | Path, *, display: bool | None = None, web_port: int = DEFAULT_WEB_PORT,
+def start_review(path: str | Path, *, display: bool | None = None, port: int = DEFAULT_WEB_PORT,
                  grpc_port: int = DEFAULT_GRPC_PORT, bind: str = "127.0.0.1",
                  **popen_kw: Any) -> subprocess.Popen:
     """Start the viewer or web server on a recording and return at once (see `review`)."""
@@ -640,22 +654,30 @@ def start_review(path: str | Path, *, display: bool | None = None, web_port: int
         hint = f"; {part.name} exists but was never closed (interrupted session)" if part.exists() else ""
         raise RecordingError(f"{rrd}: no recording to review{hint}")
     show = has_display() if display is None else display
-    cmd = review_command(rrd, display=show, web_port=web_port, grpc_port=grpc_port, bind=bind)
+    cmd = review_command(rrd, display=show, port=port, grpc_port=grpc_port, bind=bind)
     if not show:
-        print(review_instructions(web_port, grpc_port), flush=True)
+        print(review_instructions(port, grpc_port), flush=True)
     return subprocess.Popen(cmd, **popen_kw)
 
 
 def review(path: str | Path, **kw: Any) -> int:
     """`slscan review SESSION`: show the recording and block until the viewer or server
-    ends (Ctrl-C stops it); returns its exit code."""
+    ends; Ctrl-C (or SIGTERM) stops it. Returns its exit code. Keywords as `start_review`."""
     proc = start_review(path, **kw)
+
+    def _stop(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, _stop) if threading.current_thread() is threading.main_thread() else None
     try:
         return proc.wait()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # stop our child too, never leave a server running
         proc.terminate()
         try:
             return proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             proc.kill()
             return proc.wait()
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
