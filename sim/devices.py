@@ -115,6 +115,60 @@ class Faults:
         return cls.from_table(get_table(sim, "faults", config.path, required=False, prefix="sim"), config.path)
 
 
+class _Ticker:
+    """A background thread that calls `tick(i)` for i = 0..count-1, one call every
+    `period_s` (the first at once), then `done()` one period after the last unless stopped.
+    A callback's exception is kept in `error` and does not stop the ticking."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    @property
+    def running(self) -> bool:
+        t = self._thread
+        return t is not None and t.is_alive()
+
+    def start(self, count: int, period_s: float, tick: Callable[[int], None],
+              done: Callable[[], None] | None = None) -> None:
+        self._stop = threading.Event()
+        self.error = None
+        self._thread = threading.Thread(target=self._run, args=(count, period_s, tick, done, self._stop),
+                                        name=self.name, daemon=True)
+        self._thread.start()
+
+    def wait(self, timeout_s: float) -> bool:
+        """Wait at most `timeout_s` for the ticking to end; True if it has."""
+        t = self._thread
+        if t is not None:
+            t.join(timeout_s)
+        return not self.running
+
+    def stop(self) -> None:
+        self._stop.set()
+        t = self._thread
+        if t is not None and t is not threading.current_thread():
+            t.join(_JOIN_TIMEOUT_S)
+
+    def call(self, cb: Callable[..., None], *args: Any) -> None:
+        try:
+            cb(*args)
+        except Exception as exc:  # a listener's bug must not kill the sequence; keep it for inspection
+            self.error = exc
+
+    def _run(self, count: int, period: float, tick: Callable[[int], None], done: Callable[[], None] | None,
+             stop: threading.Event) -> None:
+        t0 = time.monotonic()
+        for i in range(count):
+            if stop.wait(max(0.0, t0 + i * period - time.monotonic())):
+                return
+            self.call(tick, i)
+        if done is not None and not stop.wait(max(0.0, t0 + count * period - time.monotonic())):
+            self.call(done)
+
+
 # --------------------------------------------------------------------------- projector
 
 
@@ -127,9 +181,7 @@ class SimProjector(Projector):
         self._patterns: np.ndarray | None = None
         self._next_external = 0
         self._outputs: list[Callable[[], None]] = []
-        self._seq_thread: threading.Thread | None = None
-        self._seq_stop = threading.Event()
-        self.sequence_error: BaseException | None = None  # the last error raised by a callback
+        self._sequence = _Ticker(f"{name}-sequence")
 
     # wiring and inputs
     def connect_trigger_out(self, callback: Callable[[], None]) -> None:
@@ -161,23 +213,20 @@ class SimProjector(Projector):
     # sequence control
     @property
     def sequence_running(self) -> bool:
-        t = self._seq_thread
-        return t is not None and t.is_alive()
+        return self._sequence.running
+
+    @property
+    def sequence_error(self) -> BaseException | None:
+        """The last error raised by a trigger-output listener during a sequence."""
+        return self._sequence.error
 
     def wait_sequence(self, timeout_s: float) -> bool:
         """Wait (at most `timeout_s`) for a running sequence to finish; True if it has."""
-        t = self._seq_thread
-        if t is not None:
-            t.join(timeout_s)
-        return not self.sequence_running
+        return self._sequence.wait(timeout_s)
 
     def _do_stop_sequence(self) -> None:
         """Stop a running sequence (the current pattern stays on)."""
-        self._seq_stop.set()
-        t = self._seq_thread
-        if t is not None and t is not threading.current_thread():
-            t.join(_JOIN_TIMEOUT_S)
-        self._seq_thread = None
+        self._sequence.stop()
 
     # driver methods
     def _do_load_patterns(self, patterns: np.ndarray) -> None:
@@ -190,54 +239,37 @@ class SimProjector(Projector):
             self._current = None
             self._next_external = 0
 
-    def _do_show(self, k: int) -> None:
-        self.stop_sequence()
+    def _display(self, k: int | None) -> None:
+        """Put pattern k (None: dark) on display; the next external trigger shows k + 1."""
         with self._state:
             self._current = k
-            self._next_external = k + 1
+            self._next_external = 0 if k is None else k + 1
+
+    def _do_show(self, k: int) -> None:
+        self.stop_sequence()
+        self._display(k)
 
     def _do_blank(self) -> None:
         self.stop_sequence()
-        with self._state:
-            self._current = None
-            self._next_external = 0
+        self._display(None)
 
     def _do_run_sequence(self, period_s: float, on_pattern: Callable[[int], None] | None) -> None:
         if not period_s > 0:
             raise UnsupportedSetting(self.name, f"sequence period must be > 0 s, got {period_s}")
         if self.sequence_running:
             raise UnsupportedSetting(self.name, "a sequence is already running; wait for it or call stop_sequence()")
-        self._seq_stop = threading.Event()
-        self.sequence_error = None
         with self._state:
             n = len(self._patterns)  # type: ignore[arg-type]
-        self._seq_thread = threading.Thread(target=self._run_sequence, args=(n, period_s, on_pattern, self._seq_stop),
-                                            name=f"{self.name}-sequence", daemon=True)
-        self._seq_thread.start()
 
-    def _run_sequence(self, n: int, period_s: float, on_pattern: Callable[[int], None] | None,
-                      stop: threading.Event) -> None:
-        t0 = time.monotonic()
-        for k in range(n):
-            if stop.wait(max(0.0, t0 + k * period_s - time.monotonic())):
-                return
-            with self._state:
-                self._current = k
-                self._next_external = k + 1
+        def tick(k: int) -> None:
+            self._display(k)
             for cb in list(self._outputs):
-                self._call(cb)
+                self._sequence.call(cb)
             if on_pattern is not None:
-                self._call(on_pattern, k)
-        if not stop.wait(max(0.0, t0 + n * period_s - time.monotonic())):
-            with self._state:  # the last pattern stays up for its period, then the projector goes dark
-                self._current = None
-                self._next_external = 0
+                self._sequence.call(on_pattern, k)
 
-    def _call(self, cb: Callable[..., None], *args: Any) -> None:
-        try:
-            cb(*args)
-        except Exception as exc:  # a listener's bug must not kill the sequence; keep it for inspection
-            self.sequence_error = exc
+        # the last pattern stays up for its period, then the projector goes dark
+        self._sequence.start(n, period_s, tick, lambda: self._display(None))
 
     def _do_shutdown(self) -> None:
         self.stop_sequence()
@@ -490,9 +522,7 @@ class SimTriggerBox(TriggerSource):
         self._outputs: list[Callable[[], None]] = []
         self._train: tuple[int, float, float] | None = None
         self._sent = 0
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self.output_error: BaseException | None = None
+        self._pulses = _Ticker(f"{name}-pulses")
 
     def connect(self, callback: Callable[[], None]) -> None:
         """Connect an input (e.g. `SimProjector.trigger_in`, `SimCamera.trigger_in`);
@@ -502,21 +532,19 @@ class SimTriggerBox(TriggerSource):
 
     @property
     def running(self) -> bool:
-        t = self._thread
-        return t is not None and t.is_alive()
+        return self._pulses.running
+
+    @property
+    def output_error(self) -> BaseException | None:
+        """The last error raised by a connected input."""
+        return self._pulses.error
 
     def wait_done(self, timeout_s: float) -> bool:
         """Wait (at most `timeout_s`) for the pulse train to end; True if it has."""
-        t = self._thread
-        if t is not None:
-            t.join(timeout_s)
-        return not self.running
+        return self._pulses.wait(timeout_s)
 
     def _do_stop(self) -> None:
-        self._stop.set()
-        t = self._thread
-        if t is not None and t is not threading.current_thread():
-            t.join(_JOIN_TIMEOUT_S)
+        self._pulses.stop()
 
     def _do_arm(self, count: int, period_s: float, pulse_width_s: float) -> None:
         if self.running:
@@ -531,22 +559,12 @@ class SimTriggerBox(TriggerSource):
             raise UnsupportedSetting(self.name, "not armed: call arm(count, period_s) before start()")
         count, period, _ = self._train
         self._train = None  # one start per arm, like a hardware pulse generator
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(count, period, self._stop), name=f"{self.name}-pulses",
-                                        daemon=True)
-        self._thread.start()
+        self._pulses.start(count, period, self._pulse)
 
-    def _run(self, count: int, period: float, stop: threading.Event) -> None:
-        t0 = time.monotonic()
-        for i in range(count):
-            if stop.wait(max(0.0, t0 + i * period - time.monotonic())):
-                return
-            for cb in list(self._outputs):
-                try:
-                    cb()
-                except Exception as exc:  # keep pulsing; keep the error for inspection
-                    self.output_error = exc
-            self._sent += 1
+    def _pulse(self, i: int) -> None:
+        for cb in list(self._outputs):
+            self._pulses.call(cb)
+        self._sent += 1
 
     def _do_pulses_sent(self) -> int:
         return self._sent
