@@ -16,6 +16,7 @@ from scanner.errors import (ConfigError, DeviceDisconnected, DeviceTimeout, Fram
                             IncompleteSession, SessionError)
 from scanner.patterns import PatternSet
 from scanner.pipeline import reprocess, scan
+from scanner.recording import read_points, read_summary
 from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
 from scanner.session import ERROR, MANIFEST, Session
 from sim.devices import Faults
@@ -55,7 +56,13 @@ def test_scan_writes_complete_session(tmp_path: Path, wiring: str) -> None:
     stack = s.load_stack()
     assert stack.dtype == np.uint16 and stack.shape == (12, 256, 320) and stack.max() < 4096
     assert result.cloud_path.exists() and len(result.cloud) > 0.8 * 320 * 256
-    assert (tmp_path / "s" / "ground_truth.npz").exists() and s.recording_path.exists()
+    assert (tmp_path / "s" / "ground_truth.npz").exists()
+    rec = read_summary(s.recording_path)  # closed, with its footer, holding the whole scan
+    assert rec.recording_id == s.id
+    assert rec.entities["world/camera/image"].rows == 12 and "pattern" in rec.entities["world/camera/image"].timelines
+    assert {"world/camera", "world/projector", "world/scan/cloud", "maps/vertical/phase", "maps/masks",
+            "metrics/decode_s"} <= set(rec.entity_paths)
+    assert len(read_points(s.recording_path)[0]) == len(result.cloud)
 
 
 def test_decode_regenerates_outputs_from_raw_frames(tmp_path: Path, small_config: RigConfig) -> None:
