@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import importlib
 import json
 import sys
 from pathlib import Path
 from typing import Any, Sequence
 
+from .commands import MODULES
 from .config import CONFIG_DIR
 from .errors import ConfigError, ScannerError
 from .reconstruct import Triangulator
@@ -180,6 +182,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--out", help="session folder (default: sessions/demo-<time>)")
     m.add_argument("--seed", type=int, default=0)
     m.set_defaults(func=cmd_demo)
+
+    for name in MODULES:
+        importlib.import_module(name).register(sub)
     return p
 
 

@@ -22,7 +22,7 @@ DEFAULT_RIG = CONFIG_DIR / "rigs" / "sim_bench.toml"
 TRIGGER_WIRINGS = ("software", "projector", "trigger_box")
 
 # driver name -> "module:function" returning a Rig; imported only when used
-DRIVERS = {"sim": "sim.rig:open_sim_rig"}
+DRIVERS = {"sim": "sim.rig:open_sim_rig", "hardware": "scanner.drivers.rig:open_hardware_rig"}
 
 
 @dataclass(frozen=True, eq=False)
