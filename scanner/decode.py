@@ -29,7 +29,8 @@ class DecodeSettings:
     residual above this fraction of π marks a fringe-order error. `spatial_check`: also
     cut the map where neighbours jump by more than half a fringe period and reject the
     regions between cuts smaller than `min_region_fraction` of the image (clustered
-    order errors, which no per-pixel test sees).
+    order errors, which no per-pixel test sees). `gray_certainty`: a Gray-code bit reads
+    clearly when |I − A| exceeds this fraction of the fringe modulation B.
     """
 
     min_modulation: float = 0.005
@@ -37,6 +38,7 @@ class DecodeSettings:
     order_tolerance: float = 0.5
     spatial_check: bool = True
     min_region_fraction: float = 1e-4
+    gray_certainty: float = 0.3
 
 
 @dataclass(eq=False)
@@ -129,18 +131,35 @@ def _temporal_unwrap(ps: PatternSet, wrapped: list[np.ndarray]) -> tuple[list[np
     return [_unwrap_step(a12, f[i] / f12, wrapped[i], worst) for i in range(3)], worst
 
 
-def _graycode_unwrap(ps: PatternSet, wrapped: np.ndarray, bits: np.ndarray, background: np.ndarray) -> np.ndarray:
-    """Absolute phase from complementary Gray code (Wu et al.): the extra half-period bit
-    picks the fringe order that is safe at the code boundaries."""
+def _graycode_unwrap(ps: PatternSet, wrapped: np.ndarray, bits: np.ndarray, background: np.ndarray,
+                     modulation: np.ndarray, certainty: float) -> tuple[np.ndarray, np.ndarray]:
+    """Absolute phase from complementary Gray code (Wu et al.), and where it is unreliable.
+
+    The extra half-period bit picks the fringe order that is safe at the code boundaries:
+    away from a period boundary (π/2 < φ < 3π/2) every regular bit must read clearly, and
+    near one only the single bit that changes there may be ambiguous; the complementary bit
+    must read clearly wherever it is used. A bit reads clearly when |I − A| exceeds
+    `certainty`·B; blur wider than a quarter period breaks this, and those pixels are
+    returned as order errors instead of being unwrapped by a guess."""
     n_bits = ps.gray_bits()
     code = np.zeros(wrapped.shape, dtype=np.int32)
+    unclear = np.zeros(wrapped.shape, dtype=np.int32)  # regular bits read ambiguously
+    margin = np.float32(certainty) * modulation
     for b in range(n_bits + 1):
-        code = (code << 1) | (bits[b] > background)
+        diff = bits[b].astype(np.float32) - background
+        code = (code << 1) | (diff > 0)
+        ambiguous = np.abs(diff) < margin
+        if b < n_bits:
+            unclear += ambiguous
+        else:
+            complementary_unclear = ambiguous
     k1 = gray_to_binary(code >> 1, n_bits)
     k2 = (gray_to_binary(code, n_bits + 1) + 1) >> 1
     quarter = np.float32(np.pi / 2)
+    near_boundary = (wrapped <= quarter) | (wrapped >= 3 * quarter)
     order = np.where(wrapped <= quarter, k2, np.where(wrapped >= 3 * quarter, k2 - 1, k1))
-    return wrapped + TWO_PI * order.astype(np.float32)
+    unreliable = np.where(near_boundary, complementary_unclear | (unclear > 1), unclear > 0)
+    return wrapped + TWO_PI * order.astype(np.float32), unreliable
 
 
 def _typical_step(diff: np.ndarray) -> np.float32:
@@ -155,7 +174,8 @@ def _unreliable_regions(coordinate: np.ndarray, valid: np.ndarray, period_px: fl
     """Fringe-order errors that came in clusters, found spatially.
 
     The coordinate map is cut wherever neighbours differ by more than half a fringe period
-    beyond the map's typical neighbour step (a depth step or an order error); regions
+    beyond the map's typical neighbour step (a depth step or an order error), both pixels of
+    the pair being rejected as possibly mixed; regions
     smaller than `min_region_px` left between the cuts are order-error islands.
     Returns (islands, cut pixels)."""
     c = coordinate  # NaN where not valid
@@ -163,9 +183,13 @@ def _unreliable_regions(coordinate: np.ndarray, valid: np.ndarray, period_px: fl
     cut = np.zeros(valid.shape, dtype=bool)
     with np.errstate(invalid="ignore"):
         dx = np.abs(c[:, 1:] - c[:, :-1])
-        cut[:, :-1] |= dx > half + _typical_step(dx)
+        jump = dx > half + _typical_step(dx)
+        cut[:, :-1] |= jump  # both pixels of a jump: at a depth edge either may be a mixed pixel
+        cut[:, 1:] |= jump
         dy = np.abs(c[1:, :] - c[:-1, :])
-        cut[:-1, :] |= dy > half + _typical_step(dy.T)
+        jump = dy > half + _typical_step(dy.T)
+        cut[:-1, :] |= jump
+        cut[1:, :] |= jump
     cut &= valid
     _, labels, stats, _ = cv2.connectedComponentsWithStats((valid & ~cut).view(np.uint8), connectivity=4,
                                                            ltype=cv2.CV_32S)
@@ -209,10 +233,10 @@ def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
         finest = patterns.fringes.index(f_max)
         if patterns.family == "graycode":
             n_bits = patterns.gray_bits() + 1
-            phase = _graycode_unwrap(patterns, wrapped[0], stack[start:start + n_bits], background)
+            phase, masks["order_error"] = _graycode_unwrap(patterns, wrapped[0], stack[start:start + n_bits],
+                                                           background, modulation[0], settings.gray_certainty)
             start += n_bits
             weight = modulation[0] ** 2
-            masks["order_error"] = np.zeros_like(saturated)
         else:
             absolute, residual = _temporal_unwrap(patterns, wrapped)
             masks["order_error"] = residual > settings.order_tolerance
