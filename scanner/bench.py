@@ -55,7 +55,7 @@ def synthetic_stack(rig: RigModel, patterns: PatternSet, bit_depth: int = 12, se
     size = (rig.projector.width, rig.projector.height)
     for i, s in enumerate(specs):
         axis = 0 if s.orientation == "vertical" else 1
-        profile = patterns._profile(s, size[axis])  # noqa: SLF001 — the displayed intensity, 0..1
+        profile = patterns.profile(s, size[axis])
         c = np.clip(uv[..., axis], 0, size[axis] - 1)
         shown = np.interp(c, np.arange(size[axis]), profile)
         electrons = 400.0 + 7000.0 * shown

@@ -118,12 +118,12 @@ class PatternSet:
         out = np.empty((len(specs), height, width), dtype=np.uint8)
         for i, s in enumerate(specs):
             extent = width if s.orientation == "vertical" else height
-            profile = self._profile(s, extent)
+            profile = self.profile(s, extent)
             encoded = np.round(255.0 * np.clip(profile, 0.0, 1.0) ** (1.0 / gamma)).astype(np.uint8)
             out[i] = encoded[None, :] if s.orientation == "vertical" else encoded[:, None]
         return out
 
-    def _profile(self, s: FrameSpec, extent: int) -> np.ndarray:
+    def profile(self, s: FrameSpec, extent: int) -> np.ndarray:
         """Desired displayed intensity (0..1) along the coded axis."""
         c = np.arange(extent, dtype=np.float64)
         if s.kind == "phase":

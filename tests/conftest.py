@@ -30,7 +30,7 @@ def fringe_stack(u: np.ndarray, patterns: PatternSet, extent: int, amplitude: fl
     rng = np.random.default_rng(seed)
     out = []
     for s in patterns.frames():
-        profile = patterns._profile(s, extent)
+        profile = patterns.profile(s, extent)
         shown = np.interp(u, np.arange(extent), profile)
         img = offset + amplitude * (2 * shown - 1) + rng.normal(0, noise, u.shape) if noise else \
             offset + amplitude * (2 * shown - 1)

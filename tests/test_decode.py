@@ -153,5 +153,5 @@ def test_patterns_are_gamma_compensated() -> None:
     ps = FAMILIES["heterodyne"]
     raw = ps.render(912, 1140, gamma=2.2)
     displayed = (raw[0, 0].astype(float) / 255) ** 2.2
-    wanted = ps._profile(ps.frames()[0], 912)
+    wanted = ps.profile(ps.frames()[0], 912)
     assert np.abs(displayed - wanted).max() < 0.02
