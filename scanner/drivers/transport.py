@@ -1,0 +1,163 @@
+"""Byte transports for the real drivers: USB HID reports (pyusb) and serial lines (pyserial).
+
+A driver talks only through one of the two small protocols below, so its exchanges can be
+asserted byte for byte against a fake (see `scanner.drivers.testing`), as pymeasure's
+`expected_protocol` does. Each real transport maps the operating system's errors to the
+scanner's: a permission error says exactly what to run, an unplugged device raises
+DeviceDisconnected, a silent one DeviceTimeout. Every read has a finite timeout.
+"""
+
+from __future__ import annotations
+
+import errno
+from typing import Any, Protocol
+
+from ..config import CONFIG_DIR
+from ..errors import DeviceDisconnected, DeviceError, DeviceTimeout
+
+UDEV_RULES = CONFIG_DIR / "udev" / "99-slscan.rules"
+
+
+def usb_permission_advice() -> str:
+    """What a user runs so that USB devices of the rig can be opened without root."""
+    return (f"no permission to open the USB device; install the udev rules and replug it: "
+            f"sudo cp {UDEV_RULES} /etc/udev/rules.d/ && sudo udevadm control --reload-rules && "
+            f"sudo udevadm trigger (see {UDEV_RULES.parent / 'README.md'})")
+
+
+def serial_permission_advice(port: str) -> str:
+    """What a user runs so that a serial port can be opened without root."""
+    return (f"no permission to open {port}; add yourself to the group owning it and log in again: "
+            f"sudo usermod -aG dialout $USER (or install {UDEV_RULES}, see {UDEV_RULES.parent / 'README.md'})")
+
+
+class HidLink(Protocol):
+    """64-byte HID reports to and from one device."""
+
+    def write(self, report: bytes, timeout_s: float) -> None: ...
+
+    def read(self, timeout_s: float) -> bytes: ...
+
+    def close(self) -> None: ...
+
+
+class SerialLink(Protocol):
+    """The subset of `serial.Serial` the drivers use (a real port or an in-memory fake)."""
+
+    timeout: float | None
+
+    def write(self, data: bytes) -> int | None: ...
+
+    def readline(self) -> bytes: ...
+
+    def reset_input_buffer(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class PyUsbHid:
+    """A HID interface driven through libusb (pyusb): interrupt OUT and IN endpoints.
+
+    The kernel's usbhid driver is detached from the interface while it is open and
+    reattached on close, so the device works again with other software afterwards."""
+
+    def __init__(self, name: str, device: Any, interface: int = 0, ep_out: int = 0x01, ep_in: int = 0x81) -> None:
+        self.name = name
+        self._dev = device
+        self._interface = interface
+        self._ep_out = ep_out
+        self._ep_in = ep_in
+        self._reattach = False
+
+    @classmethod
+    def open(cls, name: str, vendor_id: int, product_id: int, serial_number: str | None = None,
+             interface: int = 0, ep_out: int = 0x01, ep_in: int = 0x81) -> PyUsbHid:
+        """Open the first device with these ids (and serial number, if given)."""
+        import usb.core
+        import usb.util
+
+        try:
+            devices = list(usb.core.find(find_all=True, idVendor=vendor_id, idProduct=product_id))
+        except usb.core.NoBackendError:
+            raise DeviceError(name, "libusb is not installed: sudo apt-get install libusb-1.0-0") from None
+        if serial_number is not None:
+            devices = [d for d in devices if _usb_serial(d) == serial_number]
+        if not devices:
+            which = f"{vendor_id:04x}:{product_id:04x}" + (f" serial {serial_number}" if serial_number else "")
+            raise DeviceDisconnected(name, f"no USB device {which} found; check the cable and power "
+                                           f"(`slscan devices` lists what is connected)")
+        link = cls(name, devices[0], interface, ep_out, ep_in)
+        try:
+            if devices[0].is_kernel_driver_active(interface):
+                devices[0].detach_kernel_driver(interface)
+                link._reattach = True
+            devices[0].set_configuration()
+            usb.util.claim_interface(devices[0], interface)
+        except usb.core.USBError as exc:
+            raise link._error(exc, "opening") from None
+        return link
+
+    def write(self, report: bytes, timeout_s: float) -> None:
+        import usb.core
+
+        try:
+            n = self._dev.write(self._ep_out, report, timeout=max(1, int(timeout_s * 1000)))
+        except usb.core.USBError as exc:
+            raise self._error(exc, "writing a report") from None
+        if n != len(report):
+            raise DeviceError(self.name, f"USB write sent {n} of {len(report)} bytes")
+
+    def read(self, timeout_s: float) -> bytes:
+        import usb.core
+
+        try:
+            return bytes(self._dev.read(self._ep_in, 64, timeout=max(1, int(timeout_s * 1000))))
+        except usb.core.USBError as exc:
+            raise self._error(exc, "reading a report", timeout_s) from None
+
+    def close(self) -> None:
+        import usb.core
+        import usb.util
+
+        try:
+            usb.util.release_interface(self._dev, self._interface)
+            if self._reattach:
+                self._dev.attach_kernel_driver(self._interface)
+        except usb.core.USBError:
+            pass  # already gone: nothing left to release
+        usb.util.dispose_resources(self._dev)
+
+    def _error(self, exc: Any, doing: str, timeout_s: float | None = None) -> DeviceError:
+        code = getattr(exc, "errno", None) or getattr(exc, "backend_error_code", None)
+        if code in (errno.EACCES, errno.EPERM, -3):  # -3: LIBUSB_ERROR_ACCESS
+            return DeviceError(self.name, usb_permission_advice())
+        if code in (errno.ETIMEDOUT, -7):  # -7: LIBUSB_ERROR_TIMEOUT
+            return DeviceTimeout(self.name, f"no answer within {timeout_s} s while {doing}; power-cycle the "
+                                            f"device if this repeats")
+        if code in (errno.ENODEV, errno.EIO, errno.EPIPE, errno.ENOENT, -4):  # -4: LIBUSB_ERROR_NO_DEVICE
+            return DeviceDisconnected(self.name, f"USB device gone while {doing}; check the cable, then scan again "
+                                                 f"(the driver reconnects)")
+        return DeviceError(self.name, f"USB error while {doing}: {exc}")
+
+
+def _usb_serial(device: Any) -> str | None:
+    try:
+        return device.serial_number
+    except (ValueError, NotImplementedError, OSError):
+        return None
+
+
+def open_serial(name: str, port: str, baudrate: int, timeout_s: float) -> SerialLink:
+    """Open a serial port (or a pyserial URL such as loop://) with a finite read timeout."""
+    import serial
+
+    try:
+        return serial.serial_for_url(port, baudrate=baudrate, timeout=timeout_s, write_timeout=timeout_s)
+    except serial.SerialException as exc:
+        code = getattr(exc, "errno", None)
+        if code in (errno.EACCES, errno.EPERM) or "Permission denied" in str(exc):
+            raise DeviceError(name, serial_permission_advice(port)) from None
+        if code in (errno.ENOENT, errno.ENODEV) or "No such file" in str(exc):
+            raise DeviceDisconnected(name, f"serial port {port} not found; check the cable (`slscan devices` "
+                                           f"lists the ports present)") from None
+        raise DeviceError(name, f"cannot open serial port {port}: {exc}") from None
