@@ -1,0 +1,183 @@
+"""A microcontroller trigger box over a serial line (reference firmware in firmware/triggerbox/).
+
+Line protocol, version 1: ASCII, one command per line ending in "\\n" (the box also takes
+"\\r\\n"), exactly one reply line per command. Times are integer microseconds.
+
+    host                    box                                  meaning
+    ID?                     ID SLSCAN-TRIGGERBOX <proto> <board>  identify
+    PERIOD <us>             OK                                   pulse period, 100..10000000
+    WIDTH <us>              OK                                   pulse width, 1..period-1
+    ARM <n>                 OK                                   arm a train of n pulses, 1..1000000
+    START                   OK                                   first pulse now, then one per period
+    STOP                    OK                                   stop a running train (harmless otherwise)
+    COUNT?                  COUNT <sent> <armed>                 pulses sent since ARM, pulses armed
+    (anything wrong)        ERR <code> <text>                    1 unknown command, 2 bad value,
+                                                                 3 width not below period, 4 not armed,
+                                                                 5 busy (a train is running)
+    (after reset)           READY SLSCAN-TRIGGERBOX <proto>      printed once when the firmware starts
+
+Boards whose USB-serial bridge resets the microcontroller when the port opens (Arduino
+Uno/Nano through DTR) miss what is sent during their boot; `connect` therefore repeats
+"ID?" until the box answers, taking a READY banner as the sign to ask again at once,
+within `boot_timeout_s`. A broken link is dropped and reopened at the next call.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import serial
+
+from ..devices import TriggerSource
+from ..errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+from .transport import SerialLink, open_serial
+
+IDENTITY = "SLSCAN-TRIGGERBOX"
+PROTOCOL = 1
+BAUDRATE = 115200
+ERROR_CODES = {1: "unknown command", 2: "bad value", 3: "width not below period", 4: "not armed", 5: "busy"}
+_ID_RETRY_S = 0.3
+
+
+def serial_opener(name: str, port: str, timeout_s: float = 0.5) -> Callable[[], SerialLink]:
+    return lambda: open_serial(name, port, BAUDRATE, timeout_s)
+
+
+class TriggerBox(TriggerSource):
+    """Pulse trains from the reference trigger-box firmware (see the module docstring)."""
+
+    def __init__(self, open_port: Callable[[], SerialLink], name: str = "trigger-box", boot_timeout_s: float = 3.0,
+                 timeout_s: float = 0.5) -> None:
+        super().__init__(name)
+        self.boot_timeout_s = boot_timeout_s
+        self.timeout_s = timeout_s
+        self.identity: dict[str, str] = {}
+        self._open_port = open_port
+        self._port: SerialLink | None = None
+        self._connect()
+
+    def ask(self, command: str) -> str:
+        """Send one command line; its reply line (an ERR reply raises)."""
+        self._check_alive()
+        return self._ask(command)
+
+    def _do_arm(self, count: int, period_s: float, pulse_width_s: float) -> None:
+        period_us, width_us = round(period_s * 1e6), round(pulse_width_s * 1e6)
+        if not 100 <= period_us <= 10_000_000 or not 1 <= width_us < period_us or count > 1_000_000:
+            raise UnsupportedSetting(self.name, f"pulse train outside the box's range: count {count} (<= 1000000), "
+                                                f"period {period_us} us (100..10000000), width {width_us} us")
+        self._ask(f"PERIOD {period_us}")
+        self._ask(f"WIDTH {width_us}")
+        self._ask(f"ARM {count}")
+
+    def _do_start(self) -> None:
+        self._ask("START")
+
+    def _do_stop(self) -> None:
+        if not self._shut_down and self._port is not None:
+            self._ask("STOP")
+
+    def _do_pulses_sent(self) -> int:
+        self._check_alive()
+        reply = self._ask("COUNT?").split()
+        if len(reply) != 3 or reply[0] != "COUNT" or not (reply[1].isdigit() and reply[2].isdigit()):
+            raise DeviceError(self.name, f"unexpected reply to COUNT?: {' '.join(reply)!r}")
+        return int(reply[1])
+
+    def _do_shutdown(self) -> None:
+        try:
+            if self._port is not None:
+                self._ask("STOP")
+        except DeviceError:
+            pass  # unreachable already: closing is all that is left
+        finally:
+            self._drop()
+
+    def describe(self) -> dict[str, object]:
+        return {**super().describe(), **self.identity}
+
+    # internals
+
+    def _connect(self) -> SerialLink:
+        if self._port is not None:
+            return self._port
+        port = self._open_port()
+        self._port = port
+        end = time.monotonic() + self.boot_timeout_s
+        try:
+            while True:
+                self._write(port, "ID?")
+                window_end = min(end, time.monotonic() + _ID_RETRY_S)
+                while time.monotonic() < window_end:
+                    line = self._readline(port)
+                    if line.startswith("ID "):
+                        self._check_identity(line)
+                        return port
+                    if line.startswith("READY"):
+                        break  # the board has just booted: ask again now
+                if time.monotonic() >= end:
+                    raise DeviceTimeout(self.name, f"no answer to ID? within {self.boot_timeout_s} s: is this the "
+                                                   f"trigger box's port and is its firmware (firmware/triggerbox) "
+                                                   f"flashed?")
+        except BaseException:
+            self._drop()
+            raise
+
+    def _check_identity(self, line: str) -> None:
+        parts = line.split()
+        if len(parts) < 4 or parts[1] != IDENTITY:
+            raise DeviceError(self.name, f"device answered {line!r}: not an {IDENTITY}; check the port")
+        if parts[2] != str(PROTOCOL):
+            raise DeviceError(self.name, f"firmware speaks protocol {parts[2]}, this driver {PROTOCOL}: flash "
+                                         f"firmware/triggerbox from this slscan version")
+        self.identity = {"protocol": parts[2], "board": parts[3]}
+
+    def _ask(self, command: str) -> str:
+        port = self._connect()
+        self._write(port, command)
+        end = time.monotonic() + self.timeout_s
+        while True:
+            line = self._readline(port)
+            if line and not line.startswith("READY"):
+                break
+            if line.startswith("READY"):  # the box reset under us: it lost its settings
+                raise DeviceError(self.name, f"the box restarted while handling {command!r}; check its power "
+                                             f"supply, then scan again")
+            if time.monotonic() >= end:
+                self._drop()
+                raise DeviceTimeout(self.name, f"no reply to {command!r} within {self.timeout_s} s; the link is "
+                                               f"reopened on the next call")
+        if line.startswith("ERR"):
+            parts = line.split(maxsplit=2)
+            code = int(parts[1]) if len(parts) > 1 and parts[1].isdigit() else 0
+            text = parts[2] if len(parts) > 2 else ERROR_CODES.get(code, "error")
+            raise DeviceError(self.name, f"{command!r} refused: error {code}, {text}")
+        if command.endswith("?") or line == "OK":
+            return line
+        raise DeviceError(self.name, f"unexpected reply to {command!r}: {line!r}")
+
+    def _write(self, port: SerialLink, command: str) -> None:
+        try:
+            port.write(command.encode("ascii") + b"\n")
+        except (serial.SerialException, OSError) as exc:  # what pyserial raises when the port vanishes
+            self._drop()
+            raise DeviceDisconnected(self.name, f"serial link lost sending {command!r} ({exc}); check the "
+                                                f"cable, then scan again (the driver reconnects)") from None
+
+    def _readline(self, port: SerialLink) -> str:
+        try:
+            raw = port.readline()
+        except (serial.SerialException, OSError) as exc:
+            self._drop()
+            raise DeviceDisconnected(self.name, f"serial link lost ({exc}); check the cable, then scan again "
+                                                f"(the driver reconnects)") from None
+        return raw.decode("ascii", errors="replace").strip()
+
+    def _drop(self) -> None:
+        port, self._port = self._port, None
+        if port is not None:
+            try:
+                port.close()
+            except (serial.SerialException, OSError):
+                pass  # closing a vanished port: nothing left to release

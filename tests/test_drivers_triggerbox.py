@@ -1,0 +1,100 @@
+"""Trigger box driver: the exact serial line exchanges, the board resetting on port open,
+error replies, silence and an unplugged cable. No hardware needed."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from scanner.drivers.testing import SILENT, Exchange, FakeSerial, Unplug, expected_protocol
+from scanner.drivers.triggerbox import TriggerBox
+from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+
+HELLO = Exchange(b"ID?\n", b"ID SLSCAN-TRIGGERBOX 1 rp2040\n")
+
+
+def box(opener, **kw) -> TriggerBox:
+    return TriggerBox(opener, boot_timeout_s=kw.pop("boot_timeout_s", 1.0), timeout_s=kw.pop("timeout_s", 0.2), **kw)
+
+
+def test_arm_start_count_stop_exchange() -> None:
+    script = [HELLO,
+              Exchange(b"PERIOD 50000\n", b"OK\n"), Exchange(b"WIDTH 100\n", b"OK\n"), Exchange(b"ARM 12\n", b"OK\n"),
+              Exchange(b"START\n", b"OK\n"),
+              Exchange(b"COUNT?\n", b"COUNT 5 12\n"),
+              Exchange(b"STOP\n", b"OK\n"),
+              Exchange(b"STOP\n", b"OK\n")]  # shutdown stops once more
+    with expected_protocol(box, FakeSerial(script)) as b:
+        assert b.describe()["board"] == "rp2040"
+        b.arm(12, 0.05, 1e-4)
+        b.start()
+        assert b.pulses_sent == 5
+        b.stop()
+        b.shutdown()
+
+
+def test_board_resetting_on_open_is_waited_for() -> None:
+    # the first ID? is lost while the bootloader runs; the READY banner comes 0.1 s after opening
+    script = [Exchange(b"ID?\n", SILENT), HELLO]
+    port = FakeSerial(script, banner=b"\x00\xffREADY SLSCAN-TRIGGERBOX 1\r\n", banner_delay_s=0.1, timeout=0.05)
+    t0 = time.monotonic()
+    with expected_protocol(box, port) as b:
+        assert b.identity == {"protocol": "1", "board": "rp2040"}
+    assert time.monotonic() - t0 < 0.5
+
+
+def test_silent_port_times_out_within_boot_timeout() -> None:
+    script = [Exchange(b"ID?\n", SILENT)] * 20
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout, match="no answer to ID\\? within 0.5 s.*firmware/triggerbox"):
+        TriggerBox(lambda: FakeSerial(script, timeout=0.05), boot_timeout_s=0.5)
+    assert time.monotonic() - t0 < 1.0
+
+
+def test_wrong_device_or_protocol_is_refused() -> None:
+    with pytest.raises(DeviceError, match="not an SLSCAN-TRIGGERBOX"):
+        TriggerBox(lambda: FakeSerial([Exchange(b"ID?\n", b"ID OTHER-THING 1 x\n")]))
+    with pytest.raises(DeviceError, match="protocol 2, this driver 1"):
+        TriggerBox(lambda: FakeSerial([Exchange(b"ID?\n", b"ID SLSCAN-TRIGGERBOX 2 avr\n")]))
+
+
+def test_error_reply_names_the_command() -> None:
+    script = [HELLO, Exchange(b"PERIOD 50000\n", b"OK\n"), Exchange(b"WIDTH 100\n", b"OK\n"),
+              Exchange(b"ARM 12\n", b"ERR 5 busy\n")]
+    with expected_protocol(box, FakeSerial(script)) as b:
+        with pytest.raises(DeviceError, match="'ARM 12' refused: error 5, busy"):
+            b.arm(12, 0.05, 1e-4)
+
+
+def test_out_of_range_train_is_refused_before_sending() -> None:
+    with expected_protocol(box, FakeSerial([HELLO])) as b:
+        with pytest.raises(UnsupportedSetting, match="period 50 us"):
+            b.arm(3, 50e-6, 1e-6)
+
+
+def test_no_reply_times_out_and_reconnects() -> None:
+    first = FakeSerial([HELLO, Exchange(b"START\n", SILENT)], timeout=0.05)
+    second = FakeSerial([HELLO, Exchange(b"START\n", b"OK\n")])
+    with expected_protocol(box, first, second) as b:
+        with pytest.raises(DeviceTimeout, match="no reply to 'START' within 0.2 s"):
+            b.start()
+        assert first.closed
+        b.start()
+
+
+def test_unplugged_mid_sequence_then_reconnects() -> None:
+    first = FakeSerial([HELLO, Exchange(b"PERIOD 50000\n", b"OK\n"), Unplug()])
+    second = FakeSerial([HELLO, Exchange(b"PERIOD 50000\n", b"OK\n"), Exchange(b"WIDTH 100\n", b"OK\n"),
+                         Exchange(b"ARM 12\n", b"OK\n")])
+    with expected_protocol(box, first, second) as b:
+        with pytest.raises(DeviceDisconnected, match="serial link lost sending 'WIDTH 100'"):
+            b.arm(12, 0.05, 1e-4)
+        b.arm(12, 0.05, 1e-4)
+
+
+def test_box_restarting_mid_command_is_reported() -> None:
+    script = [HELLO, Exchange(b"START\n", b"READY SLSCAN-TRIGGERBOX 1\n")]
+    with expected_protocol(box, FakeSerial(script)) as b:
+        with pytest.raises(DeviceError, match="restarted while handling 'START'"):
+            b.start()
