@@ -1,0 +1,479 @@
+"""CAD models for inspection: STEP B-reps (through OpenCASCADE) and triangle meshes.
+
+A `CadModel` is a list of `Face`s in the model frame (mm). A STEP face keeps its
+`ADVANCED_FACE` entity id (`#n` in the file), its exact surface (`inspection.surfaces`),
+its orientation and its trimmed parameter domain, classified by OpenCASCADE itself
+(`IntTools_FClass2d`; a raster of the library's own triangulation answers for points
+clearly inside or outside, the classifier for the rest). A mesh model (STL/PLY/OBJ) is
+split into faces at sharp edges; a mesh face is its triangles.
+
+Units: STEP lengths are converted to mm by OpenCASCADE from the file's declared unit
+(kept in `CadModel.unit`); a mesh file has no unit, so the caller states it (`mesh_unit`).
+
+OpenCASCADE costs ~1 s and ~265 MB to import, so it is imported inside the functions that
+need it.
+"""
+
+from __future__ import annotations
+
+import re
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import CadError
+from .surfaces import BSpline, Cone, Cylinder, Plane, Sphere, Surface, Torus
+
+STEP_SUFFIXES = (".step", ".stp")
+MESH_SUFFIXES = (".stl", ".ply", ".obj")
+SURFACE_TYPES = ("plane", "cylinder", "cone", "sphere", "torus", "bspline", "mesh")
+MESH_UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "inch": 25.4}
+SHARP_EDGE_DEG = 25.0  # mesh models: faces are split where neighbouring triangles turn by more
+DEFLECTION_FRACTION = 10000.0  # default triangulation chord tolerance: the model's diagonal / this
+RASTER_CELLS = 512  # classification raster: cells along the longer side of a face's UV box
+_OUT, _IN, _UNSURE = 0, 1, 2
+
+
+@dataclass(frozen=True, eq=False)
+class Tessellation:
+    """Triangles of a model, per face: `vertices` (N, 3) mm, `triangles` (M, 3) int32
+    wound so that normals point out of the material, `face` (M,) int32 the model face of
+    each triangle. Vertices are not shared between faces."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    face: np.ndarray
+
+    def face_mesh(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """(vertices, triangles) of one face, re-indexed."""
+        tri = self.triangles[self.face == index]
+        used, inverse = np.unique(tri, return_inverse=True)
+        return self.vertices[used], inverse.reshape(-1, 3).astype(np.int32)
+
+
+class _Domain:
+    """The trimmed parameter domain of a STEP face: a raster over the UV box marks cells
+    certainly inside or outside (from the library's triangulation in UV); points in the
+    remaining cells, near the trimming curves, are classified by `IntTools_FClass2d`."""
+
+    def __init__(self, face: Any, box: tuple[float, float, float, float], scale: tuple[float, float],
+                 uv: np.ndarray, triangles: np.ndarray, deflection_mm: float) -> None:
+        import cv2
+
+        self._face = face
+        self._classifier: Any = None
+        u0, u1, v0, v1 = box
+        span = np.array([max(u1 - u0, 1e-12) * scale[0], max(v1 - v0, 1e-12) * scale[1]])
+        n = np.maximum(np.round(RASTER_CELLS * span / span.max()), 8).astype(int)
+        self.origin = np.array([u0, v0])
+        self.cell = np.array([u1 - u0, v1 - v0]) / n
+        self.cell = np.where(self.cell > 0, self.cell, 1.0)
+        filled = np.zeros((n[1] + 2, n[0] + 2), np.uint8)  # one cell of margin all round
+        if len(triangles):
+            pix = np.round(((uv - self.origin) / self.cell + 0.5) * 16.0).astype(np.int32)  # 4 fractional bits
+            cv2.fillPoly(filled, list(pix[triangles]), 1, lineType=cv2.LINE_8, shift=4)
+            edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+            e, count = np.unique(edges, axis=0, return_counts=True)
+            boundary = np.zeros_like(filled)
+            cv2.polylines(boundary, list(pix[e[count == 1]]), False, 1, thickness=1, lineType=cv2.LINE_8, shift=4)
+        else:
+            boundary = np.ones_like(filled)
+        # the triangulation's boundary is within `deflection_mm` of the trimming curves
+        cell_mm = self.cell * np.asarray(scale)
+        band = (np.ceil(deflection_mm / cell_mm).astype(int) + 1).clip(1, 64)
+        k = np.ones((2 * band[1] + 1, 2 * band[0] + 1), np.uint8)
+        k3 = np.ones((3, 3), np.uint8)
+        unsure = cv2.dilate(boundary, k) | (cv2.dilate(filled, k3) & ~cv2.erode(filled, k3) & 1)
+        self.state = np.where(unsure > 0, _UNSURE, np.where(filled > 0, _IN, _OUT)).astype(np.uint8)
+
+    def contains(self, uv: np.ndarray) -> np.ndarray:
+        """Whether each parameter point (N, 2) lies in the face (on its boundary counts)."""
+        from OCP.gp import gp_Pnt2d
+        from OCP.TopAbs import TopAbs_OUT
+
+        ij = np.floor((uv - self.origin) / self.cell).astype(np.int64) + 1
+        h, w = self.state.shape
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        state = np.full(len(uv), _OUT, np.uint8)
+        state[ok] = self.state[ij[ok, 1], ij[ok, 0]]
+        inside = state == _IN
+        ask = np.flatnonzero(state == _UNSURE)
+        if ask.size:
+            if self._classifier is None:
+                from OCP.BRep import BRep_Tool
+                from OCP.IntTools import IntTools_FClass2d
+
+                self._classifier = IntTools_FClass2d(self._face, BRep_Tool.Tolerance_s(self._face))
+            perform = self._classifier.Perform
+            inside[ask] = [perform(gp_Pnt2d(u, v)) != TopAbs_OUT for u, v in uv[ask].tolist()]
+        return inside
+
+
+@dataclass(frozen=True, eq=False)
+class Face:
+    """One face of a model. `index` is its position in `CadModel.faces`; `step_id` the STEP
+    `ADVANCED_FACE` entity id (None for meshes); `type` one of `SURFACE_TYPES`; `sense`
+    +1 when the surface's natural normal points out of the material, -1 when reversed;
+    `box` the UV bounding box; `area_mm2` its area."""
+
+    index: int
+    step_id: int | None
+    type: str
+    area_mm2: float
+    surface: Surface | MeshSurface | None = field(default=None, repr=False)
+    sense: int = 1
+    box: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    domain: _Domain | None = field(default=None, repr=False)
+    mesh: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+
+    @property
+    def label(self) -> str:
+        """How reports name the face: `#<STEP id>` or `F<index>` for mesh faces."""
+        return f"#{self.step_id}" if self.step_id is not None else f"F{self.index}"
+
+    def params(self) -> dict[str, Any]:
+        """Nominal parameters (mm, rad) as plain values; outward normals for planes."""
+        if self.surface is None:
+            return {}
+        p = self.surface.params()
+        if "normal" in p:
+            p["normal"] = (self.sense * np.asarray(p["normal"])).tolist()
+        return p
+
+    def wrap(self, uv: np.ndarray) -> np.ndarray:
+        """Parameters moved by whole periods into the face's UV box where possible."""
+        uv = np.array(uv, dtype=np.float64)
+        s = self.surface
+        for k, period in ((0, getattr(s, "u_period", None)), (1, getattr(s, "v_period", None))):
+            if period:
+                lo = self.box[2 * k]
+                uv[:, k] = lo + np.mod(uv[:, k] - lo, period)
+        return uv
+
+
+@dataclass(frozen=True, eq=False)
+class CadModel:
+    """Faces of a part in the model frame (mm). `unit` is the length unit the file declared
+    (STEP) or the caller stated (mesh); `kind` "step" or "mesh"."""
+
+    path: Path
+    kind: str
+    unit: str
+    faces: tuple[Face, ...]
+    tessellation: Tessellation = field(repr=False)
+
+    def __len__(self) -> int:
+        return len(self.faces)
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Faces per surface type, in `SURFACE_TYPES` order."""
+        c = Counter(f.type for f in self.faces)
+        return {t: c[t] for t in SURFACE_TYPES if c[t]}
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        v = self.tessellation.vertices
+        return v.min(axis=0), v.max(axis=0)
+
+    @property
+    def diagonal_mm(self) -> float:
+        lo, hi = self.bounds
+        return float(np.linalg.norm(hi - lo))
+
+    def by_label(self, label: str) -> Face:
+        """The face named `#<STEP id>` (or `F<index>`)."""
+        for f in self.faces:
+            if f.label == label:
+                return f
+        raise KeyError(f"{self.path}: no face {label}; faces are {self.faces[0].label} .. {self.faces[-1].label}")
+
+    def summary(self) -> dict[str, Any]:
+        """The model as plain data: faces (STEP id, type, area, parameters) and counts."""
+        return {"path": str(self.path), "kind": self.kind, "unit": self.unit,
+                "bounds_mm": [b.tolist() for b in self.bounds],
+                "faces": [{"index": f.index, "id": f.step_id, "label": f.label, "type": f.type,
+                           "area_mm2": round(f.area_mm2, 6), "params": f.params()} for f in self.faces],
+                "counts": self.counts}
+
+
+def load_cad(path: str | Path, mesh_unit: str = "mm", deflection_mm: float | None = None) -> CadModel:
+    """A STEP (.step/.stp: AP203, AP214, AP242) or mesh (.stl/.ply/.obj) model.
+    `deflection_mm` is the chord tolerance of the STEP triangulation (default: 1/2000 of
+    the model's diagonal); `mesh_unit` the unit a mesh file is written in."""
+    path = Path(path)
+    if not path.is_file():
+        raise CadError(path, "no such file")
+    suffix = path.suffix.lower()
+    if suffix in STEP_SUFFIXES:
+        return _load_step(path, deflection_mm)
+    if suffix in MESH_SUFFIXES:
+        if mesh_unit not in MESH_UNITS_MM:
+            raise CadError(path, f"unknown mesh unit {mesh_unit!r}; use one of {sorted(MESH_UNITS_MM)}")
+        return _load_mesh(path, mesh_unit)
+    raise CadError(path, f"not a CAD file: expected STEP ({', '.join(STEP_SUFFIXES)}) or a mesh "
+                         f"({', '.join(MESH_SUFFIXES)})")
+
+
+# ------------------------------------------------------------------------------- STEP
+
+
+def _step_face_ids(path: Path) -> list[int]:
+    """Entity ids of the ADVANCED_FACE (or FACE_SURFACE) records of a STEP file."""
+    text = path.read_text(errors="replace")
+    return [int(m) for m in re.findall(r"#(\d+)\s*=\s*(?:ADVANCED_FACE|FACE_SURFACE)\s*\(", text, flags=re.I)]
+
+
+def _vec(d: Any) -> np.ndarray:
+    return np.array([d.X(), d.Y(), d.Z()], dtype=np.float64)
+
+
+def _placement(ax3: Any) -> dict[str, np.ndarray]:
+    return {"origin": _vec(ax3.Location()), "x": _vec(ax3.XDirection()), "y": _vec(ax3.YDirection()),
+            "z": _vec(ax3.Direction())}
+
+
+def _bspline(handle: Any) -> BSpline:
+    """A non-periodic copy of an OpenCASCADE B-spline surface as a `BSpline`."""
+    s = handle.Copy()
+    s.SetUNotPeriodic()
+    s.SetVNotPeriodic()
+    nu, nv = s.NbUPoles(), s.NbVPoles()
+    ctrl = np.empty((nu, nv, 4))
+    for i in range(1, nu + 1):
+        for j in range(1, nv + 1):
+            w = s.Weight(i, j)
+            ctrl[i - 1, j - 1] = (*(w * _vec(s.Pole(i, j))), w)
+    tu = np.array([s.UKnotSequence().Value(i) for i in range(1, s.UKnotSequence().Length() + 1)])
+    tv = np.array([s.VKnotSequence().Value(i) for i in range(1, s.VKnotSequence().Length() + 1)])
+    o = np.zeros(3)
+    return BSpline(o, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]),
+                   knots=(tu, tv), degrees=(s.UDegree(), s.VDegree()), control=ctrl)
+
+
+def _surface(face: Any) -> Surface:
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from OCP.GeomAbs import (GeomAbs_BSplineSurface, GeomAbs_Cone, GeomAbs_Cylinder, GeomAbs_Plane,
+                             GeomAbs_Sphere, GeomAbs_Torus)
+    from OCP.GeomConvert import GeomConvert
+
+    a = BRepAdaptor_Surface(face, True)
+    t = a.GetType()
+    if t == GeomAbs_Plane:
+        return Plane(**_placement(a.Plane().Position()))
+    if t == GeomAbs_Cylinder:
+        c = a.Cylinder()
+        return Cylinder(**_placement(c.Position()), radius=c.Radius())
+    if t == GeomAbs_Cone:
+        c = a.Cone()
+        return Cone(**_placement(c.Position()), ref_radius=c.RefRadius(), semi_angle=c.SemiAngle())
+    if t == GeomAbs_Sphere:
+        c = a.Sphere()
+        return Sphere(**_placement(c.Position()), radius=c.Radius())
+    if t == GeomAbs_Torus:
+        c = a.Torus()
+        return Torus(**_placement(c.Position()), major_radius=c.MajorRadius(), minor_radius=c.MinorRadius())
+    if t == GeomAbs_BSplineSurface:
+        return _bspline(a.BSpline())
+    # Bezier, revolution, extrusion, offset, ...: their exact B-spline form
+    return _bspline(GeomConvert.SurfaceToBSplineSurface_s(BRep_Tool.Surface_s(face)))
+
+
+def _read_step(path: Path) -> tuple[Any, Any, str]:
+    """(shape, reader, declared length unit); raises CadError when unreadable or empty."""
+    from OCP.collections import Sequence_TCollection_AsciiString
+    from OCP.IFSelect import IFSelect_RetDone
+    from OCP.STEPControl import STEPControl_Reader
+
+    reader = STEPControl_Reader()
+    status = reader.ReadFile(str(path))
+    if status != IFSelect_RetDone:
+        raise CadError(path, f"unreadable STEP file (OpenCASCADE: {status.name}); check that it is an ISO 10303-21 "
+                             f"file and not truncated")
+    if reader.TransferRoots() == 0:
+        raise CadError(path, "the STEP file holds no shape that can be transferred (no solid, shell or face)")
+    shape = reader.OneShape()
+    if shape.IsNull():
+        raise CadError(path, "the STEP file holds no geometry")
+    units = Sequence_TCollection_AsciiString()
+    reader.FileUnits(units, Sequence_TCollection_AsciiString(), Sequence_TCollection_AsciiString())
+    names = sorted({units.Value(i).ToCString().lower() for i in range(1, units.Length() + 1)})
+    return shape, reader, ",".join(names) or "unknown"
+
+
+def _load_step(path: Path, deflection_mm: float | None) -> CadModel:
+    from OCP.BRepGProp import BRepGProp
+    from OCP.BRepMesh import BRepMesh_IncrementalMesh
+    from OCP.BRepTools import BRepTools
+    from OCP.collections import IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher
+    from OCP.GProp import GProp_GProps
+    from OCP.TopAbs import TopAbs_FACE, TopAbs_REVERSED
+    from OCP.TopExp import TopExp
+    from OCP.TopoDS import TopoDS
+
+    shape, reader, unit = _read_step(path)
+    fmap = IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher()
+    TopExp.MapShapes_s(shape, TopAbs_FACE, fmap)
+    occ_faces = [TopoDS.Face(fmap.FindKey(i)) for i in range(1, fmap.Extent() + 1)]
+    if not occ_faces:
+        raise CadError(path, "the STEP file holds no faces")
+    step_ids = _face_entity_ids(path, reader, occ_faces)
+
+    from OCP.Bnd import Bnd_Box
+    from OCP.BRepBndLib import BRepBndLib
+
+    bb = Bnd_Box()
+    BRepBndLib.Add_s(shape, bb)
+    diag = float(np.linalg.norm(_vec(bb.CornerMax()) - _vec(bb.CornerMin())))
+    if not diag > 0:
+        raise CadError(path, "the model has no extent")
+    defl = deflection_mm if deflection_mm is not None else diag / DEFLECTION_FRACTION
+    BRepMesh_IncrementalMesh(shape, defl, False, 0.2, True)
+
+    faces, verts, tris, tri_face = [], [], [], []
+    offset = 0
+    for i, f in enumerate(occ_faces):
+        surf = _surface(f)
+        sense = -1 if f.Orientation() == TopAbs_REVERSED else 1
+        box = tuple(float(x) for x in BRepTools.UVBounds_s(f))
+        props = GProp_GProps()
+        BRepGProp.SurfaceProperties_s(f, props)
+        v, uv, t = _face_triangulation(f, surf, sense)
+        face = Face(index=i, step_id=step_ids[i], type=surf.kind, area_mm2=float(props.Mass()), surface=surf,
+                    sense=sense, box=box, domain=_Domain(f, box, surf.metric_scale(box), uv, t, defl))  # type: ignore[arg-type]
+        faces.append(face)
+        verts.append(v)
+        tris.append(t + offset)
+        tri_face.append(np.full(len(t), i, np.int32))
+        offset += len(v)
+    tess = Tessellation(np.concatenate(verts), np.concatenate(tris).astype(np.int32), np.concatenate(tri_face))
+    return CadModel(path=path, kind="step", unit=unit, faces=tuple(faces), tessellation=tess)
+
+
+def _face_entity_ids(path: Path, reader: Any, faces: list[Any]) -> list[int | None]:
+    """The STEP entity id of each face: the file's face records are looked up in the
+    reader's model by label, then matched to the transferred faces by entity identity."""
+    model = reader.StepModel()
+    by_entity: dict[int, int] = {}
+    keep = []  # the Python wrappers must stay alive for id() to stay unique
+    for ident in _step_face_ids(path):
+        num = model.NextNumberForLabel(f"#{ident}", 0, False)
+        if num > 0:
+            ent = model.Value(num)
+            keep.append(ent)
+            by_entity[id(ent)] = ident
+    tr = reader.WS().TransferReader()
+    out: list[int | None] = []
+    for f in faces:
+        ent = tr.EntityFromShapeResult(f, 1)
+        out.append(by_entity.get(id(ent)) if ent is not None else None)
+    return out
+
+
+def _face_triangulation(face: Any, surf: Surface, sense: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices (N, 3) mm on the exact surface, their UV (N, 2), triangles (M, 3) wound
+    outward) of the library's triangulation of one face; empty arrays when it has none."""
+    from OCP.BRep import BRep_Tool
+    from OCP.TopLoc import TopLoc_Location
+
+    loc = TopLoc_Location()
+    tri = BRep_Tool.Triangulation_s(face, loc)
+    if tri is None or tri.NbTriangles() == 0 or not tri.HasUVNodes():
+        return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 3), np.int32)
+    uv = np.array([(p.X(), p.Y()) for p in (tri.UVNode(i) for i in range(1, tri.NbNodes() + 1))])
+    t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int32) - 1
+    v, n, _ = surf.evaluate(uv)  # nodes on the exact surface, in the model frame
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    out = sense * n[t].mean(axis=1)
+    flip = np.einsum("ij,ij->i", np.cross(b - a, c - a), out) < 0
+    t[flip] = t[flip][:, [0, 2, 1]]
+    return v, uv, t
+
+
+# ------------------------------------------------------------------------------- meshes
+
+
+class MeshSurface:
+    """The triangles of one mesh face, with closest-point projection (Open3D)."""
+
+    kind = "mesh"
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
+        import open3d as o3d
+
+        self.vertices = vertices
+        self.triangles = triangles
+        n = np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
+                     vertices[triangles[:, 2]] - vertices[triangles[:, 0]])
+        self.areas = 0.5 * np.linalg.norm(n, axis=1)
+        self.normals = n / np.maximum(2 * self.areas, 1e-300)[:, None]
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
+                                  o3d.core.Tensor(triangles.astype(np.uint32)))
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(uv (zeros), foot points, outward triangle normals, signed distance)."""
+        import open3d as o3d
+
+        ans = self._scene.compute_closest_points(o3d.core.Tensor(np.asarray(points, np.float32)))
+        foot = ans["points"].numpy().astype(np.float64)
+        n = self.normals[ans["primitive_ids"].numpy().astype(np.int64)]
+        return np.zeros((len(points), 2)), foot, n, np.einsum("ij,ij->i", points - foot, n)
+
+    def params(self) -> dict[str, Any]:
+        return {"triangles": int(len(self.triangles))}
+
+
+def _load_mesh(path: Path, unit: str) -> CadModel:
+    import open3d as o3d
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    mesh.remove_duplicated_vertices()
+    v = np.asarray(mesh.vertices, dtype=np.float64) * MESH_UNITS_MM[unit]
+    t = np.asarray(mesh.triangles, dtype=np.int64)
+    if len(t) == 0 or len(v) < 3:
+        raise CadError(path, "no triangles could be read (unreadable or empty mesh)")
+    if not np.isfinite(v).all():
+        raise CadError(path, "corrupt mesh: non-finite vertex coordinates")
+    n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    area = 0.5 * np.linalg.norm(n, axis=1)
+    keep = area > 0
+    t, n, area = t[keep], n[keep], area[keep]
+    n /= (2 * area)[:, None]
+    # triangles sharing an edge with a turn below SHARP_EDGE_DEG belong to the same face
+    edges = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    owner = np.tile(np.arange(len(t)), 3)
+    key = np.sort(edges, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    k, o = key[order], owner[order]
+    same = np.all(k[1:] == k[:-1], axis=1)
+    a, b = o[:-1][same], o[1:][same]
+    smooth = np.einsum("ij,ij->i", n[a], n[b]) > np.cos(np.radians(SHARP_EDGE_DEG))
+    graph = coo_matrix((np.ones(int(smooth.sum())), (a[smooth], b[smooth])), shape=(len(t), len(t)))
+    n_faces, label = connected_components(graph, directed=False)
+    order = np.argsort(-np.bincount(label, weights=area))  # largest face first
+    rank = np.empty(n_faces, np.int64)
+    rank[order] = np.arange(n_faces)
+    label = rank[label]
+    faces, verts, tris = [], [], []
+    offset = 0
+    for i in range(n_faces):
+        ti = t[label == i]
+        used, inv = np.unique(ti, return_inverse=True)
+        fv, ft = v[used], inv.reshape(-1, 3).astype(np.int32)
+        ms = MeshSurface(fv, ft)
+        flat = np.abs(ms.normals @ np.average(ms.normals, axis=0, weights=ms.areas)).min() > np.cos(np.radians(0.5))
+        faces.append(Face(index=i, step_id=None, type="plane" if flat else "mesh", area_mm2=float(ms.areas.sum()),
+                          mesh=(fv, ft), surface=ms))  # type: ignore[arg-type]
+        verts.append(fv)
+        tris.append(ft + offset)
+        offset += len(fv)
+    tess = Tessellation(np.concatenate(verts), np.concatenate(tris).astype(np.int32),
+                        np.repeat(np.arange(n_faces, dtype=np.int32), [len(x) for x in tris]))
+    return CadModel(path=path, kind="mesh", unit=unit, faces=tuple(faces), tessellation=tess)
