@@ -6,10 +6,22 @@ camera) and `trigger_box` (a pulse train advances the projector and exposes the 
 A frame whose counter skips is a dropped frame; one that repeats an index or carries the
 wrong pattern is out of order; either stops the scan rather than decoding a mixed
 sequence. Every frame checked is stored before the next is awaited.
+
+Real cameras cannot say which pattern they saw (`Frame.pattern_index` is None), so two
+more checks prove that frame k was taken under pattern k:
+  - timestamps: frame k cannot have been exposed before pattern k was put up (after
+    `show(k)` in the software wiring; `k` periods after the sequence started in the
+    hardware wirings) and frames come in time order;
+  - the intensity signature, once the sequence is complete: at well-lit pixels the N
+    values must be what the N displayed patterns predict for one projector coordinate,
+    up to an offset and a non-negative gain per fringe frequency (`check_signature`).
+    A sequence shifted by a frame, or with a frame from elsewhere, does not fit and is
+    refused (FrameOutOfOrder naming the worst frame) before anything is decoded.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -17,10 +29,15 @@ import numpy as np
 
 from .devices import Frame
 from .errors import FrameDropped, FrameError, FrameOutOfOrder
-from .patterns import PatternSet
+from .patterns import FrameSpec, PatternSet
 from .rig import Rig
 
 FrameCallback = Callable[[int, Frame], None]
+
+TIMESTAMP_TOLERANCE = 0.25  # of a pattern period: clock offsets between camera and host
+SIGNATURE_PIXELS = 1500  # well-lit pixels the signature check looks at
+SIGNATURE_MAX_RESIDUAL = 0.05  # a frame's residual / fringe signal (true frames: <= 0.01, wrong ones: >= 0.09)
+SIGNATURE_MIN_CONTRAST = 0.02  # of full scale: temporal std below this is too dark to judge
 
 
 @dataclass(frozen=True)
@@ -65,7 +82,10 @@ def acquire(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings, on_fr
     shape = (cam.height, cam.width)
     stack: np.ndarray | None = None
     wiring = rig.config.trigger
+    tolerance = TIMESTAMP_TOLERANCE * settings.period_s
+    previous: Frame | None = None
     try:
+        started = time.monotonic()
         if wiring == "projector":
             proj.run_sequence(settings.period_s)
         elif wiring == "trigger_box":
@@ -75,14 +95,21 @@ def acquire(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings, on_fr
             rig.trigger.start()
         for k in range(n):
             if wiring == "software":
+                earliest = time.monotonic()
                 proj.show(k)
                 cam.trigger()
+            else:
+                earliest = started + k * settings.period_s
             frame = cam.grab(settings.timeout_s)
             check_frame(k, frame, cam.name, shape, cam.bit_depth)
+            check_timing(k, frame, previous, earliest - tolerance, cam.name)
             if stack is None:
                 stack = np.empty((n, *shape), dtype=frame.image.dtype)
             stack[k] = frame.image
             on_frame(k, frame)
+            previous = frame
+        assert stack is not None
+        check_signature(stack, patterns, (proj.height, proj.width), cam.bit_depth, cam.name)
     finally:
         proj.stop_sequence()
         if rig.trigger is not None:
@@ -90,5 +117,97 @@ def acquire(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings, on_fr
         cam.disarm()
         if not proj.is_shut_down:
             proj.blank()
-    assert stack is not None
     return stack
+
+
+def check_timing(k: int, frame: Frame, previous: Frame | None, earliest_s: float, camera_name: str) -> None:
+    """Raise if frame k was exposed before pattern k could be on display (`earliest_s`,
+    monotonic seconds) or not after the frame before it."""
+    if frame.timestamp_s < earliest_s:
+        raise FrameOutOfOrder(camera_name, f"frame {k} was exposed {earliest_s - frame.timestamp_s:.3g} s before "
+                                           f"pattern {k} was on display: a stale or early frame", k, frame.index)
+    if previous is not None and frame.timestamp_s <= previous.timestamp_s:
+        raise FrameOutOfOrder(camera_name, f"frame {k} is stamped {frame.timestamp_s:.6f} s, not after frame "
+                                           f"{k - 1} ({previous.timestamp_s:.6f} s): a repeated or reordered "
+                                           f"buffer", k, frame.index)
+
+
+def _orientation_groups(specs: list[FrameSpec], orientation: str) -> list[list[int]]:
+    """Frame indices of one orientation, grouped by what shares an offset and a gain: the
+    steps of one phase frequency, or all Gray-code bits."""
+    groups: dict[tuple[str, int], list[int]] = {}
+    for k, s in enumerate(specs):
+        if s.orientation == orientation:
+            groups.setdefault((s.kind, s.level if s.kind == "phase" else 0), []).append(k)
+    return list(groups.values())
+
+
+def check_signature(stack: np.ndarray, patterns: PatternSet, projector_shape: tuple[int, int], bit_depth: int,
+                    camera_name: str) -> None:
+    """Raise FrameOutOfOrder unless the frames fit the displayed patterns.
+
+    Per orientation, at the best-lit pixels, the model I_k = a_g + b_g * P_k(u) (offset
+    a_g and gain b_g >= 0 per group g of frames sharing a frequency, one projector
+    coordinate u for all groups, searched on a half-pixel grid) must explain the
+    temporal variance: every frame's residual at the best coordinate must stay below
+    SIGNATURE_MAX_RESIDUAL of the fringe signal (median over pixels). A pattern set
+    without redundancy (three frames) fits anything and is not judged; a Gray-code bit
+    replaced by another still reads as a valid code word and is not caught here."""
+    specs = patterns.frames()
+    full = float(2 ** bit_depth - 1)
+    for orientation in patterns.orientations:
+        groups = _orientation_groups(specs, orientation)
+        ks = [k for g in groups for k in g]
+        if len(ks) <= 3:
+            continue  # three frames fit any coordinate: nothing to judge
+        extent = projector_shape[1] if orientation == "vertical" else projector_shape[0]
+        values = stack[ks].reshape(len(ks), -1).astype(np.float32)
+        step = max(1, int(np.sqrt(values.shape[1] / (20 * SIGNATURE_PIXELS))))
+        sub = values[:, ::step]
+        lit = (sub.max(axis=0) < full) & (sub.min(axis=0) > 0)  # not clipped
+        spread = np.where(lit, sub.std(axis=0), 0.0)
+        order = np.argsort(spread)[::-1][:SIGNATURE_PIXELS]
+        order = order[spread[order] > SIGNATURE_MIN_CONTRAST * full]
+        if len(order) < SIGNATURE_PIXELS // 10:
+            raise FrameError(camera_name, f"cannot verify that the frames follow the patterns: only {len(order)} "
+                                          f"pixels show fringe contrast above {SIGNATURE_MIN_CONTRAST:.0%} of full "
+                                          f"scale; raise the exposure or the projector brightness", 0, None)
+        pixels = {k: sub[i, order] for i, k in enumerate(ks)}
+        grid = np.arange(0.0, extent - 1 + 1e-9, 0.5)
+        c = np.arange(extent, dtype=np.float64)
+        explained = np.zeros((len(order), len(grid)), dtype=np.float64)
+        for g in groups:
+            intensity = np.stack([pixels[k] for k in g], axis=1)
+            intensity -= intensity.mean(axis=1, keepdims=True)
+            model = np.stack([np.interp(grid, c, patterns.profile(specs[k], extent)) for k in g])
+            model -= model.mean(axis=0, keepdims=True)
+            var = (model ** 2).sum(axis=0)
+            cov = np.maximum(intensity @ model, 0.0)  # gains are non-negative
+            explained += np.divide(cov ** 2, var, out=np.zeros_like(cov, dtype=np.float64), where=var > 1e-12)
+        scores = _frame_scores(pixels, groups, grid[explained.argmax(axis=1)], c, patterns, specs, extent)
+        worst = max(scores, key=scores.__getitem__)
+        if scores[worst] > SIGNATURE_MAX_RESIDUAL:
+            raise FrameOutOfOrder(camera_name, (
+                f"the {orientation} frames do not follow the patterns: frame {worst} fits worst, its residual is "
+                f"{scores[worst]:.2f} of the fringe signal where a true frame stays below {SIGNATURE_MAX_RESIDUAL}; "
+                f"a shifted or mixed sequence is refused rather than decoded; check the trigger wiring (and the "
+                f"projector gamma in the rig TOML) and scan again"),
+                worst, None)
+
+
+def _frame_scores(pixels: dict[int, np.ndarray], groups: list[list[int]], u: np.ndarray, c: np.ndarray,
+                  patterns: PatternSet, specs: list[FrameSpec], extent: int) -> dict[int, float]:
+    """Per frame: the median, over pixels, of its squared residual at the pixel's best
+    coordinate `u`, relative to the mean squared fringe signal of a frame of its group."""
+    scores: dict[int, float] = {}
+    for g in groups:
+        intensity = np.stack([pixels[k] for k in g], axis=1).astype(np.float64)
+        model = np.stack([np.interp(u, c, patterns.profile(specs[k], extent)) for k in g], axis=1)
+        ic = intensity - intensity.mean(axis=1, keepdims=True)
+        mc = model - model.mean(axis=1, keepdims=True)
+        gain = np.maximum((ic * mc).sum(axis=1), 0.0) / np.maximum((mc ** 2).sum(axis=1), 1e-12)
+        err = ic - gain[:, None] * mc
+        signal = np.maximum((ic ** 2).mean(axis=1), 1e-12)
+        for j, k in enumerate(g):
+            scores[k] = float(np.median(err[:, j] ** 2 / signal))
+    return scores
