@@ -32,12 +32,19 @@ Scene TOML format (every path relative to the TOML file; every length in mm, ang
 
     [[objects]]
     plane = { size_mm = [100, 80] }             # rectangle on the object's z = 0, centred
+    # plane = { size_mm = [100, 80], texture = "board.png" }   # optional albedo map (see below)
 
     [[objects]]
     box = { size_mm = [40, 30, 20] }            # axis-aligned in the object frame, centred
 
 A pose places the object frame in the world: X_world = R X_object + t. A reference plane
 given by `pose` is the rectangle on the pose's local z = 0 plane.
+
+A plane may carry a texture: an albedo map stretched over its rectangle (image columns
+along the object's +x, rows along +y, so texel (0, 0) sits at the (-w/2, -h/2) corner), and
+the surface's albedo is `albedo` x texture. In a TOML scene the texture is a grey image
+file (8- or 16-bit, full scale = 1); in code, `SceneObject.texture` is an (H, W) float
+array in 0..1 (e.g. a calibration board's printed reflectance).
 
 Primitives are exact (ray-cast analytically in float64): use them where a test needs a
 surface known to better than a micrometre. Meshes are exact as meshes (each hit is
@@ -81,7 +88,8 @@ class SceneObject:
     `kind` is "mesh" (`vertices` (N, 3) float64 mm in the object frame, `triangles`
     (M, 3) int32), "sphere" (`radius_mm`, centred on the object-frame origin), "plane"
     (a `size_mm` = (w, h) rectangle on the object-frame z = 0, centred) or "box"
-    (`size_mm` = (x, y, z), centred)."""
+    (`size_mm` = (x, y, z), centred). A plane may have a `texture` (H, W) in 0..1 that
+    multiplies its albedo (see the module docstring)."""
 
     name: str
     kind: str
@@ -92,6 +100,7 @@ class SceneObject:
     vertices: np.ndarray | None = field(default=None, repr=False)
     triangles: np.ndarray | None = field(default=None, repr=False)
     source: Path | None = None
+    texture: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -102,6 +111,14 @@ class SceneObject:
         if pose.shape != (4, 4) or not _is_rigid(pose):
             raise ValueError(f"{self.name}: pose must be a rigid 4x4 transform")
         object.__setattr__(self, "pose", pose)
+        if self.texture is not None:
+            tex = np.asarray(self.texture, dtype=np.float32)
+            if self.kind != "plane":
+                raise ValueError(f"{self.name}: only planes take a texture, not a {self.kind}")
+            if tex.ndim != 2 or min(tex.shape) < 2 or not np.isfinite(tex).all() or tex.min() < 0 or tex.max() > 1:
+                raise ValueError(f"{self.name}: texture must be an (H, W) array of albedo in 0..1 (H, W >= 2)")
+            tex.setflags(write=False)
+            object.__setattr__(self, "texture", tex)
 
     def world_vertices(self) -> np.ndarray:
         """Mesh vertices in the world frame (mesh objects only)."""
@@ -273,6 +290,17 @@ def _positive_vector(table: dict[str, Any], key: str, n: int, path: Path, prefix
     return tuple(v)
 
 
+def _texture(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
+    """A plane's texture image file as albedo 0..1 (grey; full scale of its bit depth = 1)."""
+    import cv2
+
+    file = resolve(path, get(table, "texture", str, path, prefix=prefix))
+    img = cv2.imread(str(file), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
+    if img is None or img.dtype not in (np.uint8, np.uint16) or min(img.shape) < 2:
+        raise ConfigError(path, f"{prefix}.texture", f"{file}: not readable as an 8- or 16-bit grey image")
+    return img.astype(np.float32) / np.float32(np.iinfo(img.dtype).max)
+
+
 def _load_toml_scene(path: Path) -> Scene:
     raw = load_toml(path)
     _check_keys(raw, _SCENE_KEYS, path, "")
@@ -330,10 +358,11 @@ def _load_toml_scene(path: Path) -> Scene:
                 obj = SceneObject(name=get(t, "name", str, path, f"sphere{i}", pre), kind="sphere", pose=pose,
                                   albedo=albedo, radius_mm=r)
             else:
-                _check_keys(p, {"size_mm"}, path, kp)
+                _check_keys(p, {"size_mm", "texture"} if kind == "plane" else {"size_mm"}, path, kp)
                 size = _positive_vector(p, "size_mm", 2 if kind == "plane" else 3, path, kp)
+                texture = _texture(p, path, kp) if "texture" in p else None
                 obj = SceneObject(name=get(t, "name", str, path, f"{kind}{i}", pre), kind=kind, pose=pose,
-                                  albedo=albedo, size_mm=size)
+                                  albedo=albedo, size_mm=size, texture=texture)
         objects.append(obj)
     names = [o.name for o in objects] + (["reference_plane"] if plane is not None else [])
     dup = {n for n in names if names.count(n) > 1}

@@ -1,0 +1,208 @@
+"""Calibration targets: their description (TOML), model points and printable image.
+
+Three kinds, all planar with their points on the board's z = 0 plane (mm):
+
+    chessboard          `inner_corners = [C, R]`: C x R inner corners of a board of
+                        (C+1) x (R+1) squares of `square_mm`; found with OpenCV's
+                        sector-based detector. Point (c, r) is at (c·s, r·s).
+    charuco             a chessboard of the same inner corners with ArUco markers of
+                        `marker_mm` in its white squares (`dictionary`, e.g. "DICT_5X5_100"):
+                        every corner is identified, so partial views are usable.
+    circles_asymmetric  `inner_corners = [C, R]`: R rows of C dark circles of `circle_mm`,
+                        odd rows shifted by half a step; point (c, r) is at ((2c + r mod 2)·s, r·s)
+                        with s = `square_mm` (OpenCV's convention).
+
+Board TOML (every length in mm):
+
+    name = "sim-chess-9x7"
+    type = "chessboard"          # chessboard | charuco | circles_asymmetric
+    inner_corners = [9, 7]       # columns x rows of points
+    square_mm = 8.0
+    margin_mm = 8.0              # white border around the pattern (image and simulated board)
+    # marker_mm = 6.0            # charuco only
+    # dictionary = "DICT_5X5_100"  # charuco only
+    # circle_mm = 4.0            # circles_asymmetric only
+
+The board frame: x along a row of points, y down the rows, z into the board (OpenCV's
+convention, so a board facing the camera has z roughly along the camera's z). The printed
+image puts the board frame's origin at `image_origin_mm` from its top-left corner.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from scanner.config import get, get_vector, load_toml
+from scanner.errors import ConfigError
+
+from .errors import BoardError
+
+KINDS = ("chessboard", "charuco", "circles_asymmetric")
+_KEYS = {"name", "type", "inner_corners", "square_mm", "margin_mm", "marker_mm", "dictionary", "circle_mm"}
+BLACK_ALBEDO = 0.05  # printed black and white, as reflectance
+WHITE_ALBEDO = 0.85
+
+
+@dataclass(frozen=True)
+class Board:
+    """A planar calibration target (see the module docstring)."""
+
+    kind: str
+    columns: int
+    rows: int
+    square_mm: float
+    margin_mm: float = 0.0
+    marker_mm: float | None = None
+    dictionary: str | None = None
+    circle_mm: float | None = None
+    name: str = "board"
+
+    def __post_init__(self) -> None:
+        self.validate("board")
+
+    def validate(self, where: object) -> None:
+        if self.kind not in KINDS:
+            raise BoardError(f"{where}: type '{self.kind}' is not one of {KINDS}")
+        if self.columns < 2 or self.rows < 2:
+            raise BoardError(f"{where}: inner_corners must be at least [2, 2], got [{self.columns}, {self.rows}]")
+        if not self.square_mm > 0 or self.margin_mm < 0:
+            raise BoardError(f"{where}: square_mm must be > 0 and margin_mm >= 0")
+        if self.kind == "charuco":
+            if self.marker_mm is None or not 0 < self.marker_mm < self.square_mm:
+                raise BoardError(f"{where}: a charuco board needs 0 < marker_mm < square_mm, got {self.marker_mm}")
+            if self.dictionary is None or not hasattr(cv2.aruco, self.dictionary):
+                raise BoardError(f"{where}: a charuco board needs dictionary = one of OpenCV's DICT_* names, "
+                                 f"got {self.dictionary!r}")
+        if self.kind == "circles_asymmetric" and (self.circle_mm is None or not 0 < self.circle_mm < self.square_mm):
+            raise BoardError(f"{where}: circles need 0 < circle_mm < square_mm (the spacing), got {self.circle_mm}")
+
+    # ------------------------------------------------------------------ description
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], where: str | Path = "board") -> Board:
+        for k in d:
+            if k not in _KEYS:
+                raise ConfigError(where, k, f"unknown key; expected one of {sorted(_KEYS)}")
+        cols, rows = get_vector(d, "inner_corners", 2, where)
+        if cols != int(cols) or rows != int(rows):
+            raise ConfigError(where, "inner_corners", f"expected two whole numbers, got {[cols, rows]}")
+        opt = {k: get(d, k, float, where, None) for k in ("marker_mm", "circle_mm")}
+        board = cls.__new__(cls)
+        values = dict(kind=get(d, "type", str, where), columns=int(cols), rows=int(rows),
+                      square_mm=get(d, "square_mm", float, where), margin_mm=get(d, "margin_mm", float, where, 0.0),
+                      dictionary=get(d, "dictionary", str, where, None), name=get(d, "name", str, where, "board"), **opt)
+        for k, v in values.items():
+            object.__setattr__(board, k, v)
+        board.validate(where)
+        return board
+
+    @classmethod
+    def load(cls, path: str | Path) -> Board:
+        path = Path(path)
+        d = load_toml(path)
+        d.setdefault("name", path.stem)
+        return cls.from_dict(d, path)
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"name": self.name, "type": self.kind, "inner_corners": [self.columns, self.rows],
+                             "square_mm": self.square_mm, "margin_mm": self.margin_mm}
+        for k in ("marker_mm", "dictionary", "circle_mm"):
+            if getattr(self, k) is not None:
+                d[k] = getattr(self, k)
+        return d
+
+    def describe(self) -> str:
+        return (f"{self.kind} '{self.name}', {self.columns} x {self.rows} points, "
+                f"{'spacing' if self.kind == 'circles_asymmetric' else 'squares'} {self.square_mm:g} mm")
+
+    # ------------------------------------------------------------------ geometry
+
+    @property
+    def n_points(self) -> int:
+        return self.columns * self.rows
+
+    def object_points(self) -> np.ndarray:
+        """(N, 3) float64 model points in the board frame (mm), point id = r·C + c."""
+        r, c = np.divmod(np.arange(self.n_points), self.columns)
+        x = (2 * c + r % 2) if self.kind == "circles_asymmetric" else c
+        return np.stack([x * self.square_mm, r * self.square_mm, np.zeros(self.n_points)], axis=1)
+
+    @property
+    def pattern_extent_mm(self) -> tuple[float, float, float, float]:
+        """(x0, y0, x1, y1): the printed pattern's outline in the board frame, without margin."""
+        s = self.square_mm
+        if self.kind == "circles_asymmetric":
+            r = self.circle_mm / 2  # type: ignore[operator]
+            return (-r, -r, (2 * self.columns - 1) * s + r, (self.rows - 1) * s + r)
+        return (-s, -s, self.columns * s, self.rows * s)
+
+    @property
+    def size_mm(self) -> tuple[float, float]:
+        """Outer size (width, height) of the printed board, margin included."""
+        x0, y0, x1, y1 = self.pattern_extent_mm
+        return (x1 - x0 + 2 * self.margin_mm, y1 - y0 + 2 * self.margin_mm)
+
+    @property
+    def image_origin_mm(self) -> tuple[float, float]:
+        """Position of the board frame's origin from the printed board's top-left corner."""
+        x0, y0, _, _ = self.pattern_extent_mm
+        return (self.margin_mm - x0, self.margin_mm - y0)
+
+    @property
+    def centre_mm(self) -> np.ndarray:
+        """Centre of the printed board in the board frame (mm, z = 0)."""
+        w, h = self.size_mm
+        ox, oy = self.image_origin_mm
+        return np.array([w / 2 - ox, h / 2 - oy, 0.0])
+
+    # ------------------------------------------------------------------ image
+
+    def image(self, px_per_mm: float, black: float = BLACK_ALBEDO, white: float = WHITE_ALBEDO) -> np.ndarray:
+        """The printed board as a reflectance image (H, W) float32, `px_per_mm` texels per mm.
+
+        Chessboard and ChArUco squares fall on texel boundaries when square and margin are
+        whole numbers of texels (BoardError otherwise), so edges are exact; circles are
+        area-sampled 4 x 4 per texel."""
+        w_mm, h_mm = self.size_mm
+        W, H = int(round(w_mm * px_per_mm)), int(round(h_mm * px_per_mm))
+        ox, oy = self.image_origin_mm
+        if self.kind == "circles_asymmetric":
+            ss = 4
+            u = (np.arange(W * ss) + 0.5) / (ss * px_per_mm) - ox
+            v = (np.arange(H * ss) + 0.5) / (ss * px_per_mm) - oy
+            dark = np.zeros((H * ss, W * ss), dtype=bool)
+            r2 = (self.circle_mm / 2) ** 2  # type: ignore[operator]
+            for x, y, _ in self.object_points():  # a loop over the board's circles, each on its own window
+                cols = np.flatnonzero(np.abs(u - x) <= self.circle_mm)
+                rows = np.flatnonzero(np.abs(v - y) <= self.circle_mm)
+                dark[np.ix_(rows, cols)] |= ((u[cols][None, :] - x) ** 2 + (v[rows][:, None] - y) ** 2) <= r2
+            cover = dark.reshape(H, ss, W, ss).mean(axis=(1, 3))
+            return (white + (black - white) * cover).astype(np.float32)
+        step = self.square_mm * px_per_mm
+        margin = self.margin_mm * px_per_mm
+        if abs(step - round(step)) > 1e-6 or abs(margin - round(margin)) > 1e-6:
+            raise BoardError(f"board '{self.name}': square {self.square_mm} mm and margin {self.margin_mm} mm must be "
+                             f"whole numbers of texels at {px_per_mm} px/mm for exact edges; choose another density")
+        step, margin = int(round(step)), int(round(margin))
+        if self.kind == "charuco":
+            board = self.opencv_charuco()
+            img = board.generateImage((W, H), marginSize=margin, borderBits=1)
+            return (black + (white - black) * (img.astype(np.float32) / 255.0)).astype(np.float32)
+        nx, ny = self.columns + 1, self.rows + 1
+        squares = ((np.arange(ny)[:, None] + np.arange(nx)[None, :]) % 2 == 0)
+        img = np.full((H, W), white, dtype=np.float32)
+        block = np.where(np.kron(squares, np.ones((step, step), dtype=bool)), black, white)
+        img[margin:margin + ny * step, margin:margin + nx * step] = block
+        return img
+
+    def opencv_charuco(self) -> Any:
+        """The matching `cv2.aruco.CharucoBoard` (charuco boards only)."""
+        if self.kind != "charuco":
+            raise BoardError(f"board '{self.name}' is a {self.kind}, not a charuco board")
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))  # type: ignore[arg-type]
+        return cv2.aruco.CharucoBoard((self.columns + 1, self.rows + 1), self.square_mm, self.marker_mm, dictionary)
