@@ -193,3 +193,211 @@ def expected_protocol(make_driver: Callable[[Callable[[], object]], T], *transpo
     for i, t in enumerate(transports):
         if not t.done():
             raise ProtocolMismatch(f"transport {i}: the driver stopped before the end of the script")
+
+
+# ------------------------------------------------------------------ cameras and displays
+
+
+class FakeCapture:
+    """A streaming UVC camera as `cv2.VideoCapture` shows it: `render(t)` gives the image
+    exposed at monotonic time t; frames come every 1/fps s with a V4L2-style buffer
+    timestamp (ms, end of exposure). `unplug()` makes the stream stop."""
+
+    def __init__(self, render: Callable[[float], object], fps: float = 100.0, exposure_s: float = 0.001,
+                 buffer_timestamps: bool = True) -> None:
+        self.render, self.fps, self.exposure_s = render, fps, exposure_s
+        self.buffer_timestamps = buffer_timestamps
+        self.props: dict[int, float] = {}
+        self.refused: set[int] = set()
+        self.released = False
+        self._unplugged = False
+        self._next = time.monotonic()
+        self._last: tuple[object, float] | None = None
+
+    def isOpened(self) -> bool:
+        return not self.released
+
+    def set(self, prop: int, value: float) -> bool:
+        if prop in self.refused:
+            return False
+        self.props[prop] = value
+        return True
+
+    def get(self, prop: int) -> float:
+        import cv2
+
+        if prop == cv2.CAP_PROP_POS_MSEC:
+            return self._last[1] * 1e3 if self._last and self.buffer_timestamps else 0.0
+        return self.props.get(prop, 0.0)
+
+    def grab(self) -> bool:
+        if self._unplugged or self.released:
+            time.sleep(0.01)
+            return False
+        self._next = max(self._next + 1.0 / self.fps, time.monotonic())
+        time.sleep(max(0.0, self._next - time.monotonic()))
+        end = time.monotonic()
+        self._last = (self.render(end - self.exposure_s), end)
+        return True
+
+    def retrieve(self) -> tuple[bool, object]:
+        return (self._last is not None, self._last[0] if self._last else None)
+
+    def release(self) -> None:
+        self.released = True
+
+    def unplug(self) -> None:
+        self._unplugged = True
+
+
+class _Node:
+    def __init__(self, nodes: "FakeNodeMap", name: str, value: object = None,
+                 on_execute: Callable[[], None] | None = None) -> None:
+        self._nodes, self._name, self._value, self._on_execute = nodes, name, value, on_execute
+
+    @property
+    def value(self) -> object:
+        return self._value
+
+    @value.setter
+    def value(self, v: object) -> None:
+        allowed = self._nodes.allowed.get(self._name)
+        if allowed is not None and v not in allowed:
+            raise ValueError(f"{self._name}: {v!r} not in {allowed}")
+        self._value = v
+        self._nodes.log.append((self._name, v))
+
+    def execute(self) -> None:
+        self._nodes.log.append((self._name, "execute"))
+        if self._on_execute is not None:
+            self._on_execute()
+
+
+class FakeNodeMap:
+    """GenICam features by SFNC name; `log` records every write and execute in order."""
+
+    def __init__(self, features: dict[str, object], allowed: dict[str, tuple[object, ...]]) -> None:
+        self.log: list[tuple[str, object]] = []
+        self.allowed = allowed
+        for name, value in features.items():
+            setattr(self, name, _Node(self, name, value))
+
+
+class _Payload:
+    def __init__(self, image) -> None:  # noqa: ANN001
+        self.components = [type("Component", (), {"data": image.ravel(), "width": image.shape[1],
+                                                   "height": image.shape[0]})()]
+
+
+class FakeBuffer:
+    def __init__(self, owner: "FakeAcquirer", image, frame_id: int, timestamp_ns: int) -> None:  # noqa: ANN001
+        self._owner, self.payload, self.frame_id, self.timestamp_ns = owner, _Payload(image), frame_id, timestamp_ns
+
+    def queue(self) -> None:
+        self._owner.outstanding -= 1
+
+
+class FakeAcquirer:
+    """A harvesters ImageAcquirer: frames are exposed on `TriggerSoftware` (software
+    trigger) or on `pulse()` (the hardware line), rendered by `render(t)`. The producer has
+    `num_buffers` buffers; a buffer not handed back (`queue()`) is lost to it, and when
+    none is free a triggered frame is dropped, as on a real producer."""
+
+    def __init__(self, render: Callable[[float], object], width: int, height: int) -> None:
+        self.render = render
+        self.nodes = FakeNodeMap(
+            {"PixelFormat": "Mono8", "ExposureTime": 10000.0, "ExposureAuto": "Continuous", "AcquisitionMode":
+             "Continuous", "TriggerSelector": "FrameStart", "TriggerMode": "Off", "TriggerSource": "Software",
+             "TriggerActivation": "RisingEdge", "TimestampLatchValue": 0, "Width": width, "Height": height},
+            {"PixelFormat": ("Mono8", "Mono12"), "TriggerSource": ("Software", "Line0", "Line1")})
+        self.nodes.TriggerSoftware = _Node(self.nodes, "TriggerSoftware", on_execute=self._software)
+        self.nodes.TimestampLatch = _Node(self.nodes, "TimestampLatch", on_execute=self._latch)
+        self.remote_device = type("Remote", (), {"node_map": self.nodes})()
+        self.num_buffers = 8
+        self.outstanding = 0
+        self.dropped = 0
+        self.closed = False
+        self.gone = False
+        self._acquiring = False
+        self._queue: deque[FakeBuffer] = deque()
+        self._frame_id = 100
+        self._epoch = time.monotonic() - 5.0  # the device clock started 5 s before this host time
+
+    def is_acquiring(self) -> bool:
+        return self._acquiring
+
+    def start(self) -> None:
+        self._check()
+        self._acquiring = True
+
+    def stop(self) -> None:
+        self._check()
+        self.outstanding -= len(self._queue)  # queued buffers go back to the producer
+        self._queue.clear()
+        self._acquiring = False
+
+    def try_fetch(self, timeout: float = 0.0) -> FakeBuffer | None:
+        self._check()
+        if not self._queue:
+            time.sleep(min(timeout, 0.01))
+            return None
+        buf = self._queue.popleft()
+        return buf
+
+    def pulse(self) -> None:
+        """A rising edge on the trigger line."""
+        if self.nodes.TriggerMode.value == "On" and self.nodes.TriggerSource.value != "Software":
+            self._expose()
+
+    def unplug(self) -> None:
+        self.gone = True
+
+    def close(self) -> None:
+        self.closed = True
+
+    def _check(self) -> None:
+        if self.gone:
+            raise type("IoException", (Exception,), {})("device removed")
+
+    def _software(self) -> None:
+        self._check()
+        if self.nodes.TriggerSource.value == "Software":
+            self._expose()
+
+    def _latch(self) -> None:
+        self.nodes.TimestampLatchValue._value = int((time.monotonic() - self._epoch) * 1e9)
+
+    def _expose(self) -> None:
+        if not self._acquiring:
+            return
+        t = time.monotonic()
+        self._frame_id += 1
+        if self.outstanding >= self.num_buffers:
+            self.dropped += 1  # no free buffer: the frame is lost, its id skipped
+            return
+        self.outstanding += 1
+        image = self.render(t)
+        self._queue.append(FakeBuffer(self, image, self._frame_id, int((t - self._epoch) * 1e9)))
+
+
+class FakeDisplay:
+    """A display backend whose `present` waits for a simulated vsync at `refresh_hz`;
+    `shown` lists (monotonic time, frame) of every present."""
+
+    def __init__(self, size: tuple[int, int], refresh_hz: float = 240.0, vsync: bool = True) -> None:
+        self.size, self.refresh_hz, self.vsync = size, refresh_hz, vsync
+        self.shown: list[tuple[float, object]] = []
+        self.closed = False
+        self._next = time.monotonic()
+
+    def present(self, rgb) -> None:  # noqa: ANN001
+        if self.vsync:
+            self._next = max(self._next + 1.0 / self.refresh_hz, time.monotonic())
+            time.sleep(max(0.0, self._next - time.monotonic()))
+        self.shown.append((time.monotonic(), rgb))
+
+    def current(self) -> object:
+        return self.shown[-1][1] if self.shown else None
+
+    def close(self) -> None:
+        self.closed = True
