@@ -401,3 +401,82 @@ class FakeDisplay:
 
     def close(self) -> None:
         self.closed = True
+
+
+# ------------------------------------------------------------------ device emulators
+
+
+class Dlpc350Emulator:
+    """A LightCrafter 4500 that acknowledges every write and answers every read (version,
+    status, validation done and clean): for conformance and rig tests that exercise the
+    driver's behaviour rather than one exact exchange. `commands` logs (command, payload)."""
+
+    def __init__(self) -> None:
+        self.commands: list[tuple[int, bytes]] = []
+        self._pending = bytearray()
+        self._replies: deque[bytes] = deque()
+        self.closed = False
+
+    def write(self, report: bytes, timeout_s: float) -> None:
+        self._pending += report
+        length = int.from_bytes(self._pending[2:4], "little")
+        if len(self._pending) < 4 + length:
+            return  # continuation reports follow
+        flags, seq = self._pending[0], self._pending[1]
+        command = int.from_bytes(self._pending[4:6], "little")
+        payload = bytes(self._pending[6:4 + length])
+        self._pending.clear()
+        self.commands.append((command, payload))
+        data = bytes(16) if command == 0x0205 else b"\x00" if flags & 0x80 else b""
+        self._replies.append((bytes([0, seq]) + len(data).to_bytes(2, "little") + data).ljust(64, b"\0"))
+
+    def read(self, timeout_s: float) -> bytes:
+        if not self._replies:
+            raise DeviceTimeout("dlpc350-emulator", f"no report within {timeout_s} s")
+        return self._replies.popleft()
+
+    def close(self) -> None:
+        self.closed = True
+
+
+class TriggerBoxEmulator(FakeSerial):
+    """The reference trigger-box firmware's line protocol, answered in software; a
+    started train counts its pulses by elapsed time."""
+
+    def __init__(self) -> None:
+        super().__init__([], timeout=0.05)
+        self.period_us, self.width_us, self.armed, self.started_at = 50000, 100, 0, None
+        self.lines: list[str] = []
+
+    def write(self, data: bytes) -> int:
+        for line in data.decode().splitlines():
+            self.lines.append(line)
+            self._out += (self._answer(line) + "\n").encode()
+        return len(data)
+
+    def done(self) -> bool:
+        return True
+
+    def _sent(self) -> int:
+        if self.started_at is None:
+            return 0
+        return min(self.armed, 1 + int((time.monotonic() - self.started_at) * 1e6 // self.period_us))
+
+    def _answer(self, line: str) -> str:
+        cmd, _, arg = line.partition(" ")
+        if cmd == "ID?":
+            return "ID SLSCAN-TRIGGERBOX 1 emulator"
+        if cmd == "COUNT?":
+            return f"COUNT {self._sent()} {self.armed}"
+        if cmd == "STOP":
+            self.started_at = None
+            return "OK"
+        if cmd == "START":
+            if not self.armed:
+                return "ERR 4 not armed"
+            self.started_at = time.monotonic()
+            return "OK"
+        if cmd in ("PERIOD", "WIDTH", "ARM") and arg.isdigit():
+            setattr(self, {"PERIOD": "period_us", "WIDTH": "width_us", "ARM": "armed"}[cmd], int(arg))
+            return "OK" if cmd != "ARM" or self.width_us < self.period_us else "ERR 3 width not below period"
+        return "ERR 1 unknown command"
