@@ -337,12 +337,14 @@ class FakeAcquirer:
         self._acquiring = False
 
     def try_fetch(self, timeout: float = 0.0) -> FakeBuffer | None:
-        self._check()
-        if not self._queue:
-            time.sleep(min(timeout, 0.01))
-            return None
-        buf = self._queue.popleft()
-        return buf
+        end = time.monotonic() + timeout
+        while True:
+            self._check()
+            if self._queue:
+                return self._queue.popleft()
+            if time.monotonic() >= end:
+                return None
+            time.sleep(0.001)
 
     def pulse(self) -> None:
         """A rising edge on the trigger line."""

@@ -1,0 +1,102 @@
+"""The `hardware` rig driver on fake transports: the example rig TOMLs open with the right
+devices and wiring, impossible wirings are refused naming the key, and a whole
+acquisition runs through an HDMI projector and a GenICam camera."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from scanner.acquisition import AcquisitionSettings, acquire
+from scanner.config import CONFIG_DIR
+from scanner.devices import TriggerType
+from scanner.drivers.genicam import GenICamCamera
+from scanner.drivers.hdmi import HdmiProjector
+from scanner.drivers.lightcrafter import LightCrafter4500
+from scanner.drivers.testing import Dlpc350Emulator, FakeAcquirer, FakeCapture, FakeDisplay, TriggerBoxEmulator
+from scanner.drivers.triggerbox import TriggerBox
+from scanner.drivers.uvc import UvcCamera
+from scanner.errors import ConfigError
+from scanner.patterns import PatternSet
+from scanner.rig import RigConfig, open_rig
+
+LCR = CONFIG_DIR / "rigs" / "lightcrafter_uvc_box.toml"
+HDMI = CONFIG_DIR / "rigs" / "hdmi_genicam.toml"
+
+
+def variant(tmp: Path, source: Path, *edits: tuple[str, str]) -> RigConfig:
+    text = source.read_text().replace('"../patterns/', f'"{CONFIG_DIR}/patterns/')
+    for old, new in edits:
+        assert old in text, old
+        text = text.replace(old, new)
+    path = tmp / source.name
+    path.write_text(text)
+    return RigConfig.load(path)
+
+
+def lcr_transports(acq: FakeAcquirer | None = None) -> dict:
+    cam = (lambda: (acq, acq.close)) if acq else (lambda: FakeCapture(lambda t: np.zeros((720, 1280, 3), np.uint8)))
+    return {"projector": Dlpc350Emulator, "camera": cam, "trigger_box": TriggerBoxEmulator}
+
+
+def test_lightcrafter_uvc_example_opens_with_software_wiring(tmp_path: Path) -> None:
+    with open_rig(variant(tmp_path, LCR), transports=lcr_transports()) as rig:
+        assert isinstance(rig.projector, LightCrafter4500) and isinstance(rig.camera, UvcCamera)
+        assert rig.trigger is None and rig.camera.trigger_type is TriggerType.SOFTWARE
+        assert rig.projector.trigger == "internal" and rig.model.projector.width == 912
+
+
+def test_lightcrafter_with_trigger_box_and_genicam(tmp_path: Path) -> None:
+    config = variant(tmp_path, LCR, ('trigger = "software"', 'trigger = "trigger_box"'),
+                     ('driver = "uvc"', 'driver = "genicam"\ncti = "/x.cti"'), ("exposure_s = 0.02", "exposure_s = 0.05"))
+    with open_rig(config, transports=lcr_transports(FakeAcquirer(lambda t: np.zeros((720, 1280), np.uint8), 1280,
+                                                                 720))) as rig:
+        assert isinstance(rig.trigger, TriggerBox) and rig.projector.trigger == "external"
+        assert isinstance(rig.camera, GenICamCamera) and rig.camera.trigger_type is TriggerType.RISING_EDGE
+
+
+@pytest.mark.parametrize("source, edits, key, message", [
+    (LCR, [('trigger = "software"', 'trigger = "projector"')], "rig.trigger", "UVC camera has no trigger input"),
+    (HDMI, [('trigger = "projector"', 'trigger = "trigger_box"'), ('driver = "genicam"', 'driver = "genicam"')],
+     "rig.trigger", "HDMI projector has no trigger input"),
+    (LCR, [('source = "flash"', 'source = "video"'), ('driver = "uvc"', 'driver = "genicam"\ncti = "/x.cti"'),
+           ('trigger = "software"', 'trigger = "projector"')], "rig.trigger", "video port runs wiring 'software'"),
+    (LCR, [("width = 912", "width = 1024")], "projector.width", "DMD is 912x1140"),
+    (LCR, [('driver = "uvc"', 'driver = "webcam"')], "camera.driver", "'webcam' is not one of"),
+    (LCR, [('exposure_s = 0.02', 'exposure_s = 0.2'), ('trigger = "software"', 'trigger = "trigger_box"'),
+           ('driver = "uvc"', 'driver = "genicam"\ncti = "/x.cti"')], "camera.exposure_s", "longer than the pattern"),
+])
+def test_impossible_rigs_are_refused_naming_the_key(tmp_path: Path, source: Path, edits: list, key: str,
+                                                    message: str) -> None:
+    config = variant(tmp_path, source, *edits)
+    acq = FakeAcquirer(lambda t: np.zeros((720, 1280), np.uint8), 1280, 720)
+    with pytest.raises(ConfigError, match=message) as exc:
+        open_rig(config, transports={**lcr_transports(acq), "display": FakeDisplay((1920, 1080), 500.0)})
+    assert exc.value.key == key and str(config.path) in str(exc.value)
+
+
+def test_hdmi_genicam_rig_acquires_a_verified_sequence(tmp_path: Path) -> None:
+    """The camera sees the projector's window directly (scaled to its sensor): the window
+    runs the sequence and software-triggers the camera once each pattern is on display."""
+    display = FakeDisplay((1920, 1080), 500.0)
+
+    def render(t: float) -> np.ndarray:
+        shown = display.current()
+        light = np.zeros((1080, 1920)) if shown is None else (shown[..., 0] / 255.0) ** 2.2  # display gamma
+        return np.rint(cv2.resize(200 + 3000 * light, (320, 256), interpolation=cv2.INTER_AREA)).astype(np.uint16)
+
+    acq = FakeAcquirer(render, 320, 256)
+    acq.nodes.allowed["PixelFormat"] = ("Mono8", "Mono12")
+    config = variant(tmp_path, HDMI, ("width = 2448", "width = 320"), ("height = 2048", "height = 256"),
+                     ("refresh_hz = 60.0", "refresh_hz = 500.0"), ("period_s = 0.1", "period_s = 0.02"),
+                     ("exposure_s = 0.03", "exposure_s = 0.001"))
+    patterns = PatternSet.load(CONFIG_DIR / "patterns" / "heterodyne_3x4.toml")
+    with open_rig(config, transports={"camera": lambda: (acq, acq.close), "display": display}) as rig:
+        assert isinstance(rig.projector, HdmiProjector) and rig.camera.trigger_type is TriggerType.SOFTWARE
+        frames = []
+        stack = acquire(rig, patterns, AcquisitionSettings.for_rig(rig), lambda k, f: frames.append(f))
+    assert stack.shape == (12, 256, 320) and [f.index for f in frames] == list(range(12))
+    assert acq.outstanding == 0 and acq.dropped == 0
