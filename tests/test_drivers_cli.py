@@ -1,0 +1,49 @@
+"""`slscan devices`: the listing (on a machine without the devices) and the LightCrafter
+flash-image export whose fingerprint the driver then accepts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scanner import cli
+from scanner.commands import devices
+from scanner.config import CONFIG_DIR
+from scanner.drivers.lightcrafter import LightCrafter4500
+from scanner.drivers.testing import Dlpc350Emulator
+from scanner.patterns import PatternSet
+from scanner.rig import RigConfig
+
+LCR = CONFIG_DIR / "rigs" / "lightcrafter_uvc_box.toml"
+
+
+def test_devices_lists_every_kind_and_says_what_is_missing(capsys: pytest.CaptureFixture,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(devices.os, "access", lambda path, mode: False)
+    monkeypatch.setattr(devices.glob, "glob", lambda pattern: ["/dev/video7"])
+    assert cli.main(["devices"]) == 0
+    out = capsys.readouterr().out
+    for title in ("cameras (V4L2):", "GenICam cameras:", "USB projectors:", "displays:", "serial ports:"):
+        assert title in out
+    assert "/dev/video7" in out and "sudo usermod -aG video $USER" in out
+    assert "--cti <producer.cti>" in out
+
+
+def test_lightcrafter_images_fingerprint_is_accepted_by_the_driver(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture) -> None:
+    assert cli.main(["devices", "lightcrafter-images", "--rig", str(LCR), "--out", str(tmp_path / "img")]) == 0
+    out = capsys.readouterr().out
+    sha = out.split('flash_images_sha256 = "')[1].split('"')[0]
+    assert sorted(p.name for p in (tmp_path / "img").iterdir()) == [
+        "flash_images.json", "slscan_00.bmp", "slscan_01.bmp", "slscan_02.bmp", "slscan_03.bmp"]
+    config = RigConfig.load(LCR)
+    patterns = PatternSet.load(config.patterns_path).render(912, 1140, config.nominal_model().projector_gamma)
+    lcr = LightCrafter4500(Dlpc350Emulator, flash_images_sha256=sha)
+    lcr.load_patterns(patterns)  # the same fingerprint: accepted
+    lcr.shutdown()
+    import cv2
+
+    bmp = cv2.imread(str(tmp_path / "img" / "slscan_00.bmp"), cv2.IMREAD_UNCHANGED)
+    assert bmp.shape == (1140, 912, 3) and np.array_equal(bmp[0, :, 1], patterns[0, 0])  # pattern 0 in green
