@@ -9,6 +9,8 @@ the station keeps its sessions and results, and its calibration policy.
     max_calibration_age_days = 365        # a calibration older than this is expired (a part program may
                                           # ask for less); 0 = no expiry
     operator = ""                         # default operator name (the UI asks when empty)
+    measurement = "scanner.station.measure:InspectionMeasurement"
+                                          # the measuring step: module:factory of a `Measurement`
 
     [sim]                                 # simulated rigs only
     seed = 0                              # noise seed of the first part; part k uses seed + k
@@ -24,9 +26,10 @@ from ..config import CONFIG_DIR, get, get_table, load_toml, resolve
 from ..errors import ConfigError
 
 DEFAULT_STATION = CONFIG_DIR / "station" / "sim_bench.toml"
+DEFAULT_MEASUREMENT = "scanner.station.measure:InspectionMeasurement"
 SQLITE_NAME = "results.sqlite"
 
-_STATION_KEYS = {"name", "rig", "data_dir", "database", "max_calibration_age_days", "operator"}
+_STATION_KEYS = {"name", "rig", "data_dir", "database", "max_calibration_age_days", "operator", "measurement"}
 _SIM_KEYS = {"seed"}
 
 
@@ -49,6 +52,7 @@ class StationConfig:
     database: str
     max_calibration_age_days: float
     operator: str
+    measurement: str
     sim_seed: int
 
     @classmethod
@@ -72,6 +76,7 @@ class StationConfig:
                    data_dir=resolve(path, get(st, "data_dir", str, path, prefix="station")).resolve(),
                    database=database, max_calibration_age_days=age,
                    operator=get(st, "operator", str, path, "", "station"),
+                   measurement=get(st, "measurement", str, path, DEFAULT_MEASUREMENT, "station"),
                    sim_seed=get(sim, "seed", int, path, 0, "sim"))
 
     @property

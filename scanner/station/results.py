@@ -23,6 +23,7 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import sqlite3
+import threading
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -146,7 +147,7 @@ def open_results(url: str) -> ResultsStore:
         path = Path(url[len("sqlite:"):])
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            conn = sqlite3.connect(path, timeout=30.0)
+            conn = sqlite3.connect(path, timeout=30.0, check_same_thread=False)  # calls serialised by the store
             conn.execute("PRAGMA journal_mode=WAL")  # readers (slscan results) never block the station
             conn.execute("PRAGMA foreign_keys=ON")
         except sqlite3.Error as exc:
@@ -180,6 +181,7 @@ class ResultsStore:
         self.dialect = dialect
         self.where = where
         self._error = error  # the driver's base exception
+        self._lock = threading.RLock()  # one statement at a time on the connection, from any thread
         with self._tx() as cur:
             for stmt in _DDL:
                 cur.execute(dialect.ddl(stmt))
@@ -203,22 +205,24 @@ class ResultsStore:
     def _tx(self) -> Iterator[Any]:
         """A cursor inside one committed transaction (rolled back on error)."""
         try:
-            if self.dialect is SQLITE:
-                with self.conn:
-                    yield self.conn.cursor()
-            else:
-                with self.conn.transaction(), self.conn.cursor() as cur:
-                    yield cur
+            with self._lock:
+                if self.dialect is SQLITE:
+                    with self.conn:
+                        yield self.conn.cursor()
+                else:
+                    with self.conn.transaction(), self.conn.cursor() as cur:
+                        yield cur
         except self._error as exc:
             raise ResultsError(f"{self.where}: {type(exc).__name__}: {exc}") from None
 
     def _query(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
         try:
-            cur = self.conn.cursor()
-            cur.execute(self.dialect.sql(sql), tuple(params))
-            rows = cur.fetchall()
-            cur.close()
-            return rows
+            with self._lock:
+                cur = self.conn.cursor()
+                cur.execute(self.dialect.sql(sql), tuple(params))
+                rows = cur.fetchall()
+                cur.close()
+                return rows
         except self._error as exc:
             raise ResultsError(f"{self.where}: {type(exc).__name__}: {exc}") from None
 

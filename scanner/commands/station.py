@@ -1,0 +1,129 @@
+"""`slscan station`, `slscan results` and `slscan batch`: the bench station (scanner/station/)."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..errors import ScannerError
+
+
+def _station_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=Path, help="station config TOML (default: config/station/sim_bench.toml)")
+    p.add_argument("--data", help="the station's data folder (sessions, SQLite results, reports)")
+    p.add_argument("--db", help="results database: sqlite:PATH or postgresql://... (default: SQLite in the data folder)")
+
+
+def _config(args: argparse.Namespace) -> Any:
+    from ..station.app import override
+    from ..station.config import DEFAULT_STATION, StationConfig
+
+    return override(StationConfig.load(args.config or DEFAULT_STATION), args.data, args.db)
+
+
+def cmd_station(args: argparse.Namespace) -> int:
+    from ..cli import ProgressLine
+    from ..station.app import open_station, run_auto
+
+    config = _config(args)
+    with open_station(args.program, config, args.operator or "", rig_path=args.rig) as run:
+        if args.auto:
+            return run_auto(run, args.parts or 1, progress=ProgressLine())
+        if not sys.stdin.isatty() or not sys.stdout.isatty():
+            raise ScannerError("slscan station: the operator screen needs a terminal; use --auto --parts N "
+                               "to run without one")
+        from ..station.tui import run_tui
+
+        return run_tui(run, args.parts)
+
+
+def _program_name(value: str | None) -> tuple[str | None, Any]:
+    """A program filter given as a name or a program TOML: (name, loaded program or None)."""
+    if value is None or not value.endswith(".toml"):
+        return value, None
+    from ..station.program import load_program
+
+    program = load_program(value, check_faces=False)
+    return program.name, program
+
+
+def cmd_results(args: argparse.Namespace) -> int:
+    from ..station.report import write_report
+    from ..station.results import open_results, write_csv
+
+    name, program = _program_name(args.program)
+    if args.report and program is None:
+        raise ScannerError("slscan results --report: give --program as the part program TOML (it has the "
+                           "characteristics and tolerances the charts need)")
+    since = dt.datetime.fromisoformat(args.since).replace(tzinfo=dt.timezone.utc) if args.since else None
+    config = _config(args)
+    with open_results(config.database_url) as store:
+        rows = store.results(program=name, serial=args.serial, status=args.status, since=since, limit=args.limit)
+        values = store.values([r.id for r in rows])
+        if args.csv:
+            if args.csv == "-":
+                n = write_csv(sys.stdout, rows, values)
+            else:
+                with open(args.csv, "w", newline="") as f:
+                    n = write_csv(f, rows, values)
+                print(f"wrote {n} lines ({len(rows)} results) to {args.csv}", file=sys.stderr)
+        else:
+            print(f"{'id':>5} {'program':<14} {'serial':<24} {'att':>3} {'status':<10} {'finished (UTC)':<19}  values")
+            for r in rows:
+                vals = "  ".join(f"{v.characteristic}={v.value_mm:.4f}" if v.value_mm is not None else
+                                 f"{v.characteristic}=--" for v in values[r.id])
+                when = f"{r.finished_at:%Y-%m-%d %H:%M:%S}" if r.finished_at else ""
+                print(f"{r.id:>5} {r.program:<14} {r.serial:<24} {r.attempt:>3} {r.status:<10} {when:<19}  {vals}"
+                      + (f"  [{r.message}]" if r.message and r.status != "fail" else ""))
+            print(f"{len(rows)} results in {store.where}", file=sys.stderr)
+        if args.report:
+            path = write_report(Path(args.report), program, rows, values, store.where)
+            print(f"report {path}", file=sys.stderr)
+    return 0
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    from ..cli import ProgressLine
+    from ..station.batch import print_summary, run_batch
+
+    config = _config(args) if args.store else None
+    summary = run_batch(args.sessions, args.program, scheduler=args.scheduler, workers=args.workers,
+                        store_config=config, progress=ProgressLine(), measurement=args.measurement)
+    print_summary(summary, json_out=args.json)
+    return 0 if not summary.failures else 1
+
+
+def register(sub: Any) -> None:
+    s = sub.add_parser("station", help="the operator loop for a part program (full-screen; --auto without operator)")
+    s.add_argument("program", help="part program TOML (config/parts/*.toml)")
+    _station_options(s)
+    s.add_argument("--rig", type=Path, help="rig TOML (default: the station config's)")
+    s.add_argument("--operator", help="operator name stored with every result")
+    s.add_argument("--parts", type=int, help="stop after this many measured parts")
+    s.add_argument("--auto", action="store_true", help="no operator: measure --parts parts one after the other")
+    s.set_defaults(func=cmd_station)
+
+    r = sub.add_parser("results", help="query the results history; export CSV; write the HTML report")
+    _station_options(r)
+    r.add_argument("--program", help="part program name, or its TOML (needed for --report)")
+    r.add_argument("--serial")
+    r.add_argument("--status", choices=("in_progress", "pass", "fail", "error", "aborted", "incomplete"))
+    r.add_argument("--since", help="ISO date/time (UTC), e.g. 2026-11-23 or 2026-11-23T08:00")
+    r.add_argument("--limit", type=int, help="only the newest N results")
+    r.add_argument("--csv", help="export to this CSV file ('-' for standard output)")
+    r.add_argument("--report", help="write the HTML report with control charts into this folder")
+    r.set_defaults(func=cmd_results)
+
+    b = sub.add_parser("batch", help="re-decode and re-inspect stored sessions (in parallel, or on a Dask cluster)")
+    b.add_argument("sessions", nargs="+", help="part folders written by the station, or session folders")
+    b.add_argument("--program", required=True, help="part program TOML to inspect against")
+    b.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786); default: a local cluster")
+    b.add_argument("--workers", type=int, default=2, help="local cluster: worker processes (default 2)")
+    b.add_argument("--store", action="store_true", help="store the re-inspection results (source 'batch')")
+    _station_options(b)
+    b.add_argument("--measurement", help="measuring step, module:factory (default: the station config's)")
+    b.add_argument("--json", action="store_true", help="print the summary as JSON")
+    b.set_defaults(func=cmd_batch)
