@@ -100,3 +100,42 @@ def test_hdmi_genicam_rig_acquires_a_verified_sequence(tmp_path: Path) -> None:
         stack = acquire(rig, patterns, AcquisitionSettings.for_rig(rig), lambda k, f: frames.append(f))
     assert stack.shape == (12, 256, 320) and [f.index for f in frames] == list(range(12))
     assert acq.outstanding == 0 and acq.dropped == 0
+
+
+def test_camera_unplugged_mid_scan_keeps_frames_then_next_scan_reconnects(tmp_path: Path) -> None:
+    from scanner.errors import DeviceDisconnected, IncompleteSession
+    from scanner.pipeline import capture
+    from scanner.session import Session, SessionWriter
+
+    display = FakeDisplay((1920, 1080), 500.0)
+
+    def render(t: float) -> np.ndarray:
+        shown = display.current()
+        light = np.zeros((1080, 1920)) if shown is None else (shown[..., 0] / 255.0) ** 2.2
+        return np.rint(cv2.resize(200 + 3000 * light, (320, 256), interpolation=cv2.INTER_AREA)).astype(np.uint16)
+
+    first, second = FakeAcquirer(render, 320, 256), FakeAcquirer(render, 320, 256)
+    for acq in (first, second):
+        acq.nodes.allowed["PixelFormat"] = ("Mono8", "Mono12")
+    pending = [first, second]
+    grabs = {"n": 0}
+    real_try_fetch = first.try_fetch
+
+    def unplug_after_five(timeout: float = 0.0):  # noqa: ANN202
+        grabs["n"] += 1
+        if grabs["n"] == 6:
+            first.unplug()
+        return real_try_fetch(timeout=timeout)
+
+    first.try_fetch = unplug_after_five
+    config = variant(tmp_path, HDMI, ("width = 2448", "width = 320"), ("height = 2048", "height = 256"),
+                     ("refresh_hz = 60.0", "refresh_hz = 500.0"), ("period_s = 0.1", "period_s = 0.02"),
+                     ("exposure_s = 0.03", "exposure_s = 0.001"), ('trigger = "projector"', 'trigger = "software"'))
+    patterns = PatternSet.load(CONFIG_DIR / "patterns" / "heterodyne_3x4.toml")
+    with open_rig(config, transports={"camera": lambda: (pending[0], pending.pop(0).close), "display": display}) as rig:
+        with pytest.raises(DeviceDisconnected, match="camera lost while waiting for frame 5"):
+            capture(rig, patterns, SessionWriter.create(tmp_path / "a"))
+        with pytest.raises(IncompleteSession, match="5 raw frame"):
+            Session.open(tmp_path / "a")
+        session = capture(rig, patterns, SessionWriter.create(tmp_path / "b"))  # reopened at the next arm
+    assert len(session.manifest["frames"]) == 12 and first.closed

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import glob
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -41,12 +42,12 @@ def cmd_devices(args: argparse.Namespace) -> int:
 
 
 def cmd_lightcrafter_images(args: argparse.Namespace) -> int:
+    from ..config import get
     from ..drivers.lightcrafter_images import diamond_resample, export_flash_images, pack_rgb24
     from ..drivers.lightcrafter_protocol import HEIGHT, WIDTH
+    from ..errors import ConfigError
     from ..patterns import PatternSet
     from ..rig import RigConfig
-    from ..config import get
-    from ..errors import ConfigError
 
     config = RigConfig.load(args.rig)
     if config.nominal_model().projector.size != (WIDTH, HEIGHT):
@@ -56,8 +57,6 @@ def cmd_lightcrafter_images(args: argparse.Namespace) -> int:
     stack = diamond_resample(patterns.render(WIDTH, HEIGHT, config.nominal_model().projector_gamma), shift)
     images = pack_rgb24(stack)
     manifest = export_flash_images(images, args.out)
-    import json
-
     sha = json.loads(manifest.read_text())["flash_images_sha256"]
     print(f"{len(images)} images for {len(stack)} patterns in {args.out}")
     print("add them, in order, to the LightCrafter firmware with TI's LightCrafter 4500 GUI, then set in the rig TOML:")
