@@ -13,8 +13,9 @@ Neither is ever a number.
 needs, from the inspection stage:
 
     inspection.cad.load_cad(path, mesh_unit) -> CadModel          (faces by label and type)
-    INSPECT_ENTRY(points (N, 3) mm, model: CadModel) -> report    (register, segment by face,
-                                                                   evaluate every face)
+    INSPECT_ENTRY(session folder, model: CadModel) -> report      (the session's cloud registered,
+                                                                   segmented by face, every face
+                                                                   evaluated)
 
 where the report is the issue-5 per-face table, as a mapping or an object with `as_dict()`:
 `{"faces": [{"label": "#12" | "F3", "type": ..., "points": n, <value columns>}, ...],
@@ -34,12 +35,11 @@ from typing import Any, Mapping, Protocol, Sequence
 import numpy as np
 
 from ..errors import ScannerError
-from ..pointcloud import read_ply_points
 from ..session import Session
 from .program import Characteristic, PartProgram
 
 CAD_ENTRY = "inspection.cad:load_cad"
-INSPECT_ENTRY = "inspection.report:inspect_cloud"
+INSPECT_ENTRY = "inspection.report:inspect_session"
 REPORT_FILE = "inspection.json"  # written into the session's outputs/ by the adapter
 
 # (kind, method) -> the report's per-face column(s) that give the value, all in mm. The
@@ -170,9 +170,8 @@ class InspectionMeasurement:
         details: dict[str, Any] = {}
         paths: list[Path] = []
         for k, session in enumerate(sessions):
-            points = read_ply_points(session.outputs / "cloud.ply")
             try:
-                report = inspect(points, model)
+                report = inspect(session.root, model)
             except InspectionError as exc:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
             data = report.as_dict() if hasattr(report, "as_dict") else dict(report)

@@ -14,7 +14,7 @@ Tables (lengths in mm, times as UTC timestamps):
               station, rig, calibration_id, software_version, measurement, part_path,
               status (in_progress | pass | fail | error | aborted | incomplete), message,
               started_at, finished_at, source (station | batch)
-    measured  result_id, characteristic, kind, face, value_mm (NULL: not measured),
+    measured  result_id, position (the program's order), characteristic, kind, face, value_mm (NULL: not measured),
               tolerance_mm, conforms (NULL: not measured), points, note
 """
 
@@ -46,7 +46,7 @@ _DDL = [
     "CREATE INDEX IF NOT EXISTS results_program ON results (program, started_at)",
     "CREATE INDEX IF NOT EXISTS results_serial ON results (program, serial)",
     """CREATE TABLE IF NOT EXISTS measured (
-        result_id INTEGER NOT NULL REFERENCES results (id) ON DELETE CASCADE,
+        result_id INTEGER NOT NULL REFERENCES results (id) ON DELETE CASCADE, position INTEGER NOT NULL,
         characteristic TEXT NOT NULL, kind TEXT NOT NULL, face TEXT NOT NULL, value_mm {double},
         tolerance_mm {double} NOT NULL, conforms {boolean}, points INTEGER NOT NULL, note TEXT NOT NULL,
         PRIMARY KEY (result_id, characteristic))""",
@@ -255,10 +255,10 @@ class ResultsStore:
             if cur.rowcount != 1:
                 raise ResultsError(f"{self.where}: no result {result_id} to finish")
             cur.execute(d.sql("DELETE FROM measured WHERE result_id = ?"), (result_id,))
-            for v in values:
-                cur.execute(d.sql(f"INSERT INTO measured (result_id, {', '.join(_VALUE_COLUMNS)}) "
-                                  f"VALUES (?, {', '.join('?' * len(_VALUE_COLUMNS))})"),
-                            [result_id] + [getattr(v, c) for c in _VALUE_COLUMNS])
+            for k, v in enumerate(values):
+                cur.execute(d.sql(f"INSERT INTO measured (result_id, position, {', '.join(_VALUE_COLUMNS)}) "
+                                  f"VALUES (?, ?, {', '.join('?' * len(_VALUE_COLUMNS))})"),
+                            [result_id, k] + [getattr(v, c) for c in _VALUE_COLUMNS])
 
     def mark_interrupted(self, station: str, message: str) -> list[int]:
         """Cycles this station left `in_progress` (it died during them) become `incomplete`."""
@@ -311,7 +311,7 @@ class ResultsStore:
             return out
         marks = ", ".join("?" * len(out))
         rows = self._query(f"SELECT result_id, {', '.join(_VALUE_COLUMNS)} FROM measured "
-                           f"WHERE result_id IN ({marks}) ORDER BY result_id", list(out))
+                           f"WHERE result_id IN ({marks}) ORDER BY result_id, position", list(out))
         for r in rows:
             rec = dict(zip(_VALUE_COLUMNS, r[1:]))
             rec["conforms"] = None if rec["conforms"] is None else bool(rec["conforms"])

@@ -1,0 +1,123 @@
+"""Part programs, the station config and the calibration refusal rules."""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from scanner.errors import ConfigError
+from scanner.rig import RigConfig
+from scanner.station.calib import CalibrationInfo, refusals, rig_calibration
+from scanner.station.config import StationConfig
+from scanner.station.measure import cad_faces
+from scanner.station.program import load_program
+from test_station_support import DEMO_PROGRAM, program_copy, small_rig, station_config
+
+TODAY = dt.date(2026, 11, 23)
+
+
+def test_demo_program_loads_with_faces_checked_in_the_cad() -> None:
+    p = load_program(DEMO_PROGRAM)
+    assert p.name == "demo-part" and p.version == "1.0" and len(p.fingerprint) == 12
+    assert [c.name for c in p.characteristics] == ["high_top_flatness", "low_top_flatness", "boss_cylindricity",
+                                                   "high_top_profile", "high_top_sq"]
+    assert p.characteristic("boss_cylindricity").method == "minimum_zone"
+    assert p.characteristic("high_top_sq").method is None
+    assert p.scan.views == 1 and p.scan.exposure_s == 0.010 and p.scan.pattern_set().n_frames == 12
+    faces = cad_faces(p)
+    assert isinstance(faces, dict), faces  # the inspection CAD loader is in place
+    assert p.face_check.startswith(f"{len(faces)} faces in demo_part.ply")
+    assert faces["F2"] == "plane" and faces["F1"] == "plane"
+
+
+@pytest.mark.parametrize("edit, key", [
+    (('kind = "cylindricity"', 'kind = "roundness"'), "characteristic[2].kind"),
+    (("tolerance_mm = 0.05\n", "tolerance_mm = -0.05\n"), "characteristic[0].tolerance_mm"),
+    (('method = "minimum_zone"', 'method = "chebyshev"'), "characteristic[0].method"),
+    (('kind = "sq"', 'kind = "sq"\nmethod = "least_squares"'), "characteristic[4].method"),
+    (('name = "low_top_flatness"', 'name = "high_top_flatness"'), "characteristic[1].name"),
+    (("views = 1", "views = 0"), "scan.views"),
+    (("exposure_s = 0.010", 'exposure_s = "fast"'), "scan.exposure_s"),
+    (("views = 1", "view = 1"), "scan.view"),
+    (('id = "factory-sim-bench"', 'identity = "factory-sim-bench"'), "calibration.identity"),
+    (('version = "1.0"\n', ""), "program.version"),
+])
+def test_bad_program_names_file_and_key(tmp_path: Path, edit: tuple[str, str], key: str) -> None:
+    path = program_copy(tmp_path, edit)
+    with pytest.raises(ConfigError) as err:
+        load_program(path)
+    assert err.value.key == key and str(path) in str(err.value)
+
+
+def test_face_the_cad_does_not_have_is_refused(tmp_path: Path) -> None:
+    path = program_copy(tmp_path, ('face = "F3"', 'face = "F99"'))
+    with pytest.raises(ConfigError, match="face 'F99' .* is not in demo_part.ply") as err:
+        load_program(path)
+    assert err.value.key == "characteristic[2].face"
+    assert load_program(path, check_faces=False).characteristics[2].face == "F99"  # the schema alone is fine
+
+
+def test_characteristic_on_a_face_of_the_wrong_type_is_refused(tmp_path: Path) -> None:
+    path = program_copy(tmp_path, ('face = "F3"', 'face = "F1"'))  # cylindricity of a plane
+    with pytest.raises(ConfigError, match="cylindricity applies to cylinder faces; face F1 .* is a plane"):
+        load_program(path)
+
+
+def test_missing_cad_file_is_named(tmp_path: Path) -> None:
+    path = program_copy(tmp_path, (f'cad = "', 'cad = "/nonexistent/'))
+    with pytest.raises(ConfigError, match="CAD file not found") as err:
+        load_program(path)
+    assert err.value.key == "program.cad"
+
+
+def test_station_config_errors_name_the_key(tmp_path: Path) -> None:
+    good = StationConfig.load(station_config(tmp_path))
+    assert good.database_url == f"sqlite:{tmp_path / 'data' / 'results.sqlite'}"
+    for extra, key in (({"max_calibration_age_days": -1}, "station.max_calibration_age_days"),
+                       ({"databse": "x"}, "station.databse")):
+        with pytest.raises(ConfigError) as err:
+            StationConfig.load(station_config(tmp_path, **extra))
+        assert err.value.key == key
+    with pytest.raises(ConfigError) as err:
+        StationConfig.load(station_config(tmp_path, database="mysql://x"))
+    assert err.value.key == "station.database"
+
+
+def test_simulated_rig_has_the_factory_calibration_and_it_matches_the_demo_program(tmp_path: Path) -> None:
+    config = RigConfig.load(small_rig(tmp_path))
+    info = rig_calibration(config)
+    assert info.id == "factory-sim-bench" and info.date is None and info.camera_size == (320, 256)
+    assert refusals(info, config, load_program(DEMO_PROGRAM), 365, TODAY) == []
+
+
+def test_calibration_mismatch_expiry_and_sizes_refuse_measuring(tmp_path: Path) -> None:
+    config = RigConfig.load(small_rig(tmp_path))
+    program = load_program(DEMO_PROGRAM)  # expects factory-sim-bench, at most 180 days old
+    dated = CalibrationInfo("factory-sim-bench", TODAY - dt.timedelta(days=200), (320, 256), (912, 1140), "cal.toml")
+    [why] = refusals(dated, config, program, 365, TODAY)
+    assert why.startswith("calibration expired") and "200 days old, the limit is 180 days" in why
+    assert refusals(replace(dated, date=TODAY - dt.timedelta(days=100)), config, program, 365, TODAY) == []
+    [why] = refusals(replace(dated, date=TODAY - dt.timedelta(days=100)), config, program, 90, TODAY)
+    assert "limit is 90 days" in why  # the station's limit is stricter than the program's
+    [why] = refusals(replace(dated, id="cal-2026-01", date=TODAY), config, program, 365, TODAY)
+    assert "calibration mismatch" in why and "'factory-sim-bench'" in why and "'cal-2026-01'" in why
+    [why] = refusals(replace(dated, date=TODAY, camera_size=(1280, 1024)), config, program, 365, TODAY)
+    assert why == "calibration is for a 1280x1024 camera, rig.toml has 320x256"
+
+
+def test_hardware_rig_without_calibration_file_is_uncalibrated(tmp_path: Path) -> None:
+    config = RigConfig.load(small_rig(tmp_path))
+    hw = replace(config, driver="hardware")
+    info = rig_calibration(hw)
+    assert info.id is None and "uncalibrated" in info.problem
+    assert refusals(info, hw, load_program(DEMO_PROGRAM), 365, TODAY) == [info.problem]
+
+
+def test_calibration_file_named_by_the_rig_is_read_through_the_calibration_loader(tmp_path: Path) -> None:
+    rig = small_rig(tmp_path)
+    rig.write_text(rig.read_text().replace("[rig]\n", '[rig]\ncalibration = "cal.toml"\n', 1))
+    info = rig_calibration(RigConfig.load(rig))
+    assert info.id is None and str(tmp_path / "cal.toml") in info.problem  # never measured with
