@@ -1,0 +1,252 @@
+"""Context-free region growing of seed 002 (Dimitrov & Golparvar-Fard): segments of an
+unordered (or organised) point cloud from one user parameter, the radius of interest r.
+
+Stages:
+  1. subsample the cloud P to one point per voxel of side 0.1·r, S ⊆ P (the point nearest
+     each voxel's centroid, `downsample`), keeping the map from every point of P to its
+     representative in S;
+  2. multi-scale features on S (`local_features`): roughness (μ, σ), principal
+     curvatures and directions, normal, representative scale;
+  3. the representative neighbourhood B'_i of every point: the points of S within its
+     representative scale (all within 0.19·r and a uniform sample beyond) whose distance
+     from the point's osculating torus is at most μ_i + 2σ_i;
+  4. seeds: τ = 0.01·r, γ = 0; the unsegmented point of least μ with μ ≤ τ and
+     representative scale d_γ; none: γ += 1; all scales tried: τ *= 2, γ = 0; stop when
+     τ exceeds r;
+  5. growth from a seed: candidates C = B'_seed; a candidate with μ ≤ μ_seg + 2σ_seg
+     joins and adds its B' to C; one that fails is unreliable (its neighbourhood may
+     straddle several objects): its features are recomputed from the neighbours already
+     in the segment only, and it joins if that fit is as smooth (μ' ≤ μ_seg + 2σ_seg) and
+     the point lies on it (|offset'| ≤ μ_seg + 2σ_seg), adding the B' of the recomputed
+     features; otherwise it is rejected for this segment (it may seed or join a later
+     one). The segment roughness is the pooled fit error of its members (mean μ, and σ
+     from the members' mean square μ² + σ²).
+Candidates are examined front by front (all of C at once), not one at a time.
+
+Where the paper is silent or differs: B' reaches only as far as the representative scale,
+not r — the torus is fitted on that ball, and its curvature extrapolated beyond it (from
+a small ball, noisy) can bend into a neighbouring surface and leak the segment into it;
+re-evaluation uses every scale (restricted to segment
+points) and keeps the one of least μ, like the features themselves, and it also asks
+that the candidate lie on the re-fitted surface — a fit of segment points alone is smooth
+wherever the candidate is; the tolerances never drop below `MIN_TOLERANCE`·r (noise-free
+synthetic data has μ = 0). Labels: segments in the order they were grown (smoothest
+seeds first), -1 for points no segment took (too rough, too few neighbours, rejected
+everywhere). Units: mm.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .downsample import downsample
+from .errors import CloudError
+from .local_features import CHUNK, SCALE_FACTORS, SUBSAMPLE_FACTOR, LocalFeatures, MultiScale
+from .segmentation_errors import SegmentationError
+
+INITIAL_TAU = 0.01          # first roughness threshold, x r
+MIN_TOLERANCE = 1e-4        # floor of every roughness tolerance, x r
+MIN_RADIUS_SPACINGS = 5.0   # r must span at least this many point spacings
+MIN_SUBSAMPLED = 20         # fewer voxels than this: r is too large for the cloud
+MAX_NORMAL_ANGLE = np.radians(30.0)   # B': a neighbour's normal vs the torus normal there
+
+
+@dataclass(eq=False)
+class Segmentation:
+    """Per-point segment labels of a cloud (`labels` (N,) int32, -1 unsegmented) and what
+    produced them: the subsample S (`subsample` (M,) rows of the input, `owner` (N,) the
+    row of S representing each input point, `subsample_labels` (M,)), S's features,
+    `reevaluated` (M,) bool for points that joined after re-evaluation, the radius, and
+    the timings (s) of each stage."""
+
+    labels: np.ndarray
+    radius_mm: float
+    subsample: np.ndarray
+    owner: np.ndarray
+    subsample_labels: np.ndarray
+    features: LocalFeatures
+    reevaluated: np.ndarray
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def n_segments(self) -> int:
+        return int(self.subsample_labels.max(initial=-1) + 1)
+
+    def sizes(self) -> np.ndarray:
+        """Points of the input per segment (index = label)."""
+        return np.bincount(self.labels[self.labels >= 0], minlength=self.n_segments)
+
+
+def point_spacing(points: np.ndarray, sample: int = 2000, seed: int = 0) -> float:
+    """Median distance (mm) from a random sample of points to their nearest neighbour."""
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(points), size=min(sample, len(points)), replace=False)
+    d, _ = cKDTree(points).query(points[pick], k=2)
+    return float(np.median(d[:, 1]))
+
+
+def check_radius(points: np.ndarray, radius_mm: float) -> float:
+    """Refuse a radius of interest no neighbourhood can work with: not a positive length,
+    below `MIN_RADIUS_SPACINGS` point spacings (the small scales would hold no
+    neighbours), or beyond the cloud's size (fewer than `MIN_SUBSAMPLED` voxels)."""
+    if not (np.isfinite(radius_mm) and radius_mm > 0):
+        raise SegmentationError(f"radius of interest must be a positive length in mm, got {radius_mm}")
+    spacing = point_spacing(points)
+    if radius_mm < MIN_RADIUS_SPACINGS * spacing:
+        raise SegmentationError(
+            f"radius of interest {radius_mm:g} mm is below {MIN_RADIUS_SPACINGS:g} point spacings of this cloud "
+            f"(spacing {spacing:.4g} mm): its smallest scales would hold no neighbours; "
+            f"use r >= {MIN_RADIUS_SPACINGS * spacing:.3g} mm")
+    diag = float(np.linalg.norm(np.ptp(points, axis=0)))
+    voxels = len(np.unique(np.floor(points / (SUBSAMPLE_FACTOR * radius_mm)).astype(np.int64), axis=0))
+    if voxels < MIN_SUBSAMPLED:
+        raise SegmentationError(
+            f"radius of interest {radius_mm:g} mm is too large for this cloud (extent {diag:.4g} mm): it leaves "
+            f"{voxels} voxels of 0.1 r; use r <= {diag / 2:.3g} mm")
+    return spacing
+
+
+def segment(points: np.ndarray, radius_mm: float, viewpoint: np.ndarray | None = None) -> Segmentation:
+    """Segment a cloud (N, 3) mm with radius of interest `radius_mm`. Non-finite rows
+    (missing points) are labelled -1. `viewpoint` (mm) only orients the normals."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise CloudError("segment", f"expected (N, 3) points, got shape {pts.shape}")
+    finite = np.isfinite(pts).all(axis=1)
+    if not finite.any():
+        raise CloudError("segment", "the cloud has no points: nothing to segment")
+    rows = np.flatnonzero(finite)
+    good = pts[rows]
+    spacing = check_radius(good, radius_mm)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    sub = downsample(good, SUBSAMPLE_FACTOR * radius_mm, "density_centre")
+    assert sub.indices is not None
+    t1 = time.perf_counter()
+    timings["subsample"] = t1 - t0
+    ms = MultiScale(good, sub.indices, sub.inverse, radius_mm, spacing, viewpoint)
+    feats = ms.features(np.arange(len(ms)))
+    t2 = time.perf_counter()
+    timings["features"] = t2 - t1
+    edges = representative_neighbourhoods(ms, np.arange(len(ms)), feats, feats.normal)
+    t3 = time.perf_counter()
+    timings["neighbourhoods"] = t3 - t2
+    grower = _Grower(ms, feats, edges)
+    grower.run()
+    timings["growth"] = time.perf_counter() - t3
+    labels = np.full(len(pts), -1, dtype=np.int32)
+    labels[rows] = grower.label[sub.inverse]
+    owner = np.full(len(pts), -1, dtype=np.int64)
+    owner[rows] = sub.inverse
+    return Segmentation(labels, float(radius_mm), rows[sub.indices], owner, grower.label, grower.features,
+                        grower.reevaluated, {k: round(v, 4) for k, v in timings.items()})
+
+
+def representative_neighbourhoods(ms: MultiScale, ids: np.ndarray, f: LocalFeatures,
+                                  normals: np.ndarray) -> np.ndarray:
+    """B' of points `ids` of S: (n, k) rows of S among their growth neighbours that lie
+    within the representative scale, within μ + 2σ of the point's torus, and whose
+    normal (`normals`, per point of S) is within `MAX_NORMAL_ANGLE` of the torus's
+    there; -1 elsewhere."""
+    cand = ms.growth_neighbours(ids)
+    out = np.full(cand.shape, -1, dtype=np.int64)
+    tol = np.maximum(f.mu + 2 * f.sigma, MIN_TOLERANCE * ms.radius)
+    reach = np.asarray(ms.radii)[np.maximum(f.scale, 0)]
+    min_cos = np.cos(MAX_NORMAL_ANGLE)
+    for lo in range(0, len(ids), CHUNK):
+        rows = np.arange(lo, min(lo + CHUNK, len(ids)))
+        rows = rows[f.valid[rows]]
+        if not rows.size:
+            continue
+        c = cand[rows]
+        d, cos = ms.surface_agreement(ids[rows], f.take(rows), c, normals[np.maximum(c, 0)])
+        gap = ms.points[np.maximum(c, 0)] - ms.points[ids[rows]][:, None, :]
+        near = np.einsum("nkc,nkc->nk", gap, gap) <= (reach[rows] ** 2)[:, None]
+        agree = ~(cos < min_cos)  # a target without a normal is examined (and re-evaluated) anyway
+        out[rows] = np.where((d <= tol[rows, None]) & near & agree, c, -1)
+    return out
+
+
+class _Grower:
+    """Seeds and growth over S (see the module docstring)."""
+
+    def __init__(self, ms: MultiScale, features: LocalFeatures, edges: np.ndarray) -> None:
+        self.ms = ms
+        self.features = features
+        self.edges = edges
+        n = len(ms)
+        self.label = np.full(n, -1, dtype=np.int32)
+        self.seen = np.full(n, -1, dtype=np.int32)   # last segment that examined the point
+        self.reevaluated = np.zeros(n, dtype=bool)
+        self.n_segments = 0
+
+    def run(self) -> None:
+        f = self.features
+        r = self.ms.radius
+        mu = np.where(f.valid, f.mu, np.inf)
+        tau = INITIAL_TAU * r
+        while tau <= r:
+            for gamma in range(len(SCALE_FACTORS)):
+                cands = np.flatnonzero((mu <= tau) & (f.scale == gamma) & (self.label < 0))
+                cands = cands[np.argsort(mu[cands], kind="stable")]
+                self._grow_all(cands)
+            tau *= 2
+
+    def _grow_all(self, cands: np.ndarray) -> None:
+        """Grow a segment from every candidate seed still free, in order."""
+        pos, block = 0, 256
+        while pos < len(cands):
+            chunk = cands[pos:pos + block]
+            free = np.flatnonzero(self.label[chunk] < 0)
+            if not free.size:
+                pos += block
+                continue
+            self._grow(int(chunk[free[0]]))
+            pos += int(free[0]) + 1
+
+    def _grow(self, seed: int) -> None:
+        s = self.n_segments
+        self.n_segments += 1
+        f = self.features
+        self.label[seed] = s
+        self.seen[seed] = s
+        count, sum_mu, sum_sq = 1, f.mu[seed], f.mu[seed] ** 2 + f.sigma[seed] ** 2
+        floor = MIN_TOLERANCE * self.ms.radius
+        front = self._fresh(self.edges[seed], s)
+        while front.size:
+            self.seen[front] = s
+            mean = sum_mu / count
+            thr = max(mean + 2 * np.sqrt(max(sum_sq / count - mean * mean, 0.0)), floor)
+            ok = f.mu[front] <= thr
+            acc = front[ok]
+            self.label[acc] = s
+            grown = [self.edges[acc].ravel()]
+            count += len(acc)
+            sum_mu += f.mu[acc].sum()
+            sum_sq += (f.mu[acc] ** 2 + f.sigma[acc] ** 2).sum()
+            bad = front[~ok]
+            if bad.size:
+                g = self.ms.features(bad, self.label, s)
+                join = (g.mu <= thr) & (np.abs(g.offset) <= thr)
+                if join.any():
+                    j = bad[join]
+                    gj = g.take(join)
+                    self.label[j] = s
+                    self.reevaluated[j] = True
+                    self.features.put(j, gj)
+                    count += len(j)
+                    sum_mu += gj.mu.sum()
+                    sum_sq += (gj.mu ** 2 + gj.sigma ** 2).sum()
+                    e = representative_neighbourhoods(self.ms, j, gj, self.features.normal)
+                    grown.append(e.ravel())
+            front = self._fresh(np.concatenate(grown), s)
+
+    def _fresh(self, idx: np.ndarray, s: int) -> np.ndarray:
+        """The distinct valid indices not yet in a segment nor examined for segment s."""
+        idx = idx[idx >= 0]
+        idx = idx[(self.label[idx] < 0) & (self.seen[idx] != s)]
+        return np.unique(idx)
