@@ -1,0 +1,140 @@
+"""The operator loop on a small simulated bench: cycles, verdicts, storage, abort, re-scan,
+refusal, the control charts and the report. The measuring step is the `TruthGauge` test
+double (it reports the imposed defects), so these tests check the station, not a
+measurement; measured verdicts are tested through the inspection adapter."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import pytest
+
+from scanner.errors import IncompleteSession
+from scanner.recording import read_component, read_summary
+from scanner.session import ERROR, Session
+from scanner.station.app import StationRun, expected_status, open_station
+from scanner.station.charts import control_metric
+from scanner.station.config import StationConfig
+from scanner.station.loop import PART_RECORD, Refused
+from scanner.station.measure import MeasurementResult
+from scanner.station.program import PartProgram
+from sim.station_parts import TRUTH_FILE, lineup
+from test_station_support import DEMO_PROGRAM, TruthGauge, program_copy, station_config
+
+
+@pytest.fixture
+def config(tmp_path: Path) -> StationConfig:
+    return StationConfig.load(station_config(tmp_path))
+
+
+@pytest.fixture
+def run(config: StationConfig) -> Iterator[StationRun]:
+    with open_station(DEMO_PROGRAM, config, "ana", TruthGauge()) as r:
+        yield r
+
+
+def test_cycles_give_the_verdicts_of_the_imposed_defects_and_store_everything(run: StationRun) -> None:
+    station = run.station
+    assert station.refusals() == []
+    outcomes = [station.run_cycle(f"SN-{k}", part=k) for k in range(3)]
+    parts = lineup()
+    assert [o.truth["name"] for o in outcomes] == [p.name for p in parts[:3]]  # nominal, bow150, lobe10
+    assert [o.status for o in outcomes] == ["pass", "fail", "pass"]
+    assert [o.status for o in outcomes] == [expected_status(run.program, o.truth) for o in outcomes]
+    assert outcomes[1].message == "out of tolerance: high_top_flatness"
+    rows = run.store.results(program="demo-part")
+    assert [(r.serial, r.status, r.attempt, r.operator) for r in rows] == [
+        ("SN-0", "pass", 1, "ana"), ("SN-1", "fail", 1, "ana"), ("SN-2", "pass", 1, "ana")]
+    assert {r.calibration_id for r in rows} == {"factory-sim-bench"}
+    assert {r.measurement for r in rows} == {TruthGauge.name}
+    values = run.store.values([r.id for r in rows])
+    assert [(v.characteristic, v.value_mm, v.conforms) for v in values[rows[1].id]][:1] == [
+        ("high_top_flatness", 0.15, False)]
+    for o, r in zip(outcomes, rows):
+        assert Path(r.part_path) == o.part_path and o.sessions == (o.part_path / "view0",)
+        session = Session.open(o.sessions[0])  # complete: manifest written
+        assert json.loads((session.root / TRUTH_FILE).read_text())["name"] == o.truth["name"]
+        record = json.loads((o.part_path / PART_RECORD).read_text())
+        assert (record["result_id"], record["status"], record["serial"]) == (r.id, r.status, r.serial)
+    s = station.stats()
+    assert (s.parts, s.passed, s.failed, s.yield_percent) == (3, 2, 1, pytest.approx(200 / 3))
+    flat = s.characteristics[0]
+    assert flat.n == 3 and flat.max_mm == 0.15 and flat.mean_mm == pytest.approx(0.05)
+    report = (run.report_dir / "report.html").read_text()
+    assert "charts/high_top_flatness.png" in report and "SN-1" in report and "FAIL" in report
+    assert (run.report_dir / "charts" / "boss_cylindricity.png").stat().st_size > 1000
+    run.close()
+    chart = run.report_dir / "control_charts.rrd"
+    entity = f"metrics/{control_metric('high_top_flatness', 'value_mm')}"
+    assert "scan" in read_summary(chart).entities[entity].timelines
+    series = read_component(chart, entity, "Scalars:scalars")
+    assert [(t, float(v[0])) for t, v in series] == [(r.id, v) for r, v in zip(rows, (0.0, 0.15, 0.0))]
+
+
+def test_abort_keeps_the_frames_stores_the_cycle_and_a_rescan_is_a_new_attempt(run: StationRun) -> None:
+    cancel = threading.Event()
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if stage == "capture" and done == 4:
+            cancel.set()  # the operator presses abort during the capture
+
+    aborted = run.station.run_cycle("SN-9", part=1, cancel=cancel, progress=progress)
+    assert aborted.status == "aborted" and "aborted by the operator during capture" in aborted.message
+    view = aborted.sessions[0]
+    with pytest.raises(IncompleteSession, match="5 raw frame"):  # the abort takes effect at the next frame
+        Session.open(view)
+    assert json.loads((view / ERROR).read_text())["error"] == "OperatorAbort"
+    again = run.station.run_cycle("SN-9", part=1)
+    assert (again.status, again.attempt) == ("fail", 2)
+    rows = run.store.results(serial="SN-9")
+    assert [(r.attempt, r.status) for r in rows] == [(1, "aborted"), (2, "fail")]
+    assert run.store.values([rows[0].id]) == {rows[0].id: []}
+    assert run.station.stats().parts == 1  # statistics count the part once, by its last cycle
+
+
+def test_mismatched_calibration_is_refused_before_anything_is_scanned(tmp_path: Path, config: StationConfig) -> None:
+    program = program_copy(tmp_path, ('id = "factory-sim-bench"', 'id = "cal-2026-10-01"'))
+    with open_station(program, config, "ana", TruthGauge()) as r:
+        with pytest.raises(Refused, match="calibration mismatch: program.toml expects calibration.id 'cal-2026-10-01'"):
+            r.station.run_cycle("SN-1")
+        assert r.store.results() == [] and not config.sessions_dir.exists()
+
+
+class Unmeasurable(TruthGauge):
+    """Test double: the part cannot be registered."""
+
+    name = "unmeasurable (test double)"
+
+    def measure(self, sessions: Sequence[Session], program: PartProgram) -> MeasurementResult:
+        return MeasurementResult(False, message="registration failed: fitness 0.12 below 0.5")
+
+
+class Unavailable(TruthGauge):
+    name = "missing (test double)"
+
+    def unavailable(self) -> str | None:
+        return "inspection.report has no function inspect_session() yet"
+
+
+def test_a_part_that_cannot_be_measured_is_stored_as_error_never_as_a_number(config: StationConfig) -> None:
+    with open_station(DEMO_PROGRAM, config, "ana", Unmeasurable()) as r:
+        o = r.station.run_cycle("SN-1")
+        assert o.status == "error" and o.values == ()
+        assert o.message == "not measured: registration failed: fitness 0.12 below 0.5"
+        assert r.store.results()[0].status == "error"
+
+
+def test_an_unavailable_measuring_step_refuses_to_measure(config: StationConfig) -> None:
+    with open_station(DEMO_PROGRAM, config, "ana", Unavailable()) as r:
+        with pytest.raises(Refused, match=r"measuring step \(missing \(test double\)\) unavailable"):
+            r.station.run_cycle("SN-1")
+
+
+def test_bench_foot_switch_is_one_press_per_press(run: StationRun) -> None:
+    bench = run.bench
+    assert not bench.start_pressed()
+    bench.switch.press()
+    assert bench.start_pressed() and not bench.start_pressed()
