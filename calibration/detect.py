@@ -72,14 +72,15 @@ def detect(board: Board, image: np.ndarray) -> Detection | None:
             return None
         ids = found.ravel().astype(np.int64)
     points = corners.reshape(-1, 2).astype(np.float64)
-    return Detection(ids, refine_symmetric(image, points, _window_radius(points)))
+    radius = min(SYMMETRY_WINDOW * corner_spacing_px(points), MAX_WINDOW_PX)
+    return Detection(ids, refine_symmetric(image, points, radius))
 
 
-def _window_radius(points: np.ndarray) -> float:
-    """Refinement window: a fraction of the smallest distance between two corners."""
+def corner_spacing_px(points: np.ndarray) -> float:
+    """The smallest distance between two detected points (px)."""
     d = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=2)
     np.fill_diagonal(d, np.inf)
-    return float(min(SYMMETRY_WINDOW * d.min(), MAX_WINDOW_PX))
+    return float(d.min())
 
 
 def refine_symmetric(image: np.ndarray, points: np.ndarray, radius_px: float, iterations: int = 12) -> np.ndarray:

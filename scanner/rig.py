@@ -2,12 +2,19 @@
 
 The factory picks drivers by name and imports them lazily, so the scanner core does not
 depend on the simulator or on hardware libraries.
+
+A rig TOML may name its calibration file (`[rig] calibration = "path.json"`, relative to
+the TOML): the rig then reconstructs with the calibrated geometry (`RigConfig.model`,
+`Rig.model` of an opened rig) instead of the nominal one written in the TOML. The file is
+read, by name and lazily, with `calibration`'s loader, which checks its version and its
+image sizes against this rig's devices and refuses a mismatch.
 """
 
 from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +22,7 @@ import numpy as np
 
 from .config import CONFIG_DIR, get, get_table, get_vector, load_toml, resolve
 from .devices import Camera, Projector, TriggerSource
-from .errors import ConfigError
+from .errors import ConfigError, ScannerError
 from .geometry import Pinhole, RigModel, look_at
 
 DEFAULT_RIG = CONFIG_DIR / "rigs" / "sim_bench.toml"
@@ -23,6 +30,8 @@ TRIGGER_WIRINGS = ("software", "projector", "trigger_box")
 
 # driver name -> "module:function" returning a Rig; imported only when used
 DRIVERS = {"sim": "sim.rig:open_sim_rig", "hardware": "scanner.drivers.rig:open_hardware_rig"}
+# (calibration file, camera size, projector size) -> calibrated RigModel; imported only when a rig names a file
+CALIBRATION_LOADER = "calibration.file:load_rig_model"
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,6 +49,7 @@ class RigConfig:
     camera: dict[str, Any]
     projector: dict[str, Any]
     raw: dict[str, Any] = field(repr=False)
+    calibration_path: Path | None = None
 
     @classmethod
     def load(cls, path: str | Path = DEFAULT_RIG) -> RigConfig:
@@ -59,11 +69,14 @@ class RigConfig:
         if not 0 < period < timeout:
             raise ConfigError(path, "rig.period_s", f"pattern period {period} s must be > 0 and below timeout_s")
         patterns = resolve(path, get(rig, "patterns", str, path, "../patterns/heterodyne_3x4.toml", "rig"))
+        calibration = get(rig, "calibration", str, path, None, "rig")
         cfg = cls(path=path, name=get(rig, "name", str, path, path.stem, "rig"), driver=driver, trigger=trigger,
                   timeout_s=timeout, period_s=period, working_distance_mm=get(rig, "working_distance_mm", float, path, 400.0, "rig"),
                   patterns_path=patterns, camera=get_table(raw, "camera", path),
-                  projector=get_table(raw, "projector", path), raw=raw)
+                  projector=get_table(raw, "projector", path), raw=raw,
+                  calibration_path=resolve(path, calibration) if calibration else None)
         cfg.nominal_model()  # validates the geometry keys now, naming the file
+        _ = cfg.model  # and the calibration file, if any
         return cfg
 
     def _pinhole(self, table: dict[str, Any], prefix: str) -> Pinhole:
@@ -83,6 +96,20 @@ class RigConfig:
             raise ConfigError(p, f"{prefix}.hfov_deg", f"{hfov} is not a plausible field of view")
         aspect = get(table, "pixel_aspect", float, p, 1.0, prefix)
         return Pinhole.from_fov(width, height, hfov, aspect, dist=dist)
+
+    @cached_property
+    def model(self) -> RigModel:
+        """The geometry to reconstruct with: the calibration file's when the rig names one
+        (checked against this rig's image sizes), else the nominal one."""
+        nominal = self.nominal_model()
+        if self.calibration_path is None:
+            return nominal
+        module_name, func = CALIBRATION_LOADER.split(":")
+        load = getattr(importlib.import_module(module_name), func)
+        try:
+            return load(self.calibration_path, nominal.camera.size, nominal.projector.size)
+        except ScannerError as exc:
+            raise ConfigError(self.path, "rig.calibration", str(exc)) from None
 
     def nominal_model(self) -> RigModel:
         """The rig geometry written in the config (for the simulator: its ground truth)."""
@@ -126,4 +153,7 @@ def open_rig(config: RigConfig, **driver_options: Any) -> Rig:
     """Open the devices named by `config` (driver options, e.g. the simulator's scene, pass through)."""
     module_name, func = DRIVERS[config.driver].split(":")
     factory = getattr(importlib.import_module(module_name), func)
-    return factory(config, **driver_options)
+    rig = factory(config, **driver_options)
+    if config.calibration_path is not None:
+        rig.model = config.model  # reconstruct with the calibrated geometry
+    return rig

@@ -1,0 +1,77 @@
+"""Capturing calibration frames on an open rig (real or simulated).
+
+Fringe sequences go through the scanner's own acquisition (`scanner.acquisition.acquire`,
+with its frame-order, timing and signature checks), rendered with the projector gamma
+the calibration has measured so far. Flat images (white, black, grey levels) are shown and
+grabbed in software-triggered lock-step, whatever the rig's trigger wiring, with the same
+per-frame checks.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from scanner.acquisition import TIMESTAMP_TOLERANCE, AcquisitionSettings, acquire, check_frame, check_timing
+from scanner.devices import Frame, TriggerMode, TriggerType
+from scanner.patterns import PatternSet
+from scanner.rig import Rig
+
+WHITE, BLACK = 255, 0
+
+
+@dataclass(frozen=True, eq=False)
+class PoseFrames:
+    """One board pose: the board under full white and under black, and the fringe stack."""
+
+    white: np.ndarray
+    black: np.ndarray
+    fringes: np.ndarray
+
+
+def show_images(rig: Rig, images: np.ndarray) -> np.ndarray:
+    """One camera frame per projector image (N, Hp, Wp) uint8, software-triggered in
+    lock-step; the camera's trigger setting is restored afterwards. Returns (N, H, W)."""
+    cam, proj = rig.camera, rig.projector
+    saved = (cam.trigger_type, cam.trigger_mode)
+    settings = AcquisitionSettings.for_rig(rig)
+    n = len(images)
+    stack: np.ndarray | None = None
+    previous: Frame | None = None
+    cam.set_trigger(TriggerType.SOFTWARE, TriggerMode.ONCE)
+    try:
+        proj.load_patterns(images)
+        cam.arm(n)
+        for k in range(n):
+            earliest = time.monotonic()
+            proj.show(k)
+            cam.trigger()
+            frame = cam.grab(settings.timeout_s)
+            check_frame(k, frame, cam.name, (cam.height, cam.width), cam.bit_depth)
+            check_timing(k, frame, previous, earliest - TIMESTAMP_TOLERANCE * settings.period_s, cam.name)
+            if stack is None:
+                stack = np.empty((n, cam.height, cam.width), dtype=frame.image.dtype)
+            stack[k] = frame.image
+            previous = frame
+    finally:
+        cam.disarm()
+        if not proj.is_shut_down:
+            proj.blank()
+        cam.set_trigger(*saved)
+    assert stack is not None
+    return stack
+
+
+def capture_fringes(rig: Rig, patterns: PatternSet, gamma: float) -> np.ndarray:
+    """The fringe stack of `patterns`, pre-compensated for a projector response `gamma`."""
+    compensated = replace(rig, model=replace(rig.model, projector_gamma=gamma))
+    return acquire(compensated, patterns, AcquisitionSettings.for_rig(rig), lambda k, frame: None)
+
+
+def capture_pose(rig: Rig, patterns: PatternSet, gamma: float) -> PoseFrames:
+    """White, black and the fringe stack of the board where it stands now."""
+    p = rig.projector
+    flats = show_images(rig, np.stack([np.full((p.height, p.width), v, np.uint8) for v in (WHITE, BLACK)]))
+    return PoseFrames(flats[0], flats[1], capture_fringes(rig, patterns, gamma))

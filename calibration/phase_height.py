@@ -1,0 +1,184 @@
+"""The reference-plane phase-to-height model (seed 000, Eq. 17) from a plate on a stage.
+
+    h = l·Δφ / (Δφ + 2π·d/λ0),   Δφ = φ_reference − φ_object
+
+A flat plate is scanned at known stage heights h_k (h_0 = 0 is the reference plane). Only
+l and K = 2π·d/λ0 shape the curve, so they are fitted to every pixel of every height
+(linear least squares on h·Δφ = l·Δφ − K·h, then refined on the height error); λ0, the
+fringe pitch on the reference plane, is measured from the reference phase over the plane's
+metric coordinates (the calibrated camera and the plate's triangulated plane), which
+separates d = K·λ0/2π. Eq. 17 assumes one pitch and one geometry for the whole field; with
+a tilted projector the pitch varies across it, so l and K are also fitted per pixel (the
+per-pixel refinement) where every height was decoded.
+
+Accuracy is judged per height against the stage, beside full triangulation of the same
+scans: heights left out of the fit (every other one) measure the model between its
+calibration heights.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from scanner.geometry import Pinhole, PhaseToHeight
+
+from .errors import CalibrationError, NotEnoughData
+
+FIT_SUBSAMPLE = 4  # every n-th pixel in each direction for the global fit
+
+
+@dataclass(frozen=True)
+class HeightError:
+    """RMS height errors (mm) of one plate scan against its stage height."""
+
+    height_mm: float
+    held_out: bool
+    eq17_mm: float
+    per_pixel_mm: float
+    triangulation_mm: float
+    pixels: int
+
+
+@dataclass(frozen=True, eq=False)
+class PhaseHeightFit:
+    """The fitted Eq. 17 model, its per-pixel refinement (`l_map`, `k_map`: l (mm) and
+    K = 2π·d/λ0 (rad) per pixel, NaN where not fitted) and its accuracy per height."""
+
+    model: PhaseToHeight
+    l_map: np.ndarray
+    k_map: np.ndarray
+    errors: list[HeightError]
+
+    def rms(self, held_out: bool) -> tuple[float, float, float]:
+        """RMS over the (held-out or fitted) heights: (Eq. 17, per-pixel, triangulation)."""
+        sel = [e for e in self.errors if e.held_out == held_out and e.height_mm != 0.0]
+        if not sel:
+            return (float("nan"),) * 3  # type: ignore[return-value]
+        w = np.array([e.pixels for e in sel], dtype=np.float64)
+
+        def pooled(vals: list[float]) -> float:
+            return float(np.sqrt(np.sum(w * np.square(vals)) / w.sum()))
+
+        return (pooled([e.eq17_mm for e in sel]), pooled([e.per_pixel_mm for e in sel]),
+                pooled([e.triangulation_mm for e in sel]))
+
+    def to_dict(self) -> dict[str, object]:
+        m = self.model
+        return {"l_mm": m.l_mm, "d_mm": m.d_mm, "pitch_mm": m.pitch_mm, "plane": m.plane.tolist(),
+                "errors": [e.__dict__ for e in self.errors],
+                "rms_held_out_mm": dict(zip(("eq17", "per_pixel", "triangulation"), self.rms(True))),
+                "rms_fitted_mm": dict(zip(("eq17", "per_pixel", "triangulation"), self.rms(False)))}
+
+    def lines(self) -> list[str]:
+        out = ["height (mm)   Eq.17 RMS   per-pixel RMS   triangulation RMS   pixels"]
+        for e in self.errors:
+            tag = " (held out)" if e.held_out else ""
+            out.append(f"{e.height_mm:9.3f}   {e.eq17_mm * 1e3:8.1f} um   {e.per_pixel_mm * 1e3:10.1f} um   "
+                       f"{e.triangulation_mm * 1e3:13.1f} um   {e.pixels:8d}{tag}")
+        return out
+
+
+def fit_plane(points: np.ndarray) -> np.ndarray:
+    """(nx, ny, nz, c), n·X + c = 0, fitted to (N, 3) points, n turned toward the origin."""
+    centre = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
+    n = vt[2]
+    if n @ centre > 0:
+        n = -n
+    return np.array([*n, -n @ centre])
+
+
+def reference_pitch_mm(phase: np.ndarray, plane: np.ndarray, camera: Pinhole) -> float:
+    """λ0: the fringe pitch on the reference plane, from the phase gradient over the plane's
+    metric coordinates (least-squares linear fit of the phase)."""
+    rays = camera.ray_grid[::FIT_SUBSAMPLE, ::FIT_SUBSAMPLE].reshape(-1, 3).astype(np.float64)
+    phi = phase[::FIT_SUBSAMPLE, ::FIT_SUBSAMPLE].ravel().astype(np.float64)
+    ok = np.isfinite(phi)
+    n, c = plane[:3], plane[3]
+    X = rays[ok] * (-c / (rays[ok] @ n))[:, None]
+    e1 = np.cross(n, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    A = np.stack([X @ e1, X @ e2, np.ones(len(X))], axis=1)
+    g, *_ = np.linalg.lstsq(A, phi[ok], rcond=None)
+    return float(2.0 * np.pi / np.hypot(g[0], g[1]))
+
+
+def fit_phase_to_height(heights_mm: list[float], phases: list[np.ndarray], plane: np.ndarray, camera: Pinhole,
+                        fit_mask: list[bool]) -> tuple[PhaseToHeight, np.ndarray, np.ndarray]:
+    """Eq. 17 (global) and its per-pixel (l, K) maps from plate phases (H, W, NaN invalid)
+    at `heights_mm` (the first is the reference, 0); only heights with `fit_mask` are fitted."""
+    if heights_mm[0] != 0.0:
+        raise CalibrationError(f"phase-to-height: the first stage height is the reference plane and must be 0, "
+                               f"got {heights_mm[0]}")
+    used = [k for k in range(1, len(heights_mm)) if fit_mask[k]]
+    if len(used) < 2:
+        raise NotEnoughData(f"phase-to-height: {len(used)} non-zero stage height(s) to fit, at least 2 are needed")
+    ref = phases[0]
+    s = FIT_SUBSAMPLE
+    dphi = np.concatenate([(ref - phases[k])[::s, ::s].ravel() for k in used]).astype(np.float64)
+    h = np.concatenate([np.full(ref[::s, ::s].size, heights_mm[k]) for k in used])
+    ok = np.isfinite(dphi)
+    dphi, h = dphi[ok], h[ok]
+    if len(h) < 100:
+        raise NotEnoughData(f"phase-to-height: only {len(h)} decoded plate pixels")
+    (l0, k0), *_ = np.linalg.lstsq(np.stack([dphi, -h], axis=1), h * dphi, rcond=None)
+    sol = least_squares(lambda p: p[0] * dphi / (dphi + p[1]) - h, [l0, k0], x_scale="jac")
+    l_mm, K = (float(v) for v in sol.x)
+    pitch = reference_pitch_mm(ref, plane, camera)
+    model = PhaseToHeight(l_mm, K * pitch / (2.0 * np.pi), pitch, ref.astype(np.float32), plane)
+    # per pixel: the same linear system, summed over the fitted heights
+    a11 = np.zeros(ref.shape)
+    a12 = np.zeros(ref.shape)
+    a22 = np.zeros(ref.shape)
+    b1 = np.zeros(ref.shape)
+    b2 = np.zeros(ref.shape)
+    count = np.zeros(ref.shape, dtype=np.int32)
+    for k in used:
+        d = (ref - phases[k]).astype(np.float64)
+        good = np.isfinite(d)
+        d = np.where(good, d, 0.0)
+        hk = np.where(good, heights_mm[k], 0.0)
+        a11 += d * d
+        a12 -= hk * d
+        a22 += hk * hk
+        b1 += hk * d * d
+        b2 -= hk * hk * d
+        count += good
+    det = a11 * a22 - a12 * a12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        l_map = np.where(count == len(used), (a22 * b1 - a12 * b2) / det, np.nan)
+        k_map = np.where(count == len(used), (a11 * b2 - a12 * b1) / det, np.nan)
+    return model, l_map.astype(np.float32), k_map.astype(np.float32)
+
+
+def per_pixel_height(l_map: np.ndarray, k_map: np.ndarray, reference: np.ndarray, phase: np.ndarray) -> np.ndarray:
+    """Eq. 17 with the per-pixel l and K."""
+    d = reference - phase
+    return l_map * d / (d + k_map)
+
+
+def evaluate(heights_mm: list[float], fit_mask: list[bool], phases: list[np.ndarray],
+             triangulated: list[np.ndarray], model: PhaseToHeight, l_map: np.ndarray,
+             k_map: np.ndarray) -> list[HeightError]:
+    """RMS height errors per plate scan against the stage heights: Eq. 17, its per-pixel
+    refinement, and triangulation (`triangulated` (H, W, 3) camera-frame points per scan),
+    all over the pixels where all three have a value."""
+    n, c = model.plane[:3], model.plane[3]
+    out = []
+    for h, fitted, phi, pts in zip(heights_mm, fit_mask, phases, triangulated):
+        eq17 = model.height(phi)
+        pp = per_pixel_height(l_map, k_map, model.reference_phase, phi)
+        tri = pts @ n + c
+        ok = np.isfinite(eq17) & np.isfinite(pp) & np.isfinite(tri)
+        if not ok.any():
+            raise CalibrationError(f"phase-to-height: nothing decoded on the plate at {h} mm")
+
+        def rms(x: np.ndarray) -> float:
+            return float(np.sqrt(np.mean((x[ok].astype(np.float64) - h) ** 2)))
+
+        out.append(HeightError(float(h), not fitted, rms(eq17), rms(pp), rms(tri), int(ok.sum())))
+    return out

@@ -1,0 +1,161 @@
+"""Solving the rig from the correspondences of all views: camera, projector, stereo, joint
+refinement; outlier views; quality limits; leave-one-pose-out stability.
+
+Order: the camera's intrinsics from its corners, the projector's from its corners (each
+view's board pose is solved by both); the projector's pose relative to the camera from
+the per-view pose pairs; then one joint refinement of everything (`stereo.joint_refine`),
+each device's residuals weighted by its own RMS from the separate calibrations. Views
+whose joint reprojection error stands out are reported, and dropped when asked; a solved
+rig whose error exceeds the limits is refused (`check_limits`) naming the worst views.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import CalibrationRejected, NotEnoughData
+from .intrinsics import DeviceCalibration, calibrate_device, outlier_views
+from .stereo import StereoCalibration, initial_extrinsics, joint_refine
+from .views import Correspondence
+
+MIN_NOISE_PX = 0.005  # floor of the per-device noise used to weight the joint refinement
+
+
+@dataclass(frozen=True)
+class CalibrationSettings:
+    """How to solve and when to refuse (pixels, mm).
+
+    `min_views`: fewer usable views is an error (10-15 recommended); `fix_k3`: keep the
+    sixth-order radial term at 0 (narrow lenses rarely determine it); `outlier_factor`: a
+    view is an outlier when its RMS exceeds this many times the median view's;
+    `drop_outliers`: solve again without them; `max_*_rms_px`, `max_validation_mm`: limits
+    above which the calibration is not saved."""
+
+    min_views: int = 4
+    fix_k3: bool = False
+    outlier_factor: float = 3.0
+    drop_outliers: bool = False
+    max_camera_rms_px: float = 0.5
+    max_projector_rms_px: float = 1.0
+    max_validation_mm: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.min_views < 3:
+            raise ValueError("min_views must be >= 3 (three views of a plane determine a camera)")
+        if not (self.outlier_factor > 1 and self.max_camera_rms_px > 0 and self.max_projector_rms_px > 0
+                and self.max_validation_mm > 0):
+            raise ValueError(f"implausible calibration settings: {self}")
+
+
+@dataclass(frozen=True, eq=False)
+class Solution:
+    """A solved rig. `names` are the views used, in order; `dropped` the views left out
+    (name -> reason); `camera`/`projector` the separate calibrations that started the
+    joint refinement `stereo`."""
+
+    names: list[str]
+    correspondences: list[Correspondence]
+    camera: DeviceCalibration
+    projector: DeviceCalibration
+    stereo: StereoCalibration
+    dropped: dict[str, str] = field(default_factory=dict)
+
+    def outliers(self, device: str, factor: float) -> list[int]:
+        """Indices (into `names`) of views whose joint RMS for `device` stands out, worst first."""
+        return outlier_views(self.stereo.per_view_rms_px(device), factor)
+
+    def worst_views(self, n: int = 3) -> list[int]:
+        """The views with the largest joint error, both devices together, worst first."""
+        e = [np.sqrt((np.sum(c ** 2) + np.sum(p ** 2)) / max(len(c) + len(p), 1))
+             for c, p in zip(self.stereo.camera_residuals, self.stereo.projector_residuals)]
+        return [int(i) for i in np.argsort(e)[::-1][:n]]
+
+
+def solve(views: list[Correspondence], camera_size: tuple[int, int], projector_size: tuple[int, int],
+          settings: CalibrationSettings = CalibrationSettings()) -> Solution:
+    """The rig from the views' correspondences (see the module docstring)."""
+    solution = _solve_once(views, camera_size, projector_size, settings, {})
+    if not settings.drop_outliers:
+        return solution
+    bad = sorted({*solution.outliers("camera", settings.outlier_factor),
+                  *solution.outliers("projector", settings.outlier_factor)})
+    if not bad:
+        return solution
+    dropped = {solution.names[i]: (f"outlier: camera {solution.stereo.per_view_rms_px('camera')[i]:.3f} px, projector "
+                                   f"{solution.stereo.per_view_rms_px('projector')[i]:.3f} px RMS") for i in bad}
+    kept = [c for i, c in enumerate(solution.correspondences) if i not in bad]
+    return _solve_once(kept, camera_size, projector_size, settings, dropped)
+
+
+def _solve_once(views: list[Correspondence], camera_size: tuple[int, int], projector_size: tuple[int, int],
+                settings: CalibrationSettings, dropped: dict[str, str]) -> Solution:
+    if len(views) < settings.min_views:
+        raise NotEnoughData(f"{len(views)} usable board pose(s), at least {settings.min_views} are needed "
+                            f"(10-15 recommended): capture more poses, tilted different ways")
+    camera = calibrate_device("camera", [c.camera for c in views], camera_size, settings.fix_k3)
+    projector = calibrate_device("projector", [c.projector for c in views], projector_size, settings.fix_k3)
+    start = initial_extrinsics(camera.poses, projector.poses)
+    sigma = (max(camera.rms_px, MIN_NOISE_PX), max(projector.rms_px, MIN_NOISE_PX))
+    stereo = joint_refine([c.camera for c in views], [c.projector for c in views], camera.pinhole, projector.pinhole,
+                          start, camera.poses, settings.fix_k3, sigma)
+    return Solution([c.name for c in views], list(views), camera, projector, stereo, dict(dropped))
+
+
+def check_limits(solution: Solution, settings: CalibrationSettings) -> None:
+    """CalibrationRejected when a reprojection error exceeds its limit, naming the views
+    to blame (worst first) and what to do."""
+    s = solution.stereo
+    for device, value, limit in (("camera", s.camera_rms_px, settings.max_camera_rms_px),
+                                 ("projector", s.projector_rms_px, settings.max_projector_rms_px)):
+        if value > limit:
+            per_view = s.per_view_rms_px(device)
+            blame = [int(i) for i in np.argsort(per_view)[::-1][:3]]
+            worst = ", ".join(f"{solution.names[i]} ({per_view[i]:.3f} px)" for i in blame)
+            raise CalibrationRejected(
+                f"{device} reprojection error {value:.3f} px RMS exceeds the limit {limit:.3f} px; worst views: "
+                f"{worst}. Re-take or drop those poses (--drop-outliers drops views that stand out), check the "
+                f"board description and focus, or raise the limit if this rig cannot do better", blame)
+
+
+@dataclass(frozen=True)
+class Stability:
+    """Spread of the solution when each view is left out in turn: per quantity, the
+    full-set value and the min/max/std over the leave-one-out solutions."""
+
+    values: dict[str, float]
+    spread: dict[str, tuple[float, float, float]]  # name -> (min, max, std)
+    n_solutions: int
+
+    def lines(self) -> list[str]:
+        out = []
+        for name, full in self.values.items():
+            lo, hi, sd = self.spread[name]
+            out.append(f"{name:<28} {full:12.4f}   leave-one-out {lo:12.4f} .. {hi:12.4f}  (std {sd:.4f})")
+        return out
+
+
+def summary_values(s: StereoCalibration) -> dict[str, float]:
+    """The quantities whose stability is reported (px, mm, degrees)."""
+    Kc, Kp, T = s.camera.K, s.projector.K, s.cam_from_proj
+    R = s.proj_from_cam[:3, :3]
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    return {"camera.fx": Kc[0, 0], "camera.fy": Kc[1, 1], "camera.cx": Kc[0, 2], "camera.cy": Kc[1, 2],
+            "projector.fx": Kp[0, 0], "projector.fy": Kp[1, 1], "projector.cx": Kp[0, 2], "projector.cy": Kp[1, 2],
+            "baseline_mm": float(np.linalg.norm(T[:3, 3])), "rotation_deg": angle,
+            "stereo_rms_px": s.rms_px}
+
+
+def leave_one_out(solution: Solution, camera_size: tuple[int, int], projector_size: tuple[int, int],
+                  settings: CalibrationSettings) -> Stability:
+    """Solve again without each view in turn (needs min_views + 1 views)."""
+    views = solution.correspondences
+    if len(views) <= settings.min_views:
+        raise NotEnoughData(f"leave-one-out needs more than {settings.min_views} views, have {len(views)}")
+    runs = [summary_values(_solve_once(views[:i] + views[i + 1:], camera_size, projector_size, settings, {}).stereo)
+            for i in range(len(views))]
+    full = {k: float(v) for k, v in summary_values(solution.stereo).items()}
+    spread = {k: (float(min(r[k] for r in runs)), float(max(r[k] for r in runs)), float(np.std([r[k] for r in runs])))
+              for k in full}
+    return Stability(full, spread, len(runs))

@@ -1,0 +1,185 @@
+"""Stereo extrinsics and the joint refinement of every parameter of the rig.
+
+The camera and the projector (an inverse camera) see the same board poses. One
+least-squares problem holds both devices' intrinsics and distortion, the projector's pose
+relative to the camera, and every board pose (board -> camera); it minimises the
+reprojection errors of both devices together, each divided by its own noise level (so a
+noisier projector does not pull the camera), with OpenCV's analytic derivatives
+(`projectPoints`, `composeRT`). Its covariance gives one-sigma uncertainties of every
+parameter, the measure of how well the views determine the rig.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from scanner.geometry import Pinhole
+
+from .errors import NotEnoughData
+from .intrinsics import INTRINSIC_NAMES, ViewPoints, pose_matrix, rms
+
+EXTRINSIC_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")  # Rodrigues vector (rad), translation (mm)
+_N_INTR = len(INTRINSIC_NAMES)
+
+
+@dataclass(frozen=True, eq=False)
+class StereoCalibration:
+    """The jointly refined rig. `proj_from_cam` maps camera-frame points into the projector
+    frame; `board_poses` (V, 4, 4) board -> camera. Residuals are observed − projected
+    pixels per view. `rms_px` is the RMS over both devices' points (OpenCV's stereo RMS);
+    `std` holds one-sigma uncertainties ('camera.fx', 'projector.cy', 'extrinsic.tx' (mm),
+    'extrinsic.rotation_deg', ...)."""
+
+    camera: Pinhole
+    projector: Pinhole
+    proj_from_cam: np.ndarray
+    board_poses: np.ndarray
+    camera_residuals: list[np.ndarray]
+    projector_residuals: list[np.ndarray]
+    std: dict[str, float]
+
+    @property
+    def cam_from_proj(self) -> np.ndarray:
+        return np.linalg.inv(self.proj_from_cam)
+
+    @property
+    def camera_rms_px(self) -> float:
+        return rms(self.camera_residuals)
+
+    @property
+    def projector_rms_px(self) -> float:
+        return rms(self.projector_residuals)
+
+    @property
+    def rms_px(self) -> float:
+        return rms(self.camera_residuals + self.projector_residuals)
+
+    def per_view_rms_px(self, device: str) -> np.ndarray:
+        res = self.camera_residuals if device == "camera" else self.projector_residuals
+        return np.array([rms(r) for r in res])
+
+
+def _intrinsic_vector(p: Pinhole) -> np.ndarray:
+    K = p.K
+    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *p.dist])
+
+
+def _pinhole(size: tuple[int, int], x: np.ndarray) -> Pinhole:
+    K = np.array([[x[0], 0.0, x[2]], [0.0, x[1], x[3]], [0.0, 0.0, 1.0]])
+    return Pinhole(size[0], size[1], K, x[4:9])
+
+
+def initial_extrinsics(camera_poses: np.ndarray, projector_poses: np.ndarray) -> np.ndarray:
+    """proj_from_cam from the board poses each device found on its own (V, 4, 4): the mean
+    of the per-view estimates T_proj·T_cam⁻¹ (rotations averaged on SO(3))."""
+    each = np.stack([Tp @ np.linalg.inv(Tc) for Tc, Tp in zip(camera_poses, projector_poses)])
+    u, _, vt = np.linalg.svd(each[:, :3, :3].sum(axis=0))
+    T = np.eye(4)
+    T[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    T[:3, 3] = np.median(each[:, :3, 3], axis=0)
+    return T
+
+
+def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], camera: Pinhole, projector: Pinhole,
+                 proj_from_cam: np.ndarray, board_poses: np.ndarray, fix_k3: bool = False,
+                 sigma_px: tuple[float, float] = (1.0, 1.0)) -> StereoCalibration:
+    """Refine every parameter from the starting values given; `sigma_px` = the expected
+    point noise of (camera, projector), which weights their residuals."""
+    n_views = len(cam_views)
+    if len(proj_views) != n_views or len(board_poses) != n_views:
+        raise NotEnoughData(f"joint refinement: {n_views} camera views, {len(proj_views)} projector views and "
+                            f"{len(board_poses)} board poses must match")
+    x0 = [_intrinsic_vector(camera), _intrinsic_vector(projector),
+          cv2.Rodrigues(proj_from_cam[:3, :3])[0].ravel(), proj_from_cam[:3, 3]]
+    for T in board_poses:
+        x0 += [cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3]]
+    x0 = np.concatenate(x0)
+    free = np.ones(len(x0), dtype=bool)
+    if fix_k3:
+        free[[8, _N_INTR + 8]] = False
+    n_cam = sum(len(v) for v in cam_views)
+    rows = 2 * (n_cam + sum(len(v) for v in proj_views))
+    if rows <= free.sum():
+        raise NotEnoughData(f"joint refinement: {rows // 2} points for {int(free.sum())} parameters")
+    w_cam, w_proj = 1.0 / sigma_px[0], 1.0 / sigma_px[1]
+    e0 = 2 * _N_INTR  # first extrinsic parameter
+
+    def residuals_and_jacobian(x: np.ndarray, want_jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        res = np.empty(rows)
+        jac = np.zeros((rows, len(x))) if want_jac else None
+        kc, dc = _pinhole((1, 1), x[:_N_INTR]).K, x[4:9]
+        kp, dp = _pinhole((1, 1), x[_N_INTR:e0]).K, x[_N_INTR + 4:e0]
+        re, te = x[e0:e0 + 3], x[e0 + 3:e0 + 6]
+        row = 0
+        for v, (cv, pv) in enumerate(zip(cam_views, proj_views)):  # one block of rows per view and device
+            o = e0 + 6 + 6 * v
+            rv, tv = x[o:o + 3], x[o + 3:o + 6]
+            n = len(cv)
+            px, J = cv2.projectPoints(cv.object_points, rv, tv, kc, dc)
+            res[row:row + 2 * n] = w_cam * (cv.image_points - px.reshape(-1, 2)).ravel()
+            if jac is not None:
+                jac[row:row + 2 * n, o:o + 6] = -w_cam * J[:, :6]
+                jac[row:row + 2 * n, :_N_INTR] = -w_cam * J[:, 6:6 + _N_INTR]
+            row += 2 * n
+            n = len(pv)
+            if n == 0:
+                continue
+            r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = cv2.composeRT(rv, tv, re, te)
+            px, J = cv2.projectPoints(pv.object_points, r3, t3, kp, dp)
+            res[row:row + 2 * n] = w_proj * (pv.image_points - px.reshape(-1, 2)).ravel()
+            if jac is not None:
+                d_rt3 = J[:, :6]
+                # chain rule through the composed pose: (r3, t3) from (rv, tv) and (re, te)
+                d_view = d_rt3[:, :3] @ np.hstack([dr3dr1, dr3dt1]) + d_rt3[:, 3:] @ np.hstack([dt3dr1, dt3dt1])
+                d_ext = d_rt3[:, :3] @ np.hstack([dr3dr2, dr3dt2]) + d_rt3[:, 3:] @ np.hstack([dt3dr2, dt3dt2])
+                jac[row:row + 2 * n, o:o + 6] = -w_proj * d_view
+                jac[row:row + 2 * n, e0:e0 + 6] = -w_proj * d_ext
+                jac[row:row + 2 * n, _N_INTR:e0] = -w_proj * J[:, 6:6 + _N_INTR]
+            row += 2 * n
+        return res, jac
+
+    def fun(xf: np.ndarray) -> np.ndarray:
+        x = x0.copy()
+        x[free] = xf
+        return residuals_and_jacobian(x, False)[0]
+
+    def jac(xf: np.ndarray) -> np.ndarray:
+        x = x0.copy()
+        x[free] = xf
+        return residuals_and_jacobian(x, True)[1][:, free]  # type: ignore[index]
+
+    sol = least_squares(fun, x0[free], jac=jac, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12, max_nfev=200)
+    x = x0.copy()
+    x[free] = sol.x
+    res, J = residuals_and_jacobian(x, True)
+    dof = max(rows - int(free.sum()), 1)
+    s2 = float(res @ res) / dof
+    Jf = J[:, free]  # type: ignore[index]
+    cov_free = np.linalg.pinv(Jf.T @ Jf) * s2
+    cov = np.zeros((len(x), len(x)))
+    cov[np.ix_(free, free)] = cov_free
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    std = {f"camera.{n}": float(sd[i]) for i, n in enumerate(INTRINSIC_NAMES)}
+    std |= {f"projector.{n}": float(sd[_N_INTR + i]) for i, n in enumerate(INTRINSIC_NAMES)}
+    std |= {f"extrinsic.{n}": float(sd[e0 + i]) for i, n in enumerate(EXTRINSIC_NAMES)}
+    rot_cov = cov[e0:e0 + 3, e0:e0 + 3]
+    std["extrinsic.rotation_deg"] = float(np.degrees(np.sqrt(max(np.trace(rot_cov), 0.0))))
+    std["extrinsic.translation_mm"] = float(np.sqrt(max(np.trace(cov[e0 + 3:e0 + 6, e0 + 3:e0 + 6]), 0.0)))
+
+    cam = _pinhole(camera.size, x[:_N_INTR])
+    proj = _pinhole(projector.size, x[_N_INTR:e0])
+    proj_from_cam = pose_matrix(x[e0:e0 + 3], x[e0 + 3:e0 + 6])
+    poses = np.stack([pose_matrix(x[e0 + 6 + 6 * v:e0 + 9 + 6 * v], x[e0 + 9 + 6 * v:e0 + 12 + 6 * v])
+                      for v in range(n_views)])
+    cam_res, proj_res = [], []
+    for cv, pv, T in zip(cam_views, proj_views, poses):
+        Xc = cv.object_points @ T[:3, :3].T + T[:3, 3]
+        cam_res.append(cv.image_points - cam.project(Xc))
+        Tp = proj_from_cam @ T
+        Xp = pv.object_points @ Tp[:3, :3].T + Tp[:3, 3]
+        proj_res.append(pv.image_points - proj.project(Xp) if len(pv) else np.zeros((0, 2)))
+    return StereoCalibration(cam, proj, proj_from_cam, poses, cam_res, proj_res, std)

@@ -1,0 +1,247 @@
+"""Calibration captures on disk, and views decoded from them.
+
+`slscan calibrate` writes everything it captures, so a calibration can be solved again
+from disk (`slscan calibrate --from DIR`):
+
+    DIR/capture.json            written after every step, atomically: format and version,
+                                board, fringe pattern set, sizes, bit depth, gamma levels,
+                                poses, plate heights, artefact
+    DIR/gamma/level_00.png …    flat grey levels (the projector response)
+    DIR/pose_000/white.png      the board under full white …
+                 black.png      … and under black
+                 fringe_00.png …  the fringe sequence (both orientations)
+    DIR/plate_00/fringe_00.png … the reference plate at each stage height
+    DIR/artefact/fringe_00.png … the validation artefact
+
+Images are lossless PNG at their bit depth; each file appears complete or not at all.
+
+Captures made by other tools are read given a pattern description: OpenCV's Gray-code
+layout (`graycode_views`) takes every sub-folder holding the layout's images, sorted by
+file name, as one pose.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from scanner.decode import DecodeResult, decode
+from scanner.errors import DecodeError
+from scanner.patterns import PatternSet
+from scanner.session import write_atomic, write_json
+
+from .board import Board
+from .capture import PoseFrames
+from .errors import CalibrationError, DetectionError
+from .graycode import GrayCodeLayout, decode_graycode
+from .views import View
+
+CAPTURE_FORMAT = "slscan-calibration-capture"
+CAPTURE_VERSION = 1
+CAPTURE_FILE = "capture.json"
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg")
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    ok, data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise CalibrationError(f"{path}: cannot encode a {image.dtype} {image.shape} image")
+    write_atomic(path, data.tobytes())
+
+
+def _read_image(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
+    if img is None:
+        raise CalibrationError(f"{path}: missing or not a readable image")
+    return img
+
+
+def _read_stack(folder: Path, prefix: str, n: int) -> np.ndarray:
+    return np.stack([_read_image(folder / f"{prefix}_{k:02d}.png") for k in range(n)])
+
+
+class CaptureWriter:
+    """Writes one calibration capture into a new folder (see the module docstring)."""
+
+    def __init__(self, root: str | Path, board: Board, patterns: PatternSet, camera_size: tuple[int, int],
+                 projector_size: tuple[int, int], bit_depth: int, rig_name: str) -> None:
+        self.root = Path(root)
+        if self.root.exists() and any(self.root.iterdir()):
+            raise CalibrationError(f"{self.root}: folder exists and is not empty; choose a new --out folder so no "
+                                   f"earlier capture is overwritten")
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.manifest: dict[str, Any] = {
+            "format": CAPTURE_FORMAT, "version": CAPTURE_VERSION, "rig": rig_name,
+            "created": dt.datetime.now(dt.timezone.utc).isoformat(), "board": board.to_dict(),
+            "patterns": patterns.to_dict(), "camera_size": list(camera_size), "projector_size": list(projector_size),
+            "bit_depth": bit_depth, "gamma_levels": None, "poses": [], "plates": [], "artefact": None}
+        self._save()
+
+    def _save(self) -> None:
+        write_json(self.root / CAPTURE_FILE, self.manifest)
+
+    def _stack(self, folder: str, prefix: str, stack: np.ndarray) -> None:
+        (self.root / folder).mkdir(exist_ok=True)
+        for k, img in enumerate(stack):
+            _write_png(self.root / folder / f"{prefix}_{k:02d}.png", img)
+
+    def add_gamma(self, levels: np.ndarray, images: np.ndarray) -> None:
+        self._stack("gamma", "level", images)
+        self.manifest["gamma_levels"] = [int(v) for v in levels]
+        self._save()
+
+    def add_pose(self, frames: PoseFrames, gamma: float) -> str:
+        name = f"pose_{len(self.manifest['poses']):03d}"
+        self._stack(name, "fringe", frames.fringes)
+        _write_png(self.root / name / "white.png", frames.white)
+        _write_png(self.root / name / "black.png", frames.black)
+        self.manifest["poses"].append({"name": name, "gamma": gamma})
+        self._save()
+        return name
+
+    def add_plate(self, height_mm: float, fringes: np.ndarray, gamma: float) -> None:
+        name = f"plate_{len(self.manifest['plates']):02d}"
+        self._stack(name, "fringe", fringes)
+        self.manifest["plates"].append({"name": name, "height_mm": height_mm, "gamma": gamma})
+        self._save()
+
+    def add_artefact(self, fringes: np.ndarray, description: dict[str, Any], gamma: float) -> None:
+        self._stack("artefact", "fringe", fringes)
+        self.manifest["artefact"] = {"description": description, "gamma": gamma}
+        self._save()
+
+
+@dataclass(frozen=True, eq=False)
+class CaptureSet:
+    """A capture folder written by `CaptureWriter`, read back."""
+
+    root: Path
+    manifest: dict[str, Any]
+
+    @classmethod
+    def open(cls, root: str | Path) -> CaptureSet:
+        root = Path(root)
+        path = root / CAPTURE_FILE
+        if not path.is_file():
+            raise CalibrationError(f"{root}: no {CAPTURE_FILE}; not a slscan calibration capture (for captures made "
+                                   f"by other tools give --layout)")
+        try:
+            manifest = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise CalibrationError(f"{path}: unreadable: {exc}") from None
+        if manifest.get("format") != CAPTURE_FORMAT or manifest.get("version") != CAPTURE_VERSION:
+            raise CalibrationError(f"{path}: format {manifest.get('format')!r} version {manifest.get('version')!r}; "
+                                   f"this slscan reads {CAPTURE_FORMAT!r} version {CAPTURE_VERSION}")
+        return cls(root, manifest)
+
+    @property
+    def board(self) -> Board:
+        return Board.from_dict(self.manifest["board"], self.root / CAPTURE_FILE)
+
+    @property
+    def patterns(self) -> PatternSet:
+        return PatternSet.from_dict(self.manifest["patterns"], self.root / CAPTURE_FILE)
+
+    @property
+    def camera_size(self) -> tuple[int, int]:
+        return tuple(self.manifest["camera_size"])  # type: ignore[return-value]
+
+    @property
+    def projector_size(self) -> tuple[int, int]:
+        return tuple(self.manifest["projector_size"])  # type: ignore[return-value]
+
+    @property
+    def bit_depth(self) -> int:
+        return int(self.manifest["bit_depth"])
+
+    @property
+    def pose_names(self) -> list[str]:
+        return [p["name"] for p in self.manifest["poses"]]
+
+    def pose(self, name: str) -> PoseFrames:
+        folder = self.root / name
+        return PoseFrames(_read_image(folder / "white.png"), _read_image(folder / "black.png"),
+                          _read_stack(folder, "fringe", self.patterns.n_frames))
+
+    def gamma(self) -> tuple[np.ndarray, np.ndarray] | None:
+        levels = self.manifest.get("gamma_levels")
+        if not levels:
+            return None
+        return np.array(levels, dtype=np.uint8), _read_stack(self.root / "gamma", "level", len(levels))
+
+    def plates(self) -> list[tuple[float, np.ndarray]]:
+        return [(float(p["height_mm"]), _read_stack(self.root / p["name"], "fringe", self.patterns.n_frames))
+                for p in self.manifest["plates"]]
+
+    def artefact(self) -> tuple[dict[str, Any], np.ndarray] | None:
+        a = self.manifest.get("artefact")
+        if not a:
+            return None
+        return a["description"], _read_stack(self.root / "artefact", "fringe", self.patterns.n_frames)
+
+    def views(self) -> list[View]:
+        """Every pose decoded into a view."""
+        return [pose_view(n, self.pose(n), self.patterns, self.bit_depth, self.projector_size)
+                for n in self.pose_names]
+
+
+def decode_pose(name: str, fringes: np.ndarray, patterns: PatternSet, bit_depth: int,
+                projector_size: tuple[int, int]) -> DecodeResult:
+    """The fringe stack decoded; a wrong or incomplete stack is a DetectionError naming the view."""
+    try:
+        return decode(fringes, patterns, bit_depth, projector_size)
+    except DecodeError as exc:
+        raise DetectionError(name, f"fringe frames cannot be decoded: {exc}") from None
+
+
+def pose_view(name: str, frames: PoseFrames, patterns: PatternSet, bit_depth: int,
+              projector_size: tuple[int, int]) -> View:
+    """A view from one pose's frames: both fringe orientations decoded, weighted by their
+    phase precision."""
+    if set(patterns.orientations) != {"vertical", "horizontal"}:
+        raise CalibrationError(f"pattern set {patterns.to_dict()}: projector calibration needs fringes in both "
+                               f"orientations (vertical and horizontal)")
+    d = decode_pose(name, frames.fringes, patterns, bit_depth, projector_size)
+    mv, mh = d.maps["vertical"], d.maps["horizontal"]
+    # weights: phase precision in projector pixels^-2, up to the common noise level
+    wv = mv.phase_weight / np.float32(mv.period_px ** 2)
+    wh = mh.phase_weight / np.float32(mh.period_px ** 2)
+    return View(name, frames.white, mv.coordinate, mh.coordinate, wv, wh)
+
+
+def _image_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+
+
+def graycode_views(root: str | Path, layout: GrayCodeLayout, min_contrast: float = 0.16,
+                   min_bit_difference: float = 0.02) -> list[View]:
+    """Views from captures in OpenCV's Gray-code layout (see `calibration.graycode`): one
+    pose per sub-folder of `root` holding at least the layout's images (taken in file-name
+    order; extra images after them are ignored). Thresholds are fractions of full scale."""
+    root = Path(root)
+    if not root.is_dir():
+        raise CalibrationError(f"{root}: no such folder")
+    if not layout.white_black:
+        raise CalibrationError("the Gray-code layout must end with white and black images (board detection uses white)")
+    views = []
+    for folder in sorted(p for p in root.iterdir() if p.is_dir()):
+        files = _image_files(folder)
+        if not files:
+            continue
+        if len(files) < layout.n_frames:
+            raise DetectionError(folder.name, f"{len(files)} images in {folder}, the Gray-code layout for a "
+                                              f"{layout.width} x {layout.height} projector needs {layout.n_frames}")
+        stack = np.stack([_read_image(f) for f in files[:layout.n_frames]])
+        full = float(np.iinfo(stack.dtype).max)
+        maps = decode_graycode(stack, layout, min_contrast * full, min_bit_difference * full, folder.name)
+        views.append(View(folder.name, stack[layout.white_index], maps.u, maps.v))  # type: ignore[index]
+    if not views:
+        raise CalibrationError(f"{root}: no sub-folder holds images; expected one folder of {layout.n_frames} images "
+                               f"per board pose")
+    return views
