@@ -28,13 +28,12 @@ def cmd_station(args: argparse.Namespace) -> int:
     from ..cli import ProgressLine
     from ..station.app import open_station, run_auto
 
+    if not args.auto and not (sys.stdin.isatty() and sys.stdout.isatty()):
+        raise ScannerError("the operator screen needs a terminal; use --auto --parts N to run without one")
     config = _config(args)
     with open_station(args.program, config, args.operator or "", rig_path=args.rig) as run:
         if args.auto:
             return run_auto(run, args.parts or 1, progress=ProgressLine())
-        if not sys.stdin.isatty() or not sys.stdout.isatty():
-            raise ScannerError("slscan station: the operator screen needs a terminal; use --auto --parts N "
-                               "to run without one")
         from ..station.tui import run_tui
 
         return run_tui(run, args.parts)

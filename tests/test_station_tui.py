@@ -1,0 +1,206 @@
+"""The operator screen through a real pseudo-terminal: keys in, screen text out.
+
+`pexpect` runs `slscan station` in a pty; `Screen` below replays what the program writes
+(the cursor-addressing subset of xterm that curses uses) into rows of text, so the test
+reads the screen the operator sees. The measuring step is the `TruthGauge` test double."""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+import time
+from pathlib import Path
+
+import pexpect
+import pytest
+
+from scanner.station.config import StationConfig
+from scanner.station.results import open_results
+from test_station_support import DEMO_PROGRAM, station_config
+
+ROWS, COLS = 40, 140
+TESTS = Path(__file__).resolve().parent
+_CSI = re.compile(r"\x1b\[([?>]?)([0-9;]*)([@A-Za-z])")
+
+
+class Screen:
+    """Rows x cols of text, fed with terminal output."""
+
+    def __init__(self, rows: int, cols: int) -> None:
+        self.rows, self.cols = rows, cols
+        self.cells = [[" "] * cols for _ in range(rows)]
+        self.r = self.c = 0
+        self.saved = (0, 0)
+        self.last = " "
+        self.top, self.bottom = 0, rows - 1  # scrolling region
+
+    def text(self) -> str:
+        return "\n".join("".join(row).rstrip() for row in self.cells)
+
+    def _put(self, ch: str) -> None:
+        if self.c >= self.cols:
+            self.c, self.r = 0, min(self.r + 1, self.rows - 1)
+        self.cells[self.r][self.c] = ch
+        self.c += 1
+        self.last = ch
+
+    def _erase(self, r: int, c0: int, c1: int) -> None:
+        self.cells[r][c0:c1] = [" "] * (c1 - c0)
+
+    def feed(self, data: str) -> None:
+        i = 0
+        while i < len(data):
+            ch = data[i]
+            if ch == "\x1b":
+                m = _CSI.match(data, i)
+                if m:
+                    self._csi(m.group(1), [int(x) if x else 0 for x in m.group(2).split(";")], m.group(3))
+                    i = m.end()
+                    continue
+                nxt = data[i + 1:i + 2]
+                if nxt == "7":
+                    self.saved = (self.r, self.c)
+                elif nxt == "8":
+                    self.r, self.c = self.saved
+                i += 3 if nxt in "()*+" else 2  # charset designations take one more byte
+                continue
+            if ch == "\r":
+                self.c = 0
+            elif ch == "\n":
+                self.r = min(self.r + 1, self.rows - 1)
+            elif ch == "\b":
+                self.c = max(self.c - 1, 0)
+            elif ch >= " ":
+                self._put(ch)
+            i += 1
+
+    def _csi(self, private: str, p: list[int], op: str) -> None:
+        n = max(p[0], 1)
+        if private or op in "hlmt":
+            return
+        if op == "r":
+            self.top, self.bottom = (p[0] or 1) - 1, (p[1] if len(p) > 1 and p[1] else self.rows) - 1
+            self.r = self.c = 0
+            return
+        if op in "Hf":
+            self.r, self.c = min(max(p[0], 1), self.rows) - 1, min(max(p[1] if len(p) > 1 else 1, 1), self.cols) - 1
+        elif op == "A":
+            self.r = max(self.r - n, 0)
+        elif op == "B":
+            self.r = min(self.r + n, self.rows - 1)
+        elif op == "C":
+            self.c = min(self.c + n, self.cols - 1)
+        elif op == "D":
+            self.c = max(self.c - n, 0)
+        elif op == "G":
+            self.c = min(n, self.cols) - 1
+        elif op == "d":
+            self.r = min(n, self.rows) - 1
+        elif op == "K":
+            self._erase(self.r, *{0: (self.c, self.cols), 1: (0, self.c + 1), 2: (0, self.cols)}[p[0]])
+        elif op == "J":
+            rows = {0: range(self.r + 1, self.rows), 1: range(0, self.r), 2: range(self.rows)}[p[0]]
+            if p[0] == 0:
+                self._erase(self.r, self.c, self.cols)
+            for r in rows:
+                self._erase(r, 0, self.cols)
+        elif op == "X":
+            self._erase(self.r, self.c, min(self.c + n, self.cols))
+        elif op == "b":
+            for _ in range(n):
+                self._put(self.last)
+        elif op in "LM":  # insert / delete lines at the cursor, within the scrolling region
+            region = self.cells[self.r:self.bottom + 1]
+            blank = [[" "] * self.cols for _ in range(n)]
+            region = (blank + region)[:len(region)] if op == "L" else (region[n:] + blank)[:len(region)]
+            self.cells[self.r:self.bottom + 1] = region
+        elif op in "@P":
+            row = self.cells[self.r]
+            if op == "@":
+                row[self.c:] = ([" "] * n + row[self.c:])[:self.cols - self.c]
+            else:
+                row[self.c:] = (row[self.c + n:] + [" "] * n)[:self.cols - self.c]
+        else:
+            raise AssertionError(f"terminal sequence the test screen does not know: CSI {p} {op}")
+
+
+class Terminal:
+    """`slscan ...` in a pseudo-terminal, its screen kept up to date."""
+
+    def __init__(self, *args: str) -> None:
+        env = {**os.environ, "TERM": "xterm", "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
+        self.child = pexpect.spawn(sys.executable, ["-m", "scanner.cli", *args], env=env, dimensions=(ROWS, COLS),
+                                   encoding="utf-8", codec_errors="replace")
+        self.screen = Screen(ROWS, COLS)
+
+    def pump(self, seconds: float = 0.05) -> None:
+        try:
+            while True:
+                self.screen.feed(self.child.read_nonblocking(65536, timeout=seconds))
+        except pexpect.TIMEOUT:
+            pass
+
+    def wait(self, pattern: str, timeout_s: float = 60) -> str:
+        """The screen text once `pattern` (a regex) is on it."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            self.pump()
+            text = self.screen.text()
+            if re.search(pattern, text):
+                return text
+        raise AssertionError(f"not on the screen after {timeout_s} s: {pattern!r}\n{self.screen.text()}")
+
+    def keys(self, text: str) -> None:
+        self.child.send(text)
+
+
+def test_operator_screen_keys_in_screen_text_out(tmp_path: Path) -> None:
+    cfg = station_config(tmp_path)
+    term = Terminal("station", str(DEMO_PROGRAM), "--config", str(cfg), "--operator", "ana")
+    try:
+        screen = term.wait(r"READY\s+part 1\s+serial: \(none\)\s+operator: ana")
+        assert "calibration  factory-sim-bench (undated, does not expire" in screen
+        assert "measuring    truth-gauge (test double): ready" in screen
+        assert "[s]/Enter scan" in screen and "REFUSING" not in screen
+
+        term.keys("e")
+        term.wait(r"enter serial, Enter to accept")
+        term.keys("SN-0042\r")
+        term.wait(r"READY\s+part 1\s+serial: SN-0042")
+        term.keys("s")
+        screen = term.wait(r"LAST  SN-0042 \(attempt 1\): PASS")
+        assert re.search(r"high_top_flatness\s+0\.0000 mm\s+<= 0\.050\s+ok", screen)
+        assert "RUNNING STATISTICS  1 parts, 1 pass, 0 fail, 0 not measured, yield 100.0 %" in screen
+
+        term.keys("n")  # the next part: the simulator brings the part with a 150 um bow
+        term.keys("SN-0043\r")
+        term.wait(r"READY\s+part 2\s+serial: SN-0043")
+        term.keys("\r")
+        screen = term.wait(r"LAST  SN-0043 \(attempt 1\): FAIL - out of tolerance: high_top_flatness")
+        assert re.search(r"high_top_flatness\s+0\.1500 mm\s+<= 0\.050\s+OUT", screen)
+        assert "2 parts, 1 pass, 1 fail" in screen and "yield 50.0 %" in screen
+
+        term.keys("r")  # re-scan, aborted while it runs: the earlier result stays
+        term.wait(r"BUSY")
+        term.keys("a")
+        screen = term.wait(r"LAST  SN-0043 \(attempt 2\): ABORTED - aborted by the operator")
+        assert "2 parts, 1 pass, 1 fail" in screen
+        term.keys("q")
+        term.child.expect(pexpect.EOF, timeout=30)
+    finally:
+        term.child.close(force=True)
+    assert term.child.exitstatus == 0
+    with open_results(StationConfig.load(cfg).database_url) as store:
+        assert [(r.serial, r.attempt, r.status, r.operator) for r in store.results()] == [
+            ("SN-0042", 1, "pass", "ana"), ("SN-0043", 1, "fail", "ana"), ("SN-0043", 2, "aborted", "ana")]
+
+
+def test_without_a_terminal_the_station_says_to_use_auto(tmp_path: Path) -> None:
+    import subprocess
+
+    env = {**os.environ, "PYTHONPATH": str(TESTS)}
+    p = subprocess.run([sys.executable, "-m", "scanner.cli", "station", str(DEMO_PROGRAM), "--config",
+                        str(station_config(tmp_path))], env=env, stdin=subprocess.DEVNULL, capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 2 and "needs a terminal; use --auto --parts N" in p.stderr
