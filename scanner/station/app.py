@@ -128,10 +128,11 @@ def outcome_lines(program: PartProgram, o: CycleOutcome) -> list[str]:
     return lines
 
 
-def run_auto(run: StationRun, parts: int, out: TextIO = sys.stdout, progress: Progress | None = None) -> int:
+def run_auto(run: StationRun, parts: int, out: TextIO | None = None, progress: Progress | None = None) -> int:
     """Measure `parts` parts without an operator (serials AUTO-<time>-<k>); print each
     verdict and, on the simulator, the verdict the imposed defects call for. Returns the
     exit code: 0 when every part was measured, 1 otherwise."""
+    out = out or sys.stdout
     station = run.station
     reasons = station.refusals()
     for label, text in station.status_lines():

@@ -182,8 +182,9 @@ def _store(summary: BatchSummary, program: PartProgram, config: StationConfig, e
             store.finish_part(rid, item.status, item.message, item.values, now)
 
 
-def print_summary(summary: BatchSummary, out: TextIO = sys.stdout, json_out: bool = False) -> None:
+def print_summary(summary: BatchSummary, out: TextIO | None = None, json_out: bool = False) -> None:
     """Per-part lines, the failures, counts and wall time (or the whole summary as JSON)."""
+    out = out or sys.stdout
     if json_out:
         print(json.dumps({"program": summary.program, "where": summary.where, "wall_s": summary.wall_s,
                           "counts": summary.counts(), "items": [asdict(i) for i in summary.items]}, indent=1),
