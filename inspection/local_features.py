@@ -19,7 +19,10 @@ For a point p of the subsampled cloud S and each scale d_j = f_j·r (f_j in
     of h fixed to 1: a circle or, for A = 0, a line, never degenerate for a surface
     patch seen along its normal); signed curvature κ = -2A/sqrt(B²+1-4AD), positive
     when the centre of curvature lies on the normal's side;
-  - k1 from the plane of largest |κ|, k2 from the plane perpendicular to it; their fit
+  - k1 from the plane of largest |κ|, k2 from the plane perpendicular to it (a scale
+    whose circle has |k1|·d_j > `MAX_BEND`, i.e. turns by more than ~30 degrees within
+    its own ball, is not a surface patch at that scale: sparse points around a sharp
+    crease fit such a circle as well as a fillet, so it is refused); their fit
     errors (mean and standard deviation of the points' geometric distances to the circle)
     averaged give the roughness (μ, σ); the normal is the gradient of the two circles at
     p (for finite circles, the direction from their centres to p, as in the paper);
@@ -40,14 +43,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 SCALE_FACTORS = (1.0, 0.72, 0.52, 0.37, 0.27, 0.19)
-N_PLANES = 8                # planes rotating about the normal (perpendicular pairs: N_PLANES even)
+N_PLANES = 6                # planes rotating about the normal (perpendicular pairs: N_PLANES even)
 SLAB_FACTOR = 0.1           # half-width of a plane neighbourhood, x r
 SUBSAMPLE_FACTOR = 0.1      # voxel side of S, x r
-SLAB_POINTS = 10            # points wanted per plane neighbourhood: sets q_j
+SLAB_POINTS = 10  # points wanted per plane neighbourhood: sets q_j
 MIN_FIT_POINTS = 5          # a circle (3 parameters) needs at least this many points
-NEAR_POINTS = 16            # growth neighbours within the smallest scale (S holds ~11 there)
+NEAR_POINTS = 16            # growth neighbours within the smallest scale (S holds ~11 there) ...
+FAR_POINTS = 24             # ... and a uniform sample of this many out to r
 CHUNK = 2048                # points per batch
 FLAT_CURVATURE = 1e-6       # |k|·r below this: flat (a cylinder or plane in `surface_distance`)
+MAX_BEND = 0.5              # |k1|·d above this: the circle turns too far within its own ball
 
 _ANGLES = np.arange(N_PLANES) * np.pi / N_PLANES
 _COS, _SIN = np.cos(_ANGLES).astype(np.float32), np.sin(_ANGLES).astype(np.float32)
@@ -129,9 +134,9 @@ class MultiScale:
                 assert keep is not None
                 self.samples.append(keep)
                 self.trees.append(cKDTree(self.cloud[keep]))
-        # growth: all of S within the smallest scale, and S thinned like the largest scale's sample
+        # growth: all of S within the smallest scale, and a uniform sample of S out to r
         self.near_tree = cKDTree(self.points)
-        far = downsample(self.points, self.radius * np.sqrt(np.pi / self.q[0]), "density_centre").indices
+        far = downsample(self.points, self.radius * np.sqrt(np.pi / FAR_POINTS), "density_centre").indices
         assert far is not None
         self.far_rows = far
         self.far_tree = cKDTree(self.points[far])
@@ -158,12 +163,12 @@ class MultiScale:
         there are fewer (the point itself excluded)."""
         centres = self.points[ids]
         dn, near = self.near_tree.query(centres, k=NEAR_POINTS + 1, distance_upper_bound=self.radii[-1])
-        df, far = self.far_tree.query(centres, k=self.q[0] + 1, distance_upper_bound=self.radius)
+        df, far = self.far_tree.query(centres, k=FAR_POINTS + 1, distance_upper_bound=self.radius)
         near = near.astype(np.int64)
         far = self.far_rows[np.where(np.isfinite(df), far, 0)]
         idx = np.concatenate([np.where(np.isfinite(dn), near, 0), far], axis=1)
         ok = np.concatenate([np.isfinite(dn), np.isfinite(df)], axis=1) & (idx != ids[:, None])
-        return _first_valid(idx, ok, NEAR_POINTS + self.q[0])
+        return _first_valid(idx, ok, NEAR_POINTS + FAR_POINTS)
 
     def features(self, ids: np.ndarray, labels: np.ndarray | None = None, segment: int = -1) -> LocalFeatures:
         """Representative features of points `ids` of S; with `labels` (per point of S),
@@ -312,7 +317,7 @@ def _scale_features(v: np.ndarray, ok: np.ndarray, d: float, slab: float) -> tup
     score = np.where(pair, np.abs(np.nan_to_num(kappa)), -1.0)
     c1 = np.argmax(score, axis=1)
     c2 = perp[c1]
-    valid = pair[np.arange(n), c1] & (cnt >= MIN_FIT_POINTS)
+    valid = pair[np.arange(n), c1] & (cnt >= MIN_FIT_POINTS) & (np.abs(kappa[np.arange(n), c1]) <= MAX_BEND)
 
     rows = np.arange(n)
     Qs = np.where(good, Q, 1.0)

@@ -132,7 +132,7 @@ def segment(points: np.ndarray, radius_mm: float, viewpoint: np.ndarray | None =
     feats = ms.features(np.arange(len(ms)))
     t2 = time.perf_counter()
     timings["features"] = t2 - t1
-    edges = representative_neighbourhoods(ms, np.arange(len(ms)), feats, feats.normal)
+    edges = mutual(representative_neighbourhoods(ms, np.arange(len(ms)), feats, feats.normal))
     t3 = time.perf_counter()
     timings["neighbourhoods"] = t3 - t2
     grower = _Grower(ms, feats, edges)
@@ -149,9 +149,10 @@ def segment(points: np.ndarray, radius_mm: float, viewpoint: np.ndarray | None =
 def representative_neighbourhoods(ms: MultiScale, ids: np.ndarray, f: LocalFeatures,
                                   normals: np.ndarray) -> np.ndarray:
     """B' of points `ids` of S: (n, k) rows of S among their growth neighbours that lie
-    within the representative scale, within μ + 2σ of the point's torus, and whose
-    normal (`normals`, per point of S) is within `MAX_NORMAL_ANGLE` of the torus's
-    there; -1 elsewhere."""
+    within the representative scale and within μ + 2σ of the point's torus. An entry is
+    the row j itself where the neighbour's normal (`normals`, per point of S) agrees with
+    the torus normal there (within `MAX_NORMAL_ANGLE`: a trusted edge), `untrusted(j)`
+    where it does not, -1 where there is no edge."""
     cand = ms.growth_neighbours(ids)
     out = np.full(cand.shape, -1, dtype=np.int64)
     tol = np.maximum(f.mu + 2 * f.sigma, MIN_TOLERANCE * ms.radius)
@@ -166,9 +167,29 @@ def representative_neighbourhoods(ms: MultiScale, ids: np.ndarray, f: LocalFeatu
         d, cos = ms.surface_agreement(ids[rows], f.take(rows), c, normals[np.maximum(c, 0)])
         gap = ms.points[np.maximum(c, 0)] - ms.points[ids[rows]][:, None, :]
         near = np.einsum("nkc,nkc->nk", gap, gap) <= (reach[rows] ** 2)[:, None]
-        agree = ~(cos < min_cos)  # a target without a normal is examined (and re-evaluated) anyway
-        out[rows] = np.where((d <= tol[rows, None]) & near & agree, c, -1)
+        on = (d <= tol[rows, None]) & near
+        out[rows] = np.where(on, np.where(cos >= min_cos, c, untrusted(c)), -1)
     return out
+
+
+def untrusted(j: np.ndarray) -> np.ndarray:
+    """The edge code of an untrusted edge to row j (and back: the code's own inverse)."""
+    return -2 - j
+
+
+def mutual(edges: np.ndarray) -> np.ndarray:
+    """Demote trusted edge i -> j of the B' lists `edges` (one row per point of S) to
+    untrusted unless j -> i is trusted too: both points' surfaces must agree, so a point
+    whose fit bends across a crease cannot carry growth onto the other side alone."""
+    n, k = edges.shape
+    src = np.repeat(np.arange(n, dtype=np.int64), k)
+    dst = edges.ravel()
+    ok = dst >= 0
+    keys = np.sort(src[ok] * n + dst[ok])
+    rev = np.where(ok, dst, 0) * n + src
+    pos = np.minimum(np.searchsorted(keys, rev), max(len(keys) - 1, 0))
+    found = ok & (keys[pos] == rev) if len(keys) else ok
+    return np.where(ok & ~found, untrusted(dst), dst).reshape(n, k)
 
 
 class _Grower:
@@ -209,44 +230,72 @@ class _Grower:
             pos += int(free[0]) + 1
 
     def _grow(self, seed: int) -> None:
+        """Grow segment s from `seed`: points reached by a trusted edge join while they are
+        smooth enough; the others wait until that growth stops (so the segment is as
+        complete as it gets around them) and are then re-evaluated against it, all at
+        once; joiners continue the growth. Points re-evaluated and refused are done for s."""
         s = self.n_segments
         self.n_segments += 1
         f = self.features
         self.label[seed] = s
         self.seen[seed] = s
-        count, sum_mu, sum_sq = 1, f.mu[seed], f.mu[seed] ** 2 + f.sigma[seed] ** 2
-        floor = MIN_TOLERANCE * self.ms.radius
-        front = self._fresh(self.edges[seed], s)
-        while front.size:
-            self.seen[front] = s
-            mean = sum_mu / count
-            thr = max(mean + 2 * np.sqrt(max(sum_sq / count - mean * mean, 0.0)), floor)
-            ok = f.mu[front] <= thr
-            acc = front[ok]
-            self.label[acc] = s
-            grown = [self.edges[acc].ravel()]
-            count += len(acc)
-            sum_mu += f.mu[acc].sum()
-            sum_sq += (f.mu[acc] ** 2 + f.sigma[acc] ** 2).sum()
-            bad = front[~ok]
-            if bad.size:
-                g = self.ms.features(bad, self.label, s)
-                join = (g.mu <= thr) & (np.abs(g.offset) <= thr)
-                if join.any():
-                    j = bad[join]
-                    gj = g.take(join)
-                    self.label[j] = s
-                    self.reevaluated[j] = True
-                    self.features.put(j, gj)
-                    count += len(j)
-                    sum_mu += gj.mu.sum()
-                    sum_sq += (gj.mu ** 2 + gj.sigma ** 2).sum()
-                    e = representative_neighbourhoods(self.ms, j, gj, self.features.normal)
-                    grown.append(e.ravel())
-            front = self._fresh(np.concatenate(grown), s)
+        stats = np.array([1.0, f.mu[seed], f.mu[seed] ** 2 + f.sigma[seed] ** 2])
+        pending = np.zeros(0, dtype=np.int64)
+        codes = self.edges[seed]
+        while True:
+            front, trusted = self._fresh(codes, s)
+            while front.size:
+                ok = trusted & (f.mu[front] <= self._threshold(stats))
+                acc = front[ok]
+                self.seen[acc] = s
+                self._join(acc, s, stats)
+                pending = np.union1d(pending, front[~ok])
+                front, trusted = self._fresh(self.edges[acc].ravel(), s)
+            pending = pending[self.label[pending] < 0]
+            if not pending.size:
+                return
+            self.seen[pending] = s
+            codes = self._reevaluate(pending, s, stats)
+            pending = pending[:0]
+            if not codes.size:
+                return
 
-    def _fresh(self, idx: np.ndarray, s: int) -> np.ndarray:
-        """The distinct valid indices not yet in a segment nor examined for segment s."""
-        idx = idx[idx >= 0]
-        idx = idx[(self.label[idx] < 0) & (self.seen[idx] != s)]
-        return np.unique(idx)
+    def _threshold(self, stats: np.ndarray) -> float:
+        """μ_seg + 2σ_seg from the pooled sums (count, Σμ, Σ(μ² + σ²)), at least the floor."""
+        n, s1, s2 = stats
+        mean = s1 / n
+        return max(mean + 2 * np.sqrt(max(s2 / n - mean * mean, 0.0)), MIN_TOLERANCE * self.ms.radius)
+
+    def _join(self, rows: np.ndarray, s: int, stats: np.ndarray) -> None:
+        f = self.features
+        self.label[rows] = s
+        stats += (len(rows), f.mu[rows].sum(), (f.mu[rows] ** 2 + f.sigma[rows] ** 2).sum())
+
+    def _reevaluate(self, rows: np.ndarray, s: int, stats: np.ndarray) -> np.ndarray:
+        """Re-evaluate points `rows` against segment s only; the ones on its surface join
+        (their features replaced by the re-fitted ones). Returns the joiners' B' edge
+        codes, flattened, trusted only where the target's own B' trusts the joiner back."""
+        thr = self._threshold(stats)
+        g = self.ms.features(rows, self.label, s)
+        join = (g.mu <= thr) & (np.abs(g.offset) <= thr)
+        if not join.any():
+            return np.empty(0, dtype=np.int64)
+        j = rows[join]
+        gj = g.take(join)
+        self.features.put(j, gj)
+        self.reevaluated[j] = True
+        self._join(j, s, stats)
+        e = representative_neighbourhoods(self.ms, j, gj, self.features.normal)
+        back = (self.edges[np.maximum(e, 0)] == j[:, None, None]).any(axis=2)
+        return np.where((e >= 0) & ~back, untrusted(e), e).ravel()
+
+    def _fresh(self, codes: np.ndarray, s: int) -> tuple[np.ndarray, np.ndarray]:
+        """The distinct points reached by edge `codes` that are in no segment and not yet
+        examined for segment s, and whether a trusted edge reached each."""
+        idx = np.where(codes <= -2, untrusted(codes), codes)
+        keep = idx >= 0
+        idx, trust = idx[keep], codes[keep] >= 0
+        keep = (self.label[idx] < 0) & (self.seen[idx] != s)
+        idx, trust = idx[keep], trust[keep]
+        front = np.unique(idx)
+        return front, np.isin(front, idx[trust])
