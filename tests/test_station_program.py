@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -116,8 +117,22 @@ def test_hardware_rig_without_calibration_file_is_uncalibrated(tmp_path: Path) -
     assert refusals(info, hw, load_program(DEMO_PROGRAM), 365, TODAY) == [info.problem]
 
 
-def test_calibration_file_named_by_the_rig_is_read_through_the_calibration_loader(tmp_path: Path) -> None:
+def test_calibration_file_named_by_the_rig_gives_its_id_and_date_and_can_expire(tmp_path: Path) -> None:
+    from calibration.file import write_calibration
+
     rig = small_rig(tmp_path)
-    rig.write_text(rig.read_text().replace("[rig]\n", '[rig]\ncalibration = "cal.toml"\n', 1))
-    info = rig_calibration(RigConfig.load(rig))
-    assert info.id is None and str(tmp_path / "cal.toml") in info.problem  # never measured with
+    created = dt.datetime(2026, 4, 1, 9, 30, 5, tzinfo=dt.timezone.utc)
+    cal = write_calibration(tmp_path / "cal.json", RigConfig.load(rig).nominal_model(), {}, "sim-bench")
+    cal.write_text(json.dumps({**json.loads(cal.read_text()), "created": created.isoformat()}))
+    rig.write_text(rig.read_text().replace("[rig]\n", '[rig]\ncalibration = "cal.json"\n', 1))
+    config = RigConfig.load(rig)
+    info = rig_calibration(config)
+    assert (info.id, info.date, info.camera_size, info.source) == ("sim-bench@2026-04-01T09:30:05", created.date(),
+                                                                   (320, 256), str(tmp_path / "cal.json"))
+    program = load_program(program_copy(tmp_path, ('id = "factory-sim-bench"', 'id = "sim-bench@2026-04-01T09:30:05"')))
+    assert refusals(info, config, program, 365, dt.date(2026, 9, 1)) == []
+    [why] = refusals(info, config, program, 365, TODAY)  # 236 days later: past the program's 180
+    assert why == ("calibration expired: sim-bench@2026-04-01T09:30:05 dated 2026-04-01 is 236 days old, "
+                   "the limit is 180 days")
+    [why] = refusals(info, config, load_program(DEMO_PROGRAM), 365, dt.date(2026, 9, 1))
+    assert why.startswith("calibration mismatch: demo_part.toml expects calibration.id 'factory-sim-bench'")

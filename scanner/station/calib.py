@@ -1,10 +1,11 @@
 """The rig's calibration as the station sees it: which one, how old, for which image sizes,
 and whether the station may measure with it.
 
-A rig TOML names its calibration file with `rig.calibration` (a path relative to the rig
-TOML; issue 3 writes these files). It is read through `CALIBRATION_ENTRY`, the calibration
-package's loader, which checks the file's version and sizes; the station needs from what
-it returns an `id`, a `date` (date or ISO text) and the camera and projector image sizes.
+A rig TOML names its calibration file with `rig.calibration` (issue 3's versioned JSON,
+checked against the rig's image sizes when the rig config loads). The station reads it
+through `CALIBRATION_ENTRY` (the calibration package's loader) for its identity: the
+file's `id` if it has one, else `<rig>@<created, to the second>` (e.g.
+`sim-bench@2026-11-23T16:40:12`), and its date (`created`).
 
 A simulated rig without a calibration file uses its nominal geometry, which is the
 simulator's ground truth: that counts as a "factory" calibration with the fixed id
@@ -21,13 +22,11 @@ from __future__ import annotations
 import datetime as dt
 import importlib
 from dataclasses import dataclass
-from typing import Any
 
-from ..config import get, resolve
 from ..rig import RigConfig
 from .program import PartProgram
 
-CALIBRATION_ENTRY = "calibration.file:load_calibration"
+CALIBRATION_ENTRY = "calibration.file:load_calibration"  # path -> CalibrationFile (.data, sizes)
 FACTORY_PREFIX = "factory-"
 
 
@@ -48,45 +47,24 @@ class CalibrationInfo:
 
 
 def rig_calibration(config: RigConfig) -> CalibrationInfo:
-    """The calibration the rig TOML refers to, or the factory geometry of a simulated rig."""
-    ref = get(config.raw.get("rig", {}), "calibration", str, config.path, None, "rig")
-    if ref is None:
+    """The calibration the rig TOML names, or the factory geometry of a simulated rig."""
+    path = config.calibration_path
+    if path is None:
         if config.driver == "sim":
             model = config.nominal_model()
-            return CalibrationInfo(f"{FACTORY_PREFIX}{config.name}", None, (model.camera.width, model.camera.height),
-                                   (model.projector.width, model.projector.height),
+            return CalibrationInfo(f"{FACTORY_PREFIX}{config.name}", None, model.camera.size, model.projector.size,
                                    f"factory: nominal geometry of {config.path.name} (simulator ground truth)")
         return CalibrationInfo(None, None, None, None, f"{config.path}: no rig.calibration",
                                problem="rig is uncalibrated: a hardware rig needs a calibration file "
                                        "(run `slscan calibrate`, then name the file as rig.calibration)")
-    path = resolve(config.path, ref)
     module_name, attr = CALIBRATION_ENTRY.split(":")
     try:
-        load = getattr(importlib.import_module(module_name), attr)
-    except (ImportError, AttributeError):
-        return CalibrationInfo(None, None, None, None, str(path),
-                               problem=f"{path} cannot be read: {module_name}.{attr}() is not available yet "
-                                       f"(calibration, issue 3)")
-    try:
-        cal = load(path)
+        cal = getattr(importlib.import_module(module_name), attr)(path)
     except Exception as exc:  # noqa: BLE001 — any failure to read it refuses measuring, with the reason
         return CalibrationInfo(None, None, None, None, str(path), problem=f"{path}: {exc}")
-    return CalibrationInfo(str(cal.id), _date(cal.date), _size(cal, "camera"), _size(cal, "projector"), str(path))
-
-
-def _date(value: Any) -> dt.date:
-    if isinstance(value, dt.datetime):
-        return value.date()
-    if isinstance(value, dt.date):
-        return value
-    return dt.datetime.fromisoformat(str(value)).date()
-
-
-def _size(cal: Any, device: str) -> tuple[int, int] | None:
-    part = getattr(cal, device, None)
-    if part is None or not hasattr(part, "width"):
-        return None
-    return int(part.width), int(part.height)
+    created = dt.datetime.fromisoformat(str(cal.data["created"]))
+    ident = str(cal.data.get("id") or f"{cal.data.get('rig', config.name)}@{created:%Y-%m-%dT%H:%M:%S}")
+    return CalibrationInfo(ident, created.date(), tuple(cal.camera_size), tuple(cal.projector_size), str(path))
 
 
 def max_age_days(station_limit: float, program: PartProgram) -> float | None:
