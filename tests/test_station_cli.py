@@ -1,5 +1,6 @@
-"""`slscan station --auto` and `slscan results` as the operator's shell sees them, including
-a station killed (SIGKILL) or interrupted (SIGINT) in the middle of a scan. The station
+"""`slscan station --auto` and `slscan results` (query, CSV, HTML report) as the operator's
+shell sees them, including a station killed (SIGKILL) or interrupted (SIGINT) in the
+middle of a scan. The station
 config measures with the `TruthGauge` test double (see test_station_support.py)."""
 
 from __future__ import annotations
@@ -75,6 +76,12 @@ def test_killed_mid_scan_loses_no_result_and_leaves_the_session_incomplete(tmp_p
     assert {x["operator"] for x in lines} == {"ana", ""}
     out, err = slscan("results", "--config", str(cfg), "--status", "fail").communicate(timeout=60)
     assert "high_top_flatness=0.1500" in out and "1 results in" in err
+    report = tmp_path / "report"
+    out, err = slscan("results", "--config", str(cfg), "--program", str(DEMO_PROGRAM), "--report",
+                      str(report)).communicate(timeout=60)
+    assert f"report {report / 'report.html'}" in err
+    html = (report / "report.html").read_text()
+    assert html.count("<img src='charts/") == 5 and "3 parts (last cycle per serial): 2 pass, 1 fail" in html
 
 
 def test_interrupted_mid_scan_stores_the_cycle_as_aborted(tmp_path: Path) -> None:
@@ -91,16 +98,3 @@ def test_interrupted_mid_scan_stores_the_cycle_as_aborted(tmp_path: Path) -> Non
     assert json.loads((view / ERROR).read_text())["error"] == "KeyboardInterrupt"
     with pytest.raises(IncompleteSession):
         Session.open(view)
-
-
-def test_report_from_the_results_command(tmp_path: Path) -> None:
-    cfg = station_config(tmp_path)
-    out, err = slscan("station", str(DEMO_PROGRAM), "--config", str(cfg), "--parts", "2", "--auto").communicate(
-        timeout=120)
-    assert "2 parts: 1 pass, 1 fail" in out, err
-    report = tmp_path / "report"
-    out, err = slscan("results", "--config", str(cfg), "--program", str(DEMO_PROGRAM), "--report",
-                      str(report)).communicate(timeout=60)
-    assert f"report {report / 'report.html'}" in err
-    html = (report / "report.html").read_text()
-    assert html.count("<img src='charts/") == 5 and "2 parts (last cycle per serial): 1 pass, 1 fail" in html
