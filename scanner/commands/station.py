@@ -26,12 +26,13 @@ def _config(args: argparse.Namespace) -> Any:
 
 def cmd_station(args: argparse.Namespace) -> int:
     from ..cli import ProgressLine
-    from ..station.app import open_station, run_auto
+    from ..station.app import load_measurement, open_station, run_auto
 
     if not args.auto and not (sys.stdin.isatty() and sys.stdout.isatty()):
         raise ScannerError("the operator screen needs a terminal; use --auto --parts N to run without one")
     config = _config(args)
-    with open_station(args.program, config, args.operator or "", rig_path=args.rig) as run:
+    measurement = load_measurement(args.measurement) if args.measurement else None
+    with open_station(args.program, config, args.operator or "", measurement, rig_path=args.rig) as run:
         if args.auto:
             return run_auto(run, args.parts or 1, progress=ProgressLine())
         from ..station.tui import run_tui
@@ -103,6 +104,7 @@ def register(sub: Any) -> None:
     s.add_argument("--operator", help="operator name stored with every result")
     s.add_argument("--parts", type=int, help="stop after this many measured parts")
     s.add_argument("--auto", action="store_true", help="no operator: measure --parts parts one after the other")
+    s.add_argument("--measurement", help="measuring step, module:factory (default: the station config's)")
     s.set_defaults(func=cmd_station)
 
     r = sub.add_parser("results", help="query the results history; export CSV; write the HTML report")
