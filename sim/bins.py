@@ -1,0 +1,423 @@
+"""Simulated bins of thin parts, and cluttered labelled clouds, with ground truth.
+
+Bins (for instance extraction and pose estimation):
+  - `TabPart`: a parametric thin sheet-metal part like seed 001's nickel tab: a strip
+    with one rounded end, a chamfered square end, a tongue on one side, a notch on the
+    other and a hole near the rounded end; the outline is chiral (no rotation maps the
+    part onto its mirror image), so front and back are distinguishable. Part frame (mm):
+    the outline in xy, the back face on z = 0, the front face on z = thickness.
+  - `bin_scene`: 5-20 parts dropped one after another onto a tray (the scene's reference
+    plane, z = tray distance in the camera frame), each at a random in-plane position and
+    yaw, front or back up, with a small random tilt, lowered along +z (away from the
+    camera) until it touches the tray or a part already placed: rays cast along +z from
+    the new part's vertices against the parts below, and along -z from their vertices
+    against the new part, give the free fall (no physics engine: parts rest where they
+    first touch). The `sim.scene.Scene` holds the parts as meshes (ids 2, 3, … in drop
+    order; the tray is id 1), so the simulator's ground truth gives per-pixel instance
+    ids; the poses (part -> camera frame) and sides are returned beside it.
+
+Cluttered clouds (for region growing, seed 002): `clutter_cloud` builds a room corner
+(floor, wall), boxes (resting on the floor, against the wall, touching each other),
+pipes of several diameters (lying, standing, resting on a box) and a dome, casts rays
+from several scanner positions (so density varies with range and view, and contacts and
+undersides are occluded as in real scans), adds per-surface roughness along the normal,
+and labels every point with its surface (each box face, each pipe's mantle and caps are
+separate surfaces). Surfaces smaller than the level of detail (area < π r²) are
+unlabelled (-1), like the paper's ground truth ignoring small features.
+
+Units: mm, rad.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+from .scene import Scene, SceneObject
+
+# ---------------------------------------------------------------------------------- part
+
+
+@dataclass(frozen=True)
+class TabPart:
+    """Outline parameters (mm) of the thin part; see the module docstring."""
+
+    length_mm: float = 24.0        # square end to the centre of the rounded end
+    width_mm: float = 8.0
+    thickness_mm: float = 0.25
+    tongue_mm: tuple[float, float, float] = (3.0, 6.0, 4.0)   # start x, width, depth (below y = 0)
+    notch_mm: tuple[float, float, float] = (14.0, 3.0, 2.0)   # centre x, width, depth (from y = width)
+    chamfer_mm: float = 2.0        # at the corner (0, width)
+    hole_radius_mm: float = 1.5    # centred on the rounded end's centre
+    mesh_step_mm: float = 0.5      # spacing of the mesh vertices (boundary and face grid)
+
+    def __post_init__(self) -> None:
+        t0, tw, td = self.tongue_mm
+        nc, nw, nd = self.notch_mm
+        ok = (self.length_mm > 0 and self.width_mm > 0 and 0 < self.thickness_mm < self.width_mm
+              and 0 < t0 and t0 + tw < self.length_mm and td > 0 and 0 < nd < self.width_mm / 2
+              and t0 + tw < nc - nw / 2 and nc + nw / 2 < self.length_mm and 0 <= self.chamfer_mm < t0
+              and 0 <= self.hole_radius_mm < self.width_mm / 2 - self.mesh_step_mm and self.mesh_step_mm > 0)
+        if not ok:
+            raise ValueError(f"inconsistent tab part parameters: {self}")
+
+    def outline(self) -> np.ndarray:
+        """The outer boundary (K, 2), counter-clockwise, densified to `mesh_step_mm`."""
+        L, W, c = self.length_mm, self.width_mm, self.chamfer_mm
+        t0, tw, td = self.tongue_mm
+        nc, nw, nd = self.notch_mm
+        arc = np.linspace(-np.pi / 2, np.pi / 2, max(8, int(np.pi * W / 2 / self.mesh_step_mm)))
+        corners = [(0.0, 0.0), (t0, 0.0), (t0, -td), (t0 + tw, -td), (t0 + tw, 0.0), (L, 0.0)]
+        corners += [(L + W / 2 * np.cos(a), W / 2 + W / 2 * np.sin(a)) for a in arc[1:-1]]
+        corners += [(L, W), (nc + nw / 2, W), (nc, W - nd), (nc - nw / 2, W), (c, W), (0.0, W - c)]
+        return _densify(np.array(corners), self.mesh_step_mm)
+
+    def hole(self) -> np.ndarray:
+        """The hole's boundary (K, 2), clockwise."""
+        n = max(8, int(2 * np.pi * self.hole_radius_mm / self.mesh_step_mm))
+        a = -np.linspace(0, 2 * np.pi, n, endpoint=False)
+        return np.stack([self.length_mm + self.hole_radius_mm * np.cos(a),
+                         self.width_mm / 2 + self.hole_radius_mm * np.sin(a)], axis=1)
+
+    def area_mm2(self) -> float:
+        """Area of one face (outline minus hole)."""
+        return _shoelace(self.outline()) + _shoelace(self.hole())
+
+    def mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """(vertices (N, 3) float64 mm, triangles (M, 3) int32): a closed, outward-oriented
+        solid: both faces triangulated over the outline with its hole, and the side walls."""
+        outer, hole = self.outline(), self.hole()
+        loops = [outer, hole] if self.hole_radius_mm > 0 else [outer]
+        boundary = np.concatenate(loops)
+        h = self.mesh_step_mm
+        lo, hi = outer.min(axis=0), outer.max(axis=0)
+        gx, gy = np.meshgrid(np.arange(lo[0] + h / 2, hi[0], h), np.arange(lo[1] + h / 2, hi[1], h))
+        grid = np.stack([gx.ravel(), gy.ravel()], axis=1)
+        inside = _inside(grid, loops) & (_distance_to_loops(grid, loops) > 0.4 * h)
+        pts2 = np.concatenate([boundary, grid[inside]])
+        tri = Delaunay(pts2).simplices
+        centroid = pts2[tri].mean(axis=1)
+        tri = tri[_inside(centroid, loops)]
+        # counter-clockwise in xy (viewed from +z)
+        a, b, c = (pts2[tri[:, k]] for k in range(3))
+        cw = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]) < 0
+        tri[cw] = tri[cw][:, [0, 2, 1]]
+        n2 = len(pts2)
+        t = self.thickness_mm
+        vertices = np.concatenate([np.c_[pts2, np.zeros(n2)], np.c_[pts2, np.full(n2, t)]])
+        faces = [tri[:, [0, 2, 1]], tri + n2]   # back face looks along -z, front face along +z
+        start = 0
+        for loop in loops:
+            k = len(loop)
+            i = start + np.arange(k)
+            j = start + (np.arange(k) + 1) % k
+            # walls: outward for a counter-clockwise outer loop and a clockwise hole
+            faces += [np.stack([i, j, j + n2], axis=1), np.stack([i, j + n2, i + n2], axis=1)]
+            start += k
+        return vertices, np.concatenate(faces).astype(np.int32)
+
+
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    """The 3x3 rotation by `angle` (rad) about the unit `axis` (Rodrigues)."""
+    k = np.asarray(axis, float)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def _densify(corners: np.ndarray, step: float) -> np.ndarray:
+    """A closed polygon with extra vertices so no edge is longer than `step`."""
+    out = []
+    for p, q in zip(corners, np.roll(corners, -1, axis=0)):
+        n = max(1, int(np.ceil(np.linalg.norm(q - p) / step)))
+        out.append(p + (q - p) * (np.arange(n) / n)[:, None])
+    return np.concatenate(out)
+
+
+def _shoelace(loop: np.ndarray) -> float:
+    x, y = loop[:, 0], loop[:, 1]
+    return float(0.5 * (np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def _inside(points: np.ndarray, loops: list[np.ndarray]) -> np.ndarray:
+    """Even-odd rule over all loops (an outline and its holes)."""
+    odd = np.zeros(len(points), dtype=bool)
+    x, y = points[:, 0:1], points[:, 1:2]
+    for loop in loops:
+        p, q = loop, np.roll(loop, -1, axis=0)
+        crosses = (p[:, 1] > y) != (q[:, 1] > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xs = p[:, 0] + (y - p[:, 1]) * (q[:, 0] - p[:, 0]) / (q[:, 1] - p[:, 1])
+        odd ^= (crosses & (x < xs)).sum(axis=1) % 2 == 1
+    return odd
+
+
+def _distance_to_loops(points: np.ndarray, loops: list[np.ndarray]) -> np.ndarray:
+    """Distance from each point to the nearest boundary segment."""
+    best = np.full(len(points), np.inf)
+    for loop in loops:
+        p, q = loop, np.roll(loop, -1, axis=0)
+        d = q - p
+        t = np.clip(((points[:, None, :] - p) * d).sum(-1) / (d * d).sum(-1), 0, 1)
+        best = np.minimum(best, np.linalg.norm(points[:, None, :] - (p + t[..., None] * d), axis=-1).min(axis=1))
+    return best
+
+
+# ------------------------------------------------------------------------------- bins
+
+
+@dataclass(frozen=True, eq=False)
+class BinScene:
+    """A simulated bin: the scene (parts as meshes, ids 2.. in drop order; the tray is the
+    reference plane, id 1), each part's pose (part frame -> camera frame, 4x4 mm) and
+    whether its front face (part +z) faces the camera."""
+
+    scene: Scene
+    part: TabPart
+    poses: np.ndarray
+    front_up: np.ndarray
+    tray_mm: float
+
+    @property
+    def object_ids(self) -> np.ndarray:
+        return np.arange(2, 2 + len(self.poses))
+
+
+def bin_scene(n_parts: int, seed: int = 0, part: TabPart = TabPart(), tray_mm: float = 420.0,
+              spread_mm: tuple[float, float] = (30.0, 24.0), max_tilt_rad: float = np.radians(6.0),
+              drop_height_mm: float = 30.0) -> BinScene:
+    """`n_parts` parts dropped at random onto a tray `tray_mm` from the camera, their
+    positions uniform in ±`spread_mm` (x, y) around the camera axis (see the module
+    docstring)."""
+    import open3d as o3d
+
+    if not 1 <= n_parts <= 100:
+        raise ValueError(f"n_parts must be 1..100, got {n_parts}")
+    rng = np.random.default_rng(seed)
+    verts, tris = part.mesh()
+    centre = np.r_[(verts[:, :2].min(axis=0) + verts[:, :2].max(axis=0)) / 2, 0.0]
+    local = verts - centre   # part frame centred on the outline's box (for placing)
+    placed_v: list[np.ndarray] = []
+    placed_t: list[np.ndarray] = []
+    poses, front = [], []
+    for _ in range(n_parts):
+        up = bool(rng.integers(2))
+        base = np.diag([1.0, -1.0, -1.0]) if up else np.eye(3)   # front (+z) toward the camera (-z)
+        axis = np.r_[rng.normal(size=2), 0.0]
+        tilt = rotation_about(axis / np.linalg.norm(axis), rng.uniform(0, max_tilt_rad))
+        R = tilt @ rotation_about(np.array([0.0, 0.0, 1.0]), rng.uniform(-np.pi, np.pi)) @ base
+        xy = rng.uniform(-1, 1, 2) * np.asarray(spread_mm)
+        world = local @ R.T
+        world += np.r_[xy, tray_mm - drop_height_mm - world[:, 2].max()]
+        fall = float(tray_mm - world[:, 2].max())   # down to the tray
+        if placed_v:
+            fall = min(fall, _free_fall(o3d, world, tris, placed_v, placed_t))
+        world[:, 2] += fall
+        placed_v.append(world)
+        placed_t.append(tris)
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = world.mean(axis=0) - (local @ R.T).mean(axis=0) - R @ centre
+        poses.append(T)
+        front.append(up)
+    objects = tuple(SceneObject(name=f"tab{i:02d}", kind="mesh", pose=T, albedo=0.6, vertices=verts, triangles=tris)
+                    for i, T in enumerate(poses))
+    tray = SceneObject(name="reference_plane", kind="plane", pose=_translation(0.0, 0.0, tray_mm), albedo=0.8,
+                       size_mm=(400.0, 400.0))
+    scene = Scene(objects=objects, reference_plane=tray, name=f"bin-{n_parts}-{seed}")
+    return BinScene(scene, part, np.array(poses), np.array(front), tray_mm)
+
+
+def _free_fall(o3d: object, moving: np.ndarray, tris: np.ndarray, fixed_v: list[np.ndarray],
+               fixed_t: list[np.ndarray]) -> float:
+    """How far (mm) `moving` (a mesh's world vertices) can move along +z before it touches
+    a fixed mesh: rays along +z from its vertices onto the fixed meshes, and along -z from
+    the fixed vertices onto it (inf when nothing is below)."""
+    core = o3d.core  # type: ignore[attr-defined]
+    below = o3d.t.geometry.RaycastingScene()  # type: ignore[attr-defined]
+    for v, t in zip(fixed_v, fixed_t):
+        below.add_triangles(core.Tensor(v.astype(np.float32)), core.Tensor(t.astype(np.uint32)))
+    down = np.c_[moving, np.tile([0.0, 0.0, 1.0], (len(moving), 1))].astype(np.float32)
+    hit_down = below.cast_rays(core.Tensor(down))["t_hit"].numpy()
+    mine = o3d.t.geometry.RaycastingScene()  # type: ignore[attr-defined]
+    mine.add_triangles(core.Tensor(moving.astype(np.float32)), core.Tensor(tris.astype(np.uint32)))
+    fixed = np.concatenate(fixed_v)
+    up = np.c_[fixed, np.tile([0.0, 0.0, -1.0], (len(fixed), 1))].astype(np.float32)
+    hit_up = mine.cast_rays(core.Tensor(up))["t_hit"].numpy()
+    return float(min(hit_down.min(), hit_up.min()))
+
+
+def _translation(x: float, y: float, z: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+# ---------------------------------------------------------------------- cluttered clouds
+
+
+@dataclass(frozen=True, eq=False)
+class ClutterCloud:
+    """An unordered cloud (N, 3) mm with ground-truth surface labels (N,) (-1: none),
+    the surface names (index = label) and the radius of interest it was made for."""
+
+    points: np.ndarray
+    labels: np.ndarray
+    surfaces: tuple[str, ...]
+    radius_mm: float
+    roughness_mm: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class _Builder:
+    """Triangles with a surface label each, and each surface's roughness."""
+
+    vertices: list[np.ndarray] = field(default_factory=list)
+    triangles: list[np.ndarray] = field(default_factory=list)
+    labels: list[np.ndarray] = field(default_factory=list)
+    names: list[str] = field(default_factory=list)
+    rough: list[float] = field(default_factory=list)
+    count: int = 0
+
+    def surface(self, name: str, roughness: float) -> int:
+        self.names.append(name)
+        self.rough.append(roughness)
+        return len(self.names) - 1
+
+    def add(self, v: np.ndarray, t: np.ndarray, label: int) -> None:
+        self.vertices.append(v)
+        self.triangles.append(t + self.count)
+        self.labels.append(np.full(len(t), label))
+        self.count += len(v)
+
+    def quad(self, corners: np.ndarray, label: int) -> None:
+        self.add(corners, np.array([[0, 1, 2], [0, 2, 3]]), label)
+
+    def box(self, name: str, size: np.ndarray, pose: np.ndarray, roughness: float) -> None:
+        h = np.asarray(size, float) / 2
+        for axis in range(3):
+            for sign in (-1, 1):
+                u, w = [(axis + 1) % 3, (axis + 2) % 3]
+                c = np.zeros((4, 3))
+                c[:, axis] = sign * h[axis]
+                c[:, u] = np.array([-1, 1, 1, -1]) * h[u]
+                c[:, w] = np.array([-1, -1, 1, 1]) * h[w]
+                face = "xyz"[axis] + ("-" if sign < 0 else "+")
+                self.quad(c @ pose[:3, :3].T + pose[:3, 3], self.surface(f"{name}/{face}", roughness))
+
+    def cylinder(self, name: str, radius: float, length: float, pose: np.ndarray, roughness: float,
+                 segments: int = 256) -> None:
+        a = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+        ring = np.stack([radius * np.cos(a), radius * np.sin(a)], axis=1)
+        bottom = np.c_[ring, np.full(segments, -length / 2)]
+        top = np.c_[ring, np.full(segments, length / 2)]
+        i = np.arange(segments)
+        j = (i + 1) % segments
+        mantle = np.concatenate([np.stack([i, j, j + segments], 1), np.stack([i, j + segments, i + segments], 1)])
+        world = lambda p: p @ pose[:3, :3].T + pose[:3, 3]  # noqa: E731
+        self.add(world(np.concatenate([bottom, top])), mantle, self.surface(f"{name}/mantle", roughness))
+        for cap, z in (("cap-", -length / 2), ("cap+", length / 2)):
+            fan = np.c_[np.zeros((1, 2)), [[z]]]
+            verts = np.concatenate([fan, np.c_[ring, np.full(segments, z)]])
+            self.add(world(verts), np.stack([np.zeros(segments, int), i + 1, j + 1], 1), self.surface(f"{name}/{cap}", roughness))
+
+    def dome(self, name: str, radius: float, centre: np.ndarray, roughness: float, n: int = 64) -> None:
+        """The upper half of a sphere (a UV mesh)."""
+        th = np.linspace(0, np.pi / 2, n // 2 + 1)
+        ph = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        T, Ph = np.meshgrid(th, ph, indexing="ij")
+        v = np.stack([np.sin(T) * np.cos(Ph), np.sin(T) * np.sin(Ph), np.cos(T)], -1).reshape(-1, 3) * radius + centre
+        rows, cols = len(th), len(ph)
+        r, c = np.meshgrid(np.arange(rows - 1), np.arange(cols), indexing="ij")
+        a = r * cols + c
+        b = r * cols + (c + 1) % cols
+        t = np.concatenate([np.stack([a, b + cols, b], -1).reshape(-1, 3), np.stack([a, a + cols, b + cols], -1).reshape(-1, 3)])
+        self.add(v, t, self.surface(name, roughness))
+
+
+def _pose(yaw: float = 0.0, tilt_axis: str | None = None, position: tuple[float, float, float] = (0, 0, 0)) -> np.ndarray:
+    T = np.eye(4)
+    R = rotation_about(np.array([0.0, 0.0, 1.0]), yaw)
+    if tilt_axis == "x":   # a cylinder's axis (its z) laid along the yawed x
+        R = R @ rotation_about(np.array([0.0, 1.0, 0.0]), np.pi / 2)
+    T[:3, :3] = R
+    T[:3, 3] = position
+    return T
+
+
+def clutter_cloud(seed: int = 0, spacing_mm: float = 1.0, radius_mm: float = 12.0) -> ClutterCloud:
+    """A cluttered room corner scanned from four positions (see the module docstring);
+    `spacing_mm` sets the nearest scanner's point spacing (the others are coarser)."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(seed)
+    b = _Builder()
+    rough = lambda: float(rng.choice([0.05, 0.1, 0.2, 0.4]))  # noqa: E731
+    b.quad(np.array([[-350, -250, 0], [350, -250, 0], [350, 250, 0], [-350, 250, 0]], float), b.surface("floor", rough()))
+    b.quad(np.array([[-350, 250, 0], [350, 250, 0], [350, 250, 300], [-350, 250, 300]], float), b.surface("wall", rough()))
+    jitter = lambda s: rng.uniform(-s, s)  # noqa: E731
+    # boxes: one against the wall, two touching side by side (different heights), one stacked
+    b.box("box0", np.array([160, 90, 120]), _pose(0, None, (-180 + jitter(20), 250 - 45, 60)), rough())
+    yaw = jitter(0.4)
+    b.box("box1", np.array([100, 100, 70]), _pose(yaw, None, (60 + jitter(20), -40 + jitter(20), 35)), rough())
+    c1 = np.array([60.0, -40.0, 0.0])
+    b.box("box2", np.array([80, 100, 110]), _pose(yaw, None, tuple(
+        np.r_[(c1[:2] + rotation_about(np.array([0, 0, 1.0]), yaw)[:2, :2] @ np.array([90.0, 0.0])), 55.0])), rough())
+    b.box("box3", np.array([70, 60, 40]), _pose(jitter(0.5), None, (-180 + jitter(20), 250 - 45 + jitter(10), 140)), rough())
+    # pipes: lying on the floor (several diameters), one standing, one resting on box1
+    for k, (r_pipe, x, y) in enumerate(((8.0, -250, -150), (15.0, -120, -170), (25.0, 200, 60), (40.0, -60, 120))):
+        b.cylinder(f"pipe{k}", r_pipe, 260, _pose(jitter(0.6), "x", (x + jitter(15), y + jitter(15), r_pipe)), rough())
+    b.cylinder("pipe_standing", 20.0, 180, _pose(0, None, (250 + jitter(20), -150 + jitter(20), 90)), rough())
+    b.dome("dome", 45.0, np.array([-250 + jitter(10), 20 + jitter(10), 0.0]), rough())
+
+    V = np.concatenate(b.vertices)
+    T = np.concatenate(b.triangles)
+    tri_label = np.concatenate(b.labels)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(T.astype(np.uint32)))
+    points, labels = [], []
+    target = np.array([0.0, 0.0, 60.0])
+    for k, (pos, step) in enumerate((((-500, -700, 650), 1.0), ((550, -650, 700), 1.4), ((0, -900, 900), 1.8),
+                                      ((-650, 100, 750), 2.2))):
+        origin = np.asarray(pos, float) + rng.uniform(-30, 30, 3)
+        dist = np.linalg.norm(target - origin)
+        dirs = _view_rays(origin, target, 1.25 * 450 / dist, step * spacing_mm / dist)
+        rays = np.c_[np.tile(origin, (len(dirs), 1)), dirs].astype(np.float32)
+        ans = scene.cast_rays(o3d.core.Tensor(rays))
+        t = ans["t_hit"].numpy().astype(np.float64)
+        hit = np.isfinite(t)
+        prim = ans["primitive_ids"].numpy()[hit].astype(np.int64)
+        nrm = ans["primitive_normals"].numpy()[hit].astype(np.float64)
+        p = origin + dirs[hit] * t[hit, None]
+        lab = tri_label[prim]
+        sigma = np.asarray(b.rough)[lab]
+        p += nrm * (sigma * rng.standard_normal(len(p)))[:, None]
+        points.append(p)
+        labels.append(lab)
+    P = np.concatenate(points)
+    lab = np.concatenate(labels).astype(np.int32)
+    lab = _drop_small(P, lab, radius_mm)
+    return ClutterCloud(P, lab, tuple(b.names), radius_mm, dict(zip(b.names, b.rough)))
+
+
+def _view_rays(origin: np.ndarray, target: np.ndarray, half_angle: float, step: float) -> np.ndarray:
+    """Unit ray directions on a square angular grid of `step` rad around the view axis."""
+    axis = (target - origin) / np.linalg.norm(target - origin)
+    u = np.cross(axis, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    a = np.arange(-half_angle, half_angle, step)
+    A, B = np.meshgrid(a, a)
+    d = axis + np.tan(A.ravel())[:, None] * u + np.tan(B.ravel())[:, None] * v
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _drop_small(points: np.ndarray, labels: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Unlabel surfaces whose sampled area (occupied voxels of 0.1 r) is below π r²."""
+    voxel = 0.1 * radius_mm
+    key = np.floor(points / voxel).astype(np.int64)
+    cells = np.unique(np.c_[labels, key], axis=0)
+    area = np.bincount(cells[:, 0], minlength=labels.max() + 1) * voxel * voxel
+    small = area < np.pi * radius_mm ** 2
+    return np.where(small[labels], -1, labels).astype(np.int32)
