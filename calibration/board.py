@@ -200,6 +200,15 @@ class Board:
         img[margin:margin + ny * step, margin:margin + nx * step] = block
         return img
 
+    def texture_density(self, min_px_per_mm: float) -> float:
+        """The smallest texel density (px/mm) of at least `min_px_per_mm` at which squares and
+        margin are whole numbers of texels (for `image`)."""
+        for ppm in range(max(1, int(np.ceil(min_px_per_mm))), int(np.ceil(min_px_per_mm)) + 1000):
+            if all(abs(v * ppm - round(v * ppm)) < 1e-6 for v in (self.square_mm, self.margin_mm)):
+                return float(ppm)
+        raise BoardError(f"board '{self.name}': no texel density near {min_px_per_mm:.1f} px/mm makes square "
+                         f"{self.square_mm} mm and margin {self.margin_mm} mm whole numbers of texels")
+
     def opencv_charuco(self) -> Any:
         """The matching `cv2.aruco.CharucoBoard` (charuco boards only)."""
         if self.kind != "charuco":

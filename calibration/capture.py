@@ -70,6 +70,14 @@ def capture_fringes(rig: Rig, patterns: PatternSet, gamma: float) -> np.ndarray:
     return acquire(compensated, patterns, AcquisitionSettings.for_rig(rig), lambda k, frame: None)
 
 
+def capture_uncompensated(rig: Rig, patterns: PatternSet) -> np.ndarray:
+    """The fringe stack of `patterns` rendered for a linear projector (no gamma
+    compensation), shown in lock-step: the acquisition's signature check would rightly
+    refuse these non-sinusoidal fringes, and showing what they do is the point."""
+    p = rig.projector
+    return show_images(rig, patterns.render(p.width, p.height, 1.0))
+
+
 def capture_pose(rig: Rig, patterns: PatternSet, gamma: float) -> PoseFrames:
     """White, black and the fringe stack of the board where it stands now."""
     p = rig.projector

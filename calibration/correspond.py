@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MIN_WINDOW_FILL = 0.3  # a corner needs decoded pixels over this fraction of its window
+MIN_WINDOW_FILL = 0.15  # a corner needs decoded pixels over this fraction of its window (1/2: one colour of squares)
 OUTLIER_SIGMAS = 4.0
 MIN_OUTLIER_PX = 0.5
 

@@ -15,6 +15,7 @@ import numpy as np
 GRID = (8, 6)  # cells across, down
 ZONES = (("top", "middle", "bottom"), ("left", "centre", "right"))
 MIN_TILT_DEG = 15.0  # a view counts as tilted about an axis beyond this
+ZONE_FILL = 0.5  # a zone of the image is covered when this fraction of its cells hold points
 
 
 @dataclass(eq=False)
@@ -38,13 +39,14 @@ class Coverage:
         return float((self.counts > 0).mean())
 
     def empty_zones(self) -> list[str]:
-        """Names of the 3 x 3 zones of the image ('top left', ...) with an empty cell."""
+        """Names of the 3 x 3 zones of the image ('top left', ...) not yet covered (fewer
+        than ZONE_FILL of their cells hold points)."""
         out = []
         rows = np.array_split(np.arange(GRID[1]), 3)
         cols = np.array_split(np.arange(GRID[0]), 3)
         for i, r in enumerate(rows):
             for j, c in enumerate(cols):
-                if (self.counts[np.ix_(r, c)] == 0).any():
+                if (self.counts[np.ix_(r, c)] > 0).mean() < ZONE_FILL:
                     v, hz = ZONES[0][i], ZONES[1][j]
                     out.append("centre" if (v, hz) == ("middle", "centre") else
                                hz if v == "middle" else v if hz == "centre" else f"{v} {hz}")

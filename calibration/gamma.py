@@ -45,6 +45,20 @@ class GammaFit:
                 f"white over {self.pixels} px)")
 
 
+def phase_error_rad(fit: GammaFit, steps: int, compensated: bool) -> float:
+    """Largest phase error (rad) of an N-step phase shift displayed through the measured
+    response: fringes rendered as 8-bit commands with (compensated) or without the inverse
+    of the fitted power law. N-step phase shifting cancels harmonics except k = m·N ± 1, so
+    the error depends on N (3 steps suffer most)."""
+    phi = np.linspace(0.0, 2.0 * np.pi, 720, endpoint=False)[:, None]
+    delta = 2.0 * np.pi * np.arange(steps) / steps
+    profile = 0.5 + 0.5 * np.cos(phi + delta)
+    command = np.round(255.0 * (profile ** (1.0 / fit.gamma) if compensated else profile))
+    shown = np.interp(command, fit.levels.astype(np.float64), fit.response)
+    est = np.arctan2(-(shown * np.sin(delta)).sum(axis=1), (shown * np.cos(delta)).sum(axis=1))
+    return float(np.abs(np.angle(np.exp(1j * (est - phi[:, 0])))).max())
+
+
 def flat_images(levels: np.ndarray, width: int, height: int) -> np.ndarray:
     """(L, height, width) uint8 flat projector images, one per level."""
     return np.broadcast_to(np.asarray(levels, dtype=np.uint8)[:, None, None], (len(levels), height, width)).copy()

@@ -5,13 +5,20 @@ Layout for a W x H projector: ceil(log2 W) column bits then ceil(log2 H) row bit
 significant first, each as a pattern and its inverse (2·(Nc + Nr) images), optionally
 followed by an all-white and an all-black image. Bit k of column c is bit k of the
 reflected Gray code c ^ (c >> 1). A camera pixel reads bit k as 1 where the pattern is
-brighter than its inverse; it is trusted where white − black reaches `min_contrast` and
-every bit's |pattern − inverse| reaches `min_bit_difference` (both in DN, as OpenCV's
-black and white thresholds).
+brighter than its inverse; a bit is trusted where |pattern − inverse| reaches
+`min_bit_difference`, a pixel where white − black reaches `min_contrast` (both in DN, as
+OpenCV's white and black thresholds).
 
-The result is the projector pixel (column, row) each camera pixel sees, as whole pixels
-(the centre of the projector pixel, NaN where not decoded): sub-pixel precision comes from
-fitting many such pixels, e.g. in local homographies.
+The finest stripes are one projector pixel wide and blur first (a tilted board, defocus):
+where only the last `max_dropped_bits` bits are unreadable, the leading bits still name a
+run of 2^k projector pixels (Gray-code prefixes are contiguous ranges), and the pixel gets
+that run's centre with weight 4^-k (the variance of a uniform run of 2^k pixels, relative
+to one pixel's). OpenCV's decoder drops such pixels; keeping them keeps corners of tilted
+boards usable.
+
+The result is the projector pixel (column, row) each camera pixel sees (NaN where not
+decoded), with those weights: sub-pixel precision comes from fitting many such pixels, in
+local homographies.
 """
 
 from __future__ import annotations
@@ -68,38 +75,51 @@ class GrayCodeLayout:
 
 @dataclass(frozen=True, eq=False)
 class GrayCodeMaps:
-    """Decoded projector columns `u` and rows `v` (H, W) float32, NaN where not decoded."""
+    """Decoded projector columns `u` and rows `v` (H, W) float32, NaN where not decoded,
+    and their weights (4^-k for k dropped bits)."""
 
     u: np.ndarray
     v: np.ndarray
+    weight_u: np.ndarray
+    weight_v: np.ndarray
     valid: np.ndarray
     contrast: np.ndarray  # white − black (DN)
 
 
 def decode_graycode(stack: np.ndarray, layout: GrayCodeLayout, min_contrast: float, min_bit_difference: float,
-                    view: int | str = 0) -> GrayCodeMaps:
+                    view: int | str = 0, max_dropped_bits: int = 2) -> GrayCodeMaps:
     """Projector coordinates per camera pixel from an (n_frames, H, W) capture of `layout`;
     without white and black images the contrast test uses the bit pairs alone."""
     if stack.ndim != 3 or stack.shape[0] != layout.n_frames:
         raise DetectionError(view, f"OpenCV Gray code for a {layout.width} x {layout.height} projector needs "
                                    f"{layout.n_frames} images, got {stack.shape[0] if stack.ndim == 3 else stack.shape}")
-    frames = stack.astype(np.int32)
-    valid = np.ones(frames.shape[1:], dtype=bool)
+    frames = stack.astype(np.int16 if stack.dtype == np.uint8 else np.int32)
+    shape = frames.shape[1:]
+    valid = np.ones(shape, dtype=bool)
     if layout.white_black:
         contrast = frames[-2] - frames[-1]
         valid &= contrast >= min_contrast
     else:
-        contrast = np.zeros(frames.shape[1:], dtype=np.int32)
-    coords = []
+        contrast = np.zeros(shape, dtype=frames.dtype)
+    coords, weights = [], []
     for n_bits, start in ((layout.column_bits, 0), (layout.row_bits, 2 * layout.column_bits)):
-        code = np.zeros(frames.shape[1:], dtype=np.int64)
+        code = np.zeros(shape, dtype=np.int32)
+        readable = np.zeros(shape, dtype=np.int32)  # leading bits read reliably
+        leading = np.ones(shape, dtype=bool)
         for k in range(n_bits):
             diff = frames[start + 2 * k] - frames[start + 2 * k + 1]
-            valid &= np.abs(diff) >= min_bit_difference
-            code = (code << 1) | (diff > 0)
-        coords.append(gray_to_binary(code, n_bits))
-    col, row = coords
+            leading &= np.abs(diff) >= min_bit_difference
+            readable += leading
+            code <<= 1
+            code |= diff > 0
+        dropped = n_bits - readable
+        valid &= dropped <= max_dropped_bits
+        run = np.left_shift(1, dropped)
+        first = np.left_shift(gray_to_binary(np.right_shift(code, dropped), n_bits), dropped)
+        coords.append(first + (run - 1) * np.float32(0.5))
+        weights.append(np.float32(1.0) / np.square(run, dtype=np.float32))
+    (col, row), (wu, wv) = coords, weights
     valid &= (col < layout.width) & (row < layout.height)
-    u = np.where(valid, col, np.nan).astype(np.float32)
-    v = np.where(valid, row, np.nan).astype(np.float32)
-    return GrayCodeMaps(u, v, valid, contrast.astype(np.float32))
+    u = np.where(valid, col, np.float32(np.nan)).astype(np.float32)
+    v = np.where(valid, row, np.float32(np.nan)).astype(np.float32)
+    return GrayCodeMaps(u, v, wu, wv, valid, contrast.astype(np.float32))

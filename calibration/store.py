@@ -175,9 +175,10 @@ class CaptureSet:
             return None
         return np.array(levels, dtype=np.uint8), _read_stack(self.root / "gamma", "level", len(levels))
 
-    def plates(self) -> list[tuple[float, np.ndarray]]:
-        return [(float(p["height_mm"]), _read_stack(self.root / p["name"], "fringe", self.patterns.n_frames))
-                for p in self.manifest["plates"]]
+    def plates(self) -> list[tuple[float, float, np.ndarray]]:
+        """(stage height mm, projector gamma used, fringe stack) per plate scan."""
+        return [(float(p["height_mm"]), float(p["gamma"]),
+                 _read_stack(self.root / p["name"], "fringe", self.patterns.n_frames)) for p in self.manifest["plates"]]
 
     def artefact(self) -> tuple[dict[str, Any], np.ndarray] | None:
         a = self.manifest.get("artefact")
@@ -219,18 +220,19 @@ def _image_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
 
 
-def graycode_views(root: str | Path, layout: GrayCodeLayout, min_contrast: float = 0.16,
+def graycode_views(root: str | Path, layout: GrayCodeLayout, folders: str = "*", min_contrast: float = 0.16,
                    min_bit_difference: float = 0.02) -> list[View]:
     """Views from captures in OpenCV's Gray-code layout (see `calibration.graycode`): one
-    pose per sub-folder of `root` holding at least the layout's images (taken in file-name
-    order; extra images after them are ignored). Thresholds are fractions of full scale."""
+    pose per sub-folder of `root` matching the glob `folders` and holding images, at least
+    the layout's (taken in file-name order; extra images after them are ignored).
+    Thresholds are fractions of full scale."""
     root = Path(root)
     if not root.is_dir():
         raise CalibrationError(f"{root}: no such folder")
     if not layout.white_black:
         raise CalibrationError("the Gray-code layout must end with white and black images (board detection uses white)")
     views = []
-    for folder in sorted(p for p in root.iterdir() if p.is_dir()):
+    for folder in sorted(p for p in root.glob(folders) if p.is_dir()):
         files = _image_files(folder)
         if not files:
             continue
@@ -240,8 +242,9 @@ def graycode_views(root: str | Path, layout: GrayCodeLayout, min_contrast: float
         stack = np.stack([_read_image(f) for f in files[:layout.n_frames]])
         full = float(np.iinfo(stack.dtype).max)
         maps = decode_graycode(stack, layout, min_contrast * full, min_bit_difference * full, folder.name)
-        views.append(View(folder.name, stack[layout.white_index], maps.u, maps.v))  # type: ignore[index]
+        views.append(View(folder.name, stack[layout.white_index], maps.u, maps.v, maps.weight_u,  # type: ignore[index]
+                          maps.weight_v))
     if not views:
-        raise CalibrationError(f"{root}: no sub-folder holds images; expected one folder of {layout.n_frames} images "
-                               f"per board pose")
+        raise CalibrationError(f"{root}: no sub-folder matching '{folders}' holds images; expected one folder of "
+                               f"{layout.n_frames} images per board pose")
     return views

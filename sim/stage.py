@@ -174,3 +174,31 @@ def sphere_pair_scene(radius_mm: float, separation_mm: float, distance_mm: float
         spheres.append(SceneObject(name=name, kind="sphere", pose=pose, albedo=albedo, radius_mm=radius_mm))
     plate = plate_scene(backing_mm).reference_plane
     return Scene(objects=tuple(spheres), reference_plane=plate, name="sphere pair")
+
+
+class SimBench:
+    """What an operator does at the bench during a calibration, done in the simulator
+    (`calibration.workflow.Bench`): the target moves through `poses`, the plate stands
+    `plate_distance_mm` from the camera on a stage that raises it toward the camera, and
+    the artefact is a sphere pair centred on the camera axis in front of the plate."""
+
+    def __init__(self, rig: Rig, target: Target, poses: list[np.ndarray], plate_distance_mm: float,
+                 sphere_radius_mm: float, sphere_distance_mm: float, artefact_distance_mm: float) -> None:
+        self.rig = rig
+        self.target = target
+        self.poses = poses
+        self.plate_distance_mm = plate_distance_mm
+        self.artefact = (sphere_radius_mm, sphere_distance_mm, artefact_distance_mm)
+
+    def place_board(self, index: int, needed: list[str]) -> bool:
+        if index >= len(self.poses):
+            return False
+        show(self.rig, Scene(objects=(self.target.scene_object(self.poses[index]),), name=f"target pose {index}"))
+        return True
+
+    def place_plate(self, height_mm: float) -> None:
+        show(self.rig, plate_scene(self.plate_distance_mm, height_mm))
+
+    def place_artefact(self) -> None:
+        radius, distance, depth = self.artefact
+        show(self.rig, sphere_pair_scene(radius, distance, depth, self.plate_distance_mm))

@@ -1,0 +1,491 @@
+"""The calibration procedure: capture (on a rig) or read (from disk), solve, validate, write.
+
+On a rig (`calibrate_rig`), with a `Bench` that places things in front of it — an
+operator told what to do, or the simulator moving them:
+
+  1. the board at its first pose: flat grey levels measure the projector's response (gamma);
+  2. board poses, each captured under white, black and fringes in both orientations
+     (pre-compensated with the measured gamma), decoded and checked at once: the corners
+     found, their projector pixels, the coverage of both images and the tilts so far, and
+     what poses are still needed, on the terminal and in Rerun;
+  3. the solution (camera, projector, joint refinement) and its reprojection limits;
+  4. a plate on a stage at known heights (phase-to-height, Eq. 17), once more at the
+     reference height without gamma compensation (to show what it is worth);
+  5. the validation artefact, scanned and measured with the new calibration;
+  6. the calibration file, only if every limit is met.
+
+From disk (`calibrate_capture`, `calibrate_views`) the same steps run on what was captured
+before; whatever a capture lacks (gamma, plate, artefact) is reported as not measured.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from scanner.config import CONFIG_DIR, get, get_table, resolve
+from scanner.decode import DecodeResult
+from scanner.errors import ConfigError
+from scanner.geometry import RigModel
+from scanner.patterns import PatternSet
+from scanner.reconstruct import Triangulator, triangulate
+from scanner.rig import Rig, RigConfig
+
+from .board import Board
+from .capture import capture_fringes, capture_pose, capture_uncompensated, show_images
+from .coverage import Coverage, needed_poses, tilt_deg
+from .errors import CalibrationRejected, DetectionError, NotEnoughData
+from .file import write_calibration
+from .gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images
+from .intrinsics import calibrate_device
+from .phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, fit_plane
+from .recording import CalibrationRecording
+from .solve import CalibrationSettings, Solution, Stability, check_limits, leave_one_out, solve
+from .store import CaptureSet, CaptureWriter, decode_pose, pose_view
+from .validate import Artefact, Validation, measure_sphere_pair
+from .views import Correspondence, View, correspond
+
+DEFAULT_BOARD = CONFIG_DIR / "boards" / "sim_chess_9x7.toml"
+DEFAULT_HEIGHTS_MM = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
+DEFAULT_ARTEFACT = Artefact(radius_mm=10.0, distance_mm=50.0)
+_KEYS = {"board", "poses", "plate_heights_mm", "artefact", "fix_k3", "drop_outliers", "max_camera_rms_px",
+         "max_projector_rms_px", "max_validation_mm", "min_views"}
+
+Say = Callable[[str], None]
+
+
+class Bench(Protocol):
+    """Places things in front of the rig; each call returns once they are in place."""
+
+    def place_board(self, index: int, needed: list[str]) -> bool:
+        """Put the board at pose `index` (advice: what is still needed); False: no more poses."""
+
+    def place_plate(self, height_mm: float) -> None:
+        """Put the flat plate at `height_mm` on the stage (0: the reference plane)."""
+
+    def place_artefact(self) -> None:
+        """Put the validation artefact in view, in front of the plate."""
+
+
+@dataclass(frozen=True)
+class Procedure:
+    """What a calibration does: the board, how many poses, the solver settings and limits,
+    the plate heights (empty: no phase-to-height) and the validation artefact (None: none).
+    Read from the rig TOML's optional [calibrate] table:
+
+        [calibrate]
+        board = "../boards/sim_chess_9x7.toml"   # relative to the rig TOML
+        poses = 12
+        plate_heights_mm = [0, 5, 10, 15, 20, 25, 30]   # first = reference plane
+        artefact = { type = "sphere_pair", radius_mm = 10.0, distance_mm = 50.0 }
+        max_camera_rms_px = 0.5      # and max_projector_rms_px, max_validation_mm,
+        fix_k3 = false               # drop_outliers, min_views (see CalibrationSettings)
+    """
+
+    board: Board
+    patterns: PatternSet
+    poses: int = 12
+    settings: CalibrationSettings = CalibrationSettings()
+    plate_heights_mm: tuple[float, ...] = DEFAULT_HEIGHTS_MM
+    artefact: Artefact | None = DEFAULT_ARTEFACT
+    gamma_levels: np.ndarray = field(default_factory=lambda: DEFAULT_LEVELS.copy())
+
+    @classmethod
+    def for_rig(cls, config: RigConfig, **overrides: Any) -> Procedure:
+        """From the rig's [calibrate] table; `overrides` (None = keep) take precedence:
+        board (a path), poses, plate_heights_mm, artefact and any CalibrationSettings field."""
+        p = config.path
+        table = get_table(config.raw, "calibrate", p, required=False)
+        for k in table:
+            if k not in _KEYS:
+                raise ConfigError(p, f"calibrate.{k}", f"unknown key; expected one of {sorted(_KEYS)}")
+        o = {k: v for k, v in overrides.items() if v is not None}
+        board_path = o.pop("board", None) or (resolve(p, get(table, "board", str, p, prefix="calibrate"))
+                                              if "board" in table else DEFAULT_BOARD)
+        settings = {k: o.pop(k, get(table, k, type(getattr(CalibrationSettings(), k)), p,
+                                    getattr(CalibrationSettings(), k), "calibrate"))
+                    for k in CalibrationSettings.__dataclass_fields__}
+        try:
+            solver = CalibrationSettings(**settings)
+        except ValueError as exc:
+            raise ConfigError(p, "calibrate", str(exc)) from None
+        heights = tuple(float(h) for h in o.pop("plate_heights_mm", get(table, "plate_heights_mm", list, p,
+                                                                         list(DEFAULT_HEIGHTS_MM), "calibrate")))
+        artefact = o.pop("artefact", None) or (Artefact.from_dict(get_table(table, "artefact", p, prefix="calibrate"),
+                                                                  f"{p}, key 'calibrate.artefact'")
+                                               if "artefact" in table else DEFAULT_ARTEFACT)
+        poses = int(o.pop("poses", get(table, "poses", int, p, 12, "calibrate")))
+        if o:
+            raise ConfigError(p, "calibrate", f"unknown overrides {sorted(o)}")
+        if poses < solver.min_views:
+            raise ConfigError(p, "calibrate.poses", f"{poses} poses is below min_views = {solver.min_views}")
+        base = PatternSet.load(config.patterns_path)
+        return cls(Board.load(board_path), replace(base, orientations=("vertical", "horizontal")), poses, solver,
+                   heights, artefact)
+
+
+@dataclass(frozen=True, eq=False)
+class Plate:
+    """One plate scan: stage height, projector gamma it was taken with, decoded maps."""
+
+    height_mm: float
+    gamma: float
+    decoded: DecodeResult
+
+
+@dataclass(eq=False)
+class CalibrationResult:
+    """Everything a calibration produced (see `report` for the file, `lines` for people)."""
+
+    rig_name: str
+    board: Board
+    settings: CalibrationSettings
+    solution: Solution
+    gamma: GammaFit | None = None
+    failures: dict[str, str] = field(default_factory=dict)
+    phase_height: PhaseHeightFit | None = None
+    flatness_mm: dict[str, float] = field(default_factory=dict)  # plate flatness: compensated / uncompensated
+    validation: Validation | None = None
+    stability: Stability | None = None
+
+    @property
+    def model(self) -> RigModel:
+        s = self.solution.stereo
+        return RigModel(s.camera, s.projector, s.cam_from_proj, projector_gamma=self.gamma.gamma if self.gamma else 1.0,
+                        phase_to_height=self.phase_height.model if self.phase_height else None)
+
+    def report(self) -> dict[str, Any]:
+        """The calibration file's report sections (see `calibration.file`)."""
+        sol, s = self.solution, self.solution.stereo
+        views = [{"name": n, "camera_rms_px": float(c), "projector_rms_px": float(p),
+                  "camera_points": len(corr.camera), "projector_points": len(corr.projector)}
+                 for n, c, p, corr in zip(sol.names, s.per_view_rms_px("camera"), s.per_view_rms_px("projector"),
+                                          sol.correspondences)]
+        separate = {d.name: {**d.pinhole.to_dict(), "rms_px": d.rms_px, "std": d.std}
+                    for d in (sol.camera, sol.projector)}
+        return {
+            "board": self.board.to_dict(),
+            "rms_px": {"camera": s.camera_rms_px, "projector": s.projector_rms_px, "stereo": s.rms_px},
+            "uncertainty": s.std, "views": views, "dropped_views": {**sol.dropped, **self.failures},
+            "separate": separate, "gamma": self.gamma.to_dict() if self.gamma else None,
+            "phase_to_height": self.phase_height.to_dict() if self.phase_height else None,
+            "plate_flatness_rms_mm": self.flatness_mm or None,
+            "validation": self.validation.to_dict() if self.validation else None,
+            "stability": ({"values": self.stability.values, "leave_one_out": self.stability.spread}
+                          if self.stability else None),
+            "limits": {"camera_rms_px": self.settings.max_camera_rms_px,
+                       "projector_rms_px": self.settings.max_projector_rms_px,
+                       "validation_mm": self.settings.max_validation_mm}}
+
+    def lines(self) -> list[str]:
+        """The report for the terminal."""
+        sol, s = self.solution, self.solution.stereo
+        std = s.std
+        Kc, Kp = s.camera.K, s.projector.K
+        out = [f"views     {len(sol.names)} used" + (f", left out: {', '.join(f'{k} ({v})' for k, v in {**sol.dropped, **self.failures}.items())}"
+                                                 if sol.dropped or self.failures else ""),
+               f"camera    fx {Kc[0, 0]:.2f} ± {std['camera.fx']:.2f}  fy {Kc[1, 1]:.2f} ± {std['camera.fy']:.2f}  "
+               f"cx {Kc[0, 2]:.2f} ± {std['camera.cx']:.2f}  cy {Kc[1, 2]:.2f} ± {std['camera.cy']:.2f} px   "
+               f"RMS {s.camera_rms_px:.4f} px",
+               f"projector fx {Kp[0, 0]:.2f} ± {std['projector.fx']:.2f}  fy {Kp[1, 1]:.2f} ± {std['projector.fy']:.2f}"
+               f"  cx {Kp[0, 2]:.2f} ± {std['projector.cx']:.2f}  cy {Kp[1, 2]:.2f} ± {std['projector.cy']:.2f} px   "
+               f"RMS {s.projector_rms_px:.4f} px",
+               f"stereo    baseline {np.linalg.norm(s.cam_from_proj[:3, 3]):.3f} mm "
+               f"(± {std['extrinsic.translation_mm']:.4f} mm), rotation ± {std['extrinsic.rotation_deg']:.4f} deg, "
+               f"RMS {s.rms_px:.4f} px",
+               f"          {sol.camera.summary()} (own views, before the joint refinement)",
+               f"          {sol.projector.summary()} (own views, before the joint refinement)"]
+        out.append(f"gamma     {self.gamma.summary()}" if self.gamma else "gamma     not measured (1.0 assumed)")
+        if self.phase_height:
+            m = self.phase_height.model
+            held, fitted = self.phase_height.rms(True), self.phase_height.rms(False)
+            out += [f"Eq. 17    l {m.l_mm:.3f} mm, d {m.d_mm:.3f} mm, pitch {m.pitch_mm:.4f} mm",
+                    *("          " + line for line in self.phase_height.lines()),
+                    f"          held-out heights RMS: Eq. 17 {held[0] * 1e3:.1f} um, per-pixel {held[1] * 1e3:.1f} um, "
+                    f"triangulation {held[2] * 1e3:.1f} um"]
+        else:
+            out.append("Eq. 17    not calibrated (no plate scans)")
+        if self.flatness_mm:
+            out.append("plate     flatness RMS " + ", ".join(f"{k} {v * 1e3:.1f} um" for k, v in self.flatness_mm.items()))
+        out.append(f"validate  {self.validation.summary()}" if self.validation else "validate  no artefact scanned")
+        if self.stability:
+            out += ["stability (leave one view out):", *("          " + line for line in self.stability.lines())]
+        return out
+
+
+class OperatorBench:
+    """A `Bench` for a person at a real rig: says what to place and waits for Enter
+    (answering 'q' ends the board poses)."""
+
+    def __init__(self, say: Say, ask: Callable[[str], str] = input) -> None:
+        self.say = say
+        self.ask = ask
+
+    def place_board(self, index: int, needed: list[str]) -> bool:
+        self.say(f"pose {index}: place the board, still and whole in view of camera and projector"
+                 + (f"; still needed: {'; '.join(needed)}" if needed else ""))
+        return self.ask("press Enter to capture, q and Enter when there are enough poses: ").strip().lower() != "q"
+
+    def place_plate(self, height_mm: float) -> None:
+        self.ask(f"put the flat plate on the stage at {height_mm:g} mm (0 = reference plane), then press Enter: ")
+
+    def place_artefact(self) -> None:
+        self.ask("put the sphere pair in view in front of the plate, then press Enter: ")
+
+
+# ---------------------------------------------------------------------------- steps
+
+
+def correspond_all(board: Board, views: list[View], strict: bool, say: Say) -> tuple[list[Correspondence], dict[str, str]]:
+    """Correspondences of every view. `strict`: a view without the board or the projector
+    pattern is an error; otherwise it is reported and left out."""
+    found, failures = [], {}
+    for i, view in enumerate(views):
+        try:
+            found.append(correspond(board, view, i))
+        except DetectionError as exc:
+            if strict:
+                raise
+            failures[view.name] = str(exc)
+            say(f"left out: {exc}")
+    return found, failures
+
+
+def triangulated_points(decoded: DecodeResult, model: RigModel) -> np.ndarray:
+    """Camera-frame points (H, W, 3) of a decoded scan, NaN where invalid."""
+    return triangulate(decoded, Triangulator(model), with_normals=False).points
+
+
+def plate_flatness_mm(points: np.ndarray) -> float:
+    """RMS distance of a plate scan's points from their best-fit plane."""
+    pts = points[np.isfinite(points).all(axis=2)].astype(np.float64)
+    plane = fit_plane(pts)
+    return float(np.sqrt(np.mean((pts @ plane[:3] + plane[3]) ** 2)))
+
+
+def phase_to_height(plates: list[Plate], model: RigModel) -> PhaseHeightFit:
+    """Eq. 17 from plate scans taken with the calibrated gamma; every other non-zero height
+    is held out of the fit (when there are at least four) to measure the model between them."""
+    plates = sorted(plates, key=lambda p: p.height_mm)
+    heights = [p.height_mm for p in plates]
+    n = len(heights)
+    fit_mask = [k == 0 or n < 5 or k % 2 == 0 for k in range(n)]
+    phases = [p.decoded.maps["vertical"].phase for p in plates]
+    points = [triangulated_points(p.decoded, model) for p in plates]
+    ref = points[0]
+    plane = fit_plane(ref[np.isfinite(ref).all(axis=2)].astype(np.float64))
+    m, l_map, k_map = fit_phase_to_height(heights, phases, plane, model.camera, fit_mask)
+    return PhaseHeightFit(m, l_map, k_map, evaluate(heights, fit_mask, phases, points, m, l_map, k_map))
+
+
+def blame_for_validation(solution: Solution, decoded: DecodeResult, artefact: Artefact, gamma: float,
+                         camera_size: tuple[int, int], projector_size: tuple[int, int],
+                         settings: CalibrationSettings) -> list[int]:
+    """Views whose removal improves the artefact measurement most, best improvement first."""
+    errors = []
+    views = solution.correspondences
+    for i in range(len(views)):
+        sub = solve(views[:i] + views[i + 1:], camera_size, projector_size, replace(settings, drop_outliers=False))
+        s = sub.stereo
+        model = RigModel(s.camera, s.projector, s.cam_from_proj, projector_gamma=gamma)
+        try:
+            errors.append(measure_sphere_pair(triangulated_points(decoded, model), artefact).error_mm)
+        except Exception:  # noqa: BLE001 — a view whose removal breaks the measurement is not to blame
+            errors.append(np.inf)
+    return [int(i) for i in np.argsort(errors)[:3]]
+
+
+def finish(result: CalibrationResult, plates: list[Plate], artefact: tuple[Artefact, DecodeResult] | None,
+           camera_size: tuple[int, int], projector_size: tuple[int, int], say: Say,
+           recording: CalibrationRecording | None = None, stability: bool = True) -> CalibrationResult:
+    """Limits, phase-to-height, validation and stability of a solved calibration; raises
+    CalibrationRejected when a limit is exceeded."""
+    check_limits(result.solution, result.settings)
+    gamma = result.gamma.gamma if result.gamma else 1.0
+    compensated = [p for p in plates if abs(p.gamma - gamma) < 1e-9]
+    if len(compensated) >= 3:
+        say("fitting the phase-to-height model (Eq. 17) to the plate scans")
+        result.phase_height = phase_to_height(compensated, result.model)
+        if recording:
+            recording.phase_height(result.phase_height)
+    reference = [p for p in plates if p.height_mm == min(q.height_mm for q in plates)] if plates else []
+    for p in reference:
+        key = "gamma compensated" if abs(p.gamma - gamma) < 1e-9 else f"uncompensated (gamma {p.gamma:g} assumed)"
+        result.flatness_mm[key] = plate_flatness_mm(triangulated_points(p.decoded, result.model))
+    if artefact is not None:
+        description, decoded = artefact
+        say("measuring the validation artefact")
+        points = triangulated_points(decoded, result.model)
+        result.validation = measure_sphere_pair(points, description)
+        if recording:
+            recording.artefact(triangulate(decoded, Triangulator(result.model), with_normals=False), result.model)
+        if result.validation.error_mm > result.settings.max_validation_mm:
+            blame = blame_for_validation(result.solution, decoded, description, gamma, camera_size, projector_size,
+                                         result.settings)
+            names = ", ".join(result.solution.names[i] for i in blame)
+            raise CalibrationRejected(
+                f"validation error {result.validation.error_mm:.4f} mm exceeds the limit "
+                f"{result.settings.max_validation_mm:.4f} mm ({result.validation.summary()}); the views whose removal "
+                f"improves it most: {names}. Check the board's square size and the artefact's certified distance, "
+                f"re-take those poses, or raise the limit", blame)
+    if stability and len(result.solution.names) > result.settings.min_views:
+        say("leave-one-view-out stability")
+        result.stability = leave_one_out(result.solution, camera_size, projector_size, result.settings)
+    return result
+
+
+def write_result(result: CalibrationResult, path: str | Path) -> Path:
+    """The calibration JSON and its reference maps (when phase-to-height was calibrated)."""
+    maps = None
+    if result.phase_height is not None:
+        ph = result.phase_height
+        maps = {"reference_phase": ph.model.reference_phase, "l_map_mm": ph.l_map, "k_map_rad": ph.k_map}
+    return write_calibration(path, result.model, result.report(), result.rig_name, maps)
+
+
+def solve_views(board: Board, correspondences: list[Correspondence], failures: dict[str, str],
+                camera_size: tuple[int, int], projector_size: tuple[int, int], settings: CalibrationSettings,
+                rig_name: str, gamma: GammaFit | None, say: Say,
+                recording: CalibrationRecording | None = None) -> CalibrationResult:
+    say(f"solving from {len(correspondences)} views")
+    solution = solve(correspondences, camera_size, projector_size, settings)
+    result = CalibrationResult(rig_name, board, settings, solution, gamma, failures)
+    if recording:
+        recording.solution(solution, result.model)
+    return result
+
+
+# ---------------------------------------------------------------------------- entry points
+
+
+def calibrate_views(board: Board, views: list[View], projector_size: tuple[int, int], settings: CalibrationSettings,
+                    rig_name: str, say: Say, recording: CalibrationRecording | None = None,
+                    strict: bool = True) -> CalibrationResult:
+    """Calibrate from decoded views alone (e.g. another tool's Gray-code captures)."""
+    if not views:
+        raise NotEnoughData("no views to calibrate from")
+    corr, failures = correspond_all(board, views, strict, say)
+    camera_size = views[0].size
+    _log_views(recording, views, corr, camera_size, projector_size)
+    result = solve_views(board, corr, failures, camera_size, projector_size, settings, rig_name, None, say, recording)
+    return finish(result, [], None, camera_size, projector_size, say, recording)
+
+
+def calibrate_capture(capture: CaptureSet, settings: CalibrationSettings, rig_name: str, say: Say,
+                      recording: CalibrationRecording | None = None, strict: bool = True,
+                      artefact: Artefact | None = None) -> CalibrationResult:
+    """Calibrate from a capture folder written by `calibrate_rig`."""
+    board, patterns, bits = capture.board, capture.patterns, capture.bit_depth
+    psize, csize = capture.projector_size, capture.camera_size
+    gamma = None
+    g = capture.gamma()
+    if g is not None:
+        gamma = fit_gamma(g[0], g[1], float(2 ** bits - 1))
+        say(gamma.summary())
+        if recording:
+            recording.gamma(gamma)
+    views = capture.views()
+    corr, failures = correspond_all(board, views, strict, say)
+    _log_views(recording, views, corr, csize, psize)
+    result = solve_views(board, corr, failures, csize, psize, settings, rig_name, gamma, say, recording)
+    plates = [Plate(h, gm, decode_pose(f"plate at {h} mm", f, patterns, bits, psize))
+              for h, gm, f in capture.plates()]
+    art = capture.artefact()
+    art_decoded = None
+    if art is not None:
+        description = artefact or Artefact.from_dict(art[0], capture.root)
+        art_decoded = (description, decode_pose("artefact", art[1], patterns, bits, psize))
+    return finish(result, plates, art_decoded, csize, psize, say, recording)
+
+
+def _log_views(recording: CalibrationRecording | None, views: list[View], corr: list[Correspondence],
+               camera_size: tuple[int, int], projector_size: tuple[int, int]) -> None:
+    if recording is None:
+        return
+    cam, proj = Coverage(camera_size), Coverage(projector_size)
+    by_name = {c.name: c for c in corr}
+    for i, v in enumerate(views):
+        c = by_name.get(v.name)
+        if c is not None:
+            cam.add(c.camera.image_points)
+            proj.add(c.projector.image_points)
+        recording.view(i, v.image, c, cam, proj)
+
+
+def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: Say,
+                  recording: CalibrationRecording | None = None) -> CalibrationResult:
+    """The guided calibration of an open rig (see the module docstring); the raw captures
+    go to `out` (a new folder), so `calibrate_capture` can solve them again."""
+    board, patterns = procedure.board, procedure.patterns
+    cam, proj = rig.camera, rig.projector
+    csize, psize = (cam.width, cam.height), (proj.width, proj.height)
+    full_scale = float(2 ** cam.bit_depth - 1)
+    writer = CaptureWriter(out, board, patterns, csize, psize, cam.bit_depth, rig.config.name)
+    cover_c, cover_p = Coverage(csize), Coverage(psize)
+    corr: list[Correspondence] = []
+    failures: dict[str, str] = {}
+    tilts: list[tuple[float, float]] = []
+
+    def needed() -> list[str]:
+        return needed_poses(cover_c, cover_p, tilts, len(corr), procedure.poses)
+
+    if not bench.place_board(0, ["the board facing the camera, in the middle of the view"]):
+        raise NotEnoughData("no board pose was placed")
+    say("measuring the projector response (flat grey levels)")
+    levels = procedure.gamma_levels
+    flats = show_images(rig, flat_images(levels, proj.width, proj.height))
+    writer.add_gamma(levels, flats)
+    gamma = fit_gamma(levels, flats, full_scale)
+    say(gamma.summary())
+    if recording:
+        recording.gamma(gamma)
+    index = 0
+    while len(corr) < procedure.poses and index < 2 * procedure.poses:
+        if index > 0 and not bench.place_board(index, needed()):
+            break
+        frames = capture_pose(rig, patterns, gamma.gamma)
+        name = writer.add_pose(frames, gamma.gamma)
+        view = pose_view(name, frames, patterns, cam.bit_depth, psize)
+        found = None
+        try:
+            found = correspond(board, view, index)
+        except DetectionError as exc:
+            failures[name] = str(exc)
+            say(f"pose {index}: not usable, take it again: {exc}")
+        if found is not None:
+            corr.append(found)
+            cover_c.add(found.camera.image_points)
+            cover_p.add(found.projector.image_points)
+            if len(corr) >= 3:  # a quick camera solve gives the board tilts for the advice
+                quick = calibrate_device("camera", [c.camera for c in corr], csize)
+                tilts = [tilt_deg(T) for T in quick.poses]
+            say(f"pose {index} ({name}): {len(found.camera)} corners, {len(found.projector)} with projector "
+                f"pixels; coverage camera {cover_c.fraction:.0%}, projector {cover_p.fraction:.0%}")
+            advice = needed()
+            say("still needed: " + "; ".join(advice) if advice else "the pose set is complete")
+        if recording:
+            recording.view(index, frames.white, found, cover_c, cover_p)
+        index += 1
+    result = solve_views(board, corr, failures, csize, psize, procedure.settings, rig.config.name, gamma, say,
+                         recording)
+    check_limits(result.solution, result.settings)  # before spending time on the plate and artefact
+    plates = []
+    for h in procedure.plate_heights_mm:
+        bench.place_plate(h)
+        takes = [gamma.gamma, 1.0] if h == procedure.plate_heights_mm[0] and abs(gamma.gamma - 1.0) > 1e-9 \
+            else [gamma.gamma]
+        for g in takes:
+            say(f"plate at {h:g} mm" + ("" if g == gamma.gamma else " without gamma compensation"))
+            fringes = capture_fringes(rig, patterns, g) if g == gamma.gamma else capture_uncompensated(rig, patterns)
+            writer.add_plate(h, fringes, g)
+            plates.append(Plate(h, g, decode_pose(f"plate at {h} mm", fringes, patterns, cam.bit_depth, psize)))
+    art = None
+    if procedure.artefact is not None:
+        bench.place_artefact()
+        fringes = capture_fringes(rig, patterns, gamma.gamma)
+        writer.add_artefact(fringes, procedure.artefact.to_dict(), gamma.gamma)
+        art = (procedure.artefact, decode_pose("artefact", fringes, patterns, cam.bit_depth, psize))
+    return finish(result, plates, art, csize, psize, say, recording)
