@@ -6,12 +6,17 @@ from __future__ import annotations
 
 import json
 import threading
+from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
 
 import pytest
 
+import numpy as np
+
 from scanner import cli
+from scanner.pointcloud import read_ply_points
+from scanner.rig import DEFAULT_RIG, RigConfig
 from scanner.station.app import open_station
 from scanner.station.batch import part_sessions, run_batch
 from scanner.station.config import StationConfig
@@ -81,3 +86,27 @@ def test_batch_command_stores_results_and_prints_a_summary(stored: tuple[Station
         assert [(r.serial, r.status, r.operator) for r in batch] == [
             ("SN-0", "pass", "batch"), ("SN-1", "fail", "batch"), ("SN-2", "pass", "batch"), ("SN-X", "error", "batch")]
         assert [v.value_mm for v in store.values([batch[1].id])[batch[1].id]][:1] == [0.15]
+
+
+def test_batch_reconstructs_with_the_rig_given_and_its_calibration(stored: tuple[StationConfig, list[Path]],
+                                                                   tmp_path: Path) -> None:
+    from calibration.file import write_calibration
+
+    config, parts = stored
+    cloud = part_sessions(parts[0])[0] / "outputs" / "cloud.ply"
+    captured = read_ply_points(cloud)
+    rig = RigConfig.load(config.rig_path)
+    moved = rig.nominal_model()
+    shifted = moved.cam_from_proj.copy()
+    shifted[0, 3] += 2.0  # a calibration that puts the projector 2 mm further right
+    write_calibration(tmp_path / "cal.json", replace(moved, cam_from_proj=shifted), {}, "sim-bench")
+    recal = tmp_path / "rig.toml"
+    recal.write_text(config.rig_path.read_text().replace("[rig]\n", f'[rig]\ncalibration = "{tmp_path / "cal.json"}"\n'))
+    [item] = run_batch(parts[:1], DEMO_PROGRAM, workers=0, measurement=TRUTH_GAUGE, rig_path=recal).items
+    assert item.status == "pass" and item.calibration_id.startswith("sim-bench@")
+    again = read_ply_points(cloud)
+    assert len(again) == len(captured) and np.median(again[:, 2] - captured[:, 2]) > 1.0  # a longer baseline
+    [item] = run_batch(parts[:1], DEMO_PROGRAM, workers=0, measurement=TRUTH_GAUGE).items
+    assert item.calibration_id == "factory-sim-bench" and np.array_equal(read_ply_points(cloud), captured)
+    [bad] = run_batch(parts[:1], DEMO_PROGRAM, workers=0, measurement=TRUTH_GAUGE, rig_path=DEFAULT_RIG).items
+    assert bad.status == "error" and "captured with a (320, 256) camera" in bad.message

@@ -91,7 +91,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
     config = _config(args) if args.store else None
     summary = run_batch(args.sessions, args.program, scheduler=args.scheduler, workers=args.workers,
-                        store_config=config, progress=ProgressLine(), measurement=args.measurement)
+                        store_config=config, progress=ProgressLine(), measurement=args.measurement, rig_path=args.rig)
     print_summary(summary, json_out=args.json)
     return 0 if not summary.failures else 1
 
@@ -123,6 +123,8 @@ def register(sub: Any) -> None:
     b.add_argument("--program", required=True, help="part program TOML to inspect against")
     b.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786); default: a local cluster")
     b.add_argument("--workers", type=int, default=2, help="local cluster: worker processes (default 2)")
+    b.add_argument("--rig", type=Path, help="reconstruct with this rig's geometry (its calibration) instead of the "
+                                            "one recorded at capture")
     b.add_argument("--store", action="store_true", help="store the re-inspection results (source 'batch')")
     _station_options(b)
     b.add_argument("--measurement", help="measuring step, module:factory (default: the station config's)")

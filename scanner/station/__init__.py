@@ -6,7 +6,9 @@ re-inspection. An application layer above every package, like the CLI.
     calib.py    the rig's calibration: identity, date, sizes; the refusal rules
     measure.py  the measuring step: the typed seam and its one adapter onto `inspection`
     bench.py    what stands on the bench: the rig, and on the simulator the part in front of it
+    quality.py  verdicts (values against tolerances) and running statistics
     loop.py     the operator loop as a state machine, independent of any user interface
+    app.py      a station assembled from its config files; the non-interactive run (--auto)
     tui.py      the full-screen terminal view of the loop (curses)
     results.py  the results history on SQLite or PostgreSQL (plain DB-API, a small dialect layer)
     charts.py   control charts: PNG images (OpenCV drawing) and Rerun series

@@ -19,13 +19,13 @@ from typing import Any, TextIO
 from ..rig import RigConfig
 from . import StationError
 from .bench import Bench
-from .charts import ChartRecording, chart_series
+from .charts import ChartRecording
 from .config import StationConfig
 from .loop import CycleOutcome, Progress, Station, utcnow
 from .measure import Measurement
 from .program import PartProgram, load_program
 from .report import write_report
-from .results import ResultsStore, open_results
+from .results import ResultRow, ResultsStore, ValueRecord, open_results
 
 CHART_RECORDING = "control_charts.rrd"
 
@@ -56,8 +56,7 @@ class StationRun:
             self.recovered = self.station.recover()
             self.charts = ChartRecording(self.report_dir / CHART_RECORDING, program,
                                          f"station-{config.name}-{program.name}-{utcnow():%Y%m%d-%H%M%S}")
-            rows, values = self._history()
-            self.charts.log_history(chart_series(program, rows, values))
+            self.charts.log_history(*self._history())
         except BaseException:
             self.bench.close()
             self.store.close()
@@ -69,7 +68,7 @@ class StationRun:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _history(self) -> tuple[list[Any], dict[int, list[Any]]]:
+    def _history(self) -> tuple[list[ResultRow], dict[int, list[ValueRecord]]]:
         rows = self.store.results(program=self.program.name, limit=1000)
         return rows, self.store.values([r.id for r in rows])
 

@@ -4,8 +4,10 @@ change, in this process, on a local Dask cluster, or on a remote one.
 A unit of work is one part: a part folder written by the station (its `view<k>/` session
 folders) or a single session folder. Each runs on a worker as `reinspect`: every session is
 opened (an incomplete one fails that part only), decoded and reconstructed again from its
-raw frames (`outputs/` regenerated; the recording is left as it was), measured, and judged
-against the program. A part that fails is reported with its error; the batch goes on.
+raw frames (`outputs/` regenerated; the recording and the manifest are left as they were),
+measured, and judged against the program. Given a rig TOML (`--rig`), the sessions are
+reconstructed with that rig's geometry, i.e. its current calibration, instead of the one
+recorded at capture; the calibration id stored with the result says which was used. A part that fails is reported with its error; the batch goes on.
 Units are independent, so the results do not depend on where or in which order they ran.
 """
 
@@ -21,8 +23,12 @@ from pathlib import Path
 from typing import Any, Callable, Sequence, TextIO
 
 from .. import __version__
-from ..session import MANIFEST
+from ..geometry import RigModel
+from ..pipeline import process
+from ..rig import RigConfig
+from ..session import Session
 from . import StationError
+from .calib import rig_calibration
 from .config import DEFAULT_MEASUREMENT, StationConfig
 from .loop import PART_RECORD
 from .measure import Measurement
@@ -36,14 +42,16 @@ Progress = Callable[[str, int, int], None]
 @dataclass(frozen=True)
 class BatchItem:
     """One part's re-inspection: its folder, status (pass, fail, error), message, values,
-    serial (from the station's part record, else the folder name), where it ran and how long
-    it took (s); `truth` the simulated part's imposed defects when the sessions have them."""
+    serial (from the station's part record, else the folder name), the calibration it was
+    reconstructed with (None: unknown, as captured), where it ran and how long it took (s);
+    `truth` the simulated part's imposed defects when the sessions have them."""
 
     path: str
     status: str
     message: str
     values: tuple[ValueRecord, ...] = ()
     serial: str = ""
+    calibration_id: str | None = None
     worker: str = ""
     seconds: float = 0.0
     truth: dict[str, Any] | None = None
@@ -76,27 +84,36 @@ def _program(path: str) -> PartProgram:
 
 
 @lru_cache(maxsize=8)
+def _rig(path: str) -> tuple[RigModel, str | None]:
+    """A rig TOML's geometry (calibrated when it names a calibration file) and calibration id."""
+    config = RigConfig.load(path)
+    return config.model, rig_calibration(config).id
+
+
+@lru_cache(maxsize=8)
 def _measurement(entry: str) -> Measurement:
     from .app import load_measurement
 
     return load_measurement(entry)
 
 
-def reinspect(part: str, program_path: str, measurement: str = DEFAULT_MEASUREMENT) -> BatchItem:
-    """Re-decode and re-measure one part (runs on a worker; never raises for the part's own
-    faults: they come back as an `error` item)."""
+def reinspect(part: str, program_path: str, measurement: str = DEFAULT_MEASUREMENT,
+              rig_path: str | None = None) -> BatchItem:
+    """Re-decode (with `rig_path`'s geometry when given) and re-measure one part (runs on a
+    worker; never raises for the part's own faults: they come back as an `error` item)."""
     from sim.station_parts import TRUTH_FILE  # written only into simulated sessions
-
-    from ..pipeline import process
-    from ..session import Session
 
     t0 = time.perf_counter()
     root = Path(part)
-    record = root / PART_RECORD
-    serial = json.loads(record.read_text()).get("serial", root.name) if record.exists() else root.name
+    record = json.loads((root / PART_RECORD).read_text()) if (root / PART_RECORD).exists() else {}
+    serial = record.get("serial", root.name)
+    calibration = record.get("calibration_id")
     worker = _worker_name()
     truth = None
     try:
+        model = None
+        if rig_path is not None:
+            model, calibration = _rig(rig_path)
         program = _program(program_path)
         measure = _measurement(measurement)
         missing = measure.unavailable()
@@ -105,6 +122,8 @@ def reinspect(part: str, program_path: str, measurement: str = DEFAULT_MEASUREME
         sessions = []
         for folder in part_sessions(root):
             session = Session.open(folder)
+            if model is not None:
+                session = _with_model(session, model)
             process(session)
             sessions.append(session)
             truth_file = folder / TRUTH_FILE
@@ -112,9 +131,21 @@ def reinspect(part: str, program_path: str, measurement: str = DEFAULT_MEASUREME
                 truth = json.loads(truth_file.read_text())
         status, values, message = judge(program, measure.measure(sessions, program))
     except Exception as exc:  # noqa: BLE001 — one part's failure is reported, the batch goes on
-        return BatchItem(part, "error", f"{type(exc).__name__}: {exc}", serial=serial, worker=worker,
-                         seconds=round(time.perf_counter() - t0, 3), truth=truth)
-    return BatchItem(part, status, message, tuple(values), serial, worker, round(time.perf_counter() - t0, 3), truth)
+        return BatchItem(part, "error", f"{type(exc).__name__}: {exc}", serial=serial, calibration_id=calibration,
+                         worker=worker, seconds=round(time.perf_counter() - t0, 3), truth=truth)
+    return BatchItem(part, status, message, tuple(values), serial, calibration, worker,
+                     round(time.perf_counter() - t0, 3), truth)
+
+
+def _with_model(session: Session, model: RigModel) -> Session:
+    """The session as it would be with `model` as its rig geometry (in memory only); the
+    camera and projector must be the ones it was captured with."""
+    captured = session.rig_model()
+    if captured.camera.size != model.camera.size or captured.projector.size != model.projector.size:
+        raise StationError(f"{session.root}: captured with a {captured.camera.size} camera and a "
+                           f"{captured.projector.size} projector; the rig given has {model.camera.size} and "
+                           f"{model.projector.size}")
+    return Session(session.root, {**session.manifest, "rig_model": model.to_dict()})
 
 
 def _worker_name() -> str:
@@ -128,13 +159,18 @@ def _worker_name() -> str:
 
 def run_batch(parts: Sequence[str | Path], program_path: str | Path, scheduler: str | None = None, workers: int = 2,
               store_config: StationConfig | None = None, progress: Progress | None = None,
-              measurement: str | None = None) -> BatchSummary:
+              measurement: str | None = None, rig_path: str | Path | None = None) -> BatchSummary:
     """Re-inspect `parts`: serially in this process when `workers` is 0 and no `scheduler`
     is given; otherwise on the Dask scheduler at `scheduler`, or on a local cluster of
-    `workers` processes started for the batch. With `store_config`, every item is stored
-    in that station's results database (source 'batch')."""
+    `workers` processes started for the batch. With `rig_path`, sessions are reconstructed
+    with that rig's geometry. With `store_config`, every item is stored in that station's
+    results database (source 'batch')."""
     program_path = str(Path(program_path).resolve())
-    program = load_program(program_path)  # refuse a bad program before any work is sent
+    program = load_program(program_path)  # refuse a bad program (or rig) before any work is sent
+    rig = None
+    if rig_path is not None:
+        rig = str(Path(rig_path).resolve())
+        _rig(rig)
     entry = measurement or (store_config.measurement if store_config else DEFAULT_MEASUREMENT)
     paths = [str(Path(p).resolve()) for p in parts]
     progress = progress or (lambda *a: None)
@@ -143,7 +179,7 @@ def run_batch(parts: Sequence[str | Path], program_path: str | Path, scheduler: 
     if scheduler is None and workers == 0:
         summary.where = "serial, this process"
         for k, p in enumerate(paths):
-            summary.items.append(reinspect(p, program_path, entry))
+            summary.items.append(reinspect(p, program_path, entry, rig))
             progress("batch", k + 1, len(paths))
     else:
         from distributed import Client, LocalCluster, as_completed
@@ -153,7 +189,7 @@ def run_batch(parts: Sequence[str | Path], program_path: str | Path, scheduler: 
         try:
             with Client(scheduler or cluster) as client:
                 summary.where = f"dask {client.scheduler.address} ({len(client.scheduler_info()['workers'])} workers)"
-                futures = {client.submit(reinspect, p, program_path, entry, pure=False): p for p in paths}
+                futures = {client.submit(reinspect, p, program_path, entry, rig, pure=False): p for p in paths}
                 done: dict[str, BatchItem] = {}
                 for k, fut in enumerate(as_completed(futures)):
                     try:
@@ -177,7 +213,7 @@ def _store(summary: BatchSummary, program: PartProgram, config: StationConfig, e
         for item in summary.items:
             rid, _ = store.begin_part(PartStart(
                 program=program.name, program_version=program.version, program_fingerprint=program.fingerprint,
-                serial=item.serial, operator="batch", station=config.name, rig="", calibration_id=None,
+                serial=item.serial, operator="batch", station=config.name, rig="", calibration_id=item.calibration_id,
                 software_version=__version__, measurement=entry, part_path=item.path, started_at=now, source="batch"))
             store.finish_part(rid, item.status, item.message, item.values, now)
 

@@ -146,13 +146,8 @@ class ChartRecording:
         if scalars:
             self.rec.log_metrics(scalars, scan=result_id)
 
-    def log_history(self, series: dict[str, list[ChartPoint]]) -> None:
-        """Earlier parts from the results database, so the chart starts with the history."""
-        by_result: dict[int, list[ValueRecord]] = {}
-        for name, points in series.items():
-            c = self.program.characteristic(name)
-            for p in points:
-                by_result.setdefault(p.result_id, []).append(
-                    ValueRecord(name, c.kind, c.face, p.value_mm, c.tolerance_mm, p.conforms, 0))
-        for result_id in sorted(by_result):
-            self.log(result_id, by_result[result_id])
+    def log_history(self, rows: Sequence[ResultRow], values: dict[int, list[ValueRecord]]) -> None:
+        """Earlier parts from the results database (each serial's last cycle), so the
+        charts start with the history."""
+        for r in latest_per_serial(rows):
+            self.log(r.id, values.get(r.id, []))

@@ -25,7 +25,7 @@ from __future__ import annotations
 import datetime as dt
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -215,5 +215,5 @@ def _record(station: Station, outcome: CycleOutcome, started: dt.datetime) -> di
             "operator": station.operator, "station": station.config.name, "rig": station.bench.config.name,
             "calibration_id": station.calibration.id, "software_version": __version__,
             "measurement": station.measurement.name, "started": started.isoformat(), "seconds": outcome.seconds,
-            "sessions": [str(s) for s in outcome.sessions], "values": [v.__dict__ for v in outcome.values],
+            "sessions": [str(s) for s in outcome.sessions], "values": [asdict(v) for v in outcome.values],
             "sim_truth": outcome.truth}

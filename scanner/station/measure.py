@@ -27,7 +27,6 @@ numbers up); the tests that need it are skipped with that reason.
 from __future__ import annotations
 
 import importlib
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Protocol, Sequence
@@ -35,7 +34,7 @@ from typing import Any, Mapping, Protocol, Sequence
 import numpy as np
 
 from ..errors import ScannerError
-from ..session import Session
+from ..session import Session, write_json
 from .program import Characteristic, PartProgram
 
 CAD_ENTRY = "inspection.cad:load_cad"
@@ -176,20 +175,12 @@ class InspectionMeasurement:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
             data = report.as_dict() if hasattr(report, "as_dict") else dict(report)
             path = session.outputs / REPORT_FILE
-            path.write_text(json.dumps(data, indent=1, default=_plain))
+            write_json(path, data)
             paths.append(path)
             details[f"view{k}"] = {key: data[key] for key in ("fitness", "rmse_mm") if key in data}
             tables.append({str(row["label"]): row for row in data["faces"]})
         values = tuple(_pick(c, tables) for c in program.characteristics)
         return MeasurementResult(True, values, details=details, report_paths=tuple(paths))
-
-
-def _plain(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    return str(o)
 
 
 def _pick(c: Characteristic, tables: Sequence[Mapping[str, Mapping[str, Any]]]) -> MeasuredValue:
