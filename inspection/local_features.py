@@ -48,6 +48,7 @@ SLAB_FACTOR = 0.1           # half-width of a plane neighbourhood, x r
 SUBSAMPLE_FACTOR = 0.1      # voxel side of S, x r
 SLAB_POINTS = 10  # points wanted per plane neighbourhood: sets q_j
 MIN_FIT_POINTS = 5          # a circle (3 parameters) needs at least this many points
+REEVAL_OVERSAMPLE = 3       # re-evaluation searches this many times q_j neighbours for segment points
 NEAR_POINTS = 16            # growth neighbours within the smallest scale (S holds ~11 there) ...
 FAR_POINTS = 24             # ... and a uniform sample of this many out to r
 CHUNK = 2048                # points per batch
@@ -144,17 +145,22 @@ class MultiScale:
     def __len__(self) -> int:
         return len(self.points)
 
-    def neighbours(self, j: int, ids: np.ndarray) -> np.ndarray:
+    def neighbours(self, j: int, ids: np.ndarray, allowed: np.ndarray | None = None) -> np.ndarray:
         """(n, q_j) rows of P of the partial neighbourhood B(d_j, q_j) of points `ids` of
-        S (the point itself excluded), -1 where there are fewer."""
+        S (the point itself excluded), -1 where there are fewer. With `allowed` (bool per
+        row of P), only those rows count: the nearest `REEVAL_OVERSAMPLE`·q_j are searched
+        so a point at a segment's border still gets up to q_j of the segment's points."""
         tree, sample = self.trees[j], self.samples[j]
-        dist, idx = tree.query(self.points[ids], k=self.q[j] + 1, distance_upper_bound=self.radii[j])
+        k = self.q[j] * (1 if allowed is None else REEVAL_OVERSAMPLE) + 1
+        dist, idx = tree.query(self.points[ids], k=k, distance_upper_bound=self.radii[j])
         idx = idx.astype(np.int64)
         ok = np.isfinite(dist)
         idx[~ok] = 0
         if sample is not None:
             idx = sample[idx]
         ok &= idx != self.subsample[ids][:, None]
+        if allowed is not None:
+            ok &= allowed[idx]
         return _first_valid(idx, ok, self.q[j])
 
     def growth_neighbours(self, ids: np.ndarray) -> np.ndarray:
@@ -193,13 +199,11 @@ class MultiScale:
         n = len(ids)
         per_scale = []
         centre = self.points[ids]
+        allowed = None if labels is None else labels[self.owner] == segment
         for j, d in enumerate(self.radii):
-            idx = self.neighbours(j, ids)
-            ok = idx >= 0
-            if labels is not None:
-                ok &= labels[self.owner[np.maximum(idx, 0)]] == segment
+            idx = self.neighbours(j, ids, allowed)
             v = self.cloud[np.maximum(idx, 0)] - centre[:, None, :]
-            per_scale.append(_scale_features(v, ok, d, SLAB_FACTOR * self.radius))
+            per_scale.append(_scale_features(v, idx >= 0, d, SLAB_FACTOR * self.radius))
         mu = np.stack([s[0] for s in per_scale], axis=1)
         best = np.argmin(np.where(np.isnan(mu), np.inf, mu), axis=1)
         has = np.isfinite(mu).any(axis=1)

@@ -277,7 +277,7 @@ class _Grower:
         codes, flattened, trusted only where the target's own B' trusts the joiner back."""
         thr = self._threshold(stats)
         g = self.ms.features(rows, self.label, s)
-        join = (g.mu <= thr) & (np.abs(g.offset) <= thr)
+        join = g.mu <= thr
         if not join.any():
             return np.empty(0, dtype=np.int64)
         j = rows[join]
