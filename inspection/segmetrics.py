@@ -8,7 +8,9 @@ least one point). Over all points of the cloud:
     β = FN / (TP + FN)      false-negative rate (type II error)
     η = the number of T_j forming T^i (over-segmentation; 0 when none qualifies).
 Labels are integers, one per point; a negative label means "in no segment" (ground
-truth: noise or unseen; test: unsegmented). Every point counts in the totals.
+truth: noise or unseen; test: unsegmented). Every point counts in the totals, except
+entries whose test label is `NO_POINT` (-2): an image of labels marks pixels without a
+3D point so, and those are not points of the cloud.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import numpy as np
 from .segmentation_errors import SegmentationError
 
 MIN_SHARE = 0.05   # the 5% rule forming T^i
+NO_POINT = -2      # label of an image pixel that has no point
 
 
 @dataclass(frozen=True)
@@ -79,6 +82,8 @@ def score(test: np.ndarray, truth: np.ndarray) -> SegmentationScore:
     if not (np.issubdtype(t.dtype, np.integer) and np.issubdtype(g.dtype, np.integer)):
         raise SegmentationError(f"labels must be integers, got {t.dtype} and {g.dtype}")
     t, g = t.ravel().astype(np.int64), g.ravel().astype(np.int64)
+    points = t != NO_POINT
+    t, g = t[points], g[points]
     if not (g >= 0).any():
         raise SegmentationError("the ground truth has no segment (every label is negative)")
     n = len(g)

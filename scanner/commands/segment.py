@@ -1,0 +1,174 @@
+"""`slscan segment` and `slscan segscore`: context-free region growing (seed 002) of a
+point cloud file or a session's scan, and the score of a segmentation against ground
+truth (α, β, η per ground-truth segment).
+
+Label files are .npy int32 arrays. For a point cloud file: one label per point, in the
+file's order (`<cloud stem>.segments.npy` beside it). For a session: an image of the
+camera's size (`outputs/segments.npy`): the segment of the pixel's point, -1 for a point
+no segment took, -2 (`NO_POINT`) for a pixel without a point. Segments are numbered in the
+order they grew (smoothest seeds first). The Rerun recording (`<...>.segments.rrd`, the
+session's id for a session, so it opens together with the session's own recording) has
+the segmented points under `world/segments` and, for a session, the label image under
+`maps/segments`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SEGMENTS = "world/segments"
+SEGMENT_MAP = "maps/segments"
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser("segment", help="segment a cloud or a session's scan by region growing (one parameter, r)")
+    p.add_argument("input", help="a point cloud file (PLY, PCD, XYZ ... as Open3D reads) or a session folder")
+    p.add_argument("--radius", "-r", type=float, required=True, metavar="MM",
+                   help="radius of interest r in mm: the coarsest detail that counts (features at 0.19 r .. r)")
+    p.add_argument("--out", help="labels file (.npy); default beside the cloud, or <session>/outputs/segments.npy")
+    p.add_argument("--no-log", action="store_true", help="do not write the Rerun recording")
+    p.set_defaults(func=cmd_segment)
+
+    s = sub.add_parser("segscore", help="score a segmentation against ground-truth labels (alpha, beta, eta)")
+    s.add_argument("labels", help="labels .npy (from slscan segment)")
+    s.add_argument("ground_truth", help="ground-truth labels .npy of the same shape (negative: no segment), or a "
+                                        "simulated session's ground_truth.npz (its object ids)")
+    s.add_argument("--json", action="store_true", help="print a JSON object")
+    s.set_defaults(func=cmd_segscore)
+
+
+def cmd_segment(args: argparse.Namespace) -> int:
+    from inspection.region_growing import segment
+    from inspection.segmetrics import NO_POINT
+    from scanner.errors import ScannerError
+    from scanner.pointcloud import read_ply_points
+
+    src = Path(args.input)
+    session = None
+    if src.is_dir():
+        from scanner.session import Session
+
+        session = Session.open(src)
+        points, valid = _session_points(session)
+        out = Path(args.out) if args.out else session.outputs / "segments.npy"
+        viewpoint: np.ndarray | None = np.zeros(3)   # the camera, in the camera frame
+    elif src.is_file():
+        try:
+            points = read_ply_points(src)
+        except Exception as exc:  # noqa: BLE001 — Open3D raises plain RuntimeErrors
+            raise ScannerError(f"{src}: cannot read a point cloud: {exc}") from None
+        valid, viewpoint = None, None
+        out = Path(args.out) if args.out else src.with_name(src.stem + ".segments.npy")
+    else:
+        raise ScannerError(f"{src}: no such cloud file or session folder")
+    if out.suffix != ".npy":
+        raise ScannerError(f"{out}: the labels file must end in .npy")
+    print(f"segmenting {len(points)} points of {src} with r = {args.radius:g} mm", file=sys.stderr)
+    seg = segment(points, args.radius, viewpoint)
+    labels = seg.labels
+    if valid is not None:
+        image = np.full(valid.shape, NO_POINT, dtype=np.int32)
+        image[valid] = labels
+        labels_out = image
+    else:
+        labels_out = labels
+    tmp = out.with_name(f".{out.stem}.part.npy")
+    np.save(tmp, labels_out)
+    tmp.replace(out)
+    sizes = seg.sizes()
+    big = np.sort(sizes)[::-1]
+    print(f"labels    {out}")
+    print(f"points    {len(points)} ({len(seg.subsample)} after the 0.1 r subsample), "
+          f"{(labels < 0).mean() * 100:.1f} % unsegmented")
+    print(f"segments  {seg.n_segments} ({int((sizes >= 0.01 * len(points)).sum())} with >= 1 % of the points); "
+          f"largest {', '.join(str(int(s)) for s in big[:8])}")
+    print("timings   " + ", ".join(f"{k} {v:.2f} s" for k, v in seg.timings_s.items()))
+    if not args.no_log:
+        rrd = out.with_name(out.stem + ".rrd")
+        _log(rrd, session, points, labels, labels_out if valid is not None else None, seg.timings_s,
+             recording_id=session.id if session is not None else src.stem)
+        print(f"recording {rrd}" + (f"   (view with the session: rerun {session.recording_path} {rrd})"
+                                   if session is not None else ""))
+    return 0
+
+
+def _session_points(session: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The scan's points (camera frame, mm) in pixel order and the (H, W) mask of pixels
+    that have one, from the session's cloud and maps."""
+    from scanner.errors import SessionError
+    from scanner.pointcloud import read_ply_points
+
+    cloud, maps = session.outputs / "cloud.ply", session.outputs / "maps.npz"
+    if not (cloud.exists() and maps.exists()):
+        raise SessionError(f"{session.root}: no processed scan (outputs/cloud.ply, outputs/maps.npz); "
+                           f"run `slscan decode {session.root}` first")
+    with np.load(maps) as z:
+        valid = z["valid"].astype(bool)
+    points = read_ply_points(cloud)
+    if len(points) != int(valid.sum()):
+        raise SessionError(f"{cloud}: {len(points)} points but {int(valid.sum())} valid pixels in {maps}; "
+                           f"regenerate both with `slscan decode {session.root}`")
+    return points, valid
+
+
+def _log(path: Path, session: Any, points: np.ndarray, labels: np.ndarray, image: np.ndarray | None,
+         timings: dict[str, float], recording_id: str) -> None:
+    import rerun as rr
+
+    from scanner.recording import SessionRecording
+
+    with SessionRecording(path, recording_id, send_blueprint=False) as rec:
+        world_from_cam = np.eye(4)
+        if session is not None:
+            model = session.rig_model()
+            rec.log_rig(model)
+            world_from_cam = np.asarray(model.world_from_cam, dtype=np.float64)
+        pts = points @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+        rec.stream.set_time("scan", sequence=0)
+        rec.stream.log(SEGMENTS, rr.Points3D(pts.astype(np.float32), class_ids=_class_ids(labels)), strict=True)
+        if image is not None:
+            rec.stream.log(SEGMENT_MAP, rr.SegmentationImage(_class_ids(image)), strict=True)
+        rec.log_metrics({"segments": float(labels.max(initial=-1) + 1),
+                         "unsegmented_fraction": float((labels < 0).mean()),
+                         **{f"segment_{k}_s": v for k, v in timings.items()}})
+
+
+def _class_ids(labels: np.ndarray) -> np.ndarray:
+    """Rerun class ids: 0 for no segment, 1 + label otherwise (wrapping past 65535)."""
+    return np.where(labels >= 0, 1 + labels % 65535, 0).astype(np.uint16)
+
+
+def cmd_segscore(args: argparse.Namespace) -> int:
+    from inspection.segmetrics import score
+
+    test = _load_labels(Path(args.labels))
+    truth = _load_labels(Path(args.ground_truth))
+    result = score(test, truth)
+    print(json.dumps(result.as_dict(), indent=2) if args.json else result.table())
+    return 0
+
+
+def _load_labels(path: Path) -> np.ndarray:
+    """An integer label array from .npy, or the object ids of a simulator ground truth
+    .npz (0, background, becomes -1: no surface)."""
+    from inspection.segmentation_errors import SegmentationError
+
+    if not path.is_file():
+        raise SegmentationError(f"{path}: no such labels file")
+    try:
+        if path.suffix == ".npz":
+            with np.load(path) as z:
+                if "object_id" not in z:
+                    raise SegmentationError(f"{path}: no 'object_id' array (expected a simulator ground_truth.npz)")
+                ids = z["object_id"].astype(np.int32)
+                return np.where(ids == 0, -1, ids)
+        arr = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise SegmentationError(f"{path}: not a readable .npy/.npz labels file: {exc}") from None
+    return arr
