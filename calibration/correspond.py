@@ -9,7 +9,8 @@ and averages thousands of decoded pixels into one sub-pixel projector point.
 
 The fit is a weighted, normalised direct linear transform (weights: the decoded
 coordinates' precision, e.g. fringe modulation squared), repeated once without the pixels
-whose residual is an outlier (decoding errors at square edges, specularities).
+whose residual is an outlier (decoding errors at square edges, specularities). A corner
+needs decoded pixels on every side of it, so its point is interpolated, not extrapolated.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 MIN_WINDOW_FILL = 0.15  # a corner needs decoded pixels over this fraction of its window (1/2: one colour of squares)
+MIN_SIDE_FILL = 0.05  # … and on each side of it (left, right, above, below): a fit is interpolated, never extrapolated
 OUTLIER_SIGMAS = 4.0
 MIN_OUTLIER_PX = 0.5
 
@@ -76,7 +78,9 @@ def local_homography_points(corners: np.ndarray, u: np.ndarray, v: np.ndarray, r
         ix, iy = ix[ok], iy[ok]
         pu, pv = u[iy, ix].astype(np.float64), v[iy, ix].astype(np.float64)
         good = np.isfinite(pu) & np.isfinite(pv)
-        if good.sum() < MIN_WINDOW_FILL * len(dx):
+        sx, sy = dx[ok][good], dy[ok][good]
+        sides = min((sx < 0).sum(), (sx > 0).sum(), (sy < 0).sum(), (sy > 0).sum())
+        if good.sum() < MIN_WINDOW_FILL * len(dx) or sides < MIN_SIDE_FILL * len(dx):
             continue
         src = np.stack([(ix[good] - cx) / radius_px, (iy[good] - cy) / radius_px], axis=1)
         dst_px = np.stack([pu[good], pv[good]], axis=1)

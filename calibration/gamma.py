@@ -45,16 +45,17 @@ class GammaFit:
                 f"white over {self.pixels} px)")
 
 
-def phase_error_rad(fit: GammaFit, steps: int, compensated: bool) -> float:
-    """Largest phase error (rad) of an N-step phase shift displayed through the measured
-    response: fringes rendered as 8-bit commands with (compensated) or without the inverse
-    of the fitted power law. N-step phase shifting cancels harmonics except k = m·N ± 1, so
-    the error depends on N (3 steps suffer most)."""
+def phase_error_rad(gamma: float, steps: int, compensated: bool) -> float:
+    """Largest phase error (rad) of an N-step phase shift on a projector of response
+    (c/255)^gamma, its fringes rendered as 8-bit commands with (`compensated`) or without
+    the inverse response. N-step phase shifting cancels the fringe's harmonics except
+    k = m·N ± 1, so the error depends on N (3 steps suffer most); with compensation what is
+    left is the commands' 8-bit rounding."""
     phi = np.linspace(0.0, 2.0 * np.pi, 720, endpoint=False)[:, None]
     delta = 2.0 * np.pi * np.arange(steps) / steps
     profile = 0.5 + 0.5 * np.cos(phi + delta)
-    command = np.round(255.0 * (profile ** (1.0 / fit.gamma) if compensated else profile))
-    shown = np.interp(command, fit.levels.astype(np.float64), fit.response)
+    command = np.round(255.0 * (profile ** (1.0 / gamma) if compensated else profile))
+    shown = (command / 255.0) ** gamma
     est = np.arctan2(-(shown * np.sin(delta)).sum(axis=1), (shown * np.cos(delta)).sum(axis=1))
     return float(np.abs(np.angle(np.exp(1j * (est - phi[:, 0])))).max())
 

@@ -51,6 +51,7 @@ class PhaseHeightFit:
     l_map: np.ndarray
     k_map: np.ndarray
     errors: list[HeightError]
+    pitch_range_mm: tuple[float, float]  # 5th and 95th percentile of the local fringe pitch on the plate
 
     def rms(self, held_out: bool) -> tuple[float, float, float]:
         """RMS over the (held-out or fitted) heights: (Eq. 17, per-pixel, triangulation)."""
@@ -68,6 +69,7 @@ class PhaseHeightFit:
     def to_dict(self) -> dict[str, object]:
         m = self.model
         return {"l_mm": m.l_mm, "d_mm": m.d_mm, "pitch_mm": m.pitch_mm, "plane": m.plane.tolist(),
+                "plate_distance_mm": float(m.plane[3]), "local_pitch_range_mm": list(self.pitch_range_mm),
                 "errors": [e.__dict__ for e in self.errors],
                 "rms_held_out_mm": dict(zip(("eq17", "per_pixel", "triangulation"), self.rms(True))),
                 "rms_fitted_mm": dict(zip(("eq17", "per_pixel", "triangulation"), self.rms(False)))}
@@ -105,6 +107,18 @@ def reference_pitch_mm(phase: np.ndarray, plane: np.ndarray, camera: Pinhole) ->
     A = np.stack([X @ e1, X @ e2, np.ones(len(X))], axis=1)
     g, *_ = np.linalg.lstsq(A, phi[ok], rcond=None)
     return float(2.0 * np.pi / np.hypot(g[0], g[1]))
+
+
+def local_pitch_range_mm(phase: np.ndarray, plane: np.ndarray, camera: Pinhole) -> tuple[float, float]:
+    """5th and 95th percentile of the local fringe pitch on the plane (mm): one fringe over
+    the phase gradient in pixels, times the plane's size of a pixel there (a measure of how
+    far the field is from Eq. 17's single pitch)."""
+    gy, gx = np.gradient(phase.astype(np.float64))
+    rays = camera.ray_grid.astype(np.float64)
+    z = -plane[3] / (rays @ plane[:3])
+    pitch = 2.0 * np.pi / np.hypot(gx, gy) * z / np.sqrt(camera.K[0, 0] * camera.K[1, 1])
+    lo, hi = np.nanpercentile(pitch[::FIT_SUBSAMPLE, ::FIT_SUBSAMPLE], [5, 95])
+    return float(lo), float(hi)
 
 
 def fit_phase_to_height(heights_mm: list[float], phases: list[np.ndarray], plane: np.ndarray, camera: Pinhole,

@@ -13,7 +13,10 @@ from disk (`slscan calibrate --from DIR`):
     DIR/plate_00/fringe_00.png … the reference plate at each stage height
     DIR/artefact/fringe_00.png … the validation artefact
 
-Images are lossless PNG at their bit depth; each file appears complete or not at all.
+Images are lossless PNG at their bit depth; each file appears complete or not at all. A
+writer thread encodes them while the next frames are captured (PNG encoding of a noisy
+12-bit frame costs about as much as rendering it), and `capture.json` is queued behind the
+frames it lists, so it never names a frame that is not on disk.
 
 Captures made by other tools are read given a pattern description: OpenCV's Gray-code
 layout (`graycode_views`) takes every sub-folder holding the layout's images, sorted by
@@ -24,7 +27,9 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from types import TracebackType
 from pathlib import Path
 from typing import Any
 
@@ -67,7 +72,9 @@ def _read_stack(folder: Path, prefix: str, n: int) -> np.ndarray:
 
 
 class CaptureWriter:
-    """Writes one calibration capture into a new folder (see the module docstring)."""
+    """Writes one calibration capture into a new folder (see the module docstring). Use it
+    as a context manager, or call `close()`: both wait for every queued file and raise the
+    first error a write met."""
 
     def __init__(self, root: str | Path, board: Board, patterns: PatternSet, camera_size: tuple[int, int],
                  projector_size: tuple[int, int], bit_depth: int, rig_name: str) -> None:
@@ -81,15 +88,35 @@ class CaptureWriter:
             "created": dt.datetime.now(dt.timezone.utc).isoformat(), "board": board.to_dict(),
             "patterns": patterns.to_dict(), "camera_size": list(camera_size), "projector_size": list(projector_size),
             "bit_depth": bit_depth, "gamma_levels": None, "poses": [], "plates": [], "artefact": None}
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="capture-writer")
+        self._pending: list[Future] = []
         self._save()
 
+    def __enter__(self) -> CaptureWriter:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Wait for every queued file; raise the first write error."""
+        pending, self._pending = self._pending, []
+        self._pool.shutdown(wait=True)
+        for f in pending:
+            f.result()
+
     def _save(self) -> None:
-        write_json(self.root / CAPTURE_FILE, self.manifest)
+        snapshot = json.loads(json.dumps(self.manifest))  # as it is now, not when the writer gets to it
+        self._pending.append(self._pool.submit(write_json, self.root / CAPTURE_FILE, snapshot))
+
+    def _png(self, path: Path, image: np.ndarray) -> None:
+        self._pending.append(self._pool.submit(_write_png, path, image))
 
     def _stack(self, folder: str, prefix: str, stack: np.ndarray) -> None:
         (self.root / folder).mkdir(exist_ok=True)
         for k, img in enumerate(stack):
-            _write_png(self.root / folder / f"{prefix}_{k:02d}.png", img)
+            self._png(self.root / folder / f"{prefix}_{k:02d}.png", img)
 
     def add_gamma(self, levels: np.ndarray, images: np.ndarray) -> None:
         self._stack("gamma", "level", images)
@@ -99,8 +126,8 @@ class CaptureWriter:
     def add_pose(self, frames: PoseFrames, gamma: float) -> str:
         name = f"pose_{len(self.manifest['poses']):03d}"
         self._stack(name, "fringe", frames.fringes)
-        _write_png(self.root / name / "white.png", frames.white)
-        _write_png(self.root / name / "black.png", frames.black)
+        self._png(self.root / name / "white.png", frames.white)
+        self._png(self.root / name / "black.png", frames.black)
         self.manifest["poses"].append({"name": name, "gamma": gamma})
         self._save()
         return name

@@ -39,9 +39,9 @@ from .capture import capture_fringes, capture_pose, capture_uncompensated, show_
 from .coverage import Coverage, needed_poses, tilt_deg
 from .errors import CalibrationRejected, DetectionError, NotEnoughData
 from .file import write_calibration
-from .gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images
+from .gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images, phase_error_rad
 from .intrinsics import calibrate_device
-from .phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, fit_plane
+from .phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, fit_plane, local_pitch_range_mm
 from .recording import CalibrationRecording
 from .solve import CalibrationSettings, Solution, Stability, check_limits, leave_one_out, solve
 from .store import CaptureSet, CaptureWriter, decode_pose, pose_view
@@ -147,7 +147,7 @@ class CalibrationResult:
     gamma: GammaFit | None = None
     failures: dict[str, str] = field(default_factory=dict)
     phase_height: PhaseHeightFit | None = None
-    flatness_mm: dict[str, float] = field(default_factory=dict)  # plate flatness: compensated / uncompensated
+    gamma_check: dict[str, float] = field(default_factory=dict)  # what the gamma compensation is worth
     validation: Validation | None = None
     stability: Stability | None = None
 
@@ -172,7 +172,7 @@ class CalibrationResult:
             "uncertainty": s.std, "views": views, "dropped_views": {**sol.dropped, **self.failures},
             "separate": separate, "gamma": self.gamma.to_dict() if self.gamma else None,
             "phase_to_height": self.phase_height.to_dict() if self.phase_height else None,
-            "plate_flatness_rms_mm": self.flatness_mm or None,
+            "gamma_check": self.gamma_check or None,
             "validation": self.validation.to_dict() if self.validation else None,
             "stability": ({"values": self.stability.values, "leave_one_out": self.stability.spread}
                           if self.stability else None),
@@ -201,15 +201,27 @@ class CalibrationResult:
         out.append(f"gamma     {self.gamma.summary()}" if self.gamma else "gamma     not measured (1.0 assumed)")
         if self.phase_height:
             m = self.phase_height.model
-            held, fitted = self.phase_height.rms(True), self.phase_height.rms(False)
-            out += [f"Eq. 17    l {m.l_mm:.3f} mm, d {m.d_mm:.3f} mm, pitch {m.pitch_mm:.4f} mm",
+            held = self.phase_height.rms(True)
+            which = "held-out" if np.isfinite(held[0]) else "fitted"
+            rms3 = held if which == "held-out" else self.phase_height.rms(False)
+            lo, hi = self.phase_height.pitch_range_mm
+            out += [f"Eq. 17    l {m.l_mm:.3f} mm (camera to plate {m.plane[3]:.3f} mm), d {m.d_mm:.3f} mm, pitch "
+                    f"{m.pitch_mm:.4f} mm (local pitch {lo:.4f} .. {hi:.4f} mm over the plate)",
                     *("          " + line for line in self.phase_height.lines()),
-                    f"          held-out heights RMS: Eq. 17 {held[0] * 1e3:.1f} um, per-pixel {held[1] * 1e3:.1f} um, "
-                    f"triangulation {held[2] * 1e3:.1f} um"]
+                    f"          {which} heights RMS: Eq. 17 {rms3[0] * 1e3:.1f} um, per-pixel {rms3[1] * 1e3:.1f} um, "
+                    f"triangulation {rms3[2] * 1e3:.1f} um"]
         else:
             out.append("Eq. 17    not calibrated (no plate scans)")
-        if self.flatness_mm:
-            out.append("plate     flatness RMS " + ", ".join(f"{k} {v * 1e3:.1f} um" for k, v in self.flatness_mm.items()))
+        g = self.gamma_check
+        if "ripple_uncompensated_mm" in g:
+            out.append(f"          uncompensated, these fringes would carry up to {g['phase_error_uncompensated_rad']:.4f} "
+                       f"rad of phase error per frequency (up to {g['ripple_uncompensated_mm'] * 1e3:.1f} um of depth "
+                       f"ripple on this rig); compensated {g['phase_error_compensated_rad']:.4f} rad "
+                       f"({g['ripple_compensated_mm'] * 1e3:.2f} um)")
+        if "flatness_compensated_mm" in g:
+            out.append(f"plate     flatness RMS {g['flatness_compensated_mm'] * 1e3:.1f} um with gamma compensation"
+                       + (f", {g['flatness_uncompensated_mm'] * 1e3:.1f} um without"
+                          if "flatness_uncompensated_mm" in g else ""))
         out.append(f"validate  {self.validation.summary()}" if self.validation else "validate  no artefact scanned")
         if self.stability:
             out += ["stability (leave one view out):", *("          " + line for line in self.stability.lines())]
@@ -254,9 +266,9 @@ def correspond_all(board: Board, views: list[View], strict: bool, say: Say) -> t
     return found, failures
 
 
-def triangulated_points(decoded: DecodeResult, model: RigModel) -> np.ndarray:
+def triangulated_points(decoded: DecodeResult, triangulator: Triangulator) -> np.ndarray:
     """Camera-frame points (H, W, 3) of a decoded scan, NaN where invalid."""
-    return triangulate(decoded, Triangulator(model), with_normals=False).points
+    return triangulate(decoded, triangulator, with_normals=False).points
 
 
 def plate_flatness_mm(points: np.ndarray) -> float:
@@ -266,7 +278,23 @@ def plate_flatness_mm(points: np.ndarray) -> float:
     return float(np.sqrt(np.mean((pts @ plane[:3] + plane[3]) ** 2)))
 
 
-def phase_to_height(plates: list[Plate], model: RigModel) -> PhaseHeightFit:
+def gamma_effect(fit: GammaFit, decoded: DecodeResult, triangulator: Triangulator) -> dict[str, float]:
+    """The largest phase error of this pattern set through the measured projector response,
+    without and with compensation, and the depth ripple it makes on this rig: phase error /
+    2π x fringe period (projector px) x median depth sensitivity (mm per projector px) over
+    the decoded scan."""
+    m = decoded.maps["vertical"] if "vertical" in decoded.maps else next(iter(decoded.maps.values()))
+    _, dz_dc = triangulator.depth_scale(m.coordinate, m.orientation, sensitivity=True)
+    mm_per_rad = m.period_px / (2.0 * np.pi) * float(np.nanmedian(dz_dc))
+    out = {}
+    for kind, compensated in (("uncompensated", False), ("compensated", True)):
+        err = phase_error_rad(fit.gamma, decoded.patterns.steps, compensated)
+        out[f"phase_error_{kind}_rad"] = err
+        out[f"ripple_{kind}_mm"] = err * mm_per_rad
+    return out
+
+
+def phase_to_height(plates: list[Plate], triangulator: Triangulator) -> PhaseHeightFit:
     """Eq. 17 from plate scans taken with the calibrated gamma; every other non-zero height
     is held out of the fit (when there are at least four) to measure the model between them."""
     plates = sorted(plates, key=lambda p: p.height_mm)
@@ -274,11 +302,13 @@ def phase_to_height(plates: list[Plate], model: RigModel) -> PhaseHeightFit:
     n = len(heights)
     fit_mask = [k == 0 or n < 5 or k % 2 == 0 for k in range(n)]
     phases = [p.decoded.maps["vertical"].phase for p in plates]
-    points = [triangulated_points(p.decoded, model) for p in plates]
+    points = [triangulated_points(p.decoded, triangulator) for p in plates]
     ref = points[0]
     plane = fit_plane(ref[np.isfinite(ref).all(axis=2)].astype(np.float64))
-    m, l_map, k_map = fit_phase_to_height(heights, phases, plane, model.camera, fit_mask)
-    return PhaseHeightFit(m, l_map, k_map, evaluate(heights, fit_mask, phases, points, m, l_map, k_map))
+    camera = triangulator.rig.camera
+    m, l_map, k_map = fit_phase_to_height(heights, phases, plane, camera, fit_mask)
+    return PhaseHeightFit(m, l_map, k_map, evaluate(heights, fit_mask, phases, points, m, l_map, k_map),
+                          local_pitch_range_mm(phases[0], plane, camera))
 
 
 def blame_for_validation(solution: Solution, decoded: DecodeResult, artefact: Artefact, gamma: float,
@@ -292,7 +322,7 @@ def blame_for_validation(solution: Solution, decoded: DecodeResult, artefact: Ar
         s = sub.stereo
         model = RigModel(s.camera, s.projector, s.cam_from_proj, projector_gamma=gamma)
         try:
-            errors.append(measure_sphere_pair(triangulated_points(decoded, model), artefact).error_mm)
+            errors.append(measure_sphere_pair(triangulated_points(decoded, Triangulator(model)), artefact).error_mm)
         except Exception:  # noqa: BLE001 — a view whose removal breaks the measurement is not to blame
             errors.append(np.inf)
     return [int(i) for i in np.argsort(errors)[:3]]
@@ -305,23 +335,26 @@ def finish(result: CalibrationResult, plates: list[Plate], artefact: tuple[Artef
     CalibrationRejected when a limit is exceeded."""
     check_limits(result.solution, result.settings)
     gamma = result.gamma.gamma if result.gamma else 1.0
+    triangulator = Triangulator(result.model)
     compensated = [p for p in plates if abs(p.gamma - gamma) < 1e-9]
     if len(compensated) >= 3:
         say("fitting the phase-to-height model (Eq. 17) to the plate scans")
-        result.phase_height = phase_to_height(compensated, result.model)
+        result.phase_height = phase_to_height(compensated, triangulator)
         if recording:
             recording.phase_height(result.phase_height)
     reference = [p for p in plates if p.height_mm == min(q.height_mm for q in plates)] if plates else []
     for p in reference:
-        key = "gamma compensated" if abs(p.gamma - gamma) < 1e-9 else f"uncompensated (gamma {p.gamma:g} assumed)"
-        result.flatness_mm[key] = plate_flatness_mm(triangulated_points(p.decoded, result.model))
+        kind = "compensated" if abs(p.gamma - gamma) < 1e-9 else "uncompensated"
+        result.gamma_check[f"flatness_{kind}_mm"] = plate_flatness_mm(triangulated_points(p.decoded, triangulator))
+    if result.gamma is not None and compensated:
+        result.gamma_check.update(gamma_effect(result.gamma, compensated[0].decoded, triangulator))
     if artefact is not None:
         description, decoded = artefact
         say("measuring the validation artefact")
-        points = triangulated_points(decoded, result.model)
-        result.validation = measure_sphere_pair(points, description)
+        cloud = triangulate(decoded, triangulator, with_normals=False)
+        result.validation = measure_sphere_pair(cloud.points, description)
         if recording:
-            recording.artefact(triangulate(decoded, Triangulator(result.model), with_normals=False), result.model)
+            recording.artefact(cloud, result.model)
         if result.validation.error_mm > result.settings.max_validation_mm:
             blame = blame_for_validation(result.solution, decoded, description, gamma, camera_size, projector_size,
                                          result.settings)
@@ -419,11 +452,24 @@ def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: 
                   recording: CalibrationRecording | None = None) -> CalibrationResult:
     """The guided calibration of an open rig (see the module docstring); the raw captures
     go to `out` (a new folder), so `calibrate_capture` can solve them again."""
+    cam, proj = rig.camera, rig.projector
+    csize, psize = (cam.width, cam.height), (proj.width, proj.height)
+    with CaptureWriter(out, procedure.board, procedure.patterns, csize, psize, cam.bit_depth,
+                       rig.config.name) as writer:
+        gamma, corr, failures = _capture_poses(rig, procedure, bench, writer, say, recording)
+        result = solve_views(procedure.board, corr, failures, csize, psize, procedure.settings, rig.config.name,
+                             gamma, say, recording)
+        check_limits(result.solution, result.settings)  # before spending time on the plate and artefact
+        plates, artefact = _capture_checks(rig, procedure, bench, writer, gamma.gamma, say)
+    return finish(result, plates, artefact, csize, psize, say, recording)
+
+
+def _capture_poses(rig: Rig, procedure: Procedure, bench: Bench, writer: CaptureWriter, say: Say,
+                   recording: CalibrationRecording | None) -> tuple[GammaFit, list[Correspondence], dict[str, str]]:
+    """Gamma, then board poses until enough are usable (at most twice as many attempts)."""
     board, patterns = procedure.board, procedure.patterns
     cam, proj = rig.camera, rig.projector
     csize, psize = (cam.width, cam.height), (proj.width, proj.height)
-    full_scale = float(2 ** cam.bit_depth - 1)
-    writer = CaptureWriter(out, board, patterns, csize, psize, cam.bit_depth, rig.config.name)
     cover_c, cover_p = Coverage(csize), Coverage(psize)
     corr: list[Correspondence] = []
     failures: dict[str, str] = {}
@@ -438,7 +484,7 @@ def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: 
     levels = procedure.gamma_levels
     flats = show_images(rig, flat_images(levels, proj.width, proj.height))
     writer.add_gamma(levels, flats)
-    gamma = fit_gamma(levels, flats, full_scale)
+    gamma = fit_gamma(levels, flats, float(2 ** cam.bit_depth - 1))
     say(gamma.summary())
     if recording:
         recording.gamma(gamma)
@@ -448,10 +494,9 @@ def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: 
             break
         frames = capture_pose(rig, patterns, gamma.gamma)
         name = writer.add_pose(frames, gamma.gamma)
-        view = pose_view(name, frames, patterns, cam.bit_depth, psize)
         found = None
         try:
-            found = correspond(board, view, index)
+            found = correspond(board, pose_view(name, frames, patterns, cam.bit_depth, psize), index)
         except DetectionError as exc:
             failures[name] = str(exc)
             say(f"pose {index}: not usable, take it again: {exc}")
@@ -469,23 +514,28 @@ def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: 
         if recording:
             recording.view(index, frames.white, found, cover_c, cover_p)
         index += 1
-    result = solve_views(board, corr, failures, csize, psize, procedure.settings, rig.config.name, gamma, say,
-                         recording)
-    check_limits(result.solution, result.settings)  # before spending time on the plate and artefact
+    return gamma, corr, failures
+
+
+def _capture_checks(rig: Rig, procedure: Procedure, bench: Bench, writer: CaptureWriter, gamma: float,
+                    say: Say) -> tuple[list[Plate], tuple[Artefact, DecodeResult] | None]:
+    """The plate at each stage height (at the first also without gamma compensation), then
+    the validation artefact."""
+    patterns, bits = procedure.patterns, rig.camera.bit_depth
+    psize = (rig.projector.width, rig.projector.height)
     plates = []
     for h in procedure.plate_heights_mm:
         bench.place_plate(h)
-        takes = [gamma.gamma, 1.0] if h == procedure.plate_heights_mm[0] and abs(gamma.gamma - 1.0) > 1e-9 \
-            else [gamma.gamma]
+        takes = [gamma, 1.0] if h == procedure.plate_heights_mm[0] and abs(gamma - 1.0) > 1e-9 else [gamma]
         for g in takes:
-            say(f"plate at {h:g} mm" + ("" if g == gamma.gamma else " without gamma compensation"))
-            fringes = capture_fringes(rig, patterns, g) if g == gamma.gamma else capture_uncompensated(rig, patterns)
+            say(f"plate at {h:g} mm" + ("" if g == gamma else " without gamma compensation"))
+            fringes = capture_fringes(rig, patterns, g) if g == gamma else capture_uncompensated(rig, patterns)
             writer.add_plate(h, fringes, g)
-            plates.append(Plate(h, g, decode_pose(f"plate at {h} mm", fringes, patterns, cam.bit_depth, psize)))
-    art = None
-    if procedure.artefact is not None:
-        bench.place_artefact()
-        fringes = capture_fringes(rig, patterns, gamma.gamma)
-        writer.add_artefact(fringes, procedure.artefact.to_dict(), gamma.gamma)
-        art = (procedure.artefact, decode_pose("artefact", fringes, patterns, cam.bit_depth, psize))
-    return finish(result, plates, art, csize, psize, say, recording)
+            plates.append(Plate(h, g, decode_pose(f"plate at {h} mm", fringes, patterns, bits, psize)))
+    if procedure.artefact is None:
+        return plates, None
+    bench.place_artefact()
+    say("artefact")
+    fringes = capture_fringes(rig, patterns, gamma)
+    writer.add_artefact(fringes, procedure.artefact.to_dict(), gamma)
+    return plates, (procedure.artefact, decode_pose("artefact", fringes, patterns, bits, psize))

@@ -542,15 +542,31 @@ class BSplineSampler:
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """Interpolated values (N,) float32 of `image` (H, W)."""
-        image = np.asarray(image, dtype=np.float64)
-        if image.shape != self.shape:
-            raise ValueError(f"image shape {image.shape} != sampler shape {self.shape}")
-        coeff = ndimage.spline_filter(image, order=3, mode="mirror", output=np.float64)
-        padded = np.pad(coeff, 2, mode="reflect").astype(np.float32)
-        return self._matrix @ padded.ravel()
+        return self.sample(self.coefficients(image))
+
+    @staticmethod
+    def coefficients(image: np.ndarray) -> np.ndarray:
+        """The spline coefficients of `image` (H, W), padded as the samplers of its shape
+        read them (flat float32): compute once, sample with any number of samplers."""
+        coeff = ndimage.spline_filter(np.asarray(image, dtype=np.float64), order=3, mode="mirror", output=np.float64)
+        return np.pad(coeff, 2, mode="reflect").astype(np.float32).ravel()
+
+    def sample(self, coefficients: np.ndarray) -> np.ndarray:
+        """Interpolated values (N,) float32 from `coefficients` of an image of this sampler's shape."""
+        H, W = self.shape
+        if coefficients.shape != ((H + 4) * (W + 4),):
+            raise ValueError(f"coefficients of {coefficients.shape} do not fit sampler shape {self.shape}")
+        return self._matrix @ coefficients
 
 
 # --------------------------------------------------------------------------- renderer
+
+
+# spline coefficients of the projector's output per (pattern, gamma, blur): shared by every
+# renderer, so a scene change (a new Renderer) does not redo the patterns it has seen
+_OUTPUT_CACHE: OrderedDict[tuple, np.ndarray] = OrderedDict()
+_OUTPUT_LOCK = threading.Lock()
+OUTPUT_CACHE_ENTRIES = 32  # ~4 MB each for the bench projector
 
 
 class Renderer:
@@ -558,7 +574,9 @@ class Renderer:
 
     Geometry is computed once (`ground_truth`); each distinct pattern's noise-free camera
     irradiance is cached (content-addressed, up to `cache_entries`), so repeated frames
-    only cost the noise. Thread-safe."""
+    only cost the noise, and the projector output's spline coefficients are cached across
+    renderers (OUTPUT_CACHE_ENTRIES), so the same patterns on a new scene cost only their
+    sampling. Thread-safe."""
 
     def __init__(self, model: RigModel, scene: Scene, sensor: SensorModel,
                  projector_blur_sigma_px: float = 0.0, cache_entries: int = 64) -> None:
@@ -620,7 +638,7 @@ class Renderer:
                 return self._cache[key]
         out = np.zeros(self.shape[0] * self.shape[1], dtype=np.float32)
         if self._lit_index.size:
-            out[self._lit_index] = self._sampler(self.projector_output(pattern)) * self._lit_weight
+            out[self._lit_index] = self._sampler.sample(self._output_coefficients(pattern, key)) * self._lit_weight
         out = out.reshape(self.shape)
         if self.sensor.blur_sigma_px > 0:
             out = cv2.GaussianBlur(out, (0, 0), self.sensor.blur_sigma_px, borderType=cv2.BORDER_REFLECT_101)
@@ -630,6 +648,21 @@ class Renderer:
             while len(self._cache) > self._cache_entries:
                 self._cache.popitem(last=False)
         return out
+
+    def _output_coefficients(self, pattern: np.ndarray, digest: bytes) -> np.ndarray:
+        K = self.model.projector.K
+        key = (digest, self.projector_shape, self.model.projector_gamma, self.projector_blur_sigma_px, K[1, 1] / K[0, 0])
+        with _OUTPUT_LOCK:
+            if key in _OUTPUT_CACHE:
+                _OUTPUT_CACHE.move_to_end(key)
+                return _OUTPUT_CACHE[key]
+        coeff = BSplineSampler.coefficients(self.projector_output(pattern))
+        coeff.setflags(write=False)
+        with _OUTPUT_LOCK:
+            _OUTPUT_CACHE[key] = coeff
+            while len(_OUTPUT_CACHE) > OUTPUT_CACHE_ENTRIES:
+                _OUTPUT_CACHE.popitem(last=False)
+        return coeff
 
     def mean_electrons(self, pattern: np.ndarray | None, exposure_s: float) -> np.ndarray:
         """Noise-free signal (H, W) float32 in electrons (before saturation)."""

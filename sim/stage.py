@@ -164,13 +164,15 @@ def plate_scene(distance_mm: float, height_mm: float = 0.0, size_mm: float = 100
 
 
 def sphere_pair_scene(radius_mm: float, separation_mm: float, distance_mm: float, backing_mm: float,
-                      albedo: float = 0.7) -> Scene:
-    """Two spheres of `radius_mm`, centres `separation_mm` apart along x, centred on the camera
-    axis at `distance_mm`, in front of a plate at `backing_mm` (a ball-bar artefact)."""
+                      tilt_deg: float = 30.0, albedo: float = 0.7) -> Scene:
+    """Two spheres of `radius_mm`, centres `separation_mm` apart, centred on the camera axis
+    at `distance_mm`, the bar between them turned `tilt_deg` out of the image plane (so the
+    distance measures depth as well as width), in front of a plate at `backing_mm`."""
     spheres = []
+    t = np.radians(tilt_deg)
     for name, sign in (("sphere_left", -1.0), ("sphere_right", 1.0)):
         pose = np.eye(4)
-        pose[:3, 3] = [sign * separation_mm / 2, 0.0, distance_mm]
+        pose[:3, 3] = [sign * separation_mm / 2 * np.cos(t), 0.0, distance_mm + sign * separation_mm / 2 * np.sin(t)]
         spheres.append(SceneObject(name=name, kind="sphere", pose=pose, albedo=albedo, radius_mm=radius_mm))
     plate = plate_scene(backing_mm).reference_plane
     return Scene(objects=tuple(spheres), reference_plane=plate, name="sphere pair")

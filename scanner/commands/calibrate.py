@@ -24,6 +24,8 @@ from ..errors import ConfigError, ScannerError
 
 SCAN_CHECK_SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
 TEXELS_PER_PX = 4.0  # simulated board texture: texels per camera pixel at the working distance
+PLATE_BEHIND_MM = 20.0  # simulated reference plate, beyond the working distance
+ARTEFACT_BEFORE_MM = 10.0  # simulated sphere pair, nearer than the working distance
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -144,27 +146,36 @@ def _on_rig(args: argparse.Namespace, out: Path, say: Any, log: Any) -> tuple[An
         with open_rig(config) as rig:
             return calibrate_rig(rig, procedure, OperatorBench(say), out / "capture", say, log), config.path, []
     from calibration.compare import error_lines, model_errors
-    from sim.stage import SimBench, Target, plan_target_poses, plate_scene
+    from sim.stage import plate_scene
 
     truth = config.nominal_model()
-    board = procedure.board
-    footprint_mm = config.working_distance_mm / truth.camera.K[0, 0]
-    target = Target(board.image(board.texture_density(TEXELS_PER_PX / footprint_mm)), board.size_mm,
-                    board.image_origin_mm, board.object_points())
-    poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, args.seed)
-    artefact = procedure.artefact
-    with open_rig(config, scene=plate_scene(config.working_distance_mm + 20.0), seed=args.seed) as rig:
-        bench = SimBench(rig, target, poses, config.working_distance_mm + 20.0,
-                         artefact.radius_mm if artefact else 10.0, artefact.distance_mm if artefact else 50.0,
-                         config.working_distance_mm)
-        result = calibrate_rig(rig, procedure, bench, out / "capture", say, log)
+    with open_rig(config, scene=plate_scene(config.working_distance_mm + PLATE_BEHIND_MM), seed=args.seed) as rig:
+        result = calibrate_rig(rig, procedure, simulated_bench(rig, procedure, args.seed), out / "capture", say, log)
         lines = ["against the simulator's ground truth:", *("          " + x for x in
                                                            error_lines(model_errors(result.model, truth)))]
-        lines += _scan_check(rig, result.model, truth, procedure.patterns, say)
+        lines += _scan_check(rig, result.model, truth, say)
     return result, config.path, lines
 
 
-def _scan_check(rig: Any, calibrated: Any, truth: Any, calib_patterns: Any, say: Any) -> list[str]:
+def simulated_bench(rig: Any, procedure: Any, seed: int = 0) -> Any:
+    """The simulator's `Bench` for an open simulated rig: the procedure's board printed as
+    a texture (TEXELS_PER_PX at the working distance), moved through planned poses; the
+    plate PLATE_BEHIND_MM behind the working distance; the sphere pair ARTEFACT_BEFORE_MM
+    in front of it."""
+    from sim.stage import SimBench, Target, plan_target_poses
+
+    config, truth, board = rig.config, rig.config.nominal_model(), procedure.board
+    footprint_mm = config.working_distance_mm / truth.camera.K[0, 0]
+    target = Target(board.image(board.texture_density(TEXELS_PER_PX / footprint_mm)), board.size_mm,
+                    board.image_origin_mm, board.object_points())
+    poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, seed)
+    artefact = procedure.artefact
+    return SimBench(rig, target, poses, config.working_distance_mm + PLATE_BEHIND_MM,
+                    artefact.radius_mm if artefact else 10.0, artefact.distance_mm if artefact else 50.0,
+                    config.working_distance_mm - ARTEFACT_BEFORE_MM)
+
+
+def _scan_check(rig: Any, calibrated: Any, truth: Any, say: Any) -> list[str]:
     """One scan of the sphere-and-plane scene, reconstructed with the calibrated rig and with
     the ground-truth rig: depth errors against the simulator's truth."""
     from calibration.capture import capture_fringes
