@@ -138,3 +138,14 @@ def test_bench_foot_switch_is_one_press_per_press(run: StationRun) -> None:
     assert not bench.start_pressed()
     bench.switch.press()
     assert bench.start_pressed() and not bench.start_pressed()
+
+
+def test_a_program_with_two_views_scans_the_part_twice_turned(tmp_path: Path, config: StationConfig) -> None:
+    program = program_copy(tmp_path, ("views = 1", "views = 2"))
+    steps: list[str] = []
+    with open_station(program, config, "ana", TruthGauge()) as r:
+        o = r.station.run_cycle("SN-1", part=1, progress=lambda stage, done, total: steps.append(stage))
+    assert o.status == "fail" and o.sessions == (o.part_path / "view0", o.part_path / "view1")
+    truths = [json.loads((Session.open(s).root / TRUTH_FILE).read_text()) for s in o.sessions]
+    assert [(t["name"], t["view"]) for t in truths] == [("bow150", 0), ("bow150", 1)]
+    assert "capture (view 1/2)" in steps and "capture (view 2/2)" in steps
