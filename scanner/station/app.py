@@ -21,7 +21,7 @@ from . import StationError
 from .bench import Bench
 from .charts import ChartRecording
 from .config import StationConfig
-from .loop import CycleOutcome, Progress, Station, utcnow
+from .loop import STATS_WINDOW, CycleOutcome, Progress, Station, utcnow
 from .measure import Measurement
 from .program import PartProgram, load_program
 from .report import write_report
@@ -48,8 +48,9 @@ class StationRun:
         self.program = program
         self.config = config
         self.report_dir = config.data_dir / "reports" / program.name
+        rig = RigConfig.load(rig_path or config.rig_path)
         self.store: ResultsStore = open_results(config.database_url)
-        self.bench = Bench(RigConfig.load(rig_path or config.rig_path), seed=config.sim_seed)
+        self.bench = Bench(rig, seed=config.sim_seed)
         try:
             self.station = Station(program, config, self.bench, measurement or load_measurement(config.measurement),
                                    self.store, operator, on_stored=self._stored)
@@ -69,7 +70,7 @@ class StationRun:
         self.close()
 
     def _history(self) -> tuple[list[ResultRow], dict[int, list[ValueRecord]]]:
-        rows = self.store.results(program=self.program.name, limit=1000)
+        rows = self.store.results(program=self.program.name, limit=STATS_WINDOW)
         return rows, self.store.values([r.id for r in rows])
 
     def _stored(self, outcome: CycleOutcome) -> None:

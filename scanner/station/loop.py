@@ -190,7 +190,7 @@ class Station:
                                         lambda stage, done, total: step(stage + where, done, total)).session)
             step("measure", 0, 1)
             measured = self.measurement.measure(scanned, self.program)
-            step("store", 0, 1)
+            step("measure", 1, 1)  # an abort pressed while measuring takes effect here
         except OperatorAbort as exc:
             return finish("aborted", str(exc))
         except KeyboardInterrupt:

@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import curses
 import threading
-import traceback
 from dataclasses import dataclass, field
 from typing import Any
 
 from ..errors import ScannerError
 from .app import StationRun, outcome_lines
-from .loop import CycleOutcome, Refused
+from .loop import CycleOutcome
+from .quality import RunningStats
 
 POLL_S = 0.1
 KEYS_READY = "[s]/Enter scan  [e] serial  [o] operator  [n] next part  [r] re-scan  [q] quit"
@@ -65,9 +65,9 @@ class StationTUI:
         self.cancel = threading.Event()
         self.worker: threading.Thread | None = None
         self.quit = False
-        self._status: tuple[list[tuple[str, str]], list[str], Any] | None = None  # status, refusals, stats
+        self._status: tuple[list[tuple[str, str]], list[str], RunningStats] | None = None
 
-    def _snapshot(self) -> tuple[list[tuple[str, str]], list[str], Any]:
+    def _snapshot(self) -> tuple[list[tuple[str, str]], list[str], RunningStats]:
         """Status lines, refusals and statistics, recomputed after each cycle (not per frame)."""
         if self._status is None:
             self._status = (self.station.status_lines(), self.station.refusals(), self.station.stats())
@@ -103,13 +103,10 @@ class StationTUI:
                 st.last, st.last_part = outcome, part
                 st.parts_done += outcome.status in ("pass", "fail", "error")
             st.event(f"{outcome.serial} attempt {outcome.attempt}: {outcome.status.upper()} (result {outcome.result_id})")
-        except Refused as exc:
+        except ScannerError as exc:  # refused, or no serial: said on screen
             st.message = str(exc)
-        except ScannerError as exc:
-            st.message = f"error: {exc}"
         except Exception as exc:  # noqa: BLE001 — shown, never a dead screen
             st.message = f"error: {type(exc).__name__}: {exc}"
-            st.event(traceback.format_exc().strip().splitlines()[-1])
         finally:
             self._status = None
             with st.lock:
