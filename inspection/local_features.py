@@ -163,18 +163,22 @@ class MultiScale:
             ok &= allowed[idx]
         return _first_valid(idx, ok, self.q[j])
 
+    def near_neighbours(self, ids: np.ndarray) -> np.ndarray:
+        """(n, `NEAR_POINTS`) rows of S within the smallest scale of points `ids` of S
+        (the point itself excluded), -1 where there are fewer."""
+        d, near = self.near_tree.query(self.points[ids], k=NEAR_POINTS + 1, distance_upper_bound=self.radii[-1])
+        ok = np.isfinite(d) & (near != ids[:, None])
+        return _first_valid(np.where(ok, near, 0).astype(np.int64), ok, NEAR_POINTS)
+
     def growth_neighbours(self, ids: np.ndarray) -> np.ndarray:
         """(n, k) rows of S around points `ids` of S that growth may reach: all within the
-        smallest scale (at most `NEAR_POINTS`) and a uniform sample out to r, -1 where
-        there are fewer (the point itself excluded)."""
-        centres = self.points[ids]
-        dn, near = self.near_tree.query(centres, k=NEAR_POINTS + 1, distance_upper_bound=self.radii[-1])
-        df, far = self.far_tree.query(centres, k=FAR_POINTS + 1, distance_upper_bound=self.radius)
-        near = near.astype(np.int64)
-        far = self.far_rows[np.where(np.isfinite(df), far, 0)]
-        idx = np.concatenate([np.where(np.isfinite(dn), near, 0), far], axis=1)
-        ok = np.concatenate([np.isfinite(dn), np.isfinite(df)], axis=1) & (idx != ids[:, None])
-        return _first_valid(idx, ok, NEAR_POINTS + FAR_POINTS)
+        smallest scale (at most `NEAR_POINTS`) and a uniform sample of `FAR_POINTS` out
+        to r, -1 where there are fewer (the point itself excluded)."""
+        df, far = self.far_tree.query(self.points[ids], k=FAR_POINTS + 1, distance_upper_bound=self.radius)
+        ok = np.isfinite(df)
+        far = self.far_rows[np.where(ok, far, 0)]
+        far = _first_valid(far, ok & (far != ids[:, None]), FAR_POINTS)
+        return np.concatenate([self.near_neighbours(ids), far], axis=1)
 
     def features(self, ids: np.ndarray, labels: np.ndarray | None = None, segment: int = -1) -> LocalFeatures:
         """Representative features of points `ids` of S; with `labels` (per point of S),

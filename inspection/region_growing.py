@@ -20,7 +20,9 @@ Stages:
      the point lies on it (|offset'| ≤ μ_seg + 2σ_seg), adding the B' of the recomputed
      features; otherwise it is rejected for this segment (it may seed or join a later
      one). The segment roughness is the pooled fit error of its members (mean μ, and σ
-     from the members' mean square μ² + σ²).
+     from the members' mean square μ² + σ²);
+  6. points too sparse for any feature (the thin border of a sparsely seen surface) join
+     the one segment whose members' B' hold them, if no other segment is near.
 Candidates are examined front by front (all of C at once), not one at a time.
 
 Where the paper is silent or differs: B' reaches only as far as the representative scale,
@@ -216,6 +218,33 @@ class _Grower:
                 cands = cands[np.argsort(mu[cands], kind="stable")]
                 self._grow_all(cands)
             tau *= 2
+        self._absorb_featureless()
+
+    def _absorb_featureless(self) -> None:
+        """Points without features of their own (too few neighbours at every scale: the
+        sparse border of a surface) never seed and cannot be re-evaluated. One joins a
+        segment when members of that segment only have it in their B' (it lies on their
+        tori) and every segmented point within the smallest scale around it is in that
+        segment too."""
+        f = self.features
+        members = np.flatnonzero(self.label >= 0)
+        codes = self.edges[members]
+        dst = np.where(codes <= -2, untrusted(codes), codes).ravel()
+        by = np.repeat(self.label[members], codes.shape[1])
+        keep = dst >= 0
+        keep[keep] = (self.label[dst[keep]] < 0) & ~f.valid[dst[keep]]
+        dst, by = dst[keep], by[keep]
+        if not dst.size:
+            return
+        order = np.lexsort((by, dst))
+        dst, by = dst[order], by[order]
+        start = np.flatnonzero(np.r_[True, dst[1:] != dst[:-1]])
+        lo, hi = np.minimum.reduceat(by, start), np.maximum.reduceat(by, start)
+        rows, seg = dst[start][lo == hi], lo[lo == hi]
+        near = self.ms.near_neighbours(rows)
+        around = np.where(near >= 0, self.label[np.maximum(near, 0)], -1)
+        alone = ~((around >= 0) & (around != seg[:, None])).any(axis=1)
+        self.label[rows[alone]] = seg[alone]
 
     def _grow_all(self, cands: np.ndarray) -> None:
         """Grow a segment from every candidate seed still free, in order."""

@@ -19,7 +19,7 @@ Bins (for instance extraction and pose estimation):
 Cluttered clouds (for region growing, seed 002): `clutter_cloud` builds a room corner
 (floor, wall), boxes (resting on the floor, against the wall, touching each other),
 pipes of several diameters (lying, standing, resting on a box) and a dome, casts rays
-from several scanner positions (so density varies with range and view, and contacts and
+from five scanner positions around it (so density varies with range and view, and contacts and
 undersides are occluded as in real scans), adds per-surface roughness along the normal,
 and labels every point with its surface (each box face, each pipe's mantle and caps are
 separate surfaces). Surfaces smaller than the level of detail (area < π r²) are
@@ -347,7 +347,7 @@ def _pose(yaw: float = 0.0, tilt_axis: str | None = None, position: tuple[float,
 
 
 def clutter_cloud(seed: int = 0, spacing_mm: float = 1.0, radius_mm: float = 12.0) -> ClutterCloud:
-    """A cluttered room corner scanned from four positions (see the module docstring);
+    """A cluttered room corner scanned from five positions (see the module docstring);
     `spacing_mm` sets the nearest scanner's point spacing (the others are coarser)."""
     import open3d as o3d
 
@@ -378,8 +378,8 @@ def clutter_cloud(seed: int = 0, spacing_mm: float = 1.0, radius_mm: float = 12.
     scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(T.astype(np.uint32)))
     points, labels = [], []
     target = np.array([0.0, 0.0, 60.0])
-    for k, (pos, step) in enumerate((((-500, -700, 650), 1.0), ((550, -650, 700), 1.4), ((0, -900, 900), 1.8),
-                                      ((-650, 100, 750), 2.2))):
+    for pos, step in (((-500, -700, 650), 1.0), ((550, -650, 700), 1.4), ((0, -900, 900), 1.8),
+                      ((-650, 100, 750), 2.2), ((700, 150, 800), 2.0)):
         origin = np.asarray(pos, float) + rng.uniform(-30, 30, 3)
         dist = np.linalg.norm(target - origin)
         dirs = _view_rays(origin, target, 1.25 * 450 / dist, step * spacing_mm / dist)

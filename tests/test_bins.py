@@ -1,0 +1,131 @@
+"""Simulated bins of thin parts and cluttered labelled clouds (sim/bins.py), checked
+against their own geometry: a closed part of the right volume and a chiral outline,
+parts resting on the tray or on each other without interpenetrating, per-pixel instance
+ids from the simulator, and labelled clouds whose points lie on their surfaces."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from inspection.instances import instances_from_label_image
+from scanner.pointcloud import OrganisedCloud
+from sim.bins import TabPart, bin_scene, clutter_cloud, rotation_about
+from sim.render import compute_ground_truth
+from sim.scene import REFERENCE_PLANE_ID
+
+
+def _raycaster(vertices: np.ndarray, triangles: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32)))
+    return rc
+
+
+def test_tab_part_is_a_closed_thin_solid_of_its_outline() -> None:
+    part = TabPart()
+    v, t = part.mesh()
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t))
+    assert mesh.is_watertight() and mesh.is_orientable()
+    assert mesh.get_volume() == pytest.approx(part.area_mm2() * part.thickness_mm, rel=1e-9)
+    assert np.ptp(v[:, 2]) == pytest.approx(part.thickness_mm)
+    # the outline is chiral: no rotation brings its mirror image onto it
+    outline = part.outline()
+    centre = outline.mean(axis=0)
+    a, b = outline - centre, (outline - centre) * [-1, 1]
+    best = np.inf
+    for angle in np.linspace(0, 2 * np.pi, 720, endpoint=False):
+        c, s = np.cos(angle), np.sin(angle)
+        rb = b @ np.array([[c, s], [-s, c]])
+        d = np.sqrt(((a[:, None, :] - rb[None]) ** 2).sum(-1))
+        best = min(best, max(d.min(axis=1).max(), d.min(axis=0).max()))
+    assert best > 1.0   # mm: far above the mesh step
+
+
+def test_rotation_about_is_rodrigues() -> None:
+    R = rotation_about(np.array([0.0, 0.0, 1.0]), np.pi / 2)
+    assert np.allclose(R @ [1, 0, 0], [0, 1, 0])
+
+
+@pytest.fixture(scope="module")
+def bin12() -> object:
+    return bin_scene(12, seed=3)
+
+
+def test_bin_parts_rest_without_interpenetrating(bin12: object) -> None:
+    b = bin12
+    verts, tris = b.part.mesh()
+    world = [o.world_vertices() for o in b.scene.objects]
+    assert len(world) == 12 and b.poses.shape == (12, 4, 4)
+    for T, obj, w in zip(b.poses, b.scene.objects, world):
+        assert np.allclose(verts @ T[:3, :3].T + T[:3, 3], w)
+        assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3))
+    for i, w in enumerate(world):
+        # resting: the tray or a part right under it, touching (to float32 ray casting):
+        # rays down from its vertices onto earlier parts, and up from theirs onto it
+        gap = b.tray_mm - w[:, 2].max()
+        if i:
+            lower = np.concatenate(world[:i])
+            rc = _raycaster(lower, np.concatenate([tris + k * len(verts) for k in range(i)]))
+            back = 0.05   # start each ray this far back, so a touching start point is not on the surface
+            down = np.c_[w - [0, 0, back], np.tile([0, 0, 1.0], (len(w), 1))].astype(np.float32)
+            up = np.c_[lower + [0, 0, back], np.tile([0, 0, -1.0], (len(lower), 1))].astype(np.float32)
+            gap = min(gap, float(rc.cast_rays(o3d.core.Tensor(down))["t_hit"].numpy().min()) - back,
+                      float(_raycaster(w, tris).cast_rays(o3d.core.Tensor(up))["t_hit"].numpy().min()) - back)
+        assert abs(gap) < 2e-3   # mm; parts are 0.25 mm thick
+        # no vertex of a later part inside an earlier one (shrunk slightly to its centroid)
+        for j in range(i):
+            rc = o3d.t.geometry.RaycastingScene()
+            rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(
+                o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(world[j]), o3d.utility.Vector3iVector(tris))))
+            probe = w + 2e-3 * (w.mean(axis=0) - w) / np.linalg.norm(w.mean(axis=0) - w, axis=1, keepdims=True)
+            occ = rc.compute_occupancy(o3d.core.Tensor(probe.astype(np.float32))).numpy()
+            assert occ.sum() == 0
+    assert b.front_up.any() and (~b.front_up).any()
+    # front up: the part's +z (front face normal) points to the camera (-z)
+    assert np.all((b.poses[:, 2, 2] < 0) == b.front_up)
+
+
+def test_bin_ground_truth_gives_overlapping_instances(bin12: object, small_rig: object) -> None:
+    b = bin12
+    gt = compute_ground_truth(small_rig, b.scene)
+    ids = gt.object_id
+    seen = set(np.unique(ids)) - {0, REFERENCE_PLANE_ID}
+    assert seen <= set(b.object_ids.tolist()) and len(seen) >= 10
+    # overlaps: some part is partly hidden by parts dropped after it
+    alone = []
+    for k, obj in enumerate(b.scene.objects):
+        solo = compute_ground_truth(small_rig, type(b.scene)(objects=(obj,), reference_plane=b.scene.reference_plane))
+        alone.append((solo.object_id == 2).sum())
+    visible = np.array([(ids == i).sum() for i in b.object_ids])
+    assert (visible < 0.9 * np.array(alone)).sum() >= 2
+    # the id map is an instance label image: lifted through the organised cloud
+    cloud = OrganisedCloud(gt.points.astype(np.float32), np.zeros(gt.shape, np.uint8), gt.normal.astype(np.float32))
+    labels = np.where(ids >= 2, ids, 0)
+    inst = instances_from_label_image(labels, cloud)
+    for i in inst:
+        T = b.poses[i.id - 2]
+        local = (i.points - T[:3, 3]) @ T[:3, :3]   # into the part frame
+        assert np.all((local[:, 2] > -1e-4) & (local[:, 2] < b.part.thickness_mm + 1e-4))   # float32 cloud
+
+
+def test_clutter_cloud_points_lie_on_their_labelled_surfaces() -> None:
+    c = clutter_cloud(seed=1, spacing_mm=3.0)
+    names = list(c.surfaces)
+    floor, wall = names.index("floor"), names.index("wall")
+    sigma_f, sigma_w = c.roughness_mm["floor"], c.roughness_mm["wall"]
+    assert np.abs(c.points[c.labels == floor, 2]).max() < 6 * sigma_f
+    assert np.abs(c.points[c.labels == wall, 1] - 250).max() < 6 * sigma_w
+    labelled = np.unique(c.labels[c.labels >= 0])
+    assert len(labelled) >= 15 and (c.labels >= 0).mean() > 0.95
+    # the pipes lying on the floor: a circle fitted across each mantle's axis has its radius
+    for k, radius in enumerate((8.0, 15.0, 25.0, 40.0)):
+        pts = c.points[c.labels == names.index(f"pipe{k}/mantle")]
+        assert len(pts) > 300
+        d = pts - pts.mean(axis=0)
+        axis = np.linalg.svd(d[:, :2], full_matrices=False)[2][0]          # horizontal
+        across = np.c_[d[:, :2] @ np.array([-axis[1], axis[0]]), pts[:, 2]]
+        A = np.c_[2 * across, np.ones(len(across))]
+        (cx, cz, k0), *_ = np.linalg.lstsq(A, (across ** 2).sum(axis=1), rcond=None)
+        assert np.sqrt(k0 + cx * cx + cz * cz) == pytest.approx(radius, rel=0.1)   # axis from the points: rough
+        assert cz == pytest.approx(radius, rel=0.1)    # resting on the floor
