@@ -59,6 +59,7 @@ def test_cycles_give_the_verdicts_of_the_imposed_defects_and_store_everything(ru
         assert json.loads((session.root / TRUTH_FILE).read_text())["name"] == o.truth["name"]
         record = json.loads((o.part_path / PART_RECORD).read_text())
         assert (record["result_id"], record["status"], record["serial"]) == (r.id, r.status, r.serial)
+        assert record["measurement_result"]["ok"] and record["calibration_id"] == "factory-sim-bench"
     s = station.stats()
     assert (s.parts, s.passed, s.failed, s.yield_percent) == (3, 2, 1, pytest.approx(200 / 3))
     flat = s.characteristics[0]
@@ -124,6 +125,9 @@ def test_a_part_that_cannot_be_measured_is_stored_as_error_never_as_a_number(con
         o = r.station.run_cycle("SN-1")
         assert o.status == "error" and o.values == ()
         assert o.message == "not measured: registration failed: fitness 0.12 below 0.5"
+        record = json.loads((o.part_path / PART_RECORD).read_text())["measurement_result"]
+        assert record == {"ok": False, "message": "registration failed: fitness 0.12 below 0.5", "details": {},
+                          "values": [], "report_paths": []}
         assert r.store.results()[0].status == "error"
 
 

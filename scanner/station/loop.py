@@ -38,7 +38,7 @@ from .calib import describe as describe_calibration
 from .calib import refusals as calibration_refusals
 from .calib import rig_calibration
 from .config import StationConfig
-from .measure import Measurement
+from .measure import Measurement, MeasurementResult
 from .program import PartProgram
 from .quality import RunningStats, judge, running_stats
 from .results import PartStart, ResultsStore, ValueRecord
@@ -157,6 +157,7 @@ class Station:
             station=self.config.name, rig=self.bench.config.name, calibration_id=self.calibration.id,
             software_version=__version__, measurement=self.measurement.name, part_path=str(folder), started_at=started))
         sessions: list[Path] = []
+        measured: MeasurementResult | None = None
         truth = None
         if self.bench.simulated:
             truth = self.bench.sim_part(part).as_dict()
@@ -166,7 +167,7 @@ class Station:
                                    tuple(sessions), truth, round(time.perf_counter() - t0, 3))
             self.store.finish_part(result_id, status, message, outcome.values, utcnow())
             folder.mkdir(parents=True, exist_ok=True)
-            write_json(folder / PART_RECORD, _record(self, outcome, started))
+            write_json(folder / PART_RECORD, _record(self, outcome, started, measured))
             if self.on_stored is not None:
                 self.on_stored(outcome)
             return outcome
@@ -207,7 +208,8 @@ def _safe(text: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in text)[:80] or "_"
 
 
-def _record(station: Station, outcome: CycleOutcome, started: dt.datetime) -> dict[str, Any]:
+def _record(station: Station, outcome: CycleOutcome, started: dt.datetime,
+            measured: MeasurementResult | None) -> dict[str, Any]:
     p = station.program
     return {"result_id": outcome.result_id, "program": p.name, "program_version": p.version,
             "program_fingerprint": p.fingerprint, "program_path": str(p.path), "serial": outcome.serial,
@@ -216,4 +218,4 @@ def _record(station: Station, outcome: CycleOutcome, started: dt.datetime) -> di
             "calibration_id": station.calibration.id, "software_version": __version__,
             "measurement": station.measurement.name, "started": started.isoformat(), "seconds": outcome.seconds,
             "sessions": [str(s) for s in outcome.sessions], "values": [asdict(v) for v in outcome.values],
-            "sim_truth": outcome.truth}
+            "measurement_result": None if measured is None else measured.as_dict(), "sim_truth": outcome.truth}
