@@ -40,6 +40,16 @@ def cmd_station(args: argparse.Namespace) -> int:
         return run_tui(run, args.parts)
 
 
+def _utc_time(text: str) -> dt.datetime:
+    """An ISO 8601 date or time, UTC unless it names its offset."""
+    try:
+        t = dt.datetime.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not an ISO date/time such as 2026-11-23 or "
+                                         f"2026-11-23T08:00") from None
+    return t if t.tzinfo else t.replace(tzinfo=dt.timezone.utc)
+
+
 def _program_name(value: str | None) -> tuple[str | None, Any]:
     """A program filter given as a name or a program TOML: (name, loaded program or None)."""
     if value is None or not value.endswith(".toml"):
@@ -58,10 +68,9 @@ def cmd_results(args: argparse.Namespace) -> int:
     if args.report and program is None:
         raise ScannerError("slscan results --report: give --program as the part program TOML (it has the "
                            "characteristics and tolerances the charts need)")
-    since = dt.datetime.fromisoformat(args.since).replace(tzinfo=dt.timezone.utc) if args.since else None
     config = _config(args)
     with open_results(config.database_url) as store:
-        rows = store.results(program=name, serial=args.serial, status=args.status, since=since, limit=args.limit)
+        rows = store.results(program=name, serial=args.serial, status=args.status, since=args.since, limit=args.limit)
         values = store.values([r.id for r in rows])
         if args.csv:
             if args.csv == "-":
@@ -112,7 +121,7 @@ def register(sub: Any) -> None:
     r.add_argument("--program", help="part program name, or its TOML (needed for --report)")
     r.add_argument("--serial")
     r.add_argument("--status", choices=("in_progress", "pass", "fail", "error", "aborted", "incomplete"))
-    r.add_argument("--since", help="ISO date/time (UTC), e.g. 2026-11-23 or 2026-11-23T08:00")
+    r.add_argument("--since", type=_utc_time, help="ISO date/time (UTC unless it says), e.g. 2026-11-23 or 2026-11-23T08:00")
     r.add_argument("--limit", type=int, help="only the newest N results")
     r.add_argument("--csv", help="export to this CSV file ('-' for standard output)")
     r.add_argument("--report", help="write the HTML report with control charts into this folder")
