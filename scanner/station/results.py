@@ -319,17 +319,17 @@ class ResultsStore:
         return out
 
 
-CSV_COLUMNS = _RESULT_COLUMNS + _VALUE_COLUMNS
+_CSV_RESULT_COLUMNS = ["id"] + [c for c in _RESULT_COLUMNS if c != "id"]
 
 
 def write_csv(out: TextIO, rows: Sequence[ResultRow], values: dict[int, list[ValueRecord]]) -> int:
     """One CSV line per measured characteristic (a cycle without values: one line with
     empty value columns); times in ISO 8601 UTC. Returns the number of lines written."""
     w = csv.writer(out)
-    w.writerow(["result_id" if c == "id" else c for c in CSV_COLUMNS])
+    w.writerow(["result_id"] + _CSV_RESULT_COLUMNS[1:] + _VALUE_COLUMNS)
     n = 0
     for r in rows:
-        head = [getattr(r, c) for c in _RESULT_COLUMNS]
+        head = [getattr(r, c) for c in _CSV_RESULT_COLUMNS]
         head = [v.isoformat() if isinstance(v, dt.datetime) else v for v in head]
         for v in values.get(r.id) or [None]:
             w.writerow(head + ([getattr(v, c) for c in _VALUE_COLUMNS] if v else [""] * len(_VALUE_COLUMNS)))
