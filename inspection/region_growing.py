@@ -224,8 +224,8 @@ class _Grower:
         """Points without features of their own (too few neighbours at every scale: the
         sparse border of a surface) never seed and cannot be re-evaluated. One joins a
         segment when members of that segment only have it in their B' (it lies on their
-        tori) and every segmented point within the smallest scale around it is in that
-        segment too."""
+        tori), every segmented point within the smallest scale around it is in that
+        segment too, and it lies on the torus of the nearest of them."""
         f = self.features
         members = np.flatnonzero(self.label >= 0)
         codes = self.edges[members]
@@ -244,6 +244,14 @@ class _Grower:
         near = self.ms.near_neighbours(rows)
         around = np.where(near >= 0, self.label[np.maximum(near, 0)], -1)
         alone = ~((around >= 0) & (around != seg[:, None])).any(axis=1)
+        # and it lies on the surface of its nearest member (within that member's tolerance)
+        mine = (around == seg[:, None]) & f.valid[np.maximum(near, 0)]
+        has = mine.any(axis=1) & alone
+        rows, seg = rows[has], seg[has]
+        nearest = near[has][np.arange(len(rows)), np.argmax(mine[has], axis=1)]
+        g = f.take(nearest)
+        d, _ = self.ms.surface_agreement(nearest, g, rows[:, None], np.zeros((len(rows), 1, 3)))
+        alone = d[:, 0] <= np.maximum(g.mu + 2 * g.sigma, MIN_TOLERANCE * self.ms.radius)
         self.label[rows[alone]] = seg[alone]
 
     def _grow_all(self, cands: np.ndarray) -> None:

@@ -1,6 +1,7 @@
-"""`slscan segment` and `slscan segscore`: context-free region growing (seed 002) of a
-point cloud file or a session's scan, and the score of a segmentation against ground
-truth (α, β, η per ground-truth segment).
+"""`slscan segment`, `slscan segscore` and `slscan segbench`: context-free region growing
+(seed 002) of a point cloud file or a session's scan, the score of a segmentation against
+ground truth (α, β, η per ground-truth segment), and a benchmark on simulated cluttered
+clouds (`sim.bins.clutter_cloud`) printing the time and the scores.
 
 Label files are .npy int32 arrays. For a point cloud file: one label per point, in the
 file's order (`<cloud stem>.segments.npy` beside it). For a session: an image of the
@@ -34,6 +35,14 @@ def register(sub: Any) -> None:
     p.add_argument("--out", help="labels file (.npy); default beside the cloud, or <session>/outputs/segments.npy")
     p.add_argument("--no-log", action="store_true", help="do not write the Rerun recording")
     p.set_defaults(func=cmd_segment)
+
+    b = sub.add_parser("segbench", help="segment simulated cluttered clouds: time per cloud and alpha, beta, eta "
+                                        "against their ground truth")
+    b.add_argument("--seeds", type=int, nargs="+", default=[0], help="scene seeds (default: 0)")
+    b.add_argument("--spacing", type=float, default=1.0, metavar="MM", help="nearest scanner's point spacing")
+    b.add_argument("--radius", "-r", type=float, default=12.0, metavar="MM", help="radius of interest r")
+    b.add_argument("--json", action="store_true", help="print a JSON object")
+    b.set_defaults(func=cmd_segbench)
 
     s = sub.add_parser("segscore", help="score a segmentation against ground-truth labels (alpha, beta, eta)")
     s.add_argument("labels", help="labels .npy (from slscan segment)")
@@ -151,6 +160,40 @@ def cmd_segscore(args: argparse.Namespace) -> int:
     truth = _load_labels(Path(args.ground_truth))
     result = score(test, truth)
     print(json.dumps(result.as_dict(), indent=2) if args.json else result.table())
+    return 0
+
+
+def cmd_segbench(args: argparse.Namespace) -> int:
+    """Per seed: build the cloud, segment it (wall-clock and process CPU time of the
+    segmentation alone), score it; then the means over seeds."""
+    import time
+
+    from inspection.region_growing import segment
+    from inspection.segmetrics import score
+    from sim.bins import clutter_cloud
+
+    rows = []
+    for seed in args.seeds:
+        cloud = clutter_cloud(seed, args.spacing, args.radius)
+        wall, cpu = time.perf_counter(), time.process_time()
+        seg = segment(cloud.points, args.radius)
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        sc = score(seg.labels, cloud.labels)
+        rows.append({"seed": seed, "points": len(cloud.points), "subsampled": len(seg.subsample),
+                     "wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "stages_s": seg.timings_s,
+                     "truth_segments": len(sc.segments), "mean_alpha": sc.mean_alpha, "mean_beta": sc.mean_beta,
+                     "mean_eta": sc.mean_eta})
+        if not args.json:
+            print(f"seed {seed}: {len(cloud.points)} points ({len(seg.subsample)} subsampled), r = {args.radius:g} mm: "
+                  f"{wall:.1f} s wall, {cpu:.1f} s CPU; {len(sc.segments)} true segments: "
+                  f"alpha {100 * sc.mean_alpha:.4f} %, beta {100 * sc.mean_beta:.2f} %, eta {sc.mean_eta:.2f}",
+                  flush=True)
+    means = {k: float(np.mean([r[k] for r in rows])) for k in ("mean_alpha", "mean_beta", "mean_eta", "wall_s", "cpu_s")}
+    if args.json:
+        print(json.dumps({"radius_mm": args.radius, "spacing_mm": args.spacing, "runs": rows, "means": means}, indent=2))
+    else:
+        print(f"mean over {len(rows)}: alpha {100 * means['mean_alpha']:.4f} %, beta {100 * means['mean_beta']:.2f} %, "
+              f"eta {means['mean_eta']:.2f}; {means['wall_s']:.1f} s wall, {means['cpu_s']:.1f} s CPU per cloud")
     return 0
 
 
