@@ -17,7 +17,7 @@ import pytest
 
 from scanner.station.config import StationConfig
 from scanner.station.results import open_results
-from test_station_support import DEMO_PROGRAM, station_config
+from test_station_support import DEMO_PROGRAM, program_copy, station_config
 
 ROWS, COLS = 40, 140
 TESTS = Path(__file__).resolve().parent
@@ -194,6 +194,25 @@ def test_operator_screen_keys_in_screen_text_out(tmp_path: Path) -> None:
     with open_results(StationConfig.load(cfg).database_url) as store:
         assert [(r.serial, r.attempt, r.status, r.operator) for r in store.results()] == [
             ("SN-0042", 1, "pass", "ana"), ("SN-0043", 1, "fail", "ana"), ("SN-0043", 2, "aborted", "ana")]
+
+
+def test_operator_screen_shows_a_mismatched_calibration_and_refuses_to_scan(tmp_path: Path) -> None:
+    cfg = station_config(tmp_path)
+    program = program_copy(tmp_path, ('id = "factory-sim-bench"', 'id = "sim-bench@2026-10-01T08:00:00"'))
+    term = Terminal("station", str(program), "--config", str(cfg))
+    try:
+        screen = term.wait(r"REFUSING TO MEASURE: calibration mismatch")
+        assert ("program.toml expects calibration.id 'sim-bench@2026-10-01T08:00:00', the rig has "
+                "'factory-sim-bench'") in " ".join(screen.split())  # the whole reason, wrapped on the screen
+        term.keys("eSN-1\rs")
+        term.wait(r"REFUSED: calibration mismatch")
+        term.keys("q")
+        term.child.expect(pexpect.EOF, timeout=30)
+    finally:
+        term.child.close(force=True)
+    with open_results(StationConfig.load(cfg).database_url) as store:
+        assert store.results() == []
+    assert not (tmp_path / "data" / "sessions").exists()
 
 
 def test_without_a_terminal_the_station_says_to_use_auto(tmp_path: Path) -> None:

@@ -17,6 +17,7 @@ Ctrl-C at any time aborts a running cycle and quits, storing the cycle as aborte
 from __future__ import annotations
 
 import curses
+import textwrap
 import threading
 from dataclasses import dataclass, field
 from typing import Any
@@ -165,11 +166,12 @@ class StationTUI:
         h, w = scr.getmaxyx()
         row = 0
 
-        def put(text: str, attr: int = 0) -> None:
+        def put(text: str, attr: int = 0, wrap: bool = False) -> None:
             nonlocal row
-            if row < h - 1:
-                scr.addnstr(row, 0, text, w - 1, attr)
-            row += 1
+            for line in textwrap.wrap(text, w - 1, subsequent_indent="    ", break_on_hyphens=False) if wrap else [text]:
+                if row < h - 1:
+                    scr.addnstr(row, 0, line, w - 1, attr)
+                row += 1
 
         p = self.station.program
         status, reasons, s = self._snapshot()
@@ -179,7 +181,7 @@ class StationTUI:
         put("-" * (w - 1))
         with st.lock:
             if reasons:
-                put("REFUSING TO MEASURE: " + "; ".join(reasons), curses.A_BOLD)
+                put("REFUSING TO MEASURE: " + "; ".join(reasons), curses.A_BOLD, wrap=True)
             serial = (st.entry_text + "_") if st.mode == "ENTRY" and st.entry_label == "serial" else st.serial
             oper = (st.entry_text + "_") if st.mode == "ENTRY" and st.entry_label == "operator" else st.operator
             put(f"{st.mode:<6} part {st.part + 1}   serial: {serial or '(none)'}   operator: {oper or '(none)'}",
@@ -189,7 +191,7 @@ class StationTUI:
             else:
                 put(KEYS_BUSY + "   " + st.progress if st.mode == "BUSY" else KEYS_READY)
             if st.message:
-                put(st.message)
+                put(st.message, wrap=True)
             put("-" * (w - 1))
             if st.last is not None:
                 lines = outcome_lines(p, st.last)
