@@ -152,7 +152,7 @@ def open_results(url: str) -> ResultsStore:
             conn.execute("PRAGMA foreign_keys=ON")
         except sqlite3.Error as exc:
             raise ResultsError(f"{path}: cannot open the results database: {exc}") from None
-        return ResultsStore(conn, SQLITE, str(path), sqlite3.Error)
+        return _store(conn, SQLITE, str(path), sqlite3.Error)
     if url.startswith(("postgresql://", "postgres://")):
         import psycopg
 
@@ -160,8 +160,16 @@ def open_results(url: str) -> ResultsStore:
             conn = psycopg.connect(url, autocommit=True, connect_timeout=10)
         except psycopg.Error as exc:
             raise ResultsError(f"{_redact(url)}: cannot connect to the results database: {exc}") from None
-        return ResultsStore(conn, POSTGRES, _redact(url), psycopg.Error)
+        return _store(conn, POSTGRES, _redact(url), psycopg.Error)
     raise ResultsError(f"{url!r}: not a results database URL; use sqlite:PATH or postgresql://...")
+
+
+def _store(conn: Any, dialect: Dialect, where: str, error: type[Exception]) -> ResultsStore:
+    try:
+        return ResultsStore(conn, dialect, where, error)
+    except BaseException:
+        conn.close()
+        raise
 
 
 def _redact(url: str) -> str:
