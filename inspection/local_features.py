@@ -301,10 +301,8 @@ def _scale_features(v: np.ndarray, ok: np.ndarray, d: float, slab: float) -> tup
     e1 = np.cross(nrm, helper)
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
     e2 = np.cross(nrm, e1)
-    inv_d = np.float32(1.0 / d)
-    a = np.einsum("nqc,nc->nq", v, e1) * inv_d
-    b = np.einsum("nqc,nc->nq", v, e2) * inv_d
-    h = np.einsum("nqc,nc->nq", v, nrm) * inv_d
+    frame = np.stack([e1, e2, nrm], axis=2) * np.float32(1.0 / d)   # (n, 3, 3): columns e1, e2, n over d
+    a, b, h = np.moveaxis(np.matmul(v, frame), 2, 0)                  # local coordinates in units of d
     h2 = h * h
     ts = np.float32(slab / d)
 

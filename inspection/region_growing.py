@@ -47,7 +47,7 @@ from scipy.spatial import cKDTree
 
 from .downsample import downsample
 from .errors import CloudError
-from .local_features import CHUNK, SCALE_FACTORS, SUBSAMPLE_FACTOR, LocalFeatures, MultiScale
+from .local_features import CHUNK, MIN_FIT_POINTS, SCALE_FACTORS, SUBSAMPLE_FACTOR, LocalFeatures, MultiScale
 from .segmentation_errors import SegmentationError
 
 INITIAL_TAU = 0.01          # first roughness threshold, x r
@@ -224,8 +224,7 @@ class _Grower:
         """Points without features of their own (too few neighbours at every scale: the
         sparse border of a surface) never seed and cannot be re-evaluated. One joins a
         segment when members of that segment only have it in their B' (it lies on their
-        tori), every segmented point within the smallest scale around it is in that
-        segment too, and it lies on the torus of the nearest of them."""
+        tori) and it lies on the torus of the nearest of them."""
         f = self.features
         members = np.flatnonzero(self.label >= 0)
         codes = self.edges[members]
@@ -241,14 +240,15 @@ class _Grower:
         start = np.flatnonzero(np.r_[True, dst[1:] != dst[:-1]])
         lo, hi = np.minimum.reduceat(by, start), np.maximum.reduceat(by, start)
         rows, seg = dst[start][lo == hi], lo[lo == hi]
-        near = self.ms.near_neighbours(rows)
+        near = self.ms.growth_neighbours(rows)
         around = np.where(near >= 0, self.label[np.maximum(near, 0)], -1)
-        alone = ~((around >= 0) & (around != seg[:, None])).any(axis=1)
-        # and it lies on the surface of its nearest member (within that member's tolerance)
+        # it lies on the surface of the nearest member around it (within its tolerance)
         mine = (around == seg[:, None]) & f.valid[np.maximum(near, 0)]
-        has = mine.any(axis=1) & alone
+        dist = np.where(mine, np.linalg.norm(self.ms.points[np.maximum(near, 0)] - self.ms.points[rows][:, None],
+                                             axis=2), np.inf)
+        has = mine.any(axis=1)
         rows, seg = rows[has], seg[has]
-        nearest = near[has][np.arange(len(rows)), np.argmax(mine[has], axis=1)]
+        nearest = near[has][np.arange(len(rows)), np.argmin(dist[has], axis=1)]
         g = f.take(nearest)
         d, _ = self.ms.surface_agreement(nearest, g, rows[:, None], np.zeros((len(rows), 1, 3)))
         alone = d[:, 0] <= np.maximum(g.mu + 2 * g.sigma, MIN_TOLERANCE * self.ms.radius)
@@ -289,8 +289,8 @@ class _Grower:
                 pending = np.union1d(pending, front[~ok])
                 front, trusted = self._fresh(self.edges[acc].ravel(), s)
             pending = pending[self.label[pending] < 0]
-            if not pending.size:
-                return
+            if not pending.size or stats[0] < 2 * MIN_FIT_POINTS:
+                return   # nothing to re-evaluate, or too few members for any fit to them
             self.seen[pending] = s
             codes = self._reevaluate(pending, s, stats)
             pending = pending[:0]
