@@ -200,16 +200,20 @@ class CadModel:
                 "counts": self.counts}
 
 
-def load_cad(path: str | Path, mesh_unit: str = "mm", deflection_mm: float | None = None) -> CadModel:
+def load_cad(path: str | Path, mesh_unit: str = "mm", deflection_mm: float | None = None,
+             scale: float = 1.0) -> CadModel:
     """A STEP (.step/.stp: AP203, AP214, AP242) or mesh (.stl/.ply/.obj) model.
-    `deflection_mm` is the chord tolerance of the STEP triangulation (default: 1/2000 of
-    the model's diagonal); `mesh_unit` the unit a mesh file is written in."""
+    `deflection_mm` is the chord tolerance of the STEP triangulation (default: the model's
+    diagonal / DEFLECTION_FRACTION); `mesh_unit` the unit a mesh file is written in;
+    `scale` makes a scale model of a STEP part (every length multiplied, about the origin)."""
     path = Path(path)
     if not path.is_file():
         raise CadError(path, "no such file")
     suffix = path.suffix.lower()
+    if not scale > 0:
+        raise CadError(path, f"scale must be > 0, got {scale}")
     if suffix in STEP_SUFFIXES:
-        return _load_step(path, deflection_mm)
+        return _load_step(path, deflection_mm, scale)
     if suffix in MESH_SUFFIXES:
         if mesh_unit not in MESH_UNITS_MM:
             raise CadError(path, f"unknown mesh unit {mesh_unit!r}; use one of {sorted(MESH_UNITS_MM)}")
@@ -305,7 +309,7 @@ def _read_step(path: Path) -> tuple[Any, Any, str]:
     return shape, reader, ",".join(names) or "unknown"
 
 
-def _load_step(path: Path, deflection_mm: float | None) -> CadModel:
+def _load_step(path: Path, deflection_mm: float | None, scale: float) -> CadModel:
     from OCP.BRepGProp import BRepGProp
     from OCP.BRepMesh import BRepMesh_IncrementalMesh
     from OCP.BRepTools import BRepTools
@@ -322,6 +326,17 @@ def _load_step(path: Path, deflection_mm: float | None) -> CadModel:
     if not occ_faces:
         raise CadError(path, "the STEP file holds no faces")
     step_ids = _face_entity_ids(path, reader, occ_faces)
+    if scale != 1.0:  # a scaled copy: its faces, in the same order, keep their ids
+        from OCP.BRepBuilderAPI import BRepBuilderAPI_Transform
+        from OCP.gp import gp_Pnt, gp_Trsf
+
+        trsf = gp_Trsf()
+        trsf.SetScale(gp_Pnt(0.0, 0.0, 0.0), scale)
+        shape = BRepBuilderAPI_Transform(shape, trsf, True).Shape()
+        fmap = IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher()
+        TopExp.MapShapes_s(shape, TopAbs_FACE, fmap)  # the copy is explored in the same order
+        occ_faces = [TopoDS.Face(fmap.FindKey(i)) for i in range(1, fmap.Extent() + 1)]
+        unit = f"{unit} x {scale:g}"
 
     from OCP.Bnd import Bnd_Box
     from OCP.BRepBndLib import BRepBndLib
