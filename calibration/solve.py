@@ -3,8 +3,7 @@ refinement; outlier views; quality limits; leave-one-pose-out stability.
 
 Order: the camera's intrinsics from its corners, the projector's from its corners (each
 view's board pose is solved by both); the projector's pose relative to the camera from
-the per-view pose pairs; then one joint refinement of everything (`stereo.joint_refine`),
-each device's residuals weighted by its own RMS from the separate calibrations. Views
+the per-view pose pairs; then one joint refinement of everything (`stereo.joint_refine`). Views
 whose joint reprojection error stands out are reported, and dropped when asked; a solved
 rig whose error exceeds the limits is refused (`check_limits`) naming the worst views.
 """
@@ -20,7 +19,6 @@ from .intrinsics import DeviceCalibration, calibrate_device, outlier_views
 from .stereo import StereoCalibration, initial_extrinsics, joint_refine
 from .views import Correspondence
 
-MIN_NOISE_PX = 0.005  # floor of the per-device noise used to weight the joint refinement
 
 
 @dataclass(frozen=True)
@@ -97,9 +95,8 @@ def _solve_once(views: list[Correspondence], camera_size: tuple[int, int], proje
     camera = calibrate_device("camera", [c.camera for c in views], camera_size, settings.fix_k3)
     projector = calibrate_device("projector", [c.projector for c in views], projector_size, settings.fix_k3)
     start = initial_extrinsics(camera.poses, projector.poses)
-    sigma = (max(camera.rms_px, MIN_NOISE_PX), max(projector.rms_px, MIN_NOISE_PX))
     stereo = joint_refine([c.camera for c in views], [c.projector for c in views], camera.pinhole, projector.pinhole,
-                          start, camera.poses, settings.fix_k3, sigma)
+                          start, camera.poses, settings.fix_k3)
     return Solution([c.name for c in views], list(views), camera, projector, stereo, dict(dropped))
 
 

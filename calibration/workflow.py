@@ -409,9 +409,10 @@ def calibrate_views(board: Board, views: list[View], projector_size: tuple[int, 
 
 def calibrate_capture(capture: CaptureSet, settings: CalibrationSettings, rig_name: str, say: Say,
                       recording: CalibrationRecording | None = None, strict: bool = True,
-                      artefact: Artefact | None = None) -> CalibrationResult:
-    """Calibrate from a capture folder written by `calibrate_rig`."""
-    board, patterns, bits = capture.board, capture.patterns, capture.bit_depth
+                      board: Board | None = None) -> CalibrationResult:
+    """Calibrate from a capture folder written by `calibrate_rig`; `board` replaces the
+    board description the capture was made with (e.g. to correct it)."""
+    board, patterns, bits = board or capture.board, capture.patterns, capture.bit_depth
     psize, csize = capture.projector_size, capture.camera_size
     gamma = None
     g = capture.gamma()
@@ -429,7 +430,7 @@ def calibrate_capture(capture: CaptureSet, settings: CalibrationSettings, rig_na
     art = capture.artefact()
     art_decoded = None
     if art is not None:
-        description = artefact or Artefact.from_dict(art[0], capture.root)
+        description = Artefact.from_dict(art[0], capture.root)
         art_decoded = (description, decode_pose("artefact", art[1], patterns, bits, psize))
     return finish(result, plates, art_decoded, csize, psize, say, recording)
 
