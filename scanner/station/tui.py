@@ -46,7 +46,7 @@ class ViewState:
     message: str = ""
     last: CycleOutcome | None = None
     last_part: int | None = None
-    parts_done: int = 0
+    measured: set[str] = field(default_factory=set)  # serials with a verdict in this run
     events: list[str] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -56,7 +56,8 @@ class ViewState:
 
 
 class StationTUI:
-    """The curses view over an open `StationRun`; `max_parts` ends the run after that many."""
+    """The curses view over an open `StationRun`; `max_parts` ends the run once that many
+    parts (serials) have a verdict."""
 
     def __init__(self, run: StationRun, max_parts: int | None = None) -> None:
         self.run = run
@@ -102,7 +103,8 @@ class StationTUI:
             outcome = self.station.run_cycle(serial, part, self.cancel, progress)
             with st.lock:
                 st.last, st.last_part = outcome, part
-                st.parts_done += outcome.status in ("pass", "fail", "error")
+                if outcome.status in ("pass", "fail", "error"):
+                    st.measured.add(outcome.serial)
             st.event(f"{outcome.serial} attempt {outcome.attempt}: {outcome.status.upper()} (result {outcome.result_id})")
         except ScannerError as exc:  # refused, or no serial: said on screen
             st.message = str(exc)
@@ -226,7 +228,7 @@ class StationTUI:
                     ch = ord("s")
                 if ch != -1:
                     self.key(ch)
-                done = self.max_parts is not None and self.state.parts_done >= self.max_parts
+                done = self.max_parts is not None and len(self.state.measured) >= self.max_parts
                 if (self.quit or done) and not self.busy():
                     self.draw(scr)
                     return
