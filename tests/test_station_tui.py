@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 
 import pexpect
-import pytest
 
 from scanner.station.config import StationConfig
 from scanner.station.results import open_results

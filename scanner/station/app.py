@@ -16,12 +16,13 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, TextIO
 
+from ..pipeline import Progress
 from ..rig import RigConfig
 from . import StationError
 from .bench import Bench
 from .charts import ChartRecording
 from .config import StationConfig
-from .loop import STATS_WINDOW, CycleOutcome, Progress, Station, utcnow
+from .loop import STATS_WINDOW, CycleOutcome, Station, utcnow
 from .measure import Measurement
 from .program import PartProgram, load_program
 from .report import write_report

@@ -20,11 +20,11 @@ import time
 from dataclasses import asdict, dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Callable, Sequence, TextIO
+from typing import Any, Sequence, TextIO
 
 from .. import __version__
 from ..geometry import RigModel
-from ..pipeline import process
+from ..pipeline import Progress, process
 from ..rig import RigConfig
 from ..session import Session
 from . import StationError
@@ -35,8 +35,6 @@ from .measure import Measurement
 from .program import PartProgram, load_program
 from .quality import judge
 from .results import PartStart, ValueRecord, open_results
-
-Progress = Callable[[str, int, int], None]
 
 
 @dataclass(frozen=True)

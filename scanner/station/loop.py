@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from .. import __version__
-from ..pipeline import scan
+from ..pipeline import Progress, scan
 from ..session import write_json
 from . import StationError
 from .bench import Bench
@@ -44,7 +44,6 @@ from .quality import RunningStats, judge, running_stats
 from .results import PartStart, ResultsStore, ValueRecord
 
 PART_RECORD = "part.json"
-Progress = Callable[[str, int, int], None]  # (stage, done, total)
 STATS_WINDOW = 1000  # results the running statistics look back over
 
 
