@@ -52,6 +52,13 @@ class Instance:
     label: str | None = None
     score: float | None = None
 
+    def __post_init__(self) -> None:
+        if self.source not in SOURCES:
+            raise ValueError(f"instance source {self.source!r} is not one of {SOURCES}")
+        if not (len(self.indices) == len(self.points) == len(self.normals)):
+            raise ValueError(f"instance {self.id}: {len(self.indices)} indices, {len(self.points)} points, "
+                             f"{len(self.normals)} normals")
+
     def __len__(self) -> int:
         return len(self.indices)
 

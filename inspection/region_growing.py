@@ -9,32 +9,42 @@ Stages:
      curvatures and directions, normal, representative scale;
   3. the representative neighbourhood B'_i of every point: the points of S within its
      representative scale (all within 0.19·r and a uniform sample beyond) whose distance
-     from the point's osculating torus is at most μ_i + 2σ_i;
+     from the point's osculating torus is at most μ_i + 2σ_i. An edge i -> j is trusted
+     when j's own normal agrees with the torus normal there (`MAX_NORMAL_ANGLE`) and
+     j -> i is a trusted edge too;
   4. seeds: τ = 0.01·r, γ = 0; the unsegmented point of least μ with μ ≤ τ and
      representative scale d_γ; none: γ += 1; all scales tried: τ *= 2, γ = 0; stop when
      τ exceeds r;
-  5. growth from a seed: candidates C = B'_seed; a candidate with μ ≤ μ_seg + 2σ_seg
-     joins and adds its B' to C; one that fails is unreliable (its neighbourhood may
-     straddle several objects): its features are recomputed from the neighbours already
-     in the segment only, and it joins if that fit is as smooth (μ' ≤ μ_seg + 2σ_seg) and
-     the point lies on it (|offset'| ≤ μ_seg + 2σ_seg), adding the B' of the recomputed
-     features; otherwise it is rejected for this segment (it may seed or join a later
-     one). The segment roughness is the pooled fit error of its members (mean μ, and σ
-     from the members' mean square μ² + σ²);
+  5. growth from a seed: candidates C = B'_seed; a candidate reached by a trusted edge
+     with μ ≤ μ_seg + 2σ_seg joins and adds its B' to C. The others are unreliable (their
+     neighbourhood may straddle several objects, or their own surface disagrees with the
+     segment's): once that growth stops, their features are recomputed from the
+     segment's points only, and those whose re-fit is as smooth (μ' ≤ μ_seg + 2σ_seg)
+     join, adding the B' of the recomputed features — which follows the segment's
+     surface only; the rest are rejected for this segment (they may seed or join a
+     later one). The segment roughness is the pooled fit error of its members (mean μ,
+     and σ from the members' mean square μ² + σ²);
   6. points too sparse for any feature (the thin border of a sparsely seen surface) join
-     the one segment whose members' B' hold them, if no other segment is near.
+     the one segment whose members' B' hold them if they lie on the torus of the nearest
+     member.
 Candidates are examined front by front (all of C at once), not one at a time.
 
-Where the paper is silent or differs: B' reaches only as far as the representative scale,
-not r — the torus is fitted on that ball, and its curvature extrapolated beyond it (from
-a small ball, noisy) can bend into a neighbouring surface and leak the segment into it;
-re-evaluation uses every scale (restricted to segment
-points) and keeps the one of least μ, like the features themselves, and it also asks
-that the candidate lie on the re-fitted surface — a fit of segment points alone is smooth
-wherever the candidate is; the tolerances never drop below `MIN_TOLERANCE`·r (noise-free
-synthetic data has μ = 0). Labels: segments in the order they were grown (smoothest
-seeds first), -1 for points no segment took (too rough, too few neighbours, rejected
-everywhere). Units: mm.
+Where the paper is silent or differs, and why:
+  - B' reaches only as far as the representative scale, not r: the torus is fitted on
+    that ball, and its curvature extrapolated beyond it (from a small ball, noisy) can
+    bend into a neighbouring surface;
+  - trusted edges and deferred re-evaluation: around a sharp crease, sparse points fit a
+    tight circle as well as a fillet, so two points each side of it can look smooth and
+    hold each other in their B'; the paper's test (roughness alone) then carries growth
+    across. Requiring agreeing normals both ways, and re-fitting from the segment's own
+    points everything else, stops that; re-fitting only when the segment's growth has
+    stopped gives it the most segment points around the candidate;
+  - re-evaluation uses every scale (restricted to the segment's points, searched among
+    `REEVAL_OVERSAMPLE`·q neighbours) and keeps the one of least μ, like the features;
+    segments with fewer than 2·`MIN_FIT_POINTS` members re-evaluate nothing (no fit);
+  - tolerances never drop below `MIN_TOLERANCE`·r (noise-free synthetic data has μ = 0).
+Labels: segments in the order they were grown (smoothest seeds first), -1 for points no
+segment took (too rough, too few neighbours, rejected everywhere). Units: mm.
 """
 
 from __future__ import annotations
