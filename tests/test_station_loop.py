@@ -66,7 +66,7 @@ def test_cycles_give_the_verdicts_of_the_imposed_defects_and_store_everything(ru
     assert flat.n == 3 and flat.max_mm == 0.15 and flat.mean_mm == pytest.approx(0.05)
     report = (run.report_dir / "report.html").read_text()
     assert "charts/high_top_flatness.png" in report and "SN-1" in report and "FAIL" in report
-    assert (run.report_dir / "charts" / "boss_cylindricity.png").stat().st_size > 1000
+    assert (run.report_dir / "charts" / "low_top_flatness.png").stat().st_size > 1000
     run.close()
     chart = run.report_dir / "control_charts.rrd"
     entity = f"metrics/{control_metric('high_top_flatness', 'value_mm')}"

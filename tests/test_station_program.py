@@ -23,22 +23,23 @@ TODAY = dt.date(2026, 11, 23)
 def test_demo_program_loads_with_faces_checked_in_the_cad() -> None:
     p = load_program(DEMO_PROGRAM)
     assert p.name == "demo-part" and p.version == "1.0" and len(p.fingerprint) == 12
-    assert [c.name for c in p.characteristics] == ["high_top_flatness", "low_top_flatness", "boss_cylindricity",
-                                                   "high_top_profile", "high_top_sq"]
-    assert p.characteristic("boss_cylindricity").method == "minimum_zone"
+    assert [c.name for c in p.characteristics] == ["high_top_flatness", "low_top_flatness", "high_top_profile",
+                                                   "high_top_sq"]
+    assert p.characteristic("low_top_flatness").method == "minimum_zone"
     assert p.characteristic("high_top_sq").method is None
     assert p.scan.views == 1 and p.scan.exposure_s == 0.010 and p.scan.pattern_set().n_frames == 12
     faces = cad_faces(p)
     assert isinstance(faces, dict), faces  # the inspection CAD loader is in place
     assert p.face_check.startswith(f"{len(faces)} faces in demo_part.ply")
-    assert faces["F2"] == "plane" and faces["F1"] == "plane"
+    assert faces["F2"] == "plane" and faces["F1"] == "plane" and faces["F3"] == "mesh"
 
 
 @pytest.mark.parametrize("edit, key", [
-    (('kind = "cylindricity"', 'kind = "roundness"'), "characteristic[2].kind"),
-    (("tolerance_mm = 0.05\n", "tolerance_mm = -0.05\n"), "characteristic[0].tolerance_mm"),
+    (('kind = "profile"', 'kind = "roundness"'), "characteristic[2].kind"),
+    (('"minimum_zone"\ntolerance_mm = 0.05\n', '"minimum_zone"\ntolerance_mm = -0.05\n'),
+     "characteristic[0].tolerance_mm"),
     (('method = "minimum_zone"', 'method = "chebyshev"'), "characteristic[0].method"),
-    (('kind = "sq"', 'kind = "sq"\nmethod = "least_squares"'), "characteristic[4].method"),
+    (('kind = "sq"', 'kind = "sq"\nmethod = "least_squares"'), "characteristic[3].method"),
     (('name = "low_top_flatness"', 'name = "high_top_flatness"'), "characteristic[1].name"),
     (("views = 1", "views = 0"), "scan.views"),
     (("exposure_s = 0.010", 'exposure_s = "fast"'), "scan.exposure_s"),
@@ -54,17 +55,25 @@ def test_bad_program_names_file_and_key(tmp_path: Path, edit: tuple[str, str], k
 
 
 def test_face_the_cad_does_not_have_is_refused(tmp_path: Path) -> None:
-    path = program_copy(tmp_path, ('face = "F3"', 'face = "F99"'))
+    path = program_copy(tmp_path, ('face = "F1"', 'face = "F99"'))
     with pytest.raises(ConfigError, match="face 'F99' .* is not in demo_part.ply") as err:
         load_program(path)
-    assert err.value.key == "characteristic[2].face"
-    assert load_program(path, check_faces=False).characteristics[2].face == "F99"  # the schema alone is fine
+    assert err.value.key == "characteristic[1].face"
+    assert load_program(path, check_faces=False).characteristics[1].face == "F99"  # the schema alone is fine
 
 
-def test_characteristic_on_a_face_of_the_wrong_type_is_refused(tmp_path: Path) -> None:
-    path = program_copy(tmp_path, ('face = "F3"', 'face = "F1"'))  # cylindricity of a plane
-    with pytest.raises(ConfigError, match="cylindricity applies to cylinder faces; face F1 .* is a plane"):
-        load_program(path)
+@pytest.mark.parametrize("edit, problem", [
+    (('face = "F1"', 'face = "F3"'), "flatness applies to plane faces; face F3 of demo_part.ply is a mesh face "
+                                     "(a mesh face of no known surface type: use a STEP model)"),
+    (('kind = "flatness"\nmethod = "minimum_zone"\ntolerance_mm = 0.05\n\n[[characteristic]]\nname = "low',
+      'kind = "cylindricity"\nmethod = "minimum_zone"\ntolerance_mm = 0.05\n\n[[characteristic]]\nname = "low'),
+     "cylindricity applies to cylinder faces; face F2 of demo_part.ply is a plane"),
+])
+def test_characteristic_on_a_face_of_the_wrong_type_is_refused(tmp_path: Path, edit: tuple[str, str],
+                                                               problem: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        load_program(program_copy(tmp_path, edit))
+    assert err.value.problem == problem
 
 
 def test_missing_cad_file_is_named(tmp_path: Path) -> None:

@@ -48,9 +48,9 @@ from .config import check_keys
 
 KINDS = ("flatness", "cylindricity", "sq", "profile")
 FORM_METHODS = ("minimum_zone", "least_squares")
-# Surface types a characteristic applies to; a face of type "mesh" (surface unknown) takes any.
-SURFACE_KINDS = {"flatness": ("plane",), "cylindricity": ("cylinder",)}
-UNKNOWN_SURFACE = "mesh"
+# Surface types each characteristic can be evaluated on (profile: any face, its deviations).
+# A mesh face of no known surface type ("mesh") has no form or texture to evaluate.
+SURFACE_KINDS = {"flatness": ("plane",), "cylindricity": ("cylinder",), "sq": ("plane", "cylinder", "cone")}
 
 _TOP_KEYS = {"program", "scan", "calibration", "characteristic"}
 _PROGRAM_KEYS = {"name", "version", "cad", "mesh_unit", "description"}
@@ -166,9 +166,11 @@ def validate_faces(program: PartProgram, faces: Mapping[str, str]) -> None:
                                                  f"its faces are {some}")
         allowed = SURFACE_KINDS.get(c.kind)
         kind = faces[c.face]
-        if allowed and kind != UNKNOWN_SURFACE and kind not in allowed:
+        if allowed and kind not in allowed:
             raise ConfigError(program.path, key, f"{c.kind} applies to {' or '.join(allowed)} faces; "
-                                                 f"face {c.face} of {program.cad_path.name} is a {kind}")
+                                                 f"face {c.face} of {program.cad_path.name} is a {kind}"
+                                                 + (" face (a mesh face of no known surface type: use a STEP "
+                                                    "model)" if kind == "mesh" else ""))
 
 
 def _scan_settings(table: dict[str, Any], path: Path) -> ScanSettings:
