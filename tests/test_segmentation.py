@@ -317,7 +317,10 @@ def test_cli_segment_and_segscore(tmp_path: Path, room: tuple[np.ndarray, np.nda
     assert main(["segment", str(ply), "--radius", "3"]) == 0
     labels = np.load(tmp_path / "room.segments.npy")
     assert labels.shape == (len(truth[sel]),)
-    assert (tmp_path / "room.segments.rrd").exists()
+    from scanner.recording import read_points
+
+    logged = read_points(tmp_path / "room.segments.rrd", "world/segments")
+    assert len(logged[0]) == len(labels)
     capsys.readouterr()
     assert main(["segscore", str(tmp_path / "room.segments.npy"), str(tmp_path / "truth.npy"), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
