@@ -69,12 +69,13 @@ def from_organised(cloud: OrganisedCloud, source: str) -> ScanCloud:
     scanner could not compute (borders, holes) are estimated from neighbours."""
     pts, _, nrm = cloud.flat()
     rows, cols = np.nonzero(cloud.valid)
-    return _with_normals(pts.astype(np.float64), nrm.astype(np.float64), source, np.zeros(3),
+    return make_scan(pts.astype(np.float64), nrm.astype(np.float64), source, np.zeros(3),
                          np.stack([cols, rows], axis=1), cloud.points.shape[:2])
 
 
-def _with_normals(points: np.ndarray, normals: np.ndarray | None, source: str, viewpoint: np.ndarray | None,
-                  pixels: np.ndarray | None = None, shape: tuple[int, int] | None = None) -> ScanCloud:
+def make_scan(points: np.ndarray, normals: np.ndarray | None, source: str, viewpoint: np.ndarray | None,
+              pixels: np.ndarray | None = None, shape: tuple[int, int] | None = None) -> ScanCloud:
+    """A checked ScanCloud; missing or invalid normals are estimated from neighbours."""
     if len(points) < MIN_POINTS:
         raise CloudError(source, f"only {len(points)} points; a scan of a part needs at least {MIN_POINTS}")
     if not np.isfinite(points).all():
@@ -105,7 +106,7 @@ def read_cloud(path: str | Path) -> ScanCloud:
         raise CloudError(path, "no points could be read (unreadable or empty cloud)")
     nrm = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
     viewpoint = np.zeros(3) if np.all(pts[:, 2] > 0) else None
-    return _with_normals(pts, nrm, str(path), viewpoint)
+    return make_scan(pts, nrm, str(path), viewpoint)
 
 
 def load_session(path: str | Path) -> ScanCloud:
@@ -144,9 +145,15 @@ def _fit_plane(points: np.ndarray, threshold: float, seed: int) -> tuple[np.ndar
 
 
 def isolate_part(scan: ScanCloud, model_diagonal_mm: float, seed: int = 0) -> ScanCloud:
-    """The part alone: the table it lies on (a plane much wider than the model) and what
-    lies behind it are removed, then the largest connected piece (with pieces near it)
-    is kept. Raises UnitMismatch when what is left cannot be the model at its units."""
+    """The scan's points that belong to the part (`part_mask`)."""
+    return scan.subset(part_mask(scan, model_diagonal_mm, seed))
+
+
+def part_mask(scan: ScanCloud, model_diagonal_mm: float, seed: int = 0) -> np.ndarray:
+    """Which points are the part: the table it lies on (a plane much wider than the
+    model) and what lies behind it are removed, then the largest connected piece (with
+    pieces near it) is kept. Raises UnitMismatch when what is left cannot be the model
+    at its units."""
     pts = scan.points
     extent = float(np.linalg.norm(np.ptp(pts, axis=0)))
     voxel = extent / 300.0
@@ -183,9 +190,8 @@ def isolate_part(scan: ScanCloud, model_diagonal_mm: float, seed: int = 0) -> Sc
     near[big] = True
     mask = np.zeros(len(pts), bool)
     mask[part[near[lab]]] = True
-    out = scan.subset(mask)
-    check_units(out, model_diagonal_mm)
-    return out
+    check_units(scan.subset(mask), model_diagonal_mm)
+    return mask
 
 
 def check_units(scan: ScanCloud, model_diagonal_mm: float) -> None:
