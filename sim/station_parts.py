@@ -38,13 +38,14 @@ TRUTH_FILE = "sim_part.json"  # written into every session of a simulated statio
 BOW_GRID_MM = 1.0
 LOBES = 3
 
-# The demo part program's characteristics, by name, and what deforms each.
+# The characteristics every part's truth covers, by name: the demo part program's, and the
+# boss's cylindricity, which a program on a STEP model of the part can check.
 CHARACTERISTICS = ("high_top_flatness", "low_top_flatness", "boss_cylindricity", "high_top_profile", "high_top_sq")
 
 
 @dataclass(frozen=True, eq=False)
 class SimPart:
-    """A simulated part: `imposed` the true value (mm) of every demo-program characteristic;
+    """A simulated part: `imposed` the true value (mm) of each of `CHARACTERISTICS`;
     `vertices` (N, 3) mm and `triangles` (M, 3) its mesh in the part frame; `turn_rad` and
     `shift_mm` (x, y) how it is placed on the bench relative to the demo scene's pose."""
 
