@@ -70,6 +70,20 @@ class StereoCalibration:
         return np.array([rms(r) for r in res])
 
 
+def _uncertainties(res: np.ndarray, J: np.ndarray, free: np.ndarray, e0: int) -> dict[str, float]:
+    """One-sigma uncertainty of every parameter from the residuals and Jacobian at the solution."""
+    dof = max(len(res) - int(free.sum()), 1)
+    cov = np.zeros((len(free), len(free)))
+    cov[np.ix_(free, free)] = covariance(J[:, free], float(res @ res) / dof)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    std = {f"camera.{n}": float(sd[i]) for i, n in enumerate(INTRINSIC_NAMES)}
+    std |= {f"projector.{n}": float(sd[_N_INTR + i]) for i, n in enumerate(INTRINSIC_NAMES)}
+    std |= {f"extrinsic.{n}": float(sd[e0 + i]) for i, n in enumerate(EXTRINSIC_NAMES)}
+    std["extrinsic.rotation_deg"] = float(np.degrees(np.sqrt(max(np.trace(cov[e0:e0 + 3, e0:e0 + 3]), 0.0))))
+    std["extrinsic.translation_mm"] = float(np.sqrt(max(np.trace(cov[e0 + 3:e0 + 6, e0 + 3:e0 + 6]), 0.0)))
+    return std
+
+
 def _intrinsic_vector(p: Pinhole) -> np.ndarray:
     K = p.K
     return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *p.dist])
@@ -92,19 +106,22 @@ def initial_extrinsics(camera_poses: np.ndarray, projector_poses: np.ndarray) ->
 
 
 def covariance(J: np.ndarray, s2: float) -> np.ndarray:
-    """s2·(JᵀJ)⁻¹ computed from the SVD of the column-scaled J: the parameters span many
-    orders of magnitude (focal lengths ~1e3 px, k3 ~1, rotations ~1e-3 rad), and inverting
-    JᵀJ directly would square J's condition number and drop the weakly determined
-    directions, which are exactly the ones whose uncertainty matters."""
+    """s2·(JᵀJ)⁻¹, with J's columns scaled to unit length first: the parameters span many
+    orders of magnitude (focal lengths ~1e3 px, k3 ~1, rotations ~1e-3 rad), and without the
+    scaling the weakly determined directions, whose uncertainty matters most, would be lost
+    to rounding."""
     scale = 1.0 / np.maximum(np.linalg.norm(J, axis=0), 1e-300)
-    _, sv, vt = np.linalg.svd(J * scale, full_matrices=False)
-    inv = np.where(sv > sv[0] * 1e-12, 1.0 / np.maximum(sv, 1e-300) ** 2, 0.0)
-    return (vt.T * inv) @ vt * np.outer(scale, scale) * s2
+    Js = J * scale
+    w, v = np.linalg.eigh(Js.T @ Js)
+    inv = np.where(w > w.max() * 1e-14, 1.0 / np.maximum(w, 1e-300), 0.0)
+    return (v * inv) @ v.T * np.outer(scale, scale) * s2
 
 
 def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], camera: Pinhole, projector: Pinhole,
-                 proj_from_cam: np.ndarray, board_poses: np.ndarray, fix_k3: bool = False) -> StereoCalibration:
-    """Refine every parameter from the starting values given."""
+                 proj_from_cam: np.ndarray, board_poses: np.ndarray, fix_k3: bool = False,
+                 uncertainty: bool = True) -> StereoCalibration:
+    """Refine every parameter from the starting values given (`uncertainty`: also compute
+    the one-sigma uncertainties; `std` is empty without)."""
     n_views = len(cam_views)
     if len(proj_views) != n_views or len(board_poses) != n_views:
         raise NotEnoughData(f"joint refinement: {n_views} camera views, {len(proj_views)} projector views and "
@@ -170,30 +187,13 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     sol = least_squares(fun, x0[free], jac=jac, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12, max_nfev=200)
     x = x0.copy()
     x[free] = sol.x
-    res, J = residuals_and_jacobian(x, True)
-    dof = max(rows - int(free.sum()), 1)
-    s2 = float(res @ res) / dof
-    cov_free = covariance(J[:, free], s2)  # type: ignore[index]
-    cov = np.zeros((len(x), len(x)))
-    cov[np.ix_(free, free)] = cov_free
-    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    std = {f"camera.{n}": float(sd[i]) for i, n in enumerate(INTRINSIC_NAMES)}
-    std |= {f"projector.{n}": float(sd[_N_INTR + i]) for i, n in enumerate(INTRINSIC_NAMES)}
-    std |= {f"extrinsic.{n}": float(sd[e0 + i]) for i, n in enumerate(EXTRINSIC_NAMES)}
-    rot_cov = cov[e0:e0 + 3, e0:e0 + 3]
-    std["extrinsic.rotation_deg"] = float(np.degrees(np.sqrt(max(np.trace(rot_cov), 0.0))))
-    std["extrinsic.translation_mm"] = float(np.sqrt(max(np.trace(cov[e0 + 3:e0 + 6, e0 + 3:e0 + 6]), 0.0)))
-
-    cam = _pinhole(camera.size, x[:_N_INTR])
-    proj = _pinhole(projector.size, x[_N_INTR:e0])
+    res, J = residuals_and_jacobian(x, uncertainty)
+    std = _uncertainties(res, J, free, e0) if J is not None else {}
     proj_from_cam = pose_matrix(x[e0:e0 + 3], x[e0 + 3:e0 + 6])
     poses = np.stack([pose_matrix(x[e0 + 6 + 6 * v:e0 + 9 + 6 * v], x[e0 + 9 + 6 * v:e0 + 12 + 6 * v])
                       for v in range(n_views)])
-    cam_res, proj_res = [], []
-    for cv, pv, T in zip(cam_views, proj_views, poses):
-        Xc = cv.object_points @ T[:3, :3].T + T[:3, 3]
-        cam_res.append(cv.image_points - cam.project(Xc))
-        Tp = proj_from_cam @ T
-        Xp = pv.object_points @ Tp[:3, :3].T + Tp[:3, 3]
-        proj_res.append(pv.image_points - proj.project(Xp) if len(pv) else np.zeros((0, 2)))
-    return StereoCalibration(cam, proj, proj_from_cam, poses, cam_res, proj_res, std)
+    blocks = np.split(res.reshape(-1, 2), np.cumsum([n for cv, pv in zip(cam_views, proj_views)
+                                                     for n in (len(cv), len(pv))])[:-1])
+    cam_res, proj_res = blocks[0::2], blocks[1::2]
+    return StereoCalibration(_pinhole(camera.size, x[:_N_INTR]), _pinhole(projector.size, x[_N_INTR:e0]),
+                             proj_from_cam, poses, cam_res, proj_res, std)

@@ -37,13 +37,13 @@ from scanner.rig import Rig, RigConfig
 from .board import Board
 from .capture import capture_fringes, capture_pose, capture_uncompensated, show_images
 from .coverage import Coverage, needed_poses, tilt_deg
-from .errors import CalibrationRejected, DetectionError, NotEnoughData
+from .errors import CalibrationError, CalibrationRejected, DetectionError, NotEnoughData
 from .file import write_calibration
 from .gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images, phase_error_rad
 from .intrinsics import calibrate_device
 from .phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, fit_plane, local_pitch_range_mm
 from .recording import CalibrationRecording
-from .solve import CalibrationSettings, Solution, Stability, check_limits, leave_one_out, solve
+from .solve import CalibrationSettings, Solution, Stability, check_limits, leave_one_out, solve, without_view
 from .store import CaptureSet, CaptureWriter, decode_pose, pose_view
 from .validate import Artefact, Validation, measure_sphere_pair
 from .views import Correspondence, View, correspond
@@ -312,25 +312,21 @@ def phase_to_height(plates: list[Plate], triangulator: Triangulator) -> PhaseHei
 
 
 def blame_for_validation(solution: Solution, decoded: DecodeResult, artefact: Artefact, gamma: float,
-                         camera_size: tuple[int, int], projector_size: tuple[int, int],
                          settings: CalibrationSettings) -> list[int]:
     """Views whose removal improves the artefact measurement most, best improvement first."""
     errors = []
-    views = solution.correspondences
-    for i in range(len(views)):
-        sub = solve(views[:i] + views[i + 1:], camera_size, projector_size, replace(settings, drop_outliers=False))
-        s = sub.stereo
+    for i in range(len(solution.names)):
+        s = without_view(solution, i, settings)
         model = RigModel(s.camera, s.projector, s.cam_from_proj, projector_gamma=gamma)
         try:
             errors.append(measure_sphere_pair(triangulated_points(decoded, Triangulator(model)), artefact).error_mm)
-        except Exception:  # noqa: BLE001 — a view whose removal breaks the measurement is not to blame
+        except CalibrationError:  # a view whose removal breaks the measurement is not the one to blame
             errors.append(np.inf)
     return [int(i) for i in np.argsort(errors)[:3]]
 
 
-def finish(result: CalibrationResult, plates: list[Plate], artefact: tuple[Artefact, DecodeResult] | None,
-           camera_size: tuple[int, int], projector_size: tuple[int, int], say: Say,
-           recording: CalibrationRecording | None = None, stability: bool = True) -> CalibrationResult:
+def finish(result: CalibrationResult, plates: list[Plate], artefact: tuple[Artefact, DecodeResult] | None, say: Say,
+           recording: CalibrationRecording | None = None) -> CalibrationResult:
     """Limits, phase-to-height, validation and stability of a solved calibration; raises
     CalibrationRejected when a limit is exceeded."""
     check_limits(result.solution, result.settings)
@@ -356,17 +352,16 @@ def finish(result: CalibrationResult, plates: list[Plate], artefact: tuple[Artef
         if recording:
             recording.artefact(cloud, result.model)
         if result.validation.error_mm > result.settings.max_validation_mm:
-            blame = blame_for_validation(result.solution, decoded, description, gamma, camera_size, projector_size,
-                                         result.settings)
+            blame = blame_for_validation(result.solution, decoded, description, gamma, result.settings)
             names = ", ".join(result.solution.names[i] for i in blame)
             raise CalibrationRejected(
                 f"validation error {result.validation.error_mm:.4f} mm exceeds the limit "
                 f"{result.settings.max_validation_mm:.4f} mm ({result.validation.summary()}); the views whose removal "
                 f"improves it most: {names}. Check the board's square size and the artefact's certified distance, "
                 f"re-take those poses, or raise the limit", blame)
-    if stability and len(result.solution.names) > result.settings.min_views:
+    if len(result.solution.names) > result.settings.min_views:
         say("leave-one-view-out stability")
-        result.stability = leave_one_out(result.solution, camera_size, projector_size, result.settings)
+        result.stability = leave_one_out(result.solution, result.settings)
     return result
 
 
@@ -404,7 +399,7 @@ def calibrate_views(board: Board, views: list[View], projector_size: tuple[int, 
     camera_size = views[0].size
     _log_views(recording, views, corr, camera_size, projector_size)
     result = solve_views(board, corr, failures, camera_size, projector_size, settings, rig_name, None, say, recording)
-    return finish(result, [], None, camera_size, projector_size, say, recording)
+    return finish(result, [], None, say, recording)
 
 
 def calibrate_capture(capture: CaptureSet, settings: CalibrationSettings, rig_name: str, say: Say,
@@ -432,7 +427,7 @@ def calibrate_capture(capture: CaptureSet, settings: CalibrationSettings, rig_na
     if art is not None:
         description = Artefact.from_dict(art[0], capture.root)
         art_decoded = (description, decode_pose("artefact", art[1], patterns, bits, psize))
-    return finish(result, plates, art_decoded, csize, psize, say, recording)
+    return finish(result, plates, art_decoded, say, recording)
 
 
 def _log_views(recording: CalibrationRecording | None, views: list[View], corr: list[Correspondence],
@@ -462,7 +457,7 @@ def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: 
                              gamma, say, recording)
         check_limits(result.solution, result.settings)  # before spending time on the plate and artefact
         plates, artefact = _capture_checks(rig, procedure, bench, writer, gamma.gamma, say)
-    return finish(result, plates, artefact, csize, psize, say, recording)
+    return finish(result, plates, artefact, say, recording)
 
 
 def _capture_poses(rig: Rig, procedure: Procedure, bench: Bench, writer: CaptureWriter, say: Say,
