@@ -24,9 +24,9 @@ Stages:
      surface only; the rest are rejected for this segment (they may seed or join a
      later one). The segment roughness is the pooled fit error of its members (mean μ,
      and σ from the members' mean square μ² + σ²);
-  6. points too sparse for any feature (the thin border of a sparsely seen surface) join
-     the one segment whose members' B' hold them if they lie on the torus of the nearest
-     member.
+  6. points too sparse for any feature (the thin border of a sparsely seen surface), and
+     crumbs (segments too small for any fit), join the one larger segment whose members'
+     B' hold them if they lie on the torus of the nearest member.
 Candidates are examined front by front (all of C at once), not one at a time.
 
 Where the paper is silent or differs, and why:
@@ -228,20 +228,28 @@ class _Grower:
                 cands = cands[np.argsort(mu[cands], kind="stable")]
                 self._grow_all(cands)
             tau *= 2
-        self._absorb_featureless()
+        self._absorb_leftovers()
 
-    def _absorb_featureless(self) -> None:
+    def _absorb_leftovers(self) -> None:
         """Points without features of their own (too few neighbours at every scale: the
-        sparse border of a surface) never seed and cannot be re-evaluated. One joins a
-        segment when members of that segment only have it in their B' (it lies on their
-        tori) and it lies on the torus of the nearest of them."""
+        sparse border of a surface) never seed and cannot be re-evaluated; points left in
+        segments too small for any fit (fewer than 2·`MIN_FIT_POINTS`) are crumbs of a
+        border or a crease. Such a point joins a larger segment when members of that
+        segment only have it in their B' (it lies on their tori) and it lies on the torus
+        of the nearest of them."""
         f = self.features
-        members = np.flatnonzero(self.label >= 0)
+        size = np.bincount(self.label[self.label >= 0], minlength=self.n_segments)
+        big = size >= 2 * MIN_FIT_POINTS
+        segmented = self.label >= 0
+        crumb = np.zeros(len(self.label), dtype=bool)
+        crumb[segmented] = ~big[self.label[segmented]]
+        loose = crumb | (~segmented & ~f.valid)
+        members = np.flatnonzero(segmented & ~crumb)
         codes = self.edges[members]
         dst = np.where(codes <= -2, untrusted(codes), codes).ravel()
         by = np.repeat(self.label[members], codes.shape[1])
         keep = dst >= 0
-        keep[keep] = (self.label[dst[keep]] < 0) & ~f.valid[dst[keep]]
+        keep[keep] = loose[dst[keep]]
         dst, by = dst[keep], by[keep]
         if not dst.size:
             return
@@ -261,8 +269,8 @@ class _Grower:
         nearest = near[has][np.arange(len(rows)), np.argmin(dist[has], axis=1)]
         g = f.take(nearest)
         d, _ = self.ms.surface_agreement(nearest, g, rows[:, None], np.zeros((len(rows), 1, 3)))
-        alone = d[:, 0] <= np.maximum(g.mu + 2 * g.sigma, MIN_TOLERANCE * self.ms.radius)
-        self.label[rows[alone]] = seg[alone]
+        on = d[:, 0] <= np.maximum(g.mu + 2 * g.sigma, MIN_TOLERANCE * self.ms.radius)
+        self.label[rows[on]] = seg[on]
 
     def _grow_all(self, cands: np.ndarray) -> None:
         """Grow a segment from every candidate seed still free, in order."""

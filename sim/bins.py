@@ -357,19 +357,25 @@ def clutter_cloud(seed: int = 0, spacing_mm: float = 1.0, radius_mm: float = 12.
     b.quad(np.array([[-350, -250, 0], [350, -250, 0], [350, 250, 0], [-350, 250, 0]], float), b.surface("floor", rough()))
     b.quad(np.array([[-350, 250, 0], [350, 250, 0], [350, 250, 300], [-350, 250, 300]], float), b.surface("wall", rough()))
     jitter = lambda s: rng.uniform(-s, s)  # noqa: E731
-    # boxes: one against the wall, two touching side by side (different heights), one stacked
-    b.box("box0", np.array([160, 90, 120]), _pose(0, None, (-180 + jitter(20), 250 - 45, 60)), rough())
-    yaw = jitter(0.4)
-    b.box("box1", np.array([100, 100, 70]), _pose(yaw, None, (60 + jitter(20), -40 + jitter(20), 35)), rough())
-    c1 = np.array([60.0, -40.0, 0.0])
-    b.box("box2", np.array([80, 100, 110]), _pose(yaw, None, tuple(
-        np.r_[(c1[:2] + rotation_about(np.array([0, 0, 1.0]), yaw)[:2, :2] @ np.array([90.0, 0.0])), 55.0])), rough())
-    b.box("box3", np.array([70, 60, 40]), _pose(jitter(0.5), None, (-180 + jitter(20), 250 - 45 + jitter(10), 140)), rough())
-    # pipes: lying on the floor (several diameters), one standing, one resting on box1
-    for k, (r_pipe, x, y) in enumerate(((8.0, -250, -150), (15.0, -120, -170), (25.0, 200, 60), (40.0, -60, 120))):
-        b.cylinder(f"pipe{k}", r_pipe, 260, _pose(jitter(0.6), "x", (x + jitter(15), y + jitter(15), r_pipe)), rough())
-    b.cylinder("pipe_standing", 20.0, 180, _pose(0, None, (250 + jitter(20), -150 + jitter(20), 90)), rough())
-    b.dome("dome", 45.0, np.array([-250 + jitter(10), 20 + jitter(10), 0.0]), rough())
+    # a layout with clearance between objects (no interpenetration), jittered within it:
+    # a box against the wall with a box on top, two boxes touching side by side (different
+    # heights), pipes lying on the floor, one standing, a dome
+    x0 = -180 + jitter(10)
+    b.box("box0", np.array([160, 90, 120]), _pose(0, None, (x0, 250 - 45, 60)), rough())
+    b.box("box3", np.array([70, 60, 40]), _pose(jitter(0.5), None, (x0 + jitter(20), 205 + jitter(5), 140)), rough())
+    yaw = jitter(0.3)
+    b.box("box1", np.array([100, 100, 70]), _pose(yaw, None, (80, -60, 35)), rough())
+    # box2 touches box1's x+ face with one vertical edge, turned 0.35 rad from it (touching
+    # faces of two aligned boxes would be one plane: one surface, not two)
+    turn = 0.35
+    offset = np.array([50 + 40 * np.cos(turn) + 50 * np.sin(turn), -25.0])   # the edge at y = 8 on the face
+    beside = np.array([80.0, -60.0]) + rotation_about(np.array([0, 0, 1.0]), yaw)[:2, :2] @ offset
+    b.box("box2", np.array([80, 100, 110]), _pose(yaw + turn, None, (beside[0], beside[1], 55)), rough())
+    for k, (r_pipe, x, y, along_y, length) in enumerate(((8.0, -300, -130, True, 180), (15.0, -240, -130, True, 180),
+                                                         (25.0, 170, 110, False, 220), (40.0, -80, 70, False, 200))):
+        b.cylinder(f"pipe{k}", r_pipe, length, _pose(np.pi / 2 * along_y + jitter(0.1), "x", (x, y, r_pipe)), rough())
+    b.cylinder("pipe_standing", 20.0, 180, _pose(0, None, (280 + jitter(10), -150 + jitter(10), 90)), rough())
+    b.dome("dome", 45.0, np.array([-250 + jitter(5), 20 + jitter(5), 0.0]), rough())
 
     V = np.concatenate(b.vertices)
     T = np.concatenate(b.triangles)
