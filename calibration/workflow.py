@@ -170,6 +170,7 @@ class CalibrationResult:
             "board": self.board.to_dict(),
             "rms_px": {"camera": s.camera_rms_px, "projector": s.projector_rms_px, "stereo": s.rms_px},
             "uncertainty": s.std, "views": views, "dropped_views": {**sol.dropped, **self.failures},
+            "outlier_views": self.outliers(),
             "separate": separate, "gamma": self.gamma.to_dict() if self.gamma else None,
             "phase_to_height": self.phase_height.to_dict() if self.phase_height else None,
             "gamma_check": self.gamma_check or None,
@@ -180,13 +181,25 @@ class CalibrationResult:
                        "projector_rms_px": self.settings.max_projector_rms_px,
                        "validation_mm": self.settings.max_validation_mm}}
 
+    def outliers(self) -> dict[str, str]:
+        """Views in use whose joint error stands out (name -> figures), worst first."""
+        s, factor = self.solution.stereo, self.settings.outlier_factor
+        bad = dict.fromkeys(self.solution.outliers("camera", factor) + self.solution.outliers("projector", factor))
+        return {self.solution.names[i]: f"camera {s.per_view_rms_px('camera')[i]:.4f} px, projector "
+                                        f"{s.per_view_rms_px('projector')[i]:.4f} px RMS" for i in bad}
+
     def lines(self) -> list[str]:
         """The report for the terminal."""
         sol, s = self.solution, self.solution.stereo
         std = s.std
         Kc, Kp = s.camera.K, s.projector.K
-        out = [f"views     {len(sol.names)} used" + (f", left out: {', '.join(f'{k} ({v})' for k, v in {**sol.dropped, **self.failures}.items())}"
-                                                 if sol.dropped or self.failures else ""),
+        left_out = {**sol.dropped, **self.failures}
+        outliers = self.outliers()
+        out = [f"views     {len(sol.names)} used" + (f", left out: {'; '.join(f'{k} ({v})' for k, v in left_out.items())}"
+                                                 if left_out else ""),
+               *([f"outliers  {'; '.join(f'{k} ({v})' for k, v in outliers.items())} stand out (over "
+                  f"{self.settings.outlier_factor:g} x the median view): re-take them, or solve with --drop-outliers"]
+                 if outliers else []),
                f"camera    fx {Kc[0, 0]:.2f} ± {std['camera.fx']:.2f}  fy {Kc[1, 1]:.2f} ± {std['camera.fy']:.2f}  "
                f"cx {Kc[0, 2]:.2f} ± {std['camera.cx']:.2f}  cy {Kc[1, 2]:.2f} ± {std['camera.cy']:.2f} px   "
                f"RMS {s.camera_rms_px:.4f} px",

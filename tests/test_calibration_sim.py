@@ -22,13 +22,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from calibration.board import Board
 from calibration.compare import model_errors
+from calibration.detect import detect
 from calibration.file import load_calibration
 from scanner import cli
 from scanner.commands.calibrate import _install
 from scanner.config import CONFIG_DIR
 from scanner.recording import read_summary
 from scanner.rig import DEFAULT_RIG, RigConfig
+from sim.render import Renderer, SensorModel, project_points
+from sim.scene import Scene
+from sim.stage import Target, rotation, target_pose
 
 BOARD = CONFIG_DIR / "boards" / "sim_chess_9x7.toml"
 
@@ -73,6 +78,31 @@ def calibrated(rig_toml: Path, tmp_path_factory: pytest.TempPathFactory) -> tupl
     code, printed, log = run(["calibrate", "--rig", str(rig_toml), "--out", str(out)])
     assert code == 0, log
     return out, printed, log
+
+
+@pytest.mark.parametrize("board_file, limit_px", [
+    ("sim_chess_9x7.toml", 0.03), ("sim_charuco_7x5.toml", 0.03),
+    ("sim_circles_4x11.toml", 0.05),  # a circle's centre is not where its image's centre is, under perspective
+])
+def test_each_board_kind_is_rendered_at_a_pose_and_found_where_it_is(rig_toml: Path, board_file: str,
+                                                                     limit_px: float) -> None:
+    config = RigConfig.load(rig_toml)
+    model = config.nominal_model()
+    board = Board.load(CONFIG_DIR / "boards" / board_file)
+    footprint_mm = config.working_distance_mm / model.camera.K[0, 0]
+    target = Target(board.image(board.texture_density(4 / footprint_mm)), board.size_mm, board.image_origin_mm,
+                    board.object_points())
+    pose = target_pose(target, rotation(20.0, -15.0, 10.0), np.array([0.0, 0.0, 400.0]))
+    renderer = Renderer(model, Scene(objects=(target.scene_object(pose),)), SensorModel.from_config(config), 0.8)
+    image = renderer.render(np.full((1140, 912), 255, np.uint8), 0.01, 12, rng=1)
+    found = detect(board, image)
+    assert found is not None and len(found) == board.n_points
+    X = board.object_points()[found.ids] @ pose[:3, :3].T + pose[:3, 3]
+    truth = project_points(model.camera, X)
+    if board.kind == "chessboard" and np.abs(found.image_points[::-1] - truth).mean() < np.abs(found.image_points
+                                                                                              - truth).mean():
+        truth = truth[::-1]  # an even x even chessboard looks the same turned by a half turn
+    assert np.sqrt(np.mean(np.sum((found.image_points - truth) ** 2, axis=1))) < limit_px
 
 
 def test_calibration_matches_the_simulators_ground_truth(rig_toml: Path, calibrated: tuple[Path, str, str]) -> None:
@@ -197,3 +227,22 @@ def test_pose_without_the_projector_pattern_is_an_error(calibrated: tuple[Path, 
     code, _, log = run(["calibrate", "--from", str(copy), "--skip-bad-views", "--out", str(tmp_path / "d")])
     assert code == 0 and "left out: view 2 (pose_002)" in log
     assert "pose_002" in json.loads((tmp_path / "d" / "calibration.json").read_text())["dropped_views"]
+
+
+@pytest.mark.slow
+def test_acceptance_on_the_full_size_simulated_bench(tmp_path: Path) -> None:
+    """The issue's acceptance run: the default simulated bench (1280 x 1024 camera, realistic
+    noise), 12 board poses, 7 plate heights, against the simulator's ground truth. Several
+    minutes; the same figures print from `slscan calibrate --out DIR`."""
+    code, printed, log = run(["calibrate", "--out", str(tmp_path / "cal")])
+    assert code == 0, log
+    cal = load_calibration(tmp_path / "cal" / "calibration.json", (1280, 1024), (912, 1140))
+    e = model_errors(cal.model, RigConfig.load(DEFAULT_RIG).nominal_model())
+    assert abs(e["camera.fx_pct"]) < 0.1 and abs(e["camera.fy_pct"]) < 0.1
+    assert abs(e["camera.cx_px"]) < 0.5 and abs(e["camera.cy_px"]) < 0.5
+    assert abs(e["projector.fx_pct"]) < 0.2 and abs(e["projector.fy_pct"]) < 0.2
+    assert e["translation_mm"] < 0.1 and e["rotation_deg"] < 0.02
+    assert cal.data["rms_px"]["camera"] <= 0.15 and cal.data["rms_px"]["projector"] <= 0.2
+    assert float(re.search(r"\(ratio ([0-9.]+)\)", printed).group(1)) < 1.5
+    held_out = cal.data["phase_to_height"]["rms_held_out_mm"]
+    assert held_out["per_pixel"] < 1.5 * held_out["triangulation"]  # Eq. 17 per pixel, between its heights
