@@ -117,6 +117,9 @@ class Procedure:
         artefact = o.pop("artefact", None) or (Artefact.from_dict(get_table(table, "artefact", p, prefix="calibrate"),
                                                                   f"{p}, key 'calibrate.artefact'")
                                                if "artefact" in table else DEFAULT_ARTEFACT)
+        if heights and (heights[0] != 0.0 or any(b <= a for a, b in zip(heights, heights[1:]))):
+            raise ConfigError(p, "calibrate.plate_heights_mm", f"{list(heights)}: start at 0 (the reference plane) "
+                                                               f"and increase")
         poses = int(o.pop("poses", get(table, "poses", int, p, 12, "calibrate")))
         if o:
             raise ConfigError(p, "calibrate", f"unknown overrides {sorted(o)}")

@@ -26,6 +26,7 @@ from calibration.phase_height import evaluate, fit_phase_to_height
 from calibration.solve import CalibrationSettings, solve
 from calibration.validate import Artefact, measure_sphere_pair
 from calibration.views import Correspondence
+from calibration.workflow import OperatorBench, Procedure
 from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError
 from scanner.geometry import Pinhole, RigModel
@@ -215,6 +216,29 @@ def test_coverage_says_what_is_missing() -> None:
     assert tilt_deg(T)[1] == pytest.approx(25.0)
     tilts = [(20.0, 0.0), (-20.0, 0.0), (0.0, 20.0), (0.0, -20.0)]
     assert needed_poses(cam, proj, tilts, 5, 5) == []
+
+
+def test_operator_bench_asks_and_stops_on_q() -> None:
+    said, answers = [], iter(["", "q"])
+    bench = OperatorBench(said.append, lambda prompt: next(answers))
+    assert bench.place_board(1, ["points in the top left of the camera image"]) is True
+    assert "still needed: points in the top left of the camera image" in said[0]
+    assert bench.place_board(2, []) is False
+
+
+def test_procedure_settings_come_from_the_rig_toml(tmp_path: Path) -> None:
+    text = DEFAULT_RIG.read_text().replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
+    rig = tmp_path / "rig.toml"
+    rig.write_text(text + '\n[calibrate]\nposes = 8\nmax_camera_rms_px = 0.2\nplate_heights_mm = [0, 10, 20]\n'
+                          'artefact = { type = "sphere_pair", radius_mm = 12.7, distance_mm = 60.0 }\n')
+    procedure = Procedure.for_rig(RigConfig.load(rig), poses=10)
+    assert procedure.poses == 10 and procedure.settings.max_camera_rms_px == 0.2
+    assert procedure.plate_heights_mm == (0.0, 10.0, 20.0) and procedure.artefact == Artefact(12.7, 60.0)
+    assert procedure.patterns.orientations == ("vertical", "horizontal") and procedure.board.name == "sim-chess-9x7"
+    rig.write_text(text + '\n[calibrate]\nplate_heights_mm = [5, 10]\n')
+    with pytest.raises(ConfigError, match="start at 0") as exc:
+        Procedure.for_rig(RigConfig.load(rig))
+    assert exc.value.key == "calibrate.plate_heights_mm"
 
 
 # ------------------------------------------------------------------ phase-to-height
