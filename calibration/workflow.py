@@ -174,6 +174,8 @@ class CalibrationResult:
             "rms_px": {"camera": s.camera_rms_px, "projector": s.projector_rms_px, "stereo": s.rms_px},
             "uncertainty": s.std, "views": views, "dropped_views": {**sol.dropped, **self.failures},
             "outlier_views": self.outliers(),
+            "coverage": {name: {"fraction": c.fraction, "cells": c.counts.tolist(), "uncovered": c.empty_zones()}
+                         for name, c in self.coverage().items()},
             "separate": separate, "gamma": self.gamma.to_dict() if self.gamma else None,
             "phase_to_height": self.phase_height.to_dict() if self.phase_height else None,
             "gamma_check": self.gamma_check or None,
@@ -183,6 +185,15 @@ class CalibrationResult:
             "limits": {"camera_rms_px": self.settings.max_camera_rms_px,
                        "projector_rms_px": self.settings.max_projector_rms_px,
                        "validation_mm": self.settings.max_validation_mm}}
+
+    def coverage(self) -> dict[str, Coverage]:
+        """Where the points of the views in use fell, per device."""
+        out = {}
+        for name, pinhole in (("camera", self.solution.stereo.camera), ("projector", self.solution.stereo.projector)):
+            cov = out[name] = Coverage(pinhole.size)
+            for corr in self.solution.correspondences:
+                cov.add(getattr(corr, name).image_points)
+        return out
 
     def outliers(self) -> dict[str, str]:
         """Views in use whose joint error stands out (name -> figures), worst first."""
@@ -209,6 +220,9 @@ class CalibrationResult:
                f"projector fx {Kp[0, 0]:.2f} ± {std['projector.fx']:.2f}  fy {Kp[1, 1]:.2f} ± {std['projector.fy']:.2f}"
                f"  cx {Kp[0, 2]:.2f} ± {std['projector.cx']:.2f}  cy {Kp[1, 2]:.2f} ± {std['projector.cy']:.2f} px   "
                f"RMS {s.projector_rms_px:.4f} px",
+               "coverage  " + ", ".join(f"{name} {c.fraction:.0%} of the image" + (
+                   f" (not covered: {', '.join(c.empty_zones())})" if c.empty_zones() else "")
+                   for name, c in self.coverage().items()),
                f"stereo    baseline {np.linalg.norm(s.cam_from_proj[:3, 3]):.3f} mm "
                f"(± {std['extrinsic.translation_mm']:.4f} mm), rotation ± {std['extrinsic.rotation_deg']:.4f} deg, "
                f"RMS {s.rms_px:.4f} px",
