@@ -4,7 +4,9 @@ calibration artefacts.
 
 `show(rig, scene)` swaps what an open simulated rig looks at: the geometry is ray-cast once
 for the new scene (a plane-only scene costs ~1 s at 1280 x 1024, no mesh ray casting) and
-the camera renders from it from then on; the rig's ground truth follows.
+the camera renders from it from then on; the rig's ground truth follows. `SimBench` does
+what an operator does during `slscan calibrate` (the `calibration.workflow.Bench`
+protocol, met structurally: the simulator does not import the calibration package).
 
 All poses map object-frame points to the rig's world frame (= the camera frame), in mm.
 """
