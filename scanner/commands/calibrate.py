@@ -91,6 +91,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                          "stereo_rms_px": result.solution.stereo.rms_px})
     except CalibrationRejected as exc:
         (out / "rejected.txt").write_text(f"{exc}\n")
+        if (out / "capture").is_dir():
+            _say(f"the capture is kept in {out / 'capture'}: solve it again with `slscan calibrate --from "
+                 f"{out / 'capture'} --out NEW_FOLDER` (e.g. with --drop-outliers or corrected limits)")
         raise
     lines = result.lines() + report_lines
     (out / "report.txt").write_text("\n".join(lines) + "\n")
@@ -127,7 +130,7 @@ def _from_disk(args: argparse.Namespace, say: Any, log: Any) -> Any:
     capture = CaptureSet.open(args.source)
     say(f"reading the slscan capture in {args.source} ({len(capture.pose_names)} poses)")
     return calibrate_capture(capture, _settings(args, CalibrationSettings()), capture.manifest.get("rig", "rig"),
-                             say, log, strict)
+                             say, log, strict, Board.load(args.board) if args.board else None)
 
 
 def _on_rig(args: argparse.Namespace, out: Path, say: Any, log: Any) -> tuple[Any, Path, list[str]]:
@@ -168,7 +171,10 @@ def simulated_bench(rig: Any, procedure: Any, seed: int = 0) -> Any:
     footprint_mm = config.working_distance_mm / truth.camera.K[0, 0]
     target = Target(board.image(board.texture_density(TEXELS_PER_PX / footprint_mm)), board.size_mm,
                     board.image_origin_mm, board.object_points())
-    poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, seed)
+    try:
+        poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, seed)
+    except ValueError as exc:
+        raise ScannerError(f"simulated bench: {exc}") from None
     artefact = procedure.artefact
     return SimBench(rig, target, poses, config.working_distance_mm + PLATE_BEHIND_MM,
                     artefact.radius_mm if artefact else 10.0, artefact.distance_mm if artefact else 50.0,
