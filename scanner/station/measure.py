@@ -13,9 +13,9 @@ Neither is ever a number.
 needs, from the inspection stage:
 
     inspection.cad.load_cad(path, mesh_unit) -> CadModel          (faces by label and type)
-    INSPECT_ENTRY(session folder, model: CadModel) -> report      (the session's cloud registered,
-                                                                   segmented by face, every face
-                                                                   evaluated)
+    LOAD_ENTRY(session folder) -> scan                             (the session's processed cloud)
+    INSPECT_ENTRY(scan, model: CadModel) -> report                 (registered, segmented by face,
+                                                                   every face evaluated)
 
 where the report is the issue-5 per-face table, as a mapping or an object with `as_dict()`:
 `{"faces": [{"label": "#12" | "F3", "type": ..., "points": n, <value columns>}, ...],
@@ -38,7 +38,8 @@ from ..session import Session, write_json
 from .program import Characteristic, PartProgram
 
 CAD_ENTRY = "inspection.cad:load_cad"
-INSPECT_ENTRY = "inspection.report:inspect_session"
+LOAD_ENTRY = "inspection.scan:load_session"
+INSPECT_ENTRY = "inspection.pipeline:inspect"
 REPORT_FILE = "inspection.json"  # written into the session's outputs/ by the adapter
 
 # (kind, method) -> the report's per-face column(s) that give the value, all in mm. The
@@ -137,7 +138,7 @@ def cad_faces(program: PartProgram) -> dict[str, str] | str:
 
 class InspectionMeasurement:
     """The adapter onto `inspection`: per view, the session's cloud is registered to the
-    CAD model, segmented by face and evaluated (one `INSPECT_ENTRY` call); the report is
+    CAD model, segmented by face and evaluated (`INSPECT_ENTRY` on `LOAD_ENTRY`); the report is
     kept in the session's outputs; each characteristic takes its value from the view
     with the most points on its face."""
 
@@ -148,8 +149,8 @@ class InspectionMeasurement:
 
     def unavailable(self) -> str | None:
         try:
-            _resolve(CAD_ENTRY)
-            _resolve(INSPECT_ENTRY)
+            for entry in (CAD_ENTRY, LOAD_ENTRY, INSPECT_ENTRY):
+                _resolve(entry)
         except MeasurementUnavailable as exc:
             return str(exc)
         return None
@@ -163,14 +164,14 @@ class InspectionMeasurement:
     def measure(self, sessions: Sequence[Session], program: PartProgram) -> MeasurementResult:
         from inspection.errors import InspectionError  # the adapter is the one importer of inspection
 
-        inspect = _resolve(INSPECT_ENTRY)
+        load, inspect = _resolve(LOAD_ENTRY), _resolve(INSPECT_ENTRY)
         model = self._model(program)
         tables: list[dict[str, dict[str, Any]]] = []
         details: dict[str, Any] = {}
         paths: list[Path] = []
         for k, session in enumerate(sessions):
             try:
-                report = inspect(session.root, model)
+                report = inspect(load(session.root), model)
             except InspectionError as exc:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
             data = report.as_dict() if hasattr(report, "as_dict") else dict(report)
