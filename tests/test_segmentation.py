@@ -329,3 +329,33 @@ def test_cli_segment_and_segscore(tmp_path: Path, room: tuple[np.ndarray, np.nda
     assert main(["segment", str(ply), "--radius", "0.01"]) == 2
     assert "radius of interest" in capsys.readouterr().err
     assert main(["segscore", str(tmp_path / "room.segments.npy"), str(tmp_path / "missing.npy")]) == 2
+
+
+# ---------------------------------------------------- acceptance on simulated clutter
+
+
+@pytest.fixture(scope="module")
+def clutter_scores() -> list[object]:
+    """Seeds 0-2 of the simulated cluttered room (~0.78 M points each, planes, pipes of
+    four diameters, boxes touching, roughness 0.05-0.4 mm, five scanner positions),
+    segmented with r = 20 mm (as `slscan segbench --seeds 0 1 2 --radius 20`)."""
+    from sim.bins import clutter_cloud
+
+    out = []
+    for seed in (0, 1, 2):
+        c = clutter_cloud(seed, 1.0, 20.0)
+        out.append(score(segment(c.points, 20.0).labels, c.labels))
+    return out
+
+
+@pytest.mark.slow
+def test_clutter_false_positives_and_over_segmentation(clutter_scores: list[object]) -> None:
+    assert np.mean([s.mean_alpha for s in clutter_scores]) <= 0.0003   # <= 0.03 %
+    assert np.mean([s.mean_eta for s in clutter_scores]) <= 2.0
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="mean beta is 8.7 % over seeds 0-2 (target 8 %, the paper 12 %): faces seen "
+                                       "only at grazing angles from far away keep too few points for any circle fit")
+def test_clutter_false_negatives(clutter_scores: list[object]) -> None:
+    assert np.mean([s.mean_beta for s in clutter_scores]) <= 0.08
