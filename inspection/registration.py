@@ -63,6 +63,8 @@ DENSE_FRACTION = 3.0  # model samples for ICP: spacing = voxel / DENSE_FRACTION
 COARSE_METHODS = ("sac-ia", "ransac", "ndt")
 DESCRIPTORS = ("fpfh", "shot")
 MAX_INCIDENCE_DEG = 75.0  # fine step: points seen more obliquely than this are left out
+COARSE_TURNS_DEG = (2.5, 5.0, 10.0, 20.0, 30.0)  # verification: turns tried about the scan's principal axes
+FINE_TURNS_DEG = (0.1, 0.25, 0.5, 1.0, 2.0)  # and about the best pose, with a tight inlier distance
 TANGENTIAL_WEIGHT = 0.1  # ICP: weight of an extra point-to-point term along the surface
 DESCRIPTOR_FRACTION = 5.0  # descriptors are computed on a grid of radius / this
 DESCRIPTOR_NN = 64  # neighbours per descriptor support at most
@@ -155,11 +157,13 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     return T
 
 
-def pose_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """(rotation angle in degrees, translation distance in mm) between two poses."""
+def pose_difference(a: np.ndarray, b: np.ndarray, about: np.ndarray | None = None) -> tuple[float, float]:
+    """(rotation angle in degrees, translation distance in mm) between two poses; the
+    distance is that between the images of the point `about` (default: the origin)."""
     d = np.linalg.inv(a) @ b
     angle = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1.0, 1.0)))
-    return float(angle), float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+    p = np.zeros(3) if about is None else about
+    return float(angle), float(np.linalg.norm(transform_points(a, p[None]) - transform_points(b, p[None])))
 
 
 def _ladder(radius: float, voxel: float) -> float:
@@ -540,12 +544,12 @@ def coarse_ndt_poses(src_pts: np.ndarray, target: ModelTarget, settings: Registr
 
 
 def icp(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, max_dist: float,
-        min_dist: float, max_normal_deg: float, iterations: int = 30) -> np.ndarray:
+        min_dist: float, max_normal_deg: float, iterations: int = 30, tangential: float = TANGENTIAL_WEIGHT) -> np.ndarray:
     """Point-to-plane ICP with normal-angle rejection: pairs farther than a threshold
     (shrinking from max_dist toward min_dist, or 3 robust sigma of the residuals) or whose
-    normals differ by more than max_normal_deg are rejected. A small tangential term
-    (`TANGENTIAL_WEIGHT`) keeps points from sliding off a face's edge, which the plane
-    metric alone does not see."""
+    normals differ by more than max_normal_deg are rejected. A tangential term (weight
+    `tangential`) keeps points from sliding off a face's edge, which the plane metric
+    alone does not see; a large one widens the basin of convergence along large planes."""
     cos_max = np.cos(np.radians(max_normal_deg))
     thr = max_dist
     for _ in range(iterations):
@@ -558,7 +562,7 @@ def icp(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, ma
         ok &= np.einsum("ij,ij->i", n, tn) > cos_max
         if ok.sum() < 6:
             break
-        step, r = _point_to_plane_step(q[ok], target.points[j[ok]], tn[ok], TANGENTIAL_WEIGHT)
+        step, r = _point_to_plane_step(q[ok], target.points[j[ok]], tn[ok], tangential)
         T = _apply(step) @ T
         sigma = 1.4826 * np.median(np.abs(r))
         thr = float(np.clip(max(3.0 * sigma, 0.5 * thr), min_dist, max_dist))
@@ -622,6 +626,39 @@ def refine_exact(src: np.ndarray, src_nrm: np.ndarray, T: np.ndarray, target: Mo
     return T
 
 
+def explore(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, inlier_mm: float,
+            max_normal_deg: float, degrees: tuple[float, ...], icp_mm: float, rounds: int = 4) -> np.ndarray:
+    """Local search of the fitness about a refined pose: the scan turned by `degrees`
+    either way about each of its principal axes (through its centroid), and shifted along
+    them by as many inlier distances; a move that fits more of the scan is refined by ICP
+    (from `icp_mm`) and kept. It finds what ICP cannot: along large planes (a part seen
+    from above) a turn or a shift moves only a few edge points, which ICP rejects as
+    outliers, while the fitness counts them."""
+    c = src.mean(axis=0)
+    _, axes = np.linalg.eigh(np.cov((src - c).T))
+    best, _ = evaluate_pose(src, src_nrm, target, T, inlier_mm, max_normal_deg)
+    for _ in range(rounds):
+        turns = []
+        for a in axes.T:
+            for deg in degrees:
+                for sgn in (-1.0, 1.0):
+                    F = np.eye(4)
+                    F[:3, :3] = Rotation.from_rotvec(sgn * np.radians(deg) * a).as_matrix()
+                    F[:3, 3] = c - F[:3, :3] @ c
+                    turns.append(T @ F)
+                    F = np.eye(4)
+                    F[:3, 3] = sgn * deg * inlier_mm * a
+                    turns.append(T @ F)
+        fits = [evaluate_pose(src, src_nrm, target, U, inlier_mm, max_normal_deg)[0] for U in turns]
+        k = int(np.argmax(fits))
+        if fits[k] <= best + 0.002:
+            break
+        U = icp(src, src_nrm, target, turns[k], icp_mm, 0.5 * inlier_mm, max_normal_deg, 20)
+        fit, _ = evaluate_pose(src, src_nrm, target, U, inlier_mm, max_normal_deg)
+        T, best = (U, fit) if fit > fits[k] else (turns[k], fits[k])
+    return T
+
+
 def evaluate_pose(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, inlier_mm: float,
                   max_normal_deg: float) -> tuple[float, float]:
     """(fitness, RMSE mm): fraction of points within inlier_mm of the model with normals
@@ -667,6 +704,7 @@ def register(scan: ScanCloud, target: ModelTarget, settings: RegistrationSetting
     judged = []
     for T in poses:  # a handful of distinct hypotheses
         T = icp(sp, sn, target.coarse, T, 8.0 * v, 0.5 * v, settings.max_normal_deg, 30)
+        T = explore(sp, sn, target.coarse, T, inlier, settings.max_normal_deg, COARSE_TURNS_DEG, 4.0 * v)
         fit, rmse = evaluate_pose(sp, sn, target.dense, T, inlier, settings.max_normal_deg)
         hidden = target.hidden_fraction(T, sp, scan.viewpoint, 2.0 * v) if scan.viewpoint is not None else 0.0
         judged.append((fit - hidden, fit, rmse, hidden, T))
@@ -677,10 +715,18 @@ def register(scan: ScanCloud, target: ModelTarget, settings: RegistrationSetting
         raise RegistrationFailed(f"{scan.source}: the best pose fits only {best[1]:.0%} of the scan within "
                                  f"{inlier:.3g} mm of {target.name} (needs {settings.min_fitness:.0%}); wrong part, "
                                  f"too little of it in view, or other units", best[1], best[2])
-    alternatives = tuple(j[4] for j in judged[1:] if j[0] >= best[0] - settings.ambiguity_margin
-                         and (pose_difference(j[4], best[4])[0] > 2.0 or pose_difference(j[4], best[4])[1] > 2.0 * v))
+    centre = src_pts.mean(axis=0)
+
+    def apart(T: np.ndarray) -> bool:  # another pose, not the same one found twice
+        angle, shift = pose_difference(T, best[4], centre)
+        return angle > 10.0 or shift > 0.1 * target.diagonal_mm
+
+    alternatives = tuple(j[4] for j in judged[1:] if j[0] >= best[0] - settings.ambiguity_margin and apart(j[4]))
     t0 = time.perf_counter()
-    T = _fine(scan, target, best[4], settings, rng)
+    dense = rng.choice(len(scan), size=min(5000, len(scan)), replace=False)
+    T = explore(scan.points[dense], scan.normals[dense], target.dense, best[4], 0.3 * v, settings.max_normal_deg,
+                FINE_TURNS_DEG, 1.0 * v)
+    T = _fine(scan, target, T, settings, rng)
     times["fine"] = time.perf_counter() - t0
     dense = rng.choice(len(scan), size=min(settings.max_points, len(scan)), replace=False)
     fine_inlier = 0.5 * v
