@@ -164,7 +164,10 @@ class CalibrationResult:
         """The calibration file's report sections (see `calibration.file`)."""
         sol, s = self.solution, self.solution.stereo
         views = [{"name": n, "camera_rms_px": float(c), "projector_rms_px": float(p),
-                  "camera_points": len(corr.camera), "projector_points": len(corr.projector)}
+                  "camera_points": len(corr.camera), "projector_points": len(corr.projector),
+                  # decoded projector pixels about each corner's local homography: the decoding's noise
+                  "homography_fit_rms_px": float(np.nanmedian(corr.projector_corners.fit_rms_px)),
+                  "pixels_per_corner": int(np.median(corr.projector_corners.pixels_used))}
                  for n, c, p, corr in zip(sol.names, s.per_view_rms_px("camera"), s.per_view_rms_px("projector"),
                                           sol.correspondences)]
         separate = {d.name: {**d.pinhole.to_dict(), "rms_px": d.rms_px, "std": d.std}
