@@ -83,16 +83,6 @@ class PhaseHeightFit:
         return out
 
 
-def fit_plane(points: np.ndarray) -> np.ndarray:
-    """(nx, ny, nz, c), n·X + c = 0, fitted to (N, 3) points, n turned toward the origin."""
-    centre = points.mean(axis=0)
-    _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
-    n = vt[2]
-    if n @ centre > 0:
-        n = -n
-    return np.array([*n, -n @ centre])
-
-
 def reference_pitch_mm(phase: np.ndarray, plane: np.ndarray, camera: Pinhole) -> float:
     """λ0: the fringe pitch on the reference plane, from the phase gradient over the plane's
     metric coordinates (least-squares linear fit of the phase)."""

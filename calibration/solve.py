@@ -10,7 +10,7 @@ rig whose error exceeds the limits is refused (`check_limits`) naming the worst 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -101,14 +101,15 @@ def _solve_once(views: list[Correspondence], camera_size: tuple[int, int], proje
 
 
 def without_view(solution: Solution, index: int, settings: CalibrationSettings) -> StereoCalibration:
-    """The joint refinement again without view `index`, started from the full solution:
-    the minimum a cold solve finds, at a fraction of the cost (for leave-one-out)."""
+    """The rig solved again from scratch without view `index` (for leave-one-out). Not
+    warm-started from the full solution: the joint cost has long, nearly flat valleys
+    (focal length against distortion and pose), where a warm start stops where it began
+    and would report no change at all."""
     views = solution.correspondences[:index] + solution.correspondences[index + 1:]
     if len(views) < settings.min_views:
         raise NotEnoughData(f"leaving a view out leaves {len(views)}, below min_views = {settings.min_views}")
-    s = solution.stereo
-    return joint_refine([c.camera for c in views], [c.projector for c in views], s.camera, s.projector,
-                        s.proj_from_cam, np.delete(s.board_poses, index, axis=0), settings.fix_k3, uncertainty=False)
+    size = (solution.stereo.camera.size, solution.stereo.projector.size)
+    return _solve_once(views, *size, replace(settings, drop_outliers=False), {}).stereo
 
 
 def check_limits(solution: Solution, settings: CalibrationSettings) -> None:

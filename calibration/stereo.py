@@ -118,10 +118,8 @@ def covariance(J: np.ndarray, s2: float) -> np.ndarray:
 
 
 def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], camera: Pinhole, projector: Pinhole,
-                 proj_from_cam: np.ndarray, board_poses: np.ndarray, fix_k3: bool = False,
-                 uncertainty: bool = True) -> StereoCalibration:
-    """Refine every parameter from the starting values given (`uncertainty`: also compute
-    the one-sigma uncertainties; `std` is empty without)."""
+                 proj_from_cam: np.ndarray, board_poses: np.ndarray, fix_k3: bool = False) -> StereoCalibration:
+    """Refine every parameter from the starting values given."""
     n_views = len(cam_views)
     if len(proj_views) != n_views or len(board_poses) != n_views:
         raise NotEnoughData(f"joint refinement: {n_views} camera views, {len(proj_views)} projector views and "
@@ -187,8 +185,8 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     sol = least_squares(fun, x0[free], jac=jac, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12, max_nfev=200)
     x = x0.copy()
     x[free] = sol.x
-    res, J = residuals_and_jacobian(x, uncertainty)
-    std = _uncertainties(res, J, free, e0) if J is not None else {}
+    res, J = residuals_and_jacobian(x, True)
+    std = _uncertainties(res, J, free, e0)  # type: ignore[arg-type]
     proj_from_cam = pose_matrix(x[e0:e0 + 3], x[e0 + 3:e0 + 6])
     poses = np.stack([pose_matrix(x[e0 + 6 + 6 * v:e0 + 9 + 6 * v], x[e0 + 9 + 6 * v:e0 + 12 + 6 * v])
                       for v in range(n_views)])

@@ -16,11 +16,11 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from scanner.config import get
 
 from .errors import CalibrationError
+from .fit import fit_sphere, plane_rms
 
 PLANE_TOLERANCE_MM = 1.0  # points this close to the plate belong to it
 EDGE_MARGIN_PX = 3  # sphere pixels this close to the silhouette are left out (mixed pixels)
@@ -76,22 +76,6 @@ class Validation:
                 f"{self.plate_rms_mm * 1e3:.1f} um")
 
 
-def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """(centre, radius, RMS of the radial residuals) of (N, 3) points: algebraic fit, then
-    geometric least squares."""
-    A = np.column_stack([2 * points, np.ones(len(points))])
-    b = np.sum(points ** 2, axis=1)
-    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
-    centre = sol[:3]
-    radius = float(np.sqrt(sol[3] + centre @ centre))
-
-    def residual(p: np.ndarray) -> np.ndarray:
-        return np.linalg.norm(points - p[:3], axis=1) - p[3]
-
-    fit = least_squares(residual, [*centre, radius], x_scale="jac")
-    return fit.x[:3], float(fit.x[3]), float(np.sqrt(np.mean(fit.fun ** 2)))
-
-
 def plane_ransac(points: np.ndarray, tolerance_mm: float, iterations: int = 200, seed: int = 0) -> np.ndarray:
     """Inlier mask of the plane with the most points within `tolerance_mm`."""
     rng = np.random.default_rng(seed)
@@ -115,10 +99,7 @@ def measure_sphere_pair(points: np.ndarray, artefact: Artefact) -> Validation:
     if len(pts) < 3 * MIN_SPHERE_POINTS:
         raise CalibrationError(f"validation: only {len(pts)} points in the artefact scan; is the artefact in view?")
     on_plate = plane_ransac(pts, PLANE_TOLERANCE_MM)
-    plate = pts[on_plate]
-    centre = plate.mean(axis=0)
-    _, _, vt = np.linalg.svd(plate - centre, full_matrices=False)
-    plate_rms = float(np.sqrt(np.mean(((plate - centre) @ vt[2]) ** 2)))
+    plate_rms = plane_rms(pts[on_plate])
     front = np.zeros(valid.shape, dtype=np.uint8)
     front[valid] = ~on_plate
     front = cv2.erode(front, np.ones((2 * EDGE_MARGIN_PX + 1,) * 2, np.uint8))

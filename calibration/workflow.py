@@ -41,7 +41,8 @@ from .errors import CalibrationError, CalibrationRejected, DetectionError, NotEn
 from .file import write_calibration
 from .gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images, phase_error_rad
 from .intrinsics import calibrate_device
-from .phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, fit_plane, local_pitch_range_mm
+from .fit import fit_plane, plane_rms
+from .phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, local_pitch_range_mm
 from .recording import CalibrationRecording
 from .solve import CalibrationSettings, Solution, Stability, check_limits, leave_one_out, solve, without_view
 from .store import CaptureSet, CaptureWriter, decode_pose, pose_view
@@ -304,11 +305,9 @@ def triangulated_points(decoded: DecodeResult, triangulator: Triangulator) -> np
     return triangulate(decoded, triangulator, with_normals=False).points
 
 
-def plate_flatness_mm(points: np.ndarray) -> float:
-    """RMS distance of a plate scan's points from their best-fit plane."""
-    pts = points[np.isfinite(points).all(axis=2)].astype(np.float64)
-    plane = fit_plane(pts)
-    return float(np.sqrt(np.mean((pts @ plane[:3] + plane[3]) ** 2)))
+def _valid_points(points: np.ndarray) -> np.ndarray:
+    """The finite points (N, 3) float64 of an organised cloud (H, W, 3)."""
+    return points[np.isfinite(points).all(axis=2)].astype(np.float64)
 
 
 def gamma_effect(fit: GammaFit, decoded: DecodeResult, triangulator: Triangulator) -> dict[str, float]:
@@ -336,8 +335,7 @@ def phase_to_height(plates: list[Plate], triangulator: Triangulator) -> PhaseHei
     fit_mask = [k == 0 or n < 5 or k % 2 == 0 for k in range(n)]
     phases = [p.decoded.maps["vertical"].phase for p in plates]
     points = [triangulated_points(p.decoded, triangulator) for p in plates]
-    ref = points[0]
-    plane = fit_plane(ref[np.isfinite(ref).all(axis=2)].astype(np.float64))
+    plane = fit_plane(_valid_points(points[0]))
     camera = triangulator.rig.camera
     m, l_map, k_map = fit_phase_to_height(heights, phases, plane, camera, fit_mask)
     return PhaseHeightFit(m, l_map, k_map, evaluate(heights, fit_mask, phases, points, m, l_map, k_map),
@@ -374,7 +372,8 @@ def finish(result: CalibrationResult, plates: list[Plate], artefact: tuple[Artef
     reference = [p for p in plates if p.height_mm == min(q.height_mm for q in plates)] if plates else []
     for p in reference:
         kind = "compensated" if abs(p.gamma - gamma) < 1e-9 else "uncompensated"
-        result.gamma_check[f"flatness_{kind}_mm"] = plate_flatness_mm(triangulated_points(p.decoded, triangulator))
+        points = _valid_points(triangulated_points(p.decoded, triangulator))
+        result.gamma_check[f"flatness_{kind}_mm"] = plane_rms(points)
     if result.gamma is not None and compensated:
         result.gamma_check.update(gamma_effect(result.gamma, compensated[0].decoded, triangulator))
     if artefact is not None:

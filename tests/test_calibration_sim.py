@@ -158,15 +158,17 @@ def test_solving_the_capture_again_from_disk_gives_the_same_calibration(calibrat
     views = capture_copy(out / "capture", tmp_path / "capture")  # the rig model comes from the views alone
     code, _, log = run(["calibrate", "--from", str(views), "--out", str(tmp_path / "again")])
     assert code == 0, log
-    first = json.loads((out / "calibration.json").read_text())["rig_model"]
-    again = json.loads((tmp_path / "again" / "calibration.json").read_text())["rig_model"]
-    # the same to far below any use (1e-6 of a focal length is 0.002 px); the last digits
-    # differ with the linear algebra's threading
-    for key in ("camera", "projector"):
-        assert np.allclose(first[key]["K"], again[key]["K"], rtol=1e-6) and np.allclose(first[key]["dist"],
-                                                                                        again[key]["dist"], atol=1e-6)
-    assert np.allclose(first["cam_from_proj"], again["cam_from_proj"], atol=1e-6)
-    assert first["projector_gamma"] == again["projector_gamma"]
+    first = load_calibration(out / "calibration.json").model
+    again = load_calibration(tmp_path / "again" / "calibration.json").model
+    # the same rig: points of the working volume land on the same pixels of both devices to
+    # 1e-4 px (the parameters themselves agree to ~1e-5 along the cost's flat valleys, e.g.
+    # k3, where the linear algebra's threading changes the last digits)
+    grid = np.stack(np.meshgrid(np.linspace(-60, 60, 7), np.linspace(-50, 50, 6), np.linspace(360, 440, 5)),
+                    axis=-1).reshape(-1, 3)
+    cams = [m.camera.project(grid) for m in (first, again)]
+    projs = [m.projector.project(grid @ m.proj_from_cam[:3, :3].T + m.proj_from_cam[:3, 3]) for m in (first, again)]
+    assert np.abs(cams[0] - cams[1]).max() < 1e-4 and np.abs(projs[0] - projs[1]).max() < 1e-4
+    assert first.projector_gamma == again.projector_gamma
 
 
 def test_installed_calibration_is_used_by_later_scans(calibrated: tuple[Path, str, str], rig_toml: Path,
