@@ -63,6 +63,7 @@ DENSE_FRACTION = 3.0  # model samples for ICP: spacing = voxel / DENSE_FRACTION
 COARSE_METHODS = ("sac-ia", "ransac", "ndt")
 DESCRIPTORS = ("fpfh", "shot")
 MAX_INCIDENCE_DEG = 75.0  # fine step: points seen more obliquely than this are left out
+EXPLORED = 4  # verification: hypotheses explored further
 COARSE_TURNS_DEG = (2.5, 5.0, 10.0, 20.0, 30.0)  # verification: turns tried about the scan's principal axes
 FINE_TURNS_DEG = (0.1, 0.25, 0.5, 1.0, 2.0)  # and about the best pose, with a tight inlier distance
 TANGENTIAL_WEIGHT = 0.1  # ICP: weight of an extra point-to-point term along the surface
@@ -636,27 +637,42 @@ def explore(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray
     outliers, while the fitness counts them."""
     c = src.mean(axis=0)
     _, axes = np.linalg.eigh(np.cov((src - c).T))
-    best, _ = evaluate_pose(src, src_nrm, target, T, inlier_mm, max_normal_deg)
+    moves = []
+    for a in axes.T:
+        for deg in degrees:
+            for sgn in (-1.0, 1.0):
+                F = np.eye(4)
+                F[:3, :3] = Rotation.from_rotvec(sgn * np.radians(deg) * a).as_matrix()
+                F[:3, 3] = c - F[:3, :3] @ c
+                moves.append(F)
+                F = np.eye(4)
+                F[:3, 3] = sgn * deg * inlier_mm * a
+                moves.append(F)
+    M = np.array(moves)
+    best = fitness(src, src_nrm, target, T[None], inlier_mm, max_normal_deg)[0]
     for _ in range(rounds):
-        turns = []
-        for a in axes.T:
-            for deg in degrees:
-                for sgn in (-1.0, 1.0):
-                    F = np.eye(4)
-                    F[:3, :3] = Rotation.from_rotvec(sgn * np.radians(deg) * a).as_matrix()
-                    F[:3, 3] = c - F[:3, :3] @ c
-                    turns.append(T @ F)
-                    F = np.eye(4)
-                    F[:3, 3] = sgn * deg * inlier_mm * a
-                    turns.append(T @ F)
-        fits = [evaluate_pose(src, src_nrm, target, U, inlier_mm, max_normal_deg)[0] for U in turns]
+        cand = np.einsum("ij,mjk->mik", T, M)
+        fits = fitness(src, src_nrm, target, cand, inlier_mm, max_normal_deg)
         k = int(np.argmax(fits))
         if fits[k] <= best + 0.002:
             break
-        U = icp(src, src_nrm, target, turns[k], icp_mm, 0.5 * inlier_mm, max_normal_deg, 20)
-        fit, _ = evaluate_pose(src, src_nrm, target, U, inlier_mm, max_normal_deg)
-        T, best = (U, fit) if fit > fits[k] else (turns[k], fits[k])
+        U = icp(src, src_nrm, target, cand[k], icp_mm, 0.5 * inlier_mm, max_normal_deg, 20)
+        fit = fitness(src, src_nrm, target, U[None], inlier_mm, max_normal_deg)[0]
+        T, best = (U, fit) if fit > fits[k] else (cand[k], fits[k])
     return T
+
+
+def fitness(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, inlier_mm: float,
+            max_normal_deg: float) -> np.ndarray:
+    """Fitness (H,) of each pose (H, 4, 4): the fraction of points within inlier_mm of the
+    target whose normals agree within max_normal_deg (one batched KD-tree query)."""
+    q = np.einsum("hij,nj->hni", T[:, :3, :3], src) + T[:, None, :3, 3]
+    n = np.einsum("hij,nj->hni", T[:, :3, :3], src_nrm)
+    d, j = target.tree.query(q.reshape(-1, 3), distance_upper_bound=inlier_mm, workers=-1)
+    ok = np.isfinite(d)
+    j = np.where(ok, j, 0)
+    ok &= np.einsum("ij,ij->i", n.reshape(-1, 3), target.normals[j]) > np.cos(np.radians(max_normal_deg))
+    return ok.reshape(len(T), -1).mean(axis=1)
 
 
 def evaluate_pose(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, inlier_mm: float,
@@ -699,12 +715,15 @@ def register(scan: ScanCloud, target: ModelTarget, settings: RegistrationSetting
     poses = with_flips(poses, src_pts)
     t0 = time.perf_counter()
     inlier = 1.5 * v
-    sub = rng.choice(len(src_pts), size=min(3000, len(src_pts)), replace=False)
+    sub = rng.choice(len(src_pts), size=min(1500, len(src_pts)), replace=False)
     sp, sn = src_pts[sub], src_nrm[sub]
+    refined = [icp(sp, sn, target.coarse, T, 8.0 * v, 0.5 * v, settings.max_normal_deg, 30) for T in poses]
+    fits = fitness(sp, sn, target.coarse, np.array(refined), inlier, settings.max_normal_deg)
+    order = np.argsort(-fits)
+    for k in order[:EXPLORED]:  # the most promising few: explored further
+        refined[k] = explore(sp, sn, target.coarse, refined[k], inlier, settings.max_normal_deg, COARSE_TURNS_DEG, 4.0 * v)
     judged = []
-    for T in poses:  # a handful of distinct hypotheses
-        T = icp(sp, sn, target.coarse, T, 8.0 * v, 0.5 * v, settings.max_normal_deg, 30)
-        T = explore(sp, sn, target.coarse, T, inlier, settings.max_normal_deg, COARSE_TURNS_DEG, 4.0 * v)
+    for T in refined:  # a handful of distinct hypotheses
         fit, rmse = evaluate_pose(sp, sn, target.dense, T, inlier, settings.max_normal_deg)
         hidden = target.hidden_fraction(T, sp, scan.viewpoint, 2.0 * v) if scan.viewpoint is not None else 0.0
         judged.append((fit - hidden, fit, rmse, hidden, T))
@@ -723,7 +742,7 @@ def register(scan: ScanCloud, target: ModelTarget, settings: RegistrationSetting
 
     alternatives = tuple(j[4] for j in judged[1:] if j[0] >= best[0] - settings.ambiguity_margin and apart(j[4]))
     t0 = time.perf_counter()
-    dense = rng.choice(len(scan), size=min(5000, len(scan)), replace=False)
+    dense = rng.choice(len(scan), size=min(3000, len(scan)), replace=False)
     T = explore(scan.points[dense], scan.normals[dense], target.dense, best[4], 0.3 * v, settings.max_normal_deg,
                 FINE_TURNS_DEG, 1.0 * v)
     T = _fine(scan, target, T, settings, rng)
