@@ -84,7 +84,7 @@ class RegistrationSettings:
     spheres: tuple[int, ...] = (200, 100, 50)
     hypotheses: int = 1500
     verify: int = 6
-    min_fitness: float = 0.7
+    min_fitness: float = 0.9
     max_normal_deg: float = 30.0
     max_points: int = 40000
     ambiguity_margin: float = 0.02
@@ -418,6 +418,49 @@ def with_flips(poses: list[np.ndarray], points: np.ndarray, n_best: int = 2) -> 
     return poses + [T @ F for T in poses[:n_best] for F in flips]
 
 
+def plane_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: ModelTarget, n_best: int = 4,
+                n_faces: int = 4, step_deg: float = 10.0) -> list[np.ndarray]:
+    """Poses from the scan's dominant plane, for scans that are mostly one plane (a flat
+    part seen from above), where local descriptors have little to grip: the plane laid on
+    each of the model's largest planar faces, turned about its normal every `step_deg`,
+    plane centroids matched, each shortly refined by ICP; the `n_best` by fitness."""
+    if target.model is None or target.samples is None:
+        return []
+    rng = np.random.default_rng(0)
+    cand = src_nrm[rng.choice(len(src_nrm), size=min(200, len(src_nrm)), replace=False)]
+    near = (cand @ src_nrm.T) > np.cos(np.radians(5.0))
+    k = int(np.argmax(near.sum(axis=1)))
+    on = near[k]
+    ns = src_nrm[on].mean(axis=0)
+    ns /= np.linalg.norm(ns)
+    h = src_pts[on] @ ns  # several parallel planes (steps) share the normal: take the most populated
+    bins = np.floor((h - h.min()) / target.voxel_mm).astype(np.int64)
+    level = h.min() + (np.argmax(np.bincount(bins)) + 0.5) * target.voxel_mm
+    cs = src_pts[on][np.abs(h - level) < target.voxel_mm].mean(axis=0)
+    planes = sorted((f for f in target.model.faces if f.type == "plane"), key=lambda f: -f.area_mm2)[:n_faces]
+    poses = []
+    for f in planes:
+        sel = target.samples.face == f.index
+        m = target.samples.normals[sel].mean(axis=0)
+        m /= np.linalg.norm(m)
+        cm = target.samples.points[sel].mean(axis=0)
+        R0, _ = Rotation.align_vectors([m], [ns])
+        for deg in np.arange(0.0, 360.0, step_deg):
+            R = (Rotation.from_rotvec(np.radians(deg) * m) * R0).as_matrix()
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = cm - R @ cs
+            poses.append(T)
+    if not poses:
+        return []
+    pick = rng.choice(len(src_pts), size=min(300, len(src_pts)), replace=False)
+    v = target.voxel_mm
+    P = np.array([icp(src_pts[pick], src_nrm[pick], target.coarse, T, 20.0 * v, 2.0 * v, 45.0, 8, 0.5)
+                  for T in poses])  # a short, nearly point-to-point ICP: the plane centroids are only a guess
+    fits = fitness(src_pts[pick], src_nrm[pick], target.coarse, P, 3.0 * v, 45.0)
+    return [P[i] for i in np.argsort(-fits)[:n_best]]
+
+
 def coarse_feature_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: ModelTarget,
                          settings: RegistrationSettings, rng: np.random.Generator) -> list[np.ndarray]:
     """Distinct coarse poses from RSCS + descriptors + SAC-IA (or RANSAC), best first."""
@@ -712,7 +755,7 @@ def register(scan: ScanCloud, target: ModelTarget, settings: RegistrationSetting
     times["coarse"] = time.perf_counter() - t0
     if not poses:
         raise RegistrationFailed(f"{scan.source}: no consistent correspondences between the scan and {target.name}")
-    poses = with_flips(poses, src_pts)
+    poses = with_flips(poses, src_pts) + plane_poses(src_pts, src_nrm, target)
     t0 = time.perf_counter()
     inlier = 1.5 * v
     sub = rng.choice(len(src_pts), size=min(1500, len(src_pts)), replace=False)
@@ -730,9 +773,9 @@ def register(scan: ScanCloud, target: ModelTarget, settings: RegistrationSetting
     judged.sort(key=lambda j: -j[0])
     best = judged[0]
     times["verify"] = time.perf_counter() - t0
-    if best[1] < settings.min_fitness:
+    if best[1] < settings.min_fitness - 0.1:  # the coarse fit counts at a looser distance
         raise RegistrationFailed(f"{scan.source}: the best pose fits only {best[1]:.0%} of the scan within "
-                                 f"{inlier:.3g} mm of {target.name} (needs {settings.min_fitness:.0%}); wrong part, "
+                                 f"{inlier:.3g} mm of {target.name} (needs {settings.min_fitness - 0.1:.0%}); wrong part, "
                                  f"too little of it in view, or other units", best[1], best[2])
     centre = src_pts.mean(axis=0)
 
@@ -755,7 +798,8 @@ def register(scan: ScanCloud, target: ModelTarget, settings: RegistrationSetting
               if scan.viewpoint is not None else 0.0)
     if fit < settings.min_fitness:
         raise RegistrationFailed(f"{scan.source}: after the fine step only {fit:.0%} of the scan lies within "
-                                 f"{fine_inlier:.3g} mm of {target.name}", fit, rmse)
+                                 f"{fine_inlier:.3g} mm of {target.name} (needs {settings.min_fitness:.0%}): wrong "
+                                 f"part, or a part far from its model", fit, rmse)
     times["total"] = sum(times.values())
     method = f"rscs+{'+'.join(settings.descriptors)}+{settings.coarse}+icp" if settings.coarse != "ndt" else "ndt+icp"
     return Registration(T, fit, rmse, fine_inlier, best[4], method, bool(alternatives), alternatives, hidden,
