@@ -234,7 +234,8 @@ class FaceForm:
     on it; `raw_zone_mm` the minimum zone of the unfiltered points (noise included);
     `noise_floor_mm` the zone the filtered scanner noise alone would span; `noise_mm` the
     estimated height noise per point; `sq_mm` the roughness with that noise removed in
-    quadrature (`sq_raw_mm` before); deviation statistics of every point used."""
+    quadrature (`sq_raw_mm` before); deviation statistics of the points the figures rest
+    on (inside the edge margin, spikes dropped)."""
 
     points: int
     status: str
@@ -331,11 +332,9 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     rs = 1.4826 * np.median(np.abs(deviation - med))
     keep = np.abs(deviation - med) <= settings.outlier_sigma * max(rs, 1e-6)
     points, deviation, uv = points[keep], deviation[keep], uv[keep]
-    stats = dict(deviation_min_mm=float(deviation.min()), deviation_max_mm=float(deviation.max()),
-                 deviation_mean_mm=float(deviation.mean()), deviation_rms_mm=float(np.sqrt(np.mean(deviation ** 2))))
     xy = _surface_coordinates(face, points, uv)
     if xy is None:
-        return FaceForm(len(points), "ok", f"{face.type}: deviations only", **stats)  # type: ignore[attr-defined]
+        return FaceForm(len(points), "ok", f"{face.type}: deviations only", **_stats(deviation))  # type: ignore[attr-defined]
     zg, mask, g, ij, lo = _grid(xy, deviation)
     margin = int(np.ceil(settings.edge_margin_mm / g))
     region = ndimage.binary_closing(mask, np.ones((3, 3)), border_value=0) | mask  # sampling gaps closed, holes kept
@@ -343,7 +342,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
                     if margin else region)
     if inner.sum() < MIN_POINTS:
         return FaceForm(len(points), "too few points", f"fewer than {MIN_POINTS} grid cells of {g:.3g} mm left "
-                        f"inside the {settings.edge_margin_mm} mm edge margin", **stats)
+                        f"inside the {settings.edge_margin_mm} mm edge margin")
     zg = np.where(inner, zg, np.nan)  # the border band's mixed pixels must not leak into the filters
     sigma = noise_sigma(zg, inner)
     form = gaussian_filter(zg, inner, settings.form_cutoff_mm, g, order=2)
@@ -361,7 +360,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     raw_sel = inner[ij[:, 1], ij[:, 0]]
     common = dict(points=int(raw_sel.sum()), status="ok", noise_floor_mm=floor, sq_mm=sq, sq_raw_mm=sq_raw,
                   noise_mm=sigma, form_cutoff_mm=settings.form_cutoff_mm,
-                  roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=g, **stats)
+                  roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=g, **_stats(deviation[raw_sel]))
     if face.type == "plane":  # type: ignore[attr-defined]
         up = np.array([0.0, 0.0, 1.0])
         fp = np.column_stack([cxy, form[inner]])
@@ -383,6 +382,11 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         return FaceForm(cylindricity_ls_mm=float(r.max() - r.min()), cylindricity_mz_mm=cylindricity_mz(fp, o0, axis0),
                         raw_zone_mm=cylindricity_mz(raw, o0, axis0), **common)
     return FaceForm(note=f"{face.type}: texture and deviations only", **common)  # type: ignore[attr-defined]
+
+
+def _stats(deviation: np.ndarray) -> dict[str, float]:
+    return dict(deviation_min_mm=float(deviation.min()), deviation_max_mm=float(deviation.max()),
+                deviation_mean_mm=float(deviation.mean()), deviation_rms_mm=float(np.sqrt(np.mean(deviation ** 2))))
 
 
 def _unroll(xy: np.ndarray, radius: np.ndarray, R: float) -> np.ndarray:

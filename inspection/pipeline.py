@@ -97,7 +97,10 @@ def _verdicts(label: str, form: Any, tolerances: Tolerances | None) -> dict[str,
         return {}
     out = {}
     floor = form.noise_floor_mm or 0.0
+    own = tolerances.faces.get(label, {})
     for key, limit in tolerances.for_face(label).items():
+        if form.status != "ok" and key not in own:
+            continue  # a default limit does not ask for a face seen too little to measure
         if key == "flatness_mm":
             out[key] = (limit, verdict(form.flatness_mz_mm, limit, floor))
         elif key == "cylindricity_mm":
