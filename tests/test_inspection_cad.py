@@ -101,3 +101,13 @@ def test_mesh_model_faces_and_units() -> None:
     assert np.isclose(m_in_m.diagonal_mm, 1000 * m.diagonal_mm)
     c = sample_model(m, 1.0)
     assert abs(len(c) - sum(f.area_mm2 for f in m.faces)) < 5 * np.sqrt(len(c))
+
+
+@needs_step
+def test_scale_model_keeps_faces_ids_and_orientations(models: dict) -> None:
+    full = models["nist_ftc_06_asme1_rd.stp"]
+    small = load_cad(STEP_DIR / "nist_ftc_06_asme1_rd.stp", scale=0.4)
+    assert [f.step_id for f in small.faces] == [f.step_id for f in full.faces]
+    assert [f.sense for f in small.faces] == [f.sense for f in full.faces]
+    assert np.allclose([f.area_mm2 for f in small.faces], [0.16 * f.area_mm2 for f in full.faces], rtol=1e-9)
+    assert np.isclose(small.diagonal_mm, 0.4 * full.diagonal_mm, rtol=1e-3) and small.unit == "inch x 0.4"
