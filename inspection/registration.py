@@ -66,6 +66,8 @@ MAX_INCIDENCE_DEG = 75.0  # fine step: points seen more obliquely than this are 
 EXPLORED = 4  # verification: hypotheses explored further
 COARSE_TURNS_DEG = (2.5, 5.0, 10.0, 20.0, 30.0)  # verification: turns tried about the scan's principal axes
 FINE_TURNS_DEG = (0.1, 0.25, 0.5, 1.0, 2.0)  # and about the best pose, with a tight inlier distance
+EXACT_POINTS = 40000  # fine step: points in the exact-distance refinement
+FACE_BIAS_SIGMA = 3.0  # fine step: faces off their surface by more, as a group, are left out
 TANGENTIAL_WEIGHT = 0.1  # ICP: weight of an extra point-to-point term along the surface
 DESCRIPTOR_FRACTION = 5.0  # descriptors are computed on a grid of radius / this
 DESCRIPTOR_NN = 64  # neighbours per descriptor support at most
@@ -423,7 +425,8 @@ def plane_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: ModelTarget, n
     """Poses from the scan's dominant plane, for scans that are mostly one plane (a flat
     part seen from above), where local descriptors have little to grip: the plane laid on
     each of the model's largest planar faces, turned about its normal every `step_deg`,
-    plane centroids matched, each shortly refined by ICP; the `n_best` by fitness."""
+    plane centroids matched; the most promising shortly refined by ICP; the `n_best` by
+    fitness."""
     if target.model is None or target.samples is None:
         return []
     rng = np.random.default_rng(0)
@@ -455,8 +458,10 @@ def plane_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: ModelTarget, n
         return []
     pick = rng.choice(len(src_pts), size=min(300, len(src_pts)), replace=False)
     v = target.voxel_mm
-    P = np.array([icp(src_pts[pick], src_nrm[pick], target.coarse, T, 20.0 * v, 2.0 * v, 45.0, 8, 0.5)
-                  for T in poses])  # a short, nearly point-to-point ICP: the plane centroids are only a guess
+    P = np.array(poses)
+    first = np.argsort(-fitness(src_pts[pick], src_nrm[pick], target.coarse, P, 6.0 * v, 45.0))[:3 * n_best]
+    P = np.array([icp(src_pts[pick], src_nrm[pick], target.coarse, P[i], 20.0 * v, 2.0 * v, 45.0, 8, 0.5)
+                  for i in first])  # a short, nearly point-to-point ICP: the plane centroids are only a guess
     fits = fitness(src_pts[pick], src_nrm[pick], target.coarse, P, 3.0 * v, 45.0)
     return [P[i] for i in np.argsort(-fits)[:n_best]]
 
@@ -651,22 +656,38 @@ def refine_exact(src: np.ndarray, src_nrm: np.ndarray, T: np.ndarray, target: Mo
     """Gauss-Newton on the distances to the exact CAD faces: the points are assigned to
     faces once (`segmentation.assign_faces`: distance, normal, inside the face), then each
     step projects them onto their face's surface; residuals beyond 3 robust sigma are left
-    out, and a little damping keeps directions the data do not constrain where they are."""
+    out, and a little damping keeps directions the data do not constrain where they are.
+    Then, once converged, faces whose points sit off their surface as a group (median
+    residual beyond `FACE_BIAS_SIGMA` times the spread of the faces' medians) are left out
+    and the steps repeated: a face that is off as a whole (a pocket floor measured through
+    mixed pixels, or truly out of position on the part) must not pull the others."""
     assert target.model is not None and target.samples is not None
     seg = assign_faces(transform_points(T, src), src_nrm @ T[:3, :3].T, target.model, target.samples,
                        target.dense.tree, tol, max_normal_deg)
     src, face = src[seg.assigned], seg.face[seg.assigned]
     if len(src) < 6:
         return T
-    for _ in range(iterations):
-        q = transform_points(T, src)
-        _, foot, normal, r, _ = project_to_faces(target.model, q, face)
-        sigma = 1.4826 * np.median(np.abs(r))
-        ok = np.abs(r) < max(3.0 * sigma, 1e-4)
-        step, _ = _point_to_plane_step(q[ok], foot[ok], normal[ok], damping=1e-6)
-        T = _apply(step) @ T
-        if np.linalg.norm(step) < 1e-9:
+    use = np.ones(len(src), bool)
+    for rnd in range(2):
+        for _ in range(iterations):
+            q = transform_points(T, src[use])
+            _, foot, normal, r, _ = project_to_faces(target.model, q, face[use])
+            sigma = 1.4826 * np.median(np.abs(r))
+            ok = np.abs(r) < max(3.0 * sigma, 1e-4)
+            step, _ = _point_to_plane_step(q[ok], foot[ok], normal[ok], damping=1e-6)
+            T = _apply(step) @ T
+            if np.linalg.norm(step) < 1e-9:
+                break
+        if rnd:
             break
+        _, _, _, r, _ = project_to_faces(target.model, transform_points(T, src), face)
+        labels, inv, count = np.unique(face, return_inverse=True, return_counts=True)
+        med = np.array([np.median(r[inv == k]) for k in range(len(labels))])  # one per face seen
+        spread = 1.4826 * np.median(np.abs(med - np.median(med)))
+        off = np.abs(med - np.median(med)) > FACE_BIAS_SIGMA * max(spread, 1e-4)
+        if not off.any() or count[~off].sum() < 0.5 * len(src):
+            break
+        use = ~off[inv]
     return T
 
 
@@ -837,7 +858,7 @@ def _fine(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Registr
     first = sel[: max(len(sel) // 4, 1)]
     T = icp(p[first], n[first], target.dense, T, 1.5 * v, 0.1 * v, settings.max_normal_deg, 15)
     T = icp(p[sel], n[sel], target.dense, T, 0.5 * v, 0.05 * v, settings.max_normal_deg, 10)
-    if target.model is not None and target.model.kind == "step":  # exact distances: any points will do
-        sel = rng.choice(len(p), size=min(settings.max_points, len(p)), replace=False)
-        T = refine_exact(p[sel], n[sel], T, target, 0.3 * v, settings.max_normal_deg)
+    if target.model is not None and target.model.kind == "step":
+        sel = rng.choice(len(scan), size=min(EXACT_POINTS, len(scan)), replace=False)  # any point will do
+        T = refine_exact(scan.points[sel], scan.normals[sel], T, target, 0.3 * v, settings.max_normal_deg)
     return T
