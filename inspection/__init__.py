@@ -1,1 +1,21 @@
-"""Inspection against CAD: registration, segmentation, form evaluation, reports."""
+"""Inspection against CAD: a measured cloud registered to the part's STEP model (or a mesh),
+segmented by CAD face, each face's form errors evaluated, and the result reported.
+
+Modules (each one job):
+    errors        InspectionError and its kinds (CadError, CloudError, UnitMismatch, RegistrationFailed, ...)
+    surfaces      exact plane/cylinder/cone/sphere/torus/B-spline surfaces, vectorised evaluation and projection
+    cad           STEP (OpenCASCADE) and mesh models: faces with STEP ids, types, parameters, trimming; units
+    sampling      area-uniform labelled points on the exact faces
+    scan          measured clouds: sessions, PLY/PCD/XYZ, normals, the part isolated from its table, unit check
+    features      FPFH (Open3D) and SHOT (vectorised) descriptors
+    registration  RSCS, multivariate correspondences (Eq. 11), SAC-IA/RANSAC/NDT, verification, ICP, exact fine step
+    segmentation  every point assigned to its CAD face (distance, normal, inside the face), signed deviations
+    form          least-squares and minimum-zone flatness/cylindricity, ISO 16610-61 filter, Sq, noise floors
+    tolerances    per-face limits and ISO 14253-1 verdicts
+    report        the per-face table as JSON, CSV, text and HTML with the deviation map
+    recording     the result in the session's Rerun recording
+    pipeline      scan + model -> report
+
+Context-free segmentation (seed 002) lives beside it: `region_growing`, `local_features`,
+`segmetrics`, `instances`, `downsample`, `segmentation_errors`.
+"""

@@ -154,3 +154,17 @@ def test_register_and_cad_commands(demo, tmp_path: Path, capsys) -> None:
     assert len(cad["faces"]) == 13 and cad["counts"] == {"plane": 10, "cylinder": 2, "cone": 1}
     assert {"id", "type"} <= set(cad["faces"][0]) and cad["faces"][0]["id"] == 17
     assert cli.main(["register", str(tmp_path / "missing.ply"), str(STEP)]) == 2
+
+
+@pytest.mark.parametrize("coarse", ["ransac", "ndt"])
+def test_alternative_coarse_methods(demo, coarse: str) -> None:
+    model, target = demo
+    pose = lying_pose(model.tessellation.vertices, 0.35, 400.0, (0.5, 0.2))
+    view = virtual_view(model, pose)
+    G = np.eye(4)
+    G[:3, :3] = Rotation.random(random_state=5).as_matrix()
+    G[:3, 3] = [120.0, -80.0, 40.0]
+    moved = ScanCloud(view.points @ G[:3, :3].T + G[:3, 3], view.normals @ G[:3, :3].T, "moved", G[:3, 3])
+    reg = register(moved, target, RegistrationSettings(coarse=coarse))
+    angle, shift = pose_difference(reg.transform @ G, np.linalg.inv(pose), view.points.mean(axis=0))
+    assert coarse in reg.method and angle < 0.02 and shift < 0.02
