@@ -1,0 +1,522 @@
+"""Poses of thin flat parts lying in a bin (seed 001, sections 3-4), one per instance.
+
+A thin sheet-metal part (seed 001's nickel tab; `sim.bins.TabPart`) seen from above is a
+flat patch: its 0.25 mm walls are below the scanner's resolution, so local 3D descriptors
+see a plane and nothing else, and its two faces are indistinguishable by depth. What
+carries the pose in the plane, and the side, is the outline. So both the model and each
+instance are turned into "extruded" clouds — the visible face plus walls dropped from its
+outline, away from the camera, `PoseSettings.extrude_mm` deep — on which FPFH, NDT and
+point-to-plane ICP see the outline as 3D shape:
+
+- model (`ThinPartModel`, from a triangle mesh): the part's thin axis (area-weighted
+  normal covariance), its two large faces (front: normal along the axis, back: against
+  it), dense face samples, the boundary edges of each face (exact, from the mesh) sampled
+  with outward normals, and one extruded cloud per side (`SideModel`);
+- instance: its plane (SVD; normal toward the camera) and an occupancy grid in that
+  plane; boundary cells are "true" outline edges where the scene beside them is lower
+  (the tray, a part below), "occluded" where it is higher (a part on top) — only true
+  edges get walls, each placed on the outermost points and moved out by half a point
+  spacing (the mean inset of pixel samples behind an edge).
+
+Per instance (`estimate_pose`): coarse poses per side by SAC-IA (FPFH, triplets, the
+Huber score of Eq. 22: `registration.coarse_feature_poses`) or NDT (Eq. 23-26, Newton
+steps from 12 yaws about the instance's plane per side); each refined by point-to-plane
+ICP with normal-angle rejection (Eq. 27-29, `registration.icp`); the hypotheses of both
+sides (the flipped part is the mirror outline) judged by the outline fit: fitness of the
+extruded instance cloud minus the fraction of the posed face that would lie where the
+scene shows a lower surface; the best one refined on the full instance. A pose is
+reported only when it explains the instance (fitness of the real points on the posed
+face, planarity, size): otherwise the instance is reported as failed, with the reason.
+
+The occlusion estimate is the fraction of the posed visible face that falls where the
+scene shows a higher surface (unobserved cells — shadows, outside the view — excluded).
+
+Poses are part -> camera (4x4, mm). Units: mm, rad.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from .errors import CadError, InspectionError
+from .instances import Instance
+from .registration import (ModelTarget, RegistrationSettings, Samples, _ndt_grid, _ndt_refine,
+                           coarse_feature_poses, fitness, icp, transform_points)
+
+METHODS = ("sacia", "ndt")
+SIDES = ("front", "back")
+
+
+class PoseError(InspectionError):
+    """A part model or pose-estimation input is unusable (not a thin flat part, bad settings)."""
+
+
+@dataclass(frozen=True)
+class PoseSettings:
+    """`method`: coarse step, "sacia" or "ndt"; `extrude_mm` / `wall_levels`: depth and
+    levels of the walls dropped from outlines; `voxel_mm`: the coarse clouds' voxel;
+    `max_normal_deg`: ICP's normal-angle rejection; `min_fitness`: fraction of the
+    instance's points on the posed face (within `inlier_mm`) below which the pose fails;
+    `min_edge_fit`: the same for the instance's true outline points on the part's outline;
+    `max_spill`: fraction of the posed face allowed where a lower surface is seen;
+    `max_plane_rms_mm`: an instance farther from a plane is not one flat part;
+    `max_occlusion`: above it a part is not offered for picking; `min_points`: smaller
+    instances are not posed."""
+
+    method: str = "sacia"
+    extrude_mm: float = 1.5
+    wall_levels: int = 4
+    voxel_mm: float = 0.3
+    max_normal_deg: float = 30.0
+    min_fitness: float = 0.9
+    min_edge_fit: float = 0.8
+    inlier_mm: float = 0.15
+    max_spill: float = 0.05
+    max_plane_rms_mm: float = 0.1
+    max_occlusion: float = 0.3
+    min_points: int = 200
+    hypotheses: int = 150
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise PoseError(f"unknown pose method {self.method!r}; use one of {METHODS}")
+        if not (self.extrude_mm > 0 and self.wall_levels >= 1 and self.voxel_mm > 0 and 0 < self.min_fitness <= 1):
+            raise PoseError(f"inconsistent pose settings: {self}")
+
+
+# ------------------------------------------------------------------------------- model
+
+
+@dataclass(eq=False)
+class SideModel:
+    """One side of the part facing the camera (part frame): `face` samples of the visible
+    face with its outward normal, `outline` samples of its boundary with outward in-plane
+    normals, and `target`: face plus walls dropped `extrude_mm` away from the camera."""
+
+    side: str
+    face: Samples
+    outline: np.ndarray
+    outline_normals: np.ndarray
+    target: ModelTarget
+    ndt: dict[float, tuple] = field(default_factory=dict)
+    outline_tree: cKDTree = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.outline_tree = cKDTree(self.outline)
+
+
+@dataclass(eq=False)
+class ThinPartModel:
+    """A thin flat part from its mesh (part frame, mm): `axis` the unit normal of the front
+    face, `thickness_mm`, face `area_mm2`, in-plane `length_mm` (largest extent) and the
+    two `sides`; `u0` the face's principal in-plane direction (for NDT starts)."""
+
+    name: str
+    vertices: np.ndarray
+    triangles: np.ndarray
+    axis: np.ndarray
+    u0: np.ndarray
+    thickness_mm: float
+    area_mm2: float
+    length_mm: float
+    sides: dict[str, SideModel]
+
+    @classmethod
+    def from_mesh(cls, vertices: np.ndarray, triangles: np.ndarray, name: str,
+                  settings: PoseSettings = PoseSettings(), spacing_mm: float = 0.1) -> ThinPartModel:
+        """The model of a closed thin plate given as a triangle mesh (mm). The front face is
+        the large face whose normal has a positive part-frame z (or x, y if z is in-plane)."""
+        v = np.asarray(vertices, dtype=np.float64)
+        t = np.asarray(triangles, dtype=np.int64)
+        if v.ndim != 2 or v.shape[1] != 3 or t.ndim != 2 or t.shape[1] != 3 or not len(t):
+            raise CadError(name, f"not a triangle mesh: vertices {v.shape}, triangles {t.shape}")
+        if t.min() < 0 or t.max() >= len(v) or not np.isfinite(v).all():
+            raise CadError(name, "triangle indices out of range or non-finite vertices")
+        cross = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+        area = 0.5 * np.linalg.norm(cross, axis=1)
+        ok = area > 1e-12
+        normal = np.zeros_like(cross)
+        normal[ok] = cross[ok] / (2 * area[ok, None])
+        w, vec = np.linalg.eigh(np.einsum("n,ni,nj->ij", area, normal, normal))
+        axis = vec[:, 2]
+        k = 2 if abs(axis[2]) >= 0.3 else int(np.argmax(np.abs(axis)))
+        axis = axis * np.sign(axis[k])
+        cos = normal @ axis
+        front, back = ok & (cos > np.cos(np.radians(3))), ok & (cos < -np.cos(np.radians(3)))
+        if not front.any() or not back.any():
+            raise CadError(name, "no pair of opposite large flat faces: not a thin flat part")
+        levels = v @ axis
+        thickness = float(levels[t[front]].mean() - levels[t[back]].mean())
+        extent = np.ptp(v - np.outer(levels, axis), axis=0)
+        length = float(np.linalg.norm(extent))
+        face_area = float(area[front].sum())
+        if not (thickness > 0 and thickness < 0.2 * np.sqrt(face_area)) or w[2] < 0.6 * w.sum():
+            raise CadError(name, f"not a thin flat part: thickness {thickness:.3g} mm for a face of "
+                                 f"{face_area:.3g} mm²; pose estimation here handles flat sheet parts only")
+        rng = np.random.default_rng(0)
+        sides = {}
+        u0 = None
+        for side, sel, sign in (("front", front, 1.0), ("back", back, -1.0)):
+            tri = t[sel]
+            pts = _sample_triangles(v, tri, area[sel], spacing_mm, rng)
+            if u0 is None:
+                c = pts - pts.mean(axis=0)
+                u0 = np.linalg.eigh(c.T @ c)[1][:, 2]
+            edges, outward = _boundary_edges(v, tri, sign * axis)
+            b_pts, b_nrm = _sample_edges(v, edges, outward, spacing_mm / 2)
+            face_n = np.tile(sign * axis, (len(pts), 1))
+            depth = settings.extrude_mm * np.arange(1, settings.wall_levels + 1) / settings.wall_levels
+            walls = (b_pts[None] - sign * depth[:, None, None] * axis).reshape(-1, 3)
+            wall_n = np.tile(b_nrm, (len(depth), 1))
+            rim_n = np.tile(sign * axis, (len(b_pts), 1))
+            target = ModelTarget(np.concatenate([pts, b_pts, walls]), np.concatenate([face_n, rim_n, wall_n]),
+                                 f"{name} ({side} up)", settings.voxel_mm)
+            sides[side] = SideModel(side, Samples(pts, face_n), b_pts, b_nrm, target)
+        return cls(name, v, t, axis, u0, thickness, face_area, length, sides)
+
+
+def _sample_triangles(v: np.ndarray, tri: np.ndarray, area: np.ndarray, spacing: float,
+                      rng: np.random.Generator) -> np.ndarray:
+    """Points uniformly on the triangles, about one per `spacing`² of area."""
+    n = max(int(area.sum() / spacing ** 2), 100)
+    which = rng.choice(len(tri), size=n, p=area / area.sum())
+    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
+    a, b, c = (v[tri[which, k]] for k in range(3))
+    return (1 - r1)[:, None] * a + (r1 * (1 - r2))[:, None] * b + (r1 * r2)[:, None] * c
+
+
+def _boundary_edges(v: np.ndarray, tri: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Edges (E, 2) used by one triangle only of a face, and their outward in-plane unit
+    directions (E, 3) (away from the triangle's third vertex)."""
+    e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    third = np.concatenate([tri[:, 2], tri[:, 0], tri[:, 1]])
+    key = np.sort(e, axis=1)
+    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    once = counts[inv.ravel()] == 1
+    e, third = e[once], third[once]
+    d = v[e[:, 1]] - v[e[:, 0]]
+    out = np.cross(d, normal)
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    out[np.einsum("ij,ij->i", out, v[third] - v[e[:, 0]]) > 0] *= -1.0
+    return e, out
+
+
+def _sample_edges(v: np.ndarray, edges: np.ndarray, outward: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points every `step` along the edges, with their edge's outward direction."""
+    a, b = v[edges[:, 0]], v[edges[:, 1]]
+    n = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) / step).astype(np.int64), 1)
+    which = np.repeat(np.arange(len(edges)), n)
+    frac = (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)) / n[which]
+    return a[which] + frac[:, None] * (b - a)[which], outward[which]
+
+
+# ---------------------------------------------------------------------------- instance
+
+
+@dataclass(eq=False)
+class SceneContext:
+    """All scan points of the scene (camera frame, mm) and their KD-tree: what lies around
+    an instance tells its true outline edges from the edges where a part covers it."""
+
+    points: np.ndarray
+    tree: cKDTree = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.points = np.asarray(self.points, dtype=np.float64)
+        self.tree = cKDTree(self.points)
+
+
+@dataclass(eq=False)
+class _Patch:
+    """An instance in its own plane: centroid `c`, basis `e1`, `e2`, normal `n` (toward the
+    camera); grid (origin `lo`, cell `g`) labels: `observed` (the instance), `higher`
+    (a surface above its plane seen there), `lower` (below it, outside the instance)."""
+
+    c: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    n: np.ndarray
+    spacing: float
+    lo: np.ndarray
+    g: float
+    observed: np.ndarray
+    higher: np.ndarray
+    lower: np.ndarray
+    face_pts: np.ndarray
+    edge_pts: np.ndarray
+    wall_pts: np.ndarray
+    wall_nrm: np.ndarray
+    plane_rms: float
+    extent_mm: float
+
+    def cells(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(row, col, inside) grid cells of camera-frame points (via their plane coordinates)."""
+        d = p - self.c
+        ij = np.floor((np.stack([d @ self.e2, d @ self.e1], axis=1) - self.lo[::-1]) / self.g).astype(np.int64)
+        h, w = self.observed.shape
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < h) & (ij[:, 1] >= 0) & (ij[:, 1] < w)
+        return np.clip(ij[:, 0], 0, h - 1), np.clip(ij[:, 1], 0, w - 1), inside
+
+
+def _patch(points: np.ndarray, context: SceneContext | None, thickness: float, settings: PoseSettings) -> _Patch:
+    c = points.mean(axis=0)
+    d = points - c
+    _, s, vt = np.linalg.svd(d[:: max(1, len(d) // 5000)], full_matrices=False)
+    n = vt[2] * (-1.0 if vt[2] @ c > 0 else 1.0)   # toward the camera at the origin
+    e1 = vt[0] - (vt[0] @ n) * n
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    uv = np.stack([d @ e1, d @ e2], axis=1)
+    height = d @ n
+    plane_rms = float(np.sqrt(np.mean(height ** 2)))
+    sub = uv[:: max(1, len(uv) // 3000)]
+    spacing = float(np.median(cKDTree(sub).query(sub, k=2)[0][:, 1])) * np.sqrt(len(sub) / len(uv))
+    spacing = max(spacing, 1e-3)
+    g = 1.5 * spacing
+    margin = 4 * g
+    lo = uv.min(axis=0) - margin
+    shape = (int(np.ceil((uv[:, 1].max() + margin - lo[1]) / g)), int(np.ceil((uv[:, 0].max() + margin - lo[0]) / g)))
+    if shape[0] * shape[1] > 4e6:
+        raise PoseError(f"an instance spans {np.ptp(uv, axis=0).round(1).tolist()} mm at a point spacing of "
+                        f"{spacing:.3g} mm: too large for one part")
+    ij = np.floor((uv[:, ::-1] - lo[::-1]) / g).astype(np.int64)
+    observed = np.zeros(shape, np.uint8)
+    observed[ij[:, 0], ij[:, 1]] = 1
+    observed = cv2.morphologyEx(observed, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)).astype(bool)
+    higher = np.zeros(shape, bool)
+    lower = np.zeros(shape, bool)
+    if context is not None:
+        radius = float(np.hypot(*(np.array(shape) * g))) / 2
+        centre = c + (lo + np.array(shape[::-1]) * g / 2) @ np.stack([e1, e2])
+        near = context.points[context.tree.query_ball_point(centre, radius, workers=1)]
+        dn = near - c
+        hn = dn @ n
+        cij = np.floor((np.stack([dn @ e2, dn @ e1], axis=1) - lo[::-1]) / g).astype(np.int64)
+        ok = (cij[:, 0] >= 0) & (cij[:, 0] < shape[0]) & (cij[:, 1] >= 0) & (cij[:, 1] < shape[1]) & (np.abs(hn) < 20.0)
+        step = max(0.5 * thickness, 4 * plane_rms, 0.05)
+        higher[cij[ok & (hn > step), 0], cij[ok & (hn > step), 1]] = True
+        lower[cij[ok & (hn <= step), 0], cij[ok & (hn <= step), 1]] = True
+        lower &= ~observed & ~higher
+    # boundary: observed cells next to unobserved ones; true edges have a lower surface
+    # beside them and no higher one
+    kernel = np.ones((3, 3), np.uint8)
+    edge = observed & ~cv2.erode(observed.astype(np.uint8), kernel).astype(bool)
+    ring = np.ones((5, 5), np.uint8)
+    near_higher = cv2.dilate(higher.astype(np.uint8), ring).astype(bool)
+    near_lower = cv2.dilate(lower.astype(np.uint8), ring).astype(bool)
+    true_edge = edge & near_lower & ~near_higher if context is not None else edge
+    blur = cv2.GaussianBlur(observed.astype(np.float32), (0, 0), 1.5)
+    gy, gx = np.gradient(blur)
+    on = true_edge[ij[:, 0], ij[:, 1]]
+    out2 = -np.stack([gx[ij[on, 0], ij[on, 1]], gy[ij[on, 0], ij[on, 1]]], axis=1)
+    norm = np.linalg.norm(out2, axis=1)
+    good = norm > 1e-6
+    out2 = out2[good] / norm[good, None]
+    idx = np.flatnonzero(on)[good]
+    # keep the outermost points of the band (no neighbour farther out along the outward direction)
+    tree = cKDTree(uv)
+    dist, nb = tree.query(uv[idx], k=9)
+    along = np.einsum("knj,kj->kn", uv[np.minimum(nb, len(uv) - 1)] - uv[idx, None], out2)
+    outer = ~np.any(np.isfinite(dist) & (dist < 2.0 * spacing) & (along > 0.5 * spacing), axis=1)
+    idx, out2 = idx[outer], out2[outer]
+    out3 = out2[:, :1] * e1 + out2[:, 1:] * e2
+    edge_pts = c + (uv[idx] + 0.5 * spacing * out2) @ np.stack([e1, e2]) + np.outer(height[idx], n)
+    depth = settings.extrude_mm * np.arange(1, settings.wall_levels + 1) / settings.wall_levels
+    walls = (edge_pts[None] - depth[:, None, None] * n).reshape(-1, 3)
+    return _Patch(c, e1, e2, n, spacing, lo, g, observed, higher, lower, points, edge_pts,
+                  walls, np.tile(out3, (len(depth), 1)), plane_rms, float(np.linalg.norm(np.ptp(uv, axis=0))))
+
+
+# -------------------------------------------------------------------------------- pose
+
+
+@dataclass(frozen=True, eq=False)
+class PartPose:
+    """The pose of one instance, or why there is none. `pose` part -> camera (4x4, mm),
+    `side` "front" or "back" (the face toward the camera), `fitness`: fraction of the
+    instance's points on the posed face, `rmse_mm` their RMS distance to it, `occlusion`:
+    fraction of the posed visible face covered by something higher, `side_margin`:
+    outline-fit score of the chosen side minus the other's; `time_s` of the estimation."""
+
+    instance_id: int
+    ok: bool
+    reason: str
+    method: str
+    points: int
+    pose: np.ndarray | None = None
+    side: str | None = None
+    fitness: float = 0.0
+    rmse_mm: float = float("nan")
+    occlusion: float = float("nan")
+    side_margin: float = float("nan")
+    time_s: float = 0.0
+    label: str | None = None
+    edge_fit: float = float("nan")
+
+
+def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContext | None = None,
+                  settings: PoseSettings = PoseSettings()) -> PartPose:
+    """The pose of `model` explaining `instance` (camera frame), or a failed PartPose
+    saying why (see the module docstring)."""
+    t0 = time.perf_counter()
+    method = f"{settings.method}+icp"
+    pts = np.asarray(instance.points, dtype=np.float64)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+
+    def failed(reason: str, **kw: float) -> PartPose:
+        return PartPose(instance.id, False, reason, method, len(pts), time_s=time.perf_counter() - t0,
+                        label=instance.label, **kw)
+
+    if len(pts) < settings.min_points:
+        return failed(f"only {len(pts)} points (needs {settings.min_points})")
+    patch = _patch(pts, context, model.thickness_mm, settings)
+    if patch.plane_rms > settings.max_plane_rms_mm:
+        return failed(f"not one flat part: the points lie {patch.plane_rms:.3g} mm RMS off their plane "
+                      f"(limit {settings.max_plane_rms_mm:g} mm)")
+    area = len(pts) * patch.spacing ** 2
+    if patch.extent_mm > 1.2 * model.length_mm or area > 1.3 * model.area_mm2:
+        return failed(f"larger than one part: {patch.extent_mm:.1f} mm across, ~{area:.0f} mm² "
+                      f"(the part: {model.length_mm:.1f} mm, {model.area_mm2:.0f} mm²); merged instances?")
+    rng = np.random.default_rng(settings.seed)
+    face = _voxel_subset(pts, settings.voxel_mm)
+    src = np.concatenate([face, patch.wall_pts])
+    src_n = np.concatenate([np.tile(patch.n, (len(face), 1)), patch.wall_nrm])
+    keep = rng.choice(len(src), size=min(600, len(src)), replace=False)
+    sp, sn = src[keep], src_n[keep]
+    v = settings.voxel_mm
+    judged = []
+    for side in SIDES:
+        sm = model.sides[side]
+        if settings.method == "sacia":
+            rs = RegistrationSettings(descriptors=("fpfh",), coarse="sac-ia", spheres=(100,),
+                                      hypotheses=settings.hypotheses, verify=2, seed=settings.seed)
+            coarse = coarse_feature_poses(src, src_n, sm.target, rs, rng)
+        else:
+            coarse = _ndt_poses(src, patch, model, sm, 2)
+        if not coarse:
+            continue
+        refined = np.array([icp(sp, sn, sm.target.dense, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 20)
+                            for T in coarse])
+        fits = fitness(sp, sn, sm.target.dense, refined, 1.5 * v, settings.max_normal_deg)
+        for fit, T in zip(fits, refined):
+            judged.append((fit + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), side, T))
+    if not judged:
+        return failed(f"{settings.method}: no coarse pose (no consistent correspondences)")
+    judged.sort(key=lambda j: -j[0])
+    score, side, T = judged[0]
+    others = [j[0] for j in judged if j[1] != side]
+    margin = score - max(others) if others else float("inf")
+    sm = model.sides[side]
+    fine = _voxel_subset(pts, 2.0 * patch.spacing)
+    fine = fine[rng.choice(len(fine), size=min(600, len(fine)), replace=False)]
+    walls = patch.wall_pts[: len(patch.wall_pts) // settings.wall_levels]
+    fp = np.concatenate([fine, walls])
+    fn = np.concatenate([np.tile(patch.n, (len(fine), 1)), patch.wall_nrm[: len(walls)]])
+    T = icp(fp, fn, sm.target.dense, T, 2.0 * v, 2.0 * patch.spacing, settings.max_normal_deg, 20)
+    pose = np.linalg.inv(T)
+    check = pts[rng.choice(len(pts), size=min(2000, len(pts)), replace=False)]
+    q = transform_points(T, check)
+    near, j = sm.face.tree.query(q)
+    dist = np.einsum("ij,ij->i", q - sm.face.points[j], sm.face.normals[j])
+    inl = (near < settings.inlier_mm) & (np.abs(dist) < settings.inlier_mm)
+    fit = float(inl.mean())
+    rmse = float(np.sqrt(np.mean(dist[inl] ** 2))) if inl.any() else float("nan")
+    edge = _edge_fit(patch, sm, T, settings.inlier_mm)
+    spill = _spill(patch, sm, T)
+    occl = _occlusion(patch, sm, T)
+    kw = dict(fitness=fit, rmse_mm=rmse, occlusion=occl, side_margin=margin, edge_fit=edge)
+    if fit < settings.min_fitness:
+        return failed(f"the best pose ({side} up) puts only {fit:.0%} of the points on the part's face within "
+                      f"{settings.inlier_mm:g} mm (needs {settings.min_fitness:.0%}): not this part, or a "
+                      f"wrongly segmented instance", **kw)
+    if edge < settings.min_edge_fit:
+        return failed(f"the best pose ({side} up) puts only {edge:.0%} of the instance's outline points within "
+                      f"{settings.inlier_mm:g} mm of the part's outline (needs {settings.min_edge_fit:.0%})", **kw)
+    if spill > settings.max_spill:
+        return failed(f"the best pose ({side} up) puts {spill:.0%} of the part's face where a lower surface "
+                      f"is seen (limit {settings.max_spill:.0%}): no pose explains the instance's outline", **kw)
+    return PartPose(instance.id, True, "", method, len(pts), pose, side, fit, rmse, occl, margin,
+                    time.perf_counter() - t0, instance.label, edge)
+
+
+def _edge_fit(patch: _Patch, sm: SideModel, T: np.ndarray, tol_mm: float) -> float:
+    """Fraction of the instance's true outline points within `tol_mm` of the side's outline
+    (1 when the instance shows no true outline edge)."""
+    if not len(patch.edge_pts):
+        return 1.0
+    d, _ = sm.outline_tree.query(transform_points(T, patch.edge_pts), distance_upper_bound=tol_mm)
+    return float(np.isfinite(d).mean())
+
+
+def _voxel_subset(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One point per occupied voxel of side `voxel` (the first in each)."""
+    key = np.floor(points / voxel).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+def _face_cells(patch: _Patch, sm: SideModel, T: np.ndarray, n: int = 1500) -> tuple[np.ndarray, ...]:
+    """Grid cells (row, col, inside) of up to n of the side's face samples posed in the camera frame."""
+    face = sm.face.points[:: max(1, len(sm.face.points) // n)]
+    return patch.cells(transform_points(np.linalg.inv(T), face))
+
+
+def _spill(patch: _Patch, sm: SideModel, T: np.ndarray) -> float:
+    """Fraction of the posed face where a lower surface is seen (it would hide it)."""
+    r, c, inside = _face_cells(patch, sm, T)
+    return float(np.mean(inside & patch.lower[r, c]))
+
+
+def _occlusion(patch: _Patch, sm: SideModel, T: np.ndarray) -> float:
+    """Fraction of the posed face covered by a higher surface, among its cells that are
+    observed, covered or showing a lower surface (unobserved cells left out)."""
+    r, c, inside = _face_cells(patch, sm, T)
+    covered = inside & patch.higher[r, c] & ~patch.observed[r, c]
+    known = inside & (patch.observed[r, c] | patch.higher[r, c] | patch.lower[r, c])
+    return float(covered.sum() / max(known.sum(), 1))
+
+
+def _ndt_poses(src: np.ndarray, patch: _Patch, model: ThinPartModel, sm: SideModel, n_best: int) -> list[np.ndarray]:
+    """Seed 001 NDT (Eq. 23-26, `registration`'s Newton steps) from 12 yaws about the
+    instance's plane, the side's face laid on it and the centroids matched; cells of 2, 1,
+    0.5 mm. The n_best by score (scan -> model transforms)."""
+    cells = (2.0, 1.0, 0.5)
+    for cell in cells:
+        if cell not in sm.ndt:
+            sm.ndt[cell] = _ndt_grid(sm.target.coarse.points, cell)
+    sign = 1.0 if sm.side == "front" else -1.0
+    a = sign * model.axis
+    u0 = model.u0
+    M = np.stack([u0, np.cross(a, u0), a], axis=1)   # part basis, third axis toward the camera
+    mc = sm.face.points.mean(axis=0)
+    sub = src[:: max(1, len(src) // 600)]
+    poses, scores = [], []
+    for yaw in np.radians(np.arange(0.0, 360.0, 30.0)):
+        s1 = np.cos(yaw) * patch.e1 + np.sin(yaw) * patch.e2
+        S = np.stack([s1, np.cross(patch.n, s1), patch.n], axis=1)
+        P = np.eye(4)   # model -> scan
+        P[:3, :3] = S @ M.T
+        P[:3, 3] = patch.c - P[:3, :3] @ mc
+        T = np.linalg.inv(P)
+        score = 0.0
+        for cell in cells:
+            T, score = _ndt_refine(sub, T, sm.ndt[cell], cell, 8)
+        poses.append(T)
+        scores.append(score)
+    order = np.argsort(-np.array(scores))
+    return [poses[i] for i in order[:n_best]]
+
+
+def estimate_poses(instances: list[Instance], model: ThinPartModel, scene_points: np.ndarray | None = None,
+                   settings: PoseSettings = PoseSettings()) -> list[PartPose]:
+    """`estimate_pose` for every instance, with the scene's points as context (None: every
+    instance edge is taken as a true outline edge)."""
+    context = SceneContext(scene_points) if scene_points is not None and len(scene_points) else None
+    return [estimate_pose(i, model, context, settings) for i in instances]
