@@ -22,6 +22,11 @@ from the heights themselves (fourth differences along the grid, blind to the smo
 form and texture), Sq is reported with the noise removed in quadrature, and each zone
 comes with its noise floor: the zone the filtered noise alone would span.
 
+Profile of a surface (ISO 1101, zone centred on nominal): 2 max|d| over the form
+surface's signed deviations d, not over raw points, whose extremes are those of the noise
+(about sigma_n sqrt(2 ln N), 4-5 sigma_n for 1e4-1e6 points, on both sides); the raw
+extremes are kept beside it.
+
 Minimum zone (Chebyshev, the ISO 1101 default): the narrowest pair of parallel planes
 (coaxial cylinders) holding the surface, solved as a linear programme (HiGHS) on the
 planes' (cylinders') small-displacement parameters about the least-squares fit,
@@ -234,8 +239,12 @@ class FaceForm:
     on it; `raw_zone_mm` the minimum zone of the unfiltered points (noise included);
     `noise_floor_mm` the zone the filtered scanner noise alone would span; `noise_mm` the
     estimated height noise per point; `sq_mm` the roughness with that noise removed in
-    quadrature (`sq_raw_mm` before); deviation statistics of the points the figures rest
-    on (inside the edge margin, spikes dropped)."""
+    quadrature (`sq_raw_mm` before). Signed deviations from nominal: `deviation_*` of the
+    form surface (`deviation_source` "form surface"; "raw points" for a face without
+    surface coordinates to filter on, whose figures then carry the noise), `profile_mm`
+    = 2 max|deviation| (the ISO 1101 profile zone centred on nominal), `raw_deviation_*`
+    the extremes of the unfiltered points the figures rest on (inside the edge margin,
+    spikes dropped)."""
 
     points: int
     status: str
@@ -253,6 +262,10 @@ class FaceForm:
     deviation_max_mm: float | None = None
     deviation_mean_mm: float | None = None
     deviation_rms_mm: float | None = None
+    profile_mm: float | None = None
+    deviation_source: str | None = None
+    raw_deviation_min_mm: float | None = None
+    raw_deviation_max_mm: float | None = None
     form_cutoff_mm: float | None = None
     roughness_cutoff_mm: float | None = None
     grid_mm: float | None = None
@@ -334,7 +347,8 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     points, deviation, uv = points[keep], deviation[keep], uv[keep]
     xy = _surface_coordinates(face, points, uv)
     if xy is None:
-        return FaceForm(len(points), "ok", f"{face.type}: deviations only", **_stats(deviation))  # type: ignore[attr-defined]
+        return FaceForm(len(points), "ok", f"{face.type}: deviations of raw points only (no form filter)",  # type: ignore[attr-defined]
+                        **_stats(deviation, deviation, "raw points"))
     zg, mask, g, ij, lo = _grid(xy, deviation)
     margin = int(np.ceil(settings.edge_margin_mm / g))
     region = ndimage.binary_closing(mask, np.ones((3, 3)), border_value=0) | mask  # sampling gaps closed, holes kept
@@ -360,7 +374,8 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     raw_sel = inner[ij[:, 1], ij[:, 0]]
     common = dict(points=int(raw_sel.sum()), status="ok", noise_floor_mm=floor, sq_mm=sq, sq_raw_mm=sq_raw,
                   noise_mm=sigma, form_cutoff_mm=settings.form_cutoff_mm,
-                  roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=g, **_stats(deviation[raw_sel]))
+                  roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=g,
+                  **_stats(form[inner], deviation[raw_sel], "form surface"))
     if face.type == "plane":  # type: ignore[attr-defined]
         up = np.array([0.0, 0.0, 1.0])
         fp = np.column_stack([cxy, form[inner]])
@@ -384,9 +399,13 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     return FaceForm(note=f"{face.type}: texture and deviations only", **common)  # type: ignore[attr-defined]
 
 
-def _stats(deviation: np.ndarray) -> dict[str, float]:
-    return dict(deviation_min_mm=float(deviation.min()), deviation_max_mm=float(deviation.max()),
-                deviation_mean_mm=float(deviation.mean()), deviation_rms_mm=float(np.sqrt(np.mean(deviation ** 2))))
+def _stats(surface: np.ndarray, raw: np.ndarray, source: str) -> dict[str, float | str]:
+    """Deviation figures of `surface` (the form surface's deviations, or the raw ones),
+    its profile zone 2 max|d|, and the extremes of the `raw` point deviations (mm)."""
+    lo, hi = float(surface.min()), float(surface.max())
+    return dict(deviation_min_mm=lo, deviation_max_mm=hi, deviation_mean_mm=float(surface.mean()),
+                deviation_rms_mm=float(np.sqrt(np.mean(surface ** 2))), profile_mm=2.0 * max(abs(lo), abs(hi)),
+                deviation_source=source, raw_deviation_min_mm=float(raw.min()), raw_deviation_max_mm=float(raw.max()))
 
 
 def _unroll(xy: np.ndarray, radius: np.ndarray, R: float) -> np.ndarray:

@@ -109,10 +109,17 @@ def _verdicts(label: str, form: Any, tolerances: Tolerances | None) -> dict[str,
             unc = abs((form.sq_raw_mm or 0.0) - (form.sq_mm or 0.0))
             out[key] = (limit, verdict(form.sq_mm, limit, unc))
         elif key == "profile_mm":
-            zone = None if form.deviation_min_mm is None else 2.0 * max(abs(form.deviation_min_mm),
-                                                                           abs(form.deviation_max_mm))
-            out[key] = (limit, verdict(zone, limit, 2.0 * (form.noise_mm or 0.0)))
+            out[key] = (limit, verdict(form.profile_mm, limit, _profile_uncertainty(form)))
     return out
+
+
+def _profile_uncertainty(form: Any) -> float:
+    """What noise can add to a profile zone (mm): the filtered noise's zone (noise floor)
+    on the form surface; on raw points, twice the expected largest of `points` normal
+    deviates of the estimated noise, sigma sqrt(2 ln N)."""
+    if form.deviation_source == "form surface":
+        return form.noise_floor_mm or 0.0
+    return 2.0 * (form.noise_mm or 0.0) * float(np.sqrt(2.0 * np.log(max(form.points, 2))))
 
 
 def inspect_points(points: np.ndarray, model: CadModel, **kw: Any) -> InspectionReport:

@@ -27,7 +27,9 @@ from .form import FaceForm, FormSettings
 NOISE_NOTE = ("Scanner noise (sigma_n per point, estimated from the data) would widen a zone evaluated on raw "
               "points by several sigma_n and add sigma_n^2 to Sq^2: zones are evaluated on the form surface "
               "(noise divided by the filter), reported with the zone the filtered noise alone spans (noise floor), "
-              "Sq has sigma_n removed in quadrature, and a tolerance the noise floor cannot decide is 'uncertain'.")
+              "Sq has sigma_n removed in quadrature, the profile zone (2 max|deviation|) is taken on the form surface "
+              "(the raw points' extremes, 4-5 sigma_n of noise each side, are listed apart), and a tolerance the "
+              "noise floor cannot decide is 'uncertain'.")
 
 
 @dataclass(frozen=True)
@@ -98,9 +100,10 @@ class InspectionReport:
                 "timings_s": self.timings_s, "faces": [row.as_dict() for row in self.faces]}
 
     def table(self) -> str:
-        """The per-face table as text (values in mm; MZ = minimum zone, LS = least squares)."""
+        """The per-face table as text (values in mm; MZ = minimum zone, LS = least squares;
+        deviations and profile of the form surface; each limit with its verdict)."""
         head = (f"{'face':>8} {'type':<9} {'points':>8} {'flat MZ':>9} {'flat LS':>9} {'cyl MZ':>9} {'cyl LS':>9} "
-                f"{'Sq':>8} {'floor':>7} {'dev min':>8} {'dev max':>8}  verdict")
+                f"{'Sq':>8} {'floor':>7} {'dev min':>8} {'dev max':>8} {'profile':>8}  tolerance verdicts")
         lines = [head, "-" * len(head)]
 
         def f(x: float | None, w: int = 9) -> str:
@@ -108,10 +111,10 @@ class InspectionReport:
 
         for row in self.faces:
             m = row.form
-            v = ", ".join(f"{k.removesuffix('_mm')} {w}" for k, (_, w) in row.verdicts.items())
+            v = ", ".join(f"{k.removesuffix('_mm')} {lim:.3f} {w}" for k, (lim, w) in row.verdicts.items())
             lines.append(f"{row.label:>8} {row.type:<9} {m.points:>8} {f(m.flatness_mz_mm)} {f(m.flatness_ls_mm)} "
                          f"{f(m.cylindricity_mz_mm)} {f(m.cylindricity_ls_mm)} {f(m.sq_mm, 8)} "
-                         f"{f(m.noise_floor_mm, 7)} {f(m.deviation_min_mm, 8)} {f(m.deviation_max_mm, 8)}  "
+                         f"{f(m.noise_floor_mm, 7)} {f(m.deviation_min_mm, 8)} {f(m.deviation_max_mm, 8)} {f(m.profile_mm, 8)}  "
                          f"{v or m.status if m.status != 'ok' else v}")
         s = self.form_settings
         lines.append(f"registration fitness {self.fitness:.3f}, RMSE {self.rmse_mm * 1e3:.1f} um "
@@ -142,7 +145,7 @@ class InspectionReport:
         d = self.as_dict()
         cols = ["label", "type", "points", "flatness_mz_mm", "flatness_ls_mm", "cylindricity_mz_mm",
                 "cylindricity_ls_mm", "raw_zone_mm", "noise_floor_mm", "sq_mm", "deviation_min_mm",
-                "deviation_max_mm", "status"]
+                "deviation_max_mm", "profile_mm", "raw_deviation_min_mm", "raw_deviation_max_mm", "status"]
         vcols = sorted({k for r in d["faces"] for k in r if k.startswith(("tolerance_", "verdict_"))})
 
         def cell(v: Any) -> str:

@@ -22,6 +22,8 @@ from .rig import DEFAULT_RIG
 from .session import write_json
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
+DEMO_CAD = CONFIG_DIR / "parts" / "demo_part.step"  # the demo scene's part as a STEP model
+DEMO_TOLERANCES = CONFIG_DIR / "tolerances" / "demo_part.toml"
 
 
 class ProgressLine:
@@ -57,7 +59,9 @@ def _parse_faults(items: Sequence[str]) -> Any:
     return Faults.from_table(table, "--fault", prefix="--fault")
 
 
-def cmd_scan(args: argparse.Namespace) -> int:
+def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
+    """`slscan scan`; `then(result, recording)` runs after processing, into the session's
+    recording (`pipeline.scan`)."""
     from .patterns import PatternSet
     from .pipeline import scan
     from .rig import RigConfig, open_rig
@@ -75,7 +79,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
     with open_rig(config, **options) as rig:
-        result = scan(rig, patterns, out, ProgressLine())
+        result = scan(rig, patterns, out, ProgressLine(), then)
     report(result)
     return 0
 
@@ -140,9 +144,36 @@ def cmd_review(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    """Scan the bundled part on the simulated rig, then (unless --no-inspect) inspect the
+    session against the part's STEP model and tolerances: registration, per-face
+    segmentation, form table; report files in the session's outputs/, the inspection in
+    its recording. Exit 1 when a tolerance fails."""
+    import time
+
     out = args.out or f"sessions/demo-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
     ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[])
-    return cmd_scan(ns)
+    if args.no_inspect:
+        return cmd_scan(ns)
+    done: dict[str, Any] = {}
+
+    def inspect_scan(result: Any, recording: Any) -> None:
+        from .commands.inspect import inspect_source
+
+        print(f"inspect   {result.session.root} against {DEMO_CAD.name} ({DEMO_TOLERANCES.name})", file=sys.stderr)
+        t0, c0 = time.perf_counter(), time.process_time()
+        done["report"] = inspect_source(result.session.root, DEMO_CAD, DEMO_TOLERANCES, seed=args.seed,
+                                        recording=recording)
+        done["seconds"], done["cpu"] = time.perf_counter() - t0, time.process_time() - c0
+
+    t0 = time.perf_counter()
+    cmd_scan(ns, inspect_scan)
+    rep, outputs = done["report"], Path(out) / "outputs"
+    print(rep.table())
+    print(f"report    {outputs / 'inspection.html'} (.json, .csv); inspection in the recording under "
+          f"world/inspection/ and inspection/")
+    print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU (registration "
+          f"{rep.timings_s['register']:.1f} s); demo {time.perf_counter() - t0:.1f} s wall")
+    return 1 if rep.verdict == "fail" else 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -178,9 +209,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--port", type=int, default=9090)
     r.set_defaults(func=cmd_review)
 
-    m = sub.add_parser("demo", help="scan the bundled part on the default simulated rig")
+    m = sub.add_parser("demo", help="scan the bundled part on the default simulated rig and inspect it against "
+                                    "its STEP model")
     m.add_argument("--out", help="session folder (default: sessions/demo-<time>)")
     m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--no-inspect", action="store_true", help="scan only (no inspection against the STEP model)")
     m.set_defaults(func=cmd_demo)
 
     for name in MODULES:

@@ -145,11 +145,16 @@ def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triang
         return process(session, progress, rec, mode=mode)
 
 
-def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress = _quiet) -> ScanResult:
+def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress = _quiet,
+         then: Callable[[ScanResult, SessionRecording], None] | None = None) -> ScanResult:
     """Capture, decode and reconstruct one scan, recording every stage to the session's
-    Rerun file."""
+    Rerun file. `then(result, recording)`, if given, runs a later stage (`slscan demo`'s
+    inspection) into the same recording before it is closed."""
     writer = SessionWriter.create(out_dir)
     with SessionRecording(writer.root / RECORDING, writer.id) as rec:
         rec.log_rig(rig.model)
         session = capture(rig, patterns, writer, progress, rec)
-        return process(session, progress, rec)
+        result = process(session, progress, rec)
+        if then is not None:
+            then(result, rec)
+        return result
