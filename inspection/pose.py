@@ -37,7 +37,7 @@ Poses are part -> camera (4x4, mm). Units: mm, rad.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -67,7 +67,8 @@ class PoseSettings:
     `max_spill`: fraction of the posed face allowed where a lower surface is seen;
     `max_plane_rms_mm`: an instance farther from a plane is not one flat part;
     `max_occlusion`: above it a part is not offered for picking; `min_points`: smaller
-    instances are not posed."""
+    instances are not posed; `attempts`: SAC-IA runs (fresh samples) before an
+    instance is reported as failed."""
 
     method: str = "sacia"
     extrude_mm: float = 1.5
@@ -82,6 +83,7 @@ class PoseSettings:
     max_occlusion: float = 0.3
     min_points: int = 200
     hypotheses: int = 150
+    attempts: int = 2
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -295,23 +297,23 @@ def _patch(points: np.ndarray, context: SceneContext | None, thickness: float, s
     if context is not None:
         radius = float(np.hypot(*(np.array(shape) * g))) / 2
         centre = c + (lo + np.array(shape[::-1]) * g / 2) @ np.stack([e1, e2])
-        near = context.points[context.tree.query_ball_point(centre, radius, workers=1)]
-        dn = near - c
-        hn = dn @ n
+        near = context.points[context.tree.query_ball_point(centre, radius + 5.0, workers=1)]
+        hn = (near - c) @ n
+        # onto the plane along the camera rays (the camera at the origin): what the camera
+        # sees beside the instance's edge lands beside it, however far below or above
+        ray = near @ n
+        dn = near * ((c @ n) / np.where(np.abs(ray) > 1e-9, ray, 1e-9))[:, None] - c
         cij = np.floor((np.stack([dn @ e2, dn @ e1], axis=1) - lo[::-1]) / g).astype(np.int64)
         ok = (cij[:, 0] >= 0) & (cij[:, 0] < shape[0]) & (cij[:, 1] >= 0) & (cij[:, 1] < shape[1]) & (np.abs(hn) < 20.0)
         step = max(0.5 * thickness, 4 * plane_rms, 0.05)
         higher[cij[ok & (hn > step), 0], cij[ok & (hn > step), 1]] = True
         lower[cij[ok & (hn <= step), 0], cij[ok & (hn <= step), 1]] = True
         lower &= ~observed & ~higher
-    # boundary: observed cells next to unobserved ones; true edges have a lower surface
-    # beside them and no higher one
+    # boundary: observed cells next to unobserved ones; true edges have no higher surface
+    # beside them (but a lower one, or none: a shadow the part casts on what is below)
     kernel = np.ones((3, 3), np.uint8)
     edge = observed & ~cv2.erode(observed.astype(np.uint8), kernel).astype(bool)
-    ring = np.ones((5, 5), np.uint8)
-    near_higher = cv2.dilate(higher.astype(np.uint8), ring).astype(bool)
-    near_lower = cv2.dilate(lower.astype(np.uint8), ring).astype(bool)
-    true_edge = edge & near_lower & ~near_higher if context is not None else edge
+    true_edge = edge & ~cv2.dilate(higher.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     blur = cv2.GaussianBlur(observed.astype(np.float32), (0, 0), 1.5)
     gy, gx = np.gradient(blur)
     on = true_edge[ij[:, 0], ij[:, 1]]
@@ -385,6 +387,19 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
         return failed(f"larger than one part: {patch.extent_mm:.1f} mm across, ~{area:.0f} mm² "
                       f"(the part: {model.length_mm:.1f} mm, {model.area_mm2:.0f} mm²); merged instances?")
     rng = np.random.default_rng(settings.seed)
+    outcome: tuple[str, dict] = ("", {})
+    for _ in range(settings.attempts if settings.method == "sacia" else 1):   # SAC-IA is randomised: retry
+        outcome = _fit(pts, patch, model, settings, rng)
+        if isinstance(outcome, PartPose):
+            return replace(outcome, instance_id=instance.id, points=len(pts), time_s=time.perf_counter() - t0,
+                           label=instance.label)
+    return failed(outcome[0], **outcome[1])
+
+
+def _fit(pts: np.ndarray, patch: _Patch, model: ThinPartModel, settings: PoseSettings,
+         rng: np.random.Generator) -> PartPose | tuple[str, dict]:
+    """One coarse + fine fit: the PartPose (id, points, time filled by the caller), or
+    (why it fails, the figures of the best pose)."""
     face = _voxel_subset(pts, settings.voxel_mm)
     src = np.concatenate([face, patch.wall_pts])
     src_n = np.concatenate([np.tile(patch.n, (len(face), 1)), patch.wall_nrm])
@@ -402,13 +417,13 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
             coarse = _ndt_poses(src, patch, model, sm, 2)
         if not coarse:
             continue
-        refined = np.array([icp(sp, sn, sm.target.dense, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 20)
+        refined = np.array([icp(sp, sn, sm.target.coarse, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15)
                             for T in coarse])
-        fits = fitness(sp, sn, sm.target.dense, refined, 1.5 * v, settings.max_normal_deg)
+        fits = fitness(sp, sn, sm.target.coarse, refined, 1.5 * v, settings.max_normal_deg)
         for fit, T in zip(fits, refined):
             judged.append((fit + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), side, T))
     if not judged:
-        return failed(f"{settings.method}: no coarse pose (no consistent correspondences)")
+        return f"{settings.method}: no coarse pose (no consistent correspondences)", {}
     judged.sort(key=lambda j: -j[0])
     score, side, T = judged[0]
     others = [j[0] for j in judged if j[1] != side]
@@ -419,7 +434,7 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
     walls = patch.wall_pts[: len(patch.wall_pts) // settings.wall_levels]
     fp = np.concatenate([fine, walls])
     fn = np.concatenate([np.tile(patch.n, (len(fine), 1)), patch.wall_nrm[: len(walls)]])
-    T = icp(fp, fn, sm.target.dense, T, 2.0 * v, 2.0 * patch.spacing, settings.max_normal_deg, 20)
+    T = icp(fp, fn, sm.target.dense, T, 2.0 * v, 2.0 * patch.spacing, settings.max_normal_deg, 15)
     pose = np.linalg.inv(T)
     check = pts[rng.choice(len(pts), size=min(2000, len(pts)), replace=False)]
     q = transform_points(T, check)
@@ -433,17 +448,16 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
     occl = _occlusion(patch, sm, T)
     kw = dict(fitness=fit, rmse_mm=rmse, occlusion=occl, side_margin=margin, edge_fit=edge)
     if fit < settings.min_fitness:
-        return failed(f"the best pose ({side} up) puts only {fit:.0%} of the points on the part's face within "
-                      f"{settings.inlier_mm:g} mm (needs {settings.min_fitness:.0%}): not this part, or a "
-                      f"wrongly segmented instance", **kw)
+        return (f"the best pose ({side} up) puts only {fit:.0%} of the points on the part's face within "
+                f"{settings.inlier_mm:g} mm (needs {settings.min_fitness:.0%}): not this part, or a wrongly "
+                f"segmented instance", kw)
     if edge < settings.min_edge_fit:
-        return failed(f"the best pose ({side} up) puts only {edge:.0%} of the instance's outline points within "
-                      f"{settings.inlier_mm:g} mm of the part's outline (needs {settings.min_edge_fit:.0%})", **kw)
+        return (f"the best pose ({side} up) puts only {edge:.0%} of the instance's outline points within "
+                f"{settings.inlier_mm:g} mm of the part's outline (needs {settings.min_edge_fit:.0%})", kw)
     if spill > settings.max_spill:
-        return failed(f"the best pose ({side} up) puts {spill:.0%} of the part's face where a lower surface "
-                      f"is seen (limit {settings.max_spill:.0%}): no pose explains the instance's outline", **kw)
-    return PartPose(instance.id, True, "", method, len(pts), pose, side, fit, rmse, occl, margin,
-                    time.perf_counter() - t0, instance.label, edge)
+        return (f"the best pose ({side} up) puts {spill:.0%} of the part's face where a lower surface is seen "
+                f"(limit {settings.max_spill:.0%}): no pose explains the instance's outline", kw)
+    return PartPose(0, True, "", f"{settings.method}+icp", 0, pose, side, fit, rmse, occl, margin, edge_fit=edge)
 
 
 def _edge_fit(patch: _Patch, sm: SideModel, T: np.ndarray, tol_mm: float) -> float:

@@ -15,6 +15,8 @@ Bins (for instance extraction and pose estimation):
     first touch). The `sim.scene.Scene` holds the parts as meshes (ids 2, 3, … in drop
     order; the tray is id 1), so the simulator's ground truth gives per-pixel instance
     ids; the poses (part -> camera frame) and sides are returned beside it.
+    `BinScene.occlusion` gives each part's hidden fraction (ray cast), `scan_bin` a quick
+    simulated scan (ray-cast truth with depth noise and projector shadows).
 
 Cluttered clouds (for region growing, seed 002): `clutter_cloud` builds a room corner
 (floor, wall), boxes (resting on the floor, against the wall, touching each other),
@@ -182,6 +184,55 @@ class BinScene:
     @property
     def object_ids(self) -> np.ndarray:
         return np.arange(2, 2 + len(self.poses))
+
+    def occlusion(self, camera_mm: np.ndarray = np.zeros(3), spacing_mm: float = 0.2) -> np.ndarray:
+        """Per part, the fraction (0..1) of its face toward the camera that other parts hide
+        from the camera centre `camera_mm` (scene frame): rays from the camera to face
+        samples every `spacing_mm`, hidden where another part is hit first."""
+        import open3d as o3d
+
+        verts, tris = self.part.mesh()
+        lo, hi = verts[:, :2].min(axis=0), verts[:, :2].max(axis=0)
+        gx, gy = np.meshgrid(np.arange(lo[0], hi[0], spacing_mm), np.arange(lo[1], hi[1], spacing_mm))
+        grid = np.stack([gx.ravel(), gy.ravel()], axis=1)
+        loops = [self.part.outline(), self.part.hole()] if self.part.hole_radius_mm > 0 else [self.part.outline()]
+        grid = grid[_inside(grid, loops)]
+        rc = o3d.t.geometry.RaycastingScene()
+        for o in self.scene.objects:
+            rc.add_triangles(o3d.core.Tensor(o.world_vertices().astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32)))
+        out = np.zeros(len(self.poses))
+        for k, (T, up) in enumerate(zip(self.poses, self.front_up)):
+            z = self.part.thickness_mm if up else 0.0
+            face = np.c_[grid, np.full(len(grid), z)] @ T[:3, :3].T + T[:3, 3]
+            d = face - camera_mm
+            dist = np.linalg.norm(d, axis=1)
+            rays = np.c_[np.broadcast_to(camera_mm, d.shape), d / dist[:, None]].astype(np.float32)
+            ans = rc.cast_rays(o3d.core.Tensor(rays))
+            hit_t, geom = ans["t_hit"].numpy(), ans["geometry_ids"].numpy()
+            out[k] = np.mean((hit_t < dist - 1e-3) & (geom != k))
+        return out
+
+
+def scan_bin(b: BinScene, model: object, noise_mm: float = 0.01, seed: int = 0) -> tuple[object, np.ndarray]:
+    """A quick simulated scan of bin `b` with the rig `model` (`scanner.geometry.RigModel`):
+    the simulator's ray-cast ground truth (no fringe rendering or decoding), Gaussian depth
+    noise of `noise_mm` along each camera ray, pixels the projector does not light left
+    invalid (as a fringe scan leaves shadows), normals from the noisy points as the scanner
+    computes them. Returns (`OrganisedCloud` in the camera frame, object ids (H, W): 0
+    nothing, 1 tray, 2.. parts in drop order)."""
+    from scanner.pointcloud import OrganisedCloud, organised_normals
+
+    from .render import compute_ground_truth
+
+    gt = compute_ground_truth(model, b.scene)  # type: ignore[arg-type]
+    rng = np.random.default_rng(seed)
+    ray = gt.points / np.linalg.norm(gt.points, axis=2, keepdims=True)
+    pts = gt.points + rng.normal(0.0, noise_mm, gt.shape)[..., None] * ray
+    pts[~gt.lit] = np.nan
+    pts = pts.astype(np.float32)
+    normals = organised_normals(pts[..., 0], pts[..., 1], pts[..., 2])
+    ids = np.where(gt.lit, gt.object_id, 0).astype(np.int32)
+    return OrganisedCloud(pts, np.zeros(gt.shape, np.uint8), normals), ids
 
 
 def bin_scene(n_parts: int, seed: int = 0, part: TabPart = TabPart(), tray_mm: float = 420.0,
