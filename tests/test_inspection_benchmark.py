@@ -164,6 +164,7 @@ def test_nist_registration_benchmark(name: str) -> None:
     summary = {"part": name, "scale": scale, "views": VIEWS, "model_preparation_s": prep,
                "face_label_agreement": agree, "methods": table, "load_average": os.getloadavg()}
     print(json.dumps(summary, indent=1))
+    print(format_table(summary))
     if os.environ.get("BENCH_OUT"):
         path = Path(os.environ["BENCH_OUT"])
         data = json.loads(path.read_text()) if path.exists() else {}
@@ -172,6 +173,26 @@ def test_nist_registration_benchmark(name: str) -> None:
     main = table["multivariate (FPFH+SHOT)"]
     assert main["runs"] == VIEWS * STARTS and main["success"] >= 0.98
     assert min(agree) >= 0.99
+
+
+def format_table(summary: dict) -> str:
+    """The benchmark of one part as a text table (errors in deg / mm, times in s)."""
+    lines = [f"{summary['part']} (scale {summary['scale']}, {summary['views']} views; load average "
+             f"{', '.join(f'{x:.2f}' for x in summary['load_average'])}; model preparation "
+             f"{summary['model_preparation_s']:.1f} s; face labels agree on "
+             f"{', '.join(f'{a:.2%}' for a in summary['face_label_agreement'])} of points > 0.5 mm from an edge)",
+             f"{'method':<28} {'runs':>4} {'success':>8} {'med rot':>9} {'med trans':>9} {'max rot ok':>10} "
+             f"{'max tr ok':>9} {'med wall':>8} {'med CPU':>8}"]
+
+    def f(x: float | None, fmt: str) -> str:
+        return "-" if x is None else format(x, fmt)
+
+    for label, m in summary["methods"].items():
+        lines.append(f"{label:<28} {m['runs']:>4} {m['success']:>8.1%} {f(m['median_rot_deg'], '.4f'):>9} "
+                     f"{f(m['median_trans_mm'], '.4f'):>9} {f(m['max_rot_deg_of_successes'], '.4f'):>10} "
+                     f"{f(m['max_trans_mm_of_successes'], '.4f'):>9} {m['median_wall_s']:>8.2f} "
+                     f"{m['median_cpu_s']:>8.2f}")
+    return "\n".join(lines)
 
 
 def _edge_distance(model, points: np.ndarray, face: np.ndarray) -> np.ndarray:
