@@ -333,3 +333,55 @@ def _instance(i: int, idx: np.ndarray, cloud: OrganisedCloud, source: str, mask:
     pts = cloud.points.reshape(-1, 3)[idx].astype(np.float64)
     nrm = cloud.normals.reshape(-1, 3)[idx].astype(np.float64)
     return Instance(i, idx.astype(np.int64), pts, nrm, source, mask, label, score)
+
+
+# ------------------------------------------------------------------- from depth steps
+
+
+def instances_from_depth_steps(cloud: OrganisedCloud, step_mm: float = 0.1, tray_tol_mm: float = 0.08,
+                               min_points: int = 200, seed: int = 0) -> list[Instance]:
+    """Parts lying on a tray, from an organised scan without masks: the tray (the dominant
+    plane, RANSAC within `tray_tol_mm`) removed, the remaining pixels split into connected
+    regions where 4-neighbours join only if their depths differ by less than `step_mm` (a
+    part lying on another is at least its thickness above it, so the step at its edge
+    separates them). Regions of fewer than `min_points` are dropped; ids 1.. by size."""
+    import open3d as o3d
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    valid = cloud.valid
+    if valid.sum() < 3:
+        return []
+    pts = cloud.points.reshape(-1, 3).astype(np.float64)
+    idx = np.flatnonzero(valid.ravel())
+    rng = np.random.default_rng(seed)
+    sub = pts[rng.choice(idx, size=min(50000, len(idx)), replace=False)]
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sub))
+    o3d.utility.random.seed(seed)
+    plane, _ = pc.segment_plane(tray_tol_mm, 3, 500)
+    n = np.asarray(plane[:3])
+    d = float(plane[3])
+    if n @ np.zeros(3) + d < 0:   # signed distance positive toward the camera (origin)
+        n, d = -n, -d
+    above = np.zeros(valid.size, bool)
+    above[idx] = (pts[idx] @ n + d) > tray_tol_mm
+    h, w = valid.shape
+    z = cloud.points[..., 2].reshape(-1)
+    grid = np.arange(h * w).reshape(h, w)
+    edges = []
+    for a, b in ((grid[:, :-1], grid[:, 1:]), (grid[:-1, :], grid[1:, :])):
+        a, b = a.ravel(), b.ravel()
+        join = above[a] & above[b] & (np.abs(z[a] - z[b]) < step_mm)
+        edges.append((a[join], b[join]))
+    rows = np.concatenate([e[0] for e in edges])
+    cols = np.concatenate([e[1] for e in edges])
+    graph = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(h * w, h * w))
+    _, comp = connected_components(graph, directed=False)
+    comp = np.where(above, comp, -1)
+    ids, counts = np.unique(comp[comp >= 0], return_counts=True)
+    big = ids[counts >= min_points][np.argsort(-counts[counts >= min_points], kind="stable")]
+    out = []
+    for k, c in enumerate(big, start=1):
+        mask = comp == c
+        out.append(_instance(k, np.flatnonzero(mask), cloud, "segmentation", mask.reshape(h, w), None))
+    return out

@@ -6,4 +6,4 @@ arguments and returns the exit code. Modules are imported when the parser is bui
 import heavy libraries (OpenCASCADE, USB, ...) inside their command functions only.
 """
 
-MODULES: tuple[str, ...] = ("scanner.commands.devices", "scanner.commands.station", "scanner.commands.calibrate", "scanner.commands.segment", "scanner.commands.inspect")
+MODULES: tuple[str, ...] = ("scanner.commands.devices", "scanner.commands.station", "scanner.commands.calibrate", "scanner.commands.segment", "scanner.commands.inspect", "scanner.commands.pose")
