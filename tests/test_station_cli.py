@@ -81,7 +81,7 @@ def test_killed_mid_scan_loses_no_result_and_leaves_the_session_incomplete(tmp_p
                       str(report)).communicate(timeout=60)
     assert f"report {report / 'report.html'}" in err
     html = (report / "report.html").read_text()
-    assert html.count("<img src='charts/") == 4 and "3 parts (last cycle per serial): 2 pass, 1 fail" in html
+    assert html.count("<img src='charts/") == 5 and "3 parts (last cycle per serial): 2 pass, 1 fail" in html
 
 
 def test_interrupted_mid_scan_stores_the_cycle_as_aborted(tmp_path: Path) -> None:

@@ -9,12 +9,14 @@ from pathlib import Path
 
 import pytest
 
+from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError
 from scanner.rig import RigConfig
 from scanner.station.calib import CalibrationInfo, refusals, rig_calibration
 from scanner.station.config import StationConfig
 from scanner.station.measure import cad_faces
 from scanner.station.program import load_program
+from sim.station_parts import CHARACTERISTIC_FACES
 from test_station_support import DEMO_PROGRAM, program_copy, small_rig, station_config
 
 TODAY = dt.date(2026, 11, 23)
@@ -22,30 +24,36 @@ TODAY = dt.date(2026, 11, 23)
 
 def test_demo_program_loads_with_faces_checked_in_the_cad() -> None:
     p = load_program(DEMO_PROGRAM)
-    assert p.name == "demo-part" and p.version == "1.0" and len(p.fingerprint) == 12
-    assert [c.name for c in p.characteristics] == ["high_top_flatness", "low_top_flatness", "high_top_profile",
-                                                   "high_top_sq"]
-    assert p.characteristic("low_top_flatness").method == "minimum_zone"
+    assert p.name == "demo-part" and p.version == "2.0" and len(p.fingerprint) == 12
+    assert [c.name for c in p.characteristics] == ["high_top_flatness", "low_top_flatness", "boss_cylindricity",
+                                                   "high_top_profile", "high_top_sq"]
+    assert p.characteristic("boss_cylindricity").method == "minimum_zone"
     assert p.characteristic("high_top_sq").method is None
     assert p.scan.views == 1 and p.scan.exposure_s == 0.010 and p.scan.pattern_set().n_frames == 12
     faces = cad_faces(p)
     assert isinstance(faces, dict), faces  # the inspection CAD loader is in place
-    assert p.face_check.startswith(f"{len(faces)} faces in demo_part.ply")
-    assert faces["F2"] == "plane" and faces["F1"] == "plane" and faces["F3"] == "mesh"
+    assert p.face_check == f"13 faces in demo_part.step, all 5 characteristics found" and len(faces) == 13
+    assert (faces["#657"], faces["#158"], faces["#17"], faces["#105"]) == ("plane", "plane", "cylinder", "cone")
+
+
+def test_demo_program_and_the_simulated_parts_name_the_same_faces() -> None:
+    """The simulated parts' truth is keyed by characteristic name and imposed on STEP faces;
+    the program must measure each characteristic on the face the simulator deformed."""
+    assert {c.name: c.face for c in load_program(DEMO_PROGRAM).characteristics} == CHARACTERISTIC_FACES
 
 
 @pytest.mark.parametrize("edit, key", [
-    (('kind = "profile"', 'kind = "roundness"'), "characteristic[2].kind"),
+    (('kind = "profile"', 'kind = "roundness"'), "characteristic[3].kind"),
     (('"minimum_zone"\ntolerance_mm = 0.05\n', '"minimum_zone"\ntolerance_mm = -0.05\n'),
      "characteristic[0].tolerance_mm"),
     (('method = "minimum_zone"', 'method = "chebyshev"'), "characteristic[0].method"),
-    (('kind = "sq"', 'kind = "sq"\nmethod = "least_squares"'), "characteristic[3].method"),
+    (('kind = "sq"', 'kind = "sq"\nmethod = "least_squares"'), "characteristic[4].method"),
     (('name = "low_top_flatness"', 'name = "high_top_flatness"'), "characteristic[1].name"),
     (("views = 1", "views = 0"), "scan.views"),
     (("exposure_s = 0.010", 'exposure_s = "fast"'), "scan.exposure_s"),
     (("views = 1", "view = 1"), "scan.view"),
     (('id = "factory-sim-bench"', 'identity = "factory-sim-bench"'), "calibration.identity"),
-    (('version = "1.0"\n', ""), "program.version"),
+    (('version = "2.0"\n', ""), "program.version"),
 ])
 def test_bad_program_names_file_and_key(tmp_path: Path, edit: tuple[str, str], key: str) -> None:
     path = program_copy(tmp_path, edit)
@@ -55,25 +63,32 @@ def test_bad_program_names_file_and_key(tmp_path: Path, edit: tuple[str, str], k
 
 
 def test_face_the_cad_does_not_have_is_refused(tmp_path: Path) -> None:
-    path = program_copy(tmp_path, ('face = "F1"', 'face = "F99"'))
-    with pytest.raises(ConfigError, match="face 'F99' .* is not in demo_part.ply") as err:
+    path = program_copy(tmp_path, ('face = "#158"', 'face = "#999"'))
+    with pytest.raises(ConfigError, match="face '#999' .* is not in demo_part.step; its faces are #17, #105") as err:
         load_program(path)
     assert err.value.key == "characteristic[1].face"
-    assert load_program(path, check_faces=False).characteristics[1].face == "F99"  # the schema alone is fine
+    assert load_program(path, check_faces=False).characteristics[1].face == "#999"  # the schema alone is fine
 
 
 @pytest.mark.parametrize("edit, problem", [
-    (('face = "F1"', 'face = "F3"'), "flatness applies to plane faces; face F3 of demo_part.ply is a mesh face "
-                                     "(a mesh face of no known surface type: use a STEP model)"),
-    (('kind = "flatness"\nmethod = "minimum_zone"\ntolerance_mm = 0.05\n\n[[characteristic]]\nname = "low',
-      'kind = "cylindricity"\nmethod = "minimum_zone"\ntolerance_mm = 0.05\n\n[[characteristic]]\nname = "low'),
-     "cylindricity applies to cylinder faces; face F2 of demo_part.ply is a plane"),
+    (('face = "#158"', 'face = "#105"'), "flatness applies to plane faces; face #105 of demo_part.step is a cone"),
+    (('face = "#17"', 'face = "#270"'), "cylindricity applies to cylinder faces; face #270 of demo_part.step is a plane"),
 ])
 def test_characteristic_on_a_face_of_the_wrong_type_is_refused(tmp_path: Path, edit: tuple[str, str],
                                                                problem: str) -> None:
     with pytest.raises(ConfigError) as err:
         load_program(program_copy(tmp_path, edit))
     assert err.value.problem == problem
+
+
+def test_mesh_face_of_no_known_type_is_refused_for_a_form_characteristic(tmp_path: Path) -> None:
+    """A mesh CAD model has faces but no surface types: flatness on one is refused."""
+    path = program_copy(tmp_path, ('face = "#657"', 'face = "F3"'), cad=f'"{CONFIG_DIR / "parts" / "demo_part.ply"}"')
+    with pytest.raises(ConfigError) as err:
+        load_program(path)
+    assert err.value.key == "characteristic[0].face"
+    assert err.value.problem == ("flatness applies to plane faces; face F3 of demo_part.ply is a mesh face "
+                                 "(a mesh face of no known surface type: use a STEP model)")
 
 
 def test_missing_cad_file_is_named(tmp_path: Path) -> None:

@@ -63,7 +63,7 @@ def program_copy(folder: Path, edit: tuple[str, str] | None = None, **subs: str)
     """The demo program copied into `folder` (CAD and patterns still pointing at config/),
     with `edit` = (old, new) applied once (it must occur)."""
     text = DEMO_PROGRAM.read_text()
-    text = text.replace('cad = "demo_part.ply"', f'cad = "{CONFIG_DIR / "parts" / "demo_part.ply"}"')
+    text = text.replace('cad = "demo_part.step"', f'cad = "{CONFIG_DIR / "parts" / "demo_part.step"}"')
     text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
     if edit is not None:
         assert edit[0] in text, edit[0]
