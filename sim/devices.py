@@ -515,7 +515,9 @@ class SimCamera(Camera):
 
 class SimTriggerBox(TriggerSource):
     """A pulse generator: once armed and started, calls every connected output `count`
-    times, one pulse every `period_s` (the first at start)."""
+    times, one pulse every `period_s` (the first at start). Its input (the operator's foot
+    switch, firmware protocol 2) counts `press()`es; `presses()` reads them as the
+    driver's `TriggerBox.presses()` does."""
 
     def __init__(self, name: str = "sim-trigger-box") -> None:
         super().__init__(name)
@@ -523,6 +525,23 @@ class SimTriggerBox(TriggerSource):
         self._train: tuple[int, float, float] | None = None
         self._sent = 0
         self._pulses = _Ticker(f"{name}-pulses")
+        self._input_lock = threading.Lock()
+        self._pressed = 0  # presses counted since the box started
+        self._presses_seen: int | None = None
+
+    def press(self) -> None:
+        """The foot switch is pressed once (a debounced press on the box's input); from any
+        thread, never raising (a switch does not throw into a dead box)."""
+        with self._input_lock:
+            self._pressed += 1
+
+    def presses(self) -> int:
+        """Presses since the previous call; 0 at the first call (as the driver)."""
+        self._check_alive()
+        with self._input_lock:
+            count, seen = self._pressed, self._presses_seen
+            self._presses_seen = count
+        return 0 if seen is None else count - seen
 
     def connect(self, callback: Callable[[], None]) -> None:
         """Connect an input (e.g. `SimProjector.trigger_in`, `SimCamera.trigger_in`);

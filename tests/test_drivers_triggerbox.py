@@ -11,7 +11,8 @@ from scanner.drivers.testing import SILENT, Exchange, FakeSerial, Unplug, expect
 from scanner.drivers.triggerbox import TriggerBox
 from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
 
-HELLO = Exchange(b"ID?\n", b"ID SLSCAN-TRIGGERBOX 1 rp2040\n")
+HELLO = Exchange(b"ID?\n", b"ID SLSCAN-TRIGGERBOX 2 rp2040\n")
+HELLO_V1 = Exchange(b"ID?\n", b"ID SLSCAN-TRIGGERBOX 1 avr\n")  # firmware without the input
 
 
 def box(opener, **kw) -> TriggerBox:
@@ -37,10 +38,10 @@ def test_arm_start_count_stop_exchange() -> None:
 def test_board_resetting_on_open_is_waited_for() -> None:
     # the first ID? is lost while the bootloader runs; the READY banner comes 0.1 s after opening
     script = [Exchange(b"ID?\n", SILENT), HELLO]
-    port = FakeSerial(script, banner=b"\x00\xffREADY SLSCAN-TRIGGERBOX 1\r\n", banner_delay_s=0.1, timeout=0.05)
+    port = FakeSerial(script, banner=b"\x00\xffREADY SLSCAN-TRIGGERBOX 2\r\n", banner_delay_s=0.1, timeout=0.05)
     t0 = time.monotonic()
     with expected_protocol(box, port) as b:
-        assert b.identity == {"protocol": "1", "board": "rp2040"}
+        assert b.identity == {"protocol": "2", "board": "rp2040"}
     assert time.monotonic() - t0 < 0.5
 
 
@@ -55,8 +56,8 @@ def test_silent_port_times_out_within_boot_timeout() -> None:
 def test_wrong_device_or_protocol_is_refused() -> None:
     with pytest.raises(DeviceError, match="not an SLSCAN-TRIGGERBOX"):
         TriggerBox(lambda: FakeSerial([Exchange(b"ID?\n", b"ID OTHER-THING 1 x\n")]))
-    with pytest.raises(DeviceError, match="protocol 2, this driver 1"):
-        TriggerBox(lambda: FakeSerial([Exchange(b"ID?\n", b"ID SLSCAN-TRIGGERBOX 2 avr\n")]))
+    with pytest.raises(DeviceError, match="protocol 3, this driver 1..2"):
+        TriggerBox(lambda: FakeSerial([Exchange(b"ID?\n", b"ID SLSCAN-TRIGGERBOX 3 avr\n")]))
 
 
 def test_error_reply_names_the_command() -> None:
@@ -94,7 +95,59 @@ def test_unplugged_mid_sequence_then_reconnects() -> None:
 
 
 def test_box_restarting_mid_command_is_reported() -> None:
-    script = [HELLO, Exchange(b"START\n", b"READY SLSCAN-TRIGGERBOX 1\n")]
+    script = [HELLO, Exchange(b"START\n", b"READY SLSCAN-TRIGGERBOX 2\n")]
     with expected_protocol(box, FakeSerial(script)) as b:
         with pytest.raises(DeviceError, match="restarted while handling 'START'"):
             b.start()
+
+
+def test_foot_switch_presses_are_counted_between_polls() -> None:
+    # the box counts presses since it started; the driver reports those since its last poll
+    script = [HELLO,
+              Exchange(b"PRESSES?\n", b"PRESSES 4\n"),   # first poll: the baseline, presses before it do not count
+              Exchange(b"PRESSES?\n", b"PRESSES 4\n"),
+              Exchange(b"PRESSES?\n", b"PRESSES 5\n"),
+              Exchange(b"PRESSES?\n", b"PRESSES 7\n"),
+              Exchange(b"STOP\n", b"OK\n")]
+    with expected_protocol(box, FakeSerial(script)) as b:
+        assert [b.presses() for _ in range(4)] == [0, 0, 1, 2]
+        b.shutdown()
+
+
+def test_foot_switch_count_of_a_restarted_box_is_all_new() -> None:
+    first = FakeSerial([HELLO, Exchange(b"PRESSES?\n", b"PRESSES 9\n"), Unplug()])
+    second = FakeSerial([HELLO, Exchange(b"PRESSES?\n", b"PRESSES 1\n")])  # it rebooted: counts from 0 again
+    with expected_protocol(box, first, second) as b:
+        assert b.presses() == 0
+        with pytest.raises(DeviceDisconnected, match="serial link lost sending 'PRESSES\\?'"):
+            b.presses()
+        assert b.presses() == 1
+
+
+def test_foot_switch_on_protocol_1_firmware_is_refused_without_asking() -> None:
+    script = [HELLO_V1, Exchange(b"COUNT?\n", b"COUNT 0 0\n")]
+    with expected_protocol(box, FakeSerial(script)) as b:
+        assert b.pulses_sent == 0  # protocol 1 still drives pulse trains
+        with pytest.raises(UnsupportedSetting, match="firmware protocol 1 has no input .*flash firmware/triggerbox"):
+            b.presses()
+
+
+def test_garbled_press_count_is_an_error() -> None:
+    with expected_protocol(box, FakeSerial([HELLO, Exchange(b"PRESSES?\n", b"PRESSES x\n")])) as b:
+        with pytest.raises(DeviceError, match="unexpected reply to PRESSES\\?: 'PRESSES x'"):
+            b.presses()
+
+
+def test_simulated_box_counts_its_foot_switch_like_the_driver() -> None:
+    from sim.devices import SimTriggerBox
+
+    sim = SimTriggerBox()
+    sim.press()  # before the first poll: not counted
+    assert sim.presses() == 0
+    sim.press()
+    sim.press()
+    assert (sim.presses(), sim.presses()) == (2, 0)
+    sim.shutdown()
+    sim.press()  # a switch does not throw into a dead box
+    with pytest.raises(DeviceDisconnected):
+        sim.presses()

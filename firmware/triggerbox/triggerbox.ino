@@ -1,40 +1,47 @@
-// slscan trigger box, reference firmware (protocol version 1).
+// slscan trigger box, reference firmware (protocol version 2).
 //
 // Boards: Arduino Uno / Nano (ATmega328P) and Raspberry Pi Pico (RP2040, arduino-pico core).
 // Output: TRIGGER_PIN goes high for WIDTH us at the start of every pulse; wire it (through a
 // level shifter or opto-coupler where the inputs need it) to the projector's TRIG_IN and
 // the camera's trigger line. The on-board LED lights while a train runs.
+// Input: INPUT_PIN (internal pull-up) is the operator's foot switch, a normally-open contact
+// to GND; each press (the contact closing and staying closed for DEBOUNCE_MS) is counted.
 //
 // Line protocol (115200 baud, "\n" or "\r\n" line ends, one reply line per command; the
 // host driver is scanner/drivers/triggerbox.py, whose docstring is the reference):
-//   ID?            -> ID SLSCAN-TRIGGERBOX 1 <board>
+//   ID?            -> ID SLSCAN-TRIGGERBOX 2 <board>
 //   PERIOD <us>    -> OK        100..10000000
 //   WIDTH <us>     -> OK        1..period-1 (checked at ARM)
 //   ARM <n>        -> OK        1..1000000
 //   START          -> OK        first pulse now, then one per period
 //   STOP           -> OK
 //   COUNT?         -> COUNT <sent> <armed>
+//   PRESSES?       -> PRESSES <n>   foot-switch presses since start-up (protocol 2)
 //   errors         -> ERR <code> <text>: 1 unknown command, 2 bad value,
 //                     3 width not below period, 4 not armed, 5 busy
-// On start-up the firmware prints "READY SLSCAN-TRIGGERBOX 1".
+// On start-up the firmware prints "READY SLSCAN-TRIGGERBOX 2".
 //
 // Timing: pulses are scheduled from one start time (t0 + i * period, no drift) and driven
 // from loop(), so jitter is a few microseconds; serial commands are parsed between pulses
-// without blocking.
+// without blocking. The input is sampled from loop() too; the host polls the press count
+// (an event counter: no unsolicited lines, no press lost between polls).
 
 #include <Arduino.h>
 
 #if defined(ARDUINO_ARCH_RP2040)
 static const char *BOARD = "rp2040";
 static const uint8_t TRIGGER_PIN = 15;
+static const uint8_t INPUT_PIN = 14;
 #else
 static const char *BOARD = "avr";
 static const uint8_t TRIGGER_PIN = 2;
+static const uint8_t INPUT_PIN = 3;
 #endif
 
 static const uint32_t MIN_PERIOD_US = 100;
 static const uint32_t MAX_PERIOD_US = 10000000UL;
 static const uint32_t MAX_COUNT = 1000000UL;
+static const uint32_t DEBOUNCE_MS = 20;
 
 static uint32_t period_us = 50000;
 static uint32_t width_us = 100;
@@ -43,6 +50,10 @@ static uint32_t sent = 0;       // pulses sent since ARM
 static bool running = false;
 static bool pin_high = false;
 static uint32_t t0 = 0;         // micros() of the first pulse
+static uint32_t presses = 0;    // debounced foot-switch presses since start-up
+static bool input_closed = false;   // debounced state of the input
+static bool input_raw = false;      // last sampled state
+static uint32_t input_changed = 0;  // millis() when the sampled state last changed
 
 static char line[48];
 static uint8_t line_len = 0;
@@ -79,13 +90,16 @@ static void stop_train() {
 static void handle(const char *cmd) {
   uint32_t v;
   if (strcmp(cmd, "ID?") == 0) {
-    Serial.print("ID SLSCAN-TRIGGERBOX 1 ");
+    Serial.print("ID SLSCAN-TRIGGERBOX 2 ");
     Serial.println(BOARD);
   } else if (strcmp(cmd, "COUNT?") == 0) {
     Serial.print("COUNT ");
     Serial.print(sent);
     Serial.print(' ');
     Serial.println(armed);
+  } else if (strcmp(cmd, "PRESSES?") == 0) {
+    Serial.print("PRESSES ");
+    Serial.println(presses);
   } else if (strncmp(cmd, "PERIOD ", 7) == 0) {
     if (running) { reply_error(5, "busy"); return; }
     if (!parse_u32(cmd + 7, &v) || v < MIN_PERIOD_US || v > MAX_PERIOD_US) { reply_error(2, "bad value"); return; }
@@ -154,20 +168,35 @@ static void run_train() {
   }
 }
 
+// Counts a press when the input has been closed (low) for DEBOUNCE_MS after being open.
+static void poll_input() {
+  bool raw = digitalRead(INPUT_PIN) == LOW;
+  uint32_t now = millis();
+  if (raw != input_raw) {
+    input_raw = raw;
+    input_changed = now;
+  } else if (raw != input_closed && now - input_changed >= DEBOUNCE_MS) {
+    input_closed = raw;
+    if (raw) presses++;
+  }
+}
+
 void setup() {
   pinMode(TRIGGER_PIN, OUTPUT);
   digitalWrite(TRIGGER_PIN, LOW);
   pinMode(LED_BUILTIN, OUTPUT);
   digitalWrite(LED_BUILTIN, LOW);
+  pinMode(INPUT_PIN, INPUT_PULLUP);
   Serial.begin(115200);
 #if defined(ARDUINO_ARCH_RP2040)
   uint32_t wait_start = millis();
   while (!Serial && millis() - wait_start < 2000) {}  // native USB: give the host time to open the port
 #endif
-  Serial.println("READY SLSCAN-TRIGGERBOX 1");
+  Serial.println("READY SLSCAN-TRIGGERBOX 2");
 }
 
 void loop() {
   run_train();
+  poll_input();
   poll_serial();
 }

@@ -1,6 +1,6 @@
 """A microcontroller trigger box over a serial line (reference firmware in firmware/triggerbox/).
 
-Line protocol, version 1: ASCII, one command per line ending in "\\n" (the box also takes
+Line protocol, version 2: ASCII, one command per line ending in "\\n" (the box also takes
 "\\r\\n"), exactly one reply line per command. Times are integer microseconds.
 
     host                    box                                  meaning
@@ -11,6 +11,9 @@ Line protocol, version 1: ASCII, one command per line ending in "\\n" (the box a
     START                   OK                                   first pulse now, then one per period
     STOP                    OK                                   stop a running train (harmless otherwise)
     COUNT?                  COUNT <sent> <armed>                 pulses sent since ARM, pulses armed
+    PRESSES?                PRESSES <n>                          presses of the input (the operator's
+                                                                 foot switch), debounced, counted since
+                                                                 the box started (protocol 2)
     (anything wrong)        ERR <code> <text>                    1 unknown command, 2 bad value,
                                                                  3 width not below period, 4 not armed,
                                                                  5 busy (a train is running)
@@ -20,6 +23,11 @@ Boards whose USB-serial bridge resets the microcontroller when the port opens (A
 Uno/Nano through DTR) miss what is sent during their boot; `connect` therefore repeats
 "ID?" until the box answers, taking a READY banner as the sign to ask again at once,
 within `boot_timeout_s`. A broken link is dropped and reopened at the next call.
+
+The input is an event counter rather than a message the box sends by itself, so every
+reply still answers one command and no press is lost between two polls: `presses()`
+returns the presses since its previous call. Protocol 1 (the same commands without
+PRESSES?) is still driven; only `presses()` needs protocol 2.
 """
 
 from __future__ import annotations
@@ -34,7 +42,8 @@ from ..errors import DeviceDisconnected, DeviceError, DeviceTimeout, Unsupported
 from .transport import SerialLink, open_serial
 
 IDENTITY = "SLSCAN-TRIGGERBOX"
-PROTOCOL = 1
+PROTOCOL = 2
+INPUT_PROTOCOL = 2  # the first protocol with the input (PRESSES?)
 BAUDRATE = 115200
 ERROR_CODES = {1: "unknown command", 2: "bad value", 3: "width not below period", 4: "not armed", 5: "busy"}
 _ID_RETRY_S = 0.3
@@ -45,7 +54,8 @@ def serial_opener(name: str, port: str, timeout_s: float = 0.5) -> Callable[[], 
 
 
 class TriggerBox(TriggerSource):
-    """Pulse trains from the reference trigger-box firmware (see the module docstring)."""
+    """Pulse trains from the reference trigger-box firmware, and presses of its input
+    (see the module docstring)."""
 
     def __init__(self, open_port: Callable[[], SerialLink], name: str = "trigger-box", boot_timeout_s: float = 3.0,
                  timeout_s: float = 0.5) -> None:
@@ -55,12 +65,30 @@ class TriggerBox(TriggerSource):
         self.identity: dict[str, str] = {}
         self._open_port = open_port
         self._port: SerialLink | None = None
+        self._presses_seen: int | None = None  # the box's press count at the last presses() call
         self._connect()
 
     def ask(self, command: str) -> str:
         """Send one command line; its reply line (an ERR reply raises)."""
         self._check_alive()
         return self._ask(command)
+
+    def presses(self) -> int:
+        """Presses of the box's input (the foot switch) since the previous call; 0 at the
+        first call, so presses before the station was ready never start a scan. A box
+        that restarted counts from 0 again: its count is then taken as new presses."""
+        self._check_alive()
+        if int(self.identity.get("protocol", PROTOCOL)) < INPUT_PROTOCOL:
+            raise UnsupportedSetting(self.name, f"firmware protocol {self.identity['protocol']} has no input (foot "
+                                                f"switch); flash firmware/triggerbox from this slscan version")
+        reply = self._ask("PRESSES?").split()
+        if len(reply) != 2 or reply[0] != "PRESSES" or not reply[1].isdigit():
+            raise DeviceError(self.name, f"unexpected reply to PRESSES?: {' '.join(reply)!r}")
+        count, seen = int(reply[1]), self._presses_seen
+        self._presses_seen = count
+        if seen is None:
+            return 0
+        return count - seen if count >= seen else count
 
     def _do_arm(self, count: int, period_s: float, pulse_width_s: float) -> None:
         period_us, width_us = round(period_s * 1e6), round(pulse_width_s * 1e6)
@@ -128,8 +156,8 @@ class TriggerBox(TriggerSource):
         parts = line.split()
         if len(parts) < 4 or parts[1] != IDENTITY:
             raise DeviceError(self.name, f"device answered {line!r}: not an {IDENTITY}; check the port")
-        if parts[2] != str(PROTOCOL):
-            raise DeviceError(self.name, f"firmware speaks protocol {parts[2]}, this driver {PROTOCOL}: flash "
+        if not parts[2].isdigit() or not 1 <= int(parts[2]) <= PROTOCOL:
+            raise DeviceError(self.name, f"firmware speaks protocol {parts[2]}, this driver 1..{PROTOCOL}: flash "
                                          f"firmware/triggerbox from this slscan version")
         self.identity = {"protocol": parts[2], "board": parts[3]}
 

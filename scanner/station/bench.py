@@ -7,36 +7,28 @@ lineup in front of it (part k is lineup[k % len]) and saves that part's imposed 
 into every session (`sim_part.json`), so each result has its truth beside it.
 
 The operator's start signal comes from the keyboard or from the bench: `start_pressed()`
-reads the bench's start input (a foot switch). The simulated bench has a `SimFootSwitch`;
-the trigger-box protocol (scanner/drivers/triggerbox.py) has no input line yet, so a
-hardware bench reports no presses until it gets one.
+reads the foot switch on the trigger box's input (protocol 2, `presses()` of
+scanner/drivers/triggerbox.py). On hardware that is the rig's trigger box, when the rig
+has one; the simulated bench keeps one `sim.devices.SimTriggerBox` for the whole run
+(`switch`; `switch.press()` presses its foot switch), as its rigs come and go per part.
+Call it between cycles only: the scan talks to the same box.
 """
 
 from __future__ import annotations
 
-import threading
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Protocol
 
+from ..errors import DeviceError
 from ..rig import Rig, RigConfig, open_rig
 from ..session import write_json
 
 
-class SimFootSwitch:
-    """A simulated start input: `press()` from any thread, `pressed()` reads and clears it."""
+class StartInput(Protocol):
+    """A foot switch on a trigger box's input: presses since the previous call."""
 
-    def __init__(self) -> None:
-        self._event = threading.Event()
-
-    def press(self) -> None:
-        self._event.set()
-
-    def pressed(self) -> bool:
-        if self._event.is_set():
-            self._event.clear()
-            return True
-        return False
+    def presses(self) -> int: ...
 
 
 class Bench:
@@ -46,8 +38,16 @@ class Bench:
         self.config = config
         self.seed = seed
         self.simulated = config.driver == "sim"
-        self.switch = SimFootSwitch() if self.simulated else None
+        self.switch: Any = None  # the simulated bench's trigger box (its input is the foot switch)
+        self.input_problem = ""  # why the foot switch stopped being read ("" while it works)
+        self._input: StartInput | None = None
         self._rig: Rig | None = None
+        if self.simulated:
+            from sim.devices import SimTriggerBox
+
+            self.switch = SimTriggerBox("sim-bench-trigger-box")
+            self._input = self.switch
+            self.switch.presses()  # presses before the station was ready do not count
 
     def __enter__(self) -> Bench:
         return self
@@ -59,14 +59,36 @@ class Bench:
         if self._rig is not None:
             self._rig.shutdown()
             self._rig = None
+        if self.switch is not None:
+            self.switch.shutdown()
 
     def describe(self) -> str:
         kind = "simulated" if self.simulated else self.config.driver
         return f"{self.config.name} ({kind}, {self.config.trigger} trigger; {self.config.path})"
 
     def start_pressed(self) -> bool:
-        """Whether the bench's start input was pressed since the last call."""
-        return self.switch.pressed() if self.switch is not None else False
+        """Whether the foot switch was pressed since the last call (several presses count
+        as one start). On hardware the first call opens the rig; a trigger box without an
+        input, or one that fails, leaves the keyboard as the only start (`input_problem`
+        says why) rather than stopping the station."""
+        if not self.simulated and self._input is None and not self.input_problem:
+            trigger = self._hardware_rig().trigger
+            if callable(getattr(trigger, "presses", None)):
+                self._input = trigger
+            else:
+                self.input_problem = f"rig {self.config.name} has no trigger box: no foot switch"
+        if self._input is None:
+            return False
+        try:
+            return self._input.presses() > 0
+        except DeviceError as exc:
+            self._input, self.input_problem = None, f"foot switch not read: {exc}"
+            return False
+
+    def _hardware_rig(self) -> Rig:
+        if self._rig is None:
+            self._rig = open_rig(self.config)
+        return self._rig
 
     def sim_part(self, part: int) -> Any:
         """The simulated part number `part` (a `sim.station_parts.SimPart`); None on hardware."""
@@ -81,9 +103,7 @@ class Bench:
     def view(self, part: int, view: int = 0, views: int = 1) -> Iterator[Rig]:
         """The rig with part number `part` (counted from 0 in this station run) placed for `view`."""
         if not self.simulated:
-            if self._rig is None:
-                self._rig = open_rig(self.config)
-            yield self._rig
+            yield self._hardware_rig()
             return
         from sim.station_parts import TRUTH_FILE
 

@@ -112,6 +112,7 @@ class StationTUI:
             st.message = f"error: {type(exc).__name__}: {exc}"
         finally:
             self._status = None
+            self.run.bench.start_pressed()  # a press during the cycle does not start another
             with st.lock:
                 st.mode, st.progress = "READY", ""
 
@@ -180,6 +181,8 @@ class StationTUI:
         put(f"slscan station - {p.name} v{p.version}   station {self.run.config.name}", curses.A_BOLD)
         for label, text in status:
             put(f"{label:<12} {text}")
+        if self.run.bench.input_problem:
+            put(f"{'foot switch':<12} {self.run.bench.input_problem}; start with s or Enter", wrap=True)
         put("-" * (w - 1))
         with st.lock:
             if reasons:
@@ -216,6 +219,16 @@ class StationTUI:
     def busy(self) -> bool:
         return self.worker is not None and self.worker.is_alive()
 
+    def tick(self, ch: int) -> bool:
+        """One pass of the loop with key `ch` (-1: none): when the station is READY and idle,
+        a foot-switch press starts a scan as `s` does. True when the run is over."""
+        if ch == -1 and not self.busy() and self.state.mode == "READY" and self.run.bench.start_pressed():
+            ch = ord("s")
+        if ch != -1:
+            self.key(ch)
+        done = self.max_parts is not None and len(self.state.measured) >= self.max_parts
+        return (self.quit or done) and not self.busy()
+
     def loop(self, scr: Any) -> None:
         curses.curs_set(0)
         scr.idlok(False)  # plain repaints: no terminal scrolling tricks
@@ -223,13 +236,7 @@ class StationTUI:
         try:
             while True:
                 self.draw(scr)
-                ch = scr.getch()
-                if ch == -1 and not self.busy() and self.state.mode == "READY" and self.run.bench.start_pressed():
-                    ch = ord("s")
-                if ch != -1:
-                    self.key(ch)
-                done = self.max_parts is not None and len(self.state.measured) >= self.max_parts
-                if (self.quit or done) and not self.busy():
+                if self.tick(scr.getch()):
                     self.draw(scr)
                     return
         except KeyboardInterrupt:  # Ctrl-C: abort the cycle (stored as aborted), then quit
