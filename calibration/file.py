@@ -6,7 +6,8 @@ maps in an .npz beside it.
       "created": ISO date, "software_version": ..., "rig": rig name,
       "image_sizes": {"camera": [w, h], "projector": [w, h]},
       "board": the board description,
-      "rig_model": the rig geometry (`RigModel.to_dict`), projector gamma included,
+      "rig_model": the rig geometry (`RigModel.to_dict`), projector gamma and the
+                   phase-to-height coefficients included (their maps in the .npz),
       "rms_px": {"camera": ..., "projector": ..., "stereo": ...},
       "uncertainty": one-sigma of every parameter,
       "views": per view: name, camera and projector RMS (px), points,
@@ -14,26 +15,28 @@ maps in an .npz beside it.
       "separate": each device's own calibration before the joint refinement,
       "gamma", "phase_to_height", "validation", "stability": their reports (or null),
       "limits": the limits the calibration passed,
-      "reference_maps": "<name>.npz" (when phase_to_height is present)
+      "reference_maps": "<name>.npz" (when phase_to_height is present): the reference
+                   phase and the per-pixel l and K maps (`PhaseToHeight.maps`)
     }
 
 Loading checks the format, the version and the image sizes against the rig, and refuses a
-mismatch (CalibrationFileError) rather than reconstructing with the wrong geometry.
+mismatch (CalibrationFileError) rather than reconstructing with the wrong geometry. The
+model loaded names its file (`RigModel.calibration`), so scans record which calibration
+they used.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from scanner import __version__
+from scanner.errors import ConfigError
 from scanner.geometry import RigModel
-from scanner.session import write_json
+from scanner.session import write_json, write_npz
 
 from .errors import CalibrationFileError
 
@@ -63,22 +66,22 @@ def maps_path(path: Path) -> Path:
     return path.with_suffix(".npz")
 
 
-def write_calibration(path: str | Path, model: RigModel, report: dict[str, Any], rig_name: str,
-                      maps: dict[str, np.ndarray] | None = None) -> Path:
-    """Write the calibration JSON (and the .npz of `maps`, e.g. the reference phase, first);
-    each file appears complete or not at all. Returns the JSON path."""
+def write_calibration(path: str | Path, model: RigModel, report: dict[str, Any], rig_name: str) -> Path:
+    """Write the calibration JSON (and first the .npz of the phase-to-height maps, when the
+    model has them); each file appears complete or not at all. Returns the JSON path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    extra: dict[str, Any] = {}
+    if model.phase_to_height is not None:
+        npz = maps_path(path)
+        write_npz(npz, model.phase_to_height.maps())
+        model = replace(model, phase_to_height=replace(model.phase_to_height, maps_file=npz.name))
+        extra["reference_maps"] = npz.name
     data: dict[str, Any] = {
         "format": CALIBRATION_FORMAT, "version": CALIBRATION_VERSION,
         "created": dt.datetime.now(dt.timezone.utc).isoformat(), "software_version": __version__, "rig": rig_name,
         "image_sizes": {"camera": list(model.camera.size), "projector": list(model.projector.size)},
-        "rig_model": model.to_dict(), **report}
-    if maps:
-        tmp = path.with_name(f".{maps_path(path).name}.part.npz")
-        np.savez_compressed(tmp, **maps)
-        tmp.replace(maps_path(path))
-        data["reference_maps"] = maps_path(path).name
+        "rig_model": replace(model, calibration="").to_dict(), **report, **extra}
     write_json(path, data)
     return path
 
@@ -108,19 +111,16 @@ def load_calibration(path: str | Path, camera_size: tuple[int, int] | None = Non
             raise CalibrationFileError(path, f"made for a {device} of {sizes[device][0]} x {sizes[device][1]} px, "
                                              f"the rig's {device} is {expected[0]} x {expected[1]} px: calibrate "
                                              f"this rig, or name the right calibration file")
-    reference = None
-    if data.get("reference_maps"):
-        npz = path.parent / data["reference_maps"]
-        try:
-            with np.load(npz) as z:
-                reference = z["reference_phase"]
-        except (OSError, KeyError, ValueError) as exc:
-            raise CalibrationFileError(path, f"reference maps {npz.name}: {exc}") from None
-        if reference.shape != (sizes["camera"][1], sizes["camera"][0]):
-            raise CalibrationFileError(path, f"reference phase map {npz.name} is {reference.shape[1]} x "
-                                             f"{reference.shape[0]}, the camera {sizes['camera'][0]} x "
-                                             f"{sizes['camera'][1]}")
-    model = RigModel.from_dict(data.get("rig_model", {}), f"{path}: rig_model", reference_phase=reference)
+    described = dict(data.get("rig_model", {}))
+    p2h = described.get("phase_to_height")
+    if p2h and not p2h.get("maps_file"):  # files written before the model named its maps
+        described["phase_to_height"] = {**p2h, "maps_file": data.get("reference_maps") or ""}
+    try:
+        model = RigModel.from_dict({**described, "calibration": str(path.resolve())}, f"{path}: rig_model",
+                                   path.parent)
+    except ConfigError as exc:
+        raise CalibrationFileError(path, exc.problem if exc.key is None else f"key '{exc.key}': {exc.problem}") \
+            from None
     if model.camera.size != sizes["camera"] or model.projector.size != sizes["projector"]:
         raise CalibrationFileError(path, "rig_model image sizes disagree with image_sizes")
     return CalibrationFile(path, data, model)

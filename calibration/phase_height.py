@@ -44,12 +44,9 @@ class HeightError:
 
 @dataclass(frozen=True, eq=False)
 class PhaseHeightFit:
-    """The fitted Eq. 17 model, its per-pixel refinement (`l_map`, `k_map`: l (mm) and
-    K = 2π·d/λ0 (rad) per pixel, NaN where not fitted) and its accuracy per height."""
+    """The fitted Eq. 17 model, with its per-pixel refinement, and its accuracy per height."""
 
     model: PhaseToHeight
-    l_map: np.ndarray
-    k_map: np.ndarray
     errors: list[HeightError]
     pitch_range_mm: tuple[float, float]  # 5th and 95th percentile of the local fringe pitch on the plate
 
@@ -112,8 +109,8 @@ def local_pitch_range_mm(phase: np.ndarray, plane: np.ndarray, camera: Pinhole) 
 
 
 def fit_phase_to_height(heights_mm: list[float], phases: list[np.ndarray], plane: np.ndarray, camera: Pinhole,
-                        fit_mask: list[bool]) -> tuple[PhaseToHeight, np.ndarray, np.ndarray]:
-    """Eq. 17 (global) and its per-pixel (l, K) maps from plate phases (H, W, NaN invalid)
+                        fit_mask: list[bool]) -> PhaseToHeight:
+    """Eq. 17 (global) with its per-pixel (l, K) maps from plate phases (H, W, NaN invalid)
     at `heights_mm` (the first is the reference, 0); only heights with `fit_mask` are fitted."""
     if heights_mm[0] != 0.0:
         raise CalibrationError(f"phase-to-height: the first stage height is the reference plane and must be 0, "
@@ -133,7 +130,6 @@ def fit_phase_to_height(heights_mm: list[float], phases: list[np.ndarray], plane
     sol = least_squares(lambda p: p[0] * dphi / (dphi + p[1]) - h, [l0, k0], x_scale="jac")
     l_mm, K = (float(v) for v in sol.x)
     pitch = reference_pitch_mm(ref, plane, camera)
-    model = PhaseToHeight(l_mm, K * pitch / (2.0 * np.pi), pitch, ref.astype(np.float32), plane)
     # per pixel: the same linear system, summed over the fitted heights
     a11 = np.zeros(ref.shape)
     a12 = np.zeros(ref.shape)
@@ -156,26 +152,20 @@ def fit_phase_to_height(heights_mm: list[float], phases: list[np.ndarray], plane
     with np.errstate(divide="ignore", invalid="ignore"):
         l_map = np.where(count == len(used), (a22 * b1 - a12 * b2) / det, np.nan)
         k_map = np.where(count == len(used), (a11 * b2 - a12 * b1) / det, np.nan)
-    return model, l_map.astype(np.float32), k_map.astype(np.float32)
-
-
-def per_pixel_height(l_map: np.ndarray, k_map: np.ndarray, reference: np.ndarray, phase: np.ndarray) -> np.ndarray:
-    """Eq. 17 with the per-pixel l and K."""
-    d = reference - phase
-    return l_map * d / (d + k_map)
+    return PhaseToHeight(l_mm, K * pitch / (2.0 * np.pi), pitch, ref.astype(np.float32), plane,
+                         l_map.astype(np.float32), k_map.astype(np.float32))
 
 
 def evaluate(heights_mm: list[float], fit_mask: list[bool], phases: list[np.ndarray],
-             triangulated: list[np.ndarray], model: PhaseToHeight, l_map: np.ndarray,
-             k_map: np.ndarray) -> list[HeightError]:
+             triangulated: list[np.ndarray], model: PhaseToHeight) -> list[HeightError]:
     """RMS height errors per plate scan against the stage heights: Eq. 17, its per-pixel
     refinement, and triangulation (`triangulated` (H, W, 3) camera-frame points per scan),
     all over the pixels where all three have a value."""
     n, c = model.plane[:3], model.plane[3]
     out = []
     for h, fitted, phi, pts in zip(heights_mm, fit_mask, phases, triangulated):
-        eq17 = model.height(phi)
-        pp = per_pixel_height(l_map, k_map, model.reference_phase, phi)
+        eq17 = model.height(phi, per_pixel=False)
+        pp = model.height(phi)
         tri = pts @ n + c
         ok = np.isfinite(eq17) & np.isfinite(pp) & np.isfinite(tri)
         if not ok.any():

@@ -118,8 +118,10 @@ def covariance(J: np.ndarray, s2: float) -> np.ndarray:
 
 
 def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], camera: Pinhole, projector: Pinhole,
-                 proj_from_cam: np.ndarray, board_poses: np.ndarray, fix_k3: bool = False) -> StereoCalibration:
-    """Refine every parameter from the starting values given."""
+                 proj_from_cam: np.ndarray, board_poses: np.ndarray, fix_k3: bool = False,
+                 fix_camera: bool = False) -> StereoCalibration:
+    """Refine every parameter from the starting values given; `fix_camera` keeps the
+    camera's intrinsics and distortion as given (their uncertainties are then reported as 0)."""
     n_views = len(cam_views)
     if len(proj_views) != n_views or len(board_poses) != n_views:
         raise NotEnoughData(f"joint refinement: {n_views} camera views, {len(proj_views)} projector views and "
@@ -132,6 +134,8 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     free = np.ones(len(x0), dtype=bool)
     if fix_k3:
         free[[8, _N_INTR + 8]] = False
+    if fix_camera:
+        free[:_N_INTR] = False
     n_cam = sum(len(v) for v in cam_views)
     rows = 2 * (n_cam + sum(len(v) for v in proj_views))
     if rows <= free.sum():

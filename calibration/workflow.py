@@ -20,7 +20,7 @@ before; whatever a capture lacks (gamma, plate, artefact) is reported as not mea
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
@@ -53,7 +53,7 @@ DEFAULT_BOARD = CONFIG_DIR / "boards" / "sim_chess_9x7.toml"
 DEFAULT_HEIGHTS_MM = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
 DEFAULT_ARTEFACT = Artefact(radius_mm=10.0, distance_mm=50.0)
 _KEYS = {"board", "poses", "plate_heights_mm", "artefact", "fix_k3", "drop_outliers", "max_camera_rms_px",
-         "max_projector_rms_px", "max_validation_mm", "min_views"}
+         "max_projector_rms_px", "max_validation_mm", "min_views", "max_joint_camera_std"}
 
 Say = Callable[[str], None]
 
@@ -83,7 +83,8 @@ class Procedure:
         plate_heights_mm = [0, 5, 10, 15, 20, 25, 30]   # first = reference plane
         artefact = { type = "sphere_pair", radius_mm = 10.0, distance_mm = 50.0 }
         max_camera_rms_px = 0.5      # and max_projector_rms_px, max_validation_mm,
-        fix_k3 = false               # drop_outliers, min_views (see CalibrationSettings)
+        fix_k3 = false               # drop_outliers, min_views, max_joint_camera_std
+                                     # (see CalibrationSettings)
     """
 
     board: Board
@@ -176,7 +177,8 @@ class CalibrationResult:
         return {
             "board": self.board.to_dict(),
             "rms_px": {"camera": s.camera_rms_px, "projector": s.projector_rms_px, "stereo": s.rms_px},
-            "uncertainty": s.std, "views": views, "dropped_views": {**sol.dropped, **self.failures},
+            "uncertainty": s.std, "camera_intrinsics": asdict(sol.camera_choice), "views": views,
+            "dropped_views": {**sol.dropped, **self.failures},
             "outlier_views": self.outliers(),
             "coverage": {name: {"fraction": c.fraction, "cells": c.counts.tolist(), "uncovered": c.empty_zones()}
                          for name, c in self.coverage().items()},
@@ -221,6 +223,7 @@ class CalibrationResult:
                f"camera    fx {Kc[0, 0]:.2f} ± {std['camera.fx']:.2f}  fy {Kc[1, 1]:.2f} ± {std['camera.fy']:.2f}  "
                f"cx {Kc[0, 2]:.2f} ± {std['camera.cx']:.2f}  cy {Kc[1, 2]:.2f} ± {std['camera.cy']:.2f} px   "
                f"RMS {s.camera_rms_px:.4f} px",
+               f"          intrinsics from the {sol.camera_choice.source}: {sol.camera_choice.reason}",
                f"projector fx {Kp[0, 0]:.2f} ± {std['projector.fx']:.2f}  fy {Kp[1, 1]:.2f} ± {std['projector.fy']:.2f}"
                f"  cx {Kp[0, 2]:.2f} ± {std['projector.cx']:.2f}  cy {Kp[1, 2]:.2f} ± {std['projector.cy']:.2f} px   "
                f"RMS {s.projector_rms_px:.4f} px",
@@ -337,8 +340,8 @@ def phase_to_height(plates: list[Plate], triangulator: Triangulator) -> PhaseHei
     points = [triangulated_points(p.decoded, triangulator) for p in plates]
     plane = fit_plane(_valid_points(points[0]))
     camera = triangulator.rig.camera
-    m, l_map, k_map = fit_phase_to_height(heights, phases, plane, camera, fit_mask)
-    return PhaseHeightFit(m, l_map, k_map, evaluate(heights, fit_mask, phases, points, m, l_map, k_map),
+    m = fit_phase_to_height(heights, phases, plane, camera, fit_mask)
+    return PhaseHeightFit(m, evaluate(heights, fit_mask, phases, points, m),
                           local_pitch_range_mm(phases[0], plane, camera))
 
 
@@ -398,12 +401,8 @@ def finish(result: CalibrationResult, plates: list[Plate], artefact: tuple[Artef
 
 
 def write_result(result: CalibrationResult, path: str | Path) -> Path:
-    """The calibration JSON and its reference maps (when phase-to-height was calibrated)."""
-    maps = None
-    if result.phase_height is not None:
-        ph = result.phase_height
-        maps = {"reference_phase": ph.model.reference_phase, "l_map_mm": ph.l_map, "k_map_rad": ph.k_map}
-    return write_calibration(path, result.model, result.report(), result.rig_name, maps)
+    """The calibration JSON and its phase-to-height maps (when phase-to-height was calibrated)."""
+    return write_calibration(path, result.model, result.report(), result.rig_name)
 
 
 def solve_views(board: Board, correspondences: list[Correspondence], failures: dict[str, str],

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -116,6 +117,9 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
     return T
 
 
+PHASE_MAP_KEYS = ("reference_phase", "l_map_mm", "k_map_rad")  # the arrays of a PhaseToHeight, as stored
+
+
 @dataclass(frozen=True, eq=False)
 class PhaseToHeight:
     """Reference-plane phase-to-height model of seed 000, Eq. 17:
@@ -126,6 +130,13 @@ class PhaseToHeight:
     unwrapped phase of the reference plane (rad, in units of the fringe of pitch λ0);
     `plane` is the reference plane (unit normal n toward the camera, offset c) with
     n·X + c = 0 in the camera frame, used to place each height along its camera ray.
+
+    The per-pixel refinement `l_map_mm` (l, mm) and `k_map_rad` (K = 2π·d/λ0, rad), both
+    (H, W) and NaN where they were not calibrated, replace the global l and K when present:
+    one l, d, λ0 cannot describe a rig whose fringe pitch varies across the field, and
+    outside the calibrated pixels the model gives no height rather than a wrong one.
+    `maps_file` names the .npz holding the maps (PHASE_MAP_KEYS) when they are stored
+    (absolute once loaded, so the description stays valid wherever it is copied).
     """
 
     l_mm: float
@@ -133,11 +144,72 @@ class PhaseToHeight:
     pitch_mm: float
     reference_phase: np.ndarray
     plane: np.ndarray
+    l_map_mm: np.ndarray | None = None
+    k_map_rad: np.ndarray | None = None
+    maps_file: str = ""
 
-    def height(self, phase: np.ndarray) -> np.ndarray:
-        """Height above the reference plane (mm) for an unwrapped phase map (rad)."""
+    def __post_init__(self) -> None:
+        if (self.l_map_mm is None) != (self.k_map_rad is None):
+            raise ValueError("phase-to-height: l_map_mm and k_map_rad come together")
+        shape = self.reference_phase.shape
+        for name in PHASE_MAP_KEYS[1:]:
+            m = getattr(self, name)
+            if m is not None and m.shape != shape:
+                raise ValueError(f"phase-to-height: {name} is {m.shape}, the reference phase {shape}")
+
+    @property
+    def per_pixel(self) -> bool:
+        return self.l_map_mm is not None
+
+    def height(self, phase: np.ndarray, per_pixel: bool = True) -> np.ndarray:
+        """Height above the reference plane (mm) for an unwrapped phase map (rad): with the
+        per-pixel l and K when the model has them and `per_pixel`, else the global ones."""
         dphi = self.reference_phase - phase
+        if per_pixel and self.per_pixel:
+            return self.l_map_mm * dphi / (dphi + self.k_map_rad)
         return self.l_mm * dphi / (dphi + 2.0 * np.pi * self.d_mm / self.pitch_mm)
+
+    def maps(self) -> dict[str, np.ndarray]:
+        """The arrays to store (float32), by PHASE_MAP_KEYS name."""
+        arrays = {"reference_phase": self.reference_phase}
+        if self.per_pixel:
+            arrays |= {"l_map_mm": self.l_map_mm, "k_map_rad": self.k_map_rad}
+        return {k: np.asarray(v, np.float32) for k, v in arrays.items()}
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready coefficients; the maps are stored in `maps_file`."""
+        return {"l_mm": self.l_mm, "d_mm": self.d_mm, "pitch_mm": self.pitch_mm, "plane": self.plane.tolist(),
+                "per_pixel": self.per_pixel, "maps_file": self.maps_file}
+
+    @classmethod
+    def load(cls, d: dict[str, Any], root: Path, shape: tuple[int, int], where: str) -> PhaseToHeight:
+        """The model described by `d` (`to_dict`), its maps read from `d['maps_file']`
+        (relative to `root`, or absolute); `shape` (H, W) is the camera's. ConfigError
+        naming the file when the maps are missing, unreadable or of the wrong size."""
+        name = d.get("maps_file") or ""
+        if not name:
+            raise ConfigError(where, "phase_to_height.maps_file", "no file holds this phase-to-height model's maps")
+        path = root / name
+        try:
+            with np.load(path) as z:
+                arrays = {k: z[k] for k in PHASE_MAP_KEYS if k in z.files}
+        except (OSError, KeyError, ValueError) as exc:
+            raise ConfigError(where, "phase_to_height.maps_file", f"{path}: phase-to-height maps missing or "
+                                                                  f"unreadable ({exc})") from None
+        wanted = PHASE_MAP_KEYS if d.get("per_pixel", False) else PHASE_MAP_KEYS[:1]
+        missing = [k for k in wanted if k not in arrays]
+        if missing:
+            raise ConfigError(where, "phase_to_height.maps_file", f"{path}: the map(s) {missing} are missing")
+        for k, a in arrays.items():
+            if a.shape != tuple(shape):
+                raise ConfigError(where, "phase_to_height.maps_file", f"{path}: {k} is {a.shape[1]} x {a.shape[0]} "
+                                                                      f"px, the camera {shape[1]} x {shape[0]} px")
+        try:
+            return cls(float(d["l_mm"]), float(d["d_mm"]), float(d["pitch_mm"]), arrays["reference_phase"],
+                       np.array(d["plane"], float), arrays.get("l_map_mm"), arrays.get("k_map_rad"),
+                       str(path.resolve()))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(where, "phase_to_height", f"invalid phase-to-height model: {exc!r}") from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,6 +220,8 @@ class RigModel:
     `world_from_cam` places the camera in the rig's world frame (identity: world = camera).
     `projector_gamma` is the projector's response exponent (displayed = command^gamma);
     patterns are pre-compensated with its inverse so the projected fringes are sinusoidal.
+    `calibration` names the calibration file the geometry was loaded from ("": the
+    nominal geometry of a rig TOML, or one built in memory).
     """
 
     camera: Pinhole
@@ -156,6 +230,7 @@ class RigModel:
     world_from_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
     projector_gamma: float = 1.0
     phase_to_height: PhaseToHeight | None = None
+    calibration: str = ""
 
     @property
     def proj_from_cam(self) -> np.ndarray:
@@ -166,7 +241,7 @@ class RigModel:
         return float(np.linalg.norm(self.cam_from_proj[:3, 3]))
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready description (the phase-to-height reference map is stored separately)."""
+        """JSON-ready description (the phase-to-height maps are stored in their own file)."""
         d: dict[str, Any] = {
             "camera": self.camera.to_dict(),
             "projector": self.projector.to_dict(),
@@ -175,26 +250,28 @@ class RigModel:
             "projector_gamma": self.projector_gamma,
         }
         if self.phase_to_height is not None:
-            p = self.phase_to_height
-            d["phase_to_height"] = {"l_mm": p.l_mm, "d_mm": p.d_mm, "pitch_mm": p.pitch_mm, "plane": p.plane.tolist()}
+            d["phase_to_height"] = self.phase_to_height.to_dict()
+        if self.calibration:
+            d["calibration"] = self.calibration
         return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], where: str = "rig model",
-                  reference_phase: np.ndarray | None = None) -> RigModel:
+    def from_dict(cls, d: dict[str, Any], where: str = "rig model", root: Path | None = None) -> RigModel:
+        """The model `to_dict` described. Its phase-to-height model, if any, is read with its
+        maps from `root` (the folder of the file `d` came from); without `root` it is left out."""
         try:
+            camera = Pinhole.from_dict(d["camera"], f"{where}: camera")
             p2h = None
-            if "phase_to_height" in d and reference_phase is not None:
-                p = d["phase_to_height"]
-                p2h = PhaseToHeight(float(p["l_mm"]), float(p["d_mm"]), float(p["pitch_mm"]),
-                                    reference_phase, np.array(p["plane"], float))
+            if d.get("phase_to_height") and root is not None:
+                p2h = PhaseToHeight.load(d["phase_to_height"], root, (camera.height, camera.width), where)
             return cls(
-                camera=Pinhole.from_dict(d["camera"], f"{where}: camera"),
+                camera=camera,
                 projector=Pinhole.from_dict(d["projector"], f"{where}: projector"),
                 cam_from_proj=np.array(d["cam_from_proj"], float).reshape(4, 4),
                 world_from_cam=np.array(d.get("world_from_cam", np.eye(4).tolist()), float).reshape(4, 4),
                 projector_gamma=float(d.get("projector_gamma", 1.0)),
                 phase_to_height=p2h,
+                calibration=str(d.get("calibration", "")),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(where, None, f"invalid rig model: {exc!r}") from exc

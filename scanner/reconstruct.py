@@ -186,16 +186,22 @@ def triangulate(decoded: DecodeResult, triangulator: Triangulator, with_normals:
 
 
 def phase_to_height_cloud(decoded: DecodeResult, rig: RigModel, orientation: str = "vertical") -> OrganisedCloud:
-    """Organised cloud from the reference-plane model (seed 000, Eq. 17): the height above
-    the reference plane per pixel, placed along each camera ray."""
+    """Organised cloud from the reference-plane model (seed 000, Eq. 17, per pixel when the
+    calibration has the per-pixel maps): the height above the reference plane per pixel,
+    placed along each camera ray. Pixels the model was not calibrated for have no point."""
     model = rig.phase_to_height
     if model is None:
-        raise DecodeError("rig has no phase-to-height calibration; reconstruct by triangulation instead")
+        source = (f"the calibration file {rig.calibration}" if rig.calibration
+                  else "the rig's nominal geometry (no calibration file)")
+        raise DecodeError(f"no phase-to-height model in {source}: calibrate the rig with plate heights "
+                          f"([calibrate] plate_heights_mm) and name that calibration under [rig] calibration, or "
+                          f"reconstruct by triangulation")
     if orientation not in decoded.maps:
         raise DecodeError(f"phase-to-height needs {orientation} fringes; the scan has {list(decoded.maps)}")
     phase = decoded.maps[orientation].phase
     if model.reference_phase.shape != phase.shape:
-        raise DecodeError(f"reference phase map is {model.reference_phase.shape} but the scan is {phase.shape}")
+        raise DecodeError(f"reference phase map {model.maps_file or '(in memory)'} is "
+                          f"{model.reference_phase.shape[::-1]} (w, h) but the scan is {phase.shape[::-1]}")
     h = model.height(np.where(decoded.valid, phase, np.nan))
     rays = rig.camera.ray_grid
     n, c = model.plane[:3].astype(np.float32), np.float32(model.plane[3])

@@ -3,9 +3,11 @@
 Layout (all files appear complete or not at all):
     frames/frame_000.png …   raw camera frames, lossless, at their bit depth (8- or 16-bit PNG)
     frames.jsonl             one line per frame as it arrives: index, pattern, timestamp, exposure
+    phase_to_height.npz      the phase-to-height maps of the rig model (reference phase, per-pixel
+                             l and K), when its calibration has them: the session decodes alone
     manifest.json            written last, atomically, once the capture is complete: rig config
-                             snapshot, rig model, pattern set, device settings, software version,
-                             timings, frame list
+                             snapshot, rig model (with the calibration file it came from), pattern
+                             set, device settings, software version, timings, frame list
     error.json               written instead of the manifest when a capture fails
     outputs/                 regenerable from the raw frames: cloud.ply, maps.npz, result.json
     recording.rrd            the session's Rerun recording
@@ -19,7 +21,7 @@ import json
 import os
 import platform
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +41,7 @@ FRAME_LOG = "frames.jsonl"
 FRAMES_DIR = "frames"
 OUTPUTS_DIR = "outputs"
 RECORDING = "recording.rrd"
+PHASE_TO_HEIGHT_MAPS = "phase_to_height.npz"
 
 
 def write_atomic(path: Path, data: bytes) -> None:
@@ -48,6 +51,13 @@ def write_atomic(path: Path, data: bytes) -> None:
         f.write(data)
         f.flush()
         os.fsync(f.fileno())
+    tmp.replace(path)
+
+
+def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """A compressed .npz of `arrays` that appears complete or not at all."""
+    tmp = path.with_name(f".{path.name}.part.npz")
+    np.savez_compressed(tmp, **arrays)
     tmp.replace(path)
 
 
@@ -106,7 +116,11 @@ class SessionWriter:
 
     def finish(self, rig_config: dict[str, Any], model: RigModel, patterns: PatternSet,
                devices: dict[str, Any], timings: dict[str, float], extra: dict[str, Any] | None = None) -> Path:
-        """Write the manifest: from now on the session is complete."""
+        """Write the manifest: from now on the session is complete. The phase-to-height
+        maps of `model`, if any, are copied into the session first."""
+        if model.phase_to_height is not None:
+            write_npz(self.root / PHASE_TO_HEIGHT_MAPS, model.phase_to_height.maps())
+            model = replace(model, phase_to_height=replace(model.phase_to_height, maps_file=PHASE_TO_HEIGHT_MAPS))
         manifest = {
             "slscan_manifest": MANIFEST_VERSION, "session_id": self.id, "software_version": __version__,
             "python": platform.python_version(), "created": self.started.isoformat(),
@@ -157,7 +171,8 @@ class Session:
         return PatternSet.from_dict(self.manifest["patterns"], self.root / MANIFEST)
 
     def rig_model(self) -> RigModel:
-        return RigModel.from_dict(self.manifest["rig_model"], f"{self.root / MANIFEST}: rig_model")
+        """The geometry the session was captured with, its phase-to-height model (and maps) included."""
+        return RigModel.from_dict(self.manifest["rig_model"], f"{self.root / MANIFEST}: rig_model", self.root)
 
     @property
     def bit_depth(self) -> int:

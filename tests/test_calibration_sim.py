@@ -17,6 +17,7 @@ import json
 import os
 import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,8 +30,13 @@ from calibration.file import load_calibration
 from scanner import cli
 from scanner.commands.calibrate import _install
 from scanner.config import CONFIG_DIR
+from scanner.errors import DecodeError
+from scanner.pipeline import process
+from scanner.reconstruct import phase_to_height_cloud
 from scanner.recording import read_summary
 from scanner.rig import DEFAULT_RIG, RigConfig
+from scanner.session import Session
+from sim.evaluate import GROUND_TRUTH_FILE, Truth, smooth_region
 from sim.render import Renderer, SensorModel, project_points
 from sim.scene import Scene
 from sim.stage import Target, rotation, target_pose
@@ -111,6 +117,7 @@ def test_calibration_matches_the_simulators_ground_truth(rig_toml: Path, calibra
     truth = RigConfig.load(rig_toml).nominal_model()
     e = model_errors(cal.model, truth)
     std = cal.data["uncertainty"]
+    assert cal.data["camera_intrinsics"]["source"] == "joint refinement"  # it pins the camera here
     assert abs(e["camera.fx_pct"]) < 0.1 and abs(e["camera.fy_pct"]) < 0.1
     assert abs(e["projector.fx_pct"]) < 0.2 and abs(e["projector.fy_pct"]) < 0.2
     for device in ("camera", "projector"):
@@ -186,6 +193,86 @@ def test_installed_calibration_is_used_by_later_scans(calibrated: tuple[Path, st
     assert np.allclose(manifest["rig_model"]["camera"]["K"], config.model.camera.K)
     assert manifest["rig_model"]["projector_gamma"] == config.model.projector_gamma
     assert "fringe-order errors 0 (smooth)" in printed
+
+
+# the measuring volume of the calibration above (plate heights 0 .. 30 mm; the simulated bench
+# puts the plate 420 mm from the camera): a ramp rising from 2 to 28 mm (a plane tilted
+# 0.293 rad about y) and a ball of radius 18 mm whose top is 28 mm high, on the plate
+IN_VOLUME_SCENE = """name = "ramp_and_ball"
+[reference_plane]
+distance_mm = 420.0
+size_mm = [1000.0, 1000.0]
+albedo = 0.8
+
+[[objects]]
+name = "ramp"
+plane = { size_mm = [90.0, 100.0] }
+pose = { rotation_rad = [0.0, 0.293, 0.0], translation_mm = [-35.0, 0.0, 405.0] }
+albedo = 0.7
+
+[[objects]]
+name = "ball"
+sphere = { radius_mm = 18.0, center_mm = [45.0, 0.0, 410.0] }
+albedo = 0.7
+"""
+
+
+def test_phase_to_height_scan_with_the_calibrated_rig(calibrated: tuple[Path, str, str], rig_toml: Path,
+                                                      tmp_path: Path) -> None:
+    """`slscan decode --mode phase_to_height` on a scan made with a rig naming the calibration:
+    the per-pixel Eq. 17 model and the reference phase come from the calibration file (a copy
+    kept in the session), and its height errors against the simulator's ground truth, over
+    the calibrated heights, are set beside triangulation's on the same scan."""
+    out, _, _ = calibrated
+    rig = tmp_path / "rig.toml"
+    shutil.copy(rig_toml, rig)
+    _install(rig, out / "calibration.json")
+    scene = tmp_path / "scene.toml"
+    scene.write_text(IN_VOLUME_SCENE)
+    session = tmp_path / "scan"
+    code, _, log = run(["scan", "--rig", str(rig), "--scene", str(scene), "--out", str(session)])
+    assert code == 0, log
+    described = json.loads((session / "manifest.json").read_text())["rig_model"]
+    assert described["calibration"] == str((out / "calibration.json").resolve())  # which calibration was used
+    assert described["phase_to_height"]["per_pixel"]
+    assert described["phase_to_height"]["maps_file"] == "phase_to_height.npz"  # a copy kept in the session
+    code, printed, log = run(["decode", str(session), "--mode", "phase_to_height"])
+    assert code == 0, log
+    assert json.loads((session / "outputs" / "result.json").read_text())["mode"] == "phase_to_height"
+    assert "accuracy  depth error RMS" in printed
+
+    s = Session.open(session)
+    model = s.rig_model().phase_to_height
+    calibrated_model = load_calibration(out / "calibration.json").model.phase_to_height
+    assert np.array_equal(model.l_map_mm, calibrated_model.l_map_mm, equal_nan=True)
+    tri, p2h = (process(s, mode=m) for m in ("triangulation", "phase_to_height"))
+    truth = Truth.load(session / GROUND_TRUTH_FILE)
+    normal, offset = model.plane[:3], model.plane[3]
+    rays = s.rig_model().camera.ray_grid.astype(np.float64)
+    cos = rays @ normal  # height change per mm of depth along each ray
+    true_height = cos * truth.depth + offset
+    volume = smooth_region(truth) & (true_height > -0.5) & (true_height < 30.0)  # the calibrated heights
+    z_global = (model.height(p2h.decoded.maps["vertical"].phase, per_pixel=False) - offset) / cos
+    rms = {}
+    for name, z in (("per-pixel Eq. 17", p2h.cloud.points[..., 2]), ("triangulation", tri.cloud.points[..., 2]),
+                    ("global Eq. 17", z_global)):
+        ok = volume & np.isfinite(z)
+        assert ok.sum() > 0.95 * volume.sum(), name  # every method covers the measuring volume
+        rms[name] = float(np.sqrt(np.mean((cos * (z - truth.depth))[ok] ** 2)))
+    raised = volume & (truth.object_id >= 2)
+    print(f"\nheight error RMS over {volume.sum()} px of the measuring volume ({raised.sum()} on the ramp and the "
+          f"ball, heights up to {np.nanmax(true_height[volume]):.1f} mm): "
+          + ", ".join(f"{k} {v * 1e3:.1f} um" for k, v in rms.items()))
+    assert raised.sum() > 0.25 * volume.sum() and np.nanmax(true_height[volume]) > 25.0
+    assert rms["per-pixel Eq. 17"] < 1.5 * rms["triangulation"] < 0.05
+    assert rms["global Eq. 17"] > 10 * rms["per-pixel Eq. 17"]  # one l, d, λ0 cannot follow this rig
+
+    # a model that is not there is named, not replaced by something else
+    with pytest.raises(DecodeError, match=f"no phase-to-height model in the calibration file {out}/calibration.json"):
+        phase_to_height_cloud(p2h.decoded, replace(s.rig_model(), phase_to_height=None))
+    (session / "phase_to_height.npz").unlink()
+    code, _, log = run(["decode", str(session), "--mode", "phase_to_height"])
+    assert code == 2 and f"{session / 'phase_to_height.npz'}: phase-to-height maps missing or unreadable" in log
 
 
 def test_board_with_the_wrong_corner_count_is_an_error(calibrated: tuple[Path, str, str], tmp_path: Path) -> None:

@@ -194,6 +194,24 @@ def test_joint_solve_recovers_the_rig_and_its_uncertainty_covers_the_error() -> 
     assert e["translation_mm"] < 4 * noisy.std["extrinsic.translation_mm"]
 
 
+def test_camera_keeps_its_own_intrinsics_when_the_joint_refinement_cannot_pin_them() -> None:
+    views = exact_views(BENCH, 10, 0.02, seed=3)
+    joint = solve(views, BENCH.camera.size, BENCH.projector.size)
+    assert joint.camera_choice.source == "joint refinement"  # 10 views, 0.02 px: the joint problem pins it
+    strict = solve(views, BENCH.camera.size, BENCH.projector.size, CalibrationSettings(max_joint_camera_std=1e-7))
+    choice, s = strict.camera_choice, strict.stereo
+    assert choice.source == "camera views" and "above the limit" in choice.reason
+    assert choice.joint == pytest.approx(joint.camera_choice.joint)  # what the joint refinement would have saved
+    assert np.array_equal(s.camera.K, strict.camera.pinhole.K)
+    assert np.array_equal(s.camera.dist, strict.camera.pinhole.dist)
+    assert s.std["camera.cx"] == strict.camera.std["cx"] > 0
+    # the projector and the extrinsics are still refined against both devices' points
+    e = model_errors(RigModel(s.camera, s.projector, s.cam_from_proj), BENCH)
+    assert s.rms_px == pytest.approx(0.02 * np.sqrt(2), rel=0.15)
+    assert abs(e["projector.cy_px"]) < 4 * s.std["projector.cy"] and abs(e["projector.fx_pct"]) < 0.05
+    assert e["translation_mm"] < 4 * s.std["extrinsic.translation_mm"]
+
+
 def test_too_few_views_is_an_error_not_a_calibration() -> None:
     with pytest.raises(NotEnoughData, match="3 usable board pose.*at least 4"):
         solve(exact_views(BENCH, 3, 0.01), BENCH.camera.size, BENCH.projector.size, CalibrationSettings(min_views=4))
@@ -261,13 +279,13 @@ def test_eq17_fit_recovers_the_geometry_where_the_model_is_exact() -> None:
     mask = [True, False, True, False, True, False, True]
     phases = [phase(h) for h in heights]
     plane = np.array([0.0, 0.0, -1.0, l_mm])
-    model, l_map, k_map = fit_phase_to_height(heights, phases, plane, cam, mask)
+    model = fit_phase_to_height(heights, phases, plane, cam, mask)
     pitch = proj.width / fringes * l_mm / proj.K[0, 0]  # λ0 on the plate
     assert model.l_mm == pytest.approx(l_mm, rel=1e-6) and model.d_mm == pytest.approx(d_mm, rel=1e-6)
     assert model.pitch_mm == pytest.approx(pitch, rel=1e-6)
-    assert np.nanmax(np.abs(l_map - l_mm)) < 1e-3
+    assert model.per_pixel and np.nanmax(np.abs(model.l_map_mm - l_mm)) < 1e-3
     points = [rays * (l_mm - h) for h in heights]
-    errors = evaluate(heights, mask, phases, points, model, l_map, k_map)
+    errors = evaluate(heights, mask, phases, points, model)
     # 0.1 um: the reference phase is stored as float32, like every decoded map (~1e-5 rad at 400 rad)
     assert all(e.eq17_mm < 1e-4 and e.per_pixel_mm < 1e-4 and e.triangulation_mm < 1e-9 for e in errors)
     assert [e.held_out for e in errors] == [not m for m in mask]

@@ -47,7 +47,8 @@ def _settings(args: argparse.Namespace, base: Any) -> Any:
 
     changes = {k: v for k, v in (("max_camera_rms_px", args.max_camera_rms), ("max_projector_rms_px",
                                                                               args.max_projector_rms),
-                                 ("max_validation_mm", args.max_validation), ("min_views", args.min_views))
+                                 ("max_validation_mm", args.max_validation), ("min_views", args.min_views),
+                                 ("max_joint_camera_std", args.max_joint_camera_std))
                if v is not None}
     if args.fix_k3:
         changes["fix_k3"] = True
@@ -244,6 +245,9 @@ def register(sub: Any) -> None:
     c.add_argument("--max-validation", type=float, metavar="MM",
                    help="refuse above this artefact distance error (default 0.1)")
     c.add_argument("--min-views", type=int, help="fewest usable views (default 4)")
+    c.add_argument("--max-joint-camera-std", type=float, metavar="FRACTION",
+                   help="keep the camera's own intrinsics when the joint refinement determines its fx, fy, cx or cy "
+                        "only to more than this fraction of the focal length (default 0.001)")
     c.add_argument("--fix-k3", action="store_true", help="keep the k3 distortion term at 0")
     c.add_argument("--drop-outliers", action="store_true", help="solve again without views whose error stands out")
     c.add_argument("--install", action="store_true", help="name the new calibration in the rig TOML")
