@@ -50,6 +50,7 @@ from .registration import (ModelTarget, RegistrationSettings, Samples, _ndt_grid
                            coarse_feature_poses, fitness, icp, transform_points)
 
 METHODS = ("sacia", "ndt")
+SHADOW_MM = 2.5  # beyond an edge, look this far for the first surface seen (past shadows)
 SIDES = ("front", "back")
 
 
@@ -72,7 +73,7 @@ class PoseSettings:
 
     method: str = "sacia"
     extrude_mm: float = 1.5
-    wall_levels: int = 4
+    wall_levels: int = 3
     voxel_mm: float = 0.3
     max_normal_deg: float = 30.0
     min_fitness: float = 0.9
@@ -82,7 +83,7 @@ class PoseSettings:
     max_plane_rms_mm: float = 0.1
     max_occlusion: float = 0.3
     min_points: int = 200
-    hypotheses: int = 150
+    hypotheses: int = 100
     attempts: int = 2
     seed: int = 0
 
@@ -278,11 +279,10 @@ def _patch(points: np.ndarray, context: SceneContext | None, thickness: float, s
     uv = np.stack([d @ e1, d @ e2], axis=1)
     height = d @ n
     plane_rms = float(np.sqrt(np.mean(height ** 2)))
-    sub = uv[:: max(1, len(uv) // 3000)]
-    spacing = float(np.median(cKDTree(sub).query(sub, k=2)[0][:, 1])) * np.sqrt(len(sub) / len(uv))
-    spacing = max(spacing, 1e-3)
+    tree = cKDTree(uv)
+    spacing = max(float(np.median(tree.query(uv[:: max(1, len(uv) // 2000)], k=2)[0][:, 1])), 1e-3)
     g = 1.5 * spacing
-    margin = 4 * g
+    margin = SHADOW_MM + 2 * g
     lo = uv.min(axis=0) - margin
     shape = (int(np.ceil((uv[:, 1].max() + margin - lo[1]) / g)), int(np.ceil((uv[:, 0].max() + margin - lo[0]) / g)))
     if shape[0] * shape[1] > 4e6:
@@ -309,21 +309,25 @@ def _patch(points: np.ndarray, context: SceneContext | None, thickness: float, s
         higher[cij[ok & (hn > step), 0], cij[ok & (hn > step), 1]] = True
         lower[cij[ok & (hn <= step), 0], cij[ok & (hn <= step), 1]] = True
         lower &= ~observed & ~higher
-    # boundary: observed cells next to unobserved ones; true edges have no higher surface
-    # beside them (but a lower one, or none: a shadow the part casts on what is below)
-    kernel = np.ones((3, 3), np.uint8)
-    edge = observed & ~cv2.erode(observed.astype(np.uint8), kernel).astype(bool)
-    true_edge = edge & ~cv2.dilate(higher.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    # boundary: observed cells next to unobserved ones, each point with its outward
+    # direction; an edge is a true outline edge unless the first surface seen beyond it
+    # (within SHADOW_MM: a shadow may lie between) is higher — a part lying across it
+    edge = observed & ~cv2.erode(observed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     blur = cv2.GaussianBlur(observed.astype(np.float32), (0, 0), 1.5)
     gy, gx = np.gradient(blur)
-    on = true_edge[ij[:, 0], ij[:, 1]]
+    on = edge[ij[:, 0], ij[:, 1]]
     out2 = -np.stack([gx[ij[on, 0], ij[on, 1]], gy[ij[on, 0], ij[on, 1]]], axis=1)
     norm = np.linalg.norm(out2, axis=1)
     good = norm > 1e-6
     out2 = out2[good] / norm[good, None]
     idx = np.flatnonzero(on)[good]
+    steps = g * np.arange(1, int(np.ceil(SHADOW_MM / g)) + 1)
+    probe = np.floor((uv[idx, None, ::-1] + steps[None, :, None] * out2[:, None, ::-1] - lo[::-1]) / g).astype(np.int64)
+    r, cc = np.clip(probe[..., 0], 0, shape[0] - 1), np.clip(probe[..., 1], 0, shape[1] - 1)
+    seen = np.where(higher[r, cc], 1, np.where(lower[r, cc], 2, 0))
+    first = seen[np.arange(len(idx)), np.argmax(seen > 0, axis=1)]
+    idx, out2 = idx[first != 1], out2[first != 1]
     # keep the outermost points of the band (no neighbour farther out along the outward direction)
-    tree = cKDTree(uv)
     dist, nb = tree.query(uv[idx], k=9)
     along = np.einsum("knj,kj->kn", uv[np.minimum(nb, len(uv) - 1)] - uv[idx, None], out2)
     outer = ~np.any(np.isfinite(dist) & (dist < 2.0 * spacing) & (along > 0.5 * spacing), axis=1)
@@ -499,12 +503,12 @@ def _occlusion(patch: _Patch, sm: SideModel, T: np.ndarray) -> float:
 
 def _ndt_poses(src: np.ndarray, patch: _Patch, model: ThinPartModel, sm: SideModel, n_best: int) -> list[np.ndarray]:
     """Seed 001 NDT (Eq. 23-26, `registration`'s Newton steps) from 12 yaws about the
-    instance's plane, the side's face laid on it and the centroids matched; cells of 2, 1,
-    0.5 mm. The n_best by score (scan -> model transforms)."""
-    cells = (2.0, 1.0, 0.5)
+    instance's plane, the side's face laid on it and the centroids matched; cells of 2 and 1
+    The n_best by score (scan -> model transforms)."""
+    cells = (2.0, 1.0)
     for cell in cells:
         if cell not in sm.ndt:
-            sm.ndt[cell] = _ndt_grid(sm.target.coarse.points, cell)
+            sm.ndt[cell] = _ndt_grid(sm.target.dense.points, cell)
     sign = 1.0 if sm.side == "front" else -1.0
     a = sign * model.axis
     u0 = model.u0
@@ -521,7 +525,7 @@ def _ndt_poses(src: np.ndarray, patch: _Patch, model: ThinPartModel, sm: SideMod
         T = np.linalg.inv(P)
         score = 0.0
         for cell in cells:
-            T, score = _ndt_refine(sub, T, sm.ndt[cell], cell, 8)
+            T, score = _ndt_refine(sub, T, sm.ndt[cell], cell, 10)
         poses.append(T)
         scores.append(score)
     order = np.argsort(-np.array(scores))
