@@ -26,13 +26,13 @@ PROFILE = Characteristic("high_top_profile", "#657", "profile", 0.4)
 
 def test_adapter_takes_each_value_from_the_view_that_sees_the_face_best() -> None:
     views = [{"#657": {"label": "#657", "points": 900, "flatness_mz_mm": 0.031, "flatness_ls_mm": 0.035,
-                     "deviation_min_mm": -0.02, "deviation_max_mm": 0.05}},
+                       "profile_mm": 0.10, "raw_deviation_min_mm": -0.08, "raw_deviation_max_mm": 0.09}},
              {"#657": {"label": "#657", "points": 1500, "flatness_mz_mm": 0.027, "flatness_ls_mm": 0.030,
-                     "deviation_min_mm": -0.09, "deviation_max_mm": 0.04}}]
+                       "profile_mm": 0.18, "raw_deviation_min_mm": -0.13, "raw_deviation_max_mm": 0.08}}]
     flat = _pick(FLAT, views)
     assert (flat.value_mm, flat.points, flat.view) == (0.027, 1500, 1)
     assert _pick(Characteristic("f", "#657", "flatness", 0.05, "least_squares"), views).value_mm == 0.030
-    assert _pick(PROFILE, views).value_mm == pytest.approx(0.18)  # zone width 2 max|d| = 2 x 0.09
+    assert _pick(PROFILE, views).value_mm == 0.18  # the form surface's zone, not the raw points' 2 x 0.13
 
 
 def test_a_face_not_seen_or_not_evaluated_has_no_value_and_says_why() -> None:

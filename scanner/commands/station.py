@@ -105,6 +105,29 @@ def cmd_batch(args: argparse.Namespace) -> int:
     return 0 if not summary.failures else 1
 
 
+def cmd_batchbench(args: argparse.Namespace) -> int:
+    import os
+
+    from ..station.batch import compare, run_batch
+
+    runs = {}
+    for label, workers in (("serial", 0), (f"dask, {args.workers} local workers", args.workers)):
+        load = os.getloadavg()
+        runs[label] = run_batch(args.sessions, args.program, workers=workers, measurement=args.measurement)
+        counts = runs[label].counts()
+        print(f"{label:<24} wall {runs[label].wall_s:8.2f} s  ({len(args.sessions)} parts: {counts['pass']} pass, "
+              f"{counts['fail']} fail, {counts['error']} failed; load average before "
+              f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f})", flush=True)
+    serial, dask = runs.values()
+    differ, worst = compare(serial, dask)
+    print(f"results agree: {'yes' if not differ else 'NO'} (statuses and messages of {len(serial.items)} parts; "
+          f"largest value difference {worst * 1e3:.4f} um); speed-up {serial.wall_s / dask.wall_s:.2f}x; "
+          f"load average after {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    for line in differ:
+        print("DIFFERS " + line)
+    return 0 if not differ else 1
+
+
 def register(sub: Any) -> None:
     s = sub.add_parser("station", help="the operator loop for a part program (full-screen; --auto without operator)")
     s.add_argument("program", help="part program TOML (config/parts/*.toml)")
@@ -139,3 +162,11 @@ def register(sub: Any) -> None:
     b.add_argument("--measurement", help="measuring step, module:factory (default: the station config's)")
     b.add_argument("--json", action="store_true", help="print the summary as JSON")
     b.set_defaults(func=cmd_batch)
+
+    bb = sub.add_parser("batchbench", help="time `slscan batch` serially and on a local Dask cluster; check the "
+                                           "results agree")
+    bb.add_argument("sessions", nargs="+", help="part folders written by the station, or session folders")
+    bb.add_argument("--program", required=True, help="part program TOML to inspect against")
+    bb.add_argument("--workers", type=int, default=2, help="local cluster worker processes (default 2)")
+    bb.add_argument("--measurement", help="measuring step, module:factory (default: inspection)")
+    bb.set_defaults(func=cmd_batchbench)

@@ -205,6 +205,20 @@ def run_batch(parts: Sequence[str | Path], program_path: str | Path, scheduler: 
     return summary
 
 
+def compare(a: BatchSummary, b: BatchSummary) -> tuple[list[str], float]:
+    """Where two runs over the same parts differ: (one line per part whose status, message
+    or set of measured characteristics differs, the largest difference of a value, mm)."""
+    differ, worst = [], 0.0
+    for x, y in zip(a.items, b.items, strict=True):
+        vx = {v.characteristic: v.value_mm for v in x.values}
+        vy = {v.characteristic: v.value_mm for v in y.values}
+        if (x.status, x.message, vx.keys()) != (y.status, y.message, vy.keys()) \
+                or any((vx[c] is None) != (vy[c] is None) for c in vx):
+            differ.append(f"{x.path}: {x.status} '{x.message}' vs {y.status} '{y.message}'")
+        worst = max([worst] + [abs(vx[c] - vy[c]) for c in vx if c in vy and None not in (vx[c], vy[c])])
+    return differ, worst
+
+
 def _store(summary: BatchSummary, program: PartProgram, config: StationConfig, entry: str) -> None:
     now = dt.datetime.now(dt.timezone.utc)
     with open_results(config.database_url) as store:

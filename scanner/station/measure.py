@@ -42,15 +42,16 @@ LOAD_ENTRY = "inspection.scan:load_session"
 INSPECT_ENTRY = "inspection.pipeline:inspect"
 REPORT_FILE = "inspection.json"  # written into the session's outputs/ by the adapter
 
-# (kind, method) -> the report's per-face column(s) that give the value, all in mm. The
-# profile value is the zone width 2 max|d| from the signed deviations' extremes.
-REPORT_COLUMNS: dict[tuple[str, str | None], tuple[str, ...]] = {
-    ("flatness", "minimum_zone"): ("flatness_mz_mm",),
-    ("flatness", "least_squares"): ("flatness_ls_mm",),
-    ("cylindricity", "minimum_zone"): ("cylindricity_mz_mm",),
-    ("cylindricity", "least_squares"): ("cylindricity_ls_mm",),
-    ("sq", None): ("sq_mm",),
-    ("profile", None): ("deviation_min_mm", "deviation_max_mm"),
+# (kind, method) -> the report's per-face column that gives the value, in mm. The profile
+# value is the report's zone width 2 max|d| of the signed deviations of the form surface
+# (noise filtered out like the form figures; the raw points' extremes carry 4-5 sigma of noise).
+REPORT_COLUMNS: dict[tuple[str, str | None], str] = {
+    ("flatness", "minimum_zone"): "flatness_mz_mm",
+    ("flatness", "least_squares"): "flatness_ls_mm",
+    ("cylindricity", "minimum_zone"): "cylindricity_mz_mm",
+    ("cylindricity", "least_squares"): "cylindricity_ls_mm",
+    ("sq", None): "sq_mm",
+    ("profile", None): "profile_mm",
 }
 
 
@@ -190,10 +191,9 @@ def _pick(c: Characteristic, tables: Sequence[Mapping[str, Mapping[str, Any]]]) 
     if not rows:
         return MeasuredValue(c.name, None, note=f"face {c.face} not seen in any view")
     k, row = max(rows, key=lambda kr: int(kr[1]["points"]))
-    columns = REPORT_COLUMNS[(c.kind, c.method)]
-    raw = [row.get(col) for col in columns]
-    if any(v is None or not np.isfinite(float(v)) for v in raw):
-        reason = row.get("note") or row.get("status") or f"no {'/'.join(columns)} in the report"
+    column = REPORT_COLUMNS[(c.kind, c.method)]
+    value = row.get(column)
+    if value is None or not np.isfinite(float(value)):
+        reason = row.get("note") or row.get("status") or f"no {column} in the report"
         return MeasuredValue(c.name, None, int(row["points"]), k, note=f"face {c.face}: {reason}")
-    value = 2.0 * max(abs(float(raw[0])), abs(float(raw[1]))) if c.kind == "profile" else float(raw[0])
-    return MeasuredValue(c.name, value, int(row["points"]), k)
+    return MeasuredValue(c.name, float(value), int(row["points"]), k)

@@ -3,8 +3,8 @@
     [program]
     name = "demo-part"                  # the part number results are filed under
     version = "1.0"                     # stored with every result
-    cad = "demo_part.ply"               # STEP or mesh, relative to this file
-    mesh_unit = "mm"                    # mesh CAD only: the unit its coordinates are in
+    cad = "demo_part.step"              # STEP or mesh, relative to this file
+    mesh_unit = "mm"                    # optional, mesh CAD only: the unit its coordinates are in
     description = "..."                 # optional
 
     [scan]
@@ -18,7 +18,8 @@
 
     [[characteristic]]                  # one table per characteristic, in report order
     name = "high_top_flatness"          # unique; results and charts are filed under it
-    face = "F2"                         # CAD face: "#<STEP ADVANCED_FACE id>", or "F<index>" of a mesh
+    face = "#657"                       # CAD face: "#<STEP ADVANCED_FACE id>" (`slscan cad FILE` lists
+                                        # them with their types), or "F<index>" of a mesh
     kind = "flatness"                   # flatness | cylindricity | sq | profile
     method = "minimum_zone"             # flatness, cylindricity: minimum_zone (default) | least_squares
     tolerance_mm = 0.05                 # upper limit of the measured value
