@@ -3,8 +3,8 @@ area-uniform sampling on the exact surfaces, and clear errors for bad files."""
 
 from __future__ import annotations
 
+import json
 import re
-import time
 from pathlib import Path
 
 import numpy as np
@@ -56,15 +56,12 @@ def test_inch_file_converted_to_mm(models: dict) -> None:
 
 @needs_step
 @pytest.mark.parametrize("name", ["nist_ctc_01_asme1_rd.stp", "nist_ftc_06_asme1_rd.stp"])
-def test_sampling_400k_is_exact_uniform_and_fast(models: dict, name: str) -> None:
+def test_sampling_400k_is_exact_and_uniform(models: dict, name: str) -> None:
+    """400k labelled points; their time (target < 1 s) is a benchmark, not a test:
+    `slscan cad FILE --sample 400000` prints wall and CPU time with the load average."""
     m = models[name]
-    spacing = spacing_for(m, 400_000)
-    sample_model(m, spacing, seed=1)  # warm-up (lazy classifier construction)
-    t0 = time.perf_counter()
-    c = sample_model(m, spacing, seed=2)
-    dt = time.perf_counter() - t0
-    print(f"{name}: {len(c)} points in {dt:.3f} s")
-    assert dt < 1.0 and abs(len(c) - 400_000) < 4_000
+    c = sample_model(m, spacing_for(m, 400_000), seed=2)
+    assert abs(len(c) - 400_000) < 4_000
     # on the exact surface, with outward normals of the surface there
     for f in m.faces:
         sel = c.face == f.index
@@ -111,3 +108,13 @@ def test_scale_model_keeps_faces_ids_and_orientations(models: dict) -> None:
     assert [f.sense for f in small.faces] == [f.sense for f in full.faces]
     assert np.allclose([f.area_mm2 for f in small.faces], [0.16 * f.area_mm2 for f in full.faces], rtol=1e-9)
     assert np.isclose(small.diagonal_mm, 0.4 * full.diagonal_mm, rtol=1e-3) and small.unit == "inch x 0.4"
+
+
+def test_sample_benchmark_command(capsys) -> None:
+    from scanner import cli
+
+    assert cli.main(["cad", str(CONFIG_DIR / "parts" / "demo_part.step"), "--sample", "20000", "--repeats", "2",
+                     "--json"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["faces"] == 13 and len(out["wall_s"]) == 2 and len(out["load_average"]) == 3
+    assert all(abs(n - 20_000) < 5 * np.sqrt(20_000) for n in out["points"])

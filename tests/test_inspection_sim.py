@@ -163,7 +163,8 @@ def test_inspect_command_writes_report_and_recording(run: SimpleNamespace, tmp_p
 def test_bundled_demo_scene_seen_from_above() -> None:
     """`slscan demo`'s scene (the nominal part lying flat, seen from straight above: only
     the outline and the step fix its turn): registered, and every face measured reads
-    flat to within twice its noise floor."""
+    flat, and on its nominal surface (profile zone), to within twice its noise floor,
+    while the raw points' extremes (the noise's) span several times more."""
     from scanner.acquisition import AcquisitionSettings, acquire
     from scanner.decode import decode
     from scanner.reconstruct import Triangulator, triangulate
@@ -182,3 +183,7 @@ def test_bundled_demo_scene_seen_from_above() -> None:
     assert report.fitness > 0.95 and angle < 0.3 and shift < 0.1
     flat = [r.form for r in report.faces if r.form.flatness_mz_mm is not None]
     assert len(flat) >= 3 and all(f.flatness_mz_mm < 2.0 * f.noise_floor_mm for f in flat)
+    for f in flat:  # the part is nominal: its true profile zone is 0
+        raw = 2.0 * max(abs(f.raw_deviation_min_mm), abs(f.raw_deviation_max_mm))
+        print(f"profile {f.profile_mm * 1e3:.1f} um (noise floor {f.noise_floor_mm * 1e3:.1f} um; raw points {raw * 1e3:.1f} um)")
+        assert f.deviation_source == "form surface" and f.profile_mm < 2.0 * f.noise_floor_mm < raw / 3.0

@@ -1,6 +1,7 @@
 """`slscan cad`, `slscan register` and `slscan inspect`: inspection against CAD (issue 5).
 
-    slscan cad FILE [--json]                         faces by STEP id and surface type, counts per type
+    slscan cad FILE [--json] [--sample N]            faces by STEP id and surface type, counts per type;
+                                                     --sample: time to sample N labelled points
     slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE
     slscan inspect SESSION|CLOUD --cad FILE [--tolerances FILE]
                                                      register, segment by CAD face, per-face form table
@@ -30,7 +31,15 @@ def _load_model(path: str, unit: str) -> Any:
 
 
 def cmd_cad(args: argparse.Namespace) -> int:
+    import time
+
+    t0 = time.perf_counter()
     model = _load_model(args.file, args.cad_unit)
+    load_s = time.perf_counter() - t0
+    if args.sample:
+        bench = sample_benchmark(model, args.sample, args.repeats, load_s)
+        print(json.dumps(bench) if args.json else _sample_text(bench))
+        return 0
     if args.json:
         s = model.summary()
         print(json.dumps({"path": s["path"], "unit": s["unit"], "faces": s["faces"], "counts": s["counts"]}))
@@ -41,6 +50,40 @@ def cmd_cad(args: argparse.Namespace) -> int:
         print(f"  {f.label:>8}  {f.type:<9} {f.area_mm2:12.3f} mm^2  {params}")
     print("counts: " + ", ".join(f"{n} {t}" for t, n in model.counts.items()))
     return 0
+
+
+def sample_benchmark(model: Any, n_points: int, repeats: int, load_s: float) -> dict[str, Any]:
+    """Time to sample about `n_points` labelled points on `model` (after one warm-up run,
+    which builds the faces' trimming classifiers): wall and CPU seconds of each of
+    `repeats` runs, the machine's load average, the points drawn."""
+    import os
+    import time
+
+    from inspection.sampling import sample_model, spacing_for
+
+    spacing = spacing_for(model, n_points)
+    t0, c0 = time.perf_counter(), time.process_time()
+    sample_model(model, spacing, seed=0)
+    warm = (time.perf_counter() - t0, time.process_time() - c0)
+    runs = []
+    for k in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        cloud = sample_model(model, spacing, seed=k + 1)
+        runs.append((time.perf_counter() - t0, time.process_time() - c0, len(cloud)))
+    wall, cpu, points = (list(x) for x in zip(*runs))
+    return {"path": str(model.path), "faces": len(model), "counts": model.counts, "load_s": load_s,
+            "spacing_mm": spacing, "points": points, "warm_up_wall_s": warm[0], "warm_up_cpu_s": warm[1],
+            "wall_s": wall, "cpu_s": cpu, "median_wall_s": float(sorted(wall)[len(wall) // 2]),
+            "median_cpu_s": float(sorted(cpu)[len(cpu) // 2]), "load_average": os.getloadavg()}
+
+
+def _sample_text(b: dict[str, Any]) -> str:
+    return (f"{b['path']}: {b['faces']} faces ({', '.join(f'{n} {t}' for t, n in b['counts'].items())}), "
+            f"loaded in {b['load_s']:.2f} s\n"
+            f"sampling ~{b['points'][0]} labelled points (spacing {b['spacing_mm']:.4g} mm): median "
+            f"{b['median_wall_s']:.3f} s wall, {b['median_cpu_s']:.3f} s CPU over {len(b['wall_s'])} runs "
+            f"(runs {', '.join(f'{x:.3f}' for x in b['wall_s'])} s; first run with classifier set-up "
+            f"{b['warm_up_wall_s']:.2f} s); load average {', '.join(f'{x:.2f}' for x in b['load_average'])}")
 
 
 def _short(v: Any) -> str:
@@ -144,6 +187,8 @@ def register(sub: Any) -> None:
     c.add_argument("file", help="STEP (.step/.stp) or mesh (.stl/.ply/.obj)")
     c.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh file (STEP files say theirs)")
     c.add_argument("--json", action="store_true", help="print {faces: [...], counts: {...}}")
+    c.add_argument("--sample", type=int, metavar="N", help="benchmark: time sampling N labelled points")
+    c.add_argument("--repeats", type=int, default=5, help="with --sample: timed runs after a warm-up")
     c.set_defaults(func=cmd_cad)
 
     r = sub.add_parser("register", help="register a cloud to a CAD model, a mesh or another cloud")
