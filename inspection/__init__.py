@@ -10,7 +10,8 @@ Modules (each one job):
     features      FPFH (Open3D) and SHOT (vectorised) descriptors
     registration  RSCS, multivariate correspondences (Eq. 11), SAC-IA/RANSAC/NDT, verification, ICP, exact fine step
     segmentation  every point assigned to its CAD face (distance, normal, inside the face), signed deviations
-    form          least-squares and minimum-zone flatness/cylindricity, ISO 16610-61 filter, Sq, noise floors
+    form          least-squares and minimum-zone flatness/cylindricity, ISO 16610-61 filter, Sq, noise floors,
+                  deviations and profile zone of the form surface
     tolerances    per-face limits and ISO 14253-1 verdicts
     report        the per-face table as JSON, CSV, text and HTML with the deviation map
     recording     the result in the session's Rerun recording
