@@ -1,0 +1,199 @@
+"""Poses of thin parts in simulated bins (inspection/pose.py, inspection/picking.py, the
+`slscan pose` command), checked against the simulator's true poses, sides and occlusion;
+bad input (empty scene, masks of the wrong size, nonsense part files) gives named errors
+or empty results, never an invented pose."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+
+from inspection.errors import CadError, InspectionError
+from inspection.instances import instances_from_depth_steps, instances_from_label_image
+from inspection.picking import pick_order
+from inspection.pose import PoseSettings, ThinPartModel, estimate_poses
+from inspection.registration import pose_difference
+from inspection.segmentation_errors import MaskError
+from scanner.cli import main
+from scanner.commands.pose import load_masks, load_part
+from scanner.recording import entity_paths
+from scanner.rig import RigConfig
+from sim.bins import TabPart, bin_scene, scan_bin
+
+PARTS = Path(__file__).resolve().parents[1] / "config" / "parts"
+TRANS_MM, ROT_DEG = 0.1, 0.5
+
+
+@pytest.fixture(scope="module")
+def small_bin() -> tuple:
+    """Five tabs dropped close together (heavy overlaps, both sides up), scanned on the
+    default rig (1280 x 1024, 0.13 mm pixels at the tray): (bin, cloud, ids, truth occlusion)."""
+    b = bin_scene(5, seed=7, spread_mm=(12.0, 8.0))
+    cloud, ids = scan_bin(b, RigConfig.load().nominal_model(), noise_mm=0.01, seed=0)
+    return b, cloud, ids, b.occlusion()
+
+
+@pytest.fixture(scope="module")
+def model() -> ThinPartModel:
+    return ThinPartModel.from_mesh(*TabPart().mesh(), "tab")
+
+
+def _check_against_truth(b: object, poses: list, occlusion: np.ndarray, id_of_part: dict[int, int]) -> None:
+    found = {id_of_part[p.instance_id]: p for p in poses if p.ok}
+    for k, occ in enumerate(occlusion):
+        if occ < 0.3:
+            assert k in found, f"part {k} ({occ:.0%} occluded) not found"
+    for k, p in found.items():   # every pose reported is right, however occluded the part
+        rot, trans = pose_difference(b.poses[k], p.pose)
+        assert rot <= ROT_DEG and trans <= TRANS_MM, (k, rot, trans)
+        assert (p.side == "front") == bool(b.front_up[k])
+        assert abs(p.occlusion - occlusion[k]) < 0.1
+        assert p.fitness > 0.95 and p.rmse_mm < 0.03
+
+
+def _write_bin_cloud(cloud: object, ids: np.ndarray, path: Path) -> Path:
+    """The scan's points around the parts (5 mm beyond their pixels) as a PLY in the camera frame."""
+    rows, cols = np.nonzero(ids >= 2)
+    window = np.zeros(ids.shape, bool)
+    window[rows.min() - 40:rows.max() + 40, cols.min() - 40:cols.max() + 40] = True
+    pts = cloud.points[cloud.valid & window].astype(np.float64)
+    o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)))
+    return path
+
+
+@pytest.mark.parametrize("method", ["sacia", pytest.param("ndt", marks=pytest.mark.slow)])
+def test_poses_of_a_small_bin_match_the_truth(small_bin: tuple, model: ThinPartModel, method: str) -> None:
+    b, cloud, ids, occlusion = small_bin
+    assert b.front_up.any() and (~b.front_up).any() and (occlusion > 0.02).any() and (occlusion < 0.3).sum() >= 2
+    inst = instances_from_label_image(np.where(ids >= 2, ids, 0), cloud)
+    poses = estimate_poses(inst, model, cloud.points[cloud.valid], PoseSettings(method=method))
+    assert len(poses) == len(inst)
+    if method == "ndt":   # the weaker coarse method: whatever it reports must be right
+        found = {p.instance_id - 2: p for p in poses if p.ok}
+        for k, p in found.items():
+            rot, trans = pose_difference(b.poses[k], p.pose)
+            assert rot <= ROT_DEG and trans <= TRANS_MM and (p.side == "front") == bool(b.front_up[k])
+        return
+    _check_against_truth(b, poses, occlusion, {i.id: i.id - 2 for i in inst})
+    # pick order: an uncovered part first, the highest of those (closest to the camera)
+    ranks = pick_order(poses)
+    first = next(p for p in poses if ranks.get(p.instance_id) == 1)
+    free = [p for p in poses if p.ok and p.occlusion <= 0.02]
+    if free:
+        assert first.pose[2, 3] == min(p.pose[2, 3] for p in free)
+    assert all(occlusion[p.instance_id - 2] < 0.4 for p in poses if p.instance_id in ranks)
+
+
+def test_instances_from_depth_steps_separate_overlapping_parts(small_bin: tuple) -> None:
+    b, cloud, ids, occlusion = small_bin
+    inst = instances_from_depth_steps(cloud, step_mm=0.1, tray_tol_mm=0.075)
+    assert inst
+    for i in inst:   # each instance lies on one part
+        counts = np.bincount(ids.ravel()[i.indices], minlength=len(b.poses) + 2)
+        assert counts[2:].max() >= 0.99 * len(i) and counts[:2].sum() <= 0.01 * len(i)
+    largest = {int(np.bincount(ids.ravel()[i.indices]).argmax()) for i in inst}
+    assert {k + 2 for k, o in enumerate(occlusion) if o < 0.02} <= largest
+
+
+def test_pose_command_writes_the_poses_file_and_recording(small_bin: tuple, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    b, cloud, ids, occlusion = small_bin
+    ply = _write_bin_cloud(cloud, ids, tmp_path / "bin.ply")
+    masks = tmp_path / "labels.png"
+    cv2.imwrite(str(masks), np.where(ids >= 2, ids, 0).astype(np.uint16))
+    assert main(["pose", str(ply), "--part", str(PARTS / "nickel_tab.toml"), "--masks", str(masks)]) == 0
+    out = capsys.readouterr().out
+    assert "rank" in out and "pickable" in out
+    doc = json.loads((tmp_path / "bin.poses.json").read_text())
+    assert doc["format"] == "slscan-poses" and doc["part"] == "nickel-tab"
+    ok = [r for r in doc["parts"] if r["status"] == "ok"]
+    assert len(ok) >= int((occlusion < 0.3).sum())
+    ranks = sorted(r["pick_rank"] for r in doc["parts"] if r["pick_rank"] is not None)
+    assert ranks == list(range(1, len(ranks) + 1)) and doc["parts"][0]["pick_rank"] == 1
+    for r in ok:
+        k = r["id"] - 2   # the label image holds the simulator's ids
+        T = np.eye(4)
+        T[:3, :3] = r["camera"]["rotation"]
+        T[:3, 3] = r["camera"]["position_mm"]
+        rot, trans = pose_difference(b.poses[k], T)
+        assert rot <= ROT_DEG and trans <= TRANS_MM
+        assert r["side_up"] == ("front" if b.front_up[k] else "back")
+        w, x, y, z = r["camera"]["quaternion_wxyz"]
+        q = o3d.geometry.get_rotation_matrix_from_quaternion(np.array([w, x, y, z]))
+        assert np.allclose(q, T[:3, :3], atol=1e-6) and w >= 0
+        assert np.allclose(r["world"]["position_mm"], r["camera"]["position_mm"])   # the bench rig: world = camera
+    paths = entity_paths(tmp_path / "bin.poses.rrd")
+    assert any(p.startswith("world/pose/models/part_") for p in paths) and "world/pose/pick_order" in paths
+
+
+def test_empty_scene_gives_no_poses_and_says_so(model: ThinPartModel, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    assert estimate_poses([], model, None) == []
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-40, 40, (20000, 2))
+    tray = np.c_[xy, 420.0 + rng.normal(0, 0.01, len(xy))]   # the tray alone, in the camera frame
+    ply = tmp_path / "empty.ply"
+    o3d.io.write_point_cloud(str(ply), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tray)))
+    assert main(["pose", str(ply), "--part", str(PARTS / "nickel_tab.toml"), "--no-log"]) == 1
+    assert "no parts found" in capsys.readouterr().out
+    doc = json.loads((tmp_path / "empty.poses.json").read_text())
+    assert doc["parts"] == [] and "no parts found" in doc["message"]
+
+
+def test_no_recognisable_part_is_reported_as_failed(model: ThinPartModel) -> None:
+    """A disc of the part's thickness lying on the tray: an instance, but no pose of the tab
+    explains it."""
+    from inspection.instances import Instance
+
+    rng = np.random.default_rng(1)
+    r = 9.0 * np.sqrt(rng.random(8000))
+    a = rng.uniform(0, 2 * np.pi, 8000)
+    disc = np.c_[r * np.cos(a), r * np.sin(a), np.full(8000, 419.75)]
+    inst = Instance(1, np.arange(8000), disc, np.tile([0.0, 0.0, -1.0], (8000, 1)), "segmentation")
+    (p,) = estimate_poses([inst], model, None)
+    assert not p.ok and p.pose is None and p.reason
+
+
+def test_masks_of_the_wrong_size_are_an_error(small_bin: tuple, tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    b, cloud, ids, occlusion = small_bin
+    ply = _write_bin_cloud(cloud, ids, tmp_path / "bin.ply")
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.ones((100, 120), np.uint8))
+    with pytest.raises(MaskError, match=r"small.png.*120x100.*1280x1024"):
+        load_masks(small, cloud)
+    assert main(["pose", str(ply), "--part", str(PARTS / "nickel_tab.toml"), "--masks", str(small), "--no-log"]) == 2
+    assert re.search(r"error: .*small.png: label image is 120x100, the camera image is 1280x1024", capsys.readouterr().err)
+    assert not (tmp_path / "bin.poses.json").exists()
+
+
+@pytest.mark.parametrize("text, match", [
+    ("this is [not toml", "not a readable TOML"),
+    ("[other]\nx = 1\n", r"no \[part\] table"),
+    ("[part]\nkind = \"gear\"\n", "only \"tab\""),
+    ("[part]\nkind = \"tab\"\nlenght_mm = 3\n", r"unknown keys \['lenght_mm'\]"),
+    ("[part]\nkind = \"tab\"\nwidth_mm = -8\n", "inconsistent tab part"),
+])
+def test_nonsense_part_files_are_errors(tmp_path: Path, text: str, match: str) -> None:
+    f = tmp_path / "part.toml"
+    f.write_text(text)
+    with pytest.raises(CadError, match=match):
+        load_part(f)
+
+
+def test_a_mesh_that_is_not_a_thin_plate_is_an_error(tmp_path: Path) -> None:
+    box = o3d.geometry.TriangleMesh.create_box(10.0, 10.0, 10.0)
+    f = tmp_path / "cube.ply"
+    o3d.io.write_triangle_mesh(str(f), box)
+    with pytest.raises(InspectionError, match="not a thin flat part"):
+        load_part(f)
+    step = tmp_path / "part.step"
+    step.write_text("ISO-10303-21;")
+    with pytest.raises(CadError, match="unsupported part file"):
+        load_part(step)
