@@ -70,6 +70,7 @@ def _run_demo_parts(tmp_path: Path, parts: list[int]) -> None:
             assert o.status == expected_status(program, o.truth), (o.truth, o.values, o.message)
             for v in o.values:
                 truth = o.truth["imposed_mm"][v.characteristic]
+                assert v.conforms == program.characteristic(v.characteristic).conforms(truth), v  # each one, too
                 if v.characteristic.endswith("flatness"):
                     assert v.value_mm == pytest.approx(truth, abs=0.005 + 0.1 * truth), v
                 if v.characteristic == "boss_cylindricity":

@@ -20,7 +20,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator, Protocol
 
-from ..errors import DeviceError
+from ..errors import ScannerError
 from ..rig import Rig, RigConfig, open_rig
 from ..session import write_json
 
@@ -34,9 +34,11 @@ class StartInput(Protocol):
 class Bench:
     """A rig on a bench (see the module docstring). Use as a context manager."""
 
-    def __init__(self, config: RigConfig, seed: int = 0) -> None:
+    def __init__(self, config: RigConfig, seed: int = 0, **rig_options: Any) -> None:
+        """`rig_options` go to `open_rig` for a hardware rig (e.g. the drivers' transports)."""
         self.config = config
         self.seed = seed
+        self.rig_options = rig_options
         self.simulated = config.driver == "sim"
         self.switch: Any = None  # the simulated bench's trigger box (its input is the foot switch)
         self.input_problem = ""  # why the foot switch stopped being read ("" while it works)
@@ -71,23 +73,22 @@ class Bench:
         as one start). On hardware the first call opens the rig; a trigger box without an
         input, or one that fails, leaves the keyboard as the only start (`input_problem`
         says why) rather than stopping the station."""
-        if not self.simulated and self._input is None and not self.input_problem:
-            trigger = self._hardware_rig().trigger
-            if callable(getattr(trigger, "presses", None)):
-                self._input = trigger
-            else:
-                self.input_problem = f"rig {self.config.name} has no trigger box: no foot switch"
-        if self._input is None:
-            return False
         try:
-            return self._input.presses() > 0
-        except DeviceError as exc:
+            if not self.simulated and self._input is None and not self.input_problem:
+                trigger = self._hardware_rig().trigger
+                if not callable(getattr(trigger, "presses", None)):
+                    self.input_problem = f"rig {self.config.name} has no trigger box: no foot switch"
+                    return False
+                self._input = trigger
+                trigger.presses()  # the first reading: presses before the station was ready do not count
+            return self._input is not None and self._input.presses() > 0
+        except ScannerError as exc:
             self._input, self.input_problem = None, f"foot switch not read: {exc}"
             return False
 
     def _hardware_rig(self) -> Rig:
         if self._rig is None:
-            self._rig = open_rig(self.config)
+            self._rig = open_rig(self.config, **self.rig_options)
         return self._rig
 
     def sim_part(self, part: int) -> Any:
