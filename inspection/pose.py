@@ -503,8 +503,8 @@ def _occlusion(patch: _Patch, sm: SideModel, T: np.ndarray) -> float:
 
 def _ndt_poses(src: np.ndarray, patch: _Patch, model: ThinPartModel, sm: SideModel, n_best: int) -> list[np.ndarray]:
     """Seed 001 NDT (Eq. 23-26, `registration`'s Newton steps) from 12 yaws about the
-    instance's plane, the side's face laid on it and the centroids matched; cells of 2 and 1
-    The n_best by score (scan -> model transforms)."""
+    instance's plane, the side's face laid on it and the centroids matched; cells of 2 and
+    1 mm. The n_best by score (scan -> model transforms)."""
     cells = (2.0, 1.0)
     for cell in cells:
         if cell not in sm.ndt:

@@ -58,7 +58,7 @@ def register(sub: Any) -> None:
     b.add_argument("--size", type=int, nargs=2, default=(1280, 1024), metavar=("W", "H"),
                    help="camera resolution of the rig the bins are rendered with (default the rig's 1280 x 1024)")
     b.add_argument("--noise", type=float, default=0.01, metavar="MM", help="depth noise along the camera rays")
-    b.add_argument("--rows", help="write every part's row (JSON) to this file")
+    b.add_argument("--rows", help="append every part's row to this file (JSON lines, bin by bin)")
     b.set_defaults(func=cmd_posebench)
 
 
@@ -293,10 +293,11 @@ def cmd_posebench(args: argparse.Namespace) -> int:
                                    side_ok=(r.side == "front") == bool(b.front_up[k]), est_occlusion=r.occlusion)
                 rows.append(row)
         done = [r for r in rows if r["seed"] == seed]
+        if args.rows:   # one JSON line per part, written as each bin is done
+            with open(args.rows, "a") as f:
+                f.writelines(json.dumps(r) + "\n" for r in done)
         print(f"bin {seed}: {n} parts; " + "; ".join(
             f"{m} {sum(r['found'] for r in done if r['method'] == m)} posed" for m in args.methods), flush=True)
-    if args.rows:
-        Path(args.rows).write_text(json.dumps(rows))
     load1 = os.getloadavg()
     print(summary(rows, args.methods))
     print(f"load average at the end {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
