@@ -176,3 +176,27 @@ def evaluate(heights_mm: list[float], fit_mask: list[bool], phases: list[np.ndar
 
         out.append(HeightError(float(h), not fitted, rms(eq17), rms(pp), rms(tri), int(ok.sum())))
     return out
+
+
+def scan_height_errors(model: PhaseToHeight, camera: Pinhole, depths: dict[str, np.ndarray], true_depth: np.ndarray,
+                       region: np.ndarray, top_mm: float) -> tuple[dict[str, tuple[float, float]], int]:
+    """How well each method measured a scan, judged over the measuring volume: the pixels of
+    `region` whose true height above the reference plane lies within the calibrated heights
+    0 .. `top_mm`. `depths`: method -> depth map (H, W, mm along `camera`'s rays, NaN where
+    none). Returns method -> (RMS height error (mm), fraction of the volume's pixels it
+    measured), and the number of pixels in the volume. A depth error along a ray is a height
+    error of that times the ray's height change per mm of depth."""
+    rays = camera.ray_grid.astype(np.float64)
+    per_mm = rays @ model.plane[:3]
+    height = per_mm * true_depth + model.plane[3]
+    volume = region & (height >= -0.01 * top_mm) & (height <= top_mm)
+    n = int(volume.sum())
+    if n == 0:
+        raise CalibrationError(f"phase-to-height check: no pixel of the scan lies between the reference plane and "
+                               f"{top_mm} mm above it")
+    out = {}
+    for name, z in depths.items():
+        ok = volume & np.isfinite(z)
+        err = (per_mm * (z - true_depth))[ok]
+        out[name] = (float(np.sqrt(np.mean(err ** 2))) if ok.any() else float("nan"), float(ok.sum() / n))
+    return out, n

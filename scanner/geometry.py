@@ -169,6 +169,12 @@ class PhaseToHeight:
             return self.l_map_mm * dphi / (dphi + self.k_map_rad)
         return self.l_mm * dphi / (dphi + 2.0 * np.pi * self.d_mm / self.pitch_mm)
 
+    def depth(self, phase: np.ndarray, rays: np.ndarray, per_pixel: bool = True) -> np.ndarray:
+        """Depth z (mm) along camera rays (H, W, 3) as (x/z, y/z, 1) of the height `height`
+        gives: the point at height h lies on the plane n·X + c = h."""
+        n, c = self.plane[:3].astype(np.float32), np.float32(self.plane[3])
+        return (self.height(phase, per_pixel) - c) / (rays @ n)
+
     def maps(self) -> dict[str, np.ndarray]:
         """The arrays to store (float32), by PHASE_MAP_KEYS name."""
         arrays = {"reference_phase": self.reference_phase}

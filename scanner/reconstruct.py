@@ -202,10 +202,8 @@ def phase_to_height_cloud(decoded: DecodeResult, rig: RigModel, orientation: str
     if model.reference_phase.shape != phase.shape:
         raise DecodeError(f"reference phase map {model.maps_file or '(in memory)'} is "
                           f"{model.reference_phase.shape[::-1]} (w, h) but the scan is {phase.shape[::-1]}")
-    h = model.height(np.where(decoded.valid, phase, np.nan))
     rays = rig.camera.ray_grid
-    n, c = model.plane[:3].astype(np.float32), np.float32(model.plane[3])
-    z = (h - c) / (rays @ n)  # n·X + c = h on the plane at height h; rays have unit z
+    z = model.depth(np.where(decoded.valid, phase, np.nan), rays)
     return cloud_from_depth(z, np.ascontiguousarray(rays[..., 0]), np.ascontiguousarray(rays[..., 1]),
                             to_texture8(decoded.texture, decoded.bit_depth))
 

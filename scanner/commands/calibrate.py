@@ -19,6 +19,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
+
 from ..config import CONFIG_DIR
 from ..errors import ConfigError, ScannerError
 
@@ -158,6 +161,9 @@ def _on_rig(args: argparse.Namespace, out: Path, say: Any, log: Any) -> tuple[An
         lines = ["against the simulator's ground truth:", *("          " + x for x in
                                                            error_lines(model_errors(result.model, truth)))]
         lines += _scan_check(rig, result.model, truth, say)
+        if result.model.phase_to_height is not None:
+            lines += _phase_height_check(rig, result.model, config.working_distance_mm + PLATE_BEHIND_MM,
+                                         max(procedure.plate_heights_mm), say)
     return result, config.path, lines
 
 
@@ -207,6 +213,56 @@ def _scan_check(rig: Any, calibrated: Any, truth: Any, say: Any) -> list[str]:
     return [f"scan check (sphere + plane, {patterns.family}): depth RMS {c.rms_mm * 1e3:.2f} um with the calibrated "
             f"rig, {t.rms_mm * 1e3:.2f} um with the ground-truth rig (ratio {c.rms_mm / t.rms_mm:.3f}); mean "
             f"{c.mean_mm * 1e3:+.2f} / {t.mean_mm * 1e3:+.2f} um"]
+
+
+def measuring_volume_scene(camera: Any, plate_mm: float, top_mm: float) -> Any:
+    """A simulated scene filling the phase-to-height model's measuring volume: the plate at
+    `plate_mm` (the reference plane), a ramp rising from 7 % to 93 % of `top_mm` in the left
+    half of the view and a ball whose top is at 93 % of `top_mm` in the right half."""
+    from sim.scene import Scene, SceneObject
+    from sim.stage import plate_scene
+
+    half = plate_mm * camera.width / 2.0 / camera.K[0, 0]  # half the field's width on the plate (mm)
+    length = 0.55 * half
+    tilt = float(np.arcsin(0.86 * top_mm / length))
+    ramp = np.eye(4)
+    ramp[:3, :3] = cv2.Rodrigues(np.array([0.0, tilt, 0.0]))[0]
+    ramp[:3, 3] = (-0.45 * half, 0.0, plate_mm - 0.5 * top_mm)
+    radius = 0.2 * half
+    ball = np.eye(4)
+    ball[:3, 3] = (0.5 * half, 0.0, plate_mm - 0.93 * top_mm + radius)
+    return Scene(objects=(SceneObject("ramp", "plane", ramp, 0.7, size_mm=(length, 0.6 * half)),
+                          SceneObject("ball", "sphere", ball, 0.7, radius_mm=radius)),
+                 reference_plane=plate_scene(plate_mm).reference_plane, name="phase-to-height volume")
+
+
+def _phase_height_check(rig: Any, calibrated: Any, plate_mm: float, top_mm: float, say: Any) -> list[str]:
+    """A scan of `measuring_volume_scene` reconstructed with the calibrated phase-to-height
+    model (per pixel and global) and by triangulation: height errors against the
+    simulator's truth over the measuring volume."""
+    from calibration.capture import capture_fringes
+    from calibration.phase_height import scan_height_errors
+    from sim.evaluate import Truth, smooth_region
+    from sim.stage import show
+
+    from ..decode import decode
+    from ..patterns import PatternSet
+    from ..reconstruct import Triangulator, phase_to_height_cloud, triangulate
+
+    say("phase-to-height check: a ramp and a ball within the calibrated heights")
+    show(rig, measuring_volume_scene(calibrated.camera, plate_mm, top_mm))
+    patterns = PatternSet.load(rig.config.patterns_path)
+    decoded = decode(capture_fringes(rig, patterns, calibrated.projector_gamma), patterns, rig.camera.bit_depth,
+                     calibrated.projector.size)
+    model, rays = calibrated.phase_to_height, calibrated.camera.ray_grid
+    phase = np.where(decoded.valid, decoded.maps["vertical"].phase, np.nan)
+    depths = {"per-pixel Eq. 17": phase_to_height_cloud(decoded, calibrated).points[..., 2],
+              "global Eq. 17": model.depth(phase, rays, per_pixel=False),
+              "triangulation": triangulate(decoded, Triangulator(calibrated), with_normals=False).points[..., 2]}
+    gt = Truth.of(rig.extras["ground_truth"])
+    errors, n = scan_height_errors(model, calibrated.camera, depths, gt.depth, smooth_region(gt), top_mm)
+    return [f"phase-to-height check (ramp + ball, heights 0 .. {top_mm:g} mm, {n} px): height RMS "
+            + ", ".join(f"{k} {rms * 1e3:.1f} um ({cover:.1%} measured)" for k, (rms, cover) in errors.items())]
 
 
 def _install(rig_path: Path, calibration: Path) -> None:
