@@ -42,7 +42,6 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from .errors import CadError, InspectionError
 from .instances import Instance
@@ -239,8 +238,11 @@ class SceneContext:
 @dataclass(eq=False)
 class _Patch:
     """An instance in its own plane: centroid `c`, basis `e1`, `e2`, normal `n` (toward the
-    camera); grid (origin `lo`, cell `g`) labels: `observed` (the instance), `higher`
-    (a surface above its plane seen there), `lower` (below it, outside the instance)."""
+    camera), point `spacing`; grid (origin `lo`, cell `g`) labels: `observed` (the
+    instance), `higher` (a surface above its plane seen there), `lower` (below it,
+    outside the instance); `edge_pts` its true outline points (camera frame) and the
+    walls dropped from them (`wall_pts`, outward `wall_nrm`); RMS distance of its points
+    to the plane and its extent in the plane (mm)."""
 
     c: np.ndarray
     e1: np.ndarray
@@ -252,7 +254,6 @@ class _Patch:
     observed: np.ndarray
     higher: np.ndarray
     lower: np.ndarray
-    face_pts: np.ndarray
     edge_pts: np.ndarray
     wall_pts: np.ndarray
     wall_nrm: np.ndarray
@@ -269,6 +270,9 @@ class _Patch:
 
 
 def _patch(points: np.ndarray, context: SceneContext | None, thickness: float, settings: PoseSettings) -> _Patch:
+    """The instance's plane, grid labels, true outline points and walls (see the module
+    docstring); scene points more than half the part's `thickness` (or 4 plane RMS) above
+    the plane, toward the camera, count as higher, the others as lower."""
     c = points.mean(axis=0)
     d = points - c
     _, s, vt = np.linalg.svd(d[:: max(1, len(d) // 5000)], full_matrices=False)
@@ -336,7 +340,7 @@ def _patch(points: np.ndarray, context: SceneContext | None, thickness: float, s
     edge_pts = c + (uv[idx] + 0.5 * spacing * out2) @ np.stack([e1, e2]) + np.outer(height[idx], n)
     depth = settings.extrude_mm * np.arange(1, settings.wall_levels + 1) / settings.wall_levels
     walls = (edge_pts[None] - depth[:, None, None] * n).reshape(-1, 3)
-    return _Patch(c, e1, e2, n, spacing, lo, g, observed, higher, lower, points, edge_pts,
+    return _Patch(c, e1, e2, n, spacing, lo, g, observed, higher, lower, edge_pts,
                   walls, np.tile(out3, (len(depth), 1)), plane_rms, float(np.linalg.norm(np.ptp(uv, axis=0))))
 
 
@@ -382,7 +386,10 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
 
     if len(pts) < settings.min_points:
         return failed(f"only {len(pts)} points (needs {settings.min_points})")
-    patch = _patch(pts, context, model.thickness_mm, settings)
+    try:
+        patch = _patch(pts, context, model.thickness_mm, settings)
+    except PoseError as exc:
+        return failed(str(exc))
     if patch.plane_rms > settings.max_plane_rms_mm:
         return failed(f"not one flat part: the points lie {patch.plane_rms:.3g} mm RMS off their plane "
                       f"(limit {settings.max_plane_rms_mm:g} mm)")

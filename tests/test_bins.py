@@ -12,7 +12,7 @@ import pytest
 
 from inspection.instances import instances_from_label_image
 from scanner.pointcloud import OrganisedCloud
-from sim.bins import TabPart, bin_scene, clutter_cloud, rotation_about
+from sim.bins import TabPart, bin_scene, clutter_cloud, rotation_about, scan_bin
 from sim.render import compute_ground_truth
 from sim.scene import REFERENCE_PLANE_ID
 
@@ -100,6 +100,8 @@ def test_bin_ground_truth_gives_overlapping_instances(bin12: object, small_rig: 
         alone.append((solo.object_id == 2).sum())
     visible = np.array([(ids == i).sum() for i in b.object_ids])
     assert (visible < 0.9 * np.array(alone)).sum() >= 2
+    # the ray-cast occlusion of each part's camera-facing face is the pixel fraction lost
+    assert np.allclose(b.occlusion(), 1 - visible / np.array(alone), atol=0.05)
     # the id map is an instance label image: lifted through the organised cloud
     cloud = OrganisedCloud(gt.points.astype(np.float32), np.zeros(gt.shape, np.uint8), gt.normal.astype(np.float32))
     labels = np.where(ids >= 2, ids, 0)
@@ -108,6 +110,17 @@ def test_bin_ground_truth_gives_overlapping_instances(bin12: object, small_rig: 
         T = b.poses[i.id - 2]
         local = (i.points - T[:3, 3]) @ T[:3, :3]   # into the part frame
         assert np.all((local[:, 2] > -1e-4) & (local[:, 2] < b.part.thickness_mm + 1e-4))   # float32 cloud
+
+
+def test_scan_bin_is_the_truth_with_depth_noise_and_shadows(bin12: object, small_rig: object) -> None:
+    cloud, ids = scan_bin(bin12, small_rig, noise_mm=0.01, seed=1)
+    gt = compute_ground_truth(small_rig, bin12.scene)
+    assert np.array_equal(cloud.valid, gt.lit) and np.array_equal(ids, np.where(gt.lit, gt.object_id, 0))
+    err = np.linalg.norm(cloud.points[cloud.valid] - gt.points[gt.lit], axis=1)
+    assert 0.005 < np.sqrt(np.mean(err ** 2)) < 0.015   # mm
+    n = cloud.normals[cloud.valid]
+    ok = np.isfinite(n).all(axis=1)
+    assert np.median(np.einsum("ij,ij->i", n[ok], gt.normal[gt.lit][ok])) > 0.99
 
 
 def test_clutter_cloud_points_lie_on_their_labelled_surfaces() -> None:
