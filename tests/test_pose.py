@@ -22,7 +22,7 @@ from inspection.registration import pose_difference
 from inspection.segmentation_errors import MaskError
 from scanner.cli import main
 from scanner.commands.pose import load_masks, load_part
-from scanner.recording import entity_paths
+from scanner.recording import CLOUD, entity_paths
 from scanner.rig import RigConfig
 from sim.bins import TabPart, bin_scene, scan_bin
 
@@ -130,6 +130,7 @@ def test_pose_command_writes_the_poses_file_and_recording(small_bin: tuple, tmp_
         assert np.allclose(r["world"]["position_mm"], r["camera"]["position_mm"])   # the bench rig: world = camera
     paths = entity_paths(tmp_path / "bin.poses.rrd")
     assert any(p.startswith("world/pose/models/part_") for p in paths) and "world/pose/pick_order" in paths
+    assert CLOUD.strip("/") in paths and "world/pose/instances" in paths
 
 
 def test_empty_scene_gives_no_poses_and_says_so(model: ThinPartModel, tmp_path: Path,

@@ -132,8 +132,9 @@ def _organise(points: np.ndarray, normals: np.ndarray | None, camera: Any, where
     return OrganisedCloud(grid, np.zeros(grid.shape[:2], np.uint8), nrm)
 
 
-def load_scene(path: Path, rig: Path) -> tuple[Any, np.ndarray, Any]:
-    """(organised cloud, world_from_cam 4x4, session or None) of a session or a cloud file."""
+def load_scene(path: Path, rig: Path) -> tuple[Any, Any, Any]:
+    """(organised cloud, rig model, session or None) of a session or a cloud file (placed
+    on the camera of the rig TOML `rig`)."""
     from inspection.errors import CloudError
     from scanner.rig import RigConfig
 
@@ -148,7 +149,7 @@ def load_scene(path: Path, rig: Path) -> tuple[Any, np.ndarray, Any]:
         grid[valid] = points
         cloud = OrganisedCloud(grid, np.zeros(valid.shape, np.uint8),
                                organised_normals(grid[..., 0], grid[..., 1], grid[..., 2]))
-        return cloud, np.asarray(session.rig_model().world_from_cam, np.float64), session
+        return cloud, session.rig_model(), session
     if not path.is_file():
         raise CloudError(path, "no such cloud file or session folder")
     import open3d as o3d
@@ -159,7 +160,7 @@ def load_scene(path: Path, rig: Path) -> tuple[Any, np.ndarray, Any]:
         raise CloudError(path, "no points could be read (unreadable or empty cloud)")
     model = RigConfig.load(rig).nominal_model()
     normals = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
-    return _organise(points, normals, model.camera, str(path)), np.asarray(model.world_from_cam, np.float64), None
+    return _organise(points, normals, model.camera, str(path)), model, None
 
 
 def load_masks(path: Path, cloud: Any) -> list[Any]:
@@ -201,7 +202,8 @@ def cmd_pose(args: argparse.Namespace) -> int:
 
     model = load_part(args.part)
     src = Path(args.input)
-    cloud, world_from_cam, session = load_scene(src, args.rig)
+    cloud, rig_model, session = load_scene(src, args.rig)
+    world_from_cam = np.asarray(rig_model.world_from_cam, np.float64)
     if session is not None:
         out = Path(args.out) if args.out else session.outputs / "poses.json"
     else:
@@ -236,8 +238,8 @@ def cmd_pose(args: argparse.Namespace) -> int:
 
         rrd = out.with_name(out.stem + ".rrd")
         with SessionRecording(rrd, session.id if session is not None else src.stem, send_blueprint=False) as rec:
-            if session is not None:
-                rec.log_rig(session.rig_model())
+            rec.log_rig(rig_model)
+            rec.log_cloud(cloud)
             log_poses(rec, doc, poses, instances, model, world_from_cam)
         print(f"recording {rrd}")
     return 0 if any(r["pick_rank"] is not None for r in doc["parts"]) else 1
