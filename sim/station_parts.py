@@ -14,6 +14,9 @@ defects imposed by `sim.parts.deform`:
                       side, whose own zone is 0.52..0.90 of 2a depending on where the lobes
                       fall (a Chebyshev fit of cos 3θ over ±75° with a free centre and
                       radius), so the verdicts use amplitudes that are clear either way.
+                      Only the side's vertices move (sim.parts deforms face by face), so its
+                      edges part from the low top and the chamfer by up to a: a seam of
+                      <= 0.1 mm, under one camera pixel (~0.12 mm) at 400 mm.
     high top raised   the high section made h taller (every vertex at z = 22 over x <= -10
                       moves up, on every face, so the mesh stays closed): the high top's
                       flatness stays 0, its profile zone about nominal is 2h.
