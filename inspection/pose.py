@@ -67,7 +67,8 @@ class PoseSettings:
     `max_spill`: fraction of the posed face allowed where a lower surface is seen;
     `max_plane_rms_mm`: an instance farther from a plane is not one flat part;
     `max_occlusion`: above it a part is not offered for picking; `min_points`: smaller
-    instances are not posed; `attempts`: SAC-IA runs (fresh samples) before an
+    instances are not posed; `hypotheses`: SAC-IA triplets scored; `verify`: its distinct
+    coarse poses refined (and the best one flipped over); `attempts`: SAC-IA runs (fresh samples) before an
     instance is reported as failed."""
 
     method: str = "sacia"
@@ -83,6 +84,7 @@ class PoseSettings:
     max_occlusion: float = 0.3
     min_points: int = 200
     hypotheses: int = 100
+    verify: int = 2
     attempts: int = 2
     seed: int = 0
 
@@ -118,7 +120,10 @@ class SideModel:
 class ThinPartModel:
     """A thin flat part from its mesh (part frame, mm): `axis` the unit normal of the front
     face, `thickness_mm`, face `area_mm2`, in-plane `length_mm` (largest extent) and the
-    two `sides`; `u0` the face's principal in-plane direction (for NDT starts)."""
+    two `sides`; `u0` the face's principal in-plane direction (for NDT starts); `both`:
+    the two sides' extruded clouds in one target, the back one moved by `apart` (4x4);
+    `flip`: the half turn about u0 through the plate's middle that puts each face where
+    the other was (part frame): a pose of one side, flipped, is the other side's guess."""
 
     name: str
     vertices: np.ndarray
@@ -129,6 +134,9 @@ class ThinPartModel:
     area_mm2: float
     length_mm: float
     sides: dict[str, SideModel]
+    both: ModelTarget
+    apart: np.ndarray
+    flip: np.ndarray
 
     @classmethod
     def from_mesh(cls, vertices: np.ndarray, triangles: np.ndarray, name: str,
@@ -181,7 +189,20 @@ class ThinPartModel:
             target = ModelTarget(np.concatenate([pts, b_pts, walls]), np.concatenate([face_n, rim_n, wall_n]),
                                  f"{name} ({side} up)", settings.voxel_mm)
             sides[side] = SideModel(side, Samples(pts, face_n), b_pts, b_nrm, target)
-        return cls(name, v, t, axis, u0, thickness, face_area, length, sides)
+        # both sides in one target for SAC-IA, the back side moved aside by `apart`: one
+        # search over both sides' features, the side read from where a pose lands
+        apart = np.eye(4)
+        apart[:3, 3] = 4.0 * length * u0
+        both = ModelTarget(np.concatenate([sides["front"].target.dense.points,
+                                           transform_points(apart, sides["back"].target.dense.points)]),
+                           np.concatenate([sides["front"].target.dense.normals,
+                                           sides["back"].target.dense.normals @ apart[:3, :3].T]),
+                           f"{name} (both sides)", settings.voxel_mm)
+        mid = sides["front"].face.points.mean(axis=0) - 0.5 * thickness * axis
+        flip = np.eye(4)   # half a turn about u0 through the middle of the plate: front and back swap places
+        flip[:3, :3] = 2.0 * np.outer(u0, u0) - np.eye(3)
+        flip[:3, 3] = mid - flip[:3, :3] @ mid
+        return cls(name, v, t, axis, u0, thickness, face_area, length, sides, both, apart, flip)
 
 
 def _sample_triangles(v: np.ndarray, tri: np.ndarray, area: np.ndarray, spacing: float,
@@ -301,7 +322,7 @@ def _patch(points: np.ndarray, context: SceneContext | None, thickness: float, s
     if context is not None:
         radius = float(np.hypot(*(np.array(shape) * g))) / 2
         centre = c + (lo + np.array(shape[::-1]) * g / 2) @ np.stack([e1, e2])
-        near = context.points[context.tree.query_ball_point(centre, radius + 5.0, workers=1)]
+        near = context.points[context.tree.query_ball_point(centre, radius + 1.0, workers=1)]
         hn = (near - c) @ n
         # onto the plane along the camera rays (the camera at the origin): what the camera
         # sees beside the instance's edge lands beside it, however far below or above
@@ -417,22 +438,27 @@ def _fit(pts: np.ndarray, patch: _Patch, model: ThinPartModel, settings: PoseSet
     keep = rng.choice(len(src), size=min(600, len(src)), replace=False)
     sp, sn = src[keep], src_n[keep]
     v = settings.voxel_mm
+    if settings.method == "sacia":
+        rs = RegistrationSettings(descriptors=("fpfh",), coarse="sac-ia", spheres=(100,),
+                                  hypotheses=settings.hypotheses, verify=settings.verify, seed=settings.seed)
+        back_centre = transform_points(model.apart, model.sides["back"].face.points.mean(axis=0)[None])[0]
+        front_centre = model.sides["front"].face.points.mean(axis=0)
+        starts = []
+        for T in coarse_feature_poses(src, src_n, model.both, rs, rng):
+            m = transform_points(T, patch.c[None])[0]
+            back = np.linalg.norm(m - back_centre) < np.linalg.norm(m - front_centre)
+            starts.append(("back", np.linalg.inv(model.apart) @ T) if back else ("front", T))
+    else:
+        starts = [(side, T) for side in SIDES for T in _ndt_poses(src, patch, model, model.sides[side], 2)]
+    if starts:   # the best coarse pose flipped over: the other side in its place
+        side0, T0 = starts[0]
+        starts.append(("back" if side0 == "front" else "front", model.flip @ T0))
     judged = []
-    for side in SIDES:
+    for side, T in starts:
         sm = model.sides[side]
-        if settings.method == "sacia":
-            rs = RegistrationSettings(descriptors=("fpfh",), coarse="sac-ia", spheres=(100,),
-                                      hypotheses=settings.hypotheses, verify=2, seed=settings.seed)
-            coarse = coarse_feature_poses(src, src_n, sm.target, rs, rng)
-        else:
-            coarse = _ndt_poses(src, patch, model, sm, 2)
-        if not coarse:
-            continue
-        refined = np.array([icp(sp, sn, sm.target.coarse, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15)
-                            for T in coarse])
-        fits = fitness(sp, sn, sm.target.coarse, refined, 1.5 * v, settings.max_normal_deg)
-        for fit, T in zip(fits, refined):
-            judged.append((fit + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), side, T))
+        T = icp(sp, sn, sm.target.coarse, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15)
+        fit = fitness(sp, sn, sm.target.coarse, T[None], 1.5 * v, settings.max_normal_deg)[0]
+        judged.append((fit + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), side, T))
     if not judged:
         return f"{settings.method}: no coarse pose (no consistent correspondences)", {}
     judged.sort(key=lambda j: -j[0])
