@@ -13,20 +13,25 @@ point-to-plane ICP see the outline as 3D shape:
   it), dense face samples, the boundary edges of each face (exact, from the mesh) sampled
   with outward normals, and one extruded cloud per side (`SideModel`);
 - instance: its plane (SVD; normal toward the camera) and an occupancy grid in that
-  plane; boundary cells are "true" outline edges where the scene beside them is lower
-  (the tray, a part below), "occluded" where it is higher (a part on top) — only true
-  edges get walls, each placed on the outermost points and moved out by half a point
-  spacing (the mean inset of pixel samples behind an edge).
+  plane, with the scene's points brought onto it along the camera rays (so what the
+  camera sees beside an edge lands beside it); a boundary point is on a "true" outline
+  edge unless the first surface seen beyond it (past a shadow, up to `SHADOW_MM`) is
+  higher — a part lying across it. Only true edges get walls, placed on the outermost
+  points and moved out by half a point spacing (the mean inset of pixel samples behind
+  an edge).
 
-Per instance (`estimate_pose`): coarse poses per side by SAC-IA (FPFH, triplets, the
-Huber score of Eq. 22: `registration.coarse_feature_poses`) or NDT (Eq. 23-26, Newton
-steps from 12 yaws about the instance's plane per side); each refined by point-to-plane
-ICP with normal-angle rejection (Eq. 27-29, `registration.icp`); the hypotheses of both
-sides (the flipped part is the mirror outline) judged by the outline fit: fitness of the
-extruded instance cloud minus the fraction of the posed face that would lie where the
-scene shows a lower surface; the best one refined on the full instance. A pose is
-reported only when it explains the instance (fitness of the real points on the posed
-face, planarity, size): otherwise the instance is reported as failed, with the reason.
+Per instance (`estimate_pose`): coarse poses by SAC-IA (FPFH, triplets, the Huber score of
+Eq. 22: `registration.coarse_feature_poses`) over both sides at once (the back side's
+extruded cloud moved aside in the same target, the side read from where a pose lands), or
+by NDT (Eq. 23-26, Newton steps from 12 yaws about the instance's plane, per side); the
+best coarse pose is also tried flipped over (the mirror outline in its place); each
+refined by point-to-plane ICP with normal-angle rejection (Eq. 27-29,
+`registration.icp`) and judged by the outline fit: fitness of the extruded instance cloud,
+plus the fraction of its true outline points on the part's outline, minus the fraction of
+the posed face that would lie where the scene shows a lower surface; the best one refined
+on the full instance. A pose is reported only when it explains the instance (its points
+on the posed face, its outline on the part's outline, no face over a lower surface,
+planarity, size): otherwise the instance is reported as failed, with the reason.
 
 The occlusion estimate is the fraction of the posed visible face that falls where the
 scene shows a higher surface (unobserved cells — shadows, outside the view — excluded).
