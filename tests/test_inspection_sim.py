@@ -38,21 +38,22 @@ STEP = CONFIG_DIR / "parts" / "demo_part.step"
 BOW, LOBES, TAPER, TEXTURE = 0.06, 0.02, 0.0015, 0.07  # mm; the texture is 5x the ~14 um depth noise
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
+def defective_run(out: Path, bow: float, lobes: float, taper: float, texture: float, seed: int = 5,
+                  turn: float = 0.3) -> SimpleNamespace:
+    """The demo part with a bow on the low top, lobing and a taper on the boss and a texture
+    on the high top (mm), scanned into session `out` and inspected; with the truth."""
     fine = load_cad(STEP, deflection_mm=2.5e-4)
     low, top, boss = fine.by_label("#158"), fine.by_label("#657"), fine.by_label("#17")
-    defects = [PlaneBow(low.index, (17.5, 0.0, 10.0), (0.0, 0.0, 1.0), BOW, float(np.hypot(27.5, 30.0)), max_edge_mm=4.0),
-               Lobing(boss.index, (20.0, 0.0, 0.0), (0.0, 0.0, 1.0), 1, lobes=3, amplitude_mm=LOBES),
-               Taper(boss.index, (20.0, 0.0, 22.0), (0.0, 0.0, 1.0), 1, per_mm=TAPER),
-               Roughness(top.index, (-27.5, 0.0, 22.0), (0.0, 0.0, 1.0), TEXTURE, (2.0, 4.0), max_edge_mm=0.15)]
+    defects = [PlaneBow(low.index, (17.5, 0.0, 10.0), (0.0, 0.0, 1.0), bow, float(np.hypot(27.5, 30.0)), max_edge_mm=4.0),
+               Lobing(boss.index, (20.0, 0.0, 0.0), (0.0, 0.0, 1.0), 1, lobes=3, amplitude_mm=lobes),
+               Taper(boss.index, (20.0, 0.0, 22.0), (0.0, 0.0, 1.0), 1, per_mm=taper),
+               Roughness(top.index, (-27.5, 0.0, 22.0), (0.0, 0.0, 1.0), texture, (2.0, 4.0), max_edge_mm=0.15)]
     tess = fine.tessellation
     v, t, f = deform(tess.vertices, tess.triangles, tess.face, defects)
-    pose = lying_pose(v, 0.3, 400.0, (0.6, 0.0))  # tilted 34 degrees: the boss's side is in view
+    pose = lying_pose(v, turn, 400.0, (0.6, 0.0))  # tilted 34 degrees: the boss's side is in view
     scene, face_of_id = part_scene(v, t, f, pose)
-    out = tmp_path_factory.mktemp("defects") / "session"
     config = RigConfig.load()
-    with open_rig(config, scene=scene, seed=5) as rig:
+    with open_rig(config, scene=scene, seed=seed) as rig:
         result = scan(rig, PatternSet.load(config.patterns_path), out)
         gt = rig.extras["ground_truth"]
     model = load_cad(STEP)
@@ -60,6 +61,11 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
     report = inspect(cloud, model)
     return SimpleNamespace(model=model, pose=pose, gt=gt, face_of_id=face_of_id, cloud=cloud, report=report,
                            session=out, defects=defects)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
+    return defective_run(tmp_path_factory.mktemp("defects") / "session", BOW, LOBES, TAPER, TEXTURE)
 
 
 def test_registration_recovers_true_pose(run: SimpleNamespace) -> None:
