@@ -98,6 +98,16 @@ class LocalFeatures:
         return LocalFeatures(*(getattr(self, n)[rows] for n in
                                ("mu", "sigma", "scale", "normal", "k1_dir", "k1", "k2", "offset")))
 
+    def feet(self, points: np.ndarray) -> np.ndarray:
+        """Where the points `points` (n, 3) mm (the rows these features describe) lie on
+        their own fitted surfaces: each moved by -offset along its normal (unchanged
+        where there are no features). Tests of whether a point lies on another point's
+        surface use this, so the point's own noise does not count against it."""
+        ok = self.valid
+        out = np.asarray(points, dtype=np.float64).copy()
+        out[ok] -= self.offset[ok, None] * self.normal[ok]
+        return out
+
 
 class MultiScale:
     """The partial neighbourhoods of every scale, sampled in a cloud P, for the points of
@@ -145,13 +155,15 @@ class MultiScale:
     def __len__(self) -> int:
         return len(self.points)
 
-    def neighbours(self, j: int, ids: np.ndarray, allowed: np.ndarray | None = None) -> np.ndarray:
+    def neighbours(self, j: int, ids: np.ndarray, labels: np.ndarray | None = None, segment: int = -1
+                   ) -> np.ndarray:
         """(n, q_j) rows of P of the partial neighbourhood B(d_j, q_j) of points `ids` of
-        S (the point itself excluded), -1 where there are fewer. With `allowed` (bool per
-        row of P), only those rows count: the nearest `REEVAL_OVERSAMPLE`·q_j are searched
-        so a point at a segment's border still gets up to q_j of the segment's points."""
+        S (the point itself excluded), -1 where there are fewer. With `labels` (per point
+        of S), only rows of P whose representative is labelled `segment` count: the
+        nearest `REEVAL_OVERSAMPLE`·q_j are searched so a point at a segment's border
+        still gets up to q_j of the segment's points."""
         tree, sample = self.trees[j], self.samples[j]
-        k = self.q[j] * (1 if allowed is None else REEVAL_OVERSAMPLE) + 1
+        k = self.q[j] * (1 if labels is None else REEVAL_OVERSAMPLE) + 1
         dist, idx = tree.query(self.points[ids], k=k, distance_upper_bound=self.radii[j])
         idx = idx.astype(np.int64)
         ok = np.isfinite(dist)
@@ -159,8 +171,8 @@ class MultiScale:
         if sample is not None:
             idx = sample[idx]
         ok &= idx != self.subsample[ids][:, None]
-        if allowed is not None:
-            ok &= allowed[idx]
+        if labels is not None:
+            ok &= labels[self.owner[idx]] == segment
         return _first_valid(idx, ok, self.q[j])
 
     def near_neighbours(self, ids: np.ndarray) -> np.ndarray:
@@ -203,9 +215,8 @@ class MultiScale:
         n = len(ids)
         per_scale = []
         centre = self.points[ids]
-        allowed = None if labels is None else labels[self.owner] == segment
         for j, d in enumerate(self.radii):
-            idx = self.neighbours(j, ids, allowed)
+            idx = self.neighbours(j, ids, labels, segment)
             v = self.cloud[np.maximum(idx, 0)] - centre[:, None, :]
             per_scale.append(_scale_features(v, idx >= 0, d, SLAB_FACTOR * self.radius))
         mu = np.stack([s[0] for s in per_scale], axis=1)
@@ -230,14 +241,16 @@ class MultiScale:
             f.offset[flip] *= -1
         return f
 
-    def surface_agreement(self, ids: np.ndarray, f: LocalFeatures, targets: np.ndarray,
+    def surface_agreement(self, ids: np.ndarray, f: LocalFeatures, targets: np.ndarray, target_feet: np.ndarray,
                           target_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For points `targets` (n, k rows of S, -1 ignored) around points `ids` with
-        features `f`: their distances (mm, inf where ignored) from each point's torus,
-        and |cos| of the angle between their normals `target_normals` (n, k, 3) and the
-        torus normal where they lie (NaN where a target has no normal)."""
-        foot = self.points[ids].astype(np.float64) - f.offset[:, None] * f.normal
-        v = self.points[np.maximum(targets, 0)].astype(np.float64) - foot[:, None, :]
+        features `f`: the distances (mm, inf where ignored) of their feet `target_feet`
+        (n, k, 3: their positions on their own surfaces, `LocalFeatures.feet`, in this
+        object's centred frame) from each point's torus, and |cos| of the angle between
+        their normals `target_normals` (n, k, 3) and the torus normal there (NaN where a
+        target has no normal)."""
+        foot = f.feet(self.points[ids])
+        v = target_feet - foot[:, None, :]
         d, g = surface_distance(v, f.normal, f.k1_dir, f.k1, f.k2, self.radius)
         d[targets < 0] = np.inf
         return d, np.abs(np.einsum("nkc,nkc->nk", g, target_normals))
