@@ -3,19 +3,18 @@
 Fringe sequences go through the scanner's own acquisition (`scanner.acquisition.acquire`,
 with its frame-order, timing and signature checks), rendered with the projector gamma
 the calibration has measured so far. Flat images (white, black, grey levels) are shown and
-grabbed in software-triggered lock-step, whatever the rig's trigger wiring, with the same
-per-frame checks.
+grabbed in software-triggered lock-step, whatever the rig's trigger wiring, through the same
+acquisition (`scanner.acquisition.acquire_images`) and its per-frame checks.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from scanner.acquisition import TIMESTAMP_TOLERANCE, AcquisitionSettings, acquire, check_frame, check_timing
-from scanner.devices import Frame, TriggerMode, TriggerType
+from scanner.acquisition import AcquisitionSettings, acquire, acquire_images
+from scanner.devices import TriggerMode, TriggerType
 from scanner.patterns import PatternSet
 from scanner.rig import Rig
 
@@ -34,34 +33,13 @@ class PoseFrames:
 def show_images(rig: Rig, images: np.ndarray) -> np.ndarray:
     """One camera frame per projector image (N, Hp, Wp) uint8, software-triggered in
     lock-step; the camera's trigger setting is restored afterwards. Returns (N, H, W)."""
-    cam, proj = rig.camera, rig.projector
+    cam = rig.camera
     saved = (cam.trigger_type, cam.trigger_mode)
-    settings = AcquisitionSettings.for_rig(rig)
-    n = len(images)
-    stack: np.ndarray | None = None
-    previous: Frame | None = None
     cam.set_trigger(TriggerType.SOFTWARE, TriggerMode.ONCE)
     try:
-        proj.load_patterns(images)
-        cam.arm(n)
-        for k in range(n):
-            earliest = time.monotonic()
-            proj.show(k)
-            cam.trigger()
-            frame = cam.grab(settings.timeout_s)
-            check_frame(k, frame, cam.name, (cam.height, cam.width), cam.bit_depth)
-            check_timing(k, frame, previous, earliest - TIMESTAMP_TOLERANCE * settings.period_s, cam.name)
-            if stack is None:
-                stack = np.empty((n, cam.height, cam.width), dtype=frame.image.dtype)
-            stack[k] = frame.image
-            previous = frame
+        return acquire_images(rig, images, AcquisitionSettings.for_rig(rig), wiring="software")
     finally:
-        cam.disarm()
-        if not proj.is_shut_down:
-            proj.blank()
         cam.set_trigger(*saved)
-    assert stack is not None
-    return stack
 
 
 def capture_fringes(rig: Rig, patterns: PatternSet, gamma: float) -> np.ndarray:

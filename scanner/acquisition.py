@@ -72,16 +72,31 @@ def check_frame(k: int, frame: Frame, camera_name: str, shape: tuple[int, int], 
 
 
 def acquire(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings, on_frame: FrameCallback) -> np.ndarray:
-    """Capture every pattern of `patterns`; `on_frame(k, frame)` is called (to store and
-    log it) as soon as frame k has been checked. Returns the (N, H, W) stack."""
+    """Capture every pattern of `patterns` (rendered for the rig's projector gamma) through
+    the rig's wiring; `on_frame(k, frame)` is called (to store and log it) as soon as frame
+    k has been checked; the complete stack must then fit the patterns (`check_signature`).
+    Returns the (N, H, W) stack."""
+    proj = rig.projector
+    stack = acquire_images(rig, patterns.render(proj.width, proj.height, rig.model.projector_gamma), settings,
+                           on_frame)
+    check_signature(stack, patterns, (proj.height, proj.width), rig.camera.bit_depth, rig.camera.name)
+    return stack
+
+
+def acquire_images(rig: Rig, images: np.ndarray, settings: AcquisitionSettings,
+                   on_frame: FrameCallback | None = None, wiring: str | None = None) -> np.ndarray:
+    """Show each pre-rendered projector image (N, Hp, Wp) in turn and grab its frame, every
+    frame checked (`check_frame`, `check_timing`) and passed to `on_frame` before the next
+    is awaited. `wiring` overrides the rig's (e.g. "software" for lock-step frames of
+    images no sequence check applies to; the camera must then be software-triggered).
+    Returns the (N, H, W) stack."""
     cam, proj = rig.camera, rig.projector
-    images = patterns.render(proj.width, proj.height, rig.model.projector_gamma)
     n = len(images)
     proj.load_patterns(images)
     cam.arm(n)
     shape = (cam.height, cam.width)
     stack: np.ndarray | None = None
-    wiring = rig.config.trigger
+    wiring = wiring or rig.config.trigger
     tolerance = TIMESTAMP_TOLERANCE * settings.period_s
     previous: Frame | None = None
     try:
@@ -106,10 +121,9 @@ def acquire(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings, on_fr
             if stack is None:
                 stack = np.empty((n, *shape), dtype=frame.image.dtype)
             stack[k] = frame.image
-            on_frame(k, frame)
+            if on_frame is not None:
+                on_frame(k, frame)
             previous = frame
-        assert stack is not None
-        check_signature(stack, patterns, (proj.height, proj.width), cam.bit_depth, cam.name)
     finally:
         proj.stop_sequence()
         if rig.trigger is not None:
@@ -117,6 +131,7 @@ def acquire(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings, on_fr
         cam.disarm()
         if not proj.is_shut_down:
             proj.blank()
+    assert stack is not None
     return stack
 
 
