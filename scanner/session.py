@@ -4,7 +4,8 @@ Layout (all files appear complete or not at all):
     frames/frame_000.png …   raw camera frames, lossless, at their bit depth (8- or 16-bit PNG)
     frames.jsonl             one line per frame as it arrives: index, pattern, timestamp, exposure
     phase_to_height.npz      the phase-to-height maps of the rig model (reference phase, per-pixel
-                             l and K), when its calibration has them: the session decodes alone
+                             l and K), when its calibration has them (a hard link to the
+                             calibration's where possible): the session decodes alone
     manifest.json            written last, atomically, once the capture is complete: rig config
                              snapshot, rig model (with the calibration file it came from), pattern
                              set, device settings, software version, timings, frame list
@@ -31,7 +32,7 @@ import numpy as np
 from . import __version__
 from .devices import Frame
 from .errors import IncompleteSession, SessionError
-from .geometry import RigModel
+from .geometry import PhaseToHeight, RigModel
 from .patterns import PatternSet
 
 MANIFEST_VERSION = 1
@@ -59,6 +60,20 @@ def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
     tmp = path.with_name(f".{path.name}.part.npz")
     np.savez_compressed(tmp, **arrays)
     tmp.replace(path)
+
+
+def keep_maps(model: PhaseToHeight, path: Path) -> None:
+    """The model's maps at `path`: a hard link to the file it was loaded from when the file
+    system allows (a calibration's maps are ~12 MB at 1280 x 1024, as much as a scan's raw
+    frames; files are only ever replaced, never rewritten in place, so the link keeps the
+    content it was made with), else a copy written from memory."""
+    if model.maps_file:
+        try:
+            os.link(model.maps_file, path)
+            return
+        except OSError:
+            pass
+    write_npz(path, model.maps())
 
 
 def write_json(path: Path, obj: Any) -> None:
@@ -117,9 +132,9 @@ class SessionWriter:
     def finish(self, rig_config: dict[str, Any], model: RigModel, patterns: PatternSet,
                devices: dict[str, Any], timings: dict[str, float], extra: dict[str, Any] | None = None) -> Path:
         """Write the manifest: from now on the session is complete. The phase-to-height
-        maps of `model`, if any, are copied into the session first."""
+        maps of `model`, if any, are put in the session first (`keep_maps`)."""
         if model.phase_to_height is not None:
-            write_npz(self.root / PHASE_TO_HEIGHT_MAPS, model.phase_to_height.maps())
+            keep_maps(model.phase_to_height, self.root / PHASE_TO_HEIGHT_MAPS)
             model = replace(model, phase_to_height=replace(model.phase_to_height, maps_file=PHASE_TO_HEIGHT_MAPS))
         manifest = {
             "slscan_manifest": MANIFEST_VERSION, "session_id": self.id, "software_version": __version__,
