@@ -192,10 +192,7 @@ class PhaseToHeight:
         """The model described by `d` (`to_dict`), its maps read from `d['maps_file']`
         (relative to `root`, or absolute); `shape` (H, W) is the camera's. ConfigError
         naming the file when the maps are missing, unreadable or of the wrong size."""
-        name = d.get("maps_file") or ""
-        if not name:
-            raise ConfigError(where, "phase_to_height.maps_file", "no file holds this phase-to-height model's maps")
-        path = root / name
+        path = root / str(d["maps_file"])
         try:
             with np.load(path) as z:
                 arrays = {k: z[k] for k in PHASE_MAP_KEYS if k in z.files}
@@ -264,11 +261,12 @@ class RigModel:
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "rig model", root: Path | None = None) -> RigModel:
         """The model `to_dict` described. Its phase-to-height model, if any, is read with its
-        maps from `root` (the folder of the file `d` came from); without `root` it is left out."""
+        maps from `root` (the folder of the file `d` came from); without `root`, or without a
+        maps file (descriptions written before models named theirs), it is left out."""
         try:
             camera = Pinhole.from_dict(d["camera"], f"{where}: camera")
             p2h = None
-            if d.get("phase_to_height") and root is not None:
+            if root is not None and (d.get("phase_to_height") or {}).get("maps_file"):
                 p2h = PhaseToHeight.load(d["phase_to_height"], root, (camera.height, camera.width), where)
             return cls(
                 camera=camera,

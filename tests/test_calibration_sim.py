@@ -330,3 +330,8 @@ def test_acceptance_on_the_full_size_simulated_bench(tmp_path: Path) -> None:
     assert float(re.search(r"\(ratio ([0-9.]+)\)", printed).group(1)) < 1.5
     held_out = cal.data["phase_to_height"]["rms_held_out_mm"]
     assert held_out["per_pixel"] < 1.5 * held_out["triangulation"]  # Eq. 17 per pixel, between its heights
+    assert cal.data["camera_intrinsics"]["source"] == "joint refinement"
+    # and on a ramp and a ball filling the measuring volume
+    check = re.search(r"phase-to-height check .*height RMS per-pixel Eq\. 17 ([0-9.]+) um .*triangulation ([0-9.]+) um",
+                      printed)
+    assert float(check.group(1)) < 1.5 * float(check.group(2))

@@ -18,7 +18,7 @@ from calibration.correspond import local_homography_points
 from calibration.coverage import Coverage, needed_poses, tilt_deg
 from calibration.detect import detect
 from calibration.errors import BoardError, CalibrationFileError, NotEnoughData
-from calibration.file import load_calibration, write_calibration
+from calibration.file import load_calibration, maps_path, write_calibration
 from calibration.gamma import fit_gamma, phase_error_rad
 from calibration.graycode import GrayCodeLayout, decode_graycode
 from calibration.intrinsics import ViewPoints
@@ -29,7 +29,7 @@ from calibration.views import Correspondence
 from calibration.workflow import OperatorBench, Procedure
 from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError
-from scanner.geometry import Pinhole, RigModel
+from scanner.geometry import PhaseToHeight, Pinhole, RigModel
 from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
 from sim.render import project_points
 from sim.stage import Target, plan_target_poses, plate_scene
@@ -330,6 +330,28 @@ def test_calibration_file_round_trip_and_refusals(tmp_path: Path) -> None:
     (tmp_path / "v99.json").write_text(json.dumps(data))
     with pytest.raises(CalibrationFileError, match="version 99"):
         load_calibration(tmp_path / "v99.json")
+
+
+def test_calibration_file_keeps_the_per_pixel_phase_to_height_model(tmp_path: Path) -> None:
+    h, w = BENCH.camera.height, BENCH.camera.width
+    ref = np.tile(np.linspace(0.0, 400.0, w, dtype=np.float32), (h, 1))
+    l_map = np.full((h, w), 420.0, np.float32)
+    l_map[:10] = np.nan  # pixels the plate scans did not calibrate
+    k_map = np.tile(np.linspace(5.0, 6.0, h, dtype=np.float32)[:, None], (1, w))
+    p2h = PhaseToHeight(210.0, 68.0, 3.1, ref, np.array([0.0, 0.0, -1.0, 420.0]), l_map, k_map)
+    path = write_calibration(tmp_path / "cal.json", replace(BENCH, phase_to_height=p2h), {}, "bench")
+    loaded = load_calibration(path, (w, h), (912, 1140)).model
+    assert loaded.calibration == str(path.resolve())  # scans record which calibration they used
+    m = loaded.phase_to_height
+    assert m.per_pixel and m.maps_file == str(maps_path(path).resolve())
+    assert all(np.array_equal(m.maps()[k], a, equal_nan=True) for k, a in p2h.maps().items())
+    dphi = np.float32(2.0)
+    height = m.height(ref - dphi)  # Eq. 17 with each pixel's own l and K, none where not calibrated
+    assert np.allclose(height[10:], 420.0 * 2.0 / (2.0 + k_map[10:]), atol=1e-3) and np.isnan(height[:10]).all()
+    assert np.allclose(m.height(ref - dphi, per_pixel=False), 210.0 * 2.0 / (2.0 + 2 * np.pi * 68.0 / 3.1))
+    maps_path(path).unlink()
+    with pytest.raises(CalibrationFileError, match=r"cal\.npz: phase-to-height maps missing or unreadable"):
+        load_calibration(path)
 
 
 def test_rig_toml_naming_a_calibration_reconstructs_with_it(tmp_path: Path) -> None:
