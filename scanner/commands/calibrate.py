@@ -215,7 +215,7 @@ def _scan_check(rig: Any, calibrated: Any, truth: Any, say: Any) -> list[str]:
             f"{c.mean_mm * 1e3:+.2f} / {t.mean_mm * 1e3:+.2f} um"]
 
 
-def measuring_volume_scene(camera: Any, plate_mm: float, top_mm: float) -> Any:
+def _measuring_volume_scene(camera: Any, plate_mm: float, top_mm: float) -> Any:
     """A simulated scene filling the phase-to-height model's measuring volume: the plate at
     `plate_mm` (the reference plane), a ramp rising from 7 % to 93 % of `top_mm` in the left
     half of the view and a ball whose top is at 93 % of `top_mm` in the right half."""
@@ -237,7 +237,7 @@ def measuring_volume_scene(camera: Any, plate_mm: float, top_mm: float) -> Any:
 
 
 def _phase_height_check(rig: Any, calibrated: Any, plate_mm: float, top_mm: float, say: Any) -> list[str]:
-    """A scan of `measuring_volume_scene` reconstructed with the calibrated phase-to-height
+    """A scan of `_measuring_volume_scene` reconstructed with the calibrated phase-to-height
     model (per pixel and global) and by triangulation: height errors against the
     simulator's truth over the measuring volume."""
     from calibration.capture import capture_fringes
@@ -250,7 +250,7 @@ def _phase_height_check(rig: Any, calibrated: Any, plate_mm: float, top_mm: floa
     from ..reconstruct import Triangulator, phase_to_height_cloud, triangulate
 
     say("phase-to-height check: a ramp and a ball within the calibrated heights")
-    show(rig, measuring_volume_scene(calibrated.camera, plate_mm, top_mm))
+    show(rig, _measuring_volume_scene(calibrated.camera, plate_mm, top_mm))
     patterns = PatternSet.load(rig.config.patterns_path)
     decoded = decode(capture_fringes(rig, patterns, calibrated.projector_gamma), patterns, rig.camera.bit_depth,
                      calibrated.projector.size)
