@@ -68,7 +68,13 @@ def density_voxel_size(points: np.ndarray, alpha: float = 1.0, scale: float = 1.
 def voxel_cells(points: np.ndarray, voxel_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """(cell (N,) int64 dense voxel index of every point, counts (M,) points per voxel):
     the grid codes of Eq. 14-15, numbered 0..M-1 in code order."""
-    pts = _checked(points)
+    _, cell, counts = _voxel_sort(_checked(points), voxel_mm)
+    return cell, counts
+
+
+def _voxel_sort(pts: np.ndarray, voxel_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(order (N,): the points sorted by voxel code, stably; cell (N,); counts (M,)), as
+    `voxel_cells`, from one sort."""
     if not (np.isfinite(voxel_mm) and voxel_mm > 0):
         raise SegmentationError(f"voxel size must be a positive length in mm, got {voxel_mm}")
     code = np.floor((pts - pts.min(axis=0)) / voxel_mm).astype(np.int64)
@@ -77,28 +83,35 @@ def voxel_cells(points: np.ndarray, voxel_mm: float) -> tuple[np.ndarray, np.nda
         raise SegmentationError(f"voxel size {voxel_mm} mm is too small for a cloud of extent "
                                 f"{np.ptp(pts, axis=0).round(3).tolist()} mm")
     key = (code[:, 0] * dims[1] + code[:, 1]) * dims[2] + code[:, 2]
-    _, cell, counts = np.unique(key, return_inverse=True, return_counts=True)
-    return cell.astype(np.int64), counts
+    order = np.argsort(key, kind="stable")
+    sk = key[order]
+    first = np.r_[True, sk[1:] != sk[:-1]]
+    cell = np.empty(len(key), dtype=np.int64)
+    cell[order] = np.cumsum(first) - 1
+    counts = np.diff(np.r_[np.flatnonzero(first), len(key)])
+    return order, cell, counts
 
 
 def downsample(points: np.ndarray, voxel_mm: float | None = None, method: str = "average", *,
                alpha: float = 1.0, scale: float = 1.0) -> Downsampled:
     """One point per occupied voxel of side `voxel_mm` (default: Eq. 13 with `alpha`,
     `scale`): the voxel centroid (`method="average"`) or the input point nearest it
-    (`"density_centre"`, Eq. 16)."""
+    (`"density_centre"`, Eq. 16; the first in input order among equally near ones)."""
     if method not in METHODS:
         raise SegmentationError(f"unknown downsampling method {method!r}; use one of {METHODS}")
     pts = _checked(points)
     size = density_voxel_size(pts, alpha, scale) if voxel_mm is None else float(voxel_mm)
-    cell, counts = voxel_cells(pts, size)
+    order, cell, counts = _voxel_sort(pts, size)
     centre = np.stack([np.bincount(cell, weights=pts[:, k], minlength=len(counts)) for k in range(3)], axis=1)
     centre /= counts[:, None]
     if method == "average":
         return Downsampled(centre, cell, None, size)
-    d2 = np.einsum("ij,ij->i", pts - centre[cell], pts - centre[cell])
-    order = np.lexsort((d2, cell))
-    first = np.concatenate(([0], np.cumsum(counts)[:-1]))
-    keep = order[first]
+    off = pts[order] - centre[cell[order]]
+    d2 = np.einsum("ij,ij->i", off, off)
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    nearest = np.flatnonzero(d2 == np.repeat(np.minimum.reduceat(d2, starts), counts))
+    group = cell[order[nearest]]
+    keep = order[nearest[np.r_[True, group[1:] != group[:-1]]]]
     return Downsampled(pts[keep], cell, keep, size)
 
 

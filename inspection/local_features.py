@@ -36,11 +36,15 @@ neighbourhood operation batched over the chunk. Units: mm, 1/mm for curvatures.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from .downsample import downsample
 
 SCALE_FACTORS = (1.0, 0.72, 0.52, 0.37, 0.27, 0.19)
 N_PLANES = 6                # planes rotating about the normal (perpendicular pairs: N_PLANES even)
@@ -117,8 +121,6 @@ class MultiScale:
                  spacing_mm: float, viewpoint: np.ndarray | None = None) -> None:
         """`cloud` P (N, 3) mm; `subsample` (M,) the rows of P forming S; `owner` (N,) the
         row of S representing each point of P; `spacing_mm` P's point spacing."""
-        from .downsample import downsample
-
         self.radius = float(radius_mm)
         pts = np.asarray(cloud, dtype=np.float64)
         self.centre = pts.mean(axis=0)
@@ -131,26 +133,28 @@ class MultiScale:
         slab = SLAB_FACTOR * self.radius
         # points expected in a plane neighbourhood: q * (2 slab * 2 d) / (pi d^2)
         self.q = tuple(int(np.ceil(SLAB_POINTS * np.pi * d / (4 * slab))) for d in self.radii)
-        self.samples: list[np.ndarray | None] = []
-        self.trees: list[cKDTree] = []
-        full: cKDTree | None = None
-        for d, q in zip(self.radii, self.q):
-            voxel = d * np.sqrt(np.pi / q)
-            if voxel < 1.5 * spacing_mm:  # P is no denser than the sample wanted: use it all
-                full = full or cKDTree(self.cloud)
-                self.samples.append(None)
-                self.trees.append(full)
-            else:
-                keep = downsample(self.cloud, voxel, "density_centre").indices
-                assert keep is not None
-                self.samples.append(keep)
-                self.trees.append(cKDTree(self.cloud[keep]))
+        # per scale, a voxel side thinning P to about q_j points per ball of d_j; None where
+        # P is no denser than that (use it all)
+        voxels = [v if v >= 1.5 * spacing_mm else None for v in (d * np.sqrt(np.pi / q)
+                                                                 for d, q in zip(self.radii, self.q))]
+        distinct = list(dict.fromkeys(voxels))
+        built = dict(zip(distinct, in_parallel(self._sample, distinct)))
+        self.samples = [built[v][0] for v in voxels]
+        self.trees = [built[v][1] for v in voxels]
         # growth: all of S within the smallest scale, and a uniform sample of S out to r
         self.near_tree = cKDTree(self.points)
         far = downsample(self.points, self.radius * np.sqrt(np.pi / FAR_POINTS), "density_centre").indices
         assert far is not None
         self.far_rows = far
         self.far_tree = cKDTree(self.points[far])
+
+    def _sample(self, voxel_mm: float | None) -> tuple[np.ndarray | None, cKDTree]:
+        """The rows of P kept by density-centre voxel thinning (None: all) and their tree."""
+        if voxel_mm is None:
+            return None, cKDTree(self.cloud)
+        keep = downsample(self.cloud, voxel_mm, "density_centre").indices
+        assert keep is not None
+        return keep, cKDTree(self.cloud[keep])
 
     def __len__(self) -> int:
         return len(self.points)
@@ -198,12 +202,7 @@ class MultiScale:
         re-evaluation against a segment)."""
         ids = np.asarray(ids, dtype=np.int64)
         chunks = [ids[i:i + CHUNK] for i in range(0, len(ids), CHUNK)]
-        work = lambda c: self._chunk(c, labels, segment)  # noqa: E731
-        if len(chunks) > 1:
-            with ThreadPoolExecutor(min(len(chunks), os.cpu_count() or 1)) as ex:
-                parts = list(ex.map(work, chunks))
-        else:
-            parts = [work(c) for c in chunks]
+        parts = in_parallel(lambda c: self._chunk(c, labels, segment), chunks)
         out = LocalFeatures.empty(len(ids))
         start = 0
         for f in parts:
@@ -254,6 +253,15 @@ class MultiScale:
         d, g = surface_distance(v, f.normal, f.k1_dir, f.k1, f.k2, self.radius)
         d[targets < 0] = np.inf
         return d, np.abs(np.einsum("nkc,nkc->nk", g, target_normals))
+
+
+def in_parallel(work: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]:
+    """`work` applied to every item, in threads (one per CPU; numpy, scipy's k-d trees
+    and their queries release the GIL), results in order."""
+    if len(items) < 2:
+        return [work(x) for x in items]
+    with ThreadPoolExecutor(min(len(items), os.cpu_count() or 1)) as ex:
+        return list(ex.map(work, items))
 
 
 def _first_valid(idx: np.ndarray, ok: np.ndarray, k: int) -> np.ndarray:

@@ -62,9 +62,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .downsample import downsample
+from .downsample import downsample, voxel_cells
 from .errors import CloudError
-from .local_features import CHUNK, MIN_FIT_POINTS, SCALE_FACTORS, SUBSAMPLE_FACTOR, LocalFeatures, MultiScale
+from .local_features import (CHUNK, FAR_POINTS, MIN_FIT_POINTS, NEAR_POINTS, SCALE_FACTORS, SUBSAMPLE_FACTOR,
+                             LocalFeatures, MultiScale, in_parallel)
 from .segmentation_errors import SegmentationError
 
 INITIAL_TAU = 0.01          # first roughness threshold, x r
@@ -121,7 +122,7 @@ def check_radius(points: np.ndarray, radius_mm: float) -> float:
             f"(spacing {spacing:.4g} mm): its smallest scales would hold no neighbours; "
             f"use r >= {MIN_RADIUS_SPACINGS * spacing:.3g} mm")
     diag = float(np.linalg.norm(np.ptp(points, axis=0)))
-    voxels = len(np.unique(np.floor(points / (SUBSAMPLE_FACTOR * radius_mm)).astype(np.int64), axis=0))
+    voxels = len(voxel_cells(points, SUBSAMPLE_FACTOR * radius_mm)[1])
     if voxels < MIN_SUBSAMPLED:
         raise SegmentationError(
             f"radius of interest {radius_mm:g} mm is too large for this cloud (extent {diag:.4g} mm): it leaves "
@@ -174,23 +175,26 @@ def representative_neighbourhoods(ms: MultiScale, ids: np.ndarray, f: LocalFeatu
     j itself where the neighbour's normal (`normals`, per point of S) agrees with the
     torus normal there (within `MAX_NORMAL_ANGLE`: a trusted edge), `untrusted(j)` where
     it does not, -1 where there is no edge."""
-    cand = ms.growth_neighbours(ids)
-    out = np.full(cand.shape, -1, dtype=np.int64)
     tol = np.maximum(f.mu + 2 * f.sigma, MIN_TOLERANCE * ms.radius)
     reach = np.asarray(ms.radii)[np.maximum(f.scale, 0)]
     min_cos = np.cos(MAX_NORMAL_ANGLE)
-    for lo in range(0, len(ids), CHUNK):
-        rows = np.arange(lo, min(lo + CHUNK, len(ids)))
-        rows = rows[f.valid[rows]]
+
+    def chunk(rows: np.ndarray) -> np.ndarray:
+        c = ms.growth_neighbours(ids[rows])
+        out = np.full(c.shape, -1, dtype=np.int64)
+        rows, c, keep = rows[f.valid[rows]], c[f.valid[rows]], np.flatnonzero(f.valid[rows])
         if not rows.size:
-            continue
-        c = cand[rows]
+            return out
         d, cos = ms.surface_agreement(ids[rows], f.take(rows), c, feet[np.maximum(c, 0)], normals[np.maximum(c, 0)])
         gap = ms.points[np.maximum(c, 0)] - ms.points[ids[rows]][:, None, :]
         near = np.einsum("nkc,nkc->nk", gap, gap) <= (reach[rows] ** 2)[:, None]
         on = (d <= tol[rows, None]) & near
-        out[rows] = np.where(on, np.where(cos >= min_cos, c, untrusted(c)), -1)
-    return out
+        out[keep] = np.where(on, np.where(cos >= min_cos, c, untrusted(c)), -1)
+        return out
+
+    every = np.arange(len(ids))
+    return np.concatenate(in_parallel(chunk, [every[i:i + CHUNK] for i in range(0, len(ids), CHUNK)])
+                          or [np.empty((0, NEAR_POINTS + FAR_POINTS), dtype=np.int64)])
 
 
 def untrusted(j: np.ndarray) -> np.ndarray:
