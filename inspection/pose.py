@@ -20,11 +20,11 @@ point-to-plane ICP see the outline as 3D shape:
   points and moved out by half a point spacing (the mean inset of pixel samples behind
   an edge).
 
-Per instance (`estimate_pose`): coarse poses by SAC-IA (FPFH, triplets, the Huber score of
-Eq. 22: `registration.coarse_feature_poses`) over both sides at once (the back side's
-extruded cloud moved aside in the same target, the side read from where a pose lands), or
-by NDT (Eq. 23-26, Newton steps from 12 yaws about the instance's plane, per side); the
-best coarse pose is also tried flipped over (the mirror outline in its place); each
+Per instance (`estimate_pose`), for each side up (both flipped hypotheses: the mirror
+outline in the same place is the other side): coarse poses by SAC-IA (FPFH, triplets, the
+Huber score of Eq. 22: `registration.coarse_feature_poses`; a search per side, as local
+descriptors hardly tell an outline from its mirror image) or by NDT (Eq. 23-26, Newton
+steps from 12 yaws about the instance's plane); each
 refined by point-to-plane ICP with normal-angle rejection (Eq. 27-29,
 `registration.icp`) and judged by the outline fit: fitness of the extruded instance cloud,
 plus the fraction of its true outline points on the part's outline, minus the fraction of
@@ -54,6 +54,7 @@ from .registration import (ModelTarget, RegistrationSettings, Samples, _ndt_grid
                            coarse_feature_poses, fitness, icp, transform_points)
 
 METHODS = ("sacia", "ndt")
+MAX_OFF_PLANE_MM = 1.0  # instance points farther from its plane are not on the part
 SHADOW_MM = 2.5  # beyond an edge, look this far for the first surface seen (past shadows)
 SIDES = ("front", "back")
 
@@ -70,10 +71,12 @@ class PoseSettings:
     instance's points on the posed face (within `inlier_mm`) below which the pose fails;
     `min_edge_fit`: the same for the instance's true outline points on the part's outline;
     `max_spill`: fraction of the posed face allowed where a lower surface is seen;
-    `max_plane_rms_mm`: an instance farther from a plane is not one flat part;
+    `max_plane_rms_mm`, `min_plane_fraction`: an instance with a larger robust RMS
+    distance to its plane, or a smaller fraction of its points within that distance, is
+    not one flat part;
     `max_occlusion`: above it a part is not offered for picking; `min_points`: smaller
     instances are not posed; `hypotheses`: SAC-IA triplets scored; `verify`: its distinct
-    coarse poses refined (and the best one flipped over); `attempts`: SAC-IA runs (fresh samples) before an
+    coarse poses refined per side; `attempts`: SAC-IA runs (fresh samples) before an
     instance is reported as failed."""
 
     method: str = "sacia"
@@ -86,11 +89,12 @@ class PoseSettings:
     inlier_mm: float = 0.15
     max_spill: float = 0.05
     max_plane_rms_mm: float = 0.1
+    min_plane_fraction: float = 0.8
     max_occlusion: float = 0.3
     min_points: int = 200
     hypotheses: int = 100
     verify: int = 2
-    attempts: int = 2
+    attempts: int = 3
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -125,10 +129,7 @@ class SideModel:
 class ThinPartModel:
     """A thin flat part from its mesh (part frame, mm): `axis` the unit normal of the front
     face, `thickness_mm`, face `area_mm2`, in-plane `length_mm` (largest extent) and the
-    two `sides`; `u0` the face's principal in-plane direction (for NDT starts); `both`:
-    the two sides' extruded clouds in one target, the back one moved by `apart` (4x4);
-    `flip`: the half turn about u0 through the plate's middle that puts each face where
-    the other was (part frame): a pose of one side, flipped, is the other side's guess."""
+    two `sides`; `u0` the face's principal in-plane direction (for NDT starts)."""
 
     name: str
     vertices: np.ndarray
@@ -139,9 +140,6 @@ class ThinPartModel:
     area_mm2: float
     length_mm: float
     sides: dict[str, SideModel]
-    both: ModelTarget
-    apart: np.ndarray
-    flip: np.ndarray
 
     @classmethod
     def from_mesh(cls, vertices: np.ndarray, triangles: np.ndarray, name: str,
@@ -194,20 +192,7 @@ class ThinPartModel:
             target = ModelTarget(np.concatenate([pts, b_pts, walls]), np.concatenate([face_n, rim_n, wall_n]),
                                  f"{name} ({side} up)", settings.voxel_mm)
             sides[side] = SideModel(side, Samples(pts, face_n), b_pts, b_nrm, target)
-        # both sides in one target for SAC-IA, the back side moved aside by `apart`: one
-        # search over both sides' features, the side read from where a pose lands
-        apart = np.eye(4)
-        apart[:3, 3] = 4.0 * length * u0
-        both = ModelTarget(np.concatenate([sides["front"].target.dense.points,
-                                           transform_points(apart, sides["back"].target.dense.points)]),
-                           np.concatenate([sides["front"].target.dense.normals,
-                                           sides["back"].target.dense.normals @ apart[:3, :3].T]),
-                           f"{name} (both sides)", settings.voxel_mm)
-        mid = sides["front"].face.points.mean(axis=0) - 0.5 * thickness * axis
-        flip = np.eye(4)   # half a turn about u0 through the middle of the plate: front and back swap places
-        flip[:3, :3] = 2.0 * np.outer(u0, u0) - np.eye(3)
-        flip[:3, 3] = mid - flip[:3, :3] @ mid
-        return cls(name, v, t, axis, u0, thickness, face_area, length, sides, both, apart, flip)
+        return cls(name, v, t, axis, u0, thickness, face_area, length, sides)
 
 
 def _sample_triangles(v: np.ndarray, tri: np.ndarray, area: np.ndarray, spacing: float,
@@ -412,13 +397,14 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
 
     if len(pts) < settings.min_points:
         return failed(f"only {len(pts)} points (needs {settings.min_points})")
+    flat, raw, sigma, inside = _onto_plane(pts, settings.max_plane_rms_mm)
+    if sigma > settings.max_plane_rms_mm or inside < settings.min_plane_fraction:
+        return failed(f"not one flat part: {inside:.0%} of the points lie within {settings.max_plane_rms_mm:g} mm of "
+                      f"their plane (needs {settings.min_plane_fraction:.0%}), robust RMS {sigma:.3g} mm")
     try:
-        patch = _patch(pts, context, model.thickness_mm, settings)
+        patch = _patch(flat, context, model.thickness_mm, settings)
     except PoseError as exc:
         return failed(str(exc))
-    if patch.plane_rms > settings.max_plane_rms_mm:
-        return failed(f"not one flat part: the points lie {patch.plane_rms:.3g} mm RMS off their plane "
-                      f"(limit {settings.max_plane_rms_mm:g} mm)")
     area = len(pts) * patch.spacing ** 2
     if patch.extent_mm > 1.2 * model.length_mm or area > 1.3 * model.area_mm2:
         return failed(f"larger than one part: {patch.extent_mm:.1f} mm across, ~{area:.0f} mm² "
@@ -426,44 +412,37 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
     rng = np.random.default_rng(settings.seed)
     outcome: tuple[str, dict] = ("", {})
     for _ in range(settings.attempts if settings.method == "sacia" else 1):   # SAC-IA is randomised: retry
-        outcome = _fit(pts, patch, model, settings, rng)
+        outcome = _fit(flat, raw, patch, model, settings, rng)
         if isinstance(outcome, PartPose):
             return replace(outcome, instance_id=instance.id, points=len(pts), time_s=time.perf_counter() - t0,
                            label=instance.label)
     return failed(outcome[0], **outcome[1])
 
 
-def _fit(pts: np.ndarray, patch: _Patch, model: ThinPartModel, settings: PoseSettings,
+def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, settings: PoseSettings,
          rng: np.random.Generator) -> PartPose | tuple[str, dict]:
-    """One coarse + fine fit: the PartPose (id, points, time filled by the caller), or
-    (why it fails, the figures of the best pose)."""
+    """One coarse + fine fit of the instance's points on its plane `pts` (`raw`: as
+    measured, row for row): the PartPose (id, points, time filled by the caller), or (why
+    it fails, the figures of the best pose)."""
     face = _voxel_subset(pts, settings.voxel_mm)
     src = np.concatenate([face, patch.wall_pts])
     src_n = np.concatenate([np.tile(patch.n, (len(face), 1)), patch.wall_nrm])
     keep = rng.choice(len(src), size=min(600, len(src)), replace=False)
     sp, sn = src[keep], src_n[keep]
     v = settings.voxel_mm
-    if settings.method == "sacia":
-        rs = RegistrationSettings(descriptors=("fpfh",), coarse="sac-ia", spheres=(100,),
-                                  hypotheses=settings.hypotheses, verify=settings.verify, seed=settings.seed)
-        back_centre = transform_points(model.apart, model.sides["back"].face.points.mean(axis=0)[None])[0]
-        front_centre = model.sides["front"].face.points.mean(axis=0)
-        starts = []
-        for T in coarse_feature_poses(src, src_n, model.both, rs, rng):
-            m = transform_points(T, patch.c[None])[0]
-            back = np.linalg.norm(m - back_centre) < np.linalg.norm(m - front_centre)
-            starts.append(("back", np.linalg.inv(model.apart) @ T) if back else ("front", T))
-    else:
-        starts = [(side, T) for side in SIDES for T in _ndt_poses(src, patch, model, model.sides[side], 2)]
-    if starts:   # the best coarse pose flipped over: the other side in its place
-        side0, T0 = starts[0]
-        starts.append(("back" if side0 == "front" else "front", model.flip @ T0))
     judged = []
-    for side, T in starts:
+    for side in SIDES:   # each side's own coarse search: mirror images look alike to local descriptors
         sm = model.sides[side]
-        T = icp(sp, sn, sm.target.coarse, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15)
-        fit = fitness(sp, sn, sm.target.coarse, T[None], 1.5 * v, settings.max_normal_deg)[0]
-        judged.append((fit + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), side, T))
+        if settings.method == "sacia":
+            rs = RegistrationSettings(descriptors=("fpfh",), coarse="sac-ia", spheres=(100,),
+                                      hypotheses=settings.hypotheses, verify=settings.verify, seed=settings.seed)
+            coarse = coarse_feature_poses(src, src_n, sm.target, rs, rng)
+        else:
+            coarse = _ndt_poses(src, patch, model, sm, settings.verify)
+        for T in coarse:
+            T = icp(sp, sn, sm.target.coarse, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15)
+            fit = fitness(sp, sn, sm.target.coarse, T[None], 1.5 * v, settings.max_normal_deg)[0]
+            judged.append((fit + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), side, T))
     if not judged:
         return f"{settings.method}: no coarse pose (no consistent correspondences)", {}
     judged.sort(key=lambda j: -j[0])
@@ -478,10 +457,10 @@ def _fit(pts: np.ndarray, patch: _Patch, model: ThinPartModel, settings: PoseSet
     fn = np.concatenate([np.tile(patch.n, (len(fine), 1)), patch.wall_nrm[: len(walls)]])
     T = icp(fp, fn, sm.target.dense, T, 2.0 * v, 2.0 * patch.spacing, settings.max_normal_deg, 15)
     pose = np.linalg.inv(T)
-    check = pts[rng.choice(len(pts), size=min(2000, len(pts)), replace=False)]
-    q = transform_points(T, check)
+    pick = rng.choice(len(pts), size=min(2000, len(pts)), replace=False)
+    q = transform_points(T, pts[pick])
     near, j = sm.face.tree.query(q)
-    dist = np.einsum("ij,ij->i", q - sm.face.points[j], sm.face.normals[j])
+    dist = np.einsum("ij,ij->i", transform_points(T, raw[pick]) - sm.face.points[j], sm.face.normals[j])
     inl = (near < settings.inlier_mm) & (np.abs(dist) < settings.inlier_mm)
     fit = float(inl.mean())
     rmse = float(np.sqrt(np.mean(dist[inl] ** 2))) if inl.any() else float("nan")
@@ -509,6 +488,27 @@ def _edge_fit(patch: _Patch, sm: SideModel, T: np.ndarray, tol_mm: float) -> flo
         return 1.0
     d, _ = sm.outline_tree.query(transform_points(T, patch.edge_pts), distance_upper_bound=tol_mm)
     return float(np.isfinite(d).mean())
+
+
+def _onto_plane(points: np.ndarray, tol_mm: float) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(points moved onto their plane along the camera rays, the points kept as measured,
+    robust RMS distance to the plane mm, fraction within `tol_mm` of it). The plane is
+    fitted robustly (twice, to the points within 3 robust sigma): pixels straddling an
+    edge (depth mixed with what lies behind) and decoding outliers do not tilt it, and
+    moved along their rays they land where the camera saw them. Points more than
+    MAX_OFF_PLANE_MM off belong to something else and are dropped."""
+    keep = np.ones(len(points), bool)
+    for _ in range(3):
+        c = points[keep].mean(axis=0)
+        n = np.linalg.svd(points[keep][:: max(1, keep.sum() // 5000)] - c, full_matrices=False)[2][2]
+        r = (points - c) @ n
+        sigma = 1.4826 * float(np.median(np.abs(r[keep])))
+        keep = np.abs(r) < max(3.0 * sigma, 0.01)
+    near = np.abs(r) < MAX_OFF_PLANE_MM
+    p = points[near]
+    ray = p @ n
+    flat = p * ((c @ n) / np.where(np.abs(ray) > 1e-9, ray, 1e-9))[:, None]
+    return flat, p, sigma, float(np.mean(np.abs(r) < tol_mm))
 
 
 def _voxel_subset(points: np.ndarray, voxel: float) -> np.ndarray:

@@ -198,3 +198,34 @@ def test_a_mesh_that_is_not_a_thin_plate_is_an_error(tmp_path: Path) -> None:
     step.write_text("ISO-10303-21;")
     with pytest.raises(CadError, match="unsupported part file"):
         load_part(step)
+
+
+@pytest.mark.slow
+def test_poses_from_a_full_fringe_scan_of_a_bin(model: ThinPartModel) -> None:
+    """The small bin scanned through the whole simulated chain (fringe patterns rendered
+    with sensor noise and blur, decoded, triangulated), instances from the simulator's ids:
+    the parts less than 30 % occluded found, every reported pose right."""
+    from scanner.acquisition import AcquisitionSettings, acquire
+    from scanner.decode import decode
+    from scanner.patterns import PatternSet
+    from scanner.reconstruct import Triangulator, triangulate
+    from scanner.rig import open_rig
+
+    b = bin_scene(5, seed=7, spread_mm=(12.0, 8.0))
+    config = RigConfig.load()
+    patterns = PatternSet.load(config.patterns_path)
+    with open_rig(config, scene=b.scene, seed=0) as rig:
+        stack = acquire(rig, patterns, AcquisitionSettings.for_rig(rig), lambda k, f: None)
+        cloud = triangulate(decode(stack, patterns, rig.camera.bit_depth, rig.model.projector.size),
+                            Triangulator(rig.model))
+        ids = np.asarray(rig.extras["ground_truth"].object_id)
+    inst = instances_from_label_image(np.where(ids >= 2, ids, 0), cloud, min_points=200)
+    poses = estimate_poses(inst, model, cloud.points[cloud.valid], PoseSettings())
+    for p in poses:
+        if p.ok:
+            rot, trans = pose_difference(b.poses[p.instance_id - 2], p.pose)
+            print(f"part {p.instance_id - 2}: {rot:.3f} deg, {trans:.4f} mm, {p.side}, occlusion {p.occlusion:.2f}, "
+                  f"rmse {p.rmse_mm:.4f} mm, {1000 * p.time_s:.0f} ms")
+        else:
+            print(f"part {p.instance_id - 2}: failed: {p.reason}")
+    _check_against_truth(b, poses, b.occlusion(), {i.id: i.id - 2 for i in inst})
