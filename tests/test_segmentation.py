@@ -151,6 +151,26 @@ def test_room_segments_match_ground_truth(room: tuple[np.ndarray, np.ndarray], r
     assert np.array_equal(seg.labels, seg.subsample_labels[seg.owner])
 
 
+def test_rough_surface_points_far_off_their_neighbours_surfaces_still_join() -> None:
+    """A rough floor (noise 2 % of r) with a box top above a hole in it: about 1 point in
+    20 lies farther from its neighbours' fitted surfaces than their tolerance μ + 2σ. It
+    must still join its surface (B' tests where it lies on its own fitted surface), not
+    end as a segment of its own (0.8 % of both surfaces were lost so)."""
+    rng = np.random.default_rng(4)
+    floor = np.c_[rng.uniform(0, 50, (30000, 2)), np.zeros(30000)]
+    hole = (np.abs(floor[:, 0] - 25) < 10) & (np.abs(floor[:, 1] - 25) < 10)
+    floor = floor[~hole]
+    top = np.c_[rng.uniform(15, 35, (hole.sum(), 2)), np.full(hole.sum(), 10.0)]
+    pts = np.concatenate([floor, top])
+    pts[:, 2] += 0.1 * rng.standard_normal(len(pts))
+    truth = np.r_[np.zeros(len(floor), np.int32), np.ones(len(top), np.int32)]
+    seg = segment(pts, 5.0)
+    s = score(seg.labels, truth)
+    assert all(x.eta == 1 and x.beta <= 0.003 and x.alpha == 0.0 for x in s.segments)
+    labelled = seg.labels[seg.labels >= 0]
+    assert (np.bincount(labelled)[labelled] < 10).mean() <= 0.001   # stranded points in crumbs: 0.76 % before
+
+
 def test_segmentation_keeps_missing_points_unlabelled(room: tuple[np.ndarray, np.ndarray]) -> None:
     pts = room[0][::2].copy()
     pts[::50] = np.nan          # an organised scan's invalid pixels, flattened
@@ -355,7 +375,7 @@ def test_clutter_false_positives_and_over_segmentation(clutter_scores: list[obje
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="mean beta is 8.7 % over seeds 0-2 (target 8 %, the paper 12 %): faces seen "
-                                       "only at grazing angles from far away keep too few points for any circle fit")
 def test_clutter_false_negatives(clutter_scores: list[object]) -> None:
+    # 7.3 % (the paper 12 %); most of it from two box faces seen only at grazing angles
+    # from far away (~4 mm spacing, r = 20 mm), which keep too few points for circle fits
     assert np.mean([s.mean_beta for s in clutter_scores]) <= 0.08

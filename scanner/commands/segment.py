@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -189,11 +190,14 @@ def cmd_segbench(args: argparse.Namespace) -> int:
                   f"alpha {100 * sc.mean_alpha:.4f} %, beta {100 * sc.mean_beta:.2f} %, eta {sc.mean_eta:.2f}",
                   flush=True)
     means = {k: float(np.mean([r[k] for r in rows])) for k in ("mean_alpha", "mean_beta", "mean_eta", "wall_s", "cpu_s")}
+    load = [round(x, 2) for x in os.getloadavg()]   # wall time depends on what else runs: report it
     if args.json:
-        print(json.dumps({"radius_mm": args.radius, "spacing_mm": args.spacing, "runs": rows, "means": means}, indent=2))
+        print(json.dumps({"radius_mm": args.radius, "spacing_mm": args.spacing, "runs": rows, "means": means,
+                          "load_average": load}, indent=2))
     else:
         print(f"mean over {len(rows)}: alpha {100 * means['mean_alpha']:.4f} %, beta {100 * means['mean_beta']:.2f} %, "
-              f"eta {means['mean_eta']:.2f}; {means['wall_s']:.1f} s wall, {means['cpu_s']:.1f} s CPU per cloud")
+              f"eta {means['mean_eta']:.2f}; {means['wall_s']:.1f} s wall, {means['cpu_s']:.1f} s CPU per cloud; "
+              f"load average {load[0]} {load[1]} {load[2]} on {os.cpu_count()} CPUs")
     return 0
 
 
