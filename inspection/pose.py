@@ -51,7 +51,7 @@ from scipy.spatial import cKDTree
 from .errors import CadError, InspectionError
 from .instances import Instance
 from .registration import (ModelTarget, RegistrationSettings, Samples, _ndt_grid, _ndt_refine,
-                           coarse_feature_poses, fitness, icp, transform_points)
+                           coarse_feature_poses, fitness, icp, pose_difference, transform_points)
 
 METHODS = ("sacia", "ndt")
 MAX_OFF_PLANE_MM = 1.0  # instance points farther from its plane are not on the part
@@ -70,7 +70,8 @@ class PoseSettings:
     `max_normal_deg`: ICP's normal-angle rejection; `min_fitness`: fraction of the
     instance's points on the posed face (within `inlier_mm`) below which the pose fails;
     `min_edge_fit`: the same for the instance's true outline points on the part's outline;
-    `max_spill`: fraction of the posed face allowed where a lower surface is seen;
+    `ambiguity_margin`: a distinct pose (or the other side) judged within it of the best
+    makes the instance ambiguous (failed); `max_spill`: fraction of the posed face allowed where a lower surface is seen;
     `max_plane_rms_mm`, `min_plane_fraction`: an instance with a larger robust RMS
     distance to its plane, or a smaller fraction of its points within that distance, is
     not one flat part;
@@ -88,6 +89,7 @@ class PoseSettings:
     min_edge_fit: float = 0.8
     inlier_mm: float = 0.15
     max_spill: float = 0.05
+    ambiguity_margin: float = 0.1
     max_plane_rms_mm: float = 0.1
     min_plane_fraction: float = 0.8
     max_occlusion: float = 0.3
@@ -449,6 +451,13 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, 
     score, side, T = judged[0]
     others = [j[0] for j in judged if j[1] != side]
     margin = score - max(others) if others else float("inf")
+    rivals = [j for j in judged[1:] if j[0] > score - settings.ambiguity_margin
+              and (j[1] != side or np.greater(pose_difference(T, j[2], patch.c), (2.0, 0.5)).any())]
+    if rivals:
+        angle, shift = pose_difference(T, rivals[0][2], patch.c)
+        return (f"ambiguous: another pose ({rivals[0][1]} up, {angle:.0f} deg / {shift:.1f} mm away) explains the "
+                f"instance as well ({rivals[0][0]:.2f} vs {score:.2f}); too little of its outline is visible",
+                {"side_margin": margin})
     sm = model.sides[side]
     fine = _voxel_subset(pts, 2.0 * patch.spacing)
     fine = fine[rng.choice(len(fine), size=min(600, len(fine)), replace=False)]

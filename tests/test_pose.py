@@ -129,6 +129,20 @@ def test_pose_command_writes_the_poses_file_and_recording(small_bin: tuple, tmp_
         q = o3d.geometry.get_rotation_matrix_from_quaternion(np.array([w, x, y, z]))
         assert np.allclose(q, T[:3, :3], atol=1e-6) and w >= 0
         assert np.allclose(r["world"]["position_mm"], r["camera"]["position_mm"])   # the bench rig: world = camera
+    # without masks: tray removal + depth-step components; every pose is one of the true ones
+    nomask = tmp_path / "nomask.json"
+    assert main(["pose", str(ply), "--part", str(PARTS / "nickel_tab.toml"), "--out", str(nomask), "--no-log"]) == 0
+    matched = set()
+    for r in json.loads(nomask.read_text())["parts"]:
+        if r["status"] == "ok":
+            T = np.eye(4)
+            T[:3, :3] = r["camera"]["rotation"]
+            T[:3, 3] = r["camera"]["position_mm"]
+            errors = [pose_difference(P, T) for P in b.poses]
+            k = int(np.argmin([t for _, t in errors]))
+            assert errors[k][0] <= ROT_DEG and errors[k][1] <= TRANS_MM and k not in matched
+            matched.add(k)
+    assert {k for k, o in enumerate(occlusion) if o < 0.3} <= matched
     paths = entity_paths(tmp_path / "bin.poses.rrd")
     assert any(p.startswith("world/pose/models/part_") for p in paths) and "world/pose/pick_order" in paths
     assert CLOUD.strip("/") in paths and "world/pose/instances" in paths
