@@ -56,6 +56,7 @@ REEVAL_OVERSAMPLE = 3       # re-evaluation searches this many times q_j neighbo
 NEAR_POINTS = 16            # growth neighbours within the smallest scale (S holds ~11 there) ...
 FAR_POINTS = 24             # ... and a uniform sample of this many out to r
 CHUNK = 2048                # points per batch
+LEAF_SIZE = 32              # k-d tree leaves of the scale samples (queries of 16-80 neighbours: ~25 % faster than 16)
 FLAT_CURVATURE = 1e-6       # |k|·r below this: flat (a cylinder or plane in `surface_distance`)
 MAX_BEND = 0.5              # |k1|·d above this: the circle turns too far within its own ball
 
@@ -151,10 +152,10 @@ class MultiScale:
     def _sample(self, voxel_mm: float | None) -> tuple[np.ndarray | None, cKDTree]:
         """The rows of P kept by density-centre voxel thinning (None: all) and their tree."""
         if voxel_mm is None:
-            return None, cKDTree(self.cloud)
+            return None, cKDTree(self.cloud, leafsize=LEAF_SIZE)
         keep = downsample(self.cloud, voxel_mm, "density_centre").indices
         assert keep is not None
-        return keep, cKDTree(self.cloud[keep])
+        return keep, cKDTree(self.cloud[keep], leafsize=LEAF_SIZE)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -315,7 +316,7 @@ def _scale_features(v: np.ndarray, ok: np.ndarray, d: float, slab: float) -> tup
     # rough normal: PCA of the neighbourhood
     mean = np.einsum("nq,nqc->nc", w, v) / np.maximum(cnt, 1)[:, None]
     vc = (v - mean[:, None, :]) * w[..., None]
-    cov = np.einsum("nqi,nqj->nij", vc, vc)
+    cov = np.matmul(vc.transpose(0, 2, 1), vc)
     _, vec = np.linalg.eigh(cov)
     nrm = vec[:, :, 0]
     helper = np.where(np.abs(nrm[:, :1]) < 0.9, np.array([[1, 0, 0]], np.float32), np.array([[0, 1, 0]], np.float32))
