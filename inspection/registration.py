@@ -68,6 +68,8 @@ COARSE_TURNS_DEG = (2.5, 5.0, 10.0, 20.0, 30.0)  # verification: turns tried abo
 FINE_TURNS_DEG = (0.1, 0.25, 0.5, 1.0, 2.0)  # and about the best pose, with a tight inlier distance
 EXACT_POINTS = 40000  # fine step: points in the exact-distance refinement
 FACE_BIAS_SIGMA = 3.0  # fine step: faces off their surface by more, as a group, are left out
+OFFSET_NOISE_RATIO = 1.25  # fine step: residuals spreading more than this x the noise: a face may be off
+BIG_FACE_FRACTION = 0.05  # fine step: faces holding this share of the points are tried left out
 TANGENTIAL_WEIGHT = 0.1  # ICP: weight of an extra point-to-point term along the surface
 DESCRIPTOR_FRACTION = 5.0  # descriptors are computed on a grid of radius / this
 DESCRIPTOR_NN = 64  # neighbours per descriptor support at most
@@ -652,7 +654,7 @@ def _apply(step: np.ndarray) -> np.ndarray:
 
 
 def refine_exact(src: np.ndarray, src_nrm: np.ndarray, T: np.ndarray, target: ModelTarget, tol: float,
-                 max_normal_deg: float, iterations: int = 6) -> np.ndarray:
+                 max_normal_deg: float, iterations: int = 6, offset_limit_mm: float | None = None) -> np.ndarray:
     """Gauss-Newton on the distances to the exact CAD faces: the points are assigned to
     faces once (`segmentation.assign_faces`: distance, normal, inside the face), then each
     step projects them onto their face's surface; residuals beyond 3 robust sigma are left
@@ -660,35 +662,79 @@ def refine_exact(src: np.ndarray, src_nrm: np.ndarray, T: np.ndarray, target: Mo
     Then, once converged, faces whose points sit off their surface as a group (median
     residual beyond `FACE_BIAS_SIGMA` times the spread of the faces' medians) are left out
     and the steps repeated: a face that is off as a whole (a pocket floor measured through
-    mixed pixels, or truly out of position on the part) must not pull the others."""
+    mixed pixels, or truly out of position on the part) must not pull the others. Last, a
+    large face off as a whole, by less than `offset_limit_mm`, is found by leaving faces
+    out in turn (`_without_offset_face`)."""
     assert target.model is not None and target.samples is not None
     seg = assign_faces(transform_points(T, src), src_nrm @ T[:3, :3].T, target.model, target.samples,
                        target.dense.tree, tol, max_normal_deg)
     src, face = src[seg.assigned], seg.face[seg.assigned]
     if len(src) < 6:
         return T
-    use = np.ones(len(src), bool)
-    for rnd in range(2):
-        for _ in range(iterations):
-            q = transform_points(T, src[use])
-            _, foot, normal, r, _ = project_to_faces(target.model, q, face[use])
-            sigma = 1.4826 * np.median(np.abs(r))
-            ok = np.abs(r) < max(3.0 * sigma, 1e-4)
-            step, _ = _point_to_plane_step(q[ok], foot[ok], normal[ok], damping=1e-6)
-            T = _apply(step) @ T
-            if np.linalg.norm(step) < 1e-9:
-                break
-        if rnd:
+    T = _gauss_newton(src, face, T, target.model, iterations)
+    _, _, _, r, _ = project_to_faces(target.model, transform_points(T, src), face)
+    labels, inv, count = np.unique(face, return_inverse=True, return_counts=True)
+    med = np.array([np.median(r[inv == k]) for k in range(len(labels))])  # one per face seen
+    spread = 1.4826 * np.median(np.abs(med - np.median(med)))
+    off = np.abs(med - np.median(med)) > FACE_BIAS_SIGMA * max(spread, 1e-4)
+    if off.any() and count[~off].sum() >= 0.5 * len(src):
+        T = _gauss_newton(src[~off[inv]], face[~off[inv]], T, target.model, iterations)
+    if offset_limit_mm is None:
+        return T
+    return _without_offset_face(src, face, T, target.model, iterations, offset_limit_mm)
+
+
+def _gauss_newton(src: np.ndarray, face: np.ndarray, T: np.ndarray, model: CadModel, iterations: int) -> np.ndarray:
+    """Gauss-Newton steps of `refine_exact` on points with their faces: residuals beyond
+    3 robust sigma left out, a little damping."""
+    for _ in range(iterations):
+        q = transform_points(T, src)
+        _, foot, normal, r, _ = project_to_faces(model, q, face)
+        sigma = 1.4826 * np.median(np.abs(r))
+        ok = np.abs(r) < max(3.0 * sigma, 1e-4)
+        step, _ = _point_to_plane_step(q[ok], foot[ok], normal[ok], damping=1e-6)
+        T = _apply(step) @ T
+        if np.linalg.norm(step) < 1e-9:
             break
-        _, _, _, r, _ = project_to_faces(target.model, transform_points(T, src), face)
-        labels, inv, count = np.unique(face, return_inverse=True, return_counts=True)
-        med = np.array([np.median(r[inv == k]) for k in range(len(labels))])  # one per face seen
-        spread = 1.4826 * np.median(np.abs(med - np.median(med)))
-        off = np.abs(med - np.median(med)) > FACE_BIAS_SIGMA * max(spread, 1e-4)
-        if not off.any() or count[~off].sum() < 0.5 * len(src):
-            break
-        use = ~off[inv]
     return T
+
+
+def _robust_sigma(r: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(r - np.median(r))))
+
+
+def _without_offset_face(src: np.ndarray, face: np.ndarray, T: np.ndarray, model: CadModel,
+                         iterations: int, limit_mm: float) -> np.ndarray:
+    """A large face off its nominal place as a whole (a raised step, a bowed top) pulls the
+    best fit of all faces into a compromise (tilted, shifted) that then shows as
+    deviations on faces that conform. When the residuals spread more than the noise (their
+    robust sigma over `OFFSET_NOISE_RATIO` times that of differences between neighbouring
+    points, which the smooth form cancels), each face holding `BIG_FACE_FRACTION` of the
+    points is left out in turn and the others refined: a fit that brings the others'
+    spread down by a fifth and leaves that face off them as a group (median beyond 3 of
+    their sigma, and within `limit_mm`: the fine step's inlier distance, so that the face
+    still counts in the fitness) is kept, the best such. The majority of the surface
+    decides, as a datum would; a part whose faces conform never gets here. A face off by
+    more keeps the compromise: the part then reads off on several faces (a profile
+    failure) rather than failing registration."""
+    from scipy.spatial import cKDTree
+
+    _, _, _, r, _ = project_to_faces(model, transform_points(T, src), face)
+    _, nb = cKDTree(src).query(src, k=2)
+    noise = _robust_sigma(r - r[nb[:, 1]]) / np.sqrt(2.0)
+    if _robust_sigma(r) <= OFFSET_NOISE_RATIO * noise:
+        return T
+    labels, inv, count = np.unique(face, return_inverse=True, return_counts=True)
+    best, best_sigma = T, np.inf
+    for k in np.flatnonzero(count >= BIG_FACE_FRACTION * len(face)):
+        rest = inv != k
+        U = _gauss_newton(src[rest], face[rest], T, model, iterations)
+        _, _, _, ru, _ = project_to_faces(model, transform_points(U, src), face)
+        sigma = _robust_sigma(ru[rest])
+        offset = abs(np.median(ru[~rest]) - np.median(ru[rest]))
+        if sigma < min(0.8 * _robust_sigma(r[rest]), best_sigma) and 3.0 * sigma < offset < limit_mm:
+            best, best_sigma = U, sigma
+    return best
 
 
 def explore(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, inlier_mm: float,
@@ -860,5 +906,6 @@ def _fine(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Registr
     T = icp(p[sel], n[sel], target.dense, T, 0.5 * v, 0.05 * v, settings.max_normal_deg, 10)
     if target.model is not None and target.model.kind == "step":
         sel = rng.choice(len(scan), size=min(EXACT_POINTS, len(scan)), replace=False)  # any point will do
-        T = refine_exact(scan.points[sel], scan.normals[sel], T, target, 0.3 * v, settings.max_normal_deg)
+        T = refine_exact(scan.points[sel], scan.normals[sel], T, target, 0.3 * v, settings.max_normal_deg,
+                         offset_limit_mm=0.5 * v)
     return T

@@ -28,13 +28,19 @@ from sim.parts import lying_pose
 STEP = CONFIG_DIR / "parts" / "demo_part.step"
 
 
-def virtual_view(model, pose: np.ndarray, noise_mm: float = 0.014, spacing_mm: float = 0.25, seed: int = 0) -> ScanCloud:
+def virtual_view(model, pose: np.ndarray, noise_mm: float = 0.014, spacing_mm: float = 0.25, seed: int = 0,
+                 offsets: dict[str, float] | None = None) -> ScanCloud:
     """The model's surface seen from a camera at the origin (model placed by `pose`, part ->
-    camera): visible samples, with noise along the viewing rays; normals estimated."""
+    camera): visible samples, with noise along the viewing rays; normals estimated.
+    `offsets`: faces (by label) moved as a whole along their outward normal (mm)."""
     import open3d as o3d
 
     s = sample_model(model, spacing_mm, seed=seed)
-    p = s.points @ pose[:3, :3].T + pose[:3, 3]
+    points = s.points.copy()
+    for label, mm in (offsets or {}).items():
+        sel = s.face == model.by_label(label).index
+        points[sel] += mm * s.normals[sel]
+    p = points @ pose[:3, :3].T + pose[:3, 3]
     n = s.normals @ pose[:3, :3].T
     tess = model.tessellation
     scene = o3d.t.geometry.RaycastingScene()
@@ -94,6 +100,26 @@ def test_partial_views_from_random_starts(demo, tilt: tuple[float, float]) -> No
         print(f"tilt {tilt} start {k}: {angle:.4f} deg, {shift * 1e3:.1f} um, fitness {reg.fitness:.3f}, "
               f"{reg.timings_s['total']:.2f} s")
         assert angle < 0.02 and shift < 0.02
+
+
+def test_face_off_as_a_whole_does_not_tilt_the_fit(demo) -> None:
+    """The high top (#657, 38 % of the view) raised by 0.1 mm: the fit rests on the faces
+    that conform (a best fit of all would tilt the part and show deviations on all), and
+    the raised face reads +0.1 mm."""
+    from inspection.segmentation import assign_faces
+    from inspection.registration import transform_points
+
+    model, target = demo
+    pose = lying_pose(model.tessellation.vertices, 0.35, 400.0, (0.3, 0.1))
+    view = virtual_view(model, pose, offsets={"#657": 0.1})
+    reg = register(view, target)
+    angle, shift = pose_difference(reg.transform, np.linalg.inv(pose), view.points.mean(axis=0))
+    seg = assign_faces(transform_points(reg.transform, view.points), view.normals @ reg.transform[:3, :3].T, model,
+                       target.samples, target.dense.tree, 0.5, 45.0)
+    raised = np.median(seg.deviation_mm[seg.face == model.by_label("#657").index])
+    low = np.median(seg.deviation_mm[seg.face == model.by_label("#158").index])
+    print(f"{angle:.4f} deg, {shift * 1e3:.1f} um; high top {raised * 1e3:.1f} um, low top {low * 1e3:.1f} um")
+    assert angle < 0.02 and shift < 0.02 and abs(raised - 0.1) < 0.005 and abs(low) < 0.005
 
 
 def test_another_part_fails_registration(demo, tmp_path: Path) -> None:
