@@ -257,8 +257,8 @@ class MultiScale:
 
 
 def in_parallel(work: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]:
-    """`work` applied to every item, in threads (one per CPU; numpy, scipy's k-d trees
-    and their queries release the GIL), results in order."""
+    """`work` applied to every item, in threads (one per CPU; numpy's array operations and
+    scipy's k-d tree queries release the GIL), results in order."""
     if len(items) < 2:
         return [work(x) for x in items]
     with ThreadPoolExecutor(min(len(items), os.cpu_count() or 1)) as ex:
