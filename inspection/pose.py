@@ -24,7 +24,8 @@ Per instance (`estimate_pose`), for each side up (both flipped hypotheses: the m
 outline in the same place is the other side): coarse poses by SAC-IA (FPFH, triplets, the
 Huber score of Eq. 22: `registration.coarse_feature_poses`; a search per side, as local
 descriptors hardly tell an outline from its mirror image) or by NDT (Eq. 23-26, Newton
-steps from 12 yaws about the instance's plane); each
+steps from 12 yaws about the instance's plane); the best one also turned end for end and
+flipped over about either in-plane axis (the confusions of a nearly symmetric view); each
 refined by point-to-plane ICP with normal-angle rejection (Eq. 27-29,
 `registration.icp`) and judged by the outline fit: fitness of the extruded instance cloud,
 plus the fraction of its true outline points on the part's outline, minus the fraction of
@@ -51,7 +52,7 @@ from scipy.spatial import cKDTree
 from .errors import CadError, InspectionError
 from .instances import Instance
 from .registration import (ModelTarget, RegistrationSettings, Samples, _ndt_grid, _ndt_refine,
-                           coarse_feature_poses, fitness, icp, pose_difference, transform_points)
+                           coarse_feature_poses, fitness, icp, pose_difference, transform_points, with_flips)
 
 METHODS = ("sacia", "ndt")
 MAX_OFF_PLANE_MM = 1.0  # instance points farther from its plane are not on the part
@@ -447,6 +448,16 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, 
             judged.append((fit + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), side, T))
     if not judged:
         return f"{settings.method}: no coarse pose (no consistent correspondences)", {}
+    judged.sort(key=lambda j: -j[0])
+    # the best pose turned end for end, and flipped over about either in-plane axis (the
+    # other side up): what a nearly symmetric view of the strip is confused with
+    side0, T0 = judged[0][1], judged[0][2]
+    other = "back" if side0 == "front" else "front"
+    for turn_side, Tt in zip((side0, other, other), with_flips([T0], pts)[1:]):   # about the normal first
+        sm = model.sides[turn_side]
+        Tt = icp(sp, sn, sm.target.coarse, Tt, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15)
+        fit = fitness(sp, sn, sm.target.coarse, Tt[None], 1.5 * v, settings.max_normal_deg)[0]
+        judged.append((fit + _edge_fit(patch, sm, Tt, 2 * settings.inlier_mm) - _spill(patch, sm, Tt), turn_side, Tt))
     judged.sort(key=lambda j: -j[0])
     score, side, T = judged[0]
     others = [j[0] for j in judged if j[1] != side]
