@@ -1,0 +1,31 @@
+"""`slscan demo` end to end (slow: ~15 s CPU; pytest -m slow -s tests/test_inspection_demo.py):
+the bundled part scanned on the simulated rig, inspected against config/parts/demo_part.step
+with config/tolerances/demo_part.toml, the per-face table printed, the report files in the
+session's outputs and the inspection in the session's own recording."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from scanner import cli
+from scanner.recording import read_summary
+
+pytestmark = pytest.mark.slow
+
+
+def test_demo_scans_and_inspects(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "demo"
+    assert cli.main(["demo", "--out", str(out)]) == 0  # the nominal part passes its tolerances
+    text = capsys.readouterr().out
+    assert "#657" in text and "flatness 0.030 pass" in text and "verdict pass" in text
+    data = json.loads((out / "outputs" / "inspection.json").read_text())
+    rows = {r["label"]: r for r in data["faces"]}
+    assert data["verdict"] == "pass" and data["fitness"] > 0.95
+    assert rows["#657"]["deviation_source"] == "form surface" and rows["#657"]["profile_mm"] < 0.03
+    assert {"inspection.csv", "inspection.html"} <= {p.name for p in (out / "outputs").iterdir()}
+    rec = read_summary(out / "recording.rrd")
+    assert {"world/inspection/cad", "world/inspection/deviation", "world/inspection/faces",
+            "inspection/deviation_map", "inspection/report"} <= set(rec.entity_paths)
