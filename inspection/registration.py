@@ -678,7 +678,8 @@ def refine_exact(src: np.ndarray, src_nrm: np.ndarray, T: np.ndarray, target: Mo
     spread = 1.4826 * np.median(np.abs(med - np.median(med)))
     off = np.abs(med - np.median(med)) > FACE_BIAS_SIGMA * max(spread, 1e-4)
     if off.any() and count[~off].sum() >= 0.5 * len(src):
-        T = _gauss_newton(src[~off[inv]], face[~off[inv]], T, target.model, iterations)
+        src, face = src[~off[inv]], face[~off[inv]]
+        T = _gauss_newton(src, face, T, target.model, iterations)
     if offset_limit_mm is None:
         return T
     return _without_offset_face(src, face, T, target.model, iterations, offset_limit_mm)
@@ -724,7 +725,7 @@ def _without_offset_face(src: np.ndarray, face: np.ndarray, T: np.ndarray, model
     noise = _robust_sigma(r - r[nb[:, 1]]) / np.sqrt(2.0)
     if _robust_sigma(r) <= OFFSET_NOISE_RATIO * noise:
         return T
-    labels, inv, count = np.unique(face, return_inverse=True, return_counts=True)
+    _, inv, count = np.unique(face, return_inverse=True, return_counts=True)
     best, best_sigma = T, np.inf
     for k in np.flatnonzero(count >= BIG_FACE_FRACTION * len(face)):
         rest = inv != k
