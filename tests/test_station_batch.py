@@ -64,11 +64,12 @@ def test_dask_batch_gives_the_serial_results_and_reports_failures_without_stoppi
     assert "IncompleteSession" in failed.message and "no manifest.json" in failed.message
     assert dask.items[1].truth["name"] == "bow150"
     assert dask.items[1].message == "out of tolerance: high_top_flatness, high_top_profile"
-    assert compare(serial, dask) == ([], 0.0)
+    assert compare(serial, dask) == ([], 0.0, "")
     nudged = replace(dask.items[1], values=tuple(replace(v, value_mm=v.value_mm + 0.001) for v in dask.items[1].values))
     other = replace(dask, items=[dask.items[0], nudged, replace(dask.items[2], status="fail"), dask.items[3]])
-    differ, worst = compare(serial, other)
-    assert worst == pytest.approx(0.001) and len(differ) == 1 and differ[0].startswith(f"{parts[2]}: pass")
+    differ, worst, where = compare(serial, other)
+    assert worst == pytest.approx(0.001) and where.startswith(f"{serial.items[1].serial} ")
+    assert len(differ) == 1 and differ[0].startswith(f"{parts[2]}: pass")
 
 
 def test_batch_regenerates_the_outputs_from_the_raw_frames(stored: tuple[StationConfig, list[Path]]) -> None:

@@ -119,10 +119,10 @@ def cmd_batchbench(args: argparse.Namespace) -> int:
               f"{counts['fail']} fail, {counts['error']} failed; load average before "
               f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f})", flush=True)
     serial, dask = runs.values()
-    differ, worst = compare(serial, dask)
+    differ, worst, where = compare(serial, dask)
     print(f"results agree: {'yes' if not differ else 'NO'} (statuses and messages of {len(serial.items)} parts; "
-          f"largest value difference {worst * 1e3:.4f} um); speed-up {serial.wall_s / dask.wall_s:.2f}x; "
-          f"load average after {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+          f"largest value difference {worst * 1e3:.4f} um" + (f", {where}" if where else "") + f"); speed-up "
+          f"{serial.wall_s / dask.wall_s:.2f}x; load average after {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     for line in differ:
         print("DIFFERS " + line)
     return 0 if not differ else 1

@@ -205,18 +205,21 @@ def run_batch(parts: Sequence[str | Path], program_path: str | Path, scheduler: 
     return summary
 
 
-def compare(a: BatchSummary, b: BatchSummary) -> tuple[list[str], float]:
+def compare(a: BatchSummary, b: BatchSummary) -> tuple[list[str], float, str]:
     """Where two runs over the same parts differ: (one line per part whose status, message
-    or set of measured characteristics differs, the largest difference of a value, mm)."""
-    differ, worst = [], 0.0
+    or set of measured characteristics differs; the largest difference of a value, mm;
+    which part and characteristic it is, "" when none differs)."""
+    differ, worst, where = [], 0.0, ""
     for x, y in zip(a.items, b.items, strict=True):
         vx = {v.characteristic: v.value_mm for v in x.values}
         vy = {v.characteristic: v.value_mm for v in y.values}
         if (x.status, x.message, vx.keys()) != (y.status, y.message, vy.keys()) \
                 or any((vx[c] is None) != (vy[c] is None) for c in vx):
             differ.append(f"{x.path}: {x.status} '{x.message}' vs {y.status} '{y.message}'")
-        worst = max([worst] + [abs(vx[c] - vy[c]) for c in vx if c in vy and None not in (vx[c], vy[c])])
-    return differ, worst
+        for c in vx.keys() & vy.keys():
+            if None not in (vx[c], vy[c]) and abs(vx[c] - vy[c]) > worst:
+                worst, where = abs(vx[c] - vy[c]), f"{x.serial} {c}: {vx[c]:.6f} vs {vy[c]:.6f} mm"
+    return differ, worst, where
 
 
 def _store(summary: BatchSummary, program: PartProgram, config: StationConfig, entry: str) -> None:
