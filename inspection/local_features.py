@@ -29,8 +29,10 @@ For a point p of the subsampled cloud S and each scale d_j = f_j·r (f_j in
   - the point's own signed offset from the fitted surface is kept as `offset`.
 The representative scale of a point is the one of least μ.
 
-Features are computed in chunks of points, two threads (numpy releases the GIL), every
-neighbourhood operation batched over the chunk. Units: mm, 1/mm for curvatures.
+Features are computed in chunks of points, one thread per CPU (`in_parallel`: numpy and
+the k-d tree queries release the GIL), every neighbourhood operation batched over the
+chunk; the per-scale samples and their trees are built in parallel too. Units: mm, 1/mm
+for curvatures.
 """
 
 from __future__ import annotations
@@ -241,16 +243,16 @@ class MultiScale:
             f.offset[flip] *= -1
         return f
 
-    def surface_agreement(self, ids: np.ndarray, f: LocalFeatures, targets: np.ndarray, target_feet: np.ndarray,
+    def surface_agreement(self, ids: np.ndarray, f: LocalFeatures, targets: np.ndarray, target_at: np.ndarray,
                           target_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For points `targets` (n, k rows of S, -1 ignored) around points `ids` with
-        features `f`: the distances (mm, inf where ignored) of their feet `target_feet`
-        (n, k, 3: their positions on their own surfaces, `LocalFeatures.feet`, in this
-        object's centred frame) from each point's torus, and |cos| of the angle between
+        features `f`: the distances (mm, inf where ignored) of the targets, taken at
+        `target_at` (n, k, 3: their own positions or feet, `LocalFeatures.feet`, in this
+        object's centred frame), from each point's torus, and |cos| of the angle between
         their normals `target_normals` (n, k, 3) and the torus normal there (NaN where a
         target has no normal)."""
         foot = f.feet(self.points[ids])
-        v = target_feet - foot[:, None, :]
+        v = target_at - foot[:, None, :]
         d, g = surface_distance(v, f.normal, f.k1_dir, f.k1, f.k2, self.radius)
         d[targets < 0] = np.inf
         return d, np.abs(np.einsum("nkc,nkc->nk", g, target_normals))

@@ -154,7 +154,7 @@ def segment(points: np.ndarray, radius_mm: float, viewpoint: np.ndarray | None =
     t2 = time.perf_counter()
     timings["features"] = t2 - t1
     feet = feats.feet(ms.points)
-    edges = mutual(representative_neighbourhoods(ms, np.arange(len(ms)), feats, feats.normal, feet))
+    edges = mutual(representative_neighbourhoods(ms, np.arange(len(ms)), feats, feats, feet))
     t3 = time.perf_counter()
     timings["neighbourhoods"] = t3 - t2
     grower = _Grower(ms, feats, feet, edges)
@@ -169,13 +169,15 @@ def segment(points: np.ndarray, radius_mm: float, viewpoint: np.ndarray | None =
 
 
 def representative_neighbourhoods(ms: MultiScale, ids: np.ndarray, f: LocalFeatures,
-                                  normals: np.ndarray, feet: np.ndarray) -> np.ndarray:
-    """B' of points `ids` of S: (n, k) rows of S among their growth neighbours that lie
-    within the representative scale and whose foot (`feet`, per point of S: where it lies
-    on its own fitted surface) is within μ + 2σ of the point's torus. An entry is the row
-    j itself where the neighbour's normal (`normals`, per point of S) agrees with the
-    torus normal there (within `MAX_NORMAL_ANGLE`: a trusted edge), `untrusted(j)` where
-    it does not, -1 where there is no edge."""
+                                  every: LocalFeatures, feet: np.ndarray) -> np.ndarray:
+    """B' of points `ids` of S (features `f`): (n, k) rows of S among their growth
+    neighbours that lie within the representative scale and within μ + 2σ of the point's
+    torus — a neighbour as smooth as that (its μ, from `every`, the features of all of S)
+    by its foot (`feet`, per point of S: where it lies on its own fitted surface), any
+    other by its own position (its fit may straddle two surfaces: its foot could sit
+    between them). An entry is the row j itself where the neighbour's normal agrees with
+    the torus normal there (within `MAX_NORMAL_ANGLE`: a trusted edge), `untrusted(j)`
+    where it does not, -1 where there is no edge."""
     tol = np.maximum(f.mu + 2 * f.sigma, MIN_TOLERANCE * ms.radius)
     reach = np.asarray(ms.radii)[np.maximum(f.scale, 0)]
     min_cos = np.cos(MAX_NORMAL_ANGLE)
@@ -186,15 +188,18 @@ def representative_neighbourhoods(ms: MultiScale, ids: np.ndarray, f: LocalFeatu
         rows, c, keep = rows[f.valid[rows]], c[f.valid[rows]], np.flatnonzero(f.valid[rows])
         if not rows.size:
             return out
-        d, cos = ms.surface_agreement(ids[rows], f.take(rows), c, feet[np.maximum(c, 0)], normals[np.maximum(c, 0)])
+        j = np.maximum(c, 0)
+        smooth = every.mu[j] <= tol[rows, None]
+        at = np.where(smooth[..., None], feet[j], ms.points[j])
+        d, cos = ms.surface_agreement(ids[rows], f.take(rows), c, at, every.normal[j])
         gap = ms.points[np.maximum(c, 0)] - ms.points[ids[rows]][:, None, :]
         near = np.einsum("nkc,nkc->nk", gap, gap) <= (reach[rows] ** 2)[:, None]
         on = (d <= tol[rows, None]) & near
         out[keep] = np.where(on, np.where(cos >= min_cos, c, untrusted(c)), -1)
         return out
 
-    every = np.arange(len(ids))
-    return np.concatenate(in_parallel(chunk, [every[i:i + CHUNK] for i in range(0, len(ids), CHUNK)])
+    order = np.arange(len(ids))
+    return np.concatenate(in_parallel(chunk, [order[i:i + CHUNK] for i in range(0, len(ids), CHUNK)])
                           or [np.empty((0, NEAR_POINTS + FAR_POINTS), dtype=np.int64)])
 
 
@@ -360,7 +365,7 @@ class _Grower:
         self.feet[j] = gj.feet(self.ms.points[j])
         self.reevaluated[j] = True
         self._join(j, s, stats)
-        e = representative_neighbourhoods(self.ms, j, gj, self.features.normal, self.feet)
+        e = representative_neighbourhoods(self.ms, j, gj, self.features, self.feet)
         back = (self.edges[np.maximum(e, 0)] == j[:, None, None]).any(axis=2)
         return np.where((e >= 0) & ~back, untrusted(e), e).ravel()
 
