@@ -8,11 +8,11 @@ Stages:
   2. multi-scale features on S (`local_features`): roughness (μ, σ), principal
      curvatures and directions, normal, representative scale;
   3. the representative neighbourhood B'_i of every point: the points of S within its
-     representative scale (all within 0.19·r and a uniform sample beyond) whose foot
-     (the point moved onto its own fitted surface by its offset) lies within μ_i + 2σ_i
-     of the point's osculating torus. An edge i -> j is trusted when j's own normal
-     agrees with the torus normal there (`MAX_NORMAL_ANGLE`) and j -> i is a trusted
-     edge too;
+     representative scale (all within 0.19·r and a uniform sample beyond) that lie within
+     μ_i + 2σ_i of the point's osculating torus — at their foot (moved onto their own
+     fitted surface by their offset) if their μ is within that tolerance too, else at
+     their own position. An edge i -> j is trusted when j's own normal agrees with the
+     torus normal there (`MAX_NORMAL_ANGLE`) and j -> i is a trusted edge too;
   4. seeds: τ = 0.01·r, γ = 0; the unsegmented point of least μ with μ ≤ τ and
      representative scale d_γ; none: γ += 1; all scales tried: τ *= 2, γ = 0; stop when
      τ exceeds r;
@@ -36,7 +36,9 @@ Where the paper is silent or differs, and why:
     roughness: the mean |residual| is 0.8 s and its spread 0.6 s, so μ + 2σ ≈ 2 s) would
     lie outside every neighbour's B' and, its neighbours all taken, end as a segment of
     its own — 7 % of a rough floor was lost so. The foot removes the point's own noise
-    and keeps its surface: a point whose fitted surface is another object's stays out;
+    and keeps its surface: a point whose fitted surface is another object's stays out.
+    Only a neighbour as smooth as the tolerance is moved so: a rougher one's fit may
+    straddle two surfaces (a thin part lying on a tray) and put its foot between them;
   - B' reaches only as far as the representative scale, not r: the torus is fitted on
     that ball, and its curvature extrapolated beyond it (from a small ball, noisy) can
     bend into a neighbouring surface;
