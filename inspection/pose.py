@@ -413,26 +413,27 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
         return failed(f"larger than one part: {patch.extent_mm:.1f} mm across, ~{area:.0f} mm² "
                       f"(the part: {model.length_mm:.1f} mm, {model.area_mm2:.0f} mm²); merged instances?")
     rng = np.random.default_rng(settings.seed)
-    outcome: tuple[str, dict] = ("", {})
+    outcome: tuple[str, dict, bool] = ("", {}, True)
     for _ in range(settings.attempts if settings.method == "sacia" else 1):   # SAC-IA is randomised: retry
         outcome = _fit(flat, raw, patch, model, settings, rng)
         if isinstance(outcome, PartPose):
             return replace(outcome, instance_id=instance.id, points=len(pts), time_s=time.perf_counter() - t0,
                            label=instance.label)
+        if not outcome[2]:   # no attempt can settle it
+            break
     return failed(outcome[0], **outcome[1])
 
 
 def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, settings: PoseSettings,
-         rng: np.random.Generator) -> PartPose | tuple[str, dict]:
+         rng: np.random.Generator) -> PartPose | tuple[str, dict, bool]:
     """One coarse + fine fit of the instance's points on its plane `pts` (`raw`: as
     measured, row for row): the PartPose (id, points, time filled by the caller), or (why
-    it fails, the figures of the best pose)."""
+    it fails, the figures of the best pose, whether another attempt may succeed)."""
     face = _voxel_subset(pts, settings.voxel_mm)
     src = np.concatenate([face, patch.wall_pts])
     src_n = np.concatenate([np.tile(patch.n, (len(face), 1)), patch.wall_nrm])
     keep = rng.choice(len(src), size=min(600, len(src)), replace=False)
     sp, sn = src[keep], src_n[keep]
-    v = settings.voxel_mm
     judged = []
     for side in SIDES:   # each side's own coarse search: mirror images look alike to local descriptors
         sm = model.sides[side]
@@ -442,34 +443,28 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, 
             coarse = coarse_feature_poses(src, src_n, sm.target, rs, rng)
         else:
             coarse = _ndt_poses(src, patch, model, sm, settings.verify)
-        for T in coarse:
-            T = icp(sp, sn, sm.target.coarse, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15)
-            fit = fitness(sp, sn, sm.target.coarse, T[None], 1.5 * v, settings.max_normal_deg)[0]
-            judged.append((fit + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), side, T))
+        judged += _judge(patch, sm, sp, sn, coarse, settings)
     if not judged:
-        return f"{settings.method}: no coarse pose (no consistent correspondences)", {}
+        return f"{settings.method}: no coarse pose (no consistent correspondences)", {}, True
     judged.sort(key=lambda j: -j[0])
+    ambiguous = _ambiguity(judged, patch, settings)
+    if ambiguous is not None and not ambiguous[2]:   # no further pose can settle it
+        return ambiguous
     # the best pose turned end for end, and flipped over about either in-plane axis (the
     # other side up): what a nearly symmetric view of the strip is confused with
     side0, T0 = judged[0][1], judged[0][2]
     other = "back" if side0 == "front" else "front"
-    for turn_side, Tt in zip((side0, other, other), with_flips([T0], pts)[1:]):   # about the normal first
-        sm = model.sides[turn_side]
-        Tt = icp(sp, sn, sm.target.coarse, Tt, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15)
-        fit = fitness(sp, sn, sm.target.coarse, Tt[None], 1.5 * v, settings.max_normal_deg)[0]
-        judged.append((fit + _edge_fit(patch, sm, Tt, 2 * settings.inlier_mm) - _spill(patch, sm, Tt), turn_side, Tt))
+    turned = with_flips([T0], pts)[1:]   # about the normal first
+    judged += _judge(patch, model.sides[side0], sp, sn, turned[:1], settings)
+    judged += _judge(patch, model.sides[other], sp, sn, turned[1:], settings)
     judged.sort(key=lambda j: -j[0])
+    ambiguous = _ambiguity(judged, patch, settings)
+    if ambiguous is not None:
+        return ambiguous
     score, side, T = judged[0]
-    others = [j[0] for j in judged if j[1] != side]
-    margin = score - max(others) if others else float("inf")
-    rivals = [j for j in judged[1:] if j[0] > score - settings.ambiguity_margin
-              and (j[1] != side or np.greater(pose_difference(T, j[2], patch.c), (2.0, 0.5)).any())]
-    if rivals:
-        angle, shift = pose_difference(T, rivals[0][2], patch.c)
-        return (f"ambiguous: another pose ({rivals[0][1]} up, {angle:.0f} deg / {shift:.1f} mm away) explains the "
-                f"instance as well ({rivals[0][0]:.2f} vs {score:.2f}); too little of its outline is visible",
-                {"side_margin": margin})
+    margin = _side_margin(judged)
     sm = model.sides[side]
+    v = settings.voxel_mm
     fine = _voxel_subset(pts, 2.0 * patch.spacing)
     fine = fine[rng.choice(len(fine), size=min(600, len(fine)), replace=False)]
     walls = patch.wall_pts[: len(patch.wall_pts) // settings.wall_levels]
@@ -491,14 +486,55 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, 
     if fit < settings.min_fitness:
         return (f"the best pose ({side} up) puts only {fit:.0%} of the points on the part's face within "
                 f"{settings.inlier_mm:g} mm (needs {settings.min_fitness:.0%}): not this part, or a wrongly "
-                f"segmented instance", kw)
+                f"segmented instance", kw, True)
     if edge < settings.min_edge_fit:
         return (f"the best pose ({side} up) puts only {edge:.0%} of the instance's outline points within "
-                f"{settings.inlier_mm:g} mm of the part's outline (needs {settings.min_edge_fit:.0%})", kw)
+                f"{settings.inlier_mm:g} mm of the part's outline (needs {settings.min_edge_fit:.0%})", kw, True)
     if spill > settings.max_spill:
         return (f"the best pose ({side} up) puts {spill:.0%} of the part's face where a lower surface is seen "
-                f"(limit {settings.max_spill:.0%}): no pose explains the instance's outline", kw)
+                f"(limit {settings.max_spill:.0%}): no pose explains the instance's outline", kw, True)
     return PartPose(0, True, "", f"{settings.method}+icp", 0, pose, side, fit, rmse, occl, margin, edge_fit=edge)
+
+
+def _ambiguity(judged: list[tuple[float, str, np.ndarray]], patch: _Patch,
+               settings: PoseSettings) -> tuple[str, dict, bool] | None:
+    """(why the instance is ambiguous, the side margin, whether another attempt may settle
+    it) when a pose distinct from the best (or the other side) is judged within the
+    ambiguity margin of it (`judged` sorted best first), else None. A rival within the
+    margin of the highest possible score (2: every point on the face, every outline point
+    on the outline, no spill) stays a rival whatever better pose is found later, so more
+    poses or attempts cannot settle it."""
+    score, side, T = judged[0]
+    for rival_score, rival_side, R in judged[1:]:
+        if rival_score <= score - settings.ambiguity_margin:
+            return None
+        angle, shift = pose_difference(T, R, patch.c)
+        if rival_side != side or angle > 2.0 or shift > 0.5:
+            return (f"ambiguous: another pose ({rival_side} up, {angle:.0f} deg / {shift:.1f} mm away) explains the "
+                    f"instance as well ({rival_score:.2f} vs {score:.2f}); too little of its outline is visible",
+                    {"side_margin": _side_margin(judged)}, rival_score <= 2.0 - settings.ambiguity_margin)
+    return None
+
+
+def _side_margin(judged: list[tuple[float, str, np.ndarray]]) -> float:
+    """Score of the best pose (`judged` sorted best first) minus the best of the other side's."""
+    others = [j[0] for j in judged if j[1] != judged[0][1]]
+    return judged[0][0] - max(others) if others else float("inf")
+
+
+def _judge(patch: _Patch, sm: SideModel, sp: np.ndarray, sn: np.ndarray, poses: list[np.ndarray],
+           settings: PoseSettings) -> list[tuple[float, str, np.ndarray]]:
+    """(outline-fit score, side, pose) of each pose (scan -> part) refined by point-to-plane
+    ICP with normal-angle rejection on the instance's extruded cloud `sp`/`sn`: fitness
+    (within 1.5 voxels, one batched query) plus the fraction of the true outline on the
+    part's outline, minus the fraction of the face over a lower surface."""
+    if not poses:
+        return []
+    v = settings.voxel_mm
+    posed = [icp(sp, sn, sm.target.coarse, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15) for T in poses]
+    fit = fitness(sp, sn, sm.target.coarse, np.array(posed), 1.5 * v, settings.max_normal_deg)
+    return [(float(f) + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), sm.side, T)
+            for f, T in zip(fit, posed)]
 
 
 def _edge_fit(patch: _Patch, sm: SideModel, T: np.ndarray, tol_mm: float) -> float:
