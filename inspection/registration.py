@@ -858,6 +858,7 @@ def register(scan: ScanCloud, target: ModelTarget, settings: RegistrationSetting
                 FINE_TURNS_DEG, 1.0 * v)
     T = _fine(scan, target, T, settings, rng)
     times["fine"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     dense = rng.choice(len(scan), size=min(settings.max_points, len(scan)), replace=False)
     fine_inlier = 0.5 * v
     fit, rmse = evaluate_pose(scan.points[dense], scan.normals[dense], target.dense, T, fine_inlier,
@@ -868,6 +869,7 @@ def register(scan: ScanCloud, target: ModelTarget, settings: RegistrationSetting
         raise RegistrationFailed(f"{scan.source}: after the fine step only {fit:.0%} of the scan lies within "
                                  f"{fine_inlier:.3g} mm of {target.name} (needs {settings.min_fitness:.0%}): wrong "
                                  f"part, or a part far from its model", fit, rmse)
+    times["evaluate"] = time.perf_counter() - t0
     times["total"] = sum(times.values())
     method = f"rscs+{'+'.join(settings.descriptors)}+{settings.coarse}+icp" if settings.coarse != "ndt" else "ndt+icp"
     return Registration(T, fit, rmse, fine_inlier, best[4], method, bool(alternatives), alternatives, hidden,
