@@ -60,7 +60,8 @@ def test_sampling_400k_is_exact_and_uniform(models: dict, name: str) -> None:
     """400k labelled points; their time (target < 1 s) is a benchmark, not a test:
     `slscan cad FILE --sample 400000` prints wall and CPU time with the load average."""
     m = models[name]
-    c = sample_model(m, spacing_for(m, 400_000), seed=2)
+    spacing = spacing_for(m, 400_000)
+    c = sample_model(m, spacing, seed=2)
     assert abs(len(c) - 400_000) < 4_000
     # on the exact surface, with outward normals of the surface there
     for f in m.faces:
