@@ -114,13 +114,16 @@ class PoseSettings:
 class SideModel:
     """One side of the part facing the camera (part frame): `face` samples of the visible
     face with its outward normal, `outline` samples of its boundary with outward in-plane
-    normals, and `target`: face plus walls dropped `extrude_mm` away from the camera."""
+    normals, `target`: face plus walls dropped `extrude_mm` away from the camera, and
+    `skew`: Hu's seventh moment of the face's silhouette as the camera sees it (its sign
+    tells the side of a chiral outline; `_skew_moment`)."""
 
     side: str
     face: Samples
     outline: np.ndarray
     outline_normals: np.ndarray
     target: ModelTarget
+    skew: float
     ndt: dict[float, tuple] = field(default_factory=dict)
     outline_tree: cKDTree = field(init=False)
 
@@ -194,8 +197,21 @@ class ThinPartModel:
             rim_n = np.tile(sign * axis, (len(b_pts), 1))
             target = ModelTarget(np.concatenate([pts, b_pts, walls]), np.concatenate([face_n, rim_n, wall_n]),
                                  f"{name} ({side} up)", settings.voxel_mm)
-            sides[side] = SideModel(side, Samples(pts, face_n), b_pts, b_nrm, target)
+            up = sign * axis   # toward the camera; (u0, up x u0, up) right-handed like an instance's grid
+            uv = np.stack([pts @ u0, pts @ np.cross(up, u0)], axis=1)
+            ij = np.floor((uv - uv.min(axis=0)) / (2.0 * spacing_mm)).astype(np.int64)
+            mask = np.zeros(ij.max(axis=0)[::-1] + 1, np.uint8)
+            mask[ij[:, 1], ij[:, 0]] = 1
+            skew = _skew_moment(cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)))
+            sides[side] = SideModel(side, Samples(pts, face_n), b_pts, b_nrm, target, skew)
         return cls(name, v, t, axis, u0, thickness, face_area, length, sides)
+
+
+def _skew_moment(mask: np.ndarray) -> float:
+    """Hu's seventh moment invariant of a silhouette (2D boolean grid, first in-plane axis
+    along the columns): unchanged by turns and shifts in the plane, its sign flips in a
+    mirror image, i.e. when a flat chiral part shows its other face."""
+    return float(cv2.HuMoments(cv2.moments(mask.astype(np.uint8), binaryImage=True))[6, 0])
 
 
 def _sample_triangles(v: np.ndarray, tri: np.ndarray, area: np.ndarray, spacing: float,
@@ -273,6 +289,7 @@ class _Patch:
     wall_nrm: np.ndarray
     plane_rms: float
     extent_mm: float
+    skew: float
 
     def cells(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(row, col, inside) grid cells of camera-frame points (via their plane coordinates)."""
@@ -355,7 +372,8 @@ def _patch(points: np.ndarray, context: SceneContext | None, thickness: float, s
     depth = settings.extrude_mm * np.arange(1, settings.wall_levels + 1) / settings.wall_levels
     walls = (edge_pts[None] - depth[:, None, None] * n).reshape(-1, 3)
     return _Patch(c, e1, e2, n, spacing, lo, g, observed, higher, lower, edge_pts,
-                  walls, np.tile(out3, (len(depth), 1)), plane_rms, float(np.linalg.norm(np.ptp(uv, axis=0))))
+                  walls, np.tile(out3, (len(depth), 1)), plane_rms, float(np.linalg.norm(np.ptp(uv, axis=0))),
+                  _skew_moment(observed))
 
 
 # -------------------------------------------------------------------------------- pose
@@ -414,8 +432,9 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
                       f"(the part: {model.length_mm:.1f} mm, {model.area_mm2:.0f} mm²); merged instances?")
     rng = np.random.default_rng(settings.seed)
     outcome: tuple[str, dict, bool] = ("", {}, True)
+    judged: list[tuple[float, str, np.ndarray]] = []   # every attempt's judged poses: a rival found once stays one
     for _ in range(settings.attempts if settings.method == "sacia" else 1):   # SAC-IA is randomised: retry
-        outcome = _fit(flat, raw, patch, model, settings, rng)
+        outcome = _fit(flat, raw, patch, model, settings, rng, judged)
         if isinstance(outcome, PartPose):
             return replace(outcome, instance_id=instance.id, points=len(pts), time_s=time.perf_counter() - t0,
                            label=instance.label)
@@ -425,17 +444,32 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
 
 
 def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, settings: PoseSettings,
-         rng: np.random.Generator) -> PartPose | tuple[str, dict, bool]:
+         rng: np.random.Generator, judged: list[tuple[float, str, np.ndarray]]) -> PartPose | tuple[str, dict, bool]:
     """One coarse + fine fit of the instance's points on its plane `pts` (`raw`: as
-    measured, row for row): the PartPose (id, points, time filled by the caller), or (why
-    it fails, the figures of the best pose, whether another attempt may succeed)."""
+    measured, row for row), adding its judged poses to those of earlier attempts
+    (`judged`, extended in place: a later attempt that misses a rival must not report the
+    pose it rivals): the PartPose (id, points, time filled by the caller), or (why it
+    fails, the figures of the best pose, whether another attempt may succeed)."""
     face = _voxel_subset(pts, settings.voxel_mm)
     src = np.concatenate([face, patch.wall_pts])
     src_n = np.concatenate([np.tile(patch.n, (len(face), 1)), patch.wall_nrm])
     keep = rng.choice(len(src), size=min(600, len(src)), replace=False)
     sp, sn = src[keep], src_n[keep]
-    judged = []
-    for side in SIDES:   # each side's own coarse search: mirror images look alike to local descriptors
+    searched = len(judged)
+    # each side's own coarse search (mirror images look alike to local descriptors), the
+    # side the silhouette's handedness suggests first; the other side's search is skipped
+    # when the first explains a mostly visible instance (occlusion below `max_occlusion`)
+    # within the ambiguity margin of the highest possible score (2): the flips of its
+    # best pose below still put the other side's mirror image beside it, and a view that
+    # both sides explain is symmetric about one of its axes, which is what they test.
+    # Heavily occluded views get both searches (the flips alone miss some of their rivals)
+    first = "front" if np.sign(patch.skew) == np.sign(model.sides["front"].skew) else "back"
+    for side in (first, "back" if first == "front" else "front"):
+        if len(judged) > searched:
+            score, best_side, T = max(judged[searched:], key=lambda j: j[0])
+            if (score > 2.0 - settings.ambiguity_margin
+                    and _occlusion(patch, model.sides[best_side], T) < settings.max_occlusion):
+                break
         sm = model.sides[side]
         if settings.method == "sacia":
             rs = RegistrationSettings(descriptors=("fpfh",), coarse="sac-ia", spheres=(100,),
@@ -444,15 +478,15 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, 
         else:
             coarse = _ndt_poses(src, patch, model, sm, settings.verify)
         judged += _judge(patch, sm, sp, sn, coarse, settings)
-    if not judged:
+    if len(judged) == searched:
         return f"{settings.method}: no coarse pose (no consistent correspondences)", {}, True
+    _, side0, T0 = max(judged[searched:], key=lambda j: j[0])
     judged.sort(key=lambda j: -j[0])
     ambiguous = _ambiguity(judged, patch, settings)
     if ambiguous is not None and not ambiguous[2]:   # no further pose can settle it
         return ambiguous
-    # the best pose turned end for end, and flipped over about either in-plane axis (the
-    # other side up): what a nearly symmetric view of the strip is confused with
-    side0, T0 = judged[0][1], judged[0][2]
+    # this attempt's best pose turned end for end, and flipped over about either in-plane
+    # axis (the other side up): what a nearly symmetric view of the strip is confused with
     other = "back" if side0 == "front" else "front"
     turned = with_flips([T0], pts)[1:]   # about the normal first
     judged += _judge(patch, model.sides[side0], sp, sn, turned[:1], settings)
