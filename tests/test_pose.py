@@ -246,3 +246,44 @@ def test_poses_from_a_full_fringe_scan_of_a_bin(model: ThinPartModel) -> None:
     # pixels straddling a part's edge decode to depths mixed with what lies behind (up to
     # 1 mm off): ~5 % of an instance's points, so the fitness is lower than on exact points
     _check_against_truth(b, poses, b.occlusion(), {i.id: i.id - 2 for i in inst}, min_fitness=0.9)
+
+
+def test_silhouette_handedness_tells_the_side_of_uncovered_parts(small_bin: tuple, model: ThinPartModel) -> None:
+    """Hu's seventh moment (which side's coarse search runs first) flips sign in a mirror
+    image, the two sides of the tab have opposite signs, and an uncovered instance's
+    silhouette has the sign of the side the simulator put up."""
+    from inspection.pose import SceneContext, _onto_plane, _patch, _skew_moment
+
+    front, back = model.sides["front"].skew, model.sides["back"].skew
+    assert np.sign(front) == -np.sign(back) and abs(front) > 1e-8
+    b, cloud, ids, occlusion = small_bin
+    mask = ids == 2 + int(np.argmin(occlusion))
+    assert _skew_moment(mask) == pytest.approx(-_skew_moment(mask[:, ::-1]), rel=1e-6)
+    context = SceneContext(cloud.points[cloud.valid])
+    uncovered = [i for i in instances_from_label_image(np.where(ids >= 2, ids, 0), cloud) if occlusion[i.id - 2] < 0.02]
+    assert uncovered
+    for i in uncovered:
+        patch = _patch(_onto_plane(i.points, 0.1)[0], context, model.thickness_mm, PoseSettings())
+        assert np.sign(patch.skew) == np.sign(front if b.front_up[i.id - 2] else back)
+
+
+def test_a_view_both_sides_explain_is_ambiguous_not_posed(model: ThinPartModel) -> None:
+    """The tab's rounded end with its hole (beyond the notch: mirror-symmetric about the
+    tab's long axis), a part lying over the cut: front up and back up explain it equally,
+    so no pose may be reported."""
+    from inspection.instances import Instance
+    from inspection.pose import SceneContext, estimate_pose
+
+    part = TabPart()
+    w, c = part.width_mm, part.length_mm - 8.0   # the cut, 8 mm before the end's centre
+    u, v = np.meshgrid(np.arange(0.0, 8.0 + w / 2, 0.13), np.arange(0.0, w, 0.13))
+    u, v = u.ravel(), v.ravel()
+    r = np.hypot(u - 8.0, v - w / 2)
+    keep = ((u <= 8.0) | (r <= w / 2)) & (r >= part.hole_radius_mm)
+    end = np.c_[u[keep], v[keep], np.full(keep.sum(), 420.0)]
+    cu, cv = np.meshgrid(np.arange(-4.0, -0.1, 0.13), np.arange(-1.0, w + 1.0, 0.13))
+    cover = np.c_[cu.ravel(), cv.ravel(), np.full(cu.size, 418.0)]   # 2 mm nearer the camera
+    inst = Instance(1, np.arange(len(end)), end, np.tile([0.0, 0.0, -1.0], (len(end), 1)), "segmentation")
+    p = estimate_pose(inst, model, SceneContext(np.concatenate([end, cover])))
+    assert c > part.notch_mm[0] + part.notch_mm[1] / 2
+    assert not p.ok and p.pose is None and p.reason.startswith("ambiguous"), p.reason
