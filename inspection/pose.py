@@ -29,10 +29,20 @@ flipped over about either in-plane axis (the confusions of a nearly symmetric vi
 refined by point-to-plane ICP with normal-angle rejection (Eq. 27-29,
 `registration.icp`) and judged by the outline fit: fitness of the extruded instance cloud,
 plus the fraction of its true outline points on the part's outline, minus the fraction of
-the posed face that would lie where the scene shows a lower surface; the best one refined
-on the full instance. A pose is reported only when it explains the instance (its points
-on the posed face, its outline on the part's outline, no face over a lower surface,
-planarity, size): otherwise the instance is reported as failed, with the reason.
+the posed face that would lie where the scene shows a lower surface (2 at best); the best
+one refined on the full instance. A pose is reported only when it explains the instance
+(its points on the posed face, its outline on the part's outline, no face over a lower
+surface, planarity, size) and no distinct pose (or the other side) is judged within
+`ambiguity_margin` of it: otherwise the instance is reported as failed, with the reason.
+
+Work saved without changing what is reported: the side whose silhouette handedness
+(Hu's seventh moment, its sign flips in a mirror image) matches the instance's is searched
+first, and the other side's search is skipped when the first explains a mostly visible
+instance within the margin of the best score (its mirror image is still tried by the
+flips); the hypotheses of one side are judged in one batched query; SAC-IA attempts
+(it is randomised) keep the poses judged before, so a rival once found stays one, and an
+ambiguity no better pose could settle (a rival within the margin of the best possible
+score) ends the estimation at once.
 
 The occlusion estimate is the fraction of the posed visible face that falls where the
 scene shows a higher surface (unobserved cells — shadows, outside the view — excluded).
