@@ -35,7 +35,7 @@ one refined on the full instance. A pose is reported only when it explains the i
 surface, planarity, size) and no distinct pose (or the other side) is judged within
 `ambiguity_margin` of it: otherwise the instance is reported as failed, with the reason.
 
-Work saved without changing what is reported: the side whose silhouette handedness
+Work saved: the side whose silhouette handedness
 (Hu's seventh moment, its sign flips in a mirror image) matches the instance's is searched
 first, and the other side's search is skipped when the first explains a mostly visible
 instance within the margin of the best score (its mirror image is still tried by the
@@ -61,7 +61,7 @@ from scipy.spatial import cKDTree
 
 from .errors import CadError, InspectionError
 from .instances import Instance
-from .registration import (ModelTarget, RegistrationSettings, Samples, _ndt_grid, _ndt_refine,
+from .registration import (ModelTarget, RegistrationSettings, Samples, _distinct, _ndt_grid, _ndt_refine,
                            coarse_feature_poses, fitness, icp, pose_difference, transform_points, with_flips)
 
 METHODS = ("sacia", "ndt")
@@ -641,8 +641,9 @@ def _occlusion(patch: _Patch, sm: SideModel, T: np.ndarray) -> float:
 
 def _ndt_poses(src: np.ndarray, patch: _Patch, model: ThinPartModel, sm: SideModel, n_best: int) -> list[np.ndarray]:
     """Seed 001 NDT (Eq. 23-26, `registration`'s Newton steps) from 12 yaws about the
-    instance's plane, the side's face laid on it and the centroids matched; cells of 2 and
-    1 mm. The n_best by score (scan -> model transforms)."""
+    instance's plane, the side's face laid on it and the centroids matched, on cells of
+    2 mm; the 2 n_best best distinct ones (10 deg / 1 mm apart: many yaws end in the same
+    place) refined on cells of 1 mm. The n_best by score (scan -> model transforms)."""
     cells = (2.0, 1.0)
     for cell in cells:
         if cell not in sm.ndt:
@@ -660,14 +661,13 @@ def _ndt_poses(src: np.ndarray, patch: _Patch, model: ThinPartModel, sm: SideMod
         P = np.eye(4)   # model -> scan
         P[:3, :3] = S @ M.T
         P[:3, 3] = patch.c - P[:3, :3] @ mc
-        T = np.linalg.inv(P)
-        score = 0.0
-        for cell in cells:
-            T, score = _ndt_refine(sub, T, sm.ndt[cell], cell, 10)
+        T, score = _ndt_refine(sub, np.linalg.inv(P), sm.ndt[cells[0]], cells[0], 10)
         poses.append(T)
         scores.append(score)
-    order = np.argsort(-np.array(scores))
-    return [poses[i] for i in order[:n_best]]
+    fine = [_ndt_refine(sub, T, sm.ndt[cells[1]], cells[1], 10)
+            for T in _distinct(np.array(poses), np.argsort(-np.array(scores)), 2 * n_best, 10.0, 1.0)]
+    fine.sort(key=lambda f: -f[1])
+    return [T for T, _ in fine[:n_best]]
 
 
 def estimate_poses(instances: list[Instance], model: ThinPartModel, scene_points: np.ndarray | None = None,
