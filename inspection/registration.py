@@ -73,6 +73,9 @@ BIG_FACE_FRACTION = 0.05  # fine step: faces holding this share of the points ar
 TANGENTIAL_WEIGHT = 0.1  # ICP: weight of an extra point-to-point term along the surface
 DESCRIPTOR_FRACTION = 5.0  # descriptors are computed on a grid of radius / this
 DESCRIPTOR_NN = 64  # neighbours per descriptor support at most
+EXPLORE_PRESCORE_STRIDE = 4  # exploration: moves pre-scored on every 4th point,
+EXPLORE_TOP = 6  # and the best 6 of them scored on all points
+PRESCORED = 150  # SAC-IA: hypotheses scored on all evaluation points after a pre-score on a fifth
 
 
 @dataclass(frozen=True)
@@ -501,7 +504,12 @@ def coarse_feature_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: Model
         score = -(np.linalg.norm(moved - dst[None], axis=2) < tol).sum(axis=1).astype(float)
     else:
         ev = src_pts[rng.choice(len(src_pts), size=min(300, len(src_pts)), replace=False)]
-        score = _score_poses(T, ev, target, 1.5 * target.voxel_mm, 5.0 * target.voxel_mm)
+        ml, cap = 1.5 * target.voxel_mm, 5.0 * target.voxel_mm
+        # a cheap pre-score on a fifth of the points; the best PRESCORED then on all of them
+        pre = _score_poses(T, ev[: len(ev) // 5], target, ml, cap)
+        score = np.full(len(T), np.inf)
+        top = np.argsort(pre)[:PRESCORED]
+        score[top] = _score_poses(T[top], ev, target, ml, cap)
     return _distinct(T, np.argsort(score), settings.verify, 10.0, 0.1 * target.diagonal_mm)
 
 
@@ -761,15 +769,18 @@ def explore(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray
                 moves.append(F)
     M = np.array(moves)
     best = fitness(src, src_nrm, target, T[None], inlier_mm, max_normal_deg)[0]
+    pre = slice(None, None, EXPLORE_PRESCORE_STRIDE)
     for _ in range(rounds):
         cand = np.einsum("ij,mjk->mik", T, M)
-        fits = fitness(src, src_nrm, target, cand, inlier_mm, max_normal_deg)
-        k = int(np.argmax(fits))
-        if fits[k] <= best + 0.002:
+        # pre-score every move on a subsample, then the most promising on all points
+        top = np.argsort(-fitness(src[pre], src_nrm[pre], target, cand, inlier_mm, max_normal_deg))[:EXPLORE_TOP]
+        fits = fitness(src, src_nrm, target, cand[top], inlier_mm, max_normal_deg)
+        k, fit_k = int(top[np.argmax(fits)]), float(fits.max())
+        if fit_k <= best + 0.002:
             break
         U = icp(src, src_nrm, target, cand[k], icp_mm, 0.5 * inlier_mm, max_normal_deg, 20)
         fit = fitness(src, src_nrm, target, U[None], inlier_mm, max_normal_deg)[0]
-        T, best = (U, fit) if fit > fits[k] else (cand[k], fits[k])
+        T, best = (U, fit) if fit > fit_k else (cand[k], fit_k)
     return T
 
 
