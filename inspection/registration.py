@@ -239,6 +239,17 @@ class ModelTarget:
             self._features[radius] = f
         return f
 
+    def prepare(self, scan: ScanCloud, settings: RegistrationSettings = RegistrationSettings()) -> None:
+        """Compute, ahead of registration, what `register` would compute for a scan like
+        `scan` the first time: the sphere descriptors at its RSCS radii (a once-per-model
+        cost, kept for every later scan of that size) and the ray-casting scene."""
+        pts, _ = voxel_grid(scan.points, scan.normals, self.voxel_mm)
+        if settings.coarse != "ndt" and len(pts) >= 50:
+            for r in _sphere_radii(pts, self.voxel_mm, settings.spheres)[1]:
+                self.features(r, settings.descriptors)
+        if scan.viewpoint is not None:
+            self.hidden_fraction(np.eye(4), scan.points[:1], scan.viewpoint, 1.0)
+
     def hidden_fraction(self, T: np.ndarray, points: np.ndarray, viewpoint: np.ndarray, tol_mm: float) -> float:
         """Fraction of scan `points` (scan frame) that the model, posed by T (scan ->
         model), would hide from `viewpoint`: a model surface crossed more than `tol_mm`
@@ -471,12 +482,17 @@ def plane_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: ModelTarget, n
     return [P[i] for i in np.argsort(-fits)[:n_best]]
 
 
+def _sphere_radii(src_pts: np.ndarray, voxel_mm: float, spheres: tuple[int, ...]) -> tuple[float, list[float]]:
+    """(radius of the scan's circumscribed sphere about its centroid, the RSCS radii of
+    Eq. 19 snapped to the ladder), mm."""
+    rc = float(np.linalg.norm(src_pts - src_pts.mean(axis=0), axis=1).max())
+    return rc, sorted({_ladder(rc * (0.7 / (2 * m)) ** (1 / 3), voxel_mm) for m in spheres})
+
+
 def coarse_feature_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: ModelTarget,
                          settings: RegistrationSettings, rng: np.random.Generator) -> list[np.ndarray]:
     """Distinct coarse poses from RSCS + descriptors + SAC-IA (or RANSAC), best first."""
-    centre = src_pts.mean(axis=0)
-    rc = float(np.linalg.norm(src_pts - centre, axis=1).max())
-    radii = sorted({_ladder(rc * (0.7 / (2 * m)) ** (1 / 3), target.voxel_mm) for m in settings.spheres})
+    rc, radii = _sphere_radii(src_pts, target.voxel_mm, settings.spheres)
     S, D, W = [], [], []
     for r in radii:
         cloud = Samples(*voxel_grid(src_pts, src_nrm, r / DESCRIPTOR_FRACTION))
