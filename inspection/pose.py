@@ -59,6 +59,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .downsample import downsample
 from .errors import CadError, InspectionError
 from .instances import Instance
 from .registration import (ModelTarget, RegistrationSettings, Samples, _distinct, _ndt_grid, _ndt_refine,
@@ -460,7 +461,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, 
     (`judged`, extended in place: a later attempt that misses a rival must not report the
     pose it rivals): the PartPose (id, points, time filled by the caller), or (why it
     fails, the figures of the best pose, whether another attempt may succeed)."""
-    face = _voxel_subset(pts, settings.voxel_mm)
+    face = downsample(pts, settings.voxel_mm, "density_centre").points   # seed 001 Eq. 9-16
     src = np.concatenate([face, patch.wall_pts])
     src_n = np.concatenate([np.tile(patch.n, (len(face), 1)), patch.wall_nrm])
     keep = rng.choice(len(src), size=min(600, len(src)), replace=False)
@@ -490,17 +491,25 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, 
         judged += _judge(patch, sm, sp, sn, coarse, settings)
     if len(judged) == searched:
         return f"{settings.method}: no coarse pose (no consistent correspondences)", {}, True
-    _, side0, T0 = max(judged[searched:], key=lambda j: j[0])
+    best = max(judged[searched:], key=lambda j: j[0])
     judged.sort(key=lambda j: -j[0])
     ambiguous = _ambiguity(judged, patch, settings)
     if ambiguous is not None and not ambiguous[2]:   # no further pose can settle it
         return ambiguous
     # this attempt's best pose turned end for end, and flipped over about either in-plane
-    # axis (the other side up): what a nearly symmetric view of the strip is confused with
-    other = "back" if side0 == "front" else "front"
-    turned = with_flips([T0], pts)[1:]   # about the normal first
-    judged += _judge(patch, model.sides[side0], sp, sn, turned[:1], settings)
-    judged += _judge(patch, model.sides[other], sp, sn, turned[1:], settings)
+    # axis (the other side up): what a nearly symmetric view of the strip is confused
+    # with; if one of those turns out best, its own turns too (the coarse search may have
+    # missed both a pose and its mirror image)
+    for _ in range(2):
+        _, side0, T0 = best
+        other = "back" if side0 == "front" else "front"
+        turned = with_flips([T0], pts)[1:]   # about the normal first
+        new = (_judge(patch, model.sides[side0], sp, sn, turned[:1], settings)
+               + _judge(patch, model.sides[other], sp, sn, turned[1:], settings))
+        judged += new
+        best = max([best] + new, key=lambda j: j[0])
+        if best[2] is T0:
+            break
     judged.sort(key=lambda j: -j[0])
     ambiguous = _ambiguity(judged, patch, settings)
     if ambiguous is not None:
@@ -509,7 +518,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, 
     margin = _side_margin(judged)
     sm = model.sides[side]
     v = settings.voxel_mm
-    fine = _voxel_subset(pts, 2.0 * patch.spacing)
+    fine = downsample(pts, 2.0 * patch.spacing, "density_centre").points
     fine = fine[rng.choice(len(fine), size=min(600, len(fine)), replace=False)]
     walls = patch.wall_pts[: len(patch.wall_pts) // settings.wall_levels]
     fp = np.concatenate([fine, walls])
@@ -609,13 +618,6 @@ def _onto_plane(points: np.ndarray, tol_mm: float) -> tuple[np.ndarray, np.ndarr
     ray = p @ n
     flat = p * ((c @ n) / np.where(np.abs(ray) > 1e-9, ray, 1e-9))[:, None]
     return flat, p, sigma, float(np.mean(np.abs(r) < tol_mm))
-
-
-def _voxel_subset(points: np.ndarray, voxel: float) -> np.ndarray:
-    """One point per occupied voxel of side `voxel` (the first in each)."""
-    key = np.floor(points / voxel).astype(np.int64)
-    _, first = np.unique(key, axis=0, return_index=True)
-    return points[np.sort(first)]
 
 
 def _face_cells(patch: _Patch, sm: SideModel, T: np.ndarray, n: int = 1500) -> tuple[np.ndarray, ...]:
