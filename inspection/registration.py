@@ -855,7 +855,10 @@ def register(scan: ScanCloud, target: ModelTarget, settings: RegistrationSetting
     inlier = 1.5 * v
     sub = rng.choice(len(src_pts), size=min(1500, len(src_pts)), replace=False)
     sp, sn = src_pts[sub], src_nrm[sub]
-    refined = [icp(sp, sn, target.coarse, T, 8.0 * v, 0.5 * v, settings.max_normal_deg, 30) for T in poses]
+    # ICP on every third point first (most of the way in), then on all of them
+    refined = [icp(sp, sn, target.coarse, icp(sp[::3], sn[::3], target.coarse, T, 8.0 * v, 0.5 * v,
+                                              settings.max_normal_deg, 20), 8.0 * v, 0.5 * v,
+                   settings.max_normal_deg, 10) for T in poses]
     fits = fitness(sp, sn, target.coarse, np.array(refined), inlier, settings.max_normal_deg)
     order = np.argsort(-fits)
     for k in order[:EXPLORED]:  # the most promising few: explored further
