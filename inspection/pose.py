@@ -473,14 +473,20 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, 
     # within the ambiguity margin of the highest possible score (2): the flips of its
     # best pose below still put the other side's mirror image beside it, and a view that
     # both sides explain is symmetric about one of its axes, which is what they test.
-    # Heavily occluded views get both searches (the flips alone miss some of their rivals)
+    # Heavily occluded views get both searches (the flips alone miss some of their rivals).
+    # For the same reason a side's further coarse poses are not refined once its first one
+    # explains such an instance
+    def explained() -> bool:
+        if len(judged) == searched:
+            return False
+        score, best_side, T = max(judged[searched:], key=lambda j: j[0])
+        return (score > 2.0 - settings.ambiguity_margin
+                and _occlusion(patch, model.sides[best_side], T) < settings.max_occlusion)
+
     first = "front" if np.sign(patch.skew) == np.sign(model.sides["front"].skew) else "back"
     for side in (first, "back" if first == "front" else "front"):
-        if len(judged) > searched:
-            score, best_side, T = max(judged[searched:], key=lambda j: j[0])
-            if (score > 2.0 - settings.ambiguity_margin
-                    and _occlusion(patch, model.sides[best_side], T) < settings.max_occlusion):
-                break
+        if explained():
+            break
         sm = model.sides[side]
         if settings.method == "sacia":
             rs = RegistrationSettings(descriptors=("fpfh",), coarse="sac-ia", spheres=(100,),
@@ -488,7 +494,9 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, 
             coarse = coarse_feature_poses(src, src_n, sm.target, rs, rng)
         else:
             coarse = _ndt_poses(src, patch, model, sm, settings.verify)
-        judged += _judge(patch, sm, sp, sn, coarse, settings)
+        judged += _judge(patch, sm, sp, sn, coarse[:1], settings)
+        if not explained():
+            judged += _judge(patch, sm, sp, sn, coarse[1:], settings)
     if len(judged) == searched:
         return f"{settings.method}: no coarse pose (no consistent correspondences)", {}, True
     best = max(judged[searched:], key=lambda j: j[0])
