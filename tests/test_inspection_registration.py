@@ -102,6 +102,28 @@ def test_partial_views_from_random_starts(demo, tilt: tuple[float, float]) -> No
         assert angle < 0.02 and shift < 0.02
 
 
+def test_prepared_target_is_reused(demo) -> None:
+    """`ModelTarget.prepare` computes the model's sphere descriptors for a scan's size
+    ahead (a once-per-model cost): registering that scan from another start computes none
+    again, and the pose is still right."""
+    model, _ = demo
+    target = ModelTarget.from_cad(model)
+    pose = lying_pose(model.tessellation.vertices, 0.35, 400.0, (0.3, 0.1))
+    view = virtual_view(model, pose)
+    target.prepare(view)
+    prepared = dict(target._features)
+    assert prepared and target._mesh_scene is not None
+    G = np.eye(4)
+    G[:3, :3] = Rotation.random(random_state=5).as_matrix()
+    G[:3, 3] = [120.0, -80.0, 40.0]
+    moved = ScanCloud(view.points @ G[:3, :3].T + G[:3, 3], view.normals @ G[:3, :3].T, "moved", G[:3, 3])
+    reg = register(moved, target)
+    assert target._features.keys() == prepared.keys()
+    assert all(target._features[r] is f for r, f in prepared.items())
+    angle, shift = pose_difference(reg.transform @ G, np.linalg.inv(pose), view.points.mean(axis=0))
+    assert angle < 0.02 and shift < 0.02
+
+
 def test_face_off_as_a_whole_does_not_tilt_the_fit(demo) -> None:
     """The high top (#657, 38 % of the view) raised by 0.1 mm: the fit rests on the faces
     that conform (a best fit of all would tilt the part and show deviations on all), and
