@@ -48,6 +48,7 @@ import time
 from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
 from .cad import CadModel
@@ -380,8 +381,7 @@ def _triplets(src: np.ndarray, dst: np.ndarray, w: np.ndarray, n: int, min_sep: 
     with it, the third among those consistent with both."""
     keep = np.argsort(-w)[:max_corr]
     src, dst, w = src[keep], dst[keep], w[keep]
-    ds = np.linalg.norm(src[:, None] - src[None], axis=2)
-    dd = np.linalg.norm(dst[:, None] - dst[None], axis=2)
+    ds, dd = cdist(src, src), cdist(dst, dst)
     C = (np.abs(ds - dd) < tol + 0.03 * ds) & (ds > min_sep)
     score = w * (C.sum(axis=1) + 1.0)
     if not C.any():
