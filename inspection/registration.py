@@ -847,10 +847,10 @@ def register(scan: ScanCloud, target: ModelTarget, settings: RegistrationSetting
         poses = coarse_ndt_poses(src_pts, target, settings, rng)
     else:
         poses = coarse_feature_poses(src_pts, src_nrm, target, settings, rng)
-    times["coarse"] = time.perf_counter() - t0
     if not poses:
         raise RegistrationFailed(f"{scan.source}: no consistent correspondences between the scan and {target.name}")
     poses = with_flips(poses, src_pts) + plane_poses(src_pts, src_nrm, target)
+    times["coarse"] = time.perf_counter() - t0  # the dominant-plane poses included
     t0 = time.perf_counter()
     inlier = 1.5 * v
     sub = rng.choice(len(src_pts), size=min(1500, len(src_pts)), replace=False)
