@@ -521,10 +521,10 @@ def coarse_feature_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: Model
     else:
         ev = src_pts[rng.choice(len(src_pts), size=min(300, len(src_pts)), replace=False)]
         ml, cap = 1.5 * target.voxel_mm, 5.0 * target.voxel_mm
-        # a cheap pre-score on a fifth of the points; the best PRESCORED then on all of them
-        pre = _score_poses(T, ev[: len(ev) // 5], target, ml, cap)
+        # many hypotheses: a cheap pre-score on a fifth of the points, the best PRESCORED then on all
         score = np.full(len(T), np.inf)
-        top = np.argsort(pre)[:PRESCORED]
+        top = (np.argsort(_score_poses(T, ev[: len(ev) // 5], target, ml, cap))[:PRESCORED]
+               if len(T) > PRESCORED else np.arange(len(T)))
         score[top] = _score_poses(T[top], ev, target, ml, cap)
     return _distinct(T, np.argsort(score), settings.verify, 10.0, 0.1 * target.diagonal_mm)
 
