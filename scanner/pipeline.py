@@ -19,7 +19,7 @@ from .pointcloud import OrganisedCloud, write_ply
 from .reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from .recording import SessionRecording
 from .rig import Rig
-from .session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, write_json
+from .session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, write_json, write_npz
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
 
@@ -127,9 +127,7 @@ def save_maps(path: Path, decoded: DecodeResult) -> None:
         arrays[f"{o}/modulation"] = m.modulation[int(np.argmax(decoded.patterns.fringes))]
         for name, mask in m.masks.items():
             arrays[f"{o}/mask/{name}"] = mask
-    tmp = path.with_name(f".{path.name}.part.npz")
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)
+    write_npz(path, arrays)
 
 
 def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triangulation") -> ScanResult:
