@@ -16,21 +16,6 @@ from scanner.station.bench import Bench
 LCR = CONFIG_DIR / "rigs" / "lightcrafter_uvc_box.toml"
 
 
-class FootSwitchBox(TriggerBoxEmulator):
-    """The trigger-box emulator speaking protocol 2: its input counts `pressed`."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.pressed = 0
-
-    def _answer(self, line: str) -> str:
-        if line == "ID?":
-            return "ID SLSCAN-TRIGGERBOX 2 emulator"
-        if line == "PRESSES?":
-            return f"PRESSES {self.pressed}"
-        return super()._answer(line)
-
-
 def _rig(tmp_path: Path, trigger: str) -> RigConfig:
     text = LCR.read_text().replace('"../patterns/', f'"{CONFIG_DIR}/patterns/')
     text = text.replace('trigger = "software"', f'trigger = "{trigger}"')
@@ -47,7 +32,7 @@ def _transports(box: TriggerBoxEmulator) -> dict:
 
 
 def test_foot_switch_on_the_rigs_trigger_box_starts_once_per_press(tmp_path: Path) -> None:
-    box = FootSwitchBox()
+    box = TriggerBoxEmulator()
     box.pressed = 3  # pressed before the station was ready: not a start
     with Bench(_rig(tmp_path, "trigger_box"), transports=_transports(box)) as bench:
         assert not bench.start_pressed() and bench.input_problem == ""
@@ -59,7 +44,7 @@ def test_foot_switch_on_the_rigs_trigger_box_starts_once_per_press(tmp_path: Pat
 
 
 def test_protocol_1_box_or_no_box_leaves_the_keyboard_and_says_why(tmp_path: Path) -> None:
-    old = TriggerBoxEmulator()  # protocol 1 firmware
+    old = TriggerBoxEmulator(protocol=1)  # firmware without the input
     with Bench(_rig(tmp_path, "trigger_box"), transports=_transports(old)) as bench:
         assert not bench.start_pressed() and not bench.start_pressed()
         assert bench.input_problem.startswith("foot switch not read: ") and "firmware protocol 1 has no input" \

@@ -443,11 +443,13 @@ class Dlpc350Emulator:
 
 class TriggerBoxEmulator(FakeSerial):
     """The reference trigger-box firmware's line protocol, answered in software; a
-    started train counts its pulses by elapsed time."""
+    started train counts its pulses by elapsed time, `pressed` counts the foot switch's
+    presses (protocol 2; `protocol=1` answers as the older firmware without the input)."""
 
-    def __init__(self) -> None:
+    def __init__(self, protocol: int = 2) -> None:
         super().__init__([], timeout=0.05)
         self.period_us, self.width_us, self.armed, self.started_at = 50000, 100, 0, None
+        self.protocol, self.pressed = protocol, 0
         self.lines: list[str] = []
 
     def write(self, data: bytes) -> int:
@@ -467,7 +469,9 @@ class TriggerBoxEmulator(FakeSerial):
     def _answer(self, line: str) -> str:
         cmd, _, arg = line.partition(" ")
         if cmd == "ID?":
-            return "ID SLSCAN-TRIGGERBOX 1 emulator"
+            return f"ID SLSCAN-TRIGGERBOX {self.protocol} emulator"
+        if cmd == "PRESSES?" and self.protocol >= 2:
+            return f"PRESSES {self.pressed}"
         if cmd == "COUNT?":
             return f"COUNT {self._sent()} {self.armed}"
         if cmd == "STOP":
