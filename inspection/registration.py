@@ -403,10 +403,12 @@ def _triplets(src: np.ndarray, dst: np.ndarray, w: np.ndarray, n: int, min_sep: 
     return keep[np.stack([i[ok], j[ok], k[ok]], axis=1)[:n]]
 
 
-def _score_poses(T: np.ndarray, eval_pts: np.ndarray, target: ModelTarget, ml: float, cap: float) -> np.ndarray:
-    """Huber score (Eq. 22, lower is better) of each pose (H, 4, 4) over eval_pts."""
+def _score_poses(T: np.ndarray, eval_pts: np.ndarray, target: ModelTarget, ml: float, cap: float,
+                 workers: int = -1) -> np.ndarray:
+    """Huber score (Eq. 22, lower is better) of each pose (H, 4, 4) over eval_pts
+    (`workers`: KD-tree query threads, -1 all)."""
     q = np.einsum("hij,nj->hni", T[:, :3, :3], eval_pts) + T[:, None, :3, 3]
-    d, _ = target.coarse.tree.query(q.reshape(-1, 3), distance_upper_bound=cap, workers=-1)
+    d, _ = target.coarse.tree.query(q.reshape(-1, 3), distance_upper_bound=cap, workers=workers)
     d = np.minimum(d, cap).reshape(len(T), -1)
     return huber(d, ml).sum(axis=1)
 
@@ -490,8 +492,11 @@ def _sphere_radii(src_pts: np.ndarray, voxel_mm: float, spheres: tuple[int, ...]
 
 
 def coarse_feature_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: ModelTarget,
-                         settings: RegistrationSettings, rng: np.random.Generator) -> list[np.ndarray]:
-    """Distinct coarse poses from RSCS + descriptors + SAC-IA (or RANSAC), best first."""
+                         settings: RegistrationSettings, rng: np.random.Generator,
+                         workers: int = -1) -> list[np.ndarray]:
+    """Distinct coarse poses from RSCS + descriptors + SAC-IA (or RANSAC), best first
+    (`workers`: KD-tree query threads of the pose scoring, -1 all; 1 suits small clouds
+    on a busy machine, where starting threads costs more than they save)."""
     rc, radii = _sphere_radii(src_pts, target.voxel_mm, settings.spheres)
     S, D, W = [], [], []
     for r in radii:
@@ -525,7 +530,7 @@ def coarse_feature_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: Model
         score = np.full(len(T), np.inf)
         top = (np.argsort(_score_poses(T, ev[: len(ev) // 5], target, ml, cap))[:PRESCORED]
                if len(T) > PRESCORED else np.arange(len(T)))
-        score[top] = _score_poses(T[top], ev, target, ml, cap)
+        score[top] = _score_poses(T[top], ev, target, ml, cap, workers=workers)
     return _distinct(T, np.argsort(score), settings.verify, 10.0, 0.1 * target.diagonal_mm)
 
 
@@ -553,11 +558,13 @@ def _ndt_grid(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, 
 def _ndt_cells(q: np.ndarray, grid: tuple, cell: float) -> np.ndarray:
     """Index into the grid's cells of each point's voxel, -1 where it has none."""
     lo, dims, codes, _, _ = grid
+    if not len(codes):   # no cell holds enough points
+        return np.full(len(q), -1)
     key = np.floor(q / cell).astype(np.int64) - lo
     inside = np.all((key >= 0) & (key < dims), axis=1)
     code = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
-    pos = np.clip(np.searchsorted(codes, code), 0, max(len(codes) - 1, 0))
-    return np.where(inside & (len(codes) > 0) & (codes[pos] == code), pos, -1)
+    pos = np.clip(np.searchsorted(codes, code), 0, len(codes) - 1)
+    return np.where(inside & (codes[pos] == code), pos, -1)
 
 
 def _ndt_refine(src: np.ndarray, T: np.ndarray, grid: tuple, cell: float, iterations: int) -> tuple[np.ndarray, float]:
@@ -801,12 +808,13 @@ def explore(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray
 
 
 def fitness(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, inlier_mm: float,
-            max_normal_deg: float) -> np.ndarray:
+            max_normal_deg: float, workers: int = -1) -> np.ndarray:
     """Fitness (H,) of each pose (H, 4, 4): the fraction of points within inlier_mm of the
-    target whose normals agree within max_normal_deg (one batched KD-tree query)."""
+    target whose normals agree within max_normal_deg (one batched KD-tree query with
+    `workers` threads, -1 all)."""
     q = np.einsum("hij,nj->hni", T[:, :3, :3], src) + T[:, None, :3, 3]
     n = np.einsum("hij,nj->hni", T[:, :3, :3], src_nrm)
-    d, j = target.tree.query(q.reshape(-1, 3), distance_upper_bound=inlier_mm, workers=-1)
+    d, j = target.tree.query(q.reshape(-1, 3), distance_upper_bound=inlier_mm, workers=workers)
     ok = np.isfinite(d)
     j = np.where(ok, j, 0)
     ok &= np.einsum("ij,ij->i", n.reshape(-1, 3), target.normals[j]) > np.cos(np.radians(max_normal_deg))
