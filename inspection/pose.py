@@ -491,7 +491,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: _Patch, model: ThinPartModel, 
         if settings.method == "sacia":
             rs = RegistrationSettings(descriptors=("fpfh",), coarse="sac-ia", spheres=(100,),
                                       hypotheses=settings.hypotheses, verify=settings.verify, seed=settings.seed)
-            coarse = coarse_feature_poses(src, src_n, sm.target, rs, rng)
+            coarse = coarse_feature_poses(src, src_n, sm.target, rs, rng, workers=1)
         else:
             coarse = _ndt_poses(src, patch, model, sm, settings.verify)
         judged += _judge(patch, sm, sp, sn, coarse[:1], settings)
@@ -588,12 +588,14 @@ def _judge(patch: _Patch, sm: SideModel, sp: np.ndarray, sn: np.ndarray, poses: 
     """(outline-fit score, side, pose) of each pose (scan -> part) refined by point-to-plane
     ICP with normal-angle rejection on the instance's extruded cloud `sp`/`sn`: fitness
     (within 1.5 voxels, one batched query) plus the fraction of the true outline on the
-    part's outline, minus the fraction of the face over a lower surface."""
+    part's outline, minus the fraction of the face over a lower surface. KD-tree queries
+    here and in the coarse search are single-threaded: the clouds are small, and starting
+    threads costs more than it saves on a busy machine."""
     if not poses:
         return []
     v = settings.voxel_mm
     posed = [icp(sp, sn, sm.target.coarse, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15) for T in poses]
-    fit = fitness(sp, sn, sm.target.coarse, np.array(posed), 1.5 * v, settings.max_normal_deg)
+    fit = fitness(sp, sn, sm.target.coarse, np.array(posed), 1.5 * v, settings.max_normal_deg, workers=1)
     return [(float(f) + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), sm.side, T)
             for f, T in zip(fit, posed)]
 

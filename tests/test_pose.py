@@ -287,3 +287,13 @@ def test_a_view_both_sides_explain_is_ambiguous_not_posed(model: ThinPartModel) 
     p = estimate_pose(inst, model, SceneContext(np.concatenate([end, cover])))
     assert c > part.notch_mm[0] + part.notch_mm[1] / 2
     assert not p.ok and p.pose is None and p.reason.startswith("ambiguous"), p.reason
+
+
+def test_ndt_on_a_grid_without_cells_finds_no_cell() -> None:
+    """An NDT grid where no voxel holds the 5 points a covariance needs (a sparse model):
+    every point is reported outside the grid, not an index error."""
+    from inspection.registration import _ndt_cells, _ndt_grid
+
+    grid = _ndt_grid(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 0.0]]), 1.0)
+    assert len(grid[2]) == 0
+    assert (_ndt_cells(np.array([[0.1, 0.1, 0.1], [5.2, 0.3, 0.0]]), grid, 1.0) == -1).all()
