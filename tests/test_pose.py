@@ -24,7 +24,7 @@ from scanner.cli import main
 from scanner.commands.pose import load_masks, load_part
 from scanner.recording import CLOUD, entity_paths
 from scanner.rig import RigConfig
-from sim.bins import TabPart, bin_scene, scan_bin
+from sim.bins import TabPart, bin_scene, fringe_scan_bin, scan_bin
 
 PARTS = Path(__file__).resolve().parents[1] / "config" / "parts"
 TRANS_MM, ROT_DEG = 0.1, 0.5
@@ -220,20 +220,8 @@ def test_poses_from_a_full_fringe_scan_of_a_bin(model: ThinPartModel) -> None:
     """The small bin scanned through the whole simulated chain (fringe patterns rendered
     with sensor noise and blur, decoded, triangulated), instances from the simulator's ids:
     the parts less than 30 % occluded found, every reported pose right."""
-    from scanner.acquisition import AcquisitionSettings, acquire
-    from scanner.decode import decode
-    from scanner.patterns import PatternSet
-    from scanner.reconstruct import Triangulator, triangulate
-    from scanner.rig import open_rig
-
     b = bin_scene(5, seed=7, spread_mm=(12.0, 8.0))
-    config = RigConfig.load()
-    patterns = PatternSet.load(config.patterns_path)
-    with open_rig(config, scene=b.scene, seed=0) as rig:
-        stack = acquire(rig, patterns, AcquisitionSettings.for_rig(rig), lambda k, f: None)
-        cloud = triangulate(decode(stack, patterns, rig.camera.bit_depth, rig.model.projector.size),
-                            Triangulator(rig.model))
-        ids = np.asarray(rig.extras["ground_truth"].object_id)
+    cloud, ids = fringe_scan_bin(b)
     inst = instances_from_label_image(np.where(ids >= 2, ids, 0), cloud, min_points=200)
     poses = estimate_poses(inst, model, cloud.points[cloud.valid], PoseSettings())
     for p in poses:
