@@ -20,7 +20,6 @@ coloured by part; ``world/pose/models/part_<id>`` each posed part mesh;
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 import numpy as np
@@ -158,8 +157,7 @@ def write_poses(path: Any, doc: dict[str, Any]) -> None:
     """Write the poses file atomically (a robot cell polling it never reads half a file)."""
     from pathlib import Path
 
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.part")
-    tmp.write_text(json.dumps(doc, indent=1))
-    tmp.replace(path)
+    from scanner.session import write_json
+
+    write_json(Path(path), doc)
 

@@ -706,7 +706,7 @@ def refine_exact(src: np.ndarray, src_nrm: np.ndarray, T: np.ndarray, target: Mo
     _, _, _, r, _ = project_to_faces(target.model, transform_points(T, src), face)
     labels, inv, count = np.unique(face, return_inverse=True, return_counts=True)
     med = np.array([np.median(r[inv == k]) for k in range(len(labels))])  # one per face seen
-    spread = 1.4826 * np.median(np.abs(med - np.median(med)))
+    spread = _robust_sigma(med)
     off = np.abs(med - np.median(med)) > FACE_BIAS_SIGMA * max(spread, 1e-4)
     if off.any() and count[~off].sum() >= 0.5 * len(src):
         src, face = src[~off[inv]], face[~off[inv]]
