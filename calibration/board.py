@@ -37,10 +37,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from calibration.errors import BoardError
 from scanner.config import get, get_vector, load_toml
 from scanner.errors import ConfigError
-
-from .errors import BoardError
 
 KINDS = ("chessboard", "charuco", "circles_asymmetric")
 _KEYS = {"name", "type", "inner_corners", "square_mm", "margin_mm", "marker_mm", "dictionary", "circle_mm"}

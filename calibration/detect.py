@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from .board import Board
+from calibration.board import Board
 
 MIN_CHARUCO_CORNERS = 6  # fewer identified corners do not constrain a pose reliably
 SYMMETRY_WINDOW = 0.4  # refinement window radius, as a fraction of the nearest-corner distance

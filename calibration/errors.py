@@ -34,11 +34,3 @@ class CalibrationRejected(CalibrationError):
     def __init__(self, problem: str, blame: list[int] | None = None) -> None:
         super().__init__(problem)
         self.blame = list(blame or [])
-
-
-class CalibrationFileError(CalibrationError):
-    """A calibration file is unreadable, of another version, or made for another rig."""
-
-    def __init__(self, path: object, problem: str) -> None:
-        super().__init__(f"{path}: {problem}")
-        self.path = path

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from .errors import CalibrationError
+from calibration.errors import CalibrationError
 
 DEFAULT_LEVELS = np.round(np.linspace(0, 255, 18)).astype(np.uint8)
 MIN_CONTRAST = 0.2  # of the best pixels' white − black: dimmer pixels are left out

@@ -27,9 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calibration.errors import DetectionError
 from scanner.patterns import gray_to_binary
-
-from .errors import DetectionError
 
 
 @dataclass(frozen=True)

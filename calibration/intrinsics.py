@@ -12,9 +12,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from calibration.errors import NotEnoughData
 from scanner.geometry import Pinhole
-
-from .errors import NotEnoughData
 
 MIN_VIEWS = 3  # Zhang's method needs three views of a plane for five intrinsics
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")

@@ -1,4 +1,4 @@
-"""The reference-plane phase-to-height model (seed 000, Eq. 17) from a plate on a stage.
+"""The reference-plane phase-to-height model (paper 000, Eq. 17) from a plate on a stage.
 
     h = l·Δφ / (Δφ + 2π·d/λ0),   Δφ = φ_reference − φ_object
 
@@ -23,9 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from scanner.geometry import Pinhole, PhaseToHeight
-
-from .errors import CalibrationError, NotEnoughData
+from calibration.errors import CalibrationError, NotEnoughData
+from scanner.geometry import PhaseToHeight, Pinhole
 
 FIT_SUBSAMPLE = 4  # every n-th pixel in each direction for the global fit
 

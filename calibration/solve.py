@@ -25,11 +25,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .errors import CalibrationRejected, NotEnoughData
-from .intrinsics import DeviceCalibration, calibrate_device, outlier_views
-from .stereo import StereoCalibration, initial_extrinsics, joint_refine
-from .views import Correspondence
-
+from calibration.errors import CalibrationRejected, NotEnoughData
+from calibration.intrinsics import DeviceCalibration, calibrate_device, outlier_views
+from calibration.stereo import StereoCalibration, initial_extrinsics, joint_refine
+from calibration.views import Correspondence
 
 
 @dataclass(frozen=True)

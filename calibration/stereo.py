@@ -24,10 +24,9 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
+from calibration.errors import NotEnoughData
+from calibration.intrinsics import INTRINSIC_NAMES, ViewPoints, pose_matrix, rms
 from scanner.geometry import Pinhole
-
-from .errors import NotEnoughData
-from .intrinsics import INTRINSIC_NAMES, ViewPoints, pose_matrix, rms
 
 EXTRINSIC_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")  # Rodrigues vector (rad), translation (mm)
 _N_INTR = len(INTRINSIC_NAMES)

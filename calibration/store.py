@@ -29,23 +29,22 @@ import datetime as dt
 import json
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from types import TracebackType
 from pathlib import Path
+from types import TracebackType
 from typing import Any
 
 import cv2
 import numpy as np
 
+from calibration.board import Board
+from calibration.capture import PoseFrames
+from calibration.errors import CalibrationError, DetectionError
+from calibration.graycode import GrayCodeLayout, decode_graycode
+from calibration.views import View
 from scanner.decode import DecodeResult, decode
 from scanner.errors import DecodeError
 from scanner.patterns import PatternSet
 from scanner.session import write_atomic, write_json
-
-from .board import Board
-from .capture import PoseFrames
-from .errors import CalibrationError, DetectionError
-from .graycode import GrayCodeLayout, decode_graycode
-from .views import View
 
 CAPTURE_FORMAT = "slscan-calibration-capture"
 CAPTURE_VERSION = 1

@@ -17,10 +17,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from calibration.errors import CalibrationError
+from calibration.fit import fit_sphere, plane_rms
 from scanner.config import get
-
-from .errors import CalibrationError
-from .fit import fit_sphere, plane_rms
 
 PLANE_TOLERANCE_MM = 1.0  # points this close to the plate belong to it
 EDGE_MARGIN_PX = 3  # sphere pixels this close to the silhouette are left out (mixed pixels)

@@ -14,11 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .board import Board
-from .correspond import ProjectorCorners, local_homography_points
-from .detect import Detection, corner_spacing_px, detect
-from .errors import DetectionError
-from .intrinsics import ViewPoints
+from calibration.board import Board
+from calibration.correspond import ProjectorCorners, local_homography_points
+from calibration.detect import Detection, corner_spacing_px, detect
+from calibration.errors import DetectionError
+from calibration.intrinsics import ViewPoints
 
 HOMOGRAPHY_WINDOW = 0.6  # local-homography window radius, as a fraction of the corner spacing
 MAX_HOMOGRAPHY_WINDOW_PX = 60.0

@@ -26,6 +26,20 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
+from calibration.board import Board
+from calibration.calibration_recording import CalibrationRecording
+from calibration.capture import capture_fringes, capture_pose, capture_uncompensated, show_images
+from calibration.coverage import Coverage, needed_poses, tilt_deg
+from calibration.errors import CalibrationError, CalibrationRejected, DetectionError, NotEnoughData
+from calibration.fit import fit_plane, plane_rms
+from calibration.gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images, phase_error_rad
+from calibration.intrinsics import calibrate_device
+from calibration.phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, local_pitch_range_mm
+from calibration.solve import CalibrationSettings, Solution, Stability, check_limits, leave_one_out, solve, without_view
+from calibration.store import CaptureSet, CaptureWriter, decode_pose, pose_view
+from calibration.validate import Artefact, Validation, measure_sphere_pair
+from calibration.views import Correspondence, View, correspond
+from scanner.calibration_file import write_calibration
 from scanner.config import CONFIG_DIR, get, get_table, resolve
 from scanner.decode import DecodeResult
 from scanner.errors import ConfigError
@@ -33,21 +47,6 @@ from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator, triangulate
 from scanner.rig import Rig, RigConfig
-
-from .board import Board
-from .capture import capture_fringes, capture_pose, capture_uncompensated, show_images
-from .coverage import Coverage, needed_poses, tilt_deg
-from .errors import CalibrationError, CalibrationRejected, DetectionError, NotEnoughData
-from .file import write_calibration
-from .gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images, phase_error_rad
-from .intrinsics import calibrate_device
-from .fit import fit_plane, plane_rms
-from .phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, local_pitch_range_mm
-from .recording import CalibrationRecording
-from .solve import CalibrationSettings, Solution, Stability, check_limits, leave_one_out, solve, without_view
-from .store import CaptureSet, CaptureWriter, decode_pose, pose_view
-from .validate import Artefact, Validation, measure_sphere_pair
-from .views import Correspondence, View, correspond
 
 DEFAULT_BOARD = CONFIG_DIR / "boards" / "sim_chess_9x7.toml"
 DEFAULT_HEIGHTS_MM = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
@@ -163,7 +162,7 @@ class CalibrationResult:
                         phase_to_height=self.phase_height.model if self.phase_height else None)
 
     def report(self) -> dict[str, Any]:
-        """The calibration file's report sections (see `calibration.file`)."""
+        """The calibration file's report sections (see `scanner.calibration_file`)."""
         sol, s = self.solution, self.solution.stereo
         views = [{"name": n, "camera_rms_px": float(c), "projector_rms_px": float(p),
                   "camera_points": len(corr.camera), "projector_points": len(corr.projector),

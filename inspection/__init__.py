@@ -6,7 +6,7 @@ Modules (each one job):
     surfaces      exact plane/cylinder/cone/sphere/torus/B-spline surfaces, vectorised evaluation and projection
     cad           STEP (OpenCASCADE) and mesh models: faces with STEP ids, types, parameters, trimming; units
     sampling      area-uniform labelled points on the exact faces
-    scan          measured clouds: sessions, PLY/PCD/XYZ, normals, the part isolated from its table, unit check
+    measured_cloud measured clouds: sessions, PLY/PCD/XYZ, normals, the part isolated from its table, unit check
     features      FPFH (Open3D) and SHOT (vectorised) descriptors
     registration  RSCS, multivariate correspondences (Eq. 11), SAC-IA/RANSAC/NDT, verification, ICP, exact fine step
     segmentation  every point assigned to its CAD face (distance, normal, inside the face), signed deviations
@@ -14,9 +14,11 @@ Modules (each one job):
                   deviations and profile zone of the form surface
     tolerances    per-face limits and ISO 14253-1 verdicts
     report        the per-face table as JSON, CSV, text and HTML with the deviation map
-    recording     the result in the session's Rerun recording
-    pipeline      scan + model -> report
+    inspection_recording  the result in the session's Rerun recording
+    inspect_scan  scan + model -> report
+    downsample    voxel averaging and paper 001's density-centre selection (shared with bins/ and regions/)
 
-Context-free segmentation (seed 002) lives beside it: `region_growing`, `local_features`,
-`segmetrics`, `instances`, `downsample`, `segmentation_errors`.
+Two more products stand on the same base: `bins/` (poses of overlapping thin parts in a bin,
+paper 001: instances, pose, picking) and `regions/` (context-free region growing, paper 002:
+region_growing, local_features, segmetrics).
 """

@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from .errors import CadError
-from .surfaces import BSpline, Cone, Cylinder, Plane, Sphere, Surface, Torus
+from inspection.errors import CadError
+from inspection.surfaces import BSpline, Cone, Cylinder, Plane, Sphere, Surface, Torus
 
 STEP_SUFFIXES = (".step", ".stp")
 MESH_SUFFIXES = (".stl", ".ply", ".obj")
@@ -261,8 +261,14 @@ def _bspline(handle: Any) -> BSpline:
 def _surface(face: Any) -> Surface:
     from OCP.BRep import BRep_Tool
     from OCP.BRepAdaptor import BRepAdaptor_Surface
-    from OCP.GeomAbs import (GeomAbs_BSplineSurface, GeomAbs_Cone, GeomAbs_Cylinder, GeomAbs_Plane,
-                             GeomAbs_Sphere, GeomAbs_Torus)
+    from OCP.GeomAbs import (
+        GeomAbs_BSplineSurface,
+        GeomAbs_Cone,
+        GeomAbs_Cylinder,
+        GeomAbs_Plane,
+        GeomAbs_Sphere,
+        GeomAbs_Torus,
+    )
     from OCP.GeomConvert import GeomConvert
 
     a = BRepAdaptor_Surface(face, True)

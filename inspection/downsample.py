@@ -1,7 +1,7 @@
 """Voxel-grid downsampling: plain voxel averaging, or the density-centre selection of
-seed 001 (Deng et al. 2023, Eq. 9-16) with its voxel size from the point density.
+paper 001 (Deng et al. 2023, Eq. 9-16) with its voxel size from the point density.
 
-Seed 001, section 3.1:
+Paper 001, section 3.1:
   - Eq. 11-12: the bounding box of the cloud, each side widened by a margin λ,
     V = Lx·Ly·Lz (Eq. 12 prints y for the z extent: a typo; z is used here);
   - Eq. 13: the voxel side L = α·(s·V/N)^(1/3) — it grows with the mean volume per point
@@ -25,8 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import CloudError
-from .segmentation_errors import SegmentationError
+from inspection.errors import CloudError, SegmentationError
 
 METHODS = ("average", "density_centre")
 
@@ -48,7 +47,7 @@ class Downsampled:
 
 def density_voxel_size(points: np.ndarray, alpha: float = 1.0, scale: float = 1.0,
                        margin_mm: float | None = None) -> float:
-    """The voxel side L (mm) of seed 001 Eq. 13, L = α·(s·Lx·Ly·Lz / N)^(1/3), each
+    """The voxel side L (mm) of paper 001 Eq. 13, L = α·(s·Lx·Ly·Lz / N)^(1/3), each
     extent widened by the margin λ of Eq. 12 (`margin_mm`; default 1% of the largest
     extent, so a flat cloud still has a volume)."""
     pts = _checked(points)

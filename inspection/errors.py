@@ -50,3 +50,12 @@ class RegistrationFailed(InspectionError):
 
 class ToleranceError(InspectionError):
     """A tolerance file is unreadable or names faces or keys the model does not have."""
+
+
+class SegmentationError(InspectionError):
+    """A cloud cannot be segmented or scored as asked (radius out of range, label arrays
+    that do not match)."""
+
+
+class MaskError(SegmentationError):
+    """An instance mask or annotation is unreadable or does not match the camera image."""

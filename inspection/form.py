@@ -31,7 +31,7 @@ Minimum zone (Chebyshev, the ISO 1101 default): the narrowest pair of parallel p
 (coaxial cylinders) holding the surface, solved as a linear programme (HiGHS) on the
 planes' (cylinders') small-displacement parameters about the least-squares fit,
 relinearised until it settles. Least squares: Eq. 20 (plane) and Eq. 21-22 (cylinder)
-of seed 000. Every length in mm.
+of paper 000. Every length in mm.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ MIN_POINTS = 50
 
 
 def plane_ls(points: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Seed 000 Eq. 20: z = a x + b y + c in a frame whose z is the nominal `normal`;
+    """Paper 000 Eq. 20: z = a x + b y + c in a frame whose z is the nominal `normal`;
     returns (a point on the plane, its unit normal)."""
     u, v = _frame(normal)
     c0 = points.mean(axis=0)
@@ -65,7 +65,7 @@ def plane_ls(points: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def cylinder_ls(points: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Seed 000 Eq. 21-22: the axis (point, direction) minimising sum (r_i - mean r)^2,
+    """Paper 000 Eq. 21-22: the axis (point, direction) minimising sum (r_i - mean r)^2,
     r_i = |o p_i x n|, from the nominal axis; returns (origin, unit axis, mean radius)."""
     axis = axis / np.linalg.norm(axis)
     u, v = _frame(axis)

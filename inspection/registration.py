@@ -1,7 +1,7 @@
 """Part-in-whole registration of a single-view scan to a whole CAD model (or a cloud).
 
-The method of seed 000 (Kong et al. 2023, section 3), with the coarse and fine steps of
-seed 001 (Deng et al. 2023, section 3.2):
+The method of paper 000 (Kong et al. 2023, section 3), with the coarse and fine steps of
+paper 001 (Deng et al. 2023, section 3.2):
 
 1. Both clouds on one voxel grid (`voxel_mm`: the model's diagonal / `VOXEL_FRACTION`),
    normals averaged per voxel.
@@ -21,9 +21,9 @@ seed 001 (Deng et al. 2023, section 3.2):
    are kept as candidates.
 4. Coarse pose: SAC-IA — triplets of correspondences drawn by score (scan points spread
    apart, edge lengths consistent on both sides), the rigid transform of each (Kabsch,
-   Eq. 12-15), scored by the Huber penalty of seed 001 Eq. 22 over the distances from a
+   Eq. 12-15), scored by the Huber penalty of paper 001 Eq. 22 over the distances from a
    sample of scan points to the model. Alternatives: RANSAC (score = correspondences
-   within the inlier distance) and NDT (seed 001 Eq. 23-26: the model as normal
+   within the inlier distance) and NDT (paper 001 Eq. 23-26: the model as normal
    distributions on a voxel grid, the score maximised by Newton steps from 24 axis-aligned
    starts).
 5. Hypothesis verification: the best distinct coarse poses, and the best two turned half
@@ -32,7 +32,7 @@ seed 001 (Deng et al. 2023, section 3.2):
    minus the fraction of scan points the posed model would hide from the sensor (a
    surface in front of a measured point means that pose is wrong). A symmetric or
    prismatic part that fits several poses equally well is reported as ambiguous.
-6. Fine pose: point-to-plane ICP with normal-angle rejection (seed 001 Eq. 27-29, with
+6. Fine pose: point-to-plane ICP with normal-angle rejection (paper 001 Eq. 27-29, with
    the point-to-plane metric) on the dense scan (points seen at grazing incidence left
    out, normal-space sampling so walls and holes weigh in) against dense model samples;
    then, for STEP models, Gauss-Newton on the exact point-to-face distances (a sample's
@@ -46,18 +46,19 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from .cad import CadModel
-from .downsample import voxel_cells
-from .errors import RegistrationFailed
-from .features import fpfh, shot
-from .sampling import LabelledCloud, sample_model
-from .scan import ScanCloud
-from .segmentation import assign_faces, project_to_faces
+from inspection.cad import CadModel
+from inspection.downsample import voxel_cells
+from inspection.errors import RegistrationFailed
+from inspection.features import fpfh, shot
+from inspection.measured_cloud import ScanCloud
+from inspection.sampling import LabelledCloud, sample_model
+from inspection.segmentation import assign_faces, project_to_faces
 
 VOXEL_FRACTION = 150.0
 DENSE_FRACTION = 3.0  # model samples for ICP: spacing = voxel / DENSE_FRACTION
@@ -367,7 +368,7 @@ def correspondences(src_pts: np.ndarray, src_desc: dict[str, np.ndarray], dst_pt
 
 
 def huber(l: np.ndarray, ml: float) -> np.ndarray:
-    """Seed 001 Eq. 22: l^2/2 below ml, ml (2 l - ml)/2 above."""
+    """Paper 001 Eq. 22: l^2/2 below ml, ml (2 l - ml)/2 above."""
     return np.where(l < ml, 0.5 * l * l, 0.5 * ml * (2.0 * l - ml))
 
 
@@ -535,7 +536,7 @@ def coarse_feature_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: Model
 
 
 def _ndt_grid(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Seed 001 Eq. 23-24: per voxel of side `cell` holding at least 5 model points, the
+    """Paper 001 Eq. 23-24: per voxel of side `cell` holding at least 5 model points, the
     mean and the (regularised) inverse covariance; (lo, dims, codes (sorted), mu, icov)."""
     key = np.floor(points / cell).astype(np.int64)
     lo = key.min(axis=0)

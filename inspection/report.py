@@ -1,8 +1,8 @@
-"""The inspection report: a per-face table (the layout of seed 000's Table 3, plus
+"""The inspection report: a per-face table (the layout of paper 000's Table 3, plus
 minimum-zone figures, noise floors, tolerances and verdicts) as JSON, CSV, text and a
 human-readable HTML page with the deviation map.
 
-Columns (mm): flatness / cylindricity by least squares (seed 000 Eq. 20-22) and minimum
+Columns (mm): flatness / cylindricity by least squares (paper 000 Eq. 20-22) and minimum
 zone (ISO 1101), both on the form surface (ISO 16610-61 Gaussian, cut-off in the report);
 the raw zone of the unfiltered points; the noise floor (the zone the filtered scanner
 noise alone spans); Sq (ISO 25178-2) with the estimated noise removed in quadrature;
@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .form import FaceForm, FormSettings
+from inspection.form import FaceForm, FormSettings
 
 NOISE_NOTE = ("Scanner noise (sigma_n per point, estimated from the data) would widen a zone evaluated on raw "
               "points by several sigma_n and add sigma_n^2 to Sq^2: zones are evaluated on the form surface "
@@ -223,12 +223,3 @@ def _plain(o: Any) -> Any:
     if isinstance(o, (np.floating, np.integer)):
         return o.item()
     return str(o)
-
-
-def inspect_cloud(points: np.ndarray, model: Any, **kw: Any) -> InspectionReport:
-    """Register bare points (N, 3) mm (a camera-frame scan) to `model`, segment them by
-    face and evaluate every face (`pipeline.inspect`); raises an InspectionError when the
-    scan does not match the model."""
-    from .pipeline import inspect_points
-
-    return inspect_points(points, model, **kw)

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cad import CadModel, Face
-from .errors import CadError
+from inspection.cad import CadModel, Face
+from inspection.errors import CadError
 
 
 @dataclass(frozen=True, eq=False)

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .cad import CadModel
-from .sampling import LabelledCloud
+from inspection.cad import CadModel
+from inspection.sampling import LabelledCloud
 
 UNASSIGNED = -1
 

@@ -21,7 +21,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import ToleranceError
+from inspection.errors import ToleranceError
 
 CHARACTERISTICS = {"flatness_mm": ("plane",), "cylindricity_mm": ("cylinder",), "sq_mm": None, "profile_mm": None}
 

@@ -27,10 +27,10 @@ from typing import Callable
 
 import numpy as np
 
-from .devices import Frame
-from .errors import FrameDropped, FrameError, FrameOutOfOrder
-from .patterns import FrameSpec, PatternSet
-from .rig import Rig
+from scanner.devices import Frame
+from scanner.errors import FrameDropped, FrameError, FrameOutOfOrder
+from scanner.patterns import FrameSpec, PatternSet
+from scanner.rig import Rig
 
 FrameCallback = Callable[[int, Frame], None]
 

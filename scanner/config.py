@@ -6,7 +6,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, TypeVar
 
-from .errors import ConfigError
+from scanner.errors import ConfigError
 
 T = TypeVar("T")
 

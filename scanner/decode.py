@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .errors import DecodeError
-from .patterns import PatternSet, gray_to_binary
+from scanner.errors import DecodeError
+from scanner.patterns import PatternSet, gray_to_binary
 
 TWO_PI = np.float32(2.0 * np.pi)
 

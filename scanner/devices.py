@@ -16,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import DeviceDisconnected, UnsupportedSetting
+from scanner.errors import DeviceDisconnected, UnsupportedSetting
 
 
 class TriggerType(Enum):

@@ -69,3 +69,11 @@ class SessionError(ScannerError):
 
 class IncompleteSession(SessionError):
     """A session has no complete manifest: the scan was interrupted or failed."""
+
+
+class CalibrationFileError(ScannerError):
+    """A calibration file is unreadable, of another version, or made for another rig."""
+
+    def __init__(self, path: object, problem: str) -> None:
+        super().__init__(f"{path}: {problem}")
+        self.path = path

@@ -7,7 +7,7 @@ is at (0.0, 0.0)); frames follow the OpenCV camera convention (x right, y down, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -15,7 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .errors import ConfigError
+from scanner.errors import ConfigError
 
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
 
@@ -78,6 +78,17 @@ class Pinhole:
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(where, None, f"invalid pinhole description: {exc}") from exc
 
+    def resampled(self, width: int, height: int) -> Pinhole:
+        """The same device with its image resampled to width x height pixels (same field of
+        view; pixel centres at (i + 0.5) * scale - 0.5)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0] *= sx
+        K[1] *= sy
+        K[0, 2] = (self.K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (self.K[1, 2] + 0.5) * sy - 0.5
+        return Pinhole(width, height, K, self.dist)
+
     @classmethod
     def from_fov(cls, width: int, height: int, hfov_deg: float, pixel_aspect: float = 1.0,
                  principal: tuple[float, float] | None = None, dist: np.ndarray | None = None) -> Pinhole:
@@ -122,7 +133,7 @@ PHASE_MAP_KEYS = ("reference_phase", "l_map_mm", "k_map_rad")  # the arrays of a
 
 @dataclass(frozen=True, eq=False)
 class PhaseToHeight:
-    """Reference-plane phase-to-height model of seed 000, Eq. 17:
+    """Reference-plane phase-to-height model of paper 000, Eq. 17:
     h = l·Δφ / (Δφ + 2π·d/λ0), with Δφ = φ_reference − φ_object (rad).
 
     `l_mm`: camera centre to reference plane; `d_mm`: camera-projector centre distance;
@@ -242,6 +253,10 @@ class RigModel:
     @property
     def baseline_mm(self) -> float:
         return float(np.linalg.norm(self.cam_from_proj[:3, 3]))
+
+    def with_camera_size(self, width: int, height: int) -> RigModel:
+        """The rig with its camera resampled to width x height at the same field of view."""
+        return replace(self, camera=self.camera.resampled(width, height))
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready description (the phase-to-height maps are stored in their own file)."""

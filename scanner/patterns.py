@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from .config import get, load_toml
-from .errors import ConfigError
+from scanner.config import get, load_toml
+from scanner.errors import ConfigError
 
 FAMILIES = ("heterodyne", "hierarchical", "graycode")
 ORIENTATIONS = ("vertical", "horizontal")

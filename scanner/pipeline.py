@@ -10,16 +10,16 @@ from typing import Callable
 
 import numpy as np
 
-from .acquisition import AcquisitionSettings, acquire
-from .decode import DecodeResult, DecodeSettings, decode
-from .devices import Frame
-from .errors import ScannerError
-from .patterns import PatternSet
-from .pointcloud import OrganisedCloud, write_ply
-from .reconstruct import Triangulator, phase_to_height_cloud, triangulate
-from .recording import SessionRecording
-from .rig import Rig
-from .session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, write_json, write_npz
+from scanner.acquisition import AcquisitionSettings, acquire
+from scanner.decode import DecodeResult, DecodeSettings, decode
+from scanner.devices import Frame
+from scanner.errors import ScannerError
+from scanner.patterns import PatternSet
+from scanner.pointcloud import OrganisedCloud, write_ply
+from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
+from scanner.rig import Rig
+from scanner.session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, write_json, write_npz
+from scanner.session_recording import SessionRecording
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
 

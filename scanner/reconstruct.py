@@ -4,7 +4,7 @@ Triangulation intersects each camera ray with the projector's surface of constan
 coordinate. With projector distortion that surface is not a plane, so the intersection
 is iterated: the undistorted projector coordinate depends weakly on the point's other
 projector coordinate, read from a precomputed undistortion table.
-The second mode is the reference-plane phase-to-height model of seed 000, Eq. 17.
+The second mode is the reference-plane phase-to-height model of paper 000, Eq. 17.
 """
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from .decode import DecodeResult
-from .errors import DecodeError
-from .geometry import Pinhole, RigModel
-from .pointcloud import OrganisedCloud, from_planes, organised_normals
+from scanner.decode import DecodeResult
+from scanner.errors import DecodeError
+from scanner.geometry import Pinhole, RigModel
+from scanner.pointcloud import OrganisedCloud, from_planes, organised_normals
 
 _TABLE_OVERSAMPLE = 4  # table samples per projector pixel along the coded axis
 _TABLE_ROWS = 257  # samples along the other normalised projector coordinate
@@ -186,7 +186,7 @@ def triangulate(decoded: DecodeResult, triangulator: Triangulator, with_normals:
 
 
 def phase_to_height_cloud(decoded: DecodeResult, rig: RigModel, orientation: str = "vertical") -> OrganisedCloud:
-    """Organised cloud from the reference-plane model (seed 000, Eq. 17, per pixel when the
+    """Organised cloud from the reference-plane model (paper 000, Eq. 17, per pixel when the
     calibration has the per-pixel maps): the height above the reference plane per pixel,
     placed along each camera ray. Pixels the model was not calibrated for have no point."""
     model = rig.phase_to_height

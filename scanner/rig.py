@@ -6,8 +6,8 @@ depend on the simulator or on hardware libraries.
 A rig TOML may name its calibration file (`[rig] calibration = "path.json"`, relative to
 the TOML): the rig then reconstructs with the calibrated geometry (`RigConfig.model`,
 `Rig.model` of an opened rig) instead of the nominal one written in the TOML. The file is
-read, by name and lazily, with `calibration`'s loader, which checks its version and its
-image sizes against this rig's devices and refuses a mismatch.
+read by `scanner.calibration_file`, which checks its version and its image sizes against
+this rig's devices and refuses a mismatch.
 """
 
 from __future__ import annotations
@@ -20,18 +20,17 @@ from typing import Any
 
 import numpy as np
 
-from .config import CONFIG_DIR, get, get_table, get_vector, load_toml, resolve
-from .devices import Camera, Projector, TriggerSource
-from .errors import ConfigError, ScannerError
-from .geometry import Pinhole, RigModel, look_at
+from scanner.calibration_file import load_rig_model
+from scanner.config import CONFIG_DIR, get, get_table, get_vector, load_toml, resolve
+from scanner.devices import Camera, Projector, TriggerSource
+from scanner.errors import ConfigError, ScannerError
+from scanner.geometry import Pinhole, RigModel, look_at
 
 DEFAULT_RIG = CONFIG_DIR / "rigs" / "sim_bench.toml"
 TRIGGER_WIRINGS = ("software", "projector", "trigger_box")
 
 # driver name -> "module:function" returning a Rig; imported only when used
-DRIVERS = {"sim": "sim.rig:open_sim_rig", "hardware": "scanner.drivers.rig:open_hardware_rig"}
-# (calibration file, camera size, projector size) -> calibrated RigModel; imported only when a rig names a file
-CALIBRATION_LOADER = "calibration.file:load_rig_model"
+DRIVERS = {"sim": "sim.virtual_rig:open_sim_rig", "hardware": "scanner.drivers.hardware_rig:open_hardware_rig"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,10 +103,8 @@ class RigConfig:
         nominal = self.nominal_model()
         if self.calibration_path is None:
             return nominal
-        module_name, func = CALIBRATION_LOADER.split(":")
-        load = getattr(importlib.import_module(module_name), func)
         try:
-            return load(self.calibration_path, nominal.camera.size, nominal.projector.size)
+            return load_rig_model(self.calibration_path, nominal.camera.size, nominal.projector.size)
         except ScannerError as exc:
             raise ConfigError(self.path, "rig.calibration", str(exc)) from None
 

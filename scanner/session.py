@@ -29,11 +29,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from . import __version__
-from .devices import Frame
-from .errors import IncompleteSession, SessionError
-from .geometry import PhaseToHeight, RigModel
-from .patterns import PatternSet
+from scanner import __version__
+from scanner.devices import Frame
+from scanner.errors import IncompleteSession, SessionError
+from scanner.geometry import PhaseToHeight, RigModel
+from scanner.patterns import PatternSet
 
 MANIFEST_VERSION = 1
 MANIFEST = "manifest.json"

@@ -1,7 +1,7 @@
 """Simulated bins of thin parts, and cluttered labelled clouds, with ground truth.
 
 Bins (for instance extraction and pose estimation):
-  - `TabPart`: a parametric thin sheet-metal part like seed 001's nickel tab: a strip
+  - `TabPart`: a parametric thin sheet-metal part like paper 001's nickel tab: a strip
     with one rounded end, a chamfered square end, a tongue on one side, a notch on the
     other and a hole near the rounded end; the outline is chiral (no rotation maps the
     part onto its mirror image), so front and back are distinguishable. Part frame (mm):
@@ -18,7 +18,7 @@ Bins (for instance extraction and pose estimation):
     `BinScene.occlusion` gives each part's hidden fraction (ray cast), `scan_bin` a quick
     simulated scan (ray-cast truth with depth noise and projector shadows).
 
-Cluttered clouds (for region growing, seed 002): `clutter_cloud` builds a room corner
+Cluttered clouds (for region growing, paper 002): `clutter_cloud` builds a room corner
 (floor, wall), boxes (resting on the floor, against the wall, touching each other),
 pipes of several diameters (lying, standing, resting on a box) and a dome, casts rays
 from five scanner positions around it (so density varies with range and view, and contacts and
@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import Delaunay
 
-from .scene import Scene, SceneObject
+from sim.scene import Scene, SceneObject
 
 # ---------------------------------------------------------------------------------- part
 
@@ -221,8 +221,7 @@ def scan_bin(b: BinScene, model: object, noise_mm: float = 0.01, seed: int = 0) 
     computes them. Returns (`OrganisedCloud` in the camera frame, object ids (H, W): 0
     nothing, 1 tray, 2.. parts in drop order)."""
     from scanner.pointcloud import OrganisedCloud, organised_normals
-
-    from .render import compute_ground_truth
+    from sim.render import compute_ground_truth
 
     gt = compute_ground_truth(model, b.scene)  # type: ignore[arg-type]
     rng = np.random.default_rng(seed)

@@ -19,8 +19,7 @@ import numpy as np
 from scanner.decode import DecodeResult
 from scanner.pointcloud import OrganisedCloud
 from scanner.reconstruct import Triangulator
-
-from .render import GroundTruth, SensorModel
+from sim.render import GroundTruth, SensorModel
 
 GROUND_TRUTH_FILE = "ground_truth.npz"
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .scene import FIRST_OBJECT_ID, Scene, SceneObject
+from sim.scene import FIRST_OBJECT_ID, Scene, SceneObject
 
 TABLE_SIZE_MM = (1000.0, 1000.0)
 

@@ -58,8 +58,7 @@ from scipy import ndimage
 from scanner.config import get, get_table
 from scanner.errors import ConfigError
 from scanner.geometry import Pinhole, RigModel
-
-from .scene import BACKGROUND_ID, REFERENCE_PLANE_ID, Scene, SceneObject
+from sim.scene import BACKGROUND_ID, REFERENCE_PLANE_ID, Scene, SceneObject
 
 OCCLUSION_TOL_MM = 1e-3  # a projector ray hitting something this much before the point is blocked
 SUPPORTED_BIT_DEPTHS = (8, 10, 12)

@@ -40,10 +40,9 @@ from typing import Any
 import numpy as np
 
 from scanner.config import CONFIG_DIR
-
-from .make_demo_part import BOSS_CENTER, BOSS_RADIUS, CHORD_MM, HIGH_TOP, PLATE_X, PLATE_Y, STEP_X
-from .parts import Defect, Lobing, PlaneBow, deform, lying_pose, part_scene
-from .scene import Scene
+from sim.parts import Defect, Lobing, PlaneBow, deform, lying_pose, part_scene
+from sim.parts_demo import BOSS_CENTER, BOSS_RADIUS, CHORD_MM, HIGH_TOP, PLATE_X, PLATE_Y, STEP_X
+from sim.scene import Scene
 
 STEP_MODEL = CONFIG_DIR / "parts" / "demo_part.step"
 TRUTH_FILE = "sim_part.json"  # written into every session of a simulated station part

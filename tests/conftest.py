@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scanner.bench import scaled_rig
 from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
 from scanner.rig import RigConfig
@@ -20,7 +19,7 @@ def bench_model() -> RigModel:
 @pytest.fixture(scope="session")
 def small_rig(bench_model: RigModel) -> RigModel:
     """The default rig with a 320 x 256 camera (same field of view)."""
-    return scaled_rig(bench_model, 320, 256)
+    return bench_model.with_camera_size(320, 256)
 
 
 def fringe_stack(u: np.ndarray, patterns: PatternSet, extent: int, amplitude: float = 1200.0,

@@ -10,7 +10,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from inspection.instances import instances_from_label_image
+from inspection.bins.instances import instances_from_label_image
 from scanner.pointcloud import OrganisedCloud
 from sim.bins import TabPart, bin_scene, clutter_cloud, rotation_about, scan_bin
 from sim.render import compute_ground_truth
@@ -148,17 +148,16 @@ def test_clutter_cloud_points_lie_on_their_labelled_surfaces() -> None:
 def test_bin_scan_segments_into_its_parts(bin12: object) -> None:
     """Region growing on the simulated bin (exact surface points, 5 µm noise along the
     normal, 640 x 512 camera cropped to the parts): every part's visible face is one
-    segment per piece the parts on top leave visible (seed 002's over-segmentation from
+    segment per piece the parts on top leave visible (paper 002's over-segmentation from
     occlusion; a narrow neck of a piece may split it once more), and segments do not
     cross parts."""
-    from inspection.instances import instances_from_segments
-    from inspection.region_growing import segment
-    from inspection.segmetrics import NO_POINT, score
-    from scanner.bench import scaled_rig
+    from inspection.bins.instances import instances_from_segments
+    from inspection.regions.region_growing import segment
+    from inspection.regions.segmetrics import NO_POINT, score
     from scanner.rig import RigConfig
 
     b = bin12
-    rig = scaled_rig(RigConfig.load().nominal_model(), 640, 512)
+    rig = RigConfig.load().nominal_model().with_camera_size(640, 512)
     gt = compute_ground_truth(rig, b.scene)
     rows, cols = np.nonzero(gt.object_id >= 2)
     crop = (slice(rows.min() - 10, rows.max() + 10), slice(cols.min() - 10, cols.max() + 10))

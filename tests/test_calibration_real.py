@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scanner import cli
 from scanner.config import CONFIG_DIR
+from slscan import cli
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "procam-graycode"
 BOARD = CONFIG_DIR / "boards" / "procam_chess_9x7_75mm.toml"

@@ -26,21 +26,21 @@ import pytest
 from calibration.board import Board
 from calibration.compare import model_errors
 from calibration.detect import detect
-from calibration.file import load_calibration
 from calibration.phase_height import scan_height_errors
-from scanner import cli
-from scanner.commands.calibrate import _install
+from scanner.calibration_file import load_calibration
 from scanner.config import CONFIG_DIR
 from scanner.errors import DecodeError
 from scanner.pipeline import process
 from scanner.reconstruct import phase_to_height_cloud
-from scanner.recording import read_summary
+from scanner.recording_reader import read_summary
 from scanner.rig import DEFAULT_RIG, RigConfig
 from scanner.session import Session
+from sim.calibration_bench import Target, rotation, target_pose
 from sim.evaluate import GROUND_TRUTH_FILE, Truth, smooth_region
 from sim.render import Renderer, SensorModel, project_points
 from sim.scene import Scene
-from sim.stage import Target, rotation, target_pose
+from slscan import cli
+from slscan.commands.calibrate import _install
 
 BOARD = CONFIG_DIR / "boards" / "sim_chess_9x7.toml"
 

@@ -17,8 +17,7 @@ from calibration.compare import model_errors
 from calibration.correspond import local_homography_points
 from calibration.coverage import Coverage, needed_poses, tilt_deg
 from calibration.detect import detect
-from calibration.errors import BoardError, CalibrationFileError, NotEnoughData
-from calibration.file import load_calibration, maps_path, write_calibration
+from calibration.errors import BoardError, NotEnoughData
 from calibration.gamma import fit_gamma, phase_error_rad
 from calibration.graycode import GrayCodeLayout, decode_graycode
 from calibration.intrinsics import ViewPoints
@@ -27,12 +26,13 @@ from calibration.solve import CalibrationSettings, solve
 from calibration.validate import Artefact, measure_sphere_pair
 from calibration.views import Correspondence
 from calibration.workflow import OperatorBench, Procedure
+from scanner.calibration_file import load_calibration, maps_path, write_calibration
 from scanner.config import CONFIG_DIR
-from scanner.errors import ConfigError
+from scanner.errors import CalibrationFileError, ConfigError
 from scanner.geometry import PhaseToHeight, Pinhole, RigModel
 from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
+from sim.calibration_bench import Target, plan_target_poses, plate_scene
 from sim.render import project_points
-from sim.stage import Target, plan_target_poses, plate_scene
 
 BENCH = RigConfig.load(DEFAULT_RIG).nominal_model()
 SIM_BOARD = Board.load(CONFIG_DIR / "boards" / "sim_chess_9x7.toml")

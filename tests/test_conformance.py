@@ -10,6 +10,7 @@ from typing import Iterator
 
 import numpy as np
 import pytest
+from test_session import SCENE, small_rig_toml
 
 from scanner.devices import Camera, Projector, TriggerSource, TriggerType
 from scanner.drivers.genicam import GenICamCamera
@@ -21,8 +22,7 @@ from scanner.drivers.triggerbox import TriggerBox
 from scanner.drivers.uvc import UvcCamera
 from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
 from scanner.rig import RigConfig, open_rig
-from sim.devices import SimProjector, SimTriggerBox
-from test_session import SCENE, small_rig_toml
+from sim.virtual_devices import SimProjector, SimTriggerBox
 
 PATTERNS = np.stack([np.full((1140, 912), v, np.uint8) for v in (0, 60, 120, 180)])
 

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scanner import cli
-from scanner.commands import devices
 from scanner.config import CONFIG_DIR
 from scanner.drivers.lightcrafter import LightCrafter4500
 from scanner.drivers.testing import Dlpc350Emulator
 from scanner.patterns import PatternSet
 from scanner.rig import RigConfig
+from slscan import cli
+from slscan.commands import devices
 
 LCR = CONFIG_DIR / "rigs" / "lightcrafter_uvc_box.toml"
 

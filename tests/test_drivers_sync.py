@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_session import SCENE, small_rig_toml
 
 from scanner.acquisition import AcquisitionSettings, acquire, check_signature, check_timing
 from scanner.config import CONFIG_DIR
@@ -18,7 +19,6 @@ from scanner.patterns import PatternSet
 from scanner.pipeline import scan
 from scanner.rig import RigConfig, open_rig
 from scanner.session import ERROR
-from test_session import SCENE, small_rig_toml
 
 FAMILIES = ["heterodyne_3x4", "hierarchical_3x4", "graycode_4"]
 

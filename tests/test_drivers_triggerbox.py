@@ -139,7 +139,7 @@ def test_garbled_press_count_is_an_error() -> None:
 
 
 def test_simulated_box_counts_its_foot_switch_like_the_driver() -> None:
-    from sim.devices import SimTriggerBox
+    from sim.virtual_devices import SimTriggerBox
 
     sim = SimTriggerBox()
     sim.press()  # before the first poll: not counted

@@ -33,10 +33,9 @@ from scipy.spatial.transform import Rotation
 
 from inspection.cad import load_cad
 from inspection.errors import RegistrationFailed
-from inspection.registration import ModelTarget, RegistrationSettings, pose_difference, register
-from inspection.scan import ScanCloud, from_organised, isolate_part
+from inspection.measured_cloud import ScanCloud, from_organised, isolate_part
+from inspection.registration import ModelTarget, RegistrationSettings, pose_difference, register, transform_points
 from inspection.segmentation import assign_faces
-from inspection.registration import transform_points
 from scanner.acquisition import AcquisitionSettings, acquire
 from scanner.decode import decode
 from scanner.patterns import PatternSet

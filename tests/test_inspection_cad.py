@@ -112,7 +112,7 @@ def test_scale_model_keeps_faces_ids_and_orientations(models: dict) -> None:
 
 
 def test_sample_benchmark_command(capsys) -> None:
-    from scanner import cli
+    from slscan import cli
 
     assert cli.main(["cad", str(CONFIG_DIR / "parts" / "demo_part.step"), "--sample", "20000", "--repeats", "2",
                      "--json"]) == 0

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from scanner import cli
-from scanner.recording import read_summary
+from scanner.recording_reader import read_summary
+from slscan import cli
 
 pytestmark = pytest.mark.slow
 

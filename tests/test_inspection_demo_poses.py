@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 
 from inspection.cad import load_cad
+from inspection.measured_cloud import from_organised, isolate_part
 from inspection.registration import ModelTarget, pose_difference, register
-from inspection.scan import from_organised, isolate_part
 from scanner.acquisition import AcquisitionSettings, acquire
 from scanner.config import CONFIG_DIR
 from scanner.decode import decode

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_inspection_registration import virtual_view
 
 from inspection.cad import load_cad
-from scanner import cli
 from scanner.config import CONFIG_DIR
 from sim.parts import lying_pose
-from test_inspection_registration import virtual_view
+from slscan import cli
 
 STEP = CONFIG_DIR / "parts" / "demo_part.step"
 
@@ -45,7 +45,7 @@ def test_scan_of_another_part(cloud: Path, tmp_path: Path, capsys) -> None:
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox
     from OCP.gp import gp_Pnt
 
-    from sim.make_demo_part import write_step
+    from sim.parts_demo import write_step
 
     block = tmp_path / "block.step"
     write_step(BRepPrimAPI_MakeBox(gp_Pnt(-45, -30, 0), gp_Pnt(45, 30, 28)).Shape(), block)

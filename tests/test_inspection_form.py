@@ -10,8 +10,7 @@ import pytest
 
 from inspection.cad import load_cad
 from inspection.errors import ToleranceError
-from inspection.form import (ALPHA, cylindricity_mz, evaluate_face, flatness_mz, gaussian_filter, noise_sigma,
-                             plane_ls)
+from inspection.form import ALPHA, cylindricity_mz, evaluate_face, flatness_mz, gaussian_filter, noise_sigma, plane_ls
 from inspection.sampling import sample_model
 from inspection.segmentation import project_to_faces
 from inspection.tolerances import load_tolerances, verdict

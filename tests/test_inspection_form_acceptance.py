@@ -17,7 +17,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-
 from test_inspection_sim import _row, _true_form, defective_run
 
 pytestmark = pytest.mark.slow

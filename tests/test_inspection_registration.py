@@ -18,12 +18,12 @@ from scipy.spatial.transform import Rotation
 from inspection.cad import load_cad
 from inspection.errors import CloudError, RegistrationFailed, UnitMismatch
 from inspection.features import shot
+from inspection.measured_cloud import ScanCloud, isolate_part, make_scan
 from inspection.registration import ModelTarget, RegistrationSettings, kabsch, pose_difference, register
 from inspection.sampling import sample_model
-from inspection.scan import ScanCloud, isolate_part, make_scan
-from scanner import cli
 from scanner.config import CONFIG_DIR
 from sim.parts import lying_pose
+from slscan import cli
 
 STEP = CONFIG_DIR / "parts" / "demo_part.step"
 
@@ -128,8 +128,8 @@ def test_face_off_as_a_whole_does_not_tilt_the_fit(demo) -> None:
     """The high top (#657, 38 % of the view) raised by 0.1 mm: the fit rests on the faces
     that conform (a best fit of all would tilt the part and show deviations on all), and
     the raised face reads +0.1 mm."""
-    from inspection.segmentation import assign_faces
     from inspection.registration import transform_points
+    from inspection.segmentation import assign_faces
 
     model, target = demo
     pose = lying_pose(model.tessellation.vertices, 0.35, 400.0, (0.3, 0.1))
@@ -149,7 +149,7 @@ def test_another_part_fails_registration(demo, tmp_path: Path) -> None:
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox
     from OCP.gp import gp_Pnt
 
-    from sim.make_demo_part import write_step
+    from sim.parts_demo import write_step
 
     block = tmp_path / "block.step"
     write_step(BRepPrimAPI_MakeBox(gp_Pnt(-45, -30, 0), gp_Pnt(45, 30, 28)).Shape(), block)

@@ -21,18 +21,18 @@ from scipy.spatial import cKDTree
 
 from inspection.cad import load_cad
 from inspection.form import evaluate_face
-from inspection.pipeline import inspect
+from inspection.inspect_scan import inspect
+from inspection.measured_cloud import from_organised
 from inspection.registration import pose_difference, transform_points
 from inspection.sampling import sample_model
-from inspection.scan import from_organised
 from inspection.segmentation import project_to_faces
-from scanner import cli
 from scanner.config import CONFIG_DIR
 from scanner.patterns import PatternSet
 from scanner.pipeline import scan
-from scanner.recording import read_summary
+from scanner.recording_reader import read_summary
 from scanner.rig import RigConfig, open_rig
 from sim.parts import Lobing, PlaneBow, Roughness, Taper, deform, lying_pose, part_scene
+from slscan import cli
 
 STEP = CONFIG_DIR / "parts" / "demo_part.step"
 BOW, LOBES, TAPER, TEXTURE = 0.06, 0.02, 0.0015, 0.07  # mm; the texture is 5x the ~14 um depth noise

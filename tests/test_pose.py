@@ -1,4 +1,4 @@
-"""Poses of thin parts in simulated bins (inspection/pose.py, inspection/picking.py, the
+"""Poses of thin parts in simulated bins (inspection/bins/pose.py, inspection/bins/picking.py, the
 `slscan pose` command), checked against the simulator's true poses, sides and occlusion;
 bad input (empty scene, masks of the wrong size, nonsense part files) gives named errors
 or empty results, never an invented pose."""
@@ -14,17 +14,17 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from inspection.errors import CadError, InspectionError
-from inspection.instances import instances_from_depth_steps, instances_from_label_image
-from inspection.picking import pick_order
-from inspection.pose import PoseSettings, ThinPartModel, estimate_poses
+from inspection.bins.instances import instances_from_depth_steps, instances_from_label_image
+from inspection.bins.picking import pick_order
+from inspection.bins.pose import PoseSettings, ThinPartModel, estimate_poses
+from inspection.errors import CadError, InspectionError, MaskError
 from inspection.registration import pose_difference
-from inspection.segmentation_errors import MaskError
-from scanner.cli import main
-from scanner.commands.pose import load_masks, load_part
-from scanner.recording import CLOUD, entity_paths
+from scanner.recording_reader import entity_paths
 from scanner.rig import RigConfig
+from scanner.session_recording import CLOUD
 from sim.bins import TabPart, bin_scene, fringe_scan_bin, scan_bin
+from slscan.cli import main
+from slscan.commands.pose import load_masks, load_part
 
 PARTS = Path(__file__).resolve().parents[1] / "config" / "parts"
 TRANS_MM, ROT_DEG = 0.1, 0.5
@@ -165,7 +165,7 @@ def test_empty_scene_gives_no_poses_and_says_so(model: ThinPartModel, tmp_path: 
 def test_no_recognisable_part_is_reported_as_failed(model: ThinPartModel) -> None:
     """A disc of the part's thickness lying on the tray: an instance, but no pose of the tab
     explains it."""
-    from inspection.instances import Instance
+    from inspection.bins.instances import Instance
 
     rng = np.random.default_rng(1)
     r = 9.0 * np.sqrt(rng.random(8000))
@@ -240,7 +240,7 @@ def test_silhouette_handedness_tells_the_side_of_uncovered_parts(small_bin: tupl
     """Hu's seventh moment (which side's coarse search runs first) flips sign in a mirror
     image, the two sides of the tab have opposite signs, and an uncovered instance's
     silhouette has the sign of the side the simulator put up."""
-    from inspection.pose import SceneContext, _onto_plane, _patch, _skew_moment
+    from inspection.bins.pose import SceneContext, _onto_plane, _patch, _skew_moment
 
     front, back = model.sides["front"].skew, model.sides["back"].skew
     assert np.sign(front) == -np.sign(back) and abs(front) > 1e-8
@@ -259,8 +259,8 @@ def test_a_view_both_sides_explain_is_ambiguous_not_posed(model: ThinPartModel) 
     """The tab's rounded end with its hole (beyond the notch: mirror-symmetric about the
     tab's long axis), a part lying over the cut: front up and back up explain it equally,
     so no pose may be reported."""
-    from inspection.instances import Instance
-    from inspection.pose import SceneContext, estimate_pose
+    from inspection.bins.instances import Instance
+    from inspection.bins.pose import SceneContext, estimate_pose
 
     part = TabPart()
     w, c = part.width_mm, part.length_mm - 8.0   # the cut, 8 mm before the end's centre

@@ -1,4 +1,4 @@
-"""Context-free segmentation (seed 002): downsampling, multi-scale features, region
+"""Context-free segmentation (paper 002): downsampling, multi-scale features, region
 growing, the α/β/η metrics, instances from masks and segments, and the CLI — each
 against ground truth built into the synthetic data."""
 
@@ -11,17 +11,25 @@ import cv2
 import numpy as np
 import pytest
 
+from inspection.bins.instances import (
+    Instance,
+    InstanceSegmenter,
+    MaskPrediction,
+    OnnxInstanceSegmenter,
+    instances_from_label_image,
+    instances_from_model,
+    instances_from_segments,
+    predictions_from_maskrcnn,
+    read_label_image,
+    read_labelme,
+)
 from inspection.downsample import density_voxel_size, downsample
-from inspection.errors import CloudError
-from inspection.instances import (Instance, InstanceSegmenter, MaskPrediction, OnnxInstanceSegmenter,
-                                  instances_from_label_image, instances_from_model, instances_from_segments,
-                                  predictions_from_maskrcnn, read_label_image, read_labelme)
-from inspection.local_features import MultiScale
-from inspection.region_growing import point_spacing, segment
-from inspection.segmentation_errors import MaskError, SegmentationError
-from inspection.segmetrics import NO_POINT, score
-from scanner.cli import main
+from inspection.errors import CloudError, MaskError, SegmentationError
+from inspection.regions.local_features import MultiScale
+from inspection.regions.region_growing import point_spacing, segment
+from inspection.regions.segmetrics import NO_POINT, score
 from scanner.pointcloud import OrganisedCloud
+from slscan.cli import main
 
 
 def _room(seed: int = 0, noise: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
@@ -337,7 +345,7 @@ def test_cli_segment_and_segscore(tmp_path: Path, room: tuple[np.ndarray, np.nda
     assert main(["segment", str(ply), "--radius", "3"]) == 0
     labels = np.load(tmp_path / "room.segments.npy")
     assert labels.shape == (len(truth[sel]),)
-    from scanner.recording import read_points
+    from scanner.recording_reader import read_points
 
     logged = read_points(tmp_path / "room.segments.rrd", "world/segments")
     assert len(logged[0]) == len(labels)

@@ -10,16 +10,23 @@ import cv2
 import numpy as np
 import pytest
 
-from scanner import cli
 from scanner.config import CONFIG_DIR
-from scanner.errors import (ConfigError, DeviceDisconnected, DeviceTimeout, FrameDropped, FrameOutOfOrder,
-                            IncompleteSession, SessionError)
+from scanner.errors import (
+    ConfigError,
+    DeviceDisconnected,
+    DeviceTimeout,
+    FrameDropped,
+    FrameOutOfOrder,
+    IncompleteSession,
+    SessionError,
+)
 from scanner.patterns import PatternSet
 from scanner.pipeline import reprocess, scan
-from scanner.recording import read_points, read_summary
+from scanner.recording_reader import read_points, read_summary
 from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
 from scanner.session import ERROR, MANIFEST, Session
-from sim.devices import Faults
+from sim.virtual_devices import Faults
+from slscan import cli
 
 SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
 PATTERNS = PatternSet.load(CONFIG_DIR / "patterns" / "heterodyne_3x4.toml")

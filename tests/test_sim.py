@@ -20,10 +20,10 @@ from scanner.devices import TriggerType
 from scanner.errors import ConfigError, DeviceDisconnected, DeviceError, DeviceTimeout
 from scanner.geometry import Pinhole, RigModel
 from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
-from sim.devices import Faults, SimCamera, SimProjector
 from sim.render import BSplineSampler, Renderer, SensorModel, compute_ground_truth
-from sim.rig import open_sim_rig
 from sim.scene import Scene, SceneObject, load_scene
+from sim.virtual_devices import Faults, SimCamera, SimProjector
+from sim.virtual_rig import open_sim_rig
 
 BENCH = RigConfig.load(DEFAULT_RIG)
 MODEL = BENCH.nominal_model()
@@ -135,7 +135,7 @@ def test_bundled_scenes_load():
 def test_demo_part_is_watertight_and_matches_generator():
     import open3d as o3d
 
-    from sim.make_demo_part import OUTPUT, build_demo_part
+    from sim.parts_demo import OUTPUT, build_demo_part
 
     v, t = build_demo_part()
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t))
@@ -222,7 +222,7 @@ def test_camera_rays_are_ray_grid():
 def test_box_and_mesh_formats(tmp_path):
     import open3d as o3d
 
-    from sim.make_demo_part import build_demo_part
+    from sim.parts_demo import build_demo_part
 
     v, t = build_demo_part()
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t))

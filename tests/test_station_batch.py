@@ -1,6 +1,6 @@
 """Batch re-inspection of stored parts, serially and on a local Dask cluster started by the
 test (2 in-process workers): the same results either way, per-part failures reported
-without stopping the batch. The measuring step is the `TruthGauge` test double."""
+without stopping the batch. The measuring step is the simulator's truth (`measure.SimulatorTruth`)."""
 
 from __future__ import annotations
 
@@ -10,18 +10,18 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
 
-import pytest
-
 import numpy as np
+import pytest
+from test_station_support import DEMO_PROGRAM, TRUTH_GAUGE, station_config
 
-from scanner import cli
 from scanner.pointcloud import read_ply_points
 from scanner.rig import DEFAULT_RIG, RigConfig
-from scanner.station.app import open_station
-from scanner.station.batch import compare, part_sessions, run_batch
-from scanner.station.config import StationConfig
-from scanner.station.results import open_results
-from test_station_support import DEMO_PROGRAM, TRUTH_GAUGE, TruthGauge, station_config
+from slscan import cli
+from slscan.station.app import open_station
+from slscan.station.batch import compare, part_sessions, run_batch
+from slscan.station.measure import SimulatorTruth
+from slscan.station.results import open_results
+from slscan.station.station_config import StationConfig
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +29,7 @@ def stored(tmp_path_factory: pytest.TempPathFactory) -> tuple[StationConfig, lis
     """Three measured parts (nominal, 150 um bow, 10 um lobing) and one aborted mid-capture."""
     folder = tmp_path_factory.mktemp("batch")
     config = StationConfig.load(station_config(folder))
-    with open_station(DEMO_PROGRAM, config, "ana", TruthGauge()) as run:
+    with open_station(DEMO_PROGRAM, config, "ana", SimulatorTruth()) as run:
         parts = [run.station.run_cycle(f"SN-{k}", part=k).part_path for k in range(3)]
         cancel = threading.Event()
         aborted = run.station.run_cycle("SN-X", part=3, cancel=cancel,
@@ -97,7 +97,7 @@ def test_batch_command_stores_results_and_prints_a_summary(stored: tuple[Station
 
 def test_batch_reconstructs_with_the_rig_given_and_its_calibration(stored: tuple[StationConfig, list[Path]],
                                                                    tmp_path: Path) -> None:
-    from calibration.file import write_calibration
+    from scanner.calibration_file import write_calibration
 
     config, parts = stored
     cloud = part_sessions(parts[0])[0] / "outputs" / "cloud.ply"

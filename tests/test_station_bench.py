@@ -11,7 +11,7 @@ import numpy as np
 from scanner.config import CONFIG_DIR
 from scanner.drivers.testing import Dlpc350Emulator, FakeAcquirer, FakeCapture, TriggerBoxEmulator
 from scanner.rig import RigConfig
-from scanner.station.bench import Bench
+from slscan.station.hardware_bench import Bench
 
 LCR = CONFIG_DIR / "rigs" / "lightcrafter_uvc_box.toml"
 

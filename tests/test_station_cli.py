@@ -1,7 +1,7 @@
 """`slscan station --auto` and `slscan results` (query, CSV, HTML report) as the operator's
 shell sees them, including a station killed (SIGKILL) or interrupted (SIGINT) in the
 middle of a scan. The station
-config measures with the `TruthGauge` test double (see test_station_support.py)."""
+config measures with the simulator's truth (`measure.SimulatorTruth`) (see test_station_support.py)."""
 
 from __future__ import annotations
 
@@ -16,19 +16,19 @@ import time
 from pathlib import Path
 
 import pytest
+from test_station_support import DEMO_PROGRAM, station_config
 
 from scanner.errors import IncompleteSession
 from scanner.session import ERROR, Session
-from scanner.station.config import StationConfig
-from scanner.station.results import open_results
-from test_station_support import DEMO_PROGRAM, station_config
+from slscan.station.results import open_results
+from slscan.station.station_config import StationConfig
 
 TESTS = Path(__file__).resolve().parent
 
 
 def slscan(*args: str, **kw: object) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
-    return subprocess.Popen([sys.executable, "-m", "scanner.cli", *args], env=env, stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-m", "slscan.cli", *args], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, **kw)  # type: ignore[call-overload]
 
 

@@ -1,5 +1,5 @@
 """The operator loop on a small simulated bench: cycles, verdicts, storage, abort, re-scan,
-refusal, the control charts and the report. The measuring step is the `TruthGauge` test
+refusal, the control charts and the report. The measuring step is the simulator's truth (`measure.SimulatorTruth`)
 double (it reports the imposed defects), so these tests check the station, not a
 measurement; measured verdicts are tested through the inspection adapter."""
 
@@ -11,19 +11,19 @@ from pathlib import Path
 from typing import Iterator, Sequence
 
 import pytest
+from test_station_support import DEMO_PROGRAM, program_copy, station_config
 
 from scanner.errors import IncompleteSession
-from scanner.recording import read_component, read_summary
+from scanner.recording_reader import read_component, read_summary
 from scanner.session import ERROR, Session
-from scanner.station.app import StationRun, expected_status, open_station
-from scanner.station.charts import control_metric
-from scanner.station.config import StationConfig
-from scanner.station.loop import PART_RECORD, Refused
-from scanner.station.measure import MeasurementResult
-from scanner.station.program import PartProgram
-from scanner.station.tui import StationTUI
 from sim.station_parts import TRUTH_FILE, lineup
-from test_station_support import DEMO_PROGRAM, TruthGauge, program_copy, station_config
+from slscan.station.app import StationRun, expected_status, open_station
+from slscan.station.charts import control_metric
+from slscan.station.loop import PART_RECORD, Refused
+from slscan.station.measure import MeasurementResult, SimulatorTruth
+from slscan.station.program import PartProgram
+from slscan.station.station_config import StationConfig
+from slscan.station.tui import StationTUI
 
 
 @pytest.fixture
@@ -33,7 +33,7 @@ def config(tmp_path: Path) -> StationConfig:
 
 @pytest.fixture
 def run(config: StationConfig) -> Iterator[StationRun]:
-    with open_station(DEMO_PROGRAM, config, "ana", TruthGauge()) as r:
+    with open_station(DEMO_PROGRAM, config, "ana", SimulatorTruth()) as r:
         yield r
 
 
@@ -50,7 +50,7 @@ def test_cycles_give_the_verdicts_of_the_imposed_defects_and_store_everything(ru
     assert [(r.serial, r.status, r.attempt, r.operator) for r in rows] == [
         ("SN-0", "pass", 1, "ana"), ("SN-1", "fail", 1, "ana"), ("SN-2", "pass", 1, "ana")]
     assert {r.calibration_id for r in rows} == {"factory-sim-bench"}
-    assert {r.measurement for r in rows} == {TruthGauge.name}
+    assert {r.measurement for r in rows} == {SimulatorTruth.name}
     values = run.store.values([r.id for r in rows])
     assert [(v.characteristic, v.value_mm, v.conforms) for v in values[rows[1].id]][:1] == [
         ("high_top_flatness", 0.15, False)]
@@ -99,13 +99,13 @@ def test_abort_keeps_the_frames_stores_the_cycle_and_a_rescan_is_a_new_attempt(r
 
 def test_mismatched_calibration_is_refused_before_anything_is_scanned(tmp_path: Path, config: StationConfig) -> None:
     program = program_copy(tmp_path, ('id = "factory-sim-bench"', 'id = "cal-2026-10-01"'))
-    with open_station(program, config, "ana", TruthGauge()) as r:
+    with open_station(program, config, "ana", SimulatorTruth()) as r:
         with pytest.raises(Refused, match="calibration mismatch: program.toml expects calibration.id 'cal-2026-10-01'"):
             r.station.run_cycle("SN-1")
         assert r.store.results() == [] and not config.sessions_dir.exists()
 
 
-class Unmeasurable(TruthGauge):
+class Unmeasurable(SimulatorTruth):
     """Test double: the part cannot be registered."""
 
     name = "unmeasurable (test double)"
@@ -114,7 +114,7 @@ class Unmeasurable(TruthGauge):
         return MeasurementResult(False, message="registration failed: fitness 0.12 below 0.5")
 
 
-class Unavailable(TruthGauge):
+class Unavailable(SimulatorTruth):
     name = "missing (test double)"
 
     def unavailable(self) -> str | None:
@@ -162,7 +162,7 @@ def test_foot_switch_on_the_trigger_box_input_starts_one_scan_per_press(run: Sta
 def test_a_program_with_two_views_scans_the_part_twice_turned(tmp_path: Path, config: StationConfig) -> None:
     program = program_copy(tmp_path, ("views = 1", "views = 2"))
     steps: list[str] = []
-    with open_station(program, config, "ana", TruthGauge()) as r:
+    with open_station(program, config, "ana", SimulatorTruth()) as r:
         o = r.station.run_cycle("SN-1", part=1, progress=lambda stage, done, total: steps.append(stage))
     assert o.status == "fail" and o.sessions == (o.part_path / "view0", o.part_path / "view1")
     truths = [json.loads((Session.open(s).root / TRUTH_FILE).read_text()) for s in o.sessions]

@@ -1,24 +1,20 @@
 """The measuring step through its one adapter onto `inspection`.
 
-How the adapter reads the issue-5 per-face report is tested on report tables; the verdicts
-of measured simulated parts (the acceptance of `slscan station --parts 5 --auto`) run once
-inspection provides the entry the adapter calls, and are skipped until then."""
+How the adapter reads the per-face inspection report is tested on report tables; the verdicts
+of measured simulated parts are the acceptance of `slscan station --parts 5 --auto`."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import pytest
-
-from scanner.config import CONFIG_DIR
-from scanner.station.app import expected_status, open_station
-from scanner.station.config import StationConfig
-from scanner.station.measure import INSPECT_ENTRY, InspectionMeasurement, _pick
-from scanner.station.program import Characteristic, load_program
 from test_station_support import DEMO_PROGRAM, station_config
 
-MISSING = InspectionMeasurement().unavailable()
-needs_inspection = pytest.mark.skipif(MISSING is not None, reason=f"inspection stage not landed: {MISSING}")
+from scanner.config import CONFIG_DIR
+from slscan.station.app import expected_status, open_station
+from slscan.station.measure import _pick
+from slscan.station.program import Characteristic, load_program
+from slscan.station.station_config import StationConfig
 
 FLAT = Characteristic("high_top_flatness", "#657", "flatness", 0.05, "minimum_zone")
 PROFILE = Characteristic("high_top_profile", "#657", "profile", 0.4)
@@ -45,16 +41,6 @@ def test_a_face_not_seen_or_not_evaluated_has_no_value_and_says_why() -> None:
     assert nan.value_mm is None and "flatness_mz_mm" in nan.note
 
 
-def test_the_station_refuses_to_measure_while_the_inspection_entry_is_missing(tmp_path: Path) -> None:
-    if MISSING is None:
-        pytest.skip("the inspection stage has landed: nothing is missing")
-    config = StationConfig.load(station_config(tmp_path, measurement="scanner.station.measure:InspectionMeasurement"))
-    with open_station(DEMO_PROGRAM, config) as run:
-        [why] = run.station.refusals()
-        assert why.startswith("measuring step (inspection) unavailable: ")
-        assert INSPECT_ENTRY.split(":")[0] in why
-
-
 def _run_demo_parts(tmp_path: Path, parts: list[int]) -> None:
     """Measure simulated demo parts at full resolution through inspection; every verdict must
     be the one its imposed defects call for, so must each characteristic's (nominal faces read
@@ -62,7 +48,7 @@ def _run_demo_parts(tmp_path: Path, parts: list[int]) -> None:
     measured near its truth: flatness to 5 um + 10 %; cylindricity, seen on about half the
     boss's side, between 0.52 of its whole-side zone (the least half an arc keeps of 3-lobe
     lobing) and the zone."""
-    config = StationConfig.load(station_config(tmp_path, measurement="scanner.station.measure:InspectionMeasurement",
+    config = StationConfig.load(station_config(tmp_path, measurement="inspection",
                                                rig=CONFIG_DIR / "rigs" / "sim_bench.toml"))
     program = load_program(DEMO_PROGRAM)
     with open_station(DEMO_PROGRAM, config) as run:
@@ -79,13 +65,11 @@ def _run_demo_parts(tmp_path: Path, parts: list[int]) -> None:
                     assert 0.52 * truth - 0.005 <= v.value_mm <= truth + 0.005, v
 
 
-@needs_inspection
 @pytest.mark.slow
 def test_measured_verdict_of_a_bowed_part(tmp_path: Path) -> None:
     _run_demo_parts(tmp_path, [1])  # the 150 um bow: FAIL on the high top's flatness
 
 
-@needs_inspection
 @pytest.mark.slow
 def test_five_parts_with_imposed_defects_get_the_right_verdicts(tmp_path: Path) -> None:
     _run_demo_parts(tmp_path, [0, 1, 2, 3, 4])

@@ -8,22 +8,22 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from test_station_support import DEMO_PROGRAM, program_copy, small_rig, station_config
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError
 from scanner.rig import RigConfig
-from scanner.station.calib import CalibrationInfo, refusals, rig_calibration
-from scanner.station.config import StationConfig
-from scanner.station.measure import cad_faces
-from scanner.station.program import load_program
 from sim.station_parts import CHARACTERISTIC_FACES
-from test_station_support import DEMO_PROGRAM, program_copy, small_rig, station_config
+from slscan.station.calib import CalibrationInfo, refusals, rig_calibration
+from slscan.station.measure import cad_faces
+from slscan.station.program import load_program
+from slscan.station.station_config import StationConfig
 
 TODAY = dt.date(2026, 11, 23)
 
 
 def test_demo_program_loads_with_faces_checked_in_the_cad() -> None:
-    p = load_program(DEMO_PROGRAM)
+    p = load_program(DEMO_PROGRAM, faces=cad_faces)
     assert p.name == "demo-part" and p.version == "2.0" and len(p.fingerprint) == 12
     assert [c.name for c in p.characteristics] == ["high_top_flatness", "low_top_flatness", "boss_cylindricity",
                                                    "high_top_profile", "high_top_sq"]
@@ -31,7 +31,6 @@ def test_demo_program_loads_with_faces_checked_in_the_cad() -> None:
     assert p.characteristic("high_top_sq").method is None
     assert p.scan.views == 1 and p.scan.exposure_s == 0.010 and p.scan.pattern_set().n_frames == 12
     faces = cad_faces(p)
-    assert isinstance(faces, dict), faces  # the inspection CAD loader is in place
     assert p.face_check == f"13 faces in demo_part.step, all 5 characteristics found" and len(faces) == 13
     assert (faces["#657"], faces["#158"], faces["#17"], faces["#105"]) == ("plane", "plane", "cylinder", "cone")
 
@@ -65,9 +64,9 @@ def test_bad_program_names_file_and_key(tmp_path: Path, edit: tuple[str, str], k
 def test_face_the_cad_does_not_have_is_refused(tmp_path: Path) -> None:
     path = program_copy(tmp_path, ('face = "#158"', 'face = "#999"'))
     with pytest.raises(ConfigError, match="face '#999' .* is not in demo_part.step; its faces are #17, #105") as err:
-        load_program(path)
+        load_program(path, faces=cad_faces)
     assert err.value.key == "characteristic[1].face"
-    assert load_program(path, check_faces=False).characteristics[1].face == "#999"  # the schema alone is fine
+    assert load_program(path).characteristics[1].face == "#999"  # the schema alone is fine
 
 
 @pytest.mark.parametrize("edit, problem", [
@@ -77,7 +76,7 @@ def test_face_the_cad_does_not_have_is_refused(tmp_path: Path) -> None:
 def test_characteristic_on_a_face_of_the_wrong_type_is_refused(tmp_path: Path, edit: tuple[str, str],
                                                                problem: str) -> None:
     with pytest.raises(ConfigError) as err:
-        load_program(program_copy(tmp_path, edit))
+        load_program(program_copy(tmp_path, edit), faces=cad_faces)
     assert err.value.problem == problem
 
 
@@ -85,7 +84,7 @@ def test_mesh_face_of_no_known_type_is_refused_for_a_form_characteristic(tmp_pat
     """A mesh CAD model has faces but no surface types: flatness on one is refused."""
     path = program_copy(tmp_path, ('face = "#657"', 'face = "F3"'), cad=f'"{CONFIG_DIR / "parts" / "demo_part.ply"}"')
     with pytest.raises(ConfigError) as err:
-        load_program(path)
+        load_program(path, faces=cad_faces)
     assert err.value.key == "characteristic[0].face"
     assert err.value.problem == ("flatness applies to plane faces; face F3 of demo_part.ply is a mesh face "
                                  "(a mesh face of no known surface type: use a STEP model)")
@@ -142,7 +141,7 @@ def test_hardware_rig_without_calibration_file_is_uncalibrated(tmp_path: Path) -
 
 
 def test_calibration_file_named_by_the_rig_gives_its_id_and_date_and_can_expire(tmp_path: Path) -> None:
-    from calibration.file import write_calibration
+    from scanner.calibration_file import write_calibration
 
     rig = small_rig(tmp_path)
     created = dt.datetime(2026, 4, 1, 9, 30, 5, tzinfo=dt.timezone.utc)

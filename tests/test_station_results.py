@@ -17,7 +17,7 @@ from urllib.parse import quote
 
 import pytest
 
-from scanner.station.results import PartStart, ResultsError, ResultsStore, ValueRecord, open_results, write_csv
+from slscan.station.results import PartStart, ResultsError, ResultsStore, ValueRecord, open_results, write_csv
 
 PG_URL = os.environ.get("SLSCAN_TEST_PG_URL")
 T0 = dt.datetime(2026, 11, 23, 8, 0, 0, 123456, tzinfo=dt.timezone.utc)

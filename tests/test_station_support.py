@@ -1,40 +1,17 @@
-"""Shared pieces of the station tests (no tests here): a small simulated bench, a station
-config around it, and a test double of the measuring step."""
+"""Shared pieces of the station tests (no tests here): a small simulated bench and a station
+config around it, measuring with the simulator's truth (`measure.SimulatorTruth`) unless told."""
 
 from __future__ import annotations
 
 import json
 import re
 from pathlib import Path
-from typing import Sequence
 
 from scanner.config import CONFIG_DIR
 from scanner.rig import DEFAULT_RIG
-from scanner.session import Session
-from scanner.station.measure import MeasuredValue, MeasurementResult
-from scanner.station.program import PartProgram
-from sim.station_parts import TRUTH_FILE
 
 DEMO_PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"
-TRUTH_GAUGE = "test_station_support:TruthGauge"
-
-
-class TruthGauge:
-    """Test double of the measuring step: returns the simulated part's imposed defects
-    (`sim_part.json`, written into each session by the simulated bench) as if measured.
-    It measures nothing, so tests using it check the station's loop, storage, views and
-    verdict logic, never a measurement; measured verdicts are tested through the inspection
-    adapter."""
-
-    name = "truth-gauge (test double)"
-
-    def unavailable(self) -> str | None:
-        return None
-
-    def measure(self, sessions: Sequence[Session], program: PartProgram) -> MeasurementResult:
-        truth = json.loads((sessions[0].root / TRUTH_FILE).read_text())["imposed_mm"]
-        points = json.loads((sessions[0].outputs / "result.json").read_text())["points"]
-        return MeasurementResult(True, tuple(MeasuredValue(c.name, truth[c.name], points) for c in program.characteristics))
+TRUTH_GAUGE = "simulator-truth"  # measures nothing: reports the simulated part's imposed defects
 
 
 def small_rig(folder: Path, width: int = 320, height: int = 256) -> Path:

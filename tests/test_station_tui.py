@@ -2,7 +2,7 @@
 
 `pexpect` runs `slscan station` in a pty; `Screen` below replays what the program writes
 (the cursor-addressing subset of xterm that curses uses) into rows of text, so the test
-reads the screen the operator sees. The measuring step is the `TruthGauge` test double."""
+reads the screen the operator sees. The measuring step is the simulator's truth (`measure.SimulatorTruth`)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ import time
 from pathlib import Path
 
 import pexpect
-
-from scanner.station.config import StationConfig
-from scanner.station.results import open_results
 from test_station_support import DEMO_PROGRAM, program_copy, station_config
+
+from slscan.station.results import open_results
+from slscan.station.station_config import StationConfig
 
 ROWS, COLS = 40, 140
 TESTS = Path(__file__).resolve().parent
@@ -129,7 +129,7 @@ class Terminal:
 
     def __init__(self, *args: str) -> None:
         env = {**os.environ, "TERM": "xterm", "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
-        self.child = pexpect.spawn(sys.executable, ["-m", "scanner.cli", *args], env=env, dimensions=(ROWS, COLS),
+        self.child = pexpect.spawn(sys.executable, ["-m", "slscan.cli", *args], env=env, dimensions=(ROWS, COLS),
                                    encoding="utf-8", codec_errors="replace")
         self.screen = Screen(ROWS, COLS)
 
@@ -160,7 +160,7 @@ def test_operator_screen_keys_in_screen_text_out(tmp_path: Path) -> None:
     try:
         screen = term.wait(r"READY\s+part 1\s+serial: \(none\)\s+operator: ana")
         assert "calibration  factory-sim-bench (undated, does not expire" in screen
-        assert "measuring    truth-gauge (test double): ready" in screen
+        assert "measuring    simulator-truth: ready" in screen
         assert "[s]/Enter scan" in screen and "REFUSING" not in screen
 
         term.keys("e")
@@ -218,7 +218,7 @@ def test_without_a_terminal_the_station_says_to_use_auto(tmp_path: Path) -> None
     import subprocess
 
     env = {**os.environ, "PYTHONPATH": str(TESTS)}
-    p = subprocess.run([sys.executable, "-m", "scanner.cli", "station", str(DEMO_PROGRAM), "--config",
+    p = subprocess.run([sys.executable, "-m", "slscan.cli", "station", str(DEMO_PROGRAM), "--config",
                         str(station_config(tmp_path))], env=env, stdin=subprocess.DEVNULL, capture_output=True,
                        text=True, timeout=120)
     assert p.returncode == 2 and "needs a terminal; use --auto --parts N" in p.stderr

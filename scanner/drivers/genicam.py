@@ -22,8 +22,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..devices import Camera, Frame, TriggerMode, TriggerType
-from ..errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+from scanner.devices import Camera, Frame, TriggerMode, TriggerType
+from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
 
 PIXEL_FORMATS = {8: "Mono8", 10: "Mono10", 12: "Mono12", 16: "Mono16"}
 EXTRA_BUFFERS = 4

@@ -24,8 +24,8 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from ..devices import Projector
-from ..errors import DeviceError, UnsupportedSetting
+from scanner.devices import Projector
+from scanner.errors import DeviceError, UnsupportedSetting
 
 VSYNC_TOLERANCE = 0.2  # measured refresh period may differ this much from the configured one
 _CHECK_FRAMES = 12

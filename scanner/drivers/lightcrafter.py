@@ -35,11 +35,11 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from ..devices import Projector
-from ..errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
-from . import lightcrafter_protocol as p
-from .lightcrafter_images import PATTERNS_PER_IMAGE, diamond_resample, fingerprint, pack_rgb24
-from .transport import HidLink
+from scanner.devices import Projector
+from scanner.drivers import lightcrafter_protocol as p
+from scanner.drivers.lightcrafter_images import PATTERNS_PER_IMAGE, diamond_resample, fingerprint, pack_rgb24
+from scanner.drivers.transport import HidLink
+from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
 
 SOURCES = ("flash", "video")
 TRIGGERS = ("internal", "external")
@@ -58,7 +58,7 @@ class VideoOutput(Protocol):
 
 def open_usb(name: str = "lightcrafter4500", serial_number: str | None = None) -> Callable[[], HidLink]:
     """A factory opening the LightCrafter's HID interface through libusb ([PYC] endpoints)."""
-    from .transport import PyUsbHid
+    from scanner.drivers.transport import PyUsbHid
 
     return lambda: PyUsbHid.open(name, p.VENDOR_ID, p.PRODUCT_ID, serial_number)
 

@@ -23,7 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .lightcrafter_protocol import HEIGHT, WIDTH
+from scanner.drivers.lightcrafter_protocol import HEIGHT, WIDTH
 
 PATTERNS_PER_IMAGE = 3  # 8-bit patterns per 24-bit image
 

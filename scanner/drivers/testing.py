@@ -14,7 +14,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Iterator, TypeVar
 
-from ..errors import DeviceDisconnected, DeviceTimeout
+from scanner.errors import DeviceDisconnected, DeviceTimeout
 
 T = TypeVar("T")
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 import errno
 from typing import Any, Protocol
 
-from ..config import CONFIG_DIR
-from ..errors import DeviceDisconnected, DeviceError, DeviceTimeout
+from scanner.config import CONFIG_DIR
+from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 
 UDEV_RULES = CONFIG_DIR / "udev" / "99-slscan.rules"
 

@@ -37,9 +37,9 @@ from typing import Callable
 
 import serial
 
-from ..devices import TriggerSource
-from ..errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
-from .transport import SerialLink, open_serial
+from scanner.devices import TriggerSource
+from scanner.drivers.transport import SerialLink, open_serial
+from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
 
 IDENTITY = "SLSCAN-TRIGGERBOX"
 PROTOCOL = 2

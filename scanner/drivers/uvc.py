@@ -21,8 +21,8 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from ..devices import Camera, Frame, TriggerMode, TriggerType
-from ..errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+from scanner.devices import Camera, Frame, TriggerMode, TriggerType
+from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
 
 _JOIN_S = 2.0
 

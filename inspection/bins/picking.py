@@ -1,0 +1,163 @@
+"""From part poses to what a robot cell reads: duplicates merged, pick order, the poses
+file (JSON) and the Rerun view of the bin.
+
+Pick order: parts with a pose and an estimated occlusion of at most `max_occlusion` are
+pickable; they are ranked uncovered first (occlusion <= `free_occlusion`), then by how
+high they lie (closest to the camera along its axis first), then by occlusion. Parts
+without a pose, or covered more, are listed unranked with the reason.
+
+Poses file (`POSES_FORMAT`, version 1): per part its id, pick rank (1 = first; null:
+not pickable), position (mm) and orientation of the part frame (quaternion w, x, y, z
+and rotation matrix) in the camera frame and in the rig's world frame, the side up,
+occlusion, fitness, RMSE, method and time; failed parts carry `status: "failed"` and the
+reason, and no pose. Units: mm, rad (none in the file: quaternions and matrices).
+
+Rerun (world frame, `scan` timeline): ``world/pose/instances`` the instances' points
+coloured by part; ``world/pose/models/part_<id>`` each posed part mesh;
+``world/pose/pick_order`` a labelled point per pickable part ("#rank id side");
+``pose/table`` the table; ``metrics/pose_*`` counts and median time.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from inspection.bins.instances import Instance
+from inspection.bins.pose import PartPose, ThinPartModel
+from inspection.registration import pose_difference
+
+POSES_FORMAT = "slscan-poses"
+POSES_VERSION = 1
+INSTANCES = "world/pose/instances"
+MODELS = "world/pose/models"
+PICK_ORDER = "world/pose/pick_order"
+TABLE = "pose/table"
+
+
+def merge_duplicates(poses: list[PartPose], angle_deg: float = 2.0, dist_mm: float = 0.5) -> list[PartPose]:
+    """Drop poses that repeat a pose of an instance with more points (one part split into
+    pieces by a part lying across it gives the same pose twice)."""
+    kept: list[PartPose] = []
+    for p in sorted(poses, key=lambda p: -p.points):
+        if p.ok and any(k.ok and all(np.less(pose_difference(k.pose, p.pose), (angle_deg, dist_mm))) for k in kept):
+            continue
+        kept.append(p)
+    return sorted(kept, key=lambda p: p.instance_id)
+
+
+def pick_order(poses: list[PartPose], max_occlusion: float = 0.3, free_occlusion: float = 0.02) -> dict[int, int]:
+    """{instance id: rank from 1} of the pickable parts (see the module docstring)."""
+    pickable = [p for p in poses if p.ok and p.occlusion <= max_occlusion]
+    order = sorted(pickable, key=lambda p: (p.occlusion > free_occlusion, float(p.pose[2, 3]), p.occlusion))
+    return {p.instance_id: k for k, p in enumerate(order, start=1)}
+
+
+def _frame(T: np.ndarray) -> dict[str, Any]:
+    w_last = Rotation.from_matrix(T[:3, :3]).as_quat()   # scipy: x, y, z, w
+    q = np.r_[w_last[3], w_last[:3]]
+    q = q if q[0] >= 0 else -q
+    return {"position_mm": [round(float(x), 5) for x in T[:3, 3]],
+            "quaternion_wxyz": [round(float(x), 8) for x in q],
+            "rotation": [[round(float(x), 8) for x in row] for row in T[:3, :3]]}
+
+
+def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: np.ndarray, source: str,
+                   max_occlusion: float = 0.3, message: str = "") -> dict[str, Any]:
+    """The poses file's content (see the module docstring)."""
+    ranks = pick_order(poses, max_occlusion)
+    parts = []
+    for p in sorted(poses, key=lambda p: (ranks.get(p.instance_id, 10 ** 9), p.instance_id)):
+        row: dict[str, Any] = {"id": p.instance_id, "status": "ok" if p.ok else "failed",
+                               "pick_rank": ranks.get(p.instance_id), "points": p.points, "method": p.method,
+                               "time_ms": round(1000 * p.time_s, 1)}
+        if p.ok:
+            row.update({"side_up": p.side, "occlusion": round(p.occlusion, 4), "fitness": round(p.fitness, 4),
+                        "rmse_mm": round(p.rmse_mm, 5), "edge_fit": round(p.edge_fit, 4),
+                        "side_margin": round(p.side_margin, 4),
+                        "camera": _frame(p.pose), "world": _frame(np.asarray(world_from_cam) @ p.pose)})
+            if p.instance_id not in ranks:
+                row["reason"] = f"occluded {p.occlusion:.0%} (limit {max_occlusion:.0%})"
+        else:
+            row["reason"] = p.reason
+        if p.label:
+            row["label"] = p.label
+        parts.append(row)
+    return {"format": POSES_FORMAT, "version": POSES_VERSION, "source": source, "part": model.name,
+            "units": {"length": "mm"}, "frames": {"pose": "part -> camera / part -> rig world",
+                                                 "quaternion": "w, x, y, z (Hamilton, unit)"},
+            "world_from_camera": np.asarray(world_from_cam).round(8).tolist(),
+            "message": message or f"{len(ranks)} of {len(poses)} parts pickable", "parts": parts}
+
+
+def table(doc: dict[str, Any]) -> str:
+    """The poses as a fixed-width text table (degrees for the tilt, human-facing)."""
+    lines = [f"{'rank':>4} {'id':>4} {'status':<7} {'side':<5} {'x mm':>9} {'y mm':>9} {'z mm':>9} "
+             f"{'tilt°':>6} {'occl':>5} {'fit':>5} {'rmse mm':>8} {'ms':>6}  note"]
+    for r in doc["parts"]:
+        rank = str(r["pick_rank"]) if r["pick_rank"] is not None else "-"
+        if r["status"] == "ok":
+            x, y, z = r["camera"]["position_mm"]
+            R = np.asarray(r["camera"]["rotation"])
+            tilt = np.degrees(np.arccos(min(1.0, abs(R[2, 2]))))
+            lines.append(f"{rank:>4} {r['id']:>4} {'ok':<7} {r['side_up']:<5} {x:9.3f} {y:9.3f} {z:9.3f} {tilt:6.2f} "
+                         f"{r['occlusion']:5.2f} {r['fitness']:5.3f} {r['rmse_mm']:8.4f} {r['time_ms']:6.0f}  "
+                         f"{r.get('reason', '')}")
+        else:
+            lines.append(f"{rank:>4} {r['id']:>4} {'failed':<7} {'':<5} {'':>9} {'':>9} {'':>9} {'':>6} {'':>5} "
+                         f"{'':>5} {'':>8} {r['time_ms']:6.0f}  {r['reason']}")
+    lines.append(doc["message"])
+    return "\n".join(lines)
+
+
+def log_poses(recording: Any, doc: dict[str, Any], poses: list[PartPose], instances: list[Instance],
+              model: ThinPartModel, world_from_cam: np.ndarray, scan_index: int = 0) -> None:
+    """Log the bin's instances, posed models, pick order and table into a
+    `scanner.session_recording.SessionRecording` (see the module docstring)."""
+    import rerun as rr
+
+    stream = recording.stream
+    stream.reset_time()
+    stream.set_time("scan", sequence=scan_index)
+    W = np.asarray(world_from_cam, dtype=np.float64)
+    if instances:
+        pts = np.concatenate([i.points for i in instances]) @ W[:3, :3].T + W[:3, 3]
+        ids = np.concatenate([np.full(len(i), i.id) for i in instances])
+        stream.log(INSTANCES, rr.Points3D(pts.astype(np.float32), class_ids=(ids % 65535).astype(np.uint16)),
+                   strict=True)
+    ranks = {r["id"]: r["pick_rank"] for r in doc["parts"]}
+    anchors, labels = [], []
+    for p in poses:
+        if not p.ok:
+            continue
+        T = W @ p.pose
+        v = model.vertices @ T[:3, :3].T + T[:3, 3]
+        rank = ranks.get(p.instance_id)
+        colour = [0.2, 0.8, 0.3, 0.6] if rank is not None else [0.9, 0.4, 0.2, 0.6]
+        stream.log(f"{MODELS}/part_{p.instance_id}", rr.Mesh3D(vertex_positions=v.astype(np.float32),
+                                                               triangle_indices=model.triangles.astype(np.uint32),
+                                                               albedo_factor=colour), strict=True)
+        if rank is not None:
+            anchors.append(v.mean(axis=0))
+            labels.append(f"#{rank} id {p.instance_id} {p.side}")
+    if anchors:
+        stream.log(PICK_ORDER, rr.Points3D(np.array(anchors, np.float32), labels=labels, radii=0.5), strict=True)
+    stream.log(TABLE, rr.TextDocument("```\n" + table(doc) + "\n```", media_type=rr.MediaType.MARKDOWN), strict=True)
+    ok = [p for p in poses if p.ok]
+    metrics = {"parts": float(len(poses)), "posed": float(len(ok)),
+               "pickable": float(sum(r["pick_rank"] is not None for r in doc["parts"])),
+               "median_time_ms": float(np.median([1000 * p.time_s for p in poses])) if poses else 0.0}
+    for name, value in metrics.items():
+        stream.log(f"metrics/pose_{name}", rr.Scalars(value), strict=True)
+
+
+def write_poses(path: Any, doc: dict[str, Any]) -> None:
+    """Write the poses file atomically (a robot cell polling it never reads half a file)."""
+    from pathlib import Path
+
+    from scanner.session import write_json
+
+    write_json(Path(path), doc)
+

@@ -1,0 +1,11 @@
+"""The commands of `slscan`, one module per feature.
+
+Each module defines `register(subparsers)`, adding its sub-commands to the `slscan` parser
+with `set_defaults(func=...)`; a command function takes the parsed arguments and returns
+the exit code. Modules are imported when the parser is built, so they import heavy
+libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
+"""
+
+from slscan.commands import bench, calibrate, devices, inspect, pose, review, scan, segment, station
+
+COMMANDS = (scan, review, bench, devices, calibrate, inspect, pose, segment, station)

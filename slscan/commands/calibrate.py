@@ -1,0 +1,306 @@
+"""`slscan calibrate`: calibrate a projector-camera rig, guided on the bench or from
+captures on disk (calibration/).
+
+    slscan calibrate --rig RIG.toml --out DIR          capture on the rig, solve, validate, write
+    slscan calibrate --from CAPTURE --out DIR          solve again from a capture made by slscan
+    slscan calibrate --from DIR --layout opencv-graycode --projector-size 1024x768 --board BOARD.toml --out DIR
+
+On a simulated rig the simulator moves the board, the plate and the artefact, and the
+report ends with the calibration's errors against the simulator's ground truth and a scan
+compared with the ground-truth rig.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from scanner.config import CONFIG_DIR
+from scanner.errors import ConfigError, ScannerError
+
+SCAN_CHECK_SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
+TEXELS_PER_PX = 4.0  # simulated board texture: texels per camera pixel at the working distance
+PLATE_BEHIND_MM = 20.0  # simulated reference plate, beyond the working distance
+ARTEFACT_BEFORE_MM = 10.0  # simulated sphere pair, nearer than the working distance
+
+
+def _size(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"(\d+)x(\d+)", text)
+    if not m:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1024x768, got {text!r}")
+    return int(m.group(1)), int(m.group(2))
+
+
+def _out_folder(path: Path) -> Path:
+    if path.exists() and any(path.iterdir()):
+        raise ScannerError(f"{path}: output folder exists and is not empty; choose a new --out folder")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _settings(args: argparse.Namespace, base: Any) -> Any:
+    from dataclasses import replace
+
+    changes = {k: v for k, v in (("max_camera_rms_px", args.max_camera_rms), ("max_projector_rms_px",
+                                                                              args.max_projector_rms),
+                                 ("max_validation_mm", args.max_validation), ("min_views", args.min_views),
+                                 ("max_joint_camera_std", args.max_joint_camera_std))
+               if v is not None}
+    if args.fix_k3:
+        changes["fix_k3"] = True
+    if args.drop_outliers:
+        changes["drop_outliers"] = True
+    try:
+        return replace(base, **changes)
+    except ValueError as exc:
+        raise ScannerError(f"slscan calibrate: {exc}") from None
+
+
+def _say(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from calibration.calibration_recording import CalibrationRecording
+    from calibration.errors import CalibrationRejected
+    from calibration.workflow import write_result
+    from scanner.session_recording import SessionRecording
+
+    out = _out_folder(Path(args.out))
+    run_id = f"calibration-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    report_lines: list[str] = []
+    try:
+        with SessionRecording(out / "recording.rrd", run_id) as rec:
+            log = CalibrationRecording(rec)
+
+            def say(text: str) -> None:
+                _say(text)
+                log.event(text)
+
+            if args.source:
+                result, rig_path = _from_disk(args, say, log), None
+            else:
+                result, rig_path, report_lines = _on_rig(args, out, say, log)
+            path = write_result(result, out / "calibration.json")
+            log.metrics({"camera_rms_px": result.solution.stereo.camera_rms_px,
+                         "projector_rms_px": result.solution.stereo.projector_rms_px,
+                         "stereo_rms_px": result.solution.stereo.rms_px})
+    except CalibrationRejected as exc:
+        (out / "rejected.txt").write_text(f"{exc}\n")
+        if (out / "capture").is_dir():
+            _say(f"the capture is kept in {out / 'capture'}: solve it again with `slscan calibrate --from "
+                 f"{out / 'capture'} --out NEW_FOLDER` (e.g. with --drop-outliers or corrected limits)")
+        raise
+    lines = result.lines() + report_lines
+    (out / "report.txt").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    print(f"calibration {path}")
+    print(f"recording   {out / 'recording.rrd'}   (view: rerun {out / 'recording.rrd'})")
+    if rig_path is not None:
+        if args.install:
+            _install(rig_path, path)
+            print(f"installed   {rig_path} now names this calibration: every scan with it uses it")
+        else:
+            print(f"to use it   add  calibration = \"{path.resolve()}\"  under [rig] in {rig_path} (or rerun with "
+                  f"--install)")
+    return 0
+
+
+def _from_disk(args: argparse.Namespace, say: Any, log: Any) -> Any:
+    from calibration.board import Board
+    from calibration.graycode import GrayCodeLayout
+    from calibration.solve import CalibrationSettings
+    from calibration.store import CaptureSet, graycode_views
+    from calibration.workflow import calibrate_capture, calibrate_views
+
+    strict = not args.skip_bad_views
+    if args.layout == "opencv-graycode":
+        if args.projector_size is None or args.board is None:
+            raise ScannerError("--layout opencv-graycode needs --projector-size WxH and --board BOARD.toml")
+        layout = GrayCodeLayout(*args.projector_size)
+        say(f"reading OpenCV Gray-code captures for a {layout.width} x {layout.height} projector from {args.source}")
+        views = graycode_views(args.source, layout, args.pose_folders)
+        board = Board.load(args.board)
+        return calibrate_views(board, views, args.projector_size, _settings(args, CalibrationSettings()), "from-disk",
+                               say, log, strict)
+    capture = CaptureSet.open(args.source)
+    say(f"reading the slscan capture in {args.source} ({len(capture.pose_names)} poses)")
+    return calibrate_capture(capture, _settings(args, CalibrationSettings()), capture.manifest.get("rig", "rig"),
+                             say, log, strict, Board.load(args.board) if args.board else None)
+
+
+def _on_rig(args: argparse.Namespace, out: Path, say: Any, log: Any) -> tuple[Any, Path, list[str]]:
+    from dataclasses import replace
+
+    from calibration.workflow import OperatorBench, Procedure, calibrate_rig
+    from scanner.rig import RigConfig, open_rig
+
+    config = RigConfig.load(args.rig)
+    procedure = Procedure.for_rig(config, board=args.board, poses=args.poses)
+    procedure = replace(procedure, settings=_settings(args, procedure.settings))
+    say(f"calibrating rig {config.name} ({config.driver}) with {procedure.board.describe()}, "
+        f"{procedure.poses} poses -> {out}")
+    if config.driver != "sim":
+        with open_rig(config) as rig:
+            return calibrate_rig(rig, procedure, OperatorBench(say), out / "capture", say, log), config.path, []
+    from calibration.compare import error_lines, model_errors
+    from sim.calibration_bench import plate_scene
+
+    truth = config.nominal_model()
+    with open_rig(config, scene=plate_scene(config.working_distance_mm + PLATE_BEHIND_MM), seed=args.seed) as rig:
+        result = calibrate_rig(rig, procedure, simulated_bench(rig, procedure, args.seed), out / "capture", say, log)
+        lines = ["against the simulator's ground truth:", *("          " + x for x in
+                                                           error_lines(model_errors(result.model, truth)))]
+        lines += _scan_check(rig, result.model, truth, say)
+        if result.model.phase_to_height is not None:
+            lines += _phase_height_check(rig, result.model, config.working_distance_mm + PLATE_BEHIND_MM,
+                                         max(procedure.plate_heights_mm), say)
+    return result, config.path, lines
+
+
+def simulated_bench(rig: Any, procedure: Any, seed: int = 0) -> Any:
+    """The simulator's `Bench` for an open simulated rig: the procedure's board printed as
+    a texture (TEXELS_PER_PX at the working distance), moved through planned poses; the
+    plate PLATE_BEHIND_MM behind the working distance; the sphere pair ARTEFACT_BEFORE_MM
+    in front of it."""
+    from sim.calibration_bench import SimBench, Target, plan_target_poses
+
+    config, truth, board = rig.config, rig.config.nominal_model(), procedure.board
+    footprint_mm = config.working_distance_mm / truth.camera.K[0, 0]
+    target = Target(board.image(board.texture_density(TEXELS_PER_PX / footprint_mm)), board.size_mm,
+                    board.image_origin_mm, board.object_points())
+    try:
+        poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, seed)
+    except ValueError as exc:
+        raise ScannerError(f"simulated bench: {exc}") from None
+    artefact = procedure.artefact
+    return SimBench(rig, target, poses, config.working_distance_mm + PLATE_BEHIND_MM,
+                    artefact.radius_mm if artefact else 10.0, artefact.distance_mm if artefact else 50.0,
+                    config.working_distance_mm - ARTEFACT_BEFORE_MM)
+
+
+def _scan_check(rig: Any, calibrated: Any, truth: Any, say: Any) -> list[str]:
+    """One scan of the sphere-and-plane scene, reconstructed with the calibrated rig and with
+    the ground-truth rig: depth errors against the simulator's truth."""
+    from calibration.capture import capture_fringes
+    from scanner.decode import decode
+    from scanner.patterns import PatternSet
+    from scanner.reconstruct import Triangulator, triangulate
+    from sim.calibration_bench import show
+    from sim.evaluate import Truth, evaluate
+    from sim.scene import load_scene
+
+    say("scan check: the sphere-and-plane scene with the calibrated and the ground-truth rig")
+    show(rig, load_scene(SCAN_CHECK_SCENE))
+    patterns = PatternSet.load(rig.config.patterns_path)
+    stack = capture_fringes(rig, patterns, calibrated.projector_gamma)
+    decoded = decode(stack, patterns, rig.camera.bit_depth, calibrated.projector.size)
+    gt = Truth.of(rig.extras["ground_truth"])
+    sensor = rig.extras["sensor"]
+    acc = {name: evaluate(decoded, triangulate(decoded, Triangulator(m)), gt, sensor, Triangulator(m))
+           for name, m in (("calibrated", calibrated), ("ground truth", truth))}
+    c, t = acc["calibrated"], acc["ground truth"]
+    return [f"scan check (sphere + plane, {patterns.family}): depth RMS {c.rms_mm * 1e3:.2f} um with the calibrated "
+            f"rig, {t.rms_mm * 1e3:.2f} um with the ground-truth rig (ratio {c.rms_mm / t.rms_mm:.3f}); mean "
+            f"{c.mean_mm * 1e3:+.2f} / {t.mean_mm * 1e3:+.2f} um"]
+
+
+def _measuring_volume_scene(camera: Any, plate_mm: float, top_mm: float) -> Any:
+    """A simulated scene filling the phase-to-height model's measuring volume: the plate at
+    `plate_mm` (the reference plane), a ramp rising from 7 % to 93 % of `top_mm` in the left
+    half of the view and a ball whose top is at 93 % of `top_mm` in the right half."""
+    from sim.calibration_bench import plate_scene
+    from sim.scene import Scene, SceneObject
+
+    half = plate_mm * camera.width / 2.0 / camera.K[0, 0]  # half the field's width on the plate (mm)
+    length = 0.55 * half
+    tilt = float(np.arcsin(0.86 * top_mm / length))
+    ramp = np.eye(4)
+    ramp[:3, :3] = cv2.Rodrigues(np.array([0.0, tilt, 0.0]))[0]
+    ramp[:3, 3] = (-0.45 * half, 0.0, plate_mm - 0.5 * top_mm)
+    radius = 0.2 * half
+    ball = np.eye(4)
+    ball[:3, 3] = (0.5 * half, 0.0, plate_mm - 0.93 * top_mm + radius)
+    return Scene(objects=(SceneObject("ramp", "plane", ramp, 0.7, size_mm=(length, 0.6 * half)),
+                          SceneObject("ball", "sphere", ball, 0.7, radius_mm=radius)),
+                 reference_plane=plate_scene(plate_mm).reference_plane, name="phase-to-height volume")
+
+
+def _phase_height_check(rig: Any, calibrated: Any, plate_mm: float, top_mm: float, say: Any) -> list[str]:
+    """A scan of `_measuring_volume_scene` reconstructed with the calibrated phase-to-height
+    model (per pixel and global) and by triangulation: height errors against the
+    simulator's truth over the measuring volume."""
+    from calibration.capture import capture_fringes
+    from calibration.phase_height import scan_height_errors
+    from scanner.decode import decode
+    from scanner.patterns import PatternSet
+    from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
+    from sim.calibration_bench import show
+    from sim.evaluate import Truth, smooth_region
+
+    say("phase-to-height check: a ramp and a ball within the calibrated heights")
+    show(rig, _measuring_volume_scene(calibrated.camera, plate_mm, top_mm))
+    patterns = PatternSet.load(rig.config.patterns_path)
+    decoded = decode(capture_fringes(rig, patterns, calibrated.projector_gamma), patterns, rig.camera.bit_depth,
+                     calibrated.projector.size)
+    model, rays = calibrated.phase_to_height, calibrated.camera.ray_grid
+    phase = np.where(decoded.valid, decoded.maps["vertical"].phase, np.nan)
+    depths = {"per-pixel Eq. 17": phase_to_height_cloud(decoded, calibrated).points[..., 2],
+              "global Eq. 17": model.depth(phase, rays, per_pixel=False),
+              "triangulation": triangulate(decoded, Triangulator(calibrated), with_normals=False).points[..., 2]}
+    gt = Truth.of(rig.extras["ground_truth"])
+    errors, n = scan_height_errors(model, calibrated.camera, depths, gt.depth, smooth_region(gt), top_mm)
+    return [f"phase-to-height check (ramp + ball, heights 0 .. {top_mm:g} mm, {n} px): height RMS "
+            + ", ".join(f"{k} {rms * 1e3:.1f} um ({cover:.1%} measured)" for k, (rms, cover) in errors.items())]
+
+
+def _install(rig_path: Path, calibration: Path) -> None:
+    """Name `calibration` in the rig TOML's [rig] table (replacing an earlier one)."""
+    text = rig_path.read_text()
+    line = f'calibration = "{calibration.resolve()}"'
+    new, n = re.subn(r"(?m)^calibration\s*=.*$", line, text, count=1)
+    if not n:
+        new, n = re.subn(r"(?m)^\[rig\][^\n]*\n", lambda m: m.group(0) + line + "\n", text, count=1)
+    if not n:
+        raise ConfigError(rig_path, "rig", "no [rig] table to name the calibration in")
+    rig_path.write_text(new)
+
+
+def register(sub: Any) -> None:
+    from scanner.rig import DEFAULT_RIG
+
+    c = sub.add_parser("calibrate", help="calibrate the rig (camera, projector, stereo, gamma, phase-to-height), "
+                                         "guided on the bench or from captures on disk")
+    c.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML (default: the simulated bench rig)")
+    c.add_argument("--out", type=Path, required=True, help="new folder for the capture, calibration and recording")
+    c.add_argument("--board", type=Path, help="board TOML (default: the rig's [calibrate] board, or the bench board)")
+    c.add_argument("--poses", type=int, help="board poses to capture (default: the rig's [calibrate] poses, or 12)")
+    c.add_argument("--seed", type=int, default=0, help="simulated rigs: noise and pose jitter seed")
+    c.add_argument("--from", dest="source", type=Path, help="solve from captures in this folder instead of capturing")
+    c.add_argument("--layout", choices=("slscan", "opencv-graycode"), default="slscan",
+                   help="--from: how the captures are laid out (default: a capture written by slscan calibrate)")
+    c.add_argument("--projector-size", type=_size, help="--layout opencv-graycode: projector WIDTHxHEIGHT")
+    c.add_argument("--pose-folders", default="*", metavar="GLOB",
+                   help="--layout opencv-graycode: the sub-folders holding one pose each (default: all)")
+    c.add_argument("--skip-bad-views", action="store_true",
+                   help="--from: leave out views without the board or the projector pattern instead of failing")
+    c.add_argument("--max-camera-rms", type=float, metavar="PX", help="refuse above this camera RMS (default 0.5)")
+    c.add_argument("--max-projector-rms", type=float, metavar="PX",
+                   help="refuse above this projector RMS (default 1.0)")
+    c.add_argument("--max-validation", type=float, metavar="MM",
+                   help="refuse above this artefact distance error (default 0.1)")
+    c.add_argument("--min-views", type=int, help="fewest usable views (default 4)")
+    c.add_argument("--max-joint-camera-std", type=float, metavar="FRACTION",
+                   help="keep the camera's own intrinsics when the joint refinement determines its fx, fy, cx or cy "
+                        "only to more than this fraction of the focal length (default 0.001)")
+    c.add_argument("--fix-k3", action="store_true", help="keep the k3 distortion term at 0")
+    c.add_argument("--drop-outliers", action="store_true", help="solve again without views whose error stands out")
+    c.add_argument("--install", action="store_true", help="name the new calibration in the rig TOML")
+    c.set_defaults(func=cmd_calibrate)

@@ -1,0 +1,160 @@
+"""`slscan devices`: what is connected, what each device supports, and the LightCrafter's
+flash images.
+
+    slscan devices                         cameras, projectors, displays and serial ports found
+    slscan devices --probe                 also ask each serial port whether it is a trigger box
+    slscan devices --cti PRODUCER.cti      also list GenICam cameras through that producer
+    slscan devices lightcrafter-images --rig RIG.toml --out DIR
+                                           the 24-bit images to store in the LightCrafter's flash
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+
+def register(sub: Any) -> None:
+    d = sub.add_parser("devices", help="list cameras, projectors and serial ports; export LightCrafter images")
+    d.add_argument("--probe", action="store_true", help="ask every serial port whether it is an slscan trigger box")
+    d.add_argument("--cti", help="GenTL producer (.cti) to list GenICam cameras through (needs slscan[genicam])")
+    d.set_defaults(func=cmd_devices)
+    dsub = d.add_subparsers(dest="devices_command")
+    img = dsub.add_parser("lightcrafter-images", help="write the pattern images to store in the LightCrafter flash")
+    img.add_argument("--rig", type=Path, required=True, help="rig TOML (its pattern set and projector)")
+    img.add_argument("--patterns", type=Path, help="pattern set TOML (default: the rig's)")
+    img.add_argument("--out", type=Path, required=True, help="folder for the BMP images and flash_images.json")
+    img.set_defaults(func=cmd_lightcrafter_images)
+
+
+def cmd_devices(args: argparse.Namespace) -> int:
+    for title, lines in (("cameras (V4L2)", v4l2_cameras()), ("GenICam cameras", genicam_cameras(args.cti)),
+                         ("USB projectors", usb_projectors()), ("displays", displays()),
+                         ("serial ports", serial_ports(args.probe))):
+        print(f"{title}:")
+        for line in lines or ["(none found)"]:
+            print(f"  {line}")
+    return 0
+
+
+def cmd_lightcrafter_images(args: argparse.Namespace) -> int:
+    from scanner.config import get
+    from scanner.drivers.lightcrafter_images import diamond_resample, export_flash_images, pack_rgb24
+    from scanner.drivers.lightcrafter_protocol import HEIGHT, WIDTH
+    from scanner.errors import ConfigError
+    from scanner.patterns import PatternSet
+    from scanner.rig import RigConfig
+
+    config = RigConfig.load(args.rig)
+    if config.nominal_model().projector.size != (WIDTH, HEIGHT):
+        raise ConfigError(config.path, "projector.width", f"the LightCrafter 4500 is {WIDTH}x{HEIGHT}")
+    patterns = PatternSet.load(args.patterns or config.patterns_path)
+    shift = get(config.projector, "odd_row_shift", float, config.path, 0.5, "projector")
+    stack = diamond_resample(patterns.render(WIDTH, HEIGHT, config.nominal_model().projector_gamma), shift)
+    images = pack_rgb24(stack)
+    manifest = export_flash_images(images, args.out)
+    sha = json.loads(manifest.read_text())["flash_images_sha256"]
+    print(f"{len(images)} images for {len(stack)} patterns in {args.out}")
+    print("add them, in order, to the LightCrafter firmware with TI's LightCrafter 4500 GUI, then set in the rig TOML:")
+    print(f'  flash_images_sha256 = "{sha}"')
+    return 0
+
+
+def v4l2_cameras() -> list[str]:
+    """Video capture nodes with their names (from sysfs), without opening them."""
+    out = []
+    for node in sorted(glob.glob("/dev/video*")):
+        name_file = Path("/sys/class/video4linux") / Path(node).name / "name"
+        name = name_file.read_text().strip() if name_file.exists() else "?"
+        access = "" if os.access(node, os.R_OK | os.W_OK) else \
+            "  [no permission: sudo usermod -aG video $USER, then log in again]"
+        out.append(f"{node}: {name}  (driver uvc: 8-bit, software trigger, exposure/gain if the camera has them)"
+                   f"{access}")
+    return out
+
+
+def genicam_cameras(cti: str | None) -> list[str]:
+    if cti is None:
+        return ["(pass --cti <producer.cti> to list them)"]
+    try:
+        from harvesters.core import Harvester
+    except ImportError:
+        return ["(needs the optional extra: pip install slscan[genicam])"]
+    h = Harvester()
+    try:
+        h.add_file(cti, check_existence=True)
+        h.update()
+        return [f"{i.vendor} {i.model} serial {i.serial_number}  (driver genicam: hardware/software trigger, "
+                f"Mono8..Mono16)" for i in h.device_info_list]
+    finally:
+        h.reset()
+
+
+def usb_projectors() -> list[str]:
+    from scanner.drivers import lightcrafter_protocol as p
+    from scanner.drivers.transport import usb_permission_advice
+
+    try:
+        import usb.core
+
+        found = list(usb.core.find(find_all=True, idVendor=p.VENDOR_ID, idProduct=p.PRODUCT_ID))
+    except Exception as exc:  # no libusb backend, or the bus cannot be read
+        return [f"(cannot list USB devices: {exc})"]
+    out = []
+    for dev in found:
+        try:
+            serial = dev.serial_number
+            note = ""
+        except (ValueError, OSError, NotImplementedError):
+            serial, note = "?", f"  [{usb_permission_advice()}]"
+        out.append(f"TI DLP LightCrafter 4500 (USB {p.VENDOR_ID:04x}:{p.PRODUCT_ID:04x}, bus {dev.bus} address "
+                   f"{dev.address}, serial {serial})  (driver lightcrafter4500: 8-bit pattern sequences from "
+                   f"flash, TRIG_OUT1/2, TRIG_IN1, internal or external trigger){note}")
+    return out
+
+
+def displays() -> list[str]:
+    try:
+        import pygame
+    except ImportError:
+        return ["(HDMI projectors need the optional extra: pip install slscan[hdmi])"]
+    try:
+        pygame.display.init()
+        sizes = pygame.display.get_desktop_sizes()
+    except pygame.error as exc:
+        return [f"(no display server: {exc})"]
+    finally:
+        pygame.display.quit()
+    return [f"display {i}: {w}x{h}  (driver hdmi: fullscreen, vsync-locked)" for i, (w, h) in enumerate(sizes)]
+
+
+def serial_ports(probe: bool) -> list[str]:
+    from serial.tools import list_ports
+
+    out = []
+    for port in sorted(list_ports.comports(), key=lambda p: p.device):
+        line = f"{port.device}: {port.description}"
+        if not os.access(port.device, os.R_OK | os.W_OK):
+            line += "  [no permission: sudo usermod -aG dialout $USER, then log in again]"
+        elif probe:
+            line += f"  {_probe_box(port.device)}"
+        out.append(line)
+    return out
+
+
+def _probe_box(device: str) -> str:
+    from scanner.drivers.triggerbox import TriggerBox, serial_opener
+    from scanner.errors import DeviceError
+
+    try:
+        box = TriggerBox(serial_opener("probe", device, 0.2), "probe", boot_timeout_s=2.5)
+    except DeviceError as exc:
+        return f"(not a trigger box: {str(exc).split(': ', 1)[-1][:60]})"
+    try:
+        return f"SLSCAN-TRIGGERBOX protocol {box.identity['protocol']} on {box.identity['board']}"
+    finally:
+        box.shutdown()

@@ -1,0 +1,155 @@
+"""`slscan scan`, `slscan decode` and `slscan demo`: capture a session, regenerate its
+outputs from its raw frames, and the bundled demo (scan, then inspect against CAD)."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+from scanner.config import CONFIG_DIR
+from scanner.errors import ConfigError
+from scanner.reconstruct import Triangulator
+from scanner.rig import DEFAULT_RIG
+from scanner.session import write_json
+from slscan.progress import ProgressLine
+
+DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
+DEMO_CAD = CONFIG_DIR / "parts" / "demo_part.step"  # the demo scene's part as a STEP model
+DEMO_TOLERANCES = CONFIG_DIR / "tolerances" / "demo_part.toml"
+
+
+def _parse_faults(items: Sequence[str]) -> Any:
+    from sim.virtual_devices import Faults
+
+    table: dict[str, Any] = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        if not value:
+            raise ConfigError("--fault", item, "expected NAME=VALUE, e.g. drop_frame=3")
+        table[key] = float(value) if key == "delay_s" else int(value)
+    return Faults.from_table(table, "--fault", prefix="--fault")
+
+
+def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
+    """`slscan scan`; `then(result, recording)` runs after processing, into the session's
+    recording (`pipeline.scan`)."""
+    from scanner.patterns import PatternSet
+    from scanner.pipeline import scan
+    from scanner.rig import RigConfig, open_rig
+
+    config = RigConfig.load(args.rig)
+    patterns = PatternSet.load(args.patterns or config.patterns_path)
+    options: dict[str, Any] = {}
+    if config.driver == "sim":
+        options = {"scene": args.scene or DEMO_SCENE, "seed": args.seed}
+        if args.fault:
+            options["faults"] = _parse_faults(args.fault)
+    elif args.scene or args.fault:
+        raise ConfigError(config.path, "rig.driver", "--scene and --fault apply to simulated rigs only")
+    out = Path(args.out)
+    print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
+          f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
+    with open_rig(config, **options) as rig:
+        result = scan(rig, patterns, out, ProgressLine(), then)
+    report(result)
+    return 0
+
+
+def report(result: Any) -> None:
+    """Print what a processed session holds, and its accuracy when ground truth is there."""
+    s = result.session
+    t = result.timings_s
+    print(f"session   {s.root}")
+    print(f"cloud     {result.cloud_path}  ({len(result.cloud)} points, "
+          f"{result.decoded.valid.mean() * 100:.1f} % of pixels valid)")
+    print(f"recording {s.recording_path}   (view: slscan review {s.root})")
+    print(f"timings   decode {t['decode'] * 1e3:.0f} ms, reconstruct {t['reconstruct'] * 1e3:.0f} ms")
+    acc = sim_accuracy(result)
+    if acc is not None:
+        print(f"accuracy  {acc.summary()}")
+
+
+def sim_accuracy(result: Any) -> Any:
+    """Accuracy against the simulator's ground truth, if the session has it."""
+
+    from sim.evaluate import GROUND_TRUTH_FILE, Truth, evaluate
+    from sim.render import SensorModel
+
+    path = result.session.root / GROUND_TRUTH_FILE
+    if not path.exists() or len(result.decoded.maps) != 1:
+        return None
+
+    manifest = result.session.manifest
+    sensor = SensorModel.from_table(manifest["rig_config"]["camera"]["sensor"], result.session.root / "manifest.json")
+    acc = evaluate(result.decoded, result.cloud, Truth.load(path), sensor, Triangulator(result.session.rig_model()))
+    write_json(result.session.outputs / "accuracy.json", acc.as_dict())
+    return acc
+
+
+def cmd_decode(args: argparse.Namespace) -> int:
+    from scanner.pipeline import reprocess
+    from scanner.session import Session
+
+    result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode)
+    report(result)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Scan the bundled part on the simulated rig, then (unless --no-inspect) inspect the
+    session against the part's STEP model and tolerances: registration, per-face
+    segmentation, form table; report files in the session's outputs/, the inspection in
+    its recording. Exit 1 when a tolerance fails."""
+    out = args.out or f"sessions/demo-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[])
+    if args.no_inspect:
+        return cmd_scan(ns)
+    done: dict[str, Any] = {}
+
+    def inspect_scan(result: Any, recording: Any) -> None:
+        from slscan.commands.inspect import inspect_source
+
+        print(f"inspect   {result.session.root} against {DEMO_CAD.name} ({DEMO_TOLERANCES.name})", file=sys.stderr)
+        t0, c0 = time.perf_counter(), time.process_time()
+        done["report"] = inspect_source(result.session.root, DEMO_CAD, DEMO_TOLERANCES, seed=args.seed,
+                                        recording=recording)
+        done["seconds"], done["cpu"] = time.perf_counter() - t0, time.process_time() - c0
+
+    t0 = time.perf_counter()
+    cmd_scan(ns, inspect_scan)
+    rep, outputs = done["report"], Path(out) / "outputs"
+    print(rep.table())
+    print(f"report    {outputs / 'inspection.html'} (.json, .csv); inspection in the recording under "
+          f"world/inspection/ and inspection/")
+    print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU (registration "
+          f"{rep.timings_s['register']:.1f} s); demo {time.perf_counter() - t0:.1f} s wall")
+    return 1 if rep.verdict == "fail" else 0
+
+
+def register(sub: Any) -> None:
+    s = sub.add_parser("scan", help="scan a part into a session folder (raw frames, cloud PLY, Rerun recording)")
+    s.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML (default: the simulated bench rig)")
+    s.add_argument("--scene", help="simulated rigs: scene TOML or a mesh file (PLY/STL/OBJ)")
+    s.add_argument("--out", required=True, help="new session folder")
+    s.add_argument("--patterns", help="pattern set TOML (default: the rig's)")
+    s.add_argument("--seed", type=int, default=0, help="simulated rigs: noise seed")
+    s.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
+                   help="simulated rigs: inject a fault (drop_frame=K, delay_frame=K, delay_s=S, "
+                        "disconnect_after=N, stale_frame=K)")
+    s.set_defaults(func=cmd_scan)
+
+    d = sub.add_parser("decode", help="regenerate every output of a session from its raw frames")
+    d.add_argument("session")
+    d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation")
+    d.set_defaults(func=cmd_decode)
+
+    m = sub.add_parser("demo", help="scan the bundled part on the default simulated rig and inspect it against "
+                                    "its STEP model")
+    m.add_argument("--out", help="session folder (default: sessions/demo-<time>)")
+    m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--no-inspect", action="store_true", help="scan only (no inspection against the STEP model)")
+    m.set_defaults(func=cmd_demo)

@@ -1,0 +1,221 @@
+"""`slscan segment`, `slscan segscore` and `slscan segbench`: context-free region growing
+(paper 002) of a point cloud file or a session's scan, the score of a segmentation against
+ground truth (α, β, η per ground-truth segment), and a benchmark on simulated cluttered
+clouds (`sim.bins.clutter_cloud`) printing the time and the scores.
+
+Label files are .npy int32 arrays. For a point cloud file: one label per point, in the
+file's order (`<cloud stem>.segments.npy` beside it). For a session: an image of the
+camera's size (`outputs/segments.npy`): the segment of the pixel's point, -1 for a point
+no segment took, -2 (`NO_POINT`) for a pixel without a point. Segments are numbered in the
+order they grew (smoothest seeds first). The Rerun recording (`<...>.segments.rrd`, the
+session's id for a session, so it opens together with the session's own recording) has
+the segmented points under `world/segments` and, for a session, the label image under
+`maps/segments`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SEGMENTS = "world/segments"
+SEGMENT_MAP = "maps/segments"
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser("segment", help="segment a cloud or a session's scan by region growing (one parameter, r)")
+    p.add_argument("input", help="a point cloud file (PLY, PCD, XYZ ... as Open3D reads) or a session folder")
+    p.add_argument("--radius", "-r", type=float, required=True, metavar="MM",
+                   help="radius of interest r in mm: the coarsest detail that counts (features at 0.19 r .. r)")
+    p.add_argument("--out", help="labels file (.npy); default beside the cloud, or <session>/outputs/segments.npy")
+    p.add_argument("--no-log", action="store_true", help="do not write the Rerun recording")
+    p.set_defaults(func=cmd_segment)
+
+    b = sub.add_parser("segbench", help="segment simulated cluttered clouds: time per cloud and alpha, beta, eta "
+                                        "against their ground truth")
+    b.add_argument("--seeds", type=int, nargs="+", default=[0], help="scene seeds (default: 0)")
+    b.add_argument("--spacing", type=float, default=1.0, metavar="MM", help="nearest scanner's point spacing")
+    b.add_argument("--radius", "-r", type=float, default=12.0, metavar="MM", help="radius of interest r")
+    b.add_argument("--json", action="store_true", help="print a JSON object")
+    b.set_defaults(func=cmd_segbench)
+
+    s = sub.add_parser("segscore", help="score a segmentation against ground-truth labels (alpha, beta, eta)")
+    s.add_argument("labels", help="labels .npy (from slscan segment)")
+    s.add_argument("ground_truth", help="ground-truth labels .npy of the same shape (negative: no segment), or a "
+                                        "simulated session's ground_truth.npz (its object ids)")
+    s.add_argument("--json", action="store_true", help="print a JSON object")
+    s.set_defaults(func=cmd_segscore)
+
+
+def cmd_segment(args: argparse.Namespace) -> int:
+    from inspection.regions.region_growing import segment
+    from inspection.regions.segmetrics import NO_POINT
+    from scanner.errors import ScannerError
+    from scanner.pointcloud import read_ply_points
+
+    src = Path(args.input)
+    session = None
+    if src.is_dir():
+        from scanner.session import Session
+
+        session = Session.open(src)
+        points, valid = _session_points(session)
+        out = Path(args.out) if args.out else session.outputs / "segments.npy"
+        viewpoint: np.ndarray | None = np.zeros(3)   # the camera, in the camera frame
+    elif src.is_file():
+        try:
+            points = read_ply_points(src)
+        except Exception as exc:  # noqa: BLE001 — Open3D raises plain RuntimeErrors
+            raise ScannerError(f"{src}: cannot read a point cloud: {exc}") from None
+        valid, viewpoint = None, None
+        out = Path(args.out) if args.out else src.with_name(src.stem + ".segments.npy")
+    else:
+        raise ScannerError(f"{src}: no such cloud file or session folder")
+    if out.suffix != ".npy":
+        raise ScannerError(f"{out}: the labels file must end in .npy")
+    print(f"segmenting {len(points)} points of {src} with r = {args.radius:g} mm", file=sys.stderr)
+    seg = segment(points, args.radius, viewpoint)
+    labels = seg.labels
+    if valid is not None:
+        image = np.full(valid.shape, NO_POINT, dtype=np.int32)
+        image[valid] = labels
+        labels_out = image
+    else:
+        labels_out = labels
+    tmp = out.with_name(f".{out.stem}.part.npy")
+    np.save(tmp, labels_out)
+    tmp.replace(out)
+    sizes = seg.sizes()
+    big = np.sort(sizes)[::-1]
+    print(f"labels    {out}")
+    print(f"points    {len(points)} ({len(seg.subsample)} after the 0.1 r subsample), "
+          f"{(labels < 0).mean() * 100:.1f} % unsegmented")
+    print(f"segments  {seg.n_segments} ({int((sizes >= 0.01 * len(points)).sum())} with >= 1 % of the points); "
+          f"largest {', '.join(str(int(s)) for s in big[:8])}")
+    print("timings   " + ", ".join(f"{k} {v:.2f} s" for k, v in seg.timings_s.items()))
+    if not args.no_log:
+        rrd = out.with_name(out.stem + ".rrd")
+        _log(rrd, session, points, labels, labels_out if valid is not None else None, seg.timings_s,
+             recording_id=session.id if session is not None else src.stem)
+        print(f"recording {rrd}" + (f"   (view with the session: rerun {session.recording_path} {rrd})"
+                                   if session is not None else ""))
+    return 0
+
+
+def _session_points(session: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The scan's points (camera frame, mm) in pixel order and the (H, W) mask of pixels
+    that have one, from the session's cloud and maps."""
+    from scanner.errors import SessionError
+    from scanner.pointcloud import read_ply_points
+
+    cloud, maps = session.outputs / "cloud.ply", session.outputs / "maps.npz"
+    if not (cloud.exists() and maps.exists()):
+        raise SessionError(f"{session.root}: no processed scan (outputs/cloud.ply, outputs/maps.npz); "
+                           f"run `slscan decode {session.root}` first")
+    with np.load(maps) as z:
+        valid = z["valid"].astype(bool)
+    points = read_ply_points(cloud)
+    if len(points) != int(valid.sum()):
+        raise SessionError(f"{cloud}: {len(points)} points but {int(valid.sum())} valid pixels in {maps}; "
+                           f"regenerate both with `slscan decode {session.root}`")
+    return points, valid
+
+
+def _log(path: Path, session: Any, points: np.ndarray, labels: np.ndarray, image: np.ndarray | None,
+         timings: dict[str, float], recording_id: str) -> None:
+    import rerun as rr
+
+    from scanner.session_recording import SessionRecording
+
+    with SessionRecording(path, recording_id, send_blueprint=False) as rec:
+        world_from_cam = np.eye(4)
+        if session is not None:
+            model = session.rig_model()
+            rec.log_rig(model)
+            world_from_cam = np.asarray(model.world_from_cam, dtype=np.float64)
+        pts = points @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+        rec.stream.set_time("scan", sequence=0)
+        rec.stream.log(SEGMENTS, rr.Points3D(pts.astype(np.float32), class_ids=_class_ids(labels)), strict=True)
+        if image is not None:
+            rec.stream.log(SEGMENT_MAP, rr.SegmentationImage(_class_ids(image)), strict=True)
+        rec.log_metrics({"segments": float(labels.max(initial=-1) + 1),
+                         "unsegmented_fraction": float((labels < 0).mean()),
+                         **{f"segment_{k}_s": v for k, v in timings.items()}})
+
+
+def _class_ids(labels: np.ndarray) -> np.ndarray:
+    """Rerun class ids: 0 for no segment, 1 + label otherwise (wrapping past 65535)."""
+    return np.where(labels >= 0, 1 + labels % 65535, 0).astype(np.uint16)
+
+
+def cmd_segscore(args: argparse.Namespace) -> int:
+    from inspection.regions.segmetrics import score
+
+    test = _load_labels(Path(args.labels))
+    truth = _load_labels(Path(args.ground_truth))
+    result = score(test, truth)
+    print(json.dumps(result.as_dict(), indent=2) if args.json else result.table())
+    return 0
+
+
+def cmd_segbench(args: argparse.Namespace) -> int:
+    """Per seed: build the cloud, segment it (wall-clock and process CPU time of the
+    segmentation alone), score it; then the means over seeds."""
+    import time
+
+    from inspection.regions.region_growing import segment
+    from inspection.regions.segmetrics import score
+    from sim.bins import clutter_cloud
+
+    rows = []
+    for seed in args.seeds:
+        cloud = clutter_cloud(seed, args.spacing, args.radius)
+        wall, cpu = time.perf_counter(), time.process_time()
+        seg = segment(cloud.points, args.radius)
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        sc = score(seg.labels, cloud.labels)
+        rows.append({"seed": seed, "points": len(cloud.points), "subsampled": len(seg.subsample),
+                     "wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "stages_s": seg.timings_s,
+                     "truth_segments": len(sc.segments), "mean_alpha": sc.mean_alpha, "mean_beta": sc.mean_beta,
+                     "mean_eta": sc.mean_eta})
+        if not args.json:
+            print(f"seed {seed}: {len(cloud.points)} points ({len(seg.subsample)} subsampled), r = {args.radius:g} mm: "
+                  f"{wall:.1f} s wall, {cpu:.1f} s CPU; {len(sc.segments)} true segments: "
+                  f"alpha {100 * sc.mean_alpha:.4f} %, beta {100 * sc.mean_beta:.2f} %, eta {sc.mean_eta:.2f}",
+                  flush=True)
+    means = {k: float(np.mean([r[k] for r in rows])) for k in ("mean_alpha", "mean_beta", "mean_eta", "wall_s", "cpu_s")}
+    load = [round(x, 2) for x in os.getloadavg()]   # wall time depends on what else runs: report it
+    if args.json:
+        print(json.dumps({"radius_mm": args.radius, "spacing_mm": args.spacing, "runs": rows, "means": means,
+                          "load_average": load}, indent=2))
+    else:
+        print(f"mean over {len(rows)}: alpha {100 * means['mean_alpha']:.4f} %, beta {100 * means['mean_beta']:.2f} %, "
+              f"eta {means['mean_eta']:.2f}; {means['wall_s']:.1f} s wall, {means['cpu_s']:.1f} s CPU per cloud; "
+              f"load average {load[0]} {load[1]} {load[2]} on {os.cpu_count()} CPUs")
+    return 0
+
+
+def _load_labels(path: Path) -> np.ndarray:
+    """An integer label array from .npy, or the object ids of a simulator ground truth
+    .npz (0, background, becomes -1: no surface)."""
+    from inspection.errors import SegmentationError
+
+    if not path.is_file():
+        raise SegmentationError(f"{path}: no such labels file")
+    try:
+        if path.suffix == ".npz":
+            with np.load(path) as z:
+                if "object_id" not in z:
+                    raise SegmentationError(f"{path}: no 'object_id' array (expected a simulator ground_truth.npz)")
+                ids = z["object_id"].astype(np.int32)
+                return np.where(ids == 0, -1, ids)
+        arr = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise SegmentationError(f"{path}: not a readable .npy/.npz labels file: {exc}") from None
+    return arr

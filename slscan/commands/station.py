@@ -1,0 +1,174 @@
+"""`slscan station`, `slscan results` and `slscan batch`: the bench station (slscan/station/)."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import sys
+from pathlib import Path
+from typing import Any
+
+from scanner.errors import ScannerError
+from slscan.station.measure import MEASUREMENTS
+
+
+def _station_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=Path, help="station config TOML (default: config/station/sim_bench.toml)")
+    p.add_argument("--data", help="the station's data folder (sessions, SQLite results, reports)")
+    p.add_argument("--db", help="results database: sqlite:PATH or postgresql://... (default: SQLite in the data folder)")
+
+
+def _config(args: argparse.Namespace) -> Any:
+    from slscan.station.app import override
+    from slscan.station.station_config import DEFAULT_STATION, StationConfig
+
+    return override(StationConfig.load(args.config or DEFAULT_STATION), args.data, args.db)
+
+
+def cmd_station(args: argparse.Namespace) -> int:
+    from slscan.progress import ProgressLine
+    from slscan.station.app import open_station, run_auto
+    from slscan.station.measure import load_measurement
+
+    if not args.auto and not (sys.stdin.isatty() and sys.stdout.isatty()):
+        raise ScannerError("the operator screen needs a terminal; use --auto --parts N to run without one")
+    config = _config(args)
+    measurement = load_measurement(args.measurement) if args.measurement else None
+    with open_station(args.program, config, args.operator or "", measurement, rig_path=args.rig) as run:
+        if args.auto:
+            return run_auto(run, args.parts or 1, progress=ProgressLine())
+        from slscan.station.tui import run_tui
+
+        return run_tui(run, args.parts)
+
+
+def _utc_time(text: str) -> dt.datetime:
+    """An ISO 8601 date or time, UTC unless it names its offset."""
+    try:
+        t = dt.datetime.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not an ISO date/time such as 2026-11-23 or "
+                                         f"2026-11-23T08:00") from None
+    return t if t.tzinfo else t.replace(tzinfo=dt.timezone.utc)
+
+
+def _program_name(value: str | None) -> tuple[str | None, Any]:
+    """A program filter given as a name or a program TOML: (name, loaded program or None)."""
+    if value is None or not value.endswith(".toml"):
+        return value, None
+    from slscan.station.program import load_program
+
+    program = load_program(value)
+    return program.name, program
+
+
+def cmd_results(args: argparse.Namespace) -> int:
+    from slscan.station.history_report import write_report
+    from slscan.station.results import open_results, write_csv
+
+    name, program = _program_name(args.program)
+    if args.report and program is None:
+        raise ScannerError("slscan results --report: give --program as the part program TOML (it has the "
+                           "characteristics and tolerances the charts need)")
+    config = _config(args)
+    with open_results(config.database_url) as store:
+        rows = store.results(program=name, serial=args.serial, status=args.status, since=args.since, limit=args.limit)
+        values = store.values([r.id for r in rows])
+        if args.csv:
+            if args.csv == "-":
+                n = write_csv(sys.stdout, rows, values)
+            else:
+                with open(args.csv, "w", newline="") as f:
+                    n = write_csv(f, rows, values)
+                print(f"wrote {n} lines ({len(rows)} results) to {args.csv}", file=sys.stderr)
+        else:
+            print(f"{'id':>5} {'program':<14} {'serial':<24} {'att':>3} {'status':<10} {'finished (UTC)':<19}  values")
+            for r in rows:
+                vals = "  ".join(f"{v.characteristic}={v.value_mm:.4f}" if v.value_mm is not None else
+                                 f"{v.characteristic}=--" for v in values[r.id])
+                when = f"{r.finished_at:%Y-%m-%d %H:%M:%S}" if r.finished_at else ""
+                print(f"{r.id:>5} {r.program:<14} {r.serial:<24} {r.attempt:>3} {r.status:<10} {when:<19}  {vals}"
+                      + (f"  [{r.message}]" if r.message and r.status != "fail" else ""))
+            print(f"{len(rows)} results in {store.where}", file=sys.stderr)
+        if args.report:
+            path = write_report(Path(args.report), program, rows, values, store.where)
+            print(f"report {path}", file=sys.stderr)
+    return 0
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    from slscan.progress import ProgressLine
+    from slscan.station.batch import print_summary, run_batch
+
+    config = _config(args) if args.store else None
+    summary = run_batch(args.sessions, args.program, scheduler=args.scheduler, workers=args.workers,
+                        store_config=config, progress=ProgressLine(), measurement=args.measurement, rig_path=args.rig)
+    print_summary(summary, json_out=args.json)
+    return 0 if not summary.failures else 1
+
+
+def cmd_batchbench(args: argparse.Namespace) -> int:
+    import os
+
+    from slscan.station.batch import compare, run_batch
+
+    runs = {}
+    for label, workers in (("serial", 0), (f"dask, {args.workers} local workers", args.workers)):
+        load = os.getloadavg()
+        runs[label] = run_batch(args.sessions, args.program, workers=workers, measurement=args.measurement)
+        counts = runs[label].counts()
+        print(f"{label:<24} wall {runs[label].wall_s:8.2f} s  ({len(args.sessions)} parts: {counts['pass']} pass, "
+              f"{counts['fail']} fail, {counts['error']} failed; load average before "
+              f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f})", flush=True)
+    serial, dask = runs.values()
+    differ, worst, where = compare(serial, dask)
+    print(f"results agree: {'yes' if not differ else 'NO'} (statuses and messages of {len(serial.items)} parts; "
+          f"largest value difference {worst * 1e3:.4f} um" + (f", {where}" if where else "") + f"); speed-up "
+          f"{serial.wall_s / dask.wall_s:.2f}x; load average after {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    for line in differ:
+        print("DIFFERS " + line)
+    return 0 if not differ else 1
+
+
+def register(sub: Any) -> None:
+    s = sub.add_parser("station", help="the operator loop for a part program (full-screen; --auto without operator)")
+    s.add_argument("program", help="part program TOML (config/parts/*.toml)")
+    _station_options(s)
+    s.add_argument("--rig", type=Path, help="rig TOML (default: the station config's)")
+    s.add_argument("--operator", help="operator name stored with every result")
+    s.add_argument("--parts", type=int, help="stop after this many measured parts")
+    s.add_argument("--auto", action="store_true", help="no operator: measure --parts parts one after the other")
+    s.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: the station config's)")
+    s.set_defaults(func=cmd_station)
+
+    r = sub.add_parser("results", help="query the results history; export CSV; write the HTML report")
+    _station_options(r)
+    r.add_argument("--program", help="part program name, or its TOML (needed for --report)")
+    r.add_argument("--serial")
+    r.add_argument("--status", choices=("in_progress", "pass", "fail", "error", "aborted", "incomplete"))
+    r.add_argument("--since", type=_utc_time, help="ISO date/time (UTC unless it says), e.g. 2026-11-23 or 2026-11-23T08:00")
+    r.add_argument("--limit", type=int, help="only the newest N results")
+    r.add_argument("--csv", help="export to this CSV file ('-' for standard output)")
+    r.add_argument("--report", help="write the HTML report with control charts into this folder")
+    r.set_defaults(func=cmd_results)
+
+    b = sub.add_parser("batch", help="re-decode and re-inspect stored sessions (in parallel, or on a Dask cluster)")
+    b.add_argument("sessions", nargs="+", help="part folders written by the station, or session folders")
+    b.add_argument("--program", required=True, help="part program TOML to inspect against")
+    b.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786); default: a local cluster")
+    b.add_argument("--workers", type=int, default=2, help="local cluster: worker processes (default 2)")
+    b.add_argument("--rig", type=Path, help="reconstruct with this rig's geometry (its calibration) instead of the "
+                                            "one recorded at capture")
+    b.add_argument("--store", action="store_true", help="store the re-inspection results (source 'batch')")
+    _station_options(b)
+    b.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: the station config's)")
+    b.add_argument("--json", action="store_true", help="print the summary as JSON")
+    b.set_defaults(func=cmd_batch)
+
+    bb = sub.add_parser("batchbench", help="time `slscan batch` serially and on a local Dask cluster; check the "
+                                           "results agree")
+    bb.add_argument("sessions", nargs="+", help="part folders written by the station, or session folders")
+    bb.add_argument("--program", required=True, help="part program TOML to inspect against")
+    bb.add_argument("--workers", type=int, default=2, help="local cluster worker processes (default 2)")
+    bb.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: inspection)")
+    bb.set_defaults(func=cmd_batchbench)

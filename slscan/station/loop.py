@@ -1,0 +1,220 @@
+"""The operator loop as plain Python, independent of any user interface.
+
+One cycle (`Station.run_cycle`) measures one part:
+
+    refuse?   the calibration is missing, expired or not the program's, or the measuring
+              step is unavailable: nothing is scanned (`Refused`, with every reason)
+    start     a result row `in_progress` is committed (serial, attempt, program version,
+              calibration id, software version, operator, part folder, start time)
+    scan      per view: the rig with the part in place; capture, decode, reconstruct into
+              `<data>/sessions/<program>/<serial>-<time>/view<k>/` (a complete session each)
+    measure   the `Measurement` on the part's sessions; values judged against the program
+    store     the row gets its status, message and values in one commit; `part.json` (the
+              cycle's record) is written into the part folder, atomically, last
+
+Nothing is lost on the way out: an operator abort (the `cancel` event, checked at every
+frame), Ctrl-C, or a device fault store the cycle as `aborted` or `error`, and the
+session folder keeps its frames without a manifest (incomplete, with `error.json`). A
+station killed outright leaves its row `in_progress`; `recover()` at the next start marks
+it `incomplete`. A re-scan is a new cycle (attempt n + 1) of the same serial; earlier
+attempts stay. Statistics use each serial's last cycle.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from scanner import __version__
+from scanner.pipeline import Progress, scan
+from scanner.session import write_json
+from slscan.station import StationError
+from slscan.station.calib import describe as describe_calibration
+from slscan.station.calib import refusals as calibration_refusals
+from slscan.station.calib import rig_calibration
+from slscan.station.hardware_bench import Bench
+from slscan.station.measure import Measurement, MeasurementResult
+from slscan.station.program import PartProgram
+from slscan.station.quality import RunningStats, judge, running_stats
+from slscan.station.results import PartStart, ResultsStore, ValueRecord
+from slscan.station.station_config import StationConfig
+
+PART_RECORD = "part.json"
+STATS_WINDOW = 1000  # results the running statistics look back over
+
+
+class Refused(StationError):
+    """The station will not measure; `reasons` lists every cause."""
+
+    def __init__(self, reasons: list[str]) -> None:
+        super().__init__("refusing to measure: " + "; ".join(reasons))
+        self.reasons = reasons
+
+
+class OperatorAbort(StationError):
+    """The operator aborted the cycle."""
+
+
+def _quiet(stage: str, done: int, total: int) -> None:
+    pass
+
+
+def utcnow() -> dt.datetime:
+    return dt.datetime.now(dt.timezone.utc)
+
+
+@dataclass(frozen=True)
+class CycleOutcome:
+    """One stored cycle: its result row id, serial and attempt, status (pass, fail, error,
+    aborted), message, judged values, the part folder and its sessions, the simulated
+    part's truth (None on hardware) and the cycle's duration in s."""
+
+    result_id: int
+    serial: str
+    attempt: int
+    status: str
+    message: str
+    values: tuple[ValueRecord, ...]
+    part_path: Path
+    sessions: tuple[Path, ...]
+    truth: dict[str, Any] | None = None
+    seconds: float = 0.0
+
+
+class Station:
+    """A station running one part program on one bench; `on_stored` is called with every
+    stored cycle (e.g. to extend the control charts)."""
+
+    def __init__(self, program: PartProgram, config: StationConfig, bench: Bench, measurement: Measurement,
+                 store: ResultsStore, operator: str,
+                 on_stored: Callable[[CycleOutcome], None] | None = None) -> None:
+        self.program = program
+        self.config = config
+        self.bench = bench
+        self.measurement = measurement
+        self.store = store
+        self.operator = operator
+        self.on_stored = on_stored
+        self.calibration = rig_calibration(bench.config)
+        self.patterns = program.scan.pattern_set()
+
+    # -- status
+
+    def refusals(self, today: dt.date | None = None) -> list[str]:
+        """Every reason the station must not measure now (empty: it may)."""
+        today = today or dt.date.today()
+        out = calibration_refusals(self.calibration, self.bench.config, self.program,
+                                   self.config.max_calibration_age_days, today)
+        missing = self.measurement.unavailable()
+        if missing:
+            out.append(f"measuring step ({self.measurement.name}) unavailable: {missing}")
+        return out
+
+    def status_lines(self, today: dt.date | None = None) -> list[tuple[str, str]]:
+        """(label, text) lines for a status display."""
+        today = today or dt.date.today()
+        p = self.program
+        return [("program", f"{p.name} v{p.version} [{p.fingerprint}] ({p.path.name}; faces {p.face_check})"),
+                ("rig", self.bench.describe()),
+                ("calibration", describe_calibration(self.calibration, today)),
+                ("measuring", f"{self.measurement.name}: {self.measurement.unavailable() or 'ready'}"),
+                ("results", self.store.where),
+                ("operator", self.operator or "(none)")]
+
+    def recover(self) -> list[int]:
+        """Mark the cycles this station left in progress when it last died as incomplete."""
+        return self.store.mark_interrupted(self.config.name, "the station stopped during this cycle; its session "
+                                                             "is incomplete (no manifest)")
+
+    def stats(self) -> RunningStats:
+        rows = self.store.results(program=self.program.name, limit=STATS_WINDOW)
+        return running_stats(self.program, rows, self.store.values([r.id for r in rows]))
+
+    # -- one part
+
+    def run_cycle(self, serial: str, part: int = 0, cancel: threading.Event | None = None,
+                  progress: Progress = _quiet) -> CycleOutcome:
+        """Scan, measure, judge and store one part (see the module docstring). `part` is
+        the part's number in this run (the simulator's lineup position); `cancel` aborts."""
+        serial = serial.strip()
+        if not serial:
+            raise StationError("no serial number / part id: enter one before scanning")
+        reasons = self.refusals()
+        if reasons:
+            raise Refused(reasons)
+        cancel = cancel or threading.Event()
+        t0 = time.perf_counter()
+        started = utcnow()
+        folder = self.config.sessions_dir / _safe(self.program.name) / f"{_safe(serial)}-{started:%Y%m%d-%H%M%S-%f}"
+        result_id, attempt = self.store.begin_part(PartStart(
+            program=self.program.name, program_version=self.program.version,
+            program_fingerprint=self.program.fingerprint, serial=serial, operator=self.operator,
+            station=self.config.name, rig=self.bench.config.name, calibration_id=self.calibration.id,
+            software_version=__version__, measurement=self.measurement.name, part_path=str(folder), started_at=started))
+        sessions: list[Path] = []
+        measured: MeasurementResult | None = None
+        truth = None
+        if self.bench.simulated:
+            truth = self.bench.sim_part(part).as_dict()
+
+        def finish(status: str, message: str, values: list[ValueRecord] | None = None) -> CycleOutcome:
+            outcome = CycleOutcome(result_id, serial, attempt, status, message, tuple(values or ()), folder,
+                                   tuple(sessions), truth, round(time.perf_counter() - t0, 3))
+            self.store.finish_part(result_id, status, message, outcome.values, utcnow())
+            folder.mkdir(parents=True, exist_ok=True)
+            write_json(folder / PART_RECORD, _record(self, outcome, started, measured))
+            if self.on_stored is not None:
+                self.on_stored(outcome)
+            return outcome
+
+        def step(stage: str, done: int, total: int) -> None:
+            if cancel.is_set():
+                raise OperatorAbort(f"aborted by the operator during {stage}")
+            progress(stage, done, total)
+
+        try:
+            views = self.program.scan.views
+            scanned = []
+            for k in range(views):
+                where = f" (view {k + 1}/{views})" if views > 1 else ""
+                step("place" + where, 0, 1)
+                with self.bench.view(part, k, views) as rig:
+                    if self.program.scan.exposure_s is not None:
+                        rig.camera.set_exposure(self.program.scan.exposure_s)
+                    sessions.append(folder / f"view{k}")
+                    scanned.append(scan(rig, self.patterns, sessions[-1],
+                                        lambda stage, done, total: step(stage + where, done, total)).session)
+            step("measure", 0, 1)
+            measured = self.measurement.measure(scanned, self.program)
+            step("measure", 1, 1)  # an abort pressed while measuring takes effect here
+        except OperatorAbort as exc:
+            return finish("aborted", str(exc))
+        except KeyboardInterrupt:
+            finish("aborted", "interrupted (Ctrl-C); frames already captured are kept")
+            raise
+        except Exception as exc:  # noqa: BLE001 — a device or measuring fault ends this cycle, stored
+            return finish("error", f"{type(exc).__name__}: {exc}")
+        status, values, message = judge(self.program, measured)
+        return finish(status, message, values)
+
+
+def _safe(text: str) -> str:
+    """`text` usable as one path component."""
+    return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in text)[:80] or "_"
+
+
+def _record(station: Station, outcome: CycleOutcome, started: dt.datetime,
+            measured: MeasurementResult | None) -> dict[str, Any]:
+    p = station.program
+    return {"result_id": outcome.result_id, "program": p.name, "program_version": p.version,
+            "program_fingerprint": p.fingerprint, "program_path": str(p.path), "serial": outcome.serial,
+            "attempt": outcome.attempt, "status": outcome.status, "message": outcome.message,
+            "operator": station.operator, "station": station.config.name, "rig": station.bench.config.name,
+            "calibration_id": station.calibration.id, "software_version": __version__,
+            "measurement": station.measurement.name, "started": started.isoformat(), "seconds": outcome.seconds,
+            "sessions": [str(s) for s in outcome.sessions], "values": [asdict(v) for v in outcome.values],
+            "measurement_result": None if measured is None else measured.as_dict(), "sim_truth": outcome.truth}
