@@ -1,22 +1,33 @@
-"""Fringe decoding: wrapped phase, modulation and background, temporal unwrapping, masks.
+"""Fringe decoding: wrapped phase, modulation and background, unwrapping, masks, self-check.
 
-Input: an (N, H, W) stack of camera frames in the order of `PatternSet.frames()`, at its
-bit depth. Output per fringe orientation: the projector pixel coordinate each camera
-pixel sees along the coded axis (NaN where invalid), with the maps behind it and the
-reasons pixels were rejected. Everything is whole-array numpy/OpenCV work.
+Input: an (N, H, W) stack of camera frames in the order of `PatternSet.frames()` (which
+follows the set's conventions: frame order, reference frames, Gray-code variant), at its
+bit depth. Output per fringe orientation: the projector pixel coordinate each camera pixel
+sees along the coded axis (OpenCV convention, pixel centres at integers; NaN where
+invalid), with the maps behind it and the reasons pixels were rejected.
+
+Every decode checks itself: a Gray code that disagrees with the phase on more than
+`max_disagreement` of the modulated pixels, or frequencies whose unwrapping residuals are
+offset systematically, mean the frames were not made the way the pattern set says (phase
+origin, step sign, frame order …); decode then raises DecodeError naming that, instead of
+handing on a cloud that is wrong everywhere. Everything is whole-array numpy/OpenCV work.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
+from typing import Callable
 
 import cv2
 import numpy as np
 
 from scanner.errors import DecodeError
-from scanner.patterns import PatternSet, gray_to_binary
+from scanner.patterns import FrameSpec, PatternSet, gray_to_binary
+from scanner.pixel_code import read_pixel_code
 
 TWO_PI = np.float32(2.0 * np.pi)
+MIN_JUDGED_PIXELS = 200  # fewer modulated pixels than this: the self-check has nothing to judge
 
 
 @dataclass(frozen=True)
@@ -25,20 +36,46 @@ class DecodeSettings:
 
     `min_modulation`: modulation B below this fraction of full scale is too weak for a
     precise phase. `min_contrast`: B/A below this means no fringe reaches the pixel
-    (projector shadow or outside the projected area). `order_tolerance`: an unwrapping
-    residual above this fraction of π marks a fringe-order error. `spatial_check`: also
-    cut the map where neighbours jump by more than half a fringe period and reject the
-    regions between cuts smaller than `min_region_fraction` of the image (clustered
-    order errors, which no per-pixel test sees). `gray_certainty`: a Gray-code bit reads
-    clearly when |I − A| exceeds this fraction of the fringe modulation B.
+    (projector shadow or outside the projected area). `order_tolerance` (fraction of π)
+    is the least unwrapping residual ever called a fringe-order error; above it a pixel is
+    one when its residual comes within `order_sigmas` of its own predicted residual noise
+    (from its modulation and the stack's intensity-noise model) of the ambiguity at π, the
+    tolerance never above `order_tolerance_max`. `spatial_check`: also cut the map where
+    neighbours jump by more than half a fringe period and reject the regions between cuts
+    smaller than `min_region_fraction` of the image (clustered order errors, which no
+    per-pixel test sees). `gray_certainty`: a Gray-code bit reads clearly when |I − A|
+    exceeds this fraction of the fringe modulation B (complementary code) or |pattern −
+    inverse| exceeds it times the white − black contrast (pixel code, which may drop up to
+    `max_dropped_bits` of its finest bits). `self_check`: refuse the decode when more than
+    `max_disagreement` of the modulated pixels have a Gray code and a phase that disagree,
+    or when the frequencies' residuals are offset by more than `max_frequency_offset` rad.
     """
 
     min_modulation: float = 0.005
     min_contrast: float = 0.12
     order_tolerance: float = 0.5
+    order_tolerance_max: float = 0.9
+    order_sigmas: float = 4.0
     spatial_check: bool = True
     min_region_fraction: float = 1e-4
     gray_certainty: float = 0.3
+    max_dropped_bits: int = 2
+    self_check: bool = True
+    max_disagreement: float = 0.05
+    max_frequency_offset: float = 0.3
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Camera intensity noise variance σ_I² = read + shot·A (DN², A in DN), fitted to the
+    residuals of the phase-shift fit (or, with 3 steps, to the background's fine texture)."""
+
+    read: float
+    shot: float
+
+    def sigma(self, background: np.ndarray) -> np.ndarray:
+        """σ_I (DN) for a background A (DN)."""
+        return np.sqrt(np.float32(self.read) + np.float32(self.shot) * np.maximum(background, 0))
 
 
 @dataclass(eq=False)
@@ -48,7 +85,7 @@ class OrientationMaps:
     orientation: str
     coordinate: np.ndarray  # projector pixel coordinate along the coded axis, NaN invalid
     phase: np.ndarray  # absolute phase in units of the finest fringe (rad), NaN invalid
-    wrapped: list[np.ndarray]  # wrapped phase per frequency, [0, 2π)
+    wrapped: list[np.ndarray]  # wrapped phase per frequency, [0, 2π), phase origin removed
     modulation: list[np.ndarray]  # B per frequency (DN)
     background: np.ndarray  # A (DN), mean of all phase frames
     phase_weight: np.ndarray  # Σ_i (B_i·f_i/f_max)², the precision of `phase` up to the noise σ_I²·2/N
@@ -56,11 +93,27 @@ class OrientationMaps:
     valid: np.ndarray  # bool
     fringes: float  # finest fringe count across `extent_px`
     extent_px: int  # projector pixels along the coded axis
+    noise: NoiseModel
+    steps: int
 
     @property
     def period_px(self) -> float:
         """Finest fringe period in projector pixels."""
         return self.extent_px / self.fringes
+
+    @cached_property
+    def phase_sigma(self) -> np.ndarray:
+        """Predicted one-sigma noise of `phase` (rad, finest fringe) per pixel:
+        sqrt(2/N)·σ_I(A)/sqrt(phase_weight); NaN where invalid."""
+        s = self.noise.sigma(self.background) * np.float32(np.sqrt(2.0 / self.steps))
+        s /= np.sqrt(np.maximum(self.phase_weight, np.float32(1e-12)))
+        s[~self.valid] = np.nan
+        return s
+
+    @property
+    def coordinate_sigma(self) -> np.ndarray:
+        """Predicted one-sigma noise of `coordinate` (projector px)."""
+        return self.phase_sigma * np.float32(self.period_px / (2 * np.pi))
 
 
 @dataclass(eq=False)
@@ -72,9 +125,14 @@ class DecodeResult:
     maps: dict[str, OrientationMaps]
     texture: np.ndarray
     valid: np.ndarray  # bool: valid in every orientation
+    checks: dict[str, dict[str, float]]  # self-check figures per orientation
 
     def coordinate(self, orientation: str) -> np.ndarray:
         return self.maps[orientation].coordinate
+
+    def rejected(self) -> dict[str, int]:
+        """Pixels rejected per orientation and reason (a pixel counts under its first reason)."""
+        return {f"{o}/{k}": int(v.sum()) for o, m in self.maps.items() for k, v in m.masks.items()}
 
 
 def _wrap_positive(d: np.ndarray) -> np.ndarray:
@@ -83,11 +141,13 @@ def _wrap_positive(d: np.ndarray) -> np.ndarray:
     return d
 
 
-def _phase_shift(block: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Wrapped phase [0, 2π), modulation B and background A of one N-step block (N, H, W)."""
+def _phase_shift(block: np.ndarray, steps: int, origin: float, sign: int) -> tuple[np.ndarray, np.ndarray,
+                                                                                    np.ndarray]:
+    """Wrapped phase [0, 2π) with the phase origin removed, modulation B and background A
+    of one N-step block (N, H, W) whose step n adds sign·2πn/N to the displayed phase."""
     n, h, w = block.shape
-    delta = 2.0 * np.pi * np.arange(steps) / steps
-    weights = np.stack([np.cos(delta), -np.sin(delta), np.full(steps, 1.0)]).astype(np.float32)
+    angle = sign * 2.0 * np.pi * np.arange(steps) / steps + origin
+    weights = np.stack([np.cos(angle), -np.sin(angle), np.full(steps, 1.0)]).astype(np.float32)
     weights[:2] *= 2.0 / steps
     weights[2] /= steps
     flat = block.reshape(n, h * w).astype(np.float32)
@@ -131,9 +191,37 @@ def _temporal_unwrap(ps: PatternSet, wrapped: list[np.ndarray]) -> tuple[list[np
     return [_unwrap_step(a12, f[i] / f12, wrapped[i], worst) for i in range(3)], worst
 
 
-def _graycode_unwrap(ps: PatternSet, wrapped: np.ndarray, bits: np.ndarray, background: np.ndarray,
-                     modulation: np.ndarray, certainty: float) -> tuple[np.ndarray, np.ndarray]:
-    """Absolute phase from complementary Gray code (Wu et al.), and where it is unreliable.
+def _residual_sigma(ps: PatternSet, phase_sigmas: list[np.ndarray]) -> np.ndarray:
+    """Predicted one-sigma of the largest unwrapping residual (fraction of π) from each
+    frequency's phase noise (rad), propagated through the unwrapping steps."""
+    f = ps.fringes
+    var = [s * s for s in phase_sigmas]
+    if ps.family == "hierarchical":
+        steps = [(f[i] / f[i - 1]) ** 2 * var[i - 1] + var[i] for i in range(1, len(f))]
+    else:
+        f12 = f[0] - f[1]
+        v12 = var[0] + var[1]
+        v123 = var[0] + 4 * var[1] + var[2]
+        steps = [f12 ** 2 * v123 + v12] + [(f[i] / f12) ** 2 * v12 + var[i] for i in range(3)]
+    return np.sqrt(np.maximum.reduce(steps)) / np.float32(np.pi)
+
+
+def _order_errors(residual: np.ndarray, candidates_sigma: Callable[[np.ndarray], np.ndarray], settings: DecodeSettings) -> np.ndarray:
+    """Pixels whose unwrapping residual (fraction of π) marks a fringe-order error: above
+    `order_tolerance` and within `order_sigmas` predicted sigmas of the ambiguity at 1."""
+    errors = residual > np.float32(settings.order_tolerance)
+    idx = np.flatnonzero(errors)
+    if idx.size:
+        sigma = candidates_sigma(idx)
+        tol = np.clip(1.0 - settings.order_sigmas * sigma, settings.order_tolerance, settings.order_tolerance_max)
+        errors.flat[idx] = ~(residual.flat[idx] <= tol)  # NaN sigma: an error
+    return errors
+
+
+def _graycode_unwrap(ps: PatternSet, wrapped: np.ndarray, bits: list[np.ndarray], background: np.ndarray,
+                     modulation: np.ndarray, certainty: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Absolute phase from complementary Gray code (Wu et al.), where it is unreliable, and
+    the half-period index the code names (for the self-check).
 
     The extra half-period bit picks the fringe order that is safe at the code boundaries:
     away from a period boundary (π/2 < φ < 3π/2) every regular bit must read clearly, and
@@ -154,12 +242,21 @@ def _graycode_unwrap(ps: PatternSet, wrapped: np.ndarray, bits: np.ndarray, back
         else:
             complementary_unclear = ambiguous
     k1 = gray_to_binary(code >> 1, n_bits)
-    k2 = (gray_to_binary(code, n_bits + 1) + 1) >> 1
+    half = gray_to_binary(code, n_bits + 1)
+    k2 = (half + 1) >> 1
     quarter = np.float32(np.pi / 2)
     near_boundary = (wrapped <= quarter) | (wrapped >= 3 * quarter)
     order = np.where(wrapped <= quarter, k2, np.where(wrapped >= 3 * quarter, k2 - 1, k1))
     unreliable = np.where(near_boundary, complementary_unclear | (unclear > 1), unclear > 0)
-    return wrapped + TWO_PI * order.astype(np.float32), unreliable
+    return wrapped + TWO_PI * order.astype(np.float32), unreliable, half
+
+
+def gray_phase_offset(wrapped: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Per pixel, how far (rad, (−π, π]) the wrapped phase sits from the centre of the
+    half period its Gray code names: within ±π/2 when code and phase agree."""
+    r = wrapped - np.float32(np.pi) * ((half & 1).astype(np.float32) + np.float32(0.5))
+    r -= TWO_PI * np.rint(r / TWO_PI)
+    return r
 
 
 def _typical_step(diff: np.ndarray) -> np.float32:
@@ -198,78 +295,300 @@ def _unreliable_regions(coordinate: np.ndarray, valid: np.ndarray, period_px: fl
     return small[labels], cut
 
 
+def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int, full_scale: float) -> NoiseModel:
+    """The intensity-noise model of a stack, from every 8th pixel of its phase blocks: the
+    residual of the N-step fit per pixel (N − 3 degrees of freedom) regressed on the
+    background; with 3 steps, the background's fine texture (Immerkær's Laplacian estimate,
+    an upper bound where the scene has texture)."""
+    sub = [stack[k, ::8, ::8].astype(np.float64) for k in blocks[0]]
+    if steps > 3:
+        a_all, v_all = [], []
+        delta = sign * 2.0 * np.pi * np.arange(steps) / steps
+        basis = np.stack([np.ones(steps), np.cos(delta), np.sin(delta)], axis=1)  # (N, 3)
+        projector = np.eye(steps) - basis @ np.linalg.pinv(basis)
+        for block in blocks:
+            frames = np.stack([stack[k, ::8, ::8] for k in block]).reshape(steps, -1).astype(np.float64)
+            ok = (frames.max(axis=0) < full_scale) & (frames.min(axis=0) > 0)
+            res = projector @ frames[:, ok]
+            a_all.append(frames[:, ok].mean(axis=0))
+            v_all.append((res ** 2).sum(axis=0) / (steps - 3))
+        a, v = np.concatenate(a_all), np.concatenate(v_all)
+    else:
+        mean = np.mean(sub, axis=0)
+        lap = cv2.filter2D(mean, -1, np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float64))[1:-1, 1:-1]
+        a = mean[1:-1, 1:-1].ravel()
+        v = (lap.ravel() ** 2) * (np.pi / 2) / 36.0 * steps  # σ_A² per pixel, back to one frame's σ_I²
+    if a.size < 50:
+        return NoiseModel(1.0, 0.0)
+    # median variance in background bins, then a non-negative line through them
+    edges = np.quantile(a, np.linspace(0, 1, 9))
+    centres, medians = [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (a >= lo) & (a <= hi)
+        if sel.sum() >= 10:
+            centres.append(np.median(a[sel]))
+            medians.append(np.median(v[sel]) / 0.75)  # median of a scaled χ² is below its mean
+    centres_a, medians_v = np.array(centres), np.array(medians)
+    if len(centres_a) >= 2 and np.ptp(centres_a) > 0:
+        shot, read = np.polyfit(centres_a, medians_v, 1)
+    else:
+        shot, read = 0.0, float(np.median(v))
+    shot = max(float(shot), 0.0)
+    read = max(float(read), 1.0 / 12.0)  # at least the quantisation noise
+    return NoiseModel(read, shot)
+
+
+def _frame_indices(specs: list[FrameSpec]) -> dict[tuple[str, str, int, int], int]:
+    return {(s.orientation, s.kind, s.level, s.step): k for k, s in enumerate(specs)}
+
+
+def _block(stack: np.ndarray, ks: list[int]) -> np.ndarray:
+    """Frames `ks` of the stack: a view when they are consecutive."""
+    if ks == list(range(ks[0], ks[0] + len(ks))):
+        return stack[ks[0]:ks[0] + len(ks)]
+    return stack[ks]
+
+
 def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_size: tuple[int, int],
            settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
     """Decode an (N, H, W) fringe stack taken with `patterns` on a projector of
     `projector_size` = (width, height) pixels."""
+    if patterns.uses_pixel_code:
+        patterns = patterns.for_projector(projector_size)
     specs = patterns.frames()
     if stack.ndim != 3 or stack.shape[0] != len(specs):
         raise DecodeError(f"pattern set '{patterns.family}' needs {len(specs)} frames of one size; "
                           f"got an array of shape {stack.shape}")
     if not np.issubdtype(stack.dtype, np.integer):
         raise DecodeError(f"frames must be integer images at their bit depth, got {stack.dtype}")
+    index = _frame_indices(specs)
+    conv = patterns.conventions
     full_scale = float(2 ** bit_depth - 1)
-    saturated = stack[0].copy()
-    for frame in stack[1:]:
-        cv2.max(saturated, frame, dst=saturated)
-    saturated = saturated >= full_scale
+    phase_blocks = {o: [[index[(o, "phase", lv, n)] for n in range(patterns.steps)]
+                        for lv in range(len(patterns.fringes))] for o in patterns.orientations}
+    all_phase = [k for o in patterns.orientations for block in phase_blocks[o] for k in block]
+    saturated = np.zeros(stack.shape[1:], dtype=bool)
+    if all_phase:  # judged on the frames that carry the measurement: a clipped binary frame still reads
+        peak = stack[all_phase[0]].copy()
+        for k in all_phase[1:]:
+            cv2.max(peak, stack[k], dst=peak)
+        saturated = peak >= full_scale
+        noise = fit_noise(stack, phase_blocks[patterns.orientations[0]], patterns.steps, conv.step_sign, full_scale)
+    else:
+        noise = NoiseModel(1.0, 0.0)
+    refs = (stack[index[(patterns.orientations[0], "white", 0, 0)]].astype(np.float32),
+            stack[index[(patterns.orientations[0], "black", 0, 0)]].astype(np.float32)) \
+        if conv.references != "none" else None
 
     maps: dict[str, OrientationMaps] = {}
-    start = 0
-    backgrounds = []
+    checks: dict[str, dict[str, float]] = {}
     for orientation in patterns.orientations:
         extent = projector_size[0] if orientation == "vertical" else projector_size[1]
-        n_freq = len(patterns.fringes)
+        decoder = _OrientationDecoder(stack, patterns, orientation, extent, index, phase_blocks[orientation],
+                                      saturated, refs, noise, full_scale, settings)
+        maps[orientation], checks[orientation] = decoder.run()
+    backgrounds = [m.background for m in maps.values()]
+    texture = backgrounds[0] if len(backgrounds) == 1 else (backgrounds[0] + backgrounds[1]) / 2
+    valid_all = np.logical_and.reduce([m.valid for m in maps.values()])
+    return DecodeResult(patterns, bit_depth, maps, texture, valid_all, checks)
+
+
+@dataclass(eq=False)
+class _OrientationDecoder:
+    """Decoding of one fringe orientation (`decode` strings these together)."""
+
+    stack: np.ndarray
+    patterns: PatternSet
+    orientation: str
+    extent: int
+    index: dict[tuple[str, str, int, int], int]
+    blocks: list[list[int]]
+    saturated: np.ndarray
+    refs: tuple[np.ndarray, np.ndarray] | None
+    noise: NoiseModel
+    full_scale: float
+    settings: DecodeSettings
+    beyond_fraction: float = 0.0  # readable pixel codes naming a pixel beyond the projector
+
+    def _frame(self, kind: str, level: int) -> np.ndarray:
+        return self.stack[self.index[(self.orientation, kind, level, 0)]]
+
+    def _pixel_code(self, contrast: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(coordinate, run length, readable) from this orientation's pixel-code frames."""
+        ps = self.patterns
+        diffs = [self._frame("gray", b).astype(np.float32) - self._frame("gray_inverse", b)
+                 for b in range(ps.gray_bits(self.orientation))]
+        threshold = np.float32(self.settings.gray_certainty) * contrast
+        coordinate, run, readable = read_pixel_code(diffs, np.maximum(threshold, np.float32(1.0)),
+                                                    self.settings.max_dropped_bits)
+        beyond = readable & ~(coordinate < self.extent)
+        self.beyond_fraction = float(beyond.sum() / max(int(readable.sum()), 1))
+        readable &= ~beyond
+        return coordinate, run, readable
+
+    def run(self) -> tuple[OrientationMaps, dict[str, float]]:
+        ps, s, conv = self.patterns, self.settings, self.patterns.conventions
         wrapped, modulation, background = [], [], None
-        for level in range(n_freq):
-            phi, b, a = _phase_shift(stack[start:start + patterns.steps], patterns.steps)
-            start += patterns.steps
+        for block in self.blocks:
+            phi, b, a = _phase_shift(_block(self.stack, block), ps.steps, conv.phase_origin, conv.step_sign)
             wrapped.append(phi)
             modulation.append(b)
             background = a if background is None else background + a
-        background /= np.float32(n_freq)
-        masks = {"saturated": saturated}
-        f_max = max(patterns.fringes)
-        finest = patterns.fringes.index(f_max)
-        if patterns.family == "graycode":
-            n_bits = patterns.gray_bits() + 1
-            phase, masks["order_error"] = _graycode_unwrap(patterns, wrapped[0], stack[start:start + n_bits],
-                                                           background, modulation[0], settings.gray_certainty)
-            start += n_bits
+        masks: dict[str, np.ndarray] = {"saturated": self.saturated}
+        checks: dict[str, float] = {}
+        if ps.family == "pixel_graycode":
+            return self._pixel_graycode_only(masks)
+        background /= np.float32(len(self.blocks))
+        f_max = max(ps.fringes)
+        finest = ps.fringes.index(f_max)
+        b_fine = modulation[finest]
+        masks["shadow"] = b_fine < s.min_contrast * np.maximum(background, 1e-6)
+        masks["low_modulation"] = ~masks["shadow"] & (b_fine < s.min_modulation * self.full_scale)
+        usable = ~(masks["saturated"] | masks["shadow"] | masks["low_modulation"])
+        sqrt_2n = np.float32(np.sqrt(2.0 / ps.steps))
+
+        def sigma_of(level: int) -> Callable[[np.ndarray], np.ndarray]:
+            return lambda idx: self.noise.sigma(background.flat[idx]) * sqrt_2n / np.maximum(
+                modulation[level].flat[idx], np.float32(1e-6))
+
+        if ps.family == "graycode" and conv.gray_code == "complementary":
+            n_bits = ps.gray_bits() + 1
+            bits = [self._frame("gray", b) for b in range(n_bits)]
+            phase, masks["order_error"], half = _graycode_unwrap(ps, wrapped[0], bits, background, modulation[0],
+                                                                 s.gray_certainty)
+            checks["gray_phase_disagreement"] = self._disagreement(
+                np.abs(gray_phase_offset(wrapped[0], half)) > np.float32(0.75 * np.pi), usable)
+            weight = modulation[0] ** 2
+        elif ps.family == "graycode":  # phase unwrapped by OpenCV's pixel Gray code
+            contrast = self._contrast(background, b_fine)
+            coordinate_g, run, readable = self._pixel_code(contrast)
+            predicted = (coordinate_g + np.float32(conv.pixel_centre)) * np.float32(2 * np.pi * f_max / self.extent)
+            worst = np.zeros_like(background)
+            phase = _unwrap_step(predicted, 1.0, wrapped[0], worst)
+            quant = np.float32(2 * np.pi * f_max / self.extent / np.sqrt(12.0) / np.pi)
+
+            def code_sigma(idx: np.ndarray) -> np.ndarray:
+                return np.hypot(sigma_of(0)(idx) / np.float32(np.pi), quant * run.flat[idx])
+
+            masks["order_error"] = ~readable | _order_errors(worst, code_sigma, s)
+            checks["gray_phase_disagreement"] = self._disagreement(readable & (worst > 0.75), usable)
             weight = modulation[0] ** 2
         else:
-            absolute, residual = _temporal_unwrap(patterns, wrapped)
-            masks["order_error"] = residual > settings.order_tolerance
+            absolute, residual = _temporal_unwrap(ps, wrapped)
+
+            def residual_sigma(idx: np.ndarray) -> np.ndarray:
+                return _residual_sigma(ps, [sigma_of(lv)(idx) for lv in range(len(ps.fringes))])
+
+            masks["order_error"] = _order_errors(residual, residual_sigma, s)
+            checks |= self._frequency_offsets(absolute, wrapped, usable)
+            checks["order_error_fraction"] = self._disagreement(masks["order_error"], usable)
             # inverse-variance combination of all frequencies, in units of the finest fringe
             phase = np.zeros_like(background)
             weight = np.zeros_like(background)
-            for phi_abs, b, fi in zip(absolute, modulation, patterns.fringes):
+            for phi_abs, b, fi in zip(absolute, modulation, ps.fringes):
                 w = np.square(b)
                 w *= np.float32((fi / f_max) ** 2)
                 weight += w
                 w *= phi_abs
                 phase += np.multiply(w, np.float32(f_max / fi), out=w)
             phase /= np.maximum(weight, np.float32(1e-12))
-        b_fine = modulation[finest]
-        masks["shadow"] = b_fine < settings.min_contrast * np.maximum(background, 1e-6)
-        masks["low_modulation"] = ~masks["shadow"] & (b_fine < settings.min_modulation * full_scale)
-        valid = ~(masks["saturated"] | masks["shadow"] | masks["low_modulation"])
+        if s.self_check:
+            self._judge(checks)
+        coordinate = phase * np.float32(self.extent / (2.0 * np.pi * f_max))
+        coordinate -= np.float32(conv.pixel_centre)
+        return self._finish(masks, usable, coordinate, phase, wrapped, modulation, background, weight, f_max), checks
+
+    def _contrast(self, background: np.ndarray, modulation: np.ndarray) -> np.ndarray:
+        """White − black where the set has reference frames, else twice the fringe modulation."""
+        if self.refs is not None:
+            return self.refs[0] - self.refs[1]
+        return np.float32(2.0) * modulation
+
+    def _pixel_graycode_only(self, masks: dict[str, np.ndarray]) -> tuple[OrientationMaps, dict[str, float]]:
+        """OpenCV's GrayCodePattern alone: the coordinate is the pixel (run) the code names."""
+        s = self.settings
+        if self.refs is not None:
+            white, black = self.refs
+            background = (white + black) * np.float32(0.5)
+            contrast = white - black
+        else:
+            pairs = [(self._frame("gray", b).astype(np.float32), self._frame("gray_inverse", b).astype(np.float32))
+                     for b in range(self.patterns.gray_bits(self.orientation))]
+            background = sum(p + q for p, q in pairs) * np.float32(0.5 / len(pairs))
+            contrast = np.max([np.abs(p - q) for p, q in pairs], axis=0)
+        b = contrast * np.float32(0.5)
+        masks["shadow"] = b < s.min_contrast * np.maximum(background, 1e-6)
+        masks["low_modulation"] = ~masks["shadow"] & (b < s.min_modulation * self.full_scale)
+        usable = ~(masks["shadow"] | masks["low_modulation"])
+        coordinate, run, readable = self._pixel_code(contrast)
+        masks["order_error"] = ~readable
+        weight = np.float32(12.0) / np.square(run, dtype=np.float32)  # 1 / variance of a uniform run (px⁻²)
+        phase = (coordinate + np.float32(0.5)) * TWO_PI  # one "fringe" per projector pixel
+        maps = self._finish(masks, usable, coordinate, phase, [], [b], background, weight, float(self.extent))
+        if s.self_check:
+            self._judge({})
+        return maps, {"codes_beyond_projector": self.beyond_fraction}
+
+    def _finish(self, masks: dict[str, np.ndarray], usable: np.ndarray, coordinate: np.ndarray, phase: np.ndarray,
+                wrapped: list[np.ndarray], modulation: list[np.ndarray], background: np.ndarray,
+                weight: np.ndarray, fringes: float) -> OrientationMaps:
+        s = self.settings
+        valid = usable.copy()
         masks["order_error"] &= valid  # reasons stay distinct: an order error is judged on a usable phase
         valid &= ~masks["order_error"]
-        coordinate = phase * np.float32(extent / (2.0 * np.pi * f_max))
-        coordinate -= np.float32(0.5)
         np.copyto(coordinate, np.float32(np.nan), where=~valid)
-        if settings.spatial_check:
-            min_region = max(1, int(settings.min_region_fraction * valid.size))
-            islands, masks["discontinuity"] = _unreliable_regions(coordinate, valid, extent / f_max, min_region)
+        if s.spatial_check:
+            min_region = max(1, int(s.min_region_fraction * valid.size))
+            islands, masks["discontinuity"] = _unreliable_regions(coordinate, valid, self.extent / fringes, min_region)
             masks["order_error"] |= islands
             valid &= ~(islands | masks["discontinuity"])
         invalid = ~valid
         np.copyto(coordinate, np.float32(np.nan), where=invalid)
         np.copyto(phase, np.float32(np.nan), where=invalid)
-        maps[orientation] = OrientationMaps(orientation, coordinate, phase, wrapped, modulation, background, weight,
-                                            masks, valid, f_max, extent)
-        backgrounds.append(background)
-    texture = backgrounds[0] if len(backgrounds) == 1 else (backgrounds[0] + backgrounds[1]) / 2
-    valid_all = np.logical_and.reduce([m.valid for m in maps.values()])
-    return DecodeResult(patterns, bit_depth, maps, texture, valid_all)
+        return OrientationMaps(self.orientation, coordinate, phase, wrapped, modulation, background, weight, masks,
+                               valid, fringes, self.extent, self.noise, max(self.patterns.steps, 1))
+
+    @staticmethod
+    def _disagreement(bad: np.ndarray, usable: np.ndarray) -> float:
+        n = int(usable.sum())
+        return float((bad & usable).sum() / n) if n >= MIN_JUDGED_PIXELS else 0.0
+
+    def _frequency_offsets(self, absolute: list[np.ndarray], wrapped: list[np.ndarray],
+                           usable: np.ndarray) -> dict[str, float]:
+        """Per frequency, the circular mean (rad) of its wrapped phase minus the one the
+        unwrapping predicted for it from the coarser phases, over usable pixels: ~0 when the
+        frequencies agree; a phase-origin or step-sign error offsets every pixel alike."""
+        sel = usable[::4, ::4]
+        if sel.sum() < MIN_JUDGED_PIXELS:
+            return {}
+        out = {}
+        finest = absolute[int(np.argmax(self.patterns.fringes))][::4, ::4][sel]
+        f_max = max(self.patterns.fringes)
+        for i, fi in enumerate(self.patterns.fringes):
+            predicted = finest * np.float32(fi / f_max)
+            d = wrapped[i][::4, ::4][sel] - predicted
+            out[f"frequency_{i}_offset_rad"] = float(np.angle(np.mean(np.exp(1j * d.astype(np.float64)))))
+        return out
+
+    def _judge(self, checks: dict[str, float]) -> None:
+        s, o = self.settings, self.orientation
+        g = checks.get("gray_phase_disagreement", 0.0)
+        if g > s.max_disagreement:
+            raise DecodeError(f"self-check: {o} Gray code and phase disagree on {g:.1%} of the modulated pixels "
+                              f"(limit {s.max_disagreement:.0%}): the frames do not follow the pattern set's "
+                              f"conventions (phase origin, step sign, frame order or Gray-code variant); no cloud "
+                              f"written")
+        offsets = {k: v for k, v in checks.items() if k.endswith("_offset_rad")}
+        worst = max(offsets, key=lambda k: abs(offsets[k]), default=None)
+        if worst is not None and abs(offsets[worst]) > s.max_frequency_offset:
+            raise DecodeError(f"self-check: the {o} frequencies disagree systematically ({worst.split('_offset')[0]} "
+                              f"sits {offsets[worst]:+.2f} rad from the others; limit {s.max_frequency_offset} rad): "
+                              f"the frames do not follow the pattern set's conventions (phase origin, step sign or "
+                              f"frame order); no cloud written")
+        if self.beyond_fraction > 0.01:
+            raise DecodeError(f"self-check: {self.beyond_fraction:.1%} of the readable {o} Gray codes name projector "
+                              f"pixels at or beyond {self.extent}: the projector size is wrong; no cloud written")
+        e = checks.get("order_error_fraction", 0.0)
+        if e > 0.5:
+            raise DecodeError(f"self-check: {o} fringe orders fail on {e:.0%} of the modulated pixels: the fringe "
+                              f"counts, frame order or projector size do not match the frames; no cloud written")
