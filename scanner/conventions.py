@@ -38,6 +38,7 @@ FRAME_ORDERS = ("frequency-major", "step-major")
 GRAY_POSITIONS = ("after", "before")
 GRAY_CODES = ("complementary", "opencv")
 REFERENCES = ("none", "first", "last")
+LAYOUT_KEYS = ("frame_order", "gray_position", "gray_code", "references")  # the keys that order the frames
 CHOICES: dict[str, tuple[str, ...]] = {"frame_order": FRAME_ORDERS, "gray_position": GRAY_POSITIONS,
                                        "gray_code": GRAY_CODES, "references": REFERENCES}
 

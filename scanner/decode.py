@@ -141,7 +141,7 @@ def _wrap_positive(d: np.ndarray) -> np.ndarray:
     return d
 
 
-def _phase_shift(block: np.ndarray, steps: int, origin: float, sign: int) -> tuple[np.ndarray, np.ndarray,
+def phase_shift(block: np.ndarray, steps: int, origin: float, sign: int) -> tuple[np.ndarray, np.ndarray,
                                                                                     np.ndarray]:
     """Wrapped phase [0, 2π) with the phase origin removed, modulation B and background A
     of one N-step block (N, H, W) whose step n adds sign·2πn/N to the displayed phase."""
@@ -218,7 +218,25 @@ def _order_errors(residual: np.ndarray, candidates_sigma: Callable[[np.ndarray],
     return errors
 
 
-def _graycode_unwrap(ps: PatternSet, wrapped: np.ndarray, bits: list[np.ndarray], background: np.ndarray,
+def read_complementary_code(bits: list[np.ndarray], background: np.ndarray, modulation: np.ndarray,
+                            certainty: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a complementary Gray code (n regular bits, then the half-period bit), each bit
+    against the background A. Returns (the half-period index the whole code names, the
+    count of regular bits read ambiguously, whether the half-period bit is ambiguous); a
+    bit reads clearly when |I − A| exceeds `certainty`·B."""
+    code = np.zeros(background.shape, dtype=np.int32)
+    unclear = np.zeros(background.shape, dtype=np.int32)
+    margin = np.float32(certainty) * modulation
+    for b, frame in enumerate(bits):
+        diff = frame.astype(np.float32) - background
+        code = (code << 1) | (diff > 0)
+        ambiguous = np.abs(diff) < margin
+        if b < len(bits) - 1:
+            unclear += ambiguous
+    return gray_to_binary(code, len(bits)), unclear, ambiguous
+
+
+def _graycode_unwrap(wrapped: np.ndarray, bits: list[np.ndarray], background: np.ndarray,
                      modulation: np.ndarray, certainty: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Absolute phase from complementary Gray code (Wu et al.), where it is unreliable, and
     the half-period index the code names (for the self-check).
@@ -226,23 +244,10 @@ def _graycode_unwrap(ps: PatternSet, wrapped: np.ndarray, bits: list[np.ndarray]
     The extra half-period bit picks the fringe order that is safe at the code boundaries:
     away from a period boundary (π/2 < φ < 3π/2) every regular bit must read clearly, and
     near one only the single bit that changes there may be ambiguous; the complementary bit
-    must read clearly wherever it is used. A bit reads clearly when |I − A| exceeds
-    `certainty`·B; blur wider than a quarter period breaks this, and those pixels are
-    returned as order errors instead of being unwrapped by a guess."""
-    n_bits = ps.gray_bits()
-    code = np.zeros(wrapped.shape, dtype=np.int32)
-    unclear = np.zeros(wrapped.shape, dtype=np.int32)  # regular bits read ambiguously
-    margin = np.float32(certainty) * modulation
-    for b in range(n_bits + 1):
-        diff = bits[b].astype(np.float32) - background
-        code = (code << 1) | (diff > 0)
-        ambiguous = np.abs(diff) < margin
-        if b < n_bits:
-            unclear += ambiguous
-        else:
-            complementary_unclear = ambiguous
-    k1 = gray_to_binary(code >> 1, n_bits)
-    half = gray_to_binary(code, n_bits + 1)
+    must read clearly wherever it is used. Blur wider than a quarter period breaks this, and
+    those pixels are returned as order errors instead of being unwrapped by a guess."""
+    half, unclear, complementary_unclear = read_complementary_code(bits, background, modulation, certainty)
+    k1 = half >> 1  # the regular bits' period index (a Gray prefix names the same range)
     k2 = (half + 1) >> 1
     quarter = np.float32(np.pi / 2)
     near_boundary = (wrapped <= quarter) | (wrapped >= 3 * quarter)
@@ -430,7 +435,7 @@ class _OrientationDecoder:
         ps, s, conv = self.patterns, self.settings, self.patterns.conventions
         wrapped, modulation, background = [], [], None
         for block in self.blocks:
-            phi, b, a = _phase_shift(_block(self.stack, block), ps.steps, conv.phase_origin, conv.step_sign)
+            phi, b, a = phase_shift(_block(self.stack, block), ps.steps, conv.phase_origin, conv.step_sign)
             wrapped.append(phi)
             modulation.append(b)
             background = a if background is None else background + a
@@ -454,7 +459,7 @@ class _OrientationDecoder:
         if ps.family == "graycode" and conv.gray_code == "complementary":
             n_bits = ps.gray_bits() + 1
             bits = [self._frame("gray", b) for b in range(n_bits)]
-            phase, masks["order_error"], half = _graycode_unwrap(ps, wrapped[0], bits, background, modulation[0],
+            phase, masks["order_error"], half = _graycode_unwrap(wrapped[0], bits, background, modulation[0],
                                                                  s.gray_certainty)
             checks["gray_phase_disagreement"] = self._disagreement(
                 np.abs(gray_phase_offset(wrapped[0], half)) > np.float32(0.75 * np.pi), usable)

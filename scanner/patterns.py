@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from scanner.config import get, load_toml
-from scanner.conventions import NATIVE, Conventions
+from scanner.conventions import LAYOUT_KEYS, NATIVE, Conventions
 from scanner.errors import ConfigError
 
 FAMILIES = ("heterodyne", "hierarchical", "graycode", "pixel_graycode")
@@ -155,9 +155,10 @@ class PatternSet:
         frames (frequency- or step-major) and the Gray-code frames (after or before them),
         with the white and black reference frames first or last."""
         c = self.conventions
-        if c.missing():
-            raise ConfigError("pattern set", "conventions", f"frame order unknown until {c.missing()} are given "
-                                                            f"or detected")
+        unknown = [k for k in LAYOUT_KEYS if getattr(c, k) is None]
+        if unknown:
+            raise ConfigError("pattern set", "conventions", f"frame order unknown until {unknown} are given or "
+                                                            f"detected")
         out: list[FrameSpec] = []
         levels, steps = range(len(self.fringes)), range(self.steps)
         for o in self.orientations:
