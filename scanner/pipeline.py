@@ -34,7 +34,7 @@ class ScanResult:
 
     session: Session
     decoded: DecodeResult
-    cloud: OrganisedCloud
+    cloud: OrganisedCloud | None  # None: a session without a calibration (imported frames) has maps only
     timings_s: dict[str, float]
 
     @property
@@ -91,9 +91,13 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     t0 = time.perf_counter()
     decoded = decode(stack, patterns, session.bit_depth, model.projector.size, settings)
     timings["decode"] = time.perf_counter() - t0
+    calibrated = session.manifest.get("calibrated", True)
     progress("reconstruct", 0, 1)
     t0 = time.perf_counter()
-    if mode == "triangulation":
+    cloud = None
+    if not calibrated:
+        pass  # imported without a calibration: the maps are the result
+    elif mode == "triangulation":
         cloud = triangulate(decoded, Triangulator(model))
     else:
         cloud = phase_to_height_cloud(decoded, model)
@@ -102,16 +106,17 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     t0 = time.perf_counter()
     out = session.root / OUTPUTS_DIR
     out.mkdir(exist_ok=True)
-    n_points = write_ply(out / "cloud.ply", cloud)
+    n_points = write_ply(out / "cloud.ply", cloud) if cloud is not None else 0
     save_maps(out / "maps.npz", decoded)
     timings["write"] = time.perf_counter() - t0
     timings = {k: round(v, 4) for k, v in timings.items()}
     stats = {"points": n_points, "valid_fraction": round(float(decoded.valid.mean()), 5),
-             "rejected": {f"{o}/{k}": int(v.sum()) for o, m in decoded.maps.items() for k, v in m.masks.items()}}
+             "rejected": decoded.rejected(), "self_check": decoded.checks}
     write_json(out / "result.json", {"session_id": session.id, "mode": mode, "timings_s": timings, **stats})
     if recording is not None:
         recording.log_decode(decoded)
-        recording.log_cloud(cloud, model)
+        if cloud is not None:
+            recording.log_cloud(cloud, model)
         recording.log_metrics({**{f"{k}_s": v for k, v in timings.items()}, "valid_fraction": stats["valid_fraction"],
                                "points": n_points})
     progress("done", 1, 1)
@@ -124,7 +129,9 @@ def save_maps(path: Path, decoded: DecodeResult) -> None:
     for o, m in decoded.maps.items():
         arrays[f"{o}/coordinate"] = m.coordinate
         arrays[f"{o}/phase"] = m.phase
-        arrays[f"{o}/modulation"] = m.modulation[int(np.argmax(decoded.patterns.fringes))]
+        if m.wrapped:  # phase-shift sets: the finest modulation and the predicted phase noise (rad)
+            arrays[f"{o}/modulation"] = m.modulation[int(np.argmax(decoded.patterns.fringes))]
+            arrays[f"{o}/phase_sigma"] = m.phase_sigma
         for name, mask in m.masks.items():
             arrays[f"{o}/mask/{name}"] = mask
     write_npz(path, arrays)

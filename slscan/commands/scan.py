@@ -64,8 +64,14 @@ def report(result: Any) -> None:
     s = result.session
     t = result.timings_s
     print(f"session   {s.root}")
-    print(f"cloud     {result.cloud_path}  ({len(result.cloud)} points, "
-          f"{result.decoded.valid.mean() * 100:.1f} % of pixels valid)")
+    valid = f"{result.decoded.valid.mean() * 100:.1f} % of pixels valid"
+    if result.cloud is None:
+        print(f"maps      {s.outputs / 'maps.npz'}  ({valid}; no calibration, so no cloud)")
+    else:
+        print(f"cloud     {result.cloud_path}  ({len(result.cloud)} points, {valid})")
+    rejected = result.decoded.rejected()
+    total = result.decoded.valid.size * len(result.decoded.maps)
+    print("rejected  " + ", ".join(f"{k} {v / total * 100:.2f} %" for k, v in rejected.items() if v))
     print(f"recording {s.recording_path}   (view: slscan review {s.root})")
     print(f"timings   decode {t['decode'] * 1e3:.0f} ms, reconstruct {t['reconstruct'] * 1e3:.0f} ms")
     acc = sim_accuracy(result)
@@ -80,7 +86,7 @@ def sim_accuracy(result: Any) -> Any:
     from sim.render import SensorModel
 
     path = result.session.root / GROUND_TRUTH_FILE
-    if not path.exists() or len(result.decoded.maps) != 1:
+    if not path.exists() or len(result.decoded.maps) != 1 or result.cloud is None:
         return None
 
     manifest = result.session.manifest
