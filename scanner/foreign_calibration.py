@@ -67,8 +67,8 @@ def _format(fs: cv2.FileStorage, path: Path) -> str:
     for name, keys in FORMATS.items():
         if not fs.getNode(keys["camera"][0]).empty():
             return name
-    raise CalibrationFileError(path, f"an OpenCV FileStorage file, but neither SLMaster's (M1/D1, M4/D4, Rlp/Tlp) nor "
-                                     f"procam's (cam_int, proj_int, roration, translation) keys are in it")
+    raise CalibrationFileError(path, "an OpenCV FileStorage file, but neither SLMaster's (M1/D1, M4/D4, Rlp/Tlp) nor "
+                                     "procam's (cam_int, proj_int, roration, translation) keys are in it")
 
 
 def read_opencv_calibration(path: str | Path, camera_size: tuple[int, int], projector_size: tuple[int, int],

@@ -14,6 +14,7 @@ from functools import cached_property
 
 import cv2
 import numpy as np
+from scipy.interpolate import RectBivariateSpline
 
 from scanner.decode import DecodeResult
 from scanner.errors import DecodeError
@@ -25,6 +26,30 @@ _TABLE_ROWS = 257  # samples along the other normalised projector coordinate
 _MAX_PASSES = 4
 _CONVERGED = 1e-7  # change of the normalised projector coordinate (~2e-4 projector px)
 _REMAP_COLS = 4096
+_TABLE_COARSE_PX = 4.0  # projector pixels between exactly solved table columns
+_NEWTON_TOLERANCE = 1e-13  # normalised coordinate
+
+
+def _undistort_axis(c: np.ndarray, yn: np.ndarray, f: float, ctr: float, dist: np.ndarray, axis: int) -> np.ndarray:
+    """(len(yn), len(c)) undistorted normalised coordinates x along the coded axis solving
+    distort(x, y_n)[axis] = (c − ctr)/f by Newton steps from the ideal pinhole, until every
+    step is below _NEWTON_TOLERANCE (Brown-Conrady, OpenCV's k1, k2, p1, p2, k3)."""
+    cc, yy = np.meshgrid(c, yn)
+    xd = (cc - ctr) / f
+    x = xd.copy()
+    k1, k2, p1, p2, k3 = dist
+    if axis == 1:
+        p1, p2 = p2, p1  # swapping x and y swaps the tangential terms
+    for _ in range(50):
+        r2 = x * x + yy * yy
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        fx = x * radial + 2 * p1 * x * yy + p2 * (r2 + 2 * x * x) - xd
+        dradial = 2 * x * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
+        step = fx / (radial + x * dradial + 2 * p1 * yy + 6 * p2 * x)
+        x -= step
+        if not np.abs(step).max() > _NEWTON_TOLERANCE:
+            break
+    return x
 
 
 class _UndistortTable:
@@ -33,7 +58,6 @@ class _UndistortTable:
 
     def __init__(self, projector: Pinhole, axis: int) -> None:
         extent = projector.width if axis == 0 else projector.height
-        other = projector.height if axis == 0 else projector.width
         K = projector.K
         # range of the cross coordinate, with margin for points outside the projector image
         corners = projector.normalized(np.array([[0, 0], [projector.width - 1, projector.height - 1]], float))
@@ -42,22 +66,14 @@ class _UndistortTable:
         self.y0, self.dy = lo - 0.25 * span, 1.5 * span / (_TABLE_ROWS - 1)
         c = np.arange(extent * _TABLE_OVERSAMPLE + 1) / _TABLE_OVERSAMPLE - 0.5
         yn = self.y0 + self.dy * np.arange(_TABLE_ROWS)
-        cc, yy = np.meshgrid(c, yn)
-        # start from the ideal pinhole and solve distort(x_n, y_n)[axis] = x_d by Newton steps
-        f, ctr = K[axis, axis], K[axis, 2]
-        xd = (cc - ctr) / f
-        x = xd.copy()
-        k1, k2, p1, p2, k3 = projector.dist
-        if axis == 1:
-            p1, p2 = p2, p1  # swapping x and y swaps the tangential terms
-        for _ in range(20):
-            r2 = x * x + yy * yy
-            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            fx = x * radial + 2 * p1 * x * yy + p2 * (r2 + 2 * x * x) - xd
-            dradial = 2 * x * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
-            dfx = radial + x * dradial + 2 * p1 * yy + 6 * p2 * x
-            x -= fx / dfx
-        self.table = x.astype(np.float32)
+        if not projector.dist.any():
+            self.table = np.repeat(((c - K[axis, 2]) / K[axis, axis])[None, :], _TABLE_ROWS, 0).astype(np.float32)
+            return
+        # solved exactly every _TABLE_COARSE_PX projector pixels, spread to every sample by a
+        # bicubic spline (the undistortion is smooth at that scale)
+        coarse = np.arange(-0.5, extent - 0.5 + _TABLE_COARSE_PX, _TABLE_COARSE_PX, dtype=np.float64)
+        solved = _undistort_axis(coarse, yn, K[axis, axis], K[axis, 2], projector.dist, axis)
+        self.table = RectBivariateSpline(yn, coarse, solved)(yn, c).astype(np.float32)
 
     def __call__(self, coord: np.ndarray, y_n: np.ndarray) -> np.ndarray:
         """Table look-up (bilinear) for flat float32 arrays of equal length."""
