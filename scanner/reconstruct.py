@@ -14,11 +14,10 @@ from functools import cached_property
 
 import cv2
 import numpy as np
-from scipy.interpolate import RectBivariateSpline
 
 from scanner.decode import DecodeResult
 from scanner.errors import DecodeError
-from scanner.geometry import Pinhole, RigModel
+from scanner.geometry import Pinhole, RigModel, cubic_weights
 from scanner.pointcloud import OrganisedCloud, from_planes, organised_normals
 
 _TABLE_OVERSAMPLE = 4  # table samples per projector pixel along the coded axis
@@ -69,11 +68,12 @@ class _UndistortTable:
         if not projector.dist.any():
             self.table = np.repeat(((c - K[axis, 2]) / K[axis, axis])[None, :], _TABLE_ROWS, 0).astype(np.float32)
             return
-        # solved exactly every _TABLE_COARSE_PX projector pixels, spread to every sample by a
-        # bicubic spline (the undistortion is smooth at that scale)
-        coarse = np.arange(-0.5, extent - 0.5 + _TABLE_COARSE_PX, _TABLE_COARSE_PX, dtype=np.float64)
+        # solved exactly every _TABLE_COARSE_PX projector pixels, spread to every sample by
+        # cubic interpolation (the undistortion is smooth at that scale)
+        step = _TABLE_COARSE_PX
+        coarse = np.arange(-0.5 - step, extent - 0.5 + 3 * step, step, dtype=np.float64)
         solved = _undistort_axis(coarse, yn, K[axis, axis], K[axis, 2], projector.dist, axis)
-        self.table = RectBivariateSpline(yn, coarse, solved)(yn, c).astype(np.float32)
+        self.table = (solved @ cubic_weights(c, coarse[0], step, len(coarse)).T).astype(np.float32)
 
     def __call__(self, coord: np.ndarray, y_n: np.ndarray) -> np.ndarray:
         """Table look-up (bilinear) for flat float32 arrays of equal length."""

@@ -6,6 +6,18 @@ the exit code. Modules are imported when the parser is built, so they import hea
 libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
 """
 
-from slscan.commands import bench, calibrate, devices, import_, inspect, pose, review, scan, segment, station
+from slscan.commands import (
+                             bench,
+                             calibrate,
+                             devices,
+                             import_,
+                             importbench,
+                             inspect,
+                             pose,
+                             review,
+                             scan,
+                             segment,
+                             station,
+)
 
-COMMANDS = (scan, import_, review, bench, devices, calibrate, inspect, pose, segment, station)
+COMMANDS = (scan, import_, review, bench, importbench, devices, calibrate, inspect, pose, segment, station)

@@ -72,7 +72,8 @@ def report(result: Any) -> None:
     rejected = result.decoded.rejected()
     total = result.decoded.valid.size * len(result.decoded.maps)
     print("rejected  " + ", ".join(f"{k} {v / total * 100:.2f} %" for k, v in rejected.items() if v))
-    print(f"recording {s.recording_path}   (view: slscan review {s.root})")
+    if s.recording_path.exists():
+        print(f"recording {s.recording_path}   (view: slscan review {s.root})")
     print(f"timings   decode {t['decode'] * 1e3:.0f} ms, reconstruct {t['reconstruct'] * 1e3:.0f} ms")
     acc = sim_accuracy(result)
     if acc is not None:
