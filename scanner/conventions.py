@@ -21,7 +21,7 @@ So the displayed intensity of phase step n is 0.5 + 0.5·cos(Φ(c) + phase_origi
 step_sign·2πn/N), and a decoded phase becomes the OpenCV projector coordinate (pixel
 centres at integers) x = (Φ − phase_origin)·W/(2π·f) − pixel_centre.
 
-A key left out is None: `slscan import` detects it from the frames (scanner.detect); a
+A key left out is None: `slscan import` detects it from the frames (scanner.convention_detection); a
 pattern set used for scanning has every key, our own values by default (NATIVE).
 """
 

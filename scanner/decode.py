@@ -300,6 +300,9 @@ def _unreliable_regions(coordinate: np.ndarray, valid: np.ndarray, period_px: fl
     return small[labels], cut
 
 
+_CHI2_MEDIAN = (0.4549, 0.6931, 0.7887, 0.8392, 0.8703, 0.8914, 0.9066, 0.9180, 0.9270, 0.9342)  # median(χ²_k)/k
+
+
 def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int, full_scale: float) -> NoiseModel:
     """The intensity-noise model of a stack, from every 8th pixel of its phase blocks: the
     residual of the N-step fit per pixel (N − 3 degrees of freedom) regressed on the
@@ -325,22 +328,25 @@ def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int,
         v = (lap.ravel() ** 2) * (np.pi / 2) / 36.0 * steps  # σ_A² per pixel, back to one frame's σ_I²
     if a.size < 50:
         return NoiseModel(1.0, 0.0)
-    # median variance in background bins, then a non-negative line through them
+    # median variance in background bins (unbiased for the χ² of the residuals), then a line
+    # through them with non-negative read and shot terms
+    dof = steps - 3 if steps > 3 else 1
+    unbias = _CHI2_MEDIAN[dof - 1] if dof <= len(_CHI2_MEDIAN) else (1 - 2 / (9 * dof)) ** 3
     edges = np.quantile(a, np.linspace(0, 1, 9))
     centres, medians = [], []
     for lo, hi in zip(edges[:-1], edges[1:]):
         sel = (a >= lo) & (a <= hi)
         if sel.sum() >= 10:
             centres.append(np.median(a[sel]))
-            medians.append(np.median(v[sel]) / 0.75)  # median of a scaled χ² is below its mean
-    centres_a, medians_v = np.array(centres), np.array(medians)
-    if len(centres_a) >= 2 and np.ptp(centres_a) > 0:
-        shot, read = np.polyfit(centres_a, medians_v, 1)
-    else:
-        shot, read = 0.0, float(np.median(v))
-    shot = max(float(shot), 0.0)
-    read = max(float(read), 1.0 / 12.0)  # at least the quantisation noise
-    return NoiseModel(read, shot)
+            medians.append(np.median(v[sel]) / unbias)
+    c, m = np.array(centres), np.array(medians)
+    shot, read = np.polyfit(c, m, 1) if len(c) >= 2 and np.ptp(c) > 0.05 * max(c.max(), 1.0) else (0.0, np.mean(m))
+    if shot < 0:  # no shot noise visible: a constant
+        shot, read = 0.0, float(np.mean(m))
+    if read < 1.0 / 12.0:  # at least the quantisation noise; the shot term through the rest
+        read = 1.0 / 12.0
+        shot = max(float(np.sum((m - read) * c) / max(np.sum(c * c), 1e-12)), 0.0)
+    return NoiseModel(float(read), float(shot))
 
 
 def _frame_indices(specs: list[FrameSpec]) -> dict[tuple[str, str, int, int], int]:

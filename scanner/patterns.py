@@ -91,7 +91,7 @@ class PatternSet:
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str | Path = "pattern set", detect: bool = False) -> PatternSet:
         """The pattern set a TOML table describes. Convention keys left out take our own
-        values, or with `detect` stay unknown (None) for `scanner.detect` to find."""
+        values, or with `detect` stay unknown (None) for `scanner.convention_detection` to find."""
         family = get(d, "family", str, where)
         phaseless = family == "pixel_graycode"
         fringes = get(d, "fringes", list, where, [] if phaseless else ...)

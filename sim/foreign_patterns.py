@@ -98,17 +98,18 @@ def fringe_rows(extent: int, fringes: list[float], steps: int, origin: float = 0
 
 
 def capture(rows: np.ndarray, coordinate: np.ndarray, bits: int = 8, dark: float = 0.08, bright: float = 0.85,
-            noise: float = 0.004, seed: int = 0) -> np.ndarray:
+            noise: float = 0.004, seed: int = 0, lit: np.ndarray | None = None) -> np.ndarray:
     """Frames a camera takes of rows shown along the coded axis, each pixel seeing projector
     coordinate `coordinate` (H, W; OpenCV pixel centres, NaN: not lit; the rows interpolated
-    linearly between pixel centres, as a slightly defocused projector shows them): intensity
+    linearly between pixel centres, as a slightly defocused projector shows them; `lit`: where
+    the projector's light reaches at all, e.g. its other coordinate inside its image): intensity
     linear between `dark` and `bright` of full scale, Gaussian noise `noise` of full scale."""
     rng = np.random.default_rng(seed)
     full = 2 ** bits - 1
     levels = rows.astype(np.float64) / (255.0 if rows.dtype == np.uint8 else 1.0)
     extent = rows.shape[1]
     x = np.nan_to_num(coordinate, nan=-10.0)
-    lit = (x > -0.5) & (x < extent - 0.5)
+    lit = (x > -0.5) & (x < extent - 0.5) & (True if lit is None else lit)
     grid = np.arange(extent, dtype=np.float64)
     out = np.empty((len(rows), *coordinate.shape), dtype=np.uint8 if bits == 8 else np.uint16)
     for k, row in enumerate(levels):

@@ -7,7 +7,7 @@ Frames are taken in natural order (`2.bmp` before `10.bmp`): 8- or 16-bit grey P
 TIFF (colour frames are converted to grey). They are hard-linked into the session (copied
 across file systems; colour frames written as grey PNG), and the manifest names where each
 came from. Convention keys the pattern file leaves out are detected from the frames
-(scanner/detect.py); the manifest's `import.conventions` and the output say what was given,
+(scanner/convention_detection.py); the manifest's `import.conventions` and the output say what was given,
 detected or assumed and on what evidence. With `--calibration` (ours, SLMaster's
 caliInfo.yml or procam's calibration_result.xml: scanner/foreign_calibration.py) the session
 gets a cloud; without one, the decoded maps only. The session then decodes like any other
@@ -127,7 +127,7 @@ def import_frames(folder: Path, patterns_path: Path, projector_size: tuple[int, 
                   calibration: Path | None = None, projector_scale: float = 1.0, frames_glob: str | None = None,
                   bit_depth: int | None = None, progress: Any = None) -> Any:
     """Import and process one capture (module docstring); returns (ScanResult, Detection)."""
-    from scanner.detect import detect
+    from scanner.convention_detection import detect
     from scanner.foreign_calibration import read_calibration
     from scanner.pipeline import process
 

@@ -41,9 +41,10 @@ OPENCV_GRAYCODE = CONFIG_DIR / "patterns" / "opencv_graycode.toml"
 
 
 def synthetic_rig(camera: tuple[int, int] = (1280, 1024), projector: tuple[int, int] = (1920, 1080)) -> RigModel:
-    """A camera and projector 150 mm apart, converging at 600 mm, both with lens distortion."""
-    cam = Pinhole.from_fov(*camera, 35.0, dist=np.array([-0.12, 0.15, 0.0004, -0.0003, 0.0]))
-    proj = Pinhole.from_fov(*projector, 30.0, principal=(projector[0] / 2 - 0.5, projector[1] * 0.9),
+    """A camera and projector 150 mm apart, converging at 600 mm, both with lens distortion;
+    the projector lights ~95 % of the camera's view of `plane_coordinates`' plane."""
+    cam = Pinhole.from_fov(*camera, 26.0, dist=np.array([-0.12, 0.15, 0.0004, -0.0003, 0.0]))
+    proj = Pinhole.from_fov(*projector, 34.0, principal=(projector[0] / 2 - 0.5, projector[1] * 0.5 - 0.5),
                             dist=np.array([0.05, -0.08, 0.0002, 0.0001, 0.0]))
     world_from_proj = look_at(np.array([150.0, 0.0, 0.0]), np.array([0.0, 0.0, 600.0]))
     return RigModel(cam, proj, world_from_proj)  # world = camera frame
@@ -80,7 +81,8 @@ def slmaster_capture(folder: Path, rig: RigModel, seed: int = 0) -> np.ndarray:
     from sim.foreign_patterns import capture, slmaster_complementary
 
     _, uv = plane_coordinates(rig)
-    frames = capture(slmaster_complementary(rig.projector.width), uv[..., 0], seed=seed)
+    lit = (uv[..., 1] > -0.5) & (uv[..., 1] < rig.projector.height - 0.5)
+    frames = capture(slmaster_complementary(rig.projector.width), uv[..., 0], seed=seed, lit=lit)
     folder.mkdir(parents=True, exist_ok=True)
     for k, img in enumerate(frames):
         cv2.imwrite(str(folder / f"frame_{k + 1}.bmp"), img)

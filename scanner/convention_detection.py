@@ -149,7 +149,9 @@ def _refs_score(sub: np.ndarray, ps: PatternSet, usable: np.ndarray) -> float:
     return float(ok[usable].mean()) if usable.any() else 0.0
 
 
-def _evidence(sub: np.ndarray, ps: PatternSet, projector_size: tuple[int, int], bit_depth: int) -> _Evidence:
+def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int], bit_depth: int) -> _Evidence:
+    """What the frames say under the layout of `ps` (judged on every SUBSAMPLE-th pixel)."""
+    sub = stack[:, ::SUBSAMPLE, ::SUBSAMPLE]
     specs = ps.frames()
     index = {(s.orientation, s.kind, s.level, s.step): k for k, s in enumerate(specs)}
     o = ps.orientations[0]
@@ -194,7 +196,7 @@ def _evidence(sub: np.ndarray, ps: PatternSet, projector_size: tuple[int, int], 
             eps, Rs[sign], se = _circular(r)
             ev.offset[sign] = (eps, se)
         if reference is None:  # the half-period test cannot tell a mirrored phase: ask the code's edges
-            agree = _edge_agreement(wrapped[0], half, sel)
+            agree = _edge_agreement(stack, ps, bit_depth)
             ev.sign_r = {1: agree, -1: 1.0 - agree}
         else:
             ev.sign_r = {k: v / max(max(Rs.values()), 1e-9) for k, v in Rs.items()}
@@ -226,12 +228,22 @@ def _evidence(sub: np.ndarray, ps: PatternSet, projector_size: tuple[int, int], 
     return _Evidence(float(np.mean(shares)) * refs)
 
 
-def _edge_agreement(theta: np.ndarray, half: np.ndarray, sel: np.ndarray) -> float:
-    """Share of the Gray code's half-period edges across which the phase moves the same way as
-    the code (step sign +1): where the half-period index steps by ±1 between neighbours (along
-    the camera axis on which it changes most), the wrapped phase difference has that sign."""
+def _edge_agreement(stack: np.ndarray, ps: PatternSet, bit_depth: int) -> float:
+    """Share of the complementary Gray code's half-period edges across which the phase moves
+    the same way as the code (step sign +1): where the half-period index steps by ±1 between
+    neighbouring camera pixels, the wrapped phase difference has that sign. Judged between
+    direct neighbours (every 4th line, along both camera axes, the axis with more edges
+    counting), since the phase may advance by most of a period over a few pixels."""
+    o = ps.orientations[0]
+    index = {(s.orientation, s.kind, s.level, s.step): k for k, s in enumerate(ps.frames())}
+    block = [index[(o, "phase", 0, n)] for n in range(ps.steps)]
+    bits = [index[(o, "gray", b, 0)] for b in range(ps.gray_bits() + 1)]
+    full = float(2 ** bit_depth - 1)
     best = (0, 0.5)
-    for axis in (1, 0):
+    for axis, view in ((1, stack[:, ::SUBSAMPLE, :]), (0, stack[:, :, ::SUBSAMPLE])):
+        theta, mod, background = phase_shift(view[block], ps.steps, 0.0, 1)
+        half, unclear, half_unclear = read_complementary_code([view[b] for b in bits], background, mod, 0.3)
+        sel = (unclear == 0) & ~half_unclear & (mod > 0.12 * background) & (mod > 0.005 * full)
         a, b = (np.s_[:, 1:], np.s_[:, :-1]) if axis == 1 else (np.s_[1:, :], np.s_[:-1, :])
         dh = half[a] - half[b]
         dt = theta[a] - theta[b]
@@ -243,7 +255,7 @@ def _edge_agreement(theta: np.ndarray, half: np.ndarray, sel: np.ndarray) -> flo
     return best[1]
 
 
-def _geometric_sign(sub: np.ndarray, ps: PatternSet, projector_size: tuple[int, int], bit_depth: int,
+def _geometric_sign(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int], bit_depth: int,
                     rig: RigModel | None, origin_plus: float) -> tuple[int, str, str]:
     """Step sign of a phase-only set: the one under which the decoded coordinate runs the way
     the rig's geometry (or, without one, an unmirrored projector) says; `origin_plus` is the
@@ -260,7 +272,8 @@ def _geometric_sign(sub: np.ndarray, ps: PatternSet, projector_size: tuple[int, 
             expected, why = predicted, "from the calibration's geometry"
     settings = DecodeSettings(self_check=False, spatial_check=False)
     trial = replace(ps.conventions, step_sign=1, phase_origin=origin_plus).filled(NATIVE)
-    d = decode(sub, ps.with_conventions(trial), bit_depth, projector_size, settings)
+    lines = stack[:, ::SUBSAMPLE, :] if axis == 1 else stack[:, :, ::SUBSAMPLE]  # direct neighbours along axis
+    d = decode(lines, ps.with_conventions(trial), bit_depth, projector_size, settings)
     c = d.maps[o].coordinate
     grad = np.diff(c, axis=axis)
     grad = grad[np.isfinite(grad) & (np.abs(grad) < 0.5 * d.maps[o].period_px)]
@@ -306,7 +319,6 @@ def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
     from the frames `stack` (N, H, W); DecodeError naming a contradiction or ambiguity."""
     ps = patterns.for_projector(projector_size) if patterns.family in ("graycode", "pixel_graycode") else patterns
     given = ps.conventions
-    sub = np.ascontiguousarray(stack[:, ::SUBSAMPLE, ::SUBSAMPLE])
     n = stack.shape[0]
     candidates = _layouts(ps, n, fixed=True)
     if not candidates:
@@ -315,10 +327,16 @@ def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
         raise DecodeError(f"{n} frames, but the pattern set ({ps.family}, fringes {list(ps.fringes)}, "
                           f"{ps.steps} steps, {list(ps.orientations)}) with the given layout keys needs "
                           f"{_needed(ps)}: wrong frame count, fringe/period count or projector size{hint}")
-    scored = sorted(((_evidence(sub, c, projector_size, bit_depth), c) for c in candidates),
+    scored = sorted(((_evidence(stack, c, projector_size, bit_depth), c) for c in candidates),
                     key=lambda t: -t[0].score)
     best_ev, best = scored[0]
     findings: list[Finding] = []
+    # given layout keys contradicted by a layout they exclude?
+    free = sorted(((_evidence(stack, c, projector_size, bit_depth), c) for c in _layouts(ps, n, fixed=False)),
+                  key=lambda t: -t[0].score)
+    if free and free[0][1].frames() != best.frames() and free[0][0].score > max(1.5 * best_ev.score, 0.3):
+        raise DecodeError(f"the given frame layout ({_layout_name(best)}, score {best_ev.score:.2f}) contradicts "
+                          f"the frames: {_layout_name(free[0][1])} explains them (score {free[0][0].score:.2f})")
     if best_ev.score < 0.3:
         raise DecodeError(f"no frame layout explains the frames (best: {_layout_name(best)}, score "
                           f"{best_ev.score:.2f}): wrong frame order, fringe count or pattern family")
@@ -326,12 +344,6 @@ def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
         raise DecodeError(f"ambiguous frame layout: {_layout_name(best)} (score {best_ev.score:.2f}) and "
                           f"{_layout_name(scored[1][1])} ({scored[1][0].score:.2f}) explain the frames alike; give "
                           f"the layout keys in [conventions]")
-    # given layout keys contradicted by a layout they exclude?
-    free = sorted(((_evidence(sub, c, projector_size, bit_depth), c) for c in _layouts(ps, n, fixed=False)),
-                  key=lambda t: -t[0].score)
-    if free and free[0][1].frames() != best.frames() and free[0][0].score > 1.5 * best_ev.score:
-        raise DecodeError(f"the given frame layout ({_layout_name(best)}, score {best_ev.score:.2f}) contradicts "
-                          f"the frames: {_layout_name(free[0][1])} explains them (score {free[0][0].score:.2f})")
     layout_keys = [k for k in ("frame_order", "gray_position", "gray_code", "references")
                    if k in best.conventions.to_dict()]
     runner = f"; next best {scored[1][0].score:.2f}" if len(scored) > 1 else ""
@@ -346,7 +358,7 @@ def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
             findings.append(Finding(k, v, "detected", f"layout score {best_ev.score:.2f} of {len(scored)} "
                                                       f"layout(s) with {n} frames{runner}"))
     conv = replace(given, **{k: getattr(best.conventions, k) for k in layout_keys})
-    conv, more = _phase_keys(sub, ps.with_conventions(conv), best_ev, projector_size, bit_depth, rig)
+    conv, more = _phase_keys(stack, ps.with_conventions(conv), best_ev, projector_size, bit_depth, rig)
     findings += more
     return Detection(ps.with_conventions(conv.filled(NATIVE)), findings)
 
@@ -356,7 +368,7 @@ def _needed(ps: PatternSet) -> str:
     return "/".join(str(c) for c in counts) + " frames" if counts else "a frame count it cannot form"
 
 
-def _phase_keys(sub: np.ndarray, ps: PatternSet, ev: _Evidence, projector_size: tuple[int, int], bit_depth: int,
+def _phase_keys(stack: np.ndarray, ps: PatternSet, ev: _Evidence, projector_size: tuple[int, int], bit_depth: int,
                 rig: RigModel | None) -> tuple[Conventions, list[Finding]]:
     """Step sign, phase origin and pixel centre, given or detected (module docstring)."""
     c = ps.conventions
@@ -381,15 +393,20 @@ def _phase_keys(sub: np.ndarray, ps: PatternSet, ev: _Evidence, projector_size: 
         findings.append(Finding("step_sign", sign, source, evidence))
         eps, se = ev.offset[sign]
     else:
-        eps_plus = ev.offset[1][0] if 1 in ev.offset else 0.0
-        origin_plus = _snap(eps_plus, np.pi / 2, 0.1) if c.phase_origin is None else \
-            (c.phase_origin if c.step_sign in (None, 1) else -c.phase_origin)
+        eps_plus, se_plus = ev.offset.get(1, (None, 0.0))
+        if eps_plus is not None and c.phase_origin is not None:
+            signs = [c.step_sign] if c.step_sign is not None else [1, -1]
+            if all(abs(_wrap(sg * eps_plus - c.phase_origin)) > max(0.3, 5 * se_plus) for sg in signs):
+                raise DecodeError(f"conventions.phase_origin = {c.phase_origin:.3f} contradicts the frames: their "
+                                  f"frequencies agree with an origin of {eps_plus:.3f} rad (± {se_plus:.3f}) under "
+                                  f"step sign +1, {-eps_plus:.3f} under -1")
+        origin_plus = _snap(eps_plus, np.pi / 2, 0.1) if eps_plus is not None else 0.0
         if c.step_sign is None:
-            sign, source, evidence = _geometric_sign(sub, ps, projector_size, bit_depth, rig, origin_plus)
+            sign, source, evidence = _geometric_sign(stack, ps, projector_size, bit_depth, rig, origin_plus)
         else:
             sign, source, evidence = c.step_sign, "given", "not checked against the frames (no Gray code)"
             if rig is not None and _predicted_direction(rig, o) != 0:
-                detected, _, evidence = _geometric_sign(sub, ps, projector_size, bit_depth, rig, origin_plus)
+                detected, _, evidence = _geometric_sign(stack, ps, projector_size, bit_depth, rig, origin_plus)
                 if detected != sign:
                     raise DecodeError(f"conventions.step_sign = {sign:+d} contradicts the frames and the calibration: "
                                       f"{evidence}")
