@@ -15,9 +15,11 @@ handing on a cloud that is wrong everywhere. Everything is whole-array numpy/Ope
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Callable
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -28,6 +30,8 @@ from scanner.pixel_code import read_pixel_code
 
 TWO_PI = np.float32(2.0 * np.pi)
 MIN_JUDGED_PIXELS = 200  # fewer modulated pixels than this: the self-check has nothing to judge
+CHUNK_ROWS = 128  # rows decoded together (a band's float32 maps fit in cache)
+OFFSET_SAMPLE = 16  # every 16th row judges the frequencies' offsets
 
 
 @dataclass(frozen=True)
@@ -304,18 +308,20 @@ _CHI2_MEDIAN = (0.4549, 0.6931, 0.7887, 0.8392, 0.8703, 0.8914, 0.9066, 0.9180, 
 
 
 def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int, full_scale: float) -> NoiseModel:
-    """The intensity-noise model of a stack, from every 8th pixel of its phase blocks: the
+    """The intensity-noise model of a stack, from ~40 000 of its pixels (64 rows): the
     residual of the N-step fit per pixel (N − 3 degrees of freedom) regressed on the
     background; with 3 steps, the background's fine texture (Immerkær's Laplacian estimate,
     an upper bound where the scene has texture)."""
-    sub = [stack[k, ::8, ::8].astype(np.float64) for k in blocks[0]]
+    h, w = stack.shape[1:]
+    rs, cs = max(1, h // 64), max(1, w // 640)
+    sub = [stack[k, ::rs, ::cs].astype(np.float64) for k in blocks[0]]
     if steps > 3:
         a_all, v_all = [], []
         delta = sign * 2.0 * np.pi * np.arange(steps) / steps
         basis = np.stack([np.ones(steps), np.cos(delta), np.sin(delta)], axis=1)  # (N, 3)
         projector = np.eye(steps) - basis @ np.linalg.pinv(basis)
         for block in blocks:
-            frames = np.stack([stack[k, ::8, ::8] for k in block]).reshape(steps, -1).astype(np.float64)
+            frames = np.stack([stack[k, ::rs, ::cs] for k in block]).reshape(steps, -1).astype(np.float64)
             ok = (frames.max(axis=0) < full_scale) & (frames.min(axis=0) > 0)
             res = projector @ frames[:, ok]
             a_all.append(frames[:, ok].mean(axis=0))
@@ -347,6 +353,43 @@ def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int,
         read = 1.0 / 12.0
         shot = max(float(np.sum((m - read) * c) / max(np.sum(c * c), 1e-12)), 0.0)
     return NoiseModel(float(read), float(shot))
+
+
+def _offset_sums(ps: PatternSet, absolute: list[np.ndarray], wrapped: list[np.ndarray], usable: np.ndarray,
+                 first_row: int) -> tuple[list[complex], int]:
+    """Per frequency, the sum of exp(i·(wrapped − the phase the unwrapping predicted for it
+    from the finest)) over the usable pixels of every OFFSET_SAMPLE-th row and 4th column
+    (rows counted from `first_row` of the image), and their count."""
+    start = (-first_row) % OFFSET_SAMPLE
+    sel = usable[start::OFFSET_SAMPLE, ::4]
+    f_max = max(ps.fringes)
+    finest = absolute[int(np.argmax(ps.fringes))][start::OFFSET_SAMPLE, ::4][sel]
+    out = []
+    for i, fi in enumerate(ps.fringes):
+        d = wrapped[i][start::OFFSET_SAMPLE, ::4][sel] - finest * np.float32(fi / f_max)
+        out.append(complex(np.exp(1j * d.astype(np.float64)).sum()))
+    return out, int(sel.sum())
+
+
+def _checks(sums: list[dict[str, Any]]) -> dict[str, float]:
+    """The self-check's figures from the bands' sums: fractions of the usable pixels whose
+    Gray code and phase disagree, or whose fringe order failed; each frequency's circular
+    mean offset (rad) from the others; readable pixel codes beyond the projector."""
+    total = {k: sum(b.get(k, 0) for b in sums) for k in ("usable", "gray_bad", "order_bad", "beyond", "readable")}
+    judged = total["usable"] >= MIN_JUDGED_PIXELS
+    checks: dict[str, float] = {}
+    if any("gray_bad" in b for b in sums):
+        checks["gray_phase_disagreement"] = total["gray_bad"] / total["usable"] if judged else 0.0
+    if any("order_bad" in b for b in sums):
+        checks["order_error_fraction"] = total["order_bad"] / total["usable"] if judged else 0.0
+    if any("readable" in b for b in sums):
+        checks["codes_beyond_projector"] = total["beyond"] / max(total["readable"], 1)
+    offsets = [b["offsets"] for b in sums if "offsets" in b]
+    n = sum(count for _, count in offsets)
+    if offsets and n >= MIN_JUDGED_PIXELS:
+        for i in range(len(offsets[0][0])):
+            checks[f"frequency_{i}_offset_rad"] = float(np.angle(sum(o[0][i] for o in offsets)))
+    return checks
 
 
 def _frame_indices(specs: list[FrameSpec]) -> dict[tuple[str, str, int, int], int]:
@@ -419,60 +462,106 @@ class _OrientationDecoder:
     noise: NoiseModel
     full_scale: float
     settings: DecodeSettings
-    beyond_fraction: float = 0.0  # readable pixel codes naming a pixel beyond the projector
+    beyond_fraction: float = 0.0  # readable pixel codes naming a pixel beyond the projector (pixel_graycode)
 
     def _frame(self, kind: str, level: int) -> np.ndarray:
         return self.stack[self.index[(self.orientation, kind, level, 0)]]
 
-    def _pixel_code(self, contrast: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(coordinate, run length, readable) from this orientation's pixel-code frames."""
+    def _pixel_code(self, frame: Callable[[str, int], np.ndarray],
+                    contrast: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(coordinate, run length, readable, beyond the projector) from this orientation's
+        pixel-code frames (`frame(kind, bit)`)."""
         ps = self.patterns
-        diffs = [self._frame("gray", b).astype(np.float32) - self._frame("gray_inverse", b)
+        diffs = [frame("gray", b).astype(np.float32) - frame("gray_inverse", b)
                  for b in range(ps.gray_bits(self.orientation))]
         threshold = np.float32(self.settings.gray_certainty) * contrast
         coordinate, run, readable = read_pixel_code(diffs, np.maximum(threshold, np.float32(1.0)),
                                                     self.settings.max_dropped_bits)
         beyond = readable & ~(coordinate < self.extent)
-        self.beyond_fraction = float(beyond.sum() / max(int(readable.sum()), 1))
         readable &= ~beyond
-        return coordinate, run, readable
+        return coordinate, run, readable, beyond
 
     def run(self) -> tuple[OrientationMaps, dict[str, float]]:
+        """Per-pixel decoding in bands of CHUNK_ROWS rows on every core (the arrays of a band
+        stay in cache; numpy and OpenCV release the GIL), then the self-check and the
+        spatial check on the whole map."""
+        ps, s = self.patterns, self.settings
+        if ps.family == "pixel_graycode":
+            return self._pixel_graycode_only({"saturated": self.saturated})
+        h, w = self.stack.shape[1:]
+        bands = [slice(r, min(r + CHUNK_ROWS, h)) for r in range(0, h, CHUNK_ROWS)]
+        n_freq = len(self.blocks)
+        out = {name: np.empty((h, w), np.float32) for name in ("background", "phase", "weight", "coordinate")}
+        wrapped = [np.empty((h, w), np.float32) for _ in range(n_freq)]
+        modulation = [np.empty((h, w), np.float32) for _ in range(n_freq)]
+        masks = {"saturated": self.saturated, **{k: np.empty((h, w), bool) for k in
+                                                  ("shadow", "low_modulation", "order_error")}}
+        usable = np.empty((h, w), bool)
+
+        def band(rows: slice) -> dict[str, Any]:
+            b = self._band(rows)
+            for name in out:
+                out[name][rows] = b[name]
+            for i in range(n_freq):
+                wrapped[i][rows], modulation[i][rows] = b["wrapped"][i], b["modulation"][i]
+            for k in ("shadow", "low_modulation", "order_error"):
+                masks[k][rows] = b["masks"][k]
+            usable[rows] = b["usable"]
+            return b["sums"]
+
+        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+            sums = list(pool.map(band, bands))
+        checks = _checks(sums)
+        if s.self_check:
+            self._judge(checks)
+        f_max = max(ps.fringes)
+        maps = self._finish(masks, usable, out["coordinate"], out["phase"], wrapped, modulation, out["background"],
+                            out["weight"], f_max)
+        return maps, checks
+
+    def _band(self, rows: slice) -> dict[str, Any]:
+        """The per-pixel work on rows `rows`: phases, masks, unwrapping, coordinate, and the
+        sums the self-check needs."""
         ps, s, conv = self.patterns, self.settings, self.patterns.conventions
+        stack = self.stack[:, rows]
         wrapped, modulation, background = [], [], None
         for block in self.blocks:
-            phi, b, a = phase_shift(_block(self.stack, block), ps.steps, conv.phase_origin, conv.step_sign)
+            phi, b, a = phase_shift(_block(stack, block), ps.steps, conv.phase_origin, conv.step_sign)
             wrapped.append(phi)
             modulation.append(b)
             background = a if background is None else background + a
-        masks: dict[str, np.ndarray] = {"saturated": self.saturated}
-        checks: dict[str, float] = {}
-        if ps.family == "pixel_graycode":
-            return self._pixel_graycode_only(masks)
+        saturated = self.saturated[rows]
+        masks: dict[str, np.ndarray] = {}
+        sums: dict[str, Any] = {}
         background /= np.float32(len(self.blocks))
         f_max = max(ps.fringes)
         finest = ps.fringes.index(f_max)
         b_fine = modulation[finest]
         masks["shadow"] = b_fine < s.min_contrast * np.maximum(background, 1e-6)
         masks["low_modulation"] = ~masks["shadow"] & (b_fine < s.min_modulation * self.full_scale)
-        usable = ~(masks["saturated"] | masks["shadow"] | masks["low_modulation"])
+        usable = ~(saturated | masks["shadow"] | masks["low_modulation"])
+        sums["usable"] = int(usable.sum())
         sqrt_2n = np.float32(np.sqrt(2.0 / ps.steps))
 
         def sigma_of(level: int) -> Callable[[np.ndarray], np.ndarray]:
             return lambda idx: self.noise.sigma(background.flat[idx]) * sqrt_2n / np.maximum(
                 modulation[level].flat[idx], np.float32(1e-6))
 
+        def frame(kind: str, level: int) -> np.ndarray:
+            return stack[self.index[(self.orientation, kind, level, 0)]]
+
         if ps.family == "graycode" and conv.gray_code == "complementary":
-            n_bits = ps.gray_bits() + 1
-            bits = [self._frame("gray", b) for b in range(n_bits)]
+            bits = [frame("gray", b) for b in range(ps.gray_bits() + 1)]
             phase, masks["order_error"], half = _graycode_unwrap(wrapped[0], bits, background, modulation[0],
                                                                  s.gray_certainty)
-            checks["gray_phase_disagreement"] = self._disagreement(
-                np.abs(gray_phase_offset(wrapped[0], half)) > np.float32(0.75 * np.pi), usable)
+            bad = np.abs(gray_phase_offset(wrapped[0], half)) > np.float32(0.75 * np.pi)
+            sums["gray_bad"] = int((bad & usable).sum())
             weight = modulation[0] ** 2
         elif ps.family == "graycode":  # phase unwrapped by OpenCV's pixel Gray code
-            contrast = self._contrast(background, b_fine)
-            coordinate_g, run, readable = self._pixel_code(contrast)
+            contrast = self.refs[0][rows] - self.refs[1][rows] if self.refs is not None else \
+                np.float32(2.0) * b_fine
+            coordinate_g, run, readable, beyond = self._pixel_code(frame, contrast)
+            sums["beyond"], sums["readable"] = int(beyond.sum()), int(readable.sum() + beyond.sum())
             predicted = (coordinate_g + np.float32(conv.pixel_centre)) * np.float32(2 * np.pi * f_max / self.extent)
             worst = np.zeros_like(background)
             phase = _unwrap_step(predicted, 1.0, wrapped[0], worst)
@@ -482,7 +571,7 @@ class _OrientationDecoder:
                 return np.hypot(sigma_of(0)(idx) / np.float32(np.pi), quant * run.flat[idx])
 
             masks["order_error"] = ~readable | _order_errors(worst, code_sigma, s)
-            checks["gray_phase_disagreement"] = self._disagreement(readable & (worst > 0.75), usable)
+            sums["gray_bad"] = int((readable & (worst > 0.75) & usable).sum())
             weight = modulation[0] ** 2
         else:
             absolute, residual = _temporal_unwrap(ps, wrapped)
@@ -491,8 +580,8 @@ class _OrientationDecoder:
                 return _residual_sigma(ps, [sigma_of(lv)(idx) for lv in range(len(ps.fringes))])
 
             masks["order_error"] = _order_errors(residual, residual_sigma, s)
-            checks |= self._frequency_offsets(absolute, wrapped, usable)
-            checks["order_error_fraction"] = self._disagreement(masks["order_error"], usable)
+            sums["order_bad"] = int((masks["order_error"] & usable).sum())
+            sums["offsets"] = _offset_sums(ps, absolute, wrapped, usable, rows.start)
             # inverse-variance combination of all frequencies, in units of the finest fringe
             phase = np.zeros_like(background)
             weight = np.zeros_like(background)
@@ -503,17 +592,10 @@ class _OrientationDecoder:
                 w *= phi_abs
                 phase += np.multiply(w, np.float32(f_max / fi), out=w)
             phase /= np.maximum(weight, np.float32(1e-12))
-        if s.self_check:
-            self._judge(checks)
         coordinate = phase * np.float32(self.extent / (2.0 * np.pi * f_max))
         coordinate -= np.float32(conv.pixel_centre)
-        return self._finish(masks, usable, coordinate, phase, wrapped, modulation, background, weight, f_max), checks
-
-    def _contrast(self, background: np.ndarray, modulation: np.ndarray) -> np.ndarray:
-        """White − black where the set has reference frames, else twice the fringe modulation."""
-        if self.refs is not None:
-            return self.refs[0] - self.refs[1]
-        return np.float32(2.0) * modulation
+        return {"background": background, "phase": phase, "weight": weight, "coordinate": coordinate,
+                "wrapped": wrapped, "modulation": modulation, "masks": masks, "usable": usable, "sums": sums}
 
     def _pixel_graycode_only(self, masks: dict[str, np.ndarray]) -> tuple[OrientationMaps, dict[str, float]]:
         """OpenCV's GrayCodePattern alone: the coordinate is the pixel (run) the code names."""
@@ -531,14 +613,16 @@ class _OrientationDecoder:
         masks["shadow"] = b < s.min_contrast * np.maximum(background, 1e-6)
         masks["low_modulation"] = ~masks["shadow"] & (b < s.min_modulation * self.full_scale)
         usable = ~(masks["shadow"] | masks["low_modulation"])
-        coordinate, run, readable = self._pixel_code(contrast)
+        coordinate, run, readable, beyond = self._pixel_code(self._frame, contrast)
+        self.beyond_fraction = float(beyond.sum() / max(int(readable.sum() + beyond.sum()), 1))
         masks["order_error"] = ~readable
         weight = np.float32(12.0) / np.square(run, dtype=np.float32)  # 1 / variance of a uniform run (px⁻²)
         phase = (coordinate + np.float32(0.5)) * TWO_PI  # one "fringe" per projector pixel
         maps = self._finish(masks, usable, coordinate, phase, [], [b], background, weight, float(self.extent))
+        checks = {"codes_beyond_projector": self.beyond_fraction}
         if s.self_check:
-            self._judge({})
-        return maps, {"codes_beyond_projector": self.beyond_fraction}
+            self._judge(checks)
+        return maps, checks
 
     def _finish(self, masks: dict[str, np.ndarray], usable: np.ndarray, coordinate: np.ndarray, phase: np.ndarray,
                 wrapped: list[np.ndarray], modulation: list[np.ndarray], background: np.ndarray,
@@ -559,28 +643,6 @@ class _OrientationDecoder:
         return OrientationMaps(self.orientation, coordinate, phase, wrapped, modulation, background, weight, masks,
                                valid, fringes, self.extent, self.noise, max(self.patterns.steps, 1))
 
-    @staticmethod
-    def _disagreement(bad: np.ndarray, usable: np.ndarray) -> float:
-        n = int(usable.sum())
-        return float((bad & usable).sum() / n) if n >= MIN_JUDGED_PIXELS else 0.0
-
-    def _frequency_offsets(self, absolute: list[np.ndarray], wrapped: list[np.ndarray],
-                           usable: np.ndarray) -> dict[str, float]:
-        """Per frequency, the circular mean (rad) of its wrapped phase minus the one the
-        unwrapping predicted for it from the coarser phases, over usable pixels: ~0 when the
-        frequencies agree; a phase-origin or step-sign error offsets every pixel alike."""
-        sel = usable[::4, ::4]
-        if sel.sum() < MIN_JUDGED_PIXELS:
-            return {}
-        out = {}
-        finest = absolute[int(np.argmax(self.patterns.fringes))][::4, ::4][sel]
-        f_max = max(self.patterns.fringes)
-        for i, fi in enumerate(self.patterns.fringes):
-            predicted = finest * np.float32(fi / f_max)
-            d = wrapped[i][::4, ::4][sel] - predicted
-            out[f"frequency_{i}_offset_rad"] = float(np.angle(np.mean(np.exp(1j * d.astype(np.float64)))))
-        return out
-
     def _judge(self, checks: dict[str, float]) -> None:
         s, o = self.settings, self.orientation
         g = checks.get("gray_phase_disagreement", 0.0)
@@ -596,8 +658,9 @@ class _OrientationDecoder:
                               f"sits {offsets[worst]:+.2f} rad from the others; limit {s.max_frequency_offset} rad): "
                               f"the frames do not follow the pattern set's conventions (phase origin, step sign or "
                               f"frame order); no cloud written")
-        if self.beyond_fraction > 0.01:
-            raise DecodeError(f"self-check: {self.beyond_fraction:.1%} of the readable {o} Gray codes name projector "
+        beyond = checks.get("codes_beyond_projector", 0.0)
+        if beyond > 0.01:
+            raise DecodeError(f"self-check: {beyond:.1%} of the readable {o} Gray codes name projector "
                               f"pixels at or beyond {self.extent}: the projector size is wrong; no cloud written")
         e = checks.get("order_error_fraction", 0.0)
         if e > 0.5:
