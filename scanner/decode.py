@@ -268,11 +268,18 @@ def gray_phase_offset(wrapped: np.ndarray, half: np.ndarray) -> np.ndarray:
     return r
 
 
-def _typical_step(diff: np.ndarray) -> np.float32:
-    """Median |difference| between neighbours, from every 16th line (cheap, robust)."""
-    sample = np.abs(diff[::16])
-    sample = sample[~np.isnan(sample)]
+def _typical_step(sample: np.ndarray) -> np.float32:
+    """Median of the |differences| between neighbours in `sample` (every 16th line of the
+    map: cheap, robust), NaN left out."""
+    sample = np.abs(sample[~np.isnan(sample)])
     return np.float32(np.median(sample)) if sample.size else np.float32(0.0)
+
+
+def in_bands(height: int, work: Callable[[slice], Any]) -> list[Any]:
+    """`work(rows)` for bands of CHUNK_ROWS rows on every core, in order."""
+    bands = [slice(r, min(r + CHUNK_ROWS, height)) for r in range(0, height, CHUNK_ROWS)]
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        return list(pool.map(work, bands))
 
 
 def _unreliable_regions(coordinate: np.ndarray, valid: np.ndarray, period_px: float,
@@ -285,23 +292,42 @@ def _unreliable_regions(coordinate: np.ndarray, valid: np.ndarray, period_px: fl
     smaller than `min_region_px` left between the cuts are order-error islands.
     Returns (islands, cut pixels)."""
     c = coordinate  # NaN where not valid
+    h = c.shape[0]
     half = np.float32(period_px / 2.0)
-    cut = np.zeros(valid.shape, dtype=bool)
     with np.errstate(invalid="ignore"):
-        dx = np.abs(c[:, 1:] - c[:, :-1])
-        jump = dx > half + _typical_step(dx)
-        cut[:, :-1] |= jump  # both pixels of a jump: at a depth edge either may be a mixed pixel
-        cut[:, 1:] |= jump
-        dy = np.abs(c[1:, :] - c[:-1, :])
-        jump = dy > half + _typical_step(dy.T)
-        cut[:-1, :] |= jump
-        cut[1:, :] |= jump
-    cut &= valid
+        limit_x = half + _typical_step(c[::16, 1:] - c[::16, :-1])
+        limit_y = half + _typical_step(c[1:, ::16] - c[:-1, ::16])
+    cut = np.empty(valid.shape, dtype=bool)
+
+    def cuts(rows: slice) -> None:
+        a, b = rows.start, rows.stop
+        top, bottom = max(a - 1, 0), min(b + 1, h)
+        own = c[a:b]
+        band = np.zeros(own.shape, dtype=bool)
+        with np.errstate(invalid="ignore"):
+            jump = np.abs(own[:, 1:] - own[:, :-1]) > limit_x
+            band[:, :-1] |= jump  # both pixels of a jump: at a depth edge either may be a mixed pixel
+            band[:, 1:] |= jump
+            ext = c[top:bottom]
+            jump = np.abs(ext[1:] - ext[:-1]) > limit_y  # pair p joins rows top + p and top + p + 1
+        off = a - top
+        band[max(0, 1 - off):] |= jump[max(0, off - 1):off - 1 + (b - a)]  # with the row above
+        below = jump[off:off + (b - a)]
+        band[:len(below)] |= below  # with the row below
+        cut[rows] = band & valid[rows]
+
+    in_bands(h, cuts)
     _, labels, stats, _ = cv2.connectedComponentsWithStats((valid & ~cut).view(np.uint8), connectivity=4,
                                                            ltype=cv2.CV_32S)
     small = stats[:, cv2.CC_STAT_AREA] < min_region_px
     small[0] = False  # label 0: invalid or cut pixels
-    return small[labels], cut
+    islands = np.empty(valid.shape, dtype=bool)
+
+    def lookup(rows: slice) -> None:
+        islands[rows] = small[labels[rows]]
+
+    in_bands(h, lookup)
+    return islands, cut
 
 
 _CHI2_MEDIAN = (0.4549, 0.6931, 0.7887, 0.8392, 0.8703, 0.8914, 0.9066, 0.9180, 0.9270, 0.9342)  # median(χ²_k)/k
@@ -489,7 +515,6 @@ class _OrientationDecoder:
         if ps.family == "pixel_graycode":
             return self._pixel_graycode_only({"saturated": self.saturated})
         h, w = self.stack.shape[1:]
-        bands = [slice(r, min(r + CHUNK_ROWS, h)) for r in range(0, h, CHUNK_ROWS)]
         n_freq = len(self.blocks)
         out = {name: np.empty((h, w), np.float32) for name in ("background", "phase", "weight", "coordinate")}
         wrapped = [np.empty((h, w), np.float32) for _ in range(n_freq)]
@@ -509,9 +534,7 @@ class _OrientationDecoder:
             usable[rows] = b["usable"]
             return b["sums"]
 
-        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-            sums = list(pool.map(band, bands))
-        checks = _checks(sums)
+        checks = _checks(in_bands(h, band))
         if s.self_check:
             self._judge(checks)
         f_max = max(ps.fringes)

@@ -15,7 +15,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from scanner.decode import DecodeResult
+from scanner.decode import DecodeResult, in_bands
 from scanner.errors import DecodeError
 from scanner.geometry import Pinhole, RigModel, cubic_weights
 from scanner.pointcloud import OrganisedCloud, from_planes, organised_normals
@@ -129,14 +129,15 @@ class Triangulator:
                     sensitivity: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """Ray parameter s (= depth z in mm, since rays have z = 1) for every pixel with a
         projector coordinate `coord` (NaN propagates); with `sensitivity`, also |dz/dcoord|
-        (mm per projector pixel), which says how well this orientation constrains depth."""
+        (mm per projector pixel), which says how well this orientation constrains depth.
+        Each pass of the iteration runs in bands of rows on every core."""
         alpha, gamma, beta, (a0, c1, b0, _), table = self._tables(orientation)
         if coord.shape != alpha.shape:
             raise DecodeError(f"{orientation} coordinate map is {coord.shape[::-1]} (w, h) but the rig camera is "
                               f"{alpha.shape[::-1]}")
         K = self.rig.projector.K
         axis = 0 if orientation == "vertical" else 1
-        shape = coord.shape
+        shape, width = coord.shape, coord.shape[1]
         c, al, ga, be = coord.ravel(), alpha.ravel(), gamma.ravel(), beta.ravel()
         a0, c1, b0 = np.float32(a0), np.float32(c1), np.float32(b0)
         x_n = (c - np.float32(K[axis, 2])) * np.float32(1.0 / K[axis, axis])  # distortion-free start
@@ -151,20 +152,34 @@ class Triangulator:
             y_n /= s * be[sl] - b0
             return table(c[sl], y_n)
 
+        def flat(rows: slice) -> slice:
+            return slice(rows.start * width, rows.stop * width)
+
+        def one_pass(rows: slice) -> None:
+            x_n[flat(rows)] = refine(x_n[flat(rows)], flat(rows))
+
         probe = slice(0, None, 97)  # convergence is judged on a dense subsample, not a full pass
         for _ in range(_MAX_PASSES):
-            x_n = refine(x_n, slice(None))
+            in_bands(shape[0], one_pass)
             if not np.nanmax(np.abs(refine(x_n[probe], probe) - x_n[probe]), initial=0.0) >= _CONVERGED:
                 break
-        denom = al - x_n * be
-        z = np.subtract(a0, x_n * b0)
-        z /= denom
-        z[~(z > 0)] = np.nan  # invalid coordinate, or behind the camera: no surface
-        if not sensitivity:
-            return z.reshape(shape)
-        dz = np.abs((be * a0 - al * b0) / (denom * denom)) / np.float32(K[axis, axis])
-        dz[np.isnan(z)] = np.nan
-        return z.reshape(shape), dz.reshape(shape)
+        z = np.empty(c.size, np.float32)
+        dz = np.empty(c.size, np.float32) if sensitivity else None
+
+        def finish(rows: slice) -> None:
+            sl = flat(rows)
+            denom = al[sl] - x_n[sl] * be[sl]
+            zr = np.subtract(a0, x_n[sl] * b0)
+            zr /= denom
+            zr[~(zr > 0)] = np.nan  # invalid coordinate, or behind the camera: no surface
+            z[sl] = zr
+            if dz is not None:
+                d = np.abs((be[sl] * a0 - al[sl] * b0) / (denom * denom)) / np.float32(K[axis, axis])
+                d[np.isnan(zr)] = np.nan
+                dz[sl] = d
+
+        in_bands(shape[0], finish)
+        return (z.reshape(shape), dz.reshape(shape)) if dz is not None else z.reshape(shape)
 
     @cached_property
     def _ray_planes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -226,7 +241,22 @@ def phase_to_height_cloud(decoded: DecodeResult, rig: RigModel, orientation: str
 
 def cloud_from_depth(z: np.ndarray, ray_x: np.ndarray, ray_y: np.ndarray, colors: np.ndarray,
                      with_normals: bool = True) -> OrganisedCloud:
-    """Organised cloud from depth z (H, W, mm) along rays (x/z, y/z, 1) given as planes."""
-    x, y = ray_x * z, ray_y * z
-    normals = organised_normals(x, y, z) if with_normals else np.full((*z.shape, 3), np.nan, np.float32)
-    return OrganisedCloud(from_planes(x, y, z), colors, normals)
+    """Organised cloud from depth z (H, W, mm) along rays (x/z, y/z, 1) given as planes,
+    built in bands of rows on every core (normals from each band with one row either side)."""
+    h = z.shape[0]
+    points = np.empty((*z.shape, 3), np.float32)
+    normals = np.empty((*z.shape, 3), np.float32)
+
+    def band(rows: slice) -> None:
+        top, bottom = max(rows.start - 1, 0), min(rows.stop + 1, h)
+        x, y = ray_x[top:bottom] * z[top:bottom], ray_y[top:bottom] * z[top:bottom]
+        own = slice(rows.start - top, rows.stop - top)
+        points[rows] = from_planes(x[own], y[own], z[rows])
+        normals[rows] = organised_normals(x, y, z[top:bottom])[own] if with_normals else np.nan
+        if with_normals and rows.start == 0:
+            normals[0] = np.nan  # the image border has no normal
+        if with_normals and rows.stop == h:
+            normals[h - 1] = np.nan
+
+    in_bands(h, band)
+    return OrganisedCloud(points, colors, normals)
