@@ -145,19 +145,37 @@ def _wrap_positive(d: np.ndarray) -> np.ndarray:
     return d
 
 
-def phase_shift(block: np.ndarray, steps: int, origin: float, sign: int) -> tuple[np.ndarray, np.ndarray,
-                                                                                    np.ndarray]:
+def _weighted_sum(frames: list[np.ndarray], weights: np.ndarray) -> np.ndarray:
+    """Σ w_k·I_k as float32, straight from the frames at their bit depth: pairs of frames by
+    cv2.addWeighted (one pass each, no float copy of the frames), zero weights skipped."""
+    terms = [(f, float(w)) for f, w in zip(frames, weights) if abs(w) > 1e-9]
+    acc = None
+    for i in range(0, len(terms), 2):
+        if i + 1 < len(terms):
+            (f1, w1), (f2, w2) = terms[i], terms[i + 1]
+            t = cv2.addWeighted(f1, w1, f2, w2, 0.0, dtype=cv2.CV_32F)
+        else:
+            t = terms[i][0].astype(np.float32)
+            t *= np.float32(terms[i][1])
+        acc = t if acc is None else cv2.add(acc, t, dst=acc)
+    return acc if acc is not None else np.zeros(frames[0].shape, np.float32)
+
+
+def phase_shift(block: np.ndarray | list[np.ndarray], steps: int, origin: float, sign: int,
+                out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Wrapped phase [0, 2π) with the phase origin removed, modulation B and background A
-    of one N-step block (N, H, W) whose step n adds sign·2πn/N to the displayed phase."""
-    n, h, w = block.shape
+    of one N-step block (N frames of (H, W)) whose step n adds sign·2πn/N to the displayed
+    phase; `out`: arrays to write the phase and modulation into."""
+    frames = [block[k] for k in range(steps)]
     angle = sign * 2.0 * np.pi * np.arange(steps) / steps + origin
-    weights = np.stack([np.cos(angle), -np.sin(angle), np.full(steps, 1.0)]).astype(np.float32)
-    weights[:2] *= 2.0 / steps
-    weights[2] /= steps
-    flat = block.reshape(n, h * w).astype(np.float32)
-    c, s, a = weights @ flat  # B·cos φ, B·sin φ, A
-    c, s = c.reshape(h, w), s.reshape(h, w)
-    return cv2.phase(c, s), cv2.magnitude(c, s), a.reshape(h, w)
+    c = _weighted_sum(frames, np.cos(angle) * (2.0 / steps))  # B·cos φ
+    s = _weighted_sum(frames, -np.sin(angle) * (2.0 / steps))  # B·sin φ
+    a = _weighted_sum(frames, np.full(steps, 1.0 / steps))  # A
+    if out is None:
+        return cv2.phase(c, s), cv2.magnitude(c, s), a
+    cv2.phase(c, s, angle=out[0])
+    cv2.magnitude(c, s, magnitude=out[1])
+    return out[0], out[1], a
 
 
 def _unwrap_step(coarse: np.ndarray, ratio: float, fine_wrapped: np.ndarray,
@@ -422,13 +440,6 @@ def _frame_indices(specs: list[FrameSpec]) -> dict[tuple[str, str, int, int], in
     return {(s.orientation, s.kind, s.level, s.step): k for k, s in enumerate(specs)}
 
 
-def _block(stack: np.ndarray, ks: list[int]) -> np.ndarray:
-    """Frames `ks` of the stack: a view when they are consecutive."""
-    if ks == list(range(ks[0], ks[0] + len(ks))):
-        return stack[ks[0]:ks[0] + len(ks)]
-    return stack[ks]
-
-
 def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_size: tuple[int, int],
            settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
     """Decode an (N, H, W) fringe stack taken with `patterns` on a projector of
@@ -524,11 +535,9 @@ class _OrientationDecoder:
         usable = np.empty((h, w), bool)
 
         def band(rows: slice) -> dict[str, Any]:
-            b = self._band(rows)
+            b = self._band(rows, [(wrapped[i][rows], modulation[i][rows]) for i in range(n_freq)])
             for name in out:
                 out[name][rows] = b[name]
-            for i in range(n_freq):
-                wrapped[i][rows], modulation[i][rows] = b["wrapped"][i], b["modulation"][i]
             for k in ("shadow", "low_modulation", "order_error"):
                 masks[k][rows] = b["masks"][k]
             usable[rows] = b["usable"]
@@ -542,14 +551,14 @@ class _OrientationDecoder:
                             out["weight"], f_max)
         return maps, checks
 
-    def _band(self, rows: slice) -> dict[str, Any]:
-        """The per-pixel work on rows `rows`: phases, masks, unwrapping, coordinate, and the
-        sums the self-check needs."""
+    def _band(self, rows: slice, dest: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
+        """The per-pixel work on rows `rows`: phases and modulations (written into `dest`, per
+        frequency), masks, unwrapping, coordinate, and the sums the self-check needs."""
         ps, s, conv = self.patterns, self.settings, self.patterns.conventions
         stack = self.stack[:, rows]
         wrapped, modulation, background = [], [], None
-        for block in self.blocks:
-            phi, b, a = phase_shift(_block(stack, block), ps.steps, conv.phase_origin, conv.step_sign)
+        for block, out in zip(self.blocks, dest):
+            phi, b, a = phase_shift([stack[k] for k in block], ps.steps, conv.phase_origin, conv.step_sign, out)
             wrapped.append(phi)
             modulation.append(b)
             background = a if background is None else background + a
@@ -618,7 +627,7 @@ class _OrientationDecoder:
         coordinate = phase * np.float32(self.extent / (2.0 * np.pi * f_max))
         coordinate -= np.float32(conv.pixel_centre)
         return {"background": background, "phase": phase, "weight": weight, "coordinate": coordinate,
-                "wrapped": wrapped, "modulation": modulation, "masks": masks, "usable": usable, "sums": sums}
+                "masks": masks, "usable": usable, "sums": sums}
 
     def _pixel_graycode_only(self, masks: dict[str, np.ndarray]) -> tuple[OrientationMaps, dict[str, float]]:
         """OpenCV's GrayCodePattern alone: the coordinate is the pixel (run) the code names."""
