@@ -352,12 +352,12 @@ _CHI2_MEDIAN = (0.4549, 0.6931, 0.7887, 0.8392, 0.8703, 0.8914, 0.9066, 0.9180, 
 
 
 def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int, full_scale: float) -> NoiseModel:
-    """The intensity-noise model of a stack, from ~40 000 of its pixels (64 rows): the
+    """The intensity-noise model of a stack, from ~20 000 of its pixels (32 rows): the
     residual of the N-step fit per pixel (N − 3 degrees of freedom) regressed on the
     background; with 3 steps, the background's fine texture (Immerkær's Laplacian estimate,
     an upper bound where the scene has texture)."""
     h, w = stack.shape[1:]
-    rs, cs = max(1, h // 64), max(1, w // 640)
+    rs, cs = max(1, h // 32), max(1, w // 640)
     sub = [stack[k, ::rs, ::cs].astype(np.float64) for k in blocks[0]]
     if steps > 3:
         a_all, v_all = [], []
@@ -535,9 +535,8 @@ class _OrientationDecoder:
         usable = np.empty((h, w), bool)
 
         def band(rows: slice) -> dict[str, Any]:
-            b = self._band(rows, [(wrapped[i][rows], modulation[i][rows]) for i in range(n_freq)])
-            for name in out:
-                out[name][rows] = b[name]
+            b = self._band(rows, [(wrapped[i][rows], modulation[i][rows]) for i in range(n_freq)],
+                           {name: out[name][rows] for name in out})
             for k in ("shadow", "low_modulation", "order_error"):
                 masks[k][rows] = b["masks"][k]
             usable[rows] = b["usable"]
@@ -551,17 +550,22 @@ class _OrientationDecoder:
                             out["weight"], f_max)
         return maps, checks
 
-    def _band(self, rows: slice, dest: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
+    def _band(self, rows: slice, dest: list[tuple[np.ndarray, np.ndarray]], maps: dict[str, np.ndarray]
+              ) -> dict[str, Any]:
         """The per-pixel work on rows `rows`: phases and modulations (written into `dest`, per
-        frequency), masks, unwrapping, coordinate, and the sums the self-check needs."""
+        frequency), masks, unwrapping, and the background, phase, weight and coordinate
+        (written into `maps`' views of those rows); returns the masks and the sums the
+        self-check needs."""
         ps, s, conv = self.patterns, self.settings, self.patterns.conventions
         stack = self.stack[:, rows]
-        wrapped, modulation, background = [], [], None
+        wrapped, modulation = [], []
+        background = maps["background"]
+        background.fill(0.0)
         for block, out in zip(self.blocks, dest):
             phi, b, a = phase_shift([stack[k] for k in block], ps.steps, conv.phase_origin, conv.step_sign, out)
             wrapped.append(phi)
             modulation.append(b)
-            background = a if background is None else background + a
+            background += a
         saturated = self.saturated[rows]
         masks: dict[str, np.ndarray] = {}
         sums: dict[str, Any] = {}
@@ -588,7 +592,8 @@ class _OrientationDecoder:
                                                                  s.gray_certainty)
             bad = np.abs(gray_phase_offset(wrapped[0], half)) > np.float32(0.75 * np.pi)
             sums["gray_bad"] = int((bad & usable).sum())
-            weight = modulation[0] ** 2
+            maps["phase"][...] = phase
+            np.square(modulation[0], out=maps["weight"])
         elif ps.family == "graycode":  # phase unwrapped by OpenCV's pixel Gray code
             contrast = self.refs[0][rows] - self.refs[1][rows] if self.refs is not None else \
                 np.float32(2.0) * b_fine
@@ -604,7 +609,8 @@ class _OrientationDecoder:
 
             masks["order_error"] = ~readable | _order_errors(worst, code_sigma, s)
             sums["gray_bad"] = int((readable & (worst > 0.75) & usable).sum())
-            weight = modulation[0] ** 2
+            maps["phase"][...] = phase
+            np.square(modulation[0], out=maps["weight"])
         else:
             absolute, residual = _temporal_unwrap(ps, wrapped)
 
@@ -615,8 +621,9 @@ class _OrientationDecoder:
             sums["order_bad"] = int((masks["order_error"] & usable).sum())
             sums["offsets"] = _offset_sums(ps, absolute, wrapped, usable, rows.start)
             # inverse-variance combination of all frequencies, in units of the finest fringe
-            phase = np.zeros_like(background)
-            weight = np.zeros_like(background)
+            phase, weight = maps["phase"], maps["weight"]
+            phase.fill(0.0)
+            weight.fill(0.0)
             for phi_abs, b, fi in zip(absolute, modulation, ps.fringes):
                 w = np.square(b)
                 w *= np.float32((fi / f_max) ** 2)
@@ -624,10 +631,10 @@ class _OrientationDecoder:
                 w *= phi_abs
                 phase += np.multiply(w, np.float32(f_max / fi), out=w)
             phase /= np.maximum(weight, np.float32(1e-12))
-        coordinate = phase * np.float32(self.extent / (2.0 * np.pi * f_max))
+        coordinate = np.multiply(maps["phase"], np.float32(self.extent / (2.0 * np.pi * f_max)),
+                                 out=maps["coordinate"])
         coordinate -= np.float32(conv.pixel_centre)
-        return {"background": background, "phase": phase, "weight": weight, "coordinate": coordinate,
-                "masks": masks, "usable": usable, "sums": sums}
+        return {"masks": masks, "usable": usable, "sums": sums}
 
     def _pixel_graycode_only(self, masks: dict[str, np.ndarray]) -> tuple[OrientationMaps, dict[str, float]]:
         """OpenCV's GrayCodePattern alone: the coordinate is the pixel (run) the code names."""
