@@ -71,7 +71,8 @@ def _child(stack_path: str, rig_dict: dict, patterns_dict: dict, repeats: int, q
         dec.append(t1 - t0)
         rec.append(t2 - t1)
     sigma = d.maps[patterns.orientations[0]].phase_sigma
-    queue.put({"setup_s": setup, "decode_s": statistics.median(dec[1:]), "reconstruct_s": statistics.median(rec[1:]),
+    floor = _floor(stack, patterns)
+    queue.put({"floor": floor, "setup_s": setup, "decode_s": statistics.median(dec[1:]), "reconstruct_s": statistics.median(rec[1:]),
                "valid_fraction": float(d.valid.mean()), "points": len(cloud), "peak_mb": _vm_hwm_mb(),
                "median_phase_sigma_rad": float(np.nanmedian(sigma[::8, ::8]))})
 
@@ -115,6 +116,34 @@ def run_peers(rig: RigModel, patterns: PatternSet, width: int, height: int, repe
     return peers
 
 
+def _floor(stack: np.ndarray, patterns: PatternSet, repeats: int = 3) -> dict[str, float]:
+    """What bounds the decode on this machine: memory bandwidth (a 256 MB copy; GB/s of
+    bytes read + written) and the minimal phase-shift kernel (every frequency's N-step sums
+    and atan2 over the whole image, in bands on every core, as decode runs it)."""
+    from scanner.decode import in_bands, phase_shift
+
+    src = np.ones(64 * 2 ** 20, np.float32)
+    dst = np.empty_like(src)
+    copies = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        np.copyto(dst, src)
+        copies.append(time.perf_counter() - t0)
+    blocks = [list(range(i * patterns.steps, (i + 1) * patterns.steps)) for i in range(len(patterns.fringes))]
+
+    def kernel(rows: slice) -> None:
+        for b in blocks:
+            phase_shift([stack[k, rows] for k in b], patterns.steps, 0.0, 1)
+
+    kernels = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        in_bands(stack.shape[1], kernel)
+        kernels.append(time.perf_counter() - t0)
+    return {"memory_copy_gb_s": 2 * src.nbytes / min(copies) / 1e9, "phase_kernel_s": min(kernels),
+            "stack_mb": stack.nbytes / 1e6}
+
+
 def run_bench(width: int, height: int, patterns_path: Path | None = None, rig_path: Path | None = None,
               repeats: int = 5, peers: bool = True, with_fringes: bool = False) -> dict:
     """Measure decode + reconstruction, and the peers; returns the figures (seconds, MB)."""
@@ -144,6 +173,7 @@ def run_bench(width: int, height: int, patterns_path: Path | None = None, rig_pa
             "peak_mb": round(result["peak_mb"], 1), "setup_s": round(result["setup_s"], 3),
             "valid_fraction": round(result["valid_fraction"], 4), "points": result["points"],
             "median_phase_sigma_rad": round(result["median_phase_sigma_rad"], 5),
+            "floor": {k: round(v, 4) for k, v in result["floor"].items()},
             "repeats": repeats, "cores": os.cpu_count(), "load_average_start": load0,
             "load_average_end": os.getloadavg(), "peers": peer_figures}
 
@@ -156,6 +186,8 @@ def format_table(r: dict) -> str:
             ("valid pixels", f"{r['valid_fraction'] * 100:.1f} %"),
             ("phase noise", f"{r['median_phase_sigma_rad']:.4f} rad median, predicted per pixel"),
             ("throughput", f"{r['mpx_per_s']:.1f} Mpx/s"),
+            ("floor", f"memory copy {r['floor']['memory_copy_gb_s']:.1f} GB/s; the phase-shift kernel alone "
+                      f"{r['floor']['phase_kernel_s'] * 1e3:.0f} ms on the {r['floor']['stack_mb']:.0f} MB stack"),
             ("median of", f"{r['repeats']} runs, {r['cores']} cores"),
             ("load average", f"{' '.join(f'{x:.2f}' for x in r['load_average_start'])} (start), "
                              f"{' '.join(f'{x:.2f}' for x in r['load_average_end'])} (end)")]

@@ -57,7 +57,7 @@ def opencv_psp(frames_path: str, proj_w: int, proj_h: int, periods: int, repeats
 def fringes_peer(width: int, height: int, repeats: int) -> dict:
     import fringes
 
-    f = fringes.Fringes(X=width, Y=height, K=3, N=4, D=1)
+    f = fringes.Fringes(X=width, Y=height, axes=(0,), K=3, N=4, v=(70.0, 64.0, 59.0))
     sequence = f.encode()
     f.decode(sequence)  # numba compiles here
     times = []
