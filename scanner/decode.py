@@ -228,7 +228,8 @@ def _residual_sigma(ps: PatternSet, phase_sigmas: list[np.ndarray]) -> np.ndarra
     return np.sqrt(np.maximum.reduce(steps)) / np.float32(np.pi)
 
 
-def _order_errors(residual: np.ndarray, candidates_sigma: Callable[[np.ndarray], np.ndarray], settings: DecodeSettings) -> np.ndarray:
+def _order_errors(residual: np.ndarray, candidates_sigma: Callable[[np.ndarray], np.ndarray],
+                  settings: DecodeSettings) -> np.ndarray:
     """Pixels whose unwrapping residual (fraction of π) marks a fringe-order error: above
     `order_tolerance` and within `order_sigmas` predicted sigmas of the ambiguity at 1."""
     errors = residual > np.float32(settings.order_tolerance)

@@ -4,9 +4,14 @@ The one place that says which matrix is which, in what unit and which way:
 
 | file | camera K, dist | projector K, dist | extrinsics | camera size |
 |---|---|---|---|---|
-| slscan `calibration.json` | ours (scanner/calibration_file.py) | | `cam_from_proj` | `image_sizes` |
-| SLMaster `caliInfo.yml` (OpenCV FileStorage YAML) | `M1`, `D1` | `M4`, `D4` | `Rlp`, `Tlp` | `S` (w, h) |
-| kamino410 procam `calibration_result.xml` (FileStorage XML) | `cam_int`, `cam_dist` | `proj_int`, `proj_dist` | `roration` [sic], `translation` | `img_shape` (h, w) |
+| slscan `calibration.json` | `rig_model.camera` | `rig_model.projector` | `cam_from_proj` | `image_sizes` |
+| SLMaster `caliInfo.yml` | `M1`, `D1` | `M4`, `D4` | `Rlp`, `Tlp` | `S` (w, h) |
+| procam `calibration_result.xml` | `cam_int`, `cam_dist` | `proj_int`, `proj_dist` | `roration`, `translation` | `img_shape` (h, w) |
+
+(both foreign files are OpenCV FileStorage, YAML and XML; ours is described in
+scanner/calibration_file.py.)
+
+(procam is kamino410's procam-calibration; `roration` is its spelling.)
 
 - Both foreign extrinsics map camera-frame points into the projector frame, X_p = R·X_c + T
   (OpenCV stereoCalibrate with the camera first), so our `cam_from_proj` is their inverse.

@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 import pytest
 
+from scanner.convention_detection import detect
 from scanner.conventions import NATIVE, Conventions
 from scanner.decode import DecodeSettings, decode
-from scanner.convention_detection import detect
 from scanner.errors import CalibrationFileError, ConfigError, DecodeError
 from scanner.foreign_calibration import read_calibration
 from scanner.patterns import PatternSet
@@ -276,7 +276,8 @@ def test_procam_calibration_read_with_its_scale() -> None:
     fs.release()
     model, name = read_calibration(xml, (1280, 1024), (1024, 768), 2.0)
     assert name == "procam"
-    assert model.projector.K[0, 0] == pytest.approx(K[0, 0] / 2) and model.projector.K[1, 2] == pytest.approx(K[1, 2] / 2)
+    assert model.projector.K[0, 0] == pytest.approx(K[0, 0] / 2)
+    assert model.projector.K[1, 2] == pytest.approx(K[1, 2] / 2)
     p_cam = np.array([10.0, 20.0, 3000.0])  # a camera-frame point: X_p = R·X_c + T
     assert np.allclose(np.linalg.inv(model.cam_from_proj)[:3] @ np.r_[p_cam, 1], R @ p_cam + T.ravel())
     with pytest.raises(CalibrationFileError, match="projector scale"):  # read as published it cannot fit

@@ -18,6 +18,7 @@ resident memory (MB, the whole process) and the library version.
 from __future__ import annotations
 
 import json
+import resource
 import statistics
 import sys
 import time
@@ -26,11 +27,8 @@ import numpy as np
 
 
 def _peak_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
+    """Peak resident memory of this process (MB; Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def opencv_psp(frames_path: str, proj_w: int, proj_h: int, periods: int, repeats: int) -> dict:

@@ -193,7 +193,8 @@ def register(sub: Any) -> None:
     p.add_argument("frames_folder", metavar="FRAMES", help="folder of frames, taken in natural file-name order")
     p.add_argument("--patterns", required=True, help="pattern set TOML (config/patterns/ has SLMaster's and "
                                                      "OpenCV's); convention keys left out are detected")
-    p.add_argument("--projector-size", type=_size, required=True, metavar="WxH", help="projector pixels, e.g. 1920x1080")
+    p.add_argument("--projector-size", type=_size, required=True, metavar="WxH",
+                   help="projector pixels, e.g. 1920x1080")
     p.add_argument("--out", required=True, help="new session folder")
     p.add_argument("--calibration", help="calibration: slscan's calibration.json, SLMaster's caliInfo.yml or "
                                          "procam's calibration_result.xml (without one: maps only, no cloud)")

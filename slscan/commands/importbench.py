@@ -139,7 +139,8 @@ def import_timing(workdir: Path) -> dict[str, Any]:
     result = json.loads((session / "outputs" / "result.json").read_text())
     return {"import_wall_s": t_import, "decode_wall_s": t_decode, "cli_start_peer_s": t_start,
             "read_frames_peer_s": t_read, "points": result["points"], "timings_s": result["timings_s"],
-            "coordinate_error_px": {"median": float(np.nanmedian(err)), "p99_abs": float(np.nanpercentile(np.abs(err), 99))}}
+            "coordinate_error_px": {"median": float(np.nanmedian(err)),
+                                    "p99_abs": float(np.nanpercentile(np.abs(err), 99))}}
 
 
 def board_figures(session: Path, white: np.ndarray, model: RigModel, square_mm: float,
@@ -176,7 +177,8 @@ def board_figures(session: Path, white: np.ndarray, model: RigModel, square_mm: 
     d = np.concatenate([np.linalg.norm(np.diff(grid, axis=1), axis=2).ravel(),
                         np.linalg.norm(np.diff(grid, axis=0), axis=2).ravel()]) - square_mm
     n_inner = int(inside.sum())
-    return {"board_points": n_inner, "board_valid_fraction": n_inner / max(int(mask.sum()), 1), "plane_rms_mm": float(np.sqrt(np.mean(residual ** 2))),
+    return {"board_points": n_inner, "board_valid_fraction": n_inner / max(int(mask.sum()), 1),
+            "plane_rms_mm": float(np.sqrt(np.mean(residual ** 2))),
         "distance_mm": float(np.linalg.norm(centre)), "corner_pairs": int(d.size),
         "corner_error_mean_mm": float(d.mean()), "corner_error_rms_mm": float(np.sqrt(np.mean(d ** 2))),
         "corner_error_max_mm": float(np.abs(d).max())}
@@ -233,7 +235,8 @@ def format_report(r: dict[str, Any]) -> str:
         lines.append(f"import 1.3 MP x 18 frames with a cloud: {i['import_wall_s']:.2f} s wall, decode "
                      f"{i['decode_wall_s']:.2f} s wall ({i['points']} points; stages {i['timings_s']}); floor: "
                      f"command-line start {i['cli_start_peer_s']:.2f} s, reading the frames "
-                     f"{i['read_frames_peer_s']:.2f} s; coordinate error median {i['coordinate_error_px']['median']:+.3f}"
+                     f"{i['read_frames_peer_s']:.2f} s; coordinate error median "
+                     f"{i['coordinate_error_px']['median']:+.3f}"
                      f" px, p99 {i['coordinate_error_px']['p99_abs']:.3f} px")
     for row in r.get("procam", []):
         if "error" in row:
