@@ -48,9 +48,10 @@ class DecodeSettings:
     neighbours jump by more than half a fringe period and reject the regions between cuts
     smaller than `min_region_fraction` of the image (clustered order errors, which no
     per-pixel test sees). `gray_certainty`: a Gray-code bit reads clearly when |I − A|
-    exceeds this fraction of the fringe modulation B (complementary code) or |pattern −
-    inverse| exceeds it times the white − black contrast (pixel code, which may drop up to
-    `max_dropped_bits` of its finest bits). `self_check`: refuse the decode when more than
+    exceeds this fraction of the fringe modulation B (complementary code); a pixel-code bit
+    when |pattern − inverse| exceeds `code_certainty` times the white − black contrast (a
+    pair read against each other is robust; up to `max_dropped_bits` of the finest bits may
+    be unreadable). `self_check`: refuse the decode when more than
     `max_disagreement` of the modulated pixels have a Gray code and a phase that disagree,
     or when the frequencies' residuals are offset by more than `max_frequency_offset` rad.
     """
@@ -63,6 +64,7 @@ class DecodeSettings:
     spatial_check: bool = True
     min_region_fraction: float = 1e-4
     gray_certainty: float = 0.3
+    code_certainty: float = 0.1
     max_dropped_bits: int = 2
     self_check: bool = True
     max_disagreement: float = 0.05
@@ -512,7 +514,7 @@ class _OrientationDecoder:
         ps = self.patterns
         diffs = [frame("gray", b).astype(np.float32) - frame("gray_inverse", b)
                  for b in range(ps.gray_bits(self.orientation))]
-        threshold = np.float32(self.settings.gray_certainty) * contrast
+        threshold = np.float32(self.settings.code_certainty) * contrast
         coordinate, run, readable = read_pixel_code(diffs, np.maximum(threshold, np.float32(1.0)),
                                                     self.settings.max_dropped_bits)
         beyond = readable & ~(coordinate < self.extent)

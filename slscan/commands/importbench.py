@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -89,15 +90,20 @@ def slmaster_capture(folder: Path, rig: RigModel, seed: int = 0) -> np.ndarray:
     return uv[..., 0]
 
 
-def _run(args: list[str]) -> tuple[float, str]:
+def _run(args: list[str]) -> tuple[float, float, str]:
+    """`slscan ARGS` in a fresh process: (wall s, CPU s of the process, all threads, user +
+    system; on a quiet machine the wall time is at most this), its output."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "slscan", *args], capture_output=True, text=True, env=env,
                           timeout=600)
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
         raise RuntimeError(f"slscan {' '.join(args)} failed: {done.stderr.strip().splitlines()[-1:]}")
-    return wall, done.stdout
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu, done.stdout
 
 
 def table_timing(rig: RigModel) -> dict[str, float]:
@@ -125,11 +131,11 @@ def import_timing(workdir: Path) -> dict[str, Any]:
     cal = workdir / "caliInfo.yml"
     write_slmaster_calibration(cal, rig)
     session = workdir / "session"
-    t_import, out = _run(["import", str(frames), "--patterns", str(SLMASTER_PATTERNS), "--projector-size",
+    t_import, cpu_import, _ = _run(["import", str(frames), "--patterns", str(SLMASTER_PATTERNS), "--projector-size",
                           f"{rig.projector.width}x{rig.projector.height}", "--calibration", str(cal), "--out",
                           str(session)])
-    t_decode, _ = _run(["decode", str(session)])
-    t_start, _ = _run(["--help"])
+    t_decode, cpu_decode, _ = _run(["decode", str(session)])
+    t_start, cpu_start, _ = _run(["--help"])
     t0 = time.perf_counter()
     for f in sorted(frames.iterdir()):
         cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
@@ -138,6 +144,7 @@ def import_timing(workdir: Path) -> dict[str, Any]:
         err = m["vertical/coordinate"] - truth
     result = json.loads((session / "outputs" / "result.json").read_text())
     return {"import_wall_s": t_import, "decode_wall_s": t_decode, "cli_start_peer_s": t_start,
+            "import_cpu_s": cpu_import, "decode_cpu_s": cpu_decode, "cli_start_cpu_s": cpu_start,
             "read_frames_peer_s": t_read, "points": result["points"], "timings_s": result["timings_s"],
             "coordinate_error_px": {"median": float(np.nanmedian(err)),
                                     "p99_abs": float(np.nanpercentile(np.abs(err), 99))}}
@@ -232,9 +239,11 @@ def format_report(r: dict[str, Any]) -> str:
                  f"{t['per_pixel_undistort_peer_s']:.3f} s)")
     if "import" in r:
         i = r["import"]
-        lines.append(f"import 1.3 MP x 18 frames with a cloud: {i['import_wall_s']:.2f} s wall, decode "
-                     f"{i['decode_wall_s']:.2f} s wall ({i['points']} points; stages {i['timings_s']}); floor: "
-                     f"command-line start {i['cli_start_peer_s']:.2f} s, reading the frames "
+        lines.append(f"import 1.3 MP x 18 frames with a cloud: {i['import_wall_s']:.2f} s wall "
+                     f"({i['import_cpu_s']:.2f} s CPU), decode {i['decode_wall_s']:.2f} s wall "
+                     f"({i['decode_cpu_s']:.2f} s CPU; with its Rerun recording) ({i['points']} points; stages "
+                     f"{i['timings_s']}); floor: command-line start {i['cli_start_peer_s']:.2f} s wall "
+                     f"({i['cli_start_cpu_s']:.2f} s CPU), reading the frames "
                      f"{i['read_frames_peer_s']:.2f} s; coordinate error median "
                      f"{i['coordinate_error_px']['median']:+.3f}"
                      f" px, p99 {i['coordinate_error_px']['p99_abs']:.3f} px")
@@ -244,7 +253,9 @@ def format_report(r: dict[str, Any]) -> str:
             continue
         rej = ", ".join(f"{k} {v * 100:.1f} %" for k, v in row["rejected_fraction"].items())
         lines.append(f"{row['pose']} {row['calibration']:<18} plane RMS {row['plane_rms_mm']:.3f} mm at "
-                     f"{row['distance_mm']:.0f} mm; corners ({row['corner_pairs']} pairs) error mean "
+                     f"{row['distance_mm']:.0f} mm over {row['board_points']} points ("
+                     f"{row['board_valid_fraction'] * 100:.0f} % of the board); corners ({row['corner_pairs']} pairs) "
+                     f"error mean "
                      f"{row['corner_error_mean_mm']:+.3f} RMS {row['corner_error_rms_mm']:.3f} max "
                      f"{row['corner_error_max_mm']:.3f} mm; valid {row['valid_fraction'] * 100:.1f} %; rejected {rej}; "
                      f"old any-frame saturation rule {row['old_rule_saturated_fraction'] * 100:.1f} %")
