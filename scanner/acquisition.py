@@ -140,15 +140,34 @@ def acquire_images(rig: Rig, images: np.ndarray, settings: AcquisitionSettings,
         if running is not None:
             running.wait(settings.timeout_s)  # an error after the last frame surfaces too
         log.info("%s: %d frames acquired in %.3g s", cam.name, n, time.monotonic() - started)
-    finally:
-        proj.stop_sequence()
-        if rig.trigger is not None:
-            rig.trigger.stop()
-        cam.disarm()
-        if not proj.is_shut_down:
-            proj.blank()
+    except BaseException:
+        release(rig, quiet=True)
+        raise
+    release(rig, quiet=False)
     assert stack is not None
     return stack
+
+
+def release(rig: Rig, quiet: bool) -> None:
+    """Stop the sequence and the pulse train, disarm the camera, blank the projector: every
+    step is tried. `quiet` (an error is already on its way): a failing step is logged, not
+    raised over that error; otherwise the first failure is raised once all were tried."""
+    proj, trigger = rig.projector, rig.trigger
+    steps: list[Callable[[], None]] = [proj.stop_sequence, rig.camera.disarm]
+    if trigger is not None:
+        steps.insert(1, trigger.stop)
+    if not proj.is_shut_down:
+        steps.append(proj.blank)
+    failures: list[Exception] = []
+    for step in steps:
+        try:
+            step()
+        except Exception as exc:
+            log.log(logging.WARNING if quiet else logging.DEBUG, "releasing the rig after the acquisition: %s "
+                    "failed: %s", step.__qualname__, exc)
+            failures.append(exc)
+    if failures and not quiet:
+        raise failures[0]
 
 
 def grab_while_running(cam: Camera, timeout_s: float, running: Status | None) -> Frame:
