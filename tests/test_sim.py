@@ -672,3 +672,16 @@ def test_faults_validation():
         Faults(drop_frame=-1)
     with pytest.raises(ValueError):
         Faults(delay_frame=2)
+
+
+@pytest.mark.slow
+def test_simbench_reports_every_figure_with_the_load():
+    """`slscan simbench` runs on the default bench rig and reports each figure beside the
+    load average (its values are timings: printed, never asserted)."""
+    from slscan.commands.simbench import format_table, run_simbench
+
+    r = run_simbench(repeats=1)
+    assert (r["width"], r["height"], r["sequence_patterns"]) == (1280, 1024, 12)
+    assert len(r["load_before"]) == len(r["load_after"]) == 3
+    assert all(r[k] > 0 for k in ("frame_new_pattern_s", "frame_seen_pattern_s", "peer_sensor_s", "mean_period_s"))
+    assert "load average" in format_table(r) and "x peer" in format_table(r)
