@@ -7,7 +7,6 @@ bounded generously (`wait_bound_s`), and tests synchronise on events, never on s
 from __future__ import annotations
 
 import sys
-import threading
 import time
 
 import numpy as np
@@ -16,7 +15,7 @@ import pytest
 from scanner.devices import TriggerType
 from scanner.drivers.genicam import GenICamCamera, harvester_opener
 from scanner.drivers.hdmi import HdmiDisplay, HdmiProjector, PygameBackend
-from scanner.drivers.testing import FakeAcquirer, FakeCapture, FakeDisplay, wait_bound_s
+from scanner.drivers.testing import FakeAcquirer, FakeCapture, FakeDisplay, grab_in_thread, wait_bound_s
 from scanner.drivers.uvc import UvcCamera
 from scanner.errors import DeviceDisconnected, DeviceError, UnsupportedSetting, WaitTimeout
 
@@ -97,18 +96,7 @@ def test_uvc_grab_waits_for_a_trigger_from_another_thread() -> None:
     cap = FakeCapture(scene.render, fps=200)
     cam = UvcCamera(lambda: cap, "uvc", 12, 8, fps=200)
     cam.arm(1)
-    waiting = threading.Event()
-    inner = cam._do_grab
-
-    def grab_signalling(timeout_s: float):  # noqa: ANN202
-        waiting.set()
-        return inner(timeout_s)
-
-    cam._do_grab = grab_signalling  # type: ignore[method-assign]
-    got: list[object] = []
-    waiter = threading.Thread(target=lambda: got.append(cam.grab(600.0)))
-    waiter.start()
-    assert waiting.wait(wait_bound_s(1.0))
+    waiter, got = grab_in_thread(cam, 600.0)
     scene.level = 99
     cam.trigger()
     waiter.join(wait_bound_s(1.0))

@@ -9,7 +9,6 @@ simulated frame time at full resolution and the sequence period are measured by
 from __future__ import annotations
 
 import re
-import threading
 import time
 from pathlib import Path
 
@@ -19,7 +18,7 @@ from scipy import ndimage
 
 from scanner.config import CONFIG_DIR
 from scanner.devices import TriggerType
-from scanner.drivers.testing import wait_bound_s
+from scanner.drivers.testing import grab_in_thread, wait_bound_s
 from scanner.errors import ConfigError, DeviceDisconnected, DeviceError, WaitTimeout
 from scanner.geometry import Pinhole, RigModel
 from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
@@ -110,30 +109,6 @@ def sw_rig(rig_toml, sphere_scene):
 
 def fault_rig(rig_toml, scene: Scene, faults: Faults):
     return open_sim_rig(RigConfig.load(rig_toml("software")), scene=scene, faults=faults)
-
-
-def grab_in_thread(cam: SimCamera, timeout_s: float) -> tuple[threading.Thread, list[BaseException]]:
-    """Start `cam.grab(timeout_s)` on a thread; returns once the grab has begun (no sleep)."""
-    entered = threading.Event()
-    inner = cam._do_grab
-
-    def grab_signalling(t: float):  # noqa: ANN202
-        entered.set()
-        return inner(t)
-
-    cam._do_grab = grab_signalling  # type: ignore[method-assign]
-    errors: list[BaseException] = []
-
-    def waiter() -> None:
-        try:
-            cam.grab(timeout_s)
-        except BaseException as exc:
-            errors.append(exc)
-
-    th = threading.Thread(target=waiter)
-    th.start()
-    assert entered.wait(wait_bound_s(1.0))
-    return th, errors
 
 
 def acquire(rig, n: int, timeout: float = 2.0):
@@ -558,11 +533,11 @@ def test_trigger_box_drives_projector_and_camera(rig_toml, sphere_scene):
 def test_shutdown_idempotent_and_final(rig_toml, sphere_scene):
     rig = open_sim_rig(RigConfig.load(rig_toml("trigger_box")), scene=sphere_scene)
     rig.camera.arm(1)
-    th, errors = grab_in_thread(rig.camera, 600.0)
+    th, outcome = grab_in_thread(rig.camera, 600.0)
     rig.shutdown()
     rig.shutdown()
     th.join(wait_bound_s(1.0))
-    assert not th.is_alive() and isinstance(errors[0], DeviceDisconnected)  # a waiting grab wakes up
+    assert not th.is_alive() and isinstance(outcome[0], DeviceDisconnected)  # a waiting grab wakes up
     for call in (lambda: rig.camera.arm(1), lambda: rig.camera.grab(0.1), lambda: rig.camera.set_exposure(0.01),
                  lambda: rig.projector.show(0), lambda: rig.projector.load_patterns(np.stack([flat(1)])),
                  lambda: rig.trigger.arm(1, 0.1), lambda: rig.trigger.start()):
@@ -638,10 +613,10 @@ def test_fault_disconnect_after(rig_toml, sphere_scene):
     with fault_rig(rig_toml, sphere_scene, Faults()) as rig:
         cam = rig.camera
         cam.arm(1)
-        th, errors = grab_in_thread(cam, 600.0)
+        th, outcome = grab_in_thread(cam, 600.0)
         cam.set_faults(Faults(disconnect_after=0))
         th.join(wait_bound_s(1.0))
-        assert not th.is_alive() and isinstance(errors[0], DeviceDisconnected)
+        assert not th.is_alive() and isinstance(outcome[0], DeviceDisconnected)
 
 
 def test_faults_from_rig_toml(rig_toml, sphere_scene):

@@ -20,6 +20,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Iterator, TypeVar
 
+from scanner.devices import Camera
 from scanner.errors import DeviceDisconnected, DeviceTimeout
 
 T = TypeVar("T")
@@ -31,6 +32,33 @@ def wait_bound_s(timeout_s: float) -> float:
     """How long a test lets a wait with `timeout_s` take before calling it hung: several
     times the timeout and never under 5 s, so a loaded machine does not fail the test."""
     return max(5 * timeout_s, 5.0)
+
+
+def grab_in_thread(camera: Camera, timeout_s: float) -> tuple[threading.Thread, list[object]]:
+    """Run `camera.grab(timeout_s)` on a thread; return once the driver's `_do_grab` has been
+    entered, so a test acts on a grab that is waiting without sleeping. The list receives
+    the frame, or the exception the grab raised."""
+    entered = threading.Event()
+    inner = camera._do_grab
+
+    def grab_signalling(t: float):  # noqa: ANN202
+        entered.set()
+        return inner(t)
+
+    camera._do_grab = grab_signalling  # type: ignore[method-assign]
+    outcome: list[object] = []
+
+    def grab() -> None:
+        try:
+            outcome.append(camera.grab(timeout_s))
+        except BaseException as exc:
+            outcome.append(exc)
+
+    thread = threading.Thread(target=grab, name=f"{camera.name}-test-grab", daemon=True)
+    thread.start()
+    if not entered.wait(wait_bound_s(1.0)):
+        raise AssertionError(f"{camera.name}: grab did not start")
+    return thread, outcome
 
 
 @dataclass(frozen=True)
