@@ -17,7 +17,7 @@ from scanner.drivers.genicam import GenICamCamera, harvester_opener
 from scanner.drivers.hdmi import HdmiDisplay, HdmiProjector, PygameBackend
 from scanner.drivers.testing import FakeAcquirer, FakeCapture, FakeDisplay, grab_in_thread, wait_bound_s
 from scanner.drivers.uvc import UvcCamera
-from scanner.errors import DeviceDisconnected, DeviceError, UnsupportedSetting, WaitTimeout
+from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting, WaitTimeout
 
 # ---------------------------------------------------------------------------------- UVC
 
@@ -211,6 +211,23 @@ def test_genicam_unplug_then_reopen() -> None:
     cam.arm(1)
     cam.trigger()
     assert cam.grab(0.5).index == 0
+
+
+def test_genicam_producer_timeout_is_a_device_timeout_not_a_wait_timeout() -> None:
+    """The GenTL producer reports that the device timed out: the other kind of timeout,
+    naming the camera and the wait, and the camera is kept (not dropped as lost)."""
+    acq = FakeAcquirer(render, 6, 4)
+    cam = genicam(acq)
+    cam.arm(1)
+
+    def producer_timeout(timeout: float = 0.0) -> None:
+        raise type("TimeoutException", (Exception,), {})("GC_ERR_TIMEOUT")
+
+    acq.try_fetch = producer_timeout  # type: ignore[method-assign]
+    with pytest.raises(DeviceTimeout, match="gencam: device timeout: waiting for frame 0: TimeoutException: "
+                                            "GC_ERR_TIMEOUT") as exc:
+        cam.grab(0.5)
+    assert not isinstance(exc.value, WaitTimeout) and exc.value.timeout_s is None and not acq.closed
 
 
 def test_missing_extras_name_the_install_command(monkeypatch: pytest.MonkeyPatch) -> None:
