@@ -32,8 +32,12 @@ from scanner.status import Status
 
 log = logging.getLogger(__name__)
 
-SEQUENCE_DEADLINE_FACTOR = 2.0  # a sequence or pulse train fails as timed out after this many times
-SEQUENCE_DEADLINE_SLACK_S = 2.0  # its nominal duration plus this (start-up, a loaded host)
+# A sequence or pulse train still running after this many times its nominal duration plus the
+# slack has stopped advancing: its status fails with DeviceTimeout. Generous, so that a loaded
+# host (a thread scheduled late) is never taken for a hung device; a camera waiting for frames
+# notices a stalled sequence sooner, through its own timeout.
+SEQUENCE_DEADLINE_FACTOR = 5.0
+SEQUENCE_DEADLINE_SLACK_S = 10.0  # s
 
 
 class TriggerType(Enum):

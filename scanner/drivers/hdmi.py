@@ -39,11 +39,12 @@ _CHECK_FRAMES = 12
 
 
 class DisplayBackend(Protocol):
-    """A fullscreen surface whose `present` returns after the vertical sync that shows it."""
+    """A fullscreen surface whose `present` returns after the vertical sync that shows it,
+    with the time of that sync (monotonic s) as well as the backend knows it."""
 
     size: tuple[int, int]  # width, height in pixels
 
-    def present(self, rgb: np.ndarray) -> None: ...
+    def present(self, rgb: np.ndarray) -> float: ...
 
     def close(self) -> None: ...
 
@@ -69,11 +70,12 @@ class PygameBackend:
                                                display=display, vsync=1)
         pygame.mouse.set_visible(False)
 
-    def present(self, rgb: np.ndarray) -> None:
+    def present(self, rgb: np.ndarray) -> float:
         pg = self._pg
         pg.event.pump()  # keep the window responsive
         pg.surfarray.blit_array(self._screen, np.ascontiguousarray(rgb.transpose(1, 0, 2)))
         pg.display.flip()  # blocks until the vertical sync with vsync=1
+        return time.monotonic()  # SDL gives no flip timestamp: the sync has just happened
 
     def close(self) -> None:
         self._pg.display.quit()
@@ -93,10 +95,7 @@ class HdmiDisplay:
         """Present black frames and check that presents really wait for the vertical sync
         at `refresh_hz` (a window without vsync would make every timing wrong)."""
         black = np.zeros((self.backend.size[1], self.backend.size[0], 3), np.uint8)
-        stamps = []
-        for _ in range(_CHECK_FRAMES):
-            self.backend.present(black)
-            stamps.append(time.monotonic())
+        stamps = [self.backend.present(black) for _ in range(_CHECK_FRAMES)]
         measured = float(np.median(np.diff(stamps)))
         if abs(measured * self.refresh_hz - 1.0) > VSYNC_TOLERANCE:
             raise DeviceError(self.name, f"presents take {measured * 1e3:.2f} ms, not one refresh of "

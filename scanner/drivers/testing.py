@@ -437,27 +437,36 @@ class FakeAcquirer:
 
 
 class FakeDisplay:
-    """A display backend whose `present` waits for a simulated vsync at `refresh_hz`;
-    `shown` lists (monotonic time, frame) of every present. `fail_after(n, exc)` makes the
-    present after the next n raise `exc` (a display that fails mid-sequence)."""
+    """A display backend whose `present` waits for a simulated vsync at `refresh_hz`: never
+    sooner than one refresh after the previous present, later when the host is busy. It
+    returns the time of its sync on the display's own clock, which counts one refresh per
+    present (a fake display never misses a sync, however loaded the test machine), so the
+    driver's vsync check sees `refresh_hz`. Without vsync a present returns at once, with the
+    current time. `shown` lists (monotonic time, frame) of every present; `fail_after(n, exc)`
+    makes the present after the next n raise `exc` (a display that fails mid-sequence)."""
 
     def __init__(self, size: tuple[int, int], refresh_hz: float = 240.0, vsync: bool = True) -> None:
         self.size, self.refresh_hz, self.vsync = size, refresh_hz, vsync
         self.shown: list[tuple[float, object]] = []
         self.closed = False
-        self._next = time.monotonic()
+        self._next = self._clock0 = time.monotonic()
+        self._syncs = 0
         self._failure: tuple[int, Exception] | None = None
 
     def fail_after(self, presents: int, exc: Exception) -> None:
         self._failure = (len(self.shown) + presents, exc)
 
-    def present(self, rgb) -> None:  # noqa: ANN001
+    def present(self, rgb) -> float:  # noqa: ANN001
         if self._failure is not None and len(self.shown) >= self._failure[0]:
             raise self._failure[1]
-        if self.vsync:
-            self._next = max(self._next + 1.0 / self.refresh_hz, time.monotonic())
-            time.sleep(max(0.0, self._next - time.monotonic()))
+        if not self.vsync:
+            self.shown.append((time.monotonic(), rgb))
+            return self.shown[-1][0]
+        self._next = max(self._next + 1.0 / self.refresh_hz, time.monotonic())
+        time.sleep(max(0.0, self._next - time.monotonic()))
         self.shown.append((time.monotonic(), rgb))
+        self._syncs += 1
+        return self._clock0 + self._syncs / self.refresh_hz
 
     def current(self) -> object:
         return self.shown[-1][1] if self.shown else None
