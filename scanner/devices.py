@@ -102,7 +102,7 @@ class Device(abc.ABC):
             try:
                 self._do_shutdown()
             finally:
-                self._end_running(DeviceDisconnected(self.name, "shut down while it was running"))
+                self._end_running(DeviceDisconnected, "ended: the device was shut down while it ran")
                 log.info("%s: shut down", self.name)
 
     def _check_alive(self) -> None:
@@ -123,12 +123,13 @@ class Device(abc.ABC):
         self._running = Status(self.name, action, deadline)
         return self._running
 
-    def _end_running(self, reason: DeviceError) -> None:
-        """Fail the long action's status if it is still running (stopped, shut down)."""
+    def _end_running(self, error: type[DeviceError], why: str) -> None:
+        """Fail the long action's status, if still running (stopped, shut down), with
+        `error` saying "<device>: <action> <why>"."""
         status = self._running
         if status is not None and not status.done:
-            status.set_exception(reason)
-            log.info("%s: %s ended early: %s", self.name, status.action, reason)
+            status.set_exception(error(self.name, f"{status.action} {why}"))
+            log.info("%s: %s %s", self.name, status.action, why)
 
     @abc.abstractmethod
     def _do_shutdown(self) -> None: ...
@@ -317,7 +318,7 @@ class Projector(Device):
         """Stop a running sequence, if any (its status fails as stopped); harmless otherwise
         and after shutdown."""
         self._do_stop_sequence()
-        self._end_running(DeviceError(self.name, "pattern sequence stopped before it had run"))
+        self._end_running(DeviceError, "stopped before it had run")
 
     def describe(self) -> dict[str, object]:
         return {**super().describe(), "width": self.width, "height": self.height, "n_patterns": self._n_patterns}
@@ -379,7 +380,7 @@ class TriggerSource(Device):
         """Stop a running pulse train, if any (its status fails as stopped); harmless
         otherwise and after shutdown."""
         self._do_stop()
-        self._end_running(DeviceError(self.name, "pulse train stopped before every pulse was sent"))
+        self._end_running(DeviceError, "stopped before every pulse was sent")
 
     @property
     def pulses_sent(self) -> int:

@@ -214,6 +214,7 @@ class SimProjector(Projector):
         self._sequence.stop()
 
     def _do_load_patterns(self, patterns: np.ndarray) -> None:
+        self._sequence.stop()  # a sequence outliving its status (past its deadline) stops too
         stack = np.array(patterns, dtype=np.uint8, copy=True)
         stack.setflags(write=False)
         with self._state:
@@ -229,9 +230,11 @@ class SimProjector(Projector):
             self._next_external = 0 if k is None else k + 1
 
     def _do_show(self, k: int) -> None:
+        self._sequence.stop()
         self._display(k)
 
     def _do_blank(self) -> None:
+        self._sequence.stop()
         self._display(None)
 
     def _do_run_sequence(self, period_s: float, on_pattern: Callable[[int], None] | None, status: Status) -> None:

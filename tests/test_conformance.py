@@ -257,7 +257,8 @@ def test_projector_stopped_sequence_fails_its_status(projector: Projector) -> No
         projector.run_sequence(1.0)
     projector.stop_sequence()
     assert status.done and not status.success
-    with pytest.raises(DeviceError, match=f"{projector.name}: pattern sequence stopped before it had run"):
+    with pytest.raises(DeviceError, match=rf"{projector.name}: pattern sequence \(4 patterns every 1 s\) stopped "
+                                          r"before it had run"):
         status.wait(1.0)
     second = projector.run_sequence(1.0)
     projector.show(1)  # showing a pattern stops the sequence too
@@ -270,7 +271,8 @@ def test_projector_shutdown_is_idempotent_and_final(projector: Projector) -> Non
     projector.shutdown()
     projector.shutdown()
     projector.stop_sequence()
-    with pytest.raises(DeviceDisconnected, match=f"{projector.name}: shut down while it was running"):
+    with pytest.raises(DeviceDisconnected, match=rf"{projector.name}: pattern sequence \(4 patterns every 1 s\) "
+                                                 r"ended: the device was shut down while it ran"):
         status.wait(1.0)
     with pytest.raises(DeviceDisconnected):
         projector.load_patterns(PATTERNS)
@@ -299,7 +301,8 @@ def test_trigger_source_stopped_train_fails_its_status(trigger_source: TriggerSo
     trigger_source.arm(100, 1.0)
     status = trigger_source.start()
     trigger_source.stop()
-    with pytest.raises(DeviceError, match=f"{trigger_source.name}: pulse train stopped before every pulse"):
+    with pytest.raises(DeviceError, match=rf"{trigger_source.name}: pulse train \(100 pulses every 1 s\) stopped "
+                                          r"before every pulse was sent"):
         status.wait(1.0)
 
 
@@ -309,7 +312,8 @@ def test_trigger_source_shutdown_is_idempotent_and_final(trigger_source: Trigger
     trigger_source.shutdown()
     trigger_source.shutdown()
     trigger_source.stop()
-    with pytest.raises(DeviceDisconnected, match="shut down while it was running"):
+    with pytest.raises(DeviceDisconnected, match=r"pulse train \(100 pulses every 1 s\) ended: the device was shut "
+                                                 r"down while it ran"):
         status.wait(1.0)
     with pytest.raises(DeviceDisconnected):
         trigger_source.arm(1, 0.01)

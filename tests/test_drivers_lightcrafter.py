@@ -128,7 +128,8 @@ def test_complete_phase_shift_sequence_setup_run_and_stop() -> None:
         status = d.run_sequence(0.05)  # start; the DLPC350 runs 12 patterns of 50 ms by itself
         d.stop_sequence()
         assert status.done and not status.success
-        with pytest.raises(DeviceError, match="lightcrafter4500: pattern sequence stopped before it had run"):
+        with pytest.raises(DeviceError, match=r"lightcrafter4500: pattern sequence \(12 patterns every 0.05 s\) "
+                                              r"stopped before it had run"):
             status.wait(1.0)
         d.shutdown()  # stop once more, then release the link
 

@@ -133,13 +133,16 @@ class HdmiProjector(Projector):
         self._outputs.append(callback)
 
     def _do_load_patterns(self, patterns: np.ndarray) -> None:
+        self._do_stop_sequence()  # a thread outliving its status (past its deadline) stops too
         self._patterns = np.repeat(patterns[..., None], 3, axis=3)
 
     def _do_show(self, k: int) -> None:
+        self._do_stop_sequence()
         assert self._patterns is not None
         self.display.show(self._patterns[k])
 
     def _do_blank(self) -> None:
+        self._do_stop_sequence()
         self.display.show(np.zeros((self.height, self.width, 3), np.uint8))
 
     def _do_run_sequence(self, period_s: float, on_pattern: Callable[[int], None] | None, status: Status) -> None:
