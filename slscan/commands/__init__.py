@@ -7,17 +7,18 @@ libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
 """
 
 from slscan.commands import (
-                             bench,
-                             calibrate,
-                             devices,
-                             import_,
-                             importbench,
-                             inspect,
-                             pose,
-                             review,
-                             scan,
-                             segment,
-                             station,
+    bench,
+    calibrate,
+    devices,
+    import_,
+    importbench,
+    inspect,
+    pose,
+    review,
+    scan,
+    segment,
+    simbench,
+    station,
 )
 
-COMMANDS = (scan, import_, review, bench, importbench, devices, calibrate, inspect, pose, segment, station)
+COMMANDS = (scan, import_, review, bench, importbench, simbench, devices, calibrate, inspect, pose, segment, station)
