@@ -71,10 +71,11 @@ def _child(stack_path: str, rig_dict: dict, patterns_dict: dict, repeats: int, q
         dec.append(t1 - t0)
         rec.append(t2 - t1)
     sigma = d.maps[patterns.orientations[0]].phase_sigma
+    peak = _vm_hwm_mb()  # before the floor's own buffers
     floor = _floor(stack, patterns)
     queue.put({"floor": floor, "setup_s": setup, "decode_s": statistics.median(dec[1:]),
                "reconstruct_s": statistics.median(rec[1:]),
-               "valid_fraction": float(d.valid.mean()), "points": len(cloud), "peak_mb": _vm_hwm_mb(),
+               "valid_fraction": float(d.valid.mean()), "points": len(cloud), "peak_mb": peak,
                "median_phase_sigma_rad": float(np.nanmedian(sigma[::8, ::8]))})
 
 
