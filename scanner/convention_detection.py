@@ -324,9 +324,10 @@ def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
     if not candidates:
         every = _layouts(ps, n, fixed=False)
         hint = f"; with other frame-layout keys {len(every)} layout(s) would fit" if every else ""
-        raise DecodeError(f"{n} frames, but the pattern set ({ps.family}, fringes {list(ps.fringes)}, "
-                          f"{ps.steps} steps, {list(ps.orientations)}) with the given layout keys needs "
-                          f"{_needed(ps)}: wrong frame count, fringe/period count or projector size{hint}")
+        what = f"{ps.family} for a {projector_size[0]} x {projector_size[1]} projector" \
+            if ps.family == "pixel_graycode" else f"{ps.family}, fringes {list(ps.fringes)}, {ps.steps} steps"
+        raise DecodeError(f"{n} frames, but the pattern set ({what}, {list(ps.orientations)}) with the given layout "
+                          f"keys needs {_needed(ps)}: wrong frame count, fringe/period count or projector size{hint}")
     scored = sorted(((_evidence(stack, c, projector_size, bit_depth), c) for c in candidates),
                     key=lambda t: -t[0].score)
     best_ev, best = scored[0]

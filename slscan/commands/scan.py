@@ -69,9 +69,9 @@ def report(result: Any) -> None:
         print(f"maps      {s.outputs / 'maps.npz'}  ({valid}; no calibration, so no cloud)")
     else:
         print(f"cloud     {result.cloud_path}  ({len(result.cloud)} points, {valid})")
-    rejected = result.decoded.rejected()
-    total = result.decoded.valid.size * len(result.decoded.maps)
-    print("rejected  " + ", ".join(f"{k} {v / total * 100:.2f} %" for k, v in rejected.items() if v))
+    rejected = result.decoded.rejected()  # per orientation, each pixel under its first reason
+    print("rejected  " + ", ".join(f"{k} {v / result.decoded.valid.size * 100:.2f} %" for k, v in rejected.items()
+                                   if v) + " of the pixels")
     if s.recording_path.exists():
         print(f"recording {s.recording_path}   (view: slscan review {s.root})")
     print(f"timings   decode {t['decode'] * 1e3:.0f} ms, reconstruct {t['reconstruct'] * 1e3:.0f} ms")
