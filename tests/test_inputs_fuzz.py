@@ -17,9 +17,9 @@ from pathlib import Path
 from typing import Any, Callable
 
 import pytest
+import test_inputs_session
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_inputs_session import PATTERNS, SCENE, small_rig  # noqa: F401 — the shared small session
 
 from calibration.board import Board
 from inspection.bins.instances import read_label_image, read_labelme
@@ -28,28 +28,19 @@ from scanner.calibration_file import load_calibration
 from scanner.config import CONFIG_DIR, load_toml
 from scanner.errors import ScannerError
 from scanner.patterns import PatternSet
-from scanner.pipeline import process, scan
-from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
+from scanner.pipeline import process
+from scanner.rig import DEFAULT_RIG, RigConfig
 from scanner.session import MANIFEST, Session
 from sim.scene import Scene
 from slscan import cli
 from slscan.station.program import load_program
 from slscan.station.station_config import StationConfig
 
+clean = test_inputs_session.clean  # the shared small simulated session (a module-scoped fixture)
 COUNTS = {"inputs": 0, "tracebacks": 0}
 FOUND: list[str] = []
 FUZZ = settings(max_examples=40, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
-
-
-@pytest.fixture(scope="module", autouse=True)
-def report(request: pytest.FixtureRequest):
-    yield
-    line = (f"fuzz: {COUNTS['inputs']} inputs tried, {COUNTS['tracebacks']} tracebacks found"
-            + (": " + " | ".join(FOUND[:5]) if FOUND else ""))
-    reporter = request.config.pluginmanager.get_plugin("terminalreporter")
-    if reporter is not None:
-        reporter.write_line(line)
 
 
 def attempt(what: str, fn: Callable[[], Any]) -> None:
@@ -203,18 +194,10 @@ def test_fuzz_labelme_points(points: Any) -> None:
 
 # ------------------------------------------------------------------ sessions: manifests and frames
 
-@pytest.fixture(scope="module")
-def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    tmp = tmp_path_factory.mktemp("fuzz-session")
-    with open_rig(small_rig(tmp), scene=SCENE) as rig:
-        scan(rig, PATTERNS, tmp / "s")
-    return tmp / "s"
-
-
-def test_fuzz_manifests(session: Path, tmp_path: Path) -> None:
-    original = json.loads((session / MANIFEST).read_text())
+def test_fuzz_manifests(clean: Path, tmp_path: Path) -> None:
+    original = json.loads((clean / MANIFEST).read_text())
     root = tmp_path / "s"
-    shutil.copytree(session, root)
+    shutil.copytree(clean, root)
 
     @settings(max_examples=40, deadline=None, derandomize=True)
     @given(mutated(original))
@@ -225,7 +208,7 @@ def test_fuzz_manifests(session: Path, tmp_path: Path) -> None:
     check()
 
 
-def test_fuzz_frame_bytes(session: Path, tmp_path: Path) -> None:
+def test_fuzz_frame_bytes(clean: Path, tmp_path: Path) -> None:
     """Flipped bytes, truncated or emptied frames: always refused, naming the frame."""
     root = tmp_path / "s"
 
@@ -234,7 +217,7 @@ def test_fuzz_frame_bytes(session: Path, tmp_path: Path) -> None:
     def check(k: int, how: str, where: int) -> None:
         if root.exists():
             shutil.rmtree(root)
-        shutil.copytree(session, root)
+        shutil.copytree(clean, root)
         f = root / "frames" / f"frame_{k:03d}.png"
         data = bytearray(f.read_bytes())
         if how == "flip":
@@ -255,14 +238,14 @@ def test_fuzz_frame_bytes(session: Path, tmp_path: Path) -> None:
 GARBAGE = st.one_of(st.text(max_size=20), st.sampled_from(["-1", "nan", "inf", "0", "1e309", "", "--", "-x"]))
 
 
-def test_fuzz_cli(session: Path, tmp_path: Path) -> None:
+def test_fuzz_cli(clean: Path, tmp_path: Path) -> None:
     """Subcommands that read files, given garbage files and garbage arguments: exit 0, 1 or
     2 with a one-line error, or argparse's usage error; never a traceback."""
     junk = tmp_path / "junk.ply"
     junk.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n")
     (tmp_path / "junk.json").write_text("[1, 2")
     (tmp_path / "empty").mkdir()
-    files = [str(session), str(junk), str(tmp_path / "junk.json"), str(tmp_path / "empty"), str(tmp_path / "nope"),
+    files = [str(clean), str(junk), str(tmp_path / "junk.json"), str(tmp_path / "empty"), str(tmp_path / "nope"),
              "/etc/passwd", str(tmp_path)]
     commands = {
         "decode": lambda f, g: ["decode", f] + (["--mode", g] if g else []),
@@ -294,3 +277,11 @@ def test_fuzz_cli(session: Path, tmp_path: Path) -> None:
         attempt(f"slscan {' '.join(argv)}", run)
 
     check()
+
+
+def test_fuzz_counts(capsys: pytest.CaptureFixture) -> None:
+    """Runs last in this module: the counts over the properties above, printed for the report."""
+    with capsys.disabled():
+        print(f"\nfuzz: {COUNTS['inputs']} inputs tried, {COUNTS['tracebacks']} tracebacks found"
+              + (": " + " | ".join(FOUND[:5]) if FOUND else ""))
+    assert COUNTS["tracebacks"] == 0
