@@ -348,3 +348,44 @@ def test_cli_turns_scanner_errors_and_os_errors_into_one_line(tmp_path: Path) ->
         code, err = run_cli(*argv)
         assert code == 2 and len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
     assert issubclass(SessionError, ScannerError)
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path):
+    """A 3 MiB tmpfs (root only): a real full disk for the Rerun writer too."""
+    import subprocess
+
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    if shutil.os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mount)],
+                                                  capture_output=True).returncode != 0:
+        pytest.skip("mounting a small tmpfs needs root (a real full disk); the ENOSPC wrapper test covers the rest")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
+
+
+def test_real_full_disk_gives_one_error_and_keeps_every_frame(small_disk: Path, tmp_path: Path) -> None:
+    """12 frames of ~107 kB, the ground truth and the recording do not fit in 3 MiB: the scan
+    stops with one SessionError naming the frame, within its bound, every stored frame intact."""
+    done = threading.Event()
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            with open_rig(small_rig(tmp_path), scene=SCENE) as rig:
+                scan(rig, PATTERNS, small_disk / "s")
+        except BaseException as exc:  # noqa: BLE001 — inspected below
+            errors.append(exc)
+        done.set()
+
+    threading.Thread(target=run, daemon=True).start()
+    assert done.wait(300), "the scan hung on a full disk"
+    assert len(errors) == 1 and isinstance(errors[0], ScannerError), errors
+    assert "No space left" in str(errors[0]) and "\n" not in str(errors[0])
+    log = [json.loads(line) for line in (small_disk / "s" / "frames.jsonl").read_text().splitlines()]
+    assert len(log) >= 1
+    for e in log:
+        assert sha256((small_disk / "s" / e["file"]).read_bytes()) == e["sha256"]
+    assert not list((small_disk / "s" / "frames").glob(".*part"))
