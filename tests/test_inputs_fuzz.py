@@ -39,7 +39,7 @@ from slscan.station.station_config import StationConfig
 clean = test_inputs_session.clean  # the shared small simulated session (a module-scoped fixture)
 COUNTS = {"inputs": 0, "tracebacks": 0}
 FOUND: list[str] = []
-FUZZ = settings(max_examples=40, deadline=None, derandomize=True,
+FUZZ = settings(max_examples=40, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 
@@ -168,7 +168,7 @@ def test_fuzz_raw_bytes(kind: str, tmp_path: Path) -> None:
     suffix = {"calibration": ".json", "labelme": ".json", "label png": ".png"}.get(kind, ".toml")
     target = tmp_path / f"fuzz{suffix}"
 
-    @settings(max_examples=25, deadline=None, derandomize=True)
+    @settings(max_examples=25, deadline=None, derandomize=True, database=None)
     @given(st.one_of(st.binary(max_size=200), st.text(max_size=200).map(str.encode),
                      values.map(lambda v: json.dumps(v).encode())))
     def check(data: bytes) -> None:
@@ -199,7 +199,7 @@ def test_fuzz_manifests(clean: Path, tmp_path: Path) -> None:
     root = tmp_path / "s"
     shutil.copytree(clean, root)
 
-    @settings(max_examples=40, deadline=None, derandomize=True)
+    @settings(max_examples=40, deadline=None, derandomize=True, database=None)
     @given(mutated(original))
     def check(m: dict[str, Any]) -> None:
         (root / MANIFEST).write_text(json.dumps(m))
@@ -212,7 +212,7 @@ def test_fuzz_frame_bytes(clean: Path, tmp_path: Path) -> None:
     """Flipped bytes, truncated or emptied frames: always refused, naming the frame."""
     root = tmp_path / "s"
 
-    @settings(max_examples=25, deadline=None, derandomize=True)
+    @settings(max_examples=25, deadline=None, derandomize=True, database=None)
     @given(st.integers(0, 11), st.sampled_from(["flip", "truncate", "empty"]), st.integers(0, 10 ** 6))
     def check(k: int, how: str, where: int) -> None:
         if root.exists():
@@ -258,7 +258,7 @@ def test_fuzz_cli(clean: Path, tmp_path: Path) -> None:
         "scan": lambda f, g: ["scan", "--rig", f, "--out", str(tmp_path / "o"), "--patterns", g or f],
     }
 
-    @settings(max_examples=40, deadline=None, derandomize=True)
+    @settings(max_examples=40, deadline=None, derandomize=True, database=None)
     @given(st.sampled_from(sorted(commands)), st.sampled_from(files), GARBAGE)
     def check(cmd: str, file: str, garbage: str) -> None:
         argv = commands[cmd](file, garbage)
