@@ -1,9 +1,9 @@
 """The rig TOML and the rig model description as schemas, and the physics a rig must obey.
 
 `RigFile` is every table a rig TOML may hold (see `config/rigs/`). Keys a driver reads are
-declared here too, each with the driver it belongs to (`DRIVER_KEYS`), and so are the
-simulator's tables (`[camera.sensor]`, `[sim.faults]`), so a typo or a key of another
-driver is refused at load instead of being silently ignored. `[calibrate]` belongs to the
+declared here too (uvc, genicam, hdmi, lightcrafter4500: see scanner/drivers/hardware_rig.py),
+and so are the simulator's tables (`[camera.sensor]`, `[sim.faults]`), so a typo is refused
+at load instead of being silently ignored. `[calibrate]` belongs to the
 calibration package, which validates it when a calibration is run (the core cannot import it).
 
 `RigModelSchema` is the geometry as `RigModel.to_dict` writes it (session manifests,
@@ -40,30 +40,6 @@ Distortion = Annotated[list[Float], Field(min_length=5, max_length=5)]
 Gamma = Annotated[float, Field(strict=True, gt=0.2, lt=5.0)]
 FieldOfView = Annotated[float, Field(strict=True, gt=1.0, lt=170.0)]
 PixelAspect = Annotated[float, Field(strict=True, ge=0.1, le=10.0)]
-
-# keys only one driver reads: device role -> driver -> keys (None: the simulator, no driver key)
-DRIVER_KEYS: dict[str, dict[str | None, frozenset[str]]] = {
-    "camera": {"uvc": frozenset({"device", "fps", "gain"}),
-               "genicam": frozenset({"cti", "serial", "trigger_line", "gain_db"}),
-               None: frozenset({"sensor"})},
-    "projector": {"hdmi": frozenset({"display", "refresh_hz", "latency_frames"}),
-                  "lightcrafter4500": frozenset({"source", "flash_first_image", "flash_images_sha256", "leds",
-                                                 "led_currents", "trig_out1_delays_us", "trig_out2_delay_us",
-                                                 "trig_in1_delay_us", "odd_row_shift", "usb_serial",
-                                                 "video_display"}),
-                  None: frozenset({"blur_sigma_px"})},
-}
-
-
-def _check_driver_keys(table: Schema, role: str) -> None:
-    by_driver = DRIVER_KEYS[role]
-    driver = getattr(table, "driver")
-    for key in sorted(table.model_fields_set):
-        owners = [d for d, keys in by_driver.items() if key in keys]
-        if owners and driver not in owners:
-            owner = owners[0] or "simulated"
-            raise ValueError(f"key '{key}' belongs to the {owner} {role}, not to "
-                             f"{'the simulated ' + role if driver is None else driver}")
 
 
 class Lens(Schema):
@@ -114,8 +90,8 @@ class SimTable(Schema):
 class CameraTable(Lens):
     bit_depth: Annotated[int, Field(strict=True, ge=1, le=16)] | None = None
     exposure_s: Annotated[float, Field(strict=True, gt=0, le=60)] | None = None
-    sensor: SensorTable | None = None
-    device: Str | Int | None = None
+    sensor: SensorTable | None = None  # the simulated camera
+    device: Str | Int | None = None  # uvc: device, fps, gain; genicam: cti, serial, trigger_line, gain_db
     fps: PositiveFloat | None = None
     gain: Float | None = None
     cti: Str | None = None
@@ -123,18 +99,13 @@ class CameraTable(Lens):
     trigger_line: Str | None = None
     gain_db: Float | None = None
 
-    @model_validator(mode="after")
-    def _driver(self) -> CameraTable:
-        _check_driver_keys(self, "camera")
-        return self
-
 
 class ProjectorTable(Lens):
     gamma: Gamma = 1.0
     position_mm: Vector3
     look_at_mm: Vector3 | None = None
-    blur_sigma_px: NonNegativeFloat | None = None
-    display: Int | None = None
+    blur_sigma_px: NonNegativeFloat | None = None  # the simulated projector
+    display: Int | None = None  # hdmi: display, video_display, refresh_hz, latency_frames; then lightcrafter4500
     video_display: Int | None = None
     refresh_hz: PositiveFloat | None = None
     latency_frames: Annotated[int, Field(strict=True, ge=0)] | None = None
@@ -149,11 +120,6 @@ class ProjectorTable(Lens):
     trig_in1_delay_us: Float | None = None
     odd_row_shift: Float | None = None
     usb_serial: Str | None = None
-
-    @model_validator(mode="after")
-    def _driver(self) -> ProjectorTable:
-        _check_driver_keys(self, "projector")
-        return self
 
 
 class RigTable(Schema):

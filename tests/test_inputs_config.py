@@ -52,11 +52,6 @@ def test_rig_typo_is_refused_with_the_nearest_name(tmp_path: Path, old: str, new
     assert f"did you mean '{guess}'?" in str(err)
 
 
-def test_key_of_another_driver_is_refused(tmp_path: Path) -> None:
-    err = refused(RigConfig.load, edited(tmp_path, BENCH, "bit_depth = 12", "bit_depth = 12\nfps = 30.0"))
-    assert err.key == "camera" and "uvc" in err.problem
-
-
 @pytest.mark.parametrize("old, new, key", [
     ("steps = 4", "stesp = 4", "stesp"),
     ("orientations = [\"vertical\"]", "orientation = [\"vertical\"]", "orientation"),
