@@ -8,10 +8,11 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
-from inspection.bins.instances import read_labelme
+from inspection.bins.instances import read_label_image, read_labelme
 from inspection.errors import CloudError, MaskError, SegmentationError, ToleranceError
 from inspection.measured_cloud import make_scan
 from inspection.regions.region_growing import check_radius
@@ -122,3 +123,10 @@ def test_segment_on_a_tiny_cloud_does_not_suggest_a_non_positive_radius() -> Non
     with pytest.raises(SegmentationError) as exc:
         check_radius(np.zeros((50, 3)), 5.0)
     assert "too small to segment" in str(exc.value) and "r <= 0" not in str(exc.value)
+
+
+def test_label_image_of_floats_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "labels.tiff"
+    cv2.imwrite(str(path), np.full((8, 8), np.nan, np.float32))
+    with pytest.raises(MaskError, match="integer ids"):
+        read_label_image(path)

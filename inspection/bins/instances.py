@@ -117,6 +117,8 @@ def read_label_image(path: str | Path) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise MaskError(f"{path}: not a readable image")
+    if img.dtype not in (np.uint8, np.uint16):
+        raise MaskError(f"{path}: a label image holds 8- or 16-bit integer ids, not {img.dtype}")
     if img.ndim == 2:
         return img.astype(np.int32)
     colours = img[..., :3].reshape(-1, 3)
