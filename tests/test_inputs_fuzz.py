@@ -256,6 +256,9 @@ def test_fuzz_cli(clean: Path, tmp_path: Path) -> None:
         "calibrate": lambda f, g: ["calibrate", "--from", f, "--out", str(tmp_path / "cal")] + (
             ["--poses", g] if g else []),
         "scan": lambda f, g: ["scan", "--rig", f, "--out", str(tmp_path / "o"), "--patterns", g or f],
+        "inspect": lambda f, g: ["inspect", f if f != str(clean) else str(junk), "--cad",
+                                 str(CONFIG_DIR / "parts" / "demo_part.step"), "--out", str(tmp_path / "insp")]
+        + (["--tolerances", g] if g else []),
     }
 
     @settings(max_examples=40, deadline=None, derandomize=True, database=None)
