@@ -255,6 +255,25 @@ def test_three_channel_frame_message_says_channels(copy: Path) -> None:
 
 # ------------------------------------------------------------------ items 1 and 8: full disk, read-only folder, dead writer
 
+def scan_within_bound(tmp_path: Path, out: Path, bound_s: float = 300.0) -> list[BaseException]:
+    """Scan the small rig into `out` in a thread; fail if it has not ended within `bound_s`
+    (a hang); return what it raised."""
+    done = threading.Event()
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            with open_rig(small_rig(tmp_path), scene=SCENE) as rig:
+                scan(rig, PATTERNS, out)
+        except BaseException as exc:  # noqa: BLE001 — returned to the test
+            errors.append(exc)
+        done.set()
+
+    threading.Thread(target=run, daemon=True).start()
+    assert done.wait(bound_s), "the scan hung on a full disk"
+    return errors
+
+
 def test_disk_full_during_capture_keeps_every_frame(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A write wrapper that raises ENOSPC once 7 frames are stored: one SessionError, the 7
     frames intact (their checksums in frames.jsonl), the recording closed, no hang."""
@@ -269,19 +288,7 @@ def test_disk_full_during_capture_keeps_every_frame(tmp_path: Path, monkeypatch:
             stored.append(path)
 
     monkeypatch.setattr(session_module, "write_atomic", filling)
-    done = threading.Event()
-    errors: list[BaseException] = []
-
-    def run() -> None:
-        try:
-            with open_rig(small_rig(tmp_path), scene=SCENE) as rig:
-                scan(rig, PATTERNS, tmp_path / "s")
-        except BaseException as exc:  # noqa: BLE001 — inspected below
-            errors.append(exc)
-        done.set()
-
-    threading.Thread(target=run, daemon=True).start()
-    assert done.wait(300), "the scan hung on a full disk"
+    errors = scan_within_bound(tmp_path, tmp_path / "s")
     assert len(errors) == 1 and isinstance(errors[0], SessionError)
     message = str(errors[0])
     assert "cannot store frame 7" in message and "No space left" in message and "\n" not in message
@@ -369,19 +376,7 @@ def small_disk(tmp_path: Path):
 def test_real_full_disk_gives_one_error_and_keeps_every_frame(small_disk: Path, tmp_path: Path) -> None:
     """12 frames of ~107 kB, the ground truth and the recording do not fit in 3 MiB: the scan
     stops with one SessionError naming the frame, within its bound, every stored frame intact."""
-    done = threading.Event()
-    errors: list[BaseException] = []
-
-    def run() -> None:
-        try:
-            with open_rig(small_rig(tmp_path), scene=SCENE) as rig:
-                scan(rig, PATTERNS, small_disk / "s")
-        except BaseException as exc:  # noqa: BLE001 — inspected below
-            errors.append(exc)
-        done.set()
-
-    threading.Thread(target=run, daemon=True).start()
-    assert done.wait(300), "the scan hung on a full disk"
+    errors = scan_within_bound(tmp_path, small_disk / "s")
     assert len(errors) == 1 and isinstance(errors[0], ScannerError), errors
     assert "No space left" in str(errors[0]) and "\n" not in str(errors[0])
     log = [json.loads(line) for line in (small_disk / "s" / "frames.jsonl").read_text().splitlines()]
