@@ -27,12 +27,12 @@ pattern set used for scanning has every key, our own values by default (NATIVE).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields, replace
-from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
-from scanner.errors import ConfigError
+from pydantic import Field, Strict, field_validator
+
+from scanner import schema
 
 FRAME_ORDERS = ("frequency-major", "step-major")
 GRAY_POSITIONS = ("after", "before")
@@ -70,28 +70,24 @@ class Conventions:
     def to_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
 
+
+class ConventionsFile(schema.Schema):
+    """The `[conventions]` table as typed keys (module docstring); every key optional."""
+
+    phase_origin: schema.Float | None = None
+    step_sign: Annotated[int, Strict(), Field(ge=-1, le=1)] | None = None
+    pixel_centre: Annotated[float, Strict(), Field(ge=0.0, lt=1.0)] | None = None
+    frame_order: Literal[FRAME_ORDERS] | None = None
+    gray_position: Literal[GRAY_POSITIONS] | None = None
+    gray_code: Literal[GRAY_CODES] | None = None
+    references: Literal[REFERENCES] | None = None
+
+    @field_validator("step_sign")
     @classmethod
-    def from_dict(cls, d: dict[str, Any], where: str | Path, prefix: str = "conventions") -> Conventions:
-        """Known keys checked for type and range; unknown keys refused by name."""
-        names = {f.name for f in fields(cls)}
-        for key in d:
-            if key not in names:
-                raise ConfigError(where, f"{prefix}.{key}", f"unknown convention; the keys are {sorted(names)}")
-        values: dict[str, Any] = {}
-        for key, value in d.items():
-            full = f"{prefix}.{key}"
-            if key in CHOICES:
-                if value not in CHOICES[key]:
-                    raise ConfigError(where, full, f"{value!r} is not one of {CHOICES[key]}")
-            elif key == "step_sign":
-                if value not in (1, -1) or isinstance(value, bool):
-                    raise ConfigError(where, full, f"expected 1 or -1, got {value!r}")
-            elif not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
-                raise ConfigError(where, full, f"expected a finite number, got {value!r}")
-            elif key == "pixel_centre" and not 0.0 <= value < 1.0:
-                raise ConfigError(where, full, f"expected a pixel offset in [0, 1), got {value!r}")
-            values[key] = float(value) if key in ("phase_origin", "pixel_centre") else value
-        return cls(**values)
+    def _sign(cls, v: int | None) -> int | None:
+        if v == 0:
+            raise ValueError("step_sign is 1 or -1")
+        return v
 
 
 NATIVE = Conventions(phase_origin=0.0, step_sign=1, pixel_centre=0.5, frame_order="frequency-major",

@@ -17,17 +17,40 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
+from pydantic import Field, model_validator
 
-from scanner.config import get, load_toml
-from scanner.conventions import LAYOUT_KEYS, NATIVE, Conventions
+from scanner import schema
+from scanner.config import load_toml
+from scanner.conventions import LAYOUT_KEYS, NATIVE, Conventions, ConventionsFile
 from scanner.errors import ConfigError
 
 FAMILIES = ("heterodyne", "hierarchical", "graycode", "pixel_graycode")
 ORIENTATIONS = ("vertical", "horizontal")
 KINDS = ("phase", "gray", "gray_inverse", "white", "black")
+
+
+class PatternFile(schema.Schema):
+    """A pattern-set TOML (and a manifest's `patterns`) as typed keys; `PatternSet.validate`
+    adds the family's rules. `conventions` (scanner/conventions.py) and `projector_size`
+    are optional; a pixel Gray code has no steps or fringes."""
+
+    family: Literal[FAMILIES]
+    steps: Annotated[int, Field(strict=True, ge=0, le=64)] = 0
+    fringes: Annotated[list[Annotated[float, Field(strict=True, gt=0, le=10000)]], Field(max_length=8)] = []
+    orientations: Annotated[list[Literal[ORIENTATIONS]], Field(min_length=1, max_length=2)] = ["vertical"]
+    conventions: ConventionsFile = ConventionsFile()
+    projector_size: Annotated[list[Annotated[int, Field(strict=True, ge=2, le=100000)]],
+                              Field(min_length=2, max_length=2)] | None = None
+
+    @model_validator(mode="after")
+    def _phase_shift_keys(self) -> PatternFile:
+        missing = [k for k in ("steps", "fringes") if k not in self.model_fields_set]
+        if self.family != "pixel_graycode" and missing:
+            raise ValueError(f"family '{self.family}' needs {' and '.join(missing)}")
+        return self
 
 
 @dataclass(frozen=True)
@@ -89,29 +112,27 @@ class PatternSet:
             raise ConfigError(where, "fringes", f"graycode takes one phase-shift fringe count, got {list(f)}")
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], where: str | Path = "pattern set", detect: bool = False) -> PatternSet:
-        """The pattern set a TOML table describes. Convention keys left out take our own
-        values, or with `detect` stay unknown (None) for `scanner.convention_detection` to find."""
-        family = get(d, "family", str, where)
-        phaseless = family == "pixel_graycode"
-        fringes = get(d, "fringes", list, where, [] if phaseless else ...)
-        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in fringes):
-            raise ConfigError(where, "fringes", f"expected a list of numbers, got {fringes!r}")
-        conventions = Conventions.from_dict(get(d, "conventions", dict, where, {}), where)
-        size = get(d, "projector_size", list, where, None)
+    def from_dict(cls, d: Any, where: str | Path = "pattern set", prefix: str = "", detect: bool = False
+                  ) -> PatternSet:
+        """A pattern set described by `d` (a pattern TOML, or a manifest's `patterns`): keys
+        known and typed (`PatternFile`), then the family's rules (`validate`). Convention keys
+        left out take our own values, or with `detect` stay unknown (None) for
+        `scanner.convention_detection` to find."""
+        f = schema.parse(PatternFile, d, where, prefix)
+        conventions = Conventions(**f.conventions.model_dump())
         ps = cls.__new__(cls)
-        object.__setattr__(ps, "family", family)
-        object.__setattr__(ps, "steps", get(d, "steps", int, where, 0 if phaseless else ...))
-        object.__setattr__(ps, "fringes", tuple(float(x) for x in fringes))
-        object.__setattr__(ps, "orientations", tuple(get(d, "orientations", list, where, ["vertical"])))
+        object.__setattr__(ps, "family", f.family)
+        object.__setattr__(ps, "steps", f.steps)
+        object.__setattr__(ps, "fringes", tuple(f.fringes))
+        object.__setattr__(ps, "orientations", tuple(f.orientations))
         object.__setattr__(ps, "conventions", conventions if detect else conventions.filled(NATIVE))
-        object.__setattr__(ps, "projector_size", None if size is None else (int(size[0]), int(size[1])))
+        object.__setattr__(ps, "projector_size", None if f.projector_size is None else tuple(f.projector_size))
         ps.validate(where)
         return ps
 
     @classmethod
     def load(cls, path: str | Path, detect: bool = False) -> PatternSet:
-        return cls.from_dict(load_toml(path), Path(path), detect)
+        return cls.from_dict(load_toml(path), Path(path), detect=detect)
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"family": self.family, "steps": self.steps, "fringes": list(self.fringes),

@@ -305,7 +305,7 @@ def test_import_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture
     text = capsys.readouterr().out
     assert "phase_origin = -3.14159" in text and "rejected" in text
     manifest = json.loads((out / "manifest.json").read_text())
-    assert [Path(f["source"]).name for f in manifest["frames"]] == names  # 2.bmp before 10.bmp
+    assert [Path(f).name for f in manifest["import"]["sources"]] == names  # 2.bmp before 10.bmp
     assert os.stat(out / manifest["frames"][0]["file"]).st_ino == os.stat(tmp_path / "frames" / "1.bmp").st_ino
     assert manifest["import"]["conventions"]["phase_origin"]["source"] == "given"
     result = json.loads((out / "outputs" / "result.json").read_text())

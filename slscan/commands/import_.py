@@ -6,7 +6,7 @@
 Frames are taken in natural order (`2.bmp` before `10.bmp`): 8- or 16-bit grey PNG, BMP or
 TIFF (colour frames are converted to grey). They are hard-linked into the session (copied
 across file systems; colour frames written as grey PNG), and the manifest names where each
-came from. Convention keys the pattern file leaves out are detected from the frames
+came from (`import.sources`). Convention keys the pattern file leaves out are detected from the frames
 (scanner/convention_detection.py); the manifest's `import.conventions` and the output say what was given,
 detected or assumed and on what evidence. With `--calibration` (ours, SLMaster's
 caliInfo.yml or procam's calibration_result.xml: scanner/foreign_calibration.py) the session
@@ -30,9 +30,9 @@ import cv2
 import numpy as np
 
 from scanner.errors import SessionError
-from scanner.geometry import Pinhole, RigModel
+from scanner.geometry import Pinhole, RigModel, look_at
 from scanner.patterns import PatternSet
-from scanner.session import FRAME_LOG, FRAMES_DIR, SessionWriter
+from scanner.session import FRAME_LOG, FRAMES_DIR, SessionWriter, sha256
 
 IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff")
 BIT_DEPTHS = (10, 12, 14, 16)
@@ -109,7 +109,7 @@ def _store(writer: SessionWriter, k: int, src: Path, image: np.ndarray, converte
             shutil.copyfile(src, dst)
     entry = {"k": k, "file": f"{FRAMES_DIR}/{name}", "index": k, "pattern_index": k, "timestamp_s": 0.0,
              "exposure_s": 0.0, "bit_depth": bit_depth, "shape": list(image.shape), "dtype": str(image.dtype),
-             "source": str(src.resolve())}
+             "sha256": sha256((writer.root / FRAMES_DIR / name).read_bytes())}
     writer.frames.append(entry)
     with (writer.root / FRAME_LOG).open("a") as f:
         f.write(json.dumps(entry) + "\n")
@@ -148,12 +148,14 @@ def import_frames(folder: Path, patterns_path: Path, projector_size: tuple[int, 
     detection = detect(stack, patterns, depth, projector_size, model)
     t_detect = time.perf_counter() - t0
     calibrated = model is not None
-    if model is None:  # geometry placeholder: image sizes only, never triangulated
+    if model is None:  # a nominal placeholder carrying the image sizes; never triangulated (calibrated: false)
         cam = Pinhole.from_fov(*camera_size, 40.0)
-        model = RigModel(cam, Pinhole.from_fov(*projector_size, 30.0), np.eye(4))
+        model = RigModel(cam, Pinhole.from_fov(*projector_size, 30.0),
+                         look_at(np.array([100.0, 0.0, 0.0]), np.array([0.0, 0.0, 500.0])))
     writer = SessionWriter.create(out)
     linked = [_store(writer, k, f, stack[k], c, depth) for k, (f, c) in enumerate(zip(files, converted))]
-    info = {"source_folder": str(folder.resolve()), "frames_glob": frames_glob, "patterns_file": str(patterns_path),
+    info = {"source_folder": str(folder.resolve()), "sources": [str(f.resolve()) for f in files],
+            "frames_glob": frames_glob, "patterns_file": str(patterns_path),
             "projector_size": list(projector_size), "bit_depth": depth, "hard_linked": sum(linked),
             "copied": len(linked) - sum(linked), "calibration": None if calibration is None else {
                 "file": str(Path(calibration).resolve()), "format": source, "projector_scale": projector_scale},
