@@ -20,8 +20,8 @@ import pytest
 from slscan.station.results import (
     LEASE_S,
     PartStart,
-    ResultsError,
     ResultRow,
+    ResultsError,
     ResultsStore,
     ValueRecord,
     csv_cell,
@@ -137,8 +137,8 @@ def test_a_held_cycle_has_its_lease_renewed(store: ResultsStore) -> None:
     import threading
 
     rid, _ = store.begin_part(start("SN-1"))
-    before = store.mark_interrupted  # the lease as stored at the start
     first = _lease(store, rid)
+    assert first > dt.datetime.now(dt.timezone.utc) + dt.timedelta(seconds=LEASE_S / 2)
     renewed = threading.Event()
     with store.hold(rid, every_s=0.05):
         deadline = dt.datetime.now(dt.timezone.utc) + dt.timedelta(seconds=60)
@@ -146,7 +146,7 @@ def test_a_held_cycle_has_its_lease_renewed(store: ResultsStore) -> None:
             if _lease(store, rid) > first:
                 renewed.set()
             renewed.wait(0.05)
-    assert renewed.is_set() and before is not None
+    assert renewed.is_set()  # within a generous bound, 60 s for a 0.05 s renewal
     store.finish_part(rid, "pass", "", [], T0)
     assert _lease(store, rid) is None and store.renew(rid) is False  # finished: nothing to renew
 

@@ -65,9 +65,9 @@ def cmd_cadbench(args: argparse.Namespace) -> int:
     import tempfile
     import time
 
-    from inspection.cad import write_copies
-
     from OCP.Message import Message, Message_Gravity
+
+    from inspection.cad import write_copies
 
     for printer in Message.DefaultMessenger_s().Printers():  # the STEP writer's statistics are not ours to print
         printer.SetTraceLevel(Message_Gravity.Message_Fail)

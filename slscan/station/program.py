@@ -16,6 +16,10 @@
     id = "factory-sim-bench"            # the calibration the program was proven with
     max_age_days = 180                  # optional: stricter than the station's expiry
 
+    [control]                           # optional: control charts
+    subgroup_size = 1                   # parts per subgroup: 1 = individuals/moving range (I-MR),
+                                        # 2..10 = X-bar and R charts of consecutive parts
+
     [[characteristic]]                  # one table per characteristic, in report order
     name = "high_top_flatness"          # unique; results and charts are filed under it
     face = "#657"                       # CAD face: "#<STEP ADVANCED_FACE id>" (`slscan cad FILE` lists
@@ -45,6 +49,7 @@ from typing import Any, Callable, Mapping
 from scanner.config import get, get_table, load_toml, resolve
 from scanner.errors import ConfigError
 from scanner.patterns import PatternSet
+from slscan.station.spc import MAX_SUBGROUP
 from slscan.station.station_config import check_keys
 
 KINDS = ("flatness", "cylindricity", "sq", "profile")
@@ -53,7 +58,8 @@ FORM_METHODS = ("minimum_zone", "least_squares")
 # A mesh face of no known surface type ("mesh") has no form or texture to evaluate.
 SURFACE_KINDS = {"flatness": ("plane",), "cylindricity": ("cylinder",), "sq": ("plane", "cylinder", "cone")}
 
-_TOP_KEYS = {"program", "scan", "calibration", "characteristic"}
+_TOP_KEYS = {"program", "scan", "calibration", "control", "characteristic"}
+_CONTROL_KEYS = {"subgroup_size"}
 _PROGRAM_KEYS = {"name", "version", "cad", "mesh_unit", "description"}
 _SCAN_KEYS = {"patterns", "exposure_s", "views"}
 _CALIBRATION_KEYS = {"id", "max_age_days"}
@@ -111,6 +117,7 @@ class PartProgram:
     characteristics: tuple[Characteristic, ...]
     fingerprint: str
     face_check: str
+    subgroup_size: int = 1
 
     def characteristic(self, name: str) -> Characteristic:
         for c in self.characteristics:
@@ -139,13 +146,18 @@ def load_program(path: str | Path, faces: Callable[[PartProgram], Mapping[str, s
     if max_age is not None and max_age <= 0:
         raise ConfigError(path, "calibration.max_age_days", f"must be > 0 days, got {max_age}")
     chars = _characteristics(raw, path)
+    control = get_table(raw, "control", path, required=False)
+    check_keys(control, _CONTROL_KEYS, path, "control")
+    subgroup = get(control, "subgroup_size", int, path, 1, "control")
+    if not 1 <= subgroup <= MAX_SUBGROUP:
+        raise ConfigError(path, "control.subgroup_size", f"must be 1..{MAX_SUBGROUP} parts, got {subgroup}")
     program = PartProgram(
         path=path, name=get(prog, "name", str, path, prefix="program"), version=str(version), cad_path=cad,
         mesh_unit=get(prog, "mesh_unit", str, path, "mm", "program"),
         description=get(prog, "description", str, path, "", "program"), scan=scan,
         calibration_id=get(cal, "id", str, path, prefix="calibration"), max_calibration_age_days=max_age,
         characteristics=chars, fingerprint=hashlib.sha256(path.read_bytes()).hexdigest()[:12],
-        face_check="not checked")
+        face_check="not checked", subgroup_size=subgroup)
     if faces is None:
         return program
     found = faces(program)
