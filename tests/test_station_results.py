@@ -7,6 +7,7 @@ dropped afterwards."""
 from __future__ import annotations
 
 import csv
+import importlib.util
 import datetime as dt
 import io
 import os
@@ -42,6 +43,8 @@ def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[ResultsSto
         return
     if not PG_URL:
         pytest.skip("PostgreSQL: set SLSCAN_TEST_PG_URL to a server's URL to run the results tests on it")
+    if importlib.util.find_spec("psycopg") is None:
+        pytest.skip("psycopg is not installed: the [station-db] extra (pip install -e '.[station-db]') runs this test")
     yield from _pg_store()
 
 
