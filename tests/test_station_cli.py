@@ -174,5 +174,5 @@ def test_names_from_programs_never_write_outside_their_folder(tmp_path: Path, ca
 
     from slscan.station.paths import safe_name
 
-    assert [safe_name(n)[:3] for n in ("..", ".", "../x")] == ["_-", "_-", "_x-"]
+    assert [safe_name(n).split("-")[0] for n in ("..", ".", "../x")] == ["_", "_", "_x"]
     assert safe_name("SN-0042") == "SN-0042" and safe_name("a/b") != safe_name("a_b")

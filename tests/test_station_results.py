@@ -7,8 +7,8 @@ dropped afterwards."""
 from __future__ import annotations
 
 import csv
-import importlib.util
 import datetime as dt
+import importlib.util
 import io
 import os
 import uuid
