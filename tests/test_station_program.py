@@ -45,6 +45,10 @@ def test_demo_program_and_the_simulated_parts_name_the_same_faces() -> None:
     (('kind = "profile"', 'kind = "roundness"'), "characteristic[3].kind"),
     (('"minimum_zone"\ntolerance_mm = 0.05\n', '"minimum_zone"\ntolerance_mm = -0.05\n'),
      "characteristic[0].tolerance_mm"),
+    (('"minimum_zone"\ntolerance_mm = 0.05\n', '"minimum_zone"\ntolerance_mm = inf\n'),  # issue 15
+     "characteristic[0].tolerance_mm"),
+    (("views = 1", "views = 1\n\n[control]\nsubgroup_size = 11"), "control.subgroup_size"),
+    (("views = 1", "views = 1\n\n[control]\nsubgroup = 5"), "control.subgroup"),
     (('method = "minimum_zone"', 'method = "chebyshev"'), "characteristic[0].method"),
     (('kind = "sq"', 'kind = "sq"\nmethod = "least_squares"'), "characteristic[4].method"),
     (('name = "low_top_flatness"', 'name = "high_top_flatness"'), "characteristic[1].name"),
@@ -108,6 +112,9 @@ def test_station_config_errors_name_the_key(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as err:
         StationConfig.load(station_config(tmp_path, database="mysql://x"))
     assert err.value.key == "station.database"
+    with pytest.raises(ConfigError) as err:  # issue 15: no message shows a password
+        StationConfig.load(station_config(tmp_path, database="mysql://ana:s3cr3t@db/x"))
+    assert "s3cr3t" not in str(err.value) and "mysql://ana:***@db/x" in str(err.value)
 
 
 def test_simulated_rig_has_the_factory_calibration_and_it_matches_the_demo_program(tmp_path: Path) -> None:

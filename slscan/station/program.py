@@ -42,6 +42,7 @@ characteristic applies to.
 from __future__ import annotations
 
 import hashlib
+import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -223,8 +224,8 @@ def _characteristics(raw: dict[str, Any], path: Path) -> tuple[Characteristic, .
         elif method is not None:
             raise ConfigError(path, f"{pre}.method", f"{kind} takes no method")
         tol = get(t, "tolerance_mm", float, path, prefix=pre)
-        if not tol > 0:
-            raise ConfigError(path, f"{pre}.tolerance_mm", f"must be > 0 mm, got {tol}")
+        if not 0 < tol < math.inf:
+            raise ConfigError(path, f"{pre}.tolerance_mm", f"must be a finite number > 0 mm, got {tol}")
         face = get(t, "face", str, path, prefix=pre)
         out.append(Characteristic(name=name, face=face, kind=kind, tolerance_mm=tol, method=method))
     return tuple(out)

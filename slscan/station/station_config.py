@@ -23,6 +23,7 @@ from typing import Any
 
 from scanner.config import CONFIG_DIR, get, get_table, load_toml, resolve
 from scanner.errors import ConfigError
+from slscan.station.results import redact
 
 DEFAULT_STATION = CONFIG_DIR / "station" / "sim_bench.toml"
 SQLITE_NAME = "results.sqlite"
@@ -67,8 +68,8 @@ class StationConfig:
             raise ConfigError(path, "station.max_calibration_age_days", f"must be >= 0 (0 = no expiry), got {age}")
         database = get(st, "database", str, path, "", "station")
         if database and not database.startswith(("postgresql://", "postgres://", "sqlite:")):
-            raise ConfigError(path, "station.database", f"'{database}': give a postgresql:// URL, a sqlite:PATH, "
-                                                        f"or leave it empty for SQLite in the data folder")
+            raise ConfigError(path, "station.database", f"'{redact(database, database)}': give a postgresql:// URL, "
+                                                        f"a sqlite:PATH, or leave it empty for SQLite in the data folder")
         return cls(path=path, name=get(st, "name", str, path, path.stem, "station"),
                    rig_path=resolve(path, get(st, "rig", str, path, prefix="station")).resolve(),
                    data_dir=resolve(path, get(st, "data_dir", str, path, prefix="station")).resolve(),
