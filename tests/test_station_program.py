@@ -31,7 +31,7 @@ def test_demo_program_loads_with_faces_checked_in_the_cad() -> None:
     assert p.characteristic("high_top_sq").method is None
     assert p.scan.views == 1 and p.scan.exposure_s == 0.010 and p.scan.pattern_set().n_frames == 12
     faces = cad_faces(p)
-    assert p.face_check == f"13 faces in demo_part.step, all 5 characteristics found" and len(faces) == 13
+    assert p.face_check == "13 faces in demo_part.step, all 5 characteristics found" and len(faces) == 13
     assert (faces["#657"], faces["#158"], faces["#17"], faces["#105"]) == ("plane", "plane", "cylinder", "cone")
 
 
@@ -95,7 +95,7 @@ def test_mesh_face_of_no_known_type_is_refused_for_a_form_characteristic(tmp_pat
 
 
 def test_missing_cad_file_is_named(tmp_path: Path) -> None:
-    path = program_copy(tmp_path, (f'cad = "', 'cad = "/nonexistent/'))
+    path = program_copy(tmp_path, ('cad = "', 'cad = "/nonexistent/'))
     with pytest.raises(ConfigError, match="CAD file not found") as err:
         load_program(path)
     assert err.value.key == "program.cad"
