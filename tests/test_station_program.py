@@ -166,3 +166,33 @@ def test_calibration_file_named_by_the_rig_gives_its_id_and_date_and_can_expire(
                    "the limit is 180 days")
     [why] = refusals(info, config, load_program(DEMO_PROGRAM), 365, dt.date(2026, 9, 1))
     assert why.startswith("calibration mismatch: demo_part.toml expects calibration.id 'factory-sim-bench'")
+
+
+@pytest.mark.parametrize("edit, key, problem", [
+    (("tolerance_mm = 0.05", "tolerence_mm = 0.05"), "characteristic[0].tolerence_mm", "did you mean 'tolerance_mm'"),
+    (("tolerance_mm = 0.05", "tolerance_mm = nan"), "characteristic[0].tolerance_mm", "finite number"),
+    (("views = 1", "veiws = 1"), "scan.veiws", "did you mean 'views'"),
+    (('mesh_unit', 'mesh_unit'), None, None),
+])
+def test_program_on_the_schema_layer_names_the_nearest_key(tmp_path: Path, edit: tuple[str, str], key: str | None,
+                                                           problem: str | None) -> None:
+    """Issue 15 item D: part programs on the project's validation layer (scanner.schema)."""
+    if key is None:  # the program may state a mesh unit; an unknown one is refused
+        path = program_copy(tmp_path, ('version = "2.0"\n', 'version = "2.0"\nmesh_unit = "furlong"\n'))
+        key, problem = "program.mesh_unit", "must be"
+    else:
+        path = program_copy(tmp_path, edit)
+    with pytest.raises(ConfigError, match=problem) as err:
+        load_program(path)
+    assert err.value.key == key
+
+
+def test_station_config_on_the_schema_layer(tmp_path: Path) -> None:
+    for extra, key, problem in (({"max_calibration_age_days": float("nan")}, "station.max_calibration_age_days",
+                                 "finite"),
+                                ({"opertor": "ana"}, "station.opertor", "did you mean 'operator'")):
+        path = station_config(tmp_path, **extra)
+        path.write_text(path.read_text().replace("NaN", "nan"))
+        with pytest.raises(ConfigError, match=problem) as err:
+            StationConfig.load(path)
+        assert err.value.key == key
