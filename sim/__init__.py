@@ -3,7 +3,7 @@ projector and trigger box behind the same interfaces as the real drivers.
 
 Modules:
     scene             scene TOML format and loader (meshes and analytic primitives)
-    render            geometry ray casting, ground truth, projector/camera image formation, sensor noise
+    render/           image formation: raytrace, projection, ground_truth, bspline, sensor, renderer
     virtual_devices   SimProjector, SimCamera, SimTriggerBox, Faults
     virtual_rig       open_sim_rig: the `sim` driver behind `scanner.rig.open_rig`
     evaluate          scan accuracy against the ground truth
