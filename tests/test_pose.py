@@ -280,8 +280,8 @@ def test_a_view_both_sides_explain_is_ambiguous_not_posed(model: ThinPartModel) 
 def test_ndt_on_a_grid_without_cells_finds_no_cell() -> None:
     """An NDT grid where no voxel holds the 5 points a covariance needs (a sparse model):
     every point is reported outside the grid, not an index error."""
-    from inspection.registration import _ndt_cells, _ndt_grid
+    from inspection.registration.ndt import ndt_cells, ndt_grid
 
-    grid = _ndt_grid(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 0.0]]), 1.0)
+    grid = ndt_grid(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 0.0]]), 1.0)
     assert len(grid[2]) == 0
-    assert (_ndt_cells(np.array([[0.1, 0.1, 0.1], [5.2, 0.3, 0.0]]), grid, 1.0) == -1).all()
+    assert (ndt_cells(np.array([[0.1, 0.1, 0.1], [5.2, 0.3, 0.0]]), grid, 1.0) == -1).all()

@@ -22,7 +22,7 @@ point-to-plane ICP see the outline as 3D shape:
 
 Per instance (`estimate_pose`), for each side up (both flipped hypotheses: the mirror
 outline in the same place is the other side): coarse poses by SAC-IA (FPFH, triplets, the
-Huber score of Eq. 22: `registration.coarse_feature_poses`; a search per side, as local
+Huber score of Eq. 22: `registration.sac_ia.coarse_feature_poses`; a search per side, as local
 descriptors hardly tell an outline from its mirror image) or by NDT (Eq. 23-26, Newton
 steps from 12 yaws about the instance's plane); the best one also turned end for end and
 flipped over about either in-plane axis (the confusions of a nearly symmetric view); each
@@ -66,16 +66,15 @@ from inspection.registration import (
     ModelTarget,
     RegistrationSettings,
     Samples,
-    _distinct,
-    _ndt_grid,
-    _ndt_refine,
-    coarse_feature_poses,
     fitness,
     icp,
     pose_difference,
     transform_points,
-    with_flips,
 )
+from inspection.registration.hypotheses import with_flips
+from inspection.registration.ndt import ndt_grid, ndt_refine
+from inspection.registration.rigid import distinct_poses
+from inspection.registration.sac_ia import coarse_feature_poses
 
 METHODS = ("sacia", "ndt")
 MAX_OFF_PLANE_MM = 1.0  # instance points farther from its plane are not on the part
@@ -671,7 +670,7 @@ def _ndt_poses(src: np.ndarray, patch: _Patch, model: ThinPartModel, sm: SideMod
     cells = (2.0, 1.0)
     for cell in cells:
         if cell not in sm.ndt:
-            sm.ndt[cell] = _ndt_grid(sm.target.dense.points, cell)
+            sm.ndt[cell] = ndt_grid(sm.target.dense.points, cell)
     sign = 1.0 if sm.side == "front" else -1.0
     a = sign * model.axis
     u0 = model.u0
@@ -685,11 +684,11 @@ def _ndt_poses(src: np.ndarray, patch: _Patch, model: ThinPartModel, sm: SideMod
         P = np.eye(4)   # model -> scan
         P[:3, :3] = S @ M.T
         P[:3, 3] = patch.c - P[:3, :3] @ mc
-        T, score = _ndt_refine(sub[::2], np.linalg.inv(P), sm.ndt[cells[0]], cells[0], 10)
+        T, score = ndt_refine(sub[::2], np.linalg.inv(P), sm.ndt[cells[0]], cells[0], 10)
         poses.append(T)
         scores.append(score)
-    fine = [_ndt_refine(sub, T, sm.ndt[cells[1]], cells[1], 10)
-            for T in _distinct(np.array(poses), np.argsort(-np.array(scores)), 2 * n_best, 10.0, 1.0)]
+    fine = [ndt_refine(sub, T, sm.ndt[cells[1]], cells[1], 10)
+            for T in distinct_poses(np.array(poses), np.argsort(-np.array(scores)), 2 * n_best, 10.0, 1.0)]
     fine.sort(key=lambda f: -f[1])
     return [T for T, _ in fine[:n_best]]
 
