@@ -243,7 +243,7 @@ def cmd_pose(args: argparse.Namespace) -> int:
         with SessionRecording(rrd, session.id if session is not None else src.stem, send_blueprint=False) as rec:
             rec.log_rig(rig_model)
             rec.log_cloud(cloud)
-            log_poses(rec, doc, poses, instances, model, world_from_cam)
+            log_poses(rec, doc, poses, instances, model)
         print(f"recording {rrd}")
     return 0 if any(r["pick_rank"] is not None for r in doc["parts"]) else 1
 

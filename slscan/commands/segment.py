@@ -134,13 +134,11 @@ def _log(path: Path, session: Any, points: np.ndarray, labels: np.ndarray, image
     from scanner.session_recording import SessionRecording
 
     with SessionRecording(path, recording_id, send_blueprint=False) as rec:
-        world_from_cam = np.eye(4)
         if session is not None:
-            model = session.rig_model()
-            rec.log_rig(model)
-            world_from_cam = np.asarray(model.world_from_cam, dtype=np.float64)
+            rec.log_rig(session.rig_model())
+        world_from_cam = rec.world_from_cam   # identity for a bare cloud: its own frame
         pts = points @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
-        rec.stream.set_time("scan", sequence=0)
+        rec.at_scan(0)
         rec.stream.log(SEGMENTS, rr.Points3D(pts.astype(np.float32), class_ids=_class_ids(labels)), strict=True)
         if image is not None:
             rec.stream.log(SEGMENT_MAP, rr.SegmentationImage(_class_ids(image)), strict=True)
