@@ -21,6 +21,6 @@ Modules (each one job):
     downsample    voxel averaging and paper 001's density-centre selection (shared with bins/ and regions/)
 
 Two more products stand on the same base: `bins/` (poses of overlapping thin parts in a bin,
-paper 001: instances, pose, picking) and `regions/` (context-free region growing, paper 002:
-region_growing, local_features, segmetrics).
+paper 001: instances, part_model, instance_plane, pose_settings, pose, picking) and `regions/`
+(context-free region growing, paper 002: region_growing, local_features, segmetrics).
 """

@@ -15,8 +15,9 @@ from scipy.spatial.transform import Rotation
 from test_inspection_registration import virtual_view
 
 from inspection.bins.instances import Instance
+from inspection.bins.part_model import ThinPartModel
 from inspection.bins.picking import INSTANCES, MODELS, log_poses, poses_document
-from inspection.bins.pose import PartPose, ThinPartModel
+from inspection.bins.pose import PartPose
 from inspection.cad import load_cad
 from inspection.inspect_scan import inspect
 from inspection.inspection_recording import CAD, DEVIATION, FACES

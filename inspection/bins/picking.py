@@ -27,7 +27,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from inspection.bins.instances import Instance
-from inspection.bins.pose import PartPose, ThinPartModel
+from inspection.bins.part_model import ThinPartModel
+from inspection.bins.pose import PartPose
 from inspection.registration import pose_difference, transform_points
 
 if TYPE_CHECKING:  # rerun, which the recording imports, only when a recording is made

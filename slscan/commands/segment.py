@@ -1,7 +1,7 @@
 """`slscan segment`, `slscan segscore` and `slscan segbench`: context-free region growing
 (paper 002) of a point cloud file or a session's scan, the score of a segmentation against
 ground truth (α, β, η per ground-truth segment), and a benchmark on simulated cluttered
-clouds (`sim.bins.clutter_cloud`) printing the time and the scores.
+clouds (`sim.clutter.clutter_cloud`) printing the time and the scores.
 
 Label files are .npy int32 arrays. For a point cloud file: one label per point, in the
 file's order (`<cloud stem>.segments.npy` beside it). For a session: an image of the
@@ -169,7 +169,7 @@ def cmd_segbench(args: argparse.Namespace) -> int:
 
     from inspection.regions.region_growing import segment
     from inspection.regions.segmetrics import score
-    from sim.bins import clutter_cloud
+    from sim.clutter import clutter_cloud
 
     rows = []
     for seed in args.seeds:
