@@ -54,9 +54,14 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
     with open_rig(config, **options) as rig:
-        result = scan(rig, patterns, out, ProgressLine(), then)
+        result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args))
     report(result)
     return 0
+
+
+def _level(args: argparse.Namespace) -> str | None:
+    """The recording level asked on the command line (None: the rig's or session's own)."""
+    return "full" if getattr(args, "full_recording", False) else None
 
 
 def report(result: Any) -> None:
@@ -84,7 +89,8 @@ def report(result: Any) -> None:
 
 def sim_accuracy(result: Any) -> Any:
     """Accuracy against the simulator's ground truth, if the session has it."""
-
+    if "import" in result.session.manifest:
+        return None  # another tool's frames carry no simulator truth (and the simulator takes ~0.3 s to import)
     from sim.evaluate import GROUND_TRUTH_FILE, Truth, evaluate
     from sim.render import SensorModel
 
@@ -103,7 +109,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
     from scanner.pipeline import reprocess
     from scanner.session import Session
 
-    result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode)
+    result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode, level=_level(args))
     report(result)
     return 0
 
@@ -114,7 +120,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     segmentation, form table; report files in the session's outputs/, the inspection in
     its recording. Exit 1 when a tolerance fails."""
     out = args.out or f"sessions/demo-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
-    ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[])
+    ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[],
+                            full_recording=args.full_recording)
     if args.no_inspect:
         return cmd_scan(ns)
     done: dict[str, Any] = {}
@@ -139,6 +146,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 1 if rep.verdict == "fail" else 0
 
 
+def _add_full_recording(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--full-recording", action="store_true",
+                        help="record every map pixel and point in the Rerun recording (default: the rig's "
+                             "[recording] level; 'display' decimates maps and cloud for viewing; frames are "
+                             "always lossless)")
+
+
 def register(sub: Any) -> None:
     s = sub.add_parser("scan", help="scan a part into a session folder (raw frames, cloud PLY, Rerun recording)")
     s.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML (default: the simulated bench rig)")
@@ -149,11 +163,13 @@ def register(sub: Any) -> None:
     s.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
                    help="simulated rigs: inject a fault (drop_frame=K, delay_frame=K, delay_s=S, "
                         "disconnect_after=N, stale_frame=K)")
+    _add_full_recording(s)
     s.set_defaults(func=cmd_scan)
 
     d = sub.add_parser("decode", help="regenerate every output of a session from its raw frames")
     d.add_argument("session")
     d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation")
+    _add_full_recording(d)
     d.set_defaults(func=cmd_decode)
 
     m = sub.add_parser("demo", help="scan the bundled part on the default simulated rig and inspect it against "
@@ -161,4 +177,5 @@ def register(sub: Any) -> None:
     m.add_argument("--out", help="session folder (default: sessions/demo-<time>)")
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--no-inspect", action="store_true", help="scan only (no inspection against the STEP model)")
+    _add_full_recording(m)
     m.set_defaults(func=cmd_demo)
