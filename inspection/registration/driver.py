@@ -99,9 +99,21 @@ def register(scan: ScanCloud, target: ModelTarget,
         return angle > 10.0 or shift > 0.1 * target.diagonal_mm
 
     alternatives = tuple(j[4] for j in judged[1:] if j[0] >= best[0] - settings.ambiguity_margin and apart(j[4]))
+    method = f"rscs+{'+'.join(settings.descriptors)}+{settings.coarse}+icp" if settings.coarse != "ndt" else "ndt+icp"
+    return refine(scan, target, best[4], settings, rng, times, method, alternatives)
+
+
+def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, settings: RegistrationSettings,
+           rng: np.random.Generator, times: dict[str, float], method: str,
+           alternatives: tuple[np.ndarray, ...] = ()) -> Registration:
+    """The fine step from a verified coarse pose (local search and ICP on the dense scan,
+    then the exact faces) and the final judgement on `settings.max_points` scan points:
+    RegistrationFailed when too little of the scan lies near the model. `times` gains
+    "fine", "evaluate" and "total" (s)."""
+    v = target.voxel_mm
     t0 = time.perf_counter()
     dense = rng.choice(len(scan), size=min(3000, len(scan)), replace=False)
-    T = explore(scan.points[dense], scan.normals[dense], target.dense, best[4], 0.3 * v, settings.fine_turns_deg,
+    T = explore(scan.points[dense], scan.normals[dense], target.dense, coarse, 0.3 * v, settings.fine_turns_deg,
                 1.0 * v, settings)
     T = fine_pose(scan, target, T, settings, rng)
     times["fine"] = time.perf_counter() - t0
@@ -118,6 +130,5 @@ def register(scan: ScanCloud, target: ModelTarget,
                                  f"part, or a part far from its model", fit, rmse)
     times["evaluate"] = time.perf_counter() - t0
     times["total"] = sum(times.values())
-    method = f"rscs+{'+'.join(settings.descriptors)}+{settings.coarse}+icp" if settings.coarse != "ndt" else "ndt+icp"
-    return Registration(T, fit, rmse, fine_inlier, best[4], method, bool(alternatives), alternatives, hidden,
+    return Registration(T, fit, rmse, fine_inlier, coarse, method, bool(alternatives), alternatives, hidden,
                         {k: round(x, 4) for k, x in times.items()})
