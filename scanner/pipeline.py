@@ -4,8 +4,8 @@ frames alone. Each stage takes arrays or small typed objects and returns the sam
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from concurrent.futures import Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
@@ -60,18 +60,32 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
     for save in rig.extras.get("session_files", ()):  # driver-specific data kept with the raw frames
         save(writer.root)
 
-    def on_frame(k: int, frame: Frame) -> None:
+    def store(k: int, frame: Frame) -> None:
         writer.add_frame(k, frame)
         if recording is not None:  # the PNG just written (in the page cache), not encoded again
             recording.log_frame(k, frame, specs[k], png=(writer.root / writer.frames[-1]["file"]).read_bytes())
         progress("capture", k + 1, n)
 
+    # frames are encoded (PNG) and written by one thread in arrival order while the next are
+    # acquired; a store that failed stops the capture at the next frame
+    stored: list[Future[None]] = []
+
+    def on_frame(k: int, frame: Frame) -> None:
+        for f in stored:
+            if f.done() and f.exception() is not None:
+                raise f.exception()  # type: ignore[misc]
+        stored.append(pool.submit(store, k, replace(frame, image=frame.image.copy())))  # a driver may reuse its buffer
+
     t0 = time.perf_counter()
-    try:
-        acquire(rig, patterns, AcquisitionSettings.for_rig(rig), on_frame)
-    except BaseException as exc:  # includes Ctrl-C: the capture is recorded as failed
-        writer.fail(exc, "capture")
-        raise
+    with ThreadPoolExecutor(1, thread_name_prefix="store frames") as pool:
+        try:
+            acquire(rig, patterns, AcquisitionSettings.for_rig(rig), on_frame)
+            for f in stored:
+                f.result()
+        except BaseException as exc:  # includes Ctrl-C: the capture is recorded as failed
+            wait(stored)  # the frames already captured are kept
+            writer.fail(exc, "capture")
+            raise
     timings = {"capture": round(time.perf_counter() - t0, 4)}
     devices = {name: dev.describe() for name, dev in
                (("camera", rig.camera), ("projector", rig.projector), ("trigger", rig.trigger)) if dev is not None}

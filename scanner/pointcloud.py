@@ -98,6 +98,18 @@ def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:
     return len(pts)
 
 
+def read_ply_pixels(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(points (M, 3) mm, normals (M, 3), zero where the scanner had none, pixels (M, 2)
+    int (column, row)) of a PLY `write_ply` wrote, read through `plyfile` (a memory-mapped
+    binary read, no reprojection); None for a PLY without the pixel columns."""
+    vertex = PlyData.read(str(path))["vertex"].data
+    if not {"row", "col", "nx"} <= set(vertex.dtype.names or ()):
+        return None
+    points = np.stack([vertex[k] for k in "xyz"], axis=1)
+    normals = np.stack([vertex["n" + k] for k in "xyz"], axis=1)
+    return points, normals, np.stack([vertex["col"], vertex["row"]], axis=1).astype(np.int64)
+
+
 def read_ply_points(path: str | Path) -> np.ndarray:
     """The (M, 3) vertex positions of a PLY file (any layout Open3D reads)."""
     import open3d as o3d

@@ -119,6 +119,9 @@ class InspectionMeasurement:
 
     def __init__(self) -> None:
         self._models: dict[tuple[Path, str], CadModel] = {}  # (CAD path, unit) -> model, loaded once
+        # (CAD path, unit, view) -> the last part's registration: the next part in the same fixture starts
+        # from it (inspection.registration.warm_start; checked, with the global search as fallback)
+        self._priors: dict[tuple[Path, str, int], Any] = {}
 
     def unavailable(self) -> str | None:
         return None
@@ -141,10 +144,12 @@ class InspectionMeasurement:
         details: dict[str, Any] = {}
         paths: list[Path] = []
         for k, session in enumerate(sessions):
+            prior_key = (program.cad_path, program.mesh_unit, k)
             try:
-                report = inspect(load_session(session.root), model)
+                report = inspect(load_session(session.root), model, prior=self._priors.get(prior_key))
             except InspectionError as exc:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
+            self._priors[prior_key] = report.registration
             data = report.as_dict() if hasattr(report, "as_dict") else dict(report)
             path = session.outputs / REPORT_FILE
             write_json(path, data)
