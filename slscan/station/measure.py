@@ -30,7 +30,6 @@ import numpy as np
 
 from scanner.errors import ConfigError
 from scanner.session import Session, write_json
-from sim.station_parts import TRUTH_FILE
 
 if TYPE_CHECKING:
     from inspection.cad import CadModel
@@ -184,6 +183,8 @@ class SimulatorTruth:
         return None
 
     def measure(self, sessions: Sequence[Session], program: PartProgram) -> MeasurementResult:
+        from sim.station_parts import TRUTH_FILE  # the simulator is imported when used (command-line start)
+
         path = sessions[0].root / TRUTH_FILE
         if not path.exists():
             return MeasurementResult(False, message=f"{path}: no simulator truth (not a simulated bench's session)")
