@@ -136,13 +136,14 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
     inspection.json and the recording is still `recording.rrd.part`. `prior`: the previous
     part's registration (warm start). Returns the report and the time of each stage."""
     from inspection.inspect_scan import InspectionSettings, inspect
-    from inspection.measured_cloud import load_session
+    from inspection.measured_cloud import from_organised, load_session
     from inspection.registration import RegistrationSettings
     from inspection.report import deviation_image, png
 
     timer = StageTimer()
-    with timer.stage("load_cloud"):
-        scan = load_session(result.session.root)
+    with timer.stage("load_cloud"):  # the cloud in memory is the one in cloud.ply (same points, normals, pixels)
+        scan = (from_organised(result.cloud, str(result.session.root)) if result.cloud is not None
+                else load_session(result.session.root))
     with timer.stage("inspect"):
         report = inspect(scan, model, tolerances, InspectionSettings(registration=RegistrationSettings(seed=seed)),
                          prior=prior)
