@@ -64,10 +64,11 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
         writer.add_frame(k, frame)
         if recording is not None:  # the PNG just written (in the page cache), not encoded again
             recording.log_frame(k, frame, specs[k], png=(writer.root / writer.frames[-1]["file"]).read_bytes())
-        progress("capture", k + 1, n)
 
     # frames are encoded (PNG) and written by one thread in arrival order while the next are
-    # acquired; a store that failed stops the capture at the next frame
+    # acquired; a store that failed stops the capture at the next frame. `progress` runs here,
+    # in the acquisition's thread, so a progress callback that raises (an operator's abort)
+    # stops the capture at once, every frame captured until then stored
     stored: list[Future[None]] = []
 
     def on_frame(k: int, frame: Frame) -> None:
@@ -75,6 +76,7 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
             if f.done() and f.exception() is not None:
                 raise f.exception()  # type: ignore[misc]
         stored.append(pool.submit(store, k, replace(frame, image=frame.image.copy())))  # a driver may reuse its buffer
+        progress("capture", k + 1, n)
 
     t0 = time.perf_counter()
     with ThreadPoolExecutor(1, thread_name_prefix="store frames") as pool:
