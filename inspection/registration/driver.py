@@ -53,10 +53,7 @@ def register(scan: ScanCloud, target: ModelTarget,
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     v = target.voxel_mm
-    src_pts, src_nrm = voxel_grid(scan.points, scan.normals, v)
-    if len(src_pts) < 50:
-        raise RegistrationFailed(f"{scan.source}: only {len(src_pts)} voxels of {v:.3g} mm hold scan points; "
-                                 f"the scan is too small for this model")
+    src_pts, src_nrm = scan_voxels(scan, target)
     times["prepare"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if settings.coarse == "ndt":
@@ -71,11 +68,7 @@ def register(scan: ScanCloud, target: ModelTarget,
     inlier = 1.5 * v
     sub = rng.choice(len(src_pts), size=min(1500, len(src_pts)), replace=False)
     sp, sn = src_pts[sub], src_nrm[sub]
-    # ICP on every third point first (most of the way in), then on all of them
-    tw = settings.tangential_weight
-    refined = [icp(sp, sn, target.coarse, icp(sp[::3], sn[::3], target.coarse, T, 8.0 * v, 0.5 * v,
-                                              settings.max_normal_deg, 20, tw), 8.0 * v, 0.5 * v,
-                   settings.max_normal_deg, 10, tw) for T in poses]
+    refined = [coarse_icp(sp, sn, target, T, settings) for T in poses]
     fits = fitness(sp, sn, target.coarse, np.array(refined), inlier, settings.max_normal_deg)
     order = np.argsort(-fits)
     for k in order[:settings.explored]:  # the most promising few: explored further
@@ -101,6 +94,26 @@ def register(scan: ScanCloud, target: ModelTarget,
     alternatives = tuple(j[4] for j in judged[1:] if j[0] >= best[0] - settings.ambiguity_margin and apart(j[4]))
     method = f"rscs+{'+'.join(settings.descriptors)}+{settings.coarse}+icp" if settings.coarse != "ndt" else "ndt+icp"
     return refine(scan, target, best[4], settings, rng, times, method, alternatives)
+
+
+def scan_voxels(scan: ScanCloud, target: ModelTarget) -> tuple[np.ndarray, np.ndarray]:
+    """The scan's points and normals averaged on the target's voxel grid; RegistrationFailed
+    when too few voxels hold points to register."""
+    v = target.voxel_mm
+    src_pts, src_nrm = voxel_grid(scan.points, scan.normals, v)
+    if len(src_pts) < 50:
+        raise RegistrationFailed(f"{scan.source}: only {len(src_pts)} voxels of {v:.3g} mm hold scan points; "
+                                 f"the scan is too small for this model")
+    return src_pts, src_nrm
+
+
+def coarse_icp(sp: np.ndarray, sn: np.ndarray, target: ModelTarget, T: np.ndarray,
+               settings: RegistrationSettings) -> np.ndarray:
+    """A coarse pose `T` refined against the model's coarse samples: ICP on every third
+    point first (most of the way in), then on all of them."""
+    v, deg, tw = target.voxel_mm, settings.max_normal_deg, settings.tangential_weight
+    near = icp(sp[::3], sn[::3], target.coarse, T, 8.0 * v, 0.5 * v, deg, 20, tw)
+    return icp(sp, sn, target.coarse, near, 8.0 * v, 0.5 * v, deg, 10, tw)
 
 
 def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, settings: RegistrationSettings,

@@ -20,9 +20,7 @@ import numpy as np
 
 from inspection.errors import RegistrationFailed
 from inspection.measured_cloud import ScanCloud
-from inspection.registration.clouds import voxel_grid
-from inspection.registration.driver import Registration, refine, register
-from inspection.registration.point_to_plane import icp
+from inspection.registration.driver import Registration, coarse_icp, refine, register, scan_voxels
 from inspection.registration.settings import RegistrationSettings
 from inspection.registration.target import ModelTarget
 from inspection.registration.verification import evaluate_pose, explore
@@ -41,19 +39,18 @@ def register_from_prior(scan: ScanCloud, target: ModelTarget, prior: Registratio
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     v = target.voxel_mm
-    src_pts, src_nrm = voxel_grid(scan.points, scan.normals, v)
-    if len(src_pts) < 50:
-        return None
+    try:
+        src_pts, src_nrm = scan_voxels(scan, target)
+    except RegistrationFailed:
+        return None  # the global search says why
     times["prepare"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     inlier = 1.5 * v
     sub = rng.choice(len(src_pts), size=min(1500, len(src_pts)), replace=False)
     sp, sn = src_pts[sub], src_nrm[sub]
-    tw, deg = settings.tangential_weight, settings.max_normal_deg
-    T = icp(sp, sn, target.coarse, icp(sp[::3], sn[::3], target.coarse, prior.transform, 8.0 * v, 0.5 * v, deg, 20,
-                                       tw), 8.0 * v, 0.5 * v, deg, 10, tw)
+    T = coarse_icp(sp, sn, target, prior.transform, settings)
     T = explore(sp, sn, target.coarse, T, inlier, settings.coarse_turns_deg, 4.0 * v, settings)
-    fit, _ = evaluate_pose(sp, sn, target.dense, T, inlier, deg)
+    fit, _ = evaluate_pose(sp, sn, target.dense, T, inlier, settings.max_normal_deg)
     hidden = target.hidden_fraction(T, sp, scan.viewpoint, 2.0 * v) if scan.viewpoint is not None else 0.0
     times["verify"] = time.perf_counter() - t0
     if fit - hidden < settings.min_fitness:
