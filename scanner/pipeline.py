@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
+import cv2
 import numpy as np
 
 from scanner.acquisition import AcquisitionSettings, acquire, check_signature
@@ -218,16 +219,26 @@ def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triang
     if level == "none":
         session.recording_path.unlink(missing_ok=True)  # an older recording would not match the new outputs
         return process(session, progress, mode=mode)
-    stack = session.load_stack()
-    specs = session.patterns.frames()
     with SessionRecording(session.recording_path, session.id, level=level) as rec:
         rec.log_rig(session.rig_model())
-        for k, entry in enumerate(session.manifest["frames"]):
-            path = session.frame_path(k)
-            rec.log_frame(k, Frame(stack[k], entry["index"], entry["pattern_index"], entry["timestamp_s"],
-                                   entry["exposure_s"], entry["bit_depth"]), specs[k],
-                          png=path.read_bytes() if path.suffix.lower() == ".png" else None)
-        return process(session, progress, rec, mode=mode)
+        with ThreadPoolExecutor(1, thread_name_prefix="record frames") as pool:  # beside the decode
+            frames = pool.submit(log_session_frames, rec, session)
+            result = process(session, progress, rec, mode=mode)
+            frames.result()
+        return result
+
+
+def log_session_frames(recording: SessionRecording, session: Session) -> None:
+    """The session's raw frames into `recording` as PNG: the files' own bytes, or frames in
+    another lossless format (an import's BMP or TIFF) re-encoded."""
+    from scanner.session_recording import png_bytes
+
+    for k, spec in enumerate(session.patterns.frames()):
+        path = session.frame_path(k)
+        data = path.read_bytes()
+        if path.suffix.lower() != ".png":
+            data = png_bytes(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED))
+        recording.log_png_frame(k, data, spec)
 
 
 def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress = _quiet,

@@ -417,9 +417,13 @@ class SessionRecording:
         if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
             raise RecordingError(f"frame {index}: expected an (H, W) uint8 or uint16 image, "
                                  f"got {image.dtype} {image.shape}")
+        self.log_png_frame(index, png if png is not None else png_bytes(image), spec, scan=scan)
+
+    def log_png_frame(self, index: int, png: bytes, spec: FrameSpec | None = None, *, scan: int = 0) -> None:
+        """One raw frame given as its PNG file's bytes (a session's own frame, as stored)."""
+        self._check_open()
         self._at(scan, index)
-        self.stream.log(CAMERA_IMAGE, rr.EncodedImage(contents=png if png is not None else png_bytes(image),
-                                                      media_type=rr.MediaType.PNG), strict=True)
+        self.stream.log(CAMERA_IMAGE, rr.EncodedImage(contents=png, media_type=rr.MediaType.PNG), strict=True)
         if spec is not None:
             self.stream.log(FRAME_SPEC, rr.TextLog(f"{index}: {spec_name(spec)}", level="INFO"), strict=True)
 
