@@ -9,6 +9,7 @@ libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
 from slscan.commands import (
     bench,
     calibrate,
+    demobench,
     devices,
     import_,
     importbench,
@@ -21,4 +22,4 @@ from slscan.commands import (
     station,
 )
 
-COMMANDS = (scan, import_, review, bench, importbench, simbench, devices, calibrate, inspect, pose, segment, station)
+COMMANDS = (scan, import_, review, bench, importbench, simbench, demobench, devices, calibrate, inspect, pose, segment, station)
