@@ -22,6 +22,6 @@ def cmd_review(args: argparse.Namespace) -> int:
 
 def register(sub: Any) -> None:
     r = sub.add_parser("review", help="open a session's recording in the Rerun viewer (web when headless)")
-    r.add_argument("session")
-    r.add_argument("--port", type=int, default=9090)
+    r.add_argument("session", help="session folder")
+    r.add_argument("--port", type=int, default=9090, help="headless: the web viewer's HTTP port (default 9090)")
     r.set_defaults(func=cmd_review)

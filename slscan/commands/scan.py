@@ -15,6 +15,7 @@ from scanner.errors import ConfigError
 from scanner.reconstruct import Triangulator
 from scanner.rig import DEFAULT_RIG
 from scanner.session import write_json
+from slscan.exit_codes import Exit
 from slscan.progress import ProgressLine
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
@@ -56,7 +57,7 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     with open_rig(config, **options) as rig:
         result = scan(rig, patterns, out, ProgressLine(), then)
     report(result)
-    return 0
+    return Exit.OK
 
 
 def report(result: Any) -> None:
@@ -105,7 +106,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
     result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode)
     report(result)
-    return 0
+    return Exit.OK
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -136,7 +137,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"world/inspection/ and inspection/")
     print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU (registration "
           f"{rep.timings_s['register']:.1f} s); demo {time.perf_counter() - t0:.1f} s wall")
-    return 1 if rep.verdict == "fail" else 0
+    return Exit.FAILED if rep.verdict == "fail" else Exit.OK
 
 
 def register(sub: Any) -> None:
@@ -152,13 +153,15 @@ def register(sub: Any) -> None:
     s.set_defaults(func=cmd_scan)
 
     d = sub.add_parser("decode", help="regenerate every output of a session from its raw frames")
-    d.add_argument("session")
-    d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation")
+    d.add_argument("session", help="session folder (its raw frames and manifest)")
+    d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation",
+                   help="reconstruction: triangulation with the rig model (default) or Eq. 17 phase-to-height "
+                        "for rigs calibrated with the reference-plane model")
     d.set_defaults(func=cmd_decode)
 
     m = sub.add_parser("demo", help="scan the bundled part on the default simulated rig and inspect it against "
                                     "its STEP model")
     m.add_argument("--out", help="session folder (default: sessions/demo-<time>)")
-    m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--seed", type=int, default=0, help="simulated rig: noise seed (default 0)")
     m.add_argument("--no-inspect", action="store_true", help="scan only (no inspection against the STEP model)")
     m.set_defaults(func=cmd_demo)
