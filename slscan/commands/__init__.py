@@ -10,6 +10,7 @@ from slscan.commands import (
     bench,
     calibrate,
     devices,
+    export,
     import_,
     importbench,
     inspect,
@@ -21,4 +22,4 @@ from slscan.commands import (
     station,
 )
 
-COMMANDS = (scan, import_, review, bench, importbench, simbench, devices, calibrate, inspect, pose, segment, station)
+COMMANDS = (scan, import_, review, export, bench, importbench, simbench, devices, calibrate, inspect, pose, segment, station)

@@ -147,6 +147,7 @@ def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path |
     report. `slscan demo` can call this after its scan."""
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import load_source
+    from inspection.point_deviations import write_point_deviations
     from inspection.registration import RegistrationSettings
     from inspection.report import deviation_image, png
     from inspection.tolerances import load_tolerances
@@ -173,6 +174,7 @@ def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path |
         if own is not None:
             own.close()
     report.write(folder, deviation_png=png(deviation_image(report, scan)))
+    write_point_deviations(folder, scan, report)  # for `slscan export --deviations`
     return report
 
 
