@@ -192,3 +192,16 @@ def test_calibrate_from_a_bad_folder_leaves_no_output_folder(tmp_path: Path) -> 
     code, _, err = run("calibrate", "--from", str(captures), "--out", str(out))
     assert code == 2 and "not empty" not in err  # the retry is not refused for the first run's leftovers
     assert out.is_dir() and not any(out.iterdir())
+
+
+def test_the_station_exits_1_after_a_failed_part(tmp_path: Path) -> None:
+    """The simulated station's second part carries a defect that fails its program (the
+    simulator's truth as the gauge, a 320 x 256 camera): one good part exits 0, two exit 1."""
+    from tests.test_station_support import DEMO_PROGRAM, station_config
+
+    one, two = tmp_path / "one", tmp_path / "two"
+    one.mkdir(), two.mkdir()
+    code, out, _ = run("station", str(DEMO_PROGRAM), "--config", str(station_config(one)), "--auto", "--parts", "1")
+    assert code == 0 and "1 parts: 1 pass" in out
+    code, out, _ = run("station", str(DEMO_PROGRAM), "--config", str(station_config(two)), "--auto", "--parts", "2")
+    assert code == 1 and "2 parts: 1 pass, 1 fail" in out
