@@ -11,8 +11,9 @@ EXAMPLES: dict[str, str] = {
               "slscan decode sessions/part-001 --mode phase_to_height",
     "demo": "slscan demo --out sessions/demo\n"
             "slscan demo --no-inspect --seed 2",
-    "import": "slscan import ../shared/data/procam-graycode/capture_0 --patterns config/patterns/graycode_pixel.toml "
-              "--projector-size 1024x768 --out sessions/procam-0",
+    "import": "slscan import ../shared/data/procam-graycode/capture_0 --patterns config/patterns/opencv_graycode.toml "
+              "--projector-size 1024x768 --calibration ../shared/data/procam-graycode/calibration_result.xml "
+              "--projector-scale 2 --out sessions/procam-0",
     "review": "slscan review sessions/demo            (a scan session)\n"
               "slscan review calibrations/bench        (a calibration folder)\n"
               "slscan review sessions/bin/outputs/poses.rrd --port 9091",
@@ -37,10 +38,10 @@ EXAMPLES: dict[str, str] = {
     "segbench": "slscan segbench --seeds 0 1 --radius 12",
     "segscore": "slscan segscore labels.npy truth.npy --json",
     "station": "slscan station config/parts/demo_part.toml --auto --parts 5 --out station-data",
-    "results": "slscan results --out station-data --program config/parts/demo_part.toml --report\n"
-               "slscan results --data station-data --csv > results.csv",
-    "batch": "slscan batch station-data/parts/* --program config/parts/demo_part.toml --workers 2",
-    "batchbench": "slscan batchbench station-data/parts/* --program config/parts/demo_part.toml",
+    "results": "slscan results --data station-data --program config/parts/demo_part.toml --report --out reports/demo\n"
+               "slscan results --data station-data --status fail --csv --out failed.csv",
+    "batch": "slscan batch station-data/sessions/demo-part/* --program config/parts/demo_part.toml --workers 2",
+    "batchbench": "slscan batchbench station-data/sessions/demo-part/* --program config/parts/demo_part.toml",
 }
 
 

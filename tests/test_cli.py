@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import io
 import re
+import shlex
 import shutil
 import subprocess
 import tomllib
@@ -53,6 +54,12 @@ def test_every_command_help_has_an_example_and_every_option_help(name: str) -> N
     assert re.search(rf"^  slscan {re.escape(name)}\b", examples[1], re.M), f"no `slscan {name}` example"
     for action in COMMANDS[name]._actions:
         assert action.help, f"slscan {name}: {action.option_strings or action.dest} has no help text"
+    for line in re.findall(rf"^  (slscan {re.escape(name)}\b.*)$", examples[1], re.M):
+        command = re.split(r"\s{2,}", line)[0]  # an example may end with a note after two spaces
+        err = io.StringIO()
+        with redirect_stderr(err):
+            cli.build_parser().parse_args(shlex.split(command)[1:])  # the example's options exist as written
+        assert "deprecated" not in err.getvalue(), command
 
 
 @pytest.mark.parametrize("name", sorted(COMMANDS))
