@@ -7,8 +7,6 @@ One 640 x 512 scan of the demo part, inspected once for the module (~20 s CPU)."
 
 from __future__ import annotations
 
-import io
-from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import numpy as np
@@ -17,29 +15,20 @@ from plyfile import PlyData
 
 from scanner.config import CONFIG_DIR
 from scanner.exports import ExportCloud, write
-from scanner.rig import DEFAULT_RIG
 from scanner.session import Session
 from sim.scene import load_scene
-from slscan import cli
+from tests.test_cli import run
+from tests.test_station_support import small_rig
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
 STEP = CONFIG_DIR / "parts" / "demo_part.step"
 MESH = CONFIG_DIR / "parts" / "demo_part.ply"
 
 
-def run(*argv: str) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with redirect_stdout(out), redirect_stderr(err):
-        code = cli.main(list(argv))
-    return code, out.getvalue(), err.getvalue()
-
-
 @pytest.fixture(scope="module")
 def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     tmp = tmp_path_factory.mktemp("export")
-    text = DEFAULT_RIG.read_text().replace("width = 1280", "width = 640").replace("height = 1024", "height = 512")
-    rig = tmp / "rig.toml"
-    rig.write_text(text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/'))
+    rig = small_rig(tmp, 640, 512)
     root = tmp / "demo"
     assert run("scan", "--rig", str(rig), "--scene", str(DEMO_SCENE), "--out", str(root))[0] == 0
     code, _, err = run("inspect", str(root), "--cad", str(STEP))

@@ -6,11 +6,9 @@ exactly the files and the blueprint the real viewer would get."""
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import shutil
-from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import numpy as np
@@ -20,27 +18,18 @@ from rerun.chunk import RrdReader
 
 from scanner.config import CONFIG_DIR
 from scanner.recording_reader import entity_paths
-from scanner.rig import DEFAULT_RIG
-from slscan import cli
 from slscan.review_target import find_target
+from tests.test_cli import run
+from tests.test_station_support import small_rig
 
 SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
-
-
-def run(*argv: str) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with redirect_stdout(out), redirect_stderr(err):
-        code = cli.main(list(argv))
-    return code, out.getvalue(), err.getvalue()
 
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A real 320 x 256 scan session (sphere and plane)."""
     tmp = tmp_path_factory.mktemp("review")
-    text = DEFAULT_RIG.read_text().replace("width = 1280", "width = 320").replace("height = 1024", "height = 256")
-    rig = tmp / "rig.toml"
-    rig.write_text(text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/'))
+    rig = small_rig(tmp, 320, 256)
     assert run("scan", "--rig", str(rig), "--scene", str(SCENE), "--out", str(tmp / "s"))[0] == 0
     return tmp / "s"
 
