@@ -212,3 +212,23 @@ def test_the_station_exits_1_after_a_failed_part(tmp_path: Path) -> None:
     assert code == 0 and "1 parts: 1 pass" in out
     code, out, _ = run("station", str(DEMO_PROGRAM), "--config", str(station_config(two)), "--auto", "--parts", "2")
     assert code == 1 and "2 parts: 1 pass, 1 fail" in out
+
+
+def test_progress_on_a_terminal_is_one_live_line_per_stage() -> None:
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    clock, term = Clock(), Terminal()
+    progress = ProgressLine(term, clock)
+    for k in range(4):
+        clock.t += 1.0
+        progress("capture", k + 1, 4)
+    progress("decode", 0, 1)
+    clock.t += 2.0
+    progress("done", 1, 1)
+    lines = term.getvalue().split("\n")
+    assert lines[0].split("\r")[-1].rstrip() == "capture     finished 4/4 steps in 3.00 s"  # the bar, then its summary
+    assert "[####################] 4/4" in lines[0]
+    assert lines[1].split("\r")[-1].rstrip() == "decode      finished in 2.00 s"
+    assert lines[2].split("\r")[-1].rstrip() == "done        all stages in 6.00 s" and lines[3] == ""
