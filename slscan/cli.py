@@ -27,7 +27,7 @@ from scanner.errors import ScannerError
 from scanner.session import disk_problem
 from slscan.commands import COMMANDS
 from slscan.examples import epilog
-from slscan.exit_codes import Exit, for_error
+from slscan.exit_codes import SUMMARY, Exit, for_error
 
 LOG_LEVELS = ("debug", "info", "warning", "error")
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -38,10 +38,6 @@ def _add_logging_options(parser: argparse.ArgumentParser, default: object) -> No
                         help="diagnostics on stderr from this level on (default: warning)")
     parser.add_argument("-v", "--verbose", action="count", default=default,
                         help="more diagnostics on stderr: -v what the devices do, -vv every device exchange")
-
-
-EXIT_CODES_HELP = ("exit codes: 0 success; 1 a measured part or check fails; 2 usage error or refused input; "
-                   "3 device fault; 130 interrupted")
 
 
 def version() -> str:
@@ -87,7 +83,7 @@ def commands(parser: argparse.ArgumentParser, prefix: str = "") -> dict[str, arg
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="slscan", description="Structured-light 3D scanner for a bench station.",
-                                epilog=EXIT_CODES_HELP + "\nslscan COMMAND --help shows each command's options and an "
+                                epilog=SUMMARY + "\nslscan COMMAND --help shows each command's options and an "
                                        "example.", formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action=_Version, help="print the version (and git describe of a checkout) and exit")
     _add_logging_options(p, None)
@@ -113,7 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; its exit code (`slscan.exit_codes`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if getattr(args, "func", None) is None:  # bare `slscan` (or `slscan devices`): the help, not an error
+    if getattr(args, "func", None) is None:  # bare `slscan`: the help, not an error
         (commands(parser).get(args.command) if args.command else parser).print_help()
         return Exit.OK
     logging.basicConfig(level=log_level(args), stream=sys.stderr, format=LOG_FORMAT)  # no-op if configured

@@ -27,6 +27,10 @@ class Exit(IntEnum):
     INTERRUPTED = 130
 
 
+SUMMARY = ("exit codes: 0 success; 1 a measured part or check fails; 2 usage error or refused input; "
+           "3 device fault; 130 interrupted")
+"""The one-line form `slscan --help` ends with."""
+
 def for_error(exc: BaseException) -> Exit:
     """The exit code for an error that ended a command: device faults 3, a refused
     calibration (a check that fails) 1, any other refusal or usage error 2."""
