@@ -11,6 +11,7 @@ from slscan.commands import (
     calibrate,
     demobench,
     devices,
+    export,
     import_,
     importbench,
     inspect,
@@ -22,4 +23,5 @@ from slscan.commands import (
     station,
 )
 
-COMMANDS = (scan, import_, review, bench, importbench, simbench, demobench, devices, calibrate, inspect, pose, segment, station)
+COMMANDS = (scan, import_, review, export, bench, importbench, simbench, demobench, devices, calibrate, inspect, pose, segment,
+            station)

@@ -22,6 +22,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from slscan.exit_codes import Exit
+from slscan.options import COARSE_METHODS, coarse_method
+
 CAD_UNITS = ("mm", "cm", "m", "in")
 
 
@@ -41,11 +44,11 @@ def cmd_cad(args: argparse.Namespace) -> int:
     if args.sample:
         bench = sample_benchmark(model, args.sample, args.repeats, load_s)
         print(json.dumps(bench) if args.json else _sample_text(bench))
-        return 0
+        return Exit.OK
     if args.json:
         s = model.summary()
         print(json.dumps({"path": s["path"], "unit": s["unit"], "faces": s["faces"], "counts": s["counts"]}))
-        return 0
+        return Exit.OK
     print(f"{model.path}: {len(model)} faces, unit {model.unit}, {model.kind}")
     for f in model.faces:
         params = ", ".join(f"{k} {_short(v)}" for k, v in f.params().items())
@@ -53,7 +56,7 @@ def cmd_cad(args: argparse.Namespace) -> int:
     print("counts: " + ", ".join(f"{n} {t}" for t, n in model.counts.items()))
     for line in model.skipped:
         print(f"  skipped {line}")
-    return 0
+    return Exit.OK
 
 
 def cmd_cadbench(args: argparse.Namespace) -> int:
@@ -87,7 +90,7 @@ def cmd_cadbench(args: argparse.Namespace) -> int:
             wall = time.perf_counter() - t0
             if status != 0:
                 print(f"{n:>6}: slscan cad failed (wait status {status})")
-                return 1
+                return Exit.FAILED
             faces = len(json.loads(out)["faces"])
             cpu = usage.ru_utime + usage.ru_stime
             first = first or (faces, cpu)
@@ -98,7 +101,7 @@ def cmd_cadbench(args: argparse.Namespace) -> int:
     print("marginal: CPU ms per face added over the first file (the fixed start-up of ~2 s excluded); "
           "a constant marginal cost is linear growth")
     print("load average after " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
-    return 0
+    return Exit.OK
 
 
 def sample_benchmark(model: Any, n_points: int, repeats: int, load_s: float) -> dict[str, Any]:
@@ -175,14 +178,14 @@ def cmd_register(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
                           "ambiguous": reg.ambiguous, "method": reg.method}))
-        return 0
+        return Exit.OK
     with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
         print(f"transform taking {args.source} onto {args.target} (mm):")
         print(reg.transform)
     print(f"fitness {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, "
           f"{reg.method}, {reg.timings_s.get('total', 0):.2f} s" + ("; AMBIGUOUS: another pose fits as well"
                                                                     if reg.ambiguous else ""))
-    return 0
+    return Exit.OK
 
 
 def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path | None = None,
@@ -193,6 +196,7 @@ def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path |
     report. `slscan demo` can call this after its scan."""
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import load_source
+    from inspection.point_deviations import write_point_deviations
     from inspection.registration import RegistrationSettings
     from inspection.report import deviation_image, png
     from inspection.tolerances import load_tolerances
@@ -219,6 +223,7 @@ def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path |
         if own is not None:
             own.close()
     report.write(folder, deviation_png=png(deviation_image(report, scan)))
+    write_point_deviations(folder, scan, report)  # for `slscan export --deviations`
     return report
 
 
@@ -231,7 +236,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         folder = Path(args.out) if args.out else (Path(args.source) / "outputs" if Path(args.source).is_dir()
                                                   else Path(args.source).parent)
         print(f"report    {folder / 'inspection.html'} (.json, .csv)", file=sys.stderr)
-    return 1 if report.verdict == "fail" else 0
+    return Exit.FAILED if report.verdict == "fail" else Exit.OK
 
 
 def register(sub: Any) -> None:
@@ -252,10 +257,11 @@ def register(sub: Any) -> None:
     r.add_argument("source", help="cloud (PLY/PCD/XYZ) or session folder")
     r.add_argument("target", help="STEP, mesh (STL/PLY/OBJ with triangles) or cloud")
     r.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh target")
-    r.add_argument("--coarse", choices=("sac-ia", "ransac", "ndt"), default="sac-ia", help="coarse method")
+    r.add_argument("--coarse", type=coarse_method, choices=COARSE_METHODS, default="sac-ia",
+                   help="coarse method (default sac-ia)")
     r.add_argument("--descriptors", default="fpfh,shot", help="fpfh, shot or fpfh,shot (multivariate)")
     r.add_argument("--no-isolate", action="store_true", help="keep every source point (no table removal)")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seed", type=int, default=0, help="random seed of the coarse search (default 0)")
     r.add_argument("--json", action="store_true", help="print {transform, fitness, rmse}")
     r.set_defaults(func=cmd_register)
 
@@ -265,6 +271,6 @@ def register(sub: Any) -> None:
     i.add_argument("--tolerances", help="tolerance TOML (see config/tolerances/)")
     i.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh CAD file")
     i.add_argument("--out", help="folder for inspection.json/.csv/.html (default: beside the data)")
-    i.add_argument("--seed", type=int, default=0)
+    i.add_argument("--seed", type=int, default=0, help="random seed of the registration (default 0)")
     i.add_argument("--json", action="store_true", help="print the report as JSON")
     i.set_defaults(func=cmd_inspect)

@@ -1,7 +1,7 @@
 """`slscan pose` and `slscan posebench`: poses of thin flat parts in a bin for a robot cell
 (paper 001), and their benchmark on simulated bins.
 
-`slscan pose SESSION|CLOUD --part FILE [--masks PATH] [--method sacia|ndt]` finds the part
+`slscan pose SESSION|CLOUD --part FILE [--masks PATH] [--method sac-ia|ndt]` finds the part
 instances (from instance masks aligned with the camera image — label PNGs or Labelme JSON
 — or, without masks, by removing the tray plane and splitting the rest at depth steps),
 estimates each instance's pose (`inspection.bins.pose`), ranks the pickable ones
@@ -31,7 +31,11 @@ from typing import Any
 
 import numpy as np
 
+from slscan.exit_codes import Exit
+from slscan.options import coarse_method
+
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off")
+POSE_METHODS = {"sac-ia": "sacia", "ndt": "ndt"}  # the command line's spelling -> inspection.bins' name
 
 
 def register(sub: Any) -> None:
@@ -42,7 +46,7 @@ def register(sub: Any) -> None:
     p.add_argument("--part", required=True, help="part file: TOML with a [part] table (kind = \"tab\") or a mesh (mm)")
     p.add_argument("--masks", help="instance masks aligned with the camera image: a label PNG, a Labelme JSON, or "
                                    "a folder of them (default: tray removal + depth-step components)")
-    p.add_argument("--method", choices=("sacia", "ndt"), default="sacia",
+    p.add_argument("--method", type=coarse_method, choices=tuple(POSE_METHODS), default="sac-ia",
                    help="coarse registration: FPFH + SAC-IA with the Huber score (default) or NDT")
     p.add_argument("--max-occlusion", type=float, default=0.3, metavar="FRACTION",
                    help="parts covered more than this are not offered for picking (default 0.3)")
@@ -54,7 +58,8 @@ def register(sub: Any) -> None:
     b = sub.add_parser("posebench", help="pose parts in simulated bins and score them against the truth "
                                          "(both methods, paper 001's four cases)")
     b.add_argument("--seeds", type=int, nargs="+", default=list(range(50)), help="bin seeds (default 0..49)")
-    b.add_argument("--methods", nargs="+", choices=("sacia", "ndt"), default=["sacia", "ndt"])
+    b.add_argument("--methods", nargs="+", type=coarse_method, choices=tuple(POSE_METHODS), default=["sac-ia", "ndt"],
+                   help="coarse registration methods to compare (default both)")
     b.add_argument("--size", type=int, nargs=2, default=(1280, 1024), metavar=("W", "H"),
                    help="camera resolution of the rig the bins are rendered with (default the rig's 1280 x 1024)")
     b.add_argument("--noise", type=float, default=0.01, metavar="MM", help="depth noise along the camera rays")
@@ -224,7 +229,7 @@ def cmd_pose(args: argparse.Namespace) -> int:
                                                tray_tol_mm=0.3 * model.thickness_mm)
         how = "tray removal + depth-step components"
     print(f"{len(instances)} instances in {src} ({how}); part {model.name}, method {args.method}", file=sys.stderr)
-    settings = PoseSettings(method=args.method, max_occlusion=args.max_occlusion)
+    settings = PoseSettings(method=POSE_METHODS[args.method], max_occlusion=args.max_occlusion)
     poses = merge_duplicates(estimate_poses(instances, model, cloud.points[cloud.valid], settings))
     message = ""
     if not instances:
@@ -246,7 +251,7 @@ def cmd_pose(args: argparse.Namespace) -> int:
             rec.log_cloud(cloud)
             log_poses(rec, doc, poses, instances, model)
         print(f"recording {rrd}")
-    return 0 if any(r["pick_rank"] is not None for r in doc["parts"]) else 1
+    return Exit.OK if any(r["pick_rank"] is not None for r in doc["parts"]) else Exit.FAILED
 
 
 # ------------------------------------------------------------------------- benchmark
@@ -285,7 +290,7 @@ def cmd_posebench(args: argparse.Namespace) -> int:
         instances = {i.id: i for i in instances_from_label_image(np.where(ids >= 2, ids, 0), cloud)}
         context = SceneContext(cloud.points[cloud.valid])
         for method in args.methods:
-            settings = PoseSettings(method=method)
+            settings = PoseSettings(method=POSE_METHODS[method])
             for k in range(n):
                 inst = instances.get(k + 2)
                 row = {"seed": seed, "part": k, "method": method, "occlusion": float(truth_occ[k]),
@@ -311,7 +316,7 @@ def cmd_posebench(args: argparse.Namespace) -> int:
     load1 = os.getloadavg()
     print(summary(rows, args.methods))
     print(f"load average at the end {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
-    return 0
+    return Exit.OK
 
 
 def _case(r: dict[str, Any]) -> str:

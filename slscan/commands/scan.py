@@ -17,6 +17,7 @@ from scanner.reconstruct import Triangulator
 from scanner.rig import DEFAULT_RIG
 from scanner.session import write_json
 from scanner.stage_timer import StageTimer
+from slscan.exit_codes import Exit
 from slscan.progress import ProgressLine
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
@@ -58,7 +59,7 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     with open_rig(config, **options) as rig:
         result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args))
     report(result)
-    return 0
+    return Exit.OK
 
 
 def _level(args: argparse.Namespace) -> str | None:
@@ -113,7 +114,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
     result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode, level=_level(args))
     report(result)
-    return 0
+    return Exit.OK
 
 
 def load_demo_part() -> tuple[Any, Any]:
@@ -196,7 +197,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     stages = ", ".join(f"{k} {v:.1f}" for k, v in rep.timings_s.items())
     print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU ({stages} s); demo "
           f"{time.perf_counter() - t0:.1f} s wall")
-    return 1 if rep.verdict == "fail" else 0
+    return Exit.FAILED if rep.verdict == "fail" else Exit.OK
 
 
 def _add_full_recording(parser: argparse.ArgumentParser) -> None:
@@ -220,15 +221,17 @@ def register(sub: Any) -> None:
     s.set_defaults(func=cmd_scan)
 
     d = sub.add_parser("decode", help="regenerate every output of a session from its raw frames")
-    d.add_argument("session")
-    d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation")
+    d.add_argument("session", help="session folder (its raw frames and manifest)")
+    d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation",
+                   help="reconstruction: triangulation with the rig model (default) or Eq. 17 phase-to-height "
+                        "for rigs calibrated with the reference-plane model")
     _add_full_recording(d)
     d.set_defaults(func=cmd_decode)
 
     m = sub.add_parser("demo", help="scan the bundled part on the default simulated rig and inspect it against "
                                     "its STEP model")
     m.add_argument("--out", help="session folder (default: sessions/demo-<time>)")
-    m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--seed", type=int, default=0, help="simulated rig: noise seed (default 0)")
     m.add_argument("--no-inspect", action="store_true", help="scan only (no inspection against the STEP model)")
     _add_full_recording(m)
     m.set_defaults(func=cmd_demo)

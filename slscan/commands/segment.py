@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from slscan.exit_codes import Exit
+
 SEGMENTS = "world/segments"
 SEGMENT_MAP = "maps/segments"
 
@@ -105,7 +107,7 @@ def cmd_segment(args: argparse.Namespace) -> int:
              recording_id=session.id if session is not None else src.stem)
         print(f"recording {rrd}" + (f"   (view with the session: rerun {session.recording_path} {rrd})"
                                    if session is not None else ""))
-    return 0
+    return Exit.OK
 
 
 def _session_points(session: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -159,7 +161,7 @@ def cmd_segscore(args: argparse.Namespace) -> int:
     truth = _load_labels(Path(args.ground_truth))
     result = score(test, truth)
     print(json.dumps(result.as_dict(), indent=2) if args.json else result.table())
-    return 0
+    return Exit.OK
 
 
 def cmd_segbench(args: argparse.Namespace) -> int:
@@ -196,7 +198,7 @@ def cmd_segbench(args: argparse.Namespace) -> int:
         print(f"mean over {len(rows)}: alpha {100 * means['mean_alpha']:.4f} %, beta {100 * means['mean_beta']:.2f} %, "
               f"eta {means['mean_eta']:.2f}; {means['wall_s']:.1f} s wall, {means['cpu_s']:.1f} s CPU per cloud; "
               f"load average {load[0]} {load[1]} {load[2]} on {os.cpu_count()} CPUs")
-    return 0
+    return Exit.OK
 
 
 def _load_labels(path: Path) -> np.ndarray:

@@ -1,0 +1,52 @@
+"""An example for every command's --help (its epilog), kept in one table so each one is
+a command line that works as written from the repository's root. A command module may
+instead give its parser an `epilog` of its own; `slscan.cli` keeps that."""
+
+from __future__ import annotations
+
+EXAMPLES: dict[str, str] = {
+    "scan": "slscan scan --out sessions/part-001\n"
+            "slscan scan --scene config/scenes/sphere_plane.toml --seed 3 --out sessions/sphere",
+    "decode": "slscan decode sessions/part-001\n"
+              "slscan decode sessions/part-001 --mode phase_to_height",
+    "demo": "slscan demo --out sessions/demo\n"
+            "slscan demo --no-inspect --seed 2",
+    "import": "slscan import ../shared/data/procam-graycode/capture_0 --patterns config/patterns/opencv_graycode.toml "
+              "--projector-size 1024x768 --calibration ../shared/data/procam-graycode/calibration_result.xml "
+              "--projector-scale 2 --out sessions/procam-0",
+    "review": "slscan review sessions/demo            (a scan session)\n"
+              "slscan review calibrations/bench        (a calibration folder)\n"
+              "slscan review sessions/bin/outputs/poses.rrd --port 9091",
+    "export": "slscan export sessions/demo --format e57 --out demo.e57\n"
+              "slscan export sessions/demo --format ply --aligned --deviations --out demo-cad-frame.ply",
+    "bench": "slscan bench --width 1280 --height 1024 --repeats 3 --no-peers",
+    "importbench": "slscan importbench --skip-procam",
+    "simbench": "slscan simbench --repeats 3",
+    "demobench": "slscan demobench --parts 2",
+    "devices": "slscan devices --probe",
+    "devices lightcrafter-images": "slscan devices lightcrafter-images --rig config/rigs/lightcrafter_uvc_box.toml "
+                                   "--out lcr-images",
+    "calibrate": "slscan calibrate --out calibrations/bench                   (the simulated bench rig)\n"
+                 "slscan calibrate --from calibrations/bench/capture --drop-outliers --out calibrations/bench-2",
+    "cad": "slscan cad config/parts/demo_part.step\n"
+           "slscan cad config/parts/demo_part.step --sample 20000 --repeats 3",
+    "register": "slscan register sessions/demo config/parts/demo_part.step --coarse sac-ia --json",
+    "inspect": "slscan inspect sessions/demo --cad config/parts/demo_part.step "
+               "--tolerances config/tolerances/demo_part.toml",
+    "pose": "slscan pose sessions/bin --part config/parts/nickel_tab.toml --method sac-ia",
+    "posebench": "slscan posebench --seeds 0 1 2 --methods sac-ia",
+    "segment": "slscan segment sessions/demo --radius 12",
+    "segbench": "slscan segbench --seeds 0 1 --radius 12",
+    "segscore": "slscan segscore labels.npy truth.npy --json",
+    "station": "slscan station config/parts/demo_part.toml --auto --parts 5 --out station-data",
+    "results": "slscan results --data station-data --program config/parts/demo_part.toml --report --out reports/demo\n"
+               "slscan results --data station-data --status fail --csv --out failed.csv",
+    "batch": "slscan batch station-data/sessions/demo-part/* --program config/parts/demo_part.toml --workers 2",
+    "batchbench": "slscan batchbench station-data/sessions/demo-part/* --program config/parts/demo_part.toml",
+}
+
+
+def epilog(command: str) -> str | None:
+    """The `examples:` block of a command's --help, or None when the table has none."""
+    text = EXAMPLES.get(command)
+    return None if text is None else "examples:\n" + "\n".join("  " + line for line in text.splitlines())
