@@ -1,8 +1,8 @@
-"""Acceptance benchmark (slow, run on purpose: pytest -m slow tests/test_inspection_benchmark.py -s):
-registration of simulated single-view scans of the NIST CTC-01 and FTC-06 parts from 50
-random initial poses each, face labels against the simulator's truth, and the comparison
-with Open3D's own FPFH + RANSAC + ICP pipeline (single start) and with this method using
-FPFH alone, SHOT alone and both (multivariate).
+"""Registration of simulated single-view scans of the NIST CTC-01 and FTC-06 parts from 50
+random initial poses each, face labels against the simulator's truth (the acceptance
+figures, multivariate method: pytest -m acceptance tests/test_inspection_benchmark.py -s),
+and the comparison with Open3D's own FPFH + RANSAC + ICP pipeline (single start) and with
+this method using FPFH alone, SHOT alone and both (a benchmark: pytest -m slow ... -s).
 
 The bench rig sees ~160 x 128 mm at 400 mm, so the parts are scanned as scale models
 (CTC-01, 800 x 450 mm, at 0.16; FTC-06, 305 x 248 mm, at 0.4) lying on a table, the
@@ -15,9 +15,8 @@ Times: wall and CPU per `register` call only (the moved scan is made before the 
 starts). The model target is prepared once per part, as the station does, and that cost
 is reported apart: sampling the CAD model (`model_preparation_s`) and the sphere
 descriptors for the views' scan sizes (`model_features_s`, `ModelTarget.prepare`).
-BENCH_METHODS (comma separated: both, fpfh, shot, open3d; default all) limits the run,
-e.g. BENCH_METHODS=both for the acceptance figures of the multivariate method alone;
-BENCH_VIEWS and BENCH_STARTS (default 5 and 10) shorten a trial run.
+BENCH_METHODS (comma separated: both, fpfh, shot, open3d; default all) limits the
+comparison run; BENCH_VIEWS and BENCH_STARTS (default 5 and 10) shorten a trial run.
 """
 
 from __future__ import annotations
@@ -51,8 +50,7 @@ STARTS = int(os.environ.get("BENCH_STARTS", 10))
 METHODS = {"both": ("multivariate (FPFH+SHOT)", ("fpfh", "shot")), "fpfh": ("FPFH alone", ("fpfh",)),
            "shot": ("SHOT alone", ("shot",)), "open3d": ("Open3D FPFH+RANSAC+ICP", None)}
 
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(not STEP_DIR.is_dir(), reason=f"NIST STEP files not present ({STEP_DIR})")]
+pytestmark = pytest.mark.skipif(not STEP_DIR.is_dir(), reason=f"NIST STEP files not present ({STEP_DIR})")
 
 
 def scans(name: str) -> tuple[object, list]:
@@ -132,15 +130,31 @@ def bench_methods() -> dict[str, tuple[str, tuple[str, ...] | None]]:
     return dict(METHODS[k] for k in keys)
 
 
+@pytest.mark.acceptance
+@pytest.mark.parametrize("name", PARTS)
+def test_nist_registration_acceptance(name: str) -> None:
+    """The acceptance figures: the multivariate method alone, every view and start."""
+    benchmark(name, dict([METHODS["both"]]))
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("name", PARTS)
 def test_nist_registration_benchmark(name: str) -> None:
+    """The comparison (BENCH_METHODS, default all): FPFH alone, SHOT alone and Open3D's
+    pipeline beside the multivariate method."""
+    benchmark(name, bench_methods())
+
+
+def benchmark(name: str, methods: dict[str, tuple[str, ...] | None]) -> None:
+    """Register every view of part `name` from every start with `methods` (label ->
+    descriptors, None: Open3D); print and optionally write the figures; hold the
+    multivariate method, when run, to its acceptance figures."""
     model_fine, views = scans(name)
     file, scale, _ = PARTS[name]
     model = load_cad(STEP_DIR / file, scale=scale)
     t0 = time.perf_counter()
     target = ModelTarget.from_cad(model)
     prep = time.perf_counter() - t0
-    methods = bench_methods()
     t0 = time.perf_counter()
     for part, *_ in views:
         for desc in sorted({d for d in methods.values() if d is not None}, key=len, reverse=True):
