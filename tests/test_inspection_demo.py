@@ -24,7 +24,7 @@ def test_demo_scans_and_inspects(tmp_path: Path, capsys) -> None:
     data = json.loads((out / "outputs" / "inspection.json").read_text())
     rows = {r["label"]: r for r in data["faces"]}
     assert data["verdict"] == "pass" and data["fitness"] > 0.95
-    assert rows["#657"]["verdict_flatness"] == "pass" and rows["#657"]["flatness_mz_mm"] < 0.03
+    assert rows["#657"]["tolerance_flatness_mm"] == 0.03 and rows["#657"]["verdict_flatness"] == "pass"
     assert rows["#657"]["deviation_source"] == "form surface" and rows["#657"]["profile_mm"] < 0.03
     assert {"inspection.csv", "inspection.html"} <= {p.name for p in (out / "outputs").iterdir()}
     rec = read_summary(out / "recording.rrd")
