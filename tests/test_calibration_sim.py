@@ -5,8 +5,8 @@ To stay fast this uses the bench rig with a 640 x 512 camera (same lens field of
 software triggering, 6 board poses and 4 plate heights; the full-size acceptance run (1280
 x 1024, 12 poses, 7 heights) is the last test here (`-m acceptance`). The figures asserted
 here are the issue's acceptance limits, except the principal points, which 6 poses at half
-resolution determine to about +-0.25 px (one sigma): they must lie within four of the
-calibration's own reported sigmas of the truth. The scan and phase-to-height checks are
+resolution determine to about +-0.25 px (one sigma): they must lie within 1 px of the truth,
+and within four of the calibration's own reported sigmas (each below 0.5 px) of it. The scan and phase-to-height checks are
 computed here from the saved calibration, not read from the command's printed report.
 """
 
@@ -153,9 +153,11 @@ def test_calibration_matches_the_simulators_ground_truth(rig_toml: Path, calibra
     assert cal.data["camera_intrinsics"]["source"] == "joint refinement"  # it pins the camera here
     assert abs(e["camera.fx_pct"]) < 0.1 and abs(e["camera.fy_pct"]) < 0.1
     assert abs(e["projector.fx_pct"]) < 0.2 and abs(e["projector.fy_pct"]) < 0.2
-    for device in ("camera", "projector"):
+    for device in ("camera", "projector"):  # 6 poses at half size: about +-0.25 px (one sigma)
         for c in ("cx", "cy"):
-            assert abs(e[f"{device}.{c}_px"]) < 4 * std[f"{device}.{c}"], (device, c, e, std)
+            assert abs(e[f"{device}.{c}_px"]) < 1.0, (device, c, e)
+            # and the sigma the calibration reports is honest: the truth within four of it, itself not inflated
+            assert abs(e[f"{device}.{c}_px"]) < 4 * std[f"{device}.{c}"] < 4 * 0.5, (device, c, e, std)
     assert e["translation_mm"] < 0.1 and e["rotation_deg"] < 0.02
     assert cal.data["rms_px"]["camera"] <= 0.15 and cal.data["rms_px"]["projector"] <= 0.2
     assert cal.model.projector_gamma == pytest.approx(truth.projector_gamma, abs=0.01)
