@@ -258,7 +258,7 @@ def scan_in_volume(calibration: Path, rig_toml: Path, tmp_path: Path) -> SimpleN
     `session` folder, its phase-to-height processing `p2h`, the height `errors` (RMS mm,
     share measured) per method against the simulator's truth over the calibrated heights,
     and the share `filled` of those pixels more than 20 mm high."""
-    rig = tmp_path / "rig.toml"
+    rig = tmp_path / "calibrated_rig.toml"
     shutil.copy(rig_toml, rig)
     _install(rig, calibration)
     scene = tmp_path / "scene.toml"
