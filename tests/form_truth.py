@@ -1,7 +1,7 @@
 """Truths of form figures computed in the tests, independently of `inspection.form`:
-minimum zones as linear programmes over every point, the ISO 16610-61 areal Gaussian
-filter by FFT convolution, the noise its second-order regression lets through (from its
-equivalent kernel), and the edge margin as a distance to the region's border.
+minimum zones as linear programmes over every point, the ISO 16610-61 areal Gaussian mean
+and second-order Gaussian regression by FFT convolution, the zone known noise spans after
+that regression (simulated), and the edge margin as a distance to the region's border.
 
 ISO 16610-61: weighting function s(r) = exp(-pi (r / (alpha lc))^2), alpha = sqrt(ln 2 / pi)
 (50 % transmission at the nesting index lc). Lengths in mm.

@@ -10,7 +10,7 @@ of a figure is computed in the test, never by `inspection.form`: over the region
 margin), the minimum zone of the noise-free points by a linear programme on every point
 (`form_truth`), and Sq of the imposed texture's analytic heights through the ISO 16610-61
 filter by FFT. Bounds on nominal faces come from the depth noise the simulator's sensor
-model predicts (`sensor_noise`), carried through the form filter's equivalent kernel.
+model predicts (`sensor_noise`), carried through the test's own form filter.
 """
 
 from __future__ import annotations
