@@ -1,12 +1,14 @@
 """Acceptance of the form figures on simulated defective demo parts, through the full
-scanner chain with its realistic noise (slow: pytest -m slow -s tests/test_inspection_form_acceptance.py).
+scanner chain with its realistic noise (pytest -m acceptance -s tests/test_inspection_form_acceptance.py;
+the default run's test_inspection_sim.py checks one such part).
 
 Each case imposes a bow on the low top (#158), 3-lobe lobing plus a taper on the boss
 (#17) and a random texture on the high top (#657), scans the part once and inspects it.
-The truth of each figure is the same figure computed from the simulator's noise-free
-surface points over the region measured, with the true pose and true faces
-(`test_inspection_sim._true_form`): the imposed defect as far as the view and the edge
-margin show it. Targets: flatness and cylindricity (minimum zone on the form surface)
+The truth of each figure is computed in the test from the simulator's noise-free surface
+points over the region measured (the simulator's face ids where the scan has a point, the
+1 mm edge margin left out), with the true pose (`test_inspection_sim._true_form`: minimum
+zones by LP on every point, Sq of the texture's analytic heights through the test's own
+FFT Gaussian filter): the imposed defect as far as the view and the edge margin show it. Targets: flatness and cylindricity (minimum zone on the form surface)
 within 5 um + 2 % of the truth; Sq within 5 % of the truth for textures of at least 5x
 the depth noise (~14 um RMS). Printed per case: imposed, truth, measured, the raw zone,
 the noise floor and the filter cut-off.
@@ -19,7 +21,7 @@ from pathlib import Path
 import pytest
 from test_inspection_sim import _row, _true_form, defective_run
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.acceptance
 
 # (bow, lobe amplitude, taper per mm, texture Sq) mm; noise seed; turn (rad)
 CASES = {"small": (0.020, 0.005, 0.0005, 0.070, 11, -0.4), "large": (0.150, 0.050, 0.002, 0.120, 12, 1.2)}

@@ -68,19 +68,13 @@ def _write_bin_cloud(cloud: object, ids: np.ndarray, path: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("method", ["sacia", pytest.param("ndt", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("method", ["sacia", "ndt"])
 def test_poses_of_a_small_bin_match_the_truth(small_bin: tuple, model: ThinPartModel, method: str) -> None:
     b, cloud, ids, occlusion = small_bin
     assert b.front_up.any() and (~b.front_up).any() and (occlusion > 0.02).any() and (occlusion < 0.3).sum() >= 2
     inst = instances_from_label_image(np.where(ids >= 2, ids, 0), cloud)
     poses = estimate_poses(inst, model, cloud.points[cloud.valid], PoseSettings(method=method))
     assert len(poses) == len(inst)
-    if method == "ndt":   # the weaker coarse method: whatever it reports must be right
-        found = {p.instance_id - 2: p for p in poses if p.ok}
-        for k, p in found.items():
-            rot, trans = pose_difference(b.poses[k], p.pose)
-            assert rot <= ROT_DEG and trans <= TRANS_MM and (p.side == "front") == bool(b.front_up[k])
-        return
     _check_against_truth(b, poses, occlusion, {i.id: i.id - 2 for i in inst})
     # pick order: an uncovered part first, the highest of those (closest to the camera)
     ranks = pick_order(poses)
@@ -215,7 +209,7 @@ def test_a_mesh_that_is_not_a_thin_plate_is_an_error(tmp_path: Path) -> None:
         load_part(step)
 
 
-@pytest.mark.slow
+@pytest.mark.acceptance
 def test_poses_from_a_full_fringe_scan_of_a_bin(model: ThinPartModel) -> None:
     """The small bin scanned through the whole simulated chain (fringe patterns rendered
     with sensor noise and blur, decoded, triangulated), instances from the simulator's ids:
@@ -228,12 +222,21 @@ def test_poses_from_a_full_fringe_scan_of_a_bin(model: ThinPartModel) -> None:
         if p.ok:
             rot, trans = pose_difference(b.poses[p.instance_id - 2], p.pose)
             print(f"part {p.instance_id - 2}: {rot:.3f} deg, {trans:.4f} mm, {p.side}, occlusion {p.occlusion:.2f}, "
-                  f"rmse {p.rmse_mm:.4f} mm, {1000 * p.time_s:.0f} ms")
+                  f"fitness {p.fitness:.3f}, rmse {p.rmse_mm:.4f} mm, {1000 * p.time_s:.0f} ms")
         else:
             print(f"part {p.instance_id - 2}: failed: {p.reason}")
-    # pixels straddling a part's edge decode to depths mixed with what lies behind (up to
-    # 1 mm off): ~5 % of an instance's points, so the fitness is lower than on exact points
-    _check_against_truth(b, poses, b.occlusion(), {i.id: i.id - 2 for i in inst}, min_fitness=0.9)
+    pad = np.pad(ids, 1)
+    edge = (ids >= 2) & ((pad[:-2, 1:-1] != ids) | (pad[2:, 1:-1] != ids) | (pad[1:-1, :-2] != ids) | (pad[1:-1, 2:] != ids))
+    outline = [float(np.mean(edge.ravel()[i.indices])) for i in inst]
+    print("share of each instance's points on its outline (simulator's ids):", ", ".join(f"{f:.1%}" for f in outline))
+    # The fitness floor (a fixed 0.93, above the method's own acceptance of 0.90): pixels on
+    # a part's outline straddle its edge and decode to depths mixed with what lies behind
+    # (up to 1 mm off, outside the 0.1 mm inlier distance). They are at most 12 % of an
+    # instance here (the most occluded parts have the longest outline for their area;
+    # checked below), and about half of them see mostly the part, so at most ~6 % of the
+    # points may miss the model, and 1 % more for the noise's tails: 1 - 0.06 - 0.01 = 0.93.
+    assert max(outline) <= 0.12
+    _check_against_truth(b, poses, b.occlusion(), {i.id: i.id - 2 for i in inst}, min_fitness=0.93)
 
 
 def test_silhouette_handedness_tells_the_side_of_uncovered_parts(small_bin: tuple, model: ThinPartModel) -> None:
