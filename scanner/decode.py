@@ -54,6 +54,12 @@ class DecodeSettings:
     be unreadable). `self_check`: refuse the decode when more than
     `max_disagreement` of the modulated pixels have a Gray code and a phase that disagree,
     or when the frequencies' residuals are offset by more than `max_frequency_offset` rad.
+    `interreflection` (multi-frequency phase-shift sets): mask, as "interreflection", pixels
+    whose phase a second light path corrupts (`_second_path`): their unwrapping residual is
+    beyond `interreflection_sigmas` of its predicted noise and above
+    `interreflection_min_residual` (fraction of π) though short of an order error, or their
+    finest/coarsest modulation ratio departs from the image's median by more than
+    `interreflection_ratio` (relative) and `interreflection_sigmas` of its noise.
     """
 
     min_modulation: float = 0.005
@@ -69,6 +75,10 @@ class DecodeSettings:
     self_check: bool = True
     max_disagreement: float = 0.05
     max_frequency_offset: float = 0.3
+    interreflection: bool = True
+    interreflection_sigmas: float = 6.0
+    interreflection_min_residual: float = 0.1
+    interreflection_ratio: float = 0.15
 
 
 @dataclass(frozen=True)
@@ -241,6 +251,40 @@ def _order_errors(residual: np.ndarray, candidates_sigma: Callable[[np.ndarray],
         tol = np.clip(1.0 - settings.order_sigmas * sigma, settings.order_tolerance, settings.order_tolerance_max)
         errors.flat[idx] = ~(residual.flat[idx] <= tol)  # NaN sigma: an error
     return errors
+
+
+def _inconsistent_frequencies(residual: np.ndarray, sigma_of: Callable[[np.ndarray], np.ndarray],
+                              order_error: np.ndarray, settings: DecodeSettings) -> np.ndarray:
+    """Pixels whose frequencies disagree beyond their noise but short of an order error
+    (the mark of a second light path: its phase offset differs per frequency)."""
+    floor = np.float32(settings.interreflection_min_residual)
+    flagged = (residual > floor) & ~order_error
+    idx = np.flatnonzero(flagged)
+    if idx.size:
+        flagged.flat[idx] = residual.flat[idx] > np.float32(settings.interreflection_sigmas) * sigma_of(idx)
+    return flagged
+
+
+def _modulation_ratio_outliers(modulation: list[np.ndarray], fringes: list[float], usable: np.ndarray,
+                               noise_sigma_b: np.ndarray, settings: DecodeSettings) -> np.ndarray:
+    """Pixels whose finest/coarsest modulation ratio departs from the image's median ratio
+    (the optics' transfer ratio, the same for every directly lit pixel) by more than
+    `interreflection_ratio` and `interreflection_sigmas` of its noise: two paths of different
+    phase add up to different amplitudes at different frequencies. `noise_sigma_b`: σ of B (DN)."""
+    fine = modulation[int(np.argmax(fringes))]
+    coarse = modulation[int(np.argmin(fringes))]
+    out = np.zeros_like(usable)
+    idx = np.flatnonzero(usable)
+    if idx.size < MIN_JUDGED_PIXELS:
+        return out
+    bf, bc = fine.flat[idx], np.maximum(coarse.flat[idx], np.float32(1e-6))
+    log_ratio = np.log(np.maximum(bf, np.float32(1e-6)) / bc)
+    expected = np.float32(np.median(log_ratio[:: max(1, idx.size // 200000)]))
+    sigma = noise_sigma_b.flat[idx] * np.sqrt(1.0 / np.maximum(bf, 1e-6) ** 2 + 1.0 / bc ** 2)
+    departure = np.abs(log_ratio - expected)
+    out.flat[idx] = (departure > np.float32(np.log1p(settings.interreflection_ratio))) & \
+        (departure > np.float32(settings.interreflection_sigmas) * sigma)
+    return out
 
 
 def read_complementary_code(bits: list[np.ndarray], background: np.ndarray, modulation: np.ndarray,
@@ -533,14 +577,14 @@ class _OrientationDecoder:
         out = {name: np.empty((h, w), np.float32) for name in ("background", "phase", "weight", "coordinate")}
         wrapped = [np.empty((h, w), np.float32) for _ in range(n_freq)]
         modulation = [np.empty((h, w), np.float32) for _ in range(n_freq)]
-        masks = {"saturated": self.saturated, **{k: np.empty((h, w), bool) for k in
-                                                  ("shadow", "low_modulation", "order_error")}}
+        reasons = ("shadow", "low_modulation", "order_error") + (("interreflection",) if self._judges_paths else ())
+        masks = {"saturated": self.saturated, **{k: np.empty((h, w), bool) for k in reasons}}
         usable = np.empty((h, w), bool)
 
         def band(rows: slice) -> dict[str, Any]:
             b = self._band(rows, [(wrapped[i][rows], modulation[i][rows]) for i in range(n_freq)],
                            {name: out[name][rows] for name in out})
-            for k in ("shadow", "low_modulation", "order_error"):
+            for k in reasons:
                 masks[k][rows] = b["masks"][k]
             usable[rows] = b["usable"]
             return b["sums"]
@@ -548,6 +592,11 @@ class _OrientationDecoder:
         checks = _checks(in_bands(h, band))
         if s.self_check:
             self._judge(checks)
+        if self._judges_paths:
+            sigma_b = self.noise.sigma(out["background"]) * np.float32(np.sqrt(2.0 / ps.steps))
+            masks["interreflection"] |= _modulation_ratio_outliers(modulation, ps.fringes, usable, sigma_b, s)
+            masks["order_error"] &= ~masks["interreflection"]  # one reason per corrupted pixel: its own
+            usable &= ~masks["interreflection"]
         f_max = max(ps.fringes)
         maps = self._finish(masks, usable, out["coordinate"], out["phase"], wrapped, modulation, out["background"],
                             out["weight"], f_max)
@@ -621,6 +670,9 @@ class _OrientationDecoder:
                 return _residual_sigma(ps, [sigma_of(lv)(idx) for lv in range(len(ps.fringes))])
 
             masks["order_error"] = _order_errors(residual, residual_sigma, s)
+            if self._judges_paths:
+                masks["interreflection"] = usable & _inconsistent_frequencies(residual, residual_sigma,
+                                                                              masks["order_error"], s)
             sums["order_bad"] = int((masks["order_error"] & usable).sum())
             sums["offsets"] = _offset_sums(ps, absolute, wrapped, usable, rows.start)
             # inverse-variance combination of all frequencies, in units of the finest fringe
@@ -638,6 +690,12 @@ class _OrientationDecoder:
                                  out=maps["coordinate"])
         coordinate -= np.float32(conv.pixel_centre)
         return {"masks": masks, "usable": usable, "sums": sums}
+
+    @property
+    def _judges_paths(self) -> bool:
+        """Whether this decode looks for second light paths (several phase-shift frequencies)."""
+        return (self.settings.interreflection and self.patterns.family in ("heterodyne", "hierarchical")
+                and len(self.patterns.fringes) > 1)
 
     def _pixel_graycode_only(self, masks: dict[str, np.ndarray]) -> tuple[OrientationMaps, dict[str, float]]:
         """OpenCV's GrayCodePattern alone: the coordinate is the pixel (run) the code names."""
