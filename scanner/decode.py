@@ -55,11 +55,14 @@ class DecodeSettings:
     `max_disagreement` of the modulated pixels have a Gray code and a phase that disagree,
     or when the frequencies' residuals are offset by more than `max_frequency_offset` rad.
     `interreflection` (multi-frequency phase-shift sets): mask, as "interreflection", pixels
-    whose phase a second light path corrupts (`_second_path`): their unwrapping residual is
-    beyond `interreflection_sigmas` of its predicted noise and above
-    `interreflection_min_residual` (fraction of π) though short of an order error, or their
+    whose phase a second light path corrupts: their frequencies' absolute phases disagree by
+    more than `interreflection_min_rad` (finest fringe) and `interreflection_sigmas` of their
+    predicted noise though short of an order error (`_inconsistent_frequencies`), or their
     finest/coarsest modulation ratio departs from the image's median by more than
-    `interreflection_ratio` (relative) and `interreflection_sigmas` of its noise.
+    `interreflection_ratio` (relative) and `interreflection_sigmas` of its noise
+    (`_modulation_ratio_outliers`). A second path whose phase shift is about the same at every
+    frequency (nearby points: the last few pixels at a concave fold) or that outshines the
+    direct light is not seen by either test.
     """
 
     min_modulation: float = 0.005
@@ -76,8 +79,8 @@ class DecodeSettings:
     max_disagreement: float = 0.05
     max_frequency_offset: float = 0.3
     interreflection: bool = True
-    interreflection_sigmas: float = 6.0
-    interreflection_min_residual: float = 0.1
+    interreflection_sigmas: float = 5.0
+    interreflection_min_rad: float = 0.2
     interreflection_ratio: float = 0.15
 
 
@@ -253,15 +256,28 @@ def _order_errors(residual: np.ndarray, candidates_sigma: Callable[[np.ndarray],
     return errors
 
 
-def _inconsistent_frequencies(residual: np.ndarray, sigma_of: Callable[[np.ndarray], np.ndarray],
-                              order_error: np.ndarray, settings: DecodeSettings) -> np.ndarray:
-    """Pixels whose frequencies disagree beyond their noise but short of an order error
-    (the mark of a second light path: its phase offset differs per frequency)."""
-    floor = np.float32(settings.interreflection_min_residual)
-    flagged = (residual > floor) & ~order_error
-    idx = np.flatnonzero(flagged)
-    if idx.size:
-        flagged.flat[idx] = residual.flat[idx] > np.float32(settings.interreflection_sigmas) * sigma_of(idx)
+def _inconsistent_frequencies(absolute: list[np.ndarray], fringes: list[float],
+                              sigma_of: Callable[[int], Callable[[np.ndarray], np.ndarray]], candidates: np.ndarray,
+                              settings: DecodeSettings) -> np.ndarray:
+    """Among `candidates`, pixels whose frequencies' absolute phases, scaled to the finest
+    fringe, disagree pairwise by more than `interreflection_min_rad` and
+    `interreflection_sigmas` of the pair's predicted noise (no beat amplification: each
+    frequency's own phase noise). One light path gives every frequency the same coordinate; a
+    second path of different coordinate shifts each frequency's phase differently."""
+    flagged = np.zeros_like(candidates)
+    idx = np.flatnonzero(candidates)
+    if not idx.size:
+        return flagged
+    f_max = max(fringes)
+    scaled = [a.flat[idx] * np.float32(f_max / f) for a, f in zip(absolute, fringes)]
+    sigma = [sigma_of(i)(idx) * np.float32(f_max / f) for i, f in enumerate(fringes)]
+    out = np.zeros(idx.size, bool)
+    for i in range(len(fringes)):
+        for j in range(i + 1, len(fringes)):
+            dev = np.abs(scaled[i] - scaled[j])
+            out |= (dev > np.float32(settings.interreflection_min_rad)) & \
+                (dev > np.float32(settings.interreflection_sigmas) * np.hypot(sigma[i], sigma[j]))
+    flagged.flat[idx] = out
     return flagged
 
 
@@ -671,8 +687,8 @@ class _OrientationDecoder:
 
             masks["order_error"] = _order_errors(residual, residual_sigma, s)
             if self._judges_paths:
-                masks["interreflection"] = usable & _inconsistent_frequencies(residual, residual_sigma,
-                                                                              masks["order_error"], s)
+                masks["interreflection"] = _inconsistent_frequencies(absolute, ps.fringes, sigma_of,
+                                                                     usable & ~masks["order_error"], s)
             sums["order_bad"] = int((masks["order_error"] & usable).sum())
             sums["offsets"] = _offset_sums(ps, absolute, wrapped, usable, rows.start)
             # inverse-variance combination of all frequencies, in units of the finest fringe

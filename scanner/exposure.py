@@ -9,7 +9,9 @@ scale, inside the optional rectangle), the projector's light W − K and the fri
 linear in exposure, so at exposure t a pixel peaks at W·t/t0 and has modulation
 B(t) = c·(W − K)/2·t/t0: the saturation and modulation histograms at any t follow from the
 probe. A pixel is *covered* at t when it stays below `SATURATION_LEVEL` of full scale and its
-B reaches `GOOD_MODULATION` of full scale (a precise phase). When the probe itself saturates
+B reaches `GOOD_MODULATION` of full scale: three-frequency heterodyne unwrapping amplifies the
+phase noise ~15x (beat of 6 fringes), so a rare order error needs B ≳ 35 σ_I; for a 10 ke
+full-well sensor at 12 bits (shot-noise σ_I ≈ 14 DN at 500 DN) that is ~10 % of full scale. When the probe itself saturates
 more than `PROBE_MAX_SATURATED` of the ROI, it is repeated at t0/8 (at most `PROBE_TRIES`).
   - `auto`: the one exposure (of a half-stop grid within the camera's range) that covers the
     most ROI pixels, the longest of those within 0.2 % of the best (less noise);
@@ -43,7 +45,7 @@ from scanner.patterns import PatternSet
 
 ROI_MIN_CONTRAST = 0.01  # of full scale at the probe exposure: a pixel the projector lights
 SATURATION_LEVEL = 0.98  # of full scale: brighter than this at the peak counts as saturated
-GOOD_MODULATION = 0.02  # of full scale: modulation B that gives a precise phase
+GOOD_MODULATION = 0.1  # of full scale: modulation B whose phase survives temporal unwrapping (see below)
 PROBE_MAX_SATURATED = 0.005  # of the ROI: a probe brighter than this is repeated shorter
 PROBE_TRIES = 3
 PROBE_SHORTEN = 8.0
