@@ -178,7 +178,7 @@ def test_hdr_session_keeps_every_exposure_and_redecodes_bit_identically(tmp_path
     outputs = session.outputs
     with np.load(outputs / "maps.npz") as z:
         index = z["vertical/exposure_index"]
-        assert set(np.unique(index)) <= {0, 1} and (index == 1).mean() > 0.5  # the longer one is less noisy
+        assert set(np.unique(index)) == {0, 1}  # the bright plane from 4 ms (16 ms clips it), the rest from 16 ms
         assert np.isfinite(z["vertical/phase_sigma"][z["valid"]]).all()
     before = {name: digest(outputs / name) for name in ("maps.npz", "cloud.ply")}
     assert result.decoded.valid.mean() > 0.5
