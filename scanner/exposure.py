@@ -258,7 +258,7 @@ def fuse_orientation(maps: list[OrientationMaps]) -> FusedOrientationMaps:
     unsaturated = np.stack([~m.masks["saturated"] for m in maps])
     fallback = np.where(unsaturated.any(axis=0), len(maps) - 1 - np.argmax(unsaturated[::-1], axis=0), 0)
     choice = np.where(np.logical_or.reduce([m.valid for m in maps]), best, fallback).astype(np.uint8)
-    reasons = sorted({k for m in maps for k in m.masks})
+    reasons = list(dict.fromkeys(k for m in maps for k in m.masks))  # decode's order of reasons
     masks = {k: _pick([m.masks.get(k, np.zeros_like(m.valid)) for m in maps], choice) for k in reasons}
     first = maps[0]
     n_freq = len(first.modulation)
