@@ -187,10 +187,18 @@ def phase_shift(block: np.ndarray | list[np.ndarray], steps: int, origin: float,
     s = _weighted_sum(frames, -np.sin(angle) * (2.0 / steps))  # B·sin φ
     a = _weighted_sum(frames, np.full(steps, 1.0 / steps))  # A
     if out is None:
-        return cv2.phase(c, s), cv2.magnitude(c, s), a
+        return cv2.phase(c, s), _magnitude(c, s), a
     cv2.phase(c, s, angle=out[0])
-    cv2.magnitude(c, s, magnitude=out[1])
+    _magnitude(c, s, out[1])
     return out[0], out[1], a
+
+
+def _magnitude(c: np.ndarray, s: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """sqrt(c² + s²) in float32 by numpy: cv2.magnitude's result depends on its buffers' memory
+    alignment (last-ulp differences between runs), and a session must decode bit-identically."""
+    m = np.multiply(c, c, out=out)
+    m += s * s
+    return np.sqrt(m, out=m)
 
 
 def _unwrap_step(coarse: np.ndarray, ratio: float, fine_wrapped: np.ndarray,

@@ -206,3 +206,4 @@ def test_auto_exposure_capture_records_its_choice(tmp_path):
     assert {f["exposure_s"] for f in session.manifest["frames"]} == set(record["exposures_s"])
     assert record["predicted_coverage"] > 0.9
     assert session.manifest["timings_s"]["exposure_plan"] > 0
+
