@@ -4,7 +4,8 @@ For the part (every scene object, not the reference plane) where the projector l
 valid coverage (valid / lit, saturated pixels included: what a user gets), depth error RMS
 on its smooth region (`sim.evaluate.smooth_region`), projector-coordinate (phase) error of the
 valid pixels, fringe-order errors (valid pixels off by half a period or more), pixels masked
-per reason, and the session's exposures and capture time.
+per reason, and the session's exposures and capture time (the simulator's wall time, which is
+mostly rendering, and the nominal time the rig's pattern period and exposures take).
 
     python -m sim.shiny_figures SESSION [--interreflection-off]
 
@@ -20,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from scanner.acquisition import EXPOSURE_PERIOD_MARGIN_S
 from scanner.decode import DecodeSettings, decode
 from scanner.exposure import fuse
 from scanner.pipeline import ScanResult
@@ -54,8 +56,20 @@ def part_figures(result: ScanResult, truth: Truth) -> dict[str, Any]:
         "masked_on_part": {k: int((v & part).sum()) for k, v in m.masks.items()},
         "exposures_s": list(result.session.exposures_s),
         "capture_s": manifest.get("timings_s", {}).get("capture"),
+        "nominal_capture_s": round(nominal_capture_s(result.session), 3),
         "exposure_reason": (manifest.get("exposure") or {}).get("reason"),
     }
+
+
+def nominal_capture_s(session: Session) -> float:
+    """Capture time the rig's sequencing takes (s), the renderer's time left out: every frame
+    (the probe's three per pre-capture included) holds a pattern for max(period, exposure +
+    margin), as `scanner.acquisition.settings_for_exposure` sets it."""
+    period = float(session.manifest["rig_config"]["rig"]["period_s"])
+    n = session.patterns.n_frames
+    record = session.manifest.get("exposure") or {}
+    probe = 3 * int(record.get("probe_captures", 0)) * period
+    return probe + sum(n * max(period, t + EXPOSURE_PERIOD_MARGIN_S) for t in session.exposures_s)
 
 
 def session_figures(path: str, interreflection: bool = True) -> dict[str, Any]:
