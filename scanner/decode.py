@@ -55,8 +55,9 @@ class DecodeSettings:
     `max_disagreement` of the modulated pixels have a Gray code and a phase that disagree,
     or when the frequencies' residuals are offset by more than `max_frequency_offset` rad.
     `interreflection` (multi-frequency phase-shift sets): mask, as "interreflection", pixels
-    whose phase a second light path corrupts: their frequencies' absolute phases disagree by
-    more than `interreflection_min_rad` (finest fringe) and `interreflection_sigmas` of their
+    whose phase a second light path corrupts: their frequencies' absolute phases disagree
+    (beyond the image's median, systematic, disagreement) by more than
+    `interreflection_min_rad` (finest fringe) and `interreflection_sigmas` of their
     predicted noise though short of an order error (`_inconsistent_frequencies`), or their
     finest/coarsest modulation ratio departs from the image's median by more than
     `interreflection_ratio` (relative) and `interreflection_sigmas` of its noise
@@ -264,27 +265,30 @@ def _order_errors(residual: np.ndarray, candidates_sigma: Callable[[np.ndarray],
     return errors
 
 
-def _inconsistent_frequencies(absolute: list[np.ndarray], fringes: list[float],
-                              sigma_of: Callable[[int], Callable[[np.ndarray], np.ndarray]], candidates: np.ndarray,
-                              settings: DecodeSettings) -> np.ndarray:
+def _inconsistent_frequencies(absolute: list[np.ndarray], fringes: list[float], sigma: list[np.ndarray],
+                              candidates: np.ndarray, settings: DecodeSettings) -> np.ndarray:
     """Among `candidates`, pixels whose frequencies' absolute phases, scaled to the finest
-    fringe, disagree pairwise by more than `interreflection_min_rad` and
-    `interreflection_sigmas` of the pair's predicted noise (no beat amplification: each
-    frequency's own phase noise). One light path gives every frequency the same coordinate; a
-    second path of different coordinate shifts each frequency's phase differently."""
+    fringe, disagree pairwise, beyond the image's median disagreement of that pair (a
+    systematic offset between frequencies is no second path), by more than
+    `interreflection_min_rad` and `interreflection_sigmas` of the pair's predicted noise
+    (`sigma`: each frequency's phase noise, rad; no beat amplification). One light path gives
+    every frequency the same coordinate; a second path of another coordinate shifts each
+    frequency's phase differently."""
     flagged = np.zeros_like(candidates)
     idx = np.flatnonzero(candidates)
-    if not idx.size:
+    if idx.size < MIN_JUDGED_PIXELS:
         return flagged
     f_max = max(fringes)
     scaled = [a.flat[idx] * np.float32(f_max / f) for a, f in zip(absolute, fringes)]
-    sigma = [sigma_of(i)(idx) * np.float32(f_max / f) for i, f in enumerate(fringes)]
+    noise = [g.flat[idx] * np.float32(f_max / f) for g, f in zip(sigma, fringes)]
     out = np.zeros(idx.size, bool)
+    step = max(1, idx.size // 200000)
     for i in range(len(fringes)):
         for j in range(i + 1, len(fringes)):
-            dev = np.abs(scaled[i] - scaled[j])
+            diff = scaled[i] - scaled[j]
+            dev = np.abs(diff - np.float32(np.median(diff[::step])))
             out |= (dev > np.float32(settings.interreflection_min_rad)) & \
-                (dev > np.float32(settings.interreflection_sigmas) * np.hypot(sigma[i], sigma[j]))
+                (dev > np.float32(settings.interreflection_sigmas) * np.hypot(noise[i], noise[j]))
     flagged.flat[idx] = out
     return flagged
 
@@ -601,7 +605,7 @@ class _OrientationDecoder:
         out = {name: np.empty((h, w), np.float32) for name in ("background", "phase", "weight", "coordinate")}
         wrapped = [np.empty((h, w), np.float32) for _ in range(n_freq)]
         modulation = [np.empty((h, w), np.float32) for _ in range(n_freq)]
-        reasons = ("shadow", "low_modulation", "order_error") + (("interreflection",) if self._judges_paths else ())
+        reasons = ("shadow", "low_modulation", "order_error")
         masks = {"saturated": self.saturated, **{k: np.empty((h, w), bool) for k in reasons}}
         usable = np.empty((h, w), bool)
 
@@ -618,6 +622,10 @@ class _OrientationDecoder:
             self._judge(checks)
         if self._judges_paths:
             sigma_b = self.noise.sigma(out["background"]) * np.float32(np.sqrt(2.0 / ps.steps))
+            absolute, _ = _temporal_unwrap(ps, wrapped)
+            sigma = [sigma_b / np.maximum(b, np.float32(1e-6)) for b in modulation]
+            masks["interreflection"] = _inconsistent_frequencies(absolute, ps.fringes, sigma,
+                                                                 usable & ~masks["order_error"], s)
             masks["interreflection"] |= _modulation_ratio_outliers(modulation, ps.fringes, usable, sigma_b, s)
             masks["order_error"] &= ~masks["interreflection"]  # one reason per corrupted pixel: its own
             usable &= ~masks["interreflection"]
@@ -694,9 +702,6 @@ class _OrientationDecoder:
                 return _residual_sigma(ps, [sigma_of(lv)(idx) for lv in range(len(ps.fringes))])
 
             masks["order_error"] = _order_errors(residual, residual_sigma, s)
-            if self._judges_paths:
-                masks["interreflection"] = _inconsistent_frequencies(absolute, ps.fringes, sigma_of,
-                                                                     usable & ~masks["order_error"], s)
             sums["order_bad"] = int((masks["order_error"] & usable).sum())
             sums["offsets"] = _offset_sums(ps, absolute, wrapped, usable, rows.start)
             # inverse-variance combination of all frequencies, in units of the finest fringe
