@@ -63,11 +63,15 @@ def test_hdr_covers_the_shiny_part(aluminium):
     assert hdr["fringe_order_errors"] < 0.001 * hdr["part_lit_pixels"]
 
 
+def without_and_with_the_mask(path: str) -> tuple[dict, dict]:
+    """The session's figures decoded without, then with, the interreflection mask (printed)."""
+    off, on = session_figures(path, interreflection=False), session_figures(path, interreflection=True)
+    print("without", off, "\nwith", on)
+    return off, on
+
+
 def test_interreflection_rejection_on_a_concave_corner(tmp_path):
-    path = scan_session(tmp_path / "corner", "concave_corner.toml", None)
-    before = session_figures(path, interreflection=False)
-    after = session_figures(path, interreflection=True)
-    print("before", before, "\nafter", after)
+    before, after = without_and_with_the_mask(scan_session(tmp_path / "corner", "concave_corner.toml", None))
     assert "interreflection" not in before["masked_on_part"]
     assert after["masked_on_part"]["interreflection"] > 0.1 * after["part_lit_pixels"]
     assert after["fringe_order_errors"] < 0.2 * before["fringe_order_errors"]
@@ -75,10 +79,7 @@ def test_interreflection_rejection_on_a_concave_corner(tmp_path):
 
 
 def test_matte_demo_unchanged_by_the_interreflection_mask(tmp_path):
-    path = scan_session(tmp_path / "matte", "demo.toml", None)
-    off = session_figures(path, interreflection=False)
-    on = session_figures(path, interreflection=True)
-    print("off", off, "\non", on)
+    off, on = without_and_with_the_mask(scan_session(tmp_path / "matte", "demo.toml", None))
     assert abs(on["valid_coverage"] - off["valid_coverage"]) < 5e-4
     assert on["depth_rms_um"] == pytest.approx(off["depth_rms_um"], abs=0.2)
     assert on["fringe_order_errors"] <= off["fringe_order_errors"]
