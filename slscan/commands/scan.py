@@ -53,11 +53,18 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
             options["faults"] = _parse_faults(args.fault)
     elif args.scene or args.fault:
         raise ConfigError(config.path, "rig.driver", "--scene and --fault apply to simulated rigs only")
+    exposure = None
+    if getattr(args, "exposure", None):
+        from scanner.exposure import ExposureRequest
+
+        exposure = ExposureRequest.parse(args.exposure, args.exposure_roi)
+    elif getattr(args, "exposure_roi", None):
+        raise ConfigError("--exposure-roi", args.exposure_roi, "applies to --exposure auto or hdr only")
     out = Path(args.out)
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
     with open_rig(config, **options) as rig:
-        result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args))
+        result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args), exposure=exposure)
     report(result)
     return Exit.OK
 
@@ -82,6 +89,9 @@ def report(result: Any) -> None:
                                    if v) + " of the pixels")
     if s.recording_path.exists():
         print(f"recording {s.recording_path}   (view: slscan review {s.root})")
+    plan = s.manifest.get("exposure")
+    if plan:
+        print(f"exposure  {plan['reason']}")
     print(f"timings   decode {t['decode'] * 1e3:.0f} ms, reconstruct {t['reconstruct'] * 1e3:.0f} ms")
     if s.integrity != "sha256":
         print(f"warning   frame integrity {s.integrity}", file=sys.stderr)
@@ -214,6 +224,11 @@ def register(sub: Any) -> None:
     s.add_argument("--out", required=True, help="new session folder")
     s.add_argument("--patterns", help="pattern set TOML (default: the rig's)")
     s.add_argument("--seed", type=int, default=0, help="simulated rigs: noise seed")
+    s.add_argument("--exposure", help="auto (one exposure chosen from a white/black/fringe pre-capture), hdr "
+                                      "(several chosen, fused per pixel), or exposures in seconds, e.g. "
+                                      "0.004,0.016,0.064 (default: the rig's exposure_s)")
+    s.add_argument("--exposure-roi", metavar="X,Y,W,H", help="with --exposure auto/hdr: judge only this camera "
+                                                              "rectangle (default: every lit pixel)")
     s.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
                    help="simulated rigs: inject a fault (drop_frame=K, delay_frame=K, delay_s=S, "
                         "disconnect_after=N, stale_frame=K)")
