@@ -160,8 +160,11 @@ def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path |
         from scanner.session_recording import SessionRecording
 
         folder.mkdir(parents=True, exist_ok=True)
-        own = recording = SessionRecording(folder / "inspection.rrd", Session.open(source).id, send_blueprint=False)
+        session = Session.open(source)
+        own = recording = SessionRecording(folder / "inspection.rrd", session.id, send_blueprint=False)
     try:
+        if own is not None:  # the session's rig: its world frame is the recording's `world`
+            own.log_rig(session.rig_model())
         report = inspect(scan, model, tol, settings, recording)
     finally:
         if own is not None:
