@@ -14,6 +14,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from inspection.bins.instance_plane import SceneContext
 from inspection.bins.instances import instances_from_depth_steps, instances_from_label_image
 from inspection.bins.picking import pick_order
 from inspection.bins.pose import PoseSettings, ThinPartModel, estimate_poses
@@ -28,6 +29,7 @@ from slscan.commands.pose import load_masks, load_part
 
 PARTS = Path(__file__).resolve().parents[1] / "config" / "parts"
 TRANS_MM, ROT_DEG = 0.1, 0.5
+CAMERA = RigConfig.load().nominal_model().camera   # the default rig's, which the simulated bins are scanned with
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +75,7 @@ def test_poses_of_a_small_bin_match_the_truth(small_bin: tuple, model: ThinPartM
     b, cloud, ids, occlusion = small_bin
     assert b.front_up.any() and (~b.front_up).any() and (occlusion > 0.02).any() and (occlusion < 0.3).sum() >= 2
     inst = instances_from_label_image(np.where(ids >= 2, ids, 0), cloud)
-    poses = estimate_poses(inst, model, cloud.points[cloud.valid], PoseSettings(method=method))
+    poses = estimate_poses(inst, model, SceneContext.of_cloud(cloud, CAMERA), PoseSettings(method=method))
     assert len(poses) == len(inst)
     if method == "ndt":   # the weaker coarse method: whatever it reports must be right
         found = {p.instance_id - 2: p for p in poses if p.ok}
@@ -223,7 +225,7 @@ def test_poses_from_a_full_fringe_scan_of_a_bin(model: ThinPartModel) -> None:
     b = bin_scene(5, seed=7, spread_mm=(12.0, 8.0))
     cloud, ids = fringe_scan_bin(b)
     inst = instances_from_label_image(np.where(ids >= 2, ids, 0), cloud, min_points=200)
-    poses = estimate_poses(inst, model, cloud.points[cloud.valid], PoseSettings())
+    poses = estimate_poses(inst, model, SceneContext.of_cloud(cloud, CAMERA), PoseSettings())
     for p in poses:
         if p.ok:
             rot, trans = pose_difference(b.poses[p.instance_id - 2], p.pose)
@@ -240,7 +242,7 @@ def test_silhouette_handedness_tells_the_side_of_uncovered_parts(small_bin: tupl
     """Hu's seventh moment (which side's coarse search runs first) flips sign in a mirror
     image, the two sides of the tab have opposite signs, and an uncovered instance's
     silhouette has the sign of the side the simulator put up."""
-    from inspection.bins.instance_plane import SceneContext, instance_patch, onto_plane
+    from inspection.bins.instance_plane import instance_patch, onto_plane
     from inspection.bins.part_model import skew_moment
 
     front, back = model.sides["front"].skew, model.sides["back"].skew

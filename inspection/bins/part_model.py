@@ -24,6 +24,8 @@ from inspection.bins.pose_settings import PoseSettings
 from inspection.errors import CadError
 from inspection.registration import ModelTarget, Samples
 
+INTERIOR_MM = 0.5   # face samples this far inside the outline are its interior
+
 
 @dataclass(eq=False)
 class SideModel:
@@ -41,9 +43,14 @@ class SideModel:
     skew: float
     ndt: dict[float, tuple] = field(default_factory=dict)
     outline_tree: cKDTree = field(init=False)
+    interior: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         self.outline_tree = cKDTree(self.outline)
+        # face samples away from the outline: where a scan measures the face itself, not
+        # a pixel straddling its edge (depth mixed with what lies beyond)
+        away = self.outline_tree.query(self.face.points)[0] > INTERIOR_MM
+        self.interior = self.face.points[away][:: max(1, int(away.sum()) // 1500)]
 
 
 @dataclass(eq=False)

@@ -56,7 +56,8 @@ class PartPose:
     `side` "front" or "back" (the face toward the camera), `fitness`: fraction of the
     instance's points on the posed face, `rmse_mm` their RMS distance to it, `occlusion`:
     fraction of the posed visible face covered by something higher, `side_margin`:
-    outline-fit score of the chosen side minus the other's; `time_s` of the estimation."""
+    outline-fit score of the chosen side minus the other's; `time_s` (wall) and `cpu_s`
+    (process CPU) of the estimation."""
 
     instance_id: int
     ok: bool
@@ -70,6 +71,7 @@ class PartPose:
     occlusion: float = float("nan")
     side_margin: float = float("nan")
     time_s: float = 0.0
+    cpu_s: float = 0.0
     label: str | None = None
     edge_fit: float = float("nan")
 
@@ -78,14 +80,14 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
                   settings: PoseSettings = PoseSettings()) -> PartPose:
     """The pose of `model` explaining `instance` (camera frame), or a failed PartPose
     saying why (see the module docstring)."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     method = f"{settings.method}+icp"
     pts = np.asarray(instance.points, dtype=np.float64)
     pts = pts[np.isfinite(pts).all(axis=1)]
 
     def failed(reason: str, **kw: float) -> PartPose:
         return PartPose(instance.id, False, reason, method, len(pts), time_s=time.perf_counter() - t0,
-                        label=instance.label, **kw)
+                        cpu_s=time.process_time() - c0, label=instance.label, **kw)
 
     if len(pts) < settings.min_points:
         return failed(f"only {len(pts)} points (needs {settings.min_points})")
@@ -108,7 +110,7 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
         outcome = _fit(flat, raw, patch, model, settings, rng, judged)
         if isinstance(outcome, PartPose):
             return replace(outcome, instance_id=instance.id, points=len(pts), time_s=time.perf_counter() - t0,
-                           label=instance.label)
+                           cpu_s=time.process_time() - c0, label=instance.label)
         if not outcome[2]:   # no attempt can settle it
             break
     return failed(outcome[0], **outcome[1])
@@ -178,6 +180,15 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
         best = max([best] + new, key=lambda j: j[0])
         if best[2] is T0:
             break
+    # a covered part shows a fragment, and a fragment symmetric about some line in its
+    # plane is explained as well by the part flipped over about that line (the other side
+    # up): the best pose flipped about lines through the fragment's centroid every
+    # `mirror_step_deg` (its symmetry axes pass through it), so that such a rival is judged
+    _, side0, T0 = best
+    if _occlusion(patch, model.sides[side0], T0) >= settings.mirror_occlusion:
+        other = "back" if side0 == "front" else "front"
+        judged += _judge(patch, model.sides[other], sp, sn, mirror_flips(T0, pts, patch, settings.mirror_step_deg),
+                         settings)
     judged.sort(key=lambda j: -j[0])
     ambiguous = _ambiguity(judged, patch, settings)
     if ambiguous is not None:
@@ -237,6 +248,20 @@ def _ambiguity(judged: list[tuple[float, str, np.ndarray]], patch: InstancePatch
     return None
 
 
+def mirror_flips(T: np.ndarray, pts: np.ndarray, patch: InstancePatch, step_deg: float) -> list[np.ndarray]:
+    """Pose `T` (scan -> part) after a half turn of the scan about lines in the instance's
+    plane through the centroid of its points `pts`, one every `step_deg` over 180 deg."""
+    c = pts.mean(axis=0)
+    out = []
+    for a in np.radians(np.arange(0.0, 180.0, step_deg)):
+        axis = np.cos(a) * patch.e1 + np.sin(a) * patch.e2
+        F = np.eye(4)
+        F[:3, :3] = 2.0 * np.outer(axis, axis) - np.eye(3)   # rotation by pi about the axis
+        F[:3, 3] = c - F[:3, :3] @ c
+        out.append(T @ F)
+    return out
+
+
 def _side_margin(judged: list[tuple[float, str, np.ndarray]]) -> float:
     """Score of the best pose (`judged` sorted best first) minus the best of the other side's."""
     others = [j[0] for j in judged if j[1] != judged[0][1]]
@@ -275,19 +300,33 @@ def _face_cells(patch: InstancePatch, sm: SideModel, T: np.ndarray, n: int = 150
     return patch.cells(transform_points(np.linalg.inv(T), face))
 
 
-def _spill(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> float:
-    """Fraction of the posed face where a lower surface is seen (it would hide it)."""
-    r, c, inside = _face_cells(patch, sm, T)
-    return float(np.mean(inside & patch.lower[r, c]))
-
-
-def _occlusion(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> float:
-    """Fraction of the posed face covered by a higher surface, among its cells that are
-    observed, covered or showing a lower surface (unobserved cells left out)."""
+def face_evidence(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> tuple[float, float]:
+    """(covered, contradicted): the fractions of the posed face (its interior samples,
+    scan -> part pose `T`) that the scan shows covered by a surface in front of it, and
+    beyond it (a lower surface seen where the face would hide it), among its samples
+    with a measurement. With the organised scan in the patch's context every sample is
+    checked at its own pixel, however far from the instance; without it, on the
+    instance's grid (samples off the grid, or unobserved, left out)."""
+    context = patch.context
+    if context is not None and context.image is not None:
+        d = context.beyond(transform_points(np.linalg.inv(T), sm.interior))
+        known = np.isfinite(d)
+        n = max(int(known.sum()), 1)
+        return float(np.sum(d[known] < -patch.step) / n), float(np.sum(d[known] > patch.step) / n)
     r, c, inside = _face_cells(patch, sm, T)
     covered = inside & patch.higher[r, c] & ~patch.observed[r, c]
     known = inside & (patch.observed[r, c] | patch.higher[r, c] | patch.lower[r, c])
-    return float(covered.sum() / max(known.sum(), 1))
+    return float(covered.sum() / max(known.sum(), 1)), float(np.mean(inside & patch.lower[r, c]))
+
+
+def _spill(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> float:
+    """Fraction of the posed face where a lower surface is seen (it would hide it)."""
+    return face_evidence(patch, sm, T)[1]
+
+
+def _occlusion(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> float:
+    """Fraction of the posed face covered by a surface in front of it."""
+    return face_evidence(patch, sm, T)[0]
 
 
 def _ndt_poses(src: np.ndarray, patch: InstancePatch, model: ThinPartModel, sm: SideModel,
@@ -323,9 +362,8 @@ def _ndt_poses(src: np.ndarray, patch: InstancePatch, model: ThinPartModel, sm: 
     return [T for T, _ in fine[:n_best]]
 
 
-def estimate_poses(instances: list[Instance], model: ThinPartModel, scene_points: np.ndarray | None = None,
+def estimate_poses(instances: list[Instance], model: ThinPartModel, context: SceneContext | None = None,
                    settings: PoseSettings = PoseSettings()) -> list[PartPose]:
-    """`estimate_pose` for every instance, with the scene's points as context (None: every
+    """`estimate_pose` for every instance, with the scene as context (None: every
     instance edge is taken as a true outline edge)."""
-    context = SceneContext(scene_points) if scene_points is not None and len(scene_points) else None
     return [estimate_pose(i, model, context, settings) for i in instances]

@@ -26,7 +26,10 @@ class PoseSettings:
     `max_plane_rms_mm`, `min_plane_fraction`: an instance with a larger robust RMS
     distance to its plane, or a smaller fraction of its points within that distance, is
     not one flat part;
-    `max_occlusion`: above it a part is not offered for picking; `min_points`: smaller
+    `max_occlusion`: above it a part is not offered for picking; `mirror_occlusion`: from
+    this estimated occlusion up, the best pose is also flipped over about lines through
+    the visible fragment every `mirror_step_deg` (a fragment symmetric about a line is
+    explained as well by the other side up: that rival must be judged); `min_points`: smaller
     instances are not posed; `hypotheses`: SAC-IA triplets scored; `verify`: its distinct
     coarse poses refined per side; `attempts`: SAC-IA runs (fresh samples) before an
     instance is reported as failed."""
@@ -44,6 +47,8 @@ class PoseSettings:
     max_plane_rms_mm: float = 0.1
     min_plane_fraction: float = 0.8
     max_occlusion: float = 0.3
+    mirror_occlusion: float = 0.2
+    mirror_step_deg: float = 15.0
     min_points: int = 200
     hypotheses: int = 100
     verify: int = 2
