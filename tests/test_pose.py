@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import re
+from datetime import datetime
 from pathlib import Path
 
 import cv2
@@ -20,8 +21,9 @@ from inspection.bins.picking import pick_order
 from inspection.bins.pose import PoseSettings, ThinPartModel, estimate_poses
 from inspection.errors import CadError, InspectionError, MaskError
 from inspection.registration import pose_difference
+from scanner.errors import ConfigError
 from scanner.recording_reader import entity_paths
-from scanner.rig import RigConfig
+from scanner.rig import DEFAULT_RIG, RigConfig
 from scanner.session_recording import CLOUD
 from sim.bins import TabPart, bin_scene, fringe_scan_bin, scan_bin
 from slscan.cli import main
@@ -110,11 +112,17 @@ def test_pose_command_writes_the_poses_file_and_recording(small_bin: tuple, tmp_
     ply = _write_bin_cloud(cloud, ids, tmp_path / "bin.ply")
     masks = tmp_path / "labels.png"
     cv2.imwrite(str(masks), np.where(ids >= 2, ids, 0).astype(np.uint16))
-    assert main(["pose", str(ply), "--part", str(PARTS / "nickel_tab.toml"), "--masks", str(masks)]) == 0
+    grip_xy, approach = np.array([6.0, 4.0]), np.array([0.0, 0.6, 0.8])   # part frame, front up
+    part = tmp_path / "gripped_tab.toml"
+    part.write_text((PARTS / "nickel_tab.toml").read_text()
+                    + f"grip_point_mm = {grip_xy.tolist()}\napproach = {approach.tolist()}\n")
+    assert main(["pose", str(ply), "--part", str(part), "--masks", str(masks), "--rig", str(DEFAULT_RIG)]) == 0
     out = capsys.readouterr().out
     assert "rank" in out and "pickable" in out
     doc = json.loads((tmp_path / "bin.poses.json").read_text())
     assert doc["format"] == "slscan-poses" and doc["part"] == "nickel-tab"
+    assert doc["rig"]["name"] == RigConfig.load().name and "uncalibrated" in doc["rig"]["calibration"]
+    assert datetime.fromisoformat(doc["created"]).tzinfo is not None and doc["units"]["length"] == "mm"
     ok = [r for r in doc["parts"] if r["status"] == "ok"]
     assert len(ok) >= int((occlusion < 0.3).sum())
     ranks = sorted(r["pick_rank"] for r in doc["parts"] if r["pick_rank"] is not None)
@@ -131,12 +139,26 @@ def test_pose_command_writes_the_poses_file_and_recording(small_bin: tuple, tmp_
         q = o3d.geometry.get_rotation_matrix_from_quaternion(np.array([w, x, y, z]))
         assert np.allclose(q, T[:3, :3], atol=1e-6) and w >= 0
         assert np.allclose(r["world"]["position_mm"], r["camera"]["position_mm"])   # the bench rig: world = camera
-    # without masks: tray removal + depth-step components; every pose is one of the true ones
+        # the approach and grip point: the part file's, posed by the true pose (back up:
+        # mirrored through the part's mid-plane), on the face that is up
+        front = bool(b.front_up[k])
+        a_true = b.poses[k][:3, :3] @ (approach if front else approach * [1, 1, -1])
+        assert np.degrees(np.arccos(min(1.0, np.dot(r["approach"]["camera"], a_true)))) <= ROT_DEG
+        assert np.allclose(r["approach"]["world"], r["approach"]["camera"])
+        g_true = b.poses[k] @ np.r_[grip_xy, TabPart().thickness_mm if front else 0.0, 1.0]
+        assert np.linalg.norm(np.array(r["grip_point_mm"]["camera"]) - g_true[:3]) <= 2 * TRANS_MM
+    # without masks: the flat patches above the tray; every pose is one of the true ones;
+    # without --rig: camera frame only (no world frame, no identity made up), and the
+    # approach defaults to the up face's normal, toward the camera
     nomask = tmp_path / "nomask.json"
     assert main(["pose", str(ply), "--part", str(PARTS / "nickel_tab.toml"), "--out", str(nomask), "--no-log"]) == 0
+    doc = json.loads(nomask.read_text())
+    assert doc["world_from_camera"] is None and doc["rig"] is None and "camera frame only" in doc["frames"]["world"]
     matched = set()
-    for r in json.loads(nomask.read_text())["parts"]:
+    for r in doc["parts"]:
+        assert r.get("world") is None and "grip_point_mm" not in r
         if r["status"] == "ok":
+            assert np.dot(r["approach"]["camera"], r["camera"]["position_mm"]) < 0   # toward the camera at the origin
             T = np.eye(4)
             T[:3, :3] = r["camera"]["rotation"]
             T[:3, 3] = r["camera"]["position_mm"]
@@ -192,16 +214,20 @@ def test_masks_of_the_wrong_size_are_an_error(small_bin: tuple, tmp_path: Path,
 
 
 @pytest.mark.parametrize("text, match", [
-    ("this is [not toml", "not a readable TOML"),
-    ("[other]\nx = 1\n", r"no \[part\] table"),
-    ("[part]\nkind = \"gear\"\n", "only \"tab\""),
-    ("[part]\nkind = \"tab\"\nlenght_mm = 3\n", r"unknown keys \['lenght_mm'\]"),
-    ("[part]\nkind = \"tab\"\nwidth_mm = -8\n", "inconsistent tab part"),
+    ("this is [not toml", "not valid TOML"),
+    ("[other]\nx = 1\n", r"key 'other': unknown key in the top level"),
+    ("[part]\nkind = \"gear\"\n", r"key 'part.kind': must be 'tab'"),
+    ("[part]\nkind = \"tab\"\nlenght_mm = 3\n", r"key 'part.lenght_mm': unknown key in \[part\]; did you mean 'length_mm'"),
+    ("[part]\nkind = \"tab\"\nwidth_mm = -8\n", r"key 'part.width_mm': must be greater than 0"),
+    ("[part]\nkind = \"tab\"\nnotch_mm = [14.0, 3.0, 5.0]\n", r"key 'part': .*inconsistent"),
+    ("[part]\nkind = \"tab\"\ngrip_point_mm = [24.0, 4.0]\n", r"key 'part.grip_point_mm': .* not on the part"),
+    ("[part]\nkind = \"tab\"\napproach = [0.0, 0.0, -1.0]\n", r"must point away from the front face"),
 ])
 def test_nonsense_part_files_are_errors(tmp_path: Path, text: str, match: str) -> None:
+    """Part files go through the one validation layer (sim.bins.PartFile): the file and key named."""
     f = tmp_path / "part.toml"
     f.write_text(text)
-    with pytest.raises(CadError, match=match):
+    with pytest.raises(ConfigError, match=rf"part.toml.*{match}"):
         load_part(f)
 
 

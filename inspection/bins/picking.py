@@ -6,11 +6,17 @@ pickable; they are ranked uncovered first (occlusion <= `free_occlusion`), then 
 high they lie (closest to the camera along its axis first), then by occlusion. Parts
 without a pose, or covered more, are listed unranked with the reason.
 
-Poses file (`POSES_FORMAT`, version 1): per part its id, pick rank (1 = first; null:
-not pickable), position (mm) and orientation of the part frame (quaternion w, x, y, z
-and rotation matrix) in the camera frame and in the rig's world frame, the side up,
-occlusion, fitness, RMSE, method and time; failed parts carry `status: "failed"` and the
-reason, and no pose. Units: mm, rad (none in the file: quaternions and matrices).
+Poses file (`POSES_FORMAT`, version 2): when it was made (`created`, UTC ISO 8601), what
+from (`source`, `rig`: the rig's name, its calibration file or "nominal (uncalibrated)", the
+session id), the frames and conventions (`frames`, `units`), and per part its id, pick
+rank (1 = first; null: not pickable), position (mm) and orientation of the part frame
+(quaternion w, x, y, z and rotation matrix) in the camera frame and in the rig's world
+frame, the approach (unit vector from the part toward the gripper: the part file's, or the
+up face's normal) and, when the part file names one, the grip point (mm) in both frames,
+the side up, occlusion, fitness, RMSE, method, time (wall and CPU); failed parts carry
+`status: "failed"` and the reason, and no pose. Without a rig (a cloud file and no
+`--rig`) there is no world frame: `world_from_camera` and every `world` entry are null and
+`frames.world` says so. Units: mm (quaternions, matrices, directions: none).
 
 Rerun (the rig's world frame as the recording's rig logged it, scan timeline):
 ``world/pose/instances`` the instances' points coloured by part;
@@ -35,7 +41,8 @@ if TYPE_CHECKING:  # rerun, which the recording imports, only when a recording i
     from scanner.session_recording import SessionRecording
 
 POSES_FORMAT = "slscan-poses"
-POSES_VERSION = 1
+POSES_VERSION = 2
+NO_RIG = "camera frame only: no rig (pass --rig for the world frame)"
 INSTANCES = "world/pose/instances"
 MODELS = "world/pose/models"
 PICK_ORDER = "world/pose/pick_order"
@@ -70,20 +77,32 @@ def _frame(T: np.ndarray) -> dict[str, Any]:
             "rotation": [[round(float(x), 8) for x in row] for row in T[:3, :3]]}
 
 
-def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: np.ndarray, source: str,
-                   max_occlusion: float = 0.3, message: str = "") -> dict[str, Any]:
-    """The poses file's content (see the module docstring)."""
+def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: np.ndarray | None, source: str,
+                   rig: dict[str, Any] | None = None, max_occlusion: float = 0.3, message: str = "") -> dict[str, Any]:
+    """The poses file's content (see the module docstring); `world_from_cam` None: no rig,
+    camera frame only; `rig`: its name, calibration and session id as the file states them."""
+    from datetime import datetime, timezone
+
+    W = None if world_from_cam is None else np.asarray(world_from_cam, np.float64)
     ranks = pick_order(poses, max_occlusion)
     parts = []
     for p in sorted(poses, key=lambda p: (ranks.get(p.instance_id, 10 ** 9), p.instance_id)):
         row: dict[str, Any] = {"id": p.instance_id, "status": "ok" if p.ok else "failed",
                                "pick_rank": ranks.get(p.instance_id), "points": p.points, "method": p.method,
-                               "time_ms": round(1000 * p.time_s, 1)}
+                               "time_ms": round(1000 * p.time_s, 1), "cpu_ms": round(1000 * p.cpu_s, 1)}
         if p.ok:
+            grip, approach = model.up_face(p.side)
+            a_cam = p.pose[:3, :3] @ approach
             row.update({"side_up": p.side, "occlusion": round(p.occlusion, 4), "fitness": round(p.fitness, 4),
                         "rmse_mm": round(p.rmse_mm, 5), "edge_fit": round(p.edge_fit, 4),
                         "side_margin": round(p.side_margin, 4),
-                        "camera": _frame(p.pose), "world": _frame(np.asarray(world_from_cam) @ p.pose)})
+                        "camera": _frame(p.pose), "world": None if W is None else _frame(W @ p.pose),
+                        "approach": {"camera": _rounded(a_cam, 8),
+                                     "world": None if W is None else _rounded(W[:3, :3] @ a_cam, 8)}})
+            if grip is not None:
+                g_cam = transform_points(p.pose, grip[None])[0]
+                row["grip_point_mm"] = {"camera": _rounded(g_cam, 5),
+                                        "world": None if W is None else _rounded(transform_points(W, g_cam[None])[0], 5)}
             if p.instance_id not in ranks:
                 row["reason"] = f"occluded {p.occlusion:.0%} (limit {max_occlusion:.0%})"
         else:
@@ -91,11 +110,23 @@ def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: 
         if p.label:
             row["label"] = p.label
         parts.append(row)
-    return {"format": POSES_FORMAT, "version": POSES_VERSION, "source": source, "part": model.name,
-            "units": {"length": "mm"}, "frames": {"pose": "part -> camera / part -> rig world",
-                                                 "quaternion": "w, x, y, z (Hamilton, unit)"},
-            "world_from_camera": np.asarray(world_from_cam).round(8).tolist(),
+    return {"format": POSES_FORMAT, "version": POSES_VERSION,
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "source": source, "rig": rig, "part": model.name,
+            "units": {"length": "mm", "angles": "none (quaternions, rotation matrices, unit vectors)"},
+            "frames": {"pose": "part -> frame: a part-frame point p maps to R p + position",
+                       "part": "the part file's frame: outline in x, y; back face on z = 0, front face toward +z",
+                       "camera": "x right, y down (image rows), z along the optical axis away from the camera",
+                       "world": NO_RIG if W is None else "the rig's world frame (world_from_camera)",
+                       "quaternion": "w, x, y, z (Hamilton, unit, w >= 0)",
+                       "approach": "unit vector from the part toward the gripper",
+                       "side_up": "the part's face toward the camera (front: +z of the part frame)"},
+            "world_from_camera": None if W is None else W.round(8).tolist(),
             "message": message or f"{len(ranks)} of {len(poses)} parts pickable", "parts": parts}
+
+
+def _rounded(v: np.ndarray, digits: int) -> list[float]:
+    return [round(float(x), digits) for x in v]
 
 
 def table(doc: dict[str, Any]) -> str:

@@ -3,13 +3,14 @@
 
 `slscan pose SESSION|CLOUD --part FILE [--masks PATH] [--method sacia|ndt]` finds the part
 instances (from instance masks aligned with the camera image — label PNGs or Labelme JSON
-— or, without masks, by removing the tray plane and splitting the rest at depth steps),
+— or, without masks, the flat patches above the tray: `inspection.bins.flat_patches`),
 estimates each instance's pose (`inspection.bins.pose`), ranks the pickable ones
 (`inspection.bins.picking`), writes the poses file (`<session>/outputs/poses.json`, or
 `<cloud stem>.poses.json` beside a cloud file), prints the table and logs the bin to a
 Rerun recording beside the poses file. A cloud file is placed on the camera image of the
 rig (`--rig`, default the simulated bench rig), as slscan's own clouds are in its camera
-frame. The part file is a TOML `[part]` table (`kind = "tab"`: the parameters of
+frame; without `--rig` the poses file has no world frame (camera frame only), so a robot
+cell never reads an identity it did not ask for. The part file is a TOML `[part]` table (`kind = "tab"`: the parameters of
 `sim.bins.TabPart`, see config/parts/nickel_tab.toml) or a mesh (PLY, STL, OBJ, OFF; mm).
 Exit code 0 when at least one part is pickable, 1 when none is (the file is written anyway).
 
@@ -35,18 +36,18 @@ MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off")
 
 
 def register(sub: Any) -> None:
-    from scanner.rig import DEFAULT_RIG
-
     p = sub.add_parser("pose", help="poses and pick order of thin flat parts in a bin (poses JSON for a robot cell)")
     p.add_argument("input", help="a session folder or a point cloud file in the camera frame")
     p.add_argument("--part", required=True, help="part file: TOML with a [part] table (kind = \"tab\") or a mesh (mm)")
     p.add_argument("--masks", help="instance masks aligned with the camera image: a label PNG, a Labelme JSON, or "
-                                   "a folder of them (default: tray removal + depth-step components)")
+                                   "a folder of them (default: the flat patches above the tray)")
     p.add_argument("--method", choices=("sacia", "ndt"), default="sacia",
                    help="coarse registration: FPFH + SAC-IA with the Huber score (default) or NDT")
     p.add_argument("--max-occlusion", type=float, default=0.3, metavar="FRACTION",
                    help="parts covered more than this are not offered for picking (default 0.3)")
-    p.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML for a cloud file (camera, world frame)")
+    p.add_argument("--rig", type=Path, help="rig TOML for a cloud file: its camera image and world frame (default: "
+                                            "the simulated bench rig's camera, and no world frame: poses in the "
+                                            "camera frame only)")
     p.add_argument("--out", help="poses file (.json); default <session>/outputs/poses.json or <cloud>.poses.json")
     p.add_argument("--no-log", action="store_true", help="do not write the Rerun recording")
     p.set_defaults(func=cmd_pose)
@@ -75,9 +76,9 @@ def register(sub: Any) -> None:
 
 
 def load_part(path: str | Path) -> Any:
-    """The `inspection.bins.part_model.ThinPartModel` of a part file (see the module docstring)."""
-    import tomllib
-    from dataclasses import fields
+    """The `inspection.bins.part_model.ThinPartModel` of a part file (see the module
+    docstring), with the grip point and approach a TOML part file names."""
+    from dataclasses import replace
 
     from inspection.bins.part_model import ThinPartModel
     from inspection.errors import CadError
@@ -87,30 +88,11 @@ def load_part(path: str | Path) -> Any:
         raise CadError(path, "no such part file")
     suffix = path.suffix.lower()
     if suffix == ".toml":
-        from sim.bins import TabPart
+        from sim.bins import load_part_file
 
-        try:
-            doc = tomllib.loads(path.read_text())
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise CadError(path, f"not a readable TOML file: {exc}") from None
-        table = doc.get("part")
-        if not isinstance(table, dict):
-            raise CadError(path, "no [part] table; see config/parts/nickel_tab.toml")
-        params = dict(table)
-        kind, name = params.pop("kind", None), str(params.pop("name", path.stem))
-        if kind != "tab":
-            raise CadError(path, f"[part] kind = {kind!r}: only \"tab\" (a sim.bins.TabPart outline) is known; "
-                                 "give a mesh file for other parts")
-        known = {f.name for f in fields(TabPart)}
-        unknown = sorted(set(params) - known)
-        if unknown:
-            raise CadError(path, f"[part] has unknown keys {unknown}; known: {sorted(known | {'kind', 'name'})}")
-        try:
-            part = TabPart(**{k: tuple(v) if isinstance(v, list) else v for k, v in params.items()})
-            vertices, triangles = part.mesh()
-        except (TypeError, ValueError) as exc:
-            raise CadError(path, f"[part]: {exc}") from None
-        return ThinPartModel.from_mesh(vertices, triangles, name)
+        spec = load_part_file(path)
+        model = ThinPartModel.from_mesh(*spec.part.mesh(), spec.name)
+        return replace(model, grip_point_mm=spec.grip_point_mm, approach=spec.approach)
     if suffix in MESH_SUFFIXES:
         import open3d as o3d
 
@@ -141,9 +123,9 @@ def _organise(points: np.ndarray, normals: np.ndarray | None, camera: Any, where
     return OrganisedCloud(grid, np.zeros(grid.shape[:2], np.uint8), nrm)
 
 
-def load_scene(path: Path, rig: Path) -> tuple[Any, Any, Any]:
+def load_scene(path: Path, rig: Path | None) -> tuple[Any, Any, Any]:
     """(organised cloud, rig model, session or None) of a session or a cloud file (placed
-    on the camera of the rig TOML `rig`)."""
+    on the camera of the rig TOML `rig`, default the simulated bench rig)."""
     from inspection.errors import CloudError
     from scanner.rig import RigConfig
 
@@ -167,7 +149,7 @@ def load_scene(path: Path, rig: Path) -> tuple[Any, Any, Any]:
     points = np.asarray(pc.points, dtype=np.float64)
     if len(points) == 0:
         raise CloudError(path, "no points could be read (unreadable or empty cloud)")
-    model = RigConfig.load(rig).nominal_model()
+    model = RigConfig.load(rig).model if rig is not None else RigConfig.load().nominal_model()
     normals = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
     return _organise(points, normals, model.camera, str(path)), model, None
 
@@ -223,6 +205,23 @@ def pose_scene(cloud: Any, camera: Any, model: Any, settings: Any, instances: li
         return instances, merge_duplicates(estimate_poses(instances, model, context, settings))
 
 
+def rig_of(rig_model: Any, session: Any, rig_file: Path | None) -> tuple[np.ndarray | None, dict[str, Any] | None]:
+    """(world_from_camera, the poses file's `rig` entry) of a session (its rig), or of a
+    cloud file with `--rig` (that rig); a cloud file without one has no world frame (None, None)."""
+    calibration = rig_model.calibration or "nominal (uncalibrated)"
+    if session is not None:
+        conf = session.manifest.get("rig_config", {}).get("rig", {})
+        name = conf.get("name") if isinstance(conf, dict) else None
+        return (np.asarray(rig_model.world_from_cam, np.float64),
+                {"name": name, "calibration": calibration, "session": session.id})
+    if rig_file is None:
+        return None, None
+    from scanner.rig import RigConfig
+
+    return (np.asarray(rig_model.world_from_cam, np.float64),
+            {"name": RigConfig.load(rig_file).name, "calibration": calibration, "file": str(rig_file)})
+
+
 def cmd_pose(args: argparse.Namespace) -> int:
     from inspection.bins.picking import poses_document, table, write_poses
     from inspection.bins.pose_settings import PoseSettings
@@ -230,7 +229,7 @@ def cmd_pose(args: argparse.Namespace) -> int:
     model = load_part(args.part)
     src = Path(args.input)
     cloud, rig_model, session = load_scene(src, args.rig)
-    world_from_cam = np.asarray(rig_model.world_from_cam, np.float64)
+    world_from_cam, rig = rig_of(rig_model, session, args.rig)
     if session is not None:
         out = Path(args.out) if args.out else session.outputs / "poses.json"
     else:
@@ -250,7 +249,7 @@ def cmd_pose(args: argparse.Namespace) -> int:
                    f"no parts found in {src}: nothing stands above the tray plane")
     elif not any(p.ok for p in poses):
         message = f"no part recognised in {src}: none of the {len(poses)} instances fits {model.name}"
-    doc = poses_document(poses, model, world_from_cam, str(src), args.max_occlusion, message)
+    doc = poses_document(poses, model, world_from_cam, str(src), rig, args.max_occlusion, message)
     write_poses(out, doc)
     print(table(doc))
     print(f"poses     {out}")
