@@ -290,3 +290,28 @@ def _judge_fringe_bins(seeds: list[int]) -> None:
         assert not bad, (seed, bad)
         posed = {v.part for v in j["verdicts"]}
         assert {k for k, o in enumerate(truth.occlusion) if o <= 0.2} <= posed, (seed, posed)
+
+
+@pytest.mark.slow
+def test_scan_saves_a_bin_with_its_truth_and_posebench_judges_it(tmp_path, capsys) -> None:
+    """`slscan scan --scene bin:3:5` keeps the bin's truth in the session (the poses of
+    `bin_scene(5, seed=3)`, the simulator's instance ids); `slscan posebench --sessions`
+    poses it without masks and reports no wrong pose and no pick out of tolerance."""
+    import re
+
+    from sim.bins import BIN_TRUTH_FILE, BinTruth
+    from sim.evaluate import Truth
+    from slscan.cli import main
+
+    out = tmp_path / "bin3"
+    assert main(["scan", "--scene", "bin:3:5", "--out", str(out)]) == 0
+    truth = BinTruth.load(out / BIN_TRUTH_FILE)
+    b = bin_scene(5, seed=3)
+    assert np.allclose(truth.world_from_camera @ truth.camera_from_part, b.poses)
+    object_id = Truth.load(out / "ground_truth.npz").object_id
+    assert set(truth.ids) <= set(np.unique(object_id))
+    capsys.readouterr()
+    assert main(["posebench", "--sessions", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    assert re.search(r"poses reported ok +\d+: right .* wrong 0;", text), text
+    assert re.search(r"picks offered +\d+: outside 0.1 mm / 0.5 deg 0", text), text

@@ -56,9 +56,9 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
     with open_rig(config, **options) as rig:
-        from sim.bins import BIN_TRUTH_FILE
-
         if truth is not None:   # kept with the raw frames, as the simulator's ground truth is
+            from sim.bins import BIN_TRUTH_FILE
+
             rig.extras["session_files"] = [*rig.extras.get("session_files", ()),
                                            lambda root: truth.save(Path(root) / BIN_TRUTH_FILE)]
         result = scan(rig, patterns, out, ProgressLine(), then)
