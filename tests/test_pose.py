@@ -92,7 +92,7 @@ def test_poses_of_a_small_bin_match_the_truth(small_bin: tuple, model: ThinPartM
     free = [p for p in poses if p.ok and p.occlusion <= 0.02]
     if free:
         assert first.pose[2, 3] == min(p.pose[2, 3] for p in free)
-    assert all(occlusion[p.instance_id - 2] <= 0.3 for p in poses if p.instance_id in ranks)   # the pick rule's promise
+    assert all(occlusion[p.instance_id - 2] <= PoseSettings().max_occlusion for p in poses if p.instance_id in ranks)
 
 
 def test_instances_from_depth_steps_separate_overlapping_parts(small_bin: tuple) -> None:

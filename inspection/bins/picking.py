@@ -37,6 +37,7 @@ from scipy.spatial.transform import Rotation
 from inspection.bins.instances import Instance
 from inspection.bins.part_model import ThinPartModel
 from inspection.bins.pose import PartPose
+from inspection.bins.pose_settings import PoseSettings
 from inspection.registration import pose_difference, transform_points
 
 if TYPE_CHECKING:  # rerun, which the recording imports, only when a recording is made
@@ -67,7 +68,8 @@ def merge_duplicates(poses: list[PartPose], angle_deg: float = 2.0, dist_mm: flo
     return sorted(kept, key=lambda p: p.instance_id)
 
 
-def pick_order(poses: list[PartPose], max_occlusion: float = 0.3, free_occlusion: float = 0.02) -> dict[int, int]:
+def pick_order(poses: list[PartPose], max_occlusion: float = PoseSettings.max_occlusion,
+               free_occlusion: float = 0.02) -> dict[int, int]:
     """{instance id: rank from 1} of the pickable parts (see the module docstring)."""
     pickable = [p for p in poses if p.ok and p.occlusion + OCCLUSION_BOUND <= max_occlusion]
     order = sorted(pickable, key=lambda p: (p.occlusion > free_occlusion, float(p.pose[2, 3]), p.occlusion))
@@ -84,7 +86,8 @@ def _frame(T: np.ndarray) -> dict[str, Any]:
 
 
 def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: np.ndarray | None, source: str,
-                   rig: dict[str, Any] | None = None, max_occlusion: float = 0.3, message: str = "") -> dict[str, Any]:
+                   rig: dict[str, Any] | None = None, max_occlusion: float = PoseSettings.max_occlusion,
+                   message: str = "") -> dict[str, Any]:
     """The poses file's content (see the module docstring); `world_from_cam` None: no rig,
     camera frame only; `rig`: its name, calibration and session id as the file states them."""
     from datetime import datetime, timezone

@@ -131,7 +131,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
     searched = len(judged)
     # each side's own coarse search (mirror images look alike to local descriptors), the
     # side the silhouette's handedness suggests first; the other side's search is skipped
-    # when the first explains a mostly visible instance (occlusion below `max_occlusion`)
+    # when the first explains a mostly visible instance (occlusion below `visible_occlusion`)
     # within the ambiguity margin of the highest possible score (2): the flips of its
     # best pose below still put the other side's mirror image beside it, and a view that
     # both sides explain is symmetric about one of its axes, which is what they test.
@@ -143,7 +143,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
             return False
         score, best_side, T = max(judged[searched:], key=lambda j: j[0])
         return (score > 2.0 - settings.ambiguity_margin
-                and _occlusion(patch, model.sides[best_side], T) < settings.max_occlusion)
+                and _occlusion(patch, model.sides[best_side], T) < settings.visible_occlusion)
 
     first = "front" if np.sign(patch.skew) == np.sign(model.sides["front"].skew) else "back"
     for side in (first, "back" if first == "front" else "front"):
@@ -188,7 +188,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
     if _occlusion(patch, model.sides[side0], T0) >= settings.mirror_occlusion:
         other = "back" if side0 == "front" else "front"
         judged += _judge(patch, model.sides[other], sp, sn, mirror_flips(T0, pts, patch, settings.mirror_step_deg),
-                         settings)
+                         settings, keep=3)
     judged.sort(key=lambda j: -j[0])
     ambiguous = _ambiguity(judged, patch, settings)
     if ambiguous is not None:
@@ -269,16 +269,21 @@ def _side_margin(judged: list[tuple[float, str, np.ndarray]]) -> float:
 
 
 def _judge(patch: InstancePatch, sm: SideModel, sp: np.ndarray, sn: np.ndarray, poses: list[np.ndarray],
-           settings: PoseSettings) -> list[tuple[float, str, np.ndarray]]:
+           settings: PoseSettings, keep: int | None = None) -> list[tuple[float, str, np.ndarray]]:
     """(outline-fit score, side, pose) of each pose (scan -> part) refined by point-to-plane
     ICP with normal-angle rejection on the instance's extruded cloud `sp`/`sn`: fitness
     (within 1.5 voxels, one batched query) plus the fraction of the true outline on the
-    part's outline, minus the fraction of the face over a lower surface. KD-tree queries
-    here and in the coarse search are single-threaded: the clouds are small, and starting
-    threads costs more than it saves on a busy machine."""
+    part's outline, minus the fraction of the face over a lower surface. With `keep`,
+    only the `keep` poses of best fitness as given (within ICP's first reach, 6 voxels)
+    are refined and judged. KD-tree queries here and in the coarse search are
+    single-threaded: the clouds are small, and starting threads costs more than it saves
+    on a busy machine."""
     if not poses:
         return []
     v = settings.voxel_mm
+    if keep is not None and len(poses) > keep:
+        first = fitness(sp, sn, sm.target.coarse, np.array(poses), 6.0 * v, settings.max_normal_deg, workers=1)
+        poses = [poses[i] for i in np.argsort(-first)[:keep]]
     posed = [icp(sp, sn, sm.target.coarse, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15) for T in poses]
     fit = fitness(sp, sn, sm.target.coarse, np.array(posed), 1.5 * v, settings.max_normal_deg, workers=1)
     return [(float(f) + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), sm.side, T)

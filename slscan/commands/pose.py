@@ -43,8 +43,9 @@ def register(sub: Any) -> None:
                                    "a folder of them (default: the flat patches above the tray)")
     p.add_argument("--method", choices=("sacia", "ndt"), default="sacia",
                    help="coarse registration: FPFH + SAC-IA with the Huber score (default) or NDT")
-    p.add_argument("--max-occlusion", type=float, default=0.3, metavar="FRACTION",
-                   help="parts covered more than this are not offered for picking (default 0.3)")
+    p.add_argument("--max-occlusion", type=float, default=0.15, metavar="FRACTION",
+                   help="the most a part offered for picking may be covered: its occlusion estimate plus the "
+                        "estimate's error bound (0.05) at most this (default 0.15)")
     p.add_argument("--rig", type=Path, help="rig TOML for a cloud file: its camera image and world frame (default: "
                                             "the simulated bench rig's camera, and no world frame: poses in the "
                                             "camera frame only)")
