@@ -205,6 +205,7 @@ def test_default_radius_is_a_fixed_number_of_point_spacings(spacing: float) -> N
         default_radius(np.full((5, 3), np.nan))
 
 
+@pytest.mark.slow   # five rooms of ~0.8 M points: minutes each; run with -m slow
 @pytest.mark.acceptance
 def test_default_radius_meets_the_beta_target_on_the_simulated_rooms() -> None:
     """Issue 14: `slscan segment`'s default radius on the simulated rooms (sim.clutter,
