@@ -15,6 +15,10 @@ one refined on the full instance. A pose is reported only when it explains the i
 (its points on the posed face, its outline on the part's outline, no face over a lower
 surface, planarity, size) and no distinct pose (or the other side) is judged within
 `ambiguity_margin` of it: otherwise the instance is reported as failed, with the reason.
+A covered part's fragment may be (nearly) symmetric about a line in its plane, and then
+explained as well by the part turned over: from `mirror_occlusion` up the best pose is
+also flipped about lines through the fragment (those rivals judged too), and above
+`max_pose_occlusion` no pose is reported (the search cannot be trusted to find the rival).
 
 Work saved: the side whose silhouette handedness
 (Hu's seventh moment, its sign flips in a mirror image) matches the instance's is searched
@@ -225,6 +229,9 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
     if spill > settings.max_spill:
         return (f"the best pose ({side} up) puts {spill:.0%} of the part's face where a lower surface is seen "
                 f"(limit {settings.max_spill:.0%}): no pose explains the instance's outline", kw, True)
+    if occl > settings.max_pose_occlusion:
+        return (f"the best pose ({side} up) leaves {occl:.0%} of the part covered (limit "
+                f"{settings.max_pose_occlusion:.0%}): too little of it shows to rule out the part turned over", kw, False)
     return PartPose(0, True, "", f"{settings.method}+icp", 0, pose, side, fit, rmse, occl, margin, edge_fit=edge)
 
 

@@ -26,6 +26,9 @@ class PoseSettings:
     `max_plane_rms_mm`, `min_plane_fraction`: an instance with a larger robust RMS
     distance to its plane, or a smaller fraction of its points within that distance, is
     not one flat part;
+    `max_pose_occlusion`: a pose of a part estimated covered more than this is reported
+    failed (its fragment is too small to rule out the part turned over: on saved
+    simulated bins the only wrong poses reported were of parts ~70 % covered);
     `max_occlusion`: the most a part offered for picking may be covered (in truth: the
     estimate plus its error bound, `inspection.bins.picking.OCCLUSION_BOUND`; poses of parts
     covered more stray beyond 0.1 mm on the saved simulated bins); `visible_occlusion`:
@@ -51,6 +54,7 @@ class PoseSettings:
     max_plane_rms_mm: float = 0.1
     min_plane_fraction: float = 0.8
     max_occlusion: float = 0.15
+    max_pose_occlusion: float = 0.5
     visible_occlusion: float = 0.3
     mirror_occlusion: float = 0.2
     mirror_step_deg: float = 15.0
