@@ -314,3 +314,25 @@ def test_ndt_on_a_grid_without_cells_finds_no_cell() -> None:
     grid = ndt_grid(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 0.0]]), 1.0)
     assert len(grid[2]) == 0
     assert (ndt_cells(np.array([[0.1, 0.1, 0.1], [5.2, 0.3, 0.0]]), grid, 1.0) == -1).all()
+
+
+def test_poses_that_would_share_space_are_not_both_reported(small_bin: tuple, model: ThinPartModel) -> None:
+    """merge_duplicates with the model: the simulator's true poses (parts lying on each
+    other) all stay; a second instance posed 1.2 mm and 3 deg off one of them (a piece of
+    that part posed wrong, turned in its plane and shifted) is reported failed, naming the
+    instance it collides with."""
+    from inspection.bins.picking import merge_duplicates
+    from inspection.bins.pose import PartPose
+    from sim.bins import rotation_about
+
+    b, cloud, ids, occlusion = small_bin
+    side = lambda k: "front" if b.front_up[k] else "back"  # noqa: E731
+    true = [PartPose(k + 1, True, "", "truth", 1000 - k, b.poses[k], side(k)) for k in range(len(b.poses))]
+    assert all(p.ok for p in merge_duplicates(true, model))
+    off = np.eye(4)
+    off[:3, :3] = rotation_about(np.array([0.0, 0.0, 1.0]), np.radians(3.0))   # turned in its plane
+    off[:3, 3] = [1.2, 0.0, 0.0]
+    piece = PartPose(9, True, "", "sacia+icp", 300, b.poses[0] @ off, side(0))
+    out = {p.instance_id: p for p in merge_duplicates(true + [piece], model)}
+    assert all(out[p.instance_id].ok for p in true)
+    assert not out[9].ok and out[9].pose is None and "instance 1" in out[9].reason

@@ -29,6 +29,7 @@ point per pickable part ("#rank id side"); ``pose/table`` the table;
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -57,15 +58,41 @@ METRICS = "pose"  # under the core's metrics/
 OCCLUSION_BOUND = 0.05
 
 
-def merge_duplicates(poses: list[PartPose], angle_deg: float = 2.0, dist_mm: float = 0.5) -> list[PartPose]:
+def merge_duplicates(poses: list[PartPose], model: ThinPartModel | None = None, angle_deg: float = 2.0,
+                     dist_mm: float = 0.5, max_overlap: float = 0.1) -> list[PartPose]:
     """Drop poses that repeat a pose of an instance with more points (one part split into
-    pieces by a part lying across it gives the same pose twice)."""
+    pieces by a part lying across it gives the same pose twice). With the `model`, a pose
+    whose part would share space with one kept before (more than `max_overlap` of its
+    face samples inside the other, `_overlap`: two parts cannot) is reported failed: a
+    piece of a part posed apart from its other piece, or a wrong pose."""
     kept: list[PartPose] = []
     for p in sorted(poses, key=lambda p: -p.points):
         if p.ok and any(k.ok and all(np.less(pose_difference(k.pose, p.pose), (angle_deg, dist_mm))) for k in kept):
             continue
+        if p.ok and model is not None:
+            other = next((k for k in kept if k.ok and _overlap(model, p, k) > max_overlap), None)
+            if other is not None:
+                p = replace(p, ok=False, pose=None, reason=(
+                    f"its pose ({p.side} up) puts the part where instance {other.instance_id}'s pose puts one "
+                    f"(they would share space): a piece of that part, or a wrong pose"))
         kept.append(p)
     return sorted(kept, key=lambda p: p.instance_id)
+
+
+def _overlap(model: ThinPartModel, p: PartPose, k: PartPose) -> float:
+    """Fraction of pose p's up-face samples that pose k's part would hold: over k's
+    outline (within 0.3 mm of its face samples, in plan) and within 0.7 thickness of k's
+    up face, where a part lying on k (its up face one thickness above) or under it (one
+    below) cannot be."""
+    t = model.thickness_mm
+    q = transform_points(np.linalg.inv(k.pose) @ p.pose, model.sides[p.side].interior)
+    face = model.sides[k.side].face
+    sign = 1.0 if k.side == "front" else -1.0
+    level = float(np.median(face.points @ model.axis))
+    h = sign * (q @ model.axis - level)
+    plan = q - np.outer(q @ model.axis - level, model.axis)
+    d, _ = face.tree.query(plan, distance_upper_bound=0.3)
+    return float(np.mean(np.isfinite(d) & (np.abs(h) < 0.7 * t)))
 
 
 def pick_order(poses: list[PartPose], max_occlusion: float = PoseSettings.max_occlusion,

@@ -203,7 +203,7 @@ def pose_scene(cloud: Any, camera: Any, model: Any, settings: Any, instances: li
         if instances is None:
             instances = instances_from_flat_patches(cloud, model.thickness_mm)
         context = SceneContext.of_cloud(cloud, camera)
-        return instances, merge_duplicates(estimate_poses(instances, model, context, settings))
+        return instances, merge_duplicates(estimate_poses(instances, model, context, settings), model)
 
 
 def rig_of(rig_model: Any, session: Any, rig_file: Path | None) -> tuple[np.ndarray | None, dict[str, Any] | None]:
