@@ -27,7 +27,7 @@ from inspection.bins.instances import (
 from inspection.downsample import density_voxel_size, downsample
 from inspection.errors import CloudError, MaskError, SegmentationError
 from inspection.regions.local_features import MultiScale
-from inspection.regions.region_growing import point_spacing, segment
+from inspection.regions.region_growing import DEFAULT_RADIUS_SPACINGS, default_radius, point_spacing, segment
 from inspection.regions.segmetrics import NO_POINT, score
 from scanner.pointcloud import OrganisedCloud
 from slscan.cli import main
@@ -192,6 +192,31 @@ def test_segmentation_keeps_missing_points_unlabelled(room: tuple[np.ndarray, np
 def test_radius_out_of_range_is_refused(room: tuple[np.ndarray, np.ndarray], r: float) -> None:
     with pytest.raises(SegmentationError, match="radius of interest"):
         segment(room[0][::10], r)
+
+
+@pytest.mark.parametrize("spacing", [0.2, 0.7, 1.5])
+def test_default_radius_is_a_fixed_number_of_point_spacings(spacing: float) -> None:
+    """A square grid of pitch `spacing` (its nearest-neighbour distance, exactly) with NaN
+    rows: the default radius is DEFAULT_RADIUS_SPACINGS pitches, to 0.1 mm."""
+    u, v = np.meshgrid(np.arange(300) * spacing, np.arange(200) * spacing)
+    pts = np.c_[u.ravel(), v.ravel(), 0.3 * u.ravel()]   # a tilted plane: pitch 1.044 x spacing along u
+    pts[::97] = np.nan
+    assert default_radius(pts) == pytest.approx(DEFAULT_RADIUS_SPACINGS * spacing, abs=0.051)
+    with pytest.raises(CloudError, match="fewer than two points"):
+        default_radius(np.full((5, 3), np.nan))
+
+
+@pytest.mark.slow   # five rooms of ~0.8 M points: minutes each; run with -m slow
+@pytest.mark.acceptance
+def test_default_radius_meets_the_beta_target_on_the_simulated_rooms() -> None:
+    """Issue 14: `slscan segment`'s default radius on the simulated rooms (sim.clutter,
+    seeds 0..4, nominal spacing 1 mm): mean beta <= 8 % (the fixed 12 mm gave 13 %)."""
+    from sim.clutter import clutter_cloud
+
+    for seed in range(5):
+        cloud = clutter_cloud(seed, 1.0, None)
+        s = score(segment(cloud.points, cloud.radius_mm).labels, cloud.labels)
+        assert s.mean_beta <= 0.08, (seed, cloud.radius_mm, s.mean_beta)
 
 
 def test_empty_cloud_is_refused() -> None:

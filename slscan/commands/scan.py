@@ -47,8 +47,10 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     config = RigConfig.load(args.rig)
     patterns = PatternSet.load(args.patterns or config.patterns_path)
     options: dict[str, Any] = {}
+    truth = None
     if config.driver == "sim":
         options = {"scene": args.scene or DEMO_SCENE, "seed": args.seed}
+        truth = _bin_scene(options, config)
         if args.fault:
             options["faults"] = _parse_faults(args.fault)
     elif args.scene or args.fault:
@@ -64,14 +66,36 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
     with open_rig(config, **options) as rig:
+        if truth is not None:   # kept with the raw frames, as the simulator's ground truth is
+            from sim.bins import BIN_TRUTH_FILE
+
+            rig.extras["session_files"] = [*rig.extras.get("session_files", ()),
+                                           lambda root: truth.save(Path(root) / BIN_TRUTH_FILE)]
         result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args), exposure=exposure)
     report(result)
+    if truth is not None:
+        print(f"bin truth {result.session.root / BIN_TRUTH_FILE}  ({len(truth.ids)} parts, seed {truth.seed}; "
+              f"judge poses with: slscan posebench --sessions {result.session.root})")
     return Exit.OK
 
 
 def _level(args: argparse.Namespace) -> str | None:
     """The recording level asked on the command line (None: the rig's or session's own)."""
     return "full" if getattr(args, "full_recording", False) else None
+
+
+def _bin_scene(options: dict[str, Any], config: Any) -> Any:
+    """For `--scene bin:SEED[:N_PARTS]`: the simulated bin put in `options` as the scene,
+    and its truth (`sim.bins.BinTruth`) to save in the session; None for other scenes."""
+    from sim.bins import BinTruth, bin_scene, bin_spec
+
+    spec = bin_spec(str(options["scene"]))
+    if spec is None:
+        return None
+    seed, parts = spec
+    b = bin_scene(parts, seed=seed)
+    options["scene"] = b.scene
+    return BinTruth.of(b, config.nominal_model().world_from_cam)
 
 
 def report(result: Any) -> None:
@@ -220,7 +244,9 @@ def _add_full_recording(parser: argparse.ArgumentParser) -> None:
 def register(sub: Any) -> None:
     s = sub.add_parser("scan", help="scan a part into a session folder (raw frames, cloud PLY, Rerun recording)")
     s.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML (default: the simulated bench rig)")
-    s.add_argument("--scene", help="simulated rigs: scene TOML or a mesh file (PLY/STL/OBJ)")
+    s.add_argument("--scene", help="simulated rigs: scene TOML, a mesh file (PLY/STL/OBJ), or bin:SEED[:N_PARTS] for a "
+                                   "bin of thin parts (default 5 + SEED %% 16 parts) saved with its true poses, "
+                                   "instance ids and occlusion (bin_truth.json)")
     s.add_argument("--out", required=True, help="new session folder")
     s.add_argument("--patterns", help="pattern set TOML (default: the rig's)")
     s.add_argument("--seed", type=int, default=0, help="simulated rigs: noise seed")
