@@ -30,6 +30,7 @@ EXAMPLES: dict[str, str] = {
                  "slscan calibrate --from calibrations/bench/capture --drop-outliers --out calibrations/bench-2",
     "cad": "slscan cad config/parts/demo_part.step\n"
            "slscan cad config/parts/demo_part.step --sample 20000 --repeats 3",
+    "cadbench": "slscan cadbench ../shared/data/step/nist_ctc_01_asme1_rd.stp --copies 1,4,16",
     "register": "slscan register sessions/demo config/parts/demo_part.step --coarse sac-ia --json",
     "inspect": "slscan inspect sessions/demo --cad config/parts/demo_part.step "
                "--tolerances config/tolerances/demo_part.toml",
