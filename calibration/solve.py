@@ -26,7 +26,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from calibration.errors import CalibrationRejected, NotEnoughData
-from calibration.intrinsics import DeviceCalibration, calibrate_device, outlier_views
+from calibration.intrinsics import INTRINSIC_NAMES, DeviceCalibration, calibrate_device, outlier_views
 from calibration.stereo import StereoCalibration, initial_extrinsics, joint_refine
 from calibration.views import Correspondence
 
@@ -155,7 +155,9 @@ def _solve_once(views: list[Correspondence], camera_size: tuple[int, int], proje
     if choice.source != "joint refinement":
         fixed = joint_refine(cams, projs, camera.pinhole, projector.pinhole, start, camera.poses, settings.fix_k3,
                              fix_camera=True)
-        stereo = replace(fixed, std=fixed.std | {f"camera.{n}": v for n, v in camera.std.items()})
+        cov = fixed.covariance.copy()  # the camera's own one-sigmas; its correlations with the rest are not known
+        cov[:9, :9] = np.diag([camera.std[n] ** 2 for n in INTRINSIC_NAMES])
+        stereo = replace(fixed, std=fixed.std | {f"camera.{n}": v for n, v in camera.std.items()}, covariance=cov)
     return Solution([c.name for c in views], list(views), camera, projector, stereo, choice, dict(dropped))
 
 

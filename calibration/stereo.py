@@ -30,6 +30,8 @@ from scanner.geometry import Pinhole
 
 EXTRINSIC_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")  # Rodrigues vector (rad), translation (mm)
 _N_INTR = len(INTRINSIC_NAMES)
+RIG_PARAMETERS = tuple(f"{d}.{n}" for d in ("camera", "projector") for n in INTRINSIC_NAMES) + \
+    tuple(f"extrinsic.{n}" for n in EXTRINSIC_NAMES)
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,6 +39,9 @@ class StereoCalibration:
     """The jointly refined rig. `proj_from_cam` maps camera-frame points into the projector
     frame; `board_poses` (V, 4, 4) board -> camera. Residuals are observed − projected
     pixels per view. `rms_px` is the RMS over both devices' points (OpenCV's stereo RMS);
+    `covariance` (24, 24) is the covariance of the rig's parameters (`RIG_PARAMETERS`: both
+    devices' intrinsics and distortion, then proj_from_cam as a Rodrigues vector (rad) and a
+    translation (mm)), the board poses marginalised out; zero where a parameter was held fixed.
     `std` holds one-sigma uncertainties ('camera.fx', 'projector.cy', 'extrinsic.tx' (mm),
     'extrinsic.rotation_deg', ...)."""
 
@@ -47,6 +52,7 @@ class StereoCalibration:
     camera_residuals: list[np.ndarray]
     projector_residuals: list[np.ndarray]
     std: dict[str, float]
+    covariance: np.ndarray
 
     @property
     def cam_from_proj(self) -> np.ndarray:
@@ -69,8 +75,9 @@ class StereoCalibration:
         return np.array([rms(r) for r in res])
 
 
-def _uncertainties(res: np.ndarray, J: np.ndarray, free: np.ndarray, e0: int) -> dict[str, float]:
-    """One-sigma uncertainty of every parameter from the residuals and Jacobian at the solution."""
+def _uncertainties(res: np.ndarray, J: np.ndarray, free: np.ndarray, e0: int) -> tuple[dict[str, float], np.ndarray]:
+    """One-sigma uncertainty of every parameter, and the covariance of the rig's
+    parameters (the first e0 + 6), from the residuals and Jacobian at the solution."""
     dof = max(len(res) - int(free.sum()), 1)
     cov = np.zeros((len(free), len(free)))
     cov[np.ix_(free, free)] = covariance(J[:, free], float(res @ res) / dof)
@@ -80,7 +87,7 @@ def _uncertainties(res: np.ndarray, J: np.ndarray, free: np.ndarray, e0: int) ->
     std |= {f"extrinsic.{n}": float(sd[e0 + i]) for i, n in enumerate(EXTRINSIC_NAMES)}
     std["extrinsic.rotation_deg"] = float(np.degrees(np.sqrt(max(np.trace(cov[e0:e0 + 3, e0:e0 + 3]), 0.0))))
     std["extrinsic.translation_mm"] = float(np.sqrt(max(np.trace(cov[e0 + 3:e0 + 6, e0 + 3:e0 + 6]), 0.0)))
-    return std
+    return std, cov[:e0 + 6, :e0 + 6]
 
 
 def _intrinsic_vector(p: Pinhole) -> np.ndarray:
@@ -189,7 +196,7 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     x = x0.copy()
     x[free] = sol.x
     res, J = residuals_and_jacobian(x, True)
-    std = _uncertainties(res, J, free, e0)  # type: ignore[arg-type]
+    std, cov = _uncertainties(res, J, free, e0)  # type: ignore[arg-type]
     proj_from_cam = pose_matrix(x[e0:e0 + 3], x[e0 + 3:e0 + 6])
     poses = np.stack([pose_matrix(x[e0 + 6 + 6 * v:e0 + 9 + 6 * v], x[e0 + 9 + 6 * v:e0 + 12 + 6 * v])
                       for v in range(n_views)])
@@ -197,4 +204,4 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
                                                      for n in (len(cv), len(pv))])[:-1])
     cam_res, proj_res = blocks[0::2], blocks[1::2]
     return StereoCalibration(_pinhole(camera.size, x[:_N_INTR]), _pinhole(projector.size, x[_N_INTR:e0]),
-                             proj_from_cam, poses, cam_res, proj_res, std)
+                             proj_from_cam, poses, cam_res, proj_res, std, cov)
