@@ -13,7 +13,7 @@ as the guideline allows (`OUTLIER_FRACTION`).
 Uncertainty (see `inspection.uncertainty`): the fitted parameters are linear in the points
 to first order, so each point's influence on a figure comes from the fit's normal
 equations and noise, fringe systematics and calibration are propagated through it
-(`PointNoise.linear_u`, `CalibrationUncertainty.shifts`).
+(`ScanUncertainty.linear_u`).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from inspection.uncertainty import CalibrationUncertainty, Estimate, PointNoise, combine
+from inspection.uncertainty import Estimate, ScanUncertainty, combine
 
 OUTLIER_FRACTION = 0.003  # VDI/VDE 2634-2: up to 0.3 % of the points may be left out of PF and F
 MAX_VIEW_DEG = 75.0
@@ -31,32 +31,6 @@ MIN_POINTS = 100
 
 class ArtefactError(ValueError):
     """The artefact was not found in the points, or too little of it."""
-
-
-@dataclass(frozen=True, eq=False)
-class Uncertainties:
-    """What the figures of one fit are propagated with: the points' noise model, the
-    calibration's covariance and the rig model the points were triangulated with (its
-    weights per fringe orientation: `orientation_weights`, (N,) each)."""
-
-    noise: PointNoise
-    calibration: CalibrationUncertainty | None = None
-    model: object = None
-    orientation_weights: dict[str, np.ndarray] | None = None
-
-    def subset(self, mask: np.ndarray) -> Uncertainties:
-        w = None if self.orientation_weights is None else {o: v[mask] for o, v in self.orientation_weights.items()}
-        return Uncertainties(self.noise.subset(mask), self.calibration, self.model, w)
-
-    def u(self, points: np.ndarray, influence: np.ndarray) -> tuple[float, float, float]:
-        """(u_noise, u_fringe, u_cal) of a figure with per-point `influence` (N, 3)."""
-        u_noise, u_fringe = self.noise.linear_u(influence)
-        u_cal = 0.0
-        if self.calibration is not None and self.model is not None and self.orientation_weights is not None:
-            shifts = self.calibration.shifts(points, self.model, self.orientation_weights)  # type: ignore[arg-type]
-            if shifts is not None:
-                u_cal = float(np.sqrt(np.sum(np.einsum("dij,ij->d", shifts, influence) ** 2)))
-        return u_noise, u_fringe, u_cal
 
 
 def _estimate(parts: tuple[float, float, float], value: float) -> Estimate:
@@ -174,14 +148,15 @@ class SphereResult:
                 "rms_mm": self.rms_mm, "points": self.points, "radius_u_components_mm": self.components}
 
 
-def measure_sphere(points: np.ndarray, unc: Uncertainties, nominal_radius_mm: float,
+def measure_sphere(points: np.ndarray, unc: ScanUncertainty, nominal_radius_mm: float,
                    viewpoint: np.ndarray | None = np.zeros(3)) -> tuple[SphereFit, SphereResult]:
     """Fit a sphere (`fit_sphere`, band of a tenth of the nominal radius) and propagate
     the uncertainties to its radius and centre."""
     fit = fit_sphere(points, nominal_radius_mm, 0.1 * nominal_radius_mm, viewpoint)
     pts, sub = points[fit.used], unc.subset(fit.used)
-    parts = sub.u(pts, fit.influence[:, 3])
-    centre = tuple(_estimate(sub.u(pts, fit.influence[:, k]), float(fit.centre[k])) for k in range(3))
+    parts = sub.linear_u(pts, fit.influence[:, 3], fit.rms_mm)
+    centre = tuple(_estimate(sub.linear_u(pts, fit.influence[:, k], fit.rms_mm), float(fit.centre[k]))
+                   for k in range(3))
     return fit, SphereResult(_estimate(parts, fit.radius), centre, fit.form_range_mm, fit.rms_mm,  # type: ignore[arg-type]
                              int(fit.used.sum()), dict(zip(("noise", "fringe", "calibration"), parts)))
 
@@ -204,7 +179,7 @@ class BallBarResult:
                 "distance_u_components_mm": self.components, "spheres": [s.as_dict() for s in self.spheres]}
 
 
-def measure_ball_bar(points: tuple[np.ndarray, np.ndarray], unc: tuple[Uncertainties, Uncertainties],
+def measure_ball_bar(points: tuple[np.ndarray, np.ndarray], unc: tuple[ScanUncertainty, ScanUncertainty],
                      nominal_radius_mm: float, viewpoint: np.ndarray | None = np.zeros(3)) -> BallBarResult:
     """Both spheres of a ball bar from their points, and the distance between the centres
     with the uncertainty of the pair (the two spheres share projector columns and the
@@ -217,26 +192,13 @@ def measure_ball_bar(points: tuple[np.ndarray, np.ndarray], unc: tuple[Uncertain
     d_infl = np.concatenate([fits[0].influence[:, :3].transpose(0, 2, 1) @ e,
                              -(fits[1].influence[:, :3].transpose(0, 2, 1) @ e)])
     r_infl = np.concatenate([fits[0].influence[:, 3], fits[1].influence[:, 3]])
-    joined = join([u.subset(f.used) for u, f in zip(unc, fits)])
-    d_parts = joined.u(pts, d_infl)
-    o_parts = joined.u(pts, d_infl + r_infl)
+    joined = ScanUncertainty.join([u.subset(f.used) for u, f in zip(unc, fits)])
+    rms = float(np.hypot(fits[0].rms_mm, fits[1].rms_mm) / np.sqrt(2.0))
+    d_parts = joined.linear_u(pts, d_infl, rms)
+    o_parts = joined.linear_u(pts, d_infl + r_infl, rms)
     return BallBarResult(tuple(results), _estimate(d_parts, length),  # type: ignore[arg-type]
                          _estimate(o_parts, length + fits[0].radius + fits[1].radius),
                          dict(zip(("noise", "fringe", "calibration"), d_parts)))
-
-
-def join(parts: list[Uncertainties]) -> Uncertainties:
-    """One Uncertainties for the points of several fits, in order (same rig)."""
-    first = parts[0]
-    noise = PointNoise(np.concatenate([p.noise.sigma_z for p in parts]), np.concatenate([p.noise.ray for p in parts]),
-                       tuple(np.concatenate(c) for c in zip(*(p.noise.columns for p in parts))),
-                       tuple(np.concatenate(g) for g in zip(*(p.noise.gains for p in parts))),
-                       first.noise.fringe, first.noise.source)
-    weights = None
-    if first.orientation_weights is not None:
-        weights = {o: np.concatenate([p.orientation_weights[o] for p in parts])  # type: ignore[index]
-                   for o in first.orientation_weights}
-    return Uncertainties(noise, first.calibration, first.model, weights)
 
 
 # ------------------------------------------------------------------------------- plane

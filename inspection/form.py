@@ -298,7 +298,7 @@ FIGURES = ("flatness_ls", "flatness_mz", "cylindricity_ls", "cylindricity_mz", "
 @dataclass(frozen=True)
 class FaceForm:
     """Figures of one face, each an `Estimate` (mm; None where they do not apply or could
-    not be measured). `*_mz` are minimum-zone widths of the form surface, `*_ls` its
+    not be measured; the extremes' detection limits are magnitudes). `*_mz` are minimum-zone widths of the form surface, `*_ls` its
     least-squares widths; `sq` the roughness with the noise removed; `deviation_*` the
     signed deviations from nominal of the form surface (`deviation_source` "form surface";
     "raw points" for a face without surface coordinates to filter on, whose figures then
@@ -619,24 +619,28 @@ def _point_draws(noise: PointNoise | None, normals: np.ndarray | None, rng: np.r
 def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, raw: np.ndarray, raw_draws: np.ndarray,
                      cal: np.ndarray | None) -> tuple[dict[str, Estimate], dict[str, dict[str, float]]]:
     """Deviation figures of `surface` (the form surface's deviations, or the raw ones) with
-    their draws, its profile zone 2 max|d| (with a detection limit), and the extremes of
-    the `raw` point deviations with theirs; `cal` (D_cal, cells): calibration moves."""
+    their draws, its profile zone 2 max|d|, and the extremes of the `raw` point deviations
+    with theirs; `cal` (D_cal, cells): calibration moves. The extremes and the profile are
+    tested against zero (an extreme the noise alone reaches is not a deviation: null, with
+    that reach, in magnitude, as its limit); the mean and RMS are not."""
     def each(fn: Callable[[np.ndarray], float], base: np.ndarray, draws: np.ndarray, tested: bool,
-             moves: np.ndarray | None) -> tuple[Estimate, dict[str, float]]:
-        value = fn(base)
-        changes = None if moves is None else np.array([fn(base + m) - value for m in moves])
-        return _from_draws(value, np.array([fn(x) for x in draws]),
-                           np.array([fn(x - base) for x in draws]) if tested else None, changes)
+             moves: np.ndarray | None, sign: float = 1.0) -> tuple[Estimate, dict[str, float]]:
+        value = sign * fn(base)
+        changes = None if moves is None else np.array([sign * fn(base + m) - value for m in moves])
+        est, parts = _from_draws(value, np.array([sign * fn(x) for x in draws]),
+                                 np.array([sign * fn(x - base) for x in draws]) if tested else None, changes)
+        if sign < 0:
+            est = Estimate(None if est.value is None else -est.value, est.u, est.limit, -est.bias)
+        return est, parts
 
-    noise_only = drawn - surface
     out, parts = {}, {}
-    for name, fn, tested in (("deviation_min", np.min, False), ("deviation_max", np.max, False),
-                             ("deviation_mean", np.mean, False),
-                             ("deviation_rms", lambda d: float(np.sqrt(np.mean(d ** 2))), False),
-                             ("profile", lambda d: 2.0 * float(np.max(np.abs(d))), True)):
-        out[name], parts[name] = each(lambda d, fn=fn: float(fn(d)), surface, surface + noise_only, tested, cal)
-    for name, fn in (("raw_deviation_min", np.min), ("raw_deviation_max", np.max)):
-        out[name], parts[name] = each(lambda d, fn=fn: float(fn(d)), raw, raw[None] + raw_draws, False, None)
+    for name, fn, tested, sign in (("deviation_min", np.min, True, -1.0), ("deviation_max", np.max, True, 1.0),
+                                   ("deviation_mean", np.mean, False, 1.0),
+                                   ("deviation_rms", lambda d: float(np.sqrt(np.mean(d ** 2))), False, 1.0),
+                                   ("profile", lambda d: 2.0 * float(np.max(np.abs(d))), True, 1.0)):
+        out[name], parts[name] = each(lambda d, fn=fn: float(fn(d)), surface, drawn, tested, cal, sign)
+    for name, fn, sign in (("raw_deviation_min", np.min, -1.0), ("raw_deviation_max", np.max, 1.0)):
+        out[name], parts[name] = each(lambda d, fn=fn: float(fn(d)), raw, raw[None] + raw_draws, True, None, sign)
     return out, parts
 
 

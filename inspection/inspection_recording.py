@@ -56,6 +56,7 @@ def log_inspection(recording: Any, report: InspectionReport, scan: ScanCloud, mo
                strict=True)
     verdicts = [v for row in report.faces for _, v in row.verdicts.values()]
     metrics = {"fitness": report.fitness, "rmse_mm": report.rmse_mm,
-               **{f"{w}_count": float(verdicts.count(w)) for w in ("pass", "fail", "uncertain")}}
+               **{f"{w.replace('-', '_')}_count": float(verdicts.count(w))
+                  for w in ("conforming", "non-conforming", "uncertain")}}
     for name, value in metrics.items():
         stream.log(f"metrics/inspection_{name}", rr.Scalars(float(value)), strict=True)

@@ -116,3 +116,12 @@ def decide(value: float | None, U: float, upper: float, lower: float | None = No
     if value - band > upper or value + band < lo:
         return NON_CONFORMING
     return UNCERTAIN
+
+
+def overall(verdicts: list[str]) -> str:
+    """A part's verdict from its characteristics': non-conforming if any is, else
+    uncertain or not measured if any is, else conforming ("no tolerances" without any)."""
+    for word in (NON_CONFORMING, UNCERTAIN, NOT_MEASURED):
+        if word in verdicts:
+            return word
+    return CONFORMING if verdicts else "no tolerances"

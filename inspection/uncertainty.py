@@ -244,21 +244,26 @@ class DepthNoise:
                           tuple(g[r, c].astype(np.float64) for g in self.gain.values()), fringe, source)
 
 
-def depth_noise(decoded: DecodeResult, triangulator: Triangulator, sensor: SensorNoise) -> DepthNoise:
-    """The depth noise the decoder predicts per pixel (see the module docstring, 1.): with
-    both fringe orientations the depths are averaged by inverse variance, as
-    `scanner.reconstruct.triangulate` does, and σ_z is that average's."""
-    inv_var, slope, coords = {}, {}, {}
+def depth_noise(decoded: DecodeResult, triangulator: Triangulator, sensor: SensorNoise | None) -> DepthNoise:
+    """The depth noise the decoder predicts per pixel (see the module docstring, 1.; NaN
+    without a `sensor` model). With both fringe orientations the depths are averaged with
+    the weights `scanner.reconstruct.triangulate` uses (phase precision over the squared
+    depth sensitivity, the sensor noise common to both), and σ_z is that average's."""
+    precision, slope, coords, sigma = {}, {}, {}, {}
     for orientation, m in decoded.maps.items():
         coords[orientation] = np.where(decoded.valid, m.coordinate, np.nan)
         _, dz = triangulator.depth_scale(coords[orientation], orientation, sensitivity=True)
-        sigma_i = sensor(m.background.astype(np.float64))
-        sigma_phi = np.sqrt(2.0 / decoded.patterns.steps) * sigma_i / np.sqrt(np.maximum(m.phase_weight, 1e-12))
-        inv_var[orientation] = (sigma_phi * m.period_px / (2.0 * np.pi) * dz) ** -2.0
         slope[orientation] = dz.astype(np.float64)
-    total = sum(inv_var.values())
-    weight = {o: w / total for o, w in inv_var.items()}
-    return DepthNoise(1.0 / np.sqrt(total), coords, {o: weight[o] * slope[o] for o in slope}, weight)
+        precision[orientation] = m.phase_weight.astype(np.float64) * m.period_px ** -2.0 / slope[orientation] ** 2
+        if sensor is not None:
+            sigma_i = sensor(m.background.astype(np.float64))
+            sigma_phi = np.sqrt(2.0 / decoded.patterns.steps) * sigma_i / np.sqrt(np.maximum(m.phase_weight, 1e-12))
+            sigma[orientation] = sigma_phi * m.period_px / (2.0 * np.pi) * slope[orientation]
+    total = sum(precision.values())
+    weight = {o: p / total for o, p in precision.items()}
+    sigma_z = (np.sqrt(sum((weight[o] * sigma[o]) ** 2 for o in sigma)) if sigma
+               else np.full(decoded.valid.shape, np.nan))
+    return DepthNoise(sigma_z, coords, {o: weight[o] * slope[o] for o in slope}, weight)
 
 
 def fringe_error(patterns: PatternSet, extent_px: int, gamma: float, blur_px: float = 0.0,
@@ -363,6 +368,23 @@ def perturbed(model: RigModel, delta: np.ndarray) -> RigModel:
                    cam_from_proj=np.linalg.inv(Q), phase_to_height=None)
 
 
+def _projection_jacobians(points: np.ndarray, model: RigModel) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's analytic derivatives of the camera's and the projector's projections of
+    camera-frame `points` (N, 3): (N, 2, 15) each, columns (rvec, tvec, fx, fy, cx, cy,
+    k1, k2, p1, p2, k3); the projector's pose is proj_from_cam."""
+    X = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 1, 3)
+    cam, proj = model.camera, model.projector
+    _, Jc = cv2.projectPoints(X, np.zeros(3), np.zeros(3), cam.K, cam.dist)
+    P = model.proj_from_cam
+    _, Jp = cv2.projectPoints(X, cv2.Rodrigues(P[:3, :3])[0].ravel(), P[:3, 3], proj.K, proj.dist)
+    return Jc.reshape(len(X), 2, -1), Jp.reshape(len(X), 2, -1)
+
+
+def _constraints(Jc: np.ndarray, Jp: np.ndarray, model: RigModel, axis: int) -> np.ndarray:
+    """A (N, 3, 3) = ∂(camera pixel, projector coordinate along `axis`)/∂X."""
+    return np.concatenate([Jc[:, :, 3:6], (Jp[:, axis, 3:6] @ model.proj_from_cam[:3, :3])[:, None, :]], axis=1)
+
+
 def calibration_jacobian(points: np.ndarray, model: RigModel, weights: dict[str, np.ndarray]) -> np.ndarray:
     """∂X/∂θ (N, 3, P): how camera-frame points (N, 3) triangulated from fixed camera
     pixels and decoded projector coordinates move with the rig parameters θ
@@ -370,21 +392,85 @@ def calibration_jacobian(points: np.ndarray, model: RigModel, weights: dict[str,
     coordinate per orientation; implicit differentiation with OpenCV's analytic projection
     derivatives gives ∂X/∂θ = −A⁻¹B per orientation, and with two orientations the depths
     are averaged with `weights` (N,) per orientation, as reconstruction does."""
-    X = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 1, 3)
-    n = len(X)
-    cam, proj = model.camera, model.projector
-    _, Jc = cv2.projectPoints(X, np.zeros(3), np.zeros(3), cam.K, cam.dist)
-    P = model.proj_from_cam
-    rvec, tvec = cv2.Rodrigues(P[:3, :3])[0].ravel(), P[:3, 3]
-    _, Jp = cv2.projectPoints(X, rvec, tvec, proj.K, proj.dist)
-    Jc, Jp = Jc.reshape(n, 2, -1), Jp.reshape(n, 2, -1)
+    Jc, Jp = _projection_jacobians(points, model)
+    n = len(Jc)
     out = np.zeros((n, 3, len(RIG_PARAMETERS)))
     for orientation, w in weights.items():
         axis = 0 if orientation == "vertical" else 1
-        A = np.concatenate([Jc[:, :, 3:6], (Jp[:, axis, 3:6] @ P[:3, :3])[:, None, :]], axis=1)
         B = np.zeros((n, 3, len(RIG_PARAMETERS)))
         B[:, :2, 0:9] = Jc[:, :, 6:15]
         B[:, 2, 9:18] = Jp[:, axis, 6:15]
         B[:, 2, 18:24] = Jp[:, axis, 0:6]
-        out -= w[:, None, None] * np.linalg.solve(A, B)
+        out -= w[:, None, None] * np.linalg.solve(_constraints(Jc, Jp, model, axis), B)
     return out
+
+
+def measurement_jacobian(points: np.ndarray, model: RigModel, orientation: str = "vertical") -> np.ndarray:
+    """∂X/∂(camera column, camera row, projector coordinate) (N, 3, 3) of camera-frame
+    `points` (N, 3) triangulated from a camera pixel and one projector coordinate (along
+    x for vertical fringes): A⁻¹ of the same constraints as `calibration_jacobian`."""
+    Jc, Jp = _projection_jacobians(points, model)
+    A = _constraints(Jc, Jp, model, 0 if orientation == "vertical" else 1)
+    return np.linalg.inv(A)
+
+
+# ------------------------------------------------------------------ a scan's uncertainty
+
+
+@dataclass(frozen=True, eq=False)
+class ScanUncertainty:
+    """What the figures measured on N points of a scan are propagated with: the points'
+    noise model, the calibration's covariance, the rig model they were triangulated with
+    and each point's share of the depth per fringe orientation (`weights`, (N,) each)."""
+
+    noise: PointNoise | None
+    calibration: CalibrationUncertainty
+    model: RigModel | None = None
+    weights: dict[str, np.ndarray] | None = None
+
+    def subset(self, mask: np.ndarray) -> ScanUncertainty:
+        w = None if self.weights is None else {o: v[mask] for o, v in self.weights.items()}
+        return ScanUncertainty(None if self.noise is None else self.noise.subset(mask), self.calibration, self.model, w)
+
+    def shifts(self, points: np.ndarray) -> np.ndarray | None:
+        """The points' (N, 3, camera frame) moves (D, N, 3) for each principal calibration
+        direction; None without calibration uncertainty."""
+        if self.model is None or self.weights is None:
+            return None
+        return self.calibration.shifts(points, self.model, self.weights)
+
+    def linear_u(self, points: np.ndarray, influence: np.ndarray, residual_rms: float = 0.0
+                 ) -> tuple[float, float, float]:
+        """(u_noise, u_fringe, u_cal) of a figure linear in the points (N, 3), with
+        per-point influence (N, 3) = ∂figure/∂X_i. Without a noise model the points'
+        noise is taken as white along their rays with the fit's `residual_rms`."""
+        noise = self.noise or PointNoise(np.full(len(points), residual_rms), points / points[:, 2:3],
+                                         source="estimated from the fit's residuals")
+        u_noise, u_fringe = noise.linear_u(influence)
+        shifts = self.shifts(points)
+        u_cal = 0.0 if shifts is None else float(np.sqrt(np.sum(np.einsum("dij,ij->d", shifts, influence) ** 2)))
+        return u_noise, u_fringe, u_cal
+
+    @classmethod
+    def join(cls, parts: list[ScanUncertainty]) -> ScanUncertainty:
+        """One model for the points of several parts of the same scan (or rig), in order."""
+        first = parts[0]
+        n = [p.noise for p in parts]
+        noise = None if any(x is None for x in n) else PointNoise(np.concatenate([x.sigma_z for x in n]), np.concatenate([x.ray for x in n]),
+                           tuple(np.concatenate(c) for c in zip(*(x.columns for x in n))),
+                           tuple(np.concatenate(g) for g in zip(*(x.gains for x in n))), first.noise.fringe,
+                           first.noise.source)  # type: ignore[union-attr]
+        weights = None if first.weights is None else {
+            o: np.concatenate([p.weights[o] for p in parts]) for o in first.weights}  # type: ignore[index]
+        return cls(noise, first.calibration, first.model, weights)
+
+
+def scan_uncertainty(decoded: DecodeResult, model: RigModel, sensor: SensorNoise | None, fringe: FringeError | None,
+                     calibration: CalibrationUncertainty, pixels: np.ndarray) -> ScanUncertainty:
+    """The ScanUncertainty of the points a decoded scan gives at `pixels` (N, 2) (column,
+    row), triangulated with `model`. Without a `sensor` noise model there is no noise
+    model (None): the figures then estimate the noise from the data."""
+    maps = depth_noise(decoded, Triangulator(model), sensor)
+    c, r = pixels[:, 0], pixels[:, 1]
+    noise = None if sensor is None else maps.at(pixels, model.camera, fringe, "decoder and sensor model")
+    return ScanUncertainty(noise, calibration, model, {o: w[r, c] for o, w in maps.weight.items()})

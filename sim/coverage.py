@@ -14,22 +14,22 @@ the U is computed from (not the simulated noise): below 1 it underestimates it.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
 
 from inspection.acceptance import Acceptance, Position, find_spheres, frame_along, pose_of
 from inspection.artefact_file import ArtefactSet
-from inspection.artefacts import Uncertainties, measure_ball_bar, measure_sphere
+from inspection.artefacts import measure_ball_bar, measure_sphere
 from inspection.uncertainty import (
     CalibrationUncertainty,
     Estimate,
     FringeError,
-    PointNoise,
-    depth_noise,
+    ScanUncertainty,
     fringe_error,
     perturbed,
+    scan_uncertainty,
 )
 from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
@@ -100,7 +100,7 @@ class Bench:
                    Acceptance.from_rig(config.raw, config.path, config.working_distance_mm))
 
 
-Measure = Callable[[np.ndarray, Callable[[np.ndarray], Uncertainties]], Estimate]
+Measure = Callable[[np.ndarray, Callable[[np.ndarray], ScanUncertainty]], Estimate]
 
 
 def _trial(bench: Bench, position: Position, artefacts: ArtefactSet, measure: Measure, truth: float,
@@ -111,14 +111,13 @@ def _trial(bench: Bench, position: Position, artefacts: ArtefactSet, measure: Me
     used = renderer.model
     if calibration is not None:
         used = perturbed(used, calibration.draw(rng))
-    tri = Triangulator(used)
-    points = triangulate(decoded, tri, with_normals=False).points
-    noise = depth_noise(decoded, tri, lambda a: bench.sensor.noise_sigma_dn(a, bench.bit_depth))
+    points = triangulate(decoded, Triangulator(used), with_normals=False).points
+    cal = calibration or CalibrationUncertainty.none("the simulator's exact geometry")
 
-    def uncertainties(pixels: np.ndarray) -> Uncertainties:
-        pn: PointNoise = noise.at(pixels, used.camera, bench.fringe, "decoder and sensor model")
-        c, r = pixels[:, 0], pixels[:, 1]
-        return Uncertainties(pn.scaled(noise_scale), calibration, used, {o: w[r, c] for o, w in noise.weight.items()})
+    def uncertainties(pixels: np.ndarray) -> ScanUncertainty:
+        unc = scan_uncertainty(decoded, used, lambda a: bench.sensor.noise_sigma_dn(a, bench.bit_depth), bench.fringe,
+                               cal, pixels)
+        return replace(unc, noise=unc.noise.scaled(noise_scale))  # type: ignore[union-attr]
 
     return Trial(measure(points, uncertainties), truth, time.perf_counter() - t0)
 
@@ -132,7 +131,7 @@ def sphere_radius(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0,
     half = np.array(bench.acceptance.size_mm) / 2 - s.radius_mm - 2.0
     c0 = np.array(bench.acceptance.centre_mm)
 
-    def measure(points: np.ndarray, unc: Callable[[np.ndarray], Uncertainties]) -> Estimate:
+    def measure(points: np.ndarray, unc: Callable[[np.ndarray], ScanUncertainty]) -> Estimate:
         (px,) = find_spheres(points, s.radius_mm, 1)
         return measure_sphere(points[px[:, 1], px[:, 0]].astype(np.float64), unc(px), s.radius_mm)[1].radius
 
@@ -151,7 +150,7 @@ def ball_bar_length(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0,
     half = np.array(bench.acceptance.size_mm) / 2
     c0 = np.array(bench.acceptance.centre_mm)
 
-    def measure(points: np.ndarray, unc: Callable[[np.ndarray], Uncertainties]) -> Estimate:
+    def measure(points: np.ndarray, unc: Callable[[np.ndarray], ScanUncertainty]) -> Estimate:
         pxs = find_spheres(points, b.radius_mm, 2)
         bar = measure_ball_bar(tuple(points[p[:, 1], p[:, 0]].astype(np.float64) for p in pxs),  # type: ignore[arg-type]
                                tuple(unc(p) for p in pxs), b.radius_mm)  # type: ignore[arg-type]

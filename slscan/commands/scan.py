@@ -103,7 +103,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     """Scan the bundled part on the simulated rig, then (unless --no-inspect) inspect the
     session against the part's STEP model and tolerances: registration, per-face
     segmentation, form table; report files in the session's outputs/, the inspection in
-    its recording. Exit 1 when a tolerance fails."""
+    its recording. Exit 1 when a characteristic is non-conforming."""
+    from inspection.tolerances import NON_CONFORMING
+
     out = args.out or f"sessions/demo-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
     ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[])
     if args.no_inspect:
@@ -127,7 +129,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"world/inspection/ and inspection/")
     print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU (registration "
           f"{rep.timings_s['register']:.1f} s); demo {time.perf_counter() - t0:.1f} s wall")
-    return 1 if rep.verdict == "fail" else 0
+    return 1 if rep.verdict == NON_CONFORMING else 0
 
 
 def register(sub: Any) -> None:
