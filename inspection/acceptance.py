@@ -82,10 +82,10 @@ class Acceptance:
         decision_rule = "guard-banded"        # or "plain" (inspection.tolerances.DECISION_RULES)
         [acceptance.mpe]                      # maximum permissible errors (mm)
         PF_mm = 0.100
-        PS_mm = 0.010
-        SD_mm = 0.030
-        F_mm = 0.120
-        E_mm = 0.035
+        PS_mm = 0.005
+        SD_mm = 0.010
+        F_mm = 0.100
+        E_mm = 0.012
     """
 
     size_mm: tuple[float, float, float]

@@ -171,3 +171,102 @@ def ball_bar_length(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0,
         trials.append(_trial(bench, Position("ball_bar", k, pose, ""), artefacts, measure, b.length_mm, rng,
                              calibration, noise_scale))
     return CoverageResult("ball-bar length", tuple(trials))
+
+
+# ------------------------------------------------------------------- flatness and Sq
+
+
+PLATE_MM = (40.0, 30.0)
+PLATE_STEP_MM = 0.1  # mesh spacing: 0.1 mm, below the camera's 0.125 mm pixels
+
+
+@dataclass(frozen=True)
+class Plate:
+    """A flat plate of `PLATE_MM` whose surface has a bow (quadratic dome of `bow_mm`
+    from the middle to the corners) and a random texture of RMS `texture_mm` at
+    wavelengths of `wavelengths_mm` (sim.parts.Roughness), as a height-field mesh."""
+
+    bow_mm: float = 0.030
+    texture_mm: float = 0.008
+    wavelengths_mm: tuple[float, float] = (0.6, 2.0)
+
+    def mesh(self, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        from sim.parts import Roughness
+
+        w, h = PLATE_MM
+        x, y = np.meshgrid(np.arange(-w / 2, w / 2 + 1e-9, PLATE_STEP_MM), np.arange(-h / 2, h / 2 + 1e-9, PLATE_STEP_MM))
+        p = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+        z = self.bow_mm * (1.0 - (p[:, 0] ** 2 + p[:, 1] ** 2) / ((w / 2) ** 2 + (h / 2) ** 2))
+        z += Roughness(0, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), self.texture_mm, self.wavelengths_mm, seed=seed).height(p)
+        p[:, 2] = z
+        rows, cols = x.shape
+        k = np.arange(rows * cols).reshape(rows, cols)[:-1, :-1].ravel()
+        tris = np.concatenate([np.stack([k, k + 1, k + cols], 1), np.stack([k + 1, k + cols + 1, k + cols], 1)])
+        return p, tris.astype(np.int32)
+
+
+def _plate_face() -> object:
+    from inspection.surfaces import Plane
+
+    class Face:
+        type = "plane"
+        surface = Plane(np.zeros(3), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+
+    return Face()
+
+
+def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationUncertainty | None = None,
+                  noise_scale: float = 1.0, plate: Plate = Plate(), draws: int = 32
+                  ) -> tuple[CoverageResult, CoverageResult]:
+    """Coverage of the minimum-zone flatness and of Sq of a textured, bowed plate
+    (`Plate`) placed at random in the measuring volume, tilted up to 20 degrees: the
+    plate's points taken into its own frame with its true pose (registration is not what
+    is studied here), evaluated as an inspection evaluates a plane face
+    (`inspection.form.evaluate_face`). The truth: the same evaluation of the noise-free
+    surface points the same pixels see."""
+    from inspection.form import FormSettings, evaluate_face
+    from sim.calibration_bench import rotation
+    from sim.scene import SceneObject
+
+    rng = np.random.default_rng(seed)
+    face = _plate_face()
+    half = np.array(bench.acceptance.size_mm) / 2 - [PLATE_MM[0] / 2, PLATE_MM[1] / 2, 8.0]
+    c0 = np.array(bench.acceptance.centre_mm)
+    cal = calibration or CalibrationUncertainty.none("the simulator's exact geometry")
+    settings = FormSettings(draws=draws)
+    flat, sq = [], []
+    for k in range(n):
+        t0 = time.perf_counter()
+        vertices, triangles = plate.mesh(seed * 100003 + k)
+        pose = pose_of(rotation(*rng.uniform(-20.0, 20.0, 2), rng.uniform(0.0, 360.0)), c0 + rng.uniform(-half, half))
+        obj = SceneObject("plate", "mesh", pose, 0.7, vertices=vertices, triangles=triangles)
+        renderer = window_renderer(bench.model, (obj,), bench.sensor, bench.projector_blur_px)
+        decoded = quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s,
+                             bench.bit_depth, rng)
+        used = renderer.model if calibration is None else perturbed(renderer.model, calibration.draw(rng))
+        points = triangulate(decoded, Triangulator(used), with_normals=False).points
+        gt = renderer.ground_truth
+        ok = np.isfinite(points).all(axis=2) & (gt.object_id == 2)
+        rows, cols = np.nonzero(ok)
+        px = np.stack([cols, rows], axis=1)
+        unc = scan_uncertainty(decoded, used, lambda a: bench.sensor.noise_sigma_dn(a, bench.bit_depth), bench.fringe,
+                               cal, px)
+        inv = np.linalg.inv(pose)
+        R = inv[:3, :3]
+
+        def local(p: np.ndarray) -> np.ndarray:
+            return p @ R.T + inv[:3, 3]
+
+        measured = local(points[rows, cols].astype(np.float64))
+        true_pts = local(gt.points[rows, cols])
+        normals = np.tile([0.0, 0.0, 1.0], (len(measured), 1))
+        moves = unc.shifts(points[rows, cols].astype(np.float64))
+        got = evaluate_face(face, measured, measured[:, 2], measured[:, :2], settings, seed=k,
+                            noise=unc.noise.rotated(R).scaled(noise_scale), normals=normals,  # type: ignore[union-attr]
+                            shifts=None if moves is None else moves @ R.T)
+        truth = evaluate_face(face, true_pts, true_pts[:, 2], true_pts[:, :2], settings, seed=k,
+                              noise=unc.noise.rotated(R).scaled(0.0), normals=normals)  # type: ignore[union-attr]
+        dt_s = time.perf_counter() - t0
+        flat.append(Trial(got.flatness_mz, truth.flatness_mz.value, dt_s / 2))  # type: ignore[union-attr,arg-type]
+        sq.append(Trial(got.sq, truth.sq.value, dt_s / 2))  # type: ignore[union-attr,arg-type]
+    return CoverageResult("flatness (minimum zone)", tuple(flat)), CoverageResult("Sq", tuple(sq))
