@@ -7,6 +7,11 @@ A frame whose counter skips is a dropped frame; one that repeats an index or car
 wrong pattern is out of order; either stops the scan rather than decoding a mixed
 sequence. Every frame checked is stored before the next is awaited.
 
+In the hardware-sequenced wirings the projector's sequence or the trigger box's train
+returns a status (`scanner.status`); while frames are awaited its failure is raised as
+itself (an HDMI projector whose display failed is reported as that, not as a camera that
+saw no frame), and after the last frame the acquisition waits for it to finish.
+
 Real cameras cannot say which pattern they saw (`Frame.pattern_index` is None), so two
 more checks prove that frame k was taken under pattern k:
   - timestamps: frame k cannot have been exposed before pattern k was put up (after
@@ -21,16 +26,20 @@ more checks prove that frame k was taken under pattern k:
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
-from scanner.devices import Frame
-from scanner.errors import FrameDropped, FrameError, FrameOutOfOrder
+from scanner.devices import Camera, Frame
+from scanner.errors import FrameDropped, FrameError, FrameOutOfOrder, WaitTimeout
 from scanner.patterns import FrameSpec, PatternSet
 from scanner.rig import Rig
+from scanner.status import Status
+
+log = logging.getLogger(__name__)
 
 FrameCallback = Callable[[int, Frame], None]
 
@@ -38,6 +47,7 @@ TIMESTAMP_TOLERANCE = 0.25  # of a pattern period: clock offsets between camera 
 SIGNATURE_PIXELS = 1500  # well-lit pixels the signature check looks at
 SIGNATURE_MAX_RESIDUAL = 0.05  # a frame's residual / fringe signal (true frames: <= 0.01, wrong ones: >= 0.09)
 SIGNATURE_MIN_CONTRAST = 0.02  # of full scale: temporal std below this is too dark to judge
+STATUS_CHECK_S = 0.1  # while a sequence drives the camera, a frame is awaited in slices this long (s)
 
 
 @dataclass(frozen=True)
@@ -99,15 +109,17 @@ def acquire_images(rig: Rig, images: np.ndarray, settings: AcquisitionSettings,
     wiring = wiring or rig.config.trigger
     tolerance = TIMESTAMP_TOLERANCE * settings.period_s
     previous: Frame | None = None
+    running: Status | None = None  # the sequence or pulse train driving the camera
+    log.info("%s: acquiring %d frames, wiring %s", cam.name, n, wiring)
     try:
         started = time.monotonic()
         if wiring == "projector":
-            proj.run_sequence(settings.period_s)
+            running = proj.run_sequence(settings.period_s)
         elif wiring == "trigger_box":
             if rig.trigger is None:
                 raise FrameError(cam.name, "rig is wired for a trigger box but none is open", 0, None)
             rig.trigger.arm(n, settings.period_s)
-            rig.trigger.start()
+            running = rig.trigger.start()
         for k in range(n):
             if wiring == "software":
                 earliest = time.monotonic()
@@ -115,7 +127,7 @@ def acquire_images(rig: Rig, images: np.ndarray, settings: AcquisitionSettings,
                 cam.trigger()
             else:
                 earliest = started + k * settings.period_s
-            frame = cam.grab(settings.timeout_s)
+            frame = grab_while_running(cam, settings.timeout_s, running)
             check_frame(k, frame, cam.name, shape, cam.bit_depth)
             check_timing(k, frame, previous, earliest - tolerance, cam.name)
             if stack is None:
@@ -124,15 +136,59 @@ def acquire_images(rig: Rig, images: np.ndarray, settings: AcquisitionSettings,
             if on_frame is not None:
                 on_frame(k, frame)
             previous = frame
-    finally:
-        proj.stop_sequence()
-        if rig.trigger is not None:
-            rig.trigger.stop()
-        cam.disarm()
-        if not proj.is_shut_down:
-            proj.blank()
+            log.debug("%s: frame %d of %d checked", cam.name, k, n)
+        if running is not None:
+            running.wait(settings.timeout_s)  # an error after the last frame surfaces too
+        log.info("%s: %d frames acquired in %.3g s", cam.name, n, time.monotonic() - started)
+    except BaseException:
+        release(rig, quiet=True)
+        raise
+    release(rig, quiet=False)
     assert stack is not None
     return stack
+
+
+def release(rig: Rig, quiet: bool) -> None:
+    """Stop the sequence and the pulse train, disarm the camera, blank the projector: every
+    step is tried. `quiet` (an error is already on its way): a failing step is logged, not
+    raised over that error; otherwise the first failure is raised once all were tried."""
+    proj, trigger = rig.projector, rig.trigger
+    steps: list[Callable[[], None]] = [proj.stop_sequence, rig.camera.disarm]
+    if trigger is not None:
+        steps.insert(1, trigger.stop)
+    if not proj.is_shut_down:
+        steps.append(proj.blank)
+    failures: list[Exception] = []
+    for step in steps:
+        try:
+            step()
+        except Exception as exc:
+            log.log(logging.WARNING if quiet else logging.DEBUG, "releasing the rig after the acquisition: %s "
+                    "failed: %s", step.__qualname__, exc)
+            failures.append(exc)
+    if failures and not quiet:
+        raise failures[0]
+
+
+def grab_while_running(cam: Camera, timeout_s: float, running: Status | None) -> Frame:
+    """`cam.grab(timeout_s)`; while `running` (a sequence or pulse train) drives the camera,
+    the frame is awaited in slices of STATUS_CHECK_S and the status's failure is raised as
+    itself as soon as it is known (no frame would come of a failed sequence)."""
+    if running is None:
+        return cam.grab(timeout_s)
+    deadline = time.monotonic() + timeout_s
+    last: WaitTimeout | None = None
+    while True:
+        failure = running.exception()
+        if failure is not None:
+            raise failure
+        remaining = deadline - time.monotonic()
+        if last is not None and remaining <= 0:
+            raise WaitTimeout(cam.name, last.awaited, timeout_s, last.hint)
+        try:
+            return cam.grab(min(max(remaining, 1e-3), STATUS_CHECK_S))
+        except WaitTimeout as exc:
+            last = exc
 
 
 def check_timing(k: int, frame: Frame, previous: Frame | None, earliest_s: float, camera_name: str) -> None:

@@ -30,8 +30,33 @@ class DeviceError(ScannerError):
         self.device = device
 
 
+def _timeout_message(what: str, timeout_s: float | None, hint: str) -> str:
+    return what + (f" after {timeout_s:.3g} s" if timeout_s is not None else "") + (f"; {hint}" if hint else "")
+
+
+class WaitTimeout(DeviceError):
+    """The caller stopped waiting: `awaited` (a frame, the end of a sequence) had not happened
+    within the caller's `timeout_s`. Nothing is known to be wrong with the device and the
+    awaited event may still come: a later wait can succeed."""
+
+    def __init__(self, device: str, awaited: str, timeout_s: float, hint: str = "") -> None:
+        super().__init__(device, _timeout_message(f"stopped waiting for {awaited}", timeout_s, hint))
+        self.awaited = awaited
+        self.timeout_s = timeout_s
+        self.hint = hint
+
+
 class DeviceTimeout(DeviceError):
-    """The caller stopped waiting: the device did not answer within the timeout."""
+    """The device timed out: it did not answer, or did not finish `awaited`, within the time it
+    must (a command's reply, a validation, a sequence's deadline); the operation failed and the
+    driver has reset what it must (a link out of step is reopened at the next call).
+    `timeout_s` is None where the device reported the timeout without saying how long."""
+
+    def __init__(self, device: str, awaited: str, timeout_s: float | None, hint: str = "") -> None:
+        super().__init__(device, _timeout_message(f"device timeout: {awaited}", timeout_s, hint))
+        self.awaited = awaited
+        self.timeout_s = timeout_s
+        self.hint = hint
 
 
 class DeviceDisconnected(DeviceError):

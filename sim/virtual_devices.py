@@ -8,12 +8,16 @@ trigger output, pulsed at the start of each pattern of `run_sequence`),
 (the camera's hardware trigger line, rising edge) and `SimProjector.trigger_in()` (the
 projector's external trigger input: advance to the next pattern).
 
-Threads: the projector's sequence and the trigger box each run on their own thread; the
-camera renders on a worker thread (a trigger only snapshots the projector state and
-queues the exposure, so a fast pulse train never blocks on rendering). Every wait is
-finite and interruptible by `shutdown()`; after `shutdown()` every public call raises
-DeviceDisconnected, while pulses arriving on a dead device's input are ignored (a
-cable to a dead device does not throw into the device driving it).
+Threads: the projector's sequence and the trigger box each run on their own thread and
+complete the status `run_sequence` / `start` returned: finished after the last pattern's
+period (the projector then goes dark) or the last pulse; failed with the error of a
+connected input or `on_pattern` callback, which also ends the sequence (as an HDMI
+projector's thread ends on its error). The camera renders on a worker thread (a trigger
+only snapshots the projector state and queues the exposure, so a fast pulse train never
+blocks on rendering). Every wait is finite and interruptible by `shutdown()`; after
+`shutdown()` every public call raises DeviceDisconnected, while pulses arriving on a dead
+device's input are ignored (a cable to a dead device does not throw into the device
+driving it).
 
 Camera behaviour:
   - `arm(n)` flushes queued and in-flight frames, restarts the frame counter at 0 and
@@ -21,7 +25,9 @@ Camera behaviour:
     `ignored_triggers`), an extra or unarmed software trigger raises DeviceError.
   - Hardware pulses are ignored (counted) while the trigger type is SOFTWARE.
   - A frame is delivered no earlier than its exposure end; `grab` waits at most its
-    timeout and raises DeviceTimeout naming the camera and the expected frame index.
+    timeout and raises WaitTimeout naming the camera and the expected frame index.
+  - `wait_delivered(n, timeout_s)` waits until n frames are ready to grab (for tests that
+    need a frame delivered but not yet grabbed, without sleeping).
   - Noise is deterministic: frame k of the a-th arming uses seed (seed, a, k).
 
 Faults (`Faults`, or `[sim.faults]` in the rig TOML), frame indices counted since `arm`:
@@ -44,6 +50,7 @@ Faults (`Faults`, or `[sim.faults]` in the rig TOML), frame indices counted sinc
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
@@ -53,9 +60,12 @@ from typing import Any, Callable
 import numpy as np
 
 from scanner.config import get, get_table
-from scanner.devices import Camera, Frame, Projector, TriggerMode, TriggerSource, TriggerType
-from scanner.errors import ConfigError, DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+from scanner.devices import Camera, Frame, Projector, TriggerSource, TriggerType
+from scanner.errors import ConfigError, DeviceDisconnected, DeviceError, UnsupportedSetting, WaitTimeout
+from scanner.status import Status
 from sim.render import Renderer
+
+log = logging.getLogger(__name__)
 
 _JOIN_TIMEOUT_S = 5.0
 
@@ -116,34 +126,21 @@ class Faults:
 
 class _Ticker:
     """A background thread that calls `tick(i)` for i = 0..count-1, one call every
-    `period_s` (the first at once), then `done()` one period after the last unless stopped.
-    A callback's exception is kept in `error` and does not stop the ticking."""
+    `period_s` (the first at once), then `done()` one period after the last unless stopped,
+    and then finishes `status`. An exception from `tick` or `done` ends the ticking and
+    fails `status` with it; stopping leaves `status` to the caller."""
 
     def __init__(self, name: str) -> None:
         self.name = name
-        self.error: BaseException | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
-    @property
-    def running(self) -> bool:
-        t = self._thread
-        return t is not None and t.is_alive()
-
-    def start(self, count: int, period_s: float, tick: Callable[[int], None],
+    def start(self, count: int, period_s: float, tick: Callable[[int], None], status: Status,
               done: Callable[[], None] | None = None) -> None:
         self._stop = threading.Event()
-        self.error = None
-        self._thread = threading.Thread(target=self._run, args=(count, period_s, tick, done, self._stop),
+        self._thread = threading.Thread(target=self._run, args=(count, period_s, tick, done, status, self._stop),
                                         name=self.name, daemon=True)
         self._thread.start()
-
-    def wait(self, timeout_s: float) -> bool:
-        """Wait at most `timeout_s` for the ticking to end; True if it has."""
-        t = self._thread
-        if t is not None:
-            t.join(timeout_s)
-        return not self.running
 
     def stop(self) -> None:
         self._stop.set()
@@ -151,21 +148,23 @@ class _Ticker:
         if t is not None and t is not threading.current_thread():
             t.join(_JOIN_TIMEOUT_S)
 
-    def call(self, cb: Callable[..., None], *args: Any) -> None:
-        try:
-            cb(*args)
-        except Exception as exc:  # a listener's bug must not kill the sequence; keep it for inspection
-            self.error = exc
-
     def _run(self, count: int, period: float, tick: Callable[[int], None], done: Callable[[], None] | None,
-             stop: threading.Event) -> None:
+             status: Status, stop: threading.Event) -> None:
         t0 = time.monotonic()
-        for i in range(count):
-            if stop.wait(max(0.0, t0 + i * period - time.monotonic())):
-                return
-            self.call(tick, i)
-        if done is not None and not stop.wait(max(0.0, t0 + count * period - time.monotonic())):
-            self.call(done)
+        try:
+            for i in range(count):
+                if stop.wait(max(0.0, t0 + i * period - time.monotonic())):
+                    return
+                tick(i)
+            if done is not None:
+                if stop.wait(max(0.0, t0 + count * period - time.monotonic())):
+                    return
+                done()
+        except Exception as exc:  # a connected input or callback failed: the action ends with its error
+            log.info("%s: ended by an error: %s", self.name, exc)
+            status.set_exception(exc)
+            return
+        status.set_finished()
 
 
 # --------------------------------------------------------------------------- projector
@@ -209,27 +208,13 @@ class SimProjector(Projector):
                 return None, None
             return k, self._patterns[k]
 
-    # sequence control
-    @property
-    def sequence_running(self) -> bool:
-        return self._sequence.running
-
-    @property
-    def sequence_error(self) -> BaseException | None:
-        """The last error raised by a trigger-output listener during a sequence."""
-        return self._sequence.error
-
-    def wait_sequence(self, timeout_s: float) -> bool:
-        """Wait (at most `timeout_s`) for a running sequence to finish; True if it has."""
-        return self._sequence.wait(timeout_s)
-
+    # driver methods
     def _do_stop_sequence(self) -> None:
         """Stop a running sequence (the current pattern stays on)."""
         self._sequence.stop()
 
-    # driver methods
     def _do_load_patterns(self, patterns: np.ndarray) -> None:
-        self.stop_sequence()
+        self._sequence.stop()  # a sequence outliving its status (past its deadline) stops too
         stack = np.array(patterns, dtype=np.uint8, copy=True)
         stack.setflags(write=False)
         with self._state:
@@ -245,33 +230,29 @@ class SimProjector(Projector):
             self._next_external = 0 if k is None else k + 1
 
     def _do_show(self, k: int) -> None:
-        self.stop_sequence()
+        self._sequence.stop()
         self._display(k)
 
     def _do_blank(self) -> None:
-        self.stop_sequence()
+        self._sequence.stop()
         self._display(None)
 
-    def _do_run_sequence(self, period_s: float, on_pattern: Callable[[int], None] | None) -> None:
-        if not period_s > 0:
-            raise UnsupportedSetting(self.name, f"sequence period must be > 0 s, got {period_s}")
-        if self.sequence_running:
-            raise UnsupportedSetting(self.name, "a sequence is already running; wait for it or call stop_sequence()")
+    def _do_run_sequence(self, period_s: float, on_pattern: Callable[[int], None] | None, status: Status) -> None:
         with self._state:
             n = len(self._patterns)  # type: ignore[arg-type]
 
         def tick(k: int) -> None:
             self._display(k)
             for cb in list(self._outputs):
-                self._sequence.call(cb)
+                cb()
             if on_pattern is not None:
-                self._sequence.call(on_pattern, k)
+                on_pattern(k)
 
         # the last pattern stays up for its period, then the projector goes dark
-        self._sequence.start(n, period_s, tick, lambda: self._display(None))
+        self._sequence.start(n, period_s, tick, status, lambda: self._display(None))
 
     def _do_shutdown(self) -> None:
-        self.stop_sequence()
+        self._sequence.stop()
 
     def describe(self) -> dict[str, object]:
         return {**super().describe(), "simulated": True}
@@ -326,6 +307,8 @@ class SimCamera(Camera):
         self.set_faults(faults or Faults())
         self._worker = threading.Thread(target=self._work, name=f"{name}-render", daemon=True)
         self._worker.start()
+        log.info("%s: simulated camera %dx%d opened (seed %d%s)", name, w, h, self.seed,
+                 f", faults {self._faults}" if self._faults.any else "")
 
     # faults
     @property
@@ -387,6 +370,17 @@ class SimCamera(Camera):
         with self._cv:
             self._armed = 0
 
+    def wait_delivered(self, count: int, timeout_s: float) -> bool:
+        """Wait at most `timeout_s` until `count` frames are ready to grab; True if they are."""
+        deadline = time.monotonic() + timeout_s
+        with self._cv:
+            while len(self._frames) < count:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self._gone or self._shut_down:
+                    return False
+                self._cv.wait(remaining)
+            return True
+
     def _do_grab(self, timeout_s: float) -> Frame:
         deadline = time.monotonic() + timeout_s
         with self._cv:
@@ -398,7 +392,8 @@ class SimCamera(Camera):
                     self._expected = frame.index + 1
                     return frame
                 if self._gone:
-                    raise DeviceDisconnected(self.name, f"camera disconnected (expected frame index {self._expected}); "
+                    why = f"rendering failed ({self.render_error})" if self.render_error else "camera disconnected"
+                    raise DeviceDisconnected(self.name, f"{why} (expected frame index {self._expected}); "
                                                         "check the cable and power, then open the rig again")
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -408,9 +403,8 @@ class SimCamera(Camera):
                                if self._trigger_type is TriggerType.RISING_EDGE else " (call trigger())"))
                     else:
                         why = "it was triggered but not delivered"
-                    raise DeviceTimeout(self.name, f"no frame within {timeout_s:.3g} s: expected frame index "
-                                                   f"{self._expected}, {self._triggered} of {self._armed} frames "
-                                                   f"triggered since arm; {why}")
+                    raise WaitTimeout(self.name, f"frame index {self._expected}", timeout_s,
+                                      f"{self._triggered} of {self._armed} frames triggered since arm; {why}")
                 self._cv.wait(remaining)
 
     def _do_set_bit_depth(self, bits: int) -> None:
@@ -419,11 +413,8 @@ class SimCamera(Camera):
     def _do_set_exposure(self, seconds: float) -> None:
         self._check_connected()
 
-    def _do_set_trigger(self, ttype: TriggerType, tmode: TriggerMode) -> None:
+    def _do_set_trigger(self, ttype: TriggerType) -> None:
         self._check_connected()
-        if tmode is not TriggerMode.ONCE:
-            raise UnsupportedSetting(self.name, f"trigger mode {tmode.value} not supported; the simulated camera "
-                                                "takes one frame per trigger (mode 'once')")
 
     def _do_shutdown(self) -> None:
         self._stop.set()
@@ -452,6 +443,8 @@ class SimCamera(Camera):
         self._cv.notify_all()
 
     def _go_away(self) -> None:  # holds _cv
+        if not self._gone:
+            log.info("%s: disconnected (simulated)", self.name)
         self._gone = True
         self._jobs.clear()
         self._cv.notify_all()
@@ -463,6 +456,7 @@ class SimCamera(Camera):
         if key in self._spent:
             return False
         self._spent.add(key)
+        log.info("%s: injected fault %s at frame %d", self.name, name, index)
         return True
 
     def _work(self) -> None:
@@ -476,9 +470,10 @@ class SimCamera(Camera):
             try:
                 self._expose(job)
             except Exception as exc:  # rendering failed: surface it as a lost device, never hang
+                log.warning("%s: rendering frame %d failed; the camera is gone", self.name, job.index, exc_info=True)
                 with self._cv:
+                    self.render_error = exc
                     self._go_away()
-                self.render_error = exc
 
     def _expose(self, job: _Job) -> None:
         rng = np.random.default_rng([self.seed, job.generation, job.index])
@@ -521,7 +516,7 @@ class SimTriggerBox(TriggerSource):
     def __init__(self, name: str = "sim-trigger-box") -> None:
         super().__init__(name)
         self._outputs: list[Callable[[], None]] = []
-        self._train: tuple[int, float, float] | None = None
+        self._train: tuple[int, float] = (0, 0.0)
         self._sent = 0
         self._pulses = _Ticker(f"{name}-pulses")
         self._input_lock = threading.Lock()
@@ -548,47 +543,29 @@ class SimTriggerBox(TriggerSource):
         self._check_alive()
         self._outputs.append(callback)
 
-    @property
-    def running(self) -> bool:
-        return self._pulses.running
-
-    @property
-    def output_error(self) -> BaseException | None:
-        """The last error raised by a connected input."""
-        return self._pulses.error
-
-    def wait_done(self, timeout_s: float) -> bool:
-        """Wait (at most `timeout_s`) for the pulse train to end; True if it has."""
-        return self._pulses.wait(timeout_s)
-
     def _do_stop(self) -> None:
         self._pulses.stop()
 
     def _do_arm(self, count: int, period_s: float, pulse_width_s: float) -> None:
-        if self.running:
-            raise UnsupportedSetting(self.name, "a pulse train is running; wait for it or call stop()")
-        self._train = (count, period_s, pulse_width_s)
+        if self._running is not None and not self._running.done:
+            raise UnsupportedSetting(self.name, "a pulse train is running; wait for its status or call stop()")
+        self._train = (count, period_s)
         self._sent = 0
 
-    def _do_start(self) -> None:
-        if self.running:
-            raise UnsupportedSetting(self.name, "a pulse train is already running")
-        if self._train is None:
-            raise UnsupportedSetting(self.name, "not armed: call arm(count, period_s) before start()")
-        count, period, _ = self._train
-        self._train = None  # one start per arm, like a hardware pulse generator
-        self._pulses.start(count, period, self._pulse)
+    def _do_start(self, status: Status) -> None:
+        count, period = self._train
+        self._pulses.start(count, period, self._pulse, status)
 
     def _pulse(self, i: int) -> None:
+        self._sent += 1  # the pulse is out, whatever its inputs make of it
         for cb in list(self._outputs):
-            self._pulses.call(cb)
-        self._sent += 1
+            cb()
 
     def _do_pulses_sent(self) -> int:
         return self._sent
 
     def _do_shutdown(self) -> None:
-        self.stop()
+        self._pulses.stop()
 
     def describe(self) -> dict[str, object]:
         return {**super().describe(), "simulated": True}

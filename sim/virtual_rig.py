@@ -18,6 +18,7 @@ Trigger wiring (`rig.trigger` in the rig TOML):
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from scanner.config import get
@@ -28,6 +29,8 @@ from sim.evaluate import GROUND_TRUTH_FILE, Truth
 from sim.render import SUPPORTED_BIT_DEPTHS, Renderer, SensorModel
 from sim.scene import Scene, load_scene
 from sim.virtual_devices import Faults, SimCamera, SimProjector, SimTriggerBox
+
+log = logging.getLogger(__name__)
 
 
 def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, faults: Faults | None = None,
@@ -75,6 +78,8 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
             if dev is not None:
                 dev.shutdown()
         raise
+    log.info("simulated rig %s opened: scene %s, wiring %s, %d-bit camera", config.name, scene.name,
+             config.trigger, bits)
     truth = Truth.of(renderer.ground_truth)
     extras = {"ground_truth": renderer.ground_truth, "scene": scene, "renderer": renderer, "sensor": sensor,
               "faults": faults, "seed": seed,

@@ -3,6 +3,7 @@ flash-image export whose fingerprint the driver then accepts."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -47,3 +48,31 @@ def test_lightcrafter_images_fingerprint_is_accepted_by_the_driver(tmp_path: Pat
 
     bmp = cv2.imread(str(tmp_path / "img" / "slscan_00.bmp"), cv2.IMREAD_UNCHANGED)
     assert bmp.shape == (1140, 912, 3) and np.array_equal(bmp[0, :, 1], patterns[0, 0])  # pattern 0 in green
+
+
+@pytest.mark.parametrize("argv, level", [
+    (["devices"], logging.WARNING),
+    (["-v", "devices"], logging.INFO),
+    (["devices", "-vv"], logging.DEBUG),
+    (["--log-level", "error", "devices"], logging.ERROR),
+    (["-vv", "devices", "--log-level", "info"], logging.INFO),  # the level named wins over the count
+])
+def test_log_level_options(argv: list[str], level: int) -> None:
+    assert cli.log_level(cli.build_parser().parse_args(argv)) == level
+
+
+def test_device_life_cycle_is_logged_per_module(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from test_session import SCENE, small_rig_toml
+
+    from scanner.rig import open_rig
+
+    caplog.set_level(logging.DEBUG)
+    with open_rig(RigConfig.load(small_rig_toml(tmp_path, trigger="projector")), scene=SCENE) as rig:
+        rig.projector.load_patterns(np.zeros((2, rig.projector.height, rig.projector.width), np.uint8))
+        rig.projector.run_sequence(0.01).wait(5.0)
+    by_module = {(r.name, r.levelname) for r in caplog.records}
+    assert {("sim.virtual_rig", "INFO"), ("sim.virtual_devices", "INFO"), ("scanner.devices", "INFO"),
+            ("scanner.status", "DEBUG")} <= by_module
+    messages = [r.getMessage() for r in caplog.records]
+    assert "sim-projector: sequence of 2 patterns every 0.01 s started" in messages
+    assert "sim-camera: shut down" in messages and "sim-projector: shut down" in messages

@@ -12,7 +12,7 @@ from scanner.config import CONFIG_DIR
 from scanner.drivers import lightcrafter_protocol as p
 from scanner.drivers.lightcrafter import LightCrafter4500
 from scanner.drivers.lightcrafter_images import diamond_resample, fingerprint, pack_rgb24
-from scanner.drivers.testing import SILENT, Exchange, FakeHid, ProtocolMismatch, Unplug, expected_protocol
+from scanner.drivers.testing import SILENT, Exchange, FakeHid, ProtocolMismatch, Unplug, expected_protocol, wait_bound_s
 from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
 from scanner.patterns import PatternSet
 
@@ -125,9 +125,25 @@ def test_complete_phase_shift_sequence_setup_run_and_stop() -> None:
     script = SETUP_12 + [w(19, "24 1a 02"), w(20, "24 1a 00"), w(21, "24 1a 00")]
     with expected_protocol(lcr, FakeHid(script)) as d:
         d.load_patterns(PATTERNS)  # programs and validates, does not start
-        d.run_sequence(0.05)  # start
+        status = d.run_sequence(0.05)  # start; the DLPC350 runs 12 patterns of 50 ms by itself
         d.stop_sequence()
+        assert status.done and not status.success
+        with pytest.raises(DeviceError, match=r"lightcrafter4500: pattern sequence \(12 patterns every 0.05 s\) "
+                                              r"stopped before it had run"):
+            status.wait(1.0)
         d.shutdown()  # stop once more, then release the link
+
+
+def test_sequence_status_finishes_after_its_patterns_have_run() -> None:
+    """The DLPC350 reports nothing at the end of a sequence: the status finishes once N
+    periods have passed after START, with no further exchange on the link."""
+    script = SETUP_12 + [w(19, "24 1a 02"), w(20, "24 1a 00")]
+    with expected_protocol(lcr, FakeHid(script)) as d:
+        d.load_patterns(PATTERNS)
+        status = d.run_sequence(0.05)
+        status.wait(wait_bound_s(12 * 0.05))
+        assert status.success
+        d.shutdown()
 
 
 def test_external_trigger_sequence_waits_for_trig_in() -> None:
@@ -193,18 +209,21 @@ def test_validation_error_refuses_the_sequence() -> None:
 def test_validation_that_never_finishes_times_out_in_bounded_time() -> None:
     busy = [w(0, "1a 1a 00")] + [Exchange(rep(f"c0 {s:02x} 02 00 1a 1a"), rep(f"00 {s:02x} 01 00 80"))
                                  for s in range(1, 256)]
-    d = LightCrafter4500(lambda: FakeHid(busy), flash_images_sha256=SHA, validate_timeout_s=0.1)
+    timeout = 0.1
+    d = LightCrafter4500(lambda: FakeHid(busy), flash_images_sha256=SHA, validate_timeout_s=timeout)
     t0 = time.monotonic()
-    with pytest.raises(DeviceTimeout, match="still busy after 0.1 s"):
+    with pytest.raises(DeviceTimeout, match=r"lightcrafter4500: device timeout: pattern LUT validation \(0x1A1A\) "
+                                            r"still busy after 0.1 s; power-cycle"):
         d.validate()
-    assert time.monotonic() - t0 < 1.0
+    assert timeout <= time.monotonic() - t0 < wait_bound_s(timeout)
 
 
 def test_silent_device_times_out_and_link_is_reopened() -> None:
     first = FakeHid([Exchange(rep("40 00 03 00 24 1a 02"), SILENT)])
     second = FakeHid([w(0, "24 1a 02")])
     with expected_protocol(lcr, first, second) as d:
-        with pytest.raises(DeviceTimeout, match=r"no reply to command 0x1A24"):
+        with pytest.raises(DeviceTimeout, match=r"lightcrafter4500: device timeout: no reply to command 0x1A24 "
+                                                r"\(START_STOP\) after 1 s; the USB link is reopened"):
             d.start()
         assert first.closed
         d.start()  # the next call reconnects (sequence bytes restart at 0)

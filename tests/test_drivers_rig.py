@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from scanner.acquisition import AcquisitionSettings, acquire
+from scanner.acquisition import AcquisitionSettings, acquire, acquire_images
 from scanner.config import CONFIG_DIR
 from scanner.devices import TriggerType
 from scanner.drivers.genicam import GenICamCamera
@@ -139,3 +139,59 @@ def test_camera_unplugged_mid_scan_keeps_frames_then_next_scan_reconnects(tmp_pa
             Session.open(tmp_path / "a")
         session = capture(rig, patterns, SessionWriter.create(tmp_path / "b"))  # reopened at the next arm
     assert len(session.manifest["frames"]) == 12 and first.closed
+
+
+def _display_render(display: FakeDisplay):  # noqa: ANN202
+    """What the camera sees of the projector's window: its light, gamma 2.2, at 320 x 256."""
+
+    def render(t: float) -> np.ndarray:
+        shown = display.current()
+        light = np.zeros((1080, 1920)) if shown is None else (shown[..., 0] / 255.0) ** 2.2
+        return np.rint(cv2.resize(200 + 3000 * light, (320, 256), interpolation=cv2.INTER_AREA)).astype(np.uint16)
+
+    return render
+
+
+HDMI_SMALL = (("width = 2448", "width = 320"), ("height = 2048", "height = 256"),
+              ("refresh_hz = 60.0", "refresh_hz = 500.0"), ("period_s = 0.1", "period_s = 0.02"),
+              ("exposure_s = 0.03", "exposure_s = 0.001"))
+
+
+def test_hdmi_display_failing_mid_sequence_is_reported_as_itself(tmp_path: Path) -> None:
+    """The window's sequence thread dies: the acquisition reports the projector's error
+    (not a camera that saw no frame), with every frame exposed before it delivered."""
+    from scanner.errors import DeviceError, WaitTimeout
+
+    display = FakeDisplay((1920, 1080), 500.0)
+    acq = FakeAcquirer(_display_render(display), 320, 256)
+    acq.nodes.allowed["PixelFormat"] = ("Mono8", "Mono12")
+    patterns = PatternSet.load(CONFIG_DIR / "patterns" / "heterodyne_3x4.toml")
+    with open_rig(variant(tmp_path, HDMI, *HDMI_SMALL), transports={"camera": lambda: (acq, acq.close),
+                                                                    "display": display}) as rig:
+        fired: list[int] = []
+        rig.projector.connect_trigger_out(lambda: fired.append(1))
+        display.fail_after(25, RuntimeError("HDMI cable unplugged"))  # 10 presents per pattern: during pattern 2
+        frames: list[int] = []
+        with pytest.raises(DeviceError) as exc:
+            acquire(rig, patterns, AcquisitionSettings.for_rig(rig), lambda k, f: frames.append(k))
+    assert not isinstance(exc.value, WaitTimeout)
+    assert str(exc.value) == ("hdmi-projector: pattern sequence failed at pattern 2: RuntimeError: HDMI cable "
+                              "unplugged")
+    assert frames == list(range(len(fired))) == [0, 1, 2]
+
+
+def test_hdmi_projector_triggers_a_uvc_camera_from_its_thread(tmp_path: Path) -> None:
+    """Wiring `projector` with a UVC camera: the window's thread software-triggers the
+    camera once each pattern is on display, while the acquisition already waits for it;
+    every frame passes the index and timestamp checks. (What each frame shows is not
+    judged here: the fake camera's exposures follow the host's scheduling, not a sensor's.)"""
+    display = FakeDisplay((1920, 1080), 500.0)
+    cap = FakeCapture(lambda t: np.zeros((256, 320, 3), np.uint8), fps=500.0)
+    config = variant(tmp_path, HDMI, *HDMI_SMALL, ("bit_depth = 12", "bit_depth = 8"),
+                     ('driver = "genicam"', 'driver = "uvc"\nfps = 500.0'))
+    images = np.stack([np.full((1080, 1920), 20 * k, np.uint8) for k in range(6)])
+    with open_rig(config, transports={"camera": lambda: cap, "display": display}) as rig:
+        assert isinstance(rig.camera, UvcCamera) and rig.camera.trigger_type is TriggerType.SOFTWARE
+        frames: list[int] = []
+        stack = acquire_images(rig, images, AcquisitionSettings.for_rig(rig), lambda k, f: frames.append(f.index))
+    assert stack.shape == (6, 256, 320) and frames == list(range(6))

@@ -13,7 +13,7 @@ from test_session import SCENE, small_rig_toml
 
 from scanner.acquisition import AcquisitionSettings, acquire, check_signature, check_timing
 from scanner.config import CONFIG_DIR
-from scanner.devices import Camera, Frame
+from scanner.devices import Camera, Frame, TriggerType
 from scanner.errors import FrameOutOfOrder
 from scanner.patterns import PatternSet
 from scanner.pipeline import scan
@@ -34,6 +34,15 @@ class BlindCamera(Camera):
         self._bit_depth = inner.bit_depth
         self._trigger_type = inner.trigger_type
         self._images: list[np.ndarray] = []
+
+    def _do_set_bit_depth(self, bits: int) -> None:
+        self.inner.set_bit_depth(bits)
+
+    def _do_set_exposure(self, seconds: float) -> None:
+        self.inner.set_exposure(seconds)
+
+    def _do_set_trigger(self, ttype: TriggerType) -> None:
+        self.inner.set_trigger(ttype)
 
     def _do_arm(self, n_frames: int) -> None:
         self._images = []

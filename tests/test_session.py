@@ -14,11 +14,11 @@ from scanner.config import CONFIG_DIR
 from scanner.errors import (
     ConfigError,
     DeviceDisconnected,
-    DeviceTimeout,
     FrameDropped,
     FrameOutOfOrder,
     IncompleteSession,
     SessionError,
+    WaitTimeout,
 )
 from scanner.patterns import PatternSet
 from scanner.pipeline import reprocess, scan
@@ -85,9 +85,9 @@ def test_decode_regenerates_outputs_from_raw_frames(tmp_path: Path, small_config
 FAULTS = [
     (Faults(drop_frame=4), "projector", FrameDropped, 4),
     (Faults(stale_frame=5), "projector", FrameOutOfOrder, 5),
-    (Faults(delay_frame=3, delay_s=2.0), "projector", DeviceTimeout, 3),
+    (Faults(delay_frame=3, delay_s=2.0), "projector", WaitTimeout, 3),
     (Faults(disconnect_after=6), "projector", DeviceDisconnected, 6),
-    (Faults(delay_frame=2, delay_s=2.0), "software", DeviceTimeout, 2),
+    (Faults(delay_frame=2, delay_s=2.0), "software", WaitTimeout, 2),
     (Faults(drop_frame=7), "trigger_box", FrameDropped, 7),
 ]
 

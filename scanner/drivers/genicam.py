@@ -17,13 +17,16 @@ Timestamps: the device's, mapped to the host clock through a timestamp latch tak
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Any, Callable
 
 import numpy as np
 
-from scanner.devices import Camera, Frame, TriggerMode, TriggerType
-from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+from scanner.devices import Camera, Frame, TriggerType
+from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting, WaitTimeout
+
+log = logging.getLogger(__name__)
 
 PIXEL_FORMATS = {8: "Mono8", 10: "Mono10", 12: "Mono12", 16: "Mono16"}
 EXTRA_BUFFERS = 4
@@ -95,9 +98,7 @@ class GenICamCamera(Camera):
     def _do_set_exposure(self, seconds: float) -> None:
         self._set("ExposureTime", seconds * 1e6)
 
-    def _do_set_trigger(self, ttype: TriggerType, tmode: TriggerMode) -> None:
-        if tmode is not TriggerMode.ONCE:
-            raise UnsupportedSetting(self.name, "this driver takes one frame per trigger (mode 'once')")
+    def _do_set_trigger(self, ttype: TriggerType) -> None:
         self._set("TriggerSelector", "FrameStart")
         self._set("TriggerMode", "On")
         if ttype is TriggerType.SOFTWARE:
@@ -123,8 +124,10 @@ class GenICamCamera(Camera):
         if self._ia is not None:
             try:
                 self._ia.stop()
-            except Exception:
-                self._drop()  # the camera is gone: reopen it at the next arm
+            except Exception as exc:  # the camera is gone: reopen it at the next arm
+                log.warning("%s: stopping acquisition failed (%s: %s); the camera is reopened at the next arm",
+                            self.name, type(exc).__name__, exc)
+                self._drop()
 
     def _do_trigger(self) -> None:
         if self._armed == 0 or self._triggered >= self._armed:
@@ -145,8 +148,7 @@ class GenICamCamera(Camera):
         if buffer is None:
             why = ("it waits for a trigger edge on " + self.trigger_line
                    if self._trigger_type is not TriggerType.SOFTWARE else "was trigger() called?")
-            raise DeviceTimeout(self.name, f"no frame within {timeout_s:.3g} s: expected frame {self._delivered}; "
-                                           f"{why}")
+            raise WaitTimeout(self.name, f"frame {self._delivered}", timeout_s, why)
         arrived = time.monotonic()
         try:
             component = buffer.payload.components[0]
@@ -176,6 +178,7 @@ class GenICamCamera(Camera):
     def _connect(self) -> Any:
         if self._ia is None:
             self._ia, self._close = self._open()
+            log.info("%s: opened", self.name)
             try:
                 self._set("ExposureAuto", "Off", optional=True)
                 if self.gain_db is not None:
@@ -214,15 +217,16 @@ class GenICamCamera(Camera):
     def _drop(self) -> None:
         close, self._ia, self._close = self._close, None, None
         if close is not None:
+            log.info("%s: closed", self.name)
             try:
                 close()
-            except Exception:  # genicam's own exception types; the camera is already gone
-                pass
+            except Exception as exc:  # genicam's own exception types; the camera is already gone
+                log.debug("%s: closing raised %s: %s (ignored: the camera is gone)", self.name, type(exc).__name__, exc)
 
     def _error(self, exc: Exception, doing: str) -> DeviceError:
         kind = type(exc).__name__
-        if "Timeout" in kind:
-            return DeviceTimeout(self.name, f"timed out {doing}: {exc}")
+        if "Timeout" in kind:  # the producer reports the device timed out (it says not after how long)
+            return DeviceTimeout(self.name, f"{doing}: {kind}: {exc}", None)
         self._drop()
         return DeviceDisconnected(self.name, f"camera lost while {doing} ({kind}: {exc}); check the cable, then "
                                              f"scan again (the driver reopens it)")

@@ -26,6 +26,7 @@ and "display" (an `hdmi.DisplayBackend`).
 
 from __future__ import annotations
 
+import logging
 from typing import Any, Callable
 
 from scanner.config import get, get_table
@@ -33,6 +34,8 @@ from scanner.devices import Camera, Device, Projector, TriggerMode, TriggerSourc
 from scanner.drivers import lightcrafter_protocol as lcp
 from scanner.errors import ConfigError, UnsupportedSetting
 from scanner.rig import Rig, RigConfig
+
+log = logging.getLogger(__name__)
 
 CAMERA_DRIVERS = ("uvc", "genicam")
 PROJECTOR_DRIVERS = ("lightcrafter4500", "hdmi")
@@ -66,6 +69,7 @@ def open_hardware_rig(config: RigConfig, transports: dict[str, Any] | None = Non
         for dev in reversed(opened):
             dev.shutdown()
         raise
+    log.info("hardware rig %s opened: %s, %s, wiring %s", config.name, proj_driver, cam_driver, config.trigger)
     return Rig(config=config, camera=camera, projector=projector, trigger=trigger, model=config.nominal_model())
 
 

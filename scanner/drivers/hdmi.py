@@ -8,16 +8,20 @@ number of refresh periods. After a pattern's first present the window presents i
 only then does `show` return or a sequence fire its trigger output.
 
 Wirings: `software` (show, then the camera is triggered), and `projector`: the window
-runs the sequence itself, holding each pattern round(period x refresh) refreshes, and
-calls its trigger-output callbacks (`connect_trigger_out`, e.g. a camera's software
-trigger) once each pattern is on display. An HDMI projector has no trigger input, so the
-`trigger_box` wiring is refused by the rig factory.
+runs the sequence itself on a thread, holding each pattern round(period x refresh)
+refreshes, and calls its trigger-output callbacks (`connect_trigger_out`, e.g. a camera's
+software trigger) once each pattern is on display. The status `run_sequence` returns
+finishes when the last pattern has been held and the window is dark again, or fails with
+the error that ended the thread (a display that failed, a callback that raised): the
+acquisition then reports that error rather than a camera that saw no frame. An HDMI
+projector has no trigger input, so the `trigger_box` wiring is refused by the rig factory.
 
 `HdmiDisplay` alone is also the video source of a LightCrafter in video-port mode.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from typing import Callable, Protocol
@@ -25,18 +29,22 @@ from typing import Callable, Protocol
 import numpy as np
 
 from scanner.devices import Projector
-from scanner.errors import DeviceError, UnsupportedSetting
+from scanner.errors import DeviceError, ScannerError, UnsupportedSetting
+from scanner.status import Status
+
+log = logging.getLogger(__name__)
 
 VSYNC_TOLERANCE = 0.2  # measured refresh period may differ this much from the configured one
 _CHECK_FRAMES = 12
 
 
 class DisplayBackend(Protocol):
-    """A fullscreen surface whose `present` returns after the vertical sync that shows it."""
+    """A fullscreen surface whose `present` returns after the vertical sync that shows it,
+    with the time of that sync (monotonic s) as well as the backend knows it."""
 
     size: tuple[int, int]  # width, height in pixels
 
-    def present(self, rgb: np.ndarray) -> None: ...
+    def present(self, rgb: np.ndarray) -> float: ...
 
     def close(self) -> None: ...
 
@@ -57,15 +65,17 @@ class PygameBackend:
             raise DeviceError(name, f"display {display} not found; this desktop has {len(sizes)} "
                                     f"({', '.join(f'{w}x{h}' for w, h in sizes)}); `slscan devices` lists them")
         self.size = sizes[display]
+        log.info("%s: fullscreen window on display %d (%dx%d)", name, display, *self.size)
         self._screen = pygame.display.set_mode(self.size, pygame.FULLSCREEN | pygame.SCALED | pygame.NOFRAME,
                                                display=display, vsync=1)
         pygame.mouse.set_visible(False)
 
-    def present(self, rgb: np.ndarray) -> None:
+    def present(self, rgb: np.ndarray) -> float:
         pg = self._pg
         pg.event.pump()  # keep the window responsive
         pg.surfarray.blit_array(self._screen, np.ascontiguousarray(rgb.transpose(1, 0, 2)))
         pg.display.flip()  # blocks until the vertical sync with vsync=1
+        return time.monotonic()  # SDL gives no flip timestamp: the sync has just happened
 
     def close(self) -> None:
         self._pg.display.quit()
@@ -85,20 +95,21 @@ class HdmiDisplay:
         """Present black frames and check that presents really wait for the vertical sync
         at `refresh_hz` (a window without vsync would make every timing wrong)."""
         black = np.zeros((self.backend.size[1], self.backend.size[0], 3), np.uint8)
-        stamps = []
-        for _ in range(_CHECK_FRAMES):
-            self.backend.present(black)
-            stamps.append(time.monotonic())
+        stamps = [self.backend.present(black) for _ in range(_CHECK_FRAMES)]
         measured = float(np.median(np.diff(stamps)))
         if abs(measured * self.refresh_hz - 1.0) > VSYNC_TOLERANCE:
             raise DeviceError(self.name, f"presents take {measured * 1e3:.2f} ms, not one refresh of "
                                          f"{1e3 / self.refresh_hz:.2f} ms at {self.refresh_hz} Hz: vsync is not in "
                                          f"effect or projector.refresh_hz is wrong (check the display mode)")
+        log.debug("%s: vsync checked, %.2f ms per refresh", self.name, measured * 1e3)
         return measured
 
-    def show(self, rgb: np.ndarray, frames: int | None = None) -> None:
-        """Present `rgb` for 1 + latency_frames refreshes (or `frames`), returning once it is on display."""
+    def show(self, rgb: np.ndarray, frames: int | None = None, stop: threading.Event | None = None) -> None:
+        """Present `rgb` for 1 + latency_frames refreshes (or `frames`), returning once it is
+        on display, or at the first refresh after `stop` is set."""
         for _ in range(1 + self.latency_frames if frames is None else frames):
+            if stop is not None and stop.is_set():
+                return
             self.backend.present(rgb)
 
     def close(self) -> None:
@@ -116,14 +127,13 @@ class HdmiProjector(Projector):
         self._outputs: list[Callable[[], None]] = []
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self.sequence_error: BaseException | None = None
 
     def connect_trigger_out(self, callback: Callable[[], None]) -> None:
         """Called once each pattern of a running sequence is on display."""
         self._outputs.append(callback)
 
     def _do_load_patterns(self, patterns: np.ndarray) -> None:
-        self._do_stop_sequence()
+        self._do_stop_sequence()  # a thread outliving its status (past its deadline) stops too
         self._patterns = np.repeat(patterns[..., None], 3, axis=3)
 
     def _do_show(self, k: int) -> None:
@@ -135,34 +145,42 @@ class HdmiProjector(Projector):
         self._do_stop_sequence()
         self.display.show(np.zeros((self.height, self.width, 3), np.uint8))
 
-    def _do_run_sequence(self, period_s: float, on_pattern: Callable[[int], None] | None) -> None:
+    def _do_run_sequence(self, period_s: float, on_pattern: Callable[[int], None] | None, status: Status) -> None:
         frames = round(period_s * self.display.refresh_hz)
         if frames <= self.display.latency_frames:
             raise UnsupportedSetting(self.name, f"pattern period {period_s} s is {frames} refreshes at "
                                                 f"{self.display.refresh_hz} Hz; it must exceed the display latency "
                                                 f"of {self.display.latency_frames} refreshes")
-        self._do_stop_sequence()
         self._stop = threading.Event()
-        self.sequence_error = None
-        self._thread = threading.Thread(target=self._run, args=(frames, on_pattern, self._stop),
+        self._thread = threading.Thread(target=self._run, args=(frames, on_pattern, self._stop, status),
                                         name=f"{self.name}-sequence", daemon=True)
         self._thread.start()
 
-    def _run(self, frames: int, on_pattern: Callable[[int], None] | None, stop: threading.Event) -> None:
+    def _run(self, frames: int, on_pattern: Callable[[int], None] | None, stop: threading.Event,
+             status: Status) -> None:
         assert self._patterns is not None
+        k = 0
         try:
             for k, image in enumerate(self._patterns):
+                self.display.show(image, stop=stop)  # 1 + latency refreshes: now on display
                 if stop.is_set():
-                    return
-                self.display.show(image)  # 1 + latency refreshes: now on display
+                    return  # stopped: the base class fails the status
                 for cb in self._outputs:
                     cb()
                 if on_pattern is not None:
                     on_pattern(k)
-                self.display.show(image, frames - 1 - self.display.latency_frames)
-            self.display.show(np.zeros_like(self._patterns[0]), 1)
-        except Exception as exc:  # kept for the caller: the camera then times out naming the frame
-            self.sequence_error = exc
+                self.display.show(image, frames - 1 - self.display.latency_frames, stop)
+            self.display.show(np.zeros_like(self._patterns[0]), 1, stop)
+            if stop.is_set():
+                return
+        except ScannerError as exc:  # a device error (e.g. the camera a trigger output drives): as it is
+            status.set_exception(exc)
+        except Exception as exc:  # the display failed: say which projector and where
+            error = DeviceError(self.name, f"pattern sequence failed at pattern {k}: {type(exc).__name__}: {exc}")
+            error.__cause__ = exc
+            status.set_exception(error)
+        else:
+            status.set_finished()
 
     def _do_stop_sequence(self) -> None:
         self._stop.set()
@@ -173,6 +191,7 @@ class HdmiProjector(Projector):
     def _do_shutdown(self) -> None:
         self._do_stop_sequence()
         self.display.close()
+        log.info("%s: window closed", self.name)
 
     def describe(self) -> dict[str, object]:
         return {**super().describe(), "refresh_hz": self.display.refresh_hz,

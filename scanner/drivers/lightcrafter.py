@@ -13,7 +13,8 @@ Pattern sources and wirings (rig TOML `projector.source`, `rig.trigger`):
          shows its bit planes in sequence; TRIG_OUT1 rises at the start of each pattern
          and exposes the camera.
            trigger "internal" (wiring `projector`): `run_sequence(period)` programs the
-             pattern period and starts; the DLPC350 times every pattern.
+             pattern period and starts; the DLPC350 times every pattern and reports
+             nothing when done, so the status it returns finishes N periods after START.
            trigger "external" (wiring `trigger_box`): every LUT entry waits for a rising
              edge on TRIG_IN1; `load_patterns` leaves the sequence started and waiting.
            `show(k)` (wiring `software`): a one-entry LUT repeating pattern k.
@@ -30,6 +31,8 @@ next scan reconnects after a replug.
 
 from __future__ import annotations
 
+import logging
+import threading
 import time
 from typing import Callable, Protocol
 
@@ -40,6 +43,9 @@ from scanner.drivers import lightcrafter_protocol as p
 from scanner.drivers.lightcrafter_images import PATTERNS_PER_IMAGE, diamond_resample, fingerprint, pack_rgb24
 from scanner.drivers.transport import HidLink
 from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+from scanner.status import Status
+
+log = logging.getLogger(__name__)
 
 SOURCES = ("flash", "video")
 TRIGGERS = ("internal", "external")
@@ -100,6 +106,7 @@ class LightCrafter4500(Projector):
         self._seq = 0
         self._patterns: np.ndarray | None = None
         self._programmed: str | None = None  # "sequence", "single", "video" or None
+        self._sequence_timer: threading.Timer | None = None  # finishes a running sequence's status
         self._connect()
 
     # ------------------------------------------------------------------ commands
@@ -148,8 +155,8 @@ class LightCrafter4500(Projector):
             if not status & p.VALIDATION_BUSY:
                 break
             if time.monotonic() > end:
-                raise DeviceTimeout(self.name, f"pattern LUT validation (0x1A1A) still busy after "
-                                               f"{self.validate_timeout_s} s; power-cycle the projector")
+                raise DeviceTimeout(self.name, "pattern LUT validation (0x1A1A) still busy", self.validate_timeout_s,
+                                    "power-cycle the projector")
             time.sleep(_POLL_S)
         problems = p.validation_problems(status)
         errors = [text for severity, text in problems if severity == "error"]
@@ -158,6 +165,8 @@ class LightCrafter4500(Projector):
                                          f"{'; '.join(errors)}; check period_s, the camera exposure and the "
                                          f"projector settings in the rig TOML")
         self.warnings = [text for severity, text in problems if severity == "warning"]
+        for text in self.warnings:
+            log.warning("%s: sequence validation warning: %s", self.name, text)
         return self.warnings
 
     def program(self, entries: list[p.LutEntry], images: list[int], mode: p.TriggerMode, source: p.PatternSource,
@@ -228,7 +237,7 @@ class LightCrafter4500(Projector):
         elif self._link is not None:
             self.stop()
 
-    def _do_run_sequence(self, period_s: float, on_pattern: Callable[[int], None] | None) -> None:
+    def _do_run_sequence(self, period_s: float, on_pattern: Callable[[int], None] | None, status: Status) -> None:
         if on_pattern is not None:
             raise UnsupportedSetting(self.name, "the DLPC350 times the sequence itself: no per-pattern callback")
         if self.source == "video" or self.trigger == "external":
@@ -237,17 +246,22 @@ class LightCrafter4500(Projector):
         if self._programmed != "sequence" or period_s != self.period_s:
             self._program_sequence(period_s)
         self.start()
+        self._sequence_timer = threading.Timer(self.n_patterns * period_s, status.set_finished)
+        self._sequence_timer.daemon = True
+        self._sequence_timer.start()
 
     def _do_stop_sequence(self) -> None:
+        self._cancel_sequence_timer()
         if not self._shut_down and self._link is not None:
             self.stop()
 
     def _do_shutdown(self) -> None:
+        self._cancel_sequence_timer()
         try:
             if self._link is not None:
                 self._transact(p.Command.START_STOP, bytes([p.Action.STOP]), read=False)
-        except DeviceError:
-            pass  # already unreachable: closing is all that is left
+        except DeviceError as exc:
+            log.info("%s: could not stop the projector while shutting down (%s); closing the link", self.name, exc)
         finally:
             self._drop_link()
             if self._video is not None:
@@ -283,6 +297,11 @@ class LightCrafter4500(Projector):
         self._programmed = "video"
         self.start()
 
+    def _cancel_sequence_timer(self) -> None:
+        timer, self._sequence_timer = self._sequence_timer, None
+        if timer is not None:
+            timer.cancel()
+
     def _period_us(self, period_s: float) -> int:
         period_us = int(round(period_s * 1e6))
         if period_us < p.EXPOSURE_GAP_US:
@@ -299,6 +318,7 @@ class LightCrafter4500(Projector):
         if self._link is None:
             self._link = self._open_link()
             self._seq = 0
+            log.info("%s: USB link opened", self.name)
         return self._link
 
     def _drop_link(self) -> None:
@@ -306,12 +326,14 @@ class LightCrafter4500(Projector):
         self._programmed = None
         if link is not None:
             link.close()
+            log.info("%s: USB link closed", self.name)
 
     def _transact(self, command: p.Command, payload: bytes, read: bool) -> bytes:
         link = self._connect()
         seq = self._seq
         self._seq = (self._seq + 1) & 0xFF
         what = f"command 0x{int(command):04X} ({command.name})"
+        log.debug("%s: %s %s, payload %s", self.name, "read" if read else "write", what, payload.hex(" ") or "none")
         try:
             for report in p.frame(command, payload, seq, read):
                 link.write(report, self.timeout_s)
@@ -323,7 +345,8 @@ class LightCrafter4500(Projector):
             raise
         except DeviceTimeout as exc:
             self._drop_link()  # the link is out of step: reopen it next time
-            raise DeviceTimeout(self.name, f"no reply to {what}: {exc}") from None
+            raise DeviceTimeout(self.name, f"no reply to {what}", exc.timeout_s,
+                                "the USB link is reopened on the next call") from None
         if header.seq != seq:
             self._drop_link()
             raise DeviceError(self.name, f"reply to {what} carries sequence byte {header.seq}, expected {seq}: "

@@ -4,21 +4,61 @@ Like pymeasure's `expected_protocol`, a test lists what the host must send and w
 device answers; any other byte fails the test at once with both sides shown in hex, and
 `expected_protocol` checks at the end that the whole script was played. Scripts can also
 inject faults: a device that stays silent, NACKs, or is unplugged mid-sequence.
+
+The fake cameras and display below stand for devices with their own timing (a streaming
+camera, a vsync-locked display); they offer waits on their events (`FakeCapture.wait_frames`)
+so tests synchronise on what happened rather than sleeping. `wait_bound_s` is the one
+generous bound a test puts on a wait that must time out.
 """
 
 from __future__ import annotations
 
 import contextlib
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Iterator, TypeVar
 
+from scanner.devices import Camera
 from scanner.errors import DeviceDisconnected, DeviceTimeout
 
 T = TypeVar("T")
 
 SILENT = None  # as a reply: the device does not answer (the host's read times out)
+
+
+def wait_bound_s(timeout_s: float) -> float:
+    """How long a test lets a wait with `timeout_s` take before calling it hung: several
+    times the timeout and never under 5 s, so a loaded machine does not fail the test."""
+    return max(5 * timeout_s, 5.0)
+
+
+def grab_in_thread(camera: Camera, timeout_s: float) -> tuple[threading.Thread, list[object]]:
+    """Run `camera.grab(timeout_s)` on a thread; return once the driver's `_do_grab` has been
+    entered, so a test acts on a grab that is waiting without sleeping. The list receives
+    the frame, or the exception the grab raised."""
+    entered = threading.Event()
+    inner = camera._do_grab
+
+    def grab_signalling(t: float):  # noqa: ANN202
+        entered.set()
+        return inner(t)
+
+    camera._do_grab = grab_signalling  # type: ignore[method-assign]
+    outcome: list[object] = []
+
+    def grab() -> None:
+        try:
+            outcome.append(camera.grab(timeout_s))
+        except BaseException as exc:
+            outcome.append(exc)
+
+    thread = threading.Thread(target=grab, name=f"{camera.name}-test-grab", daemon=True)
+    thread.start()
+    if not entered.wait(wait_bound_s(1.0)):
+        raise AssertionError(f"{camera.name}: grab did not start")
+    return thread, outcome
 
 
 @dataclass(frozen=True)
@@ -101,7 +141,7 @@ class FakeHid:
         if self._script.unplugged:
             raise DeviceDisconnected("fake-hid", "unplugged")
         if not self._replies:
-            raise DeviceTimeout("fake-hid", f"no report within {timeout_s} s")
+            raise DeviceTimeout("fake-hid", "no report", timeout_s)
         return self._replies.popleft()
 
     def close(self) -> None:
@@ -201,7 +241,7 @@ def expected_protocol(make_driver: Callable[[Callable[[], object]], T], *transpo
 class FakeCapture:
     """A streaming UVC camera as `cv2.VideoCapture` shows it: `render(t)` gives the image
     exposed at monotonic time t; frames come every 1/fps s with a V4L2-style buffer
-    timestamp (ms, end of exposure). `unplug()` makes the stream stop."""
+    timestamp (ms, end of exposure); `frames` counts them. `unplug()` makes the stream stop."""
 
     def __init__(self, render: Callable[[float], object], fps: float = 100.0, exposure_s: float = 0.001,
                  buffer_timestamps: bool = True) -> None:
@@ -210,9 +250,16 @@ class FakeCapture:
         self.props: dict[int, float] = {}
         self.refused: set[int] = set()
         self.released = False
+        self.frames = 0
+        self._counted = threading.Condition()
         self._unplugged = False
         self._next = time.monotonic()
         self._last: tuple[object, float] | None = None
+
+    def wait_frames(self, count: int, timeout_s: float) -> bool:
+        """Wait at most `timeout_s` until the camera has streamed `count` frames in all."""
+        with self._counted:
+            return self._counted.wait_for(lambda: self.frames >= count, timeout_s)
 
     def isOpened(self) -> bool:
         return not self.released
@@ -238,6 +285,9 @@ class FakeCapture:
         time.sleep(max(0.0, self._next - time.monotonic()))
         end = time.monotonic()
         self._last = (self.render(end - self.exposure_s), end)
+        with self._counted:
+            self.frames += 1
+            self._counted.notify_all()
         return True
 
     def retrieve(self) -> tuple[bool, object]:
@@ -301,9 +351,12 @@ class FakeAcquirer:
     """A harvesters ImageAcquirer: frames are exposed on `TriggerSoftware` (software
     trigger) or on `pulse()` (the hardware line), rendered by `render(t)`. The producer has
     `num_buffers` buffers; a buffer not handed back (`queue()`) is lost to it, and when
-    none is free a triggered frame is dropped, as on a real producer."""
+    none is free a triggered frame is dropped, as on a real producer. The device clock
+    (ns, read by TimestampLatch and stamped on each frame) started 5 s before the host's
+    monotonic clock read 0 + now, unless `device_clock_ns` gives it."""
 
-    def __init__(self, render: Callable[[float], object], width: int, height: int) -> None:
+    def __init__(self, render: Callable[[float], object], width: int, height: int,
+                 device_clock_ns: Callable[[], int] | None = None) -> None:
         self.render = render
         self.nodes = FakeNodeMap(
             {"PixelFormat": "Mono8", "ExposureTime": 10000.0, "ExposureAuto": "Continuous", "AcquisitionMode":
@@ -321,7 +374,8 @@ class FakeAcquirer:
         self._acquiring = False
         self._queue: deque[FakeBuffer] = deque()
         self._frame_id = 100
-        self._epoch = time.monotonic() - 5.0  # the device clock started 5 s before this host time
+        epoch = time.monotonic() - 5.0  # the device clock started 5 s before this host time
+        self.device_clock_ns = device_clock_ns or (lambda: int((time.monotonic() - epoch) * 1e9))
 
     def is_acquiring(self) -> bool:
         return self._acquiring
@@ -367,7 +421,7 @@ class FakeAcquirer:
             self._expose()
 
     def _latch(self) -> None:
-        self.nodes.TimestampLatchValue._value = int((time.monotonic() - self._epoch) * 1e9)
+        self.nodes.TimestampLatchValue._value = self.device_clock_ns()
 
     def _expose(self) -> None:
         if not self._acquiring:
@@ -379,24 +433,40 @@ class FakeAcquirer:
             return
         self.outstanding += 1
         image = self.render(t)
-        self._queue.append(FakeBuffer(self, image, self._frame_id, int((t - self._epoch) * 1e9)))
+        self._queue.append(FakeBuffer(self, image, self._frame_id, self.device_clock_ns()))
 
 
 class FakeDisplay:
-    """A display backend whose `present` waits for a simulated vsync at `refresh_hz`;
-    `shown` lists (monotonic time, frame) of every present."""
+    """A display backend whose `present` waits for a simulated vsync at `refresh_hz`: never
+    sooner than one refresh after the previous present, later when the host is busy. It
+    returns the time of its sync on the display's own clock, which counts one refresh per
+    present (a fake display never misses a sync, however loaded the test machine), so the
+    driver's vsync check sees `refresh_hz`. Without vsync a present returns at once, with the
+    current time. `shown` lists (monotonic time, frame) of every present; `fail_after(n, exc)`
+    makes the present after the next n raise `exc` (a display that fails mid-sequence)."""
 
     def __init__(self, size: tuple[int, int], refresh_hz: float = 240.0, vsync: bool = True) -> None:
         self.size, self.refresh_hz, self.vsync = size, refresh_hz, vsync
         self.shown: list[tuple[float, object]] = []
         self.closed = False
-        self._next = time.monotonic()
+        self._next = self._clock0 = time.monotonic()
+        self._syncs = 0
+        self._failure: tuple[int, Exception] | None = None
 
-    def present(self, rgb) -> None:  # noqa: ANN001
-        if self.vsync:
-            self._next = max(self._next + 1.0 / self.refresh_hz, time.monotonic())
-            time.sleep(max(0.0, self._next - time.monotonic()))
+    def fail_after(self, presents: int, exc: Exception) -> None:
+        self._failure = (len(self.shown) + presents, exc)
+
+    def present(self, rgb) -> float:  # noqa: ANN001
+        if self._failure is not None and len(self.shown) >= self._failure[0]:
+            raise self._failure[1]
+        if not self.vsync:
+            self.shown.append((time.monotonic(), rgb))
+            return self.shown[-1][0]
+        self._next = max(self._next + 1.0 / self.refresh_hz, time.monotonic())
+        time.sleep(max(0.0, self._next - time.monotonic()))
         self.shown.append((time.monotonic(), rgb))
+        self._syncs += 1
+        return self._clock0 + self._syncs / self.refresh_hz
 
     def current(self) -> object:
         return self.shown[-1][1] if self.shown else None
@@ -434,7 +504,7 @@ class Dlpc350Emulator:
 
     def read(self, timeout_s: float) -> bytes:
         if not self._replies:
-            raise DeviceTimeout("dlpc350-emulator", f"no report within {timeout_s} s")
+            raise DeviceTimeout("dlpc350-emulator", "no report", timeout_s)
         return self._replies.popleft()
 
     def close(self) -> None:

@@ -10,10 +10,13 @@ DeviceDisconnected, a silent one DeviceTimeout. Every read has a finite timeout.
 from __future__ import annotations
 
 import errno
+import logging
 from typing import Any, Protocol
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout
+
+log = logging.getLogger(__name__)
 
 UDEV_RULES = CONFIG_DIR / "udev" / "99-slscan.rules"
 
@@ -94,7 +97,8 @@ class PyUsbHid:
             devices[0].set_configuration()
             usb.util.claim_interface(devices[0], interface)
         except usb.core.USBError as exc:
-            raise link._error(exc, "opening") from None
+            raise link._error(exc, "opening", None) from None
+        log.info("%s: USB device %04x:%04x opened", name, vendor_id, product_id)
         return link
 
     def write(self, report: bytes, timeout_s: float) -> None:
@@ -103,7 +107,7 @@ class PyUsbHid:
         try:
             n = self._dev.write(self._ep_out, report, timeout=max(1, int(timeout_s * 1000)))
         except usb.core.USBError as exc:
-            raise self._error(exc, "writing a report") from None
+            raise self._error(exc, "writing a report", timeout_s) from None
         if n != len(report):
             raise DeviceError(self.name, f"USB write sent {n} of {len(report)} bytes")
 
@@ -123,17 +127,17 @@ class PyUsbHid:
             usb.util.release_interface(self._dev, self._interface)
             if self._reattach:
                 self._dev.attach_kernel_driver(self._interface)
-        except usb.core.USBError:
-            pass  # already gone: nothing left to release
+        except usb.core.USBError as exc:
+            log.debug("%s: releasing the USB interface failed (%s); the device is already gone", self.name, exc)
         usb.util.dispose_resources(self._dev)
 
-    def _error(self, exc: Any, doing: str, timeout_s: float | None = None) -> DeviceError:
+    def _error(self, exc: Any, doing: str, timeout_s: float | None) -> DeviceError:
         code = getattr(exc, "errno", None) or getattr(exc, "backend_error_code", None)
         if code in (errno.EACCES, errno.EPERM, -3):  # -3: LIBUSB_ERROR_ACCESS
             return DeviceError(self.name, usb_permission_advice())
         if code in (errno.ETIMEDOUT, -7):  # -7: LIBUSB_ERROR_TIMEOUT
-            return DeviceTimeout(self.name, f"no answer within {timeout_s} s while {doing}; power-cycle the "
-                                            f"device if this repeats")
+            return DeviceTimeout(self.name, f"no answer while {doing}", timeout_s,
+                                 "power-cycle the device if this repeats")
         if code in (errno.ENODEV, errno.EIO, errno.EPIPE, errno.ENOENT, -4):  # -4: LIBUSB_ERROR_NO_DEVICE
             return DeviceDisconnected(self.name, f"USB device gone while {doing}; check the cable, then scan again "
                                                  f"(the driver reconnects)")

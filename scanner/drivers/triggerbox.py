@@ -24,6 +24,10 @@ Uno/Nano through DTR) miss what is sent during their boot; `connect` therefore r
 "ID?" until the box answers, taking a READY banner as the sign to ask again at once,
 within `boot_timeout_s`. A broken link is dropped and reopened at the next call.
 
+The box says nothing when a train ends, and polling COUNT? would interleave with the
+commands of the caller, so the status `start()` returns finishes once the train's duration
+((count - 1) periods + the pulse width) has passed after START; `pulses_sent` asks the box.
+
 The input is an event counter rather than a message the box sends by itself, so every
 reply still answers one command and no press is lost between two polls: `presses()`
 returns the presses since its previous call. Protocol 1 (the same commands without
@@ -32,6 +36,8 @@ PRESSES?) is still driven; only `presses()` needs protocol 2.
 
 from __future__ import annotations
 
+import logging
+import threading
 import time
 from typing import Callable
 
@@ -40,6 +46,9 @@ import serial
 from scanner.devices import TriggerSource
 from scanner.drivers.transport import SerialLink, open_serial
 from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+from scanner.status import Status
+
+log = logging.getLogger(__name__)
 
 IDENTITY = "SLSCAN-TRIGGERBOX"
 PROTOCOL = 2
@@ -66,6 +75,8 @@ class TriggerBox(TriggerSource):
         self._open_port = open_port
         self._port: SerialLink | None = None
         self._presses_seen: int | None = None  # the box's press count at the last presses() call
+        self._train_s = 0.0  # duration of the armed train: last pulse's end after START
+        self._train_timer: threading.Timer | None = None  # finishes a started train's status
         self._connect()
 
     def ask(self, command: str) -> str:
@@ -98,11 +109,16 @@ class TriggerBox(TriggerSource):
         self._ask(f"PERIOD {period_us}")
         self._ask(f"WIDTH {width_us}")
         self._ask(f"ARM {count}")
+        self._train_s = ((count - 1) * period_us + width_us) / 1e6
 
-    def _do_start(self) -> None:
+    def _do_start(self, status: Status) -> None:
         self._ask("START")
+        self._train_timer = threading.Timer(self._train_s, status.set_finished)
+        self._train_timer.daemon = True
+        self._train_timer.start()
 
     def _do_stop(self) -> None:
+        self._cancel_train_timer()
         if not self._shut_down and self._port is not None:
             self._ask("STOP")
 
@@ -114,11 +130,12 @@ class TriggerBox(TriggerSource):
         return int(reply[1])
 
     def _do_shutdown(self) -> None:
+        self._cancel_train_timer()
         try:
             if self._port is not None:
                 self._ask("STOP")
-        except DeviceError:
-            pass  # unreachable already: closing is all that is left
+        except DeviceError as exc:
+            log.info("%s: could not stop the box while shutting down (%s); closing the port", self.name, exc)
         finally:
             self._drop()
 
@@ -126,6 +143,11 @@ class TriggerBox(TriggerSource):
         return {**super().describe(), **self.identity}
 
     # internals
+
+    def _cancel_train_timer(self) -> None:
+        timer, self._train_timer = self._train_timer, None
+        if timer is not None:
+            timer.cancel()
 
     def _connect(self) -> SerialLink:
         if self._port is not None:
@@ -141,13 +163,17 @@ class TriggerBox(TriggerSource):
                     line = self._readline(port)
                     if line.startswith("ID "):
                         self._check_identity(line)
+                        log.info("%s: connected, firmware protocol %s on %s", self.name, self.identity["protocol"],
+                                 self.identity["board"])
                         return port
                     if line.startswith("READY"):
+                        log.debug("%s: the board has just booted; asking ID? again", self.name)
                         break  # the board has just booted: ask again now
                 if time.monotonic() >= end:
-                    raise DeviceTimeout(self.name, f"no answer to ID? within {self.boot_timeout_s} s: is this the "
-                                                   f"trigger box's port and is its firmware (firmware/triggerbox) "
-                                                   f"flashed?")
+                    raise DeviceTimeout(self.name, "no answer to ID?", self.boot_timeout_s,
+                                        "is this the trigger box's port and is its firmware (firmware/triggerbox) "
+                                        "flashed?")
+                log.debug("%s: no answer to ID? yet; asking again", self.name)
         except BaseException:
             self._drop()
             raise
@@ -163,6 +189,7 @@ class TriggerBox(TriggerSource):
 
     def _ask(self, command: str) -> str:
         port = self._connect()
+        log.debug("%s: > %s", self.name, command)
         self._write(port, command)
         end = time.monotonic() + self.timeout_s
         while True:
@@ -174,8 +201,9 @@ class TriggerBox(TriggerSource):
                                              f"supply, then scan again")
             if time.monotonic() >= end:
                 self._drop()
-                raise DeviceTimeout(self.name, f"no reply to {command!r} within {self.timeout_s} s; the link is "
-                                               f"reopened on the next call")
+                raise DeviceTimeout(self.name, f"no reply to {command!r}", self.timeout_s,
+                                    "the link is reopened on the next call")
+        log.debug("%s: < %s", self.name, line)
         if line.startswith("ERR"):
             parts = line.split(maxsplit=2)
             code = int(parts[1]) if len(parts) > 1 and parts[1].isdigit() else 0
@@ -200,11 +228,14 @@ class TriggerBox(TriggerSource):
             self._drop()
             raise DeviceDisconnected(self.name, f"serial link lost ({exc}); check the cable, then scan again "
                                                 f"(the driver reconnects)") from None
-        return raw.decode("ascii", errors="replace").strip()
+        # boot noise (a bootloader's bytes before the READY banner) is not part of any line
+        # boot noise (a bootloader's bytes before the READY banner) is not part of any line
+        return "".join(ch for ch in raw.decode("ascii", errors="ignore") if ch.isprintable()).strip()
 
     def _drop(self) -> None:
         port, self._port = self._port, None
         if port is not None:
+            log.info("%s: serial port closed", self.name)
             try:
                 port.close()
             except (serial.SerialException, OSError):

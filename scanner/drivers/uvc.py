@@ -1,7 +1,9 @@
 """UVC (USB Video Class) cameras through OpenCV's V4L2 backend, software-triggered.
 
 A UVC camera streams continuously and has no trigger input, so a "software trigger" here
-means: the next frame whose exposure started after `trigger()` was called. While armed, a
+means: the next frame whose exposure started after `trigger()` was called. `grab` waits
+(within its timeout) for the trigger too, so a trigger from another thread (an HDMI
+projector's trigger output, wiring `projector`) may come after the grab started. While armed, a
 reader thread takes every frame the camera streams and keeps only the newest (the V4L2
 queue is also cut to one buffer), so nothing older than the trigger is ever returned:
 a frame is accepted only if its exposure started after the trigger, judged from the V4L2
@@ -10,19 +12,23 @@ or, where the backend gives none, from the time it arrived minus exposure and on
 interval. `Frame.timestamp_s` is that exposure start.
 
 Exposure and gain are set where the device takes them (V4L2 manual exposure is in units
-of 100 us); a setting the device ignores raises UnsupportedSetting. Frames are 8-bit luma.
+of 100 us); a setting the device ignores raises UnsupportedSetting. Frames are 8-bit luma,
+the only bit depth, and the software trigger is the only trigger type.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from scanner.devices import Camera, Frame, TriggerMode, TriggerType
-from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+from scanner.devices import Camera, Frame, TriggerType
+from scanner.errors import DeviceDisconnected, DeviceError, UnsupportedSetting, WaitTimeout
+
+log = logging.getLogger(__name__)
 
 _JOIN_S = 2.0
 
@@ -94,6 +100,9 @@ class UvcCamera(Camera):
         self._connect()
 
     # driver methods
+    def _do_set_bit_depth(self, bits: int) -> None:
+        pass  # 8-bit luma is the only format (supported_bit_depths): nothing to switch
+
     def _do_set_exposure(self, seconds: float) -> None:
         cv2 = self._cv2
         cap = self._connect()
@@ -101,9 +110,8 @@ class UvcCamera(Camera):
             raise UnsupportedSetting(self.name, "this camera does not take a manual exposure through V4L2; use "
                                                 "`v4l2-ctl -d <device> --list-ctrls` to see what it offers")
 
-    def _do_set_trigger(self, ttype: TriggerType, tmode: TriggerMode) -> None:
-        if tmode is not TriggerMode.ONCE:
-            raise UnsupportedSetting(self.name, "a UVC camera takes one frame per software trigger (mode 'once')")
+    def _do_set_trigger(self, ttype: TriggerType) -> None:
+        pass  # the software trigger (the only type, checked by the base) needs no device setting
 
     def _do_arm(self, n_frames: int) -> None:
         cap = self._connect()
@@ -127,13 +135,17 @@ class UvcCamera(Camera):
                 raise DeviceError(self.name, "software trigger refused: not armed, or every frame of this arming "
                                              "is already triggered; arm again")
             self._triggers.append(time.monotonic())
+            self._cv.notify_all()
 
     def _do_grab(self, timeout_s: float) -> Frame:
         end = time.monotonic() + timeout_s
         with self._cv:
             k = self._delivered
-            if k >= len(self._triggers):
-                raise DeviceTimeout(self.name, f"frame {k} was never triggered (call trigger() first)")
+            while k >= len(self._triggers):  # a trigger from another thread may still come
+                remaining = end - time.monotonic()
+                if remaining <= 0:
+                    raise WaitTimeout(self.name, f"frame {k}", timeout_s, "it was never triggered (call trigger())")
+                self._cv.wait(remaining)
             t_trigger = self._triggers[k]
             while True:
                 if self._lost is not None:
@@ -149,11 +161,12 @@ class UvcCamera(Camera):
                         self._delivered += 1
                         return Frame(image=image, index=k, pattern_index=None, timestamp_s=start,
                                      exposure_s=self._exposure_s, bit_depth=8)
+                    log.debug("%s: frame exposed %.4f s before trigger %d dropped", self.name, t_trigger - start, k)
                     continue  # exposed before the trigger: stale, dropped
                 remaining = end - time.monotonic()
                 if remaining <= 0:
-                    raise DeviceTimeout(self.name, f"no frame exposed after trigger {k} within {timeout_s:.3g} s; "
-                                                   f"the camera streams at {self.fps} fps: is it still running?")
+                    raise WaitTimeout(self.name, f"a frame exposed after trigger {k}", timeout_s,
+                                      f"the camera streams at {self.fps} fps: is it still running?")
                 self._cv.wait(remaining)
 
     def _do_shutdown(self) -> None:
@@ -171,12 +184,14 @@ class UvcCamera(Camera):
                 cap.release()
                 raise UnsupportedSetting(self.name, f"gain {self.gain} not taken by this camera")
             self._cap = cap
+            log.info("%s: opened (%dx%d at %g fps)", self.name, self.width, self.height, self.fps)
         return self._cap
 
     def _drop(self) -> None:
         cap, self._cap = self._cap, None
         if cap is not None:
             cap.release()
+            log.info("%s: closed (reopened at the next call)", self.name)
 
     def _stop_reader(self) -> None:
         self._stop.set()
@@ -192,6 +207,7 @@ class UvcCamera(Camera):
             if ok:
                 ok, image = cap.retrieve()
             if not ok:
+                log.info("%s: the stream stopped", self.name)
                 with self._cv:
                     self._lost = "no frame from the device"
                     self._cv.notify_all()

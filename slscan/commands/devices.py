@@ -13,9 +13,12 @@ from __future__ import annotations
 import argparse
 import glob
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 
 def register(sub: Any) -> None:
@@ -103,6 +106,7 @@ def usb_projectors() -> list[str]:
 
         found = list(usb.core.find(find_all=True, idVendor=p.VENDOR_ID, idProduct=p.PRODUCT_ID))
     except Exception as exc:  # no libusb backend, or the bus cannot be read
+        log.debug("listing USB devices failed", exc_info=True)
         return [f"(cannot list USB devices: {exc})"]
     out = []
     for dev in found:
@@ -153,6 +157,7 @@ def _probe_box(device: str) -> str:
     try:
         box = TriggerBox(serial_opener("probe", device, 0.2), "probe", boot_timeout_s=2.5)
     except DeviceError as exc:
+        log.debug("%s is not a trigger box: %s", device, exc)
         return f"(not a trigger box: {str(exc).split(': ', 1)[-1][:60]})"
     try:
         return f"SLSCAN-TRIGGERBOX protocol {box.identity['protocol']} on {box.identity['board']}"

@@ -49,11 +49,10 @@ def test_camera_grabs_software_triggered_frames(rig: Rig) -> None:
 def test_trigger_source_counts_its_pulses(rig: Rig) -> None:
     if rig.trigger is None:
         pytest.skip("hardware test: this rig has no trigger box")
-    import time
+    from scanner.drivers.testing import wait_bound_s
 
     rig.trigger.arm(5, 0.01)
-    rig.trigger.start()
-    time.sleep(0.2)
+    rig.trigger.start().wait(wait_bound_s(0.05))
     assert rig.trigger.pulses_sent == 5
 
 
