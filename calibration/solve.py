@@ -155,10 +155,8 @@ def _solve_once(views: list[Correspondence], camera_size: tuple[int, int], proje
     choice = choose_camera(camera, stereo, settings.max_joint_camera_std)
     if choice.source != "joint refinement":
         fixed = joint_refine(cams, projs, camera.pinhole, projector.pinhole, start, camera.poses, settings.fix_k3,
-                             fix_camera=True)
-        cov = fixed.covariance.copy()  # the camera's own covariance; its correlations with the rest are not known
-        cov[:9, :9] = own_covariance(camera, cams, settings.fix_k3)
-        stereo = replace(fixed, std=fixed.std | {f"camera.{n}": v for n, v in camera.std.items()}, covariance=cov)
+                             fix_camera=True, camera_covariance=own_covariance(camera, cams, settings.fix_k3))
+        stereo = replace(fixed, std=fixed.std | {f"camera.{n}": v for n, v in camera.std.items()})
     return Solution([c.name for c in views], list(views), camera, projector, stereo, choice, dict(dropped))
 
 

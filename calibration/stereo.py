@@ -90,6 +90,24 @@ def _uncertainties(res: np.ndarray, J: np.ndarray, free: np.ndarray, e0: int) ->
     return std, cov[:e0 + 6, :e0 + 6]
 
 
+def _with_camera(J: np.ndarray, free: np.ndarray, e0: int, cov: np.ndarray, camera_cov: np.ndarray) -> np.ndarray:
+    """The rig's covariance when the camera's intrinsics were held at values of covariance
+    `camera_cov` (9, 9): the refined parameters follow the camera's to first order,
+    G = -(J_fᵀJ_f)⁻¹J_fᵀJ_c, so Σ = [[Σ_c, Σ_c Gᵀ], [G Σ_c, Σ_f|c + G Σ_c Gᵀ]] over the rig's
+    parameters (the first e0 + 6; the board poses marginalised out)."""
+    n = e0 + 6
+    f = np.flatnonzero(free)
+    G = np.zeros((len(free), 9))
+    G[f] = -covariance(J[:, f], 1.0) @ (J[:, f].T @ J[:, :9])
+    out = cov.copy()
+    out[:9, :9] = camera_cov
+    Gr = G[9:n]
+    out[9:n, :9] = Gr @ camera_cov
+    out[:9, 9:n] = out[9:n, :9].T
+    out[9:n, 9:n] += Gr @ camera_cov @ Gr.T
+    return out
+
+
 def _intrinsic_vector(p: Pinhole) -> np.ndarray:
     K = p.K
     return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *p.dist])
@@ -125,9 +143,11 @@ def covariance(J: np.ndarray, s2: float) -> np.ndarray:
 
 def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], camera: Pinhole, projector: Pinhole,
                  proj_from_cam: np.ndarray, board_poses: np.ndarray, fix_k3: bool = False,
-                 fix_camera: bool = False) -> StereoCalibration:
+                 fix_camera: bool = False, camera_covariance: np.ndarray | None = None) -> StereoCalibration:
     """Refine every parameter from the starting values given; `fix_camera` keeps the
-    camera's intrinsics and distortion as given (their uncertainties are then reported as 0)."""
+    camera's intrinsics and distortion as given (their uncertainties are then reported as
+    0, unless `camera_covariance` (9, 9) gives theirs: it is then carried into the
+    covariance, with the refined parameters' response to the camera's, `_with_camera`)."""
     n_views = len(cam_views)
     if len(proj_views) != n_views or len(board_poses) != n_views:
         raise NotEnoughData(f"joint refinement: {n_views} camera views, {len(proj_views)} projector views and "
@@ -197,6 +217,8 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     x[free] = sol.x
     res, J = residuals_and_jacobian(x, True)
     std, cov = _uncertainties(res, J, free, e0)  # type: ignore[arg-type]
+    if fix_camera and camera_covariance is not None:
+        cov = _with_camera(J, free, e0, cov, camera_covariance)  # type: ignore[arg-type]
     proj_from_cam = pose_matrix(x[e0:e0 + 3], x[e0 + 3:e0 + 6])
     poses = np.stack([pose_matrix(x[e0 + 6 + 6 * v:e0 + 9 + 6 * v], x[e0 + 9 + 6 * v:e0 + 12 + 6 * v])
                       for v in range(n_views)])

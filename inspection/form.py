@@ -110,25 +110,34 @@ def _frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def flatness_mz(points: np.ndarray, normal: np.ndarray) -> float:
     """Minimum-zone flatness: the least distance between two parallel planes holding the
-    points (LP on the convex hull's vertices, heights along the LS normal)."""
-    from scipy.spatial import ConvexHull, QhullError
-
+    points (heights along the LS normal). An LP on the plane's tilt and the zone's bounds,
+    over the points with the most extreme heights (plus any point the previous solution
+    left outside its zone), which is exact: the zone is fixed by a handful of extreme
+    points, and a zone holding every point is the zone of them all."""
     c, n = plane_ls(points, normal)
     u, v = _frame(n)
     d = points - c
     x, y, z = d @ u, d @ v, d @ n
-    try:
-        hull = ConvexHull(np.stack([x, y, z], axis=1)).vertices
-    except QhullError:  # flat or degenerate: every point counts
-        hull = np.arange(len(points))
-    x, y, z = x[hull], y[hull], z[hull]
-    # minimise w: c_lo <= z - a x - b y <= c_lo + w      (variables a, b, c_lo, w)
+    k = min(len(z), 200)
+    active = np.union1d(np.argpartition(z, k - 1)[:k], np.argpartition(-z, k - 1)[:k])
+    for _ in range(50):  # add violators until the zone holds every point
+        a, b, lo, w = _plane_lp(x[active], y[active], z[active])
+        r = z - a * x - b * y
+        excess = np.maximum(lo - r, r - lo - w)
+        out = np.flatnonzero(excess > 1e-12)
+        if not out.size:
+            break
+        active = np.union1d(active, out[np.argsort(-excess[out])[:200]])
+    return float(w / np.sqrt(1.0 + a * a + b * b))
+
+
+def _plane_lp(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[float, float, float, float]:
+    """min w subject to lo <= z - a x - b y <= lo + w; returns (a, b, lo, w)."""
     ones = np.ones_like(x)
     A_ub = np.concatenate([np.stack([-x, -y, -ones, -ones], 1), np.stack([x, y, ones, 0 * ones], 1)])
     b_ub = np.concatenate([-z, z])
     res = linprog([0, 0, 0, 1], A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * 3 + [(0, None)], method="highs")
-    a, b = res.x[0], res.x[1]
-    return float(res.x[3] / np.sqrt(1.0 + a * a + b * b))
+    return float(res.x[0]), float(res.x[1]), float(res.x[2]), float(res.x[3])
 
 
 def cylindricity_mz(points: np.ndarray, origin: np.ndarray, axis: np.ndarray, rounds: int = 6) -> float:
@@ -435,7 +444,7 @@ def noise_sigma(z: np.ndarray, mask: np.ndarray) -> float | None:
     return float(1.4826 * np.median(np.abs(v)) / np.sqrt(70.0))  # robust: edges and spikes do not count
 
 
-def _from_draws(value: float, drawn: np.ndarray, noise_only: np.ndarray | None = None,
+def from_draws(value: float, drawn: np.ndarray, noise_only: np.ndarray | None = None,
                 cal: np.ndarray | None = None) -> tuple[Estimate, dict[str, float]]:
     """A figure from its value on the measured surface, its values on the surface plus
     each noise draw (spread: u; mean shift: the noise bias, removed), optionally the same
@@ -603,7 +612,7 @@ def _zone(figure: Callable[[np.ndarray], float], form: np.ndarray, drawn: np.nda
     calibration moves (D_cal, cells): bias removed, u, detection limit."""
     value = figure(form)
     changes = None if cal is None else np.array([figure(form + c) - value for c in cal])
-    return _from_draws(value, np.array([figure(form + e) for e in drawn]), np.array([figure(e) for e in drawn]),
+    return from_draws(value, np.array([figure(form + e) for e in drawn]), np.array([figure(e) for e in drawn]),
                        changes)
 
 
@@ -627,7 +636,7 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, raw: np.ndarray, ra
              moves: np.ndarray | None, sign: float = 1.0) -> tuple[Estimate, dict[str, float]]:
         value = sign * fn(base)
         changes = None if moves is None else np.array([sign * fn(base + m) - value for m in moves])
-        est, parts = _from_draws(value, np.array([sign * fn(x) for x in draws]),
+        est, parts = from_draws(value, np.array([sign * fn(x) for x in draws]),
                                  np.array([sign * fn(x - base) for x in draws]) if tested else None, changes)
         if sign < 0:
             est = Estimate(None if est.value is None else -est.value, est.u, est.limit, -est.bias)

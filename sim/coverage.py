@@ -188,7 +188,7 @@ class Plate:
 
     bow_mm: float = 0.030
     texture_mm: float = 0.008
-    wavelengths_mm: tuple[float, float] = (0.6, 2.0)
+    wavelengths_mm: tuple[float, float] = (1.5, 4.0)
 
     def mesh(self, seed: int) -> tuple[np.ndarray, np.ndarray]:
         from sim.parts import Roughness
@@ -264,7 +264,7 @@ def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationU
         got = evaluate_face(face, measured, measured[:, 2], measured[:, :2], settings, seed=k,
                             noise=unc.noise.rotated(R).scaled(noise_scale), normals=normals,  # type: ignore[union-attr]
                             shifts=None if moves is None else moves @ R.T)
-        truth = evaluate_face(face, true_pts, true_pts[:, 2], true_pts[:, :2], settings, seed=k,
+        truth = evaluate_face(face, true_pts, true_pts[:, 2], true_pts[:, :2], FormSettings(draws=2), seed=k,
                               noise=unc.noise.rotated(R).scaled(0.0), normals=normals)  # type: ignore[union-attr]
         dt_s = time.perf_counter() - t0
         flat.append(Trial(got.flatness_mz, truth.flatness_mz.value, dt_s / 2))  # type: ignore[union-attr,arg-type]

@@ -16,11 +16,11 @@ pose the calibration would solve for the left-out view is never used.
   coordinate) (`inspection.uncertainty.measurement_jacobian`); plus the calibration's
   covariance. Distances are taken between corners on one row or one column of the board
   (nominal k x square).
-- Flatness: every decoded pixel inside the board's corners triangulated, the board's
-  minimum-zone flatness evaluated as an inspection evaluates a plane face
-  (`inspection.form.evaluate_face`: form filter, noise bias removed, U, detection limit),
-  the noise estimated from the data (a Gray-code capture has no phase modulation to
-  predict it from), the calibration's covariance propagated.
+- Flatness: the minimum-zone flatness of the triangulated corners (each corner's
+  projector coordinate comes from thousands of decoded pixels; a single pixel's Gray code
+  is a whole projector row, quantised to several millimetres of depth at this stand-off),
+  its noise bias removed, U and detection limit from draws of the corners' noise, the
+  calibration's covariance propagated.
 """
 
 from __future__ import annotations
@@ -31,13 +31,10 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from inspection.form import FormSettings, evaluate_face
-from inspection.surfaces import Plane
+from inspection.form import flatness_mz, from_draws
 from inspection.uncertainty import CalibrationUncertainty, Estimate, measurement_jacobian
 from scanner.geometry import RigModel
 from scanner.reconstruct import Triangulator
-
-BOARD_CUTOFF_MM = 25.0  # form filter of the board's flatness (points ~0.7 mm apart at 3.4 m)
 
 
 def triangulate_corners(model: RigModel, pixels: np.ndarray, coded: np.ndarray, orientation: str,
@@ -139,41 +136,27 @@ def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: 
     if shifts is not None:
         var += np.sum(np.einsum("dni,ni->dn", shifts[:, i] - shifts[:, j], e) ** 2, axis=0)
     nominal = np.linalg.norm(obj[i] - obj[j], axis=1)
-    flat, rms = _flatness(view, corr.detection.image_points, model, calibration, orientation)
+    flat, rms = _flatness(X, cov, shifts)
     return PoseCheck(view.name, int(found.sum()), flat, rms, nominal, dist - nominal, 2.0 * np.sqrt(var), rms_px,
                      orientation)
 
 
-def _flatness(view: Any, corners: np.ndarray, model: RigModel, calibration: CalibrationUncertainty,
-              orientation: str) -> tuple[Estimate, float]:
-    """The board's flatness from every decoded pixel inside its outer corners."""
-    hull = cv2.convexHull(corners.astype(np.float32))
-    mask = np.zeros(view.u.shape, np.uint8)
-    cv2.fillConvexPoly(mask, np.rint(hull[:, 0]).astype(np.int32), 1)
-    mask = cv2.erode(mask, np.ones((15, 15), np.uint8)) > 0
-    coord = np.where(mask, view.u if orientation == "vertical" else view.v, np.nan).astype(np.float32)
-    z = Triangulator(model).depth_scale(coord, orientation)
-    rows, cols = np.nonzero(np.isfinite(z))
-    points = model.camera.ray_grid[rows, cols].astype(np.float64) * z[rows, cols, None]
-    centre = points.mean(axis=0)
-    normal = np.linalg.svd(points - centre, full_matrices=False)[2][2]
-    if normal @ centre > 0:
-        normal = -normal
-    x = np.cross(normal, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    face = _PlaneFace(Plane(centre, x, np.cross(normal, x), normal))
-    local = face.surface.local(points)
-    shifts = calibration.shifts(points, model, {orientation: np.ones(len(points))})
-    form = evaluate_face(face, points, local[:, 2], local[:, :2], FormSettings(form_cutoff_mm=BOARD_CUTOFF_MM,
-                                                                               roughness_cutoff_mm=BOARD_CUTOFF_MM),
-                         shifts=shifts, normals=np.tile(normal, (len(points), 1)))
-    return form.flatness_mz, float(np.sqrt(np.mean(local[:, 2] ** 2)))  # type: ignore[return-value]
-
-
-@dataclass(frozen=True)
-class _PlaneFace:
-    surface: Plane
-    type: str = "plane"
+def _flatness(X: np.ndarray, cov: np.ndarray, shifts: np.ndarray | None, draws: int = 200,
+              seed: int = 0) -> tuple[Estimate, float]:
+    """The minimum-zone flatness of the triangulated corners (N, 3) with its U (noise bias
+    removed and detection limit from draws of the corners' noise, covariance (N, 3, 3);
+    calibration from `shifts` (D, N, 3)), and their RMS distance from their plane."""
+    centre = X.mean(axis=0)
+    normal = np.linalg.svd(X - centre, full_matrices=False)[2][2]
+    L = np.linalg.cholesky(cov + 1e-18 * np.eye(3))
+    noise = np.einsum("nij,dnj->dni", L, np.random.default_rng(seed).standard_normal((draws, len(X), 3)))
+    value = flatness_mz(X, normal)
+    cal = None if shifts is None else np.array([flatness_mz(X + s, normal) - value for s in shifts])
+    flat = X - np.outer((X - centre) @ normal, normal)  # the corners on their plane: a perfectly flat board
+    est, _ = from_draws(value, np.array([flatness_mz(X + e, normal) for e in noise]),
+                        np.array([flatness_mz(flat + e, normal) for e in noise]), cal)
+    d = (X - centre) @ normal
+    return est, float(np.sqrt(np.mean(d ** 2)))
 
 
 def leave_one_out(views: list[Any], board: Any, projector_size: tuple[int, int], say: Callable[[str], None]

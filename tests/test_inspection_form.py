@@ -13,7 +13,7 @@ from inspection.errors import ToleranceError
 from inspection.form import ALPHA, cylindricity_mz, evaluate_face, flatness_mz, gaussian_filter, noise_sigma, plane_ls
 from inspection.sampling import sample_model
 from inspection.segmentation import project_to_faces
-from inspection.tolerances import load_tolerances, verdict
+from inspection.tolerances import decide, load_tolerances
 from scanner.config import CONFIG_DIR
 from sim.parts import Lobing, PlaneBow, Roughness, Taper
 
@@ -100,20 +100,20 @@ def test_bow_flatness_through_noise(model) -> None:
     r = evaluate_face(face, p, dev, uv)
     inner_corner = np.hypot(17.5 - 1.0, 30.0 - 1.0)
     truth = 0.06 * inner_corner ** 2 / rho ** 2
-    assert abs(r.flatness_mz_mm - truth) <= 0.005 + 0.02 * truth
-    assert r.raw_zone_mm > truth + 0.05 and 0 < r.noise_floor_mm < 0.01  # noise handled, and reported
-    assert r.noise_mm == pytest.approx(0.014 / np.sqrt(r.grid_mm ** 2 * 64), rel=0.3)  # per cell of ~(g/0.125)^2 points
+    assert abs(r.flatness_mz.value - truth) <= 0.005 + 0.02 * truth
+    assert r.flatness_mz.bias > 0 and 0 < r.flatness_mz.limit < 0.01  # noise bias removed, detection limit reported
+    assert r.noise_mm == pytest.approx(0.014, rel=0.3)  # per point, estimated from the data (no noise model given)
 
 
 def test_full_lobing_and_taper(model) -> None:
     boss = model.by_label("#17")
     lob = Lobing(boss.index, (20.0, 0.0, 0.0), (0, 0, 1), 1, lobes=3, amplitude_mm=0.02)
     face, p, dev, uv, _ = _face_points(model, "#17", [lob], 0.0)
-    assert evaluate_face(face, p, dev, uv).cylindricity_mz_mm == pytest.approx(0.04, abs=0.001)
+    assert evaluate_face(face, p, dev, uv).cylindricity_mz.value == pytest.approx(0.04, abs=0.001)
     tap = Taper(boss.index, (20.0, 0.0, 22.0), (0, 0, 1), 1, per_mm=0.002)
     face, p, dev, uv, _ = _face_points(model, "#17", [tap], 0.014)
     height = 35.0 - 1.5 - 10.0 - 2.0  # the boss's cylinder less the 1 mm margins
-    assert evaluate_face(face, p, dev, uv).cylindricity_mz_mm == pytest.approx(0.002 * height, abs=0.005 + 0.001)
+    assert evaluate_face(face, p, dev, uv).cylindricity_mz.value == pytest.approx(0.002 * height, abs=0.005 + 0.001)
 
 
 def test_sq_of_texture_with_noise_removed(model) -> None:
@@ -121,13 +121,13 @@ def test_sq_of_texture_with_noise_removed(model) -> None:
     face, p, dev, uv, nominal = _face_points(model, "#657", [tex], 0.014)
     r = evaluate_face(face, p, dev, uv)
     exact = evaluate_face(face, *_face_points(model, "#657", [tex], 0.0)[1:4])
-    assert r.sq_mm == pytest.approx(exact.sq_mm, rel=0.05) and r.sq_raw_mm > r.sq_mm
+    assert r.sq.value == pytest.approx(exact.sq.value, rel=0.05) and r.sq_raw_mm > r.sq.value
 
 
 def test_too_few_points_is_not_a_number(model) -> None:
     face, p, dev, uv, _ = _face_points(model, "#718", [], 0.0)
     r = evaluate_face(face, p[:30], dev[:30], uv[:30])
-    assert r.status == "too few points" and r.flatness_mz_mm is None
+    assert r.status == "too few points" and r.flatness_mz is None
 
 
 def test_tolerance_files(tmp_path: Path, model) -> None:
@@ -145,5 +145,5 @@ def test_tolerance_files(tmp_path: Path, model) -> None:
         bad.write_text(text)
         with pytest.raises(ToleranceError, match=words):
             load_tolerances(bad, labels)
-    assert verdict(0.040, 0.05, 0.005) == "pass" and verdict(0.048, 0.05, 0.005) == "uncertain"
-    assert verdict(0.060, 0.05, 0.005) == "fail" and verdict(None, 0.05, 0.0) == "not measured"
+    assert decide(0.040, 0.005, 0.05) == "conforming" and decide(0.048, 0.005, 0.05) == "uncertain"
+    assert decide(0.060, 0.005, 0.05) == "non-conforming" and decide(None, 0.0, 0.05) == "not measured"

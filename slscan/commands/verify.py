@@ -12,6 +12,10 @@ calibrate` guides its board poses. Each position is scanned with the rig's geome
 calibration file, or `--calibration`), measured, and logged to DIR/recording.rrd (cloud,
 fitted spheres or plane, figures); the report goes to DIR/verify.json and DIR/verify.html.
 Exit code 0 when the rig passes, 1 when it does not.
+
+    slscan verify --leave-one-out DIR --out DIR [--layout opencv-graycode --projector-size WxH --board B]
+
+checks a calibration on captured board poses instead (`slscan.board_check`).
 """
 
 from __future__ import annotations
@@ -146,10 +150,48 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
                             acceptance, artefacts, tuple(results), notes)
 
 
+def leave_one_out(args: argparse.Namespace, say: Callable[[str], None]) -> int:
+    """`--leave-one-out`: each pose of a capture checked by a calibration of the others
+    (`slscan.board_check`); table on stdout (or JSON), DIR/leave_one_out.json."""
+    from calibration.board import Board
+    from calibration.graycode import GrayCodeLayout
+    from calibration.store import CaptureSet, graycode_views
+    from slscan.board_check import leave_one_out as check
+
+    if args.layout == "opencv-graycode":
+        if args.projector_size is None or args.board is None:
+            raise ScannerError("--layout opencv-graycode needs --projector-size WxH and --board BOARD.toml")
+        views = graycode_views(args.leave_one_out, GrayCodeLayout(*args.projector_size), args.pose_folders)
+        board, size = Board.load(args.board), args.projector_size
+    else:
+        capture = CaptureSet.open(args.leave_one_out)
+        views, size = capture.views(), capture.projector_size
+        board = Board.load(args.board) if args.board else capture.board
+    out = _out_folder(Path(args.out))
+    checks = check(views, board, size, say)
+    rows = [c.summary(board.square_mm) for c in checks]
+    (out / "leave_one_out.json").write_text(json.dumps(rows, indent=1, default=_plain))
+    if args.json:
+        print(json.dumps(rows, default=_plain))
+        return 0
+    print(f"{'pose':<12} {'flatness (corners)':>20} {'plane RMS':>10} {'adjacent err RMS':>17} {'max':>7} "
+          f"{'U (median)':>11} {'longest err ± U':>22} {'within U':>9}")
+    for c, r in zip(checks, rows):
+        longest = f"{np.mean(r['longest_error_mm']):+.3f} ± {np.median(r['longest_U_mm']):.3f}"
+        print(f"{r['pose']:<12} {c.flatness.text(0).replace('µm', 'um'):>20} {r['plane_rms_mm']:10.3f} "
+              f"{r['adjacent_error_rms_mm']:17.3f} {r['adjacent_error_max_mm']:7.3f} {r['adjacent_U_median_mm']:11.3f} "
+              f"{longest:>22} {r['within_U']:9.0%}")
+    print(f"mm (flatness in um); corner distances along rows and columns against multiples of {board.square_mm:g} mm; "
+          f"'longest': the {rows[0]['longest_nominal_mm']:g} mm distances; U with k = 2; report {out / 'leave_one_out.json'}")
+    return 0
+
+
 def cmd_verify(args: argparse.Namespace) -> int:
     def say(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
+    if args.leave_one_out is not None:
+        return leave_one_out(args, say)
     report = run(args, say)
     out = Path(args.out)
     data = report.as_dict()
@@ -173,6 +215,7 @@ def _plain(o: Any) -> Any:
 
 def register(sub: Any) -> None:
     from scanner.rig import DEFAULT_RIG
+    from slscan.commands.calibrate import image_size
 
     v = sub.add_parser("verify", help="acceptance / reverification test (VDI/VDE 2634 Part 2): artefacts in the "
                                       "measuring volume against the rig's maximum permissible errors")
@@ -183,4 +226,12 @@ def register(sub: Any) -> None:
     v.add_argument("--out", type=Path, required=True, help="new folder for the report and the recording")
     v.add_argument("--seed", type=int, default=0, help="simulated rigs: noise seed")
     v.add_argument("--json", action="store_true", help="print the report as JSON")
+    v.add_argument("--leave-one-out", type=Path, metavar="DIR",
+                   help="instead: check a calibration on captured board poses, each left out of a calibration of the "
+                        "others and measured by triangulation")
+    v.add_argument("--layout", choices=("slscan", "opencv-graycode"), default="slscan",
+                   help="--leave-one-out: how the captures are laid out (as slscan calibrate --from)")
+    v.add_argument("--projector-size", type=image_size, help="--layout opencv-graycode: projector WIDTHxHEIGHT")
+    v.add_argument("--board", type=Path, help="--leave-one-out: board TOML")
+    v.add_argument("--pose-folders", default="*", metavar="GLOB", help="--layout opencv-graycode: one pose per folder")
     v.set_defaults(func=cmd_verify)
