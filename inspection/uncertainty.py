@@ -59,7 +59,7 @@ for Sq, the Sq whose estimate would clear the decision threshold k·u(Sq²|Sq = 
 
 The coverage of this model — the true value inside ±U for 95 % of repeat scans with fresh
 noise, and with calibration errors drawn from the calibration's covariance — is measured
-on the simulator (`sim.artefacts`, tests/test_uncertainty_coverage.py).
+on the simulator (`sim.artefact_scenes`, tests/test_uncertainty_coverage.py).
 """
 
 from __future__ import annotations

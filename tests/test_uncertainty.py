@@ -75,7 +75,8 @@ def test_calibration_jacobian_matches_retriangulation() -> None:
     coord[rows, cols] = model.projector.project(Xp)[:, 0]
     J = calibration_jacobian(X, model, {"vertical": np.ones(len(X))})
     steps = np.array([0.5, 0.5, 0.5, 0.5, 2e-3, 2e-3, 2e-4, 2e-4, 2e-3] * 2 + [1e-4] * 3 + [0.05] * 3)
-    for p, step in enumerate(steps):
+    for p in (0, 2, 3, 4, 7, 9, 11, 13, 16, 18, 19, 20, 21, 23):  # every kind of parameter of both devices
+        step = steps[p]
         d = np.zeros(len(RIG_PARAMETERS))
         d[p] = step
         moved = []
@@ -137,7 +138,7 @@ def test_predicted_depth_noise_matches_the_simulator() -> None:
 
     from scanner.patterns import PatternSet
     from scanner.reconstruct import triangulate
-    from sim.artefacts import quick_scan
+    from sim.artefact_scenes import quick_scan
     from sim.render import Renderer, SensorModel
     from sim.scene import Scene, SceneObject
 

@@ -1,4 +1,4 @@
-"""Coverage of the uncertainty model on the simulator (`sim.coverage`): over repeat scans with
+"""Coverage of the uncertainty model on the simulator (`sim.repeat_scans`): over repeat scans with
 fresh noise, each at a new place in the measuring volume, the true value lies within ±U
 for 95 % ± 3 % of the scans — sphere radius, ball-bar length, the minimum-zone flatness
 and Sq of a bowed, textured plate — and, separately, with the rig reconstructed from
@@ -20,7 +20,7 @@ import pytest
 from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
 from inspection.uncertainty import CalibrationUncertainty
 from scanner.rig import RigConfig
-from sim.coverage import Bench, ball_bar_length, plate_figures, sphere_radius
+from sim.repeat_scans import Bench, ball_bar_length, plate_figures, sphere_radius
 
 COVARIANCE = Path(__file__).parent / "data" / "sim_calibration_covariance.json"
 TRIALS = 200

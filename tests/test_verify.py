@@ -82,8 +82,8 @@ def test_positions_keep_the_artefacts_inside_the_measuring_volume(config: RigCon
 def _bar_scan(config: RigConfig, model_of: object) -> tuple[AcceptanceReport, object]:
     """The first ball-bar position scanned on the simulator (camera window around it) and
     reconstructed with `model_of(true model)`; the report of that one position."""
-    from sim.artefacts import artefact_objects, quick_scan, window_renderer
-    from sim.coverage import Bench
+    from sim.artefact_scenes import artefact_objects, quick_scan, window_renderer
+    from sim.repeat_scans import Bench
 
     bench = Bench.of(config)
     art = load_artefacts(DEFAULT_ARTEFACTS)

@@ -112,7 +112,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     sim = config.driver == "sim"
     options: dict[str, Any] = {"seed": args.seed} if sim else {}
     if sim:
-        from sim.artefacts import artefact_scene
+        from sim.artefact_scenes import artefact_scene
 
         options["scene"] = artefact_scene(plan[0], artefacts)
     run_id = f"verify-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
@@ -120,7 +120,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
         rig.model = model
         rec.log_rig(model)
         if sim:
-            from sim.artefacts import SimArtefactBench
+            from sim.artefact_scenes import SimArtefactBench
 
             bench: Any = SimArtefactBench(rig, artefacts)
         else:

@@ -4,7 +4,7 @@ true value lies within ±U.
 Each trial places the artefact somewhere new in the rig's measuring volume (so the fringe
 systematics, fixed for one placement, are drawn afresh as the model assumes), renders it
 with fresh noise, decodes it and measures it with the same estimator `slscan verify` uses,
-on the camera window around the artefact (`sim.artefacts.window_renderer`: the same
+on the camera window around the artefact (`sim.artefact_scenes.window_renderer`: the same
 pixels, fewer of them to render). With a `calibration`, each trial also reconstructs with
 a rig whose parameters are drawn from that covariance (the simulator still renders with
 the true one), and U includes the calibration term. `noise_scale` scales the noise model
@@ -35,7 +35,7 @@ from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator, triangulate
 from scanner.rig import RigConfig
-from sim.artefacts import artefact_objects, quick_scan, window_renderer
+from sim.artefact_scenes import artefact_objects, quick_scan, window_renderer
 from sim.render import SensorModel
 
 
