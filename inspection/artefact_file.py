@@ -45,6 +45,8 @@ _KEYS = {"sphere": {"certificate", "diameter_mm", "diameter_u_mm", "form_mm", "a
 
 @dataclass(frozen=True)
 class Sphere:
+    """A calibrated sphere (diameter, its U, its form deviation; mm)."""
+
     certificate: str
     diameter_mm: float
     diameter_u_mm: float
@@ -56,19 +58,12 @@ class Sphere:
         return self.diameter_mm / 2.0
 
 
-@dataclass(frozen=True)
-class BallBar:
-    certificate: str
+@dataclass(frozen=True, kw_only=True)
+class BallBar(Sphere):
+    """Two spheres of the calibrated diameter whose centres are `length_mm` apart."""
+
     length_mm: float
     length_u_mm: float
-    diameter_mm: float
-    diameter_u_mm: float
-    form_mm: float
-    albedo: float = 0.7
-
-    @property
-    def radius_mm(self) -> float:
-        return self.diameter_mm / 2.0
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,6 @@ import base64
 import csv
 import html
 import io
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ import numpy as np
 from inspection.form import FIGURES, FaceForm, FormSettings
 from inspection.tolerances import DECISION_RULES, GUARD_BANDED, overall
 from inspection.uncertainty import Estimate
+from scanner.session import write_atomic, write_json
 
 NOISE_NOTE = ("Every figure is given with its expanded uncertainty U (k = 2): scanner noise predicted per point "
               "by the decoder and the sensor model (or, without one, estimated from the data), the fringe error "
@@ -153,15 +153,15 @@ class InspectionReport:
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         paths = [folder / f"{stem}.json", folder / f"{stem}.csv", folder / f"{stem}.html"]
-        _atomic(paths[0], json.dumps(self.as_dict(), indent=1, default=_plain).encode())
+        write_json(paths[0], self.as_dict())
         rows = [{k: v for k, v in r.as_dict().items() if k != "u_components_mm"} for r in self.faces]
         keys = list(dict.fromkeys(k for r in rows for k in r))
         buf = io.StringIO()
         w = csv.DictWriter(buf, fieldnames=keys)
         w.writeheader()
         w.writerows(rows)
-        _atomic(paths[1], buf.getvalue().encode())
-        _atomic(paths[2], self.html(deviation_png).encode())
+        write_atomic(paths[1], buf.getvalue().encode())
+        write_atomic(paths[2], self.html(deviation_png).encode())
         return paths
 
     def html(self, deviation_png: bytes | None = None) -> str:
@@ -257,17 +257,3 @@ def png(image: np.ndarray) -> bytes:
 
     ok, buf = cv2.imencode(".png", image[..., ::-1])
     return buf.tobytes() if ok else b""
-
-
-def _atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_bytes(data)
-    tmp.replace(path)
-
-
-def _plain(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    return str(o)

@@ -116,11 +116,6 @@ class Estimate:
             return f"< {_um(self.limit, digits)} µm" if self.limit is not None else "not measured"
         return f"{_um(self.value, digits)} ± {_um(self.U, digits)} µm"
 
-    @classmethod
-    def tested(cls, value: float, u: float, limit: float, bias: float = 0.0) -> Estimate:
-        """A figure tested against zero: null below its detection limit."""
-        return cls(value if value > limit else None, u, limit, bias)
-
 
 def _um(mm: float | None, digits: int) -> str:
     return "-" if mm is None else f"{mm * 1e3:.{digits}f}"

@@ -47,7 +47,7 @@ def test_decision_rules_iso_14253_1() -> None:
 
 def test_estimates_print_value_and_u_or_their_detection_limit() -> None:
     assert Estimate(0.0123, 0.00105).text() == "12.3 ± 2.1 µm"
-    below = Estimate.tested(0.004, 0.001, 0.0061)
+    below = Estimate(None, 0.001, 0.0061)
     assert below.value is None and below.text() == "< 6.1 µm"
     assert below.fields("flatness_mz") == {"flatness_mz_mm": None, "flatness_mz_u_mm": 0.002,
                                             "flatness_mz_limit_mm": 0.0061}

@@ -31,6 +31,7 @@ from typing import Any, Callable
 import numpy as np
 
 from scanner.errors import ScannerError
+from scanner.session import write_atomic, write_json
 
 
 class OperatorArtefactBench:
@@ -170,9 +171,9 @@ def leave_one_out(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     out = _out_folder(Path(args.out))
     checks = check(views, board, size, say)
     rows = [c.summary(board.square_mm) for c in checks]
-    (out / "leave_one_out.json").write_text(json.dumps(rows, indent=1, default=_plain))
+    write_json(out / "leave_one_out.json", rows)
     if args.json:
-        print(json.dumps(rows, default=_plain))
+        print(json.dumps(rows))
         return 0
     print(f"{'pose':<12} {'flatness (corners)':>20} {'plane RMS':>10} {'adjacent err RMS':>17} {'max':>7} "
           f"{'U (median)':>11} {'longest err ± U':>22} {'within U':>9}")
@@ -195,22 +196,14 @@ def cmd_verify(args: argparse.Namespace) -> int:
     report = run(args, say)
     out = Path(args.out)
     data = report.as_dict()
-    (out / "verify.json").write_text(json.dumps(data, indent=1, default=_plain))
-    (out / "verify.html").write_text(report.html())
+    write_json(out / "verify.json", data)
+    write_atomic(out / "verify.html", report.html().encode())
     if args.json:
-        print(json.dumps(data, default=_plain))
+        print(json.dumps(data))
     else:
         print(report.table())
         print(f"report    {out / 'verify.html'} (.json); recording {out / 'recording.rrd'}")
     return 0 if report.passed else 1
-
-
-def _plain(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    return str(o)
 
 
 def register(sub: Any) -> None:
