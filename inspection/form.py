@@ -352,10 +352,7 @@ class FaceForm:
         for f in fields(self):
             v = getattr(self, f.name)
             if f.name in FIGURES:
-                if v is not None:
-                    out.update(v.fields(f.name))
-                else:
-                    out[f"{f.name}_mm"] = None
+                out.update(v.fields(f.name) if v is not None else {f"{f.name}_mm": None, f"{f.name}_u_mm": None})
             elif f.name != "u_components":
                 out[f.name] = v
         out["u_components_mm"] = self.u_components
