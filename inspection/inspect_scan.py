@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import time
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from inspection.cad import CadModel
 from inspection.errors import InspectionError
-from inspection.form import FormSettings, evaluate_face
+from inspection.form import FaceForm, FormSettings, evaluate_face
 from inspection.measured_cloud import ScanCloud, make_scan, part_mask
 from inspection.registration import ModelTarget, RegistrationSettings, register, transform_points
 from inspection.report import FaceRow, InspectionReport
@@ -84,6 +84,7 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
     rows = []
     R = reg.transform[:3, :3]
     unc = None if uncertainty is None else uncertainty.subset(mask)
+    pose = PoseUncertainty.of(q, seg)
     rule = tolerances.decision_rule if tolerances is not None else GUARD_BANDED
     for face in model.faces:  # one evaluation per face seen
         sel = seg.face == face.index
@@ -97,19 +98,63 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
             shifts = None if moves is None else moves @ R.T
         form = evaluate_face(face, q[sel], seg.deviation_mm[sel], seg.uv[sel], settings.form, noise=noise,
                              normals=seg.normal[sel], shifts=shifts)
+        form = pose.added_to(form, q[sel], seg.normal[sel])
         rows.append(FaceRow.of(face, form, _verdicts(face.label, form, tolerances, rule)))
     times["form"] = time.perf_counter() - t0
     report = InspectionReport(
         model=str(model.path), unit=model.unit, source=scan.source, scan_points=len(scan), part_points=len(part),
         assigned_points=int(seg.assigned.sum()), registration=reg, faces=tuple(rows),
         form_settings=settings.form, timings_s={k: round(v, 4) for k, v in times.items()},
-        part_mask=mask, segmentation=seg, decision_rule=rule,
+        part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose.as_dict(),
         calibration=uncertainty.calibration.source if uncertainty is not None else "not known (a bare cloud): not in U")
     if recording is not None:
         from inspection.inspection_recording import log_inspection
 
         log_inspection(recording, report, scan, model)
     return report
+
+
+@dataclass(frozen=True)
+class PoseUncertainty:
+    """The registration pose's covariance (6, 6: a small rotation (rad) and a translation
+    (mm) of the scan in the model frame) from the point-to-plane normal equations at the
+    final pose, the points' residual about their faces taken as their noise:
+    Σ = s²(JᵀJ)⁻¹, J_i = [(q_i × n_i)ᵀ, n_iᵀ]. It moves each face's points along its normal
+    as a whole, so it is added to the deviation figures (not to form, which it cannot
+    change). A statistical figure: what pulls a best fit off (defects, a partial view) is
+    not in it."""
+
+    covariance: np.ndarray
+
+    @classmethod
+    def of(cls, points: np.ndarray, seg: Any) -> PoseUncertainty:
+        ok = seg.assigned & np.isfinite(seg.deviation_mm)
+        if ok.sum() < 6:
+            return cls(np.zeros((6, 6)))
+        n = seg.normal[ok]
+        J = np.column_stack([np.cross(points[ok], n), n])
+        s2 = float(np.mean(seg.deviation_mm[ok] ** 2))
+        return cls(s2 * np.linalg.pinv(J.T @ J))
+
+    def as_dict(self) -> dict[str, float]:
+        sd = np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+        return {"rotation_u_deg": float(2.0 * np.degrees(np.linalg.norm(sd[:3]))),
+                "translation_u_mm": float(2.0 * np.linalg.norm(sd[3:]))}
+
+    def added_to(self, form: FaceForm, points: np.ndarray, normals: np.ndarray) -> FaceForm:
+        """The face's deviation figures with the pose's uncertainty added (the mean move
+        of the face along its normals; twice that for the profile zone 2 max|d|)."""
+        if form.status != "ok" or not np.any(self.covariance):
+            return form
+        m = np.column_stack([np.cross(points, normals), normals]).mean(axis=0)
+        u = float(np.sqrt(max(m @ self.covariance @ m, 0.0)))
+        changes = {}
+        for name, scale in (("deviation_min", 1.0), ("deviation_max", 1.0), ("deviation_mean", 1.0),
+                            ("profile", 2.0)):
+            e = form.figure(name)
+            if e is not None:
+                changes[name] = replace(e, u=float(np.hypot(e.u, scale * u)))
+        return replace(form, **changes)
 
 
 TOLERANCED = {"flatness_mm": "flatness_mz", "cylindricity_mm": "cylindricity_mz", "sq_mm": "sq",

@@ -82,7 +82,9 @@ class FaceRow:
 class InspectionReport:
     """The result of `pipeline.inspect`. `registration` is a `registration.Registration`;
     `part_mask` which scan points are the part, `segmentation` their faces;
-    `decision_rule` how verdicts used U; `calibration` where the calibration term came from."""
+    `decision_rule` how verdicts used U; `calibration` where the calibration term came from;
+    `pose_u` the registration pose's expanded uncertainty (k = 2: rotation in degrees,
+    translation in mm)."""
 
     model: str
     unit: str
@@ -98,6 +100,7 @@ class InspectionReport:
     segmentation: Any = field(repr=False)
     decision_rule: str = GUARD_BANDED
     calibration: str = ""
+    pose_u: dict[str, float] = field(default_factory=dict)
 
     @property
     def fitness(self) -> float:
@@ -118,7 +121,7 @@ class InspectionReport:
                 "fitness": self.fitness, "rmse_mm": self.rmse_mm, "verdict": self.verdict,
                 "decision_rule": self.decision_rule, "rule": DECISION_RULES[self.decision_rule],
                 "coverage_factor": 2.0, "calibration_uncertainty": self.calibration,
-                "registration": self.registration.as_dict(),
+                "registration": {**self.registration.as_dict(), **self.pose_u},
                 "points": {"scan": self.scan_points, "part": self.part_points, "assigned": self.assigned_points,
                            "unassigned": self.part_points - self.assigned_points},
                 "form_settings": asdict(self.form_settings), "noise_treatment": NOISE_NOTE,
@@ -142,7 +145,9 @@ class InspectionReport:
                      f"2nd-order regression); Sq with roughness cut-off {s.roughness_cutoff_mm} mm; noise bias removed; "
                      f"edge margin {s.edge_margin_mm} mm.")
         lines.append(f"registration fitness {self.fitness:.3f}, RMSE {self.rmse_mm * 1e3:.1f} um "
-                     f"({self.registration.method}{', AMBIGUOUS pose' if self.registration.ambiguous else ''}); "
+                     f"({self.registration.method}{', AMBIGUOUS pose' if self.registration.ambiguous else ''}"
+                     + (f"; pose U {self.pose_u['translation_u_mm'] * 1e3:.2f} um, {self.pose_u['rotation_u_deg']:.5f} deg"
+                        if self.pose_u else "") + "); "
                      f"{self.assigned_points}/{self.part_points} part points on faces; calibration: {self.calibration}; "
                      f"decision rule {self.decision_rule}; verdict {self.verdict}")
         return "\n".join(lines)
