@@ -133,3 +133,19 @@ def test_verify_command_passes_the_simulated_rig_and_fails_a_perturbed_calibrati
     assert cli.main(["verify", "--calibration", str(bad), "--out", str(tmp_path / "perturbed"), "--json"]) == 1
     data = json.loads(capsys.readouterr().out)
     assert not data["pass"] and data["verdicts"]["SD"] == NON_CONFORMING
+
+
+def test_operator_is_told_where_each_artefact_goes(config: RigConfig) -> None:
+    """On a real bench: each position said in words, Enter scans, s skips, q stops."""
+    from slscan.commands.verify import OperatorArtefactBench
+
+    acc = Acceptance.from_rig(config.raw, config.path, config.working_distance_mm)
+    plan = positions(acc, load_artefacts(DEFAULT_ARTEFACTS))
+    said: list[str] = []
+    answers = iter(["", "s", "q"])
+    bench = OperatorArtefactBench(said.append, lambda prompt: next(answers))
+    assert bench.place(plan[0]) is True and bench.place(plan[10]) is False
+    with pytest.raises(KeyboardInterrupt):
+        bench.place(plan[17])
+    assert said[0].startswith("sphere-1: put the sphere at the centre of the measuring volume")
+    assert "ball bar" in said[1] and "space diagonal" in said[1] and "flat" in said[2]
