@@ -171,6 +171,8 @@ def _where(offset: np.ndarray, half: np.ndarray) -> str:
     for value, h, (neg, pos) in zip(offset, half, (("left", "right"), ("top", "bottom"), ("near", "far"))):
         if abs(value) > 0.25 * h:
             words.append(pos if value > 0 else neg)
+    if words in (["near"], ["far"]):
+        return f"centre of the {words[0]} face"
     return "-".join(words) if words else "centre"
 
 
