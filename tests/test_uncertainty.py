@@ -226,3 +226,20 @@ def test_flatness_noise_bias_removed() -> None:
                         normals=normals).flatness_mz
     assert truth.value == pytest.approx(0.030 * (14.0 ** 2 + 9.0 ** 2) / 325.0, abs=0.002)  # the bow inside the 1 mm margin
     assert got.bias > 0 and abs(got.value - truth.value) <= got.U
+
+
+def test_calibration_moves_reach_the_face_figures() -> None:
+    """Two calibration directions on a bowed plate: one tilts the plate (a zone cannot see
+    it: no contribution), one adds 5 um more of the same dome (the zone grows by the
+    dome's span): u_cal of both zones is that span."""
+    rng = np.random.default_rng(8)
+    face = _plane_face()
+    pts, h, noise, normals = _plate(0.030, 0.0, 0.002, rng, spacing=0.25)
+    r2 = (pts[:, 0] ** 2 + pts[:, 1] ** 2) / (15.0 ** 2 + 10.0 ** 2)
+    shifts = np.zeros((2, len(pts), 3))
+    shifts[0, :, 2] = 1e-3 * pts[:, 0] / 15.0  # a tilt of 1 um over the half-length
+    shifts[1, :, 2] = 0.005 * (1.0 - r2)  # the same dome, 5 um higher
+    got = evaluate_face(face, pts, h, pts[:, :2], noise=noise, normals=normals, shifts=shifts)
+    expected = 0.005 * (14.0 ** 2 + 9.0 ** 2) / 325.0  # the added dome's span inside the 1 mm margin
+    assert got.u_components["flatness_mz"]["calibration"] == pytest.approx(expected, rel=0.1)
+    assert got.u_components["flatness_ls"]["calibration"] == pytest.approx(expected, rel=0.1)
