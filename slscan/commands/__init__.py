@@ -9,6 +9,7 @@ libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
 from slscan.commands import (
     bench,
     calibrate,
+    demobench,
     devices,
     import_,
     importbench,
@@ -22,6 +23,5 @@ from slscan.commands import (
     verify,
 )
 
-COMMANDS = (
-    scan, import_, review, bench, importbench, simbench, devices, calibrate, verify, inspect, pose, segment, station,
-)
+COMMANDS = (scan, import_, review, bench, importbench, simbench, demobench, devices, calibrate, verify, inspect, pose,
+            segment, station)
