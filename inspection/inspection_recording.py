@@ -59,5 +59,6 @@ def log_inspection(recording: SessionRecording, report: InspectionReport, scan: 
                strict=True)
     verdicts = [v for row in report.faces for _, v in row.verdicts.values()]
     metrics = {"fitness": report.fitness, "rmse_mm": report.rmse_mm,
-               **{f"{w}_count": float(verdicts.count(w)) for w in ("pass", "fail", "uncertain")}}
+               **{f"{w.replace('-', '_')}_count": float(verdicts.count(w))
+                  for w in ("conforming", "non-conforming", "uncertain")}}
     recording.log_metrics({f"{METRICS}/{name}": value for name, value in metrics.items()}, scan=scan_index)

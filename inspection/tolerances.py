@@ -1,6 +1,7 @@
 """Tolerance files: per-face limits for the inspection report (`config/tolerances/`).
 
     # tolerances of config/parts/demo_part.step (mm)
+    decision_rule = "guard-banded"   # optional: how verdicts use U (see DECISION_RULES)
     [faces."#657"]              # a face by its label: "#<STEP ADVANCED_FACE id>" or "F<index>" (meshes)
     flatness_mm = 0.05          # minimum-zone flatness (ISO 1101), planes
     sq_mm = 0.10                # Sq roughness (ISO 25178-2)
@@ -10,9 +11,13 @@
     [default]                   # optional: limits for every face without its own table
     profile_mm = 1.0
 
-Verdicts follow the decision rule of ISO 14253-1: "pass" when the value plus its noise
-uncertainty is within the limit, "fail" when the value minus it is beyond, else
-"uncertain" — a measurement the scanner's noise cannot decide is never called a pass.
+Verdicts follow ISO 14253-1 (`decide`): with the default "guard-banded" rule a
+characteristic is "conforming" when conformance is proven (its value plus its expanded
+uncertainty U is within the limit), "non-conforming" when non-conformance is proven (the
+value minus U is beyond it), else "uncertain" — a measurement its uncertainty cannot decide
+is never called conforming. The "plain" rule judges the value alone (U is still reported).
+A figure below its detection limit is judged by that limit: conforming when the limit is
+within the tolerance, else uncertain (it cannot be shown to be out).
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from inspection.errors import ToleranceError
 from scanner.schema import nearest
@@ -35,6 +42,7 @@ class Tolerances:
     faces: dict[str, dict[str, float]]
     default: dict[str, float]
     path: Path | None = None
+    decision_rule: str = "guard-banded"
 
     def for_face(self, label: str) -> dict[str, float]:
         return {**self.default, **self.faces.get(label, {})}
@@ -49,11 +57,15 @@ def load_tolerances(path: str | Path, labels: dict[str, str]) -> Tolerances:
         raise ToleranceError(f"{path}: no such tolerance file") from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ToleranceError(f"{path}: unreadable tolerance file: {exc}") from None
-    unknown = set(raw) - {"faces", "default"}
+    unknown = set(raw) - {"faces", "default", "decision_rule"}
     if unknown:
-        raise ToleranceError(f"{path}: unknown table(s) {sorted(unknown)}; expected [faces.\"#id\"] and [default]")
+        raise ToleranceError(f"{path}: unknown table(s) {sorted(unknown)}; expected [faces.\"#id\"], [default] and "
+                             f"decision_rule")
     if not isinstance(raw.get("faces", {}), dict):
         raise ToleranceError(f"{path}: faces must be a table of [faces.\"#id\"] tables")
+    rule = raw.get("decision_rule", GUARD_BANDED)
+    if rule not in DECISION_RULES:
+        raise ToleranceError(f"{path}: decision_rule {rule!r}: use one of {sorted(DECISION_RULES)}")
 
     def limits(table: object, where: str, face_type: str | None) -> dict[str, float]:
         if not isinstance(table, dict):
@@ -79,15 +91,44 @@ def load_tolerances(path: str | Path, labels: dict[str, str]) -> Tolerances:
             raise ToleranceError(f"{path}: faces.\"{label}\": the model has no such face (labels look like "
                                  f"{next(iter(labels))})")
         faces[label] = limits(table, f"faces.\"{label}\"", labels[label])
-    return Tolerances(faces, limits(raw.get("default", {}), "default", None), path)
+    return Tolerances(faces, limits(raw.get("default", {}), "default", None), path, rule)
 
 
-def verdict(value: float | None, limit: float, uncertainty: float) -> str:
-    """ISO 14253-1 decision: "pass", "fail", "uncertain", or "not measured"."""
+CONFORMING, NON_CONFORMING, UNCERTAIN, NOT_MEASURED = "conforming", "non-conforming", "uncertain", "not measured"
+GUARD_BANDED, PLAIN = "guard-banded", "plain"
+DECISION_RULES = {
+    GUARD_BANDED: "ISO 14253-1: conforming when value + U is within the limit, non-conforming when value - U is "
+                  "beyond it, otherwise uncertain",
+    PLAIN: "the value against the limit (simple acceptance); U reported but not applied",
+}
+
+
+def decide(value: float | None, U: float, upper: float, lower: float | None = None, rule: str = GUARD_BANDED,
+           limit: float | None = None) -> str:
+    """The ISO 14253-1 verdict of a measured figure against its specification [lower,
+    upper] (mm; `lower` None: an upper limit only, as for form tolerances): "conforming",
+    "non-conforming", "uncertain" or "not measured" (see the module docstring). `U`: the
+    value's expanded uncertainty; `limit`: its detection limit when `value` is None
+    because the figure could not be told from zero."""
+    if rule not in DECISION_RULES:
+        raise ValueError(f"unknown decision rule {rule!r}; use one of {sorted(DECISION_RULES)}")
     if value is None:
-        return "not measured"
-    if value + uncertainty <= limit:
-        return "pass"
-    if value - uncertainty > limit:
-        return "fail"
-    return "uncertain"
+        if limit is None:
+            return NOT_MEASURED
+        return CONFORMING if limit <= upper and (lower is None or lower <= 0.0) else UNCERTAIN
+    band = U if rule == GUARD_BANDED else 0.0
+    lo = -np.inf if lower is None else lower
+    if lo + band <= value <= upper - band:
+        return CONFORMING
+    if value - band > upper or value + band < lo:
+        return NON_CONFORMING
+    return UNCERTAIN
+
+
+def overall(verdicts: list[str]) -> str:
+    """A part's verdict from its characteristics': non-conforming if any is, else
+    uncertain or not measured if any is, else conforming ("no tolerances" without any)."""
+    for word in (NON_CONFORMING, UNCERTAIN, NOT_MEASURED):
+        if word in verdicts:
+            return word
+    return CONFORMING if verdicts else "no tolerances"

@@ -21,7 +21,8 @@ from slscan.commands import (
     segment,
     simbench,
     station,
+    verify,
 )
 
-COMMANDS = (scan, import_, review, export, bench, importbench, simbench, demobench, devices, calibrate, inspect, pose, segment,
-            station)
+COMMANDS = (scan, import_, review, export, bench, importbench, simbench, demobench, devices, calibrate, verify, inspect,
+            pose, segment, station)

@@ -35,7 +35,7 @@ PLATE_BEHIND_MM = 20.0  # simulated reference plate, beyond the working distance
 ARTEFACT_BEFORE_MM = 10.0  # simulated sphere pair, nearer than the working distance
 
 
-def _size(text: str) -> tuple[int, int]:
+def image_size(text: str) -> tuple[int, int]:
     m = re.fullmatch(r"(\d+)x(\d+)", text)
     if not m:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1024x768, got {text!r}")
@@ -311,7 +311,7 @@ def register(sub: Any) -> None:
     c.add_argument("--from", dest="source", type=Path, help="solve from captures in this folder instead of capturing")
     c.add_argument("--layout", choices=("slscan", "opencv-graycode"), default="slscan",
                    help="--from: how the captures are laid out (default: a capture written by slscan calibrate)")
-    c.add_argument("--projector-size", type=_size, help="--layout opencv-graycode: projector WIDTHxHEIGHT")
+    c.add_argument("--projector-size", type=image_size, help="--layout opencv-graycode: projector WIDTHxHEIGHT")
     c.add_argument("--pose-folders", default="*", metavar="GLOB",
                    help="--layout opencv-graycode: the sub-folders holding one pose each (default: all)")
     c.add_argument("--skip-bad-views", action="store_true",

@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from inspection.tolerances import NON_CONFORMING
 from slscan.exit_codes import Exit
 from slscan.options import COARSE_METHODS, coarse_method
 
@@ -208,17 +209,22 @@ def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path |
     folder = Path(out) if out else (source / "outputs" if source.is_dir() else source.parent)
     settings = InspectionSettings(registration=RegistrationSettings(seed=seed))
     own = None
-    if recording is None and source.is_dir():
+    uncertainty = None
+    if source.is_dir():
         from scanner.session import Session
-        from scanner.session_recording import SessionRecording
+        from slscan.measurement_model import session_uncertainty
 
-        folder.mkdir(parents=True, exist_ok=True)
         session = Session.open(source)
-        own = recording = SessionRecording(folder / "inspection.rrd", session.id, send_blueprint=False)
+        uncertainty = session_uncertainty(session)(scan.pixels)
+        if recording is None:
+            from scanner.session_recording import SessionRecording
+
+            folder.mkdir(parents=True, exist_ok=True)
+            own = recording = SessionRecording(folder / "inspection.rrd", session.id, send_blueprint=False)
     try:
         if own is not None:  # the session's rig: its world frame is the recording's `world`
             own.log_rig(session.rig_model())
-        report = inspect(scan, model, tol, settings, recording)
+        report = inspect(scan, model, tol, settings, recording, uncertainty)
     finally:
         if own is not None:
             own.close()
@@ -236,7 +242,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         folder = Path(args.out) if args.out else (Path(args.source) / "outputs" if Path(args.source).is_dir()
                                                   else Path(args.source).parent)
         print(f"report    {folder / 'inspection.html'} (.json, .csv)", file=sys.stderr)
-    return Exit.FAILED if report.verdict == "fail" else Exit.OK
+    return Exit.FAILED if report.verdict == NON_CONFORMING else Exit.OK
 
 
 def register(sub: Any) -> None:

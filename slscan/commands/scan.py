@@ -174,14 +174,16 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
     from inspection.measured_cloud import from_organised, load_session
     from inspection.registration import RegistrationSettings
     from inspection.report import deviation_image, png
+    from slscan.measurement_model import session_uncertainty
 
     timer = StageTimer()
     with timer.stage("load_cloud"):  # the cloud in memory is the one in cloud.ply (same points, normals, pixels)
         scan = (from_organised(result.cloud, str(result.session.root)) if result.cloud is not None
                 else load_session(result.session.root))
     with timer.stage("inspect"):
+        uncertainty = session_uncertainty(result.session)(scan.pixels)  # the decoder's noise model and calibration
         report = inspect(scan, model, tolerances, InspectionSettings(registration=RegistrationSettings(seed=seed)),
-                         prior=prior)
+                         prior=prior, uncertainty=uncertainty)
     if on_verdict is not None:
         on_verdict(report)
     with timer.stage("report_files"):
@@ -199,7 +201,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     session against the part's STEP model and tolerances: registration, per-face
     segmentation, form table; the verdict is shown as soon as it is known, then the report
     files go to the session's outputs/ and the inspection into its recording. The CAD
-    model is loaded while the part is scanned. Exit 1 when a tolerance fails."""
+    model is loaded while the part is scanned. Exit 1 when a characteristic is non-conforming."""
+    from inspection.tolerances import NON_CONFORMING
+
     out = args.out or f"sessions/demo-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
     ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[],
                             full_recording=args.full_recording)
@@ -231,7 +235,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     stages = ", ".join(f"{k} {v:.1f}" for k, v in rep.timings_s.items())
     print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU ({stages} s); demo "
           f"{time.perf_counter() - t0:.1f} s wall")
-    return Exit.FAILED if rep.verdict == "fail" else Exit.OK
+    return Exit.FAILED if rep.verdict == NON_CONFORMING else Exit.OK
 
 
 def _add_full_recording(parser: argparse.ArgumentParser) -> None:
