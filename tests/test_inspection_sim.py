@@ -31,7 +31,6 @@ from form_truth import (
 )
 from scipy import ndimage
 from scipy.spatial import cKDTree
-from sensor_noise import depth_sigma
 
 from inspection.cad import load_cad
 from inspection.inspect_scan import inspect
@@ -72,12 +71,11 @@ def defective_run(out: Path, bow: float, lobes: float, taper: float, texture: fl
     with open_rig(config, scene=scene, seed=seed) as rig:
         result = scan(rig, patterns, out)
         gt = rig.extras["ground_truth"]
-        sigma_z = depth_sigma(rig, patterns)
     model = load_cad(STEP)
     cloud = from_organised(result.cloud, str(out))
     report = inspect(cloud, model)
     return SimpleNamespace(model=model, pose=pose, gt=gt, face_of_id=face_of_id, cloud=cloud, report=report,
-                           session=out, defects=defects, valid=result.cloud.valid, sigma_z=sigma_z)
+                           session=out, defects=defects, valid=result.cloud.valid)
 
 
 @pytest.fixture(scope="module")
