@@ -6,6 +6,21 @@ the exit code. Modules are imported when the parser is built, so they import hea
 libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
 """
 
-from slscan.commands import bench, calibrate, devices, inspect, pose, review, scan, segment, simbench, station, verify
+from slscan.commands import (
+    bench,
+    calibrate,
+    devices,
+    import_,
+    importbench,
+    inspect,
+    pose,
+    review,
+    scan,
+    segment,
+    simbench,
+    station,
+    verify,
+)
 
-COMMANDS = (scan, review, bench, simbench, devices, calibrate, verify, inspect, pose, segment, station)
+COMMANDS = (scan, import_, review, bench, importbench, simbench, devices, calibrate, verify, inspect, pose, segment,
+            station)
