@@ -18,8 +18,7 @@ from scanner.session import write_json
 from slscan.progress import ProgressLine
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
-DEMO_CAD = CONFIG_DIR / "parts" / "demo_part.step"  # the demo scene's part as a STEP model
-DEMO_TOLERANCES = CONFIG_DIR / "tolerances" / "demo_part.toml"
+DEMO_PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"  # the demo part's program: its CAD, tolerances, face names
 
 
 def _parse_faults(items: Sequence[str]) -> Any:
@@ -124,17 +123,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
     def inspect_scan(result: Any, recording: Any) -> None:
         from slscan.commands.inspect import inspect_source
 
-        print(f"inspect   {result.session.root} against {DEMO_CAD.name} ({DEMO_TOLERANCES.name})", file=sys.stderr)
+        print(f"inspect   {result.session.root} against the part program {DEMO_PROGRAM}", file=sys.stderr)
         t0, c0 = time.perf_counter(), time.process_time()
-        done["report"] = inspect_source(result.session.root, DEMO_CAD, DEMO_TOLERANCES, seed=args.seed,
-                                        recording=recording)
+        done["report"] = inspect_source(result.session.root, None, DEMO_PROGRAM, seed=args.seed, recording=recording)
         done["seconds"], done["cpu"] = time.perf_counter() - t0, time.process_time() - c0
 
     t0 = time.perf_counter()
     cmd_scan(ns, inspect_scan)
     rep, outputs = done["report"], Path(out) / "outputs"
     print(rep.table())
-    print(f"report    {outputs / 'inspection.html'} (.json, .csv); inspection in the recording under "
+    print(f"report    {outputs / 'inspection.html'} (.json, .csv, .pdf); inspection in the recording under "
           f"world/inspection/ and inspection/")
     print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU (registration "
           f"{rep.timings_s['register']:.1f} s); demo {time.perf_counter() - t0:.1f} s wall")
