@@ -27,7 +27,7 @@ MAX_POINTS = 40_000
 CMAP = "RdBu_r"  # blue: inside the material, red: outside (as the recording's deviation map)
 # (title, elevation deg, azimuth deg) of the part views
 VIEWS = (("from front left, above", 30.0, -120.0), ("from back right, above", 30.0, 60.0),
-         ("from above", 89.0, -90.0), ("from the front", 0.0, -90.0))
+         ("from above", 90.0, -90.0), ("from front right, low", 12.0, -40.0))
 VERDICT_COLOURS = {"conforming": "#1a7a1a", "non-conforming": "#c01818", "uncertain": "#b06000",
                    "not measured": "#555555"}
 

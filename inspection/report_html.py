@@ -24,6 +24,7 @@ from typing import Any, Iterable
 
 from inspection.form import FIGURES
 from inspection.report_figures import deviation_histogram, face_closeup, part_views
+from inspection.report_header import HEADER_CSS, header_html
 from inspection.tolerances import DECISION_RULES, FIGURE_OF, TITLES
 from inspection.uncertainty import Estimate
 
@@ -34,13 +35,12 @@ h1{font-size:22px;margin:8px 0}h2{font-size:17px;margin:22px 0 8px;border-bottom
 .scroll{overflow-x:auto;max-width:100%}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}
 th{background:#eef0f3}td.l,th.l{text-align:left}
-#header table{width:100%}#header th{width:22%;text-align:left}#header td{text-align:left;word-break:break-all}
 .conforming{background:#d6f5d6}.non-conforming{background:#f8d0d0}.uncertain{background:#fdf0c2}
 .not-measured{background:#e4e4e4}.limit{color:#666}
 #verdict{font-size:18px;padding:8px 12px;border:2px solid #888;display:inline-block;margin:6px 0}
 img{max-width:100%;height:auto;display:block}
 .faces{display:flex;flex-wrap:wrap;gap:12px}.faces section{flex:1 1 480px;max-width:100%}
-p.note{font-size:12px;color:#444}
+p.note,span.note{font-size:12px;color:#444}
 @media print{main{max-width:none;padding:0}h2{break-after:avoid}img,table{break-inside:avoid}}
 """
 
@@ -88,10 +88,11 @@ def _characteristics_table(rows: list[dict[str, Any]]) -> str:
     body = []
     for c in rows:
         value = (_mm(c["value_mm"]) if c["value_mm"] is not None
-                 else f"&lt; {_mm(c['limit_mm'])}" if c["limit_mm"] is not None else html.escape(c["note"] or "—"))
+                 else f"&lt; {_mm(c['limit_mm'])}" if c["limit_mm"] is not None
+                 else f"<span class='note'>{html.escape(c['note'] or '—')}</span>")
         body.append(f"<tr><td class='l'>{html.escape(c['face'])}</td><td class='l'>{html.escape(c['characteristic'])}"
                     f"</td><td>{_mm(c['nominal_mm'])}</td><td>{_mm(c['tolerance_mm'])}</td><td>{value}</td>"
-                    f"<td>{'&plusmn; ' + _mm(c['u_mm']) if c['u_mm'] is not None else ''}</td>"
+                    f"<td>{'&plusmn; ' + _mm(c['u_mm']) if c['value_mm'] is not None else ''}</td>"
                     f"<td>{_mm(c['limit_mm'])}</td><td class='l {_css(c['verdict'])}'>{html.escape(c['verdict'])}"
                     f"</td></tr>")
     return f"<div class='scroll'><table>{head}{''.join(body)}</table></div>"
@@ -136,12 +137,8 @@ def _all_figures(report: Any) -> str:
 
 
 def _header(report: Any) -> str:
-    h = report.header
-    rows = h.rows() + [("Scan", report.source), ("CAD model", f"{report.model} ({report.unit})"),
-                       ("Calibration uncertainty", report.calibration)]
-    return ("<section id='header'><div class='scroll'><table>"
-            + "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows)
-            + "</table></div></section>")
+    return header_html(report.header, [("Scan", report.source), ("CAD model", f"{report.model} ({report.unit})"),
+                                       ("Calibration uncertainty", report.calibration)])
 
 
 def closeup_faces(report: Any) -> Iterable[Any]:
@@ -165,7 +162,7 @@ def render(report: Any, limit: float, noise_note: str, deviation_png: bytes | No
     title = report.header.part or Path(report.model).name
     return (
         f"<!doctype html><html><head><meta charset='utf-8'><title>Inspection report: {e(title)}</title>"
-        f"<style>{STYLE}</style></head><body><main>"
+        f"<style>{STYLE}{HEADER_CSS}</style></head><body><main>"
         f"<h1>Inspection report: {e(title)}</h1>{_header(report)}"
         f"<p id='verdict' class='{_css(report.verdict)}'>Verdict: <b>{e(report.verdict)}</b> "
         f"({len(rows)} characteristics; decision rule {e(report.decision_rule)}: "

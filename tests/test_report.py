@@ -173,19 +173,19 @@ window.addEventListener('load', () => {
 
 def layout(page: Path, tmp: Path) -> dict:
     """The page as Chromium lays it out at WIDTH px: the probe's measurements."""
-    probed = tmp / f"probe-{page.name}"
+    probed = page.parent / f"probe-{page.name}"  # beside it: its relative links still resolve
     probed.write_text(page.read_text().replace("</body>", PROBE + "</body>"))
     dom = dump_dom(probed, WIDTH, HEIGHT)
     assert dom is not None, "chromium --dump-dom failed"
     return json.loads(re.search(r"<pre id=\"layout-probe\">(.*?)</pre>", dom, re.S).group(1).replace("&quot;", '"'))
 
 
-def check_in_browser(page: Path, tmp: Path, ids: tuple[str, ...], closeup: str,
+def check_in_browser(page: Path, tmp: Path, ids: tuple[str, ...], closeup: str | None,
                      save: Path | None = None, stem: str = "inspection") -> None:
     """Chromium lays the page out with every element in `ids` present and non-empty, every
     image decoded, nothing wider than the window; its screenshot is drawn (not blank) in
-    every element's box. With `save`, the first page and the close-up of element `closeup`
-    are saved there as PNG."""
+    every element's box. With `save`, the first page and (unless None) the close-up of
+    element `closeup` are saved there as PNG."""
     import cv2
 
     box = layout(page, tmp)
@@ -205,6 +205,8 @@ def check_in_browser(page: Path, tmp: Path, ids: tuple[str, ...], closeup: str,
     if save is not None:
         save.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(save / f"{stem}-first-page.png"), img[:HEIGHT])
+        if closeup is None:
+            return
         x, y, w, h = (int(round(t)) for t in box["boxes"][closeup])
         cv2.imwrite(str(save / f"{stem}-face-closeup.png"), img[max(y - 30, 0):y + h + 10, x:x + w])
 
@@ -222,7 +224,7 @@ def test_report_in_a_browser(tmp_path: Path) -> None:
     page = tmp_path / "inspection.html"
     assert "src=\"data:image/png;base64," in page.read_text() and "src=\"http" not in page.read_text()
     check_in_browser(page, tmp_path, ("header", "verdict", "characteristics", "views", "histogram", "raw-filtered",
-                                      "face-657", "face-17", "figures"), "face-657")
+                                      "face-657", "face-17", "figures"), "face-657", saved_screenshots(), "known-report")
     pdf = tmp_path / "inspection.pdf"
     assert pdf in paths and pdf.read_bytes()[:5] == b"%PDF-" and pdf.stat().st_size > 50_000
 
@@ -255,3 +257,44 @@ def test_pdf_skipped_without_chromium(tmp_path: Path, monkeypatch) -> None:
     page = tmp_path / "p.html"
     page.write_text("<html><body>x</body></html>")
     assert print_pdf(page, tmp_path / "p.pdf") is None and not (tmp_path / "p.pdf").exists()
+
+
+# ------------------------------------------------------------------ the station's report
+
+def station_cycles(n: int = 12) -> tuple[list, dict]:
+    """n stored cycles of the demo program: each characteristic's value drawn about a
+    quarter of its tolerance, every fifth part's high-top flatness out of tolerance."""
+    import datetime as dt
+
+    from slscan.station.results import ResultRow, ValueRecord
+
+    program = load_program(PROGRAM)
+    rng = np.random.default_rng(3)
+    rows, values = [], {}
+    t0 = dt.datetime(2026, 12, 1, 8, 0, tzinfo=dt.timezone.utc)
+    for k in range(n):
+        vals = []
+        for c in program.characteristics:
+            v = abs(rng.normal(c.tolerance_mm / 4, c.tolerance_mm / 20))
+            if c.name == "high_top_flatness" and k % 5 == 4:
+                v = 3 * c.tolerance_mm
+            vals.append(ValueRecord(c.name, c.kind, c.face, v, c.tolerance_mm, v <= c.tolerance_mm, 1000))
+        status = "pass" if all(v.conforms for v in vals) else "fail"
+        rows.append(ResultRow(program.name, program.version, program.fingerprint, f"SN-{k + 1:04d}", "ana", "bench-1",
+                              "sim-bench", "factory-sim-bench", "0.1.0", "cad", f"/parts/{k}", t0 + dt.timedelta(minutes=k),
+                              id=k + 1, attempt=1, status=status, finished_at=t0 + dt.timedelta(minutes=k, seconds=40)))
+        values[k + 1] = vals
+    return rows, values
+
+
+@needs_chromium
+def test_station_report_has_the_header_in_a_browser(tmp_path: Path) -> None:
+    from slscan.station.history_report import write_report
+
+    rows, values = station_cycles()
+    page = write_report(tmp_path / "station", load_program(PROGRAM), rows, values, "test cycles")
+    text = page.read_text()
+    for want in ("12 serials", "SN-0001", "ana", "sim-bench", "factory-sim-bench", "undated (factory geometry)",
+                 "slscan 0.1.0", file_sha256(PROGRAM)):
+        assert want in text, want
+    check_in_browser(page, tmp_path, ("header",), None, saved_screenshots(), "station-report")
