@@ -298,3 +298,35 @@ def test_station_report_has_the_header_in_a_browser(tmp_path: Path) -> None:
                  "slscan 0.1.0", file_sha256(PROGRAM)):
         assert want in text, want
     check_in_browser(page, tmp_path, ("header",), None, saved_screenshots(), "station-report")
+
+
+@pytest.mark.slow
+@needs_chromium
+def test_demo_report_in_a_browser(tmp_path: Path, capsys) -> None:
+    """`slscan demo` (slow: a scan and an inspection, ~1 min CPU) inspects with the demo
+    part's program: face names from the program in the table, the report with its header,
+    its PDF, and the page laid out in Chromium. SLSCAN_SCREENSHOTS=docs/screenshots keeps
+    the screenshots (first page, the high top's close-up)."""
+    from slscan import cli
+
+    out = tmp_path / "demo"
+    assert cli.main(["demo", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "high top #657" in text and "low top #158" in text and "flatness 0.050 conforming" in text
+    # seen from straight above the boss's side is grazing: its cylindricity is not measured, and said so
+    assert "boss side #17" in text and "cylindricity 0.050 not measured" in text
+    data = json.loads((out / "outputs" / "inspection.json").read_text())
+    assert data["header"]["program_sha256"] == file_sha256(PROGRAM) and data["verdict"] == "not measured"
+    rows = {r["label"]: r for r in data["faces"]}
+    assert rows["#657"]["name"] == "high top" and rows["#657"]["verdict_flatness"] == "conforming"
+    assert (out / "outputs" / "inspection.pdf").read_bytes()[:5] == b"%PDF-"
+    check_in_browser(out / "outputs" / "inspection.html", tmp_path, ("header", "verdict", "characteristics", "views",
+                                                                      "histogram", "raw-filtered", "face-657",
+                                                                      "figures"), "face-657", saved_screenshots())
+
+
+def test_inspect_without_cad_needs_a_program(tmp_path: Path) -> None:
+    from slscan.commands.inspect import inspect_source
+
+    with pytest.raises(ConfigError, match="give --cad FILE, or a part program"):
+        inspect_source(tmp_path / "cloud.ply", None, TOLERANCE_FILE)

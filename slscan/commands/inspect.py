@@ -188,20 +188,25 @@ def cmd_register(args: argparse.Namespace) -> int:
     return 0
 
 
+def is_program(path: str | Path) -> bool:
+    """Whether a TOML is a part program (it has a [program] table); False for anything
+    unreadable, which the tolerance loader then names."""
+    import tomllib
+
+    try:
+        return "program" in tomllib.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return False
+
+
 def load_tolerance_source(path: str | Path, labels: dict[str, str]) -> tuple[Any, Any]:
     """(Tolerances, PartProgram or None) from `--tolerances`: a part program (a TOML with a
     [program] table, `config/parts/*.toml`: the one source of a part's tolerances and face
     names) or a tolerance file (`inspection.tolerances`, for a model without a program).
     `labels`: the model's faces (label -> surface type), which every face named must be."""
-    import tomllib
-
     from inspection.tolerances import load_tolerances
 
-    try:
-        is_program = "program" in tomllib.loads(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-        is_program = False  # the tolerance loader says what is wrong with it
-    if not is_program:
+    if not is_program(path):
         return load_tolerances(path, labels), None
     from slscan.station.program import load_program, program_tolerances
 
@@ -264,7 +269,7 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
 
     program = None
     if cad is None:
-        if tolerances is None:
+        if tolerances is None or not is_program(tolerances):
             raise ConfigError("--cad", "", "give --cad FILE, or a part program as --tolerances (it names its CAD)")
         from slscan.station.program import load_program
 
