@@ -22,5 +22,6 @@ from slscan.commands import (
     verify,
 )
 
-COMMANDS = (scan, import_, review, bench, importbench, simbench, devices, calibrate, verify, inspect, pose, segment,
-            station)
+COMMANDS = (
+    scan, import_, review, bench, importbench, simbench, devices, calibrate, verify, inspect, pose, segment, station,
+)
