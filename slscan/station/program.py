@@ -204,9 +204,6 @@ def validate_faces(program: PartProgram, faces: Mapping[str, str]) -> None:
     """Refuse a characteristic whose face is not in the CAD model (`faces`: label -> surface
     type) or whose surface type the characteristic does not apply to, and a name given to
     a face the model does not have."""
-    for label in program.face_names:
-        if label not in faces:
-            raise ConfigError(program.path, f'faces."{label}"', f"{program.cad_path.name} has no face {label!r}")
     for i, c in enumerate(program.characteristics):
         key = f"characteristic[{i}].face"
         if c.face not in faces:
@@ -220,6 +217,9 @@ def validate_faces(program: PartProgram, faces: Mapping[str, str]) -> None:
                                                  f"face {c.face} of {program.cad_path.name} is a {kind}"
                                                  + (" face (a mesh face of no known surface type: use a STEP "
                                                     "model)" if kind == "mesh" else ""))
+    for label in program.face_names:
+        if label not in faces:
+            raise ConfigError(program.path, f'faces."{label}"', f"{program.cad_path.name} has no face {label!r}")
 
 
 def _characteristics(items: Sequence[CharacteristicTable], path: Path) -> tuple[Characteristic, ...]:
