@@ -320,6 +320,11 @@ def test_demo_report_in_a_browser(tmp_path: Path, capsys) -> None:
     rows = {r["label"]: r for r in data["faces"]}
     assert rows["#657"]["name"] == "high top" and rows["#657"]["verdict_flatness"] == "conforming"
     assert (out / "outputs" / "inspection.pdf").read_bytes()[:5] == b"%PDF-"
+    from scanner.recording_reader import read_component
+
+    [(_, context)] = read_component(out / "recording.rrd", "world/inspection/faces", "AnnotationContext:context", None)
+    labels = {c["class_description"]["info"]["label"] for c in context}
+    assert {"high top #657 plane", "low top #158 plane", "boss side #17 cylinder"} <= labels  # the recording's labels
     check_in_browser(out / "outputs" / "inspection.html", tmp_path, ("header", "verdict", "characteristics", "views",
                                                                       "histogram", "raw-filtered", "face-657",
                                                                       "figures"), "face-657", saved_screenshots())
