@@ -296,6 +296,8 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
             folder.mkdir(parents=True, exist_ok=True)
             own = recording = SessionRecording(folder / "inspection.rrd", session.id, send_blueprint=False)
     try:
+        if own is not None:  # the session's rig: its world frame is the recording's `world`
+            own.log_rig(session.rig_model())
         report = inspect(scan, model, tol, settings, recording, uncertainty)
     finally:
         if own is not None:
