@@ -32,7 +32,7 @@ from inspection.registration import ModelTarget, Registration, RegistrationSetti
 from inspection.registration.warm_start import register_with_prior
 from inspection.report import FaceRow, InspectionReport
 from inspection.segmentation import assign_faces
-from inspection.tolerances import GUARD_BANDED, NOT_MEASURED, Tolerances, decide
+from inspection.tolerances import FIGURE_OF, GUARD_BANDED, NOT_MEASURED, Tolerances, decide
 from inspection.uncertainty import ScanUncertainty
 
 _TARGETS: weakref.WeakKeyDictionary[CadModel, ModelTarget] = weakref.WeakKeyDictionary()
@@ -91,6 +91,10 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
     for face in model.faces:  # one evaluation per face seen
         sel = seg.face == face.index
         if not sel.any():
+            if tolerances is not None and face.label in tolerances.faces:  # asked for, not seen: said so
+                unseen = FaceForm(0, "not seen", "no scan point on this face")
+                rows.append(FaceRow.of(face, unseen, _verdicts(face.label, unseen, tolerances, rule),
+                                       tolerances.name(face.label)))
             continue
         noise, shifts = None, None
         if unc is not None:
@@ -101,7 +105,8 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
         form = evaluate_face(face, q[sel], seg.deviation_mm[sel], seg.uv[sel], settings.form, noise=noise,
                              normals=seg.normal[sel], shifts=shifts)
         form = pose.added_to(form, q[sel], seg.normal[sel])
-        rows.append(FaceRow.of(face, form, _verdicts(face.label, form, tolerances, rule)))
+        rows.append(FaceRow.of(face, form, _verdicts(face.label, form, tolerances, rule),
+                               tolerances.name(face.label) if tolerances is not None else ""))
     times["form"] = time.perf_counter() - t0
     report = InspectionReport(
         model=str(model.path), unit=model.unit, source=scan.source, scan_points=len(scan), part_points=len(part),
@@ -159,10 +164,6 @@ class PoseUncertainty:
         return replace(form, **changes)
 
 
-TOLERANCED = {"flatness_mm": "flatness_mz", "cylindricity_mm": "cylindricity_mz", "sq_mm": "sq",
-              "profile_mm": "profile"}
-
-
 def _verdicts(label: str, form: Any, tolerances: Tolerances | None, rule: str) -> dict[str, tuple[float, str]]:
     """characteristic -> (limit, verdict) for the limits that apply to this face."""
     if tolerances is None:
@@ -172,7 +173,7 @@ def _verdicts(label: str, form: Any, tolerances: Tolerances | None, rule: str) -
     for key, limit in tolerances.for_face(label).items():
         if form.status != "ok" and key not in own:
             continue  # a default limit does not ask for a face seen too little to measure
-        e = form.figure(TOLERANCED[key]) if form.status == "ok" else None
+        e = form.figure(FIGURE_OF[key]) if form.status == "ok" else None
         out[key] = (limit, NOT_MEASURED if e is None else decide(e.value, e.U, limit, None, rule, e.limit))
     return out
 

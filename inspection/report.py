@@ -15,9 +15,7 @@ recorded decision rule. How to read them: README, "Reading the figures".
 
 from __future__ import annotations
 
-import base64
 import csv
-import html
 import io
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -25,7 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from inspection.form import FIGURES, FaceForm, FormSettings
+from inspection.form import FaceForm, FormSettings
+from inspection.report_header import ReportHeader
+from inspection.report_html import render
+from inspection.report_pdf import print_pdf
 from inspection.tolerances import DECISION_RULES, GUARD_BANDED, overall
 from inspection.uncertainty import Estimate
 from scanner.session import write_atomic, write_json
@@ -58,20 +59,29 @@ def cell_text(e: Estimate | None, width: int = 13) -> str:
 @dataclass(frozen=True)
 class FaceRow:
     """One face of the report: its label, STEP id and type, its figures and verdicts
-    (characteristic -> (tolerance mm, verdict))."""
+    (characteristic -> (tolerance mm, verdict)); `name` the part program's name of the face
+    ("" without one), `index` the face's index in the CAD model (segmentation's labels)."""
 
     label: str
     id: int | None
     type: str
     form: FaceForm
     verdicts: dict[str, tuple[float, str]] = field(default_factory=dict)
+    name: str = ""
+    index: int = -1
 
     @classmethod
-    def of(cls, face: Any, form: FaceForm, verdicts: dict[str, tuple[float, str]]) -> FaceRow:
-        return cls(face.label, face.step_id, face.type, form, verdicts)
+    def of(cls, face: Any, form: FaceForm, verdicts: dict[str, tuple[float, str]], name: str = "") -> FaceRow:
+        return cls(face.label, face.step_id, face.type, form, verdicts, name, face.index)
+
+    @property
+    def title(self) -> str:
+        """The face as people read it: "high top #657", or the label alone without a name."""
+        return f"{self.name} {self.label}" if self.name else self.label
 
     def as_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"label": self.label, "id": self.id, "type": self.type, **self.form.as_dict()}
+        d: dict[str, Any] = {"label": self.label, "name": self.name, "id": self.id, "type": self.type,
+                             **self.form.as_dict()}
         for key, (limit, v) in self.verdicts.items():
             d[f"tolerance_{key}"] = limit
             d[f"verdict_{key.removesuffix('_mm')}"] = v
@@ -84,7 +94,8 @@ class InspectionReport:
     `part_mask` which scan points are the part, `segmentation` their faces;
     `decision_rule` how verdicts used U; `calibration` where the calibration term came from;
     `pose_u` the registration pose's expanded uncertainty (k = 2: rotation in degrees,
-    translation in mm)."""
+    translation in mm); `header` who, what, when and with what (`inspection.report_header`),
+    filled by the command that inspects."""
 
     model: str
     unit: str
@@ -101,6 +112,7 @@ class InspectionReport:
     decision_rule: str = GUARD_BANDED
     calibration: str = ""
     pose_u: dict[str, float] = field(default_factory=dict)
+    header: ReportHeader = ReportHeader()
 
     @property
     def fitness(self) -> float:
@@ -117,7 +129,7 @@ class InspectionReport:
         return overall([v for row in self.faces for _, v in row.verdicts.values()])
 
     def as_dict(self) -> dict[str, Any]:
-        return {"status": "ok", "model": self.model, "unit": self.unit, "source": self.source,
+        return {"status": "ok", "header": self.header.as_dict(), "model": self.model, "unit": self.unit, "source": self.source,
                 "fitness": self.fitness, "rmse_mm": self.rmse_mm, "verdict": self.verdict,
                 "decision_rule": self.decision_rule, "rule": DECISION_RULES[self.decision_rule],
                 "coverage_factor": 2.0, "calibration_uncertainty": self.calibration,
@@ -130,14 +142,15 @@ class InspectionReport:
     def table(self) -> str:
         """The per-face table as text: figures in µm as value ± U (k = 2), or < detection
         limit; each limit with its verdict."""
-        head = (f"{'face':>8} {'type':<9} {'points':>7} " + " ".join(f"{h:>13}" for h, _ in TABLE)
+        width = max([8] + [len(r.title) for r in self.faces])
+        head = (f"{'face':<{width}} {'type':<9} {'points':>7} " + " ".join(f"{h + ' µm':>13}" for h, _ in TABLE)
                 + "  tolerance (mm) verdict")
         lines = [head, "-" * len(head)]
         for row in self.faces:
             m = row.form
             v = ", ".join(f"{k.removesuffix('_mm')} {lim:.3f} {w}" for k, (lim, w) in row.verdicts.items())
             cells = " ".join(cell_text(m.figure(name)) for _, name in TABLE)
-            lines.append(f"{row.label:>8} {row.type:<9} {m.points:>7} {cells}  "
+            lines.append(f"{row.title:<{width}} {row.type:<9} {m.points:>7} {cells}  "
                          f"{v or m.status if m.status != 'ok' else v}")
         s = self.form_settings
         lines.append(f"µm, value ± U (k = 2); < x: below the detection limit x (noise alone could read that much). "
@@ -152,9 +165,11 @@ class InspectionReport:
                      f"decision rule {self.decision_rule}; verdict {self.verdict}")
         return "\n".join(lines)
 
-    def write(self, folder: str | Path, stem: str = "inspection", deviation_png: bytes | None = None) -> list[Path]:
+    def write(self, folder: str | Path, stem: str = "inspection", deviation_png: bytes | None = None,
+              pdf: bool = False) -> list[Path]:
         """inspection.json, inspection.csv and inspection.html (with the deviation map) in
-        `folder`; returns their paths."""
+        `folder`, and with `pdf` inspection.pdf printed from the page by headless Chromium
+        when it is installed (`inspection.report_pdf`); returns the paths written."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         paths = [folder / f"{stem}.json", folder / f"{stem}.csv", folder / f"{stem}.html"]
@@ -167,60 +182,13 @@ class InspectionReport:
         w.writerows(rows)
         write_atomic(paths[1], buf.getvalue().encode())
         write_atomic(paths[2], self.html(deviation_png).encode())
+        if pdf and print_pdf(paths[2], folder / f"{stem}.pdf") is not None:
+            paths.append(folder / f"{stem}.pdf")
         return paths
 
     def html(self, deviation_png: bytes | None = None) -> str:
-        heads = {"flatness_mz": "flatness MZ", "flatness_ls": "flatness LS", "cylindricity_mz": "cylindricity MZ",
-                 "cylindricity_ls": "cylindricity LS", "sq": "Sq", "profile": "profile", "deviation_min": "dev min",
-                 "deviation_max": "dev max", "deviation_mean": "dev mean", "deviation_rms": "dev RMS",
-                 "raw_deviation_min": "raw points min", "raw_deviation_max": "raw points max"}
-        vkeys = sorted({k for r in self.faces for k in r.verdicts})
-
-        def figure(e: Estimate | None) -> str:
-            if e is None:
-                return "<td></td>"
-            if e.value is None:
-                return f"<td class='limit'>&lt; {e.limit * 1e3:.1f}</td>" if e.limit is not None else "<td>n/m</td>"
-            return f"<td>{e.value * 1e3:.1f} &plusmn; {e.U * 1e3:.1f}</td>"
-
-        def verdict(row: FaceRow, key: str) -> str:
-            if key not in row.verdicts:
-                return "<td></td><td></td>"
-            limit, v = row.verdicts[key]
-            return f"<td>{limit * 1e3:.1f}</td><td class='{v}'>{html.escape(v)}</td>"
-
-        body = "".join(
-            f"<tr><td>{html.escape(r.label)}</td><td>{r.type}</td><td>{r.form.points}</td>"
-            + "".join(figure(r.form.figure(name)) for name in FIGURES)
-            + "".join(verdict(r, k) for k in vkeys)
-            + f"<td>{html.escape(r.form.noise_source or r.form.status)}</td></tr>" for r in self.faces)
-        vheads = "".join(f"<th>{k.removesuffix('_mm')} tolerance</th><th>verdict</th>" for k in vkeys)
-        img = (f'<h2>Deviation map</h2><p>signed deviation from nominal (blue: inside the material, red: '
-               f'outside; grey: part points on no face)</p><img src="data:image/png;base64,'
-               f'{base64.b64encode(deviation_png).decode()}">' if deviation_png else "")
-        s = self.form_settings
-        return (f"<!doctype html><html><head><meta charset='utf-8'><title>Inspection of {html.escape(self.source)}"
-                f"</title><style>body{{font-family:sans-serif}}td,th{{padding:2px 8px;text-align:right}}"
-                f".conforming{{background:#cfc}}.non-conforming{{background:#fcc}}.uncertain{{background:#ffc}}"
-                f".limit{{color:#666}}</style></head><body>"
-                f"<h1>Inspection: {html.escape(Path(self.model).name)}</h1>"
-                f"<p>scan {html.escape(self.source)}; model {html.escape(self.model)} ({html.escape(self.unit)}); "
-                f"verdict <b>{self.verdict}</b> (decision rule {html.escape(self.decision_rule)}: "
-                f"{html.escape(DECISION_RULES[self.decision_rule])})</p>"
-                f"<p>registration: fitness {self.fitness:.3f}, RMSE {self.rmse_mm * 1e3:.1f} &micro;m, "
-                f"{html.escape(self.registration.method)}; points: {self.assigned_points} of {self.part_points} "
-                f"on faces; calibration uncertainty: {html.escape(self.calibration)}</p>"
-                f"<p><b>How to read the figures.</b> &micro;m, value &plusmn; U (expanded uncertainty, k = 2: the "
-                f"true value lies within it for about 95 % of measurements). &lt; x: below the detection limit x "
-                f"(the scanner's noise alone could read that much, so the figure cannot be told from zero; it is at "
-                f"most about x). Zones, profile and deviations are those of the form surface: the heights filtered "
-                f"with the ISO 16610-61 Gaussian at {s.form_cutoff_mm} mm, so features shorter than that are not in "
-                f"them; the raw points' extremes beside them include the noise. Sq: roughness cut-off "
-                f"{s.roughness_cutoff_mm} mm. A verdict is conforming only when the value plus U is within the "
-                f"tolerance, non-conforming when the value minus U is beyond it, otherwise uncertain.</p>"
-                f"<table><tr><th>face</th><th>type</th><th>points</th>"
-                + "".join(f"<th>{heads[n]}</th>" for n in FIGURES) + vheads + "<th>noise model</th></tr>"
-                f"{body}</table><p>{html.escape(NOISE_NOTE)}</p>{img}</body></html>")
+        """The self-contained HTML report (`inspection.report_html`)."""
+        return render(self, colour_limit(self), NOISE_NOTE, deviation_png)
 
 
 def deviation_colours(dev: np.ndarray, limit_mm: float) -> np.ndarray:

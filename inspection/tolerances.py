@@ -1,12 +1,15 @@
-"""Tolerance files: per-face limits for the inspection report (`config/tolerances/`).
+"""Tolerance files: per-face limits for the inspection report. A part's tolerances live in
+its part program (`config/parts/*.toml`, `slscan.station.program`), which `slscan inspect
+--tolerances` and the demo read and turn into `Tolerances`; this file format is for a model
+without a program:
 
     # tolerances of config/parts/demo_part.step (mm)
     decision_rule = "guard-banded"   # optional: how verdicts use U (see DECISION_RULES)
     [faces."#657"]              # a face by its label: "#<STEP ADVANCED_FACE id>" or "F<index>" (meshes)
-    flatness_mm = 0.05          # minimum-zone flatness (ISO 1101), planes
+    flatness_mm = 0.05          # minimum-zone flatness (ISO 1101), planes (flatness_ls_mm: least squares)
     sq_mm = 0.10                # Sq roughness (ISO 25178-2)
     [faces."#17"]
-    cylindricity_mm = 0.05      # minimum-zone cylindricity, cylinders
+    cylindricity_mm = 0.05      # minimum-zone cylindricity, cylinders (cylindricity_ls_mm: least squares)
     profile_mm = 0.4            # profile of a surface: every point within +-profile/2 of nominal
     [default]                   # optional: limits for every face without its own table
     profile_mm = 1.0
@@ -24,7 +27,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -32,17 +35,29 @@ import numpy as np
 from inspection.errors import ToleranceError
 from scanner.schema import nearest
 
-CHARACTERISTICS = {"flatness_mm": ("plane",), "cylindricity_mm": ("cylinder",), "sq_mm": None, "profile_mm": None}
+CHARACTERISTICS = {"flatness_mm": ("plane",), "cylindricity_mm": ("cylinder",), "sq_mm": None, "profile_mm": None,
+                   "flatness_ls_mm": ("plane",), "cylindricity_ls_mm": ("cylinder",)}
+# characteristic key -> the report figure it limits, and how people call it
+FIGURE_OF = {"flatness_mm": "flatness_mz", "cylindricity_mm": "cylindricity_mz", "sq_mm": "sq", "profile_mm": "profile",
+             "flatness_ls_mm": "flatness_ls", "cylindricity_ls_mm": "cylindricity_ls"}
+TITLES = {"flatness_mm": "flatness (minimum zone)", "cylindricity_mm": "cylindricity (minimum zone)",
+          "sq_mm": "Sq roughness", "profile_mm": "profile of a surface", "flatness_ls_mm": "flatness (least squares)",
+          "cylindricity_ls_mm": "cylindricity (least squares)"}
 
 
 @dataclass(frozen=True)
 class Tolerances:
-    """Limits (mm) by face label, and defaults for faces without their own."""
+    """Limits (mm) by face label, and defaults for faces without their own; `names` the
+    faces' names by label (a part program's [faces] table), shown wherever a face is."""
 
     faces: dict[str, dict[str, float]]
     default: dict[str, float]
     path: Path | None = None
     decision_rule: str = "guard-banded"
+    names: dict[str, str] = field(default_factory=dict)
+
+    def name(self, label: str) -> str:
+        return self.names.get(label, "")
 
     def for_face(self, label: str) -> dict[str, float]:
         return {**self.default, **self.faces.get(label, {})}

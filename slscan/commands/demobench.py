@@ -95,7 +95,7 @@ def run_part(k: int, workdir: Path, model: Any, tolerances: Any, prior: Any, ful
 def cmd_demobench(args: argparse.Namespace) -> int:
     report: dict[str, Any] = {"load_average_start": os.getloadavg(), "peer": numpy_peer()}
     t0, c0 = time.perf_counter(), time.process_time()
-    model, tolerances = load_demo_part()
+    model, tolerances, _ = load_demo_part()
     report["setup_s"] = {"cad_and_target_wall": time.perf_counter() - t0, "cad_and_target_cpu": time.process_time() - c0}
     parts = []
     prior = None

@@ -4,7 +4,7 @@
                                                      --sample: time to sample N labelled points
     slscan cadbench FILE [--copies 1,4,16]           STEP reading time of files holding copies of FILE
     slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE
-    slscan inspect SESSION|CLOUD --cad FILE [--tolerances FILE]
+    slscan inspect SESSION|CLOUD [--cad FILE] --tolerances PROGRAM|FILE
                                                      register, segment by CAD face, per-face form table
 
 `inspect` writes inspection.json/.csv/.html beside the data (a session's outputs/, or the
@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from inspection.tolerances import NON_CONFORMING
+from scanner.errors import ConfigError
 from slscan.exit_codes import Exit
 from slscan.options import COARSE_METHODS, coarse_method
 
@@ -189,21 +190,97 @@ def cmd_register(args: argparse.Namespace) -> int:
     return Exit.OK
 
 
-def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path | None = None,
+def is_program(path: str | Path) -> bool:
+    """Whether a TOML is a part program (it has a [program] table); False for anything
+    unreadable, which the tolerance loader then names."""
+    import tomllib
+
+    try:
+        return "program" in tomllib.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return False
+
+
+def load_tolerance_source(path: str | Path, labels: dict[str, str]) -> tuple[Any, Any]:
+    """(Tolerances, PartProgram or None) from `--tolerances`: a part program (a TOML with a
+    [program] table, `config/parts/*.toml`: the one source of a part's tolerances and face
+    names) or a tolerance file (`inspection.tolerances`, for a model without a program).
+    `labels`: the model's faces (label -> surface type), which every face named must be."""
+    from inspection.tolerances import load_tolerances
+
+    if not is_program(path):
+        return load_tolerances(path, labels), None
+    from slscan.station.program import load_program, program_tolerances
+
+    program = load_program(path, faces=lambda _: labels)
+    return program_tolerances(program), program
+
+
+def report_header(source: Path, program: Any, operator: str | None, serial: str | None) -> Any:
+    """The report's header: the part and program (with the program file's SHA-256), the
+    serial (default: the session id), the operator (default: the login name), now (UTC),
+    and for a session its rig and the calibration it used (`station.calib.rig_calibration`)."""
+    import datetime as dt
+    import getpass
+
+    from inspection.report_header import ReportHeader, file_sha256
+    from scanner import __version__
+
+    rig = cal_id = cal_date = ""
+    session_id = ""
+    if source.is_dir():
+        from scanner.rig import RigConfig
+        from scanner.session import Session
+        from slscan.station.calib import rig_calibration
+
+        session = Session.open(source)
+        session_id = session.id
+        manifest = session.manifest
+        rig = str(manifest.get("rig_config", {}).get("rig", {}).get("name", ""))
+        rig_path = Path(str(manifest.get("rig_config_path", "")))
+        if rig_path.is_file():
+            info = rig_calibration(RigConfig.load(rig_path))
+            cal_id, cal_date = info.id or f"none ({info.problem})", str(info.date or "undated (factory geometry)")
+            rig = f"{rig} ({rig_path})"
+        else:
+            cal_id = f"not known: the session's rig file {rig_path} is gone"
+    return ReportHeader(
+        part=f"{program.name} — {program.description}" if program is not None and program.description
+        else (program.name if program is not None else ""),
+        serial=serial or session_id, program=f"{program.path} (version {program.version})" if program else "",
+        program_sha256=file_sha256(program.path) if program is not None else "",
+        operator=operator if operator is not None else getpass.getuser(),
+        date=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S"), rig=rig, calibration_id=cal_id,
+        calibration_date=cal_date, software_version=f"slscan {__version__}")
+
+
+def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str | Path | None = None,
                    out: str | Path | None = None, cad_unit: str = "mm", seed: int = 0,
-                   recording: Any = None) -> Any:
-    """Inspect a session folder or cloud file against a CAD file; write the report files
-    (and, for a session without a `recording` given, outputs/inspection.rrd); return the
-    report. `slscan demo` can call this after its scan."""
+                   recording: Any = None, operator: str | None = None, serial: str | None = None,
+                   pdf: bool = True) -> Any:
+    """Inspect a session folder or cloud file against a CAD file (None: the part program's,
+    when `tolerances` is one); write the report files (and, for a session without a
+    `recording` given, outputs/inspection.rrd); return the report. `slscan demo` calls this
+    after its scan with the demo part's program."""
+    from dataclasses import replace
+
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import load_source
     from inspection.point_deviations import write_point_deviations
     from inspection.registration import RegistrationSettings
     from inspection.report import deviation_image, png
-    from inspection.tolerances import load_tolerances
 
+    program = None
+    if cad is None:
+        if tolerances is None or not is_program(tolerances):
+            raise ConfigError("--cad", "", "give --cad FILE, or a part program as --tolerances (it names its CAD)")
+        from slscan.station.program import load_program
+
+        cad = load_program(tolerances).cad_path
     model = _load_model(str(cad), cad_unit)
-    tol = load_tolerances(tolerances, {f.label: f.type for f in model.faces}) if tolerances else None
+    tol = None
+    if tolerances:
+        tol, program = load_tolerance_source(tolerances, {f.label: f.type for f in model.faces})
     scan = load_source(source)
     source = Path(source)
     folder = Path(out) if out else (source / "outputs" if source.is_dir() else source.parent)
@@ -228,20 +305,22 @@ def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path |
     finally:
         if own is not None:
             own.close()
-    report.write(folder, deviation_png=png(deviation_image(report, scan)))
+    report = replace(report, header=report_header(source, program, operator, serial))
+    report.write(folder, deviation_png=png(deviation_image(report, scan)), pdf=pdf)
     write_point_deviations(folder, scan, report)  # for `slscan export --deviations`
     return report
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    report = inspect_source(args.source, args.cad, args.tolerances, args.out, args.cad_unit, args.seed)
+    report = inspect_source(args.source, args.cad, args.tolerances, args.out, args.cad_unit, args.seed,
+                            operator=args.operator, serial=args.serial, pdf=not args.no_pdf)
     if args.json:
         print(json.dumps(report.as_dict(), default=str))
     else:
         print(report.table())
         folder = Path(args.out) if args.out else (Path(args.source) / "outputs" if Path(args.source).is_dir()
                                                   else Path(args.source).parent)
-        print(f"report    {folder / 'inspection.html'} (.json, .csv)", file=sys.stderr)
+        print(f"report    {folder / 'inspection.html'} (.json, .csv, .pdf)", file=sys.stderr)
     return Exit.FAILED if report.verdict == NON_CONFORMING else Exit.OK
 
 
@@ -273,8 +352,12 @@ def register(sub: Any) -> None:
 
     i = sub.add_parser("inspect", help="register a scan to CAD, segment it by face, report form errors per face")
     i.add_argument("source", help="session folder or cloud file (PLY/PCD/XYZ, mm, camera frame)")
-    i.add_argument("--cad", required=True, help="STEP or mesh of the part")
-    i.add_argument("--tolerances", help="tolerance TOML (see config/tolerances/)")
+    i.add_argument("--cad", help="STEP or mesh of the part (default: the one --tolerances PROGRAM names)")
+    i.add_argument("--tolerances", help="the part program (config/parts/*.toml: tolerances and face names), or a "
+                                        "tolerance file of a model without one (format: inspection/tolerances.py)")
+    i.add_argument("--operator", help="operator named in the report header (default: the login name)")
+    i.add_argument("--serial", help="part serial number in the report header (default: the session id)")
+    i.add_argument("--no-pdf", action="store_true", help="no inspection.pdf (made with headless Chromium)")
     i.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh CAD file")
     i.add_argument("--out", help="folder for inspection.json/.csv/.html (default: beside the data)")
     i.add_argument("--seed", type=int, default=0, help="random seed of the registration (default 0)")

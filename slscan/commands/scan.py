@@ -21,8 +21,7 @@ from slscan.exit_codes import Exit
 from slscan.progress import ProgressLine
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
-DEMO_CAD = CONFIG_DIR / "parts" / "demo_part.step"  # the demo scene's part as a STEP model
-DEMO_TOLERANCES = CONFIG_DIR / "tolerances" / "demo_part.toml"
+DEMO_PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"  # the demo part's program: its CAD, tolerances, face names
 
 
 def _parse_faults(items: Sequence[str]) -> Any:
@@ -151,25 +150,29 @@ def cmd_decode(args: argparse.Namespace) -> int:
     return Exit.OK
 
 
-def load_demo_part() -> tuple[Any, Any]:
-    """The demo part's CAD model, registration target prepared, and its tolerances."""
+def load_demo_part() -> tuple[Any, Any, Any]:
+    """The demo part's CAD model (registration target prepared), its tolerances and its
+    part program (`DEMO_PROGRAM`: the one source of its tolerances and face names)."""
     from inspection.inspect_scan import prepare
-    from inspection.tolerances import load_tolerances
-    from slscan.commands.inspect import _load_model
+    from slscan.commands.inspect import _load_model, load_tolerance_source
+    from slscan.station.program import load_program
 
-    model = _load_model(str(DEMO_CAD), "mm")
+    model = _load_model(str(load_program(DEMO_PROGRAM).cad_path), "mm")
     prepare(model)  # the registration target, made once per model
-    return model, load_tolerances(DEMO_TOLERANCES, {f.label: f.type for f in model.faces})
+    tolerances, program = load_tolerance_source(DEMO_PROGRAM, {f.label: f.type for f in model.faces})
+    return model, tolerances, program
 
 
 def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: Any, seed: int = 0,
-                          prior: Any = None, on_verdict: Callable[[Any], None] | None = None) -> tuple[Any, StageTimer]:
+                          prior: Any = None, on_verdict: Callable[[Any], None] | None = None,
+                          program: Any = None, pdf: bool = True) -> tuple[Any, StageTimer]:
     """Inspect a processed scan against `model`, the verdict first: `on_verdict(report)`
     runs as soon as it is known; then the work that does not change it, the report files
     (JSON, CSV, HTML with the deviation map) and the inspection in `recording` (None: not
     recorded). The session is complete when this returns: until then outputs/ has no
     inspection.json and the recording is still `recording.rrd.part`. `prior`: the previous
-    part's registration (warm start). Returns the report and the time of each stage."""
+    part's registration (warm start); `program` names the part in the report's header, `pdf`
+    prints inspection.pdf. Returns the report and the time of each stage."""
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import from_organised, load_session
     from inspection.registration import RegistrationSettings
@@ -187,7 +190,14 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
     if on_verdict is not None:
         on_verdict(report)
     with timer.stage("report_files"):
-        report.write(result.session.outputs, deviation_png=png(deviation_image(report, scan)))
+        from dataclasses import replace
+
+        from inspection.point_deviations import write_point_deviations
+        from slscan.commands.inspect import report_header
+
+        report = replace(report, header=report_header(result.session.root, program, None, None))
+        report.write(result.session.outputs, deviation_png=png(deviation_image(report, scan)), pdf=pdf)
+        write_point_deviations(result.session.outputs, scan, report)  # for `slscan export --deviations`
     if recording is not None:
         from inspection.inspection_recording import log_inspection
 
@@ -220,17 +230,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
         part = pool.submit(load_demo_part)  # OpenCASCADE and the model's descriptors while the part is scanned
 
         def inspect_scan(result: Any, recording: Any) -> None:
-            print(f"inspect   {result.session.root} against {DEMO_CAD.name} ({DEMO_TOLERANCES.name})", file=sys.stderr)
-            model, tolerances = part.result()
+            print(f"inspect   {result.session.root} against the part program {DEMO_PROGRAM}", file=sys.stderr)
+            model, tolerances, program = part.result()
             t1, c1 = time.perf_counter(), time.process_time()
             done["report"], done["timer"] = inspect_verdict_first(result, recording, model, tolerances, args.seed,
-                                                                  on_verdict=show)
+                                                                  on_verdict=show, program=program)
             done["seconds"], done["cpu"] = time.perf_counter() - t1, time.process_time() - c1
 
         cmd_scan(ns, inspect_scan)
     rep, outputs = done["report"], Path(out) / "outputs"
     print(rep.table())
-    print(f"report    {outputs / 'inspection.html'} (.json, .csv); inspection in the recording under "
+    print(f"report    {outputs / 'inspection.html'} (.json, .csv, .pdf); inspection in the recording under "
           f"world/inspection/ and inspection/")
     stages = ", ".join(f"{k} {v:.1f}" for k, v in rep.timings_s.items())
     print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU ({stages} s); demo "
