@@ -53,6 +53,7 @@ def _calibration() -> CalibrationUncertainty:
 
 
 @pytest.mark.acceptance
+@pytest.mark.slow  # 200 scans per case: hours on 2 cores, run on purpose (-m acceptance)
 @pytest.mark.parametrize("calibrated", [False, True], ids=["noise", "noise+calibration"])
 def test_sphere_radius_coverage(bench: Bench, calibrated: bool) -> None:
     t0 = time.perf_counter()
@@ -63,6 +64,7 @@ def test_sphere_radius_coverage(bench: Bench, calibrated: bool) -> None:
 
 
 @pytest.mark.acceptance
+@pytest.mark.slow  # 200 scans per case: hours on 2 cores, run on purpose (-m acceptance)
 @pytest.mark.parametrize("calibrated", [False, True], ids=["noise", "noise+calibration"])
 def test_ball_bar_length_coverage(bench: Bench, calibrated: bool) -> None:
     t0 = time.perf_counter()
@@ -73,6 +75,7 @@ def test_ball_bar_length_coverage(bench: Bench, calibrated: bool) -> None:
 
 
 @pytest.mark.acceptance
+@pytest.mark.slow  # 200 scans per case: hours on 2 cores, run on purpose (-m acceptance)
 @pytest.mark.parametrize("calibrated", [False, True], ids=["noise", "noise+calibration"])
 def test_flatness_and_sq_coverage(bench: Bench, calibrated: bool) -> None:
     t0 = time.perf_counter()
