@@ -118,6 +118,7 @@ def test_ball_bar_on_the_simulator_true_geometry_conforms_perturbed_calibration_
 
 
 @pytest.mark.acceptance
+@pytest.mark.slow  # two full verifications (23 positions each): too long for CI next to the rest; run on purpose
 def test_verify_command_passes_the_simulated_rig_and_fails_a_perturbed_calibration(tmp_path: Path,
                                                                                  capsys: pytest.CaptureFixture) -> None:
     assert cli.main(["verify", "--out", str(tmp_path / "true"), "--json"]) == 0

@@ -22,6 +22,7 @@ pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data/procam
 
 
 @pytest.mark.acceptance
+@pytest.mark.slow  # five calibrations on the real capture: too long for CI next to the rest; run on purpose
 def test_each_left_out_board_measures_its_corner_distances_within_u(tmp_path: Path,
                                                                     capsys: pytest.CaptureFixture) -> None:
     code = cli.main(["verify", "--leave-one-out", str(DATA), "--layout", "opencv-graycode", "--projector-size",
