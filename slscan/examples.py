@@ -31,6 +31,10 @@ EXAMPLES: dict[str, str] = {
     "cad": "slscan cad config/parts/demo_part.step\n"
            "slscan cad config/parts/demo_part.step --sample 20000 --repeats 3",
     "cadbench": "slscan cadbench ../shared/data/step/nist_ctc_01_asme1_rd.stp --copies 1,4,16",
+    "verify": "slscan verify --out verify/bench                                (the simulated bench rig)\n"
+              "slscan verify --leave-one-out ../shared/data/procam-graycode --layout opencv-graycode "
+              "--projector-size 1024x768 --board config/boards/procam_chess_9x7_75mm.toml --pose-folders 'capture_*' "
+              "--out verify/procam",
     "register": "slscan register sessions/demo config/parts/demo_part.step --coarse sac-ia --json",
     "inspect": "slscan inspect sessions/demo --cad config/parts/demo_part.step "
                "--tolerances config/tolerances/demo_part.toml",
