@@ -301,7 +301,7 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
     try:
         if own is not None:  # the session's rig: its world frame is the recording's `world`
             own.log_rig(session.rig_model())
-        report = inspect(scan, model, tol, settings, recording, uncertainty)
+        report = inspect(scan, model, tol, settings, recording, uncertainty=uncertainty)
     finally:
         if own is not None:
             own.close()
