@@ -35,14 +35,14 @@ def test_form_figures_against_truth(case: str, tmp_path: Path) -> None:
     cyl, cyl_true = _row(run, "#17"), _true_form(run, "#17")
     rough, rough_true = _row(run, "#657"), _true_form(run, "#657")
     print(f"\n{case}: cut-off {flat.form_cutoff_mm} mm (form), {rough.roughness_cutoff_mm} mm (roughness)")
-    print(f"  flatness MZ {flat.flatness_mz.text()}, truth {flat_true.flatness_mz.value * 1e3:.2f} um "
+    print(f"  flatness MZ {flat.flatness_mz.text()}, truth {flat_true.flatness_mz_mm * 1e3:.2f} um "
           f"(imposed bow {bow * 1e3:.0f} um), noise bias removed {flat.flatness_mz.bias * 1e3:.2f} um, detection "
           f"limit {flat.flatness_mz.limit * 1e3:.2f} um, {flat.points} points")
-    print(f"  cylindricity MZ {cyl.cylindricity_mz.text()}, truth {cyl_true.cylindricity_mz.value * 1e3:.2f} um "
+    print(f"  cylindricity MZ {cyl.cylindricity_mz.text()}, truth {cyl_true.cylindricity_mz_mm * 1e3:.2f} um "
           f"(imposed lobes +-{lobes * 1e3:.0f} um, taper {taper * 1e3:.1f} um/mm), detection limit "
           f"{cyl.cylindricity_mz.limit * 1e3:.2f} um, {cyl.points} points")
-    print(f"  Sq {rough.sq.text()}, truth {rough_true.sq.value * 1e3:.2f} um (imposed {texture * 1e3:.0f}), "
+    print(f"  Sq {rough.sq.text()}, truth {rough_true.sq_mm * 1e3:.2f} um (imposed {texture * 1e3:.0f}), "
           f"before noise removal {rough.sq_raw_mm * 1e3:.2f}, noise {rough.noise_mm * 1e3:.2f} um")
-    assert abs(flat.flatness_mz.value - flat_true.flatness_mz.value) <= 0.005 + 0.02 * flat_true.flatness_mz.value
-    assert abs(cyl.cylindricity_mz.value - cyl_true.cylindricity_mz.value) <= 0.005 + 0.02 * cyl_true.cylindricity_mz.value
-    assert abs(rough.sq.value - rough_true.sq.value) <= 0.05 * rough_true.sq.value
+    assert abs(flat.flatness_mz.value - flat_true.flatness_mz_mm) <= 0.005 + 0.02 * flat_true.flatness_mz_mm
+    assert abs(cyl.cylindricity_mz.value - cyl_true.cylindricity_mz_mm) <= 0.005 + 0.02 * cyl_true.cylindricity_mz_mm
+    assert abs(rough.sq.value - rough_true.sq_mm) <= 0.05 * rough_true.sq_mm

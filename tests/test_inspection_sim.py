@@ -164,28 +164,28 @@ def _row(run: SimpleNamespace, label: str) -> object:
 
 def test_flatness_of_bowed_face(run: SimpleNamespace) -> None:
     true, got = _true_form(run, "#158"), _row(run, "#158")
-    print(f"flatness MZ {got.flatness_mz.text()} (truth {true.flatness_mz.value * 1e3:.2f} um, noise bias removed "
+    print(f"flatness MZ {got.flatness_mz.text()} (truth {true.flatness_mz_mm * 1e3:.2f} um, noise bias removed "
           f"{got.flatness_mz.bias * 1e3:.2f} um, detection limit {got.flatness_mz.limit * 1e3:.2f} um, cut-off "
           f"{got.form_cutoff_mm} mm)")
-    assert 0.8 * BOW < true.flatness_mz.value <= BOW + 1e-9  # the bow, seen over the visible region
-    assert abs(got.flatness_mz.value - true.flatness_mz.value) <= 0.005 + 0.02 * true.flatness_mz.value
-    assert got.raw_deviation_max.value - got.raw_deviation_min.value > true.flatness_mz.value + 0.05  # raw: noise adds > 50 um
+    assert 0.8 * BOW < true.flatness_mz_mm <= BOW + 1e-9  # the bow, seen over the visible region
+    assert abs(got.flatness_mz.value - true.flatness_mz_mm) <= 0.005 + 0.02 * true.flatness_mz_mm
+    assert got.raw_deviation_max.value - got.raw_deviation_min.value > true.flatness_mz_mm + 0.05  # raw: noise adds > 50 um
 
 
 def test_cylindricity_of_lobed_tapered_boss(run: SimpleNamespace) -> None:
     true, got = _true_form(run, "#17"), _row(run, "#17")
-    print(f"cylindricity MZ {got.cylindricity_mz.text()} (truth {true.cylindricity_mz.value * 1e3:.2f} um), "
+    print(f"cylindricity MZ {got.cylindricity_mz.text()} (truth {true.cylindricity_mz_mm * 1e3:.2f} um), "
           f"{got.points} points, detection limit {got.cylindricity_mz.limit * 1e3:.2f} um")
-    assert true.cylindricity_mz.value > 0.02
-    assert abs(got.cylindricity_mz.value - true.cylindricity_mz.value) <= 0.005 + 0.02 * true.cylindricity_mz.value
+    assert true.cylindricity_mz_mm > 0.02
+    assert abs(got.cylindricity_mz.value - true.cylindricity_mz_mm) <= 0.005 + 0.02 * true.cylindricity_mz_mm
 
 
 def test_sq_of_textured_face(run: SimpleNamespace) -> None:
     true, got = _true_form(run, "#657"), _row(run, "#657")
-    print(f"Sq {got.sq.text()} (truth {true.sq.value * 1e3:.2f} um; before noise removal {got.sq_raw_mm * 1e3:.2f}, "
+    print(f"Sq {got.sq.text()} (truth {true.sq_mm * 1e3:.2f} um; before noise removal {got.sq_raw_mm * 1e3:.2f}, "
           f"noise {got.noise_mm * 1e3:.2f} um per point)")
-    assert true.sq.value > 0.06
-    assert abs(got.sq.value - true.sq.value) <= 0.05 * true.sq.value
+    assert true.sq_mm > 0.06
+    assert abs(got.sq.value - true.sq_mm) <= 0.05 * true.sq_mm
 
 
 def test_nominal_faces_read_below_their_detection_limit(run: SimpleNamespace) -> None:
