@@ -274,23 +274,24 @@ def _inconsistent_frequencies(absolute: list[np.ndarray], fringes: list[float], 
     (`sigma`: each frequency's phase noise, rad; no beat amplification). One light path gives
     every frequency the same coordinate; a second path of another coordinate shifts each
     frequency's phase differently."""
-    flagged = np.zeros_like(candidates)
     idx = np.flatnonzero(candidates)
     if idx.size < MIN_JUDGED_PIXELS:
-        return flagged
-    f_max = max(fringes)
-    scaled = [a.flat[idx] * np.float32(f_max / f) for a, f in zip(absolute, fringes)]
-    noise = [g.flat[idx] * np.float32(f_max / f) for g, f in zip(sigma, fringes)]
-    out = np.zeros(idx.size, bool)
-    step = max(1, idx.size // 200000)
+        return np.zeros_like(candidates)
+    f_max = max(fringes)  # whole images, not gathers of the candidates: most pixels are candidates
+    scaled = [a * np.float32(f_max / f) for a, f in zip(absolute, fringes)]
+    noise = [g * np.float32(f_max / f) for g, f in zip(sigma, fringes)]
+    sample = idx[:: max(1, idx.size // 200000)]  # the median offset, from a subsample of the candidates
+    out = np.zeros_like(candidates)
     for i in range(len(fringes)):
         for j in range(i + 1, len(fringes)):
-            diff = scaled[i] - scaled[j]
-            dev = np.abs(diff - np.float32(np.median(diff[::step])))
-            out |= (dev > np.float32(settings.interreflection_min_rad)) & \
-                (dev > np.float32(settings.interreflection_sigmas) * np.hypot(noise[i], noise[j]))
-    flagged.flat[idx] = out
-    return flagged
+            dev = scaled[i] - scaled[j]
+            dev -= np.float32(np.median(dev.flat[sample]))
+            np.abs(dev, out=dev)
+            bound = np.hypot(noise[i], noise[j])
+            bound *= np.float32(settings.interreflection_sigmas)
+            np.maximum(bound, np.float32(settings.interreflection_min_rad), out=bound)
+            out |= dev > bound
+    return out & candidates
 
 
 def _modulation_ratio_outliers(modulation: list[np.ndarray], fringes: list[float], usable: np.ndarray,
@@ -301,18 +302,17 @@ def _modulation_ratio_outliers(modulation: list[np.ndarray], fringes: list[float
     phase add up to different amplitudes at different frequencies. `noise_sigma_b`: σ of B (DN)."""
     fine = modulation[int(np.argmax(fringes))]
     coarse = modulation[int(np.argmin(fringes))]
-    out = np.zeros_like(usable)
     idx = np.flatnonzero(usable)
     if idx.size < MIN_JUDGED_PIXELS:
-        return out
-    bf, bc = fine.flat[idx], np.maximum(coarse.flat[idx], np.float32(1e-6))
-    log_ratio = np.log(np.maximum(bf, np.float32(1e-6)) / bc)
-    expected = np.float32(np.median(log_ratio[:: max(1, idx.size // 200000)]))
-    sigma = noise_sigma_b.flat[idx] * np.sqrt(1.0 / np.maximum(bf, 1e-6) ** 2 + 1.0 / bc ** 2)
-    departure = np.abs(log_ratio - expected)
-    out.flat[idx] = (departure > np.float32(np.log1p(settings.interreflection_ratio))) & \
+        return np.zeros_like(usable)
+    bf = np.maximum(fine, np.float32(1e-6))  # whole images, not gathers: most pixels are usable
+    bc = np.maximum(coarse, np.float32(1e-6))
+    departure = np.log(bf / bc)
+    departure -= np.float32(np.median(departure.flat[idx[:: max(1, idx.size // 200000)]]))
+    np.abs(departure, out=departure)
+    sigma = noise_sigma_b * np.sqrt(1.0 / bf ** 2 + 1.0 / bc ** 2)
+    return usable & (departure > np.float32(np.log1p(settings.interreflection_ratio))) & \
         (departure > np.float32(settings.interreflection_sigmas) * sigma)
-    return out
 
 
 def read_complementary_code(bits: list[np.ndarray], background: np.ndarray, modulation: np.ndarray,
