@@ -13,6 +13,7 @@ import json
 import os
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pytest
@@ -52,31 +53,25 @@ def _calibration() -> CalibrationUncertainty:
     return CalibrationUncertainty.from_report(json.loads(COVARIANCE.read_text()))
 
 
-@pytest.mark.acceptance
-@pytest.mark.slow  # 200 scans per case: hours on 2 cores, run on purpose (-m acceptance)
-@pytest.mark.parametrize("calibrated", [False, True], ids=["noise", "noise+calibration"])
-def test_sphere_radius_coverage(bench: Bench, calibrated: bool) -> None:
+def _coverage_case(test: Callable[..., None]) -> Callable[..., None]:
+    """An acceptance case of 200 scans, with and without calibration errors: hours on 2
+    cores, so also `slow` (run on purpose with -m acceptance, not by CI)."""
+    test = pytest.mark.parametrize("calibrated", [False, True], ids=["noise", "noise+calibration"])(test)
+    return pytest.mark.acceptance(pytest.mark.slow(test))
+
+
+@_coverage_case
+@pytest.mark.parametrize("figure, seed", [(sphere_radius, 1), (ball_bar_length, 2)],
+                         ids=["sphere_radius", "ball_bar_length"])
+def test_artefact_coverage(bench: Bench, figure: Callable[..., object], seed: int, calibrated: bool) -> None:
     t0 = time.perf_counter()
-    result = sphere_radius(bench, load_artefacts(DEFAULT_ARTEFACTS), TRIALS, seed=1,
-                           calibration=_calibration() if calibrated else None)
+    result = figure(bench, load_artefacts(DEFAULT_ARTEFACTS), TRIALS, seed=seed,
+                    calibration=_calibration() if calibrated else None)
     _report(result, t0)
-    assert 0.92 <= result.fraction <= 0.98
+    assert 0.92 <= result.fraction <= 0.98  # type: ignore[attr-defined]
 
 
-@pytest.mark.acceptance
-@pytest.mark.slow  # 200 scans per case: hours on 2 cores, run on purpose (-m acceptance)
-@pytest.mark.parametrize("calibrated", [False, True], ids=["noise", "noise+calibration"])
-def test_ball_bar_length_coverage(bench: Bench, calibrated: bool) -> None:
-    t0 = time.perf_counter()
-    result = ball_bar_length(bench, load_artefacts(DEFAULT_ARTEFACTS), TRIALS, seed=2,
-                             calibration=_calibration() if calibrated else None)
-    _report(result, t0)
-    assert 0.92 <= result.fraction <= 0.98
-
-
-@pytest.mark.acceptance
-@pytest.mark.slow  # 200 scans per case: hours on 2 cores, run on purpose (-m acceptance)
-@pytest.mark.parametrize("calibrated", [False, True], ids=["noise", "noise+calibration"])
+@_coverage_case
 def test_flatness_and_sq_coverage(bench: Bench, calibrated: bool) -> None:
     t0 = time.perf_counter()
     flat, sq = plate_figures(bench, TRIALS, seed=3, calibration=_calibration() if calibrated else None)
