@@ -254,6 +254,22 @@ def report_header(source: Path, program: Any, operator: str | None, serial: str 
         calibration_date=cal_date, software_version=f"slscan {__version__}")
 
 
+def write_report_files(report: Any, scan: Any, folder: Path, source: Path, program: Any = None,
+                       operator: str | None = None, serial: str | None = None, pdf: bool = True) -> Any:
+    """The report with its header (`report_header`) written to `folder` (JSON, CSV, HTML with
+    the deviation map, PDF when `pdf`) with the per-point deviations `slscan export
+    --deviations` reads; returns the report with its header."""
+    from dataclasses import replace
+
+    from inspection.point_deviations import write_point_deviations
+    from inspection.report import deviation_image, png
+
+    report = replace(report, header=report_header(source, program, operator, serial))
+    report.write(folder, deviation_png=png(deviation_image(report, scan)), pdf=pdf)
+    write_point_deviations(folder, scan, report)
+    return report
+
+
 def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str | Path | None = None,
                    out: str | Path | None = None, cad_unit: str = "mm", seed: int = 0,
                    recording: Any = None, operator: str | None = None, serial: str | None = None,
@@ -262,13 +278,9 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
     when `tolerances` is one); write the report files (and, for a session without a
     `recording` given, outputs/inspection.rrd); return the report. `slscan demo` calls this
     after its scan with the demo part's program."""
-    from dataclasses import replace
-
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import load_source
-    from inspection.point_deviations import write_point_deviations
     from inspection.registration import RegistrationSettings
-    from inspection.report import deviation_image, png
 
     program = None
     if cad is None:
@@ -305,10 +317,7 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
     finally:
         if own is not None:
             own.close()
-    report = replace(report, header=report_header(source, program, operator, serial))
-    report.write(folder, deviation_png=png(deviation_image(report, scan)), pdf=pdf)
-    write_point_deviations(folder, scan, report)  # for `slscan export --deviations`
-    return report
+    return write_report_files(report, scan, folder, source, program, operator, serial, pdf)
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:

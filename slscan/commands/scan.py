@@ -176,7 +176,7 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import from_organised, load_session
     from inspection.registration import RegistrationSettings
-    from inspection.report import deviation_image, png
+    from slscan.commands.inspect import write_report_files
     from slscan.measurement_model import session_uncertainty
 
     timer = StageTimer()
@@ -190,14 +190,7 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
     if on_verdict is not None:
         on_verdict(report)
     with timer.stage("report_files"):
-        from dataclasses import replace
-
-        from inspection.point_deviations import write_point_deviations
-        from slscan.commands.inspect import report_header
-
-        report = replace(report, header=report_header(result.session.root, program, None, None))
-        report.write(result.session.outputs, deviation_png=png(deviation_image(report, scan)), pdf=pdf)
-        write_point_deviations(result.session.outputs, scan, report)  # for `slscan export --deviations`
+        report = write_report_files(report, scan, result.session.outputs, result.session.root, program, pdf=pdf)
     if recording is not None:
         from inspection.inspection_recording import log_inspection
 
