@@ -58,10 +58,10 @@ class DecodeSettings:
     whose phase a second light path corrupts: their frequencies' absolute phases disagree
     (beyond the image's median, systematic, disagreement) by more than
     `interreflection_min_rad` (finest fringe) and `interreflection_sigmas` of their
-    predicted noise though short of an order error (`_inconsistent_frequencies`), or their
+    predicted noise though short of an order error, or their
     finest/coarsest modulation ratio departs from the image's median by more than
     `interreflection_ratio` (relative) and `interreflection_sigmas` of its noise
-    (`_modulation_ratio_outliers`). A second path whose phase shift is about the same at every
+    (`_SecondPaths`). A second path whose phase shift is about the same at every
     frequency (nearby points: the last few pixels at a concave fold) or that outshines the
     direct light is not seen by either test.
     """
@@ -265,54 +265,123 @@ def _order_errors(residual: np.ndarray, candidates_sigma: Callable[[np.ndarray],
     return errors
 
 
-def _inconsistent_frequencies(absolute: list[np.ndarray], fringes: list[float], sigma: list[np.ndarray],
-                              candidates: np.ndarray, settings: DecodeSettings) -> np.ndarray:
-    """Among `candidates`, pixels whose frequencies' absolute phases, scaled to the finest
-    fringe, disagree pairwise, beyond the image's median disagreement of that pair (a
-    systematic offset between frequencies is no second path), by more than
-    `interreflection_min_rad` and `interreflection_sigmas` of the pair's predicted noise
-    (`sigma`: each frequency's phase noise, rad; no beat amplification). One light path gives
-    every frequency the same coordinate; a second path of another coordinate shifts each
-    frequency's phase differently."""
-    idx = np.flatnonzero(candidates)
-    if idx.size < MIN_JUDGED_PIXELS:
-        return np.zeros_like(candidates)
-    f_max = max(fringes)  # whole images, not gathers of the candidates: most pixels are candidates
-    scaled = [a * np.float32(f_max / f) for a, f in zip(absolute, fringes)]
-    noise = [g * np.float32(f_max / f) for g, f in zip(sigma, fringes)]
-    sample = idx[:: max(1, idx.size // 200000)]  # the median offset, from a subsample of the candidates
-    out = np.zeros_like(candidates)
-    for i in range(len(fringes)):
-        for j in range(i + 1, len(fringes)):
-            dev = scaled[i] - scaled[j]
-            dev -= np.float32(np.median(dev.flat[sample]))
-            np.abs(dev, out=dev)
-            bound = np.hypot(noise[i], noise[j])
-            bound *= np.float32(settings.interreflection_sigmas)
-            np.maximum(bound, np.float32(settings.interreflection_min_rad), out=bound)
-            out |= dev > bound
-    return out & candidates
+class _SecondPaths:
+    """The interreflection tests (see DecodeSettings), on every core in bands after the
+    per-pixel decode, with outputs equal to judging the whole image at once.
 
+    Frequency consistency: among the candidates (usable, no order error), pixels whose
+    frequencies' absolute phases, scaled to the finest fringe, disagree pairwise beyond the
+    image's median disagreement of that pair (a systematic offset between frequencies is no
+    second path) by more than `interreflection_min_rad` and `interreflection_sigmas` of the
+    pair's predicted noise (each frequency's phase noise, no beat amplification): one light
+    path gives every frequency the same coordinate; a second path of another coordinate
+    shifts each frequency's phase differently. Modulation ratio: usable pixels whose
+    finest/coarsest modulation ratio departs from the image's median ratio (the optics'
+    transfer ratio, the same for every directly lit pixel) by more than `interreflection_ratio`
+    and `interreflection_sigmas` of its noise: two paths of different phase add up to different
+    amplitudes at different frequencies. Each median is taken over every k-th judged pixel in
+    raster order (k = judged // MEDIAN_SAMPLE), gathered band by band."""
 
-def _modulation_ratio_outliers(modulation: list[np.ndarray], fringes: list[float], usable: np.ndarray,
-                               noise_sigma_b: np.ndarray, settings: DecodeSettings) -> np.ndarray:
-    """Pixels whose finest/coarsest modulation ratio departs from the image's median ratio
-    (the optics' transfer ratio, the same for every directly lit pixel) by more than
-    `interreflection_ratio` and `interreflection_sigmas` of its noise: two paths of different
-    phase add up to different amplitudes at different frequencies. `noise_sigma_b`: σ of B (DN)."""
-    fine = modulation[int(np.argmax(fringes))]
-    coarse = modulation[int(np.argmin(fringes))]
-    idx = np.flatnonzero(usable)
-    if idx.size < MIN_JUDGED_PIXELS:
-        return np.zeros_like(usable)
-    bf = np.maximum(fine, np.float32(1e-6))  # whole images, not gathers: most pixels are usable
-    bc = np.maximum(coarse, np.float32(1e-6))
-    departure = np.log(bf / bc)
-    departure -= np.float32(np.median(departure.flat[idx[:: max(1, idx.size // 200000)]]))
-    np.abs(departure, out=departure)
-    sigma = noise_sigma_b * np.sqrt(1.0 / bf ** 2 + 1.0 / bc ** 2)
-    return usable & (departure > np.float32(np.log1p(settings.interreflection_ratio))) & \
-        (departure > np.float32(settings.interreflection_sigmas) * sigma)
+    MEDIAN_SAMPLE = 200000
+
+    def __init__(self, fringes: tuple[float, ...], scaled: list[np.ndarray], modulation: list[np.ndarray],
+                 background: np.ndarray, noise: NoiseModel, steps: int, settings: DecodeSettings) -> None:
+        self.fringes, self.scaled, self.modulation = list(fringes), scaled, modulation
+        self.background, self.noise, self.settings = background, noise, settings
+        self.sqrt_2n = np.float32(np.sqrt(2.0 / steps))
+        self.pairs = [(i, j) for i in range(len(fringes)) for j in range(i + 1, len(fringes))]
+        self.fine, self.coarse = int(np.argmax(fringes)), int(np.argmin(fringes))
+
+    def _pair_devs(self, rows: slice, at: np.ndarray | None = None) -> list[np.ndarray]:
+        """Per pair, the difference of the scaled absolute phases on `rows` (at the band's flat
+        indices `at`, when given)."""
+        pick = (lambda a: a[rows]) if at is None else (lambda a: a[rows].ravel()[at])
+        return [pick(self.scaled[i]) - pick(self.scaled[j]) for i, j in self.pairs]
+
+    def _log_ratio(self, rows: slice, at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(log of the finest/coarsest modulation ratio, the finest and coarsest B floored at
+        1e-6) on `rows` (at `at`, when given)."""
+        pick = (lambda a: a[rows]) if at is None else (lambda a: a[rows].ravel()[at])
+        bf = np.maximum(pick(self.modulation[self.fine]), np.float32(1e-6))
+        bc = np.maximum(pick(self.modulation[self.coarse]), np.float32(1e-6))
+        return np.log(bf / bc), bf, bc
+
+    def _medians(self, judged: list[np.ndarray], value: Callable[[slice, np.ndarray], list[np.ndarray]],
+                 bands: list[slice]) -> list[np.float32] | None:
+        """Medians of `value(rows, at)` over every k-th pixel of `judged` (one bool band per
+        slice of `bands`) in raster order; None when fewer than MIN_JUDGED_PIXELS are judged."""
+        counts = [int(np.count_nonzero(j)) for j in judged]
+        total = sum(counts)
+        if total < MIN_JUDGED_PIXELS:
+            return None
+        step = max(1, total // self.MEDIAN_SAMPLE)
+        starts = np.cumsum([0] + counts[:-1])
+
+        def sample(k: int) -> list[np.ndarray]:
+            at = np.flatnonzero(judged[k])[(-int(starts[k])) % step:: step]
+            return value(bands[k], at)
+
+        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+            parts = list(pool.map(sample, range(len(bands))))
+        return [np.float32(np.median(np.concatenate([p[n] for p in parts]))) for n in range(len(parts[0]))]
+
+    def _sigma_b(self, rows: slice, at: np.ndarray) -> np.ndarray:
+        """σ of the modulation B (DN) at the band's flat indices `at`."""
+        return self.noise.sigma(self.background[rows].ravel()[at]) * self.sqrt_2n
+
+    def _pair_bound(self, rows: slice, at: np.ndarray, i: int, j: int) -> np.ndarray:
+        """The disagreement (rad, finest fringe) frequencies i and j may show at `at` without a
+        second path: `interreflection_sigmas` of the pair's predicted noise, at least
+        `interreflection_min_rad`."""
+        f_max, sigma_b = max(self.fringes), self._sigma_b(rows, at)
+        noise = [sigma_b / np.maximum(self.modulation[n][rows].ravel()[at], np.float32(1e-6))
+                 * np.float32(f_max / self.fringes[n]) for n in (i, j)]
+        bound = np.hypot(*noise)
+        bound *= np.float32(self.settings.interreflection_sigmas)
+        return np.maximum(bound, np.float32(self.settings.interreflection_min_rad), out=bound)
+
+    def mask(self, usable: np.ndarray, order_error: np.ndarray) -> np.ndarray:
+        """The pixels masked as "interreflection"; removes them from `usable` and
+        `order_error` (in place): one reason per corrupted pixel, its own."""
+        s = self.settings
+        h = usable.shape[0]
+        bands = [slice(r, min(r + CHUNK_ROWS, h)) for r in range(0, h, CHUNK_ROWS)]
+        candidates = [usable[b] & ~order_error[b] for b in bands]
+        pair_medians = self._medians(candidates, self._pair_devs, bands)
+        ratio_medians = self._medians([usable[b] for b in bands], lambda rows, at: [self._log_ratio(rows, at)[0]],
+                                      bands)
+        ratio_median = ratio_medians[0] if ratio_medians is not None else None
+        out = np.zeros(usable.shape, bool)
+        min_rad = np.float32(s.interreflection_min_rad)
+        ratio_limit = np.float32(np.log1p(s.interreflection_ratio))
+        if ratio_median is not None:  # ratios surely within the limit (1e-4 spares log's rounding)
+            inside = (np.exp(float(ratio_median) - float(ratio_limit)) * (1 + 1e-4),
+                      np.exp(float(ratio_median) + float(ratio_limit)) * (1 - 1e-4))
+
+        def band(k: int) -> None:
+            rows = bands[k]
+            hit = out[rows].ravel()
+            if pair_medians is not None:  # a pixel within min_rad of a pair's median needs no noise bound
+                for (i, j), dev, median in zip(self.pairs, self._pair_devs(rows), pair_medians):
+                    dev -= median
+                    np.abs(dev, out=dev)
+                    at = np.flatnonzero(candidates[k] & (dev > min_rad))
+                    hit[at] |= dev.ravel()[at] > self._pair_bound(rows, at, i, j)
+            if ratio_median is not None:  # the log and the noise only for ratios near or past the limit
+                ratio = np.maximum(self.modulation[self.fine][rows], np.float32(1e-6))
+                ratio /= np.maximum(self.modulation[self.coarse][rows], np.float32(1e-6))
+                at = np.flatnonzero(usable[rows] & ~((ratio > inside[0]) & (ratio < inside[1])))
+                departure, bf, bc = self._log_ratio(rows, at)
+                departure -= ratio_median
+                np.abs(departure, out=departure)
+                sigma = self._sigma_b(rows, at) * np.sqrt(1.0 / bf ** 2 + 1.0 / bc ** 2)
+                hit[at] |= (departure > ratio_limit) & (departure > np.float32(s.interreflection_sigmas) * sigma)
+            order_error[rows] &= ~out[rows]
+            usable[rows] &= ~out[rows]
+
+        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+            list(pool.map(band, range(len(bands))))
+        return out
 
 
 def read_complementary_code(bits: list[np.ndarray], background: np.ndarray, modulation: np.ndarray,
@@ -605,40 +674,39 @@ class _OrientationDecoder:
         out = {name: np.empty((h, w), np.float32) for name in ("background", "phase", "weight", "coordinate")}
         wrapped = [np.empty((h, w), np.float32) for _ in range(n_freq)]
         modulation = [np.empty((h, w), np.float32) for _ in range(n_freq)]
+        # each frequency's absolute phase scaled to the finest fringe, for the second-path test
+        scaled = [np.empty((h, w), np.float32) for _ in range(n_freq)] if self._judges_paths else None
         reasons = ("shadow", "low_modulation", "order_error")
         masks = {"saturated": self.saturated, **{k: np.empty((h, w), bool) for k in reasons}}
         usable = np.empty((h, w), bool)
 
         def band(rows: slice) -> dict[str, Any]:
             b = self._band(rows, [(wrapped[i][rows], modulation[i][rows]) for i in range(n_freq)],
-                           {name: out[name][rows] for name in out})
+                           {name: out[name][rows] for name in out},
+                           [a[rows] for a in scaled] if scaled is not None else None)
             for k in reasons:
                 masks[k][rows] = b["masks"][k]
             usable[rows] = b["usable"]
             return b["sums"]
 
-        checks = _checks(in_bands(h, band))
+        sums = in_bands(h, band)
+        checks = _checks(sums)
         if s.self_check:
             self._judge(checks)
-        if self._judges_paths:
-            sigma_b = self.noise.sigma(out["background"]) * np.float32(np.sqrt(2.0 / ps.steps))
-            absolute, _ = _temporal_unwrap(ps, wrapped)
-            sigma = [sigma_b / np.maximum(b, np.float32(1e-6)) for b in modulation]
-            masks["interreflection"] = _inconsistent_frequencies(absolute, ps.fringes, sigma,
-                                                                 usable & ~masks["order_error"], s)
-            masks["interreflection"] |= _modulation_ratio_outliers(modulation, ps.fringes, usable, sigma_b, s)
-            masks["order_error"] &= ~masks["interreflection"]  # one reason per corrupted pixel: its own
-            usable &= ~masks["interreflection"]
+        if scaled is not None:
+            masks["interreflection"] = _SecondPaths(ps.fringes, scaled, modulation, out["background"], self.noise,
+                                                    ps.steps, s).mask(usable, masks["order_error"])
         f_max = max(ps.fringes)
         maps = self._finish(masks, usable, out["coordinate"], out["phase"], wrapped, modulation, out["background"],
                             out["weight"], f_max)
         return maps, checks
 
-    def _band(self, rows: slice, dest: list[tuple[np.ndarray, np.ndarray]], maps: dict[str, np.ndarray]
-              ) -> dict[str, Any]:
+    def _band(self, rows: slice, dest: list[tuple[np.ndarray, np.ndarray]], maps: dict[str, np.ndarray],
+              scaled: list[np.ndarray] | None) -> dict[str, Any]:
         """The per-pixel work on rows `rows`: phases and modulations (written into `dest`, per
         frequency), masks, unwrapping, and the background, phase, weight and coordinate
-        (written into `maps`' views of those rows); returns the masks and the sums the
+        (written into `maps`' views of those rows), each frequency's absolute phase in units of
+        the finest fringe (into `scaled`, when given); returns the masks and the sums the
         self-check needs."""
         ps, s, conv = self.patterns, self.settings, self.patterns.conventions
         stack = self.stack[:, rows]
@@ -704,6 +772,9 @@ class _OrientationDecoder:
             masks["order_error"] = _order_errors(residual, residual_sigma, s)
             sums["order_bad"] = int((masks["order_error"] & usable).sum())
             sums["offsets"] = _offset_sums(ps, absolute, wrapped, usable, rows.start)
+            if scaled is not None:
+                for phi_abs, fi, dst in zip(absolute, ps.fringes, scaled):
+                    np.multiply(phi_abs, np.float32(f_max / fi), out=dst)
             # inverse-variance combination of all frequencies, in units of the finest fringe
             phase, weight = maps["phase"], maps["weight"]
             phase.fill(0.0)
