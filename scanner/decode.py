@@ -580,6 +580,20 @@ def _checks(sums: list[dict[str, Any]]) -> dict[str, float]:
     return checks
 
 
+def _saturated(stack: np.ndarray, frames: list[int], full_scale: float) -> np.ndarray:
+    """Pixels where any of the stack's `frames` reaches `full_scale`, in bands on every core."""
+    out = np.empty(stack.shape[1:], dtype=bool)
+
+    def band(rows: slice) -> None:
+        peak = stack[frames[0], rows].copy()
+        for k in frames[1:]:
+            cv2.max(peak, stack[k, rows], dst=peak)
+        out[rows] = peak >= full_scale
+
+    in_bands(stack.shape[1], band)
+    return out
+
+
 def _frame_indices(specs: list[FrameSpec]) -> dict[tuple[str, str, int, int], int]:
     return {(s.orientation, s.kind, s.level, s.step): k for k, s in enumerate(specs)}
 
@@ -604,10 +618,7 @@ def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
     all_phase = [k for o in patterns.orientations for block in phase_blocks[o] for k in block]
     saturated = np.zeros(stack.shape[1:], dtype=bool)
     if all_phase:  # judged on the frames that carry the measurement: a clipped binary frame still reads
-        peak = stack[all_phase[0]].copy()
-        for k in all_phase[1:]:
-            cv2.max(peak, stack[k], dst=peak)
-        saturated = peak >= full_scale
+        saturated = _saturated(stack, all_phase, full_scale)
         noise = fit_noise(stack, phase_blocks[patterns.orientations[0]], patterns.steps, conv.step_sign, full_scale)
     else:
         noise = NoiseModel(1.0, 0.0)
@@ -828,18 +839,30 @@ class _OrientationDecoder:
                 wrapped: list[np.ndarray], modulation: list[np.ndarray], background: np.ndarray,
                 weight: np.ndarray, fringes: float) -> OrientationMaps:
         s = self.settings
-        valid = usable.copy()
-        masks["order_error"] &= valid  # reasons stay distinct: an order error is judged on a usable phase
-        valid &= ~masks["order_error"]
-        np.copyto(coordinate, np.float32(np.nan), where=~valid)
+        valid = np.empty_like(usable)
+        order_error = masks["order_error"]
+        nan = np.float32(np.nan)
+
+        def prepare(rows: slice) -> None:
+            order_error[rows] &= usable[rows]  # reasons stay distinct: an order error is judged on a usable phase
+            np.logical_and(usable[rows], ~order_error[rows], out=valid[rows])
+            np.copyto(coordinate[rows], nan, where=~valid[rows])
+
+        in_bands(valid.shape[0], prepare)
+        islands = None
         if s.spatial_check:
             min_region = max(1, int(s.min_region_fraction * valid.size))
             islands, masks["discontinuity"] = _unreliable_regions(coordinate, valid, self.extent / fringes, min_region)
-            masks["order_error"] |= islands
-            valid &= ~(islands | masks["discontinuity"])
-        invalid = ~valid
-        np.copyto(coordinate, np.float32(np.nan), where=invalid)
-        np.copyto(phase, np.float32(np.nan), where=invalid)
+
+        def finish(rows: slice) -> None:
+            if islands is not None:
+                order_error[rows] |= islands[rows]
+                valid[rows] &= ~(islands[rows] | masks["discontinuity"][rows])
+            invalid = ~valid[rows]
+            np.copyto(coordinate[rows], nan, where=invalid)
+            np.copyto(phase[rows], nan, where=invalid)
+
+        in_bands(valid.shape[0], finish)
         return OrientationMaps(self.orientation, coordinate, phase, wrapped, modulation, background, weight, masks,
                                valid, fringes, self.extent, self.noise, max(self.patterns.steps, 1))
 
