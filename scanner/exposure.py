@@ -252,12 +252,22 @@ def _pick(arrays: list[np.ndarray], choice: np.ndarray) -> np.ndarray:
 
 def fuse_orientation(maps: list[OrientationMaps]) -> FusedOrientationMaps:
     """Per pixel, the exposure (maps in ascending exposure order) with a valid phase of the
-    least predicted noise; invalid everywhere: the longest exposure not saturating it."""
-    sigma = [np.where(m.valid, m.phase_sigma, np.inf) for m in maps]
+    least predicted noise; invalid everywhere: the longest exposure not saturating it.
+
+    A pixel any exposure masks as "interreflection" is masked so in the fused maps, taken
+    from the longest exposure that saw the second path: a second path is a property of the
+    scene's light, not of the exposure, and the frequency and modulation-ratio tests judge it
+    against each exposure's own noise, so a shorter, noisier exposure may pass what a longer
+    one resolves (on the polished aluminium demo part such pixels, kept only by the 2.5 ms
+    exposure, were most of HDR's fringe-order errors)."""
+    second = np.stack([m.masks.get("interreflection", np.zeros_like(m.valid)) for m in maps])
+    seen = second.any(axis=0)
+    sigma = [np.where(m.valid & ~seen, m.phase_sigma, np.inf) for m in maps]
     best = np.argmin(np.stack(sigma), axis=0)
     unsaturated = np.stack([~m.masks["saturated"] for m in maps])
     fallback = np.where(unsaturated.any(axis=0), len(maps) - 1 - np.argmax(unsaturated[::-1], axis=0), 0)
-    choice = np.where(np.logical_or.reduce([m.valid for m in maps]), best, fallback).astype(np.uint8)
+    fallback = np.where(seen, len(maps) - 1 - np.argmax(second[::-1], axis=0), fallback)
+    choice = np.where(np.logical_or.reduce([m.valid for m in maps]) & ~seen, best, fallback).astype(np.uint8)
     reasons = list(dict.fromkeys(k for m in maps for k in m.masks))  # decode's order of reasons
     masks = {k: _pick([m.masks.get(k, np.zeros_like(m.valid)) for m in maps], choice) for k in reasons}
     first = maps[0]

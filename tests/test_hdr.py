@@ -147,6 +147,36 @@ def test_fusion_takes_each_pixel_from_its_best_exposure():
     assert np.nanmedian(m.phase_sigma[bottom]) < np.nanmedian(np.where(short.valid, short.phase_sigma, np.nan)[bottom])
 
 
+def test_fusion_keeps_a_second_path_seen_by_any_exposure_masked():
+    """A patch lit also by a second path (15 % of the direct light, 37 projector px away): the
+    long exposure resolves it and masks it as interreflection; the short one is too noisy to and
+    passes half of it as valid. The fused maps must not take those pixels from the short one."""
+    ps = PatternSet.load(HETERODYNE)
+    u = np.broadcast_to(np.linspace(20, 850, 240), (64, 240))
+    patch = np.zeros((64, 240), bool)
+    patch[16:48, 60:180] = True
+    exposures = (0.004, 0.064)
+    results = []
+    for i, t in enumerate(exposures):
+        rng = np.random.default_rng(i)
+        frames = []
+        for spec in ps.frames():
+            profile = ps.profile(spec, 912)
+            light = np.interp(u, np.arange(912), profile) + np.where(patch, 0.15 * np.interp(u + 37, np.arange(912),
+                                                                                             profile), 0.0)
+            frames.append(np.clip(np.rint(rng.poisson((40.0 + 3e4 * t * light) * 2.5) / 2.5), 0, FULL))
+        results.append(decode(np.stack(frames).astype(np.uint16), ps, 12, (912, 1140)))
+    short, long_ = (r.maps["vertical"] for r in results)
+    assert long_.masks["saturated"].sum() == 0 and long_.masks["interreflection"][patch].mean() > 0.95  # the setup
+    assert short.masks["interreflection"][patch].mean() < 0.05 and short.valid[patch].mean() > 0.3
+    m = fuse(results, exposures).maps["vertical"]
+    seen = short.masks["interreflection"] | long_.masks["interreflection"]
+    assert not (m.valid & seen).any()
+    assert m.masks["interreflection"][seen].all() and np.all(m.exposure_index[long_.masks["interreflection"]] == 1)
+    assert np.array_equal(m.valid & ~seen, (short.valid | long_.valid) & ~seen)  # elsewhere the best valid exposure
+    assert np.max(np.abs(m.coordinate - u)[m.valid & ~patch]) < 0.5
+
+
 # --- sessions on the simulated rig ------------------------------------------------------------------
 
 def loaded_rig(tmp_path: Path) -> Path:
