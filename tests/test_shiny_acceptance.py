@@ -61,6 +61,9 @@ def test_hdr_covers_the_shiny_part(aluminium):
     assert hdr["masked_on_part"]["saturated"] < 0.1 * default["masked_on_part"]["saturated"]
     assert auto["valid_coverage"] >= default["valid_coverage"] - 0.01  # never worse than the rig's exposure
     assert hdr["fringe_order_errors"] < 0.001 * hdr["part_lit_pixels"]
+    # HDR's extra (short) exposure must not bring order errors of its own: a second path a
+    # longer exposure resolved stays masked (it was 136 vs 22 at the rig's exposure)
+    assert hdr["fringe_order_errors"] <= default["fringe_order_errors"]
 
 
 def without_and_with_the_mask(path: str) -> tuple[dict, dict]:
