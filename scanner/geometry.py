@@ -112,22 +112,40 @@ class Pinhole:
         return cls(width, height, K, np.zeros(5) if dist is None else dist)
 
 
-def cubic_weights(positions: np.ndarray, start: float, step: float, n: int) -> np.ndarray:
-    """(len(positions), n) weights of cubic convolution (Catmull-Rom, a = −0.5, third-order
-    accurate) interpolating samples taken at start + i·step, i < n, at `positions`; each
-    position needs one sample before it and two after."""
+def _cubic_taps(positions: np.ndarray, start: float, step: float, n: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """For samples taken at start + i·step, i < n: each position's sample index i (the one at
+    or before it) and the cubic convolution weights (Catmull-Rom, a = −0.5, third-order
+    accurate) of samples i − 1 … i + 2; each position needs one sample before it and two after."""
     t = (np.asarray(positions, np.float64) - start) / step
-    i = np.floor(t).astype(np.int64)
+    i = np.floor(t).astype(np.intp)
     f = t - i
     if i.min() < 1 or i.max() > n - 3:
-        raise ValueError("cubic_weights: positions outside the sampled range")
-    w = np.zeros((len(t), n))
-    rows = np.arange(len(t))
-    w[rows, i - 1] = ((-0.5 * f + 1.0) * f - 0.5) * f
-    w[rows, i] = (1.5 * f - 2.5) * f * f + 1.0
-    w[rows, i + 1] = ((-1.5 * f + 2.0) * f + 0.5) * f
-    w[rows, i + 2] = (0.5 * f - 0.5) * f * f
+        raise ValueError("cubic interpolation: positions outside the sampled range")
+    return i, [((-0.5 * f + 1.0) * f - 0.5) * f, (1.5 * f - 2.5) * f * f + 1.0,
+               ((-1.5 * f + 2.0) * f + 0.5) * f, (0.5 * f - 0.5) * f * f]
+
+
+def cubic_weights(positions: np.ndarray, start: float, step: float, n: int) -> np.ndarray:
+    """(len(positions), n) matrix of the cubic convolution weights (`_cubic_taps`): for
+    interpolating small sample grids by matrix products."""
+    i, taps = _cubic_taps(positions, start, step, n)
+    w = np.zeros((len(i), n))
+    rows = np.arange(len(i))
+    for k, tap in enumerate(taps):
+        w[rows, i + k - 1] = tap
     return w
+
+
+def cubic_interpolate(samples: np.ndarray, positions: np.ndarray, start: float, step: float, axis: int) -> np.ndarray:
+    """`samples` taken at start + i·step along `axis`, interpolated at `positions` by cubic
+    convolution, four taps per position (`_cubic_taps`): for many positions, where a dense
+    weight matrix would be mostly zeros."""
+    s = np.moveaxis(np.asarray(samples, np.float64), axis, -1)
+    i, taps = _cubic_taps(positions, start, step, s.shape[-1])
+    out = s[..., i - 1] * taps[0]
+    for k in (1, 2, 3):
+        out += s[..., i + k - 1] * taps[k]
+    return np.moveaxis(out, -1, axis)
 
 
 def pose_from_dict(d: dict[str, Any]) -> np.ndarray:

@@ -17,7 +17,7 @@ import numpy as np
 
 from scanner.decode import DecodeResult, in_bands
 from scanner.errors import DecodeError
-from scanner.geometry import Pinhole, RigModel, cubic_weights
+from scanner.geometry import Pinhole, RigModel, cubic_interpolate
 from scanner.pointcloud import OrganisedCloud, from_planes, organised_normals
 
 _TABLE_OVERSAMPLE = 4  # table samples per projector pixel along the coded axis
@@ -73,7 +73,7 @@ class _UndistortTable:
         step = _TABLE_COARSE_PX
         coarse = np.arange(-0.5 - step, extent - 0.5 + 3 * step, step, dtype=np.float64)
         solved = _undistort_axis(coarse, yn, K[axis, axis], K[axis, 2], projector.dist, axis)
-        self.table = (solved @ cubic_weights(c, coarse[0], step, len(coarse)).T).astype(np.float32)
+        self.table = cubic_interpolate(solved, c, coarse[0], step, axis=1).astype(np.float32)
 
     def __call__(self, coord: np.ndarray, y_n: np.ndarray) -> np.ndarray:
         """Table look-up (bilinear) for flat float32 arrays of equal length."""
