@@ -344,8 +344,7 @@ class _SecondPaths:
         """The pixels masked as "interreflection"; removes them from `usable` and
         `order_error` (in place): one reason per corrupted pixel, its own."""
         s = self.settings
-        h = usable.shape[0]
-        bands = [slice(r, min(r + CHUNK_ROWS, h)) for r in range(0, h, CHUNK_ROWS)]
+        bands = band_slices(usable.shape[0])
         candidates = [usable[b] & ~order_error[b] for b in bands]
         pair_medians = self._medians(candidates, self._pair_devs, bands)
         ratio_medians = self._medians([usable[b] for b in bands], lambda rows, at: [self._log_ratio(rows, at)[0]],
@@ -437,9 +436,14 @@ def _typical_step(sample: np.ndarray) -> np.float32:
     return np.float32(np.median(sample)) if sample.size else np.float32(0.0)
 
 
+def band_slices(height: int) -> list[slice]:
+    """The bands of CHUNK_ROWS rows (the last one shorter) that `in_bands` works on."""
+    return [slice(r, min(r + CHUNK_ROWS, height)) for r in range(0, height, CHUNK_ROWS)]
+
+
 def in_bands(height: int, work: Callable[[slice], Any]) -> list[Any]:
-    """`work(rows)` for bands of CHUNK_ROWS rows on every core, in order."""
-    bands = [slice(r, min(r + CHUNK_ROWS, height)) for r in range(0, height, CHUNK_ROWS)]
+    """`work(rows)` for the bands of `band_slices` on every core, in order."""
+    bands = band_slices(height)
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         return list(pool.map(work, bands))
 
@@ -479,17 +483,64 @@ def _unreliable_regions(coordinate: np.ndarray, valid: np.ndarray, period_px: fl
         cut[rows] = band & valid[rows]
 
     in_bands(h, cuts)
-    _, labels, stats, _ = cv2.connectedComponentsWithStats((valid & ~cut).view(np.uint8), connectivity=4,
-                                                           ltype=cv2.CV_32S)
-    small = stats[:, cv2.CC_STAT_AREA] < min_region_px
-    small[0] = False  # label 0: invalid or cut pixels
-    islands = np.empty(valid.shape, dtype=bool)
+    return small_regions(valid & ~cut, min_region_px), cut
 
-    def lookup(rows: slice) -> None:
-        islands[rows] = small[labels[rows]]
 
-    in_bands(h, lookup)
-    return islands, cut
+def small_regions(foreground: np.ndarray, min_px: int) -> np.ndarray:
+    """Pixels of the 4-connected regions of `foreground` smaller than `min_px` pixels:
+    labelled band by band on every core (OpenCV), the bands' labels joined where a region
+    crosses from one band's last row into the next band's first row."""
+    h = foreground.shape[0]
+
+    def label(rows: slice) -> tuple[np.ndarray, np.ndarray]:
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(foreground[rows].view(np.uint8), connectivity=4,
+                                                               ltype=cv2.CV_32S)
+        return labels, stats[:, cv2.CC_STAT_AREA].astype(np.int64)
+
+    bands = band_slices(h)
+    parts = in_bands(h, label)
+    offsets = np.cumsum([0] + [len(area) for _, area in parts[:-1]])
+    area = np.concatenate([area for _, area in parts])
+    area[offsets] = 0  # each band's label 0: background
+    a, b = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]  # label pairs joined across band edges
+    for k in range(len(parts) - 1):
+        u, v = offsets[k] + parts[k][0][-1], offsets[k + 1] + parts[k + 1][0][0]
+        both = (u > offsets[k]) & (v > offsets[k + 1])  # foreground above and below the edge
+        a.append(u[both])
+        b.append(v[both])
+    root = _joined(len(area), np.concatenate(a), np.concatenate(b))
+    small = np.bincount(root, weights=area, minlength=len(area))[root] < min_px
+    small[offsets] = False
+    islands = np.empty(foreground.shape, dtype=bool)
+
+    def lookup(k: int) -> None:
+        islands[bands[k]] = small[offsets[k] + parts[k][0]]
+
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        list(pool.map(lookup, range(len(bands))))
+    return islands
+
+
+def _joined(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """For nodes 0 … n−1 joined by the edges (a[i], b[i]): each node's representative (the
+    least node of its connected set), by hooking roots onto the lesser root and pointer
+    jumping until every edge joins equal roots."""
+    root = np.arange(n)
+    while a.size:
+        ra, rb = root[a], root[b]
+        unmet = ra != rb
+        if not unmet.any():
+            break
+        ra, rb = ra[unmet], rb[unmet]
+        least = np.minimum(ra, rb)
+        np.minimum.at(root, ra, least)
+        np.minimum.at(root, rb, least)
+        while True:
+            up = root[root]
+            if np.array_equal(up, root):
+                break
+            root = up
+    return root
 
 
 _CHI2_MEDIAN = (0.4549, 0.6931, 0.7887, 0.8392, 0.8703, 0.8914, 0.9066, 0.9180, 0.9270, 0.9342)  # median(χ²_k)/k

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scanner.decode import DecodeSettings, decode
+from scanner.decode import CHUNK_ROWS, DecodeSettings, decode, small_regions
 from scanner.errors import ConfigError, DecodeError
 from scanner.patterns import PatternSet, gray_code, gray_to_binary
 from tests.conftest import fringe_stack
@@ -118,6 +118,23 @@ def test_fringe_order_errors_are_masked_not_outliers() -> None:
     assert m.masks["order_error"][40:90, 100:400].sum() > 100  # there were order errors to catch
     assert np.nanmax(err) < m.period_px / 2, "a wrongly unwrapped pixel survived as an outlier"
     assert m.valid[40:90, 100:400].mean() > 0.5  # and the good pixels there were kept
+
+
+@pytest.mark.parametrize("shape,fill", [((3 * CHUNK_ROWS + 17, 300), 0.55), ((CHUNK_ROWS, 90), 0.6),
+                                        ((8 * CHUNK_ROWS, 400), 0.5)])
+def test_small_regions_match_whole_image_labelling(shape: tuple[int, int], fill: float) -> None:
+    """The spatial check's small regions, labelled band by band and joined across band edges,
+    are those scipy's whole-image 4-connected labelling finds (regions snaking through many
+    bands included)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(shape[0])
+    foreground = rng.random(shape) < fill
+    foreground[:, ::9] = True  # long regions crossing every band edge
+    labels, _ = ndimage.label(foreground)
+    area = np.bincount(labels.ravel())
+    for min_px in (2, 12, 400, foreground.size):
+        assert np.array_equal(small_regions(foreground, min_px), foreground & (area[labels] < min_px))
 
 
 def test_wrong_frame_count_and_type() -> None:
