@@ -140,7 +140,7 @@ class Triangulator:
         shape, width = coord.shape, coord.shape[1]
         c, al, ga, be = coord.ravel(), alpha.ravel(), gamma.ravel(), beta.ravel()
         a0, c1, b0 = np.float32(a0), np.float32(c1), np.float32(b0)
-        x_n = (c - np.float32(K[axis, 2])) * np.float32(1.0 / K[axis, axis])  # distortion-free start
+        x_n = np.empty_like(c)
 
         def refine(x: np.ndarray, sl: slice) -> np.ndarray:
             # the point lies on the surface X_p = x_n·Z_p of the projector frame, so along the
@@ -156,10 +156,12 @@ class Triangulator:
             return slice(rows.start * width, rows.stop * width)
 
         def one_pass(rows: slice) -> None:
-            x_n[flat(rows)] = refine(x_n[flat(rows)], flat(rows))
+            sl = flat(rows)
+            x = x_n[sl] if passes else (c[sl] - np.float32(K[axis, 2])) * np.float32(1.0 / K[axis, axis])
+            x_n[sl] = refine(x, sl)  # the first pass starts from the distortion-free coordinate
 
         probe = slice(0, None, 97)  # convergence is judged on a dense subsample, not a full pass
-        for _ in range(_MAX_PASSES):
+        for passes in range(_MAX_PASSES):
             in_bands(shape[0], one_pass)
             if not np.nanmax(np.abs(refine(x_n[probe], probe) - x_n[probe]), initial=0.0) >= _CONVERGED:
                 break
