@@ -195,10 +195,11 @@ def phase_shift(block: np.ndarray | list[np.ndarray], steps: int, origin: float,
 
 
 def _magnitude(c: np.ndarray, s: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """sqrt(c² + s²) in float32 by numpy: cv2.magnitude's result depends on its buffers' memory
-    alignment (last-ulp differences between runs), and a session must decode bit-identically."""
+    """sqrt(c² + s²) in float32 by numpy, squaring `s` in place (the caller's scratch array):
+    cv2.magnitude's result depends on its buffers' memory alignment (last-ulp differences
+    between runs), and a session must decode bit-identically."""
     m = np.multiply(c, c, out=out)
-    m += s * s
+    m += np.multiply(s, s, out=s)
     return np.sqrt(m, out=m)
 
 
