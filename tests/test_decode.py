@@ -137,6 +137,56 @@ def test_small_regions_match_whole_image_labelling(shape: tuple[int, int], fill:
         assert np.array_equal(small_regions(foreground, min_px), foreground & (area[labels] < min_px))
 
 
+def test_second_path_mask_matches_the_whole_image_rule(monkeypatch) -> None:
+    """The banded interreflection tests mask exactly the pixels the rule, stated here on the
+    whole image, masks: a frequency pair disagreeing beyond its image-wide median offset by
+    more than min_rad and 5 sigma of the pair's noise, or a finest/coarsest modulation ratio
+    departing from its image-wide median by more than 15 % and 5 sigma; medians over every
+    k-th judged pixel in raster order (thinned here as on a full-size image). The stack has
+    a patch lit also by a second path (20 %, 37 projector px away) across band edges."""
+    from scanner.decode import _SecondPaths, _temporal_unwrap
+
+    monkeypatch.setattr(_SecondPaths, "MEDIAN_SAMPLE", 5000)
+    ps = FAMILIES["heterodyne"]
+    u = ramp(3 * CHUNK_ROWS + 40, 640)
+    stack = fringe_stack(u, ps, PROJ[0], amplitude=900.0, offset=1100.0, noise=6.0).astype(np.float64)
+    second = fringe_stack(u + 37.0, ps, PROJ[0], amplitude=900.0, offset=1100.0, noise=6.0, seed=1)
+    rows, cols = slice(100, 300), slice(200, 420)
+    stack[:, rows, cols] += 0.2 * second[:, rows, cols]
+    stack = np.rint(stack).astype(np.uint16)
+    got = decode(stack, ps, 12, PROJ, DecodeSettings(spatial_check=False)).maps["vertical"].masks["interreflection"]
+    m = decode(stack, ps, 12, PROJ, DecodeSettings(spatial_check=False, interreflection=False)).maps["vertical"]
+    usable = ~(m.masks["saturated"] | m.masks["shadow"] | m.masks["low_modulation"])
+    candidates = usable & ~m.masks["order_error"]
+    s, f_max = DecodeSettings(), max(ps.fringes)
+    sigma_b = m.noise.sigma(m.background) * np.float32(np.sqrt(2.0 / ps.steps))
+    absolute, _ = _temporal_unwrap(ps, m.wrapped)
+    scaled = [a * np.float32(f_max / f) for a, f in zip(absolute, ps.fringes)]
+    noise = [sigma_b / np.maximum(b, np.float32(1e-6)) * np.float32(f_max / f) for b, f in zip(m.modulation, ps.fringes)]
+
+    def sample(judged: np.ndarray) -> np.ndarray:
+        idx = np.flatnonzero(judged)
+        return idx[:: max(1, idx.size // 5000)]
+
+    want = np.zeros_like(candidates)
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        dev = scaled[i] - scaled[j]
+        dev = np.abs(dev - np.float32(np.median(dev.flat[sample(candidates)])))
+        bound = np.maximum(np.hypot(noise[i], noise[j]) * np.float32(s.interreflection_sigmas),
+                           np.float32(s.interreflection_min_rad))
+        want |= candidates & (dev > bound)
+    bf, bc = (np.maximum(m.modulation[k], np.float32(1e-6)) for k in (0, 2))  # finest 70, coarsest 59 fringes
+    departure = np.log(bf / bc)
+    departure = np.abs(departure - np.float32(np.median(departure.flat[sample(usable)])))
+    sigma = sigma_b * np.sqrt(1.0 / bf ** 2 + 1.0 / bc ** 2)
+    want |= usable & (departure > np.float32(np.log1p(s.interreflection_ratio))) & \
+        (departure > np.float32(s.interreflection_sigmas) * sigma)
+    outside = np.ones_like(want)
+    outside[rows, cols] = False
+    assert want[rows, cols].mean() > 0.5 and want[outside].mean() < 0.01  # the setup: the patch is judged
+    assert np.array_equal(got, want)
+
+
 def test_wrong_frame_count_and_type() -> None:
     ps = FAMILIES["heterodyne"]
     stack = fringe_stack(ramp(), ps, PROJ[0])
