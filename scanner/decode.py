@@ -307,10 +307,10 @@ class _SecondPaths:
         bc = np.maximum(pick(self.modulation[self.coarse]), np.float32(1e-6))
         return np.log(bf / bc), bf, bc
 
-    def _medians(self, judged: list[np.ndarray], value: Callable[[slice, np.ndarray], list[np.ndarray]],
-                 bands: list[slice]) -> list[np.float32] | None:
-        """Medians of `value(rows, at)` over every k-th pixel of `judged` (one bool band per
-        slice of `bands`) in raster order; None when fewer than MIN_JUDGED_PIXELS are judged."""
+    def _medians(self, judged: list[np.ndarray], value: Callable[[slice, np.ndarray], list[np.ndarray]]
+                 ) -> list[np.float32] | None:
+        """Medians of `value(rows, at)` over every k-th pixel of `judged` (one bool array per
+        band of `band_slices`) in raster order; None when fewer than MIN_JUDGED_PIXELS are judged."""
         counts = [int(np.count_nonzero(j)) for j in judged]
         total = sum(counts)
         if total < MIN_JUDGED_PIXELS:
@@ -318,12 +318,11 @@ class _SecondPaths:
         step = max(1, total // self.MEDIAN_SAMPLE)
         starts = np.cumsum([0] + counts[:-1])
 
-        def sample(k: int) -> list[np.ndarray]:
-            at = np.flatnonzero(judged[k])[(-int(starts[k])) % step:: step]
-            return value(bands[k], at)
+        def sample(rows: slice) -> list[np.ndarray]:
+            k = rows.start // CHUNK_ROWS
+            return value(rows, np.flatnonzero(judged[k])[(-int(starts[k])) % step:: step])
 
-        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-            parts = list(pool.map(sample, range(len(bands))))
+        parts = in_bands(self.background.shape[0], sample)
         return [np.float32(np.median(np.concatenate([p[n] for p in parts]))) for n in range(len(parts[0]))]
 
     def _sigma_b(self, rows: slice, at: np.ndarray) -> np.ndarray:
@@ -347,9 +346,8 @@ class _SecondPaths:
         s = self.settings
         bands = band_slices(usable.shape[0])
         candidates = [usable[b] & ~order_error[b] for b in bands]
-        pair_medians = self._medians(candidates, self._pair_devs, bands)
-        ratio_medians = self._medians([usable[b] for b in bands], lambda rows, at: [self._log_ratio(rows, at)[0]],
-                                      bands)
+        pair_medians = self._medians(candidates, self._pair_devs)
+        ratio_medians = self._medians([usable[b] for b in bands], lambda rows, at: [self._log_ratio(rows, at)[0]])
         ratio_median = ratio_medians[0] if ratio_medians is not None else None
         out = np.zeros(usable.shape, bool)
         min_rad = np.float32(s.interreflection_min_rad)
@@ -358,8 +356,8 @@ class _SecondPaths:
             inside = (np.exp(float(ratio_median) - float(ratio_limit)) * (1 + 1e-4),
                       np.exp(float(ratio_median) + float(ratio_limit)) * (1 - 1e-4))
 
-        def band(k: int) -> None:
-            rows = bands[k]
+        def band(rows: slice) -> None:
+            k = rows.start // CHUNK_ROWS
             hit = out[rows].ravel()
             if pair_medians is not None:  # a pixel within min_rad of a pair's median needs no noise bound
                 for (i, j), dev, median in zip(self.pairs, self._pair_devs(rows), pair_medians):
@@ -379,8 +377,7 @@ class _SecondPaths:
             order_error[rows] &= ~out[rows]
             usable[rows] &= ~out[rows]
 
-        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-            list(pool.map(band, range(len(bands))))
+        in_bands(usable.shape[0], band)
         return out
 
 
@@ -498,7 +495,6 @@ def small_regions(foreground: np.ndarray, min_px: int) -> np.ndarray:
                                                                ltype=cv2.CV_32S)
         return labels, stats[:, cv2.CC_STAT_AREA].astype(np.int64)
 
-    bands = band_slices(h)
     parts = in_bands(h, label)
     offsets = np.cumsum([0] + [len(area) for _, area in parts[:-1]])
     area = np.concatenate([area for _, area in parts])
@@ -514,11 +510,11 @@ def small_regions(foreground: np.ndarray, min_px: int) -> np.ndarray:
     small[offsets] = False
     islands = np.empty(foreground.shape, dtype=bool)
 
-    def lookup(k: int) -> None:
-        islands[bands[k]] = small[offsets[k] + parts[k][0]]
+    def lookup(rows: slice) -> None:
+        k = rows.start // CHUNK_ROWS
+        islands[rows] = small[offsets[k] + parts[k][0]]
 
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        list(pool.map(lookup, range(len(bands))))
+    in_bands(h, lookup)
     return islands
 
 
