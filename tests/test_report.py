@@ -9,11 +9,13 @@ rule written out in the test)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
 import shutil
 import tomllib
+from functools import cache
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -82,9 +84,18 @@ HIGH_TOP = SimpleNamespace(label="#657", step_id=657, type="plane", index=9)
 BOSS = SimpleNamespace(label="#17", step_id=17, type="cylinder", index=0)
 
 
-def known_report() -> InspectionReport:
+@cache
+def demo_cad() -> object:
+    """The demo part's CAD model (STEP, ~1-6 s to load)."""
+    from inspection.cad import load_cad
+
+    return load_cad(CONFIG_DIR / "parts" / "demo_part.step")
+
+
+def known_report(cad: bool = False) -> InspectionReport:
     """The high top (35 x 60 mm at z = 22) bowed by BOW_MM, and the boss's side (r 12 mm),
-    with figures and verdicts as given (not computed by the code under test)."""
+    with figures and verdicts as given (not computed by the code under test); with `cad`
+    the demo part's CAD model, drawn behind the points."""
     rng = np.random.default_rng(1)
     u, v = rng.uniform(-45, -10, 20000), rng.uniform(-30, 30, 20000)
     r2 = ((u + 27.5) / 17.5) ** 2 + (v / 30.0) ** 2
@@ -114,7 +125,7 @@ def known_report() -> InspectionReport:
     return InspectionReport(model=str(CONFIG_DIR / "parts" / "demo_part.step"), unit="mm", source="known",
                             scan_points=len(foot), part_points=len(foot), assigned_points=len(foot), registration=reg,
                             faces=rows, form_settings=FormSettings(), timings_s={}, part_mask=np.ones(len(foot), bool),
-                            segmentation=seg, calibration="none", header=header)
+                            segmentation=seg, calibration="none", header=header, cad=demo_cad() if cad else None)
 
 
 def iso_14253(value: float, U: float, tol: float) -> str:
@@ -205,6 +216,9 @@ def check_in_browser(page: Path, tmp: Path, ids: tuple[str, ...], closeup: str |
     if save is not None:
         save.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(save / f"{stem}-first-page.png"), img[:HEIGHT])
+        if "views" in box["boxes"]:
+            x, y, w, h = (int(round(t)) for t in box["boxes"]["views"])
+            cv2.imwrite(str(save / f"{stem}-views.png"), img[max(y - 30, 0):y + h + 10, x:x + w])
         if closeup is None:
             return
         x, y, w, h = (int(round(t)) for t in box["boxes"][closeup])
@@ -219,7 +233,7 @@ def saved_screenshots() -> Path | None:
 
 @needs_chromium
 def test_report_in_a_browser(tmp_path: Path) -> None:
-    rep = known_report()
+    rep = known_report(cad=True)
     paths = rep.write(tmp_path, pdf=True)
     page = tmp_path / "inspection.html"
     assert "src=\"data:image/png;base64," in page.read_text() and "src=\"http" not in page.read_text()
@@ -250,6 +264,35 @@ def test_face_closeup_shows_the_bow() -> None:
     assert redness((x0 + x1) // 2, (y0 + y1) // 2) > 80  # +12 um of 20: a clear red
     for x, y in ((x0 + 4, y0 + 4), (x1 - 4, y0 + 4), (x0 + 4, y1 - 4), (x1 - 4, y1 - 4)):
         assert abs(redness(x, y)) < 45  # about 0 um: near white
+
+
+def test_every_view_calls_out_the_faces_that_face_it() -> None:
+    """Callouts on every view, by geometry worked out here: the high top (normal +z) faces
+    all four views (each looks down at 12 degrees or more); the boss's side (normals
+    horizontal) faces every view but the one from straight above, where it is seen edge-on."""
+    from inspection.report_figures import VIEWS, callout_views
+
+    assert [elev for _, elev, _ in VIEWS] == [30.0, 30.0, 90.0, 12.0]  # the views this truth is for
+    rep = known_report()
+    top, boss = (rep.faces.index(r) for r in rep.faces)
+    assert callout_views(rep) == {0: [top, boss], 1: [top, boss], 2: [top], 3: [top, boss]}
+
+
+def test_the_cad_model_is_drawn_behind_the_points() -> None:
+    """With the CAD model the views show the part's unscanned faces as a grey shaded mesh:
+    far more grey pixels (R = G = B, not white) than without it, where only the axes' grid
+    lines, ticks and labels are grey."""
+    import cv2
+
+    from inspection.report_figures import part_views
+
+    def grey_share(png: bytes) -> float:
+        img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(int)
+        flat = (img.max(axis=2) - img.min(axis=2)) <= 6
+        return float((flat & (img.mean(axis=2) > 90) & (img.mean(axis=2) < 235)).mean())
+
+    bare, drawn = grey_share(part_views(known_report(), 0.02)), grey_share(part_views(known_report(cad=True), 0.02))
+    assert bare < 0.06 and drawn > bare + 0.08, (bare, drawn)  # measured: 4 % and 16 % of the figure
 
 
 def test_pdf_skipped_without_chromium(tmp_path: Path, monkeypatch) -> None:
