@@ -20,7 +20,8 @@ ever a number.
   v}, ...], "fitness": f, "rmse_mm": r, ...}` with the value columns of `REPORT_COLUMNS`
   (each with `_u_mm` and, tested against zero, `_limit_mm`), plus `"program"`: the part
   program and the decision of each of its characteristics on this view
-  (`view_decisions`).
+  (`view_decisions`); the inspection's recording (`outputs/inspection.rrd`: registered
+  cloud, CAD, deviations, deviation map, report) unless the session's rig records nothing.
 - `simulator-truth` (`SimulatorTruth`): the simulated part's imposed defects
   (`sim_part.json`, written into each session by the simulated bench) reported as if
   measured. It measures nothing: it exercises a station's loop, storage, views and verdict
@@ -30,6 +31,7 @@ ever a number.
 from __future__ import annotations
 
 import json
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Protocol, Sequence
@@ -45,6 +47,7 @@ if TYPE_CHECKING:
     from inspection.cad import CadModel
 
 REPORT_FILE = "inspection.json"  # written into the session's outputs/ by the adapter
+RECORDING_FILE = "inspection.rrd"  # the inspection's Rerun recording, beside it (`slscan review PART` shows it)
 
 # (kind, method) -> the report's per-face column that gives the value, in mm. The profile
 # value is the report's zone width 2 max|d| of the signed deviations of the form surface
@@ -149,6 +152,8 @@ class InspectionMeasurement:
         from inspection.errors import InspectionError
         from inspection.inspect_scan import inspect
         from inspection.measured_cloud import load_session
+        from scanner.pipeline import recording_level
+        from scanner.session_recording import SessionRecording
         from slscan.measurement_model import session_uncertainty
 
         model = self._model(program)
@@ -158,10 +163,17 @@ class InspectionMeasurement:
         paths: list[Path] = []
         for k, session in enumerate(sessions):
             prior_key = (program.cad_path, program.mesh_unit, k)
+            level = recording_level(session)  # the session's own: none, display or full
             try:
                 scan = load_session(session.root)
-                report = inspect(scan, model, tolerances, prior=self._priors.get(prior_key),
-                                 uncertainty=session_uncertainty(session)(scan.pixels))
+                with (nullcontext() if level == "none" else
+                      SessionRecording(session.outputs / RECORDING_FILE, session.id, send_blueprint=False,
+                                       level=level)) as recording:
+                    if recording is not None:
+                        recording.log_rig(session.rig_model())
+                    report = inspect(scan, model, tolerances, recording=recording,
+                                     prior=self._priors.get(prior_key),
+                                     uncertainty=session_uncertainty(session)(scan.pixels))
             except InspectionError as exc:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
             self._priors[prior_key] = report.registration

@@ -207,8 +207,8 @@ class StationTUI:
                     put(line)
                 put("-" * (w - 1))
             events = list(st.events)
-        put(f"RUNNING STATISTICS  {s.parts} parts, {s.passed} pass, {s.failed} fail, {s.uncertain} uncertain "
-            f"(re-measure), {s.errors} not measured"
+        put(f"RUNNING STATISTICS  {s.parts} parts, {s.passed} pass, {s.failed} fail, {s.uncertain} uncertain, "
+            f"{s.errors} not measured"
             + (f", yield {s.yield_percent:.1f} %" if s.yield_percent is not None else ""))
         for c in s.characteristics:
             if c.n:
