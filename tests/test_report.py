@@ -9,7 +9,6 @@ rule written out in the test)."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import re
@@ -306,7 +305,9 @@ def test_pdf_skipped_without_chromium(tmp_path: Path, monkeypatch) -> None:
 
 def station_cycles(n: int = 12) -> tuple[list, dict]:
     """n stored cycles of the demo program: each characteristic's value drawn about a
-    quarter of its tolerance, every fifth part's high-top flatness out of tolerance."""
+    quarter of its tolerance with U = 5 % of the tolerance, every fifth part's high-top
+    flatness out of tolerance and the eighth part's at its tolerance (uncertain); decisions
+    by the ISO 14253-1 rule written out here."""
     import datetime as dt
 
     from slscan.station.results import ResultRow, ValueRecord
@@ -321,8 +322,15 @@ def station_cycles(n: int = 12) -> tuple[list, dict]:
             v = abs(rng.normal(c.tolerance_mm / 4, c.tolerance_mm / 20))
             if c.name == "high_top_flatness" and k % 5 == 4:
                 v = 3 * c.tolerance_mm
-            vals.append(ValueRecord(c.name, c.kind, c.face, v, c.tolerance_mm, v <= c.tolerance_mm, 1000))
-        status = "pass" if all(v.conforms for v in vals) else "fail"
+            if c.name == "high_top_flatness" and k == 7:
+                v = c.tolerance_mm
+            U = 0.05 * c.tolerance_mm
+            decision = iso_14253(v, U, c.tolerance_mm)
+            vals.append(ValueRecord(c.name, c.kind, c.face, v, c.tolerance_mm,
+                                    {"conforming": True, "non-conforming": False}.get(decision), 1000, "", U, None,
+                                    decision, "guard-banded"))
+        decisions = {v.decision for v in vals}
+        status = "fail" if "non-conforming" in decisions else "uncertain" if "uncertain" in decisions else "pass"
         rows.append(ResultRow(program.name, program.version, program.fingerprint, f"SN-{k + 1:04d}", "ana", "bench-1",
                               "sim-bench", "factory-sim-bench", "0.1.0", "cad", f"/parts/{k}", t0 + dt.timedelta(minutes=k),
                               id=k + 1, attempt=1, status=status, finished_at=t0 + dt.timedelta(minutes=k, seconds=40)))
@@ -338,7 +346,8 @@ def test_station_report_has_the_header_in_a_browser(tmp_path: Path) -> None:
     page = write_report(tmp_path / "station", load_program(PROGRAM), rows, values, "test cycles")
     text = page.read_text()
     for want in ("12 serials", "SN-0001", "ana", "sim-bench", "factory-sim-bench", "undated (factory geometry)",
-                 "slscan 0.1.0", file_sha256(PROGRAM)):
+                 "slscan 0.1.0", file_sha256(PROGRAM), "9 pass, 2 fail, 1 uncertain (re-measure)",
+                 "0.0500 ± 0.0025 UNCERTAIN", "<td class='uncertain l'>UNCERTAIN</td>"):
         assert want in text, want
     check_in_browser(page, tmp_path, ("header",), None, saved_screenshots(), "station-report")
 
