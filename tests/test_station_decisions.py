@@ -16,9 +16,11 @@ from typing import Sequence
 
 import numpy as np
 import pytest
-from test_station_support import DEMO_PROGRAM, station_config
+from test_station_support import DEMO_PROGRAM, program_copy, station_config
 
+from inspection.tolerances import GUARD_BANDED
 from scanner.config import CONFIG_DIR
+from scanner.errors import ConfigError
 from scanner.session import Session
 from sim.parts_demo import PLATE_X, PLATE_Y, STEP_X
 from sim.station_parts import TRUTH_FILE
@@ -26,7 +28,7 @@ from slscan.station.app import open_station, outcome_lines
 from slscan.station.history_report import write_report
 from slscan.station.loop import PART_RECORD
 from slscan.station.measure import REPORT_FILE, MeasuredValue, MeasurementResult, SimulatorTruth, _pick, view_decisions
-from slscan.station.program import Characteristic, PartProgram, load_program
+from slscan.station.program import Characteristic, PartProgram, load_program, program_tolerances
 from slscan.station.quality import judge, running_stats
 from slscan.station.station_config import StationConfig
 
@@ -81,6 +83,15 @@ def test_the_plain_rule_judges_the_value_alone() -> None:
     assert status == "pass" and records[0].decision == "conforming" and records[0].rule == "plain"
 
 
+def test_the_program_names_its_decision_rule(tmp_path: Path) -> None:
+    assert load_program(DEMO_PROGRAM).decision_rule == GUARD_BANDED  # the default
+    description = 'description = "Bundled demo part: stepped plate with a boss"'
+    plain = load_program(program_copy(tmp_path, (description, description + '\ndecision_rule = "plain"')))
+    assert plain.decision_rule == "plain" and program_tolerances(plain).decision_rule == "plain"
+    with pytest.raises(ConfigError, match="program.decision_rule"):
+        load_program(program_copy(tmp_path, (description, description + '\ndecision_rule = "lenient"')))
+
+
 def test_a_part_fails_on_any_proven_nonconformity_and_is_never_passed_on_a_missing_value() -> None:
     program = load_program(DEMO_PROGRAM)
     both = result(high_top_flatness=(0.048, 0.004, None), high_top_profile=(0.30, 0.002, None))
@@ -132,8 +143,6 @@ def test_an_uncertain_part_is_stored_shown_and_counted_apart(tmp_path: Path) -> 
     flatness tolerance of 0.022 mm with U = 4 um its decision is uncertain: the part is
     neither passed nor failed, stored as such, and shown as such in its record, the
     terminal lines, the report and the statistics."""
-    from test_station_support import program_copy
-
     program_path = program_copy(tmp_path, ("tolerance_mm = 0.05", "tolerance_mm = 0.022"))  # the first: high top
     config = StationConfig.load(station_config(tmp_path))
     with open_station(program_path, config, "ana", TruthWithU()) as run:
