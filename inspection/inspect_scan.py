@@ -113,7 +113,8 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
         assigned_points=int(seg.assigned.sum()), registration=reg, faces=tuple(rows),
         form_settings=settings.form, timings_s={k: round(v, 4) for k, v in times.items()},
         part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose.as_dict(),
-        calibration=uncertainty.calibration.source if uncertainty is not None else "not known (a bare cloud): not in U")
+        calibration=uncertainty.calibration.source if uncertainty is not None else "not known (a bare cloud): not in U",
+        cad=model)
     if recording is not None:
         from inspection.inspection_recording import log_inspection
 

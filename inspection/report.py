@@ -95,7 +95,8 @@ class InspectionReport:
     `decision_rule` how verdicts used U; `calibration` where the calibration term came from;
     `pose_u` the registration pose's expanded uncertainty (k = 2: rotation in degrees,
     translation in mm); `header` who, what, when and with what (`inspection.report_header`),
-    filled by the command that inspects."""
+    filled by the command that inspects; `cad` the CAD model inspected against (an
+    `inspection.cad.CadModel`, drawn behind the points in the report's views; None: not kept)."""
 
     model: str
     unit: str
@@ -113,6 +114,7 @@ class InspectionReport:
     calibration: str = ""
     pose_u: dict[str, float] = field(default_factory=dict)
     header: ReportHeader = ReportHeader()
+    cad: Any = field(default=None, repr=False)
 
     @property
     def fitness(self) -> float:

@@ -5,8 +5,13 @@ surface coordinates; the histogram of the signed deviations.
 
 Points are the feet of the scan points on the CAD model (model frame, mm), so every view
 shows the part as designed, coloured by how far the scan departs from it (positive:
-excess material). At most `MAX_POINTS` points are drawn (a fixed-seed sample), which keeps
-a drawing to a few seconds; the colours and statistics use every point."""
+excess material). Behind them the CAD model is drawn as a light grey shaded mesh
+(decimated to at most `MAX_TRIANGLES` triangles), so unscanned regions read as the part,
+not as empty space. At most `MAX_POINTS` points are drawn (a fixed-seed sample), which
+keeps a drawing to a few seconds; the colours and statistics use every point. Every view
+carries a callout per toleranced face that faces it (at least `FACING` of the face's
+points turned towards the viewer); a face facing none of the views is called out on the
+one it faces most."""
 
 from __future__ import annotations
 
@@ -20,10 +25,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import Normalize  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
 from inspection.tolerances import overall  # noqa: E402
 
 MAX_POINTS = 40_000
+MAX_TRIANGLES = 6_000  # the CAD mesh drawn behind the points is decimated to this many
+FACING = 0.3  # a face is called out on a view when this share of its points faces the viewer
+GRAZING = 0.1  # a point faces the viewer when its normal's component towards the eye exceeds this (~6 deg)
+LIGHT = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])  # the mesh's shading light (model frame)
 CMAP = "RdBu_r"  # blue: inside the material, red: outside (as the recording's deviation map)
 # (title, elevation deg, azimuth deg) of the part views
 VIEWS = (("from front left, above", 30.0, -120.0), ("from back right, above", 30.0, 60.0),
@@ -52,28 +62,77 @@ def face_verdict(row: Any) -> str:
     return overall(words) if words else ""
 
 
+def eye_direction(elev_deg: float, azim_deg: float) -> np.ndarray:
+    """The unit vector from the scene towards matplotlib's 3D camera at (elev, azim)."""
+    e, a = np.radians(elev_deg), np.radians(azim_deg)
+    return np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+
+
+def callout_views(report: Any, views: Any = VIEWS) -> dict[int, list[int]]:
+    """Per view (index in `views`), the rows of `report.faces` called out on it: toleranced
+    faces with points of which at least `FACING` face the viewer; a face facing none of
+    the views goes on the one it faces most."""
+    seg = report.segmentation
+    eyes = np.array([eye_direction(elev, azim) for _, elev, azim in views])
+    out: dict[int, list[int]] = {k: [] for k in range(len(views))}
+    for i, row in enumerate(report.faces):
+        on = seg.face == row.index
+        if not face_verdict(row) or not on.any():
+            continue
+        facing = (seg.normal[on] @ eyes.T > GRAZING).mean(axis=0)
+        for k in np.flatnonzero(facing >= FACING) if (facing >= FACING).any() else [int(np.argmax(facing))]:
+            out[int(k)].append(i)
+    return out
+
+
+def display_mesh(cad: Any, limit: int = MAX_TRIANGLES) -> tuple[np.ndarray, np.ndarray]:
+    """The CAD model's triangles (T, 3, 3) mm for drawing, decimated by quadric error
+    (open3d) to at most `limit`, and their grey level (0..1) shaded by `LIGHT`."""
+    v, t = cad.tessellation.vertices, cad.tessellation.triangles
+    if len(t) > limit:
+        import open3d as o3d
+
+        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t))
+        mesh = mesh.simplify_quadric_decimation(limit)
+        v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    tri = v[t]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return tri, 0.5 + 0.35 * np.abs(n @ LIGHT)
+
+
 def part_views(report: Any, limit_mm: float) -> bytes:
-    """The part from the sides in `VIEWS`, its points coloured by signed deviation over
-    ±`limit_mm`, one colour bar in mm; the first view carries a callout per toleranced face
-    (its name and verdict) at the centre of the face's points."""
+    """The part from the sides in `VIEWS`, the CAD model as a light mesh behind its points,
+    the points coloured by signed deviation over ±`limit_mm`, one colour bar in mm; each
+    view carries the callouts `callout_views` gives it (a face's name and verdict at the
+    centre of its points)."""
     seg = report.segmentation
     ok = seg.assigned & np.isfinite(seg.deviation_mm)
     pts, dev = seg.foot[ok], seg.deviation_mm[ok]
     pick = _sample(len(pts))
     norm = Normalize(-limit_mm, limit_mm)
     fig = plt.figure(figsize=(11.0, 8.6))
-    lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(3), np.ones(3))
+    mesh = display_mesh(report.cad) if report.cad is not None else None
+    corners = np.vstack([pts] + ([mesh[0].reshape(-1, 3)] if mesh is not None else []))
+    lo, hi = (corners.min(axis=0), corners.max(axis=0)) if len(corners) else (np.zeros(3), np.ones(3))
+    callouts = callout_views(report)
     for k, (title, elev, azim) in enumerate(VIEWS):
         ax = fig.add_subplot(2, 2, k + 1, projection="3d")
-        ax.scatter(*pts[pick].T, c=dev[pick], cmap=CMAP, norm=norm, s=0.6, linewidths=0, depthshade=False)
+        ax.computed_zorder = False  # the mesh stays behind the points, the callouts in front
+        for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+            axis.set_pane_color((1.0, 1.0, 1.0, 0.0))  # clear panes: the grey is the part
+        if mesh is not None:
+            grey = mesh[1][:, None] * np.ones(3)
+            ax.add_collection3d(Poly3DCollection(mesh[0], facecolors=np.column_stack([grey, np.full(len(grey), 0.55)]),
+                                                 edgecolors="none", zorder=1))
+        ax.scatter(*pts[pick].T, c=dev[pick], cmap=CMAP, norm=norm, s=0.6, linewidths=0, depthshade=False, zorder=2)
         ax.view_init(elev=elev, azim=azim)
         ax.set_box_aspect(np.maximum(hi - lo, 1e-3))
         ax.set_xlim(lo[0], hi[0]), ax.set_ylim(lo[1], hi[1]), ax.set_zlim(lo[2], hi[2])
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("x (mm)", fontsize=8), ax.set_ylabel("y (mm)", fontsize=8), ax.set_zlabel("z (mm)", fontsize=8)
         ax.tick_params(labelsize=7)
-        if k == 0:
-            _callouts(ax, report, seg)
+        _callouts(ax, [report.faces[i] for i in callouts[k]], seg)
     fig.subplots_adjust(left=0.02, right=0.86, bottom=0.03, top=0.95, wspace=0.05, hspace=0.12)
     cax = fig.add_axes((0.9, 0.15, 0.02, 0.7))
     bar = fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=CMAP), cax=cax)
@@ -81,14 +140,11 @@ def part_views(report: Any, limit_mm: float) -> bytes:
     return _png(fig)
 
 
-def _callouts(ax: Any, report: Any, seg: Any) -> None:
-    """A label per face with a verdict, at the mean of its points, in the verdict's colour."""
-    for row in report.faces:
+def _callouts(ax: Any, rows: Any, seg: Any) -> None:
+    """A label per face row (name and verdict) at the mean of its points, in the verdict's colour."""
+    for row in rows:
         verdict = face_verdict(row)
-        on = seg.face == row.index
-        if not verdict or not on.any():
-            continue
-        c = seg.foot[on].mean(axis=0)
+        c = seg.foot[seg.face == row.index].mean(axis=0)
         ax.text(*c, f"{row.title}\n{verdict}", fontsize=8, color=VERDICT_COLOURS.get(verdict, "#000"),
                 ha="center", va="bottom", zorder=10,
                 bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": VERDICT_COLOURS.get(verdict, "#000"),

@@ -21,9 +21,11 @@ import rerun.blueprint as rrb
 
 from scanner.session_recording import (
     CAMERA,
+    CLOUD,
     EVENTS,
     FRAME_SPEC,
     METRICS,
+    NORMALS,
     RECORDING_NAME,
     WORLD,
     RecordingError,
@@ -120,12 +122,16 @@ def _log_tabs() -> rrb.Tabs:
 
 def _scan_blueprint(inspected: bool) -> rrb.Blueprint | None:
     """An inspected scan: the deviation map and the report beside the 3D view with the CAD
-    model and deviations; a scan alone keeps the recording's own blueprint."""
+    model and deviations (the raw cloud and the face-coloured points, drawn at the same
+    places, would hide the deviation colours: left out of the view, still in the streams);
+    a scan alone keeps the recording's own blueprint."""
     if not inspected:
         return None
-    from inspection.inspection_recording import DEVIATION_MAP, REPORT
+    from inspection.inspection_recording import DEVIATION_MAP, FACES, REPORT
 
-    left = rrb.Vertical(rrb.Spatial3DView(origin=WORLD, name="3D: scan, CAD, deviations"), _log_tabs(),
+    three_d = rrb.Spatial3DView(origin=WORLD, contents=["$origin/**", f"- {CLOUD}", f"- {NORMALS}", f"- {FACES}"],
+                                name="3D: scan, CAD, deviations")
+    left = rrb.Vertical(three_d, _log_tabs(),
                         row_shares=[3, 1])
     right = rrb.Vertical(rrb.Tabs(rrb.Spatial2DView(origin=DEVIATION_MAP, name="deviation map"),
                                   rrb.Spatial2DView(origin=CAMERA, name="camera")),

@@ -14,6 +14,7 @@ import os
 import re
 import shutil
 import tomllib
+from functools import cache
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -82,9 +83,18 @@ HIGH_TOP = SimpleNamespace(label="#657", step_id=657, type="plane", index=9)
 BOSS = SimpleNamespace(label="#17", step_id=17, type="cylinder", index=0)
 
 
-def known_report() -> InspectionReport:
+@cache
+def demo_cad() -> object:
+    """The demo part's CAD model (STEP, ~1-6 s to load)."""
+    from inspection.cad import load_cad
+
+    return load_cad(CONFIG_DIR / "parts" / "demo_part.step")
+
+
+def known_report(cad: bool = False) -> InspectionReport:
     """The high top (35 x 60 mm at z = 22) bowed by BOW_MM, and the boss's side (r 12 mm),
-    with figures and verdicts as given (not computed by the code under test)."""
+    with figures and verdicts as given (not computed by the code under test); with `cad`
+    the demo part's CAD model, drawn behind the points."""
     rng = np.random.default_rng(1)
     u, v = rng.uniform(-45, -10, 20000), rng.uniform(-30, 30, 20000)
     r2 = ((u + 27.5) / 17.5) ** 2 + (v / 30.0) ** 2
@@ -114,7 +124,7 @@ def known_report() -> InspectionReport:
     return InspectionReport(model=str(CONFIG_DIR / "parts" / "demo_part.step"), unit="mm", source="known",
                             scan_points=len(foot), part_points=len(foot), assigned_points=len(foot), registration=reg,
                             faces=rows, form_settings=FormSettings(), timings_s={}, part_mask=np.ones(len(foot), bool),
-                            segmentation=seg, calibration="none", header=header)
+                            segmentation=seg, calibration="none", header=header, cad=demo_cad() if cad else None)
 
 
 def iso_14253(value: float, U: float, tol: float) -> str:
@@ -205,6 +215,9 @@ def check_in_browser(page: Path, tmp: Path, ids: tuple[str, ...], closeup: str |
     if save is not None:
         save.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(save / f"{stem}-first-page.png"), img[:HEIGHT])
+        if "views" in box["boxes"]:
+            x, y, w, h = (int(round(t)) for t in box["boxes"]["views"])
+            cv2.imwrite(str(save / f"{stem}-views.png"), img[max(y - 30, 0):y + h + 10, x:x + w])
         if closeup is None:
             return
         x, y, w, h = (int(round(t)) for t in box["boxes"][closeup])
@@ -219,7 +232,7 @@ def saved_screenshots() -> Path | None:
 
 @needs_chromium
 def test_report_in_a_browser(tmp_path: Path) -> None:
-    rep = known_report()
+    rep = known_report(cad=True)
     paths = rep.write(tmp_path, pdf=True)
     page = tmp_path / "inspection.html"
     assert "src=\"data:image/png;base64," in page.read_text() and "src=\"http" not in page.read_text()
@@ -252,6 +265,35 @@ def test_face_closeup_shows_the_bow() -> None:
         assert abs(redness(x, y)) < 45  # about 0 um: near white
 
 
+def test_every_view_calls_out_the_faces_that_face_it() -> None:
+    """Callouts on every view, by geometry worked out here: the high top (normal +z) faces
+    all four views (each looks down at 12 degrees or more); the boss's side (normals
+    horizontal) faces every view but the one from straight above, where it is seen edge-on."""
+    from inspection.report_figures import VIEWS, callout_views
+
+    assert [elev for _, elev, _ in VIEWS] == [30.0, 30.0, 90.0, 12.0]  # the views this truth is for
+    rep = known_report()
+    top, boss = (rep.faces.index(r) for r in rep.faces)
+    assert callout_views(rep) == {0: [top, boss], 1: [top, boss], 2: [top], 3: [top, boss]}
+
+
+def test_the_cad_model_is_drawn_behind_the_points() -> None:
+    """With the CAD model the views show the part's unscanned faces as a grey shaded mesh:
+    far more grey pixels (R = G = B, not white) than without it, where only the axes' grid
+    lines, ticks and labels are grey."""
+    import cv2
+
+    from inspection.report_figures import part_views
+
+    def grey_share(png: bytes) -> float:
+        img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(int)
+        flat = (img.max(axis=2) - img.min(axis=2)) <= 6
+        return float((flat & (img.mean(axis=2) > 90) & (img.mean(axis=2) < 235)).mean())
+
+    bare, drawn = grey_share(part_views(known_report(), 0.02)), grey_share(part_views(known_report(cad=True), 0.02))
+    assert bare < 0.06 and drawn > bare + 0.08, (bare, drawn)  # measured: 4 % and 16 % of the figure
+
+
 def test_pdf_skipped_without_chromium(tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setattr(shutil, "which", lambda name: None)
     page = tmp_path / "p.html"
@@ -263,7 +305,9 @@ def test_pdf_skipped_without_chromium(tmp_path: Path, monkeypatch) -> None:
 
 def station_cycles(n: int = 12) -> tuple[list, dict]:
     """n stored cycles of the demo program: each characteristic's value drawn about a
-    quarter of its tolerance, every fifth part's high-top flatness out of tolerance."""
+    quarter of its tolerance with U = 5 % of the tolerance, every fifth part's high-top
+    flatness out of tolerance and the eighth part's at its tolerance (uncertain); decisions
+    by the ISO 14253-1 rule written out here."""
     import datetime as dt
 
     from slscan.station.results import ResultRow, ValueRecord
@@ -278,8 +322,15 @@ def station_cycles(n: int = 12) -> tuple[list, dict]:
             v = abs(rng.normal(c.tolerance_mm / 4, c.tolerance_mm / 20))
             if c.name == "high_top_flatness" and k % 5 == 4:
                 v = 3 * c.tolerance_mm
-            vals.append(ValueRecord(c.name, c.kind, c.face, v, c.tolerance_mm, v <= c.tolerance_mm, 1000))
-        status = "pass" if all(v.conforms for v in vals) else "fail"
+            if c.name == "high_top_flatness" and k == 7:
+                v = c.tolerance_mm
+            U = 0.05 * c.tolerance_mm
+            decision = iso_14253(v, U, c.tolerance_mm)
+            vals.append(ValueRecord(c.name, c.kind, c.face, v, c.tolerance_mm,
+                                    {"conforming": True, "non-conforming": False}.get(decision), 1000, "", U, None,
+                                    decision, "guard-banded"))
+        decisions = {v.decision for v in vals}
+        status = "fail" if "non-conforming" in decisions else "uncertain" if "uncertain" in decisions else "pass"
         rows.append(ResultRow(program.name, program.version, program.fingerprint, f"SN-{k + 1:04d}", "ana", "bench-1",
                               "sim-bench", "factory-sim-bench", "0.1.0", "cad", f"/parts/{k}", t0 + dt.timedelta(minutes=k),
                               id=k + 1, attempt=1, status=status, finished_at=t0 + dt.timedelta(minutes=k, seconds=40)))
@@ -295,7 +346,8 @@ def test_station_report_has_the_header_in_a_browser(tmp_path: Path) -> None:
     page = write_report(tmp_path / "station", load_program(PROGRAM), rows, values, "test cycles")
     text = page.read_text()
     for want in ("12 serials", "SN-0001", "ana", "sim-bench", "factory-sim-bench", "undated (factory geometry)",
-                 "slscan 0.1.0", file_sha256(PROGRAM)):
+                 "slscan 0.1.0", file_sha256(PROGRAM), "9 pass, 2 fail, 1 uncertain (re-measure)",
+                 "0.0500 ± 0.0025 UNCERTAIN", "<td class='uncertain l'>UNCERTAIN</td>"):
         assert want in text, want
     check_in_browser(page, tmp_path, ("header",), None, saved_screenshots(), "station-report")
 

@@ -318,3 +318,42 @@ CREATE TABLE measured (result_id INTEGER NOT NULL REFERENCES results (id) ON DEL
     tolerance_mm REAL NOT NULL, conforms INTEGER, points INTEGER NOT NULL, note TEXT NOT NULL,
     PRIMARY KEY (result_id, characteristic));
 """
+
+
+def test_a_version_2_database_is_upgraded_and_its_values_keep_their_plain_decisions(tmp_path: Path) -> None:
+    """Schema 3 adds each value's U, detection limit, decision and rule: values stored by a
+    version 2 station keep what their plain comparison said (conforms true / false / null),
+    under a rule that says so; new values keep all four."""
+    import sqlite3
+
+    from slscan.station.results import OLD_RULE
+
+    path = tmp_path / "v2.sqlite"
+    conn = sqlite3.connect(path)
+    conn.executescript(V1_SCHEMA + "ALTER TABLE results ADD COLUMN owner TEXT;\n"
+                       "ALTER TABLE results ADD COLUMN lease_until TEXT;\n"
+                       "CREATE UNIQUE INDEX results_attempt ON results (program, serial, attempt);\n"
+                       "INSERT INTO slscan_schema (version) VALUES (2);")
+    conn.execute("INSERT INTO results (program, program_version, program_fingerprint, serial, operator, station, "
+                 "rig, calibration_id, software_version, measurement, part_path, status, message, started_at, "
+                 "finished_at, source, attempt) VALUES ('demo-part', '1.0', 'abc', 'SN-1', 'ana', 'bench-1', 'sim', "
+                 "NULL, '0.1.0', 'inspection', '/p', 'fail', '', '2026-11-23T08:00:00+00:00', NULL, 'station', 1)")
+    for k, (name, conforms) in enumerate((("a", 1), ("b", 0), ("c", None))):
+        conn.execute("INSERT INTO measured VALUES (1, ?, ?, 'flatness', '#657', ?, 0.05, ?, 10, '')",
+                     (k, name, None if conforms is None else 0.04 + 0.02 * (1 - conforms), conforms))
+    conn.commit()
+    conn.close()
+    with pytest.raises(ResultsError, match="schema version 2.*a station opening it upgrades it"):
+        open_results(f"sqlite:{path}", create=False)
+    with open_results(f"sqlite:{path}") as s:
+        old = s.values([1])[1]
+        assert [(v.conforms, v.decision, v.rule, v.u_mm) for v in old] == [
+            (True, "conforming", OLD_RULE, None), (False, "non-conforming", OLD_RULE, None),
+            (None, "not measured", OLD_RULE, None)]
+        rid, _ = s.begin_part(start("SN-2"))
+        new = [ValueRecord("a", "flatness", "#657", 0.048, 0.05, None, 10, "", 0.004, 0.007, "uncertain",
+                           "guard-banded"),
+               ValueRecord("sq", "sq", "#657", None, 0.03, True, 10, "below", None, 0.0046, "conforming",
+                           "guard-banded")]
+        s.finish_part(rid, "uncertain", "uncertain: a", new, T0)
+        assert s.values([rid])[rid] == new and s.result(rid).status == "uncertain"

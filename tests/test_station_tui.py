@@ -73,7 +73,7 @@ def test_operator_screen_keys_in_screen_text_out(tmp_path: Path) -> None:
         term.keys("s")
         screen = term.wait(r"LAST  SN-0042 \(attempt 1\): PASS")
         assert re.search(r"high_top_flatness\s+0\.0000 mm\s+<= 0\.050\s+ok", screen)
-        assert "RUNNING STATISTICS  1 parts, 1 pass, 0 fail, 0 not measured, yield 100.0 %" in screen
+        assert "RUNNING STATISTICS  1 parts, 1 pass, 0 fail, 0 uncertain, 0 not measured, yield 100.0 %" in screen
 
         term.keys("n")  # the next part: the simulator brings the part with a 150 um bow
         term.keys("SN-0043\r")

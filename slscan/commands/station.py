@@ -179,7 +179,7 @@ def register(sub: Any) -> None:
     _station_options(r)
     r.add_argument("--program", help="part program name, or its TOML (needed for --report)")
     r.add_argument("--serial", help="only the results of this part serial number")
-    r.add_argument("--status", choices=("in_progress", "pass", "fail", "error", "aborted", "incomplete"),
+    r.add_argument("--status", choices=("in_progress", "pass", "fail", "uncertain", "error", "aborted", "incomplete"),
                    help="only the results with this status")
     r.add_argument("--since", type=_utc_time, help="ISO date/time (UTC unless it says), e.g. 2026-11-23 or 2026-11-23T08:00")
     r.add_argument("--limit", type=_count, help="only the newest N results (N >= 0)")

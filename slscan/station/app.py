@@ -26,7 +26,8 @@ from slscan.station.loop import STATS_WINDOW, CycleOutcome, Station, utcnow
 from slscan.station.measure import Measurement, cad_faces, load_measurement
 from slscan.station.paths import child
 from slscan.station.program import PartProgram, load_program
-from slscan.station.results import ResultRow, ResultsStore, ValueRecord, open_results
+from slscan.station.quality import DECISION_MARKS
+from slscan.station.results import VERDICTS, ResultRow, ResultsStore, ValueRecord, open_results
 from slscan.station.station_config import StationConfig
 
 CHART_RECORDING = "control_charts.rrd"
@@ -122,18 +123,16 @@ def outcome_lines(program: PartProgram, o: CycleOutcome) -> list[str]:
     lines = [f"{o.serial} (attempt {o.attempt}): {o.status.upper()}" + (f" - {o.message}" if o.message else "")]
     for v in o.values:
         c = program.characteristic(v.characteristic)
-        shown = "not measured" if v.value_mm is None else f"{v.value_mm:.4f} mm"
-        mark = {True: "ok", False: "OUT", None: "--"}[v.conforms]
-        lines.append(f"    {v.characteristic:<22} {shown:>14}  <= {c.tolerance_mm:.3f}  {mark}"
-                     + (f"  ({v.note})" if v.note else ""))
+        lines.append(f"    {v.characteristic:<22} {v.shown():>17} mm  <= {c.tolerance_mm:.3f}  "
+                     f"{DECISION_MARKS.get(v.decision, v.decision or '--')}" + (f"  ({v.note})" if v.note else ""))
     return lines
 
 
 def run_auto(run: StationRun, parts: int, out: TextIO | None = None, progress: Progress | None = None) -> int:
     """Measure `parts` parts without an operator (serials AUTO-<time>-<k>); print each
     verdict and, on the simulator, the verdict the imposed defects call for. Returns the
-    exit code (slscan.exit_codes): 0 when every part passed, 1 when any failed or could
-    not be measured."""
+    exit code (slscan.exit_codes): 0 when every part passed, 1 when any failed, was
+    uncertain (not passed: re-measure) or could not be measured."""
     out = out or sys.stdout
     station = run.station
     reasons = station.refusals()
@@ -157,8 +156,11 @@ def run_auto(run: StationRun, parts: int, out: TextIO | None = None, progress: P
                          + (f" -> expected {expected.upper()}" if expected else ""))
         print("\n".join(lines), file=out, flush=True)
     judged = [(o, expected_status(run.program, o.truth)) for o in outcomes]
-    counts = {s: sum(o.status == s for o in outcomes) for s in ("pass", "fail", "error", "aborted")}
+    counts = {s: sum(o.status == s for o in outcomes) for s in (*VERDICTS, "aborted")}
     print(f"\n{parts} parts: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n), file=out)
+    if counts["uncertain"]:
+        print(f"{counts['uncertain']} uncertain: a value within U of its tolerance; neither passed nor failed, "
+              "to be re-measured (a new attempt of the same serial)", file=out)
     with_truth = [(o, e) for o, e in judged if e is not None]
     if with_truth:
         agree = sum(o.status == e for o, e in with_truth)

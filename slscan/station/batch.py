@@ -33,13 +33,13 @@ from slscan.station.loop import PART_RECORD
 from slscan.station.measure import DEFAULT_MEASUREMENT, Measurement, cad_faces, load_measurement
 from slscan.station.program import PartProgram, load_program
 from slscan.station.quality import judge
-from slscan.station.results import PartStart, ValueRecord, open_results
+from slscan.station.results import VERDICTS, PartStart, ValueRecord, open_results
 from slscan.station.station_config import StationConfig
 
 
 @dataclass(frozen=True)
 class BatchItem:
-    """One part's re-inspection: its folder, status (pass, fail, error), message, values,
+    """One part's re-inspection: its folder, status (pass, fail, uncertain, error), message, values,
     serial (from the station's part record, else the folder name), the calibration it was
     reconstructed with (None: unknown, as captured), where it ran and how long it took (s);
     `truth` the simulated part's imposed defects when the sessions have them."""
@@ -67,7 +67,7 @@ class BatchSummary:
         return [i for i in self.items if i.status == "error"]
 
     def counts(self) -> dict[str, int]:
-        return {s: sum(i.status == s for i in self.items) for s in ("pass", "fail", "error")}
+        return {s: sum(i.status == s for i in self.items) for s in VERDICTS}
 
 
 def part_sessions(path: Path) -> list[Path]:
@@ -244,10 +244,11 @@ def print_summary(summary: BatchSummary, out: TextIO | None = None, json_out: bo
               file=out)
         return
     for i in summary.items:
-        vals = "  ".join(f"{v.characteristic}={v.value_mm:.4f}" for v in i.values if v.value_mm is not None)
-        print(f"{i.status.upper():<5} {i.serial:<28} {i.seconds:6.2f} s  {i.worker:<10} {vals}", file=out)
+        vals = "  ".join(f"{v.characteristic}={v.shown()} {v.decision}" for v in i.values if v.value_mm is not None)
+        print(f"{i.status.upper():<9} {i.serial:<28} {i.seconds:6.2f} s  {i.worker:<10} {vals}", file=out)
     for i in summary.failures:
         print(f"FAILED {i.path}: {i.message}", file=out)
     counts = summary.counts()
     print(f"{len(summary.items)} parts against {summary.program}: {counts['pass']} pass, {counts['fail']} fail, "
-          f"{counts['error']} failed; wall time {summary.wall_s:.2f} s on {summary.where}", file=out)
+          f"{counts['uncertain']} uncertain (re-measure), {counts['error']} failed; wall time {summary.wall_s:.2f} s "
+          f"on {summary.where}", file=out)

@@ -5,7 +5,8 @@ Per characteristic, one figure of two panels sharing the part axis (see
 control limits from the baseline and the tolerance; below, the moving ranges (or subgroup
 ranges) with theirs. Parts in the baseline are blue dots, failed or partly measured parts
 red crosses (shown, left out of the limits), parts where the characteristic was not
-measured grey ticks on the axis; a point flagged by a Western Electric rule is ringed in
+measured grey ticks on the axis; a value decided uncertain (within its U of the
+tolerance, ISO 14253-1) is marked with a purple triangle; a point flagged by a Western Electric rule is ringed in
 orange with the rule numbers. The title carries Cp and Cpk with their 95 % intervals and
 the small-sample warning.
 
@@ -13,6 +14,7 @@ The station-level Rerun recording gets every stored value as a scalar on the `sc
 timeline (the result id as the sequence number), beside its tolerance:
 
     metrics/control/<characteristic>/value_mm        the measured value (mm)
+    metrics/control/<characteristic>/u_mm            its expanded uncertainty U (k = 2, mm), when known
     metrics/control/<characteristic>/tolerance_mm    the upper limit (mm)
 """
 
@@ -22,6 +24,7 @@ import os
 from pathlib import Path
 from typing import Any, Sequence
 
+from inspection.tolerances import UNCERTAIN
 from scanner.session_recording import SessionRecording
 from slscan.station.paths import child
 from slscan.station.program import Characteristic, PartProgram
@@ -30,7 +33,7 @@ from slscan.station.results import ResultRow, ValueRecord
 
 FIGURE_IN = (9.6, 4.8)  # width, height in inches; at DPI: 960 x 480 px
 DPI = 100
-_BLUE, _RED, _GREY, _ORANGE, _GREEN = "#1f5fa8", "#c01818", "#8a8a8a", "#e07b00", "#1a7a1a"
+_BLUE, _RED, _GREY, _ORANGE, _GREEN, _PURPLE = "#1f5fa8", "#c01818", "#8a8a8a", "#e07b00", "#1a7a1a", "#7b2fbf"
 
 
 def capability_text(s: CharacteristicStats) -> str:
@@ -81,6 +84,11 @@ def draw_chart(c: Characteristic, s: CharacteristicStats) -> Any:
                         xytext=(-4, 3), textcoords="offset points", ha="right", fontsize=8, color=_GREEN)
         ax.grid(True, color="#dddddd", linewidth=0.6)
         ax.set_ylabel(names[0] if ax is top else names[1])
+    if s.subgroup == 1 and s.uncertain:
+        top.scatter([a for a, p in zip(x, s.plotted) if p.decision == UNCERTAIN],
+                    [p.value_mm for p in s.plotted if p.decision == UNCERTAIN], s=60, marker="^",
+                    facecolors="none", edgecolors=_PURPLE, linewidths=1.4, zorder=5,
+                    label="uncertain: within U of the tolerance (re-measure)")
     top.axhline(c.tolerance_mm, color=_RED, linewidth=1.5, label=f"tolerance {c.tolerance_mm:.3f} mm")
     if missing:
         top.plot(missing, [top.get_ylim()[0]] * len(missing), "|", color=_GREY, markersize=12,
@@ -141,6 +149,8 @@ class ChartRecording:
             if v.value_mm is not None:
                 scalars[control_metric(v.characteristic, "value_mm")] = v.value_mm
                 scalars[control_metric(v.characteristic, "tolerance_mm")] = v.tolerance_mm
+                if v.u_mm is not None:
+                    scalars[control_metric(v.characteristic, "u_mm")] = v.u_mm
         if scalars:
             self.rec.log_metrics(scalars, scan=result_id)
 

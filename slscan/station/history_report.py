@@ -11,21 +11,24 @@ from pathlib import Path
 from typing import Sequence
 
 from inspection.report_header import HEADER_CSS, ReportHeader, file_sha256, header_html
+from inspection.tolerances import CONFORMING, DECISION_RULES, NON_CONFORMING, UNCERTAIN
 from scanner import __version__
 from scanner.session import write_atomic
 from slscan.station.calib import FACTORY_PREFIX
 from slscan.station.charts import capability_text, write_charts
 from slscan.station.program import PartProgram
-from slscan.station.quality import CharacteristicStats, running_stats
+from slscan.station.quality import DECISION_MARKS, CharacteristicStats, running_stats
 from slscan.station.results import ResultRow, ValueRecord
 from slscan.station.spc import MIN_CAPABILITY_N
 
 REPORT_FILE = "report.html"
+DECISION_CLASSES = {CONFORMING: "pass", NON_CONFORMING: "fail", UNCERTAIN: "uncertain"}  # a value cell's style
 _STYLE = """body{font-family:sans-serif;margin:1.5em;color:#222}table{border-collapse:collapse;margin:.5em 0 1.5em}
 table{display:block;overflow-x:auto;max-width:100%}
 td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}th{background:#f0f0f0}td.l,th.l{text-align:left}
 .pass{color:#1a7a1a;font-weight:bold}.fail{color:#c01818;font-weight:bold}.error,.aborted,.incomplete,
-.in_progress,.warn{color:#b06000;font-weight:bold}img{display:block;margin:.3em 0 1em;max-width:100%}"""
+.in_progress,.warn{color:#b06000;font-weight:bold}.uncertain{color:#7b2fbf;font-weight:bold}
+img{display:block;margin:.3em 0 1em;max-width:100%}"""
 
 
 def _f(v: float | None, digits: int = 4) -> str:
@@ -77,10 +80,17 @@ def write_report(folder: Path, program: PartProgram, rows: Sequence[ResultRow],
            f"{__version__}.</p>",
            "<h2>Running statistics</h2>",
            f"<p>{stats.parts} parts (last cycle per serial): {stats.passed} pass, {stats.failed} fail, "
-           f"{stats.errors} not measured"
+           f"{stats.uncertain} uncertain (re-measure), {stats.errors} not measured"
            + (f"; yield {stats.yield_percent:.1f} %" if stats.yield_percent is not None else "") + ".</p>",
-           "<p>Control limits come from the parts that passed (failed or partly measured parts are shown on the "
-           "charts, marked, and left out of the limits and the capability). Every characteristic has an upper "
+           f"<p>Each value is decided by ISO 14253-1 under the program's rule ({e(program.decision_rule)}: "
+           f"{e(DECISION_RULES[program.decision_rule])}): conforming, non-conforming or uncertain, with its "
+           "expanded uncertainty U (k = 2) as value &plusmn; U; a figure below its detection limit is shown as "
+           "&lt; limit. A part passes when every value is conforming and fails when any is non-conforming; a part "
+           "with an uncertain value is <span class='uncertain'>UNCERTAIN</span>: neither passed nor failed, it is "
+           "set aside to be re-measured (a new attempt of the same serial) and never passed on that measurement.</p>",
+           "<p>Control limits come from the parts that passed or were uncertain (failed or partly measured parts "
+           "are shown on the charts, marked, and left out of the limits and the capability; uncertain values are "
+           "marked with a triangle). Every characteristic has an upper "
            "limit (its tolerance) and the natural lower bound 0: Cpk = (tolerance - mean) / 3&sigma;, Cp = "
            f"tolerance / 6&sigma;, &sigma; the within sigma of the chart; 95 % intervals. Fewer than "
            f"{MIN_CAPABILITY_N} values: the indices are marked as too uncertain. Rules: Western Electric 1 (beyond "
@@ -112,8 +122,8 @@ def write_report(folder: Path, program: PartProgram, rows: Sequence[ResultRow],
         cells = []
         for n in names:
             v = by_name.get(n)
-            cls = "" if v is None or v.conforms is None else ("pass" if v.conforms else "fail")
-            cells.append(_cell(_f(v.value_mm) if v else "", cls))
+            cells.append(_cell(f"{v.shown()} {DECISION_MARKS.get(v.decision, v.decision)}" if v else "",
+                               DECISION_CLASSES.get(v.decision, "") if v else ""))
         when = f"{r.finished_at:%Y-%m-%d %H:%M:%S}" if r.finished_at else ""
         out.append(f"<tr>{_cell(str(r.id))}{_cell(r.serial, 'l')}{_cell(str(r.attempt))}"
                    f"{_cell(r.status.upper(), r.status + ' l')}{''.join(cells)}{_cell(when, 'l')}"

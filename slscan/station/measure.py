@@ -3,16 +3,25 @@ the measurements a station config can name (`MEASUREMENTS`).
 
 A `Measurement` takes the sessions of one part (one per view, each complete and
 processed: `outputs/cloud.ply` in mm, camera frame) and the part program, and returns one
-`MeasuredValue` per characteristic. It does not judge: the station compares values with
-the program's tolerances (`Characteristic.conforms`), so a verdict never depends on who
-measured. A characteristic that cannot be measured on a scan gets no value and a reason;
-a part whose scan cannot be registered to the CAD model gets a failed `MeasurementResult`.
-Neither is ever a number.
+`MeasuredValue` per characteristic: its value with its expanded uncertainty U (k = 2), or,
+for a figure too small to tell from zero, no value and its detection limit. It does not
+judge the part: the station decides each value against the program's tolerance
+(`Characteristic.decide`, ISO 14253-1), so a verdict never depends on who measured. A
+characteristic that cannot be measured on a scan gets no value and a reason; a part whose
+scan cannot be registered to the CAD model gets a failed `MeasurementResult`. Neither is
+ever a number.
 
 - `inspection` (`InspectionMeasurement`): per view, the session's cloud registered to the
-  CAD model, segmented by face and evaluated by the `inspection` package; its report is
-  the per-face table, `{"faces": [{"label": "#12", "type": ..., "points": n, <value
-  columns>}, ...], "fitness": f, "rmse_mm": r}` with the value columns of `REPORT_COLUMNS`.
+  CAD model, segmented by face and evaluated by the `inspection` package with the
+  program's tolerances, the session's measurement model (`slscan.measurement_model`: the
+  decoder's noise and the calibration's covariance in U) and the program's decision rule;
+  its report (`outputs/inspection.json`) is the per-face table, `{"faces": [{"label":
+  "#12", "type": ..., "points": n, <value columns>, "tolerance_<key>": t, "verdict_<figure>":
+  v}, ...], "fitness": f, "rmse_mm": r, ...}` with the value columns of `REPORT_COLUMNS`
+  (each with `_u_mm` and, tested against zero, `_limit_mm`), plus `"program"`: the part
+  program and the decision of each of its characteristics on this view
+  (`view_decisions`); the inspection's recording (`outputs/inspection.rrd`: registered
+  cloud, CAD, deviations, deviation map, report) unless the session's rig records nothing.
 - `simulator-truth` (`SimulatorTruth`): the simulated part's imposed defects
   (`sim_part.json`, written into each session by the simulated bench) reported as if
   measured. It measures nothing: it exercises a station's loop, storage, views and verdict
@@ -22,20 +31,23 @@ Neither is ever a number.
 from __future__ import annotations
 
 import json
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Protocol, Sequence
 
 import numpy as np
 
+from inspection.tolerances import DECISION_RULES
 from scanner.errors import ConfigError
 from scanner.session import Session, write_json
+from slscan.station.program import Characteristic, PartProgram, program_tolerances
 
 if TYPE_CHECKING:
     from inspection.cad import CadModel
-from slscan.station.program import Characteristic, PartProgram
 
 REPORT_FILE = "inspection.json"  # written into the session's outputs/ by the adapter
+RECORDING_FILE = "inspection.rrd"  # the inspection's Rerun recording, beside it (`slscan review PART` shows it)
 
 # (kind, method) -> the report's per-face column that gives the value, in mm. The profile
 # value is the report's zone width 2 max|d| of the signed deviations of the form surface
@@ -53,14 +65,17 @@ REPORT_COLUMNS: dict[tuple[str, str | None], str] = {
 @dataclass(frozen=True)
 class MeasuredValue:
     """One characteristic on one part: `value_mm` None when it could not be measured
-    (`note` says why); `points` the scan points the value rests on; `view` the session
-    index it came from."""
+    (`note` says why) or is below its detection limit `limit_mm`; `u_mm` the value's
+    expanded uncertainty (k = 2; None: not known); `points` the scan points the value rests
+    on; `view` the session index it came from."""
 
     characteristic: str
     value_mm: float | None
     points: int = 0
     view: int = 0
     note: str = ""
+    u_mm: float | None = None
+    limit_mm: float | None = None
 
 
 @dataclass(frozen=True)
@@ -137,44 +152,80 @@ class InspectionMeasurement:
         from inspection.errors import InspectionError
         from inspection.inspect_scan import inspect
         from inspection.measured_cloud import load_session
+        from scanner.pipeline import recording_level
+        from scanner.session_recording import SessionRecording
+        from slscan.measurement_model import session_uncertainty
 
         model = self._model(program)
+        tolerances = program_tolerances(program)
         tables: list[dict[str, dict[str, Any]]] = []
         details: dict[str, Any] = {}
         paths: list[Path] = []
         for k, session in enumerate(sessions):
             prior_key = (program.cad_path, program.mesh_unit, k)
+            level = recording_level(session)  # the session's own: none, display or full
             try:
-                report = inspect(load_session(session.root), model, prior=self._priors.get(prior_key))
+                scan = load_session(session.root)
+                with (nullcontext() if level == "none" else
+                      SessionRecording(session.outputs / RECORDING_FILE, session.id, send_blueprint=False,
+                                       level=level)) as recording:
+                    if recording is not None:
+                        recording.log_rig(session.rig_model())
+                    report = inspect(scan, model, tolerances, recording=recording,
+                                     prior=self._priors.get(prior_key),
+                                     uncertainty=session_uncertainty(session)(scan.pixels))
             except InspectionError as exc:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
             self._priors[prior_key] = report.registration
-            data = report.as_dict() if hasattr(report, "as_dict") else dict(report)
+            data = report.as_dict()
+            table = {str(row["label"]): row for row in data["faces"]}
+            data["program"] = view_decisions(program, table, k)
             path = session.outputs / REPORT_FILE
             write_json(path, data)
             paths.append(path)
-            details[f"view{k}"] = {key: data[key] for key in ("fitness", "rmse_mm") if key in data}
-            tables.append({str(row["label"]): row for row in data["faces"]})
+            details[f"view{k}"] = {key: data[key] for key in ("fitness", "rmse_mm", "verdict") if key in data}
+            tables.append(table)
         values = tuple(_pick(c, tables) for c in program.characteristics)
         return MeasurementResult(True, values, details=details, report_paths=tuple(paths))
 
 
+def view_decisions(program: PartProgram, table: Mapping[str, Mapping[str, Any]], view: int) -> dict[str, Any]:
+    """The part program and the ISO 14253-1 decision of each of its characteristics on one
+    view's per-face table (what a view's `inspection.json` says under "program"): name,
+    face and its name, kind, method, tolerance, value, U, detection limit, decision, and
+    the points it rests on (a face the view did not see: not measured, with the reason)."""
+    rows = []
+    for c in program.characteristics:
+        m = _pick(c, [table])
+        rows.append({"name": c.name, "face": c.face, "face_name": program.face_names.get(c.face, ""),
+                     "kind": c.kind, "method": c.method, "tolerance_mm": c.tolerance_mm, "value_mm": m.value_mm,
+                     "u_mm": m.u_mm, "limit_mm": m.limit_mm,
+                     "decision": c.decide(m.value_mm, m.u_mm, m.limit_mm, program.decision_rule),
+                     "points": m.points, "note": m.note})
+    return {"name": program.name, "version": program.version, "fingerprint": program.fingerprint,
+            "path": str(program.path), "view": view, "decision_rule": program.decision_rule,
+            "rule": DECISION_RULES[program.decision_rule], "characteristics": rows}
+
+
 def _pick(c: Characteristic, tables: Sequence[Mapping[str, Mapping[str, Any]]]) -> MeasuredValue:
-    """A characteristic's value from the view whose report has the most points on its face."""
+    """A characteristic's value, its U and detection limit from the view whose report has
+    the most points on its face."""
     rows = [(k, t[c.face]) for k, t in enumerate(tables) if c.face in t and int(t[c.face].get("points", 0)) > 0]
     if not rows:
         return MeasuredValue(c.name, None, note=f"face {c.face} not seen in any view")
     k, row = max(rows, key=lambda kr: int(kr[1]["points"]))
     column = REPORT_COLUMNS[(c.kind, c.method)]
     value = row.get(column)
-    limit = row.get(column.removesuffix("_mm") + "_limit_mm")
-    if value is None and limit is not None:  # below its detection limit: at most the limit (inspection.uncertainty)
-        return MeasuredValue(c.name, float(limit), int(row["points"]), k,
+    u, limit = (row.get(column.removesuffix("_mm") + suffix) for suffix in ("_u_mm", "_limit_mm"))
+    u = None if u is None or not np.isfinite(float(u)) else float(u)
+    if value is None and limit is not None:  # below its detection limit (inspection.uncertainty): no value
+        return MeasuredValue(c.name, None, int(row["points"]), k, limit_mm=float(limit),
                              note=f"below the detection limit {float(limit) * 1e3:.1f} um")
     if value is None or not np.isfinite(float(value)):
         reason = row.get("note") or row.get("status") or f"no {column} in the report"
         return MeasuredValue(c.name, None, int(row["points"]), k, note=f"face {c.face}: {reason}")
-    return MeasuredValue(c.name, float(value), int(row["points"]), k)
+    return MeasuredValue(c.name, float(value), int(row["points"]), k, u_mm=u,
+                         limit_mm=None if limit is None else float(limit))
 
 
 class SimulatorTruth:

@@ -6,6 +6,7 @@
     cad = "demo_part.step"              # STEP or mesh, relative to this file
     mesh_unit = "mm"                    # optional, mesh CAD only: the unit its coordinates are in
     description = "..."                 # optional
+    decision_rule = "guard-banded"      # optional: how U enters the verdicts (ISO 14253-1, below)
 
     [scan]
     patterns = "../patterns/heterodyne_3x4.toml"   # pattern set TOML, relative to this file
@@ -31,11 +32,16 @@
     method = "minimum_zone"             # flatness, cylindricity: minimum_zone (default) | least_squares
     tolerance_mm = 0.05                 # upper limit of the measured value
 
-Every measured value is a width or a height in mm and conforms when it is <= its
-tolerance: flatness and cylindricity are zone widths (ISO 1101), `sq` the root-mean-square
-height of the face's roughness (ISO 25178), and `profile` the width of the zone centred on
-the nominal surface that holds every point, 2 max|signed deviation| (ISO 1101 profile of a
-surface, tolerance zone t = ±t/2 about nominal).
+Every measured value is a width or a height in mm with an upper limit, its tolerance:
+flatness and cylindricity are zone widths (ISO 1101), `sq` the root-mean-square height of
+the face's roughness (ISO 25178), and `profile` the width of the zone centred on the
+nominal surface that holds every point, 2 max|signed deviation| (ISO 1101 profile of a
+surface, tolerance zone t = ±t/2 about nominal). A measured value is decided by ISO
+14253-1 under the program's `decision_rule` (`Characteristic.decide`, through
+`inspection.tolerances.decide`): "guard-banded" (the default) calls it conforming only when
+value + U <= tolerance, non-conforming when value - U > tolerance, else uncertain; "plain"
+compares the value alone (U still recorded). A figure below its detection limit is
+conforming when that limit is within the tolerance, else uncertain.
 
 Loading validates the file on the project's schema layer (`scanner.schema`: unknown keys
 refused with the nearest valid name, types, ranges, finite numbers; errors name the file
@@ -53,7 +59,7 @@ from typing import Annotated, Callable, Literal, Mapping, Sequence
 from pydantic import Field
 
 from inspection.cad import MESH_UNITS_MM
-from inspection.tolerances import GUARD_BANDED, Tolerances
+from inspection.tolerances import CONFORMING, DECISION_RULES, GUARD_BANDED, PLAIN, Tolerances, decide
 from scanner import schema
 from scanner.config import resolve
 from scanner.errors import ConfigError
@@ -75,6 +81,7 @@ class ProgramTable(schema.Schema):
     cad: schema.Str
     mesh_unit: Literal[tuple(MESH_UNITS_MM)] = "mm"  # type: ignore[valid-type]
     description: schema.Str = ""
+    decision_rule: Literal[tuple(DECISION_RULES)] = GUARD_BANDED  # type: ignore[valid-type]
 
 
 class ScanTable(schema.Schema):
@@ -122,8 +129,17 @@ class Characteristic:
     method: str | None = None  # flatness, cylindricity only
 
     def conforms(self, value_mm: float) -> bool:
-        """Whether a measured value is within tolerance (every kind is an upper limit)."""
-        return value_mm <= self.tolerance_mm
+        """Whether a true value (exact, no uncertainty: the simulator's) is within
+        tolerance (every kind is an upper limit)."""
+        return decide(value_mm, 0.0, self.tolerance_mm, rule=PLAIN) == CONFORMING
+
+    def decide(self, value_mm: float | None, u_mm: float | None, limit_mm: float | None = None,
+               rule: str = GUARD_BANDED) -> str:
+        """The ISO 14253-1 decision on a measured value (mm) with its expanded uncertainty
+        U (mm; None: not known, taken as 0 and so only the value is judged) against this
+        characteristic's tolerance; `limit_mm` the detection limit of a value too small to
+        tell from zero (value None). One of conforming, non-conforming, uncertain, not measured."""
+        return decide(value_mm, u_mm or 0.0, self.tolerance_mm, None, rule, limit_mm)
 
     @property
     def label(self) -> str:
@@ -164,6 +180,7 @@ class PartProgram:
     face_check: str
     subgroup_size: int = 1
     face_names: Mapping[str, str] = field(default_factory=dict)
+    decision_rule: str = GUARD_BANDED
 
     def characteristic(self, name: str) -> Characteristic:
         for c in self.characteristics:
@@ -192,7 +209,8 @@ def load_program(path: str | Path, faces: Callable[[PartProgram], Mapping[str, s
         description=f.program.description, scan=ScanSettings(patterns, f.scan.exposure_s, f.scan.views),
         calibration_id=f.calibration.id, max_calibration_age_days=f.calibration.max_age_days,
         characteristics=chars, fingerprint=hashlib.sha256(path.read_bytes()).hexdigest()[:12],
-        face_check="not checked", subgroup_size=f.control.subgroup_size, face_names=dict(f.faces))
+        face_check="not checked", subgroup_size=f.control.subgroup_size, face_names=dict(f.faces),
+        decision_rule=f.program.decision_rule)
     if faces is None:
         return program
     found = faces(program)
@@ -242,7 +260,7 @@ def _characteristics(items: Sequence[CharacteristicTable], path: Path) -> tuple[
 def program_tolerances(program: PartProgram) -> Tolerances:
     """The program's characteristics as the inspection's per-face limits (the one source of
     a part's tolerances: `slscan inspect --tolerances PROGRAM` and the demo use this), with
-    the program's face names. Verdicts follow ISO 14253-1 guard-banded by U. Two
+    the program's face names and decision rule (ISO 14253-1). Two
     characteristics of one kind and method on one face cannot be told apart by the
     inspection report, so they are refused."""
     faces: dict[str, dict[str, float]] = {}
@@ -253,4 +271,4 @@ def program_tolerances(program: PartProgram) -> Tolerances:
             raise ConfigError(program.path, f"characteristic[{i}]", f"a second {c.kind} of face {c.face} ({c.name}); "
                                                                     f"one per face, kind and method")
         limits[key] = c.tolerance_mm
-    return Tolerances(faces, {}, program.path, GUARD_BANDED, dict(program.face_names))
+    return Tolerances(faces, {}, program.path, program.decision_rule, dict(program.face_names))

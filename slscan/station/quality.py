@@ -1,10 +1,27 @@
 """Verdicts and running statistics: measured values judged against the part program.
 
-The verdict of a part: `fail` when any characteristic is out of tolerance, else `error`
-when any could not be measured (a part is never passed on a value it does not have), else
-`pass`. Statistics are over the last stored cycle of each serial number with a verdict:
-control charts with limits from the parts that passed, Western Electric rules and
-capability (`slscan.station.spc`).
+Each characteristic is decided by ISO 14253-1 under the program's decision rule
+(`Characteristic.decide`: conforming, non-conforming, uncertain or not measured; see
+`slscan.station.program`). The verdict of a part from its characteristics':
+
+    fail       any characteristic is non-conforming (proven out, even allowing for U)
+    error      else any could not be measured (a part is never passed on a value it does not have)
+    uncertain  else any is uncertain: its value lies within U of its tolerance, so this
+               measurement can neither accept nor reject the part
+    pass       every characteristic is conforming (proven in, allowing for U)
+
+An uncertain part is neither passed nor failed: the station puts it in a separate bin,
+"uncertain - re-measure". The operator re-scans it (a new attempt of the same serial; the
+last attempt with a verdict is the part's); if it stays uncertain, the part goes to a
+more accurate instrument or to the quality engineer's decision — the station never
+passes it. `slscan station --auto` exits 1 when any part is not passed.
+
+Statistics are over the last stored cycle of each serial number with a verdict: control
+charts with limits from the parts that passed or were uncertain (a part proven out, or
+not fully measured, is an assignable cause and left out; an uncertain value is a real
+measurement of the process and stays in), Western Electric rules and capability
+(`slscan.station.spc`). The yield is the passed share of the judged parts (pass, fail,
+uncertain): an uncertain part has not passed.
 """
 
 from __future__ import annotations
@@ -15,9 +32,10 @@ from typing import Sequence
 
 import numpy as np
 
+from inspection.tolerances import CONFORMING, NON_CONFORMING, NOT_MEASURED, UNCERTAIN
 from slscan.station.measure import MeasurementResult
 from slscan.station.program import Characteristic, PartProgram
-from slscan.station.results import ResultRow, ValueRecord
+from slscan.station.results import VERDICTS, ResultRow, ValueRecord
 from slscan.station.spc import (
     MIN_LIMIT_POINTS,
     Capability,
@@ -28,37 +46,51 @@ from slscan.station.spc import (
     western_electric,
 )
 
+# a part's status from its characteristics' decisions, most severe first, and its message's opening
+PART_STATUS = ((NON_CONFORMING, "fail", "out of tolerance"), (NOT_MEASURED, "error", "not measured"),
+               (UNCERTAIN, "uncertain", "uncertain (within U of the tolerance; re-measure)"))
+# a value's `conforms` column from its decision (None: neither proven)
+CONFORMS = {CONFORMING: True, NON_CONFORMING: False}
+# a decision as one short word on a text line (terminal, TUI)
+DECISION_MARKS = {CONFORMING: "ok", NON_CONFORMING: "OUT", UNCERTAIN: "UNCERTAIN", NOT_MEASURED: "--"}
+
 
 def judge(program: PartProgram, result: MeasurementResult) -> tuple[str, list[ValueRecord], str]:
-    """(status, one record per characteristic, message) of one measured part."""
+    """(status, one record per characteristic, message) of one measured part (the module
+    docstring): every value decided with `Characteristic.decide` under the program's rule."""
     if not result.ok:
         return "error", [], f"not measured: {result.message}"
     records = []
+    rule = program.decision_rule
     for c in program.characteristics:
         m = result.value(c.name)
-        value = None if m is None else m.value_mm
-        note = "not in the measurement" if m is None else m.note
-        records.append(ValueRecord(c.name, c.kind, c.face, value, c.tolerance_mm,
-                                   None if value is None else c.conforms(value), 0 if m is None else m.points, note))
-    bad = [r.characteristic for r in records if r.conforms is False]
-    missing = [r.characteristic for r in records if r.conforms is None]
-    if bad:
-        return "fail", records, "out of tolerance: " + ", ".join(bad)
-    if missing:
-        return "error", records, "not measured: " + ", ".join(missing)
+        if m is None:
+            decision = NOT_MEASURED
+            records.append(ValueRecord(c.name, c.kind, c.face, None, c.tolerance_mm, None, 0,
+                                       "not in the measurement", decision=decision, rule=rule))
+            continue
+        decision = c.decide(m.value_mm, m.u_mm, m.limit_mm, rule)
+        records.append(ValueRecord(c.name, c.kind, c.face, m.value_mm, c.tolerance_mm, CONFORMS.get(decision),
+                                   m.points, m.note, m.u_mm, m.limit_mm, decision, rule))
+    for decision, status, said in PART_STATUS:
+        names = [r.characteristic for r in records if r.decision == decision]
+        if names:
+            return status, records, f"{said}: " + ", ".join(names)
     return "pass", records, ""
 
 
 @dataclass(frozen=True)
 class ChartPoint:
     """One part's value of one characteristic: result id, serial, time stored, value (mm;
-    None: not measured) and the part's verdict (pass, fail, error)."""
+    None: not measured), the part's verdict (pass, fail, uncertain, error) and this
+    value's decision (ISO 14253-1; "" when not stored)."""
 
     result_id: int
     serial: str
     time: dt.datetime
     value_mm: float | None
     status: str
+    decision: str = ""
 
 
 @dataclass(frozen=True)
@@ -66,7 +98,7 @@ class CharacteristicStats:
     """One characteristic over the parts (each serial's last cycle with a verdict, in time
     order): the chart's points; `plotted` the measured ones, and per plotted point (or
     subgroup) the chart statistic, its Western Electric flags and whether it is in the
-    baseline (every part in it passed); the spread statistic (moving or subgroup ranges)
+    baseline (every part in it passed or was uncertain); the spread statistic (moving or subgroup ranges)
     and its flags; the limits from the baseline (None with too few) and the capability."""
 
     name: str
@@ -99,7 +131,12 @@ class CharacteristicStats:
     def excluded(self) -> int:
         """Measured parts left out of the limits and the capability (their part failed or
         was not fully measured)."""
-        return sum(p.status != "pass" for p in self.plotted)
+        return sum(not _in_baseline(p) for p in self.plotted)
+
+    @property
+    def uncertain(self) -> int:
+        """Values of this characteristic decided uncertain."""
+        return sum(p.decision == UNCERTAIN for p in self.plotted)
 
     @property
     def not_measured(self) -> int:
@@ -108,25 +145,27 @@ class CharacteristicStats:
 
 @dataclass(frozen=True)
 class RunningStats:
-    """Parts with a verdict (last cycle per serial), how many passed, and per characteristic."""
+    """Parts with a verdict (last cycle per serial), how many passed, failed, were
+    uncertain or not measured, and per characteristic."""
 
     parts: int
     passed: int
     failed: int
     errors: int
     characteristics: tuple[CharacteristicStats, ...]
+    uncertain: int = 0
 
     @property
     def yield_percent(self) -> float | None:
-        judged = self.passed + self.failed
+        judged = self.passed + self.failed + self.uncertain
         return 100.0 * self.passed / judged if judged else None
 
 
 def latest_per_serial(rows: Sequence[ResultRow]) -> list[ResultRow]:
-    """The last cycle with a verdict (pass, fail, error) of each serial, oldest first."""
+    """The last cycle with a verdict (pass, fail, uncertain, error) of each serial, oldest first."""
     last: dict[str, ResultRow] = {}
     for r in rows:
-        if r.status in ("pass", "fail", "error"):
+        if r.status in VERDICTS:
             last.pop(r.serial, None)
             last[r.serial] = r
     return list(last.values())
@@ -138,9 +177,11 @@ def chart_series(program: PartProgram, rows: Sequence[ResultRow],
     order, with its value or None when that characteristic was not measured."""
     out: dict[str, list[ChartPoint]] = {c.name: [] for c in program.characteristics}
     for r in latest_per_serial(rows):
-        got = {v.characteristic: v.value_mm for v in values.get(r.id, [])}
+        got = {v.characteristic: v for v in values.get(r.id, [])}
         for name, series in out.items():
-            series.append(ChartPoint(r.id, r.serial, r.finished_at or r.started_at, got.get(name), r.status))
+            v = got.get(name)
+            series.append(ChartPoint(r.id, r.serial, r.finished_at or r.started_at, v.value_mm if v else None,
+                                     r.status, (v.decision or "") if v else ""))
     return out
 
 
@@ -148,7 +189,7 @@ def characteristic_stats(c: Characteristic, points: Sequence[ChartPoint], subgro
     """Control chart and capability of one characteristic (see `slscan.station.spc`)."""
     plotted = [p for p in points if p.value_mm is not None]
     x = np.array([p.value_mm for p in plotted], dtype=float)
-    ok = np.array([p.status == "pass" for p in plotted], dtype=bool)
+    ok = np.array([_in_baseline(p) for p in plotted], dtype=bool)
     chart = None
     if subgroup == 1:
         location, baseline = x, ok
@@ -177,5 +218,10 @@ def running_stats(program: PartProgram, rows: Sequence[ResultRow], values: dict[
     parts = latest_per_serial(rows)
     series = chart_series(program, rows, values)
     chars = tuple(characteristic_stats(c, series[c.name], program.subgroup_size) for c in program.characteristics)
-    count = {s: sum(r.status == s for r in parts) for s in ("pass", "fail", "error")}
-    return RunningStats(len(parts), count["pass"], count["fail"], count["error"], chars)
+    count = {s: sum(r.status == s for r in parts) for s in VERDICTS}
+    return RunningStats(len(parts), count["pass"], count["fail"], count["error"], chars, count["uncertain"])
+
+
+def _in_baseline(p: ChartPoint) -> bool:
+    """Whether a part's value goes into the control limits and capability (module docstring)."""
+    return p.status in ("pass", "uncertain")

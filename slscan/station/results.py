@@ -20,14 +20,19 @@ Tables (lengths in mm, times as UTC timestamps):
 
     results   id, program, program_version, program_fingerprint, serial, attempt, operator,
               station, rig, calibration_id, software_version, measurement, part_path,
-              status (in_progress | pass | fail | error | aborted | incomplete), message,
+              status (in_progress | pass | fail | uncertain | error | aborted | incomplete), message,
               started_at, finished_at, source (station | batch), owner, lease_until
-    measured  result_id, position (the program's order), characteristic, kind, face, value_mm (NULL: not measured),
-              tolerance_mm, conforms (NULL: not measured), points, note
+    measured  result_id, position (the program's order), characteristic, kind, face, value_mm (NULL: not
+              measured or below its detection limit), tolerance_mm, conforms (TRUE: conforming, FALSE:
+              non-conforming, NULL: uncertain or not measured), points, note, u_mm (expanded uncertainty,
+              k = 2), limit_mm (detection limit), decision (conforming | non-conforming | uncertain |
+              not measured, ISO 14253-1), rule (the decision rule: guard-banded | plain)
 
-Schema version 2 added `owner`, `lease_until` and the unique attempt index; a version 1
-database is upgraded when a station opens it (duplicate attempts left by version 1 are
-renumbered in id order).
+Schema version 2 added `owner`, `lease_until` and the unique attempt index; version 3 the
+values' `u_mm`, `limit_mm`, `decision` and `rule`. An older database is upgraded when a
+station opens it (duplicate attempts left by version 1 are renumbered in id order; values
+stored before version 3 keep their plain comparison as their decision, rule
+"plain (before schema 3)").
 """
 
 from __future__ import annotations
@@ -52,8 +57,10 @@ from sqlalchemy.engine import Engine
 
 from slscan.station import StationError
 
-SCHEMA_VERSION = 2
-STATUSES = ("in_progress", "pass", "fail", "error", "aborted", "incomplete")
+SCHEMA_VERSION = 3
+STATUSES = ("in_progress", "pass", "fail", "uncertain", "error", "aborted", "incomplete")
+VERDICTS = ("pass", "fail", "uncertain", "error")  # the statuses of a cycle that ended with a verdict
+OLD_RULE = "plain (before schema 3)"  # the rule of values stored by a schema 1 or 2 station
 LEASE_S = 60.0  # a running cycle's lease; renewed every LEASE_S / 4
 ATTEMPT_RETRIES = 50  # inserts retried (after a random pause) when a concurrent writer took the same number
 
@@ -112,7 +119,10 @@ MEASURED = sa.Table(
     sa.Column("kind", sa.Text, nullable=False), sa.Column("face", sa.Text, nullable=False),
     sa.Column("value_mm", sa.Float), sa.Column("tolerance_mm", sa.Float, nullable=False),
     sa.Column("conforms", sa.Boolean), sa.Column("points", sa.Integer, nullable=False),
-    sa.Column("note", sa.Text, nullable=False))
+    sa.Column("note", sa.Text, nullable=False),
+    sa.Column("u_mm", sa.Float), sa.Column("limit_mm", sa.Float), sa.Column("decision", sa.Text),
+    sa.Column("rule", sa.Text))
+_V3_VALUE_COLUMNS = ("u_mm", "limit_mm", "decision", "rule")
 
 
 @dataclass(frozen=True)
@@ -136,7 +146,10 @@ class PartStart:
 
 @dataclass(frozen=True)
 class ValueRecord:
-    """One characteristic's stored outcome (value None: not measured, `note` says why)."""
+    """One characteristic's stored outcome: its value (None: not measured, `note` says why,
+    or below its detection limit `limit_mm`), its expanded uncertainty `u_mm` (k = 2; None:
+    not known), the ISO 14253-1 `decision` under `rule`, and `conforms` as a yes/no where
+    the decision is one (None: uncertain or not measured)."""
 
     characteristic: str
     kind: str
@@ -146,6 +159,17 @@ class ValueRecord:
     conforms: bool | None
     points: int
     note: str = ""
+    u_mm: float | None = None
+    limit_mm: float | None = None
+    decision: str = ""
+    rule: str = ""
+
+    def shown(self) -> str:
+        """The value as people read it (mm): "0.0312 ± 0.0025", "< 0.0085" below its
+        detection limit, "not measured"."""
+        if self.value_mm is None:
+            return "not measured" if self.limit_mm is None else f"< {self.limit_mm:.4f}"
+        return f"{self.value_mm:.4f}" + ("" if self.u_mm is None else f" ± {self.u_mm:.4f}")
 
 
 @dataclass(frozen=True)
@@ -308,11 +332,13 @@ class ResultsStore:
             version = self._version(conn)
             if version is None and create:
                 conn.execute(sa.insert(_SCHEMA).values(version=SCHEMA_VERSION))
-            elif version == 1 and create:
-                _upgrade_from_1(conn)
+            elif version in (1, 2) and create:
+                if version == 1:
+                    _upgrade_from_1(conn)
+                _upgrade_from_2(conn)
             elif version != SCHEMA_VERSION:
                 raise ResultsError(f"{where}: results schema version {version}, this slscan uses {SCHEMA_VERSION}"
-                                   + (" (a station opening it upgrades it)" if version == 1 else ""))
+                                   + (" (a station opening it upgrades it)" if version in (1, 2) else ""))
 
     def _version(self, conn: sa.Connection) -> int | None:
         if not sa.inspect(conn).has_table("slscan_schema"):
@@ -485,6 +511,18 @@ def _upgrade_from_1(conn: sa.Connection) -> None:
         if attempt != want:
             conn.execute(sa.update(RESULTS).where(c.id == rid).values(attempt=want))
     next(i for i in RESULTS.indexes if i.name == "results_attempt").create(conn)
+    conn.execute(sa.update(_SCHEMA).values(version=2))
+
+
+def _upgrade_from_2(conn: sa.Connection) -> None:
+    """Schema 2 -> 3: the values' U, detection limit, decision and rule; a stored value's
+    decision is what its plain comparison said (`OLD_RULE`)."""
+    for name in _V3_VALUE_COLUMNS:
+        kind = MEASURED.c[name].type.compile(dialect=conn.dialect)
+        conn.execute(sa.text(f"ALTER TABLE measured ADD COLUMN {name} {kind}"))
+    m = MEASURED.c
+    conn.execute(sa.update(MEASURED).values(rule=OLD_RULE, decision=sa.case(
+        (m.conforms.is_(True), "conforming"), (m.conforms.is_(False), "non-conforming"), else_="not measured")))
     conn.execute(sa.update(_SCHEMA).values(version=SCHEMA_VERSION))
 
 

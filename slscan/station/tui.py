@@ -26,6 +26,7 @@ from scanner.errors import ScannerError
 from slscan.station.app import StationRun, outcome_lines
 from slscan.station.loop import CycleOutcome
 from slscan.station.quality import RunningStats
+from slscan.station.results import VERDICTS
 from slscan.station.spc import MIN_CAPABILITY_N
 
 POLL_S = 0.1
@@ -104,7 +105,7 @@ class StationTUI:
             outcome = self.station.run_cycle(serial, part, self.cancel, progress)
             with st.lock:
                 st.last, st.last_part = outcome, part
-                if outcome.status in ("pass", "fail", "error"):
+                if outcome.status in VERDICTS:
                     st.measured.add(outcome.serial)
             st.event(f"{outcome.serial} attempt {outcome.attempt}: {outcome.status.upper()} (result {outcome.result_id})")
         except ScannerError as exc:  # refused, or no serial: said on screen
@@ -206,7 +207,8 @@ class StationTUI:
                     put(line)
                 put("-" * (w - 1))
             events = list(st.events)
-        put(f"RUNNING STATISTICS  {s.parts} parts, {s.passed} pass, {s.failed} fail, {s.errors} not measured"
+        put(f"RUNNING STATISTICS  {s.parts} parts, {s.passed} pass, {s.failed} fail, {s.uncertain} uncertain, "
+            f"{s.errors} not measured"
             + (f", yield {s.yield_percent:.1f} %" if s.yield_percent is not None else ""))
         for c in s.characteristics:
             if c.n:
