@@ -25,6 +25,8 @@ from scanner.config import CONFIG_DIR, get, get_table, get_vector, load_toml, re
 from scanner.devices import Camera, Projector, TriggerSource
 from scanner.errors import ConfigError, ScannerError
 from scanner.geometry import Pinhole, RigModel, look_at
+from scanner.stage import Stage
+from scanner.stage_model import StageConfig
 
 DEFAULT_RIG = CONFIG_DIR / "rigs" / "sim_bench.toml"
 TRIGGER_WIRINGS = ("software", "projector", "trigger_box")
@@ -76,6 +78,7 @@ class RigConfig:
                   calibration_path=resolve(path, calibration) if calibration else None)
         cfg.nominal_model()  # validates the geometry keys now, naming the file
         _ = cfg.model  # and the calibration file, if any
+        _ = cfg.stage  # and the stage table, if any
         return cfg
 
     def _pinhole(self, table: dict[str, Any], prefix: str) -> Pinhole:
@@ -108,6 +111,11 @@ class RigConfig:
         except ScannerError as exc:
             raise ConfigError(self.path, "rig.calibration", str(exc)) from None
 
+    @cached_property
+    def stage(self) -> StageConfig | None:
+        """The motion stage of a `[stage]` table, checked (`scanner.stage_model`); None without one."""
+        return StageConfig.from_rig(self.raw, self.path)
+
     def nominal_model(self) -> RigModel:
         """The rig geometry written in the config (for the simulator: its ground truth)."""
         p = self.path
@@ -133,6 +141,7 @@ class Rig:
     trigger: TriggerSource | None
     model: RigModel
     extras: dict[str, Any] = field(default_factory=dict)  # driver-specific (the simulator's ground truth)
+    stage: Stage | None = None  # the motion stage carrying the part, when the rig TOML has a [stage]
 
     def __enter__(self) -> Rig:
         return self
@@ -141,7 +150,7 @@ class Rig:
         self.shutdown()
 
     def shutdown(self) -> None:
-        for dev in (self.camera, self.projector, self.trigger):
+        for dev in (self.camera, self.projector, self.trigger, self.stage):
             if dev is not None:
                 dev.shutdown()
 
