@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -43,8 +43,9 @@ class ScanResult:
 
 
 def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Progress = _quiet,
-            recording: SessionRecording | None = None) -> Session:
-    """Capture one scan into the writer's new session folder and return it, complete.
+            recording: SessionRecording | None = None, extra: dict[str, Any] | None = None) -> Session:
+    """Capture one scan into the writer's new session folder and return it, complete;
+    `extra` goes into its manifest (a multi-view session's stage pose).
 
     On any failure the frames already captured stay on disk, `error.json` says what
     happened, the session has no manifest (so it is reported incomplete), and the error
@@ -70,7 +71,7 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
     devices = {name: dev.describe() for name, dev in
                (("camera", rig.camera), ("projector", rig.projector), ("trigger", rig.trigger)) if dev is not None}
     writer.finish(rig.config.raw, rig.model, patterns, devices, timings,
-                  {"rig_config_path": str(rig.config.path), "wiring": rig.config.trigger})
+                  {"rig_config_path": str(rig.config.path), "wiring": rig.config.trigger, **(extra or {})})
     return Session.open(writer.root)
 
 
@@ -144,14 +145,16 @@ def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triang
 
 
 def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress = _quiet,
-         then: Callable[[ScanResult, SessionRecording], None] | None = None) -> ScanResult:
+         then: Callable[[ScanResult, SessionRecording], None] | None = None,
+         extra: dict[str, Any] | None = None) -> ScanResult:
     """Capture, decode and reconstruct one scan, recording every stage to the session's
     Rerun file. `then(result, recording)`, if given, runs a later stage (`slscan demo`'s
-    inspection) into the same recording before it is closed."""
+    inspection) into the same recording before it is closed; `extra` goes into the
+    session's manifest (`capture`)."""
     writer = SessionWriter.create(out_dir)
     with SessionRecording(writer.root / RECORDING, writer.id) as rec:
         rec.log_rig(rig.model)
-        session = capture(rig, patterns, writer, progress, rec)
+        session = capture(rig, patterns, writer, progress, rec, extra)
         result = process(session, progress, rec)
         if then is not None:
             then(result, rec)

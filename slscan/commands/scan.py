@@ -34,6 +34,18 @@ def _parse_faults(items: Sequence[str]) -> Any:
     return Faults.from_table(table, "--fault", prefix="--fault")
 
 
+def _parse_stage_faults(items: Sequence[str]) -> Any:
+    from sim.virtual_stage import StageFaults
+
+    table: dict[str, Any] = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        if not value.isdigit():
+            raise ConfigError("--stage-fault", item, "expected NAME=MOVE, e.g. alarm_at_move=3")
+        table[key] = int(value)
+    return StageFaults.from_table(table, "--stage-fault")
+
+
 def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     """`slscan scan`; `then(result, recording)` runs after processing, into the session's
     recording (`pipeline.scan`)."""
@@ -44,12 +56,19 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     config = RigConfig.load(args.rig)
     patterns = PatternSet.load(args.patterns or config.patterns_path)
     options: dict[str, Any] = {}
+    stage_faults = getattr(args, "stage_fault", [])
     if config.driver == "sim":
         options = {"scene": args.scene or DEMO_SCENE, "seed": args.seed}
         if args.fault:
             options["faults"] = _parse_faults(args.fault)
-    elif args.scene or args.fault:
-        raise ConfigError(config.path, "rig.driver", "--scene and --fault apply to simulated rigs only")
+        if stage_faults:
+            options["stage_faults"] = _parse_stage_faults(stage_faults)
+    elif args.scene or args.fault or stage_faults:
+        raise ConfigError(config.path, "rig.driver", "--scene, --fault and --stage-fault apply to simulated rigs only")
+    if getattr(args, "views", None) is not None or getattr(args, "angles", None) is not None:
+        from slscan.commands.views import scan_views
+
+        return scan_views(args, config, patterns, options)
     out = Path(args.out)
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
@@ -140,6 +159,12 @@ def register(sub: Any) -> None:
     s.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
                    help="simulated rigs: inject a fault (drop_frame=K, delay_frame=K, delay_s=S, "
                         "disconnect_after=N, stale_frame=K)")
+    s.add_argument("--views", type=int, metavar="N", help="multi-view: N views equally spaced over a turn of the "
+                                                         "rig's stage, into one multi-view folder")
+    s.add_argument("--angles", metavar="DEG,DEG,...", help="multi-view: the stage angles of the views, in degrees")
+    s.add_argument("--no-merge", action="store_true", help="multi-view: capture only (no alignment, merge or mesh)")
+    s.add_argument("--stage-fault", action="append", default=[], metavar="NAME=MOVE",
+                   help="simulated rigs: a stage fault (alarm_at_move=K, disconnect_at_move=K, silent_at_move=K)")
     s.set_defaults(func=cmd_scan)
 
     d = sub.add_parser("decode", help="regenerate every output of a session from its raw frames")

@@ -1,0 +1,84 @@
+"""Multi-view scans on the rig's stage: `slscan scan --views N` (or `--angles`) and what
+`slscan decode` / `inspect` do with a multi-view folder.
+
+    slscan scan --rig config/rigs/sim_turntable.toml --scene config/scenes/turntable_demo.toml \\
+                --views 8 --out sessions/part-all-round
+
+captures one session per view inside one multi-view folder (`scanner.multiview`), each
+view durable as soon as it is captured, then aligns, fuses and meshes the views
+(`inspection.views`) into the folder's outputs/ and its recording (`--no-merge`: capture
+only). A failed move or capture keeps every earlier view; the command says which and exits
+with the error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from scanner.errors import ScannerError
+from slscan.progress import ProgressLine
+
+
+def scan_views(args: argparse.Namespace, config: Any, patterns: Any, options: dict[str, Any]) -> int:
+    """`slscan scan --views N | --angles A,B,...` (see the module docstring)."""
+    from scanner.multiview import capture_views, describe_incomplete, plan_views
+    from scanner.pipeline import scan
+    from scanner.rig import open_rig
+
+    if config.stage is None:
+        raise ScannerError(f"{config.path}: --views needs a rig with a [stage] (e.g. config/rigs/sim_turntable.toml)")
+    angles = None
+    if args.angles is not None:
+        try:
+            angles = [float(a) for a in args.angles.split(",") if a.strip()]
+        except ValueError:
+            raise ScannerError(f"--angles: expected degrees separated by commas, got {args.angles!r}") from None
+    plan = plan_views(config.stage, args.views, angles)
+    out = Path(args.out)
+    print(f"rig {config.name} ({config.driver}), {len(plan)} views on {config.stage.axes[0].name}, "
+          f"{patterns.family} {patterns.n_frames} frames each -> {out}", file=sys.stderr)
+    line = ProgressLine()
+
+    def view_progress(k: int, n: int, what: str) -> None:
+        print(f"view {k + 1}/{n}: {what}", file=sys.stderr)
+
+    with open_rig(config, **options) as rig:
+        try:
+            session = capture_views(rig, plan, out, lambda folder, extra: scan(rig, patterns, folder, line,
+                                                                                extra=extra).session,
+                                    view_progress)
+        except (ScannerError, KeyboardInterrupt):
+            if (out / "views.json").exists():
+                print(describe_incomplete(out), file=sys.stderr)
+            raise
+    print(f"session   {session.root} ({len(session.views)} views)")
+    if args.no_merge:
+        return 0
+    return report_whole(session, line)
+
+
+def report_whole(session: Any, progress: Any) -> int:
+    """Align, fuse and mesh a multi-view session; print what it gave."""
+    from inspection.views.whole import whole_part
+
+    t0, load = time.perf_counter(), os.getloadavg()[0]
+    whole = whole_part(session, progress=progress)
+    wall = time.perf_counter() - t0
+    corrections = whole.alignment.corrections()
+    out = session.outputs
+    print(f"aligned   {len(whole.views)} views, {len(whole.alignment.edges)} pairs "
+          f"({len(whole.alignment.refused)} refused); largest correction of the stage prior "
+          f"{max(c[0] for c in corrections):.3f} deg / {max(c[1] for c in corrections):.3f} mm")
+    print(f"merged    {out / 'merged.ply'}  ({len(whole.merged)} points, {int((whole.merged.views > 1).sum())} fused "
+          f"from 2+ views, cell {whole.merged.cell_mm:.3f} mm)")
+    if whole.mesh is not None:
+        print(f"mesh      {out / 'mesh.ply'}, {out / 'mesh.stl'}: {whole.mesh.summary()}")
+    t = whole.timings_s
+    print("time      " + ", ".join(f"{k} {v:.1f} s" for k, v in t.items()) + f"; {wall:.1f} s wall at load "
+          f"{load:.1f} (indicative)")
+    return 0
