@@ -32,19 +32,39 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
+from pydantic import field_validator
 
 from calibration.errors import BoardError
-from scanner.config import get, get_vector, load_toml
-from scanner.errors import ConfigError
+from scanner import schema
+from scanner.config import load_toml
 
 KINDS = ("chessboard", "charuco", "circles_asymmetric")
-_KEYS = {"name", "type", "inner_corners", "square_mm", "margin_mm", "marker_mm", "dictionary", "circle_mm"}
 BLACK_ALBEDO = 0.05  # printed black and white, as reflectance
 WHITE_ALBEDO = 0.85
+
+
+class BoardFile(schema.Schema):
+    """A board TOML as typed keys (lengths in mm); `Board.validate` adds the printing rules."""
+
+    name: schema.Str = "board"
+    type: Literal[KINDS]
+    inner_corners: schema.Vector2
+    square_mm: schema.PositiveFloat
+    margin_mm: schema.NonNegativeFloat = 0.0
+    marker_mm: schema.PositiveFloat | None = None
+    dictionary: schema.Str | None = None
+    circle_mm: schema.PositiveFloat | None = None
+
+    @field_validator("inner_corners")
+    @classmethod
+    def _whole(cls, v: list[float]) -> list[float]:
+        if any(x != int(x) or not 2 <= x <= 1000 for x in v):
+            raise ValueError(f"expected two whole numbers of points from 2 to 1000, got {v}")
+        return v
 
 
 @dataclass(frozen=True)
@@ -83,18 +103,14 @@ class Board:
     # ------------------------------------------------------------------ description
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], where: str | Path = "board") -> Board:
-        for k in d:
-            if k not in _KEYS:
-                raise ConfigError(where, k, f"unknown key; expected one of {sorted(_KEYS)}")
-        cols, rows = get_vector(d, "inner_corners", 2, where)
-        if cols != int(cols) or rows != int(rows):
-            raise ConfigError(where, "inner_corners", f"expected two whole numbers, got {[cols, rows]}")
-        opt = {k: get(d, k, float, where, None) for k in ("marker_mm", "circle_mm")}
+    def from_dict(cls, d: Any, where: str | Path = "board") -> Board:
+        """A board described by `d` (a board TOML, a capture's board): keys known and typed
+        (`BoardFile`), then the printing rules (`validate`)."""
+        f = schema.parse(BoardFile, d, where)
         board = cls.__new__(cls)
-        values = dict(kind=get(d, "type", str, where), columns=int(cols), rows=int(rows),
-                      square_mm=get(d, "square_mm", float, where), margin_mm=get(d, "margin_mm", float, where, 0.0),
-                      dictionary=get(d, "dictionary", str, where, None), name=get(d, "name", str, where, "board"), **opt)
+        values = dict(kind=f.type, columns=int(f.inner_corners[0]), rows=int(f.inner_corners[1]),
+                      square_mm=f.square_mm, margin_mm=f.margin_mm, marker_mm=f.marker_mm, dictionary=f.dictionary,
+                      circle_mm=f.circle_mm, name=f.name)
         for k, v in values.items():
             object.__setattr__(board, k, v)
         board.validate(where)

@@ -79,6 +79,9 @@ def make_scan(points: np.ndarray, normals: np.ndarray | None, source: str, viewp
         raise CloudError(source, f"only {len(points)} points; a scan of a part needs at least {MIN_POINTS}")
     if not np.isfinite(points).all():
         raise CloudError(source, "non-finite point coordinates")
+    spread = np.linalg.svd(points[:: max(1, len(points) // 20000)] - points.mean(axis=0), compute_uv=False)
+    if not spread[1] > 1e-6 * max(spread[0], 1e-12):
+        raise CloudError(source, "the points lie on a line (or on one point): not a scan of a surface")
     if normals is None:
         normals = np.full_like(points, np.nan)
     bad = ~(np.isfinite(normals).all(axis=1) & (np.linalg.norm(np.nan_to_num(normals), axis=1) > 0.5))

@@ -17,11 +17,13 @@ uncertainty is within the limit, "fail" when the value minus it is beyond, else
 
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 from inspection.errors import ToleranceError
+from scanner.schema import nearest
 
 CHARACTERISTICS = {"flatness_mm": ("plane",), "cylindricity_mm": ("cylinder",), "sq_mm": None, "profile_mm": None}
 
@@ -45,11 +47,13 @@ def load_tolerances(path: str | Path, labels: dict[str, str]) -> Tolerances:
         raw = tomllib.loads(path.read_text())
     except FileNotFoundError:
         raise ToleranceError(f"{path}: no such tolerance file") from None
-    except (OSError, tomllib.TOMLDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ToleranceError(f"{path}: unreadable tolerance file: {exc}") from None
     unknown = set(raw) - {"faces", "default"}
     if unknown:
         raise ToleranceError(f"{path}: unknown table(s) {sorted(unknown)}; expected [faces.\"#id\"] and [default]")
+    if not isinstance(raw.get("faces", {}), dict):
+        raise ToleranceError(f"{path}: faces must be a table of [faces.\"#id\"] tables")
 
     def limits(table: object, where: str, face_type: str | None) -> dict[str, float]:
         if not isinstance(table, dict):
@@ -57,9 +61,12 @@ def load_tolerances(path: str | Path, labels: dict[str, str]) -> Tolerances:
         out = {}
         for key, value in table.items():
             if key not in CHARACTERISTICS:
-                raise ToleranceError(f"{path}: {where}.{key}: unknown characteristic; use {sorted(CHARACTERISTICS)}")
-            if not isinstance(value, (int, float)) or not value > 0:
-                raise ToleranceError(f"{path}: {where}.{key}: a tolerance must be a number > 0 (mm), got {value!r}")
+                guess = nearest(key, CHARACTERISTICS)
+                raise ToleranceError(f"{path}: {where}.{key}: unknown characteristic; "
+                                     + (f"did you mean '{guess}'?" if guess else f"use {sorted(CHARACTERISTICS)}"))
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
+                raise ToleranceError(f"{path}: {where}.{key}: a tolerance must be a finite number > 0 (mm), "
+                                     f"got {value!r}")
             types = CHARACTERISTICS[key]
             if face_type is not None and types is not None and face_type not in types:
                 raise ToleranceError(f"{path}: {where}.{key}: face is a {face_type}; {key} applies to {types[0]}s")

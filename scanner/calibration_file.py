@@ -33,9 +33,10 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from scanner import __version__
+from scanner import __version__, schema
 from scanner.errors import CalibrationFileError, ConfigError
 from scanner.geometry import RigModel
+from scanner.rig_schema import RigModelSchema, check_geometry
 from scanner.session import write_json, write_npz
 
 CALIBRATION_FORMAT = "slscan-calibration"
@@ -92,7 +93,7 @@ def load_calibration(path: str | Path, camera_size: tuple[int, int] | None = Non
         data = json.loads(path.read_text())
     except FileNotFoundError:
         raise CalibrationFileError(path, "calibration file not found; run `slscan calibrate` for this rig") from None
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise CalibrationFileError(path, f"unreadable calibration file: {exc}") from None
     if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:
         raise CalibrationFileError(path, f"not an slscan calibration file (format {data.get('format')!r})"
@@ -102,14 +103,20 @@ def load_calibration(path: str | Path, camera_size: tuple[int, int] | None = Non
                                          f"version {CALIBRATION_VERSION}: calibrate again")
     try:
         sizes = {k: tuple(int(v) for v in data["image_sizes"][k]) for k in ("camera", "projector")}
-    except (KeyError, TypeError, ValueError):
+        if any(len(v) != 2 for v in sizes.values()):
+            raise ValueError("two numbers per device")
+    except (KeyError, TypeError, ValueError, OverflowError):
         raise CalibrationFileError(path, "key 'image_sizes' missing or malformed") from None
     for device, expected in (("camera", camera_size), ("projector", projector_size)):
         if expected is not None and sizes[device] != tuple(expected):
             raise CalibrationFileError(path, f"made for a {device} of {sizes[device][0]} x {sizes[device][1]} px, "
                                              f"the rig's {device} is {expected[0]} x {expected[1]} px: calibrate "
                                              f"this rig, or name the right calibration file")
-    described = dict(data.get("rig_model", {}))
+    try:
+        schema.parse(RigModelSchema, data.get("rig_model"), path, "rig_model")
+    except ConfigError as exc:
+        raise CalibrationFileError(path, f"key '{exc.key}': {exc.problem}" if exc.key else exc.problem) from None
+    described = dict(data["rig_model"])
     p2h = described.get("phase_to_height")
     if p2h and not p2h.get("maps_file"):  # files written before the model named its maps
         described["phase_to_height"] = {**p2h, "maps_file": data.get("reference_maps") or ""}
@@ -121,6 +128,10 @@ def load_calibration(path: str | Path, camera_size: tuple[int, int] | None = Non
             from None
     if model.camera.size != sizes["camera"] or model.projector.size != sizes["projector"]:
         raise CalibrationFileError(path, "rig_model image sizes disagree with image_sizes")
+    try:
+        check_geometry(model, None, path, "rig_model")
+    except ConfigError as exc:
+        raise CalibrationFileError(path, f"key 'rig_model': {exc.problem}") from None
     return CalibrationFile(path, data, model)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import tomllib
 from pathlib import Path
 from typing import Any, TypeVar
@@ -21,13 +22,16 @@ def load_toml(path: str | Path) -> dict[str, Any]:
             return tomllib.load(f)
     except FileNotFoundError:
         raise ConfigError(path, None, "file not found") from None
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(path, None, f"not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise ConfigError(path, None, f"cannot read the file: {exc.strerror or exc}") from None
 
 
 def get(table: dict[str, Any], key: str, kind: type[T] | tuple[type, ...], path: str | Path,
         default: Any = ..., prefix: str = "") -> T:
-    """`table[key]` checked against `kind`; ints are accepted where floats are asked for.
+    """`table[key]` checked against `kind`; ints are accepted where floats are asked for,
+    NaN and infinity are refused. (New loaders declare a `scanner.schema.Schema` instead.)
 
     `prefix` is the dotted name of `table` in the file, so errors name the full key."""
     full = f"{prefix}.{key}" if prefix else key
@@ -42,14 +46,17 @@ def get(table: dict[str, Any], key: str, kind: type[T] | tuple[type, ...], path:
     if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
         names = " or ".join(k.__name__ for k in kinds)
         raise ConfigError(path, full, f"expected {names}, got {type(value).__name__} {value!r}")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(path, full, f"must be a finite number, got {value!r}")
     return value  # type: ignore[return-value]
 
 
 def get_vector(table: dict[str, Any], key: str, n: int, path: str | Path, default: Any = ...,
                prefix: str = "") -> list[float]:
-    """A list of exactly `n` numbers."""
+    """A list of exactly `n` finite numbers."""
     value = get(table, key, list, path, default, prefix)
-    if len(value) != n or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+    if len(value) != n or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                                  for v in value):
         full = f"{prefix}.{key}" if prefix else key
         raise ConfigError(path, full, f"expected a list of {n} numbers, got {value!r}")
     return [float(v) for v in value]

@@ -10,15 +10,27 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
+from pydantic import Field
 
-from scanner.config import get, load_toml
+from scanner import schema
+from scanner.config import load_toml
 from scanner.errors import ConfigError
 
 FAMILIES = ("heterodyne", "hierarchical", "graycode")
 ORIENTATIONS = ("vertical", "horizontal")
+
+
+class PatternFile(schema.Schema):
+    """A pattern-set TOML (and a manifest's `patterns`) as typed keys; `PatternSet.validate`
+    adds the family's rules."""
+
+    family: Literal[FAMILIES]
+    steps: Annotated[int, Field(strict=True, ge=3, le=64)]
+    fringes: Annotated[list[Annotated[float, Field(strict=True, gt=0, le=10000)]], Field(min_length=1, max_length=8)]
+    orientations: Annotated[list[Literal[ORIENTATIONS]], Field(min_length=1, max_length=2)] = ["vertical"]
 
 
 @dataclass(frozen=True)
@@ -72,15 +84,15 @@ class PatternSet:
             raise ConfigError(where, "fringes", f"graycode takes one phase-shift fringe count, got {list(f)}")
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], where: str | Path = "pattern set") -> PatternSet:
-        fringes = get(d, "fringes", list, where)
-        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in fringes):
-            raise ConfigError(where, "fringes", f"expected a list of numbers, got {fringes!r}")
+    def from_dict(cls, d: Any, where: str | Path = "pattern set", prefix: str = "") -> PatternSet:
+        """A pattern set described by `d` (a pattern TOML, or a manifest's `patterns`): keys
+        known and typed (`PatternFile`), then the family's rules (`validate`)."""
+        f = schema.parse(PatternFile, d, where, prefix)
         ps = cls.__new__(cls)
-        object.__setattr__(ps, "family", get(d, "family", str, where))
-        object.__setattr__(ps, "steps", get(d, "steps", int, where))
-        object.__setattr__(ps, "fringes", tuple(float(x) for x in fringes))
-        object.__setattr__(ps, "orientations", tuple(get(d, "orientations", list, where, ["vertical"])))
+        object.__setattr__(ps, "family", f.family)
+        object.__setattr__(ps, "steps", f.steps)
+        object.__setattr__(ps, "fringes", tuple(f.fringes))
+        object.__setattr__(ps, "orientations", tuple(f.orientations))
         ps.validate(where)
         return ps
 

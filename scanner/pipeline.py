@@ -10,10 +10,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from scanner.acquisition import AcquisitionSettings, acquire
+from scanner.acquisition import AcquisitionSettings, acquire, check_signature
 from scanner.decode import DecodeResult, DecodeSettings, decode
 from scanner.devices import Frame
-from scanner.errors import ScannerError
+from scanner.errors import DecodeError, FrameError, FrameOutOfOrder, ScannerError
+from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
 from scanner.pointcloud import OrganisedCloud, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
@@ -22,6 +23,7 @@ from scanner.session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, writ
 from scanner.session_recording import SessionRecording
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
+BLANK_FRAME_RANGE = 0.01  # of full scale: a frame whose pixels all lie within this range shows no pattern
 
 
 def _quiet(stage: str, done: int, total: int) -> None:
@@ -87,6 +89,7 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     stack = session.load_stack()
     patterns = session.patterns
     model = session.rig_model()
+    check_frames_fit(session, stack, model)
     timings["load"] = time.perf_counter() - t0
     progress("decode", 0, 1)
     t0 = time.perf_counter()
@@ -103,12 +106,17 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     t0 = time.perf_counter()
     out = session.root / OUTPUTS_DIR
     out.mkdir(exist_ok=True)
+    stats = {"points": len(cloud), "valid_fraction": round(float(decoded.valid.mean()), 5),
+             "rejected": {f"{o}/{k}": int(v.sum()) for o, m in decoded.maps.items() for k, v in m.masks.items()},
+             "integrity": session.integrity}
+    if len(cloud) == 0:
+        problem = no_points_reason(decoded)
+        write_json(out / "result.json", {"session_id": session.id, "mode": mode, "error": problem, **stats})
+        raise DecodeError(f"{session.root}: the scan yielded no points: {problem}")
     n_points = write_ply(out / "cloud.ply", cloud)
     save_maps(out / "maps.npz", decoded)
     timings["write"] = time.perf_counter() - t0
     timings = {k: round(v, 4) for k, v in timings.items()}
-    stats = {"points": n_points, "valid_fraction": round(float(decoded.valid.mean()), 5),
-             "rejected": {f"{o}/{k}": int(v.sum()) for o, m in decoded.maps.items() for k, v in m.masks.items()}}
     write_json(out / "result.json", {"session_id": session.id, "mode": mode, "timings_s": timings, **stats})
     if recording is not None:
         recording.log_decode(decoded)
@@ -117,6 +125,39 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
                                "points": n_points})
     progress("done", 1, 1)
     return ScanResult(session, decoded, cloud, timings)
+
+
+def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel) -> None:
+    """Refuse frames that do not fit the session's patterns (swapped, repeated, blank or
+    foreign ones), naming the frame: blank frames first, then the acquisition's
+    intensity-signature check run again on the frames as they are on disk."""
+    where = str(session.root)
+    full = 2 ** session.bit_depth - 1
+    flat = stack.reshape(len(stack), -1)
+    lo, hi = flat.min(axis=1), flat.max(axis=1)
+    for k in np.flatnonzero(hi - lo <= BLANK_FRAME_RANGE * full):
+        raise DecodeError(f"{where}: frame {k} ({session.frame_path(int(k)).name}) is blank (every pixel "
+                          f"{int(lo[k])}..{int(hi[k])} DN): it cannot be a fringe image; re-scan")
+    try:
+        check_signature(stack, session.patterns, (model.projector.height, model.projector.width), session.bit_depth,
+                        where)
+    except FrameError as exc:
+        problem = str(exc).removeprefix(f"{where}: ").split("; a shifted or mixed")[0]
+        k = exc.expected_index
+        frame = f"frame {k} ({session.frame_path(k).name}): " if isinstance(exc, FrameOutOfOrder) else ""
+        raise DecodeError(f"{where}: {frame}{problem}; the frames were swapped, repeated or replaced after the "
+                          f"capture, or the session is not what its manifest says; re-scan") from None
+
+
+def no_points_reason(decoded: DecodeResult) -> str:
+    """Why a decode gave no points, for people."""
+    valid = float(decoded.valid.mean())
+    if valid == 0:
+        return ("no pixel decoded (every pixel rejected: " + ", ".join(
+            f"{o}/{k} {int(v.sum())}" for o, m in decoded.maps.items() for k, v in m.masks.items() if v.any())
+            + ")")
+    return (f"{valid:.1%} of pixels decoded but none triangulated: the rig model cannot place them (check the "
+            f"camera and projector intrinsics and cam_from_proj in the manifest or calibration)")
 
 
 def save_maps(path: Path, decoded: DecodeResult) -> None:

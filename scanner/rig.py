@@ -20,16 +20,17 @@ from typing import Any
 
 import numpy as np
 
+from scanner import schema
 from scanner.calibration_file import load_rig_model
-from scanner.config import CONFIG_DIR, get, get_table, get_vector, load_toml, resolve
+from scanner.config import CONFIG_DIR, load_toml, resolve
 from scanner.devices import Camera, Projector, TriggerSource
 from scanner.errors import ConfigError, ScannerError
 from scanner.geometry import Pinhole, RigModel, look_at
+from scanner.rig_schema import Lens, RigFile, check_geometry
 from scanner.stage import Stage
 from scanner.stage_model import StageConfig
 
 DEFAULT_RIG = CONFIG_DIR / "rigs" / "sim_bench.toml"
-TRIGGER_WIRINGS = ("software", "projector", "trigger_box")
 
 # driver name -> "module:function" returning a Rig; imported only when used
 DRIVERS = {"sim": "sim.virtual_rig:open_sim_rig", "hardware": "scanner.drivers.hardware_rig:open_hardware_rig"}
@@ -37,7 +38,9 @@ DRIVERS = {"sim": "sim.virtual_rig:open_sim_rig", "hardware": "scanner.drivers.h
 
 @dataclass(frozen=True, eq=False)
 class RigConfig:
-    """A parsed, validated rig TOML. `raw` keeps the whole file for the session manifest."""
+    """A parsed, validated rig TOML (`scanner.rig_schema.RigFile`). `raw` keeps the whole
+    file for the session manifest; `camera` and `projector` are its tables as written, for
+    the drivers (every key in them is known and typed)."""
 
     path: Path
     name: str
@@ -54,50 +57,20 @@ class RigConfig:
 
     @classmethod
     def load(cls, path: str | Path = DEFAULT_RIG) -> RigConfig:
+        """Read and validate a rig TOML: every key known, typed, in range and finite, and the
+        nominal geometry able to triangulate (a common field of view at the working distance)."""
         path = Path(path)
         raw = load_toml(path)
-        rig = get_table(raw, "rig", path)
-        trigger = get(rig, "trigger", str, path, "software", "rig")
-        if trigger not in TRIGGER_WIRINGS:
-            raise ConfigError(path, "rig.trigger", f"'{trigger}' is not one of {TRIGGER_WIRINGS}")
-        driver = get(rig, "driver", str, path, prefix="rig")
-        if driver not in DRIVERS:
-            raise ConfigError(path, "rig.driver", f"unknown driver '{driver}'; known: {sorted(DRIVERS)}")
-        timeout = get(rig, "timeout_s", float, path, 2.0, "rig")
-        if not timeout > 0:
-            raise ConfigError(path, "rig.timeout_s", "must be > 0: every wait is finite")
-        period = get(rig, "period_s", float, path, 0.05, "rig")
-        if not 0 < period < timeout:
-            raise ConfigError(path, "rig.period_s", f"pattern period {period} s must be > 0 and below timeout_s")
-        patterns = resolve(path, get(rig, "patterns", str, path, "../patterns/heterodyne_3x4.toml", "rig"))
-        calibration = get(rig, "calibration", str, path, None, "rig")
-        cfg = cls(path=path, name=get(rig, "name", str, path, path.stem, "rig"), driver=driver, trigger=trigger,
-                  timeout_s=timeout, period_s=period, working_distance_mm=get(rig, "working_distance_mm", float, path, 400.0, "rig"),
-                  patterns_path=patterns, camera=get_table(raw, "camera", path),
-                  projector=get_table(raw, "projector", path), raw=raw,
-                  calibration_path=resolve(path, calibration) if calibration else None)
-        cfg.nominal_model()  # validates the geometry keys now, naming the file
-        _ = cfg.model  # and the calibration file, if any
+        rig = schema.parse(RigFile, raw, path).rig
+        cfg = cls(path=path, name=rig.name or path.stem, driver=rig.driver, trigger=rig.trigger,
+                  timeout_s=rig.timeout_s, period_s=rig.period_s, working_distance_mm=rig.working_distance_mm,
+                  patterns_path=resolve(path, rig.patterns), camera=raw["camera"], projector=raw["projector"],
+                  raw=raw, calibration_path=resolve(path, rig.calibration) if rig.calibration else None)
+        check_geometry(cfg.nominal_model(), cfg.working_distance_mm, path, "projector")
+        if cfg.calibration_path is not None:
+            check_geometry(cfg.model, cfg.working_distance_mm, path, "rig.calibration")
         _ = cfg.stage  # and the stage table, if any
         return cfg
-
-    def _pinhole(self, table: dict[str, Any], prefix: str) -> Pinhole:
-        p = self.path
-        width = get(table, "width", int, p, prefix=prefix)
-        height = get(table, "height", int, p, prefix=prefix)
-        if width < 1 or height < 1:
-            raise ConfigError(p, f"{prefix}.width", f"image size must be positive, got {width} x {height}")
-        dist = np.array(get_vector(table, "dist", 5, p, [0.0] * 5, prefix))
-        if "K" in table:
-            K = np.array(get(table, "K", list, p, prefix=prefix), dtype=float)
-            if K.shape != (3, 3):
-                raise ConfigError(p, f"{prefix}.K", "expected a 3x3 matrix")
-            return Pinhole(width, height, K, dist)
-        hfov = get(table, "hfov_deg", float, p, prefix=prefix)
-        if not 1.0 < hfov < 170.0:
-            raise ConfigError(p, f"{prefix}.hfov_deg", f"{hfov} is not a plausible field of view")
-        aspect = get(table, "pixel_aspect", float, p, 1.0, prefix)
-        return Pinhole.from_fov(width, height, hfov, aspect, dist=dist)
 
     @cached_property
     def model(self) -> RigModel:
@@ -118,17 +91,20 @@ class RigConfig:
 
     def nominal_model(self) -> RigModel:
         """The rig geometry written in the config (for the simulator: its ground truth)."""
-        p = self.path
-        pos = np.array(get_vector(self.projector, "position_mm", 3, p, prefix="projector"))
-        target = np.array(get_vector(self.projector, "look_at_mm", 3, p, [0.0, 0.0, self.working_distance_mm],
-                                     "projector"))
+        file = schema.parse(RigFile, self.raw, self.path)
+        pos = np.array(file.projector.position_mm)
+        look = file.projector.look_at_mm
+        target = np.array(look) if look is not None else np.array([0.0, 0.0, self.working_distance_mm])
         if np.linalg.norm(target - pos) < 1e-6:
-            raise ConfigError(p, "projector.look_at_mm", "projector looks at its own position")
-        gamma = get(self.projector, "gamma", float, p, 1.0, "projector")
-        if not 0.2 < gamma < 5.0:
-            raise ConfigError(p, "projector.gamma", f"{gamma} is not a plausible projector gamma")
-        return RigModel(camera=self._pinhole(self.camera, "camera"), projector=self._pinhole(self.projector, "projector"),
-                        cam_from_proj=look_at(pos, target), projector_gamma=gamma)
+            raise ConfigError(self.path, "projector.look_at_mm", "projector looks at its own position")
+        return RigModel(camera=_pinhole(file.camera), projector=_pinhole(file.projector),
+                        cam_from_proj=look_at(pos, target), projector_gamma=file.projector.gamma)
+
+
+def _pinhole(lens: Lens) -> Pinhole:
+    if lens.K is not None:
+        return Pinhole(lens.width, lens.height, np.array(lens.K), np.array(lens.dist))
+    return Pinhole.from_fov(lens.width, lens.height, lens.hfov_deg, lens.pixel_aspect, dist=np.array(lens.dist))
 
 
 @dataclass(eq=False)

@@ -2,7 +2,8 @@
 
 Layout (all files appear complete or not at all):
     frames/frame_000.png …   raw camera frames, lossless, at their bit depth (8- or 16-bit PNG)
-    frames.jsonl             one line per frame as it arrives: index, pattern, timestamp, exposure
+    frames.jsonl             one line per frame as it arrives: index, pattern, timestamp, exposure,
+                             the SHA-256 of the frame's file
     phase_to_height.npz      the phase-to-height maps of the rig model (reference phase, per-pixel
                              l and K), when its calibration has them (a hard link to the
                              calibration's where possible): the session decodes alone
@@ -13,27 +14,39 @@ Layout (all files appear complete or not at all):
     outputs/                 regenerable from the raw frames: cloud.ply, maps.npz, result.json
     recording.rrd            the session's Rerun recording
 A folder without a manifest is an incomplete session and is refused for decoding.
+
+Reading a session back trusts nothing: the manifest is validated (`Manifest`: keys, types,
+ranges, the rig model's geometry), frame paths must stay inside the session folder (no
+absolute paths, no `..`, no symlinks out), each frame's bytes must match the SHA-256 the
+manifest holds for it, and its pixels must fit its bit depth. Sessions written before
+frames carried checksums are read with `Session.integrity` saying they could not be
+checked. (That the frames fit the patterns is checked by the pipeline before decoding.)
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import errno
+import hashlib
 import json
+import math
 import os
 import platform
 import uuid
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import cv2
 import numpy as np
+from pydantic import ConfigDict, Field, model_validator
 
-from scanner import __version__
+from scanner import __version__, schema
 from scanner.devices import Frame
-from scanner.errors import IncompleteSession, SessionError
+from scanner.errors import ConfigError, IncompleteSession, SessionError
 from scanner.geometry import PhaseToHeight, RigModel
-from scanner.patterns import PatternSet
+from scanner.patterns import PatternFile, PatternSet
+from scanner.rig_schema import RigModelSchema, check_geometry
 
 MANIFEST_VERSION = 1
 MANIFEST = "manifest.json"
@@ -46,13 +59,18 @@ PHASE_TO_HEIGHT_MAPS = "phase_to_height.npz"
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    """Write `data` so that `path` either holds all of it or does not exist."""
+    """Write `data` so that `path` either holds all of it or does not exist (a failed write,
+    e.g. on a full disk, leaves no partial file behind and raises the OSError)."""
     tmp = path.with_name(f".{path.name}.part")
-    with tmp.open("wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    tmp.replace(path)
+    try:
+        with tmp.open("wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
@@ -77,17 +95,45 @@ def keep_maps(model: PhaseToHeight, path: Path) -> None:
 
 
 def write_json(path: Path, obj: Any) -> None:
-    write_atomic(path, (json.dumps(obj, indent=2, default=_json_default) + "\n").encode())
+    """Atomic, indented JSON. JSON has no NaN or infinity: a non-finite number is written as
+    null (a writer whose figures can be undefined says why beside them)."""
+    write_atomic(path, (json.dumps(json_ready(obj), indent=2, allow_nan=False) + "\n").encode())
 
 
-def _json_default(o: Any) -> Any:
+def json_ready(o: Any) -> Any:
+    """`o` with numpy arrays and scalars as lists and numbers, paths as strings and every
+    non-finite float as None."""
+    if isinstance(o, dict):
+        return {str(k): json_ready(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [json_ready(v) for v in o]
     if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
+        return json_ready(o.tolist())
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return json_ready(o.item())
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
     if isinstance(o, Path):
         return str(o)
+    if o is None or isinstance(o, (str, int, bool)):
+        return o
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def disk_problem(exc: OSError) -> str:
+    """A file-system error for people: the path, and what to do about a full disk or a
+    read-only folder."""
+    what = exc.strerror or str(exc)
+    hint = {errno.ENOSPC: "free space on the disk or choose another folder",
+            errno.EDQUOT: "free space on the disk or choose another folder",
+            errno.EROFS: "the file system is read-only: choose another folder",
+            errno.EACCES: "no permission to write there: choose another folder",
+            errno.EPERM: "no permission to write there: choose another folder"}.get(exc.errno or 0)
+    return f"{exc.filename + ': ' if exc.filename else ''}{what}" + (f" ({hint})" if hint else "")
+
+
+def sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
 
 
 def frame_name(k: int) -> str:
@@ -106,28 +152,38 @@ class SessionWriter:
 
     @classmethod
     def create(cls, out_dir: str | Path) -> SessionWriter:
-        """A new session folder; `out_dir` must not exist or be empty."""
+        """A new session folder; `out_dir` must not exist or be empty, and must be writable."""
         root = Path(out_dir)
-        if root.exists() and any(root.iterdir()):
-            raise SessionError(f"{root}: output folder exists and is not empty; choose a new --out folder "
-                               f"so no earlier session is overwritten")
-        root.mkdir(parents=True, exist_ok=True)
-        return cls(root)
+        try:
+            if root.exists() and any(root.iterdir()):
+                raise SessionError(f"{root}: output folder exists and is not empty; choose a new --out folder "
+                                   f"so no earlier session is overwritten")
+            root.mkdir(parents=True, exist_ok=True)
+            return cls(root)
+        except OSError as exc:
+            raise SessionError(f"cannot create the session folder {root}: {disk_problem(exc)}") from None
 
     def add_frame(self, k: int, frame: Frame) -> None:
-        """Store frame k losslessly, then log it; both are complete before they are visible."""
+        """Store frame k losslessly, then log it with its SHA-256; both are complete before
+        they are visible. A write that fails (full disk, read-only folder) raises
+        SessionError; the frames stored before it stay."""
         img = frame.image
         ok, png = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         if not ok:
             raise SessionError(f"{self.root}: could not encode frame {k} ({img.dtype} {img.shape})")
-        write_atomic(self.root / FRAMES_DIR / frame_name(k), png.tobytes())
+        data = png.tobytes()
         entry = {"k": k, "file": f"{FRAMES_DIR}/{frame_name(k)}", "index": frame.index,
                  "pattern_index": frame.pattern_index, "timestamp_s": frame.timestamp_s,
                  "exposure_s": frame.exposure_s, "bit_depth": frame.bit_depth,
-                 "shape": list(img.shape), "dtype": str(img.dtype)}
+                 "shape": list(img.shape), "dtype": str(img.dtype), "sha256": sha256(data)}
+        try:
+            write_atomic(self.root / FRAMES_DIR / frame_name(k), data)
+            with (self.root / FRAME_LOG).open("a") as f:
+                f.write(json.dumps(entry) + "\n")
+        except OSError as exc:
+            raise SessionError(f"cannot store frame {k}: {disk_problem(exc)}; the {len(self.frames)} frame(s) "
+                               f"stored before it are kept in {self.root / FRAMES_DIR}") from None
         self.frames.append(entry)
-        with (self.root / FRAME_LOG).open("a") as f:
-            f.write(json.dumps(entry) + "\n")
 
     def finish(self, rig_config: dict[str, Any], model: RigModel, patterns: PatternSet,
                devices: dict[str, Any], timings: dict[str, float], extra: dict[str, Any] | None = None) -> Path:
@@ -143,19 +199,84 @@ class SessionWriter:
             "rig_config": rig_config, "rig_model": model.to_dict(), "patterns": patterns.to_dict(),
             "devices": devices, "timings_s": timings, "frames": self.frames, **(extra or {}),
         }
-        write_json(self.root / MANIFEST, manifest)
+        try:
+            write_json(self.root / MANIFEST, manifest)
+        except OSError as exc:
+            raise SessionError(f"cannot write the manifest: {disk_problem(exc)}; the {len(self.frames)} frames "
+                               f"are kept in {self.root / FRAMES_DIR}") from None
         return self.root / MANIFEST
 
     def fail(self, error: BaseException, stage: str) -> None:
-        """Record why the capture stopped; the frames already stored stay."""
-        write_json(self.root / ERROR, {
-            "session_id": self.id, "stage": stage, "error": type(error).__name__, "message": str(error),
-            "frames_stored": len(self.frames), "time": dt.datetime.now(dt.timezone.utc).isoformat()})
+        """Record why the capture stopped; the frames already stored stay. When even that
+        cannot be written (the disk is full), the error itself is what the user sees."""
+        try:
+            write_json(self.root / ERROR, {
+                "session_id": self.id, "stage": stage, "error": type(error).__name__, "message": str(error),
+                "frames_stored": len(self.frames), "time": dt.datetime.now(dt.timezone.utc).isoformat()})
+        except OSError:
+            pass
+
+
+BitDepth = Annotated[int, Field(strict=True, ge=1, le=16)]
+
+
+class FrameEntry(schema.Schema):
+    """One frame as `SessionWriter.add_frame` records it (frames.jsonl, the manifest)."""
+
+    k: Annotated[int, Field(strict=True, ge=0)]
+    file: Annotated[str, Field(strict=True, min_length=1)]
+    index: schema.Int
+    pattern_index: schema.Int | None = None
+    timestamp_s: schema.Float
+    exposure_s: schema.Float | None = None
+    bit_depth: BitDepth
+    shape: Annotated[list[schema.PositiveInt], Field(min_length=2, max_length=3)]
+    dtype: Literal["uint8", "uint16"]
+    sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None
+
+    @model_validator(mode="after")
+    def _depth(self) -> FrameEntry:
+        if (self.bit_depth <= 8) != (self.dtype == "uint8"):
+            raise ValueError(f"a {self.bit_depth}-bit frame is not stored as {self.dtype}")
+        return self
+
+
+class Manifest(schema.Schema):
+    """manifest.json: what decoding reads is typed and checked; the other keys (devices,
+    timings, versions, ...) are a record for people and kept as written."""
+
+    model_config = ConfigDict(extra="allow")
+
+    slscan_manifest: Literal[MANIFEST_VERSION]
+    session_id: Annotated[str, Field(strict=True, min_length=1)]
+    rig_config: dict[str, Any] = {}
+    rig_model: RigModelSchema
+    patterns: PatternFile
+    frames: Annotated[list[FrameEntry], Field(min_length=1)]
+
+    @model_validator(mode="after")
+    def _frames(self) -> Manifest:
+        depths = {f.bit_depth for f in self.frames}
+        if len(depths) > 1:
+            raise ValueError(f"frames of different bit depths {sorted(depths)} in one stack")
+        for k, f in enumerate(self.frames):
+            if f.k != k:
+                raise ValueError(f"frames[{k}] is numbered k = {f.k}")
+            if tuple(f.shape[:2]) != (self.rig_model.camera.height, self.rig_model.camera.width):
+                raise ValueError(f"frames[{k}] is {f.shape[1]} x {f.shape[0]} px, the camera "
+                                 f"{self.rig_model.camera.width} x {self.rig_model.camera.height} px")
+        if len({f.sha256 is None for f in self.frames}) > 1:
+            raise ValueError("some frames have a sha256 and others not: the frame list was edited")
+        camera = self.rig_config.get("camera") if isinstance(self.rig_config, dict) else None
+        configured = camera.get("bit_depth") if isinstance(camera, dict) else None
+        if configured is not None and configured not in depths:
+            raise ValueError(f"frames are {depths.pop()}-bit, the rig_config's camera.bit_depth is {configured!r}")
+        return self
 
 
 @dataclass(frozen=True, eq=False)
 class Session:
-    """A complete session read back from disk."""
+    """A complete session read back from disk, its manifest validated."""
 
     root: Path
     manifest: dict[str, Any]
@@ -170,11 +291,23 @@ class Session:
             raise IncompleteSession(describe_incomplete(root))
         try:
             manifest = json.loads(mpath.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
             raise SessionError(f"{mpath}: unreadable manifest: {exc}") from None
+        if not isinstance(manifest, dict):
+            raise SessionError(f"{mpath}: not a session manifest (a JSON {type(manifest).__name__}, not an object)")
         version = manifest.get("slscan_manifest")
         if version != MANIFEST_VERSION:
             raise SessionError(f"{mpath}: manifest version {version!r}, this slscan reads {MANIFEST_VERSION}")
+        try:
+            m = schema.parse(Manifest, manifest, mpath)
+            PatternSet.from_dict(manifest["patterns"], mpath, "patterns")
+            rig = m.rig_config.get("rig") if isinstance(m.rig_config.get("rig"), dict) else {}
+            distance = rig.get("working_distance_mm")
+            check_geometry(RigModel.from_dict(manifest["rig_model"], f"{mpath}: rig_model"),
+                           float(distance) if isinstance(distance, (int, float)) and distance > 0 else None,
+                           mpath, "rig_model")
+        except ConfigError as exc:
+            raise SessionError(str(exc)) from None
         return cls(root, manifest)
 
     @property
@@ -183,7 +316,7 @@ class Session:
 
     @property
     def patterns(self) -> PatternSet:
-        return PatternSet.from_dict(self.manifest["patterns"], self.root / MANIFEST)
+        return PatternSet.from_dict(self.manifest["patterns"], self.root / MANIFEST, "patterns")
 
     def rig_model(self) -> RigModel:
         """The geometry the session was captured with, its phase-to-height model (and maps) included."""
@@ -193,8 +326,33 @@ class Session:
     def bit_depth(self) -> int:
         return int(self.manifest["frames"][0]["bit_depth"])
 
+    @property
+    def integrity(self) -> str:
+        """What `load_stack` can vouch for: "sha256" when every frame carries its checksum,
+        else a sentence saying the frames cannot be checked (sessions written before
+        checksums were recorded)."""
+        if all(e.get("sha256") for e in self.manifest["frames"]):
+            return "sha256"
+        return ("not checked: this session was written before slscan recorded frame checksums, so altered or "
+                "replaced frames cannot be detected")
+
+    def frame_path(self, k: int) -> Path:
+        """Frame k's file, which must lie inside the session folder (no absolute path, no
+        '..', no symbolic link leading out)."""
+        name = self.manifest["frames"][k]["file"]
+        rel = Path(name)
+        where = f"{self.root / MANIFEST}, key 'frames[{k}].file'"
+        if rel.is_absolute() or ".." in rel.parts or "\\" in name:
+            raise SessionError(f"{where}: frame path {name!r} leaves the session folder; frames must be "
+                               f"inside it (e.g. frames/{frame_name(k)})")
+        path = self.root / rel
+        if not path.resolve().is_relative_to(self.root.resolve()):
+            raise SessionError(f"{where}: {name!r} is a link to {path.resolve()}, outside the session folder")
+        return path
+
     def load_stack(self) -> np.ndarray:
-        """The raw frames as (N, H, W), checked against the manifest (count, size, type)."""
+        """The raw frames as (N, H, W), each checked: inside the session folder, its SHA-256
+        as recorded (when the session has checksums), its size, type and bit depth."""
         entries = self.manifest["frames"]
         n_expected = self.patterns.n_frames
         if len(entries) != n_expected:
@@ -203,13 +361,23 @@ class Session:
         shape = (cam["height"], cam["width"])
         stack = None
         for k, e in enumerate(entries):
-            path = self.root / e["file"]
-            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            path = self.frame_path(k)
+            try:
+                data = path.read_bytes()
+            except OSError as exc:
+                raise SessionError(f"{path}: frame {k} missing or unreadable ({exc.strerror})") from None
+            if e.get("sha256") and sha256(data) != e["sha256"]:
+                raise SessionError(f"{path}: frame {k} has been altered or replaced since it was captured (its "
+                                   f"SHA-256 is not the one in the manifest); re-scan, or restore the original file")
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
             if img is None:
-                raise SessionError(f"{path}: frame {k} missing or unreadable")
+                raise SessionError(f"{path}: frame {k} missing or unreadable (not an image)")
             if img.shape != shape or str(img.dtype) != e["dtype"]:
-                raise SessionError(f"{path}: frame {k} is {img.dtype} {img.shape[1]}x{img.shape[0]}, expected "
-                                   f"{e['dtype']} {shape[1]}x{shape[0]}")
+                raise SessionError(f"{path}: frame {k} is {_describe(img)}, expected {e['dtype']} "
+                                   f"{shape[1]}x{shape[0]} single-channel")
+            if int(img.max()) >= 2 ** e["bit_depth"]:
+                raise SessionError(f"{path}: frame {k} holds values up to {int(img.max())}, beyond its "
+                                   f"{e['bit_depth']}-bit depth in the manifest")
             if stack is None:
                 stack = np.empty((len(entries), *shape), dtype=img.dtype)
             stack[k] = img
@@ -223,6 +391,11 @@ class Session:
     @property
     def recording_path(self) -> Path:
         return self.root / RECORDING
+
+
+def _describe(img: np.ndarray) -> str:
+    channels = f", {img.shape[2]} channels" if img.ndim == 3 else " single-channel"
+    return f"{img.dtype} {img.shape[1]}x{img.shape[0]}{channels}"
 
 
 def describe_incomplete(root: Path) -> str:

@@ -55,6 +55,7 @@ pixel of the logged images.
 from __future__ import annotations
 
 import json
+import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -73,6 +74,7 @@ from scanner.pointcloud import OrganisedCloud
 
 APPLICATION_ID = "slscan"
 RECORDING_NAME = "recording.rrd"  # file name inside a session folder
+CLOSE_TIMEOUT_S = 30.0  # longest wait for the writer to flush (twice this for the whole close)
 
 TIMELINE_PATTERN = "pattern"
 TIMELINE_SCAN = "scan"
@@ -272,28 +274,52 @@ class SessionRecording:
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
-        if exc is not None and not self._closed:
-            try:
+        if exc is None:
+            self.close()
+            return
+        try:  # never mask the original exception
+            if not self._closed:
                 self.log_event(f"session aborted: {exc_type.__name__ if exc_type else 'error'}: {exc}", level="ERROR")
-            except Exception:  # noqa: BLE001 — never mask the original exception
-                pass
-        self.close()
+            self.close()
+        except Exception:  # noqa: BLE001
+            pass
 
     @property
     def closed(self) -> bool:
         return self._closed
 
     def close(self) -> None:
-        """Flush, write the footer, and give the file its final name. Idempotent."""
+        """Flush, write the footer, and give the file its final name. Idempotent. Waits at
+        most CLOSE_TIMEOUT_S: a writer that died (a full disk) or stalls raises
+        RecordingError and leaves `<path>.part`; nothing else of the session is touched."""
         if self._closed:
             return
         self._closed = True
-        try:
-            if self._blueprint_pending:
-                self._send_blueprint((), 0)
-            self.stream.flush()
-        finally:
-            self.stream.disconnect()  # closes the file sink: footer written
+        errors: list[BaseException] = []
+
+        def finish() -> None:
+            try:
+                if self._blueprint_pending:
+                    self._send_blueprint((), 0)
+                self.stream.flush(timeout_sec=CLOSE_TIMEOUT_S)
+            except Exception as exc:  # noqa: BLE001 — reported below, the sink is closed regardless
+                errors.append(exc)
+            finally:
+                try:
+                    self.stream.disconnect()  # closes the file sink: footer written
+                except Exception as exc:  # noqa: BLE001
+                    errors.append(exc)
+
+        worker = threading.Thread(target=finish, name=f"close {self.path.name}", daemon=True)
+        worker.start()
+        worker.join(2 * CLOSE_TIMEOUT_S)
+        if worker.is_alive():
+            raise RecordingError(f"{self.partial_path}: the recording writer did not finish within "
+                                 f"{2 * CLOSE_TIMEOUT_S:g} s (a full disk or a stalled file system?); the recording "
+                                 f"is incomplete, the session's other files are kept")
+        if errors:
+            raise RecordingError(f"{self.partial_path}: the recording could not be finished ({errors[0]}); the "
+                                 f"disk may be full; the session's other files are kept")
         if self.partial_path.exists():
             self.partial_path.replace(self.path)
 

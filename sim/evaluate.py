@@ -68,8 +68,14 @@ class Accuracy:
     order_errors: int  # valid pixels off by half a fringe period or more, on smooth surfaces
     order_errors_all: int  # the same over every valid lit pixel
 
-    def as_dict(self) -> dict[str, float]:
-        return asdict(self)
+    def as_dict(self) -> dict[str, float | str | None]:
+        """The figures for JSON: an undefined one (no pixel to evaluate) is null, and `note`
+        says why."""
+        d: dict[str, float | str | None] = {k: (v if np.isfinite(v) else None) for k, v in asdict(self).items()}
+        if any(v is None for v in d.values()):
+            d["note"] = (f"null: undefined over {self.pixels} evaluated pixels (no valid pixel on a smooth lit "
+                         f"surface, or no noise bound)")
+        return d
 
     def summary(self) -> str:
         return (f"depth error RMS {self.rms_mm * 1e3:.1f} um (noise bound {self.bound_mm * 1e3:.1f} um, ratio "
@@ -111,8 +117,8 @@ def evaluate(decoded: DecodeResult, cloud: OrganisedCloud, gt: Truth, sensor: Se
     err = cloud.points[..., 2] - gt.depth
     e = err[smooth].astype(np.float64)
     bound = depth_noise_bound(decoded, triangulator, sensor)[smooth].astype(np.float64)
-    rms = float(np.sqrt(np.mean(e ** 2)))
-    bound_rms = float(np.sqrt(np.mean(bound ** 2)))
+    rms = float(np.sqrt(np.mean(e ** 2))) if e.size else float("nan")
+    bound_rms = float(np.sqrt(np.mean(bound ** 2))) if bound.size else float("nan")
     order_all = 0
     order_smooth = 0
     for o, m in decoded.maps.items():
@@ -120,6 +126,6 @@ def evaluate(decoded: DecodeResult, cloud: OrganisedCloud, gt: Truth, sensor: Se
         off = np.abs(m.coordinate - truth) >= m.period_px / 2.0
         order_all += int((off & valid & gt.lit).sum())
         order_smooth += int((off & smooth).sum())
-    return Accuracy(pixels=int(smooth.sum()), rms_mm=rms, mean_mm=float(np.mean(e)), bound_mm=bound_rms,
-                    ratio=rms / bound_rms, coverage=float((valid & eligible).sum() / max(eligible.sum(), 1)),
+    return Accuracy(pixels=int(smooth.sum()), rms_mm=rms, mean_mm=float(np.mean(e)) if e.size else float("nan"),
+                    bound_mm=bound_rms, ratio=rms / bound_rms if bound_rms > 0 else float("nan"), coverage=float((valid & eligible).sum() / max(eligible.sum(), 1)),
                     order_errors=order_smooth, order_errors_all=order_all)

@@ -67,6 +67,7 @@ import numpy as np
 from scanner.config import CONFIG_DIR, get, get_table, get_vector, load_toml, resolve
 from scanner.errors import ConfigError
 from scanner.geometry import pose_from_dict
+from scanner.schema import unknown_key_problem
 
 DEFAULT_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
@@ -253,7 +254,7 @@ def _check_keys(table: dict[str, Any], allowed: set[str], path: Path, prefix: st
     for k in table:
         if k not in allowed:
             full = f"{prefix}.{k}" if prefix else k
-            raise ConfigError(path, full, f"unknown key; expected one of {sorted(allowed)}")
+            raise ConfigError(path, full, unknown_key_problem(k, allowed, prefix))
 
 
 def _pose(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:

@@ -15,6 +15,7 @@ import sys
 from typing import Sequence
 
 from scanner.errors import ScannerError
+from scanner.session import disk_problem
 from slscan.commands import COMMANDS
 
 LOG_LEVELS = ("debug", "info", "warning", "error")
@@ -53,6 +54,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return args.func(args)
     except ScannerError as exc:
         print(f"\nslscan {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the file system refused (full disk, read-only or missing folder): one line
+        print(f"\nslscan {args.command}: error: {disk_problem(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"\nslscan {args.command}: interrupted; frames already captured are kept", file=sys.stderr)

@@ -127,8 +127,8 @@ def test_damaged_session_is_refused_with_file_named(tmp_path: Path, small_config
         scan(rig, PATTERNS, tmp_path / "s")
     frame = tmp_path / "s" / "frames" / "frame_005.png"
     cv2.imwrite(str(frame), np.zeros((100, 100), np.uint16))
-    with pytest.raises(SessionError, match="frame_005.png: frame 5 is uint16 100x100"):
-        Session.open(tmp_path / "s").load_stack()
+    with pytest.raises(SessionError, match="frame_005.png: frame 5 has been altered or replaced"):
+        Session.open(tmp_path / "s").load_stack()  # its SHA-256 no longer matches the manifest's
     frame.unlink()
     with pytest.raises(SessionError, match="frame_005.png: frame 5 missing"):
         Session.open(tmp_path / "s").load_stack()

@@ -633,10 +633,10 @@ def test_faults_from_rig_toml(rig_toml, sphere_scene):
                 except WaitTimeout:
                     pass
             assert idx == [0, 2]
-    bad = RigConfig.load(rig_toml("software", extra="[sim.faults]\ndrop_frme = 1\n"))
-    with pytest.raises(ConfigError) as err:
-        open_sim_rig(bad, scene=sphere_scene)
-    assert err.value.key == "sim.faults.drop_frme" and str(bad.path) in str(err.value)
+    bad_path = rig_toml("software", extra="[sim.faults]\ndrop_frme = 1\n")
+    with pytest.raises(ConfigError) as err:  # refused when the rig is loaded, before any device opens
+        open_sim_rig(RigConfig.load(bad_path), scene=sphere_scene)
+    assert err.value.key == "sim.faults.drop_frme" and str(bad_path) in str(err.value)
     bad = RigConfig.load(rig_toml("software", extra="[sim.faults]\ndelay_frame = 1\n"))
     with pytest.raises(ConfigError, match="sim.faults.delay_s"):
         open_sim_rig(bad, scene=sphere_scene)

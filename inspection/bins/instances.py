@@ -28,6 +28,7 @@ from inspection.errors import MaskError
 from scanner.pointcloud import OrganisedCloud
 
 SOURCES = ("label_image", "labelme", "model", "segmentation")
+MAX_COORDINATE_PX = 1 << 20  # Labelme vertices beyond this cannot be drawn (1/16 px fixed point in int32)
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,6 +117,8 @@ def read_label_image(path: str | Path) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise MaskError(f"{path}: not a readable image")
+    if img.dtype not in (np.uint8, np.uint16):
+        raise MaskError(f"{path}: a label image holds 8- or 16-bit integer ids, not {img.dtype}")
     if img.ndim == 2:
         return img.astype(np.int32)
     colours = img[..., :3].reshape(-1, 3)
@@ -136,8 +139,10 @@ def read_labelme(path: str | Path, image_size: tuple[int, int]) -> tuple[np.ndar
     path = Path(path)
     try:
         doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise MaskError(f"{path}: not a readable Labelme JSON file: {exc}") from None
+    if not isinstance(doc, dict):
+        raise MaskError(f"{path}: not a Labelme file (a JSON {type(doc).__name__}, not an object with 'shapes')")
     w, h = image_size
     fw, fh = doc.get("imageWidth"), doc.get("imageHeight")
     if (fw, fh) != (w, h):
@@ -150,10 +155,14 @@ def read_labelme(path: str | Path, image_size: tuple[int, int]) -> tuple[np.ndar
     names: dict[int, str] = {}
     groups: dict[object, int] = {}
     for k, shape in enumerate(shapes):
+        if not isinstance(shape, dict):
+            raise MaskError(f"{path}: shapes[{k}] is a {type(shape).__name__}, not a shape object")
         kind = shape.get("shape_type") or "polygon"
         if kind in ("point", "line", "linestrip", "points"):
             continue
         group = shape.get("group_id")
+        if not isinstance(group, (int, str, type(None))):
+            raise MaskError(f"{path}: shapes[{k}].group_id must be a number, a string or null, got {group!r}")
         key = ("group", group) if group is not None else ("shape", k)
         if key not in groups:
             groups[key] = len(groups) + 1
@@ -169,6 +178,8 @@ def _shape_mask(shape: dict[str, object], kind: str, size: tuple[int, int], wher
         pts = np.asarray(shape.get("points"), dtype=np.float64).reshape(-1, 2)
     except (TypeError, ValueError):
         raise MaskError(f"{where}: 'points' must be a list of [x, y]") from None
+    if not np.all(np.abs(pts) <= MAX_COORDINATE_PX):  # NaN fails too
+        raise MaskError(f"{where}: point coordinates must be finite and within +-{MAX_COORDINATE_PX} px")
     canvas = np.zeros((h, w), dtype=np.uint8)
     shift = 4   # sub-pixel vertices: 1/16 px
     fixed = lambda p: np.round(p * (1 << shift)).astype(np.int32)  # noqa: E731

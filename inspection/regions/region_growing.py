@@ -134,6 +134,9 @@ def check_radius(points: np.ndarray, radius_mm: float) -> float:
             f"use r >= {MIN_RADIUS_SPACINGS * spacing:.3g} mm")
     diag = float(np.linalg.norm(np.ptp(points, axis=0)))
     voxels = len(voxel_cells(points, SUBSAMPLE_FACTOR * radius_mm)[1])
+    if voxels < MIN_SUBSAMPLED and not diag / 2 > MIN_RADIUS_SPACINGS * spacing:
+        raise SegmentationError(f"this cloud ({len(points)} points, extent {diag:.4g} mm) is too small to segment at "
+                                f"any radius of interest: scan more of the surface")
     if voxels < MIN_SUBSAMPLED:
         raise SegmentationError(
             f"radius of interest {radius_mm:g} mm is too large for this cloud (extent {diag:.4g} mm): it leaves "

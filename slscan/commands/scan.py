@@ -87,6 +87,8 @@ def report(result: Any) -> None:
           f"{result.decoded.valid.mean() * 100:.1f} % of pixels valid)")
     print(f"recording {s.recording_path}   (view: slscan review {s.root})")
     print(f"timings   decode {t['decode'] * 1e3:.0f} ms, reconstruct {t['reconstruct'] * 1e3:.0f} ms")
+    if s.integrity != "sha256":
+        print(f"warning   frame integrity {s.integrity}", file=sys.stderr)
     acc = sim_accuracy(result)
     if acc is not None:
         print(f"accuracy  {acc.summary()}")

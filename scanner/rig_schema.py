@@ -1,0 +1,258 @@
+"""The rig TOML and the rig model description as schemas, and the physics a rig must obey.
+
+`RigFile` is every table a rig TOML may hold (see `config/rigs/`). Keys a driver reads are
+declared here too (uvc, genicam, hdmi, lightcrafter4500: see scanner/drivers/hardware_rig.py),
+and so are the simulator's tables (`[camera.sensor]`, `[sim.faults]`), so a typo is refused
+at load instead of being silently ignored. `[calibrate]` belongs to the
+calibration package, which validates it when a calibration is run (the core cannot import it).
+
+`RigModelSchema` is the geometry as `RigModel.to_dict` writes it (session manifests,
+calibration files). `check_geometry` refuses a rig that cannot measure anything: a camera
+and projector without a common field of view at the working distance, a projector looking
+away, a projector at the camera (no baseline, no triangulation).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from scanner.errors import ConfigError
+from scanner.geometry import RigModel
+from scanner.schema import (
+    Bool,
+    Float,
+    Int,
+    Matrix3,
+    Matrix4,
+    NonNegativeFloat,
+    PositiveFloat,
+    Schema,
+    Str,
+    Vector3,
+    Vector4,
+)
+
+ImageSide = Annotated[int, Field(strict=True, ge=1, le=65536)]
+Distortion = Annotated[list[Float], Field(min_length=5, max_length=5)]
+Gamma = Annotated[float, Field(strict=True, gt=0.2, lt=5.0)]
+FieldOfView = Annotated[float, Field(strict=True, gt=1.0, lt=170.0)]
+PixelAspect = Annotated[float, Field(strict=True, ge=0.1, le=10.0)]
+
+
+class Lens(Schema):
+    """What camera and projector share: image size and intrinsics (K, or hfov_deg and pixel_aspect)."""
+
+    width: ImageSide
+    height: ImageSide
+    hfov_deg: FieldOfView | None = None
+    pixel_aspect: PixelAspect = 1.0
+    K: Matrix3 | None = None
+    dist: Distortion = [0.0] * 5
+    driver: Str | None = None
+
+    @model_validator(mode="after")
+    def _intrinsics(self) -> Lens:
+        if (self.K is None) == (self.hfov_deg is None):
+            raise ValueError("give the intrinsics as either 'K' or 'hfov_deg' (with 'pixel_aspect'), one of them")
+        if self.K is not None:
+            check_intrinsics(np.array(self.K), self.width, self.height)
+        return self
+
+
+class SensorTable(Schema):
+    """[camera.sensor] of a simulated rig (read by sim.render.SensorModel): electrons, px."""
+
+    full_well_e: PositiveFloat = 10500.0
+    read_noise_e: NonNegativeFloat = 6.0
+    flux_e_per_s: NonNegativeFloat = 900000.0
+    ambient: NonNegativeFloat = 0.04
+    blur_sigma_px: NonNegativeFloat = 0.0
+
+
+class FaultsTable(Schema):
+    """[sim.faults] of a simulated rig (read by sim.virtual_devices.Faults): frame indices, s."""
+
+    drop_frame: Annotated[int, Field(strict=True, ge=0)] | None = None
+    delay_frame: Annotated[int, Field(strict=True, ge=0)] | None = None
+    delay_s: NonNegativeFloat = 0.0
+    disconnect_after: Annotated[int, Field(strict=True, ge=0)] | None = None
+    stale_frame: Annotated[int, Field(strict=True, ge=0)] | None = None
+    repeat: Bool = False
+
+
+class SimTable(Schema):
+    faults: FaultsTable | None = None
+
+
+class CameraTable(Lens):
+    bit_depth: Annotated[int, Field(strict=True, ge=1, le=16)] | None = None
+    exposure_s: Annotated[float, Field(strict=True, gt=0, le=60)] | None = None
+    sensor: SensorTable | None = None  # the simulated camera
+    device: Str | Int | None = None  # uvc: device, fps, gain; genicam: cti, serial, trigger_line, gain_db
+    fps: PositiveFloat | None = None
+    gain: Float | None = None
+    cti: Str | None = None
+    serial: Str | None = None
+    trigger_line: Str | None = None
+    gain_db: Float | None = None
+
+
+class ProjectorTable(Lens):
+    gamma: Gamma = 1.0
+    position_mm: Vector3
+    look_at_mm: Vector3 | None = None
+    blur_sigma_px: NonNegativeFloat | None = None  # the simulated projector
+    display: Int | None = None  # hdmi: display, video_display, refresh_hz, latency_frames; then lightcrafter4500
+    video_display: Int | None = None
+    refresh_hz: PositiveFloat | None = None
+    latency_frames: Annotated[int, Field(strict=True, ge=0)] | None = None
+    source: Literal["flash", "video"] | None = None
+    flash_first_image: Annotated[int, Field(strict=True, ge=0)] | None = None
+    flash_images_sha256: Str | None = None
+    leds: Str | None = None
+    led_currents: Annotated[list[Annotated[int, Field(strict=True, ge=0, le=255)]],
+                            Field(min_length=3, max_length=3)] | None = None
+    trig_out1_delays_us: Annotated[list[Float], Field(min_length=2, max_length=2)] | None = None
+    trig_out2_delay_us: Float | None = None
+    trig_in1_delay_us: Float | None = None
+    odd_row_shift: Float | None = None
+    usb_serial: Str | None = None
+
+
+class RigTable(Schema):
+    name: Str | None = None
+    driver: Literal["sim", "hardware"]
+    trigger: Literal["software", "projector", "trigger_box"] = "software"
+    timeout_s: Annotated[float, Field(strict=True, gt=0, le=3600)] = 2.0
+    period_s: PositiveFloat = 0.05
+    working_distance_mm: PositiveFloat = 400.0
+    patterns: Str = "../patterns/heterodyne_3x4.toml"
+    calibration: Str | None = None
+
+    @model_validator(mode="after")
+    def _period(self) -> RigTable:
+        if not self.period_s < self.timeout_s:
+            raise ValueError(f"pattern period_s {self.period_s} s must be below timeout_s {self.timeout_s} s")
+        return self
+
+
+class TriggerBoxTable(Schema):
+    port: Str
+    boot_timeout_s: PositiveFloat = 3.0
+
+
+class RigFile(Schema):
+    """A rig TOML: [rig], [camera], [projector], and the optional tables."""
+
+    rig: RigTable
+    camera: CameraTable
+    projector: ProjectorTable
+    trigger_box: TriggerBoxTable | None = None
+    sim: SimTable | None = None
+    calibrate: dict[str, Any] | None = None  # validated by calibration.workflow.Procedure (its keys, its rules)
+    stage: dict[str, Any] | None = None  # validated by scanner.stage_model.StageConfig (its keys, its rules)
+
+
+# ---------------------------------------------------------------- the model description
+
+
+class PinholeSchema(Schema):
+    width: ImageSide
+    height: ImageSide
+    K: Matrix3
+    dist: Annotated[list[Float], Field(min_length=0, max_length=5)] = [0.0] * 5
+
+    @model_validator(mode="after")
+    def _intrinsics(self) -> PinholeSchema:
+        check_intrinsics(np.array(self.K), self.width, self.height)
+        return self
+
+
+class PhaseToHeightSchema(Schema):
+    l_mm: PositiveFloat
+    d_mm: PositiveFloat
+    pitch_mm: PositiveFloat
+    plane: Vector4
+    per_pixel: Bool = False
+    maps_file: Str = ""
+
+
+class RigModelSchema(Schema):
+    """`RigModel.to_dict` as written in manifests and calibration files."""
+
+    camera: PinholeSchema
+    projector: PinholeSchema
+    cam_from_proj: Matrix4
+    world_from_cam: Matrix4 = np.eye(4).tolist()
+    projector_gamma: Gamma = 1.0
+    phase_to_height: PhaseToHeightSchema | None = None
+    calibration: Str = ""
+
+    @model_validator(mode="after")
+    def _poses(self) -> RigModelSchema:
+        for name in ("cam_from_proj", "world_from_cam"):
+            if not is_rigid(np.array(getattr(self, name))):
+                raise ValueError(f"{name} is not a rigid transform (orthonormal rotation, last row 0 0 0 1)")
+        return self
+
+
+def is_rigid(T: np.ndarray) -> bool:
+    R = T[:3, :3]
+    return bool(np.isfinite(T).all() and np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+                and np.allclose(T[3], [0, 0, 0, 1]))
+
+
+def check_intrinsics(K: np.ndarray, width: int, height: int) -> None:
+    """ValueError unless K is a pinhole's: positive focal lengths, last row 0 0 1, the
+    principal point within an image's size of the image."""
+    if not np.isfinite(K).all():
+        raise ValueError("K holds a non-finite value")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise ValueError(f"focal lengths must be > 0 px, got fx {K[0, 0]:g}, fy {K[1, 1]:g}")
+    if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+        raise ValueError("K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]]")
+    if not (-width <= K[0, 2] <= 2 * width and -height <= K[1, 2] <= 2 * height):
+        raise ValueError(f"principal point ({K[0, 2]:g}, {K[1, 2]:g}) px lies far outside the "
+                         f"{width} x {height} image")
+
+
+MIN_COMMON_VIEW = 0.01  # of the camera's image lit by the projector at the working distance
+MIN_BASELINE_MM = 1.0
+
+
+def common_view(model: RigModel, distance_mm: float, grid: int = 24) -> float:
+    """The fraction of the camera's image whose rays, at depth `distance_mm` (camera frame),
+    land inside the projector's image in front of the projector."""
+    cam, proj = model.camera, model.projector
+    u, v = np.meshgrid(np.linspace(0, cam.width - 1, grid), np.linspace(0, cam.height - 1, grid))
+    xy = cam.normalized(np.stack([u.ravel(), v.ravel()], axis=1))
+    points = np.column_stack([xy * distance_mm, np.full(len(xy), distance_mm)])
+    T = model.proj_from_cam
+    in_proj = points @ T[:3, :3].T + T[:3, 3]
+    ahead = in_proj[:, 2] > 1e-6
+    if not ahead.any():
+        return 0.0
+    px = proj.project(in_proj[ahead])
+    inside = (px[:, 0] >= -0.5) & (px[:, 0] <= proj.width - 0.5) & (px[:, 1] >= -0.5) & (px[:, 1] <= proj.height - 0.5)
+    return float(inside.sum() / len(points))
+
+
+def check_geometry(model: RigModel, distance_mm: float | None, path: object, key: str | None) -> None:
+    """ConfigError naming `path`/`key` unless camera and projector can triangulate: a
+    baseline, and a common field of view at `distance_mm` (None: at any of 50 mm .. 5 m)."""
+    if model.baseline_mm < MIN_BASELINE_MM:
+        raise ConfigError(path, key, f"the projector sits {model.baseline_mm:.3g} mm from the camera: without a "
+                                     f"baseline nothing can be triangulated")
+    distances = [distance_mm] if distance_mm is not None else [50.0 * 2 ** i for i in range(7)]
+    shared = max(common_view(model, d) for d in distances)
+    if shared >= MIN_COMMON_VIEW:
+        return
+    axis_in_proj = (model.proj_from_cam[:3, :3] @ np.array([0.0, 0.0, 1.0]))[2]
+    at = f"at the working distance {distance_mm:g} mm" if distance_mm is not None else "at any distance up to 3.2 m"
+    why = ("the projector looks away from the camera's view" if axis_in_proj <= 0
+           else "check the projector's position_mm and look_at_mm (or the calibration's cam_from_proj)")
+    raise ConfigError(path, key, f"camera and projector share no field of view {at} (the projector lights "
+                                 f"{shared:.0%} of the camera's image): {why}")
