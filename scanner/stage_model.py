@@ -230,7 +230,7 @@ def _axis(t: Any, path: Path, pre: str, home: bool) -> tuple[Axis, AxisGeometry]
             raise ConfigError(path, f"{pre}.{k}", f"a {kind.value} axis gives this in {unit} ({k.replace(wrong, unit)})")
     if not rotary and ("point_mm" in t or "units_per_turn" in t):
         raise ConfigError(path, pre, "a linear axis has no point_mm or units_per_turn")
-    limits = get_vector(t, f"limits_{unit}", 2, path, [-math.inf, math.inf], pre)
+    limits = get_vector(t, f"limits_{unit}", 2, path, prefix=pre) if f"limits_{unit}" in t else [-math.inf, math.inf]
     speed = get(t, f"speed_{unit}_s", float, path, 30.0 if rotary else 10.0, pre)
     tolerance = get(t, f"tolerance_{unit}", float, path, 0.01, pre)
     direction = np.array(get_vector(t, "direction", 3, path, prefix=pre))
