@@ -10,10 +10,12 @@ from scanner.errors import ScannerError
 
 
 def cmd_review(args: argparse.Namespace) -> int:
+    from scanner.multiview import MultiViewSession, is_multiview
     from scanner.session import RECORDING, Session
     from slscan.viewer import review
 
-    session = Session.open(args.session)
+    session = (MultiViewSession.open(args.session, partial=True) if is_multiview(args.session)
+               else Session.open(args.session))
     path = session.root / RECORDING
     if not path.exists():
         raise ScannerError(f"{path}: no recording; run `slscan decode {session.root}` to make one")

@@ -112,9 +112,14 @@ def sim_accuracy(result: Any) -> Any:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
+    from scanner.multiview import is_multiview
     from scanner.pipeline import reprocess
     from scanner.session import Session
 
+    if is_multiview(args.session):
+        from slscan.commands.views import decode_views
+
+        return decode_views(args)
     result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode)
     report(result)
     return 0

@@ -62,13 +62,31 @@ def scan_views(args: argparse.Namespace, config: Any, patterns: Any, options: di
     return report_whole(session, line)
 
 
+def decode_views(args: argparse.Namespace) -> int:
+    """`slscan decode MULTIVIEW`: every view's outputs again from its raw frames, then the
+    whole part (alignment, merged cloud, mesh, recording)."""
+    from scanner.multiview import MultiViewSession
+    from scanner.pipeline import reprocess
+
+    session = MultiViewSession.open(args.session)
+    line = ProgressLine()
+    for view in session.views:
+        print(f"{view.name}: decode", file=sys.stderr)
+        reprocess(view.session, line, mode=args.mode)
+    return report_whole(session, line)
+
+
 def report_whole(session: Any, progress: Any) -> int:
     """Align, fuse and mesh a multi-view session; print what it gave."""
+    from inspection.views.recording import log_whole_part
     from inspection.views.whole import whole_part
+    from scanner.session_recording import SessionRecording
 
     t0, load = time.perf_counter(), os.getloadavg()[0]
     whole = whole_part(session, progress=progress)
     wall = time.perf_counter() - t0
+    with SessionRecording(session.recording_path, session.id, send_blueprint=False) as recording:
+        log_whole_part(recording, whole)
     corrections = whole.alignment.corrections()
     out = session.outputs
     print(f"aligned   {len(whole.views)} views, {len(whole.alignment.edges)} pairs "
@@ -78,6 +96,8 @@ def report_whole(session: Any, progress: Any) -> int:
           f"from 2+ views, cell {whole.merged.cell_mm:.3f} mm)")
     if whole.mesh is not None:
         print(f"mesh      {out / 'mesh.ply'}, {out / 'mesh.stl'}: {whole.mesh.summary()}")
+    print(f"recording {session.recording_path}   (views, poses, merged cloud and mesh; view: slscan review "
+          f"{session.root})")
     t = whole.timings_s
     print("time      " + ", ".join(f"{k} {v:.1f} s" for k, v in t.items()) + f"; {wall:.1f} s wall at load "
           f"{load:.1f} (indicative)")
