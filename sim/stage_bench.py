@@ -1,0 +1,32 @@
+"""The simulator's stage-axis bench: a calibration board lying on the turntable, which the
+simulated stage turns with everything else in the scene (`sim.virtual_stage`).
+
+`board_on_stage(target, stage)` is the scene: the board flat on the platter, printed side
+up (toward the camera side of the axis), its centre `offset_mm` from the axis, at the
+height of the axis point, with the stage at 0. `slscan calibrate --stage-axis` opens the
+simulated rig on it and turns it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scanner.stage import AxisKind
+from scanner.stage_model import StageModel
+from sim.calibration_bench import Target
+from sim.scene import Scene
+
+
+def board_on_stage(target: Target, stage: StageModel, offset_mm: float = 10.0) -> Scene:
+    """The board on the platter of `stage`'s (first rotary) axis, as the scene at stage 0."""
+    axis = next(a for a in stage.axes if a.kind is AxisKind.ROTARY)
+    up = axis.direction
+    x = np.cross(up, [0.0, 0.0, 1.0])
+    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0.0, 0.0])
+    y = np.cross(-up, x)  # board frame: x along its columns, y down its rows, z into it (-up)
+    R = np.stack([x, y, -up], axis=1)
+    centre = axis.point_mm + offset_mm * x + 0.05 * up
+    pose = np.eye(4)
+    pose[:3, :3] = R
+    pose[:3, 3] = centre - R @ target.centre
+    return Scene(objects=(target.scene_object(pose, "board"),), name="stage-axis bench")
