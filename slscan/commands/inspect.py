@@ -2,7 +2,9 @@
 
     slscan cad FILE [--json] [--sample N]            faces by STEP id and surface type, counts per type;
                                                      --sample: time to sample N labelled points
-    slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE
+    slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE;
+                                                     a cloud or session TARGET is another view of the part
+                                                     (partial overlap, fitness on the overlap, --overlap)
     slscan inspect SESSION|CLOUD --cad FILE [--tolerances FILE]
                                                      register, segment by CAD face, per-face form table
 
@@ -92,17 +94,12 @@ def _short(v: Any) -> str:
     return f"{v:.6g}" if isinstance(v, float) else str(v)
 
 
-def _target(path: str, unit: str) -> tuple[Any, Any]:
-    """(ModelTarget, CadModel or None) for a CAD file, a mesh, or a cloud."""
+def _is_model(path: str) -> bool:
+    """Whether `path` is a CAD model or a mesh (a registration target), not a cloud or a session."""
     from inspection.cad import MESH_SUFFIXES, STEP_SUFFIXES
-    from inspection.measured_cloud import read_cloud
-    from inspection.registration import ModelTarget
 
     suffix = Path(path).suffix.lower()
-    if suffix in STEP_SUFFIXES or (suffix in MESH_SUFFIXES and _has_triangles(path)):
-        model = _load_model(path, unit)
-        return ModelTarget.from_cad(model), model
-    return ModelTarget.from_cloud(read_cloud(path)), None
+    return suffix in STEP_SUFFIXES or (suffix in MESH_SUFFIXES and _has_triangles(path))
 
 
 def _has_triangles(path: str) -> bool:
@@ -117,11 +114,15 @@ def cmd_register(args: argparse.Namespace) -> int:
     from inspection.measured_cloud import isolate_part, load_source
     from inspection.registration import RegistrationSettings, register
 
-    target, model = _target(args.target, args.cad_unit)
+    settings = RegistrationSettings(descriptors=tuple(args.descriptors.split(",")), coarse=args.coarse, seed=args.seed)
+    if not _is_model(args.target):
+        return _register_views(args, settings)
+    from inspection.registration import ModelTarget
+
+    target = ModelTarget.from_cad(_load_model(args.target, args.cad_unit))
     scan = load_source(args.source)
     if not args.no_isolate:
         scan = isolate_part(scan, target.diagonal_mm)
-    settings = RegistrationSettings(descriptors=tuple(args.descriptors.split(",")), coarse=args.coarse, seed=args.seed)
     reg = register(scan, target, settings)
     if args.json:
         print(json.dumps({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
@@ -133,6 +134,32 @@ def cmd_register(args: argparse.Namespace) -> int:
     print(f"fitness {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, "
           f"{reg.method}, {reg.timings_s.get('total', 0):.2f} s" + ("; AMBIGUOUS: another pose fits as well"
                                                                     if reg.ambiguous else ""))
+    return 0
+
+
+def _register_views(args: argparse.Namespace, settings: Any) -> int:
+    """A cloud (or session) target is another view of the part: partial overlap, judged on
+    the overlap (`inspection.views.pair_registration`)."""
+    import numpy as np
+
+    from inspection.measured_cloud import load_source
+    from inspection.views.pair_registration import register_view_pair, without_support
+
+    scan, target = load_source(args.source), load_source(args.target)
+    if not args.no_isolate:
+        scan, target = without_support(scan, args.seed), without_support(target, args.seed)
+    reg = register_view_pair(scan, target, args.overlap, settings)
+    if args.json:
+        print(json.dumps({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
+                          "overlap": reg.overlap, "overlap_given": reg.overlap_given, "ambiguous": reg.ambiguous,
+                          "method": reg.method}))
+        return 0
+    with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
+        print(f"transform taking {args.source} onto {args.target} (mm):")
+        print(reg.transform)
+    print(f"overlap {reg.overlap:.0%} of the scan ({'given' if reg.overlap_given else 'estimated'}); fitness on the "
+          f"overlap {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, {reg.method}"
+          + ("; AMBIGUOUS: another pose fits as well" if reg.ambiguous else ""))
     return 0
 
 
@@ -193,12 +220,14 @@ def register(sub: Any) -> None:
 
     r = sub.add_parser("register", help="register a cloud to a CAD model, a mesh or another cloud")
     r.add_argument("source", help="cloud (PLY/PCD/XYZ) or session folder")
-    r.add_argument("target", help="STEP, mesh (STL/PLY/OBJ with triangles) or cloud")
+    r.add_argument("target", help="STEP, mesh (STL/PLY/OBJ with triangles), or a cloud or session: another view")
     r.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh target")
     r.add_argument("--coarse", choices=("sac-ia", "ransac", "ndt"), default="sac-ia", help="coarse method")
     r.add_argument("--descriptors", default="fpfh,shot", help="fpfh, shot or fpfh,shot (multivariate)")
     r.add_argument("--no-isolate", action="store_true", help="keep every source point (no table removal)")
     r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--overlap", type=float, metavar="SHARE", help="cloud targets: the share of SOURCE the target "
+                                                                   "also saw (default: estimated)")
     r.add_argument("--json", action="store_true", help="print {transform, fitness, rmse}")
     r.set_defaults(func=cmd_register)
 
