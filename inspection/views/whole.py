@@ -21,6 +21,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from inspection.measured_cloud import ScanCloud
 from inspection.views.align import Alignment, AlignSettings, align_views
 from inspection.views.merge import Merged, fuse, platter_plane
 from inspection.views.mesh import MeshSettings, SurfaceMesh, mesh_surface, write_mesh
@@ -45,7 +46,7 @@ class ViewsSettings:
     align: AlignSettings = field(default_factory=AlignSettings)
     mesh: MeshSettings = field(default_factory=MeshSettings)
     cell_mm: float | None = None
-    platter_mm: float | None = 0.3
+    platter_mm: float | None = 1.0
     seed: int = 0
 
 
@@ -146,3 +147,19 @@ def write_merged(path: Path, merged: Merged) -> None:
     PlyData([PlyElement.describe(rec, "vertex")], comments=["slscan merged multi-view cloud, mm, part frame"]
             ).write(str(tmp))
     tmp.replace(path)
+
+
+def load_merged(session: MultiViewSession) -> ScanCloud:
+    """The merged cloud of a multi-view session as a scan to inspect (outputs/merged.ply,
+    made first when missing). It has no single viewpoint: normals are the fused ones."""
+    from plyfile import PlyData
+
+    from inspection.measured_cloud import make_scan
+
+    path = session.outputs / "merged.ply"
+    if not path.is_file():
+        whole_part(session)
+    vertex = PlyData.read(str(path))["vertex"]
+    points = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64)
+    normals = np.stack([vertex[f"n{k}"] for k in "xyz"], axis=1).astype(np.float64)
+    return make_scan(points, normals, str(session.root), None)

@@ -174,10 +174,17 @@ def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path |
     from inspection.registration import RegistrationSettings
     from inspection.report import deviation_image, png
     from inspection.tolerances import load_tolerances
+    from scanner.multiview import MultiViewSession, is_multiview
 
     model = _load_model(str(cad), cad_unit)
     tol = load_tolerances(tolerances, {f.label: f.type for f in model.faces}) if tolerances else None
-    scan = load_source(source)
+    multiview = MultiViewSession.open(source) if is_multiview(source) else None
+    if multiview is not None:  # the whole part: the views' merged cloud
+        from inspection.views.whole import load_merged
+
+        scan = load_merged(multiview)
+    else:
+        scan = load_source(source)
     source = Path(source)
     folder = Path(out) if out else (source / "outputs" if source.is_dir() else source.parent)
     settings = InspectionSettings(registration=RegistrationSettings(seed=seed))
@@ -187,7 +194,8 @@ def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path |
         from scanner.session_recording import SessionRecording
 
         folder.mkdir(parents=True, exist_ok=True)
-        own = recording = SessionRecording(folder / "inspection.rrd", Session.open(source).id, send_blueprint=False)
+        run_id = multiview.id if multiview is not None else Session.open(source).id
+        own = recording = SessionRecording(folder / "inspection.rrd", run_id, send_blueprint=False)
     try:
         report = inspect(scan, model, tol, settings, recording)
     finally:
