@@ -6,6 +6,18 @@ the exit code. Modules are imported when the parser is built, so they import hea
 libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
 """
 
-from slscan.commands import bench, calibrate, devices, inspect, pose, review, scan, segment, simbench, station
+from slscan.commands import (
+    bench,
+    calibrate,
+    devices,
+    inspect,
+    pose,
+    review,
+    scan,
+    segment,
+    simbench,
+    station,
+    viewbench,
+)
 
-COMMANDS = (scan, review, bench, simbench, devices, calibrate, inspect, pose, segment, station)
+COMMANDS = (scan, review, bench, simbench, devices, calibrate, inspect, pose, segment, station, viewbench)
