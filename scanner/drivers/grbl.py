@@ -43,7 +43,7 @@ from typing import Callable, Mapping, Sequence
 import serial
 
 from scanner.config import get
-from scanner.drivers.transport import SerialLink, open_serial
+from scanner.drivers.transport import SerialLink, close_serial, open_serial, read_serial_line, write_serial
 from scanner.errors import ConfigError, DeviceDisconnected, DeviceError, DeviceTimeout, StageAlarm
 from scanner.stage import Axis, AxisKind, Stage
 from scanner.stage_model import StageConfig
@@ -308,29 +308,21 @@ class GrblStage(Stage):
 
     def _write(self, port: SerialLink, data: bytes, what: str) -> None:
         try:
-            port.write(data)
-        except (serial.SerialException, OSError) as exc:  # what pyserial raises when the port vanishes
+            write_serial(self.name, port, data, what)
+        except DeviceDisconnected:
             self._drop()
-            raise DeviceDisconnected(self.name, f"serial link lost sending {what!r} ({exc}); check the cable, then "
-                                                f"home and scan again (the driver reconnects)") from None
+            raise
 
     def _readline(self, port: SerialLink) -> str:
         try:
-            raw = port.readline()
-        except (serial.SerialException, OSError) as exc:
+            return read_serial_line(self.name, port)
+        except DeviceDisconnected:
             self._drop()
-            raise DeviceDisconnected(self.name, f"serial link lost ({exc}); check the cable, then home and scan "
-                                                f"again (the driver reconnects)") from None
-        return "".join(ch for ch in raw.decode("ascii", errors="ignore") if ch.isprintable()).strip()
+            raise
 
     def _drop(self) -> None:
         port, self._port = self._port, None
-        if port is not None:
-            log.info("%s: serial port closed", self.name)
-            try:
-                port.close()
-            except (serial.SerialException, OSError):
-                pass  # closing a vanished port: nothing left to release
+        close_serial(self.name, port)
 
 
 def identify(port: str, boot_timeout_s: float = 2.5) -> str:
