@@ -37,6 +37,9 @@ TURNTABLE = CONFIG_DIR / "rigs" / "sim_turntable.toml"
 SCENE = CONFIG_DIR / "scenes" / "turntable_demo.toml"
 CAD = CONFIG_DIR / "parts" / "demo_part.step"
 TOLERANCES = CONFIG_DIR / "tolerances" / "demo_part.toml"
+STEP_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "step"
+NIST = {"ctc01": ("nist_ctc_01_asme1_rd.stp", 0.12, (0.0, 0.0, 1.0)),  # as tests/test_inspection_benchmark.py,
+        "ftc06": ("nist_ftc_06_asme1_rd.stp", 0.3, (0.0, 1.0, 0.0))}  # a little smaller to fit the platter
 
 
 def register(sub: Any) -> None:
@@ -49,6 +52,8 @@ def register(sub: Any) -> None:
     b.add_argument("--axis-error-deg", type=float, default=0.5)
     b.add_argument("--axis-error-mm", type=float, default=0.5)
     b.add_argument("--no-pairs", action="store_true", help="leave out the view-pair registrations")
+    b.add_argument("--part", choices=sorted(NIST), help="view pairs of a NIST part (../shared/data/step) on the "
+                                                       "turntable instead of the demo part (pairs only)")
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_viewbench)
 
@@ -69,6 +74,15 @@ def cmd_viewbench(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     root = args.session or _scan(args)
     session = MultiViewSession.open(root)
+    if args.part:
+        truths = [_truth(v.session.root) for v in session.views]
+        figures = {"part": args.part, "views": len(session.views), "camera": _camera(session),
+                   "pairs": _pairs(session, truths)}
+        (args.out / "viewbench.json").write_text(json.dumps(figures, indent=2, default=float) + "\n")
+        print(json.dumps(figures, default=float) if args.json else "\n".join(
+            f"{args.part} pairs {k} apart: ours {p['ours']}; Open3D {p['open3d_fpfh_ransac_icp']}"
+            for k, p in figures["pairs"].items()))
+        return 0
     figures: dict[str, Any] = {"views": len(session.views), "camera": _camera(session)}
     load0, peer0 = os.getloadavg()[0], peer_s()
     whole = whole_part(session)
@@ -96,11 +110,41 @@ def _scan(args: argparse.Namespace) -> Path:
     rig = args.out / "turntable.toml"
     rig.write_text(text)
     out = args.out / "scan"
-    code = cli.main(["scan", "--rig", str(rig), "--scene", str(SCENE), "--views", str(args.views), "--out", str(out),
+    scene = SCENE if args.part is None else _nist_scene(args.part, rig, args.out)
+    code = cli.main(["scan", "--rig", str(rig), "--scene", str(scene), "--views", str(args.views), "--out", str(out),
                      "--no-merge"])
     if code:
         raise SystemExit(code)
     return out
+
+
+def _nist_scene(part: str, rig: Path, out: Path) -> Path:
+    """The NIST part standing on the turntable, written as a mesh scene (PLY + TOML)."""
+    import open3d as o3d
+
+    from inspection.cad import load_cad
+    from scanner.errors import ScannerError
+    from scanner.rig import RigConfig
+    from sim.stage_bench import part_on_stage
+
+    file, scale, up = NIST[part]
+    if not (STEP_DIR / file).is_file():
+        raise ScannerError(f"{STEP_DIR / file}: the NIST STEP files are not here")
+    tess = load_cad(STEP_DIR / file, scale=scale, deflection_mm=0.01).tessellation
+    scene = part_on_stage(tess.vertices, tess.triangles, tess.face, up, RigConfig.load(rig).stage.nominal)
+    lines = [f'name = "{part} on the turntable"']
+    for obj in scene.objects:
+        if obj.kind == "mesh":
+            mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(obj.world_vertices()),
+                                             o3d.utility.Vector3iVector(obj.triangles))
+            o3d.io.write_triangle_mesh(str(out / f"{obj.name}.ply"), mesh)
+            lines += ["[[objects]]", f'name = "{obj.name}"', f'mesh = "{obj.name}.ply"']
+        else:
+            lines += ["[[objects]]", f'name = "{obj.name}"', f"plane = {{ size_mm = {list(obj.size_mm)} }}",
+                      f"albedo = {obj.albedo}", f"pose = {{ matrix = {obj.pose.tolist()} }}"]
+    path = out / "scene.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
 
 
 def _camera(session: Any) -> str:
