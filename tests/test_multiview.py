@@ -106,13 +106,17 @@ def test_view_pair_registration_45_degrees_apart(four_views: Path) -> None:
     assert deg < 0.05 and mm < 0.1 and not found["overlap_given"] and 0.3 < found["overlap"] < 1.0
 
 
-def test_interrupted_run_keeps_every_finished_view(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize(("fault", "stopped"), [
+    (["--stage-fault", "alarm_at_move=2"], "move: StageAlarm"),
+    (["--fault", "disconnect_after=30"], "capture: DeviceDisconnected")])  # the camera goes at view 2's 7th frame
+def test_interrupted_run_keeps_every_finished_view(tmp_path: Path, capsys: pytest.CaptureFixture[str], fault: list[str],
+                                                   stopped: str) -> None:
     out = tmp_path / "mv"
-    code = cli.main(["scan", "--rig", str(turntable_rig(tmp_path)), "--scene", str(SCENE), "--views", "4",
-                     "--stage-fault", "alarm_at_move=2", "--out", str(out)])
+    code = cli.main(["scan", "--rig", str(turntable_rig(tmp_path)), "--scene", str(SCENE), "--views", "4", *fault,
+                     "--out", str(out)])
     assert code == 2
     err = capsys.readouterr().err
-    assert "2 of 4 views complete (view_000, view_001); stopped at view 2 during move: StageAlarm" in err
+    assert f"2 of 4 views complete (view_000, view_001); stopped at view 2 during {stopped}" in err
     with pytest.raises(IncompleteSession, match="2 of 4 views complete"):
         MultiViewSession.open(out)
     partial = MultiViewSession.open(out, partial=True)
