@@ -219,15 +219,26 @@ def _coverage_and_noise(whole: Any, session: Any) -> tuple[dict[str, float], dic
 
 
 def _form(root: Path) -> dict[str, Any]:
+    """`slscan inspect` of the merged cloud (every face's row), and the narrow faces again
+    with a 0.3 mm edge margin: the demo part's cone (#105) is a 1.5 mm chamfer, which the
+    default 1 mm margin on both of its borders leaves empty."""
+    from inspection.cad import load_cad
+    from inspection.form import FormSettings
+    from inspection.inspect_scan import InspectionSettings, inspect
+    from inspection.views.whole import load_merged
+    from scanner.multiview import MultiViewSession
     from slscan.commands.inspect import inspect_source
 
+    def rows(report: Any) -> dict[str, Any]:
+        keys = ("type", "points", "status", "flatness_mz_mm", "cylindricity_mz_mm", "profile_mm", "noise_mm",
+                "sq_mm", "verdicts")
+        return {row.get("label", "?"): {k: row.get(k) for k in keys if k in row} for row in report.as_dict()["faces"]}
+
     report = inspect_source(root, CAD, TOLERANCES)
-    rows = {}
-    for row in report.as_dict()["faces"]:
-        keep = {k: row.get(k) for k in ("type", "points", "status", "flatness_mz_mm", "cylindricity_mz_mm",
-                                        "profile_mm", "noise_mm", "verdicts") if k in row}
-        rows[row.get("label", "?")] = keep
-    return {"verdict": report.verdict, "faces": rows}
+    narrow = inspect(load_merged(MultiViewSession.open(root)), load_cad(CAD),
+                     settings=InspectionSettings(form=FormSettings(edge_margin_mm=0.3)))
+    return {"verdict": report.verdict, "faces": rows(report),
+            "narrow_margin_0.3mm": {k: v for k, v in rows(narrow).items() if k in ("#17", "#105", "#270", "#602")}}
 
 
 def _pairs(session: Any, truths: list[np.ndarray]) -> dict[str, Any]:
@@ -308,6 +319,9 @@ def _text(f: dict[str, Any]) -> str:
              f"{f['noise']['single_view_same_cells_rms_mm'] * 1e3:.1f} um)",
              f"inspection of the merged cloud: verdict {f['form']['verdict']}"]
     for label, row in f["form"]["faces"].items():
+        lines.append(f"  {label:>6} {row}")
+    lines.append("narrow faces with a 0.3 mm edge margin:")
+    for label, row in f["form"]["narrow_margin_0.3mm"].items():
         lines.append(f"  {label:>6} {row}")
     for apart, p in f.get("pairs", {}).items():
         lines.append(f"pairs {apart} apart: ours {p['ours']}; Open3D {p['open3d_fpfh_ransac_icp']}")
