@@ -103,7 +103,7 @@ def cmd_viewbench(args: argparse.Namespace) -> int:
 
 
 def _scan(args: argparse.Namespace) -> Path:
-    from slscan import cli
+    from slscan.commands.scan import cmd_scan
 
     text = TURNTABLE.read_text().replace('"../patterns/', f'"{CONFIG_DIR}/patterns/')
     text = text.replace("width = 1280", f"width = {args.width}").replace("height = 1024", f"height = {args.height}")
@@ -111,10 +111,8 @@ def _scan(args: argparse.Namespace) -> Path:
     rig.write_text(text)
     out = args.out / "scan"
     scene = SCENE if args.part is None else _nist_scene(args.part, rig, args.out)
-    code = cli.main(["scan", "--rig", str(rig), "--scene", str(scene), "--views", str(args.views), "--out", str(out),
-                     "--no-merge"])
-    if code:
-        raise SystemExit(code)
+    cmd_scan(argparse.Namespace(rig=rig, scene=scene, out=out, patterns=None, seed=0, fault=[], stage_fault=[],
+                                views=args.views, angles=None, no_merge=True))
     return out
 
 
