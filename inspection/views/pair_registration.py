@@ -19,7 +19,9 @@ model) refuses right poses. Here:
    overlap x points), for views whose overlap is known;
 4. free space: laying one big face of a view onto another's fits an overlap well at a
    wrong pose, but then parts of the source lie in front of surfaces the target's sensor
-   saw through that space (`free_space_violations`, when the target knows its viewpoint).
+   saw through that space, or parts of the target in front of what the source's sensor saw
+   (`free_space_violations`, both ways, for views that know their viewpoint); right poses
+   of the simulated views show at most 0.1 %, wrong ones 0.1 to 5 %.
 
 The search's best pose and its near-equal alternatives are each refined and judged; the
 one with the best fitness less violations is kept, and refused (RegistrationFailed, with
@@ -41,7 +43,7 @@ from inspection.views.pairwise import PairSettings, PairView, refine_pair, thin
 
 MIN_FITNESS = 0.8
 MIN_OVERLAP = 0.1
-MAX_VIOLATIONS = 0.01
+MAX_VIOLATIONS = 0.002
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,7 +124,7 @@ def register_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None
     source = PairView(scan.points[keep], scan.normals[keep], Samples(scan.points, scan.normals))
     dense = PairView(target.points, target.normals, Samples(target.points, target.normals))
     tree = cKDTree(target.points)
-    judged = [_judge(source, dense, tree, T, target, voxel, overlap, settings)
+    judged = [_judge(source, dense, tree, T, target, scan, voxel, overlap, settings)
               for T in (coarse.transform, *coarse.alternatives)]
     best = max(judged, key=lambda j: j.fitness - j.violations)
     result = ViewPair(best.transform, best.overlap, overlap is not None, min(best.fitness, 1.0), best.rmse_mm,
@@ -150,8 +152,8 @@ class _Judged:
     violations: float
 
 
-def _judge(source: PairView, target: PairView, tree: cKDTree, T: np.ndarray, cloud: ScanCloud, voxel: float,
-           overlap: float | None, settings: RegistrationSettings) -> _Judged:
+def _judge(source: PairView, target: PairView, tree: cKDTree, T: np.ndarray, cloud: ScanCloud, source_cloud: ScanCloud,
+           voxel: float, overlap: float | None, settings: RegistrationSettings) -> _Judged:
     """A pose refined on the overlap and judged there (see the module docstring)."""
     T = refine_pair(source, target, T, PairSettings(voxel_mm=voxel, max_distance_mm=2.0 * voxel,
                                                     min_distance_mm=0.02)).transform
@@ -165,4 +167,8 @@ def _judge(source: PairView, target: PairView, tree: cKDTree, T: np.ndarray, clo
     share = overlap if overlap is not None else float(near.mean())
     fitness = float(on.sum() / max(share * len(q), 1.0))
     rmse = float(np.sqrt(np.mean(d[on] ** 2))) if on.any() else float("inf")
-    return _Judged(T, share, fitness, rmse, free_space_violations(q, cloud, 2.0 * voxel))
+    back = np.linalg.inv(T)  # and the other way round: the target in the source's view
+    seen_back = transform_points(back, target.points[thin(target.points, 0.5 * voxel)])
+    violations = max(free_space_violations(q, cloud, 2.0 * voxel),
+                     free_space_violations(seen_back, source_cloud, 2.0 * voxel))
+    return _Judged(T, share, fitness, rmse, violations)

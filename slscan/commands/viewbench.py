@@ -52,6 +52,7 @@ def register(sub: Any) -> None:
     b.add_argument("--axis-error-deg", type=float, default=0.5)
     b.add_argument("--axis-error-mm", type=float, default=0.5)
     b.add_argument("--no-pairs", action="store_true", help="leave out the view-pair registrations")
+    b.add_argument("--pairs-only", action="store_true", help="only the view-pair registrations")
     b.add_argument("--part", choices=sorted(NIST), help="view pairs of a NIST part (../shared/data/step) on the "
                                                        "turntable instead of the demo part (pairs only)")
     b.add_argument("--json", action="store_true")
@@ -74,13 +75,13 @@ def cmd_viewbench(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     root = args.session or _scan(args)
     session = MultiViewSession.open(root)
-    if args.part:
+    if args.part or args.pairs_only:
         truths = [_truth(v.session.root) for v in session.views]
-        figures = {"part": args.part, "views": len(session.views), "camera": _camera(session),
+        figures = {"part": args.part or "demo", "views": len(session.views), "camera": _camera(session),
                    "pairs": _pairs(session, truths)}
         (args.out / "viewbench.json").write_text(json.dumps(figures, indent=2, default=float) + "\n")
         print(json.dumps(figures, default=float) if args.json else "\n".join(
-            f"{args.part} pairs {k} apart: ours {p['ours']}; Open3D {p['open3d_fpfh_ransac_icp']}"
+            f"{figures['part']} pairs {k} apart: ours {p['ours']}; Open3D {p['open3d_fpfh_ransac_icp']}"
             for k, p in figures["pairs"].items()))
         return 0
     figures: dict[str, Any] = {"views": len(session.views), "camera": _camera(session)}
