@@ -9,11 +9,10 @@ brighter than its inverse; a bit is trusted where |pattern − inverse| reaches
 `min_bit_difference`, a pixel where white − black reaches `min_contrast` (both in DN, as
 OpenCV's white and black thresholds).
 
-The finest stripes are one projector pixel wide and blur first (a tilted board, defocus):
-where only the last `max_dropped_bits` bits are unreadable, the leading bits still name a
-run of 2^k projector pixels (Gray-code prefixes are contiguous ranges), and the pixel gets
-that run's centre with weight 4^-k (the variance of a uniform run of 2^k pixels, relative
-to one pixel's). OpenCV's decoder drops such pixels; keeping them keeps corners of tilted
+The bits are read by `scanner.pixel_code.read_pixel_code`: where only the last
+`max_dropped_bits` bits are unreadable (the finest stripes blur first: a tilted board,
+defocus) the pixel gets the centre of the run of 2^k projector pixels the leading bits name,
+with weight 4^-k. OpenCV's decoder drops such pixels; keeping them keeps corners of tilted
 boards usable.
 
 The result is the projector pixel (column, row) each camera pixel sees (NaN where not
@@ -28,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.errors import DetectionError
-from scanner.patterns import gray_to_binary
+from scanner.pixel_code import read_pixel_code
 
 
 @dataclass(frozen=True)
@@ -102,20 +101,10 @@ def decode_graycode(stack: np.ndarray, layout: GrayCodeLayout, min_contrast: flo
         contrast = np.zeros(shape, dtype=frames.dtype)
     coords, weights = [], []
     for n_bits, start in ((layout.column_bits, 0), (layout.row_bits, 2 * layout.column_bits)):
-        code = np.zeros(shape, dtype=np.int32)
-        readable = np.zeros(shape, dtype=np.int32)  # leading bits read reliably
-        leading = np.ones(shape, dtype=bool)
-        for k in range(n_bits):
-            diff = frames[start + 2 * k] - frames[start + 2 * k + 1]
-            leading &= np.abs(diff) >= min_bit_difference
-            readable += leading
-            code <<= 1
-            code |= diff > 0
-        dropped = n_bits - readable
-        valid &= dropped <= max_dropped_bits
-        run = np.left_shift(1, dropped)
-        first = np.left_shift(gray_to_binary(np.right_shift(code, dropped), n_bits), dropped)
-        coords.append(first + (run - 1) * np.float32(0.5))
+        diffs = [frames[start + 2 * k] - frames[start + 2 * k + 1] for k in range(n_bits)]
+        coordinate, run, readable = read_pixel_code(diffs, min_bit_difference, max_dropped_bits)
+        valid &= readable
+        coords.append(coordinate)
         weights.append(np.float32(1.0) / np.square(run, dtype=np.float32))
     (col, row), (wu, wv) = coords, weights
     valid &= (col < layout.width) & (row < layout.height)

@@ -1,22 +1,37 @@
-"""Fringe decoding: wrapped phase, modulation and background, temporal unwrapping, masks.
+"""Fringe decoding: wrapped phase, modulation and background, unwrapping, masks, self-check.
 
-Input: an (N, H, W) stack of camera frames in the order of `PatternSet.frames()`, at its
-bit depth. Output per fringe orientation: the projector pixel coordinate each camera
-pixel sees along the coded axis (NaN where invalid), with the maps behind it and the
-reasons pixels were rejected. Everything is whole-array numpy/OpenCV work.
+Input: an (N, H, W) stack of camera frames in the order of `PatternSet.frames()` (which
+follows the set's conventions: frame order, reference frames, Gray-code variant), at its
+bit depth. Output per fringe orientation: the projector pixel coordinate each camera pixel
+sees along the coded axis (OpenCV convention, pixel centres at integers; NaN where
+invalid), with the maps behind it and the reasons pixels were rejected.
+
+Every decode checks itself: a Gray code that disagrees with the phase on more than
+`max_disagreement` of the modulated pixels, or frequencies whose unwrapping residuals are
+offset systematically, mean the frames were not made the way the pattern set says (phase
+origin, step sign, frame order …); decode then raises DecodeError naming that, instead of
+handing on a cloud that is wrong everywhere. Everything is whole-array numpy/OpenCV work.
 """
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import cached_property
+from typing import Any, Callable
 
 import cv2
 import numpy as np
 
 from scanner.errors import DecodeError
-from scanner.patterns import PatternSet, gray_to_binary
+from scanner.patterns import FrameSpec, PatternSet, gray_to_binary
+from scanner.pixel_code import read_pixel_code
 
 TWO_PI = np.float32(2.0 * np.pi)
+MIN_JUDGED_PIXELS = 200  # fewer modulated pixels than this: the self-check has nothing to judge
+CHUNK_ROWS = 128  # rows decoded together (a band's float32 maps fit in cache)
+OFFSET_SAMPLE = 16  # every 16th row judges the frequencies' offsets
 
 
 @dataclass(frozen=True)
@@ -25,20 +40,48 @@ class DecodeSettings:
 
     `min_modulation`: modulation B below this fraction of full scale is too weak for a
     precise phase. `min_contrast`: B/A below this means no fringe reaches the pixel
-    (projector shadow or outside the projected area). `order_tolerance`: an unwrapping
-    residual above this fraction of π marks a fringe-order error. `spatial_check`: also
-    cut the map where neighbours jump by more than half a fringe period and reject the
-    regions between cuts smaller than `min_region_fraction` of the image (clustered
-    order errors, which no per-pixel test sees). `gray_certainty`: a Gray-code bit reads
-    clearly when |I − A| exceeds this fraction of the fringe modulation B.
+    (projector shadow or outside the projected area). `order_tolerance` (fraction of π)
+    is the least unwrapping residual ever called a fringe-order error; above it a pixel is
+    one when its residual comes within `order_sigmas` of its own predicted residual noise
+    (from its modulation and the stack's intensity-noise model) of the ambiguity at π, the
+    tolerance never above `order_tolerance_max`. `spatial_check`: also cut the map where
+    neighbours jump by more than half a fringe period and reject the regions between cuts
+    smaller than `min_region_fraction` of the image (clustered order errors, which no
+    per-pixel test sees). `gray_certainty`: a Gray-code bit reads clearly when |I − A|
+    exceeds this fraction of the fringe modulation B (complementary code); a pixel-code bit
+    when |pattern − inverse| exceeds `code_certainty` times the white − black contrast (a
+    pair read against each other is robust; up to `max_dropped_bits` of the finest bits may
+    be unreadable). `self_check`: refuse the decode when more than
+    `max_disagreement` of the modulated pixels have a Gray code and a phase that disagree,
+    or when the frequencies' residuals are offset by more than `max_frequency_offset` rad.
     """
 
     min_modulation: float = 0.005
     min_contrast: float = 0.12
     order_tolerance: float = 0.5
+    order_tolerance_max: float = 0.9
+    order_sigmas: float = 4.0
     spatial_check: bool = True
     min_region_fraction: float = 1e-4
     gray_certainty: float = 0.3
+    code_certainty: float = 0.1
+    max_dropped_bits: int = 2
+    self_check: bool = True
+    max_disagreement: float = 0.05
+    max_frequency_offset: float = 0.3
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Camera intensity noise variance σ_I² = read + shot·A (DN², A in DN), fitted to the
+    residuals of the phase-shift fit (or, with 3 steps, to the background's fine texture)."""
+
+    read: float
+    shot: float
+
+    def sigma(self, background: np.ndarray) -> np.ndarray:
+        """σ_I (DN) for a background A (DN)."""
+        return np.sqrt(np.float32(self.read) + np.float32(self.shot) * np.maximum(background, 0))
 
 
 @dataclass(eq=False)
@@ -48,7 +91,7 @@ class OrientationMaps:
     orientation: str
     coordinate: np.ndarray  # projector pixel coordinate along the coded axis, NaN invalid
     phase: np.ndarray  # absolute phase in units of the finest fringe (rad), NaN invalid
-    wrapped: list[np.ndarray]  # wrapped phase per frequency, [0, 2π)
+    wrapped: list[np.ndarray]  # wrapped phase per frequency, [0, 2π), phase origin removed
     modulation: list[np.ndarray]  # B per frequency (DN)
     background: np.ndarray  # A (DN), mean of all phase frames
     phase_weight: np.ndarray  # Σ_i (B_i·f_i/f_max)², the precision of `phase` up to the noise σ_I²·2/N
@@ -56,11 +99,27 @@ class OrientationMaps:
     valid: np.ndarray  # bool
     fringes: float  # finest fringe count across `extent_px`
     extent_px: int  # projector pixels along the coded axis
+    noise: NoiseModel
+    steps: int
 
     @property
     def period_px(self) -> float:
         """Finest fringe period in projector pixels."""
         return self.extent_px / self.fringes
+
+    @cached_property
+    def phase_sigma(self) -> np.ndarray:
+        """Predicted one-sigma noise of `phase` (rad, finest fringe) per pixel:
+        sqrt(2/N)·σ_I(A)/sqrt(phase_weight); NaN where invalid."""
+        s = self.noise.sigma(self.background) * np.float32(np.sqrt(2.0 / self.steps))
+        s /= np.sqrt(np.maximum(self.phase_weight, np.float32(1e-12)))
+        s[~self.valid] = np.nan
+        return s
+
+    @property
+    def coordinate_sigma(self) -> np.ndarray:
+        """Predicted one-sigma noise of `coordinate` (projector px)."""
+        return self.phase_sigma * np.float32(self.period_px / (2 * np.pi))
 
 
 @dataclass(eq=False)
@@ -72,9 +131,14 @@ class DecodeResult:
     maps: dict[str, OrientationMaps]
     texture: np.ndarray
     valid: np.ndarray  # bool: valid in every orientation
+    checks: dict[str, dict[str, float]]  # self-check figures per orientation
 
     def coordinate(self, orientation: str) -> np.ndarray:
         return self.maps[orientation].coordinate
+
+    def rejected(self) -> dict[str, int]:
+        """Pixels rejected per orientation and reason (a pixel counts under its first reason)."""
+        return {f"{o}/{k}": int(v.sum()) for o, m in self.maps.items() for k, v in m.masks.items()}
 
 
 def _wrap_positive(d: np.ndarray) -> np.ndarray:
@@ -83,17 +147,37 @@ def _wrap_positive(d: np.ndarray) -> np.ndarray:
     return d
 
 
-def _phase_shift(block: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Wrapped phase [0, 2π), modulation B and background A of one N-step block (N, H, W)."""
-    n, h, w = block.shape
-    delta = 2.0 * np.pi * np.arange(steps) / steps
-    weights = np.stack([np.cos(delta), -np.sin(delta), np.full(steps, 1.0)]).astype(np.float32)
-    weights[:2] *= 2.0 / steps
-    weights[2] /= steps
-    flat = block.reshape(n, h * w).astype(np.float32)
-    c, s, a = weights @ flat  # B·cos φ, B·sin φ, A
-    c, s = c.reshape(h, w), s.reshape(h, w)
-    return cv2.phase(c, s), cv2.magnitude(c, s), a.reshape(h, w)
+def _weighted_sum(frames: list[np.ndarray], weights: np.ndarray) -> np.ndarray:
+    """Σ w_k·I_k as float32, straight from the frames at their bit depth: pairs of frames by
+    cv2.addWeighted (one pass each, no float copy of the frames), zero weights skipped."""
+    terms = [(f, float(w)) for f, w in zip(frames, weights) if abs(w) > 1e-9]
+    acc = None
+    for i in range(0, len(terms), 2):
+        if i + 1 < len(terms):
+            (f1, w1), (f2, w2) = terms[i], terms[i + 1]
+            t = cv2.addWeighted(f1, w1, f2, w2, 0.0, dtype=cv2.CV_32F)
+        else:
+            t = terms[i][0].astype(np.float32)
+            t *= np.float32(terms[i][1])
+        acc = t if acc is None else cv2.add(acc, t, dst=acc)
+    return acc if acc is not None else np.zeros(frames[0].shape, np.float32)
+
+
+def phase_shift(block: np.ndarray | list[np.ndarray], steps: int, origin: float, sign: int,
+                out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Wrapped phase [0, 2π) with the phase origin removed, modulation B and background A
+    of one N-step block (N frames of (H, W)) whose step n adds sign·2πn/N to the displayed
+    phase; `out`: arrays to write the phase and modulation into."""
+    frames = [block[k] for k in range(steps)]
+    angle = sign * 2.0 * np.pi * np.arange(steps) / steps + origin
+    c = _weighted_sum(frames, np.cos(angle) * (2.0 / steps))  # B·cos φ
+    s = _weighted_sum(frames, -np.sin(angle) * (2.0 / steps))  # B·sin φ
+    a = _weighted_sum(frames, np.full(steps, 1.0 / steps))  # A
+    if out is None:
+        return cv2.phase(c, s), cv2.magnitude(c, s), a
+    cv2.phase(c, s, angle=out[0])
+    cv2.magnitude(c, s, magnitude=out[1])
+    return out[0], out[1], a
 
 
 def _unwrap_step(coarse: np.ndarray, ratio: float, fine_wrapped: np.ndarray,
@@ -131,42 +215,92 @@ def _temporal_unwrap(ps: PatternSet, wrapped: list[np.ndarray]) -> tuple[list[np
     return [_unwrap_step(a12, f[i] / f12, wrapped[i], worst) for i in range(3)], worst
 
 
-def _graycode_unwrap(ps: PatternSet, wrapped: np.ndarray, bits: np.ndarray, background: np.ndarray,
-                     modulation: np.ndarray, certainty: float) -> tuple[np.ndarray, np.ndarray]:
-    """Absolute phase from complementary Gray code (Wu et al.), and where it is unreliable.
+def _residual_sigma(ps: PatternSet, phase_sigmas: list[np.ndarray]) -> np.ndarray:
+    """Predicted one-sigma of the largest unwrapping residual (fraction of π) from each
+    frequency's phase noise (rad), propagated through the unwrapping steps."""
+    f = ps.fringes
+    var = [s * s for s in phase_sigmas]
+    if ps.family == "hierarchical":
+        steps = [(f[i] / f[i - 1]) ** 2 * var[i - 1] + var[i] for i in range(1, len(f))]
+    else:
+        f12 = f[0] - f[1]
+        v12 = var[0] + var[1]
+        v123 = var[0] + 4 * var[1] + var[2]
+        steps = [f12 ** 2 * v123 + v12] + [(f[i] / f12) ** 2 * v12 + var[i] for i in range(3)]
+    return np.sqrt(np.maximum.reduce(steps)) / np.float32(np.pi)
+
+
+def _order_errors(residual: np.ndarray, candidates_sigma: Callable[[np.ndarray], np.ndarray],
+                  settings: DecodeSettings) -> np.ndarray:
+    """Pixels whose unwrapping residual (fraction of π) marks a fringe-order error: above
+    `order_tolerance` and within `order_sigmas` predicted sigmas of the ambiguity at 1."""
+    errors = residual > np.float32(settings.order_tolerance)
+    idx = np.flatnonzero(errors)
+    if idx.size:
+        sigma = candidates_sigma(idx)
+        tol = np.clip(1.0 - settings.order_sigmas * sigma, settings.order_tolerance, settings.order_tolerance_max)
+        errors.flat[idx] = ~(residual.flat[idx] <= tol)  # NaN sigma: an error
+    return errors
+
+
+def read_complementary_code(bits: list[np.ndarray], background: np.ndarray, modulation: np.ndarray,
+                            certainty: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a complementary Gray code (n regular bits, then the half-period bit), each bit
+    against the background A. Returns (the half-period index the whole code names, the
+    count of regular bits read ambiguously, whether the half-period bit is ambiguous); a
+    bit reads clearly when |I − A| exceeds `certainty`·B."""
+    code = np.zeros(background.shape, dtype=np.int32)
+    unclear = np.zeros(background.shape, dtype=np.int32)
+    margin = np.float32(certainty) * modulation
+    for b, frame in enumerate(bits):
+        diff = frame.astype(np.float32) - background
+        code = (code << 1) | (diff > 0)
+        ambiguous = np.abs(diff) < margin
+        if b < len(bits) - 1:
+            unclear += ambiguous
+    return gray_to_binary(code, len(bits)), unclear, ambiguous
+
+
+def _graycode_unwrap(wrapped: np.ndarray, bits: list[np.ndarray], background: np.ndarray,
+                     modulation: np.ndarray, certainty: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Absolute phase from complementary Gray code (Wu et al.), where it is unreliable, and
+    the half-period index the code names (for the self-check).
 
     The extra half-period bit picks the fringe order that is safe at the code boundaries:
     away from a period boundary (π/2 < φ < 3π/2) every regular bit must read clearly, and
     near one only the single bit that changes there may be ambiguous; the complementary bit
-    must read clearly wherever it is used. A bit reads clearly when |I − A| exceeds
-    `certainty`·B; blur wider than a quarter period breaks this, and those pixels are
-    returned as order errors instead of being unwrapped by a guess."""
-    n_bits = ps.gray_bits()
-    code = np.zeros(wrapped.shape, dtype=np.int32)
-    unclear = np.zeros(wrapped.shape, dtype=np.int32)  # regular bits read ambiguously
-    margin = np.float32(certainty) * modulation
-    for b in range(n_bits + 1):
-        diff = bits[b].astype(np.float32) - background
-        code = (code << 1) | (diff > 0)
-        ambiguous = np.abs(diff) < margin
-        if b < n_bits:
-            unclear += ambiguous
-        else:
-            complementary_unclear = ambiguous
-    k1 = gray_to_binary(code >> 1, n_bits)
-    k2 = (gray_to_binary(code, n_bits + 1) + 1) >> 1
+    must read clearly wherever it is used. Blur wider than a quarter period breaks this, and
+    those pixels are returned as order errors instead of being unwrapped by a guess."""
+    half, unclear, complementary_unclear = read_complementary_code(bits, background, modulation, certainty)
+    k1 = half >> 1  # the regular bits' period index (a Gray prefix names the same range)
+    k2 = (half + 1) >> 1
     quarter = np.float32(np.pi / 2)
     near_boundary = (wrapped <= quarter) | (wrapped >= 3 * quarter)
     order = np.where(wrapped <= quarter, k2, np.where(wrapped >= 3 * quarter, k2 - 1, k1))
     unreliable = np.where(near_boundary, complementary_unclear | (unclear > 1), unclear > 0)
-    return wrapped + TWO_PI * order.astype(np.float32), unreliable
+    return wrapped + TWO_PI * order.astype(np.float32), unreliable, half
 
 
-def _typical_step(diff: np.ndarray) -> np.float32:
-    """Median |difference| between neighbours, from every 16th line (cheap, robust)."""
-    sample = np.abs(diff[::16])
-    sample = sample[~np.isnan(sample)]
+def gray_phase_offset(wrapped: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Per pixel, how far (rad, (−π, π]) the wrapped phase sits from the centre of the
+    half period its Gray code names: within ±π/2 when code and phase agree."""
+    r = wrapped - np.float32(np.pi) * ((half & 1).astype(np.float32) + np.float32(0.5))
+    r -= TWO_PI * np.rint(r / TWO_PI)
+    return r
+
+
+def _typical_step(sample: np.ndarray) -> np.float32:
+    """Median of the |differences| between neighbours in `sample` (every 16th line of the
+    map: cheap, robust), NaN left out."""
+    sample = np.abs(sample[~np.isnan(sample)])
     return np.float32(np.median(sample)) if sample.size else np.float32(0.0)
+
+
+def in_bands(height: int, work: Callable[[slice], Any]) -> list[Any]:
+    """`work(rows)` for bands of CHUNK_ROWS rows on every core, in order."""
+    bands = [slice(r, min(r + CHUNK_ROWS, height)) for r in range(0, height, CHUNK_ROWS)]
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        return list(pool.map(work, bands))
 
 
 def _unreliable_regions(coordinate: np.ndarray, valid: np.ndarray, period_px: float,
@@ -179,97 +313,398 @@ def _unreliable_regions(coordinate: np.ndarray, valid: np.ndarray, period_px: fl
     smaller than `min_region_px` left between the cuts are order-error islands.
     Returns (islands, cut pixels)."""
     c = coordinate  # NaN where not valid
+    h = c.shape[0]
     half = np.float32(period_px / 2.0)
-    cut = np.zeros(valid.shape, dtype=bool)
     with np.errstate(invalid="ignore"):
-        dx = np.abs(c[:, 1:] - c[:, :-1])
-        jump = dx > half + _typical_step(dx)
-        cut[:, :-1] |= jump  # both pixels of a jump: at a depth edge either may be a mixed pixel
-        cut[:, 1:] |= jump
-        dy = np.abs(c[1:, :] - c[:-1, :])
-        jump = dy > half + _typical_step(dy.T)
-        cut[:-1, :] |= jump
-        cut[1:, :] |= jump
-    cut &= valid
+        limit_x = half + _typical_step(c[::16, 1:] - c[::16, :-1])
+        limit_y = half + _typical_step(c[1:, ::16] - c[:-1, ::16])
+    cut = np.empty(valid.shape, dtype=bool)
+
+    def cuts(rows: slice) -> None:
+        a, b = rows.start, rows.stop
+        top, bottom = max(a - 1, 0), min(b + 1, h)
+        own = c[a:b]
+        band = np.zeros(own.shape, dtype=bool)
+        with np.errstate(invalid="ignore"):
+            jump = np.abs(own[:, 1:] - own[:, :-1]) > limit_x
+            band[:, :-1] |= jump  # both pixels of a jump: at a depth edge either may be a mixed pixel
+            band[:, 1:] |= jump
+            ext = c[top:bottom]
+            jump = np.abs(ext[1:] - ext[:-1]) > limit_y  # pair p joins rows top + p and top + p + 1
+        off = a - top
+        band[max(0, 1 - off):] |= jump[max(0, off - 1):off - 1 + (b - a)]  # with the row above
+        below = jump[off:off + (b - a)]
+        band[:len(below)] |= below  # with the row below
+        cut[rows] = band & valid[rows]
+
+    in_bands(h, cuts)
     _, labels, stats, _ = cv2.connectedComponentsWithStats((valid & ~cut).view(np.uint8), connectivity=4,
                                                            ltype=cv2.CV_32S)
     small = stats[:, cv2.CC_STAT_AREA] < min_region_px
     small[0] = False  # label 0: invalid or cut pixels
-    return small[labels], cut
+    islands = np.empty(valid.shape, dtype=bool)
+
+    def lookup(rows: slice) -> None:
+        islands[rows] = small[labels[rows]]
+
+    in_bands(h, lookup)
+    return islands, cut
+
+
+_CHI2_MEDIAN = (0.4549, 0.6931, 0.7887, 0.8392, 0.8703, 0.8914, 0.9066, 0.9180, 0.9270, 0.9342)  # median(χ²_k)/k
+
+
+def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int, full_scale: float) -> NoiseModel:
+    """The intensity-noise model of a stack, from ~20 000 of its pixels (32 rows): the
+    residual of the N-step fit per pixel (N − 3 degrees of freedom) regressed on the
+    background; with 3 steps, the background's fine texture (Immerkær's Laplacian estimate,
+    an upper bound where the scene has texture)."""
+    h, w = stack.shape[1:]
+    rs, cs = max(1, h // 32), max(1, w // 640)
+    sub = [stack[k, ::rs, ::cs].astype(np.float64) for k in blocks[0]]
+    if steps > 3:
+        a_all, v_all = [], []
+        delta = sign * 2.0 * np.pi * np.arange(steps) / steps
+        basis = np.stack([np.ones(steps), np.cos(delta), np.sin(delta)], axis=1)  # (N, 3)
+        projector = np.eye(steps) - basis @ np.linalg.pinv(basis)
+        for block in blocks:
+            frames = np.stack([stack[k, ::rs, ::cs] for k in block]).reshape(steps, -1).astype(np.float64)
+            ok = (frames.max(axis=0) < full_scale) & (frames.min(axis=0) > 0)
+            res = projector @ frames[:, ok]
+            a_all.append(frames[:, ok].mean(axis=0))
+            v_all.append((res ** 2).sum(axis=0) / (steps - 3))
+        a, v = np.concatenate(a_all), np.concatenate(v_all)
+    else:
+        mean = np.mean(sub, axis=0)
+        lap = cv2.filter2D(mean, -1, np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float64))[1:-1, 1:-1]
+        a = mean[1:-1, 1:-1].ravel()
+        v = (lap.ravel() ** 2) * (np.pi / 2) / 36.0 * steps  # σ_A² per pixel, back to one frame's σ_I²
+    if a.size < 50:
+        return NoiseModel(1.0, 0.0)
+    # median variance in background bins (unbiased for the χ² of the residuals), then a line
+    # through them with non-negative read and shot terms
+    dof = steps - 3 if steps > 3 else 1
+    unbias = _CHI2_MEDIAN[dof - 1] if dof <= len(_CHI2_MEDIAN) else (1 - 2 / (9 * dof)) ** 3
+    edges = np.quantile(a, np.linspace(0, 1, 9))
+    centres, medians = [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (a >= lo) & (a <= hi)
+        if sel.sum() >= 10:
+            centres.append(np.median(a[sel]))
+            medians.append(np.median(v[sel]) / unbias)
+    c, m = np.array(centres), np.array(medians)
+    shot, read = np.polyfit(c, m, 1) if len(c) >= 2 and np.ptp(c) > 0.05 * max(c.max(), 1.0) else (0.0, np.mean(m))
+    if shot < 0:  # no shot noise visible: a constant
+        shot, read = 0.0, float(np.mean(m))
+    if read < 1.0 / 12.0:  # at least the quantisation noise; the shot term through the rest
+        read = 1.0 / 12.0
+        shot = max(float(np.sum((m - read) * c) / max(np.sum(c * c), 1e-12)), 0.0)
+    return NoiseModel(float(read), float(shot))
+
+
+def _offset_sums(ps: PatternSet, absolute: list[np.ndarray], wrapped: list[np.ndarray], usable: np.ndarray,
+                 first_row: int) -> tuple[list[complex], int]:
+    """Per frequency, the sum of exp(i·(wrapped − the phase the unwrapping predicted for it
+    from the finest)) over the usable pixels of every OFFSET_SAMPLE-th row and 4th column
+    (rows counted from `first_row` of the image), and their count."""
+    start = (-first_row) % OFFSET_SAMPLE
+    sel = usable[start::OFFSET_SAMPLE, ::4]
+    f_max = max(ps.fringes)
+    finest = absolute[int(np.argmax(ps.fringes))][start::OFFSET_SAMPLE, ::4][sel]
+    out = []
+    for i, fi in enumerate(ps.fringes):
+        d = wrapped[i][start::OFFSET_SAMPLE, ::4][sel] - finest * np.float32(fi / f_max)
+        out.append(complex(np.exp(1j * d.astype(np.float64)).sum()))
+    return out, int(sel.sum())
+
+
+def _checks(sums: list[dict[str, Any]]) -> dict[str, float]:
+    """The self-check's figures from the bands' sums: fractions of the usable pixels whose
+    Gray code and phase disagree, or whose fringe order failed; each frequency's circular
+    mean offset (rad) from the others; readable pixel codes beyond the projector."""
+    total = {k: sum(b.get(k, 0) for b in sums) for k in ("usable", "gray_bad", "order_bad", "beyond", "readable")}
+    judged = total["usable"] >= MIN_JUDGED_PIXELS
+    checks: dict[str, float] = {}
+    if any("gray_bad" in b for b in sums):
+        checks["gray_phase_disagreement"] = total["gray_bad"] / total["usable"] if judged else 0.0
+    if any("order_bad" in b for b in sums):
+        checks["order_error_fraction"] = total["order_bad"] / total["usable"] if judged else 0.0
+    if any("readable" in b for b in sums):
+        checks["codes_beyond_projector"] = total["beyond"] / max(total["readable"], 1)
+    offsets = [b["offsets"] for b in sums if "offsets" in b]
+    n = sum(count for _, count in offsets)
+    if offsets and n >= MIN_JUDGED_PIXELS:
+        for i in range(len(offsets[0][0])):
+            checks[f"frequency_{i}_offset_rad"] = float(np.angle(sum(o[0][i] for o in offsets)))
+    return checks
+
+
+def _frame_indices(specs: list[FrameSpec]) -> dict[tuple[str, str, int, int], int]:
+    return {(s.orientation, s.kind, s.level, s.step): k for k, s in enumerate(specs)}
 
 
 def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_size: tuple[int, int],
            settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
     """Decode an (N, H, W) fringe stack taken with `patterns` on a projector of
     `projector_size` = (width, height) pixels."""
+    if patterns.uses_pixel_code:
+        patterns = patterns.for_projector(projector_size)
     specs = patterns.frames()
     if stack.ndim != 3 or stack.shape[0] != len(specs):
         raise DecodeError(f"pattern set '{patterns.family}' needs {len(specs)} frames of one size; "
                           f"got an array of shape {stack.shape}")
     if not np.issubdtype(stack.dtype, np.integer):
         raise DecodeError(f"frames must be integer images at their bit depth, got {stack.dtype}")
+    index = _frame_indices(specs)
+    conv = patterns.conventions
     full_scale = float(2 ** bit_depth - 1)
-    saturated = stack[0].copy()
-    for frame in stack[1:]:
-        cv2.max(saturated, frame, dst=saturated)
-    saturated = saturated >= full_scale
+    phase_blocks = {o: [[index[(o, "phase", lv, n)] for n in range(patterns.steps)]
+                        for lv in range(len(patterns.fringes))] for o in patterns.orientations}
+    all_phase = [k for o in patterns.orientations for block in phase_blocks[o] for k in block]
+    saturated = np.zeros(stack.shape[1:], dtype=bool)
+    if all_phase:  # judged on the frames that carry the measurement: a clipped binary frame still reads
+        peak = stack[all_phase[0]].copy()
+        for k in all_phase[1:]:
+            cv2.max(peak, stack[k], dst=peak)
+        saturated = peak >= full_scale
+        noise = fit_noise(stack, phase_blocks[patterns.orientations[0]], patterns.steps, conv.step_sign, full_scale)
+    else:
+        noise = NoiseModel(1.0, 0.0)
+    refs = (stack[index[(patterns.orientations[0], "white", 0, 0)]].astype(np.float32),
+            stack[index[(patterns.orientations[0], "black", 0, 0)]].astype(np.float32)) \
+        if conv.references != "none" else None
 
     maps: dict[str, OrientationMaps] = {}
-    start = 0
-    backgrounds = []
+    checks: dict[str, dict[str, float]] = {}
     for orientation in patterns.orientations:
         extent = projector_size[0] if orientation == "vertical" else projector_size[1]
-        n_freq = len(patterns.fringes)
-        wrapped, modulation, background = [], [], None
-        for level in range(n_freq):
-            phi, b, a = _phase_shift(stack[start:start + patterns.steps], patterns.steps)
-            start += patterns.steps
+        decoder = _OrientationDecoder(stack, patterns, orientation, extent, index, phase_blocks[orientation],
+                                      saturated, refs, noise, full_scale, settings)
+        maps[orientation], checks[orientation] = decoder.run()
+    backgrounds = [m.background for m in maps.values()]
+    texture = backgrounds[0] if len(backgrounds) == 1 else (backgrounds[0] + backgrounds[1]) / 2
+    valid_all = np.logical_and.reduce([m.valid for m in maps.values()])
+    return DecodeResult(patterns, bit_depth, maps, texture, valid_all, checks)
+
+
+@dataclass(eq=False)
+class _OrientationDecoder:
+    """Decoding of one fringe orientation (`decode` strings these together)."""
+
+    stack: np.ndarray
+    patterns: PatternSet
+    orientation: str
+    extent: int
+    index: dict[tuple[str, str, int, int], int]
+    blocks: list[list[int]]
+    saturated: np.ndarray
+    refs: tuple[np.ndarray, np.ndarray] | None
+    noise: NoiseModel
+    full_scale: float
+    settings: DecodeSettings
+    beyond_fraction: float = 0.0  # readable pixel codes naming a pixel beyond the projector (pixel_graycode)
+
+    def _frame(self, kind: str, level: int) -> np.ndarray:
+        return self.stack[self.index[(self.orientation, kind, level, 0)]]
+
+    def _pixel_code(self, frame: Callable[[str, int], np.ndarray],
+                    contrast: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(coordinate, run length, readable, beyond the projector) from this orientation's
+        pixel-code frames (`frame(kind, bit)`)."""
+        ps = self.patterns
+        diffs = [frame("gray", b).astype(np.float32) - frame("gray_inverse", b)
+                 for b in range(ps.gray_bits(self.orientation))]
+        threshold = np.float32(self.settings.code_certainty) * contrast
+        coordinate, run, readable = read_pixel_code(diffs, np.maximum(threshold, np.float32(1.0)),
+                                                    self.settings.max_dropped_bits)
+        beyond = readable & ~(coordinate < self.extent)
+        readable &= ~beyond
+        return coordinate, run, readable, beyond
+
+    def run(self) -> tuple[OrientationMaps, dict[str, float]]:
+        """Per-pixel decoding in bands of CHUNK_ROWS rows on every core (the arrays of a band
+        stay in cache; numpy and OpenCV release the GIL), then the self-check and the
+        spatial check on the whole map."""
+        ps, s = self.patterns, self.settings
+        if ps.family == "pixel_graycode":
+            return self._pixel_graycode_only({"saturated": self.saturated})
+        h, w = self.stack.shape[1:]
+        n_freq = len(self.blocks)
+        out = {name: np.empty((h, w), np.float32) for name in ("background", "phase", "weight", "coordinate")}
+        wrapped = [np.empty((h, w), np.float32) for _ in range(n_freq)]
+        modulation = [np.empty((h, w), np.float32) for _ in range(n_freq)]
+        masks = {"saturated": self.saturated, **{k: np.empty((h, w), bool) for k in
+                                                  ("shadow", "low_modulation", "order_error")}}
+        usable = np.empty((h, w), bool)
+
+        def band(rows: slice) -> dict[str, Any]:
+            b = self._band(rows, [(wrapped[i][rows], modulation[i][rows]) for i in range(n_freq)],
+                           {name: out[name][rows] for name in out})
+            for k in ("shadow", "low_modulation", "order_error"):
+                masks[k][rows] = b["masks"][k]
+            usable[rows] = b["usable"]
+            return b["sums"]
+
+        checks = _checks(in_bands(h, band))
+        if s.self_check:
+            self._judge(checks)
+        f_max = max(ps.fringes)
+        maps = self._finish(masks, usable, out["coordinate"], out["phase"], wrapped, modulation, out["background"],
+                            out["weight"], f_max)
+        return maps, checks
+
+    def _band(self, rows: slice, dest: list[tuple[np.ndarray, np.ndarray]], maps: dict[str, np.ndarray]
+              ) -> dict[str, Any]:
+        """The per-pixel work on rows `rows`: phases and modulations (written into `dest`, per
+        frequency), masks, unwrapping, and the background, phase, weight and coordinate
+        (written into `maps`' views of those rows); returns the masks and the sums the
+        self-check needs."""
+        ps, s, conv = self.patterns, self.settings, self.patterns.conventions
+        stack = self.stack[:, rows]
+        wrapped, modulation = [], []
+        background = maps["background"]
+        background.fill(0.0)
+        for block, out in zip(self.blocks, dest):
+            phi, b, a = phase_shift([stack[k] for k in block], ps.steps, conv.phase_origin, conv.step_sign, out)
             wrapped.append(phi)
             modulation.append(b)
-            background = a if background is None else background + a
-        background /= np.float32(n_freq)
-        masks = {"saturated": saturated}
-        f_max = max(patterns.fringes)
-        finest = patterns.fringes.index(f_max)
-        if patterns.family == "graycode":
-            n_bits = patterns.gray_bits() + 1
-            phase, masks["order_error"] = _graycode_unwrap(patterns, wrapped[0], stack[start:start + n_bits],
-                                                           background, modulation[0], settings.gray_certainty)
-            start += n_bits
-            weight = modulation[0] ** 2
+            background += a
+        saturated = self.saturated[rows]
+        masks: dict[str, np.ndarray] = {}
+        sums: dict[str, Any] = {}
+        background /= np.float32(len(self.blocks))
+        f_max = max(ps.fringes)
+        finest = ps.fringes.index(f_max)
+        b_fine = modulation[finest]
+        masks["shadow"] = b_fine < s.min_contrast * np.maximum(background, 1e-6)
+        masks["low_modulation"] = ~masks["shadow"] & (b_fine < s.min_modulation * self.full_scale)
+        usable = ~(saturated | masks["shadow"] | masks["low_modulation"])
+        sums["usable"] = int(usable.sum())
+        sqrt_2n = np.float32(np.sqrt(2.0 / ps.steps))
+
+        def sigma_of(level: int) -> Callable[[np.ndarray], np.ndarray]:
+            return lambda idx: self.noise.sigma(background.flat[idx]) * sqrt_2n / np.maximum(
+                modulation[level].flat[idx], np.float32(1e-6))
+
+        def frame(kind: str, level: int) -> np.ndarray:
+            return stack[self.index[(self.orientation, kind, level, 0)]]
+
+        if ps.family == "graycode" and conv.gray_code == "complementary":
+            bits = [frame("gray", b) for b in range(ps.gray_bits() + 1)]
+            phase, masks["order_error"], half = _graycode_unwrap(wrapped[0], bits, background, modulation[0],
+                                                                 s.gray_certainty)
+            bad = np.abs(gray_phase_offset(wrapped[0], half)) > np.float32(0.75 * np.pi)
+            sums["gray_bad"] = int((bad & usable).sum())
+            maps["phase"][...] = phase
+            np.square(modulation[0], out=maps["weight"])
+        elif ps.family == "graycode":  # phase unwrapped by OpenCV's pixel Gray code
+            contrast = self.refs[0][rows] - self.refs[1][rows] if self.refs is not None else \
+                np.float32(2.0) * b_fine
+            coordinate_g, run, readable, beyond = self._pixel_code(frame, contrast)
+            sums["beyond"], sums["readable"] = int(beyond.sum()), int(readable.sum() + beyond.sum())
+            predicted = (coordinate_g + np.float32(conv.pixel_centre)) * np.float32(2 * np.pi * f_max / self.extent)
+            worst = np.zeros_like(background)
+            phase = _unwrap_step(predicted, 1.0, wrapped[0], worst)
+            quant = np.float32(2 * np.pi * f_max / self.extent / np.sqrt(12.0) / np.pi)
+
+            def code_sigma(idx: np.ndarray) -> np.ndarray:
+                return np.hypot(sigma_of(0)(idx) / np.float32(np.pi), quant * run.flat[idx])
+
+            masks["order_error"] = ~readable | _order_errors(worst, code_sigma, s)
+            sums["gray_bad"] = int((readable & (worst > 0.75) & usable).sum())
+            maps["phase"][...] = phase
+            np.square(modulation[0], out=maps["weight"])
         else:
-            absolute, residual = _temporal_unwrap(patterns, wrapped)
-            masks["order_error"] = residual > settings.order_tolerance
+            absolute, residual = _temporal_unwrap(ps, wrapped)
+
+            def residual_sigma(idx: np.ndarray) -> np.ndarray:
+                return _residual_sigma(ps, [sigma_of(lv)(idx) for lv in range(len(ps.fringes))])
+
+            masks["order_error"] = _order_errors(residual, residual_sigma, s)
+            sums["order_bad"] = int((masks["order_error"] & usable).sum())
+            sums["offsets"] = _offset_sums(ps, absolute, wrapped, usable, rows.start)
             # inverse-variance combination of all frequencies, in units of the finest fringe
-            phase = np.zeros_like(background)
-            weight = np.zeros_like(background)
-            for phi_abs, b, fi in zip(absolute, modulation, patterns.fringes):
+            phase, weight = maps["phase"], maps["weight"]
+            phase.fill(0.0)
+            weight.fill(0.0)
+            for phi_abs, b, fi in zip(absolute, modulation, ps.fringes):
                 w = np.square(b)
                 w *= np.float32((fi / f_max) ** 2)
                 weight += w
                 w *= phi_abs
                 phase += np.multiply(w, np.float32(f_max / fi), out=w)
             phase /= np.maximum(weight, np.float32(1e-12))
-        b_fine = modulation[finest]
-        masks["shadow"] = b_fine < settings.min_contrast * np.maximum(background, 1e-6)
-        masks["low_modulation"] = ~masks["shadow"] & (b_fine < settings.min_modulation * full_scale)
-        valid = ~(masks["saturated"] | masks["shadow"] | masks["low_modulation"])
+        coordinate = np.multiply(maps["phase"], np.float32(self.extent / (2.0 * np.pi * f_max)),
+                                 out=maps["coordinate"])
+        coordinate -= np.float32(conv.pixel_centre)
+        return {"masks": masks, "usable": usable, "sums": sums}
+
+    def _pixel_graycode_only(self, masks: dict[str, np.ndarray]) -> tuple[OrientationMaps, dict[str, float]]:
+        """OpenCV's GrayCodePattern alone: the coordinate is the pixel (run) the code names."""
+        s = self.settings
+        if self.refs is not None:
+            white, black = self.refs
+            background = (white + black) * np.float32(0.5)
+            contrast = white - black
+        else:
+            pairs = [(self._frame("gray", b).astype(np.float32), self._frame("gray_inverse", b).astype(np.float32))
+                     for b in range(self.patterns.gray_bits(self.orientation))]
+            background = sum(p + q for p, q in pairs) * np.float32(0.5 / len(pairs))
+            contrast = np.max([np.abs(p - q) for p, q in pairs], axis=0)
+        b = contrast * np.float32(0.5)
+        masks["shadow"] = b < s.min_contrast * np.maximum(background, 1e-6)
+        masks["low_modulation"] = ~masks["shadow"] & (b < s.min_modulation * self.full_scale)
+        usable = ~(masks["shadow"] | masks["low_modulation"])
+        coordinate, run, readable, beyond = self._pixel_code(self._frame, contrast)
+        self.beyond_fraction = float(beyond.sum() / max(int(readable.sum() + beyond.sum()), 1))
+        masks["order_error"] = ~readable
+        weight = np.float32(12.0) / np.square(run, dtype=np.float32)  # 1 / variance of a uniform run (px⁻²)
+        phase = (coordinate + np.float32(0.5)) * TWO_PI  # one "fringe" per projector pixel
+        maps = self._finish(masks, usable, coordinate, phase, [], [b], background, weight, float(self.extent))
+        checks = {"codes_beyond_projector": self.beyond_fraction}
+        if s.self_check:
+            self._judge(checks)
+        return maps, checks
+
+    def _finish(self, masks: dict[str, np.ndarray], usable: np.ndarray, coordinate: np.ndarray, phase: np.ndarray,
+                wrapped: list[np.ndarray], modulation: list[np.ndarray], background: np.ndarray,
+                weight: np.ndarray, fringes: float) -> OrientationMaps:
+        s = self.settings
+        valid = usable.copy()
         masks["order_error"] &= valid  # reasons stay distinct: an order error is judged on a usable phase
         valid &= ~masks["order_error"]
-        coordinate = phase * np.float32(extent / (2.0 * np.pi * f_max))
-        coordinate -= np.float32(0.5)
         np.copyto(coordinate, np.float32(np.nan), where=~valid)
-        if settings.spatial_check:
-            min_region = max(1, int(settings.min_region_fraction * valid.size))
-            islands, masks["discontinuity"] = _unreliable_regions(coordinate, valid, extent / f_max, min_region)
+        if s.spatial_check:
+            min_region = max(1, int(s.min_region_fraction * valid.size))
+            islands, masks["discontinuity"] = _unreliable_regions(coordinate, valid, self.extent / fringes, min_region)
             masks["order_error"] |= islands
             valid &= ~(islands | masks["discontinuity"])
         invalid = ~valid
         np.copyto(coordinate, np.float32(np.nan), where=invalid)
         np.copyto(phase, np.float32(np.nan), where=invalid)
-        maps[orientation] = OrientationMaps(orientation, coordinate, phase, wrapped, modulation, background, weight,
-                                            masks, valid, f_max, extent)
-        backgrounds.append(background)
-    texture = backgrounds[0] if len(backgrounds) == 1 else (backgrounds[0] + backgrounds[1]) / 2
-    valid_all = np.logical_and.reduce([m.valid for m in maps.values()])
-    return DecodeResult(patterns, bit_depth, maps, texture, valid_all)
+        return OrientationMaps(self.orientation, coordinate, phase, wrapped, modulation, background, weight, masks,
+                               valid, fringes, self.extent, self.noise, max(self.patterns.steps, 1))
+
+    def _judge(self, checks: dict[str, float]) -> None:
+        s, o = self.settings, self.orientation
+        g = checks.get("gray_phase_disagreement", 0.0)
+        if g > s.max_disagreement:
+            raise DecodeError(f"self-check: {o} Gray code and phase disagree on {g:.1%} of the modulated pixels "
+                              f"(limit {s.max_disagreement:.0%}): the frames do not follow the pattern set's "
+                              f"conventions (phase origin, step sign, frame order or Gray-code variant); no cloud "
+                              f"written")
+        offsets = {k: v for k, v in checks.items() if k.endswith("_offset_rad")}
+        worst = max(offsets, key=lambda k: abs(offsets[k]), default=None)
+        if worst is not None and abs(offsets[worst]) > s.max_frequency_offset:
+            raise DecodeError(f"self-check: the {o} frequencies disagree systematically ({worst.split('_offset')[0]} "
+                              f"sits {offsets[worst]:+.2f} rad from the others; limit {s.max_frequency_offset} rad): "
+                              f"the frames do not follow the pattern set's conventions (phase origin, step sign or "
+                              f"frame order); no cloud written")
+        beyond = checks.get("codes_beyond_projector", 0.0)
+        if beyond > 0.01:
+            raise DecodeError(f"self-check: {beyond:.1%} of the readable {o} Gray codes name projector "
+                              f"pixels at or beyond {self.extent}: the projector size is wrong; no cloud written")
+        e = checks.get("order_error_fraction", 0.0)
+        if e > 0.5:
+            raise DecodeError(f"self-check: {o} fringe orders fail on {e:.0%} of the modulated pixels: the fringe "
+                              f"counts, frame order or projector size do not match the frames; no cloud written")

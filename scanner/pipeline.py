@@ -36,7 +36,7 @@ class ScanResult:
 
     session: Session
     decoded: DecodeResult
-    cloud: OrganisedCloud
+    cloud: OrganisedCloud | None  # None: a session without a calibration (imported frames) has maps only
     timings_s: dict[str, float]
 
     @property
@@ -95,9 +95,13 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     t0 = time.perf_counter()
     decoded = decode(stack, patterns, session.bit_depth, model.projector.size, settings)
     timings["decode"] = time.perf_counter() - t0
+    calibrated = session.manifest.get("calibrated", True)
     progress("reconstruct", 0, 1)
     t0 = time.perf_counter()
-    if mode == "triangulation":
+    cloud = None
+    if not calibrated:
+        pass  # imported without a calibration: the maps are the result
+    elif mode == "triangulation":
         cloud = triangulate(decoded, Triangulator(model))
     else:
         cloud = phase_to_height_cloud(decoded, model)
@@ -106,21 +110,23 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     t0 = time.perf_counter()
     out = session.root / OUTPUTS_DIR
     out.mkdir(exist_ok=True)
-    stats = {"points": len(cloud), "valid_fraction": round(float(decoded.valid.mean()), 5),
-             "rejected": {f"{o}/{k}": int(v.sum()) for o, m in decoded.maps.items() for k, v in m.masks.items()},
-             "integrity": session.integrity}
-    if len(cloud) == 0:
+    n_points = len(cloud) if cloud is not None else 0
+    stats = {"points": n_points, "valid_fraction": round(float(decoded.valid.mean()), 5),
+             "rejected": decoded.rejected(), "self_check": decoded.checks, "integrity": session.integrity}
+    if (cloud is not None and n_points == 0) or not decoded.valid.any():
         problem = no_points_reason(decoded)
         write_json(out / "result.json", {"session_id": session.id, "mode": mode, "error": problem, **stats})
         raise DecodeError(f"{session.root}: the scan yielded no points: {problem}")
-    n_points = write_ply(out / "cloud.ply", cloud)
+    if cloud is not None:
+        write_ply(out / "cloud.ply", cloud)
     save_maps(out / "maps.npz", decoded)
     timings["write"] = time.perf_counter() - t0
     timings = {k: round(v, 4) for k, v in timings.items()}
     write_json(out / "result.json", {"session_id": session.id, "mode": mode, "timings_s": timings, **stats})
     if recording is not None:
         recording.log_decode(decoded)
-        recording.log_cloud(cloud, model)
+        if cloud is not None:
+            recording.log_cloud(cloud, model)
         recording.log_metrics({**{f"{k}_s": v for k, v in timings.items()}, "valid_fraction": stats["valid_fraction"],
                                "points": n_points})
     progress("done", 1, 1)
@@ -138,6 +144,10 @@ def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel) -> No
     for k in np.flatnonzero(hi - lo <= BLANK_FRAME_RANGE * full):
         raise DecodeError(f"{where}: frame {k} ({session.frame_path(int(k)).name}) is blank (every pixel "
                           f"{int(lo[k])}..{int(hi[k])} DN): it cannot be a fringe image; re-scan")
+    if "import" in session.manifest:
+        return  # another tool's frames: judged by the import's convention detection and decode's self-check
+        # (the ideal patterns the signature assumes are blurred at a real camera's finest Gray-code bits);
+        # their SHA-256 guards them once imported
     try:
         check_signature(stack, session.patterns, (model.projector.height, model.projector.width), session.bit_depth,
                         where)
@@ -166,7 +176,9 @@ def save_maps(path: Path, decoded: DecodeResult) -> None:
     for o, m in decoded.maps.items():
         arrays[f"{o}/coordinate"] = m.coordinate
         arrays[f"{o}/phase"] = m.phase
-        arrays[f"{o}/modulation"] = m.modulation[int(np.argmax(decoded.patterns.fringes))]
+        if m.wrapped:  # phase-shift sets: the finest modulation and the predicted phase noise (rad)
+            arrays[f"{o}/modulation"] = m.modulation[int(np.argmax(decoded.patterns.fringes))]
+            arrays[f"{o}/phase_sigma"] = m.phase_sigma
         for name, mask in m.masks.items():
             arrays[f"{o}/mask/{name}"] = mask
     write_npz(path, arrays)

@@ -15,9 +15,9 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from scanner.decode import DecodeResult
+from scanner.decode import DecodeResult, in_bands
 from scanner.errors import DecodeError
-from scanner.geometry import Pinhole, RigModel
+from scanner.geometry import Pinhole, RigModel, cubic_weights
 from scanner.pointcloud import OrganisedCloud, from_planes, organised_normals
 
 _TABLE_OVERSAMPLE = 4  # table samples per projector pixel along the coded axis
@@ -25,6 +25,30 @@ _TABLE_ROWS = 257  # samples along the other normalised projector coordinate
 _MAX_PASSES = 4
 _CONVERGED = 1e-7  # change of the normalised projector coordinate (~2e-4 projector px)
 _REMAP_COLS = 4096
+_TABLE_COARSE_PX = 4.0  # projector pixels between exactly solved table columns
+_NEWTON_TOLERANCE = 1e-13  # normalised coordinate
+
+
+def _undistort_axis(c: np.ndarray, yn: np.ndarray, f: float, ctr: float, dist: np.ndarray, axis: int) -> np.ndarray:
+    """(len(yn), len(c)) undistorted normalised coordinates x along the coded axis solving
+    distort(x, y_n)[axis] = (c − ctr)/f by Newton steps from the ideal pinhole, until every
+    step is below _NEWTON_TOLERANCE (Brown-Conrady, OpenCV's k1, k2, p1, p2, k3)."""
+    cc, yy = np.meshgrid(c, yn)
+    xd = (cc - ctr) / f
+    x = xd.copy()
+    k1, k2, p1, p2, k3 = dist
+    if axis == 1:
+        p1, p2 = p2, p1  # swapping x and y swaps the tangential terms
+    for _ in range(50):
+        r2 = x * x + yy * yy
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        fx = x * radial + 2 * p1 * x * yy + p2 * (r2 + 2 * x * x) - xd
+        dradial = 2 * x * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
+        step = fx / (radial + x * dradial + 2 * p1 * yy + 6 * p2 * x)
+        x -= step
+        if not np.abs(step).max() > _NEWTON_TOLERANCE:
+            break
+    return x
 
 
 class _UndistortTable:
@@ -33,7 +57,6 @@ class _UndistortTable:
 
     def __init__(self, projector: Pinhole, axis: int) -> None:
         extent = projector.width if axis == 0 else projector.height
-        other = projector.height if axis == 0 else projector.width
         K = projector.K
         # range of the cross coordinate, with margin for points outside the projector image
         corners = projector.normalized(np.array([[0, 0], [projector.width - 1, projector.height - 1]], float))
@@ -42,22 +65,15 @@ class _UndistortTable:
         self.y0, self.dy = lo - 0.25 * span, 1.5 * span / (_TABLE_ROWS - 1)
         c = np.arange(extent * _TABLE_OVERSAMPLE + 1) / _TABLE_OVERSAMPLE - 0.5
         yn = self.y0 + self.dy * np.arange(_TABLE_ROWS)
-        cc, yy = np.meshgrid(c, yn)
-        # start from the ideal pinhole and solve distort(x_n, y_n)[axis] = x_d by Newton steps
-        f, ctr = K[axis, axis], K[axis, 2]
-        xd = (cc - ctr) / f
-        x = xd.copy()
-        k1, k2, p1, p2, k3 = projector.dist
-        if axis == 1:
-            p1, p2 = p2, p1  # swapping x and y swaps the tangential terms
-        for _ in range(20):
-            r2 = x * x + yy * yy
-            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            fx = x * radial + 2 * p1 * x * yy + p2 * (r2 + 2 * x * x) - xd
-            dradial = 2 * x * (k1 + r2 * (2 * k2 + 3 * k3 * r2))
-            dfx = radial + x * dradial + 2 * p1 * yy + 6 * p2 * x
-            x -= fx / dfx
-        self.table = x.astype(np.float32)
+        if not projector.dist.any():
+            self.table = np.repeat(((c - K[axis, 2]) / K[axis, axis])[None, :], _TABLE_ROWS, 0).astype(np.float32)
+            return
+        # solved exactly every _TABLE_COARSE_PX projector pixels, spread to every sample by
+        # cubic interpolation (the undistortion is smooth at that scale)
+        step = _TABLE_COARSE_PX
+        coarse = np.arange(-0.5 - step, extent - 0.5 + 3 * step, step, dtype=np.float64)
+        solved = _undistort_axis(coarse, yn, K[axis, axis], K[axis, 2], projector.dist, axis)
+        self.table = (solved @ cubic_weights(c, coarse[0], step, len(coarse)).T).astype(np.float32)
 
     def __call__(self, coord: np.ndarray, y_n: np.ndarray) -> np.ndarray:
         """Table look-up (bilinear) for flat float32 arrays of equal length."""
@@ -113,14 +129,15 @@ class Triangulator:
                     sensitivity: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """Ray parameter s (= depth z in mm, since rays have z = 1) for every pixel with a
         projector coordinate `coord` (NaN propagates); with `sensitivity`, also |dz/dcoord|
-        (mm per projector pixel), which says how well this orientation constrains depth."""
+        (mm per projector pixel), which says how well this orientation constrains depth.
+        Each pass of the iteration runs in bands of rows on every core."""
         alpha, gamma, beta, (a0, c1, b0, _), table = self._tables(orientation)
         if coord.shape != alpha.shape:
             raise DecodeError(f"{orientation} coordinate map is {coord.shape[::-1]} (w, h) but the rig camera is "
                               f"{alpha.shape[::-1]}")
         K = self.rig.projector.K
         axis = 0 if orientation == "vertical" else 1
-        shape = coord.shape
+        shape, width = coord.shape, coord.shape[1]
         c, al, ga, be = coord.ravel(), alpha.ravel(), gamma.ravel(), beta.ravel()
         a0, c1, b0 = np.float32(a0), np.float32(c1), np.float32(b0)
         x_n = (c - np.float32(K[axis, 2])) * np.float32(1.0 / K[axis, axis])  # distortion-free start
@@ -135,20 +152,34 @@ class Triangulator:
             y_n /= s * be[sl] - b0
             return table(c[sl], y_n)
 
+        def flat(rows: slice) -> slice:
+            return slice(rows.start * width, rows.stop * width)
+
+        def one_pass(rows: slice) -> None:
+            x_n[flat(rows)] = refine(x_n[flat(rows)], flat(rows))
+
         probe = slice(0, None, 97)  # convergence is judged on a dense subsample, not a full pass
         for _ in range(_MAX_PASSES):
-            x_n = refine(x_n, slice(None))
+            in_bands(shape[0], one_pass)
             if not np.nanmax(np.abs(refine(x_n[probe], probe) - x_n[probe]), initial=0.0) >= _CONVERGED:
                 break
-        denom = al - x_n * be
-        z = np.subtract(a0, x_n * b0)
-        z /= denom
-        z[~(z > 0)] = np.nan  # invalid coordinate, or behind the camera: no surface
-        if not sensitivity:
-            return z.reshape(shape)
-        dz = np.abs((be * a0 - al * b0) / (denom * denom)) / np.float32(K[axis, axis])
-        dz[np.isnan(z)] = np.nan
-        return z.reshape(shape), dz.reshape(shape)
+        z = np.empty(c.size, np.float32)
+        dz = np.empty(c.size, np.float32) if sensitivity else None
+
+        def finish(rows: slice) -> None:
+            sl = flat(rows)
+            denom = al[sl] - x_n[sl] * be[sl]
+            zr = np.subtract(a0, x_n[sl] * b0)
+            zr /= denom
+            zr[~(zr > 0)] = np.nan  # invalid coordinate, or behind the camera: no surface
+            z[sl] = zr
+            if dz is not None:
+                d = np.abs((be[sl] * a0 - al[sl] * b0) / (denom * denom)) / np.float32(K[axis, axis])
+                d[np.isnan(zr)] = np.nan
+                dz[sl] = d
+
+        in_bands(shape[0], finish)
+        return (z.reshape(shape), dz.reshape(shape)) if dz is not None else z.reshape(shape)
 
     @cached_property
     def _ray_planes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -210,7 +241,22 @@ def phase_to_height_cloud(decoded: DecodeResult, rig: RigModel, orientation: str
 
 def cloud_from_depth(z: np.ndarray, ray_x: np.ndarray, ray_y: np.ndarray, colors: np.ndarray,
                      with_normals: bool = True) -> OrganisedCloud:
-    """Organised cloud from depth z (H, W, mm) along rays (x/z, y/z, 1) given as planes."""
-    x, y = ray_x * z, ray_y * z
-    normals = organised_normals(x, y, z) if with_normals else np.full((*z.shape, 3), np.nan, np.float32)
-    return OrganisedCloud(from_planes(x, y, z), colors, normals)
+    """Organised cloud from depth z (H, W, mm) along rays (x/z, y/z, 1) given as planes,
+    built in bands of rows on every core (normals from each band with one row either side)."""
+    h = z.shape[0]
+    points = np.empty((*z.shape, 3), np.float32)
+    normals = np.empty((*z.shape, 3), np.float32)
+
+    def band(rows: slice) -> None:
+        top, bottom = max(rows.start - 1, 0), min(rows.stop + 1, h)
+        x, y = ray_x[top:bottom] * z[top:bottom], ray_y[top:bottom] * z[top:bottom]
+        own = slice(rows.start - top, rows.stop - top)
+        points[rows] = from_planes(x[own], y[own], z[rows])
+        normals[rows] = organised_normals(x, y, z[top:bottom])[own] if with_normals else np.nan
+        if with_normals and rows.start == 0:
+            normals[0] = np.nan  # the image border has no normal
+        if with_normals and rows.stop == h:
+            normals[h - 1] = np.nan
+
+    in_bands(h, band)
+    return OrganisedCloud(points, colors, normals)

@@ -140,7 +140,7 @@ def test_every_bundled_rig_and_pattern_loads() -> None:
     for rig in sorted((CONFIG_DIR / "rigs").glob("*.toml")):
         assert RigConfig.load(rig).path == rig
     for p in sorted((CONFIG_DIR / "patterns").glob("*.toml")):
-        assert PatternSet.load(p).n_frames >= 3
+        assert PatternSet.load(p).for_projector((1024, 768)).n_frames >= 3
 
 
 # ------------------------------------------------------------------ the layer itself

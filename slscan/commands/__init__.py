@@ -10,6 +10,8 @@ from slscan.commands import (
     bench,
     calibrate,
     devices,
+    import_,
+    importbench,
     inspect,
     pose,
     review,
@@ -20,4 +22,6 @@ from slscan.commands import (
     viewbench,
 )
 
-COMMANDS = (scan, review, bench, simbench, devices, calibrate, inspect, pose, segment, station, viewbench)
+COMMANDS = (
+    scan, import_, review, bench, importbench, simbench, viewbench, devices, calibrate, inspect, pose, segment, station,
+)

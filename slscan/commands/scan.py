@@ -83,9 +83,16 @@ def report(result: Any) -> None:
     s = result.session
     t = result.timings_s
     print(f"session   {s.root}")
-    print(f"cloud     {result.cloud_path}  ({len(result.cloud)} points, "
-          f"{result.decoded.valid.mean() * 100:.1f} % of pixels valid)")
-    print(f"recording {s.recording_path}   (view: slscan review {s.root})")
+    valid = f"{result.decoded.valid.mean() * 100:.1f} % of pixels valid"
+    if result.cloud is None:
+        print(f"maps      {s.outputs / 'maps.npz'}  ({valid}; no calibration, so no cloud)")
+    else:
+        print(f"cloud     {result.cloud_path}  ({len(result.cloud)} points, {valid})")
+    rejected = result.decoded.rejected()  # per orientation, each pixel under its first reason
+    print("rejected  " + ", ".join(f"{k} {v / result.decoded.valid.size * 100:.2f} %" for k, v in rejected.items()
+                                   if v) + " of the pixels")
+    if s.recording_path.exists():
+        print(f"recording {s.recording_path}   (view: slscan review {s.root})")
     print(f"timings   decode {t['decode'] * 1e3:.0f} ms, reconstruct {t['reconstruct'] * 1e3:.0f} ms")
     if s.integrity != "sha256":
         print(f"warning   frame integrity {s.integrity}", file=sys.stderr)
@@ -101,7 +108,7 @@ def sim_accuracy(result: Any) -> Any:
     from sim.render import SensorModel
 
     path = result.session.root / GROUND_TRUTH_FILE
-    if not path.exists() or len(result.decoded.maps) != 1:
+    if not path.exists() or len(result.decoded.maps) != 1 or result.cloud is None:
         return None
 
     manifest = result.session.manifest

@@ -1,0 +1,500 @@
+"""Detecting a capture's pattern conventions from its frames (`slscan import`).
+
+Keys a pattern set leaves out (scanner/conventions.py) are found from the evidence the
+frames carry, on every 4th pixel; keys it gives are checked against the same evidence:
+
+- frame layout (frame order, Gray-code position and variant, white/black references):
+  every layout with the right frame count is scored and the best one kept. A Gray-code
+  set scores by how well code and phase agree (the resultant length R of the phase's
+  offset from the half period the code names, ~0.64 for a true layout, ~0 for a wrong
+  one); a heterodyne set by how well its frequencies agree on one coordinate (R of each
+  frequency's offset from the phase its beats predict, ~1 when true); others by the
+  share of each phase block's temporal energy at the step frequency. Reference frames
+  must be the brightest and darkest of every pixel.
+- step sign: with a Gray code, the sign under which code and phase agree (under the other
+  sign the phase runs against the code and R collapses). Without one, the frequencies agree
+  under both signs (the two readings are mirror images, x → W − x): the sign is the one
+  under which the coordinate increases in the direction the rig's geometry predicts (from
+  the calibration), or, without a calibration, increases with the camera column (row for
+  horizontal fringes), which holds for a projector that is not mirrored — reported as
+  an assumption.
+- phase origin and pixel centre: with a Gray code, the code's edges must coincide with
+  the phase wraps; the mean offset ε = origin + 2π·f·(δ − 0.5)/W splits into the origin
+  (the nearest multiple of π/2) and δ (ours 0.5, or 0). Heterodyne: the beats cancel the
+  origin, so each frequency's offset from the beat's prediction is the origin; δ shifts
+  every coordinate alike and cannot be seen without a Gray code (taken as ours, said so).
+
+Contradicting given keys or ambiguous evidence raise DecodeError naming them.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from scanner.conventions import CHOICES, NATIVE, Conventions
+from scanner.decode import gray_phase_offset, phase_shift, read_complementary_code
+from scanner.errors import DecodeError
+from scanner.geometry import RigModel
+from scanner.patterns import PatternSet
+from scanner.pixel_code import read_pixel_code
+
+SUBSAMPLE = 4  # every 4th pixel on both axes
+MIN_R = 0.3  # below this resultant length the code-phase agreement is no evidence
+AMBIGUOUS = 0.85  # a runner-up scoring this fraction of the best is a tie
+PIXEL_CENTRE_SNAP = 0.15  # px: how near 0 or 0.5 a measured pixel centre must be
+
+
+@dataclass(frozen=True)
+class Finding:
+    """How one convention key was settled: `source` given | detected | assumed."""
+
+    key: str
+    value: Any
+    source: str
+    evidence: str
+
+    def line(self) -> str:
+        return f"{self.key} = {self.value!r} ({self.source}: {self.evidence})"
+
+
+@dataclass(eq=False)
+class Detection:
+    patterns: PatternSet  # with every convention known
+    findings: list[Finding] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, dict[str, Any]]:
+        return {f.key: {"value": f.value, "source": f.source, "evidence": f.evidence} for f in self.findings}
+
+
+def _layouts(ps: PatternSet, n_frames: int, fixed: bool) -> list[PatternSet]:
+    """Pattern sets for every frame layout the set's keys allow (`fixed`: only the given
+    values of given keys) whose frame count is `n_frames`, distinct frame sequences only."""
+    c = ps.conventions
+    keys = ["references"]
+    if len(ps.fringes) > 1:
+        keys.append("frame_order")
+    if ps.family == "graycode":
+        keys += ["gray_position", "gray_code"]
+    options = {k: ([getattr(c, k)] if fixed and getattr(c, k) is not None else list(CHOICES[k])) for k in keys}
+    out, seen = [], set()
+    for combo in itertools.product(*options.values()):
+        conv = replace(c, **dict(zip(options, combo))).filled(NATIVE)
+        cand = ps.with_conventions(conv)
+        try:
+            frames = tuple(cand.frames())
+        except Exception:  # noqa: BLE001 - a layout that cannot be formed is no candidate
+            continue
+        if len(frames) == n_frames and frames not in seen:
+            seen.add(frames)
+            out.append(cand)
+    return out
+
+
+def _all_layouts(ps: PatternSet) -> list[PatternSet]:
+    """Every layout the set's given keys allow, whatever its frame count."""
+    c = ps.conventions
+    keys = [k for k in ("references", "frame_order", "gray_position", "gray_code") if getattr(c, k) is None]
+    out = []
+    for combo in itertools.product(*(CHOICES[k] for k in keys)):
+        try:
+            cand = ps.with_conventions(replace(c, **dict(zip(keys, combo))).filled(NATIVE))
+            cand.frames()
+        except Exception:  # noqa: BLE001 - a layout that cannot be formed is no candidate
+            continue
+        out.append(cand)
+    return out
+
+
+def _layout_name(ps: PatternSet) -> str:
+    c = ps.conventions
+    parts = [f"references {c.references}"]
+    if len(ps.fringes) > 1:
+        parts.insert(0, c.frame_order)
+    if ps.family == "graycode":
+        parts += [f"Gray code {c.gray_code} {c.gray_position} the phase"]
+    return ", ".join(parts)
+
+
+@dataclass(eq=False)
+class _Evidence:
+    """What one frame layout says about the frames (on the subsample)."""
+
+    score: float
+    sign_r: dict[int, float] = field(default_factory=dict)  # Gray sets: support per step sign (0..1)
+    offset: dict[int, tuple[float, float]] = field(default_factory=dict)  # sign -> (ε rad, its std error)
+
+
+def _circular(r: np.ndarray) -> tuple[float, float, float]:
+    """(mean angle, resultant length R, standard error of the mean angle) of angles r."""
+    z = np.mean(np.exp(1j * r.astype(np.float64))) if r.size else 0j
+    R = float(abs(z))
+    se = float(np.sqrt(max(-2.0 * np.log(max(R, 1e-9)), 0.0) / max(r.size, 1)))
+    return float(np.angle(z)), R, se
+
+
+def _refs_score(sub: np.ndarray, ps: PatternSet, usable: np.ndarray) -> float:
+    """Share of usable pixels whose white frame is the brightest and black the darkest."""
+    specs = ps.frames()
+    kinds = [s.kind for s in specs]
+    if "white" not in kinds:
+        return 1.0
+    white, black = sub[kinds.index("white")].astype(np.float32), sub[kinds.index("black")].astype(np.float32)
+    others = sub[[k for k, kind in enumerate(kinds) if kind not in ("white", "black")]].astype(np.float32)
+    slack = 0.05 * (white - black)
+    ok = (white >= others.max(axis=0) - np.abs(slack)) & (black <= others.min(axis=0) + np.abs(slack))
+    return float(ok[usable].mean()) if usable.any() else 0.0
+
+
+def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int], bit_depth: int) -> _Evidence:
+    """What the frames say under the layout of `ps` (judged on every SUBSAMPLE-th pixel)."""
+    sub = stack[:, ::SUBSAMPLE, ::SUBSAMPLE]
+    specs = ps.frames()
+    index = {(s.orientation, s.kind, s.level, s.step): k for k, s in enumerate(specs)}
+    o = ps.orientations[0]
+    extent = projector_size[0] if o == "vertical" else projector_size[1]
+    full = float(2 ** bit_depth - 1)
+    if ps.family == "pixel_graycode":
+        diffs = [sub[index[(o, "gray", b, 0)]].astype(np.float32) - sub[index[(o, "gray_inverse", b, 0)]]
+                 for b in range(ps.gray_bits(o))]
+        contrast = np.max(np.abs(diffs), axis=0)
+        usable = contrast > 0.05 * full
+        coordinate, _, readable = read_pixel_code(diffs, np.maximum(0.15 * contrast, 1.0), 0)
+        inside = float((readable & (coordinate < extent))[usable].mean()) if usable.any() else 0.0
+        return _Evidence(inside * _refs_score(sub, ps, usable))
+    blocks = [[index[(o, "phase", lv, n)] for n in range(ps.steps)] for lv in range(len(ps.fringes))]
+    shifted = [phase_shift(sub[b], ps.steps, 0.0, 1) for b in blocks]
+    wrapped = [w for w, _, _ in shifted]
+    mod = [m for _, m, _ in shifted]
+    background = sum(a for _, _, a in shifted) / len(shifted)
+    usable = (mod[-1] > 0.12 * background) & (mod[-1] > 0.005 * full) & (background < full)
+    refs = _refs_score(sub, ps, usable)
+    if ps.family == "graycode":
+        f = ps.fringes[0]
+        if ps.conventions.gray_code == "complementary":
+            bits = [sub[index[(o, "gray", b, 0)]] for b in range(ps.gray_bits() + 1)]
+            half, unclear, half_unclear = read_complementary_code(bits, background, mod[0], 0.3)
+            clear = (unclear == 0) & ~half_unclear
+            reference = None
+        else:
+            diffs = [sub[index[(o, "gray", b, 0)]].astype(np.float32) - sub[index[(o, "gray_inverse", b, 0)]]
+                     for b in range(ps.gray_bits(o))]
+            coord, _, clear = read_pixel_code(diffs, np.maximum(0.3 * 2 * mod[0], 1.0), 0)
+            reference = (coord + np.float32(0.5)) * np.float32(2 * np.pi * f / extent)
+        sel = usable & clear
+        ev = _Evidence(0.0)
+        Rs = {}
+        for sign in (1, -1):
+            theta = wrapped[0] if sign == 1 else np.mod(-wrapped[0], np.float32(2 * np.pi))
+            if reference is None:
+                r = gray_phase_offset(theta, half)[sel]
+            else:
+                r = np.angle(np.exp(1j * (theta[sel] - reference[sel]).astype(np.float64)))
+            eps, Rs[sign], se = _circular(r)
+            ev.offset[sign] = (eps, se)
+        if reference is None:  # the half-period test cannot tell a mirrored phase: ask the code's edges
+            agree = _edge_agreement(stack, ps, bit_depth)
+            ev.sign_r = {1: agree, -1: 1.0 - agree}
+        else:
+            ev.sign_r = {k: v / max(max(Rs.values()), 1e-9) for k, v in Rs.items()}
+        ev.score = max(Rs.values()) * refs
+        return ev
+    if ps.family == "heterodyne":
+        f = ps.fringes
+        two_pi = np.float32(2 * np.pi)
+        p12 = np.mod(wrapped[0] - wrapped[1], two_pi)
+        p123 = np.mod(p12 - np.mod(wrapped[1] - wrapped[2], two_pi), two_pi)
+        f12 = f[0] - f[1]
+        a12 = p12 + two_pi * np.rint((p123 * np.float32(f12) - p12) / two_pi)
+        Rs, offsets = [], []
+        for i in range(3):
+            eps, R, se = _circular((wrapped[i] - a12 * np.float32(f[i] / f12))[usable])
+            Rs.append(R)
+            offsets.append((eps, se))
+        ev = _Evidence(float(np.mean(Rs)) * refs)
+        eps, R, se = _circular(np.array([e for e, _ in offsets]))
+        ev.offset[1] = (eps, max(s for _, s in offsets))
+        return ev
+    # hierarchical: share of each block's temporal AC energy at the step frequency
+    shares = []
+    for b in blocks:
+        spectrum = np.abs(np.fft.fft(sub[b].astype(np.float32), axis=0)) ** 2
+        ac = spectrum[1:].sum(axis=0)
+        fundamental = spectrum[1] + spectrum[-1]
+        shares.append(np.median((fundamental / np.maximum(ac, 1e-9))[usable]) if usable.any() else 0.0)
+    return _Evidence(float(np.mean(shares)) * refs)
+
+
+def _edge_agreement(stack: np.ndarray, ps: PatternSet, bit_depth: int) -> float:
+    """Share of the complementary Gray code's half-period edges across which the phase moves
+    the same way as the code (step sign +1): where the half-period index steps by ±1 between
+    neighbouring camera pixels, the wrapped phase difference has that sign. Judged between
+    direct neighbours (every 4th line, along both camera axes, the axis with more edges
+    counting), since the phase may advance by most of a period over a few pixels."""
+    o = ps.orientations[0]
+    index = {(s.orientation, s.kind, s.level, s.step): k for k, s in enumerate(ps.frames())}
+    block = [index[(o, "phase", 0, n)] for n in range(ps.steps)]
+    bits = [index[(o, "gray", b, 0)] for b in range(ps.gray_bits() + 1)]
+    full = float(2 ** bit_depth - 1)
+    best = (0, 0.5)
+    for axis, view in ((1, stack[:, ::SUBSAMPLE, :]), (0, stack[:, :, ::SUBSAMPLE])):
+        theta, mod, background = phase_shift(view[block], ps.steps, 0.0, 1)
+        half, unclear, half_unclear = read_complementary_code([view[b] for b in bits], background, mod, 0.3)
+        sel = (unclear == 0) & ~half_unclear & (mod > 0.12 * background) & (mod > 0.005 * full)
+        a, b = (np.s_[:, 1:], np.s_[:, :-1]) if axis == 1 else (np.s_[1:, :], np.s_[:-1, :])
+        dh = half[a] - half[b]
+        dt = theta[a] - theta[b]
+        dt = dt - np.float32(2 * np.pi) * np.rint(dt / np.float32(2 * np.pi))
+        ok = sel[a] & sel[b] & (np.abs(dh) == 1) & (np.abs(dt) < 0.5 * np.pi)
+        n = int(ok.sum())
+        if n > best[0]:
+            best = (n, float((np.sign(dt[ok]) == np.sign(dh[ok])).mean()))
+    return best[1]
+
+
+def _geometric_sign(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int], bit_depth: int,
+                    rig: RigModel | None, origin_plus: float) -> tuple[int, str, str]:
+    """Step sign of a phase-only set: the one under which the decoded coordinate runs the way
+    the rig's geometry (or, without one, an unmirrored projector) says; `origin_plus` is the
+    phase origin the frames show under sign +1. Returns (sign, source, evidence)."""
+    from scanner.decode import DecodeSettings, decode
+
+    o = ps.orientations[0]
+    axis = 1 if o == "vertical" else 0  # camera image axis along which the coordinate runs
+    expected, why = 1, "the coordinate increases with the camera " + ("column" if axis == 1 else "row") + \
+        " (an unmirrored projector)"
+    if rig is not None:
+        predicted = _predicted_direction(rig, o)
+        if predicted != 0:
+            expected, why = predicted, "from the calibration's geometry"
+    settings = DecodeSettings(self_check=False, spatial_check=False)
+    trial = replace(ps.conventions, step_sign=1, phase_origin=origin_plus).filled(NATIVE)
+    lines = stack[:, ::SUBSAMPLE, :] if axis == 1 else stack[:, :, ::SUBSAMPLE]  # direct neighbours along axis
+    d = decode(lines, ps.with_conventions(trial), bit_depth, projector_size, settings)
+    c = d.maps[o].coordinate
+    grad = np.diff(c, axis=axis)
+    grad = grad[np.isfinite(grad) & (np.abs(grad) < 0.5 * d.maps[o].period_px)]
+    if grad.size < 100:
+        raise DecodeError("cannot tell the step sign: too few decoded pixels to see which way the coordinate runs")
+    rising = float((grad > 0).mean())
+    if 0.2 < rising < 0.8:
+        raise DecodeError(f"cannot tell the step sign: the coordinate rises on {rising:.0%} of the pixels and falls "
+                          f"on the rest; give conventions.step_sign")
+    observed = 1 if rising >= 0.8 else -1
+    sign = 1 if observed == expected else -1
+    source = "detected" if rig is not None and why.startswith("from") else "assumed"
+    return sign, source, f"{why}; under step sign +1 it {'rises' if observed > 0 else 'falls'} on " \
+                         f"{max(rising, 1 - rising):.0%} of the pixels"
+
+
+def _predicted_direction(rig: RigModel, orientation: str) -> int:
+    """+1 when the rig's projector coordinate grows with the camera column (row), −1 when it
+    falls, 0 when the geometry does not say (no depth puts the camera's centre in view)."""
+    cam = rig.camera
+    axis = 0 if orientation == "vertical" else 1
+    centre = np.array([cam.K[0, 2], cam.K[1, 2]])
+    step = np.zeros(2)
+    step[axis] = 5.0
+    rays = cam.normalized(np.stack([centre, centre + step]))
+    votes = []
+    proj_from_cam = rig.proj_from_cam
+    for z in (200.0, 400.0, 800.0, 1500.0, 3000.0, 6000.0):
+        pts = np.c_[rays * z, [z, z]]
+        p = pts @ proj_from_cam[:3, :3].T + proj_from_cam[:3, 3]
+        if (p[:, 2] <= 0).any():
+            continue
+        uv = rig.projector.project(p)
+        size = rig.projector.size
+        if 0 <= uv[0, 0] < size[0] and 0 <= uv[0, 1] < size[1]:
+            votes.append(np.sign(uv[1, axis] - uv[0, axis]))
+    return int(np.sign(sum(votes))) if votes else 0
+
+
+def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_size: tuple[int, int],
+           rig: RigModel | None = None) -> Detection:
+    """Every convention of `patterns` settled (given keys checked, missing keys detected)
+    from the frames `stack` (N, H, W); DecodeError naming a contradiction or ambiguity."""
+    ps = patterns.for_projector(projector_size) if patterns.family in ("graycode", "pixel_graycode") else patterns
+    given = ps.conventions
+    n = stack.shape[0]
+    candidates = _layouts(ps, n, fixed=True)
+    if not candidates:
+        every = _layouts(ps, n, fixed=False)
+        hint = f"; with other frame-layout keys {len(every)} layout(s) would fit" if every else ""
+        what = f"{ps.family} for a {projector_size[0]} x {projector_size[1]} projector" \
+            if ps.family == "pixel_graycode" else f"{ps.family}, fringes {list(ps.fringes)}, {ps.steps} steps"
+        raise DecodeError(f"{n} frames, but the pattern set ({what}, {list(ps.orientations)}) with the given layout "
+                          f"keys needs {_needed(ps)}: wrong frame count, fringe/period count or projector size{hint}")
+    scored = sorted(((_evidence(stack, c, projector_size, bit_depth), c) for c in candidates),
+                    key=lambda t: -t[0].score)
+    best_ev, best = scored[0]
+    findings: list[Finding] = []
+    # given layout keys contradicted by a layout they exclude?
+    free = sorted(((_evidence(stack, c, projector_size, bit_depth), c) for c in _layouts(ps, n, fixed=False)),
+                  key=lambda t: -t[0].score)
+    if free and free[0][1].frames() != best.frames() and free[0][0].score > max(1.5 * best_ev.score, 0.3):
+        raise DecodeError(f"the given frame layout ({_layout_name(best)}, score {best_ev.score:.2f}) contradicts "
+                          f"the frames: {_layout_name(free[0][1])} explains them (score {free[0][0].score:.2f})")
+    if best_ev.score < 0.3:
+        raise DecodeError(f"no frame layout explains the frames (best: {_layout_name(best)}, score "
+                          f"{best_ev.score:.2f}): wrong frame order, fringe count or pattern family")
+    if len(scored) > 1 and scored[1][0].score >= AMBIGUOUS * best_ev.score:
+        raise DecodeError(f"ambiguous frame layout: {_layout_name(best)} (score {best_ev.score:.2f}) and "
+                          f"{_layout_name(scored[1][1])} ({scored[1][0].score:.2f}) explain the frames alike; give "
+                          f"the layout keys in [conventions]")
+    layout_keys = [k for k in ("frame_order", "gray_position", "gray_code", "references")
+                   if k in best.conventions.to_dict()]
+    runner = f"; next best {scored[1][0].score:.2f}" if len(scored) > 1 else ""
+    for k in layout_keys:
+        v = getattr(best.conventions, k)
+        if getattr(given, k) is not None:
+            findings.append(Finding(k, v, "given", f"layout score {best_ev.score:.2f}{runner}"))
+        elif (k == "frame_order" and len(ps.fringes) <= 1) or (k in ("gray_position", "gray_code")
+                                                              and ps.family != "graycode"):
+            continue
+        else:
+            findings.append(Finding(k, v, "detected", f"layout score {best_ev.score:.2f} of {len(scored)} "
+                                                      f"layout(s) with {n} frames{runner}"))
+    conv = replace(given, **{k: getattr(best.conventions, k) for k in layout_keys})
+    conv, more = _phase_keys(stack, ps.with_conventions(conv), best_ev, projector_size, bit_depth, rig)
+    findings += more
+    return Detection(ps.with_conventions(conv.filled(NATIVE)), findings)
+
+
+def _needed(ps: PatternSet) -> str:
+    counts = sorted({len(c.frames()) for c in _all_layouts(ps)})
+    return "/".join(str(c) for c in counts) + " frames" if counts else "a frame count it cannot form"
+
+
+def _phase_keys(stack: np.ndarray, ps: PatternSet, ev: _Evidence, projector_size: tuple[int, int], bit_depth: int,
+                rig: RigModel | None) -> tuple[Conventions, list[Finding]]:
+    """Step sign, phase origin and pixel centre, given or detected (module docstring)."""
+    c = ps.conventions
+    findings: list[Finding] = []
+    if ps.family == "pixel_graycode":
+        return c, findings
+    o = ps.orientations[0]
+    extent = projector_size[0] if o == "vertical" else projector_size[1]
+    f = ps.fringes[0] if ps.family == "graycode" else max(ps.fringes)
+    # step sign
+    if ps.family == "graycode":
+        r_plus, r_minus = ev.sign_r[1], ev.sign_r[-1]
+        best = 1 if r_plus >= r_minus else -1
+        strong, weak = max(r_plus, r_minus), min(r_plus, r_minus)
+        if strong < MIN_R or weak > 0.5 * strong:
+            raise DecodeError(f"cannot tell the step sign: Gray code and phase agree alike under both (R {r_plus:.2f} "
+                              f"for +1, {r_minus:.2f} for -1); check the Gray-code frames and the fringe count")
+        evidence = f"Gray code and phase agree {strong:.2f} under {best:+d}, {weak:.2f} under {-best:+d}"
+        if c.step_sign is not None and c.step_sign != best:
+            raise DecodeError(f"conventions.step_sign = {c.step_sign:+d} contradicts the frames: {evidence}")
+        sign, source = best, "given" if c.step_sign is not None else "detected"
+        findings.append(Finding("step_sign", sign, source, evidence))
+        eps, se = ev.offset[sign]
+    else:
+        eps_plus, se_plus = ev.offset.get(1, (None, 0.0))
+        if eps_plus is not None and c.phase_origin is not None:
+            signs = [c.step_sign] if c.step_sign is not None else [1, -1]
+            if all(abs(_wrap(sg * eps_plus - c.phase_origin)) > max(0.3, 5 * se_plus) for sg in signs):
+                raise DecodeError(f"conventions.phase_origin = {c.phase_origin:.3f} contradicts the frames: their "
+                                  f"frequencies agree with an origin of {eps_plus:.3f} rad (± {se_plus:.3f}) under "
+                                  f"step sign +1, {-eps_plus:.3f} under -1")
+        origin_plus = _snap(eps_plus, np.pi / 2, 0.1) if eps_plus is not None else 0.0
+        if c.step_sign is None:
+            sign, source, evidence = _geometric_sign(stack, ps, projector_size, bit_depth, rig, origin_plus)
+        else:
+            sign, source, evidence = c.step_sign, "given", "not checked against the frames (no Gray code)"
+            if rig is not None and _predicted_direction(rig, o) != 0:
+                detected, _, evidence = _geometric_sign(stack, ps, projector_size, bit_depth, rig, origin_plus)
+                if detected != sign:
+                    raise DecodeError(f"conventions.step_sign = {sign:+d} contradicts the frames and the calibration: "
+                                      f"{evidence}")
+        findings.append(Finding("step_sign", sign, source, evidence))
+        eps, se = ev.offset.get(1, (None, None))
+        if eps is not None and sign == -1:
+            eps = -eps  # the beats' offsets under the other sign are mirrored
+    c = replace(c, step_sign=sign)
+    rad_per_px = 2 * np.pi * f / extent
+    if eps is None:  # hierarchical: nothing measures the origin or the pixel centre
+        for key, native in (("phase_origin", 0.0), ("pixel_centre", 0.5)):
+            if getattr(c, key) is None:
+                findings.append(Finding(key, native, "assumed", "a hierarchical set carries no evidence of it; ours"))
+            else:
+                findings.append(Finding(key, getattr(c, key), "given", "not checked (no evidence in the frames)"))
+        return c.filled(NATIVE), findings
+    has_code = ps.family == "graycode"
+    if not has_code:  # heterodyne: ε is the origin itself, δ unobservable
+        if c.phase_origin is not None:
+            d = _wrap(eps - c.phase_origin)
+            if abs(d) > max(0.3, 5 * se):
+                raise DecodeError(f"conventions.phase_origin = {c.phase_origin:.3f} contradicts the frames: their "
+                                  f"frequencies agree with an origin of {eps:.3f} rad (± {se:.3f})")
+            findings.append(Finding("phase_origin", c.phase_origin, "given", f"frames say {eps:.3f} ± {se:.3f} rad"))
+        else:
+            origin = _snap(eps, np.pi / 2, 0.1)
+            findings.append(Finding("phase_origin", round(origin, 6), "detected",
+                                    f"each frequency's offset from its beats' prediction: {eps:.3f} ± {se:.3f} rad"))
+            c = replace(c, phase_origin=origin)
+        if c.pixel_centre is None:
+            findings.append(Finding("pixel_centre", 0.5, "assumed", "a shift of every coordinate alike: not observable "
+                                                                    "without a Gray code; ours (0.5)"))
+            c = replace(c, pixel_centre=0.5)
+        else:
+            findings.append(Finding("pixel_centre", c.pixel_centre, "given", "not observable without a Gray code"))
+        return c, findings
+    # Gray code: ε = origin + 2π·f·(δ − 0.5)/W
+    if c.phase_origin is None and c.pixel_centre is None:
+        origin = _snap(eps, np.pi / 2, np.pi / 4)
+        delta = 0.5 + _wrap(eps - origin) / rad_per_px
+        snapped = _snap(delta, 0.5, PIXEL_CENTRE_SNAP)
+        if abs(snapped - delta) > PIXEL_CENTRE_SNAP or snapped * 2 != round(snapped * 2):
+            raise DecodeError(f"ambiguous conventions: the phase wraps {eps:.3f} rad from the Gray-code edges, which "
+                              f"is neither origin {origin:.3f} with pixel centre 0 nor 0.5 (it would need "
+                              f"{delta:.2f}); give phase_origin and pixel_centre")
+        snapped = snapped % 1.0
+        se_px = se / rad_per_px
+        findings.append(Finding("phase_origin", round(origin, 6), "detected",
+                                f"Gray-code edges vs phase wraps: offset {eps:.3f} ± {se:.3f} rad"))
+        findings.append(Finding("pixel_centre", snapped, "detected",
+                                f"the rest of that offset is {delta:.2f} ± {se_px:.2f} px"))
+        return replace(c, phase_origin=origin, pixel_centre=snapped), findings
+    if c.phase_origin is None:
+        origin = _snap(_wrap(eps - (c.pixel_centre - 0.5) * rad_per_px), np.pi / 2, 0.05)
+        findings.append(Finding("phase_origin", round(origin, 6), "detected",
+                                f"Gray-code edges vs phase wraps: offset {eps:.3f} ± {se:.3f} rad"))
+        findings.append(Finding("pixel_centre", c.pixel_centre, "given", "used to split that offset"))
+        return replace(c, phase_origin=origin), findings
+    expected = c.phase_origin + ((c.pixel_centre if c.pixel_centre is not None else 0.5) - 0.5) * rad_per_px
+    d = _wrap(eps - expected)
+    if c.pixel_centre is None:
+        delta = 0.5 + _wrap(eps - c.phase_origin) / rad_per_px
+        snapped = _snap(delta, 0.5, PIXEL_CENTRE_SNAP) % 1.0
+        if abs(_wrap(eps - c.phase_origin)) > np.pi / 4:
+            raise DecodeError(f"conventions.phase_origin = {c.phase_origin:.3f} contradicts the frames: the phase "
+                              f"wraps {eps:.3f} rad from the Gray-code edges")
+        findings.append(Finding("phase_origin", c.phase_origin, "given", f"Gray-code edges vs phase wraps: "
+                                                                         f"{eps:.3f} ± {se:.3f} rad"))
+        findings.append(Finding("pixel_centre", snapped, "detected", f"the rest of that offset is {delta:.2f} px"))
+        return replace(c, pixel_centre=snapped), findings
+    if abs(d) > max(0.5 * rad_per_px * 0.5, 5 * se, 0.05):
+        raise DecodeError(f"conventions phase_origin = {c.phase_origin:.3f} and pixel_centre = {c.pixel_centre} "
+                          f"contradict the frames: the phase wraps {eps:.3f} rad from the Gray-code edges, "
+                          f"{d:+.3f} rad from what they imply")
+    for key in ("phase_origin", "pixel_centre"):
+        findings.append(Finding(key, getattr(c, key), "given", f"agrees with the frames ({d:+.3f} rad)"))
+    return c, findings
+
+
+def _wrap(angle: float) -> float:
+    """An angle (rad) in (−π, π]."""
+    return float(np.angle(np.exp(1j * angle)))
+
+
+def _snap(value: float, grid: float, tolerance: float) -> float:
+    """`value` moved onto the nearest multiple of `grid` when within `tolerance` of it;
+    angles near ±π are reported as −π."""
+    nearest = round(value / grid) * grid
+    out = nearest if abs(value - nearest) <= tolerance else value
+    return -np.pi if abs(abs(out) - np.pi) < 1e-9 else float(out)
