@@ -1,9 +1,12 @@
 """The simulated motion stage: it turns the scene.
 
-`SimStage` is a `scanner.stage.Stage`: a move takes |distance| / speed (on a timer
-thread), then `on_moved(positions)` is called, which the simulated rig wires to re-render
-the scene with everything the stage carries moved (`turned_scene`): the camera's next
-frames see the part from the new side. While it moves, `position()` interpolates.
+`SimStage` is a `scanner.stage.Stage`: before a move's clock starts, `prepare(goal)` is
+called on the caller's thread, which the simulated rig wires to render the scene with
+everything the stage carries moved to the goal (`turned_scene`; the simulator's computing,
+seconds at full resolution under load, must not count against the move's deadline); the
+move takes |distance| / speed (on a timer thread), then `on_moved(positions)` is called,
+which swaps the prepared scene in: the camera's next frames see the part from the new side.
+While it moves, `position()` interpolates.
 
 What the stage carries: every scene object except the reference plane (the bench behind
 it). Where the axes are: the rig TOML's nominal `[stage.axes]` geometry (the simulator's
@@ -78,9 +81,11 @@ class SimStage(Stage):
     """A simulated stage (see the module docstring)."""
 
     def __init__(self, name: str, axes: Sequence[Axis], settle_s: float = 0.0,
-                 on_moved: Callable[[dict[str, float]], None] | None = None, faults: StageFaults | None = None) -> None:
+                 on_moved: Callable[[dict[str, float]], None] | None = None, faults: StageFaults | None = None,
+                 prepare: Callable[[dict[str, float]], None] | None = None) -> None:
         super().__init__(name, axes, settle_s)
         self.faults = faults or StageFaults()
+        self._prepare_goal = prepare
         self.moves = 0  # moves started since the stage opened
         self._on_moved = on_moved
         self._state = threading.Lock()
@@ -88,6 +93,11 @@ class SimStage(Stage):
         self._move: tuple[dict[str, float], dict[str, float], float, float] | None = None  # from, to, t0, t1
         self._timer: threading.Timer | None = None
         self._gone = False
+
+    def _prepare(self, goal: dict[str, float]) -> None:
+        self._check_connected()
+        if self._prepare_goal is not None:
+            self._prepare_goal(dict(goal))
 
     def _do_move(self, targets: dict[str, float], status: Status) -> None:
         self._check_connected()
@@ -201,15 +211,24 @@ def open_sim_stage(config: RigConfig, rig: Rig, faults: StageFaults | None = Non
     base_scene: Scene = rig.extras["scene"]
     extras = rig.extras
     extras["world_from_stage"] = np.eye(4)
+    prepared: dict[str, Any] = {}  # the scene rendered at the goal of the move under way
 
-    def turn(positions: dict[str, float]) -> None:
+    def render(positions: dict[str, float]) -> None:
         world_from_stage = stage_config.nominal.world_from_stage(positions)
         old: Renderer = extras["renderer"]
-        renderer = Renderer(old.model, turned_scene(base_scene, world_from_stage), old.sensor,
-                            old.projector_blur_sigma_px)
+        prepared.clear()
+        prepared.update(positions=positions, world_from_stage=world_from_stage, renderer=Renderer(
+            old.model, turned_scene(base_scene, world_from_stage), old.sensor, old.projector_blur_sigma_px))
+
+    def turn(positions: dict[str, float]) -> None:
+        at = prepared.get("positions", {})
+        if at.keys() != positions.keys() or not all(abs(at[n] - positions[n]) < 1e-12 for n in positions):
+            render(positions)  # not where the move was prepared for (not expected): render now
+        renderer = prepared["renderer"]
         rig.camera.renderer = renderer  # type: ignore[attr-defined]
-        extras.update(renderer=renderer, ground_truth=renderer.ground_truth, world_from_stage=world_from_stage)
+        extras.update(renderer=renderer, ground_truth=renderer.ground_truth,
+                      world_from_stage=prepared["world_from_stage"])
 
     extras["session_files"].append(
         lambda root: write_json(root / STAGE_TRUTH_FILE, {"world_from_stage": extras["world_from_stage"]}))
-    return SimStage("sim-stage", stage_config.axes, stage_config.settle_s, turn, faults)
+    return SimStage("sim-stage", stage_config.axes, stage_config.settle_s, turn, faults, render)
