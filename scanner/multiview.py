@@ -41,7 +41,7 @@ from scanner.errors import IncompleteSession, ScannerError, SessionError
 from scanner.rig import Rig
 from scanner.session import ERROR, MANIFEST, Session, write_json
 from scanner.stage import AxisKind
-from scanner.stage_model import StageConfig, StageModel
+from scanner.stage_model import StageConfig, StageModel, load_stage_model
 
 MULTIVIEW_VERSION = 1
 PLAN = "views.json"
@@ -131,6 +131,11 @@ class MultiViewSession:
     def stage_model(self) -> StageModel:
         return StageModel.from_dict(self.plan["stage_model"], self.root / PLAN)
 
+    def stage_axis_file(self, file: str | Path, key: str = "--stage-axis") -> StageModel:
+        """The stage model of a stage-axis calibration file (`slscan calibrate --stage-axis`),
+        checked against the axes these views were captured with; errors name `key`."""
+        return load_stage_model(Path(file), self.stage_model, self.root / PLAN, key)
+
     @property
     def outputs(self) -> Path:
         return self.root / OUTPUTS_DIR
@@ -202,14 +207,15 @@ def _read_json(path: Path, what: str) -> dict[str, Any]:
 class MultiViewWriter:
     """Writes one multi-view capture: the plan first, then view folders, then multiview.json."""
 
-    def __init__(self, root: Path, rig: Rig, plan: Sequence[Mapping[str, float]]) -> None:
+    def __init__(self, root: Path, rig: Rig, plan: Sequence[Mapping[str, float]],
+                 model: StageModel | None = None) -> None:
         stage = rig.config.stage
         if stage is None or rig.stage is None:
             raise ScannerError(f"{rig.config.path}: the rig has no [stage]: multi-view scanning needs one to turn "
                                f"the part")
         self.root = root
         self.id = f"{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
-        self.model = stage.model
+        self.model = model or stage.model
         self.started = dt.datetime.now(dt.timezone.utc)
         self.views: list[dict[str, Any]] = []
         write_json(root / PLAN, {
@@ -218,13 +224,14 @@ class MultiViewWriter:
             "stage_model": self.model.to_dict(), "views": [{"target": dict(q)} for q in plan]})
 
     @classmethod
-    def create(cls, out_dir: str | Path, rig: Rig, plan: Sequence[Mapping[str, float]]) -> MultiViewWriter:
+    def create(cls, out_dir: str | Path, rig: Rig, plan: Sequence[Mapping[str, float]],
+               model: StageModel | None = None) -> MultiViewWriter:
         root = Path(out_dir)
         if root.exists() and any(root.iterdir()):
             raise SessionError(f"{root}: output folder exists and is not empty; choose a new --out folder so no "
                                f"earlier session is overwritten")
         root.mkdir(parents=True, exist_ok=True)
-        return cls(root, rig, plan)
+        return cls(root, rig, plan, model)
 
     def stage_record(self, position: Mapping[str, float]) -> dict[str, Any]:
         """What a view's manifest records of the stage: position and the model's pose."""
@@ -250,14 +257,16 @@ class MultiViewWriter:
 
 def capture_views(rig: Rig, plan: Sequence[Mapping[str, float]], out_dir: str | Path,
                   scan_view: Callable[[Path, dict[str, Any]], Session],
-                  progress: ViewProgress = _quiet) -> MultiViewSession:
+                  progress: ViewProgress = _quiet, model: StageModel | None = None) -> MultiViewSession:
     """Move the stage to each planned position and scan a view there; return the complete
     multi-view session. `scan_view(folder, extra)` captures (and processes) one view into
     the new session folder `folder` with `extra` in its manifest (`scanner.pipeline.scan`).
+    `model`: the stage geometry the views' poses are recorded with (default the rig's:
+    its [stage] calibration file's, else the nominal axes).
 
     On any failure (a move, a capture, Ctrl-C) every earlier view stays complete on disk,
     error.json names the view and the error, and the error is raised again."""
-    writer = MultiViewWriter.create(out_dir, rig, plan)
+    writer = MultiViewWriter.create(out_dir, rig, plan, model)
     stage = rig.stage
     assert stage is not None
     n = len(plan)

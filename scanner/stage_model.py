@@ -189,9 +189,9 @@ class StageConfig:
         return cls(path, driver, settle, home, tuple(axes), nominal, model, table, tuple(entries))
 
 
-def load_stage_model(file: Path, nominal: StageModel, rig_path: Path) -> StageModel:
-    """The calibrated axes of `file`, checked against the rig's (names, kinds, order)."""
-    key = "stage.calibration"
+def load_stage_model(file: Path, nominal: StageModel, rig_path: object, key: str = "stage.calibration") -> StageModel:
+    """The calibrated axes of `file`, checked against the rig's (names, kinds, order);
+    errors name `rig_path` and `key` (where the file was given)."""
     try:
         d = json.loads(file.read_text())
     except FileNotFoundError:

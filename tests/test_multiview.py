@@ -202,3 +202,67 @@ def test_free_space_violations_refuse_a_surface_in_front() -> None:
 def test_axis_geometry_refuses_a_zero_direction() -> None:
     with pytest.raises(ValueError, match="direction must be a non-zero 3-vector"):
         AxisGeometry("t", AxisKind.ROTARY, np.zeros(3))
+
+
+def tilted_axis_file(path: Path, nominal: StageModel, tilt_deg: float, shift_mm: float) -> Path:
+    """A stage-axis calibration file whose turntable axis is off the truth by `tilt_deg`
+    (about the camera's x axis) and `shift_mm` (along x): what a poor calibration gives."""
+    a = nominal.axes[0]
+    c, s = math.cos(math.radians(tilt_deg)), math.sin(math.radians(tilt_deg))
+    tilted = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]) @ a.direction
+    path.write_text(json.dumps({"slscan_stage_axis": 1, "axes": [
+        {"name": a.name, "kind": "rotary", "direction": tilted.tolist(),
+         "point_mm": (a.point_mm + [shift_mm, 0.0, 0.0]).tolist()}]}))
+    return path
+
+
+def test_views_realigned_from_a_stage_axis_file(four_views: Path, tmp_path: Path) -> None:
+    from inspection.views.align import align_views
+    from inspection.views.view_clouds import load_views
+
+    session = MultiViewSession.open(four_views)
+    file = tilted_axis_file(tmp_path / "stage_axis.json", session.stage_model, 0.5, 0.5)
+    model = session.stage_axis_file(file)
+    views = load_views(session, model)
+    a = json.loads(file.read_text())["axes"][0]
+    d, p = np.array(a["direction"]) / np.linalg.norm(a["direction"]), np.array(a["point_mm"])
+    for view, deg in zip(views, (0, 45, 90, 135)):
+        # independently: world_from_stage turns about the file's line (Rodrigues), the prior is its inverse
+        R = rotation_about(d, math.radians(deg))
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, p - R @ p
+        assert np.allclose(view.prior, np.linalg.inv(T), atol=1e-9)
+    assert max(pose_error(truth_pose(v.session.root), w.prior, np.array([0.0, 0.0, 400.0]))[0]
+               for v, w in zip(session.views, views)) > 0.5  # the priors are off ...
+    alignment = align_views(views)
+    for k, view in enumerate(session.views):  # ... and the refinement brings every view back to the truth
+        deg, mm = pose_error(truth_pose(view.session.root), alignment.poses[k], alignment.centre)
+        assert deg < 0.05 and mm < 0.1, (view.name, deg, mm)
+
+
+def test_stage_axis_file_of_another_stage_is_refused_by_name(four_views: Path, tmp_path: Path) -> None:
+    file = tmp_path / "other.json"
+    file.write_text(json.dumps({"slscan_stage_axis": 1, "axes": [
+        {"name": "tilt", "kind": "rotary", "direction": [1.0, 0.0, 0.0], "point_mm": [0.0, 0.0, 0.0]}]}))
+    with pytest.raises(ScannerError, match=r"views.json, key '--stage-axis': .*other.json: calibrated axes "
+                                           r"\[\('tilt', 'rotary'\)\] are not the rig's \[\('turntable', 'rotary'\)\]"):
+        MultiViewSession.open(four_views).stage_axis_file(file)
+    assert cli.main(["decode", str(four_views), "--stage-axis", str(tmp_path / "missing.json")]) == 2
+
+
+def test_scan_records_the_views_with_the_given_stage_axis(tmp_path: Path) -> None:
+    rig = turntable_rig(tmp_path)
+    nominal = RigConfig.load(rig).stage.nominal
+    file = tilted_axis_file(tmp_path / "stage_axis.json", nominal, 0.3, 0.2)
+    out = tmp_path / "mv"
+    assert cli.main(["scan", "--rig", str(rig), "--scene", str(SCENE), "--angles", "0,60", "--no-merge",
+                     "--stage-axis", str(file), "--out", str(out)]) == 0
+    session = MultiViewSession.open(out)
+    assert session.stage_model.calibration == str(file)
+    believed = StageModel.from_dict(json.loads(file.read_text()), file)
+    for view in session.views:  # recorded with the file's axis; the simulator turned the part about its own
+        assert np.allclose(view.world_from_stage, believed.world_from_stage(view.position), atol=1e-9)
+        assert np.allclose(np.linalg.inv(truth_pose(view.session.root)), nominal.world_from_stage(view.position),
+                           atol=1e-9)
+    assert cli.main(["scan", "--rig", str(rig), "--scene", str(SCENE), "--stage-axis", str(file),
+                     "--out", str(tmp_path / "single")]) == 2

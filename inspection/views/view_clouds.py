@@ -17,6 +17,7 @@ from inspection.errors import CloudError
 from inspection.measured_cloud import load_session
 from inspection.views.precision import depth_sigma, ray_sigma
 from scanner.multiview import MultiViewSession, View
+from scanner.stage_model import StageModel
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,8 +45,10 @@ class ViewCloud:
         return replace(self, points=self.points @ R.T + t, normals=self.normals @ R.T, viewpoint=R @ self.viewpoint + t)
 
 
-def load_view(view: View) -> ViewCloud:
-    """A view of a multi-view session with each point's expected precision."""
+def load_view(view: View, stage_model: StageModel | None = None) -> ViewCloud:
+    """A view of a multi-view session with each point's expected precision; its prior
+    from `stage_model` at the view's stage position when given (a stage-axis calibration
+    made after the scan), else the pose recorded at capture."""
     scan = load_session(view.session.root)
     assert scan.pixels is not None
     sigma_z = depth_sigma(view.session)[scan.pixels[:, 1], scan.pixels[:, 0]]
@@ -55,13 +58,14 @@ def load_view(view: View) -> ViewCloud:
         raise CloudError(view.session.root, f"only {ok.sum()} of {len(scan)} points have a decoded precision: "
                                             f"outputs/maps.npz is not this cloud's; run `slscan decode` again")
     world_from_cam = view.session.rig_model().world_from_cam
+    world_from_stage = view.world_from_stage if stage_model is None else stage_model.world_from_stage(view.position)
     cam = ViewCloud(view.index, view.name, scan.points[ok], scan.normals[ok], sigma[ok], np.zeros(3),
-                    np.linalg.inv(view.world_from_stage))
+                    np.linalg.inv(world_from_stage))
     return cam.moved(world_from_cam)
 
 
-def load_views(session: MultiViewSession) -> list[ViewCloud]:
-    """Every complete view of `session` (at least two)."""
+def load_views(session: MultiViewSession, stage_model: StageModel | None = None) -> list[ViewCloud]:
+    """Every complete view of `session` (at least two), priors as `load_view`."""
     if len(session.views) < 2:
         raise CloudError(session.root, f"{len(session.views)} complete view(s): aligning views needs at least two")
-    return [load_view(v) for v in session.views]
+    return [load_view(v, stage_model) for v in session.views]

@@ -2,7 +2,8 @@
 write the results into the session's outputs/ (`scanner.multiview`):
 
     alignment.json   each view's prior and refined pose (part_from_view), the pairs and the
-                     pairs refused, timings
+                     pairs refused, timings, and the stage model the priors came from
+                     (`stage_model`: its axes and `calibration`, the stage-axis file or "")
     merged.ply       the fused cloud of the part (the platter it stood on removed): x y z,
                      nx ny nz, sigma (expected noise, relative mm) and views (how many views
                      each point fuses), part frame, mm
@@ -29,6 +30,7 @@ from inspection.views.view_clouds import ViewCloud, load_views
 from scanner.multiview import MultiViewSession
 from scanner.session import write_json
 from scanner.stage import AxisKind
+from scanner.stage_model import StageModel
 
 Progress = Callable[[str, int, int], None]
 
@@ -70,12 +72,15 @@ def point_spacing(view: ViewCloud, sample: int = 2000, seed: int = 0) -> float:
 
 
 def whole_part(session: MultiViewSession, settings: ViewsSettings = ViewsSettings(), mesh: bool = True,
-               progress: Progress = _quiet) -> WholePart:
-    """Align, fuse and mesh the views of `session`; write outputs/ (see the module docstring)."""
+               progress: Progress = _quiet, stage_model: StageModel | None = None) -> WholePart:
+    """Align, fuse and mesh the views of `session`; write outputs/ (see the module docstring).
+    `stage_model`: the stage geometry the priors come from (a stage-axis calibration made
+    after the scan, `MultiViewSession.stage_axis_file`); default the one the views were
+    captured with."""
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     progress("load views", 0, len(session.views))
-    views = load_views(session)
+    views = load_views(session, stage_model)
     times["load"] = time.perf_counter() - t0
     progress("align", 0, 1)
     alignment = align_views(views, settings.align)
@@ -85,7 +90,8 @@ def whole_part(session: MultiViewSession, settings: ViewsSettings = ViewsSetting
     cell = settings.cell_mm or point_spacing(views[0])
     kept = views
     if settings.platter_mm is not None:
-        kept = off_platter(views, list(alignment.poses), _turning_axis(session), settings.platter_mm, settings.seed)
+        kept = off_platter(views, list(alignment.poses), _turning_axis(stage_model or session.stage_model),
+                           settings.platter_mm, settings.seed)
     merged = fuse(kept, list(alignment.poses), cell)
     times["merge"] = time.perf_counter() - t0
     surface = None
@@ -96,7 +102,8 @@ def whole_part(session: MultiViewSession, settings: ViewsSettings = ViewsSetting
         times["mesh"] = time.perf_counter() - t0
     out = session.outputs
     out.mkdir(exist_ok=True)
-    write_json(out / "alignment.json", alignment.as_dict())
+    write_json(out / "alignment.json", {**alignment.as_dict(),
+                                        "stage_model": (stage_model or session.stage_model).to_dict()})
     write_merged(out / "merged.ply", merged)
     figures: dict[str, Any] = {"views": len(views), "points": len(merged), "cell_mm": cell,
                                "fused_points": int((merged.views > 1).sum()), "timings_s": times}
@@ -112,9 +119,9 @@ def whole_part(session: MultiViewSession, settings: ViewsSettings = ViewsSetting
     return WholePart(session, views, alignment, merged, surface, {k: round(v, 4) for k, v in times.items()})
 
 
-def _turning_axis(session: MultiViewSession) -> np.ndarray:
-    rotary = [a for a in session.stage_model.axes if a.kind is AxisKind.ROTARY]
-    return rotary[-1].direction if rotary else session.stage_model.axes[-1].direction
+def _turning_axis(model: StageModel) -> np.ndarray:
+    rotary = [a for a in model.axes if a.kind is AxisKind.ROTARY]
+    return rotary[-1].direction if rotary else model.axes[-1].direction
 
 
 def off_platter(views: list[ViewCloud], poses: list[np.ndarray], axis: np.ndarray, tolerance_mm: float,

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from scanner.config import CONFIG_DIR
-from scanner.errors import ConfigError
+from scanner.errors import ConfigError, ScannerError
 from scanner.reconstruct import Triangulator
 from scanner.rig import DEFAULT_RIG
 from scanner.session import write_json
@@ -69,6 +69,8 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
         from slscan.commands.views import scan_views
 
         return scan_views(args, config, patterns, options)
+    if getattr(args, "stage_axis", None) is not None:
+        raise ScannerError("--stage-axis applies to multi-view scans only (--views or --angles)")
     out = Path(args.out)
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
@@ -127,6 +129,8 @@ def cmd_decode(args: argparse.Namespace) -> int:
         from slscan.commands.views import decode_views
 
         return decode_views(args)
+    if args.stage_axis is not None:
+        raise ScannerError(f"{args.session}: --stage-axis applies to multi-view sessions only")
     result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode)
     report(result)
     return 0
@@ -177,6 +181,9 @@ def register(sub: Any) -> None:
                                                          "rig's stage, into one multi-view folder")
     s.add_argument("--angles", metavar="DEG,DEG,...", help="multi-view: the stage angles of the views, in degrees")
     s.add_argument("--no-merge", action="store_true", help="multi-view: capture only (no alignment, merge or mesh)")
+    s.add_argument("--stage-axis", metavar="FILE", help="multi-view: the stage-axis calibration (slscan calibrate "
+                                                        "--stage-axis) to record and align the views with, in place "
+                                                        "of the rig's [stage] calibration")
     s.add_argument("--stage-fault", action="append", default=[], metavar="NAME=MOVE",
                    help="simulated rigs: a stage fault (alarm_at_move=K, disconnect_at_move=K, silent_at_move=K)")
     s.set_defaults(func=cmd_scan)
@@ -184,6 +191,8 @@ def register(sub: Any) -> None:
     d = sub.add_parser("decode", help="regenerate every output of a session from its raw frames")
     d.add_argument("session")
     d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation")
+    d.add_argument("--stage-axis", metavar="FILE", help="multi-view: align the views again from this stage-axis "
+                                                        "calibration (slscan calibrate --stage-axis)")
     d.set_defaults(func=cmd_decode)
 
     m = sub.add_parser("demo", help="scan the bundled part on the default simulated rig and inspect it against "

@@ -9,6 +9,11 @@ view durable as soon as it is captured, then aligns, fuses and meshes the views
 (`inspection.views`) into the folder's outputs/ and its recording (`--no-merge`: capture
 only). A failed move or capture keeps every earlier view; the command says which and exits
 with the error.
+
+`--stage-axis FILE` (a `slscan calibrate --stage-axis` file) gives the stage geometry the
+views' poses are recorded and aligned with, in place of the rig's [stage] calibration;
+`slscan decode MULTIVIEW --stage-axis FILE` aligns views captured before the axis was
+calibrated again from the calibrated axis (their recorded stage positions are kept).
 """
 
 from __future__ import annotations
@@ -39,6 +44,11 @@ def scan_views(args: argparse.Namespace, config: Any, patterns: Any, options: di
         except ValueError:
             raise ScannerError(f"--angles: expected degrees separated by commas, got {args.angles!r}") from None
     plan = plan_views(config.stage, args.views, angles)
+    model = None
+    if args.stage_axis is not None:
+        from scanner.stage_model import load_stage_model
+
+        model = load_stage_model(Path(args.stage_axis), config.stage.nominal, config.path, "--stage-axis")
     out = Path(args.out)
     print(f"rig {config.name} ({config.driver}), {len(plan)} views on {config.stage.axes[0].name}, "
           f"{patterns.family} {patterns.n_frames} frames each -> {out}", file=sys.stderr)
@@ -51,7 +61,7 @@ def scan_views(args: argparse.Namespace, config: Any, patterns: Any, options: di
         try:
             session = capture_views(rig, plan, out, lambda folder, extra: scan(rig, patterns, folder, line,
                                                                                 extra=extra).session,
-                                    view_progress)
+                                    view_progress, model)
         except (ScannerError, KeyboardInterrupt):
             if (out / "views.json").exists():
                 print(describe_incomplete(out), file=sys.stderr)
@@ -69,26 +79,30 @@ def decode_views(args: argparse.Namespace) -> int:
     from scanner.pipeline import reprocess
 
     session = MultiViewSession.open(args.session)
+    model = session.stage_axis_file(args.stage_axis) if args.stage_axis is not None else None
     line = ProgressLine()
     for view in session.views:
         print(f"{view.name}: decode", file=sys.stderr)
         reprocess(view.session, line, mode=args.mode)
-    return report_whole(session, line)
+    return report_whole(session, line, model)
 
 
-def report_whole(session: Any, progress: Any) -> int:
-    """Align, fuse and mesh a multi-view session; print what it gave."""
+def report_whole(session: Any, progress: Any, stage_model: Any = None) -> int:
+    """Align, fuse and mesh a multi-view session (priors from `stage_model` when given,
+    `inspection.views.whole.whole_part`); print what it gave."""
     from inspection.views.recording import log_whole_part
     from inspection.views.whole import whole_part
     from scanner.session_recording import SessionRecording
 
     t0, load = time.perf_counter(), os.getloadavg()[0]
-    whole = whole_part(session, progress=progress)
+    whole = whole_part(session, progress=progress, stage_model=stage_model)
     wall = time.perf_counter() - t0
     with SessionRecording(session.recording_path, session.id, send_blueprint=False) as recording:
         log_whole_part(recording, whole)
     corrections = whole.alignment.corrections()
     out = session.outputs
+    calibration = (stage_model or session.stage_model).calibration or "the rig's nominal axes"
+    print(f"stage     priors from {calibration}")
     print(f"aligned   {len(whole.views)} views, {len(whole.alignment.edges)} pairs "
           f"({len(whole.alignment.refused)} refused); largest correction of the stage prior "
           f"{max(c[0] for c in corrections):.3f} deg / {max(c[1] for c in corrections):.3f} mm")
