@@ -5,8 +5,10 @@
 Scans the demo part all round (or takes an existing multi-view `--session` of the turntable
 scene), then prints, against the simulator's truth (each view's true stage pose, and the
 part's true pose in the stage frame from the scene):
-  - view alignment error (rotation, translation at the part) with the stage prior exact and
-    with the axis miscalibrated (tilted `--axis-error-deg`, moved `--axis-error-mm`);
+  - view alignment error (rotation, translation at the part) with the stage prior exact,
+    with the axis miscalibrated (tilted `--axis-error-deg`, moved `--axis-error-mm`), and
+    with the axis `slscan calibrate --stage-axis` finds on the same simulated rig (its own
+    error against the simulator's axis beside it);
   - the share of the part's CAD surface area the merged cloud covers (sampled area within
     0.5 mm of a merged point);
   - the merged cloud's noise against a single view's: RMS distance to the true high top
@@ -92,8 +94,11 @@ def cmd_viewbench(args: argparse.Namespace) -> int:
     figures["alignment"] = _errors(whole.alignment, truths)
     wrong = _miscalibrated(session, args.axis_error_deg, args.axis_error_mm)
     figures["alignment_axis_error"] = {"axis_error": [args.axis_error_deg, args.axis_error_mm],
-                                       **_errors(align_views([v.__class__(**{**v.__dict__, "prior": p})
-                                                              for v, p in zip(whole.views, wrong)]), truths)}
+                                       **_errors(align_views(_with_priors(whole.views, session, wrong)), truths)}
+    calibrated = _calibrated_axis(session, args.out / "stage_axis")
+    figures["alignment_calibrated_axis"] = {"axis_error": _axis_error(calibrated, session.stage_model),
+                                            **_errors(align_views(_with_priors(whole.views, session, calibrated)),
+                                                      truths)}
     figures["coverage"], figures["noise"] = _coverage_and_noise(whole, session)
     figures["form"] = _form(root)
     if not args.no_pairs:
@@ -113,7 +118,7 @@ def _scan(args: argparse.Namespace) -> Path:
     out = args.out / "scan"
     scene = SCENE if args.part is None else _nist_scene(args.part, rig, args.out)
     cmd_scan(argparse.Namespace(rig=rig, scene=scene, out=out, patterns=None, seed=0, fault=[], stage_fault=[],
-                                views=args.views, angles=None, no_merge=True))
+                                views=args.views, angles=None, no_merge=True, stage_axis=None))
     return out
 
 
@@ -165,16 +170,40 @@ def _errors(alignment: Any, truths: list[np.ndarray]) -> dict[str, Any]:
             "prior_max_mm": float(prior[:, 1].max()), "pairs": len(alignment.edges), "refused": len(alignment.refused)}
 
 
-def _miscalibrated(session: Any, tilt_deg: float, shift_mm: float) -> list[np.ndarray]:
-    """The views' priors from the stage axis tilted and moved (what a miscalibration gives)."""
+def _miscalibrated(session: Any, tilt_deg: float, shift_mm: float) -> Any:
+    """The stage model with the axis tilted and moved (what a miscalibration gives)."""
     from scanner.stage_model import AxisGeometry, StageModel, rotation_about
 
     a = session.stage_model.axes[0]
     side = np.cross(a.direction, [1.0, 0.0, 0.0])
     side /= np.linalg.norm(side)
-    bad = StageModel((AxisGeometry(a.name, a.kind, rotation_about(side, np.radians(tilt_deg)) @ a.direction,
-                                   a.point_mm + shift_mm * np.array([1.0, 0.0, 0.0])),))
-    return [np.linalg.inv(bad.world_from_stage(v.position)) for v in session.views]
+    return StageModel((AxisGeometry(a.name, a.kind, rotation_about(side, np.radians(tilt_deg)) @ a.direction,
+                                    a.point_mm + shift_mm * np.array([1.0, 0.0, 0.0])),))
+
+
+def _calibrated_axis(session: Any, out: Path) -> Any:
+    """The stage model `slscan calibrate --stage-axis` finds on the rig the views were
+    scanned with (the simulator turns a board on the same turntable)."""
+    from slscan.commands.stage_axis import cmd_stage_axis
+
+    rig = Path(session.plan["rig_config_path"])
+    cmd_stage_axis(argparse.Namespace(rig=rig, out=out, angles=None, board=None, seed=0))
+    return session.stage_axis_file(out / "stage_axis.json")
+
+
+def _axis_error(model: Any, truth: Any) -> list[float]:
+    """[tilt deg, distance mm from the true axis point to the line of `model`'s axis]."""
+    a, t = model.axes[0], truth.axes[0]
+    off = a.point_mm - t.point_mm
+    off -= a.direction * (a.direction @ off)
+    return [float(np.degrees(np.arccos(min(1.0, float(a.direction @ t.direction))))), float(np.linalg.norm(off))]
+
+
+def _with_priors(views: list[Any], session: Any, model: Any) -> list[Any]:
+    """The views with their priors from `model` at their recorded stage positions."""
+    from dataclasses import replace
+
+    return [replace(v, prior=np.linalg.inv(model.world_from_stage(s.position))) for v, s in zip(views, session.views)]
 
 
 def _part_from_cad() -> np.ndarray:
@@ -304,13 +333,17 @@ def _open3d_pair(source: Any, target: Any) -> np.ndarray:
 
 
 def _text(f: dict[str, Any]) -> str:
-    a, b = f["alignment"], f["alignment_axis_error"]
+    a, b, c = f["alignment"], f["alignment_axis_error"], f["alignment_calibrated_axis"]
     lines = [f"{f['views']} views, camera {f['camera']}",
              f"alignment, exact stage prior:     max {a['max_deg']:.4f} deg / {a['max_mm']:.4f} mm at the part "
              f"(median {a['median_deg']:.4f} / {a['median_mm']:.4f}); {a['pairs']} pairs, {a['refused']} refused",
              f"alignment, axis off {b['axis_error'][0]} deg / {b['axis_error'][1]} mm (prior up to "
              f"{b['prior_max_deg']:.3f} deg / {b['prior_max_mm']:.3f} mm): max {b['max_deg']:.4f} deg / "
              f"{b['max_mm']:.4f} mm (median {b['median_deg']:.4f} / {b['median_mm']:.4f})",
+             f"alignment, axis from slscan calibrate --stage-axis (off {c['axis_error'][0]:.4f} deg / "
+             f"{c['axis_error'][1]:.4f} mm; prior up to {c['prior_max_deg']:.3f} deg / {c['prior_max_mm']:.3f} mm): "
+             f"max {c['max_deg']:.4f} deg / {c['max_mm']:.4f} mm (median {c['median_deg']:.4f} / "
+             f"{c['median_mm']:.4f})",
              f"coverage of the CAD surface: {f['coverage']['area_share']:.1%} of its area within 0.5 mm of the merged "
              f"cloud; per face: " + ", ".join(f"{k[5:]} {v:.0%}" for k, v in f["coverage"].items() if k != "area_share"),
              f"noise on the high top (#657) against its true plane: merged {f['noise']['merged_rms_mm'] * 1e3:.1f} um "
