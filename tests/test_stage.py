@@ -96,6 +96,19 @@ def test_settle_time_is_waited_after_the_motion() -> None:
     s.shutdown()
 
 
+def test_simulated_stage_prepares_the_scene_before_the_moves_clock_starts() -> None:
+    """The simulator renders the turned scene before a move's status (and its deadline)
+    exists, so its own computing never times a move out; the motion's end swaps it in."""
+    seen: list[tuple[dict[str, float], bool]] = []
+    s = SimStage("sim-stage", [FAST], prepare=lambda goal: seen.append((goal, s.moving)),
+                 on_moved=lambda q: seen.append((q, s.moving)))
+    s.move_to({"turntable": math.radians(30)}).wait(wait_bound_s(1.0))
+    s.home().wait(wait_bound_s(1.0))
+    assert [(round(math.degrees(q["turntable"]), 9), moving) for q, moving in seen] == [
+        (30.0, False), (30.0, True), (0.0, False), (0.0, True)]  # prepared while no action ran, then arrived
+    s.shutdown()
+
+
 # ------------------------------------------------------------------ geometry
 
 
