@@ -38,6 +38,8 @@ from scanner.pointcloud import OrganisedCloud
 from scanner.session_recording import SessionRecording
 
 TIMELINE_VIEW = "view"
+TIMELINE_GAMMA = "gamma_level"
+TIMELINE_PLATE = "plate"
 ROOT = "calibration"
 RESIDUAL_SCALE = 100.0  # residual arrows are drawn this many times longer than the error
 
@@ -91,14 +93,14 @@ class CalibrationRecording:
     def gamma(self, fit: GammaFit) -> None:
         for level, value in zip(fit.levels, fit.response):
             self.stream.reset_time()
-            self.stream.set_time("gamma_level", sequence=int(level))
+            self.stream.set_time(TIMELINE_GAMMA, sequence=int(level))
             self.stream.log(f"{ROOT}/gamma/response", rr.Scalars(float(value)), strict=True)
             self.stream.log(f"{ROOT}/gamma/fit", rr.Scalars(float((level / 255.0) ** fit.gamma)), strict=True)
 
     def phase_height(self, fit: PhaseHeightFit) -> None:
         for k, e in enumerate(fit.errors):
             self.stream.reset_time()
-            self.stream.set_time("plate", sequence=k)
+            self.stream.set_time(TIMELINE_PLATE, sequence=k)
             for method, value in (("eq17", e.eq17_mm), ("per_pixel", e.per_pixel_mm),
                                   ("triangulation", e.triangulation_mm)):
                 self.stream.log(f"{ROOT}/phase_to_height/{method}", rr.Scalars(value), strict=True)

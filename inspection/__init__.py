@@ -8,7 +8,9 @@ Modules (each one job):
     sampling      area-uniform labelled points on the exact faces
     measured_cloud measured clouds: sessions, PLY/PCD/XYZ, normals, the part isolated from its table, unit check
     features      FPFH (Open3D) and SHOT (vectorised) descriptors
-    registration  RSCS, multivariate correspondences (Eq. 11), SAC-IA/RANSAC/NDT, verification, ICP, exact fine step
+    registration/ scan-to-model pose, one module per stage: settings, rigid, clouds, spheres (RSCS), target,
+                  matching (Eq. 11), sac_ia, ndt, hypotheses, verification, point_to_plane (ICP),
+                  gauss_newton, face_bias, fine; driver (`register`)
     segmentation  every point assigned to its CAD face (distance, normal, inside the face), signed deviations
     form          least-squares and minimum-zone flatness/cylindricity, ISO 16610-61 filter, Sq, noise floors,
                   deviations and profile zone of the form surface
@@ -19,6 +21,6 @@ Modules (each one job):
     downsample    voxel averaging and paper 001's density-centre selection (shared with bins/ and regions/)
 
 Two more products stand on the same base: `bins/` (poses of overlapping thin parts in a bin,
-paper 001: instances, pose, picking) and `regions/` (context-free region growing, paper 002:
-region_growing, local_features, segmetrics).
+paper 001: instances, part_model, instance_plane, pose_settings, pose, picking) and `regions/`
+(context-free region growing, paper 002: region_growing, local_features, segmetrics).
 """

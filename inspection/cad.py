@@ -4,8 +4,15 @@ A `CadModel` is a list of `Face`s in the model frame (mm). A STEP face keeps its
 `ADVANCED_FACE` entity id (`#n` in the file), its exact surface (`inspection.surfaces`),
 its orientation and its trimmed parameter domain, classified by OpenCASCADE itself
 (`IntTools_FClass2d`; a raster of the library's own triangulation answers for points
-clearly inside or outside, the classifier for the rest). A mesh model (STL/PLY/OBJ) is
-split into faces at sharp edges; a mesh face is its triangles.
+clearly inside or outside, the classifier for the rest; built when the face is first
+asked). A tessellated STEP face (AP242 `TRIANGULATED_FACE`, `COMPLEX_TRIANGULATED_FACE`:
+triangles, no surface) is read as a mesh face with its entity id. A face OpenCASCADE
+cannot evaluate (no surface and no triangles, or a failing evaluation) is left out and
+named in `CadModel.skipped`; no method is ever called on a null handle. A mesh model
+(STL/PLY/OBJ) is split into faces at sharp edges; a mesh face is its triangles.
+
+Reading time grows about linearly with the file: the STEP ids of the faces are found
+from the file's records in one pass (`_face_entity_ids`), not by a search per face.
 
 Units: STEP lengths are converted to mm by OpenCASCADE from the file's declared unit
 (kept in `CadModel.unit`); a mesh file has no unit, so the caller states it (`mesh_unit`).
@@ -20,7 +27,7 @@ import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -35,6 +42,7 @@ SHARP_EDGE_DEG = 25.0  # mesh models: faces are split where neighbouring triangl
 DEFLECTION_FRACTION = 10000.0  # default triangulation chord tolerance: the model's diagonal / this
 RASTER_CELLS = 512  # classification raster: cells along the longer side of a face's UV box
 _OUT, _IN, _UNSURE = 0, 1, 2
+Progress = Callable[[str, int, int], None]  # (stage, done, total), as scanner.pipeline's
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,14 +65,29 @@ class Tessellation:
 class _Domain:
     """The trimmed parameter domain of a STEP face: a raster over the UV box marks cells
     certainly inside or outside (from the library's triangulation in UV); points in the
-    remaining cells, near the trimming curves, are classified by `IntTools_FClass2d`."""
+    remaining cells, near the trimming curves, are classified by `IntTools_FClass2d`.
+    The raster (up to RASTER_CELLS^2 bytes) is built on the first `contains`, so a large
+    model holds rasters only for the faces a scan actually reaches."""
 
     def __init__(self, face: Any, box: tuple[float, float, float, float], scale: tuple[float, float],
                  uv: np.ndarray, triangles: np.ndarray, deflection_mm: float) -> None:
-        import cv2
-
         self._face = face
         self._classifier: Any = None
+        self._args = (box, scale, uv, triangles, deflection_mm)
+        self._state: np.ndarray | None = None
+
+    @property
+    def state(self) -> np.ndarray:
+        """Per raster cell (one cell of margin all round): _OUT, _IN or _UNSURE."""
+        if self._state is None:
+            self._state = self._raster(*self._args)
+            self._args = None  # type: ignore[assignment]
+        return self._state
+
+    def _raster(self, box: tuple[float, float, float, float], scale: tuple[float, float], uv: np.ndarray,
+                triangles: np.ndarray, deflection_mm: float) -> np.ndarray:
+        import cv2
+
         u0, u1, v0, v1 = box
         span = np.array([max(u1 - u0, 1e-12) * scale[0], max(v1 - v0, 1e-12) * scale[1]])
         n = np.maximum(np.round(RASTER_CELLS * span / span.max()), 8).astype(int)
@@ -87,18 +110,19 @@ class _Domain:
         k = np.ones((2 * band[1] + 1, 2 * band[0] + 1), np.uint8)
         k3 = np.ones((3, 3), np.uint8)
         unsure = cv2.dilate(boundary, k) | (cv2.dilate(filled, k3) & ~cv2.erode(filled, k3) & 1)
-        self.state = np.where(unsure > 0, _UNSURE, np.where(filled > 0, _IN, _OUT)).astype(np.uint8)
+        return np.where(unsure > 0, _UNSURE, np.where(filled > 0, _IN, _OUT)).astype(np.uint8)
 
     def contains(self, uv: np.ndarray) -> np.ndarray:
         """Whether each parameter point (N, 2) lies in the face (on its boundary counts)."""
         from OCP.gp import gp_Pnt2d
         from OCP.TopAbs import TopAbs_OUT
 
+        state_map = self.state  # builds the raster (and origin, cell) on first use
         ij = np.floor((uv - self.origin) / self.cell).astype(np.int64) + 1
-        h, w = self.state.shape
+        h, w = state_map.shape
         ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
         state = np.full(len(uv), _OUT, np.uint8)
-        state[ok] = self.state[ij[ok, 1], ij[ok, 0]]
+        state[ok] = state_map[ij[ok, 1], ij[ok, 0]]
         inside = state == _IN
         ask = np.flatnonzero(state == _UNSURE)
         if ask.size:
@@ -115,7 +139,8 @@ class _Domain:
 @dataclass(frozen=True, eq=False)
 class Face:
     """One face of a model. `index` is its position in `CadModel.faces`; `step_id` the STEP
-    `ADVANCED_FACE` entity id (None for meshes); `type` one of `SURFACE_TYPES`; `sense`
+    face entity id (`ADVANCED_FACE`, or a tessellated face; None for mesh files); `type` one
+    of `SURFACE_TYPES`; `mesh` its triangles (vertices mm, triangles) as in the tessellation; `sense`
     +1 when the surface's natural normal points out of the material, -1 when reversed;
     `box` the UV bounding box; `area_mm2` its area."""
 
@@ -157,13 +182,15 @@ class Face:
 @dataclass(frozen=True, eq=False)
 class CadModel:
     """Faces of a part in the model frame (mm). `unit` is the length unit the file declared
-    (STEP) or the caller stated (mesh); `kind` "step" or "mesh"."""
+    (STEP) or the caller stated (mesh); `kind` "step" or "mesh"; `skipped` one line per
+    face of the file that OpenCASCADE could not evaluate (left out of `faces`)."""
 
     path: Path
     kind: str
     unit: str
     faces: tuple[Face, ...]
     tessellation: Tessellation = field(repr=False)
+    skipped: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.faces)
@@ -201,11 +228,12 @@ class CadModel:
 
 
 def load_cad(path: str | Path, mesh_unit: str = "mm", deflection_mm: float | None = None,
-             scale: float = 1.0) -> CadModel:
-    """A STEP (.step/.stp: AP203, AP214, AP242) or mesh (.stl/.ply/.obj) model.
-    `deflection_mm` is the chord tolerance of the STEP triangulation (default: the model's
-    diagonal / DEFLECTION_FRACTION); `mesh_unit` the unit a mesh file is written in;
-    `scale` makes a scale model of a STEP part (every length multiplied, about the origin)."""
+             scale: float = 1.0, progress: Progress | None = None) -> CadModel:
+    """A STEP (.step/.stp: AP203, AP214, AP242, B-rep or tessellated) or mesh (.stl/.ply/.obj)
+    model. `deflection_mm` is the chord tolerance of the STEP triangulation (default: the
+    model's diagonal / DEFLECTION_FRACTION); `mesh_unit` the unit a mesh file is written in;
+    `scale` makes a scale model of a STEP part (every length multiplied, about the origin);
+    `progress(stage, done, total)` hears how a STEP file's reading goes."""
     path = Path(path)
     if not path.is_file():
         raise CadError(path, "no such file")
@@ -213,7 +241,7 @@ def load_cad(path: str | Path, mesh_unit: str = "mm", deflection_mm: float | Non
     if not scale > 0:
         raise CadError(path, f"scale must be > 0, got {scale}")
     if suffix in STEP_SUFFIXES:
-        return _load_step(path, deflection_mm, scale)
+        return _load_step(path, deflection_mm, scale, progress or _quiet)
     if suffix in MESH_SUFFIXES:
         if mesh_unit not in MESH_UNITS_MM:
             raise CadError(path, f"unknown mesh unit {mesh_unit!r}; use one of {sorted(MESH_UNITS_MM)}")
@@ -222,13 +250,25 @@ def load_cad(path: str | Path, mesh_unit: str = "mm", deflection_mm: float | Non
                          f"({', '.join(MESH_SUFFIXES)})")
 
 
+def _quiet(stage: str, done: int, total: int) -> None:
+    pass
+
+
 # ------------------------------------------------------------------------------- STEP
 
+# STEP entities OpenCASCADE turns into faces: B-rep faces (a surface and its bounds) and
+# AP242 tessellated faces (triangles only)
+FACE_ENTITIES = ("ADVANCED_FACE", "FACE_SURFACE", "TRIANGULATED_FACE", "COMPLEX_TRIANGULATED_FACE")
+_RECORD = re.compile(r"^\s*#(\d+)\s*=\s*([A-Za-z0-9_]*)", flags=re.M)
 
-def _step_face_ids(path: Path) -> list[int]:
-    """Entity ids of the ADVANCED_FACE (or FACE_SURFACE) records of a STEP file."""
+
+def _face_records(path: Path) -> list[tuple[int, int]]:
+    """(record number in the file's DATA section, 1-based; entity id) of every face record,
+    in one pass over the text. OpenCASCADE numbers a STEP model's entities in this order."""
     text = path.read_text(errors="replace")
-    return [int(m) for m in re.findall(r"#(\d+)\s*=\s*(?:ADVANCED_FACE|FACE_SURFACE)\s*\(", text, flags=re.I)]
+    data = re.search(r"^\s*DATA\b", text, flags=re.M)
+    records = _RECORD.findall(text, data.end() if data else 0)
+    return [(k, int(ident)) for k, (ident, kind) in enumerate(records, 1) if kind.upper() in FACE_ENTITIES]
 
 
 def _vec(d: Any) -> np.ndarray:
@@ -258,7 +298,14 @@ def _bspline(handle: Any) -> BSpline:
                    knots=(tu, tv), degrees=(s.UDegree(), s.VDegree()), control=ctrl)
 
 
-def _surface(face: Any) -> Surface:
+def _is_null(handle: Any) -> bool:
+    """Whether an OpenCASCADE handle or shape is null (OCP gives a null handle as None; a
+    shape answers IsNull): calling anything on a null one kills the process."""
+    return handle is None or bool(getattr(handle, "IsNull", lambda: False)())
+
+
+def _surface(face: Any) -> Surface | None:
+    """The face's exact surface, or None when it has none (a tessellated face)."""
     from OCP.BRep import BRep_Tool
     from OCP.BRepAdaptor import BRepAdaptor_Surface
     from OCP.GeomAbs import (
@@ -270,7 +317,11 @@ def _surface(face: Any) -> Surface:
         GeomAbs_Torus,
     )
     from OCP.GeomConvert import GeomConvert
+    from OCP.TopLoc import TopLoc_Location
 
+    handle = BRep_Tool.Surface_s(face, TopLoc_Location())
+    if _is_null(handle):
+        return None
     a = BRepAdaptor_Surface(face, True)
     t = a.GetType()
     if t == GeomAbs_Plane:
@@ -290,7 +341,10 @@ def _surface(face: Any) -> Surface:
     if t == GeomAbs_BSplineSurface:
         return _bspline(a.BSpline())
     # Bezier, revolution, extrusion, offset, ...: their exact B-spline form
-    return _bspline(GeomConvert.SurfaceToBSplineSurface_s(BRep_Tool.Surface_s(face)))
+    converted = GeomConvert.SurfaceToBSplineSurface_s(BRep_Tool.Surface_s(face))
+    if _is_null(converted):
+        raise CadError("surface", f"OpenCASCADE gives no B-spline form of its {t.name} surface")
+    return _bspline(converted)
 
 
 def _read_step(path: Path) -> tuple[Any, Any, str]:
@@ -307,7 +361,7 @@ def _read_step(path: Path) -> tuple[Any, Any, str]:
     if reader.TransferRoots() == 0:
         raise CadError(path, "the STEP file holds no shape that can be transferred (no solid, shell or face)")
     shape = reader.OneShape()
-    if shape.IsNull():
+    if _is_null(shape):
         raise CadError(path, "the STEP file holds no geometry")
     units = Sequence_TCollection_AsciiString()
     reader.FileUnits(units, Sequence_TCollection_AsciiString(), Sequence_TCollection_AsciiString())
@@ -315,16 +369,14 @@ def _read_step(path: Path) -> tuple[Any, Any, str]:
     return shape, reader, ",".join(names) or "unknown"
 
 
-def _load_step(path: Path, deflection_mm: float | None, scale: float) -> CadModel:
-    from OCP.BRepGProp import BRepGProp
+def _load_step(path: Path, deflection_mm: float | None, scale: float, progress: Progress) -> CadModel:
     from OCP.BRepMesh import BRepMesh_IncrementalMesh
-    from OCP.BRepTools import BRepTools
     from OCP.collections import IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher
-    from OCP.GProp import GProp_GProps
-    from OCP.TopAbs import TopAbs_FACE, TopAbs_REVERSED
+    from OCP.TopAbs import TopAbs_FACE
     from OCP.TopExp import TopExp
     from OCP.TopoDS import TopoDS
 
+    progress("read STEP", 0, 1)
     shape, reader, unit = _read_step(path)
     fmap = IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher()
     TopExp.MapShapes_s(shape, TopAbs_FACE, fmap)
@@ -332,6 +384,7 @@ def _load_step(path: Path, deflection_mm: float | None, scale: float) -> CadMode
     if not occ_faces:
         raise CadError(path, "the STEP file holds no faces")
     step_ids = _face_entity_ids(path, reader, occ_faces)
+    progress("read STEP", 1, 1)
     if scale != 1.0:  # a scaled copy: its faces, in the same order, keep their ids
         from OCP.BRepBuilderAPI import BRepBuilderAPI_Transform
         from OCP.gp import gp_Pnt, gp_Trsf
@@ -349,50 +402,124 @@ def _load_step(path: Path, deflection_mm: float | None, scale: float) -> CadMode
 
     bb = Bnd_Box()
     BRepBndLib.Add_s(shape, bb)
+    if bb.IsVoid():
+        raise CadError(path, "the model has no extent")
     diag = float(np.linalg.norm(_vec(bb.CornerMax()) - _vec(bb.CornerMin())))
     if not diag > 0:
         raise CadError(path, "the model has no extent")
     defl = deflection_mm if deflection_mm is not None else diag / DEFLECTION_FRACTION
-    BRepMesh_IncrementalMesh(shape, defl, False, 0.2, True)
+    progress("triangulate", 0, 1)
+    BRepMesh_IncrementalMesh(shape, defl, False, 0.2, True)  # faces without a surface keep their triangles
+    progress("triangulate", 1, 1)
 
-    faces, verts, tris, tri_face = [], [], [], []
-    offset = 0
+    faces: list[Face] = []
+    skipped: list[str] = []
     for i, f in enumerate(occ_faces):
-        surf = _surface(f)
-        sense = -1 if f.Orientation() == TopAbs_REVERSED else 1
-        box = tuple(float(x) for x in BRepTools.UVBounds_s(f))
-        props = GProp_GProps()
-        BRepGProp.SurfaceProperties_s(f, props)
-        v, uv, t = _face_triangulation(f, surf, sense)
-        face = Face(index=i, step_id=step_ids[i], type=surf.kind, area_mm2=float(props.Mass()), surface=surf,
-                    sense=sense, box=box, domain=_Domain(f, box, surf.metric_scale(box), uv, t, defl))  # type: ignore[arg-type]
-        faces.append(face)
-        verts.append(v)
-        tris.append(t + offset)
-        tri_face.append(np.full(len(t), i, np.int32))
-        offset += len(v)
-    tess = Tessellation(np.concatenate(verts), np.concatenate(tris).astype(np.int32), np.concatenate(tri_face))
-    return CadModel(path=path, kind="step", unit=unit, faces=tuple(faces), tessellation=tess)
+        name = f"face #{step_ids[i]}" if step_ids[i] is not None else f"face {i + 1} (no STEP id)"
+        try:
+            face = _step_face(f, len(faces), step_ids[i], defl)
+        except Exception as exc:  # noqa: BLE001 — OpenCASCADE's own failures on one face (Standard_Failure)
+            face, why = None, f"{type(exc).__name__}: {exc}"
+        else:
+            why = "no surface and no triangles"
+        if face is None:
+            skipped.append(f"{name}: OpenCASCADE cannot evaluate it ({why})")
+        else:
+            faces.append(face)
+        progress("faces", i + 1, len(occ_faces))
+    if not faces:
+        raise CadError(path, f"none of its {len(occ_faces)} faces can be evaluated: {skipped[0]}")
+    return CadModel(path=path, kind="step", unit=unit, faces=tuple(faces), tessellation=_tessellation(faces),
+                    skipped=tuple(skipped))
+
+
+def _step_face(f: Any, index: int, step_id: int | None, deflection_mm: float) -> Face | None:
+    """One STEP face: exact surface and trimmed domain, or, for a tessellated face, its
+    triangles as a mesh face; None when it has neither."""
+    from OCP.BRepGProp import BRepGProp
+    from OCP.BRepTools import BRepTools
+    from OCP.GProp import GProp_GProps
+    from OCP.TopAbs import TopAbs_REVERSED
+
+    sense = -1 if f.Orientation() == TopAbs_REVERSED else 1
+    surf = _surface(f)
+    if surf is None:
+        mesh = _face_mesh(f, sense)
+        return None if mesh is None else _mesh_face(index, step_id, *mesh)
+    box = tuple(float(x) for x in BRepTools.UVBounds_s(f))
+    props = GProp_GProps()
+    BRepGProp.SurfaceProperties_s(f, props)
+    v, uv, t = _face_triangulation(f, surf, sense)
+    return Face(index=index, step_id=step_id, type=surf.kind, area_mm2=float(props.Mass()), surface=surf,
+                sense=sense, box=box, domain=_Domain(f, box, surf.metric_scale(box), uv, t, deflection_mm),  # type: ignore[arg-type]
+                mesh=(v, t))
+
+
+def _tessellation(faces: list[Face]) -> Tessellation:
+    """The faces' triangles in one array (vertices not shared between faces)."""
+    verts = [f.mesh[0] for f in faces]  # type: ignore[index]
+    tris = [f.mesh[1] for f in faces]  # type: ignore[index]
+    offsets = np.cumsum([0] + [len(v) for v in verts[:-1]])
+    return Tessellation(np.concatenate(verts), np.concatenate([t + o for t, o in zip(tris, offsets)]).astype(np.int32),
+                        np.repeat(np.arange(len(faces), dtype=np.int32), [len(t) for t in tris]))
+
+
+def write_copies(source: str | Path, copies: int, out: str | Path, spacing_mm: float | None = None) -> Path:
+    """A STEP file holding `copies` translated copies of `source`'s shape, on a grid with
+    `spacing_mm` between origins (default: 1.5 x the part's diagonal), each copy with its
+    own faces: a large real file for timing the reader (`slscan cadbench`)."""
+    from OCP.Bnd import Bnd_Box
+    from OCP.BRep import BRep_Builder
+    from OCP.BRepBndLib import BRepBndLib
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_Transform
+    from OCP.gp import gp_Trsf, gp_Vec
+    from OCP.IFSelect import IFSelect_RetDone
+    from OCP.STEPControl import STEPControl_AsIs, STEPControl_Writer
+    from OCP.TopoDS import TopoDS_Compound
+
+    shape, _, _ = _read_step(Path(source))
+    if spacing_mm is None:
+        bb = Bnd_Box()
+        BRepBndLib.Add_s(shape, bb)
+        spacing_mm = 1.5 * float(np.linalg.norm(_vec(bb.CornerMax()) - _vec(bb.CornerMin())))
+    side = int(np.ceil(np.sqrt(copies)))
+    compound, builder = TopoDS_Compound(), BRep_Builder()
+    builder.MakeCompound(compound)
+    for k in range(copies):
+        move = gp_Trsf()
+        move.SetTranslation(gp_Vec(spacing_mm * (k % side), spacing_mm * (k // side), 0.0))
+        builder.Add(compound, BRepBuilderAPI_Transform(shape, move, True).Shape())
+    writer = STEPControl_Writer()
+    writer.Transfer(compound, STEPControl_AsIs)
+    if writer.Write(str(out)) != IFSelect_RetDone:
+        raise CadError(out, "could not write the STEP file")
+    return Path(out)
 
 
 def _face_entity_ids(path: Path, reader: Any, faces: list[Any]) -> list[int | None]:
-    """The STEP entity id of each face: the file's face records are looked up in the
-    reader's model by label, then matched to the transferred faces by entity identity."""
+    """The STEP entity id of each face, in time linear in the file: each face record of
+    the file (`_face_records`) is transferred by its number (OpenCASCADE returns the face
+    it already made for it) and matched to the model's faces by their shared geometry,
+    whatever the placement of the instance (located copies of one face share its id)."""
+    from OCP.collections import IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher
+    from OCP.TopLoc import TopLoc_Location
+
     model = reader.StepModel()
-    by_entity: dict[int, int] = {}
-    keep = []  # the Python wrappers must stay alive for id() to stay unique
-    for ident in _step_face_ids(path):
-        num = model.NextNumberForLabel(f"#{ident}", 0, False)
-        if num > 0:
-            ent = model.Value(num)
-            keep.append(ent)
-            by_entity[id(ent)] = ident
-    tr = reader.WS().TransferReader()
-    out: list[int | None] = []
-    for f in faces:
-        ent = tr.EntityFromShapeResult(f, 1)
-        out.append(by_entity.get(id(ent)) if ent is not None else None)
-    return out
+    here = TopLoc_Location()
+    transferred = IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher()
+    ids: list[int] = []
+    for number, ident in _face_records(path):
+        if model.NextNumberForLabel(f"#{ident}", number - 1, True) != number:  # records out of the usual order
+            number = model.NextNumberForLabel(f"#{ident}", 0, True)
+        if number <= 0 or not reader.TransferOne(number):
+            continue
+        shape = reader.Shape(reader.NbShapes())
+        if _is_null(shape):
+            continue
+        if transferred.Add(shape.Located(here)) > len(ids):
+            ids.append(ident)
+    found = [transferred.FindIndex(f.Located(here)) for f in faces]
+    return [ids[k - 1] if k else None for k in found]
 
 
 def _face_triangulation(face: Any, surf: Surface, sense: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -403,7 +530,7 @@ def _face_triangulation(face: Any, surf: Surface, sense: int) -> tuple[np.ndarra
 
     loc = TopLoc_Location()
     tri = BRep_Tool.Triangulation_s(face, loc)
-    if tri is None or tri.NbTriangles() == 0 or not tri.HasUVNodes():
+    if _is_null(tri) or tri.NbTriangles() == 0 or not tri.HasUVNodes():
         return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros((0, 3), np.int32)
     uv = np.array([(p.X(), p.Y()) for p in (tri.UVNode(i) for i in range(1, tri.NbNodes() + 1))])
     t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int32) - 1
@@ -413,6 +540,27 @@ def _face_triangulation(face: Any, surf: Surface, sense: int) -> tuple[np.ndarra
     flip = np.einsum("ij,ij->i", np.cross(b - a, c - a), out) < 0
     t[flip] = t[flip][:, [0, 2, 1]]
     return v, uv, t
+
+
+def _face_mesh(face: Any, sense: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(vertices (N, 3) mm in the model frame, triangles (M, 3)) of a face that has only
+    triangles (a tessellated STEP face), wound as the face is oriented; None without any."""
+    from OCP.BRep import BRep_Tool
+    from OCP.TopLoc import TopLoc_Location
+
+    loc = TopLoc_Location()
+    tri = BRep_Tool.Triangulation_s(face, loc)
+    if _is_null(tri) or tri.NbTriangles() == 0:
+        return None
+    v = np.array([(p.X(), p.Y(), p.Z()) for p in (tri.Node(i) for i in range(1, tri.NbNodes() + 1))], np.float64)
+    if not loc.IsIdentity():
+        m = loc.Transformation()
+        rot = np.array([[m.Value(r, c) for c in range(1, 4)] for r in range(1, 4)])
+        v = v @ rot.T + np.array([m.Value(r, 4) for r in range(1, 4)])
+    t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int32) - 1
+    if sense < 0:
+        t = t[:, [0, 2, 1]]
+    return v, t
 
 
 # ------------------------------------------------------------------------------- meshes
@@ -482,19 +630,17 @@ def _load_mesh(path: Path, unit: str) -> CadModel:
     rank = np.empty(n_faces, np.int64)
     rank[order] = np.arange(n_faces)
     label = rank[label]
-    faces, verts, tris = [], [], []
-    offset = 0
+    faces = []
     for i in range(n_faces):
-        ti = t[label == i]
-        used, inv = np.unique(ti, return_inverse=True)
-        fv, ft = v[used], inv.reshape(-1, 3).astype(np.int32)
-        ms = MeshSurface(fv, ft)
-        flat = np.abs(ms.normals @ np.average(ms.normals, axis=0, weights=ms.areas)).min() > np.cos(np.radians(0.5))
-        faces.append(Face(index=i, step_id=None, type="plane" if flat else "mesh", area_mm2=float(ms.areas.sum()),
-                          mesh=(fv, ft), surface=ms))  # type: ignore[arg-type]
-        verts.append(fv)
-        tris.append(ft + offset)
-        offset += len(fv)
-    tess = Tessellation(np.concatenate(verts), np.concatenate(tris).astype(np.int32),
-                        np.repeat(np.arange(n_faces, dtype=np.int32), [len(x) for x in tris]))
-    return CadModel(path=path, kind="mesh", unit=unit, faces=tuple(faces), tessellation=tess)
+        used, inv = np.unique(t[label == i], return_inverse=True)
+        faces.append(_mesh_face(i, None, v[used], inv.reshape(-1, 3).astype(np.int32)))
+    return CadModel(path=path, kind="mesh", unit=unit, faces=tuple(faces), tessellation=_tessellation(faces))
+
+
+def _mesh_face(index: int, step_id: int | None, vertices: np.ndarray, triangles: np.ndarray) -> Face:
+    """A face that is its triangles: a plane when every triangle is within 0.5 deg of their
+    mean normal, else of type "mesh"."""
+    ms = MeshSurface(vertices, triangles)
+    flat = np.abs(ms.normals @ np.average(ms.normals, axis=0, weights=ms.areas)).min() > np.cos(np.radians(0.5))
+    return Face(index=index, step_id=step_id, type="plane" if flat else "mesh", area_mm2=float(ms.areas.sum()),
+                mesh=(vertices, triangles), surface=ms)  # type: ignore[arg-type]

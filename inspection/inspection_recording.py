@@ -1,49 +1,52 @@
-"""The inspection result in a session's Rerun recording (a `scanner.session_recording.SessionRecording`,
-written through its `.stream`), in the world (camera) frame of the scan:
+"""The inspection result in a session's Rerun recording (a `scanner.session_recording.SessionRecording`),
+in the rig's world frame (the recording's `world_from_cam`, logged with its rig), on the
+scan timeline:
 
-=====================================  ================================================  ========
-entity path                            content                                           timeline
-=====================================  ================================================  ========
-``world/inspection/cad``               Mesh3D: the CAD model at the registered pose      scan
-``world/inspection/deviation``         Points3D: the part's points coloured by signed    scan
+=====================================  ================================================
+entity path                            content
+=====================================  ================================================
+``world/inspection/cad``               Mesh3D: the CAD model at the registered pose
+``world/inspection/deviation``         Points3D: the part's points coloured by signed
                                        deviation (blue inside, red outside, grey: none)
-``world/inspection/faces``             Points3D: the part's points, class id = face      scan
+``world/inspection/faces``             Points3D: the part's points, class id = face
                                        index + 1 (0: on no face), labels = face labels
-``inspection/deviation_map``           Image: the deviation map (camera image layout)    scan
-``inspection/report``                  TextDocument (markdown): the per-face table       scan
-``metrics/inspection_<name>``          Scalars: fitness, RMSE (mm), verdict counts       scan
-=====================================  ================================================  ========
+``inspection/deviation_map``           Image: the deviation map (camera image layout)
+``inspection/report``                  TextDocument (markdown): the per-face table
+``metrics/inspection/<name>``          Scalars: fitness, RMSE (mm), verdict counts
+=====================================  ================================================
 """
 
 from __future__ import annotations
-
-from typing import Any
 
 import numpy as np
 import rerun as rr
 
 from inspection.cad import CadModel
 from inspection.measured_cloud import ScanCloud
+from inspection.registration import transform_points
 from inspection.report import InspectionReport, colour_limit, deviation_colours, deviation_image
+from scanner.session_recording import SessionRecording
 
 CAD = "world/inspection/cad"
 DEVIATION = "world/inspection/deviation"
 FACES = "world/inspection/faces"
 DEVIATION_MAP = "inspection/deviation_map"
 REPORT = "inspection/report"
+METRICS = "inspection"  # under the core's metrics/
 
 
-def log_inspection(recording: Any, report: InspectionReport, scan: ScanCloud, model: CadModel, scan_index: int = 0) -> None:
-    """Log `report` (of `scan` against `model`) into `recording` on the scan timeline."""
-    stream = recording.stream
-    stream.reset_time()
-    stream.set_time("scan", sequence=scan_index)
-    to_scan = np.linalg.inv(report.registration.transform)  # model -> scan (camera) frame
+def log_inspection(recording: SessionRecording, report: InspectionReport, scan: ScanCloud, model: CadModel,
+                   scan_index: int = 0) -> None:
+    """Log `report` (of `scan`, camera frame, against `model`) into `recording` at scan
+    `scan_index`, the geometry moved into the rig's world frame."""
+    world_from_cam = recording.world_from_cam
+    world_from_model = world_from_cam @ np.linalg.inv(report.registration.transform)  # transform: scan -> model
     tess = model.tessellation
-    v = tess.vertices @ to_scan[:3, :3].T + to_scan[:3, 3]
-    stream.log(CAD, rr.Mesh3D(vertex_positions=v.astype(np.float32), triangle_indices=tess.triangles,
-                              albedo_factor=[0.75, 0.78, 0.85, 0.35]), strict=True)
-    part = scan.points[report.part_mask].astype(np.float32)
+    stream = recording.stream
+    recording.at_scan(scan_index)
+    stream.log(CAD, rr.Mesh3D(vertex_positions=transform_points(world_from_model, tess.vertices).astype(np.float32),
+                              triangle_indices=tess.triangles, albedo_factor=[0.75, 0.78, 0.85, 0.35]), strict=True)
+    part = transform_points(world_from_cam, scan.points[report.part_mask]).astype(np.float32)
     seg = report.segmentation
     rgb = deviation_colours(seg.deviation_mm, colour_limit(report))
     stream.log(DEVIATION, rr.Points3D(part, colors=np.round(rgb * 255).astype(np.uint8)), strict=True)
@@ -57,5 +60,4 @@ def log_inspection(recording: Any, report: InspectionReport, scan: ScanCloud, mo
     verdicts = [v for row in report.faces for _, v in row.verdicts.values()]
     metrics = {"fitness": report.fitness, "rmse_mm": report.rmse_mm,
                **{f"{w}_count": float(verdicts.count(w)) for w in ("pass", "fail", "uncertain")}}
-    for name, value in metrics.items():
-        stream.log(f"metrics/inspection_{name}", rr.Scalars(float(value)), strict=True)
+    recording.log_metrics({f"{METRICS}/{name}": value for name, value in metrics.items()}, scan=scan_index)

@@ -173,22 +173,25 @@ def release(rig: Rig, quiet: bool) -> None:
 def grab_while_running(cam: Camera, timeout_s: float, running: Status | None) -> Frame:
     """`cam.grab(timeout_s)`; while `running` (a sequence or pulse train) drives the camera,
     the frame is awaited in slices of STATUS_CHECK_S and the status's failure is raised as
-    itself as soon as it is known (no frame would come of a failed sequence)."""
+    itself as soon as it is known (no frame would come of a failed sequence). The timeout is
+    the sum of the slices the camera itself waited, so a camera that keeps its own clock (the
+    simulator does not count its rendering time) is judged by that clock."""
     if running is None:
         return cam.grab(timeout_s)
-    deadline = time.monotonic() + timeout_s
+    budget = timeout_s
     last: WaitTimeout | None = None
     while True:
         failure = running.exception()
         if failure is not None:
             raise failure
-        remaining = deadline - time.monotonic()
-        if last is not None and remaining <= 0:
+        if last is not None and budget <= 0:
             raise WaitTimeout(cam.name, last.awaited, timeout_s, last.hint)
+        slice_s = min(max(budget, 1e-3), STATUS_CHECK_S)
         try:
-            return cam.grab(min(max(remaining, 1e-3), STATUS_CHECK_S))
+            return cam.grab(slice_s)
         except WaitTimeout as exc:
             last = exc
+            budget -= slice_s
 
 
 def check_timing(k: int, frame: Frame, previous: Frame | None, earliest_s: float, camera_name: str) -> None:

@@ -1,5 +1,5 @@
 """Organised point clouds: (H, W, 3) points in mm with NaN where invalid, colours,
-normals, and PLY output."""
+normals, and PLY output (the valid points with the pixel each came from)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from plyfile import PlyData, PlyElement
+
+PLY_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
+                       ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("row", "<i4"), ("col", "<i4")])
 
 
 @dataclass(eq=False)
@@ -64,27 +68,26 @@ def from_planes(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 
 def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:
-    """Write the valid points as a binary little-endian PLY with grey colour and normals;
-    returns the number of points. The file appears complete or not at all."""
+    """Write the valid points as a binary little-endian PLY (through `plyfile`): position
+    and normal (mm, camera frame), grey colour, and the camera pixel each point came from
+    (`row`, `col`, so the organised layout can be rebuilt); the header says the file holds
+    only the valid pixels of a W x H image. Returns the number of points. The file
+    appears complete or not at all."""
     pts, col, nrm = cloud.flat()
-    nrm = np.nan_to_num(nrm)
-    dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
-                      ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    rec = np.empty(len(pts), dtype=dtype)
+    row, column = np.nonzero(cloud.valid)  # row-major, as `flat` orders the points
+    rec = np.empty(len(pts), dtype=PLY_VERTEX)
     for i, k in enumerate("xyz"):
         rec[k] = pts[:, i]
-        rec["n" + k] = nrm[:, i]
+        rec["n" + k] = np.nan_to_num(nrm[:, i])
     rec["red"] = rec["green"] = rec["blue"] = col
-    header = ("ply\nformat binary_little_endian 1.0\ncomment slscan organised cloud, mm, camera frame\n"
-              f"obj_info width {cloud.points.shape[1]} height {cloud.points.shape[0]}\n"
-              f"element vertex {len(pts)}\n"
-              + "".join(f"property float {k}\n" for k in ("x", "y", "z", "nx", "ny", "nz"))
-              + "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    rec["row"], rec["col"] = row, column
+    height, width = cloud.valid.shape
+    comments = ["slscan cloud: mm, camera frame (x right, y down, z forward)",
+                f"the valid pixels only of a {width} x {height} camera image; row, col: the pixel of each point"]
     path = Path(path)
     tmp = path.with_name(path.name + ".part")
     with tmp.open("wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(rec.tobytes())
+        PlyData([PlyElement.describe(rec, "vertex")], text=False, byte_order="<", comments=comments).write(f)
     tmp.replace(path)
     return len(pts)
 

@@ -332,6 +332,18 @@ class SessionRecording:
         self.stream.send_blueprint(blueprint(orientations, n_freq), make_active=False, make_default=True)
         self._blueprint_pending = False
 
+    @property
+    def world_from_cam(self) -> np.ndarray:
+        """The rig's world frame as logged with `log_rig` (identity before): the 4x4 (mm)
+        that content logged under `world` by other modules maps camera-frame geometry by."""
+        return self._world_from_cam.copy()
+
+    def at_scan(self, scan: int) -> None:
+        """Set this thread's time to scan `scan` on the scan timeline alone, for content
+        other modules log through `stream`."""
+        self._check_open()
+        self._at(scan)
+
     def _at(self, scan: int | None = None, pattern: int | None = None) -> None:
         """Set this thread's time context to exactly the given timelines."""
         self.stream.reset_time()

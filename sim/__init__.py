@@ -3,7 +3,7 @@ projector and trigger box behind the same interfaces as the real drivers.
 
 Modules:
     scene             scene TOML format and loader (meshes and analytic primitives)
-    render            geometry ray casting, ground truth, projector/camera image formation, sensor noise
+    render/           image formation: raytrace, projection, ground_truth, bspline, sensor, renderer
     virtual_devices   SimProjector, SimCamera, SimTriggerBox, Faults
     virtual_rig       open_sim_rig: the `sim` driver behind `scanner.rig.open_rig`
     evaluate          scan accuracy against the ground truth
@@ -11,6 +11,7 @@ Modules:
     calibration_bench moving targets, plates and artefacts for `slscan calibrate` on the simulator
     parts             CAD parts on a table, one scene object per face, with imposed defects
     station_parts     the demo part with known defects, for the station
-    bins              bins of thin parts, cluttered labelled clouds
+    bins              bins of thin parts (the tab part, dropped parts, quick and fringe scans)
+    clutter           cluttered labelled clouds (room corners) for region growing
     parts_demo        script writing config/parts/demo_part.step and .ply
 """

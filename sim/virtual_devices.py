@@ -25,7 +25,10 @@ Camera behaviour:
     `ignored_triggers`), an extra or unarmed software trigger raises DeviceError.
   - Hardware pulses are ignored (counted) while the trigger type is SOFTWARE.
   - A frame is delivered no earlier than its exposure end; `grab` waits at most its
-    timeout and raises WaitTimeout naming the camera and the expected frame index.
+    timeout and raises WaitTimeout naming the camera and the expected frame index. The
+    simulator's own rendering time is not device time: `grab`'s timeout does not run
+    while the renderer works (a loaded machine renders slowly, a real camera would not),
+    bounded by RENDER_ALLOWANCE_S so a stuck renderer still ends the wait.
   - `wait_delivered(n, timeout_s)` waits until n frames are ready to grab (for tests that
     need a frame delivered but not yet grabbed, without sleeping).
   - Noise is deterministic: frame k of the a-th arming uses seed (seed, a, k).
@@ -68,6 +71,7 @@ from sim.render import Renderer
 log = logging.getLogger(__name__)
 
 _JOIN_TIMEOUT_S = 5.0
+RENDER_ALLOWANCE_S = 120.0  # longest a grab waits on the simulator's own rendering (s)
 
 
 # ------------------------------------------------------------------------------ faults
@@ -302,6 +306,8 @@ class SimCamera(Camera):
         self._faults = Faults()
         self._spent: set[str] = set()
         self._stop = threading.Event()
+        self._render_s = 0.0  # total time spent in the renderer (s), for grab's device-time deadline
+        self._render_start: float | None = None  # monotonic start of the render in progress
         self.ignored_triggers = 0
         self.render_error: BaseException | None = None  # set if rendering ever failed (the camera is then gone)
         self.set_faults(faults or Faults())
@@ -382,8 +388,9 @@ class SimCamera(Camera):
             return True
 
     def _do_grab(self, timeout_s: float) -> Frame:
-        deadline = time.monotonic() + timeout_s
+        start = time.monotonic()
         with self._cv:
+            rendered_at_start = self._render_clock(start)
             while True:
                 if self._shut_down:
                     raise DeviceDisconnected(self.name, "camera was shut down while waiting for a frame")
@@ -395,7 +402,9 @@ class SimCamera(Camera):
                     why = f"rendering failed ({self.render_error})" if self.render_error else "camera disconnected"
                     raise DeviceDisconnected(self.name, f"{why} (expected frame index {self._expected}); "
                                                         "check the cable and power, then open the rig again")
-                remaining = deadline - time.monotonic()
+                now = time.monotonic()
+                device_time = (now - start) - (self._render_clock(now) - rendered_at_start)
+                remaining = min(timeout_s - device_time, start + timeout_s + RENDER_ALLOWANCE_S - now)
                 if remaining <= 0:
                     if self._triggered <= self._expected:
                         why = ("it was never triggered" + (" (the camera waits for a rising edge on its trigger "
@@ -406,6 +415,10 @@ class SimCamera(Camera):
                     raise WaitTimeout(self.name, f"frame index {self._expected}", timeout_s,
                                       f"{self._triggered} of {self._armed} frames triggered since arm; {why}")
                 self._cv.wait(remaining)
+
+    def _render_clock(self, now: float) -> float:  # holds _cv
+        """Seconds spent rendering so far, the render in progress included."""
+        return self._render_s + (now - self._render_start if self._render_start is not None else 0.0)
 
     def _do_set_bit_depth(self, bits: int) -> None:
         self._check_connected()
@@ -477,7 +490,14 @@ class SimCamera(Camera):
 
     def _expose(self, job: _Job) -> None:
         rng = np.random.default_rng([self.seed, job.generation, job.index])
-        image = self.renderer.render(job.pattern, job.exposure_s, job.bit_depth, rng)
+        with self._cv:
+            self._render_start = time.monotonic()
+        try:
+            image = self.renderer.render(job.pattern, job.exposure_s, job.bit_depth, rng)
+        finally:
+            with self._cv:
+                self._render_s += time.monotonic() - self._render_start
+                self._render_start = None
         if self._stop.wait(max(0.0, job.timestamp_s + job.exposure_s - time.monotonic())):
             return
         frame = Frame(image=image, index=job.index, pattern_index=job.pattern_index, timestamp_s=job.timestamp_s,

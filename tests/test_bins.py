@@ -12,7 +12,8 @@ import pytest
 
 from inspection.bins.instances import instances_from_label_image
 from scanner.pointcloud import OrganisedCloud
-from sim.bins import TabPart, bin_scene, clutter_cloud, rotation_about, scan_bin
+from sim.bins import TabPart, bin_scene, rotation_about, scan_bin
+from sim.clutter import clutter_cloud
 from sim.render import compute_ground_truth
 from sim.scene import REFERENCE_PLANE_ID
 

@@ -19,7 +19,14 @@ from inspection.cad import load_cad
 from inspection.errors import CloudError, RegistrationFailed, UnitMismatch
 from inspection.features import shot
 from inspection.measured_cloud import ScanCloud, isolate_part, make_scan
-from inspection.registration import ModelTarget, RegistrationSettings, kabsch, pose_difference, register
+from inspection.registration import (
+    ModelTarget,
+    RegistrationSettings,
+    TargetSettings,
+    kabsch,
+    pose_difference,
+    register,
+)
 from inspection.sampling import sample_model
 from scanner.config import CONFIG_DIR
 from sim.parts import lying_pose
@@ -71,6 +78,18 @@ def test_shot_is_invariant_to_rigid_motion(demo) -> None:
     same = np.linalg.norm(a - b, axis=1) < 1e-6
     # the rest have no repeatable frame: supports symmetric enough for eigenvector or sign ties
     assert a.shape[1] == 352 and same.mean() > 0.6 and np.median(np.linalg.norm(a - b, axis=1)) < 1e-6
+
+
+def test_settings_refuse_nonsense_and_name_the_field(demo) -> None:
+    for bad in ({"face_bias_sigma": 0.0}, {"exact_points": -1}, {"explore_top": 0}, {"spheres": ()},
+                {"tangential_weight": 1.0}, {"coarse": "icp"}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            RegistrationSettings(**bad)
+    with pytest.raises(ValueError, match="voxel_fraction"):
+        TargetSettings(voxel_fraction=0.0)
+    model, _ = demo
+    coarse = ModelTarget.from_cad(model, settings=TargetSettings(voxel_fraction=75.0))
+    assert coarse.voxel_mm == pytest.approx(model.diagonal_mm / 75.0)   # the voxel is the diagonal / the fraction
 
 
 def test_kabsch_recovers_a_transform() -> None:

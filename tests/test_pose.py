@@ -240,18 +240,19 @@ def test_silhouette_handedness_tells_the_side_of_uncovered_parts(small_bin: tupl
     """Hu's seventh moment (which side's coarse search runs first) flips sign in a mirror
     image, the two sides of the tab have opposite signs, and an uncovered instance's
     silhouette has the sign of the side the simulator put up."""
-    from inspection.bins.pose import SceneContext, _onto_plane, _patch, _skew_moment
+    from inspection.bins.instance_plane import SceneContext, instance_patch, onto_plane
+    from inspection.bins.part_model import skew_moment
 
     front, back = model.sides["front"].skew, model.sides["back"].skew
     assert np.sign(front) == -np.sign(back) and abs(front) > 1e-8
     b, cloud, ids, occlusion = small_bin
     mask = ids == 2 + int(np.argmin(occlusion))
-    assert _skew_moment(mask) == pytest.approx(-_skew_moment(mask[:, ::-1]), rel=1e-6)
+    assert skew_moment(mask) == pytest.approx(-skew_moment(mask[:, ::-1]), rel=1e-6)
     context = SceneContext(cloud.points[cloud.valid])
     uncovered = [i for i in instances_from_label_image(np.where(ids >= 2, ids, 0), cloud) if occlusion[i.id - 2] < 0.02]
     assert uncovered
     for i in uncovered:
-        patch = _patch(_onto_plane(i.points, 0.1)[0], context, model.thickness_mm, PoseSettings())
+        patch = instance_patch(onto_plane(i.points, 0.1)[0], context, model.thickness_mm, PoseSettings())
         assert np.sign(patch.skew) == np.sign(front if b.front_up[i.id - 2] else back)
 
 
@@ -280,8 +281,8 @@ def test_a_view_both_sides_explain_is_ambiguous_not_posed(model: ThinPartModel) 
 def test_ndt_on_a_grid_without_cells_finds_no_cell() -> None:
     """An NDT grid where no voxel holds the 5 points a covariance needs (a sparse model):
     every point is reported outside the grid, not an index error."""
-    from inspection.registration import _ndt_cells, _ndt_grid
+    from inspection.registration.ndt import ndt_cells, ndt_grid
 
-    grid = _ndt_grid(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 0.0]]), 1.0)
+    grid = ndt_grid(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 0.0]]), 1.0)
     assert len(grid[2]) == 0
-    assert (_ndt_cells(np.array([[0.1, 0.1, 0.1], [5.2, 0.3, 0.0]]), grid, 1.0) == -1).all()
+    assert (ndt_cells(np.array([[0.1, 0.1, 0.1], [5.2, 0.3, 0.0]]), grid, 1.0) == -1).all()

@@ -367,7 +367,7 @@ def clutter_scores() -> list[object]:
     """Seeds 0-2 of the simulated cluttered room (~0.78 M points each, planes, pipes of
     four diameters, boxes touching, roughness 0.05-0.4 mm, five scanner positions),
     segmented with r = 20 mm (as `slscan segbench --seeds 0 1 2 --radius 20`)."""
-    from sim.bins import clutter_cloud
+    from sim.clutter import clutter_cloud
 
     out = []
     for seed in (0, 1, 2):

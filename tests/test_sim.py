@@ -454,6 +454,24 @@ def test_grab_timeout_names_device_and_index(sw_rig):
                                      "triggered since arm; it was never triggered (call trigger())")
 
 
+def test_rendering_time_is_not_device_time(sw_rig, monkeypatch):
+    """A loaded machine renders slowly; the simulated camera's grab timeout counts device
+    time only, so a render taking 3x the timeout still delivers (a real camera would)."""
+    cam, proj = sw_rig.camera, sw_rig.projector
+    render = cam.renderer.render
+
+    def slow_render(*args, **kwargs):
+        time.sleep(3 * SHORT)  # stands for a slow render on a busy machine
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(cam.renderer, "render", slow_render)
+    proj.load_patterns(np.stack([flat(10), flat(200)]))
+    cam.arm(1)
+    proj.show(1)
+    cam.trigger()
+    assert cam.grab(SHORT).index == 0
+
+
 @pytest.mark.parametrize("delivered", [True, False])
 def test_arm_flushes_stale_frames(sw_rig, delivered):
     """A frame of the previous arming never comes out: neither one delivered and waiting

@@ -4,6 +4,7 @@ without stopping the batch. The measuring step is the simulator's truth (`measur
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import threading
 from dataclasses import replace
@@ -40,6 +41,8 @@ def stored(tmp_path_factory: pytest.TempPathFactory) -> tuple[StationConfig, lis
 
 @pytest.fixture(scope="module")
 def scheduler() -> Iterator[str]:
+    if importlib.util.find_spec("distributed") is None:
+        pytest.skip("Dask is not installed: the [batch] extra (pip install -e '.[batch]') runs this test")
     from distributed import LocalCluster
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:

@@ -98,3 +98,81 @@ def test_interrupted_mid_scan_stores_the_cycle_as_aborted(tmp_path: Path) -> Non
     assert json.loads((view / ERROR).read_text())["error"] == "KeyboardInterrupt"
     with pytest.raises(IncompleteSession):
         Session.open(view)
+
+
+def _one_line_error(capsys: pytest.CaptureFixture[str], *args: str) -> str:
+    """Run `slscan args` in this process; it must end with exit 2 and a one-line error."""
+    from slscan import cli
+
+    assert cli.main(list(args)) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_unwritable_or_missing_places_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 15 item 8: a data folder that cannot be written (/proc refuses new folders even
+    to root; a file standing where a folder must be), an impossible --db, and `results` on a
+    mistyped folder: one line each, and nothing created."""
+    cfg = str(station_config(tmp_path))
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    station = ("station", str(DEMO_PROGRAM), "--config", cfg, "--auto", "--parts", "1")
+    assert "cannot create the results folder" in _one_line_error(capsys, *station, "--data", "/proc/slscan-test")
+    assert "a_file" in _one_line_error(capsys, *station, "--data", str(a_file / "data"))
+    err = _one_line_error(capsys, *station, "--data", "/proc/slscan-test", "--db", f"sqlite:{tmp_path / 'r.sqlite'}")
+    assert "/proc/slscan-test" in err and "must be writable" in err
+    assert "no results database there" in _one_line_error(capsys, "results", "--config", cfg, "--db",
+                                                          "sqlite:/proc/x/y.sqlite")
+    mistyped = tmp_path / "mistyped"
+    assert "no results database there" in _one_line_error(capsys, "results", "--config", cfg, "--data", str(mistyped))
+    assert not mistyped.exists()
+
+
+def test_results_refuses_a_negative_limit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from slscan import cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["results", "--config", str(station_config(tmp_path)), "--limit", "-1"])
+    assert exc.value.code == 2 and "must be >= 0, got -1" in capsys.readouterr().err
+
+
+def test_names_from_programs_never_write_outside_their_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 15 item 9: a program named '../../evil' and a characteristic named
+    '../../../escaped_chart' made `results --report` write outside the report folder."""
+    import datetime as dt
+
+    from test_station_support import program_copy
+
+    from slscan import cli
+    from slscan.station.program import load_program
+    from slscan.station.results import PartStart, ValueRecord
+
+    program_path = program_copy(tmp_path, ('name = "high_top_flatness"', 'name = "../../../escaped_chart"'),
+                                name='"../../evil"')
+    program = load_program(program_path)
+    (tmp_path / "station").mkdir()
+    cfg = station_config(tmp_path / "station")
+    config = StationConfig.load(cfg)
+    t0 = dt.datetime(2026, 11, 23, tzinfo=dt.timezone.utc)
+    with open_results(config.database_url) as store:
+        for k in range(3):
+            rid, _ = store.begin_part(PartStart(program.name, "1", "x", f"SN-{k}", "ana", "b", "r", None, "0", "m",
+                                                "/p", t0 + dt.timedelta(minutes=k)))
+            store.finish_part(rid, "pass", "", [ValueRecord(c.name, c.kind, c.face, 0.01 + 0.001 * k, c.tolerance_mm,
+                                                            True, 10) for c in program.characteristics], t0)
+    before = {p for p in tmp_path.rglob("*")}
+    report = tmp_path / "deep" / "er" / "report"
+    assert cli.main(["results", "--config", str(cfg), "--program", str(program_path), "--report", str(report)]) == 0
+    new = {p for p in tmp_path.rglob("*")} - before
+    outside = [p for p in new if p != report and report not in p.parents and p not in report.parents
+               and not p.name.endswith(("-wal", "-shm"))]  # SQLite's side files of a WAL database being read
+    assert new and not outside, outside
+    charts = sorted(p.name for p in (report / "charts").iterdir())
+    assert len(charts) == len(program.characteristics) and any("escaped_chart-" in n for n in charts)
+    assert not list(tmp_path.rglob("escaped_chart.png"))
+
+    from slscan.station.paths import safe_name
+
+    assert [safe_name(n).split("-")[0] for n in ("..", ".", "../x")] == ["_", "_", "_x"]
+    assert safe_name("SN-0042") == "SN-0042" and safe_name("a/b") != safe_name("a_b")

@@ -168,3 +168,22 @@ def test_a_program_with_two_views_scans_the_part_twice_turned(tmp_path: Path, co
     truths = [json.loads((Session.open(s).root / TRUTH_FILE).read_text()) for s in o.sessions]
     assert [(t["name"], t["view"]) for t in truths] == [("bow150", 0), ("bow150", 1)]
     assert "capture (view 1/2)" in steps and "capture (view 2/2)" in steps
+
+
+def test_a_second_station_on_the_same_config_leaves_the_running_cycle_alone(tmp_path: Path) -> None:
+    """Issue 15 item 10: starting a second station that shares the station config, while
+    the first is in the middle of a cycle, marked that cycle incomplete."""
+    config = StationConfig.load(station_config(tmp_path))
+    seen: dict[str, object] = {}
+
+    def start_second(stage: str, done: int, total: int) -> None:
+        if stage == "capture" and done == 2 and "second" not in seen:
+            with open_station(DEMO_PROGRAM, config, "ben", SimulatorTruth()) as second:
+                seen["second"] = second.recovered
+                seen["status"] = [r.status for r in second.store.results()]
+
+    with open_station(DEMO_PROGRAM, config, "ana", SimulatorTruth()) as first:
+        outcome = first.station.run_cycle("SN-1", progress=start_second)
+        rows = first.store.results()
+    assert seen == {"second": [], "status": ["in_progress"]}
+    assert outcome.status == "pass" and [(r.serial, r.status) for r in rows] == [("SN-1", "pass")]

@@ -31,7 +31,7 @@ def test_demo_program_loads_with_faces_checked_in_the_cad() -> None:
     assert p.characteristic("high_top_sq").method is None
     assert p.scan.views == 1 and p.scan.exposure_s == 0.010 and p.scan.pattern_set().n_frames == 12
     faces = cad_faces(p)
-    assert p.face_check == f"13 faces in demo_part.step, all 5 characteristics found" and len(faces) == 13
+    assert p.face_check == "13 faces in demo_part.step, all 5 characteristics found" and len(faces) == 13
     assert (faces["#657"], faces["#158"], faces["#17"], faces["#105"]) == ("plane", "plane", "cylinder", "cone")
 
 
@@ -45,6 +45,10 @@ def test_demo_program_and_the_simulated_parts_name_the_same_faces() -> None:
     (('kind = "profile"', 'kind = "roundness"'), "characteristic[3].kind"),
     (('"minimum_zone"\ntolerance_mm = 0.05\n', '"minimum_zone"\ntolerance_mm = -0.05\n'),
      "characteristic[0].tolerance_mm"),
+    (('"minimum_zone"\ntolerance_mm = 0.05\n', '"minimum_zone"\ntolerance_mm = inf\n'),  # issue 15
+     "characteristic[0].tolerance_mm"),
+    (("views = 1", "views = 1\n\n[control]\nsubgroup_size = 11"), "control.subgroup_size"),
+    (("views = 1", "views = 1\n\n[control]\nsubgroup = 5"), "control.subgroup"),
     (('method = "minimum_zone"', 'method = "chebyshev"'), "characteristic[0].method"),
     (('kind = "sq"', 'kind = "sq"\nmethod = "least_squares"'), "characteristic[4].method"),
     (('name = "low_top_flatness"', 'name = "high_top_flatness"'), "characteristic[1].name"),
@@ -91,7 +95,7 @@ def test_mesh_face_of_no_known_type_is_refused_for_a_form_characteristic(tmp_pat
 
 
 def test_missing_cad_file_is_named(tmp_path: Path) -> None:
-    path = program_copy(tmp_path, (f'cad = "', 'cad = "/nonexistent/'))
+    path = program_copy(tmp_path, ('cad = "', 'cad = "/nonexistent/'))
     with pytest.raises(ConfigError, match="CAD file not found") as err:
         load_program(path)
     assert err.value.key == "program.cad"
@@ -108,6 +112,9 @@ def test_station_config_errors_name_the_key(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as err:
         StationConfig.load(station_config(tmp_path, database="mysql://x"))
     assert err.value.key == "station.database"
+    with pytest.raises(ConfigError) as err:  # issue 15: no message shows a password
+        StationConfig.load(station_config(tmp_path, database="mysql://ana:s3cr3t@db/x"))
+    assert "s3cr3t" not in str(err.value) and "mysql://ana:***@db/x" in str(err.value)
 
 
 def test_simulated_rig_has_the_factory_calibration_and_it_matches_the_demo_program(tmp_path: Path) -> None:
@@ -159,3 +166,33 @@ def test_calibration_file_named_by_the_rig_gives_its_id_and_date_and_can_expire(
                    "the limit is 180 days")
     [why] = refusals(info, config, load_program(DEMO_PROGRAM), 365, dt.date(2026, 9, 1))
     assert why.startswith("calibration mismatch: demo_part.toml expects calibration.id 'factory-sim-bench'")
+
+
+@pytest.mark.parametrize("edit, key, problem", [
+    (("tolerance_mm = 0.05", "tolerence_mm = 0.05"), "characteristic[0].tolerence_mm", "did you mean 'tolerance_mm'"),
+    (("tolerance_mm = 0.05", "tolerance_mm = nan"), "characteristic[0].tolerance_mm", "finite number"),
+    (("views = 1", "veiws = 1"), "scan.veiws", "did you mean 'views'"),
+    (('mesh_unit', 'mesh_unit'), None, None),
+])
+def test_program_on_the_schema_layer_names_the_nearest_key(tmp_path: Path, edit: tuple[str, str], key: str | None,
+                                                           problem: str | None) -> None:
+    """Issue 15 item D: part programs on the project's validation layer (scanner.schema)."""
+    if key is None:  # the program may state a mesh unit; an unknown one is refused
+        path = program_copy(tmp_path, ('version = "2.0"\n', 'version = "2.0"\nmesh_unit = "furlong"\n'))
+        key, problem = "program.mesh_unit", "must be"
+    else:
+        path = program_copy(tmp_path, edit)
+    with pytest.raises(ConfigError, match=problem) as err:
+        load_program(path)
+    assert err.value.key == key
+
+
+def test_station_config_on_the_schema_layer(tmp_path: Path) -> None:
+    for extra, key, problem in (({"max_calibration_age_days": float("nan")}, "station.max_calibration_age_days",
+                                 "finite"),
+                                ({"opertor": "ana"}, "station.opertor", "did you mean 'operator'")):
+        path = station_config(tmp_path, **extra)
+        path.write_text(path.read_text().replace("NaN", "nan"))
+        with pytest.raises(ConfigError, match=problem) as err:
+            StationConfig.load(path)
+        assert err.value.key == key

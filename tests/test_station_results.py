@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
+import importlib.util
 import io
 import os
 import uuid
@@ -17,7 +18,18 @@ from urllib.parse import quote
 
 import pytest
 
-from slscan.station.results import PartStart, ResultsError, ResultsStore, ValueRecord, open_results, write_csv
+from slscan.station.results import (
+    LEASE_S,
+    PartStart,
+    ResultRow,
+    ResultsError,
+    ResultsStore,
+    ValueRecord,
+    csv_cell,
+    open_results,
+    redact,
+    write_csv,
+)
 
 PG_URL = os.environ.get("SLSCAN_TEST_PG_URL")
 T0 = dt.datetime(2026, 11, 23, 8, 0, 0, 123456, tzinfo=dt.timezone.utc)
@@ -31,6 +43,8 @@ def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[ResultsSto
         return
     if not PG_URL:
         pytest.skip("PostgreSQL: set SLSCAN_TEST_PG_URL to a server's URL to run the results tests on it")
+    if importlib.util.find_spec("psycopg") is None:
+        pytest.skip("psycopg is not installed: the [station-db] extra (pip install -e '.[station-db]') runs this test")
     yield from _pg_store()
 
 
@@ -90,15 +104,79 @@ def test_rescans_are_new_attempts_and_lose_nothing(store: ResultsStore) -> None:
     assert store.values([first, second]) == {first: [], second: VALUES[:1]}
 
 
-def test_cycles_left_in_progress_are_marked_incomplete_for_their_station_only(store: ResultsStore) -> None:
+def _dead_owner() -> str:
+    """The owner string of a process of this host that has exited."""
+    import socket
+    import subprocess
+    import sys
+
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait(timeout=60)
+    return f"{socket.gethostname()}:{child.pid}:1"
+
+
+def test_only_cycles_whose_owner_is_gone_are_marked_incomplete(store: ResultsStore) -> None:
+    """Issue 15 item 10: a second station sharing the config must not mark the first one's
+    running cycle incomplete; only cycles of a process that is gone (this host: not running;
+    another host: lease expired) are."""
     done, _ = store.begin_part(start("SN-1"))
     store.finish_part(done, "pass", "", VALUES[:1], T0)
-    dead, _ = store.begin_part(start("SN-2", 1))
-    elsewhere, _ = store.begin_part(start("SN-3", 2, station="bench-2"))
+    running, _ = store.begin_part(start("SN-2", 1))  # owned by this (live) process
+    store.owner = _dead_owner()
+    dead, _ = store.begin_part(start("SN-3", 2))
+    store.owner = "other-host:4242:99"
+    remote, _ = store.begin_part(start("SN-4", 3))  # lease fresh: LEASE_S from now
+    elsewhere, _ = store.begin_part(start("SN-5", 4, station="bench-2"))
     assert store.mark_interrupted("bench-1", "station stopped") == [dead]
     assert store.result(dead).status == "incomplete" and store.result(dead).message == "station stopped"
-    assert store.result(done).status == "pass" and store.result(elsewhere).status == "in_progress"
-    assert store.mark_interrupted("bench-1", "again") == []
+    assert [store.result(i).status for i in (done, running, remote, elsewhere)] == [
+        "pass", "in_progress", "in_progress", "in_progress"]
+    later = dt.datetime.now(dt.timezone.utc) + dt.timedelta(seconds=2 * LEASE_S)  # the remote lease has run out
+    assert store.mark_interrupted("bench-1", "again", now=later) == [remote]
+    assert store.result(running).status == "in_progress"
+
+
+def test_a_held_cycle_has_its_lease_renewed(store: ResultsStore) -> None:
+    import threading
+
+    rid, _ = store.begin_part(start("SN-1"))
+    first = _lease(store, rid)
+    assert first > dt.datetime.now(dt.timezone.utc) + dt.timedelta(seconds=LEASE_S / 2)
+    renewed = threading.Event()
+    with store.hold(rid, every_s=0.05):
+        deadline = dt.datetime.now(dt.timezone.utc) + dt.timedelta(seconds=60)
+        while dt.datetime.now(dt.timezone.utc) < deadline and not renewed.is_set():
+            if _lease(store, rid) > first:
+                renewed.set()
+            renewed.wait(0.05)
+    assert renewed.is_set()  # within a generous bound, 60 s for a 0.05 s renewal
+    store.finish_part(rid, "pass", "", [], T0)
+    assert _lease(store, rid) is None and store.renew(rid) is False  # finished: nothing to renew
+
+
+def _lease(store: ResultsStore, rid: int) -> dt.datetime | None:
+    import sqlalchemy as sa
+
+    from slscan.station.results import RESULTS
+
+    with store.engine.connect() as conn:
+        return conn.execute(sa.select(RESULTS.c.lease_until).where(RESULTS.c.id == rid)).scalar()
+
+
+def test_concurrent_writers_never_share_an_attempt_number(store: ResultsStore) -> None:
+    """Issue 15 item 11: 6 writers x 20 cycles of one serial, each writer with a store (a
+    connection) of its own as two stations have, gave duplicate attempts when MAX(attempt)
+    was read outside the insert's transaction."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def writer(k: int) -> list[int]:
+        with open_results(store.url) as own:
+            return [own.begin_part(start("SN-X", k))[1] for _ in range(20)]
+
+    with ThreadPoolExecutor(6) as pool:
+        attempts = sorted(a for batch in pool.map(writer, range(6)) for a in batch)
+    assert attempts == list(range(1, 121))
+    assert sorted(r.attempt for r in store.results(serial="SN-X")) == list(range(1, 121))
 
 
 def test_filters_and_newest_limit(store: ResultsStore) -> None:
@@ -151,3 +229,92 @@ def test_unreachable_database_is_a_clear_error() -> None:
         open_results("postgresql://slscan:secret@127.0.0.1:1/x")
     with pytest.raises(ResultsError, match="not a results database URL"):
         open_results("mysql://x")
+
+
+@pytest.mark.parametrize("url, secret", [
+    ("postgresql://u:s3@cr3t@127.0.0.1:1/x", "s3@cr3t"),  # a password holding '@' (refused: ambiguous)
+    ("postgresql://u@127.0.0.1:1/x?password=s3cr3t", "s3cr3t"),  # in the query
+    ("postgresql://u:s3cr3t@127.0.0.1:notaport/x", "s3cr3t"),  # echoed by the driver's own message
+    ("postgresql://u:s3cr3t@[bad/x", "s3cr3t"),
+    ("postgresql://u:p%40ss%2Fw@127.0.0.1:1/x", "p@ss/w"),  # URL-encoded
+    ("mysql://u:s3cr3t@h/x", "s3cr3t"),
+])
+def test_no_message_shows_a_password(url: str, secret: str) -> None:
+    """Issue 15 item 12: the password of a database URL never reaches a message."""
+    with pytest.raises(ResultsError) as exc:
+        open_results(url)
+    text = str(exc.value)
+    assert "\n" not in text and "***" in text
+    for part in [secret] + [piece for piece in secret.split("@") if len(piece) > 2]:
+        assert part not in text, text
+    assert redact(f"failed for {url}", url).count("***") >= 1
+
+
+def test_csv_cells_cannot_become_formulas() -> None:
+    """Issue 15 item 12: text cells starting with = + - @, tab or CR are escaped; numbers stay numbers."""
+    for text in ("=1+1", "+SUM(A1)", "-2+3", "@cmd", "\tx", "\rx"):
+        assert csv_cell(text) == "'" + text
+    assert csv_cell("ana") == "ana" and csv_cell(-0.5) == -0.5 and csv_cell(None) is None
+    rows = [replace_operator(start("=HYPERLINK(\"x\")"), "=1+1")]
+    buf = io.StringIO()
+    write_csv(buf, rows, {})
+    [line] = list(csv.DictReader(io.StringIO(buf.getvalue())))
+    assert line["operator"] == "'=1+1" and line["serial"] == "'=HYPERLINK(\"x\")"
+
+
+def replace_operator(s: PartStart, operator: str) -> ResultRow:
+    from dataclasses import asdict
+
+    return ResultRow(**{**asdict(s), "operator": operator}, id=1, attempt=1, status="pass")
+
+
+def test_reading_never_creates_a_database(tmp_path: Path) -> None:
+    """Issue 15 item 8: `slscan results --data` on a mistyped folder must not create one."""
+    missing = tmp_path / "mistyped" / "results.sqlite"
+    with pytest.raises(ResultsError, match="no results database there"):
+        open_results(f"sqlite:{missing}", create=False)
+    assert not missing.parent.exists()
+    with pytest.raises(ResultsError, match="cannot create the results folder"):
+        open_results("sqlite:/proc/slscan-test/results.sqlite")  # /proc refuses new folders, even to root
+    not_db = tmp_path / "notes.sqlite"
+    not_db.write_text("hello")
+    with pytest.raises(ResultsError, match="notes.sqlite"):
+        open_results(f"sqlite:{not_db}", create=False)
+
+
+def test_a_version_1_database_is_upgraded_and_its_duplicate_attempts_renumbered(tmp_path: Path) -> None:
+    import sqlite3
+
+    path = tmp_path / "v1.sqlite"
+    conn = sqlite3.connect(path)
+    conn.executescript(V1_SCHEMA)
+    row = ("demo-part", "1.0", "abc", "SN-1", "ana", "bench-1", "sim", None, "0.1.0", "inspection", "/p", "pass", "",
+           "2026-11-23T08:00:00+00:00", "2026-11-23T08:01:00+00:00", "station")
+    for attempt in (1, 1, 2):  # version 1 could give one attempt number twice
+        conn.execute("INSERT INTO results (program, program_version, program_fingerprint, serial, operator, station, "
+                     "rig, calibration_id, software_version, measurement, part_path, status, message, started_at, "
+                     "finished_at, source, attempt) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)", row + (attempt,))
+    conn.execute("INSERT INTO slscan_schema (version) VALUES (1)")
+    conn.commit()
+    conn.close()
+    with pytest.raises(ResultsError, match="schema version 1.*a station opening it upgrades it"):
+        open_results(f"sqlite:{path}", create=False)
+    with open_results(f"sqlite:{path}") as s:
+        rows = s.results()
+        assert [r.attempt for r in rows] == [1, 2, 3]
+        assert rows[0].started_at == dt.datetime(2026, 11, 23, 8, 0, tzinfo=dt.timezone.utc)
+        assert s.begin_part(start("SN-1"))[1] == 4 and s.begin_part(start("SN-1", program="other"))[1] == 1
+
+
+V1_SCHEMA = """
+CREATE TABLE slscan_schema (version INTEGER NOT NULL);
+CREATE TABLE results (id INTEGER PRIMARY KEY AUTOINCREMENT, program TEXT NOT NULL, program_version TEXT NOT NULL,
+    program_fingerprint TEXT NOT NULL, serial TEXT NOT NULL, attempt INTEGER NOT NULL, operator TEXT NOT NULL,
+    station TEXT NOT NULL, rig TEXT NOT NULL, calibration_id TEXT, software_version TEXT NOT NULL,
+    measurement TEXT NOT NULL, part_path TEXT NOT NULL, status TEXT NOT NULL, message TEXT NOT NULL,
+    started_at TEXT NOT NULL, finished_at TEXT, source TEXT NOT NULL);
+CREATE TABLE measured (result_id INTEGER NOT NULL REFERENCES results (id) ON DELETE CASCADE,
+    position INTEGER NOT NULL, characteristic TEXT NOT NULL, kind TEXT NOT NULL, face TEXT NOT NULL, value_mm REAL,
+    tolerance_mm REAL NOT NULL, conforms INTEGER, points INTEGER NOT NULL, note TEXT NOT NULL,
+    PRIMARY KEY (result_id, characteristic));
+"""

@@ -1,8 +1,8 @@
 """The operator screen through a real pseudo-terminal: keys in, screen text out.
 
-`pexpect` runs `slscan station` in a pty; `Screen` below replays what the program writes
-(the cursor-addressing subset of xterm that curses uses) into rows of text, so the test
-reads the screen the operator sees. The measuring step is the simulator's truth (`measure.SimulatorTruth`)."""
+`pexpect` runs `slscan station` in a pty; `pyte` (a VT100/xterm emulator) replays what the
+program writes into rows of text, so the test reads the screen the operator sees. The
+measuring step is the simulator's truth (`measure.SimulatorTruth`)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pexpect
+import pyte
 from test_station_support import DEMO_PROGRAM, program_copy, station_config
 
 from slscan.station.results import open_results
@@ -20,108 +21,6 @@ from slscan.station.station_config import StationConfig
 
 ROWS, COLS = 40, 140
 TESTS = Path(__file__).resolve().parent
-_CSI = re.compile(r"\x1b\[([?>]?)([0-9;]*)([@A-Za-z])")
-
-
-class Screen:
-    """Rows x cols of text, fed with terminal output."""
-
-    def __init__(self, rows: int, cols: int) -> None:
-        self.rows, self.cols = rows, cols
-        self.cells = [[" "] * cols for _ in range(rows)]
-        self.r = self.c = 0
-        self.saved = (0, 0)
-        self.last = " "
-        self.top, self.bottom = 0, rows - 1  # scrolling region
-
-    def text(self) -> str:
-        return "\n".join("".join(row).rstrip() for row in self.cells)
-
-    def _put(self, ch: str) -> None:
-        if self.c >= self.cols:
-            self.c, self.r = 0, min(self.r + 1, self.rows - 1)
-        self.cells[self.r][self.c] = ch
-        self.c += 1
-        self.last = ch
-
-    def _erase(self, r: int, c0: int, c1: int) -> None:
-        self.cells[r][c0:c1] = [" "] * (c1 - c0)
-
-    def feed(self, data: str) -> None:
-        i = 0
-        while i < len(data):
-            ch = data[i]
-            if ch == "\x1b":
-                m = _CSI.match(data, i)
-                if m:
-                    self._csi(m.group(1), [int(x) if x else 0 for x in m.group(2).split(";")], m.group(3))
-                    i = m.end()
-                    continue
-                nxt = data[i + 1:i + 2]
-                if nxt == "7":
-                    self.saved = (self.r, self.c)
-                elif nxt == "8":
-                    self.r, self.c = self.saved
-                i += 3 if nxt in "()*+" else 2  # charset designations take one more byte
-                continue
-            if ch == "\r":
-                self.c = 0
-            elif ch == "\n":
-                self.r = min(self.r + 1, self.rows - 1)
-            elif ch == "\b":
-                self.c = max(self.c - 1, 0)
-            elif ch >= " ":
-                self._put(ch)
-            i += 1
-
-    def _csi(self, private: str, p: list[int], op: str) -> None:
-        n = max(p[0], 1)
-        if private or op in "hlmt":
-            return
-        if op == "r":
-            self.top, self.bottom = (p[0] or 1) - 1, (p[1] if len(p) > 1 and p[1] else self.rows) - 1
-            self.r = self.c = 0
-            return
-        if op in "Hf":
-            self.r, self.c = min(max(p[0], 1), self.rows) - 1, min(max(p[1] if len(p) > 1 else 1, 1), self.cols) - 1
-        elif op == "A":
-            self.r = max(self.r - n, 0)
-        elif op == "B":
-            self.r = min(self.r + n, self.rows - 1)
-        elif op == "C":
-            self.c = min(self.c + n, self.cols - 1)
-        elif op == "D":
-            self.c = max(self.c - n, 0)
-        elif op == "G":
-            self.c = min(n, self.cols) - 1
-        elif op == "d":
-            self.r = min(n, self.rows) - 1
-        elif op == "K":
-            self._erase(self.r, *{0: (self.c, self.cols), 1: (0, self.c + 1), 2: (0, self.cols)}[p[0]])
-        elif op == "J":
-            rows = {0: range(self.r + 1, self.rows), 1: range(0, self.r), 2: range(self.rows)}[p[0]]
-            if p[0] == 0:
-                self._erase(self.r, self.c, self.cols)
-            for r in rows:
-                self._erase(r, 0, self.cols)
-        elif op == "X":
-            self._erase(self.r, self.c, min(self.c + n, self.cols))
-        elif op == "b":
-            for _ in range(n):
-                self._put(self.last)
-        elif op in "LM":  # insert / delete lines at the cursor, within the scrolling region
-            region = self.cells[self.r:self.bottom + 1]
-            blank = [[" "] * self.cols for _ in range(n)]
-            region = (blank + region)[:len(region)] if op == "L" else (region[n:] + blank)[:len(region)]
-            self.cells[self.r:self.bottom + 1] = region
-        elif op in "@P":
-            row = self.cells[self.r]
-            if op == "@":
-                row[self.c:] = ([" "] * n + row[self.c:])[:self.cols - self.c]
-            else:
-                row[self.c:] = (row[self.c + n:] + [" "] * n)[:self.cols - self.c]
-        else:
-            raise AssertionError(f"terminal sequence the test screen does not know: CSI {p} {op}")
 
 
 class Terminal:
@@ -131,24 +30,28 @@ class Terminal:
         env = {**os.environ, "TERM": "xterm", "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
         self.child = pexpect.spawn(sys.executable, ["-m", "slscan.cli", *args], env=env, dimensions=(ROWS, COLS),
                                    encoding="utf-8", codec_errors="replace")
-        self.screen = Screen(ROWS, COLS)
+        self.screen = pyte.Screen(COLS, ROWS)
+        self.stream = pyte.Stream(self.screen)
 
     def pump(self, seconds: float = 0.05) -> None:
         try:
             while True:
-                self.screen.feed(self.child.read_nonblocking(65536, timeout=seconds))
+                self.stream.feed(self.child.read_nonblocking(65536, timeout=seconds))
         except pexpect.TIMEOUT:
             pass
+
+    def text(self) -> str:
+        return "\n".join(line.rstrip() for line in self.screen.display)
 
     def wait(self, pattern: str, timeout_s: float = 60) -> str:
         """The screen text once `pattern` (a regex) is on it."""
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
             self.pump()
-            text = self.screen.text()
+            text = self.text()
             if re.search(pattern, text):
                 return text
-        raise AssertionError(f"not on the screen after {timeout_s} s: {pattern!r}\n{self.screen.text()}")
+        raise AssertionError(f"not on the screen after {timeout_s} s: {pattern!r}\n{self.text()}")
 
     def keys(self, text: str) -> None:
         self.child.send(text)

@@ -12,22 +12,27 @@ and rotation matrix) in the camera frame and in the rig's world frame, the side 
 occlusion, fitness, RMSE, method and time; failed parts carry `status: "failed"` and the
 reason, and no pose. Units: mm, rad (none in the file: quaternions and matrices).
 
-Rerun (world frame, `scan` timeline): ``world/pose/instances`` the instances' points
-coloured by part; ``world/pose/models/part_<id>`` each posed part mesh;
-``world/pose/pick_order`` a labelled point per pickable part ("#rank id side");
-``pose/table`` the table; ``metrics/pose_*`` counts and median time.
+Rerun (the rig's world frame as the recording's rig logged it, scan timeline):
+``world/pose/instances`` the instances' points coloured by part;
+``world/pose/models/part_<id>`` each posed part mesh; ``world/pose/pick_order`` a labelled
+point per pickable part ("#rank id side"); ``pose/table`` the table;
+``metrics/pose/<name>`` counts and median time.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from inspection.bins.instances import Instance
-from inspection.bins.pose import PartPose, ThinPartModel
-from inspection.registration import pose_difference
+from inspection.bins.part_model import ThinPartModel
+from inspection.bins.pose import PartPose
+from inspection.registration import pose_difference, transform_points
+
+if TYPE_CHECKING:  # rerun, which the recording imports, only when a recording is made
+    from scanner.session_recording import SessionRecording
 
 POSES_FORMAT = "slscan-poses"
 POSES_VERSION = 1
@@ -35,6 +40,7 @@ INSTANCES = "world/pose/instances"
 MODELS = "world/pose/models"
 PICK_ORDER = "world/pose/pick_order"
 TABLE = "pose/table"
+METRICS = "pose"  # under the core's metrics/
 
 
 def merge_duplicates(poses: list[PartPose], angle_deg: float = 2.0, dist_mm: float = 0.5) -> list[PartPose]:
@@ -112,18 +118,17 @@ def table(doc: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def log_poses(recording: Any, doc: dict[str, Any], poses: list[PartPose], instances: list[Instance],
-              model: ThinPartModel, world_from_cam: np.ndarray, scan_index: int = 0) -> None:
-    """Log the bin's instances, posed models, pick order and table into a
-    `scanner.session_recording.SessionRecording` (see the module docstring)."""
+def log_poses(recording: SessionRecording, doc: dict[str, Any], poses: list[PartPose], instances: list[Instance],
+              model: ThinPartModel, scan_index: int = 0) -> None:
+    """Log the bin's instances, posed models, pick order and table into `recording` at scan
+    `scan_index`, in its rig's world frame (`world_from_cam`; see the module docstring)."""
     import rerun as rr
 
+    W = recording.world_from_cam
     stream = recording.stream
-    stream.reset_time()
-    stream.set_time("scan", sequence=scan_index)
-    W = np.asarray(world_from_cam, dtype=np.float64)
+    recording.at_scan(scan_index)
     if instances:
-        pts = np.concatenate([i.points for i in instances]) @ W[:3, :3].T + W[:3, 3]
+        pts = transform_points(W, np.concatenate([i.points for i in instances]))
         ids = np.concatenate([np.full(len(i), i.id) for i in instances])
         stream.log(INSTANCES, rr.Points3D(pts.astype(np.float32), class_ids=(ids % 65535).astype(np.uint16)),
                    strict=True)
@@ -132,8 +137,7 @@ def log_poses(recording: Any, doc: dict[str, Any], poses: list[PartPose], instan
     for p in poses:
         if not p.ok:
             continue
-        T = W @ p.pose
-        v = model.vertices @ T[:3, :3].T + T[:3, 3]
+        v = transform_points(W @ p.pose, model.vertices)
         rank = ranks.get(p.instance_id)
         colour = [0.2, 0.8, 0.3, 0.6] if rank is not None else [0.9, 0.4, 0.2, 0.6]
         stream.log(f"{MODELS}/part_{p.instance_id}", rr.Mesh3D(vertex_positions=v.astype(np.float32),
@@ -149,8 +153,7 @@ def log_poses(recording: Any, doc: dict[str, Any], poses: list[PartPose], instan
     metrics = {"parts": float(len(poses)), "posed": float(len(ok)),
                "pickable": float(sum(r["pick_rank"] is not None for r in doc["parts"])),
                "median_time_ms": float(np.median([1000 * p.time_s for p in poses])) if poses else 0.0}
-    for name, value in metrics.items():
-        stream.log(f"metrics/pose_{name}", rr.Scalars(value), strict=True)
+    recording.log_metrics({f"{METRICS}/{name}": value for name, value in metrics.items()}, scan=scan_index)
 
 
 def write_poses(path: Any, doc: dict[str, Any]) -> None:

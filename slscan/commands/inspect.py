@@ -2,6 +2,7 @@
 
     slscan cad FILE [--json] [--sample N]            faces by STEP id and surface type, counts per type;
                                                      --sample: time to sample N labelled points
+    slscan cadbench FILE [--copies 1,4,16]           STEP reading time of files holding copies of FILE
     slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE;
                                                      a cloud or session TARGET is another view of the part
                                                      (partial overlap, fitness on the overlap, --overlap)
@@ -28,8 +29,9 @@ CAD_UNITS = ("mm", "cm", "m", "in")
 
 def _load_model(path: str, unit: str) -> Any:
     from inspection.cad import load_cad
+    from slscan.progress import ProgressLine
 
-    return load_cad(path, mesh_unit=unit)
+    return load_cad(path, mesh_unit=unit, progress=ProgressLine())
 
 
 def cmd_cad(args: argparse.Namespace) -> int:
@@ -51,6 +53,53 @@ def cmd_cad(args: argparse.Namespace) -> int:
         params = ", ".join(f"{k} {_short(v)}" for k, v in f.params().items())
         print(f"  {f.label:>8}  {f.type:<9} {f.area_mm2:12.3f} mm^2  {params}")
     print("counts: " + ", ".join(f"{n} {t}" for t, n in model.counts.items()))
+    for line in model.skipped:
+        print(f"  skipped {line}")
+    return 0
+
+
+def cmd_cadbench(args: argparse.Namespace) -> int:
+    """STEP reading time for files holding 1, 4, 16 ... copies of one part, each read by
+    `slscan cad` in a fresh process: wall and CPU s, peak memory, faces, and the time per
+    face against the one-copy file (its peer in the same run), with the load average."""
+    import os
+    import subprocess
+    import tempfile
+    import time
+
+    from OCP.Message import Message, Message_Gravity
+
+    from inspection.cad import write_copies
+
+    for printer in Message.DefaultMessenger_s().Printers():  # the STEP writer's statistics are not ours to print
+        printer.SetTraceLevel(Message_Gravity.Message_Fail)
+    counts = [int(c) for c in args.copies.split(",")]
+    print(f"{'copies':>6} {'MB':>6} {'faces':>6} {'wall s':>7} {'CPU s':>7} {'peak MB':>7} "
+          f"{'CPU ms/face':>11} {'marginal':>8}  load average (1, 5, 15 min) before")
+    first: tuple[int, float] | None = None
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in counts:
+            path = write_copies(args.file, n, Path(tmp) / f"copies_{n}.stp")
+            load = os.getloadavg()
+            t0 = time.perf_counter()
+            proc = subprocess.Popen([sys.executable, "-m", "slscan", "cad", str(path), "--json"],
+                                    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+            out = proc.stdout.read()  # type: ignore[union-attr]
+            _, status, usage = os.wait4(proc.pid, 0)
+            wall = time.perf_counter() - t0
+            if status != 0:
+                print(f"{n:>6}: slscan cad failed (wait status {status})")
+                return 1
+            faces = len(json.loads(out)["faces"])
+            cpu = usage.ru_utime + usage.ru_stime
+            first = first or (faces, cpu)
+            marginal = f"{1e3 * (cpu - first[1]) / (faces - first[0]):8.2f}" if faces > first[0] else f"{'':>8}"
+            print(f"{n:>6} {path.stat().st_size / 1e6:6.1f} {faces:>6} {wall:7.2f} {cpu:7.2f} "
+                  f"{usage.ru_maxrss / 1024:7.0f} {1e3 * cpu / faces:11.2f} {marginal}  "
+                  + " ".join(f"{x:.2f}" for x in load), flush=True)
+    print("marginal: CPU ms per face added over the first file (the fixed start-up of ~2 s excluded); "
+          "a constant marginal cost is linear growth")
+    print("load average after " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
     return 0
 
 
@@ -194,9 +243,12 @@ def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path |
         from scanner.session_recording import SessionRecording
 
         folder.mkdir(parents=True, exist_ok=True)
-        run_id = multiview.id if multiview is not None else Session.open(source).id
+        session = multiview.views[0].session if multiview is not None else Session.open(source)  # its rig's world
+        run_id = multiview.id if multiview is not None else session.id  # frame: the part frame at stage 0
         own = recording = SessionRecording(folder / "inspection.rrd", run_id, send_blueprint=False)
     try:
+        if own is not None:  # the session's rig: its world frame is the recording's `world`
+            own.log_rig(session.rig_model())
         report = inspect(scan, model, tol, settings, recording)
     finally:
         if own is not None:
@@ -225,6 +277,11 @@ def register(sub: Any) -> None:
     c.add_argument("--sample", type=int, metavar="N", help="benchmark: time sampling N labelled points")
     c.add_argument("--repeats", type=int, default=5, help="with --sample: timed runs after a warm-up")
     c.set_defaults(func=cmd_cad)
+
+    cb = sub.add_parser("cadbench", help="benchmark: STEP reading time for files of 1, 4, 16 copies of a part")
+    cb.add_argument("file", help="STEP file of one part (e.g. ../shared/data/step/nist_ctc_01_asme1_rd.stp)")
+    cb.add_argument("--copies", default="1,4,16", help="comma-separated copy counts (default 1,4,16)")
+    cb.set_defaults(func=cmd_cadbench)
 
     r = sub.add_parser("register", help="register a cloud to a CAD model, a mesh or another cloud")
     r.add_argument("source", help="cloud (PLY/PCD/XYZ) or session folder")

@@ -69,11 +69,11 @@ def register(sub: Any) -> None:
 
 
 def load_part(path: str | Path) -> Any:
-    """The `inspection.bins.pose.ThinPartModel` of a part file (see the module docstring)."""
+    """The `inspection.bins.part_model.ThinPartModel` of a part file (see the module docstring)."""
     import tomllib
     from dataclasses import fields
 
-    from inspection.bins.pose import ThinPartModel
+    from inspection.bins.part_model import ThinPartModel
     from inspection.errors import CadError
 
     path = Path(path)
@@ -201,7 +201,8 @@ def load_masks(path: Path, cloud: Any) -> list[Any]:
 def cmd_pose(args: argparse.Namespace) -> int:
     from inspection.bins.instances import instances_from_depth_steps
     from inspection.bins.picking import merge_duplicates, poses_document, table, write_poses
-    from inspection.bins.pose import PoseSettings, estimate_poses
+    from inspection.bins.pose import estimate_poses
+    from inspection.bins.pose_settings import PoseSettings
 
     model = load_part(args.part)
     src = Path(args.input)
@@ -243,7 +244,7 @@ def cmd_pose(args: argparse.Namespace) -> int:
         with SessionRecording(rrd, session.id if session is not None else src.stem, send_blueprint=False) as rec:
             rec.log_rig(rig_model)
             rec.log_cloud(cloud)
-            log_poses(rec, doc, poses, instances, model, world_from_cam)
+            log_poses(rec, doc, poses, instances, model)
         print(f"recording {rrd}")
     return 0 if any(r["pick_rank"] is not None for r in doc["parts"]) else 1
 
@@ -257,8 +258,11 @@ CASES = ("front up", "back up", "occluded front", "occluded back")
 def cmd_posebench(args: argparse.Namespace) -> int:
     """Per bin: render, lift the simulator's instance masks, pose every part with each
     method (wall and process CPU time per part), compare with the true poses."""
+    from inspection.bins.instance_plane import SceneContext
     from inspection.bins.instances import instances_from_label_image
-    from inspection.bins.pose import PoseSettings, SceneContext, ThinPartModel, estimate_pose
+    from inspection.bins.part_model import ThinPartModel
+    from inspection.bins.pose import estimate_pose
+    from inspection.bins.pose_settings import PoseSettings
     from inspection.registration import pose_difference
     from scanner.rig import RigConfig
     from sim.bins import TabPart, bin_scene, fringe_scan_bin, scan_bin

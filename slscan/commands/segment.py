@@ -1,7 +1,7 @@
 """`slscan segment`, `slscan segscore` and `slscan segbench`: context-free region growing
 (paper 002) of a point cloud file or a session's scan, the score of a segmentation against
 ground truth (α, β, η per ground-truth segment), and a benchmark on simulated cluttered
-clouds (`sim.bins.clutter_cloud`) printing the time and the scores.
+clouds (`sim.clutter.clutter_cloud`) printing the time and the scores.
 
 Label files are .npy int32 arrays. For a point cloud file: one label per point, in the
 file's order (`<cloud stem>.segments.npy` beside it). For a session: an image of the
@@ -134,13 +134,11 @@ def _log(path: Path, session: Any, points: np.ndarray, labels: np.ndarray, image
     from scanner.session_recording import SessionRecording
 
     with SessionRecording(path, recording_id, send_blueprint=False) as rec:
-        world_from_cam = np.eye(4)
         if session is not None:
-            model = session.rig_model()
-            rec.log_rig(model)
-            world_from_cam = np.asarray(model.world_from_cam, dtype=np.float64)
+            rec.log_rig(session.rig_model())
+        world_from_cam = rec.world_from_cam   # identity for a bare cloud: its own frame
         pts = points @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
-        rec.stream.set_time("scan", sequence=0)
+        rec.at_scan(0)
         rec.stream.log(SEGMENTS, rr.Points3D(pts.astype(np.float32), class_ids=_class_ids(labels)), strict=True)
         if image is not None:
             rec.stream.log(SEGMENT_MAP, rr.SegmentationImage(_class_ids(image)), strict=True)
@@ -171,7 +169,7 @@ def cmd_segbench(args: argparse.Namespace) -> int:
 
     from inspection.regions.region_growing import segment
     from inspection.regions.segmetrics import score
-    from sim.bins import clutter_cloud
+    from sim.clutter import clutter_cloud
 
     rows = []
     for seed in args.seeds:

@@ -63,24 +63,24 @@ def _program_name(value: str | None) -> tuple[str | None, Any]:
 
 
 def cmd_results(args: argparse.Namespace) -> int:
+    from scanner.session import write_atomic
     from slscan.station.history_report import write_report
-    from slscan.station.results import open_results, write_csv
+    from slscan.station.results import csv_text, open_results, write_csv
 
     name, program = _program_name(args.program)
     if args.report and program is None:
         raise ScannerError("slscan results --report: give --program as the part program TOML (it has the "
                            "characteristics and tolerances the charts need)")
     config = _config(args)
-    with open_results(config.database_url) as store:
+    with open_results(config.database_url, create=False) as store:
         rows = store.results(program=name, serial=args.serial, status=args.status, since=args.since, limit=args.limit)
         values = store.values([r.id for r in rows])
-        if args.csv:
-            if args.csv == "-":
-                n = write_csv(sys.stdout, rows, values)
-            else:
-                with open(args.csv, "w", newline="") as f:
-                    n = write_csv(f, rows, values)
-                print(f"wrote {n} lines ({len(rows)} results) to {args.csv}", file=sys.stderr)
+        if args.csv == "-":
+            write_csv(sys.stdout, rows, values)
+        elif args.csv:
+            text, n = csv_text(rows, values)
+            _write_export(Path(args.csv), lambda path: write_atomic(path, text.encode()))
+            print(f"wrote {n} lines ({len(rows)} results) to {args.csv}", file=sys.stderr)
         else:
             print(f"{'id':>5} {'program':<14} {'serial':<24} {'att':>3} {'status':<10} {'finished (UTC)':<19}  values")
             for r in rows:
@@ -91,9 +91,29 @@ def cmd_results(args: argparse.Namespace) -> int:
                       + (f"  [{r.message}]" if r.message and r.status != "fail" else ""))
             print(f"{len(rows)} results in {store.where}", file=sys.stderr)
         if args.report:
-            path = write_report(Path(args.report), program, rows, values, store.where)
+            path = _write_export(Path(args.report), lambda folder: write_report(folder, program, rows, values,
+                                                                                store.where))
             print(f"report {path}", file=sys.stderr)
     return 0
+
+
+def _write_export(target: Path, write: Any) -> Any:
+    """`write(target)`, an OS refusal (read-only folder, full disk, a file in the way) as one line."""
+    try:
+        return write(target)
+    except OSError as exc:
+        raise ScannerError(f"{exc.filename or target}: cannot write: {exc.strerror or exc}") from None
+
+
+def _count(text: str) -> int:
+    """A count on the command line: a whole number >= 0."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {n}")
+    return n
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
@@ -147,7 +167,7 @@ def register(sub: Any) -> None:
     r.add_argument("--serial")
     r.add_argument("--status", choices=("in_progress", "pass", "fail", "error", "aborted", "incomplete"))
     r.add_argument("--since", type=_utc_time, help="ISO date/time (UTC unless it says), e.g. 2026-11-23 or 2026-11-23T08:00")
-    r.add_argument("--limit", type=int, help="only the newest N results")
+    r.add_argument("--limit", type=_count, help="only the newest N results (N >= 0)")
     r.add_argument("--csv", help="export to this CSV file ('-' for standard output)")
     r.add_argument("--report", help="write the HTML report with control charts into this folder")
     r.set_defaults(func=cmd_results)

@@ -10,9 +10,11 @@ re-inspection. An application layer above every package, like the CLI.
     loop.py     the operator loop as a state machine, independent of any user interface
     app.py      a station assembled from its config files; the non-interactive run (--auto)
     tui.py      the full-screen terminal view of the loop (curses)
-    results.py  the results history on SQLite or PostgreSQL (plain DB-API, a small dialect layer)
-    charts.py   control charts: PNG images (OpenCV drawing) and Rerun series
-    report.py   the HTML report
+    results.py  the results history on SQLite or PostgreSQL (SQLAlchemy Core), cycle ownership, CSV
+    spc.py      control limits (I-MR, X-bar R), Western Electric rules, capability
+    charts.py   control charts: PNG images (matplotlib) and Rerun series
+    paths.py    names from programs and serials made safe as file names
+    history_report.py  the HTML report
     batch.py    re-decoding and re-inspecting stored sessions, locally or on a Dask cluster
 """
 

@@ -23,6 +23,7 @@ from slscan.station.hardware_bench import Bench
 from slscan.station.history_report import write_report
 from slscan.station.loop import STATS_WINDOW, CycleOutcome, Station, utcnow
 from slscan.station.measure import Measurement, cad_faces, load_measurement
+from slscan.station.paths import child
 from slscan.station.program import PartProgram, load_program
 from slscan.station.results import ResultRow, ResultsStore, ValueRecord, open_results
 from slscan.station.station_config import StationConfig
@@ -37,10 +38,14 @@ class StationRun:
                  measurement: Measurement | None = None, rig_path: Path | None = None) -> None:
         self.program = program
         self.config = config
-        self.report_dir = config.data_dir / "reports" / program.name
+        self.report_dir = child(config.data_dir / "reports", program.name)
         rig = RigConfig.load(rig_path or config.rig_path)
         self.store: ResultsStore = open_results(config.database_url)
-        self.bench = Bench(rig, seed=config.sim_seed)
+        try:
+            self.bench = Bench(rig, seed=config.sim_seed)
+        except BaseException:
+            self.store.close()
+            raise
         try:
             self.station = Station(program, config, self.bench, measurement or load_measurement(config.measurement, config.path),
                                    self.store, operator, on_stored=self._stored)
@@ -48,6 +53,11 @@ class StationRun:
             self.charts = ChartRecording(self.report_dir / CHART_RECORDING, program,
                                          f"station-{config.name}-{program.name}-{utcnow():%Y%m%d-%H%M%S}")
             self.charts.log_history(*self._history())
+        except OSError as exc:
+            self.bench.close()
+            self.store.close()
+            raise StationError(f"{exc.filename or config.data_dir}: {exc.strerror or exc} (the station's data "
+                               f"folder must be writable)") from None
         except BaseException:
             self.bench.close()
             self.store.close()

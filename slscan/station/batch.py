@@ -178,7 +178,11 @@ def run_batch(parts: Sequence[str | Path], program_path: str | Path, scheduler: 
             summary.items.append(reinspect(p, program_path, entry, rig))
             progress("batch", k + 1, len(paths))
     else:
-        from distributed import Client, LocalCluster, as_completed
+        try:
+            from distributed import Client, LocalCluster, as_completed
+        except ModuleNotFoundError:
+            raise StationError("a parallel batch runs on Dask: pip install 'slscan[batch]' (or --workers 0 to run "
+                               "the parts one after the other here)") from None
 
         cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                                       dashboard_address=None)

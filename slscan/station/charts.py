@@ -1,7 +1,15 @@
-"""Control charts: each characteristic's value per part over time, with its tolerance line.
+"""Control charts: PNG images drawn with matplotlib (for the HTML report) and a Rerun series.
 
-Two outputs from the same series: PNG images drawn with OpenCV (for the HTML report), and
-a station-level Rerun recording where every stored value is a scalar on the `scan`
+Per characteristic, one figure of two panels sharing the part axis (see
+`slscan.station.spc`): the individuals (or subgroup means) with the centre line, the
+control limits from the baseline and the tolerance; below, the moving ranges (or subgroup
+ranges) with theirs. Parts in the baseline are blue dots, failed or partly measured parts
+red crosses (shown, left out of the limits), parts where the characteristic was not
+measured grey ticks on the axis; a point flagged by a Western Electric rule is ringed in
+orange with the rule numbers. The title carries Cp and Cpk with their 95 % intervals and
+the small-sample warning.
+
+The station-level Rerun recording gets every stored value as a scalar on the `scan`
 timeline (the result id as the sequence number), beside its tolerance:
 
     metrics/control/<characteristic>/value_mm        the measured value (mm)
@@ -10,106 +18,90 @@ timeline (the result id as the sequence number), beside its tolerance:
 
 from __future__ import annotations
 
-import datetime as dt
-from dataclasses import dataclass
+import os
 from pathlib import Path
-from typing import Sequence
-
-import cv2
-import numpy as np
+from typing import Any, Sequence
 
 from scanner.session_recording import SessionRecording
+from slscan.station.paths import child
 from slscan.station.program import Characteristic, PartProgram
-from slscan.station.quality import latest_per_serial
+from slscan.station.quality import CharacteristicStats, RunningStats, latest_per_serial
 from slscan.station.results import ResultRow, ValueRecord
 
-CHART_SIZE = (960, 320)  # width, height in px
-_MARGIN = (80, 20, 40, 50)  # left, right, top, bottom
-_WHITE, _GREY, _BLACK = (255, 255, 255), (200, 200, 200), (40, 40, 40)
-_RED, _GREEN, _BLUE = (40, 40, 220), (40, 160, 40), (200, 110, 30)  # BGR
+FIGURE_IN = (9.6, 4.8)  # width, height in inches; at DPI: 960 x 480 px
+DPI = 100
+_BLUE, _RED, _GREY, _ORANGE, _GREEN = "#1f5fa8", "#c01818", "#8a8a8a", "#e07b00", "#1a7a1a"
 
 
-@dataclass(frozen=True)
-class ChartPoint:
-    """One part's value of one characteristic: result id, serial, time stored, value (mm)."""
-
-    result_id: int
-    serial: str
-    time: dt.datetime
-    value_mm: float
-    conforms: bool
-
-
-def chart_series(program: PartProgram, rows: Sequence[ResultRow],
-                 values: dict[int, list[ValueRecord]]) -> dict[str, list[ChartPoint]]:
-    """Per characteristic, the measured values of each serial's last cycle, in time order."""
-    out: dict[str, list[ChartPoint]] = {c.name: [] for c in program.characteristics}
-    for r in latest_per_serial(rows):
-        for v in values.get(r.id, []):
-            if v.characteristic in out and v.value_mm is not None:
-                out[v.characteristic].append(ChartPoint(r.id, r.serial, r.finished_at or r.started_at, v.value_mm,
-                                                        bool(v.conforms)))
-    return out
+def capability_text(s: CharacteristicStats) -> str:
+    """Cp and Cpk with their intervals, and the warning, in one line."""
+    cap = s.capability
+    if cap is None:
+        return "capability: too few parts that passed"
+    text = (f"Cp {cap.cp:.2f} [{cap.cp_ci[0]:.2f}, {cap.cp_ci[1]:.2f}]  "
+            f"Cpk {cap.cpk:.2f} [{cap.cpk_ci[0]:.2f}, {cap.cpk_ci[1]:.2f}] (95 %, n = {cap.n})")
+    return text + (f"  WARNING: {cap.warning}" if cap.warning else "")
 
 
-def _text(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.45, color: tuple[int, int, int] = _BLACK,
-          right: bool = False) -> None:
-    if right:
-        (w, _), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-        org = (org[0] - w, org[1])
-    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
+def draw_chart(c: Characteristic, s: CharacteristicStats) -> Any:
+    """The control chart figure of one characteristic (matplotlib, not shown)."""
+    from matplotlib.figure import Figure
 
-
-def draw_chart(c: Characteristic, points: Sequence[ChartPoint], size: tuple[int, int] = CHART_SIZE) -> np.ndarray:
-    """A BGR control chart: value per part (green conforming, red not), the tolerance as a
-    red line, the mean as a blue line, axes in mm; time of the first and last part below."""
-    w, h = size
-    left, right, top, bottom = _MARGIN
-    img = np.full((h, w, 3), _WHITE, np.uint8)
-    vals = np.array([p.value_mm for p in points], dtype=float)
-    y_max = max(c.tolerance_mm * 1.25, float(vals.max()) * 1.1 if len(vals) else 0.0)
-    x0, x1, y0, y1 = left, w - right, h - bottom, top
-
-    def y_of(v: float) -> int:
-        return int(round(y0 - (y0 - y1) * v / y_max))
-
-    def x_of(i: int) -> int:
-        return int(round(x0 + (x1 - x0) * (i + 0.5) / max(len(points), 1)))
-
-    for k in range(6):  # grid and y labels
-        v = y_max * k / 5
-        cv2.line(img, (x0, y_of(v)), (x1, y_of(v)), _GREY, 1)
-        _text(img, f"{v:.3f}", (x0 - 6, y_of(v) + 4), right=True)
-    cv2.rectangle(img, (x0, y1), (x1, y0), _BLACK, 1)
-    tol_y = y_of(c.tolerance_mm)
-    cv2.line(img, (x0, tol_y), (x1, tol_y), _RED, 2)
-    _text(img, f"tolerance {c.tolerance_mm:.3f} mm", (x1 - 4, tol_y - 6), color=_RED, right=True)
-    if len(vals):
-        mean_y = y_of(float(vals.mean()))
-        cv2.line(img, (x0, mean_y), (x1, mean_y), _BLUE, 1, cv2.LINE_AA)
-        _text(img, f"mean {vals.mean():.4f} mm", (x0 + 6, mean_y - 6), color=_BLUE)
-        xy = [(x_of(i), y_of(v)) for i, v in enumerate(vals)]
-        if len(xy) > 1:
-            cv2.polylines(img, [np.array(xy, np.int32)], False, _GREY, 1, cv2.LINE_AA)
-        for p, (x, y) in zip(points, xy):
-            cv2.circle(img, (x, y), 5, _GREEN if p.conforms else _RED, -1, cv2.LINE_AA)
-        _text(img, f"{points[0].time:%Y-%m-%d %H:%M:%S}", (x0, y0 + 18))
-        _text(img, f"{points[-1].time:%Y-%m-%d %H:%M:%S}  ({len(points)} parts)", (x1, y0 + 18), right=True)
+    fig = Figure(figsize=FIGURE_IN, dpi=DPI, layout="constrained")
+    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(2, 1))
+    chart = s.chart
+    if s.subgroup == 1:
+        x = [i + 1 for i, p in enumerate(s.points) if p.value_mm is not None]
+        spread_x = x[1:]
+        names = ("value (mm)", "moving range (mm)")
+        missing = [i + 1 for i, p in enumerate(s.points) if p.value_mm is None]
     else:
-        _text(img, "no measured parts yet", (x0 + 10, (y0 + y1) // 2))
-    _text(img, f"{c.name}: {c.label}", (x0, top - 10), 0.55)
-    _text(img, "mm", (8, top - 10))
-    return img
+        x = list(range(1, len(s.location) + 1))
+        spread_x = x
+        names = (f"mean of {s.subgroup} (mm)", f"range of {s.subgroup} (mm)")
+        missing = []
+    for ax, ys, flags, xs, limits in ((top, s.location, s.location_flags, x, chart.location if chart else None),
+                                      (bottom, s.spread, s.spread_flags, spread_x, chart.spread if chart else None)):
+        base = s.baseline if ax is top else [True] * len(ys)
+        ax.plot(xs, ys, color=_GREY, linewidth=0.8, zorder=1)
+        ax.scatter([a for a, b in zip(xs, base) if b], [y for y, b in zip(ys, base) if b], s=18, color=_BLUE,
+                   zorder=3, label="in the limits' baseline")
+        ax.scatter([a for a, b in zip(xs, base) if not b], [y for y, b in zip(ys, base) if not b], s=30,
+                   marker="x", color=_RED, zorder=3, label="failed or partly measured part (not in the limits)")
+        for a, y, f in zip(xs, ys, flags):
+            if f:
+                ax.scatter([a], [y], s=110, facecolors="none", edgecolors=_ORANGE, linewidths=1.5, zorder=4)
+                ax.annotate(",".join(str(r) for r in sorted(f)), (a, y), textcoords="offset points", xytext=(6, 6),
+                            color=_ORANGE, fontsize=8)
+        if limits is not None:
+            ax.axhline(limits.centre, color=_GREEN, linewidth=1)
+            for v in (limits.lcl, limits.ucl):
+                ax.axhline(v, color=_GREEN, linestyle="--", linewidth=1)
+            ax.annotate(f"UCL {limits.ucl:.4f}", (1, limits.ucl), xycoords=("axes fraction", "data"),
+                        xytext=(-4, 3), textcoords="offset points", ha="right", fontsize=8, color=_GREEN)
+        ax.grid(True, color="#dddddd", linewidth=0.6)
+        ax.set_ylabel(names[0] if ax is top else names[1])
+    top.axhline(c.tolerance_mm, color=_RED, linewidth=1.5, label=f"tolerance {c.tolerance_mm:.3f} mm")
+    if missing:
+        top.plot(missing, [top.get_ylim()[0]] * len(missing), "|", color=_GREY, markersize=12,
+                 label="not measured")
+    top.legend(loc="upper left", fontsize=7, framealpha=0.8)
+    bottom.set_xlabel("part (each serial's last cycle, in time order)" if s.subgroup == 1 else "subgroup")
+    kind = "individuals / moving range" if s.subgroup == 1 else f"X-bar / R (subgroups of {s.subgroup})"
+    fig.suptitle(f"{c.name}: {c.label} - {kind}\n{capability_text(s)}", fontsize=9)
+    return fig
 
 
-def write_charts(folder: Path, program: PartProgram, series: dict[str, list[ChartPoint]]) -> dict[str, Path]:
-    """One PNG per characteristic in `folder`; returns name -> file."""
+def write_charts(folder: Path, program: PartProgram, stats: RunningStats) -> dict[str, Path]:
+    """One PNG per characteristic in `folder` (each written atomically; names made safe);
+    returns name -> file."""
     folder.mkdir(parents=True, exist_ok=True)
     out = {}
-    for c in program.characteristics:
-        path = folder / f"{c.name}.png"
-        if not cv2.imwrite(str(path), draw_chart(c, series[c.name])):
-            raise OSError(f"{path}: could not write the chart image")
+    for c, s in zip(program.characteristics, stats.characteristics):
+        path = child(folder, c.name, ".png")
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+        draw_chart(c, s).savefig(tmp, format="png")
+        tmp.replace(path)
         out[c.name] = path
     return out
 
@@ -120,12 +112,16 @@ def control_metric(name: str, what: str) -> str:
 
 
 class ChartRecording:
-    """The control charts as a Rerun recording (`<path>`, written as `.part` until closed)."""
+    """The control charts as a Rerun recording at `path`. It is written under a name of
+    this process's own and moved to `path` when closed, so two stations sharing a data
+    folder never write into one file (the last to close leaves the complete history)."""
 
     def __init__(self, path: Path, program: PartProgram, recording_id: str) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         self.program = program
-        self.rec = SessionRecording(path, recording_id, send_blueprint=False)
+        self.path = path
+        self._own = path.with_name(f"{path.stem}.{os.getpid()}{path.suffix}")
+        self.rec = SessionRecording(self._own, recording_id, send_blueprint=False)
 
     def __enter__(self) -> ChartRecording:
         return self
@@ -135,6 +131,8 @@ class ChartRecording:
 
     def close(self) -> None:
         self.rec.close()
+        if self._own.exists():
+            self._own.replace(self.path)
 
     def log(self, result_id: int, values: Sequence[ValueRecord]) -> None:
         """One part's measured values at `scan` = its result id, with their tolerances."""

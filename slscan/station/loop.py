@@ -38,9 +38,10 @@ from slscan.station.calib import refusals as calibration_refusals
 from slscan.station.calib import rig_calibration
 from slscan.station.hardware_bench import Bench
 from slscan.station.measure import Measurement, MeasurementResult
+from slscan.station.paths import child, safe_name
 from slscan.station.program import PartProgram
 from slscan.station.quality import RunningStats, judge, running_stats
-from slscan.station.results import PartStart, ResultsStore, ValueRecord
+from slscan.station.results import PartStart, ResultsStore, ValueRecord, utcnow
 from slscan.station.station_config import StationConfig
 
 PART_RECORD = "part.json"
@@ -61,10 +62,6 @@ class OperatorAbort(StationError):
 
 def _quiet(stage: str, done: int, total: int) -> None:
     pass
-
-
-def utcnow() -> dt.datetime:
-    return dt.datetime.now(dt.timezone.utc)
 
 
 @dataclass(frozen=True)
@@ -149,14 +146,14 @@ class Station:
         cancel = cancel or threading.Event()
         t0 = time.perf_counter()
         started = utcnow()
-        folder = self.config.sessions_dir / _safe(self.program.name) / f"{_safe(serial)}-{started:%Y%m%d-%H%M%S-%f}"
+        folder = child(self.config.sessions_dir, self.program.name) / f"{safe_name(serial)}-{started:%Y%m%d-%H%M%S-%f}"
         result_id, attempt = self.store.begin_part(PartStart(
             program=self.program.name, program_version=self.program.version,
             program_fingerprint=self.program.fingerprint, serial=serial, operator=self.operator,
             station=self.config.name, rig=self.bench.config.name, calibration_id=self.calibration.id,
             software_version=__version__, measurement=self.measurement.name, part_path=str(folder), started_at=started))
         sessions: list[Path] = []
-        measured: MeasurementResult | None = None
+        measured: MeasurementResult | None = None  # kept for the part record (None: not measured)
         truth = None
         if self.bench.simulated:
             truth = self.bench.sim_part(part).as_dict()
@@ -177,20 +174,8 @@ class Station:
             progress(stage, done, total)
 
         try:
-            views = self.program.scan.views
-            scanned = []
-            for k in range(views):
-                where = f" (view {k + 1}/{views})" if views > 1 else ""
-                step("place" + where, 0, 1)
-                with self.bench.view(part, k, views) as rig:
-                    if self.program.scan.exposure_s is not None:
-                        rig.camera.set_exposure(self.program.scan.exposure_s)
-                    sessions.append(folder / f"view{k}")
-                    scanned.append(scan(rig, self.patterns, sessions[-1],
-                                        lambda stage, done, total: step(stage + where, done, total)).session)
-            step("measure", 0, 1)
-            measured = self.measurement.measure(scanned, self.program)
-            step("measure", 1, 1)  # an abort pressed while measuring takes effect here
+            with self.store.hold(result_id):
+                measured = self._scan_and_measure(part, folder, sessions, step)
         except OperatorAbort as exc:
             return finish("aborted", str(exc))
         except KeyboardInterrupt:
@@ -201,10 +186,25 @@ class Station:
         status, values, message = judge(self.program, measured)
         return finish(status, message, values)
 
-
-def _safe(text: str) -> str:
-    """`text` usable as one path component."""
-    return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in text)[:80] or "_"
+    def _scan_and_measure(self, part: int, folder: Path, sessions: list[Path],
+                          step: Callable[[str, int, int], None]) -> MeasurementResult:
+        """Scan every view of the part into `folder` (each session appended to `sessions`
+        as it starts) and measure them."""
+        views = self.program.scan.views
+        scanned = []
+        for k in range(views):
+            where = f" (view {k + 1}/{views})" if views > 1 else ""
+            step("place" + where, 0, 1)
+            with self.bench.view(part, k, views) as rig:
+                if self.program.scan.exposure_s is not None:
+                    rig.camera.set_exposure(self.program.scan.exposure_s)
+                sessions.append(folder / f"view{k}")
+                scanned.append(scan(rig, self.patterns, sessions[-1],
+                                    lambda stage, done, total: step(stage + where, done, total)).session)
+        step("measure", 0, 1)
+        measured = self.measurement.measure(scanned, self.program)
+        step("measure", 1, 1)  # an abort pressed while measuring takes effect here
+        return measured
 
 
 def _record(station: Station, outcome: CycleOutcome, started: dt.datetime,

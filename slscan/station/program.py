@@ -16,6 +16,10 @@
     id = "factory-sim-bench"            # the calibration the program was proven with
     max_age_days = 180                  # optional: stricter than the station's expiry
 
+    [control]                           # optional: control charts
+    subgroup_size = 1                   # parts per subgroup: 1 = individuals/moving range (I-MR),
+                                        # 2..10 = X-bar and R charts of consecutive parts
+
     [[characteristic]]                  # one table per characteristic, in report order
     name = "high_top_flatness"          # unique; results and charts are filed under it
     face = "#657"                       # CAD face: "#<STEP ADVANCED_FACE id>" (`slscan cad FILE` lists
@@ -30,9 +34,10 @@ height of the face's roughness (ISO 25178), and `profile` the width of the zone 
 the nominal surface that holds every point, 2 max|signed deviation| (ISO 1101 profile of a
 surface, tolerance zone t = ±t/2 about nominal).
 
-Loading validates every key (errors name the file and the key) and, through the inspection
-CAD loader, that each face exists in the CAD model and has a surface type the
-characteristic applies to.
+Loading validates the file on the project's schema layer (`scanner.schema`: unknown keys
+refused with the nearest valid name, types, ranges, finite numbers; errors name the file
+and the key), then the files it names and, through the inspection CAD loader, that each
+face exists in the CAD model and has a surface type the characteristic applies to.
 """
 
 from __future__ import annotations
@@ -40,12 +45,16 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Annotated, Callable, Literal, Mapping, Sequence
 
-from scanner.config import get, get_table, load_toml, resolve
+from pydantic import Field
+
+from inspection.cad import MESH_UNITS_MM
+from scanner import schema
+from scanner.config import resolve
 from scanner.errors import ConfigError
 from scanner.patterns import PatternSet
-from slscan.station.station_config import check_keys
+from slscan.station.spc import MAX_SUBGROUP
 
 KINDS = ("flatness", "cylindricity", "sq", "profile")
 FORM_METHODS = ("minimum_zone", "least_squares")
@@ -53,11 +62,48 @@ FORM_METHODS = ("minimum_zone", "least_squares")
 # A mesh face of no known surface type ("mesh") has no form or texture to evaluate.
 SURFACE_KINDS = {"flatness": ("plane",), "cylindricity": ("cylinder",), "sq": ("plane", "cylinder", "cone")}
 
-_TOP_KEYS = {"program", "scan", "calibration", "characteristic"}
-_PROGRAM_KEYS = {"name", "version", "cad", "mesh_unit", "description"}
-_SCAN_KEYS = {"patterns", "exposure_s", "views"}
-_CALIBRATION_KEYS = {"id", "max_age_days"}
-_CHARACTERISTIC_KEYS = {"name", "face", "kind", "method", "tolerance_mm"}
+Name = Annotated[str, Field(strict=True, min_length=1, pattern=r"\S")]  # not empty, not blank
+
+
+class ProgramTable(schema.Schema):
+    name: Name
+    version: schema.Str | schema.Int | schema.Float
+    cad: schema.Str
+    mesh_unit: Literal[tuple(MESH_UNITS_MM)] = "mm"  # type: ignore[valid-type]
+    description: schema.Str = ""
+
+
+class ScanTable(schema.Schema):
+    patterns: schema.Str
+    exposure_s: Annotated[float, Field(strict=True, gt=0, lt=10)] | None = None
+    views: Annotated[int, Field(strict=True, ge=1, le=16)] = 1
+
+
+class CalibrationTable(schema.Schema):
+    id: schema.Str
+    max_age_days: schema.PositiveFloat | None = None
+
+
+class ControlTable(schema.Schema):
+    subgroup_size: Annotated[int, Field(strict=True, ge=1, le=MAX_SUBGROUP)] = 1
+
+
+class CharacteristicTable(schema.Schema):
+    name: Name
+    face: schema.Str
+    kind: Literal[KINDS]  # type: ignore[valid-type]
+    method: Literal[FORM_METHODS] | None = None  # type: ignore[valid-type]
+    tolerance_mm: schema.PositiveFloat  # finite: the base schema refuses inf and NaN
+
+
+class ProgramFile(schema.Schema):
+    """A part program TOML (module docstring)."""
+
+    program: ProgramTable
+    scan: ScanTable
+    calibration: CalibrationTable
+    control: ControlTable = ControlTable()
+    characteristic: Annotated[list[CharacteristicTable], Field(min_length=1)]
 
 
 @dataclass(frozen=True)
@@ -111,6 +157,7 @@ class PartProgram:
     characteristics: tuple[Characteristic, ...]
     fingerprint: str
     face_check: str
+    subgroup_size: int = 1
 
     def characteristic(self, name: str) -> Characteristic:
         for c in self.characteristics:
@@ -120,32 +167,26 @@ class PartProgram:
 
 
 def load_program(path: str | Path, faces: Callable[[PartProgram], Mapping[str, str]] | None = None) -> PartProgram:
-    """Parse and validate a part program. With `faces` (a program -> {face label: surface
-    type} lister, e.g. `measure.cad_faces`), every characteristic's face is checked in the
-    CAD model."""
+    """Parse and validate a part program (`ProgramFile`; then the files it names, and the
+    rules across characteristics). With `faces` (a program -> {face label: surface type}
+    lister, e.g. `measure.cad_faces`), every characteristic's face is checked in the CAD model."""
     path = Path(path)
-    raw = load_toml(path)
-    check_keys(raw, _TOP_KEYS, path)
-    prog = get_table(raw, "program", path)
-    check_keys(prog, _PROGRAM_KEYS, path, "program")
-    version = get(prog, "version", (str, int, float), path, prefix="program")
-    cad = resolve(path, get(prog, "cad", str, path, prefix="program"))
+    f = schema.load(ProgramFile, path)
+    cad = resolve(path, f.program.cad)
     if not cad.is_file():
         raise ConfigError(path, "program.cad", f"CAD file not found: {cad}")
-    scan = _scan_settings(get_table(raw, "scan", path), path)
-    cal = get_table(raw, "calibration", path)
-    check_keys(cal, _CALIBRATION_KEYS, path, "calibration")
-    max_age = get(cal, "max_age_days", float, path, None, "calibration")
-    if max_age is not None and max_age <= 0:
-        raise ConfigError(path, "calibration.max_age_days", f"must be > 0 days, got {max_age}")
-    chars = _characteristics(raw, path)
+    patterns = resolve(path, f.scan.patterns)
+    try:
+        PatternSet.load(patterns)
+    except ConfigError as exc:
+        raise ConfigError(path, "scan.patterns", str(exc)) from None
+    chars = _characteristics(f.characteristic, path)
     program = PartProgram(
-        path=path, name=get(prog, "name", str, path, prefix="program"), version=str(version), cad_path=cad,
-        mesh_unit=get(prog, "mesh_unit", str, path, "mm", "program"),
-        description=get(prog, "description", str, path, "", "program"), scan=scan,
-        calibration_id=get(cal, "id", str, path, prefix="calibration"), max_calibration_age_days=max_age,
+        path=path, name=f.program.name, version=str(f.program.version), cad_path=cad, mesh_unit=f.program.mesh_unit,
+        description=f.program.description, scan=ScanSettings(patterns, f.scan.exposure_s, f.scan.views),
+        calibration_id=f.calibration.id, max_calibration_age_days=f.calibration.max_age_days,
         characteristics=chars, fingerprint=hashlib.sha256(path.read_bytes()).hexdigest()[:12],
-        face_check="not checked")
+        face_check="not checked", subgroup_size=f.control.subgroup_size)
     if faces is None:
         return program
     found = faces(program)
@@ -171,48 +212,18 @@ def validate_faces(program: PartProgram, faces: Mapping[str, str]) -> None:
                                                     "model)" if kind == "mesh" else ""))
 
 
-def _scan_settings(table: dict[str, Any], path: Path) -> ScanSettings:
-    check_keys(table, _SCAN_KEYS, path, "scan")
-    patterns = resolve(path, get(table, "patterns", str, path, prefix="scan"))
-    try:
-        PatternSet.load(patterns)
-    except ConfigError as exc:
-        raise ConfigError(path, "scan.patterns", str(exc)) from None
-    exposure = get(table, "exposure_s", float, path, None, "scan")
-    if exposure is not None and not 0 < exposure < 10:
-        raise ConfigError(path, "scan.exposure_s", f"{exposure} s is not a plausible exposure")
-    views = get(table, "views", int, path, 1, "scan")
-    if not 1 <= views <= 16:
-        raise ConfigError(path, "scan.views", f"views per part must be 1..16, got {views}")
-    return ScanSettings(patterns, exposure, views)
-
-
-def _characteristics(raw: dict[str, Any], path: Path) -> tuple[Characteristic, ...]:
-    items = get(raw, "characteristic", list, path)
-    if not items:
-        raise ConfigError(path, "characteristic", "a program needs at least one [[characteristic]]")
+def _characteristics(items: Sequence[CharacteristicTable], path: Path) -> tuple[Characteristic, ...]:
+    """The characteristics, with the rules the schema cannot see: unique names, a method
+    only where the kind has one (the form kinds default to minimum zone)."""
     out: list[Characteristic] = []
     for i, t in enumerate(items):
         pre = f"characteristic[{i}]"
-        if not isinstance(t, dict):
-            raise ConfigError(path, pre, "expected a table ([[characteristic]])")
-        check_keys(t, _CHARACTERISTIC_KEYS, path, pre)
-        name = get(t, "name", str, path, prefix=pre)
-        if not name.strip() or name in {c.name for c in out}:
-            raise ConfigError(path, f"{pre}.name", f"names must be non-empty and unique; {name!r} is not")
-        kind = get(t, "kind", str, path, prefix=pre)
-        if kind not in KINDS:
-            raise ConfigError(path, f"{pre}.kind", f"'{kind}' is not one of {KINDS}")
-        method = get(t, "method", str, path, None, pre)
-        if kind in ("flatness", "cylindricity"):
+        if t.name in {c.name for c in out}:
+            raise ConfigError(path, f"{pre}.name", f"names must be unique; {t.name!r} is used twice")
+        method = t.method
+        if t.kind in ("flatness", "cylindricity"):
             method = method or FORM_METHODS[0]
-            if method not in FORM_METHODS:
-                raise ConfigError(path, f"{pre}.method", f"'{method}' is not one of {FORM_METHODS}")
         elif method is not None:
-            raise ConfigError(path, f"{pre}.method", f"{kind} takes no method")
-        tol = get(t, "tolerance_mm", float, path, prefix=pre)
-        if not tol > 0:
-            raise ConfigError(path, f"{pre}.tolerance_mm", f"must be > 0 mm, got {tol}")
-        face = get(t, "face", str, path, prefix=pre)
-        out.append(Characteristic(name=name, face=face, kind=kind, tolerance_mm=tol, method=method))
+            raise ConfigError(path, f"{pre}.method", f"{t.kind} takes no method")
+        out.append(Characteristic(name=t.name, face=t.face, kind=t.kind, tolerance_mm=t.tolerance_mm, method=method))
     return tuple(out)

@@ -1,95 +1,118 @@
 """The results history: one row per scan cycle of a part, one per measured characteristic.
 
 The same code runs on SQLite (a file in the station's data folder, `sqlite:PATH`) and on
-PostgreSQL (`postgresql://...`, through psycopg 3), with plain DB-API calls; a `Dialect`
-holds the few differences (placeholder, identity column, timestamp and boolean types).
+PostgreSQL (`postgresql://...`, through psycopg 3: the `station-db` extra), written with
+SQLAlchemy Core: the tables are declared once, statements are built with bound
+parameters, and SQLAlchemy speaks each database's dialect (placeholders, identity
+columns, types), so this module holds no SQL text of its own per database.
+
 Every write is committed before the station moves on, so a station killed at any moment
 loses no stored result. A cycle is stored when it starts (status `in_progress`) and
-updated when it ends; rows left `in_progress` by a station that died are marked
-`incomplete` by `mark_interrupted` the next time that station starts.
+updated when it ends. The process running it owns it: `owner` is host, process id and
+process start time, and `lease_until` is renewed while the cycle runs (`ResultsStore.hold`).
+At start-up a station marks `incomplete` only the cycles whose owner is gone (a process of
+this host that no longer runs; on another host, a lease that ran out), so a second station
+sharing the config never touches the first one's running cycle. Attempt numbers are assigned by the
+insert itself (one statement), and a unique (program, serial, attempt) index refuses a
+duplicate, which is retried: concurrent writers never share a number.
 
 Tables (lengths in mm, times as UTC timestamps):
 
     results   id, program, program_version, program_fingerprint, serial, attempt, operator,
               station, rig, calibration_id, software_version, measurement, part_path,
               status (in_progress | pass | fail | error | aborted | incomplete), message,
-              started_at, finished_at, source (station | batch)
+              started_at, finished_at, source (station | batch), owner, lease_until
     measured  result_id, position (the program's order), characteristic, kind, face, value_mm (NULL: not measured),
               tolerance_mm, conforms (NULL: not measured), points, note
+
+Schema version 2 added `owner`, `lease_until` and the unique attempt index; a version 1
+database is upgraded when a station opens it (duplicate attempts left by version 1 are
+renumbered in id order).
 """
 
 from __future__ import annotations
 
 import csv
 import datetime as dt
-import sqlite3
+import io
+import os
+import random
+import re
+import socket
 import threading
+import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Iterator, Sequence, TextIO
+from urllib.parse import unquote
+
+import sqlalchemy as sa
+from sqlalchemy.engine import Engine
 
 from slscan.station import StationError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 STATUSES = ("in_progress", "pass", "fail", "error", "aborted", "incomplete")
-
-_DDL = [
-    "CREATE TABLE IF NOT EXISTS slscan_schema (version INTEGER NOT NULL)",
-    """CREATE TABLE IF NOT EXISTS results (
-        id {id_column},
-        program TEXT NOT NULL, program_version TEXT NOT NULL, program_fingerprint TEXT NOT NULL,
-        serial TEXT NOT NULL, attempt INTEGER NOT NULL, operator TEXT NOT NULL, station TEXT NOT NULL,
-        rig TEXT NOT NULL, calibration_id TEXT, software_version TEXT NOT NULL, measurement TEXT NOT NULL,
-        part_path TEXT NOT NULL, status TEXT NOT NULL, message TEXT NOT NULL,
-        started_at {timestamp} NOT NULL, finished_at {timestamp}, source TEXT NOT NULL)""",
-    "CREATE INDEX IF NOT EXISTS results_program ON results (program, started_at)",
-    "CREATE INDEX IF NOT EXISTS results_serial ON results (program, serial)",
-    """CREATE TABLE IF NOT EXISTS measured (
-        result_id INTEGER NOT NULL REFERENCES results (id) ON DELETE CASCADE, position INTEGER NOT NULL,
-        characteristic TEXT NOT NULL, kind TEXT NOT NULL, face TEXT NOT NULL, value_mm {double},
-        tolerance_mm {double} NOT NULL, conforms {boolean}, points INTEGER NOT NULL, note TEXT NOT NULL,
-        PRIMARY KEY (result_id, characteristic))""",
-]
+LEASE_S = 60.0  # a running cycle's lease; renewed every LEASE_S / 4
+ATTEMPT_RETRIES = 50  # inserts retried (after a random pause) when a concurrent writer took the same number
 
 
 class ResultsError(StationError):
     """The results database cannot be opened, is of another schema version, or a query failed."""
 
 
-@dataclass(frozen=True)
-class Dialect:
-    """What differs between the databases, nothing more."""
+class UtcTime(sa.TypeDecorator):
+    """A timezone-aware UTC time: TIMESTAMPTZ on PostgreSQL, ISO 8601 text on SQLite (which
+    has no time type; the text sorts in time order)."""
 
-    name: str
-    placeholder: str
-    types: dict[str, str]
+    impl = sa.DateTime(timezone=True)
+    cache_ok = True
 
-    def sql(self, text: str) -> str:
-        """`text` written with `?` placeholders, in this dialect."""
-        return text.replace("?", self.placeholder)
+    def load_dialect_impl(self, dialect: sa.Dialect) -> sa.types.TypeEngine[Any]:
+        return dialect.type_descriptor(sa.Text() if dialect.name == "sqlite" else sa.DateTime(timezone=True))
 
-    def ddl(self, text: str) -> str:
-        return text.format(**self.types)
-
-    def to_db_time(self, t: dt.datetime | None) -> Any:
-        if t is None:
+    def process_bind_param(self, value: dt.datetime | None, dialect: sa.Dialect) -> Any:
+        if value is None:
             return None
-        t = t.astimezone(dt.timezone.utc)
-        return t.isoformat() if self.name == "sqlite" else t
+        value = value.astimezone(dt.timezone.utc)
+        return value.isoformat(timespec="microseconds") if dialect.name == "sqlite" else value
 
-    def from_db_time(self, value: Any) -> dt.datetime | None:
+    def process_result_value(self, value: Any, dialect: sa.Dialect) -> dt.datetime | None:
         if value is None:
             return None
         t = dt.datetime.fromisoformat(value) if isinstance(value, str) else value
-        return t.astimezone(dt.timezone.utc)
+        return t.replace(tzinfo=dt.timezone.utc) if t.tzinfo is None else t.astimezone(dt.timezone.utc)
 
 
-SQLITE = Dialect("sqlite", "?", {"id_column": "INTEGER PRIMARY KEY AUTOINCREMENT", "timestamp": "TEXT",
-                                 "double": "REAL", "boolean": "INTEGER"})
-POSTGRES = Dialect("postgresql", "%s", {"id_column": "BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY",
-                                        "timestamp": "TIMESTAMPTZ", "double": "DOUBLE PRECISION",
-                                        "boolean": "BOOLEAN"})
+_META = sa.MetaData()
+_SCHEMA = sa.Table("slscan_schema", _META, sa.Column("version", sa.Integer, nullable=False))
+RESULTS = sa.Table(
+    "results", _META,
+    sa.Column("id", sa.BigInteger().with_variant(sa.Integer, "sqlite"), primary_key=True, autoincrement=True),
+    *(sa.Column(name, sa.Text, nullable=False) for name in ("program", "program_version", "program_fingerprint",
+                                                             "serial")),
+    sa.Column("attempt", sa.Integer, nullable=False),
+    *(sa.Column(name, sa.Text, nullable=False) for name in ("operator", "station", "rig")),
+    sa.Column("calibration_id", sa.Text),
+    *(sa.Column(name, sa.Text, nullable=False) for name in ("software_version", "measurement", "part_path", "status",
+                                                             "message")),
+    sa.Column("started_at", UtcTime, nullable=False), sa.Column("finished_at", UtcTime),
+    sa.Column("source", sa.Text, nullable=False),
+    sa.Column("owner", sa.Text), sa.Column("lease_until", UtcTime),
+    sa.Index("results_program", "program", "started_at"), sa.Index("results_serial", "program", "serial"),
+    sa.Index("results_attempt", "program", "serial", "attempt", unique=True),
+    sqlite_autoincrement=True)  # ids are never reused
+MEASURED = sa.Table(
+    "measured", _META,
+    sa.Column("result_id", sa.BigInteger().with_variant(sa.Integer, "sqlite"),
+              sa.ForeignKey("results.id", ondelete="CASCADE"), primary_key=True),
+    sa.Column("position", sa.Integer, nullable=False),
+    sa.Column("characteristic", sa.Text, primary_key=True),
+    sa.Column("kind", sa.Text, nullable=False), sa.Column("face", sa.Text, nullable=False),
+    sa.Column("value_mm", sa.Float), sa.Column("tolerance_mm", sa.Float, nullable=False),
+    sa.Column("conforms", sa.Boolean), sa.Column("points", sa.Integer, nullable=False),
+    sa.Column("note", sa.Text, nullable=False))
 
 
 @dataclass(frozen=True)
@@ -141,64 +164,160 @@ _RESULT_COLUMNS = _START_COLUMNS + ["id", "attempt", "status", "message", "finis
 _VALUE_COLUMNS = [f.name for f in fields(ValueRecord)]
 
 
-def open_results(url: str) -> ResultsStore:
-    """The store at `url`: `sqlite:PATH` (the folder is created) or `postgresql://...`."""
+# ------------------------------------------------------------------------------ secrets
+
+
+def secrets_in(url: str) -> list[str]:
+    """The secrets a database URL carries: the password of `scheme://user:password@host`
+    (which may itself hold '@') and any `password=` query parameter, as written and decoded."""
+    found = []
+    netloc = re.match(r"^[A-Za-z][\w+.-]*://([^/?#]*)", url)
+    if netloc and "@" in netloc.group(1):
+        creds = netloc.group(1).rsplit("@", 1)[0]
+        if ":" in creds:
+            found.append(creds.split(":", 1)[1])
+    found += re.findall(r"(?i)(?:password|passwd)=([^&\s]*)", url)
+    return sorted({s for raw in found if raw for s in (raw, unquote(raw))}, key=len, reverse=True)
+
+
+def redact(text: str, url: str) -> str:
+    """`text` with every secret of `url` replaced by ***."""
+    for secret in secrets_in(url):
+        text = text.replace(secret, "***")
+    return text
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+# ------------------------------------------------------------------------------ ownership
+
+
+def _process_start(pid: int) -> str:
+    """A token that differs between two processes that had the same id: the start time in
+    clock ticks after boot (Linux /proc), else empty (then the id alone is compared)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return ""
+    return stat.rsplit(")", 1)[1].split()[19]  # field 22 of stat, counted after the command name
+
+
+def this_owner() -> str:
+    """This process as the owner of the cycles it runs: host:pid:start."""
+    pid = os.getpid()
+    return f"{socket.gethostname()}:{pid}:{_process_start(pid)}"
+
+
+def owner_gone(owner: str | None, lease_until: dt.datetime | None, now: dt.datetime) -> bool:
+    """Whether the process owning a running cycle is gone: a process of this host is asked
+    directly (is its id running, with the same start time); one of another host by its
+    lease (not renewed since `lease_until`). A cycle without owner predates owners: gone."""
+    if not owner:
+        return True
+    host, _, rest = owner.partition(":")
+    pid_text, _, start = rest.partition(":")
+    if host != socket.gethostname() or not pid_text.isdigit():
+        return lease_until is None or lease_until < now
+    pid = int(pid_text)
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        pass  # it runs, as another user
+    return bool(start) and _process_start(pid) not in ("", start)
+
+
+def utcnow() -> dt.datetime:
+    return dt.datetime.now(dt.timezone.utc)
+
+
+# ------------------------------------------------------------------------------ opening
+
+
+def open_results(url: str, create: bool = True) -> ResultsStore:
+    """The store at `url`: `sqlite:PATH` or `postgresql://...`. With `create` the SQLite
+    folder and the tables are made when missing (a station); without, the database must
+    already exist and is only read (`slscan results`: a mistyped folder is an error, not a
+    new empty database)."""
+    where = redact(url, url)
     if url.startswith("sqlite:"):
         path = Path(url[len("sqlite:"):])
+        where = str(path)
+        if create:
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise ResultsError(f"{path}: cannot create the results folder {path.parent}: "
+                                   f"{exc.strerror or exc}") from None
+        elif not path.is_file():
+            raise ResultsError(f"{path}: no results database there (is the data folder or --db right?)")
+        target = f"sqlite:///{path}" if create else f"sqlite:///file:{path}?mode=ro&uri=true"
+        engine = sa.create_engine(target, connect_args={"timeout": 30.0})
+        sa.event.listen(engine, "connect", _sqlite_pragmas(create))
+    elif url.startswith(("postgresql://", "postgres://")):
+        if re.match(r"^[^:]+://[^/?#]*@[^/?#]*@", url):
+            raise ResultsError(f"{where}: the URL's user or password holds '@': write it URL-encoded (%40)")
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            conn = sqlite3.connect(path, timeout=30.0, check_same_thread=False)  # calls serialised by the store
-            conn.execute("PRAGMA journal_mode=WAL")  # readers (slscan results) never block the station
-            conn.execute("PRAGMA foreign_keys=ON")
-        except sqlite3.Error as exc:
-            raise ResultsError(f"{path}: cannot open the results database: {exc}") from None
-        return _store(conn, SQLITE, str(path), sqlite3.Error)
-    if url.startswith(("postgresql://", "postgres://")):
-        import psycopg
-
-        try:
-            conn = psycopg.connect(url, autocommit=True, connect_timeout=10)
-        except psycopg.Error as exc:
-            raise ResultsError(f"{_redact(url)}: cannot connect to the results database: {exc}") from None
-        return _store(conn, POSTGRES, _redact(url), psycopg.Error)
-    raise ResultsError(f"{url!r}: not a results database URL; use sqlite:PATH or postgresql://...")
-
-
-def _store(conn: Any, dialect: Dialect, where: str, error: type[Exception]) -> ResultsStore:
+            target = sa.make_url(url).set(drivername="postgresql+psycopg")
+            engine = sa.create_engine(target, connect_args={"connect_timeout": 10}, pool_pre_ping=True)
+        except ModuleNotFoundError:
+            raise ResultsError(f"{where}: PostgreSQL needs psycopg: pip install 'slscan[station-db]'") from None
+        except (sa.exc.ArgumentError, ValueError) as exc:
+            raise ResultsError(f"{where}: not a usable database URL: {_one_line(redact(str(exc), url))}") from None
+    else:
+        raise ResultsError(f"{where!r}: not a results database URL; use sqlite:PATH or postgresql://...")
     try:
-        return ResultsStore(conn, dialect, where, error)
+        return ResultsStore(engine, where, url, create)
     except BaseException:
-        conn.close()
+        engine.dispose()
         raise
 
 
-def _redact(url: str) -> str:
-    """The URL without its password, for messages."""
-    head, sep, tail = url.partition("@")
-    if not sep or ":" not in head.split("//", 1)[-1]:
-        return url
-    scheme, _, cred = head.partition("//")
-    return f"{scheme}//{cred.split(':')[0]}:***@{tail}"
+def _sqlite_pragmas(writable: bool) -> Any:
+    def on_connect(dbapi_conn: Any, _record: Any) -> None:
+        cur = dbapi_conn.cursor()
+        if writable:
+            cur.execute("PRAGMA journal_mode=WAL")  # readers (slscan results) never block the station
+        cur.execute("PRAGMA foreign_keys=ON")
+        cur.close()
+    return on_connect
 
 
 class ResultsStore:
-    """A connection to the results database, schema created on first use."""
+    """A connection pool to the results database; the schema is made or upgraded on open
+    (`create`), else only checked."""
 
-    def __init__(self, conn: Any, dialect: Dialect, where: str, error: type[Exception]) -> None:
-        self.conn = conn
-        self.dialect = dialect
+    def __init__(self, engine: Engine, where: str, url: str, create: bool = True) -> None:
+        self.engine = engine
         self.where = where
-        self._error = error  # the driver's base exception
-        self._lock = threading.RLock()  # one statement at a time on the connection, from any thread
-        with self._tx() as cur:
-            for stmt in _DDL:
-                cur.execute(dialect.ddl(stmt))
-            cur.execute("SELECT version FROM slscan_schema")
-            row = cur.fetchone()
-            if row is None:
-                cur.execute(dialect.sql("INSERT INTO slscan_schema (version) VALUES (?)"), (SCHEMA_VERSION,))
-            elif row[0] != SCHEMA_VERSION:
-                raise ResultsError(f"{where}: results schema version {row[0]}, this slscan uses {SCHEMA_VERSION}")
+        self.url = url  # as given, secrets included: for connecting, never for messages
+        self.owner = this_owner()
+        try:
+            engine.connect().close()
+        except sa.exc.SQLAlchemyError as exc:
+            how = "open" if engine.dialect.name == "sqlite" else "connect to"
+            cause = getattr(exc, "orig", None) or exc
+            raise ResultsError(f"{where}: cannot {how} the results database: "
+                               f"{_one_line(redact(str(cause), url))}") from None
+        with self._tx() as conn:
+            if create:
+                _META.create_all(conn)
+            version = self._version(conn)
+            if version is None and create:
+                conn.execute(sa.insert(_SCHEMA).values(version=SCHEMA_VERSION))
+            elif version == 1 and create:
+                _upgrade_from_1(conn)
+            elif version != SCHEMA_VERSION:
+                raise ResultsError(f"{where}: results schema version {version}, this slscan uses {SCHEMA_VERSION}"
+                                   + (" (a station opening it upgrades it)" if version == 1 else ""))
+
+    def _version(self, conn: sa.Connection) -> int | None:
+        if not sa.inspect(conn).has_table("slscan_schema"):
+            raise ResultsError(f"{self.where}: not a results database (no slscan_schema table)")
+        return conn.execute(sa.select(_SCHEMA.c.version)).scalar()
 
     def __enter__(self) -> ResultsStore:
         return self
@@ -207,139 +326,201 @@ class ResultsStore:
         self.close()
 
     def close(self) -> None:
-        self.conn.close()
+        self.engine.dispose()
+
+    def _error(self, exc: Exception) -> ResultsError:
+        """The database's complaint as one line, without secrets."""
+        cause = getattr(exc, "orig", None) or exc
+        return ResultsError(f"{self.where}: {type(cause).__name__}: {_one_line(redact(str(cause), self.url))}")
 
     @contextmanager
-    def _tx(self) -> Iterator[Any]:
-        """A cursor inside one committed transaction (rolled back on error)."""
+    def _tx(self) -> Iterator[sa.Connection]:
+        """A connection inside one committed transaction (rolled back on error)."""
         try:
-            with self._lock:
-                if self.dialect is SQLITE:
-                    with self.conn:
-                        yield self.conn.cursor()
-                else:
-                    with self.conn.transaction(), self.conn.cursor() as cur:
-                        yield cur
-        except self._error as exc:
-            raise ResultsError(f"{self.where}: {type(exc).__name__}: {exc}") from None
-
-    def _query(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
-        try:
-            with self._lock:
-                cur = self.conn.cursor()
-                cur.execute(self.dialect.sql(sql), tuple(params))
-                rows = cur.fetchall()
-                cur.close()
-                return rows
-        except self._error as exc:
-            raise ResultsError(f"{self.where}: {type(exc).__name__}: {exc}") from None
+            with self.engine.begin() as conn:
+                yield conn
+        except ResultsError:
+            raise
+        except sa.exc.SQLAlchemyError as exc:
+            raise self._error(exc) from None
 
     # -- writing
 
     def begin_part(self, start: PartStart) -> tuple[int, int]:
-        """Store a cycle as `in_progress`; returns (result id, attempt number for this serial)."""
-        d = self.dialect
-        values = asdict(start)
-        values["started_at"] = d.to_db_time(start.started_at)
-        with self._tx() as cur:
-            cur.execute(d.sql("SELECT COALESCE(MAX(attempt), 0) + 1 FROM results WHERE program = ? AND serial = ?"),
-                        (start.program, start.serial))
-            attempt = int(cur.fetchone()[0])
-            cols = _START_COLUMNS + ["attempt", "status", "message"]
-            cur.execute(d.sql(f"INSERT INTO results ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))}) "
-                              f"RETURNING id"), [values[c] for c in _START_COLUMNS] + [attempt, "in_progress", ""])
-            return int(cur.fetchone()[0]), attempt
+        """Store a cycle as `in_progress`, owned by this process under a fresh lease; returns
+        (result id, attempt number for this program and serial)."""
+        values = {**asdict(start), "status": "in_progress", "message": "", "owner": self.owner,
+                  "lease_until": utcnow() + dt.timedelta(seconds=LEASE_S)}
+        c = RESULTS.c
+        names = list(values)
+        next_attempt = sa.func.coalesce(sa.func.max(c.attempt), 0) + 1
+        chosen = sa.select(*(sa.literal(values[n], c[n].type) for n in names), next_attempt).where(
+            c.program == start.program, c.serial == start.serial)
+        stmt = sa.insert(RESULTS).from_select(names + ["attempt"], chosen).returning(c.id, c.attempt)
+        for retry in range(ATTEMPT_RETRIES):
+            try:
+                with self.engine.begin() as conn:
+                    rid, attempt = conn.execute(stmt).one()
+                return int(rid), int(attempt)
+            except sa.exc.IntegrityError as exc:  # another writer took this attempt number first
+                if retry == ATTEMPT_RETRIES - 1:
+                    raise self._error(exc) from None
+                time.sleep(random.uniform(0.0, 0.001 * 2 ** min(retry, 7)))  # writers in step would collide again
+            except sa.exc.SQLAlchemyError as exc:
+                raise self._error(exc) from None
+        raise AssertionError("unreachable")
+
+    def renew(self, result_id: int) -> bool:
+        """Extend this process's lease on a running cycle; False when it is not (any more)
+        this process's running cycle."""
+        with self._tx() as conn:
+            done = conn.execute(sa.update(RESULTS).where(
+                RESULTS.c.id == result_id, RESULTS.c.owner == self.owner, RESULTS.c.status == "in_progress").values(
+                lease_until=utcnow() + dt.timedelta(seconds=LEASE_S)))
+            return done.rowcount == 1
+
+    @contextmanager
+    def hold(self, result_id: int, every_s: float = LEASE_S / 4) -> Iterator[None]:
+        """Renew the lease on `result_id` every `every_s` s while the block runs."""
+        stop = threading.Event()
+
+        def renew() -> None:
+            while not stop.wait(every_s):
+                try:
+                    self.renew(result_id)
+                except ResultsError:
+                    pass  # the database is away for now; the next renewal tries again
+        thread = threading.Thread(target=renew, name=f"lease-{result_id}", daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            thread.join()
 
     def finish_part(self, result_id: int, status: str, message: str, values: Sequence[ValueRecord],
                     finished_at: dt.datetime, part_path: str | None = None) -> None:
         """Store a cycle's outcome and its measured values, in one transaction."""
         if status not in STATUSES or status == "in_progress":
             raise ValueError(f"not a final status: {status!r}")
-        d = self.dialect
-        with self._tx() as cur:
-            cur.execute(d.sql("UPDATE results SET status = ?, message = ?, finished_at = ?, "
-                              "part_path = COALESCE(?, part_path) WHERE id = ?"),
-                        (status, message, d.to_db_time(finished_at), part_path, result_id))
-            if cur.rowcount != 1:
+        c = RESULTS.c
+        with self._tx() as conn:
+            done = conn.execute(sa.update(RESULTS).where(c.id == result_id).values(
+                status=status, message=message, finished_at=finished_at, lease_until=None,
+                part_path=sa.func.coalesce(sa.literal(part_path, sa.Text), c.part_path)))
+            if done.rowcount != 1:
                 raise ResultsError(f"{self.where}: no result {result_id} to finish")
-            cur.execute(d.sql("DELETE FROM measured WHERE result_id = ?"), (result_id,))
-            for k, v in enumerate(values):
-                cur.execute(d.sql(f"INSERT INTO measured (result_id, position, {', '.join(_VALUE_COLUMNS)}) "
-                                  f"VALUES (?, ?, {', '.join('?' * len(_VALUE_COLUMNS))})"),
-                            [result_id, k] + [getattr(v, c) for c in _VALUE_COLUMNS])
+            conn.execute(sa.delete(MEASURED).where(MEASURED.c.result_id == result_id))
+            if values:
+                conn.execute(sa.insert(MEASURED), [{"result_id": result_id, "position": k, **asdict(v)}
+                                                   for k, v in enumerate(values)])
 
-    def mark_interrupted(self, station: str, message: str) -> list[int]:
-        """Cycles this station left `in_progress` (it died during them) become `incomplete`."""
-        d = self.dialect
-        with self._tx() as cur:
-            cur.execute(d.sql("SELECT id FROM results WHERE station = ? AND status = 'in_progress' ORDER BY id"),
-                        (station,))
-            ids = [int(r[0]) for r in cur.fetchall()]
-            for i in ids:
-                cur.execute(d.sql("UPDATE results SET status = 'incomplete', message = ? WHERE id = ?"), (message, i))
-        return ids
+    def mark_interrupted(self, station: str, message: str, now: dt.datetime | None = None) -> list[int]:
+        """Cycles of this station left `in_progress` by a process that is gone (see the
+        module docstring) become `incomplete`; a cycle whose owner still runs is left alone."""
+        now = now or utcnow()
+        c = RESULTS.c
+        with self._tx() as conn:
+            rows = conn.execute(sa.select(c.id, c.owner, c.lease_until).where(
+                c.station == station, c.status == "in_progress").order_by(c.id)).all()
+            stale = [int(r.id) for r in rows if owner_gone(r.owner, r.lease_until, now)]
+            for rid in stale:
+                conn.execute(sa.update(RESULTS).where(c.id == rid, c.status == "in_progress").values(
+                    status="incomplete", message=message, lease_until=None))
+        return stale
 
     # -- reading
 
     def results(self, program: str | None = None, serial: str | None = None, status: str | None = None,
                 since: dt.datetime | None = None, limit: int | None = None) -> list[ResultRow]:
         """Stored cycles, oldest first (the newest `limit` when given)."""
-        where, params = [], []
+        if limit is not None and limit < 0:
+            raise ValueError(f"limit must be >= 0, got {limit}")
+        c = RESULTS.c
+        q = sa.select(*(c[n] for n in _RESULT_COLUMNS))
         for col, val in (("program", program), ("serial", serial), ("status", status)):
             if val is not None:
-                where.append(f"{col} = ?")
-                params.append(val)
+                q = q.where(c[col] == val)
         if since is not None:
-            where.append("started_at >= ?")
-            params.append(self.dialect.to_db_time(since))
-        sql = f"SELECT {', '.join(_RESULT_COLUMNS)} FROM results"
-        if where:
-            sql += " WHERE " + " AND ".join(where)
-        sql += " ORDER BY id DESC"
-        if limit is not None:
-            sql += f" LIMIT {int(limit)}"
-        return [self._row(r) for r in reversed(self._query(sql, params))]
+            q = q.where(c.started_at >= since)
+        q = q.order_by(c.id.desc()).limit(limit)
+        with self._tx() as conn:
+            rows = conn.execute(q).all()
+        return [ResultRow(**r._asdict()) for r in reversed(rows)]
 
     def result(self, result_id: int) -> ResultRow:
-        rows = self._query(f"SELECT {', '.join(_RESULT_COLUMNS)} FROM results WHERE id = ?", (result_id,))
-        if not rows:
+        with self._tx() as conn:
+            row = conn.execute(sa.select(*(RESULTS.c[n] for n in _RESULT_COLUMNS)).where(
+                RESULTS.c.id == result_id)).one_or_none()
+        if row is None:
             raise ResultsError(f"{self.where}: no result {result_id}")
-        return self._row(rows[0])
-
-    def _row(self, values: Sequence[Any]) -> ResultRow:
-        r = dict(zip(_RESULT_COLUMNS, values))
-        r["started_at"] = self.dialect.from_db_time(r["started_at"])
-        r["finished_at"] = self.dialect.from_db_time(r["finished_at"])
-        return ResultRow(**r)
+        return ResultRow(**row._asdict())
 
     def values(self, result_ids: Sequence[int]) -> dict[int, list[ValueRecord]]:
         """Measured values per result id, in stored order."""
         out: dict[int, list[ValueRecord]] = {int(i): [] for i in result_ids}
         if not out:
             return out
-        marks = ", ".join("?" * len(out))
-        rows = self._query(f"SELECT result_id, {', '.join(_VALUE_COLUMNS)} FROM measured "
-                           f"WHERE result_id IN ({marks}) ORDER BY result_id, position", list(out))
+        m = MEASURED.c
+        with self._tx() as conn:
+            rows = conn.execute(sa.select(m.result_id, *(m[n] for n in _VALUE_COLUMNS)).where(
+                m.result_id.in_(list(out))).order_by(m.result_id, m.position)).all()
         for r in rows:
-            rec = dict(zip(_VALUE_COLUMNS, r[1:]))
-            rec["conforms"] = None if rec["conforms"] is None else bool(rec["conforms"])
-            out[int(r[0])].append(ValueRecord(**rec))
+            rec = r._asdict()
+            out[int(rec.pop("result_id"))].append(ValueRecord(**rec))
         return out
 
 
+def _upgrade_from_1(conn: sa.Connection) -> None:
+    """Schema 1 -> 2: the owner and lease columns and the unique attempt index (attempt
+    numbers that version 1 gave twice are renumbered in id order first)."""
+    for column in (RESULTS.c.owner, RESULTS.c.lease_until):
+        kind = column.type.compile(dialect=conn.dialect)
+        conn.execute(sa.text(f"ALTER TABLE results ADD COLUMN {column.name} {kind}"))
+    c = RESULTS.c
+    seen: dict[tuple[str, str], int] = {}
+    for rid, program, serial, attempt in conn.execute(sa.select(c.id, c.program, c.serial, c.attempt).order_by(c.id)):
+        want = seen.get((program, serial), 0) + 1
+        seen[(program, serial)] = want
+        if attempt != want:
+            conn.execute(sa.update(RESULTS).where(c.id == rid).values(attempt=want))
+    next(i for i in RESULTS.indexes if i.name == "results_attempt").create(conn)
+    conn.execute(sa.update(_SCHEMA).values(version=SCHEMA_VERSION))
+
+
+# ------------------------------------------------------------------------------ export
+
 _CSV_RESULT_COLUMNS = ["id"] + [c for c in _RESULT_COLUMNS if c != "id"]
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_cell(value: Any) -> Any:
+    """A text cell a spreadsheet will not run as a formula: text starting with = + - @, a
+    tab or a carriage return gets a leading apostrophe (numbers are left as numbers)."""
+    if isinstance(value, dt.datetime):
+        return value.isoformat()
+    if isinstance(value, str) and value.startswith(_FORMULA_START):
+        return "'" + value
+    return value
 
 
 def write_csv(out: TextIO, rows: Sequence[ResultRow], values: dict[int, list[ValueRecord]]) -> int:
     """One CSV line per measured characteristic (a cycle without values: one line with
-    empty value columns); times in ISO 8601 UTC. Returns the number of lines written."""
+    empty value columns); times in ISO 8601 UTC; text cells escaped (`csv_cell`). Returns
+    the number of lines written."""
     w = csv.writer(out)
     w.writerow(["result_id"] + _CSV_RESULT_COLUMNS[1:] + _VALUE_COLUMNS)
     n = 0
     for r in rows:
-        head = [getattr(r, c) for c in _CSV_RESULT_COLUMNS]
-        head = [v.isoformat() if isinstance(v, dt.datetime) else v for v in head]
+        head = [csv_cell(getattr(r, c)) for c in _CSV_RESULT_COLUMNS]
         for v in values.get(r.id) or [None]:
-            w.writerow(head + ([getattr(v, c) for c in _VALUE_COLUMNS] if v else [""] * len(_VALUE_COLUMNS)))
+            w.writerow(head + ([csv_cell(getattr(v, c)) for c in _VALUE_COLUMNS] if v else [""] * len(_VALUE_COLUMNS)))
             n += 1
     return n
+
+
+def csv_text(rows: Sequence[ResultRow], values: dict[int, list[ValueRecord]]) -> tuple[str, int]:
+    """The CSV export as text (written to a file atomically by the caller) and its line count."""
+    buf = io.StringIO(newline="")
+    n = write_csv(buf, rows, values)
+    return buf.getvalue(), n

@@ -19,24 +19,37 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated
 
-from scanner.config import CONFIG_DIR, get, get_table, load_toml, resolve
+from pydantic import Field
+
+from scanner import schema
+from scanner.config import CONFIG_DIR, resolve
 from scanner.errors import ConfigError
+from slscan.station.results import redact
 
 DEFAULT_STATION = CONFIG_DIR / "station" / "sim_bench.toml"
 SQLITE_NAME = "results.sqlite"
 
-_STATION_KEYS = {"name", "rig", "data_dir", "database", "max_calibration_age_days", "operator", "measurement"}
-_SIM_KEYS = {"seed"}
+class StationTable(schema.Schema):
+    name: schema.Str | None = None
+    rig: schema.Str
+    data_dir: schema.Str
+    database: schema.Str = ""
+    max_calibration_age_days: schema.NonNegativeFloat = 365.0
+    operator: schema.Str = ""
+    measurement: schema.Str = "inspection"
 
 
-def check_keys(table: dict[str, Any], allowed: set[str], path: str | Path, prefix: str = "") -> None:
-    """Refuse a key that is not in `allowed`, naming it (a misspelt key must not be ignored)."""
-    for key in table:
-        if key not in allowed:
-            full = f"{prefix}.{key}" if prefix else key
-            raise ConfigError(path, full, f"unknown key; expected one of {sorted(allowed)}")
+class SimTable(schema.Schema):
+    seed: Annotated[int, Field(strict=True, ge=0)] = 0
+
+
+class StationFile(schema.Schema):
+    """A station config TOML (module docstring)."""
+
+    station: StationTable
+    sim: SimTable = SimTable()
 
 
 @dataclass(frozen=True)
@@ -56,26 +69,15 @@ class StationConfig:
     @classmethod
     def load(cls, path: str | Path = DEFAULT_STATION) -> StationConfig:
         path = Path(path)
-        raw = load_toml(path)
-        check_keys(raw, {"station", "sim"}, path)
-        st = get_table(raw, "station", path)
-        check_keys(st, _STATION_KEYS, path, "station")
-        sim = get_table(raw, "sim", path, required=False)
-        check_keys(sim, _SIM_KEYS, path, "sim")
-        age = get(st, "max_calibration_age_days", float, path, 365.0, "station")
-        if age < 0:
-            raise ConfigError(path, "station.max_calibration_age_days", f"must be >= 0 (0 = no expiry), got {age}")
-        database = get(st, "database", str, path, "", "station")
+        st = schema.load(StationFile, path)
+        database = st.station.database
         if database and not database.startswith(("postgresql://", "postgres://", "sqlite:")):
-            raise ConfigError(path, "station.database", f"'{database}': give a postgresql:// URL, a sqlite:PATH, "
-                                                        f"or leave it empty for SQLite in the data folder")
-        return cls(path=path, name=get(st, "name", str, path, path.stem, "station"),
-                   rig_path=resolve(path, get(st, "rig", str, path, prefix="station")).resolve(),
-                   data_dir=resolve(path, get(st, "data_dir", str, path, prefix="station")).resolve(),
-                   database=database, max_calibration_age_days=age,
-                   operator=get(st, "operator", str, path, "", "station"),
-                   measurement=get(st, "measurement", str, path, "inspection", "station"),
-                   sim_seed=get(sim, "seed", int, path, 0, "sim"))
+            raise ConfigError(path, "station.database", f"'{redact(database, database)}': give a postgresql:// URL, "
+                                                        f"a sqlite:PATH, or leave it empty for SQLite in the data folder")
+        return cls(path=path, name=st.station.name or path.stem, rig_path=resolve(path, st.station.rig).resolve(),
+                   data_dir=resolve(path, st.station.data_dir).resolve(), database=database,
+                   max_calibration_age_days=st.station.max_calibration_age_days, operator=st.station.operator,
+                   measurement=st.station.measurement, sim_seed=st.sim.seed)
 
     @property
     def database_url(self) -> str:

@@ -26,6 +26,7 @@ from scanner.errors import ScannerError
 from slscan.station.app import StationRun, outcome_lines
 from slscan.station.loop import CycleOutcome
 from slscan.station.quality import RunningStats
+from slscan.station.spc import MIN_CAPABILITY_N
 
 POLL_S = 0.1
 KEYS_READY = "[s]/Enter scan  [e] serial  [o] operator  [n] next part  [r] re-scan  [q] quit"
@@ -209,9 +210,10 @@ class StationTUI:
             + (f", yield {s.yield_percent:.1f} %" if s.yield_percent is not None else ""))
         for c in s.characteristics:
             if c.n:
+                cap = c.capability
                 put(f"    {c.name:<22} n {c.n:<4} mean {c.mean_mm:.4f}  max {c.max_mm:.4f}"
-                    + (f"  std {c.std_mm:.4f}" if c.std_mm is not None else "")
-                    + (f"  Cpu {c.cpu:.2f}" if c.cpu is not None else ""))
+                    + (f"  Cpk {cap.cpk:.2f} [{cap.cpk_ci[0]:.2f}, {cap.cpk_ci[1]:.2f}]"
+                       + (f" (n {cap.n} < {MIN_CAPABILITY_N}: unreliable)" if cap.warning else "") if cap else ""))
         for e in events:
             put("event  " + e)
         scr.refresh()

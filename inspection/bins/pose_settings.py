@@ -1,0 +1,57 @@
+"""What pose estimation of thin flat parts can be tuned by (`PoseSettings`), and its error."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from inspection.errors import InspectionError
+
+METHODS = ("sacia", "ndt")
+
+
+class PoseError(InspectionError):
+    """A part model or pose-estimation input is unusable (not a thin flat part, bad settings)."""
+
+
+@dataclass(frozen=True)
+class PoseSettings:
+    """`method`: coarse step, "sacia" or "ndt"; `extrude_mm` / `wall_levels`: depth and
+    levels of the walls dropped from outlines; `voxel_mm`: the coarse clouds' voxel;
+    `max_normal_deg`: ICP's normal-angle rejection; `min_fitness`: fraction of the
+    instance's points on the posed face (within `inlier_mm`) below which the pose fails;
+    `min_edge_fit`: the same for the instance's true outline points on the part's outline;
+    `ambiguity_margin`: a distinct pose (or the other side) judged within it of the best
+    makes the instance ambiguous (failed); `max_spill`: fraction of the posed face
+    allowed where a lower surface is seen;
+    `max_plane_rms_mm`, `min_plane_fraction`: an instance with a larger robust RMS
+    distance to its plane, or a smaller fraction of its points within that distance, is
+    not one flat part;
+    `max_occlusion`: above it a part is not offered for picking; `min_points`: smaller
+    instances are not posed; `hypotheses`: SAC-IA triplets scored; `verify`: its distinct
+    coarse poses refined per side; `attempts`: SAC-IA runs (fresh samples) before an
+    instance is reported as failed."""
+
+    method: str = "sacia"
+    extrude_mm: float = 1.5
+    wall_levels: int = 3
+    voxel_mm: float = 0.3
+    max_normal_deg: float = 30.0
+    min_fitness: float = 0.9
+    min_edge_fit: float = 0.8
+    inlier_mm: float = 0.15
+    max_spill: float = 0.05
+    ambiguity_margin: float = 0.1
+    max_plane_rms_mm: float = 0.1
+    min_plane_fraction: float = 0.8
+    max_occlusion: float = 0.3
+    min_points: int = 200
+    hypotheses: int = 100
+    verify: int = 2
+    attempts: int = 3
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise PoseError(f"unknown pose method {self.method!r}; use one of {METHODS}")
+        if not (self.extrude_mm > 0 and self.wall_levels >= 1 and self.voxel_mm > 0 and 0 < self.min_fitness <= 1):
+            raise PoseError(f"inconsistent pose settings: {self}")
