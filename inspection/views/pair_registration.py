@@ -44,6 +44,7 @@ from inspection.views.pairwise import PairSettings, PairView, refine_pair, thin
 MIN_FITNESS = 0.8
 MIN_OVERLAP = 0.1
 MAX_VIOLATIONS = 0.002
+OPEN_GATE = 1e-9  # the CAD search's min_fitness when a view is the target (settings refuse 0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -118,7 +119,8 @@ def register_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None
     if overlap is not None and not 0 < overlap <= 1:
         raise ValueError(f"overlap must be a share in (0, 1], got {overlap}")
     model = ModelTarget.from_cloud(target)
-    coarse = register(scan, model, replace(settings, min_fitness=0.0))  # its gates assume a subset: judged below
+    # its fitness gate assumes a subset (opened to the smallest it takes): the pose is judged below
+    coarse = register(scan, model, replace(settings, min_fitness=OPEN_GATE))
     voxel = model.voxel_mm
     keep = thin(scan.points, 0.5 * voxel)
     source = PairView(scan.points[keep], scan.normals[keep], Samples(scan.points, scan.normals))
