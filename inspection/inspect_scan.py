@@ -22,7 +22,8 @@ from inspection.cad import CadModel
 from inspection.errors import InspectionError
 from inspection.form import FormSettings, evaluate_face
 from inspection.measured_cloud import ScanCloud, make_scan, part_mask
-from inspection.registration import ModelTarget, RegistrationSettings, register, transform_points
+from inspection.registration import ModelTarget, Registration, RegistrationSettings, transform_points
+from inspection.registration.warm_start import register_with_prior
 from inspection.report import FaceRow, InspectionReport
 from inspection.segmentation import assign_faces
 from inspection.tolerances import Tolerances, verdict
@@ -50,9 +51,11 @@ def prepare(model: CadModel) -> ModelTarget:
 
 
 def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = None,
-            settings: InspectionSettings = InspectionSettings(), recording: Any = None) -> InspectionReport:
+            settings: InspectionSettings = InspectionSettings(), recording: Any = None,
+            prior: Registration | None = None) -> InspectionReport:
     """Register `scan` to `model`, segment it by CAD face and evaluate every face seen.
-    `recording`: a `scanner.session_recording.SessionRecording` to log the result into."""
+    `recording`: a `scanner.session_recording.SessionRecording` to log the result into;
+    `prior`: the previous part's registration on this station, tried first (warm start)."""
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     mask = part_mask(scan, model.diagonal_mm)
@@ -61,7 +64,7 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
     t0 = time.perf_counter()
     target = prepare(model)
     times["model"] = time.perf_counter() - t0
-    reg = register(part, target, settings.registration)
+    reg = register_with_prior(part, target, prior, settings.registration)
     times["register"] = reg.timings_s.get("total", 0.0)
     t0 = time.perf_counter()
     q = transform_points(reg.transform, part.points)

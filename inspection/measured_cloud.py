@@ -21,6 +21,8 @@ from scanner.pointcloud import OrganisedCloud
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".pts")
 SUPPORT_EXTENT = 1.3  # a plane wider than this many model diagonals is the table, not the part
 MIN_POINTS = 500
+PIXEL_CHECK_POINTS = 2000  # a session's PLY: points projected to check the pixels it names
+PIXEL_CHECK_PX = 1.0  # ... and how far they may land from them (triangulation residual, rounding)
 _UNIT_FACTORS = {1000.0: "the model looks like metres and the scan millimetres (use --cad-unit m)",
                  25.4: "the model looks like inches and the scan millimetres (use --cad-unit in)",
                  10.0: "the model looks like centimetres and the scan millimetres (use --cad-unit cm)"}
@@ -112,16 +114,29 @@ def read_cloud(path: str | Path) -> ScanCloud:
 
 
 def load_session(path: str | Path) -> ScanCloud:
-    """The cloud of an slscan session (outputs/cloud.ply), placed back on its camera pixels."""
+    """The cloud of an slscan session (outputs/cloud.ply), placed back on its camera pixels:
+    the pixels the PLY names (checked on a sample: those points must project onto them),
+    else each point's projection."""
+    from scanner.pointcloud import read_ply_pixels
     from scanner.session import Session
 
     session = Session.open(path)
     ply = session.outputs / "cloud.ply"
     if not ply.exists():
         raise CloudError(session.root, f"no {ply.name}; run `slscan decode {session.root}` to make it")
-    scan = read_cloud(ply)
     cam = session.rig_model().camera
-    px = np.rint(cam.project(scan.points)).astype(np.int64)
+    stored = read_ply_pixels(ply)
+    if stored is None:  # another writer's PLY: place every point by projecting it
+        scan = read_cloud(ply)
+        px = np.rint(cam.project(scan.points)).astype(np.int64)
+    else:
+        points, normals, px = stored
+        scan = make_scan(points.astype(np.float64), normals.astype(np.float64), str(ply), np.zeros(3))
+        sample = np.linspace(0, len(px) - 1, min(len(px), PIXEL_CHECK_POINTS)).astype(np.int64)
+        off = np.abs(cam.project(scan.points[sample]) - px[sample]).max(initial=0.0)
+        if not off <= PIXEL_CHECK_PX:
+            raise CloudError(ply, f"points lie up to {off:.1f} px from the pixels the file names in this session's "
+                                  f"camera: not this session's cloud")
     inside = (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
     if not inside.all():
         raise CloudError(ply, "points do not project into the session's camera: not this session's cloud")

@@ -4,10 +4,12 @@ frames alone. Each stage takes arrays or small typed objects and returns the sam
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from concurrent.futures import Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
+import cv2
 import numpy as np
 
 from scanner.acquisition import AcquisitionSettings, acquire, check_signature
@@ -20,7 +22,10 @@ from scanner.pointcloud import OrganisedCloud, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from scanner.rig import Rig
 from scanner.session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, write_json, write_npz
-from scanner.session_recording import SessionRecording
+from scanner.stage_timer import StageTimer
+
+if TYPE_CHECKING:  # Rerun takes ~0.3 s to import: only the commands that record load it
+    from scanner.session_recording import SessionRecording
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
 BLANK_FRAME_RANGE = 0.01  # of full scale: a frame whose pixels all lie within this range shows no pattern
@@ -57,18 +62,34 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
     for save in rig.extras.get("session_files", ()):  # driver-specific data kept with the raw frames
         save(writer.root)
 
-    def on_frame(k: int, frame: Frame) -> None:
+    def store(k: int, frame: Frame) -> None:
         writer.add_frame(k, frame)
-        if recording is not None:
-            recording.log_frame(k, frame, specs[k])
+        if recording is not None:  # the PNG just written (in the page cache), not encoded again
+            recording.log_frame(k, frame, specs[k], png=(writer.root / writer.frames[-1]["file"]).read_bytes())
+
+    # frames are encoded (PNG) and written by one thread in arrival order while the next are
+    # acquired; a store that failed stops the capture at the next frame. `progress` runs here,
+    # in the acquisition's thread, so a progress callback that raises (an operator's abort)
+    # stops the capture at once, every frame captured until then stored
+    stored: list[Future[None]] = []
+
+    def on_frame(k: int, frame: Frame) -> None:
+        for f in stored:
+            if f.done() and f.exception() is not None:
+                raise f.exception()  # type: ignore[misc]
+        stored.append(pool.submit(store, k, replace(frame, image=frame.image.copy())))  # a driver may reuse its buffer
         progress("capture", k + 1, n)
 
     t0 = time.perf_counter()
-    try:
-        acquire(rig, patterns, AcquisitionSettings.for_rig(rig), on_frame)
-    except BaseException as exc:  # includes Ctrl-C: the capture is recorded as failed
-        writer.fail(exc, "capture")
-        raise
+    with ThreadPoolExecutor(1, thread_name_prefix="store frames") as pool:
+        try:
+            acquire(rig, patterns, AcquisitionSettings.for_rig(rig), on_frame)
+            for f in stored:
+                f.result()
+        except BaseException as exc:  # includes Ctrl-C: the capture is recorded as failed
+            wait(stored)  # the frames already captured are kept
+            writer.fail(exc, "capture")
+            raise
     timings = {"capture": round(time.perf_counter() - t0, 4)}
     devices = {name: dev.describe() for name, dev in
                (("camera", rig.camera), ("projector", rig.projector), ("trigger", rig.trigger)) if dev is not None}
@@ -83,31 +104,27 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     (cloud PLY, maps, result JSON) beside them."""
     if mode not in ("triangulation", "phase_to_height"):
         raise ScannerError(f"unknown reconstruction mode '{mode}'; use triangulation or phase_to_height")
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
+    timer = StageTimer()
     progress("load", 0, 1)
-    stack = session.load_stack()
-    patterns = session.patterns
-    model = session.rig_model()
-    check_frames_fit(session, stack, model)
-    timings["load"] = time.perf_counter() - t0
+    with timer.stage("load"):
+        stack = session.load_stack()
+        patterns = session.patterns
+        model = session.rig_model()
+        check_frames_fit(session, stack, model)
     progress("decode", 0, 1)
-    t0 = time.perf_counter()
-    decoded = decode(stack, patterns, session.bit_depth, model.projector.size, settings)
-    timings["decode"] = time.perf_counter() - t0
+    with timer.stage("decode"):
+        decoded = decode(stack, patterns, session.bit_depth, model.projector.size, settings)
     calibrated = session.manifest.get("calibrated", True)
     progress("reconstruct", 0, 1)
-    t0 = time.perf_counter()
-    cloud = None
-    if not calibrated:
-        pass  # imported without a calibration: the maps are the result
-    elif mode == "triangulation":
-        cloud = triangulate(decoded, Triangulator(model))
-    else:
-        cloud = phase_to_height_cloud(decoded, model)
-    timings["reconstruct"] = time.perf_counter() - t0
+    with timer.stage("reconstruct"):
+        cloud = None
+        if not calibrated:
+            pass  # imported without a calibration: the maps are the result
+        elif mode == "triangulation":
+            cloud = triangulate(decoded, Triangulator(model))
+        else:
+            cloud = phase_to_height_cloud(decoded, model)
     progress("write", 0, 1)
-    t0 = time.perf_counter()
     out = session.root / OUTPUTS_DIR
     out.mkdir(exist_ok=True)
     n_points = len(cloud) if cloud is not None else 0
@@ -117,12 +134,14 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
         problem = no_points_reason(decoded)
         write_json(out / "result.json", {"session_id": session.id, "mode": mode, "error": problem, **stats})
         raise DecodeError(f"{session.root}: the scan yielded no points: {problem}")
-    if cloud is not None:
-        write_ply(out / "cloud.ply", cloud)
-    save_maps(out / "maps.npz", decoded)
-    timings["write"] = time.perf_counter() - t0
-    timings = {k: round(v, 4) for k, v in timings.items()}
-    write_json(out / "result.json", {"session_id": session.id, "mode": mode, "timings_s": timings, **stats})
+    with timer.stage("write"), ThreadPoolExecutor(1, thread_name_prefix="write maps") as pool:
+        maps = pool.submit(save_maps, out / "maps.npz", decoded)  # deflate and file writes release the GIL
+        if cloud is not None:
+            write_ply(out / "cloud.ply", cloud)
+        maps.result()
+    timings, cpu = timer.rounded()
+    write_json(out / "result.json", {"session_id": session.id, "mode": mode, "timings_s": timings, "cpu_s": cpu,
+                                     **stats})
     if recording is not None:
         recording.log_decode(decoded)
         if cloud is not None:
@@ -184,28 +203,64 @@ def save_maps(path: Path, decoded: DecodeResult) -> None:
     write_npz(path, arrays)
 
 
-def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triangulation") -> ScanResult:
-    """Regenerate every output of a session, its Rerun recording included, from the raw
-    frames and manifest alone."""
-    stack = session.load_stack()
-    specs = session.patterns.frames()
-    with SessionRecording(session.recording_path, session.id) as rec:
+def recording_level(session: Session) -> str:
+    """The recording level the session was captured with (its rig's `[recording] level`;
+    "display" when the rig said nothing, or for imported frames)."""
+    table = session.manifest.get("rig_config", {}).get("recording", {})
+    return str(table.get("level", "display")) if isinstance(table, dict) else "display"
+
+
+def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triangulation",
+              level: str | None = None) -> ScanResult:
+    """Regenerate every output of a session, its Rerun recording included (at `level`,
+    default the session's own: `recording_level`), from the raw frames and manifest alone."""
+    from scanner.session_recording import SessionRecording
+
+    level = level or recording_level(session)
+    if level == "none":
+        session.recording_path.unlink(missing_ok=True)  # an older recording would not match the new outputs
+        return process(session, progress, mode=mode)
+    with SessionRecording(session.recording_path, session.id, level=level) as rec:
         rec.log_rig(session.rig_model())
-        for k, entry in enumerate(session.manifest["frames"]):
-            rec.log_frame(k, Frame(stack[k], entry["index"], entry["pattern_index"], entry["timestamp_s"],
-                                   entry["exposure_s"], entry["bit_depth"]), specs[k])
-        return process(session, progress, rec, mode=mode)
+        with ThreadPoolExecutor(1, thread_name_prefix="record frames") as pool:  # beside the decode
+            frames = pool.submit(log_session_frames, rec, session)
+            result = process(session, progress, rec, mode=mode)
+            frames.result()
+        return result
+
+
+def log_session_frames(recording: SessionRecording, session: Session) -> None:
+    """The session's raw frames into `recording` as PNG: the files' own bytes, or frames in
+    another lossless format (an import's BMP or TIFF) re-encoded."""
+    from scanner.session_recording import png_bytes
+
+    for k, spec in enumerate(session.patterns.frames()):
+        path = session.frame_path(k)
+        data = path.read_bytes()
+        if path.suffix.lower() != ".png":
+            data = png_bytes(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED))
+        recording.log_png_frame(k, data, spec)
 
 
 def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress = _quiet,
-         then: Callable[[ScanResult, SessionRecording], None] | None = None,
-         extra: dict[str, Any] | None = None) -> ScanResult:
+         then: Callable[[ScanResult, SessionRecording | None], None] | None = None,
+         level: str | None = None, extra: dict[str, Any] | None = None) -> ScanResult:
     """Capture, decode and reconstruct one scan, recording every stage to the session's
-    Rerun file. `then(result, recording)`, if given, runs a later stage (`slscan demo`'s
-    inspection) into the same recording before it is closed; `extra` goes into the
+    Rerun file at `level` (default the rig's `[recording] level`; "none": no recording, and
+    `then` gets None). `then(result, recording)`, if given, runs a later stage (`slscan
+    demo`'s inspection) into the same recording before it is closed; `extra` goes into the
     session's manifest (`capture`)."""
+    from scanner.session_recording import SessionRecording
+
+    level = level or rig.config.recording_level
     writer = SessionWriter.create(out_dir)
-    with SessionRecording(writer.root / RECORDING, writer.id) as rec:
+    if level == "none":
+        session = capture(rig, patterns, writer, progress, extra=extra)
+        result = process(session, progress)
+        if then is not None:
+            then(result, None)
+        return result
+    with SessionRecording(writer.root / RECORDING, writer.id, level=level) as rec:
         rec.log_rig(rig.model)
         session = capture(rig, patterns, writer, progress, rec, extra)
         result = process(session, progress, rec)

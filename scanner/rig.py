@@ -54,6 +54,7 @@ class RigConfig:
     projector: dict[str, Any]
     raw: dict[str, Any] = field(repr=False)
     calibration_path: Path | None = None
+    recording_level: str = "display"  # [recording] level: "full", "display" or "none"
 
     @classmethod
     def load(cls, path: str | Path = DEFAULT_RIG) -> RigConfig:
@@ -61,11 +62,13 @@ class RigConfig:
         nominal geometry able to triangulate (a common field of view at the working distance)."""
         path = Path(path)
         raw = load_toml(path)
-        rig = schema.parse(RigFile, raw, path).rig
+        file = schema.parse(RigFile, raw, path)
+        rig = file.rig
         cfg = cls(path=path, name=rig.name or path.stem, driver=rig.driver, trigger=rig.trigger,
                   timeout_s=rig.timeout_s, period_s=rig.period_s, working_distance_mm=rig.working_distance_mm,
                   patterns_path=resolve(path, rig.patterns), camera=raw["camera"], projector=raw["projector"],
-                  raw=raw, calibration_path=resolve(path, rig.calibration) if rig.calibration else None)
+                  raw=raw, calibration_path=resolve(path, rig.calibration) if rig.calibration else None,
+                  recording_level=file.recording.level)
         check_geometry(cfg.nominal_model(), cfg.working_distance_mm, path, "projector")
         if cfg.calibration_path is not None:
             check_geometry(cfg.model, cfg.working_distance_mm, path, "rig.calibration")

@@ -139,6 +139,17 @@ class RigTable(Schema):
         return self
 
 
+RecordingLevel = Literal["full", "display", "none"]  # see scanner.session_recording
+
+
+class RecordingTable(Schema):
+    """[recording]: how much of each scan its Rerun recording keeps (the raw frames and the
+    cloud PLY are always on disk): "full" every map and point, "display" (default) maps and
+    cloud decimated for viewing, "none" no recording."""
+
+    level: RecordingLevel = "display"
+
+
 class TriggerBoxTable(Schema):
     port: Str
     boot_timeout_s: PositiveFloat = 3.0
@@ -152,6 +163,7 @@ class RigFile(Schema):
     projector: ProjectorTable
     trigger_box: TriggerBoxTable | None = None
     sim: SimTable | None = None
+    recording: RecordingTable = RecordingTable()
     calibrate: dict[str, Any] | None = None  # validated by calibration.workflow.Procedure (its keys, its rules)
     stage: dict[str, Any] | None = None  # validated by scanner.stage_model.StageConfig (its keys, its rules)
 

@@ -13,10 +13,12 @@ entity path                                content                              
 =========================================  ==========================================  ===============
 ``world``                                  ViewCoordinates RDF                          static
 ``world/camera``                           Transform3D world_from_cam + Pinhole         static
-``world/camera/image``                     raw frames, Image at their bit depth         pattern, scan
+``world/camera/image``                     raw frames, EncodedImage: lossless PNG at    pattern, scan
+                                           their bit depth
 ``world/projector``                        Transform3D world_from_cam·cam_from_proj     static
                                            + Pinhole
 ``world/scan/cloud``                       Points3D in the world frame, grey colours    scan
+                                           (every `step`-th pixel's at level display)
 ``world/scan/normals``                     Arrows3D, a subsample of the normals (opt.)  scan
 ``frames/spec``                            TextLog: the pattern each frame shows        pattern, scan
 ``rig``                                    TextDocument: the rig model as JSON          static
@@ -34,6 +36,13 @@ entity path                                content                              
 ``metrics/<name>``                         Scalars (timings in s, fractions, errors)    scan
 ``events``                                 TextLog: session events and errors           as logged
 =========================================  ==========================================  ===============
+
+Levels (`level=`, a rig's ``[recording] level``): ``"full"`` logs every map pixel and every
+point; ``"display"`` the same entities with the maps and the organised cloud taken every
+`display_step(H, W)`-th row and column (the longest side at most DISPLAY_MAX_SIDE_PX; the maps'
+images are smaller than the camera's then), so a station can keep a recording per part; the
+frames are the record and stay lossless at every level. ``"none"`` (a rig's option) writes no
+recording: `pipeline.scan` then makes no `SessionRecording` at all.
 
 Timelines: ``pattern`` is the frame's index in its pattern sequence (`PatternSet.frames()`),
 ``scan`` the scan's index in the session; Rerun adds ``log_time`` (wall clock) by itself.
@@ -55,12 +64,14 @@ pixel of the logged images.
 from __future__ import annotations
 
 import json
+import math
 import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, get_args
 
+import cv2
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
@@ -71,10 +82,14 @@ from scanner.errors import ScannerError
 from scanner.geometry import Pinhole, RigModel
 from scanner.patterns import FrameSpec, PatternSet
 from scanner.pointcloud import OrganisedCloud
+from scanner.rig_schema import RecordingLevel
 
 APPLICATION_ID = "slscan"
 RECORDING_NAME = "recording.rrd"  # file name inside a session folder
 CLOSE_TIMEOUT_S = 30.0  # longest wait for the writer to flush (twice this for the whole close)
+LEVELS: tuple[str, ...] = get_args(RecordingLevel)  # "full", "display", "none"
+DISPLAY_MAX_SIDE_PX = 800  # level "display": maps and cloud decimated until their longest side is at most this
+PNG_FAST = [cv2.IMWRITE_PNG_COMPRESSION, 1]  # frames encoded here (not read from disk): lossless, fast
 
 TIMELINE_PATTERN = "pattern"
 TIMELINE_SCAN = "scan"
@@ -126,6 +141,20 @@ def metric_path(name: str) -> str:
     if not name:
         raise ValueError("metric name is empty")
     return f"{METRICS}/{name}"
+
+
+def display_step(height: int, width: int) -> int:
+    """Row and column step of level "display": the smallest that brings the longest side
+    of an (height, width) image to at most DISPLAY_MAX_SIDE_PX."""
+    return max(1, math.ceil(max(height, width) / DISPLAY_MAX_SIDE_PX))
+
+
+def png_bytes(image: np.ndarray) -> bytes:
+    """`image` (H, W) uint8/uint16 as a lossless PNG at its bit depth."""
+    ok, buf = cv2.imencode(".png", image, PNG_FAST)
+    if not ok:
+        raise RecordingError(f"could not encode a {image.dtype} {image.shape} frame as PNG")
+    return buf.tobytes()
 
 
 def spec_name(spec: FrameSpec) -> str:
@@ -185,6 +214,11 @@ def _reason_image(masks: Mapping[str, np.ndarray], valid: np.ndarray, ids: Mappi
     return cls
 
 
+def _every(masks: Mapping[str, np.ndarray], step: int) -> dict[str, np.ndarray]:
+    """Each mask's every `step`-th row and column."""
+    return {name: mask[::step, ::step] for name, mask in masks.items()}
+
+
 def _annotation_context(ids: Mapping[str, int]) -> rr.AnnotationContext:
     infos = [rr.AnnotationInfo(id=VALID_CLASS, label="valid", color=(0, 0, 0, 0)),
              rr.AnnotationInfo(id=REJECTED_CLASS, label="rejected", color=_OTHER_REASON_COLOR)]
@@ -237,10 +271,15 @@ class SessionRecording:
     final name; until then it is `<path>.part`) when the recording is closed, which
     happens even when the `with` block raises. Pass `patterns` to lay the maps out in the
     default blueprint from the start; otherwise the layout follows the first decode logged.
+    `level` "display" decimates the maps and the cloud (module docstring).
     """
 
     def __init__(self, path: str | Path, session_id: str, *, patterns: PatternSet | None = None,
-                 send_blueprint: bool = True, application_id: str = APPLICATION_ID) -> None:
+                 send_blueprint: bool = True, application_id: str = APPLICATION_ID, level: str = "full") -> None:
+        if level not in LEVELS or level == "none":
+            raise RecordingError(f"recording level '{level}': a recording is 'full' or 'display' ('none' makes "
+                                 f"no recording)")
+        self.level = level
         self.path = Path(path)
         if not self.path.parent.is_dir():
             raise RecordingError(f"{self.path}: folder does not exist; create the session folder first")
@@ -369,43 +408,52 @@ class SessionRecording:
         s.log(RIG_INFO, rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True, strict=True)
 
     def log_frame(self, index: int, frame: np.ndarray | Frame, spec: FrameSpec | None = None, *,
-                  scan: int = 0) -> None:
-        """One raw frame (an image, or a device `Frame`) as it arrives: `index` is its place
-        in the pattern sequence, `spec` the pattern it shows."""
+                  scan: int = 0, png: bytes | None = None) -> None:
+        """One raw frame (an image, or a device `Frame`) as it arrives, as a lossless PNG:
+        `png` is the frame's file as written to the session (else it is encoded here);
+        `index` is its place in the pattern sequence, `spec` the pattern it shows."""
         self._check_open()
         image = np.asarray(frame.image if isinstance(frame, Frame) else frame)
         if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
             raise RecordingError(f"frame {index}: expected an (H, W) uint8 or uint16 image, "
                                  f"got {image.dtype} {image.shape}")
+        self.log_png_frame(index, png if png is not None else png_bytes(image), spec, scan=scan)
+
+    def log_png_frame(self, index: int, png: bytes, spec: FrameSpec | None = None, *, scan: int = 0) -> None:
+        """One raw frame given as its PNG file's bytes (a session's own frame, as stored)."""
+        self._check_open()
         self._at(scan, index)
-        self.stream.log(CAMERA_IMAGE, rr.Image(image), strict=True)
+        self.stream.log(CAMERA_IMAGE, rr.EncodedImage(contents=png, media_type=rr.MediaType.PNG), strict=True)
         if spec is not None:
             self.stream.log(FRAME_SPEC, rr.TextLog(f"{index}: {spec_name(spec)}", level="INFO"), strict=True)
 
     def log_frames(self, stack: np.ndarray, specs: Sequence[FrameSpec] | None = None, *, scan: int = 0,
                first_index: int = 0) -> None:
-        """A whole (N, H, W) stack at once (e.g. re-logged from a session folder), columnar."""
+        """A whole (N, H, W) stack at once (e.g. re-logged from a session folder), columnar,
+        each frame a lossless PNG."""
         self._check_open()
-        stack = np.ascontiguousarray(stack)
+        stack = np.asarray(stack)
         if stack.ndim != 3 or stack.dtype not in (np.uint8, np.uint16):
             raise RecordingError(f"expected an (N, H, W) uint8 or uint16 stack, got {stack.dtype} {stack.shape}")
-        n, h, w = stack.shape
+        n = len(stack)
         if specs is not None and len(specs) != n:
             raise RecordingError(f"{n} frames but {len(specs)} pattern specs")
         idx = np.arange(first_index, first_index + n)
         times = [rr.TimeColumn(TIMELINE_PATTERN, sequence=idx), rr.TimeColumn(TIMELINE_SCAN, sequence=np.full(n, scan))]
-        fmt = rr.components.ImageFormat(width=w, height=h, color_model="L",
-                                        channel_datatype="U8" if stack.dtype == np.uint8 else "U16")
-        self.stream.send_columns(CAMERA_IMAGE, times,
-                                 rr.Image.columns(buffer=stack.reshape(n, -1).view(np.uint8), format=[fmt] * n),
-                                 strict=True)
+        self.stream.send_columns(CAMERA_IMAGE, times, rr.EncodedImage.columns(
+            blob=[png_bytes(f) for f in stack], media_type=[rr.MediaType.PNG] * n), strict=True)
         if specs is not None:
             self.stream.send_columns(FRAME_SPEC, times, rr.TextLog.columns(
                 text=[f"{i}: {spec_name(s)}" for i, s in zip(idx, specs)], level=["INFO"] * n), strict=True)
 
+    def _step(self, height: int, width: int) -> int:
+        """Row and column step of the maps and the cloud at this recording's level."""
+        return display_step(height, width) if self.level == "display" else 1
+
     def log_decode(self, result: DecodeResult, *, scan: int = 0, detail: bool = True) -> None:
-        """The decoded maps as 2D images under `maps/`. `detail=False` logs only the
-        coordinates, masks and texture (the per-frequency maps are the bulk of the data)."""
+        """The decoded maps as 2D images under `maps/` (decimated at level "display").
+        `detail=False` logs only the coordinates, masks and texture (the per-frequency maps
+        are the bulk of the data)."""
         self._check_open()
         if self._blueprint_pending:
             self._send_blueprint(tuple(result.maps), len(result.patterns.fringes))
@@ -416,40 +464,51 @@ class SessionRecording:
             self.stream.log(MAPS, _annotation_context(ids), static=True, strict=True)
         self._at(scan)
         log = self.stream.log
+        step = self._step(*result.valid.shape)
+        valid = result.valid[::step, ::step]
         for o, m in result.maps.items():
-            self._orientation_maps(o, m, ids, detail)
-        log(MAP_TEXTURE, rr.Image(np.asarray(result.texture, dtype=np.float32)), strict=True)
-        combined = np.zeros(result.valid.shape, dtype=np.uint8)
+            self._orientation_maps(o, m, ids, detail, step)
+        log(MAP_TEXTURE, rr.Image(np.asarray(result.texture[::step, ::step], dtype=np.float32)), strict=True)
+        combined = np.zeros(valid.shape, dtype=np.uint8)
         for m in result.maps.values():  # the first orientation that rejects a pixel names the reason
-            cls = _reason_image(m.masks, m.valid, ids)
+            cls = _reason_image(_every(m.masks, step), m.valid[::step, ::step], ids)
             np.copyto(combined, cls, where=(combined == VALID_CLASS))
-        combined[~result.valid & (combined == VALID_CLASS)] = REJECTED_CLASS
+        combined[~valid & (combined == VALID_CLASS)] = REJECTED_CLASS
         log(MAP_MASKS, rr.SegmentationImage(combined), strict=True)
 
-    def _orientation_maps(self, o: str, m: OrientationMaps, ids: Mapping[str, int], detail: bool) -> None:
+    def _orientation_maps(self, o: str, m: OrientationMaps, ids: Mapping[str, int], detail: bool,
+                          step: int) -> None:
         log = self.stream.log
-        for kind, data in (("coordinate", m.coordinate), ("phase", m.phase)):
-            rng = _finite_range(data, m.valid)
-            img = np.where(m.valid, data, np.float32(0)).astype(np.float32, copy=False)
+        valid = m.valid[::step, ::step]
+        for kind, data in (("coordinate", m.coordinate[::step, ::step]), ("phase", m.phase[::step, ::step])):
+            rng = _finite_range(data, valid)
+            img = np.where(valid, data, np.float32(0)).astype(np.float32, copy=False)
             log(map_path(kind, o), rr.DepthImage(img, colormap="turbo", depth_range=rng), strict=True)
-        log(map_path("masks", o), rr.SegmentationImage(_reason_image(m.masks, m.valid, ids)), strict=True)
+        log(map_path("masks", o), rr.SegmentationImage(_reason_image(_every(m.masks, step), valid, ids)), strict=True)
         if not detail:
             return
         for i, (phi, b) in enumerate(zip(m.wrapped, m.modulation)):
-            log(map_path("wrapped", o, i), rr.DepthImage(np.asarray(phi, dtype=np.float32), colormap="twilight",
-                                                         depth_range=(0.0, 2.0 * np.pi)), strict=True)
-            b = np.asarray(b, dtype=np.float32)
+            log(map_path("wrapped", o, i), rr.DepthImage(np.asarray(phi[::step, ::step], dtype=np.float32),
+                                                         colormap="twilight", depth_range=(0.0, 2.0 * np.pi)),
+                strict=True)
+            b = np.asarray(b[::step, ::step], dtype=np.float32)
             log(map_path("modulation", o, i), rr.DepthImage(b, colormap="viridis",
                                                             depth_range=(0.0, max(float(b.max()), 1.0))), strict=True)
-        log(map_path("background", o), rr.Image(np.asarray(m.background, dtype=np.float32)), strict=True)
+        log(map_path("background", o), rr.Image(np.asarray(m.background[::step, ::step], dtype=np.float32)),
+            strict=True)
 
     def log_cloud(self, cloud: OrganisedCloud, model: RigModel | None = None, *, scan: int = 0,
                   normals_step: int = 0, normal_length_mm: float = 2.0) -> int:
         """The valid points (camera frame in `cloud`) moved into the world frame with
         `model.world_from_cam` (default: the rig logged with `log_rig`), with their grey
-        colours; returns the number of points. `normals_step` > 0 also logs every n-th
+        colours; at level "display" those of every `display_step`-th row and column only.
+        Returns the number of points logged. `normals_step` > 0 also logs every n-th
         normal as an arrow of `normal_length_mm`."""
         self._check_open()
+        step = self._step(*cloud.valid.shape)
+        if step > 1:
+            cloud = OrganisedCloud(cloud.points[::step, ::step], cloud.colors[::step, ::step],
+                                   cloud.normals[::step, ::step])
         pts, grey, nrm = cloud.flat()
         T = self._world_from_cam if model is None else np.asarray(model.world_from_cam, dtype=np.float64)
         if not np.array_equal(T, np.eye(4)):

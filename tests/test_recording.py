@@ -11,6 +11,7 @@ import subprocess
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -44,6 +45,13 @@ def scan() -> Scan:
     stack = synthetic_stack(rig, PATTERNS)
     decoded = decode(stack, PATTERNS, 12, rig.projector.size)
     return Scan(rig, PATTERNS, stack, decoded, triangulate(decoded, Triangulator(rig)))
+
+
+def png_image(blob: np.ndarray) -> np.ndarray:
+    """A logged frame's PNG bytes decoded by OpenCV, at their bit depth."""
+    image = cv2.imdecode(np.asarray(blob, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    assert image is not None, "the logged frame is not a readable PNG"
+    return image
 
 
 def log_session(path: Path, s: Scan, session_id: str = "s-001", **kw: object) -> None:
@@ -101,10 +109,10 @@ def test_one_image_per_frame_on_the_pattern_timeline(scan: Scan, session_file: P
     image = summary.entities[R.CAMERA_IMAGE]
     assert image.rows == n
     assert {R.TIMELINE_PATTERN, R.TIMELINE_SCAN} <= image.timelines
-    rows = reader.read_component(session_file, R.CAMERA_IMAGE, "Image:buffer", R.TIMELINE_PATTERN)
+    rows = reader.read_component(session_file, R.CAMERA_IMAGE, "EncodedImage:blob", R.TIMELINE_PATTERN)
     assert [t for t, _ in rows] == list(range(n))
-    for k in (0, n - 1):  # stored at their bit depth, unchanged
-        np.testing.assert_array_equal(rows[k][1].view(np.uint16).reshape(h, w), scan.stack[k])
+    for k in (0, n - 1):  # lossless PNG at their bit depth: decoded, unchanged
+        np.testing.assert_array_equal(png_image(rows[k][1]), scan.stack[k])
     texts = reader.read_component(session_file, R.FRAME_SPEC, "TextLog:text", R.TIMELINE_PATTERN)
     assert [str(a[0]) for _, a in texts] == [f"{k}: {R.spec_name(s)}" for k, s in enumerate(scan.patterns.frames())]
 
@@ -233,9 +241,9 @@ def test_bulk_frames_match_live_frames(scan: Scan, tmp_path: Path) -> None:
     s = reader.read_summary(path)
     assert s.entities[R.CAMERA_IMAGE].rows == len(scan.stack)
     assert s.entities[R.FRAME_SPEC].rows == len(scan.stack)
-    rows = reader.read_component(path, R.CAMERA_IMAGE, "Image:buffer", R.TIMELINE_PATTERN)
+    rows = reader.read_component(path, R.CAMERA_IMAGE, "EncodedImage:blob", R.TIMELINE_PATTERN)
     assert [t for t, _ in rows] == list(range(len(scan.stack)))
-    np.testing.assert_array_equal(rows[5][1].view(np.uint16).reshape(scan.stack.shape[1:]), scan.stack[5])
+    np.testing.assert_array_equal(png_image(rows[5][1]), scan.stack[5])
     assert s.blueprints == 1
 
 

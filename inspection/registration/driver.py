@@ -53,10 +53,7 @@ def register(scan: ScanCloud, target: ModelTarget,
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     v = target.voxel_mm
-    src_pts, src_nrm = voxel_grid(scan.points, scan.normals, v)
-    if len(src_pts) < 50:
-        raise RegistrationFailed(f"{scan.source}: only {len(src_pts)} voxels of {v:.3g} mm hold scan points; "
-                                 f"the scan is too small for this model")
+    src_pts, src_nrm = scan_voxels(scan, target)
     times["prepare"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if settings.coarse == "ndt":
@@ -71,11 +68,7 @@ def register(scan: ScanCloud, target: ModelTarget,
     inlier = 1.5 * v
     sub = rng.choice(len(src_pts), size=min(1500, len(src_pts)), replace=False)
     sp, sn = src_pts[sub], src_nrm[sub]
-    # ICP on every third point first (most of the way in), then on all of them
-    tw = settings.tangential_weight
-    refined = [icp(sp, sn, target.coarse, icp(sp[::3], sn[::3], target.coarse, T, 8.0 * v, 0.5 * v,
-                                              settings.max_normal_deg, 20, tw), 8.0 * v, 0.5 * v,
-                   settings.max_normal_deg, 10, tw) for T in poses]
+    refined = [coarse_icp(sp, sn, target, T, settings) for T in poses]
     fits = fitness(sp, sn, target.coarse, np.array(refined), inlier, settings.max_normal_deg)
     order = np.argsort(-fits)
     for k in order[:settings.explored]:  # the most promising few: explored further
@@ -99,9 +92,41 @@ def register(scan: ScanCloud, target: ModelTarget,
         return angle > 10.0 or shift > 0.1 * target.diagonal_mm
 
     alternatives = tuple(j[4] for j in judged[1:] if j[0] >= best[0] - settings.ambiguity_margin and apart(j[4]))
+    method = f"rscs+{'+'.join(settings.descriptors)}+{settings.coarse}+icp" if settings.coarse != "ndt" else "ndt+icp"
+    return refine(scan, target, best[4], settings, rng, times, method, alternatives)
+
+
+def scan_voxels(scan: ScanCloud, target: ModelTarget) -> tuple[np.ndarray, np.ndarray]:
+    """The scan's points and normals averaged on the target's voxel grid; RegistrationFailed
+    when too few voxels hold points to register."""
+    v = target.voxel_mm
+    src_pts, src_nrm = voxel_grid(scan.points, scan.normals, v)
+    if len(src_pts) < 50:
+        raise RegistrationFailed(f"{scan.source}: only {len(src_pts)} voxels of {v:.3g} mm hold scan points; "
+                                 f"the scan is too small for this model")
+    return src_pts, src_nrm
+
+
+def coarse_icp(sp: np.ndarray, sn: np.ndarray, target: ModelTarget, T: np.ndarray,
+               settings: RegistrationSettings) -> np.ndarray:
+    """A coarse pose `T` refined against the model's coarse samples: ICP on every third
+    point first (most of the way in), then on all of them."""
+    v, deg, tw = target.voxel_mm, settings.max_normal_deg, settings.tangential_weight
+    near = icp(sp[::3], sn[::3], target.coarse, T, 8.0 * v, 0.5 * v, deg, 20, tw)
+    return icp(sp, sn, target.coarse, near, 8.0 * v, 0.5 * v, deg, 10, tw)
+
+
+def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, settings: RegistrationSettings,
+           rng: np.random.Generator, times: dict[str, float], method: str,
+           alternatives: tuple[np.ndarray, ...] = ()) -> Registration:
+    """The fine step from a verified coarse pose (local search and ICP on the dense scan,
+    then the exact faces) and the final judgement on `settings.max_points` scan points:
+    RegistrationFailed when too little of the scan lies near the model. `times` gains
+    "fine", "evaluate" and "total" (s)."""
+    v = target.voxel_mm
     t0 = time.perf_counter()
     dense = rng.choice(len(scan), size=min(3000, len(scan)), replace=False)
-    T = explore(scan.points[dense], scan.normals[dense], target.dense, best[4], 0.3 * v, settings.fine_turns_deg,
+    T = explore(scan.points[dense], scan.normals[dense], target.dense, coarse, 0.3 * v, settings.fine_turns_deg,
                 1.0 * v, settings)
     T = fine_pose(scan, target, T, settings, rng)
     times["fine"] = time.perf_counter() - t0
@@ -118,6 +143,5 @@ def register(scan: ScanCloud, target: ModelTarget,
                                  f"part, or a part far from its model", fit, rmse)
     times["evaluate"] = time.perf_counter() - t0
     times["total"] = sum(times.values())
-    method = f"rscs+{'+'.join(settings.descriptors)}+{settings.coarse}+icp" if settings.coarse != "ndt" else "ndt+icp"
-    return Registration(T, fit, rmse, fine_inlier, best[4], method, bool(alternatives), alternatives, hidden,
+    return Registration(T, fit, rmse, fine_inlier, coarse, method, bool(alternatives), alternatives, hidden,
                         {k: round(x, 4) for k, x in times.items()})

@@ -9,6 +9,7 @@ libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
 from slscan.commands import (
     bench,
     calibrate,
+    demobench,
     devices,
     import_,
     importbench,
@@ -23,5 +24,6 @@ from slscan.commands import (
 )
 
 COMMANDS = (
-    scan, import_, review, bench, importbench, simbench, viewbench, devices, calibrate, inspect, pose, segment, station,
+    scan, import_, review, bench, importbench, simbench, demobench, viewbench, devices, calibrate, inspect, pose,
+    segment, station,
 )

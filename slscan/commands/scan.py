@@ -7,14 +7,16 @@ import argparse
 import datetime as dt
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError, ScannerError
 from scanner.reconstruct import Triangulator
 from scanner.rig import DEFAULT_RIG
 from scanner.session import write_json
+from scanner.stage_timer import StageTimer
 from slscan.progress import ProgressLine
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
@@ -75,9 +77,14 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
     with open_rig(config, **options) as rig:
-        result = scan(rig, patterns, out, ProgressLine(), then)
+        result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args))
     report(result)
     return 0
+
+
+def _level(args: argparse.Namespace) -> str | None:
+    """The recording level asked on the command line (None: the rig's or session's own)."""
+    return "full" if getattr(args, "full_recording", False) else None
 
 
 def report(result: Any) -> None:
@@ -105,7 +112,8 @@ def report(result: Any) -> None:
 
 def sim_accuracy(result: Any) -> Any:
     """Accuracy against the simulator's ground truth, if the session has it."""
-
+    if "import" in result.session.manifest:
+        return None  # another tool's frames carry no simulator truth (and the simulator takes ~0.3 s to import)
     from sim.evaluate import GROUND_TRUTH_FILE, Truth, evaluate
     from sim.render import SensorModel
 
@@ -131,40 +139,99 @@ def cmd_decode(args: argparse.Namespace) -> int:
         return decode_views(args)
     if args.stage_axis is not None:
         raise ScannerError(f"{args.session}: --stage-axis applies to multi-view sessions only")
-    result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode)
+    result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode, level=_level(args))
     report(result)
     return 0
+
+
+def load_demo_part() -> tuple[Any, Any]:
+    """The demo part's CAD model, registration target prepared, and its tolerances."""
+    from inspection.inspect_scan import prepare
+    from inspection.tolerances import load_tolerances
+    from slscan.commands.inspect import _load_model
+
+    model = _load_model(str(DEMO_CAD), "mm")
+    prepare(model)  # the registration target, made once per model
+    return model, load_tolerances(DEMO_TOLERANCES, {f.label: f.type for f in model.faces})
+
+
+def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: Any, seed: int = 0,
+                          prior: Any = None, on_verdict: Callable[[Any], None] | None = None) -> tuple[Any, StageTimer]:
+    """Inspect a processed scan against `model`, the verdict first: `on_verdict(report)`
+    runs as soon as it is known; then the work that does not change it, the report files
+    (JSON, CSV, HTML with the deviation map) and the inspection in `recording` (None: not
+    recorded). The session is complete when this returns: until then outputs/ has no
+    inspection.json and the recording is still `recording.rrd.part`. `prior`: the previous
+    part's registration (warm start). Returns the report and the time of each stage."""
+    from inspection.inspect_scan import InspectionSettings, inspect
+    from inspection.measured_cloud import from_organised, load_session
+    from inspection.registration import RegistrationSettings
+    from inspection.report import deviation_image, png
+
+    timer = StageTimer()
+    with timer.stage("load_cloud"):  # the cloud in memory is the one in cloud.ply (same points, normals, pixels)
+        scan = (from_organised(result.cloud, str(result.session.root)) if result.cloud is not None
+                else load_session(result.session.root))
+    with timer.stage("inspect"):
+        report = inspect(scan, model, tolerances, InspectionSettings(registration=RegistrationSettings(seed=seed)),
+                         prior=prior)
+    if on_verdict is not None:
+        on_verdict(report)
+    with timer.stage("report_files"):
+        report.write(result.session.outputs, deviation_png=png(deviation_image(report, scan)))
+    if recording is not None:
+        from inspection.inspection_recording import log_inspection
+
+        with timer.stage("record_inspection"):
+            log_inspection(recording, report, scan, model)
+    return report, timer
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Scan the bundled part on the simulated rig, then (unless --no-inspect) inspect the
     session against the part's STEP model and tolerances: registration, per-face
-    segmentation, form table; report files in the session's outputs/, the inspection in
-    its recording. Exit 1 when a tolerance fails."""
+    segmentation, form table; the verdict is shown as soon as it is known, then the report
+    files go to the session's outputs/ and the inspection into its recording. The CAD
+    model is loaded while the part is scanned. Exit 1 when a tolerance fails."""
     out = args.out or f"sessions/demo-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
-    ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[])
+    ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[],
+                            full_recording=args.full_recording)
     if args.no_inspect:
         return cmd_scan(ns)
     done: dict[str, Any] = {}
-
-    def inspect_scan(result: Any, recording: Any) -> None:
-        from slscan.commands.inspect import inspect_source
-
-        print(f"inspect   {result.session.root} against {DEMO_CAD.name} ({DEMO_TOLERANCES.name})", file=sys.stderr)
-        t0, c0 = time.perf_counter(), time.process_time()
-        done["report"] = inspect_source(result.session.root, DEMO_CAD, DEMO_TOLERANCES, seed=args.seed,
-                                        recording=recording)
-        done["seconds"], done["cpu"] = time.perf_counter() - t0, time.process_time() - c0
-
     t0 = time.perf_counter()
-    cmd_scan(ns, inspect_scan)
+
+    def show(report: Any) -> None:
+        print(f"verdict   {report.verdict} ({time.perf_counter() - t0:.1f} s after the demo started; report "
+              f"files and recording follow)", file=sys.stderr)
+
+    with ThreadPoolExecutor(1, thread_name_prefix="load CAD") as pool:
+        part = pool.submit(load_demo_part)  # OpenCASCADE and the model's descriptors while the part is scanned
+
+        def inspect_scan(result: Any, recording: Any) -> None:
+            print(f"inspect   {result.session.root} against {DEMO_CAD.name} ({DEMO_TOLERANCES.name})", file=sys.stderr)
+            model, tolerances = part.result()
+            t1, c1 = time.perf_counter(), time.process_time()
+            done["report"], done["timer"] = inspect_verdict_first(result, recording, model, tolerances, args.seed,
+                                                                  on_verdict=show)
+            done["seconds"], done["cpu"] = time.perf_counter() - t1, time.process_time() - c1
+
+        cmd_scan(ns, inspect_scan)
     rep, outputs = done["report"], Path(out) / "outputs"
     print(rep.table())
     print(f"report    {outputs / 'inspection.html'} (.json, .csv); inspection in the recording under "
           f"world/inspection/ and inspection/")
-    print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU (registration "
-          f"{rep.timings_s['register']:.1f} s); demo {time.perf_counter() - t0:.1f} s wall")
+    stages = ", ".join(f"{k} {v:.1f}" for k, v in rep.timings_s.items())
+    print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU ({stages} s); demo "
+          f"{time.perf_counter() - t0:.1f} s wall")
     return 1 if rep.verdict == "fail" else 0
+
+
+def _add_full_recording(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--full-recording", action="store_true",
+                        help="record every map pixel and point in the Rerun recording (default: the rig's "
+                             "[recording] level; 'display' decimates maps and cloud for viewing; frames are "
+                             "always lossless)")
 
 
 def register(sub: Any) -> None:
@@ -186,6 +253,7 @@ def register(sub: Any) -> None:
                                                         "of the rig's [stage] calibration")
     s.add_argument("--stage-fault", action="append", default=[], metavar="NAME=MOVE",
                    help="simulated rigs: a stage fault (alarm_at_move=K, disconnect_at_move=K, silent_at_move=K)")
+    _add_full_recording(s)
     s.set_defaults(func=cmd_scan)
 
     d = sub.add_parser("decode", help="regenerate every output of a session from its raw frames")
@@ -193,6 +261,7 @@ def register(sub: Any) -> None:
     d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation")
     d.add_argument("--stage-axis", metavar="FILE", help="multi-view: align the views again from this stage-axis "
                                                         "calibration (slscan calibrate --stage-axis)")
+    _add_full_recording(d)
     d.set_defaults(func=cmd_decode)
 
     m = sub.add_parser("demo", help="scan the bundled part on the default simulated rig and inspect it against "
@@ -200,4 +269,5 @@ def register(sub: Any) -> None:
     m.add_argument("--out", help="session folder (default: sessions/demo-<time>)")
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--no-inspect", action="store_true", help="scan only (no inspection against the STEP model)")
+    _add_full_recording(m)
     m.set_defaults(func=cmd_demo)

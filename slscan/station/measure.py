@@ -30,7 +30,6 @@ import numpy as np
 
 from scanner.errors import ConfigError
 from scanner.session import Session, write_json
-from sim.station_parts import TRUTH_FILE
 
 if TYPE_CHECKING:
     from inspection.cad import CadModel
@@ -119,6 +118,9 @@ class InspectionMeasurement:
 
     def __init__(self) -> None:
         self._models: dict[tuple[Path, str], CadModel] = {}  # (CAD path, unit) -> model, loaded once
+        # (CAD path, unit, view) -> the last part's registration: the next part in the same fixture starts
+        # from it (inspection.registration.warm_start; checked, with the global search as fallback)
+        self._priors: dict[tuple[Path, str, int], Any] = {}
 
     def unavailable(self) -> str | None:
         return None
@@ -141,10 +143,12 @@ class InspectionMeasurement:
         details: dict[str, Any] = {}
         paths: list[Path] = []
         for k, session in enumerate(sessions):
+            prior_key = (program.cad_path, program.mesh_unit, k)
             try:
-                report = inspect(load_session(session.root), model)
+                report = inspect(load_session(session.root), model, prior=self._priors.get(prior_key))
             except InspectionError as exc:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
+            self._priors[prior_key] = report.registration
             data = report.as_dict() if hasattr(report, "as_dict") else dict(report)
             path = session.outputs / REPORT_FILE
             write_json(path, data)
@@ -179,6 +183,8 @@ class SimulatorTruth:
         return None
 
     def measure(self, sessions: Sequence[Session], program: PartProgram) -> MeasurementResult:
+        from sim.station_parts import TRUTH_FILE  # the simulator is imported when used (command-line start)
+
         path = sessions[0].root / TRUTH_FILE
         if not path.exists():
             return MeasurementResult(False, message=f"{path}: no simulator truth (not a simulated bench's session)")
