@@ -23,11 +23,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from calibration.errors import CalibrationRejected, NotEnoughData
-from calibration.intrinsics import DeviceCalibration, calibrate_device, outlier_views
-from calibration.stereo import StereoCalibration, initial_extrinsics, joint_refine
+from calibration.intrinsics import DeviceCalibration, ViewPoints, calibrate_device, outlier_views
+from calibration.stereo import StereoCalibration, covariance, initial_extrinsics, joint_refine
 from calibration.views import Correspondence
 
 
@@ -154,9 +155,33 @@ def _solve_once(views: list[Correspondence], camera_size: tuple[int, int], proje
     choice = choose_camera(camera, stereo, settings.max_joint_camera_std)
     if choice.source != "joint refinement":
         fixed = joint_refine(cams, projs, camera.pinhole, projector.pinhole, start, camera.poses, settings.fix_k3,
-                             fix_camera=True)
+                             fix_camera=True, camera_covariance=own_covariance(camera, cams, settings.fix_k3))
         stereo = replace(fixed, std=fixed.std | {f"camera.{n}": v for n, v in camera.std.items()})
     return Solution([c.name for c in views], list(views), camera, projector, stereo, choice, dict(dropped))
+
+
+def own_covariance(device: DeviceCalibration, views: list[ViewPoints], fix_k3: bool) -> np.ndarray:
+    """The covariance (9, 9) of a device's intrinsics and distortion (INTRINSIC_NAMES) from
+    its own views, correlations included (OpenCV reports one-sigmas only), the board poses
+    marginalised out: (JᵀJ)⁻¹ scaled by the residuals' variance."""
+    n_views = len(views)
+    rows = 2 * sum(len(v) for v in views)
+    J = np.zeros((rows, 9 + 6 * n_views))
+    row = 0
+    for k, (v, T) in enumerate(zip(views, device.poses)):
+        rvec = cv2.Rodrigues(T[:3, :3])[0]
+        _, jac = cv2.projectPoints(v.object_points.astype(np.float64), rvec, T[:3, 3], device.pinhole.K,
+                                   device.pinhole.dist)
+        J[row:row + 2 * len(v), :9] = jac[:, 6:15]
+        J[row:row + 2 * len(v), 9 + 6 * k:15 + 6 * k] = jac[:, :6]
+        row += 2 * len(v)
+    free = np.ones(J.shape[1], dtype=bool)
+    if fix_k3:
+        free[8] = False
+    res = np.concatenate(device.residuals).ravel()
+    cov = np.zeros((J.shape[1],) * 2)
+    cov[np.ix_(free, free)] = covariance(J[:, free], float(res @ res) / max(rows - int(free.sum()), 1))
+    return cov[:9, :9]
 
 
 def without_view(solution: Solution, index: int, settings: CalibrationSettings) -> StereoCalibration:

@@ -30,6 +30,8 @@ from scanner.geometry import Pinhole
 
 EXTRINSIC_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")  # Rodrigues vector (rad), translation (mm)
 _N_INTR = len(INTRINSIC_NAMES)
+RIG_PARAMETERS = tuple(f"{d}.{n}" for d in ("camera", "projector") for n in INTRINSIC_NAMES) + \
+    tuple(f"extrinsic.{n}" for n in EXTRINSIC_NAMES)
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,6 +39,9 @@ class StereoCalibration:
     """The jointly refined rig. `proj_from_cam` maps camera-frame points into the projector
     frame; `board_poses` (V, 4, 4) board -> camera. Residuals are observed − projected
     pixels per view. `rms_px` is the RMS over both devices' points (OpenCV's stereo RMS);
+    `covariance` (24, 24) is the covariance of the rig's parameters (`RIG_PARAMETERS`: both
+    devices' intrinsics and distortion, then proj_from_cam as a Rodrigues vector (rad) and a
+    translation (mm)), the board poses marginalised out; zero where a parameter was held fixed.
     `std` holds one-sigma uncertainties ('camera.fx', 'projector.cy', 'extrinsic.tx' (mm),
     'extrinsic.rotation_deg', ...)."""
 
@@ -47,6 +52,7 @@ class StereoCalibration:
     camera_residuals: list[np.ndarray]
     projector_residuals: list[np.ndarray]
     std: dict[str, float]
+    covariance: np.ndarray
 
     @property
     def cam_from_proj(self) -> np.ndarray:
@@ -69,8 +75,9 @@ class StereoCalibration:
         return np.array([rms(r) for r in res])
 
 
-def _uncertainties(res: np.ndarray, J: np.ndarray, free: np.ndarray, e0: int) -> dict[str, float]:
-    """One-sigma uncertainty of every parameter from the residuals and Jacobian at the solution."""
+def _uncertainties(res: np.ndarray, J: np.ndarray, free: np.ndarray, e0: int) -> tuple[dict[str, float], np.ndarray]:
+    """One-sigma uncertainty of every parameter, and the covariance of the rig's
+    parameters (the first e0 + 6), from the residuals and Jacobian at the solution."""
     dof = max(len(res) - int(free.sum()), 1)
     cov = np.zeros((len(free), len(free)))
     cov[np.ix_(free, free)] = covariance(J[:, free], float(res @ res) / dof)
@@ -80,7 +87,25 @@ def _uncertainties(res: np.ndarray, J: np.ndarray, free: np.ndarray, e0: int) ->
     std |= {f"extrinsic.{n}": float(sd[e0 + i]) for i, n in enumerate(EXTRINSIC_NAMES)}
     std["extrinsic.rotation_deg"] = float(np.degrees(np.sqrt(max(np.trace(cov[e0:e0 + 3, e0:e0 + 3]), 0.0))))
     std["extrinsic.translation_mm"] = float(np.sqrt(max(np.trace(cov[e0 + 3:e0 + 6, e0 + 3:e0 + 6]), 0.0)))
-    return std
+    return std, cov[:e0 + 6, :e0 + 6]
+
+
+def _with_camera(J: np.ndarray, free: np.ndarray, e0: int, cov: np.ndarray, camera_cov: np.ndarray) -> np.ndarray:
+    """The rig's covariance when the camera's intrinsics were held at values of covariance
+    `camera_cov` (9, 9): the refined parameters follow the camera's to first order,
+    G = -(J_fᵀJ_f)⁻¹J_fᵀJ_c, so Σ = [[Σ_c, Σ_c Gᵀ], [G Σ_c, Σ_f|c + G Σ_c Gᵀ]] over the rig's
+    parameters (the first e0 + 6; the board poses marginalised out)."""
+    n = e0 + 6
+    f = np.flatnonzero(free)
+    G = np.zeros((len(free), 9))
+    G[f] = -covariance(J[:, f], 1.0) @ (J[:, f].T @ J[:, :9])
+    out = cov.copy()
+    out[:9, :9] = camera_cov
+    Gr = G[9:n]
+    out[9:n, :9] = Gr @ camera_cov
+    out[:9, 9:n] = out[9:n, :9].T
+    out[9:n, 9:n] += Gr @ camera_cov @ Gr.T
+    return out
 
 
 def _intrinsic_vector(p: Pinhole) -> np.ndarray:
@@ -118,9 +143,11 @@ def covariance(J: np.ndarray, s2: float) -> np.ndarray:
 
 def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], camera: Pinhole, projector: Pinhole,
                  proj_from_cam: np.ndarray, board_poses: np.ndarray, fix_k3: bool = False,
-                 fix_camera: bool = False) -> StereoCalibration:
+                 fix_camera: bool = False, camera_covariance: np.ndarray | None = None) -> StereoCalibration:
     """Refine every parameter from the starting values given; `fix_camera` keeps the
-    camera's intrinsics and distortion as given (their uncertainties are then reported as 0)."""
+    camera's intrinsics and distortion as given (their uncertainties are then reported as
+    0, unless `camera_covariance` (9, 9) gives theirs: it is then carried into the
+    covariance, with the refined parameters' response to the camera's, `_with_camera`)."""
     n_views = len(cam_views)
     if len(proj_views) != n_views or len(board_poses) != n_views:
         raise NotEnoughData(f"joint refinement: {n_views} camera views, {len(proj_views)} projector views and "
@@ -189,7 +216,9 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     x = x0.copy()
     x[free] = sol.x
     res, J = residuals_and_jacobian(x, True)
-    std = _uncertainties(res, J, free, e0)  # type: ignore[arg-type]
+    std, cov = _uncertainties(res, J, free, e0)  # type: ignore[arg-type]
+    if fix_camera and camera_covariance is not None:
+        cov = _with_camera(J, free, e0, cov, camera_covariance)  # type: ignore[arg-type]
     proj_from_cam = pose_matrix(x[e0:e0 + 3], x[e0 + 3:e0 + 6])
     poses = np.stack([pose_matrix(x[e0 + 6 + 6 * v:e0 + 9 + 6 * v], x[e0 + 9 + 6 * v:e0 + 12 + 6 * v])
                       for v in range(n_views)])
@@ -197,4 +226,4 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
                                                      for n in (len(cv), len(pv))])[:-1])
     cam_res, proj_res = blocks[0::2], blocks[1::2]
     return StereoCalibration(_pinhole(camera.size, x[:_N_INTR]), _pinhole(projector.size, x[_N_INTR:e0]),
-                             proj_from_cam, poses, cam_res, proj_res, std)
+                             proj_from_cam, poses, cam_res, proj_res, std, cov)

@@ -36,6 +36,7 @@ from calibration.gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images, 
 from calibration.intrinsics import calibrate_device
 from calibration.phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, local_pitch_range_mm
 from calibration.solve import CalibrationSettings, Solution, Stability, check_limits, leave_one_out, solve, without_view
+from calibration.stereo import RIG_PARAMETERS
 from calibration.store import CaptureSet, CaptureWriter, decode_pose, pose_view
 from calibration.validate import Artefact, Validation, measure_sphere_pair
 from calibration.views import Correspondence, View, correspond
@@ -176,7 +177,9 @@ class CalibrationResult:
         return {
             "board": self.board.to_dict(),
             "rms_px": {"camera": s.camera_rms_px, "projector": s.projector_rms_px, "stereo": s.rms_px},
-            "uncertainty": s.std, "camera_intrinsics": asdict(sol.camera_choice), "views": views,
+            "uncertainty": s.std,
+            "covariance": {"parameters": list(RIG_PARAMETERS), "matrix": s.covariance.tolist()},
+            "camera_intrinsics": asdict(sol.camera_choice), "views": views,
             "dropped_views": {**sol.dropped, **self.failures},
             "outlier_views": self.outliers(),
             "coverage": {name: {"fraction": c.fraction, "cells": c.counts.tolist(), "uncovered": c.empty_zones()}

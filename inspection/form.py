@@ -1,10 +1,13 @@
 """Form and texture of one measured face: least-squares and minimum-zone flatness and
-cylindricity, the areal Gaussian filter of ISO 16610-61, and Sq (ISO 25178-2).
+cylindricity, the areal Gaussian filter of ISO 16610-61, Sq (ISO 25178-2) and the
+deviations from nominal, each with its uncertainty (`inspection.uncertainty`).
 
-Inputs are the face's measured points in the model frame (after registration) and their
-signed deviations from the nominal surface (`segmentation`). Heights are laid on the
-face's own 2D coordinates (a plane: its in-plane axes; a cylinder: arc length R*theta
-and axial position, unrolled), resampled on a square grid of about the point spacing.
+Inputs are the face's measured points in the model frame (after registration), their
+signed deviations from the nominal surface (`segmentation`), and optionally their noise
+model (`PointNoise`, rays turned into the model frame) with the face's normals there, and
+the points' displacements for each calibration direction. Heights are laid on the face's
+own 2D coordinates (a plane: its in-plane axes; a cylinder: arc length R*theta and axial
+position, unrolled), resampled on a square grid of about the point spacing.
 
 Filters (ISO 16610-61 weighting function s(x) = exp(-pi (x/(alpha lc))^2)/(alpha lc)^2,
 alpha = sqrt(ln 2 / pi): 50 % transmission at the nesting index lc):
@@ -15,17 +18,22 @@ alpha = sqrt(ln 2 / pi): 50 % transmission at the nesting index lc):
   - the roughness (S-L) surface is the heights minus their plain Gaussian filter of
     cut-off `roughness_cutoff_mm` (normalised where the face ends), Sq its RMS.
 
-Scanner noise: white height noise sigma_n adds sigma_n^2 to Sq^2 and widens any zone
-evaluated on raw points by several sigma_n. So zones are evaluated on the form surface
-(the filter divides the noise by sqrt of the points it averages), sigma_n is estimated
-from the heights themselves (fourth differences along the grid, blind to the smooth
-form and texture), Sq is reported with the noise removed in quadrature, and each zone
-comes with its noise floor: the zone the filtered noise alone would span.
+Scanner noise. A point moves along its camera ray; its deviation moves by (n·ray)·δz. The
+noise model's draws (white noise per point and the fringe systematic per projector
+column) are binned into the grid cells like the heights, and every figure is evaluated
+again on the measured surface plus each draw (`FormSettings.draws`): the spread gives the
+figure's noise uncertainty, the mean shift its noise bias, which is removed (zones of the
+form surface, the profile, the deviation extremes and RMS); the same figure of the drawn
+noise alone gives the detection limit of the zones (95th percentile). Sq has the noise's
+mean square removed (Sq² - <e²>), and is null below its detection limit. Without a noise
+model the noise is estimated from the heights themselves (fourth differences along the
+grid, blind to the smooth form and texture, `noise_sigma`) and drawn white per cell.
 
 Profile of a surface (ISO 1101, zone centred on nominal): 2 max|d| over the form
-surface's signed deviations d, not over raw points, whose extremes are those of the noise
-(about sigma_n sqrt(2 ln N), 4-5 sigma_n for 1e4-1e6 points, on both sides); the raw
-extremes are kept beside it.
+surface's signed deviations d: what the surface does at wavelengths above the form
+cut-off (stated in the report). The raw points' extremes, which are those of the noise
+(about sigma_n sqrt(2 ln N), 4-5 sigma_n for 1e4-1e6 points, on both sides), are kept
+beside it with their own uncertainty.
 
 Minimum zone (Chebyshev, the ISO 1101 default): the narrowest pair of parallel planes
 (coaxial cylinders) holding the surface, solved as a linear programme (HiGHS) on the
@@ -36,11 +44,14 @@ of paper 000. Every length in mm.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field, fields
+from typing import Callable
 
 import numpy as np
-from scipy import ndimage
+from scipy import fft, ndimage
 from scipy.optimize import least_squares, linprog
+
+from inspection.uncertainty import DETECTION_QUANTILE, Estimate, PointNoise
 
 ALPHA = float(np.sqrt(np.log(2.0) / np.pi))  # ISO 16610-61
 FORM_CUTOFF_MM = 8.0
@@ -99,25 +110,34 @@ def _frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def flatness_mz(points: np.ndarray, normal: np.ndarray) -> float:
     """Minimum-zone flatness: the least distance between two parallel planes holding the
-    points (LP on the convex hull's vertices, heights along the LS normal)."""
-    from scipy.spatial import ConvexHull, QhullError
-
+    points (heights along the LS normal). An LP on the plane's tilt and the zone's bounds,
+    over the points with the most extreme heights (plus any point the previous solution
+    left outside its zone), which is exact: the zone is fixed by a handful of extreme
+    points, and a zone holding every point is the zone of them all."""
     c, n = plane_ls(points, normal)
     u, v = _frame(n)
     d = points - c
     x, y, z = d @ u, d @ v, d @ n
-    try:
-        hull = ConvexHull(np.stack([x, y, z], axis=1)).vertices
-    except QhullError:  # flat or degenerate: every point counts
-        hull = np.arange(len(points))
-    x, y, z = x[hull], y[hull], z[hull]
-    # minimise w: c_lo <= z - a x - b y <= c_lo + w      (variables a, b, c_lo, w)
+    k = min(len(z), 200)
+    active = np.union1d(np.argpartition(z, k - 1)[:k], np.argpartition(-z, k - 1)[:k])
+    for _ in range(50):  # add violators until the zone holds every point
+        a, b, lo, w = _plane_lp(x[active], y[active], z[active])
+        r = z - a * x - b * y
+        excess = np.maximum(lo - r, r - lo - w)
+        out = np.flatnonzero(excess > 1e-12)
+        if not out.size:
+            break
+        active = np.union1d(active, out[np.argsort(-excess[out])[:200]])
+    return float(w / np.sqrt(1.0 + a * a + b * b))
+
+
+def _plane_lp(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[float, float, float, float]:
+    """min w subject to lo <= z - a x - b y <= lo + w; returns (a, b, lo, w)."""
     ones = np.ones_like(x)
     A_ub = np.concatenate([np.stack([-x, -y, -ones, -ones], 1), np.stack([x, y, ones, 0 * ones], 1)])
     b_ub = np.concatenate([-z, z])
     res = linprog([0, 0, 0, 1], A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * 3 + [(0, None)], method="highs")
-    a, b = res.x[0], res.x[1]
-    return float(res.x[3] / np.sqrt(1.0 + a * a + b * b))
+    return float(res.x[0]), float(res.x[1]), float(res.x[2]), float(res.x[3])
 
 
 def cylindricity_mz(points: np.ndarray, origin: np.ndarray, axis: np.ndarray, rounds: int = 6) -> float:
@@ -176,44 +196,90 @@ def gaussian_kernel_1d(cutoff_mm: float, spacing_mm: float, moment: int = 0) -> 
     return np.exp(-np.pi * (x / (ALPHA * cutoff_mm)) ** 2) * x ** moment
 
 
-def _smooth(image: np.ndarray, kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
-    out = ndimage.correlate1d(image, kx, axis=1, mode="constant")
-    return ndimage.correlate1d(out, ky, axis=0, mode="constant")
+class _Correlator:
+    """Separable correlations of (..., H, W) fields with outer products of 1-D kernels,
+    zero outside the grid (correlation: the kernel's offset +j reads the cell j further
+    on), by FFT: one transform per field, one product and inverse per kernel pair."""
+
+    def __init__(self, shape: tuple[int, int], half: int) -> None:
+        self.shape = shape
+        self.half = half
+        self.size = (fft.next_fast_len(shape[0] + 2 * half), fft.next_fast_len(shape[1] + 2 * half, real=True))
+        self._spectra: dict[tuple[int, int], np.ndarray] = {}
+        self._kernels: dict[int, np.ndarray] = {}
+
+    def kernel(self, key: int, k: np.ndarray) -> None:
+        self._kernels[key] = k
+
+    def _spectrum(self, ky: int, kx: int) -> np.ndarray:
+        if (ky, kx) not in self._spectra:
+            g = np.zeros(self.size)
+            a, b = self._kernels[ky][::-1], self._kernels[kx][::-1]  # correlation = convolution with the flip
+            g[:len(a), :len(b)] = np.outer(a, b)
+            self._spectra[(ky, kx)] = fft.rfft2(g)
+        return self._spectra[(ky, kx)]
+
+    def transform(self, fields: np.ndarray) -> np.ndarray:
+        return fft.rfft2(fields, s=self.size, axes=(-2, -1))
+
+    def apply(self, spectrum: np.ndarray, ky: int, kx: int) -> np.ndarray:
+        out = fft.irfft2(spectrum * self._spectrum(ky, kx), s=self.size, axes=(-2, -1))
+        h, w = self.shape
+        return out[..., self.half:self.half + h, self.half:self.half + w]
+
+
+_MONOMIALS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))  # (power of x, power of y)
+
+
+class GaussianFilter:
+    """The ISO 16610-61 areal Gaussian filter on a grid of `spacing_mm` cells where `mask`
+    holds data: order 0, the Gaussian mean (normalised where the surface ends); order 2,
+    the local second-order regression with the same weights (exact for quadratic
+    surfaces). The weights depend on the mask only, so they are set up once and the
+    filter then applies to any number of fields (`__call__` takes (..., H, W))."""
+
+    def __init__(self, mask: np.ndarray, cutoff_mm: float, spacing_mm: float, order: int = 0) -> None:
+        self.mask = mask
+        self.order = order
+        moments = range(5 if order == 2 else 1)
+        ks = [gaussian_kernel_1d(cutoff_mm, spacing_mm, m) for m in moments]
+        self._c = _Correlator(mask.shape, len(ks[0]) // 2)
+        for m, k in enumerate(ks):
+            self._c.kernel(m, k)
+        wspec = self._c.transform(mask.astype(np.float64))
+        if order == 0:
+            self._norm = np.maximum(self._c.apply(wspec, 0, 0), 1e-300)
+            return
+        # moments about each cell: S_ab = sum w g (dx^a dy^b); the filtered value is the first
+        # row of M^-1 (M_ij = S of the product of monomials i and j) applied to T_j = sum w z g m_j
+        S = {(a, b): self._c.apply(wspec, b, a) for a in range(5) for b in range(5 - a)}
+        M = np.empty(mask.shape + (6, 6))
+        for i, (a1, b1) in enumerate(_MONOMIALS):
+            for j, (a2, b2) in enumerate(_MONOMIALS):
+                M[..., i, j] = S[(a1 + a2, b1 + b2)]
+        scale = np.maximum(M[..., 0, 0], 1e-300)
+        ok = mask & (M[..., 0, 0] > 1e-12 * M[..., 0, 0].max())
+        row = np.zeros(mask.shape + (6,))
+        Mo = M[ok] / scale[ok][:, None, None]
+        e0 = np.zeros((len(Mo), 6, 1))
+        e0[:, 0] = 1.0
+        row[ok] = np.linalg.solve(np.transpose(Mo, (0, 2, 1)) + 1e-12 * np.eye(6), e0)[..., 0] / scale[ok][:, None]
+        self._row = row
+        self._ok = ok
+
+    def __call__(self, z: np.ndarray) -> np.ndarray:
+        zw = np.where(self.mask, np.nan_to_num(z), 0.0)
+        spec = self._c.transform(zw)
+        if self.order == 0:
+            return self._c.apply(spec, 0, 0) / self._norm
+        out = sum(self._c.apply(spec, b, a) * self._row[..., i] for i, (a, b) in enumerate(_MONOMIALS))
+        return np.where(self._ok, out, np.nan)
 
 
 def gaussian_filter(z: np.ndarray, mask: np.ndarray, cutoff_mm: float, spacing_mm: float,
                     order: int = 0) -> np.ndarray:
-    """The ISO 16610-61 areal Gaussian filter of a gridded surface z (NaN outside `mask`):
-    order 0, the Gaussian mean (normalised where the surface ends); order 2, the local
-    second-order regression with the same weights (exact for quadratic surfaces)."""
-    w = mask.astype(np.float64)
-    zw = np.where(mask, z, 0.0)
-    if order == 0:
-        k = gaussian_kernel_1d(cutoff_mm, spacing_mm)
-        return _smooth(zw, k, k) / np.maximum(_smooth(w, k, k), 1e-300)
-    # moments about each cell: S_ab = sum w g (dx^a dy^b), T_ab = sum w z g (dx^a dy^b)
-    ks = [gaussian_kernel_1d(cutoff_mm, spacing_mm, m) for m in range(5)]  # correlation: offsets x = +j dx
-    mono = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)]
-    S = {}
-    for i, (a1, b1) in enumerate(mono):
-        for a2, b2 in mono[i:]:
-            key = (a1 + a2, b1 + b2)
-            if key not in S:
-                S[key] = _smooth(w, ks[key[0]], ks[key[1]])
-    Tz = [_smooth(zw, ks[a], ks[b]) for a, b in mono]
-    M = np.empty(z.shape + (6, 6))
-    for i, (a1, b1) in enumerate(mono):
-        for j, (a2, b2) in enumerate(mono):
-            M[..., i, j] = S[(a1 + a2, b1 + b2)]
-    rhs = np.stack(Tz, axis=-1)
-    scale = np.maximum(M[..., 0, 0], 1e-300)[..., None, None]
-    ok = mask & (M[..., 0, 0] > 1e-12 * M[..., 0, 0].max())
-    out = np.full(z.shape, np.nan)
-    Mo = M[ok] / scale[ok]
-    ro = rhs[ok] / scale[ok][..., 0]
-    coef = np.linalg.solve(Mo + 1e-12 * np.eye(6), ro[..., None])[..., 0]
-    out[ok] = coef[:, 0]
-    return out
+    """`GaussianFilter` applied once to a gridded surface z (NaN outside `mask`)."""
+    return GaussianFilter(mask, cutoff_mm, spacing_mm, order)(z)
 
 
 # ------------------------------------------------------------------------ per-face result
@@ -224,54 +290,73 @@ class FormSettings:
     """`form_cutoff_mm`: nesting index of the form filter; `roughness_cutoff_mm`: of the
     roughness (L) filter; `edge_margin_mm`: a band along the face's measured border left
     out of every figure (mixed pixels and blur live there); `outlier_sigma`: points further
-    than this many robust sigma from the median deviation are dropped as spikes."""
+    than this many robust sigma from the median deviation are dropped as spikes; `draws`:
+    noise draws behind every figure's uncertainty, bias and detection limit."""
 
     form_cutoff_mm: float = FORM_CUTOFF_MM
     roughness_cutoff_mm: float = ROUGHNESS_CUTOFF_MM
     edge_margin_mm: float = 1.0
     outlier_sigma: float = 6.0
+    draws: int = 32
+
+
+FIGURES = ("flatness_ls", "flatness_mz", "cylindricity_ls", "cylindricity_mz", "sq", "profile", "deviation_min",
+           "deviation_max", "deviation_mean", "deviation_rms", "raw_deviation_min", "raw_deviation_max")
 
 
 @dataclass(frozen=True)
 class FaceForm:
-    """Figures of one face (mm; None where they do not apply or could not be measured).
-    `*_mz_mm` are minimum-zone widths on the form surface, `*_ls_mm` least-squares widths
-    on it; `raw_zone_mm` the minimum zone of the unfiltered points (noise included);
-    `noise_floor_mm` the zone the filtered scanner noise alone would span; `noise_mm` the
-    estimated height noise per point; `sq_mm` the roughness with that noise removed in
-    quadrature (`sq_raw_mm` before). Signed deviations from nominal: `deviation_*` of the
-    form surface (`deviation_source` "form surface"; "raw points" for a face without
-    surface coordinates to filter on, whose figures then carry the noise), `profile_mm`
-    = 2 max|deviation| (the ISO 1101 profile zone centred on nominal), `raw_deviation_*`
-    the extremes of the unfiltered points the figures rest on (inside the edge margin,
-    spikes dropped)."""
+    """Figures of one face, each an `Estimate` (mm; None where they do not apply or could
+    not be measured; the extremes' detection limits are magnitudes). `*_mz` are minimum-zone widths of the form surface, `*_ls` its
+    least-squares widths; `sq` the roughness with the noise removed; `deviation_*` the
+    signed deviations from nominal of the form surface (`deviation_source` "form surface";
+    "raw points" for a face without surface coordinates to filter on, whose figures then
+    carry the noise), `profile` = 2 max|deviation| (the ISO 1101 profile zone centred on
+    nominal); `raw_deviation_*` the extremes of the unfiltered points (inside the edge
+    margin, spikes dropped), noise included. `noise_mm`: the typical noise of one point
+    along the face normal and `noise_source` where it came from; `sq_raw_mm` and
+    `sq_noise_mm`: the roughness RMS before the noise was removed and the noise's RMS."""
 
     points: int
     status: str
     note: str = ""
-    flatness_ls_mm: float | None = None
-    flatness_mz_mm: float | None = None
-    cylindricity_ls_mm: float | None = None
-    cylindricity_mz_mm: float | None = None
-    raw_zone_mm: float | None = None
-    noise_floor_mm: float | None = None
-    sq_mm: float | None = None
-    sq_raw_mm: float | None = None
+    flatness_ls: Estimate | None = None
+    flatness_mz: Estimate | None = None
+    cylindricity_ls: Estimate | None = None
+    cylindricity_mz: Estimate | None = None
+    sq: Estimate | None = None
+    profile: Estimate | None = None
+    deviation_min: Estimate | None = None
+    deviation_max: Estimate | None = None
+    deviation_mean: Estimate | None = None
+    deviation_rms: Estimate | None = None
+    raw_deviation_min: Estimate | None = None
+    raw_deviation_max: Estimate | None = None
     noise_mm: float | None = None
-    deviation_min_mm: float | None = None
-    deviation_max_mm: float | None = None
-    deviation_mean_mm: float | None = None
-    deviation_rms_mm: float | None = None
-    profile_mm: float | None = None
+    noise_source: str | None = None
+    sq_raw_mm: float | None = None
+    sq_noise_mm: float | None = None
     deviation_source: str | None = None
-    raw_deviation_min_mm: float | None = None
-    raw_deviation_max_mm: float | None = None
     form_cutoff_mm: float | None = None
     roughness_cutoff_mm: float | None = None
     grid_mm: float | None = None
+    u_components: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    def figure(self, name: str) -> Estimate | None:
+        return getattr(self, name)
 
     def as_dict(self) -> dict[str, object]:
-        return asdict(self)
+        """Flat JSON: every figure as `name_mm`, `name_u_mm` (U, k = 2) and, for figures
+        tested against zero, `name_limit_mm` (null value: below that limit)."""
+        out: dict[str, object] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in FIGURES:
+                out.update(v.fields(f.name) if v is not None else {f"{f.name}_mm": None, f"{f.name}_u_mm": None})
+            elif f.name != "u_components":
+                out[f.name] = v
+        out["u_components_mm"] = self.u_components
+        return out
 
 
 def _surface_coordinates(face: object, points: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
@@ -294,10 +379,35 @@ def _surface_coordinates(face: object, points: np.ndarray, uv: np.ndarray) -> np
     return None
 
 
-def _grid(xy: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
-    """(mean heights per cell (H, W), NaN where empty; mask; spacing; cell (column, row)
-    of each point; origin). The spacing starts at the points' typical nearest-neighbour
-    distance and grows until nine cells in ten inside the measured area hold a point."""
+@dataclass(frozen=True, eq=False)
+class _Grid:
+    """Points binned on a square grid: `cell` (N,) flat index of each point's cell (-1
+    outside), `counts` per cell, `shape`, `spacing`, `origin` (2,) mm."""
+
+    cell: np.ndarray
+    counts: np.ndarray
+    shape: tuple[int, int]
+    spacing: float
+    origin: np.ndarray
+
+    def mean(self, values: np.ndarray) -> np.ndarray:
+        """Per-cell means (..., H, W) of per-point values (..., N), NaN in empty cells."""
+        lead = values.shape[:-1]
+        flat = values.reshape(-1, values.shape[-1])
+        out = np.full((len(flat), self.shape[0] * self.shape[1]), np.nan)
+        filled = self.counts > 0
+        for k, v in enumerate(flat):
+            out[k, filled] = np.bincount(self.cell, v, len(self.counts))[filled] / self.counts[filled]
+        return out.reshape(*lead, *self.shape)
+
+    def centres(self, mask: np.ndarray) -> np.ndarray:
+        rows, cols = np.nonzero(mask)
+        return self.origin + (np.stack([cols, rows], axis=1) + 0.5) * self.spacing
+
+
+def _grid(xy: np.ndarray) -> _Grid:
+    """The grid: its spacing starts at the points' typical nearest-neighbour distance and
+    grows until nine cells in ten inside the measured area hold a point."""
     from scipy.spatial import cKDTree
 
     d, _ = cKDTree(xy).query(xy, k=2)
@@ -313,10 +423,7 @@ def _grid(xy: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, float,
         if mask.sum() >= 0.9 * closed.sum():
             break
         g *= np.sqrt(2.0)
-    tot = np.bincount(flat, weights=z, minlength=shape[0] * shape[1])
-    zg = np.full(shape, np.nan)
-    zg[mask] = tot[cnt > 0] / cnt[cnt > 0]
-    return zg, mask, g, ij, lo
+    return _Grid(flat, cnt.astype(np.float64), shape, g, lo)
 
 
 def noise_sigma(z: np.ndarray, mask: np.ndarray) -> float | None:
@@ -334,10 +441,62 @@ def noise_sigma(z: np.ndarray, mask: np.ndarray) -> float | None:
     return float(1.4826 * np.median(np.abs(v)) / np.sqrt(70.0))  # robust: edges and spikes do not count
 
 
+def from_draws(value: float, drawn: np.ndarray, noise_only: np.ndarray | None = None,
+                cal: np.ndarray | None = None) -> tuple[Estimate, dict[str, float]]:
+    """A figure from its value on the measured surface, its values on the surface plus
+    each noise draw (spread: u; mean shift: the noise bias, removed), optionally the same
+    figure of the noise alone (its 95th percentile: the detection limit) and its changes
+    for each calibration direction (root sum of squares: u_cal)."""
+    bias = float(np.mean(drawn) - value)
+    u_noise = float(np.std(drawn, ddof=1)) if len(drawn) > 1 else 0.0
+    u_cal = float(np.sqrt(np.sum(np.square(cal)))) if cal is not None and len(cal) else 0.0
+    u = float(np.hypot(u_noise, u_cal))
+    parts = {"noise": u_noise, "calibration": u_cal}
+    if noise_only is None:
+        return Estimate(value - bias, u, None, bias), parts
+    limit = float(np.quantile(noise_only, DETECTION_QUANTILE))
+    return Estimate(value - bias if value > limit else None, u, limit, bias), parts
+
+
+NOISE_MODEL_REL_U = 0.02  # one-sigma relative uncertainty of the noise model's sigma (see evaluate_face)
+
+
+def _sq(rough: np.ndarray, drawn_rough: np.ndarray, inner: np.ndarray, model_rel_u: float
+        ) -> tuple[Estimate, float, float, dict[str, float]]:
+    """Sq with the noise's mean square removed, its uncertainty and detection limit
+    (module docstring of `inspection.uncertainty`); also Sq before removal and the
+    noise's RMS."""
+    r = rough[inner]
+    e = drawn_rough[:, inner]
+    raw2 = float(np.mean(r ** 2))
+    noise2 = float(np.mean(e ** 2))
+    d = raw2 - noise2
+    # spread of the estimate: mean(2 s e + e^2) over fresh noise, s the noise-free roughness
+    # (the measured one shrunk to the estimated Sq), plus the noise model's own uncertainty
+    shrink = np.sqrt(max(d, 0.0) / raw2) if raw2 > 0 else 0.0
+    stat = np.mean(2.0 * shrink * r * e + e ** 2, axis=1)
+    stat0 = np.mean(e ** 2, axis=1)
+    u_model = 2.0 * model_rel_u * noise2
+    u_d = float(np.hypot(np.std(stat, ddof=1), u_model))
+    u_d0 = float(np.hypot(np.std(stat0, ddof=1), u_model))
+    limit = float(np.sqrt(2.0 * 2.0 * u_d0))
+    parts = {"noise": float(np.std(stat, ddof=1)), "noise model": u_model}
+    if d <= 2.0 * u_d0 or d <= 0.0:
+        return Estimate(None, float(np.sqrt(u_d0)), limit), float(np.sqrt(raw2)), float(np.sqrt(noise2)), parts
+    sq = float(np.sqrt(d))
+    return Estimate(sq, u_d / (2.0 * sq), limit), float(np.sqrt(raw2)), float(np.sqrt(noise2)), \
+        {k: v / (2.0 * sq) for k, v in parts.items()}
+
+
 def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: np.ndarray,
-                  settings: FormSettings = FormSettings(), seed: int = 0) -> FaceForm:
+                  settings: FormSettings = FormSettings(), seed: int = 0, noise: PointNoise | None = None,
+                  normals: np.ndarray | None = None, shifts: np.ndarray | None = None) -> FaceForm:
     """Form, texture and deviation figures of one face from its measured points (model
-    frame), their signed deviations and the surface parameters of their feet."""
+    frame), their signed deviations and the surface parameters of their feet, each with
+    its uncertainty. `noise`: the points' noise model with rays in the model frame, and
+    `normals` (N, 3) the face's outward normals at the points (for the deviation a ray
+    move makes); `shifts` (D, N, 3): the points' moves for each principal calibration
+    direction (model frame). Without `noise` it is estimated from the heights."""
     n = len(points)
     if n < MIN_POINTS:
         return FaceForm(n, "too few points", f"{n} points; at least {MIN_POINTS} are needed")
@@ -345,67 +504,150 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     rs = 1.4826 * np.median(np.abs(deviation - med))
     keep = np.abs(deviation - med) <= settings.outlier_sigma * max(rs, 1e-6)
     points, deviation, uv = points[keep], deviation[keep], uv[keep]
+    if noise is not None:
+        noise = noise.subset(keep)
+        normals = normals[keep]  # type: ignore[index]
+    if shifts is not None:
+        shifts = shifts[:, keep]
+    rng = np.random.default_rng(seed)
     xy = _surface_coordinates(face, points, uv)
-    if xy is None:
+    if xy is None:  # no surface coordinates: deviations of the raw points, their noise included
+        draws = _point_draws(noise, normals, rng, settings.draws, len(points), float(np.std(deviation)))
+        dev_shift = None if shifts is None else np.einsum("dij,ij->di", shifts, normals) if normals is not None else None
+        stats, parts = _deviation_stats(deviation, deviation[None] + draws, deviation, draws, dev_shift)
         return FaceForm(len(points), "ok", f"{face.type}: deviations of raw points only (no form filter)",  # type: ignore[attr-defined]
-                        **_stats(deviation, deviation, "raw points"))
-    zg, mask, g, ij, lo = _grid(xy, deviation)
-    margin = int(np.ceil(settings.edge_margin_mm / g))
+                        deviation_source="raw points", u_components=parts, **stats)
+    grid = _grid(xy)
+    zg = grid.mean(deviation)
+    mask = np.isfinite(zg)
+    margin = int(np.ceil(settings.edge_margin_mm / grid.spacing))
     region = ndimage.binary_closing(mask, np.ones((3, 3)), border_value=0) | mask  # sampling gaps closed, holes kept
     inner = mask & (ndimage.binary_erosion(region, np.ones((2 * margin + 1, 2 * margin + 1)), border_value=0)
                     if margin else region)
     if inner.sum() < MIN_POINTS:
-        return FaceForm(len(points), "too few points", f"fewer than {MIN_POINTS} grid cells of {g:.3g} mm left "
-                        f"inside the {settings.edge_margin_mm} mm edge margin")
+        return FaceForm(len(points), "too few points", f"fewer than {MIN_POINTS} grid cells of {grid.spacing:.3g} mm "
+                        f"left inside the {settings.edge_margin_mm} mm edge margin")
     zg = np.where(inner, zg, np.nan)  # the border band's mixed pixels must not leak into the filters
-    sigma = noise_sigma(zg, inner)
-    form = gaussian_filter(zg, inner, settings.form_cutoff_mm, g, order=2)
-    rough = zg - gaussian_filter(zg, inner, settings.roughness_cutoff_mm, g, order=0)
-    sq_raw = float(np.sqrt(np.mean(rough[inner] ** 2)))
-    sq = float(np.sqrt(max(sq_raw ** 2 - (sigma or 0.0) ** 2, 0.0)))
-    rng = np.random.default_rng(seed)
-    floor = None
-    if sigma:
-        noise = gaussian_filter(np.where(inner, rng.normal(0.0, sigma, zg.shape), np.nan), inner,
-                                settings.form_cutoff_mm, g, order=2)
-        floor = float(np.nanmax(noise[inner]) - np.nanmin(noise[inner]))
-    rows, cols = np.nonzero(inner)
-    cxy = lo + (np.stack([cols, rows], axis=1) + 0.5) * g
-    raw_sel = inner[ij[:, 1], ij[:, 0]]
-    common = dict(points=int(raw_sel.sum()), status="ok", noise_floor_mm=floor, sq_mm=sq, sq_raw_mm=sq_raw,
-                  noise_mm=sigma, form_cutoff_mm=settings.form_cutoff_mm,
-                  roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=g,
-                  **_stats(form[inner], deviation[raw_sel], "form surface"))
+    raw_sel = inner.ravel()[grid.cell]
+    if noise is not None:
+        point_draws = noise.draw(rng, settings.draws) * np.einsum("ij,ij->i", normals, noise.ray)
+        cell_draws = grid.mean(point_draws)
+        typical = float(np.median(noise.sigma_z * np.abs(np.einsum("ij,ij->i", normals, noise.ray))))
+        source, model_rel_u = noise.source, NOISE_MODEL_REL_U
+    else:  # estimated from the heights: white per cell
+        sigma = noise_sigma(zg, inner) or 0.0
+        cell_draws = rng.standard_normal((settings.draws, *zg.shape)) * sigma
+        point_draws = None
+        typical = sigma * float(np.sqrt(np.median(grid.counts[grid.counts > 0])))
+        source, model_rel_u = "estimated from the data (fourth differences)", 1.0 / np.sqrt(max(inner.sum(), 1))
+    cell_draws = np.where(inner, cell_draws, np.nan)
+    cal_cells = None
+    if shifts is not None:
+        cal_cells = np.where(inner, grid.mean(np.einsum("dij,ij->di", shifts, normals)), 0.0)
+    form_filter = GaussianFilter(inner, settings.form_cutoff_mm, grid.spacing, order=2)
+    rough_filter = GaussianFilter(inner, settings.roughness_cutoff_mm, grid.spacing, order=0)
+    form = form_filter(zg)
+    noise_form = form_filter(cell_draws)
+    rough = zg - rough_filter(zg)
+    drawn_rough = cell_draws - rough_filter(cell_draws)
+    sq, sq_raw, sq_noise, sq_parts = _sq(rough, np.nan_to_num(drawn_rough), inner, model_rel_u)
+    raw_dev = deviation[raw_sel]
+    raw_draws = (point_draws[:, raw_sel] if point_draws is not None
+                 else rng.standard_normal((settings.draws, int(raw_sel.sum()))) * typical)
+    cal_form = None if cal_cells is None else cal_cells[:, inner]
+    stats, parts = _deviation_stats(form[inner], form[inner] + noise_form[:, inner], raw_dev, raw_draws, cal_form)
+    parts["sq"] = sq_parts
+    common = dict(points=int(raw_sel.sum()), status="ok", sq=sq, sq_raw_mm=sq_raw, sq_noise_mm=sq_noise,
+                  noise_mm=typical, noise_source=source, form_cutoff_mm=settings.form_cutoff_mm,
+                  roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=grid.spacing, deviation_source="form surface",
+                  **stats)
+    cxy = grid.centres(inner)
+    f, e = form[inner], noise_form[:, inner]
+    cal = None if cal_form is None else cal_form
     if face.type == "plane":  # type: ignore[attr-defined]
         up = np.array([0.0, 0.0, 1.0])
-        fp = np.column_stack([cxy, form[inner]])
-        raw = np.column_stack([xy[raw_sel], deviation[raw_sel]])
-        c, nn = plane_ls(fp, up)
-        h = (fp - c) @ nn
-        return FaceForm(flatness_ls_mm=float(h.max() - h.min()), flatness_mz_mm=flatness_mz(fp, up),
-                        raw_zone_mm=flatness_mz(raw, up), **common)
+
+        def flat_ls(h: np.ndarray) -> float:
+            p = np.column_stack([cxy, h])
+            c, nn = plane_ls(p, up)
+            r = (p - c) @ nn
+            return float(r.max() - r.min())
+
+        def flat_mz(h: np.ndarray) -> float:
+            return flatness_mz(np.column_stack([cxy, h]), up)
+
+        ls, ls_parts = _zone(flat_ls, f, e, cal)
+        mz, mz_parts = _zone(flat_mz, f, e, cal)
+        parts.update(flatness_ls=ls_parts, flatness_mz=mz_parts)
+        return FaceForm(flatness_ls=ls, flatness_mz=mz, u_components=parts, **common)  # type: ignore[arg-type]
     if face.type == "cylinder":  # type: ignore[attr-defined]
         s = face.surface  # type: ignore[attr-defined]
         R = s.radius
-        sign = face.sense * np.sign(np.dot(s.evaluate(np.zeros((1, 2)))[1][0], s.x))  # dev -> radius change
-        fp = _unroll(cxy, R + sign * form[inner], R)
-        raw = _unroll(xy[raw_sel], R + sign * deviation[raw_sel], R)
+        sign = face.sense * np.sign(np.dot(s.evaluate(np.zeros((1, 2)))[1][0], s.x))  # type: ignore[attr-defined]
         axis0, o0 = np.array([0.0, 0.0, 1.0]), np.zeros(3)
-        o, a, _ = cylinder_ls(fp, o0, axis0)
-        d = fp - o
-        r = np.linalg.norm(d - np.outer(d @ a, a), axis=1)
-        return FaceForm(cylindricity_ls_mm=float(r.max() - r.min()), cylindricity_mz_mm=cylindricity_mz(fp, o0, axis0),
-                        raw_zone_mm=cylindricity_mz(raw, o0, axis0), **common)
-    return FaceForm(note=f"{face.type}: texture and deviations only", **common)  # type: ignore[attr-defined]
+
+        def cyl_ls(h: np.ndarray) -> float:
+            p = _unroll(cxy, R + sign * h, R)
+            o, a, _ = cylinder_ls(p, o0, axis0)
+            d = p - o
+            r = np.linalg.norm(d - np.outer(d @ a, a), axis=1)
+            return float(r.max() - r.min())
+
+        def cyl_mz(h: np.ndarray) -> float:
+            return cylindricity_mz(_unroll(cxy, R + sign * h, R), o0, axis0)
+
+        ls, ls_parts = _zone(cyl_ls, f, e, cal)
+        mz, mz_parts = _zone(cyl_mz, f, e, cal)
+        parts.update(cylindricity_ls=ls_parts, cylindricity_mz=mz_parts)
+        return FaceForm(cylindricity_ls=ls, cylindricity_mz=mz, u_components=parts, **common)  # type: ignore[arg-type]
+    return FaceForm(note=f"{face.type}: texture and deviations only", u_components=parts, **common)  # type: ignore[attr-defined,arg-type]
 
 
-def _stats(surface: np.ndarray, raw: np.ndarray, source: str) -> dict[str, float | str]:
-    """Deviation figures of `surface` (the form surface's deviations, or the raw ones),
-    its profile zone 2 max|d|, and the extremes of the `raw` point deviations (mm)."""
-    lo, hi = float(surface.min()), float(surface.max())
-    return dict(deviation_min_mm=lo, deviation_max_mm=hi, deviation_mean_mm=float(surface.mean()),
-                deviation_rms_mm=float(np.sqrt(np.mean(surface ** 2))), profile_mm=2.0 * max(abs(lo), abs(hi)),
-                deviation_source=source, raw_deviation_min_mm=float(raw.min()), raw_deviation_max_mm=float(raw.max()))
+def _zone(figure: Callable[[np.ndarray], float], form: np.ndarray, drawn: np.ndarray,
+          cal: np.ndarray | None) -> tuple[Estimate, dict[str, float]]:
+    """A zone of the form surface `form` (cells,) with its noise draws (D, cells) and
+    calibration moves (D_cal, cells): bias removed, u, detection limit."""
+    value = figure(form)
+    changes = None if cal is None else np.array([figure(form + c) - value for c in cal])
+    return from_draws(value, np.array([figure(form + e) for e in drawn]), np.array([figure(e) for e in drawn]),
+                       changes)
+
+
+def _point_draws(noise: PointNoise | None, normals: np.ndarray | None, rng: np.random.Generator, n: int,
+                 count: int, fallback_sigma: float) -> np.ndarray:
+    """Deviation draws (n, count) of raw points: the noise model along the normals, or
+    white noise of `fallback_sigma`."""
+    if noise is not None and normals is not None:
+        return noise.draw(rng, n) * np.einsum("ij,ij->i", normals, noise.ray)
+    return rng.standard_normal((n, count)) * fallback_sigma
+
+
+def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, raw: np.ndarray, raw_draws: np.ndarray,
+                     cal: np.ndarray | None) -> tuple[dict[str, Estimate], dict[str, dict[str, float]]]:
+    """Deviation figures of `surface` (the form surface's deviations, or the raw ones) with
+    their draws, its profile zone 2 max|d|, and the extremes of the `raw` point deviations
+    with theirs; `cal` (D_cal, cells): calibration moves. The extremes and the profile are
+    tested against zero (an extreme the noise alone reaches is not a deviation: null, with
+    that reach, in magnitude, as its limit); the mean and RMS are not."""
+    def each(fn: Callable[[np.ndarray], float], base: np.ndarray, draws: np.ndarray, tested: bool,
+             moves: np.ndarray | None, sign: float = 1.0) -> tuple[Estimate, dict[str, float]]:
+        value = sign * fn(base)
+        changes = None if moves is None else np.array([sign * fn(base + m) - value for m in moves])
+        est, parts = from_draws(value, np.array([sign * fn(x) for x in draws]),
+                                 np.array([sign * fn(x - base) for x in draws]) if tested else None, changes)
+        if sign < 0:
+            est = Estimate(None if est.value is None else -est.value, est.u, est.limit, -est.bias)
+        return est, parts
+
+    out, parts = {}, {}
+    for name, fn, tested, sign in (("deviation_min", np.min, True, -1.0), ("deviation_max", np.max, True, 1.0),
+                                   ("deviation_mean", np.mean, False, 1.0),
+                                   ("deviation_rms", lambda d: float(np.sqrt(np.mean(d ** 2))), False, 1.0),
+                                   ("profile", lambda d: 2.0 * float(np.max(np.abs(d))), True, 1.0)):
+        out[name], parts[name] = each(lambda d, fn=fn: float(fn(d)), surface, drawn, tested, cal, sign)
+    for name, fn, sign in (("raw_deviation_min", np.min, -1.0), ("raw_deviation_max", np.max, 1.0)):
+        out[name], parts[name] = each(lambda d, fn=fn: float(fn(d)), raw, raw[None] + raw_draws, True, None, sign)
+    return out, parts
 
 
 def _unroll(xy: np.ndarray, radius: np.ndarray, R: float) -> np.ndarray:

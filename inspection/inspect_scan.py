@@ -7,26 +7,33 @@
 A scan that does not match the model (another part, other units, too little in view)
 ends in an exception, never in numbers: `RegistrationFailed`, `UnitMismatch`,
 `CloudError`.
+
+Every figure carries its uncertainty (`inspection.uncertainty`): the scan's noise model
+and calibration covariance (`ScanUncertainty`, per scan point, camera frame) are turned
+into the model frame with the registration and passed to each face's evaluation; without
+one the noise is estimated from the data. Each characteristic with a tolerance gets an
+ISO 14253-1 verdict (`inspection.tolerances.decide`) under the tolerance file's rule.
 """
 
 from __future__ import annotations
 
 import time
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from inspection.cad import CadModel
 from inspection.errors import InspectionError
-from inspection.form import FormSettings, evaluate_face
+from inspection.form import FaceForm, FormSettings, evaluate_face
 from inspection.measured_cloud import ScanCloud, make_scan, part_mask
 from inspection.registration import ModelTarget, Registration, RegistrationSettings, transform_points
 from inspection.registration.warm_start import register_with_prior
 from inspection.report import FaceRow, InspectionReport
 from inspection.segmentation import assign_faces
-from inspection.tolerances import Tolerances, verdict
+from inspection.tolerances import FIGURE_OF, GUARD_BANDED, NOT_MEASURED, Tolerances, decide
+from inspection.uncertainty import ScanUncertainty
 
 _TARGETS: weakref.WeakKeyDictionary[CadModel, ModelTarget] = weakref.WeakKeyDictionary()
 
@@ -52,10 +59,12 @@ def prepare(model: CadModel) -> ModelTarget:
 
 def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = None,
             settings: InspectionSettings = InspectionSettings(), recording: Any = None,
-            prior: Registration | None = None) -> InspectionReport:
+            prior: Registration | None = None, uncertainty: ScanUncertainty | None = None) -> InspectionReport:
     """Register `scan` to `model`, segment it by CAD face and evaluate every face seen.
     `recording`: a `scanner.session_recording.SessionRecording` to log the result into;
-    `prior`: the previous part's registration on this station, tried first (warm start)."""
+    `prior`: the previous part's registration on this station, tried first (warm start);
+    `uncertainty`: the noise model and calibration of every scan point (None: the noise
+    is estimated from the data and there is no calibration term)."""
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     mask = part_mask(scan, model.diagonal_mm)
@@ -75,18 +84,36 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
     times["segment"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rows = []
+    R = reg.transform[:3, :3]
+    unc = None if uncertainty is None else uncertainty.subset(mask)
+    pose = PoseUncertainty.of(q, seg)
+    rule = tolerances.decision_rule if tolerances is not None else GUARD_BANDED
     for face in model.faces:  # one evaluation per face seen
         sel = seg.face == face.index
         if not sel.any():
+            if tolerances is not None and face.label in tolerances.faces:  # asked for, not seen: said so
+                unseen = FaceForm(0, "not seen", "no scan point on this face")
+                rows.append(FaceRow.of(face, unseen, _verdicts(face.label, unseen, tolerances, rule),
+                                       tolerances.name(face.label)))
             continue
-        form = evaluate_face(face, q[sel], seg.deviation_mm[sel], seg.uv[sel], settings.form)
-        rows.append(FaceRow.of(face, form, _verdicts(face.label, form, tolerances)))
+        noise, shifts = None, None
+        if unc is not None:
+            face_unc = unc.subset(sel)
+            noise = None if face_unc.noise is None else face_unc.noise.rotated(R)
+            moves = face_unc.shifts(part.points[sel])
+            shifts = None if moves is None else moves @ R.T
+        form = evaluate_face(face, q[sel], seg.deviation_mm[sel], seg.uv[sel], settings.form, noise=noise,
+                             normals=seg.normal[sel], shifts=shifts)
+        form = pose.added_to(form, q[sel], seg.normal[sel])
+        rows.append(FaceRow.of(face, form, _verdicts(face.label, form, tolerances, rule),
+                               tolerances.name(face.label) if tolerances is not None else ""))
     times["form"] = time.perf_counter() - t0
     report = InspectionReport(
         model=str(model.path), unit=model.unit, source=scan.source, scan_points=len(scan), part_points=len(part),
         assigned_points=int(seg.assigned.sum()), registration=reg, faces=tuple(rows),
         form_settings=settings.form, timings_s={k: round(v, 4) for k, v in times.items()},
-        part_mask=mask, segmentation=seg)
+        part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose.as_dict(),
+        calibration=uncertainty.calibration.source if uncertainty is not None else "not known (a bare cloud): not in U")
     if recording is not None:
         from inspection.inspection_recording import log_inspection
 
@@ -94,35 +121,61 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
     return report
 
 
-def _verdicts(label: str, form: Any, tolerances: Tolerances | None) -> dict[str, tuple[float, str]]:
+@dataclass(frozen=True)
+class PoseUncertainty:
+    """The registration pose's covariance (6, 6: a small rotation (rad) and a translation
+    (mm) of the scan in the model frame) from the point-to-plane normal equations at the
+    final pose, the points' residual about their faces taken as their noise:
+    Σ = s²(JᵀJ)⁻¹, J_i = [(q_i × n_i)ᵀ, n_iᵀ]. It moves each face's points along its normal
+    as a whole, so it is added to the deviation figures (not to form, which it cannot
+    change). A statistical figure: what pulls a best fit off (defects, a partial view) is
+    not in it."""
+
+    covariance: np.ndarray
+
+    @classmethod
+    def of(cls, points: np.ndarray, seg: Any) -> PoseUncertainty:
+        ok = seg.assigned & np.isfinite(seg.deviation_mm)
+        if ok.sum() < 6:
+            return cls(np.zeros((6, 6)))
+        n = seg.normal[ok]
+        J = np.column_stack([np.cross(points[ok], n), n])
+        s2 = float(np.mean(seg.deviation_mm[ok] ** 2))
+        return cls(s2 * np.linalg.pinv(J.T @ J))
+
+    def as_dict(self) -> dict[str, float]:
+        sd = np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+        return {"rotation_u_deg": float(2.0 * np.degrees(np.linalg.norm(sd[:3]))),
+                "translation_u_mm": float(2.0 * np.linalg.norm(sd[3:]))}
+
+    def added_to(self, form: FaceForm, points: np.ndarray, normals: np.ndarray) -> FaceForm:
+        """The face's deviation figures with the pose's uncertainty added (the mean move
+        of the face along its normals; twice that for the profile zone 2 max|d|)."""
+        if form.status != "ok" or not np.any(self.covariance):
+            return form
+        m = np.column_stack([np.cross(points, normals), normals]).mean(axis=0)
+        u = float(np.sqrt(max(m @ self.covariance @ m, 0.0)))
+        changes = {}
+        for name, scale in (("deviation_min", 1.0), ("deviation_max", 1.0), ("deviation_mean", 1.0),
+                            ("profile", 2.0)):
+            e = form.figure(name)
+            if e is not None:
+                changes[name] = replace(e, u=float(np.hypot(e.u, scale * u)))
+        return replace(form, **changes)
+
+
+def _verdicts(label: str, form: Any, tolerances: Tolerances | None, rule: str) -> dict[str, tuple[float, str]]:
     """characteristic -> (limit, verdict) for the limits that apply to this face."""
     if tolerances is None:
         return {}
     out = {}
-    floor = form.noise_floor_mm or 0.0
     own = tolerances.faces.get(label, {})
     for key, limit in tolerances.for_face(label).items():
         if form.status != "ok" and key not in own:
             continue  # a default limit does not ask for a face seen too little to measure
-        if key == "flatness_mm":
-            out[key] = (limit, verdict(form.flatness_mz_mm, limit, floor))
-        elif key == "cylindricity_mm":
-            out[key] = (limit, verdict(form.cylindricity_mz_mm, limit, floor))
-        elif key == "sq_mm":
-            unc = abs((form.sq_raw_mm or 0.0) - (form.sq_mm or 0.0))
-            out[key] = (limit, verdict(form.sq_mm, limit, unc))
-        elif key == "profile_mm":
-            out[key] = (limit, verdict(form.profile_mm, limit, _profile_uncertainty(form)))
+        e = form.figure(FIGURE_OF[key]) if form.status == "ok" else None
+        out[key] = (limit, NOT_MEASURED if e is None else decide(e.value, e.U, limit, None, rule, e.limit))
     return out
-
-
-def _profile_uncertainty(form: Any) -> float:
-    """What noise can add to a profile zone (mm): the filtered noise's zone (noise floor)
-    on the form surface; on raw points, twice the expected largest of `points` normal
-    deviates of the estimated noise, sigma sqrt(2 ln N)."""
-    if form.deviation_source == "form surface":
-        return form.noise_floor_mm or 0.0
-    return 2.0 * (form.noise_mm or 0.0) * float(np.sqrt(2.0 * np.log(max(form.points, 2))))
 
 
 def inspect_points(points: np.ndarray, model: CadModel, **kw: Any) -> InspectionReport:

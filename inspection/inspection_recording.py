@@ -8,8 +8,9 @@ entity path                            content
 ``world/inspection/cad``               Mesh3D: the CAD model at the registered pose
 ``world/inspection/deviation``         Points3D: the part's points coloured by signed
                                        deviation (blue inside, red outside, grey: none)
+=======
 ``world/inspection/faces``             Points3D: the part's points, class id = face
-                                       index + 1 (0: on no face), labels = face labels
+                                       index + 1 (0: on no face), labels = face names
 ``inspection/deviation_map``           Image: the deviation map (camera image layout)
 ``inspection/report``                  TextDocument (markdown): the per-face table
 ``metrics/inspection/<name>``          Scalars: fitness, RMSE (mm), verdict counts
@@ -51,7 +52,8 @@ def log_inspection(recording: SessionRecording, report: InspectionReport, scan: 
     rgb = deviation_colours(seg.deviation_mm, colour_limit(report))
     stream.log(DEVIATION, rr.Points3D(part, colors=np.round(rgb * 255).astype(np.uint8)), strict=True)
     labels = [rr.AnnotationInfo(id=0, label="no face", color=(128, 128, 128))]
-    labels += [rr.AnnotationInfo(id=f.index + 1, label=f"{f.label} {f.type}") for f in model.faces]
+    names = {r.label: r.title for r in report.faces}  # "high top #657" where the part program names the face
+    labels += [rr.AnnotationInfo(id=f.index + 1, label=f"{names.get(f.label, f.label)} {f.type}") for f in model.faces]
     stream.log(FACES, rr.AnnotationContext(labels), static=True, strict=True)
     stream.log(FACES, rr.Points3D(part, class_ids=(seg.face + 1).astype(np.uint16)), strict=True)
     stream.log(DEVIATION_MAP, rr.Image(deviation_image(report, scan)), strict=True)
@@ -59,5 +61,6 @@ def log_inspection(recording: SessionRecording, report: InspectionReport, scan: 
                strict=True)
     verdicts = [v for row in report.faces for _, v in row.verdicts.values()]
     metrics = {"fitness": report.fitness, "rmse_mm": report.rmse_mm,
-               **{f"{w}_count": float(verdicts.count(w)) for w in ("pass", "fail", "uncertain")}}
+               **{f"{w.replace('-', '_')}_count": float(verdicts.count(w))
+                  for w in ("conforming", "non-conforming", "uncertain")}}
     recording.log_metrics({f"{METRICS}/{name}": value for name, value in metrics.items()}, scan=scan_index)

@@ -1,21 +1,22 @@
 """The inspection report: a per-face table (the layout of paper 000's Table 3, plus
-minimum-zone figures, noise floors, tolerances and verdicts) as JSON, CSV, text and a
-human-readable HTML page with the deviation map.
+minimum-zone figures, uncertainties, detection limits, tolerances and ISO 14253-1 verdicts)
+as JSON, CSV, text and a human-readable HTML page with the deviation map.
 
-Columns (mm): flatness / cylindricity by least squares (paper 000 Eq. 20-22) and minimum
-zone (ISO 1101), both on the form surface (ISO 16610-61 Gaussian, cut-off in the report);
-the raw zone of the unfiltered points; the noise floor (the zone the filtered scanner
-noise alone spans); Sq (ISO 25178-2) with the estimated noise removed in quadrature;
-signed deviations from nominal (positive = excess material).
+Figures (mm in files, µm in the text table): flatness / cylindricity by least squares
+(paper 000 Eq. 20-22) and minimum zone (ISO 1101), both on the form surface (ISO 16610-61
+Gaussian, cut-off in the report); Sq (ISO 25178-2); signed deviations from nominal
+(positive = excess material) and the profile zone of the form surface; the raw points'
+extremes. In JSON and CSV every figure `x_mm` has `x_u_mm`, its expanded uncertainty
+(k = 2); a figure that cannot be told from zero is null with `x_limit_mm`, its detection
+limit (the text table prints `< limit`). Each toleranced characteristic has
+`tolerance_x_mm` and `verdict_x`: conforming, non-conforming or uncertain under the
+recorded decision rule. How to read them: README, "Reading the figures".
 """
 
 from __future__ import annotations
 
-import base64
 import csv
-import html
 import io
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,31 +24,64 @@ from typing import Any
 import numpy as np
 
 from inspection.form import FaceForm, FormSettings
+from inspection.report_header import ReportHeader
+from inspection.report_html import render
+from inspection.report_pdf import print_pdf
+from inspection.tolerances import DECISION_RULES, GUARD_BANDED, overall
+from inspection.uncertainty import Estimate
+from scanner.session import write_atomic, write_json
 
-NOISE_NOTE = ("Scanner noise (sigma_n per point, estimated from the data) would widen a zone evaluated on raw "
-              "points by several sigma_n and add sigma_n^2 to Sq^2: zones are evaluated on the form surface "
-              "(noise divided by the filter), reported with the zone the filtered noise alone spans (noise floor), "
-              "Sq has sigma_n removed in quadrature, the profile zone (2 max|deviation|) is taken on the form surface "
-              "(the raw points' extremes, 4-5 sigma_n of noise each side, are listed apart), and a tolerance the "
-              "noise floor cannot decide is 'uncertain'.")
+NOISE_NOTE = ("Every figure is given with its expanded uncertainty U (k = 2): scanner noise predicted per point "
+              "by the decoder and the sensor model (or, without one, estimated from the data), the fringe error "
+              "of the projector's quantised patterns, and the calibration's covariance where the rig has one. "
+              "Noise adds to zones and to Sq: each zone, the profile, the deviation extremes and Sq are reported "
+              "with that noise bias removed (zones and profile: the mean shift of the same figure over noise "
+              "draws; Sq: the noise's mean square subtracted). A figure that noise alone could produce is "
+              "reported as below its detection limit (< limit), not as a number. Zones, deviations and the "
+              "profile are those of the form surface (features longer than the form cut-off); the raw points' "
+              "extremes include the noise.")
+
+TABLE = (("flat MZ", "flatness_mz"), ("cyl MZ", "cylindricity_mz"), ("Sq", "sq"), ("profile", "profile"),
+         ("dev min", "deviation_min"), ("dev max", "deviation_max"))
+
+
+def cell_text(e: Estimate | None, width: int = 13) -> str:
+    """A figure for the text table, in µm: "12.3±2.1", "<6.1", or "-"."""
+    if e is None:
+        text = "-"
+    elif e.value is None:
+        text = f"<{e.limit * 1e3:.1f}" if e.limit is not None else "n/m"
+    else:
+        text = f"{e.value * 1e3:.1f}±{e.U * 1e3:.1f}"
+    return f"{text:>{width}}"
 
 
 @dataclass(frozen=True)
 class FaceRow:
-    """One face of the report: its label, STEP id and type, and its figures."""
+    """One face of the report: its label, STEP id and type, its figures and verdicts
+    (characteristic -> (tolerance mm, verdict)); `name` the part program's name of the face
+    ("" without one), `index` the face's index in the CAD model (segmentation's labels)."""
 
     label: str
     id: int | None
     type: str
     form: FaceForm
     verdicts: dict[str, tuple[float, str]] = field(default_factory=dict)
+    name: str = ""
+    index: int = -1
 
     @classmethod
-    def of(cls, face: Any, form: FaceForm, verdicts: dict[str, tuple[float, str]]) -> FaceRow:
-        return cls(face.label, face.step_id, face.type, form, verdicts)
+    def of(cls, face: Any, form: FaceForm, verdicts: dict[str, tuple[float, str]], name: str = "") -> FaceRow:
+        return cls(face.label, face.step_id, face.type, form, verdicts, name, face.index)
+
+    @property
+    def title(self) -> str:
+        """The face as people read it: "high top #657", or the label alone without a name."""
+        return f"{self.name} {self.label}" if self.name else self.label
 
     def as_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"label": self.label, "id": self.id, "type": self.type, **self.form.as_dict()}
+        d: dict[str, Any] = {"label": self.label, "name": self.name, "id": self.id, "type": self.type,
+                             **self.form.as_dict()}
         for key, (limit, v) in self.verdicts.items():
             d[f"tolerance_{key}"] = limit
             d[f"verdict_{key.removesuffix('_mm')}"] = v
@@ -57,7 +91,11 @@ class FaceRow:
 @dataclass(frozen=True, eq=False)
 class InspectionReport:
     """The result of `pipeline.inspect`. `registration` is a `registration.Registration`;
-    `part_mask` which scan points are the part, `segmentation` their faces."""
+    `part_mask` which scan points are the part, `segmentation` their faces;
+    `decision_rule` how verdicts used U; `calibration` where the calibration term came from;
+    `pose_u` the registration pose's expanded uncertainty (k = 2: rotation in degrees,
+    translation in mm); `header` who, what, when and with what (`inspection.report_header`),
+    filled by the command that inspects."""
 
     model: str
     unit: str
@@ -71,6 +109,10 @@ class InspectionReport:
     timings_s: dict[str, float]
     part_mask: np.ndarray = field(repr=False)
     segmentation: Any = field(repr=False)
+    decision_rule: str = GUARD_BANDED
+    calibration: str = ""
+    pose_u: dict[str, float] = field(default_factory=dict)
+    header: ReportHeader = ReportHeader()
 
     @property
     def fitness(self) -> float:
@@ -82,92 +124,71 @@ class InspectionReport:
 
     @property
     def verdict(self) -> str:
-        """"fail" if any limit fails, "uncertain" if any cannot be decided, "pass" if all
-        pass, "no tolerances" without limits."""
-        vs = [v for row in self.faces for _, v in row.verdicts.values()]
-        for word in ("fail", "uncertain", "not measured"):
-            if word in vs:
-                return word
-        return "pass" if vs else "no tolerances"
+        """non-conforming if any characteristic is, else uncertain / not measured if any is,
+        conforming if all are, "no tolerances" without limits."""
+        return overall([v for row in self.faces for _, v in row.verdicts.values()])
 
     def as_dict(self) -> dict[str, Any]:
-        return {"status": "ok", "model": self.model, "unit": self.unit, "source": self.source,
+        return {"status": "ok", "header": self.header.as_dict(), "model": self.model, "unit": self.unit, "source": self.source,
                 "fitness": self.fitness, "rmse_mm": self.rmse_mm, "verdict": self.verdict,
-                "registration": self.registration.as_dict(),
+                "decision_rule": self.decision_rule, "rule": DECISION_RULES[self.decision_rule],
+                "coverage_factor": 2.0, "calibration_uncertainty": self.calibration,
+                "registration": {**self.registration.as_dict(), **self.pose_u},
                 "points": {"scan": self.scan_points, "part": self.part_points, "assigned": self.assigned_points,
                            "unassigned": self.part_points - self.assigned_points},
                 "form_settings": asdict(self.form_settings), "noise_treatment": NOISE_NOTE,
                 "timings_s": self.timings_s, "faces": [row.as_dict() for row in self.faces]}
 
     def table(self) -> str:
-        """The per-face table as text (values in mm; MZ = minimum zone, LS = least squares;
-        deviations and profile of the form surface; each limit with its verdict)."""
-        head = (f"{'face':>8} {'type':<9} {'points':>8} {'flat MZ':>9} {'flat LS':>9} {'cyl MZ':>9} {'cyl LS':>9} "
-                f"{'Sq':>8} {'floor':>7} {'dev min':>8} {'dev max':>8} {'profile':>8}  tolerance verdicts")
+        """The per-face table as text: figures in µm as value ± U (k = 2), or < detection
+        limit; each limit with its verdict."""
+        width = max([8] + [len(r.title) for r in self.faces])
+        head = (f"{'face':<{width}} {'type':<9} {'points':>7} " + " ".join(f"{h + ' µm':>13}" for h, _ in TABLE)
+                + "  tolerance (mm) verdict")
         lines = [head, "-" * len(head)]
-
-        def f(x: float | None, w: int = 9) -> str:
-            return f"{x:{w}.4f}" if x is not None else f"{'-':>{w}}"
-
         for row in self.faces:
             m = row.form
             v = ", ".join(f"{k.removesuffix('_mm')} {lim:.3f} {w}" for k, (lim, w) in row.verdicts.items())
-            lines.append(f"{row.label:>8} {row.type:<9} {m.points:>8} {f(m.flatness_mz_mm)} {f(m.flatness_ls_mm)} "
-                         f"{f(m.cylindricity_mz_mm)} {f(m.cylindricity_ls_mm)} {f(m.sq_mm, 8)} "
-                         f"{f(m.noise_floor_mm, 7)} {f(m.deviation_min_mm, 8)} {f(m.deviation_max_mm, 8)} {f(m.profile_mm, 8)}  "
+            cells = " ".join(cell_text(m.figure(name)) for _, name in TABLE)
+            lines.append(f"{row.title:<{width}} {row.type:<9} {m.points:>7} {cells}  "
                          f"{v or m.status if m.status != 'ok' else v}")
         s = self.form_settings
+        lines.append(f"µm, value ± U (k = 2); < x: below the detection limit x (noise alone could read that much). "
+                     f"Zones, profile and deviations of the form surface (ISO 16610-61, cut-off {s.form_cutoff_mm} mm, "
+                     f"2nd-order regression); Sq with roughness cut-off {s.roughness_cutoff_mm} mm; noise bias removed; "
+                     f"edge margin {s.edge_margin_mm} mm.")
         lines.append(f"registration fitness {self.fitness:.3f}, RMSE {self.rmse_mm * 1e3:.1f} um "
-                     f"({self.registration.method}{', AMBIGUOUS pose' if self.registration.ambiguous else ''}); "
-                     f"{self.assigned_points}/{self.part_points} part points on faces; form filter ISO 16610-61 "
-                     f"cut-off {s.form_cutoff_mm} mm (2nd-order regression), roughness cut-off "
-                     f"{s.roughness_cutoff_mm} mm, edge margin {s.edge_margin_mm} mm; verdict {self.verdict}")
+                     f"({self.registration.method}{', AMBIGUOUS pose' if self.registration.ambiguous else ''}"
+                     + (f"; pose U {self.pose_u['translation_u_mm'] * 1e3:.2f} um, {self.pose_u['rotation_u_deg']:.5f} deg"
+                        if self.pose_u else "") + "); "
+                     f"{self.assigned_points}/{self.part_points} part points on faces; calibration: {self.calibration}; "
+                     f"decision rule {self.decision_rule}; verdict {self.verdict}")
         return "\n".join(lines)
 
-    def write(self, folder: str | Path, stem: str = "inspection", deviation_png: bytes | None = None) -> list[Path]:
+    def write(self, folder: str | Path, stem: str = "inspection", deviation_png: bytes | None = None,
+              pdf: bool = False) -> list[Path]:
         """inspection.json, inspection.csv and inspection.html (with the deviation map) in
-        `folder`; returns their paths."""
+        `folder`, and with `pdf` inspection.pdf printed from the page by headless Chromium
+        when it is installed (`inspection.report_pdf`); returns the paths written."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         paths = [folder / f"{stem}.json", folder / f"{stem}.csv", folder / f"{stem}.html"]
-        _atomic(paths[0], json.dumps(self.as_dict(), indent=1, default=_plain).encode())
-        rows = [r.as_dict() for r in self.faces]
+        write_json(paths[0], self.as_dict())
+        rows = [{k: v for k, v in r.as_dict().items() if k != "u_components_mm"} for r in self.faces]
         keys = list(dict.fromkeys(k for r in rows for k in r))
         buf = io.StringIO()
         w = csv.DictWriter(buf, fieldnames=keys)
         w.writeheader()
         w.writerows(rows)
-        _atomic(paths[1], buf.getvalue().encode())
-        _atomic(paths[2], self.html(deviation_png).encode())
+        write_atomic(paths[1], buf.getvalue().encode())
+        write_atomic(paths[2], self.html(deviation_png).encode())
+        if pdf and print_pdf(paths[2], folder / f"{stem}.pdf") is not None:
+            paths.append(folder / f"{stem}.pdf")
         return paths
 
     def html(self, deviation_png: bytes | None = None) -> str:
-        d = self.as_dict()
-        cols = ["label", "type", "points", "flatness_mz_mm", "flatness_ls_mm", "cylindricity_mz_mm",
-                "cylindricity_ls_mm", "raw_zone_mm", "noise_floor_mm", "sq_mm", "deviation_min_mm",
-                "deviation_max_mm", "profile_mm", "raw_deviation_min_mm", "raw_deviation_max_mm", "status"]
-        vcols = sorted({k for r in d["faces"] for k in r if k.startswith(("tolerance_", "verdict_"))})
-
-        def cell(v: Any) -> str:
-            if isinstance(v, float):
-                return f"<td>{v:.4f}</td>"
-            cls = f' class="{v}"' if v in ("pass", "fail", "uncertain") else ""
-            return f"<td{cls}>{html.escape('' if v is None else str(v))}</td>"
-
-        body = "".join("<tr>" + "".join(cell(r.get(c)) for c in cols + vcols) + "</tr>" for r in d["faces"])
-        img = (f'<h2>Deviation map</h2><p>signed deviation from nominal (blue: inside the material, red: '
-               f'outside; grey: part points on no face)</p><img src="data:image/png;base64,'
-               f'{base64.b64encode(deviation_png).decode()}">' if deviation_png else "")
-        return (f"<!doctype html><html><head><meta charset='utf-8'><title>Inspection of {html.escape(self.source)}"
-                f"</title><style>body{{font-family:sans-serif}}td,th{{padding:2px 8px;text-align:right}}"
-                f".pass{{background:#cfc}}.fail{{background:#fcc}}.uncertain{{background:#ffc}}</style></head><body>"
-                f"<h1>Inspection: {html.escape(Path(self.model).name)}</h1>"
-                f"<p>scan {html.escape(self.source)}; model {html.escape(self.model)} ({html.escape(self.unit)}); "
-                f"verdict <b>{self.verdict}</b></p>"
-                f"<p>registration: fitness {self.fitness:.3f}, RMSE {self.rmse_mm * 1e3:.1f} &micro;m, "
-                f"{html.escape(self.registration.method)}; points: {self.assigned_points} of {self.part_points} "
-                f"on faces</p><table><tr>{''.join(f'<th>{c}</th>' for c in cols + vcols)}</tr>{body}</table>"
-                f"<p>All lengths in mm. {html.escape(NOISE_NOTE)}</p>{img}</body></html>")
+        """The self-contained HTML report (`inspection.report_html`)."""
+        return render(self, colour_limit(self), NOISE_NOTE, deviation_png)
 
 
 def deviation_colours(dev: np.ndarray, limit_mm: float) -> np.ndarray:
@@ -209,17 +230,3 @@ def png(image: np.ndarray) -> bytes:
 
     ok, buf = cv2.imencode(".png", image[..., ::-1])
     return buf.tobytes() if ok else b""
-
-
-def _atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_bytes(data)
-    tmp.replace(path)
-
-
-def _plain(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    return str(o)

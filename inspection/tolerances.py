@@ -1,40 +1,63 @@
-"""Tolerance files: per-face limits for the inspection report (`config/tolerances/`).
+"""Tolerance files: per-face limits for the inspection report. A part's tolerances live in
+its part program (`config/parts/*.toml`, `slscan.station.program`), which `slscan inspect
+--tolerances` and the demo read and turn into `Tolerances`; this file format is for a model
+without a program:
 
     # tolerances of config/parts/demo_part.step (mm)
+    decision_rule = "guard-banded"   # optional: how verdicts use U (see DECISION_RULES)
     [faces."#657"]              # a face by its label: "#<STEP ADVANCED_FACE id>" or "F<index>" (meshes)
-    flatness_mm = 0.05          # minimum-zone flatness (ISO 1101), planes
+    flatness_mm = 0.05          # minimum-zone flatness (ISO 1101), planes (flatness_ls_mm: least squares)
     sq_mm = 0.10                # Sq roughness (ISO 25178-2)
     [faces."#17"]
-    cylindricity_mm = 0.05      # minimum-zone cylindricity, cylinders
+    cylindricity_mm = 0.05      # minimum-zone cylindricity, cylinders (cylindricity_ls_mm: least squares)
     profile_mm = 0.4            # profile of a surface: every point within +-profile/2 of nominal
     [default]                   # optional: limits for every face without its own table
     profile_mm = 1.0
 
-Verdicts follow the decision rule of ISO 14253-1: "pass" when the value plus its noise
-uncertainty is within the limit, "fail" when the value minus it is beyond, else
-"uncertain" — a measurement the scanner's noise cannot decide is never called a pass.
+Verdicts follow ISO 14253-1 (`decide`): with the default "guard-banded" rule a
+characteristic is "conforming" when conformance is proven (its value plus its expanded
+uncertainty U is within the limit), "non-conforming" when non-conformance is proven (the
+value minus U is beyond it), else "uncertain" — a measurement its uncertainty cannot decide
+is never called conforming. The "plain" rule judges the value alone (U is still reported).
+A figure below its detection limit is judged by that limit: conforming when the limit is
+within the tolerance, else uncertain (it cannot be shown to be out).
 """
 
 from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 from inspection.errors import ToleranceError
 from scanner.schema import nearest
 
-CHARACTERISTICS = {"flatness_mm": ("plane",), "cylindricity_mm": ("cylinder",), "sq_mm": None, "profile_mm": None}
+CHARACTERISTICS = {"flatness_mm": ("plane",), "cylindricity_mm": ("cylinder",), "sq_mm": None, "profile_mm": None,
+                   "flatness_ls_mm": ("plane",), "cylindricity_ls_mm": ("cylinder",)}
+# characteristic key -> the report figure it limits, and how people call it
+FIGURE_OF = {"flatness_mm": "flatness_mz", "cylindricity_mm": "cylindricity_mz", "sq_mm": "sq", "profile_mm": "profile",
+             "flatness_ls_mm": "flatness_ls", "cylindricity_ls_mm": "cylindricity_ls"}
+TITLES = {"flatness_mm": "flatness (minimum zone)", "cylindricity_mm": "cylindricity (minimum zone)",
+          "sq_mm": "Sq roughness", "profile_mm": "profile of a surface", "flatness_ls_mm": "flatness (least squares)",
+          "cylindricity_ls_mm": "cylindricity (least squares)"}
 
 
 @dataclass(frozen=True)
 class Tolerances:
-    """Limits (mm) by face label, and defaults for faces without their own."""
+    """Limits (mm) by face label, and defaults for faces without their own; `names` the
+    faces' names by label (a part program's [faces] table), shown wherever a face is."""
 
     faces: dict[str, dict[str, float]]
     default: dict[str, float]
     path: Path | None = None
+    decision_rule: str = "guard-banded"
+    names: dict[str, str] = field(default_factory=dict)
+
+    def name(self, label: str) -> str:
+        return self.names.get(label, "")
 
     def for_face(self, label: str) -> dict[str, float]:
         return {**self.default, **self.faces.get(label, {})}
@@ -49,11 +72,15 @@ def load_tolerances(path: str | Path, labels: dict[str, str]) -> Tolerances:
         raise ToleranceError(f"{path}: no such tolerance file") from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ToleranceError(f"{path}: unreadable tolerance file: {exc}") from None
-    unknown = set(raw) - {"faces", "default"}
+    unknown = set(raw) - {"faces", "default", "decision_rule"}
     if unknown:
-        raise ToleranceError(f"{path}: unknown table(s) {sorted(unknown)}; expected [faces.\"#id\"] and [default]")
+        raise ToleranceError(f"{path}: unknown table(s) {sorted(unknown)}; expected [faces.\"#id\"], [default] and "
+                             f"decision_rule")
     if not isinstance(raw.get("faces", {}), dict):
         raise ToleranceError(f"{path}: faces must be a table of [faces.\"#id\"] tables")
+    rule = raw.get("decision_rule", GUARD_BANDED)
+    if rule not in DECISION_RULES:
+        raise ToleranceError(f"{path}: decision_rule {rule!r}: use one of {sorted(DECISION_RULES)}")
 
     def limits(table: object, where: str, face_type: str | None) -> dict[str, float]:
         if not isinstance(table, dict):
@@ -79,15 +106,44 @@ def load_tolerances(path: str | Path, labels: dict[str, str]) -> Tolerances:
             raise ToleranceError(f"{path}: faces.\"{label}\": the model has no such face (labels look like "
                                  f"{next(iter(labels))})")
         faces[label] = limits(table, f"faces.\"{label}\"", labels[label])
-    return Tolerances(faces, limits(raw.get("default", {}), "default", None), path)
+    return Tolerances(faces, limits(raw.get("default", {}), "default", None), path, rule)
 
 
-def verdict(value: float | None, limit: float, uncertainty: float) -> str:
-    """ISO 14253-1 decision: "pass", "fail", "uncertain", or "not measured"."""
+CONFORMING, NON_CONFORMING, UNCERTAIN, NOT_MEASURED = "conforming", "non-conforming", "uncertain", "not measured"
+GUARD_BANDED, PLAIN = "guard-banded", "plain"
+DECISION_RULES = {
+    GUARD_BANDED: "ISO 14253-1: conforming when value + U is within the limit, non-conforming when value - U is "
+                  "beyond it, otherwise uncertain",
+    PLAIN: "the value against the limit (simple acceptance); U reported but not applied",
+}
+
+
+def decide(value: float | None, U: float, upper: float, lower: float | None = None, rule: str = GUARD_BANDED,
+           limit: float | None = None) -> str:
+    """The ISO 14253-1 verdict of a measured figure against its specification [lower,
+    upper] (mm; `lower` None: an upper limit only, as for form tolerances): "conforming",
+    "non-conforming", "uncertain" or "not measured" (see the module docstring). `U`: the
+    value's expanded uncertainty; `limit`: its detection limit when `value` is None
+    because the figure could not be told from zero."""
+    if rule not in DECISION_RULES:
+        raise ValueError(f"unknown decision rule {rule!r}; use one of {sorted(DECISION_RULES)}")
     if value is None:
-        return "not measured"
-    if value + uncertainty <= limit:
-        return "pass"
-    if value - uncertainty > limit:
-        return "fail"
-    return "uncertain"
+        if limit is None:
+            return NOT_MEASURED
+        return CONFORMING if limit <= upper and (lower is None or lower <= 0.0) else UNCERTAIN
+    band = U if rule == GUARD_BANDED else 0.0
+    lo = -np.inf if lower is None else lower
+    if lo + band <= value <= upper - band:
+        return CONFORMING
+    if value - band > upper or value + band < lo:
+        return NON_CONFORMING
+    return UNCERTAIN
+
+
+def overall(verdicts: list[str]) -> str:
+    """A part's verdict from its characteristics': non-conforming if any is, else
+    uncertain or not measured if any is, else conforming ("no tolerances" without any)."""
+    for word in (NON_CONFORMING, UNCERTAIN, NOT_MEASURED):
+        if word in verdicts:
+            return word
+    return CONFORMING if verdicts else "no tolerances"

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -48,6 +48,7 @@ SIGNATURE_PIXELS = 1500  # well-lit pixels the signature check looks at
 SIGNATURE_MAX_RESIDUAL = 0.05  # a frame's residual / fringe signal (true frames: <= 0.01, wrong ones: >= 0.09)
 SIGNATURE_MIN_CONTRAST = 0.02  # of full scale: temporal std below this is too dark to judge
 STATUS_CHECK_S = 0.1  # while a sequence drives the camera, a frame is awaited in slices this long (s)
+EXPOSURE_PERIOD_MARGIN_S = 0.005  # a sequenced pattern stays up this much longer than a long exposure (s)
 
 
 @dataclass(frozen=True)
@@ -146,6 +147,46 @@ def acquire_images(rig: Rig, images: np.ndarray, settings: AcquisitionSettings,
     release(rig, quiet=False)
     assert stack is not None
     return stack
+
+
+def settings_for_exposure(settings: AcquisitionSettings, exposure_s: float) -> AcquisitionSettings:
+    """`settings` with a pattern period long enough for `exposure_s` (s): a sequenced
+    pattern must stay up for the whole exposure."""
+    return replace(settings, period_s=max(settings.period_s, exposure_s + EXPOSURE_PERIOD_MARGIN_S))
+
+
+def at_exposure(rig: Rig, exposure_s: float, grab: Callable[[], np.ndarray]) -> np.ndarray:
+    """`grab()` with the camera at `exposure_s` (s), its exposure set back afterwards (also
+    when `grab` fails: then a failure to set it back is logged, not raised over the error)."""
+    cam = rig.camera
+    before = cam.exposure_s
+    cam.set_exposure(exposure_s)
+    try:
+        out = grab()
+    except BaseException:
+        try:
+            cam.set_exposure(before)
+        except Exception as exc:
+            log.warning("%s: could not set the exposure back to %.4g s: %s", cam.name, before, exc)
+        raise
+    cam.set_exposure(before)
+    return out
+
+
+def acquire_exposures(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings, exposures_s: tuple[float, ...],
+                      on_frame: FrameCallback) -> list[np.ndarray]:
+    """The whole pattern set captured once per exposure (s), in the order given; frame k of
+    exposure i is passed to `on_frame` as i·n_frames + k, each exposure's stack checked like a
+    single capture (`acquire`). The camera's exposure is set back afterwards."""
+    n = patterns.n_frames
+    stacks = []
+    for i, t in enumerate(exposures_s):
+        def shifted(k: int, frame: Frame, offset: int = i * n) -> None:
+            on_frame(offset + k, frame)
+
+        log.info("%s: exposure %d of %d, %.4g s", rig.camera.name, i + 1, len(exposures_s), t)
+        stacks.append(at_exposure(rig, t, lambda: acquire(rig, patterns, settings_for_exposure(settings, t), shifted)))
+    return stacks
 
 
 def release(rig: Rig, quiet: bool) -> None:

@@ -54,6 +54,16 @@ class DecodeSettings:
     be unreadable). `self_check`: refuse the decode when more than
     `max_disagreement` of the modulated pixels have a Gray code and a phase that disagree,
     or when the frequencies' residuals are offset by more than `max_frequency_offset` rad.
+    `interreflection` (multi-frequency phase-shift sets): mask, as "interreflection", pixels
+    whose phase a second light path corrupts: their frequencies' absolute phases disagree
+    (beyond the image's median, systematic, disagreement) by more than
+    `interreflection_min_rad` (finest fringe) and `interreflection_sigmas` of their
+    predicted noise though short of an order error (`_inconsistent_frequencies`), or their
+    finest/coarsest modulation ratio departs from the image's median by more than
+    `interreflection_ratio` (relative) and `interreflection_sigmas` of its noise
+    (`_modulation_ratio_outliers`). A second path whose phase shift is about the same at every
+    frequency (nearby points: the last few pixels at a concave fold) or that outshines the
+    direct light is not seen by either test.
     """
 
     min_modulation: float = 0.005
@@ -69,6 +79,10 @@ class DecodeSettings:
     self_check: bool = True
     max_disagreement: float = 0.05
     max_frequency_offset: float = 0.3
+    interreflection: bool = True
+    interreflection_sigmas: float = 5.0
+    interreflection_min_rad: float = 0.2
+    interreflection_ratio: float = 0.15
 
 
 @dataclass(frozen=True)
@@ -174,10 +188,18 @@ def phase_shift(block: np.ndarray | list[np.ndarray], steps: int, origin: float,
     s = _weighted_sum(frames, -np.sin(angle) * (2.0 / steps))  # B·sin φ
     a = _weighted_sum(frames, np.full(steps, 1.0 / steps))  # A
     if out is None:
-        return cv2.phase(c, s), cv2.magnitude(c, s), a
+        return cv2.phase(c, s), _magnitude(c, s), a
     cv2.phase(c, s, angle=out[0])
-    cv2.magnitude(c, s, magnitude=out[1])
+    _magnitude(c, s, out[1])
     return out[0], out[1], a
+
+
+def _magnitude(c: np.ndarray, s: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """sqrt(c² + s²) in float32 by numpy: cv2.magnitude's result depends on its buffers' memory
+    alignment (last-ulp differences between runs), and a session must decode bit-identically."""
+    m = np.multiply(c, c, out=out)
+    m += s * s
+    return np.sqrt(m, out=m)
 
 
 def _unwrap_step(coarse: np.ndarray, ratio: float, fine_wrapped: np.ndarray,
@@ -241,6 +263,56 @@ def _order_errors(residual: np.ndarray, candidates_sigma: Callable[[np.ndarray],
         tol = np.clip(1.0 - settings.order_sigmas * sigma, settings.order_tolerance, settings.order_tolerance_max)
         errors.flat[idx] = ~(residual.flat[idx] <= tol)  # NaN sigma: an error
     return errors
+
+
+def _inconsistent_frequencies(absolute: list[np.ndarray], fringes: list[float], sigma: list[np.ndarray],
+                              candidates: np.ndarray, settings: DecodeSettings) -> np.ndarray:
+    """Among `candidates`, pixels whose frequencies' absolute phases, scaled to the finest
+    fringe, disagree pairwise, beyond the image's median disagreement of that pair (a
+    systematic offset between frequencies is no second path), by more than
+    `interreflection_min_rad` and `interreflection_sigmas` of the pair's predicted noise
+    (`sigma`: each frequency's phase noise, rad; no beat amplification). One light path gives
+    every frequency the same coordinate; a second path of another coordinate shifts each
+    frequency's phase differently."""
+    idx = np.flatnonzero(candidates)
+    if idx.size < MIN_JUDGED_PIXELS:
+        return np.zeros_like(candidates)
+    f_max = max(fringes)  # whole images, not gathers of the candidates: most pixels are candidates
+    scaled = [a * np.float32(f_max / f) for a, f in zip(absolute, fringes)]
+    noise = [g * np.float32(f_max / f) for g, f in zip(sigma, fringes)]
+    sample = idx[:: max(1, idx.size // 200000)]  # the median offset, from a subsample of the candidates
+    out = np.zeros_like(candidates)
+    for i in range(len(fringes)):
+        for j in range(i + 1, len(fringes)):
+            dev = scaled[i] - scaled[j]
+            dev -= np.float32(np.median(dev.flat[sample]))
+            np.abs(dev, out=dev)
+            bound = np.hypot(noise[i], noise[j])
+            bound *= np.float32(settings.interreflection_sigmas)
+            np.maximum(bound, np.float32(settings.interreflection_min_rad), out=bound)
+            out |= dev > bound
+    return out & candidates
+
+
+def _modulation_ratio_outliers(modulation: list[np.ndarray], fringes: list[float], usable: np.ndarray,
+                               noise_sigma_b: np.ndarray, settings: DecodeSettings) -> np.ndarray:
+    """Pixels whose finest/coarsest modulation ratio departs from the image's median ratio
+    (the optics' transfer ratio, the same for every directly lit pixel) by more than
+    `interreflection_ratio` and `interreflection_sigmas` of its noise: two paths of different
+    phase add up to different amplitudes at different frequencies. `noise_sigma_b`: σ of B (DN)."""
+    fine = modulation[int(np.argmax(fringes))]
+    coarse = modulation[int(np.argmin(fringes))]
+    idx = np.flatnonzero(usable)
+    if idx.size < MIN_JUDGED_PIXELS:
+        return np.zeros_like(usable)
+    bf = np.maximum(fine, np.float32(1e-6))  # whole images, not gathers: most pixels are usable
+    bc = np.maximum(coarse, np.float32(1e-6))
+    departure = np.log(bf / bc)
+    departure -= np.float32(np.median(departure.flat[idx[:: max(1, idx.size // 200000)]]))
+    np.abs(departure, out=departure)
+    sigma = noise_sigma_b * np.sqrt(1.0 / bf ** 2 + 1.0 / bc ** 2)
+    return usable & (departure > np.float32(np.log1p(settings.interreflection_ratio))) & \
+        (departure > np.float32(settings.interreflection_sigmas) * sigma)
 
 
 def read_complementary_code(bits: list[np.ndarray], background: np.ndarray, modulation: np.ndarray,
@@ -533,14 +605,14 @@ class _OrientationDecoder:
         out = {name: np.empty((h, w), np.float32) for name in ("background", "phase", "weight", "coordinate")}
         wrapped = [np.empty((h, w), np.float32) for _ in range(n_freq)]
         modulation = [np.empty((h, w), np.float32) for _ in range(n_freq)]
-        masks = {"saturated": self.saturated, **{k: np.empty((h, w), bool) for k in
-                                                  ("shadow", "low_modulation", "order_error")}}
+        reasons = ("shadow", "low_modulation", "order_error")
+        masks = {"saturated": self.saturated, **{k: np.empty((h, w), bool) for k in reasons}}
         usable = np.empty((h, w), bool)
 
         def band(rows: slice) -> dict[str, Any]:
             b = self._band(rows, [(wrapped[i][rows], modulation[i][rows]) for i in range(n_freq)],
                            {name: out[name][rows] for name in out})
-            for k in ("shadow", "low_modulation", "order_error"):
+            for k in reasons:
                 masks[k][rows] = b["masks"][k]
             usable[rows] = b["usable"]
             return b["sums"]
@@ -548,6 +620,15 @@ class _OrientationDecoder:
         checks = _checks(in_bands(h, band))
         if s.self_check:
             self._judge(checks)
+        if self._judges_paths:
+            sigma_b = self.noise.sigma(out["background"]) * np.float32(np.sqrt(2.0 / ps.steps))
+            absolute, _ = _temporal_unwrap(ps, wrapped)
+            sigma = [sigma_b / np.maximum(b, np.float32(1e-6)) for b in modulation]
+            masks["interreflection"] = _inconsistent_frequencies(absolute, ps.fringes, sigma,
+                                                                 usable & ~masks["order_error"], s)
+            masks["interreflection"] |= _modulation_ratio_outliers(modulation, ps.fringes, usable, sigma_b, s)
+            masks["order_error"] &= ~masks["interreflection"]  # one reason per corrupted pixel: its own
+            usable &= ~masks["interreflection"]
         f_max = max(ps.fringes)
         maps = self._finish(masks, usable, out["coordinate"], out["phase"], wrapped, modulation, out["background"],
                             out["weight"], f_max)
@@ -638,6 +719,12 @@ class _OrientationDecoder:
                                  out=maps["coordinate"])
         coordinate -= np.float32(conv.pixel_centre)
         return {"masks": masks, "usable": usable, "sums": sums}
+
+    @property
+    def _judges_paths(self) -> bool:
+        """Whether this decode looks for second light paths (several phase-shift frequencies)."""
+        return (self.settings.interreflection and self.patterns.family in ("heterodyne", "hierarchical")
+                and len(self.patterns.fringes) > 1)
 
     def _pixel_graycode_only(self, masks: dict[str, np.ndarray]) -> tuple[OrientationMaps, dict[str, float]]:
         """OpenCV's GrayCodePattern alone: the coordinate is the pixel (run) the code names."""

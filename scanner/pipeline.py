@@ -12,10 +12,19 @@ from typing import TYPE_CHECKING, Any, Callable
 import cv2
 import numpy as np
 
-from scanner.acquisition import AcquisitionSettings, acquire, check_signature
+from scanner.acquisition import (
+    AcquisitionSettings,
+    acquire,
+    acquire_exposures,
+    acquire_images,
+    at_exposure,
+    check_signature,
+    settings_for_exposure,
+)
 from scanner.decode import DecodeResult, DecodeSettings, decode
 from scanner.devices import Frame
 from scanner.errors import DecodeError, FrameError, FrameOutOfOrder, ScannerError
+from scanner.exposure import ExposurePlan, ExposureRequest, FusedOrientationMaps, fuse, plan_exposures, probe_images
 from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
 from scanner.pointcloud import OrganisedCloud, write_ply
@@ -49,23 +58,48 @@ class ScanResult:
         return self.session.outputs / "cloud.ply"
 
 
+AUTO_RANGE = (1 / 64, 16.0)  # auto exposure searches this range around the rig's exposure_s (factors)
+
+
+def plan_for_rig(rig: Rig, patterns: PatternSet, request: ExposureRequest) -> ExposurePlan:
+    """The exposures for `request` on this rig: "auto"/"hdr" pre-capture white, black and
+    one fringe frame (`scanner.exposure`), searching AUTO_RANGE x the rig's exposure within
+    the camera's range."""
+    cam, proj = rig.camera, rig.projector
+    lo, hi = cam.exposure_range_s
+    base = cam.exposure_s
+    search = (max(lo, base * AUTO_RANGE[0]), min(hi, base * AUTO_RANGE[1]))
+    images = probe_images(patterns, proj.width, proj.height, rig.model.projector_gamma)
+    settings = AcquisitionSettings.for_rig(rig)
+
+    def capture_probe(t: float) -> np.ndarray:
+        return at_exposure(rig, t, lambda: acquire_images(rig, images, settings_for_exposure(settings, t)))
+
+    return plan_exposures(request, capture_probe, base, search if request.mode != "given" else (lo, hi),
+                          float(2 ** cam.bit_depth - 1))
+
+
 def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Progress = _quiet,
-            recording: SessionRecording | None = None, extra: dict[str, Any] | None = None) -> Session:
+            recording: SessionRecording | None = None, exposure: ExposureRequest | None = None,
+            extra: dict[str, Any] | None = None) -> Session:
     """Capture one scan into the writer's new session folder and return it, complete;
-    `extra` goes into its manifest (a multi-view session's stage pose).
+    `exposure` (None: the rig's) chooses or lists exposures, the pattern set captured once
+    per exposure (HDR) with the plan and its reason in the manifest; `extra` goes into the
+    manifest too (a multi-view session's stage pose).
 
     On any failure the frames already captured stay on disk, `error.json` says what
     happened, the session has no manifest (so it is reported incomplete), and the error
     is raised again."""
     n = patterns.n_frames
     specs = patterns.frames()
+    plan: ExposurePlan | None = None
     for save in rig.extras.get("session_files", ()):  # driver-specific data kept with the raw frames
         save(writer.root)
 
     def store(k: int, frame: Frame) -> None:
         writer.add_frame(k, frame)
         if recording is not None:  # the PNG just written (in the page cache), not encoded again
-            recording.log_frame(k, frame, specs[k], png=(writer.root / writer.frames[-1]["file"]).read_bytes())
+            recording.log_frame(k, frame, specs[k % n], png=(writer.root / writer.frames[-1]["file"]).read_bytes())
 
     # frames are encoded (PNG) and written by one thread in arrival order while the next are
     # acquired; a store that failed stops the capture at the next frame. `progress` runs here,
@@ -78,23 +112,32 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
             if f.done() and f.exception() is not None:
                 raise f.exception()  # type: ignore[misc]
         stored.append(pool.submit(store, k, replace(frame, image=frame.image.copy())))  # a driver may reuse its buffer
-        progress("capture", k + 1, n)
+        progress("capture", k + 1, n * (len(plan.exposures_s) if plan else 1))
 
     t0 = time.perf_counter()
+    timings: dict[str, float] = {}
     with ThreadPoolExecutor(1, thread_name_prefix="store frames") as pool:
         try:
-            acquire(rig, patterns, AcquisitionSettings.for_rig(rig), on_frame)
+            if exposure is None:
+                acquire(rig, patterns, AcquisitionSettings.for_rig(rig), on_frame)
+            else:
+                plan = plan_for_rig(rig, patterns, exposure)
+                timings["exposure_plan"] = round(time.perf_counter() - t0, 4)
+                acquire_exposures(rig, patterns, AcquisitionSettings.for_rig(rig), plan.exposures_s, on_frame)
             for f in stored:
                 f.result()
         except BaseException as exc:  # includes Ctrl-C: the capture is recorded as failed
             wait(stored)  # the frames already captured are kept
             writer.fail(exc, "capture")
             raise
-    timings = {"capture": round(time.perf_counter() - t0, 4)}
+    timings["capture"] = round(time.perf_counter() - t0, 4)
     devices = {name: dev.describe() for name, dev in
                (("camera", rig.camera), ("projector", rig.projector), ("trigger", rig.trigger)) if dev is not None}
-    writer.finish(rig.config.raw, rig.model, patterns, devices, timings,
-                  {"rig_config_path": str(rig.config.path), "wiring": rig.config.trigger, **(extra or {})})
+    manifest_extra: dict[str, object] = {"rig_config_path": str(rig.config.path), "wiring": rig.config.trigger,
+                                         **(extra or {})}
+    if plan is not None:
+        manifest_extra["exposure"] = plan.to_dict()
+    writer.finish(rig.config.raw, rig.model, patterns, devices, timings, manifest_extra)
     return Session.open(writer.root)
 
 
@@ -110,10 +153,14 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
         stack = session.load_stack()
         patterns = session.patterns
         model = session.rig_model()
-        check_frames_fit(session, stack, model)
+        exposures = session.exposures_s
+        stacks = np.split(stack, len(exposures))  # one pattern set per exposure
+        for i, s in enumerate(stacks):
+            check_frames_fit(session, s, model, i * patterns.n_frames)
     progress("decode", 0, 1)
     with timer.stage("decode"):
-        decoded = decode(stack, patterns, session.bit_depth, model.projector.size, settings)
+        decoded = fuse([decode(s, patterns, session.bit_depth, model.projector.size, settings) for s in stacks],
+                       exposures)
     calibrated = session.manifest.get("calibrated", True)
     progress("reconstruct", 0, 1)
     with timer.stage("reconstruct"):
@@ -152,15 +199,16 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     return ScanResult(session, decoded, cloud, timings)
 
 
-def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel) -> None:
+def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first: int = 0) -> None:
     """Refuse frames that do not fit the session's patterns (swapped, repeated, blank or
     foreign ones), naming the frame: blank frames first, then the acquisition's
-    intensity-signature check run again on the frames as they are on disk."""
+    intensity-signature check run again on the frames as they are on disk. `stack` is one
+    pattern set's frames, the session's frames `first`.. (one exposure of an HDR session)."""
     where = str(session.root)
     full = 2 ** session.bit_depth - 1
     flat = stack.reshape(len(stack), -1)
     lo, hi = flat.min(axis=1), flat.max(axis=1)
-    for k in np.flatnonzero(hi - lo <= BLANK_FRAME_RANGE * full):
+    for k in first + np.flatnonzero(hi - lo <= BLANK_FRAME_RANGE * full):
         raise DecodeError(f"{where}: frame {k} ({session.frame_path(int(k)).name}) is blank (every pixel "
                           f"{int(lo[k])}..{int(hi[k])} DN): it cannot be a fringe image; re-scan")
     if "import" in session.manifest:
@@ -172,7 +220,7 @@ def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel) -> No
                         where)
     except FrameError as exc:
         problem = str(exc).removeprefix(f"{where}: ").split("; a shifted or mixed")[0]
-        k = exc.expected_index
+        k = first + exc.expected_index
         frame = f"frame {k} ({session.frame_path(k).name}): " if isinstance(exc, FrameOutOfOrder) else ""
         raise DecodeError(f"{where}: {frame}{problem}; the frames were swapped, repeated or replaced after the "
                           f"capture, or the session is not what its manifest says; re-scan") from None
@@ -200,6 +248,8 @@ def save_maps(path: Path, decoded: DecodeResult) -> None:
             arrays[f"{o}/phase_sigma"] = m.phase_sigma
         for name, mask in m.masks.items():
             arrays[f"{o}/mask/{name}"] = mask
+        if isinstance(m, FusedOrientationMaps):  # HDR: which exposure (index, ascending) each pixel came from
+            arrays[f"{o}/exposure_index"] = m.exposure_index
     write_npz(path, arrays)
 
 
@@ -234,7 +284,9 @@ def log_session_frames(recording: SessionRecording, session: Session) -> None:
     another lossless format (an import's BMP or TIFF) re-encoded."""
     from scanner.session_recording import png_bytes
 
-    for k, spec in enumerate(session.patterns.frames()):
+    specs = session.patterns.frames()
+    for k in range(len(session.manifest["frames"])):  # every exposure's frames (HDR: the pattern set per exposure)
+        spec = specs[k % len(specs)]
         path = session.frame_path(k)
         data = path.read_bytes()
         if path.suffix.lower() != ".png":
@@ -244,25 +296,26 @@ def log_session_frames(recording: SessionRecording, session: Session) -> None:
 
 def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress = _quiet,
          then: Callable[[ScanResult, SessionRecording | None], None] | None = None,
-         level: str | None = None, extra: dict[str, Any] | None = None) -> ScanResult:
+         level: str | None = None, exposure: ExposureRequest | None = None,
+         extra: dict[str, Any] | None = None) -> ScanResult:
     """Capture, decode and reconstruct one scan, recording every stage to the session's
     Rerun file at `level` (default the rig's `[recording] level`; "none": no recording, and
     `then` gets None). `then(result, recording)`, if given, runs a later stage (`slscan
-    demo`'s inspection) into the same recording before it is closed; `extra` goes into the
-    session's manifest (`capture`)."""
+    demo`'s inspection) into the same recording before it is closed; `exposure` and `extra`
+    as for `capture`."""
     from scanner.session_recording import SessionRecording
 
     level = level or rig.config.recording_level
     writer = SessionWriter.create(out_dir)
     if level == "none":
-        session = capture(rig, patterns, writer, progress, extra=extra)
+        session = capture(rig, patterns, writer, progress, exposure=exposure, extra=extra)
         result = process(session, progress)
         if then is not None:
             then(result, None)
         return result
     with SessionRecording(writer.root / RECORDING, writer.id, level=level) as rec:
         rec.log_rig(rig.model)
-        session = capture(rig, patterns, writer, progress, rec, extra)
+        session = capture(rig, patterns, writer, progress, rec, exposure, extra)
         result = process(session, progress, rec)
         if then is not None:
             then(result, rec)

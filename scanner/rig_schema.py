@@ -4,7 +4,8 @@
 declared here too (uvc, genicam, hdmi, lightcrafter4500: see scanner/drivers/hardware_rig.py),
 and so are the simulator's tables (`[camera.sensor]`, `[sim.faults]`), so a typo is refused
 at load instead of being silently ignored. `[calibrate]` belongs to the
-calibration package, which validates it when a calibration is run (the core cannot import it).
+calibration package, which validates it when a calibration is run (the core cannot import it),
+and `[acceptance]` to `slscan verify` (`inspection.acceptance.Acceptance` validates it).
 
 `RigModelSchema` is the geometry as `RigModel.to_dict` writes it (session manifests,
 calibration files). `check_geometry` refuses a rig that cannot measure anything: a camera
@@ -165,6 +166,7 @@ class RigFile(Schema):
     sim: SimTable | None = None
     recording: RecordingTable = RecordingTable()
     calibrate: dict[str, Any] | None = None  # validated by calibration.workflow.Procedure (its keys, its rules)
+    acceptance: dict[str, Any] | None = None  # validated by inspection.acceptance.Acceptance (`slscan verify`)
     stage: dict[str, Any] | None = None  # validated by scanner.stage_model.StageConfig (its keys, its rules)
 
 

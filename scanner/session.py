@@ -9,7 +9,10 @@ Layout (all files appear complete or not at all):
                              calibration's where possible): the session decodes alone
     manifest.json            written last, atomically, once the capture is complete: rig config
                              snapshot, rig model (with the calibration file it came from), pattern
-                             set, device settings, software version, timings, frame list
+                             set, device settings, software version, timings, frame list, and
+                             (`exposure`) the exposures chosen and why: a multi-exposure (HDR)
+                             session holds the whole pattern set once per exposure, frames
+                             i·N .. i·N + N − 1 at exposures_s[i] (ascending), every one kept
     error.json               written instead of the manifest when a capture fails
     outputs/                 regenerable from the raw frames: cloud.ply, maps.npz, result.json
     recording.rrd            the session's Rerun recording
@@ -246,6 +249,23 @@ class FrameEntry(schema.Schema):
         return self
 
 
+class ExposureRecord(schema.Schema):
+    """manifest.json `exposure`: the exposures captured (s, ascending: frames i·N .. i·N + N − 1
+    at exposures_s[i]), how they were chosen (`mode`) and why; other keys are figures."""
+
+    model_config = ConfigDict(extra="allow")
+
+    exposures_s: Annotated[list[schema.PositiveFloat], Field(min_length=1)]
+    mode: Literal["given", "auto", "hdr"]
+    reason: str
+
+    @model_validator(mode="after")
+    def _ascending(self) -> ExposureRecord:
+        if any(b <= a for a, b in zip(self.exposures_s, self.exposures_s[1:])):
+            raise ValueError(f"exposures_s must ascend without repeats, got {self.exposures_s}")
+        return self
+
+
 class Manifest(schema.Schema):
     """manifest.json: what decoding reads is typed and checked; the other keys (devices,
     timings, versions, ...) are a record for people and kept as written."""
@@ -258,6 +278,7 @@ class Manifest(schema.Schema):
     rig_model: RigModelSchema
     patterns: PatternFile
     frames: Annotated[list[FrameEntry], Field(min_length=1)]
+    exposure: ExposureRecord | None = None
 
     @model_validator(mode="after")
     def _frames(self) -> Manifest:
@@ -332,6 +353,15 @@ class Session:
         return int(self.manifest["frames"][0]["bit_depth"])
 
     @property
+    def exposures_s(self) -> tuple[float, ...]:
+        """The exposures the pattern set was captured at, ascending (one for a plain session:
+        its frames' recorded exposure, or 0 when not recorded)."""
+        record = self.manifest.get("exposure")
+        if record:
+            return tuple(float(t) for t in record["exposures_s"])
+        return (float(self.manifest["frames"][0].get("exposure_s") or 0.0),)
+
+    @property
     def integrity(self) -> str:
         """What `load_stack` can vouch for: "sha256" when every frame carries its checksum,
         else a sentence saying the frames cannot be checked (sessions written before
@@ -359,9 +389,12 @@ class Session:
         """The raw frames as (N, H, W), each checked: inside the session folder, its SHA-256
         as recorded (when the session has checksums), its size, type and bit depth."""
         entries = self.manifest["frames"]
-        n_expected = self.patterns.n_frames
+        n_exposures = len(self.exposures_s)
+        n_expected = self.patterns.n_frames * n_exposures
         if len(entries) != n_expected:
-            raise SessionError(f"{self.root / MANIFEST}: lists {len(entries)} frames, pattern set needs {n_expected}")
+            times = f" x {n_exposures} exposures" if n_exposures > 1 else ""
+            raise SessionError(f"{self.root / MANIFEST}: lists {len(entries)} frames, pattern set needs "
+                               f"{self.patterns.n_frames}{times}")
         cam = self.manifest["rig_model"]["camera"]
         shape = (cam["height"], cam["width"])
         stack = None

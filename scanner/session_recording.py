@@ -48,7 +48,8 @@ Timelines: ``pattern`` is the frame's index in its pattern sequence (`PatternSet
 ``scan`` the scan's index in the session; Rerun adds ``log_time`` (wall clock) by itself.
 
 Mask classes (``maps/masks``, ``maps/<orientation>/masks``): 0 valid (transparent),
-1 saturated, 2 shadow, 3 low_modulation, 4 order_error, 5 discontinuity, then any other
+1 saturated, 2 shadow, 3 low_modulation, 4 order_error, 5 discontinuity, 6 interreflection
+(a second light path: interreflection or a specular glint's spill), then any other
 reason `decode` reports (in name order), and 255 "rejected" for a pixel invalid without a
 named reason. A pixel rejected for several reasons shows the one with the lowest id.
 
@@ -112,10 +113,11 @@ MAP_KINDS = ("coordinate", "phase", "wrapped", "modulation", "background", "mask
 
 VALID_CLASS = 0
 REJECTED_CLASS = 255
-REASONS = ("saturated", "shadow", "low_modulation", "order_error", "discontinuity")  # class ids 1, 2, ...
+REASONS = ("saturated", "shadow", "low_modulation", "order_error", "discontinuity",
+           "interreflection")  # class ids 1, 2, ...
 _REASON_COLORS = {"saturated": (230, 40, 40, 255), "shadow": (70, 90, 200, 255),
                   "low_modulation": (240, 160, 30, 255), "order_error": (220, 40, 220, 255),
-                  "discontinuity": (40, 200, 200, 255)}
+                  "discontinuity": (40, 200, 200, 255), "interreflection": (250, 110, 90, 255)}
 _OTHER_REASON_COLOR = (120, 120, 120, 255)
 
 

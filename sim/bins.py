@@ -16,18 +16,43 @@ estimation; cluttered labelled clouds for region growing are in `sim.clutter`):
     ids; the poses (part -> camera frame) and sides are returned beside it.
     `BinScene.occlusion` gives each part's hidden fraction (ray cast), `scan_bin` a quick
     simulated scan (ray-cast truth with depth noise and projector shadows).
+  - a bin scanned by `slscan scan --scene bin:SEED[:N_PARTS]` (`bin_spec`; N_PARTS
+    defaults to `default_parts(SEED)`, as `slscan posebench` draws them) keeps its truth
+    in the session: `BinTruth` in `bin_truth.json` (format below) beside the simulator's
+    `ground_truth.npz`, whose `object_id` map holds the per-pixel instance ids.
+  - part files (`config/parts/nickel_tab.toml`): `PartFile`, a `[part]` table with the
+    outline parameters of `TabPart` and, optionally, where a robot grips it
+    (`grip_point_mm`, in-plane part coordinates) and from which direction (`approach`).
+
+Bin truth file (`BIN_TRUTH_FORMAT`, version 1; mm, 4x4 matrices mapping part-frame points
+into the named frame): `seed`, `tray_mm`, `part` (the TabPart parameters),
+`world_from_camera` (the rig's), `camera_mm` (the camera centre in the world frame, where
+the occlusion was cast from) and per part, in drop order: `id` (its object id in
+`ground_truth.npz`), `front_up`, `world_from_part`, `camera_from_part`, `occlusion` (the
+hidden fraction of its camera-facing face, `BinScene.occlusion`).
 
 Units: mm, rad.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import Field, model_validator
 from scipy.spatial import Delaunay
 
+from scanner import schema
+from scanner.errors import ConfigError
 from sim.scene import Scene, SceneObject
+
+BIN_SCENE_PREFIX = "bin:"
+BIN_TRUTH_FILE = "bin_truth.json"
+BIN_TRUTH_FORMAT = "slscan-bin-truth"
+BIN_TRUTH_VERSION = 1
 
 # ---------------------------------------------------------------------------------- part
 
@@ -111,6 +136,76 @@ class TabPart:
         return vertices, np.concatenate(faces).astype(np.int32)
 
 
+class PartTable(schema.Schema):
+    """The `[part]` table of a part file: `kind = "tab"` (the only kind: a TabPart outline),
+    its `name`, any TabPart parameter (left out: TabPart's default), and optionally where
+    a robot grips it: `grip_point_mm` [x, y] in the part's outline plane (the point on
+    whichever face is up) and `approach` [x, y, z], the direction (part frame, from the
+    part toward the gripper) to come from when the front face is up (mirrored through the
+    part's mid-plane, z negated, when the back is up; default the up face's normal)."""
+
+    kind: Literal["tab"]
+    name: schema.Str | None = None
+    length_mm: schema.PositiveFloat | None = None
+    width_mm: schema.PositiveFloat | None = None
+    thickness_mm: schema.PositiveFloat | None = None
+    tongue_mm: schema.Vector3 | None = None
+    notch_mm: schema.Vector3 | None = None
+    chamfer_mm: schema.NonNegativeFloat | None = None
+    hole_radius_mm: schema.NonNegativeFloat | None = None
+    mesh_step_mm: schema.PositiveFloat | None = None
+    grip_point_mm: schema.Vector2 | None = None
+    approach: schema.Vector3 | None = None
+
+    @model_validator(mode="after")
+    def _approach_is_a_direction(self) -> PartTable:
+        if self.approach is not None and not (np.linalg.norm(self.approach) > 0 and self.approach[2] > 0):
+            raise ValueError(f"approach {self.approach} must point away from the front face (z > 0)")
+        return self
+
+
+class PartFile(schema.Schema):
+    """A part file (config/parts/nickel_tab.toml): one `[part]` table."""
+
+    part: PartTable
+
+
+@dataclass(frozen=True)
+class PartSpec:
+    """A part file read: the outline, its name, and the optional grip point (x, y mm, part
+    frame) and unit approach direction for the front face up (part frame)."""
+
+    part: TabPart
+    name: str
+    grip_point_mm: tuple[float, float] | None = None
+    approach: tuple[float, float, float] | None = None
+
+
+def load_part_file(path: Path) -> PartSpec:
+    """The part file `path` validated (one ConfigError naming the file and key otherwise);
+    the grip point must lie on the part (inside its outline, off its hole)."""
+    path = Path(path)
+    table = schema.load(PartFile, path).part
+    params = {f.name: getattr(table, f.name) for f in fields(TabPart) if getattr(table, f.name) is not None}
+    try:
+        part = _tab_part(params)
+    except ValueError as exc:
+        raise ConfigError(path, "part", str(exc)) from None
+    grip = table.grip_point_mm
+    if grip is not None and not _inside(np.array([grip]), _loops(part))[0]:
+        raise ConfigError(path, "part.grip_point_mm", f"{grip} is not on the part (outside its outline or in its hole)")
+    approach = None
+    if table.approach is not None:
+        a = np.asarray(table.approach, dtype=np.float64)
+        approach = tuple(float(x) for x in a / np.linalg.norm(a))
+    return PartSpec(part, table.name or path.stem, tuple(grip) if grip else None, approach)  # type: ignore[arg-type]
+
+
+def _loops(part: TabPart) -> list[np.ndarray]:
+    """The part's outline and, if it has one, its hole."""
+    return [part.outline(), part.hole()] if part.hole_radius_mm > 0 else [part.outline()]
+
+
 def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
     """The 3x3 rotation by `angle` (rad) about the unit `axis` (Rodrigues)."""
     k = np.asarray(axis, float)
@@ -163,13 +258,14 @@ def _distance_to_loops(points: np.ndarray, loops: list[np.ndarray]) -> np.ndarra
 class BinScene:
     """A simulated bin: the scene (parts as meshes, ids 2.. in drop order; the tray is the
     reference plane, id 1), each part's pose (part frame -> camera frame, 4x4 mm) and
-    whether its front face (part +z) faces the camera."""
+    whether its front face (part +z) faces the camera; `seed` it was drawn with."""
 
     scene: Scene
     part: TabPart
     poses: np.ndarray
     front_up: np.ndarray
     tray_mm: float
+    seed: int = 0
 
     @property
     def object_ids(self) -> np.ndarray:
@@ -185,8 +281,7 @@ class BinScene:
         lo, hi = verts[:, :2].min(axis=0), verts[:, :2].max(axis=0)
         gx, gy = np.meshgrid(np.arange(lo[0], hi[0], spacing_mm), np.arange(lo[1], hi[1], spacing_mm))
         grid = np.stack([gx.ravel(), gy.ravel()], axis=1)
-        loops = [self.part.outline(), self.part.hole()] if self.part.hole_radius_mm > 0 else [self.part.outline()]
-        grid = grid[_inside(grid, loops)]
+        grid = grid[_inside(grid, _loops(self.part))]
         rc = o3d.t.geometry.RaycastingScene()
         for o in self.scene.objects:
             rc.add_triangles(o3d.core.Tensor(o.world_vertices().astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32)))
@@ -201,6 +296,106 @@ class BinScene:
             hit_t, geom = ans["t_hit"].numpy(), ans["geometry_ids"].numpy()
             out[k] = np.mean((hit_t < dist - 1e-3) & (geom != k))
         return out
+
+
+def default_parts(seed: int) -> int:
+    """Parts in the bin of `seed` when the count is not given: 5..20, as posebench draws them."""
+    return 5 + seed % 16
+
+
+def bin_spec(text: str) -> tuple[int, int] | None:
+    """(seed, parts) of a bin scene named `bin:SEED[:N_PARTS]`, None for any other scene
+    name (a scene TOML or mesh path)."""
+    if not text.startswith(BIN_SCENE_PREFIX):
+        return None
+    fields_ = text[len(BIN_SCENE_PREFIX):].split(":")
+    try:
+        seed = int(fields_[0])
+        parts = int(fields_[1]) if len(fields_) > 1 else default_parts(seed)
+    except ValueError:
+        seed, parts = -1, -1
+    if len(fields_) > 2 or seed < 0 or not 1 <= parts <= 100:
+        raise ConfigError("--scene", None, f"{text!r}: a bin scene is bin:SEED or bin:SEED:N_PARTS "
+                                           "(SEED >= 0, 1 <= N_PARTS <= 100)")
+    return seed, parts
+
+
+class _TruthPart(schema.Schema):
+    id: Annotated[int, Field(strict=True, ge=2)]
+    front_up: schema.Bool
+    world_from_part: schema.Matrix4
+    camera_from_part: schema.Matrix4
+    occlusion: Annotated[float, Field(strict=True, ge=0, le=1)]
+
+
+class BinTruthFile(schema.Schema):
+    """`bin_truth.json` (see the module docstring)."""
+
+    format: Literal["slscan-bin-truth"]
+    version: Literal[1]
+    seed: Annotated[int, Field(strict=True, ge=0)]
+    tray_mm: schema.PositiveFloat
+    part: dict[str, float | list[float]]
+    world_from_camera: schema.Matrix4
+    camera_mm: schema.Vector3
+    parts: Annotated[list[_TruthPart], Field(min_length=1)]
+
+
+@dataclass(frozen=True, eq=False)
+class BinTruth:
+    """What a saved bin's poses are judged against: per part (drop order) its object id
+    in the ground-truth id map, `camera_from_part` (K, 4, 4) mm, `front_up` and true
+    `occlusion` (fraction of its camera-facing face hidden); the part, tray and seed."""
+
+    seed: int
+    part: TabPart
+    tray_mm: float
+    ids: np.ndarray
+    camera_from_part: np.ndarray
+    world_from_camera: np.ndarray
+    front_up: np.ndarray
+    occlusion: np.ndarray
+
+    @classmethod
+    def of(cls, b: BinScene, world_from_camera: np.ndarray) -> BinTruth:
+        """The truth of bin `b` scanned by a camera placed in the world by `world_from_camera`."""
+        W = np.asarray(world_from_camera, dtype=np.float64)
+        return cls(b.seed, b.part, b.tray_mm, b.object_ids, np.linalg.inv(W) @ b.poses, W, np.asarray(b.front_up),
+                   b.occlusion(W[:3, 3]))
+
+    def save(self, path: Path) -> None:
+        from scanner.session import write_json
+
+        W = self.world_from_camera
+        write_json(Path(path), {
+            "format": BIN_TRUTH_FORMAT, "version": BIN_TRUTH_VERSION, "seed": self.seed, "tray_mm": self.tray_mm,
+            "part": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self.part).items()},
+            "world_from_camera": W, "camera_mm": W[:3, 3],
+            "parts": [{"id": int(i), "front_up": bool(up), "world_from_part": W @ T, "camera_from_part": T,
+                       "occlusion": float(o)}
+                      for i, up, T, o in zip(self.ids, self.front_up, self.camera_from_part, self.occlusion)]})
+
+    @classmethod
+    def load(cls, path: Path) -> BinTruth:
+        """The truth file `path` validated (a ConfigError naming the file and key otherwise)."""
+        path = Path(path)
+        try:
+            raw = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ConfigError(path, None, f"not a readable bin truth file: {exc}") from None
+        doc = schema.parse(BinTruthFile, raw, path)
+        try:
+            part = _tab_part(doc.part)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(path, "part", str(exc)) from None
+        return cls(doc.seed, part, doc.tray_mm, np.array([p.id for p in doc.parts]),
+                   np.array([p.camera_from_part for p in doc.parts]), np.array(doc.world_from_camera),
+                   np.array([p.front_up for p in doc.parts]), np.array([p.occlusion for p in doc.parts]))
+
+
+def _tab_part(params: dict[str, object]) -> TabPart:
+    """A TabPart from its parameters as a file holds them (lists for the tuples)."""
+    return TabPart(**{k: tuple(v) if isinstance(v, list) else v for k, v in params.items()})  # type: ignore[arg-type]
 
 
 def scan_bin(b: BinScene, model: object, noise_mm: float = 0.01, seed: int = 0) -> tuple[object, np.ndarray]:
@@ -288,7 +483,7 @@ def bin_scene(n_parts: int, seed: int = 0, part: TabPart = TabPart(), tray_mm: f
     tray = SceneObject(name="reference_plane", kind="plane", pose=_translation(0.0, 0.0, tray_mm), albedo=0.8,
                        size_mm=(400.0, 400.0))
     scene = Scene(objects=objects, reference_plane=tray, name=f"bin-{n_parts}-{seed}")
-    return BinScene(scene, part, np.array(poses), np.array(front), tray_mm)
+    return BinScene(scene, part, np.array(poses), np.array(front), tray_mm, seed)
 
 
 def _free_fall(o3d: object, moving: np.ndarray, tris: np.ndarray, fixed_v: list[np.ndarray],

@@ -109,9 +109,11 @@ def _pose(yaw: float = 0.0, tilt_axis: str | None = None, position: tuple[float,
     return T
 
 
-def clutter_cloud(seed: int = 0, spacing_mm: float = 1.0, radius_mm: float = 12.0) -> ClutterCloud:
+def clutter_cloud(seed: int = 0, spacing_mm: float = 1.0, radius_mm: float | None = 12.0) -> ClutterCloud:
     """A cluttered room corner scanned from five positions (see the module docstring);
-    `spacing_mm` sets the nearest scanner's point spacing (the others are coarser)."""
+    `spacing_mm` sets the nearest scanner's point spacing (the others are coarser);
+    `radius_mm` the radius of interest (None: `slscan segment`'s default for the cloud,
+    `inspection.regions.region_growing.default_radius`)."""
     import open3d as o3d
 
     rng = np.random.default_rng(seed)
@@ -166,6 +168,10 @@ def clutter_cloud(seed: int = 0, spacing_mm: float = 1.0, radius_mm: float = 12.
         labels.append(lab)
     P = np.concatenate(points)
     lab = np.concatenate(labels).astype(np.int32)
+    if radius_mm is None:
+        from inspection.regions.region_growing import default_radius
+
+        radius_mm = default_radius(P)
     lab = _drop_small(P, lab, radius_mm)
     return ClutterCloud(P, lab, tuple(b.names), radius_mm, dict(zip(b.names, b.rough)))
 

@@ -12,6 +12,7 @@ Object ids, used in the ground-truth id map:
 Scene TOML format (every path relative to the TOML file; every length in mm, angle in rad):
 
     name = "demo"                               # optional, default: file stem
+    interreflection = false                     # optional: render one mirror bounce between surfaces
 
     [reference_plane]                           # optional: a large flat rectangle
     distance_mm = 420.0                         # plane z = distance, facing the camera …
@@ -24,6 +25,10 @@ Scene TOML format (every path relative to the TOML file; every length in mm, ang
     mesh = "../parts/demo_part.ply"             # exactly one of: mesh, sphere, plane, box
     scale = 1.0                                 # mesh units -> mm (mesh only), default 1
     albedo = 0.7                                # 0..1, default 0.7
+    # material = "polished_aluminium"           # optional: a preset of MATERIALS (albedo, specular,
+                                                # roughness), each overridable by its own key
+    # specular = 0.91                           # optional: normal-incidence reflectance F0 0..1, default 0
+    # roughness = 0.12                          # optional: GGX roughness 0.02..1 (sqrt of alpha), default 0.5
     pose = { rotation_rad = [3.14159, 0, 0], translation_mm = [0, 0, 420] }
                                                 # object -> world; or { matrix = 4x4 }; default identity
 
@@ -36,6 +41,10 @@ Scene TOML format (every path relative to the TOML file; every length in mm, ang
 
     [[objects]]
     box = { size_mm = [40, 30, 20] }            # axis-aligned in the object frame, centred
+
+Materials (objects and the reference plane alike): the surface is Lambertian (`albedo`) plus,
+when `specular` > 0, a Cook-Torrance GGX lobe of normal-incidence reflectance `specular` and
+roughness `roughness` (see `sim.render.reflectance`); "matte" is the default (no lobe).
 
 A pose places the object frame in the world: X_world = R X_object + t. A reference plane
 given by `pose` is the rectangle on the pose's local z = 0 plane.
@@ -76,10 +85,31 @@ BACKGROUND_ID = 0
 REFERENCE_PLANE_ID = 1
 FIRST_OBJECT_ID = 2
 
-_OBJECT_KEYS = {"name", "albedo", "pose", "scale", *KINDS}
-_PLANE_KEYS = {"distance_mm", "pose", "size_mm", "albedo"}
-_SCENE_KEYS = {"name", "reference_plane", "objects"}
+_MATERIAL_KEYS = {"material", "specular", "roughness"}
+_OBJECT_KEYS = {"name", "albedo", "pose", "scale", *KINDS, *_MATERIAL_KEYS}
+_PLANE_KEYS = {"distance_mm", "pose", "size_mm", "albedo", *_MATERIAL_KEYS}
+_SCENE_KEYS = {"name", "reference_plane", "objects", "interreflection"}
 _DEFAULT_PLANE_SIZE = (1000.0, 1000.0)
+MIN_ROUGHNESS = 0.02  # below this GGX is a numerical mirror (alpha ~ 4e-4) one ray per pixel cannot sample
+DEFAULT_ROUGHNESS = 0.5
+
+
+@dataclass(frozen=True)
+class Material:
+    """Surface reflectance: diffuse `albedo` 0..1, specular F0 `specular` 0..1 (0: matte),
+    GGX `roughness` MIN_ROUGHNESS..1."""
+
+    albedo: float
+    specular: float = 0.0
+    roughness: float = DEFAULT_ROUGHNESS
+
+
+MATERIALS = {  # presets for `material = "..."` (F0 of the metals from their optical constants)
+    "matte": Material(albedo=0.7),
+    "polished_aluminium": Material(albedo=0.03, specular=0.91, roughness=0.12),
+    "machined_aluminium": Material(albedo=0.12, specular=0.91, roughness=0.3),
+    "stainless_steel": Material(albedo=0.06, specular=0.57, roughness=0.2),
+}
 
 
 @dataclass(frozen=True, eq=False)
@@ -90,7 +120,8 @@ class SceneObject:
     (M, 3) int32), "sphere" (`radius_mm`, centred on the object-frame origin), "plane"
     (a `size_mm` = (w, h) rectangle on the object-frame z = 0, centred) or "box"
     (`size_mm` = (x, y, z), centred). A plane may have a `texture` (H, W) in 0..1 that
-    multiplies its albedo (see the module docstring)."""
+    multiplies its albedo (see the module docstring). `specular` (F0) and `roughness` add a
+    specular lobe (`sim.render.reflectance`); `specular` = 0 is a matte surface."""
 
     name: str
     kind: str
@@ -102,12 +133,18 @@ class SceneObject:
     triangles: np.ndarray | None = field(default=None, repr=False)
     source: Path | None = None
     texture: np.ndarray | None = field(default=None, repr=False)
+    specular: float = 0.0
+    roughness: float = DEFAULT_ROUGHNESS
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"unknown object kind {self.kind!r}; known: {KINDS}")
         if not 0.0 <= self.albedo <= 1.0:
             raise ValueError(f"{self.name}: albedo {self.albedo} outside 0..1")
+        if not 0.0 <= self.specular <= 1.0:
+            raise ValueError(f"{self.name}: specular {self.specular} outside 0..1")
+        if not MIN_ROUGHNESS <= self.roughness <= 1.0:
+            raise ValueError(f"{self.name}: roughness {self.roughness} outside {MIN_ROUGHNESS}..1")
         pose = np.asarray(self.pose, dtype=np.float64)
         if pose.shape != (4, 4) or not _is_rigid(pose):
             raise ValueError(f"{self.name}: pose must be a rigid 4x4 transform")
@@ -160,6 +197,7 @@ class Scene:
     reference_plane: SceneObject | None = None
     name: str = "scene"
     path: Path | None = None
+    interreflection: bool = False  # render one mirror bounce off specular surfaces (`sim.render.light_paths`)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "objects", tuple(self.objects))
@@ -196,8 +234,11 @@ class Scene:
 
     @classmethod
     def from_mesh(cls, path: str | Path, working_distance_mm: float = 400.0, albedo: float = 0.7,
-                  plane_albedo: float = 0.8, plane_size_mm: tuple[float, float] = _DEFAULT_PLANE_SIZE) -> Scene:
-        """The bench scene for a bare part mesh (see the module docstring)."""
+                  plane_albedo: float = 0.8, plane_size_mm: tuple[float, float] = _DEFAULT_PLANE_SIZE,
+                  material: Material | None = None) -> Scene:
+        """The bench scene for a bare part mesh (see the module docstring); `material`, if
+        given, is the part's surface (its albedo replaces `albedo`)."""
+        material = material or Material(albedo=albedo)
         path = Path(path)
         vertices, triangles = load_mesh(path, path, None)
         flip = np.diag([1.0, -1.0, -1.0, 1.0])  # rotation of pi about x: CAD up faces the camera
@@ -205,7 +246,8 @@ class Scene:
         lo, hi = turned.min(axis=0), turned.max(axis=0)
         pose = flip.copy()
         pose[:3, 3] = np.array([0.0, 0.0, working_distance_mm]) - (lo + hi) / 2
-        part = SceneObject(name=path.stem, kind="mesh", pose=pose, albedo=albedo, vertices=vertices,
+        part = SceneObject(name=path.stem, kind="mesh", pose=pose, albedo=material.albedo,
+                           specular=material.specular, roughness=material.roughness, vertices=vertices,
                            triangles=triangles, source=path)
         far = working_distance_mm + (hi[2] - lo[2]) / 2
         plane = SceneObject(name="reference_plane", kind="plane", pose=_translation([0.0, 0.0, far]),
@@ -277,11 +319,22 @@ def _pose(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
     return T
 
 
-def _albedo(table: dict[str, Any], path: Path, prefix: str, default: float) -> float:
-    a = get(table, "albedo", float, path, default, prefix)
-    if not 0.0 <= a <= 1.0:
-        raise ConfigError(path, f"{prefix}.albedo", f"{a} outside 0..1")
-    return a
+def _material(table: dict[str, Any], path: Path, prefix: str, default_albedo: float) -> dict[str, float]:
+    """albedo, specular and roughness of an object table: a `material` preset (if given), each
+    overridden by its own key; every value range-checked with the file and key named."""
+    base = Material(albedo=default_albedo)
+    if "material" in table:
+        name = get(table, "material", str, path, prefix=prefix)
+        if name not in MATERIALS:
+            raise ConfigError(path, f"{prefix}.material", f"unknown material {name!r}; known: {sorted(MATERIALS)}")
+        base = MATERIALS[name]
+    out = {}
+    for key, lo in (("albedo", 0.0), ("specular", 0.0), ("roughness", MIN_ROUGHNESS)):
+        v = get(table, key, float, path, getattr(base, key), prefix)
+        if not lo <= v <= 1.0:
+            raise ConfigError(path, f"{prefix}.{key}", f"{v} outside {lo}..1")
+        out[key] = v
+    return out
 
 
 def _positive_vector(table: dict[str, Any], key: str, n: int, path: Path, prefix: str, default: Any = ...) -> tuple[float, ...]:
@@ -320,7 +373,7 @@ def _load_toml_scene(path: Path) -> Scene:
             pose = _translation([0.0, 0.0, dist])
         else:
             pose = _pose(t, path, pre)
-        plane = SceneObject(name="reference_plane", kind="plane", pose=pose, albedo=_albedo(t, path, pre, 0.8),
+        plane = SceneObject(name="reference_plane", kind="plane", pose=pose, **_material(t, path, pre, 0.8),
                             size_mm=_positive_vector(t, "size_mm", 2, path, pre, list(_DEFAULT_PLANE_SIZE)))
     objects = []
     entries = get(raw, "objects", list, path, [])
@@ -336,7 +389,7 @@ def _load_toml_scene(path: Path) -> Scene:
         if "scale" in t and kind != "mesh":
             raise ConfigError(path, f"{pre}.scale", "only meshes take a scale")
         pose = _pose(t, path, pre)
-        albedo = _albedo(t, path, pre, 0.7)
+        material = _material(t, path, pre, 0.7)
         if kind == "mesh":
             rel = get(t, "mesh", str, path, prefix=pre)
             scale = get(t, "scale", float, path, 1.0, pre)
@@ -344,7 +397,7 @@ def _load_toml_scene(path: Path) -> Scene:
                 raise ConfigError(path, f"{pre}.scale", f"must be > 0, got {scale}")
             file = resolve(path, rel)
             v, tri = load_mesh(file, path, f"{pre}.mesh", scale)
-            obj = SceneObject(name=get(t, "name", str, path, file.stem, pre), kind="mesh", pose=pose, albedo=albedo,
+            obj = SceneObject(name=get(t, "name", str, path, file.stem, pre), kind="mesh", pose=pose, **material,
                               vertices=v, triangles=tri, source=file)
         else:
             p = get_table(t, kind, path, prefix=pre)
@@ -357,13 +410,13 @@ def _load_toml_scene(path: Path) -> Scene:
                 centre = get_vector(p, "center_mm", 3, path, [0.0] * 3, kp)
                 pose = pose @ _translation(centre)
                 obj = SceneObject(name=get(t, "name", str, path, f"sphere{i}", pre), kind="sphere", pose=pose,
-                                  albedo=albedo, radius_mm=r)
+                                  radius_mm=r, **material)
             else:
                 _check_keys(p, {"size_mm", "texture"} if kind == "plane" else {"size_mm"}, path, kp)
                 size = _positive_vector(p, "size_mm", 2 if kind == "plane" else 3, path, kp)
                 texture = _texture(p, path, kp) if "texture" in p else None
                 obj = SceneObject(name=get(t, "name", str, path, f"{kind}{i}", pre), kind=kind, pose=pose,
-                                  albedo=albedo, size_mm=size, texture=texture)
+                                  size_mm=size, texture=texture, **material)
         objects.append(obj)
     names = [o.name for o in objects] + (["reference_plane"] if plane is not None else [])
     dup = {n for n in names if names.count(n) > 1}
@@ -371,4 +424,5 @@ def _load_toml_scene(path: Path) -> Scene:
         raise ConfigError(path, "objects", f"object names must be unique; repeated: {sorted(dup)}")
     if not objects and plane is None:
         raise ConfigError(path, "objects", "the scene is empty: give at least one object or a reference plane")
-    return Scene(objects=tuple(objects), reference_plane=plane, name=name, path=path)
+    return Scene(objects=tuple(objects), reference_plane=plane, name=name, path=path,
+                 interreflection=get(raw, "interreflection", bool, path, False))

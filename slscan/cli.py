@@ -1,5 +1,12 @@
 """The `slscan` command line: one parser, each command's arguments and function registered
-by its module in `slscan.commands` (`register(subparsers)`); exit codes from the errors.
+by its module in `slscan.commands` (`register(subparsers)`).
+
+Conventions every command follows: `--help` shows what each option does and an example
+(`slscan.examples`); output goes to `--out`; exit codes are those of `slscan.exit_codes`
+(0 success, 1 a measured part or check fails, 2 usage or refused input, 3 device fault),
+errors escaping a command mapped there; bare `slscan` prints the help on stdout and exits 0
+(asking for help is not an error); `slscan --version` prints the package version and the
+checkout's `git describe` when run from a git checkout.
 
 Diagnostics go through `logging` (one logger per module, named after it) to stderr:
 warnings by default, `-v` adds what the devices and the acquisition do (INFO), `-vv` or
@@ -11,12 +18,16 @@ from __future__ import annotations
 
 import argparse
 import logging
+import subprocess
 import sys
+from pathlib import Path
 from typing import Sequence
 
 from scanner.errors import ScannerError
 from scanner.session import disk_problem
 from slscan.commands import COMMANDS
+from slscan.examples import epilog
+from slscan.exit_codes import SUMMARY, Exit, for_error
 
 LOG_LEVELS = ("debug", "info", "warning", "error")
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -29,14 +40,61 @@ def _add_logging_options(parser: argparse.ArgumentParser, default: object) -> No
                         help="more diagnostics on stderr: -v what the devices do, -vv every device exchange")
 
 
+def version() -> str:
+    """`slscan X.Y.Z`, with `git describe` of the checkout the code runs from when it is one."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as package_version
+
+    try:
+        text = f"slscan {package_version('slscan')}"
+    except PackageNotFoundError:
+        text = "slscan (not installed)"
+    root = Path(__file__).resolve().parents[1]
+    try:
+        git = subprocess.run(["git", "-C", str(root), "describe", "--always", "--dirty", "--tags"],
+                             capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return text
+    return text + (f" (git {git.stdout.strip()})" if git.returncode == 0 and git.stdout.strip() else "")
+
+
+class _Version(argparse.Action):
+    """`--version`: computed only when asked (it runs git)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, **kw: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kw)
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        print(version())
+        parser.exit()
+
+
+def commands(parser: argparse.ArgumentParser, prefix: str = "") -> dict[str, argparse.ArgumentParser]:
+    """Every command's parser under `parser` by its full name ("scan", "devices
+    lightcrafter-images"); argparse has no public way to list them."""
+    found = {}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                found[prefix + name] = sub
+                found.update(commands(sub, f"{prefix}{name} "))
+    return found
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="slscan", description="Structured-light 3D scanner for a bench station.")
+    p = argparse.ArgumentParser(prog="slscan", description="Structured-light 3D scanner for a bench station.",
+                                epilog=SUMMARY + "\nslscan COMMAND --help shows each command's options and an "
+                                       "example.", formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action=_Version, help="print the version (and git describe of a checkout) and exit")
     _add_logging_options(p, None)
-    sub = p.add_subparsers(dest="command", required=True)
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for module in COMMANDS:
         module.register(sub)
-    for command in sub.choices.values():
-        _add_logging_options(command, argparse.SUPPRESS)  # given after the command: overrides the one before
+    for name, command in commands(p).items():
+        command.formatter_class = argparse.RawDescriptionHelpFormatter
+        command.epilog = command.epilog or epilog(name)
+        if " " not in name:
+            _add_logging_options(command, argparse.SUPPRESS)  # given after the command: overrides the one before
     return p
 
 
@@ -48,19 +106,24 @@ def log_level(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run one command; its exit code (`slscan.exit_codes`)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "func", None) is None:  # bare `slscan`: the help, not an error
+        (commands(parser).get(args.command) if args.command else parser).print_help()
+        return Exit.OK
     logging.basicConfig(level=log_level(args), stream=sys.stderr, format=LOG_FORMAT)  # no-op if configured
     try:
-        return args.func(args)
+        return int(args.func(args))
     except ScannerError as exc:
         print(f"\nslscan {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return for_error(exc)
     except OSError as exc:  # the file system refused (full disk, read-only or missing folder): one line
         print(f"\nslscan {args.command}: error: {disk_problem(exc)}", file=sys.stderr)
-        return 2
+        return Exit.USAGE
     except KeyboardInterrupt:
         print(f"\nslscan {args.command}: interrupted; frames already captured are kept", file=sys.stderr)
-        return 130
+        return Exit.INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -1,5 +1,8 @@
 """Showing a recording: the native Rerun viewer when there is a display, otherwise a web
-viewer served on loopback with the address to open and the ports to forward."""
+viewer served on loopback with the address to open and the ports to forward.
+
+Rerun is imported only when a recording is shown (the command line imports this module
+to build its parser)."""
 
 from __future__ import annotations
 
@@ -11,12 +14,10 @@ import socket
 import subprocess
 import sys
 import threading
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
-
-from scanner.session_recording import RECORDING_NAME, RecordingError
 
 DEFAULT_WEB_PORT = 9090
 DEFAULT_GRPC_PORT = 9876
@@ -45,6 +46,8 @@ def rerun_executable() -> list[str]:
     found = shutil.which("rerun")
     if found:
         return [found]
+    from scanner.session_recording import RecordingError
+
     raise RecordingError("cannot find the Rerun viewer: install rerun-sdk in this environment")
 
 
@@ -56,19 +59,30 @@ def has_display(env: Mapping[str, str] | None = None) -> bool:
 
 def recording_file(path: str | Path) -> Path:
     """The `.rrd` of a session folder, or `path` itself when it is a file."""
+    from scanner.session_recording import RECORDING_NAME
+
     path = Path(path)
     return path / RECORDING_NAME if path.is_dir() else path
 
 
-def review_command(path: str | Path, *, display: bool | None = None, port: int = DEFAULT_WEB_PORT,
-                   grpc_port: int = DEFAULT_GRPC_PORT, bind: str = "127.0.0.1") -> list[str]:
-    """The command line that shows a recording: the native viewer when there is a display,
-    otherwise a web viewer served over HTTP (`port`) fed by a gRPC server (`grpc_port`),
-    both listening on `bind` (loopback by default: reach them through an SSH tunnel)."""
-    rrd = str(recording_file(path))
+Paths = str | Path | Sequence[str | Path]
+
+
+def _files(paths: Paths) -> list[Path]:
+    return [recording_file(p) for p in ([paths] if isinstance(paths, (str, Path)) else paths)]
+
+
+def review_command(paths: Paths, *, display: bool | None = None, port: int = DEFAULT_WEB_PORT,
+                   grpc_port: int = DEFAULT_GRPC_PORT, bind: str = "127.0.0.1",
+                   blueprint: Path | None = None) -> list[str]:
+    """The command line that shows recordings (one or several, opened together, with a
+    blueprint `.rbl` when given): the native viewer when there is a display, otherwise a
+    web viewer served over HTTP (`port`) fed by a gRPC server (`grpc_port`), both listening
+    on `bind` (loopback by default: reach them through an SSH tunnel)."""
+    files = [str(f) for f in _files(paths)] + ([str(blueprint)] if blueprint is not None else [])
     if has_display() if display is None else display:
-        return [*rerun_executable(), rrd]
-    return [*rerun_executable(), "--serve-web", rrd, "--bind", bind,
+        return [*rerun_executable(), *files]
+    return [*rerun_executable(), "--serve-web", *files, "--bind", bind,
             "--web-viewer-port", str(port), "--port", str(grpc_port)]
 
 
@@ -90,26 +104,28 @@ def review_instructions(port: int = DEFAULT_WEB_PORT, grpc_port: int = DEFAULT_G
             f"  then open the same address there. Ctrl-C stops the server.")
 
 
-def start_review(path: str | Path, *, display: bool | None = None, port: int = DEFAULT_WEB_PORT,
-                 grpc_port: int = DEFAULT_GRPC_PORT, bind: str = "127.0.0.1",
+def start_review(paths: Paths, *, display: bool | None = None, port: int = DEFAULT_WEB_PORT,
+                 grpc_port: int = DEFAULT_GRPC_PORT, bind: str = "127.0.0.1", blueprint: Path | None = None,
                  **popen_kw: Any) -> subprocess.Popen:
-    """Start the viewer or web server on a recording and return at once (see `review`)."""
-    rrd = recording_file(path)
-    if not rrd.is_file():
-        part = rrd.with_name(rrd.name + ".part")
-        hint = f"; {part.name} exists but was never closed (interrupted session)" if part.exists() else ""
-        raise RecordingError(f"{rrd}: no recording to review{hint}")
+    """Start the viewer or web server on recordings and return at once (see `review`)."""
+    from scanner.session_recording import RecordingError
+
+    for rrd in _files(paths):
+        if not rrd.is_file():
+            part = rrd.with_name(rrd.name + ".part")
+            hint = f"; {part.name} exists but was never closed (interrupted session)" if part.exists() else ""
+            raise RecordingError(f"{rrd}: no recording to review{hint}")
     show = has_display() if display is None else display
-    cmd = review_command(rrd, display=show, port=port, grpc_port=grpc_port, bind=bind)
+    cmd = review_command(paths, display=show, port=port, grpc_port=grpc_port, bind=bind, blueprint=blueprint)
     if not show:
         print(review_instructions(port, grpc_port), flush=True)
     return subprocess.Popen(cmd, **popen_kw)
 
 
-def review(path: str | Path, **kw: Any) -> int:
-    """`slscan review SESSION`: show the recording and block until the viewer or server
-    ends; Ctrl-C (or SIGTERM) stops it. Returns its exit code. Keywords as `start_review`."""
-    proc = start_review(path, **kw)
+def review(paths: Paths, **kw: Any) -> int:
+    """`slscan review`: show the recordings and block until the viewer or server ends;
+    Ctrl-C (or SIGTERM) stops it. Returns its exit code. Keywords as `start_review`."""
+    proc = start_review(paths, **kw)
 
     def _stop(signum: int, frame: object) -> None:
         raise KeyboardInterrupt

@@ -3,10 +3,11 @@ and the errors it must give instead of a calibration.
 
 To stay fast this uses the bench rig with a 640 x 512 camera (same lens field of view),
 software triggering, 6 board poses and 4 plate heights; the full-size acceptance run (1280
-x 1024, 12 poses, 7 heights) is `test_calibration_acceptance.py` (slow). The figures asserted
+x 1024, 12 poses, 7 heights) is the last test here (`-m acceptance`). The figures asserted
 here are the issue's acceptance limits, except the principal points, which 6 poses at half
-resolution determine to about +-0.25 px (one sigma): they must lie within four of the
-calibration's own reported sigmas of the truth.
+resolution determine to about +-0.25 px (one sigma): they must lie within 1 px of the truth,
+and within four of the calibration's own reported sigmas (each below 0.5 px) of it. The scan and phase-to-height checks are
+computed here from the saved calibration, not read from the command's printed report.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -27,13 +29,17 @@ from calibration.board import Board
 from calibration.compare import model_errors
 from calibration.detect import detect
 from calibration.phase_height import scan_height_errors
+from scanner.acquisition import AcquisitionSettings, acquire
 from scanner.calibration_file import load_calibration
 from scanner.config import CONFIG_DIR
+from scanner.decode import decode
 from scanner.errors import DecodeError
+from scanner.geometry import RigModel
+from scanner.patterns import PatternSet
 from scanner.pipeline import process
-from scanner.reconstruct import phase_to_height_cloud
+from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from scanner.recording_reader import read_summary
-from scanner.rig import DEFAULT_RIG, RigConfig
+from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
 from scanner.session import Session
 from sim.calibration_bench import Target, rotation, target_pose
 from sim.evaluate import GROUND_TRUTH_FILE, Truth, smooth_region
@@ -68,15 +74,41 @@ def capture_copy(source: Path, dest: Path, keep_plates: bool = False, keep_artef
     return dest
 
 
-@pytest.fixture(scope="module")
-def rig_toml(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    text = DEFAULT_RIG.read_text().replace("width = 1280", "width = 640").replace("height = 1024", "height = 512")
-    text = text.replace('trigger = "projector"', 'trigger = "software"')
-    text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
-    text += f'\n[calibrate]\nboard = "{BOARD}"\nposes = 6\nplate_heights_mm = [0, 10, 20, 30]\n'
-    path = tmp_path_factory.mktemp("rig") / "rig.toml"
+def rig_copy(folder: Path, small: bool) -> Path:
+    """The default simulated bench rig's TOML in `folder` (pattern path made absolute);
+    `small`: with a 640 x 512 camera, software triggering, 6 poses and 4 plate heights."""
+    text = DEFAULT_RIG.read_text().replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
+    if small:
+        text = text.replace("width = 1280", "width = 640").replace("height = 1024", "height = 512")
+        text = text.replace('trigger = "projector"', 'trigger = "software"')
+        text += f'\n[calibrate]\nboard = "{BOARD}"\nposes = 6\nplate_heights_mm = [0, 10, 20, 30]\n'
+    path = folder / "rig.toml"
     path.write_text(text)
     return path
+
+
+@pytest.fixture(scope="module")
+def rig_toml(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return rig_copy(tmp_path_factory.mktemp("rig"), small=True)
+
+
+def scan_check(rig_toml: Path, calibrated: RigModel) -> tuple[float, float]:
+    """Depth error RMS (mm) against the simulator's truth over the smooth pixels of one scan
+    of the sphere-and-plane scene, reconstructed with the `calibrated` rig and with the
+    rig's true geometry (the same decoded frames)."""
+    config = RigConfig.load(rig_toml)
+    patterns = PatternSet.load(config.patterns_path)
+    with open_rig(config, scene=CONFIG_DIR / "scenes" / "sphere_plane.toml", seed=3) as rig:
+        stack = acquire(rig, patterns, AcquisitionSettings.for_rig(rig), lambda k, f: None)
+        decoded = decode(stack, patterns, rig.camera.bit_depth, rig.model.projector.size)
+        truth = Truth.of(rig.extras["ground_truth"])
+    rms = []
+    for model in (calibrated, config.nominal_model()):
+        cloud = triangulate(decoded, Triangulator(model), with_normals=False)
+        sel = smooth_region(truth) & cloud.valid
+        rms.append(float(np.sqrt(np.mean((cloud.points[..., 2] - truth.depth)[sel].astype(np.float64) ** 2))))
+    print(f"scan check: depth RMS {rms[0] * 1e3:.2f} um with the calibrated rig, {rms[1] * 1e3:.2f} um with the true one")
+    return rms[0], rms[1]
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +145,7 @@ def test_each_board_kind_is_rendered_at_a_pose_and_found_where_it_is(rig_toml: P
 
 
 def test_calibration_matches_the_simulators_ground_truth(rig_toml: Path, calibrated: tuple[Path, str, str]) -> None:
-    out, printed, _ = calibrated
+    out, _, _ = calibrated
     cal = load_calibration(out / "calibration.json", (640, 512), (912, 1140))
     truth = RigConfig.load(rig_toml).nominal_model()
     e = model_errors(cal.model, truth)
@@ -121,15 +153,17 @@ def test_calibration_matches_the_simulators_ground_truth(rig_toml: Path, calibra
     assert cal.data["camera_intrinsics"]["source"] == "joint refinement"  # it pins the camera here
     assert abs(e["camera.fx_pct"]) < 0.1 and abs(e["camera.fy_pct"]) < 0.1
     assert abs(e["projector.fx_pct"]) < 0.2 and abs(e["projector.fy_pct"]) < 0.2
-    for device in ("camera", "projector"):
+    for device in ("camera", "projector"):  # 6 poses at half size: about +-0.25 px (one sigma)
         for c in ("cx", "cy"):
-            assert abs(e[f"{device}.{c}_px"]) < 4 * std[f"{device}.{c}"], (device, c, e, std)
+            assert abs(e[f"{device}.{c}_px"]) < 1.0, (device, c, e)
+            # and the sigma the calibration reports is honest: the truth within four of it, itself not inflated
+            assert abs(e[f"{device}.{c}_px"]) < 4 * std[f"{device}.{c}"] < 4 * 0.5, (device, c, e, std)
     assert e["translation_mm"] < 0.1 and e["rotation_deg"] < 0.02
     assert cal.data["rms_px"]["camera"] <= 0.15 and cal.data["rms_px"]["projector"] <= 0.2
     assert cal.model.projector_gamma == pytest.approx(truth.projector_gamma, abs=0.01)
     assert abs(cal.data["validation"]["distance_error_mm"]) < 0.1
-    ratio = float(re.search(r"\(ratio ([0-9.]+)\)", printed).group(1))
-    assert ratio < 1.5  # a scan with the calibrated rig against one with the true rig
+    calibrated_rms, true_rms = scan_check(rig_toml, cal.model)
+    assert calibrated_rms < 1.5 * true_rms  # a scan with the calibrated rig against one with the true rig
     # Eq. 17 with one l, d, λ0 cannot follow this rig's crossed axes; per pixel it does
     ph = cal.data["phase_to_height"]
     per_pixel, tri = ph["rms_fitted_mm"]["per_pixel"], ph["rms_fitted_mm"]["triangulation"]
@@ -194,7 +228,7 @@ def test_installed_calibration_is_used_by_later_scans(calibrated: tuple[Path, st
     manifest = json.loads((tmp_path / "scan" / "manifest.json").read_text())
     assert np.allclose(manifest["rig_model"]["camera"]["K"], config.model.camera.K)
     assert manifest["rig_model"]["projector_gamma"] == config.model.projector_gamma
-    assert "fringe-order errors 0 (smooth)" in printed
+    assert json.loads((tmp_path / "scan" / "outputs" / "accuracy.json").read_text())["order_errors"] == 0
 
 
 # the measuring volume of the calibration above (plate heights 0 .. 30 mm; the simulated bench
@@ -219,6 +253,32 @@ albedo = 0.7
 """
 
 
+def scan_in_volume(calibration: Path, rig_toml: Path, tmp_path: Path) -> SimpleNamespace:
+    """A scan of IN_VOLUME_SCENE with a copy of `rig_toml` naming `calibration`: its
+    `session` folder, its phase-to-height processing `p2h`, the height `errors` (RMS mm,
+    share measured) per method against the simulator's truth over the calibrated heights,
+    and the share `filled` of those pixels more than 20 mm high."""
+    rig = tmp_path / "calibrated_rig.toml"
+    shutil.copy(rig_toml, rig)
+    _install(rig, calibration)
+    scene = tmp_path / "scene.toml"
+    scene.write_text(IN_VOLUME_SCENE)
+    session = tmp_path / "scan"
+    code, _, log = run(["scan", "--rig", str(rig), "--scene", str(scene), "--out", str(session)])
+    assert code == 0, log
+    s = Session.open(session)
+    model, camera = s.rig_model().phase_to_height, s.rig_model().camera
+    tri, p2h = (process(s, mode=m) for m in ("triangulation", "phase_to_height"))
+    truth = Truth.load(session / GROUND_TRUTH_FILE)
+    depths = {"per-pixel Eq. 17": p2h.cloud.points[..., 2], "triangulation": tri.cloud.points[..., 2],
+              "global Eq. 17": model.depth(p2h.decoded.maps["vertical"].phase, camera.ray_grid, per_pixel=False)}
+    errors, n = scan_height_errors(model, camera, depths, truth.depth, smooth_region(truth), 30.0)
+    print(f"\nheight error RMS over {n} px of the measuring volume: "
+          + ", ".join(f"{k} {v * 1e3:.1f} um ({c:.1%} measured)" for k, (v, c) in errors.items()))
+    true_height = (camera.ray_grid @ model.plane[:3]) * truth.depth + model.plane[3]
+    return SimpleNamespace(session=session, p2h=p2h, errors=errors, filled=float((true_height > 20.0).sum() / n))
+
+
 def test_phase_to_height_scan_with_the_calibrated_rig(calibrated: tuple[Path, str, str], rig_toml: Path,
                                                       tmp_path: Path) -> None:
     """`slscan decode --mode phase_to_height` on a scan made with a rig naming the calibration:
@@ -226,14 +286,8 @@ def test_phase_to_height_scan_with_the_calibrated_rig(calibrated: tuple[Path, st
     kept in the session), and its height errors against the simulator's ground truth, over
     the calibrated heights, are set beside triangulation's on the same scan."""
     out, _, _ = calibrated
-    rig = tmp_path / "rig.toml"
-    shutil.copy(rig_toml, rig)
-    _install(rig, out / "calibration.json")
-    scene = tmp_path / "scene.toml"
-    scene.write_text(IN_VOLUME_SCENE)
-    session = tmp_path / "scan"
-    code, _, log = run(["scan", "--rig", str(rig), "--scene", str(scene), "--out", str(session)])
-    assert code == 0, log
+    scanned = scan_in_volume(out / "calibration.json", rig_toml, tmp_path)
+    session = scanned.session
     described = json.loads((session / "manifest.json").read_text())["rig_model"]
     assert described["calibration"] == str((out / "calibration.json").resolve())  # which calibration was used
     assert described["phase_to_height"]["per_pixel"]
@@ -242,29 +296,18 @@ def test_phase_to_height_scan_with_the_calibrated_rig(calibrated: tuple[Path, st
     assert code == 0, log
     assert json.loads((session / "outputs" / "result.json").read_text())["mode"] == "phase_to_height"
     assert "accuracy  depth error RMS" in printed
-
     s = Session.open(session)
-    model = s.rig_model().phase_to_height
     calibrated_model = load_calibration(out / "calibration.json").model.phase_to_height
-    assert np.array_equal(model.l_map_mm, calibrated_model.l_map_mm, equal_nan=True)
-    tri, p2h = (process(s, mode=m) for m in ("triangulation", "phase_to_height"))
-    truth = Truth.load(session / GROUND_TRUTH_FILE)
-    camera = s.rig_model().camera
-    depths = {"per-pixel Eq. 17": p2h.cloud.points[..., 2], "triangulation": tri.cloud.points[..., 2],
-              "global Eq. 17": model.depth(p2h.decoded.maps["vertical"].phase, camera.ray_grid, per_pixel=False)}
-    errors, n = scan_height_errors(model, camera, depths, truth.depth, smooth_region(truth), 30.0)
-    rms = {k: v[0] for k, v in errors.items()}
-    print(f"\nheight error RMS over {n} px of the measuring volume: "
-          + ", ".join(f"{k} {v * 1e3:.1f} um ({c:.1%} measured)" for k, (v, c) in errors.items()))
-    true_height = (camera.ray_grid @ model.plane[:3]) * truth.depth + model.plane[3]
-    assert (true_height > 20.0).sum() > 0.05 * n  # the volume is filled, not just its reference plane
-    assert all(c > 0.95 for _, c in errors.values())  # each method measures the whole volume
+    assert np.array_equal(s.rig_model().phase_to_height.l_map_mm, calibrated_model.l_map_mm, equal_nan=True)
+    rms = {k: v[0] for k, v in scanned.errors.items()}
+    assert scanned.filled > 0.05  # the volume is filled, not just its reference plane
+    assert all(c > 0.95 for _, c in scanned.errors.values())  # each method measures the whole volume
     assert rms["per-pixel Eq. 17"] < 1.5 * rms["triangulation"] < 0.05
     assert rms["global Eq. 17"] > 10 * rms["per-pixel Eq. 17"]  # one l, d, λ0 cannot follow this rig
 
     # a model that is not there is named, not replaced by something else
     with pytest.raises(DecodeError, match=f"no phase-to-height model in the calibration file {out}/calibration.json"):
-        phase_to_height_cloud(p2h.decoded, replace(s.rig_model(), phase_to_height=None))
+        phase_to_height_cloud(scanned.p2h.decoded, replace(s.rig_model(), phase_to_height=None))
     (session / "phase_to_height.npz").unlink()
     code, _, log = run(["decode", str(session), "--mode", "phase_to_height"])
     assert code == 2 and f"{session / 'phase_to_height.npz'}: phase-to-height maps missing or unreadable" in log
@@ -288,10 +331,10 @@ def test_board_with_the_wrong_square_size_fails_validation(calibrated: tuple[Pat
     wrong.write_text(BOARD.read_text().replace("square_mm = 7.0", "square_mm = 7.5"))
     capture = capture_copy(out / "capture", tmp_path / "capture", keep_artefact=True)
     code, _, log = run(["calibrate", "--from", str(capture), "--board", str(wrong), "--out", str(tmp_path / "c")])
-    assert code == 2
+    assert code == 1  # a calibration refused by its quality limits: a check that fails (slscan.exit_codes)
     assert re.search(r"validation error 3\.\d+ mm exceeds the limit 0\.1000 mm", log)
     assert "the views whose removal improves it most: pose_" in log and "board's square size" in log
-    assert (tmp_path / "c" / "rejected.txt").exists() and not (tmp_path / "c" / "calibration.json").exists()
+    assert not (tmp_path / "c").exists()  # solving from disk leaves nothing behind: the retry is not refused
 
 
 def test_too_few_poses_is_an_error(calibrated: tuple[Path, str, str], tmp_path: Path) -> None:
@@ -313,12 +356,15 @@ def test_pose_without_the_projector_pattern_is_an_error(calibrated: tuple[Path, 
     assert "pose_002" in json.loads((tmp_path / "d" / "calibration.json").read_text())["dropped_views"]
 
 
-@pytest.mark.slow
+@pytest.mark.acceptance
 def test_acceptance_on_the_full_size_simulated_bench(tmp_path: Path) -> None:
     """The issue's acceptance run: the default simulated bench (1280 x 1024 camera, realistic
-    noise), 12 board poses, 7 plate heights, against the simulator's ground truth. Several
-    minutes; the same figures print from `slscan calibrate --out DIR`."""
-    code, printed, log = run(["calibrate", "--out", str(tmp_path / "cal")])
+    noise), 12 board poses, 7 plate heights, against the simulator's ground truth; then a
+    scan with the calibrated rig against one with the true rig, and the per-pixel Eq. 17
+    model on a ramp and a ball filling the measuring volume. Several minutes; the same
+    figures print from `slscan calibrate --out DIR`."""
+    rig = rig_copy(tmp_path, small=False)
+    code, printed, log = run(["calibrate", "--rig", str(rig), "--out", str(tmp_path / "cal")])
     assert code == 0, log
     cal = load_calibration(tmp_path / "cal" / "calibration.json", (1280, 1024), (912, 1140))
     e = model_errors(cal.model, RigConfig.load(DEFAULT_RIG).nominal_model())
@@ -327,11 +373,10 @@ def test_acceptance_on_the_full_size_simulated_bench(tmp_path: Path) -> None:
     assert abs(e["projector.fx_pct"]) < 0.2 and abs(e["projector.fy_pct"]) < 0.2
     assert e["translation_mm"] < 0.1 and e["rotation_deg"] < 0.02
     assert cal.data["rms_px"]["camera"] <= 0.15 and cal.data["rms_px"]["projector"] <= 0.2
-    assert float(re.search(r"\(ratio ([0-9.]+)\)", printed).group(1)) < 1.5
     held_out = cal.data["phase_to_height"]["rms_held_out_mm"]
     assert held_out["per_pixel"] < 1.5 * held_out["triangulation"]  # Eq. 17 per pixel, between its heights
     assert cal.data["camera_intrinsics"]["source"] == "joint refinement"
-    # and on a ramp and a ball filling the measuring volume
-    check = re.search(r"phase-to-height check .*height RMS per-pixel Eq\. 17 ([0-9.]+) um .*triangulation ([0-9.]+) um",
-                      printed)
-    assert float(check.group(1)) < 1.5 * float(check.group(2))
+    calibrated_rms, true_rms = scan_check(rig, cal.model)
+    assert calibrated_rms < 1.5 * true_rms
+    scanned = scan_in_volume(tmp_path / "cal" / "calibration.json", rig, tmp_path)  # a ramp and a ball
+    assert scanned.errors["per-pixel Eq. 17"][0] < 1.5 * scanned.errors["triangulation"][0]

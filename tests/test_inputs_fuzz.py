@@ -135,7 +135,7 @@ CONFIGS: dict[str, tuple[Path, Callable[[Path], Any]]] = {
     "patterns": (CONFIG_DIR / "patterns" / "heterodyne_3x4.toml", PatternSet.load),
     "scene": (CONFIG_DIR / "scenes" / "sphere_plane.toml", Scene.load),
     "board": (CONFIG_DIR / "boards" / "sim_charuco_7x5.toml", Board.load),
-    "tolerances": (CONFIG_DIR / "tolerances" / "demo_part.toml",
+    "tolerances": (Path(__file__).parent / "data" / "tolerance_file.toml",
                    lambda p: load_tolerances(p, {"#657": "plane", "#158": "plane", "#270": "plane", "#17": "cylinder"})),
     "station": (CONFIG_DIR / "station" / "sim_bench.toml", StationConfig.load),
     "part program": (CONFIG_DIR / "parts" / "demo_part.toml", load_program),

@@ -25,6 +25,7 @@ from scanner.rig import RigConfig
 from scanner.stage import AxisKind
 from scanner.stage_model import AxisGeometry, StageModel, rotation_about
 from slscan import cli
+from slscan.exit_codes import Exit
 
 TURNTABLE = CONFIG_DIR / "rigs" / "sim_turntable.toml"
 SCENE = CONFIG_DIR / "scenes" / "turntable_demo.toml"
@@ -114,7 +115,7 @@ def test_interrupted_run_keeps_every_finished_view(tmp_path: Path, capsys: pytes
     out = tmp_path / "mv"
     code = cli.main(["scan", "--rig", str(turntable_rig(tmp_path)), "--scene", str(SCENE), "--views", "4", *fault,
                      "--out", str(out)])
-    assert code == 2
+    assert code == Exit.DEVICE  # a stage or camera fault: README "Exit codes"
     err = capsys.readouterr().err
     assert f"2 of 4 views complete (view_000, view_001); stopped at view 2 during {stopped}" in err
     with pytest.raises(IncompleteSession, match="2 of 4 views complete"):

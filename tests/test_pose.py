@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import re
+from datetime import datetime
 from pathlib import Path
 
 import cv2
@@ -14,13 +15,15 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from inspection.bins.instance_plane import SceneContext
 from inspection.bins.instances import instances_from_depth_steps, instances_from_label_image
 from inspection.bins.picking import pick_order
 from inspection.bins.pose import PoseSettings, ThinPartModel, estimate_poses
 from inspection.errors import CadError, InspectionError, MaskError
 from inspection.registration import pose_difference
+from scanner.errors import ConfigError
 from scanner.recording_reader import entity_paths
-from scanner.rig import RigConfig
+from scanner.rig import DEFAULT_RIG, RigConfig
 from scanner.session_recording import CLOUD
 from sim.bins import TabPart, bin_scene, fringe_scan_bin, scan_bin
 from slscan.cli import main
@@ -28,6 +31,7 @@ from slscan.commands.pose import load_masks, load_part
 
 PARTS = Path(__file__).resolve().parents[1] / "config" / "parts"
 TRANS_MM, ROT_DEG = 0.1, 0.5
+CAMERA = RigConfig.load().nominal_model().camera   # the default rig's, which the simulated bins are scanned with
 
 
 @pytest.fixture(scope="module")
@@ -68,19 +72,13 @@ def _write_bin_cloud(cloud: object, ids: np.ndarray, path: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("method", ["sacia", pytest.param("ndt", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("method", ["sacia", "ndt"])
 def test_poses_of_a_small_bin_match_the_truth(small_bin: tuple, model: ThinPartModel, method: str) -> None:
     b, cloud, ids, occlusion = small_bin
     assert b.front_up.any() and (~b.front_up).any() and (occlusion > 0.02).any() and (occlusion < 0.3).sum() >= 2
     inst = instances_from_label_image(np.where(ids >= 2, ids, 0), cloud)
-    poses = estimate_poses(inst, model, cloud.points[cloud.valid], PoseSettings(method=method))
+    poses = estimate_poses(inst, model, SceneContext.of_cloud(cloud, CAMERA), PoseSettings(method=method))
     assert len(poses) == len(inst)
-    if method == "ndt":   # the weaker coarse method: whatever it reports must be right
-        found = {p.instance_id - 2: p for p in poses if p.ok}
-        for k, p in found.items():
-            rot, trans = pose_difference(b.poses[k], p.pose)
-            assert rot <= ROT_DEG and trans <= TRANS_MM and (p.side == "front") == bool(b.front_up[k])
-        return
     _check_against_truth(b, poses, occlusion, {i.id: i.id - 2 for i in inst})
     # pick order: an uncovered part first, the highest of those (closest to the camera)
     ranks = pick_order(poses)
@@ -88,7 +86,7 @@ def test_poses_of_a_small_bin_match_the_truth(small_bin: tuple, model: ThinPartM
     free = [p for p in poses if p.ok and p.occlusion <= 0.02]
     if free:
         assert first.pose[2, 3] == min(p.pose[2, 3] for p in free)
-    assert all(occlusion[p.instance_id - 2] < 0.4 for p in poses if p.instance_id in ranks)
+    assert all(occlusion[p.instance_id - 2] <= PoseSettings().max_occlusion for p in poses if p.instance_id in ranks)
 
 
 def test_instances_from_depth_steps_separate_overlapping_parts(small_bin: tuple) -> None:
@@ -108,11 +106,17 @@ def test_pose_command_writes_the_poses_file_and_recording(small_bin: tuple, tmp_
     ply = _write_bin_cloud(cloud, ids, tmp_path / "bin.ply")
     masks = tmp_path / "labels.png"
     cv2.imwrite(str(masks), np.where(ids >= 2, ids, 0).astype(np.uint16))
-    assert main(["pose", str(ply), "--part", str(PARTS / "nickel_tab.toml"), "--masks", str(masks)]) == 0
+    grip_xy, approach = np.array([6.0, 4.0]), np.array([0.0, 0.6, 0.8])   # part frame, front up
+    part = tmp_path / "gripped_tab.toml"
+    part.write_text((PARTS / "nickel_tab.toml").read_text()
+                    + f"grip_point_mm = {grip_xy.tolist()}\napproach = {approach.tolist()}\n")
+    assert main(["pose", str(ply), "--part", str(part), "--masks", str(masks), "--rig", str(DEFAULT_RIG)]) == 0
     out = capsys.readouterr().out
     assert "rank" in out and "pickable" in out
     doc = json.loads((tmp_path / "bin.poses.json").read_text())
     assert doc["format"] == "slscan-poses" and doc["part"] == "nickel-tab"
+    assert doc["rig"]["name"] == RigConfig.load().name and "uncalibrated" in doc["rig"]["calibration"]
+    assert datetime.fromisoformat(doc["created"]).tzinfo is not None and doc["units"]["length"] == "mm"
     ok = [r for r in doc["parts"] if r["status"] == "ok"]
     assert len(ok) >= int((occlusion < 0.3).sum())
     ranks = sorted(r["pick_rank"] for r in doc["parts"] if r["pick_rank"] is not None)
@@ -129,12 +133,26 @@ def test_pose_command_writes_the_poses_file_and_recording(small_bin: tuple, tmp_
         q = o3d.geometry.get_rotation_matrix_from_quaternion(np.array([w, x, y, z]))
         assert np.allclose(q, T[:3, :3], atol=1e-6) and w >= 0
         assert np.allclose(r["world"]["position_mm"], r["camera"]["position_mm"])   # the bench rig: world = camera
-    # without masks: tray removal + depth-step components; every pose is one of the true ones
+        # the approach and grip point: the part file's, posed by the true pose (back up:
+        # mirrored through the part's mid-plane), on the face that is up
+        front = bool(b.front_up[k])
+        a_true = b.poses[k][:3, :3] @ (approach if front else approach * [1, 1, -1])
+        assert np.degrees(np.arccos(min(1.0, np.dot(r["approach"]["camera"], a_true)))) <= ROT_DEG
+        assert np.allclose(r["approach"]["world"], r["approach"]["camera"])
+        g_true = b.poses[k] @ np.r_[grip_xy, TabPart().thickness_mm if front else 0.0, 1.0]
+        assert np.linalg.norm(np.array(r["grip_point_mm"]["camera"]) - g_true[:3]) <= 2 * TRANS_MM
+    # without masks: the flat patches above the tray; every pose is one of the true ones;
+    # without --rig: camera frame only (no world frame, no identity made up), and the
+    # approach defaults to the up face's normal, toward the camera
     nomask = tmp_path / "nomask.json"
     assert main(["pose", str(ply), "--part", str(PARTS / "nickel_tab.toml"), "--out", str(nomask), "--no-log"]) == 0
+    doc = json.loads(nomask.read_text())
+    assert doc["world_from_camera"] is None and doc["rig"] is None and "camera frame only" in doc["frames"]["world"]
     matched = set()
-    for r in json.loads(nomask.read_text())["parts"]:
+    for r in doc["parts"]:
+        assert r.get("world") is None and "grip_point_mm" not in r
         if r["status"] == "ok":
+            assert np.dot(r["approach"]["camera"], r["camera"]["position_mm"]) < 0   # toward the camera at the origin
             T = np.eye(4)
             T[:3, :3] = r["camera"]["rotation"]
             T[:3, 3] = r["camera"]["position_mm"]
@@ -190,16 +208,20 @@ def test_masks_of_the_wrong_size_are_an_error(small_bin: tuple, tmp_path: Path,
 
 
 @pytest.mark.parametrize("text, match", [
-    ("this is [not toml", "not a readable TOML"),
-    ("[other]\nx = 1\n", r"no \[part\] table"),
-    ("[part]\nkind = \"gear\"\n", "only \"tab\""),
-    ("[part]\nkind = \"tab\"\nlenght_mm = 3\n", r"unknown keys \['lenght_mm'\]"),
-    ("[part]\nkind = \"tab\"\nwidth_mm = -8\n", "inconsistent tab part"),
+    ("this is [not toml", "not valid TOML"),
+    ("[other]\nx = 1\n", r"key 'other': unknown key in the top level"),
+    ("[part]\nkind = \"gear\"\n", r"key 'part.kind': must be 'tab'"),
+    ("[part]\nkind = \"tab\"\nlenght_mm = 3\n", r"key 'part.lenght_mm': unknown key in \[part\]; did you mean 'length_mm'"),
+    ("[part]\nkind = \"tab\"\nwidth_mm = -8\n", r"key 'part.width_mm': must be greater than 0"),
+    ("[part]\nkind = \"tab\"\nnotch_mm = [14.0, 3.0, 5.0]\n", r"key 'part': .*inconsistent"),
+    ("[part]\nkind = \"tab\"\ngrip_point_mm = [24.0, 4.0]\n", r"key 'part.grip_point_mm': .* not on the part"),
+    ("[part]\nkind = \"tab\"\napproach = [0.0, 0.0, -1.0]\n", r"must point away from the front face"),
 ])
 def test_nonsense_part_files_are_errors(tmp_path: Path, text: str, match: str) -> None:
+    """Part files go through the one validation layer (sim.bins.PartFile): the file and key named."""
     f = tmp_path / "part.toml"
     f.write_text(text)
-    with pytest.raises(CadError, match=match):
+    with pytest.raises(ConfigError, match=rf"part.toml.*{match}"):
         load_part(f)
 
 
@@ -215,7 +237,7 @@ def test_a_mesh_that_is_not_a_thin_plate_is_an_error(tmp_path: Path) -> None:
         load_part(step)
 
 
-@pytest.mark.slow
+@pytest.mark.acceptance
 def test_poses_from_a_full_fringe_scan_of_a_bin(model: ThinPartModel) -> None:
     """The small bin scanned through the whole simulated chain (fringe patterns rendered
     with sensor noise and blur, decoded, triangulated), instances from the simulator's ids:
@@ -223,24 +245,33 @@ def test_poses_from_a_full_fringe_scan_of_a_bin(model: ThinPartModel) -> None:
     b = bin_scene(5, seed=7, spread_mm=(12.0, 8.0))
     cloud, ids = fringe_scan_bin(b)
     inst = instances_from_label_image(np.where(ids >= 2, ids, 0), cloud, min_points=200)
-    poses = estimate_poses(inst, model, cloud.points[cloud.valid], PoseSettings())
+    poses = estimate_poses(inst, model, SceneContext.of_cloud(cloud, CAMERA), PoseSettings())
     for p in poses:
         if p.ok:
             rot, trans = pose_difference(b.poses[p.instance_id - 2], p.pose)
             print(f"part {p.instance_id - 2}: {rot:.3f} deg, {trans:.4f} mm, {p.side}, occlusion {p.occlusion:.2f}, "
-                  f"rmse {p.rmse_mm:.4f} mm, {1000 * p.time_s:.0f} ms")
+                  f"fitness {p.fitness:.3f}, rmse {p.rmse_mm:.4f} mm, {1000 * p.time_s:.0f} ms")
         else:
             print(f"part {p.instance_id - 2}: failed: {p.reason}")
-    # pixels straddling a part's edge decode to depths mixed with what lies behind (up to
-    # 1 mm off): ~5 % of an instance's points, so the fitness is lower than on exact points
-    _check_against_truth(b, poses, b.occlusion(), {i.id: i.id - 2 for i in inst}, min_fitness=0.9)
+    pad = np.pad(ids, 1)
+    edge = (ids >= 2) & ((pad[:-2, 1:-1] != ids) | (pad[2:, 1:-1] != ids) | (pad[1:-1, :-2] != ids) | (pad[1:-1, 2:] != ids))
+    outline = [float(np.mean(edge.ravel()[i.indices])) for i in inst]
+    print("share of each instance's points on its outline (simulator's ids):", ", ".join(f"{f:.1%}" for f in outline))
+    # The fitness floor (a fixed 0.93, above the method's own acceptance of 0.90): pixels on
+    # a part's outline straddle its edge and decode to depths mixed with what lies behind
+    # (up to 1 mm off, outside the 0.1 mm inlier distance). They are at most 12 % of an
+    # instance here (the most occluded parts have the longest outline for their area;
+    # checked below), and about half of them see mostly the part, so at most ~6 % of the
+    # points may miss the model, and 1 % more for the noise's tails: 1 - 0.06 - 0.01 = 0.93.
+    assert max(outline) <= 0.12
+    _check_against_truth(b, poses, b.occlusion(), {i.id: i.id - 2 for i in inst}, min_fitness=0.93)
 
 
 def test_silhouette_handedness_tells_the_side_of_uncovered_parts(small_bin: tuple, model: ThinPartModel) -> None:
     """Hu's seventh moment (which side's coarse search runs first) flips sign in a mirror
     image, the two sides of the tab have opposite signs, and an uncovered instance's
     silhouette has the sign of the side the simulator put up."""
-    from inspection.bins.instance_plane import SceneContext, instance_patch, onto_plane
+    from inspection.bins.instance_plane import instance_patch, onto_plane
     from inspection.bins.part_model import skew_moment
 
     front, back = model.sides["front"].skew, model.sides["back"].skew
@@ -286,3 +317,25 @@ def test_ndt_on_a_grid_without_cells_finds_no_cell() -> None:
     grid = ndt_grid(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 0.0]]), 1.0)
     assert len(grid[2]) == 0
     assert (ndt_cells(np.array([[0.1, 0.1, 0.1], [5.2, 0.3, 0.0]]), grid, 1.0) == -1).all()
+
+
+def test_poses_that_would_share_space_are_not_both_reported(small_bin: tuple, model: ThinPartModel) -> None:
+    """merge_duplicates with the model: the simulator's true poses (parts lying on each
+    other) all stay; a second instance posed 1.2 mm and 3 deg off one of them (a piece of
+    that part posed wrong, turned in its plane and shifted) is reported failed, naming the
+    instance it collides with."""
+    from inspection.bins.picking import merge_duplicates
+    from inspection.bins.pose import PartPose
+    from sim.bins import rotation_about
+
+    b, cloud, ids, occlusion = small_bin
+    side = lambda k: "front" if b.front_up[k] else "back"  # noqa: E731
+    true = [PartPose(k + 1, True, "", "truth", 1000 - k, b.poses[k], side(k)) for k in range(len(b.poses))]
+    assert all(p.ok for p in merge_duplicates(true, model))
+    off = np.eye(4)
+    off[:3, :3] = rotation_about(np.array([0.0, 0.0, 1.0]), np.radians(3.0))   # turned in its plane
+    off[:3, 3] = [1.2, 0.0, 0.0]
+    piece = PartPose(9, True, "", "sacia+icp", 300, b.poses[0] @ off, side(0))
+    out = {p.instance_id: p for p in merge_duplicates(true + [piece], model)}
+    assert all(out[p.instance_id].ok for p in true)
+    assert not out[9].ok and out[9].pose is None and "instance 1" in out[9].reason

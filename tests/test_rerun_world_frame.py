@@ -65,7 +65,8 @@ def test_inspection_is_logged_in_the_rigs_world_frame(world_from_cam: np.ndarray
     assert np.abs(cad - truth).max() < 0.05   # the registered pose is within 0.02 mm / 0.02 deg of the truth
     assert np.abs(cad - _apply(pose, model.tessellation.vertices)).max() > 100.0   # not the camera frame
     paths = entity_paths(path)
-    assert {"metrics/inspection/fitness", "metrics/inspection/rmse_mm", "metrics/inspection/fail_count"} <= set(paths)
+    assert {"metrics/inspection/fitness", "metrics/inspection/rmse_mm",
+            "metrics/inspection/non_conforming_count"} <= set(paths)
     assert not [p for p in paths if p.startswith("metrics/inspection_")]
 
 

@@ -178,9 +178,9 @@ def test_cli_scan_decode_and_errors(tmp_path: Path, capsys: pytest.CaptureFixtur
     # camera sees ~5 px per fringe, where camera blur over curved phase adds a real bias
     assert acc["order_errors"] == 0 and acc["coverage"] > 0.97 and 0 < acc["rms_mm"] < 0.1
     assert cli.main(["decode", str(tmp_path / "s")]) == 0
-    # a fault: named error, exit code 2, incomplete session reported by decode
+    # a device fault: named error, exit code 3 (slscan.exit_codes), incomplete session reported by decode
     assert cli.main(["scan", "--rig", str(rig), "--scene", str(SCENE), "--out", str(tmp_path / "f"),
-                     "--fault", "drop_frame=3"]) == 2
+                     "--fault", "drop_frame=3"]) == 3
     assert "FrameDropped" not in capsys.readouterr().err  # the message, not a traceback
     assert cli.main(["decode", str(tmp_path / "f")]) == 2
     err = capsys.readouterr().err

@@ -65,11 +65,11 @@ def _run_demo_parts(tmp_path: Path, parts: list[int]) -> None:
                     assert 0.52 * truth - 0.005 <= v.value_mm <= truth + 0.005, v
 
 
-@pytest.mark.slow
+@pytest.mark.acceptance
 def test_measured_verdict_of_a_bowed_part(tmp_path: Path) -> None:
     _run_demo_parts(tmp_path, [1])  # the 150 um bow: FAIL on the high top's flatness
 
 
-@pytest.mark.slow
+@pytest.mark.acceptance
 def test_five_parts_with_imposed_defects_get_the_right_verdicts(tmp_path: Path) -> None:
     _run_demo_parts(tmp_path, [0, 1, 2, 3, 4])

@@ -10,6 +10,7 @@ inset of pixel samples behind an edge). Camera frame, mm; the camera at the orig
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -17,6 +18,7 @@ from scipy.spatial import cKDTree
 
 from inspection.bins.part_model import skew_moment
 from inspection.bins.pose_settings import PoseError, PoseSettings
+from scanner.pointcloud import OrganisedCloud
 
 MAX_OFF_PLANE_MM = 1.0  # instance points farther from its plane are not on the part
 SHADOW_MM = 2.5  # beyond an edge, look this far for the first surface seen (past shadows)
@@ -25,14 +27,37 @@ SHADOW_MM = 2.5  # beyond an edge, look this far for the first surface seen (pas
 @dataclass(eq=False)
 class SceneContext:
     """All scan points of the scene (camera frame, mm) and their KD-tree: what lies around
-    an instance tells its true outline edges from the edges where a part covers it."""
+    an instance tells its true outline edges from the edges where a part covers it. With
+    the organised scan (`image` (H, W, 3), NaN where invalid) and its `camera` (a
+    `scanner.geometry.Pinhole`), `beyond` compares any camera-frame point with what its
+    pixel measured."""
 
     points: np.ndarray
+    image: np.ndarray | None = None
+    camera: Any = None
     tree: cKDTree = field(init=False)
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64)
         self.tree = cKDTree(self.points)
+
+    @classmethod
+    def of_cloud(cls, cloud: OrganisedCloud, camera: Any) -> SceneContext:
+        return cls(cloud.points[cloud.valid], cloud.points, camera)
+
+    def beyond(self, p: np.ndarray) -> np.ndarray:
+        """Per camera-frame point (N, 3): how far (mm) beyond it, along its camera ray, the
+        scan measured the surface at its pixel (negative: the scan saw something in front
+        of it; NaN: its pixel has no measurement or lies outside the image)."""
+        out = np.full(len(p), np.nan)
+        if self.image is None:
+            return out
+        h, w = self.image.shape[:2]
+        px = np.rint(self.camera.project(p)).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h) & (p[:, 2] > 0)
+        seen = self.image[px[inside, 1], px[inside, 0]].astype(np.float64)
+        out[inside] = np.linalg.norm(seen, axis=1) - np.linalg.norm(p[inside], axis=1)
+        return out
 
 
 @dataclass(eq=False)
@@ -60,6 +85,8 @@ class InstancePatch:
     plane_rms: float
     extent_mm: float
     skew: float
+    step: float = 0.05
+    context: SceneContext | None = None
 
     def cells(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(row, col, inside) grid cells of camera-frame points (via their plane coordinates)."""
@@ -100,6 +127,7 @@ def instance_patch(points: np.ndarray, context: SceneContext | None, thickness: 
     observed = cv2.morphologyEx(observed, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)).astype(bool)
     higher = np.zeros(shape, bool)
     lower = np.zeros(shape, bool)
+    step = max(0.5 * thickness, 4 * plane_rms, 0.05)
     if context is not None:
         radius = float(np.hypot(*(np.array(shape) * g))) / 2
         centre = c + (lo + np.array(shape[::-1]) * g / 2) @ np.stack([e1, e2])
@@ -111,7 +139,6 @@ def instance_patch(points: np.ndarray, context: SceneContext | None, thickness: 
         dn = near * ((c @ n) / np.where(np.abs(ray) > 1e-9, ray, 1e-9))[:, None] - c
         cij = np.floor((np.stack([dn @ e2, dn @ e1], axis=1) - lo[::-1]) / g).astype(np.int64)
         ok = (cij[:, 0] >= 0) & (cij[:, 0] < shape[0]) & (cij[:, 1] >= 0) & (cij[:, 1] < shape[1]) & (np.abs(hn) < 20.0)
-        step = max(0.5 * thickness, 4 * plane_rms, 0.05)
         higher[cij[ok & (hn > step), 0], cij[ok & (hn > step), 1]] = True
         lower[cij[ok & (hn <= step), 0], cij[ok & (hn <= step), 1]] = True
         lower &= ~observed & ~higher
@@ -144,7 +171,7 @@ def instance_patch(points: np.ndarray, context: SceneContext | None, thickness: 
     walls = (edge_pts[None] - depth[:, None, None] * n).reshape(-1, 3)
     return InstancePatch(c, e1, e2, n, spacing, lo, g, observed, higher, lower, edge_pts,
                   walls, np.tile(out3, (len(depth), 1)), plane_rms, float(np.linalg.norm(np.ptp(uv, axis=0))),
-                  skew_moment(observed))
+                  skew_moment(observed), step, context)
 
 
 def onto_plane(points: np.ndarray, tol_mm: float) -> tuple[np.ndarray, np.ndarray, float, float]:

@@ -24,6 +24,8 @@ from inspection.bins.pose_settings import PoseSettings
 from inspection.errors import CadError
 from inspection.registration import ModelTarget, Samples
 
+INTERIOR_MM = 0.5   # face samples this far inside the outline are its interior
+
 
 @dataclass(eq=False)
 class SideModel:
@@ -41,16 +43,23 @@ class SideModel:
     skew: float
     ndt: dict[float, tuple] = field(default_factory=dict)
     outline_tree: cKDTree = field(init=False)
+    interior: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         self.outline_tree = cKDTree(self.outline)
+        # face samples away from the outline: where a scan measures the face itself, not
+        # a pixel straddling its edge (depth mixed with what lies beyond)
+        away = self.outline_tree.query(self.face.points)[0] > INTERIOR_MM
+        self.interior = self.face.points[away][:: max(1, int(away.sum()) // 1500)]
 
 
 @dataclass(eq=False)
 class ThinPartModel:
     """A thin flat part from its mesh (part frame, mm): `axis` the unit normal of the front
     face, `thickness_mm`, face `area_mm2`, in-plane `length_mm` (largest extent) and the
-    two `sides`; `u0` the face's principal in-plane direction (for NDT starts)."""
+    two `sides`; `u0` the face's principal in-plane direction (for NDT starts); where a
+    robot grips it, when its part file says: `grip_point_mm` (x, y in the outline plane)
+    and `approach` (unit, part frame, from the part toward the gripper, front face up)."""
 
     name: str
     vertices: np.ndarray
@@ -61,6 +70,24 @@ class ThinPartModel:
     area_mm2: float
     length_mm: float
     sides: dict[str, SideModel]
+    grip_point_mm: tuple[float, float] | None = None
+    approach: tuple[float, float, float] | None = None
+
+    def up_face(self, side: str) -> tuple[np.ndarray, np.ndarray]:
+        """(grip point on the face that is up (part frame, mm; None without a grip point),
+        unit approach direction (part frame)) for `side` up: the file's approach, mirrored
+        through the mid-plane when the back is up, or else the up face's outward normal."""
+        sign = 1.0 if side == "front" else -1.0
+        a = np.asarray(self.approach if self.approach is not None else self.axis, np.float64)
+        if side == "back":
+            a = a - 2.0 * (a @ self.axis) * self.axis
+        grip = None
+        if self.grip_point_mm is not None:
+            levels = self.vertices @ self.axis
+            level = levels.max() if sign > 0 else levels.min()
+            g = np.r_[self.grip_point_mm, 0.0]
+            grip = g + (level - g @ self.axis) * self.axis
+        return grip, a / np.linalg.norm(a)
 
     @classmethod
     def from_mesh(cls, vertices: np.ndarray, triangles: np.ndarray, name: str,

@@ -15,6 +15,10 @@ one refined on the full instance. A pose is reported only when it explains the i
 (its points on the posed face, its outline on the part's outline, no face over a lower
 surface, planarity, size) and no distinct pose (or the other side) is judged within
 `ambiguity_margin` of it: otherwise the instance is reported as failed, with the reason.
+A covered part's fragment may be (nearly) symmetric about a line in its plane, and then
+explained as well by the part turned over: from `mirror_occlusion` up the best pose is
+also flipped about lines through the fragment (those rivals judged too), and above
+`max_pose_occlusion` no pose is reported (the search cannot be trusted to find the rival).
 
 Work saved: the side whose silhouette handedness
 (Hu's seventh moment, its sign flips in a mirror image) matches the instance's is searched
@@ -56,7 +60,8 @@ class PartPose:
     `side` "front" or "back" (the face toward the camera), `fitness`: fraction of the
     instance's points on the posed face, `rmse_mm` their RMS distance to it, `occlusion`:
     fraction of the posed visible face covered by something higher, `side_margin`:
-    outline-fit score of the chosen side minus the other's; `time_s` of the estimation."""
+    outline-fit score of the chosen side minus the other's; `time_s` (wall) and `cpu_s`
+    (process CPU) of the estimation."""
 
     instance_id: int
     ok: bool
@@ -70,6 +75,7 @@ class PartPose:
     occlusion: float = float("nan")
     side_margin: float = float("nan")
     time_s: float = 0.0
+    cpu_s: float = 0.0
     label: str | None = None
     edge_fit: float = float("nan")
 
@@ -78,14 +84,14 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
                   settings: PoseSettings = PoseSettings()) -> PartPose:
     """The pose of `model` explaining `instance` (camera frame), or a failed PartPose
     saying why (see the module docstring)."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     method = f"{settings.method}+icp"
     pts = np.asarray(instance.points, dtype=np.float64)
     pts = pts[np.isfinite(pts).all(axis=1)]
 
     def failed(reason: str, **kw: float) -> PartPose:
         return PartPose(instance.id, False, reason, method, len(pts), time_s=time.perf_counter() - t0,
-                        label=instance.label, **kw)
+                        cpu_s=time.process_time() - c0, label=instance.label, **kw)
 
     if len(pts) < settings.min_points:
         return failed(f"only {len(pts)} points (needs {settings.min_points})")
@@ -108,7 +114,7 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
         outcome = _fit(flat, raw, patch, model, settings, rng, judged)
         if isinstance(outcome, PartPose):
             return replace(outcome, instance_id=instance.id, points=len(pts), time_s=time.perf_counter() - t0,
-                           label=instance.label)
+                           cpu_s=time.process_time() - c0, label=instance.label)
         if not outcome[2]:   # no attempt can settle it
             break
     return failed(outcome[0], **outcome[1])
@@ -129,7 +135,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
     searched = len(judged)
     # each side's own coarse search (mirror images look alike to local descriptors), the
     # side the silhouette's handedness suggests first; the other side's search is skipped
-    # when the first explains a mostly visible instance (occlusion below `max_occlusion`)
+    # when the first explains a mostly visible instance (occlusion below `visible_occlusion`)
     # within the ambiguity margin of the highest possible score (2): the flips of its
     # best pose below still put the other side's mirror image beside it, and a view that
     # both sides explain is symmetric about one of its axes, which is what they test.
@@ -141,7 +147,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
             return False
         score, best_side, T = max(judged[searched:], key=lambda j: j[0])
         return (score > 2.0 - settings.ambiguity_margin
-                and _occlusion(patch, model.sides[best_side], T) < settings.max_occlusion)
+                and _occlusion(patch, model.sides[best_side], T) < settings.visible_occlusion)
 
     first = "front" if np.sign(patch.skew) == np.sign(model.sides["front"].skew) else "back"
     for side in (first, "back" if first == "front" else "front"):
@@ -178,6 +184,15 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
         best = max([best] + new, key=lambda j: j[0])
         if best[2] is T0:
             break
+    # a covered part shows a fragment, and a fragment symmetric about some line in its
+    # plane is explained as well by the part flipped over about that line (the other side
+    # up): the best pose flipped about lines through the fragment's centroid every
+    # `mirror_step_deg` (its symmetry axes pass through it), so that such a rival is judged
+    _, side0, T0 = best
+    if _occlusion(patch, model.sides[side0], T0) >= settings.mirror_occlusion:
+        other = "back" if side0 == "front" else "front"
+        judged += _judge(patch, model.sides[other], sp, sn, mirror_flips(T0, pts, patch, settings.mirror_step_deg),
+                         settings, keep=3)
     judged.sort(key=lambda j: -j[0])
     ambiguous = _ambiguity(judged, patch, settings)
     if ambiguous is not None:
@@ -214,6 +229,9 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
     if spill > settings.max_spill:
         return (f"the best pose ({side} up) puts {spill:.0%} of the part's face where a lower surface is seen "
                 f"(limit {settings.max_spill:.0%}): no pose explains the instance's outline", kw, True)
+    if occl > settings.max_pose_occlusion:
+        return (f"the best pose ({side} up) leaves {occl:.0%} of the part covered (limit "
+                f"{settings.max_pose_occlusion:.0%}): too little of it shows to rule out the part turned over", kw, False)
     return PartPose(0, True, "", f"{settings.method}+icp", 0, pose, side, fit, rmse, occl, margin, edge_fit=edge)
 
 
@@ -237,6 +255,20 @@ def _ambiguity(judged: list[tuple[float, str, np.ndarray]], patch: InstancePatch
     return None
 
 
+def mirror_flips(T: np.ndarray, pts: np.ndarray, patch: InstancePatch, step_deg: float) -> list[np.ndarray]:
+    """Pose `T` (scan -> part) after a half turn of the scan about lines in the instance's
+    plane through the centroid of its points `pts`, one every `step_deg` over 180 deg."""
+    c = pts.mean(axis=0)
+    out = []
+    for a in np.radians(np.arange(0.0, 180.0, step_deg)):
+        axis = np.cos(a) * patch.e1 + np.sin(a) * patch.e2
+        F = np.eye(4)
+        F[:3, :3] = 2.0 * np.outer(axis, axis) - np.eye(3)   # rotation by pi about the axis
+        F[:3, 3] = c - F[:3, :3] @ c
+        out.append(T @ F)
+    return out
+
+
 def _side_margin(judged: list[tuple[float, str, np.ndarray]]) -> float:
     """Score of the best pose (`judged` sorted best first) minus the best of the other side's."""
     others = [j[0] for j in judged if j[1] != judged[0][1]]
@@ -244,16 +276,21 @@ def _side_margin(judged: list[tuple[float, str, np.ndarray]]) -> float:
 
 
 def _judge(patch: InstancePatch, sm: SideModel, sp: np.ndarray, sn: np.ndarray, poses: list[np.ndarray],
-           settings: PoseSettings) -> list[tuple[float, str, np.ndarray]]:
+           settings: PoseSettings, keep: int | None = None) -> list[tuple[float, str, np.ndarray]]:
     """(outline-fit score, side, pose) of each pose (scan -> part) refined by point-to-plane
     ICP with normal-angle rejection on the instance's extruded cloud `sp`/`sn`: fitness
     (within 1.5 voxels, one batched query) plus the fraction of the true outline on the
-    part's outline, minus the fraction of the face over a lower surface. KD-tree queries
-    here and in the coarse search are single-threaded: the clouds are small, and starting
-    threads costs more than it saves on a busy machine."""
+    part's outline, minus the fraction of the face over a lower surface. With `keep`,
+    only the `keep` poses of best fitness as given (within ICP's first reach, 6 voxels)
+    are refined and judged. KD-tree queries here and in the coarse search are
+    single-threaded: the clouds are small, and starting threads costs more than it saves
+    on a busy machine."""
     if not poses:
         return []
     v = settings.voxel_mm
+    if keep is not None and len(poses) > keep:
+        first = fitness(sp, sn, sm.target.coarse, np.array(poses), 6.0 * v, settings.max_normal_deg, workers=1)
+        poses = [poses[i] for i in np.argsort(-first)[:keep]]
     posed = [icp(sp, sn, sm.target.coarse, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15) for T in poses]
     fit = fitness(sp, sn, sm.target.coarse, np.array(posed), 1.5 * v, settings.max_normal_deg, workers=1)
     return [(float(f) + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), sm.side, T)
@@ -275,19 +312,33 @@ def _face_cells(patch: InstancePatch, sm: SideModel, T: np.ndarray, n: int = 150
     return patch.cells(transform_points(np.linalg.inv(T), face))
 
 
-def _spill(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> float:
-    """Fraction of the posed face where a lower surface is seen (it would hide it)."""
-    r, c, inside = _face_cells(patch, sm, T)
-    return float(np.mean(inside & patch.lower[r, c]))
-
-
-def _occlusion(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> float:
-    """Fraction of the posed face covered by a higher surface, among its cells that are
-    observed, covered or showing a lower surface (unobserved cells left out)."""
+def face_evidence(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> tuple[float, float]:
+    """(covered, contradicted): the fractions of the posed face (its interior samples,
+    scan -> part pose `T`) that the scan shows covered by a surface in front of it, and
+    beyond it (a lower surface seen where the face would hide it), among its samples
+    with a measurement. With the organised scan in the patch's context every sample is
+    checked at its own pixel, however far from the instance; without it, on the
+    instance's grid (samples off the grid, or unobserved, left out)."""
+    context = patch.context
+    if context is not None and context.image is not None:
+        d = context.beyond(transform_points(np.linalg.inv(T), sm.interior))
+        known = np.isfinite(d)
+        n = max(int(known.sum()), 1)
+        return float(np.sum(d[known] < -patch.step) / n), float(np.sum(d[known] > patch.step) / n)
     r, c, inside = _face_cells(patch, sm, T)
     covered = inside & patch.higher[r, c] & ~patch.observed[r, c]
     known = inside & (patch.observed[r, c] | patch.higher[r, c] | patch.lower[r, c])
-    return float(covered.sum() / max(known.sum(), 1))
+    return float(covered.sum() / max(known.sum(), 1)), float(np.mean(inside & patch.lower[r, c]))
+
+
+def _spill(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> float:
+    """Fraction of the posed face where a lower surface is seen (it would hide it)."""
+    return face_evidence(patch, sm, T)[1]
+
+
+def _occlusion(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> float:
+    """Fraction of the posed face covered by a surface in front of it."""
+    return face_evidence(patch, sm, T)[0]
 
 
 def _ndt_poses(src: np.ndarray, patch: InstancePatch, model: ThinPartModel, sm: SideModel,
@@ -323,9 +374,8 @@ def _ndt_poses(src: np.ndarray, patch: InstancePatch, model: ThinPartModel, sm: 
     return [T for T, _ in fine[:n_best]]
 
 
-def estimate_poses(instances: list[Instance], model: ThinPartModel, scene_points: np.ndarray | None = None,
+def estimate_poses(instances: list[Instance], model: ThinPartModel, context: SceneContext | None = None,
                    settings: PoseSettings = PoseSettings()) -> list[PartPose]:
-    """`estimate_pose` for every instance, with the scene's points as context (None: every
+    """`estimate_pose` for every instance, with the scene as context (None: every
     instance edge is taken as a true outline edge)."""
-    context = SceneContext(scene_points) if scene_points is not None and len(scene_points) else None
     return [estimate_pose(i, model, context, settings) for i in instances]

@@ -109,27 +109,18 @@ def texture_albedo(obj: SceneObject, cam_from_obj: np.ndarray, points: np.ndarra
     return ndimage.map_coordinates(np.asarray(tex, dtype=np.float32), [v, u], order=1, mode="nearest")
 
 
-def compute_ground_truth(model: RigModel, scene: Scene, texture_blur_px: float = 0.0) -> GroundTruth:
-    """Ray-cast the scene from the camera and the projector (see the module docstring);
-    textures are blurred by `texture_blur_px` (camera pixels) before they are sampled."""
-    cam, proj = model.camera, model.projector
-    H, W = cam.height, cam.width
-    cam_from_world = np.linalg.inv(model.world_from_cam)
-    tracer = Tracer(scene, cam_from_world)
-    dirs = camera_rays(cam).reshape(-1, 3)
-    t, oid, nrm = tracer.first_hit(np.zeros(3), dirs)
-    hit = np.flatnonzero(np.isfinite(t))
-    X = dirs[hit] * t[hit, None]
-    nh = nrm[hit]
-    nh[np.einsum("ij,ij->i", nh, dirs[hit]) > 0] *= -1.0  # toward the camera
-
-    # the projector's view of every hit point
+def projector_view(model: RigModel, tracer: Tracer, X: np.ndarray, normal: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The projector's view of camera-frame points `X` (N, 3) with unit `normal`s turned
+    toward the viewer: (uv (N, 2) projector pixel, NaN where not lit; lit (N,); occluded
+    (N,) cast shadow; cos_incidence (N,) of the projector ray)."""
+    proj = model.projector
     Cp = model.cam_from_proj[:3, 3]
     dp = X - Cp
     dist = np.linalg.norm(dp, axis=1)
     tp, _, _ = tracer.first_hit(Cp, dp, t_min=1e-9)
     occluded = tp * dist < dist - OCCLUSION_TOL_MM
-    cos_inc = -np.einsum("ij,ij->i", nh, dp) / dist
+    cos_inc = -np.einsum("ij,ij->i", normal, dp) / dist
     P = model.proj_from_cam
     Xp = X @ P[:3, :3].T + P[:3, 3]
     lo, hi = projector_field(proj)
@@ -143,6 +134,24 @@ def compute_ground_truth(model: RigModel, scene: Scene, texture_blur_px: float =
                 & (uv[:, 1] >= -0.5) & (uv[:, 1] <= proj.height - 0.5))
     lit = in_image & ~occluded & (cos_inc > 0)
     uv[~lit] = np.nan
+    return uv, lit, occluded, cos_inc
+
+
+def compute_ground_truth(model: RigModel, scene: Scene, texture_blur_px: float = 0.0) -> GroundTruth:
+    """Ray-cast the scene from the camera and the projector (see the module docstring);
+    textures are blurred by `texture_blur_px` (camera pixels) before they are sampled."""
+    cam = model.camera
+    H, W = cam.height, cam.width
+    cam_from_world = np.linalg.inv(model.world_from_cam)
+    tracer = Tracer(scene, cam_from_world)
+    dirs = camera_rays(cam).reshape(-1, 3)
+    t, oid, nrm = tracer.first_hit(np.zeros(3), dirs)
+    hit = np.flatnonzero(np.isfinite(t))
+    X = dirs[hit] * t[hit, None]
+    nh = nrm[hit]
+    nh[np.einsum("ij,ij->i", nh, dirs[hit]) > 0] *= -1.0  # toward the camera
+
+    uv, lit, occluded, cos_inc = projector_view(model, tracer, X, nh)
 
     albedo_of = np.zeros(max([REFERENCE_PLANE_ID, *scene.by_id()]) + 1)
     for i, o in scene.by_id().items():

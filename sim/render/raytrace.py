@@ -80,8 +80,9 @@ class Tracer:
 
     def first_hit(self, origin: np.ndarray, dirs: np.ndarray, t_min: float = 1e-9
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For rays origin + t·dirs (dirs (N, 3), not necessarily unit): t (N,) float64 (inf
-        on a miss), object id (N,) int32 (0 on a miss), unit normal (N, 3) (unoriented)."""
+        """For rays origin + t·dirs (dirs (N, 3), not necessarily unit; `origin` (3,) shared or
+        (N, 3) per ray): t (N,) float64 (inf on a miss), object id (N,) int32 (0 on a miss),
+        unit normal (N, 3) (unoriented)."""
         n = len(dirs)
         t_best = np.full(n, np.inf)
         oid = np.zeros(n, dtype=np.int32)
@@ -122,7 +123,7 @@ class Tracer:
         d = dirs[hit]
         den = np.einsum("ij,ij->i", nrm, d)
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.einsum("ij,ij->i", nrm, v0 - o) / den
+            t = np.einsum("ij,ij->i", nrm, v0 - (o if o.ndim == 1 else o[hit])) / den
         # keep Open3D's float32 answer where the float64 re-intersection is ill-conditioned
         bad = ~np.isfinite(t) | (np.abs(t - t32[hit]) > 1e-3 * np.maximum(1.0, np.abs(t32[hit])))
         t[bad] = t32[hit][bad]
@@ -141,8 +142,12 @@ def _pick_root(t1: np.ndarray, t2: np.ndarray, t_min: float) -> np.ndarray:
 def _hit_sphere(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: float, t_min: float) -> tuple[np.ndarray, np.ndarray]:
     oc = o - c
     a = np.einsum("ij,ij->i", d, d)
-    b = d @ oc  # half of the usual b
-    cq = float(oc @ oc - r * r)
+    if oc.ndim == 1:
+        b = d @ oc  # half of the usual b
+        cq = float(oc @ oc - r * r)
+    else:  # one origin per ray
+        b = np.einsum("ij,ij->i", d, oc)
+        cq = np.einsum("ij,ij->i", oc, oc) - r * r
     disc = b * b - a * cq
     ok = disc >= 0
     sq = np.sqrt(np.where(ok, disc, 0.0))
@@ -157,12 +162,12 @@ def _hit_sphere(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: float, t_min: fl
 def _hit_plane(o: np.ndarray, d: np.ndarray, T: np.ndarray, size: tuple[float, float], t_min: float
                ) -> tuple[np.ndarray, np.ndarray]:
     R, p = T[:3, :3], T[:3, 3]
-    ol = R.T @ (o - p)
+    ol = R.T @ (o - p) if o.ndim == 1 else (o - p) @ R
     dl = d @ R
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = -ol[2] / dl[:, 2]
-    x = ol[0] + t * dl[:, 0]
-    y = ol[1] + t * dl[:, 1]
+        t = -ol[..., 2] / dl[:, 2]
+    x = ol[..., 0] + t * dl[:, 0]
+    y = ol[..., 1] + t * dl[:, 1]
     ok = np.isfinite(t) & (t > t_min) & (np.abs(x) <= size[0] / 2) & (np.abs(y) <= size[1] / 2)
     t = np.where(ok, t, np.inf)
     return t, np.broadcast_to(R[:, 2], d.shape)
@@ -171,7 +176,7 @@ def _hit_plane(o: np.ndarray, d: np.ndarray, T: np.ndarray, size: tuple[float, f
 def _hit_box(o: np.ndarray, d: np.ndarray, T: np.ndarray, size: tuple[float, float, float], t_min: float
              ) -> tuple[np.ndarray, np.ndarray]:
     R, p = T[:3, :3], T[:3, 3]
-    ol = R.T @ (o - p)
+    ol = R.T @ (o - p) if o.ndim == 1 else (o - p) @ R
     dl = d @ R
     h = np.asarray(size, float) / 2
     with np.errstate(divide="ignore", invalid="ignore"):

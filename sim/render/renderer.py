@@ -4,8 +4,10 @@ Per pattern (projector command image, uint8 (Hp, Wp)):
   projector output = Gaussian defocus blur of (command / 255) ** gamma, in projector pixels
       (sigma along rows scaled by fy / fx, so the blur is round on a diamond-array DMD whose
       rows are closer than its columns), sampled at (u, v) with a cubic B-spline (`bspline`);
-  electrons = exposure * flux * (ambient + albedo * cos(incidence) * output), then the
-      camera's Gaussian defocus blur (camera pixels);
+  electrons = exposure * flux * (ambient + Σ_paths weight * output(u, v)), then the camera's
+      Gaussian defocus blur (camera pixels); the direct path's weight is albedo * cos(incidence)
+      on a matte surface, plus a specular lobe on a shiny one (`reflectance`), and a scene
+      with interreflection adds one mirror bounce (`light_paths`);
   image = the sensor's digitisation of the electrons (`sensor`).
 Background pixels (nothing hit) and unlit surfaces get the ambient term only; ambient is
 taken as uniform light, not multiplied by albedo (the formula above, as specified).
@@ -23,6 +25,7 @@ import numpy as np
 from scanner.geometry import RigModel
 from sim.render.bspline import BSplineSampler
 from sim.render.ground_truth import compute_ground_truth
+from sim.render.light_paths import light_paths
 from sim.render.sensor import SensorModel, check_bits
 from sim.scene import Scene
 
@@ -51,12 +54,10 @@ class Renderer:
         self.sensor = sensor
         self.projector_blur_sigma_px = float(projector_blur_sigma_px)
         self.ground_truth = compute_ground_truth(model, scene, sensor.blur_sigma_px)
-        gt = self.ground_truth
-        lit = gt.lit.ravel()
-        self._lit_index = np.flatnonzero(lit)
-        self._lit_weight = (gt.albedo.ravel() * gt.cos_incidence.ravel())[lit].astype(np.float32)
-        uv = gt.proj_uv.reshape(-1, 2)[self._lit_index]
-        self._sampler = BSplineSampler(uv, self.projector_shape)
+        self.paths = light_paths(self.ground_truth, scene)
+        self._lit_index = self.paths[0].index
+        self._sampler = BSplineSampler(self.paths[0].uv, self.projector_shape)
+        self._samplers = [BSplineSampler(p.uv, self.projector_shape) for p in self.paths[1:]]
         self._lut = ((np.arange(256) / 255.0) ** model.projector_gamma).astype(np.float32)
         self._cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
         self._cache_entries = int(cache_entries)
@@ -101,8 +102,12 @@ class Renderer:
                 self._cache.move_to_end(key)
                 return self._cache[key]
         out = np.zeros(self.shape[0] * self.shape[1], dtype=np.float32)
+        coeff = self._output_coefficients(pattern, key)
         if self._lit_index.size:
-            out[self._lit_index] = self._sampler.sample(self._output_coefficients(pattern, key)) * self._lit_weight
+            out[self._lit_index] = self._sampler.sample(coeff) * self.paths[0].weight
+        for path, sampler in zip(self.paths[1:], self._samplers):
+            if path.index.size:
+                out[path.index] += sampler.sample(coeff) * path.weight
         out = out.reshape(self.shape)
         if self.sensor.blur_sigma_px > 0:
             out = cv2.GaussianBlur(out, (0, 0), self.sensor.blur_sigma_px, borderType=cv2.BORDER_REFLECT_101)

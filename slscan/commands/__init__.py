@@ -11,6 +11,7 @@ from slscan.commands import (
     calibrate,
     demobench,
     devices,
+    export,
     import_,
     importbench,
     inspect,
@@ -20,10 +21,9 @@ from slscan.commands import (
     segment,
     simbench,
     station,
+    verify,
     viewbench,
 )
 
-COMMANDS = (
-    scan, import_, review, bench, importbench, simbench, demobench, viewbench, devices, calibrate, inspect, pose,
-    segment, station,
-)
+COMMANDS = (scan, import_, review, export, bench, importbench, simbench, demobench, viewbench, devices, calibrate,
+            verify, inspect, pose, segment, station)

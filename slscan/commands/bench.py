@@ -36,6 +36,7 @@ from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
 from scanner.rig import RigConfig
 from sim.analytic_stack import synthetic_stack
+from slscan.exit_codes import Exit
 
 PEERS_VENV = Path(os.environ.get("SLSCAN_PEERS_VENV", "~/.cache/slscan/bench-peers")).expanduser()
 PEER_PACKAGES = ("opencv-contrib-python-headless==5.0.0.93", "fringes==2.1.0")  # exact pins: the peers measured
@@ -208,19 +209,19 @@ if __name__ == "__main__":
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.setup_peers:
         print(f"peers' Python ready in {setup_peers()}")
-        return 0
+        return Exit.OK
     r = run_bench(args.width, args.height, Path(args.patterns) if args.patterns else None, repeats=args.repeats,
                   peers=not args.no_peers, with_fringes=args.fringes)
     print(json.dumps(r) if args.json else format_table(r))
-    return 0
+    return Exit.OK
 
 
 def register(sub: Any) -> None:
     b = sub.add_parser("bench", help="decode + reconstruction time and peak memory")
-    b.add_argument("--width", type=int, default=2448)
-    b.add_argument("--height", type=int, default=2048)
+    b.add_argument("--width", type=int, default=2448, help="camera image width in pixels (default 2448)")
+    b.add_argument("--height", type=int, default=2048, help="camera image height in pixels (default 2048)")
     b.add_argument("--patterns", help="pattern set TOML (default: 3 frequencies x 4 steps)")
-    b.add_argument("--repeats", type=int, default=5)
+    b.add_argument("--repeats", type=int, default=5, help="timed runs per figure, median reported (default 5)")
     b.add_argument("--json", action="store_true", help="print a JSON object")
     b.add_argument("--no-peers", action="store_true", help="leave out the peers")
     b.add_argument("--fringes", action="store_true", help="also run the `fringes` peer (1280 x 1024; slow)")

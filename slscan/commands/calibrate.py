@@ -14,9 +14,12 @@ compared with the ground-truth rig.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import re
+import shutil
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +28,7 @@ import numpy as np
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError, ScannerError
+from slscan.exit_codes import Exit
 
 SCAN_CHECK_SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
 TEXELS_PER_PX = 4.0  # simulated board texture: texels per camera pixel at the working distance
@@ -32,18 +36,36 @@ PLATE_BEHIND_MM = 20.0  # simulated reference plate, beyond the working distance
 ARTEFACT_BEFORE_MM = 10.0  # simulated sphere pair, nearer than the working distance
 
 
-def _size(text: str) -> tuple[int, int]:
+def image_size(text: str) -> tuple[int, int]:
     m = re.fullmatch(r"(\d+)x(\d+)", text)
     if not m:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1024x768, got {text!r}")
     return int(m.group(1)), int(m.group(2))
 
 
-def _out_folder(path: Path) -> Path:
+def _out_folder(path: Path) -> bool:
+    """Make the empty output folder; True when this run created it (False: it was there, empty)."""
     if path.exists() and any(path.iterdir()):
         raise ScannerError(f"{path}: output folder exists and is not empty; choose a new --out folder")
+    made = not path.exists()
     path.mkdir(parents=True, exist_ok=True)
-    return path
+    return made
+
+
+@contextlib.contextmanager
+def _undone_on_failure(out: Path, made: bool, undo: bool) -> Iterator[None]:
+    """When `undo` and the body fails, leave `out` as it was before (absent, or empty), so
+    the same command can be run again: solving from disk writes nothing worth keeping
+    there before it succeeds (the captures stay where they are)."""
+    try:
+        yield
+    except BaseException:
+        if undo:
+            shutil.rmtree(out, ignore_errors=True)
+            if not made:
+                out.mkdir(exist_ok=True)
+            _say(f"nothing kept in {out}: fix the cause and run the same command again")
+        raise
 
 
 def _settings(args: argparse.Namespace, base: Any) -> Any:
@@ -78,11 +100,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from calibration.workflow import write_result
     from scanner.session_recording import SessionRecording
 
-    out = _out_folder(Path(args.out))
+    out = Path(args.out)
+    made = _out_folder(out)
     run_id = f"calibration-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
     report_lines: list[str] = []
     try:
-        with SessionRecording(out / "recording.rrd", run_id) as rec:
+        with _undone_on_failure(out, made, undo=args.source is not None), \
+                SessionRecording(out / "recording.rrd", run_id) as rec:
             log = CalibrationRecording(rec)
 
             def say(text: str) -> None:
@@ -98,7 +122,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                          "projector_rms_px": result.solution.stereo.projector_rms_px,
                          "stereo_rms_px": result.solution.stereo.rms_px})
     except CalibrationRejected as exc:
-        (out / "rejected.txt").write_text(f"{exc}\n")
+        if args.source is None:  # on the rig: the capture and why it was refused stay in --out
+            (out / "rejected.txt").write_text(f"{exc}\n")
         if (out / "capture").is_dir():
             _say(f"the capture is kept in {out / 'capture'}: solve it again with `slscan calibrate --from "
                  f"{out / 'capture'} --out NEW_FOLDER` (e.g. with --drop-outliers or corrected limits)")
@@ -115,7 +140,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         else:
             print(f"to use it   add  calibration = \"{path.resolve()}\"  under [rig] in {rig_path} (or rerun with "
                   f"--install)")
-    return 0
+    return Exit.OK
 
 
 def _from_disk(args: argparse.Namespace, say: Any, log: Any) -> Any:
@@ -291,7 +316,7 @@ def register(sub: Any) -> None:
     c.add_argument("--from", dest="source", type=Path, help="solve from captures in this folder instead of capturing")
     c.add_argument("--layout", choices=("slscan", "opencv-graycode"), default="slscan",
                    help="--from: how the captures are laid out (default: a capture written by slscan calibrate)")
-    c.add_argument("--projector-size", type=_size, help="--layout opencv-graycode: projector WIDTHxHEIGHT")
+    c.add_argument("--projector-size", type=image_size, help="--layout opencv-graycode: projector WIDTHxHEIGHT")
     c.add_argument("--pose-folders", default="*", metavar="GLOB",
                    help="--layout opencv-graycode: the sub-folders holding one pose each (default: all)")
     c.add_argument("--skip-bad-views", action="store_true",

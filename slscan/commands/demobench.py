@@ -30,6 +30,7 @@ import numpy as np
 from scanner.rig import DEFAULT_RIG
 from scanner.stage_timer import StageTimer
 from slscan.commands.scan import DEMO_SCENE, inspect_verdict_first, load_demo_part
+from slscan.exit_codes import Exit
 
 
 def numpy_peer(repeats: int = 3) -> dict[str, float]:
@@ -94,13 +95,13 @@ def run_part(k: int, workdir: Path, model: Any, tolerances: Any, prior: Any, ful
 def cmd_demobench(args: argparse.Namespace) -> int:
     report: dict[str, Any] = {"load_average_start": os.getloadavg(), "peer": numpy_peer()}
     t0, c0 = time.perf_counter(), time.process_time()
-    model, tolerances = load_demo_part()
+    model, tolerances, _ = load_demo_part()
     report["setup_s"] = {"cad_and_target_wall": time.perf_counter() - t0, "cad_and_target_cpu": time.process_time() - c0}
     parts = []
     prior = None
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(args.parts):
-            row = run_part(k, Path(args.keep) if args.keep else Path(tmp), model, tolerances,
+            row = run_part(k, Path(args.out) if args.out else Path(tmp), model, tolerances,
                            prior if not args.cold else None, args.full_recording)
             prior = row.pop("registration")
             parts.append(row)
@@ -108,7 +109,7 @@ def cmd_demobench(args: argparse.Namespace) -> int:
     report["peer_end"] = numpy_peer()
     report["load_average_end"] = os.getloadavg()
     print(json.dumps(report, indent=1, default=float) if args.json else format_report(report))
-    return 0
+    return Exit.OK
 
 
 def format_report(r: dict[str, Any]) -> str:
@@ -143,6 +144,6 @@ def register(sub: Any) -> None:
     b.add_argument("--parts", type=int, default=2, help="parts scanned one after another (default 2: cold, warm)")
     b.add_argument("--cold", action="store_true", help="no warm start: every part registered by the global search")
     b.add_argument("--full-recording", action="store_true", help="record every map pixel and point")
-    b.add_argument("--keep", help="keep the sessions in this folder (default: a temporary one)")
-    b.add_argument("--json", action="store_true")
+    b.add_argument("--out", help="keep the sessions in this folder (default: a temporary one)")
+    b.add_argument("--json", action="store_true", help="print the figures as JSON")
     b.set_defaults(func=cmd_demobench)

@@ -19,6 +19,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from slscan.exit_codes import Exit
+
 log = logging.getLogger(__name__)
 
 
@@ -28,7 +30,8 @@ def register(sub: Any) -> None:
                                                        "or a GRBL motion stage")
     d.add_argument("--cti", help="GenTL producer (.cti) to list GenICam cameras through (needs slscan[genicam])")
     d.set_defaults(func=cmd_devices)
-    dsub = d.add_subparsers(dest="devices_command")
+    dsub = d.add_subparsers(dest="devices_command", metavar="ACTION",
+                            help="lightcrafter-images (without it: the listing)")
     img = dsub.add_parser("lightcrafter-images", help="write the pattern images to store in the LightCrafter flash")
     img.add_argument("--rig", type=Path, required=True, help="rig TOML (its pattern set and projector)")
     img.add_argument("--patterns", type=Path, help="pattern set TOML (default: the rig's)")
@@ -43,7 +46,7 @@ def cmd_devices(args: argparse.Namespace) -> int:
         print(f"{title}:")
         for line in lines or ["(none found)"]:
             print(f"  {line}")
-    return 0
+    return Exit.OK
 
 
 def cmd_lightcrafter_images(args: argparse.Namespace) -> int:
@@ -66,7 +69,7 @@ def cmd_lightcrafter_images(args: argparse.Namespace) -> int:
     print(f"{len(images)} images for {len(stack)} patterns in {args.out}")
     print("add them, in order, to the LightCrafter firmware with TI's LightCrafter 4500 GUI, then set in the rig TOML:")
     print(f'  flash_images_sha256 = "{sha}"')
-    return 0
+    return Exit.OK
 
 
 def v4l2_cameras() -> list[str]:

@@ -33,6 +33,7 @@ from scanner.errors import SessionError
 from scanner.geometry import Pinhole, RigModel, look_at
 from scanner.patterns import PatternSet
 from scanner.session import FRAME_LOG, FRAMES_DIR, SessionWriter, sha256
+from slscan.exit_codes import Exit
 
 IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff")
 BIT_DEPTHS = (10, 12, 14, 16)
@@ -186,7 +187,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
     report(result)
     print(f"wall      {wall:.2f} s (import, detect, decode, reconstruct, write)")
-    return 0
+    return Exit.OK
 
 
 def register(sub: Any) -> None:

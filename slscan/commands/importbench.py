@@ -35,6 +35,7 @@ import numpy as np
 
 from scanner.config import CONFIG_DIR
 from scanner.geometry import Pinhole, RigModel, look_at
+from slscan.exit_codes import Exit
 
 PROCAM_DEFAULT = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "procam-graycode"
 SLMASTER_PATTERNS = CONFIG_DIR / "patterns" / "slmaster_complementary_12x32.toml"
@@ -228,7 +229,7 @@ def cmd_importbench(args: argparse.Namespace) -> int:
         print(json.dumps(report, indent=1))
     else:
         print(format_report(report))
-    return 0
+    return Exit.OK
 
 
 def format_report(r: dict[str, Any]) -> str:
@@ -268,5 +269,5 @@ def register(sub: Any) -> None:
     b.add_argument("--procam-calibration", help="slscan's calibration of that capture (slscan calibrate --from …)")
     b.add_argument("--skip-import", action="store_true", help="leave out the import speed run")
     b.add_argument("--skip-procam", action="store_true", help="leave out the real captures")
-    b.add_argument("--json", action="store_true")
+    b.add_argument("--json", action="store_true", help="print a JSON object")
     b.set_defaults(func=cmd_importbench)

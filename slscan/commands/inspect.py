@@ -6,7 +6,7 @@
     slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE;
                                                      a cloud or session TARGET is another view of the part
                                                      (partial overlap, fitness on the overlap, --overlap)
-    slscan inspect SESSION|CLOUD --cad FILE [--tolerances FILE]
+    slscan inspect SESSION|MULTIVIEW|CLOUD [--cad FILE] --tolerances PROGRAM|FILE
                                                      register, segment by CAD face, per-face form table
 
 `inspect` writes inspection.json/.csv/.html beside the data (a session's outputs/, or the
@@ -23,6 +23,11 @@ import json
 import sys
 from pathlib import Path
 from typing import Any
+
+from inspection.tolerances import NON_CONFORMING
+from scanner.errors import ConfigError
+from slscan.exit_codes import Exit
+from slscan.options import COARSE_METHODS, coarse_method
 
 CAD_UNITS = ("mm", "cm", "m", "in")
 
@@ -43,11 +48,11 @@ def cmd_cad(args: argparse.Namespace) -> int:
     if args.sample:
         bench = sample_benchmark(model, args.sample, args.repeats, load_s)
         print(json.dumps(bench) if args.json else _sample_text(bench))
-        return 0
+        return Exit.OK
     if args.json:
         s = model.summary()
         print(json.dumps({"path": s["path"], "unit": s["unit"], "faces": s["faces"], "counts": s["counts"]}))
-        return 0
+        return Exit.OK
     print(f"{model.path}: {len(model)} faces, unit {model.unit}, {model.kind}")
     for f in model.faces:
         params = ", ".join(f"{k} {_short(v)}" for k, v in f.params().items())
@@ -55,7 +60,7 @@ def cmd_cad(args: argparse.Namespace) -> int:
     print("counts: " + ", ".join(f"{n} {t}" for t, n in model.counts.items()))
     for line in model.skipped:
         print(f"  skipped {line}")
-    return 0
+    return Exit.OK
 
 
 def cmd_cadbench(args: argparse.Namespace) -> int:
@@ -89,7 +94,7 @@ def cmd_cadbench(args: argparse.Namespace) -> int:
             wall = time.perf_counter() - t0
             if status != 0:
                 print(f"{n:>6}: slscan cad failed (wait status {status})")
-                return 1
+                return Exit.FAILED
             faces = len(json.loads(out)["faces"])
             cpu = usage.ru_utime + usage.ru_stime
             first = first or (faces, cpu)
@@ -100,7 +105,7 @@ def cmd_cadbench(args: argparse.Namespace) -> int:
     print("marginal: CPU ms per face added over the first file (the fixed start-up of ~2 s excluded); "
           "a constant marginal cost is linear growth")
     print("load average after " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
-    return 0
+    return Exit.OK
 
 
 def sample_benchmark(model: Any, n_points: int, repeats: int, load_s: float) -> dict[str, Any]:
@@ -176,14 +181,14 @@ def cmd_register(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
                           "ambiguous": reg.ambiguous, "method": reg.method}))
-        return 0
+        return Exit.OK
     with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
         print(f"transform taking {args.source} onto {args.target} (mm):")
         print(reg.transform)
     print(f"fitness {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, "
           f"{reg.method}, {reg.timings_s.get('total', 0):.2f} s" + ("; AMBIGUOUS: another pose fits as well"
                                                                     if reg.ambiguous else ""))
-    return 0
+    return Exit.OK
 
 
 def _register_views(args: argparse.Namespace, settings: Any) -> int:
@@ -202,31 +207,123 @@ def _register_views(args: argparse.Namespace, settings: Any) -> int:
         print(json.dumps({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
                           "overlap": reg.overlap, "overlap_given": reg.overlap_given, "ambiguous": reg.ambiguous,
                           "method": reg.method}))
-        return 0
+        return Exit.OK
     with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
         print(f"transform taking {args.source} onto {args.target} (mm):")
         print(reg.transform)
     print(f"overlap {reg.overlap:.0%} of the scan ({'given' if reg.overlap_given else 'estimated'}); fitness on the "
           f"overlap {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, {reg.method}"
           + ("; AMBIGUOUS: another pose fits as well" if reg.ambiguous else ""))
-    return 0
+    return Exit.OK
 
 
-def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path | None = None,
+def is_program(path: str | Path) -> bool:
+    """Whether a TOML is a part program (it has a [program] table); False for anything
+    unreadable, which the tolerance loader then names."""
+    import tomllib
+
+    try:
+        return "program" in tomllib.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return False
+
+
+def load_tolerance_source(path: str | Path, labels: dict[str, str]) -> tuple[Any, Any]:
+    """(Tolerances, PartProgram or None) from `--tolerances`: a part program (a TOML with a
+    [program] table, `config/parts/*.toml`: the one source of a part's tolerances and face
+    names) or a tolerance file (`inspection.tolerances`, for a model without a program).
+    `labels`: the model's faces (label -> surface type), which every face named must be."""
+    from inspection.tolerances import load_tolerances
+
+    if not is_program(path):
+        return load_tolerances(path, labels), None
+    from slscan.station.program import load_program, program_tolerances
+
+    program = load_program(path, faces=lambda _: labels)
+    return program_tolerances(program), program
+
+
+def report_header(source: Path, program: Any, operator: str | None, serial: str | None) -> Any:
+    """The report's header: the part and program (with the program file's SHA-256), the
+    serial (default: the session id), the operator (default: the login name), now (UTC),
+    and for a session (or a multi-view folder: its first view's) its rig and the
+    calibration it used (`station.calib.rig_calibration`)."""
+    import datetime as dt
+    import getpass
+
+    from inspection.report_header import ReportHeader, file_sha256
+    from scanner import __version__
+
+    rig = cal_id = cal_date = ""
+    session_id = ""
+    if source.is_dir():
+        from scanner.multiview import MultiViewSession, is_multiview
+        from scanner.rig import RigConfig
+        from scanner.session import Session
+        from slscan.station.calib import rig_calibration
+
+        multiview = MultiViewSession.open(source) if is_multiview(source) else None
+        session = multiview.views[0].session if multiview is not None else Session.open(source)  # the views' rig
+        session_id = multiview.id if multiview is not None else session.id
+        manifest = session.manifest
+        rig = str(manifest.get("rig_config", {}).get("rig", {}).get("name", ""))
+        rig_path = Path(str(manifest.get("rig_config_path", "")))
+        if rig_path.is_file():
+            info = rig_calibration(RigConfig.load(rig_path))
+            cal_id, cal_date = info.id or f"none ({info.problem})", str(info.date or "undated (factory geometry)")
+            rig = f"{rig} ({rig_path})"
+        else:
+            cal_id = f"not known: the session's rig file {rig_path} is gone"
+    return ReportHeader(
+        part=f"{program.name} — {program.description}" if program is not None and program.description
+        else (program.name if program is not None else ""),
+        serial=serial or session_id, program=f"{program.path} (version {program.version})" if program else "",
+        program_sha256=file_sha256(program.path) if program is not None else "",
+        operator=operator if operator is not None else getpass.getuser(),
+        date=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S"), rig=rig, calibration_id=cal_id,
+        calibration_date=cal_date, software_version=f"slscan {__version__}")
+
+
+def write_report_files(report: Any, scan: Any, folder: Path, source: Path, program: Any = None,
+                       operator: str | None = None, serial: str | None = None, pdf: bool = True) -> Any:
+    """The report with its header (`report_header`) written to `folder` (JSON, CSV, HTML with
+    the deviation map, PDF when `pdf`) with the per-point deviations `slscan export
+    --deviations` reads; returns the report with its header."""
+    from dataclasses import replace
+
+    from inspection.point_deviations import write_point_deviations
+    from inspection.report import deviation_image, png
+
+    report = replace(report, header=report_header(source, program, operator, serial))
+    report.write(folder, deviation_png=png(deviation_image(report, scan)), pdf=pdf)
+    write_point_deviations(folder, scan, report)
+    return report
+
+
+def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str | Path | None = None,
                    out: str | Path | None = None, cad_unit: str = "mm", seed: int = 0,
-                   recording: Any = None) -> Any:
-    """Inspect a session folder or cloud file against a CAD file; write the report files
-    (and, for a session without a `recording` given, outputs/inspection.rrd); return the
-    report. `slscan demo` can call this after its scan."""
+                   recording: Any = None, operator: str | None = None, serial: str | None = None,
+                   pdf: bool = True) -> Any:
+    """Inspect a session folder, a multi-view folder (its merged cloud) or a cloud file
+    against a CAD file (None: the part program's, when `tolerances` is one); write the
+    report files (and, for a session without a `recording` given, outputs/inspection.rrd);
+    return the report. `slscan demo` calls this after its scan with the demo part's program."""
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import load_source
     from inspection.registration import RegistrationSettings
-    from inspection.report import deviation_image, png
-    from inspection.tolerances import load_tolerances
     from scanner.multiview import MultiViewSession, is_multiview
 
+    program = None
+    if cad is None:
+        if tolerances is None or not is_program(tolerances):
+            raise ConfigError("--cad", "", "give --cad FILE, or a part program as --tolerances (it names its CAD)")
+        from slscan.station.program import load_program
+
+        cad = load_program(tolerances).cad_path
     model = _load_model(str(cad), cad_unit)
-    tol = load_tolerances(tolerances, {f.label: f.type for f in model.faces}) if tolerances else None
+    tol = None
+    if tolerances:
+        tol, program = load_tolerance_source(tolerances, {f.label: f.type for f in model.faces})
     multiview = MultiViewSession.open(source) if is_multiview(source) else None
     if multiview is not None:  # the whole part: the views' merged cloud
         from inspection.views.whole import load_merged
@@ -238,35 +335,43 @@ def inspect_source(source: str | Path, cad: str | Path, tolerances: str | Path |
     folder = Path(out) if out else (source / "outputs" if source.is_dir() else source.parent)
     settings = InspectionSettings(registration=RegistrationSettings(seed=seed))
     own = None
-    if recording is None and source.is_dir():
+    uncertainty = None
+    if source.is_dir():
         from scanner.session import Session
-        from scanner.session_recording import SessionRecording
+        from slscan.measurement_model import session_uncertainty
 
-        folder.mkdir(parents=True, exist_ok=True)
-        session = multiview.views[0].session if multiview is not None else Session.open(source)  # its rig's world
-        run_id = multiview.id if multiview is not None else session.id  # frame: the part frame at stage 0
-        own = recording = SessionRecording(folder / "inspection.rrd", run_id, send_blueprint=False)
+        # a multi-view folder: its first view's rig, whose world frame is the part frame at stage 0;
+        # the merged cloud has no one camera's pixels, so its figures estimate their noise from the data
+        session = multiview.views[0].session if multiview is not None else Session.open(source)
+        if multiview is None:
+            uncertainty = session_uncertainty(session)(scan.pixels)
+        if recording is None:
+            from scanner.session_recording import SessionRecording
+
+            folder.mkdir(parents=True, exist_ok=True)
+            own = recording = SessionRecording(folder / "inspection.rrd", multiview.id if multiview is not None
+                                               else session.id, send_blueprint=False)
     try:
         if own is not None:  # the session's rig: its world frame is the recording's `world`
             own.log_rig(session.rig_model())
-        report = inspect(scan, model, tol, settings, recording)
+        report = inspect(scan, model, tol, settings, recording, uncertainty=uncertainty)
     finally:
         if own is not None:
             own.close()
-    report.write(folder, deviation_png=png(deviation_image(report, scan)))
-    return report
+    return write_report_files(report, scan, folder, source, program, operator, serial, pdf)
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    report = inspect_source(args.source, args.cad, args.tolerances, args.out, args.cad_unit, args.seed)
+    report = inspect_source(args.source, args.cad, args.tolerances, args.out, args.cad_unit, args.seed,
+                            operator=args.operator, serial=args.serial, pdf=not args.no_pdf)
     if args.json:
         print(json.dumps(report.as_dict(), default=str))
     else:
         print(report.table())
         folder = Path(args.out) if args.out else (Path(args.source) / "outputs" if Path(args.source).is_dir()
                                                   else Path(args.source).parent)
-        print(f"report    {folder / 'inspection.html'} (.json, .csv)", file=sys.stderr)
-    return 1 if report.verdict == "fail" else 0
+        print(f"report    {folder / 'inspection.html'} (.json, .csv, .pdf)", file=sys.stderr)
+    return Exit.FAILED if report.verdict == NON_CONFORMING else Exit.OK
 
 
 def register(sub: Any) -> None:
@@ -287,10 +392,11 @@ def register(sub: Any) -> None:
     r.add_argument("source", help="cloud (PLY/PCD/XYZ) or session folder")
     r.add_argument("target", help="STEP, mesh (STL/PLY/OBJ with triangles), or a cloud or session: another view")
     r.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh target")
-    r.add_argument("--coarse", choices=("sac-ia", "ransac", "ndt"), default="sac-ia", help="coarse method")
+    r.add_argument("--coarse", type=coarse_method, choices=COARSE_METHODS, default="sac-ia",
+                   help="coarse method (default sac-ia)")
     r.add_argument("--descriptors", default="fpfh,shot", help="fpfh, shot or fpfh,shot (multivariate)")
     r.add_argument("--no-isolate", action="store_true", help="keep every source point (no table removal)")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seed", type=int, default=0, help="random seed of the coarse search (default 0)")
     r.add_argument("--overlap", type=float, metavar="SHARE", help="cloud targets: the share of SOURCE the target "
                                                                    "also saw (default: estimated)")
     r.add_argument("--json", action="store_true", help="print {transform, fitness, rmse}")
@@ -298,10 +404,14 @@ def register(sub: Any) -> None:
 
     i = sub.add_parser("inspect", help="register a scan to CAD, segment it by face, report form errors per face")
     i.add_argument("source", help="session folder or cloud file (PLY/PCD/XYZ, mm, camera frame)")
-    i.add_argument("--cad", required=True, help="STEP or mesh of the part")
-    i.add_argument("--tolerances", help="tolerance TOML (see config/tolerances/)")
+    i.add_argument("--cad", help="STEP or mesh of the part (default: the one --tolerances PROGRAM names)")
+    i.add_argument("--tolerances", help="the part program (config/parts/*.toml: tolerances and face names), or a "
+                                        "tolerance file of a model without one (format: inspection/tolerances.py)")
+    i.add_argument("--operator", help="operator named in the report header (default: the login name)")
+    i.add_argument("--serial", help="part serial number in the report header (default: the session id)")
+    i.add_argument("--no-pdf", action="store_true", help="no inspection.pdf (made with headless Chromium)")
     i.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh CAD file")
     i.add_argument("--out", help="folder for inspection.json/.csv/.html (default: beside the data)")
-    i.add_argument("--seed", type=int, default=0)
+    i.add_argument("--seed", type=int, default=0, help="random seed of the registration (default 0)")
     i.add_argument("--json", action="store_true", help="print the report as JSON")
     i.set_defaults(func=cmd_inspect)

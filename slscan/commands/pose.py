@@ -1,15 +1,16 @@
 """`slscan pose` and `slscan posebench`: poses of thin flat parts in a bin for a robot cell
 (paper 001), and their benchmark on simulated bins.
 
-`slscan pose SESSION|CLOUD --part FILE [--masks PATH] [--method sacia|ndt]` finds the part
+`slscan pose SESSION|CLOUD --part FILE [--masks PATH] [--method sac-ia|ndt]` finds the part
 instances (from instance masks aligned with the camera image — label PNGs or Labelme JSON
-— or, without masks, by removing the tray plane and splitting the rest at depth steps),
+— or, without masks, the flat patches above the tray: `inspection.bins.flat_patches`),
 estimates each instance's pose (`inspection.bins.pose`), ranks the pickable ones
 (`inspection.bins.picking`), writes the poses file (`<session>/outputs/poses.json`, or
 `<cloud stem>.poses.json` beside a cloud file), prints the table and logs the bin to a
 Rerun recording beside the poses file. A cloud file is placed on the camera image of the
 rig (`--rig`, default the simulated bench rig), as slscan's own clouds are in its camera
-frame. The part file is a TOML `[part]` table (`kind = "tab"`: the parameters of
+frame; without `--rig` the poses file has no world frame (camera frame only), so a robot
+cell never reads an identity it did not ask for. The part file is a TOML `[part]` table (`kind = "tab"`: the parameters of
 `sim.bins.TabPart`, see config/parts/nickel_tab.toml) or a mesh (PLY, STL, OBJ, OFF; mm).
 Exit code 0 when at least one part is pickable, 1 when none is (the file is written anyway).
 
@@ -31,22 +32,27 @@ from typing import Any
 
 import numpy as np
 
+from slscan.exit_codes import Exit
+from slscan.options import coarse_method
+
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off")
+POSE_METHODS = {"sac-ia": "sacia", "ndt": "ndt"}  # the command line's spelling -> inspection.bins' name
 
 
 def register(sub: Any) -> None:
-    from scanner.rig import DEFAULT_RIG
-
     p = sub.add_parser("pose", help="poses and pick order of thin flat parts in a bin (poses JSON for a robot cell)")
     p.add_argument("input", help="a session folder or a point cloud file in the camera frame")
     p.add_argument("--part", required=True, help="part file: TOML with a [part] table (kind = \"tab\") or a mesh (mm)")
     p.add_argument("--masks", help="instance masks aligned with the camera image: a label PNG, a Labelme JSON, or "
-                                   "a folder of them (default: tray removal + depth-step components)")
-    p.add_argument("--method", choices=("sacia", "ndt"), default="sacia",
+                                   "a folder of them (default: the flat patches above the tray)")
+    p.add_argument("--method", type=coarse_method, choices=tuple(POSE_METHODS), default="sac-ia",
                    help="coarse registration: FPFH + SAC-IA with the Huber score (default) or NDT")
-    p.add_argument("--max-occlusion", type=float, default=0.3, metavar="FRACTION",
-                   help="parts covered more than this are not offered for picking (default 0.3)")
-    p.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML for a cloud file (camera, world frame)")
+    p.add_argument("--max-occlusion", type=float, default=0.15, metavar="FRACTION",
+                   help="the most a part offered for picking may be covered: its occlusion estimate plus the "
+                        "estimate's error bound (0.05) at most this (default 0.15)")
+    p.add_argument("--rig", type=Path, help="rig TOML for a cloud file: its camera image and world frame (default: "
+                                            "the simulated bench rig's camera, and no world frame: poses in the "
+                                            "camera frame only)")
     p.add_argument("--out", help="poses file (.json); default <session>/outputs/poses.json or <cloud>.poses.json")
     p.add_argument("--no-log", action="store_true", help="do not write the Rerun recording")
     p.set_defaults(func=cmd_pose)
@@ -54,7 +60,8 @@ def register(sub: Any) -> None:
     b = sub.add_parser("posebench", help="pose parts in simulated bins and score them against the truth "
                                          "(both methods, paper 001's four cases)")
     b.add_argument("--seeds", type=int, nargs="+", default=list(range(50)), help="bin seeds (default 0..49)")
-    b.add_argument("--methods", nargs="+", choices=("sacia", "ndt"), default=["sacia", "ndt"])
+    b.add_argument("--methods", nargs="+", type=coarse_method, choices=tuple(POSE_METHODS), default=["sac-ia", "ndt"],
+                   help="coarse registration methods to compare (default both)")
     b.add_argument("--size", type=int, nargs=2, default=(1280, 1024), metavar=("W", "H"),
                    help="camera resolution of the rig the bins are rendered with (default the rig's 1280 x 1024)")
     b.add_argument("--noise", type=float, default=0.01, metavar="MM", help="depth noise along the camera rays")
@@ -62,6 +69,12 @@ def register(sub: Any) -> None:
                    help="scan each bin through the whole simulated chain (fringes rendered, decoded, triangulated) "
                         "on the default rig instead of the quick ray-cast scan (--size and --noise then do not apply)")
     b.add_argument("--rows", help="append every part's row to this file (JSON lines, bin by bin)")
+    b.add_argument("--sessions", nargs="+", type=Path, metavar="SESSION",
+                   help="judge `slscan pose` on saved bins instead (sessions of `slscan scan --scene bin:SEED`, or "
+                        "folders holding them): instances without masks, as `slscan pose` finds them, judged against "
+                        "each session's bin_truth.json and instance ids (--methods: the first one)")
+    b.add_argument("--truth-masks", action="store_true",
+                   help="with --sessions: take the instances from the simulator's instance ids instead")
     b.set_defaults(func=cmd_posebench)
 
 
@@ -69,9 +82,9 @@ def register(sub: Any) -> None:
 
 
 def load_part(path: str | Path) -> Any:
-    """The `inspection.bins.part_model.ThinPartModel` of a part file (see the module docstring)."""
-    import tomllib
-    from dataclasses import fields
+    """The `inspection.bins.part_model.ThinPartModel` of a part file (see the module
+    docstring), with the grip point and approach a TOML part file names."""
+    from dataclasses import replace
 
     from inspection.bins.part_model import ThinPartModel
     from inspection.errors import CadError
@@ -81,30 +94,11 @@ def load_part(path: str | Path) -> Any:
         raise CadError(path, "no such part file")
     suffix = path.suffix.lower()
     if suffix == ".toml":
-        from sim.bins import TabPart
+        from sim.bins import load_part_file
 
-        try:
-            doc = tomllib.loads(path.read_text())
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise CadError(path, f"not a readable TOML file: {exc}") from None
-        table = doc.get("part")
-        if not isinstance(table, dict):
-            raise CadError(path, "no [part] table; see config/parts/nickel_tab.toml")
-        params = dict(table)
-        kind, name = params.pop("kind", None), str(params.pop("name", path.stem))
-        if kind != "tab":
-            raise CadError(path, f"[part] kind = {kind!r}: only \"tab\" (a sim.bins.TabPart outline) is known; "
-                                 "give a mesh file for other parts")
-        known = {f.name for f in fields(TabPart)}
-        unknown = sorted(set(params) - known)
-        if unknown:
-            raise CadError(path, f"[part] has unknown keys {unknown}; known: {sorted(known | {'kind', 'name'})}")
-        try:
-            part = TabPart(**{k: tuple(v) if isinstance(v, list) else v for k, v in params.items()})
-            vertices, triangles = part.mesh()
-        except (TypeError, ValueError) as exc:
-            raise CadError(path, f"[part]: {exc}") from None
-        return ThinPartModel.from_mesh(vertices, triangles, name)
+        spec = load_part_file(path)
+        model = ThinPartModel.from_mesh(*spec.part.mesh(), spec.name)
+        return replace(model, grip_point_mm=spec.grip_point_mm, approach=spec.approach)
     if suffix in MESH_SUFFIXES:
         import open3d as o3d
 
@@ -135,9 +129,9 @@ def _organise(points: np.ndarray, normals: np.ndarray | None, camera: Any, where
     return OrganisedCloud(grid, np.zeros(grid.shape[:2], np.uint8), nrm)
 
 
-def load_scene(path: Path, rig: Path) -> tuple[Any, Any, Any]:
+def load_scene(path: Path, rig: Path | None) -> tuple[Any, Any, Any]:
     """(organised cloud, rig model, session or None) of a session or a cloud file (placed
-    on the camera of the rig TOML `rig`)."""
+    on the camera of the rig TOML `rig`, default the simulated bench rig)."""
     from inspection.errors import CloudError
     from scanner.rig import RigConfig
 
@@ -161,7 +155,7 @@ def load_scene(path: Path, rig: Path) -> tuple[Any, Any, Any]:
     points = np.asarray(pc.points, dtype=np.float64)
     if len(points) == 0:
         raise CloudError(path, "no points could be read (unreadable or empty cloud)")
-    model = RigConfig.load(rig).nominal_model()
+    model = RigConfig.load(rig).model if rig is not None else RigConfig.load().nominal_model()
     normals = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
     return _organise(points, normals, model.camera, str(path)), model, None
 
@@ -198,16 +192,50 @@ def load_masks(path: Path, cloud: Any) -> list[Any]:
 # ------------------------------------------------------------------------------ pose
 
 
-def cmd_pose(args: argparse.Namespace) -> int:
-    from inspection.bins.instances import instances_from_depth_steps
-    from inspection.bins.picking import merge_duplicates, poses_document, table, write_poses
+def pose_scene(cloud: Any, camera: Any, model: Any, settings: Any, instances: list[Any] | None = None) -> tuple:
+    """(instances, poses) of a scanned bin, as `slscan pose` finds them: the given
+    instances (from masks), or else the flat patches above the tray; each posed with the
+    organised scan as context (`camera` projects camera-frame points onto its image), one
+    BLAS thread (the matrices are small: a second thread costs more than it saves)."""
+    from threadpoolctl import threadpool_limits
+
+    from inspection.bins.flat_patches import instances_from_flat_patches
+    from inspection.bins.instance_plane import SceneContext
+    from inspection.bins.picking import merge_duplicates
     from inspection.bins.pose import estimate_poses
+
+    with threadpool_limits(limits=1):
+        if instances is None:
+            instances = instances_from_flat_patches(cloud, model.thickness_mm)
+        context = SceneContext.of_cloud(cloud, camera)
+        return instances, merge_duplicates(estimate_poses(instances, model, context, settings), model)
+
+
+def rig_of(rig_model: Any, session: Any, rig_file: Path | None) -> tuple[np.ndarray | None, dict[str, Any] | None]:
+    """(world_from_camera, the poses file's `rig` entry) of a session (its rig), or of a
+    cloud file with `--rig` (that rig); a cloud file without one has no world frame (None, None)."""
+    calibration = rig_model.calibration or "nominal (uncalibrated)"
+    if session is not None:
+        conf = session.manifest.get("rig_config", {}).get("rig", {})
+        name = conf.get("name") if isinstance(conf, dict) else None
+        return (np.asarray(rig_model.world_from_cam, np.float64),
+                {"name": name, "calibration": calibration, "session": session.id})
+    if rig_file is None:
+        return None, None
+    from scanner.rig import RigConfig
+
+    return (np.asarray(rig_model.world_from_cam, np.float64),
+            {"name": RigConfig.load(rig_file).name, "calibration": calibration, "file": str(rig_file)})
+
+
+def cmd_pose(args: argparse.Namespace) -> int:
+    from inspection.bins.picking import poses_document, table, write_poses
     from inspection.bins.pose_settings import PoseSettings
 
     model = load_part(args.part)
     src = Path(args.input)
     cloud, rig_model, session = load_scene(src, args.rig)
-    world_from_cam = np.asarray(rig_model.world_from_cam, np.float64)
+    world_from_cam, rig = rig_of(rig_model, session, args.rig)
     if session is not None:
         out = Path(args.out) if args.out else session.outputs / "poses.json"
     else:
@@ -216,23 +244,18 @@ def cmd_pose(args: argparse.Namespace) -> int:
         from scanner.errors import ScannerError
 
         raise ScannerError(f"{out}: the poses file must end in .json")
-    if args.masks:
-        instances = load_masks(Path(args.masks), cloud)
-        how = f"masks {args.masks}"
-    else:
-        instances = instances_from_depth_steps(cloud, step_mm=0.4 * model.thickness_mm,
-                                               tray_tol_mm=0.3 * model.thickness_mm)
-        how = "tray removal + depth-step components"
+    masks = load_masks(Path(args.masks), cloud) if args.masks else None
+    how = f"masks {args.masks}" if args.masks else "flat patches above the tray"
+    settings = PoseSettings(method=POSE_METHODS[args.method], max_occlusion=args.max_occlusion)
+    instances, poses = pose_scene(cloud, rig_model.camera, model, settings, masks)
     print(f"{len(instances)} instances in {src} ({how}); part {model.name}, method {args.method}", file=sys.stderr)
-    settings = PoseSettings(method=args.method, max_occlusion=args.max_occlusion)
-    poses = merge_duplicates(estimate_poses(instances, model, cloud.points[cloud.valid], settings))
     message = ""
     if not instances:
         message = (f"no parts found in {src}: no instance in the masks" if args.masks else
                    f"no parts found in {src}: nothing stands above the tray plane")
     elif not any(p.ok for p in poses):
         message = f"no part recognised in {src}: none of the {len(poses)} instances fits {model.name}"
-    doc = poses_document(poses, model, world_from_cam, str(src), args.max_occlusion, message)
+    doc = poses_document(poses, model, world_from_cam, str(src), rig, args.max_occlusion, message)
     write_poses(out, doc)
     print(table(doc))
     print(f"poses     {out}")
@@ -246,7 +269,7 @@ def cmd_pose(args: argparse.Namespace) -> int:
             rec.log_cloud(cloud)
             log_poses(rec, doc, poses, instances, model)
         print(f"recording {rrd}")
-    return 0 if any(r["pick_rank"] is not None for r in doc["parts"]) else 1
+    return Exit.OK if any(r["pick_rank"] is not None for r in doc["parts"]) else Exit.FAILED
 
 
 # ------------------------------------------------------------------------- benchmark
@@ -258,6 +281,10 @@ CASES = ("front up", "back up", "occluded front", "occluded back")
 def cmd_posebench(args: argparse.Namespace) -> int:
     """Per bin: render, lift the simulator's instance masks, pose every part with each
     method (wall and process CPU time per part), compare with the true poses."""
+    if args.sessions:
+        return saved_bins_bench(args)
+    from threadpoolctl import threadpool_limits
+
     from inspection.bins.instance_plane import SceneContext
     from inspection.bins.instances import instances_from_label_image
     from inspection.bins.part_model import ThinPartModel
@@ -283,17 +310,17 @@ def cmd_posebench(args: argparse.Namespace) -> int:
         cloud, ids = fringe_scan_bin(b, seed) if args.fringe else scan_bin(b, rig, args.noise, seed)
         truth_occ = b.occlusion()
         instances = {i.id: i for i in instances_from_label_image(np.where(ids >= 2, ids, 0), cloud)}
-        context = SceneContext(cloud.points[cloud.valid])
+        context = SceneContext.of_cloud(cloud, rig.camera if not args.fringe else RigConfig.load().nominal_model().camera)
         for method in args.methods:
-            settings = PoseSettings(method=method)
+            settings = PoseSettings(method=POSE_METHODS[method])
             for k in range(n):
                 inst = instances.get(k + 2)
                 row = {"seed": seed, "part": k, "method": method, "occlusion": float(truth_occ[k]),
                        "front_up": bool(b.front_up[k]), "points": len(inst) if inst else 0, "found": False}
                 if inst is not None:
-                    cpu = time.process_time()
-                    r = estimate_pose(inst, models[method], context, settings)
-                    row["cpu_s"] = time.process_time() - cpu
+                    with threadpool_limits(limits=1):
+                        r = estimate_pose(inst, models[method], context, settings)
+                    row["cpu_s"] = r.cpu_s
                     row["wall_s"] = r.time_s
                     row["found"] = r.ok
                     row["reason"] = r.reason
@@ -311,7 +338,101 @@ def cmd_posebench(args: argparse.Namespace) -> int:
     load1 = os.getloadavg()
     print(summary(rows, args.methods))
     print(f"load average at the end {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
-    return 0
+    return Exit.OK
+
+
+def _bin_sessions(paths: list[Path]) -> list[Path]:
+    """The session folders with a bin truth among `paths` (each one, or the folders in it)."""
+    from scanner.errors import SessionError
+    from sim.bins import BIN_TRUTH_FILE
+
+    out = []
+    for p in paths:
+        found = [p] if (p / BIN_TRUTH_FILE).is_file() else sorted(q.parent for q in p.glob(f"*/{BIN_TRUTH_FILE}"))
+        if not found:
+            raise SessionError(f"{p}: no saved bin ({BIN_TRUTH_FILE}) here or in its folders; "
+                               "save one with `slscan scan --scene bin:SEED --out DIR`")
+        out += found
+    return out
+
+
+def saved_bins_bench(args: argparse.Namespace) -> int:
+    """`slscan posebench --sessions`: `pose_scene` on every saved bin, judged by
+    `sim.bin_judge` (wall and CPU time of every part's pose, and of each bin's instances and context)."""
+    from inspection.bins.instances import instances_from_label_image
+    from inspection.bins.picking import pick_order
+    from inspection.bins.pose_settings import PoseSettings
+    from sim.bin_judge import PICK_DEG, PICK_MM, WRONG_DEG, WRONG_MM, judge
+    from sim.bins import BIN_TRUTH_FILE, BinTruth, TabPart
+    from sim.evaluate import Truth
+
+    sessions = _bin_sessions(args.sessions)
+    settings = PoseSettings(method=POSE_METHODS[args.methods[0]])
+    models: dict[TabPart, Any] = {}
+    load0 = os.getloadavg()
+    print(f"{len(sessions)} saved bins, {settings.method}, instances from "
+          f"{'the simulator ids' if args.truth_masks else 'flat patches (no masks)'}; "
+          f"load average {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}", flush=True)
+    bins, times = [], []
+    for path in sessions:
+        truth = BinTruth.load(path / BIN_TRUTH_FILE)
+        if truth.part not in models:
+            from inspection.bins.part_model import ThinPartModel
+
+            models[truth.part] = ThinPartModel.from_mesh(*truth.part.mesh(), "tab")
+        cloud, rig_model, _ = load_scene(path, None)
+        object_id = Truth.load(path / "ground_truth.npz").object_id
+        masks = instances_from_label_image(np.where(object_id >= 2, object_id, 0), cloud) if args.truth_masks else None
+        wall, cpu = time.perf_counter(), time.process_time()
+        instances, poses = pose_scene(cloud, rig_model.camera, models[truth.part], settings, masks)
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        times += [(p.time_s, p.cpu_s) for p in poses]
+        scene_wall, scene_cpu = wall - sum(p.time_s for p in poses), cpu - sum(p.cpu_s for p in poses)
+        j = judge(truth, object_id, instances, poses, pick_order(poses, settings.max_occlusion))
+        bins.append(j)
+        v = j["verdicts"]
+        print(f"{path.name}: {j['parts']} parts ({j['visible_parts']} visible), {j['instances']} instances "
+              f"({j['phantom_instances']} phantom), {len(v)} ok poses ({sum(x.wrong for x in v)} wrong), "
+              f"{sum(x.picked for x in v)} picks ({sum(x.picked and not x.within_pick_tolerance for x in v)} out of "
+              f"tolerance); pose step {1000 * wall:.0f} ms wall, {1000 * cpu:.0f} ms CPU, of which instances and "
+              f"scene context {1000 * scene_wall:.0f} ms wall, {1000 * scene_cpu:.0f} ms CPU",
+              flush=True)
+        if args.rows:
+            with open(args.rows, "a") as f:
+                f.writelines(json.dumps({"session": str(path), **vars(x)}) + "\n" for x in v)
+    print(saved_bins_summary(bins, np.array(times), (PICK_MM, PICK_DEG), (WRONG_MM, WRONG_DEG)))
+    load1 = os.getloadavg()
+    print(f"load average at the end {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
+    return Exit.OK
+
+
+def saved_bins_summary(bins: list[dict[str, Any]], times: np.ndarray, pick: tuple[float, float],
+                       wrong: tuple[float, float]) -> str:
+    """The acceptance figures over saved bins (see `saved_bins_bench`)."""
+    v = [x for b in bins for x in b["verdicts"]]
+    picks = [x for x in v if x.picked]
+    occ = np.array([x.occlusion - x.true_occlusion for x in v if x.part >= 0])
+    te = np.array([x.trans_mm for x in v if not x.wrong] or [np.nan])
+    re = np.array([x.rot_deg for x in v if not x.wrong] or [np.nan])
+    tot = lambda k: sum(b[k] for b in bins)  # noqa: E731
+    lines = [
+        f"bins                          {len(bins)}",
+        f"true parts                    {tot('parts')} ({tot('visible_parts')} showing >= 200 pixels)",
+        f"instances found               {tot('instances')} ({tot('phantom_instances')} mostly off every part); "
+        f"parts with an instance {tot('parts_with_instance')}",
+        f"poses reported ok             {len(v)}: right (side, <= {wrong[0]} mm / {wrong[1]} deg) {len(v) - sum(x.wrong for x in v)}, "
+        f"wrong {sum(x.wrong for x in v)}; parts posed {tot('parts_posed')} of {tot('visible_parts')} visible",
+        f"  error of the right ones     translation median {np.median(te):.4f} mm, max {np.max(te):.4f}; "
+        f"rotation median {np.median(re):.3f} deg, max {np.max(re):.3f}",
+        f"  within {pick[0]} mm / {pick[1]} deg   {sum(x.within_pick_tolerance for x in v)}",
+        f"picks offered                 {len(picks)}: outside {pick[0]} mm / {pick[1]} deg "
+        f"{sum(not x.within_pick_tolerance for x in picks)}",
+        "occlusion estimate - truth    " + (f"median {np.median(occ):+.3f}, min {occ.min():+.3f}, max {occ.max():+.3f} "
+                                           f"over {len(occ)} poses" if len(occ) else "no poses"),
+        f"time per part pose            median {1000 * np.median(times[:, 0]):.0f} ms wall, "
+        f"{1000 * np.median(times[:, 1]):.0f} ms CPU; 90 % {1000 * np.percentile(times[:, 0], 90):.0f} ms wall, "
+        f"{1000 * np.percentile(times[:, 1], 90):.0f} ms CPU (one BLAS thread)"]
+    return "\n".join(lines)
 
 
 def _case(r: dict[str, Any]) -> str:

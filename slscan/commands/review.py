@@ -1,29 +1,37 @@
-"""`slscan review`: open a session's recording in the Rerun viewer, or serve it on the web
-when there is no display."""
+"""`slscan review`: open anything slscan writes in the Rerun viewer, or serve it on the web
+when there is no display (slscan/review_target.py finds the recordings and the blueprint)."""
 
 from __future__ import annotations
 
 import argparse
+import sys
+import tempfile
+from pathlib import Path
 from typing import Any
 
-from scanner.errors import ScannerError
+from slscan.viewer import DEFAULT_WEB_PORT
 
 
 def cmd_review(args: argparse.Namespace) -> int:
-    from scanner.multiview import MultiViewSession, is_multiview
-    from scanner.session import RECORDING, Session
+    from scanner.session_recording import APPLICATION_ID
+    from slscan.review_target import find_target
     from slscan.viewer import review
 
-    session = (MultiViewSession.open(args.session, partial=True) if is_multiview(args.session)
-               else Session.open(args.session))
-    path = session.root / RECORDING
-    if not path.exists():
-        raise ScannerError(f"{path}: no recording; run `slscan decode {session.root}` to make one")
-    return review(path, port=args.port)
+    target = find_target(args.path)
+    print(f"review    {target.describe()}", file=sys.stderr)
+    with tempfile.TemporaryDirectory(prefix="slscan-review-") as tmp:
+        blueprint = None
+        if target.blueprint is not None:
+            blueprint = Path(tmp) / f"{target.kind.replace(' ', '_')}.rbl"
+            target.blueprint.save(APPLICATION_ID, blueprint)
+        return review(target.recordings, port=args.port, blueprint=blueprint)
 
 
 def register(sub: Any) -> None:
-    r = sub.add_parser("review", help="open a session's recording in the Rerun viewer (web when headless)")
-    r.add_argument("session")
-    r.add_argument("--port", type=int, default=9090)
+    r = sub.add_parser("review", help="open what slscan wrote (scan session, multi-view folder, station part, "
+                                      "calibration, poses.rrd, any folder with recordings) in the Rerun viewer "
+                                      "(web when headless)")
+    r.add_argument("path", help="a folder slscan wrote, or a .rrd recording")
+    r.add_argument("--port", type=int, default=DEFAULT_WEB_PORT,
+                   help=f"headless: the web viewer's HTTP port (default {DEFAULT_WEB_PORT})")
     r.set_defaults(func=cmd_review)

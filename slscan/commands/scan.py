@@ -17,11 +17,11 @@ from scanner.reconstruct import Triangulator
 from scanner.rig import DEFAULT_RIG
 from scanner.session import write_json
 from scanner.stage_timer import StageTimer
+from slscan.exit_codes import Exit
 from slscan.progress import ProgressLine
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
-DEMO_CAD = CONFIG_DIR / "parts" / "demo_part.step"  # the demo scene's part as a STEP model
-DEMO_TOLERANCES = CONFIG_DIR / "tolerances" / "demo_part.toml"
+DEMO_PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"  # the demo part's program: its CAD, tolerances, face names
 
 
 def _parse_faults(items: Sequence[str]) -> Any:
@@ -59,32 +59,63 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     patterns = PatternSet.load(args.patterns or config.patterns_path)
     options: dict[str, Any] = {}
     stage_faults = getattr(args, "stage_fault", [])
+    truth = None
     if config.driver == "sim":
         options = {"scene": args.scene or DEMO_SCENE, "seed": args.seed}
+        truth = _bin_scene(options, config)
         if args.fault:
             options["faults"] = _parse_faults(args.fault)
         if stage_faults:
             options["stage_faults"] = _parse_stage_faults(stage_faults)
     elif args.scene or args.fault or stage_faults:
         raise ConfigError(config.path, "rig.driver", "--scene, --fault and --stage-fault apply to simulated rigs only")
+    exposure = None
+    if getattr(args, "exposure", None):
+        from scanner.exposure import ExposureRequest
+
+        exposure = ExposureRequest.parse(args.exposure, args.exposure_roi)
+    elif getattr(args, "exposure_roi", None):
+        raise ConfigError("--exposure-roi", args.exposure_roi, "applies to --exposure auto or hdr only")
     if getattr(args, "views", None) is not None or getattr(args, "angles", None) is not None:
         from slscan.commands.views import scan_views
 
-        return scan_views(args, config, patterns, options)
+        return scan_views(args, config, patterns, options, exposure)
     if getattr(args, "stage_axis", None) is not None:
         raise ScannerError("--stage-axis applies to multi-view scans only (--views or --angles)")
     out = Path(args.out)
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
     with open_rig(config, **options) as rig:
-        result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args))
+        if truth is not None:   # kept with the raw frames, as the simulator's ground truth is
+            from sim.bins import BIN_TRUTH_FILE
+
+            rig.extras["session_files"] = [*rig.extras.get("session_files", ()),
+                                           lambda root: truth.save(Path(root) / BIN_TRUTH_FILE)]
+        result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args), exposure=exposure)
     report(result)
-    return 0
+    if truth is not None:
+        print(f"bin truth {result.session.root / BIN_TRUTH_FILE}  ({len(truth.ids)} parts, seed {truth.seed}; "
+              f"judge poses with: slscan posebench --sessions {result.session.root})")
+    return Exit.OK
 
 
 def _level(args: argparse.Namespace) -> str | None:
     """The recording level asked on the command line (None: the rig's or session's own)."""
     return "full" if getattr(args, "full_recording", False) else None
+
+
+def _bin_scene(options: dict[str, Any], config: Any) -> Any:
+    """For `--scene bin:SEED[:N_PARTS]`: the simulated bin put in `options` as the scene,
+    and its truth (`sim.bins.BinTruth`) to save in the session; None for other scenes."""
+    from sim.bins import BinTruth, bin_scene, bin_spec
+
+    spec = bin_spec(str(options["scene"]))
+    if spec is None:
+        return None
+    seed, parts = spec
+    b = bin_scene(parts, seed=seed)
+    options["scene"] = b.scene
+    return BinTruth.of(b, config.nominal_model().world_from_cam)
 
 
 def report(result: Any) -> None:
@@ -102,6 +133,9 @@ def report(result: Any) -> None:
                                    if v) + " of the pixels")
     if s.recording_path.exists():
         print(f"recording {s.recording_path}   (view: slscan review {s.root})")
+    plan = s.manifest.get("exposure")
+    if plan:
+        print(f"exposure  {plan['reason']}")
     print(f"timings   decode {t['decode'] * 1e3:.0f} ms, reconstruct {t['reconstruct'] * 1e3:.0f} ms")
     if s.integrity != "sha256":
         print(f"warning   frame integrity {s.integrity}", file=sys.stderr)
@@ -141,44 +175,50 @@ def cmd_decode(args: argparse.Namespace) -> int:
         raise ScannerError(f"{args.session}: --stage-axis applies to multi-view sessions only")
     result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode, level=_level(args))
     report(result)
-    return 0
+    return Exit.OK
 
 
-def load_demo_part() -> tuple[Any, Any]:
-    """The demo part's CAD model, registration target prepared, and its tolerances."""
+def load_demo_part() -> tuple[Any, Any, Any]:
+    """The demo part's CAD model (registration target prepared), its tolerances and its
+    part program (`DEMO_PROGRAM`: the one source of its tolerances and face names)."""
     from inspection.inspect_scan import prepare
-    from inspection.tolerances import load_tolerances
-    from slscan.commands.inspect import _load_model
+    from slscan.commands.inspect import _load_model, load_tolerance_source
+    from slscan.station.program import load_program
 
-    model = _load_model(str(DEMO_CAD), "mm")
+    model = _load_model(str(load_program(DEMO_PROGRAM).cad_path), "mm")
     prepare(model)  # the registration target, made once per model
-    return model, load_tolerances(DEMO_TOLERANCES, {f.label: f.type for f in model.faces})
+    tolerances, program = load_tolerance_source(DEMO_PROGRAM, {f.label: f.type for f in model.faces})
+    return model, tolerances, program
 
 
 def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: Any, seed: int = 0,
-                          prior: Any = None, on_verdict: Callable[[Any], None] | None = None) -> tuple[Any, StageTimer]:
+                          prior: Any = None, on_verdict: Callable[[Any], None] | None = None,
+                          program: Any = None, pdf: bool = True) -> tuple[Any, StageTimer]:
     """Inspect a processed scan against `model`, the verdict first: `on_verdict(report)`
     runs as soon as it is known; then the work that does not change it, the report files
     (JSON, CSV, HTML with the deviation map) and the inspection in `recording` (None: not
     recorded). The session is complete when this returns: until then outputs/ has no
     inspection.json and the recording is still `recording.rrd.part`. `prior`: the previous
-    part's registration (warm start). Returns the report and the time of each stage."""
+    part's registration (warm start); `program` names the part in the report's header, `pdf`
+    prints inspection.pdf. Returns the report and the time of each stage."""
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import from_organised, load_session
     from inspection.registration import RegistrationSettings
-    from inspection.report import deviation_image, png
+    from slscan.commands.inspect import write_report_files
+    from slscan.measurement_model import session_uncertainty
 
     timer = StageTimer()
     with timer.stage("load_cloud"):  # the cloud in memory is the one in cloud.ply (same points, normals, pixels)
         scan = (from_organised(result.cloud, str(result.session.root)) if result.cloud is not None
                 else load_session(result.session.root))
     with timer.stage("inspect"):
+        uncertainty = session_uncertainty(result.session)(scan.pixels)  # the decoder's noise model and calibration
         report = inspect(scan, model, tolerances, InspectionSettings(registration=RegistrationSettings(seed=seed)),
-                         prior=prior)
+                         prior=prior, uncertainty=uncertainty)
     if on_verdict is not None:
         on_verdict(report)
     with timer.stage("report_files"):
-        report.write(result.session.outputs, deviation_png=png(deviation_image(report, scan)))
+        report = write_report_files(report, scan, result.session.outputs, result.session.root, program, pdf=pdf)
     if recording is not None:
         from inspection.inspection_recording import log_inspection
 
@@ -192,7 +232,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     session against the part's STEP model and tolerances: registration, per-face
     segmentation, form table; the verdict is shown as soon as it is known, then the report
     files go to the session's outputs/ and the inspection into its recording. The CAD
-    model is loaded while the part is scanned. Exit 1 when a tolerance fails."""
+    model is loaded while the part is scanned. Exit 1 when a characteristic is non-conforming."""
+    from inspection.tolerances import NON_CONFORMING
+
     out = args.out or f"sessions/demo-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
     ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[],
                             full_recording=args.full_recording)
@@ -209,22 +251,22 @@ def cmd_demo(args: argparse.Namespace) -> int:
         part = pool.submit(load_demo_part)  # OpenCASCADE and the model's descriptors while the part is scanned
 
         def inspect_scan(result: Any, recording: Any) -> None:
-            print(f"inspect   {result.session.root} against {DEMO_CAD.name} ({DEMO_TOLERANCES.name})", file=sys.stderr)
-            model, tolerances = part.result()
+            print(f"inspect   {result.session.root} against the part program {DEMO_PROGRAM}", file=sys.stderr)
+            model, tolerances, program = part.result()
             t1, c1 = time.perf_counter(), time.process_time()
             done["report"], done["timer"] = inspect_verdict_first(result, recording, model, tolerances, args.seed,
-                                                                  on_verdict=show)
+                                                                  on_verdict=show, program=program)
             done["seconds"], done["cpu"] = time.perf_counter() - t1, time.process_time() - c1
 
         cmd_scan(ns, inspect_scan)
     rep, outputs = done["report"], Path(out) / "outputs"
     print(rep.table())
-    print(f"report    {outputs / 'inspection.html'} (.json, .csv); inspection in the recording under "
+    print(f"report    {outputs / 'inspection.html'} (.json, .csv, .pdf); inspection in the recording under "
           f"world/inspection/ and inspection/")
     stages = ", ".join(f"{k} {v:.1f}" for k, v in rep.timings_s.items())
     print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU ({stages} s); demo "
           f"{time.perf_counter() - t0:.1f} s wall")
-    return 1 if rep.verdict == "fail" else 0
+    return Exit.FAILED if rep.verdict == NON_CONFORMING else Exit.OK
 
 
 def _add_full_recording(parser: argparse.ArgumentParser) -> None:
@@ -237,10 +279,17 @@ def _add_full_recording(parser: argparse.ArgumentParser) -> None:
 def register(sub: Any) -> None:
     s = sub.add_parser("scan", help="scan a part into a session folder (raw frames, cloud PLY, Rerun recording)")
     s.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML (default: the simulated bench rig)")
-    s.add_argument("--scene", help="simulated rigs: scene TOML or a mesh file (PLY/STL/OBJ)")
+    s.add_argument("--scene", help="simulated rigs: scene TOML, a mesh file (PLY/STL/OBJ), or bin:SEED[:N_PARTS] for a "
+                                   "bin of thin parts (default 5 + SEED %% 16 parts) saved with its true poses, "
+                                   "instance ids and occlusion (bin_truth.json)")
     s.add_argument("--out", required=True, help="new session folder")
     s.add_argument("--patterns", help="pattern set TOML (default: the rig's)")
     s.add_argument("--seed", type=int, default=0, help="simulated rigs: noise seed")
+    s.add_argument("--exposure", help="auto (one exposure chosen from a white/black/fringe pre-capture), hdr "
+                                      "(several chosen, fused per pixel), or exposures in seconds, e.g. "
+                                      "0.004,0.016,0.064 (default: the rig's exposure_s)")
+    s.add_argument("--exposure-roi", metavar="X,Y,W,H", help="with --exposure auto/hdr: judge only this camera "
+                                                              "rectangle (default: every lit pixel)")
     s.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
                    help="simulated rigs: inject a fault (drop_frame=K, delay_frame=K, delay_s=S, "
                         "disconnect_after=N, stale_frame=K)")
@@ -257,8 +306,10 @@ def register(sub: Any) -> None:
     s.set_defaults(func=cmd_scan)
 
     d = sub.add_parser("decode", help="regenerate every output of a session from its raw frames")
-    d.add_argument("session")
-    d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation")
+    d.add_argument("session", help="session or multi-view folder (its raw frames and manifest)")
+    d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation",
+                   help="reconstruction: triangulation with the rig model (default) or Eq. 17 phase-to-height "
+                        "for rigs calibrated with the reference-plane model")
     d.add_argument("--stage-axis", metavar="FILE", help="multi-view: align the views again from this stage-axis "
                                                         "calibration (slscan calibrate --stage-axis)")
     _add_full_recording(d)
@@ -267,7 +318,7 @@ def register(sub: Any) -> None:
     m = sub.add_parser("demo", help="scan the bundled part on the default simulated rig and inspect it against "
                                     "its STEP model")
     m.add_argument("--out", help="session folder (default: sessions/demo-<time>)")
-    m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--seed", type=int, default=0, help="simulated rig: noise seed (default 0)")
     m.add_argument("--no-inspect", action="store_true", help="scan only (no inspection against the STEP model)")
     _add_full_recording(m)
     m.set_defaults(func=cmd_demo)

@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from slscan.exit_codes import Exit
+
 SEGMENTS = "world/segments"
 SEGMENT_MAP = "maps/segments"
 
@@ -31,8 +33,9 @@ SEGMENT_MAP = "maps/segments"
 def register(sub: Any) -> None:
     p = sub.add_parser("segment", help="segment a cloud or a session's scan by region growing (one parameter, r)")
     p.add_argument("input", help="a point cloud file (PLY, PCD, XYZ ... as Open3D reads) or a session folder")
-    p.add_argument("--radius", "-r", type=float, required=True, metavar="MM",
-                   help="radius of interest r in mm: the coarsest detail that counts (features at 0.19 r .. r)")
+    p.add_argument("--radius", "-r", type=float, metavar="MM",
+                   help="radius of interest r in mm: the coarsest detail that counts (features at 0.19 r .. r); "
+                        "default 35 point spacings of the cloud")
     p.add_argument("--out", help="labels file (.npy); default beside the cloud, or <session>/outputs/segments.npy")
     p.add_argument("--no-log", action="store_true", help="do not write the Rerun recording")
     p.set_defaults(func=cmd_segment)
@@ -41,7 +44,8 @@ def register(sub: Any) -> None:
                                         "against their ground truth")
     b.add_argument("--seeds", type=int, nargs="+", default=[0], help="scene seeds (default: 0)")
     b.add_argument("--spacing", type=float, default=1.0, metavar="MM", help="nearest scanner's point spacing")
-    b.add_argument("--radius", "-r", type=float, default=12.0, metavar="MM", help="radius of interest r")
+    b.add_argument("--radius", "-r", type=float, metavar="MM",
+                   help="radius of interest r (default: slscan segment's, 35 point spacings of each cloud)")
     b.add_argument("--json", action="store_true", help="print a JSON object")
     b.set_defaults(func=cmd_segbench)
 
@@ -54,7 +58,7 @@ def register(sub: Any) -> None:
 
 
 def cmd_segment(args: argparse.Namespace) -> int:
-    from inspection.regions.region_growing import segment
+    from inspection.regions.region_growing import DEFAULT_RADIUS_SPACINGS, default_radius, segment
     from inspection.regions.segmetrics import NO_POINT
     from scanner.errors import ScannerError
     from scanner.pointcloud import read_ply_points
@@ -79,8 +83,10 @@ def cmd_segment(args: argparse.Namespace) -> int:
         raise ScannerError(f"{src}: no such cloud file or session folder")
     if out.suffix != ".npy":
         raise ScannerError(f"{out}: the labels file must end in .npy")
-    print(f"segmenting {len(points)} points of {src} with r = {args.radius:g} mm", file=sys.stderr)
-    seg = segment(points, args.radius, viewpoint)
+    radius = args.radius if args.radius is not None else default_radius(points)
+    how = "" if args.radius is not None else f" (default: {DEFAULT_RADIUS_SPACINGS:g} point spacings)"
+    print(f"segmenting {len(points)} points of {src} with r = {radius:g} mm{how}", file=sys.stderr)
+    seg = segment(points, radius, viewpoint)
     labels = seg.labels
     if valid is not None:
         image = np.full(valid.shape, NO_POINT, dtype=np.int32)
@@ -105,7 +111,7 @@ def cmd_segment(args: argparse.Namespace) -> int:
              recording_id=session.id if session is not None else src.stem)
         print(f"recording {rrd}" + (f"   (view with the session: rerun {session.recording_path} {rrd})"
                                    if session is not None else ""))
-    return 0
+    return Exit.OK
 
 
 def _session_points(session: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -159,7 +165,7 @@ def cmd_segscore(args: argparse.Namespace) -> int:
     truth = _load_labels(Path(args.ground_truth))
     result = score(test, truth)
     print(json.dumps(result.as_dict(), indent=2) if args.json else result.table())
-    return 0
+    return Exit.OK
 
 
 def cmd_segbench(args: argparse.Namespace) -> int:
@@ -173,30 +179,31 @@ def cmd_segbench(args: argparse.Namespace) -> int:
 
     rows = []
     for seed in args.seeds:
-        cloud = clutter_cloud(seed, args.spacing, args.radius)
+        cloud = clutter_cloud(seed, args.spacing, args.radius)   # None: slscan segment's default radius
+        radius = cloud.radius_mm
         wall, cpu = time.perf_counter(), time.process_time()
-        seg = segment(cloud.points, args.radius)
+        seg = segment(cloud.points, radius)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         sc = score(seg.labels, cloud.labels)
-        rows.append({"seed": seed, "points": len(cloud.points), "subsampled": len(seg.subsample),
+        rows.append({"seed": seed, "radius_mm": radius, "points": len(cloud.points), "subsampled": len(seg.subsample),
                      "wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "stages_s": seg.timings_s,
                      "truth_segments": len(sc.segments), "mean_alpha": sc.mean_alpha, "mean_beta": sc.mean_beta,
                      "mean_eta": sc.mean_eta})
         if not args.json:
-            print(f"seed {seed}: {len(cloud.points)} points ({len(seg.subsample)} subsampled), r = {args.radius:g} mm: "
+            print(f"seed {seed}: {len(cloud.points)} points ({len(seg.subsample)} subsampled), r = {radius:g} mm: "
                   f"{wall:.1f} s wall, {cpu:.1f} s CPU; {len(sc.segments)} true segments: "
                   f"alpha {100 * sc.mean_alpha:.4f} %, beta {100 * sc.mean_beta:.2f} %, eta {sc.mean_eta:.2f}",
                   flush=True)
     means = {k: float(np.mean([r[k] for r in rows])) for k in ("mean_alpha", "mean_beta", "mean_eta", "wall_s", "cpu_s")}
     load = [round(x, 2) for x in os.getloadavg()]   # wall time depends on what else runs: report it
     if args.json:
-        print(json.dumps({"radius_mm": args.radius, "spacing_mm": args.spacing, "runs": rows, "means": means,
+        print(json.dumps({"radius_mm": args.radius or "default", "spacing_mm": args.spacing, "runs": rows, "means": means,
                           "load_average": load}, indent=2))
     else:
         print(f"mean over {len(rows)}: alpha {100 * means['mean_alpha']:.4f} %, beta {100 * means['mean_beta']:.2f} %, "
               f"eta {means['mean_eta']:.2f}; {means['wall_s']:.1f} s wall, {means['cpu_s']:.1f} s CPU per cloud; "
               f"load average {load[0]} {load[1]} {load[2]} on {os.cpu_count()} CPUs")
-    return 0
+    return Exit.OK
 
 
 def _load_labels(path: Path) -> np.ndarray:

@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from slscan.exit_codes import Exit
+
 
 def _timed(fn: Any, *args: Any) -> float:
     t0 = time.perf_counter()
@@ -92,7 +94,7 @@ def format_table(r: dict[str, Any]) -> str:
 def cmd_simbench(args: argparse.Namespace) -> int:
     r = run_simbench(args.repeats)
     print(json.dumps(r) if args.json else format_table(r))
-    return 0
+    return Exit.OK
 
 
 def register(sub: Any) -> None:

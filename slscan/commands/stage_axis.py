@@ -23,6 +23,7 @@ import numpy as np
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import ScannerError
+from slscan.exit_codes import Exit
 
 DEFAULT_BOARD = CONFIG_DIR / "boards" / "sim_charuco_7x5.toml"
 DEFAULT_ANGLES_DEG = (-90.0, -60.0, -30.0, 0.0, 30.0, 60.0, 90.0)
@@ -75,7 +76,7 @@ def cmd_stage_axis(args: argparse.Namespace) -> int:
         print(f"truth     axis tilted {tilt:.4f} deg from the simulator's, its line {np.linalg.norm(offset):.4f} mm "
               f"away (at the axis point)")
     print(f"written   {path}; use it with  calibration = \"{path.resolve()}\"  under [stage] in {config.path}")
-    return 0
+    return Exit.OK
 
 
 def _angles(text: str) -> list[float]:

@@ -9,12 +9,20 @@ from pathlib import Path
 from typing import Any
 
 from scanner.errors import ScannerError
+from slscan.exit_codes import Exit
+from slscan.options import OutputFlag, add_out
 from slscan.station.measure import MEASUREMENTS
 
 
-def _station_options(p: argparse.ArgumentParser) -> None:
+def _station_options(p: argparse.ArgumentParser, writes: bool = False) -> None:
+    """The station config and data folder: `--out` for the station, which writes it
+    (`--data` its deprecated alias), `--data` for the commands that read it."""
     p.add_argument("--config", type=Path, help="station config TOML (default: config/station/sim_bench.toml)")
-    p.add_argument("--data", help="the station's data folder (sessions, SQLite results, reports)")
+    if writes:
+        add_out(p, "the station's data folder to write (sessions, SQLite results, reports; default: the station "
+                   "config's)", old=("--data",))
+    else:
+        p.add_argument("--data", help="the station's data folder to read (default: the station config's)")
     p.add_argument("--db", help="results database: sqlite:PATH or postgresql://... (default: SQLite in the data folder)")
 
 
@@ -22,7 +30,8 @@ def _config(args: argparse.Namespace) -> Any:
     from slscan.station.app import override
     from slscan.station.station_config import DEFAULT_STATION, StationConfig
 
-    return override(StationConfig.load(args.config or DEFAULT_STATION), args.data, args.db)
+    data = args.out if args.command == "station" else args.data
+    return override(StationConfig.load(args.config or DEFAULT_STATION), data, args.db)
 
 
 def cmd_station(args: argparse.Namespace) -> int:
@@ -68,6 +77,10 @@ def cmd_results(args: argparse.Namespace) -> int:
     from slscan.station.results import csv_text, open_results, write_csv
 
     name, program = _program_name(args.program)
+    if args.report and args.csv:
+        raise ScannerError("slscan results: --csv and --report both write to --out; give one per run")
+    if args.report and not args.out:
+        raise ScannerError("slscan results --report: give the report's folder with --out DIR")
     if args.report and program is None:
         raise ScannerError("slscan results --report: give --program as the part program TOML (it has the "
                            "characteristics and tolerances the charts need)")
@@ -75,12 +88,13 @@ def cmd_results(args: argparse.Namespace) -> int:
     with open_results(config.database_url, create=False) as store:
         rows = store.results(program=name, serial=args.serial, status=args.status, since=args.since, limit=args.limit)
         values = store.values([r.id for r in rows])
-        if args.csv == "-":
-            write_csv(sys.stdout, rows, values)
-        elif args.csv:
-            text, n = csv_text(rows, values)
-            _write_export(Path(args.csv), lambda path: write_atomic(path, text.encode()))
-            print(f"wrote {n} lines ({len(rows)} results) to {args.csv}", file=sys.stderr)
+        if args.csv:
+            if args.out in (None, "-"):
+                write_csv(sys.stdout, rows, values)
+            else:
+                text, n = csv_text(rows, values)
+                _write_export(Path(args.out), lambda path: write_atomic(path, text.encode()))
+                print(f"wrote {n} lines ({len(rows)} results) to {args.out}", file=sys.stderr)
         else:
             print(f"{'id':>5} {'program':<14} {'serial':<24} {'att':>3} {'status':<10} {'finished (UTC)':<19}  values")
             for r in rows:
@@ -91,10 +105,10 @@ def cmd_results(args: argparse.Namespace) -> int:
                       + (f"  [{r.message}]" if r.message and r.status != "fail" else ""))
             print(f"{len(rows)} results in {store.where}", file=sys.stderr)
         if args.report:
-            path = _write_export(Path(args.report), lambda folder: write_report(folder, program, rows, values,
-                                                                                store.where))
+            path = _write_export(Path(args.out), lambda folder: write_report(folder, program, rows, values,
+                                                                              store.where))
             print(f"report {path}", file=sys.stderr)
-    return 0
+    return Exit.OK
 
 
 def _write_export(target: Path, write: Any) -> Any:
@@ -124,7 +138,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     summary = run_batch(args.sessions, args.program, scheduler=args.scheduler, workers=args.workers,
                         store_config=config, progress=ProgressLine(), measurement=args.measurement, rig_path=args.rig)
     print_summary(summary, json_out=args.json)
-    return 0 if not summary.failures else 1
+    return Exit.OK if not summary.failures else Exit.FAILED
 
 
 def cmd_batchbench(args: argparse.Namespace) -> int:
@@ -147,13 +161,13 @@ def cmd_batchbench(args: argparse.Namespace) -> int:
           f"{serial.wall_s / dask.wall_s:.2f}x; load average after {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     for line in differ:
         print("DIFFERS " + line)
-    return 0 if not differ else 1
+    return Exit.OK if not differ else Exit.FAILED
 
 
 def register(sub: Any) -> None:
     s = sub.add_parser("station", help="the operator loop for a part program (full-screen; --auto without operator)")
     s.add_argument("program", help="part program TOML (config/parts/*.toml)")
-    _station_options(s)
+    _station_options(s, writes=True)
     s.add_argument("--rig", type=Path, help="rig TOML (default: the station config's)")
     s.add_argument("--operator", help="operator name stored with every result")
     s.add_argument("--parts", type=int, help="stop after this many measured parts")
@@ -164,12 +178,16 @@ def register(sub: Any) -> None:
     r = sub.add_parser("results", help="query the results history; export CSV; write the HTML report")
     _station_options(r)
     r.add_argument("--program", help="part program name, or its TOML (needed for --report)")
-    r.add_argument("--serial")
-    r.add_argument("--status", choices=("in_progress", "pass", "fail", "error", "aborted", "incomplete"))
+    r.add_argument("--serial", help="only the results of this part serial number")
+    r.add_argument("--status", choices=("in_progress", "pass", "fail", "error", "aborted", "incomplete"),
+                   help="only the results with this status")
     r.add_argument("--since", type=_utc_time, help="ISO date/time (UTC unless it says), e.g. 2026-11-23 or 2026-11-23T08:00")
     r.add_argument("--limit", type=_count, help="only the newest N results (N >= 0)")
-    r.add_argument("--csv", help="export to this CSV file ('-' for standard output)")
-    r.add_argument("--report", help="write the HTML report with control charts into this folder")
+    r.add_argument("--csv", nargs="?", const=True, action=OutputFlag,
+                   help="export CSV to --out FILE (default: standard output)")
+    r.add_argument("--report", nargs="?", const=True, action=OutputFlag,
+                   help="write the HTML report with control charts into the folder --out DIR")
+    add_out(r, "where --csv or --report writes (a CSV file, '-' for standard output, or the report's folder)")
     r.set_defaults(func=cmd_results)
 
     b = sub.add_parser("batch", help="re-decode and re-inspect stored sessions (in parallel, or on a Dask cluster)")

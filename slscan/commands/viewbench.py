@@ -34,11 +34,12 @@ from typing import Any
 import numpy as np
 
 from scanner.config import CONFIG_DIR
+from slscan.exit_codes import Exit
 
 TURNTABLE = CONFIG_DIR / "rigs" / "sim_turntable.toml"
 SCENE = CONFIG_DIR / "scenes" / "turntable_demo.toml"
 CAD = CONFIG_DIR / "parts" / "demo_part.step"
-TOLERANCES = CONFIG_DIR / "tolerances" / "demo_part.toml"
+PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"  # the demo part's program: its tolerances and face names
 STEP_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "step"
 NIST = {"ctc01": ("nist_ctc_01_asme1_rd.stp", 0.12, (0.0, 0.0, 1.0)),  # as tests/test_inspection_benchmark.py,
         "ftc06": ("nist_ftc_06_asme1_rd.stp", 0.3, (0.0, 1.0, 0.0))}  # a little smaller to fit the platter
@@ -48,16 +49,17 @@ def register(sub: Any) -> None:
     b = sub.add_parser("viewbench", help="multi-view acceptance figures on the simulated turntable")
     b.add_argument("--out", type=Path, required=True, help="new folder for the scan and the figures")
     b.add_argument("--session", type=Path, help="an existing multi-view scan of the turntable scene")
-    b.add_argument("--views", type=int, default=8)
-    b.add_argument("--width", type=int, default=1280)
-    b.add_argument("--height", type=int, default=1024)
-    b.add_argument("--axis-error-deg", type=float, default=0.5)
-    b.add_argument("--axis-error-mm", type=float, default=0.5)
+    b.add_argument("--views", type=int, default=8, help="views equally spaced over a turn (default 8)")
+    b.add_argument("--width", type=int, default=1280, help="simulated camera width, px (default 1280)")
+    b.add_argument("--height", type=int, default=1024, help="simulated camera height, px (default 1024)")
+    b.add_argument("--axis-error-deg", type=float, default=0.5, help="the miscalibrated axis's tilt, deg (default 0.5)")
+    b.add_argument("--axis-error-mm", type=float, default=0.5, help="the miscalibrated axis's shift, mm (default 0.5)")
     b.add_argument("--no-pairs", action="store_true", help="leave out the view-pair registrations")
     b.add_argument("--pairs-only", action="store_true", help="only the view-pair registrations")
     b.add_argument("--part", choices=sorted(NIST), help="view pairs of a NIST part (../shared/data/step) on the "
                                                        "turntable instead of the demo part (pairs only)")
-    b.add_argument("--json", action="store_true")
+    b.add_argument("--json", action="store_true", help="print the figures as JSON (always written to "
+                                                       "OUT/viewbench.json)")
     b.set_defaults(func=cmd_viewbench)
 
 
@@ -85,7 +87,7 @@ def cmd_viewbench(args: argparse.Namespace) -> int:
         print(json.dumps(figures, default=float) if args.json else "\n".join(
             f"{figures['part']} pairs {k} apart: ours {p['ours']}; Open3D {p['open3d_fpfh_ransac_icp']}"
             for k, p in figures["pairs"].items()))
-        return 0
+        return Exit.OK
     figures: dict[str, Any] = {"views": len(session.views), "camera": _camera(session)}
     load0, peer0 = os.getloadavg()[0], peer_s()
     whole = whole_part(session)
@@ -105,7 +107,7 @@ def cmd_viewbench(args: argparse.Namespace) -> int:
         figures["pairs"] = _pairs(session, truths)
     (args.out / "viewbench.json").write_text(json.dumps(figures, indent=2, default=float) + "\n")
     print(json.dumps(figures, default=float) if args.json else _text(figures))
-    return 0
+    return Exit.OK
 
 
 def _scan(args: argparse.Namespace) -> Path:
@@ -262,7 +264,7 @@ def _form(root: Path) -> dict[str, Any]:
                 "sq_mm", "verdicts")
         return {row.get("label", "?"): {k: row.get(k) for k in keys if k in row} for row in report.as_dict()["faces"]}
 
-    report = inspect_source(root, CAD, TOLERANCES)
+    report = inspect_source(root, CAD, PROGRAM)
     narrow = inspect(load_merged(MultiViewSession.open(root)), load_cad(CAD),
                      settings=InspectionSettings(form=FormSettings(edge_margin_mm=0.3)))
     return {"verdict": report.verdict, "faces": rows(report),

@@ -26,11 +26,14 @@ from pathlib import Path
 from typing import Any
 
 from scanner.errors import ScannerError
+from slscan.exit_codes import Exit
 from slscan.progress import ProgressLine
 
 
-def scan_views(args: argparse.Namespace, config: Any, patterns: Any, options: dict[str, Any]) -> int:
-    """`slscan scan --views N | --angles A,B,...` (see the module docstring)."""
+def scan_views(args: argparse.Namespace, config: Any, patterns: Any, options: dict[str, Any],
+               exposure: Any = None) -> int:
+    """`slscan scan --views N | --angles A,B,...` (see the module docstring); `exposure` (an
+    `scanner.exposure.ExposureRequest`, None: the rig's) applies to every view."""
     from scanner.multiview import capture_views, describe_incomplete, plan_views
     from scanner.pipeline import scan
     from scanner.rig import open_rig
@@ -60,6 +63,7 @@ def scan_views(args: argparse.Namespace, config: Any, patterns: Any, options: di
     with open_rig(config, **options) as rig:
         try:
             session = capture_views(rig, plan, out, lambda folder, extra: scan(rig, patterns, folder, line,
+                                                                                exposure=exposure,
                                                                                 extra=extra).session,
                                     view_progress, model)
         except (ScannerError, KeyboardInterrupt):
@@ -68,7 +72,7 @@ def scan_views(args: argparse.Namespace, config: Any, patterns: Any, options: di
             raise
     print(f"session   {session.root} ({len(session.views)} views)")
     if args.no_merge:
-        return 0
+        return Exit.OK
     return report_whole(session, line)
 
 
@@ -115,4 +119,4 @@ def report_whole(session: Any, progress: Any, stage_model: Any = None) -> int:
     t = whole.timings_s
     print("time      " + ", ".join(f"{k} {v:.1f} s" for k, v in t.items()) + f"; {wall:.1f} s wall at load "
           f"{load:.1f} (indicative)")
-    return 0
+    return Exit.OK

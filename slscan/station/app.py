@@ -17,6 +17,7 @@ from typing import Any, TextIO
 
 from scanner.pipeline import Progress
 from scanner.rig import RigConfig
+from slscan.exit_codes import Exit
 from slscan.station import StationError
 from slscan.station.charts import ChartRecording
 from slscan.station.hardware_bench import Bench
@@ -131,7 +132,8 @@ def outcome_lines(program: PartProgram, o: CycleOutcome) -> list[str]:
 def run_auto(run: StationRun, parts: int, out: TextIO | None = None, progress: Progress | None = None) -> int:
     """Measure `parts` parts without an operator (serials AUTO-<time>-<k>); print each
     verdict and, on the simulator, the verdict the imposed defects call for. Returns the
-    exit code: 0 when every part was measured, 1 otherwise."""
+    exit code (slscan.exit_codes): 0 when every part passed, 1 when any failed or could
+    not be measured."""
     out = out or sys.stdout
     station = run.station
     reasons = station.refusals()
@@ -164,4 +166,4 @@ def run_auto(run: StationRun, parts: int, out: TextIO | None = None, progress: P
     print(f"results      {run.store.where}", file=out)
     print(f"report       {run.write_report()}", file=out)
     print(f"charts       {run.report_dir / CHART_RECORDING} (written when the station closes)", file=out)
-    return 0 if counts["pass"] + counts["fail"] == parts else 1
+    return Exit.OK if counts["pass"] == parts else Exit.FAILED

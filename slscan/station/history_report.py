@@ -10,8 +10,10 @@ import html
 from pathlib import Path
 from typing import Sequence
 
+from inspection.report_header import HEADER_CSS, ReportHeader, file_sha256, header_html
 from scanner import __version__
 from scanner.session import write_atomic
+from slscan.station.calib import FACTORY_PREFIX
 from slscan.station.charts import capability_text, write_charts
 from slscan.station.program import PartProgram
 from slscan.station.quality import CharacteristicStats, running_stats
@@ -20,6 +22,7 @@ from slscan.station.spc import MIN_CAPABILITY_N
 
 REPORT_FILE = "report.html"
 _STYLE = """body{font-family:sans-serif;margin:1.5em;color:#222}table{border-collapse:collapse;margin:.5em 0 1.5em}
+table{display:block;overflow-x:auto;max-width:100%}
 td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}th{background:#f0f0f0}td.l,th.l{text-align:left}
 .pass{color:#1a7a1a;font-weight:bold}.fail{color:#c01818;font-weight:bold}.error,.aborted,.incomplete,
 .in_progress,.warn{color:#b06000;font-weight:bold}img{display:block;margin:.3em 0 1em;max-width:100%}"""
@@ -40,6 +43,24 @@ def _flags(s: CharacteristicStats) -> str:
     return "; ".join(hits) or "none"
 
 
+def station_header(program: PartProgram, rows: Sequence[ResultRow]) -> ReportHeader:
+    """The inspection report's header for a program's results: each field lists what its
+    cycles recorded (distinct values), the program's file with its SHA-256, written now."""
+    def seen(values: Sequence[str | None]) -> str:
+        return ", ".join(dict.fromkeys(v for v in values if v))
+
+    dates = [c.split("@", 1)[1][:10] for c in (r.calibration_id or "" for r in rows) if "@" in c]
+    return ReportHeader(
+        part=f"{program.name} — {program.description}" if program.description else program.name,
+        serial=f"{len({r.serial for r in rows})} serials: " + seen([r.serial for r in rows]) if rows else "",
+        program=f"{program.path} (version {program.version})", program_sha256=file_sha256(program.path),
+        operator=seen([r.operator for r in rows]), date=f"{dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M:%S}",
+        rig=seen([r.rig for r in rows]), calibration_id=seen([r.calibration_id for r in rows]),
+        calibration_date=seen(dates) or ("undated (factory geometry)" if rows and all(
+            (r.calibration_id or "").startswith(FACTORY_PREFIX) for r in rows) else ""),
+        software_version=seen([f"slscan {r.software_version}" for r in rows]) or f"slscan {__version__}")
+
+
 def write_report(folder: Path, program: PartProgram, rows: Sequence[ResultRow],
                  values: dict[int, list[ValueRecord]], source: str) -> Path:
     """Write `folder/report.html` and `folder/charts/*.png`; returns the page's path.
@@ -49,8 +70,8 @@ def write_report(folder: Path, program: PartProgram, rows: Sequence[ResultRow],
     charts = write_charts(folder / "charts", program, stats)
     e = html.escape
     out = [f"<!doctype html><html><head><meta charset='utf-8'><title>{e(program.name)} results</title>"
-           f"<style>{_STYLE}</style></head><body>",
-           f"<h1>{e(program.name)} v{e(program.version)} — results</h1>",
+           f"<style>{_STYLE}{HEADER_CSS}</style></head><body>",
+           f"<h1>{e(program.name)} v{e(program.version)} — results</h1>", header_html(station_header(program, rows)),
            f"<p>Program {e(str(program.path))} [{e(program.fingerprint)}], CAD {e(program.cad_path.name)}; results "
            f"from {e(source)}; written {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M:%S} UTC by slscan "
            f"{__version__}.</p>",

@@ -167,6 +167,10 @@ def _pick(c: Characteristic, tables: Sequence[Mapping[str, Mapping[str, Any]]]) 
     k, row = max(rows, key=lambda kr: int(kr[1]["points"]))
     column = REPORT_COLUMNS[(c.kind, c.method)]
     value = row.get(column)
+    limit = row.get(column.removesuffix("_mm") + "_limit_mm")
+    if value is None and limit is not None:  # below its detection limit: at most the limit (inspection.uncertainty)
+        return MeasuredValue(c.name, float(limit), int(row["points"]), k,
+                             note=f"below the detection limit {float(limit) * 1e3:.1f} um")
     if value is None or not np.isfinite(float(value)):
         reason = row.get("note") or row.get("status") or f"no {column} in the report"
         return MeasuredValue(c.name, None, int(row["points"]), k, note=f"face {c.face}: {reason}")

@@ -20,6 +20,9 @@
     subgroup_size = 1                   # parts per subgroup: 1 = individuals/moving range (I-MR),
                                         # 2..10 = X-bar and R charts of consecutive parts
 
+    [faces]                             # optional: the faces' names, shown wherever a face is
+    "#657" = "high top"                 # (reports, tables, the recording)
+
     [[characteristic]]                  # one table per characteristic, in report order
     name = "high_top_flatness"          # unique; results and charts are filed under it
     face = "#657"                       # CAD face: "#<STEP ADVANCED_FACE id>" (`slscan cad FILE` lists
@@ -43,13 +46,14 @@ face exists in the CAD model and has a surface type the characteristic applies t
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Callable, Literal, Mapping, Sequence
 
 from pydantic import Field
 
 from inspection.cad import MESH_UNITS_MM
+from inspection.tolerances import GUARD_BANDED, Tolerances
 from scanner import schema
 from scanner.config import resolve
 from scanner.errors import ConfigError
@@ -103,6 +107,7 @@ class ProgramFile(schema.Schema):
     scan: ScanTable
     calibration: CalibrationTable
     control: ControlTable = ControlTable()
+    faces: dict[str, Name] = {}
     characteristic: Annotated[list[CharacteristicTable], Field(min_length=1)]
 
 
@@ -158,6 +163,7 @@ class PartProgram:
     fingerprint: str
     face_check: str
     subgroup_size: int = 1
+    face_names: Mapping[str, str] = field(default_factory=dict)
 
     def characteristic(self, name: str) -> Characteristic:
         for c in self.characteristics:
@@ -186,7 +192,7 @@ def load_program(path: str | Path, faces: Callable[[PartProgram], Mapping[str, s
         description=f.program.description, scan=ScanSettings(patterns, f.scan.exposure_s, f.scan.views),
         calibration_id=f.calibration.id, max_calibration_age_days=f.calibration.max_age_days,
         characteristics=chars, fingerprint=hashlib.sha256(path.read_bytes()).hexdigest()[:12],
-        face_check="not checked", subgroup_size=f.control.subgroup_size)
+        face_check="not checked", subgroup_size=f.control.subgroup_size, face_names=dict(f.faces))
     if faces is None:
         return program
     found = faces(program)
@@ -196,7 +202,8 @@ def load_program(path: str | Path, faces: Callable[[PartProgram], Mapping[str, s
 
 def validate_faces(program: PartProgram, faces: Mapping[str, str]) -> None:
     """Refuse a characteristic whose face is not in the CAD model (`faces`: label -> surface
-    type) or whose surface type the characteristic does not apply to."""
+    type) or whose surface type the characteristic does not apply to, and a name given to
+    a face the model does not have."""
     for i, c in enumerate(program.characteristics):
         key = f"characteristic[{i}].face"
         if c.face not in faces:
@@ -210,6 +217,9 @@ def validate_faces(program: PartProgram, faces: Mapping[str, str]) -> None:
                                                  f"face {c.face} of {program.cad_path.name} is a {kind}"
                                                  + (" face (a mesh face of no known surface type: use a STEP "
                                                     "model)" if kind == "mesh" else ""))
+    for label in program.face_names:
+        if label not in faces:
+            raise ConfigError(program.path, f'faces."{label}"', f"{program.cad_path.name} has no face {label!r}")
 
 
 def _characteristics(items: Sequence[CharacteristicTable], path: Path) -> tuple[Characteristic, ...]:
@@ -227,3 +237,20 @@ def _characteristics(items: Sequence[CharacteristicTable], path: Path) -> tuple[
             raise ConfigError(path, f"{pre}.method", f"{t.kind} takes no method")
         out.append(Characteristic(name=t.name, face=t.face, kind=t.kind, tolerance_mm=t.tolerance_mm, method=method))
     return tuple(out)
+
+
+def program_tolerances(program: PartProgram) -> Tolerances:
+    """The program's characteristics as the inspection's per-face limits (the one source of
+    a part's tolerances: `slscan inspect --tolerances PROGRAM` and the demo use this), with
+    the program's face names. Verdicts follow ISO 14253-1 guard-banded by U. Two
+    characteristics of one kind and method on one face cannot be told apart by the
+    inspection report, so they are refused."""
+    faces: dict[str, dict[str, float]] = {}
+    for i, c in enumerate(program.characteristics):
+        key = f"{c.kind}_ls_mm" if c.method == "least_squares" else f"{c.kind}_mm"
+        limits = faces.setdefault(c.face, {})
+        if key in limits:
+            raise ConfigError(program.path, f"characteristic[{i}]", f"a second {c.kind} of face {c.face} ({c.name}); "
+                                                                    f"one per face, kind and method")
+        limits[key] = c.tolerance_mm
+    return Tolerances(faces, {}, program.path, GUARD_BANDED, dict(program.face_names))

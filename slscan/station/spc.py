@@ -41,7 +41,6 @@ from functools import lru_cache
 from typing import Sequence
 
 import numpy as np
-from scipy import integrate, stats
 
 MIN_CAPABILITY_N = 30  # values below which capability indices are flagged as unreliable
 MIN_LIMIT_POINTS = 2  # chart points needed before limits can be computed
@@ -55,6 +54,7 @@ def range_constants(n: int) -> tuple[float, float]:
     normal values (the published tables' source), by the trapezoidal rule on a grid over
     +-7 sigma: E[R] = int 1 - F(x)^n - (1 - F(x))^n dx and, with P(min < x, max > y)
     = 1 - F(y)^n - (1 - F(x))^n + (F(y) - F(x))^n for x < y, E[R^2] = 2 int int_(x<y) of it."""
+    from scipy import integrate, stats  # scipy.stats takes ~0.6 s to import: only when charts are computed
     if not 2 <= n <= 25:
         raise ValueError(f"subgroup size must be 2..25, got {n}")
     g = np.linspace(-7.0, 7.0, 1401)
@@ -162,6 +162,7 @@ class Capability:
 
 def capability(values: Sequence[float], usl: float, sigma_within: float) -> Capability | None:
     """Capability of `values` (the baseline) with the chart's sigma-hat; None without spread."""
+    from scipy import stats  # scipy.stats takes ~0.6 s to import: only when charts are computed
     x = np.asarray(values, float)
     n = len(x)
     if n < 2 or not sigma_within > 0:

@@ -1,0 +1,162 @@
+"""The inspection report's figures, drawn with matplotlib (Agg, no display) as PNG bytes:
+the part seen from several sides coloured by signed deviation with a colour bar in mm and
+callouts naming each toleranced face with its verdict; a close-up of one face in its own
+surface coordinates; the histogram of the signed deviations.
+
+Points are the feet of the scan points on the CAD model (model frame, mm), so every view
+shows the part as designed, coloured by how far the scan departs from it (positive:
+excess material). At most `MAX_POINTS` points are drawn (a fixed-seed sample), which keeps
+a drawing to a few seconds; the colours and statistics use every point."""
+
+from __future__ import annotations
+
+import io
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import Normalize  # noqa: E402
+
+from inspection.tolerances import overall  # noqa: E402
+
+MAX_POINTS = 40_000
+CMAP = "RdBu_r"  # blue: inside the material, red: outside (as the recording's deviation map)
+# (title, elevation deg, azimuth deg) of the part views
+VIEWS = (("from front left, above", 30.0, -120.0), ("from back right, above", 30.0, 60.0),
+         ("from above", 90.0, -90.0), ("from front right, low", 12.0, -40.0))
+VERDICT_COLOURS = {"conforming": "#1a7a1a", "non-conforming": "#c01818", "uncertain": "#b06000",
+                   "not measured": "#555555"}
+
+
+def _png(fig: Any) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=96)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def _sample(n: int, limit: int = MAX_POINTS) -> np.ndarray:
+    """Indices of at most `limit` of n items, the same for the same n."""
+    if n <= limit:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(0).choice(n, limit, replace=False))
+
+
+def face_verdict(row: Any) -> str:
+    """A face's verdict word over its characteristics ("" without any)."""
+    words = [v for _, v in row.verdicts.values()]
+    return overall(words) if words else ""
+
+
+def part_views(report: Any, limit_mm: float) -> bytes:
+    """The part from the sides in `VIEWS`, its points coloured by signed deviation over
+    ±`limit_mm`, one colour bar in mm; the first view carries a callout per toleranced face
+    (its name and verdict) at the centre of the face's points."""
+    seg = report.segmentation
+    ok = seg.assigned & np.isfinite(seg.deviation_mm)
+    pts, dev = seg.foot[ok], seg.deviation_mm[ok]
+    pick = _sample(len(pts))
+    norm = Normalize(-limit_mm, limit_mm)
+    fig = plt.figure(figsize=(11.0, 8.6))
+    lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(3), np.ones(3))
+    for k, (title, elev, azim) in enumerate(VIEWS):
+        ax = fig.add_subplot(2, 2, k + 1, projection="3d")
+        ax.scatter(*pts[pick].T, c=dev[pick], cmap=CMAP, norm=norm, s=0.6, linewidths=0, depthshade=False)
+        ax.view_init(elev=elev, azim=azim)
+        ax.set_box_aspect(np.maximum(hi - lo, 1e-3))
+        ax.set_xlim(lo[0], hi[0]), ax.set_ylim(lo[1], hi[1]), ax.set_zlim(lo[2], hi[2])
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("x (mm)", fontsize=8), ax.set_ylabel("y (mm)", fontsize=8), ax.set_zlabel("z (mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        if k == 0:
+            _callouts(ax, report, seg)
+    fig.subplots_adjust(left=0.02, right=0.86, bottom=0.03, top=0.95, wspace=0.05, hspace=0.12)
+    cax = fig.add_axes((0.9, 0.15, 0.02, 0.7))
+    bar = fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=CMAP), cax=cax)
+    bar.set_label("signed deviation from nominal (mm); + excess material")
+    return _png(fig)
+
+
+def _callouts(ax: Any, report: Any, seg: Any) -> None:
+    """A label per face with a verdict, at the mean of its points, in the verdict's colour."""
+    for row in report.faces:
+        verdict = face_verdict(row)
+        on = seg.face == row.index
+        if not verdict or not on.any():
+            continue
+        c = seg.foot[on].mean(axis=0)
+        ax.text(*c, f"{row.title}\n{verdict}", fontsize=8, color=VERDICT_COLOURS.get(verdict, "#000"),
+                ha="center", va="bottom", zorder=10,
+                bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": VERDICT_COLOURS.get(verdict, "#000"),
+                      "alpha": 0.85})
+
+
+CLOSEUP_AXES = (0.1, 0.12, 0.7, 0.74)  # the face's map in a close-up (figure fractions: left, bottom, width, height)
+CLOSEUP_CELLS = 160  # map cells along the face's longer side
+
+
+def face_map(uv: np.ndarray, dev: np.ndarray, cells: int = CLOSEUP_CELLS) -> tuple[np.ndarray, list[float]]:
+    """The mean signed deviation (mm) per cell of a regular grid over the face's surface
+    coordinates (NaN: no point), rows from v low to high; and its extent [u0, u1, v0, v1]."""
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    span = np.maximum(hi - lo, 1e-9)
+    shape = np.maximum(np.round(cells * span / span.max()).astype(int), 1)
+    edges = [np.linspace(lo[k], hi[k], shape[k] + 1) for k in (0, 1)]
+    total, _, _ = np.histogram2d(uv[:, 0], uv[:, 1], edges, weights=dev)
+    count, _, _ = np.histogram2d(uv[:, 0], uv[:, 1], edges)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > 0, total / count, np.nan)
+    return mean.T, [float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])]
+
+
+def face_closeup(report: Any, row: Any, limit_mm: float) -> bytes:
+    """One face in its own surface coordinates (u, v: mm on a plane; angle and height on a
+    cylinder, as the CAD face parametrises it), the mean signed deviation per map cell over
+    ±`limit_mm`, a colour bar in mm, the face's verdicts in the title. The map fills
+    `CLOSEUP_AXES`; the figure's height follows the face's aspect."""
+    seg = report.segmentation
+    on = (seg.face == row.index) & np.isfinite(seg.deviation_mm)
+    grid, extent = face_map(seg.uv[on], seg.deviation_mm[on]) if on.any() else (np.full((1, 1), np.nan),
+                                                                                 [0.0, 1.0, 0.0, 1.0])
+    aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9) if row.type == "plane" else 0.6
+    width = 7.2
+    height = float(np.clip(width * CLOSEUP_AXES[2] * aspect / CLOSEUP_AXES[3], 2.6, 6.0))
+    fig = plt.figure(figsize=(width, height))
+    ax = fig.add_axes(CLOSEUP_AXES)
+    norm = Normalize(-limit_mm, limit_mm)
+    ax.imshow(grid, origin="lower", extent=extent, cmap=CMAP, norm=norm, aspect="auto", interpolation="nearest")
+    plane = row.type == "plane"
+    ax.set_xlabel("u (mm)" if plane else "u (face parameter)", fontsize=9)
+    ax.set_ylabel("v (mm)" if plane else "v (face parameter)", fontsize=9)
+    verdicts = ", ".join(f"{k.removesuffix('_mm')} {v}" for k, (_, v) in row.verdicts.items())
+    ax.set_title(f"{row.title} ({row.type}, {int(on.sum())} points)\n{verdicts}", fontsize=9)
+    cax = fig.add_axes((CLOSEUP_AXES[0] + CLOSEUP_AXES[2] + 0.03, CLOSEUP_AXES[1], 0.025, CLOSEUP_AXES[3]))
+    bar = fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=CMAP), cax=cax)
+    bar.set_label("mean signed deviation (mm)", fontsize=8)
+    return _png(fig)
+
+
+def deviation_histogram(report: Any, profile_tolerances_mm: dict[str, float]) -> bytes:
+    """The signed deviations of every point on a face (mm), raw (noise included), with the
+    ±t/2 zone of each profile tolerance drawn as dashed lines."""
+    dev = report.segmentation.deviation_mm
+    dev = dev[np.isfinite(dev)]
+    fig, ax = plt.subplots(figsize=(7.2, 3.4))
+    if len(dev):
+        ax.hist(dev, bins=120, color="#4a6fa5")
+        ax.set_yscale("log")
+    for name, t in profile_tolerances_mm.items():
+        for x in (-t / 2, t / 2):
+            ax.axvline(x, color="#c01818", ls="--", lw=1)
+        ax.text(t / 2, 0.95, f" {name}: ±{t / 2:.3f} mm", transform=ax.get_xaxis_transform(), fontsize=8,
+                color="#c01818", va="top")
+    ax.set_xlabel("signed deviation from nominal (mm), every point on a face, noise included")
+    ax.set_ylabel("points (log scale)")
+    ax.set_title(f"{len(dev)} points; mean {np.mean(dev) if len(dev) else 0:+.4f} mm, "
+                 f"SD {np.std(dev) if len(dev) else 0:.4f} mm", fontsize=10)
+    fig.tight_layout()
+    return _png(fig)

@@ -1,0 +1,56 @@
+"""Headless Chromium (Debian's `chromium` package, installed by `./dev`) for the HTML
+reports: print one to PDF, take a screenshot, or dump its DOM after its scripts ran. A
+machine without Chromium gets None and a one-line reason on the log, never a failure: the
+HTML report is the record, the PDF a copy of it."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+NAMES = ("chromium", "chromium-browser", "google-chrome")
+TIMEOUT_S = 180.0  # a loaded 2-core machine takes ~10 s for a page with a few MB of images
+
+
+def chromium() -> str | None:
+    """The headless browser's executable, or None when none is installed."""
+    return next((p for p in map(shutil.which, NAMES) if p), None)
+
+
+def _run(page: Path, *options: str) -> subprocess.CompletedProcess[str] | None:
+    exe = chromium()
+    if exe is None:
+        log.warning("no PDF/screenshot of %s: Chromium is not installed (Debian package chromium)", page)
+        return None
+    with tempfile.TemporaryDirectory(prefix="slscan-chromium-") as profile:
+        cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", f"--user-data-dir={profile}",
+               "--allow-file-access-from-files", *options, Path(page).resolve().as_uri()]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT_S, check=False)
+
+
+def print_pdf(page: Path, out: Path) -> Path | None:
+    """`page` (HTML) printed to `out` (PDF, A4 from the page's print styles); None without
+    Chromium or when it wrote nothing (the reason on the log)."""
+    done = _run(page, f"--print-to-pdf={Path(out).resolve()}", "--no-pdf-header-footer")
+    if done is None:
+        return None
+    if done.returncode != 0 or not Path(out).is_file():
+        log.warning("no PDF of %s: chromium exited %d: %s", page, done.returncode, done.stderr.strip()[-300:])
+        return None
+    return Path(out)
+
+
+def screenshot(page: Path, out: Path, width: int, height: int) -> Path | None:
+    """A PNG of the top `width` x `height` px of `page` as the browser lays it out."""
+    done = _run(page, f"--screenshot={Path(out).resolve()}", f"--window-size={width},{height}")
+    return Path(out) if done is not None and done.returncode == 0 and Path(out).is_file() else None
+
+
+def dump_dom(page: Path, width: int, height: int) -> str | None:
+    """The page's DOM after its scripts ran, laid out at `width` x `height` px."""
+    done = _run(page, "--dump-dom", f"--window-size={width},{height}", "--virtual-time-budget=5000")
+    return done.stdout if done is not None and done.returncode == 0 else None

@@ -1,0 +1,471 @@
+"""Measurement uncertainty of every reported figure: the model, written down once.
+
+Every figure x comes with an expanded uncertainty U = k·u, k = 2 (about 95 % for the
+near-normal errors here), u² = u_noise² + u_fringe² + u_cal², from three sources:
+
+1. Noise (random, independent from pixel to pixel and from scan to scan). Per pixel, the
+   decoder knows the fringe modulation B_i of each frequency and the background A; the
+   camera's sensor model gives the intensity noise σ_I(A) (shot, read and quantisation
+   noise, [camera.sensor] of the rig). An N-step phase has σ_φ = sqrt(2/N)·σ_I/B per
+   frequency; the frequencies are combined by inverse variance, so the finest-fringe phase
+   has σ_φ = sqrt(2/N)·σ_I/sqrt(Σ (B_i f_i/f_max)²); the projector coordinate
+   σ_c = σ_φ·period/(2π); the depth σ_z = σ_c·|dz/dc| from the triangulation geometry.
+   The point moves along its camera ray: δX = ray·δz (ray = (x/z, y/z, 1)). On the
+   simulator this predicts the depth noise to 1 % (`sim.evaluate`, ratio 0.99-1.00).
+   Without a sensor model (a cloud file, a rig without [camera.sensor]) σ is estimated from
+   the data instead (fourth differences of the heights, `form.noise_sigma`), which also
+   counts fine real texture as noise; the report says which source was used.
+
+2. Fringe systematics. The projector shows 8-bit commands pre-compensated for its gamma,
+   so the displayed fringes are sinusoids only to the nearest grey level: the decoded
+   coordinate carries a fixed error that depends on the projector coordinate alone (the
+   same all along a projector column). `fringe_error` computes it from the pattern set,
+   the gamma and the projector's blur by running the decoder on the displayed profiles
+   (RMS 0.0017 projector px on the bench rig, with structure from a pixel to a hundred).
+   Where it lands on a part depends on where the part stands, which nobody knows to a
+   projector pixel: it is treated as that error function at a uniformly random offset, so
+   its spread and correlations are exactly the function's own.
+   Not modelled: the defocus of the camera, which on curved surfaces moves the phase
+   where the fringes crowd toward a silhouette (on the simulator, +0.2-0.3 µm on the
+   radius of a 25 mm sphere on average, about half its u); the acceptance test's probing
+   size error PS shows it on a real rig.
+
+3. Calibration. The rig's parameters (both devices' intrinsics and distortion, the
+   extrinsics) carry the covariance the calibration solve found (`calibration.json`:
+   "covariance"; older files and other tools' only one-sigmas, then taken as uncorrelated,
+   which is stated). It is propagated by re-triangulating the measured projector
+   coordinates with the rig moved one sigma each way along every principal direction of
+   the covariance (central differences: exact for figures linear in the geometry). A rig
+   with no calibration file uses its nominal geometry: on the simulator that is the truth
+   (u_cal = 0); on a real rig it is unknown, and U then says it covers noise only.
+
+Propagation. Least-squares figures (sphere centre and radius, plane, distances between
+centres) are linear in the points to first order: each point's influence g_i = ∂x/∂X_i is
+taken from the fit's normal equations, and u_noise² = Σ (g_i·ray_i)² σ_z,i²,
+u_fringe² = σ_q² Σ_columns (Σ_{i in column} (g_i·ray_i) ∂z_i/∂c)², u_cal² = Σ_d (Σ_i g_i·δX_d,i)².
+Zone, range and root-mean-square figures are not linear and are biased by noise (a zone
+holds the noise's extremes, Sq² gains the noise variance): they are evaluated by a
+parametric bootstrap — the same estimator run on the measured surface plus fresh draws of
+the modelled noise and fringe systematics — whose spread gives u and whose mean shift is
+the noise bias, removed from the reported value (a zone of the filtered form surface then
+reads what the surface has, not what the noise adds). Sq has the modelled noise variance
+removed in quadrature, and u from the variance of a mean of squares.
+
+Detection limits. A figure that noise alone could produce is not distinguishable from
+zero: it is reported as null with its detection limit x_limit_mm (printed `< limit`):
+for zones, the 95th percentile of the zone the modelled noise alone spans on that face;
+for Sq, the Sq whose estimate would clear the decision threshold k·u(Sq²|Sq = 0) with
+95 % probability, sqrt(2·k·u).
+
+The coverage of this model — the true value inside ±U for 95 % of repeat scans with fresh
+noise, and with calibration errors drawn from the calibration's covariance — is measured
+on the simulator (`sim.artefact_scenes`, tests/test_uncertainty_coverage.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from scanner.decode import DecodeResult, DecodeSettings, decode
+from scanner.geometry import Pinhole, RigModel
+from scanner.patterns import PatternSet
+from scanner.reconstruct import Triangulator
+
+K = 2.0  # coverage factor of every expanded uncertainty
+DETECTION_QUANTILE = 0.95
+PROJECTOR_BITS = 8  # grey levels of the projector's command images
+
+SensorNoise = Callable[[np.ndarray], np.ndarray]  # mean signal A (DN) -> intensity noise sigma (DN)
+
+
+# ---------------------------------------------------------------------------- estimates
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A figure in mm: `value` (None when it cannot be told from zero), its standard
+    uncertainty `u` (k = 1), its detection `limit` (None where the figure is not tested
+    against zero) and the noise `bias` already removed from the value."""
+
+    value: float | None
+    u: float
+    limit: float | None = None
+    bias: float = 0.0
+
+    @property
+    def U(self) -> float:
+        """Expanded uncertainty, k = 2 (mm)."""
+        return K * self.u
+
+    def fields(self, name: str) -> dict[str, float | None]:
+        """JSON fields: `name_mm`, `name_u_mm` (U, k = 2) and, when tested against zero,
+        `name_limit_mm`. `name` without its unit suffix."""
+        out: dict[str, float | None] = {f"{name}_mm": self.value, f"{name}_u_mm": self.U}
+        if self.limit is not None:
+            out[f"{name}_limit_mm"] = self.limit
+        return out
+
+    def text(self, digits: int = 1) -> str:
+        """For people, in µm: "12.3 ± 2.1 µm", or "< 6.1 µm" below the detection limit."""
+        if self.value is None:
+            return f"< {_um(self.limit, digits)} µm" if self.limit is not None else "not measured"
+        return f"{_um(self.value, digits)} ± {_um(self.U, digits)} µm"
+
+
+def _um(mm: float | None, digits: int) -> str:
+    return "-" if mm is None else f"{mm * 1e3:.{digits}f}"
+
+
+def combine(*u: float) -> float:
+    """Root sum of squares of independent standard uncertainties."""
+    return float(np.sqrt(sum(x * x for x in u)))
+
+
+# ----------------------------------------------------------------------- point noise
+
+
+@dataclass(frozen=True, eq=False)
+class FringeError:
+    """The decoded coordinate's error (projector px) that the projector's quantised
+    patterns make, as a function of the projector coordinate: `table[k]` at coordinate
+    k·`step_px` (circular). Its placement relative to a part is unknown, so it is used as a
+    random function: the table at a uniformly random offset."""
+
+    table: np.ndarray
+    step_px: float
+
+    @property
+    def rms_px(self) -> float:
+        return float(np.sqrt(np.mean(self.table ** 2)))
+
+    def scaled(self, factor: float) -> FringeError:
+        return FringeError(self.table * factor, self.step_px)
+
+    def at(self, coordinate: np.ndarray, offset_px: float) -> np.ndarray:
+        """The error at `coordinate` (px) with the table moved by `offset_px`."""
+        k = (coordinate + offset_px) / self.step_px
+        i = np.floor(k).astype(np.int64)
+        t = k - i
+        n = len(self.table)
+        return self.table[i % n] * (1.0 - t) + self.table[(i + 1) % n] * t
+
+    def spread(self, coordinate: np.ndarray, weight: np.ndarray) -> float:
+        """Standard deviation over all offsets of Σ_i weight_i·error(coordinate_i): the
+        weights binned on the table's samples and cross-correlated with it (FFT)."""
+        n = len(self.table)
+        k = coordinate / self.step_px
+        i = np.floor(k).astype(np.int64)
+        t = k - i
+        binned = np.bincount(i % n, weight * (1.0 - t), n) + np.bincount((i + 1) % n, weight * t, n)
+        sums = np.fft.irfft(np.fft.rfft(binned).conj() * np.fft.rfft(self.table), n)
+        return float(np.std(sums))
+
+
+@dataclass(frozen=True, eq=False)
+class PointNoise:
+    """The modelled errors of N measured points. A point moves along its camera `ray`
+    ((N, 3), (x/z, y/z, 1)) by δz: white noise of `sigma_z` (N,) mm, plus, per fringe
+    orientation, the fringe systematic `fringe` (a FringeError) at that orientation's
+    projector coordinate `columns[o]` (N,) px, reaching depth through `gains[o]` (N,)
+    mm/px. `source` says where sigma_z came from."""
+
+    sigma_z: np.ndarray
+    ray: np.ndarray
+    columns: tuple[np.ndarray, ...] = ()
+    gains: tuple[np.ndarray, ...] = ()
+    fringe: FringeError | None = None
+    source: str = "decoder and sensor model"
+
+    def __len__(self) -> int:
+        return len(self.sigma_z)
+
+    def subset(self, mask: np.ndarray) -> PointNoise:
+        return replace(self, sigma_z=self.sigma_z[mask], ray=self.ray[mask],
+                       columns=tuple(c[mask] for c in self.columns), gains=tuple(g[mask] for g in self.gains))
+
+    def rotated(self, R: np.ndarray) -> PointNoise:
+        """The same model with the rays turned by the rotation R (3, 3) into another frame."""
+        return replace(self, ray=self.ray @ R.T)
+
+    def scaled(self, factor: float) -> PointNoise:
+        """The same model with every noise and systematic scaled by `factor` (to check that
+        a coverage test notices an underestimated noise)."""
+        return replace(self, sigma_z=self.sigma_z * factor,
+                       fringe=None if self.fringe is None else self.fringe.scaled(factor))
+
+    def draw(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """`n` draws (n, N) of δz (mm): white noise plus the fringe systematic at a random
+        offset per draw and orientation."""
+        dz = rng.standard_normal((n, len(self))) * self.sigma_z
+        if self.fringe is not None:
+            span = len(self.fringe.table) * self.fringe.step_px
+            for col, gain in zip(self.columns, self.gains):
+                for k in range(n):
+                    dz[k] += self.fringe.at(col, rng.uniform(0.0, span)) * gain
+        return dz
+
+    def linear_u(self, influence: np.ndarray) -> tuple[float, float]:
+        """(u_noise, u_fringe) of a figure linear in the points, with per-point influence
+        (N, 3) = ∂figure/∂X_i."""
+        along = np.einsum("ij,ij->i", influence, self.ray)  # ∂figure/∂z_i
+        u_noise = float(np.sqrt(np.sum((along * self.sigma_z) ** 2)))
+        if self.fringe is None:
+            return u_noise, 0.0
+        var = sum(self.fringe.spread(col, along * gain) ** 2 for col, gain in zip(self.columns, self.gains))
+        return u_noise, float(np.sqrt(var))
+
+
+@dataclass(frozen=True, eq=False)
+class DepthNoise:
+    """Per-pixel maps (H, W) of a decoded scan: depth noise `sigma_z` (mm), and per
+    orientation the coordinate `coordinate[o]` (px) and the gain `gain[o]` (mm per px)
+    through which an error of that coordinate reaches the (averaged) depth."""
+
+    sigma_z: np.ndarray
+    coordinate: dict[str, np.ndarray]
+    gain: dict[str, np.ndarray]
+    weight: dict[str, np.ndarray]  # each orientation's share of the averaged depth
+
+    def at(self, pixels: np.ndarray, camera: Pinhole, fringe: FringeError | None, source: str) -> PointNoise:
+        """The PointNoise of the points seen at `pixels` (N, 2) (column, row)."""
+        c, r = pixels[:, 0], pixels[:, 1]
+        return PointNoise(self.sigma_z[r, c].astype(np.float64), camera.ray_grid[r, c].astype(np.float64),
+                          tuple(m[r, c].astype(np.float64) for m in self.coordinate.values()),
+                          tuple(g[r, c].astype(np.float64) for g in self.gain.values()), fringe, source)
+
+
+def depth_noise(decoded: DecodeResult, triangulator: Triangulator, sensor: SensorNoise | None) -> DepthNoise:
+    """The depth noise the decoder predicts per pixel (see the module docstring, 1.; NaN
+    without a `sensor` model). With both fringe orientations the depths are averaged with
+    the weights `scanner.reconstruct.triangulate` uses (phase precision over the squared
+    depth sensitivity, the sensor noise common to both), and σ_z is that average's."""
+    precision, slope, coords, sigma = {}, {}, {}, {}
+    for orientation, m in decoded.maps.items():
+        coords[orientation] = np.where(decoded.valid, m.coordinate, np.nan)
+        _, dz = triangulator.depth_scale(coords[orientation], orientation, sensitivity=True)
+        slope[orientation] = dz.astype(np.float64)
+        precision[orientation] = m.phase_weight.astype(np.float64) * m.period_px ** -2.0 / slope[orientation] ** 2
+        if sensor is not None:
+            sigma_i = sensor(m.background.astype(np.float64))
+            sigma_phi = np.sqrt(2.0 / decoded.patterns.steps) * sigma_i / np.sqrt(np.maximum(m.phase_weight, 1e-12))
+            sigma[orientation] = sigma_phi * m.period_px / (2.0 * np.pi) * slope[orientation]
+    total = sum(precision.values())
+    weight = {o: p / total for o, p in precision.items()}
+    sigma_z = (np.sqrt(sum((weight[o] * sigma[o]) ** 2 for o in sigma)) if sigma
+               else np.full(decoded.valid.shape, np.nan))
+    return DepthNoise(sigma_z, coords, {o: weight[o] * slope[o] for o in slope}, weight)
+
+
+def fringe_error(patterns: PatternSet, extent_px: int, gamma: float, blur_px: float = 0.0,
+                 oversample: int = 8) -> FringeError:
+    """The decoded coordinate's error (projector px) that `PROJECTOR_BITS`-bit commands
+    pre-compensated for `gamma` make, on a projector of `extent_px` pixels along the coded
+    axis whose optics blur by `blur_px` (Gaussian sigma, projector px): the displayed
+    profiles, sampled every 1/`oversample` px away from the outer fringe periods, run
+    through the scanner's own decoder."""
+    one = PatternSet(patterns.family, patterns.steps, patterns.fringes, ("vertical",))
+    commands = one.render(extent_px, 1, gamma)[:, 0, :].astype(np.float64)
+    shown = (commands / (2 ** PROJECTOR_BITS - 1)) ** gamma
+    if blur_px > 0:
+        shown = ndimage.gaussian_filter1d(shown, blur_px, axis=1, mode="mirror")
+    margin = extent_px / min(patterns.fringes)
+    u = np.arange(margin, extent_px - margin, 1.0 / oversample)
+    rows = np.zeros_like(u)
+    samples = np.stack([ndimage.map_coordinates(np.stack([s, s]), [rows, u], order=3, mode="mirror")
+                        for s in shown])
+    scale = 2 ** 16 - 1
+    frames = np.rint(samples * (0.5 * scale) + 0.25 * scale).astype(np.uint16)[:, None, :]
+    result = decode(frames, one, 16, (extent_px, 1), DecodeSettings(spatial_check=False))
+    err = result.maps["vertical"].coordinate[0].astype(np.float64) - u
+    err = np.where(np.isfinite(err), err, 0.0)
+    return FringeError(err - err.mean(), 1.0 / oversample)
+
+
+# ----------------------------------------------------------------------- calibration
+
+
+RIG_PARAMETERS = tuple(f"{dev}.{n}" for dev in ("camera", "projector")
+                       for n in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")) + \
+    tuple(f"extrinsic.{n}" for n in ("rx", "ry", "rz", "tx", "ty", "tz"))
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationUncertainty:
+    """The covariance (P, P) of the rig parameters `RIG_PARAMETERS` (px, unitless
+    distortion; the extrinsic is proj_from_cam as a Rodrigues vector (rad) and a
+    translation (mm)) and where it came from."""
+
+    covariance: np.ndarray
+    source: str
+
+    @classmethod
+    def none(cls, reason: str) -> CalibrationUncertainty:
+        return cls(np.zeros((len(RIG_PARAMETERS),) * 2), reason)
+
+    @classmethod
+    def from_report(cls, data: dict[str, Any]) -> CalibrationUncertainty:
+        """From a calibration file's content: its full "covariance" when it has one, else
+        its one-sigmas ("uncertainty") taken as uncorrelated."""
+        cov = data.get("covariance")
+        if isinstance(cov, dict) and list(cov.get("parameters", ())) == list(RIG_PARAMETERS):
+            return cls(np.asarray(cov["matrix"], dtype=np.float64), "the calibration's covariance")
+        std = data.get("uncertainty") or {}
+        sd = np.array([float(std.get(n, 0.0)) for n in RIG_PARAMETERS])
+        return cls(np.diag(sd ** 2), "the calibration's one-sigmas, taken as uncorrelated (the file holds no "
+                                     "covariance)")
+
+    @property
+    def is_zero(self) -> bool:
+        return not np.any(self.covariance)
+
+    def directions(self) -> np.ndarray:
+        """Principal one-sigma perturbations (D, P) of the parameters, Σ = Σ_d δ_d δ_dᵀ;
+        directions carrying no variance are left out."""
+        scale = np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+        s = np.where(scale > 0, scale, 1.0)
+        w, v = np.linalg.eigh(self.covariance / np.outer(s, s))
+        keep = w > max(float(w.max()), 0.0) * 1e-12
+        return (v[:, keep] * np.sqrt(w[keep])).T * s
+
+    def draw(self, rng: np.random.Generator) -> np.ndarray:
+        """One parameter perturbation (P,) drawn from N(0, covariance)."""
+        d = self.directions()
+        return rng.standard_normal(len(d)) @ d if len(d) else np.zeros(len(RIG_PARAMETERS))
+
+    def shifts(self, points: np.ndarray, model: RigModel, weights: dict[str, np.ndarray]) -> np.ndarray | None:
+        """Displacements (D, N, 3) mm of camera-frame `points` (N, 3) for each principal
+        direction (`calibration_jacobian`); None when there is no calibration uncertainty."""
+        if self.is_zero:
+            return None
+        return np.einsum("nip,dp->dni", calibration_jacobian(points, model, weights), self.directions())
+
+
+def perturbed(model: RigModel, delta: np.ndarray) -> RigModel:
+    """The rig with its parameters moved by `delta` (P,) (order of `RIG_PARAMETERS`)."""
+    def device(p: Pinhole, d: np.ndarray) -> Pinhole:
+        Kp = p.K.copy()
+        Kp[0, 0] += d[0]
+        Kp[1, 1] += d[1]
+        Kp[0, 2] += d[2]
+        Kp[1, 2] += d[3]
+        return Pinhole(p.width, p.height, Kp, p.dist + d[4:9])
+
+    P = model.proj_from_cam
+    Q = np.eye(4)
+    Q[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(P[:3, :3])[0].ravel() + delta[18:21])[0]
+    Q[:3, 3] = P[:3, 3] + delta[21:24]
+    return replace(model, camera=device(model.camera, delta[:9]), projector=device(model.projector, delta[9:18]),
+                   cam_from_proj=np.linalg.inv(Q), phase_to_height=None)
+
+
+def _projection_jacobians(points: np.ndarray, model: RigModel) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's analytic derivatives of the camera's and the projector's projections of
+    camera-frame `points` (N, 3): (N, 2, 15) each, columns (rvec, tvec, fx, fy, cx, cy,
+    k1, k2, p1, p2, k3); the projector's pose is proj_from_cam."""
+    X = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 1, 3)
+    cam, proj = model.camera, model.projector
+    _, Jc = cv2.projectPoints(X, np.zeros(3), np.zeros(3), cam.K, cam.dist)
+    P = model.proj_from_cam
+    _, Jp = cv2.projectPoints(X, cv2.Rodrigues(P[:3, :3])[0].ravel(), P[:3, 3], proj.K, proj.dist)
+    return Jc.reshape(len(X), 2, -1), Jp.reshape(len(X), 2, -1)
+
+
+def _constraints(Jc: np.ndarray, Jp: np.ndarray, model: RigModel, axis: int) -> np.ndarray:
+    """A (N, 3, 3) = ∂(camera pixel, projector coordinate along `axis`)/∂X."""
+    return np.concatenate([Jc[:, :, 3:6], (Jp[:, axis, 3:6] @ model.proj_from_cam[:3, :3])[:, None, :]], axis=1)
+
+
+def calibration_jacobian(points: np.ndarray, model: RigModel, weights: dict[str, np.ndarray]) -> np.ndarray:
+    """∂X/∂θ (N, 3, P): how camera-frame points (N, 3) triangulated from fixed camera
+    pixels and decoded projector coordinates move with the rig parameters θ
+    (`RIG_PARAMETERS`). A point satisfies π_cam(X; θ) = pixel and π_proj(X; θ)[axis] =
+    coordinate per orientation; implicit differentiation with OpenCV's analytic projection
+    derivatives gives ∂X/∂θ = −A⁻¹B per orientation, and with two orientations the depths
+    are averaged with `weights` (N,) per orientation, as reconstruction does."""
+    Jc, Jp = _projection_jacobians(points, model)
+    n = len(Jc)
+    out = np.zeros((n, 3, len(RIG_PARAMETERS)))
+    for orientation, w in weights.items():
+        axis = 0 if orientation == "vertical" else 1
+        B = np.zeros((n, 3, len(RIG_PARAMETERS)))
+        B[:, :2, 0:9] = Jc[:, :, 6:15]
+        B[:, 2, 9:18] = Jp[:, axis, 6:15]
+        B[:, 2, 18:24] = Jp[:, axis, 0:6]
+        out -= w[:, None, None] * np.linalg.solve(_constraints(Jc, Jp, model, axis), B)
+    return out
+
+
+def measurement_jacobian(points: np.ndarray, model: RigModel, orientation: str = "vertical") -> np.ndarray:
+    """∂X/∂(camera column, camera row, projector coordinate) (N, 3, 3) of camera-frame
+    `points` (N, 3) triangulated from a camera pixel and one projector coordinate (along
+    x for vertical fringes): A⁻¹ of the same constraints as `calibration_jacobian`."""
+    Jc, Jp = _projection_jacobians(points, model)
+    A = _constraints(Jc, Jp, model, 0 if orientation == "vertical" else 1)
+    return np.linalg.inv(A)
+
+
+# ------------------------------------------------------------------ a scan's uncertainty
+
+
+@dataclass(frozen=True, eq=False)
+class ScanUncertainty:
+    """What the figures measured on N points of a scan are propagated with: the points'
+    noise model, the calibration's covariance, the rig model they were triangulated with
+    and each point's share of the depth per fringe orientation (`weights`, (N,) each)."""
+
+    noise: PointNoise | None
+    calibration: CalibrationUncertainty
+    model: RigModel | None = None
+    weights: dict[str, np.ndarray] | None = None
+
+    def subset(self, mask: np.ndarray) -> ScanUncertainty:
+        w = None if self.weights is None else {o: v[mask] for o, v in self.weights.items()}
+        return ScanUncertainty(None if self.noise is None else self.noise.subset(mask), self.calibration, self.model, w)
+
+    def shifts(self, points: np.ndarray) -> np.ndarray | None:
+        """The points' (N, 3, camera frame) moves (D, N, 3) for each principal calibration
+        direction; None without calibration uncertainty."""
+        if self.model is None or self.weights is None:
+            return None
+        return self.calibration.shifts(points, self.model, self.weights)
+
+    def linear_u(self, points: np.ndarray, influence: np.ndarray, residual_rms: float = 0.0
+                 ) -> tuple[float, float, float]:
+        """(u_noise, u_fringe, u_cal) of a figure linear in the points (N, 3), with
+        per-point influence (N, 3) = ∂figure/∂X_i. Without a noise model the points'
+        noise is taken as white along their rays with the fit's `residual_rms`."""
+        noise = self.noise or PointNoise(np.full(len(points), residual_rms), points / points[:, 2:3],
+                                         source="estimated from the fit's residuals")
+        u_noise, u_fringe = noise.linear_u(influence)
+        shifts = self.shifts(points)
+        u_cal = 0.0 if shifts is None else float(np.sqrt(np.sum(np.einsum("dij,ij->d", shifts, influence) ** 2)))
+        return u_noise, u_fringe, u_cal
+
+    @classmethod
+    def join(cls, parts: list[ScanUncertainty]) -> ScanUncertainty:
+        """One model for the points of several parts of the same scan (or rig), in order."""
+        first = parts[0]
+        n = [p.noise for p in parts]
+        noise = None if any(x is None for x in n) else PointNoise(np.concatenate([x.sigma_z for x in n]), np.concatenate([x.ray for x in n]),
+                           tuple(np.concatenate(c) for c in zip(*(x.columns for x in n))),
+                           tuple(np.concatenate(g) for g in zip(*(x.gains for x in n))), first.noise.fringe,
+                           first.noise.source)  # type: ignore[union-attr]
+        weights = None if first.weights is None else {
+            o: np.concatenate([p.weights[o] for p in parts]) for o in first.weights}  # type: ignore[index]
+        return cls(noise, first.calibration, first.model, weights)
+
+
+def scan_uncertainty(decoded: DecodeResult, model: RigModel, sensor: SensorNoise | None, fringe: FringeError | None,
+                     calibration: CalibrationUncertainty, pixels: np.ndarray) -> ScanUncertainty:
+    """The ScanUncertainty of the points a decoded scan gives at `pixels` (N, 2) (column,
+    row), triangulated with `model`. Without a `sensor` noise model there is no noise
+    model (None): the figures then estimate the noise from the data."""
+    maps = depth_noise(decoded, Triangulator(model), sensor)
+    c, r = pixels[:, 0], pixels[:, 1]
+    noise = None if sensor is None else maps.at(pixels, model.camera, fringe, "decoder and sensor model")
+    return ScanUncertainty(noise, calibration, model, {o: w[r, c] for o, w in maps.weight.items()})

@@ -1,0 +1,272 @@
+"""Repeat-scan studies of the uncertainty model (`inspection.uncertainty`): how often the
+true value lies within ±U.
+
+Each trial places the artefact somewhere new in the rig's measuring volume (so the fringe
+systematics, fixed for one placement, are drawn afresh as the model assumes), renders it
+with fresh noise, decodes it and measures it with the same estimator `slscan verify` uses,
+on the camera window around the artefact (`sim.artefact_scenes.window_renderer`: the same
+pixels, fewer of them to render). With a `calibration`, each trial also reconstructs with
+a rig whose parameters are drawn from that covariance (the simulator still renders with
+the true one), and U includes the calibration term. `noise_scale` scales the noise model
+the U is computed from (not the simulated noise): below 1 it underestimates it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+
+from inspection.acceptance import Acceptance, Position, find_spheres, frame_along, pose_of
+from inspection.artefact_file import ArtefactSet
+from inspection.artefacts import measure_ball_bar, measure_sphere
+from inspection.uncertainty import (
+    CalibrationUncertainty,
+    Estimate,
+    FringeError,
+    ScanUncertainty,
+    fringe_error,
+    perturbed,
+    scan_uncertainty,
+)
+from scanner.geometry import RigModel
+from scanner.patterns import PatternSet
+from scanner.reconstruct import Triangulator, triangulate
+from scanner.rig import RigConfig
+from sim.artefact_scenes import artefact_objects, quick_scan, window_renderer
+from sim.render import SensorModel
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One repeat: the estimate, the truth (mm) and the seconds it took."""
+
+    estimate: Estimate
+    truth: float
+    seconds: float
+
+    @property
+    def inside(self) -> bool:
+        return self.estimate.value is not None and abs(self.estimate.value - self.truth) <= self.estimate.U
+
+
+@dataclass(frozen=True)
+class CoverageResult:
+    """Trials of one figure; `fraction` of them with the truth within ±U."""
+
+    figure: str
+    trials: tuple[Trial, ...]
+
+    @property
+    def fraction(self) -> float:
+        return float(np.mean([t.inside for t in self.trials]))
+
+    @property
+    def seconds(self) -> float:
+        return float(sum(t.seconds for t in self.trials))
+
+    def summary(self) -> str:
+        err = np.array([t.estimate.value - t.truth for t in self.trials if t.estimate.value is not None])
+        U = np.array([t.estimate.U for t in self.trials])
+        return (f"{self.figure}: truth within ±U in {self.fraction:.1%} of {len(self.trials)} trials; error mean "
+                f"{err.mean() * 1e3:+.3f} µm, std {err.std(ddof=1) * 1e3:.3f} µm; median U {np.median(U) * 1e3:.3f} µm "
+                f"(k = 2); {self.seconds:.0f} s")
+
+
+@dataclass(frozen=True, eq=False)
+class Bench:
+    """The simulated rig of a study: its true geometry, sensor, pattern set and the
+    fringe error of its projector."""
+
+    model: RigModel
+    sensor: SensorModel
+    patterns: PatternSet
+    projector_blur_px: float
+    exposure_s: float
+    bit_depth: int
+    fringe: FringeError
+    acceptance: Acceptance
+
+    @classmethod
+    def of(cls, config: RigConfig) -> Bench:
+        model = config.nominal_model()
+        patterns = PatternSet.load(config.patterns_path)
+        blur = float(config.projector.get("blur_sigma_px", 0.0))
+        return cls(model, SensorModel.from_config(config), patterns, blur,
+                   float(config.camera.get("exposure_s", 0.01)), int(config.camera.get("bit_depth", 12)),
+                   fringe_error(patterns, model.projector.width, model.projector_gamma, blur),
+                   Acceptance.from_rig(config.raw, config.path, config.working_distance_mm))
+
+
+Measure = Callable[[np.ndarray, Callable[[np.ndarray], ScanUncertainty]], Estimate]
+
+
+def _trial(bench: Bench, position: Position, artefacts: ArtefactSet, measure: Measure, truth: float,
+           rng: np.random.Generator, calibration: CalibrationUncertainty | None, noise_scale: float) -> Trial:
+    t0 = time.perf_counter()
+    renderer = window_renderer(bench.model, artefact_objects(position, artefacts), bench.sensor, bench.projector_blur_px)
+    decoded = quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s, bench.bit_depth, rng)
+    used = renderer.model
+    if calibration is not None:
+        used = perturbed(used, calibration.draw(rng))
+    points = triangulate(decoded, Triangulator(used), with_normals=False).points
+    cal = calibration or CalibrationUncertainty.none("the simulator's exact geometry")
+
+    def uncertainties(pixels: np.ndarray) -> ScanUncertainty:
+        unc = scan_uncertainty(decoded, used, lambda a: bench.sensor.noise_sigma_dn(a, bench.bit_depth), bench.fringe,
+                               cal, pixels)
+        return replace(unc, noise=unc.noise.scaled(noise_scale))  # type: ignore[union-attr]
+
+    return Trial(measure(points, uncertainties), truth, time.perf_counter() - t0)
+
+
+def sphere_radius(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0,
+                  calibration: CalibrationUncertainty | None = None, noise_scale: float = 1.0) -> CoverageResult:
+    """Coverage of the sphere radius: the artefact set's sphere at random places."""
+    s = artefacts.sphere
+    assert s is not None
+    rng = np.random.default_rng(seed)
+    half = np.array(bench.acceptance.size_mm) / 2 - s.radius_mm - 2.0
+    c0 = np.array(bench.acceptance.centre_mm)
+
+    def measure(points: np.ndarray, unc: Callable[[np.ndarray], ScanUncertainty]) -> Estimate:
+        (px,) = find_spheres(points, s.radius_mm, 1)
+        return measure_sphere(points[px[:, 1], px[:, 0]].astype(np.float64), unc(px), s.radius_mm)[1].radius
+
+    trials = [_trial(bench, Position("sphere", k, pose_of(np.eye(3), c0 + rng.uniform(-half, half)), ""), artefacts,
+                     measure, s.radius_mm, rng, calibration, noise_scale) for k in range(n)]
+    return CoverageResult("sphere radius", tuple(trials))
+
+
+def ball_bar_length(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0,
+                    calibration: CalibrationUncertainty | None = None, noise_scale: float = 1.0) -> CoverageResult:
+    """Coverage of the ball bar's centre distance: random directions (kept inside the
+    measuring volume) through random places near its centre."""
+    b = artefacts.ball_bar
+    assert b is not None
+    rng = np.random.default_rng(seed)
+    half = np.array(bench.acceptance.size_mm) / 2
+    c0 = np.array(bench.acceptance.centre_mm)
+
+    def measure(points: np.ndarray, unc: Callable[[np.ndarray], ScanUncertainty]) -> Estimate:
+        pxs = find_spheres(points, b.radius_mm, 2)
+        bar = measure_ball_bar(tuple(points[p[:, 1], p[:, 0]].astype(np.float64) for p in pxs),  # type: ignore[arg-type]
+                               tuple(unc(p) for p in pxs), b.radius_mm)  # type: ignore[arg-type]
+        return bar.distance
+
+    trials = []
+    for k in range(n):
+        while True:  # a direction and a place whose spheres fit the volume and do not hide each other
+            d = rng.normal(size=3)
+            d[2] = abs(d[2]) * 0.6
+            R = frame_along(d / np.linalg.norm(d))
+            reach = np.abs(R[:, 0]) * (b.length_mm / 2 + b.radius_mm)
+            room = half - reach
+            lateral = np.hypot(R[0, 0], R[1, 0]) * b.length_mm
+            if (room > 0).all() and lateral > 2.2 * b.radius_mm:
+                break
+        pose = pose_of(R, c0 + rng.uniform(-room, room))
+        trials.append(_trial(bench, Position("ball_bar", k, pose, ""), artefacts, measure, b.length_mm, rng,
+                             calibration, noise_scale))
+    return CoverageResult("ball-bar length", tuple(trials))
+
+
+# ------------------------------------------------------------------- flatness and Sq
+
+
+PLATE_MM = (40.0, 30.0)
+PLATE_STEP_MM = 0.1  # mesh spacing: 0.1 mm, below the camera's 0.125 mm pixels
+
+
+@dataclass(frozen=True)
+class Plate:
+    """A flat plate of `PLATE_MM` whose surface has a bow (quadratic dome of `bow_mm`
+    from the middle to the corners) and a random texture of RMS `texture_mm` at
+    wavelengths of `wavelengths_mm` (sim.parts.Roughness), as a height-field mesh."""
+
+    bow_mm: float = 0.030
+    texture_mm: float = 0.008
+    wavelengths_mm: tuple[float, float] = (1.5, 4.0)
+
+    def mesh(self, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        from sim.parts import Roughness
+
+        w, h = PLATE_MM
+        x, y = np.meshgrid(np.arange(-w / 2, w / 2 + 1e-9, PLATE_STEP_MM), np.arange(-h / 2, h / 2 + 1e-9, PLATE_STEP_MM))
+        p = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+        z = self.bow_mm * (1.0 - (p[:, 0] ** 2 + p[:, 1] ** 2) / ((w / 2) ** 2 + (h / 2) ** 2))
+        z += Roughness(0, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), self.texture_mm, self.wavelengths_mm, seed=seed).height(p)
+        p[:, 2] = z
+        rows, cols = x.shape
+        k = np.arange(rows * cols).reshape(rows, cols)[:-1, :-1].ravel()
+        tris = np.concatenate([np.stack([k, k + 1, k + cols], 1), np.stack([k + 1, k + cols + 1, k + cols], 1)])
+        return p, tris.astype(np.int32)
+
+
+def _plate_face() -> object:
+    from inspection.surfaces import Plane
+
+    class Face:
+        type = "plane"
+        surface = Plane(np.zeros(3), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+
+    return Face()
+
+
+def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationUncertainty | None = None,
+                  noise_scale: float = 1.0, plate: Plate = Plate(), draws: int = 32
+                  ) -> tuple[CoverageResult, CoverageResult]:
+    """Coverage of the minimum-zone flatness and of Sq of a textured, bowed plate
+    (`Plate`) placed at random in the measuring volume, tilted up to 20 degrees: the
+    plate's points taken into its own frame with its true pose (registration is not what
+    is studied here), evaluated as an inspection evaluates a plane face
+    (`inspection.form.evaluate_face`). The truth: the same evaluation of the noise-free
+    surface points the same pixels see."""
+    from inspection.form import FormSettings, evaluate_face
+    from sim.calibration_bench import rotation
+    from sim.scene import SceneObject
+
+    rng = np.random.default_rng(seed)
+    face = _plate_face()
+    half = np.array(bench.acceptance.size_mm) / 2 - [PLATE_MM[0] / 2, PLATE_MM[1] / 2, 8.0]
+    c0 = np.array(bench.acceptance.centre_mm)
+    cal = calibration or CalibrationUncertainty.none("the simulator's exact geometry")
+    settings = FormSettings(draws=draws)
+    flat, sq = [], []
+    for k in range(n):
+        t0 = time.perf_counter()
+        vertices, triangles = plate.mesh(seed * 100003 + k)
+        pose = pose_of(rotation(*rng.uniform(-20.0, 20.0, 2), rng.uniform(0.0, 360.0)), c0 + rng.uniform(-half, half))
+        obj = SceneObject("plate", "mesh", pose, 0.7, vertices=vertices, triangles=triangles)
+        renderer = window_renderer(bench.model, (obj,), bench.sensor, bench.projector_blur_px)
+        decoded = quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s,
+                             bench.bit_depth, rng)
+        used = renderer.model if calibration is None else perturbed(renderer.model, calibration.draw(rng))
+        points = triangulate(decoded, Triangulator(used), with_normals=False).points
+        gt = renderer.ground_truth
+        ok = np.isfinite(points).all(axis=2) & (gt.object_id == 2)
+        rows, cols = np.nonzero(ok)
+        px = np.stack([cols, rows], axis=1)
+        unc = scan_uncertainty(decoded, used, lambda a: bench.sensor.noise_sigma_dn(a, bench.bit_depth), bench.fringe,
+                               cal, px)
+        inv = np.linalg.inv(pose)
+        R = inv[:3, :3]
+
+        def local(p: np.ndarray) -> np.ndarray:
+            return p @ R.T + inv[:3, 3]
+
+        measured = local(points[rows, cols].astype(np.float64))
+        true_pts = local(gt.points[rows, cols])
+        normals = np.tile([0.0, 0.0, 1.0], (len(measured), 1))
+        moves = unc.shifts(points[rows, cols].astype(np.float64))
+        got = evaluate_face(face, measured, measured[:, 2], measured[:, :2], settings, seed=k,
+                            noise=unc.noise.rotated(R).scaled(noise_scale), normals=normals,  # type: ignore[union-attr]
+                            shifts=None if moves is None else moves @ R.T)
+        truth = evaluate_face(face, true_pts, true_pts[:, 2], true_pts[:, :2], FormSettings(draws=2), seed=k,
+                              noise=unc.noise.rotated(R).scaled(0.0), normals=normals)  # type: ignore[union-attr]
+        dt_s = time.perf_counter() - t0
+        flat.append(Trial(got.flatness_mz, truth.flatness_mz.value, dt_s / 2))  # type: ignore[union-attr,arg-type]
+        sq.append(Trial(got.sq, truth.sq.value, dt_s / 2))  # type: ignore[union-attr,arg-type]
+    return CoverageResult("flatness (minimum zone)", tuple(flat)), CoverageResult("Sq", tuple(sq))

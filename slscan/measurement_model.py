@@ -1,0 +1,78 @@
+"""The measurement model of a scan taken by slscan: what `inspection.uncertainty` needs to
+give every figure its uncertainty, read from the session and its rig.
+
+  - the noise: the session's raw frames decoded again (the same decoder and settings as
+    its cloud), with the camera's sensor model from the rig config ([camera.sensor]);
+    without one, no noise model (the figures then estimate the noise from the data);
+  - the fringe error of the projector's quantised patterns (pattern set, gamma, the
+    projector's blur when the rig file gives it);
+  - the calibration's covariance, from the calibration file the session's rig model
+    names; a rig without one uses its nominal geometry: exact on the simulator, unknown
+    (and said to be not in U) on a real rig.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from inspection.uncertainty import (
+    CalibrationUncertainty,
+    FringeError,
+    ScanUncertainty,
+    SensorNoise,
+    fringe_error,
+    scan_uncertainty,
+)
+from scanner.decode import DecodeResult, decode
+from scanner.geometry import RigModel
+from scanner.patterns import PatternSet
+
+
+def sensor_noise(rig_config: dict[str, Any], bit_depth: int, where: object) -> SensorNoise | None:
+    """The camera's intensity noise (DN) as a function of its mean signal, from a rig
+    config's [camera.sensor] table (None without one)."""
+    from sim.render import SensorModel
+
+    table = (rig_config.get("camera") or {}).get("sensor")
+    if not table:
+        return None
+    model = SensorModel.from_table(table, where)
+    return lambda mean: model.noise_sigma_dn(mean, bit_depth)
+
+
+def projector_fringe_error(patterns: PatternSet, model: RigModel, rig_config: dict[str, Any]) -> FringeError:
+    """The fringe error of the rig's projector showing `patterns` (its blur from the rig
+    config's projector.blur_sigma_px when given, else none)."""
+    blur = float((rig_config.get("projector") or {}).get("blur_sigma_px", 0.0))
+    extent = model.projector.width if "vertical" in patterns.orientations else model.projector.height
+    return fringe_error(patterns, extent, model.projector_gamma, blur)
+
+
+def calibration_uncertainty(model: RigModel, driver: str) -> CalibrationUncertainty:
+    """The covariance of the calibration `model` was loaded from; without one, none, with
+    what that means for this driver."""
+    if model.calibration:
+        path = Path(model.calibration)
+        return CalibrationUncertainty.from_report(json.loads(path.read_text()))
+    if driver == "sim":
+        return CalibrationUncertainty.none("none: the simulator's nominal geometry is its truth")
+    return CalibrationUncertainty.none("not known: the rig has no calibration file (nominal geometry); its error is "
+                                       "not in U")
+
+
+def session_uncertainty(session: Any) -> Callable[[np.ndarray], ScanUncertainty]:
+    """For a `scanner.session.Session`: a function giving the ScanUncertainty of the
+    points at camera pixels (N, 2) (column, row) of its cloud."""
+    manifest = session.manifest
+    config = manifest.get("rig_config", {})
+    model = session.rig_model()
+    patterns = session.patterns
+    decoded: DecodeResult = decode(session.load_stack(), patterns, session.bit_depth, model.projector.size)
+    sensor = sensor_noise(config, session.bit_depth, session.root / "manifest.json")
+    fringe = projector_fringe_error(patterns, model, config)
+    calibration = calibration_uncertainty(model, (config.get("rig") or {}).get("driver", ""))
+    return lambda pixels: scan_uncertainty(decoded, model, sensor, fringe, calibration, pixels)

@@ -1,0 +1,234 @@
+"""Command-line conventions (issue 14, "Command line"): the parser's command table walked
+for help, examples and usage errors; --version; bare `slscan`; one spelling for methods and
+output options with the old ones kept as warned aliases; exit codes from one module, and the
+README's table of them; progress that reads in a log; `calibrate --from` leaving nothing
+behind when it fails."""
+
+from __future__ import annotations
+
+import argparse
+import io
+import re
+import shlex
+import shutil
+import subprocess
+import tomllib
+from contextlib import redirect_stderr, redirect_stdout
+from pathlib import Path
+
+import pytest
+
+from calibration.errors import CalibrationRejected
+from scanner.errors import ConfigError, DeviceTimeout, FrameDropped, ScannerError
+from slscan import cli
+from slscan.exit_codes import Exit, for_error
+from slscan.progress import ProgressLine
+
+ROOT = Path(__file__).resolve().parents[1]
+COMMANDS = cli.commands(cli.build_parser())
+
+
+def run(*argv: str) -> tuple[int, str, str]:
+    """The command line in-process: exit code (a SystemExit's too), stdout, stderr."""
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        try:
+            code = cli.main(list(argv))
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 2
+    return int(code), out.getvalue(), err.getvalue()
+
+
+def test_the_command_table_is_complete() -> None:
+    names = set(COMMANDS)
+    assert {"scan", "decode", "demo", "review", "export", "calibrate", "inspect", "station", "results",
+            "devices lightcrafter-images"} <= names
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_every_command_help_has_an_example_and_every_option_help(name: str) -> None:
+    code, out, _ = run(*name.split(), "--help")
+    assert code == 0
+    examples = out.split("examples:\n", 1)
+    assert len(examples) == 2, f"slscan {name} --help has no examples"
+    assert re.search(rf"^  slscan {re.escape(name)}\b", examples[1], re.M), f"no `slscan {name}` example"
+    for action in COMMANDS[name]._actions:
+        assert action.help, f"slscan {name}: {action.option_strings or action.dest} has no help text"
+    for line in re.findall(rf"^  (slscan {re.escape(name)}\b.*)$", examples[1], re.M):
+        command = re.split(r"\s{2,}", line)[0]  # an example may end with a note after two spaces
+        err = io.StringIO()
+        with redirect_stderr(err):
+            cli.build_parser().parse_args(shlex.split(command)[1:])  # the example's options exist as written
+        assert "deprecated" not in err.getvalue(), command
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_every_command_refuses_an_unknown_option_with_exit_2(name: str) -> None:
+    code, _, err = run(*name.split(), "--no-such-option")
+    assert code == Exit.USAGE == 2
+    assert err.startswith("usage: slscan") and "error:" in err  # the option, or a missing argument, named
+
+
+def test_bare_slscan_prints_the_help_and_exits_0() -> None:
+    code, out, err = run()
+    assert code == 0 and err == ""
+    assert out.startswith("usage: slscan") and "exit codes:" in out
+    for name in ("scan", "export", "review", "station"):
+        assert f"\n    {name} " in out
+
+
+def test_version_names_the_package_and_the_checkout() -> None:
+    code, out, _ = run("--version")
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert code == 0 and out.startswith(f"slscan {pyproject['project']['version']}")
+    git = shutil.which("git") and subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty", "--tags"],
+                                                 capture_output=True, text=True)
+    if git and git.returncode == 0:
+        assert f"(git {git.stdout.strip()})" in out
+
+
+def parse(*argv: str) -> tuple[argparse.Namespace, str]:
+    err = io.StringIO()
+    with redirect_stderr(err):
+        args = cli.build_parser().parse_args(list(argv))
+    return args, err.getvalue()
+
+
+def test_one_spelling_for_methods_the_old_one_warned() -> None:
+    args, err = parse("pose", "s", "--part", "p.toml")
+    assert args.method == "sac-ia" and err == ""
+    args, err = parse("pose", "s", "--part", "p.toml", "--method", "sacia")
+    assert args.method == "sac-ia" and "'sacia' is deprecated; use 'sac-ia'" in err
+    args, err = parse("register", "a", "b", "--coarse", "sacia")
+    assert args.coarse == "sac-ia" and "deprecated" in err
+    args, _ = parse("posebench", "--methods", "sacia", "ndt")
+    assert args.methods == ["sac-ia", "ndt"]
+    assert "sacia" not in cli.commands(cli.build_parser())["pose"].format_help()
+
+
+def test_output_options_are_out_the_old_names_warned() -> None:
+    args, err = parse("station", "prog.toml", "--data", "d")
+    assert args.out == "d" and "--data is deprecated; use --out" in err
+    args, err = parse("station", "prog.toml", "--out", "d")
+    assert args.out == "d" and err == ""
+    args, err = parse("results", "--csv", "r.csv")
+    assert args.csv is True and args.out == "r.csv" and "--csv --out r.csv" in err
+    args, err = parse("results", "--report", "--out", "rep")
+    assert args.report is True and args.out == "rep" and err == ""
+    for name, command in COMMANDS.items():  # no output folder under another visible name
+        shown = {s for a in command._actions if a.help != argparse.SUPPRESS for s in a.option_strings}
+        assert not {"--output", "--report-dir", "--out-dir"} & shown, name
+
+
+@pytest.mark.parametrize("error, code", [
+    (FrameDropped("camera sim", "frame 3 was dropped", 3, 4), 3),
+    (DeviceTimeout("trigger box", "no reply", 1.0), 3),
+    (CalibrationRejected("camera RMS 0.9 px > 0.5 px"), 1),
+    (ConfigError("rig.toml", "rig.driver", "required key is missing"), 2),
+    (ScannerError("a refused input"), 2),
+    (KeyboardInterrupt(), 130),
+])
+def test_errors_map_to_the_documented_exit_codes(error: BaseException, code: int) -> None:
+    assert for_error(error) == code
+
+
+def test_readme_documents_every_exit_code() -> None:
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("## Exit codes", 1)
+    assert len(section) == 2, "README has no '## Exit codes' section"
+    table = section[1].split("\n## ", 1)[0]
+    for code in Exit:
+        assert re.search(rf"^\| {int(code)} \|", table, re.M), f"README's exit code table lacks {int(code)}"
+
+
+def test_a_device_fault_in_a_command_exits_3(monkeypatch: pytest.MonkeyPatch) -> None:
+    from slscan.commands import devices
+
+    def unplugged(probe: bool) -> list[str]:
+        raise DeviceTimeout("serial /dev/ttyACM0", "no reply to PING", 1.0)
+
+    monkeypatch.setattr(devices, "serial_ports", unplugged)
+    code, _, err = run("devices", "--probe")
+    assert code == 3 and "serial /dev/ttyACM0: device timeout: no reply to PING after 1 s" in err and "Traceback" not in err
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class LogStream(io.StringIO):
+    def isatty(self) -> bool:
+        return False
+
+
+def test_progress_in_a_log_is_one_line_per_stage_start_and_finish() -> None:
+    clock, log = Clock(), LogStream()
+    progress = ProgressLine(log, clock)
+    for k in range(24):  # a counted stage, as capture reports
+        clock.t += 0.5
+        progress("capture", k + 1, 24)
+    for stage, seconds in (("load", 0.25), ("decode", 1.5), ("write", 0.75)):  # 0/1 stages, as the pipeline's
+        progress(stage, 0, 1)
+        clock.t += seconds
+    progress("done", 1, 1)
+    assert log.getvalue().splitlines() == [
+        "capture     started, 24 steps",
+        "capture     finished 24/24 steps in 11.50 s",
+        "load        started",
+        "load        finished in 0.25 s",
+        "decode      started",
+        "decode      finished in 1.50 s",
+        "write       started",
+        "write       finished in 0.75 s",
+        "done        all stages in 14.50 s",
+    ]
+    assert "0/1" not in log.getvalue()
+
+
+def test_calibrate_from_a_bad_folder_leaves_no_output_folder(tmp_path: Path) -> None:
+    captures, out = tmp_path / "captures", tmp_path / "cal"
+    captures.mkdir()  # no capture.json: refused
+    code, _, err = run("calibrate", "--from", str(captures), "--out", str(out))
+    assert code == 2 and "capture" in err
+    assert not out.exists()
+    out.mkdir()  # an empty folder the user made stays, empty
+    code, _, err = run("calibrate", "--from", str(captures), "--out", str(out))
+    assert code == 2 and "not empty" not in err  # the retry is not refused for the first run's leftovers
+    assert out.is_dir() and not any(out.iterdir())
+
+
+def test_the_station_exits_1_after_a_failed_part(tmp_path: Path) -> None:
+    """The simulated station's second part carries a defect that fails its program (the
+    simulator's truth as the gauge, a 320 x 256 camera): one good part exits 0, two exit 1."""
+    from tests.test_station_support import DEMO_PROGRAM, station_config
+
+    one, two = tmp_path / "one", tmp_path / "two"
+    one.mkdir(), two.mkdir()
+    code, out, _ = run("station", str(DEMO_PROGRAM), "--config", str(station_config(one)), "--auto", "--parts", "1")
+    assert code == 0 and "1 parts: 1 pass" in out
+    code, out, _ = run("station", str(DEMO_PROGRAM), "--config", str(station_config(two)), "--auto", "--parts", "2")
+    assert code == 1 and "2 parts: 1 pass, 1 fail" in out
+
+
+def test_progress_on_a_terminal_is_one_live_line_per_stage() -> None:
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    clock, term = Clock(), Terminal()
+    progress = ProgressLine(term, clock)
+    for k in range(4):
+        clock.t += 1.0
+        progress("capture", k + 1, 4)
+    progress("decode", 0, 1)
+    clock.t += 2.0
+    progress("done", 1, 1)
+    lines = term.getvalue().split("\n")
+    assert lines[0].split("\r")[-1].rstrip() == "capture     finished 4/4 steps in 3.00 s"  # the bar, then its summary
+    assert "[####################] 4/4" in lines[0]
+    assert lines[1].split("\r")[-1].rstrip() == "decode      finished in 2.00 s"
+    assert lines[2].split("\r")[-1].rstrip() == "done        all stages in 6.00 s" and lines[3] == ""

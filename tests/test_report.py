@@ -1,0 +1,337 @@
+"""The inspection report (issue 14): one source of tolerances (the part program), face
+names wherever a face is shown, and the HTML page checked in a real browser (headless
+Chromium: elements present and drawn, nothing wider than the window), not by pixels.
+
+The page under test is rendered from a report built here with known figures: the high top
+of the demo part (a plane, z = 22 mm) bowed by a known amount, so the drawn colours, the
+table's values and verdicts have an independent truth (the numbers put in, ISO 14253-1's
+rule written out in the test)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import tomllib
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from inspection.form import FaceForm, FormSettings
+from inspection.report import FaceRow, InspectionReport
+from inspection.report_header import ReportHeader, file_sha256
+from inspection.report_pdf import chromium, dump_dom, print_pdf, screenshot
+from inspection.segmentation import Segmentation
+from inspection.uncertainty import Estimate
+from scanner.config import CONFIG_DIR
+from scanner.errors import ConfigError
+from slscan.commands.inspect import load_tolerance_source
+from slscan.station.program import load_program, program_tolerances
+
+PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"
+TOLERANCE_FILE = Path(__file__).parent / "data" / "tolerance_file.toml"
+DEMO_LABELS = {"#17": "cylinder", "#105": "cone", "#158": "plane", "#270": "plane", "#305": "plane", "#375": "plane",
+               "#480": "plane", "#575": "plane", "#602": "cylinder", "#657": "plane", "#684": "plane",
+               "#711": "plane", "#718": "plane"}  # `slscan cad config/parts/demo_part.step`
+WIDTH, HEIGHT = 1280, 900
+needs_chromium = pytest.mark.skipif(chromium() is None, reason="headless Chromium not installed (Debian: chromium)")
+
+
+# ------------------------------------------------------------------ one source of tolerances
+
+def test_the_program_is_the_tolerance_source() -> None:
+    """The demo program's characteristics, read here from the TOML itself, are the limits the
+    inspection applies, face by face, with the program's face names."""
+    raw = tomllib.loads(PROGRAM.read_text())
+    want: dict[str, dict[str, float]] = {}
+    for c in raw["characteristic"]:
+        key = f"{c['kind']}_ls_mm" if c.get("method") == "least_squares" else f"{c['kind']}_mm"
+        want.setdefault(c["face"], {})[key] = c["tolerance_mm"]
+    tol, program = load_tolerance_source(PROGRAM, DEMO_LABELS)
+    assert program is not None and program.name == raw["program"]["name"]
+    assert tol.faces == want and tol.default == {} and tol.decision_rule == "guard-banded"
+    assert tol.names == raw["faces"] and tol.name("#657") == "high top"
+    assert program_tolerances(load_program(PROGRAM)).faces == want
+
+
+def test_a_tolerance_file_is_still_read() -> None:
+    tol, program = load_tolerance_source(TOLERANCE_FILE, DEMO_LABELS)
+    assert program is None and tol.names == {}
+    assert tol.faces["#17"] == {"cylindricity_ls_mm": 0.05} and tol.default == {"profile_mm": 0.1}
+
+
+def test_a_program_naming_a_face_the_model_lacks_is_refused(tmp_path: Path) -> None:
+    text = PROGRAM.read_text().replace('cad = "demo_part.step"', f'cad = "{CONFIG_DIR / "parts" / "demo_part.step"}"')
+    text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR / "patterns"}/')
+    bad = tmp_path / "p.toml"
+    bad.write_text(text.replace('"#711" = "base"', '"#999" = "base"'))
+    with pytest.raises(ConfigError, match=r'p\.toml.*faces\."#999"'):
+        load_tolerance_source(bad, DEMO_LABELS)
+    bad.write_text(text + '\n[[characteristic]]\nname = "again"\nface = "#657"\nkind = "flatness"\ntolerance_mm = 0.1\n')
+    with pytest.raises(ConfigError, match="second flatness of face #657"):
+        load_tolerance_source(bad, DEMO_LABELS)
+
+
+# ------------------------------------------------------------------ a report with known figures
+
+BOW_MM = 0.012  # the high top's bow: deviation BOW at its centre, 0 at its corners
+HIGH_TOP = SimpleNamespace(label="#657", step_id=657, type="plane", index=9)
+BOSS = SimpleNamespace(label="#17", step_id=17, type="cylinder", index=0)
+
+
+def known_report() -> InspectionReport:
+    """The high top (35 x 60 mm at z = 22) bowed by BOW_MM, and the boss's side (r 12 mm),
+    with figures and verdicts as given (not computed by the code under test)."""
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(-45, -10, 20000), rng.uniform(-30, 30, 20000)
+    r2 = ((u + 27.5) / 17.5) ** 2 + (v / 30.0) ** 2
+    top_dev = BOW_MM * (1 - r2 / 2) + rng.normal(0, 0.002, len(u))
+    a, h = rng.uniform(-np.pi, np.pi, 6000), rng.uniform(10, 33, 6000)
+    side = np.column_stack([20 + 12 * np.cos(a), 12 * np.sin(a), h])
+    foot = np.vstack([np.column_stack([u, v, np.full_like(u, 22.0)]), side])
+    dev = np.concatenate([top_dev, rng.normal(0, 0.002, len(a))])
+    face = np.concatenate([np.full(len(u), HIGH_TOP.index), np.full(len(a), BOSS.index)])
+    uv = np.vstack([np.column_stack([u, v]), np.column_stack([a, h])])
+    normal = np.vstack([np.tile([0, 0, 1.0], (len(u), 1)), np.column_stack([np.cos(a), np.sin(a), 0 * a])])
+    seg = Segmentation(face, dev, foot, normal, uv)
+    top = FaceForm(len(u), "ok", flatness_mz=Estimate(0.0123, 0.001), flatness_ls=Estimate(0.0131, 0.001),
+                   sq=Estimate(None, 0.002, 0.0046), profile=Estimate(0.0254, 0.002),
+                   deviation_min=Estimate(-0.0007, 0.001), deviation_max=Estimate(0.0127, 0.001),
+                   raw_deviation_min=Estimate(-0.0081, 0.004), raw_deviation_max=Estimate(0.0199, 0.004),
+                   sq_raw_mm=0.0031, sq_noise_mm=0.0029, noise_source="decoder and sensor model")
+    boss = FaceForm(len(a), "ok", cylindricity_mz=Estimate(0.048, 0.003), noise_source="decoder and sensor model")
+    rows = (FaceRow.of(HIGH_TOP, top, {"flatness_mm": (0.05, "conforming"), "profile_mm": (0.1, "conforming"),
+                                       "sq_mm": (0.03, "conforming")}, "high top"),
+            FaceRow.of(BOSS, boss, {"cylindricity_mm": (0.05, "uncertain")}, "boss side"))
+    reg = SimpleNamespace(fitness=0.99, rmse_mm=0.013, method="test", ambiguous=False, as_dict=lambda: {})
+    header = ReportHeader(part="demo-part", serial="SN-0042", program=f"{PROGRAM} (version 2.0)",
+                          program_sha256=file_sha256(PROGRAM), operator="A. Inspector", date="2026-12-01 21:00:00",
+                          rig="sim-bench", calibration_id="factory-sim-bench", calibration_date="undated",
+                          software_version="slscan 0.1.0")
+    return InspectionReport(model=str(CONFIG_DIR / "parts" / "demo_part.step"), unit="mm", source="known",
+                            scan_points=len(foot), part_points=len(foot), assigned_points=len(foot), registration=reg,
+                            faces=rows, form_settings=FormSettings(), timings_s={}, part_mask=np.ones(len(foot), bool),
+                            segmentation=seg, calibration="none", header=header)
+
+
+def iso_14253(value: float, U: float, tol: float) -> str:
+    """The guard-banded rule, written out: conforming when value + U <= tol, non-conforming
+    when value - U > tol, otherwise uncertain."""
+    return "conforming" if value + U <= tol else "non-conforming" if value - U > tol else "uncertain"
+
+
+def test_table_text_and_json_name_the_faces() -> None:
+    rep = known_report()
+    text = rep.table()
+    assert "high top #657" in text and "boss side #17" in text and "flat MZ µm" in text
+    data = json.loads(json.dumps(rep.as_dict(), default=str))
+    assert {r["label"]: r["name"] for r in data["faces"]} == {"#657": "high top", "#17": "boss side"}
+    assert data["header"]["serial"] == "SN-0042" and len(data["header"]["program_sha256"]) == 64
+
+
+def test_characteristic_table_has_units_values_and_verdicts() -> None:
+    rep = known_report()
+    page = rep.html()
+    table = page[page.index("id='characteristics'"):page.index("</table>", page.index("id='characteristics'"))]
+    heads = re.findall(r"<th[^>]*>(.*?)</th>", table)
+    assert all("(mm)" in h for h in heads if h not in ("face", "characteristic", "verdict (ISO 14253-1)"))
+    rows = [r for r in re.findall(r"<tr>(.*?)</tr>", table) if "<td" in r]
+    cells = {re.sub("<.*?>", "", r.split("</td>")[1]): [re.sub("<.*?>", "", c) for c in r.split("</td>")[:-1]]
+             for r in rows}
+    flat = cells["flatness (minimum zone)"]
+    assert flat[0] == "high top #657" and flat[3:6] == ["0.0500", "0.0123", "&plusmn; 0.0020"]
+    assert flat[7] == iso_14253(0.0123, 0.002, 0.05) == "conforming"
+    assert cells["Sq roughness"][4] == "&lt; 0.0046" and cells["Sq roughness"][6] == "0.0046"
+    assert cells["cylindricity (minimum zone)"][7] == iso_14253(0.048, 0.006, 0.05) == "uncertain"
+    # raw and filtered side by side: the raw extremes differ from the form surface's
+    raw = page[page.index("id='raw-filtered'"):]
+    assert "-0.7 &plusmn; 2.0" in raw and "-8.1 &plusmn; 8.0" in raw
+    # header: every field, the program's SHA-256 as computed here from the file
+    for want in ("SN-0042", "A. Inspector", "factory-sim-bench", "slscan 0.1.0", file_sha256(PROGRAM)):
+        assert want in page
+
+
+# ------------------------------------------------------------------ in a real browser
+
+PROBE = """<script>
+window.addEventListener('load', () => {
+  const out = {scrollWidth: document.documentElement.scrollWidth, innerWidth: window.innerWidth,
+               scrollHeight: document.documentElement.scrollHeight, boxes: {}, images: []};
+  for (const el of document.querySelectorAll('[id]')) {
+    const r = el.getBoundingClientRect();
+    out.boxes[el.id] = [r.left, r.top + window.scrollY, r.width, r.height];
+  }
+  for (const img of document.images) out.images.push([img.alt, img.naturalWidth, img.naturalHeight]);
+  const pre = document.createElement('pre'); pre.id = 'layout-probe'; pre.textContent = JSON.stringify(out);
+  document.body.appendChild(pre);
+});
+</script>"""
+
+
+def layout(page: Path, tmp: Path) -> dict:
+    """The page as Chromium lays it out at WIDTH px: the probe's measurements."""
+    probed = page.parent / f"probe-{page.name}"  # beside it: its relative links still resolve
+    probed.write_text(page.read_text().replace("</body>", PROBE + "</body>"))
+    dom = dump_dom(probed, WIDTH, HEIGHT)
+    assert dom is not None, "chromium --dump-dom failed"
+    return json.loads(re.search(r"<pre id=\"layout-probe\">(.*?)</pre>", dom, re.S).group(1).replace("&quot;", '"'))
+
+
+def check_in_browser(page: Path, tmp: Path, ids: tuple[str, ...], closeup: str | None,
+                     save: Path | None = None, stem: str = "inspection") -> None:
+    """Chromium lays the page out with every element in `ids` present and non-empty, every
+    image decoded, nothing wider than the window; its screenshot is drawn (not blank) in
+    every element's box. With `save`, the first page and (unless None) the close-up of
+    element `closeup` are saved there as PNG."""
+    import cv2
+
+    box = layout(page, tmp)
+    assert box["scrollWidth"] <= box["innerWidth"] == WIDTH, f"page overflows: {box['scrollWidth']} px"
+    for i in ids:
+        assert i in box["boxes"], f"no #{i}"
+        assert box["boxes"][i][2] > 100 and box["boxes"][i][3] > 20, f"#{i} is empty: {box['boxes'][i]}"
+        assert box["boxes"][i][0] + box["boxes"][i][2] <= WIDTH + 0.5, f"#{i} overflows"
+    assert box["images"] and all(w > 0 and h > 0 for _, w, h in box["images"]), box["images"]
+    full = tmp / f"{stem}-full.png"
+    assert screenshot(page, full, WIDTH, int(box["scrollHeight"]) + 20) is not None
+    img = cv2.imread(str(full))
+    for i in ids:
+        x, y, w, h = (int(round(t)) for t in box["boxes"][i])
+        crop = img[y:y + h, x:x + w]
+        assert crop.size and (crop < 200).any(axis=2).mean() > 0.002, f"#{i} is blank in the screenshot"
+    if save is not None:
+        save.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(save / f"{stem}-first-page.png"), img[:HEIGHT])
+        if closeup is None:
+            return
+        x, y, w, h = (int(round(t)) for t in box["boxes"][closeup])
+        cv2.imwrite(str(save / f"{stem}-face-closeup.png"), img[max(y - 30, 0):y + h + 10, x:x + w])
+
+
+def saved_screenshots() -> Path | None:
+    """Where to keep the screenshots (SLSCAN_SCREENSHOTS, e.g. docs/screenshots), or None."""
+    where = os.environ.get("SLSCAN_SCREENSHOTS")
+    return Path(where) if where else None
+
+
+@needs_chromium
+def test_report_in_a_browser(tmp_path: Path) -> None:
+    rep = known_report()
+    paths = rep.write(tmp_path, pdf=True)
+    page = tmp_path / "inspection.html"
+    assert "src=\"data:image/png;base64," in page.read_text() and "src=\"http" not in page.read_text()
+    check_in_browser(page, tmp_path, ("header", "verdict", "characteristics", "views", "histogram", "raw-filtered",
+                                      "face-657", "face-17", "figures"), "face-657", saved_screenshots(), "known-report")
+    pdf = tmp_path / "inspection.pdf"
+    assert pdf in paths and pdf.read_bytes()[:5] == b"%PDF-" and pdf.stat().st_size > 50_000
+
+
+def test_face_closeup_shows_the_bow() -> None:
+    """The high top's close-up is red at its centre (+BOW_MM over a ±0.02 mm scale) and
+    white at its corners (0): the map follows the deviations put in."""
+    import cv2
+
+    from inspection.report_figures import CLOSEUP_AXES, face_closeup
+
+    rep = known_report()
+    img = cv2.imdecode(np.frombuffer(face_closeup(rep, rep.faces[0], 0.02), np.uint8), cv2.IMREAD_COLOR).astype(int)
+    h, w = img.shape[:2]
+    left, bottom, width, height = CLOSEUP_AXES
+    x0, x1 = int(w * left) + 4, int(w * (left + width)) - 4
+    y0, y1 = int(h * (1 - bottom - height)) + 4, int(h * (1 - bottom)) - 4
+
+    def redness(x: int, y: int) -> float:
+        patch = img[y - 3:y + 4, x - 3:x + 4]
+        return float(np.mean(patch[..., 2] - patch[..., 0]))  # R - B (BGR)
+
+    assert redness((x0 + x1) // 2, (y0 + y1) // 2) > 80  # +12 um of 20: a clear red
+    for x, y in ((x0 + 4, y0 + 4), (x1 - 4, y0 + 4), (x0 + 4, y1 - 4), (x1 - 4, y1 - 4)):
+        assert abs(redness(x, y)) < 45  # about 0 um: near white
+
+
+def test_pdf_skipped_without_chromium(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    page = tmp_path / "p.html"
+    page.write_text("<html><body>x</body></html>")
+    assert print_pdf(page, tmp_path / "p.pdf") is None and not (tmp_path / "p.pdf").exists()
+
+
+# ------------------------------------------------------------------ the station's report
+
+def station_cycles(n: int = 12) -> tuple[list, dict]:
+    """n stored cycles of the demo program: each characteristic's value drawn about a
+    quarter of its tolerance, every fifth part's high-top flatness out of tolerance."""
+    import datetime as dt
+
+    from slscan.station.results import ResultRow, ValueRecord
+
+    program = load_program(PROGRAM)
+    rng = np.random.default_rng(3)
+    rows, values = [], {}
+    t0 = dt.datetime(2026, 12, 1, 8, 0, tzinfo=dt.timezone.utc)
+    for k in range(n):
+        vals = []
+        for c in program.characteristics:
+            v = abs(rng.normal(c.tolerance_mm / 4, c.tolerance_mm / 20))
+            if c.name == "high_top_flatness" and k % 5 == 4:
+                v = 3 * c.tolerance_mm
+            vals.append(ValueRecord(c.name, c.kind, c.face, v, c.tolerance_mm, v <= c.tolerance_mm, 1000))
+        status = "pass" if all(v.conforms for v in vals) else "fail"
+        rows.append(ResultRow(program.name, program.version, program.fingerprint, f"SN-{k + 1:04d}", "ana", "bench-1",
+                              "sim-bench", "factory-sim-bench", "0.1.0", "cad", f"/parts/{k}", t0 + dt.timedelta(minutes=k),
+                              id=k + 1, attempt=1, status=status, finished_at=t0 + dt.timedelta(minutes=k, seconds=40)))
+        values[k + 1] = vals
+    return rows, values
+
+
+@needs_chromium
+def test_station_report_has_the_header_in_a_browser(tmp_path: Path) -> None:
+    from slscan.station.history_report import write_report
+
+    rows, values = station_cycles()
+    page = write_report(tmp_path / "station", load_program(PROGRAM), rows, values, "test cycles")
+    text = page.read_text()
+    for want in ("12 serials", "SN-0001", "ana", "sim-bench", "factory-sim-bench", "undated (factory geometry)",
+                 "slscan 0.1.0", file_sha256(PROGRAM)):
+        assert want in text, want
+    check_in_browser(page, tmp_path, ("header",), None, saved_screenshots(), "station-report")
+
+
+@pytest.mark.slow
+@needs_chromium
+def test_demo_report_in_a_browser(tmp_path: Path, capsys) -> None:
+    """`slscan demo` (slow: a scan and an inspection, ~1 min CPU) inspects with the demo
+    part's program: face names from the program in the table, the report with its header,
+    its PDF, and the page laid out in Chromium. SLSCAN_SCREENSHOTS=docs/screenshots keeps
+    the screenshots (first page, the high top's close-up)."""
+    from slscan import cli
+
+    out = tmp_path / "demo"
+    assert cli.main(["demo", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "high top #657" in text and "low top #158" in text and "flatness 0.050 conforming" in text
+    # seen from straight above the boss's side is grazing: its cylindricity is not measured, and said so
+    assert "boss side #17" in text and "cylindricity 0.050 not measured" in text
+    data = json.loads((out / "outputs" / "inspection.json").read_text())
+    assert data["header"]["program_sha256"] == file_sha256(PROGRAM) and data["verdict"] == "not measured"
+    rows = {r["label"]: r for r in data["faces"]}
+    assert rows["#657"]["name"] == "high top" and rows["#657"]["verdict_flatness"] == "conforming"
+    assert (out / "outputs" / "inspection.pdf").read_bytes()[:5] == b"%PDF-"
+    from scanner.recording_reader import read_component
+
+    [(_, context)] = read_component(out / "recording.rrd", "world/inspection/faces", "AnnotationContext:context", None)
+    labels = {c["class_description"]["info"]["label"] for c in context}
+    assert {"high top #657 plane", "low top #158 plane", "boss side #17 cylinder"} <= labels  # the recording's labels
+    check_in_browser(out / "outputs" / "inspection.html", tmp_path, ("header", "verdict", "characteristics", "views",
+                                                                      "histogram", "raw-filtered", "face-657",
+                                                                      "figures"), "face-657", saved_screenshots())
+
+
+def test_inspect_without_cad_needs_a_program(tmp_path: Path) -> None:
+    from slscan.commands.inspect import inspect_source
+
+    with pytest.raises(ConfigError, match="give --cad FILE, or a part program"):
+        inspect_source(tmp_path / "cloud.ply", None, TOLERANCE_FILE)

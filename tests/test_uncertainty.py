@@ -1,0 +1,245 @@
+"""The uncertainty model's parts against independent truths: ISO 14253-1 decisions in
+closed form, the calibration Jacobian against re-triangulation with a moved rig, the
+fringe error's spread against brute force over offsets, a sphere fit's propagated noise
+against Monte Carlo refits, the predicted depth noise against the simulator's, and Sq and
+flatness on synthetic surfaces of known form and texture."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration.stereo import RIG_PARAMETERS as CALIBRATION_PARAMETERS
+from inspection.artefacts import fit_sphere, measure_sphere
+from inspection.form import FormSettings, evaluate_face
+from inspection.surfaces import Plane
+from inspection.tolerances import CONFORMING, NON_CONFORMING, NOT_MEASURED, PLAIN, UNCERTAIN, decide, overall
+from inspection.uncertainty import (
+    RIG_PARAMETERS,
+    CalibrationUncertainty,
+    Estimate,
+    FringeError,
+    PointNoise,
+    ScanUncertainty,
+    calibration_jacobian,
+    depth_noise,
+    perturbed,
+)
+from scanner.geometry import Pinhole
+from scanner.reconstruct import Triangulator
+from scanner.rig import RigConfig
+
+
+def test_decision_rules_iso_14253_1() -> None:
+    assert decide(0.010, 0.004, 0.020) == CONFORMING  # 0.014 <= 0.020
+    assert decide(0.018, 0.004, 0.020) == UNCERTAIN  # 0.022 > 0.020 >= 0.014
+    assert decide(0.025, 0.004, 0.020) == NON_CONFORMING  # 0.021 > 0.020
+    assert decide(0.018, 0.004, 0.020, rule=PLAIN) == CONFORMING  # U not applied
+    assert decide(0.021, 0.004, 0.020, rule=PLAIN) == NON_CONFORMING
+    assert decide(-0.002, 0.002, 0.005, -0.005) == CONFORMING and decide(-0.006, 0.0005, 0.005, -0.005) == NON_CONFORMING
+    assert decide(None, 0.001, 0.02, limit=0.006) == CONFORMING  # below a detection limit within the tolerance
+    assert decide(None, 0.001, 0.005, limit=0.006) == UNCERTAIN  # cannot be shown either way
+    assert decide(None, 0.0, 0.02) == NOT_MEASURED
+    assert overall([CONFORMING, UNCERTAIN]) == UNCERTAIN and overall([UNCERTAIN, NON_CONFORMING]) == NON_CONFORMING
+    with pytest.raises(ValueError, match="unknown decision rule"):
+        decide(0.0, 0.0, 1.0, rule="lenient")
+
+
+def test_estimates_print_value_and_u_or_their_detection_limit() -> None:
+    assert Estimate(0.0123, 0.00105).text() == "12.3 ± 2.1 µm"
+    below = Estimate(None, 0.001, 0.0061)
+    assert below.value is None and below.text() == "< 6.1 µm"
+    assert below.fields("flatness_mz") == {"flatness_mz_mm": None, "flatness_mz_u_mm": 0.002,
+                                            "flatness_mz_limit_mm": 0.0061}
+
+
+def test_rig_parameters_are_those_the_calibration_writes() -> None:
+    assert RIG_PARAMETERS == CALIBRATION_PARAMETERS
+
+
+def _small_rig() -> object:
+    model = RigConfig.load().nominal_model()
+    return model.with_camera_size(160, 128)
+
+
+def test_calibration_jacobian_matches_retriangulation() -> None:
+    """∂X/∂θ from implicit differentiation against points triangulated again with the rig
+    moved ±δ along each parameter (central differences, the scanner's own triangulation)."""
+    model = _small_rig()
+    rng = np.random.default_rng(0)
+    rays = model.camera.ray_grid.astype(np.float64)
+    rows, cols = rng.integers(10, 118, 300), rng.integers(10, 150, 300)
+    X = rays[rows, cols] * rng.uniform(370.0, 430.0, 300)[:, None]
+    Xp = X @ model.proj_from_cam[:3, :3].T + model.proj_from_cam[:3, 3]
+    coord = np.full((128, 160), np.nan, np.float32)
+    coord[rows, cols] = model.projector.project(Xp)[:, 0]
+    J = calibration_jacobian(X, model, {"vertical": np.ones(len(X))})
+    steps = np.array([0.5, 0.5, 0.5, 0.5, 2e-3, 2e-3, 2e-4, 2e-4, 2e-3] * 2 + [1e-4] * 3 + [0.05] * 3)
+    for p in (0, 2, 3, 4, 7, 9, 11, 13, 16, 18, 19, 20, 21, 23):  # every kind of parameter of both devices
+        step = steps[p]
+        d = np.zeros(len(RIG_PARAMETERS))
+        d[p] = step
+        moved = []
+        for sign in (1.0, -1.0):
+            m = perturbed(model, sign * d)
+            z = Triangulator(m).depth_scale(coord, "vertical")
+            moved.append(m.camera.ray_grid.astype(np.float64)[rows, cols] * z[rows, cols, None])
+        numeric = (moved[0] - moved[1]) / 2.0
+        scale = max(float(np.abs(numeric).max()), 1e-4)
+        assert np.abs(J[:, :, p] * step - numeric).max() < 0.02 * scale + 6e-5, RIG_PARAMETERS[p]  # float32 depths
+
+
+def test_calibration_directions_span_the_covariance_and_draws_follow_it() -> None:
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(24, 24)) * np.r_[np.full(18, 0.2), np.full(3, 1e-5), np.full(3, 3e-3)]
+    cov = A @ A.T
+    cal = CalibrationUncertainty(cov, "test")
+    d = cal.directions()
+    assert np.allclose(d.T @ d, cov, rtol=1e-9, atol=1e-14 * np.abs(cov).max())
+    draws = np.array([cal.draw(rng) for _ in range(4000)])
+    assert np.allclose(np.cov(draws.T), cov, atol=0.1 * np.sqrt(np.outer(np.diag(cov), np.diag(cov))).max())
+    one_sigma = CalibrationUncertainty.from_report({"uncertainty": {"camera.fx": 0.2, "extrinsic.tz": 0.01}})
+    assert np.allclose(np.diag(one_sigma.covariance)[[0, 23]], [0.04, 1e-4]) and "uncorrelated" in one_sigma.source
+
+
+def test_fringe_error_spread_over_offsets_matches_brute_force() -> None:
+    rng = np.random.default_rng(1)
+    fe = FringeError(rng.normal(0, 0.002, 800), 0.125)
+    col = rng.uniform(0.0, 100.0, 500)
+    w = rng.normal(size=500)
+    offsets = np.arange(800) * 0.125
+    sums = np.array([np.sum(w * fe.at(col, o)) for o in offsets])
+    assert fe.spread(col, w) == pytest.approx(np.std(sums), rel=1e-9)
+
+
+def test_sphere_fit_uncertainty_matches_monte_carlo_refits() -> None:
+    """A sphere seen from the origin, white depth noise along the rays: the radius and
+    centre spread over 300 refits of fresh noise against the propagated u."""
+    rng = np.random.default_rng(2)
+    c, R = np.array([10.0, -5.0, 400.0]), 12.7
+    v = rng.normal(size=(20000, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    p = c + R * v
+    p = p[np.einsum("ij,ij->i", v, -p / np.linalg.norm(p, axis=1)[:, None]) > 0.3][:4000]
+    rays = p / p[:, 2:3]
+    sigma = rng.uniform(0.01, 0.02, len(p))
+    unc = ScanUncertainty(PointNoise(sigma, rays), CalibrationUncertainty.none("test"))
+    _, res = measure_sphere(p, unc, R, viewpoint=None)
+    fits = [fit_sphere(p + rays * (rng.normal(size=len(p)) * sigma)[:, None]) for _ in range(300)]
+    radius_sd = np.std([f.radius for f in fits], ddof=1)
+    assert res.radius.u == pytest.approx(radius_sd, rel=0.15)
+    assert res.centre[2].u == pytest.approx(np.std([f.centre[2] for f in fits], ddof=1), rel=0.15)
+
+
+def test_predicted_depth_noise_matches_the_simulator() -> None:
+    """σ_z from modulation and the sensor model against the spread of two fresh-noise scans
+    of the same plane (the simulator's noise, not the model's)."""
+    from dataclasses import replace
+
+    from scanner.patterns import PatternSet
+    from scanner.reconstruct import triangulate
+    from sim.artefact_scenes import quick_scan
+    from sim.render import Renderer, SensorModel
+    from sim.scene import Scene, SceneObject
+
+    config = RigConfig.load()
+    model = config.nominal_model()
+    K = model.camera.K.copy()
+    K[0, 2] -= 560
+    K[1, 2] -= 450
+    small = replace(model, camera=Pinhole(160, 120, K, model.camera.dist))
+    sensor = SensorModel.from_config(config)
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[1, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
+    pose[2, 3] = 410.0
+    renderer = Renderer(small, Scene((SceneObject("plate", "plane", pose, 0.8, size_mm=(300.0, 300.0)),)), sensor, 0.8)
+    patterns = PatternSet.load(config.patterns_path)
+    rng = np.random.default_rng(4)
+    tri = Triangulator(small)
+    scans = [quick_scan(renderer, patterns, model.projector_gamma, 0.01, 12, rng) for _ in range(2)]
+    z = [triangulate(d, tri, with_normals=False).points[..., 2] for d in scans]
+    sigma = depth_noise(scans[0], tri, lambda a: sensor.noise_sigma_dn(a, 12)).sigma_z
+    diff = (z[0] - z[1]) / np.sqrt(2.0)
+    ok = np.isfinite(diff) & np.isfinite(sigma)
+    assert ok.sum() > 15000
+    assert np.sqrt(np.mean((diff[ok] / sigma[ok]) ** 2)) == pytest.approx(1.0, abs=0.03)
+
+
+def _plane_face() -> object:
+    class Face:
+        type = "plane"
+        surface = Plane(np.zeros(3), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+
+    return Face()
+
+
+def _plate(bow_mm: float, texture_mm: float, sigma_mm: float, rng: np.random.Generator,
+           spacing: float = 0.15) -> tuple[np.ndarray, np.ndarray, PointNoise, np.ndarray]:
+    """Points on a 30 x 20 mm plate (z = heights), a bow of `bow_mm` (quadratic, its span
+    over the plate), a texture of RMS `texture_mm` at 0.3-1 mm wavelengths, white noise
+    of `sigma_mm` along z; returns (points, true heights, noise model, normals)."""
+    x, y = np.meshgrid(np.arange(-15, 15, spacing), np.arange(-10, 10, spacing))
+    x, y = x.ravel() + rng.uniform(-0.02, 0.02, x.size), y.ravel() + rng.uniform(-0.02, 0.02, x.size)
+    h = bow_mm * (1.0 - (x ** 2 + y ** 2) / (15.0 ** 2 + 10.0 ** 2))
+    waves = np.zeros_like(x)
+    for _ in range(40):
+        k = rng.uniform(2 * np.pi / 1.0, 2 * np.pi / 0.3)
+        a = rng.uniform(0, 2 * np.pi)
+        waves += np.cos(k * (x * np.cos(a) + y * np.sin(a)) + rng.uniform(0, 2 * np.pi))
+    h = h + texture_mm * waves / np.sqrt(20.0)
+    pts = np.column_stack([x, y, h])
+    noise = PointNoise(np.full(len(x), sigma_mm), np.tile([0.0, 0.0, 1.0], (len(x), 1)))
+    return pts, h, noise, np.tile([0.0, 0.0, 1.0], (len(x), 1))
+
+
+def test_sq_with_the_noise_removed_and_its_detection_limit() -> None:
+    """Sq of a textured plate through 14 um noise within its U of the noise-free Sq; a
+    smooth plate's Sq is below its detection limit (null), never 0."""
+    rng = np.random.default_rng(5)
+    face = _plane_face()
+    pts, h, noise, normals = _plate(0.0, 0.012, 0.014, rng)
+    truth = evaluate_face(face, pts, h, pts[:, :2], noise=noise.scaled(0.0), normals=normals).sq
+    noisy = pts.copy()
+    noisy[:, 2] += rng.normal(0, 0.014, len(pts))
+    got = evaluate_face(face, noisy, noisy[:, 2], noisy[:, :2], noise=noise, normals=normals)
+    assert got.sq.value is not None and abs(got.sq.value - truth.value) <= got.sq.U
+    assert got.sq_raw_mm > truth.value + 0.003  # before the noise was removed it read high
+    smooth, hs, _, _ = _plate(0.0, 0.0, 0.014, rng)
+    smooth[:, 2] += rng.normal(0, 0.014, len(smooth))
+    flat = evaluate_face(face, smooth, smooth[:, 2], smooth[:, :2], noise=noise.subset(np.arange(len(smooth))),
+                         normals=normals[:len(smooth)])
+    assert flat.sq.value is None and 0 < flat.sq.limit < 0.01
+    assert flat.flatness_mz.value is None and 0 < flat.flatness_mz.limit < 0.01  # nothing but noise
+
+
+def test_flatness_noise_bias_removed() -> None:
+    """A 30 um bow through 14 um point noise: the minimum zone of the form surface, its
+    noise bias removed, within its U of the noise-free zone, and the bias it removed is
+    positive (noise widens a zone)."""
+    rng = np.random.default_rng(6)
+    face = _plane_face()
+    pts, h, noise, normals = _plate(0.030, 0.0, 0.014, rng)
+    truth = evaluate_face(face, pts, h, pts[:, :2], noise=noise.scaled(0.0), normals=normals).flatness_mz
+    noisy = pts.copy()
+    noisy[:, 2] += rng.normal(0, 0.014, len(pts))
+    got = evaluate_face(face, noisy, noisy[:, 2], noisy[:, :2], FormSettings(draws=48), noise=noise,
+                        normals=normals).flatness_mz
+    assert truth.value == pytest.approx(0.030 * (14.0 ** 2 + 9.0 ** 2) / 325.0, abs=0.002)  # the bow inside the 1 mm margin
+    assert got.bias > 0 and abs(got.value - truth.value) <= got.U
+
+
+def test_calibration_moves_reach_the_face_figures() -> None:
+    """Two calibration directions on a bowed plate: one tilts the plate (a zone cannot see
+    it: no contribution), one adds 5 um more of the same dome (the zone grows by the
+    dome's span): u_cal of both zones is that span."""
+    rng = np.random.default_rng(8)
+    face = _plane_face()
+    pts, h, noise, normals = _plate(0.030, 0.0, 0.002, rng, spacing=0.25)
+    r2 = (pts[:, 0] ** 2 + pts[:, 1] ** 2) / (15.0 ** 2 + 10.0 ** 2)
+    shifts = np.zeros((2, len(pts), 3))
+    shifts[0, :, 2] = 1e-3 * pts[:, 0] / 15.0  # a tilt of 1 um over the half-length
+    shifts[1, :, 2] = 0.005 * (1.0 - r2)  # the same dome, 5 um higher
+    got = evaluate_face(face, pts, h, pts[:, :2], noise=noise, normals=normals, shifts=shifts)
+    expected = 0.005 * (14.0 ** 2 + 9.0 ** 2) / 325.0  # the added dome's span inside the 1 mm margin
+    assert got.u_components["flatness_mz"]["calibration"] == pytest.approx(expected, rel=0.1)
+    assert got.u_components["flatness_ls"]["calibration"] == pytest.approx(expected, rel=0.1)

@@ -1,0 +1,87 @@
+"""Coverage of the uncertainty model on the simulator (`sim.repeat_scans`): over repeat scans with
+fresh noise, each at a new place in the measuring volume, the true value lies within ±U
+for 95 % ± 3 % of the scans — sphere radius, ball-bar length, the minimum-zone flatness
+and Sq of a bowed, textured plate — and, separately, with the rig reconstructed from
+parameters drawn from a calibration's covariance (the one `slscan calibrate` wrote for the
+simulated bench, tests/data/sim_calibration_covariance.json). A quick version runs by
+default: a handful of scans, coverage far above chance, and a deliberately underestimated
+noise model (a third of the real one) covering much less."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+
+from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
+from inspection.uncertainty import CalibrationUncertainty
+from scanner.rig import RigConfig
+from sim.repeat_scans import Bench, ball_bar_length, plate_figures, sphere_radius
+
+COVARIANCE = Path(__file__).parent / "data" / "sim_calibration_covariance.json"
+TRIALS = 200
+
+
+@pytest.fixture(scope="module")
+def bench() -> Bench:
+    return Bench.of(RigConfig.load())
+
+
+def test_ball_bar_coverage_quick_and_it_falls_with_an_underestimated_noise(bench: Bench) -> None:
+    """10 scans: most inside ±U; the same scans judged with a third of the noise model
+    (and of the fringe error) mostly outside."""
+    art = load_artefacts(DEFAULT_ARTEFACTS)
+    honest = ball_bar_length(bench, art, 10, seed=11)
+    low = ball_bar_length(bench, art, 10, seed=11, noise_scale=1.0 / 3.0)
+    print(honest.summary())
+    print(low.summary())
+    assert honest.fraction >= 0.8
+    assert low.fraction <= honest.fraction - 0.3
+
+
+def _report(result: object, started: float) -> None:
+    print(f"{result.summary()}; wall {time.perf_counter() - started:.0f} s, load average "  # type: ignore[attr-defined]
+          f"{', '.join(f'{x:.1f}' for x in os.getloadavg())}")
+
+
+def _calibration() -> CalibrationUncertainty:
+    return CalibrationUncertainty.from_report(json.loads(COVARIANCE.read_text()))
+
+
+def _coverage_case(test: Callable[..., None]) -> Callable[..., None]:
+    """An acceptance case of 200 scans, with and without calibration errors: hours on 2
+    cores, so also `slow` (run on purpose with -m acceptance, not by CI)."""
+    test = pytest.mark.parametrize("calibrated", [False, True], ids=["noise", "noise+calibration"])(test)
+    return pytest.mark.acceptance(pytest.mark.slow(test))
+
+
+@_coverage_case
+@pytest.mark.parametrize("figure, seed", [(sphere_radius, 1), (ball_bar_length, 2)],
+                         ids=["sphere_radius", "ball_bar_length"])
+def test_artefact_coverage(bench: Bench, figure: Callable[..., object], seed: int, calibrated: bool) -> None:
+    t0 = time.perf_counter()
+    result = figure(bench, load_artefacts(DEFAULT_ARTEFACTS), TRIALS, seed=seed,
+                    calibration=_calibration() if calibrated else None)
+    _report(result, t0)
+    assert 0.92 <= result.fraction <= 0.98  # type: ignore[attr-defined]
+
+
+@_coverage_case
+def test_flatness_and_sq_coverage(bench: Bench, calibrated: bool) -> None:
+    t0 = time.perf_counter()
+    flat, sq = plate_figures(bench, TRIALS, seed=3, calibration=_calibration() if calibrated else None)
+    _report(flat, t0)
+    _report(sq, t0)
+    assert 0.92 <= flat.fraction <= 0.98
+    assert 0.92 <= sq.fraction <= 0.98
+
+
+def test_covariance_file_is_a_calibration_covariance() -> None:
+    cal = _calibration()
+    assert cal.source == "the calibration's covariance"
+    assert np.all(np.linalg.eigvalsh(cal.covariance) > -1e-12 * np.abs(cal.covariance).max())
