@@ -38,8 +38,8 @@ from scipy.spatial import cKDTree
 
 from inspection.errors import RegistrationFailed
 from inspection.measured_cloud import ScanCloud, part_mask
-from inspection.registration import ModelTarget, RegistrationSettings, Samples, register, transform_points
-from inspection.views.pairwise import PairSettings, PairView, refine_pair, thin
+from inspection.registration import ModelTarget, RegistrationSettings, register, transform_points
+from inspection.views.pairwise import PairSettings, PairView, paired, refine_pair, thin
 
 MIN_FITNESS = 0.8
 MIN_OVERLAP = 0.1
@@ -123,8 +123,8 @@ def register_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None
     coarse = register(scan, model, replace(settings, min_fitness=OPEN_GATE))
     voxel = model.voxel_mm
     keep = thin(scan.points, 0.5 * voxel)
-    source = PairView(scan.points[keep], scan.normals[keep], Samples(scan.points, scan.normals))
-    dense = PairView(target.points, target.normals, Samples(target.points, target.normals))
+    source = paired(scan.points, scan.normals, keep)
+    dense = paired(target.points, target.normals, np.arange(len(target.points)))
     tree = cKDTree(target.points)
     judged = [_judge(source, dense, tree, T, target, scan, voxel, overlap, settings)
               for T in (coarse.transform, *coarse.alternatives)]
