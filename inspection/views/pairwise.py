@@ -42,14 +42,15 @@ from inspection.views.view_clouds import ViewCloud
 class PairSettings:
     """`voxel_mm`: sources are thinned to one point per voxel; ICP partners start within
     `max_distance_mm` (the stage prior's error must be below it) and shrink to no less than
-    `min_distance_mm` or the target's sample spacing, whichever is larger; normals more than
-    `max_normal_deg` apart are no partners."""
+    `min_distance_mm` or, with `spacing_floor`, the target's sample spacing, whichever is
+    larger; normals more than `max_normal_deg` apart are no partners."""
 
     voxel_mm: float = 1.0
     max_distance_mm: float = 2.0
     min_distance_mm: float = 0.02
     max_normal_deg: float = 30.0
     iterations: int = 40
+    spacing_floor: bool = True
 
     def __post_init__(self) -> None:
         if not (0 < self.min_distance_mm < self.max_distance_mm and self.voxel_mm > 0 and self.iterations > 0
@@ -111,7 +112,8 @@ def sample_spacing(samples: Samples, probes: int = 2000) -> float:
 def refine_pair(source: PairView, target: PairView, init: np.ndarray, settings: PairSettings,
                 ids: tuple[int, int] = (0, 1)) -> PairFit:
     """Refine the pose `init` of `source` in `target` (see the module docstring)."""
-    floor = min(max(settings.min_distance_mm, target.spacing_mm), settings.max_distance_mm)
+    spacing = target.spacing_mm if settings.spacing_floor else 0.0
+    floor = min(max(settings.min_distance_mm, spacing), settings.max_distance_mm)
     T = icp(source.points, source.normals, target.dense, np.asarray(init, float), settings.max_distance_mm,
             floor, settings.max_normal_deg, settings.iterations, tangential=0.0)
     q = transform_points(T, source.points)
