@@ -67,6 +67,19 @@ class UnsupportedSetting(DeviceError):
     """The device cannot take the requested setting (value out of range or feature absent)."""
 
 
+class OutOfTravel(UnsupportedSetting):
+    """A stage move was refused: its target lies outside an axis's travel (nothing moved)."""
+
+
+class NotHomed(DeviceError):
+    """A stage axis that must be homed first was asked to move before its homing cycle."""
+
+
+class StageAlarm(DeviceError):
+    """A stage controller raised an alarm (a limit switch hit, a failed homing): it stopped
+    and locks out motion until it is homed or unlocked."""
+
+
 class FrameError(DeviceError):
     """A frame arrived wrong: the sequence can no longer be trusted."""
 

@@ -7,7 +7,7 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import cv2
 import numpy as np
@@ -80,10 +80,12 @@ def plan_for_rig(rig: Rig, patterns: PatternSet, request: ExposureRequest) -> Ex
 
 
 def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Progress = _quiet,
-            recording: SessionRecording | None = None, exposure: ExposureRequest | None = None) -> Session:
+            recording: SessionRecording | None = None, exposure: ExposureRequest | None = None,
+            extra: dict[str, Any] | None = None) -> Session:
     """Capture one scan into the writer's new session folder and return it, complete;
     `exposure` (None: the rig's) chooses or lists exposures, the pattern set captured once
-    per exposure (HDR) with the plan and its reason in the manifest.
+    per exposure (HDR) with the plan and its reason in the manifest; `extra` goes into the
+    manifest too (a multi-view session's stage pose).
 
     On any failure the frames already captured stay on disk, `error.json` says what
     happened, the session has no manifest (so it is reported incomplete), and the error
@@ -131,10 +133,11 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
     timings["capture"] = round(time.perf_counter() - t0, 4)
     devices = {name: dev.describe() for name, dev in
                (("camera", rig.camera), ("projector", rig.projector), ("trigger", rig.trigger)) if dev is not None}
-    extra: dict[str, object] = {"rig_config_path": str(rig.config.path), "wiring": rig.config.trigger}
+    manifest_extra: dict[str, object] = {"rig_config_path": str(rig.config.path), "wiring": rig.config.trigger,
+                                         **(extra or {})}
     if plan is not None:
-        extra["exposure"] = plan.to_dict()
-    writer.finish(rig.config.raw, rig.model, patterns, devices, timings, extra)
+        manifest_extra["exposure"] = plan.to_dict()
+    writer.finish(rig.config.raw, rig.model, patterns, devices, timings, manifest_extra)
     return Session.open(writer.root)
 
 
@@ -293,25 +296,26 @@ def log_session_frames(recording: SessionRecording, session: Session) -> None:
 
 def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress = _quiet,
          then: Callable[[ScanResult, SessionRecording | None], None] | None = None,
-         level: str | None = None, exposure: ExposureRequest | None = None) -> ScanResult:
+         level: str | None = None, exposure: ExposureRequest | None = None,
+         extra: dict[str, Any] | None = None) -> ScanResult:
     """Capture, decode and reconstruct one scan, recording every stage to the session's
     Rerun file at `level` (default the rig's `[recording] level`; "none": no recording, and
     `then` gets None). `then(result, recording)`, if given, runs a later stage (`slscan
-    demo`'s inspection) into the same recording before it is closed; `exposure` as for
-    `capture`."""
+    demo`'s inspection) into the same recording before it is closed; `exposure` and `extra`
+    as for `capture`."""
     from scanner.session_recording import SessionRecording
 
     level = level or rig.config.recording_level
     writer = SessionWriter.create(out_dir)
     if level == "none":
-        session = capture(rig, patterns, writer, progress, exposure=exposure)
+        session = capture(rig, patterns, writer, progress, exposure=exposure, extra=extra)
         result = process(session, progress)
         if then is not None:
             then(result, None)
         return result
     with SessionRecording(writer.root / RECORDING, writer.id, level=level) as rec:
         rec.log_rig(rig.model)
-        session = capture(rig, patterns, writer, progress, rec, exposure)
+        session = capture(rig, patterns, writer, progress, rec, exposure, extra)
         result = process(session, progress, rec)
         if then is not None:
             then(result, rec)

@@ -27,6 +27,8 @@ from scanner.devices import Camera, Projector, TriggerSource
 from scanner.errors import ConfigError, ScannerError
 from scanner.geometry import Pinhole, RigModel, look_at
 from scanner.rig_schema import Lens, RigFile, check_geometry
+from scanner.stage import Stage
+from scanner.stage_model import StageConfig
 
 DEFAULT_RIG = CONFIG_DIR / "rigs" / "sim_bench.toml"
 
@@ -70,6 +72,7 @@ class RigConfig:
         check_geometry(cfg.nominal_model(), cfg.working_distance_mm, path, "projector")
         if cfg.calibration_path is not None:
             check_geometry(cfg.model, cfg.working_distance_mm, path, "rig.calibration")
+        _ = cfg.stage  # and the stage table, if any
         return cfg
 
     @cached_property
@@ -83,6 +86,11 @@ class RigConfig:
             return load_rig_model(self.calibration_path, nominal.camera.size, nominal.projector.size)
         except ScannerError as exc:
             raise ConfigError(self.path, "rig.calibration", str(exc)) from None
+
+    @cached_property
+    def stage(self) -> StageConfig | None:
+        """The motion stage of a `[stage]` table, checked (`scanner.stage_model`); None without one."""
+        return StageConfig.from_rig(self.raw, self.path)
 
     def nominal_model(self) -> RigModel:
         """The rig geometry written in the config (for the simulator: its ground truth)."""
@@ -112,6 +120,7 @@ class Rig:
     trigger: TriggerSource | None
     model: RigModel
     extras: dict[str, Any] = field(default_factory=dict)  # driver-specific (the simulator's ground truth)
+    stage: Stage | None = None  # the motion stage carrying the part, when the rig TOML has a [stage]
 
     def __enter__(self) -> Rig:
         return self
@@ -120,7 +129,7 @@ class Rig:
         self.shutdown()
 
     def shutdown(self) -> None:
-        for dev in (self.camera, self.projector, self.trigger):
+        for dev in (self.camera, self.projector, self.trigger, self.stage):
             if dev is not None:
                 dev.shutdown()
 

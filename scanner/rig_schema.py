@@ -167,6 +167,7 @@ class RigFile(Schema):
     recording: RecordingTable = RecordingTable()
     calibrate: dict[str, Any] | None = None  # validated by calibration.workflow.Procedure (its keys, its rules)
     acceptance: dict[str, Any] | None = None  # validated by inspection.acceptance.Acceptance (`slscan verify`)
+    stage: dict[str, Any] | None = None  # validated by scanner.stage_model.StageConfig (its keys, its rules)
 
 
 # ---------------------------------------------------------------- the model description

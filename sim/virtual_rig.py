@@ -7,6 +7,9 @@
     rig.extras["sensor"]         # sim.render.SensorModel
     rig.extras["faults"]         # sim.virtual_devices.Faults in effect
     rig.extras["session_files"]  # saves the ground truth (sim.evaluate.Truth) into each session
+    rig.stage                    # a sim.virtual_stage.SimStage when the rig TOML has a [stage]:
+                                 # each move re-renders the scene turned (the extras above follow it,
+                                 # and each session also gets the stage's true pose, STAGE_TRUTH_FILE)
 
 Trigger wiring (`rig.trigger` in the rig TOML):
     software     camera software-triggered; no trigger source, no cable
@@ -29,15 +32,17 @@ from sim.evaluate import GROUND_TRUTH_FILE, Truth
 from sim.render import SUPPORTED_BIT_DEPTHS, Renderer, SensorModel
 from sim.scene import Scene, load_scene
 from sim.virtual_devices import Faults, SimCamera, SimProjector, SimTriggerBox
+from sim.virtual_stage import StageFaults, open_sim_stage
 
 log = logging.getLogger(__name__)
 
 
 def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, faults: Faults | None = None,
-                 seed: int = 0) -> Rig:
+                 seed: int = 0, stage_faults: StageFaults | None = None) -> Rig:
     """Open the simulated devices of `config` looking at `scene` (a Scene, a scene TOML or
     a bare mesh path; default `config/scenes/demo.toml`). `faults` overrides the rig
-    TOML's optional [sim.faults] table; `seed` makes the noise reproducible."""
+    TOML's optional [sim.faults] table; `seed` makes the noise reproducible; `stage_faults`
+    are the simulated stage's (`sim.virtual_stage`)."""
     model = config.nominal_model()
     p = config.path
     sensor = SensorModel.from_config(config)
@@ -80,8 +85,14 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
         raise
     log.info("simulated rig %s opened: scene %s, wiring %s, %d-bit camera", config.name, scene.name,
              config.trigger, bits)
-    truth = Truth.of(renderer.ground_truth)
     extras = {"ground_truth": renderer.ground_truth, "scene": scene, "renderer": renderer, "sensor": sensor,
               "faults": faults, "seed": seed,
-              "session_files": [lambda root: truth.save(Path(root) / GROUND_TRUTH_FILE)]}
-    return Rig(config=config, camera=camera, projector=projector, trigger=trigger, model=model, extras=extras)
+              "session_files": [lambda root: Truth.of(extras["renderer"].ground_truth).save(Path(root) / GROUND_TRUTH_FILE)]}
+    rig = Rig(config=config, camera=camera, projector=projector, trigger=trigger, model=model, extras=extras)
+    if config.stage is not None:
+        try:
+            rig.stage = open_sim_stage(config, rig, stage_faults)
+        except BaseException:
+            rig.shutdown()
+            raise
+    return rig

@@ -6,9 +6,12 @@ from __future__ import annotations
 
 EXAMPLES: dict[str, str] = {
     "scan": "slscan scan --out sessions/part-001\n"
-            "slscan scan --scene config/scenes/sphere_plane.toml --seed 3 --out sessions/sphere",
+            "slscan scan --scene config/scenes/sphere_plane.toml --seed 3 --out sessions/sphere\n"
+            "slscan scan --rig config/rigs/sim_turntable.toml --scene config/scenes/turntable_demo.toml --views 8 "
+            "--out sessions/part-all-round",
     "decode": "slscan decode sessions/part-001\n"
-              "slscan decode sessions/part-001 --mode phase_to_height",
+              "slscan decode sessions/part-001 --mode phase_to_height\n"
+              "slscan decode sessions/part-all-round --stage-axis calibrations/turntable/stage_axis.json",
     "demo": "slscan demo --out sessions/demo\n"
             "slscan demo --no-inspect --seed 2",
     "import": "slscan import ../shared/data/procam-graycode/capture_0 --patterns config/patterns/opencv_graycode.toml "
@@ -23,11 +26,14 @@ EXAMPLES: dict[str, str] = {
     "importbench": "slscan importbench --skip-procam",
     "simbench": "slscan simbench --repeats 3",
     "demobench": "slscan demobench --parts 2",
+    "viewbench": "slscan viewbench --out viewbench/demo --views 8 --width 640 --height 512\n"
+                 "slscan viewbench --out viewbench/ctc01 --part ctc01 --views 8",
     "devices": "slscan devices --probe",
     "devices lightcrafter-images": "slscan devices lightcrafter-images --rig config/rigs/lightcrafter_uvc_box.toml "
                                    "--out lcr-images",
     "calibrate": "slscan calibrate --out calibrations/bench                   (the simulated bench rig)\n"
-                 "slscan calibrate --from calibrations/bench/capture --drop-outliers --out calibrations/bench-2",
+                 "slscan calibrate --from calibrations/bench/capture --drop-outliers --out calibrations/bench-2\n"
+                 "slscan calibrate --stage-axis --rig config/rigs/sim_turntable.toml --out calibrations/turntable",
     "cad": "slscan cad config/parts/demo_part.step\n"
            "slscan cad config/parts/demo_part.step --sample 20000 --repeats 3",
     "cadbench": "slscan cadbench ../shared/data/step/nist_ctc_01_asme1_rd.stp --copies 1,4,16",
@@ -35,9 +41,11 @@ EXAMPLES: dict[str, str] = {
               "slscan verify --leave-one-out ../shared/data/procam-graycode --layout opencv-graycode "
               "--projector-size 1024x768 --board config/boards/procam_chess_9x7_75mm.toml --pose-folders 'capture_*' "
               "--out verify/procam",
-    "register": "slscan register sessions/demo config/parts/demo_part.step --coarse sac-ia --json",
-    "inspect": "slscan inspect sessions/demo --cad config/parts/demo_part.step "
-               "--tolerances config/tolerances/demo_part.toml",
+    "register": "slscan register sessions/demo config/parts/demo_part.step --coarse sac-ia --json\n"
+                "slscan register sessions/part-all-round/view_001 sessions/part-all-round/view_000 --json",
+    "inspect": "slscan inspect sessions/demo --tolerances config/parts/demo_part.toml   (the part program names "
+               "its CAD)\n"
+               "slscan inspect sessions/part-all-round --tolerances config/parts/demo_part.toml",
     "pose": "slscan pose sessions/bin --part config/parts/nickel_tab.toml --method sac-ia",
     "posebench": "slscan posebench --seeds 0 1 2 --methods sac-ia",
     "segment": "slscan segment sessions/demo --radius 12",

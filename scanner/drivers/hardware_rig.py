@@ -8,6 +8,7 @@
                           video_display, refresh_hz, latency_frames (video source)
                  driver = "hdmi"     display, refresh_hz, latency_frames
     [trigger_box] port = "/dev/ttyACM0", boot_timeout_s   (wiring trigger_box only)
+    [stage]      driver = "grbl", port, ... (optional: a turntable; see scanner/stage_model.py)
 plus the geometry keys every rig has (see `scanner.rig.RigConfig`). Examples:
 config/rigs/lightcrafter_uvc_box.toml, config/rigs/hdmi_genicam.toml.
 
@@ -20,8 +21,8 @@ Wirings (`rig.trigger`):
 A wiring a device cannot do is refused here, naming the key, before anything opens.
 
 `transports` (tests, or a caller with devices already open) replaces how each device is
-reached: keys "camera", "projector", "trigger_box" (opener callables as the drivers take)
-and "display" (an `hdmi.DisplayBackend`).
+reached: keys "camera", "projector", "trigger_box", "stage" (opener callables as the drivers
+take) and "display" (an `hdmi.DisplayBackend`).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from scanner.devices import Camera, Device, Projector, TriggerMode, TriggerSourc
 from scanner.drivers import lightcrafter_protocol as lcp
 from scanner.errors import ConfigError, UnsupportedSetting
 from scanner.rig import Rig, RigConfig
+from scanner.stage import Stage
 
 log = logging.getLogger(__name__)
 
@@ -65,12 +67,16 @@ def open_hardware_rig(config: RigConfig, transports: dict[str, Any] | None = Non
         _configure_camera(config, camera, proj_driver)
         if config.trigger == "projector" and proj_driver == "hdmi":
             projector.connect_trigger_out(camera.trigger)  # type: ignore[attr-defined]
+        stage = _open_stage(config, t)
+        if stage is not None:
+            opened.append(stage)
     except BaseException:
         for dev in reversed(opened):
             dev.shutdown()
         raise
     log.info("hardware rig %s opened: %s, %s, wiring %s", config.name, proj_driver, cam_driver, config.trigger)
-    return Rig(config=config, camera=camera, projector=projector, trigger=trigger, model=config.nominal_model())
+    return Rig(config=config, camera=camera, projector=projector, trigger=trigger, model=config.nominal_model(),
+               stage=stage)
 
 
 def _check_wiring(config: RigConfig, cam_driver: str, proj_driver: str) -> None:
@@ -168,6 +174,17 @@ def _open_trigger_box(config: RigConfig, t: dict[str, Any]) -> TriggerSource:
     table = get_table(config.raw, "trigger_box", p)
     opener = t.get("trigger_box") or serial_opener("trigger-box", get(table, "port", str, p, prefix="trigger_box"))
     return TriggerBox(opener, "trigger-box", get(table, "boot_timeout_s", float, p, 3.0, "trigger_box"))
+
+
+def _open_stage(config: RigConfig, t: dict[str, Any]) -> Stage | None:
+    if config.stage is None:
+        return None
+    if config.stage.driver != "grbl":
+        raise ConfigError(config.path, "stage.driver", f"a hardware rig drives a real stage; set driver = 'grbl' "
+                                                       f"(got '{config.stage.driver}')")
+    from scanner.drivers.grbl import open_grbl_stage
+
+    return open_grbl_stage(config.stage, t.get("stage"))
 
 
 def _configure_camera(config: RigConfig, camera: Camera, proj_driver: str) -> None:

@@ -154,13 +154,15 @@ class FakeHid:
 class FakeSerial:
     """A serial port (`transport.SerialLink`) playing a script of line exchanges.
 
-    `banner` is printed by the device `banner_delay_s` after the port opens (a board that
+    Bytes in `realtime` are exchanges of their own, sent without a line end (a GRBL
+    controller's real-time commands). `banner` is printed by the device `banner_delay_s` after the port opens (a board that
     resets when the port opens). `readline` waits at most `timeout` like pyserial."""
 
     def __init__(self, steps: list[Step], banner: bytes = b"", banner_delay_s: float = 0.0,
-                 timeout: float | None = 0.2) -> None:
+                 timeout: float | None = 0.2, realtime: bytes = b"") -> None:
         self._script = _Script(steps)
         self.timeout = timeout
+        self._realtime = frozenset(realtime)  # bytes the device takes alone, without a line end (GRBL's ?, !, ^X)
         self._out = bytearray()
         self._written = bytearray()
         self._timed: list[tuple[float, bytes]] = [(time.monotonic() + banner_delay_s, banner)] if banner else []
@@ -171,19 +173,26 @@ class FakeSerial:
             import serial
 
             raise serial.SerialException("write failed: [Errno 5] Input/output error")
-        self._written += data
-        while b"\n" in self._written:
-            line, _, rest = bytes(self._written).partition(b"\n")
-            self._written = bytearray(rest)
-            try:
-                step = self._script.expect_write(line + b"\n")
-            except DeviceDisconnected:
-                import serial
-
-                raise serial.SerialException("write failed: [Errno 5] Input/output error") from None
-            if not self._script.pending_sent:
-                self._out += b"".join(step.reply_parts)
+        for byte in data:
+            if byte in self._realtime:
+                self._play(bytes([byte]))
+                continue
+            self._written.append(byte)
+            if byte == 0x0A:
+                line, self._written = bytes(self._written), bytearray()
+                self._play(line)
         return len(data)
+
+    def _play(self, sent: bytes) -> None:
+        """The host sent `sent` (a line, or a real-time byte): check it, queue the reply."""
+        try:
+            step = self._script.expect_write(sent)
+        except DeviceDisconnected:
+            import serial
+
+            raise serial.SerialException("write failed: [Errno 5] Input/output error") from None
+        if not self._script.pending_sent:
+            self._out += b"".join(step.reply_parts)
 
     def readline(self) -> bytes:
         end = time.monotonic() + (self.timeout if self.timeout is not None else 1.0)

@@ -165,3 +165,42 @@ def open_serial(name: str, port: str, baudrate: int, timeout_s: float) -> Serial
             raise DeviceDisconnected(name, f"serial port {port} not found; check the cable (`slscan devices` "
                                            f"lists the ports present)") from None
         raise DeviceError(name, f"cannot open serial port {port}: {exc}") from None
+
+
+def write_serial(name: str, port: SerialLink, data: bytes, what: str) -> None:
+    """Write `data` (`what`: the command, for the message); a vanished port raises
+    DeviceDisconnected."""
+    import serial
+
+    try:
+        port.write(data)
+    except (serial.SerialException, OSError) as exc:  # what pyserial raises when the port vanishes
+        raise DeviceDisconnected(name, f"serial link lost sending {what!r} ({exc}); check the cable, then scan "
+                                       f"again (the driver reconnects)") from None
+
+
+def read_serial_line(name: str, port: SerialLink) -> str:
+    """One line as printable ASCII, its end and any boot noise (a bootloader's bytes before
+    a banner) dropped; "" when the port's read timed out. A vanished port raises
+    DeviceDisconnected."""
+    import serial
+
+    try:
+        raw = port.readline()
+    except (serial.SerialException, OSError) as exc:
+        raise DeviceDisconnected(name, f"serial link lost ({exc}); check the cable, then scan again (the driver "
+                                       f"reconnects)") from None
+    return "".join(ch for ch in raw.decode("ascii", errors="ignore") if ch.isprintable()).strip()
+
+
+def close_serial(name: str, port: SerialLink | None) -> None:
+    """Close `port` (None: nothing to do); a vanished port has nothing left to release."""
+    import serial
+
+    if port is None:
+        return
+    log.info("%s: serial port closed", name)
+    try:
+        port.close()
+    except (serial.SerialException, OSError):
+        pass

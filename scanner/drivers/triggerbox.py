@@ -41,10 +41,8 @@ import threading
 import time
 from typing import Callable
 
-import serial
-
 from scanner.devices import TriggerSource
-from scanner.drivers.transport import SerialLink, open_serial
+from scanner.drivers.transport import SerialLink, close_serial, open_serial, read_serial_line, write_serial
 from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
 from scanner.status import Status
 
@@ -215,28 +213,18 @@ class TriggerBox(TriggerSource):
 
     def _write(self, port: SerialLink, command: str) -> None:
         try:
-            port.write(command.encode("ascii") + b"\n")
-        except (serial.SerialException, OSError) as exc:  # what pyserial raises when the port vanishes
+            write_serial(self.name, port, command.encode("ascii") + b"\n", command)
+        except DeviceDisconnected:
             self._drop()
-            raise DeviceDisconnected(self.name, f"serial link lost sending {command!r} ({exc}); check the "
-                                                f"cable, then scan again (the driver reconnects)") from None
+            raise
 
     def _readline(self, port: SerialLink) -> str:
         try:
-            raw = port.readline()
-        except (serial.SerialException, OSError) as exc:
+            return read_serial_line(self.name, port)
+        except DeviceDisconnected:
             self._drop()
-            raise DeviceDisconnected(self.name, f"serial link lost ({exc}); check the cable, then scan again "
-                                                f"(the driver reconnects)") from None
-        # boot noise (a bootloader's bytes before the READY banner) is not part of any line
-        # boot noise (a bootloader's bytes before the READY banner) is not part of any line
-        return "".join(ch for ch in raw.decode("ascii", errors="ignore") if ch.isprintable()).strip()
+            raise
 
     def _drop(self) -> None:
         port, self._port = self._port, None
-        if port is not None:
-            log.info("%s: serial port closed", self.name)
-            try:
-                port.close()
-            except (serial.SerialException, OSError):
-                pass  # closing a vanished port: nothing left to release
+        close_serial(self.name, port)

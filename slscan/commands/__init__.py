@@ -22,7 +22,8 @@ from slscan.commands import (
     simbench,
     station,
     verify,
+    viewbench,
 )
 
-COMMANDS = (scan, import_, review, export, bench, importbench, simbench, demobench, devices, calibrate, verify, inspect,
-            pose, segment, station)
+COMMANDS = (scan, import_, review, export, bench, importbench, simbench, demobench, viewbench, devices, calibrate,
+            verify, inspect, pose, segment, station)

@@ -4,6 +4,7 @@ captures on disk (calibration/).
     slscan calibrate --rig RIG.toml --out DIR          capture on the rig, solve, validate, write
     slscan calibrate --from CAPTURE --out DIR          solve again from a capture made by slscan
     slscan calibrate --from DIR --layout opencv-graycode --projector-size 1024x768 --board BOARD.toml --out DIR
+    slscan calibrate --stage-axis --rig RIG.toml --out DIR   the turntable's axis (slscan/commands/stage_axis.py)
 
 On a simulated rig the simulator moves the board, the plate and the artefact, and the
 report ends with the calibration's errors against the simulator's ground truth and a scan
@@ -90,6 +91,10 @@ def _say(text: str) -> None:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    if args.stage_axis:
+        from slscan.commands.stage_axis import cmd_stage_axis
+
+        return cmd_stage_axis(args)
     from calibration.calibration_recording import CalibrationRecording
     from calibration.errors import CalibrationRejected
     from calibration.workflow import write_result
@@ -328,4 +333,7 @@ def register(sub: Any) -> None:
     c.add_argument("--fix-k3", action="store_true", help="keep the k3 distortion term at 0")
     c.add_argument("--drop-outliers", action="store_true", help="solve again without views whose error stands out")
     c.add_argument("--install", action="store_true", help="name the new calibration in the rig TOML")
+    c.add_argument("--stage-axis", action="store_true", help="calibrate the rig's turntable axis from a board it turns "
+                                                              "(writes stage_axis.json)")
+    c.add_argument("--angles", metavar="DEG,DEG,...", help="--stage-axis: the stage angles (default -90..90 by 30)")
     c.set_defaults(func=cmd_calibrate)

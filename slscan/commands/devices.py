@@ -2,7 +2,8 @@
 flash images.
 
     slscan devices                         cameras, projectors, displays and serial ports found
-    slscan devices --probe                 also ask each serial port whether it is a trigger box
+    slscan devices --probe                 also ask each serial port whether it is a trigger box or a
+                                           GRBL motion controller (a turntable: [stage] driver = "grbl")
     slscan devices --cti PRODUCER.cti      also list GenICam cameras through that producer
     slscan devices lightcrafter-images --rig RIG.toml --out DIR
                                            the 24-bit images to store in the LightCrafter's flash
@@ -25,7 +26,8 @@ log = logging.getLogger(__name__)
 
 def register(sub: Any) -> None:
     d = sub.add_parser("devices", help="list cameras, projectors and serial ports; export LightCrafter images")
-    d.add_argument("--probe", action="store_true", help="ask every serial port whether it is an slscan trigger box")
+    d.add_argument("--probe", action="store_true", help="ask every serial port whether it is an slscan trigger box "
+                                                       "or a GRBL motion stage")
     d.add_argument("--cti", help="GenTL producer (.cti) to list GenICam cameras through (needs slscan[genicam])")
     d.set_defaults(func=cmd_devices)
     dsub = d.add_subparsers(dest="devices_command", metavar="ACTION",
@@ -161,8 +163,21 @@ def _probe_box(device: str) -> str:
         box = TriggerBox(serial_opener("probe", device, 0.2), "probe", boot_timeout_s=2.5)
     except DeviceError as exc:
         log.debug("%s is not a trigger box: %s", device, exc)
-        return f"(not a trigger box: {str(exc).split(': ', 1)[-1][:60]})"
+        return _probe_stage(device) or f"(not a trigger box: {str(exc).split(': ', 1)[-1][:60]})"
     try:
         return f"SLSCAN-TRIGGERBOX protocol {box.identity['protocol']} on {box.identity['board']}"
     finally:
         box.shutdown()
+
+
+def _probe_stage(device: str, boot_timeout_s: float = 2.5) -> str | None:
+    """What a GRBL motion controller on `device` says it is, or None."""
+    from scanner.drivers.grbl import identify
+    from scanner.errors import DeviceError
+
+    try:
+        firmware = identify(device, boot_timeout_s)
+    except DeviceError as exc:
+        log.debug("%s is not a GRBL controller: %s", device, exc)
+        return None
+    return f"{firmware} motion controller  (driver grbl: a turntable or slide; [stage] driver = \"grbl\")"

@@ -3,8 +3,10 @@
     slscan cad FILE [--json] [--sample N]            faces by STEP id and surface type, counts per type;
                                                      --sample: time to sample N labelled points
     slscan cadbench FILE [--copies 1,4,16]           STEP reading time of files holding copies of FILE
-    slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE
-    slscan inspect SESSION|CLOUD [--cad FILE] --tolerances PROGRAM|FILE
+    slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE;
+                                                     a cloud or session TARGET is another view of the part
+                                                     (partial overlap, fitness on the overlap, --overlap)
+    slscan inspect SESSION|MULTIVIEW|CLOUD [--cad FILE] --tolerances PROGRAM|FILE
                                                      register, segment by CAD face, per-face form table
 
 `inspect` writes inspection.json/.csv/.html beside the data (a session's outputs/, or the
@@ -146,17 +148,12 @@ def _short(v: Any) -> str:
     return f"{v:.6g}" if isinstance(v, float) else str(v)
 
 
-def _target(path: str, unit: str) -> tuple[Any, Any]:
-    """(ModelTarget, CadModel or None) for a CAD file, a mesh, or a cloud."""
+def _is_model(path: str) -> bool:
+    """Whether `path` is a CAD model or a mesh (a registration target), not a cloud or a session."""
     from inspection.cad import MESH_SUFFIXES, STEP_SUFFIXES
-    from inspection.measured_cloud import read_cloud
-    from inspection.registration import ModelTarget
 
     suffix = Path(path).suffix.lower()
-    if suffix in STEP_SUFFIXES or (suffix in MESH_SUFFIXES and _has_triangles(path)):
-        model = _load_model(path, unit)
-        return ModelTarget.from_cad(model), model
-    return ModelTarget.from_cloud(read_cloud(path)), None
+    return suffix in STEP_SUFFIXES or (suffix in MESH_SUFFIXES and _has_triangles(path))
 
 
 def _has_triangles(path: str) -> bool:
@@ -171,11 +168,15 @@ def cmd_register(args: argparse.Namespace) -> int:
     from inspection.measured_cloud import isolate_part, load_source
     from inspection.registration import RegistrationSettings, register
 
-    target, model = _target(args.target, args.cad_unit)
+    settings = RegistrationSettings(descriptors=tuple(args.descriptors.split(",")), coarse=args.coarse, seed=args.seed)
+    if not _is_model(args.target):
+        return _register_views(args, settings)
+    from inspection.registration import ModelTarget
+
+    target = ModelTarget.from_cad(_load_model(args.target, args.cad_unit))
     scan = load_source(args.source)
     if not args.no_isolate:
         scan = isolate_part(scan, target.diagonal_mm)
-    settings = RegistrationSettings(descriptors=tuple(args.descriptors.split(",")), coarse=args.coarse, seed=args.seed)
     reg = register(scan, target, settings)
     if args.json:
         print(json.dumps({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
@@ -187,6 +188,32 @@ def cmd_register(args: argparse.Namespace) -> int:
     print(f"fitness {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, "
           f"{reg.method}, {reg.timings_s.get('total', 0):.2f} s" + ("; AMBIGUOUS: another pose fits as well"
                                                                     if reg.ambiguous else ""))
+    return Exit.OK
+
+
+def _register_views(args: argparse.Namespace, settings: Any) -> int:
+    """A cloud (or session) target is another view of the part: partial overlap, judged on
+    the overlap (`inspection.views.pair_registration`)."""
+    import numpy as np
+
+    from inspection.measured_cloud import load_source
+    from inspection.views.pair_registration import register_view_pair, without_support
+
+    scan, target = load_source(args.source), load_source(args.target)
+    if not args.no_isolate:
+        scan, target = without_support(scan, args.seed), without_support(target, args.seed)
+    reg = register_view_pair(scan, target, args.overlap, settings)
+    if args.json:
+        print(json.dumps({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
+                          "overlap": reg.overlap, "overlap_given": reg.overlap_given, "ambiguous": reg.ambiguous,
+                          "method": reg.method}))
+        return Exit.OK
+    with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
+        print(f"transform taking {args.source} onto {args.target} (mm):")
+        print(reg.transform)
+    print(f"overlap {reg.overlap:.0%} of the scan ({'given' if reg.overlap_given else 'estimated'}); fitness on the "
+          f"overlap {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, {reg.method}"
+          + ("; AMBIGUOUS: another pose fits as well" if reg.ambiguous else ""))
     return Exit.OK
 
 
@@ -219,7 +246,8 @@ def load_tolerance_source(path: str | Path, labels: dict[str, str]) -> tuple[Any
 def report_header(source: Path, program: Any, operator: str | None, serial: str | None) -> Any:
     """The report's header: the part and program (with the program file's SHA-256), the
     serial (default: the session id), the operator (default: the login name), now (UTC),
-    and for a session its rig and the calibration it used (`station.calib.rig_calibration`)."""
+    and for a session (or a multi-view folder: its first view's) its rig and the
+    calibration it used (`station.calib.rig_calibration`)."""
     import datetime as dt
     import getpass
 
@@ -229,12 +257,14 @@ def report_header(source: Path, program: Any, operator: str | None, serial: str 
     rig = cal_id = cal_date = ""
     session_id = ""
     if source.is_dir():
+        from scanner.multiview import MultiViewSession, is_multiview
         from scanner.rig import RigConfig
         from scanner.session import Session
         from slscan.station.calib import rig_calibration
 
-        session = Session.open(source)
-        session_id = session.id
+        multiview = MultiViewSession.open(source) if is_multiview(source) else None
+        session = multiview.views[0].session if multiview is not None else Session.open(source)  # the views' rig
+        session_id = multiview.id if multiview is not None else session.id
         manifest = session.manifest
         rig = str(manifest.get("rig_config", {}).get("rig", {}).get("name", ""))
         rig_path = Path(str(manifest.get("rig_config_path", "")))
@@ -274,13 +304,14 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
                    out: str | Path | None = None, cad_unit: str = "mm", seed: int = 0,
                    recording: Any = None, operator: str | None = None, serial: str | None = None,
                    pdf: bool = True) -> Any:
-    """Inspect a session folder or cloud file against a CAD file (None: the part program's,
-    when `tolerances` is one); write the report files (and, for a session without a
-    `recording` given, outputs/inspection.rrd); return the report. `slscan demo` calls this
-    after its scan with the demo part's program."""
+    """Inspect a session folder, a multi-view folder (its merged cloud) or a cloud file
+    against a CAD file (None: the part program's, when `tolerances` is one); write the
+    report files (and, for a session without a `recording` given, outputs/inspection.rrd);
+    return the report. `slscan demo` calls this after its scan with the demo part's program."""
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import load_source
     from inspection.registration import RegistrationSettings
+    from scanner.multiview import MultiViewSession, is_multiview
 
     program = None
     if cad is None:
@@ -293,7 +324,13 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
     tol = None
     if tolerances:
         tol, program = load_tolerance_source(tolerances, {f.label: f.type for f in model.faces})
-    scan = load_source(source)
+    multiview = MultiViewSession.open(source) if is_multiview(source) else None
+    if multiview is not None:  # the whole part: the views' merged cloud
+        from inspection.views.whole import load_merged
+
+        scan = load_merged(multiview)
+    else:
+        scan = load_source(source)
     source = Path(source)
     folder = Path(out) if out else (source / "outputs" if source.is_dir() else source.parent)
     settings = InspectionSettings(registration=RegistrationSettings(seed=seed))
@@ -303,13 +340,17 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
         from scanner.session import Session
         from slscan.measurement_model import session_uncertainty
 
-        session = Session.open(source)
-        uncertainty = session_uncertainty(session)(scan.pixels)
+        # a multi-view folder: its first view's rig, whose world frame is the part frame at stage 0;
+        # the merged cloud has no one camera's pixels, so its figures estimate their noise from the data
+        session = multiview.views[0].session if multiview is not None else Session.open(source)
+        if multiview is None:
+            uncertainty = session_uncertainty(session)(scan.pixels)
         if recording is None:
             from scanner.session_recording import SessionRecording
 
             folder.mkdir(parents=True, exist_ok=True)
-            own = recording = SessionRecording(folder / "inspection.rrd", session.id, send_blueprint=False)
+            own = recording = SessionRecording(folder / "inspection.rrd", multiview.id if multiview is not None
+                                               else session.id, send_blueprint=False)
     try:
         if own is not None:  # the session's rig: its world frame is the recording's `world`
             own.log_rig(session.rig_model())
@@ -349,13 +390,15 @@ def register(sub: Any) -> None:
 
     r = sub.add_parser("register", help="register a cloud to a CAD model, a mesh or another cloud")
     r.add_argument("source", help="cloud (PLY/PCD/XYZ) or session folder")
-    r.add_argument("target", help="STEP, mesh (STL/PLY/OBJ with triangles) or cloud")
+    r.add_argument("target", help="STEP, mesh (STL/PLY/OBJ with triangles), or a cloud or session: another view")
     r.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh target")
     r.add_argument("--coarse", type=coarse_method, choices=COARSE_METHODS, default="sac-ia",
                    help="coarse method (default sac-ia)")
     r.add_argument("--descriptors", default="fpfh,shot", help="fpfh, shot or fpfh,shot (multivariate)")
     r.add_argument("--no-isolate", action="store_true", help="keep every source point (no table removal)")
     r.add_argument("--seed", type=int, default=0, help="random seed of the coarse search (default 0)")
+    r.add_argument("--overlap", type=float, metavar="SHARE", help="cloud targets: the share of SOURCE the target "
+                                                                   "also saw (default: estimated)")
     r.add_argument("--json", action="store_true", help="print {transform, fitness, rmse}")
     r.set_defaults(func=cmd_register)
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from scanner.config import CONFIG_DIR
-from scanner.errors import ConfigError
+from scanner.errors import ConfigError, ScannerError
 from scanner.reconstruct import Triangulator
 from scanner.rig import DEFAULT_RIG
 from scanner.session import write_json
@@ -36,6 +36,18 @@ def _parse_faults(items: Sequence[str]) -> Any:
     return Faults.from_table(table, "--fault", prefix="--fault")
 
 
+def _parse_stage_faults(items: Sequence[str]) -> Any:
+    from sim.virtual_stage import StageFaults
+
+    table: dict[str, Any] = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        if not value.isdigit():
+            raise ConfigError("--stage-fault", item, "expected NAME=MOVE, e.g. alarm_at_move=3")
+        table[key] = int(value)
+    return StageFaults.from_table(table, "--stage-fault")
+
+
 def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     """`slscan scan`; `then(result, recording)` runs after processing, into the session's
     recording (`pipeline.scan`)."""
@@ -46,14 +58,17 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     config = RigConfig.load(args.rig)
     patterns = PatternSet.load(args.patterns or config.patterns_path)
     options: dict[str, Any] = {}
+    stage_faults = getattr(args, "stage_fault", [])
     truth = None
     if config.driver == "sim":
         options = {"scene": args.scene or DEMO_SCENE, "seed": args.seed}
         truth = _bin_scene(options, config)
         if args.fault:
             options["faults"] = _parse_faults(args.fault)
-    elif args.scene or args.fault:
-        raise ConfigError(config.path, "rig.driver", "--scene and --fault apply to simulated rigs only")
+        if stage_faults:
+            options["stage_faults"] = _parse_stage_faults(stage_faults)
+    elif args.scene or args.fault or stage_faults:
+        raise ConfigError(config.path, "rig.driver", "--scene, --fault and --stage-fault apply to simulated rigs only")
     exposure = None
     if getattr(args, "exposure", None):
         from scanner.exposure import ExposureRequest
@@ -61,6 +76,12 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
         exposure = ExposureRequest.parse(args.exposure, args.exposure_roi)
     elif getattr(args, "exposure_roi", None):
         raise ConfigError("--exposure-roi", args.exposure_roi, "applies to --exposure auto or hdr only")
+    if getattr(args, "views", None) is not None or getattr(args, "angles", None) is not None:
+        from slscan.commands.views import scan_views
+
+        return scan_views(args, config, patterns, options, exposure)
+    if getattr(args, "stage_axis", None) is not None:
+        raise ScannerError("--stage-axis applies to multi-view scans only (--views or --angles)")
     out = Path(args.out)
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
@@ -142,9 +163,16 @@ def sim_accuracy(result: Any) -> Any:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
+    from scanner.multiview import is_multiview
     from scanner.pipeline import reprocess
     from scanner.session import Session
 
+    if is_multiview(args.session):
+        from slscan.commands.views import decode_views
+
+        return decode_views(args)
+    if args.stage_axis is not None:
+        raise ScannerError(f"{args.session}: --stage-axis applies to multi-view sessions only")
     result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode, level=_level(args))
     report(result)
     return Exit.OK
@@ -265,14 +293,25 @@ def register(sub: Any) -> None:
     s.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
                    help="simulated rigs: inject a fault (drop_frame=K, delay_frame=K, delay_s=S, "
                         "disconnect_after=N, stale_frame=K)")
+    s.add_argument("--views", type=int, metavar="N", help="multi-view: N views equally spaced over a turn of the "
+                                                         "rig's stage, into one multi-view folder")
+    s.add_argument("--angles", metavar="DEG,DEG,...", help="multi-view: the stage angles of the views, in degrees")
+    s.add_argument("--no-merge", action="store_true", help="multi-view: capture only (no alignment, merge or mesh)")
+    s.add_argument("--stage-axis", metavar="FILE", help="multi-view: the stage-axis calibration (slscan calibrate "
+                                                        "--stage-axis) to record and align the views with, in place "
+                                                        "of the rig's [stage] calibration")
+    s.add_argument("--stage-fault", action="append", default=[], metavar="NAME=MOVE",
+                   help="simulated rigs: a stage fault (alarm_at_move=K, disconnect_at_move=K, silent_at_move=K)")
     _add_full_recording(s)
     s.set_defaults(func=cmd_scan)
 
     d = sub.add_parser("decode", help="regenerate every output of a session from its raw frames")
-    d.add_argument("session", help="session folder (its raw frames and manifest)")
+    d.add_argument("session", help="session or multi-view folder (its raw frames and manifest)")
     d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation",
                    help="reconstruction: triangulation with the rig model (default) or Eq. 17 phase-to-height "
                         "for rigs calibrated with the reference-plane model")
+    d.add_argument("--stage-axis", metavar="FILE", help="multi-view: align the views again from this stage-axis "
+                                                        "calibration (slscan calibrate --stage-axis)")
     _add_full_recording(d)
     d.set_defaults(func=cmd_decode)
 
