@@ -165,9 +165,10 @@ class _LsFrames:
     def of(cls, xy: np.ndarray, heights: np.ndarray) -> _LsFrames:
         """The frames of surfaces with heights (B, N) along the nominal normal at `xy` (N, 2)."""
         X, Y = (xy - xy.mean(axis=0)).T
-        A = np.stack([X, Y, np.ones_like(X)], axis=1)
+        A = np.stack([X, Y, np.ones_like(X)])
         H = heights - heights.mean(axis=1, keepdims=True)
-        coef = np.linalg.solve(A.T @ A, A.T @ H.T).T  # (B, 3): z = a x + b y + c, fitted to every surface at once
+        # (B, 3): z = a x + b y + c fitted to every surface at once (einsum: no BLAS threads on thin products)
+        coef = np.linalg.solve(np.einsum("in,jn->ij", A, A), np.einsum("in,bn->ib", A, H)).T
         n = np.column_stack([-coef[:, 0], -coef[:, 1], np.ones(len(H))])
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         pick = np.where(np.abs(n[:, :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
@@ -178,7 +179,10 @@ class _LsFrames:
     def along(self, e: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
         """Coordinates (R, N) of every point of the surfaces `rows` along each one's
         direction e (R, 3)."""
-        return e[:, :2] @ np.stack([self.X, self.Y]) + self.Z[rows] * e[:, 2:3]
+        out = self.Z[rows] * e[:, 2:3]
+        out += np.multiply.outer(e[:, 0], self.X)
+        out += np.multiply.outer(e[:, 1], self.Y)
+        return out
 
     def at(self, e: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """`along` only at the points (rows, cols) (M,)."""
