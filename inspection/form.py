@@ -45,7 +45,7 @@ of paper 000. Every length in mm.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from typing import Callable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 from scipy import fft, ndimage
@@ -305,39 +305,40 @@ def gaussian_kernel_1d(cutoff_mm: float, spacing_mm: float, moment: int = 0) -> 
 class _Correlator:
     """Separable correlations of (..., H, W) fields with outer products of 1-D kernels,
     zero outside the grid (correlation: the kernel's offset +j reads the cell j further
-    on), by FFT: one transform per field, one product and inverse per kernel pair."""
+    on), by FFT: one transform per field; the columns' inverse once per column kernel (the
+    row kernel is constant along a column), then the rows' inverse per kernel pair, each
+    only where the grid is."""
 
     def __init__(self, shape: tuple[int, int], half: int) -> None:
         self.shape = shape
         self.half = half
         self.size = (fft.next_fast_len(shape[0] + 2 * half), fft.next_fast_len(shape[1] + 2 * half, real=True))
-        self._spectra: dict[tuple[int, int], np.ndarray] = {}
-        self._kernels: dict[int, np.ndarray] = {}
+        self._cols: dict[int, np.ndarray] = {}  # column kernels' spectra (S0, 1)
+        self._rows: dict[int, np.ndarray] = {}  # row kernels' half spectra (S1 // 2 + 1,)
 
     def kernel(self, key: int, k: np.ndarray) -> None:
-        self._kernels[key] = k
-
-    def _spectrum(self, ky: int, kx: int) -> np.ndarray:
-        if (ky, kx) not in self._spectra:
-            g = np.zeros(self.size)
-            a, b = self._kernels[ky][::-1], self._kernels[kx][::-1]  # correlation = convolution with the flip
-            g[:len(a), :len(b)] = np.outer(a, b)
-            self._spectra[(ky, kx)] = fft.rfft2(g)
-        return self._spectra[(ky, kx)]
+        flipped = k[::-1]  # correlation = convolution with the flip
+        self._cols[key] = fft.fft(flipped, n=self.size[0])[:, None]
+        self._rows[key] = fft.rfft(flipped, n=self.size[1])
 
     def transform(self, fields: np.ndarray) -> np.ndarray:
         """The padded 2-D spectrum of fields (..., H, W): rows first, only the H that hold data."""
         rows = fft.rfft(fields, n=self.size[1], axis=-1, workers=-1)
         return fft.fft(rows, n=self.size[0], axis=-2, workers=-1)
 
-    def apply(self, spectrum: np.ndarray, ky: int, kx: int) -> np.ndarray:
-        """The correlation on the grid: columns back first, then only the grid's rows."""
+    def apply(self, spectrum: np.ndarray, pairs: Iterable[tuple[int, int]]) -> Iterator[np.ndarray]:
+        """The correlations (..., H, W) with the kernel pairs (ky, kx), in their order; pairs
+        that share ky in a row share the columns' inverse."""
         h, w = self.shape
-        cols = fft.ifft(spectrum * self._spectrum(ky, kx), axis=-2, workers=-1)[..., self.half:self.half + h, :]
-        return fft.irfft(cols, n=self.size[1], axis=-1, workers=-1)[..., self.half:self.half + w]
+        ky_done, cols = None, None
+        for ky, kx in pairs:
+            if ky != ky_done:
+                cols = fft.ifft(spectrum * self._cols[ky], axis=-2, workers=-1)[..., self.half:self.half + h, :]
+                ky_done = ky
+            yield fft.irfft(cols * self._rows[kx], n=self.size[1], axis=-1, workers=-1)[..., self.half:self.half + w]
 
 
-_MONOMIALS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))  # (power of x, power of y)
+_MONOMIALS = ((0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (0, 2))  # (power of x, power of y), by y's
 
 
 class GaussianFilter:
@@ -356,12 +357,13 @@ class GaussianFilter:
         for m, k in enumerate(ks):
             self._c.kernel(m, k)
         wspec = self._c.transform(mask.astype(np.float64))
-        self._norm = np.maximum(self._c.apply(wspec, 0, 0), 1e-300)  # the Gaussian mean's weights
+        self._norm = np.maximum(next(self._c.apply(wspec, [(0, 0)])), 1e-300)  # the Gaussian mean's weights
         if order == 0:
             return
         # moments about each cell: S_ab = sum w g (dx^a dy^b); the filtered value is the first
         # row of M^-1 (M_ij = S of the product of monomials i and j) applied to T_j = sum w z g m_j
-        S = {(a, b): self._c.apply(wspec, b, a) for a in range(5) for b in range(5 - a)}
+        ab = [(a, b) for b in range(5) for a in range(5 - b)]
+        S = dict(zip(ab, self._c.apply(wspec, [(b, a) for a, b in ab])))
         M = np.empty(mask.shape + (6, 6))
         for i, (a1, b1) in enumerate(_MONOMIALS):
             for j, (a2, b2) in enumerate(_MONOMIALS):
@@ -378,17 +380,18 @@ class GaussianFilter:
 
     def __call__(self, z: np.ndarray) -> np.ndarray:
         if self.order == 0:
-            return self._c.apply(self._spectrum(z), 0, 0) / self._norm
+            return next(self._c.apply(self._spectrum(z), [(0, 0)])) / self._norm
         return self.with_mean(z)[0]
 
     def with_mean(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Order 2: the regression and the Gaussian mean (order 0, the same cut-off) of z
         from one transform, the mean's correlation being the regression's first term."""
         spec = self._spectrum(z)
-        mean = self._c.apply(spec, 0, 0)
+        terms = self._c.apply(spec, [(b, a) for a, b in _MONOMIALS])
+        mean = next(terms)
         out = mean * self._row[..., 0]
-        for i, (a, b) in enumerate(_MONOMIALS[1:], 1):
-            out += self._c.apply(spec, b, a) * self._row[..., i]
+        for i, term in enumerate(terms, 1):
+            out += term * self._row[..., i]
         return np.where(self._ok, out, np.nan), mean / self._norm
 
     def _spectrum(self, z: np.ndarray) -> np.ndarray:
