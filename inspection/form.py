@@ -122,9 +122,10 @@ def flatness_mz_many(xy: np.ndarray, heights: np.ndarray, tilt: np.ndarray | Non
     """Minimum-zone flatness (B,) of B surfaces sampled at the same places: in-plane
     coordinates `xy` (N, 2) and heights (B, N) along the nominal normal, each surface's zone
     measured along its own least-squares normal. An LP on the plane's tilt and the zone's
-    bounds over a few candidate points per surface (the most extreme heights, and the most
-    extreme about the `tilt` (2,) of a related zone, `plane_zone_tilt`: where a noise draw's
-    zone is held), then every point checked and the violators added until none is left:
+    bounds over a few candidate points per surface (the most extreme heights, or the most
+    extreme about the `tilt` (2,) of a related zone, `plane_zone_tilt`: where the zone of the
+    measured surface plus a noise draw is held), then every point checked and the
+    violators added until none is left:
     exact, as the zone of a subset is never wider, and one holding every point is the zone
     of them all. All surfaces share one LP (`_plane_lps`)."""
     a, b, _, w = _plane_zones(_LsFrames.of(xy, heights), tilt)
@@ -196,17 +197,15 @@ ZONE_SLACK_MM = 1e-10  # a point this far outside a zone counts as inside (HiGHS
 def _plane_zones(f: _LsFrames, tilt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """min w subject to lo <= z - a x - b y <= lo + w for every surface (x, y, z its
     coordinates in `f`); returns (a, b, lo, w), each (B,). Active set: each surface's
-    extreme heights, and about `tilt`, then the violators of each solution, until every
-    point is held."""
+    extreme heights (about `tilt`, when given), then the violators of each solution, until
+    every point is held."""
     B, N = f.Z.shape
     k = min(N, ZONE_CANDIDATES)
     active = np.zeros((B, N), bool)
     rows = np.arange(B)[:, None]
-    for e in (f.n, None if tilt is None else f.n - tilt[0] * f.u - tilt[1] * f.v):
-        if e is not None:
-            h = f.along(e)
-            active[rows, np.argpartition(h, k - 1, axis=1)[:, :k]] = True
-            active[rows, np.argpartition(-h, k - 1, axis=1)[:, :k]] = True
+    h = f.along(f.n if tilt is None else f.n - tilt[0] * f.u - tilt[1] * f.v)
+    active[rows, np.argpartition(h, k - 1, axis=1)[:, :k]] = True
+    active[rows, np.argpartition(-h, k - 1, axis=1)[:, :k]] = True
     sol = np.zeros((B, 4))
     todo = np.arange(B)
     for _ in range(50):  # a few rounds at most
@@ -703,8 +702,11 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         def flat_mz(h: np.ndarray) -> np.ndarray:
             return flatness_mz_many(cxy, h, tilt)
 
+        def noise_mz(h: np.ndarray) -> np.ndarray:  # the noise alone: its zone about its own LS plane
+            return flatness_mz_many(cxy, h)
+
         ls, ls_parts = _zone(flat_ls, f, e, cal)
-        mz, mz_parts = _zone(flat_mz, f, e, cal)
+        mz, mz_parts = _zone(flat_mz, f, e, cal, noise_mz)
         parts.update(flatness_ls=ls_parts, flatness_mz=mz_parts)
         return FaceForm(flatness_ls=ls, flatness_mz=mz, u_components=parts, **common)  # type: ignore[arg-type]
     if face.type == "cylinder":  # type: ignore[attr-defined]
@@ -734,13 +736,15 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
 
 
 def _zone(figure: Callable[[np.ndarray], np.ndarray], form: np.ndarray, drawn: np.ndarray,
-          cal: np.ndarray | None) -> tuple[Estimate, dict[str, float]]:
+          cal: np.ndarray | None, noise_figure: Callable[[np.ndarray], np.ndarray] | None = None
+          ) -> tuple[Estimate, dict[str, float]]:
     """A zone of the form surface `form` (cells,) with its noise draws (D, cells) and
     calibration moves (D_cal, cells): bias removed, u, detection limit. `figure` takes
-    surfaces (B, cells) and gives their zones (B,)."""
+    surfaces (B, cells) and gives their zones (B,); `noise_figure`, the same zone computed
+    with hints for the noise alone (default: `figure`)."""
     value = float(figure(form[None])[0])
     changes = None if cal is None else figure(form + cal) - value
-    return from_draws(value, figure(form + drawn), figure(drawn), changes)
+    return from_draws(value, figure(form + drawn), (noise_figure or figure)(drawn), changes)
 
 
 def _point_draws(noise: PointNoise | None, normals: np.ndarray | None, rng: np.random.Generator, n: int,
