@@ -200,6 +200,8 @@ def _plane_zones(f: _LsFrames, tilt: np.ndarray | None) -> tuple[np.ndarray, np.
     extreme heights (about `tilt`, when given), then the violators of each solution, until
     every point is held."""
     B, N = f.Z.shape
+    if B == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0)
     k = min(N, ZONE_CANDIDATES)
     active = np.zeros((B, N), bool)
     rows = np.arange(B)[:, None]
