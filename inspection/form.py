@@ -40,6 +40,12 @@ Minimum zone (Chebyshev, the ISO 1101 default): the narrowest pair of parallel p
 planes' (cylinders') small-displacement parameters about the least-squares fit,
 relinearised until it settles. Least squares: Eq. 20 (plane) and Eq. 21-22 (cylinder)
 of paper 000. Every length in mm.
+
+Speed (the draws are most of the work): a plane's zones of the measured surface, of it
+plus each draw and of each draw alone are solved a batch at a time, in one LP over a few
+candidate points per surface, every point then checked and the violators added (exact);
+the draws are filtered as one stack, the L-filter's mean taken from the form filter's
+transform.
 """
 
 from __future__ import annotations
