@@ -40,12 +40,18 @@ Minimum zone (Chebyshev, the ISO 1101 default): the narrowest pair of parallel p
 planes' (cylinders') small-displacement parameters about the least-squares fit,
 relinearised until it settles. Least squares: Eq. 20 (plane) and Eq. 21-22 (cylinder)
 of paper 000. Every length in mm.
+
+Speed (the draws are most of the work): a plane's zones of the measured surface, of it
+plus each draw and of each draw alone are solved a batch at a time, in one LP over a few
+candidate points per surface, every point then checked and the violators added (exact);
+the draws are filtered as one stack, the L-filter's mean taken from the form filter's
+transform.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from typing import Callable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 from scipy import fft, ndimage
@@ -110,34 +116,141 @@ def _frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def flatness_mz(points: np.ndarray, normal: np.ndarray) -> float:
     """Minimum-zone flatness: the least distance between two parallel planes holding the
-    points (heights along the LS normal). An LP on the plane's tilt and the zone's bounds,
-    over the points with the most extreme heights (plus any point the previous solution
-    left outside its zone), which is exact: the zone is fixed by a handful of extreme
-    points, and a zone holding every point is the zone of them all."""
-    c, n = plane_ls(points, normal)
+    points (N, 3), heights taken along their least-squares normal (from the nominal
+    `normal`); `flatness_mz_many` in the nominal normal's frame."""
+    n = normal / np.linalg.norm(normal)
     u, v = _frame(n)
-    d = points - c
-    x, y, z = d @ u, d @ v, d @ n
-    k = min(len(z), 200)
-    active = np.union1d(np.argpartition(z, k - 1)[:k], np.argpartition(-z, k - 1)[:k])
-    for _ in range(50):  # add violators until the zone holds every point
-        a, b, lo, w = _plane_lp(x[active], y[active], z[active])
-        r = z - a * x - b * y
-        excess = np.maximum(lo - r, r - lo - w)
-        out = np.flatnonzero(excess > 1e-12)
-        if not out.size:
+    d = points - points.mean(axis=0)
+    return float(flatness_mz_many(np.stack([d @ u, d @ v], axis=1), (d @ n)[None])[0])
+
+
+def flatness_mz_many(xy: np.ndarray, heights: np.ndarray, tilt: np.ndarray | None = None) -> np.ndarray:
+    """Minimum-zone flatness (B,) of B surfaces sampled at the same places: in-plane
+    coordinates `xy` (N, 2) and heights (B, N) along the nominal normal, each surface's zone
+    measured along its own least-squares normal. An LP on the plane's tilt and the zone's
+    bounds over a few candidate points per surface (the most extreme heights, or the most
+    extreme about the `tilt` (2,) of a related zone, `plane_zone_tilt`: where the zone of the
+    measured surface plus a noise draw is held), then every point checked and the
+    violators added until none is left:
+    exact, as the zone of a subset is never wider, and one holding every point is the zone
+    of them all. All surfaces share one LP (`_plane_lps`)."""
+    a, b, _, w = _plane_zones(_LsFrames.of(xy, heights), tilt)
+    return w / np.sqrt(1.0 + a * a + b * b)
+
+
+def flatness_ls_many(xy: np.ndarray, heights: np.ndarray) -> np.ndarray:
+    """Least-squares flatness (B,) of B surfaces (as `flatness_mz_many`): the spread of the
+    heights about each surface's least-squares plane."""
+    frames = _LsFrames.of(xy, heights)
+    z = frames.along(frames.n)
+    return z.max(axis=1) - z.min(axis=1)
+
+
+def plane_zone_tilt(xy: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """The minimum zone's tilt (2,) relative to the least-squares plane of one surface
+    (heights (N,) at `xy` (N, 2))."""
+    a, b, _, _ = _plane_zones(_LsFrames.of(xy, height[None]), None)
+    return np.array([a[0], b[0]])
+
+
+@dataclass(frozen=True, eq=False)
+class _LsFrames:
+    """B surfaces sampled at the same places, each in the frame of its least-squares plane
+    (paper 000 Eq. 20, `plane_ls`; in-plane axes `u`, `v` as `_frame` picks them, normal `n`,
+    each (B, 3) in the nominal frame), kept as the shared centred in-plane coordinates `X`,
+    `Y` (N,) and the heights `Z` (B, N) above each plane's centre: a coordinate along any
+    per-surface direction is then one pass (`along`) instead of three stored arrays."""
+
+    X: np.ndarray
+    Y: np.ndarray
+    Z: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    n: np.ndarray
+
+    @classmethod
+    def of(cls, xy: np.ndarray, heights: np.ndarray) -> _LsFrames:
+        """The frames of surfaces with heights (B, N) along the nominal normal at `xy` (N, 2)."""
+        X, Y = (xy - xy.mean(axis=0)).T
+        A = np.stack([X, Y, np.ones_like(X)])
+        H = heights - heights.mean(axis=1, keepdims=True)
+        # (B, 3): z = a x + b y + c fitted to every surface at once (einsum: no BLAS threads on thin products)
+        coef = np.linalg.solve(np.einsum("in,jn->ij", A, A), np.einsum("in,bn->ib", A, H)).T
+        n = np.column_stack([-coef[:, 0], -coef[:, 1], np.ones(len(H))])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        pick = np.where(np.abs(n[:, :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+        u = np.cross(n, pick)
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        return cls(X, Y, H - coef[:, 2:3], u, np.cross(n, u), n)
+
+    def along(self, e: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """Coordinates (R, N) of every point of the surfaces `rows` along each one's
+        direction e (R, 3)."""
+        out = self.Z[rows] * e[:, 2:3]
+        out += np.multiply.outer(e[:, 0], self.X)
+        out += np.multiply.outer(e[:, 1], self.Y)
+        return out
+
+    def at(self, e: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """`along` only at the points (rows, cols) (M,)."""
+        return self.X[cols] * e[rows, 0] + self.Y[cols] * e[rows, 1] + self.Z[rows, cols] * e[rows, 2]
+
+
+ZONE_CANDIDATES = 32  # extreme points per side a zone's LP starts from; violators join this many at a time
+ZONE_SLACK_MM = 1e-10  # a point this far outside a zone counts as inside (HiGHS's round-off)
+
+
+def _plane_zones(f: _LsFrames, tilt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """min w subject to lo <= z - a x - b y <= lo + w for every surface (x, y, z its
+    coordinates in `f`); returns (a, b, lo, w), each (B,). Active set: each surface's
+    extreme heights (about `tilt`, when given), then the violators of each solution, until
+    every point is held."""
+    B, N = f.Z.shape
+    if B == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0)
+    k = min(N, ZONE_CANDIDATES)
+    active = np.zeros((B, N), bool)
+    rows = np.arange(B)[:, None]
+    h = f.along(f.n if tilt is None else f.n - tilt[0] * f.u - tilt[1] * f.v)
+    active[rows, np.argpartition(h, k - 1, axis=1)[:, :k]] = True
+    active[rows, np.argpartition(-h, k - 1, axis=1)[:, :k]] = True
+    sol = np.zeros((B, 4))
+    todo = np.arange(B)
+    for _ in range(50):  # a few rounds at most
+        s, j = np.nonzero(active[todo])
+        rs = todo[s]
+        sol[todo] = _plane_lps(len(todo), s, f.at(f.u, rs, j), f.at(f.v, rs, j), f.at(f.n, rs, j))
+        a, b, lo, w = (sol[todo, i:i + 1] for i in range(4))
+        r = f.along(f.n[todo] - a * f.u[todo] - b * f.v[todo], todo)
+        excess = np.where(active[todo], -np.inf, np.maximum(lo - r, r - lo - w))
+        more = (excess > ZONE_SLACK_MM).any(axis=1)
+        if not more.any():
             break
-        active = np.union1d(active, out[np.argsort(-excess[out])[:200]])
-    return float(w / np.sqrt(1.0 + a * a + b * b))
+        todo, excess = todo[more], excess[more]
+        worst = np.argpartition(-excess, k - 1, axis=1)[:, :k]
+        add = np.take_along_axis(excess, worst, axis=1) > ZONE_SLACK_MM
+        active[np.broadcast_to(todo[:, None], worst.shape)[add], worst[add]] = True
+    return sol[:, 0], sol[:, 1], sol[:, 2], sol[:, 3]
 
 
-def _plane_lp(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[float, float, float, float]:
-    """min w subject to lo <= z - a x - b y <= lo + w; returns (a, b, lo, w)."""
-    ones = np.ones_like(x)
-    A_ub = np.concatenate([np.stack([-x, -y, -ones, -ones], 1), np.stack([x, y, ones, 0 * ones], 1)])
-    b_ub = np.concatenate([-z, z])
-    res = linprog([0, 0, 0, 1], A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * 3 + [(0, None)], method="highs")
-    return float(res.x[0]), float(res.x[1]), float(res.x[2]), float(res.x[3])
+def _plane_lps(count: int, s: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
+    """One HiGHS LP for `count` independent zones, point m (coordinates xs, ys, zs) held by
+    zone s[m]: variables (a, b, lo, w) per zone, minimising the sum of the widths, which,
+    the zones sharing no variable, minimises each. Returns (count, 4)."""
+    from scipy.sparse import coo_array
+
+    m = len(s)
+    one = np.ones(m)
+    row = np.concatenate([np.repeat(np.arange(m), 4), np.repeat(np.arange(m, 2 * m), 3)])
+    col = np.concatenate([(4 * s[:, None] + np.arange(4)).ravel(), (4 * s[:, None] + np.arange(3)).ravel()])
+    val = np.concatenate([np.stack([-xs, -ys, -one, -one], 1).ravel(), np.stack([xs, ys, one], 1).ravel()])
+    A_ub = coo_array((val, (row, col)), shape=(2 * m, 4 * count)).tocsr()
+    c = np.tile([0.0, 0.0, 0.0, 1.0], count)
+    bounds = np.tile([[-np.inf, np.inf]] * 3 + [[0.0, np.inf]], (count, 1))
+    res = linprog(c, A_ub=A_ub, b_ub=np.concatenate([-zs, zs]), bounds=bounds, method="highs")
+    if res.status != 0:
+        raise ArithmeticError(f"minimum-zone LP of {count} zones: {res.message}")
+    return res.x.reshape(-1, 4)
 
 
 def cylindricity_mz(points: np.ndarray, origin: np.ndarray, axis: np.ndarray, rounds: int = 6) -> float:
@@ -199,36 +312,40 @@ def gaussian_kernel_1d(cutoff_mm: float, spacing_mm: float, moment: int = 0) -> 
 class _Correlator:
     """Separable correlations of (..., H, W) fields with outer products of 1-D kernels,
     zero outside the grid (correlation: the kernel's offset +j reads the cell j further
-    on), by FFT: one transform per field, one product and inverse per kernel pair."""
+    on), by FFT: one transform per field; the columns' inverse once per column kernel (the
+    row kernel is constant along a column), then the rows' inverse per kernel pair, each
+    only where the grid is."""
 
     def __init__(self, shape: tuple[int, int], half: int) -> None:
         self.shape = shape
         self.half = half
         self.size = (fft.next_fast_len(shape[0] + 2 * half), fft.next_fast_len(shape[1] + 2 * half, real=True))
-        self._spectra: dict[tuple[int, int], np.ndarray] = {}
-        self._kernels: dict[int, np.ndarray] = {}
+        self._cols: dict[int, np.ndarray] = {}  # column kernels' spectra (S0, 1)
+        self._rows: dict[int, np.ndarray] = {}  # row kernels' half spectra (S1 // 2 + 1,)
 
     def kernel(self, key: int, k: np.ndarray) -> None:
-        self._kernels[key] = k
-
-    def _spectrum(self, ky: int, kx: int) -> np.ndarray:
-        if (ky, kx) not in self._spectra:
-            g = np.zeros(self.size)
-            a, b = self._kernels[ky][::-1], self._kernels[kx][::-1]  # correlation = convolution with the flip
-            g[:len(a), :len(b)] = np.outer(a, b)
-            self._spectra[(ky, kx)] = fft.rfft2(g)
-        return self._spectra[(ky, kx)]
+        flipped = k[::-1]  # correlation = convolution with the flip
+        self._cols[key] = fft.fft(flipped, n=self.size[0])[:, None]
+        self._rows[key] = fft.rfft(flipped, n=self.size[1])
 
     def transform(self, fields: np.ndarray) -> np.ndarray:
-        return fft.rfft2(fields, s=self.size, axes=(-2, -1))
+        """The padded 2-D spectrum of fields (..., H, W): rows first, only the H that hold data."""
+        rows = fft.rfft(fields, n=self.size[1], axis=-1, workers=-1)
+        return fft.fft(rows, n=self.size[0], axis=-2, workers=-1)
 
-    def apply(self, spectrum: np.ndarray, ky: int, kx: int) -> np.ndarray:
-        out = fft.irfft2(spectrum * self._spectrum(ky, kx), s=self.size, axes=(-2, -1))
+    def apply(self, spectrum: np.ndarray, pairs: Iterable[tuple[int, int]]) -> Iterator[np.ndarray]:
+        """The correlations (..., H, W) with the kernel pairs (ky, kx), in their order; pairs
+        that share ky in a row share the columns' inverse."""
         h, w = self.shape
-        return out[..., self.half:self.half + h, self.half:self.half + w]
+        ky_done, cols = None, None
+        for ky, kx in pairs:
+            if ky != ky_done:
+                cols = fft.ifft(spectrum * self._cols[ky], axis=-2, workers=-1)[..., self.half:self.half + h, :]
+                ky_done = ky
+            yield fft.irfft(cols * self._rows[kx], n=self.size[1], axis=-1, workers=-1)[..., self.half:self.half + w]
 
 
-_MONOMIALS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))  # (power of x, power of y)
+_MONOMIALS = ((0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (0, 2))  # (power of x, power of y), by y's
 
 
 class GaussianFilter:
@@ -247,12 +364,13 @@ class GaussianFilter:
         for m, k in enumerate(ks):
             self._c.kernel(m, k)
         wspec = self._c.transform(mask.astype(np.float64))
+        self._norm = np.maximum(next(self._c.apply(wspec, [(0, 0)])), 1e-300)  # the Gaussian mean's weights
         if order == 0:
-            self._norm = np.maximum(self._c.apply(wspec, 0, 0), 1e-300)
             return
         # moments about each cell: S_ab = sum w g (dx^a dy^b); the filtered value is the first
         # row of M^-1 (M_ij = S of the product of monomials i and j) applied to T_j = sum w z g m_j
-        S = {(a, b): self._c.apply(wspec, b, a) for a in range(5) for b in range(5 - a)}
+        ab = [(a, b) for b in range(5) for a in range(5 - b)]
+        S = dict(zip(ab, self._c.apply(wspec, [(b, a) for a, b in ab])))
         M = np.empty(mask.shape + (6, 6))
         for i, (a1, b1) in enumerate(_MONOMIALS):
             for j, (a2, b2) in enumerate(_MONOMIALS):
@@ -268,12 +386,23 @@ class GaussianFilter:
         self._ok = ok
 
     def __call__(self, z: np.ndarray) -> np.ndarray:
-        zw = np.where(self.mask, np.nan_to_num(z), 0.0)
-        spec = self._c.transform(zw)
         if self.order == 0:
-            return self._c.apply(spec, 0, 0) / self._norm
-        out = sum(self._c.apply(spec, b, a) * self._row[..., i] for i, (a, b) in enumerate(_MONOMIALS))
-        return np.where(self._ok, out, np.nan)
+            return next(self._c.apply(self._spectrum(z), [(0, 0)])) / self._norm
+        return self.with_mean(z)[0]
+
+    def with_mean(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Order 2: the regression and the Gaussian mean (order 0, the same cut-off) of z
+        from one transform, the mean's correlation being the regression's first term."""
+        spec = self._spectrum(z)
+        terms = self._c.apply(spec, [(b, a) for a, b in _MONOMIALS])
+        mean = next(terms)
+        out = mean * self._row[..., 0]
+        for i, term in enumerate(terms, 1):
+            out += term * self._row[..., i]
+        return np.where(self._ok, out, np.nan), mean / self._norm
+
+    def _spectrum(self, z: np.ndarray) -> np.ndarray:
+        return self._c.transform(np.where(self.mask, np.nan_to_num(z), 0.0))
 
 
 def gaussian_filter(z: np.ndarray, mask: np.ndarray, cutoff_mm: float, spacing_mm: float,
@@ -394,10 +523,12 @@ class _Grid:
         """Per-cell means (..., H, W) of per-point values (..., N), NaN in empty cells."""
         lead = values.shape[:-1]
         flat = values.reshape(-1, values.shape[-1])
-        out = np.full((len(flat), self.shape[0] * self.shape[1]), np.nan)
+        cells = len(self.counts)
+        index = (self.cell[None] + cells * np.arange(len(flat))[:, None]).ravel()  # every row's cells apart
+        sums = np.bincount(index, flat.ravel(), cells * len(flat)).reshape(len(flat), cells)
+        out = np.full((len(flat), cells), np.nan)
         filled = self.counts > 0
-        for k, v in enumerate(flat):
-            out[k, filled] = np.bincount(self.cell, v, len(self.counts))[filled] / self.counts[filled]
+        out[:, filled] = sums[:, filled] / self.counts[filled]
         return out.reshape(*lead, *self.shape)
 
     def centres(self, mask: np.ndarray) -> np.ndarray:
@@ -410,7 +541,7 @@ def _grid(xy: np.ndarray) -> _Grid:
     grows until nine cells in ten inside the measured area hold a point."""
     from scipy.spatial import cKDTree
 
-    d, _ = cKDTree(xy).query(xy, k=2)
+    d, _ = cKDTree(xy).query(xy, k=2, workers=-1)
     g = float(np.median(d[:, 1])) * 1.2
     lo = xy.min(axis=0)
     while True:  # a few rounds at most
@@ -545,11 +676,17 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     if shifts is not None:
         cal_cells = np.where(inner, grid.mean(np.einsum("dij,ij->di", shifts, normals)), 0.0)
     form_filter = GaussianFilter(inner, settings.form_cutoff_mm, grid.spacing, order=2)
-    rough_filter = GaussianFilter(inner, settings.roughness_cutoff_mm, grid.spacing, order=0)
-    form = form_filter(zg)
-    noise_form = form_filter(cell_draws)
-    rough = zg - rough_filter(zg)
-    drawn_rough = cell_draws - rough_filter(cell_draws)
+    if settings.roughness_cutoff_mm == settings.form_cutoff_mm:  # the L-filter's mean comes with the form filter
+        filters = form_filter.with_mean
+    else:
+        rough_filter = GaussianFilter(inner, settings.roughness_cutoff_mm, grid.spacing, order=0)
+
+        def filters(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return form_filter(z), rough_filter(z)
+    form, mean = filters(zg)
+    noise_form, noise_mean = filters(cell_draws)  # all draws in one stacked transform
+    rough = zg - mean
+    drawn_rough = cell_draws - noise_mean
     sq, sq_raw, sq_noise, sq_parts = _sq(rough, np.nan_to_num(drawn_rough), inner, model_rel_u)
     raw_dev = deviation[raw_sel]
     raw_draws = (point_draws[:, raw_sel] if point_draws is not None
@@ -565,19 +702,19 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     f, e = form[inner], noise_form[:, inner]
     cal = None if cal_form is None else cal_form
     if face.type == "plane":  # type: ignore[attr-defined]
-        up = np.array([0.0, 0.0, 1.0])
+        tilt = plane_zone_tilt(cxy, f)  # the draws' zones are held near the measured zone's
 
-        def flat_ls(h: np.ndarray) -> float:
-            p = np.column_stack([cxy, h])
-            c, nn = plane_ls(p, up)
-            r = (p - c) @ nn
-            return float(r.max() - r.min())
+        def flat_ls(h: np.ndarray) -> np.ndarray:
+            return flatness_ls_many(cxy, h)
 
-        def flat_mz(h: np.ndarray) -> float:
-            return flatness_mz(np.column_stack([cxy, h]), up)
+        def flat_mz(h: np.ndarray) -> np.ndarray:
+            return flatness_mz_many(cxy, h, tilt)
+
+        def noise_mz(h: np.ndarray) -> np.ndarray:  # the noise alone: its zone about its own LS plane
+            return flatness_mz_many(cxy, h)
 
         ls, ls_parts = _zone(flat_ls, f, e, cal)
-        mz, mz_parts = _zone(flat_mz, f, e, cal)
+        mz, mz_parts = _zone(flat_mz, f, e, cal, noise_mz)
         parts.update(flatness_ls=ls_parts, flatness_mz=mz_parts)
         return FaceForm(flatness_ls=ls, flatness_mz=mz, u_components=parts, **common)  # type: ignore[arg-type]
     if face.type == "cylinder":  # type: ignore[attr-defined]
@@ -586,15 +723,18 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         sign = face.sense * np.sign(np.dot(s.evaluate(np.zeros((1, 2)))[1][0], s.x))  # type: ignore[attr-defined]
         axis0, o0 = np.array([0.0, 0.0, 1.0]), np.zeros(3)
 
-        def cyl_ls(h: np.ndarray) -> float:
-            p = _unroll(cxy, R + sign * h, R)
-            o, a, _ = cylinder_ls(p, o0, axis0)
-            d = p - o
-            r = np.linalg.norm(d - np.outer(d @ a, a), axis=1)
-            return float(r.max() - r.min())
+        def cyl_ls(hs: np.ndarray) -> np.ndarray:
+            out = []
+            for h in hs:  # one least-squares fit per surface
+                p = _unroll(cxy, R + sign * h, R)
+                o, a, _ = cylinder_ls(p, o0, axis0)
+                d = p - o
+                r = np.linalg.norm(d - np.outer(d @ a, a), axis=1)
+                out.append(r.max() - r.min())
+            return np.array(out)
 
-        def cyl_mz(h: np.ndarray) -> float:
-            return cylindricity_mz(_unroll(cxy, R + sign * h, R), o0, axis0)
+        def cyl_mz(hs: np.ndarray) -> np.ndarray:
+            return np.array([cylindricity_mz(_unroll(cxy, R + sign * h, R), o0, axis0) for h in hs])
 
         ls, ls_parts = _zone(cyl_ls, f, e, cal)
         mz, mz_parts = _zone(cyl_mz, f, e, cal)
@@ -603,14 +743,16 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     return FaceForm(note=f"{face.type}: texture and deviations only", u_components=parts, **common)  # type: ignore[attr-defined,arg-type]
 
 
-def _zone(figure: Callable[[np.ndarray], float], form: np.ndarray, drawn: np.ndarray,
-          cal: np.ndarray | None) -> tuple[Estimate, dict[str, float]]:
+def _zone(figure: Callable[[np.ndarray], np.ndarray], form: np.ndarray, drawn: np.ndarray,
+          cal: np.ndarray | None, noise_figure: Callable[[np.ndarray], np.ndarray] | None = None
+          ) -> tuple[Estimate, dict[str, float]]:
     """A zone of the form surface `form` (cells,) with its noise draws (D, cells) and
-    calibration moves (D_cal, cells): bias removed, u, detection limit."""
-    value = figure(form)
-    changes = None if cal is None else np.array([figure(form + c) - value for c in cal])
-    return from_draws(value, np.array([figure(form + e) for e in drawn]), np.array([figure(e) for e in drawn]),
-                       changes)
+    calibration moves (D_cal, cells): bias removed, u, detection limit. `figure` takes
+    surfaces (B, cells) and gives their zones (B,); `noise_figure`, the same zone computed
+    with hints for the noise alone (default: `figure`)."""
+    value = float(figure(form[None])[0])
+    changes = None if cal is None else figure(form + cal) - value
+    return from_draws(value, figure(form + drawn), (noise_figure or figure)(drawn), changes)
 
 
 def _point_draws(noise: PointNoise | None, normals: np.ndarray | None, rng: np.random.Generator, n: int,
@@ -629,25 +771,44 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, raw: np.ndarray, ra
     with theirs; `cal` (D_cal, cells): calibration moves. The extremes and the profile are
     tested against zero (an extreme the noise alone reaches is not a deviation: null, with
     that reach, in magnitude, as its limit); the mean and RMS are not."""
-    def each(fn: Callable[[np.ndarray], float], base: np.ndarray, draws: np.ndarray, tested: bool,
+    def each(fn: Callable[[np.ndarray], np.ndarray], base: np.ndarray, draws: np.ndarray, tested: bool,
              moves: np.ndarray | None, sign: float = 1.0) -> tuple[Estimate, dict[str, float]]:
-        value = sign * fn(base)
-        changes = None if moves is None else np.array([sign * fn(base + m) - value for m in moves])
-        est, parts = from_draws(value, np.array([sign * fn(x) for x in draws]),
-                                 np.array([sign * fn(x - base) for x in draws]) if tested else None, changes)
+        value = sign * float(fn(base[None])[0])
+        changes = None if moves is None else sign * fn(base + moves) - value
+        est, parts = from_draws(value, sign * fn(draws), sign * fn(draws - base) if tested else None, changes)
         if sign < 0:
             est = Estimate(None if est.value is None else -est.value, est.u, est.limit, -est.bias)
         return est, parts
 
     out, parts = {}, {}
-    for name, fn, tested, sign in (("deviation_min", np.min, True, -1.0), ("deviation_max", np.max, True, 1.0),
-                                   ("deviation_mean", np.mean, False, 1.0),
-                                   ("deviation_rms", lambda d: float(np.sqrt(np.mean(d ** 2))), False, 1.0),
-                                   ("profile", lambda d: 2.0 * float(np.max(np.abs(d))), True, 1.0)):
-        out[name], parts[name] = each(lambda d, fn=fn: float(fn(d)), surface, drawn, tested, cal, sign)
-    for name, fn, sign in (("raw_deviation_min", np.min, -1.0), ("raw_deviation_max", np.max, 1.0)):
-        out[name], parts[name] = each(lambda d, fn=fn: float(fn(d)), raw, raw[None] + raw_draws, True, None, sign)
+    for name, fn, tested, sign in (("deviation_min", _row_min, True, -1.0), ("deviation_max", _row_max, True, 1.0),
+                                   ("deviation_mean", _row_mean, False, 1.0), ("deviation_rms", _row_rms, False, 1.0),
+                                   ("profile", _row_profile, True, 1.0)):
+        out[name], parts[name] = each(fn, surface, drawn, tested, cal, sign)
+    for name, fn, sign in (("raw_deviation_min", _row_min, -1.0), ("raw_deviation_max", _row_max, 1.0)):
+        out[name], parts[name] = each(fn, raw, raw[None] + raw_draws, True, None, sign)
     return out, parts
+
+
+def _row_min(d: np.ndarray) -> np.ndarray:
+    return d.min(axis=1)
+
+
+def _row_max(d: np.ndarray) -> np.ndarray:
+    return d.max(axis=1)
+
+
+def _row_mean(d: np.ndarray) -> np.ndarray:
+    return d.mean(axis=1)
+
+
+def _row_rms(d: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.mean(d ** 2, axis=1))
+
+
+def _row_profile(d: np.ndarray) -> np.ndarray:
+    """The profile zone 2 max|d| of each row."""
+    return 2.0 * np.abs(d).max(axis=1)
 
 
 def _unroll(xy: np.ndarray, radius: np.ndarray, R: float) -> np.ndarray:
