@@ -17,7 +17,10 @@ Exit code 0 when at least one part is pickable, 1 when none is (the file is writ
 `slscan posebench` renders simulated bins (`sim.bins.bin_scene` + `scan_bin`: ray-cast
 truth, depth noise, projector shadows), poses every part from the simulator's instance
 masks with each method, and prints the acceptance figures against the true poses and the
-four-case table of paper 001 (Tables 4-5).
+four-case table of paper 001 (Tables 4-5). `slscan posebench --sessions DIR...` judges
+`slscan pose` on saved bins instead (`slscan scan --scene bin:SEED`); with `--rows FILE` it
+writes one JSON line per bin, and `slscan posebench --summary FILE...` prints the figures of
+such rows files, so that a run over many bins can be done in pieces.
 """
 
 from __future__ import annotations
