@@ -106,7 +106,13 @@ def fpfh(points: np.ndarray, normals: np.ndarray, keypoints: np.ndarray, radius:
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pc.normals = o3d.utility.Vector3dVector(normals)
-    f = o3d.pipelines.registration.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius, max_nn))
-    d = np.asarray(f.data).T[keypoints]
+    # only the keypoints' histograms (and their neighbours'), which Open3D returns in
+    # ascending index order
+    keys, back = np.unique(np.asarray(keypoints, dtype=np.int64), return_inverse=True)
+    if not len(keys):
+        return np.zeros((0, 33))
+    f = o3d.pipelines.registration.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius, max_nn),
+                                                        o3d.utility.IntVector(keys.tolist()))
+    d = np.asarray(f.data).T[back.ravel()]
     norm = np.linalg.norm(d, axis=1, keepdims=True)
     return np.where(norm > 0, d / np.where(norm > 0, norm, 1.0), 0.0)

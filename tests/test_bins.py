@@ -252,6 +252,45 @@ def test_judge_tells_right_wrong_and_phantom_poses() -> None:
     assert j["parts_posed"] == 1 and right.true_occlusion == pytest.approx(truth.occlusion[0])
 
 
+def test_posebench_summary_of_rows_counts_what_the_rows_say(tmp_path, capsys) -> None:
+    """`slscan posebench --summary ROWS` over rows files of saved-bins runs: counts and
+    medians computed here from the rows written (two bins, two files); a broken line is an
+    error naming the file and line."""
+    import json
+    import re
+
+    from slscan.cli import main
+
+    def verdict(part: int, rot: float, trans: float, picked: bool, side_ok: bool = True) -> dict:
+        return {"instance_id": part + 1, "part": part, "rot_deg": rot, "trans_mm": trans, "side_ok": side_ok,
+                "picked": picked, "occlusion": 0.1, "true_occlusion": 0.08}
+
+    bins = [{"session": "a", "parts": 5, "visible_parts": 4, "instances": 6, "phantom_instances": 1,
+             "parts_with_instance": 4, "parts_posed": 3,
+             "verdicts": [verdict(0, 0.1, 0.02, True), verdict(1, 0.3, 0.08, False), verdict(2, 0.7, 0.2, True)],
+             "pose_times_s": [[0.10, 0.05], [0.30, 0.07], [0.20, 0.09]]},
+            {"session": "b", "parts": 7, "visible_parts": 7, "instances": 7, "phantom_instances": 0,
+             "parts_with_instance": 7, "parts_posed": 1, "verdicts": [verdict(3, 3.0, 0.01, True, False)],
+             "pose_times_s": [[0.40, 0.11]]}]
+    files = [tmp_path / "a.jsonl", tmp_path / "b.jsonl"]
+    for f, b in zip(files, bins):
+        f.write_text(json.dumps(b) + "\n")
+    assert main(["posebench", "--summary", *map(str, files)]) == 0
+    out = capsys.readouterr().out
+    assert "2 saved bins" in out and re.search(r"true parts +12 \(11 showing", out)
+    assert re.search(r"instances found +13 \(1 mostly off every part\); parts with an instance 11", out)
+    # wrong: the side-turned one (3 deg, side) only; right ones' translations 0.02, 0.08, 0.2
+    assert re.search(r"poses reported ok +4: right .* 3, wrong 1; parts posed 4 of 11", out)
+    assert "translation median 0.0800 mm, max 0.2000" in out
+    # picks: three offered, two outside 0.1 mm / 0.5 deg (the 0.7 deg one and the wrong one)
+    assert re.search(r"picks offered +3: outside 0.1 mm / 0.5 deg 2", out)
+    # pose times: medians of the four parts (wall 0.10 0.20 0.30 0.40 -> 250 ms; CPU -> 80 ms)
+    assert "median 250 ms wall, 80 ms CPU" in out
+    files[1].write_text("{not json\n")
+    assert main(["posebench", "--summary", *map(str, files)]) == 2
+    assert re.search(r"b.jsonl, line 1: not a saved-bins row", capsys.readouterr().err)
+
+
 @pytest.mark.slow
 def test_a_bin_scanned_without_masks_gives_no_wrong_pose_and_no_bad_pick() -> None:
     """The quick version of the saved-bin acceptance: two bins scanned through the whole
@@ -266,8 +305,31 @@ def test_a_bin_scanned_without_masks_gives_no_wrong_pose_and_no_bad_pick() -> No
 def test_fifty_bins_without_masks_give_no_wrong_pose_and_no_bad_pick() -> None:
     """The acceptance figures of `slscan posebench --sessions` over 50 bins (seeds 0..49,
     5..20 parts), scanned through the whole simulated chain as `slscan scan --scene
-    bin:SEED` saves them."""
+    bin:SEED` saves them. SLSCAN_BIN_SESSIONS may name a folder of such saved sessions
+    (e.g. made by `slscan scan --scene bin:SEED --out DIR/seed-NN` for NN in 00..49): the
+    bins found there are judged as saved (their bin_truth.json checked to be that seed's
+    default bin), the others scanned here."""
     _judge_fringe_bins(list(range(50)))
+
+
+def _saved_bins() -> dict[int, object]:
+    """Seed -> saved session folder of the default bin of that seed, from the folder named
+    by SLSCAN_BIN_SESSIONS (none when it is not set)."""
+    import os
+    from pathlib import Path
+
+    from sim.bins import BIN_TRUTH_FILE, BinTruth, default_parts
+    from slscan.commands.pose import bin_sessions
+
+    folder = os.environ.get("SLSCAN_BIN_SESSIONS")
+    if not folder:
+        return {}
+    out = {}
+    for path in bin_sessions([Path(folder)]):
+        truth = BinTruth.load(path / BIN_TRUTH_FILE)
+        if len(truth.ids) == default_parts(truth.seed):
+            out[truth.seed] = path
+    return out
 
 
 def _judge_fringe_bins(seeds: list[int]) -> None:
@@ -276,16 +338,24 @@ def _judge_fringe_bins(seeds: list[int]) -> None:
     from inspection.bins.pose_settings import PoseSettings
     from scanner.rig import RigConfig
     from sim.bin_judge import judge
-    from sim.bins import BinTruth, default_parts, fringe_scan_bin
-    from slscan.commands.pose import pose_scene
+    from sim.bins import BIN_TRUTH_FILE, BinTruth, default_parts, fringe_scan_bin
+    from sim.evaluate import Truth
+    from slscan.commands.pose import load_scene, pose_scene
 
     model = ThinPartModel.from_mesh(*TabPart().mesh(), "tab")
     camera = RigConfig.load().nominal_model().camera
+    saved = _saved_bins()
     for seed in seeds:
         b = bin_scene(default_parts(seed), seed=seed)
-        truth = BinTruth.of(b, np.eye(4))
-        cloud, ids = fringe_scan_bin(b, seed)
-        instances, poses = pose_scene(cloud, camera, model, PoseSettings())
+        if seed in saved:   # as `slscan scan --scene bin:SEED` saved it: its truth is this bin's
+            truth = BinTruth.load(saved[seed] / BIN_TRUTH_FILE)
+            assert np.allclose(truth.world_from_camera @ truth.camera_from_part, b.poses), seed
+            cloud, rig_model, _ = load_scene(saved[seed], None)
+            ids, cam = Truth.load(saved[seed] / "ground_truth.npz").object_id, rig_model.camera
+        else:
+            truth = BinTruth.of(b, np.eye(4))
+            (cloud, ids), cam = fringe_scan_bin(b, seed), camera
+        instances, poses = pose_scene(cloud, cam, model, PoseSettings())
         j = judge(truth, ids, instances, poses, pick_order(poses))
         bad = [v for v in j["verdicts"] if v.wrong or (v.picked and not v.within_pick_tolerance)]
         assert not bad, (seed, bad)

@@ -92,6 +92,46 @@ def test_settings_refuse_nonsense_and_name_the_field(demo) -> None:
     assert coarse.voxel_mm == pytest.approx(model.diagonal_mm / 75.0)   # the voxel is the diagonal / the fraction
 
 
+def test_twist_and_cross_products_are_the_textbook_ones() -> None:
+    """The ICP step's own small-motion matrix and row-wise cross products (written out
+    for speed) against scipy's rotation vectors and numpy's cross product."""
+    from inspection.registration.rigid import cross_rows, twist_matrix
+
+    rng = np.random.default_rng(3)
+    for angle in (0.0, 1e-9, 1e-7, 1e-6, 1e-5, 1e-3, 0.3, 2.0, 3.1):
+        w = rng.normal(size=3)
+        w *= angle / np.linalg.norm(w)
+        T = twist_matrix(np.r_[w, 1.0, -2.0, 3.0])
+        assert np.abs(T[:3, :3] - Rotation.from_rotvec(w).as_matrix()).max() < 1e-15
+        assert np.array_equal(T[:3, 3], [1.0, -2.0, 3.0]) and np.array_equal(T[3], [0, 0, 0, 1])
+    a, b = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    assert np.abs(cross_rows(a, b) - np.cross(a, b)).max() < 1e-15
+    assert np.abs(cross_rows(a, b[0]) - np.cross(a, b[0])).max() < 1e-15
+
+
+def test_fpfh_of_keypoints_is_the_full_computation_picked() -> None:
+    """FPFH computed for the keypoints only (in any order, repeated) is Open3D's FPFH of
+    the whole cloud at those points, row for row (normalised as ours)."""
+    import open3d as o3d
+
+    from inspection.features import fpfh
+
+    rng = np.random.default_rng(4)
+    p = rng.normal(size=(2000, 3)) * 4.0
+    n = rng.normal(size=(2000, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    keys = np.r_[rng.choice(len(p), 150, replace=False), 7, 7]
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    pc.normals = o3d.utility.Vector3dVector(n)
+    full = np.asarray(o3d.pipelines.registration.compute_fpfh_feature(
+        pc, o3d.geometry.KDTreeSearchParamHybrid(2.0, 64)).data).T[keys]
+    norm = np.linalg.norm(full, axis=1, keepdims=True)
+    full = np.where(norm > 0, full / np.where(norm > 0, norm, 1.0), 0.0)
+    assert (norm > 0).mean() > 0.9
+    assert np.abs(fpfh(p, n, keys, 2.0, 64) - full).max() < 1e-12
+    assert fpfh(p, n, np.zeros(0, np.int64), 2.0).shape == (0, 33)
+
+
 def test_kabsch_recovers_a_transform() -> None:
     rng = np.random.default_rng(0)
     src = rng.normal(size=(3, 10, 3))

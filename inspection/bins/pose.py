@@ -156,7 +156,8 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
         sm = model.sides[side]
         if settings.method == "sacia":
             rs = RegistrationSettings(descriptors=("fpfh",), coarse="sac-ia", spheres=(100,),
-                                      hypotheses=settings.hypotheses, verify=settings.verify, seed=settings.seed)
+                                      hypotheses=settings.hypotheses, verify=settings.verify, seed=settings.seed,
+                                      prescored=settings.prescored)
             coarse = coarse_feature_poses(src, src_n, sm.target, rs, rng, workers=1)
         else:
             coarse = _ndt_poses(src, patch, model, sm, settings.verify)
@@ -278,7 +279,8 @@ def _side_margin(judged: list[tuple[float, str, np.ndarray]]) -> float:
 def _judge(patch: InstancePatch, sm: SideModel, sp: np.ndarray, sn: np.ndarray, poses: list[np.ndarray],
            settings: PoseSettings, keep: int | None = None) -> list[tuple[float, str, np.ndarray]]:
     """(outline-fit score, side, pose) of each pose (scan -> part) refined by point-to-plane
-    ICP with normal-angle rejection on the instance's extruded cloud `sp`/`sn`: fitness
+    ICP with normal-angle rejection on the instance's extruded cloud `sp`/`sn` (coarse to
+    fine: `PoseSettings.judge_icp_stride`, `judge_icp_iterations`): fitness
     (within 1.5 voxels, one batched query) plus the fraction of the true outline on the
     part's outline, minus the fraction of the face over a lower surface. With `keep`,
     only the `keep` poses of best fitness as given (within ICP's first reach, 6 voxels)
@@ -291,7 +293,13 @@ def _judge(patch: InstancePatch, sm: SideModel, sp: np.ndarray, sn: np.ndarray, 
     if keep is not None and len(poses) > keep:
         first = fitness(sp, sn, sm.target.coarse, np.array(poses), 6.0 * v, settings.max_normal_deg, workers=1)
         poses = [poses[i] for i in np.argsort(-first)[:keep]]
-    posed = [icp(sp, sn, sm.target.coarse, T, 6.0 * v, 0.5 * v, settings.max_normal_deg, 15) for T in poses]
+    # coarse to fine: the threshold shrinking from 6 voxels on every k-th point, then the
+    # last iterations on all of them at the final threshold (the best pose is refined
+    # again on the dense instance: these poses are only judged)
+    k, (first_its, last_its) = settings.judge_icp_stride, settings.judge_icp_iterations
+    deg, tgt = settings.max_normal_deg, sm.target.coarse
+    posed = [icp(sp, sn, tgt, icp(sp[::k], sn[::k], tgt, T, 6.0 * v, 0.5 * v, deg, first_its), 0.5 * v, 0.5 * v,
+                 deg, last_its) for T in poses]
     fit = fitness(sp, sn, sm.target.coarse, np.array(posed), 1.5 * v, settings.max_normal_deg, workers=1)
     return [(float(f) + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), sm.side, T)
             for f, T in zip(fit, posed)]

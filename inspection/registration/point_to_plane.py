@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from inspection.registration.clouds import Samples
-from inspection.registration.rigid import transform_points, twist_matrix
+from inspection.registration.rigid import cross_rows, transform_points, twist_matrix
 from inspection.registration.settings import RegistrationSettings
 
 
@@ -48,7 +48,7 @@ def point_to_plane_step(p: np.ndarray, q: np.ndarray, n: np.ndarray, tangential:
     over the points (O(n)); returns (x, normal residuals)."""
     e = p - q
     r = np.einsum("ij,ij->i", e, n)
-    a = np.concatenate([np.cross(p, n), n], axis=1)  # d(e.n)/dx
+    a = np.concatenate([cross_rows(p, n), n], axis=1)  # d(e.n)/dx
     H = (1.0 - tangential ** 2) * (a.T @ a)
     g = (1.0 - tangential ** 2) * (a.T @ r)
     if tangential > 0:  # point-to-point: J = [-[p]x, I], J'J and J'e from sums
@@ -60,5 +60,5 @@ def point_to_plane_step(p: np.ndarray, q: np.ndarray, n: np.ndarray, tangential:
         block[3:, :3] = px.T
         block[3:, 3:] = m * np.eye(3)
         H += tangential ** 2 * block
-        g += tangential ** 2 * np.concatenate([np.cross(p, e).sum(axis=0), e.sum(axis=0)])
+        g += tangential ** 2 * np.concatenate([cross_rows(p, e).sum(axis=0), e.sum(axis=0)])
     return np.linalg.solve(H + damping * np.abs(np.diag(H)).max() * np.eye(6), -g), r

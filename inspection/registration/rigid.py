@@ -4,7 +4,6 @@ paper 000 Eq. 12-15), comparing them, and keeping the distinct ones of a ranked 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -32,10 +31,26 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     return T
 
 
+def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products (N, 3) of a and b (N, 3) or (3,): what np.cross gives, without
+    its per-call overhead (it dominates for the few hundred points of an ICP step)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def twist_matrix(step: np.ndarray) -> np.ndarray:
-    """The 4x4 transform of a small motion (omega (rad, rotation vector), t (mm))."""
+    """The 4x4 transform of a small motion (omega (rad, rotation vector), t (mm)): the
+    rotation by Rodrigues' formula (with its series below 1e-6 rad)."""
+    w = np.asarray(step[:3], dtype=np.float64)
+    theta = float(np.sqrt(w @ w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if theta < 1e-6:
+        a, b = 1.0 - theta ** 2 / 6.0, 0.5 - theta ** 2 / 24.0
+    else:
+        a, b = np.sin(theta) / theta, (1.0 - np.cos(theta)) / theta ** 2
     dT = np.eye(4)
-    dT[:3, :3] = Rotation.from_rotvec(step[:3]).as_matrix()
+    dT[:3, :3] += a * K + b * (K @ K)
     dT[:3, 3] = step[3:]
     return dT
 

@@ -101,7 +101,7 @@ def coarse_feature_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: Model
         ml, cap = 1.5 * target.voxel_mm, 5.0 * target.voxel_mm
         # many hypotheses: a cheap pre-score on a fifth of the points, the best `prescored` then on all
         score = np.full(len(T), np.inf)
-        top = (np.argsort(score_poses(T, ev[: len(ev) // 5], target, ml, cap))[:settings.prescored]
+        top = (np.argsort(score_poses(T, ev[: len(ev) // 5], target, ml, cap, workers=workers))[:settings.prescored]
                if len(T) > settings.prescored else np.arange(len(T)))
         score[top] = score_poses(T[top], ev, target, ml, cap, workers=workers)
     return distinct_poses(T, np.argsort(score), settings.verify, 10.0, 0.1 * target.diagonal_mm)

@@ -17,7 +17,10 @@ Exit code 0 when at least one part is pickable, 1 when none is (the file is writ
 `slscan posebench` renders simulated bins (`sim.bins.bin_scene` + `scan_bin`: ray-cast
 truth, depth noise, projector shadows), poses every part from the simulator's instance
 masks with each method, and prints the acceptance figures against the true poses and the
-four-case table of paper 001 (Tables 4-5).
+four-case table of paper 001 (Tables 4-5). `slscan posebench --sessions DIR...` judges
+`slscan pose` on saved bins instead (`slscan scan --scene bin:SEED`); with `--rows FILE` it
+writes one JSON line per bin, and `slscan posebench --summary FILE...` prints the figures of
+such rows files, so that a run over many bins can be done in pieces.
 """
 
 from __future__ import annotations
@@ -68,13 +71,17 @@ def register(sub: Any) -> None:
     b.add_argument("--fringe", action="store_true",
                    help="scan each bin through the whole simulated chain (fringes rendered, decoded, triangulated) "
                         "on the default rig instead of the quick ray-cast scan (--size and --noise then do not apply)")
-    b.add_argument("--rows", help="append every part's row to this file (JSON lines, bin by bin)")
+    b.add_argument("--rows", help="append every part's row to this file (JSON lines, bin by bin; with --sessions one "
+                                  "line per bin: its judged poses and pose times, for --summary)")
     b.add_argument("--sessions", nargs="+", type=Path, metavar="SESSION",
                    help="judge `slscan pose` on saved bins instead (sessions of `slscan scan --scene bin:SEED`, or "
                         "folders holding them): instances without masks, as `slscan pose` finds them, judged against "
                         "each session's bin_truth.json and instance ids (--methods: the first one)")
     b.add_argument("--truth-masks", action="store_true",
                    help="with --sessions: take the instances from the simulator's instance ids instead")
+    b.add_argument("--summary", nargs="+", type=Path, metavar="ROWS",
+                   help="print the saved-bins figures of rows files written by `--sessions --rows` runs (a long "
+                        "run done in pieces) instead of posing anything")
     b.set_defaults(func=cmd_posebench)
 
 
@@ -281,6 +288,8 @@ CASES = ("front up", "back up", "occluded front", "occluded back")
 def cmd_posebench(args: argparse.Namespace) -> int:
     """Per bin: render, lift the simulator's instance masks, pose every part with each
     method (wall and process CPU time per part), compare with the true poses."""
+    if args.summary:
+        return rows_summary(args)
     if args.sessions:
         return saved_bins_bench(args)
     from threadpoolctl import threadpool_limits
@@ -341,7 +350,7 @@ def cmd_posebench(args: argparse.Namespace) -> int:
     return Exit.OK
 
 
-def _bin_sessions(paths: list[Path]) -> list[Path]:
+def bin_sessions(paths: list[Path]) -> list[Path]:
     """The session folders with a bin truth among `paths` (each one, or the folders in it)."""
     from scanner.errors import SessionError
     from sim.bins import BIN_TRUTH_FILE
@@ -366,7 +375,7 @@ def saved_bins_bench(args: argparse.Namespace) -> int:
     from sim.bins import BIN_TRUTH_FILE, BinTruth, TabPart
     from sim.evaluate import Truth
 
-    sessions = _bin_sessions(args.sessions)
+    sessions = bin_sessions(args.sessions)
     settings = PoseSettings(method=POSE_METHODS[args.methods[0]])
     models: dict[TabPart, Any] = {}
     load0 = os.getloadavg()
@@ -397,12 +406,36 @@ def saved_bins_bench(args: argparse.Namespace) -> int:
               f"tolerance); pose step {1000 * wall:.0f} ms wall, {1000 * cpu:.0f} ms CPU, of which instances and "
               f"scene context {1000 * scene_wall:.0f} ms wall, {1000 * scene_cpu:.0f} ms CPU",
               flush=True)
-        if args.rows:
+        if args.rows:   # one JSON line per bin: what `--summary` needs
             with open(args.rows, "a") as f:
-                f.writelines(json.dumps({"session": str(path), **vars(x)}) + "\n" for x in v)
+                f.write(json.dumps({"session": str(path), **{k: x for k, x in j.items() if k != "verdicts"},
+                                    "verdicts": [vars(x) for x in v],
+                                    "pose_times_s": [[p.time_s, p.cpu_s] for p in poses]}, default=float) + "\n")
     print(saved_bins_summary(bins, np.array(times), (PICK_MM, PICK_DEG), (WRONG_MM, WRONG_DEG)))
     load1 = os.getloadavg()
     print(f"load average at the end {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
+    return Exit.OK
+
+
+def rows_summary(args: argparse.Namespace) -> int:
+    """`slscan posebench --summary ROWS...`: the saved-bins figures of rows files written by
+    `--sessions --rows` runs (a long benchmark run in pieces, or stopped part way)."""
+    from sim.bin_judge import PICK_DEG, PICK_MM, WRONG_DEG, WRONG_MM, PoseVerdict
+
+    bins, times = [], []
+    for path in args.summary:
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            try:
+                doc = json.loads(line)
+                bins.append({**doc, "verdicts": [PoseVerdict(**v) for v in doc["verdicts"]]})
+                times += doc["pose_times_s"]
+            except (ValueError, KeyError, TypeError) as exc:
+                from scanner.errors import ScannerError
+
+                raise ScannerError(f"{path}, line {n}: not a saved-bins row of `slscan posebench --sessions --rows` "
+                                   f"({exc})") from None
+    print(f"{len(bins)} saved bins from {len(args.summary)} rows file(s)")
+    print(saved_bins_summary(bins, np.array(times).reshape(-1, 2), (PICK_MM, PICK_DEG), (WRONG_MM, WRONG_DEG)))
     return Exit.OK
 
 
