@@ -25,6 +25,7 @@ from sim.repeat_scans import Bench, ball_bar_length, plate_figures, sphere_radiu
 
 COVARIANCE = Path(__file__).parent / "data" / "sim_calibration_covariance.json"
 TRIALS = 200
+PROCESSES = 2  # the 200-scan cases share their trials out over this many forked workers
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +43,21 @@ def test_ball_bar_coverage_quick_and_it_falls_with_an_underestimated_noise(bench
     print(low.summary())
     assert honest.fraction >= 0.8
     assert low.fraction <= honest.fraction - 0.3
+
+
+def test_trials_do_not_depend_on_how_they_are_shared_out(bench: Bench) -> None:
+    """Each trial draws from its own seed: two trials run in one process and over two
+    forked workers give the same estimates, in order."""
+    art = load_artefacts(DEFAULT_ARTEFACTS)
+    one = sphere_radius(bench, art, 2, seed=5)
+    two = sphere_radius(bench, art, 2, seed=5, processes=2)
+    assert [(t.estimate.value, t.estimate.u, t.truth) for t in one.trials] == \
+        [(t.estimate.value, t.estimate.u, t.truth) for t in two.trials]
+    assert one.trials[0].estimate.value != one.trials[1].estimate.value
+
+
+def _progress(line: str) -> None:
+    print(f"{time.strftime('%H:%M:%S')} {line}; load {os.getloadavg()[0]:.1f}", flush=True)
 
 
 def _report(result: object, started: float) -> None:
@@ -66,7 +82,7 @@ def _coverage_case(test: Callable[..., None]) -> Callable[..., None]:
 def test_artefact_coverage(bench: Bench, figure: Callable[..., object], seed: int, calibrated: bool) -> None:
     t0 = time.perf_counter()
     result = figure(bench, load_artefacts(DEFAULT_ARTEFACTS), TRIALS, seed=seed,
-                    calibration=_calibration() if calibrated else None)
+                    calibration=_calibration() if calibrated else None, processes=PROCESSES, progress=_progress)
     _report(result, t0)
     assert 0.92 <= result.fraction <= 0.98  # type: ignore[attr-defined]
 
@@ -74,7 +90,8 @@ def test_artefact_coverage(bench: Bench, figure: Callable[..., object], seed: in
 @_coverage_case
 def test_flatness_and_sq_coverage(bench: Bench, calibrated: bool) -> None:
     t0 = time.perf_counter()
-    flat, sq = plate_figures(bench, TRIALS, seed=3, calibration=_calibration() if calibrated else None)
+    flat, sq = plate_figures(bench, TRIALS, seed=3, calibration=_calibration() if calibrated else None,
+                             processes=PROCESSES, progress=_progress)
     _report(flat, t0)
     _report(sq, t0)
     assert 0.92 <= flat.fraction <= 0.98
