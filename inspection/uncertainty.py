@@ -25,10 +25,14 @@ near-normal errors here), u² = u_noise² + u_fringe² + u_cal², from three sou
    Where it lands on a part depends on where the part stands, which nobody knows to a
    projector pixel: it is treated as that error function at a uniformly random offset, so
    its spread and correlations are exactly the function's own.
-   Not modelled: the defocus of the camera, which on curved surfaces moves the phase
-   where the fringes crowd toward a silhouette (on the simulator, +0.2-0.3 µm on the
-   radius of a 25 mm sphere on average, about half its u); the acceptance test's probing
-   size error PS shows it on a real rig.
+   The camera's defocus blurs the complex fringe signal: where the decoded coordinate
+   curves or the modulation changes across the blur, the phase moves (`defocus_bias`,
+   first order in the blur's variance). At a silhouette that bias is large (the blur
+   mixes the surface's fringes with the dark beyond): the artefact fits leave the
+   outline band out (`inspection.acceptance.inner_pixels`; on the simulator it had made
+   the radius of a 25 mm sphere read +0.56 µm noise-free, about one u). Inside, it is a
+   low-pass on texture (Sq of a 1.5-4 mm texture reads 1-5 % low on the simulator) and
+   is not yet corrected in the scan itself: a known bias, not part of U.
 
 3. Calibration. The rig's parameters (both devices' intrinsics and distortion, the
    extrinsics) carry the covariance the calibration solve found (`calibration.json`:
