@@ -56,6 +56,22 @@ def test_trials_do_not_depend_on_how_they_are_shared_out(bench: Bench) -> None:
     assert one.trials[0].estimate.value != one.trials[1].estimate.value
 
 
+def test_registration_of_the_plate_recovers_a_known_rigid_move() -> None:
+    """`registered` finds the rotation and translation that took the true points to the
+    measured ones (closed form: a move made in the test), also with noise on the points."""
+    from scipy.spatial.transform import Rotation
+
+    from sim.repeat_scans import registered
+
+    rng = np.random.default_rng(4)
+    truth = rng.uniform(-20.0, 20.0, (500, 3)) * [1.0, 1.0, 0.05]
+    R = Rotation.from_rotvec([1e-3, -2e-3, 0.5]).as_matrix()
+    measured = (truth - [1.0, 2.0, 0.1]) @ R.T + rng.normal(0.0, 1e-4, truth.shape)
+    Rr, t = registered(measured, truth)
+    assert np.allclose(Rr, R.T, atol=1e-5)
+    assert np.allclose(measured @ Rr.T + t, truth, atol=5e-4)
+
+
 def _progress(line: str) -> None:
     print(f"{time.strftime('%H:%M:%S')} {line}; load {os.getloadavg()[0]:.1f}", flush=True)
 
