@@ -243,3 +243,64 @@ def test_calibration_moves_reach_the_face_figures() -> None:
     expected = 0.005 * (14.0 ** 2 + 9.0 ** 2) / 325.0  # the added dome's span inside the 1 mm margin
     assert got.u_components["flatness_mz"]["calibration"] == pytest.approx(expected, rel=0.1)
     assert got.u_components["flatness_ls"]["calibration"] == pytest.approx(expected, rel=0.1)
+
+
+def test_local_quadratic_recovers_gradient_and_laplacian_of_a_quadratic() -> None:
+    """Closed form: on c = 3 + 0.5x - 0.2y + 0.01x² + 0.02xy - 0.03y² the fit gives the
+    exact gradient and Laplacian (0.02 - 0.06) wherever enough of its window is valid,
+    also next to a hole, and NaN inside the hole."""
+    from inspection.uncertainty import local_quadratic
+
+    y, x = np.mgrid[0:40, 0:50].astype(np.float64)
+    c = 3 + 0.5 * x - 0.2 * y + 0.01 * x * x + 0.02 * x * y - 0.03 * y * y
+    valid = np.ones_like(c, dtype=bool)
+    valid[15:25, 20:30] = False
+    gx, gy, lap = local_quadratic(np.where(valid, c, np.nan), valid)
+    ok = np.isfinite(gx)
+    assert ok[valid].mean() > 0.9 and not ok[~valid].any()
+    assert np.allclose(gx[ok], (0.5 + 0.02 * x + 0.02 * y)[ok], atol=1e-9)
+    assert np.allclose(gy[ok], (-0.2 + 0.02 * x - 0.06 * y)[ok], atol=1e-9)
+    assert np.allclose(lap[ok], -0.04, atol=1e-9)
+
+
+def test_defocus_bias_matches_the_simulators_blur() -> None:
+    """The simulator blurs its images with the camera's Gaussian defocus; the decoded
+    coordinate of a sphere rendered noise-free with that blur minus the one rendered
+    without it is the bias `defocus_bias` predicts from the blurred scan alone, inside
+    the silhouette band it leaves out (NaN there)."""
+    from dataclasses import replace
+
+    from scipy import ndimage
+
+    from inspection.acceptance import Position, pose_of
+    from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
+    from inspection.uncertainty import defocus_bias
+    from scanner.decode import decode
+    from sim.artefact_scenes import artefact_objects, window_renderer
+    from sim.repeat_scans import Bench
+
+    bench = Bench.of(RigConfig.load())
+    sigma = bench.sensor.blur_sigma_px
+    assert sigma > 0
+    position = Position("sphere", 0, pose_of(np.eye(3), np.array(bench.acceptance.centre_mm) + [5.0, -3.0, 2.0]), "")
+    decoded = {}
+    for blur in (sigma, 0.0):
+        r = window_renderer(bench.model, artefact_objects(position, load_artefacts(DEFAULT_ARTEFACTS)),
+                            replace(bench.sensor, blur_sigma_px=blur), bench.projector_blur_px)
+        p = r.model.projector
+        frames = np.stack([np.rint(r.mean_dn(img, bench.exposure_s, bench.bit_depth)).clip(0, 2 ** bench.bit_depth - 1)
+                           .astype(np.uint16) for img in bench.patterns.render(p.width, p.height,
+                                                                               bench.model.projector_gamma)])
+        decoded[blur] = decode(frames, bench.patterns, bench.bit_depth, p.size)
+    predicted = defocus_bias(decoded[sigma], sigma)
+    both = decoded[sigma].valid & decoded[0.0].valid
+    inside = ndimage.distance_transform_edt(both) > 8
+    for orientation, m in decoded[sigma].maps.items():
+        actual = (m.coordinate - decoded[0.0].maps[orientation].coordinate).astype(np.float64)
+        assert np.isnan(predicted[orientation][both & (ndimage.distance_transform_edt(both) <= 2)]).all()
+        sel = inside & np.isfinite(predicted[orientation])
+        assert sel.sum() > 10000
+        slope = np.polyfit(predicted[orientation][sel], actual[sel], 1)[0]
+        assert 0.85 < slope < 1.1, slope
+        assert np.corrcoef(predicted[orientation][sel], actual[sel])[0, 1] > 0.9
+        assert np.std(actual[sel] - predicted[orientation][sel]) < 0.5 * np.std(actual[sel])

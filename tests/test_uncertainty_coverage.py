@@ -25,6 +25,7 @@ from sim.repeat_scans import Bench, ball_bar_length, plate_figures, sphere_radiu
 
 COVARIANCE = Path(__file__).parent / "data" / "sim_calibration_covariance.json"
 TRIALS = 200
+PROCESSES = 2  # the 200-scan cases share their trials out over this many forked workers
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +43,37 @@ def test_ball_bar_coverage_quick_and_it_falls_with_an_underestimated_noise(bench
     print(low.summary())
     assert honest.fraction >= 0.8
     assert low.fraction <= honest.fraction - 0.3
+
+
+def test_trials_do_not_depend_on_how_they_are_shared_out(bench: Bench) -> None:
+    """Each trial draws from its own seed: two trials run in one process and over two
+    forked workers give the same estimates, in order."""
+    art = load_artefacts(DEFAULT_ARTEFACTS)
+    one = sphere_radius(bench, art, 2, seed=5)
+    two = sphere_radius(bench, art, 2, seed=5, processes=2)
+    assert [(t.estimate.value, t.estimate.u, t.truth) for t in one.trials] == \
+        [(t.estimate.value, t.estimate.u, t.truth) for t in two.trials]
+    assert one.trials[0].estimate.value != one.trials[1].estimate.value
+
+
+def test_registration_of_the_plate_recovers_a_known_rigid_move() -> None:
+    """`registered` finds the rotation and translation that took the true points to the
+    measured ones (closed form: a move made in the test), also with noise on the points."""
+    from scipy.spatial.transform import Rotation
+
+    from sim.repeat_scans import registered
+
+    rng = np.random.default_rng(4)
+    truth = rng.uniform(-20.0, 20.0, (500, 3)) * [1.0, 1.0, 0.05]
+    R = Rotation.from_rotvec([1e-3, -2e-3, 0.5]).as_matrix()
+    measured = (truth - [1.0, 2.0, 0.1]) @ R.T + rng.normal(0.0, 1e-4, truth.shape)
+    Rr, t = registered(measured, truth)
+    assert np.allclose(Rr, R.T, atol=1e-5)
+    assert np.allclose(measured @ Rr.T + t, truth, atol=5e-4)
+
+
+def _progress(line: str) -> None:
+    print(f"{time.strftime('%H:%M:%S')} {line}; load {os.getloadavg()[0]:.1f}", flush=True)
 
 
 def _report(result: object, started: float) -> None:
@@ -66,7 +98,7 @@ def _coverage_case(test: Callable[..., None]) -> Callable[..., None]:
 def test_artefact_coverage(bench: Bench, figure: Callable[..., object], seed: int, calibrated: bool) -> None:
     t0 = time.perf_counter()
     result = figure(bench, load_artefacts(DEFAULT_ARTEFACTS), TRIALS, seed=seed,
-                    calibration=_calibration() if calibrated else None)
+                    calibration=_calibration() if calibrated else None, processes=PROCESSES, progress=_progress)
     _report(result, t0)
     assert 0.92 <= result.fraction <= 0.98  # type: ignore[attr-defined]
 
@@ -74,7 +106,8 @@ def test_artefact_coverage(bench: Bench, figure: Callable[..., object], seed: in
 @_coverage_case
 def test_flatness_and_sq_coverage(bench: Bench, calibrated: bool) -> None:
     t0 = time.perf_counter()
-    flat, sq = plate_figures(bench, TRIALS, seed=3, calibration=_calibration() if calibrated else None)
+    flat, sq = plate_figures(bench, TRIALS, seed=3, calibration=_calibration() if calibrated else None,
+                             processes=PROCESSES, progress=_progress)
     _report(flat, t0)
     _report(sq, t0)
     assert 0.92 <= flat.fraction <= 0.98
