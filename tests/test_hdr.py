@@ -193,7 +193,7 @@ def digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-@pytest.mark.slow
+@pytest.mark.acceptance  # issue 18's figure: an HDR session re-decodes bit-identically
 def test_hdr_session_keeps_every_exposure_and_redecodes_bit_identically(tmp_path):
     config = RigConfig.load(loaded_rig(tmp_path))
     patterns = PatternSet.load(config.patterns_path)

@@ -1,4 +1,4 @@
-"""Issue 18's acceptance figures on the simulated bench rig (slow: full-resolution scans).
+"""Issue 18's acceptance figures on the simulated bench rig (full-resolution scans; CI runs them with the acceptance tests).
 
 - The demo part in polished aluminium (config/scenes/demo_aluminium.toml) at the rig's
   exposure, with `--exposure auto` and with `--exposure hdr` (ROI: the part's bounding box):
@@ -23,7 +23,7 @@ from scanner.pipeline import scan
 from scanner.rig import RigConfig, open_rig
 from sim.shiny_figures import session_figures
 
-pytestmark = [pytest.mark.slow, pytest.mark.acceptance]
+pytestmark = pytest.mark.acceptance
 
 SCENES = CONFIG_DIR / "scenes"
 PART_ROI = "218,162,832,690"  # the demo part's bounding box in the bench camera (from its ground truth)
