@@ -118,7 +118,7 @@ def instances_from_flat_patches(cloud: OrganisedCloud, thickness_mm: float, wind
     sub, p = above[crop], pts[crop]
     z = np.where(sub, p[..., 2], np.nan)
     core = sub & (local_plane_residual(z, window) < max_residual_mm)
-    labels = _components(core, z, step)
+    labels = _one_plane_each(_components(core, z, step), p, step)
     sizes = np.bincount(labels.ravel())
     labels = np.where(sizes[labels] >= MIN_CORE, labels, 0)   # crumbs: no plane to grow back with
     _, labels = np.unique(labels, return_inverse=True)
@@ -150,6 +150,28 @@ def _components(core: np.ndarray, z: np.ndarray, step_mm: float) -> np.ndarray:
         keep[a] &= ~jump
         keep[b] &= ~jump
     return ndimage.label(keep)[0]
+
+
+def _one_plane_each(labels: np.ndarray, points: np.ndarray, off_mm: float) -> np.ndarray:
+    """`labels` with each component's pixels farther than `off_mm` from its robust plane
+    split off as components of their own: two parts whose surfaces meet at the same depth
+    along a line (one tilted under the other) leave no step to split on, but only one of
+    them lies in the component's plane."""
+    out = labels.copy()
+    n_lab = int(labels.max())
+    for c in range(1, n_lab + 1):   # one robust fit per component (a handful)
+        mask = labels == c
+        if mask.sum() < MIN_CORE:
+            continue
+        pts = points[mask].astype(np.float64)
+        plane = _plane_of(pts)
+        off = np.zeros_like(mask)
+        off[mask] = np.abs(pts @ plane[:3] + plane[3]) > off_mm
+        if not off.any():
+            continue
+        parts, k = ndimage.label(off)
+        out[off] = np.where(parts[off] > 0, parts[off] + out.max(), 0)
+    return out
 
 
 def _grow_back(labels: np.ndarray, candidates: np.ndarray, points: np.ndarray, join_mm: float,
