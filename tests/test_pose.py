@@ -399,3 +399,30 @@ def test_outline_points_lie_on_the_simulated_outline_on_the_tray_and_on_a_part(r
     assert len(signed) > 350   # the whole outline is a true edge (nothing covers the part)
     assert abs(np.median(signed)) < 0.025, np.quantile(signed, [0.1, 0.5, 0.9])
     assert np.mean(np.abs(signed) < 0.06) > 0.9, np.quantile(signed, [0.1, 0.5, 0.9])
+
+
+@pytest.mark.parametrize("tilt_deg", [3.0, 5.0])
+def test_two_parts_meeting_at_the_same_depth_are_two_instances(tilt_deg: float) -> None:
+    """A flat part beside one tilted by `tilt_deg` whose surface meets it at the same depth
+    along their shared edge (no depth step to split on, as where a part lies tilted under
+    another's edge): the flat patches give one instance per part, each made of its own
+    part's pixels (the truth: which plane each pixel's ray was cast onto)."""
+    from inspection.bins.flat_patches import instances_from_flat_patches
+    from scanner.pointcloud import OrganisedCloud, organised_normals
+
+    w, h, f, tray, top = 240, 160, 3000.0, 400.0, 398.0   # ~0.13 mm pixels
+    u, v = np.meshgrid((np.arange(w) - w / 2) / f, (np.arange(h) - h / 2) / f)
+    flat = (u * f > -100) & (u * f <= 0) & (np.abs(v * f) < 40)    # pixels -100..0: the flat part
+    tilted = (u * f > 0) & (u * f < 100) & (np.abs(v * f) < 40)  # pixels 0..100: rising away from the edge x = 0
+    z = np.full((h, w), tray)
+    z[flat] = top
+    z[tilted] = top / (1 + np.tan(np.radians(tilt_deg)) * u[tilted])   # the plane z = top - tan(tilt) x
+    z += np.random.default_rng(1).normal(0, 0.01, z.shape)
+    grid = (np.stack([u, v, np.ones_like(u)], axis=-1) * z[..., None]).astype(np.float32)
+    cloud = OrganisedCloud(grid, np.zeros((h, w), np.uint8), organised_normals(grid[..., 0], grid[..., 1], grid[..., 2]))
+    instances = instances_from_flat_patches(cloud, TabPart().thickness_mm)
+    assert len(instances) == 2, [len(i.indices) for i in instances]
+    for truth in (flat, tilted):
+        best = max(instances, key=lambda i: truth.ravel()[i.indices].sum())
+        assert truth.ravel()[best.indices].mean() > 0.97   # of its own part
+        assert truth.ravel()[best.indices].sum() > 0.9 * truth.sum()   # most of the part
