@@ -4,7 +4,9 @@ brought onto it along the camera rays (so what the camera sees beside an edge la
 it); a boundary point is on a "true" outline edge unless the first surface seen beyond it
 (past a shadow, up to `SHADOW_MM`) is higher — a part lying across it. Only true edges get
 walls, placed on the outermost points and moved out by half a point spacing (the mean
-inset of pixel samples behind an edge). Camera frame, mm; the camera at the origin.
+inset of pixel samples behind an edge) plus the part's share of the next pixel out, which
+a tall step leaves out of the instance (`ring_cover`). Camera frame, mm; the camera at
+the origin.
 """
 
 from __future__ import annotations
