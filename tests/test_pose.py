@@ -339,3 +339,90 @@ def test_poses_that_would_share_space_are_not_both_reported(small_bin: tuple, mo
     out = {p.instance_id: p for p in merge_duplicates(true + [piece], model)}
     assert all(out[p.instance_id].ok for p in true)
     assert not out[9].ok and out[9].pose is None and "instance 1" in out[9].reason
+
+
+def _box_filtered_scan(part: TabPart, raise_mm: float, yaw_deg: float, mixed: bool = True, tray_mm: float = 400.0,
+                       sub: int = 8) -> tuple[object, object, np.ndarray]:
+    """(organised cloud, camera, part frame -> camera) of the part lying flat `raise_mm` above
+    a tray (front face toward the camera at the origin, turned by `yaw_deg` about its
+    axis), seen by a pinhole whose pixels integrate the scene over their footprint (`sub` x
+    `sub` samples each): a pixel straddling the part's edge measures the depth blended by
+    the part's share of it, as the fringe chain's mixed pixels do (without `mixed`: no
+    measurement there, as a decoder rejecting them leaves it). Depth noise 0.005 mm."""
+    from scanner.geometry import Pinhole
+    from scanner.pointcloud import OrganisedCloud, organised_normals
+    from sim.bins import _loops
+
+    w, h, f = 280, 220, 3000.0   # ~0.13 mm pixels at 400 mm, as the bins' scans; the part well inside
+    cam = Pinhole(w, h, np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]]))
+    z_part = tray_mm - raise_mm
+    yaw = np.radians(yaw_deg)
+    R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    centre = np.array([part.length_mm / 2, part.width_mm / 2])
+    mask = np.zeros((h * sub, w * sub), np.uint8)
+    # the outline and its hole on the part plane (camera x, y mm) in sub-samples: pixel j
+    # spans j -/+ 0.5 (OpenCV's centres at integers), its sub-samples' centres at integers
+    loops = [((loop - centre) @ R.T * f / z_part + [w / 2, h / 2] + 0.5) * sub - 0.5 for loop in _loops(part)]
+    cv2.fillPoly(mask, [np.rint(px * 256).astype(np.int32) for px in loops], 1, lineType=cv2.LINE_8, shift=8)
+    share = mask.reshape(h, sub, w, sub).mean(axis=(1, 3))
+    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    z = share * z_part + (1 - share) * tray_mm + np.random.default_rng(0).normal(0, 0.005, share.shape)
+    if not mixed:
+        z[(share > 0) & (share < 1)] = np.nan
+    grid = (np.stack([(u - w / 2) / f, (v - h / 2) / f, np.ones_like(u)], axis=-1) * z[..., None]).astype(np.float32)
+    T = np.eye(4)
+    T[:2, :2], T[:2, 3] = R, -R @ centre
+    T[2, 3] = z_part - part.thickness_mm   # front face (z = thickness) on the part plane
+    cloud = OrganisedCloud(grid, np.zeros((h, w), np.uint8), organised_normals(grid[..., 0], grid[..., 1], grid[..., 2]))
+    return cloud, cam, T
+
+
+@pytest.mark.parametrize("raise_mm, mixed", [(0.25, True), (2.0, True), (2.0, False)])
+def test_outline_points_lie_on_the_simulated_outline_on_the_tray_and_on_a_part(raise_mm: float, mixed: bool) -> None:
+    """A part lying on the tray (0.25 mm step) or on another part (2 mm above what lies
+    beyond its edge): the flat patch drops the pixels straddling a tall step (mixed depth,
+    or no measurement), and the instance's outline points must still lie on the part's
+    outline — the simulator's own polygon, posed by the true pose — not up to a pixel
+    (0.13 mm) inside it, nor pushed out where the step is the tray's."""
+    from inspection.bins.flat_patches import instances_from_flat_patches
+    from inspection.bins.instance_plane import instance_patch, onto_plane
+    from sim.bins import _distance_to_loops, _inside, _loops
+
+    part = TabPart()
+    cloud, cam, camera_from_part = _box_filtered_scan(part, raise_mm, yaw_deg=17.0, mixed=mixed)
+    (inst,) = instances_from_flat_patches(cloud, part.thickness_mm)
+    flat, _, _, _ = onto_plane(np.asarray(inst.points, np.float64), PoseSettings().max_plane_rms_mm)
+    patch = instance_patch(flat, SceneContext.of_cloud(cloud, cam), part.thickness_mm, PoseSettings())
+    T = np.linalg.inv(camera_from_part)
+    xy = (patch.edge_pts @ T[:3, :3].T + T[:3, 3])[:, :2]
+    signed = _distance_to_loops(xy, _loops(part)) * np.where(_inside(xy, _loops(part)), -1.0, 1.0)   # mm, + outside
+    assert len(signed) > 350   # the whole outline is a true edge (nothing covers the part)
+    assert abs(np.median(signed)) < 0.025, np.quantile(signed, [0.1, 0.5, 0.9])
+    assert np.mean(np.abs(signed) < 0.06) > 0.9, np.quantile(signed, [0.1, 0.5, 0.9])
+
+
+@pytest.mark.parametrize("tilt_deg", [3.0, 5.0])
+def test_two_parts_meeting_at_the_same_depth_are_two_instances(tilt_deg: float) -> None:
+    """A flat part beside one tilted by `tilt_deg` whose surface meets it at the same depth
+    along their shared edge (no depth step to split on, as where a part lies tilted under
+    another's edge): the flat patches give one instance per part, each made of its own
+    part's pixels (the truth: which plane each pixel's ray was cast onto)."""
+    from inspection.bins.flat_patches import instances_from_flat_patches
+    from scanner.pointcloud import OrganisedCloud, organised_normals
+
+    w, h, f, tray, top = 240, 160, 3000.0, 400.0, 398.0   # ~0.13 mm pixels
+    u, v = np.meshgrid((np.arange(w) - w / 2) / f, (np.arange(h) - h / 2) / f)
+    flat = (u * f > -100) & (u * f <= 0) & (np.abs(v * f) < 40)    # pixels -100..0: the flat part
+    tilted = (u * f > 0) & (u * f < 100) & (np.abs(v * f) < 40)  # pixels 0..100: rising away from the edge x = 0
+    z = np.full((h, w), tray)
+    z[flat] = top
+    z[tilted] = top / (1 + np.tan(np.radians(tilt_deg)) * u[tilted])   # the plane z = top - tan(tilt) x
+    z += np.random.default_rng(1).normal(0, 0.01, z.shape)
+    grid = (np.stack([u, v, np.ones_like(u)], axis=-1) * z[..., None]).astype(np.float32)
+    cloud = OrganisedCloud(grid, np.zeros((h, w), np.uint8), organised_normals(grid[..., 0], grid[..., 1], grid[..., 2]))
+    instances = instances_from_flat_patches(cloud, TabPart().thickness_mm)
+    assert len(instances) == 2, [len(i.indices) for i in instances]
+    for truth in (flat, tilted):
+        best = max(instances, key=lambda i: truth.ravel()[i.indices].sum())
+        assert truth.ravel()[best.indices].mean() > 0.97   # of its own part
+        assert truth.ravel()[best.indices].sum() > 0.9 * truth.sum()   # most of the part

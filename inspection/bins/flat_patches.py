@@ -13,7 +13,9 @@ wherever the ramp's single steps stay small. Here:
    pixel coordinates, z along the camera axis, from box filters: no loop over pixels);
    its RMS residual is the camera noise (~0.015 mm) on a flat part and several times that
    where the window straddles a step. Pixels below `max_residual_mm` form the cores;
-   connected cores (4-neighbours with depths within `step_mm`) are the patches;
+   connected cores (4-neighbours with depths within `step_mm`) are the patches, each
+   split by planes where pieces of it lie more than `step_mm` off its dominant plane
+   (two parts meeting at the same depth along a line, one tilted, leave no step);
 3. every patch gets its plane (robust fit), and grows back into the band of rejected
    pixels around it, a pixel joining a neighbouring patch when it lies within
    `join_mm` of that patch's plane: the band's pixels on a part's own surface come back,
@@ -122,7 +124,7 @@ def instances_from_flat_patches(cloud: OrganisedCloud, thickness_mm: float, wind
     sizes = np.bincount(labels.ravel())
     labels = np.where(sizes[labels] >= MIN_CORE, labels, 0)   # crumbs: no plane to grow back with
     _, labels = np.unique(labels, return_inverse=True)
-    labels = labels.reshape(sub.shape)
+    labels = _one_plane_each(labels.reshape(sub.shape), p, step)
     labels = _grow_back(labels, sub, p, join, window)
     sizes = np.bincount(labels.ravel())
     sizes[0] = 0
@@ -150,6 +152,43 @@ def _components(core: np.ndarray, z: np.ndarray, step_mm: float) -> np.ndarray:
         keep[a] &= ~jump
         keep[b] &= ~jump
     return ndimage.label(keep)[0]
+
+
+def _dominant_plane(points: np.ndarray, tol_mm: float, seed: int = 0) -> np.ndarray:
+    """Indices of the points within `tol_mm` of the plane most of them lie on (RANSAC on up
+    to 20 000 of them)."""
+    import open3d as o3d
+
+    sub = np.random.default_rng(seed).choice(len(points), size=min(20000, len(points)), replace=False)
+    o3d.utility.random.seed(seed)
+    plane, _ = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[sub])).segment_plane(tol_mm, 3, 200)
+    return np.flatnonzero(np.abs(points @ np.asarray(plane[:3]) + plane[3]) < tol_mm)
+
+
+def _one_plane_each(labels: np.ndarray, points: np.ndarray, off_mm: float) -> np.ndarray:
+    """`labels` with each component split by planes: the pieces of it farther than
+    `off_mm` from its dominant plane (RANSAC) get planes of their own, and every pixel of
+    the component goes to the nearest of these planes. Two parts whose surfaces meet at
+    the same depth along a line (one tilted under the other's edge) leave no step to
+    split on, but each lies in its own plane."""
+    out = labels.copy()
+    for c in range(1, int(labels.max()) + 1):   # a handful of components
+        mask = labels == c
+        if mask.sum() < MIN_CORE:
+            continue
+        pts = points[mask].astype(np.float64)
+        plane = _plane_of(pts[_dominant_plane(pts, off_mm / 2)])
+        off = np.abs(pts @ plane[:3] + plane[3]) > off_mm
+        off_image = np.zeros_like(mask)
+        off_image[mask] = off
+        pieces, k = ndimage.label(off_image)
+        sizes = np.bincount(pieces[mask], minlength=k + 1)
+        planes = [plane] + [_plane_of(pts[pieces[mask] == j]) for j in range(1, k + 1) if sizes[j] >= MIN_CORE]
+        if len(planes) == 1:
+            continue
+        nearest = np.argmin(np.abs(pts @ np.array(planes)[:, :3].T + np.array(planes)[:, 3]), axis=1)
+        out[mask] = np.where(nearest == 0, c, out.max() + nearest)
+    return out
 
 
 def _grow_back(labels: np.ndarray, candidates: np.ndarray, points: np.ndarray, join_mm: float,

@@ -4,7 +4,9 @@ brought onto it along the camera rays (so what the camera sees beside an edge la
 it); a boundary point is on a "true" outline edge unless the first surface seen beyond it
 (past a shadow, up to `SHADOW_MM`) is higher — a part lying across it. Only true edges get
 walls, placed on the outermost points and moved out by half a point spacing (the mean
-inset of pixel samples behind an edge). Camera frame, mm; the camera at the origin.
+inset of pixel samples behind an edge) plus the part's share of the next pixel out, which
+a tall step leaves out of the instance (`ring_cover`). Camera frame, mm; the camera at
+the origin.
 """
 
 from __future__ import annotations
@@ -166,12 +168,37 @@ def instance_patch(points: np.ndarray, context: SceneContext | None, thickness: 
     outer = ~np.any(np.isfinite(dist) & (dist < 2.0 * spacing) & (along > 0.5 * spacing), axis=1)
     idx, out2 = idx[outer], out2[outer]
     out3 = out2[:, :1] * e1 + out2[:, 1:] * e2
-    edge_pts = c + (uv[idx] + 0.5 * spacing * out2) @ np.stack([e1, e2]) + np.outer(height[idx], n)
+    outer_pts = c + uv[idx] @ np.stack([e1, e2]) + np.outer(height[idx], n)
+    edge_pts = outer_pts + (0.5 + ring_cover(outer_pts, out3, spacing, step, context))[:, None] * spacing * out3
     depth = settings.extrude_mm * np.arange(1, settings.wall_levels + 1) / settings.wall_levels
     walls = (edge_pts[None] - depth[:, None, None] * n).reshape(-1, 3)
     return InstancePatch(c, e1, e2, n, spacing, lo, g, observed, higher, lower, edge_pts,
                   walls, np.tile(out3, (len(depth), 1)), plane_rms, float(np.linalg.norm(np.ptp(uv, axis=0))),
                   skew_moment(observed), step, context)
+
+
+def ring_cover(outer: np.ndarray, out3: np.ndarray, spacing: float, step: float,
+               context: SceneContext | None) -> np.ndarray:
+    """Per outermost instance point (camera frame, outward in-plane directions `out3`): how
+    much (0..1) of the next pixel out the part covers, beyond the half pixel of the mean
+    inset. Where the part stands above what lies beyond it, that pixel straddles the edge:
+    its depth is a blend of the part's and the lower surface's, too far off the plane for
+    the flat patch, so the instance lost it and the outline would sit a pixel inside. Its
+    depth beyond the plane (`b1`, mm along the ray) against that of the lower surface two or
+    three pixels out (`b_far`) tells the part's share, 1 - b1 / b_far; a pixel with no
+    measurement between a part and a lower surface counts half covered (the share's mean).
+    0 where nothing lower is seen within three pixels (a step under `step` mm: the ring is
+    in the instance) or without the organised scan."""
+    cover = np.zeros(len(outer))
+    if context is None or context.image is None or not len(outer):
+        return cover
+    b1, b2, b3 = (context.beyond(outer + k * spacing * out3) for k in (1.0, 2.0, 3.0))
+    with np.errstate(invalid="ignore"):
+        far = np.fmax(b2, b3)
+        lower = far > step
+        share = np.clip(1.0 - b1 / np.where(lower, far, 1.0), 0.0, 1.0)
+    cover[lower] = np.where(np.isnan(b1[lower]), 0.5, share[lower])
+    return cover
 
 
 def onto_plane(points: np.ndarray, tol_mm: float) -> tuple[np.ndarray, np.ndarray, float, float]:
