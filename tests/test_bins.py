@@ -291,7 +291,7 @@ def test_posebench_summary_of_rows_counts_what_the_rows_say(tmp_path, capsys) ->
     assert re.search(r"b.jsonl, line 1: not a saved-bins row", capsys.readouterr().err)
 
 
-@pytest.mark.slow
+@pytest.mark.acceptance  # CI's guard of the 50-bin figures: two bins through the whole chain (~3 min)
 def test_a_bin_scanned_without_masks_gives_no_wrong_pose_and_no_bad_pick() -> None:
     """The quick version of the saved-bin acceptance: two bins scanned through the whole
     simulated chain, instances without masks (flat patches), posed as `slscan pose` does:
