@@ -43,8 +43,8 @@ from typing import Callable, Mapping, Sequence
 import serial
 
 from scanner.config import get
-from scanner.drivers.transport import SerialLink, close_serial, open_serial, read_serial_line, write_serial
-from scanner.errors import ConfigError, DeviceDisconnected, DeviceError, DeviceTimeout, StageAlarm
+from scanner.drivers.transport import DropsLostPort, SerialLink, open_serial
+from scanner.errors import ConfigError, DeviceError, DeviceTimeout, StageAlarm
 from scanner.stage import Axis, AxisKind, Stage
 from scanner.stage_model import StageConfig
 from scanner.status import Status
@@ -80,7 +80,7 @@ def serial_opener(name: str, port: str, timeout_s: float = 0.2) -> Callable[[], 
     return lambda: open_serial(name, port, BAUDRATE, timeout_s)
 
 
-class GrblStage(Stage):
+class GrblStage(DropsLostPort, Stage):
     """A stage whose axes are driven by a GRBL 1.1 controller (see the module docstring).
 
     `letters` maps each axis name to the controller axis driving it; `units_per_turn`
@@ -306,23 +306,6 @@ class GrblStage(Stage):
             self.messages.append(message[5:-1])
             log.info("%s: controller says: %s", self.name, message[5:-1])
 
-    def _write(self, port: SerialLink, data: bytes, what: str) -> None:
-        try:
-            write_serial(self.name, port, data, what)
-        except DeviceDisconnected:
-            self._drop()
-            raise
-
-    def _readline(self, port: SerialLink) -> str:
-        try:
-            return read_serial_line(self.name, port)
-        except DeviceDisconnected:
-            self._drop()
-            raise
-
-    def _drop(self) -> None:
-        port, self._port = self._port, None
-        close_serial(self.name, port)
 
 
 def identify(port: str, boot_timeout_s: float = 2.5) -> str:

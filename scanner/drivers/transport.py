@@ -204,3 +204,30 @@ def close_serial(name: str, port: SerialLink | None) -> None:
         port.close()
     except (serial.SerialException, OSError):
         pass
+
+
+class DropsLostPort:
+    """Part of a serial driver (its `name` and open `_port`): a write or read that finds the
+    port gone closes and forgets it before raising DeviceDisconnected, so the driver's next
+    call reopens the link."""
+
+    name: str
+    _port: SerialLink | None
+
+    def _write(self, port: SerialLink, data: bytes, what: str) -> None:
+        try:
+            write_serial(self.name, port, data, what)
+        except DeviceDisconnected:
+            self._drop()
+            raise
+
+    def _readline(self, port: SerialLink) -> str:
+        try:
+            return read_serial_line(self.name, port)
+        except DeviceDisconnected:
+            self._drop()
+            raise
+
+    def _drop(self) -> None:
+        port, self._port = self._port, None
+        close_serial(self.name, port)

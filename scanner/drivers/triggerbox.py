@@ -42,8 +42,8 @@ import time
 from typing import Callable
 
 from scanner.devices import TriggerSource
-from scanner.drivers.transport import SerialLink, close_serial, open_serial, read_serial_line, write_serial
-from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+from scanner.drivers.transport import DropsLostPort, SerialLink, open_serial
+from scanner.errors import DeviceError, DeviceTimeout, UnsupportedSetting
 from scanner.status import Status
 
 log = logging.getLogger(__name__)
@@ -60,7 +60,7 @@ def serial_opener(name: str, port: str, timeout_s: float = 0.5) -> Callable[[], 
     return lambda: open_serial(name, port, BAUDRATE, timeout_s)
 
 
-class TriggerBox(TriggerSource):
+class TriggerBox(DropsLostPort, TriggerSource):
     """Pulse trains from the reference trigger-box firmware, and presses of its input
     (see the module docstring)."""
 
@@ -155,7 +155,7 @@ class TriggerBox(TriggerSource):
         end = time.monotonic() + self.boot_timeout_s
         try:
             while True:
-                self._write(port, "ID?")
+                self._send(port, "ID?")
                 window_end = min(end, time.monotonic() + _ID_RETRY_S)
                 while time.monotonic() < window_end:
                     line = self._readline(port)
@@ -188,7 +188,7 @@ class TriggerBox(TriggerSource):
     def _ask(self, command: str) -> str:
         port = self._connect()
         log.debug("%s: > %s", self.name, command)
-        self._write(port, command)
+        self._send(port, command)
         end = time.monotonic() + self.timeout_s
         while True:
             line = self._readline(port)
@@ -211,20 +211,5 @@ class TriggerBox(TriggerSource):
             return line
         raise DeviceError(self.name, f"unexpected reply to {command!r}: {line!r}")
 
-    def _write(self, port: SerialLink, command: str) -> None:
-        try:
-            write_serial(self.name, port, command.encode("ascii") + b"\n", command)
-        except DeviceDisconnected:
-            self._drop()
-            raise
-
-    def _readline(self, port: SerialLink) -> str:
-        try:
-            return read_serial_line(self.name, port)
-        except DeviceDisconnected:
-            self._drop()
-            raise
-
-    def _drop(self) -> None:
-        port, self._port = self._port, None
-        close_serial(self.name, port)
+    def _send(self, port: SerialLink, command: str) -> None:
+        self._write(port, command.encode("ascii") + b"\n", command)
