@@ -341,13 +341,14 @@ def test_poses_that_would_share_space_are_not_both_reported(small_bin: tuple, mo
     assert not out[9].ok and out[9].pose is None and "instance 1" in out[9].reason
 
 
-def _box_filtered_scan(part: TabPart, raise_mm: float, yaw_deg: float, tray_mm: float = 400.0,
+def _box_filtered_scan(part: TabPart, raise_mm: float, yaw_deg: float, mixed: bool = True, tray_mm: float = 400.0,
                        sub: int = 8) -> tuple[object, object, np.ndarray]:
     """(organised cloud, camera, part frame -> camera) of the part lying flat `raise_mm` above
     a tray (front face toward the camera at the origin, turned by `yaw_deg` about its
     axis), seen by a pinhole whose pixels integrate the scene over their footprint (`sub` x
     `sub` samples each): a pixel straddling the part's edge measures the depth blended by
-    the part's share of it, as the fringe chain's mixed pixels do. Depth noise 0.005 mm."""
+    the part's share of it, as the fringe chain's mixed pixels do (without `mixed`: no
+    measurement there, as a decoder rejecting them leaves it). Depth noise 0.005 mm."""
     from scanner.geometry import Pinhole
     from scanner.pointcloud import OrganisedCloud, organised_normals
     from sim.bins import _loops
@@ -366,6 +367,8 @@ def _box_filtered_scan(part: TabPart, raise_mm: float, yaw_deg: float, tray_mm: 
     share = mask.reshape(h, sub, w, sub).mean(axis=(1, 3))
     u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
     z = share * z_part + (1 - share) * tray_mm + np.random.default_rng(0).normal(0, 0.005, share.shape)
+    if not mixed:
+        z[(share > 0) & (share < 1)] = np.nan
     grid = (np.stack([(u - w / 2) / f, (v - h / 2) / f, np.ones_like(u)], axis=-1) * z[..., None]).astype(np.float32)
     T = np.eye(4)
     T[:2, :2], T[:2, 3] = R, -R @ centre
@@ -374,11 +377,11 @@ def _box_filtered_scan(part: TabPart, raise_mm: float, yaw_deg: float, tray_mm: 
     return cloud, cam, T
 
 
-@pytest.mark.parametrize("raise_mm", [0.25, 2.0])
-def test_outline_points_lie_on_the_simulated_outline_on_the_tray_and_on_a_part(raise_mm: float) -> None:
+@pytest.mark.parametrize("raise_mm, mixed", [(0.25, True), (2.0, True), (2.0, False)])
+def test_outline_points_lie_on_the_simulated_outline_on_the_tray_and_on_a_part(raise_mm: float, mixed: bool) -> None:
     """A part lying on the tray (0.25 mm step) or on another part (2 mm above what lies
-    beyond its edge): the flat patch drops the mixed-depth pixels straddling a tall step,
-    and the instance's outline points must still lie on the part's
+    beyond its edge): the flat patch drops the pixels straddling a tall step (mixed depth,
+    or no measurement), and the instance's outline points must still lie on the part's
     outline — the simulator's own polygon, posed by the true pose — not up to a pixel
     (0.13 mm) inside it, nor pushed out where the step is the tray's."""
     from inspection.bins.flat_patches import instances_from_flat_patches
@@ -386,7 +389,7 @@ def test_outline_points_lie_on_the_simulated_outline_on_the_tray_and_on_a_part(r
     from sim.bins import _distance_to_loops, _inside, _loops
 
     part = TabPart()
-    cloud, cam, camera_from_part = _box_filtered_scan(part, raise_mm, yaw_deg=17.0)
+    cloud, cam, camera_from_part = _box_filtered_scan(part, raise_mm, yaw_deg=17.0, mixed=mixed)
     (inst,) = instances_from_flat_patches(cloud, part.thickness_mm)
     flat, _, _, _ = onto_plane(np.asarray(inst.points, np.float64), PoseSettings().max_plane_rms_mm)
     patch = instance_patch(flat, SceneContext.of_cloud(cloud, cam), part.thickness_mm, PoseSettings())

@@ -185,10 +185,10 @@ def ring_cover(outer: np.ndarray, out3: np.ndarray, spacing: float, step: float,
     its depth is a blend of the part's and the lower surface's, too far off the plane for
     the flat patch, so the instance lost it and the outline would sit a pixel inside. Its
     depth beyond the plane (`b1`, mm along the ray) against that of the lower surface two or
-    three pixels out (`b_far`) tells the part's share, 1 - b1 / b_far. 0 where that pixel
-    has no measurement (a projector shadow beside a point-sampled edge: the edge lies in
-    the half pixel already), where nothing lower is seen within three pixels (a step under
-    `step` mm: the ring is in the instance) or without the organised scan."""
+    three pixels out (`b_far`) tells the part's share, 1 - b1 / b_far; a pixel with no
+    measurement between a part and a lower surface counts half covered (the share's mean).
+    0 where nothing lower is seen within three pixels (a step under `step` mm: the ring is
+    in the instance) or without the organised scan."""
     cover = np.zeros(len(outer))
     if context is None or context.image is None or not len(outer):
         return cover
@@ -197,7 +197,7 @@ def ring_cover(outer: np.ndarray, out3: np.ndarray, spacing: float, step: float,
         far = np.fmax(b2, b3)
         lower = far > step
         share = np.clip(1.0 - b1 / np.where(lower, far, 1.0), 0.0, 1.0)
-    cover[lower] = np.nan_to_num(share[lower], nan=0.0)
+    cover[lower] = np.where(np.isnan(b1[lower]), 0.5, share[lower])
     return cover
 
 
