@@ -23,14 +23,14 @@ from scanner.acquisition import (
 )
 from scanner.decode import DecodeResult, DecodeSettings, decode
 from scanner.devices import Frame
-from scanner.errors import DecodeError, FrameError, FrameOutOfOrder, ScannerError
+from scanner.errors import DecodeError, FrameError, FrameOutOfOrder, ScannerError, SessionError
 from scanner.exposure import ExposurePlan, ExposureRequest, FusedOrientationMaps, fuse, plan_exposures, probe_images
 from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
 from scanner.pointcloud import OrganisedCloud, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from scanner.rig import Rig
-from scanner.session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, write_json, write_npz
+from scanner.session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, disk_problem, write_json, write_npz
 from scanner.stage_timer import StageTimer
 
 if TYPE_CHECKING:  # Rerun takes ~0.3 s to import: only the commands that record load it
@@ -181,11 +181,15 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
         problem = no_points_reason(decoded)
         write_json(out / "result.json", {"session_id": session.id, "mode": mode, "error": problem, **stats})
         raise DecodeError(f"{session.root}: the scan yielded no points: {problem}")
-    with timer.stage("write"), ThreadPoolExecutor(1, thread_name_prefix="write maps") as pool:
-        maps = pool.submit(save_maps, out / "maps.npz", decoded)  # deflate and file writes release the GIL
-        if cloud is not None:
-            write_ply(out / "cloud.ply", cloud)
-        maps.result()
+    try:
+        with timer.stage("write"), ThreadPoolExecutor(1, thread_name_prefix="write maps") as pool:
+            maps = pool.submit(save_maps, out / "maps.npz", decoded)  # deflate and file writes release the GIL
+            if cloud is not None:
+                write_ply(out / "cloud.ply", cloud)
+            maps.result()
+    except OSError as exc:  # the frames and manifest are already safe: say so, and how to finish
+        raise SessionError(f"{session.root}: cannot write the outputs: {disk_problem(exc)}; the frames and manifest "
+                           f"are kept: `slscan decode {session.root}` writes the outputs again") from None
     timings, cpu = timer.rounded()
     write_json(out / "result.json", {"session_id": session.id, "mode": mode, "timings_s": timings, "cpu_s": cpu,
                                      **stats})

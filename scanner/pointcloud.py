@@ -92,9 +92,13 @@ def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:
                 f"the valid pixels only of a {width} x {height} camera image; row, col: the pixel of each point"]
     path = Path(path)
     tmp = path.with_name(path.name + ".part")
-    with tmp.open("wb") as f:
-        PlyData([PlyElement.describe(rec, "vertex")], text=False, byte_order="<", comments=comments).write(f)
-    tmp.replace(path)
+    try:
+        with tmp.open("wb") as f:
+            PlyData([PlyElement.describe(rec, "vertex")], text=False, byte_order="<", comments=comments).write(f)
+        tmp.replace(path)
+    except BaseException:  # e.g. a full disk: no partial file left behind
+        tmp.unlink(missing_ok=True)
+        raise
     return len(pts)
 
 

@@ -81,11 +81,15 @@ def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
     """A compressed .npz of `arrays` (read by np.load) that appears complete or not at all;
     deflate at level 1: float maps hardly compress further, and level 6 took 4x longer."""
     tmp = path.with_name(f".{path.name}.part.npz")
-    with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
-        for name, a in arrays.items():
-            with z.open(f"{name}.npy", "w", force_zip64=True) as f:
-                np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
-    tmp.replace(path)
+    try:
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
+            for name, a in arrays.items():
+                with z.open(f"{name}.npy", "w", force_zip64=True) as f:
+                    np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
+        tmp.replace(path)
+    except BaseException:  # e.g. a full disk: no partial file left behind
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def keep_maps(model: PhaseToHeight, path: Path) -> None:
