@@ -41,35 +41,67 @@ class OrganisedCloud:
         return np.flatnonzero(self.valid)
 
 
+NORMAL_BLOCK_ROWS = 16  # rows of normals computed together: their float32 temporaries stay in a core's L2 cache
+
+
 def organised_normals(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Unit normals (H, W, 3) from central differences of an organised cloud given as
     coordinate planes (H, W) each, oriented toward the camera (negative z); NaN where a
     neighbour is missing and on the image border."""
     h, w = z.shape
-    row, col = (slice(1, -1), slice(2, None)), (slice(1, -1), slice(None, -2))
-    up, down = (slice(2, None), slice(1, -1)), (slice(None, -2), slice(1, -1))
-    ux, uy, uz = (np.subtract(p[row], p[col]) for p in (x, y, z))
-    vx, vy, vz = (np.subtract(p[up], p[down]) for p in (x, y, z))
-    nx = uy * vz
-    nx -= uz * vy
-    ny = uz * vx
-    ny -= ux * vz
-    nz = ux * vy
-    nz -= uy * vx
-    scale = np.square(nx) + np.square(ny)
-    scale += np.square(nz)
-    np.sqrt(scale, out=scale)
-    np.divide(np.float32(1.0), scale, out=scale)
-    np.copysign(scale, -nz, out=scale)  # unit length, facing the camera (normal z < 0)
-    n = np.full((h, w, 3), np.nan, dtype=np.float32)
-    for i, comp in enumerate((nx, ny, nz)):
-        np.multiply(comp, scale, out=n[1:-1, 1:-1, i])
+    n = np.empty((h, w, 3), dtype=np.float32)
+    n[0] = n[-1] = np.nan
+    if h > 2:
+        normals_into(x, y, z, n[1:-1])
     return n
 
 
-def from_planes(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Interleave coordinate planes (H, W) into points (H, W, 3)."""
-    return cv2.merge([x, y, z])
+def normals_into(x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
+    """The normals (as `organised_normals`) of rows 1 .. k of coordinate planes (k + 2, W)
+    into `out` (k, W, 3) float32, NaN in the first and last column. Computed
+    NORMAL_BLOCK_ROWS rows at a time in reused buffers: the same float32 operations in the
+    same order per pixel, without whole-band temporaries going through memory."""
+    k, w = out.shape[0], out.shape[1]
+    out[:, 0] = out[:, -1] = np.nan
+    if k == 0 or w < 3:
+        return
+    block = min(NORMAL_BLOCK_ROWS, k)
+    ux, uy, uz, vx, vy, vz, nx, ny, nz, tmp, scale = np.empty((11, block, w - 2), np.float32)
+    for r0 in range(0, k, block):
+        b = min(block, k - r0)
+        centre = slice(r0 + 1, r0 + 1 + b)
+        row, col = (centre, slice(2, None)), (centre, slice(None, -2))
+        up, down = (slice(r0 + 2, r0 + 2 + b), slice(1, -1)), (slice(r0, r0 + b), slice(1, -1))
+        bux, buy, buz, bvx, bvy, bvz, bnx, bny, bnz, btmp, bscale = (
+            a[:b] for a in (ux, uy, uz, vx, vy, vz, nx, ny, nz, tmp, scale))
+        for p, u, v in ((x, bux, bvx), (y, buy, bvy), (z, buz, bvz)):
+            np.subtract(p[row], p[col], out=u)
+            np.subtract(p[up], p[down], out=v)
+        for n, (a, b_, c, d) in ((bnx, (buy, bvz, buz, bvy)), (bny, (buz, bvx, bux, bvz)),
+                                 (bnz, (bux, bvy, buy, bvx))):
+            np.multiply(a, b_, out=n)  # n = a·b − c·d, each product rounded as before
+            np.multiply(c, d, out=btmp)
+            n -= btmp
+        np.square(bnx, out=bscale)
+        bscale += np.square(bny, out=btmp)
+        bscale += np.square(bnz, out=btmp)
+        np.sqrt(bscale, out=bscale)
+        np.divide(np.float32(1.0), bscale, out=bscale)
+        np.negative(bnz, out=btmp)
+        np.copysign(bscale, btmp, out=bscale)  # unit length, facing the camera (normal z < 0)
+        for i, comp in enumerate((bnx, bny, bnz)):
+            np.multiply(comp, bscale, out=out[r0:r0 + b, 1:-1, i])
+
+
+def from_planes(x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Interleave coordinate planes (H, W) into points (H, W, 3), into `out` when given
+    (OpenCV writes a C-contiguous float32 `out` of that shape in place: no second copy)."""
+    merged = cv2.merge([x, y, z], dst=out)
+    if out is None:
+        return merged
+    if merged is not out:  # OpenCV made a new array (an `out` it cannot write in place)
+        out[...] = merged
+    return out
 
 
 def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:

@@ -18,7 +18,7 @@ import numpy as np
 from scanner.decode import DecodeResult, in_bands
 from scanner.errors import DecodeError
 from scanner.geometry import Pinhole, RigModel, cubic_interpolate
-from scanner.pointcloud import OrganisedCloud, from_planes, organised_normals
+from scanner.pointcloud import OrganisedCloud, from_planes, normals_into
 
 _TABLE_OVERSAMPLE = 4  # table samples per projector pixel along the coded axis
 _TABLE_ROWS = 257  # samples along the other normalised projector coordinate
@@ -253,11 +253,14 @@ def cloud_from_depth(z: np.ndarray, ray_x: np.ndarray, ray_y: np.ndarray, colors
         top, bottom = max(rows.start - 1, 0), min(rows.stop + 1, h)
         x, y = ray_x[top:bottom] * z[top:bottom], ray_y[top:bottom] * z[top:bottom]
         own = slice(rows.start - top, rows.stop - top)
-        points[rows] = from_planes(x[own], y[own], z[rows])
-        normals[rows] = organised_normals(x, y, z[top:bottom])[own] if with_normals else np.nan
-        if with_normals and rows.start == 0:
+        from_planes(x[own], y[own], z[rows], out=points[rows])
+        if not with_normals:
+            normals[rows] = np.nan
+            return
+        normals_into(x, y, z[top:bottom], normals[top + 1:bottom - 1])  # the rows with a neighbour either side
+        if rows.start == 0:
             normals[0] = np.nan  # the image border has no normal
-        if with_normals and rows.stop == h:
+        if rows.stop == h:
             normals[h - 1] = np.nan
 
     in_bands(h, band)
