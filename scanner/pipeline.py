@@ -183,7 +183,7 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
         raise DecodeError(f"{session.root}: the scan yielded no points: {problem}")
     try:
         with timer.stage("write"), ThreadPoolExecutor(1, thread_name_prefix="write maps") as pool:
-            maps = pool.submit(save_maps, out / "maps.npz", decoded)  # deflate and file writes release the GIL
+            maps = pool.submit(save_maps, out / "maps.npz", decoded)  # file writes release the GIL
             if cloud is not None:
                 write_ply(out / "cloud.ply", cloud)
             maps.result()
@@ -242,7 +242,8 @@ def no_points_reason(decoded: DecodeResult) -> str:
 
 
 def save_maps(path: Path, decoded: DecodeResult) -> None:
-    """The decoded maps as a compressed npz (float32 maps, bool masks), for later analysis."""
+    """The decoded maps as an npz (float32 maps stored as they are, bool masks deflated;
+    `write_npz`), for later analysis."""
     arrays: dict[str, np.ndarray] = {"texture": decoded.texture, "valid": decoded.valid}
     for o, m in decoded.maps.items():
         arrays[f"{o}/coordinate"] = m.coordinate
@@ -254,7 +255,7 @@ def save_maps(path: Path, decoded: DecodeResult) -> None:
             arrays[f"{o}/mask/{name}"] = mask
         if isinstance(m, FusedOrientationMaps):  # HDR: which exposure (index, ascending) each pixel came from
             arrays[f"{o}/exposure_index"] = m.exposure_index
-    write_npz(path, arrays)
+    write_npz(path, arrays, deflate_floats=False)
 
 
 def recording_level(session: Session) -> str:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import zipfile
 from pathlib import Path
 
 import cv2
@@ -80,6 +81,19 @@ def test_decode_regenerates_outputs_from_raw_frames(tmp_path: Path, small_config
     assert again.cloud_path.exists()
     assert np.array_equal(np.isnan(first.cloud.points), np.isnan(again.cloud.points))
     assert np.nanmax(np.abs(first.cloud.points - again.cloud.points)) == 0.0
+
+    with zipfile.ZipFile(tmp_path / "s" / "outputs" / "maps.npz") as z:  # float maps stored, masks deflated
+        kinds = {i.filename: i.compress_type for i in z.infolist()}
+    assert kinds["vertical/coordinate.npy"] == kinds["texture.npy"] == zipfile.ZIP_STORED
+    assert kinds["valid.npy"] == kinds["vertical/mask/shadow.npy"] == zipfile.ZIP_DEFLATED
+    with np.load(tmp_path / "s" / "outputs" / "maps.npz") as m:
+        assert np.array_equal(m["vertical/coordinate"], again.decoded.maps["vertical"].coordinate, equal_nan=True)
+        assert np.array_equal(m["valid"], again.decoded.valid)
+        maps = {k: m[k] for k in m.files}
+    # an older session's maps.npz (every member deflated) still reads the same
+    np.savez_compressed(tmp_path / "old.npz", **maps)
+    with np.load(tmp_path / "old.npz") as old:
+        assert set(old.files) == set(maps) and all(np.array_equal(old[k], maps[k], equal_nan=True) for k in maps)
 
 
 FAULTS = [
