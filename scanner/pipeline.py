@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
+from contextlib import ExitStack
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
@@ -193,14 +194,22 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     timings, cpu = timer.rounded()
     write_json(out / "result.json", {"session_id": session.id, "mode": mode, "timings_s": timings, "cpu_s": cpu,
                                      **stats})
+    result = ScanResult(session, decoded, cloud, timings)
     if recording is not None:
-        recording.log_decode(decoded)
-        if cloud is not None:
-            recording.log_cloud(cloud, model)
-        recording.log_metrics({**{f"{k}_s": v for k, v in timings.items()}, "valid_fraction": stats["valid_fraction"],
-                               "points": n_points})
+        log_result(recording, result, model)
     progress("done", 1, 1)
-    return ScanResult(session, decoded, cloud, timings)
+    return result
+
+
+def log_result(recording: SessionRecording, result: ScanResult, model: RigModel) -> None:
+    """A processed scan's maps, cloud and figures (stage timings, valid fraction, points)
+    into its recording."""
+    recording.log_decode(result.decoded)
+    if result.cloud is not None:
+        recording.log_cloud(result.cloud, model)
+    recording.log_metrics({**{f"{k}_s": v for k, v in result.timings_s.items()},
+                           "valid_fraction": round(float(result.decoded.valid.mean()), 5),
+                           "points": len(result.cloud) if result.cloud is not None else 0})
 
 
 def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first: int = 0) -> None:
@@ -268,20 +277,40 @@ def recording_level(session: Session) -> str:
 def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triangulation",
               level: str | None = None) -> ScanResult:
     """Regenerate every output of a session, its Rerun recording included (at `level`,
-    default the session's own: `recording_level`), from the raw frames and manifest alone."""
-    from scanner.session_recording import SessionRecording
-
+    default the session's own: `recording_level`), from the raw frames and manifest alone.
+    The recording is started in a thread while the session is decoded (importing Rerun,
+    ~0.8 s, and logging the rig and the raw frames), and gets the results once both are
+    done; a processing error is logged into it before it is closed and raised."""
     level = level or recording_level(session)
     if level == "none":
         session.recording_path.unlink(missing_ok=True)  # an older recording would not match the new outputs
         return process(session, progress, mode=mode)
-    with SessionRecording(session.recording_path, session.id, level=level) as rec:
+    with ThreadPoolExecutor(1, thread_name_prefix="record frames") as pool:
+        started = pool.submit(record_session_frames, session, level)
+        try:
+            result = process(session, progress, mode=mode)
+        except BaseException:
+            if started.exception() is None:  # waits for it; then logs the error and closes it
+                with started.result():
+                    raise
+            raise
+        with started.result() as rec:
+            log_result(rec, result, session.rig_model())
+    return result
+
+
+def record_session_frames(session: Session, level: str) -> SessionRecording:
+    """A new recording of `session` at `level` (its recording.rrd) holding the rig and the
+    raw frames; the caller closes it (on an error here it is closed, the error raised)."""
+    from scanner.session_recording import SessionRecording
+
+    rec = SessionRecording(session.recording_path, session.id, level=level)
+    with ExitStack() as on_error:
+        on_error.push(rec)  # closes the recording (logging the error) only if logging fails
         rec.log_rig(session.rig_model())
-        with ThreadPoolExecutor(1, thread_name_prefix="record frames") as pool:  # beside the decode
-            frames = pool.submit(log_session_frames, rec, session)
-            result = process(session, progress, rec, mode=mode)
-            frames.result()
-        return result
+        log_session_frames(rec, session)
+        on_error.pop_all()
+    return rec
 
 
 def log_session_frames(recording: SessionRecording, session: Session) -> None:

@@ -18,12 +18,13 @@ from scanner.errors import (
     FrameDropped,
     FrameOutOfOrder,
     IncompleteSession,
+    ScannerError,
     SessionError,
     WaitTimeout,
 )
 from scanner.patterns import PatternSet
 from scanner.pipeline import reprocess, scan
-from scanner.recording_reader import read_points, read_summary
+from scanner.recording_reader import read_component, read_points, read_summary
 from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
 from scanner.session import ERROR, MANIFEST, Session
 from sim.virtual_devices import Faults
@@ -79,6 +80,11 @@ def test_decode_regenerates_outputs_from_raw_frames(tmp_path: Path, small_config
     (tmp_path / "s" / "outputs" / "cloud.ply").unlink()
     again = reprocess(Session.open(tmp_path / "s"))
     assert again.cloud_path.exists()
+    # the recording, started beside the decode, is closed and holds the frames and the results
+    rec = read_summary(tmp_path / "s" / "recording.rrd")
+    assert rec.entities["world/camera/image"].rows == 12
+    assert {"world/camera", "world/scan/cloud", "maps/vertical/phase", "metrics/decode_s"} <= set(rec.entity_paths)
+    assert len(read_points(tmp_path / "s" / "recording.rrd")[0]) == len(again.cloud)
     assert np.array_equal(np.isnan(first.cloud.points), np.isnan(again.cloud.points))
     assert np.nanmax(np.abs(first.cloud.points - again.cloud.points)) == 0.0
 
@@ -94,6 +100,22 @@ def test_decode_regenerates_outputs_from_raw_frames(tmp_path: Path, small_config
     np.savez_compressed(tmp_path / "old.npz", **maps)
     with np.load(tmp_path / "old.npz") as old:
         assert set(old.files) == set(maps) and all(np.array_equal(old[k], maps[k], equal_nan=True) for k in maps)
+
+
+def test_decode_error_is_logged_into_a_closed_recording(tmp_path: Path, small_config: RigConfig) -> None:
+    """A session whose processing fails (here a frame damaged after the capture) leaves its
+    recording closed, with the raw frames and the error, and raises the processing error."""
+    with open_rig(small_config, scene=SCENE) as rig:
+        scan(rig, PATTERNS, tmp_path / "s")
+    session = Session.open(tmp_path / "s")
+    cv2.imwrite(str(session.frame_path(3)), np.zeros((256, 320), np.uint16))
+    with pytest.raises(ScannerError, match="frame"):
+        reprocess(session)
+    rec = read_summary(session.recording_path)
+    assert rec.entities["world/camera/image"].rows == 12
+    events = [str(t) for _, text in read_component(session.recording_path, "events", "TextLog:text", None)
+              for t in text]
+    assert any("session aborted" in e and "frame" in e for e in events), events
 
 
 FAULTS = [
