@@ -13,6 +13,11 @@ from plyfile import PlyData, PlyElement
 PLY_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
                        ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("row", "<i4"), ("col", "<i4")])
 
+_PLY_GROUPS = np.dtype({"names": ["position", "normal", "grey", "row", "col"],  # PLY_VERTEX's bytes, grouped
+                        "formats": [("<f4", 3), ("<f4", 3), ("u1", 3), "<i4", "<i4"],
+                        "offsets": [PLY_VERTEX.fields[k][1] for k in ("x", "nx", "red", "row", "col")],
+                        "itemsize": PLY_VERTEX.itemsize})
+
 
 @dataclass(eq=False)
 class OrganisedCloud:
@@ -112,13 +117,13 @@ def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:
     appears complete or not at all."""
     idx = cloud.valid_indices()
     height, width = cloud.valid.shape
-    pts, col, nrm = cloud.flat()
-    nrm[np.isnan(nrm)] = 0.0  # a gathered copy: safe to change in place
-    rec = np.empty(len(pts), dtype=PLY_VERTEX)
-    for i, k in enumerate("xyz"):
-        rec[k] = pts[:, i]
-        rec["n" + k] = nrm[:, i]
-    rec["red"] = rec["green"] = rec["blue"] = col
+    rec = np.empty(len(idx), dtype=PLY_VERTEX)
+    fields = rec.view(_PLY_GROUPS)  # the same bytes, the vertex's triples as (M, 3) columns
+    np.take(cloud.points.reshape(-1, 3), idx, axis=0, out=fields["position"], mode="clip")  # gathered in place
+    nrm = fields["normal"]
+    np.take(cloud.normals.reshape(-1, 3), idx, axis=0, out=nrm, mode="clip")
+    nrm[np.isnan(nrm)] = 0.0
+    fields["grey"] = cloud.colors.reshape(-1)[idx][:, None]
     rec["row"], rec["col"] = np.divmod(idx, width)  # row-major, as `flat` orders the points
     comments = ["slscan cloud: mm, camera frame (x right, y down, z forward)",
                 f"the valid pixels only of a {width} x {height} camera image; row, col: the pixel of each point"]
@@ -131,7 +136,7 @@ def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:
     except BaseException:  # e.g. a full disk: no partial file left behind
         tmp.unlink(missing_ok=True)
         raise
-    return len(pts)
+    return len(idx)
 
 
 def read_ply_pixels(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
