@@ -91,7 +91,8 @@ def write_npz(path: Path, arrays: dict[str, np.ndarray], deflate_floats: bool = 
                 a = np.asanyarray(a)
                 member: str | zipfile.ZipInfo = f"{name}.npy"  # deflated, at the file's level
                 if not deflate_floats and a.dtype.kind in "fc":
-                    member = zipfile.ZipInfo(f"{name}.npy", dt.datetime.now().timetuple()[:6])  # stored
+                    member = zipfile.ZipInfo(f"{name}.npy")  # stored; dated 1980 as ZipFile dates a named member,
+                    # so the same maps give the same file (a session re-decodes bit-identically)
                 with z.open(member, "w", force_zip64=True) as f:
                     np.lib.format.write_array(f, a, allow_pickle=False)
         tmp.replace(path)

@@ -90,6 +90,8 @@ def test_decode_regenerates_outputs_from_raw_frames(tmp_path: Path, small_config
 
     with zipfile.ZipFile(tmp_path / "s" / "outputs" / "maps.npz") as z:  # float maps stored, masks deflated
         kinds = {i.filename: i.compress_type for i in z.infolist()}
+        dated = {i.date_time for i in z.infolist()}
+    assert dated == {(1980, 1, 1, 0, 0, 0)}  # no clock time inside: the same maps give the same file
     assert kinds["vertical/coordinate.npy"] == kinds["texture.npy"] == zipfile.ZIP_STORED
     assert kinds["valid.npy"] == kinds["vertical/mask/shadow.npy"] == zipfile.ZIP_DEFLATED
     with np.load(tmp_path / "s" / "outputs" / "maps.npz") as m:
