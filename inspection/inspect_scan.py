@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import time
 import weakref
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -59,12 +60,17 @@ def prepare(model: CadModel) -> ModelTarget:
 
 def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = None,
             settings: InspectionSettings = InspectionSettings(), recording: Any = None,
-            prior: Registration | None = None, uncertainty: ScanUncertainty | None = None) -> InspectionReport:
+            prior: Registration | None = None, uncertainty: ScanUncertainty | None = None,
+            on_verdict: Callable[[InspectionReport], None] | None = None) -> InspectionReport:
     """Register `scan` to `model`, segment it by CAD face and evaluate every face seen.
     `recording`: a `scanner.session_recording.SessionRecording` to log the result into;
     `prior`: the previous part's registration on this station, tried first (warm start);
     `uncertainty`: the noise model and calibration of every scan point (None: the noise
-    is estimated from the data and there is no calibration term)."""
+    is estimated from the data and there is no calibration term). `on_verdict(report)`
+    runs as soon as the verdict is known: the faces the tolerances ask for are evaluated
+    first, and that report holds only them (and the faces they ask for that were not
+    seen); the report returned has every face. Faces are evaluated two at a time
+    (`FACE_WORKERS`)."""
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     mask = part_mask(scan, model.diagonal_mm)
@@ -83,19 +89,22 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
                        settings.max_normal_deg)
     times["segment"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rows = []
     R = reg.transform[:3, :3]
     unc = None if uncertainty is None else uncertainty.subset(mask)
     pose = PoseUncertainty.of(q, seg)
     rule = tolerances.decision_rule if tolerances is not None else GUARD_BANDED
-    for face in model.faces:  # one evaluation per face seen
+    rows: dict[int, FaceRow] = {}
+    seen = []
+    for face in model.faces:
+        if (seg.face == face.index).any():
+            seen.append(face)
+        elif tolerances is not None and face.label in tolerances.faces:  # asked for, not seen: said so
+            unseen = FaceForm(0, "not seen", "no scan point on this face")
+            rows[face.index] = FaceRow.of(face, unseen, _verdicts(face.label, unseen, tolerances, rule),
+                                          tolerances.name(face.label))
+
+    def row(face: Any) -> FaceRow:  # one face's figures and verdicts
         sel = seg.face == face.index
-        if not sel.any():
-            if tolerances is not None and face.label in tolerances.faces:  # asked for, not seen: said so
-                unseen = FaceForm(0, "not seen", "no scan point on this face")
-                rows.append(FaceRow.of(face, unseen, _verdicts(face.label, unseen, tolerances, rule),
-                                       tolerances.name(face.label)))
-            continue
         noise, shifts = None, None
         if unc is not None:
             face_unc = unc.subset(sel)
@@ -105,16 +114,28 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
         form = evaluate_face(face, q[sel], seg.deviation_mm[sel], seg.uv[sel], settings.form, noise=noise,
                              normals=seg.normal[sel], shifts=shifts)
         form = pose.added_to(form, q[sel], seg.normal[sel])
-        rows.append(FaceRow.of(face, form, _verdicts(face.label, form, tolerances, rule),
-                               tolerances.name(face.label) if tolerances is not None else ""))
+        return FaceRow.of(face, form, _verdicts(face.label, form, tolerances, rule),
+                          tolerances.name(face.label) if tolerances is not None else "")
+
+    def report_of(done: dict[int, FaceRow]) -> InspectionReport:
+        return InspectionReport(
+            model=str(model.path), unit=model.unit, source=scan.source, scan_points=len(scan), part_points=len(part),
+            assigned_points=int(seg.assigned.sum()), registration=reg, faces=tuple(done[k] for k in sorted(done)),
+            form_settings=settings.form, timings_s={k: round(v, 4) for k, v in times.items()},
+            part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose.as_dict(),
+            calibration=uncertainty.calibration.source if uncertainty is not None else "not known (a bare cloud): not in U",
+            cad=model)
+
+    # the faces the tolerances ask for first: the verdict needs only them; the others' figures follow
+    asked = [f for f in seen if tolerances is not None and tolerances.for_face(f.label)]
+    rows.update(_each_face(row, asked, seg))
     times["form"] = time.perf_counter() - t0
-    report = InspectionReport(
-        model=str(model.path), unit=model.unit, source=scan.source, scan_points=len(scan), part_points=len(part),
-        assigned_points=int(seg.assigned.sum()), registration=reg, faces=tuple(rows),
-        form_settings=settings.form, timings_s={k: round(v, 4) for k, v in times.items()},
-        part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose.as_dict(),
-        calibration=uncertainty.calibration.source if uncertainty is not None else "not known (a bare cloud): not in U",
-        cad=model)
+    if on_verdict is not None:
+        on_verdict(report_of(rows))
+    t0 = time.perf_counter()
+    rows.update(_each_face(row, [f for f in seen if f not in asked], seg))
+    times["form_after_verdict"] = time.perf_counter() - t0
+    report = report_of(rows)
     if recording is not None:
         from inspection.inspection_recording import log_inspection
 
@@ -163,6 +184,19 @@ class PoseUncertainty:
             if e is not None:
                 changes[name] = replace(e, u=float(np.hypot(e.u, scale * u)))
         return replace(form, **changes)
+
+
+FACE_WORKERS = 2  # faces evaluated at once: threads, the form's numpy and FFT work releasing the GIL
+
+
+def _each_face(row: Callable[[Any], FaceRow], faces: list[Any], seg: Any) -> dict[int, FaceRow]:
+    """face index -> `row(face)` for `faces`, the largest first, `FACE_WORKERS` at a time
+    (each face's figures depend on its own points and seed only: the same in any order)."""
+    faces = sorted(faces, key=lambda f: -int(np.count_nonzero(seg.face == f.index)))
+    if len(faces) < 2:
+        return {f.index: row(f) for f in faces}
+    with ThreadPoolExecutor(FACE_WORKERS, thread_name_prefix="face form") as pool:
+        return {f.index: r for f, r in zip(faces, pool.map(row, faces))}
 
 
 def _verdicts(label: str, form: Any, tolerances: Tolerances | None, rule: str) -> dict[str, tuple[float, str]]:

@@ -64,14 +64,17 @@ def calibration_uncertainty(model: RigModel, driver: str) -> CalibrationUncertai
                                        "not in U")
 
 
-def session_uncertainty(session: Any) -> Callable[[np.ndarray], ScanUncertainty]:
+def session_uncertainty(session: Any, decoded: DecodeResult | None = None) -> Callable[[np.ndarray], ScanUncertainty]:
     """For a `scanner.session.Session`: a function giving the ScanUncertainty of the
-    points at camera pixels (N, 2) (column, row) of its cloud."""
+    points at camera pixels (N, 2) (column, row) of its cloud. `decoded`: the session's
+    decode when it is at hand (a scan just processed: `ScanResult.decoded`), else its
+    frames are decoded again."""
     manifest = session.manifest
     config = manifest.get("rig_config", {})
     model = session.rig_model()
     patterns = session.patterns
-    decoded: DecodeResult = decode(session.load_stack(), patterns, session.bit_depth, model.projector.size)
+    if decoded is None:
+        decoded = decode(session.load_stack(), patterns, session.bit_depth, model.projector.size)
     sensor = sensor_noise(config, session.bit_depth, session.root / "manifest.json")
     fringe = projector_fringe_error(patterns, model, config)
     calibration = calibration_uncertainty(model, (config.get("rig") or {}).get("driver", ""))

@@ -195,7 +195,9 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
                           prior: Any = None, on_verdict: Callable[[Any], None] | None = None,
                           program: Any = None, pdf: bool = True) -> tuple[Any, StageTimer]:
     """Inspect a processed scan against `model`, the verdict first: `on_verdict(report)`
-    runs as soon as it is known; then the work that does not change it, the report files
+    runs as soon as it is known (a report of the faces the tolerances ask for,
+    `inspection.inspect_scan.inspect`); then the work that does not change it, the other
+    faces' figures, the report files
     (JSON, CSV, HTML with the deviation map) and the inspection in `recording` (None: not
     recorded). The session is complete when this returns: until then outputs/ has no
     inspection.json and the recording is still `recording.rrd.part`. `prior`: the previous
@@ -212,11 +214,10 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
         scan = (from_organised(result.cloud, str(result.session.root)) if result.cloud is not None
                 else load_session(result.session.root))
     with timer.stage("inspect"):
-        uncertainty = session_uncertainty(result.session)(scan.pixels)  # the decoder's noise model and calibration
+        # the decoder's noise model and calibration, from the decode the scan was made of
+        uncertainty = session_uncertainty(result.session, result.decoded)(scan.pixels)
         report = inspect(scan, model, tolerances, InspectionSettings(registration=RegistrationSettings(seed=seed)),
-                         prior=prior, uncertainty=uncertainty)
-    if on_verdict is not None:
-        on_verdict(report)
+                         prior=prior, uncertainty=uncertainty, on_verdict=on_verdict)
     with timer.stage("report_files"):
         report = write_report_files(report, scan, result.session.outputs, result.session.root, program, pdf=pdf)
     if recording is not None:
