@@ -26,10 +26,12 @@ such rows files, so that a run over many bins can be done in pieces.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -199,19 +201,34 @@ def load_masks(path: Path, cloud: Any) -> list[Any]:
 # ------------------------------------------------------------------------------ pose
 
 
+@contextlib.contextmanager
+def one_thread() -> Iterator[None]:
+    """One BLAS and one OpenCV thread inside (restored after): the per-part matrices and
+    grids are small, and a second thread costs more CPU than it saves (its start-up and
+    waits are CPU time too), most of all on a busy machine. Results do not change."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 def pose_scene(cloud: Any, camera: Any, model: Any, settings: Any, instances: list[Any] | None = None) -> tuple:
     """(instances, poses) of a scanned bin, as `slscan pose` finds them: the given
     instances (from masks), or else the flat patches above the tray; each posed with the
-    organised scan as context (`camera` projects camera-frame points onto its image), one
-    BLAS thread (the matrices are small: a second thread costs more than it saves)."""
-    from threadpoolctl import threadpool_limits
-
+    organised scan as context (`camera` projects camera-frame points onto its image), in
+    `one_thread`."""
     from inspection.bins.flat_patches import instances_from_flat_patches
     from inspection.bins.instance_plane import SceneContext
     from inspection.bins.picking import merge_duplicates
     from inspection.bins.pose import estimate_poses
 
-    with threadpool_limits(limits=1):
+    with one_thread():
         if instances is None:
             instances = instances_from_flat_patches(cloud, model.thickness_mm)
         context = SceneContext.of_cloud(cloud, camera)
@@ -292,8 +309,6 @@ def cmd_posebench(args: argparse.Namespace) -> int:
         return rows_summary(args)
     if args.sessions:
         return saved_bins_bench(args)
-    from threadpoolctl import threadpool_limits
-
     from inspection.bins.instance_plane import SceneContext
     from inspection.bins.instances import instances_from_label_image
     from inspection.bins.part_model import ThinPartModel
@@ -327,7 +342,7 @@ def cmd_posebench(args: argparse.Namespace) -> int:
                 row = {"seed": seed, "part": k, "method": method, "occlusion": float(truth_occ[k]),
                        "front_up": bool(b.front_up[k]), "points": len(inst) if inst else 0, "found": False}
                 if inst is not None:
-                    with threadpool_limits(limits=1):
+                    with one_thread():
                         r = estimate_pose(inst, models[method], context, settings)
                     row["cpu_s"] = r.cpu_s
                     row["wall_s"] = r.time_s
