@@ -123,8 +123,10 @@ def instances_from_flat_patches(cloud: OrganisedCloud, thickness_mm: float, wind
     labels = _components(core, z, step)
     sizes = np.bincount(labels.ravel())
     labels = np.where(sizes[labels] >= MIN_CORE, labels, 0)   # crumbs: no plane to grow back with
-    _, labels = np.unique(labels, return_inverse=True)
-    labels = _one_plane_each(labels.reshape(sub.shape), p, step)
+    kept = np.flatnonzero(np.bincount(labels.ravel()))
+    rank = np.zeros(kept[-1] + 1, np.intp)
+    rank[kept] = np.arange(len(kept))
+    labels = _one_plane_each(rank[labels], p, step)   # numbered 0, 1, ... in the order of their labels
     labels = _grow_back(labels, sub, p, join, window)
     sizes = np.bincount(labels.ravel())
     sizes[0] = 0
