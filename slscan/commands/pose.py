@@ -205,7 +205,8 @@ def load_masks(path: Path, cloud: Any) -> list[Any]:
 def one_thread() -> Iterator[None]:
     """One BLAS and one OpenCV thread inside (restored after): the per-part matrices and
     grids are small, and a second thread costs more CPU than it saves (its start-up and
-    waits are CPU time too), most of all on a busy machine. Results do not change."""
+    waits are CPU time too), most of all on a busy machine. Results do not change. Both
+    limits are process-wide: for the command line, not for a thread beside others."""
     import cv2
     from threadpoolctl import threadpool_limits
 
