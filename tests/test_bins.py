@@ -268,10 +268,10 @@ def test_posebench_summary_of_rows_counts_what_the_rows_say(tmp_path, capsys) ->
     bins = [{"session": "a", "parts": 5, "visible_parts": 4, "instances": 6, "phantom_instances": 1,
              "parts_with_instance": 4, "parts_posed": 3,
              "verdicts": [verdict(0, 0.1, 0.02, True), verdict(1, 0.3, 0.08, False), verdict(2, 0.7, 0.2, True)],
-             "pose_times_s": [[0.10, 0.05], [0.30, 0.07], [0.20, 0.09]]},
+             "pose_times_s": [[0.10, 0.05], [0.30, 0.07], [0.20, 0.09]], "bin_step_s": [1.0, 0.6]},
             {"session": "b", "parts": 7, "visible_parts": 7, "instances": 7, "phantom_instances": 0,
              "parts_with_instance": 7, "parts_posed": 1, "verdicts": [verdict(3, 3.0, 0.01, True, False)],
-             "pose_times_s": [[0.40, 0.11]]}]
+             "pose_times_s": [[0.40, 0.11]], "bin_step_s": [2.0, 0.9]}]
     files = [tmp_path / "a.jsonl", tmp_path / "b.jsonl"]
     for f, b in zip(files, bins):
         f.write_text(json.dumps(b) + "\n")
@@ -286,6 +286,16 @@ def test_posebench_summary_of_rows_counts_what_the_rows_say(tmp_path, capsys) ->
     assert re.search(r"picks offered +3: outside 0.1 mm / 0.5 deg 2", out)
     # pose times: medians of the four parts (wall 0.10 0.20 0.30 0.40 -> 250 ms; CPU -> 80 ms)
     assert "median 250 ms wall, 80 ms CPU" in out
+    # bin steps: medians of 1.0 / 2.0 s wall and 0.6 / 0.9 s CPU; shared over the four
+    # instances posed: (1 + 2 + 0.1 + 0.3 + 0.2 + 0.4) / 4 s wall, (0.6 + 0.9 + 0.32) / 4 s CPU
+    assert re.search(r"time per bin, instances and scene context +median 1500 ms wall, 750 ms CPU; "
+                     r"max 2000 ms wall, 900 ms CPU", out)
+    assert re.search(r"time per part, bin step shared +mean 1000 ms wall, 455 ms CPU", out)
+    # rows written before the bin step was recorded: no such line, the rest as before
+    files[1].write_text(json.dumps({k: v for k, v in bins[1].items() if k != "bin_step_s"}) + "\n")
+    assert main(["posebench", "--summary", *map(str, files)]) == 0
+    out = capsys.readouterr().out
+    assert "median 250 ms wall, 80 ms CPU" in out and "bin step" not in out
     files[1].write_text("{not json\n")
     assert main(["posebench", "--summary", *map(str, files)]) == 2
     assert re.search(r"b.jsonl, line 1: not a saved-bins row", capsys.readouterr().err)

@@ -123,19 +123,26 @@ def instances_from_flat_patches(cloud: OrganisedCloud, thickness_mm: float, wind
     labels = _components(core, z, step)
     sizes = np.bincount(labels.ravel())
     labels = np.where(sizes[labels] >= MIN_CORE, labels, 0)   # crumbs: no plane to grow back with
-    _, labels = np.unique(labels, return_inverse=True)
-    labels = _one_plane_each(labels.reshape(sub.shape), p, step)
+    kept = np.flatnonzero(np.bincount(labels.ravel()))
+    rank = np.zeros(kept[-1] + 1, np.intp)
+    rank[kept] = np.arange(len(kept))
+    labels = _one_plane_each(rank[labels], p, step)   # numbered 0, 1, ... in the order of their labels
     labels = _grow_back(labels, sub, p, join, window)
     sizes = np.bincount(labels.ravel())
     sizes[0] = 0
     order = [c for c in np.argsort(-sizes, kind="stable") if sizes[c] >= min_points]
-    full = np.zeros(valid.shape, bool)
+    # each patch's pixels in raster order from one stable sort of the crop's labels (crop
+    # raster order is the image's), as image pixel indices
+    by_label = np.argsort(labels.ravel(), kind="stable")
+    starts = np.searchsorted(labels.ravel()[by_label], np.arange(len(sizes) + 1))
     out = []
     for k, c in enumerate(order, start=1):
-        full[crop] = labels == c
-        idx = np.flatnonzero(full)
+        at = by_label[starts[c]:starts[c + 1]]
+        idx = (at // sub.shape[1] + r0) * valid.shape[1] + at % sub.shape[1] + c0
+        mask = np.zeros(valid.shape, bool)
+        mask.ravel()[idx] = True
         out.append(Instance(k, idx, pts.reshape(-1, 3)[idx], cloud.normals.reshape(-1, 3)[idx].astype(np.float64),
-                            "segmentation", full.astype(bool)))
+                            "segmentation", mask))
     return out
 
 
@@ -172,11 +179,14 @@ def _one_plane_each(labels: np.ndarray, points: np.ndarray, off_mm: float) -> np
     the same depth along a line (one tilted under the other's edge) leave no step to
     split on, but each lies in its own plane."""
     out = labels.copy()
-    for c in range(1, int(labels.max()) + 1):   # a handful of components
-        mask = labels == c
+    top = int(labels.max())   # the largest label in `out` so far
+    for c, box in enumerate(ndimage.find_objects(labels), start=1):   # a handful of components
+        if box is None:
+            continue
+        mask = labels[box] == c   # the component's bounding box: its pixels in the same (raster) order
         if mask.sum() < MIN_CORE:
             continue
-        pts = points[mask].astype(np.float64)
+        pts = points[box][mask].astype(np.float64)
         plane = _plane_of(pts[_dominant_plane(pts, off_mm / 2)])
         off = np.abs(pts @ plane[:3] + plane[3]) > off_mm
         off_image = np.zeros_like(mask)
@@ -187,7 +197,8 @@ def _one_plane_each(labels: np.ndarray, points: np.ndarray, off_mm: float) -> np
         if len(planes) == 1:
             continue
         nearest = np.argmin(np.abs(pts @ np.array(planes)[:, :3].T + np.array(planes)[:, 3]), axis=1)
-        out[mask] = np.where(nearest == 0, c, out.max() + nearest)
+        out[box][mask] = np.where(nearest == 0, c, top + nearest)
+        top += int(nearest.max())
     return out
 
 

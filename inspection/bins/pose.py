@@ -339,14 +339,22 @@ def face_evidence(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> tuple[f
     return float(covered.sum() / max(known.sum(), 1)), float(np.mean(inside & patch.lower[r, c]))
 
 
+def _evidence(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> tuple[float, float]:
+    """`face_evidence`, kept on the patch per side and pose (asked again for the best poses)."""
+    key = (id(sm), T.tobytes())
+    if key not in patch.evidence:
+        patch.evidence[key] = face_evidence(patch, sm, T)
+    return patch.evidence[key]
+
+
 def _spill(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> float:
     """Fraction of the posed face where a lower surface is seen (it would hide it)."""
-    return face_evidence(patch, sm, T)[1]
+    return _evidence(patch, sm, T)[1]
 
 
 def _occlusion(patch: InstancePatch, sm: SideModel, T: np.ndarray) -> float:
     """Fraction of the posed face covered by a surface in front of it."""
-    return face_evidence(patch, sm, T)[0]
+    return _evidence(patch, sm, T)[0]
 
 
 def _ndt_poses(src: np.ndarray, patch: InstancePatch, model: ThinPartModel, sm: SideModel,

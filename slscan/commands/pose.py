@@ -26,10 +26,12 @@ such rows files, so that a run over many bins can be done in pieces.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -199,19 +201,35 @@ def load_masks(path: Path, cloud: Any) -> list[Any]:
 # ------------------------------------------------------------------------------ pose
 
 
+@contextlib.contextmanager
+def one_thread() -> Iterator[None]:
+    """One BLAS and one OpenCV thread inside (restored after): the per-part matrices and
+    grids are small, and a second thread costs more CPU than it saves (its start-up and
+    waits are CPU time too), most of all on a busy machine. Results do not change. Both
+    limits are process-wide: for the command line, not for a thread beside others."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 def pose_scene(cloud: Any, camera: Any, model: Any, settings: Any, instances: list[Any] | None = None) -> tuple:
     """(instances, poses) of a scanned bin, as `slscan pose` finds them: the given
     instances (from masks), or else the flat patches above the tray; each posed with the
-    organised scan as context (`camera` projects camera-frame points onto its image), one
-    BLAS thread (the matrices are small: a second thread costs more than it saves)."""
-    from threadpoolctl import threadpool_limits
-
+    organised scan as context (`camera` projects camera-frame points onto its image), in
+    `one_thread`."""
     from inspection.bins.flat_patches import instances_from_flat_patches
     from inspection.bins.instance_plane import SceneContext
     from inspection.bins.picking import merge_duplicates
     from inspection.bins.pose import estimate_poses
 
-    with threadpool_limits(limits=1):
+    with one_thread():
         if instances is None:
             instances = instances_from_flat_patches(cloud, model.thickness_mm)
         context = SceneContext.of_cloud(cloud, camera)
@@ -292,8 +310,6 @@ def cmd_posebench(args: argparse.Namespace) -> int:
         return rows_summary(args)
     if args.sessions:
         return saved_bins_bench(args)
-    from threadpoolctl import threadpool_limits
-
     from inspection.bins.instance_plane import SceneContext
     from inspection.bins.instances import instances_from_label_image
     from inspection.bins.part_model import ThinPartModel
@@ -327,7 +343,7 @@ def cmd_posebench(args: argparse.Namespace) -> int:
                 row = {"seed": seed, "part": k, "method": method, "occlusion": float(truth_occ[k]),
                        "front_up": bool(b.front_up[k]), "points": len(inst) if inst else 0, "found": False}
                 if inst is not None:
-                    with threadpool_limits(limits=1):
+                    with one_thread():
                         r = estimate_pose(inst, models[method], context, settings)
                     row["cpu_s"] = r.cpu_s
                     row["wall_s"] = r.time_s
@@ -382,7 +398,7 @@ def saved_bins_bench(args: argparse.Namespace) -> int:
     print(f"{len(sessions)} saved bins, {settings.method}, instances from "
           f"{'the simulator ids' if args.truth_masks else 'flat patches (no masks)'}; "
           f"load average {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}", flush=True)
-    bins, times = [], []
+    bins, times, steps = [], [], []
     for path in sessions:
         truth = BinTruth.load(path / BIN_TRUTH_FILE)
         if truth.part not in models:
@@ -397,6 +413,7 @@ def saved_bins_bench(args: argparse.Namespace) -> int:
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         times += [(p.time_s, p.cpu_s) for p in poses]
         scene_wall, scene_cpu = wall - sum(p.time_s for p in poses), cpu - sum(p.cpu_s for p in poses)
+        steps.append((scene_wall, scene_cpu))
         j = judge(truth, object_id, instances, poses, pick_order(poses, settings.max_occlusion))
         bins.append(j)
         v = j["verdicts"]
@@ -410,8 +427,9 @@ def saved_bins_bench(args: argparse.Namespace) -> int:
             with open(args.rows, "a") as f:
                 f.write(json.dumps({"session": str(path), **{k: x for k, x in j.items() if k != "verdicts"},
                                     "verdicts": [vars(x) for x in v],
-                                    "pose_times_s": [[p.time_s, p.cpu_s] for p in poses]}, default=float) + "\n")
-    print(saved_bins_summary(bins, np.array(times), (PICK_MM, PICK_DEG), (WRONG_MM, WRONG_DEG)))
+                                    "pose_times_s": [[p.time_s, p.cpu_s] for p in poses],
+                                    "bin_step_s": [scene_wall, scene_cpu]}, default=float) + "\n")
+    print(saved_bins_summary(bins, np.array(times), (PICK_MM, PICK_DEG), (WRONG_MM, WRONG_DEG), np.array(steps)))
     load1 = os.getloadavg()
     print(f"load average at the end {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
     return Exit.OK
@@ -422,26 +440,31 @@ def rows_summary(args: argparse.Namespace) -> int:
     `--sessions --rows` runs (a long benchmark run in pieces, or stopped part way)."""
     from sim.bin_judge import PICK_DEG, PICK_MM, WRONG_DEG, WRONG_MM, PoseVerdict
 
-    bins, times = [], []
+    bins, times, steps = [], [], []
     for path in args.summary:
         for n, line in enumerate(path.read_text().splitlines(), 1):
             try:
                 doc = json.loads(line)
                 bins.append({**doc, "verdicts": [PoseVerdict(**v) for v in doc["verdicts"]]})
                 times += doc["pose_times_s"]
+                steps.append(doc.get("bin_step_s"))   # rows written before it was recorded lack it
             except (ValueError, KeyError, TypeError) as exc:
                 from scanner.errors import ScannerError
 
                 raise ScannerError(f"{path}, line {n}: not a saved-bins row of `slscan posebench --sessions --rows` "
                                    f"({exc})") from None
     print(f"{len(bins)} saved bins from {len(args.summary)} rows file(s)")
-    print(saved_bins_summary(bins, np.array(times).reshape(-1, 2), (PICK_MM, PICK_DEG), (WRONG_MM, WRONG_DEG)))
+    known = None if any(x is None for x in steps) else np.array(steps, dtype=float).reshape(-1, 2)
+    print(saved_bins_summary(bins, np.array(times).reshape(-1, 2), (PICK_MM, PICK_DEG), (WRONG_MM, WRONG_DEG), known))
     return Exit.OK
 
 
 def saved_bins_summary(bins: list[dict[str, Any]], times: np.ndarray, pick: tuple[float, float],
-                       wrong: tuple[float, float]) -> str:
-    """The acceptance figures over saved bins (see `saved_bins_bench`)."""
+                       wrong: tuple[float, float], steps: np.ndarray | None = None) -> str:
+    """The acceptance figures over saved bins (see `saved_bins_bench`); `times` (parts, 2)
+    each part's pose (wall, CPU s), `steps` (bins, 2) each bin's instances and scene
+    context (None: not recorded). The time per part with its share of the bin step (all
+    bin steps and part poses over the instances posed) is what a robot cell waits per part."""
     v = [x for b in bins for x in b["verdicts"]]
     picks = [x for x in v if x.picked]
     occ = np.array([x.occlusion - x.true_occlusion for x in v if x.part >= 0])
@@ -464,7 +487,14 @@ def saved_bins_summary(bins: list[dict[str, Any]], times: np.ndarray, pick: tupl
                                            f"over {len(occ)} poses" if len(occ) else "no poses"),
         f"time per part pose            median {1000 * np.median(times[:, 0]):.0f} ms wall, "
         f"{1000 * np.median(times[:, 1]):.0f} ms CPU; 90 % {1000 * np.percentile(times[:, 0], 90):.0f} ms wall, "
-        f"{1000 * np.percentile(times[:, 1], 90):.0f} ms CPU (one BLAS thread)"]
+        f"{1000 * np.percentile(times[:, 1], 90):.0f} ms CPU (one BLAS and one OpenCV thread)"]
+    if steps is not None and len(steps) and len(times):
+        share = (steps.sum(axis=0) + times.sum(axis=0)) / len(times)
+        lines += [f"time per bin, instances and scene context   median {1000 * np.median(steps[:, 0]):.0f} ms wall, "
+                  f"{1000 * np.median(steps[:, 1]):.0f} ms CPU; max {1000 * steps[:, 0].max():.0f} ms wall, "
+                  f"{1000 * steps[:, 1].max():.0f} ms CPU",
+                  f"time per part, bin step shared              mean {1000 * share[0]:.0f} ms wall, "
+                  f"{1000 * share[1]:.0f} ms CPU ((bin steps + poses) / {len(times)} instances posed)"]
     return "\n".join(lines)
 
 
