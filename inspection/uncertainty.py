@@ -31,8 +31,10 @@ near-normal errors here), u² = u_noise² + u_fringe² + u_cal², from three sou
    mixes the surface's fringes with the dark beyond): the artefact fits leave the
    outline band out (`inspection.acceptance.inner_pixels`; on the simulator it had made
    the radius of a 25 mm sphere read +0.56 µm noise-free, about one u). Inside, it is a
-   low-pass on texture (Sq of a 1.5-4 mm texture reads 1-5 % low on the simulator) and
-   is not yet corrected in the scan itself: a known bias, not part of U.
+   low-pass on texture (Sq of a 1.5-4 mm texture read 1-5 % low on the simulator): where
+   the rig states its camera blur, `slscan verify` and the repeat scans correct the decoded
+   coordinates by it before triangulating (`defocus_corrected`; Sq's bias on the simulator
+   -0.24 µm -> -0.003 µm, noise-free); the scan pipeline does not yet (scanner's files).
 
 3. Calibration. The rig's parameters (both devices' intrinsics and distortion, the
    extrinsics) carry the covariance the calibration solve found (`calibration.json`:
@@ -170,13 +172,24 @@ class FringeError:
         return float(np.std(sums))
 
 
+# How well the decoder-and-sensor model knows σ_z (one-sigma, relative): on the simulator
+# (whose sensor model is the camera's own), noisy minus noise-free decodes of the textured
+# plate at six random placements, divided by the predicted σ_z (65-86 thousand pixels
+# each, statistical precision ~0.27 % each), had standard deviations 0.999, 1.000, 1.000,
+# 0.995, 1.010 and 1.003: per placement the prediction is off by 0.47 % RMS. It enters
+# every figure whose noise is subtracted (Sq: 2 % here made Sq's U ~3x its spread).
+# A real camera's [camera.sensor] table would need its own photon-transfer fit's uncertainty.
+DECODER_MODEL_REL_U = 0.005
+
+
 @dataclass(frozen=True, eq=False)
 class PointNoise:
     """The modelled errors of N measured points. A point moves along its camera `ray`
     ((N, 3), (x/z, y/z, 1)) by δz: white noise of `sigma_z` (N,) mm, plus, per fringe
     orientation, the fringe systematic `fringe` (a FringeError) at that orientation's
     projector coordinate `columns[o]` (N,) px, reaching depth through `gains[o]` (N,)
-    mm/px. `source` says where sigma_z came from."""
+    mm/px. `source` says where sigma_z came from, `rel_u` how well it is known (one-sigma
+    relative uncertainty of sigma_z, from that source: `DECODER_MODEL_REL_U`)."""
 
     sigma_z: np.ndarray
     ray: np.ndarray
@@ -184,6 +197,7 @@ class PointNoise:
     gains: tuple[np.ndarray, ...] = ()
     fringe: FringeError | None = None
     source: str = "decoder and sensor model"
+    rel_u: float = DECODER_MODEL_REL_U
 
     def __len__(self) -> int:
         return len(self.sigma_z)
@@ -444,7 +458,8 @@ class ScanUncertainty:
         per-point influence (N, 3) = ∂figure/∂X_i. Without a noise model the points'
         noise is taken as white along their rays with the fit's `residual_rms`."""
         noise = self.noise or PointNoise(np.full(len(points), residual_rms), points / points[:, 2:3],
-                                         source="estimated from the fit's residuals")
+                                         source="estimated from the fit's residuals",
+                                         rel_u=1.0 / np.sqrt(2.0 * max(len(points), 1)))
         u_noise, u_fringe = noise.linear_u(influence)
         shifts = self.shifts(points)
         u_cal = 0.0 if shifts is None else float(np.sqrt(np.sum(np.einsum("dij,ij->d", shifts, influence) ** 2)))
@@ -458,7 +473,7 @@ class ScanUncertainty:
         noise = None if any(x is None for x in n) else PointNoise(np.concatenate([x.sigma_z for x in n]), np.concatenate([x.ray for x in n]),
                            tuple(np.concatenate(c) for c in zip(*(x.columns for x in n))),
                            tuple(np.concatenate(g) for g in zip(*(x.gains for x in n))), first.noise.fringe,
-                           first.noise.source)  # type: ignore[union-attr]
+                           first.noise.source, first.noise.rel_u)  # type: ignore[union-attr]
         weights = None if first.weights is None else {
             o: np.concatenate([p.weights[o] for p in parts]) for o in first.weights}  # type: ignore[index]
         return cls(noise, first.calibration, first.model, weights)
@@ -544,3 +559,16 @@ def defocus_bias(decoded: DecodeResult, blur_sigma_px: float) -> dict[str, np.nd
         gb, rb, _ = local_quadratic(0.5 * np.log(np.maximum(m.phase_weight, 1e-12)), valid)  # ln B + const
         out[orientation] = s2 * (gb * gc + rb * rc + 0.5 * lc)
     return out
+
+
+def defocus_corrected(decoded: DecodeResult, blur_sigma_px: float) -> DecodeResult:
+    """`decoded` with each orientation's coordinate less its camera-defocus bias
+    (`defocus_bias`) for a camera blur of `blur_sigma_px` (camera px, the rig's stated
+    value; 0: `decoded` itself); unchanged in the band along edges where the bias cannot
+    be estimated. Where scans are triangulated, so that every figure sees it."""
+    if blur_sigma_px <= 0.0:
+        return decoded
+    bias = defocus_bias(decoded, blur_sigma_px)
+    maps = {o: replace(m, coordinate=(m.coordinate - np.nan_to_num(bias[o])).astype(m.coordinate.dtype))
+            for o, m in decoded.maps.items()}
+    return replace(decoded, maps=maps)

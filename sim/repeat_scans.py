@@ -28,6 +28,7 @@ from inspection.uncertainty import (
     Estimate,
     FringeError,
     ScanUncertainty,
+    defocus_corrected,
     fringe_error,
     perturbed,
     scan_uncertainty,
@@ -144,7 +145,8 @@ def _trial(bench: Bench, position: Position, artefacts: ArtefactSet, measure: Me
            rng: np.random.Generator, calibration: CalibrationUncertainty | None, noise_scale: float) -> Trial:
     t0 = time.perf_counter()
     renderer = window_renderer(bench.model, artefact_objects(position, artefacts), bench.sensor, bench.projector_blur_px)
-    decoded = quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s, bench.bit_depth, rng)
+    decoded = defocus_corrected(quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s,
+                                           bench.bit_depth, rng), bench.sensor.blur_sigma_px)
     used = renderer.model
     if calibration is not None:
         used = perturbed(used, calibration.draw(rng))
@@ -295,8 +297,8 @@ def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationU
         pose = pose_of(rotation(*rng.uniform(-20.0, 20.0, 2), rng.uniform(0.0, 360.0)), c0 + rng.uniform(-half, half))
         obj = SceneObject("plate", "mesh", pose, 0.7, vertices=vertices, triangles=triangles)
         renderer = window_renderer(bench.model, (obj,), bench.sensor, bench.projector_blur_px)
-        decoded = quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s,
-                             bench.bit_depth, rng)
+        decoded = defocus_corrected(quick_scan(renderer, bench.patterns, bench.model.projector_gamma,
+                                               bench.exposure_s, bench.bit_depth, rng), bench.sensor.blur_sigma_px)
         used = renderer.model if calibration is None else perturbed(renderer.model, calibration.draw(rng))
         points = triangulate(decoded, Triangulator(used), with_normals=False).points
         gt = renderer.ground_truth
