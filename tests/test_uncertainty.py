@@ -311,3 +311,16 @@ def test_defocus_bias_matches_the_simulators_blur() -> None:
         band = both & np.isnan(predicted[orientation])
         assert np.array_equal(corrected.maps[orientation].coordinate[band], m.coordinate[band])  # left as decoded
     assert defocus_corrected(decoded[0.0], 0.0) is decoded[0.0]
+
+
+def test_defocus_correction_noise_gain_matches_a_monte_carlo() -> None:
+    """The factor by which the correction's Laplacian term raises white noise, against
+    the spread of white noise corrected the same way (σ²/2 · Laplacian of the window fit)."""
+    from inspection.uncertainty import _correction_gain, local_quadratic
+
+    sigma = 0.6
+    noise = np.random.default_rng(2).standard_normal((400, 400))
+    lc = local_quadratic(noise, np.ones(noise.shape, bool))[2][10:-10, 10:-10]
+    corrected = noise[10:-10, 10:-10] - 0.5 * sigma ** 2 * lc
+    assert np.std(corrected) / np.std(noise[10:-10, 10:-10]) == pytest.approx(_correction_gain(sigma), abs=5e-4)
+    assert _correction_gain(sigma) > 1.003 and _correction_gain(0.0) == 1.0
