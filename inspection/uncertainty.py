@@ -515,12 +515,17 @@ def local_quadratic(values: np.ndarray, valid: np.ndarray, half_px: int = QUADRA
         return cv2.filter2D(image, cv2.CV_64F, ox ** a * oy ** b, borderType=cv2.BORDER_CONSTANT)
 
     moment = {(a, b): correlate(mask, a, b) for a in range(5) for b in range(5 - a)}
-    normal = np.stack([np.stack([moment[(a + c, b + d)] for c, d in _QUADRATIC], -1) for a, b in _QUADRATIC], -2)
     rhs = np.stack([correlate(data, a, b) for a, b in _QUADRATIC], -1)
     enough = valid & (moment[(0, 0)] >= min_fraction * o.size ** 2)
+    full = enough & (moment[(0, 0)] > o.size ** 2 - 0.5)  # whole window valid: one normal matrix for all
+    part = enough & ~full
     coef = np.full(values.shape + (6,), np.nan)
-    if enough.any():
-        coef[enough] = np.linalg.solve(normal[enough], rhs[enough][..., None])[..., 0]
+    whole = np.array([[np.sum(ox ** (a + c) * oy ** (b + d)) for c, d in _QUADRATIC] for a, b in _QUADRATIC])
+    coef[full] = rhs[full] @ np.linalg.inv(whole).T
+    if part.any():
+        normal = np.stack([np.stack([moment[(a + c, b + d)][part] for c, d in _QUADRATIC], -1)
+                           for a, b in _QUADRATIC], -2)
+        coef[part] = np.linalg.solve(normal, rhs[part][..., None])[..., 0]
     return coef[..., 1], coef[..., 2], 2.0 * (coef[..., 3] + coef[..., 5])
 
 
