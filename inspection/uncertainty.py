@@ -32,9 +32,12 @@ near-normal errors here), u² = u_noise² + u_fringe² + u_cal², from three sou
    outline band out (`inspection.acceptance.inner_pixels`; on the simulator it had made
    the radius of a 25 mm sphere read +0.56 µm noise-free, about one u). Inside, it is a
    low-pass on texture (Sq of a 1.5-4 mm texture read 1-5 % low on the simulator): where
-   the rig states its camera blur, `slscan verify` and the repeat scans correct the decoded
-   coordinates by it before triangulating (`defocus_corrected`; Sq's bias on the simulator
-   -0.24 µm -> -0.003 µm, noise-free); the scan pipeline does not yet (scanner's files).
+   a textured surface, `defocus_corrected` removes it (Sq's bias on the simulator -0.24 µm ->
+   -0.003 µm, noise-free); the plate's repeat scans use it. Not the artefact fits: a few
+   pixels inside the silhouette band the first order fails the other way, and on a sphere
+   the correction moves the radius by -0.3 µm (noise-free, 3 placements; uncorrected the
+   band-free fit is unbiased, +0.006 µm), so neither `slscan verify` nor the scan pipeline
+   applies it yet: where it belongs (surfaces away from edges) is open.
 
 3. Calibration. The rig's parameters (both devices' intrinsics and distortion, the
    extrinsics) carry the covariance the calibration solve found (`calibration.json`:
@@ -573,7 +576,8 @@ def defocus_corrected(decoded: DecodeResult, blur_sigma_px: float) -> DecodeResu
     """`decoded` with each orientation's coordinate less its camera-defocus bias
     (`defocus_bias`) for a camera blur of `blur_sigma_px` (camera px, the rig's stated
     value; 0: `decoded` itself); unchanged in the band along edges where the bias cannot
-    be estimated. Where scans are triangulated, so that every figure sees it.
+    be estimated. Validated on textured flat surfaces (module docstring, 2.), not near
+    silhouettes.
 
     The bias is estimated from the noisy coordinate itself: its Laplacian term subtracts
     a filtered copy of the noise, which raises the noise by the factor `_correction_gain`

@@ -145,8 +145,7 @@ def _trial(bench: Bench, position: Position, artefacts: ArtefactSet, measure: Me
            rng: np.random.Generator, calibration: CalibrationUncertainty | None, noise_scale: float) -> Trial:
     t0 = time.perf_counter()
     renderer = window_renderer(bench.model, artefact_objects(position, artefacts), bench.sensor, bench.projector_blur_px)
-    decoded = defocus_corrected(quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s,
-                                           bench.bit_depth, rng), bench.sensor.blur_sigma_px)
+    decoded = quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s, bench.bit_depth, rng)
     used = renderer.model
     if calibration is not None:
         used = perturbed(used, calibration.draw(rng))
@@ -278,8 +277,9 @@ def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationU
     (`Plate`) placed at random in the measuring volume, tilted up to 20 degrees: the
     plate's points taken into its own frame with its true pose after an ideal registration
     (`registered`: registration is not what is studied here), evaluated as an inspection evaluates a plane face
-    (`inspection.form.evaluate_face`). The truth: the same evaluation of the noise-free
-    surface points the same pixels see."""
+    (`inspection.form.evaluate_face`), the decoded coordinates corrected for the camera's
+    stated blur (`defocus_corrected`: not yet in the scan pipeline). The truth: the same
+    evaluation of the noise-free surface points the same pixels see."""
     from inspection.form import FormSettings, evaluate_face
     from sim.calibration_bench import rotation
     from sim.scene import SceneObject

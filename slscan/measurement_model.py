@@ -44,13 +44,6 @@ def sensor_noise(rig_config: dict[str, Any], bit_depth: int, where: object) -> S
     return lambda mean: model.noise_sigma_dn(mean, bit_depth)
 
 
-def camera_blur_px(rig_config: dict[str, Any]) -> float:
-    """The camera defocus the rig states (Gaussian sigma, camera px; [camera.sensor]
-    blur_sigma_px), 0 when it states none: the decoded coordinates are corrected for it
-    (`inspection.uncertainty.defocus_corrected`) before triangulation."""
-    return float(((rig_config.get("camera") or {}).get("sensor") or {}).get("blur_sigma_px", 0.0))
-
-
 def projector_fringe_error(patterns: PatternSet, model: RigModel, rig_config: dict[str, Any]) -> FringeError:
     """The fringe error of the rig's projector showing `patterns` (its blur from the rig
     config's projector.blur_sigma_px when given, else none)."""

@@ -89,18 +89,13 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     from calibration.capture import capture_fringes
     from inspection.acceptance import Acceptance, AcceptanceReport, ScanData, evaluate, positions
     from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
-    from inspection.uncertainty import defocus_corrected, scan_uncertainty
+    from inspection.uncertainty import scan_uncertainty
     from scanner.decode import decode
     from scanner.patterns import PatternSet
     from scanner.reconstruct import Triangulator, triangulate
     from scanner.rig import RigConfig, open_rig
     from scanner.session_recording import SessionRecording
-    from slscan.measurement_model import (
-        calibration_uncertainty,
-        camera_blur_px,
-        projector_fringe_error,
-        sensor_noise,
-    )
+    from slscan.measurement_model import calibration_uncertainty, projector_fringe_error, sensor_noise
 
     config = RigConfig.load(args.rig)
     acceptance = Acceptance.from_rig(config.raw, config.path, config.working_distance_mm)
@@ -133,14 +128,13 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
             bench = OperatorArtefactBench(say)
         sensor = sensor_noise(config.raw, rig.camera.bit_depth, config.path)
         tri = Triangulator(model)
-        blur = camera_blur_px(config.raw)
         for k, position in enumerate(plan):
             t0 = time.perf_counter()
             if bench.place(position) is False:
                 say(f"{position.name}: skipped")
                 continue
             stack = capture_fringes(rig, patterns, model.projector_gamma)
-            decoded = defocus_corrected(decode(stack, patterns, rig.camera.bit_depth, model.projector.size), blur)
+            decoded = decode(stack, patterns, rig.camera.bit_depth, model.projector.size)
             cloud = triangulate(decoded, tri)
             data = ScanData(cloud.points, lambda px: scan_uncertainty(decoded, model, sensor, fringe, calibration, px))
             result = evaluate(position, data, artefacts)
