@@ -589,9 +589,6 @@ def from_draws(value: float, drawn: np.ndarray, noise_only: np.ndarray | None = 
     return Estimate(value - bias if value > limit else None, u, limit, bias), parts
 
 
-NOISE_MODEL_REL_U = 0.02  # one-sigma relative uncertainty of the noise model's sigma (see evaluate_face)
-
-
 def _sq(rough: np.ndarray, drawn_rough: np.ndarray, inner: np.ndarray, model_rel_u: float
         ) -> tuple[Estimate, float, float, dict[str, float]]:
     """Sq with the noise's mean square removed, its uncertainty and detection limit
@@ -664,7 +661,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         point_draws = noise.draw(rng, settings.draws) * np.einsum("ij,ij->i", normals, noise.ray)
         cell_draws = grid.mean(point_draws)
         typical = float(np.median(noise.sigma_z * np.abs(np.einsum("ij,ij->i", normals, noise.ray))))
-        source, model_rel_u = noise.source, NOISE_MODEL_REL_U
+        source, model_rel_u = noise.source, noise.rel_u
     else:  # estimated from the heights: white per cell
         sigma = noise_sigma(zg, inner) or 0.0
         cell_draws = rng.standard_normal((settings.draws, *zg.shape)) * sigma

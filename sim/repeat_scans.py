@@ -28,6 +28,7 @@ from inspection.uncertainty import (
     Estimate,
     FringeError,
     ScanUncertainty,
+    defocus_corrected,
     fringe_error,
     perturbed,
     scan_uncertainty,
@@ -276,8 +277,9 @@ def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationU
     (`Plate`) placed at random in the measuring volume, tilted up to 20 degrees: the
     plate's points taken into its own frame with its true pose after an ideal registration
     (`registered`: registration is not what is studied here), evaluated as an inspection evaluates a plane face
-    (`inspection.form.evaluate_face`). The truth: the same evaluation of the noise-free
-    surface points the same pixels see."""
+    (`inspection.form.evaluate_face`), the decoded coordinates corrected for the camera's
+    stated blur (`defocus_corrected`: not yet in the scan pipeline). The truth: the same
+    evaluation of the noise-free surface points the same pixels see."""
     from inspection.form import FormSettings, evaluate_face
     from sim.calibration_bench import rotation
     from sim.scene import SceneObject
@@ -295,8 +297,8 @@ def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationU
         pose = pose_of(rotation(*rng.uniform(-20.0, 20.0, 2), rng.uniform(0.0, 360.0)), c0 + rng.uniform(-half, half))
         obj = SceneObject("plate", "mesh", pose, 0.7, vertices=vertices, triangles=triangles)
         renderer = window_renderer(bench.model, (obj,), bench.sensor, bench.projector_blur_px)
-        decoded = quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s,
-                             bench.bit_depth, rng)
+        decoded = defocus_corrected(quick_scan(renderer, bench.patterns, bench.model.projector_gamma,
+                                               bench.exposure_s, bench.bit_depth, rng), bench.sensor.blur_sigma_px)
         used = renderer.model if calibration is None else perturbed(renderer.model, calibration.draw(rng))
         points = triangulate(decoded, Triangulator(used), with_normals=False).points
         gt = renderer.ground_truth

@@ -10,17 +10,20 @@ pose the calibration would solve for the left-out view is never used.
 
 - Corners: detected in the board's white image (sub-pixel), their projector column from
   a local homography of the decoded coordinates around each (`calibration.correspond`),
-  then intersected. Their noise: the camera corners with the calibration's camera
-  reprojection RMS per coordinate, the projector coordinate with its projector RMS (the
-  residuals the calibration itself left, as type A estimates), through ∂X/∂(pixel,
-  coordinate) (`inspection.uncertainty.measurement_jacobian`); plus the calibration's
-  covariance. Distances are taken between corners on one row or one column of the board
-  (nominal k x square).
+  then intersected. Their noise (`CornerNoise`): the covariance of the errors of two
+  corners' camera pixel and coded projector coordinate as a function of their lag on the
+  board, estimated from the residuals the calibration left on its own views (type A): the
+  residuals are anisotropic (on the procam capture camera x 0.28 / y 0.11 px, projector
+  coded axis 0.10 px) and correlated between neighbouring corners (0.55-0.65), so a
+  distance between nearby corners sees far less noise than two independent corners
+  would; through ∂X/∂(pixel, coordinate) (`inspection.uncertainty.measurement_jacobian`);
+  plus the calibration's covariance. Distances are taken between corners on one row or
+  one column of the board (nominal k x square).
 - Flatness: the minimum-zone flatness of the triangulated corners (each corner's
   projector coordinate comes from thousands of decoded pixels; a single pixel's Gray code
   is a whole projector row, quantised to several millimetres of depth at this stand-off),
-  its noise bias removed, U and detection limit from draws of the corners' noise, the
-  calibration's covariance propagated.
+  its noise bias removed, U and detection limit from draws of the corners' correlated
+  noise, the calibration's covariance propagated.
 """
 
 from __future__ import annotations
@@ -109,9 +112,82 @@ class PoseCheck:
                 "coded_axis": "projector rows" if self.orientation == "horizontal" else "projector columns"}
 
 
+def _grid(obj: np.ndarray, square_mm: float) -> np.ndarray:
+    """Board corners' (N, 3) integer grid positions (N, 2), in squares."""
+    return np.rint(obj[:, :2] / square_mm).astype(int)
+
+
+@dataclass(frozen=True)
+class CornerNoise:
+    """How the errors of two corners' (camera x, camera y, coded projector coordinate) (px)
+    covary with their lag on the board: `lags` (L, 2) in squares (canonical: dx > 0, or
+    dx = 0 and dy >= 0) and their covariances (L, 3, 3), C(h) = E[r(g) r(g + h)ᵀ]; the lag
+    -h has C(h)ᵀ. Estimated from the residuals a calibration left on its own views, pooled
+    over views and corner pairs; `pairs` how many pairs each lag pooled."""
+
+    lags: np.ndarray
+    covariances: np.ndarray
+    pairs: np.ndarray
+
+    @classmethod
+    def from_residuals(cls, views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], axis: int,
+                       square_mm: float) -> CornerNoise:
+        """`views`: per calibration view the camera's object points (N, 3) and residuals
+        (N, 2), the projector's (M, 3) and (M, 2) (px); `axis` the projector's coded
+        coordinate (0 x, 1 y). Only corners seen by both devices count."""
+        lag_parts, product_parts = [], []
+        for cam_obj, cam_res, proj_obj, proj_res in views:
+            g_cam, g_proj = _grid(cam_obj, square_mm), _grid(proj_obj, square_mm)
+            index = {tuple(g): k for k, g in enumerate(g_cam)}
+            both = [(index[tuple(g)], k) for k, g in enumerate(g_proj) if tuple(g) in index]
+            if not both:
+                continue
+            ci, pi = np.array(both).T
+            r = np.column_stack([np.asarray(cam_res).reshape(-1, 2)[ci], np.asarray(proj_res).reshape(-1, 2)[pi, axis]])
+            g = g_cam[ci]
+            a, b = (x.ravel() for x in np.meshgrid(np.arange(len(g)), np.arange(len(g)), indexing="ij"))
+            h = g[b] - g[a]
+            canonical = (h[:, 0] > 0) | ((h[:, 0] == 0) & (h[:, 1] >= 0))
+            a, b = a[canonical], b[canonical]
+            lag_parts.append(h[canonical])
+            product_parts.append((r[a][:, :, None] * r[b][:, None, :]).reshape(-1, 9))
+        lags, inverse, pairs = np.unique(np.concatenate(lag_parts), axis=0, return_inverse=True, return_counts=True)
+        products = np.concatenate(product_parts)
+        sums = np.stack([np.bincount(inverse.ravel(), products[:, c], len(lags)) for c in range(9)], axis=1)
+        cov = (sums / pairs[:, None]).reshape(-1, 3, 3)
+        zero = np.all(lags == 0, axis=1)
+        cov[zero] = 0.5 * (cov[zero] + np.transpose(cov[zero], (0, 2, 1)))
+        return cls(lags, cov, pairs)
+
+    def covariance(self, grid: np.ndarray) -> np.ndarray:
+        """The joint covariance (N, 3, N, 3) of corners at `grid` (N, 2) (squares): C of
+        each pair's lag (zero for a lag the calibration never saw), made positive
+        semi-definite (negative eigenvalues of the pooled estimate set to 0)."""
+        n = len(grid)
+        h = (grid[None, :, :] - grid[:, None, :]).reshape(-1, 2)
+        flip = ~((h[:, 0] > 0) | ((h[:, 0] == 0) & (h[:, 1] >= 0)))
+        key = np.where(flip[:, None], -h, h)
+        table = {tuple(k): c for k, c in zip(self.lags, self.covariances)}
+        zero = np.zeros((3, 3))
+        blocks = np.array([table.get(tuple(k), zero) for k in key])
+        blocks[flip] = np.transpose(blocks[flip], (0, 2, 1))
+        full = blocks.reshape(n, n, 3, 3).transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
+        w, v = np.linalg.eigh(0.5 * (full + full.T))
+        return ((v * np.clip(w, 0.0, None)) @ v.T).reshape(n, 3, n, 3)
+
+    @classmethod
+    def from_calibration(cls, solution: Any, axis: int, square_mm: float) -> CornerNoise:
+        """From a `calibration.solve.Solution`: its joint refinement's residuals per view."""
+        s = solution.stereo
+        return cls.from_residuals([(c.camera.object_points, rc, c.projector.object_points, rp) for c, rc, rp in
+                                   zip(solution.correspondences, s.camera_residuals, s.projector_residuals)],
+                                  axis, square_mm)
+
+
 def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: CalibrationUncertainty,
-               rms_px: dict[str, float]) -> PoseCheck:
-    """Triangulate the left-out `view` with `model` and measure it (module docstring)."""
+               noise: Callable[[int], CornerNoise], rms_px: dict[str, float]) -> PoseCheck:
+    """Triangulate the left-out `view` with `model` and measure it (module docstring);
+    `noise(axis)`: the corners' noise for the coded projector axis."""
     from calibration.views import correspond
 
     corr = correspond(board, view, index)
@@ -122,9 +198,9 @@ def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: 
     coded = corr.projector_corners.points[found, axis]
     obj = board.object_points()[corr.detection.ids[found]]
     X = triangulate_corners(model, pix, coded, orientation)
-    A_inv = measurement_jacobian(X, model, orientation)
-    s_cam, s_proj = rms_px["camera"] / np.sqrt(2.0), rms_px["projector"] / np.sqrt(2.0)
-    cov = A_inv @ np.diag([s_cam ** 2, s_cam ** 2, s_proj ** 2]) @ np.transpose(A_inv, (0, 2, 1))
+    A = measurement_jacobian(X, model, orientation)
+    # corners' joint covariance in mm (N, 3, N, 3): A_i C_ij A_jᵀ
+    cov = np.einsum("iab,ibjc,jdc->iajd", A, noise(axis).covariance(_grid(obj, board.square_mm)), A)
     shifts = calibration.shifts(X, model, {orientation: np.ones(len(X))})
     i, j = np.triu_indices(len(X), 1)
     same_line = np.isclose(obj[i, 0], obj[j, 0]) | np.isclose(obj[i, 1], obj[j, 1])
@@ -132,7 +208,8 @@ def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: 
     d = X[i] - X[j]
     dist = np.linalg.norm(d, axis=1)
     e = d / dist[:, None]
-    var = np.einsum("ni,nij,nj->n", e, cov[i] + cov[j], e)
+    pair = cov[i, :, i] + cov[j, :, j] - cov[i, :, j] - cov[j, :, i]
+    var = np.einsum("ni,nij,nj->n", e, pair, e)
     if shifts is not None:
         var += np.sum(np.einsum("dni,ni->dn", shifts[:, i] - shifts[:, j], e) ** 2, axis=0)
     nominal = np.linalg.norm(obj[i] - obj[j], axis=1)
@@ -144,12 +221,13 @@ def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: 
 def _flatness(X: np.ndarray, cov: np.ndarray, shifts: np.ndarray | None, draws: int = 200,
               seed: int = 0) -> tuple[Estimate, float]:
     """The minimum-zone flatness of the triangulated corners (N, 3) with its U (noise bias
-    removed and detection limit from draws of the corners' noise, covariance (N, 3, 3);
-    calibration from `shifts` (D, N, 3)), and their RMS distance from their plane."""
+    removed and detection limit from draws of the corners' noise, joint covariance
+    (N, 3, N, 3); calibration from `shifts` (D, N, 3)), and their RMS distance from their plane."""
     centre = X.mean(axis=0)
     normal = np.linalg.svd(X - centre, full_matrices=False)[2][2]
-    L = np.linalg.cholesky(cov + 1e-18 * np.eye(3))
-    noise = np.einsum("nij,dnj->dni", L, np.random.default_rng(seed).standard_normal((draws, len(X), 3)))
+    w, v = np.linalg.eigh(cov.reshape(3 * len(X), 3 * len(X)))
+    root = v * np.sqrt(np.clip(w, 0.0, None))
+    noise = (np.random.default_rng(seed).standard_normal((draws, 3 * len(X))) @ root.T).reshape(draws, len(X), 3)
     value = flatness_mz(X, normal)
     cal = None if shifts is None else np.array([flatness_mz(X + s, normal) - value for s in shifts])
     flat = X - np.outer((X - centre) @ normal, normal)  # the corners on their plane: a perfectly flat board
@@ -172,6 +250,7 @@ def leave_one_out(views: list[Any], board: Any, projector_size: tuple[int, int],
         result = calibrate_views(board, others, projector_size, CalibrationSettings(), "leave-one-out", lambda s: None)
         report = result.report()
         check = check_pose(view, k, board, result.model, CalibrationUncertainty.from_report(report),
+                           lambda axis: CornerNoise.from_calibration(result.solution, axis, board.square_mm),
                            {"camera": report["rms_px"]["camera"], "projector": report["rms_px"]["projector"]})
         s = check.summary(board.square_mm)
         say(f"{view.name}: flatness {check.flatness.text()}, adjacent corners error RMS "

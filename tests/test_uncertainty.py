@@ -274,7 +274,7 @@ def test_defocus_bias_matches_the_simulators_blur() -> None:
 
     from inspection.acceptance import Position, pose_of
     from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
-    from inspection.uncertainty import defocus_bias
+    from inspection.uncertainty import defocus_bias, defocus_corrected
     from scanner.decode import decode
     from sim.artefact_scenes import artefact_objects, window_renderer
     from sim.repeat_scans import Bench
@@ -293,6 +293,7 @@ def test_defocus_bias_matches_the_simulators_blur() -> None:
                                                                                bench.model.projector_gamma)])
         decoded[blur] = decode(frames, bench.patterns, bench.bit_depth, p.size)
     predicted = defocus_bias(decoded[sigma], sigma)
+    corrected = defocus_corrected(decoded[sigma], sigma)
     both = decoded[sigma].valid & decoded[0.0].valid
     inside = ndimage.distance_transform_edt(both) > 8
     for orientation, m in decoded[sigma].maps.items():
@@ -304,3 +305,22 @@ def test_defocus_bias_matches_the_simulators_blur() -> None:
         assert 0.85 < slope < 1.1, slope
         assert np.corrcoef(predicted[orientation][sel], actual[sel])[0, 1] > 0.9
         assert np.std(actual[sel] - predicted[orientation][sel]) < 0.5 * np.std(actual[sel])
+        # the scan corrected by it (`defocus_corrected`, as verify triangulates): nearer the unblurred decode
+        fixed = corrected.maps[orientation].coordinate.astype(np.float64) - decoded[0.0].maps[orientation].coordinate
+        assert np.sqrt(np.mean(fixed[sel] ** 2)) < 0.5 * np.sqrt(np.mean(actual[sel] ** 2))
+        band = both & np.isnan(predicted[orientation])
+        assert np.array_equal(corrected.maps[orientation].coordinate[band], m.coordinate[band])  # left as decoded
+    assert defocus_corrected(decoded[0.0], 0.0) is decoded[0.0]
+
+
+def test_defocus_correction_noise_gain_matches_a_monte_carlo() -> None:
+    """The factor by which the correction's Laplacian term raises white noise, against
+    the spread of white noise corrected the same way (σ²/2 · Laplacian of the window fit)."""
+    from inspection.uncertainty import _correction_gain, local_quadratic
+
+    sigma = 0.6
+    noise = np.random.default_rng(2).standard_normal((400, 400))
+    lc = local_quadratic(noise, np.ones(noise.shape, bool))[2][10:-10, 10:-10]
+    corrected = noise[10:-10, 10:-10] - 0.5 * sigma ** 2 * lc
+    assert np.std(corrected) / np.std(noise[10:-10, 10:-10]) == pytest.approx(_correction_gain(sigma), abs=5e-4)
+    assert _correction_gain(sigma) > 1.003 and _correction_gain(0.0) == 1.0
