@@ -384,3 +384,36 @@ def test_real_full_disk_gives_one_error_and_keeps_every_frame(small_disk: Path, 
     for e in log:
         assert sha256((small_disk / "s" / e["file"]).read_bytes()) == e["sha256"]
     assert not list((small_disk / "s" / "frames").glob(".*part"))
+
+
+def test_full_disk_while_writing_the_outputs_keeps_the_frames_and_decode_finishes(clean: Path, tmp_path: Path) -> None:
+    """A real disk (tmpfs) that holds the frames and manifest but not the outputs: decoding
+    stops with one SessionError naming the session and `slscan decode`, leaves no partial file
+    and every frame intact; once there is space, decoding the same session writes its cloud."""
+    import subprocess
+
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    kept = [p for p in clean.rglob("*") if p.is_file() and p.parent.name != "outputs" and p.suffix != ".rrd"]
+    size_kib = sum(p.stat().st_size for p in kept) // 1024 + 16 * len(kept) + 256  # the outputs need ~3.8 MB
+    if shutil.os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kib}k", "tmpfs",
+                                                   str(mount)], capture_output=True).returncode != 0:
+        pytest.skip("mounting a small tmpfs needs root (a real full disk); the ENOSPC wrapper tests cover the rest")
+    try:
+        session_dir = mount / "s"
+        for p in kept:
+            (session_dir / p.relative_to(clean)).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(p, session_dir / p.relative_to(clean))
+        with pytest.raises(SessionError) as raised:
+            reprocess(Session.open(session_dir), level="none")
+        message = str(raised.value)
+        assert str(session_dir) in message and "slscan decode" in message and "\n" not in message, message
+        assert not [p for p in session_dir.rglob("*") if ".part" in p.name], "a partial output was left behind"
+        for e in (json.loads(line) for line in (session_dir / "frames.jsonl").read_text().splitlines()):
+            assert sha256((session_dir / e["file"]).read_bytes()) == e["sha256"], e["file"]
+        assert subprocess.run(["mount", "-o", "remount,size=64m", str(mount)], capture_output=True).returncode == 0
+        result = reprocess(Session.open(session_dir), level="none")
+        assert result.cloud is not None and len(result.cloud) > 1000
+        assert (session_dir / "outputs" / "cloud.ply").stat().st_size > 0
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)

@@ -235,28 +235,17 @@ class GrblStage(DropsLostPort, Stage):
         return state, where
 
     def _connect(self) -> SerialLink:
-        if self._port is not None:
-            return self._port
-        port = self._open_port()
-        self._port = port
-        end = time.monotonic() + self.boot_timeout_s
-        try:
-            while True:
-                self._write(port, RESET, "soft reset")
-                window_end = min(end, time.monotonic() + _RESET_RETRY_S)
-                while time.monotonic() < window_end:
-                    m = _BANNER.match(self._readline(port))
-                    if m:
-                        self._check_version(m)
-                        return port
-                if time.monotonic() >= end:
-                    raise DeviceTimeout(self.name, "no GRBL welcome banner after a soft reset", self.boot_timeout_s,
-                                        "is this the stage controller's port, at 115200 baud, with GRBL 1.1 "
-                                        "flashed?")
-                log.debug("%s: no banner yet; resetting again", self.name)
-        except BaseException:
-            self._drop()
-            raise
+        return self._handshake(RESET, "soft reset", self._greeting, _RESET_RETRY_S, self.boot_timeout_s,
+                               "no GRBL welcome banner after a soft reset",
+                               "is this the stage controller's port, at 115200 baud, with GRBL 1.1 flashed?")
+
+    def _greeting(self, line: str) -> bool | None:
+        """True on GRBL's welcome banner (its version checked); None: keep listening."""
+        m = _BANNER.match(line)
+        if m:
+            self._check_version(m)
+            return True
+        return None
 
     def _check_version(self, m: re.Match[str]) -> None:
         major, minor = int(m.group(1)), int(m.group(2))

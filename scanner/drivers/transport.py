@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import errno
 import logging
-from typing import Any, Protocol
+import time
+from typing import Any, Callable, Protocol
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout
@@ -207,12 +208,43 @@ def close_serial(name: str, port: SerialLink | None) -> None:
 
 
 class DropsLostPort:
-    """Part of a serial driver (its `name` and open `_port`): a write or read that finds the
-    port gone closes and forgets it before raising DeviceDisconnected, so the driver's next
-    call reopens the link."""
+    """Part of a serial driver (its `name`, open `_port` and `_open_port`): a write or read that
+    finds the port gone closes and forgets it before raising DeviceDisconnected, so the driver's
+    next call reopens the link; `_handshake` opens it and waits for the device's greeting."""
 
     name: str
     _port: SerialLink | None
+    _open_port: Callable[[], SerialLink]
+
+    def _handshake(self, probe: bytes, what: str, greeting: Callable[[str], bool | None], retry_s: float,
+                   timeout_s: float, missing: str, advice: str) -> SerialLink:
+        """The open port, opened now if it is not: `probe` (`what`: its name for messages) is sent
+        every `retry_s` s until `greeting(line)` accepts a line (True; it raises on a device of the
+        wrong kind) or asks for the probe again at once (False: the device has just booted). After
+        `timeout_s` s without a greeting: DeviceTimeout(`missing`, `advice`). Any failure closes
+        the port, so the next call starts afresh."""
+        if self._port is not None:
+            return self._port
+        port = self._open_port()
+        self._port = port
+        end = time.monotonic() + timeout_s
+        try:
+            while True:
+                self._write(port, probe, what)
+                window_end = min(end, time.monotonic() + retry_s)
+                while time.monotonic() < window_end:
+                    accepted = greeting(self._readline(port))
+                    if accepted:
+                        return port
+                    if accepted is False:
+                        log.debug("%s: the device has just booted; sending %s again", self.name, what)
+                        break
+                if time.monotonic() >= end:
+                    raise DeviceTimeout(self.name, missing, timeout_s, advice)
+                log.debug("%s: no answer to %s yet; sending it again", self.name, what)
+        except BaseException:
+            self._drop()
+            raise
 
     def _write(self, port: SerialLink, data: bytes, what: str) -> None:
         try:

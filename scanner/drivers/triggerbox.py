@@ -148,33 +148,18 @@ class TriggerBox(DropsLostPort, TriggerSource):
             timer.cancel()
 
     def _connect(self) -> SerialLink:
-        if self._port is not None:
-            return self._port
-        port = self._open_port()
-        self._port = port
-        end = time.monotonic() + self.boot_timeout_s
-        try:
-            while True:
-                self._send(port, "ID?")
-                window_end = min(end, time.monotonic() + _ID_RETRY_S)
-                while time.monotonic() < window_end:
-                    line = self._readline(port)
-                    if line.startswith("ID "):
-                        self._check_identity(line)
-                        log.info("%s: connected, firmware protocol %s on %s", self.name, self.identity["protocol"],
-                                 self.identity["board"])
-                        return port
-                    if line.startswith("READY"):
-                        log.debug("%s: the board has just booted; asking ID? again", self.name)
-                        break  # the board has just booted: ask again now
-                if time.monotonic() >= end:
-                    raise DeviceTimeout(self.name, "no answer to ID?", self.boot_timeout_s,
-                                        "is this the trigger box's port and is its firmware (firmware/triggerbox) "
-                                        "flashed?")
-                log.debug("%s: no answer to ID? yet; asking again", self.name)
-        except BaseException:
-            self._drop()
-            raise
+        return self._handshake(b"ID?\n", "ID?", self._greeting, _ID_RETRY_S, self.boot_timeout_s, "no answer to ID?",
+                               "is this the trigger box's port and is its firmware (firmware/triggerbox) flashed?")
+
+    def _greeting(self, line: str) -> bool | None:
+        """True on the board's identity line (checked); False on its boot line READY (ask again
+        now); None: keep listening."""
+        if line.startswith("ID "):
+            self._check_identity(line)
+            log.info("%s: connected, firmware protocol %s on %s", self.name, self.identity["protocol"],
+                     self.identity["board"])
+            return True
+        return False if line.startswith("READY") else None
 
     def _check_identity(self, line: str) -> None:
         parts = line.split()
