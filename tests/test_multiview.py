@@ -94,9 +94,6 @@ def test_merged_cloud_mesh_and_recording(four_views: Path) -> None:
     assert {"world/merged", "world/mesh", "world/views/view_000", "world/priors/view_003", "views/report"} <= entities
 
 
-@pytest.mark.xfail(strict=False, reason="since main's renderer (one interreflection bounce) and decode mask: on this "
-                   "640x512 scan the coarse search proposes only a pose 18 deg / 10 mm off (refused: 6.8 % of it in "
-                   "front of the target); the true pose would pass (fitness 0.949, 0 % in front). Issue 13")
 def test_view_pair_registration_45_degrees_apart(four_views: Path) -> None:
     import io
     from contextlib import redirect_stdout
@@ -201,6 +198,32 @@ def test_free_space_violations_refuse_a_surface_in_front() -> None:
     front = np.column_stack([g[::97] * 0.9, np.full(len(g[::97]), 380.0)])  # in front: the wall would be hidden
     assert free_space_violations(behind, wall, 1.0) == 0.0
     assert free_space_violations(front, wall, 1.0) > 0.9
+
+
+def test_free_space_on_the_target_pixel_grid_ignores_its_measured_edge() -> None:
+    """A wall 400 mm away covering the left half of a 200 x 100 px camera's image (its pixels'
+    rays cut by hand: z = 400, x = (u - cx) z / f); the right half saw nothing. Points in front
+    of the wall's inside are violations; points in front of its last measured column (a
+    silhouette's near side may lie there) and points where the target saw nothing are not."""
+    from inspection.measured_cloud import ScanCloud
+    from scanner.geometry import Pinhole
+
+    f, cx, cy = 500.0, 99.5, 49.5
+    camera = Pinhole(200, 100, np.array([[f, 0, cx], [0, f, cy], [0, 0, 1]]))
+    u, v = np.meshgrid(np.arange(100), np.arange(100))
+    pixels = np.column_stack([u.ravel(), v.ravel()])
+    rays = np.column_stack([(pixels - [cx, cy]) / f, np.ones(len(pixels))])
+    wall = ScanCloud(400.0 * rays, np.tile([0.0, 0.0, -1.0], (len(rays), 1)), "wall", np.zeros(3), pixels, (100, 200))
+
+    def at(columns: np.ndarray, z: float) -> np.ndarray:  # one point per row on the rays of those columns
+        uu, vv = np.meshgrid(columns, np.arange(10, 90))
+        return z * np.column_stack([(uu.ravel() - cx) / f, (vv.ravel() - cy) / f, np.ones(uu.size)])
+
+    assert free_space_violations(at(np.arange(10, 90), 380.0), wall, 1.0, camera) == 1.0
+    assert free_space_violations(at(np.arange(10, 90), 420.0), wall, 1.0, camera) == 0.0  # behind: hidden
+    assert free_space_violations(at(np.array([99]), 380.0), wall, 1.0, camera) == 0.0  # its last column
+    assert free_space_violations(at(np.arange(100, 190), 380.0), wall, 1.0, camera) == 0.0  # nothing seen
+    assert free_space_violations(at(np.array([99]), 380.0), wall, 1.0) == 1.0  # the ray bins count that edge
 
 
 def test_axis_geometry_refuses_a_zero_direction() -> None:

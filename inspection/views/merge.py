@@ -25,6 +25,7 @@ import numpy as np
 
 from inspection.downsample import voxel_cells
 from inspection.errors import CloudError
+from inspection.measured_cloud import fit_plane
 from inspection.views.view_clouds import ViewCloud
 
 
@@ -81,18 +82,14 @@ def platter_plane(points: np.ndarray, axis_direction: np.ndarray, tolerance_mm: 
     of perpendicular to the turning axis `axis_direction` (part frame) with points standing
     on it and next to none under it (a top face of the part has its sides and the platter
     under it). None when there is none."""
-    import open3d as o3d
-
     a = np.asarray(axis_direction, float) / np.linalg.norm(axis_direction)
     rng = np.random.default_rng(seed)
     sample = points[rng.choice(len(points), size=min(len(points), 50000), replace=False)]
     remaining = sample
-    o3d.utility.random.seed(seed)
     for _ in range(4):
         if len(remaining) < 100:
             break
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(remaining))
-        plane, inliers = pc.segment_plane(tolerance_mm, 3, 1000)
+        plane, inliers = fit_plane(remaining, tolerance_mm, seed, 1000)
         n, d = np.asarray(plane[:3]), float(plane[3])
         if abs(n @ a) > np.cos(np.radians(10.0)):
             if n @ a < 0:
@@ -100,7 +97,5 @@ def platter_plane(points: np.ndarray, axis_direction: np.ndarray, tolerance_mm: 
             height = sample @ n + d
             if (height < -tolerance_mm).mean() < 0.02 and (height > tolerance_mm).mean() > 0.02:
                 return n, d  # something stands on it, nothing lies under it
-        keep = np.ones(len(remaining), bool)
-        keep[np.asarray(inliers, dtype=np.int64)] = False
-        remaining = remaining[keep]
+        remaining = remaining[~inliers]
     return None
