@@ -34,6 +34,7 @@ import numpy as np
 from scipy import ndimage
 
 from inspection.bins.instances import Instance
+from inspection.measured_cloud import fit_plane
 from scanner.pointcloud import OrganisedCloud
 
 MIN_CORE = 20   # core pixels a patch needs to fit its plane and grow back
@@ -42,14 +43,11 @@ MIN_CORE = 20   # core pixels a patch needs to fit its plane and grow back
 def tray_plane(cloud: OrganisedCloud, tol_mm: float, seed: int = 0) -> tuple[np.ndarray, float]:
     """(unit normal n, offset d) of the dominant plane of the scan (RANSAC within `tol_mm`
     on up to 50 000 points), signed so that n·p + d grows toward the camera at the origin."""
-    import open3d as o3d
-
     pts = cloud.points.reshape(-1, 3).astype(np.float64)
     idx = np.flatnonzero(cloud.valid.ravel())
     rng = np.random.default_rng(seed)
     sub = pts[rng.choice(idx, size=min(50000, len(idx)), replace=False)]
-    o3d.utility.random.seed(seed)
-    plane, _ = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sub)).segment_plane(tol_mm, 3, 500)
+    plane, _ = fit_plane(sub, tol_mm, seed)
     n, d = np.asarray(plane[:3], dtype=np.float64), float(plane[3])
     return (-n, -d) if d < 0 else (n, d)
 
@@ -164,11 +162,8 @@ def _components(core: np.ndarray, z: np.ndarray, step_mm: float) -> np.ndarray:
 def _dominant_plane(points: np.ndarray, tol_mm: float, seed: int = 0) -> np.ndarray:
     """Indices of the points within `tol_mm` of the plane most of them lie on (RANSAC on up
     to 20 000 of them)."""
-    import open3d as o3d
-
     sub = np.random.default_rng(seed).choice(len(points), size=min(20000, len(points)), replace=False)
-    o3d.utility.random.seed(seed)
-    plane, _ = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[sub])).segment_plane(tol_mm, 3, 200)
+    plane, _ = fit_plane(points[sub], tol_mm, seed, iterations=200)
     return np.flatnonzero(np.abs(points @ np.asarray(plane[:3]) + plane[3]) < tol_mm)
 
 

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from inspection.errors import MaskError
+from inspection.measured_cloud import fit_plane
 from scanner.pointcloud import OrganisedCloud
 
 SOURCES = ("label_image", "labelme", "model", "segmentation")
@@ -355,7 +356,6 @@ def instances_from_depth_steps(cloud: OrganisedCloud, step_mm: float = 0.1, tray
     regions where 4-neighbours join only if their depths differ by less than `step_mm` (a
     part lying on another is at least its thickness above it, so the step at its edge
     separates them). Regions of fewer than `min_points` are dropped; ids 1.. by size."""
-    import open3d as o3d
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -366,9 +366,7 @@ def instances_from_depth_steps(cloud: OrganisedCloud, step_mm: float = 0.1, tray
     idx = np.flatnonzero(valid.ravel())
     rng = np.random.default_rng(seed)
     sub = pts[rng.choice(idx, size=min(50000, len(idx)), replace=False)]
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sub))
-    o3d.utility.random.seed(seed)
-    plane, _ = pc.segment_plane(tray_tol_mm, 3, 500)
+    plane, _ = fit_plane(sub, tray_tol_mm, seed)
     n = np.asarray(plane[:3])
     d = float(plane[3])
     if n @ np.zeros(3) + d < 0:   # signed distance positive toward the camera (origin)
