@@ -39,7 +39,7 @@ import numpy as np
 from scanner import __version__
 from scanner.errors import IncompleteSession, ScannerError, SessionError
 from scanner.rig import Rig
-from scanner.session import ERROR, MANIFEST, Session, write_json
+from scanner.session import ERROR, MANIFEST, Session, stop_reason, write_json
 from scanner.stage import AxisKind
 from scanner.stage_model import StageConfig, StageModel, load_stage_model
 
@@ -180,16 +180,8 @@ def describe_incomplete(root: Path) -> str:
     kept = [view_name(k) for k in range(n) if (root / view_name(k) / MANIFEST).is_file()]
     msg = f"{root}: incomplete multi-view session (no {MULTIVIEW}); {len(kept)} of {n} views complete"
     msg += f" ({', '.join(kept)})" if kept else ""
-    err = root / ERROR
-    if err.is_file():
-        try:
-            e = json.loads(err.read_text())
-            msg += f"; stopped at view {e.get('view')} during {e.get('stage')}: {e.get('error')}: {e.get('message')}"
-        except (OSError, json.JSONDecodeError):
-            msg += f"; {ERROR} unreadable"
-    else:
-        msg += "; no error recorded (the run was interrupted)"
-    return msg + ". The complete views are kept: `slscan inspect`/`slscan register` can use them (--partial)."
+    return (msg + stop_reason(root, "run", at_view=True)
+            + ". The complete views are kept: `slscan inspect`/`slscan register` can use them (--partial).")
 
 
 def _read_json(path: Path, what: str) -> dict[str, Any]:

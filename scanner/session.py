@@ -452,14 +452,20 @@ def _describe(img: np.ndarray) -> str:
 def describe_incomplete(root: Path) -> str:
     """Why a session folder cannot be used, for the user."""
     frames = sorted((root / FRAMES_DIR).glob("frame_*.png")) if (root / FRAMES_DIR).is_dir() else []
-    msg = f"{root}: incomplete session (no {MANIFEST}); {len(frames)} raw frame(s) on disk"
+    return (f"{root}: incomplete session (no {MANIFEST}); {len(frames)} raw frame(s) on disk"
+            f"{stop_reason(root, 'scan')}. Re-scan the part; the frames are kept for inspection.")
+
+
+def stop_reason(root: Path, run: str, at_view: bool = False) -> str:
+    """What the folder's error.json says stopped the capture (`at_view`: a multi-view run,
+    naming the view), as "; ..." to append to a message; `run` names what was interrupted
+    when nothing was recorded."""
     err = root / ERROR
-    if err.exists():
-        try:
-            e = json.loads(err.read_text())
-            msg += f"; capture stopped during {e.get('stage')}: {e.get('error')}: {e.get('message')}"
-        except (OSError, json.JSONDecodeError):
-            msg += f"; {ERROR} unreadable"
-    else:
-        msg += "; no error recorded (the scan was interrupted)"
-    return msg + ". Re-scan the part; the frames are kept for inspection."
+    if not err.exists():
+        return f"; no error recorded (the {run} was interrupted)"
+    try:
+        e = json.loads(err.read_text())
+    except (OSError, json.JSONDecodeError):
+        return f"; {ERROR} unreadable"
+    where = f"stopped at view {e.get('view')}" if at_view else "capture stopped"
+    return f"; {where} during {e.get('stage')}: {e.get('error')}: {e.get('message')}"
