@@ -21,11 +21,9 @@ import rerun.blueprint as rrb
 
 from scanner.session_recording import (
     CAMERA,
-    CLOUD,
     EVENTS,
     FRAME_SPEC,
     METRICS,
-    NORMALS,
     RECORDING_NAME,
     WORLD,
     RecordingError,
@@ -115,28 +113,29 @@ def _blueprint_for_files(files: tuple[Path, ...]) -> rrb.Blueprint | None:
     return None
 
 
-def _log_tabs() -> rrb.Tabs:
-    return rrb.Tabs(rrb.TimeSeriesView(origin=METRICS, name="metrics"),
-                    rrb.TextLogView(origin="/", contents=[f"{FRAME_SPEC}/**", f"{EVENTS}/**"], name="log"))
+def _log_views() -> tuple[rrb.TimeSeriesView, rrb.TextLogView]:
+    return (rrb.TimeSeriesView(origin=METRICS, name="metrics"),
+            rrb.TextLogView(origin="/", contents=[f"{FRAME_SPEC}/**", f"{EVENTS}/**"], name="log"))
 
 
 def _scan_blueprint(inspected: bool) -> rrb.Blueprint | None:
-    """An inspected scan: the deviation map and the report beside the 3D view with the CAD
-    model and deviations (the raw cloud and the face-coloured points, drawn at the same
-    places, would hide the deviation colours: left out of the view, still in the streams);
-    a scan alone keeps the recording's own blueprint."""
+    """An inspected scan: the 3D view of the CAD model and the deviations beside the
+    deviation map, the inspection report across the full width below (its table is ~145
+    characters wide); the time and selection panels collapsed, the list of recordings (a
+    station part's views) kept. The 3D view holds only the inspection's entities: with the
+    rig's frusta in it the part was a small patch in a corner, and the raw cloud and the
+    face-coloured points, drawn at the same places, hid the deviation colours (all still in
+    the streams). A scan alone keeps the recording's own blueprint."""
     if not inspected:
         return None
-    from inspection.inspection_recording import DEVIATION_MAP, FACES, REPORT
+    from inspection.inspection_recording import CAD, DEVIATION, DEVIATION_MAP, REPORT
 
-    three_d = rrb.Spatial3DView(origin=WORLD, contents=["$origin/**", f"- {CLOUD}", f"- {NORMALS}", f"- {FACES}"],
-                                name="3D: scan, CAD, deviations")
-    left = rrb.Vertical(three_d, _log_tabs(),
-                        row_shares=[3, 1])
-    right = rrb.Vertical(rrb.Tabs(rrb.Spatial2DView(origin=DEVIATION_MAP, name="deviation map"),
-                                  rrb.Spatial2DView(origin=CAMERA, name="camera")),
-                         rrb.TextDocumentView(origin=REPORT, name="inspection report"), row_shares=[3, 2])
-    return rrb.Blueprint(rrb.Horizontal(left, right, column_shares=[1, 1]), collapse_panels=False)
+    three_d = rrb.Spatial3DView(origin=WORLD, contents=[f"+ {CAD}", f"+ {DEVIATION}"], name="3D: CAD, deviations")
+    top = rrb.Horizontal(three_d, rrb.Tabs(rrb.Spatial2DView(origin=DEVIATION_MAP, name="deviation map"),
+                                           rrb.Spatial2DView(origin=CAMERA, name="camera")), column_shares=[1, 1])
+    bottom = rrb.Tabs(rrb.TextDocumentView(origin=REPORT, name="inspection report"), *_log_views())
+    return rrb.Blueprint(rrb.Vertical(top, bottom, row_shares=[3, 2]), rrb.SelectionPanel(state="collapsed"),
+                         rrb.TimePanel(state="collapsed"))
 
 
 def calibration_blueprint() -> rrb.Blueprint:

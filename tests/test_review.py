@@ -70,6 +70,18 @@ def origins(target) -> set[str]:
     return found
 
 
+def three_d_contents(target) -> set[str]:
+    """The entity filter of the blueprint's one 3D view: the part alone, not the rig's frusta
+    (with them the part was a small patch in a corner of the web viewer's view)."""
+    views, todo = [], [target.blueprint.root_container]
+    while todo:
+        item = todo.pop()
+        views += [item] if type(item).__name__ == "Spatial3DView" else []
+        todo.extend([] if hasattr(item, "origin") else getattr(item, "contents", None) or [])
+    assert len(views) == 1
+    return set(views[0].contents)
+
+
 def small_recording(path: Path, entity: str) -> Path:
     """A closed .rrd with one entity, written by rerun itself."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -99,6 +111,7 @@ def test_an_inspected_session_opens_the_inspection_with_its_views(session: Path,
     assert code == 0 and files[:2] == [str(copy / "recording.rrd"), str(copy / "outputs" / "inspection.rrd")]
     assert files[2].endswith(".rbl") and views(viewer / "blueprint.rbl")
     assert {"inspection/deviation_map", "inspection/report", "world"} <= origins(find_target(copy))
+    assert three_d_contents(find_target(copy)) == {"+ world/inspection/cad", "+ world/inspection/deviation"}
     assert not Path(files[2]).exists()  # the temporary blueprint is gone once the viewer ends
 
 
