@@ -130,7 +130,11 @@ def part_views(report: Any, limit_mm: float) -> bytes:
         ax.set_box_aspect(np.maximum(hi - lo, 1e-3))
         ax.set_xlim(lo[0], hi[0]), ax.set_ylim(lo[1], hi[1]), ax.set_zlim(lo[2], hi[2])
         ax.set_title(title, fontsize=10)
-        ax.set_xlabel("x (mm)", fontsize=8), ax.set_ylabel("y (mm)", fontsize=8), ax.set_zlabel("z (mm)", fontsize=8)
+        ax.set_xlabel("x (mm)", fontsize=8), ax.set_ylabel("y (mm)", fontsize=8)
+        if abs(elev) < 90.0:  # looking straight down z its axis collapses to a point: no ticks, no label
+            ax.set_zlabel("z (mm)", fontsize=8)
+        else:
+            ax.set_zticks([])
         ax.tick_params(labelsize=7)
         _callouts(ax, [report.faces[i] for i in callouts[k]], seg)
     fig.subplots_adjust(left=0.02, right=0.86, bottom=0.03, top=0.95, wspace=0.05, hspace=0.12)

@@ -277,6 +277,22 @@ def test_every_view_calls_out_the_faces_that_face_it() -> None:
     assert callout_views(rep) == {0: [top, boss], 1: [top, boss], 2: [top], 3: [top, boss]}
 
 
+def test_the_view_from_above_has_no_z_axis_labels(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seen straight down z, matplotlib draws the z axis's ticks and label on one point (a
+    black blob with "z (mm)" in the view's corner): that view has none, the others have them."""
+    import matplotlib.pyplot as plt
+
+    from inspection import report_figures
+
+    figures = []
+    monkeypatch.setattr(report_figures, "_png", lambda fig: figures.append(fig) or b"")
+    report_figures.part_views(known_report(), 0.02)
+    views = [ax for ax in figures[0].axes if ax.name == "3d"]
+    labelled = [bool(ax.get_zlabel()) and len(ax.get_zticks()) > 0 for ax in views]
+    assert labelled == [elev < 90.0 for _, elev, _ in report_figures.VIEWS] == [True, True, False, True]
+    plt.close(figures[0])
+
+
 def test_the_cad_model_is_drawn_behind_the_points() -> None:
     """With the CAD model the views show the part's unscanned faces as a grey shaded mesh:
     far more grey pixels (R = G = B, not white) than without it, where only the axes' grid
