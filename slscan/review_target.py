@@ -73,7 +73,8 @@ def find_target(path: str | Path) -> ReviewTarget:
         files = _recordings(session.root) + _outputs(session.root)
         if not files:
             raise RecordingError(f"{path}: no recording; run `slscan decode {path}` to make one")
-        return _target("scan session", files, path, _scan_blueprint(_inspected(session.root)))
+        blueprint = _scan_blueprint(_inspected(session.root)) or _blueprint_for_files(files)  # a bin: its poses
+        return _target("scan session", files, path, blueprint)
     if any((path / m).exists() for m in CALIBRATION_MARKS):
         return _target("calibration folder", _recordings(path), path, calibration_blueprint())
     files = tuple(sorted(path.glob("*.rrd"))) or tuple(sorted(path.glob("*/*.rrd")))
@@ -155,9 +156,13 @@ def calibration_blueprint() -> rrb.Blueprint:
 
 
 def poses_blueprint() -> rrb.Blueprint:
-    """The bin in 3D with the posed models and pick order, and the poses table."""
-    from inspection.bins.picking import TABLE
+    """The parts in 3D (the instances' points, the posed models, the pick order) above the
+    poses table across the full width (~110 characters a row). Not the rig's frusta nor the
+    scan's cloud (still in the streams): with them the viewer framed the rig or the dark
+    background plane and the pile of parts was a small patch in the middle."""
+    from inspection.bins.picking import INSTANCES, MODELS, PICK_ORDER, TABLE
 
-    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin=WORLD, name="3D: instances, poses, pick order"),
-                                        rrb.TextDocumentView(origin=TABLE, name="poses"), column_shares=[2, 1]),
-                         collapse_panels=False)
+    three_d = rrb.Spatial3DView(origin=WORLD, contents=[f"+ {INSTANCES}", f"+ {MODELS}/**", f"+ {PICK_ORDER}"],
+                                name="3D: instances, poses, pick order")
+    return rrb.Blueprint(rrb.Vertical(three_d, rrb.TextDocumentView(origin=TABLE, name="poses"), row_shares=[3, 2]),
+                         rrb.SelectionPanel(state="collapsed"), rrb.TimePanel(state="collapsed"))

@@ -115,6 +115,19 @@ def test_an_inspected_session_opens_the_inspection_with_its_views(session: Path,
     assert not Path(files[2]).exists()  # the temporary blueprint is gone once the viewer ends
 
 
+def test_a_posed_bin_session_opens_with_the_poses_views(session: Path, viewer: Path, tmp_path: Path) -> None:
+    """`slscan pose SESSION` writes outputs/poses.rrd: reviewing the session shows the poses'
+    views (it showed the recording's own automatic layout, the poses table in a narrow pane)."""
+    copy = tmp_path / "bin"
+    shutil.copytree(session, copy, symlinks=True)
+    small_recording(copy / "outputs" / "poses.rrd", "world/pose/instances")
+    code, _, _ = run("review", str(copy))
+    files = opened(viewer)
+    assert code == 0 and files[:2] == [str(copy / "recording.rrd"), str(copy / "outputs" / "poses.rrd")]
+    assert files[2].endswith(".rbl") and views(viewer / "blueprint.rbl")
+    assert {"world", "pose/table"} <= origins(find_target(copy))
+
+
 def test_a_station_part_folder_opens_each_view_session(session: Path, viewer: Path, tmp_path: Path) -> None:
     part = tmp_path / "parts" / "demo" / "SN-1-20261201"
     part.mkdir(parents=True)
@@ -141,6 +154,8 @@ def test_poses_and_other_recordings(viewer: Path, tmp_path: Path) -> None:
     code, _, _ = run("review", str(poses))
     assert code == 0 and opened(viewer)[0] == str(poses) and views(viewer / "blueprint.rbl")
     assert {"world", "pose/table"} <= origins(find_target(poses))
+    assert three_d_contents(find_target(poses)) == {"+ world/pose/instances", "+ world/pose/models/**",
+                                                   "+ world/pose/pick_order"}
     verify = tmp_path / "verify"
     a = small_recording(verify / "verify.rrd", "world/artefact")
     os.remove(viewer / "args.txt")

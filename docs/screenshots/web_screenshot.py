@@ -5,7 +5,8 @@ splash; here the browser is driven over --remote-debugging-pipe (the DevTools pr
 NUL-separated JSON on file descriptors 3 and 4) and shoots after `WAIT` seconds. WebGL
 runs on SwiftShader (the viewer shows "Software rasterizer").
 
-How docs/screenshots/review-demo-inspected.png was taken:
+How docs/screenshots/review-demo-inspected.png was taken (review-bin-poses.png: the same on
+`slscan scan --scene bin:3 --out /tmp/bin` after `slscan pose /tmp/bin --part config/parts/nickel_tab.toml`):
 
     slscan demo --out /tmp/demo
     slscan review /tmp/demo --port 9391 &        # web viewer on 9391, gRPC on 9876
