@@ -259,11 +259,10 @@ def test_hdr_session_uncertainty_is_each_pixels_own_exposures(tmp_path):
         check_frames_fit(session, blank, model, patterns.n_frames)
 
 
-@pytest.mark.slow
 def test_auto_exposure_capture_records_its_choice(tmp_path):
-    """`--exposure auto` on the simulated rig: the pre-capture's choice and reason are in the
-    manifest and the frames are taken at the chosen exposure."""
-    config = RigConfig.load(loaded_rig(tmp_path))
+    """`--exposure auto` on the simulated rig (320 x 256 camera): the pre-capture's choice and
+    reason are in the manifest and the frames are taken at the chosen exposure."""
+    config = RigConfig.load(loaded_rig(tmp_path, small=True))
     patterns = PatternSet.load(config.patterns_path)
     with open_rig(config, scene=CONFIG_DIR / "scenes" / "sphere_plane.toml", seed=2) as rig:
         scan(rig, patterns, tmp_path / "s", exposure=ExposureRequest.parse("auto"))
