@@ -152,16 +152,11 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     progress("load", 0, 1)
     with timer.stage("load"):
         stack = session.load_stack()
-        patterns = session.patterns
         model = session.rig_model()
-        exposures = session.exposures_s
-        stacks = np.split(stack, len(exposures))  # one pattern set per exposure
-        for i, s in enumerate(stacks):
-            check_frames_fit(session, s, model, i * patterns.n_frames)
+        stacks = exposure_stacks(session, stack, model)
     progress("decode", 0, 1)
     with timer.stage("decode"):
-        decoded = fuse([decode(s, patterns, session.bit_depth, model.projector.size, settings) for s in stacks],
-                       exposures)
+        decoded = decode_exposures(session, stacks, model, settings)
     calibrated = session.manifest.get("calibrated", True)
     progress("reconstruct", 0, 1)
     with timer.stage("reconstruct"):
@@ -212,6 +207,32 @@ def log_result(recording: SessionRecording, result: ScanResult, model: RigModel)
                            "points": len(result.cloud) if result.cloud is not None else 0})
 
 
+def exposure_stacks(session: Session, stack: np.ndarray, model: RigModel) -> list[np.ndarray]:
+    """The session's raw frames `stack` as one pattern set per exposure (ascending; one for a
+    plain session), each checked against the session's patterns (`check_frames_fit`)."""
+    stacks = np.split(stack, len(session.exposures_s))
+    for i, stack in enumerate(stacks):
+        check_frames_fit(session, stack, model, i * session.patterns.n_frames)
+    return stacks
+
+
+def decode_exposures(session: Session, stacks: list[np.ndarray], model: RigModel,
+                     settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
+    """One decode of a session: each exposure's pattern set decoded on its own, fused per
+    pixel (`scanner.exposure.fuse`; a single exposure's decode as it is)."""
+    patterns = session.patterns
+    return fuse([decode(s, patterns, session.bit_depth, model.projector.size, settings) for s in stacks],
+                session.exposures_s)
+
+
+def decode_session(session: Session, settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
+    """A session's raw frames checked and decoded again, every exposure fused: the decode its
+    outputs come from (`process`), for whatever needs it beside them (uncertainty, figures)."""
+    stack = session.load_stack()
+    model = session.rig_model()
+    return decode_exposures(session, exposure_stacks(session, stack, model), model, settings)
+
+
 def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first: int = 0) -> None:
     """Refuse frames that do not fit the session's patterns (swapped, repeated, blank or
     foreign ones), naming the frame: blank frames first, then the acquisition's
@@ -221,9 +242,10 @@ def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first
     full = 2 ** session.bit_depth - 1
     flat = stack.reshape(len(stack), -1)
     lo, hi = flat.min(axis=1), flat.max(axis=1)
-    for k in first + np.flatnonzero(hi - lo <= BLANK_FRAME_RANGE * full):
-        raise DecodeError(f"{where}: frame {k} ({session.frame_path(int(k)).name}) is blank (every pixel "
-                          f"{int(lo[k])}..{int(hi[k])} DN): it cannot be a fringe image; re-scan")
+    for i in np.flatnonzero(hi - lo <= BLANK_FRAME_RANGE * full):
+        k = first + int(i)
+        raise DecodeError(f"{where}: frame {k} ({session.frame_path(k).name}) is blank (every pixel "
+                          f"{int(lo[i])}..{int(hi[i])} DN): it cannot be a fringe image; re-scan")
     if "import" in session.manifest:
         return  # another tool's frames: judged by the import's convention detection and decode's self-check
         # (the ideal patterns the signature assumes are blurred at a real camera's finest Gray-code bits);

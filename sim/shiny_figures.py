@@ -22,9 +22,8 @@ from typing import Any
 import numpy as np
 
 from scanner.acquisition import EXPOSURE_PERIOD_MARGIN_S
-from scanner.decode import DecodeSettings, decode
-from scanner.exposure import fuse
-from scanner.pipeline import ScanResult
+from scanner.decode import DecodeSettings
+from scanner.pipeline import ScanResult, decode_session
 from scanner.reconstruct import Triangulator, triangulate
 from scanner.session import Session
 from sim.evaluate import GROUND_TRUTH_FILE, Truth, smooth_region
@@ -76,12 +75,8 @@ def session_figures(path: str, interreflection: bool = True) -> dict[str, Any]:
     """Decode a session's raw frames again (its outputs left as they are) and measure it
     (`part_figures`)."""
     session = Session.open(path)
-    model, patterns = session.rig_model(), session.patterns
-    settings = DecodeSettings(interreflection=interreflection)
-    stacks = np.split(session.load_stack(), len(session.exposures_s))
-    decoded = fuse([decode(s, patterns, session.bit_depth, model.projector.size, settings) for s in stacks],
-                   session.exposures_s)
-    result = ScanResult(session, decoded, triangulate(decoded, Triangulator(model)), {})
+    decoded = decode_session(session, DecodeSettings(interreflection=interreflection))
+    result = ScanResult(session, decoded, triangulate(decoded, Triangulator(session.rig_model())), {})
     return part_figures(result, Truth.load(session.root / GROUND_TRUTH_FILE))
 
 

@@ -2,8 +2,10 @@
 give every figure its uncertainty, read from the session and its rig.
 
   - the noise: the session's raw frames decoded again (the same decoder and settings as
-    its cloud), with the camera's sensor model from the rig config ([camera.sensor]);
-    without one, no noise model (the figures then estimate the noise from the data);
+    its cloud, an HDR session's exposures fused as for its cloud: each pixel's noise is
+    its chosen exposure's), with the camera's sensor model from the rig config
+    ([camera.sensor]); without one, no noise model (the figures then estimate the noise
+    from the data);
   - the fringe error of the projector's quantised patterns (pattern set, gamma, the
     projector's blur when the rig file gives it);
   - the calibration's covariance, from the calibration file the session's rig model
@@ -27,9 +29,10 @@ from inspection.uncertainty import (
     fringe_error,
     scan_uncertainty,
 )
-from scanner.decode import DecodeResult, decode
+from scanner.decode import DecodeResult
 from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
+from scanner.pipeline import decode_session
 
 
 def sensor_noise(rig_config: dict[str, Any], bit_depth: int, where: object) -> SensorNoise | None:
@@ -74,7 +77,7 @@ def session_uncertainty(session: Any, decoded: DecodeResult | None = None) -> Ca
     model = session.rig_model()
     patterns = session.patterns
     if decoded is None:
-        decoded = decode(session.load_stack(), patterns, session.bit_depth, model.projector.size)
+        decoded = decode_session(session)
     sensor = sensor_noise(config, session.bit_depth, session.root / "manifest.json")
     fringe = projector_fringe_error(patterns, model, config)
     calibration = calibration_uncertainty(model, (config.get("rig") or {}).get("driver", ""))

@@ -17,7 +17,7 @@ import pytest
 
 from scanner.config import CONFIG_DIR
 from scanner.decode import decode
-from scanner.errors import ConfigError, SessionError
+from scanner.errors import ConfigError, DecodeError, SessionError
 from scanner.exposure import (
     GOOD_MODULATION,
     SATURATION_LEVEL,
@@ -29,9 +29,10 @@ from scanner.exposure import (
     plan_exposures,
 )
 from scanner.patterns import PatternSet
-from scanner.pipeline import reprocess, scan
+from scanner.pipeline import check_frames_fit, decode_session, exposure_stacks, reprocess, scan
 from scanner.rig import RigConfig, open_rig
 from scanner.session import Session
+from slscan.measurement_model import session_uncertainty
 
 HETERODYNE = CONFIG_DIR / "patterns" / "heterodyne_3x4.toml"
 FULL = 4095.0
@@ -179,11 +180,14 @@ def test_fusion_keeps_a_second_path_seen_by_any_exposure_masked():
 
 # --- sessions on the simulated rig ------------------------------------------------------------------
 
-def loaded_rig(tmp_path: Path) -> Path:
-    """The bench rig with a frame timeout generous enough for a heavily loaded machine."""
+def loaded_rig(tmp_path: Path, small: bool = False) -> Path:
+    """The bench rig with a frame timeout generous enough for a heavily loaded machine
+    (`small`: a 320 x 256 camera, same field of view)."""
     text = (CONFIG_DIR / "rigs" / "sim_bench.toml").read_text()
     text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
     text = text.replace("timeout_s = 2.0", "timeout_s = 30.0")
+    if small:
+        text = text.replace("width = 1280", "width = 320").replace("height = 1024", "height = 256")
     p = tmp_path / "rig.toml"
     p.write_text(text)
     return p
@@ -222,11 +226,43 @@ def test_hdr_session_keeps_every_exposure_and_redecodes_bit_identically(tmp_path
         Session.open(tmp_path / "s").load_stack()
 
 
-@pytest.mark.slow
+def test_hdr_session_uncertainty_is_each_pixels_own_exposures(tmp_path):
+    """The measurement model of an HDR session (what `slscan inspect SESSION` uses) decodes
+    every exposure and fuses them as the scan did (it gave the whole stack to one decode and
+    raised), and each point's depth noise is the one its chosen exposure's own decode predicts."""
+    config = RigConfig.load(loaded_rig(tmp_path, small=True))
+    patterns = PatternSet.load(config.patterns_path)
+    with open_rig(config, scene=CONFIG_DIR / "scenes" / "sphere_plane.toml", seed=3) as rig:
+        result = scan(rig, patterns, tmp_path / "s", exposure=ExposureRequest.parse("0.004,0.016"))
+    session = Session.open(tmp_path / "s")
+    again = decode_session(session)
+    m = again.maps["vertical"]
+    assert np.array_equal(m.coordinate, result.decoded.maps["vertical"].coordinate, equal_nan=True)
+    rows, cols = np.nonzero(result.cloud.valid)
+    pixels = np.stack([cols, rows], axis=1)
+    index = m.exposure_index[rows, cols]
+    assert set(np.unique(index)) == {0, 1}  # the bright plane from 4 ms, the sphere mostly from 16 ms
+    sigma = session_uncertainty(session)(pixels).noise.sigma_z
+    assert np.array_equal(sigma, session_uncertainty(session, result.decoded)(pixels).noise.sigma_z)
+    model = session.rig_model()
+    stacks = exposure_stacks(session, session.load_stack(), model)
+    for i, stack in enumerate(stacks):  # each exposure decoded alone: the uncertainty its own scan would give
+        own = decode(stack, patterns, session.bit_depth, model.projector.size)
+        chosen = index == i
+        assert own.valid[rows[chosen], cols[chosen]].all()
+        expected = session_uncertainty(session, own)(pixels[chosen]).noise.sigma_z
+        np.testing.assert_allclose(sigma[chosen], expected, rtol=1e-6)
+    # a blank frame in the second exposure is named by its place in the session
+    blank = stacks[1].copy()
+    blank[3] = 100
+    with pytest.raises(DecodeError, match=f"frame {patterns.n_frames + 3} .* is blank"):
+        check_frames_fit(session, blank, model, patterns.n_frames)
+
+
 def test_auto_exposure_capture_records_its_choice(tmp_path):
-    """`--exposure auto` on the simulated rig: the pre-capture's choice and reason are in the
-    manifest and the frames are taken at the chosen exposure."""
-    config = RigConfig.load(loaded_rig(tmp_path))
+    """`--exposure auto` on the simulated rig (320 x 256 camera): the pre-capture's choice and
+    reason are in the manifest and the frames are taken at the chosen exposure."""
+    config = RigConfig.load(loaded_rig(tmp_path, small=True))
     patterns = PatternSet.load(config.patterns_path)
     with open_rig(config, scene=CONFIG_DIR / "scenes" / "sphere_plane.toml", seed=2) as rig:
         scan(rig, patterns, tmp_path / "s", exposure=ExposureRequest.parse("auto"))
