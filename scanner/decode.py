@@ -63,7 +63,11 @@ class DecodeSettings:
     `interreflection_ratio` (relative) and `interreflection_sigmas` of its noise
     (`_SecondPaths`). A second path whose phase shift is about the same at every
     frequency (nearby points: the last few pixels at a concave fold) or that outshines the
-    direct light is not seen by either test.
+    direct light is not seen by either test; where it outshines it, what is left valid
+    among the masked pixels are slivers (1-2 px wide), so valid pixels narrower than
+    `sliver_px` + 1 within `sliver_px` of an interreflection-masked pixel are masked too
+    (`interreflection_slivers`; on the simulated concave corner they were every one of the
+    fringe-order errors the tests let through).
     """
 
     min_modulation: float = 0.005
@@ -83,6 +87,7 @@ class DecodeSettings:
     interreflection_sigmas: float = 5.0
     interreflection_min_rad: float = 0.2
     interreflection_ratio: float = 0.15
+    sliver_px: int = 2
 
 
 @dataclass(frozen=True)
@@ -432,6 +437,16 @@ def _typical_step(sample: np.ndarray) -> np.float32:
     map: cheap, robust), NaN left out."""
     sample = np.abs(sample[~np.isnan(sample)])
     return np.float32(np.median(sample)) if sample.size else np.float32(0.0)
+
+
+def interreflection_slivers(valid: np.ndarray, interreflection: np.ndarray, reach_px: int) -> np.ndarray:
+    """Valid pixels (H, W) in strips narrower than `reach_px` + 1 (those a (reach_px + 1)²
+    opening of `valid` removes) within `reach_px` pixels of an `interreflection` pixel:
+    what a second path that outshines the direct light leaves among the pixels it corrupts."""
+    size = reach_px + 1
+    opened = cv2.morphologyEx(valid.view(np.uint8), cv2.MORPH_OPEN, np.ones((size, size), np.uint8))
+    near = cv2.dilate(interreflection.view(np.uint8), np.ones((2 * reach_px + 1, 2 * reach_px + 1), np.uint8))
+    return valid & ~opened.view(bool) & near.view(bool)
 
 
 def band_slices(height: int) -> list[slice]:
@@ -911,6 +926,12 @@ class _OrientationDecoder:
             np.copyto(phase[rows], nan, where=invalid)
 
         in_bands(valid.shape[0], finish)
+        if "interreflection" in masks:
+            slivers = interreflection_slivers(valid, masks["interreflection"], s.sliver_px)
+            masks["interreflection"] |= slivers
+            valid &= ~slivers
+            coordinate[slivers] = nan
+            phase[slivers] = nan
         return OrientationMaps(self.orientation, coordinate, phase, wrapped, modulation, background, weight, masks,
                                valid, fringes, self.extent, self.noise, max(self.patterns.steps, 1))
 

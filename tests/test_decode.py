@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scanner.decode import CHUNK_ROWS, DecodeSettings, decode, small_regions
+from scanner.decode import CHUNK_ROWS, DecodeSettings, decode, interreflection_slivers, small_regions
 from scanner.errors import ConfigError, DecodeError
 from scanner.patterns import PatternSet, gray_code, gray_to_binary
 from tests.conftest import fringe_stack
@@ -222,3 +222,24 @@ def test_patterns_are_gamma_compensated() -> None:
     displayed = (raw[0, 0].astype(float) / 255) ** 2.2
     wanted = ps.profile(ps.frames()[0], 912)
     assert np.abs(displayed - wanted).max() < 0.02
+
+
+def test_slivers_left_inside_an_interreflection_region_are_masked_and_nothing_else() -> None:
+    """A second path that outshines the direct light leaves 1-2 px strips valid among the
+    pixels it corrupts: those are masked; a strip as narrow but more than 2 px from any
+    interreflection pixel, and a wide region touching one, keep every pixel."""
+    valid = np.zeros((40, 60), bool)
+    second = np.zeros_like(valid)
+    second[:, 10:14] = second[:, 16:20] = True  # the masked region, a 2-px strip left valid in it
+    valid[:, 14:16] = True                      # the sliver: columns 14, 15
+    valid[:, 20:30] = True                      # a wide region beside the mask
+    valid[:, 40:42] = True                      # a strip 20 px from any interreflection pixel
+    expected = np.zeros_like(valid)
+    expected[:, 14:16] = True
+    assert np.array_equal(interreflection_slivers(valid, second, 2), expected)
+    # a strip 3 px wide survives the opening: only narrower ones are slivers
+    valid3 = valid.copy()
+    valid3[:, 13] = True
+    second3 = second.copy()
+    second3[:, 13] = False
+    assert not interreflection_slivers(valid3, second3, 2)[:, 13:16].any()

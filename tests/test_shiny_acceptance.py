@@ -77,7 +77,10 @@ def test_interreflection_rejection_on_a_concave_corner(tmp_path):
     before, after = without_and_with_the_mask(scan_session(tmp_path / "corner", "concave_corner.toml", None))
     assert "interreflection" not in before["masked_on_part"]
     assert after["masked_on_part"]["interreflection"] > 0.1 * after["part_lit_pixels"]
-    assert after["fringe_order_errors"] < 0.2 * before["fringe_order_errors"]
+    # the tests see most second paths; where one outshines the direct light, the strips it
+    # leaves valid go too (measured: 4967 -> 0 order errors, depth RMS 14.8 mm -> 83 um)
+    assert after["fringe_order_errors"] <= 0.01 * before["fringe_order_errors"]
+    assert after["depth_rms_um"] < 150.0
     assert after["phase_error_rms_px"] < 0.5 * before["phase_error_rms_px"]
 
 
