@@ -22,6 +22,7 @@ from scanner.session import ERROR
 from sim.station_parts import TRUTH_FILE, TURNTABLE_FACES, lineup
 from sim.virtual_stage import STAGE_TRUTH_FILE
 from slscan.station.app import expected_status, open_station
+from slscan.station.batch import reinspect
 from slscan.station.loop import MULTIVIEW_FOLDER, PART_RECORD
 from slscan.station.measure import SimulatorTruth
 from slscan.station.program import load_program
@@ -75,6 +76,8 @@ def test_stage_angles_on_a_rig_without_a_stage_are_refused_when_the_station_open
 
 
 def test_a_turntable_cycle_scans_one_multiview_session_with_each_views_stage_pose(tmp_path: Path) -> None:
+    """One multi-view session per part, each view with its stage pose; batch re-inspection of
+    the part folder decodes its views again, fuses them again and measures the part alike."""
     config = _turntable_station(tmp_path)
     steps: list[str] = []
     with open_station(_program(tmp_path, str(ANGLES)), config, "ana", SimulatorTruth()) as run:
@@ -100,6 +103,9 @@ def test_a_turntable_cycle_scans_one_multiview_session_with_each_views_stage_pos
     assert "capture (view 4/4)" in steps and "merge: align" in steps and steps[-1] == "measure"
     record = json.loads((o.part_path / PART_RECORD).read_text())
     assert record["sessions"] == [str(o.sessions[0])] and record["status"] == "fail"
+    again = reinspect(str(o.part_path), str(run.program.path), TRUTH_GAUGE)  # slscan station batch of the part
+    assert (again.status, again.message, again.truth["name"]) == (o.status, o.message, part.name)
+    assert [(v.characteristic, v.value_mm) for v in again.values] == [(v.characteristic, v.value_mm) for v in o.values]
 
 
 def test_an_aborted_turntable_cycle_keeps_the_views_already_scanned(tmp_path: Path) -> None:
