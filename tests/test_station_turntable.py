@@ -21,6 +21,7 @@ from scanner.multiview import MultiViewSession
 from scanner.session import ERROR
 from sim.station_parts import TRUTH_FILE, TURNTABLE_FACES, lineup
 from sim.virtual_stage import STAGE_TRUTH_FILE
+from slscan.review_target import find_target
 from slscan.station.app import expected_status, open_station
 from slscan.station.batch import reinspect
 from slscan.station.loop import MULTIVIEW_FOLDER, PART_RECORD
@@ -103,6 +104,9 @@ def test_a_turntable_cycle_scans_one_multiview_session_with_each_views_stage_pos
     assert "capture (view 4/4)" in steps and "merge: align" in steps and steps[-1] == "measure"
     record = json.loads((o.part_path / PART_RECORD).read_text())
     assert record["sessions"] == [str(o.sessions[0])] and record["status"] == "fail"
+    review = find_target(o.part_path)  # `slscan review PART`: the views' recordings (simulator truth inspects none)
+    assert (review.kind, review.recordings) == ("multi-view folder", tuple(v.session.root / "recording.rrd"
+                                                                      for v in session.views))
     again = reinspect(str(o.part_path), str(run.program.path), TRUTH_GAUGE)  # slscan station batch of the part
     assert (again.status, again.message, again.truth["name"]) == (o.status, o.message, part.name)
     assert [(v.characteristic, v.value_mm) for v in again.values] == [(v.characteristic, v.value_mm) for v in o.values]

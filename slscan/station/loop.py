@@ -237,7 +237,7 @@ class Station:
 
             views = capture_views(rig, self.stage_plan, sessions[-1], scan_view,
                                   lambda k, _, what: step(f"{what} (view {k + 1}/{n})", k, n))
-        whole_part(views, mesh=False, progress=lambda stage, done, total: step(f"merge: {stage}", done, total))
+        whole_part(views, mesh=False, progress=lambda stage, done, total: step(f"merge: {stage}", 0, 1))
         return self._measured(lambda: self.measurement.measure_whole(views, self.program), step)
 
     def _set_exposure(self, rig: Rig) -> None:
