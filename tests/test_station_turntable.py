@@ -86,7 +86,7 @@ def test_a_turntable_cycle_scans_one_multiview_session_with_each_views_stage_pos
         o = run.station.run_cycle("SN-3", part=3, progress=lambda stage, done, total: steps.append(stage))
         print(f"small turntable cycle, {len(ANGLES)} views: {time.perf_counter() - t0:.1f} s")
         rows = run.store.results()
-    part = lineup()[3]
+    part = lineup(chamfer=True)[3]
     assert o.truth["name"] == part.name and o.status == expected_status(run.program, o.truth) == "fail"
     assert o.message == "out of tolerance: boss_cylindricity, boss_chamfer_profile"
     assert [(v.characteristic, v.value_mm) for v in o.values] == [(c, part.imposed[c]) for c in TURNTABLE_FACES]

@@ -5,7 +5,8 @@
 stage turns it through. A hardware bench opens its rig once and keeps it; the operator
 places the part. A simulated bench opens the simulated rig for each view (each part on a
 stage) with the next part of `sim.station_parts`'s lineup in front of it (part k is
-lineup[k % len]; on a stage it stands on the platter) and saves that part's imposed
+lineup[k % len]; on a rig with a stage it stands on the platter, and the lineup is the
+turntable's, `lineup(chamfer=True)`) and saves that part's imposed
 defects into every session (`sim_part.json`), so each result has its truth beside it.
 
 The operator's start signal comes from the keyboard or from the bench: `start_pressed()`
@@ -99,7 +100,7 @@ class Bench:
             return None
         from sim.station_parts import lineup
 
-        parts = lineup()
+        parts = lineup(chamfer=self.config.stage is not None)  # the turntable's parts: their chamfers lobed
         return parts[part % len(parts)]
 
     @contextmanager
