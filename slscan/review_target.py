@@ -4,7 +4,8 @@ what the folder holds, and a blueprint that puts that kind's important views fir
     scan session        manifest.json: recording.rrd and outputs/*.rrd (inspection, poses)
     multi-view folder   multiview.json or views.json: its recording.rrd and outputs/*.rrd, else
                         each view's recording
-    station part        part.json: every session of the part (view*/), as scan sessions
+    station part        part.json: every session of the part (view*/), as scan sessions; or
+                        its multi-view session (multiview/), as a multi-view folder
     calibration folder  calibration.json, capture/ or rejected.txt: recording.rrd
     anything else       a .rrd file, or a folder with .rrd files in it (verify output, a station
                         report folder's control_charts.rrd, ...)
@@ -63,6 +64,9 @@ def find_target(path: str | Path) -> ReviewTarget:
         views = tuple(sorted(path.glob(f"view_*/{RECORDING_NAME}")))
         return _target("multi-view folder", own or views, path, None)
     if (path / PART_RECORD).is_file():
+        whole = sorted(p for p in path.iterdir() if any((p / f).is_file() for f in MULTIVIEW_FILES))
+        if whole:  # a part measured whole on a stage: its multi-view session
+            return find_target(whole[0])
         sessions = sorted(p for p in path.iterdir() if (p / "manifest.json").is_file())  # view0, view1, ...
         files = tuple(f for s in sessions for f in _recordings(s) + _outputs(s))
         return _target("station part", files, path, _scan_blueprint(any(_inspected(s) for s in sessions)))

@@ -14,9 +14,9 @@ DEMO_PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"
 TRUTH_GAUGE = "simulator-truth"  # measures nothing: reports the simulated part's imposed defects
 
 
-def small_rig(folder: Path, width: int = 320, height: int = 256) -> Path:
-    """The bench rig with a smaller camera (same lens field of view), written into `folder`."""
-    text = DEFAULT_RIG.read_text().replace("width = 1280", f"width = {width}").replace("height = 1024",
+def small_rig(folder: Path, width: int = 320, height: int = 256, rig: Path = DEFAULT_RIG) -> Path:
+    """The bench rig (or `rig`) with a smaller camera (same lens field of view), written into `folder`."""
+    text = rig.read_text().replace("width = 1280", f"width = {width}").replace("height = 1024",
                                                                                        f"height = {height}")
     text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
     path = folder / "rig.toml"

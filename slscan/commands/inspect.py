@@ -308,6 +308,8 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
     against a CAD file (None: the part program's, when `tolerances` is one); write the
     report files (and, for a session without a `recording` given, outputs/inspection.rrd);
     return the report. `slscan demo` calls this after its scan with the demo part's program."""
+    from dataclasses import replace
+
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import load_source
     from inspection.registration import RegistrationSettings
@@ -334,6 +336,8 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
     source = Path(source)
     folder = Path(out) if out else (source / "outputs" if source.is_dir() else source.parent)
     settings = InspectionSettings(registration=RegistrationSettings(seed=seed))
+    if program is not None:  # the program's edge margin (a narrow face, e.g. a chamfer, needs less than the default)
+        settings = replace(settings, form=replace(settings.form, edge_margin_mm=program.edge_margin_mm))
     own = None
     uncertainty = None
     if source.is_dir():

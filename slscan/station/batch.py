@@ -2,10 +2,12 @@
 change, in this process, on a local Dask cluster, or on a remote one.
 
 A unit of work is one part: a part folder written by the station (its `view<k>/` session
-folders) or a single session folder. Each runs on a worker as `reinspect`: every session is
-opened (an incomplete one fails that part only), decoded and reconstructed again from its
-raw frames (`outputs/` regenerated; the recording and the manifest are left as they were),
-measured, and judged against the program. Given a rig TOML (`--rig`), the sessions are
+folders, or its `multiview/` session of a program with stage angles) or a single session
+folder. Each runs on a worker as `reinspect`: every session is opened (an incomplete one
+fails that part only), decoded and reconstructed again from its raw frames (`outputs/`
+regenerated; the recording and the manifest are left as they were), measured (a multi-view
+session's views aligned and fused again first, its merged cloud measured), and judged
+against the program. Given a rig TOML (`--rig`), the sessions are
 reconstructed with that rig's geometry, i.e. its current calibration, instead of the one
 recorded at capture; the calibration id stored with the result says which was used. A part that fails is reported with its error; the batch goes on.
 Units are independent, so the results do not depend on where or in which order they ran.
@@ -24,12 +26,13 @@ from typing import Any, Sequence, TextIO
 
 from scanner import __version__
 from scanner.geometry import RigModel
+from scanner.multiview import MultiViewSession, is_multiview
 from scanner.pipeline import Progress, process
 from scanner.rig import RigConfig
 from scanner.session import Session
 from slscan.station import StationError
 from slscan.station.calib import rig_calibration
-from slscan.station.loop import PART_RECORD
+from slscan.station.loop import MULTIVIEW_FOLDER, PART_RECORD
 from slscan.station.measure import DEFAULT_MEASUREMENT, Measurement, cad_faces, load_measurement
 from slscan.station.program import PartProgram, load_program
 from slscan.station.quality import judge
@@ -115,8 +118,9 @@ def reinspect(part: str, program_path: str, measurement: str = DEFAULT_MEASUREME
         missing = measure.unavailable()
         if missing:
             raise StationError(f"measuring step ({measure.name}) unavailable: {missing}")
+        multiview = MultiViewSession.open(root / MULTIVIEW_FOLDER) if is_multiview(root / MULTIVIEW_FOLDER) else None
         sessions = []
-        for folder in part_sessions(root):
+        for folder in part_sessions(root) if multiview is None else [v.session.root for v in multiview.views]:
             session = Session.open(folder)
             if model is not None:
                 session = _with_model(session, model)
@@ -125,7 +129,14 @@ def reinspect(part: str, program_path: str, measurement: str = DEFAULT_MEASUREME
             truth_file = folder / TRUTH_FILE
             if truth is None and truth_file.exists():
                 truth = json.loads(truth_file.read_text())
-        status, values, message = judge(program, measure.measure(sessions, program))
+        if multiview is None:
+            measured = measure.measure(sessions, program)
+        else:
+            from inspection.views.whole import whole_part
+
+            whole_part(multiview, mesh=False)
+            measured = measure.measure_whole(multiview, program)
+        status, values, message = judge(program, measured)
     except Exception as exc:  # noqa: BLE001 — one part's failure is reported, the batch goes on
         return BatchItem(part, "error", f"{type(exc).__name__}: {exc}", serial=serial, calibration_id=calibration,
                          worker=worker, seconds=round(time.perf_counter() - t0, 3), truth=truth)

@@ -1,10 +1,13 @@
 """What stands on the bench: the rig, and on the simulator the part in front of it.
 
-`Bench.view(part, view, views)` gives the open rig with the part placed for one view. A
-hardware bench opens its rig once and keeps it; the operator places the part. A simulated
-bench opens the simulated rig for each view with the next part of `sim.station_parts`'s
-lineup in front of it (part k is lineup[k % len]) and saves that part's imposed defects
-into every session (`sim_part.json`), so each result has its truth beside it.
+`Bench.view(part, view, views)` gives the open rig with the part placed for one view;
+`Bench.on_stage(part)` the rig with the part on its stage (turntable), for all the views the
+stage turns it through. A hardware bench opens its rig once and keeps it; the operator
+places the part. A simulated bench opens the simulated rig for each view (each part on a
+stage) with the next part of `sim.station_parts`'s lineup in front of it (part k is
+lineup[k % len]; on a rig with a stage it stands on the platter, and the lineup is the
+turntable's, `lineup(chamfer=True)`) and saves that part's imposed
+defects into every session (`sim_part.json`), so each result has its truth beside it.
 
 The operator's start signal comes from the keyboard or from the bench: `start_pressed()`
 reads the foot switch on the trigger box's input (protocol 2, `presses()` of
@@ -97,7 +100,7 @@ class Bench:
             return None
         from sim.station_parts import lineup
 
-        parts = lineup()
+        parts = lineup(chamfer=self.config.stage is not None)  # the turntable's parts: their chamfers lobed
         return parts[part % len(parts)]
 
     @contextmanager
@@ -106,11 +109,30 @@ class Bench:
         if not self.simulated:
             yield self._hardware_rig()
             return
+        sim_part = self.sim_part(part)
+        with self._sim_rig(sim_part.scene(view, views), self.seed + part * views + view,
+                           {**sim_part.as_dict(), "part": part, "view": view}) as rig:
+            yield rig
+
+    @contextmanager
+    def on_stage(self, part: int) -> Iterator[Rig]:
+        """The rig with part number `part` standing on its stage (a rig with a [stage]), which
+        turns it between views; on the simulator the part stands on the platter's axis."""
+        if not self.simulated:
+            yield self._hardware_rig()
+            return
+        assert self.config.stage is not None, "on_stage needs a rig with a [stage]"
+        sim_part = self.sim_part(part)
+        with self._sim_rig(sim_part.on_stage(self.config.stage.nominal), self.seed + part,
+                           {**sim_part.as_dict(), "part": part}) as rig:
+            yield rig
+
+    @contextmanager
+    def _sim_rig(self, scene: Any, seed: int, truth: dict[str, Any]) -> Iterator[Rig]:
+        """The simulated rig looking at `scene`, writing `truth` into every session."""
         from sim.station_parts import TRUTH_FILE
 
-        sim_part = self.sim_part(part)
-        rig = open_rig(self.config, scene=sim_part.scene(view, views), seed=self.seed + part * views + view)
-        truth = {**sim_part.as_dict(), "part": part, "view": view}
+        rig = open_rig(self.config, scene=scene, seed=seed)
         rig.extras["session_files"].append(lambda root: write_json(Path(root) / TRUTH_FILE, truth))
         try:
             yield rig

@@ -7,14 +7,21 @@ One cycle (`Station.run_cycle`) measures one part:
     start     a result row `in_progress` is committed (serial, attempt, program version,
               calibration id, software version, operator, part folder, start time)
     scan      per view: the rig with the part in place; capture, decode, reconstruct into
-              `<data>/sessions/<program>/<serial>-<time>/view<k>/` (a complete session each)
-    measure   the `Measurement` on the part's sessions; values judged against the program
+              `<data>/sessions/<program>/<serial>-<time>/view<k>/` (a complete session each);
+              with stage angles (`[scan] views = [0, 90, ...]`) the rig's stage turns the
+              part to each, one multi-view session `<serial>-<time>/multiview/`
+              (`scanner.multiview`: every view durable with its stage pose), whose views
+              are then aligned and fused (`inspection.views.whole`; no mesh: the
+              measurement does not use it)
+    measure   the `Measurement` on the part's sessions (or on the merged cloud of its
+              multi-view session, once); values judged against the program
     store     the row gets its status, message and values in one commit; `part.json` (the
               cycle's record) is written into the part folder, atomically, last
 
 Nothing is lost on the way out: an operator abort (the `cancel` event, checked at every
 frame), Ctrl-C, or a device fault store the cycle as `aborted` or `error`, and the
-session folder keeps its frames without a manifest (incomplete, with `error.json`). A
+session folder keeps its frames without a manifest (incomplete, with `error.json`; a
+multi-view session keeps its finished views and says in its `error.json` which view stopped). A
 station killed outright leaves its row `in_progress`; `recover()` at the next start marks
 it `incomplete`. A re-scan is a new cycle (attempt n + 1) of the same serial; earlier
 attempts stay. Statistics use each serial's last cycle.
@@ -30,8 +37,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 from scanner import __version__
+from scanner.errors import ConfigError, ScannerError
+from scanner.multiview import plan_views
 from scanner.pipeline import Progress, scan
-from scanner.session import write_json
+from scanner.rig import Rig, RigConfig
+from scanner.session import Session, write_json
 from slscan.station import StationError
 from slscan.station.calib import describe as describe_calibration
 from slscan.station.calib import refusals as calibration_refusals
@@ -45,6 +55,7 @@ from slscan.station.results import PartStart, ResultsStore, ValueRecord, utcnow
 from slscan.station.station_config import StationConfig
 
 PART_RECORD = "part.json"
+MULTIVIEW_FOLDER = "multiview"  # a part's multi-view session, in its part folder
 STATS_WINDOW = 1000  # results the running statistics look back over
 
 
@@ -98,6 +109,7 @@ class Station:
         self.on_stored = on_stored
         self.calibration = rig_calibration(bench.config)
         self.patterns = program.scan.pattern_set()
+        self.stage_plan = stage_plan(program, bench.config)
 
     # -- status
 
@@ -190,21 +202,72 @@ class Station:
                           step: Callable[[str, int, int], None]) -> MeasurementResult:
         """Scan every view of the part into `folder` (each session appended to `sessions`
         as it starts) and measure them."""
+        if self.stage_plan is not None:
+            return self._scan_whole(part, folder, sessions, step)
         views = self.program.scan.views
         scanned = []
         for k in range(views):
             where = f" (view {k + 1}/{views})" if views > 1 else ""
             step("place" + where, 0, 1)
             with self.bench.view(part, k, views) as rig:
-                if self.program.scan.exposure_s is not None:
-                    rig.camera.set_exposure(self.program.scan.exposure_s)
+                self._set_exposure(rig)
                 sessions.append(folder / f"view{k}")
                 scanned.append(scan(rig, self.patterns, sessions[-1],
                                     lambda stage, done, total: step(stage + where, done, total)).session)
+        return self._measured(lambda: self.measurement.measure(scanned, self.program), step)
+
+    def _scan_whole(self, part: int, folder: Path, sessions: list[Path],
+                    step: Callable[[str, int, int], None]) -> MeasurementResult:
+        """Scan the part at every stage angle into one multi-view session (appended to
+        `sessions` before the first view), align and fuse its views, measure the merged cloud."""
+        from inspection.views.whole import whole_part
+        from scanner.multiview import capture_views
+
+        assert self.stage_plan is not None
+        n = len(self.stage_plan)
+        sessions.append(folder / MULTIVIEW_FOLDER)
+        step("place", 0, 1)
+        with self.bench.on_stage(part) as rig:
+            self._set_exposure(rig)
+
+            def scan_view(out: Path, extra: dict[str, Any]) -> Session:
+                where = f" (view {extra['view'] + 1}/{n})"
+                return scan(rig, self.patterns, out, lambda stage, done, total: step(stage + where, done, total),
+                            extra=extra).session
+
+            views = capture_views(rig, self.stage_plan, sessions[-1], scan_view,
+                                  lambda k, _, what: step(f"{what} (view {k + 1}/{n})", k, n))
+        whole_part(views, mesh=False, progress=lambda stage, done, total: step(f"merge: {stage}", 0, 1))
+        return self._measured(lambda: self.measurement.measure_whole(views, self.program), step)
+
+    def _set_exposure(self, rig: Rig) -> None:
+        if self.program.scan.exposure_s is not None:
+            rig.camera.set_exposure(self.program.scan.exposure_s)
+
+    @staticmethod
+    def _measured(measure: Callable[[], MeasurementResult],
+                  step: Callable[[str, int, int], None]) -> MeasurementResult:
         step("measure", 0, 1)
-        measured = self.measurement.measure(scanned, self.program)
+        measured = measure()
         step("measure", 1, 1)  # an abort pressed while measuring takes effect here
         return measured
+
+
+def stage_plan(program: PartProgram, rig: RigConfig) -> list[dict[str, float]] | None:
+    """The stage positions of the program's stage angles on `rig` (None: the program gives
+    a number of views). A rig without a [stage], or an angle beyond its travel, is refused
+    here, when the station opens, naming the program's `scan.views`."""
+    angles = program.scan.stage_angles_deg
+    if angles is None:
+        return None
+    if rig.stage is None:
+        raise ConfigError(program.path, "scan.views", f"stage angles need a rig with a [stage] to turn the part; "
+                                                      f"{rig.path} has none (give a number of views, or use a rig "
+                                                      f"with a turntable)")
+    try:
+        return plan_views(rig.stage, angles_deg=angles)
+    except ScannerError as exc:
+        raise ConfigError(program.path, "scan.views", str(exc)) from None
 
 
 def _record(station: Station, outcome: CycleOutcome, started: dt.datetime,

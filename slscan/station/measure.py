@@ -2,7 +2,9 @@
 the measurements a station config can name (`MEASUREMENTS`).
 
 A `Measurement` takes the sessions of one part (one per view, each complete and
-processed: `outputs/cloud.ply` in mm, camera frame) and the part program, and returns one
+processed: `outputs/cloud.ply` in mm, camera frame; `measure`) or its multi-view session
+(the views a stage turned it through, aligned and fused: `measure_whole`) and the part
+program, and returns one
 `MeasuredValue` per characteristic: its value with its expanded uncertainty U (k = 2), or,
 for a figure too small to tell from zero, no value and its detection limit. It does not
 judge the part: the station decides each value against the program's tolerance
@@ -22,6 +24,8 @@ ever a number.
   program and the decision of each of its characteristics on this view
   (`view_decisions`); the inspection's recording (`outputs/inspection.rrd`: registered
   cloud, CAD, deviations, deviation map, report) unless the session's rig records nothing.
+  A multi-view session's merged cloud is inspected once, its report and recording in the
+  multi-view folder's outputs/. The program's `edge_margin_mm` is the form figures' edge margin.
 - `simulator-truth` (`SimulatorTruth`): the simulated part's imposed defects
   (`sim_part.json`, written into each session by the simulated bench) reported as if
   measured. It measures nothing: it exercises a station's loop, storage, views and verdict
@@ -45,6 +49,9 @@ from slscan.station.program import Characteristic, PartProgram, program_toleranc
 
 if TYPE_CHECKING:
     from inspection.cad import CadModel
+    from inspection.measured_cloud import ScanCloud
+    from inspection.uncertainty import ScanUncertainty
+    from scanner.multiview import MultiViewSession
 
 REPORT_FILE = "inspection.json"  # written into the session's outputs/ by the adapter
 RECORDING_FILE = "inspection.rrd"  # the inspection's Rerun recording, beside it (`slscan review PART` shows it)
@@ -114,6 +121,11 @@ class Measurement(Protocol):
         """Measure every characteristic of `program` on one part's processed sessions."""
         ...
 
+    def measure_whole(self, session: MultiViewSession, program: PartProgram) -> MeasurementResult:
+        """Measure every characteristic of `program` on one part's multi-view session, its
+        views aligned and fused (`inspection.views.whole.whole_part` has run)."""
+        ...
+
 
 def cad_faces(program: PartProgram) -> dict[str, str]:
     """The part program's CAD model's faces as label -> surface type."""
@@ -133,9 +145,10 @@ class InspectionMeasurement:
 
     def __init__(self) -> None:
         self._models: dict[tuple[Path, str], CadModel] = {}  # (CAD path, unit) -> model, loaded once
-        # (CAD path, unit, view) -> the last part's registration: the next part in the same fixture starts
-        # from it (inspection.registration.warm_start; checked, with the global search as fallback)
-        self._priors: dict[tuple[Path, str, int], Any] = {}
+        # (CAD path, unit, view; None: the merged cloud) -> the last part's registration: the next part in
+        # the same fixture starts from it (inspection.registration.warm_start; checked, with the global
+        # search as fallback)
+        self._priors: dict[tuple[Path, str, int | None], Any] = {}
 
     def unavailable(self) -> str | None:
         return None
@@ -150,48 +163,78 @@ class InspectionMeasurement:
 
     def measure(self, sessions: Sequence[Session], program: PartProgram) -> MeasurementResult:
         from inspection.errors import InspectionError
-        from inspection.inspect_scan import inspect
         from inspection.measured_cloud import load_session
-        from scanner.pipeline import recording_level
-        from scanner.session_recording import SessionRecording
         from slscan.measurement_model import session_uncertainty
 
-        model = self._model(program)
-        tolerances = program_tolerances(program)
         tables: list[dict[str, dict[str, Any]]] = []
         details: dict[str, Any] = {}
         paths: list[Path] = []
         for k, session in enumerate(sessions):
-            prior_key = (program.cad_path, program.mesh_unit, k)
-            level = recording_level(session)  # the session's own: none, display or full
             try:
                 scan = load_session(session.root)
-                with (nullcontext() if level == "none" else
-                      SessionRecording(session.outputs / RECORDING_FILE, session.id, send_blueprint=False,
-                                       level=level)) as recording:
-                    if recording is not None:
-                        recording.log_rig(session.rig_model())
-                    report = inspect(scan, model, tolerances, recording=recording,
-                                     prior=self._priors.get(prior_key),
-                                     uncertainty=session_uncertainty(session)(scan.pixels))
+                table, data, path = self._inspect(scan, program, session, session.outputs, session.id, k,
+                                                  session_uncertainty(session)(scan.pixels))
             except InspectionError as exc:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
-            self._priors[prior_key] = report.registration
-            data = report.as_dict()
-            table = {str(row["label"]): row for row in data["faces"]}
-            data["program"] = view_decisions(program, table, k)
-            path = session.outputs / REPORT_FILE
-            write_json(path, data)
             paths.append(path)
             details[f"view{k}"] = {key: data[key] for key in ("fitness", "rmse_mm", "verdict") if key in data}
             tables.append(table)
         values = tuple(_pick(c, tables) for c in program.characteristics)
         return MeasurementResult(True, values, details=details, report_paths=tuple(paths))
 
+    def measure_whole(self, session: MultiViewSession, program: PartProgram) -> MeasurementResult:
+        """The merged cloud of the views (`inspection.views.whole.load_merged`, part frame)
+        inspected once: every face any view sees. Its report and recording go into the
+        multi-view folder's outputs/; the noise is estimated from the data (the merged
+        cloud has no one camera's pixels, as in `slscan inspect MULTIVIEW`)."""
+        from inspection.errors import InspectionError
+        from inspection.views.whole import load_merged
 
-def view_decisions(program: PartProgram, table: Mapping[str, Mapping[str, Any]], view: int) -> dict[str, Any]:
+        try:
+            table, data, path = self._inspect(load_merged(session), program, session.views[0].session,
+                                              session.outputs, session.id, None, None)
+        except InspectionError as exc:
+            return MeasurementResult(False, message=f"multi-view session {session.root}: {exc}")
+        details = {"whole": {key: data[key] for key in ("fitness", "rmse_mm", "verdict") if key in data}}
+        return MeasurementResult(True, tuple(_pick(c, [table]) for c in program.characteristics), details=details,
+                                 report_paths=(path,))
+
+    def _inspect(self, scan: ScanCloud, program: PartProgram, session: Session, outputs: Path, recording_id: str,
+                 view: int | None, uncertainty: ScanUncertainty | None) -> tuple[dict[str, dict[str, Any]],
+                                                                              dict[str, Any], Path]:
+        """Inspect `scan` (one view's, or the merged cloud: `view` None) for `program`, starting
+        from the registration of the last part seen the same way; write its report (and its
+        recording, at the level of `session`, whose rig frames the scan) into `outputs`.
+        Returns the per-face table, the report and the report's path. Raises InspectionError."""
+        from inspection.form import FormSettings
+        from inspection.inspect_scan import InspectionSettings, inspect
+        from scanner.pipeline import recording_level
+        from scanner.session_recording import SessionRecording
+
+        # (CAD path, unit, view) -> the last part's registration: the next part in the same fixture starts from it
+        prior_key = (program.cad_path, program.mesh_unit, view)
+        level = recording_level(session)  # the session's own: none, display or full
+        settings = InspectionSettings(form=FormSettings(edge_margin_mm=program.edge_margin_mm))
+        with (nullcontext() if level == "none" else
+              SessionRecording(outputs / RECORDING_FILE, recording_id, send_blueprint=False, level=level)) as recording:
+            if recording is not None:
+                recording.log_rig(session.rig_model())
+            report = inspect(scan, self._model(program), program_tolerances(program), settings, recording,
+                             prior=self._priors.get(prior_key), uncertainty=uncertainty)
+        self._priors[prior_key] = report.registration
+        data = report.as_dict()
+        table = {str(row["label"]): row for row in data["faces"]}
+        data["program"] = view_decisions(program, table, view)
+        outputs.mkdir(parents=True, exist_ok=True)
+        path = outputs / REPORT_FILE
+        write_json(path, data)
+        return table, data, path
+
+
+def view_decisions(program: PartProgram, table: Mapping[str, Mapping[str, Any]], view: int | None) -> dict[str, Any]:
     """The part program and the ISO 14253-1 decision of each of its characteristics on one
-    view's per-face table (what a view's `inspection.json` says under "program"): name,
+    view's per-face table (`view` None: a multi-view session's merged cloud's), what its
+    `inspection.json` says under "program": name,
     face and its name, kind, method, tolerance, value, U, detection limit, decision, and
     the points it rests on (a face the view did not see: not measured, with the reason)."""
     rows = []
@@ -247,6 +290,9 @@ class SimulatorTruth:
         points = json.loads((sessions[0].outputs / "result.json").read_text())["points"]
         return MeasurementResult(True, tuple(MeasuredValue(c.name, truth[c.name], points)
                                              for c in program.characteristics))
+
+    def measure_whole(self, session: MultiViewSession, program: PartProgram) -> MeasurementResult:
+        return self.measure([v.session for v in session.views], program)
 
 
 # the measurements a station config or `--measurement` can name

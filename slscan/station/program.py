@@ -11,7 +11,15 @@
     [scan]
     patterns = "../patterns/heterodyne_3x4.toml"   # pattern set TOML, relative to this file
     exposure_s = 0.010                  # optional: camera exposure (default: the rig's)
-    views = 1                           # scans per part (the part is turned between views)
+    views = 1                           # scans per part: N, the operator turns the part between views
+                                        # (each view measured alone), or a list of stage angles in
+                                        # degrees, [0, 90, 180, 270]: the rig's [stage] turns the part,
+                                        # the views are fused and the whole part measured at once
+
+    [inspection]                        # optional
+    edge_margin_mm = 1.0                # band along every face's measured border left out of the
+                                        # figures (default 1 mm; a narrow face, e.g. a 1.5 mm chamfer,
+                                        # needs less)
 
     [calibration]
     id = "factory-sim-bench"            # the calibration the program was proven with
@@ -52,11 +60,12 @@ face exists in the CAD model and has a surface type the characteristic applies t
 from __future__ import annotations
 
 import hashlib
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Callable, Literal, Mapping, Sequence
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from inspection.cad import MESH_UNITS_MM
 from inspection.tolerances import CONFORMING, DECISION_RULES, GUARD_BANDED, PLAIN, Tolerances, decide
@@ -84,10 +93,30 @@ class ProgramTable(schema.Schema):
     decision_rule: Literal[tuple(DECISION_RULES)] = GUARD_BANDED  # type: ignore[valid-type]
 
 
+MAX_VIEWS = 16
+
+
 class ScanTable(schema.Schema):
     patterns: schema.Str
     exposure_s: Annotated[float, Field(strict=True, gt=0, lt=10)] | None = None
-    views: Annotated[int, Field(strict=True, ge=1, le=16)] = 1
+    views: int | list[float] = 1  # a number of views or stage angles in degrees (`_views`)
+
+    @field_validator("views", mode="before")
+    @classmethod
+    def _views(cls, v: object) -> object:
+        """1..MAX_VIEWS views, or a list of 1..MAX_VIEWS finite stage angles (deg)."""
+        want = f"a number of views 1..{MAX_VIEWS} or a list of 1..{MAX_VIEWS} stage angles in degrees"
+        number = (int, float)
+        if isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_VIEWS:
+            return v
+        if (isinstance(v, list) and 1 <= len(v) <= MAX_VIEWS
+                and all(isinstance(a, number) and not isinstance(a, bool) and math.isfinite(a) for a in v)):
+            return [float(a) for a in v]
+        raise ValueError(f"expected {want}, got {v!r}")
+
+
+class InspectionTable(schema.Schema):
+    edge_margin_mm: Annotated[float, Field(strict=True, ge=0, le=10)] = 1.0
 
 
 class CalibrationTable(schema.Schema):
@@ -114,6 +143,7 @@ class ProgramFile(schema.Schema):
     scan: ScanTable
     calibration: CalibrationTable
     control: ControlTable = ControlTable()
+    inspection: InspectionTable = InspectionTable()
     faces: dict[str, Name] = {}
     characteristic: Annotated[list[CharacteristicTable], Field(min_length=1)]
 
@@ -150,11 +180,14 @@ class Characteristic:
 
 @dataclass(frozen=True)
 class ScanSettings:
-    """Pattern set file, exposure (s; None = the rig's) and views per part."""
+    """Pattern set file, exposure (s; None = the rig's) and views per part; with
+    `stage_angles_deg` (a `views` list) the rig's stage turns the part to each angle (deg)
+    and `views` is their number, else the operator turns it between `views` scans."""
 
     patterns_path: Path
     exposure_s: float | None
     views: int
+    stage_angles_deg: tuple[float, ...] | None = None
 
     def pattern_set(self) -> PatternSet:
         return PatternSet.load(self.patterns_path)
@@ -181,6 +214,7 @@ class PartProgram:
     subgroup_size: int = 1
     face_names: Mapping[str, str] = field(default_factory=dict)
     decision_rule: str = GUARD_BANDED
+    edge_margin_mm: float = 1.0  # the inspection's band left out along every face's border
 
     def characteristic(self, name: str) -> Characteristic:
         for c in self.characteristics:
@@ -204,13 +238,16 @@ def load_program(path: str | Path, faces: Callable[[PartProgram], Mapping[str, s
     except ConfigError as exc:
         raise ConfigError(path, "scan.patterns", str(exc)) from None
     chars = _characteristics(f.characteristic, path)
+    views = f.scan.views
+    angles = None if isinstance(views, int) else tuple(views)
     program = PartProgram(
         path=path, name=f.program.name, version=str(f.program.version), cad_path=cad, mesh_unit=f.program.mesh_unit,
-        description=f.program.description, scan=ScanSettings(patterns, f.scan.exposure_s, f.scan.views),
+        description=f.program.description,
+        scan=ScanSettings(patterns, f.scan.exposure_s, len(angles) if angles else int(views), angles),
         calibration_id=f.calibration.id, max_calibration_age_days=f.calibration.max_age_days,
         characteristics=chars, fingerprint=hashlib.sha256(path.read_bytes()).hexdigest()[:12],
         face_check="not checked", subgroup_size=f.control.subgroup_size, face_names=dict(f.faces),
-        decision_rule=f.program.decision_rule)
+        decision_rule=f.program.decision_rule, edge_margin_mm=f.inspection.edge_margin_mm)
     if faces is None:
         return program
     found = faces(program)
