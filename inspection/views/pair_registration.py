@@ -45,9 +45,10 @@ model) refuses right poses. Here:
    refined again; a start that settles elsewhere (beyond `SAME_DEG` / `SAME_MM`) and fits
    better (fitness less violations) shows ICP stalled on a motion the overlap barely
    fixes, and the pair is refused, naming that motion. On those 24 pairs the probes of the
-   wrong poses settled 0.9-1.2 deg away and fitted 0.008-0.014 better; those of right
-   poses settled at the same pose or, where they settled elsewhere (0.5-1.2 deg), fitted
-   0.0016-0.012 worse; one right pose 0.67 deg off (135 deg) had a probe settle 0.03 deg
+   wrong poses (0 -> 2 at 90 deg; 2 -> 5 at 135 deg, refused by free space anyway)
+   settled 0.8-1.2 deg away and fitted 0.008-0.014 better; those of right poses settled
+   at the same pose (within 0.11 deg), or elsewhere (0.5-1.2 deg) fitting 0.0016-0.012
+   worse; one right pose 0.67 deg off (135 deg) had a probe settle 0.03 deg
    from the truth fitting 0.005 better, and is refused.
 
 The search's best pose and its near-equal alternatives are each refined (point-to-plane ICP,
