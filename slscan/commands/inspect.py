@@ -337,7 +337,7 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
     folder = Path(out) if out else (source / "outputs" if source.is_dir() else source.parent)
     settings = InspectionSettings(registration=RegistrationSettings(seed=seed))
     if program is not None:  # the program's edge margin (a narrow face, e.g. a chamfer, needs less than the default)
-        settings = replace(settings, form=replace(settings.form, edge_margin_mm=program.edge_margin_mm))
+        settings = replace(settings, form=program.form_settings())
     own = None
     uncertainty = None
     if source.is_dir():

@@ -206,15 +206,13 @@ class InspectionMeasurement:
         from the registration of the last part seen the same way; write its report (and its
         recording, at the level of `session`, whose rig frames the scan) into `outputs`.
         Returns the per-face table, the report and the report's path. Raises InspectionError."""
-        from inspection.form import FormSettings
         from inspection.inspect_scan import InspectionSettings, inspect
         from scanner.pipeline import recording_level
         from scanner.session_recording import SessionRecording
 
-        # (CAD path, unit, view) -> the last part's registration: the next part in the same fixture starts from it
         prior_key = (program.cad_path, program.mesh_unit, view)
         level = recording_level(session)  # the session's own: none, display or full
-        settings = InspectionSettings(form=FormSettings(edge_margin_mm=program.edge_margin_mm))
+        settings = InspectionSettings(form=program.form_settings())
         with (nullcontext() if level == "none" else
               SessionRecording(outputs / RECORDING_FILE, recording_id, send_blueprint=False, level=level)) as recording:
             if recording is not None:

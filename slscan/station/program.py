@@ -63,7 +63,7 @@ import hashlib
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Annotated, Callable, Literal, Mapping, Sequence
+from typing import TYPE_CHECKING, Annotated, Callable, Literal, Mapping, Sequence
 
 from pydantic import Field, field_validator
 
@@ -74,6 +74,9 @@ from scanner.config import resolve
 from scanner.errors import ConfigError
 from scanner.patterns import PatternSet
 from slscan.station.spc import MAX_SUBGROUP
+
+if TYPE_CHECKING:
+    from inspection.form import FormSettings
 
 KINDS = ("flatness", "cylindricity", "sq", "profile")
 FORM_METHODS = ("minimum_zone", "least_squares")
@@ -215,6 +218,12 @@ class PartProgram:
     face_names: Mapping[str, str] = field(default_factory=dict)
     decision_rule: str = GUARD_BANDED
     edge_margin_mm: float = 1.0  # the inspection's band left out along every face's border
+
+    def form_settings(self) -> FormSettings:
+        """The form figures' settings this program asks for (its edge margin)."""
+        from inspection.form import FormSettings  # scipy: not at the command line's start
+
+        return FormSettings(edge_margin_mm=self.edge_margin_mm)
 
     def characteristic(self, name: str) -> Characteristic:
         for c in self.characteristics:
