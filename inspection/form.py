@@ -22,7 +22,7 @@ Scanner noise. A point moves along its camera ray; its deviation moves by (n·ra
 noise model's draws (white noise per point and the fringe systematic per projector
 column) are binned into the grid cells like the heights, and every figure is evaluated
 again on the measured surface plus each draw (`FormSettings.draws`): the spread gives the
-figure's noise uncertainty, the mean shift its noise bias, which is removed (zones of the
+figure's noise uncertainty, the mean shift its noise bias, which is removed, its own size in u (zones of the
 form surface, the profile, the deviation extremes and RMS); the same figure of the drawn
 noise alone gives the detection limit of the zones (95th percentile). Sq has the noise's
 mean square removed (Sq² - <e²>), and is null below its detection limit. Without a noise
@@ -50,7 +50,7 @@ transform.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
@@ -470,6 +470,7 @@ class FaceForm:
     roughness_cutoff_mm: float | None = None
     grid_mm: float | None = None
     u_components: dict[str, dict[str, float]] = field(default_factory=dict)
+    region: np.ndarray | None = field(default=None, repr=False, compare=False)  # (N,) bool: the input points used
 
     def figure(self, name: str) -> Estimate | None:
         return getattr(self, name)
@@ -482,7 +483,7 @@ class FaceForm:
             v = getattr(self, f.name)
             if f.name in FIGURES:
                 out.update(v.fields(f.name) if v is not None else {f"{f.name}_mm": None, f"{f.name}_u_mm": None})
-            elif f.name != "u_components":
+            elif f.name not in ("u_components", "region"):
                 out[f.name] = v
         out["u_components_mm"] = self.u_components
         return out
@@ -575,14 +576,24 @@ def noise_sigma(z: np.ndarray, mask: np.ndarray) -> float | None:
 def from_draws(value: float, drawn: np.ndarray, noise_only: np.ndarray | None = None,
                 cal: np.ndarray | None = None) -> tuple[Estimate, dict[str, float]]:
     """A figure from its value on the measured surface, its values on the surface plus
-    each noise draw (spread: u; mean shift: the noise bias, removed), optionally the same
-    figure of the noise alone (its 95th percentile: the detection limit) and its changes
-    for each calibration direction (root sum of squares: u_cal)."""
+    each noise draw (spread: u; mean shift: the noise bias, removed, with its own
+    uncertainty), optionally the same figure of the noise alone (its 95th percentile: the
+    detection limit) and its changes for each calibration direction (root sum of squares:
+    u_cal).
+
+    The removed bias is known only to within its own size: it is the shift that noise
+    adds to the already noisy measured surface, not to the true one, and for a zone (an
+    extreme-value figure) the two differ by a fraction of it, either way (on the
+    simulator's bowed plate, 0.71 µm removed on average where 0.52 µm was added). So the
+    correction's standard uncertainty is that of a rectangular distribution between no
+    bias and twice the estimate, |bias|/sqrt(3), plus the draws' Monte Carlo error of
+    the mean shift, u_noise/sqrt(D)."""
     bias = float(np.mean(drawn) - value)
     u_noise = float(np.std(drawn, ddof=1)) if len(drawn) > 1 else 0.0
+    u_bias = float(np.hypot(bias / np.sqrt(3.0), u_noise / np.sqrt(len(drawn)))) if len(drawn) > 1 else abs(bias)
     u_cal = float(np.sqrt(np.sum(np.square(cal)))) if cal is not None and len(cal) else 0.0
-    u = float(np.hypot(u_noise, u_cal))
-    parts = {"noise": u_noise, "calibration": u_cal}
+    u = float(np.sqrt(u_noise ** 2 + u_bias ** 2 + u_cal ** 2))
+    parts = {"noise": u_noise, "noise bias": u_bias, "calibration": u_cal}
     if noise_only is None:
         return Estimate(value - bias, u, None, bias), parts
     limit = float(np.quantile(noise_only, DETECTION_QUANTILE))
@@ -618,19 +629,28 @@ def _sq(rough: np.ndarray, drawn_rough: np.ndarray, inner: np.ndarray, model_rel
 
 def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: np.ndarray,
                   settings: FormSettings = FormSettings(), seed: int = 0, noise: PointNoise | None = None,
-                  normals: np.ndarray | None = None, shifts: np.ndarray | None = None) -> FaceForm:
+                  normals: np.ndarray | None = None, shifts: np.ndarray | None = None,
+                  region: np.ndarray | None = None) -> FaceForm:
     """Form, texture and deviation figures of one face from its measured points (model
     frame), their signed deviations and the surface parameters of their feet, each with
     its uncertainty. `noise`: the points' noise model with rays in the model frame, and
     `normals` (N, 3) the face's outward normals at the points (for the deviation a ray
     move makes); `shifts` (D, N, 3): the points' moves for each principal calibration
-    direction (model frame). Without `noise` it is estimated from the heights."""
+    direction (model frame). Without `noise` it is estimated from the heights.
+    `region` (N,) bool: take the figures over exactly these points (another evaluation's
+    `FaceForm.region`, e.g. the noise-free truth over the region a measurement evaluated),
+    without the spike test and the edge margin; the result's `region` says which points
+    the figures were taken over (spikes dropped, inside the edge margin)."""
     n = len(points)
     if n < MIN_POINTS:
         return FaceForm(n, "too few points", f"{n} points; at least {MIN_POINTS} are needed")
-    med = np.median(deviation)
-    rs = 1.4826 * np.median(np.abs(deviation - med))
-    keep = np.abs(deviation - med) <= settings.outlier_sigma * max(rs, 1e-6)
+    if region is None:
+        med = np.median(deviation)
+        rs = 1.4826 * np.median(np.abs(deviation - med))
+        keep = np.abs(deviation - med) <= settings.outlier_sigma * max(rs, 1e-6)
+    else:
+        keep = region.copy()
+        settings = replace(settings, edge_margin_mm=0.0)
     points, deviation, uv = points[keep], deviation[keep], uv[keep]
     if noise is not None:
         noise = noise.subset(keep)
@@ -644,7 +664,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         dev_shift = None if shifts is None else np.einsum("dij,ij->di", shifts, normals) if normals is not None else None
         stats, parts = _deviation_stats(deviation, deviation[None] + draws, deviation, draws, dev_shift)
         return FaceForm(len(points), "ok", f"{face.type}: deviations of raw points only (no form filter)",  # type: ignore[attr-defined]
-                        deviation_source="raw points", u_components=parts, **stats)
+                        deviation_source="raw points", u_components=parts, region=keep, **stats)
     grid = _grid(xy)
     zg = grid.mean(deviation)
     mask = np.isfinite(zg)
@@ -657,6 +677,8 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
                         f"left inside the {settings.edge_margin_mm} mm edge margin")
     zg = np.where(inner, zg, np.nan)  # the border band's mixed pixels must not leak into the filters
     raw_sel = inner.ravel()[grid.cell]
+    used = np.zeros(n, bool)
+    used[np.flatnonzero(keep)[raw_sel]] = True
     if noise is not None:
         point_draws = noise.draw(rng, settings.draws) * np.einsum("ij,ij->i", normals, noise.ray)
         cell_draws = grid.mean(point_draws)
@@ -693,8 +715,8 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     parts["sq"] = sq_parts
     common = dict(points=int(raw_sel.sum()), status="ok", sq=sq, sq_raw_mm=sq_raw, sq_noise_mm=sq_noise,
                   noise_mm=typical, noise_source=source, form_cutoff_mm=settings.form_cutoff_mm,
-                  roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=grid.spacing, deviation_source="form surface",
-                  **stats)
+                  roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=grid.spacing,
+                  deviation_source="form surface", region=used, **stats)
     cxy = grid.centres(inner)
     f, e = form[inner], noise_form[:, inner]
     cal = None if cal_form is None else cal_form

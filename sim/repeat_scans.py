@@ -16,7 +16,7 @@ from __future__ import annotations
 import multiprocessing
 import time
 from dataclasses import dataclass, replace
-from typing import Callable, Iterable
+from typing import Callable, Iterator, TypeVar
 
 import numpy as np
 
@@ -38,7 +38,7 @@ from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator, triangulate
 from scanner.rig import RigConfig
 from sim.artefact_scenes import artefact_objects, quick_scan, window_renderer
-from sim.render import SensorModel
+from sim.render import Renderer, SensorModel
 
 
 @dataclass(frozen=True)
@@ -104,40 +104,42 @@ class Bench:
 
 Measure = Callable[[np.ndarray, Callable[[np.ndarray], ScanUncertainty]], Estimate]
 TrialFunction = Callable[[int], tuple[Trial, ...]]  # trial k -> one Trial per figure
+T = TypeVar("T")
 
-_JOB: TrialFunction | None = None  # the study being run, inherited by forked workers
+_JOB: Callable[[int], object] | None = None  # the study being run, inherited by forked workers
 
 
-def _run_job(k: int) -> tuple[Trial, ...]:
+def _run_job(k: int) -> object:
     assert _JOB is not None
     return _JOB(k)
 
 
+def map_trials(job: Callable[[int], T], n: int, processes: int = 1) -> Iterator[T]:
+    """job(0..n-1) in order, on `processes` forked workers (each job draws everything from
+    its own seed, so the results do not depend on how they are shared out)."""
+    global _JOB
+    if processes <= 1:
+        yield from (job(k) for k in range(n))
+        return
+    _JOB = job
+    try:
+        with multiprocessing.get_context("fork").Pool(processes) as pool:
+            yield from pool.imap(_run_job, range(n))  # type: ignore[misc]
+    finally:
+        _JOB = None
+
+
 def run_trials(figures: tuple[str, ...], trial: TrialFunction, n: int, processes: int = 1,
                progress: Callable[[str], None] | None = None) -> tuple[CoverageResult, ...]:
-    """Trials 0..n-1 of a study (`trial(k)` draws everything from its own seed, so the
-    result does not depend on how they are shared out) on `processes` forked workers, with
-    a line to `progress` every tenth of the way."""
-    global _JOB
+    """Trials 0..n-1 of a study (`map_trials`), with a line to `progress` every tenth of
+    the way."""
     done: list[tuple[Trial, ...]] = []
     step = max(1, n // 10)
-
-    def collect(results: Iterable[tuple[Trial, ...]]) -> None:
-        for r in results:
-            done.append(r)
-            if progress is not None and (len(done) % step == 0 or len(done) == n):
-                progress("; ".join(f"{f}: {CoverageResult(f, tuple(t[i] for t in done)).fraction:.1%}"
-                                   for i, f in enumerate(figures)) + f" inside ±U after {len(done)} of {n}")
-
-    if processes <= 1:
-        collect(trial(k) for k in range(n))
-    else:
-        _JOB = trial
-        try:
-            with multiprocessing.get_context("fork").Pool(processes) as pool:
-                collect(pool.imap(_run_job, range(n)))
-        finally:
-            _JOB = None
+    for r in map_trials(trial, n, processes):
+        done.append(r)
+        if progress is not None and (len(done) % step == 0 or len(done) == n):
+            progress("; ".join(f"{f}: {CoverageResult(f, tuple(t[i] for t in done)).fraction:.1%}"
+                               for i, f in enumerate(figures)) + f" inside ±U after {len(done)} of {n}")
     return tuple(CoverageResult(f, tuple(t[i] for t in done)) for i, f in enumerate(figures))
 
 
@@ -270,6 +272,21 @@ def registered(measured: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.
     return R, b - R @ a
 
 
+def _plate_renderer(bench: Bench, plate: Plate, seed: int, k: int,
+                    rng: np.random.Generator) -> tuple[Renderer, np.ndarray]:
+    """Placement k of the plate (its own texture, a random place in the measuring volume,
+    tilted up to 20 degrees) on the camera window around it: (renderer, plate pose 4x4)."""
+    from sim.calibration_bench import rotation
+    from sim.scene import SceneObject
+
+    half = np.array(bench.acceptance.size_mm) / 2 - [PLATE_MM[0] / 2, PLATE_MM[1] / 2, 8.0]
+    c0 = np.array(bench.acceptance.centre_mm)
+    vertices, triangles = plate.mesh(seed * 100003 + k)
+    pose = pose_of(rotation(*rng.uniform(-20.0, 20.0, 2), rng.uniform(0.0, 360.0)), c0 + rng.uniform(-half, half))
+    obj = SceneObject("plate", "mesh", pose, 0.7, vertices=vertices, triangles=triangles)
+    return window_renderer(bench.model, (obj,), bench.sensor, bench.projector_blur_px), pose
+
+
 def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationUncertainty | None = None,
                   noise_scale: float = 1.0, plate: Plate = Plate(), draws: int = 32, processes: int = 1,
                   progress: Callable[[str], None] | None = None) -> tuple[CoverageResult, CoverageResult]:
@@ -279,24 +296,21 @@ def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationU
     (`registered`: registration is not what is studied here), evaluated as an inspection evaluates a plane face
     (`inspection.form.evaluate_face`), the decoded coordinates corrected for the camera's
     stated blur (`defocus_corrected`: not yet in the scan pipeline). The truth: the same
-    evaluation of the noise-free surface points the same pixels see."""
+    evaluation of the noise-free surface points the same pixels see, over the points the
+    measurement's figures were taken over (`FaceForm.region`: the silhouette's mixed
+    pixels, up to ~0.1 mm off, fail the spike test and the edge margin is counted from
+    what is left, so a truth taken over every pixel held corner cells the measurement did
+    not and read up to 4 µm wider)."""
     from inspection.form import FormSettings, evaluate_face
-    from sim.calibration_bench import rotation
-    from sim.scene import SceneObject
 
     face = _plate_face()
-    half = np.array(bench.acceptance.size_mm) / 2 - [PLATE_MM[0] / 2, PLATE_MM[1] / 2, 8.0]
-    c0 = np.array(bench.acceptance.centre_mm)
     cal = calibration or CalibrationUncertainty.none("the simulator's exact geometry")
     settings = FormSettings(draws=draws)
 
     def trial(k: int) -> tuple[Trial, Trial]:
         rng = np.random.default_rng((seed, k))
         t0 = time.perf_counter()
-        vertices, triangles = plate.mesh(seed * 100003 + k)
-        pose = pose_of(rotation(*rng.uniform(-20.0, 20.0, 2), rng.uniform(0.0, 360.0)), c0 + rng.uniform(-half, half))
-        obj = SceneObject("plate", "mesh", pose, 0.7, vertices=vertices, triangles=triangles)
-        renderer = window_renderer(bench.model, (obj,), bench.sensor, bench.projector_blur_px)
+        renderer, pose = _plate_renderer(bench, plate, seed, k, rng)
         decoded = defocus_corrected(quick_scan(renderer, bench.patterns, bench.model.projector_gamma,
                                                bench.exposure_s, bench.bit_depth, rng), bench.sensor.blur_sigma_px)
         used = renderer.model if calibration is None else perturbed(renderer.model, calibration.draw(rng))
@@ -318,10 +332,73 @@ def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationU
                             noise=unc.noise.rotated(R).scaled(noise_scale), normals=normals,  # type: ignore[union-attr]
                             shifts=None if moves is None else moves @ R.T)
         truth = evaluate_face(face, true_pts, true_pts[:, 2], true_pts[:, :2], FormSettings(draws=2), seed=k,
-                              noise=unc.noise.rotated(R).scaled(0.0), normals=normals)  # type: ignore[union-attr]
+                              noise=unc.noise.rotated(R).scaled(0.0), normals=normals,  # type: ignore[union-attr]
+                              region=got.region)
         dt_s = time.perf_counter() - t0
         return (Trial(got.flatness_mz, truth.flatness_mz.value, dt_s / 2),  # type: ignore[union-attr,arg-type]
                 Trial(got.sq, truth.sq.value, dt_s / 2))  # type: ignore[union-attr,arg-type]
 
     flat, sq = run_trials(("flatness (minimum zone)", "Sq"), trial, n, processes, progress)
     return flat, sq
+
+
+@dataclass(frozen=True)
+class NoiseModelCheck:
+    """How well the decoder-and-sensor noise model (`inspection.uncertainty.depth_noise`)
+    predicts the depth noise: per placement, the standard deviation of the difference of
+    two scans' depths over sqrt(2) times the predicted sigma_z (`ratios`), and the same
+    from two interleaved halves of the pixels (`halves`, (n, 2)), whose difference gives
+    each ratio's statistical precision."""
+
+    ratios: np.ndarray
+    halves: np.ndarray
+    pixels: int
+
+    @property
+    def precision(self) -> float:
+        """Statistical standard deviation of one placement's ratio."""
+        return float(np.std(self.halves[:, 0] - self.halves[:, 1], ddof=1) / 2.0)
+
+    def rel_u_bound(self) -> float:
+        """A 95 % upper bound of the model's own relative error: the ratios' scatter beyond
+        their statistical precision (the scatter's upper confidence limit, chi-square) and
+        the mean's offset with its standard error, combined."""
+        from scipy.stats import chi2
+
+        n = len(self.ratios)
+        s2_hi = np.var(self.ratios, ddof=1) * (n - 1) / chi2.ppf(0.05, n - 1)
+        excess = float(np.sqrt(max(s2_hi - self.precision ** 2, 0.0)))
+        offset = abs(float(np.mean(self.ratios)) - 1.0) + 2.0 * float(np.std(self.ratios, ddof=1)) / np.sqrt(n)
+        return float(np.hypot(excess, offset))
+
+    def summary(self) -> str:
+        return (f"noise model: measured/predicted depth noise {np.mean(self.ratios):.4f} mean, "
+                f"{np.std(self.ratios, ddof=1):.4f} std over {len(self.ratios)} placements (statistical precision of "
+                f"one {self.precision:.4f}, ~{self.pixels} pixels each); the model's relative error below "
+                f"{self.rel_u_bound():.2%} (95 %)")
+
+
+def noise_model_check(bench: Bench, n: int, seed: int = 99, plate: Plate = Plate(),
+                      processes: int = 1) -> NoiseModelCheck:
+    """`NoiseModelCheck` over n placements of the textured plate (two scans each, pixels
+    more than 8 px inside its outline: the silhouette's mixed pixels are not noise)."""
+    from scipy import ndimage
+
+    def placement(k: int) -> tuple[float, float, float, int]:
+        rng = np.random.default_rng((seed, k))
+        renderer, _ = _plate_renderer(bench, plate, seed, k, rng)
+        scans = [defocus_corrected(quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s,
+                                              bench.bit_depth, rng), bench.sensor.blur_sigma_px) for _ in range(2)]
+        z = [triangulate(d, Triangulator(renderer.model), with_normals=False).points[..., 2].astype(np.float64)
+             for d in scans]
+        inside = np.isfinite(z[0]) & np.isfinite(z[1]) & (renderer.ground_truth.object_id == 2)
+        inside = ndimage.binary_erosion(inside, np.ones((17, 17)))
+        rows, cols = np.nonzero(inside)
+        unc = scan_uncertainty(scans[0], renderer.model, lambda a: bench.sensor.noise_sigma_dn(a, bench.bit_depth),
+                               None, CalibrationUncertainty.none("not studied"), np.stack([cols, rows], axis=1))
+        r = (z[0] - z[1])[rows, cols] / (np.sqrt(2.0) * unc.noise.sigma_z)  # type: ignore[union-attr]
+        even = (rows + cols) % 2 == 0
+        return float(np.std(r)), float(np.std(r[even])), float(np.std(r[~even])), len(r)
+
+    done = np.array(list(map_trials(placement, n, processes)))
+    return NoiseModelCheck(done[:, 0], done[:, 1:3], int(np.median(done[:, 3])))

@@ -228,6 +228,45 @@ def test_flatness_noise_bias_removed() -> None:
     assert got.bias > 0 and abs(got.value - truth.value) <= got.U
 
 
+def test_a_removed_bias_carries_its_own_uncertainty() -> None:
+    """from_draws, written out: value less the draws' mean shift b; u² = the draws'
+    variance + b²/3 (the correction known to within its own size) + the variance / D
+    (the mean shift's Monte Carlo error) + the calibration changes' sum of squares."""
+    from inspection.form import from_draws
+
+    drawn = np.array([1.1, 1.3, 1.2, 1.4])
+    est, parts = from_draws(1.0, drawn, cal=np.array([0.03, 0.04]))
+    b, s = 0.25, float(np.std(drawn, ddof=1))
+    assert est.value == pytest.approx(1.0 - b) and est.bias == pytest.approx(b)
+    assert parts["noise bias"] == pytest.approx(np.sqrt(b * b / 3 + s * s / 4))
+    assert est.u == pytest.approx(np.sqrt(s * s + b * b / 3 + s * s / 4 + 0.05 ** 2))
+
+
+def test_a_truth_over_the_measured_region() -> None:
+    """A plate whose outline carries mixed pixels 100 um off: the measurement drops them as
+    spikes and keeps its edge margin from what is left; handed its `region`, the noise-free
+    evaluation takes its zone over exactly those points (none dropped, no second margin),
+    and evaluating the measured points over their own region gives the measured zone
+    (within its u: the grid starts at the region's corner)."""
+    rng = np.random.default_rng(12)
+    face = _plane_face()
+    pts, h, noise, normals = _plate(0.030, 0.0, 0.002, rng)
+    edge = (np.abs(pts[:, 0]) > 14.8) | (np.abs(pts[:, 1]) > 9.8)
+    noisy = pts.copy()
+    noisy[:, 2] += rng.normal(0, 0.002, len(pts)) + np.where(edge, rng.choice([-0.1, 0.1], len(pts)), 0.0)
+    got = evaluate_face(face, noisy, noisy[:, 2], noisy[:, :2], noise=noise, normals=normals)
+    region = got.region
+    assert region is not None and not region[edge].any() and 0.5 * len(pts) < region.sum() < len(pts)
+    inside = (np.abs(pts[:, 0]) < 13.0) & (np.abs(pts[:, 1]) < 8.0)  # 2 mm inside the outline: past spikes and margin
+    assert region[inside].all()
+    truth = evaluate_face(face, pts, h, pts[:, :2], noise=noise.scaled(0.0), normals=normals, region=region)
+    assert truth.region is not None and (truth.region == region).all()
+    again = evaluate_face(face, noisy, noisy[:, 2], noisy[:, :2], noise=noise, normals=normals, region=region)
+    assert again.points == got.points
+    # the same points on a grid started at the region's own corner: the same zone within its u
+    assert again.flatness_mz.value == pytest.approx(got.flatness_mz.value, abs=got.flatness_mz.u)
+
+
 def test_calibration_moves_reach_the_face_figures() -> None:
     """Two calibration directions on a bowed plate: one tilts the plate (a zone cannot see
     it: no contribution), one adds 5 um more of the same dome (the zone grows by the

@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
-from inspection.uncertainty import CalibrationUncertainty
+from inspection.uncertainty import DECODER_MODEL_REL_U, CalibrationUncertainty
 from scanner.rig import RigConfig
-from sim.repeat_scans import Bench, ball_bar_length, plate_figures, sphere_radius
+from sim.repeat_scans import Bench, ball_bar_length, noise_model_check, plate_figures, sphere_radius
 
 COVARIANCE = Path(__file__).parent / "data" / "sim_calibration_covariance.json"
 TRIALS = 200
@@ -112,6 +112,27 @@ def test_flatness_and_sq_coverage(bench: Bench, calibrated: bool) -> None:
     _report(sq, t0)
     assert 0.92 <= flat.fraction <= 0.98
     assert 0.92 <= sq.fraction <= 0.98
+
+
+def test_noise_model_predicts_the_simulated_depth_noise(bench: Bench) -> None:
+    """Two scans of the plate at 6 placements: their depth difference over sqrt(2) times the
+    predicted sigma_z has unit spread, to each placement's statistical precision."""
+    check = noise_model_check(bench, 6, seed=98)
+    print(check.summary())
+    assert 0.0005 < check.precision < 0.01
+    assert np.all(np.abs(check.ratios - 1.0) < 4.0 * check.precision)
+    assert abs(np.mean(check.ratios) - 1.0) < 4.0 * check.precision / np.sqrt(6)
+
+
+@pytest.mark.acceptance
+def test_noise_model_uncertainty_covers_its_measured_error(bench: Bench) -> None:
+    """The relative uncertainty the noise model is given (DECODER_MODEL_REL_U, in U of
+    every figure whose noise is subtracted, Sq) is at least the model's error measured over
+    120 placements (95 % upper bound; about 90 s on 2 cores)."""
+    t0 = time.perf_counter()
+    check = noise_model_check(bench, 120, processes=PROCESSES)
+    print(f"{check.summary()}; wall {time.perf_counter() - t0:.0f} s, load {os.getloadavg()[0]:.1f}")
+    assert check.rel_u_bound() <= DECODER_MODEL_REL_U
 
 
 def test_covariance_file_is_a_calibration_covariance() -> None:
