@@ -300,7 +300,10 @@ def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationU
     measurement's figures were taken over (`FaceForm.region`: the silhouette's mixed
     pixels, up to ~0.1 mm off, fail the spike test and the edge margin is counted from
     what is left, so a truth taken over every pixel held corner cells the measurement did
-    not and read up to 4 µm wider)."""
+    not and read up to 4 µm wider) and binned on the measurement's grid (the true heights
+    at the measured points' in-plane places, a few µm from their own: a grid started at
+    the true points' corner moves the border cells, where the form filter's end effects
+    and the bow's slope are largest, by up to a cell)."""
     from inspection.form import FormSettings, evaluate_face
 
     face = _plate_face()
@@ -331,6 +334,7 @@ def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationU
         got = evaluate_face(face, measured, measured[:, 2], measured[:, :2], settings, seed=k,
                             noise=unc.noise.rotated(R).scaled(noise_scale), normals=normals,  # type: ignore[union-attr]
                             shifts=None if moves is None else moves @ R.T)
+        true_pts = np.column_stack([measured[:, :2], true_pts[:, 2]])  # on the measurement's grid (its cells)
         truth = evaluate_face(face, true_pts, true_pts[:, 2], true_pts[:, :2], FormSettings(draws=2), seed=k,
                               noise=unc.noise.rotated(R).scaled(0.0), normals=normals,  # type: ignore[union-attr]
                               region=got.region)
