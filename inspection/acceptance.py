@@ -302,7 +302,7 @@ def find_spheres(points: np.ndarray, radius_mm: float, count: int) -> list[np.nd
 @dataclass(frozen=True)
 class PositionResult:
     """One position's measured figures (`values`: parameter -> mm), each figure's own
-    uncertainty from the scanner's model (`model_u`: parameter -> U, k = 2, mm), and the
+    uncertainty from the scanner's model (`model_u`: parameter -> U, about 95 %, mm), and the
     fit behind them."""
 
     position: Position

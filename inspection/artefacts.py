@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from inspection.uncertainty import Estimate, ScanUncertainty, combine
+from inspection.uncertainty import Estimate, ScanUncertainty
 
 OUTLIER_FRACTION = 0.003  # VDI/VDE 2634-2: up to 0.3 % of the points may be left out of PF and F
 MAX_VIEW_DEG = 75.0
@@ -31,10 +31,6 @@ MIN_POINTS = 100
 
 class ArtefactError(ValueError):
     """The artefact was not found in the points, or too little of it."""
-
-
-def _estimate(parts: tuple[float, float, float], value: float) -> Estimate:
-    return Estimate(value, combine(*parts))
 
 
 # ------------------------------------------------------------------------------ sphere
@@ -154,11 +150,11 @@ def measure_sphere(points: np.ndarray, unc: ScanUncertainty, nominal_radius_mm: 
     the uncertainties to its radius and centre."""
     fit = fit_sphere(points, nominal_radius_mm, 0.1 * nominal_radius_mm, viewpoint)
     pts, sub = points[fit.used], unc.subset(fit.used)
-    parts = sub.linear_u(pts, fit.influence[:, 3], fit.rms_mm)
-    centre = tuple(_estimate(sub.linear_u(pts, fit.influence[:, k], fit.rms_mm), float(fit.centre[k]))
+    radius = sub.linear_u(pts, fit.influence[:, 3], fit.rms_mm)
+    centre = tuple(sub.linear_u(pts, fit.influence[:, k], fit.rms_mm).estimate(float(fit.centre[k]))
                    for k in range(3))
-    return fit, SphereResult(_estimate(parts, fit.radius), centre, fit.form_range_mm, fit.rms_mm,  # type: ignore[arg-type]
-                             int(fit.used.sum()), dict(zip(("noise", "fringe", "calibration"), parts)))
+    return fit, SphereResult(radius.estimate(fit.radius), centre, fit.form_range_mm, fit.rms_mm,  # type: ignore[arg-type]
+                             int(fit.used.sum()), radius.components)
 
 
 # ---------------------------------------------------------------------------- ball bar
@@ -194,11 +190,10 @@ def measure_ball_bar(points: tuple[np.ndarray, np.ndarray], unc: tuple[ScanUncer
     r_infl = np.concatenate([fits[0].influence[:, 3], fits[1].influence[:, 3]])
     joined = ScanUncertainty.join([u.subset(f.used) for u, f in zip(unc, fits)])
     rms = float(np.hypot(fits[0].rms_mm, fits[1].rms_mm) / np.sqrt(2.0))
-    d_parts = joined.linear_u(pts, d_infl, rms)
-    o_parts = joined.linear_u(pts, d_infl + r_infl, rms)
-    return BallBarResult(tuple(results), _estimate(d_parts, length),  # type: ignore[arg-type]
-                         _estimate(o_parts, length + fits[0].radius + fits[1].radius),
-                         dict(zip(("noise", "fringe", "calibration"), d_parts)))
+    distance = joined.linear_u(pts, d_infl, rms)
+    outer = joined.linear_u(pts, d_infl + r_infl, rms)
+    return BallBarResult(tuple(results), distance.estimate(length),  # type: ignore[arg-type]
+                         outer.estimate(length + fits[0].radius + fits[1].radius), distance.components)
 
 
 # ------------------------------------------------------------------------------- plane

@@ -74,7 +74,7 @@ class CoverageResult:
         U = np.array([t.estimate.U for t in self.trials])
         return (f"{self.figure}: truth within ±U in {self.fraction:.1%} of {len(self.trials)} trials; error mean "
                 f"{err.mean() * 1e3:+.3f} µm, std {err.std(ddof=1) * 1e3:.3f} µm; median U {np.median(U) * 1e3:.3f} µm "
-                f"(k = 2); {self.seconds:.0f} s")
+                f"(95 %); {self.seconds:.0f} s")
 
 
 @dataclass(frozen=True, eq=False)

@@ -267,6 +267,21 @@ def test_a_truth_over_the_measured_region() -> None:
     assert again.flatness_mz.value == pytest.approx(got.flatness_mz.value, abs=got.flatness_mz.u)
 
 
+def test_coverage_factor_of_a_bounded_systematic() -> None:
+    """coverage_factor, against closed forms: nothing but normal -> K; a sinusoid's values
+    alone (arcsine distribution, P(|x| <= h) = (2/pi) asin(h/A)) -> K * A sin(0.475 pi) /
+    (1.96 A/sqrt(2)); normal values for the other part -> K again (to sampling)."""
+    from inspection.uncertainty import K, NORMAL_95, coverage_factor
+
+    assert coverage_factor(1.0, np.zeros(0)) == K
+    A = 3.0
+    sine = A * np.sin(np.linspace(0.0, 2.0 * np.pi, 200000, endpoint=False))
+    assert coverage_factor(0.0, sine) == pytest.approx(K * A * np.sin(0.475 * np.pi) / (NORMAL_95 * A / np.sqrt(2.0)),
+                                                       rel=1e-4)
+    normal = np.random.default_rng(3).standard_normal(200000)
+    assert coverage_factor(0.7, normal - normal.mean()) == pytest.approx(K, rel=0.01)
+
+
 def test_calibration_moves_reach_the_face_figures() -> None:
     """Two calibration directions on a bowed plate: one tilts the plate (a zone cannot see
     it: no contribution), one adds 5 um more of the same dome (the zone grows by the
