@@ -271,7 +271,7 @@ def test_coverage_factor_of_a_bounded_systematic() -> None:
     """coverage_factor, against closed forms: nothing but normal -> K; a sinusoid's values
     alone (arcsine distribution, P(|x| <= h) = (2/pi) asin(h/A)) -> K * A sin(0.475 pi) /
     (1.96 A/sqrt(2)); normal values for the other part -> K again (to sampling)."""
-    from inspection.uncertainty import K, NORMAL_95, coverage_factor
+    from inspection.uncertainty import NORMAL_95, K, coverage_factor
 
     assert coverage_factor(1.0, np.zeros(0)) == K
     A = 3.0
