@@ -364,16 +364,14 @@ class NoiseModelCheck:
         return float(np.std(self.halves[:, 0] - self.halves[:, 1], ddof=1) / 2.0)
 
     def rel_u_bound(self) -> float:
-        """A 95 % upper bound of the model's own relative error: the ratios' scatter beyond
-        their statistical precision (the scatter's upper confidence limit, chi-square) and
-        the mean's offset with its standard error, combined."""
+        """A 95 % upper bound of the model's own relative error (RMS over placements): the
+        ratios' mean square deviation from 1 at its upper confidence limit (chi-square, n
+        degrees of freedom), less each ratio's statistical variance."""
         from scipy.stats import chi2
 
         n = len(self.ratios)
-        s2_hi = np.var(self.ratios, ddof=1) * (n - 1) / chi2.ppf(0.05, n - 1)
-        excess = float(np.sqrt(max(s2_hi - self.precision ** 2, 0.0)))
-        offset = abs(float(np.mean(self.ratios)) - 1.0) + 2.0 * float(np.std(self.ratios, ddof=1)) / np.sqrt(n)
-        return float(np.hypot(excess, offset))
+        ms_hi = float(np.sum((self.ratios - 1.0) ** 2)) / chi2.ppf(0.05, n)
+        return float(np.sqrt(max(ms_hi - self.precision ** 2, 0.0)))
 
     def summary(self) -> str:
         return (f"noise model: measured/predicted depth noise {np.mean(self.ratios):.4f} mean, "
