@@ -124,7 +124,7 @@ class Estimate:
         return self.k * self.u
 
     def fields(self, name: str) -> dict[str, float | None]:
-        """JSON fields: `name_mm`, `name_u_mm` (U, k = 2) and, when tested against zero,
+        """JSON fields: `name_mm`, `name_u_mm` (U, about 95 %) and, when tested against zero,
         `name_limit_mm`. `name` without its unit suffix."""
         out: dict[str, float | None] = {f"{name}_mm": self.value, f"{name}_u_mm": self.U}
         if self.limit is not None:
@@ -222,9 +222,9 @@ class FringeError:
 # How well the decoder-and-sensor model knows σ_z (one-sigma, relative): on the simulator
 # (whose sensor model is the camera's own), two scans of the textured plate at each of 120
 # random placements (`sim.repeat_scans.noise_model_check`, ~62 thousand pixels each): their
-# depth difference over sqrt(2)·σ_z had spread 1.0001 mean, 0.0030 standard deviation over
-# the placements, of which 0.0028 is each placement's statistical precision; the model's own
-# error is below 0.2 % (95 % upper bound, tests/test_uncertainty_coverage.py checks it). It
+# depth difference over sqrt(2)·σ_z had spread 0.9999 mean, 0.0031 standard deviation over
+# the placements, of which 0.0029 is each placement's statistical precision; the model's own
+# RMS error is below 0.196 % (95 % upper bound, tests/test_uncertainty_coverage.py checks it). It
 # enters every figure whose noise is subtracted (Sq). An earlier estimate from six
 # placements (0.5 %) made Sq's U cover the truth in 99-100 % of repeat scans.
 # A real camera's [camera.sensor] table would need its own photon-transfer fit's uncertainty.
@@ -288,7 +288,9 @@ class PointNoise:
         if len(each) == 1:
             return u_noise, each[0]
         rng = np.random.default_rng(0)
-        return u_noise, sum(e[rng.integers(0, len(e), 8192)] for e in each)  # type: ignore[return-value]
+        pairs = sum(e[rng.integers(0, len(e), 8192)] for e in each)
+        exact = float(np.sqrt(sum(np.var(e) for e in each)))  # the pairs' shape, the exact spread
+        return u_noise, pairs * (exact / max(float(np.std(pairs)), 1e-300))  # type: ignore[operator]
 
 
 @dataclass(frozen=True, eq=False)
