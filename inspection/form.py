@@ -22,8 +22,9 @@ Scanner noise. A point moves along its camera ray; its deviation moves by (n·ra
 noise model's draws (white noise per point and the fringe systematic per projector
 column) are binned into the grid cells like the heights, and every figure is evaluated
 again on the measured surface plus each draw (`FormSettings.draws`): the spread gives the
-figure's noise uncertainty, the mean shift its noise bias, which is removed, its own size in u (zones of the
-form surface, the profile, the deviation extremes and RMS); the same figure of the drawn
+figure's noise uncertainty, the mean shift its noise bias, which is removed and, being
+itself uncertain, enters u (`from_draws`) (zones of the form surface, the profile, the
+deviation extremes and RMS); the same figure of the drawn
 noise alone gives the detection limit of the zones (95th percentile). Sq has the noise's
 mean square removed (Sq² - <e²>), and is null below its detection limit. Without a noise
 model the noise is estimated from the heights themselves (fourth differences along the

@@ -33,6 +33,7 @@ from inspection.uncertainty import (
     perturbed,
     scan_uncertainty,
 )
+from scanner.decode import DecodeResult
 from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator, triangulate
@@ -101,6 +102,16 @@ class Bench:
                    fringe_error(patterns, model.projector.width, model.projector_gamma, blur),
                    Acceptance.from_rig(config.raw, config.path, config.working_distance_mm))
 
+    def sensor_noise(self, mean_dn: np.ndarray) -> np.ndarray:
+        """The camera's intensity noise (DN, one sigma) at a mean signal (DN)."""
+        return self.sensor.noise_sigma_dn(mean_dn, self.bit_depth)
+
+    def scan(self, renderer: Renderer, rng: np.random.Generator, defocus: bool = False) -> DecodeResult:
+        """One decoded scan of `renderer`'s scene with fresh noise; with `defocus`, its
+        coordinates corrected for the camera's stated blur (`defocus_corrected`)."""
+        decoded = quick_scan(renderer, self.patterns, self.model.projector_gamma, self.exposure_s, self.bit_depth, rng)
+        return defocus_corrected(decoded, self.sensor.blur_sigma_px) if defocus else decoded
+
 
 Measure = Callable[[np.ndarray, Callable[[np.ndarray], ScanUncertainty]], Estimate]
 TrialFunction = Callable[[int], tuple[Trial, ...]]  # trial k -> one Trial per figure
@@ -147,7 +158,7 @@ def _trial(bench: Bench, position: Position, artefacts: ArtefactSet, measure: Me
            rng: np.random.Generator, calibration: CalibrationUncertainty | None, noise_scale: float) -> Trial:
     t0 = time.perf_counter()
     renderer = window_renderer(bench.model, artefact_objects(position, artefacts), bench.sensor, bench.projector_blur_px)
-    decoded = quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s, bench.bit_depth, rng)
+    decoded = bench.scan(renderer, rng)
     used = renderer.model
     if calibration is not None:
         used = perturbed(used, calibration.draw(rng))
@@ -155,8 +166,7 @@ def _trial(bench: Bench, position: Position, artefacts: ArtefactSet, measure: Me
     cal = calibration or CalibrationUncertainty.none("the simulator's exact geometry")
 
     def uncertainties(pixels: np.ndarray) -> ScanUncertainty:
-        unc = scan_uncertainty(decoded, used, lambda a: bench.sensor.noise_sigma_dn(a, bench.bit_depth), bench.fringe,
-                               cal, pixels)
+        unc = scan_uncertainty(decoded, used, bench.sensor_noise, bench.fringe, cal, pixels)
         return replace(unc, noise=unc.noise.scaled(noise_scale))  # type: ignore[union-attr]
 
     return Trial(measure(points, uncertainties), truth, time.perf_counter() - t0)
@@ -314,16 +324,14 @@ def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationU
         rng = np.random.default_rng((seed, k))
         t0 = time.perf_counter()
         renderer, pose = _plate_renderer(bench, plate, seed, k, rng)
-        decoded = defocus_corrected(quick_scan(renderer, bench.patterns, bench.model.projector_gamma,
-                                               bench.exposure_s, bench.bit_depth, rng), bench.sensor.blur_sigma_px)
+        decoded = bench.scan(renderer, rng, defocus=True)
         used = renderer.model if calibration is None else perturbed(renderer.model, calibration.draw(rng))
         points = triangulate(decoded, Triangulator(used), with_normals=False).points
         gt = renderer.ground_truth
         ok = np.isfinite(points).all(axis=2) & (gt.object_id == 2)
         rows, cols = np.nonzero(ok)
         px = np.stack([cols, rows], axis=1)
-        unc = scan_uncertainty(decoded, used, lambda a: bench.sensor.noise_sigma_dn(a, bench.bit_depth), bench.fringe,
-                               cal, px)
+        unc = scan_uncertainty(decoded, used, bench.sensor_noise, bench.fringe, cal, px)
         inv = np.linalg.inv(pose)
         true_pts = gt.points[rows, cols] @ inv[:3, :3].T + inv[:3, 3]
         R, t = registered(points[rows, cols].astype(np.float64), gt.points[rows, cols].astype(np.float64))
@@ -389,15 +397,14 @@ def noise_model_check(bench: Bench, n: int, seed: int = 99, plate: Plate = Plate
     def placement(k: int) -> tuple[float, float, float, int]:
         rng = np.random.default_rng((seed, k))
         renderer, _ = _plate_renderer(bench, plate, seed, k, rng)
-        scans = [defocus_corrected(quick_scan(renderer, bench.patterns, bench.model.projector_gamma, bench.exposure_s,
-                                              bench.bit_depth, rng), bench.sensor.blur_sigma_px) for _ in range(2)]
+        scans = [bench.scan(renderer, rng, defocus=True) for _ in range(2)]
         z = [triangulate(d, Triangulator(renderer.model), with_normals=False).points[..., 2].astype(np.float64)
              for d in scans]
         inside = np.isfinite(z[0]) & np.isfinite(z[1]) & (renderer.ground_truth.object_id == 2)
         inside = ndimage.binary_erosion(inside, np.ones((17, 17)))
         rows, cols = np.nonzero(inside)
-        unc = scan_uncertainty(scans[0], renderer.model, lambda a: bench.sensor.noise_sigma_dn(a, bench.bit_depth),
-                               None, CalibrationUncertainty.none("not studied"), np.stack([cols, rows], axis=1))
+        unc = scan_uncertainty(scans[0], renderer.model, bench.sensor_noise, None, CalibrationUncertainty.none("not studied"),
+                               np.stack([cols, rows], axis=1))
         r = (z[0] - z[1])[rows, cols] / (np.sqrt(2.0) * unc.noise.sigma_z)  # type: ignore[union-attr]
         even = (rows + cols) % 2 == 0
         return float(np.std(r)), float(np.std(r[even])), float(np.std(r[~even])), len(r)
