@@ -330,7 +330,8 @@ class _Correlator:
         self._rows[key] = fft.rfft(flipped, n=self.size[1])
 
     def transform(self, fields: np.ndarray) -> np.ndarray:
-        """The padded 2-D spectrum of fields (..., H, W): rows first, only the H that hold data."""
+        """The padded 2-D spectrum of fields (..., H, W): rows first, only the H that hold data
+        (complex64 for float32 fields: the FFTs are memory-bound, single precision halves them)."""
         rows = fft.rfft(fields, n=self.size[1], axis=-1, workers=-1)
         return fft.fft(rows, n=self.size[0], axis=-2, workers=-1)
 
@@ -341,9 +342,11 @@ class _Correlator:
         ky_done, cols = None, None
         for ky, kx in pairs:
             if ky != ky_done:
-                cols = fft.ifft(spectrum * self._cols[ky], axis=-2, workers=-1)[..., self.half:self.half + h, :]
+                k = self._cols[ky].astype(spectrum.dtype, copy=False)  # single-precision fields stay single
+                cols = fft.ifft(spectrum * k, axis=-2, workers=-1)[..., self.half:self.half + h, :]
                 ky_done = ky
-            yield fft.irfft(cols * self._rows[kx], n=self.size[1], axis=-1, workers=-1)[..., self.half:self.half + w]
+            k = self._rows[kx].astype(spectrum.dtype, copy=False)
+            yield fft.irfft(cols * k, n=self.size[1], axis=-1, workers=-1)[..., self.half:self.half + w]
 
 
 _MONOMIALS = ((0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (0, 2))  # (power of x, power of y), by y's
@@ -366,6 +369,7 @@ class GaussianFilter:
             self._c.kernel(m, k)
         wspec = self._c.transform(mask.astype(np.float64))
         self._norm = np.maximum(next(self._c.apply(wspec, [(0, 0)])), 1e-300)  # the Gaussian mean's weights
+        self._norm32 = np.maximum(self._norm, np.finfo(np.float32).tiny).astype(np.float32)
         if order == 0:
             return
         # moments about each cell: S_ab = sum w g (dx^a dy^b); the filtered value is the first
@@ -384,26 +388,31 @@ class GaussianFilter:
         e0[:, 0] = 1.0
         row[ok] = np.linalg.solve(np.transpose(Mo, (0, 2, 1)) + 1e-12 * np.eye(6), e0)[..., 0] / scale[ok][:, None]
         self._row = row
+        self._row32 = row.astype(np.float32)
         self._ok = ok
 
-    def __call__(self, z: np.ndarray) -> np.ndarray:
+    def __call__(self, z: np.ndarray, single: bool = False) -> np.ndarray:
         if self.order == 0:
-            return next(self._c.apply(self._spectrum(z), [(0, 0)])) / self._norm
-        return self.with_mean(z)[0]
+            return next(self._c.apply(self._spectrum(z, single), [(0, 0)])) / (self._norm32 if single else self._norm)
+        return self.with_mean(z, single)[0]
 
-    def with_mean(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def with_mean(self, z: np.ndarray, single: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Order 2: the regression and the Gaussian mean (order 0, the same cut-off) of z
-        from one transform, the mean's correlation being the regression's first term."""
-        spec = self._spectrum(z)
+        from one transform, the mean's correlation being the regression's first term.
+        `single`: in float32 (relative error ~1e-6 of the fields' size), for the noise
+        draws, whose figures' spread is all that is used of them."""
+        spec = self._spectrum(z, single)
+        row = self._row32 if single else self._row
         terms = self._c.apply(spec, [(b, a) for a, b in _MONOMIALS])
         mean = next(terms)
-        out = mean * self._row[..., 0]
+        out = mean * row[..., 0]
         for i, term in enumerate(terms, 1):
-            out += term * self._row[..., i]
-        return np.where(self._ok, out, np.nan), mean / self._norm
+            out += term * row[..., i]
+        return np.where(self._ok, out, np.nan), mean / (self._norm32 if single else self._norm)
 
-    def _spectrum(self, z: np.ndarray) -> np.ndarray:
-        return self._c.transform(np.where(self.mask, np.nan_to_num(z), 0.0))
+    def _spectrum(self, z: np.ndarray, single: bool) -> np.ndarray:
+        return self._c.transform(np.where(self.mask, np.nan_to_num(z), 0.0).astype(np.float32 if single else np.float64,
+                                                                                   copy=False))
 
 
 def gaussian_filter(z: np.ndarray, mask: np.ndarray, cutoff_mm: float, spacing_mm: float,
@@ -701,10 +710,10 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     else:
         rough_filter = GaussianFilter(inner, settings.roughness_cutoff_mm, grid.spacing, order=0)
 
-        def filters(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            return form_filter(z), rough_filter(z)
+        def filters(z: np.ndarray, single: bool = False) -> tuple[np.ndarray, np.ndarray]:
+            return form_filter.with_mean(z, single)[0], rough_filter(z, single)
     form, mean = filters(zg)
-    noise_form, noise_mean = filters(cell_draws)  # all draws in one stacked transform
+    noise_form, noise_mean = filters(cell_draws, single=True)  # all draws in one stacked transform
     rough = zg - mean
     drawn_rough = cell_draws - noise_mean
     sq, sq_raw, sq_noise, sq_parts = _sq(rough, np.nan_to_num(drawn_rough), inner, model_rel_u)
