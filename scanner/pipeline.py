@@ -82,11 +82,12 @@ def plan_for_rig(rig: Rig, patterns: PatternSet, request: ExposureRequest) -> Ex
 
 def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Progress = _quiet,
             recording: SessionRecording | None = None, exposure: ExposureRequest | None = None,
-            extra: dict[str, Any] | None = None) -> Session:
+            extra: dict[str, Any] | None = None, keep: dict[int, np.ndarray] | None = None) -> Session:
     """Capture one scan into the writer's new session folder and return it, complete;
     `exposure` (None: the rig's) chooses or lists exposures, the pattern set captured once
     per exposure (HDR) with the plan and its reason in the manifest; `extra` goes into the
-    manifest too (a multi-view session's stage pose).
+    manifest too (a multi-view session's stage pose); `keep`, if given, receives each frame
+    stored (k -> image), for a decode that follows at once (not read back from the PNGs).
 
     On any failure the frames already captured stay on disk, `error.json` says what
     happened, the session has no manifest (so it is reported incomplete), and the error
@@ -99,6 +100,8 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
 
     def store(k: int, frame: Frame) -> None:
         writer.add_frame(k, frame)
+        if keep is not None:
+            keep[k] = frame.image
         if recording is not None:  # the PNG just written (in the page cache), not encoded again
             recording.log_frame(k, frame, specs[k % n], png=(writer.root / writer.frames[-1]["file"]).read_bytes())
 
@@ -143,15 +146,18 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
 
 
 def process(session: Session, progress: Progress = _quiet, recording: SessionRecording | None = None,
-            settings: DecodeSettings = DecodeSettings(), mode: str = "triangulation") -> ScanResult:
+            settings: DecodeSettings = DecodeSettings(), mode: str = "triangulation",
+            frames: dict[int, np.ndarray] | None = None) -> ScanResult:
     """Decode and reconstruct a complete session from its raw frames; write the outputs
-    (cloud PLY, maps, result JSON) beside them."""
+    (cloud PLY, maps, result JSON) beside them. `frames`: the session's frames still in
+    memory (k -> image, `capture(keep=)`: the images its PNGs were written from), else they
+    are read back from disk and checked (`Session.load_stack`)."""
     if mode not in ("triangulation", "phase_to_height"):
         raise ScannerError(f"unknown reconstruction mode '{mode}'; use triangulation or phase_to_height")
     timer = StageTimer()
     progress("load", 0, 1)
     with timer.stage("load"):
-        stack = session.load_stack()
+        stack = session.load_stack() if frames is None else np.stack([frames[k] for k in range(len(frames))])
         model = session.rig_model()
         stacks = exposure_stacks(session, stack, model)
     progress("decode", 0, 1)
@@ -363,16 +369,19 @@ def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress
 
     level = level or rig.config.recording_level
     writer = SessionWriter.create(out_dir)
+    frames: dict[int, np.ndarray] = {}  # decoded from memory, not read back from the PNGs just written
     if level == "none":
-        session = capture(rig, patterns, writer, progress, exposure=exposure, extra=extra)
-        result = process(session, progress)
+        session = capture(rig, patterns, writer, progress, exposure=exposure, extra=extra, keep=frames)
+        result = process(session, progress, frames=frames)
+        frames.clear()
         if then is not None:
             then(result, None)
         return result
     with SessionRecording(writer.root / RECORDING, writer.id, level=level) as rec:
         rec.log_rig(rig.model)
-        session = capture(rig, patterns, writer, progress, rec, exposure, extra)
-        result = process(session, progress, rec)
+        session = capture(rig, patterns, writer, progress, rec, exposure, extra, keep=frames)
+        result = process(session, progress, rec, frames=frames)
+        frames.clear()  # decoded: the memory goes back before the inspection
         if then is not None:
             then(result, rec)
         return result

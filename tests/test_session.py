@@ -85,6 +85,7 @@ def test_decode_regenerates_outputs_from_raw_frames(tmp_path: Path, small_config
     assert rec.entities["world/camera/image"].rows == 12
     assert {"world/camera", "world/scan/cloud", "maps/vertical/phase", "metrics/decode_s"} <= set(rec.entity_paths)
     assert len(read_points(tmp_path / "s" / "recording.rrd")[0]) == len(again.cloud)
+    # the scan decoded its frames from memory, the decode reads them back from the PNGs: the same cloud
     assert np.array_equal(np.isnan(first.cloud.points), np.isnan(again.cloud.points))
     assert np.nanmax(np.abs(first.cloud.points - again.cloud.points)) == 0.0
 
