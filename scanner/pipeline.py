@@ -53,10 +53,17 @@ class ScanResult:
     decoded: DecodeResult
     cloud: OrganisedCloud | None  # None: a session without a calibration (imported frames) has maps only
     timings_s: dict[str, float]
+    written: Future[None] | None = None  # the outputs' write, when it runs behind (`process(write_behind=True)`)
 
     @property
     def cloud_path(self) -> Path:
         return self.session.outputs / "cloud.ply"
+
+    def wait_written(self) -> None:
+        """Wait until the outputs (cloud.ply, maps.npz, result.json) are on disk; raises the
+        write's SessionError."""
+        if self.written is not None:
+            self.written.result()
 
 
 AUTO_RANGE = (1 / 64, 16.0)  # auto exposure searches this range around the rig's exposure_s (factors)
@@ -147,11 +154,13 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
 
 def process(session: Session, progress: Progress = _quiet, recording: SessionRecording | None = None,
             settings: DecodeSettings = DecodeSettings(), mode: str = "triangulation",
-            frames: dict[int, np.ndarray] | None = None) -> ScanResult:
+            frames: dict[int, np.ndarray] | None = None, write_behind: bool = False) -> ScanResult:
     """Decode and reconstruct a complete session from its raw frames; write the outputs
     (cloud PLY, maps, result JSON) beside them. `frames`: the session's frames still in
     memory (k -> image, `capture(keep=)`: the images its PNGs were written from), else they
-    are read back from disk and checked (`Session.load_stack`)."""
+    are read back from disk and checked (`Session.load_stack`). `write_behind`: return
+    once the cloud is made and write the outputs in a thread meanwhile (a verdict waits on
+    the cloud, not on its files); `ScanResult.wait_written()` joins it and raises its error."""
     if mode not in ("triangulation", "phase_to_height"):
         raise ScannerError(f"unknown reconstruction mode '{mode}'; use triangulation or phase_to_height")
     timer = StageTimer()
@@ -183,23 +192,38 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
         problem = no_points_reason(decoded)
         write_json(out / "result.json", {"session_id": session.id, "mode": mode, "error": problem, **stats})
         raise DecodeError(f"{session.root}: the scan yielded no points: {problem}")
-    try:
-        with timer.stage("write"), ThreadPoolExecutor(1, thread_name_prefix="write maps") as pool:
-            maps = pool.submit(save_maps, out / "maps.npz", decoded)  # file writes release the GIL
-            if cloud is not None:
-                write_ply(out / "cloud.ply", cloud)
-            maps.result()
-    except OSError as exc:  # the frames and manifest are already safe: say so, and how to finish
-        raise SessionError(f"{session.root}: cannot write the outputs: {disk_problem(exc)}; the frames and manifest "
-                           f"are kept: `slscan decode {session.root}` writes the outputs again") from None
-    timings, cpu = timer.rounded()
-    write_json(out / "result.json", {"session_id": session.id, "mode": mode, "timings_s": timings, "cpu_s": cpu,
-                                     **stats})
-    result = ScanResult(session, decoded, cloud, timings)
+    result = ScanResult(session, decoded, cloud, timer.rounded()[0])
+    head = {"session_id": session.id, "mode": mode}
+    if write_behind:
+        pool = ThreadPoolExecutor(1, thread_name_prefix="write outputs")
+        result.written = pool.submit(_write_outputs, result, timer, {**head, **stats}, True)
+        pool.shutdown(wait=False)  # the thread finishes the write; `ScanResult.wait_written` joins it
+    else:
+        _write_outputs(result, timer, {**head, **stats}, False)
     if recording is not None:
         log_result(recording, result, model)
     progress("done", 1, 1)
     return result
+
+
+def _write_outputs(result: ScanResult, timer: StageTimer, summary: dict[str, Any], behind: bool) -> None:
+    """cloud.ply, maps.npz, then result.json with `summary` and the stage times. `behind`:
+    in a thread of its own while the caller goes on (the PLY and the maps one after the
+    other; the write's CPU is that thread's), else the maps beside the PLY."""
+    session, out = result.session, result.session.outputs
+    try:
+        with timer.stage("write", clock=time.thread_time if behind else time.process_time), \
+                ThreadPoolExecutor(1, thread_name_prefix="write maps") as pool:
+            maps = None if behind else pool.submit(save_maps, out / "maps.npz", result.decoded)  # writes release the GIL
+            if result.cloud is not None:
+                write_ply(out / "cloud.ply", result.cloud)
+            save_maps(out / "maps.npz", result.decoded) if maps is None else maps.result()
+    except OSError as exc:  # the frames and manifest are already safe: say so, and how to finish
+        raise SessionError(f"{session.root}: cannot write the outputs: {disk_problem(exc)}; the frames and manifest "
+                           f"are kept: `slscan decode {session.root}` writes the outputs again") from None
+    timings, cpu = timer.rounded()
+    result.timings_s.update(timings)
+    write_json(out / "result.json", {**summary, "timings_s": timings, "cpu_s": cpu})
 
 
 def log_result(recording: SessionRecording, result: ScanResult, model: RigModel) -> None:
@@ -363,25 +387,25 @@ def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress
     """Capture, decode and reconstruct one scan, recording every stage to the session's
     Rerun file at `level` (default the rig's `[recording] level`; "none": no recording, and
     `then` gets None). `then(result, recording)`, if given, runs a later stage (`slscan
-    demo`'s inspection) into the same recording before it is closed; `exposure` and `extra`
-    as for `capture`."""
+    demo`'s inspection) into the same recording before it is closed, while the outputs are
+    written behind it; `exposure` and `extra` as for `capture`. Returns once every file is
+    on disk."""
     from scanner.session_recording import SessionRecording
 
     level = level or rig.config.recording_level
     writer = SessionWriter.create(out_dir)
     frames: dict[int, np.ndarray] = {}  # decoded from memory, not read back from the PNGs just written
-    if level == "none":
-        session = capture(rig, patterns, writer, progress, exposure=exposure, extra=extra, keep=frames)
-        result = process(session, progress, frames=frames)
-        frames.clear()
-        if then is not None:
-            then(result, None)
-        return result
-    with SessionRecording(writer.root / RECORDING, writer.id, level=level) as rec:
-        rec.log_rig(rig.model)
+    with ExitStack() as stack:
+        rec = None if level == "none" else stack.enter_context(
+            SessionRecording(writer.root / RECORDING, writer.id, level=level))
+        if rec is not None:
+            rec.log_rig(rig.model)
         session = capture(rig, patterns, writer, progress, rec, exposure, extra, keep=frames)
-        result = process(session, progress, rec, frames=frames)
+        result = process(session, progress, rec, frames=frames, write_behind=then is not None)
         frames.clear()  # decoded: the memory goes back before the inspection
-        if then is not None:
-            then(result, rec)
+        try:
+            if then is not None:
+                then(result, rec)  # meanwhile the outputs are written
+        finally:
+            result.wait_written()
         return result

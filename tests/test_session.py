@@ -24,6 +24,7 @@ from scanner.errors import (
 )
 from scanner.patterns import PatternSet
 from scanner.pipeline import reprocess, scan
+from scanner.pointcloud import read_ply_points
 from scanner.recording_reader import read_component, read_points, read_summary
 from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
 from scanner.session import ERROR, MANIFEST, Session
@@ -103,6 +104,38 @@ def test_decode_regenerates_outputs_from_raw_frames(tmp_path: Path, small_config
     np.savez_compressed(tmp_path / "old.npz", **maps)
     with np.load(tmp_path / "old.npz") as old:
         assert set(old.files) == set(maps) and all(np.array_equal(old[k], maps[k], equal_nan=True) for k in maps)
+
+
+def test_outputs_are_written_behind_a_later_stage(tmp_path: Path, small_config: RigConfig,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a later stage (`then`, the demo's inspection), the cloud reaches it at once and
+    the outputs are written meanwhile: all on disk when `scan` returns, the PLY holding the
+    cloud; a write that fails is raised after the stage, which kept its cloud, and the frames
+    and manifest stay."""
+    seen: dict[str, int] = {}
+
+    def then(result: object, recording: object) -> None:
+        seen["points"] = len(result.cloud)  # type: ignore[attr-defined]
+
+    with open_rig(small_config, scene=SCENE) as rig:
+        result = scan(rig, PATTERNS, tmp_path / "s", then=then)
+    out = tmp_path / "s" / "outputs"
+    summary = json.loads((out / "result.json").read_text())
+    assert summary["points"] == len(result.cloud) == seen["points"] > 0
+    assert summary["timings_s"]["write"] > 0 and summary["cpu_s"]["write"] >= 0
+    assert len(read_ply_points(out / "cloud.ply")) == len(result.cloud)
+    with np.load(out / "maps.npz") as m:
+        assert np.array_equal(m["valid"], result.decoded.valid)
+
+    def full_disk(*args: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("scanner.pipeline.write_ply", full_disk)
+    seen.clear()
+    with open_rig(small_config, scene=SCENE) as rig, pytest.raises(SessionError, match="cannot write the outputs"):
+        scan(rig, PATTERNS, tmp_path / "t", then=then)
+    assert seen["points"] > 0
+    assert len(Session.open(tmp_path / "t").load_stack()) == 12
 
 
 def test_decode_error_is_logged_into_a_closed_recording(tmp_path: Path, small_config: RigConfig) -> None:
