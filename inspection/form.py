@@ -199,24 +199,40 @@ class _LsFrames:
 
 ZONE_CANDIDATES = 32  # extreme points per side a zone's LP starts from; violators join this many at a time
 ZONE_SLACK_MM = 1e-10  # a point this far outside a zone counts as inside (HiGHS's round-off)
+ZONE_SUBSET_STRIDE = 8  # the zone is first found over every 8th point, then checked and completed over all
 
 
 def _plane_zones(f: _LsFrames, tilt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """min w subject to lo <= z - a x - b y <= lo + w for every surface (x, y, z its
     coordinates in `f`); returns (a, b, lo, w), each (B,). Active set: each surface's
     extreme heights (about `tilt`, when given), then the violators of each solution, until
-    every point is held."""
+    every point is held: first over every ZONE_SUBSET_STRIDE-th point (a smooth surface's
+    zone there is all but the whole one's), then over all of them from that active set."""
     B, N = f.Z.shape
     if B == 0:
         return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0)
-    k = min(N, ZONE_CANDIDATES)
-    active = np.zeros((B, N), bool)
+    sub = np.arange(0, N, ZONE_SUBSET_STRIDE)
+    part = _LsFrames(f.X[sub], f.Y[sub], f.Z[:, sub], f.u, f.v, f.n)
+    k = min(len(sub), ZONE_CANDIDATES)
+    active = np.zeros((B, len(sub)), bool)
     rows = np.arange(B)[:, None]
-    h = f.along(f.n if tilt is None else f.n - tilt[0] * f.u - tilt[1] * f.v)
+    h = part.along(f.n if tilt is None else f.n - tilt[0] * f.u - tilt[1] * f.v)
     active[rows, np.argpartition(h, k - 1, axis=1)[:, :k]] = True
     active[rows, np.argpartition(-h, k - 1, axis=1)[:, :k]] = True
+    _zone_rounds(part, active, np.zeros((B, 4)))
+    held = np.zeros((B, N), bool)
+    held[:, sub] = active
     sol = np.zeros((B, 4))
-    todo = np.arange(B)
+    _zone_rounds(f, held, sol)
+    return sol[:, 0], sol[:, 1], sol[:, 2], sol[:, 3]
+
+
+def _zone_rounds(f: _LsFrames, active: np.ndarray, sol: np.ndarray) -> None:
+    """Solve every surface's zone over its `active` points (B, N), check all points and add
+    the worst violators, until none is left; `active` and `sol` (B, 4: a, b, lo, w) are
+    updated in place."""
+    k = min(f.Z.shape[1], ZONE_CANDIDATES)
+    todo = np.arange(len(sol))
     for _ in range(50):  # a few rounds at most
         s, j = np.nonzero(active[todo])
         rs = todo[s]
@@ -226,12 +242,11 @@ def _plane_zones(f: _LsFrames, tilt: np.ndarray | None) -> tuple[np.ndarray, np.
         excess = np.where(active[todo], -np.inf, np.maximum(lo - r, r - lo - w))
         more = (excess > ZONE_SLACK_MM).any(axis=1)
         if not more.any():
-            break
+            return
         todo, excess = todo[more], excess[more]
         worst = np.argpartition(-excess, k - 1, axis=1)[:, :k]
         add = np.take_along_axis(excess, worst, axis=1) > ZONE_SLACK_MM
         active[np.broadcast_to(todo[:, None], worst.shape)[add], worst[add]] = True
-    return sol[:, 0], sol[:, 1], sol[:, 2], sol[:, 3]
 
 
 def _plane_lps(count: int, s: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
