@@ -815,22 +815,24 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, raw: np.ndarray, ra
     with theirs; `cal` (D_cal, cells): calibration moves. The extremes and the profile are
     tested against zero (an extreme the noise alone reaches is not a deviation: null, with
     that reach, in magnitude, as its limit); the mean and RMS are not."""
-    def each(fn: Callable[[np.ndarray], np.ndarray], base: np.ndarray, draws: np.ndarray, tested: bool,
+    def each(fn: Callable[[np.ndarray], np.ndarray], base: np.ndarray, draws: np.ndarray, noise: np.ndarray | None,
              moves: np.ndarray | None, sign: float = 1.0) -> tuple[Estimate, dict[str, float]]:
         value = sign * float(fn(base[None])[0])
         changes = None if moves is None else sign * fn(base + moves) - value
-        est, parts = from_draws(value, sign * fn(draws), sign * fn(draws - base) if tested else None, changes)
+        est, parts = from_draws(value, sign * fn(draws), None if noise is None else sign * fn(noise), changes)
         if sign < 0:
             est = Estimate(None if est.value is None else -est.value, est.u, est.limit, -est.bias)
         return est, parts
 
     out, parts = {}, {}
+    noise = drawn - surface  # the noise alone, for the tested figures' limits
     for name, fn, tested, sign in (("deviation_min", _row_min, True, -1.0), ("deviation_max", _row_max, True, 1.0),
                                    ("deviation_mean", _row_mean, False, 1.0), ("deviation_rms", _row_rms, False, 1.0),
                                    ("profile", _row_profile, True, 1.0)):
-        out[name], parts[name] = each(fn, surface, drawn, tested, cal, sign)
+        out[name], parts[name] = each(fn, surface, drawn, noise if tested else None, cal, sign)
+    raw_drawn = raw[None] + raw_draws
     for name, fn, sign in (("raw_deviation_min", _row_min, -1.0), ("raw_deviation_max", _row_max, 1.0)):
-        out[name], parts[name] = each(fn, raw, raw[None] + raw_draws, True, None, sign)
+        out[name], parts[name] = each(fn, raw, raw_drawn, raw_draws, None, sign)
     return out, parts
 
 
