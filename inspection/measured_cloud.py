@@ -88,11 +88,13 @@ def make_scan(points: np.ndarray, normals: np.ndarray | None, source: str, viewp
         raise CloudError(source, "the points lie on a line (or on one point): not a scan of a surface")
     if normals is None:
         normals = np.full_like(points, np.nan)
-    bad = ~(np.isfinite(normals).all(axis=1) & (np.linalg.norm(np.nan_to_num(normals), axis=1) > 0.5))
+    length = np.linalg.norm(normals, axis=1)  # once: it both finds the bad normals and scales the good ones
+    bad = ~(np.isfinite(normals).all(axis=1) & (length > 0.5))
     if bad.any():
         normals = normals.copy()
         normals[bad] = estimate_normals(points, np.flatnonzero(bad), viewpoint=viewpoint)
-    normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+        length[bad] = np.linalg.norm(normals[bad], axis=1)
+    normals = normals / length[:, None]
     return ScanCloud(points, normals, source, viewpoint, pixels, shape)
 
 

@@ -112,7 +112,7 @@ def _face_points(model, label: str, defects: list, noise: float, seed: int = 0):
     for d in defects:
         p += d.height(c.points)[:, None] * d.direction(c.points)
     p += c.normals * np.random.default_rng(seed).normal(0, noise, len(p))[:, None]
-    uv, _, _, dev, _ = project_to_faces(model, p, c.face)
+    uv, _, _, dev = project_to_faces(model, p, c.face)
     return face, p, dev, uv, c.points
 
 

@@ -26,7 +26,7 @@ def without_biased_faces(src: np.ndarray, face: np.ndarray, T: np.ndarray, model
     as a group at the converged pose T (median residual beyond `sigmas` times the robust
     spread of the faces' medians) and refining on the rest, provided the rest hold at
     least half the points; otherwise the inputs unchanged."""
-    _, _, _, r, _ = project_to_faces(model, transform_points(T, src), face)
+    _, _, _, r = project_to_faces(model, transform_points(T, src), face)
     labels, inv, count = np.unique(face, return_inverse=True, return_counts=True)
     med = np.array([np.median(r[inv == k]) for k in range(len(labels))])  # one per face seen
     spread = robust_sigma(med)
@@ -50,7 +50,7 @@ def without_offset_face(src: np.ndarray, face: np.ndarray, T: np.ndarray, model:
     the best such. A part whose faces conform never gets here. A face off by more keeps
     the compromise: the part then reads off on several faces (a profile failure) rather
     than failing registration."""
-    _, _, _, r, _ = project_to_faces(model, transform_points(T, src), face)
+    _, _, _, r = project_to_faces(model, transform_points(T, src), face)
     _, nb = cKDTree(src).query(src, k=2)
     noise = robust_sigma(r - r[nb[:, 1]]) / np.sqrt(2.0)
     if robust_sigma(r) <= noise_ratio * noise:
@@ -60,7 +60,7 @@ def without_offset_face(src: np.ndarray, face: np.ndarray, T: np.ndarray, model:
     for k in np.flatnonzero(count >= big_fraction * len(face)):
         rest = inv != k
         U = gauss_newton(src[rest], face[rest], T, model, iterations)
-        _, _, _, ru, _ = project_to_faces(model, transform_points(U, src), face)
+        _, _, _, ru = project_to_faces(model, transform_points(U, src), face)
         sigma = robust_sigma(ru[rest])
         offset = abs(np.median(ru[~rest]) - np.median(ru[rest]))
         if sigma < min(0.8 * robust_sigma(r[rest]), best_sigma) and 3.0 * sigma < offset < limit_mm:

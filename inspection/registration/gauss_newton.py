@@ -19,7 +19,7 @@ def gauss_newton(src: np.ndarray, face: np.ndarray, T: np.ndarray, model: CadMod
     left out, a little damping keeping directions the data do not constrain where they are."""
     for _ in range(iterations):
         q = transform_points(T, src)
-        _, foot, normal, r, _ = project_to_faces(model, q, face)
+        _, foot, normal, r = project_to_faces(model, q, face)
         sigma = 1.4826 * np.median(np.abs(r))
         ok = np.abs(r) < max(3.0 * sigma, 1e-4)
         step, _ = point_to_plane_step(q[ok], foot[ok], normal[ok], damping=1e-6)
