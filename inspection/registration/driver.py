@@ -118,16 +118,19 @@ def coarse_icp(sp: np.ndarray, sn: np.ndarray, target: ModelTarget, T: np.ndarra
 
 def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, settings: RegistrationSettings,
            rng: np.random.Generator, times: dict[str, float], method: str,
-           alternatives: tuple[np.ndarray, ...] = ()) -> Registration:
+           alternatives: tuple[np.ndarray, ...] = (), local_search: bool = True) -> Registration:
     """The fine step from a verified coarse pose (local search and ICP on the dense scan,
     then the exact faces) and the final judgement on `settings.max_points` scan points:
-    RegistrationFailed when too little of the scan lies near the model. `times` gains
-    "fine", "evaluate" and "total" (s)."""
+    RegistrationFailed when too little of the scan lies near the model. `local_search`
+    False leaves out the search about `coarse` (a warm start's: its prior is a pose the
+    search has already settled). `times` gains "fine", "evaluate" and "total" (s)."""
     v = target.voxel_mm
     t0 = time.perf_counter()
-    dense = rng.choice(len(scan), size=min(3000, len(scan)), replace=False)
-    T = explore(scan.points[dense], scan.normals[dense], target.dense, coarse, 0.3 * v, settings.fine_turns_deg,
-                1.0 * v, settings)
+    T = coarse
+    if local_search:
+        dense = rng.choice(len(scan), size=min(3000, len(scan)), replace=False)
+        T = explore(scan.points[dense], scan.normals[dense], target.dense, T, 0.3 * v, settings.fine_turns_deg,
+                    1.0 * v, settings)
     T = fine_pose(scan, target, T, settings, rng)
     times["fine"] = time.perf_counter() - t0
     t0 = time.perf_counter()
