@@ -162,9 +162,8 @@ class DecodeResult:
 
 
 def _wrap_positive(d: np.ndarray) -> np.ndarray:
-    """Map differences of two [0, 2π) phases into [0, 2π), in place."""
-    d += TWO_PI * (d < 0)
-    return d
+    """Map differences of two [0, 2π) phases into [0, 2π), in place (2π added where negative)."""
+    return np.add(d, TWO_PI, out=d, where=d < 0)
 
 
 def _weighted_sum(frames: list[np.ndarray], weights: np.ndarray) -> np.ndarray:
@@ -950,7 +949,7 @@ class _OrientationDecoder:
             np.copyto(phase[rows], nan, where=invalid)
 
         in_bands(valid.shape[0], finish)
-        if "interreflection" in masks:
+        if "interreflection" in masks and masks["interreflection"].any():  # no slivers near no masked pixel
             slivers = interreflection_slivers(valid, masks["interreflection"], s.sliver_px)
             masks["interreflection"] |= slivers
             valid &= ~slivers
