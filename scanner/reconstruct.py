@@ -194,7 +194,8 @@ class Triangulator:
 
 def to_texture8(texture: np.ndarray, bit_depth: int) -> np.ndarray:
     """Grey 8-bit colours from a texture in DN."""
-    return np.clip(texture * (255.0 / (2 ** bit_depth - 1)), 0, 255).astype(np.uint8)
+    scaled = texture * (255.0 / (2 ** bit_depth - 1))
+    return np.clip(scaled, 0, 255, out=scaled).astype(np.uint8)
 
 
 def triangulate(decoded: DecodeResult, triangulator: Triangulator, with_normals: bool = True) -> OrganisedCloud:
