@@ -219,24 +219,27 @@ def _plane_zones(f: _LsFrames, tilt: np.ndarray | None) -> tuple[np.ndarray, np.
     h = part.along(f.n if tilt is None else f.n - tilt[0] * f.u - tilt[1] * f.v)
     active[rows, np.argpartition(h, k - 1, axis=1)[:, :k]] = True
     active[rows, np.argpartition(-h, k - 1, axis=1)[:, :k]] = True
-    _zone_rounds(part, active, np.zeros((B, 4)))
+    sol = np.zeros((B, 4))
+    _zone_rounds(part, active, sol, ZONE_CANDIDATES, solved=False)
     held = np.zeros((B, N), bool)
     held[:, sub] = active
-    sol = np.zeros((B, 4))
-    _zone_rounds(f, held, sol)
+    _zone_rounds(f, held, sol, ZONE_SUBSET_STRIDE * ZONE_CANDIDATES, solved=True)
     return sol[:, 0], sol[:, 1], sol[:, 2], sol[:, 3]
 
 
-def _zone_rounds(f: _LsFrames, active: np.ndarray, sol: np.ndarray) -> None:
+def _zone_rounds(f: _LsFrames, active: np.ndarray, sol: np.ndarray, add: int, solved: bool) -> None:
     """Solve every surface's zone over its `active` points (B, N), check all points and add
-    the worst violators, until none is left; `active` and `sol` (B, 4: a, b, lo, w) are
-    updated in place."""
-    k = min(f.Z.shape[1], ZONE_CANDIDATES)
+    up to `add` of the worst violators per surface, until none is left; `active` and `sol`
+    (B, 4: a, b, lo, w) are updated in place; `solved`: `sol` already holds the solutions
+    over `active` (the check comes first)."""
+    k = min(f.Z.shape[1], add)
     todo = np.arange(len(sol))
     for _ in range(50):  # a few rounds at most
-        s, j = np.nonzero(active[todo])
-        rs = todo[s]
-        sol[todo] = _plane_lps(len(todo), s, f.at(f.u, rs, j), f.at(f.v, rs, j), f.at(f.n, rs, j))
+        if not solved:
+            s, j = np.nonzero(active[todo])
+            rs = todo[s]
+            sol[todo] = _plane_lps(len(todo), s, f.at(f.u, rs, j), f.at(f.v, rs, j), f.at(f.n, rs, j))
+        solved = False
         a, b, lo, w = (sol[todo, i:i + 1] for i in range(4))
         r = f.along(f.n[todo] - a * f.u[todo] - b * f.v[todo], todo)
         excess = np.where(active[todo], -np.inf, np.maximum(lo - r, r - lo - w))
