@@ -135,14 +135,23 @@ def flatness_mz_many(xy: np.ndarray, heights: np.ndarray, tilt: np.ndarray | Non
     violators added until none is left:
     exact, as the zone of a subset is never wider, and one holding every point is the zone
     of them all. All surfaces share one LP (`_plane_lps`)."""
-    a, b, _, w = _plane_zones(_LsFrames.of(xy, heights), tilt)
+    return _mz_widths(_LsFrames.of(xy, heights), tilt)
+
+
+def _mz_widths(frames: _LsFrames, tilt: np.ndarray | None = None) -> np.ndarray:
+    """`flatness_mz_many` of surfaces already in their LS frames."""
+    a, b, _, w = _plane_zones(frames, tilt)
     return w / np.sqrt(1.0 + a * a + b * b)
 
 
 def flatness_ls_many(xy: np.ndarray, heights: np.ndarray) -> np.ndarray:
     """Least-squares flatness (B,) of B surfaces (as `flatness_mz_many`): the spread of the
     heights about each surface's least-squares plane."""
-    frames = _LsFrames.of(xy, heights)
+    return _ls_widths(_LsFrames.of(xy, heights))
+
+
+def _ls_widths(frames: _LsFrames) -> np.ndarray:
+    """`flatness_ls_many` of surfaces already in their LS frames."""
     z = frames.along(frames.n)
     return z.max(axis=1) - z.min(axis=1)
 
@@ -690,7 +699,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     if xy is None:  # no surface coordinates: deviations of the raw points, their noise included
         draws = _point_draws(noise, normals, rng, settings.draws, len(points), float(np.std(deviation)))
         dev_shift = None if shifts is None else np.einsum("dij,ij->di", shifts, normals) if normals is not None else None
-        stats, parts = _deviation_stats(deviation, deviation[None] + draws, deviation, draws, dev_shift)
+        stats, parts = _deviation_stats(deviation, deviation[None] + draws, draws, deviation, draws, dev_shift)
         return FaceForm(len(points), "ok", f"{face.type}: deviations of raw points only (no form filter)",  # type: ignore[attr-defined]
                         deviation_source="raw points", u_components=parts, region=keep, **stats)
     grid = _grid(xy)
@@ -738,30 +747,34 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     raw_dev = deviation[raw_sel]
     raw_draws = (point_draws[:, raw_sel] if point_draws is not None
                  else rng.standard_normal((settings.draws, int(raw_sel.sum()))) * typical)
-    cal_form = None if cal_cells is None else cal_cells[:, inner]
-    stats, parts = _deviation_stats(form[inner], form[inner] + noise_form[:, inner], raw_dev, raw_draws, cal_form)
+    cal = None if cal_cells is None else cal_cells[:, inner]
+    f, e = form[inner], noise_form[:, inner].astype(np.float64)  # the figures in double precision
+    fe = f + e  # the form surface plus each draw's
+    stats, parts = _deviation_stats(f, fe, e, raw_dev, raw_draws, cal)
     parts["sq"] = sq_parts
     common = dict(points=int(raw_sel.sum()), status="ok", sq=sq, sq_raw_mm=sq_raw, sq_noise_mm=sq_noise,
                   noise_mm=typical, noise_source=source, form_cutoff_mm=settings.form_cutoff_mm,
                   roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=grid.spacing,
                   deviation_source="form surface", region=used, **stats)
     cxy = grid.centres(inner)
-    f, e = form[inner], noise_form[:, inner]
-    cal = None if cal_form is None else cal_form
     if face.type == "plane":  # type: ignore[attr-defined]
         tilt = plane_zone_tilt(cxy, f)  # the draws' zones are held near the measured zone's
+        drawn_frames = _LsFrames.of(cxy, fe)  # shared by the draws' LS and MZ zones
+
+        def frames(h: np.ndarray) -> _LsFrames:
+            return drawn_frames if h is fe else _LsFrames.of(cxy, h)
 
         def flat_ls(h: np.ndarray) -> np.ndarray:
-            return flatness_ls_many(cxy, h)
+            return _ls_widths(frames(h))
 
         def flat_mz(h: np.ndarray) -> np.ndarray:
-            return flatness_mz_many(cxy, h, tilt)
+            return _mz_widths(frames(h), tilt)
 
         def noise_mz(h: np.ndarray) -> np.ndarray:  # the noise alone: its zone about its own LS plane
             return flatness_mz_many(cxy, h)
 
-        ls, ls_parts = _zone(flat_ls, f, e, cal)
-        mz, mz_parts = _zone(flat_mz, f, e, cal, noise_mz)
+        ls, ls_parts = _zone(flat_ls, f, fe, e, cal)
+        mz, mz_parts = _zone(flat_mz, f, fe, e, cal, noise_mz)
         parts.update(flatness_ls=ls_parts, flatness_mz=mz_parts)
         return FaceForm(flatness_ls=ls, flatness_mz=mz, u_components=parts, **common)  # type: ignore[arg-type]
     if face.type == "cylinder":  # type: ignore[attr-defined]
@@ -783,23 +796,24 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         def cyl_mz(hs: np.ndarray) -> np.ndarray:
             return np.array([cylindricity_mz(_unroll(cxy, R + sign * h, R), o0, axis0) for h in hs])
 
-        ls, ls_parts = _zone(cyl_ls, f, e, cal)
-        mz, mz_parts = _zone(cyl_mz, f, e, cal)
+        ls, ls_parts = _zone(cyl_ls, f, fe, e, cal)
+        mz, mz_parts = _zone(cyl_mz, f, fe, e, cal)
         parts.update(cylindricity_ls=ls_parts, cylindricity_mz=mz_parts)
         return FaceForm(cylindricity_ls=ls, cylindricity_mz=mz, u_components=parts, **common)  # type: ignore[arg-type]
     return FaceForm(note=f"{face.type}: texture and deviations only", u_components=parts, **common)  # type: ignore[attr-defined,arg-type]
 
 
-def _zone(figure: Callable[[np.ndarray], np.ndarray], form: np.ndarray, drawn: np.ndarray,
+def _zone(figure: Callable[[np.ndarray], np.ndarray], form: np.ndarray, drawn: np.ndarray, noise: np.ndarray,
           cal: np.ndarray | None, noise_figure: Callable[[np.ndarray], np.ndarray] | None = None
           ) -> tuple[Estimate, dict[str, float]]:
-    """A zone of the form surface `form` (cells,) with its noise draws (D, cells) and
-    calibration moves (D_cal, cells): bias removed, u, detection limit. `figure` takes
-    surfaces (B, cells) and gives their zones (B,); `noise_figure`, the same zone computed
-    with hints for the noise alone (default: `figure`)."""
+    """A zone of the form surface `form` (cells,) with it plus each noise draw `drawn`
+    (D, cells), the draws alone `noise`, and calibration moves (D_cal, cells): bias
+    removed, u, detection limit. `figure` takes surfaces (B, cells) and gives their zones
+    (B,); `noise_figure`, the same zone computed with hints for the noise alone (default:
+    `figure`)."""
     value = float(figure(form[None])[0])
     changes = None if cal is None else figure(form + cal) - value
-    return from_draws(value, figure(form + drawn), (noise_figure or figure)(drawn), changes)
+    return from_draws(value, figure(drawn), (noise_figure or figure)(noise), changes)
 
 
 def _point_draws(noise: PointNoise | None, normals: np.ndarray | None, rng: np.random.Generator, n: int,
@@ -811,10 +825,12 @@ def _point_draws(noise: PointNoise | None, normals: np.ndarray | None, rng: np.r
     return rng.standard_normal((n, count)) * fallback_sigma
 
 
-def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, raw: np.ndarray, raw_draws: np.ndarray,
-                     cal: np.ndarray | None) -> tuple[dict[str, Estimate], dict[str, dict[str, float]]]:
+def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, noise: np.ndarray, raw: np.ndarray,
+                     raw_draws: np.ndarray, cal: np.ndarray | None
+                     ) -> tuple[dict[str, Estimate], dict[str, dict[str, float]]]:
     """Deviation figures of `surface` (the form surface's deviations, or the raw ones) with
-    their draws, its profile zone 2 max|d|, and the extremes of the `raw` point deviations
+    it plus each draw (`drawn`) and the draws alone (`noise`), its profile zone 2 max|d|,
+    and the extremes of the `raw` point deviations
     with theirs; `cal` (D_cal, cells): calibration moves. The extremes and the profile are
     tested against zero (an extreme the noise alone reaches is not a deviation: null, with
     that reach, in magnitude, as its limit); the mean and RMS are not."""
@@ -828,7 +844,6 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, raw: np.ndarray, ra
         return est, parts
 
     out, parts = {}, {}
-    noise = drawn - surface  # the noise alone, for the tested figures' limits
     for name, fn, tested, sign in (("deviation_min", _row_min, True, -1.0), ("deviation_max", _row_max, True, 1.0),
                                    ("deviation_mean", _row_mean, False, 1.0), ("deviation_rms", _row_rms, False, 1.0),
                                    ("profile", _row_profile, True, 1.0)):
