@@ -51,6 +51,7 @@ transform.
 
 from __future__ import annotations
 
+from contextvars import ContextVar
 from dataclasses import dataclass, field, fields, replace
 from typing import Callable, Iterable, Iterator
 
@@ -61,6 +62,9 @@ from scipy.optimize import least_squares, linprog
 from inspection.uncertainty import DETECTION_QUANTILE, Estimate, PointNoise
 
 ALPHA = float(np.sqrt(np.log(2.0) / np.pi))  # ISO 16610-61
+# threads of the filters' FFTs and the grid's tree query (-1: every core); a thread evaluating a face beside
+# others sets 1 (two faces on two cores, each with its own threads, only contend)
+FORM_WORKERS: ContextVar[int] = ContextVar("form_workers", default=-1)
 FORM_CUTOFF_MM = 8.0
 ROUGHNESS_CUTOFF_MM = 8.0
 MIN_POINTS = 50
@@ -359,8 +363,8 @@ class _Correlator:
     def transform(self, fields: np.ndarray) -> np.ndarray:
         """The padded 2-D spectrum of fields (..., H, W): rows first, only the H that hold data
         (complex64 for float32 fields: the FFTs are memory-bound, single precision halves them)."""
-        rows = fft.rfft(fields, n=self.size[1], axis=-1, workers=-1)
-        return fft.fft(rows, n=self.size[0], axis=-2, workers=-1)
+        rows = fft.rfft(fields, n=self.size[1], axis=-1, workers=FORM_WORKERS.get())
+        return fft.fft(rows, n=self.size[0], axis=-2, workers=FORM_WORKERS.get())
 
     def apply(self, spectrum: np.ndarray, pairs: Iterable[tuple[int, int]]) -> Iterator[np.ndarray]:
         """The correlations (..., H, W) with the kernel pairs (ky, kx), in their order; pairs
@@ -370,10 +374,10 @@ class _Correlator:
         for ky, kx in pairs:
             if ky != ky_done:
                 k = self._cols[ky].astype(spectrum.dtype, copy=False)  # single-precision fields stay single
-                cols = fft.ifft(spectrum * k, axis=-2, workers=-1)[..., self.half:self.half + h, :]
+                cols = fft.ifft(spectrum * k, axis=-2, workers=FORM_WORKERS.get())[..., self.half:self.half + h, :]
                 ky_done = ky
             k = self._rows[kx].astype(spectrum.dtype, copy=False)
-            yield fft.irfft(cols * k, n=self.size[1], axis=-1, workers=-1)[..., self.half:self.half + w]
+            yield fft.irfft(cols * k, n=self.size[1], axis=-1, workers=FORM_WORKERS.get())[..., self.half:self.half + w]
 
 
 _MONOMIALS = ((0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (0, 2))  # (power of x, power of y), by y's
@@ -579,7 +583,7 @@ def _grid(xy: np.ndarray) -> _Grid:
     grows until nine cells in ten inside the measured area hold a point."""
     from scipy.spatial import cKDTree
 
-    d, _ = cKDTree(xy, balanced_tree=False, compact_nodes=False).query(xy, k=2, workers=-1)  # the quick build
+    d, _ = cKDTree(xy, balanced_tree=False, compact_nodes=False).query(xy, k=2, workers=FORM_WORKERS.get())  # the quick build
     g = float(np.median(d[:, 1])) * 1.2
     lo = xy.min(axis=0)
     while True:  # a few rounds at most

@@ -27,7 +27,7 @@ import numpy as np
 
 from inspection.cad import CadModel
 from inspection.errors import InspectionError
-from inspection.form import FaceForm, FormSettings, evaluate_face
+from inspection.form import FORM_WORKERS, FaceForm, FormSettings, evaluate_face
 from inspection.measured_cloud import ScanCloud, make_scan, part_mask
 from inspection.registration import ModelTarget, Registration, RegistrationSettings, transform_points
 from inspection.registration.warm_start import register_with_prior
@@ -195,8 +195,13 @@ def _each_face(row: Callable[[Any], FaceRow], faces: list[Any], seg: Any) -> dic
     faces = sorted(faces, key=lambda f: -int(np.count_nonzero(seg.face == f.index)))
     if len(faces) < 2:
         return {f.index: row(f) for f in faces}
+
+    def beside(face: Any) -> FaceRow:  # the cores are the faces': one thread of FFTs each
+        FORM_WORKERS.set(1)
+        return row(face)
+
     with ThreadPoolExecutor(FACE_WORKERS, thread_name_prefix="face form") as pool:
-        return {f.index: r for f, r in zip(faces, pool.map(row, faces))}
+        return {f.index: r for f, r in zip(faces, pool.map(beside, faces))}
 
 
 def _verdicts(label: str, form: Any, tolerances: Tolerances | None, rule: str) -> dict[str, tuple[float, str]]:
