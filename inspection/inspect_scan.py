@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from inspection.cad import CadModel
 from inspection.errors import InspectionError
@@ -58,6 +59,7 @@ def prepare(model: CadModel) -> ModelTarget:
     return target
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")
 def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = None,
             settings: InspectionSettings = InspectionSettings(), recording: Any = None,
             prior: Registration | None = None, uncertainty: ScanUncertainty | None = None,
@@ -70,7 +72,9 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
     runs as soon as the verdict is known: the faces the tolerances ask for are evaluated
     first, and that report holds only them (and the faces they ask for that were not
     seen); the report returned has every face. Faces are evaluated two at a time
-    (`FACE_WORKERS`)."""
+    (`FACE_WORKERS`). BLAS runs on one thread inside (restored after): its products here
+    are thin and memory-bound, and a second BLAS thread busy-waits between calls on the core
+    the faces' threads need (about 1.5-2 s of CPU per demo part, process-wide limit)."""
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     mask = part_mask(scan, model.diagonal_mm)
