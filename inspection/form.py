@@ -442,8 +442,9 @@ class GaussianFilter:
         return np.where(self._ok, out, np.nan), mean / (self._norm32 if single else self._norm)
 
     def _spectrum(self, z: np.ndarray, single: bool) -> np.ndarray:
-        return self._c.transform(np.where(self.mask, np.nan_to_num(z), 0.0).astype(np.float32 if single else np.float64,
-                                                                                   copy=False))
+        held = np.zeros(z.shape, np.float32 if single else np.float64)  # the one copy: big stacks cost page faults
+        np.copyto(held, z, where=self.mask & np.isfinite(z), casting="same_kind")
+        return self._c.transform(held)
 
 
 def gaussian_filter(z: np.ndarray, mask: np.ndarray, cutoff_mm: float, spacing_mm: float,
@@ -721,7 +722,8 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     used = np.zeros(n, bool)
     used[np.flatnonzero(keep)[raw_sel]] = True
     if noise is not None:
-        point_draws = noise.draw(rng, settings.draws) * np.einsum("ij,ij->i", normals, noise.ray)
+        point_draws = noise.draw(rng, settings.draws)
+        point_draws *= np.einsum("ij,ij->i", normals, noise.ray)
         cell_draws = grid.mean(point_draws)
         typical = float(np.median(noise.sigma_z * np.abs(np.einsum("ij,ij->i", normals, noise.ray))))
         source, model_rel_u = noise.source, noise.rel_u
@@ -731,7 +733,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         point_draws = None
         typical = sigma * float(np.sqrt(np.median(grid.counts[grid.counts > 0])))
         source, model_rel_u = "estimated from the data (fourth differences)", 1.0 / np.sqrt(max(inner.sum(), 1))
-    cell_draws = np.where(inner, cell_draws, np.nan)
+    cell_draws[:, ~inner] = np.nan
     cal_cells = None
     if shifts is not None:
         cal_cells = np.where(inner, grid.mean(np.einsum("dij,ij->di", shifts, normals)), 0.0)
