@@ -584,7 +584,8 @@ def _grid(xy: np.ndarray) -> _Grid:
     grows until nine cells in ten inside the measured area hold a point."""
     from scipy.spatial import cKDTree
 
-    d, _ = cKDTree(xy, balanced_tree=False, compact_nodes=False).query(xy, k=2, workers=FORM_WORKERS.get())  # the quick build
+    tree = cKDTree(xy, balanced_tree=False, compact_nodes=False)  # the quick build
+    d, _ = tree.query(xy, k=2, workers=FORM_WORKERS.get())
     g = float(np.median(d[:, 1])) * 1.2
     lo = xy.min(axis=0)
     while True:  # a few rounds at most

@@ -214,7 +214,8 @@ def _write_outputs(result: ScanResult, timer: StageTimer, summary: dict[str, Any
     try:
         with timer.stage("write", clock=time.thread_time if behind else time.process_time), \
                 ThreadPoolExecutor(1, thread_name_prefix="write maps") as pool:
-            maps = None if behind else pool.submit(save_maps, out / "maps.npz", result.decoded)  # writes release the GIL
+            # beside the PLY unless behind (file writes release the GIL)
+            maps = None if behind else pool.submit(save_maps, out / "maps.npz", result.decoded)
             if result.cloud is not None:
                 write_ply(out / "cloud.ply", result.cloud)
             save_maps(out / "maps.npz", result.decoded) if maps is None else maps.result()
