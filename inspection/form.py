@@ -442,7 +442,7 @@ class GaussianFilter:
         return np.where(self._ok, out, np.nan), mean / (self._norm32 if single else self._norm)
 
     def _spectrum(self, z: np.ndarray, single: bool) -> np.ndarray:
-        held = np.zeros(z.shape, np.float32 if single else np.float64)  # the one copy: big stacks cost page faults
+        held = np.zeros(z.shape, np.float32 if single else np.float64)  # one copy, in the transform's precision
         np.copyto(held, z, where=self.mask & np.isfinite(z), casting="same_kind")
         return self._c.transform(held)
 

@@ -214,11 +214,13 @@ def _write_outputs(result: ScanResult, timer: StageTimer, summary: dict[str, Any
     try:
         with timer.stage("write", clock=time.thread_time if behind else time.process_time), \
                 ThreadPoolExecutor(1, thread_name_prefix="write maps") as pool:
-            # beside the PLY unless behind (file writes release the GIL)
-            maps = None if behind else pool.submit(save_maps, out / "maps.npz", result.decoded)
+            maps = None if behind else pool.submit(save_maps, out / "maps.npz", result.decoded)  # beside the PLY
             if result.cloud is not None:
                 write_ply(out / "cloud.ply", result.cloud)
-            save_maps(out / "maps.npz", result.decoded) if maps is None else maps.result()
+            if maps is None:
+                save_maps(out / "maps.npz", result.decoded)
+            else:
+                maps.result()
     except OSError as exc:  # the frames and manifest are already safe: say so, and how to finish
         raise SessionError(f"{session.root}: cannot write the outputs: {disk_problem(exc)}; the frames and manifest "
                            f"are kept: `slscan decode {session.root}` writes the outputs again") from None
