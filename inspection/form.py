@@ -407,17 +407,16 @@ class GaussianFilter:
         # row of M^-1 (M_ij = S of the product of monomials i and j) applied to T_j = sum w z g m_j
         ab = [(a, b) for b in range(5) for a in range(5 - b)]
         S = dict(zip(ab, self._c.apply(wspec, [(b, a) for a, b in ab])))
-        M = np.empty(mask.shape + (6, 6))
+        ok = mask & (S[(0, 0)] > 1e-12 * S[(0, 0)].max())
+        scale = np.maximum(S[(0, 0)][ok], 1e-300)
+        Mo = np.empty((len(scale), 6, 6))  # only where the filter is defined (symmetric: M_ij = M_ji)
         for i, (a1, b1) in enumerate(_MONOMIALS):
             for j, (a2, b2) in enumerate(_MONOMIALS):
-                M[..., i, j] = S[(a1 + a2, b1 + b2)]
-        scale = np.maximum(M[..., 0, 0], 1e-300)
-        ok = mask & (M[..., 0, 0] > 1e-12 * M[..., 0, 0].max())
-        row = np.zeros(mask.shape + (6,))
-        Mo = M[ok] / scale[ok][:, None, None]
+                Mo[:, i, j] = S[(a1 + a2, b1 + b2)][ok] / scale
         e0 = np.zeros((len(Mo), 6, 1))
         e0[:, 0] = 1.0
-        row[ok] = np.linalg.solve(np.transpose(Mo, (0, 2, 1)) + 1e-12 * np.eye(6), e0)[..., 0] / scale[ok][:, None]
+        row = np.zeros(mask.shape + (6,))
+        row[ok] = np.linalg.solve(Mo + 1e-12 * np.eye(6), e0)[..., 0] / scale[:, None]
         self._row = row
         self._row32 = row.astype(np.float32)
         self._ok = ok
