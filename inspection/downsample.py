@@ -106,12 +106,20 @@ def downsample(points: np.ndarray, voxel_mm: float | None = None, method: str = 
     if method == "average":
         return Downsampled(centre, cell, None, size)
     off = pts[order] - centre[cell[order]]
-    d2 = np.einsum("ij,ij->i", off, off)
-    starts = np.r_[0, np.cumsum(counts)[:-1]]
-    nearest = np.flatnonzero(d2 == np.repeat(np.minimum.reduceat(d2, starts), counts))
-    group = cell[order[nearest]]
-    keep = order[nearest[np.r_[True, group[1:] != group[:-1]]]]
+    keep = order[first_minimum_per_run(cell[order], np.einsum("ij,ij->i", off, off))]
     return Downsampled(pts[keep], cell, keep, size)
+
+
+def first_minimum_per_run(key: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Positions of the least of `values` in each run of equal `key` (N,) (runs adjacent,
+    e.g. sorted by key), the first of equals: a stable sort by (key, value)'s first of
+    each run, at a fraction of its time."""
+    if not len(key):
+        return np.zeros(0, np.int64)
+    new = np.r_[True, key[1:] != key[:-1]]
+    run = np.cumsum(new) - 1
+    hit = np.flatnonzero(values == np.minimum.reduceat(values, np.flatnonzero(new))[run])
+    return hit[np.r_[True, run[hit][1:] != run[hit][:-1]]]
 
 
 def _checked(points: np.ndarray) -> np.ndarray:

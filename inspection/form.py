@@ -240,12 +240,12 @@ def _plane_zones(f: _LsFrames, tilt: np.ndarray | None) -> tuple[np.ndarray, np.
     return sol[:, 0], sol[:, 1], sol[:, 2], sol[:, 3]
 
 
-def _zone_rounds(f: _LsFrames, active: np.ndarray, sol: np.ndarray, add: int, solved: bool) -> None:
+def _zone_rounds(f: _LsFrames, active: np.ndarray, sol: np.ndarray, per_round: int, solved: bool) -> None:
     """Solve every surface's zone over its `active` points (B, N), check all points and add
-    up to `add` of the worst violators per surface, until none is left; `active` and `sol`
-    (B, 4: a, b, lo, w) are updated in place; `solved`: `sol` already holds the solutions
-    over `active` (the check comes first)."""
-    k = min(f.Z.shape[1], add)
+    up to `per_round` of the worst violators per surface, until none is left; `active` and
+    `sol` (B, 4: a, b, lo, w) are updated in place; `solved`: `sol` already holds the
+    solutions over `active` (the check comes first)."""
+    k = min(f.Z.shape[1], per_round)
     todo = np.arange(len(sol))
     for _ in range(50):  # a few rounds at most
         if not solved:
