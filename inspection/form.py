@@ -156,8 +156,11 @@ def flatness_ls_many(xy: np.ndarray, heights: np.ndarray) -> np.ndarray:
 
 def _ls_widths(frames: _LsFrames) -> np.ndarray:
     """`flatness_ls_many` of surfaces already in their LS frames."""
-    z = frames.along(frames.n)
-    return z.max(axis=1) - z.min(axis=1)
+    def widths(rows: slice) -> np.ndarray:
+        z = frames.along(frames.n[rows], rows)
+        return z.max(axis=1) - z.min(axis=1)
+
+    return np.concatenate([widths(c) for c in _row_chunks(len(frames.n))])
 
 
 def plane_zone_tilt(xy: np.ndarray, height: np.ndarray) -> np.ndarray:
@@ -213,6 +216,7 @@ class _LsFrames:
 ZONE_CANDIDATES = 32  # extreme points per side a zone's LP starts from; violators join this many at a time
 ZONE_SLACK_MM = 1e-10  # a point this far outside a zone counts as inside (HiGHS's round-off)
 ZONE_SUBSET_STRIDE = 8  # the zone is first found over every 8th point, then checked and completed over all
+ROW_CHUNK = 4  # draws worked on at a time where a stack of them would be a fresh mapping (`_row_chunks`)
 
 
 def _plane_zones(f: _LsFrames, tilt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -253,16 +257,28 @@ def _zone_rounds(f: _LsFrames, active: np.ndarray, sol: np.ndarray, per_round: i
             rs = todo[s]
             sol[todo] = _plane_lps(len(todo), s, f.at(f.u, rs, j), f.at(f.v, rs, j), f.at(f.n, rs, j))
         solved = False
-        a, b, lo, w = (sol[todo, i:i + 1] for i in range(4))
-        r = f.along(f.n[todo] - a * f.u[todo] - b * f.v[todo], todo)
-        excess = np.where(active[todo], -np.inf, np.maximum(lo - r, r - lo - w))
-        more = (excess > ZONE_SLACK_MM).any(axis=1)
-        if not more.any():
+        left = [t for c in _row_chunks(len(todo)) if len(t := _add_violators(f, todo[c], active, sol, k))]
+        if not left:
             return
-        todo, excess = todo[more], excess[more]
-        worst = np.argpartition(-excess, k - 1, axis=1)[:, :k]
-        add = np.take_along_axis(excess, worst, axis=1) > ZONE_SLACK_MM
-        active[np.broadcast_to(todo[:, None], worst.shape)[add], worst[add]] = True
+        todo = np.concatenate(left)
+
+
+def _add_violators(f: _LsFrames, rows: np.ndarray, active: np.ndarray, sol: np.ndarray, k: int) -> np.ndarray:
+    """Mark up to k of the worst points outside each zone `rows` as active; returns the
+    rows that had any."""
+    a, b, lo, w = (sol[rows, i:i + 1] for i in range(4))
+    excess = f.along(f.n[rows] - a * f.u[rows] - b * f.v[rows], rows)  # r, then how far outside the zone
+    below = lo - excess
+    excess -= lo
+    excess -= w
+    np.maximum(below, excess, out=excess)
+    excess[active[rows]] = -np.inf
+    more = (excess > ZONE_SLACK_MM).any(axis=1)
+    rows, excess = rows[more], excess[more]
+    worst = np.argpartition(-excess, k - 1, axis=1)[:, :k]
+    add = np.take_along_axis(excess, worst, axis=1) > ZONE_SLACK_MM
+    active[np.broadcast_to(rows[:, None], worst.shape)[add], worst[add]] = True
+    return rows
 
 
 def _plane_lps(count: int, s: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
@@ -422,6 +438,9 @@ class GaussianFilter:
         self._ok = ok
 
     def __call__(self, z: np.ndarray, single: bool = False) -> np.ndarray:
+        if z.ndim > 2 and len(z) > ROW_CHUNK:
+            flat = z.reshape(-1, *z.shape[-2:])
+            return np.concatenate([self(flat[c], single) for c in _row_chunks(len(flat))]).reshape(z.shape)
         if self.order == 0:
             return next(self._c.apply(self._spectrum(z, single), [(0, 0)])) / (self._norm32 if single else self._norm)
         return self.with_mean(z, single)[0]
@@ -431,6 +450,10 @@ class GaussianFilter:
         from one transform, the mean's correlation being the regression's first term.
         `single`: in float32 (relative error ~1e-6 of the fields' size), for the noise
         draws, whose figures' spread is all that is used of them."""
+        if z.ndim > 2 and len(z) > ROW_CHUNK:
+            flat = z.reshape(-1, *z.shape[-2:])
+            done = [self.with_mean(flat[c], single) for c in _row_chunks(len(flat))]
+            return tuple(np.concatenate(each).reshape(z.shape) for each in zip(*done))  # type: ignore[return-value]
         spec = self._spectrum(z, single)
         row = self._row32 if single else self._row
         terms = self._c.apply(spec, [(b, a) for a, b in _MONOMIALS])
@@ -444,6 +467,15 @@ class GaussianFilter:
         held = np.zeros(z.shape, np.float32 if single else np.float64)  # one copy, in the transform's precision
         np.copyto(held, z, where=self.mask & np.isfinite(z), casting="same_kind")
         return self._c.transform(held)
+
+
+def _row_chunks(rows: int) -> Iterator[slice]:
+    """Stacks of noise draws (32 fields or surfaces) are worked on ROW_CHUNK rows at a time:
+    a piece's temporaries (a few MB) are reused from the allocator's free memory, where a
+    whole stack's (40-100 MB each) are fresh mappings the kernel zeroes page by page every
+    time (in `slscan demobench`, 0.8-1.1 s of each face thread's 1.7-2.2 s CPU was the
+    kernel zeroing pages). The results are the same bit for bit."""
+    return (slice(i, i + ROW_CHUNK) for i in range(0, rows, ROW_CHUNK))
 
 
 def gaussian_filter(z: np.ndarray, mask: np.ndarray, cutoff_mm: float, spacing_mm: float,
@@ -552,8 +584,8 @@ def _surface_coordinates(face: object, points: np.ndarray, uv: np.ndarray) -> np
 
 @dataclass(frozen=True, eq=False)
 class _Grid:
-    """Points binned on a square grid: `cell` (N,) flat index of each point's cell (-1
-    outside), `counts` per cell, `shape`, `spacing`, `origin` (2,) mm."""
+    """Points binned on a square grid: `cell` (N,) flat index of each point's cell,
+    `counts` per cell, `shape`, `spacing`, `origin` (2,) mm."""
 
     cell: np.ndarray
     counts: np.ndarray
@@ -562,16 +594,14 @@ class _Grid:
     origin: np.ndarray
 
     def mean(self, values: np.ndarray) -> np.ndarray:
-        """Per-cell means (..., H, W) of per-point values (..., N), NaN in empty cells."""
-        lead = values.shape[:-1]
+        """Per-cell means (..., H, W) of per-point values (..., N), NaN in empty cells; a row
+        (e.g. a noise draw) at a time, so the only full-size array is the result."""
         flat = values.reshape(-1, values.shape[-1])
-        cells = len(self.counts)
-        index = (self.cell[None] + cells * np.arange(len(flat))[:, None]).ravel()  # every row's cells apart
-        sums = np.bincount(index, flat.ravel(), cells * len(flat)).reshape(len(flat), cells)
-        out = np.full((len(flat), cells), np.nan)
+        out = np.full((len(flat), len(self.counts)), np.nan)
         filled = self.counts > 0
-        out[:, filled] = sums[:, filled] / self.counts[filled]
-        return out.reshape(*lead, *self.shape)
+        for row, v in zip(out, flat):
+            np.divide(np.bincount(self.cell, v, len(self.counts)), self.counts, out=row, where=filled)
+        return out.reshape(*values.shape[:-1], *self.shape)
 
     def centres(self, mask: np.ndarray) -> np.ndarray:
         rows, cols = np.nonzero(mask)
@@ -650,13 +680,13 @@ def _sq(rough: np.ndarray, drawn_rough: np.ndarray, inner: np.ndarray, model_rel
     r = rough[inner]
     e = drawn_rough[:, inner]
     raw2 = float(np.mean(r ** 2))
+    stat0 = _by_rows(lambda x: np.mean(x ** 2, axis=1), e)
     noise2 = float(np.mean(e ** 2))
     d = raw2 - noise2
     # spread of the estimate: mean(2 s e + e^2) over fresh noise, s the noise-free roughness
     # (the measured one shrunk to the estimated Sq), plus the noise model's own uncertainty
     shrink = np.sqrt(max(d, 0.0) / raw2) if raw2 > 0 else 0.0
-    stat = np.mean(2.0 * shrink * r * e + e ** 2, axis=1)
-    stat0 = np.mean(e ** 2, axis=1)
+    stat = _by_rows(lambda x: np.mean(2.0 * shrink * r * x + x ** 2, axis=1), e)
     u_model = 2.0 * model_rel_u * noise2
     u_d = float(np.hypot(np.std(stat, ddof=1), u_model))
     u_d0 = float(np.hypot(np.std(stat0, ddof=1), u_model))
@@ -746,10 +776,10 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         def filters(z: np.ndarray, single: bool = False) -> tuple[np.ndarray, np.ndarray]:
             return form_filter.with_mean(z, single)[0], rough_filter(z, single)
     form, mean = filters(zg)
-    noise_form, noise_mean = filters(cell_draws, single=True)  # all draws in one stacked transform
+    noise_form, noise_mean = filters(cell_draws, single=True)
     rough = zg - mean
-    drawn_rough = cell_draws - noise_mean
-    sq, sq_raw, sq_noise, sq_parts = _sq(rough, np.nan_to_num(drawn_rough), inner, model_rel_u)
+    drawn_rough = np.subtract(cell_draws, noise_mean, out=cell_draws)  # in place: the draws' last use
+    sq, sq_raw, sq_noise, sq_parts = _sq(rough, drawn_rough, inner, model_rel_u)
     raw_dev = deviation[raw_sel]
     raw_draws = (point_draws[:, raw_sel] if point_draws is not None
                  else rng.standard_normal((settings.draws, int(raw_sel.sum()))) * typical)
@@ -844,7 +874,8 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, noise: np.ndarray, 
              moves: np.ndarray | None, sign: float = 1.0) -> tuple[Estimate, dict[str, float]]:
         value = sign * float(fn(base[None])[0])
         changes = None if moves is None else sign * fn(base + moves) - value
-        est, parts = from_draws(value, sign * fn(draws), None if noise is None else sign * fn(noise), changes)
+        est, parts = from_draws(value, sign * _by_rows(fn, draws), None if noise is None else sign * _by_rows(fn, noise),
+                                changes)
         if sign < 0:
             est = Estimate(None if est.value is None else -est.value, est.u, est.limit, -est.bias)
         return est, parts
@@ -858,6 +889,11 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, noise: np.ndarray, 
     for name, fn, sign in (("raw_deviation_min", _row_min, -1.0), ("raw_deviation_max", _row_max, 1.0)):
         out[name], parts[name] = each(fn, raw, raw_drawn, raw_draws, None, sign)
     return out, parts
+
+
+def _by_rows(fn: Callable[[np.ndarray], np.ndarray], d: np.ndarray) -> np.ndarray:
+    """fn of the rows (draws) of d, ROW_CHUNK rows at a time (`_row_chunks`)."""
+    return np.concatenate([fn(d[c]) for c in _row_chunks(len(d))])
 
 
 def _row_min(d: np.ndarray) -> np.ndarray:

@@ -268,7 +268,8 @@ class PointNoise:
     def draw(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """`n` draws (n, N) of δz (mm): white noise plus the fringe systematic at a random
         offset per draw and orientation."""
-        dz = rng.standard_normal((n, len(self))) * self.sigma_z
+        dz = rng.standard_normal((n, len(self)))
+        dz *= self.sigma_z
         if self.fringe is not None:
             span = len(self.fringe.table) * self.fringe.step_px
             for col, gain in zip(self.columns, self.gains):

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from scanner.acquisition import (
     AcquisitionSettings,
@@ -404,6 +405,8 @@ def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress
         if rec is not None:
             rec.log_rig(rig.model)
         session = capture(rig, patterns, writer, progress, rec, exposure, extra, keep=frames)
+        if then is not None:  # BLAS on one thread: the stages' parallelism is their own threads', and an idle
+            stack.enter_context(threadpool_limits(1, user_api="blas"))  # BLAS thread spins, taking a core from them
         result = process(session, progress, rec, frames=frames, write_behind=then is not None)
         frames.clear()  # decoded: the memory goes back before the inspection
         try:

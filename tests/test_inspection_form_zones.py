@@ -14,6 +14,7 @@ import pytest
 from form_truth import gaussian_mean, plane_min_zone
 
 from inspection.form import (
+    ROW_CHUNK,
     GaussianFilter,
     flatness_ls_many,
     flatness_mz,
@@ -104,17 +105,21 @@ def test_least_squares_flatness_of_many_surfaces() -> None:
 
 def test_form_filter_hands_back_the_gaussian_mean() -> None:
     """`with_mean`: the regression as the filter gives it alone, and the Gaussian mean of
-    the same cut-off as the tests' own convolution, for a stack of fields on a masked grid."""
+    the same cut-off as the tests' own convolution, for a stack of fields on a masked grid
+    (more than the filter takes at a time, ROW_CHUNK: each field's results as it alone gets)."""
     g = 0.25
     x = np.arange(0, 30, g)
     X, Y = np.meshgrid(x, x)
     mask = np.hypot(X - 15, Y - 15) < 13
     rng = np.random.default_rng(5)
-    fields = 1e-4 * (X - 10) ** 2 + rng.standard_normal((3, *X.shape)) * 0.002
+    fields = 1e-4 * (X - 10) ** 2 + rng.standard_normal((ROW_CHUNK + 2, *X.shape)) * 0.002
     f = GaussianFilter(mask, 8.0, g, order=2)
     reg, mean = f.with_mean(fields)
     np.testing.assert_array_equal(reg, f(fields))
-    for k in range(3):
+    for k in range(len(fields)):
+        alone = f.with_mean(fields[k])
+        np.testing.assert_array_equal(reg[k], alone[0])
+        np.testing.assert_array_equal(mean[k], alone[1])
         truth = gaussian_mean(np.where(mask, fields[k], 0.0), mask, 8.0, g)
         assert np.abs(mean[k] - truth)[mask].max() < 1e-9  # mm; the two kernels end at 2.6 and 3 alpha lc
         assert np.abs(gaussian_filter(fields[k], mask, 8.0, g) - truth)[mask].max() < 1e-9  # mm; the two kernels end at 2.6 and 3 alpha lc
