@@ -228,10 +228,10 @@ def _plane_zones(f: _LsFrames, tilt: np.ndarray | None) -> tuple[np.ndarray, np.
     B, N = f.Z.shape
     if B == 0:
         return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0)
-    sub = np.arange(0, N, ZONE_SUBSET_STRIDE)
-    part = _LsFrames(f.X[sub], f.Y[sub], f.Z[:, sub], f.u, f.v, f.n)
-    k = min(len(sub), ZONE_CANDIDATES)
-    active = np.zeros((B, len(sub)), bool)
+    sub = slice(None, None, ZONE_SUBSET_STRIDE)
+    part = _LsFrames(f.X[sub], f.Y[sub], np.ascontiguousarray(f.Z[:, sub]), f.u, f.v, f.n)
+    k = min(len(part.X), ZONE_CANDIDATES)
+    active = np.zeros((B, len(part.X)), bool)
     rows = np.arange(B)[:, None]
     h = part.along(f.n if tilt is None else f.n - tilt[0] * f.u - tilt[1] * f.v)
     active[rows, np.argpartition(h, k - 1, axis=1)[:, :k]] = True
@@ -678,7 +678,7 @@ def _sq(rough: np.ndarray, drawn_rough: np.ndarray, inner: np.ndarray, model_rel
     (module docstring of `inspection.uncertainty`); also Sq before removal and the
     noise's RMS."""
     r = rough[inner]
-    e = drawn_rough[:, inner]
+    e = _columns(drawn_rough, inner)
     raw2 = float(np.mean(r ** 2))
     stat0 = _by_rows(lambda x: np.mean(x ** 2, axis=1), e)
     noise2 = float(np.mean(e ** 2))
@@ -781,10 +781,10 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     drawn_rough = np.subtract(cell_draws, noise_mean, out=cell_draws)  # in place: the draws' last use
     sq, sq_raw, sq_noise, sq_parts = _sq(rough, drawn_rough, inner, model_rel_u)
     raw_dev = deviation[raw_sel]
-    raw_draws = (point_draws[:, raw_sel] if point_draws is not None
+    raw_draws = (_columns(point_draws, raw_sel) if point_draws is not None
                  else rng.standard_normal((settings.draws, int(raw_sel.sum()))) * typical)
-    cal = None if cal_cells is None else cal_cells[:, inner]
-    f, e = form[inner], noise_form[:, inner].astype(np.float64)  # the figures in double precision
+    cal = None if cal_cells is None else _columns(cal_cells, inner)
+    f, e = form[inner], _columns(noise_form, inner).astype(np.float64)  # the figures in double precision
     fe = f + e  # the form surface plus each draw's
     stats, parts = _deviation_stats(f, fe, e, raw_dev, raw_draws, cal)
     parts["sq"] = sq_parts
@@ -889,6 +889,12 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, noise: np.ndarray, 
     for name, fn, sign in (("raw_deviation_min", _row_min, -1.0), ("raw_deviation_max", _row_max, 1.0)):
         out[name], parts[name] = each(fn, raw, raw_drawn, raw_draws, None, sign)
     return out, parts
+
+
+def _columns(a: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """a[:, where] (rows, n) stored row after row: numpy's boolean index there lays the
+    result out column after column, and every per-draw pass over it then strides."""
+    return np.compress(where.ravel(), a.reshape(len(a), -1), axis=1)
 
 
 def _by_rows(fn: Callable[[np.ndarray], np.ndarray], d: np.ndarray) -> np.ndarray:
