@@ -438,8 +438,7 @@ class GaussianFilter:
         self._ok = ok
 
     def __call__(self, z: np.ndarray, single: bool = False) -> np.ndarray:
-        if z.ndim > 2 and len(z) > ROW_CHUNK:
-            flat = z.reshape(-1, *z.shape[-2:])
+        if (flat := _large_stack(z)) is not None:
             return np.concatenate([self(flat[c], single) for c in _row_chunks(len(flat))]).reshape(z.shape)
         if self.order == 0:
             return next(self._c.apply(self._spectrum(z, single), [(0, 0)])) / (self._norm32 if single else self._norm)
@@ -450,8 +449,7 @@ class GaussianFilter:
         from one transform, the mean's correlation being the regression's first term.
         `single`: in float32 (relative error ~1e-6 of the fields' size), for the noise
         draws, whose figures' spread is all that is used of them."""
-        if z.ndim > 2 and len(z) > ROW_CHUNK:
-            flat = z.reshape(-1, *z.shape[-2:])
+        if (flat := _large_stack(z)) is not None:
             done = [self.with_mean(flat[c], single) for c in _row_chunks(len(flat))]
             return tuple(np.concatenate(each).reshape(z.shape) for each in zip(*done))  # type: ignore[return-value]
         spec = self._spectrum(z, single)
@@ -476,6 +474,12 @@ def _row_chunks(rows: int) -> Iterator[slice]:
     time (in `slscan demobench`, 0.8-1.1 s of each face thread's 1.7-2.2 s CPU was the
     kernel zeroing pages). The results are the same bit for bit."""
     return (slice(i, i + ROW_CHUNK) for i in range(0, rows, ROW_CHUNK))
+
+
+def _large_stack(z: np.ndarray) -> np.ndarray | None:
+    """Fields z (..., H, W) as one stack (F, H, W) when there are more than ROW_CHUNK, else None."""
+    flat = z.reshape(-1, *z.shape[-2:])
+    return flat if len(flat) > ROW_CHUNK else None
 
 
 def gaussian_filter(z: np.ndarray, mask: np.ndarray, cutoff_mm: float, spacing_mm: float,
