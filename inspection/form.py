@@ -257,10 +257,9 @@ def _zone_rounds(f: _LsFrames, active: np.ndarray, sol: np.ndarray, per_round: i
             rs = todo[s]
             sol[todo] = _plane_lps(len(todo), s, f.at(f.u, rs, j), f.at(f.v, rs, j), f.at(f.n, rs, j))
         solved = False
-        left = [t for c in _row_chunks(len(todo)) if len(t := _add_violators(f, todo[c], active, sol, k))]
-        if not left:
+        todo = np.concatenate([_add_violators(f, todo[c], active, sol, k) for c in _row_chunks(len(todo))])
+        if not len(todo):
             return
-        todo = np.concatenate(left)
 
 
 def _add_violators(f: _LsFrames, rows: np.ndarray, active: np.ndarray, sol: np.ndarray, k: int) -> np.ndarray:
