@@ -24,7 +24,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from inspection.cad import CadModel
 from inspection.errors import InspectionError
@@ -36,6 +35,7 @@ from inspection.report import FaceRow, InspectionReport
 from inspection.segmentation import assign_faces
 from inspection.tolerances import FIGURE_OF, GUARD_BANDED, NOT_MEASURED, Tolerances, decide
 from inspection.uncertainty import ScanUncertainty
+from scanner.native_threads import native_threads
 
 _TARGETS: weakref.WeakKeyDictionary[CadModel, ModelTarget] = weakref.WeakKeyDictionary()
 
@@ -59,7 +59,6 @@ def prepare(model: CadModel) -> ModelTarget:
     return target
 
 
-@threadpool_limits.wrap(limits=1, user_api="blas")
 def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = None,
             settings: InspectionSettings = InspectionSettings(), recording: Any = None,
             prior: Registration | None = None, uncertainty: ScanUncertainty | None = None,
@@ -76,6 +75,13 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
     its products here are thin and memory-bound, and a second BLAS thread busy-waits between
     calls on the core the faces' threads need (the demo part's registration and segmentation:
     1.45 -> 1.16 s CPU)."""
+    with native_threads(1):
+        return _inspect(scan, model, tolerances, settings, recording, prior, uncertainty, on_verdict)
+
+
+def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, settings: InspectionSettings,
+             recording: Any, prior: Registration | None, uncertainty: ScanUncertainty | None,
+             on_verdict: Callable[[InspectionReport], None] | None) -> InspectionReport:
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     mask = part_mask(scan, model.diagonal_mm)

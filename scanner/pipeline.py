@@ -12,7 +12,6 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import cv2
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from scanner.acquisition import (
     AcquisitionSettings,
@@ -32,6 +31,7 @@ from scanner.patterns import PatternSet
 from scanner.pointcloud import OrganisedCloud, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from scanner.rig import Rig
+from scanner.native_threads import native_threads
 from scanner.session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, disk_problem, write_json, write_npz
 from scanner.stage_timer import StageTimer
 
@@ -406,7 +406,7 @@ def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress
             rec.log_rig(rig.model)
         session = capture(rig, patterns, writer, progress, rec, exposure, extra, keep=frames)
         if then is not None:  # BLAS on one thread: the stages' parallelism is their own threads', and an idle
-            stack.enter_context(threadpool_limits(1, user_api="blas"))  # BLAS thread spins, taking a core from them
+            stack.enter_context(native_threads(1))  # BLAS thread spins, taking a core from them
         result = process(session, progress, rec, frames=frames, write_behind=then is not None)
         frames.clear()  # decoded: the memory goes back before the inspection
         try:

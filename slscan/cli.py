@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Sequence
 
 from scanner.errors import ScannerError
+from scanner.native_threads import size_opencv_pool
 from scanner.session import disk_problem
 from slscan.commands import COMMANDS
 from slscan.examples import epilog
@@ -113,6 +114,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         (commands(parser).get(args.command) if args.command else parser).print_help()
         return Exit.OK
     logging.basicConfig(level=log_level(args), stream=sys.stderr, format=LOG_FORMAT)  # no-op if configured
+    size_opencv_pool()  # on the main thread before any command's threads start; never at import
     try:
         return int(args.func(args))
     except ScannerError as exc:

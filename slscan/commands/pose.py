@@ -207,16 +207,10 @@ def one_thread() -> Iterator[None]:
     grids are small, and a second thread costs more CPU than it saves (its start-up and
     waits are CPU time too), most of all on a busy machine. Results do not change. Both
     limits are process-wide: for the command line, not for a thread beside others."""
-    import cv2
-    from threadpoolctl import threadpool_limits
+    from scanner.native_threads import native_threads, opencv_threads
 
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        with threadpool_limits(limits=1):
-            yield
-    finally:
-        cv2.setNumThreads(before)
+    with opencv_threads(1), native_threads(1, openmp=True):
+        yield
 
 
 def pose_scene(cloud: Any, camera: Any, model: Any, settings: Any, instances: list[Any] | None = None) -> tuple:
