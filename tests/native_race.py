@@ -5,7 +5,7 @@ of rounds; it prints `done IMPORTS WALKS` when both threads finished. A walker t
 Python under the loader's lock (threadpoolctl's `dl_iterate_phdr` callback) deadlocks
 here; the caller's watchdog sees a script that never prints.
 
-    python tests/native_race.py slscan|threadpoolctl ROUNDS [--walk-on-thread]
+    python tests/native_race.py slscan|threadpoolctl ROUNDS FOLDER [--walk-on-thread]
 
 `--walk-on-thread` swaps the roles: the main thread imports (as `slscan demo`'s did, importing
 open3d) and a started thread walks (as its "load CAD" thread did).
@@ -63,9 +63,10 @@ def walker(kind: str):
     return walk
 
 
-def main(kind: str, rounds: int, walk_on_thread: bool) -> None:
+def main(kind: str, rounds: int, folder: Path, walk_on_thread: bool) -> None:
+    """`folder`: where the copies go (the caller's: a killed run leaves them behind)."""
     walk = walker(kind)
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory(dir=folder) as tmp:
         paths = copies(Path(tmp), rounds)
         imported, walks = [0], [0]
 
@@ -88,4 +89,4 @@ def main(kind: str, rounds: int, walk_on_thread: bool) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], int(sys.argv[2]), "--walk-on-thread" in sys.argv[3:])
+    main(sys.argv[1], int(sys.argv[2]), Path(sys.argv[3]), "--walk-on-thread" in sys.argv[4:])

@@ -25,12 +25,12 @@ def _run(code: str, timeout: float = 120) -> str:
 
 
 @pytest.mark.parametrize("walk_on_thread", [False, True], ids=["walk-on-main", "walk-on-thread"])
-def test_limits_racing_imports_never_deadlock(walk_on_thread: bool) -> None:
+def test_limits_racing_imports_never_deadlock(walk_on_thread: bool, tmp_path: Path) -> None:
     """ROUNDS extension imports on one thread against ROUNDS finds-and-limits on the other,
     under a watchdog. With threadpoolctl as the walker the same script deadlocked in 2 of 3
     runs of 300 rounds within 60 s (gdb: the walker in its dl_iterate_phdr callback waiting for the GIL, the
     importer in dlopen holding it)."""
-    args = [sys.executable, str(RACE), "slscan", str(ROUNDS)] + (["--walk-on-thread"] if walk_on_thread else [])
+    args = [sys.executable, str(RACE), "slscan", str(ROUNDS), str(tmp_path)] + (["--walk-on-thread"] * walk_on_thread)
     try:
         p = subprocess.run(args, capture_output=True, text=True, timeout=90, cwd=ROOT)
     except subprocess.TimeoutExpired:
