@@ -9,6 +9,7 @@ rule written out in the test)."""
 
 from __future__ import annotations
 
+import html
 import json
 import os
 import re
@@ -249,6 +250,78 @@ def test_report_in_a_browser(tmp_path: Path) -> None:
                                       "face-657", "face-17", "figures"), "face-657", saved_screenshots(), "known-report")
     pdf = tmp_path / "inspection.pdf"
     assert pdf in paths and pdf.read_bytes()[:5] == b"%PDF-" and pdf.stat().st_size > 50_000
+
+
+needs_poppler = pytest.mark.skipif(shutil.which("pdftoppm") is None or shutil.which("pdftotext") is None,
+                                   reason="poppler-utils not installed (pdftoppm, pdftotext)")
+PAPER_PT = {"A4": (595, 842), "Letter": (612, 792)}  # page sizes in points (1/72 in)
+
+
+def pdf_pages(pdf: Path, folder: Path) -> list[tuple[np.ndarray, list[tuple[str, float, float]]]]:
+    """The PDF's pages as (grey image at 50 dpi, its text lines as (text, top, bottom) in
+    points from the page's top), by poppler."""
+    import subprocess
+
+    import cv2
+
+    subprocess.run(["pdftoppm", "-r", "50", "-gray", "-png", str(pdf), str(folder / "page")], check=True)
+    pages = []
+    for k, png in enumerate(sorted(folder.glob("page-*.png"), key=lambda p: int(p.stem.split("-")[1])), 1):
+        box = subprocess.run(["pdftotext", "-bbox", "-f", str(k), "-l", str(k), str(pdf), "-"], check=True,
+                             capture_output=True, text=True).stdout
+        lines: dict[float, list[tuple[float, str, float]]] = {}
+        for x, top, bottom, word in re.findall(r'<word xMin="([\d.]+)" yMin="([\d.]+)" xMax="[\d.]+" '
+                                               r'yMax="([\d.]+)">(.*?)</word>', box):
+            lines.setdefault(round(float(top), 1), []).append((float(x), html.unescape(word), float(bottom)))
+        text = [(" ".join(w for _, w, _ in sorted(words)), top, max(b for _, _, b in words))
+                for top, words in sorted(lines.items())]
+        pages.append((cv2.imread(str(png), cv2.IMREAD_GRAYSCALE), text))
+    return pages
+
+
+@needs_chromium
+@needs_poppler
+def test_the_pdf_prints_whole_on_a4_and_letter(tmp_path: Path) -> None:
+    """Printed on A4 and on Letter and rendered back to pixels: nothing is drawn in the
+    outer 6 mm of any page (3 mm at the foot, where the page number is; a table cut at the
+    margin runs into it), every page is
+    numbered "page k of N", every heading has content under it on its page (text or a
+    figure: ink between it and the page number), and every word of every table header is
+    in the PDF's text (Chromium drops what it cuts at the margin: the issue's PDF lost the
+    "dev RMS", "raw points" and "noise model" columns)."""
+    import subprocess
+
+    rep = known_report(cad=True)
+    rep.write(tmp_path, pdf=False)
+    page = tmp_path / "inspection.html"
+    headings = {html.unescape(re.sub("<.*?>", "", h)).strip()
+                for h in re.findall(r"<h[23][^>]*>(.*?)</h[23]>", page.read_text())}
+    assert {"All face figures", "Deviations from nominal", "high top #657"} <= headings
+    header_words = {w for th in re.findall(r"<th[^>]*>(.*?)</th>", page.read_text())
+                    for w in re.split(r"[\s-]+", html.unescape(re.sub("<.*?>", "", th))) if w}  # may wrap at a hyphen
+    for paper, (w_pt, h_pt) in PAPER_PT.items():
+        out = tmp_path / paper
+        out.mkdir()
+        pdf = print_pdf(page, out / "report.pdf", paper)
+        assert pdf is not None
+        info = subprocess.run(["pdfinfo", str(pdf)], capture_output=True, text=True, check=True).stdout
+        size = re.search(r"Page size:\s+([\d.]+) x ([\d.]+) pts", info)
+        assert abs(float(size.group(1)) - w_pt) < 1 and abs(float(size.group(2)) - h_pt) < 1, info
+        pages = pdf_pages(pdf, out)
+        px = 50 / 72  # pixels per point
+        strip = int(round(6 / 25.4 * 50))  # 6 mm at 50 dpi
+        for k, (img, lines) in enumerate(pages, 1):
+            for edge in (img[:, :strip], img[:, -strip:], img[:strip], img[-strip // 2:]):  # the number sits low
+                assert edge.min() > 200, f"{paper} page {k}: something drawn within 6 mm of the paper's edge"
+            number = [top for text, top, _ in lines if text == f"page {k} of {len(pages)}"]
+            assert number, f"{paper} page {k} has no page number"
+            heads = [bottom for text, _, bottom in lines if text in headings]
+            if heads:
+                rows = img[int((max(heads) + 4) * px):int((number[0] - 4) * px)]
+                assert (rows.min(axis=1) < 200).sum() * 72 / 50 > 20, f"{paper} page {k} ends with a heading"
+        words = {w for _, lines in pages for t, _, _ in lines for w in re.split(r"[\s-]+", t) if w}
+        assert not header_words - words, f"{paper}: table headers cut off: {sorted(header_words - words)}"
+        assert {"decoder", "sensor", "noise", "model"} <= words  # the deviation table's last column
 
 
 def test_face_closeup_shows_the_bow() -> None:
