@@ -324,6 +324,25 @@ def test_the_pdf_prints_whole_on_a4_and_letter(tmp_path: Path) -> None:
         assert {"decoder", "sensor", "noise", "model"} <= words  # the deviation table's last column
 
 
+def test_the_colour_scale_is_tied_to_the_tolerance() -> None:
+    """The known report's smallest profile tolerance is 0.1 mm: green within +-0.05 mm
+    (inside the zone), warm above and cool below it up to 0.1 mm, dark beyond; its legend
+    (the recording's swatches and the camera map's strip) shows those colours."""
+    from inspection.deviation_colours import legend_strip, scale_of
+
+    scale = scale_of(known_report())
+    assert scale.h_mm == pytest.approx(0.05) and "profile tolerance 0.100 mm of high top #657" in scale.source
+    r, g, b = scale.rgb(np.array([0.0, 0.049, -0.049, 0.075, -0.075, 0.2, -0.2, np.nan])).T
+    assert (g[:3] > r[:3]).all() and (g[:3] > b[:3]).all()  # inside: green
+    assert r[3] > b[3] + 0.5 and r[3] > g[3] and b[4] > r[4] + 0.4 and b[4] > g[4]  # outside: warm above, cool below
+    assert max(r[5], g[5], b[5]) < 0.5 and r[5] > b[5] and b[6] > r[6] and max(r[6], g[6], b[6]) < 0.5  # dark
+    assert r[7] == g[7] == b[7]  # no deviation: grey
+    strip = legend_strip(scale, 480)
+    for d, _ in scale.legend():  # every step's colour is on the strip
+        want = np.round(scale.rgb(np.array([d]))[0] * 255)
+        assert (np.abs(strip.reshape(-1, 3).astype(int) - want).max(axis=1) <= 1).any(), d
+
+
 def test_face_closeup_shows_the_bow() -> None:
     """On a zone of +-8 um the high top's close-up is warm (outside the zone, above: red
     over blue, more red than green) at its centre, where the bow is +12 um, and green
@@ -501,6 +520,8 @@ def test_demo_report_in_a_browser(tmp_path: Path, capsys) -> None:
     [(_, context)] = read_component(out / "recording.rrd", "world/inspection/faces", "AnnotationContext:context", None)
     labels = {c["class_description"]["info"]["label"] for c in context}
     assert {"high top #657 plane", "low top #158 plane", "boss side #17 cylinder"} <= labels  # the recording's labels
+    [(_, legend)] = read_component(out / "recording.rrd", "world/inspection/deviation_legend", "Points3D:labels", None)
+    assert any("inside the zone" in str(t) and "profile tolerance 0.100 mm of high top #657" in str(t) for t in legend)
     check_in_browser(out / "outputs" / "inspection.html", tmp_path, ("header", "verdict", "characteristics", "views",
                                                                       "histogram", "raw-filtered", "face-657",
                                                                       "figures"), "face-657", saved_screenshots())
