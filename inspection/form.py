@@ -742,8 +742,9 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         stats, parts = _deviation_stats(deviation, deviation[None] + draws, draws, deviation, draws, dev_shift)
         seen = np.full(n, np.nan)
         seen[keep] = deviation
-        return FaceForm(len(points), "ok", f"{face.type}: deviations of raw points only (no form filter)",  # type: ignore[attr-defined]
-                        deviation_source="raw points", u_components=parts, region=keep, surface_mm=seen, **stats)
+        note = f"{face.type}: deviations of raw points only (no form filter)"  # type: ignore[attr-defined]
+        return FaceForm(len(points), "ok", note, deviation_source="raw points", u_components=parts, region=keep,
+                        surface_mm=seen, **stats)
     grid = _grid(xy)
     zg = grid.mean(deviation)
     mask = np.isfinite(zg)

@@ -509,7 +509,8 @@ def test_demo_report_in_a_browser(tmp_path: Path, capsys) -> None:
     # seen from straight above the boss's side is grazing: its cylindricity is not measured, and said so
     assert "boss side #17" in text and "cylindricity 0.050 not measured" in text
     last = text.strip().splitlines()[-1]  # the verdict, why, and what to run next
-    assert last.startswith("RESULT    NOT MEASURED: boss side #17 cylindricity not measured: ") and "Next: slscan " in last
+    assert last.startswith("RESULT    NOT MEASURED: boss side #17 cylindricity not measured: ")
+    assert "Next: slscan " in last
     data = json.loads((out / "outputs" / "inspection.json").read_text())
     assert data["header"]["program_sha256"] == file_sha256(PROGRAM) and data["verdict"] == "not measured"
     rows = {r["label"]: r for r in data["faces"]}
@@ -541,8 +542,8 @@ def test_the_demo_ends_with_the_verdict_why_and_what_next(tmp_path: Path) -> Non
     unseen = FaceForm(210, "too few points", "fewer than 50 grid cells of 0.243 mm left inside the 1.0 mm edge margin")
     boss = replace(rep.faces[1], form=unseen, verdicts={"cylindricity_mm": (0.05, "not measured")})
     line = demo_conclusion(replace(rep, faces=(rep.faces[0], boss)), tmp_path / "demo")
-    assert line.startswith("RESULT    NOT MEASURED: boss side #17 cylindricity not measured: 210 points from the demo's "
-                           "one view (fewer than 50 grid cells")
+    assert line.startswith("RESULT    NOT MEASURED: boss side #17 cylindricity not measured: 210 points from the "
+                           "demo's one view (fewer than 50 grid cells")
     assert line.endswith(f"Next: slscan station {os.path.relpath(DEMO_TURNTABLE[0])} --config "
                          f"{os.path.relpath(DEMO_TURNTABLE[1])} --auto --parts 1")
     top = replace(rep.faces[0], verdicts={"flatness_mm": (0.01, "non-conforming")})

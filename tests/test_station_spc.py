@@ -71,7 +71,8 @@ def test_nist_handbook_individuals_chart_example() -> None:
     chart = individuals_limits(flow)
     assert chart.location.centre == pytest.approx(50.81, abs=0.005)
     assert chart.spread.centre == pytest.approx(1.8778, abs=5e-5)
-    assert chart.location.lcl == pytest.approx(45.82, abs=0.005) and chart.location.ucl == pytest.approx(55.80, abs=0.005)
+    assert chart.location.lcl == pytest.approx(45.82, abs=0.005)
+    assert chart.location.ucl == pytest.approx(55.80, abs=0.005)
     assert chart.spread.ucl == pytest.approx(6.13, abs=0.005)
 
 

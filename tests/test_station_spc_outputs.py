@@ -46,8 +46,8 @@ def fill(db: Path, n: int, seed: int) -> dict[str, list[float | None]]:
                     v, limit = None, LIMIT_MM
                 put[c.name].append(v)
                 decision = "non-conforming" if v is not None and v > c.tolerance_mm else "conforming"
-                records.append(ValueRecord(c.name, c.kind, c.face, v, c.tolerance_mm, decision == "conforming", 1000, "",
-                                           0.002, limit, decision, "guard-banded"))
+                records.append(ValueRecord(c.name, c.kind, c.face, v, c.tolerance_mm, decision == "conforming", 1000,
+                                           "", 0.002, limit, decision, "guard-banded"))
             store.finish_part(rid, status, "", records, start.started_at + dt.timedelta(seconds=40))
     return put
 

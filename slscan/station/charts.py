@@ -161,8 +161,8 @@ def draw_chart(c: Characteristic, s: CharacteristicStats) -> Any:
                     label="uncertain: within U of the tolerance (re-measure)")
     top.axhline(c.tolerance_mm, color=_RED, linewidth=1.5, label=f"tolerance {c.tolerance_mm:.3f} mm")
     if chart is not None:
-        top.plot([], [], color=_GREEN, linestyle="--", label="control limits" + (" (frozen)" if s.limits_note.startswith(
-            "limits frozen") else ""))
+        frozen = " (frozen)" if s.limits_note.startswith("limits frozen") else ""
+        top.plot([], [], color=_GREEN, linestyle="--", label="control limits" + frozen)
     top.set_ylim(bottom=0.0)
     if missing:
         top.plot(missing, [0.0] * len(missing), "|", color=_GREY, markersize=12, label="not measured",

@@ -90,15 +90,17 @@ def _capability_table(stats: Sequence[CharacteristicStats]) -> str:
     for st in stats:
         cap = st.capability
         if cap is None:
+            why = st.limits_note if not st.chart else "no spread"
             rows.append(f"<tr>{_cell(st.name, 'l')}{_cell(str(st.n))}" + "<td></td>" * 8
-                        + f"{_cell('none', 'l')}{_cell('no limits: ' + st.limits_note if not st.chart else '', 'warn l')}"
-                        "</tr>")
+                        + f"{_cell('none', 'l')}{_cell(why, 'warn l')}</tr>")
             continue
         weibull = f"{_index(cap.weibull_pp)} / {_index(cap.weibull_ppk)}"
         rows.append(f"<tr>{_cell(st.name, 'l')}{_cell(str(cap.n))}{_cell(_f(cap.mean))}"
                     f"{_cell(_f(cap.sigma_overall, 5))}{_cell(cap.cp.text())}{_cell(cap.cpk.text())}"
                     f"{_cell(cap.pp.text())}{_cell(cap.ppk.text())}{_cell(cap.normality, 'l')}{_cell(weibull)}"
-                    f"{_cell(cap.model, 'l')}{_cell('; '.join(t for t in (cap.method, cap.warning) if t), 'warn l' if cap.warning else 'l')}</tr>")
+                    f"{_cell(cap.model, 'l')}"
+                    f"{_cell('; '.join(t for t in (cap.method, cap.warning) if t), 'warn l' if cap.warning else 'l')}"
+                    "</tr>")
     return _table(head, rows)
 
 
@@ -141,18 +143,19 @@ def _method(program: PartProgram, options: SpcOptions) -> str:
             "&lt; limit. A part passes when every value is conforming and fails when any is non-conforming; a part "
             "with an uncertain value is <span class='uncertain'>UNCERTAIN</span>: neither passed nor failed, it is "
             "set aside to be re-measured (a new attempt of the same serial) and never passed on that measurement.</p>"
-            "<p>Statistics use every measured value of a characteristic, whatever the part's verdict; values are left "
-            "out only by the user (listed below with the reason). A value below its detection limit is censored: "
-            "charted at its limit (hollow triangle), and in the centre, the mean and the overall &sigma; by maximum "
-            "likelihood; moving ranges with a censored value are unknown and left out of &sigma; within. Limits need "
-            f"{MIN_INDIVIDUALS} values (I-MR) or {MIN_SUBGROUPS} subgroups (X-bar R): fewer give none. An LCL below "
-            "0 is set to 0, the natural bound of a zone width or a height. Every characteristic has an upper limit (its "
-            "tolerance) and the natural lower bound 0: Cp = tolerance / 6&sigma;<sub>within</sub>, Cpk = (tolerance "
-            "&minus; mean) / 3&sigma;<sub>within</sub>; Pp and Ppk the same with &sigma;<sub>overall</sub> (the sample "
-            "SD); 95 % intervals (chi-squared for Cp and Pp, Bissell for Cpk and Ppk). Normality by the Anderson-Darling "
-            "test; when it rejects the normal at 5 % (or, with censored values, the Weibull fits better) read the "
-            "Weibull model's Pp / Ppk (ISO 22514-2 percentile method). Fewer than "
-            f"{MIN_CAPABILITY_N} values: the indices are marked as too uncertain. Nelson rules used: {rules}."
+            "<p>Statistics use every measured value of a characteristic, whatever the part's verdict; values are "
+            "left out only by the user (listed below with the reason). A value below its detection limit is "
+            "censored: charted at its limit (hollow triangle), and in the centre, the mean and the overall &sigma; by "
+            "maximum likelihood; moving ranges with a censored value are unknown and left out of &sigma; within. "
+            f"Limits need {MIN_INDIVIDUALS} values (I-MR) or {MIN_SUBGROUPS} subgroups (X-bar R): fewer give none. An "
+            "LCL below 0 is set to 0, the natural bound of a zone width or a height. Every characteristic has an upper "
+            "limit (its tolerance) and the natural lower bound 0: Cp = tolerance / 6&sigma;<sub>within</sub>, Cpk = "
+            "(tolerance &minus; mean) / 3&sigma;<sub>within</sub>; Pp and Ppk the same with "
+            "&sigma;<sub>overall</sub> (the sample SD); 95 % intervals (chi-squared for Cp and Pp, Bissell for Cpk "
+            "and Ppk). Normality by the Anderson-Darling test; when it rejects the normal at 5 % (or, with censored "
+            "values, the Weibull fits better) read the Weibull model's Pp / Ppk (ISO 22514-2 percentile method). "
+            f"Fewer than {MIN_CAPABILITY_N} values: the indices are marked as too uncertain. Nelson rules used: "
+            f"{rules}."
             f"{baseline}{frozen}</p>")
 
 

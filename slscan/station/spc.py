@@ -413,7 +413,8 @@ def capability(values: Sequence[float], usl: float, sigma_within: float,
                   f"(log L normal {normal_ll:.1f}, Weibull {weibull_ll:.1f})")
     else:
         a2, p = anderson_darling(x)
-        normality = f"Anderson-Darling A² {a2:.3f}, p {p:.3f}" + (" (not normal at 5 %)" if p < NORMALITY_ALPHA else "")
+        normality = f"Anderson-Darling A² {a2:.3f}, p {p:.3f}" + (" (not normal at 5 %)" if p < NORMALITY_ALPHA
+                                                                   else "")
         model = "normal" if p >= NORMALITY_ALPHA else "Weibull"
         method = ("normal: the Anderson-Darling test does not reject it at 5 %" if model == "normal" else
                   "Weibull (location 0, ISO 22514-2 percentiles): the Anderson-Darling test rejects the normal at 5 %")
