@@ -135,6 +135,8 @@ def parse_dfq(text: str) -> tuple[dict[str, str], list[dict[str, str]]]:
 def test_dfq_export_has_every_value_censored_and_excluded_ones_marked(tmp_path: Path, capsys) -> None:
     db = tmp_path / "results.sqlite"
     put = fill(db, 12, seed=4)
+    assert results(db) == 0  # the listing shows a censored value as below its limit
+    assert f"low_top_flatness=<{LIMIT_MM:.4f}" in capsys.readouterr().out
     out = tmp_path / "values.dfq"
     assert results(db, "--dfq", "--out", str(out), "--exclude", "5=gauge dropped") == 0
     header, records = parse_dfq(out.read_bytes().decode("utf-8"))

@@ -168,6 +168,7 @@ def cmd_results(args: argparse.Namespace) -> int:
             print(f"{'id':>5} {'program':<14} {'serial':<24} {'att':>3} {'status':<10} {'finished (UTC)':<19}  values")
             for r in rows:
                 vals = "  ".join(f"{v.characteristic}={v.value_mm:.4f}" if v.value_mm is not None else
+                                 f"{v.characteristic}=<{v.limit_mm:.4f}" if v.limit_mm is not None else
                                  f"{v.characteristic}=--" for v in values[r.id])
                 when = f"{r.finished_at:%Y-%m-%d %H:%M:%S}" if r.finished_at else ""
                 print(f"{r.id:>5} {r.program:<14} {r.serial:<24} {r.attempt:>3} {r.status:<10} {when:<19}  {vals}"

@@ -16,6 +16,7 @@ The station-level Rerun recording gets every stored value as a scalar on the `sc
 timeline (the result id as the sequence number), beside its tolerance:
 
     metrics/control/<characteristic>/value_mm        the measured value (mm)
+    metrics/control/<characteristic>/below_limit_mm  a value below its detection limit: that limit (mm)
     metrics/control/<characteristic>/u_mm            its expanded uncertainty U (k = 2, mm), when known
     metrics/control/<characteristic>/tolerance_mm    the upper limit (mm)
 """
@@ -235,9 +236,12 @@ class ChartRecording:
         for v in values:
             if v.value_mm is not None:
                 scalars[control_metric(v.characteristic, "value_mm")] = v.value_mm
-                scalars[control_metric(v.characteristic, "tolerance_mm")] = v.tolerance_mm
                 if v.u_mm is not None:
                     scalars[control_metric(v.characteristic, "u_mm")] = v.u_mm
+            elif v.limit_mm is not None:
+                scalars[control_metric(v.characteristic, "below_limit_mm")] = v.limit_mm
+            if v.value_mm is not None or v.limit_mm is not None:
+                scalars[control_metric(v.characteristic, "tolerance_mm")] = v.tolerance_mm
         if scalars:
             self.rec.log_metrics(scalars, scan=result_id)
 
