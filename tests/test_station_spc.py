@@ -270,6 +270,15 @@ def test_values_below_the_detection_limit_are_kept_as_censored() -> None:
     assert s.chart.sigma_within == pytest.approx(np.abs(np.diff(x))[known].mean() / 1.128, rel=4e-4)
 
 
+def test_every_value_below_the_limit_is_charted_and_said() -> None:
+    """The issue's capable process: every value below the 9 um limit. Charted at the limit,
+    counted, and no limits: there is no spread to estimate, said so."""
+    s = characteristic_stats(FLAT, _points([None] * 30, limit=0.009))
+    assert s.n == 30 and s.below_limit == 30 and list(s.location) == [0.009] * 30 and all(s.censored)
+    assert s.chart is None and s.capability is None
+    assert s.limits_note.startswith("no limits: all 30 values below their detection limit (<= 0.0090 mm)")
+
+
 def test_normal_fit_without_censoring_is_the_sample_mean_and_sd() -> None:
     x = np.random.default_rng(19).normal(5, 2, 50)
     mu, sd, _ = normal_fit(x)

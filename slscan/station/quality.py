@@ -259,6 +259,9 @@ def characteristic_stats(c: Characteristic, points: Sequence[ChartPoint], subgro
             note = f"limits from {have} {unit}" + (" of the baseline" if baseline is not None else "")
         except ValueError as exc:
             note = str(exc)
+            if cens[use].all():
+                note = (f"no limits: all {have} {unit} below their detection limit (<= {x[use].max():.4f} mm), "
+                        "no spread to estimate: the process is well inside the tolerance")
     none: frozenset[int] = frozenset()
     location_flags = [frozenset(f) for f in nelson(location, chart.location, rules)] if chart else \
         [none] * len(location)
