@@ -115,27 +115,32 @@ def shown_count(report: Any, row: Any) -> int:
     return int(np.isfinite(s).sum()) if s is not None else 0
 
 
-def legend_strip(scale: ColourScale, height: int, width: int = 360) -> np.ndarray:
+def legend_strip(scale: ColourScale, height: int) -> np.ndarray:
     """An RGB uint8 panel (height, width, 3) with the scale's swatches and their meaning,
-    for images that carry their own legend (the camera-image deviation map)."""
+    for images that carry their own legend (the camera-image deviation map); its lettering
+    grows with the image, so it reads at the size the image is shown."""
     import cv2
 
-    panel = np.full((max(height, 200), width, 3), 255, np.uint8)
-    steps = scale.legend()
-    font, size = cv2.FONT_HERSHEY_SIMPLEX, 0.42
-    cv2.putText(panel, "signed deviation (mm)", (10, 24), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    for k, (d, text) in enumerate(reversed(steps)):
-        y = 44 + 30 * k
-        colour = tuple(int(round(255 * c)) for c in scale.rgb(np.array([d]))[0])
-        cv2.rectangle(panel, (10, y), (34, y + 20), colour, -1)
-        cv2.rectangle(panel, (10, y), (34, y + 20), (90, 90, 90), 1)
-        cv2.putText(panel, text, (42, y + 15), font, size, (0, 0, 0), 1, cv2.LINE_AA)
-    y = 44 + 30 * len(steps)
-    cv2.rectangle(panel, (10, y), (34, y + 20), (int(255 * GREY),) * 3, -1)
-    cv2.putText(panel, "no deviation shown (not in the figures)", (42, y + 15), font, size, (0, 0, 0), 1, cv2.LINE_AA)
-    for k, line in enumerate(_wrap(f"tied to {scale.source}", 44)):
-        cv2.putText(panel, line, (10, y + 50 + 18 * k), font, size, (60, 60, 60), 1, cv2.LINE_AA)
-    return panel[:height] if height >= 200 else panel
+    k = max(height / 700.0, 0.6)  # lettering scale: about 0.6 of a line per 1 % of the image's height
+
+    def at(v: float) -> int:
+        return int(round(v * k))
+
+    panel = np.full((max(height, at(330)), at(380), 3), 255, np.uint8)
+    font, size, thick = cv2.FONT_HERSHEY_SIMPLEX, 0.45 * k, max(1, at(1.2))
+    cv2.putText(panel, "deviation from nominal (mm)", (at(10), at(24)), font, size * 1.1, (0, 0, 0), thick,
+                cv2.LINE_AA)
+    rows = [(d, text, scale.rgb(np.array([d]))[0]) for d, text in reversed(scale.legend())]
+    rows.append((np.nan, "no deviation shown (not in the figures)", np.full(3, GREY)))
+    for j, (_, text, rgb) in enumerate(rows):
+        y = at(44 + 30 * j)
+        cv2.rectangle(panel, (at(10), y), (at(34), y + at(20)), tuple(int(round(255 * c)) for c in rgb), -1)
+        cv2.rectangle(panel, (at(10), y), (at(34), y + at(20)), (90, 90, 90), 1)
+        cv2.putText(panel, text, (at(42), y + at(15)), font, size, (0, 0, 0), thick, cv2.LINE_AA)
+    y = at(44 + 30 * len(rows) + 20)
+    for j, line in enumerate(_wrap(f"tied to {scale.source}", 40)):
+        cv2.putText(panel, line, (at(10), y + at(20) * j), font, size, (60, 60, 60), thick, cv2.LINE_AA)
+    return panel[:height] if height >= len(panel) else panel
 
 
 def _wrap(text: str, width: int) -> list[str]:

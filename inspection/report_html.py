@@ -50,7 +50,8 @@ img{max-width:100%;height:auto;display:block}
 p.note,span.note{font-size:12px;color:#444}
 .keep{break-inside:avoid}
 @media print{main{max-width:none;padding:0}h1{font-size:18px}h2,h3{break-after:avoid}tr,img{break-inside:avoid}
-.scroll{overflow:visible}table{font-size:9px;width:100%}td,th{padding:1px 3px;overflow-wrap:anywhere}
+.scroll{overflow:visible}table{font-size:9px;width:100%}td,th{padding:1px 3px}td{white-space:nowrap}
+td.l,th,td .note{white-space:normal;overflow-wrap:break-word}
 img{max-height:230mm;width:auto;max-width:100%}.faces{display:block}}
 @page{margin:12mm 10mm 14mm;@bottom-right{content:"page " counter(page) " of " counter(pages);font-size:9px}}
 """
