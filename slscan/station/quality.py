@@ -266,7 +266,7 @@ def characteristic_stats(c: Characteristic, points: Sequence[ChartPoint], subgro
     location_flags = [frozenset(f) for f in nelson(location, chart.location, rules)] if chart else \
         [none] * len(location)
     spread_flags = [frozenset({1}) if chart and r > chart.spread.ucl else none for r in spread]
-    cap = capability(x[kept], c.tolerance_mm, chart.sigma_within, cens[kept]) if chart else None
+    cap = capability(x[kept], c.tolerance_mm, chart.sigma_within, cens[kept], chart.dof) if chart else None
     return CharacteristicStats(c.name, c.tolerance_mm, tuple(points), subgroup, tuple(plotted),
                                tuple(float(v) for v in location), tuple(location_flags),
                                tuple(bool(b) for b in in_limits), tuple(bool(b) for b in location_cens),

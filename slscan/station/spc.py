@@ -61,10 +61,11 @@ USL (the tolerance) and the natural lower bound 0:
 
 sigma_within from the chart (MR-bar / d2 or R-bar / d2), sigma_overall the sample SD
 (n - 1 divisor, no c4: Minitab's default). 95 % intervals: Cp and Pp from the chi-squared
-distribution with n - 1 degrees of freedom (for the range-based within sigma this is an
-approximation: it has fewer effective degrees of freedom, so the Cp interval is somewhat
-too narrow); Cpk and Ppk by Bissell's approximation, index +- z sqrt(1 / (9 n) + index^2 /
-(2 (n - 1))). Normality: the Anderson-Darling test (statistic A^2 with the sample mean and
+distribution, Cpk and Ppk by Bissell's approximation, index +- z sqrt(1 / (9 n) + index^2 /
+(2 nu)); nu = n - 1 for the overall sigma, and for the within sigma its effective degrees
+of freedom (Patnaik: Var(sigma-hat) = sigma^2 / (2 nu)): about 0.6 (n - 1) for moving
+ranges, whose variance and neighbours' covariance are known in closed form (`mr_dof`),
+k d2^2 / (2 d3^2) for k subgroup ranges (`range_dof`). Normality: the Anderson-Darling test (statistic A^2 with the sample mean and
 SD; p-value from A^2 (1 + 0.75 / n + 2.25 / n^2) by D'Agostino and Stephens' (1986) table
 4.9 formulas, as Minitab). A figure bounded at 0 near the bound is skewed: the non-normal
 capability is a two-parameter Weibull (location 0) fitted by maximum likelihood (censored
@@ -160,6 +161,7 @@ class ControlChart:
     spread: Limits
     sigma_within: float
     points: int = 0
+    dof: float = 0.0  # effective degrees of freedom of sigma_within (`mr_dof`, `range_dof`; 0: not known)
 
 
 def _clipped(centre: float, half: float, sigma: float) -> Limits:
@@ -191,7 +193,8 @@ def individuals_limits(x: Sequence[float], censored: Sequence[bool] | None = Non
     mean = normal_fit(x, cens)[0]
     mr_sigma = mr_bar * range_constants(2)[1] / d2
     return ControlChart("I-MR", 1, _clipped(mean, 3 * sigma, sigma),
-                        Limits(mr_bar, d3_factor * mr_bar, d4_factor * mr_bar, mr_sigma), sigma, len(x))
+                        Limits(mr_bar, d3_factor * mr_bar, d4_factor * mr_bar, mr_sigma), sigma, len(x),
+                        mr_dof(int(known.sum()), int((known[1:] & known[:-1]).sum())))
 
 
 def subgroup_limits(groups: np.ndarray, censored: np.ndarray | None = None) -> ControlChart:
@@ -208,7 +211,29 @@ def subgroup_limits(groups: np.ndarray, censored: np.ndarray | None = None) -> C
     sigma = r_bar / d2
     grand = normal_fit(groups.ravel(), cens.ravel())[0]
     spread = Limits(r_bar, d3_factor * r_bar, d4_factor * r_bar, r_bar * range_constants(n)[1] / d2)
-    return ControlChart("Xbar-R", n, _clipped(grand, 3 * sigma / np.sqrt(n), sigma / np.sqrt(n)), spread, sigma, k)
+    return ControlChart("Xbar-R", n, _clipped(grand, 3 * sigma / np.sqrt(n), sigma / np.sqrt(n)), spread, sigma, k,
+                        range_dof(int(whole.sum()), n))
+
+
+_MR_VAR = 2.0 - 4.0 / math.pi  # Var|x_i - x_(i-1)| / sigma^2
+# Cov(|x_2 - x_1|, |x_3 - x_2|) / sigma^2: two differences of correlation -1/2, E|U||V| = 2 (2/pi)(sqrt(1 - r^2)
+# + r asin r) for variance-2 normals of correlation r, less E|U| E|V| = 4/pi
+_MR_COV = 4.0 / math.pi * (math.sqrt(0.75) + math.pi / 12) - 4.0 / math.pi
+
+
+def mr_dof(ranges: int, adjacent: int) -> float:
+    """Effective degrees of freedom of sigma = MR-bar / d2(2) from `ranges` moving ranges of
+    which `adjacent` pairs share a value (correlated): nu with Var(sigma-hat) = sigma^2 /
+    (2 nu), as a sample SD of nu + 1 values has (Patnaik); about 0.6 (m - 1) for m values."""
+    var_mr_bar = (ranges * _MR_VAR + 2 * adjacent * _MR_COV) / ranges ** 2  # / sigma^2
+    return (4.0 / math.pi) / (2 * var_mr_bar)  # d2(2)^2 = 4 / pi
+
+
+def range_dof(k: int, n: int) -> float:
+    """Effective degrees of freedom of sigma = R-bar / d2(n) from `k` independent subgroups
+    of `n`: k d2^2 / (2 d3^2) (about 0.9 k (n - 1))."""
+    d2, d3 = range_constants(n)
+    return k * d2 * d2 / (2 * d3 * d3)
 
 
 def _runs(ok: np.ndarray, length: int) -> np.ndarray:
@@ -372,26 +397,29 @@ class Capability:
         return self.weibull_ppk if self.model == "Weibull" and self.weibull_ppk is not None else self.ppk
 
 
-def _chi2_ci(index: float, n: int) -> tuple[float, float]:
+def _chi2_ci(index: float, dof: float) -> tuple[float, float]:
+    """The interval of an index c / sigma-hat, sigma-hat with `dof` degrees of freedom."""
     from scipy import stats
 
-    alpha, dof = 1 - CONFIDENCE, n - 1
+    alpha = 1 - CONFIDENCE
     lo, hi = stats.chi2.ppf([alpha / 2, 1 - alpha / 2], dof)
     return float(index * math.sqrt(lo / dof)), float(index * math.sqrt(hi / dof))
 
 
-def _bissell_ci(index: float, n: int) -> tuple[float, float]:
+def _bissell_ci(index: float, n: int, dof: float) -> tuple[float, float]:
+    """Bissell's interval of (USL - mean) / 3 sigma-hat: the mean of `n` values, sigma-hat
+    with `dof` degrees of freedom."""
     from scipy import stats
 
-    half = float(stats.norm.ppf(1 - (1 - CONFIDENCE) / 2)) * math.sqrt(1 / (9 * n) + index * index / (2 * (n - 1)))
+    half = float(stats.norm.ppf(1 - (1 - CONFIDENCE) / 2)) * math.sqrt(1 / (9 * n) + index * index / (2 * dof))
     return index - half, index + half
 
 
 def capability(values: Sequence[float], usl: float, sigma_within: float,
-               censored: Sequence[bool] | None = None) -> Capability | None:
+               censored: Sequence[bool] | None = None, within_dof: float = 0.0) -> Capability | None:
     """Capability of `values` (censored ones at their detection limit, marked by
-    `censored`) with the chart's within sigma; None without spread or with fewer than 2
-    measured values."""
+    `censored`) with the chart's within sigma and its degrees of freedom (0: taken as
+    n - 1); None without spread or with fewer than 2 measured values."""
     x = np.asarray(values, float)
     cens = _censored(x, censored)
     n = len(x)
@@ -420,6 +448,8 @@ def capability(values: Sequence[float], usl: float, sigma_within: float,
                   "Weibull (location 0, ISO 22514-2 percentiles): the Anderson-Darling test rejects the normal at 5 %")
     warning = (f"only {n} values (< {MIN_CAPABILITY_N}): the indices are too uncertain to act on"
                if n < MIN_CAPABILITY_N else "")
-    return Capability(n, int(cens.sum()), usl, mean, sigma_within, sd, Index(cp, _chi2_ci(cp, n)),
-                      Index(cpk, _bissell_ci(cpk, n)), Index(pp, _chi2_ci(pp, n)), Index(ppk, _bissell_ci(ppk, n)),
+    nu = within_dof or n - 1
+    return Capability(n, int(cens.sum()), usl, mean, sigma_within, sd, Index(cp, _chi2_ci(cp, nu)),
+                      Index(cpk, _bissell_ci(cpk, n, nu)), Index(pp, _chi2_ci(pp, n - 1)),
+                      Index(ppk, _bissell_ci(ppk, n, n - 1)),
                       a2, p, normality, shape, scale, w_pp, w_ppk, model, method, warning)
