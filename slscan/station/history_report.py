@@ -83,8 +83,8 @@ def _limits_table(stats: Sequence[CharacteristicStats]) -> str:
 
 
 def _capability_table(stats: Sequence[CharacteristicStats]) -> str:
-    head = [("characteristic", "l"), ("n", ""), ("mean (mm)", ""), ("&sigma; overall (mm)", ""), ("Cp [95 %]", ""),
-            ("Cpk [95 %]", ""), ("Pp [95 %]", ""), ("Ppk [95 %]", ""), ("normality", "l"),
+    head = [("characteristic", "l"), ("n", ""), ("mean (mm)", ""), ("&sigma; overall (mm)", ""),
+            ("Cp, 0..tol. [95 %]", ""), ("Cpk [95 %]", ""), ("Pp, 0..tol. [95 %]", ""), ("Ppk [95 %]", ""), ("normality", "l"),
             ("Weibull Pp / Ppk", ""), ("read", "l"), ("note", "l")]
     rows = []
     for st in stats:
@@ -151,7 +151,9 @@ def _method(program: PartProgram, options: SpcOptions) -> str:
             "LCL below 0 is set to 0, the natural bound of a zone width or a height. Every characteristic has an upper "
             "limit (its tolerance) and the natural lower bound 0: Cp = tolerance / 6&sigma;<sub>within</sub>, Cpk = "
             "(tolerance &minus; mean) / 3&sigma;<sub>within</sub>; Pp and Ppk the same with "
-            "&sigma;<sub>overall</sub> (the sample SD); 95 % intervals (chi-squared for Cp and Pp, Bissell for Cpk "
+            "&sigma;<sub>overall</sub> (the sample SD). Minitab leaves Cp and Pp out when the lower end is a "
+            "natural bound; here they compare the spread with the whole band 0..tolerance, so Cpk exceeds Cp when "
+            "the process sits in the band's lower half (where a form error should be). 95 % intervals (chi-squared for Cp and Pp, Bissell for Cpk "
             "and Ppk). Normality by the Anderson-Darling test; when it rejects the normal at 5 % (or, with censored "
             "values, the Weibull fits better) read the Weibull model's Pp / Ppk (ISO 22514-2 percentile method). "
             f"Fewer than {MIN_CAPABILITY_N} values: the indices are marked as too uncertain. Nelson rules used: "

@@ -59,7 +59,10 @@ USL (the tolerance) and the natural lower bound 0:
     Cp  = USL / (6 sigma_within)     Cpk = (USL - mean) / (3 sigma_within)
     Pp  = USL / (6 sigma_overall)    Ppk = (USL - mean) / (3 sigma_overall)
 
-sigma_within from the chart (MR-bar / d2 or R-bar / d2), sigma_overall the sample SD
+Minitab leaves Cp and Pp out when the lower end is a natural bound; here they compare the
+spread with the whole band 0..USL, so Cpk exceeds Cp when the process sits in the band's
+lower half (where a form error should be). sigma_within from the chart (MR-bar / d2 or
+R-bar / d2), sigma_overall the sample SD
 (n - 1 divisor, no c4: Minitab's default). 95 % intervals: Cp and Pp from the chi-squared
 distribution, Cpk and Ppk by Bissell's approximation, index +- z sqrt(1 / (9 n) + index^2 /
 (2 nu)); nu = n - 1 for the overall sigma, and for the within sigma its effective degrees
