@@ -231,7 +231,8 @@ def check_in_browser(page: Path, tmp: Path, ids: tuple[str, ...], closeup: str |
         if closeup is None:
             return
         x, y, w, h = (int(round(t)) for t in box["boxes"][closeup])
-        cv2.imwrite(str(save / f"{stem}-face-closeup.png"), img[max(y - 30, 0):y + h + 10, x:x + w])
+        what = "face-closeup" if closeup.startswith("face-") else closeup
+        cv2.imwrite(str(save / f"{stem}-{what}.png"), img[max(y - 30, 0):y + h + 10, x:x + w])
 
 
 def saved_screenshots() -> Path | None:
@@ -490,7 +491,8 @@ def test_station_report_has_the_header_in_a_browser(tmp_path: Path) -> None:
                  "slscan 0.1.0", file_sha256(PROGRAM), "9 pass, 2 fail, 1 uncertain (re-measure)",
                  "0.0500 ± 0.0025 UNCERTAIN", "<td class='uncertain l'>UNCERTAIN</td>"):
         assert want in text, want
-    check_in_browser(page, tmp_path, ("header",), None, saved_screenshots(), "station-report")
+    check_in_browser(page, tmp_path, ("header", "chart-high_top_flatness"), "chart-high_top_flatness",
+                     saved_screenshots(), "station-report")
 
 
 @pytest.mark.slow

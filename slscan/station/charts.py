@@ -63,11 +63,13 @@ def _xy(xs: Sequence[int], ys: Sequence[float], keep: Sequence[bool]) -> tuple[l
 
 
 def _points(ax: Any, xs: list[int], ys: Sequence[float], in_limits: Sequence[bool], censored: Sequence[bool],
-            flags: Sequence[frozenset[int]]) -> None:
-    """The chart's points by kind (module docstring), their connecting line and the rule flags."""
+            flags: Sequence[frozenset[int]], limited: bool) -> None:
+    """The chart's points by kind (module docstring), their connecting line and the rule
+    flags; `limited`: the chart has limits (the values' label says they are in them)."""
     ax.plot(xs, ys, color=_GREY, linewidth=0.8, zorder=1)
     measured = [b and not c for b, c in zip(in_limits, censored)]
-    ax.scatter(*_xy(xs, ys, measured), s=18, color=_BLUE, zorder=3, label="value (in the limits)")
+    ax.scatter(*_xy(xs, ys, measured), s=18, color=_BLUE, zorder=3,
+               label="value (in the limits)" if limited else "value")
     below = [b and c for b, c in zip(in_limits, censored)]
     if any(below):
         ax.scatter(*_xy(xs, ys, below), s=34, marker="v", facecolors="none", edgecolors=_BLUE, linewidths=1.2,
@@ -82,11 +84,9 @@ def _points(ax: Any, xs: list[int], ys: Sequence[float], in_limits: Sequence[boo
                         color=_ORANGE, fontsize=8)
 
 
-def _limit_lines(ax: Any, limits: Any, note: str) -> None:
-    """Centre and control limits, labelled at the right; or the reason there are none."""
+def _limit_lines(ax: Any, limits: Any) -> None:
+    """Centre and control limits, labelled at the right (none: the title says why)."""
     if limits is None:
-        ax.text(0.5, 0.97, note, transform=ax.transAxes, ha="center", va="top", fontsize=8, color=_ORANGE,
-                bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": _ORANGE, "alpha": 0.9})
         return
     ax.axhline(limits.centre, color=_GREEN, linewidth=1)
     for v in (limits.lcl, limits.ucl):
@@ -150,11 +150,11 @@ def draw_chart(c: Characteristic, s: CharacteristicStats) -> Any:
         spread_x = x
         names = (f"mean of {s.subgroup} (mm)", f"range of {s.subgroup} (mm)")
         missing = []
-    _points(top, x, s.location, s.in_limits, s.censored, s.location_flags)
-    _limit_lines(top, chart.location if chart else None, s.limits_note)
+    _points(top, x, s.location, s.in_limits, s.censored, s.location_flags, chart is not None)
+    _limit_lines(top, chart.location if chart else None)
     known = [not np.isnan(r) for r in s.spread]
-    _points(bottom, spread_x, s.spread, known, [False] * len(s.spread), s.spread_flags)
-    _limit_lines(bottom, chart.spread if chart else None, "")
+    _points(bottom, spread_x, s.spread, known, [False] * len(s.spread), s.spread_flags, chart is not None)
+    _limit_lines(bottom, chart.spread if chart else None)
     if s.subgroup == 1 and s.uncertain:
         top.scatter([a for a, p in zip(x, s.plotted) if p.decision == UNCERTAIN],
                     [p.charted_mm for p in s.plotted if p.decision == UNCERTAIN], s=60, marker="^",

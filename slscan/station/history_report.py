@@ -185,7 +185,8 @@ def write_report(folder: Path, program: PartProgram, rows: Sequence[ResultRow],
            f"<section><h2>Values left out by the user</h2>{_exclusions(latest_per_serial(rows), options)}</section>",
            "<h2>Control charts</h2>"]
     for c in program.characteristics:
-        out.append(f"<section><h3>{e(c.name)}</h3><img src='charts/{e(charts[c.name].name)}' "
+        out.append(f"<section id='chart-{e(charts[c.name].stem)}'><h3>{e(c.name)}</h3>"
+                   f"<img src='charts/{e(charts[c.name].name)}' "
                    f"alt='{e(c.name)} control chart'></section>")
     names = [c.name for c in program.characteristics]
     out.append("<h2>Cycles</h2><div class='scroll'><table><thead><tr><th>id</th><th class='l'>serial</th>"
