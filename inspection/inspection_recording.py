@@ -9,8 +9,9 @@ entity path                            content
 ``world/inspection/deviation``         Points3D: the part's points coloured by the deviation
                                        their figures are taken from, on the tolerance-tied
                                        scale (`inspection.deviation_colours`; grey: none)
-``world/inspection/deviation_legend``  Points3D: the scale's colour legend beside the part,
-                                       one labelled swatch per step (mm)
+``world/inspection/deviation_legend``  Points3D: the scale's colour legend beside the part
+                                       (right of it as the camera sees it), one labelled
+                                       swatch per step (mm)
 ``world/inspection/faces``             Points3D: the part's points, class id = face
                                        index + 1 (0: on no face), labels = face names
 ``inspection/deviation_map``           Image: the deviation map (camera image layout), its
@@ -57,7 +58,7 @@ def log_inspection(recording: SessionRecording, report: InspectionReport, scan: 
     scale = scale_of(report)
     rgb = scale.rgb(shown_deviations(report))
     stream.log(DEVIATION, rr.Points3D(part, colors=np.round(rgb * 255).astype(np.uint8)), strict=True)
-    stream.log(DEVIATION_LEGEND, legend_points(scale, part), strict=True)
+    stream.log(DEVIATION_LEGEND, legend_points(scale, scan.points[report.part_mask], world_from_cam), strict=True)
     labels = [rr.AnnotationInfo(id=0, label="no face", color=(128, 128, 128))]
     names = {r.label: r.title for r in report.faces}  # "high top #657" where the part program names the face
     labels += [rr.AnnotationInfo(id=f.index + 1, label=f"{names.get(f.label, f.label)} {f.type}") for f in model.faces]
@@ -73,17 +74,18 @@ def log_inspection(recording: SessionRecording, report: InspectionReport, scan: 
     recording.log_metrics({f"{METRICS}/{name}": value for name, value in metrics.items()}, scan=scan_index)
 
 
-def legend_points(scale: ColourScale, part: np.ndarray) -> rr.Points3D:
-    """The colour scale as labelled swatches in a column beside the part (world frame, mm):
-    past its bounding box along x, from below nominal (bottom) to above (top)."""
-    lo, hi = part.min(axis=0), part.max(axis=0)
-    steps = scale.legend()
-    size = float(np.linalg.norm(hi - lo)) or 1.0
-    gap = 0.06 * size
-    x, y = hi[0] + 0.08 * size, lo[1]
-    positions = np.array([[x, y, lo[2] + k * gap] for k in range(len(steps))], np.float32)
+def legend_points(scale: ColourScale, part_cam: np.ndarray, world_from_cam: np.ndarray) -> rr.Points3D:
+    """The colour scale as labelled swatches in a column beside the part, as the camera sees
+    it (camera frame `part_cam`, mm: right of the part, from above nominal at the top of the
+    image to below it at the bottom), moved into the world frame."""
+    lo, hi = part_cam.min(axis=0), part_cam.max(axis=0)
+    steps = scale.legend()[::-1]  # far above first: the top of the image
+    size = float(np.linalg.norm(hi[:2] - lo[:2])) or 1.0
+    gap = (hi[1] - lo[1]) / max(len(steps) - 1, 1)
+    cam = np.array([[hi[0] + 0.08 * size, lo[1] + k * gap, float(np.median(part_cam[:, 2]))]
+                    for k in range(len(steps))])
     rgb = scale.rgb(np.array([d for d, _ in steps]))
     labels = [text for _, text in steps]
     labels[len(labels) // 2] += f" ({scale.source})"
-    return rr.Points3D(positions, radii=0.02 * size, colors=np.round(rgb * 255).astype(np.uint8), labels=labels,
-                       show_labels=True)
+    return rr.Points3D(transform_points(world_from_cam, cam).astype(np.float32), radii=0.015 * size,
+                       colors=np.round(rgb * 255).astype(np.uint8), labels=labels, show_labels=True)
