@@ -32,7 +32,7 @@ EXTENT = 2.5  # a colour bar runs over +-EXTENT h: the saturated ends show
 # (t = d / h, RGB 0..1) anchors of the scale; between anchors colours are interpolated
 _ANCHORS = np.array([
     (-2.0, (0.08, 0.16, 0.55)), (-1.0, (0.45, 0.85, 0.95)), (-1.0 + 1e-6, (0.20, 0.62, 0.25)),
-    (0.0, (0.78, 0.93, 0.76)), (1.0 - 1e-6, (0.20, 0.62, 0.25)), (1.0, (0.98, 0.88, 0.25)),
+    (0.0, (0.60, 0.86, 0.56)), (1.0 - 1e-6, (0.20, 0.62, 0.25)), (1.0, (0.98, 0.88, 0.25)),
     (2.0, (0.75, 0.05, 0.05))], dtype=object)
 _T = np.array([a for a, _ in _ANCHORS], float)
 _RGB = np.array([c for _, c in _ANCHORS], float)

@@ -173,14 +173,23 @@ def callout_text(row: Any) -> str:
 
 
 def _callouts(ax: Any, rows: Any, seg: Any) -> None:
-    """A label per face row (`callout_text`) at the mean of its points, in its verdict's colour."""
+    """A label per face row (`callout_text`) in its verdict's colour, with a leader to the
+    mean of its points; taken left to right across the view, the labels go alternately
+    above and below their points, so neighbours do not cover each other."""
+    from mpl_toolkits.mplot3d import proj3d
+
+    anchors = []
     for row in rows:
-        verdict = face_verdict(row)
         c = seg.foot[seg.face == row.index].mean(axis=0)
-        ax.text(*c, callout_text(row), fontsize=6.5, color=VERDICT_COLOURS.get(verdict, "#000"),
-                ha="center", va="bottom", zorder=10,
-                bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": VERDICT_COLOURS.get(verdict, "#000"),
-                      "alpha": 0.85})
+        x, y, _ = proj3d.proj_transform(*c, ax.get_proj())
+        anchors.append((float(x), float(y), row))
+    for k, (x, y, row) in enumerate(sorted(anchors, key=lambda a: a[0])):
+        colour = VERDICT_COLOURS.get(face_verdict(row), "#000")
+        above = k % 2 == 0
+        ax.annotate(callout_text(row), (x, y), xytext=(0, 26 if above else -26), textcoords="offset points",
+                    fontsize=6.5, color=colour, ha="center", va="bottom" if above else "top", zorder=10,
+                    bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": colour, "alpha": 0.85},
+                    arrowprops={"arrowstyle": "-", "color": colour, "lw": 0.8})
 
 
 CLOSEUP_AXES = (0.1, 0.12, 0.7, 0.74)  # the face's map in a close-up (figure fractions: left, bottom, width, height)
