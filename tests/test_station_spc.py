@@ -315,6 +315,9 @@ def test_every_value_below_the_limit_is_charted_and_said() -> None:
     assert s.n == 30 and s.below_limit == 30 and list(s.location) == [0.009] * 30 and all(s.censored)
     assert s.chart is None and s.capability is None
     assert s.limits_note.startswith("no limits: all 30 values below their detection limit (<= 0.0090 mm)")
+    empty = characteristic_stats(FLAT, [ChartPoint(1, "S1", T0, None, "error")])  # nothing measured: nothing to chart
+    assert empty.n == 0 and empty.not_measured == 1 and empty.chart is None
+    assert empty.limits_note == "no limits: 0 values, limits need 25 (AIAG minimum)"
 
 
 def test_normal_fit_without_censoring_is_the_sample_mean_and_sd() -> None:

@@ -259,7 +259,7 @@ def characteristic_stats(c: Characteristic, points: Sequence[ChartPoint], subgro
             note = f"limits from {have} {unit}" + (" of the baseline" if baseline is not None else "")
         except ValueError as exc:
             note = str(exc)
-            if cens[use].all():
+            if use.any() and cens[use].all():
                 note = (f"no limits: all {have} {unit} below their detection limit (<= {x[use].max():.4f} mm), "
                         "no spread to estimate: the process is well inside the tolerance")
     none: frozenset[int] = frozenset()
