@@ -251,17 +251,18 @@ def characteristic_stats(c: Characteristic, points: Sequence[ChartPoint], subgro
     chart, note = frozen, f"limits frozen ({frozen_source or 'given'})" if frozen is not None else ""
     if frozen is None:
         have = int(in_limits.sum())
-        try:
-            if have < need:
-                raise ValueError(f"no limits: {have} {unit}, limits need {need} (AIAG minimum)")
-            chart = (individuals_limits(x[use], cens[use]) if groups is None
-                     else subgroup_limits(groups[in_limits], group_cens[in_limits]))
-            note = f"limits from {have} {unit}" + (" of the baseline" if baseline is not None else "")
-        except ValueError as exc:
-            note = str(exc)
-            if use.any() and cens[use].all():
-                note = (f"no limits: all {have} {unit} below their detection limit (<= {x[use].max():.4f} mm), "
-                        "no spread to estimate: the process is well inside the tolerance")
+        if use.any() and cens[use].all():
+            note = (f"no limits: all {int(use.sum())} values below their detection limit (<= {x[use].max():.4f} mm), "
+                    "no spread to estimate: the process is well inside the tolerance")
+        elif have < need:
+            note = f"no limits: {have} {unit}, limits need {need} (AIAG minimum)"
+        else:
+            try:
+                chart = (individuals_limits(x[use], cens[use]) if groups is None
+                         else subgroup_limits(groups[in_limits], group_cens[in_limits]))
+                note = f"limits from {have} {unit}" + (" of the baseline" if baseline is not None else "")
+            except ValueError as exc:  # too few ranges of measured values among them
+                note = f"no limits: {exc}"
     none: frozenset[int] = frozenset()
     location_flags = [frozenset(f) for f in nelson(location, chart.location, rules)] if chart else \
         [none] * len(location)
