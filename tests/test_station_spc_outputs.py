@@ -82,14 +82,15 @@ def test_limits_frozen_from_a_baseline_are_used_later(tmp_path: Path, capsys) ->
     fill(db, 40, seed=2)
     frozen = tmp_path / "limits.json"
     assert results(db, "--report", "--out", str(tmp_path / "a"), "--baseline", "1-30", "--save-limits",
-                   str(frozen)) == 0
+                   str(frozen), "--exclude", "7=probe crash") == 0
     saved = json.loads(frozen.read_text())
     assert saved["program"] == "demo-part" and "ids 1..30" in saved["source"]
+    assert "left out by the user: 7 (probe crash)" in saved["source"]
     program = load_program(PROGRAM)
     with open_results(f"sqlite:{db}", create=False) as store:
         rows = store.results()
         values = store.values([r.id for r in rows])
-    base = running_stats(program, [r for r in rows if r.id <= 30], values)
+    base = running_stats(program, [r for r in rows if r.id <= 30], values, SpcOptions(exclusions={7: "x"}))
     for s in base.characteristics:
         assert saved["characteristics"][s.name]["location"]["ucl"] == pytest.approx(s.chart.location.ucl)
     assert results(db, "--report", "--out", str(tmp_path / "b"), "--limits", str(frozen)) == 0

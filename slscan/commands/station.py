@@ -190,12 +190,13 @@ def _save_limits(args: argparse.Namespace, program: Any, rows: Any, values: Any,
 
     stats = running_stats(program, rows, values, options)
     chosen = f"{len(args.baseline)} results, ids {min(args.baseline)}..{max(args.baseline)}" if args.baseline else ""
+    left_out = "; ".join(f"{rid} ({why})" for rid, why in sorted(options.exclusions.items()))
     source = (f"the baseline of {chosen} of {where}" if args.baseline else f"every result of {where}") + (
-        f", {len(options.exclusions)} left out" if options.exclusions else "")
+        f"; left out by the user: {left_out}" if left_out else "")
     missing = _write_export(Path(args.save_limits), lambda path: save_limits(
         path, program, {s.name: s.chart for s in stats.characteristics}, source))
-    print(f"limits frozen in {args.save_limits}" + (f"; none for {', '.join(missing)} (too few values: "
-                                                     f"{stats.characteristics[0].limits_note})" if missing else ""),
+    notes = {s.name: s.limits_note for s in stats.characteristics}
+    print(f"limits frozen in {args.save_limits}" + "".join(f"; none for {name} ({notes[name]})" for name in missing),
           file=sys.stderr)
 
 
