@@ -188,10 +188,12 @@ def render(report: Any, scale: ColourScale, noise_note: str, deviation_png: byte
     rows = characteristic_rows(report)
     profiles = {r.title: t for r in report.faces for k, (t, _) in r.verdicts.items() if k == "profile_mm"}
     s = report.form_settings
-    closeups = "".join(
+    closeups = [
         f"<section class='keep' id='face-{e(r.label.lstrip('#'))}'><h3>{e(r.title)}</h3>"
         f"{_img(face_closeup(report, r, scale), r.title)}<p class='note'>{shown_count(report, r)} points, those the "
-        f"figures count ({r.form.points} in the table)</p></section>" for r in closeup_faces(report))
+        f"figures count ({r.form.points} in the table)</p></section>" for r in closeup_faces(report)]
+    faces = (f"<div class='keep'><h2>Faces</h2>{_no_closeup(report)}{''.join(closeups[:1])}</div>"  # heading kept
+             f"<div class='faces'>{''.join(closeups[1:])}</div>")  # with the first close-up
     camera = (f"<section class='keep'><h2>Deviation map in the camera image</h2>"
               f"{_img(deviation_png, 'deviation map in the camera image')}"
               f"<p class='note'>{e(scale.caption)}; grey: part points the figures do not use; dark: not the part."
@@ -221,6 +223,6 @@ def render(report: Any, scale: ColourScale, noise_note: str, deviation_png: byte
         f"<p class='note'>Zones, profile and deviations are those of the form surface (ISO 16610-61 Gaussian, "
         f"cut-off {s.form_cutoff_mm} mm, noise bias removed); the raw points' extremes include the noise; Sq "
         f"has the noise's mean square subtracted (roughness cut-off {s.roughness_cutoff_mm} mm).</p></div></section>"
-        f"<h2>Faces</h2>{_no_closeup(report)}<div class='faces'>{closeups}</div>{camera}"
+        f"{faces}{camera}"
         f"<h2>All face figures</h2><section id='figures'>{_all_figures(report)}</section>"
         f"<p class='note'>{e(noise_note)}</p></main></body></html>")
