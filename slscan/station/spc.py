@@ -16,8 +16,8 @@ part program); an incomplete last subgroup is left out:
     R chart centre R-bar, limits D3(n) R-bar, D4(n) R-bar
 
 d2(n) and d3(n) (mean and standard deviation of the range of n standard normal values)
-are computed by numerical integration; D3 = max(0, 1 - 3 d3/d2), D4 = 1 + 3 d3/d2; c4(n) =
-sqrt(2 / (n - 1)) Gamma(n / 2) / Gamma((n - 1) / 2), the bias of a sample SD (`c4`).
+are computed by numerical integration; D3 = max(0, 1 - 3 d3/d2), D4 = 1 + 3 d3/d2. (No c4:
+neither chart uses a subgroup SD, and Minitab's overall sigma is the plain sample SD.)
 
 Every figure is a width or a height: its natural lower bound is 0. A lower control limit
 below 0 is set to 0 (`Limits.lcl_clipped`), as Minitab does for a characteristic with a
@@ -62,15 +62,15 @@ USL (the tolerance) and the natural lower bound 0:
 Minitab leaves Cp and Pp out when the lower end is a natural bound; here they compare the
 spread with the whole band 0..USL, so Cpk exceeds Cp when the process sits in the band's
 lower half (where a form error should be). sigma_within from the chart (MR-bar / d2 or
-R-bar / d2), sigma_overall the sample SD
-(n - 1 divisor, no c4: Minitab's default). 95 % intervals: Cp and Pp from the chi-squared
-distribution, Cpk and Ppk by Bissell's approximation, index +- z sqrt(1 / (9 n) + index^2 /
-(2 nu)); nu = n - 1 for the overall sigma, and for the within sigma its effective degrees
-of freedom (Patnaik: Var(sigma-hat) = sigma^2 / (2 nu)): about 0.6 (n - 1) for moving
-ranges, whose variance and neighbours' covariance are known in closed form (`mr_dof`),
-k d2^2 / (2 d3^2) for k subgroup ranges (`range_dof`). Normality: the Anderson-Darling test (statistic A^2 with the sample mean and
-SD; p-value from A^2 (1 + 0.75 / n + 2.25 / n^2) by D'Agostino and Stephens' (1986) table
-4.9 formulas, as Minitab). A figure bounded at 0 near the bound is skewed: the non-normal
+R-bar / d2), sigma_overall the sample SD (n - 1 divisor, no c4: Minitab's default). 95 %
+intervals: Cp and Pp from the chi-squared distribution, Cpk and Ppk by Bissell's
+approximation, index +- z sqrt(1 / (9 n) + index^2 / (2 nu)); nu = n - 1 for the overall
+sigma, and for the within sigma its effective degrees of freedom (Patnaik: Var(sigma-hat)
+= sigma^2 / (2 nu)): about 0.6 (n - 1) for moving ranges, whose variance and neighbours'
+covariance are known in closed form (`mr_dof`), k d2^2 / (2 d3^2) for k subgroup ranges
+(`range_dof`). Normality: the Anderson-Darling test (statistic A^2 with the sample mean
+and SD; p-value from A^2 (1 + 0.75 / n + 2.25 / n^2) by D'Agostino and Stephens' (1986)
+table 4.9 formulas, as Minitab). A figure bounded at 0 near the bound is skewed: the non-normal
 capability is a two-parameter Weibull (location 0) fitted by maximum likelihood (censored
 values through its CDF), by the ISO 22514-2 percentile method:
 
@@ -133,11 +133,6 @@ def chart_constants(n: int) -> tuple[float, float, float]:
     """(d2, D3, D4) of subgroups of size `n`."""
     d2, d3 = range_constants(n)
     return d2, max(0.0, 1 - 3 * d3 / d2), 1 + 3 * d3 / d2
-
-
-def c4(n: int) -> float:
-    """E[s] / sigma for a sample of `n` normal values (s with the n - 1 divisor)."""
-    return math.sqrt(2.0 / (n - 1)) * math.exp(math.lgamma(n / 2) - math.lgamma((n - 1) / 2))
 
 
 @dataclass(frozen=True)
