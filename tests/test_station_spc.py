@@ -161,12 +161,12 @@ def test_capability_and_intervals_by_hand() -> None:
     assert cap.cpk.value == pytest.approx(cpk) and cap.cp.value == pytest.approx(cp) and cap.warning == ""
     assert cap.pp.value == pytest.approx(0.05 / (6 * s)) and cap.ppk.value == pytest.approx((0.05 - x.mean()) / (3 * s))
     half = 1.959964 * np.sqrt(1 / (9 * 40) + cpk ** 2 / (2 * 39))  # Bissell
-    assert cap.cpk_ci == pytest.approx((cpk - half, cpk + half), rel=1e-5)
+    assert cap.cpk.ci == pytest.approx((cpk - half, cpk + half), rel=1e-5)
     lo, hi = stats.chi2.ppf([0.025, 0.975], 39)
-    assert cap.cp_ci == pytest.approx((cp * np.sqrt(lo / 39), cp * np.sqrt(hi / 39)))
+    assert cap.cp.ci == pytest.approx((cp * np.sqrt(lo / 39), cp * np.sqrt(hi / 39)))
     small = capability(x[:MIN_CAPABILITY_N - 1], 0.05, sigma)
     assert "only 29 values" in small.warning
-    assert small.cpk_ci[1] - small.cpk_ci[0] > cap.cpk_ci[1] - cap.cpk_ci[0]
+    assert small.cpk.ci[1] - small.cpk.ci[0] > cap.cpk.ci[1] - cap.cpk.ci[0]
 
 
 def test_within_sigma_degrees_of_freedom_match_simulation() -> None:

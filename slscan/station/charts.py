@@ -53,11 +53,6 @@ def capability_lines(s: CharacteristicStats) -> list[str]:
     return lines + ([f"WARNING: {cap.warning}"] if cap.warning else [])
 
 
-def capability_text(s: CharacteristicStats) -> str:
-    """`capability_lines` on one line."""
-    return "; ".join(capability_lines(s))
-
-
 def _xy(xs: Sequence[int], ys: Sequence[float], keep: Sequence[bool]) -> tuple[list[int], list[float]]:
     return [a for a, k in zip(xs, keep) if k], [y for y, k in zip(ys, keep) if k]
 

@@ -376,20 +376,6 @@ class Capability:
     warning: str = ""
 
     @property
-    def sigma(self) -> float:
-        return self.sigma_within
-
-    @property
-    def cp_ci(self) -> tuple[float, float]:
-        assert self.cp.ci is not None
-        return self.cp.ci
-
-    @property
-    def cpk_ci(self) -> tuple[float, float]:
-        assert self.cpk.ci is not None
-        return self.cpk.ci
-
-    @property
     def read_ppk(self) -> Index:
         """The Ppk of the chosen model."""
         return self.weibull_ppk if self.model == "Weibull" and self.weibull_ppk is not None else self.ppk
