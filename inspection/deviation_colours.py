@@ -29,13 +29,10 @@ import numpy as np
 
 GREY = 0.6  # the grey of a point with no deviation shown (0..1)
 EXTENT = 2.5  # a colour bar runs over +-EXTENT h: the saturated ends show
-# (t = d / h, RGB 0..1) anchors of the scale; between anchors colours are interpolated
-_ANCHORS = np.array([
-    (-2.0, (0.08, 0.16, 0.55)), (-1.0, (0.45, 0.85, 0.95)), (-1.0 + 1e-6, (0.20, 0.62, 0.25)),
-    (0.0, (0.60, 0.86, 0.56)), (1.0 - 1e-6, (0.20, 0.62, 0.25)), (1.0, (0.98, 0.88, 0.25)),
-    (2.0, (0.75, 0.05, 0.05))], dtype=object)
-_T = np.array([a for a, _ in _ANCHORS], float)
-_RGB = np.array([c for _, c in _ANCHORS], float)
+# the scale's anchors, t = d / h, and their RGB (0..1); colours between anchors are interpolated
+_T = np.array([-2.0, -1.0, -1.0 + 1e-6, 0.0, 1.0 - 1e-6, 1.0, 2.0])
+_RGB = np.array([(0.08, 0.16, 0.55), (0.45, 0.85, 0.95), (0.20, 0.62, 0.25), (0.60, 0.86, 0.56), (0.20, 0.62, 0.25),
+                 (0.98, 0.88, 0.25), (0.75, 0.05, 0.05)])
 _SATURATED = {-1: (0.05, 0.08, 0.35), 1: (0.45, 0.0, 0.0)}
 
 
@@ -104,8 +101,9 @@ def shown_deviations(report: Any) -> np.ndarray:
         if surface is None or row.index < 0:
             continue
         idx = np.flatnonzero(seg.face == row.index)
-        if len(idx) == len(surface):
-            out[idx] = surface
+        if len(idx) != len(surface):
+            raise ValueError(f"{row.title}: {len(surface)} form-surface values for its {len(idx)} points")
+        out[idx] = surface
     return out
 
 
