@@ -192,6 +192,7 @@ def test_interval_coverage_on_fresh_draws() -> None:
     rng = np.random.default_rng(seed)
     mu, sigma, usl, n = 0.02, 0.004, 0.05, 40
     true = {"cp": usl / (6 * sigma), "cpk": (usl - mu) / (3 * sigma)}
+    true.update(pp=true["cp"], ppk=true["cpk"])  # one sigma: within and overall are the same
     hits = {"cp": 0, "cpk": 0, "pp": 0, "ppk": 0}
     draws = 2000
     for _ in range(draws):
@@ -199,10 +200,30 @@ def test_interval_coverage_on_fresh_draws() -> None:
         chart = individuals_limits(x)
         cap = capability(x, usl, chart.sigma_within, within_dof=chart.dof)
         for name, index in (("cp", cap.cp), ("cpk", cap.cpk), ("pp", cap.pp), ("ppk", cap.ppk)):
-            hits[name] += index.ci[0] <= true[name.replace("p", "c", 1) if name.startswith("p") else name] <= index.ci[1]
+            hits[name] += index.ci[0] <= true[name] <= index.ci[1]
     coverage = {k: v / draws for k, v in hits.items()}
     print(coverage)
     assert all(abs(c - 0.95) < 0.025 for c in coverage.values()), coverage
+
+
+@pytest.mark.slow
+def test_weibull_interval_coverage_on_fresh_draws() -> None:
+    """Measured coverage of the Weibull Pp and Ppk intervals (delta method) over 600
+    Weibull samples of 40 values per shape (seed printed): 91-98 % (measured 93-95 %)."""
+    from slscan.station.spc import weibull_fit, weibull_indices, weibull_intervals
+
+    seed = int(np.random.SeedSequence().entropy % 2 ** 32)
+    print(f"seed {seed}")
+    rng = np.random.default_rng(seed)
+    for shape in (1.3, 2.5):
+        true = weibull_indices(np.log([shape, 0.01]), 0.05)
+        hits = np.zeros(2)
+        for _ in range(600):
+            x = 0.01 * rng.weibull(shape, 40)
+            k, lam, _ = weibull_fit(x)
+            hits += [lo <= t <= hi for (lo, hi), t in zip(weibull_intervals(x, np.zeros(40, bool), k, lam, 0.05), true)]
+        print(shape, hits / 600)
+        assert all(0.91 <= h / 600 <= 0.98 for h in hits), (shape, hits / 600)
 
 
 T0 = dt.datetime(2026, 11, 23, tzinfo=dt.timezone.utc)
@@ -351,5 +372,9 @@ def test_a_skewed_figure_is_read_from_the_weibull_model() -> None:
     assert cap.weibull_ppk.value == pytest.approx((0.05 - q[1]) / (q[2] - q[1]), rel=1e-3)
     assert cap.weibull_pp.value == pytest.approx(0.05 / (q[2] - q[0]), rel=1e-3)
     assert cap.read_ppk is cap.weibull_ppk
+    for index in (cap.weibull_pp, cap.weibull_ppk):  # an interval about the estimate, narrower with more values
+        assert index.ci[0] < index.value < index.ci[1]
+    more = capability(0.01 * np.random.default_rng(23).weibull(1.3, 480), 0.05, 0.005)
+    assert more.weibull_ppk.ci[1] - more.weibull_ppk.ci[0] < 0.7 * (cap.weibull_ppk.ci[1] - cap.weibull_ppk.ci[0])
     normal = capability(np.random.default_rng(22).normal(0.02, 0.003, 60), 0.05, 0.003)
     assert normal.model == "normal" and normal.read_ppk is normal.ppk

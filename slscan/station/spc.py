@@ -76,6 +76,9 @@ values through its CDF), by the ISO 22514-2 percentile method:
 
     Pp = USL / (X99.865 - X0.135)    Ppk = (USL - X50) / (X99.865 - X50)
 
+with 95 % intervals by the delta method on the fit's information matrix (`weibull_intervals`;
+measured coverage 93-95 % on Weibull samples of 40 and 100, tests/test_station_spc.py).
+
 The model the indices are read from (`Capability.model`): normal when the
 Anderson-Darling test does not reject it at 5 %, else Weibull; with censored values (no
 test is possible on them) the model of the higher likelihood (both have 2 parameters).
@@ -311,6 +314,42 @@ def weibull_fit(x: np.ndarray, censored: np.ndarray | None = None) -> tuple[floa
     return float(shape), float(scale), ll
 
 
+_WEIBULL_P = np.array([0.00135, 0.5, 0.99865])  # the percentiles of the ISO 22514-2 method
+
+
+def weibull_indices(theta: np.ndarray, usl: float) -> np.ndarray:
+    """(Pp, Ppk) of a Weibull with theta = (log shape, log scale) (module docstring)."""
+    shape, scale = np.exp(theta)
+    q = scale * (-np.log1p(-_WEIBULL_P)) ** (1 / shape)  # X0.135, X50, X99.865
+    return np.array([usl / (q[2] - q[0]), (usl - q[1]) / (q[2] - q[1])])
+
+
+def weibull_intervals(x: np.ndarray, censored: np.ndarray, shape: float, scale: float,
+                      usl: float) -> list[tuple[float, float]]:
+    """95 % intervals of the Weibull Pp and Ppk by the delta method: the covariance of
+    (log shape, log scale) from the log-likelihood's curvature at the fit (central
+    differences; censored values through the CDF), carried through `weibull_indices`."""
+    from scipy import stats
+
+    x = np.maximum(np.asarray(x, float), 1e-12)
+
+    def ll(theta: np.ndarray) -> float:
+        k, lam = np.exp(theta)
+        return float(stats.weibull_min.logpdf(x[~censored], k, 0, lam).sum()
+                     + stats.weibull_min.logcdf(x[censored], k, 0, lam).sum())
+
+    theta, h = np.log([shape, scale]), 1e-4
+    steps = np.eye(2) * h
+    hess = np.array([[(ll(theta + a + b) - ll(theta + a - b) - ll(theta - a + b) + ll(theta - a - b)) / (4 * h * h)
+                      for b in steps] for a in steps])
+    cov = np.linalg.inv(-hess)
+    grad = np.array([(weibull_indices(theta + a, usl) - weibull_indices(theta - a, usl)) / (2 * h) for a in steps]).T
+    half = float(stats.norm.ppf(1 - (1 - CONFIDENCE) / 2)) * np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", grad, cov,
+                                                                                       grad), 0.0))
+    mid = weibull_indices(theta, usl)
+    return [(float(m - w), float(m + w)) for m, w in zip(mid, half)]
+
+
 def anderson_darling(x: np.ndarray) -> tuple[float, float]:
     """(A^2, p) of the Anderson-Darling normality test with mean and SD from the sample;
     p from the adjusted statistic by D'Agostino and Stephens' formulas (module docstring)."""
@@ -415,8 +454,9 @@ def capability(values: Sequence[float], usl: float, sigma_within: float,
     cp, cpk = usl / (6 * sigma_within), (usl - mean) / (3 * sigma_within)
     pp, ppk = usl / (6 * sd), (usl - mean) / (3 * sd)
     shape, scale, weibull_ll = weibull_fit(x, cens)
-    q = scale * (-np.log1p(-np.array([0.00135, 0.5, 0.99865]))) ** (1 / shape)  # X0.135, X50, X99.865
-    w_pp, w_ppk = Index(float(usl / (q[2] - q[0]))), Index(float((usl - q[1]) / (q[2] - q[1])))
+    w = weibull_indices(np.log([shape, scale]), usl)
+    w_ci = weibull_intervals(x, cens, shape, scale, usl)
+    w_pp, w_ppk = Index(float(w[0]), w_ci[0]), Index(float(w[1]), w_ci[1])
     if cens.any():
         a2 = p = None
         normality = f"not tested: {int(cens.sum())} of {n} values below their detection limit"
