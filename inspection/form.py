@@ -547,6 +547,8 @@ class FaceForm:
     grid_mm: float | None = None
     u_components: dict[str, dict[str, float]] = field(default_factory=dict)
     region: np.ndarray | None = field(default=None, repr=False, compare=False)  # (N,) bool: the input points used
+    surface_mm: np.ndarray | None = field(default=None, repr=False, compare=False)  # (N,): the deviation the figures
+    # see at each input point (the form surface's at its grid cell; a raw-points face's own), NaN where not used
 
     def figure(self, name: str) -> Estimate | None:
         return getattr(self, name)
@@ -559,7 +561,7 @@ class FaceForm:
             v = getattr(self, f.name)
             if f.name in FIGURES:
                 out.update(v.fields(f.name) if v is not None else {f"{f.name}_mm": None, f"{f.name}_u_mm": None})
-            elif f.name not in ("u_components", "region"):
+            elif f.name not in ("u_components", "region", "surface_mm"):
                 out[f.name] = v
         out["u_components_mm"] = self.u_components
         return out
@@ -738,8 +740,11 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         draws = _point_draws(noise, normals, rng, settings.draws, len(points), float(np.std(deviation)))
         dev_shift = None if shifts is None else np.einsum("dij,ij->di", shifts, normals) if normals is not None else None
         stats, parts = _deviation_stats(deviation, deviation[None] + draws, draws, deviation, draws, dev_shift)
-        return FaceForm(len(points), "ok", f"{face.type}: deviations of raw points only (no form filter)",  # type: ignore[attr-defined]
-                        deviation_source="raw points", u_components=parts, region=keep, **stats)
+        seen = np.full(n, np.nan)
+        seen[keep] = deviation
+        note = f"{face.type}: deviations of raw points only (no form filter)"  # type: ignore[attr-defined]
+        return FaceForm(len(points), "ok", note, deviation_source="raw points", u_components=parts, region=keep,
+                        surface_mm=seen, **stats)
     grid = _grid(xy)
     zg = grid.mean(deviation)
     mask = np.isfinite(zg)
@@ -754,6 +759,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     raw_sel = inner.ravel()[grid.cell]
     used = np.zeros(n, bool)
     used[np.flatnonzero(keep)[raw_sel]] = True
+    seen = np.full(n, np.nan)
     if noise is not None:
         point_draws = noise.draw(rng, settings.draws)
         point_draws *= np.einsum("ij,ij->i", normals, noise.ray)
@@ -779,6 +785,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         def filters(z: np.ndarray, single: bool = False) -> tuple[np.ndarray, np.ndarray]:
             return form_filter.with_mean(z, single)[0], rough_filter(z, single)
     form, mean = filters(zg)
+    seen[used] = form.ravel()[grid.cell[raw_sel]]  # `used` is in the input order, as raw_sel is
     noise_form, noise_mean = filters(cell_draws, single=True)
     rough = zg - mean
     drawn_rough = np.subtract(cell_draws, noise_mean, out=cell_draws)  # in place: the draws' last use
@@ -794,7 +801,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     common = dict(points=int(raw_sel.sum()), status="ok", sq=sq, sq_raw_mm=sq_raw, sq_noise_mm=sq_noise,
                   noise_mm=typical, noise_source=source, form_cutoff_mm=settings.form_cutoff_mm,
                   roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=grid.spacing,
-                  deviation_source="form surface", region=used, **stats)
+                  deviation_source="form surface", region=used, surface_mm=seen, **stats)
     cxy = grid.centres(inner)
     if face.type == "plane":  # type: ignore[attr-defined]
         tilt = plane_zone_tilt(cxy, f)  # the draws' zones are held near the measured zone's

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from inspection.deviation_colours import deviation_image, scale_of  # noqa: F401 (deviation_image: the commands')
 from inspection.form import FaceForm, FormSettings
 from inspection.report_header import ReportHeader
 from inspection.report_html import render
@@ -168,10 +169,11 @@ class InspectionReport:
         return "\n".join(lines)
 
     def write(self, folder: str | Path, stem: str = "inspection", deviation_png: bytes | None = None,
-              pdf: bool = False) -> list[Path]:
+              pdf: bool = False, paper: str = "A4") -> list[Path]:
         """inspection.json, inspection.csv and inspection.html (with the deviation map) in
-        `folder`, and with `pdf` inspection.pdf printed from the page by headless Chromium
-        when it is installed (`inspection.report_pdf`); returns the paths written."""
+        `folder`, and with `pdf` inspection.pdf printed from the page on `paper` (A4 or
+        Letter) by headless Chromium when it is installed (`inspection.report_pdf`); returns
+        the paths written."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         paths = [folder / f"{stem}.json", folder / f"{stem}.csv", folder / f"{stem}.html"]
@@ -184,47 +186,13 @@ class InspectionReport:
         w.writerows(rows)
         write_atomic(paths[1], buf.getvalue().encode())
         write_atomic(paths[2], self.html(deviation_png).encode())
-        if pdf and print_pdf(paths[2], folder / f"{stem}.pdf") is not None:
+        if pdf and print_pdf(paths[2], folder / f"{stem}.pdf", paper) is not None:
             paths.append(folder / f"{stem}.pdf")
         return paths
 
     def html(self, deviation_png: bytes | None = None) -> str:
         """The self-contained HTML report (`inspection.report_html`)."""
-        return render(self, colour_limit(self), NOISE_NOTE, deviation_png)
-
-
-def deviation_colours(dev: np.ndarray, limit_mm: float) -> np.ndarray:
-    """RGB (N, 3) in 0..1: blue (inside the material) - white - red (outside) over
-    +-limit_mm; grey where the deviation is NaN (a point on no face)."""
-    t = np.clip(np.nan_to_num(dev) / max(limit_mm, 1e-9), -1.0, 1.0)
-    rgb = np.stack([np.where(t > 0, 1.0, 1.0 + t), 1.0 - np.abs(t), np.where(t < 0, 1.0, 1.0 - t)], axis=1)
-    rgb[~np.isfinite(dev)] = 0.6
-    return rgb
-
-
-def colour_limit(report: InspectionReport) -> float:
-    """The colour scale of deviation maps: the 99th percentile of |deviation| (mm)."""
-    dev = report.segmentation.deviation_mm
-    return float(np.nanpercentile(np.abs(dev), 99)) if np.isfinite(dev).any() else 1.0
-
-
-def deviation_image(report: InspectionReport, scan: Any) -> np.ndarray:
-    """RGB uint8 image of the signed deviations (`deviation_colours`, `colour_limit`): the
-    camera image for organised scans, else a view along the cloud's z axis; dark grey
-    for scan points that are not the part."""
-    colours = np.full((len(scan), 3), 0.25)
-    colours[report.part_mask] = deviation_colours(report.segmentation.deviation_mm, colour_limit(report))
-    if scan.pixels is not None:
-        px, (h, w) = scan.pixels, scan.image_shape
-    else:
-        xy = scan.points[:, :2]
-        lo, hi = xy.min(axis=0), xy.max(axis=0)
-        scale = 1000.0 / max(float((hi - lo).max()), 1e-9)
-        px = np.floor((xy - lo) * scale).astype(np.int64)
-        w, h = (px.max(axis=0) + 1).tolist()
-    img = np.zeros((h, w, 3), np.uint8)
-    img[px[:, 1], px[:, 0]] = np.round(colours * 255).astype(np.uint8)
-    return img
+        return render(self, scale_of(self), NOISE_NOTE, deviation_png)
 
 
 def png(image: np.ndarray) -> bytes:

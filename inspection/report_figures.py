@@ -1,17 +1,18 @@
 """The inspection report's figures, drawn with matplotlib (Agg, no display) as PNG bytes:
 the part seen from several sides coloured by signed deviation with a colour bar in mm and
-callouts naming each toleranced face with its verdict; a close-up of one face in its own
-surface coordinates; the histogram of the signed deviations.
+callouts naming each toleranced face with its values and verdicts; a close-up of one face
+in its own surface coordinates; the histogram of the signed deviations.
 
 Points are the feet of the scan points on the CAD model (model frame, mm), so every view
-shows the part as designed, coloured by how far the scan departs from it (positive:
-excess material). Behind them the CAD model is drawn as a light grey shaded mesh
-(decimated to at most `MAX_TRIANGLES` triangles), so unscanned regions read as the part,
-not as empty space. At most `MAX_POINTS` points are drawn (a fixed-seed sample), which
-keeps a drawing to a few seconds; the colours and statistics use every point. Every view
-carries a callout per toleranced face that faces it (at least `FACING` of the face's
-points turned towards the viewer); a face facing none of the views is called out on the
-one it faces most."""
+shows the part as designed, coloured by how far it departs from it (positive: excess
+material) on the tolerance-tied scale of `inspection.deviation_colours`: the deviation the
+figures are taken from (the form surface's, noise filtered out), at the points the figures
+count. Behind them the CAD model is drawn as a light grey shaded mesh (decimated to at
+most `MAX_TRIANGLES` triangles), so unscanned regions read as the part, not as empty
+space. At most `MAX_POINTS` points are drawn (a fixed-seed sample), which keeps a drawing
+to a few seconds; the colours and statistics use every point. Every view carries a callout
+per toleranced face that faces it (at least `FACING` of the face's points turned towards
+the viewer); a face facing none of the views is called out on the one it faces most."""
 
 from __future__ import annotations
 
@@ -24,17 +25,16 @@ matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.colors import Normalize  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
-from inspection.tolerances import overall  # noqa: E402
+from inspection.deviation_colours import ColourScale, shown_count, shown_deviations  # noqa: E402
+from inspection.tolerances import FIGURE_OF, overall  # noqa: E402
 
 MAX_POINTS = 40_000
 MAX_TRIANGLES = 6_000  # the CAD mesh drawn behind the points is decimated to this many
 FACING = 0.3  # a face is called out on a view when this share of its points faces the viewer
 GRAZING = 0.1  # a point faces the viewer when its normal's component towards the eye exceeds this (~6 deg)
 LIGHT = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])  # the mesh's shading light (model frame)
-CMAP = "RdBu_r"  # blue: inside the material, red: outside (as the recording's deviation map)
 # (title, elevation deg, azimuth deg) of the part views
 VIEWS = (("from front left, above", 30.0, -120.0), ("from back right, above", 30.0, 60.0),
          ("from above", 90.0, -90.0), ("from front right, low", 12.0, -40.0))
@@ -101,16 +101,17 @@ def display_mesh(cad: Any, limit: int = MAX_TRIANGLES) -> tuple[np.ndarray, np.n
     return tri, 0.5 + 0.35 * np.abs(n @ LIGHT)
 
 
-def part_views(report: Any, limit_mm: float) -> bytes:
+def part_views(report: Any, scale: ColourScale) -> bytes:
     """The part from the sides in `VIEWS`, the CAD model as a light mesh behind its points,
-    the points coloured by signed deviation over ±`limit_mm`, one colour bar in mm; each
-    view carries the callouts `callout_views` gives it (a face's name and verdict at the
-    centre of its points)."""
+    the points coloured by their shown deviation on `scale`, one colour bar in mm; each
+    view carries the callouts `callout_views` gives it (a face's name, values and verdicts
+    at the centre of its points)."""
     seg = report.segmentation
-    ok = seg.assigned & np.isfinite(seg.deviation_mm)
-    pts, dev = seg.foot[ok], seg.deviation_mm[ok]
+    dev_all = shown_deviations(report)
+    ok = seg.assigned & np.isfinite(dev_all)
+    pts, dev = seg.foot[ok], dev_all[ok]
     pick = _sample(len(pts))
-    norm = Normalize(-limit_mm, limit_mm)
+    colours = scale.rgb(dev[pick])
     fig = plt.figure(figsize=(11.0, 8.6))
     mesh = display_mesh(report.cad) if report.cad is not None else None
     corners = np.vstack([pts] + ([mesh[0].reshape(-1, 3)] if mesh is not None else []))
@@ -125,7 +126,7 @@ def part_views(report: Any, limit_mm: float) -> bytes:
             grey = mesh[1][:, None] * np.ones(3)
             ax.add_collection3d(Poly3DCollection(mesh[0], facecolors=np.column_stack([grey, np.full(len(grey), 0.55)]),
                                                  edgecolors="none", zorder=1))
-        ax.scatter(*pts[pick].T, c=dev[pick], cmap=CMAP, norm=norm, s=0.6, linewidths=0, depthshade=False, zorder=2)
+        ax.scatter(*pts[pick].T, c=colours, s=0.6, linewidths=0, depthshade=False, zorder=2)
         ax.view_init(elev=elev, azim=azim)
         ax.set_box_aspect(np.maximum(hi - lo, 1e-3))
         ax.set_xlim(lo[0], hi[0]), ax.set_ylim(lo[1], hi[1]), ax.set_zlim(lo[2], hi[2])
@@ -138,21 +139,57 @@ def part_views(report: Any, limit_mm: float) -> bytes:
         ax.tick_params(labelsize=7)
         _callouts(ax, [report.faces[i] for i in callouts[k]], seg)
     fig.subplots_adjust(left=0.02, right=0.86, bottom=0.03, top=0.95, wspace=0.05, hspace=0.12)
-    cax = fig.add_axes((0.9, 0.15, 0.02, 0.7))
-    bar = fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=CMAP), cax=cax)
-    bar.set_label("signed deviation from nominal (mm); + excess material")
+    _colour_bar(fig, fig.add_axes((0.9, 0.15, 0.02, 0.7)), scale, "deviation from nominal (mm); + excess material")
     return _png(fig)
 
 
+def _colour_bar(fig: Any, cax: Any, scale: ColourScale, label: str) -> None:
+    """The scale's bar with ticks at the zone's edges and twice them."""
+    cmap, norm = scale.colormap()
+    bar = fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), cax=cax)
+    h = scale.h_mm
+    bar.set_ticks([-2 * h, -h, 0.0, h, 2 * h])
+    bar.set_ticklabels([f"{-2 * h:+.3f}", f"{-h:+.3f}", "0", f"{h:+.3f}", f"{2 * h:+.3f}"])
+    bar.ax.tick_params(labelsize=7)
+    bar.set_label(f"{label}\ngreen: within ±{h:.3f} mm", fontsize=8)
+
+
+def value_text(e: Any) -> str:
+    """A figure as the callouts print it (mm): "0.0123 ± 0.0020", "< 0.0092", "not measured"."""
+    if e is None:
+        return "not measured"
+    if e.value is None:
+        return f"< {e.limit:.4f}" if e.limit is not None else "not measured"
+    return f"{e.value:.4f} ± {e.U:.4f}"
+
+
+def callout_text(row: Any) -> str:
+    """A face's callout: its title, then per characteristic its value, tolerance (mm) and verdict."""
+    lines = [row.title]
+    for key, (tol, verdict) in row.verdicts.items():
+        e = row.form.figure(FIGURE_OF[key]) if row.form.status == "ok" else None
+        lines.append(f"{key.removesuffix('_mm').replace('_ls', ' LS')} {value_text(e)} / {tol:.3f} mm: {verdict}")
+    return "\n".join(lines)
+
+
 def _callouts(ax: Any, rows: Any, seg: Any) -> None:
-    """A label per face row (name and verdict) at the mean of its points, in the verdict's colour."""
+    """A label per face row (`callout_text`) in its verdict's colour, with a leader to the
+    mean of its points; taken left to right across the view, the labels go alternately
+    above and below their points, so neighbours do not cover each other."""
+    from mpl_toolkits.mplot3d import proj3d
+
+    anchors = []
     for row in rows:
-        verdict = face_verdict(row)
         c = seg.foot[seg.face == row.index].mean(axis=0)
-        ax.text(*c, f"{row.title}\n{verdict}", fontsize=8, color=VERDICT_COLOURS.get(verdict, "#000"),
-                ha="center", va="bottom", zorder=10,
-                bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": VERDICT_COLOURS.get(verdict, "#000"),
-                      "alpha": 0.85})
+        x, y, _ = proj3d.proj_transform(*c, ax.get_proj())
+        anchors.append((float(x), float(y), row))
+    for k, (x, y, row) in enumerate(sorted(anchors, key=lambda a: a[0])):
+        colour = VERDICT_COLOURS.get(face_verdict(row), "#000")
+        above = k % 2 == 0
+        ax.annotate(callout_text(row), (x, y), xytext=(0, 26 if above else -26), textcoords="offset points",
+                    fontsize=6.5, color=colour, ha="center", va="bottom" if above else "top", zorder=10,
+                    bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": colour, "alpha": 0.85},
+                    arrowprops={"arrowstyle": "-", "color": colour, "lw": 0.8})
 
 
 CLOSEUP_AXES = (0.1, 0.12, 0.7, 0.74)  # the face's map in a close-up (figure fractions: left, bottom, width, height)
@@ -173,30 +210,33 @@ def face_map(uv: np.ndarray, dev: np.ndarray, cells: int = CLOSEUP_CELLS) -> tup
     return mean.T, [float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])]
 
 
-def face_closeup(report: Any, row: Any, limit_mm: float) -> bytes:
+def face_closeup(report: Any, row: Any, scale: ColourScale) -> bytes:
     """One face in its own surface coordinates (u, v: mm on a plane; angle and height on a
-    cylinder, as the CAD face parametrises it), the mean signed deviation per map cell over
-    ±`limit_mm`, a colour bar in mm, the face's verdicts in the title. The map fills
-    `CLOSEUP_AXES`; the figure's height follows the face's aspect."""
+    cylinder, as the CAD face parametrises it), the mean shown deviation per map cell on
+    `scale`, a colour bar in mm, the face's values and verdicts in the title; the points are
+    those its figures count (the table's). The map fills `CLOSEUP_AXES`; the figure's height
+    follows the face's aspect."""
     seg = report.segmentation
-    on = (seg.face == row.index) & np.isfinite(seg.deviation_mm)
-    grid, extent = face_map(seg.uv[on], seg.deviation_mm[on]) if on.any() else (np.full((1, 1), np.nan),
-                                                                                 [0.0, 1.0, 0.0, 1.0])
+    shown = shown_deviations(report)
+    on = (seg.face == row.index) & np.isfinite(shown)
+    grid, extent = face_map(seg.uv[on], shown[on]) if on.any() else (np.full((1, 1), np.nan), [0.0, 1.0, 0.0, 1.0])
     aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9) if row.type == "plane" else 0.6
     width = 7.2
     height = float(np.clip(width * CLOSEUP_AXES[2] * aspect / CLOSEUP_AXES[3], 2.6, 6.0))
     fig = plt.figure(figsize=(width, height))
     ax = fig.add_axes(CLOSEUP_AXES)
-    norm = Normalize(-limit_mm, limit_mm)
-    ax.imshow(grid, origin="lower", extent=extent, cmap=CMAP, norm=norm, aspect="auto", interpolation="nearest")
+    rgba = np.ones((*grid.shape, 4))
+    rgba[..., :3] = scale.rgb(grid.ravel()).reshape(*grid.shape, 3)
+    rgba[~np.isfinite(grid), 3] = 0.0  # no point in the cell: blank
+    ax.imshow(rgba, origin="lower", extent=extent, aspect="auto", interpolation="nearest")
     plane = row.type == "plane"
     ax.set_xlabel("u (mm)" if plane else "u (face parameter)", fontsize=9)
     ax.set_ylabel("v (mm)" if plane else "v (face parameter)", fontsize=9)
-    verdicts = ", ".join(f"{k.removesuffix('_mm')} {v}" for k, (_, v) in row.verdicts.items())
-    ax.set_title(f"{row.title} ({row.type}, {int(on.sum())} points)\n{verdicts}", fontsize=9)
+    what = "form surface" if row.form.deviation_source == "form surface" else "raw points"
+    ax.set_title("\n".join([f"{row.title} ({row.type}, {shown_count(report, row)} points, {what})"]
+                            + callout_text(row).split("\n")[1:]), fontsize=8)
     cax = fig.add_axes((CLOSEUP_AXES[0] + CLOSEUP_AXES[2] + 0.03, CLOSEUP_AXES[1], 0.025, CLOSEUP_AXES[3]))
-    bar = fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=CMAP), cax=cax)
-    bar.set_label("mean signed deviation (mm)", fontsize=8)
+    _colour_bar(fig, cax, scale, "mean deviation (mm)")
     return _png(fig)
 
 

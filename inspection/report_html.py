@@ -3,14 +3,20 @@ laid out as a metrology lab issues one and printable to PDF (`inspection.report_
 
     header       part, serial, program and its SHA-256, operator, date, rig, calibration
                  id and date, software version; the overall verdict and the decision rule
-    views        the part from four sides coloured by signed deviation, colour bar in mm,
-                 callouts naming each toleranced face with its verdict
+    views        the part from four sides coloured by deviation on the tolerance-tied scale
+                 (`inspection.deviation_colours`), colour bar in mm, callouts naming each
+                 toleranced face with its values and verdicts
     table        one row per characteristic: face, characteristic, nominal, tolerance,
                  value, U (k = 2), detection limit, verdict; units in every header
     histogram    the signed deviations of every point on a face
     raw/filtered the form surface's figures beside the raw points' where they differ
     close-ups    each toleranced face in its own surface coordinates
-    all figures  every face's figures (µm, value ± U or < limit), and how to read them
+    all figures  every face's figures (µm, value ± U or < limit) in two tables (form and
+                 texture; deviations), and how to read them
+
+Each table is in one unit, named in every header. Printed (A4 or Letter,
+`inspection.report_pdf`), tables wrap and repeat their header row on each page, headings
+stay with what follows them, and every page is numbered "page n of N".
 
 Element ids (`#header`, `#verdict`, `#views`, `#characteristics`, `#histogram`,
 `#raw-filtered`, `#face-<id>`, `#figures`) are what the browser test checks."""
@@ -22,7 +28,7 @@ import html
 from pathlib import Path
 from typing import Any, Iterable
 
-from inspection.form import FIGURES
+from inspection.deviation_colours import ColourScale, shown_count
 from inspection.report_figures import deviation_histogram, face_closeup, part_views
 from inspection.report_header import HEADER_CSS, header_html
 from inspection.tolerances import DECISION_RULES, FIGURE_OF, TITLES
@@ -34,6 +40,7 @@ main{max-width:1120px;margin:0 auto;padding:16px 24px}
 h1{font-size:22px;margin:8px 0}h2{font-size:17px;margin:22px 0 8px;border-bottom:1px solid #bbb}
 .scroll{overflow-x:auto;max-width:100%}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}
+thead{display:table-header-group}
 th{background:#eef0f3}td.l,th.l{text-align:left}
 .conforming{background:#d6f5d6}.non-conforming{background:#f8d0d0}.uncertain{background:#fdf0c2}
 .not-measured{background:#e4e4e4}.limit{color:#666}
@@ -41,7 +48,12 @@ th{background:#eef0f3}td.l,th.l{text-align:left}
 img{max-width:100%;height:auto;display:block}
 .faces{display:flex;flex-wrap:wrap;gap:12px}.faces section{flex:1 1 480px;max-width:100%}
 p.note,span.note{font-size:12px;color:#444}
-@media print{main{max-width:none;padding:0}h2{break-after:avoid}img,table{break-inside:avoid}}
+.keep{break-inside:avoid}
+@media print{main{max-width:none;padding:0}h1{font-size:18px}h2,h3{break-after:avoid}tr,img{break-inside:avoid}
+.scroll{overflow:visible}table{font-size:9px;width:100%}td,th{padding:1px 3px}td{white-space:nowrap}
+td.l,th,td .note{white-space:normal;overflow-wrap:break-word}
+img{max-height:230mm;width:auto;max-width:100%}.faces{display:block}}
+@page{margin:12mm 10mm 14mm;@bottom-right{content:"page " counter(page) " of " counter(pages);font-size:9px}}
 """
 
 
@@ -122,18 +134,33 @@ def _raw_filtered(report: Any) -> str:
             + "".join(rows) + "</table></div>")
 
 
-def _all_figures(report: Any) -> str:
-    heads = {"flatness_mz": "flatness MZ", "flatness_ls": "flatness LS", "cylindricity_mz": "cylindricity MZ",
-             "cylindricity_ls": "cylindricity LS", "sq": "Sq", "profile": "profile", "deviation_min": "dev min",
-             "deviation_max": "dev max", "deviation_mean": "dev mean", "deviation_rms": "dev RMS",
-             "raw_deviation_min": "raw points min", "raw_deviation_max": "raw points max"}
+FORM_FIGURES = (("flatness_ls", "flatness LS"), ("flatness_mz", "flatness MZ"), ("cylindricity_ls", "cylindricity LS"),
+                ("cylindricity_mz", "cylindricity MZ"), ("sq", "Sq"), ("profile", "profile"))
+DEVIATION_FIGURES = (("deviation_min", "min"), ("deviation_max", "max"), ("deviation_mean", "mean"),
+                     ("deviation_rms", "RMS"), ("raw_deviation_min", "raw points min"),
+                     ("raw_deviation_max", "raw points max"))
+
+
+def _figures_table(report: Any, figures: tuple[tuple[str, str], ...], head: str, last: tuple[str, Any]) -> str:
+    """One table of every face's `figures` (µm) with the `last` (header, row -> text) column."""
     body = "".join(
         f"<tr><td class='l'>{html.escape(r.title)}</td><td class='l'>{r.type}</td><td>{r.form.points}</td>"
-        + "".join(_um_cell(r.form.figure(n)) for n in FIGURES)
-        + f"<td class='l'>{html.escape(r.form.noise_source or r.form.status)}</td></tr>" for r in report.faces)
-    return ("<div class='scroll'><table><tr><th class='l'>face</th><th class='l'>type</th><th>points</th>"
-            + "".join(f"<th>{heads[n]} (µm)</th>" for n in FIGURES) + "<th class='l'>noise model</th></tr>"
-            + body + "</table></div>")
+        + "".join(_um_cell(r.form.figure(n)) for n, _ in figures)
+        + f"<td class='l'>{html.escape(last[1](r))}</td></tr>" for r in report.faces)
+    return ("<div class='scroll'><table><thead><tr><th class='l'>face</th><th class='l'>type</th><th>points</th>"
+            + "".join(f"<th>{head}{t} (µm)</th>" for _, t in figures) + f"<th class='l'>{last[0]}</th></tr></thead>"
+            f"<tbody>{body}</tbody></table></div>")
+
+
+def _all_figures(report: Any) -> str:
+    """Every face's figures in two tables that fit a printed page: form and texture, then
+    the deviations from nominal."""
+    return ("<h3>Form and texture</h3>"
+            + _figures_table(report, FORM_FIGURES, "", ("status", lambda r: r.form.status if r.form.status != "ok"
+                                                        else r.form.note or "ok"))
+            + "<h3>Deviations from nominal</h3>"
+            + _figures_table(report, DEVIATION_FIGURES, "deviation ", ("noise model", lambda r: r.form.noise_source
+                                                                        or r.form.status)))
 
 
 def _header(report: Any) -> str:
@@ -142,23 +169,35 @@ def _header(report: Any) -> str:
 
 
 def closeup_faces(report: Any) -> Iterable[Any]:
-    """The faces that get a close-up: toleranced faces with points."""
-    return [r for r in report.faces if r.verdicts and r.form.points > 0]
+    """The faces that get a close-up: toleranced faces with points in their figures."""
+    return [r for r in report.faces if r.verdicts and shown_count(report, r) > 0]
 
 
-def render(report: Any, limit: float, noise_note: str, deviation_png: bytes | None = None) -> str:
-    """The whole page (module docstring); `limit` (mm) the colour scale's ends, as the
-    recording's deviation maps; `noise_note` how noise was treated, said once."""
+def _no_closeup(report: Any) -> str:
+    """A line naming the toleranced faces without a close-up, and why."""
+    rows = [r for r in report.faces if r.verdicts and shown_count(report, r) == 0]
+    return "".join(f"<p class='note'>{html.escape(r.title)}: no close-up, no figures ({html.escape(r.form.status)}"
+                   f"{': ' + html.escape(r.form.note) if r.form.note else ''}; {r.form.points} points).</p>"
+                   for r in rows)
+
+
+def render(report: Any, scale: ColourScale, noise_note: str, deviation_png: bytes | None = None) -> str:
+    """The whole page (module docstring); `scale` the deviation colour scale of every view,
+    as the recording's; `noise_note` how noise was treated, said once."""
     e = html.escape
     rows = characteristic_rows(report)
     profiles = {r.title: t for r in report.faces for k, (t, _) in r.verdicts.items() if k == "profile_mm"}
     s = report.form_settings
-    closeups = "".join(
-        f"<section id='face-{e(r.label.lstrip('#'))}'><h3>{e(r.title)}</h3>{_img(face_closeup(report, r, limit), r.title)}"
-        f"</section>" for r in closeup_faces(report))
-    camera = (f"<h2>Deviation map in the camera image</h2>{_img(deviation_png, 'deviation map in the camera image')}"
-              f"<p class='note'>blue: inside the material, red: outside, over ±{limit:.4f} mm; grey: part points on "
-              f"no face; dark: not the part.</p>" if deviation_png else "")
+    closeups = [
+        f"<section class='keep' id='face-{e(r.label.lstrip('#'))}'><h3>{e(r.title)}</h3>"
+        f"{_img(face_closeup(report, r, scale), r.title)}<p class='note'>{shown_count(report, r)} points, those the "
+        f"figures count ({r.form.points} in the table)</p></section>" for r in closeup_faces(report)]
+    faces = (f"<div class='keep'><h2>Faces</h2>{_no_closeup(report)}{''.join(closeups[:1])}</div>"  # heading kept
+             f"<div class='faces'>{''.join(closeups[1:])}</div>")  # with the first close-up
+    camera = (f"<section class='keep'><h2>Deviation map in the camera image</h2>"
+              f"{_img(deviation_png, 'deviation map in the camera image')}"
+              f"<p class='note'>{e(scale.caption)}; grey: part points the figures do not use; dark: not the part."
+              f"</p></section>" if deviation_png else "")
     title = report.header.part or Path(report.model).name
     return (
         f"<!doctype html><html><head><meta charset='utf-8'><title>Inspection report: {e(title)}</title>"
@@ -174,14 +213,16 @@ def render(report: Any, limit: float, noise_note: str, deviation_png: bytes | No
         f"limit x (the scanner's noise alone could read that much). Conforming only when value + U is within the "
         f"tolerance; non-conforming when value − U is beyond it; otherwise uncertain. Nominal 0: a form tolerance "
         f"limits the zone width about the ideal form, a profile tolerance the zone about the CAD surface.</p>"
-        f"<h2>The part, coloured by deviation</h2><section id='views'>{_img(part_views(report, limit), 'part views')}"
-        f"</section>"
-        f"<h2>Deviation histogram</h2><section id='histogram'>"
-        f"{_img(deviation_histogram(report, profiles), 'deviation histogram')}</section>"
-        f"<h2>Filtered and raw figures</h2><section id='raw-filtered'>{_raw_filtered(report)}"
+        f"<section class='keep'><h2>The part, coloured by deviation</h2><div id='views'>"
+        f"{_img(part_views(report, scale), 'part views')}</div><p class='note'>{e(scale.caption)}. Colour: the "
+        f"deviation the figures are taken from (the form surface's, the scanner's noise filtered out), at the points "
+        f"the figures count; grey: the CAD model.</p></section>"
+        f"<section class='keep'><h2>Deviation histogram</h2><div id='histogram'>"
+        f"{_img(deviation_histogram(report, profiles), 'deviation histogram')}</div></section>"
+        f"<section class='keep'><h2>Filtered and raw figures</h2><div id='raw-filtered'>{_raw_filtered(report)}"
         f"<p class='note'>Zones, profile and deviations are those of the form surface (ISO 16610-61 Gaussian, "
         f"cut-off {s.form_cutoff_mm} mm, noise bias removed); the raw points' extremes include the noise; Sq "
-        f"has the noise's mean square subtracted (roughness cut-off {s.roughness_cutoff_mm} mm).</p></section>"
-        f"<h2>Faces</h2><div class='faces'>{closeups}</div>{camera}"
+        f"has the noise's mean square subtracted (roughness cut-off {s.roughness_cutoff_mm} mm).</p></div></section>"
+        f"{faces}{camera}"
         f"<h2>All face figures</h2><section id='figures'>{_all_figures(report)}</section>"
         f"<p class='note'>{e(noise_note)}</p></main></body></html>")

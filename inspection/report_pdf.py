@@ -13,6 +13,7 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 NAMES = ("chromium", "chromium-browser", "google-chrome")
+PAPERS = ("A4", "Letter")  # the CSS page sizes a report prints on
 TIMEOUT_S = 180.0  # a loaded 2-core machine takes ~10 s for a page with a few MB of images
 
 
@@ -32,10 +33,23 @@ def _run(page: Path, *options: str) -> subprocess.CompletedProcess[str] | None:
         return subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT_S, check=False)
 
 
-def print_pdf(page: Path, out: Path) -> Path | None:
-    """`page` (HTML) printed to `out` (PDF, A4 from the page's print styles); None without
-    Chromium or when it wrote nothing (the reason on the log)."""
-    done = _run(page, f"--print-to-pdf={Path(out).resolve()}", "--no-pdf-header-footer")
+def print_pdf(page: Path, out: Path, paper: str = "A4") -> Path | None:
+    """`page` (HTML) printed to `out` (PDF) on `paper` (one of `PAPERS`) with the page's
+    print styles; None without Chromium or when it wrote nothing (the reason on the log).
+    The paper size is set by a copy of the page beside it (its relative links resolve)
+    with `@page {size: ...}` added, removed after printing."""
+    if paper not in PAPERS:
+        raise ValueError(f"paper must be one of {', '.join(PAPERS)}, got {paper!r}")
+    page = Path(page)
+    text = page.read_text(encoding="utf-8")
+    sized = f"<style>@page{{size:{paper}}}</style>"
+    text = text.replace("</head>", sized + "</head>", 1) if "</head>" in text else sized + text
+    copy = page.with_name(f".{page.stem}.{paper}.print.html")
+    copy.write_text(text, encoding="utf-8")
+    try:
+        done = _run(copy, f"--print-to-pdf={Path(out).resolve()}", "--no-pdf-header-footer")
+    finally:
+        copy.unlink(missing_ok=True)
     if done is None:
         return None
     if done.returncode != 0 or not Path(out).is_file():

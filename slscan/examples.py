@@ -53,7 +53,12 @@ EXAMPLES: dict[str, str] = {
     "segscore": "slscan segscore labels.npy truth.npy --json",
     "station": "slscan station config/parts/demo_part.toml --auto --parts 5 --out station-data",
     "results": "slscan results --data station-data --program config/parts/demo_part.toml --report --out reports/demo\n"
-               "slscan results --data station-data --status fail --csv --out failed.csv",
+               "slscan results --data station-data --status fail --csv --out failed.csv\n"
+               "slscan results --data station-data --program config/parts/demo_part.toml --report --out reports/base "
+               "--baseline 1-25 --save-limits limits.json --exclude '7=fixture loose'\n"
+               "slscan results --data station-data --program config/parts/demo_part.toml --report --out reports/now "
+               "--limits limits.json --rules all\n"
+               "slscan results --data station-data --program config/parts/demo_part.toml --dfq --out values.dfq",
     "batch": "slscan batch station-data/sessions/demo-part/* --program config/parts/demo_part.toml --workers 2",
     "batchbench": "slscan batchbench station-data/sessions/demo-part/* --program config/parts/demo_part.toml",
 }

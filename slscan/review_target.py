@@ -130,12 +130,14 @@ def _scan_blueprint(inspected: bool) -> rrb.Blueprint | None:
     station part's views) kept. The 3D view holds only the inspection's entities: with the
     rig's frusta in it the part was a small patch in a corner, and the raw cloud and the
     face-coloured points, drawn at the same places, hid the deviation colours (all still in
-    the streams). A scan alone keeps the recording's own blueprint."""
+    the streams); the deviations' colour legend stands beside the part. A scan alone keeps
+    the recording's own blueprint."""
     if not inspected:
         return None
-    from inspection.inspection_recording import CAD, DEVIATION, DEVIATION_MAP, REPORT
+    from inspection.inspection_recording import CAD, DEVIATION, DEVIATION_LEGEND, DEVIATION_MAP, REPORT
 
-    three_d = rrb.Spatial3DView(origin=WORLD, contents=[f"+ {CAD}", f"+ {DEVIATION}"], name="3D: CAD, deviations")
+    three_d = rrb.Spatial3DView(origin=WORLD, contents=[f"+ {CAD}", f"+ {DEVIATION}", f"+ {DEVIATION_LEGEND}"],
+                                name="3D: CAD, deviations")
     top = rrb.Horizontal(three_d, rrb.Tabs(rrb.Spatial2DView(origin=DEVIATION_MAP, name="deviation map"),
                                            rrb.Spatial2DView(origin=CAMERA, name="camera")), column_shares=[1, 1])
     bottom = rrb.Tabs(rrb.TextDocumentView(origin=REPORT, name="inspection report"), *_log_views())

@@ -9,6 +9,7 @@ rule written out in the test)."""
 
 from __future__ import annotations
 
+import html
 import json
 import os
 import re
@@ -91,14 +92,21 @@ def demo_cad() -> object:
     return load_cad(CONFIG_DIR / "parts" / "demo_part.step")
 
 
+MARGIN_MM = 1.0  # the edge band the figures leave out
+
+
 def known_report(cad: bool = False) -> InspectionReport:
     """The high top (35 x 60 mm at z = 22) bowed by BOW_MM, and the boss's side (r 12 mm),
-    with figures and verdicts as given (not computed by the code under test); with `cad`
-    the demo part's CAD model, drawn behind the points."""
+    with figures and verdicts as given (not computed by the code under test); the form
+    surface the figures are taken from is the bow without the noise, inside MARGIN_MM of
+    the top's border (the points outside are not in the figures); with `cad` the demo
+    part's CAD model, drawn behind the points."""
     rng = np.random.default_rng(1)
     u, v = rng.uniform(-45, -10, 20000), rng.uniform(-30, 30, 20000)
     r2 = ((u + 27.5) / 17.5) ** 2 + (v / 30.0) ** 2
-    top_dev = BOW_MM * (1 - r2 / 2) + rng.normal(0, 0.002, len(u))
+    surface = BOW_MM * (1 - r2 / 2)
+    inner = (np.abs(u + 27.5) <= 17.5 - MARGIN_MM) & (np.abs(v) <= 30 - MARGIN_MM)
+    top_dev = surface + rng.normal(0, 0.002, len(u))
     a, h = rng.uniform(-np.pi, np.pi, 6000), rng.uniform(10, 33, 6000)
     side = np.column_stack([20 + 12 * np.cos(a), 12 * np.sin(a), h])
     foot = np.vstack([np.column_stack([u, v, np.full_like(u, 22.0)]), side])
@@ -107,12 +115,14 @@ def known_report(cad: bool = False) -> InspectionReport:
     uv = np.vstack([np.column_stack([u, v]), np.column_stack([a, h])])
     normal = np.vstack([np.tile([0, 0, 1.0], (len(u), 1)), np.column_stack([np.cos(a), np.sin(a), 0 * a])])
     seg = Segmentation(face, dev, foot, normal, uv)
-    top = FaceForm(len(u), "ok", flatness_mz=Estimate(0.0123, 0.001), flatness_ls=Estimate(0.0131, 0.001),
+    top = FaceForm(int(inner.sum()), "ok", flatness_mz=Estimate(0.0123, 0.001), flatness_ls=Estimate(0.0131, 0.001),
                    sq=Estimate(None, 0.002, 0.0046), profile=Estimate(0.0254, 0.002),
                    deviation_min=Estimate(-0.0007, 0.001), deviation_max=Estimate(0.0127, 0.001),
                    raw_deviation_min=Estimate(-0.0081, 0.004), raw_deviation_max=Estimate(0.0199, 0.004),
-                   sq_raw_mm=0.0031, sq_noise_mm=0.0029, noise_source="decoder and sensor model")
-    boss = FaceForm(len(a), "ok", cylindricity_mz=Estimate(0.048, 0.003), noise_source="decoder and sensor model")
+                   sq_raw_mm=0.0031, sq_noise_mm=0.0029, noise_source="decoder and sensor model",
+                   deviation_source="form surface", surface_mm=np.where(inner, surface, np.nan))
+    boss = FaceForm(len(a), "ok", cylindricity_mz=Estimate(0.048, 0.003), noise_source="decoder and sensor model",
+                    deviation_source="form surface", surface_mm=np.zeros(len(a)))
     rows = (FaceRow.of(HIGH_TOP, top, {"flatness_mm": (0.05, "conforming"), "profile_mm": (0.1, "conforming"),
                                        "sq_mm": (0.03, "conforming")}, "high top"),
             FaceRow.of(BOSS, boss, {"cylindricity_mm": (0.05, "uncertain")}, "boss side"))
@@ -221,7 +231,8 @@ def check_in_browser(page: Path, tmp: Path, ids: tuple[str, ...], closeup: str |
         if closeup is None:
             return
         x, y, w, h = (int(round(t)) for t in box["boxes"][closeup])
-        cv2.imwrite(str(save / f"{stem}-face-closeup.png"), img[max(y - 30, 0):y + h + 10, x:x + w])
+        what = "face-closeup" if closeup.startswith("face-") else closeup
+        cv2.imwrite(str(save / f"{stem}-{what}.png"), img[max(y - 30, 0):y + h + 10, x:x + w])
 
 
 def saved_screenshots() -> Path | None:
@@ -242,27 +253,138 @@ def test_report_in_a_browser(tmp_path: Path) -> None:
     assert pdf in paths and pdf.read_bytes()[:5] == b"%PDF-" and pdf.stat().st_size > 50_000
 
 
-def test_face_closeup_shows_the_bow() -> None:
-    """The high top's close-up is red at its centre (+BOW_MM over a ±0.02 mm scale) and
-    white at its corners (0): the map follows the deviations put in."""
+needs_poppler = pytest.mark.skipif(shutil.which("pdftoppm") is None or shutil.which("pdftotext") is None,
+                                   reason="poppler-utils not installed (pdftoppm, pdftotext)")
+PAPER_PT = {"A4": (595, 842), "Letter": (612, 792)}  # page sizes in points (1/72 in)
+
+
+def pdf_pages(pdf: Path, folder: Path) -> list[tuple[np.ndarray, list[tuple[str, float, float]]]]:
+    """The PDF's pages as (grey image at 50 dpi, its text lines as (text, top, bottom) in
+    points from the page's top), by poppler."""
+    import subprocess
+
     import cv2
 
+    subprocess.run(["pdftoppm", "-r", "50", "-gray", "-png", str(pdf), str(folder / "page")], check=True)
+    pages = []
+    for k, png in enumerate(sorted(folder.glob("page-*.png"), key=lambda p: int(p.stem.split("-")[1])), 1):
+        box = subprocess.run(["pdftotext", "-bbox", "-f", str(k), "-l", str(k), str(pdf), "-"], check=True,
+                             capture_output=True, text=True).stdout
+        lines: dict[float, list[tuple[float, str, float]]] = {}
+        for x, top, bottom, word in re.findall(r'<word xMin="([\d.]+)" yMin="([\d.]+)" xMax="[\d.]+" '
+                                               r'yMax="([\d.]+)">(.*?)</word>', box):
+            lines.setdefault(round(float(top), 1), []).append((float(x), html.unescape(word), float(bottom)))
+        text = [(" ".join(w for _, w, _ in sorted(words)), top, max(b for _, _, b in words))
+                for top, words in sorted(lines.items())]
+        pages.append((cv2.imread(str(png), cv2.IMREAD_GRAYSCALE), text))
+    return pages
+
+
+@needs_chromium
+@needs_poppler
+def test_the_pdf_prints_whole_on_a4_and_letter(tmp_path: Path) -> None:
+    """Printed on A4 and on Letter and rendered back to pixels: nothing is drawn in the
+    outer 6 mm of any page (3 mm at the foot, where the page number is), every page is
+    numbered "page k of N", every heading has content under it on its page (text or a
+    figure: at least 30 pt of ink between it and the page number), and every word of every
+    table header is in the PDF's text (Chromium drops what it cuts at the margin: the
+    issue's PDF lost the "dev RMS", "raw points" and "noise model" columns)."""
+    import subprocess
+
+    rep = known_report(cad=True)
+    rep.write(tmp_path, pdf=False)
+    page = tmp_path / "inspection.html"
+    headings = {html.unescape(re.sub("<.*?>", "", h)).strip()
+                for h in re.findall(r"<h[23][^>]*>(.*?)</h[23]>", page.read_text())}
+    assert {"All face figures", "Deviations from nominal", "high top #657"} <= headings
+    header_words = {w for th in re.findall(r"<th[^>]*>(.*?)</th>", page.read_text())
+                    for w in re.split(r"[\s-]+", html.unescape(re.sub("<.*?>", "", th))) if w}  # may wrap at a hyphen
+    for paper, (w_pt, h_pt) in PAPER_PT.items():
+        out = tmp_path / paper
+        out.mkdir()
+        pdf = print_pdf(page, out / "report.pdf", paper)
+        assert pdf is not None
+        info = subprocess.run(["pdfinfo", str(pdf)], capture_output=True, text=True, check=True).stdout
+        size = re.search(r"Page size:\s+([\d.]+) x ([\d.]+) pts", info)
+        assert abs(float(size.group(1)) - w_pt) < 1 and abs(float(size.group(2)) - h_pt) < 1, info
+        pages = pdf_pages(pdf, out)
+        px = 50 / 72  # pixels per point
+        strip = int(round(6 / 25.4 * 50))  # 6 mm at 50 dpi
+        for k, (img, lines) in enumerate(pages, 1):
+            for edge in (img[:, :strip], img[:, -strip:], img[:strip], img[-strip // 2:]):  # the number sits low
+                assert edge.min() > 200, f"{paper} page {k}: something drawn within 6 mm of the paper's edge"
+            number = [top for text, top, _ in lines if text == f"page {k} of {len(pages)}"]
+            assert number, f"{paper} page {k} has no page number"
+            heads = [bottom for text, _, bottom in lines if text in headings]
+            if heads:
+                rows = img[int((max(heads) + 4) * px):int((number[0] - 4) * px)]
+                assert (rows.min(axis=1) < 200).sum() * 72 / 50 > 30, f"{paper} page {k} ends with a heading"
+        words = {w for _, lines in pages for t, _, _ in lines for w in re.split(r"[\s-]+", t) if w}
+        assert not header_words - words, f"{paper}: table headers cut off: {sorted(header_words - words)}"
+        assert {"decoder", "sensor", "noise", "model"} <= words  # the deviation table's last column
+
+
+def test_the_colour_scale_is_tied_to_the_tolerance() -> None:
+    """The known report's smallest profile tolerance is 0.1 mm: green within +-0.05 mm
+    (inside the zone), warm above and cool below it up to 0.1 mm, dark beyond; its legend
+    (the recording's swatches and the camera map's strip) shows those colours."""
+    from inspection.deviation_colours import legend_strip, scale_of
+
+    scale = scale_of(known_report())
+    assert scale.h_mm == pytest.approx(0.05) and "profile tolerance 0.100 mm of high top #657" in scale.source
+    r, g, b = scale.rgb(np.array([0.0, 0.049, -0.049, 0.075, -0.075, 0.2, -0.2, np.nan])).T
+    assert (g[:3] > r[:3]).all() and (g[:3] > b[:3]).all()  # inside: green
+    assert r[3] > b[3] + 0.5 and r[3] > g[3] and b[4] > r[4] + 0.4 and b[4] > g[4]  # outside: warm above, cool below
+    assert max(r[5], g[5], b[5]) < 0.5 and r[5] > b[5] and b[6] > r[6] and max(r[6], g[6], b[6]) < 0.5  # dark
+    assert r[7] == g[7] == b[7]  # no deviation: grey
+    strip = legend_strip(scale, 480)
+    for d, _ in scale.legend():  # every step's colour is on the strip
+        want = np.round(scale.rgb(np.array([d]))[0] * 255)
+        assert (np.abs(strip.reshape(-1, 3).astype(int) - want).max(axis=1) <= 1).any(), d
+
+
+def test_face_closeup_shows_the_bow() -> None:
+    """On a zone of +-8 um the high top's close-up is warm (outside the zone, above: red
+    over blue, more red than green) at its centre, where the bow is +12 um, and green
+    (inside the zone) at its corners, where it is 0: the map follows the form surface put
+    in, not the noise (2 um, which would speckle a map of raw points)."""
+    import cv2
+
+    from inspection.deviation_colours import ColourScale
     from inspection.report_figures import CLOSEUP_AXES, face_closeup
 
     rep = known_report()
-    img = cv2.imdecode(np.frombuffer(face_closeup(rep, rep.faces[0], 0.02), np.uint8), cv2.IMREAD_COLOR).astype(int)
+    png = face_closeup(rep, rep.faces[0], ColourScale(0.008, "test zone"))
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(int)
     h, w = img.shape[:2]
     left, bottom, width, height = CLOSEUP_AXES
-    x0, x1 = int(w * left) + 4, int(w * (left + width)) - 4
-    y0, y1 = int(h * (1 - bottom - height)) + 4, int(h * (1 - bottom)) - 4
+    x0, x1 = int(w * left) + 6, int(w * (left + width)) - 6
+    y0, y1 = int(h * (1 - bottom - height)) + 6, int(h * (1 - bottom)) - 6
 
-    def redness(x: int, y: int) -> float:
-        patch = img[y - 3:y + 4, x - 3:x + 4]
-        return float(np.mean(patch[..., 2] - patch[..., 0]))  # R - B (BGR)
+    def colour(x: int, y: int) -> np.ndarray:
+        return img[y - 3:y + 4, x - 3:x + 4].reshape(-1, 3).mean(axis=0)[::-1]  # RGB
 
-    assert redness((x0 + x1) // 2, (y0 + y1) // 2) > 80  # +12 um of 20: a clear red
+    r, g, b = colour((x0 + x1) // 2, (y0 + y1) // 2)
+    assert r - b > 120 and r > g + 60, (r, g, b)
     for x, y in ((x0 + 4, y0 + 4), (x1 - 4, y0 + 4), (x0 + 4, y1 - 4), (x1 - 4, y1 - 4)):
-        assert abs(redness(x, y)) < 45  # about 0 um: near white
+        r, g, b = colour(x, y)
+        assert g > r + 10 and g > b + 10, (r, g, b)
+
+
+def test_the_face_map_counts_the_points_the_table_counts() -> None:
+    """The close-up shows the points the figures are taken over (the edge band left out),
+    and says how many: the table's count."""
+    from inspection.deviation_colours import shown_count, shown_deviations
+
+    rep = known_report()
+    top = rep.faces[0]
+    assert shown_count(rep, top) == top.form.points < 20000
+    shown = shown_deviations(rep)
+    on_top = rep.segmentation.face == HIGH_TOP.index
+    assert np.isfinite(shown[on_top]).sum() == top.form.points
+    assert np.allclose(shown[on_top][np.isfinite(shown[on_top])], top.form.surface_mm[np.isfinite(top.form.surface_mm)])
+    page = rep.html()
+    assert f"{top.form.points} points, those the figures count ({top.form.points} in the table)" in page
 
 
 def test_every_view_calls_out_the_faces_that_face_it() -> None:
@@ -283,10 +405,11 @@ def test_the_view_from_above_has_no_z_axis_labels(monkeypatch: pytest.MonkeyPatc
     import matplotlib.pyplot as plt
 
     from inspection import report_figures
+    from inspection.deviation_colours import ColourScale
 
     figures = []
     monkeypatch.setattr(report_figures, "_png", lambda fig: figures.append(fig) or b"")
-    report_figures.part_views(known_report(), 0.02)
+    report_figures.part_views(known_report(), ColourScale(0.02, "test"))
     views = [ax for ax in figures[0].axes if ax.name == "3d"]
     labelled = [bool(ax.get_zlabel()) and len(ax.get_zticks()) > 0 for ax in views]
     assert labelled == [elev < 90.0 for _, elev, _ in report_figures.VIEWS] == [True, True, False, True]
@@ -299,6 +422,7 @@ def test_the_cad_model_is_drawn_behind_the_points() -> None:
     lines, ticks and labels are grey."""
     import cv2
 
+    from inspection.deviation_colours import ColourScale
     from inspection.report_figures import part_views
 
     def grey_share(png: bytes) -> float:
@@ -306,7 +430,8 @@ def test_the_cad_model_is_drawn_behind_the_points() -> None:
         flat = (img.max(axis=2) - img.min(axis=2)) <= 6
         return float((flat & (img.mean(axis=2) > 90) & (img.mean(axis=2) < 235)).mean())
 
-    bare, drawn = grey_share(part_views(known_report(), 0.02)), grey_share(part_views(known_report(cad=True), 0.02))
+    scale = ColourScale(0.02, "test")
+    bare, drawn = grey_share(part_views(known_report(), scale)), grey_share(part_views(known_report(cad=True), scale))
     assert bare < 0.06 and drawn > bare + 0.08, (bare, drawn)  # measured: 4 % and 16 % of the figure
 
 
@@ -365,7 +490,8 @@ def test_station_report_has_the_header_in_a_browser(tmp_path: Path) -> None:
                  "slscan 0.1.0", file_sha256(PROGRAM), "9 pass, 2 fail, 1 uncertain (re-measure)",
                  "0.0500 ± 0.0025 UNCERTAIN", "<td class='uncertain l'>UNCERTAIN</td>"):
         assert want in text, want
-    check_in_browser(page, tmp_path, ("header",), None, saved_screenshots(), "station-report")
+    check_in_browser(page, tmp_path, ("header", "chart-high_top_flatness"), "chart-high_top_flatness",
+                     saved_screenshots(), "station-report")
 
 
 @pytest.mark.slow
@@ -383,6 +509,9 @@ def test_demo_report_in_a_browser(tmp_path: Path, capsys) -> None:
     assert "high top #657" in text and "low top #158" in text and "flatness 0.050 conforming" in text
     # seen from straight above the boss's side is grazing: its cylindricity is not measured, and said so
     assert "boss side #17" in text and "cylindricity 0.050 not measured" in text
+    last = text.strip().splitlines()[-1]  # the verdict, why, and what to run next
+    assert last.startswith("RESULT    NOT MEASURED: boss side #17 cylindricity not measured: ")
+    assert "Next: slscan " in last
     data = json.loads((out / "outputs" / "inspection.json").read_text())
     assert data["header"]["program_sha256"] == file_sha256(PROGRAM) and data["verdict"] == "not measured"
     rows = {r["label"]: r for r in data["faces"]}
@@ -393,9 +522,34 @@ def test_demo_report_in_a_browser(tmp_path: Path, capsys) -> None:
     [(_, context)] = read_component(out / "recording.rrd", "world/inspection/faces", "AnnotationContext:context", None)
     labels = {c["class_description"]["info"]["label"] for c in context}
     assert {"high top #657 plane", "low top #158 plane", "boss side #17 cylinder"} <= labels  # the recording's labels
+    [(_, legend)] = read_component(out / "recording.rrd", "world/inspection/deviation_legend", "Points3D:labels", None)
+    assert any("inside the zone" in str(t) and "profile tolerance 0.100 mm of high top #657" in str(t) for t in legend)
     check_in_browser(out / "outputs" / "inspection.html", tmp_path, ("header", "verdict", "characteristics", "views",
                                                                       "histogram", "raw-filtered", "face-657",
                                                                       "figures"), "face-657", saved_screenshots())
+
+
+def test_the_demo_ends_with_the_verdict_why_and_what_next(tmp_path: Path) -> None:
+    """One line, last: the verdict, the characteristics that decide it with their values
+    (the figures put into the known report), and a command to run."""
+    from dataclasses import replace
+
+    from slscan.commands.scan import DEMO_TURNTABLE, demo_conclusion
+
+    rep = known_report()
+    line = demo_conclusion(rep, tmp_path / "demo")
+    assert line.startswith("RESULT    UNCERTAIN: boss side #17 cylindricity 0.0480 ± 0.0060 mm is within its U of "
+                           "0.050 mm") and "Next: re-measure: slscan demo" in line and "\n" not in line
+    unseen = FaceForm(210, "too few points", "fewer than 50 grid cells of 0.243 mm left inside the 1.0 mm edge margin")
+    boss = replace(rep.faces[1], form=unseen, verdicts={"cylindricity_mm": (0.05, "not measured")})
+    line = demo_conclusion(replace(rep, faces=(rep.faces[0], boss)), tmp_path / "demo")
+    assert line.startswith("RESULT    NOT MEASURED: boss side #17 cylindricity not measured: 210 points from the "
+                           "demo's one view (fewer than 50 grid cells")
+    assert line.endswith(f"Next: slscan station {os.path.relpath(DEMO_TURNTABLE[0])} --config "
+                         f"{os.path.relpath(DEMO_TURNTABLE[1])} --auto --parts 1")
+    top = replace(rep.faces[0], verdicts={"flatness_mm": (0.01, "non-conforming")})
+    line = demo_conclusion(replace(rep, faces=(top,)), tmp_path / "demo")
+    assert line.startswith("RESULT    NON-CONFORMING: high top #657 flatness 0.0123 ± 0.0020 mm > 0.010 mm.")
 
 
 def test_inspect_without_cad_needs_a_program(tmp_path: Path) -> None:

@@ -111,7 +111,8 @@ def test_an_inspected_session_opens_the_inspection_with_its_views(session: Path,
     assert code == 0 and files[:2] == [str(copy / "recording.rrd"), str(copy / "outputs" / "inspection.rrd")]
     assert files[2].endswith(".rbl") and views(viewer / "blueprint.rbl")
     assert {"inspection/deviation_map", "inspection/report", "world"} <= origins(find_target(copy))
-    assert three_d_contents(find_target(copy)) == {"+ world/inspection/cad", "+ world/inspection/deviation"}
+    assert three_d_contents(find_target(copy)) == {"+ world/inspection/cad", "+ world/inspection/deviation",
+                                                   "+ world/inspection/deviation_legend"}
     assert not Path(files[2]).exists()  # the temporary blueprint is gone once the viewer ends
 
 

@@ -22,6 +22,8 @@ from slscan.progress import ProgressLine
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
 DEMO_PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"  # the demo part's program: its CAD, tolerances, face names
+# the same part measured all round: the views a turntable turns it through, fused (what one view cannot see)
+DEMO_TURNTABLE = (CONFIG_DIR / "parts" / "demo_part_turntable.toml", CONFIG_DIR / "station" / "sim_turntable.toml")
 
 
 def _parse_faults(items: Sequence[str]) -> Any:
@@ -267,7 +269,58 @@ def cmd_demo(args: argparse.Namespace) -> int:
     stages = ", ".join(f"{k} {v:.1f}" for k, v in rep.timings_s.items())
     print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU ({stages} s); demo "
           f"{time.perf_counter() - t0:.1f} s wall")
+    print(demo_conclusion(rep, Path(out)))
     return Exit.FAILED if rep.verdict == NON_CONFORMING else Exit.OK
+
+
+def _shown(path: Path) -> str:
+    """A path as the user would type it: relative to the working folder when inside it."""
+    import os
+
+    rel = os.path.relpath(path)
+    return rel if not rel.startswith("..") else str(path)
+
+
+def _value(e: Any) -> str:
+    if e is None or (e.value is None and e.limit is None):
+        return "not measured"
+    return f"< {e.limit:.4f} mm" if e.value is None else f"{e.value:.4f} ± {e.U:.4f} mm"
+
+
+def demo_conclusion(report: Any, session: Path) -> str:
+    """The demo's last line: the verdict, why, and the command to run next."""
+    from inspection.tolerances import CONFORMING, FIGURE_OF, NON_CONFORMING, NOT_MEASURED, UNCERTAIN
+
+    def items(verdict: str) -> list[tuple[Any, str, float]]:
+        return [(row, key, tol) for row in report.faces for key, (tol, v) in row.verdicts.items() if v == verdict]
+
+    def named(row: Any, key: str) -> str:
+        return f"{row.title} {key.removesuffix('_mm').replace('_ls', ' (least squares)')}"
+
+    def figure(row: Any, key: str) -> Any:
+        return row.form.figure(FIGURE_OF[key]) if row.form.status == "ok" else None
+
+    html = _shown(session / "outputs" / "inspection.html")
+    verdict = report.verdict
+    if verdict == NON_CONFORMING:
+        why = "; ".join(f"{named(r, k)} {_value(figure(r, k))} > {t:.3f} mm" for r, k, t in items(NON_CONFORMING))
+        step = f"open {html} (the views show where)"
+    elif verdict == NOT_MEASURED:
+        why = "; ".join(f"{named(r, k)} not measured: {r.form.points} points from the demo's one view "
+                        f"({r.form.note or r.form.status})" for r, k, _ in items(NOT_MEASURED))
+        program, station = (_shown(p) for p in DEMO_TURNTABLE)
+        why += "; the turntable program measures the part all round"
+        step = f"slscan station {program} --config {station} --auto --parts 1"
+    elif verdict == UNCERTAIN:
+        why = "; ".join(f"{named(r, k)} {_value(figure(r, k))} is within its U of {t:.3f} mm (ISO 14253-1)"
+                        for r, k, t in items(UNCERTAIN))
+        step = f"re-measure: slscan demo --seed 1 --out {_shown(session)}-2"
+    elif verdict == CONFORMING:
+        why = f"all {len(items(CONFORMING))} characteristics within tolerance, their uncertainty allowed for"
+        step = f"slscan review {_shown(session)} (or open {html})"
+    else:
+        why, step = "no tolerances to judge", f"open {html}"
+    return f"RESULT    {verdict.upper()}: {why}. Next: {step}"
 
 
 def _add_full_recording(parser: argparse.ArgumentParser) -> None:

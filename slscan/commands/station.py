@@ -71,24 +71,93 @@ def _program_name(value: str | None) -> tuple[str | None, Any]:
     return program.name, program
 
 
+def _ids(text: str) -> frozenset[int]:
+    """Result ids on the command line: "12-40", "3,5,7-9"."""
+    out: set[int] = set()
+    try:
+        for part in text.split(","):
+            lo, _, hi = part.strip().partition("-")
+            first, last = int(lo), int(hi or lo)
+            if first < 1 or last < first:
+                raise ValueError
+            out.update(range(first, last + 1))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a list of result ids such as 12-40 or 3,5,7-9") from None
+    return frozenset(out)
+
+
+def _exclusion(text: str) -> tuple[int, str]:
+    """ID=REASON: a result the user leaves out of the statistics, and why."""
+    rid, sep, why = text.partition("=")
+    if not sep or not rid.strip().isdigit() or not why.strip():
+        raise argparse.ArgumentTypeError(f"'{text}' is not RESULT_ID=REASON, e.g. 17=\"fixture loose\"")
+    return int(rid), " ".join(why.split())
+
+
+def _rules(text: str) -> tuple[int, ...]:
+    """Nelson rules: "all" or numbers 1..8 such as 1,2,5,6."""
+    if text.strip() == "all":
+        return tuple(range(1, 9))
+    try:
+        rules = tuple(sorted({int(r) for r in text.split(",")}))
+    except ValueError:
+        rules = ()
+    if not rules or not all(1 <= r <= 8 for r in rules):
+        raise argparse.ArgumentTypeError(f"'{text}' is not a list of Nelson rules 1..8 (e.g. 1,2,5,6) or 'all'")
+    return rules
+
+
+def _spc_options(args: argparse.Namespace, program: Any) -> Any:
+    """The report's statistics options from the command line (frozen limits read here)."""
+    from slscan.station.limits_file import load_limits
+    from slscan.station.quality import SpcOptions
+    from slscan.station.spc import DEFAULT_RULES
+
+    frozen, source = load_limits(args.limits, program) if args.limits else ({}, "")
+    return SpcOptions(exclusions=dict(args.exclude or []), rules=args.rules or DEFAULT_RULES,
+                      baseline=args.baseline, frozen=frozen, frozen_source=source)
+
+
+def _check_results_args(args: argparse.Namespace, program: Any) -> None:
+    """Refuse option combinations that cannot be honoured, before the database is opened."""
+    writes = [flag for flag in ("csv", "report", "dfq") if getattr(args, flag)]
+    if len(writes) > 1:
+        raise ScannerError(f"slscan results: --{' and --'.join(writes)} all write to --out; give one per run")
+    if (args.report or args.dfq) and not args.out:
+        raise ScannerError(f"slscan results --{writes[0]}: give where it writes with --out "
+                           + ("DIR" if args.report else "FILE.dfq"))
+    if (args.report or args.dfq) and program is None:
+        raise ScannerError(f"slscan results --{writes[0]}: give --program as the part program TOML (it has the "
+                           "characteristics and tolerances)")
+    spc = [f for f in ("baseline", "limits", "save_limits", "rules") if getattr(args, f)]
+    if spc and not args.report:
+        raise ScannerError(f"slscan results: --{spc[0].replace('_', '-')} applies to --report")
+    if args.exclude and not (args.report or args.dfq):
+        raise ScannerError("slscan results: --exclude applies to --report and --dfq")
+    if args.limits and (args.baseline or args.save_limits):
+        raise ScannerError("slscan results: --limits uses frozen limits; --baseline and --save-limits make new ones")
+
+
 def cmd_results(args: argparse.Namespace) -> int:
     from scanner.session import write_atomic
     from slscan.station.history_report import write_report
     from slscan.station.results import csv_text, open_results, write_csv
 
     name, program = _program_name(args.program)
-    if args.report and args.csv:
-        raise ScannerError("slscan results: --csv and --report both write to --out; give one per run")
-    if args.report and not args.out:
-        raise ScannerError("slscan results --report: give the report's folder with --out DIR")
-    if args.report and program is None:
-        raise ScannerError("slscan results --report: give --program as the part program TOML (it has the "
-                           "characteristics and tolerances the charts need)")
+    _check_results_args(args, program)
+    options = _spc_options(args, program) if args.report or args.dfq else None
     config = _config(args)
     with open_results(config.database_url, create=False) as store:
         rows = store.results(program=name, serial=args.serial, status=args.status, since=args.since, limit=args.limit)
         values = store.values([r.id for r in rows])
-        if args.csv:
+        if args.dfq:
+            from slscan.station.dfq import dfq_text
+
+            text, n = dfq_text(program, rows, values, options.exclusions)
+            _write_export(Path(args.out), lambda path: write_atomic(path, text.encode("utf-8")))
+            print(f"wrote {n} values of {len(program.characteristics)} characteristics (AQDEF) to {args.out}",
+                  file=sys.stderr)
+        elif args.csv:
             if args.out in (None, "-"):
                 write_csv(sys.stdout, rows, values)
             else:
@@ -99,6 +168,7 @@ def cmd_results(args: argparse.Namespace) -> int:
             print(f"{'id':>5} {'program':<14} {'serial':<24} {'att':>3} {'status':<10} {'finished (UTC)':<19}  values")
             for r in rows:
                 vals = "  ".join(f"{v.characteristic}={v.value_mm:.4f}" if v.value_mm is not None else
+                                 f"{v.characteristic}=<{v.limit_mm:.4f}" if v.limit_mm is not None else
                                  f"{v.characteristic}=--" for v in values[r.id])
                 when = f"{r.finished_at:%Y-%m-%d %H:%M:%S}" if r.finished_at else ""
                 print(f"{r.id:>5} {r.program:<14} {r.serial:<24} {r.attempt:>3} {r.status:<10} {when:<19}  {vals}"
@@ -106,9 +176,28 @@ def cmd_results(args: argparse.Namespace) -> int:
             print(f"{len(rows)} results in {store.where}", file=sys.stderr)
         if args.report:
             path = _write_export(Path(args.out), lambda folder: write_report(folder, program, rows, values,
-                                                                              store.where))
+                                                                              store.where, options))
             print(f"report {path}", file=sys.stderr)
+            if args.save_limits:
+                _save_limits(args, program, rows, values, options, store.where)
     return Exit.OK
+
+
+def _save_limits(args: argparse.Namespace, program: Any, rows: Any, values: Any, options: Any, where: str) -> None:
+    """Freeze the limits the report computed into --save-limits FILE; say which had none."""
+    from slscan.station.limits_file import save_limits
+    from slscan.station.quality import running_stats
+
+    stats = running_stats(program, rows, values, options)
+    chosen = f"{len(args.baseline)} results, ids {min(args.baseline)}..{max(args.baseline)}" if args.baseline else ""
+    left_out = "; ".join(f"{rid} ({why})" for rid, why in sorted(options.exclusions.items()))
+    source = (f"the baseline of {chosen} of {where}" if args.baseline else f"every result of {where}") + (
+        f"; left out by the user: {left_out}" if left_out else "")
+    missing = _write_export(Path(args.save_limits), lambda path: save_limits(
+        path, program, {s.name: s.chart for s in stats.characteristics}, source))
+    notes = {s.name: s.limits_note for s in stats.characteristics}
+    print(f"limits frozen in {args.save_limits}" + "".join(f"; none for {name} ({notes[name]})" for name in missing),
+          file=sys.stderr)
 
 
 def _write_export(target: Path, write: Any) -> Any:
@@ -187,7 +276,19 @@ def register(sub: Any) -> None:
                    help="export CSV to --out FILE (default: standard output)")
     r.add_argument("--report", nargs="?", const=True, action=OutputFlag,
                    help="write the HTML report with control charts into the folder --out DIR")
-    add_out(r, "where --csv or --report writes (a CSV file, '-' for standard output, or the report's folder)")
+    r.add_argument("--dfq", action="store_true", help="export the values as an AQDEF (Q-DAS) DFQ file to --out FILE")
+    r.add_argument("--exclude", action="append", type=_exclusion, metavar="ID=REASON",
+                   help="leave result ID out of the limits and capability, for the reason given (shown in the "
+                        "report, exported as deactivated); repeat for more")
+    r.add_argument("--rules", type=_rules, metavar="N,N,...",
+                   help="Nelson rules to flag (1..8 or 'all'; default 1,2,5,6, the Western Electric set)")
+    r.add_argument("--baseline", type=_ids, metavar="IDS",
+                   help="compute the control limits from these result ids only, e.g. 1-25")
+    r.add_argument("--save-limits", metavar="FILE", help="with --report: freeze the limits computed into FILE (JSON)")
+    r.add_argument("--limits", type=Path, metavar="FILE",
+                   help="with --report: use the frozen limits of FILE (from --save-limits) instead of computing them")
+    add_out(r, "where --csv, --dfq or --report writes (a CSV file, '-' for standard output, a DFQ file, or the "
+               "report's folder)")
     r.set_defaults(func=cmd_results)
 
     b = sub.add_parser("batch", help="re-decode and re-inspect stored sessions (in parallel, or on a Dask cluster)")

@@ -11,7 +11,9 @@ re-inspection. An application layer above every package, like the CLI.
     app.py      a station assembled from its config files; the non-interactive run (--auto)
     tui.py      the full-screen terminal view of the loop (curses)
     results.py  the results history on SQLite or PostgreSQL (SQLAlchemy Core), cycle ownership, CSV
-    spc.py      control limits (I-MR, X-bar R), Western Electric rules, capability
+    spc.py      control limits (I-MR, X-bar R), Nelson rules, capability (Cp/Cpk, Pp/Ppk, normality, Weibull)
+    limits_file.py  control limits frozen into a file and read back
+    dfq.py      the values as an AQDEF (Q-DAS) DFQ file
     charts.py   control charts: PNG images (matplotlib) and Rerun series
     paths.py    names from programs and serials made safe as file names
     history_report.py  the HTML report

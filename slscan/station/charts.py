@@ -1,19 +1,22 @@
 """Control charts: PNG images drawn with matplotlib (for the HTML report) and a Rerun series.
 
-Per characteristic, one figure of two panels sharing the part axis (see
-`slscan.station.spc`): the individuals (or subgroup means) with the centre line, the
-control limits from the baseline and the tolerance; below, the moving ranges (or subgroup
-ranges) with theirs. Parts in the baseline are blue dots, failed or partly measured parts
-red crosses (shown, left out of the limits), parts where the characteristic was not
-measured grey ticks on the axis; a value decided uncertain (within its U of the
-tolerance, ISO 14253-1) is marked with a purple triangle; a point flagged by a Western Electric rule is ringed in
-orange with the rule numbers. The title carries Cp and Cpk with their 95 % intervals and
-the small-sample warning.
+Per characteristic, one figure (see `slscan.station.spc`): left, the individuals (or
+subgroup means) over the moving ranges (or subgroup ranges), sharing the part axis (whole
+numbers), with the centre lines, the control limits and the tolerance; right, the
+distribution of the values with the tolerance and the fitted normal and Weibull densities,
+and under it the legend, where it covers no point. Values in the limits are blue dots;
+values below their detection limit are hollow down-triangles at the limit (the true value
+is below); values the user left out are grey crosses; parts where the characteristic was not
+measured grey ticks on the axis; a value decided uncertain (within its U of the tolerance,
+ISO 14253-1) is ringed by a purple triangle; a point flagged by a Nelson rule is ringed in
+orange with the rule numbers. Without limits (too few values) the panel says so. The title
+carries Cp/Cpk and Pp/Ppk with their 95 % intervals, the model read and the warnings.
 
 The station-level Rerun recording gets every stored value as a scalar on the `scan`
 timeline (the result id as the sequence number), beside its tolerance:
 
     metrics/control/<characteristic>/value_mm        the measured value (mm)
+    metrics/control/<characteristic>/below_limit_mm  a value below its detection limit: that limit (mm)
     metrics/control/<characteristic>/u_mm            its expanded uncertainty U (k = 2, mm), when known
     metrics/control/<characteristic>/tolerance_mm    the upper limit (mm)
 """
@@ -24,6 +27,8 @@ import os
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
+
 from inspection.tolerances import UNCERTAIN
 from scanner.session_recording import SessionRecording
 from slscan.station.paths import child
@@ -31,72 +36,150 @@ from slscan.station.program import Characteristic, PartProgram
 from slscan.station.quality import CharacteristicStats, RunningStats, latest_per_serial
 from slscan.station.results import ResultRow, ValueRecord
 
-FIGURE_IN = (9.6, 4.8)  # width, height in inches; at DPI: 960 x 480 px
+FIGURE_IN = (11.0, 5.4)  # width, height in inches; at DPI: 1100 x 540 px
 DPI = 100
 _BLUE, _RED, _GREY, _ORANGE, _GREEN, _PURPLE = "#1f5fa8", "#c01818", "#8a8a8a", "#e07b00", "#1a7a1a", "#7b2fbf"
 
 
-def capability_text(s: CharacteristicStats) -> str:
-    """Cp and Cpk with their intervals, and the warning, in one line."""
+def capability_lines(s: CharacteristicStats) -> list[str]:
+    """Cp/Cpk, Pp/Ppk with their 95 % intervals, the model read, and the warning."""
     cap = s.capability
     if cap is None:
-        return "capability: too few parts that passed"
-    text = (f"Cp {cap.cp:.2f} [{cap.cp_ci[0]:.2f}, {cap.cp_ci[1]:.2f}]  "
-            f"Cpk {cap.cpk:.2f} [{cap.cpk_ci[0]:.2f}, {cap.cpk_ci[1]:.2f}] (95 %, n = {cap.n})")
-    return text + (f"  WARNING: {cap.warning}" if cap.warning else "")
+        return ["capability: none (no limits)" if s.chart is None else "capability: none (no spread)"]
+    lines = [f"Cp {cap.cp.text()}  Cpk {cap.cpk.text()}  Pp {cap.pp.text()}  Ppk {cap.ppk.text()} (normal, 95 %, "
+             f"n = {cap.n}" + (f", {cap.censored} below the detection limit" if cap.censored else "") + ")"]
+    if cap.model == "Weibull" and cap.weibull_ppk is not None and cap.weibull_pp is not None:
+        lines.append(f"read the Weibull model: Pp {cap.weibull_pp.text()}  Ppk {cap.weibull_ppk.text()}")
+    return lines + ([f"WARNING: {cap.warning}"] if cap.warning else [])
+
+
+def _xy(xs: Sequence[int], ys: Sequence[float], keep: Sequence[bool]) -> tuple[list[int], list[float]]:
+    return [a for a, k in zip(xs, keep) if k], [y for y, k in zip(ys, keep) if k]
+
+
+def _points(ax: Any, xs: list[int], ys: Sequence[float], in_limits: Sequence[bool], censored: Sequence[bool],
+            flags: Sequence[frozenset[int]], limited: bool) -> None:
+    """The chart's points by kind (module docstring), their connecting line and the rule
+    flags; `limited`: the chart has limits (the values' label says they are in them)."""
+    ax.plot(xs, ys, color=_GREY, linewidth=0.8, zorder=1)
+    measured = [b and not c for b, c in zip(in_limits, censored)]
+    ax.scatter(*_xy(xs, ys, measured), s=18, color=_BLUE, zorder=3,
+               label="value (in the limits)" if limited else "value")
+    below = [b and c for b, c in zip(in_limits, censored)]
+    if any(below):
+        ax.scatter(*_xy(xs, ys, below), s=34, marker="v", facecolors="none", edgecolors=_BLUE, linewidths=1.2,
+                   zorder=3, label="below its detection limit (at the limit)")
+    if not all(in_limits):
+        ax.scatter(*_xy(xs, ys, [not b for b in in_limits]), s=30, marker="x", color=_GREY, zorder=3,
+                   label="not in the limits (left out by the user, or outside the baseline)")
+    for a, y, f in zip(xs, ys, flags):
+        if f:
+            ax.scatter([a], [y], s=110, facecolors="none", edgecolors=_ORANGE, linewidths=1.5, zorder=4)
+            ax.annotate(",".join(str(r) for r in sorted(f)), (a, y), textcoords="offset points", xytext=(6, 6),
+                        color=_ORANGE, fontsize=8)
+
+
+def _limit_lines(ax: Any, limits: Any) -> None:
+    """Centre and control limits, labelled at the right (none: the title says why)."""
+    if limits is None:
+        return
+    ax.axhline(limits.centre, color=_GREEN, linewidth=1)
+    for v in (limits.lcl, limits.ucl):
+        ax.axhline(v, color=_GREEN, linestyle="--", linewidth=1)
+    lcl = f"LCL {limits.lcl:.4f}" + (" (natural bound)" if limits.lcl_clipped else "")
+    for v, text, va in ((limits.ucl, f"UCL {limits.ucl:.4f}", "bottom"), (limits.lcl, lcl, "top")):
+        ax.annotate(text, (1, v), xycoords=("axes fraction", "data"), xytext=(-4, 2 if va == "bottom" else -2),
+                    textcoords="offset points", ha="right", va=va, fontsize=7, color=_GREEN)
+
+
+def _distribution(ax: Any, c: Characteristic, s: CharacteristicStats) -> None:
+    """Histogram of the values in the capability (censored ones at their limit, hatched),
+    the tolerance, and the two fitted densities."""
+    from scipy import stats
+
+    keep = [not p.excluded for p in s.plotted]
+    x = np.array([p.charted_mm for p, k in zip(s.plotted, keep) if k], float)
+    cens = np.array([p.censored for p, k in zip(s.plotted, keep) if k], bool)
+    hi = max(c.tolerance_mm, float(x.max()) if len(x) else 0.0) * 1.08
+    bins = np.linspace(0.0, hi, 25)
+    if len(x):
+        ax.hist(x[~cens], bins=bins, orientation="horizontal", color=_BLUE, alpha=0.55, density=False)
+        if cens.any():
+            ax.hist(x[cens], bins=bins, orientation="horizontal", facecolor="none", edgecolor=_BLUE, hatch="///")
+    ax.axhline(c.tolerance_mm, color=_RED, linewidth=1.5)
+    cap = s.capability
+    if cap is not None and len(x):
+        y = np.linspace(0.0, hi, 200)
+        scale = len(x) * (bins[1] - bins[0])  # density -> count per bin
+        ax.plot(stats.norm.pdf(y, cap.mean, cap.sigma_overall) * scale, y, color=_GREEN, linewidth=1.2,
+                label="normal fit" + (" (read)" if cap.model == "normal" else ""))
+        if cap.weibull_shape is not None:
+            ax.plot(stats.weibull_min.pdf(y, cap.weibull_shape, 0, cap.weibull_scale) * scale, y, color=_PURPLE,
+                    linewidth=1.2, linestyle="--", label="Weibull fit" + (" (read)" if cap.model == "Weibull" else ""))
+    ax.set_xlabel("values per bin", fontsize=8)
+    ax.set_title(cap.normality if cap is not None else "distribution", fontsize=7)
+    ax.tick_params(labelsize=7)
+    ax.grid(True, color="#dddddd", linewidth=0.6)
 
 
 def draw_chart(c: Characteristic, s: CharacteristicStats) -> Any:
     """The control chart figure of one characteristic (matplotlib, not shown)."""
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     fig = Figure(figsize=FIGURE_IN, dpi=DPI, layout="constrained")
-    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(2, 1))
+    grid = fig.add_gridspec(2, 2, width_ratios=(3.2, 1), height_ratios=(2, 1))
+    top = fig.add_subplot(grid[0, 0])
+    bottom = fig.add_subplot(grid[1, 0], sharex=top)
+    dist = fig.add_subplot(grid[0, 1], sharey=top)
+    legend_cell = fig.add_subplot(grid[1, 1])
+    legend_cell.axis("off")
     chart = s.chart
     if s.subgroup == 1:
-        x = [i + 1 for i, p in enumerate(s.points) if p.value_mm is not None]
+        x = [i + 1 for i, p in enumerate(s.points) if p.charted_mm is not None]
         spread_x = x[1:]
         names = ("value (mm)", "moving range (mm)")
-        missing = [i + 1 for i, p in enumerate(s.points) if p.value_mm is None]
+        missing = [i + 1 for i, p in enumerate(s.points) if p.charted_mm is None]
     else:
         x = list(range(1, len(s.location) + 1))
         spread_x = x
         names = (f"mean of {s.subgroup} (mm)", f"range of {s.subgroup} (mm)")
         missing = []
-    for ax, ys, flags, xs, limits in ((top, s.location, s.location_flags, x, chart.location if chart else None),
-                                      (bottom, s.spread, s.spread_flags, spread_x, chart.spread if chart else None)):
-        base = s.baseline if ax is top else [True] * len(ys)
-        ax.plot(xs, ys, color=_GREY, linewidth=0.8, zorder=1)
-        ax.scatter([a for a, b in zip(xs, base) if b], [y for y, b in zip(ys, base) if b], s=18, color=_BLUE,
-                   zorder=3, label="in the limits' baseline")
-        ax.scatter([a for a, b in zip(xs, base) if not b], [y for y, b in zip(ys, base) if not b], s=30,
-                   marker="x", color=_RED, zorder=3, label="failed or partly measured part (not in the limits)")
-        for a, y, f in zip(xs, ys, flags):
-            if f:
-                ax.scatter([a], [y], s=110, facecolors="none", edgecolors=_ORANGE, linewidths=1.5, zorder=4)
-                ax.annotate(",".join(str(r) for r in sorted(f)), (a, y), textcoords="offset points", xytext=(6, 6),
-                            color=_ORANGE, fontsize=8)
-        if limits is not None:
-            ax.axhline(limits.centre, color=_GREEN, linewidth=1)
-            for v in (limits.lcl, limits.ucl):
-                ax.axhline(v, color=_GREEN, linestyle="--", linewidth=1)
-            ax.annotate(f"UCL {limits.ucl:.4f}", (1, limits.ucl), xycoords=("axes fraction", "data"),
-                        xytext=(-4, 3), textcoords="offset points", ha="right", fontsize=8, color=_GREEN)
-        ax.grid(True, color="#dddddd", linewidth=0.6)
-        ax.set_ylabel(names[0] if ax is top else names[1])
+    _points(top, x, s.location, s.in_limits, s.censored, s.location_flags, chart is not None)
+    _limit_lines(top, chart.location if chart else None)
+    known = [not np.isnan(r) for r in s.spread]
+    _points(bottom, spread_x, s.spread, known, [False] * len(s.spread), s.spread_flags, chart is not None)
+    _limit_lines(bottom, chart.spread if chart else None)
     if s.subgroup == 1 and s.uncertain:
         top.scatter([a for a, p in zip(x, s.plotted) if p.decision == UNCERTAIN],
-                    [p.value_mm for p in s.plotted if p.decision == UNCERTAIN], s=60, marker="^",
+                    [p.charted_mm for p in s.plotted if p.decision == UNCERTAIN], s=60, marker="^",
                     facecolors="none", edgecolors=_PURPLE, linewidths=1.4, zorder=5,
                     label="uncertain: within U of the tolerance (re-measure)")
     top.axhline(c.tolerance_mm, color=_RED, linewidth=1.5, label=f"tolerance {c.tolerance_mm:.3f} mm")
+    if chart is not None:
+        frozen = " (frozen)" if s.limits_note.startswith("limits frozen") else ""
+        top.plot([], [], color=_GREEN, linestyle="--", label="control limits" + frozen)
+    top.set_ylim(bottom=0.0)
     if missing:
-        top.plot(missing, [top.get_ylim()[0]] * len(missing), "|", color=_GREY, markersize=12,
-                 label="not measured")
-    top.legend(loc="upper left", fontsize=7, framealpha=0.8)
+        top.plot(missing, [0.0] * len(missing), "|", color=_GREY, markersize=12, label="not measured",
+                 clip_on=False)
+    for ax, name in ((top, names[0]), (bottom, names[1])):
+        ax.grid(True, color="#dddddd", linewidth=0.6)
+        ax.set_ylabel(name)
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    top.tick_params(labelbottom=False)
     bottom.set_xlabel("part (each serial's last cycle, in time order)" if s.subgroup == 1 else "subgroup")
+    _distribution(dist, c, s)
+    dist.tick_params(labelleft=False)
+    handles = top.get_legend_handles_labels()
+    more = dist.get_legend_handles_labels()
+    flagged = ([top.scatter([], [], s=110, facecolors="none", edgecolors=_ORANGE, linewidths=1.5)],
+               [f"flagged by a Nelson rule (rules used: {','.join(map(str, s.rules))})"])
+    legend_cell.legend(handles[0] + more[0] + flagged[0], handles[1] + more[1] + flagged[1], loc="upper left",
+                       fontsize=7, frameon=False)
     kind = "individuals / moving range" if s.subgroup == 1 else f"X-bar / R (subgroups of {s.subgroup})"
-    fig.suptitle(f"{c.name}: {c.label} - {kind}\n{capability_text(s)}", fontsize=9)
+    head = f"{c.name}: {c.label} - {kind}; {s.limits_note}"
+    fig.suptitle("\n".join([head] + capability_lines(s)), fontsize=9)
     return fig
 
 
@@ -148,9 +231,12 @@ class ChartRecording:
         for v in values:
             if v.value_mm is not None:
                 scalars[control_metric(v.characteristic, "value_mm")] = v.value_mm
-                scalars[control_metric(v.characteristic, "tolerance_mm")] = v.tolerance_mm
                 if v.u_mm is not None:
                     scalars[control_metric(v.characteristic, "u_mm")] = v.u_mm
+            elif v.limit_mm is not None:
+                scalars[control_metric(v.characteristic, "below_limit_mm")] = v.limit_mm
+            if v.value_mm is not None or v.limit_mm is not None:
+                scalars[control_metric(v.characteristic, "tolerance_mm")] = v.tolerance_mm
         if scalars:
             self.rec.log_metrics(scalars, scan=result_id)
 

@@ -214,7 +214,7 @@ class StationTUI:
             if c.n:
                 cap = c.capability
                 put(f"    {c.name:<22} n {c.n:<4} mean {c.mean_mm:.4f}  max {c.max_mm:.4f}"
-                    + (f"  Cpk {cap.cpk:.2f} [{cap.cpk_ci[0]:.2f}, {cap.cpk_ci[1]:.2f}]"
+                    + (f"  Cpk {cap.cpk.text()}  Ppk {cap.ppk.text()}"
                        + (f" (n {cap.n} < {MIN_CAPABILITY_N}: unreliable)" if cap.warning else "") if cap else ""))
         for e in events:
             put("event  " + e)
