@@ -250,6 +250,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"verdict   {report.verdict} ({time.perf_counter() - t0:.1f} s after the demo started; report "
               f"files and recording follow)", file=sys.stderr)
 
+    import open3d  # noqa: F401  here, before the CAD thread starts: open3d's __init__ iterates sys.modules,
+    # which an import on another thread changes under it ("dictionary changed size during iteration")
     with ThreadPoolExecutor(1, thread_name_prefix="load CAD") as pool:
         part = pool.submit(load_demo_part)  # OpenCASCADE and the model's descriptors while the part is scanned
 
