@@ -6,7 +6,9 @@ HTML report is the record, the PDF a copy of it."""
 from __future__ import annotations
 
 import logging
+import os
 import shutil
+import signal
 import subprocess
 import tempfile
 from pathlib import Path
@@ -30,7 +32,17 @@ def _run(page: Path, *options: str) -> subprocess.CompletedProcess[str] | None:
     with tempfile.TemporaryDirectory(prefix="slscan-chromium-") as profile:
         cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", f"--user-data-dir={profile}",
                "--allow-file-access-from-files", *options, Path(page).resolve().as_uri()]
-        return subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT_S, check=False)
+        # its own process group: on a timeout the browser's helper processes go with it (they hold its pipes)
+        with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              start_new_session=True) as browser:
+            try:
+                out, err = browser.communicate(timeout=TIMEOUT_S)
+            except subprocess.TimeoutExpired:  # a machine loaded far past its cores: the HTML stays the record
+                os.killpg(browser.pid, signal.SIGKILL)
+                browser.communicate()
+                log.warning("no PDF/screenshot of %s: Chromium did not finish in %.0f s", page, TIMEOUT_S)
+                return None
+        return subprocess.CompletedProcess(cmd, browser.returncode, out, err)
 
 
 def print_pdf(page: Path, out: Path, paper: str = "A4") -> Path | None:
