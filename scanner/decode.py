@@ -659,9 +659,10 @@ def _frequency_samples(ps: PatternSet, extent: int, absolute: list[np.ndarray], 
                        sigma_b: np.ndarray, idx: np.ndarray) -> dict[str, np.ndarray]:
     """At the band's flat indices `idx`: each frequency's projector coordinate (px) from its
     absolute phase, its predicted noise (σ_I·sqrt(2/N)/B_i, with the patterns' own error
-    `PATTERN_ERROR`, times P_i/(2π); `sigma_b` = σ_I·sqrt(2/N) there), and from them `q`, the weighted squared spread of the coordinates about their
-    inverse-variance mean (χ² with F − 1 degrees of freedom when the frequencies agree), and
-    `d`, the finest frequency's coordinate less the coarsest's (px)."""
+    `PATTERN_ERROR`, times P_i/(2π); `sigma_b` = σ_I·sqrt(2/N) there), and from them `q`,
+    the weighted squared spread of the coordinates about their inverse-variance mean (χ² with
+    F − 1 degrees of freedom when the frequencies agree), and `d`, the finest frequency's
+    coordinate less the coarsest's (px)."""
     xs, ws = [], []
     pattern = 2.0 / ps.steps * PATTERN_ERROR ** 2  # rad²: the 8-bit patterns' own error
     for phi, b, fi in zip(absolute, modulation, ps.fringes):
@@ -701,8 +702,7 @@ def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
     against it (else the noise is fitted to the frames, which cannot judge that residual).
     With `settings.self_check` a failed check raises `ConsistencyError`; without, the
     checks are only recorded (`DecodeResult.checks`) for the caller to judge with more."""
-    if patterns.uses_pixel_code:
-        patterns = patterns.for_projector(projector_size)
+    patterns = patterns.for_projector(projector_size)
     specs = patterns.frames()
     if stack.ndim != 3 or stack.shape[0] != len(specs):
         raise DecodeError(f"pattern set '{patterns.family}' needs {len(specs)} frames of one size; "
@@ -829,7 +829,8 @@ class _OrientationDecoder:
         background = maps["background"]
         background.fill(0.0)
         for block, out in zip(self.blocks, dest):
-            phi, b, a = phase_shift([stack[k] for k in block], ps.steps, conv.phase_origin, conv.step_sign, out)
+            phi, b, a = phase_shift([stack[k] for k in block], ps.steps, conv.first_phase(ps.steps), conv.step_sign,
+                                    out)
             wrapped.append(phi)
             modulation.append(b)
             background += a
@@ -940,12 +941,12 @@ class _OrientationDecoder:
         return out
 
     def _residual_z2(self, stack: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        """Per sample pixel (flat indices `idx` of the band `stack`), the N-step fit's residual
-        sum of squares over every frequency in units of each frame's predicted variance (the
-        sensor model's σ_I² at the block's mean, and the patterns' own error): χ² with (number of blocks)·(N − 3) degrees of freedom when the frames
-        are what the pattern set says."""
+        """Per step group (row) and sample pixel (flat indices `idx` of the band `stack`), the
+        N-step fit's residual sum of squares in units of each frame's predicted variance (the
+        sensor model's σ_I² at the group's mean, and the patterns' own error): χ² with N − 3
+        degrees of freedom when the frames are what the pattern set says."""
         ps, conv = self.patterns, self.patterns.conventions
-        delta = conv.phase_origin + conv.step_sign * 2.0 * np.pi * np.arange(ps.steps) / ps.steps
+        delta = conv.first_phase(ps.steps) + conv.step_sign * 2.0 * np.pi * np.arange(ps.steps) / ps.steps
         basis = np.stack([np.ones(ps.steps), np.cos(delta), np.sin(delta)], axis=1)
         residual = np.eye(ps.steps) - basis @ np.linalg.pinv(basis)  # (N, N): the fit's residual projector
         cos_sin = np.linalg.pinv(basis)[1:]  # (2, N): B·cos and B·sin of the fit

@@ -144,8 +144,17 @@ class PatternSet:
         return d
 
     def for_projector(self, size: tuple[int, int]) -> PatternSet:
-        """This set on a projector of `size` = (width, height) px."""
-        return replace(self, projector_size=(int(size[0]), int(size[1])))
+        """This set on a projector of `size` = (width, height) px; with `period_rounding`
+        "floor", its periods made whole pixels: floor(W/f) px each, so W/floor(W/f) of them."""
+        out = replace(self, projector_size=(int(size[0]), int(size[1])))
+        if self.conventions.period_rounding != "floor":
+            return out
+        if len(self.orientations) != 1:
+            raise ConfigError("pattern set", "conventions.period_rounding", "whole-pixel periods along both "
+                                                                             "orientations differ: give one")
+        extent = size[0] if self.orientations[0] == "vertical" else size[1]
+        fringes = tuple(extent / np.floor(extent / f) for f in self.fringes)
+        return replace(out, fringes=fringes, conventions=replace(self.conventions, period_rounding="none"))
 
     def with_conventions(self, conventions: Conventions) -> PatternSet:
         return replace(self, conventions=conventions)
@@ -198,11 +207,12 @@ class PatternSet:
     def render(self, width: int, height: int, gamma: float = 1.0) -> np.ndarray:
         """(n_frames, height, width) uint8 patterns, pre-compensated for a projector whose
         output is (command/255)^gamma so the displayed fringes are sinusoidal."""
-        specs = self.for_projector((width, height)).frames() if self.uses_pixel_code else self.frames()
+        on_projector = self.for_projector((width, height))
+        specs = on_projector.frames()
         out = np.empty((len(specs), height, width), dtype=np.uint8)
         for i, s in enumerate(specs):
             extent = width if s.orientation == "vertical" else height
-            profile = self.profile(s, extent)
+            profile = on_projector.profile(s, extent)
             encoded = np.round(255.0 * np.clip(profile, 0.0, 1.0) ** (1.0 / gamma)).astype(np.uint8)
             out[i] = encoded[None, :] if s.orientation == "vertical" else encoded[:, None]
         return out
@@ -212,7 +222,8 @@ class PatternSet:
         c = np.arange(extent, dtype=np.float64)
         conv = self.conventions
         if s.kind == "phase":
-            phase = 2.0 * np.pi * self.fringes[s.level] * (c + conv.pixel_centre) / extent + conv.phase_origin
+            phase = 2.0 * np.pi * self.fringes[s.level] * (c + conv.pixel_centre) / extent
+            phase += conv.first_phase(self.steps)
             return 0.5 + 0.5 * np.cos(phase + conv.step_sign * 2.0 * np.pi * s.step / self.steps)
         if s.kind in ("white", "black"):
             return np.full(extent, 1.0 if s.kind == "white" else 0.0)
