@@ -79,11 +79,7 @@ def _layouts(ps: PatternSet, n_frames: int, fixed: bool) -> list[PatternSet]:
     """Pattern sets for every frame layout the set's keys allow (`fixed`: only the given
     values of given keys) whose frame count is `n_frames`, distinct frame sequences only."""
     c = ps.conventions
-    keys = ["references"]
-    if len(ps.fringes) > 1:
-        keys.append("frame_order")
-    if ps.family == "graycode":
-        keys += ["gray_position", "gray_code"]
+    keys = ["references", *ps.kind.layout_keys(len(ps.fringes))]
     options = {k: ([getattr(c, k)] if fixed and getattr(c, k) is not None else list(CHOICES[k])) for k in keys}
     out, seen = [], set()
     for combo in itertools.product(*options.values()):
@@ -116,10 +112,11 @@ def _all_layouts(ps: PatternSet) -> list[PatternSet]:
 
 def _layout_name(ps: PatternSet) -> str:
     c = ps.conventions
+    keys = ps.kind.layout_keys(len(ps.fringes))
     parts = [f"references {c.references}"]
-    if len(ps.fringes) > 1:
+    if "frame_order" in keys:
         parts.insert(0, c.frame_order)
-    if ps.family == "graycode":
+    if "gray_code" in keys:
         parts += [f"Gray code {c.gray_code} {c.gray_position} the phase"]
     return ", ".join(parts)
 
@@ -162,7 +159,7 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
     o = ps.orientations[0]
     extent = projector_size[0] if o == "vertical" else projector_size[1]
     full = float(2 ** bit_depth - 1)
-    if ps.family == "pixel_graycode":
+    if ps.unwrapping == "pixel_only":
         diffs = [sub[index[(o, "gray", b, 0)]].astype(np.float32) - sub[index[(o, "gray_inverse", b, 0)]]
                  for b in range(ps.gray_bits(o))]
         contrast = np.max(np.abs(diffs), axis=0)
@@ -177,9 +174,9 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
     background = sum(a for _, _, a in shifted) / len(shifted)
     usable = (mod[-1] > 0.12 * background) & (mod[-1] > 0.005 * full) & (background < full)
     refs = _refs_score(sub, ps, usable)
-    if ps.family == "graycode":
+    if ps.unwrapping in ("complementary", "pixel_phase"):
         f = ps.fringes[0]
-        if ps.conventions.gray_code == "complementary":
+        if ps.unwrapping == "complementary":
             bits = [sub[index[(o, "gray", b, 0)]] for b in range(ps.gray_bits() + 1)]
             half, unclear, half_unclear = read_complementary_code(bits, background, mod[0], 0.3)
             clear = (unclear == 0) & ~half_unclear
@@ -207,23 +204,19 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
             ev.sign_r = {k: v / max(max(Rs.values()), 1e-9) for k, v in Rs.items()}
         ev.score = max(Rs.values()) * refs
         return ev
-    if ps.family == "heterodyne":
-        f = ps.fringes
-        two_pi = np.float32(2 * np.pi)
-        p12 = np.mod(wrapped[0] - wrapped[1], two_pi)
-        p123 = np.mod(p12 - np.mod(wrapped[1] - wrapped[2], two_pi), two_pi)
-        f12 = f[0] - f[1]
-        a12 = p12 + two_pi * np.rint((p123 * np.float32(f12) - p12) / two_pi)
+    beat = ps.kind.offset_free_phase(ps.fringes, wrapped)
+    if beat is not None:  # each frequency's offset from the phase its beats predict
+        phase, count = beat
         Rs, offsets = [], []
-        for i in range(3):
-            eps, R, se = _circular((wrapped[i] - a12 * np.float32(f[i] / f12))[usable])
+        for w, fi in zip(wrapped, ps.fringes):
+            eps, R, se = _circular((w - phase * np.float32(fi / count))[usable])
             Rs.append(R)
             offsets.append((eps, se))
         ev = _Evidence(float(np.mean(Rs)) * refs)
         eps, R, se = _circular(np.array([e for e, _ in offsets]))
         ev.offset[1] = (eps, max(s for _, s in offsets))
         return ev
-    # hierarchical: share of each block's temporal AC energy at the step frequency
+    # no beat (hierarchical): share of each block's temporal AC energy at the step frequency
     shares = []
     for b in blocks:
         spectrum = np.abs(np.fft.fft(sub[b].astype(np.float32), axis=0)) ** 2
@@ -307,7 +300,7 @@ def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
         every = _layouts(ps, n, fixed=False)
         hint = f"; with other frame-layout keys {len(every)} layout(s) would fit" if every else ""
         what = f"{ps.family} for a {projector_size[0]} x {projector_size[1]} projector" \
-            if ps.family == "pixel_graycode" else f"{ps.family}, fringes {list(ps.fringes)}, {ps.steps} steps"
+            if not ps.kind.has_phase else f"{ps.family}, fringes {list(ps.fringes)}, {ps.steps} steps"
         raise DecodeError(f"{n} frames, but the pattern set ({what}, {list(ps.orientations)}) with the given layout "
                           f"keys needs {_needed(ps)}: wrong frame count, fringe/period count or projector size{hint}")
     scored = sorted(((_evidence(stack, c, projector_size, bit_depth), c) for c in candidates),
@@ -334,8 +327,7 @@ def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
         v = getattr(best.conventions, k)
         if getattr(given, k) is not None:
             findings.append(Finding(k, v, "given", f"layout score {best_ev.score:.2f}{runner}"))
-        elif (k == "frame_order" and len(ps.fringes) <= 1) or (k in ("gray_position", "gray_code")
-                                                              and ps.family != "graycode"):
+        elif k != "references" and k not in ps.kind.layout_keys(len(ps.fringes)):
             continue
         else:
             findings.append(Finding(k, v, "detected", f"layout score {best_ev.score:.2f} of {len(scored)} "
@@ -357,12 +349,13 @@ def _phase_keys(stack: np.ndarray, ps: PatternSet, ev: _Evidence, projector_size
     where the frames determine them, else assumed (module docstring)."""
     c = ps.conventions
     findings: list[Finding] = []
-    if ps.family == "pixel_graycode":
+    if not ps.kind.has_phase:
         return c, findings
     o = ps.orientations[0]
     extent = projector_size[0] if o == "vertical" else projector_size[1]
-    f = ps.fringes[0] if ps.family == "graycode" else max(ps.fringes)
-    if ps.family == "graycode":
+    coded = ps.gray_bits(o) > 0
+    f = ps.fringes[0] if coded else max(ps.fringes)
+    if coded:
         sign = _gray_sign(c, ev, findings)
         eps, se = ev.offset[sign]
     else:
@@ -389,8 +382,8 @@ def _phase_keys(stack: np.ndarray, ps: PatternSet, ev: _Evidence, projector_size
     # the phase's offset the frames show, less what the pixel centre accounts for (Gray code:
     # ε = first phase + 2π·f·(δ − 0.5)/W; heterodyne: the beats cancel δ, ε = first phase)
     rad_per_px = 2 * np.pi * f / extent
-    measured = _wrap(eps - (c.pixel_centre - 0.5) * rad_per_px) if ps.family == "graycode" else eps
-    against = "the Gray code's edges" if ps.family == "graycode" else "its frequencies' beats"
+    measured = _wrap(eps - (c.pixel_centre - 0.5) * rad_per_px) if coded else eps
+    against = "the Gray code's edges" if coded else "its frequencies' beats"
     evidence = f"the phase sits {measured:+.3f} ± {se:.3f} rad from {against}"
     step = 2 * np.pi / ps.steps
     if c.phase_origin is not None:  # given: the frames must show it (and the given rotation, if any)

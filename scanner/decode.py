@@ -43,10 +43,10 @@ from scanner.decode_checks import (
     scale_check,
 )
 from scanner.errors import DecodeError
+from scanner.pattern_families import TWO_PI, unwrap_step
 from scanner.patterns import FrameSpec, PatternSet, gray_to_binary
 from scanner.pixel_code import read_pixel_code
 
-TWO_PI = np.float32(2.0 * np.pi)
 CHUNK_ROWS = 128  # rows decoded together (a band's float32 maps fit in cache)
 SAMPLE_STEP = 4  # the consistency checks judge every 4th pixel of every 4th row
 SENSOR_MODEL = "sensor model"
@@ -176,11 +176,6 @@ class DecodeResult:
         return {f"{o}/{k}": int(v.sum()) for o, m in self.maps.items() for k, v in m.masks.items()}
 
 
-def _wrap_positive(d: np.ndarray) -> np.ndarray:
-    """Map differences of two [0, 2π) phases into [0, 2π), in place (2π added where negative)."""
-    return np.add(d, TWO_PI, out=d, where=d < 0)
-
-
 def _weighted_sum(frames: list[np.ndarray], weights: np.ndarray) -> np.ndarray:
     """Σ w_k·I_k as float32, straight from the frames at their bit depth: pairs of frames by
     cv2.addWeighted (one pass each, no float copy of the frames), zero weights skipped."""
@@ -223,53 +218,10 @@ def _magnitude(c: np.ndarray, s: np.ndarray, out: np.ndarray | None = None) -> n
     return np.sqrt(m, out=m)
 
 
-def _unwrap_step(coarse: np.ndarray, ratio: float, fine_wrapped: np.ndarray,
-                 worst: np.ndarray) -> np.ndarray:
-    """Absolute fine phase from an absolute coarse phase; raises `worst` to the unwrapping
-    residual (fraction of π) where it is larger."""
-    predicted = coarse * np.float32(ratio)
-    fine = np.subtract(predicted, fine_wrapped)
-    fine *= np.float32(1.0 / TWO_PI)
-    np.rint(fine, out=fine)
-    fine *= TWO_PI
-    fine += fine_wrapped
-    predicted -= fine
-    np.abs(predicted, out=predicted)
-    predicted *= np.float32(1.0 / np.pi)
-    np.maximum(worst, predicted, out=worst)
-    return fine
-
-
-def _temporal_unwrap(ps: PatternSet, wrapped: list[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
-    """Absolute phase per frequency and the worst unwrapping residual (fraction of π)."""
-    f = ps.fringes
-    worst = np.zeros_like(wrapped[0])
-    if ps.family == "hierarchical":
-        absolute = [wrapped[0]]
-        for i in range(1, len(f)):
-            absolute.append(_unwrap_step(absolute[-1], f[i] / f[i - 1], wrapped[i], worst))
-        return absolute, worst
-    # three-frequency heterodyne: beat phases with f1-f2 and f2-f3 fringes, and their beat with 1
-    p12 = _wrap_positive(wrapped[0] - wrapped[1])
-    p23 = _wrap_positive(wrapped[1] - wrapped[2])
-    p123 = _wrap_positive(p12 - p23)
-    f12 = f[0] - f[1]
-    a12 = _unwrap_step(p123, f12, p12, worst)  # the f1-f2 beat is the finer one: unwrap all three from it
-    return [_unwrap_step(a12, f[i] / f12, wrapped[i], worst) for i in range(3)], worst
-
-
 def _residual_sigma(ps: PatternSet, phase_sigmas: list[np.ndarray]) -> np.ndarray:
     """Predicted one-sigma of the largest unwrapping residual (fraction of π) from each
-    frequency's phase noise (rad), propagated through the unwrapping steps."""
-    f = ps.fringes
-    var = [s * s for s in phase_sigmas]
-    if ps.family == "hierarchical":
-        steps = [(f[i] / f[i - 1]) ** 2 * var[i - 1] + var[i] for i in range(1, len(f))]
-    else:
-        f12 = f[0] - f[1]
-        v12 = var[0] + var[1]
-        v123 = var[0] + 4 * var[1] + var[2]
-        steps = [f12 ** 2 * v123 + v12] + [(f[i] / f12) ** 2 * v12 + var[i] for i in range(3)]
+    frequency's phase noise (rad), propagated through the family's unwrapping steps."""
+    steps = ps.kind.residual_variances(ps.fringes, [s * s for s in phase_sigmas])
     return np.sqrt(np.maximum.reduce(steps)) / np.float32(np.pi)
 
 
@@ -782,7 +734,7 @@ class _OrientationDecoder:
         stay in cache; numpy and OpenCV release the GIL), then the spatial check on the whole
         map and the consistency checks (`scanner.decode_checks`) from every band's samples."""
         ps, s = self.patterns, self.settings
-        if ps.family == "pixel_graycode":
+        if ps.unwrapping == "pixel_only":
             return self._pixel_graycode_only({"saturated": self.saturated})
         h, w = self.stack.shape[1:]
         n_freq = len(self.blocks)
@@ -813,7 +765,7 @@ class _OrientationDecoder:
         f_max = max(ps.fringes)
         maps = self._finish(masks, usable, out["coordinate"], out["phase"], wrapped, modulation, out["background"],
                             out["weight"], f_max)
-        coded = [self._range(beyond, sum(b["readable"] for b in sums))] if ps.family == "graycode" else []
+        coded = [self._range(beyond, sum(b["readable"] for b in sums))] if ps.gray_bits(self.orientation) else []
         return maps, self._map_checks(sums) + coded + self._ordering(maps)
 
     def _band(self, rows: slice, dest: list[tuple[np.ndarray, np.ndarray]], maps: dict[str, np.ndarray],
@@ -860,7 +812,7 @@ class _OrientationDecoder:
             return np.flatnonzero(grid & usable & ~masks["order_error"])
 
         check_sigma = self.check_noise.sigma  # σ_I (DN) the checks judge by
-        if ps.family == "graycode" and conv.gray_code == "complementary":
+        if ps.unwrapping == "complementary":
             bits = [frame("gray", b) for b in range(ps.gray_bits() + 1)]
             phase, masks["order_error"], half, clear = _graycode_unwrap(wrapped[0], bits, background,
                                                                         modulation[0], s.gray_certainty)
@@ -871,7 +823,7 @@ class _OrientationDecoder:
                 modulation[0].flat[idx], np.float32(1e-6)), np.float32(PATTERN_ERROR)) * sqrt_2n
             maps["phase"][...] = phase
             np.square(modulation[0], out=maps["weight"])
-        elif ps.family == "graycode":  # phase unwrapped by OpenCV's pixel Gray code
+        elif ps.unwrapping == "pixel_phase":  # phase unwrapped by OpenCV's pixel Gray code
             contrast = self.refs[0][rows] - self.refs[1][rows] if self.refs is not None else \
                 np.float32(2.0) * b_fine
             coordinate_g, run, readable, beyond = self._pixel_code(frame, contrast)
@@ -879,7 +831,7 @@ class _OrientationDecoder:
             sums["readable"] = int(((readable | beyond) & usable).sum())
             predicted = (coordinate_g + np.float32(conv.pixel_centre)) * np.float32(2 * np.pi * f_max / self.extent)
             worst = np.zeros_like(background)
-            phase = _unwrap_step(predicted, 1.0, wrapped[0], worst)
+            phase = unwrap_step(predicted, 1.0, wrapped[0], worst)
             quant = np.float32(2 * np.pi * f_max / self.extent / np.sqrt(12.0) / np.pi)
 
             def code_sigma(idx: np.ndarray) -> np.ndarray:
@@ -891,7 +843,7 @@ class _OrientationDecoder:
             maps["phase"][...] = phase
             np.square(modulation[0], out=maps["weight"])
         else:
-            absolute, residual = _temporal_unwrap(ps, wrapped)
+            absolute, residual = ps.kind.unwrap(ps.fringes, wrapped)
 
             def residual_sigma(idx: np.ndarray) -> np.ndarray:
                 return _residual_sigma(ps, [sigma_of(lv)(idx) for lv in range(len(ps.fringes))])
@@ -1083,7 +1035,7 @@ class _OrientationDecoder:
     @property
     def _judges_paths(self) -> bool:
         """Whether this decode looks for second light paths (several phase-shift frequencies)."""
-        return (self.settings.interreflection and self.patterns.family in ("heterodyne", "hierarchical")
+        return (self.settings.interreflection and self.patterns.unwrapping == "temporal"
                 and len(self.patterns.fringes) > 1)
 
     def _pixel_graycode_only(self, masks: dict[str, np.ndarray]) -> tuple[OrientationMaps, list[Check]]:

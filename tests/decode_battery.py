@@ -37,7 +37,7 @@ from scanner.errors import ScannerError
 from scanner.patterns import PatternSet
 from scanner.pipeline import ScanResult, process, scan
 from scanner.rig import RigConfig, open_rig
-from scanner.session import MANIFEST, Session, rig_model_sha256
+from scanner.session import MANIFEST, Session
 
 RIGS = {"bench": CONFIG_DIR / "rigs" / "sim_bench.toml", "turntable": CONFIG_DIR / "rigs" / "sim_turntable.toml"}
 PATTERNS = {"heterodyne": CONFIG_DIR / "patterns" / "heterodyne_3x4.toml",

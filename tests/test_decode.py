@@ -150,7 +150,7 @@ def test_second_path_mask_matches_the_whole_image_rule(monkeypatch) -> None:
     departing from its image-wide median by more than 15 % and 5 sigma; medians over every
     k-th judged pixel in raster order (thinned here as on a full-size image). The stack has
     a patch lit also by a second path (20 %, 37 projector px away) across band edges."""
-    from scanner.decode import _SecondPaths, _temporal_unwrap
+    from scanner.decode import _SecondPaths
 
     monkeypatch.setattr(_SecondPaths, "MEDIAN_SAMPLE", 5000)
     ps = FAMILIES["heterodyne"]
@@ -166,7 +166,7 @@ def test_second_path_mask_matches_the_whole_image_rule(monkeypatch) -> None:
     candidates = usable & ~m.masks["order_error"]
     s, f_max = DecodeSettings(), max(ps.fringes)
     sigma_b = m.noise.sigma(m.background) * np.float32(np.sqrt(2.0 / ps.steps))
-    absolute, _ = _temporal_unwrap(ps, m.wrapped)
+    absolute, _ = ps.kind.unwrap(ps.fringes, m.wrapped)
     scaled = [a * np.float32(f_max / f) for a, f in zip(absolute, ps.fringes)]
     noise = [sigma_b / np.maximum(b, np.float32(1e-6)) * np.float32(f_max / f) for b, f in zip(m.modulation, ps.fringes)]
 
