@@ -413,3 +413,18 @@ def sensor_noise_terms(rig_config: dict[str, Any], bit_depth: int) -> tuple[floa
     g = float(table["full_well_e"]) / float(2 ** bit_depth - 1)
     read_e = float(table.get("read_noise_e", 0.0))
     return (read_e / g) ** 2 + 1.0 / 12.0, 1.0 / g
+
+
+def epipolar(v_measured: np.ndarray, v_sigma: np.ndarray, v_from_u: np.ndarray, v_from_u_shifted: np.ndarray,
+             u_sigma: np.ndarray, shift_px: float, accuracy: float, noise_source: str, model_px: float) -> Check:
+    """With both fringe orientations on a calibrated rig, the two projector coordinates of a
+    pixel must meet the epipolar geometry: the point the column u triangulates projects to
+    the row v the horizontal fringes measured. Per pixel (arrays over the judged pixels),
+    z² = (v − v(u))² / (σ_v² + (∂v/∂u)²·σ_u² + 2·model_px²), ∂v/∂u from `v_from_u_shifted`
+    (u + shift_px), `model_px` the rig model's stated reprojection RMS (its error in the
+    camera's and the projector's image), is χ²_1: a noise-scale test."""
+    dvdu = (v_from_u_shifted - v_from_u) / shift_px
+    z2 = np.square(v_measured - v_from_u) / (np.square(v_sigma) + np.square(dvdu * u_sigma) + 2 * model_px ** 2)
+    return scale_check("epipolar", "cloud", z2.astype(np.float64), 1, accuracy, noise_source,
+                       "the wrong rig model (intrinsics, principal points or the projector's pose), or a wrong "
+                       "projector size?", "the two coordinates' distance from the epipolar geometry")

@@ -23,12 +23,16 @@ from scanner.acquisition import (
 )
 from scanner.decode import DecodeResult, DecodeSettings, NoiseModel, decode
 from scanner.decode_checks import (
+    FITTED_MODEL_ACCURACY,
+    SENSOR_MODEL_ACCURACY,
     Check,
     ConsistencyError,
     Volume,
     direction,
+    epipolar,
     failed,
     measurement_volume,
+    not_judged,
     rig_model_tie,
     sensor_noise_terms,
 )
@@ -267,7 +271,49 @@ def rig_checks(session: Session, decoded: DecodeResult, cloud: OrganisedCloud | 
     if cloud is not None and len(cloud):
         volume = Volume.of_rig_config(session.manifest.get("rig_config", {}))
         out.append(measurement_volume(cloud.points, model, volume, tuple(decoded.maps)))
+    if calibrated and set(decoded.maps) == {"vertical", "horizontal"}:
+        accuracy = model_accuracy_px(session, model)
+        out.append(not_judged("epipolar", "cloud", "x noise", "the rig model's error on a new view is not known (a "
+                              "calibration states its RMS on its own views only)") if accuracy is None else
+                   epipolar_check(decoded, model, sensor_noise(session) is not None, accuracy))
     return out
+
+
+def model_accuracy_px(session: Session, model: RigModel) -> float | None:
+    """How well the rig model places a point (px, one sigma), when that is known: 0 for a
+    simulated rig's nominal geometry (the simulator's truth). A calibration file states its
+    reprojection RMS on its own views only, not its error on a new one (on the real procam
+    capture the epipolar distance is twice that RMS allows), and a nominal hardware geometry
+    states nothing: None, the epipolar check is then not judged."""
+    imported = session.manifest.get("import", {}).get("calibration")
+    driver = session.manifest.get("rig_config", {}).get("rig", {}).get("driver")
+    return 0.0 if driver == "sim" and not model.calibration and not imported else None
+
+
+def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: bool, model_px: float) -> Check:
+    """`decode_checks.epipolar` on every 4th pixel of every 4th row valid in both orientations:
+    the depth from the orientation that fixes it best (the smaller |dz/dcoordinate|, along the
+    baseline), the other coordinate that depth predicts through the rig, and the same from a
+    coordinate half a pixel further; `model_px` the rig model's own reprojection error (px)."""
+    sample = np.zeros(decoded.valid.shape, bool)
+    sample[::4, ::4] = True
+    sample &= decoded.valid
+    tri = Triangulator(model)
+    sensitivity = {o: float(np.nanmedian(tri.depth_scale(np.where(sample, decoded.maps[o].coordinate, np.nan), o,
+                                                         True)[1][sample])) for o in ("vertical", "horizontal")}
+    source = min(sensitivity, key=sensitivity.__getitem__)
+    other = "horizontal" if source == "vertical" else "vertical"
+    rays = model.camera.ray_grid[sample].astype(np.float64)
+    predicted = []
+    for shift in (0.0, 0.5):
+        z = tri.depth_scale(np.where(sample, decoded.maps[source].coordinate + np.float32(shift), np.nan), source)
+        in_projector = (rays * z[sample][:, None]) @ model.proj_from_cam[:3, :3].T + model.proj_from_cam[:3, 3]
+        predicted.append(model.projector.project(in_projector)[:, 1 if other == "horizontal" else 0])
+    accuracy = SENSOR_MODEL_ACCURACY if sensor else FITTED_MODEL_ACCURACY
+    measured, given = decoded.maps[other], decoded.maps[source]
+    return epipolar(measured.coordinate[sample].astype(np.float64), measured.coordinate_sigma[sample].astype(np.float64),
+                    predicted[0], predicted[1], given.coordinate_sigma[sample].astype(np.float64), 0.5, accuracy,
+                    "sensor model" if sensor else "noise model fitted to the frames", model_px)
 
 
 def sensor_noise(session: Session) -> NoiseModel | None:

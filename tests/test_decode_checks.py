@@ -12,6 +12,7 @@ from scanner.decode_checks import (
     ConsistencyError,
     Volume,
     direction,
+    epipolar,
     measurement_volume,
     ordering,
     scale_threshold,
@@ -143,3 +144,18 @@ def test_direction_and_volume_from_the_rig_geometry() -> None:
     far = measurement_volume(points, rig, Volume(360.0, 440.0, "declared"), ("vertical",))
     assert far.passed is False and far.figures["median_depth_mm"] == pytest.approx(np.median(depth), rel=0.01)
     assert "median depth found" in far.refusal()
+
+
+def test_epipolar_statistic_is_chi2_of_the_predicted_spread() -> None:
+    """v measured with noise σ_v; v predicted from u with noise σ_u through dv/du = 1.7:
+    the distance is N(0, σ_v² + 1.7²σ_u²), so its χ²_1 scale is 1; a row offset of 3 σ fails."""
+    rng = np.random.default_rng(5)
+    n = 20000
+    v = rng.uniform(0, 1000, n)
+    su, sv = np.full(n, 0.04), np.full(n, 0.03)
+    v_from_u = v + 1.7 * rng.normal(0, 0.04, n)
+    measured = v + rng.normal(0, 0.03, n)
+    ok = epipolar(measured, sv, v_from_u, v_from_u + 1.7 * 0.5, su, 0.5, 0.1, "test", 0.0)
+    assert ok.passed and ok.statistic == pytest.approx(1.0, abs=0.05)
+    off = epipolar(measured + 3 * np.hypot(0.03, 1.7 * 0.04), sv, v_from_u, v_from_u + 0.85, su, 0.5, 0.1, "test", 0.0)
+    assert off.passed is False and off.statistic > 5
