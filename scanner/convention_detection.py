@@ -335,6 +335,12 @@ def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
     conv = replace(given, **{k: getattr(best.conventions, k) for k in layout_keys})
     conv, more = _phase_keys(stack, ps.with_conventions(conv), best_ev, projector_size, bit_depth, rig)
     findings += more
+    if ps.kind.has_phase:  # how long a period is: the description's (the frames show only its count)
+        rounding = patterns.conventions.period_rounding
+        extent = projector_size[0] if ps.orientations[0] == "vertical" else projector_size[1]
+        periods = ", ".join(f"{extent / f:.3f}" for f in ps.fringes)
+        findings.append(Finding("period_rounding", rounding or NATIVE.period_rounding,
+                                "given" if rounding else "assumed", f"periods of {periods} px"))
     return Detection(ps.with_conventions(conv.filled(NATIVE)), findings)
 
 
