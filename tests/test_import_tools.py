@@ -161,3 +161,12 @@ def test_a_wrong_pixel_centre_is_not_observable_and_said_so() -> None:
     found = {f.key: f for f in detect(stack, right.with_conventions(replace(right.conventions, pixel_centre=None)),
                                       8, PROJ, RIG).findings}
     assert found["pixel_centre"].source == "assumed" and "cannot show it" in found["pixel_centre"].evidence
+
+
+@pytest.mark.parametrize("name", ["shifted_graycode", "four_level_intensity"])
+def test_an_unsupported_family_is_refused_as_such(name: str, tmp_path: Path) -> None:
+    from scanner.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=f"pattern family '{name}' is not supported \\(supported: heterodyne, "
+                                          f"hierarchical, graycode, pixel_graycode\\)"):
+        PatternSet.from_dict({"family": name, "steps": 4, "fringes": [16]}, tmp_path / "p.toml")
