@@ -51,6 +51,7 @@ CHUNK_ROWS = 128  # rows decoded together (a band's float32 maps fit in cache)
 SAMPLE_STEP = 4  # the consistency checks judge every 4th pixel of every 4th row
 SENSOR_MODEL = "sensor model"
 FITTED_MODEL = "noise model fitted to the frames"
+SPATIAL_MODEL = "frames' noise along the fringes (an upper bound)"
 
 
 @dataclass(frozen=True)
@@ -580,7 +581,30 @@ def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int,
     # median variance in background bins (unbiased for the χ² of the residuals), then a line
     # through them with non-negative read and shot terms
     dof = steps - 3 if steps > 3 else 1
-    unbias = _CHI2_MEDIAN[dof - 1] if dof <= len(_CHI2_MEDIAN) else (1 - 2 / (9 * dof)) ** 3
+    return _noise_line(a, v, _CHI2_MEDIAN[dof - 1] if dof <= len(_CHI2_MEDIAN) else (1 - 2 / (9 * dof)) ** 3)
+
+
+def spatial_noise(stack: np.ndarray, block: list[int], orientation: str, full_scale: float) -> NoiseModel:
+    """The intensity-noise model of a stack from its frames alone, without the N-step fit
+    residual (which it can then judge): along the fringes (camera columns for vertical
+    fringes, rows for horizontal) a frame varies only with the scene, so the second
+    difference of neighbours, I[i−1] − 2I[i] + I[i+1], has variance 6·σ_I² plus the scene's
+    fine texture and the fringes' tilt: an upper bound of the noise, from every 8th line of
+    the phase frames of `block`, medians in background bins (χ²_1 unbiased)."""
+    lines = stack[block][:, :, ::8] if orientation == "vertical" else np.swapaxes(stack[block][:, ::8, :], 1, 2)
+    f = lines.astype(np.float64)  # (frames, along the fringes, across)
+    d2 = f[:, :-2] - 2.0 * f[:, 1:-1] + f[:, 2:]
+    inside = (f.max(axis=0) < full_scale) & (f.min(axis=0) > 0)  # not clipped in any frame
+    ok = inside[:-2] & inside[1:-1] & inside[2:]
+    if ok.sum() < 50:
+        return NoiseModel(1.0, 0.0)
+    return _noise_line(f[:, 1:-1][:, ok].ravel(), (d2[:, ok] ** 2 / 6.0).ravel(), _CHI2_MEDIAN[0])
+
+
+def _noise_line(a: np.ndarray, v: np.ndarray, unbias: float) -> NoiseModel:
+    """σ_I² = read + shot·A through per-pixel variance samples `v` at levels `a`: the median
+    of each of 8 level bins (divided by `unbias`, the median of the samples' χ² over its
+    mean), a line with non-negative terms, read at least the quantisation 1/12 DN²."""
     edges = np.quantile(a, np.linspace(0, 1, 9))
     centres, medians = [], []
     for lo, hi in zip(edges[:-1], edges[1:]):
@@ -680,10 +704,13 @@ def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
     maps: dict[str, OrientationMaps] = {}
     checks: list[Check] = []
     check_noise, source = (sensor_noise, SENSOR_MODEL) if sensor_noise is not None else (noise, FITTED_MODEL)
+    residual_noise = sensor_noise if sensor_noise is not None or patterns.steps < 4 else spatial_noise(
+        stack, phase_blocks[patterns.orientations[0]][0], patterns.orientations[0], full_scale)
     for orientation in patterns.orientations:
         extent = projector_size[0] if orientation == "vertical" else projector_size[1]
         decoder = _OrientationDecoder(stack, patterns, orientation, extent, index, phase_blocks[orientation],
-                                      saturated, refs, noise, full_scale, settings, check_noise, source)
+                                      saturated, refs, noise, full_scale, settings, check_noise, source,
+                                      residual_noise)
         maps[orientation], found = decoder.run()
         checks += found
     if settings.self_check and failed(checks):
@@ -711,6 +738,7 @@ class _OrientationDecoder:
     settings: DecodeSettings
     check_noise: NoiseModel  # the intensity noise the checks judge by (`noise_source`)
     noise_source: str
+    residual_noise: NoiseModel | None  # the noise the fit residual is judged by: not fitted to it (None: not judged)
 
     def _frame(self, kind: str, level: int) -> np.ndarray:
         return self.stack[self.index[(self.orientation, kind, level, 0)]]
@@ -907,15 +935,16 @@ class _OrientationDecoder:
             frames = stack[block].reshape(ps.steps, -1)[:, idx].astype(np.float64)
             res = residual @ frames
             b2 = np.square(cos_sin @ frames).sum(axis=0)
-            var = np.square(self.check_noise.sigma(frames.mean(axis=0)), dtype=np.float64) + PATTERN_ERROR ** 2 * b2
+            var = np.square(self.residual_noise.sigma(frames.mean(axis=0)), dtype=np.float64) + PATTERN_ERROR ** 2 * b2
             z2[g] = (res * res).sum(axis=0) / var
         return z2
 
     @property
     def judges_residual(self) -> bool:
         """Whether this decode judges the N-step fit's residual: N >= 4 (three steps fit any
-        three values) and an intensity-noise model that did not come from that residual."""
-        return self.patterns.steps >= 4 and self.noise_source == SENSOR_MODEL
+        three values) against a noise model that did not come from that residual (the sensor
+        model, or the frames' spatial noise along the fringes: `spatial_noise`)."""
+        return self.patterns.steps >= 4 and self.residual_noise is not None
 
     def _map_checks(self, sums: list[dict[str, Any]]) -> list[Check]:
         """The checks this orientation's maps support (docs/consistency.md), from the bands' samples."""
@@ -929,15 +958,15 @@ class _OrientationDecoder:
             if "residual_z2" in joined:
                 z2 = joined["residual_z2"]
                 worst = self.blocks[int(np.argmax(np.median(z2, axis=1)))] if z2.shape[1] else [0]
+                spatial = self.noise_source != SENSOR_MODEL
                 out.append(scale_check("phase_residual", o, z2.sum(axis=0), len(self.blocks) * (ps.steps - 3),
-                                       accuracy, self.noise_source,
+                                       FITTED_MODEL_ACCURACY if spatial else SENSOR_MODEL_ACCURACY,
+                                       SPATIAL_MODEL if spatial else self.noise_source,
                                        f"the frames do not follow the patterns: frame {worst[0]} (step group "
                                        f"{worst[0]}..{worst[-1]}) fits worst; frames swapped, repeated or from "
                                        f"another scan?", "each pixel's N-step fit residual"))
             else:
-                out.append(not_judged("phase_residual", o, "x noise", "three steps leave no residual"
-                                      if ps.steps < 4 else "no sensor model (the rig file's [camera.sensor]); the "
-                                      "noise was fitted to this very residual"))
+                out.append(not_judged("phase_residual", o, "x noise", "three steps leave no residual"))
         if "frequencies" in sums[0]:
             q = np.concatenate([b["frequencies"]["q"] for b in sums])
             d = np.concatenate([b["frequencies"]["d"] for b in sums])
