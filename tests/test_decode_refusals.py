@@ -12,6 +12,7 @@ import pytest
 from test_inputs_session import PATTERNS, SCENE, edit_manifest, one_error_line, run_cli, small_rig
 
 from scanner.pipeline import scan
+from scanner.recording_reader import entity_paths
 from scanner.rig import open_rig
 from scanner.session import MANIFEST
 
@@ -56,6 +57,9 @@ def test_steps_in_reverse_order_refused_as_such(copy: Path) -> None:
     line, checks = refused(copy)
     assert "direction (vertical) failed" in line and "most likely: phase steps in reverse order" in line
     assert checks["direction"]["statistic"] < 0.1 and checks["direction"]["threshold"] == 0.5
+    paths = entity_paths(copy / "recording.rrd")  # the refusal's figures in the recording too
+    assert {"metrics/consistency/direction/vertical/statistic", "metrics/consistency/direction/vertical/threshold",
+            "events"} <= set(paths)
 
 
 def test_edited_rig_model_refused_unless_given_on_purpose(copy: Path, tmp_path: Path) -> None:
