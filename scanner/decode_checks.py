@@ -10,25 +10,29 @@ ordering of coordinates along each line), `scanner.pipeline` adds those that nee
 (the coordinate's direction, the measuring volume, the epipolar geometry, the rig model's
 tie to its calibration) and refuses the whole decode when any fails (`ConsistencyError`).
 
-Three kinds of threshold, no tuned constants:
+Four kinds of threshold, no constant tuned to a case:
 - noise scales: a per-pixel statistic z² that the noise model makes χ²_k; the image's
   median z² over the χ²_k median must stay below the α = ALPHA quantile of that ratio's
   sampling distribution, widened by the noise model's stated accuracy (1 + u)²;
 - discrete faults: a statistic whose alternatives are discrete (a phase step, a π/2
   origin) is judged at the midpoint between agreement and the smallest fault, with the
   false-refusal rate of its standard error there;
-- majorities: a map that runs backwards, a cloud outside the volume, codes beyond the
-  projector: refused when most of the judged pixels say so (a scene can break these
-  locally — an overhang, a thin object — but not on most pixels).
+- majorities: a map that runs backwards or out of order, a cloud outside the volume, fringe
+  orders failing: refused when most of what is judged says so (a scene can break these
+  locally — an overhang, a thin object, a second light path — but not on most of it);
+- impossibilities: a region of Gray codes naming pixels the projector does not have (a
+  misread is an isolated pixel, masked; a wrong size or period count makes a region), a rig
+  model other than the one recorded at capture.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from statistics import NormalDist
 from typing import Any
 
 import numpy as np
+
 from scanner.errors import DecodeError
 
 ALPHA = 1e-4  # false-refusal rate of each noise-scale test when the noise model holds
@@ -175,7 +179,6 @@ def scale_check(name: str, scope: str, z2: np.ndarray, dof: int, accuracy: float
                  figures={"flagged_fraction_at_1e-3": flagged})
 
 
-
 # ---- discrete-fault tests ----------------------------------------------------------------
 
 
@@ -186,16 +189,10 @@ def offset_check(name: str, scope: str, offset: float, standard_error: float, fa
     standard error there."""
     threshold = abs(fault) / 2.0
     z = threshold / max(standard_error, 1e-12)
-    rate = float(2 * _normal_tail(z))
+    rate = 2.0 * NormalDist().cdf(-z)
     return Check(name, scope, abs(offset), threshold, unit, f"{what} is 0 (a one-step fault makes {abs(fault):.3g})",
                  abs(offset) <= threshold, cause, f"{rate:.1g} (offset's standard error {standard_error:.2g} {unit})",
                  judged, figures={"offset": offset})
-
-
-def _normal_tail(z: float) -> float:
-    from math import erfc, sqrt
-
-    return 0.5 * erfc(z / sqrt(2.0))
 
 
 def majority_check(name: str, scope: str, share: float | None, judged: int, unit: str, expected: str,
@@ -271,8 +268,7 @@ def ordering(coordinate: np.ndarray, valid: np.ndarray, sigma: np.ndarray, perio
 
 
 def replace_figures(check: Check, figures: dict[str, float]) -> Check:
-    from dataclasses import replace
-
+    """`check` with more figures."""
     return replace(check, figures={**check.figures, **figures})
 
 
