@@ -210,7 +210,9 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     n_points = len(cloud) if cloud is not None else 0
     stats = {"points": n_points, "valid_fraction": round(float(decoded.valid.mean()), 5),
              "rejected": decoded.rejected(), "consistency": [c.as_dict() for c in checks],
-             "noise_source": "sensor model" if sensor_noise(session) is not None else "fitted to the frames",
+             "noise_source": "sensor model" if sensor_noise(session) is not None else
+             "the frames (fitted to their N-step residuals; the residual itself judged by their noise along the "
+             "fringes)",
              "rig_model": rig_model_source or "the session's", "integrity": session.integrity}
     if settings.self_check and failed(checks):
         refusal = ConsistencyError(f"{session.root}: ", checks)
