@@ -313,8 +313,9 @@ def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: bool, model_p
         predicted.append(model.projector.project(in_projector)[:, 1 if other == "horizontal" else 0])
     accuracy = SENSOR_MODEL_ACCURACY if sensor else FITTED_MODEL_ACCURACY
     measured, given = decoded.maps[other], decoded.maps[source]
-    return epipolar(measured.coordinate[sample].astype(np.float64), measured.coordinate_sigma[sample].astype(np.float64),
-                    predicted[0], predicted[1], given.coordinate_sigma[sample].astype(np.float64), 0.5, accuracy,
+    return epipolar(measured.coordinate[sample].astype(np.float64),
+                    measured.coordinate_sigma[sample].astype(np.float64), predicted[0], predicted[1],
+                    given.coordinate_sigma[sample].astype(np.float64), 0.5, accuracy,
                     "sensor model" if sensor else "noise model fitted to the frames", model_px)
 
 
