@@ -80,7 +80,7 @@ class Check:
             return f"{self.name} ({self.scope}): not judged: {self.note}"
         verdict = "ok" if self.passed else "FAILED"
         return (f"{self.name} ({self.scope}): {_fmt(self.statistic)} {self.unit}, limit {_fmt(self.threshold)} "
-                f"{self.unit}: {verdict}")
+                f"{self.unit}: {verdict}" + (f" ({self.note})" if self.note else ""))
 
     def refusal(self) -> str:
         """One sentence for a failed check: the check, the figure, what was expected, the cause."""
@@ -378,13 +378,22 @@ def measurement_volume(points: np.ndarray, rig: Any, volume: Volume, orientation
     return replace_figures(check, {"median_depth_mm": depth})
 
 
-def rig_model_tie(recorded: str | None, used: dict[str, Any], override: str | None) -> Check:
+def rig_model_tie(recorded: str | None, used: dict[str, Any], override: str | None,
+                  calibration: tuple[str, str] | None = None) -> Check:
     """The rig model a decode uses must be the one the session was captured with (its
-    SHA-256 in the manifest), unless the user gives another on purpose (`override`)."""
-    name = "rig_model"
-    from scanner.session import rig_model_sha256
+    SHA-256 in the manifest), unless the user gives another on purpose (`override`).
+    `calibration`: (the file the recorded model came from, its SHA-256 at capture), to say
+    when that file has changed since (the session still decodes with the model it recorded)."""
+    from scanner.session import calibration_sha256, rig_model_sha256
 
+    name = "rig_model"
     actual = rig_model_sha256(used)
+    note = ""
+    if calibration is not None:
+        now = calibration_sha256(calibration[0]).get("calibration_sha256")
+        if now != calibration[1]:
+            note = (f"the calibration file {calibration[0]} {'changed' if now else 'is gone'} since the capture; the "
+                    f"session decodes with the model it recorded (--rig-model {calibration[0]} for the new one)")
     if override is not None:
         return Check(name, "session", None, None, "", "", None, "", "", 0,
                      f"given on purpose: {override} (sha256 {actual[:12]}), recorded {str(recorded)[:12]}")
@@ -394,7 +403,7 @@ def rig_model_tie(recorded: str | None, used: dict[str, Any], override: str | No
     return Check(name, "session", float(ok), 1.0, "(1: the same)",
                  f"the rig model is the one recorded at capture (sha256 {recorded[:12]})", ok,
                  "the manifest's rig model was edited after the capture; give the model you mean with --rig-model "
-                 "FILE", "0 (a checksum)", 1, figures={})
+                 "FILE", "0 (a checksum)", 1, note)
 
 
 def sensor_noise_terms(rig_config: dict[str, Any], bit_depth: int) -> tuple[float, float] | None:

@@ -188,8 +188,11 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
         stack = session.load_stack() if frames is None else np.stack([frames[k] for k in range(len(frames))])
         model = rig_model or session.rig_model()
         stacks = exposure_stacks(session, stack, model)
+    named = session.manifest["rig_model"].get("calibration")
     tie = rig_model_tie(session.manifest.get("rig_model_sha256"), model.to_dict() if rig_model is not None else
-                        session.manifest["rig_model"], rig_model_source)
+                        session.manifest["rig_model"], rig_model_source,
+                        (named, session.manifest["calibration_sha256"]) if named and
+                        session.manifest.get("calibration_sha256") else None)
     progress("decode", 0, 1)
     with timer.stage("decode"):
         decoded = decode_exposures(session, stacks, model, replace(settings, self_check=False))

@@ -8,8 +8,9 @@ Layout (all files appear complete or not at all):
                              l and K), when its calibration has them (a hard link to the
                              calibration's where possible): the session decodes alone
     manifest.json            written last, atomically, once the capture is complete: rig config
-                             snapshot, rig model (with the calibration file it came from) and the
-                             SHA-256 of its canonical JSON (`rig_model_sha256`), pattern
+                             snapshot, rig model (with the calibration file it came from), the
+                             SHA-256 of its canonical JSON (`rig_model_sha256`) and of that file
+                             (`calibration_sha256`), pattern
                              set, device settings, software version, timings, frame list, and
                              (`exposure`) the exposures chosen and why: a multi-exposure (HDR)
                              session holds the whole pattern set once per exposure, frames
@@ -158,6 +159,15 @@ def sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
+def calibration_sha256(path: str) -> dict[str, str]:
+    """{"calibration_sha256": the SHA-256 of the calibration file a rig model names} when it
+    names a readable one, else {}: what the session's model came from, by content."""
+    try:
+        return {"calibration_sha256": sha256(Path(path).read_bytes())} if path else {}
+    except OSError:
+        return {}
+
+
 def rig_model_sha256(model_dict: dict[str, Any]) -> str:
     """The SHA-256 of a rig model's description (`RigModel.to_dict`, JSON-ready) in canonical
     JSON: what a manifest records at capture, to know later whether it was edited."""
@@ -226,7 +236,7 @@ class SessionWriter:
             "python": platform.python_version(), "created": self.started.isoformat(),
             "completed": dt.datetime.now(dt.timezone.utc).isoformat(),
             "rig_config": rig_config, "rig_model": rig_model, "rig_model_sha256": rig_model_sha256(rig_model),
-            "patterns": patterns.to_dict(),
+            **calibration_sha256(model.calibration), "patterns": patterns.to_dict(),
             "devices": devices, "timings_s": timings, "frames": self.frames, **(extra or {}),
         }
         try:
@@ -302,6 +312,7 @@ class Manifest(schema.Schema):
     frames: Annotated[list[FrameEntry], Field(min_length=1)]
     exposure: ExposureRecord | None = None
     rig_model_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # of rig_model
+    calibration_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # its file's
 
     @model_validator(mode="after")
     def _frames(self) -> Manifest:

@@ -170,3 +170,23 @@ def test_epipolar_statistic_is_chi2_of_the_predicted_spread() -> None:
     assert ok.passed and ok.statistic == pytest.approx(1.0, abs=0.05)
     off = epipolar(measured + 3 * np.hypot(0.03, 1.7 * 0.04), sv, v_from_u, v_from_u + 0.85, su, 0.5, 0.1, "test", 0.0)
     assert off.passed is False and off.statistic > 5
+
+
+def test_rig_model_tied_to_its_recorded_hash_and_calibration_file(tmp_path) -> None:
+    """The recorded model's SHA-256 refuses an edited one; a calibration file changed since the
+    capture is said (the session keeps decoding with the model it recorded)."""
+    from scanner.decode_checks import rig_model_tie
+    from scanner.session import calibration_sha256, rig_model_sha256
+
+    model = {"camera": {"K": [[1000.0, 0, 640], [0, 1000.0, 512], [0, 0, 1]]}, "cam_from_proj": [[1.0]]}
+    cal = tmp_path / "calibration.json"
+    cal.write_text('{"rig_model": 1}')
+    recorded = (str(cal), calibration_sha256(str(cal))["calibration_sha256"])
+    assert rig_model_tie(rig_model_sha256(model), model, None, recorded).passed
+    edited = {**model, "camera": {"K": [[1010.0, 0, 640], [0, 1000.0, 512], [0, 0, 1]]}}
+    refused = rig_model_tie(rig_model_sha256(model), edited, None, recorded)
+    assert refused.passed is False and "--rig-model" in refused.refusal()
+    assert rig_model_tie(rig_model_sha256(model), edited, "other.json").passed is None  # on purpose
+    cal.write_text('{"rig_model": 2}')
+    changed = rig_model_tie(rig_model_sha256(model), model, None, recorded)
+    assert changed.passed and "changed since the capture" in changed.line()
