@@ -980,7 +980,8 @@ class _OrientationDecoder:
             out.append(self._gray_edges(joined["gray_offset"], joined["phase_sigma"]))
         out.append(majority_check("fringe_orders", o, total["order_bad"] / max(total["usable"], 1), total["usable"],
                                   "of usable pixels", "a fringe order consistent with the noise on most pixels",
-                                  "wrong fringe counts, frame order or projector size?"))
+                                  "wrong fringe counts, frame order or projector size, or phase steps rotated by "
+                                  "half a group (every phase half a period off: no order fits)?"))
         return out
 
     def _frequency_offset(self, d: np.ndarray) -> Check:

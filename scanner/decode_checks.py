@@ -108,7 +108,7 @@ class ConsistencyError(DecodeError):
                          f"the frames are kept")
 
 
-LEAD = ("rig_model", "direction", "phase_residual", "frequency_offset", "gray_offset", "gray_edges", "ordering",
+LEAD = ("rig_model", "pattern_set", "direction", "phase_residual", "frequency_offset", "gray_offset", "gray_edges", "ordering",
         "frequency_agreement", "projector_range", "fringe_orders", "measurement_volume", "epipolar")
 """The order in which failed checks name a refusal's cause: the most specific diagnosis
 first (a map that runs backwards also spreads its frequencies and leaves the volume)."""
@@ -404,6 +404,23 @@ def rig_model_tie(recorded: str | None, used: dict[str, Any], override: str | No
                  f"the rig model is the one recorded at capture (sha256 {recorded[:12]})", ok,
                  "the manifest's rig model was edited after the capture; give the model you mean with --rig-model "
                  "FILE", "0 (a checksum)", 1, note)
+
+
+def pattern_set_tie(recorded: str | None, used: dict[str, Any]) -> Check:
+    """The pattern set a decode reads the frames with must be the one recorded at capture (its
+    SHA-256 in the manifest): a fringe count edited afterwards keeps the frame count and, for a
+    Gray-code set, the frames' own consistency (code and phase agree under any count), and
+    scales every coordinate."""
+    from scanner.session import rig_model_sha256
+
+    name = "pattern_set"
+    if recorded is None:
+        return not_judged(name, "session", "", "the session records no pattern-set checksum (written before them)")
+    ok = rig_model_sha256(used) == recorded
+    return Check(name, "session", float(ok), 1.0, "(1: the same)",
+                 f"the pattern set is the one recorded at capture (sha256 {recorded[:12]})", ok,
+                 "the manifest's pattern set was edited after the capture (a wrong fringe count or convention?)",
+                 "0 (a checksum)", 1)
 
 
 def sensor_noise_terms(rig_config: dict[str, Any], bit_depth: int) -> tuple[float, float] | None:

@@ -24,6 +24,7 @@ from scanner.acquisition import (
 from scanner.decode import DecodeResult, DecodeSettings, NoiseModel, decode
 from scanner.decode_checks import (
     FITTED_MODEL_ACCURACY,
+    MIN_JUDGED,
     SENSOR_MODEL_ACCURACY,
     Check,
     ConsistencyError,
@@ -33,6 +34,7 @@ from scanner.decode_checks import (
     failed,
     measurement_volume,
     not_judged,
+    pattern_set_tie,
     rig_model_tie,
     sensor_noise_terms,
 )
@@ -206,7 +208,8 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
             cloud = triangulate(decoded, Triangulator(model))
         else:
             cloud = phase_to_height_cloud(decoded, model)
-    checks = [tie, *decoded.checks, *rig_checks(session, decoded, cloud, model, calibrated)]
+    described = pattern_set_tie(session.manifest.get("patterns_sha256"), session.manifest["patterns"])
+    checks = [tie, described, *decoded.checks, *rig_checks(session, decoded, cloud, model, calibrated)]
     progress("write", 0, 1)
     out = session.root / OUTPUTS_DIR
     out.mkdir(exist_ok=True)
@@ -303,10 +306,15 @@ def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: bool, model_p
     sample = np.zeros(decoded.valid.shape, bool)
     sample[::4, ::4] = True
     sample &= decoded.valid
+    if sample.sum() < MIN_JUDGED:
+        return not_judged("epipolar", "cloud", "x noise", f"{int(sample.sum())} pixels valid in both orientations")
     tri = Triangulator(model)
-    sensitivity = {o: float(np.nanmedian(tri.depth_scale(np.where(sample, decoded.maps[o].coordinate, np.nan), o,
-                                                         True)[1][sample])) for o in ("vertical", "horizontal")}
-    source = min(sensitivity, key=sensitivity.__getitem__)
+    dz = {o: tri.depth_scale(np.where(sample, decoded.maps[o].coordinate, np.nan), o, True)[1][sample]
+          for o in ("vertical", "horizontal")}
+    dz = {o: d[np.isfinite(d)] for o, d in dz.items()}  # pixels no depth reaches are left out
+    if min(d.size for d in dz.values()) < MIN_JUDGED:
+        return not_judged("epipolar", "cloud", "x noise", "too few pixels the rig places in both orientations")
+    source = min(dz, key=lambda o: float(np.median(dz[o])))
     other = "horizontal" if source == "vertical" else "vertical"
     rays = model.camera.ray_grid[sample].astype(np.float64)
     predicted = []

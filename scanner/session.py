@@ -10,8 +10,8 @@ Layout (all files appear complete or not at all):
     manifest.json            written last, atomically, once the capture is complete: rig config
                              snapshot, rig model (with the calibration file it came from), the
                              SHA-256 of its canonical JSON (`rig_model_sha256`) and of that file
-                             (`calibration_sha256`), pattern
-                             set, device settings, software version, timings, frame list, and
+                             (`calibration_sha256`), pattern set (and its `patterns_sha256`),
+                             device settings, software version, timings, frame list, and
                              (`exposure`) the exposures chosen and why: a multi-exposure (HDR)
                              session holds the whole pattern set once per exposure, frames
                              i·N .. i·N + N − 1 at exposures_s[i] (ascending), every one kept
@@ -169,8 +169,9 @@ def calibration_sha256(path: str) -> dict[str, str]:
 
 
 def rig_model_sha256(model_dict: dict[str, Any]) -> str:
-    """The SHA-256 of a rig model's description (`RigModel.to_dict`, JSON-ready) in canonical
-    JSON: what a manifest records at capture, to know later whether it was edited."""
+    """The SHA-256 of a description (a rig model's `RigModel.to_dict`, a pattern set's
+    `PatternSet.to_dict`; JSON-ready) in canonical JSON: what a manifest records at capture,
+    to know later whether it was edited."""
     return sha256(json.dumps(model_dict, sort_keys=True, separators=(",", ":"), allow_nan=False).encode())
 
 
@@ -237,6 +238,7 @@ class SessionWriter:
             "completed": dt.datetime.now(dt.timezone.utc).isoformat(),
             "rig_config": rig_config, "rig_model": rig_model, "rig_model_sha256": rig_model_sha256(rig_model),
             **calibration_sha256(model.calibration), "patterns": patterns.to_dict(),
+            "patterns_sha256": rig_model_sha256(json_ready(patterns.to_dict())),
             "devices": devices, "timings_s": timings, "frames": self.frames, **(extra or {}),
         }
         try:
@@ -313,6 +315,7 @@ class Manifest(schema.Schema):
     exposure: ExposureRecord | None = None
     rig_model_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # of rig_model
     calibration_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # its file's
+    patterns_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # of patterns
 
     @model_validator(mode="after")
     def _frames(self) -> Manifest:

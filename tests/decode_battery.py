@@ -10,7 +10,8 @@ bound: resolution-independent). Each clean session is decoded (a refusal is a fa
 then faults drawn at random are made from it by permuting or replacing its frames, or editing
 its manifest, as a faulty capture or a careless edit would, and decoded through the same path
 (`scanner.pipeline.process`). A fault's outcome is "refused" (with the right reason when the
-check that leads the refusal is one the fault can break: `RIGHT`), or exit 0, then "wrong"
+check that leads the refusal is one the fault can break: `RIGHT`; "by physics" when a check
+of the frames or the rig fails, not only a checksum of the manifest), or exit 0, then "wrong"
 when its cloud differs from the clean decode's beyond noise (median |Δz| > 3 x the clean
 scan's noise or 1 % of the points off by more than 1 mm), else "harmless". Scenes outside the
 measuring volume are rendered as such. Seeds are drawn fresh unless --seed is given, and printed.
@@ -40,17 +41,21 @@ from scanner.rig import RigConfig, open_rig
 from scanner.session import MANIFEST, Session
 
 RIGS = {"bench": CONFIG_DIR / "rigs" / "sim_bench.toml", "turntable": CONFIG_DIR / "rigs" / "sim_turntable.toml"}
-PATTERNS = {"heterodyne": CONFIG_DIR / "patterns" / "heterodyne_3x4.toml",
-            "graycode": CONFIG_DIR / "patterns" / "graycode_4.toml"}
+PATTERNS = {  # the sets drawn: the rigs' default, a Gray-code set, and both fringe orientations (epipolar)
+    "heterodyne": lambda: PatternSet.load(CONFIG_DIR / "patterns" / "heterodyne_3x4.toml"),
+    "graycode": lambda: PatternSet.load(CONFIG_DIR / "patterns" / "graycode_4.toml"),
+    "heterodyne_both": lambda: PatternSet("heterodyne", 4, (70.0, 64.0, 59.0), ("vertical", "horizontal")),
+}
 PHASE_CHECKS = {"phase_residual", "frequency_agreement", "frequency_offset", "gray_offset", "gray_edges", "direction",
                 "fringe_orders", "ordering"}
+TIES = {"rig_model", "pattern_set"}  # the checksums of what the manifest recorded at capture
 RIGHT = {  # the checks whose refusal names a right reason for each fault
     "steps_reversed": {"direction", "frequency_offset", "gray_offset", "gray_edges"},
-    "steps_rotated": {"frequency_offset", "gray_offset", "gray_edges"},
+    "steps_rotated": {"frequency_offset", "gray_offset", "gray_edges", "fringe_orders"},
     "phase_frames_swapped": PHASE_CHECKS,
     "gray_frames_swapped": {"ordering", "projector_range", "gray_edges", "fringe_orders"},
     "frame_from_another_scan": PHASE_CHECKS | {"projector_range"},
-    "wrong_period_count": PHASE_CHECKS | {"projector_range"},
+    "wrong_period_count": PHASE_CHECKS | {"projector_range", "pattern_set"},
     "wrong_projector_size": {"rig_model"},
     "rig_model_perturbed": {"rig_model"},
     "scene_outside_volume": {"measurement_volume"},
@@ -67,6 +72,7 @@ class Outcome:
     lead: str | None
     wrong: bool
     seed: int
+    physics: bool = False  # refused by a check of the frames or the rig, not only by a recorded checksum
 
     @property
     def right(self) -> bool:
@@ -122,7 +128,7 @@ def capture(rig: str, patterns: str, width: int, seed: int, out: Path, outside: 
     rng = np.random.default_rng(seed)
     with open_rig(rig_config(rig, width), scene=random_scene(rig, rng, outside), seed=seed) as r:
         try:
-            scan(r, PatternSet.load(PATTERNS[patterns]), out, level="none")
+            scan(r, PATTERNS[patterns](), out, level="none")
         except ConsistencyError:
             pass  # judged by `judge` below; the session is complete
     return out
@@ -298,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
             faulty, failed_f = judge(dst)
             wrong = faulty is not None and faulty.cloud is not None and is_wrong(result, faulty)
             outcomes.append(Outcome(fault, rig, patterns, detail, faulty is None, failed_f[0] if failed_f else None,
-                                    wrong, fs))
+                                    wrong, fs, bool(set(failed_f) - TIES)))
             shutil.rmtree(dst, ignore_errors=True)
         others.append(folder)
         if len(others) > 2:
@@ -306,6 +312,8 @@ def main(argv: list[str] | None = None) -> int:
         if (i + 1) % 10 == 0:
             print(f"  {i + 1}/{args.clean} clean scans, {len(outcomes)} faults, {time.perf_counter() - t0:.0f} s, "
                   f"load {os.getloadavg()[0]:.1f}", flush=True)
+        if (i + 1) % 50 == 0 and i + 1 < args.clean:  # the table so far, should the run be stopped
+            print_table(outcomes, clean_n, false_refusals, seed, time.perf_counter() - t0)
     for i in range(args.outside):
         rig = "bench" if i % 2 == 0 else "turntable"
         patterns = str(rng.choice(list(PATTERNS)))
@@ -313,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
         folder = capture(rig, patterns, args.width, s, root / f"outside_{i:03d}", outside=True)
         result, failed = judge(folder)
         outcomes.append(Outcome("scene_outside_volume", rig, patterns, "", result is None,
-                                failed[0] if failed else None, result is not None, s))
+                                failed[0] if failed else None, result is not None, s, bool(set(failed) - TIES)))
     print_table(outcomes, clean_n, false_refusals, seed, time.perf_counter() - t0)
     if not args.out:
         shutil.rmtree(root, ignore_errors=True)
@@ -322,14 +330,15 @@ def main(argv: list[str] | None = None) -> int:
 
 def print_table(outcomes: list[Outcome], clean_n: dict[str, int], false_refusals: list[str], seed: int,
                 seconds: float) -> None:
-    print(f"\nfault class               trials  refused  right reason  wrong with exit 0  harmless exit 0   "
-          f"(seed {seed}, {seconds:.0f} s)")
+    print(f"\nfault class               trials  refused  right reason  by physics  wrong with exit 0  harmless exit 0"
+          f"   (seed {seed}, {seconds:.0f} s)")
     for fault in RIGHT:
         rows = [o for o in outcomes if o.fault == fault]
         if not rows:
             continue
         print(f"{fault:<25} {len(rows):6d}  {sum(o.refused for o in rows):7d}  {sum(o.right for o in rows):12d}  "
-              f"{sum(o.wrong for o in rows):17d}  {sum(not o.refused and not o.wrong for o in rows):15d}")
+              f"{sum(o.physics for o in rows):10d}  {sum(o.wrong for o in rows):17d}  "
+              f"{sum(not o.refused and not o.wrong for o in rows):15d}")
     total = sum(clean_n.values())
     print(f"clean scans: {total} ({dict(clean_n)}), refused {len(false_refusals)} "
           f"({len(false_refusals) / max(total, 1):.2%})")
