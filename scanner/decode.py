@@ -794,7 +794,7 @@ class _OrientationDecoder:
         maps = self._finish(masks, usable, out["coordinate"], out["phase"], wrapped, modulation, out["background"],
                             out["weight"], f_max)
         coded = [self._range(beyond, sum(b["readable"] for b in sums))] if ps.gray_bits(self.orientation) else []
-        return maps, self._map_checks(sums) + coded + self._ordering(maps)
+        return maps, self._map_checks(sums, masks.get("interreflection")) + coded + self._ordering(maps)
 
     def _band(self, rows: slice, dest: list[tuple[np.ndarray, np.ndarray]], maps: dict[str, np.ndarray],
               scaled: list[np.ndarray] | None) -> dict[str, Any]:
@@ -880,6 +880,7 @@ class _OrientationDecoder:
             idx = at_samples()
             sums["frequencies"] = _frequency_samples(ps, self.extent, absolute, modulation,
                                                      check_sigma(background.flat[idx]) * sqrt_2n, idx)
+            sums["frequencies"]["at"] = idx + rows.start * usable.shape[1]  # flat in the image
             if scaled is not None:
                 for phi_abs, fi, dst in zip(absolute, ps.fringes, scaled):
                     np.multiply(phi_abs, np.float32(f_max / fi), out=dst)
@@ -946,8 +947,13 @@ class _OrientationDecoder:
         model, or the frames' spatial noise along the fringes: `spatial_noise`)."""
         return self.patterns.steps >= 4 and self.residual_noise is not None
 
-    def _map_checks(self, sums: list[dict[str, Any]]) -> list[Check]:
-        """The checks this orientation's maps support (docs/consistency.md), from the bands' samples."""
+    def _map_checks(self, sums: list[dict[str, Any]], second: np.ndarray | None) -> list[Check]:
+        """The checks this orientation's maps support (docs/consistency.md), from the bands'
+        samples. `second`: the pixels masked as a second light path (interreflection), whose
+        frequencies disagree by physics the model of one path does not cover: left out of the
+        frequencies' checks (the mask takes what departs from the image's median disagreement,
+        so a common offset or a disagreement that grows across the image is still judged on
+        the pixels it leaves)."""
         ps, o = self.patterns, self.orientation
         total = {k: sum(b.get(k, 0) for b in sums) for k in ("usable", "order_bad")}
         joined = {k: np.concatenate([b[k] for b in sums], axis=-1) for k in ("residual_z2", "gray_offset",
@@ -968,8 +974,10 @@ class _OrientationDecoder:
             else:
                 out.append(not_judged("phase_residual", o, "x noise", "three steps leave no residual"))
         if "frequencies" in sums[0]:
-            q = np.concatenate([b["frequencies"]["q"] for b in sums])
-            d = np.concatenate([b["frequencies"]["d"] for b in sums])
+            one_path = np.concatenate([b["frequencies"]["at"] for b in sums])
+            one_path = ~second.ravel()[one_path] if second is not None else np.ones(one_path.size, bool)
+            q = np.concatenate([b["frequencies"]["q"] for b in sums])[one_path]
+            d = np.concatenate([b["frequencies"]["d"] for b in sums])[one_path]
             out.append(scale_check("frequency_agreement", o, q, len(ps.fringes) - 1, accuracy, self.noise_source,
                                    "a wrong fringe count, frames from another scan, or frequencies out of order?",
                                    "the frequencies' spread about their mean coordinate"))

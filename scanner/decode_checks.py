@@ -379,11 +379,12 @@ def measurement_volume(points: np.ndarray, rig: Any, volume: Volume, orientation
 
 
 def rig_model_tie(recorded: str | None, used: dict[str, Any], override: str | None,
-                  calibration: tuple[str, str] | None = None) -> Check:
+                  calibration: tuple[str, str] | None = None, holds_its_calibration: bool = False) -> Check:
     """The rig model a decode uses must be the one the session was captured with (its
-    SHA-256 in the manifest), unless the user gives another on purpose (`override`).
-    `calibration`: (the file the recorded model came from, its SHA-256 at capture), to say
-    when that file has changed since (the session still decodes with the model it recorded)."""
+    SHA-256 in the manifest), unless the user gives another on purpose (`override`) or it
+    is exactly the model the calibration file it names holds (`holds_its_calibration`: a
+    re-decode with the rig's new calibration). `calibration`: (the file the recorded model
+    came from, its SHA-256 at capture), to say when that file has changed since."""
     from scanner.session import calibration_sha256, rig_model_sha256
 
     name = "rig_model"
@@ -399,6 +400,10 @@ def rig_model_tie(recorded: str | None, used: dict[str, Any], override: str | No
                      f"given on purpose: {override} (sha256 {actual[:12]}), recorded {str(recorded)[:12]}")
     if recorded is None:
         return not_judged(name, "session", "", "the session records no rig-model checksum (written before them)")
+    if actual != recorded and holds_its_calibration:
+        return Check(name, "session", None, None, "", "", None, "", "", 0,
+                     f"another model than recorded at capture: the one its calibration file {used.get('calibration')} "
+                     f"holds (sha256 {actual[:12]})")
     ok = actual == recorded
     return Check(name, "session", float(ok), 1.0, "(1: the same)",
                  f"the rig model is the one recorded at capture (sha256 {recorded[:12]})", ok,

@@ -21,6 +21,7 @@ from scanner.acquisition import (
     at_exposure,
     settings_for_exposure,
 )
+from scanner.calibration_file import load_rig_model
 from scanner.decode import DecodeResult, DecodeSettings, NoiseModel, decode
 from scanner.decode_checks import (
     FITTED_MODEL_ACCURACY,
@@ -47,7 +48,17 @@ from scanner.pointcloud import OrganisedCloud, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from scanner.rig import Rig
 from scanner.native_threads import native_threads
-from scanner.session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, disk_problem, write_json, write_npz
+from scanner.session import (
+    OUTPUTS_DIR,
+    RECORDING,
+    Session,
+    SessionWriter,
+    disk_problem,
+    json_ready,
+    rig_model_sha256,
+    write_json,
+    write_npz,
+)
 from scanner.stage_timer import StageTimer
 
 if TYPE_CHECKING:  # Rerun takes ~0.3 s to import: only the commands that record load it
@@ -190,11 +201,11 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
         stack = session.load_stack() if frames is None else np.stack([frames[k] for k in range(len(frames))])
         model = rig_model or session.rig_model()
         stacks = exposure_stacks(session, stack, model)
+    used = model.to_dict() if rig_model is not None else session.manifest["rig_model"]
     named = session.manifest["rig_model"].get("calibration")
-    tie = rig_model_tie(session.manifest.get("rig_model_sha256"), model.to_dict() if rig_model is not None else
-                        session.manifest["rig_model"], rig_model_source,
+    tie = rig_model_tie(session.manifest.get("rig_model_sha256"), used, rig_model_source,
                         (named, session.manifest["calibration_sha256"]) if named and
-                        session.manifest.get("calibration_sha256") else None)
+                        session.manifest.get("calibration_sha256") else None, holds_its_calibration(used, model))
     progress("decode", 0, 1)
     with timer.stage("decode"):
         decoded = decode_exposures(session, stacks, model, replace(settings, self_check=False))
@@ -265,6 +276,20 @@ def _write_outputs(result: ScanResult, timer: StageTimer, summary: dict[str, Any
     timings, cpu = timer.rounded()
     result.timings_s.update(timings)
     write_json(out / "result.json", {**summary, "timings_s": timings, "cpu_s": cpu})
+
+
+def holds_its_calibration(used: dict[str, Any], model: RigModel) -> bool:
+    """Whether a rig model description is exactly the model the calibration file it names
+    holds now (by the SHA-256 of both descriptions): a session re-decoded with its rig's new
+    calibration (`slscan batch --rig`) rather than a model edited by hand."""
+    path = used.get("calibration")
+    if not path:
+        return False
+    try:
+        held = load_rig_model(path, model.camera.size, model.projector.size)
+    except ScannerError:
+        return False
+    return rig_model_sha256(json_ready(held.to_dict())) == rig_model_sha256(json_ready(used))
 
 
 def rig_checks(session: Session, decoded: DecodeResult, cloud: OrganisedCloud | None, model: RigModel,
