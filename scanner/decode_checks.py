@@ -108,8 +108,8 @@ class ConsistencyError(DecodeError):
                          f"the frames are kept")
 
 
-LEAD = ("rig_model", "pattern_set", "direction", "phase_residual", "frequency_offset", "gray_offset", "gray_edges", "ordering",
-        "frequency_agreement", "projector_range", "fringe_orders", "measurement_volume", "epipolar")
+LEAD = ("rig_model", "pattern_set", "direction", "phase_residual", "frequency_offset", "gray_offset", "gray_edges",
+        "ordering", "frequency_agreement", "projector_range", "fringe_orders", "measurement_volume", "epipolar")
 """The order in which failed checks name a refusal's cause: the most specific diagnosis
 first (a map that runs backwards also spreads its frequencies and leaves the volume)."""
 
