@@ -334,8 +334,9 @@ def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: bool, model_p
     if sample.sum() < MIN_JUDGED:
         return not_judged("epipolar", "cloud", "x noise", f"{int(sample.sum())} pixels valid in both orientations")
     tri = Triangulator(model)
-    dz = {o: tri.depth_scale(np.where(sample, decoded.maps[o].coordinate, np.nan), o, True)[1][sample]
-          for o in ("vertical", "horizontal")}
+    with np.errstate(divide="ignore", invalid="ignore"):  # rays parallel to a plane a wrong model makes: no depth
+        dz = {o: tri.depth_scale(np.where(sample, decoded.maps[o].coordinate, np.nan), o, True)[1][sample]
+              for o in ("vertical", "horizontal")}
     dz = {o: d[np.isfinite(d)] for o, d in dz.items()}  # pixels no depth reaches are left out
     if min(d.size for d in dz.values()) < MIN_JUDGED:
         return not_judged("epipolar", "cloud", "x noise", "too few pixels the rig places in both orientations")
@@ -344,7 +345,8 @@ def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: bool, model_p
     rays = model.camera.ray_grid[sample].astype(np.float64)
     predicted = []
     for shift in (0.0, 0.5):
-        z = tri.depth_scale(np.where(sample, decoded.maps[source].coordinate + np.float32(shift), np.nan), source)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = tri.depth_scale(np.where(sample, decoded.maps[source].coordinate + np.float32(shift), np.nan), source)
         in_projector = (rays * z[sample][:, None]) @ model.proj_from_cam[:3, :3].T + model.proj_from_cam[:3, 3]
         predicted.append(model.projector.project(in_projector)[:, 1 if other == "horizontal" else 0])
     accuracy = SENSOR_MODEL_ACCURACY if sensor else FITTED_MODEL_ACCURACY
