@@ -18,11 +18,16 @@ frames carry, on every 4th pixel; keys it gives are checked against the same evi
   the calibration), or, without a calibration, increases with the camera column (row for
   horizontal fringes), which holds for a projector that is not mirrored — reported as
   an assumption.
-- phase origin and pixel centre: with a Gray code, the code's edges must coincide with
-  the phase wraps; the mean offset ε = origin + 2π·f·(δ − 0.5)/W splits into the origin
-  (the nearest multiple of π/2) and δ (ours 0.5, or 0). Heterodyne: the beats cancel the
-  origin, so each frequency's offset from the beat's prediction is the origin; δ shifts
-  every coordinate alike and cannot be seen without a Gray code (taken as ours, said so).
+- phase offset: a Gray code's edges (the phase must wrap where the code's period changes)
+  or the heterodyne beats (which cancel a common offset) show the phase's offset, the phase
+  origin plus a rotation of every group's steps (2π·step_offset/N): both read alike, so a
+  given origin leaves the rest to a detected rotation, and without one the offset is taken
+  as the origin — snapped to the discrete values (multiples of π/2 or of a step) and refused
+  when it lies between them. A Gray-code edge locates a period only to within its blur (a
+  few hundredths of a radian on a real capture): it decides between discrete offsets, never
+  a sub-pixel convention.
+- pixel centre: never from the frames (it moves every coordinate alike by a fraction of a
+  pixel); given by the description, or assumed (ours, 0.5) and said so.
 
 Contradicting given keys or ambiguous evidence raise DecodeError naming them.
 """
@@ -37,6 +42,7 @@ import numpy as np
 
 from scanner.conventions import CHOICES, NATIVE, Conventions
 from scanner.decode import gray_phase_offset, phase_shift, read_complementary_code
+from scanner.decode_checks import predicted_direction
 from scanner.errors import DecodeError
 from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
@@ -45,7 +51,6 @@ from scanner.pixel_code import read_pixel_code
 SUBSAMPLE = 4  # every 4th pixel on both axes
 MIN_R = 0.3  # below this resultant length the code-phase agreement is no evidence
 AMBIGUOUS = 0.85  # a runner-up scoring this fraction of the best is a tie
-PIXEL_CENTRE_SNAP = 0.15  # px: how near 0 or 0.5 a measured pixel centre must be
 
 
 @dataclass(frozen=True)
@@ -74,11 +79,7 @@ def _layouts(ps: PatternSet, n_frames: int, fixed: bool) -> list[PatternSet]:
     """Pattern sets for every frame layout the set's keys allow (`fixed`: only the given
     values of given keys) whose frame count is `n_frames`, distinct frame sequences only."""
     c = ps.conventions
-    keys = ["references"]
-    if len(ps.fringes) > 1:
-        keys.append("frame_order")
-    if ps.family == "graycode":
-        keys += ["gray_position", "gray_code"]
+    keys = ["references", *ps.kind.layout_keys(len(ps.fringes))]
     options = {k: ([getattr(c, k)] if fixed and getattr(c, k) is not None else list(CHOICES[k])) for k in keys}
     out, seen = [], set()
     for combo in itertools.product(*options.values()):
@@ -111,10 +112,11 @@ def _all_layouts(ps: PatternSet) -> list[PatternSet]:
 
 def _layout_name(ps: PatternSet) -> str:
     c = ps.conventions
+    keys = ps.kind.layout_keys(len(ps.fringes))
     parts = [f"references {c.references}"]
-    if len(ps.fringes) > 1:
+    if "frame_order" in keys:
         parts.insert(0, c.frame_order)
-    if ps.family == "graycode":
+    if "gray_code" in keys:
         parts += [f"Gray code {c.gray_code} {c.gray_position} the phase"]
     return ", ".join(parts)
 
@@ -157,7 +159,7 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
     o = ps.orientations[0]
     extent = projector_size[0] if o == "vertical" else projector_size[1]
     full = float(2 ** bit_depth - 1)
-    if ps.family == "pixel_graycode":
+    if ps.unwrapping == "pixel_only":
         diffs = [sub[index[(o, "gray", b, 0)]].astype(np.float32) - sub[index[(o, "gray_inverse", b, 0)]]
                  for b in range(ps.gray_bits(o))]
         contrast = np.max(np.abs(diffs), axis=0)
@@ -172,9 +174,9 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
     background = sum(a for _, _, a in shifted) / len(shifted)
     usable = (mod[-1] > 0.12 * background) & (mod[-1] > 0.005 * full) & (background < full)
     refs = _refs_score(sub, ps, usable)
-    if ps.family == "graycode":
+    if ps.unwrapping in ("complementary", "pixel_phase"):
         f = ps.fringes[0]
-        if ps.conventions.gray_code == "complementary":
+        if ps.unwrapping == "complementary":
             bits = [sub[index[(o, "gray", b, 0)]] for b in range(ps.gray_bits() + 1)]
             half, unclear, half_unclear = read_complementary_code(bits, background, mod[0], 0.3)
             clear = (unclear == 0) & ~half_unclear
@@ -202,23 +204,19 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
             ev.sign_r = {k: v / max(max(Rs.values()), 1e-9) for k, v in Rs.items()}
         ev.score = max(Rs.values()) * refs
         return ev
-    if ps.family == "heterodyne":
-        f = ps.fringes
-        two_pi = np.float32(2 * np.pi)
-        p12 = np.mod(wrapped[0] - wrapped[1], two_pi)
-        p123 = np.mod(p12 - np.mod(wrapped[1] - wrapped[2], two_pi), two_pi)
-        f12 = f[0] - f[1]
-        a12 = p12 + two_pi * np.rint((p123 * np.float32(f12) - p12) / two_pi)
+    beat = ps.kind.offset_free_phase(ps.fringes, wrapped)
+    if beat is not None:  # each frequency's offset from the phase its beats predict
+        phase, count = beat
         Rs, offsets = [], []
-        for i in range(3):
-            eps, R, se = _circular((wrapped[i] - a12 * np.float32(f[i] / f12))[usable])
+        for w, fi in zip(wrapped, ps.fringes):
+            eps, R, se = _circular((w - phase * np.float32(fi / count))[usable])
             Rs.append(R)
             offsets.append((eps, se))
         ev = _Evidence(float(np.mean(Rs)) * refs)
         eps, R, se = _circular(np.array([e for e, _ in offsets]))
         ev.offset[1] = (eps, max(s for _, s in offsets))
         return ev
-    # hierarchical: share of each block's temporal AC energy at the step frequency
+    # no beat (hierarchical): share of each block's temporal AC energy at the step frequency
     shares = []
     for b in blocks:
         spectrum = np.abs(np.fft.fft(sub[b].astype(np.float32), axis=0)) ** 2
@@ -267,7 +265,7 @@ def _geometric_sign(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int
     expected, why = 1, "the coordinate increases with the camera " + ("column" if axis == 1 else "row") + \
         " (an unmirrored projector)"
     if rig is not None:
-        predicted = _predicted_direction(rig, o)
+        predicted = predicted_direction(rig, o)
         if predicted != 0:
             expected, why = predicted, "from the calibration's geometry"
     settings = DecodeSettings(self_check=False, spatial_check=False)
@@ -290,34 +288,11 @@ def _geometric_sign(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int
                          f"{max(rising, 1 - rising):.0%} of the pixels"
 
 
-def _predicted_direction(rig: RigModel, orientation: str) -> int:
-    """+1 when the rig's projector coordinate grows with the camera column (row), −1 when it
-    falls, 0 when the geometry does not say (no depth puts the camera's centre in view)."""
-    cam = rig.camera
-    axis = 0 if orientation == "vertical" else 1
-    centre = np.array([cam.K[0, 2], cam.K[1, 2]])
-    step = np.zeros(2)
-    step[axis] = 5.0
-    rays = cam.normalized(np.stack([centre, centre + step]))
-    votes = []
-    proj_from_cam = rig.proj_from_cam
-    for z in (200.0, 400.0, 800.0, 1500.0, 3000.0, 6000.0):
-        pts = np.c_[rays * z, [z, z]]
-        p = pts @ proj_from_cam[:3, :3].T + proj_from_cam[:3, 3]
-        if (p[:, 2] <= 0).any():
-            continue
-        uv = rig.projector.project(p)
-        size = rig.projector.size
-        if 0 <= uv[0, 0] < size[0] and 0 <= uv[0, 1] < size[1]:
-            votes.append(np.sign(uv[1, axis] - uv[0, axis]))
-    return int(np.sign(sum(votes))) if votes else 0
-
-
 def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_size: tuple[int, int],
            rig: RigModel | None = None) -> Detection:
     """Every convention of `patterns` settled (given keys checked, missing keys detected)
     from the frames `stack` (N, H, W); DecodeError naming a contradiction or ambiguity."""
-    ps = patterns.for_projector(projector_size) if patterns.family in ("graycode", "pixel_graycode") else patterns
+    ps = patterns.for_projector(projector_size)
     given = ps.conventions
     n = stack.shape[0]
     candidates = _layouts(ps, n, fixed=True)
@@ -325,7 +300,7 @@ def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
         every = _layouts(ps, n, fixed=False)
         hint = f"; with other frame-layout keys {len(every)} layout(s) would fit" if every else ""
         what = f"{ps.family} for a {projector_size[0]} x {projector_size[1]} projector" \
-            if ps.family == "pixel_graycode" else f"{ps.family}, fringes {list(ps.fringes)}, {ps.steps} steps"
+            if not ps.kind.has_phase else f"{ps.family}, fringes {list(ps.fringes)}, {ps.steps} steps"
         raise DecodeError(f"{n} frames, but the pattern set ({what}, {list(ps.orientations)}) with the given layout "
                           f"keys needs {_needed(ps)}: wrong frame count, fringe/period count or projector size{hint}")
     scored = sorted(((_evidence(stack, c, projector_size, bit_depth), c) for c in candidates),
@@ -352,8 +327,7 @@ def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
         v = getattr(best.conventions, k)
         if getattr(given, k) is not None:
             findings.append(Finding(k, v, "given", f"layout score {best_ev.score:.2f}{runner}"))
-        elif (k == "frame_order" and len(ps.fringes) <= 1) or (k in ("gray_position", "gray_code")
-                                                              and ps.family != "graycode"):
+        elif k != "references" and k not in ps.kind.layout_keys(len(ps.fringes)):
             continue
         else:
             findings.append(Finding(k, v, "detected", f"layout score {best_ev.score:.2f} of {len(scored)} "
@@ -361,6 +335,12 @@ def detect(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
     conv = replace(given, **{k: getattr(best.conventions, k) for k in layout_keys})
     conv, more = _phase_keys(stack, ps.with_conventions(conv), best_ev, projector_size, bit_depth, rig)
     findings += more
+    if ps.kind.has_phase:  # how long a period is: the description's (the frames show only its count)
+        rounding = patterns.conventions.period_rounding
+        extent = projector_size[0] if ps.orientations[0] == "vertical" else projector_size[1]
+        periods = ", ".join(f"{extent / f:.3f}" for f in ps.fringes)
+        findings.append(Finding("period_rounding", rounding or NATIVE.period_rounding,
+                                "given" if rounding else "assumed", f"periods of {periods} px"))
     return Detection(ps.with_conventions(conv.filled(NATIVE)), findings)
 
 
@@ -371,130 +351,117 @@ def _needed(ps: PatternSet) -> str:
 
 def _phase_keys(stack: np.ndarray, ps: PatternSet, ev: _Evidence, projector_size: tuple[int, int], bit_depth: int,
                 rig: RigModel | None) -> tuple[Conventions, list[Finding]]:
-    """Step sign, phase origin and pixel centre, given or detected (module docstring)."""
+    """Step sign, phase offset (origin and step rotation) and pixel centre: given, detected
+    where the frames determine them, else assumed (module docstring)."""
     c = ps.conventions
     findings: list[Finding] = []
-    if ps.family == "pixel_graycode":
+    if not ps.kind.has_phase:
         return c, findings
     o = ps.orientations[0]
     extent = projector_size[0] if o == "vertical" else projector_size[1]
-    f = ps.fringes[0] if ps.family == "graycode" else max(ps.fringes)
-    # step sign
-    if ps.family == "graycode":
-        r_plus, r_minus = ev.sign_r[1], ev.sign_r[-1]
-        best = 1 if r_plus >= r_minus else -1
-        strong, weak = max(r_plus, r_minus), min(r_plus, r_minus)
-        if strong < MIN_R or weak > 0.5 * strong:
-            raise DecodeError(f"cannot tell the step sign: Gray code and phase agree alike under both (R {r_plus:.2f} "
-                              f"for +1, {r_minus:.2f} for -1); check the Gray-code frames and the fringe count")
-        evidence = f"Gray code and phase agree {strong:.2f} under {best:+d}, {weak:.2f} under {-best:+d}"
-        if c.step_sign is not None and c.step_sign != best:
-            raise DecodeError(f"conventions.step_sign = {c.step_sign:+d} contradicts the frames: {evidence}")
-        sign, source = best, "given" if c.step_sign is not None else "detected"
-        findings.append(Finding("step_sign", sign, source, evidence))
+    coded = ps.gray_bits(o) > 0
+    f = ps.fringes[0] if coded else max(ps.fringes)
+    if coded:
+        sign = _gray_sign(c, ev, findings)
         eps, se = ev.offset[sign]
     else:
-        eps_plus, se_plus = ev.offset.get(1, (None, 0.0))
-        if eps_plus is not None and c.phase_origin is not None:
-            signs = [c.step_sign] if c.step_sign is not None else [1, -1]
-            if all(abs(_wrap(sg * eps_plus - c.phase_origin)) > max(0.3, 5 * se_plus) for sg in signs):
-                raise DecodeError(f"conventions.phase_origin = {c.phase_origin:.3f} contradicts the frames: their "
-                                  f"frequencies agree with an origin of {eps_plus:.3f} rad (± {se_plus:.3f}) under "
-                                  f"step sign +1, {-eps_plus:.3f} under -1")
-        origin_plus = _snap(eps_plus, np.pi / 2, 0.1) if eps_plus is not None else 0.0
-        if c.step_sign is None:
-            sign, source, evidence = _geometric_sign(stack, ps, projector_size, bit_depth, rig, origin_plus)
-        else:
-            sign, source, evidence = c.step_sign, "given", "not checked against the frames (no Gray code)"
-            if rig is not None and _predicted_direction(rig, o) != 0:
-                detected, _, evidence = _geometric_sign(stack, ps, projector_size, bit_depth, rig, origin_plus)
-                if detected != sign:
-                    raise DecodeError(f"conventions.step_sign = {sign:+d} contradicts the frames and the calibration: "
-                                      f"{evidence}")
-        findings.append(Finding("step_sign", sign, source, evidence))
-        eps, se = ev.offset.get(1, (None, None))
-        if eps is not None and sign == -1:
-            eps = -eps  # the beats' offsets under the other sign are mirrored
+        eps_plus, se = ev.offset.get(1, (None, 0.0))
+        origin_plus = _discrete(eps_plus, ps.steps)[0] if eps_plus is not None else 0.0
+        sign = _phase_only_sign(stack, ps, c, projector_size, bit_depth, rig, origin_plus, findings)
+        eps = None if eps_plus is None else (-eps_plus if sign == -1 else eps_plus)  # the beats' offsets mirror
     c = replace(c, step_sign=sign)
-    rad_per_px = 2 * np.pi * f / extent
-    if eps is None:  # hierarchical: nothing measures the origin or the pixel centre
-        for key, native in (("phase_origin", 0.0), ("pixel_centre", 0.5)):
+    if c.pixel_centre is None:
+        findings.append(Finding("pixel_centre", NATIVE.pixel_centre, "assumed",
+                                "a fraction of a pixel that moves every coordinate alike: the frames cannot show it "
+                                "(a Gray-code edge locates a period only to within its blur); ours, 0.5 — give the "
+                                "tool's description (config/patterns/) or conventions.pixel_centre"))
+        c = replace(c, pixel_centre=NATIVE.pixel_centre)
+    else:
+        findings.append(Finding("pixel_centre", c.pixel_centre, "given", "not observable in the frames"))
+    if eps is None:  # hierarchical: nothing measures the phase's offset
+        for key, native in (("phase_origin", 0.0), ("step_offset", 0)):
             if getattr(c, key) is None:
                 findings.append(Finding(key, native, "assumed", "a hierarchical set carries no evidence of it; ours"))
             else:
                 findings.append(Finding(key, getattr(c, key), "given", "not checked (no evidence in the frames)"))
         return c.filled(NATIVE), findings
-    has_code = ps.family == "graycode"
-    if not has_code:  # heterodyne: ε is the origin itself, δ unobservable
-        if c.phase_origin is not None:
-            d = _wrap(eps - c.phase_origin)
-            if abs(d) > max(0.3, 5 * se):
-                raise DecodeError(f"conventions.phase_origin = {c.phase_origin:.3f} contradicts the frames: their "
-                                  f"frequencies agree with an origin of {eps:.3f} rad (± {se:.3f})")
-            findings.append(Finding("phase_origin", c.phase_origin, "given", f"frames say {eps:.3f} ± {se:.3f} rad"))
-        else:
-            origin = _snap(eps, np.pi / 2, 0.1)
-            findings.append(Finding("phase_origin", round(origin, 6), "detected",
-                                    f"each frequency's offset from its beats' prediction: {eps:.3f} ± {se:.3f} rad"))
-            c = replace(c, phase_origin=origin)
-        if c.pixel_centre is None:
-            findings.append(Finding("pixel_centre", 0.5, "assumed", "a shift of every coordinate alike: not observable "
-                                                                    "without a Gray code; ours (0.5)"))
-            c = replace(c, pixel_centre=0.5)
-        else:
-            findings.append(Finding("pixel_centre", c.pixel_centre, "given", "not observable without a Gray code"))
-        return c, findings
-    # Gray code: ε = origin + 2π·f·(δ − 0.5)/W
-    if c.phase_origin is None and c.pixel_centre is None:
-        origin = _snap(eps, np.pi / 2, np.pi / 4)
-        delta = 0.5 + _wrap(eps - origin) / rad_per_px
-        snapped = _snap(delta, 0.5, PIXEL_CENTRE_SNAP)
-        if abs(snapped - delta) > PIXEL_CENTRE_SNAP or snapped * 2 != round(snapped * 2):
-            raise DecodeError(f"ambiguous conventions: the phase wraps {eps:.3f} rad from the Gray-code edges, which "
-                              f"is neither origin {origin:.3f} with pixel centre 0 nor 0.5 (it would need "
-                              f"{delta:.2f}); give phase_origin and pixel_centre")
-        snapped = snapped % 1.0
-        se_px = se / rad_per_px
-        findings.append(Finding("phase_origin", round(origin, 6), "detected",
-                                f"Gray-code edges vs phase wraps: offset {eps:.3f} ± {se:.3f} rad"))
-        findings.append(Finding("pixel_centre", snapped, "detected",
-                                f"the rest of that offset is {delta:.2f} ± {se_px:.2f} px"))
-        return replace(c, phase_origin=origin, pixel_centre=snapped), findings
-    if c.phase_origin is None:
-        origin = _snap(_wrap(eps - (c.pixel_centre - 0.5) * rad_per_px), np.pi / 2, 0.05)
-        findings.append(Finding("phase_origin", round(origin, 6), "detected",
-                                f"Gray-code edges vs phase wraps: offset {eps:.3f} ± {se:.3f} rad"))
-        findings.append(Finding("pixel_centre", c.pixel_centre, "given", "used to split that offset"))
-        return replace(c, phase_origin=origin), findings
-    expected = c.phase_origin + ((c.pixel_centre if c.pixel_centre is not None else 0.5) - 0.5) * rad_per_px
-    d = _wrap(eps - expected)
-    if c.pixel_centre is None:
-        delta = 0.5 + _wrap(eps - c.phase_origin) / rad_per_px
-        snapped = _snap(delta, 0.5, PIXEL_CENTRE_SNAP) % 1.0
-        if abs(_wrap(eps - c.phase_origin)) > np.pi / 4:
-            raise DecodeError(f"conventions.phase_origin = {c.phase_origin:.3f} contradicts the frames: the phase "
-                              f"wraps {eps:.3f} rad from the Gray-code edges")
-        findings.append(Finding("phase_origin", c.phase_origin, "given", f"Gray-code edges vs phase wraps: "
-                                                                         f"{eps:.3f} ± {se:.3f} rad"))
-        findings.append(Finding("pixel_centre", snapped, "detected", f"the rest of that offset is {delta:.2f} px"))
-        return replace(c, pixel_centre=snapped), findings
-    if abs(d) > max(0.5 * rad_per_px * 0.5, 5 * se, 0.05):
-        raise DecodeError(f"conventions phase_origin = {c.phase_origin:.3f} and pixel_centre = {c.pixel_centre} "
-                          f"contradict the frames: the phase wraps {eps:.3f} rad from the Gray-code edges, "
-                          f"{d:+.3f} rad from what they imply")
-    for key in ("phase_origin", "pixel_centre"):
-        findings.append(Finding(key, getattr(c, key), "given", f"agrees with the frames ({d:+.3f} rad)"))
-    return c, findings
+    # the phase's offset the frames show, less what the pixel centre accounts for (Gray code:
+    # ε = first phase + 2π·f·(δ − 0.5)/W; heterodyne: the beats cancel δ, ε = first phase)
+    rad_per_px = 2 * np.pi * f / extent
+    measured = _wrap(eps - (c.pixel_centre - 0.5) * rad_per_px) if coded else eps
+    against = "the Gray code's edges" if coded else "its frequencies' beats"
+    evidence = f"the phase sits {measured:+.3f} ± {se:.3f} rad from {against}"
+    step = 2 * np.pi / ps.steps
+    if c.phase_origin is not None:  # given: the frames must show it (and the given rotation, if any)
+        k = c.step_offset or 0
+        d = _wrap(measured - c.phase_origin - sign * k * step)
+        if abs(d) > max(step / 4, 3 * se):
+            steps_off = int(round(d / step * sign)) % ps.steps
+            rotated = (f"; {steps_off} whole step(s): every group's frames rotated by {steps_off} (set "
+                       f"conventions.step_offset = {(k + steps_off) % ps.steps} if so), or not this description's "
+                       f"patterns") if abs(_wrap(d - sign * steps_off * step)) <= max(step / 4, 3 * se) else \
+                "; not a whole number of steps: a wrong phase origin or pixel centre"
+            raise DecodeError(f"conventions.phase_origin = {c.phase_origin:.3f}{f' with step_offset {k}' if k else ''}"
+                              f" contradicts the frames: {evidence}, {d:+.3f} rad from what they give{rotated}")
+        findings.append(Finding("phase_origin", c.phase_origin, "given", f"{evidence} (agrees: {d:+.3f} rad)"))
+        findings.append(Finding("step_offset", k, "given" if c.step_offset is not None else "detected",
+                                f"{evidence}: the groups' first frames show step {k}"))
+        return replace(c, step_offset=k), findings
+    offset, spacing = _discrete(measured, ps.steps)
+    if abs(_wrap(measured - offset)) > max(spacing / 4, 3 * se):
+        raise DecodeError(f"cannot tell the phase origin: {evidence}, between the discrete offsets a phase origin "
+                          f"(a multiple of π/2) or a rotation of the steps (of {step:.3f} rad) make; give "
+                          f"conventions.phase_origin (and pixel_centre), or the tool's description")
+    k = c.step_offset if c.step_offset is not None else 0
+    origin = -np.pi if abs(abs(_wrap(offset - sign * k * step)) - np.pi) < 1e-9 else _wrap(offset - sign * k * step)
+    findings.append(Finding("phase_origin", round(origin, 6), "detected",
+                            f"{evidence}; an origin of {origin:.3f} rad and the steps rotated by {k} read alike"))
+    findings.append(Finding("step_offset", k, "given" if c.step_offset is not None else "assumed",
+                            "the phase origin takes the whole offset (a rotation of the steps reads the same)"))
+    return replace(c, phase_origin=origin, step_offset=k), findings
+
+
+def _discrete(angle: float, steps: int) -> tuple[float, float]:
+    """The discrete phase offset nearest `angle` (rad): a multiple of π/2 (a phase origin) or
+    of 2π/steps (a rotation of the steps), and the least spacing between such offsets."""
+    candidates = np.unique(np.round(np.r_[np.arange(4) * np.pi / 2, np.arange(steps) * 2 * np.pi / steps], 12))
+    gaps = np.diff(np.r_[candidates, candidates[0] + 2 * np.pi])
+    distance = np.abs(np.angle(np.exp(1j * (angle - candidates))))
+    return _wrap(float(candidates[int(np.argmin(distance))])), float(gaps.min())
+
+
+def _gray_sign(c: Conventions, ev: _Evidence, findings: list[Finding]) -> int:
+    """The step sign from how Gray code and phase agree under each sign."""
+    r_plus, r_minus = ev.sign_r[1], ev.sign_r[-1]
+    best = 1 if r_plus >= r_minus else -1
+    strong, weak = max(r_plus, r_minus), min(r_plus, r_minus)
+    if strong < MIN_R or weak > 0.5 * strong:
+        raise DecodeError(f"cannot tell the step sign: Gray code and phase agree alike under both (R {r_plus:.2f} "
+                          f"for +1, {r_minus:.2f} for -1); check the Gray-code frames and the fringe count")
+    evidence = f"Gray code and phase agree {strong:.2f} under {best:+d}, {weak:.2f} under {-best:+d}"
+    if c.step_sign is not None and c.step_sign != best:
+        raise DecodeError(f"conventions.step_sign = {c.step_sign:+d} contradicts the frames: {evidence}")
+    findings.append(Finding("step_sign", best, "given" if c.step_sign is not None else "detected", evidence))
+    return best
+
+
+def _phase_only_sign(stack: np.ndarray, ps: PatternSet, c: Conventions, projector_size: tuple[int, int],
+                     bit_depth: int, rig: RigModel | None, origin_plus: float, findings: list[Finding]) -> int:
+    """The step sign of a set without a Gray code: given, or from the rig's geometry, or assumed."""
+    o = ps.orientations[0]
+    if c.step_sign is None:
+        sign, source, evidence = _geometric_sign(stack, ps, projector_size, bit_depth, rig, origin_plus)
+    else:
+        sign, source, evidence = c.step_sign, "given", "not checked against the frames (no Gray code)"
+        if rig is not None and predicted_direction(rig, o) != 0:
+            detected, _, evidence = _geometric_sign(stack, ps, projector_size, bit_depth, rig, origin_plus)
+            if detected != sign:
+                raise DecodeError(f"conventions.step_sign = {sign:+d} contradicts the frames and the calibration: "
+                                  f"{evidence}")
+    findings.append(Finding("step_sign", sign, source, evidence))
+    return sign
 
 
 def _wrap(angle: float) -> float:
     """An angle (rad) in (−π, π]."""
     return float(np.angle(np.exp(1j * angle)))
-
-
-def _snap(value: float, grid: float, tolerance: float) -> float:
-    """`value` moved onto the nearest multiple of `grid` when within `tolerance` of it;
-    angles near ±π are reported as −π."""
-    nearest = round(value / grid) * grid
-    out = nearest if abs(value - nearest) <= tolerance else value
-    return -np.pi if abs(abs(out) - np.pi) < 1e-9 else float(out)

@@ -16,13 +16,26 @@ A pattern set's `[conventions]` table (all keys optional) says how its frames we
                           (OpenCV structured_light.GrayCodePattern)
     references            "none", "first" or "last": an all-white and an all-black frame
                           (in that order) before or after everything else
+    step_offset     int   the step the first frame of every group shows (ours 0; k: the
+                          groups' frames rotated by k, as a trigger k patterns out of step)
+    period_rounding       "none": a period is W/f pixels (ours, SLMaster's heterodyne);
+                          "floor": floor(W/f) whole pixels (SLMaster's complementary set,
+                          OpenCV's SinusoidalPattern), so the set has W/floor(W/f) periods
 
 So the displayed intensity of phase step n is 0.5 + 0.5·cos(Φ(c) + phase_origin +
-step_sign·2πn/N), and a decoded phase becomes the OpenCV projector coordinate (pixel
-centres at integers) x = (Φ − phase_origin)·W/(2π·f) − pixel_centre.
+step_sign·2π(n + step_offset)/N), and a decoded phase becomes the OpenCV projector
+coordinate (pixel centres at integers) x = (Φ − phase_origin)·W/(2π·f) − pixel_centre.
 
-A key left out is None: `slscan import` detects it from the frames (scanner.convention_detection); a
-pattern set used for scanning has every key, our own values by default (NATIVE).
+What frames can determine and what they cannot: the step sign (against a Gray code, or the
+rig's calibrated geometry), the frame layout, and the phase's offset from a Gray code or
+between frequencies — phase_origin + 2π·step_offset/N, one value that both readings decode
+alike — to a discrete value (a multiple of π/2 or of a step). The pixel centre moves every
+coordinate alike by a fraction of a pixel: a Gray-code edge locates a period boundary only
+to within its blur, so it comes from the description or the user ("assumed" otherwise).
+
+A key left out is None: `slscan import` detects what the frames determine and assumes the
+rest, saying so (scanner.convention_detection); a pattern set used for scanning has every
+key, our own values by default (NATIVE).
 """
 
 from __future__ import annotations
@@ -30,6 +43,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import Field, Strict, field_validator
 
 from scanner import schema
@@ -38,6 +52,7 @@ FRAME_ORDERS = ("frequency-major", "step-major")
 GRAY_POSITIONS = ("after", "before")
 GRAY_CODES = ("complementary", "opencv")
 REFERENCES = ("none", "first", "last")
+PERIOD_ROUNDINGS = ("none", "floor")
 LAYOUT_KEYS = ("frame_order", "gray_position", "gray_code", "references")  # the keys that order the frames
 CHOICES: dict[str, tuple[str, ...]] = {"frame_order": FRAME_ORDERS, "gray_position": GRAY_POSITIONS,
                                        "gray_code": GRAY_CODES, "references": REFERENCES}
@@ -54,6 +69,13 @@ class Conventions:
     gray_position: str | None = None
     gray_code: str | None = None
     references: str | None = None
+    step_offset: int | None = None
+    period_rounding: str | None = None
+
+    def first_phase(self, steps: int) -> float:
+        """The phase (rad) the first frame of every group adds: the origin and the groups'
+        rotation (`step_offset` steps)."""
+        return float(self.phase_origin) + self.step_sign * 2.0 * np.pi * self.step_offset / steps
 
     def missing(self) -> list[str]:
         """Names of the keys not known yet."""
@@ -81,6 +103,8 @@ class ConventionsFile(schema.Schema):
     gray_position: Literal[GRAY_POSITIONS] | None = None
     gray_code: Literal[GRAY_CODES] | None = None
     references: Literal[REFERENCES] | None = None
+    step_offset: Annotated[int, Strict(), Field(ge=0, le=63)] | None = None
+    period_rounding: Literal[PERIOD_ROUNDINGS] | None = None
 
     @field_validator("step_sign")
     @classmethod
@@ -91,4 +115,5 @@ class ConventionsFile(schema.Schema):
 
 
 NATIVE = Conventions(phase_origin=0.0, step_sign=1, pixel_centre=0.5, frame_order="frequency-major",
-                     gray_position="after", gray_code="complementary", references="none")
+                     gray_position="after", gray_code="complementary", references="none", step_offset=0,
+                     period_rounding="none")

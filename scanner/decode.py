@@ -6,11 +6,11 @@ bit depth. Output per fringe orientation: the projector pixel coordinate each ca
 sees along the coded axis (OpenCV convention, pixel centres at integers; NaN where
 invalid), with the maps behind it and the reasons pixels were rejected.
 
-Every decode checks itself: a Gray code that disagrees with the phase on more than
-`max_disagreement` of the modulated pixels, or frequencies whose unwrapping residuals are
-offset systematically, mean the frames were not made the way the pattern set says (phase
-origin, step sign, frame order …); decode then raises DecodeError naming that, instead of
-handing on a cloud that is wrong everywhere. Everything is whole-array numpy/OpenCV work.
+Every decode checks itself against the physics of its frames (scanner.decode_checks,
+docs/consistency.md): the N-step fit residual against the sensor's noise, the frequencies'
+agreement, the Gray code's agreement with the phase, the projector's range, the fringe
+orders and the coordinate's order along each line, each with its statistic, threshold and
+false-refusal rate in `DecodeResult.checks`. Everything is whole-array numpy/OpenCV work.
 """
 
 from __future__ import annotations
@@ -25,14 +25,33 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
+from scanner.decode_checks import (
+    ALPHA,
+    FITTED_MODEL_ACCURACY,
+    MIN_JUDGED,
+    PATTERN_ERROR,
+    SENSOR_MODEL_ACCURACY,
+    Check,
+    ConsistencyError,
+    failed,
+    majority_check,
+    normal_isf,
+    not_judged,
+    offset_check,
+    ordering,
+    poisson_quantile,
+    scale_check,
+)
 from scanner.errors import DecodeError
+from scanner.pattern_families import TWO_PI, unwrap_step
 from scanner.patterns import FrameSpec, PatternSet, gray_to_binary
 from scanner.pixel_code import read_pixel_code
 
-TWO_PI = np.float32(2.0 * np.pi)
-MIN_JUDGED_PIXELS = 200  # fewer modulated pixels than this: the self-check has nothing to judge
 CHUNK_ROWS = 128  # rows decoded together (a band's float32 maps fit in cache)
-OFFSET_SAMPLE = 16  # every 16th row judges the frequencies' offsets
+SAMPLE_STEP = 4  # the consistency checks judge every 4th pixel of every 4th row
+SENSOR_MODEL = "sensor model"
+FITTED_MODEL = "noise model fitted to the frames"
+SPATIAL_MODEL = "frames' noise along the fringes (an upper bound)"
 
 
 @dataclass(frozen=True)
@@ -52,9 +71,8 @@ class DecodeSettings:
     exceeds this fraction of the fringe modulation B (complementary code); a pixel-code bit
     when |pattern − inverse| exceeds `code_certainty` times the white − black contrast (a
     pair read against each other is robust; up to `max_dropped_bits` of the finest bits may
-    be unreadable). `self_check`: refuse the decode when more than
-    `max_disagreement` of the modulated pixels have a Gray code and a phase that disagree,
-    or when the frequencies' residuals are offset by more than `max_frequency_offset` rad.
+    be unreadable). `self_check`: refuse the decode when any of its consistency checks
+    fails (`scanner.decode_checks`, docs/consistency.md; off: recorded only).
     `interreflection` (multi-frequency phase-shift sets): mask, as "interreflection", pixels
     whose phase a second light path corrupts: their frequencies' absolute phases disagree
     (beyond the image's median, systematic, disagreement) by more than
@@ -82,8 +100,6 @@ class DecodeSettings:
     code_certainty: float = 0.1
     max_dropped_bits: int = 2
     self_check: bool = True
-    max_disagreement: float = 0.05
-    max_frequency_offset: float = 0.3
     interreflection: bool = True
     interreflection_sigmas: float = 5.0
     interreflection_min_rad: float = 0.2
@@ -151,7 +167,7 @@ class DecodeResult:
     maps: dict[str, OrientationMaps]
     texture: np.ndarray
     valid: np.ndarray  # bool: valid in every orientation
-    checks: dict[str, dict[str, float]]  # self-check figures per orientation
+    checks: list[Check]  # the consistency checks the maps support (scanner.decode_checks)
 
     def coordinate(self, orientation: str) -> np.ndarray:
         return self.maps[orientation].coordinate
@@ -159,11 +175,6 @@ class DecodeResult:
     def rejected(self) -> dict[str, int]:
         """Pixels rejected per orientation and reason (a pixel counts under its first reason)."""
         return {f"{o}/{k}": int(v.sum()) for o, m in self.maps.items() for k, v in m.masks.items()}
-
-
-def _wrap_positive(d: np.ndarray) -> np.ndarray:
-    """Map differences of two [0, 2π) phases into [0, 2π), in place (2π added where negative)."""
-    return np.add(d, TWO_PI, out=d, where=d < 0)
 
 
 def _weighted_sum(frames: list[np.ndarray], weights: np.ndarray) -> np.ndarray:
@@ -208,53 +219,10 @@ def _magnitude(c: np.ndarray, s: np.ndarray, out: np.ndarray | None = None) -> n
     return np.sqrt(m, out=m)
 
 
-def _unwrap_step(coarse: np.ndarray, ratio: float, fine_wrapped: np.ndarray,
-                 worst: np.ndarray) -> np.ndarray:
-    """Absolute fine phase from an absolute coarse phase; raises `worst` to the unwrapping
-    residual (fraction of π) where it is larger."""
-    predicted = coarse * np.float32(ratio)
-    fine = np.subtract(predicted, fine_wrapped)
-    fine *= np.float32(1.0 / TWO_PI)
-    np.rint(fine, out=fine)
-    fine *= TWO_PI
-    fine += fine_wrapped
-    predicted -= fine
-    np.abs(predicted, out=predicted)
-    predicted *= np.float32(1.0 / np.pi)
-    np.maximum(worst, predicted, out=worst)
-    return fine
-
-
-def _temporal_unwrap(ps: PatternSet, wrapped: list[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
-    """Absolute phase per frequency and the worst unwrapping residual (fraction of π)."""
-    f = ps.fringes
-    worst = np.zeros_like(wrapped[0])
-    if ps.family == "hierarchical":
-        absolute = [wrapped[0]]
-        for i in range(1, len(f)):
-            absolute.append(_unwrap_step(absolute[-1], f[i] / f[i - 1], wrapped[i], worst))
-        return absolute, worst
-    # three-frequency heterodyne: beat phases with f1-f2 and f2-f3 fringes, and their beat with 1
-    p12 = _wrap_positive(wrapped[0] - wrapped[1])
-    p23 = _wrap_positive(wrapped[1] - wrapped[2])
-    p123 = _wrap_positive(p12 - p23)
-    f12 = f[0] - f[1]
-    a12 = _unwrap_step(p123, f12, p12, worst)  # the f1-f2 beat is the finer one: unwrap all three from it
-    return [_unwrap_step(a12, f[i] / f12, wrapped[i], worst) for i in range(3)], worst
-
-
 def _residual_sigma(ps: PatternSet, phase_sigmas: list[np.ndarray]) -> np.ndarray:
     """Predicted one-sigma of the largest unwrapping residual (fraction of π) from each
-    frequency's phase noise (rad), propagated through the unwrapping steps."""
-    f = ps.fringes
-    var = [s * s for s in phase_sigmas]
-    if ps.family == "hierarchical":
-        steps = [(f[i] / f[i - 1]) ** 2 * var[i - 1] + var[i] for i in range(1, len(f))]
-    else:
-        f12 = f[0] - f[1]
-        v12 = var[0] + var[1]
-        v123 = var[0] + 4 * var[1] + var[2]
-        steps = [f12 ** 2 * v123 + v12] + [(f[i] / f12) ** 2 * v12 + var[i] for i in range(3)]
+    frequency's phase noise (rad), propagated through the family's unwrapping steps."""
+    steps = ps.kind.residual_variances(ps.fringes, [s * s for s in phase_sigmas])
     return np.sqrt(np.maximum.reduce(steps)) / np.float32(np.pi)
 
 
@@ -315,10 +283,10 @@ class _SecondPaths:
     def _medians(self, judged: list[np.ndarray], value: Callable[[slice, np.ndarray], list[np.ndarray]]
                  ) -> list[np.float32] | None:
         """Medians of `value(rows, at)` over every k-th pixel of `judged` (one bool array per
-        band of `band_slices`) in raster order; None when fewer than MIN_JUDGED_PIXELS are judged."""
+        band of `band_slices`) in raster order; None when fewer than MIN_JUDGED are judged."""
         counts = [int(np.count_nonzero(j)) for j in judged]
         total = sum(counts)
-        if total < MIN_JUDGED_PIXELS:
+        if total < MIN_JUDGED:
             return None
         step = max(1, total // self.MEDIAN_SAMPLE)
         starts = np.cumsum([0] + counts[:-1])
@@ -405,9 +373,10 @@ def read_complementary_code(bits: list[np.ndarray], background: np.ndarray, modu
 
 
 def _graycode_unwrap(wrapped: np.ndarray, bits: list[np.ndarray], background: np.ndarray,
-                     modulation: np.ndarray, certainty: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Absolute phase from complementary Gray code (Wu et al.), where it is unreliable, and
-    the half-period index the code names (for the self-check).
+                     modulation: np.ndarray, certainty: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Absolute phase from complementary Gray code (Wu et al.), where it is unreliable, the
+    half-period index the code names and where every bit of it reads clearly (for the checks).
 
     The extra half-period bit picks the fringe order that is safe at the code boundaries:
     away from a period boundary (π/2 < φ < 3π/2) every regular bit must read clearly, and
@@ -421,7 +390,8 @@ def _graycode_unwrap(wrapped: np.ndarray, bits: list[np.ndarray], background: np
     near_boundary = (wrapped <= quarter) | (wrapped >= 3 * quarter)
     order = np.where(wrapped <= quarter, k2, np.where(wrapped >= 3 * quarter, k2 - 1, k1))
     unreliable = np.where(near_boundary, complementary_unclear | (unclear > 1), unclear > 0)
-    return wrapped + TWO_PI * order.astype(np.float32), unreliable, half
+    clear = (unclear == 0) & ~complementary_unclear
+    return wrapped + TWO_PI * order.astype(np.float32), unreliable, half, clear
 
 
 def gray_phase_offset(wrapped: np.ndarray, half: np.ndarray) -> np.ndarray:
@@ -611,7 +581,30 @@ def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int,
     # median variance in background bins (unbiased for the χ² of the residuals), then a line
     # through them with non-negative read and shot terms
     dof = steps - 3 if steps > 3 else 1
-    unbias = _CHI2_MEDIAN[dof - 1] if dof <= len(_CHI2_MEDIAN) else (1 - 2 / (9 * dof)) ** 3
+    return _noise_line(a, v, _CHI2_MEDIAN[dof - 1] if dof <= len(_CHI2_MEDIAN) else (1 - 2 / (9 * dof)) ** 3)
+
+
+def spatial_noise(stack: np.ndarray, block: list[int], orientation: str, full_scale: float) -> NoiseModel:
+    """The intensity-noise model of a stack from its frames alone, without the N-step fit
+    residual (which it can then judge): along the fringes (camera columns for vertical
+    fringes, rows for horizontal) a frame varies only with the scene, so the second
+    difference of neighbours, I[i−1] − 2I[i] + I[i+1], has variance 6·σ_I² plus the scene's
+    fine texture and the fringes' tilt: an upper bound of the noise, from every 8th line of
+    the phase frames of `block`, medians in background bins (χ²_1 unbiased)."""
+    lines = stack[block][:, :, ::8] if orientation == "vertical" else np.swapaxes(stack[block][:, ::8, :], 1, 2)
+    f = lines.astype(np.float64)  # (frames, along the fringes, across)
+    d2 = f[:, :-2] - 2.0 * f[:, 1:-1] + f[:, 2:]
+    inside = (f.max(axis=0) < full_scale) & (f.min(axis=0) > 0)  # not clipped in any frame
+    ok = inside[:-2] & inside[1:-1] & inside[2:]
+    if ok.sum() < 50:
+        return NoiseModel(1.0, 0.0)
+    return _noise_line(f[:, 1:-1][:, ok].ravel(), (d2[:, ok] ** 2 / 6.0).ravel(), _CHI2_MEDIAN[0])
+
+
+def _noise_line(a: np.ndarray, v: np.ndarray, unbias: float) -> NoiseModel:
+    """σ_I² = read + shot·A through per-pixel variance samples `v` at levels `a`: the median
+    of each of 8 level bins (divided by `unbias`, the median of the samples' χ² over its
+    mean), a line with non-negative terms, read at least the quantisation 1/12 DN²."""
     edges = np.quantile(a, np.linspace(0, 1, 9))
     centres, medians = [], []
     for lo, hi in zip(edges[:-1], edges[1:]):
@@ -629,41 +622,34 @@ def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int,
     return NoiseModel(float(read), float(shot))
 
 
-def _offset_sums(ps: PatternSet, absolute: list[np.ndarray], wrapped: list[np.ndarray], usable: np.ndarray,
-                 first_row: int) -> tuple[list[complex], int]:
-    """Per frequency, the sum of exp(i·(wrapped − the phase the unwrapping predicted for it
-    from the finest)) over the usable pixels of every OFFSET_SAMPLE-th row and 4th column
-    (rows counted from `first_row` of the image), and their count."""
-    start = (-first_row) % OFFSET_SAMPLE
-    sel = usable[start::OFFSET_SAMPLE, ::4]
-    f_max = max(ps.fringes)
-    finest = absolute[int(np.argmax(ps.fringes))][start::OFFSET_SAMPLE, ::4][sel]
-    out = []
-    for i, fi in enumerate(ps.fringes):
-        d = wrapped[i][start::OFFSET_SAMPLE, ::4][sel] - finest * np.float32(fi / f_max)
-        out.append(complex(np.exp(1j * d.astype(np.float64)).sum()))
-    return out, int(sel.sum())
+def _rotation_cause(steps_off: float, steps: int) -> str:
+    """The likely cause of a common phase offset of `steps_off` phase steps (of `steps`)."""
+    k = int(round(steps_off)) % steps
+    if k and abs(steps_off - round(steps_off)) < 0.25:
+        return (f"phase steps rotated by {k} of {steps} in every group (each frame showing the step {k} after its "
+                f"own: a trigger out of step), or a phase origin {2 * np.pi * k / steps:.2f} rad off?")
+    return "a wrong phase origin, or phase steps rotated within every group?"
 
 
-def _checks(sums: list[dict[str, Any]]) -> dict[str, float]:
-    """The self-check's figures from the bands' sums: fractions of the usable pixels whose
-    Gray code and phase disagree, or whose fringe order failed; each frequency's circular
-    mean offset (rad) from the others; readable pixel codes beyond the projector."""
-    total = {k: sum(b.get(k, 0) for b in sums) for k in ("usable", "gray_bad", "order_bad", "beyond", "readable")}
-    judged = total["usable"] >= MIN_JUDGED_PIXELS
-    checks: dict[str, float] = {}
-    if any("gray_bad" in b for b in sums):
-        checks["gray_phase_disagreement"] = total["gray_bad"] / total["usable"] if judged else 0.0
-    if any("order_bad" in b for b in sums):
-        checks["order_error_fraction"] = total["order_bad"] / total["usable"] if judged else 0.0
-    if any("readable" in b for b in sums):
-        checks["codes_beyond_projector"] = total["beyond"] / max(total["readable"], 1)
-    offsets = [b["offsets"] for b in sums if "offsets" in b]
-    n = sum(count for _, count in offsets)
-    if offsets and n >= MIN_JUDGED_PIXELS:
-        for i in range(len(offsets[0][0])):
-            checks[f"frequency_{i}_offset_rad"] = float(np.angle(sum(o[0][i] for o in offsets)))
-    return checks
+def _frequency_samples(ps: PatternSet, extent: int, absolute: list[np.ndarray], modulation: list[np.ndarray],
+                       sigma_b: np.ndarray, idx: np.ndarray) -> dict[str, np.ndarray]:
+    """At the band's flat indices `idx`: each frequency's projector coordinate (px) from its
+    absolute phase, its predicted noise (σ_I·sqrt(2/N)/B_i, with the patterns' own error
+    `PATTERN_ERROR`, times P_i/(2π); `sigma_b` = σ_I·sqrt(2/N) there), and from them `q`,
+    the weighted squared spread of the coordinates about their inverse-variance mean (χ² with
+    F − 1 degrees of freedom when the frequencies agree), and `d`, the finest frequency's
+    coordinate less the coarsest's (px)."""
+    xs, ws = [], []
+    pattern = 2.0 / ps.steps * PATTERN_ERROR ** 2  # rad²: the 8-bit patterns' own error
+    for phi, b, fi in zip(absolute, modulation, ps.fringes):
+        scale = extent / (2.0 * np.pi * fi)
+        xs.append(phi.flat[idx].astype(np.float64) * scale)
+        var = np.square(sigma_b / np.maximum(b.flat[idx], np.float32(1e-6)), dtype=np.float64) + pattern
+        ws.append(1.0 / (var * scale ** 2))
+    x, w = np.array(xs), np.array(ws)
+    mean = (x * w).sum(axis=0) / w.sum(axis=0)
+    fine, coarse = int(np.argmax(ps.fringes)), int(np.argmin(ps.fringes))
+    return {"q": (np.square(x - mean) * w).sum(axis=0), "d": x[fine] - x[coarse]}
 
 
 def _saturated(stack: np.ndarray, frames: list[int], full_scale: float) -> np.ndarray:
@@ -685,11 +671,14 @@ def _frame_indices(specs: list[FrameSpec]) -> dict[tuple[str, str, int, int], in
 
 
 def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_size: tuple[int, int],
-           settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
+           settings: DecodeSettings = DecodeSettings(), sensor_noise: NoiseModel | None = None) -> DecodeResult:
     """Decode an (N, H, W) fringe stack taken with `patterns` on a projector of
-    `projector_size` = (width, height) pixels."""
-    if patterns.uses_pixel_code:
-        patterns = patterns.for_projector(projector_size)
+    `projector_size` = (width, height) pixels. `sensor_noise`: the camera's intensity noise
+    from its sensor model, when known; the consistency checks then judge the fit residual
+    against it (else the noise is fitted to the frames, which cannot judge that residual).
+    With `settings.self_check` a failed check raises `ConsistencyError`; without, the
+    checks are only recorded (`DecodeResult.checks`) for the caller to judge with more."""
+    patterns = patterns.for_projector(projector_size)
     specs = patterns.frames()
     if stack.ndim != 3 or stack.shape[0] != len(specs):
         raise DecodeError(f"pattern set '{patterns.family}' needs {len(specs)} frames of one size; "
@@ -713,12 +702,19 @@ def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
         if conv.references != "none" else None
 
     maps: dict[str, OrientationMaps] = {}
-    checks: dict[str, dict[str, float]] = {}
+    checks: list[Check] = []
+    check_noise, source = (sensor_noise, SENSOR_MODEL) if sensor_noise is not None else (noise, FITTED_MODEL)
+    residual_noise = sensor_noise if sensor_noise is not None or patterns.steps < 4 else spatial_noise(
+        stack, phase_blocks[patterns.orientations[0]][0], patterns.orientations[0], full_scale)
     for orientation in patterns.orientations:
         extent = projector_size[0] if orientation == "vertical" else projector_size[1]
         decoder = _OrientationDecoder(stack, patterns, orientation, extent, index, phase_blocks[orientation],
-                                      saturated, refs, noise, full_scale, settings)
-        maps[orientation], checks[orientation] = decoder.run()
+                                      saturated, refs, noise, full_scale, settings, check_noise, source,
+                                      residual_noise)
+        maps[orientation], found = decoder.run()
+        checks += found
+    if settings.self_check and failed(checks):
+        raise ConsistencyError("", checks)
     backgrounds = [m.background for m in maps.values()]
     texture = backgrounds[0] if len(backgrounds) == 1 else (backgrounds[0] + backgrounds[1]) / 2
     valid_all = np.logical_and.reduce([m.valid for m in maps.values()])
@@ -740,7 +736,9 @@ class _OrientationDecoder:
     noise: NoiseModel
     full_scale: float
     settings: DecodeSettings
-    beyond_fraction: float = 0.0  # readable pixel codes naming a pixel beyond the projector (pixel_graycode)
+    check_noise: NoiseModel  # the intensity noise the checks judge by (`noise_source`)
+    noise_source: str
+    residual_noise: NoiseModel | None  # the noise the fit residual is judged by: not fitted to it (None: not judged)
 
     def _frame(self, kind: str, level: int) -> np.ndarray:
         return self.stack[self.index[(self.orientation, kind, level, 0)]]
@@ -759,12 +757,12 @@ class _OrientationDecoder:
         readable &= ~beyond
         return coordinate, run, readable, beyond
 
-    def run(self) -> tuple[OrientationMaps, dict[str, float]]:
+    def run(self) -> tuple[OrientationMaps, list[Check]]:
         """Per-pixel decoding in bands of CHUNK_ROWS rows on every core (the arrays of a band
-        stay in cache; numpy and OpenCV release the GIL), then the self-check and the
-        spatial check on the whole map."""
+        stay in cache; numpy and OpenCV release the GIL), then the spatial check on the whole
+        map and the consistency checks (`scanner.decode_checks`) from every band's samples."""
         ps, s = self.patterns, self.settings
-        if ps.family == "pixel_graycode":
+        if ps.unwrapping == "pixel_only":
             return self._pixel_graycode_only({"saturated": self.saturated})
         h, w = self.stack.shape[1:]
         n_freq = len(self.blocks)
@@ -776,6 +774,7 @@ class _OrientationDecoder:
         reasons = ("shadow", "low_modulation", "order_error")
         masks = {"saturated": self.saturated, **{k: np.empty((h, w), bool) for k in reasons}}
         usable = np.empty((h, w), bool)
+        beyond = np.empty((h, w), bool)
 
         def band(rows: slice) -> dict[str, Any]:
             b = self._band(rows, [(wrapped[i][rows], modulation[i][rows]) for i in range(n_freq)],
@@ -784,34 +783,34 @@ class _OrientationDecoder:
             for k in reasons:
                 masks[k][rows] = b["masks"][k]
             usable[rows] = b["usable"]
+            beyond[rows] = b["beyond"]
             return b["sums"]
 
         sums = in_bands(h, band)
-        checks = _checks(sums)
-        if s.self_check:
-            self._judge(checks)
         if scaled is not None:
             masks["interreflection"] = _SecondPaths(ps.fringes, scaled, modulation, out["background"], self.noise,
                                                     ps.steps, s).mask(usable, masks["order_error"])
         f_max = max(ps.fringes)
         maps = self._finish(masks, usable, out["coordinate"], out["phase"], wrapped, modulation, out["background"],
                             out["weight"], f_max)
-        return maps, checks
+        coded = [self._range(beyond, sum(b["readable"] for b in sums))] if ps.gray_bits(self.orientation) else []
+        return maps, self._map_checks(sums, masks.get("interreflection")) + coded + self._ordering(maps)
 
     def _band(self, rows: slice, dest: list[tuple[np.ndarray, np.ndarray]], maps: dict[str, np.ndarray],
               scaled: list[np.ndarray] | None) -> dict[str, Any]:
         """The per-pixel work on rows `rows`: phases and modulations (written into `dest`, per
         frequency), masks, unwrapping, and the background, phase, weight and coordinate
         (written into `maps`' views of those rows), each frequency's absolute phase in units of
-        the finest fringe (into `scaled`, when given); returns the masks and the sums the
-        self-check needs."""
+        the finest fringe (into `scaled`, when given); returns the masks and, in `sums`, the
+        counts and the samples (every SAMPLE_STEP-th row and column) the checks judge."""
         ps, s, conv = self.patterns, self.settings, self.patterns.conventions
         stack = self.stack[:, rows]
         wrapped, modulation = [], []
         background = maps["background"]
         background.fill(0.0)
         for block, out in zip(self.blocks, dest):
-            phi, b, a = phase_shift([stack[k] for k in block], ps.steps, conv.phase_origin, conv.step_sign, out)
+            phi, b, a = phase_shift([stack[k] for k in block], ps.steps, conv.first_phase(ps.steps), conv.step_sign,
+                                    out)
             wrapped.append(phi)
             modulation.append(b)
             background += a
@@ -825,7 +824,6 @@ class _OrientationDecoder:
         masks["shadow"] = b_fine < s.min_contrast * np.maximum(background, 1e-6)
         masks["low_modulation"] = ~masks["shadow"] & (b_fine < s.min_modulation * self.full_scale)
         usable = ~(saturated | masks["shadow"] | masks["low_modulation"])
-        sums["usable"] = int(usable.sum())
         sqrt_2n = np.float32(np.sqrt(2.0 / ps.steps))
 
         def sigma_of(level: int) -> Callable[[np.ndarray], np.ndarray]:
@@ -835,40 +833,54 @@ class _OrientationDecoder:
         def frame(kind: str, level: int) -> np.ndarray:
             return stack[self.index[(self.orientation, kind, level, 0)]]
 
-        if ps.family == "graycode" and conv.gray_code == "complementary":
+        def at_samples() -> np.ndarray:
+            """Flat indices (in the band) of the judged sample pixels: usable, no order error."""
+            grid = np.zeros(usable.shape, bool)
+            grid[(-rows.start) % SAMPLE_STEP::SAMPLE_STEP, ::SAMPLE_STEP] = True
+            return np.flatnonzero(grid & usable & ~masks["order_error"])
+
+        check_sigma = self.check_noise.sigma  # σ_I (DN) the checks judge by
+        if ps.unwrapping == "complementary":
             bits = [frame("gray", b) for b in range(ps.gray_bits() + 1)]
-            phase, masks["order_error"], half = _graycode_unwrap(wrapped[0], bits, background, modulation[0],
-                                                                 s.gray_certainty)
-            bad = np.abs(gray_phase_offset(wrapped[0], half)) > np.float32(0.75 * np.pi)
-            sums["gray_bad"] = int((bad & usable).sum())
+            phase, masks["order_error"], half, clear = _graycode_unwrap(wrapped[0], bits, background,
+                                                                        modulation[0], s.gray_certainty)
+            idx = at_samples()
+            idx = idx[clear.flat[idx]]  # the code's edges judged where every bit reads clearly
+            sums["gray_offset"] = gray_phase_offset(wrapped[0].flat[idx], half.flat[idx])
+            sums["phase_sigma"] = np.hypot(check_sigma(background.flat[idx]) / np.maximum(
+                modulation[0].flat[idx], np.float32(1e-6)), np.float32(PATTERN_ERROR)) * sqrt_2n
             maps["phase"][...] = phase
             np.square(modulation[0], out=maps["weight"])
-        elif ps.family == "graycode":  # phase unwrapped by OpenCV's pixel Gray code
+        elif ps.unwrapping == "pixel_phase":  # phase unwrapped by OpenCV's pixel Gray code
             contrast = self.refs[0][rows] - self.refs[1][rows] if self.refs is not None else \
                 np.float32(2.0) * b_fine
             coordinate_g, run, readable, beyond = self._pixel_code(frame, contrast)
-            sums["beyond"], sums["readable"] = int(beyond.sum()), int(readable.sum() + beyond.sum())
+            beyond &= usable
+            sums["readable"] = int(((readable | beyond) & usable).sum())
             predicted = (coordinate_g + np.float32(conv.pixel_centre)) * np.float32(2 * np.pi * f_max / self.extent)
             worst = np.zeros_like(background)
-            phase = _unwrap_step(predicted, 1.0, wrapped[0], worst)
+            phase = unwrap_step(predicted, 1.0, wrapped[0], worst)
             quant = np.float32(2 * np.pi * f_max / self.extent / np.sqrt(12.0) / np.pi)
 
             def code_sigma(idx: np.ndarray) -> np.ndarray:
                 return np.hypot(sigma_of(0)(idx) / np.float32(np.pi), quant * run.flat[idx])
 
             masks["order_error"] = ~readable | _order_errors(worst, code_sigma, s)
-            sums["gray_bad"] = int((readable & (worst > 0.75) & usable).sum())
+            idx = at_samples()
+            sums["gray_offset"] = np.angle(np.exp(1j * (wrapped[0].flat[idx] - predicted.flat[idx])))
             maps["phase"][...] = phase
             np.square(modulation[0], out=maps["weight"])
         else:
-            absolute, residual = _temporal_unwrap(ps, wrapped)
+            absolute, residual = ps.kind.unwrap(ps.fringes, wrapped)
 
             def residual_sigma(idx: np.ndarray) -> np.ndarray:
                 return _residual_sigma(ps, [sigma_of(lv)(idx) for lv in range(len(ps.fringes))])
 
             masks["order_error"] = _order_errors(residual, residual_sigma, s)
-            sums["order_bad"] = int((masks["order_error"] & usable).sum())
-            sums["offsets"] = _offset_sums(ps, absolute, wrapped, usable, rows.start)
+            idx = at_samples()
+            sums["frequencies"] = _frequency_samples(ps, self.extent, absolute, modulation,
+                                                     check_sigma(background.flat[idx]) * sqrt_2n, idx)
+            sums["frequencies"]["at"] = idx + rows.start * usable.shape[1]  # flat in the image
             if scaled is not None:
                 for phi_abs, fi, dst in zip(absolute, ps.fringes, scaled):
                     np.multiply(phi_abs, np.float32(f_max / fi), out=dst)
@@ -883,18 +895,188 @@ class _OrientationDecoder:
                 w *= phi_abs
                 phase += np.multiply(w, np.float32(f_max / fi), out=w)
             phase /= np.maximum(weight, np.float32(1e-12))
+        sums["usable"], sums["order_bad"] = int(usable.sum()), int((masks["order_error"] & usable).sum())
+        if self.judges_residual:
+            sums["residual_z2"] = self._residual_z2(stack, at_samples())
         coordinate = np.multiply(maps["phase"], np.float32(self.extent / (2.0 * np.pi * f_max)),
                                  out=maps["coordinate"])
         coordinate -= np.float32(conv.pixel_centre)
-        return {"masks": masks, "usable": usable, "sums": sums}
+        if "readable" not in sums:  # a fringe order beyond the projector's pixels is an order error
+            beyond = self._beyond(coordinate, usable & ~masks["order_error"], sigma_of(finest))
+            masks["order_error"] |= beyond
+            sums["readable"] = sums["usable"]
+        return {"masks": masks, "usable": usable, "sums": sums, "beyond": beyond}
+
+    def _beyond(self, coordinate: np.ndarray, judged: np.ndarray, phase_sigma: Callable[[np.ndarray], np.ndarray]
+                ) -> np.ndarray:
+        """The judged pixels whose coordinate lies beyond the projector's light (its pixels
+        −0.5 .. W − 0.5, and one pixel more its lens blurs the edge pixels' light into) by more
+        than 5 σ of its noise (`phase_sigma` per flat index, rad of the finest fringe)."""
+        half = np.float32(1.5)
+        idx = np.flatnonzero(judged & ~((coordinate > -half) & (coordinate < np.float32(self.extent) - half)))
+        out = np.zeros(judged.shape, bool)
+        if idx.size:
+            c = coordinate.flat[idx]
+            tol = np.float32(5.0 * self.extent / (2.0 * np.pi * max(self.patterns.fringes))) * phase_sigma(idx)
+            out.flat[idx] = (c < -half - tol) | (c > np.float32(self.extent) - half + tol)
+        return out
+
+    def _residual_z2(self, stack: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """Per step group (row) and sample pixel (flat indices `idx` of the band `stack`), the
+        N-step fit's residual sum of squares in units of each frame's predicted variance (the
+        sensor model's σ_I² at the group's mean, and the patterns' own error): χ² with N − 3
+        degrees of freedom when the frames are what the pattern set says."""
+        ps, conv = self.patterns, self.patterns.conventions
+        delta = conv.first_phase(ps.steps) + conv.step_sign * 2.0 * np.pi * np.arange(ps.steps) / ps.steps
+        basis = np.stack([np.ones(ps.steps), np.cos(delta), np.sin(delta)], axis=1)
+        residual = np.eye(ps.steps) - basis @ np.linalg.pinv(basis)  # (N, N): the fit's residual projector
+        cos_sin = np.linalg.pinv(basis)[1:]  # (2, N): B·cos and B·sin of the fit
+        z2 = np.zeros((len(self.blocks), idx.size))
+        for g, block in enumerate(self.blocks):
+            frames = stack[block].reshape(ps.steps, -1)[:, idx].astype(np.float64)
+            res = residual @ frames
+            b2 = np.square(cos_sin @ frames).sum(axis=0)
+            var = np.square(self.residual_noise.sigma(frames.mean(axis=0)), dtype=np.float64) + PATTERN_ERROR ** 2 * b2
+            z2[g] = (res * res).sum(axis=0) / var
+        return z2
+
+    @property
+    def judges_residual(self) -> bool:
+        """Whether this decode judges the N-step fit's residual: N >= 4 (three steps fit any
+        three values) against a noise model that did not come from that residual (the sensor
+        model, or the frames' spatial noise along the fringes: `spatial_noise`)."""
+        return self.patterns.steps >= 4 and self.residual_noise is not None
+
+    def _map_checks(self, sums: list[dict[str, Any]], second: np.ndarray | None) -> list[Check]:
+        """The checks this orientation's maps support (docs/consistency.md), from the bands'
+        samples. `second`: the pixels masked as a second light path (interreflection), whose
+        frequencies disagree by physics the model of one path does not cover: left out of the
+        frequencies' checks (the mask takes what departs from the image's median disagreement,
+        so a common offset or a disagreement that grows across the image is still judged on
+        the pixels it leaves)."""
+        ps, o = self.patterns, self.orientation
+        total = {k: sum(b.get(k, 0) for b in sums) for k in ("usable", "order_bad")}
+        joined = {k: np.concatenate([b[k] for b in sums], axis=-1) for k in ("residual_z2", "gray_offset",
+                                                                           "phase_sigma") if k in sums[0]}
+        accuracy = SENSOR_MODEL_ACCURACY if self.noise_source == SENSOR_MODEL else FITTED_MODEL_ACCURACY
+        out: list[Check] = []
+        if ps.steps >= 3:
+            if "residual_z2" in joined:
+                z2 = joined["residual_z2"]
+                worst = self.blocks[int(np.argmax(np.median(z2, axis=1)))] if z2.shape[1] else [0]
+                spatial = self.noise_source != SENSOR_MODEL
+                out.append(scale_check("phase_residual", o, z2.sum(axis=0), len(self.blocks) * (ps.steps - 3),
+                                       FITTED_MODEL_ACCURACY if spatial else SENSOR_MODEL_ACCURACY,
+                                       SPATIAL_MODEL if spatial else self.noise_source,
+                                       f"the frames do not follow the patterns: frame {worst[0]} (step group "
+                                       f"{worst[0]}..{worst[-1]}) fits worst; frames swapped, repeated or from "
+                                       f"another scan?", "each pixel's N-step fit residual"))
+            else:
+                out.append(not_judged("phase_residual", o, "x noise", "three steps leave no residual"))
+        if "frequencies" in sums[0]:
+            one_path = np.concatenate([b["frequencies"]["at"] for b in sums])
+            one_path = ~second.ravel()[one_path] if second is not None else np.ones(one_path.size, bool)
+            q = np.concatenate([b["frequencies"]["q"] for b in sums])[one_path]
+            d = np.concatenate([b["frequencies"]["d"] for b in sums])[one_path]
+            out.append(scale_check("frequency_agreement", o, q, len(ps.fringes) - 1, accuracy, self.noise_source,
+                                   "a wrong fringe count, frames from another scan, or frequencies out of order?",
+                                   "the frequencies' spread about their mean coordinate"))
+            out.append(self._frequency_offset(d))
+        if "gray_offset" in joined:
+            out.append(self._gray_offset(joined["gray_offset"]))
+        if "phase_sigma" in joined:
+            out.append(self._gray_edges(joined["gray_offset"], joined["phase_sigma"]))
+        out.append(majority_check("fringe_orders", o, total["order_bad"] / max(total["usable"], 1), total["usable"],
+                                  "of usable pixels", "a fringe order consistent with the noise on most pixels",
+                                  "wrong fringe counts, frame order or projector size, or phase steps rotated by "
+                                  "half a group (every phase half a period off: no order fits)?"))
+        return out
+
+    def _frequency_offset(self, d: np.ndarray) -> Check:
+        """The finest frequency's coordinate less the coarsest's, at its median: 0 when the
+        frames follow the set; a common phase offset ε (a step rotation 2π·k/N, a wrong phase
+        origin) shifts each frequency's coordinate by ε·P_i/(2π), so this by ε·(P_f − P_c)/(2π)."""
+        ps = self.patterns
+        fault = self.extent * (1 / max(ps.fringes) - 1 / min(ps.fringes)) / ps.steps  # one step's rotation (px)
+        if d.size < MIN_JUDGED:
+            return not_judged("frequency_offset", self.orientation, "px", f"{d.size} pixels")
+        se = 1.2533 * float(np.std(d)) / np.sqrt(d.size)  # standard error of a median
+        offset = float(np.median(d))
+        return offset_check("frequency_offset", self.orientation, offset, se, fault, "px",
+                            "the median of the finest less the coarsest frequency's coordinate",
+                            _rotation_cause(offset / fault if fault else 0.0, ps.steps), int(d.size))
+
+    def _gray_offset(self, r: np.ndarray) -> Check:
+        """The phase's common offset from where the Gray code says it is (rad, circular mean):
+        0 when they agree; a rotation of the steps by k adds 2π·k/N, a wrong origin a
+        multiple of π/2."""
+        if r.size < MIN_JUDGED:
+            return not_judged("gray_offset", self.orientation, "rad", f"{r.size} pixels")
+        z = np.mean(np.exp(1j * r.astype(np.float64)))
+        spread = np.sqrt(max(-2.0 * np.log(max(abs(z), 1e-9)), 0.0))
+        steps = self.patterns.steps
+        fault = min(2.0 * np.pi / steps, np.pi / 2)
+        offset = float(np.angle(z))
+        return offset_check("gray_offset", self.orientation, offset, spread / np.sqrt(r.size), fault, "rad",
+                            "the phase's mean offset from the Gray code's period",
+                            _rotation_cause(offset * steps / (2 * np.pi), steps), int(r.size))
+
+    def _gray_edges(self, r: np.ndarray, phase_sigma: np.ndarray) -> Check:
+        """Where the complementary Gray code, read clearly, and the phase disagree: a phase
+        outside the half period the code names (|r| > π/2) by more than z σ_φ (z for a
+        one-sided 1e-3) plus one projector pixel of phase. A code's edge lies between two
+        projector pixels while the phase's period may start anywhere within a pixel of it
+        (the pixel-centre convention, the 8-bit patterns, blur), so no noise or convention
+        carries a pixel further, and noise does so to at most 1e-3 of the pixels wherever in
+        the half period they lie: the count is at most Poisson(1e-3·n). A wrong period count
+        or a step rotation moves whole stretches of the map across."""
+        name, o = "gray_edges", self.orientation
+        if r.size < MIN_JUDGED:
+            return not_judged(name, o, "pixels", f"{r.size} pixels")
+        per_pixel = 1e-3
+        accuracy = SENSOR_MODEL_ACCURACY if self.noise_source == SENSOR_MODEL else FITTED_MODEL_ACCURACY
+        z = normal_isf(per_pixel) * (1.0 + accuracy)
+        pixel = 2.0 * np.pi * self.patterns.fringes[0] / self.extent  # rad per projector pixel
+        observed = int(np.count_nonzero(np.abs(r) - np.pi / 2 > z * phase_sigma + pixel))
+        threshold = poisson_quantile(1.0 - ALPHA, per_pixel * r.size)
+        return Check(name, o, float(observed), threshold, "pixels",
+                     f"only noise puts the phase more than a projector pixel outside the half period the code "
+                     f"names (at most {per_pixel:g} of {r.size})", observed <= threshold,
+                     "a wrong period count, or phase steps rotated?",
+                     f"{ALPHA:g} (Poisson bound, the noise model within ±{accuracy:.0%} in σ)", int(r.size))
+
+    def _range(self, beyond: np.ndarray, readable: int) -> Check:
+        """A Gray code names a period or pixel the projector may not have: each such pixel is
+        masked (an order error). A misread code lands there at isolated pixels (the spatial
+        check's `min_region_fraction` removes such islands from any map); a wrong projector
+        size or period count puts whole regions there, which refuses the decode. (Phase-only
+        sets unwrap within the projector's extent: their pixels beyond are masked, not judged.)"""
+        name, o = "projector_range", self.orientation
+        if readable < MIN_JUDGED:
+            return not_judged(name, o, "of decoded pixels", f"{readable} decoded pixels")
+        coherent = int(np.count_nonzero(beyond & ~small_regions(beyond, self.min_region)))
+        return Check(name, o, coherent / readable, 0.0, "of decoded pixels",
+                     f"no region of {self.min_region} px or more decodes beyond the projector's {self.extent} pixels",
+                     coherent == 0, "a wrong projector size or period count?",
+                     "0 under the model (misreads are isolated pixels)", readable,
+                     figures={"beyond_pixels": int(np.count_nonzero(beyond)), "in_regions": coherent})
+
+    @property
+    def min_region(self) -> int:
+        """The least area (px) of a region the spatial check keeps (`min_region_fraction`)."""
+        return max(1, int(self.settings.min_region_fraction * self.stack.shape[1] * self.stack.shape[2]))
+
+    def _ordering(self, maps: OrientationMaps) -> list[Check]:
+        return [ordering(maps.coordinate, maps.valid, maps.coordinate_sigma, maps.period_px, self.orientation,
+                         SAMPLE_STEP)]
 
     @property
     def _judges_paths(self) -> bool:
         """Whether this decode looks for second light paths (several phase-shift frequencies)."""
-        return (self.settings.interreflection and self.patterns.family in ("heterodyne", "hierarchical")
+        return (self.settings.interreflection and self.patterns.unwrapping == "temporal"
                 and len(self.patterns.fringes) > 1)
 
-    def _pixel_graycode_only(self, masks: dict[str, np.ndarray]) -> tuple[OrientationMaps, dict[str, float]]:
+    def _pixel_graycode_only(self, masks: dict[str, np.ndarray]) -> tuple[OrientationMaps, list[Check]]:
         """OpenCV's GrayCodePattern alone: the coordinate is the pixel (run) the code names."""
         s = self.settings
         if self.refs is not None:
@@ -911,15 +1093,11 @@ class _OrientationDecoder:
         masks["low_modulation"] = ~masks["shadow"] & (b < s.min_modulation * self.full_scale)
         usable = ~(masks["shadow"] | masks["low_modulation"])
         coordinate, run, readable, beyond = self._pixel_code(self._frame, contrast)
-        self.beyond_fraction = float(beyond.sum() / max(int(readable.sum() + beyond.sum()), 1))
         masks["order_error"] = ~readable
         weight = np.float32(12.0) / np.square(run, dtype=np.float32)  # 1 / variance of a uniform run (px⁻²)
         phase = (coordinate + np.float32(0.5)) * TWO_PI  # one "fringe" per projector pixel
         maps = self._finish(masks, usable, coordinate, phase, [], [b], background, weight, float(self.extent))
-        checks = {"codes_beyond_projector": self.beyond_fraction}
-        if s.self_check:
-            self._judge(checks)
-        return maps, checks
+        return maps, [self._range(beyond & usable, int(((readable | beyond) & usable).sum()))] + self._ordering(maps)
 
     def _finish(self, masks: dict[str, np.ndarray], usable: np.ndarray, coordinate: np.ndarray, phase: np.ndarray,
                 wrapped: list[np.ndarray], modulation: list[np.ndarray], background: np.ndarray,
@@ -937,8 +1115,8 @@ class _OrientationDecoder:
         in_bands(valid.shape[0], prepare)
         islands = None
         if s.spatial_check:
-            min_region = max(1, int(s.min_region_fraction * valid.size))
-            islands, masks["discontinuity"] = _unreliable_regions(coordinate, valid, self.extent / fringes, min_region)
+            islands, masks["discontinuity"] = _unreliable_regions(coordinate, valid, self.extent / fringes,
+                                                                  self.min_region)
 
         def finish(rows: slice) -> None:
             if islands is not None:
@@ -957,27 +1135,3 @@ class _OrientationDecoder:
             phase[slivers] = nan
         return OrientationMaps(self.orientation, coordinate, phase, wrapped, modulation, background, weight, masks,
                                valid, fringes, self.extent, self.noise, max(self.patterns.steps, 1))
-
-    def _judge(self, checks: dict[str, float]) -> None:
-        s, o = self.settings, self.orientation
-        g = checks.get("gray_phase_disagreement", 0.0)
-        if g > s.max_disagreement:
-            raise DecodeError(f"self-check: {o} Gray code and phase disagree on {g:.1%} of the modulated pixels "
-                              f"(limit {s.max_disagreement:.0%}): the frames do not follow the pattern set's "
-                              f"conventions (phase origin, step sign, frame order or Gray-code variant); no cloud "
-                              f"written")
-        offsets = {k: v for k, v in checks.items() if k.endswith("_offset_rad")}
-        worst = max(offsets, key=lambda k: abs(offsets[k]), default=None)
-        if worst is not None and abs(offsets[worst]) > s.max_frequency_offset:
-            raise DecodeError(f"self-check: the {o} frequencies disagree systematically ({worst.split('_offset')[0]} "
-                              f"sits {offsets[worst]:+.2f} rad from the others; limit {s.max_frequency_offset} rad): "
-                              f"the frames do not follow the pattern set's conventions (phase origin, step sign or "
-                              f"frame order); no cloud written")
-        beyond = checks.get("codes_beyond_projector", 0.0)
-        if beyond > 0.01:
-            raise DecodeError(f"self-check: {beyond:.1%} of the readable {o} Gray codes name projector "
-                              f"pixels at or beyond {self.extent}: the projector size is wrong; no cloud written")
-        e = checks.get("order_error_fraction", 0.0)
-        if e > 0.5:
-            raise DecodeError(f"self-check: {o} fringe orders fail on {e:.0%} of the modulated pixels: the fringe "
-                              f"counts, frame order or projector size do not match the frames; no cloud written")

@@ -295,6 +295,6 @@ def fuse(results: list[DecodeResult], exposures_s: tuple[float, ...]) -> DecodeR
     first = next(iter(maps.values()))
     texture = _pick([r.texture * s for r, s in zip(results, scale)], first.exposure_index)
     valid = np.logical_and.reduce([m.valid for m in maps.values()])
-    most = max(range(len(results)), key=lambda i: int(results[i].valid.sum()))
+    checks = [replace(c, scope=f"{c.scope}, exposure {i}") for i, r in enumerate(results) for c in r.checks]
     return DecodeResult(results[0].patterns, results[0].bit_depth, maps, texture, valid,  # type: ignore[arg-type]
-                        results[most].checks)
+                        checks)

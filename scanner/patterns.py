@@ -7,10 +7,11 @@ absolute phase Φ(c) = 2π·f·(c + δ)/W at pixel coordinate c, δ = 0.5, so Φ
 0.5 + 0.5·cos(Φ + δn). A pattern set's `conventions` generalise this (phase origin, step
 sign, δ, frame order, Gray-code variant, white/black reference frames).
 
-Families: "heterodyne" and "hierarchical" (temporal phase unwrapping), "graycode" (phase
-shift unwrapped by a Gray code) and "pixel_graycode" (OpenCV's GrayCodePattern alone: the
-Gray code of every projector pixel, no phase shift; its frame count depends on the
-projector size, so it is known only `for_projector`).
+Families (the registry: scanner/pattern_families.py): "heterodyne" and "hierarchical"
+(temporal phase unwrapping), "graycode" (phase shift unwrapped by a Gray code) and
+"pixel_graycode" (OpenCV's GrayCodePattern alone: the Gray code of every projector pixel, no
+phase shift; its frame count depends on the projector size, so it is known only
+`for_projector`). Any other family is refused as not supported, naming those that are.
 """
 
 from __future__ import annotations
@@ -20,14 +21,16 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from scanner import schema
 from scanner.config import load_toml
 from scanner.conventions import LAYOUT_KEYS, NATIVE, Conventions, ConventionsFile
 from scanner.errors import ConfigError
+from scanner.pattern_families import FAMILIES, FrameSpec, PatternFamily, family, gray_code, gray_to_binary
 
-FAMILIES = ("heterodyne", "hierarchical", "graycode", "pixel_graycode")
+__all__ = ["FAMILIES", "FrameSpec", "PatternFile", "PatternSet", "gray_code", "gray_to_binary"]
+
 ORIENTATIONS = ("vertical", "horizontal")
 KINDS = ("phase", "gray", "gray_inverse", "white", "black")
 
@@ -37,7 +40,7 @@ class PatternFile(schema.Schema):
     adds the family's rules. `conventions` (scanner/conventions.py) and `projector_size`
     are optional; a pixel Gray code has no steps or fringes."""
 
-    family: Literal[FAMILIES]
+    family: schema.Str
     steps: Annotated[int, Field(strict=True, ge=0, le=64)] = 0
     fringes: Annotated[list[Annotated[float, Field(strict=True, gt=0, le=10000)]], Field(max_length=8)] = []
     orientations: Annotated[list[Literal[ORIENTATIONS]], Field(min_length=1, max_length=2)] = ["vertical"]
@@ -45,22 +48,19 @@ class PatternFile(schema.Schema):
     projector_size: Annotated[list[Annotated[int, Field(strict=True, ge=2, le=100000)]],
                               Field(min_length=2, max_length=2)] | None = None
 
+    @field_validator("family")
+    @classmethod
+    def _supported(cls, name: str) -> str:
+        if name not in FAMILIES:
+            raise ValueError(f"pattern family {name!r} is not supported (supported: {', '.join(FAMILIES)})")
+        return name
+
     @model_validator(mode="after")
     def _phase_shift_keys(self) -> PatternFile:
         missing = [k for k in ("steps", "fringes") if k not in self.model_fields_set]
-        if self.family != "pixel_graycode" and missing:
+        if FAMILIES[self.family].has_phase and missing:
             raise ValueError(f"family '{self.family}' needs {' and '.join(missing)}")
         return self
-
-
-@dataclass(frozen=True)
-class FrameSpec:
-    """What one frame of the sequence shows."""
-
-    orientation: str  # vertical | horizontal (white and black: the first orientation)
-    kind: str  # phase | gray | gray_inverse | white | black
-    level: int  # phase: frequency index; gray: bit index (0 = most significant)
-    step: int  # phase: step index n; otherwise 0
 
 
 @dataclass(frozen=True)
@@ -84,32 +84,21 @@ class PatternSet:
         self.validate("pattern set")
 
     def validate(self, where: str | Path) -> None:
-        if self.family not in FAMILIES:
-            raise ConfigError(where, "family", f"'{self.family}' is not one of {FAMILIES}")
+        kind = family(self.family, where)
         if not self.orientations or any(o not in ORIENTATIONS for o in self.orientations) \
                 or len(set(self.orientations)) != len(self.orientations):
             raise ConfigError(where, "orientations", f"{list(self.orientations)}: use one or both of {ORIENTATIONS}")
-        if self.family == "pixel_graycode":
-            if self.fringes or self.steps:
-                raise ConfigError(where, "fringes", "pixel_graycode has no phase shift: leave out steps and fringes")
-            return
-        if self.steps < 3:
-            raise ConfigError(where, "steps", f"N-step phase shift needs N >= 3, got {self.steps}")
-        f = self.fringes
-        if not f or any(x <= 0 for x in f):
-            raise ConfigError(where, "fringes", "fringe counts must be positive")
-        if self.family == "heterodyne":
-            if len(f) != 3 or not f[0] > f[1] > f[2] or abs((f[0] - f[1]) - (f[1] - f[2]) - 1) > 1e-9:
-                raise ConfigError(where, "fringes", f"three-frequency heterodyne needs f1 > f2 > f3 with "
-                                                    f"(f1-f2)-(f2-f3) = 1, got {list(f)}")
-        elif self.family == "hierarchical":
-            if f[0] != 1 or any(b <= a for a, b in zip(f, f[1:])):
-                raise ConfigError(where, "fringes", f"hierarchical counts must start at 1 and increase, got {list(f)}")
-            if any(b / a > 16 for a, b in zip(f, f[1:])):
-                raise ConfigError(where, "fringes", f"ratio between successive counts above 16 is not reliably "
-                                                    f"unwrappable: {list(f)}")
-        elif len(f) != 1:
-            raise ConfigError(where, "fringes", f"graycode takes one phase-shift fringe count, got {list(f)}")
+        kind.check(self.fringes, self.steps, where)
+
+    @property
+    def kind(self) -> PatternFamily:
+        """This set's family (scanner.pattern_families)."""
+        return FAMILIES[self.family]
+
+    @property
+    def unwrapping(self) -> str:
+        """How its fringe order is found (`PatternFamily.unwrapping`)."""
+        return self.kind.unwrapping(self.conventions.gray_code)
 
     @classmethod
     def from_dict(cls, d: Any, where: str | Path = "pattern set", prefix: str = "", detect: bool = False
@@ -144,8 +133,17 @@ class PatternSet:
         return d
 
     def for_projector(self, size: tuple[int, int]) -> PatternSet:
-        """This set on a projector of `size` = (width, height) px."""
-        return replace(self, projector_size=(int(size[0]), int(size[1])))
+        """This set on a projector of `size` = (width, height) px; with `period_rounding`
+        "floor", its periods made whole pixels: floor(W/f) px each, so W/floor(W/f) of them."""
+        out = replace(self, projector_size=(int(size[0]), int(size[1])))
+        if self.conventions.period_rounding != "floor":
+            return out
+        if len(self.orientations) != 1:
+            raise ConfigError("pattern set", "conventions.period_rounding", "whole-pixel periods along both "
+                                                                             "orientations differ: give one")
+        extent = size[0] if self.orientations[0] == "vertical" else size[1]
+        fringes = tuple(extent / np.floor(extent / f) for f in self.fringes)
+        return replace(out, fringes=fringes, conventions=replace(self.conventions, period_rounding="none"))
 
     def with_conventions(self, conventions: Conventions) -> PatternSet:
         return replace(self, conventions=conventions)
@@ -153,23 +151,13 @@ class PatternSet:
     @property
     def uses_pixel_code(self) -> bool:
         """Gray code of every projector pixel (OpenCV's layout) rather than of the periods."""
-        return self.family == "pixel_graycode" or (self.family == "graycode" and self.conventions.gray_code == "opencv")
+        return self.unwrapping in ("pixel_phase", "pixel_only")
 
     def gray_bits(self, orientation: str = "vertical") -> int:
         """Gray-code bits per orientation: of the phase-shift periods (without the
-        complementary bit), or of the projector pixels for a pixel code."""
-        if self.uses_pixel_code:
-            if self.projector_size is None:
-                raise ConfigError("pattern set", "projector_size", "a pixel Gray code's frames depend on the "
-                                                                   "projector size; give it (--projector-size)")
-            extent = self.projector_size[0 if orientation == "vertical" else 1]
-            return int(np.ceil(np.log2(extent)))
-        return int(np.ceil(np.log2(self.fringes[0]))) if self.family == "graycode" else 0
-
-    def _gray_block(self, o: str) -> list[FrameSpec]:
-        if self.uses_pixel_code:
-            return [FrameSpec(o, kind, b, 0) for b in range(self.gray_bits(o)) for kind in ("gray", "gray_inverse")]
-        return [FrameSpec(o, "gray", b, 0) for b in range(self.gray_bits(o) + 1)]
+        complementary bit), or of the projector pixels for a pixel code (0: no code)."""
+        extent = None if self.projector_size is None else self.projector_size[0 if orientation == "vertical" else 1]
+        return self.kind.gray_bits(self.fringes, extent, self.uses_pixel_code)
 
     def frames(self) -> list[FrameSpec]:
         """The frame sequence in capture order (`conventions`): per orientation the phase
@@ -186,7 +174,7 @@ class PatternSet:
             pairs = [(lv, n) for lv in levels for n in steps] if c.frame_order == "frequency-major" else \
                 [(lv, n) for n in steps for lv in levels]
             phase = [FrameSpec(o, "phase", lv, n) for lv, n in pairs]
-            gray = self._gray_block(o) if self.family in ("graycode", "pixel_graycode") else []
+            gray = self.kind.code_frames(o, self.gray_bits(o), self.uses_pixel_code)
             out += phase + gray if c.gray_position == "after" else gray + phase
         refs = [FrameSpec(self.orientations[0], "white", 0, 0), FrameSpec(self.orientations[0], "black", 0, 0)]
         return refs + out if c.references == "first" else out + refs if c.references == "last" else out
@@ -198,11 +186,12 @@ class PatternSet:
     def render(self, width: int, height: int, gamma: float = 1.0) -> np.ndarray:
         """(n_frames, height, width) uint8 patterns, pre-compensated for a projector whose
         output is (command/255)^gamma so the displayed fringes are sinusoidal."""
-        specs = self.for_projector((width, height)).frames() if self.uses_pixel_code else self.frames()
+        on_projector = self.for_projector((width, height))
+        specs = on_projector.frames()
         out = np.empty((len(specs), height, width), dtype=np.uint8)
         for i, s in enumerate(specs):
             extent = width if s.orientation == "vertical" else height
-            profile = self.profile(s, extent)
+            profile = on_projector.profile(s, extent)
             encoded = np.round(255.0 * np.clip(profile, 0.0, 1.0) ** (1.0 / gamma)).astype(np.uint8)
             out[i] = encoded[None, :] if s.orientation == "vertical" else encoded[:, None]
         return out
@@ -212,33 +201,9 @@ class PatternSet:
         c = np.arange(extent, dtype=np.float64)
         conv = self.conventions
         if s.kind == "phase":
-            phase = 2.0 * np.pi * self.fringes[s.level] * (c + conv.pixel_centre) / extent + conv.phase_origin
+            phase = 2.0 * np.pi * self.fringes[s.level] * (c + conv.pixel_centre) / extent
+            phase += conv.first_phase(self.steps)
             return 0.5 + 0.5 * np.cos(phase + conv.step_sign * 2.0 * np.pi * s.step / self.steps)
         if s.kind in ("white", "black"):
             return np.full(extent, 1.0 if s.kind == "white" else 0.0)
-        if self.uses_pixel_code:
-            n_bits = int(np.ceil(np.log2(extent)))
-            bit = ((gray_code(c.astype(np.int64)) >> (n_bits - 1 - s.level)) & 1).astype(np.float64)
-            return bit if s.kind == "gray" else 1.0 - bit
-        n_bits = int(np.ceil(np.log2(self.fringes[0])))
-        period = extent / self.fringes[0]
-        if s.level < n_bits:
-            code = gray_code(np.floor((c + 0.5) / period).astype(np.int64))
-            return ((code >> (n_bits - 1 - s.level)) & 1).astype(np.float64)
-        # complementary bit: the least significant bit of a Gray code at half the period
-        code = gray_code(np.floor((c + 0.5) / (period / 2.0)).astype(np.int64))
-        return (code & 1).astype(np.float64)
-
-
-def gray_code(n: np.ndarray) -> np.ndarray:
-    return n ^ (n >> 1)
-
-
-def gray_to_binary(g: np.ndarray, n_bits: int) -> np.ndarray:
-    """Inverse of `gray_code` for codes of `n_bits` bits."""
-    b = g.copy()
-    shift = 1
-    while shift < n_bits:
-        b ^= b >> shift
-        shift <<= 1
-    return b
+        return self.kind.code_profile(s, extent, self.fringes, self.uses_pixel_code)

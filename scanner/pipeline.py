@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from contextlib import ExitStack
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -19,12 +19,28 @@ from scanner.acquisition import (
     acquire_exposures,
     acquire_images,
     at_exposure,
-    check_signature,
     settings_for_exposure,
 )
-from scanner.decode import DecodeResult, DecodeSettings, decode
+from scanner.calibration_file import load_rig_model
+from scanner.decode import DecodeResult, DecodeSettings, NoiseModel, decode
+from scanner.decode_checks import (
+    FITTED_MODEL_ACCURACY,
+    MIN_JUDGED,
+    SENSOR_MODEL_ACCURACY,
+    Check,
+    ConsistencyError,
+    Volume,
+    direction,
+    epipolar,
+    failed,
+    measurement_volume,
+    not_judged,
+    pattern_set_tie,
+    rig_model_tie,
+    sensor_noise_terms,
+)
 from scanner.devices import Frame
-from scanner.errors import DecodeError, FrameError, FrameOutOfOrder, ScannerError, SessionError
+from scanner.errors import DecodeError, ScannerError, SessionError
 from scanner.exposure import ExposurePlan, ExposureRequest, FusedOrientationMaps, fuse, plan_exposures, probe_images
 from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
@@ -32,7 +48,17 @@ from scanner.pointcloud import OrganisedCloud, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from scanner.rig import Rig
 from scanner.native_threads import native_threads
-from scanner.session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, disk_problem, write_json, write_npz
+from scanner.session import (
+    OUTPUTS_DIR,
+    RECORDING,
+    Session,
+    SessionWriter,
+    disk_problem,
+    json_ready,
+    rig_model_sha256,
+    write_json,
+    write_npz,
+)
 from scanner.stage_timer import StageTimer
 
 if TYPE_CHECKING:  # Rerun takes ~0.3 s to import: only the commands that record load it
@@ -54,6 +80,7 @@ class ScanResult:
     decoded: DecodeResult
     cloud: OrganisedCloud | None  # None: a session without a calibration (imported frames) has maps only
     timings_s: dict[str, float]
+    checks: list[Check] = field(default_factory=list)  # the consistency checks it passed (decode_checks)
     written: Future[None] | None = None  # the outputs' write, when it runs behind (`process(write_behind=True)`)
 
     @property
@@ -155,24 +182,33 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
 
 def process(session: Session, progress: Progress = _quiet, recording: SessionRecording | None = None,
             settings: DecodeSettings = DecodeSettings(), mode: str = "triangulation",
-            frames: dict[int, np.ndarray] | None = None, write_behind: bool = False) -> ScanResult:
+            frames: dict[int, np.ndarray] | None = None, write_behind: bool = False, *,
+            rig_model: RigModel | None = None, rig_model_source: str | None = None) -> ScanResult:
     """Decode and reconstruct a complete session from its raw frames; write the outputs
     (cloud PLY, maps, result JSON) beside them. `frames`: the session's frames still in
     memory (k -> image, `capture(keep=)`: the images its PNGs were written from), else they
     are read back from disk and checked (`Session.load_stack`). `write_behind`: return
     once the cloud is made and write the outputs in a thread meanwhile (a verdict waits on
-    the cloud, not on its files); `ScanResult.wait_written()` joins it and raises its error."""
+    the cloud, not on its files); `ScanResult.wait_written()` joins it and raises its error.
+    `rig_model`: another model than the session's, given on purpose (named `rig_model_source`).
+    Every decode is judged by its consistency checks (scanner.decode_checks): when one fails
+    it raises ConsistencyError, result.json says which and why, and no cloud is written."""
     if mode not in ("triangulation", "phase_to_height"):
         raise ScannerError(f"unknown reconstruction mode '{mode}'; use triangulation or phase_to_height")
     timer = StageTimer()
     progress("load", 0, 1)
     with timer.stage("load"):
         stack = session.load_stack() if frames is None else np.stack([frames[k] for k in range(len(frames))])
-        model = session.rig_model()
+        model = rig_model or session.rig_model()
         stacks = exposure_stacks(session, stack, model)
+    used = model.to_dict() if rig_model is not None else session.manifest["rig_model"]
+    named = session.manifest["rig_model"].get("calibration")
+    tie = rig_model_tie(session.manifest.get("rig_model_sha256"), used, rig_model_source,
+                        (named, session.manifest["calibration_sha256"]) if named and
+                        session.manifest.get("calibration_sha256") else None, holds_its_calibration(used, model))
     progress("decode", 0, 1)
     with timer.stage("decode"):
-        decoded = decode_exposures(session, stacks, model, settings)
+        decoded = decode_exposures(session, stacks, model, replace(settings, self_check=False))
     calibrated = session.manifest.get("calibrated", True)
     progress("reconstruct", 0, 1)
     with timer.stage("reconstruct"):
@@ -183,17 +219,29 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
             cloud = triangulate(decoded, Triangulator(model))
         else:
             cloud = phase_to_height_cloud(decoded, model)
+    described = pattern_set_tie(session.manifest.get("patterns_sha256"), session.manifest["patterns"])
+    checks = [tie, described, *decoded.checks, *rig_checks(session, decoded, cloud, model, calibrated)]
     progress("write", 0, 1)
     out = session.root / OUTPUTS_DIR
     out.mkdir(exist_ok=True)
     n_points = len(cloud) if cloud is not None else 0
     stats = {"points": n_points, "valid_fraction": round(float(decoded.valid.mean()), 5),
-             "rejected": decoded.rejected(), "self_check": decoded.checks, "integrity": session.integrity}
+             "rejected": decoded.rejected(), "consistency": [c.as_dict() for c in checks],
+             "noise_source": "sensor model" if sensor_noise(session) is not None else
+             "the frames (fitted to their N-step residuals; the residual itself judged by their noise along the "
+             "fringes)",
+             "rig_model": rig_model_source or "the session's", "integrity": session.integrity}
+    if settings.self_check and failed(checks):
+        refusal = ConsistencyError(f"{session.root}: ", checks)
+        write_json(out / "result.json", {"session_id": session.id, "mode": mode, "error": str(refusal), **stats})
+        if recording is not None:
+            log_checks(recording, checks)
+        raise refusal
     if (cloud is not None and n_points == 0) or not decoded.valid.any():
         problem = no_points_reason(decoded)
         write_json(out / "result.json", {"session_id": session.id, "mode": mode, "error": problem, **stats})
         raise DecodeError(f"{session.root}: the scan yielded no points: {problem}")
-    result = ScanResult(session, decoded, cloud, timer.rounded()[0])
+    result = ScanResult(session, decoded, cloud, timer.rounded()[0], checks)
     head = {"session_id": session.id, "mode": mode}
     if write_behind:
         pool = ThreadPoolExecutor(1, thread_name_prefix="write outputs")
@@ -230,9 +278,110 @@ def _write_outputs(result: ScanResult, timer: StageTimer, summary: dict[str, Any
     write_json(out / "result.json", {**summary, "timings_s": timings, "cpu_s": cpu})
 
 
+def holds_its_calibration(used: dict[str, Any], model: RigModel) -> bool:
+    """Whether a rig model description is exactly the model the calibration file it names
+    holds now (by the SHA-256 of both descriptions): a session re-decoded with its rig's new
+    calibration (`slscan batch --rig`) rather than a model edited by hand."""
+    path = used.get("calibration")
+    if not path:
+        return False
+    try:
+        held = load_rig_model(path, model.camera.size, model.projector.size)
+    except ScannerError:
+        return False
+    return rig_model_sha256(json_ready(held.to_dict())) == rig_model_sha256(json_ready(used))
+
+
+def rig_checks(session: Session, decoded: DecodeResult, cloud: OrganisedCloud | None, model: RigModel,
+               calibrated: bool) -> list[Check]:
+    """The checks that need the rig: each orientation's direction against the geometry's
+    and the cloud's measuring volume (scanner.decode_checks)."""
+    out = []
+    for o in decoded.maps:
+        ordering_check = next((c for c in decoded.checks if c.name == "ordering" and c.scope.startswith(o)), None)
+        if ordering_check is not None:
+            out.append(direction(ordering_check, model, o, calibrated))
+    if cloud is not None and len(cloud):
+        volume = Volume.of_rig_config(session.manifest.get("rig_config", {}))
+        out.append(measurement_volume(cloud.points, model, volume, tuple(decoded.maps)))
+    if calibrated and set(decoded.maps) == {"vertical", "horizontal"}:
+        accuracy = model_accuracy_px(session, model)
+        out.append(not_judged("epipolar", "cloud", "x noise", "the rig model's error on a new view is not known (a "
+                              "calibration states its RMS on its own views only)") if accuracy is None else
+                   epipolar_check(decoded, model, sensor_noise(session) is not None, accuracy))
+    return out
+
+
+def model_accuracy_px(session: Session, model: RigModel) -> float | None:
+    """How well the rig model places a point (px, one sigma), when that is known: 0 for a
+    simulated rig's nominal geometry (the simulator's truth). A calibration file states its
+    reprojection RMS on its own views only, not its error on a new one (on the real procam
+    capture the epipolar distance is twice that RMS allows), and a nominal hardware geometry
+    states nothing: None, the epipolar check is then not judged."""
+    imported = session.manifest.get("import", {}).get("calibration")
+    driver = session.manifest.get("rig_config", {}).get("rig", {}).get("driver")
+    return 0.0 if driver == "sim" and not model.calibration and not imported else None
+
+
+def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: bool, model_px: float) -> Check:
+    """`decode_checks.epipolar` on every 4th pixel of every 4th row valid in both orientations:
+    the depth from the orientation that fixes it best (the smaller |dz/dcoordinate|, along the
+    baseline), the other coordinate that depth predicts through the rig, and the same from a
+    coordinate half a pixel further; `model_px` the rig model's own reprojection error (px)."""
+    sample = np.zeros(decoded.valid.shape, bool)
+    sample[::4, ::4] = True
+    sample &= decoded.valid
+    if sample.sum() < MIN_JUDGED:
+        return not_judged("epipolar", "cloud", "x noise", f"{int(sample.sum())} pixels valid in both orientations")
+    tri = Triangulator(model)
+    with np.errstate(divide="ignore", invalid="ignore"):  # rays parallel to a plane a wrong model makes: no depth
+        dz = {o: tri.depth_scale(np.where(sample, decoded.maps[o].coordinate, np.nan), o, True)[1][sample]
+              for o in ("vertical", "horizontal")}
+    dz = {o: d[np.isfinite(d)] for o, d in dz.items()}  # pixels no depth reaches are left out
+    if min(d.size for d in dz.values()) < MIN_JUDGED:
+        return not_judged("epipolar", "cloud", "x noise", "too few pixels the rig places in both orientations")
+    source = min(dz, key=lambda o: float(np.median(dz[o])))
+    other = "horizontal" if source == "vertical" else "vertical"
+    rays = model.camera.ray_grid[sample].astype(np.float64)
+    predicted = []
+    for shift in (0.0, 0.5):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = tri.depth_scale(np.where(sample, decoded.maps[source].coordinate + np.float32(shift), np.nan), source)
+        in_projector = (rays * z[sample][:, None]) @ model.proj_from_cam[:3, :3].T + model.proj_from_cam[:3, 3]
+        predicted.append(model.projector.project(in_projector)[:, 1 if other == "horizontal" else 0])
+    accuracy = SENSOR_MODEL_ACCURACY if sensor else FITTED_MODEL_ACCURACY
+    measured, given = decoded.maps[other], decoded.maps[source]
+    return epipolar(measured.coordinate[sample].astype(np.float64),
+                    measured.coordinate_sigma[sample].astype(np.float64), predicted[0], predicted[1],
+                    given.coordinate_sigma[sample].astype(np.float64), 0.5, accuracy,
+                    "sensor model" if sensor else "noise model fitted to the frames", model_px)
+
+
+def sensor_noise(session: Session) -> NoiseModel | None:
+    """The camera's intensity noise from the session's rig file ([camera.sensor]), or None."""
+    terms = sensor_noise_terms(session.manifest.get("rig_config", {}), session.bit_depth)
+    return NoiseModel(*terms) if terms is not None else None
+
+
+def log_checks(recording: SessionRecording, checks: list[Check]) -> None:
+    """Each check's statistic and threshold as metrics (`consistency/<name>/<scope>/...`) and
+    its line in the event log (a failure at level ERROR)."""
+    values: dict[str, float] = {}
+    for c in checks:
+        key = f"consistency/{c.name}/{c.scope.replace(', ', '/').replace(' ', '_')}"
+        if c.statistic is not None and c.threshold is not None:
+            values[f"{key}/statistic"] = c.statistic
+            values[f"{key}/threshold"] = c.threshold
+        recording.log_event(c.line() if c.passed is not False else c.refusal(),
+                            level="ERROR" if c.passed is False else "INFO")
+    if values:
+        recording.log_metrics(values)
+
+
 def log_result(recording: SessionRecording, result: ScanResult, model: RigModel) -> None:
     """A processed scan's maps, cloud and figures (stage timings, valid fraction, points)
-    into its recording."""
+    and its consistency checks into its recording."""
+    log_checks(recording, result.checks)
     recording.log_decode(result.decoded)
     if result.cloud is not None:
         recording.log_cloud(result.cloud, model)
@@ -253,9 +402,10 @@ def exposure_stacks(session: Session, stack: np.ndarray, model: RigModel) -> lis
 def decode_exposures(session: Session, stacks: list[np.ndarray], model: RigModel,
                      settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
     """One decode of a session: each exposure's pattern set decoded on its own, fused per
-    pixel (`scanner.exposure.fuse`; a single exposure's decode as it is)."""
-    patterns = session.patterns
-    return fuse([decode(s, patterns, session.bit_depth, model.projector.size, settings) for s in stacks],
+    pixel (`scanner.exposure.fuse`; a single exposure's decode as it is), judged against the
+    noise of the session's sensor model when its rig file has one."""
+    patterns, noise = session.patterns, sensor_noise(session)
+    return fuse([decode(s, patterns, session.bit_depth, model.projector.size, settings, noise) for s in stacks],
                 session.exposures_s)
 
 
@@ -268,10 +418,10 @@ def decode_session(session: Session, settings: DecodeSettings = DecodeSettings()
 
 
 def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first: int = 0) -> None:
-    """Refuse frames that do not fit the session's patterns (swapped, repeated, blank or
-    foreign ones), naming the frame: blank frames first, then the acquisition's
-    intensity-signature check run again on the frames as they are on disk. `stack` is one
-    pattern set's frames, the session's frames `first`.. (one exposure of an HDR session)."""
+    """Refuse blank frames (every pixel within BLANK_FRAME_RANGE of full scale: no pattern),
+    naming the frame. `stack` is one pattern set's frames, the session's frames `first`..
+    (one exposure of an HDR session). Whether the frames follow the patterns (swapped,
+    repeated, foreign ones) is the consistency checks' judgement (scanner.decode_checks)."""
     where = str(session.root)
     full = 2 ** session.bit_depth - 1
     flat = stack.reshape(len(stack), -1)
@@ -280,19 +430,6 @@ def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first
         k = first + int(i)
         raise DecodeError(f"{where}: frame {k} ({session.frame_path(k).name}) is blank (every pixel "
                           f"{int(lo[i])}..{int(hi[i])} DN): it cannot be a fringe image; re-scan")
-    if "import" in session.manifest:
-        return  # another tool's frames: judged by the import's convention detection and decode's self-check
-        # (the ideal patterns the signature assumes are blurred at a real camera's finest Gray-code bits);
-        # their SHA-256 guards them once imported
-    try:
-        check_signature(stack, session.patterns, (model.projector.height, model.projector.width), session.bit_depth,
-                        where)
-    except FrameError as exc:
-        problem = str(exc).removeprefix(f"{where}: ").split("; a shifted or mixed")[0]
-        k = first + exc.expected_index
-        frame = f"frame {k} ({session.frame_path(k).name}): " if isinstance(exc, FrameOutOfOrder) else ""
-        raise DecodeError(f"{where}: {frame}{problem}; the frames were swapped, repeated or replaced after the "
-                          f"capture, or the session is not what its manifest says; re-scan") from None
 
 
 def no_points_reason(decoded: DecodeResult) -> str:
@@ -331,27 +468,33 @@ def recording_level(session: Session) -> str:
 
 
 def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triangulation",
-              level: str | None = None) -> ScanResult:
+              level: str | None = None, *, rig_model: RigModel | None = None,
+              rig_model_source: str | None = None) -> ScanResult:
     """Regenerate every output of a session, its Rerun recording included (at `level`,
-    default the session's own: `recording_level`), from the raw frames and manifest alone.
+    default the session's own: `recording_level`), from the raw frames and manifest alone
+    (`rig_model`: another model given on purpose, as for `process`).
     The recording is started in a thread while the session is decoded (importing Rerun,
     ~0.8 s, and logging the rig and the raw frames), and gets the results once both are
-    done; a processing error is logged into it before it is closed and raised."""
+    done; a processing error (with the consistency checks of a refused decode) is logged
+    into it before it is closed and raised."""
     level = level or recording_level(session)
+    given = {"rig_model": rig_model, "rig_model_source": rig_model_source}
     if level == "none":
         session.recording_path.unlink(missing_ok=True)  # an older recording would not match the new outputs
-        return process(session, progress, mode=mode)
+        return process(session, progress, mode=mode, **given)
     with ThreadPoolExecutor(1, thread_name_prefix="record frames") as pool:
         started = pool.submit(record_session_frames, session, level)
         try:
-            result = process(session, progress, mode=mode)
-        except BaseException:
+            result = process(session, progress, mode=mode, **given)
+        except BaseException as exc:
             if started.exception() is None:  # waits for it; then logs the error and closes it
-                with started.result():
+                with started.result() as rec:
+                    if isinstance(exc, ConsistencyError):
+                        log_checks(rec, exc.checks)
                     raise
             raise
         with started.result() as rec:
-            log_result(rec, result, session.rig_model())
+            log_result(rec, result, rig_model or session.rig_model())
     return result
 
 

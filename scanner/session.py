@@ -8,8 +8,10 @@ Layout (all files appear complete or not at all):
                              l and K), when its calibration has them (a hard link to the
                              calibration's where possible): the session decodes alone
     manifest.json            written last, atomically, once the capture is complete: rig config
-                             snapshot, rig model (with the calibration file it came from), pattern
-                             set, device settings, software version, timings, frame list, and
+                             snapshot, rig model (with the calibration file it came from), the
+                             SHA-256 of its canonical JSON (`rig_model_sha256`) and of that file
+                             (`calibration_sha256`), pattern set (and its `patterns_sha256`),
+                             device settings, software version, timings, frame list, and
                              (`exposure`) the exposures chosen and why: a multi-exposure (HDR)
                              session holds the whole pattern set once per exposure, frames
                              i·N .. i·N + N − 1 at exposures_s[i] (ascending), every one kept
@@ -157,6 +159,22 @@ def sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
+def calibration_sha256(path: str) -> dict[str, str]:
+    """{"calibration_sha256": the SHA-256 of the calibration file a rig model names} when it
+    names a readable one, else {}: what the session's model came from, by content."""
+    try:
+        return {"calibration_sha256": sha256(Path(path).read_bytes())} if path else {}
+    except OSError:
+        return {}
+
+
+def rig_model_sha256(model_dict: dict[str, Any]) -> str:
+    """The SHA-256 of a description (a rig model's `RigModel.to_dict`, a pattern set's
+    `PatternSet.to_dict`; JSON-ready) in canonical JSON: what a manifest records at capture,
+    to know later whether it was edited."""
+    return sha256(json.dumps(model_dict, sort_keys=True, separators=(",", ":"), allow_nan=False).encode())
+
+
 def frame_name(k: int) -> str:
     return f"frame_{k:03d}.png"
 
@@ -213,11 +231,14 @@ class SessionWriter:
         if model.phase_to_height is not None:
             keep_maps(model.phase_to_height, self.root / PHASE_TO_HEIGHT_MAPS)
             model = replace(model, phase_to_height=replace(model.phase_to_height, maps_file=PHASE_TO_HEIGHT_MAPS))
+        rig_model = json_ready(model.to_dict())
         manifest = {
             "slscan_manifest": MANIFEST_VERSION, "session_id": self.id, "software_version": __version__,
             "python": platform.python_version(), "created": self.started.isoformat(),
             "completed": dt.datetime.now(dt.timezone.utc).isoformat(),
-            "rig_config": rig_config, "rig_model": model.to_dict(), "patterns": patterns.to_dict(),
+            "rig_config": rig_config, "rig_model": rig_model, "rig_model_sha256": rig_model_sha256(rig_model),
+            **calibration_sha256(model.calibration), "patterns": patterns.to_dict(),
+            "patterns_sha256": rig_model_sha256(json_ready(patterns.to_dict())),
             "devices": devices, "timings_s": timings, "frames": self.frames, **(extra or {}),
         }
         try:
@@ -292,6 +313,9 @@ class Manifest(schema.Schema):
     patterns: PatternFile
     frames: Annotated[list[FrameEntry], Field(min_length=1)]
     exposure: ExposureRecord | None = None
+    rig_model_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # of rig_model
+    calibration_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # its file's
+    patterns_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # of patterns
 
     @model_validator(mode="after")
     def _frames(self) -> Manifest:

@@ -44,9 +44,15 @@ def test_n_step_phase_shift(steps: int) -> None:
     assert np.nanmax(np.abs(d.maps["vertical"].coordinate - u)) < 0.02
 
 
+def rows_ramp(h: int = 640, w: int = 96) -> np.ndarray:
+    """Projector rows seen by each pixel: rising down the image over most of the projector's
+    height (as on a rig with a vertical baseline), slightly curved along each row."""
+    return ramp(h=w, w=h).T * (1100 / 912)
+
+
 def test_horizontal_fringes_decode_rows() -> None:
     ps = PatternSet("heterodyne", 4, (70.0, 64.0, 59.0), ("horizontal",))
-    v = ramp() * (1100 / 912)
+    v = rows_ramp()
     d = decode(fringe_stack(v, ps, PROJ[1]), ps, 12, PROJ)
     assert np.nanmax(np.abs(d.maps["horizontal"].coordinate - v)) < 0.03
 
@@ -54,7 +60,7 @@ def test_horizontal_fringes_decode_rows() -> None:
 def test_both_orientations() -> None:
     ps = PatternSet("heterodyne", 4, (70.0, 64.0, 59.0), ("vertical", "horizontal"))
     u = ramp()
-    v = 500.0 + 0.3 * (u - 450.0)
+    v = 500.0 + 0.3 * (u - 450.0) + 2.0 * np.arange(u.shape[0])[:, None]  # rising down every column
     frames_v = fringe_stack(u, PatternSet("heterodyne", 4, (70.0, 64.0, 59.0)), PROJ[0])
     frames_h = fringe_stack(v, PatternSet("heterodyne", 4, (70.0, 64.0, 59.0), ("horizontal",)), PROJ[1])
     d = decode(np.concatenate([frames_v, frames_h]), ps, 12, PROJ)
@@ -144,7 +150,7 @@ def test_second_path_mask_matches_the_whole_image_rule(monkeypatch) -> None:
     departing from its image-wide median by more than 15 % and 5 sigma; medians over every
     k-th judged pixel in raster order (thinned here as on a full-size image). The stack has
     a patch lit also by a second path (20 %, 37 projector px away) across band edges."""
-    from scanner.decode import _SecondPaths, _temporal_unwrap
+    from scanner.decode import _SecondPaths
 
     monkeypatch.setattr(_SecondPaths, "MEDIAN_SAMPLE", 5000)
     ps = FAMILIES["heterodyne"]
@@ -160,7 +166,7 @@ def test_second_path_mask_matches_the_whole_image_rule(monkeypatch) -> None:
     candidates = usable & ~m.masks["order_error"]
     s, f_max = DecodeSettings(), max(ps.fringes)
     sigma_b = m.noise.sigma(m.background) * np.float32(np.sqrt(2.0 / ps.steps))
-    absolute, _ = _temporal_unwrap(ps, m.wrapped)
+    absolute, _ = ps.kind.unwrap(ps.fringes, m.wrapped)
     scaled = [a * np.float32(f_max / f) for a, f in zip(absolute, ps.fringes)]
     noise = [sigma_b / np.maximum(b, np.float32(1e-6)) * np.float32(f_max / f) for b, f in zip(m.modulation, ps.fringes)]
 

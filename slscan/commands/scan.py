@@ -139,6 +139,7 @@ def report(result: Any) -> None:
     if plan:
         print(f"exposure  {plan['reason']}")
     print(f"timings   decode {t['decode'] * 1e3:.0f} ms, reconstruct {t['reconstruct'] * 1e3:.0f} ms")
+    print("checks    " + "\n          ".join(c.line() for c in result.checks))
     if s.integrity != "sha256":
         print(f"warning   frame integrity {s.integrity}", file=sys.stderr)
     acc = sim_accuracy(result)
@@ -175,9 +176,36 @@ def cmd_decode(args: argparse.Namespace) -> int:
         return decode_views(args)
     if args.stage_axis is not None:
         raise ScannerError(f"{args.session}: --stage-axis applies to multi-view sessions only")
-    result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode, level=_level(args))
+    session = Session.open(args.session)
+    model = rig_model_file(Path(args.rig_model), session.rig_model()) if args.rig_model else None
+    result = reprocess(session, ProgressLine(), mode=args.mode, level=_level(args), rig_model=model,
+                       rig_model_source=args.rig_model)
     report(result)
     return Exit.OK
+
+
+def rig_model_file(path: Path, recorded: Any) -> Any:
+    """The rig model in `path`, given on purpose instead of a session's (`recorded`, whose
+    image sizes it must fit): a JSON rig model as a manifest holds it (`cam_from_proj` at its
+    top), our calibration.json, or another tool's calibration (scanner/foreign_calibration.py)."""
+    import json
+
+    from scanner.foreign_calibration import read_calibration
+    from scanner.geometry import RigModel
+
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ScannerError(f"{path}: unreadable rig model: {exc}") from None
+        if isinstance(data, dict) and "cam_from_proj" in data:
+            model = RigModel.from_dict(data, str(path))
+            if model.camera.size != recorded.camera.size or model.projector.size != recorded.projector.size:
+                raise ScannerError(f"{path}: the rig model is for a {model.camera.size} camera and a "
+                                   f"{model.projector.size} projector; the session's are {recorded.camera.size} and "
+                                   f"{recorded.projector.size}")
+            return model
+    return read_calibration(path, recorded.camera.size, recorded.projector.size)[0]
 
 
 def load_demo_part() -> tuple[Any, Any, Any]:
@@ -368,6 +396,9 @@ def register(sub: Any) -> None:
                         "for rigs calibrated with the reference-plane model")
     d.add_argument("--stage-axis", metavar="FILE", help="multi-view: align the views again from this stage-axis "
                                                         "calibration (slscan calibrate --stage-axis)")
+    d.add_argument("--rig-model", metavar="FILE", help="decode with this rig model instead of the one recorded at "
+                                                       "capture, on purpose: a JSON rig model (as a manifest holds "
+                                                       "it) or a calibration file")
     _add_full_recording(d)
     d.set_defaults(func=cmd_decode)
 

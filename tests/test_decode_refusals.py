@@ -1,0 +1,88 @@
+"""A stored session decoded with a fault (`slscan decode`): refused with exit 2 by the check
+the fault breaks, naming the figure and the likely cause, no cloud written, the frames kept,
+result.json holding every check; the rig model tied to the one recorded at capture."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from test_inputs_session import PATTERNS, SCENE, edit_manifest, one_error_line, run_cli, small_rig
+
+from scanner.pipeline import scan
+from scanner.recording_reader import entity_paths
+from scanner.rig import open_rig
+from scanner.session import MANIFEST
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    tmp = tmp_path_factory.mktemp("refusals")
+    with open_rig(small_rig(tmp), scene=SCENE) as rig:
+        scan(rig, PATTERNS, tmp / "s", level="none")
+    return tmp / "s"
+
+
+@pytest.fixture
+def copy(clean: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "s"
+    shutil.copytree(clean, dst, ignore=shutil.ignore_patterns("outputs"))
+    return dst
+
+
+def refused(root: Path) -> tuple[str, dict]:
+    code, err = run_cli("decode", str(root))
+    line = one_error_line(err)
+    assert code == 2 and not (root / "outputs" / "cloud.ply").exists()
+    assert len(list((root / "frames").iterdir())) == len(json.loads((root / MANIFEST).read_text())["frames"])
+    result = json.loads((root / "outputs" / "result.json").read_text())
+    assert result["error"] and {c["name"] for c in result["consistency"]} >= {"rig_model", "phase_residual"}
+    return line, {c["name"]: c for c in result["consistency"]}
+
+
+def test_clean_session_passes_every_check(clean: Path) -> None:
+    result = json.loads((clean / "outputs" / "result.json").read_text())
+    assert all(c["passed"] is not False for c in result["consistency"])
+    assert result["noise_source"] == "sensor model"
+
+
+def test_steps_in_reverse_order_refused_as_such(copy: Path) -> None:
+    def reverse(m: dict) -> None:
+        frames = m["frames"]
+        m["frames"] = [dict(frames[g + 3 - i], k=g + i) for g in (0, 4, 8) for i in range(4)]
+
+    edit_manifest(copy, reverse)
+    line, checks = refused(copy)
+    assert "direction (vertical) failed" in line and "most likely: phase steps in reverse order" in line
+    assert checks["direction"]["statistic"] < 0.1 and checks["direction"]["threshold"] == 0.5
+    paths = entity_paths(copy / "recording.rrd")  # the refusal's figures in the recording too
+    assert {"metrics/consistency/direction/vertical/statistic", "metrics/consistency/direction/vertical/threshold",
+            "events"} <= set(paths)
+
+
+def test_edited_rig_model_refused_unless_given_on_purpose(copy: Path, tmp_path: Path) -> None:
+    def edit(m: dict) -> None:
+        m["rig_model"]["camera"]["K"][0][0] *= 1.01
+
+    edit_manifest(copy, edit)
+    line, checks = refused(copy)
+    assert "rig_model (session) failed" in line and "--rig-model" in line
+    model = tmp_path / "model.json"
+    model.write_text(json.dumps(json.loads((copy / MANIFEST).read_text())["rig_model"]))
+    code, err = run_cli("decode", str(copy), "--rig-model", str(model))
+    assert code == 0, err
+    result = json.loads((copy / "outputs" / "result.json").read_text())
+    tie = next(c for c in result["consistency"] if c["name"] == "rig_model")
+    assert result["rig_model"] == str(model) and tie["passed"] is None and "on purpose" in tie["note"]
+
+
+def test_a_frame_in_another_steps_place_fails_the_residual_naming_its_group(copy: Path) -> None:
+    def repeat(m: dict) -> None:
+        m["frames"][6] = dict(m["frames"][2], k=6)  # frame 2's image where frame 6 belongs
+
+    edit_manifest(copy, repeat)
+    line, checks = refused(copy)
+    assert "phase_residual (vertical) failed" in line and "frame 4 (step group 4..7) fits worst" in line
+    assert checks["phase_residual"]["statistic"] > 5 * checks["phase_residual"]["threshold"]
