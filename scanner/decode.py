@@ -953,7 +953,8 @@ class _OrientationDecoder:
         frequencies disagree by physics the model of one path does not cover: left out of the
         frequencies' checks (the mask takes what departs from the image's median disagreement,
         so a common offset or a disagreement that grows across the image is still judged on
-        the pixels it leaves)."""
+        the pixels it leaves). When it takes most of them, the median it departs from is not
+        one path's (a projector's uncompensated gamma moves every pixel): all are judged."""
         ps, o = self.patterns, self.orientation
         total = {k: sum(b.get(k, 0) for b in sums) for k in ("usable", "order_bad")}
         joined = {k: np.concatenate([b[k] for b in sums], axis=-1) for k in ("residual_z2", "gray_offset",
@@ -974,8 +975,10 @@ class _OrientationDecoder:
             else:
                 out.append(not_judged("phase_residual", o, "x noise", "three steps leave no residual"))
         if "frequencies" in sums[0]:
-            one_path = np.concatenate([b["frequencies"]["at"] for b in sums])
-            one_path = ~second.ravel()[one_path] if second is not None else np.ones(one_path.size, bool)
+            at = np.concatenate([b["frequencies"]["at"] for b in sums])
+            one_path = ~second.ravel()[at] if second is not None else np.ones(at.size, bool)
+            if one_path.mean() < 0.5:  # the mask's premise (most pixels on one path) fails: judge them all
+                one_path[:] = True
             q = np.concatenate([b["frequencies"]["q"] for b in sums])[one_path]
             d = np.concatenate([b["frequencies"]["d"] for b in sums])[one_path]
             out.append(scale_check("frequency_agreement", o, q, len(ps.fringes) - 1, accuracy, self.noise_source,
