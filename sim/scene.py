@@ -264,20 +264,23 @@ def load_scene(scene: Scene | str | Path | None, working_distance_mm: float = 40
 
 def load_mesh(file: Path, where: Path, key: str | None, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """(vertices float64 mm, triangles int32) of a PLY/STL/OBJ file; errors name `where`/`key`."""
-    import open3d as o3d
+    from scanner.file_checks import FileRefused
+    from scanner.mesh_files import read_mesh
 
     if file.suffix.lower() not in MESH_SUFFIXES:
         raise ConfigError(where, key, f"{file.name}: unsupported mesh format; use {', '.join(MESH_SUFFIXES)}")
-    if not file.is_file():
+    if not file.exists():
         raise ConfigError(where, key, f"mesh file not found: {file}")
-    mesh = o3d.io.read_triangle_mesh(str(file))
-    v = np.asarray(mesh.vertices, dtype=np.float64) * scale
-    t = np.asarray(mesh.triangles, dtype=np.int32)
+    try:
+        v, t = read_mesh(file)
+    except FileRefused as exc:
+        raise ConfigError(where, key, str(exc)) from None
     if len(t) == 0 or len(v) < 3:
         raise ConfigError(where, key, f"{file}: no triangles could be read (unreadable or empty mesh)")
-    if not np.isfinite(v).all() or t.min() < 0 or t.max() >= len(v):
-        raise ConfigError(where, key, f"{file}: corrupt mesh (non-finite vertices or bad triangle indices)")
-    return v, t
+    v = v * scale
+    if not np.isfinite(v).all():
+        raise ConfigError(where, key, f"{file}: scale {scale:g} makes the vertices non-finite")
+    return v, t.astype(np.int32)
 
 
 def _translation(t: list[float]) -> np.ndarray:

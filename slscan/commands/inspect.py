@@ -157,9 +157,9 @@ def _is_model(path: str) -> bool:
 
 
 def _has_triangles(path: str) -> bool:
-    import open3d as o3d
+    from scanner.mesh_files import triangle_count
 
-    return len(o3d.io.read_triangle_mesh(path).triangles) > 0
+    return triangle_count(path) > 0
 
 
 def cmd_register(args: argparse.Namespace) -> int:
