@@ -48,6 +48,7 @@ from pydantic import ConfigDict, Field, model_validator
 from scanner import __version__, schema
 from scanner.devices import Frame
 from scanner.errors import ConfigError, IncompleteSession, SessionError
+from scanner.file_checks import FileRefused, read_regular
 from scanner.geometry import PhaseToHeight, RigModel
 from scanner.patterns import PatternFile, PatternSet
 from scanner.rig_schema import RigModelSchema, check_geometry
@@ -60,6 +61,7 @@ FRAMES_DIR = "frames"
 OUTPUTS_DIR = "outputs"
 RECORDING = "recording.rrd"
 PHASE_TO_HEIGHT_MAPS = "phase_to_height.npz"
+MAX_MANIFEST_BYTES = 64 * 1024 ** 2  # a manifest lists frames and settings: a few hundred kB at most
 
 
 def write_atomic(path: Path, data: bytes) -> None:
@@ -329,7 +331,9 @@ class Session:
         if not mpath.exists():
             raise IncompleteSession(describe_incomplete(root))
         try:
-            manifest = json.loads(mpath.read_text())
+            manifest = json.loads(read_regular(mpath, limit=MAX_MANIFEST_BYTES))
+        except FileRefused as exc:
+            raise SessionError(str(exc)) from None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
             raise SessionError(f"{mpath}: unreadable manifest: {exc}") from None
         if not isinstance(manifest, dict):
@@ -390,6 +394,9 @@ class Session:
         name = self.manifest["frames"][k]["file"]
         rel = Path(name)
         where = f"{self.root / MANIFEST}, key 'frames[{k}].file'"
+        if "\0" in name or any(ord(c) < 32 for c in name):
+            raise SessionError(f"{where}: frame path {name!r} holds a control character; frames are named "
+                               f"frames/{frame_name(k)}")
         if rel.is_absolute() or ".." in rel.parts or "\\" in name:
             raise SessionError(f"{where}: frame path {name!r} leaves the session folder; frames must be "
                                f"inside it (e.g. frames/{frame_name(k)})")
@@ -414,12 +421,16 @@ class Session:
         for k, e in enumerate(entries):
             path = self.frame_path(k)
             try:
-                data = path.read_bytes()
-            except OSError as exc:
-                raise SessionError(f"{path}: frame {k} missing or unreadable ({exc.strerror})") from None
+                data = read_regular(path, limit=frame_bytes_limit(shape, e["dtype"]))
+            except FileRefused as exc:
+                raise SessionError(f"{path}: frame {k} missing or unreadable ({exc.problem})") from None
             if e.get("sha256") and sha256(data) != e["sha256"]:
                 raise SessionError(f"{path}: frame {k} has been altered or replaced since it was captured (its "
                                    f"SHA-256 is not the one in the manifest); re-scan, or restore the original file")
+            declared = png_size(data)
+            if declared is not None and declared != (shape[1], shape[0]):
+                raise SessionError(f"{path}: frame {k} is a {declared[0]} x {declared[1]} PNG, expected "
+                                   f"{shape[1]} x {shape[0]}")
             img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
             if img is None:
                 raise SessionError(f"{path}: frame {k} missing or unreadable (not an image)")
@@ -442,6 +453,21 @@ class Session:
     @property
     def recording_path(self) -> Path:
         return self.root / RECORDING
+
+
+def frame_bytes_limit(shape: tuple[int, int], dtype: str) -> int:
+    """The most bytes a lossless file of one (H, W) frame can need, with up to 4 channels (so
+    a colour file is refused by what it is, not its size): every row stored uncompressed
+    with its filter byte, 1 % of block overhead, 64 kB of chunks beside."""
+    return int(shape[0] * (4 * shape[1] * np.dtype(dtype).itemsize + 1) * 1.01) + 65536
+
+
+def png_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) a PNG's header declares, read before decoding (a header that lies
+    about its size would otherwise size the decoder's buffer); None for another format."""
+    if data[:8] != b"\x89PNG\r\n\x1a\n" or data[12:16] != b"IHDR" or len(data) < 24:
+        return None
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
 
 
 def _describe(img: np.ndarray) -> str:

@@ -17,11 +17,14 @@ import cv2
 import numpy as np
 
 from scanner.decode import DecodeResult
+from scanner.file_checks import ArraySpec, FileRefused, load_npz
 from scanner.pointcloud import OrganisedCloud
 from scanner.reconstruct import Triangulator
 from sim.render import GroundTruth, SensorModel
 
 GROUND_TRUTH_FILE = "ground_truth.npz"
+TRUTH_ARRAYS = {"depth": ArraySpec("f", 2), "object_id": ArraySpec("iu", 2, shape_of="depth"),
+                "proj_uv": ArraySpec("f", 3, shape_of="depth")}
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,8 +54,13 @@ class Truth:
 
     @classmethod
     def load(cls, path: Path) -> Truth:
-        with np.load(path) as z:
-            return cls(z["depth"], z["object_id"], z["proj_uv"])
+        """The truth saved beside a session, checked (`scanner.file_checks.load_npz`: kinds,
+        shapes, no header that claims more than the file holds); FileRefused when unusable."""
+        z = load_npz(path, TRUTH_ARRAYS, what="simulator ground truth")
+        if z["proj_uv"].shape[2] != 2:
+            raise FileRefused(path, f"not a usable simulator ground truth: 'proj_uv' is {z['proj_uv'].shape}, "
+                                    f"expected (H, W, 2)")
+        return cls(z["depth"], z["object_id"], z["proj_uv"])
 
 
 @dataclass(frozen=True)
