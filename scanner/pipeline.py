@@ -31,6 +31,7 @@ from scanner.patterns import PatternSet
 from scanner.pointcloud import OrganisedCloud, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from scanner.rig import Rig
+from scanner.rig_schema import check_patterns_fit
 from scanner.native_threads import native_threads
 from scanner.session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, disk_problem, write_json, write_npz
 from scanner.stage_timer import StageTimer
@@ -397,6 +398,7 @@ def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress
     from scanner.session_recording import SessionRecording
 
     level = level or rig.config.recording_level
+    check_patterns_fit(patterns, rig.model.projector, rig.config.path)
     writer = SessionWriter.create(out_dir)
     frames: dict[int, np.ndarray] = {}  # decoded from memory, not read back from the PNGs just written
     with ExitStack() as stack:

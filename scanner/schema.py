@@ -116,9 +116,34 @@ def _config_error(exc: ValidationError, schema: type[BaseModel], path: str | Pat
         problem = f"expected {what}, got {_show(value)}"
     elif kind == "value_error":
         problem = str(e["msg"]).removeprefix("Value error, ")
+    elif kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal") and _range(schema, loc):
+        problem = f"must lie within {_range(schema, loc)}, got {_show(value)}"
     else:
         problem = f"{str(e['msg']).replace('Input should be', 'must be')}, got {_show(value)}"
     return ConfigError(path, key, problem)
+
+
+def _range(schema: Any, loc: tuple[Any, ...]) -> str | None:
+    """The documented range of the field at `loc` ("[0, 10]", "(0, 3600]"), when it has both bounds."""
+    parent = _schema_at(schema, loc[:-1])
+    if not (isinstance(parent, type) and issubclass(parent, BaseModel)) or not isinstance(loc[-1], str):
+        return None
+    field = parent.model_fields.get(loc[-1])
+    if field is None:
+        return None
+    bounds: dict[str, Any] = {}
+    stack = [field.annotation, *field.metadata]
+    while stack:  # the constraints sit in Field(...) metadata, possibly inside Annotated inside X | None
+        t = stack.pop()
+        for name in ("ge", "gt", "le", "lt"):
+            if getattr(t, name, None) is not None:
+                bounds[name] = getattr(t, name)
+        stack += list(getattr(t, "metadata", ()) or ()) + list(typing.get_args(t))
+    lo = ("[", bounds["ge"]) if "ge" in bounds else ("(", bounds["gt"]) if "gt" in bounds else None
+    hi = ("]", bounds["le"]) if "le" in bounds else (")", bounds["lt"]) if "lt" in bounds else None
+    if lo is None or hi is None:
+        return None
+    return f"{lo[0]}{lo[1]:g}, {hi[1]:g}{hi[0]}"
 
 
 def _show(value: Any) -> str:

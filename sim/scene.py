@@ -90,8 +90,11 @@ _OBJECT_KEYS = {"name", "albedo", "pose", "scale", *KINDS, *_MATERIAL_KEYS}
 _PLANE_KEYS = {"distance_mm", "pose", "size_mm", "albedo", *_MATERIAL_KEYS}
 _SCENE_KEYS = {"name", "reference_plane", "objects", "interreflection"}
 _DEFAULT_PLANE_SIZE = (1000.0, 1000.0)
+MAX_LENGTH_MM = 100_000.0  # 100 m: every length and position of a bench scene lies within it
+MIN_LENGTH_MM = 1e-3  # 1 um: a smaller object is below any camera pixel's footprint on the bench
 MIN_ROUGHNESS = 0.02  # below this GGX is a numerical mirror (alpha ~ 4e-4) one ray per pixel cannot sample
 DEFAULT_ROUGHNESS = 0.5
+MAX_TEXTURE_BYTES = 256 * 1024 ** 2
 
 
 @dataclass(frozen=True)
@@ -255,6 +258,31 @@ class Scene:
         return cls(objects=(part,), reference_plane=plane, name=path.stem, path=path)
 
 
+def check_in_view(scene: Scene, camera: Any, world_from_cam: np.ndarray) -> None:
+    """ConfigError naming the object unless every object of `scene` can appear in `camera`'s
+    image (a `Pinhole`, placed by `world_from_cam`): an object wholly behind the camera, or
+    wholly outside one side of its field of view, would be scanned as if absent. Tested
+    on the object's bounding box (its 8 corners outside one plane of the camera's viewing
+    pyramid), so an object is refused only when none of it can be seen."""
+    cam_from_world = np.linalg.inv(world_from_cam)
+    w, h = camera.width, camera.height
+    rays = np.column_stack([camera.normalized(np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5],
+                                                         [-0.5, h - 0.5]], float)), np.ones(4)])
+    sides = np.cross(rays, np.roll(rays, -1, axis=0))  # inward normals of the pyramid's four sides
+    sides *= np.sign(sides @ rays.mean(axis=0))[:, None]
+    planes = np.vstack([[0.0, 0.0, 1.0], sides])  # z > 0: in front of the camera
+    for i, obj in enumerate(scene.objects):
+        lo, hi = obj.bounds()
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        cam = corners @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        outside = (cam @ planes.T <= 0).all(axis=0)
+        if outside.any():
+            where = "behind the camera" if outside[0] else "outside the camera's field of view"
+            raise ConfigError(scene.path or scene.name, f"objects[{i}]",
+                              f"'{obj.name}' lies wholly {where} (its bounds {np.round(lo, 1).tolist()} .. "
+                              f"{np.round(hi, 1).tolist()} mm in the rig's world frame): the scan would not see it")
+
+
 def load_scene(scene: Scene | str | Path | None, working_distance_mm: float = 400.0) -> Scene:
     """A Scene as given, loaded from a TOML or mesh path, or the default demo scene."""
     if isinstance(scene, Scene):
@@ -319,7 +347,7 @@ def _pose(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
         raise ConfigError(path, key, f"invalid pose: {exc}") from None
     if not _is_rigid(T):
         raise ConfigError(path, key, "pose matrix is not a rigid transform (rotation must be orthonormal, last row 0 0 0 1)")
-    return T
+    return _position(T, path, key)
 
 
 def _material(table: dict[str, Any], path: Path, prefix: str, default_albedo: float) -> dict[str, float]:
@@ -342,17 +370,38 @@ def _material(table: dict[str, Any], path: Path, prefix: str, default_albedo: fl
 
 def _positive_vector(table: dict[str, Any], key: str, n: int, path: Path, prefix: str, default: Any = ...) -> tuple[float, ...]:
     v = get_vector(table, key, n, path, default, prefix)
-    if not all(x > 0 for x in v):
-        raise ConfigError(path, f"{prefix}.{key}", f"every size must be > 0, got {v}")
+    for x in v:
+        _length(x, path, f"{prefix}.{key}")
     return tuple(v)
+
+
+def _length(x: float, path: Path, key: str) -> float:
+    """A size in mm within MIN_LENGTH_MM .. MAX_LENGTH_MM, else ConfigError naming the key and the range."""
+    if not MIN_LENGTH_MM <= x <= MAX_LENGTH_MM:
+        raise ConfigError(path, key, f"must lie within [{MIN_LENGTH_MM:g}, {MAX_LENGTH_MM:g}] mm, got {x!r}")
+    return x
+
+
+def _position(T: np.ndarray, path: Path, key: str) -> np.ndarray:
+    """A pose whose translation lies within MAX_LENGTH_MM of the origin on every axis."""
+    if np.abs(T[:3, 3]).max() > MAX_LENGTH_MM:
+        raise ConfigError(path, key, f"translation {T[:3, 3].tolist()} mm: every coordinate must lie within "
+                                     f"[-{MAX_LENGTH_MM:g}, {MAX_LENGTH_MM:g}] mm")
+    return T
 
 
 def _texture(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
     """A plane's texture image file as albedo 0..1 (grey; full scale of its bit depth = 1)."""
     import cv2
 
+    from scanner.file_checks import FileRefused, read_regular
+
     file = resolve(path, get(table, "texture", str, path, prefix=prefix))
-    img = cv2.imread(str(file), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
+    try:
+        data = np.frombuffer(read_regular(file, limit=MAX_TEXTURE_BYTES), np.uint8)
+    except FileRefused as exc:
+        raise ConfigError(path, f"{prefix}.texture", str(exc)) from None
+    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH) if len(data) else None
     if img is None or img.dtype not in (np.uint8, np.uint16) or min(img.shape) < 2:
         raise ConfigError(path, f"{prefix}.texture", f"{file}: not readable as an 8- or 16-bit grey image")
     return img.astype(np.float32) / np.float32(np.iinfo(img.dtype).max)
@@ -370,9 +419,7 @@ def _load_toml_scene(path: Path) -> Scene:
         if ("distance_mm" in t) == ("pose" in t):
             raise ConfigError(path, pre, "give exactly one of 'distance_mm' or 'pose'")
         if "distance_mm" in t:
-            dist = get(t, "distance_mm", float, path, prefix=pre)
-            if not dist > 0:
-                raise ConfigError(path, f"{pre}.distance_mm", f"must be > 0 (in front of the camera), got {dist}")
+            dist = _length(get(t, "distance_mm", float, path, prefix=pre), path, f"{pre}.distance_mm")
             pose = _translation([0.0, 0.0, dist])
         else:
             pose = _pose(t, path, pre)
@@ -396,10 +443,11 @@ def _load_toml_scene(path: Path) -> Scene:
         if kind == "mesh":
             rel = get(t, "mesh", str, path, prefix=pre)
             scale = get(t, "scale", float, path, 1.0, pre)
-            if not scale > 0:
-                raise ConfigError(path, f"{pre}.scale", f"must be > 0, got {scale}")
+            if not 1e-6 <= scale <= 1e6:
+                raise ConfigError(path, f"{pre}.scale", f"must lie within [1e-06, 1e+06] (mesh units to mm), got {scale}")
             file = resolve(path, rel)
             v, tri = load_mesh(file, path, f"{pre}.mesh", scale)
+            _length(float(np.ptp(v, axis=0).max()), path, f"{pre}.scale")  # the scaled part's size
             obj = SceneObject(name=get(t, "name", str, path, file.stem, pre), kind="mesh", pose=pose, **material,
                               vertices=v, triangles=tri, source=file)
         else:
@@ -407,11 +455,9 @@ def _load_toml_scene(path: Path) -> Scene:
             kp = f"{pre}.{kind}"
             if kind == "sphere":
                 _check_keys(p, {"radius_mm", "center_mm"}, path, kp)
-                r = get(p, "radius_mm", float, path, prefix=kp)
-                if not r > 0:
-                    raise ConfigError(path, f"{kp}.radius_mm", f"must be > 0, got {r}")
+                r = _length(get(p, "radius_mm", float, path, prefix=kp), path, f"{kp}.radius_mm")
                 centre = get_vector(p, "center_mm", 3, path, [0.0] * 3, kp)
-                pose = pose @ _translation(centre)
+                pose = _position(pose @ _translation(centre), path, f"{kp}.center_mm")
                 obj = SceneObject(name=get(t, "name", str, path, f"sphere{i}", pre), kind="sphere", pose=pose,
                                   radius_mm=r, **material)
             else:
