@@ -63,7 +63,8 @@ def _pcd_check(path: Path, size: int) -> None:
                 break
     try:
         points = int(fields["POINTS"][0]) if "POINTS" in fields else int(fields["WIDTH"][0]) * int(fields["HEIGHT"][0])
-        per_point = sum(int(s) * int(c) for s, c in zip(fields["SIZE"], fields.get("COUNT", ["1"] * len(fields["SIZE"]))))
+        counts = fields.get("COUNT", ["1"] * len(fields["SIZE"]))
+        per_point = sum(int(s) * int(c) for s, c in zip(fields["SIZE"], counts))
         data = fields["DATA"][0].lower()
     except (KeyError, IndexError, ValueError):
         raise FileRefused(path, "not a usable PCD file: its header lacks POINTS/WIDTH, SIZE or DATA") from None

@@ -213,7 +213,7 @@ def _read_binary(path: object, header: PlyHeader, data: bytes) -> dict[str, Elem
                 pos += size + n * np.dtype(p.type).itemsize
         dtype = _uniform_dtype(e, lengths, order)
         end = at + e.count * dtype.itemsize
-        fit = min(e.count, (len(body) - at) // max(dtype.itemsize, 1))  # the records the bytes left can hold at that size
+        fit = min(e.count, (len(body) - at) // max(dtype.itemsize, 1))  # records the bytes left hold at that size
         rec = np.frombuffer(body, dtype, fit, at)
         uniform = all((rec[f"{p.name}#count"] == lengths[p.name]).all() for p in lists)
         if uniform and fit < e.count and (e.count - fit) * _min_record_bytes(e, True) > len(body) - at - rec.nbytes:

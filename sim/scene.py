@@ -444,7 +444,8 @@ def _load_toml_scene(path: Path) -> Scene:
             rel = get(t, "mesh", str, path, prefix=pre)
             scale = get(t, "scale", float, path, 1.0, pre)
             if not 1e-6 <= scale <= 1e6:
-                raise ConfigError(path, f"{pre}.scale", f"must lie within [1e-06, 1e+06] (mesh units to mm), got {scale}")
+                raise ConfigError(path, f"{pre}.scale", f"must lie within [1e-06, 1e+06] (mesh units to mm), "
+                                                        f"got {scale}")
             file = resolve(path, rel)
             v, tri = load_mesh(file, path, f"{pre}.mesh", scale)
             _length(float(np.ptp(v, axis=0).max()), path, f"{pre}.scale")  # the scaled part's size
