@@ -15,6 +15,7 @@ import numpy as np
 
 from inspection.errors import InspectionError
 from scanner.file_checks import ArraySpec, FileRefused, load_npz
+from scanner.session import open_new, temp_path
 
 POINTS_FILE = "inspection_points.npz"
 
@@ -27,9 +28,14 @@ def write_point_deviations(folder: str | Path, scan: Any, report: Any) -> Path:
     if scan.pixels is not None:  # ScanCloud pixels are (column, row)
         arrays["pixels"] = scan.pixels[:, ::-1].astype(np.uint16)
     path = Path(folder) / POINTS_FILE
-    tmp = path.with_name(path.name + ".part.npz")
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)
+    tmp = temp_path(path, ".npz")
+    try:
+        with open_new(tmp) as f:
+            np.savez_compressed(f, **arrays)
+        tmp.replace(path)
+    except BaseException:  # e.g. a full disk: no partial file left behind
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 

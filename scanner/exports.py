@@ -70,8 +70,10 @@ def write(cloud: ExportCloud, path: str | Path, fmt: str, max_jump_mm: float | N
     """Write `cloud` as `fmt` (one of FORMATS) to `path`; a one-line summary of what was
     written. `max_jump_mm`: STL only, the depth-jump limit (default JUMP_SPACINGS x the
     median neighbour spacing)."""
+    from scanner.session import temp_path
+
     path = Path(path)
-    tmp = path.with_name(path.name + ".part")
+    tmp = temp_path(path)
     try:
         if fmt == "stl":
             summary = write_stl(cloud, tmp, max_jump_mm)

@@ -34,6 +34,7 @@ from scanner.rig import Rig
 from scanner.rig_schema import check_patterns_fit
 from scanner.native_threads import native_threads
 from scanner.session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, disk_problem, write_json, write_npz
+from scanner.session_lock import output_dir, session_lock
 from scanner.stage_timer import StageTimer
 
 if TYPE_CHECKING:  # Rerun takes ~0.3 s to import: only the commands that record load it
@@ -165,6 +166,12 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     the cloud, not on its files); `ScanResult.wait_written()` joins it and raises its error."""
     if mode not in ("triangulation", "phase_to_height"):
         raise ScannerError(f"unknown reconstruction mode '{mode}'; use triangulation or phase_to_height")
+    with session_lock(session.root, command="slscan decode"):
+        return _process(session, progress, recording, settings, mode, frames, write_behind)
+
+
+def _process(session: Session, progress: Progress, recording: SessionRecording | None, settings: DecodeSettings,
+             mode: str, frames: dict[int, np.ndarray] | None, write_behind: bool) -> ScanResult:
     timer = StageTimer()
     progress("load", 0, 1)
     with timer.stage("load"):
@@ -185,8 +192,7 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
         else:
             cloud = phase_to_height_cloud(decoded, model)
     progress("write", 0, 1)
-    out = session.root / OUTPUTS_DIR
-    out.mkdir(exist_ok=True)
+    out = output_dir(session.root, OUTPUTS_DIR)
     n_points = len(cloud) if cloud is not None else 0
     stats = {"points": n_points, "valid_fraction": round(float(decoded.valid.mean()), 5),
              "rejected": decoded.rejected(), "self_check": decoded.checks, "integrity": session.integrity}
@@ -339,9 +345,14 @@ def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triang
     ~0.8 s, and logging the rig and the raw frames), and gets the results once both are
     done; a processing error is logged into it before it is closed and raised."""
     level = level or recording_level(session)
-    if level == "none":
-        session.recording_path.unlink(missing_ok=True)  # an older recording would not match the new outputs
-        return process(session, progress, mode=mode)
+    with session_lock(session.root, command="slscan decode"):
+        if level == "none":
+            session.recording_path.unlink(missing_ok=True)  # an older recording would not match the new outputs
+            return process(session, progress, mode=mode)
+        return _reprocess_recorded(session, progress, mode, level)
+
+
+def _reprocess_recorded(session: Session, progress: Progress, mode: str, level: str) -> ScanResult:
     with ThreadPoolExecutor(1, thread_name_prefix="record frames") as pool:
         started = pool.submit(record_session_frames, session, level)
         try:
@@ -402,6 +413,7 @@ def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress
     writer = SessionWriter.create(out_dir)
     frames: dict[int, np.ndarray] = {}  # decoded from memory, not read back from the PNGs just written
     with ExitStack() as stack:
+        stack.enter_context(session_lock(writer.root, command="slscan scan"))
         rec = None if level == "none" else stack.enter_context(
             SessionRecording(writer.root / RECORDING, writer.id, level=level))
         if rec is not None:

@@ -127,10 +127,12 @@ def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:
     rec["row"], rec["col"] = np.divmod(idx, width)  # row-major, as `flat` orders the points
     comments = ["slscan cloud: mm, camera frame (x right, y down, z forward)",
                 f"the valid pixels only of a {width} x {height} camera image; row, col: the pixel of each point"]
+    from scanner.session import open_new, temp_path
+
     path = Path(path)
-    tmp = path.with_name(path.name + ".part")
+    tmp = temp_path(path)
     try:
-        with tmp.open("wb") as f:
+        with open_new(tmp) as f:
             PlyData([PlyElement.describe(rec, "vertex")], text=False, byte_order="<", comments=comments).write(f)
         tmp.replace(path)
     except BaseException:  # e.g. a full disk: no partial file left behind

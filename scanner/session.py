@@ -39,7 +39,7 @@ import uuid
 import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, BinaryIO, Literal
 
 import cv2
 import numpy as np
@@ -64,12 +64,25 @@ PHASE_TO_HEIGHT_MAPS = "phase_to_height.npz"
 MAX_MANIFEST_BYTES = 64 * 1024 ** 2  # a manifest lists frames and settings: a few hundred kB at most
 
 
+def temp_path(path: Path, suffix: str = "") -> Path:
+    """A temporary name beside `path`, unique to this writer (PID and a random part), that
+    `scanner.session_lock.leftovers` recognises should the writer be killed."""
+    return path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.part{suffix}")
+
+
+def open_new(path: Path) -> BinaryIO:
+    """`path` opened for writing only if it does not exist yet, and not through a symbolic
+    link (a link planted at a temporary name cannot redirect the write)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    return os.fdopen(fd, "wb")
+
+
 def write_atomic(path: Path, data: bytes) -> None:
     """Write `data` so that `path` either holds all of it or does not exist (a failed write,
     e.g. on a full disk, leaves no partial file behind and raises the OSError)."""
-    tmp = path.with_name(f".{path.name}.part")
+    tmp = temp_path(path)
     try:
-        with tmp.open("wb") as f:
+        with open_new(tmp) as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
@@ -86,9 +99,9 @@ def write_npz(path: Path, arrays: dict[str, np.ndarray], deflate_floats: bool = 
     (coordinate and phase to ~82 %) and deflating a 1.3 MP scan's maps took ~0.65 s CPU of
     its write stage (level 6: 4x more), so a scan's outputs store them as they are (26 MB
     instead of 18 MB there). np.load reads either member kind, so older files still load."""
-    tmp = path.with_name(f".{path.name}.part.npz")
+    tmp = temp_path(path, ".npz")
     try:
-        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
+        with open_new(tmp) as file, zipfile.ZipFile(file, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
             for name, a in arrays.items():
                 a = np.asanyarray(a)
                 member: str | zipfile.ZipInfo = f"{name}.npy"  # deflated, at the file's level

@@ -288,6 +288,8 @@ class SessionRecording:
         if not self.path.parent.is_dir():
             raise RecordingError(f"{self.path}: folder does not exist; create the session folder first")
         self.partial_path = self.path.with_name(self.path.name + ".part")
+        if self.partial_path.is_symlink() or self.partial_path.exists():  # a dead writer's: never written through
+            self.partial_path.unlink()
         self.session_id = str(session_id)
         self._world_from_cam = np.eye(4)
         self._reason_ids: dict[str, int] = _reason_ids(REASONS)

@@ -19,6 +19,7 @@ import numpy as np
 from scanner.decode import DecodeResult
 from scanner.file_checks import ArraySpec, FileRefused, load_npz
 from scanner.pointcloud import OrganisedCloud
+from scanner.session import open_new, temp_path
 from scanner.reconstruct import Triangulator
 from sim.render import GroundTruth, SensorModel
 
@@ -47,9 +48,10 @@ class Truth:
 
     def save(self, path: Path) -> None:
         """Write beside a session's raw frames; appears complete or not at all."""
-        tmp = path.with_name(f".{path.name}.part.npz")
-        np.savez_compressed(tmp, depth=self.depth.astype(np.float32), object_id=self.object_id,
-                            proj_uv=self.proj_uv.astype(np.float32))
+        tmp = temp_path(path, ".npz")
+        with open_new(tmp) as f:
+            np.savez_compressed(f, depth=self.depth.astype(np.float32), object_id=self.object_id,
+                                proj_uv=self.proj_uv.astype(np.float32))
         tmp.replace(path)
 
     @classmethod

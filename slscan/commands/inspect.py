@@ -307,13 +307,26 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
     """Inspect a session folder, a multi-view folder (its merged cloud) or a cloud file
     against a CAD file (None: the part program's, when `tolerances` is one); write the
     report files (and, for a session without a `recording` given, outputs/inspection.rrd);
-    return the report. `slscan demo` calls this after its scan with the demo part's program."""
+    return the report. `slscan demo` calls this after its scan with the demo part's program.
+    A session or multi-view folder is held (`session_lock`) while its outputs are written."""
+    from scanner.session_lock import session_lock
+
+    if not Path(source).is_dir():
+        return _inspect_source(source, cad, tolerances, out, cad_unit, seed, recording, operator, serial, pdf)
+    with session_lock(source, command="slscan inspect"):
+        return _inspect_source(source, cad, tolerances, out, cad_unit, seed, recording, operator, serial, pdf)
+
+
+def _inspect_source(source: str | Path, cad: str | Path | None, tolerances: str | Path | None, out: str | Path | None,
+                    cad_unit: str, seed: int, recording: Any, operator: str | None, serial: str | None,
+                    pdf: bool) -> Any:
     from dataclasses import replace
 
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import load_source
     from inspection.registration import RegistrationSettings
     from scanner.multiview import MultiViewSession, is_multiview
+    from scanner.session_lock import output_dir
 
     program = None
     if cad is None:
@@ -334,7 +347,7 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
     else:
         scan = load_source(source)
     source = Path(source)
-    folder = Path(out) if out else (source / "outputs" if source.is_dir() else source.parent)
+    folder = Path(out) if out else (output_dir(source, "outputs") if source.is_dir() else source.parent)
     settings = InspectionSettings(registration=RegistrationSettings(seed=seed))
     if program is not None:  # the program's edge margin (a narrow face, e.g. a chamfer, needs less than the default)
         settings = replace(settings, form=program.form_settings())
@@ -374,7 +387,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         print(report.table())
         folder = Path(args.out) if args.out else (Path(args.source) / "outputs" if Path(args.source).is_dir()
                                                   else Path(args.source).parent)
-        print(f"report    {folder / 'inspection.html'} (.json, .csv, .pdf)", file=sys.stderr)
+        print(f"report    {folder / 'inspection.html'} (.json, .csv{'' if args.no_pdf else ', .pdf'})", file=sys.stderr)
     return Exit.FAILED if report.verdict == NON_CONFORMING else Exit.OK
 
 

@@ -95,9 +95,11 @@ def cmd_segment(args: argparse.Namespace) -> int:
         labels_out = image
     else:
         labels_out = labels
-    tmp = out.with_name(f".{out.stem}.part.npy")
-    np.save(tmp, labels_out)
-    tmp.replace(out)
+    from scanner.session import write_atomic
+
+    buffer = io.BytesIO()
+    np.save(buffer, labels_out)
+    write_atomic(out, buffer.getvalue())
     sizes = seg.sizes()
     big = np.sort(sizes)[::-1]
     print(f"labels    {out}")
