@@ -212,7 +212,7 @@ class MultiViewWriter:
         self.views: list[dict[str, Any]] = []
         write_json(root / PLAN, {
             "slscan_multiview": MULTIVIEW_VERSION, "multiview_id": self.id, "software_version": __version__,
-            "created": self.started.isoformat(), "rig_config_path": str(rig.config.path), "rig_config": rig.config.raw,
+            "created": self.started.isoformat(), "rig_config_path": str(rig.config.path.resolve()), "rig_config": rig.config.raw,
             "stage_model": self.model.to_dict(), "views": [{"target": dict(q)} for q in plan]})
 
     @classmethod

@@ -33,7 +33,16 @@ from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from scanner.rig import Rig
 from scanner.rig_schema import check_patterns_fit
 from scanner.native_threads import native_threads
-from scanner.session import OUTPUTS_DIR, RECORDING, Session, SessionWriter, disk_problem, write_json, write_npz
+from scanner.session import (
+    OUTPUTS_DIR,
+    RECORDING,
+    Session,
+    SessionWriter,
+    disk_problem,
+    file_record,
+    write_json,
+    write_npz,
+)
 from scanner.session_lock import output_dir, session_lock
 from scanner.stage_timer import StageTimer
 
@@ -130,13 +139,24 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
 
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
+    manifest_extra: dict[str, object] = {"rig_config_path": str(rig.config.path.resolve()),
+                                         "provenance": provenance(rig, writer.root), "wiring": rig.config.trigger,
+                                         **(extra or {})}
+
+    def begin() -> None:
+        if plan is not None:
+            manifest_extra["exposure"] = plan.to_dict()
+        writer.begin(rig.config.raw, rig.model, patterns, describe_devices(rig), manifest_extra)
+
     with ThreadPoolExecutor(1, thread_name_prefix="store frames") as pool:
         try:
             if exposure is None:
+                begin()
                 acquire(rig, patterns, AcquisitionSettings.for_rig(rig), on_frame)
             else:
                 plan = plan_for_rig(rig, patterns, exposure)
                 timings["exposure_plan"] = round(time.perf_counter() - t0, 4)
+                begin()
                 acquire_exposures(rig, patterns, AcquisitionSettings.for_rig(rig), plan.exposures_s, on_frame)
             for f in stored:
                 f.result()
@@ -145,14 +165,21 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
             writer.fail(exc, "capture")
             raise
     timings["capture"] = round(time.perf_counter() - t0, 4)
-    devices = {name: dev.describe() for name, dev in
-               (("camera", rig.camera), ("projector", rig.projector), ("trigger", rig.trigger)) if dev is not None}
-    manifest_extra: dict[str, object] = {"rig_config_path": str(rig.config.path), "wiring": rig.config.trigger,
-                                         **(extra or {})}
-    if plan is not None:
-        manifest_extra["exposure"] = plan.to_dict()
-    writer.finish(rig.config.raw, rig.model, patterns, devices, timings, manifest_extra)
+    writer.finish(rig.config.raw, rig.model, patterns, describe_devices(rig), timings, manifest_extra)
     return Session.open(writer.root)
+
+
+def describe_devices(rig: Rig) -> dict[str, Any]:
+    return {name: dev.describe() for name, dev in
+            (("camera", rig.camera), ("projector", rig.projector), ("trigger", rig.trigger)) if dev is not None}
+
+
+def provenance(rig: Rig, session_root: Path) -> dict[str, Any]:
+    """manifest.json `provenance` (`scanner.session.Provenance`): the rig TOML and its
+    calibration file by absolute and session-relative path and SHA-256."""
+    calibration = rig.config.calibration_path
+    return {"rig": file_record(rig.config.path, session_root),
+            "calibration": file_record(calibration, session_root) if calibration is not None else None}
 
 
 def process(session: Session, progress: Progress = _quiet, recording: SessionRecording | None = None,

@@ -267,13 +267,13 @@ def report_header(source: Path, program: Any, operator: str | None, serial: str 
         session_id = multiview.id if multiview is not None else session.id
         manifest = session.manifest
         rig = str(manifest.get("rig_config", {}).get("rig", {}).get("name", ""))
-        rig_path = Path(str(manifest.get("rig_config_path", "")))
-        if rig_path.is_file():
+        rig_path, problem = recorded_rig(session)
+        if rig_path is not None:
             info = rig_calibration(RigConfig.load(rig_path))
             cal_id, cal_date = info.id or f"none ({info.problem})", str(info.date or "undated (factory geometry)")
             rig = f"{rig} ({rig_path})"
         else:
-            cal_id = f"not known: the session's rig file {rig_path} is gone"
+            cal_id = f"not known: {problem}"
     return ReportHeader(
         part=f"{program.name} — {program.description}" if program is not None and program.description
         else (program.name if program is not None else ""),
@@ -282,6 +282,29 @@ def report_header(source: Path, program: Any, operator: str | None, serial: str 
         operator=operator if operator is not None else getpass.getuser(),
         date=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S"), rig=rig, calibration_id=cal_id,
         calibration_date=cal_date, software_version=f"slscan {__version__}")
+
+
+def recorded_rig(session: Any) -> tuple[Path | None, str]:
+    """The rig TOML a session was captured with, found by its provenance (absolute path, then
+    relative to the session, each only with the recorded SHA-256; and its calibration file
+    likewise), or by the absolute `rig_config_path` of a session recorded before provenance:
+    (path or None, why not, for people)."""
+    from scanner.session import find_recorded
+
+    record = session.manifest.get("provenance")
+    if record is None:
+        path = Path(str(session.manifest.get("rig_config_path", "")))
+        if path.is_absolute() and path.is_file():
+            return path, ""
+        return None, f"the session's rig file {path} is not found (recorded before sessions kept their provenance)"
+    rig, found = find_recorded(record["rig"], session.root)
+    if rig is None:
+        return None, f"the session's rig file {found}"
+    if record.get("calibration"):
+        calibration, found = find_recorded(record["calibration"], session.root)
+        if calibration is None:
+            return None, f"the session's calibration file {found}"
+    return rig, ""
 
 
 def write_report_files(report: Any, scan: Any, folder: Path, source: Path, program: Any = None,

@@ -173,9 +173,26 @@ def cmd_decode(args: argparse.Namespace) -> int:
         return decode_views(args)
     if args.stage_axis is not None:
         raise ScannerError(f"{args.session}: --stage-axis applies to multi-view sessions only")
+    if args.recover:
+        _recover(args)
+    elif args.rig is not None or args.patterns is not None:
+        raise ScannerError("--rig and --patterns apply to `slscan decode --recover` only")
     result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode, level=_level(args))
     report(result)
     return Exit.OK
+
+
+def _recover(args: argparse.Namespace) -> None:
+    """`decode --recover`: the manifest rebuilt from capture.json and frames.jsonl (or the
+    given rig and patterns, said to be assumed), each frame checked (`scanner.session_recovery`)."""
+    from scanner.patterns import PatternSet
+    from scanner.rig import RigConfig
+    from scanner.session_recovery import recover_manifest
+
+    rig = RigConfig.load(args.rig) if args.rig is not None else None
+    patterns = PatternSet.load(args.patterns) if args.patterns is not None else None
+    path = recover_manifest(args.session, rig=rig, patterns=patterns)
+    print(f"recovered {path} from the session's own records; every frame checked", file=sys.stderr)
 
 
 def load_demo_part() -> tuple[Any, Any, Any]:
@@ -313,6 +330,13 @@ def register(sub: Any) -> None:
                         "for rigs calibrated with the reference-plane model")
     d.add_argument("--stage-axis", metavar="FILE", help="multi-view: align the views again from this stage-axis "
                                                         "calibration (slscan calibrate --stage-axis)")
+    d.add_argument("--recover", action="store_true",
+                   help="a session whose capture finished but whose manifest was not written (a killed scan): "
+                        "rebuild the manifest from its capture.json and frames.jsonl, every frame checked, then "
+                        "decode it")
+    d.add_argument("--rig", type=Path, help="--recover of a session without capture.json: the rig it was captured "
+                                            "with (recorded in the manifest as assumed)")
+    d.add_argument("--patterns", type=Path, help="--recover without capture.json: the pattern set, if not the rig's")
     _add_full_recording(d)
     d.set_defaults(func=cmd_decode)
 
