@@ -112,6 +112,30 @@ def _acquire(real: Path, root: str | Path, command: str) -> int:
         raise
 
 
+@contextmanager
+def folder_lock(folder: str | Path, *, timeout_s: float = 30.0) -> Iterator[None]:
+    """A short exclusive section among processes writing one shared file in `folder` (two
+    stations replacing their reports): waits up to `timeout_s` for the other holder, then
+    SessionBusy. Nothing is cleaned (other writers' temporary files in a shared folder are live)."""
+    import time
+
+    path = Path(folder) / LOCK_FILE
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise SessionBusy(f"{folder}: held by another writer for over {timeout_s:g} s") from None
+                time.sleep(0.05)
+        yield
+    finally:
+        os.close(fd)
+
+
 def output_dir(root: str | Path, name: str) -> Path:
     """`root/name` as a real folder inside the session's real folder (created when missing);
     SessionError when it is a symbolic link or not a folder (nothing is written through it)."""

@@ -73,6 +73,23 @@ def logged_frames(root: Path) -> tuple[list[dict[str, Any]], str]:
     return entries, note
 
 
+def capture_progress(root: Path) -> tuple[int, int | None]:
+    """(frames logged, frames the capture needs or None without capture.json) of a session
+    without a manifest, from its records alone (no frame read): what a restarted station
+    says of it."""
+    try:
+        entries, _ = logged_frames(root)
+    except SessionError:
+        entries = []
+    try:
+        record, _ = _capture_record(root, None, None)
+        needed = PatternSet.from_dict(record["patterns"], root / CAPTURE, "patterns").n_frames * len(
+            (record.get("exposure") or {}).get("exposures_s") or [0])
+    except ScannerError:
+        needed = None
+    return len(entries), needed
+
+
 def recover_manifest(root: str | Path, *, rig: Any = None, patterns: PatternSet | None = None) -> Path:
     """Write the manifest of a session whose capture finished without one (module
     docstring); `rig` (a RigConfig) and `patterns` stand in for a missing capture.json.

@@ -85,7 +85,11 @@ class StationRun:
 
     def close(self) -> None:
         try:
-            self.charts.close()
+            try:
+                history = self._history()
+            except StationError:  # the database is unreachable: the charts keep this run's own file
+                history = (None, None)
+            self.charts.close(*history)
         finally:
             self.bench.close()
             self.store.close()

@@ -48,6 +48,7 @@ from slscan.station.calib import refusals as calibration_refusals
 from slscan.station.calib import rig_calibration
 from slscan.station.hardware_bench import Bench
 from slscan.station.measure import Measurement, MeasurementResult
+from slscan.station.part_state import part_state
 from slscan.station.paths import child, safe_name
 from slscan.station.program import PartProgram
 from slscan.station.quality import RunningStats, judge, running_stats
@@ -135,9 +136,10 @@ class Station:
                 ("operator", self.operator or "(none)")]
 
     def recover(self) -> list[int]:
-        """Mark the cycles this station left in progress when it last died as incomplete."""
-        return self.store.mark_interrupted(self.config.name, "the station stopped during this cycle; its session "
-                                                             "is incomplete (no manifest)")
+        """Mark the cycles this station left in progress when it last died as incomplete,
+        each with what its part folder really holds (`part_state`)."""
+        return self.store.mark_interrupted(
+            self.config.name, lambda part_path: f"the station stopped during this cycle; {part_state(part_path)}")
 
     def stats(self) -> RunningStats:
         rows = self.store.results(program=self.program.name, limit=STATS_WINDOW)
@@ -190,8 +192,8 @@ class Station:
                 measured = self._scan_and_measure(part, folder, sessions, step)
         except OperatorAbort as exc:
             return finish("aborted", str(exc))
-        except KeyboardInterrupt:
-            finish("aborted", "interrupted (Ctrl-C); frames already captured are kept")
+        except KeyboardInterrupt as exc:
+            finish("aborted", f"{str(exc) or 'interrupted (Ctrl-C)'}; frames already captured are kept")
             raise
         except Exception as exc:  # noqa: BLE001 — a device or measuring fault ends this cycle, stored
             return finish("error", f"{type(exc).__name__}: {exc}")

@@ -49,7 +49,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any, Iterator, Sequence, TextIO
+from typing import Any, Callable, Iterator, Sequence, TextIO
 from urllib.parse import unquote
 
 import sqlalchemy as sa
@@ -441,19 +441,22 @@ class ResultsStore:
                 conn.execute(sa.insert(MEASURED), [{"result_id": result_id, "position": k, **asdict(v)}
                                                    for k, v in enumerate(values)])
 
-    def mark_interrupted(self, station: str, message: str, now: dt.datetime | None = None) -> list[int]:
+    def mark_interrupted(self, station: str, message: str | Callable[[str | None], str],
+                         now: dt.datetime | None = None) -> list[int]:
         """Cycles of this station left `in_progress` by a process that is gone (see the
-        module docstring) become `incomplete`; a cycle whose owner still runs is left alone."""
+        module docstring) become `incomplete` with `message` (or `message(part_path)`); a
+        cycle whose owner still runs is left alone."""
         now = now or utcnow()
         c = RESULTS.c
+        say = message if callable(message) else (lambda _: message)
         with self._tx() as conn:
-            rows = conn.execute(sa.select(c.id, c.owner, c.lease_until).where(
+            rows = conn.execute(sa.select(c.id, c.owner, c.lease_until, c.part_path).where(
                 c.station == station, c.status == "in_progress").order_by(c.id)).all()
-            stale = [int(r.id) for r in rows if owner_gone(r.owner, r.lease_until, now)]
-            for rid in stale:
-                conn.execute(sa.update(RESULTS).where(c.id == rid, c.status == "in_progress").values(
-                    status="incomplete", message=message, lease_until=None))
-        return stale
+            stale = [r for r in rows if owner_gone(r.owner, r.lease_until, now)]
+            for r in stale:
+                conn.execute(sa.update(RESULTS).where(c.id == r.id, c.status == "in_progress").values(
+                    status="incomplete", message=_one_line(say(r.part_path)), lease_until=None))
+        return [int(r.id) for r in stale]
 
     # -- reading
 
