@@ -18,21 +18,42 @@ names the user chooses (tolerances' faces) use `dict[str, SubSchema]`.
 from __future__ import annotations
 
 import difflib
+import re
 import types
 import typing
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, ValidationError
 
 from scanner.config import load_toml
 from scanner.errors import ConfigError
 
 S = TypeVar("S", bound="Schema")
 
+_CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u200b-\u200f\u2028-\u202e\u2060-\u2069\ufeff]")
+MAX_TEXT = 4096  # characters of one text value (a name, a serial, a path)
+
+
+def plain_text(value: str, what: str = "text") -> str:
+    """`value` unchanged if it is plain text: no control characters (NUL, TAB, line ends, ESC,
+    DEL, C1), no invisible or direction-changing formatting (zero-width, bidi overrides), at
+    most MAX_TEXT characters; else ValueError saying which character and where. The one
+    boundary every user-given string passes (`Str` in every file schema; serials, operators
+    and names on the command line and the station's screen), so nothing stored, shown or
+    written to a terminal, HTML, CSV or a database carries them."""
+    bad = _CONTROL.search(value)
+    if bad:
+        raise ValueError(f"{what} holds the control character {bad.group()!r} at position {bad.start()}; "
+                         f"only plain text is accepted")
+    if len(value) > MAX_TEXT:
+        raise ValueError(f"{what} is {len(value)} characters long; at most {MAX_TEXT} are accepted")
+    return value
+
+
 Float = Annotated[float, Strict()]  # an int is accepted and becomes a float; NaN and inf are refused
 Int = Annotated[int, Strict()]  # not a bool, not a float
-Str = Annotated[str, Strict()]
+Str = Annotated[str, Strict(), AfterValidator(plain_text)]
 Bool = Annotated[bool, Strict()]
 PositiveFloat = Annotated[float, Strict(), Field(gt=0)]
 NonNegativeFloat = Annotated[float, Strict(), Field(ge=0)]

@@ -27,7 +27,7 @@ from typing import Any
 from inspection.tolerances import NON_CONFORMING
 from scanner.errors import ConfigError
 from slscan.exit_codes import Exit
-from slscan.options import COARSE_METHODS, coarse_method
+from slscan.options import COARSE_METHODS, coarse_method, plain_text_arg
 
 CAD_UNITS = ("mm", "cm", "m", "in")
 
@@ -447,8 +447,10 @@ def register(sub: Any) -> None:
     i.add_argument("--cad", help="STEP or mesh of the part (default: the one --tolerances PROGRAM names)")
     i.add_argument("--tolerances", help="the part program (config/parts/*.toml: tolerances and face names), or a "
                                         "tolerance file of a model without one (format: inspection/tolerances.py)")
-    i.add_argument("--operator", help="operator named in the report header (default: the login name)")
-    i.add_argument("--serial", help="part serial number in the report header (default: the session id)")
+    i.add_argument("--operator", type=plain_text_arg,
+                   help="operator named in the report header (default: the login name)")
+    i.add_argument("--serial", type=plain_text_arg,
+                   help="part serial number in the report header (default: the session id)")
     i.add_argument("--no-pdf", action="store_true", help="no inspection.pdf (made with headless Chromium)")
     i.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh CAD file")
     i.add_argument("--out", help="folder for inspection.json/.csv/.html (default: beside the data)")

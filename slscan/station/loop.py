@@ -41,7 +41,8 @@ from scanner.errors import ConfigError, ScannerError
 from scanner.multiview import plan_views
 from scanner.pipeline import Progress, scan
 from scanner.rig import Rig, RigConfig
-from scanner.session import Session, write_json
+from scanner.schema import plain_text
+from scanner.session import Session, disk_problem, write_json
 from slscan.station import StationError
 from slscan.station.calib import describe as describe_calibration
 from slscan.station.calib import refusals as calibration_refusals
@@ -154,6 +155,11 @@ class Station:
         serial = serial.strip()
         if not serial:
             raise StationError("no serial number / part id: enter one before scanning")
+        for what, text in (("the serial number", serial), ("the operator's name", self.operator)):
+            try:
+                plain_text(text, what)
+            except ValueError as exc:
+                raise StationError(f"{exc}: nothing was scanned") from None
         reasons = self.refusals()
         if reasons:
             raise Refused(reasons)
@@ -176,10 +182,14 @@ class Station:
             outcome = CycleOutcome(result_id, serial, attempt, status, message, tuple(values or ()), folder,
                                    tuple(sessions), truth, round(time.perf_counter() - t0, 3))
             self.store.finish_part(result_id, status, message, outcome.values, utcnow())
-            folder.mkdir(parents=True, exist_ok=True)
-            write_json(folder / PART_RECORD, _record(self, outcome, started, measured))
-            if self.on_stored is not None:
-                self.on_stored(outcome)
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                write_json(folder / PART_RECORD, _record(self, outcome, started, measured))
+                if self.on_stored is not None:
+                    self.on_stored(outcome)
+            except OSError as exc:  # a full disk: the result is safe in the database, the station cannot go on
+                raise StationError(f"{disk_problem(exc)}; {serial} (attempt {attempt}) is stored as {status} in "
+                                   f"{self.store.where}; the station stops") from None
             return outcome
 
         def step(stage: str, done: int, total: int) -> None:

@@ -55,6 +55,7 @@ from urllib.parse import unquote
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
+from scanner.csv_cells import csv_cell
 from slscan.station import StationError
 
 SCHEMA_VERSION = 3
@@ -532,19 +533,6 @@ def _upgrade_from_2(conn: sa.Connection) -> None:
 # ------------------------------------------------------------------------------ export
 
 _CSV_RESULT_COLUMNS = ["id"] + [c for c in _RESULT_COLUMNS if c != "id"]
-_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
-
-
-def csv_cell(value: Any) -> Any:
-    """A text cell a spreadsheet will not run as a formula: text starting with = + - @, a
-    tab or a carriage return gets a leading apostrophe (numbers are left as numbers)."""
-    if isinstance(value, dt.datetime):
-        return value.isoformat()
-    if isinstance(value, str) and value.startswith(_FORMULA_START):
-        return "'" + value
-    return value
-
-
 def write_csv(out: TextIO, rows: Sequence[ResultRow], values: dict[int, list[ValueRecord]]) -> int:
     """One CSV line per measured characteristic (a cycle without values: one line with
     empty value columns); times in ISO 8601 UTC; text cells escaped (`csv_cell`). Returns
