@@ -80,9 +80,27 @@ def read_regular(path: str | Path, *, limit: int = MAX_FILE_BYTES) -> bytes:
         if st.st_size > limit:
             raise FileRefused(path, f"grew to {st.st_size / 1e6:.0f} MB while being read")
         try:
-            return f.read(limit + 1)[:limit]
+            data = f.read(st.st_size + 1)  # read(n) allocates n bytes first: never more than the file holds
         except OSError as exc:
             raise FileRefused(path, f"read failed: {exc.strerror}") from None
+        if len(data) > limit:
+            raise FileRefused(path, f"grew past {limit / 1e6:.0f} MB while being read")
+        return data
+
+
+def ascii_numbers(path: object, text: bytes, what: str) -> np.ndarray:
+    """Every white-space separated number of `text` as float64 (one vectorised parse);
+    FileRefused naming `what` when something in it is not a number."""
+    import warnings
+
+    if not text.strip():
+        return np.empty(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)  # numpy says "could not be read to its end" this way
+        try:
+            return np.fromstring(text.decode("latin-1"), dtype=np.float64, sep=" ")
+        except (DeprecationWarning, ValueError):
+            raise FileRefused(path, f"not a usable {what}: its data holds something that is not a number") from None
 
 
 # ------------------------------------------------------------------------------ .npz archives

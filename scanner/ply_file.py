@@ -14,13 +14,12 @@ up to IRREGULAR_RECORDS records.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from scanner.file_checks import MAX_FILE_BYTES, FileRefused, read_regular
+from scanner.file_checks import MAX_FILE_BYTES, FileRefused, ascii_numbers, read_regular
 
 MAX_HEADER_BYTES = 1 << 20
 MAX_ASCII_BYTES = 256 * 1024 ** 2  # ASCII numbers parse to 8 bytes each: 4x the text at worst
@@ -285,12 +284,7 @@ def _check_trailing(path: object, tail: bytes, extra: int) -> None:
 def _read_ascii(path: object, header: PlyHeader, data: bytes) -> dict[str, Element]:
     body = data[header.data_offset:]
     _check_counts(path, header, len(body))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", DeprecationWarning)
-        try:
-            tokens = np.fromstring(body.decode("latin-1"), dtype=np.float64, sep=" ")  # white space of any kind
-        except (DeprecationWarning, ValueError):
-            raise _refuse(path, "its ASCII data holds something that is not a number") from None
+    tokens = ascii_numbers(path, body, "PLY file")
     at = 0
     out: dict[str, Element] = {}
     for e in header.elements:

@@ -18,8 +18,8 @@ names the user chooses (tolerances' faces) use `dict[str, SubSchema]`.
 from __future__ import annotations
 
 import difflib
-import re
 import types
+import unicodedata
 import typing
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
@@ -31,21 +31,24 @@ from scanner.errors import ConfigError
 
 S = TypeVar("S", bound="Schema")
 
-_CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u200b-\u200f\u2028-\u202e\u2060-\u2069\ufeff]")
+NOT_TEXT = frozenset({"Cc", "Cf", "Cs", "Zl", "Zp"})
+"""Unicode categories refused in text: controls (NUL, TAB, line ends, ESC, DEL, C1), format
+characters (zero-width, bidi overrides, soft hyphen, tags), lone surrogates (undecodable
+bytes on the command line), line and paragraph separators."""
 MAX_TEXT = 4096  # characters of one text value (a name, a serial, a path)
 
 
 def plain_text(value: str, what: str = "text") -> str:
-    """`value` unchanged if it is plain text: no control characters (NUL, TAB, line ends, ESC,
-    DEL, C1), no invisible or direction-changing formatting (zero-width, bidi overrides), at
-    most MAX_TEXT characters; else ValueError saying which character and where. The one
+    """`value` unchanged if it is plain text: no character of a NOT_TEXT category, at most
+    MAX_TEXT characters; else ValueError saying which character and where. The one
     boundary every user-given string passes (`Str` in every file schema; serials, operators
     and names on the command line and the station's screen), so nothing stored, shown or
     written to a terminal, HTML, CSV or a database carries them."""
-    bad = _CONTROL.search(value)
-    if bad:
-        raise ValueError(f"{what} holds the control character {bad.group()!r} at position {bad.start()}; "
-                         f"only plain text is accepted")
+    if not (value.isascii() and value.isprintable()):  # else plain ASCII: nothing to look at
+        for i, c in enumerate(value):  # a name or a serial: a few dozen characters
+            if unicodedata.category(c) in NOT_TEXT:
+                raise ValueError(f"{what} holds the control character {c!r} at position {i}; only plain text is "
+                                 f"accepted")
     if len(value) > MAX_TEXT:
         raise ValueError(f"{what} is {len(value)} characters long; at most {MAX_TEXT} are accepted")
     return value

@@ -261,9 +261,10 @@ class Scene:
 def check_in_view(scene: Scene, camera: Any, world_from_cam: np.ndarray) -> None:
     """ConfigError naming the object unless every object of `scene` can appear in `camera`'s
     image (a `Pinhole`, placed by `world_from_cam`): an object wholly behind the camera, or
-    wholly outside one side of its field of view, would be scanned as if absent. Tested
-    on the object's bounding box (its 8 corners outside one plane of the camera's viewing
-    pyramid), so an object is refused only when none of it can be seen."""
+    wholly outside one side of its field of view, would be scanned as if absent. Tested:
+    no part of a sphere within the camera's viewing pyramid (`distance_to_pyramid`); a mesh
+    (its vertices), a box or plane (the corners of its bounds) wholly beyond one plane of the
+    pyramid (z = 0 or a side): an object is refused only when none of it can be seen."""
     cam_from_world = np.linalg.inv(world_from_cam)
     w, h = camera.width, camera.height
     rays = np.column_stack([camera.normalized(np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5],
@@ -271,16 +272,43 @@ def check_in_view(scene: Scene, camera: Any, world_from_cam: np.ndarray) -> None
     sides = np.cross(rays, np.roll(rays, -1, axis=0))  # inward normals of the pyramid's four sides
     sides *= np.sign(sides @ rays.mean(axis=0))[:, None]
     planes = np.vstack([[0.0, 0.0, 1.0], sides])  # z > 0: in front of the camera
+    planes /= np.linalg.norm(planes, axis=1)[:, None]
     for i, obj in enumerate(scene.objects):
         lo, hi = obj.bounds()
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        cam = corners @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-        outside = (cam @ planes.T <= 0).all(axis=0)
-        if outside.any():
-            where = "behind the camera" if outside[0] else "outside the camera's field of view"
+        if obj.kind == "sphere":  # exactly: seen when the centre lies within its radius of the pyramid
+            centre = cam_from_world[:3, :3] @ obj.pose[:3, 3] + cam_from_world[:3, 3]
+            r = float(obj.radius_mm)  # type: ignore[arg-type]
+            unseen, behind = distance_to_pyramid(centre, rays, planes[1:]) > r, bool(centre[2] < -r)
+        else:  # a mesh by its vertices, a box or plane by its bounds' corners: wholly beyond one plane
+            points = obj.world_vertices() if obj.kind == "mesh" else np.array(
+                [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+            cam = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+            outside = (cam @ planes.T <= 0).all(axis=0)
+            unseen, behind = bool(outside.any()), bool(outside[0])
+        if unseen:
+            where = "behind the camera" if behind else "outside the camera's field of view"
             raise ConfigError(scene.path or scene.name, f"objects[{i}]",
                               f"'{obj.name}' lies wholly {where} (its bounds {np.round(lo, 1).tolist()} .. "
                               f"{np.round(hi, 1).tolist()} mm in the rig's world frame): the scan would not see it")
+
+
+def distance_to_pyramid(p: np.ndarray, rays: np.ndarray, sides: np.ndarray) -> float:
+    """Distance (mm) from `p` to the viewing pyramid whose edge rays from the eye are `rays`
+    (4, 3), in order, and whose sides have inward unit normals `sides` (4, 3), side k holding
+    rays k and k + 1: 0 inside, else the nearest side's wedge (where the foot falls between
+    its two rays) or the nearest edge ray."""
+    if (sides @ p >= 0).all():
+        return 0.0
+    unit = rays / np.linalg.norm(rays, axis=1)[:, None]
+    along = np.maximum(unit @ p, 0.0)
+    best = float(np.linalg.norm(p - along[:, None] * unit, axis=1).min())  # the edge rays
+    for k in range(4):
+        a, b = unit[k], unit[(k + 1) % 4]
+        foot = p - (sides[k] @ p) * sides[k]
+        coef = np.linalg.lstsq(np.stack([a, b], axis=1), foot, rcond=None)[0]
+        if (coef >= 0).all():
+            best = min(best, abs(float(sides[k] @ p)))
+    return best
 
 
 def load_scene(scene: Scene | str | Path | None, working_distance_mm: float = 400.0) -> Scene:
