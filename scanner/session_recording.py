@@ -66,7 +66,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import threading
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -87,6 +89,7 @@ from scanner.rig_schema import RecordingLevel
 
 APPLICATION_ID = "slscan"
 RECORDING_NAME = "recording.rrd"  # file name inside a session folder
+FLUSH_SLICE_S = 2.0  # a writer that writes nothing for this long while data waits has stopped
 CLOSE_TIMEOUT_S = 30.0  # longest wait for the writer to flush (twice this for the whole close)
 LEVELS: tuple[str, ...] = get_args(RecordingLevel)  # "full", "display", "none"
 DISPLAY_MAX_SIDE_PX = 800  # level "display": maps and cloud decimated until their longest side is at most this
@@ -268,6 +271,20 @@ def blueprint(orientations: Sequence[str] = ("vertical",), n_freq: int = 3) -> r
 # ---------------------------------------------------------------- the recording
 
 
+ABANDONED: list[Any] = []
+"""Recording streams whose writer stopped (a full disk): never destroyed, since destroying
+one waits for its writer; a process holding any must end with `os._exit`."""
+
+
+def _disk_full(path: Path) -> bool:
+    """Whether the file system holding `path` has no block left for a writer."""
+    try:
+        st = os.statvfs(path.parent)
+    except OSError:
+        return False
+    return st.f_bavail == 0
+
+
 class SessionRecording:
     """One session's Rerun recording, written to `path` (a `.rrd` file).
 
@@ -341,23 +358,29 @@ class SessionRecording:
             return
         self._closed = True
         errors: list[BaseException] = []
+        if _disk_full(self.partial_path):  # the writer cannot finish: do not wait for it, nor let exit wait
+            self._abandon()
+            raise RecordingError(f"{self.partial_path}: the disk is full, the recording cannot be finished; the "
+                                 f"session's other files are kept (free space, then `slscan decode` records it again)")
 
         def finish() -> None:
             try:
                 if self._blueprint_pending:
                     self._send_blueprint((), 0)
-                self.stream.flush(timeout_sec=CLOSE_TIMEOUT_S)
-            except Exception as exc:  # noqa: BLE001 — reported below, the sink is closed regardless
+                self._flush()
+            except Exception as exc:  # noqa: BLE001 — a writer that cannot flush cannot disconnect either
                 errors.append(exc)
-            finally:
-                try:
-                    self.stream.disconnect()  # closes the file sink: footer written
-                except Exception as exc:  # noqa: BLE001
-                    errors.append(exc)
+                return
+            try:
+                self.stream.disconnect()  # closes the file sink: footer written
+            except Exception as exc:  # noqa: BLE001
+                errors.append(exc)
 
         worker = threading.Thread(target=finish, name=f"close {self.path.name}", daemon=True)
         worker.start()
         worker.join(2 * CLOSE_TIMEOUT_S)
+        if worker.is_alive() or errors:
+            self._abandon()
         if worker.is_alive():
             raise RecordingError(f"{self.partial_path}: the recording writer did not finish within "
                                  f"{2 * CLOSE_TIMEOUT_S:g} s (a full disk or a stalled file system?); the recording "
@@ -367,6 +390,32 @@ class SessionRecording:
                                  f"disk may be full; the session's other files are kept")
         if self.partial_path.exists():
             self.partial_path.replace(self.path)
+
+    def _flush(self) -> None:
+        """Wait until the writer has written everything logged: up to CLOSE_TIMEOUT_S while
+        the file grows, but a writer that wrote nothing for FLUSH_SLICE_S while data waits
+        has stopped (a full disk: Rerun's writer ends at the first failed write) and
+        RecordingError says so at once."""
+        deadline = time.monotonic() + CLOSE_TIMEOUT_S
+        size = -1
+        while True:
+            try:
+                self.stream.flush(timeout_sec=FLUSH_SLICE_S)
+                return
+            except RuntimeError:  # "Flush timed out": data still waits
+                now = self.partial_path.stat().st_size if self.partial_path.exists() else 0
+                if now == size or time.monotonic() > deadline:
+                    raise RecordingError(f"{self.partial_path}: the recording writer stopped writing (a full disk or "
+                                         f"a failed file system?)") from None
+                size = now
+
+    def _abandon(self) -> None:
+        """A recording whose writer is stuck: Rerun's exit handler, and the stream's own
+        destructor, would flush it forever (the process would never end). The handler is
+        unregistered (every other recording is closed explicitly before exit anyway) and the
+        stream kept (`ABANDONED`), so `slscan.cli` ends the process without tearing it down."""
+        rr.unregister_shutdown()
+        ABANDONED.append(self.stream)
 
     def _check_open(self) -> None:
         if self._closed:

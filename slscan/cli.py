@@ -122,7 +122,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.environ.setdefault("RUST_LOG", "off")  # one-line rule; its failures reach us as errors when it closes
     size_opencv_pool()  # on the main thread before any command's threads start; never at import
     with terminate_as_interrupt():
-        return _run(args)
+        code = _run(args)
+    abandoned = sys.modules.get("scanner.session_recording")
+    if abandoned is not None and abandoned.ABANDONED:  # a recording writer that stopped (a full disk) would hold
+        sys.stdout.flush()  # the interpreter's exit forever in its destructor: end without tearing it down
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 def _terminate(signum: int, frame: object) -> None:

@@ -454,10 +454,11 @@ def scene_cases(folder: Path, rng: np.random.Generator, n: int, rig: Path) -> li
         path.write_text(f"[reference_plane]\ndistance_mm = {toml_float(distance)}\n\n[[objects]]\n"
                         f"sphere = {{ radius_mm = {toml_float(r)}, center_mm = [{', '.join(toml_float(x) for x in c)}] }}\n")
         lengths_ok = 1e-3 <= r <= 1e5 and 1e-3 <= distance <= 1e5 and np.abs(c).max() <= 1e5
-        # a ray t*d meets the sphere when its closest approach to the centre is within r, at t > 0
+        # a ray t d (unit d) meets the sphere where |t d - c| = r: t = d.c +- sqrt(r^2 - (|c|^2 - (d.c)^2)),
+        # in front of the camera when the farther root is > 0
         t = rays @ c
-        seen = bool(np.any((t > -r) & (np.einsum("ij,ij->i", rays * t[:, None] - c, rays * t[:, None] - c) <= r * r))
-                    or np.linalg.norm(c) <= r)
+        gap = r * r - (c @ c - t * t)
+        seen = bool(np.any((gap >= 0) & (t + np.sqrt(np.maximum(gap, 0.0)) > 0)))
         refuse = not lengths_ok or not seen
         cases.append(Case("scene values", "hostile_cases:scene_opens", (str(path), str(rig)), refuse,
                           f"sphere r {r:.3g} at {np.round(c, 1).tolist()}, plane at {distance:.3g}",
