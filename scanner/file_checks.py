@@ -32,6 +32,10 @@ MAX_FILE_BYTES = 2 * 1024 ** 3
 again, which keeps a reader within the ~4 GB a process may use here."""
 
 
+MAX_IMAGE_BYTES = 512 * 1024 ** 2
+"""The largest image file decoded (a label image, a texture): its pixels take a few times that."""
+
+
 class FileRefused(ScannerError):
     """A file that cannot be read as what it claims to be, refused before it is used."""
 
@@ -101,6 +105,19 @@ def ascii_numbers(path: object, text: bytes, what: str) -> np.ndarray:
             return np.fromstring(text.decode("latin-1"), dtype=np.float64, sep=" ")
         except (DeprecationWarning, ValueError):
             raise FileRefused(path, f"not a usable {what}: its data holds something that is not a number") from None
+
+
+def decode_image(data: bytes, flags: int | None = None) -> tuple[np.ndarray | None, str]:
+    """OpenCV's decode of an image file's bytes (`flags` default IMREAD_UNCHANGED) and what
+    its codec said while decoding (libpng writes "libpng error: ..." to stderr, which would
+    break a command's one-line error): (image or None, the codec's first line or "")."""
+    import cv2
+
+    if not data:
+        return None, "empty file"
+    with native_output() as said:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED if flags is None else flags)
+    return img, said.lines[0] if said.lines else ""
 
 
 # ------------------------------------------------------------------------------ .npz archives

@@ -50,7 +50,7 @@ from pydantic import ConfigDict, Field, model_validator
 from scanner import __version__, schema
 from scanner.devices import Frame
 from scanner.errors import ConfigError, IncompleteSession, SessionError
-from scanner.file_checks import FileRefused, read_regular
+from scanner.file_checks import FileRefused, decode_image, read_regular
 from scanner.geometry import PhaseToHeight, RigModel
 from scanner.patterns import PatternFile, PatternSet
 from scanner.rig_schema import RigModelSchema, check_geometry
@@ -499,9 +499,9 @@ class Session:
             if declared is not None and declared != (shape[1], shape[0]):
                 raise SessionError(f"{path}: frame {k} is a {declared[0]} x {declared[1]} PNG, expected "
                                    f"{shape[1]} x {shape[0]}")
-            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+            img, said = decode_image(data)
             if img is None:
-                raise SessionError(f"{path}: frame {k} missing or unreadable (not an image)")
+                raise SessionError(f"{path}: frame {k} missing or unreadable (not an image{': ' + said if said else ''})")
             if img.shape != shape or str(img.dtype) != e["dtype"]:
                 raise SessionError(f"{path}: frame {k} is {_describe(img)}, expected {e['dtype']} "
                                    f"{shape[1]}x{shape[0]} single-channel")

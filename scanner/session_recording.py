@@ -402,7 +402,9 @@ class SessionRecording:
             try:
                 self.stream.flush(timeout_sec=FLUSH_SLICE_S)
                 return
-            except RuntimeError:  # "Flush timed out": data still waits
+            except RuntimeError as exc:
+                if "timed out" not in str(exc).lower():
+                    raise  # the writer failed (its own message)
                 now = self.partial_path.stat().st_size if self.partial_path.exists() else 0
                 if now == size or time.monotonic() > deadline:
                     raise RecordingError(f"{self.partial_path}: the recording writer stopped writing (a full disk or "

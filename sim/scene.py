@@ -94,7 +94,6 @@ MAX_LENGTH_MM = 100_000.0  # 100 m: every length and position of a bench scene l
 MIN_LENGTH_MM = 1e-3  # 1 um: a smaller object is below any camera pixel's footprint on the bench
 MIN_ROUGHNESS = 0.02  # below this GGX is a numerical mirror (alpha ~ 4e-4) one ray per pixel cannot sample
 DEFAULT_ROUGHNESS = 0.5
-MAX_TEXTURE_BYTES = 256 * 1024 ** 2
 
 
 @dataclass(frozen=True)
@@ -422,14 +421,14 @@ def _texture(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
     """A plane's texture image file as albedo 0..1 (grey; full scale of its bit depth = 1)."""
     import cv2
 
-    from scanner.file_checks import FileRefused, read_regular
+    from scanner.file_checks import MAX_IMAGE_BYTES, FileRefused, decode_image, read_regular
 
     file = resolve(path, get(table, "texture", str, path, prefix=prefix))
     try:
-        data = np.frombuffer(read_regular(file, limit=MAX_TEXTURE_BYTES), np.uint8)
+        data = read_regular(file, limit=MAX_IMAGE_BYTES)
     except FileRefused as exc:
         raise ConfigError(path, f"{prefix}.texture", str(exc)) from None
-    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH) if len(data) else None
+    img, _ = decode_image(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
     if img is None or img.dtype not in (np.uint8, np.uint16) or min(img.shape) < 2:
         raise ConfigError(path, f"{prefix}.texture", f"{file}: not readable as an 8- or 16-bit grey image")
     return img.astype(np.float32) / np.float32(np.iinfo(img.dtype).max)
