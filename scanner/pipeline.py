@@ -3,6 +3,7 @@ frames alone. Each stage takes arrays or small typed objects and returns the sam
 
 from __future__ import annotations
 
+import hashlib
 import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from contextlib import ExitStack
@@ -314,6 +315,15 @@ def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first
         k = first + int(i)
         raise DecodeError(f"{where}: frame {k} ({session.frame_path(k).name}) is blank (every pixel "
                           f"{int(lo[i])}..{int(hi[i])} DN): it cannot be a fringe image; re-scan")
+    seen: dict[bytes, int] = {}
+    for i, image in enumerate(stack):  # a frame copied over another: named as such, not blamed on a third
+        digest = hashlib.sha256(image.tobytes()).digest()
+        if digest in seen:
+            k, j = first + i, first + seen[digest]
+            raise DecodeError(f"{where}: frame {k} ({session.frame_path(k).name}) repeats frame {j} "
+                              f"({session.frame_path(j).name}) pixel for pixel: two patterns cannot give the same "
+                              f"image with camera noise; the frames were copied or the capture repeated a frame; re-scan")
+        seen[digest] = i
     if "import" in session.manifest:
         return  # another tool's frames: judged by the import's convention detection and decode's self-check
         # (the ideal patterns the signature assumes are blurred at a real camera's finest Gray-code bits);
