@@ -122,13 +122,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.environ.setdefault("RUST_LOG", "off")  # one-line rule; its failures reach us as errors when it closes
     size_opencv_pool()  # on the main thread before any command's threads start; never at import
     with terminate_as_interrupt():
-        code = _run(args)
-    abandoned = sys.modules.get("scanner.session_recording")
-    if abandoned is not None and abandoned.ABANDONED:  # a recording writer that stopped (a full disk) would hold
-        sys.stdout.flush()  # the interpreter's exit forever in its destructor: end without tearing it down
+        return _run(args)
+
+
+def run() -> None:
+    """The program (`slscan`, `python -m slscan`): `main`, then exit with its code. A
+    recording whose writer stopped (a full disk) would hold the interpreter's exit forever
+    in its destructor: the process then ends without tearing it down."""
+    code = main()
+    recordings = sys.modules.get("scanner.session_recording")
+    if recordings is not None and recordings.ABANDONED:
+        sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)
-    return code
+    sys.exit(code)
 
 
 def _terminate(signum: int, frame: object) -> None:
@@ -165,4 +172,4 @@ def _run(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

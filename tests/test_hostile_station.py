@@ -149,3 +149,35 @@ def test_sigterm_marks_the_cycle_aborted_and_keeps_the_session(bench: Path, tmp_
     assert row["status"] == "aborted" and row["message"].startswith("terminated (SIGTERM)")
     frames = list(Path(row["part_path"]).glob("view0/frames/frame_*.png"))
     assert len(frames) >= 4 and json.loads((Path(row["part_path"]) / "part.json").read_text())["status"] == "aborted"
+
+
+@pytest.mark.slow
+def test_a_station_on_a_full_disk_stops_with_one_line(bench: Path, tmp_path: Path) -> None:
+    """Sessions on a 3 MB tmpfs, the database beside it: the cycle is stored as an error
+    naming the full disk, the station stops at once with one line and exit 2, the frames
+    captured are kept whole."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(disk)], capture_output=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({mounted.stderr.decode().strip()})")
+    try:
+        p = subprocess.Popen([sys.executable, "-m", "slscan", "station", PROGRAM, "--auto", "--parts", "3", "--config",
+                              str(bench), "--out", str(disk / "data"), "--db", f"sqlite:{tmp_path / 'results.sqlite'}"],
+                             cwd=REPO, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             env={**os.environ, "PYTHONPATH": str(REPO)})
+        code = p.wait(300)
+        err = p.stderr.read()  # type: ignore[union-attr]
+        errors = [ln for ln in err.splitlines() if "error" in ln.lower()]
+        assert code == 2 and len(errors) == 1 and "No space left on device" in errors[0], err
+        with sqlite3.connect(tmp_path / "results.sqlite") as db:
+            statuses = [r[0] for r in db.execute("select status from results")]
+        assert statuses and statuses[-1] == "error" and "in_progress" not in statuses
+        from scanner.session import sha256
+
+        for log in disk.glob("data/sessions/*/*/view0/frames.jsonl"):
+            for line in log.read_text().splitlines():
+                entry = json.loads(line)
+                assert sha256((log.parent / entry["file"]).read_bytes()) == entry["sha256"]
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
