@@ -40,6 +40,7 @@ from scanner import __version__
 from scanner.errors import IncompleteSession, ScannerError, SessionError
 from scanner.rig import Rig
 from scanner.session import ERROR, MANIFEST, Session, stop_reason, write_json
+from scanner.session_lock import session_lock
 from scanner.stage import AxisKind
 from scanner.stage_model import StageConfig, StageModel, load_stage_model
 
@@ -259,6 +260,12 @@ def capture_views(rig: Rig, plan: Sequence[Mapping[str, float]], out_dir: str | 
     On any failure (a move, a capture, Ctrl-C) every earlier view stays complete on disk,
     error.json names the view and the error, and the error is raised again."""
     writer = MultiViewWriter.create(out_dir, rig, plan, model)
+    with session_lock(writer.root, command="slscan scan --views"):
+        return _capture_views(writer, rig, plan, scan_view, progress)
+
+
+def _capture_views(writer: MultiViewWriter, rig: Rig, plan: Sequence[Mapping[str, float]],
+                   scan_view: Callable[[Path, dict[str, Any]], Session], progress: ViewProgress) -> MultiViewSession:
     stage = rig.stage
     assert stage is not None
     n = len(plan)

@@ -54,6 +54,7 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     from scanner.patterns import PatternSet
     from scanner.pipeline import scan
     from scanner.rig import RigConfig, open_rig
+    from scanner.session_lock import session_lock
 
     config = RigConfig.load(args.rig)
     patterns = PatternSet.load(args.patterns or config.patterns_path)
@@ -92,7 +93,8 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
             rig.extras["session_files"] = [*rig.extras.get("session_files", ()),
                                            lambda root: truth.save(Path(root) / BIN_TRUTH_FILE)]
         result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args), exposure=exposure)
-    report(result)
+    with session_lock(result.session.root, command="slscan scan"):  # accuracy.json: one writer
+        report(result)
     if truth is not None:
         print(f"bin truth {result.session.root / BIN_TRUTH_FILE}  ({len(truth.ids)} parts, seed {truth.seed}; "
               f"judge poses with: slscan posebench --sessions {result.session.root})")
@@ -166,6 +168,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
     from scanner.multiview import is_multiview
     from scanner.pipeline import reprocess
     from scanner.session import Session
+    from scanner.session_lock import session_lock
 
     if is_multiview(args.session):
         from slscan.commands.views import decode_views
@@ -177,8 +180,9 @@ def cmd_decode(args: argparse.Namespace) -> int:
         _recover(args)
     elif args.rig is not None or args.patterns is not None:
         raise ScannerError("--rig and --patterns apply to `slscan decode --recover` only")
-    result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode, level=_level(args))
-    report(result)
+    with session_lock(args.session, command="slscan decode"):  # the outputs and accuracy.json: one writer
+        result = reprocess(Session.open(args.session), ProgressLine(), mode=args.mode, level=_level(args))
+        report(result)
     return Exit.OK
 
 
