@@ -89,10 +89,13 @@ def station_config_loads(path: str) -> str:
     return config.operator
 
 
-def program_name(path: str) -> str:
+def program_text(path: str, which: str) -> str:
+    """A part program's name, the high top's face name or its first characteristic's name."""
     from slscan.station.program import load_program
 
-    return load_program(path).name
+    program = load_program(path)
+    return {"name": program.name, "face": program.face_names.get("#657", ""),
+            "characteristic": program.characteristics[0].name}[which]
 
 
 def cli_args(argv: list[str]) -> str:

@@ -11,6 +11,7 @@ import os
 import re
 import shutil
 import struct
+import tomllib
 import unicodedata
 import zipfile
 from pathlib import Path
@@ -505,10 +506,12 @@ def text_cases(folder: Path, rng: np.random.Generator, n: int) -> list[Case]:
         'cad = "demo_part.step"', f'cad = "{CONFIG_DIR / "parts" / "demo_part.step"}"').replace(
         '"../patterns/', f'"{CONFIG_DIR}/patterns/')
     station = (CONFIG_DIR / "station" / "sim_bench.toml").read_text().replace('"../', f'"{CONFIG_DIR}/')
+    parsed = tomllib.loads(program)
     for i in range(n):
         s = random_text(rng)
         ok = is_text(s)
-        field = str(rng.choice(["serial", "--operator", "--serial", "station operator", "program name"]))
+        field = str(rng.choice(["serial", "--operator", "--serial", "station operator", "program name", "face name",
+                                "characteristic name"]))
         shown = f"{field} {s[:40]!r}"
         if field == "serial":
             s = s.strip() or "x"  # the station strips a serial and asks again for a blank one
@@ -527,10 +530,17 @@ def text_cases(folder: Path, rng: np.random.Generator, n: int) -> list[Case]:
                 path.write_bytes(station.encode().replace(b'operator = ""', b"operator = " + encoded, 1))
                 target = "hostile_cases:station_config_loads"
             else:
-                ok = ok and bool(s.strip())  # a program's name is not blank
+                taken = {"face name": set(parsed["faces"].values()) - {"high top"},
+                         "characteristic name": {c["name"] for c in parsed["characteristic"][1:]}}.get(field, set())
+                ok = ok and bool(s.strip()) and s not in taken  # a name is not blank, nor another face's or check's
                 path = folder / f"program{i}.toml"
-                path.write_bytes(program.encode().replace(b'name = "demo-part"', b"name = " + encoded, 1))
-                target = "hostile_cases:program_name"
+                which, old = {"program name": ("name", b'name = "demo-part"'),
+                              "face name": ("face", b'"#657" = "high top"'),
+                              "characteristic name": ("characteristic", b'name = "high_top_flatness"')}[field]
+                path.write_bytes(program.encode().replace(old, old.split(b"=")[0] + b"= " + encoded, 1))
+                cases.append(Case("free text", "hostile_cases:program_text", (str(path), which), not ok, shown,
+                                  None if not ok else s))
+                continue
             cases.append(Case("free text", target, (str(path),), not ok, shown, None if not ok else s))
     return cases
 
