@@ -278,6 +278,10 @@ def check_in_view(scene: Scene, camera: Any, world_from_cam: np.ndarray) -> None
             centre = cam_from_world[:3, :3] @ obj.pose[:3, 3] + cam_from_world[:3, 3]
             r = float(obj.radius_mm)  # type: ignore[arg-type]
             unseen, behind = distance_to_pyramid(centre, rays, planes[1:]) > r, bool(centre[2] < -r)
+            if not unseen and not sphere_on_a_pixel(centre, r, camera):
+                raise ConfigError(scene.path or scene.name, f"objects[{i}]",
+                                  f"'{obj.name}' (radius {r:g} mm at {np.linalg.norm(centre):.4g} mm) covers no "
+                                  f"camera pixel's centre: the scan would not see it")
         else:  # a mesh by its vertices, a box or plane by its bounds' corners: wholly beyond one plane
             points = obj.world_vertices() if obj.kind == "mesh" else np.array(
                 [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
@@ -289,6 +293,34 @@ def check_in_view(scene: Scene, camera: Any, world_from_cam: np.ndarray) -> None
             raise ConfigError(scene.path or scene.name, f"objects[{i}]",
                               f"'{obj.name}' lies wholly {where} (its bounds {np.round(lo, 1).tolist()} .. "
                               f"{np.round(hi, 1).tolist()} mm in the rig's world frame): the scan would not see it")
+
+
+def sphere_on_a_pixel(centre: np.ndarray, r: float, camera: Any) -> bool:
+    """Whether a sphere (camera frame, mm) covers the centre of at least one of `camera`'s
+    pixels, as a rendering samples it: decided by casting the rays of the pixels within its
+    image's bounds when it images smaller than SMALL_IMAGE_PX across (a larger one in view
+    always covers some)."""
+    distance = float(np.linalg.norm(centre))
+    if centre[2] <= r or distance <= r:
+        return True  # reaches the camera's plane: large in the image wherever it is seen
+    f = float(max(camera.K[0, 0], camera.K[1, 1]))
+    spread = f * r / (centre[2] - r)  # px: bounds the image's radius (a margin for the lens distortion added)
+    if spread > SMALL_IMAGE_PX:
+        return True
+    u, v = camera.project(centre[None])[0]
+    half = spread * 1.5 + 2
+    cols = np.arange(max(int(np.floor(u - half)), 0), min(int(np.ceil(u + half)), camera.width - 1) + 1)
+    rows = np.arange(max(int(np.floor(v - half)), 0), min(int(np.ceil(v + half)), camera.height - 1) + 1)
+    if not len(cols) or not len(rows):
+        return False
+    uu, vv = np.meshgrid(cols, rows)
+    d = np.column_stack([camera.normalized(np.stack([uu.ravel(), vv.ravel()], 1).astype(float)), np.ones(uu.size)])
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    t = d @ centre
+    return bool(np.any(distance ** 2 - t ** 2 <= r * r))
+
+
+SMALL_IMAGE_PX = 8.0
 
 
 def distance_to_pyramid(p: np.ndarray, rays: np.ndarray, sides: np.ndarray) -> float:

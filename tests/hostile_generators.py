@@ -437,13 +437,13 @@ def projector_fit_cases(folder: Path, rng: np.random.Generator, n: int) -> list[
 def scene_cases(folder: Path, rng: np.random.Generator, n: int, rig: Path) -> list[Case]:
     """A sphere anywhere around the camera (behind it, beside its view, in it) of any radius,
     a reference plane at any distance: refused iff a length is outside [1e-3, 1e5] mm or the
-    sphere cannot be seen. Whether it can be seen is decided here by casting the camera's
-    rays at the sphere (a 64 x 51 grid of the 1280 x 1024 image, and its border), not by
-    the check under test."""
+    sphere cannot be seen. Whether it can be seen is decided here as a rendering samples it:
+    by casting the ray of every pixel's centre of the 1280 x 1024 camera at the sphere, not
+    by the check under test."""
     from scanner.rig import RigConfig
 
     cam = RigConfig.load(rig).nominal_model().camera
-    u, v = np.meshgrid(np.linspace(-0.5, cam.width - 0.5, 257), np.linspace(-0.5, cam.height - 0.5, 206))
+    u, v = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
     rays = np.column_stack([cam.normalized(np.stack([u.ravel(), v.ravel()], 1)), np.ones(u.size)])
     rays /= np.linalg.norm(rays, axis=1)[:, None]
     cases = []
