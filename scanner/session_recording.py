@@ -89,7 +89,8 @@ from scanner.rig_schema import RecordingLevel
 
 APPLICATION_ID = "slscan"
 RECORDING_NAME = "recording.rrd"  # file name inside a session folder
-FLUSH_SLICE_S = 2.0  # a writer that writes nothing for this long while data waits has stopped
+FLUSH_SLICE_S = 2.0  # a writer that writes nothing for this long while data waits, with little space left, has stopped
+LOW_SPACE_BYTES = 64 * 1024 ** 2  # "little space": below what one flush of a scan's recording can need
 CLOSE_TIMEOUT_S = 30.0  # longest wait for the writer to flush (twice this for the whole close)
 LEVELS: tuple[str, ...] = get_args(RecordingLevel)  # "full", "display", "none"
 DISPLAY_MAX_SIDE_PX = 800  # level "display": maps and cloud decimated until their longest side is at most this
@@ -276,13 +277,18 @@ ABANDONED: list[Any] = []
 one waits for its writer; a process holding any must end with `os._exit`."""
 
 
-def _disk_full(path: Path) -> bool:
-    """Whether the file system holding `path` has no block left for a writer."""
+def _free_bytes(path: Path) -> int:
+    """Bytes free for a writer on the file system holding `path` (a large number when unknown)."""
     try:
         st = os.statvfs(path.parent)
     except OSError:
-        return False
-    return st.f_bavail == 0
+        return 1 << 62
+    return st.f_bavail * st.f_frsize
+
+
+def _disk_full(path: Path) -> bool:
+    """Whether the file system holding `path` has no block left for a writer."""
+    return _free_bytes(path) == 0
 
 
 class SessionRecording:
@@ -392,10 +398,12 @@ class SessionRecording:
             self.partial_path.replace(self.path)
 
     def _flush(self) -> None:
-        """Wait until the writer has written everything logged: up to CLOSE_TIMEOUT_S while
-        the file grows, but a writer that wrote nothing for FLUSH_SLICE_S while data waits
-        has stopped (a full disk: Rerun's writer ends at the first failed write) and
-        RecordingError says so at once."""
+        """Wait until the writer has written everything logged, up to CLOSE_TIMEOUT_S; a
+        writer that wrote nothing for FLUSH_SLICE_S while data waits, on a file system with
+        less than LOW_SPACE_BYTES free, has stopped (Rerun's writer ends at its first failed
+        write, which on a healthy file system only running out of space causes), and
+        RecordingError says so at once instead of after the whole timeout. A busy machine
+        that merely delays the writer keeps its recording (space is left)."""
         deadline = time.monotonic() + CLOSE_TIMEOUT_S
         size = -1
         while True:
@@ -406,7 +414,7 @@ class SessionRecording:
                 if "timed out" not in str(exc).lower():
                     raise  # the writer failed (its own message)
                 now = self.partial_path.stat().st_size if self.partial_path.exists() else 0
-                if now == size or time.monotonic() > deadline:
+                if (now == size and _free_bytes(self.partial_path) < LOW_SPACE_BYTES) or time.monotonic() > deadline:
                     raise RecordingError(f"{self.partial_path}: the recording writer stopped writing (a full disk or "
                                          f"a failed file system?)") from None
                 size = now
