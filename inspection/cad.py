@@ -32,7 +32,7 @@ from typing import Any, Callable
 import numpy as np
 
 from inspection.errors import CadError
-from scanner.file_checks import FileRefused, native_output, regular_size
+from scanner.file_checks import FileRefused, regular_size
 from scanner.mesh_files import read_mesh
 from inspection.surfaces import BSpline, Cone, Cylinder, Plane, Sphere, Surface, Torus
 
@@ -359,9 +359,9 @@ def _read_step(path: Path) -> tuple[Any, Any, str]:
     from OCP.IFSelect import IFSelect_RetDone
     from OCP.STEPControl import STEPControl_Reader
 
+    _silence_opencascade()  # its messages go to stdout (a --json stream); its check list is read below instead
     reader = STEPControl_Reader()
-    with native_output():  # OpenCASCADE's own messages: its check list is read below instead
-        status = reader.ReadFile(str(path))
+    status = reader.ReadFile(str(path))
     if status != IFSelect_RetDone:
         raise CadError(path, f"unreadable STEP file (OpenCASCADE: {status.name}); check that it is an ISO 10303-21 "
                              f"file and not truncated")
@@ -370,9 +370,7 @@ def _read_step(path: Path) -> tuple[Any, Any, str]:
     problem = _step_load_failure(reader)
     if problem:
         raise CadError(path, f"damaged STEP file: {problem}; the part's geometry would be read incomplete")
-    with native_output():
-        transferred = reader.TransferRoots()
-    if transferred == 0:
+    if reader.TransferRoots() == 0:
         raise CadError(path, "the STEP file holds no shape that can be transferred (no solid, shell or face)")
     shape = reader.OneShape()
     if _is_null(shape):
@@ -381,6 +379,14 @@ def _read_step(path: Path) -> tuple[Any, Any, str]:
     reader.FileUnits(units, Sequence_TCollection_AsciiString(), Sequence_TCollection_AsciiString())
     names = sorted({units.Value(i).ToCString().lower() for i in range(1, units.Length() + 1)})
     return shape, reader, ",".join(names) or "unknown"
+
+
+def _silence_opencascade() -> None:
+    """Remove OpenCASCADE's default printer (stdout) from its messenger, once: what it reports
+    of a STEP file is read from the reader's check list (`_step_load_failure`)."""
+    from OCP.Message import Message, Message_PrinterOStream
+
+    Message.DefaultMessenger_s().RemovePrinters(Message_PrinterOStream.get_type_descriptor_s())
 
 
 STEP_GEOMETRY_CLASSES = ("StepShape_", "StepGeom_")  # the entities the shape is made of (topology, geometry)

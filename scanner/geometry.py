@@ -258,8 +258,8 @@ class PhaseToHeight:
             arrays = load_npz(path, {k: ArraySpec("f", 2) for k in PHASE_MAP_KEYS}, what="phase-to-height maps",
                               optional=PHASE_MAP_KEYS)
         except FileRefused as exc:
-            raise ConfigError(where, "phase_to_height.maps_file", f"phase-to-height maps missing or unreadable "
-                                                                  f"({exc})") from None
+            raise ConfigError(where, "phase_to_height.maps_file", f"{path}: phase-to-height maps missing or "
+                                                                  f"unreadable ({exc.problem})") from None
         wanted = PHASE_MAP_KEYS if d.get("per_pixel", False) else PHASE_MAP_KEYS[:1]
         missing = [k for k in wanted if k not in arrays]
         if missing:
