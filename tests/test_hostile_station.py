@@ -21,6 +21,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -181,3 +182,34 @@ def test_a_station_on_a_full_disk_stops_with_one_line(bench: Path, tmp_path: Pat
                 assert sha256((log.parent / entry["file"]).read_bytes()) == entry["sha256"]
     finally:
         subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+
+
+def _open_store(path: str, results: Any) -> None:
+    from slscan.station.results import open_results
+
+    try:
+        with open_results(f"sqlite:{path}"):
+            results.put("ok")
+    except Exception as exc:  # noqa: BLE001 — reported to the test
+        results.put(f"{type(exc).__name__}: {exc}")
+
+
+def test_stations_opening_one_new_database_at_once_make_one_schema(tmp_path: Path) -> None:
+    """Four processes open one new SQLite results database at the same moment, five times:
+    every one opens it, and it holds one schema version (they had both found it empty and
+    written two, or failed with 'table measured already exists')."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    for trial in range(5):
+        path = tmp_path / f"r{trial}.sqlite"
+        results = ctx.Queue()
+        procs = [ctx.Process(target=_open_store, args=(str(path), results)) for _ in range(4)]
+        for p in procs:
+            p.start()
+        for p in procs:
+            p.join(120)
+        said = [results.get(timeout=10) for _ in procs]
+        with sqlite3.connect(path) as db:
+            versions = db.execute("select count(*) from slscan_schema").fetchone()[0]
+        assert said == ["ok"] * 4 and versions == 1, (said, versions)

@@ -63,6 +63,7 @@ STATUSES = ("in_progress", "pass", "fail", "uncertain", "error", "aborted", "inc
 VERDICTS = ("pass", "fail", "uncertain", "error")  # the statuses of a cycle that ended with a verdict
 OLD_RULE = "plain (before schema 3)"  # the rule of values stored by a schema 1 or 2 station
 LEASE_S = 60.0  # a running cycle's lease; renewed every LEASE_S / 4
+SCHEMA_LOCK_KEY = 0x736C7363616E  # "slscan": PostgreSQL's advisory lock taken while the schema is made
 ATTEMPT_RETRIES = 50  # inserts retried (after a random pause) when a concurrent writer took the same number
 
 
@@ -327,7 +328,17 @@ class ResultsStore:
             cause = getattr(exc, "orig", None) or exc
             raise ResultsError(f"{where}: cannot {how} the results database: "
                                f"{_one_line(redact(str(cause), url))}") from None
+        self._schema(create)
+
+    def _schema(self, create: bool) -> None:
+        """Make (with `create`) or upgrade the tables and check the schema version, in one
+        transaction that holds the database's write lock from its start (two stations opening
+        one new database would otherwise both find it empty and both write its version)."""
         with self._tx() as conn:
+            if create and conn.dialect.name == "sqlite":
+                conn.exec_driver_sql("BEGIN IMMEDIATE")  # the driver has not begun yet: take the write lock now
+            elif create and conn.dialect.name == "postgresql":
+                conn.execute(sa.text("SELECT pg_advisory_xact_lock(:key)"), {"key": SCHEMA_LOCK_KEY})
             if create:
                 _META.create_all(conn)
             version = self._version(conn)
@@ -338,8 +349,9 @@ class ResultsStore:
                     _upgrade_from_1(conn)
                 _upgrade_from_2(conn)
             elif version != SCHEMA_VERSION:
-                raise ResultsError(f"{where}: results schema version {version}, this slscan uses {SCHEMA_VERSION}"
-                                   + (" (a station opening it upgrades it)" if version in (1, 2) else ""))
+                raise ResultsError(f"{self.where}: results schema version {version}, this slscan uses "
+                                   f"{SCHEMA_VERSION}" + (" (a station opening it upgrades it)" if version in (1, 2)
+                                                          else ""))
 
     def _version(self, conn: sa.Connection) -> int | None:
         if not sa.inspect(conn).has_table("slscan_schema"):
