@@ -128,14 +128,15 @@ class ChartRecording:
     writes `path` afresh from that history, the database's, under a folder lock, so two
     stations sharing a data folder never lose each other's parts: whichever closes last
     writes every part both stored. Closed without a history (the database unreachable),
-    the own file is kept beside `path`, which is left as it was."""
+    the own file is kept beside `path`, which is left as it was. `live=False`: written at
+    `path` itself (the history's own writer)."""
 
-    def __init__(self, path: Path, program: PartProgram, recording_id: str) -> None:
+    def __init__(self, path: Path, program: PartProgram, recording_id: str, *, live: bool = True) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         self.program = program
         self.path = path
         self.recording_id = recording_id
-        self._own = path.with_name(f"{path.stem}.{os.getpid()}{path.suffix}")
+        self._own = path.with_name(f"{path.stem}.{os.getpid()}{path.suffix}") if live else path
         self.rec = SessionRecording(self._own, recording_id, send_blueprint=False)
 
     def __enter__(self) -> ChartRecording:
@@ -144,41 +145,35 @@ class ChartRecording:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def close(self, rows: Sequence[ResultRow] | None = None, values: dict[int, list[ValueRecord]] | None = None) -> None:
+    def close(self, rows: Sequence[ResultRow] | None = None,
+              values: dict[int, list[ValueRecord]] | None = None) -> None:
         self.rec.close()
-        if rows is None:
+        if rows is None or self._own == self.path:
             return
         with folder_lock(self.path.parent):
             whole = self.path.with_name(f".{self.path.stem}.{os.getpid()}-{uuid.uuid4().hex[:8]}{self.path.suffix}")
             try:
-                with SessionRecording(whole, self.recording_id, send_blueprint=False) as rec:
-                    log_history(rec, rows, values or {})
+                with ChartRecording(whole, self.program, self.recording_id, live=False) as history:
+                    history.log_history(rows, values or {})
                 whole.replace(self.path)
             finally:
                 whole.unlink(missing_ok=True)
         self._own.unlink(missing_ok=True)
 
     def log(self, result_id: int, values: Sequence[ValueRecord]) -> None:
-        log_values(self.rec, result_id, values)
+        """One part's measured values at `scan` = its result id, with their tolerances."""
+        scalars = {}
+        for v in values:
+            if v.value_mm is not None:
+                scalars[control_metric(v.characteristic, "value_mm")] = v.value_mm
+                scalars[control_metric(v.characteristic, "tolerance_mm")] = v.tolerance_mm
+                if v.u_mm is not None:
+                    scalars[control_metric(v.characteristic, "u_mm")] = v.u_mm
+        if scalars:
+            self.rec.log_metrics(scalars, scan=result_id)
 
     def log_history(self, rows: Sequence[ResultRow], values: dict[int, list[ValueRecord]]) -> None:
-        log_history(self.rec, rows, values)
-
-
-def log_values(rec: SessionRecording, result_id: int, values: Sequence[ValueRecord]) -> None:
-    """One part's measured values at `scan` = its result id, with their tolerances."""
-    scalars = {}
-    for v in values:
-        if v.value_mm is not None:
-            scalars[control_metric(v.characteristic, "value_mm")] = v.value_mm
-            scalars[control_metric(v.characteristic, "tolerance_mm")] = v.tolerance_mm
-            if v.u_mm is not None:
-                scalars[control_metric(v.characteristic, "u_mm")] = v.u_mm
-    if scalars:
-        rec.log_metrics(scalars, scan=result_id)
-
-
-def log_history(rec: SessionRecording, rows: Sequence[ResultRow], values: dict[int, list[ValueRecord]]) -> None:
-    """Parts from the results database (each serial's last cycle), in order."""
-    for r in latest_per_serial(rows):
-        log_values(rec, r.id, values.get(r.id, []))
+        """Earlier parts from the results database (each serial's last cycle), so the
+        charts start with the history."""
+        for r in latest_per_serial(rows):
+            self.log(r.id, values.get(r.id, []))
