@@ -32,6 +32,8 @@ from typing import Any, Callable
 import numpy as np
 
 from inspection.errors import CadError
+from scanner.file_checks import FileRefused, regular_size
+from scanner.mesh_files import read_mesh
 from inspection.surfaces import BSpline, Cone, Cylinder, Plane, Sphere, Surface, Torus
 
 STEP_SUFFIXES = (".step", ".stp")
@@ -235,8 +237,12 @@ def load_cad(path: str | Path, mesh_unit: str = "mm", deflection_mm: float | Non
     `scale` makes a scale model of a STEP part (every length multiplied, about the origin);
     `progress(stage, done, total)` hears how a STEP file's reading goes."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise CadError(path, "no such file")
+    try:
+        regular_size(path)
+    except FileRefused as exc:
+        raise CadError(path, exc.problem) from None
     suffix = path.suffix.lower()
     if not scale > 0:
         raise CadError(path, f"scale must be > 0, got {scale}")
@@ -353,11 +359,17 @@ def _read_step(path: Path) -> tuple[Any, Any, str]:
     from OCP.IFSelect import IFSelect_RetDone
     from OCP.STEPControl import STEPControl_Reader
 
+    _silence_opencascade()  # its messages go to stdout (a --json stream); its check list is read below instead
     reader = STEPControl_Reader()
     status = reader.ReadFile(str(path))
     if status != IFSelect_RetDone:
         raise CadError(path, f"unreadable STEP file (OpenCASCADE: {status.name}); check that it is an ISO 10303-21 "
                              f"file and not truncated")
+    if reader.StepModel().NbEntities() == 0:
+        raise CadError(path, "the STEP file holds no shape that can be transferred (its DATA section is empty)")
+    problem = _step_load_failure(reader)
+    if problem:
+        raise CadError(path, f"damaged STEP file: {problem}; the part's geometry would be read incomplete")
     if reader.TransferRoots() == 0:
         raise CadError(path, "the STEP file holds no shape that can be transferred (no solid, shell or face)")
     shape = reader.OneShape()
@@ -367,6 +379,42 @@ def _read_step(path: Path) -> tuple[Any, Any, str]:
     reader.FileUnits(units, Sequence_TCollection_AsciiString(), Sequence_TCollection_AsciiString())
     names = sorted({units.Value(i).ToCString().lower() for i in range(1, units.Length() + 1)})
     return shape, reader, ",".join(names) or "unknown"
+
+
+def _silence_opencascade() -> None:
+    """Remove OpenCASCADE's default printer (stdout) from its messenger, once: what it reports
+    of a STEP file is read from the reader's check list (`_step_load_failure`)."""
+    from OCP.Message import Message, Message_PrinterOStream
+
+    Message.DefaultMessenger_s().RemovePrinters(Message_PrinterOStream.get_type_descriptor_s())
+
+
+STEP_GEOMETRY_CLASSES = ("StepShape_", "StepGeom_")  # the entities the shape is made of (topology, geometry)
+
+
+def _step_load_failure(reader: Any) -> str | None:
+    """What OpenCASCADE's load check found wrong with the file's geometry, or None: a
+    failure of the whole file (an unresolved reference: an entity named but not there) or of
+    an entity the shape is made of (a shell whose face is missing or of the wrong type).
+    Failures in presentation and PMI entities (styles, annotations) do not change the
+    geometry and are not counted: the NIST AP242 files hold 53 of them."""
+    model = reader.StepModel()
+    check = model.GlobalCheck()
+    if check.NbFails():
+        return f"{check.CFail(1)} (OpenCASCADE's load check, {check.NbFails()} in all)"
+    checks = reader.WS().ModelCheckList()
+    checks.Start()
+    while checks.More():
+        k, entity_check = checks.Number(), checks.Value()
+        if entity_check.HasFailed():
+            if k == 0:
+                return f"{entity_check.CFail(1)} (OpenCASCADE's load check)"
+            kind = model.Value(k).DynamicType().Name()
+            if kind.startswith(STEP_GEOMETRY_CLASSES):
+                ident = model.IdentLabel(model.Value(k))
+                return f"entity #{ident} ({kind.split('_', 1)[1]}): {entity_check.CFail(1)}"
+        checks.Next()
+    return None
 
 
 def _load_step(path: Path, deflection_mm: float | None, scale: float, progress: Progress) -> CadModel:
@@ -602,14 +650,16 @@ def _load_mesh(path: Path, unit: str) -> CadModel:
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    mesh = o3d.io.read_triangle_mesh(str(path))
+    try:
+        v, t = read_mesh(path)
+    except FileRefused as exc:
+        raise CadError(path, exc.problem) from None
+    if len(t) == 0 or len(v) < 3:
+        raise CadError(path, "no triangles could be read (unreadable or empty mesh)")
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t.astype(np.int32)))
     mesh.remove_duplicated_vertices()
     v = np.asarray(mesh.vertices, dtype=np.float64) * MESH_UNITS_MM[unit]
     t = np.asarray(mesh.triangles, dtype=np.int64)
-    if len(t) == 0 or len(v) < 3:
-        raise CadError(path, "no triangles could be read (unreadable or empty mesh)")
-    if not np.isfinite(v).all():
-        raise CadError(path, "corrupt mesh: non-finite vertex coordinates")
     n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
     area = 0.5 * np.linalg.norm(n, axis=1)
     keep = area > 0

@@ -101,18 +101,20 @@ def make_scan(points: np.ndarray, normals: np.ndarray | None, source: str, viewp
 def read_cloud(path: str | Path) -> ScanCloud:
     """A PLY, PCD or XYZ cloud in mm. A cloud lying in front of the origin (z > 0, as
     scans in a camera frame do) is taken as seen from the origin."""
-    import open3d as o3d
+    from scanner.file_checks import FileRefused
+    from scanner.mesh_files import read_points
 
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise CloudError(path, "no such file")
     if path.suffix.lower() not in CLOUD_SUFFIXES:
         raise CloudError(path, f"not a point cloud: expected one of {', '.join(CLOUD_SUFFIXES)}")
-    pc = o3d.io.read_point_cloud(str(path))
-    pts = np.asarray(pc.points, dtype=np.float64)
+    try:
+        pts, nrm = read_points(path)
+    except FileRefused as exc:
+        raise CloudError(path, exc.problem) from None
     if len(pts) == 0:
         raise CloudError(path, "no points could be read (unreadable or empty cloud)")
-    nrm = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
     viewpoint = np.zeros(3) if np.all(pts[:, 2] > 0) else None
     return make_scan(pts, nrm, str(path), viewpoint)
 
@@ -121,6 +123,7 @@ def load_session(path: str | Path) -> ScanCloud:
     """The cloud of an slscan session (outputs/cloud.ply), placed back on its camera pixels:
     the pixels the PLY names (checked on a sample: those points must project onto them),
     else each point's projection."""
+    from scanner.file_checks import FileRefused
     from scanner.pointcloud import read_ply_pixels
     from scanner.session import Session
 
@@ -129,7 +132,10 @@ def load_session(path: str | Path) -> ScanCloud:
     if not ply.exists():
         raise CloudError(session.root, f"no {ply.name}; run `slscan decode {session.root}` to make it")
     cam = session.rig_model().camera
-    stored = read_ply_pixels(ply)
+    try:
+        stored = read_ply_pixels(ply)
+    except FileRefused as exc:
+        raise CloudError(ply, exc.problem) from None
     if stored is None:  # another writer's PLY: place every point by projecting it
         scan = read_cloud(ply)
         px = np.rint(cam.project(scan.points)).astype(np.int64)

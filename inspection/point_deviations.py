@@ -14,6 +14,8 @@ from typing import Any
 import numpy as np
 
 from inspection.errors import InspectionError
+from scanner.file_checks import ArraySpec, FileRefused, load_npz
+from scanner.session import open_new, temp_path
 
 POINTS_FILE = "inspection_points.npz"
 
@@ -26,9 +28,14 @@ def write_point_deviations(folder: str | Path, scan: Any, report: Any) -> Path:
     if scan.pixels is not None:  # ScanCloud pixels are (column, row)
         arrays["pixels"] = scan.pixels[:, ::-1].astype(np.uint16)
     path = Path(folder) / POINTS_FILE
-    tmp = path.with_name(path.name + ".part.npz")
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)
+    tmp = temp_path(path, ".npz")
+    try:
+        with open_new(tmp) as f:
+            np.savez_compressed(f, **arrays)
+        tmp.replace(path)
+    except BaseException:  # e.g. a full disk: no partial file left behind
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 
@@ -38,9 +45,12 @@ def read_point_deviations(folder: str | Path, pixels: np.ndarray | None) -> np.n
     path = Path(folder) / POINTS_FILE
     if not path.is_file():
         raise InspectionError(f"{path}: no per-point deviations; inspect the session again (`slscan inspect`)")
-    with np.load(path) as data:
-        dev = data["deviation_mm"]
-        saved = data["pixels"] if "pixels" in data else None
+    try:
+        data = load_npz(path, {"deviation_mm": ArraySpec("f", 1), "pixels": ArraySpec("iu", 2)},
+                        what="per-point deviations file", optional=("pixels",))
+    except FileRefused as exc:
+        raise InspectionError(f"{exc}; inspect the session again (`slscan inspect`)") from None
+    dev, saved = data["deviation_mm"], data.get("pixels")
     if pixels is not None and (len(pixels) != len(dev) or (saved is not None and not np.array_equal(saved, pixels))):
         raise InspectionError(f"{path}: inspected a different cloud than the session's (decoded again since?); "
                               f"inspect the session again")

@@ -30,6 +30,7 @@ from inspection.report_html import render
 from inspection.report_pdf import print_pdf
 from inspection.tolerances import DECISION_RULES, GUARD_BANDED, overall
 from inspection.uncertainty import Estimate
+from scanner.csv_cells import csv_cell
 from scanner.session import write_atomic, write_json
 
 NOISE_NOTE = ("Every figure is given with its expanded uncertainty U (k = 2): scanner noise predicted per point "
@@ -183,7 +184,7 @@ class InspectionReport:
         buf = io.StringIO()
         w = csv.DictWriter(buf, fieldnames=keys)
         w.writeheader()
-        w.writerows(rows)
+        w.writerows([{k: csv_cell(v) for k, v in r.items()} for r in rows])  # names from the part program: text
         write_atomic(paths[1], buf.getvalue().encode())
         write_atomic(paths[2], self.html(deviation_png).encode())
         if pdf and print_pdf(paths[2], folder / f"{stem}.pdf", paper) is not None:

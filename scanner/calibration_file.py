@@ -39,6 +39,7 @@ from typing import Any
 
 from scanner import __version__, schema
 from scanner.errors import CalibrationFileError, ConfigError
+from scanner.file_checks import FileRefused, read_regular
 from scanner.geometry import RigModel
 from scanner.rig_schema import RigModelSchema, check_geometry
 from scanner.session import write_json, write_npz
@@ -89,14 +90,18 @@ def write_calibration(path: str | Path, model: RigModel, report: dict[str, Any],
     return path
 
 
+MAX_CALIBRATION_BYTES = 64 * 1024 ** 2  # a calibration's JSON (its maps are in the .npz beside it)
+
 def load_calibration(path: str | Path, camera_size: tuple[int, int] | None = None,
                      projector_size: tuple[int, int] | None = None) -> CalibrationFile:
     """Read a calibration file; with sizes given, refuse one made for other image sizes."""
     path = Path(path)
+    if not path.exists():
+        raise CalibrationFileError(path, "calibration file not found; run `slscan calibrate` for this rig")
     try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise CalibrationFileError(path, "calibration file not found; run `slscan calibrate` for this rig") from None
+        data = json.loads(read_regular(path, limit=MAX_CALIBRATION_BYTES))
+    except FileRefused as exc:
+        raise CalibrationFileError(path, exc.problem) from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise CalibrationFileError(path, f"unreadable calibration file: {exc}") from None
     if not isinstance(data, dict) or data.get("format") != CALIBRATION_FORMAT:

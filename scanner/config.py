@@ -8,20 +8,25 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from scanner.errors import ConfigError
+from scanner.file_checks import FileRefused, read_regular
 
 T = TypeVar("T")
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 
 
+MAX_TOML_BYTES = 16 * 1024 ** 2  # a config file of settings: kilobytes; this bounds what a reader holds
+
+
 def load_toml(path: str | Path) -> dict[str, Any]:
     """Parse a TOML file; a missing or malformed file raises ConfigError naming it."""
     path = Path(path)
+    if not path.exists():
+        raise ConfigError(path, None, "file not found")
     try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
-    except FileNotFoundError:
-        raise ConfigError(path, None, "file not found") from None
+        return tomllib.loads(read_regular(path, limit=MAX_TOML_BYTES).decode())
+    except FileRefused as exc:
+        raise ConfigError(path, None, exc.problem) from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(path, None, f"not valid TOML: {exc}") from None
     except OSError as exc:

@@ -115,3 +115,11 @@ class CalibrationFileError(ScannerError):
     def __init__(self, path: object, problem: str) -> None:
         super().__init__(f"{path}: {problem}")
         self.path = path
+
+
+class Terminated(KeyboardInterrupt):
+    """The process was asked to stop (SIGTERM): handled everywhere as Ctrl-C is (the cycle
+    or capture ends as interrupted, what was captured is kept, exit code 130)."""
+
+    def __init__(self, signal_name: str = "SIGTERM") -> None:
+        super().__init__(f"terminated ({signal_name})")

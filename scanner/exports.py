@@ -70,8 +70,10 @@ def write(cloud: ExportCloud, path: str | Path, fmt: str, max_jump_mm: float | N
     """Write `cloud` as `fmt` (one of FORMATS) to `path`; a one-line summary of what was
     written. `max_jump_mm`: STL only, the depth-jump limit (default JUMP_SPACINGS x the
     median neighbour spacing)."""
+    from scanner.session import temp_path
+
     path = Path(path)
-    tmp = path.with_name(path.name + ".part")
+    tmp = temp_path(path)
     try:
         if fmt == "stl":
             summary = write_stl(cloud, tmp, max_jump_mm)
@@ -186,19 +188,29 @@ def read_session_cloud(path: str | Path, source: str) -> ExportCloud:
     """A session's `outputs/cloud.ply` (written by `scanner.pointcloud.write_ply`, camera
     frame, with each point's pixel) as an ExportCloud."""
     from scanner.errors import SessionError
+    from scanner.ply_file import read_ply, vertex_positions
 
-    ply = PlyData.read(str(path))
-    v = ply["vertex"].data
-    names = set(v.dtype.names or ())
+    header, elements = read_ply(path)
+    v = elements.get("vertex", {})
+    names = {k for k, a in v.items() if isinstance(a, np.ndarray)}
     if not {"row", "col"} <= names:
         raise SessionError(f"{path}: the cloud has no pixel index (row, col); run `slscan decode` on the session "
                            f"to write it again")
-    size = next((c.split(" of a ")[1].split(" camera")[0] for c in ply.comments if " of a " in c), None)
+    size = next((c.split(" of a ")[1].split(" camera")[0] for c in header.comments if " of a " in c), None)
     if size is None:
         raise SessionError(f"{path}: the header does not say the camera image size; run `slscan decode` again")
-    w, h = (int(x) for x in size.split(" x "))
-    points = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
+    try:
+        w, h = (int(x) for x in size.split(" x "))
+    except ValueError:
+        raise SessionError(f"{path}: the header's camera image size {size!r} is not W x H; run `slscan decode` "
+                           f"again") from None
+    points = vertex_positions(path, v)
     normals = np.stack([v["nx"], v["ny"], v["nz"]], axis=1).astype(np.float64) if "nx" in names else None
-    grey = v["red"].astype(np.uint8) if "red" in names else np.zeros(len(v), np.uint8)
-    return ExportCloud(points, np.stack([v["row"], v["col"]], axis=1).astype(np.int64), (h, w), grey, normals,
+    grey = v["red"].astype(np.uint8) if "red" in names else np.zeros(len(points), np.uint8)
+    pixels = np.stack([v["row"], v["col"]], axis=1).astype(np.int64)
+    outside = (pixels < 0).any(axis=1) | (pixels[:, 0] >= h) | (pixels[:, 1] >= w)
+    if not 0 < w <= 65536 or not 0 < h <= 65536 or outside.any():
+        raise SessionError(f"{path}: point {int(np.argmax(outside))} names pixel {pixels[np.argmax(outside)].tolist()} "
+                           f"outside the {w} x {h} image its header gives; run `slscan decode` again")
+    return ExportCloud(points, pixels, (h, w), grey, normals,
                        "camera frame (x right, y down, z forward)", source)

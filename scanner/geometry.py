@@ -251,13 +251,15 @@ class PhaseToHeight:
         """The model described by `d` (`to_dict`), its maps read from `d['maps_file']`
         (relative to `root`, or absolute); `shape` (H, W) is the camera's. ConfigError
         naming the file when the maps are missing, unreadable or of the wrong size."""
+        from scanner.file_checks import ArraySpec, FileRefused, load_npz
+
         path = root / str(d["maps_file"])
         try:
-            with np.load(path) as z:
-                arrays = {k: z[k] for k in PHASE_MAP_KEYS if k in z.files}
-        except (OSError, KeyError, ValueError) as exc:
+            arrays = load_npz(path, {k: ArraySpec("f", 2) for k in PHASE_MAP_KEYS}, what="phase-to-height maps",
+                              optional=PHASE_MAP_KEYS)
+        except FileRefused as exc:
             raise ConfigError(where, "phase_to_height.maps_file", f"{path}: phase-to-height maps missing or "
-                                                                  f"unreadable ({exc})") from None
+                                                                  f"unreadable ({exc.problem})") from None
         wanted = PHASE_MAP_KEYS if d.get("per_pixel", False) else PHASE_MAP_KEYS[:1]
         missing = [k for k in wanted if k not in arrays]
         if missing:

@@ -40,6 +40,7 @@ from scanner import __version__
 from scanner.errors import IncompleteSession, ScannerError, SessionError
 from scanner.rig import Rig
 from scanner.session import ERROR, MANIFEST, Session, stop_reason, write_json
+from scanner.session_lock import session_lock
 from scanner.stage import AxisKind
 from scanner.stage_model import StageConfig, StageModel, load_stage_model
 
@@ -212,7 +213,7 @@ class MultiViewWriter:
         self.views: list[dict[str, Any]] = []
         write_json(root / PLAN, {
             "slscan_multiview": MULTIVIEW_VERSION, "multiview_id": self.id, "software_version": __version__,
-            "created": self.started.isoformat(), "rig_config_path": str(rig.config.path), "rig_config": rig.config.raw,
+            "created": self.started.isoformat(), "rig_config_path": str(rig.config.path.resolve()), "rig_config": rig.config.raw,
             "stage_model": self.model.to_dict(), "views": [{"target": dict(q)} for q in plan]})
 
     @classmethod
@@ -259,6 +260,12 @@ def capture_views(rig: Rig, plan: Sequence[Mapping[str, float]], out_dir: str | 
     On any failure (a move, a capture, Ctrl-C) every earlier view stays complete on disk,
     error.json names the view and the error, and the error is raised again."""
     writer = MultiViewWriter.create(out_dir, rig, plan, model)
+    with session_lock(writer.root, command="slscan scan --views"):
+        return _capture_views(writer, rig, plan, scan_view, progress)
+
+
+def _capture_views(writer: MultiViewWriter, rig: Rig, plan: Sequence[Mapping[str, float]],
+                   scan_view: Callable[[Path, dict[str, Any]], Session], progress: ViewProgress) -> MultiViewSession:
     stage = rig.stage
     assert stage is not None
     n = len(plan)

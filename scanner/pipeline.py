@@ -3,6 +3,7 @@ frames alone. Each stage takes arrays or small typed objects and returns the sam
 
 from __future__ import annotations
 
+import hashlib
 import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from contextlib import ExitStack
@@ -47,6 +48,7 @@ from scanner.patterns import PatternSet
 from scanner.pointcloud import OrganisedCloud, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from scanner.rig import Rig
+from scanner.rig_schema import check_patterns_fit
 from scanner.native_threads import native_threads
 from scanner.session import (
     OUTPUTS_DIR,
@@ -54,11 +56,13 @@ from scanner.session import (
     Session,
     SessionWriter,
     disk_problem,
+    file_record,
     json_ready,
     rig_model_sha256,
     write_json,
     write_npz,
 )
+from scanner.session_lock import output_dir, session_lock
 from scanner.stage_timer import StageTimer
 
 if TYPE_CHECKING:  # Rerun takes ~0.3 s to import: only the commands that record load it
@@ -155,13 +159,24 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
 
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
+    manifest_extra: dict[str, object] = {"rig_config_path": str(rig.config.path.resolve()),
+                                         "provenance": provenance(rig, writer.root), "wiring": rig.config.trigger,
+                                         **(extra or {})}
+
+    def begin() -> None:
+        if plan is not None:
+            manifest_extra["exposure"] = plan.to_dict()
+        writer.begin(rig.config.raw, rig.model, patterns, describe_devices(rig), manifest_extra)
+
     with ThreadPoolExecutor(1, thread_name_prefix="store frames") as pool:
         try:
             if exposure is None:
+                begin()
                 acquire(rig, patterns, AcquisitionSettings.for_rig(rig), on_frame)
             else:
                 plan = plan_for_rig(rig, patterns, exposure)
                 timings["exposure_plan"] = round(time.perf_counter() - t0, 4)
+                begin()
                 acquire_exposures(rig, patterns, AcquisitionSettings.for_rig(rig), plan.exposures_s, on_frame)
             for f in stored:
                 f.result()
@@ -170,14 +185,21 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
             writer.fail(exc, "capture")
             raise
     timings["capture"] = round(time.perf_counter() - t0, 4)
-    devices = {name: dev.describe() for name, dev in
-               (("camera", rig.camera), ("projector", rig.projector), ("trigger", rig.trigger)) if dev is not None}
-    manifest_extra: dict[str, object] = {"rig_config_path": str(rig.config.path), "wiring": rig.config.trigger,
-                                         **(extra or {})}
-    if plan is not None:
-        manifest_extra["exposure"] = plan.to_dict()
-    writer.finish(rig.config.raw, rig.model, patterns, devices, timings, manifest_extra)
+    writer.finish(rig.config.raw, rig.model, patterns, describe_devices(rig), timings, manifest_extra)
     return Session.open(writer.root)
+
+
+def describe_devices(rig: Rig) -> dict[str, Any]:
+    return {name: dev.describe() for name, dev in
+            (("camera", rig.camera), ("projector", rig.projector), ("trigger", rig.trigger)) if dev is not None}
+
+
+def provenance(rig: Rig, session_root: Path) -> dict[str, Any]:
+    """manifest.json `provenance` (`scanner.session.Provenance`): the rig TOML and its
+    calibration file by absolute and session-relative path and SHA-256."""
+    calibration = rig.config.calibration_path
+    return {"rig": file_record(rig.config.path, session_root),
+            "calibration": file_record(calibration, session_root) if calibration is not None else None}
 
 
 def process(session: Session, progress: Progress = _quiet, recording: SessionRecording | None = None,
@@ -195,6 +217,14 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     it raises ConsistencyError, result.json says which and why, and no cloud is written."""
     if mode not in ("triangulation", "phase_to_height"):
         raise ScannerError(f"unknown reconstruction mode '{mode}'; use triangulation or phase_to_height")
+    with session_lock(session.root, command="slscan decode"):
+        return _process(session, progress, recording, settings, mode, frames, write_behind, rig_model,
+                        rig_model_source)
+
+
+def _process(session: Session, progress: Progress, recording: SessionRecording | None, settings: DecodeSettings,
+             mode: str, frames: dict[int, np.ndarray] | None, write_behind: bool, rig_model: RigModel | None,
+             rig_model_source: str | None) -> ScanResult:
     timer = StageTimer()
     progress("load", 0, 1)
     with timer.stage("load"):
@@ -222,8 +252,7 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     described = pattern_set_tie(session.manifest.get("patterns_sha256"), session.manifest["patterns"])
     checks = [tie, described, *decoded.checks, *rig_checks(session, decoded, cloud, model, calibrated)]
     progress("write", 0, 1)
-    out = session.root / OUTPUTS_DIR
-    out.mkdir(exist_ok=True)
+    out = output_dir(session.root, OUTPUTS_DIR)
     n_points = len(cloud) if cloud is not None else 0
     stats = {"points": n_points, "valid_fraction": round(float(decoded.valid.mean()), 5),
              "rejected": decoded.rejected(), "consistency": [c.as_dict() for c in checks],
@@ -430,6 +459,15 @@ def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first
         k = first + int(i)
         raise DecodeError(f"{where}: frame {k} ({session.frame_path(k).name}) is blank (every pixel "
                           f"{int(lo[i])}..{int(hi[i])} DN): it cannot be a fringe image; re-scan")
+    seen: dict[bytes, int] = {}
+    for i, image in enumerate(stack):  # a frame copied over another: named as such, not blamed on a third
+        digest = hashlib.sha256(image.tobytes()).digest()
+        if digest in seen:
+            k, j = first + i, first + seen[digest]
+            raise DecodeError(f"{where}: frame {k} ({session.frame_path(k).name}) repeats frame {j} "
+                              f"({session.frame_path(j).name}) pixel for pixel: two patterns cannot give the same "
+                              f"image with camera noise; the frames were copied or the capture repeated a frame; re-scan")
+        seen[digest] = i
 
 
 def no_points_reason(decoded: DecodeResult) -> str:
@@ -479,9 +517,16 @@ def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triang
     into it before it is closed and raised."""
     level = level or recording_level(session)
     given = {"rig_model": rig_model, "rig_model_source": rig_model_source}
-    if level == "none":
-        session.recording_path.unlink(missing_ok=True)  # an older recording would not match the new outputs
-        return process(session, progress, mode=mode, **given)
+    with session_lock(session.root, command="slscan decode"):
+        if level == "none":
+            session.recording_path.unlink(missing_ok=True)  # an older recording would not match the new outputs
+            return process(session, progress, mode=mode, **given)
+        return _reprocess_recorded(session, progress, mode, level, given)
+
+
+def _reprocess_recorded(session: Session, progress: Progress, mode: str, level: str,
+                        given: dict[str, Any]) -> ScanResult:
+    rig_model = given["rig_model"]
     with ThreadPoolExecutor(1, thread_name_prefix="record frames") as pool:
         started = pool.submit(record_session_frames, session, level)
         try:
@@ -540,9 +585,11 @@ def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress
     from scanner.session_recording import SessionRecording
 
     level = level or rig.config.recording_level
+    check_patterns_fit(patterns, rig.model.projector, rig.config.path)
     writer = SessionWriter.create(out_dir)
     frames: dict[int, np.ndarray] = {}  # decoded from memory, not read back from the PNGs just written
     with ExitStack() as stack:
+        stack.enter_context(session_lock(writer.root, command="slscan scan"))
         rec = None if level == "none" else stack.enter_context(
             SessionRecording(writer.root / RECORDING, writer.id, level=level))
         if rec is not None:

@@ -127,10 +127,12 @@ def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:
     rec["row"], rec["col"] = np.divmod(idx, width)  # row-major, as `flat` orders the points
     comments = ["slscan cloud: mm, camera frame (x right, y down, z forward)",
                 f"the valid pixels only of a {width} x {height} camera image; row, col: the pixel of each point"]
+    from scanner.session import open_new, temp_path
+
     path = Path(path)
-    tmp = path.with_name(path.name + ".part")
+    tmp = temp_path(path)
     try:
-        with tmp.open("wb") as f:
+        with open_new(tmp) as f:
             PlyData([PlyElement.describe(rec, "vertex")], text=False, byte_order="<", comments=comments).write(f)
         tmp.replace(path)
     except BaseException:  # e.g. a full disk: no partial file left behind
@@ -141,19 +143,30 @@ def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:
 
 def read_ply_pixels(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(points (M, 3) mm, normals (M, 3), zero where the scanner had none, pixels (M, 2)
-    int (column, row)) of a PLY `write_ply` wrote, read through `plyfile` (a memory-mapped
-    binary read, no reprojection); None for a PLY without the pixel columns."""
-    vertex = PlyData.read(str(path))["vertex"].data
-    if not {"row", "col", "nx"} <= set(vertex.dtype.names or ()):
+    int (column, row)) of a PLY `write_ply` wrote, verified (`scanner.ply_file`: counts
+    against the file's bytes, finite points); None for a PLY without the pixel columns."""
+    from scanner.ply_file import vertex_positions
+
+    vertex = _vertex(path)
+    if not all(isinstance(vertex.get(k), np.ndarray) for k in ("row", "col", "nx", "ny", "nz")):
         return None
-    points = np.stack([vertex[k] for k in "xyz"], axis=1)
+    points = vertex_positions(path, vertex)
     normals = np.stack([vertex["n" + k] for k in "xyz"], axis=1)
     return points, normals, np.stack([vertex["col"], vertex["row"]], axis=1).astype(np.int64)
 
 
 def read_ply_points(path: str | Path) -> np.ndarray:
-    """The (M, 3) vertex positions of a PLY file (any layout Open3D reads)."""
-    import open3d as o3d
+    """The (M, 3) vertex positions of a PLY file, verified (`scanner.ply_file`)."""
+    from scanner.ply_file import vertex_positions
 
-    pc = o3d.t.io.read_point_cloud(str(path))
-    return pc.point.positions.numpy().astype(np.float64)
+    return vertex_positions(path, _vertex(path))
+
+
+def _vertex(path: str | Path) -> dict:
+    from scanner.file_checks import FileRefused
+    from scanner.ply_file import read_ply
+
+    _, elements = read_ply(path)
+    if "vertex" not in elements:
+        raise FileRefused(path, "not a usable PLY cloud: no 'vertex' element")
+    return elements["vertex"]

@@ -63,14 +63,34 @@ class Lens(Schema):
         return self
 
 
-class SensorTable(Schema):
-    """[camera.sensor] of a simulated rig (read by sim.render.SensorModel): electrons, px."""
+def _within(lo: float, hi: float) -> Any:
+    """A finite float in [lo, hi]."""
+    return Annotated[float, Field(strict=True, ge=lo, le=hi)]
 
-    full_well_e: PositiveFloat = 10500.0
-    read_noise_e: NonNegativeFloat = 6.0
-    flux_e_per_s: NonNegativeFloat = 900000.0
-    ambient: NonNegativeFloat = 0.04
-    blur_sigma_px: NonNegativeFloat = 0.0
+
+MAX_BLUR_SIGMA_PX = 10.0
+"""The widest defocus (Gaussian sigma, px) a rig can take: a blur of sigma s keeps
+exp(-2 pi^2 s^2 / p^2) of a fringe of period p px, so at s = 10 px even a 40 px fringe keeps
+under 1 % of its modulation and nothing decodes; wider values are typing errors (a 1e6 px
+sigma made the simulator's blur kernel take 19.5 GB)."""
+
+
+class SensorTable(Schema):
+    """[camera.sensor] of a simulated rig (read by sim.render.SensorModel), each key within the
+    range real sensors span, refused outside it:
+
+        full_well_e    1e3 .. 1e6 e-     (small-pixel CMOS ~2 000, large CCD pixels ~500 000)
+        read_noise_e   0 .. 100 e-       (scientific CMOS ~1, CCDs 5-20, the noisiest webcams ~50)
+        flux_e_per_s   1e2 .. 1e10 e-/s  (albedo-1 surface under full white, normal incidence)
+        ambient        0 .. 1            (ambient light as a fraction of the projector's white;
+                                          at 1 the fringes are under half the signal)
+        blur_sigma_px  0 .. MAX_BLUR_SIGMA_PX px"""
+
+    full_well_e: _within(1e3, 1e6) = 10500.0
+    read_noise_e: _within(0.0, 100.0) = 6.0
+    flux_e_per_s: _within(1e2, 1e10) = 900000.0
+    ambient: _within(0.0, 1.0) = 0.04
+    blur_sigma_px: _within(0.0, MAX_BLUR_SIGMA_PX) = 0.0
 
 
 class FaultsTable(Schema):
@@ -78,7 +98,7 @@ class FaultsTable(Schema):
 
     drop_frame: Annotated[int, Field(strict=True, ge=0)] | None = None
     delay_frame: Annotated[int, Field(strict=True, ge=0)] | None = None
-    delay_s: NonNegativeFloat = 0.0
+    delay_s: _within(0.0, 3600.0) = 0.0  # no longer than the longest rig timeout_s
     disconnect_after: Annotated[int, Field(strict=True, ge=0)] | None = None
     stale_frame: Annotated[int, Field(strict=True, ge=0)] | None = None
     repeat: Bool = False
@@ -86,6 +106,12 @@ class FaultsTable(Schema):
 
 class SimTable(Schema):
     faults: FaultsTable | None = None
+
+
+MAX_CAMERA_PIXELS = 24_000_000
+"""The largest camera image decoded here: decoding and reconstruction peak at about 170 bytes
+per camera pixel (`slscan bench --width 1224 --height 1024`: 359 MB for the whole process, of
+which ~150 MB are the interpreter and its libraries), so 24 MP fill the ~4 GB a process may use."""
 
 
 class CameraTable(Lens):
@@ -100,12 +126,19 @@ class CameraTable(Lens):
     trigger_line: Str | None = None
     gain_db: Float | None = None
 
+    @model_validator(mode="after")
+    def _pixels(self) -> CameraTable:
+        if self.width * self.height > MAX_CAMERA_PIXELS:
+            raise ValueError(f"a {self.width} x {self.height} camera ({self.width * self.height / 1e6:.0f} MP) is "
+                             f"more than the {MAX_CAMERA_PIXELS / 1e6:.0f} MP decoded within a process's memory")
+        return self
+
 
 class ProjectorTable(Lens):
     gamma: Gamma = 1.0
     position_mm: Vector3
     look_at_mm: Vector3 | None = None
-    blur_sigma_px: NonNegativeFloat | None = None  # the simulated projector
+    blur_sigma_px: _within(0.0, MAX_BLUR_SIGMA_PX) | None = None  # the simulated projector
     display: Int | None = None  # hdmi: display, video_display, refresh_hz, latency_frames; then lightcrafter4500
     video_display: Int | None = None
     refresh_hz: PositiveFloat | None = None
@@ -129,7 +162,7 @@ class RigTable(Schema):
     trigger: Literal["software", "projector", "trigger_box"] = "software"
     timeout_s: Annotated[float, Field(strict=True, gt=0, le=3600)] = 2.0
     period_s: PositiveFloat = 0.05
-    working_distance_mm: PositiveFloat = 400.0
+    working_distance_mm: _within(10.0, 100_000.0) = 400.0  # 1 cm .. 100 m
     patterns: Str = "../patterns/heterodyne_3x4.toml"
     calibration: Str | None = None
 
@@ -231,6 +264,23 @@ def check_intrinsics(K: np.ndarray, width: int, height: int) -> None:
     if not (-width <= K[0, 2] <= 2 * width and -height <= K[1, 2] <= 2 * height):
         raise ValueError(f"principal point ({K[0, 2]:g}, {K[1, 2]:g}) px lies far outside the "
                          f"{width} x {height} image")
+
+
+NYQUIST_PX = 2.0  # a sampled sinusoid needs more than two pixels per period to keep its phase
+
+
+def check_patterns_fit(patterns: Any, projector: Any, path: object) -> None:
+    """ConfigError naming the rig's projector size unless `patterns` (a PatternSet) can be
+    shown on `projector` (a Pinhole): its finest fringe at least NYQUIST_PX projector pixels
+    per period along each coded orientation (a pixel Gray code needs 2 pixels), so a 1 x 1
+    projector is refused here instead of scanning a blank and blaming the exposure."""
+    finest = max(patterns.fringes, default=1.0)
+    for orientation in patterns.orientations:
+        key, extent = ("width", projector.width) if orientation == "vertical" else ("height", projector.height)
+        if extent / finest < NYQUIST_PX:
+            raise ConfigError(path, f"projector.{key}", f"{extent} px cannot show the pattern set's finest fringe "
+                                                        f"({finest:g} across it: {extent / finest:.3g} px per period; "
+                                                        f"at least {NYQUIST_PX:g} needed)")
 
 
 MIN_COMMON_VIEW = 0.01  # of the camera's image lit by the projector at the working distance

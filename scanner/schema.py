@@ -19,20 +19,44 @@ from __future__ import annotations
 
 import difflib
 import types
+import unicodedata
 import typing
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, ValidationError
 
 from scanner.config import load_toml
 from scanner.errors import ConfigError
 
 S = TypeVar("S", bound="Schema")
 
+NOT_TEXT = frozenset({"Cc", "Cf", "Cs", "Zl", "Zp"})
+"""Unicode categories refused in text: controls (NUL, TAB, line ends, ESC, DEL, C1), format
+characters (zero-width, bidi overrides, soft hyphen, tags), lone surrogates (undecodable
+bytes on the command line), line and paragraph separators."""
+MAX_TEXT = 4096  # characters of one text value (a name, a serial, a path)
+
+
+def plain_text(value: str, what: str = "text") -> str:
+    """`value` unchanged if it is plain text: no character of a NOT_TEXT category, at most
+    MAX_TEXT characters; else ValueError saying which character and where. The one
+    boundary every user-given string passes (`Str` in every file schema; serials, operators
+    and names on the command line and the station's screen), so nothing stored, shown or
+    written to a terminal, HTML, CSV or a database carries them."""
+    if not (value.isascii() and value.isprintable()):  # else plain ASCII: nothing to look at
+        for i, c in enumerate(value):  # a name or a serial: a few dozen characters
+            if unicodedata.category(c) in NOT_TEXT:
+                raise ValueError(f"{what} holds the control character {c!r} at position {i}; only plain text is "
+                                 f"accepted")
+    if len(value) > MAX_TEXT:
+        raise ValueError(f"{what} is {len(value)} characters long; at most {MAX_TEXT} are accepted")
+    return value
+
+
 Float = Annotated[float, Strict()]  # an int is accepted and becomes a float; NaN and inf are refused
 Int = Annotated[int, Strict()]  # not a bool, not a float
-Str = Annotated[str, Strict()]
+Str = Annotated[str, Strict(), AfterValidator(plain_text)]
 Bool = Annotated[bool, Strict()]
 PositiveFloat = Annotated[float, Strict(), Field(gt=0)]
 NonNegativeFloat = Annotated[float, Strict(), Field(ge=0)]
@@ -116,9 +140,34 @@ def _config_error(exc: ValidationError, schema: type[BaseModel], path: str | Pat
         problem = f"expected {what}, got {_show(value)}"
     elif kind == "value_error":
         problem = str(e["msg"]).removeprefix("Value error, ")
+    elif kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal") and _range(schema, loc):
+        problem = f"must lie within {_range(schema, loc)}, got {_show(value)}"
     else:
         problem = f"{str(e['msg']).replace('Input should be', 'must be')}, got {_show(value)}"
     return ConfigError(path, key, problem)
+
+
+def _range(schema: Any, loc: tuple[Any, ...]) -> str | None:
+    """The documented range of the field at `loc` ("[0, 10]", "(0, 3600]"), when it has both bounds."""
+    parent = _schema_at(schema, loc[:-1])
+    if not (isinstance(parent, type) and issubclass(parent, BaseModel)) or not isinstance(loc[-1], str):
+        return None
+    field = parent.model_fields.get(loc[-1])
+    if field is None:
+        return None
+    bounds: dict[str, Any] = {}
+    stack = [field.annotation, *field.metadata]
+    while stack:  # the constraints sit in Field(...) metadata, possibly inside Annotated inside X | None
+        t = stack.pop()
+        for name in ("ge", "gt", "le", "lt"):
+            if getattr(t, name, None) is not None:
+                bounds[name] = getattr(t, name)
+        stack += list(getattr(t, "metadata", ()) or ()) + list(typing.get_args(t))
+    lo = ("[", bounds["ge"]) if "ge" in bounds else ("(", bounds["gt"]) if "gt" in bounds else None
+    hi = ("]", bounds["le"]) if "le" in bounds else (")", bounds["lt"]) if "lt" in bounds else None
+    if lo is None or hi is None:
+        return None
+    return f"{lo[0]}{lo[1]:g}, {hi[1]:g}{hi[0]}"
 
 
 def _show(value: Any) -> str:

@@ -15,6 +15,8 @@ Layout (all files appear complete or not at all):
                              (`exposure`) the exposures chosen and why: a multi-exposure (HDR)
                              session holds the whole pattern set once per exposure, frames
                              i·N .. i·N + N − 1 at exposures_s[i] (ascending), every one kept
+    capture.json             written before the first frame: the manifest-to-be (rig, patterns, devices,
+                             provenance), so `slscan decode --recover` can rebuild a manifest a kill prevented
     error.json               written instead of the manifest when a capture fails
     outputs/                 regenerable from the raw frames: cloud.ply, maps.npz, result.json
     recording.rrd            the session's Rerun recording
@@ -41,7 +43,7 @@ import uuid
 import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, BinaryIO, Literal
 
 import cv2
 import numpy as np
@@ -50,26 +52,42 @@ from pydantic import ConfigDict, Field, model_validator
 from scanner import __version__, schema
 from scanner.devices import Frame
 from scanner.errors import ConfigError, IncompleteSession, SessionError
+from scanner.file_checks import FileRefused, decode_image, read_regular
 from scanner.geometry import PhaseToHeight, RigModel
 from scanner.patterns import PatternFile, PatternSet
 from scanner.rig_schema import RigModelSchema, check_geometry
 
 MANIFEST_VERSION = 1
 MANIFEST = "manifest.json"
+CAPTURE = "capture.json"
 ERROR = "error.json"
 FRAME_LOG = "frames.jsonl"
 FRAMES_DIR = "frames"
 OUTPUTS_DIR = "outputs"
 RECORDING = "recording.rrd"
 PHASE_TO_HEIGHT_MAPS = "phase_to_height.npz"
+MAX_MANIFEST_BYTES = 64 * 1024 ** 2  # a manifest lists frames and settings: a few hundred kB at most
+
+
+def temp_path(path: Path, suffix: str = "") -> Path:
+    """A temporary name beside `path`, unique to this writer (PID and a random part), that
+    `scanner.session_lock.leftovers` recognises should the writer be killed."""
+    return path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.part{suffix}")
+
+
+def open_new(path: Path) -> BinaryIO:
+    """`path` opened for writing only if it does not exist yet, and not through a symbolic
+    link (a link planted at a temporary name cannot redirect the write)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    return os.fdopen(fd, "wb")
 
 
 def write_atomic(path: Path, data: bytes) -> None:
     """Write `data` so that `path` either holds all of it or does not exist (a failed write,
     e.g. on a full disk, leaves no partial file behind and raises the OSError)."""
-    tmp = path.with_name(f".{path.name}.part")
+    tmp = temp_path(path)
     try:
-        with tmp.open("wb") as f:
+        with open_new(tmp) as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
@@ -86,9 +104,9 @@ def write_npz(path: Path, arrays: dict[str, np.ndarray], deflate_floats: bool = 
     (coordinate and phase to ~82 %) and deflating a 1.3 MP scan's maps took ~0.65 s CPU of
     its write stage (level 6: 4x more), so a scan's outputs store them as they are (26 MB
     instead of 18 MB there). np.load reads either member kind, so older files still load."""
-    tmp = path.with_name(f".{path.name}.part.npz")
+    tmp = temp_path(path, ".npz")
     try:
-        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
+        with open_new(tmp) as file, zipfile.ZipFile(file, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
             for name, a in arrays.items():
                 a = np.asanyarray(a)
                 member: str | zipfile.ZipInfo = f"{name}.npy"  # deflated, at the file's level
@@ -179,6 +197,22 @@ def frame_name(k: int) -> str:
     return f"frame_{k:03d}.png"
 
 
+def manifest_record(root: Path, session_id: str, started: dt.datetime, rig_config: dict[str, Any], model: RigModel,
+                    patterns: PatternSet, devices: dict[str, Any], extra: dict[str, Any] | None) -> dict[str, Any]:
+    """A session's manifest without its frames and timings. The phase-to-height maps of
+    `model`, if any, are put in the session folder `root` (`keep_maps`) once."""
+    if model.phase_to_height is not None:
+        if not (root / PHASE_TO_HEIGHT_MAPS).exists():
+            keep_maps(model.phase_to_height, root / PHASE_TO_HEIGHT_MAPS)
+        model = replace(model, phase_to_height=replace(model.phase_to_height, maps_file=PHASE_TO_HEIGHT_MAPS))
+    rig_model = json_ready(model.to_dict())
+    return {"slscan_manifest": MANIFEST_VERSION, "session_id": session_id, "software_version": __version__,
+            "python": platform.python_version(), "created": started.isoformat(),
+            "rig_config": rig_config, "rig_model": rig_model, "rig_model_sha256": rig_model_sha256(rig_model),
+            **calibration_sha256(model.calibration), "patterns": patterns.to_dict(),
+            "patterns_sha256": rig_model_sha256(json_ready(patterns.to_dict())), "devices": devices, **(extra or {})}
+
+
 class SessionWriter:
     """Writes one capture into a new session folder."""
 
@@ -224,23 +258,26 @@ class SessionWriter:
                                f"stored before it are kept in {self.root / FRAMES_DIR}") from None
         self.frames.append(entry)
 
+    def _record(self, rig_config: dict[str, Any], model: RigModel, patterns: PatternSet,
+                devices: dict[str, Any], extra: dict[str, Any] | None) -> dict[str, Any]:
+        return manifest_record(self.root, self.id, self.started, rig_config, model, patterns, devices, extra)
+
+    def begin(self, rig_config: dict[str, Any], model: RigModel, patterns: PatternSet,
+              devices: dict[str, Any], extra: dict[str, Any] | None = None) -> None:
+        """Write capture.json before the first frame: what the manifest will say but its
+        frames, so a capture killed after its last frame can still be completed
+        (`scanner.session_recovery`)."""
+        try:
+            write_json(self.root / CAPTURE, self._record(rig_config, model, patterns, devices, extra))
+        except OSError as exc:
+            raise SessionError(f"cannot write {CAPTURE}: {disk_problem(exc)}") from None
+
     def finish(self, rig_config: dict[str, Any], model: RigModel, patterns: PatternSet,
                devices: dict[str, Any], timings: dict[str, float], extra: dict[str, Any] | None = None) -> Path:
-        """Write the manifest: from now on the session is complete. The phase-to-height
-        maps of `model`, if any, are put in the session first (`keep_maps`)."""
-        if model.phase_to_height is not None:
-            keep_maps(model.phase_to_height, self.root / PHASE_TO_HEIGHT_MAPS)
-            model = replace(model, phase_to_height=replace(model.phase_to_height, maps_file=PHASE_TO_HEIGHT_MAPS))
-        rig_model = json_ready(model.to_dict())
-        manifest = {
-            "slscan_manifest": MANIFEST_VERSION, "session_id": self.id, "software_version": __version__,
-            "python": platform.python_version(), "created": self.started.isoformat(),
-            "completed": dt.datetime.now(dt.timezone.utc).isoformat(),
-            "rig_config": rig_config, "rig_model": rig_model, "rig_model_sha256": rig_model_sha256(rig_model),
-            **calibration_sha256(model.calibration), "patterns": patterns.to_dict(),
-            "patterns_sha256": rig_model_sha256(json_ready(patterns.to_dict())),
-            "devices": devices, "timings_s": timings, "frames": self.frames, **(extra or {}),
-        }
+        """Write the manifest: from now on the session is complete."""
+        manifest = {**self._record(rig_config, model, patterns, devices, extra),
+                    "completed": dt.datetime.now(dt.timezone.utc).isoformat(), "timings_s": timings,
+                    "frames": self.frames}
         try:
             write_json(self.root / MANIFEST, manifest)
         except OSError as exc:
@@ -300,6 +337,49 @@ class ExposureRecord(schema.Schema):
         return self
 
 
+class FileRecord(schema.Schema):
+    """A file the session depends on, recorded so that a session moved, or opened from
+    another folder, still finds it or knows it changed: its absolute path, its path
+    relative to the session folder, and its SHA-256."""
+
+    path: Annotated[str, Field(strict=True, min_length=1)]
+    relative: Annotated[str, Field(strict=True, min_length=1)]
+    sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")]
+
+
+class Provenance(schema.Schema):
+    """manifest.json `provenance`: the rig TOML and the calibration file (None: the rig names
+    none) the session was captured with, by path and content (`FileRecord`)."""
+
+    rig: FileRecord
+    calibration: FileRecord | None = None
+
+
+def file_record(path: Path, session_root: Path) -> dict[str, str]:
+    """`FileRecord` of `path` as seen from the session folder `session_root`."""
+    real = Path(path).resolve()
+    return {"path": str(real), "relative": os.path.relpath(real, Path(session_root).resolve()),
+            "sha256": sha256(read_regular(real))}
+
+
+def find_recorded(record: dict[str, str], session_root: Path) -> tuple[Path | None, str]:
+    """The file a `FileRecord` names, looked for at its absolute path and then relative to
+    the session folder, accepted only with the recorded SHA-256: (path or None, what was
+    found, for people)."""
+    seen = []
+    for candidate in (Path(record["path"]), Path(session_root) / record["relative"]):
+        try:
+            data = read_regular(candidate)
+        except FileRefused:
+            continue
+        if sha256(data) == record["sha256"]:
+            return candidate, "found"
+        seen.append(str(candidate))
+    if seen:
+        return None, f"{seen[0]} has changed since the capture (its SHA-256 differs)"
+    return None, f"{record['path']} is gone (not found there or at {record['relative']} from the session)"
+
+
 class Manifest(schema.Schema):
     """manifest.json: what decoding reads is typed and checked; the other keys (devices,
     timings, versions, ...) are a record for people and kept as written."""
@@ -316,6 +396,7 @@ class Manifest(schema.Schema):
     rig_model_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # of rig_model
     calibration_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # its file's
     patterns_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # of patterns
+    provenance: Provenance | None = None  # sessions before it had only rig_config_path
 
     @model_validator(mode="after")
     def _frames(self) -> Manifest:
@@ -353,7 +434,9 @@ class Session:
         if not mpath.exists():
             raise IncompleteSession(describe_incomplete(root))
         try:
-            manifest = json.loads(mpath.read_text())
+            manifest = json.loads(read_regular(mpath, limit=MAX_MANIFEST_BYTES))
+        except FileRefused as exc:
+            raise SessionError(str(exc)) from None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
             raise SessionError(f"{mpath}: unreadable manifest: {exc}") from None
         if not isinstance(manifest, dict):
@@ -409,18 +492,9 @@ class Session:
                 "replaced frames cannot be detected")
 
     def frame_path(self, k: int) -> Path:
-        """Frame k's file, which must lie inside the session folder (no absolute path, no
-        '..', no symbolic link leading out)."""
-        name = self.manifest["frames"][k]["file"]
-        rel = Path(name)
-        where = f"{self.root / MANIFEST}, key 'frames[{k}].file'"
-        if rel.is_absolute() or ".." in rel.parts or "\\" in name:
-            raise SessionError(f"{where}: frame path {name!r} leaves the session folder; frames must be "
-                               f"inside it (e.g. frames/{frame_name(k)})")
-        path = self.root / rel
-        if not path.resolve().is_relative_to(self.root.resolve()):
-            raise SessionError(f"{where}: {name!r} is a link to {path.resolve()}, outside the session folder")
-        return path
+        """Frame k's file (`confined_frame_path`)."""
+        return confined_frame_path(self.root, self.manifest["frames"][k]["file"], k,
+                                   f"{self.root / MANIFEST}, key 'frames[{k}].file'")
 
     def load_stack(self) -> np.ndarray:
         """The raw frames as (N, H, W), each checked: inside the session folder, its SHA-256
@@ -438,15 +512,19 @@ class Session:
         for k, e in enumerate(entries):
             path = self.frame_path(k)
             try:
-                data = path.read_bytes()
-            except OSError as exc:
-                raise SessionError(f"{path}: frame {k} missing or unreadable ({exc.strerror})") from None
+                data = read_regular(path, limit=frame_bytes_limit(shape, e["dtype"]))
+            except FileRefused as exc:
+                raise SessionError(f"{path}: frame {k} missing or unreadable ({exc.problem})") from None
             if e.get("sha256") and sha256(data) != e["sha256"]:
                 raise SessionError(f"{path}: frame {k} has been altered or replaced since it was captured (its "
                                    f"SHA-256 is not the one in the manifest); re-scan, or restore the original file")
-            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+            declared = png_size(data)
+            if declared is not None and declared != (shape[1], shape[0]):
+                raise SessionError(f"{path}: frame {k} is a {declared[0]} x {declared[1]} PNG, expected "
+                                   f"{shape[1]} x {shape[0]}")
+            img, said = decode_image(data)
             if img is None:
-                raise SessionError(f"{path}: frame {k} missing or unreadable (not an image)")
+                raise SessionError(f"{path}: frame {k} missing or unreadable (not an image{': ' + said if said else ''})")
             if img.shape != shape or str(img.dtype) != e["dtype"]:
                 raise SessionError(f"{path}: frame {k} is {_describe(img)}, expected {e['dtype']} "
                                    f"{shape[1]}x{shape[0]} single-channel")
@@ -468,6 +546,38 @@ class Session:
         return self.root / RECORDING
 
 
+def confined_frame_path(root: Path, name: str, k: int, where: str) -> Path:
+    """Frame k's file `name`, which must lie inside the session folder `root` (no control
+    character, no absolute path, no '..', no symbolic link leading out); `where` names the
+    record it came from."""
+    rel = Path(name)
+    if any(ord(c) < 32 for c in name):
+        raise SessionError(f"{where}: frame path {name!r} holds a control character; frames are named "
+                           f"frames/{frame_name(k)}")
+    if rel.is_absolute() or ".." in rel.parts or "\\" in name:
+        raise SessionError(f"{where}: frame path {name!r} leaves the session folder; frames must be "
+                           f"inside it (e.g. frames/{frame_name(k)})")
+    path = root / rel
+    if not path.resolve().is_relative_to(root.resolve()):
+        raise SessionError(f"{where}: {name!r} is a link to {path.resolve()}, outside the session folder")
+    return path
+
+
+def frame_bytes_limit(shape: tuple[int, int], dtype: str) -> int:
+    """The most bytes a lossless file of one (H, W) frame can need, with up to 4 channels (so
+    a colour file is refused by what it is, not its size): every row stored uncompressed
+    with its filter byte, 1 % of block overhead, 64 kB of chunks beside."""
+    return int(shape[0] * (4 * shape[1] * np.dtype(dtype).itemsize + 1) * 1.01) + 65536
+
+
+def png_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) a PNG's header declares, read before decoding (a header that lies
+    about its size would otherwise size the decoder's buffer); None for another format."""
+    if data[:8] != b"\x89PNG\r\n\x1a\n" or data[12:16] != b"IHDR" or len(data) < 24:
+        return None
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
 def _describe(img: np.ndarray) -> str:
     channels = f", {img.shape[2]} channels" if img.ndim == 3 else " single-channel"
     return f"{img.dtype} {img.shape[1]}x{img.shape[0]}{channels}"
@@ -476,8 +586,10 @@ def _describe(img: np.ndarray) -> str:
 def describe_incomplete(root: Path) -> str:
     """Why a session folder cannot be used, for the user."""
     frames = sorted((root / FRAMES_DIR).glob("frame_*.png")) if (root / FRAMES_DIR).is_dir() else []
+    finish = (f"If the capture finished (every frame logged), `slscan decode --recover {root}` completes it; "
+              f"else re-scan the part" if frames else "Re-scan the part")
     return (f"{root}: incomplete session (no {MANIFEST}); {len(frames)} raw frame(s) on disk"
-            f"{stop_reason(root, 'scan')}. Re-scan the part; the frames are kept for inspection.")
+            f"{stop_reason(root, 'scan')}. {finish}; the frames are kept for inspection.")
 
 
 def stop_reason(root: Path, run: str, at_view: bool = False) -> str:

@@ -66,7 +66,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import threading
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -87,6 +89,8 @@ from scanner.rig_schema import RecordingLevel
 
 APPLICATION_ID = "slscan"
 RECORDING_NAME = "recording.rrd"  # file name inside a session folder
+FLUSH_SLICE_S = 2.0  # a writer that writes nothing for this long while data waits, with little space left, has stopped
+LOW_SPACE_BYTES = 64 * 1024 ** 2  # "little space": below what one flush of a scan's recording can need
 CLOSE_TIMEOUT_S = 30.0  # longest wait for the writer to flush (twice this for the whole close)
 LEVELS: tuple[str, ...] = get_args(RecordingLevel)  # "full", "display", "none"
 DISPLAY_MAX_SIDE_PX = 800  # level "display": maps and cloud decimated until their longest side is at most this
@@ -268,6 +272,25 @@ def blueprint(orientations: Sequence[str] = ("vertical",), n_freq: int = 3) -> r
 # ---------------------------------------------------------------- the recording
 
 
+ABANDONED: list[Any] = []
+"""Recording streams whose writer stopped (a full disk): never destroyed, since destroying
+one waits for its writer; a process holding any must end with `os._exit`."""
+
+
+def _free_bytes(path: Path) -> int:
+    """Bytes free for a writer on the file system holding `path` (a large number when unknown)."""
+    try:
+        st = os.statvfs(path.parent)
+    except OSError:
+        return 1 << 62
+    return st.f_bavail * st.f_frsize
+
+
+def _disk_full(path: Path) -> bool:
+    """Whether the file system holding `path` has no block left for a writer."""
+    return _free_bytes(path) == 0
+
+
 class SessionRecording:
     """One session's Rerun recording, written to `path` (a `.rrd` file).
 
@@ -288,6 +311,8 @@ class SessionRecording:
         if not self.path.parent.is_dir():
             raise RecordingError(f"{self.path}: folder does not exist; create the session folder first")
         self.partial_path = self.path.with_name(self.path.name + ".part")
+        if self.partial_path.is_symlink() or self.partial_path.exists():  # a dead writer's: never written through
+            self.partial_path.unlink()
         self.session_id = str(session_id)
         self._world_from_cam = np.eye(4)
         self._reason_ids: dict[str, int] = _reason_ids(REASONS)
@@ -339,23 +364,29 @@ class SessionRecording:
             return
         self._closed = True
         errors: list[BaseException] = []
+        if _disk_full(self.partial_path):  # the writer cannot finish: do not wait for it, nor let exit wait
+            self._abandon()
+            raise RecordingError(f"{self.partial_path}: the disk is full, the recording cannot be finished; the "
+                                 f"session's other files are kept (free space, then `slscan decode` records it again)")
 
         def finish() -> None:
             try:
                 if self._blueprint_pending:
                     self._send_blueprint((), 0)
-                self.stream.flush(timeout_sec=CLOSE_TIMEOUT_S)
-            except Exception as exc:  # noqa: BLE001 — reported below, the sink is closed regardless
+                self._flush()
+            except Exception as exc:  # noqa: BLE001 — a writer that cannot flush cannot disconnect either
                 errors.append(exc)
-            finally:
-                try:
-                    self.stream.disconnect()  # closes the file sink: footer written
-                except Exception as exc:  # noqa: BLE001
-                    errors.append(exc)
+                return
+            try:
+                self.stream.disconnect()  # closes the file sink: footer written
+            except Exception as exc:  # noqa: BLE001
+                errors.append(exc)
 
         worker = threading.Thread(target=finish, name=f"close {self.path.name}", daemon=True)
         worker.start()
         worker.join(2 * CLOSE_TIMEOUT_S)
+        if worker.is_alive() or errors:
+            self._abandon()
         if worker.is_alive():
             raise RecordingError(f"{self.partial_path}: the recording writer did not finish within "
                                  f"{2 * CLOSE_TIMEOUT_S:g} s (a full disk or a stalled file system?); the recording "
@@ -365,6 +396,36 @@ class SessionRecording:
                                  f"disk may be full; the session's other files are kept")
         if self.partial_path.exists():
             self.partial_path.replace(self.path)
+
+    def _flush(self) -> None:
+        """Wait until the writer has written everything logged, up to CLOSE_TIMEOUT_S; a
+        writer that wrote nothing for FLUSH_SLICE_S while data waits, on a file system with
+        less than LOW_SPACE_BYTES free, has stopped (Rerun's writer ends at its first failed
+        write, which on a healthy file system only running out of space causes), and
+        RecordingError says so at once instead of after the whole timeout. A busy machine
+        that merely delays the writer keeps its recording (space is left)."""
+        deadline = time.monotonic() + CLOSE_TIMEOUT_S
+        size = -1
+        while True:
+            try:
+                self.stream.flush(timeout_sec=FLUSH_SLICE_S)
+                return
+            except RuntimeError as exc:
+                if "timed out" not in str(exc).lower():
+                    raise  # the writer failed (its own message)
+                now = self.partial_path.stat().st_size if self.partial_path.exists() else 0
+                if (now == size and _free_bytes(self.partial_path) < LOW_SPACE_BYTES) or time.monotonic() > deadline:
+                    raise RecordingError(f"{self.partial_path}: the recording writer stopped writing (a full disk or "
+                                         f"a failed file system?)") from None
+                size = now
+
+    def _abandon(self) -> None:
+        """A recording whose writer is stuck: Rerun's exit handler, and the stream's own
+        destructor, would flush it forever (the process would never end). The handler is
+        unregistered (every other recording is closed explicitly before exit anyway) and the
+        stream kept (`ABANDONED`), so `slscan.cli` ends the process without tearing it down."""
+        rr.unregister_shutdown()
+        ABANDONED.append(self.stream)
 
     def _check_open(self) -> None:
         if self._closed:

@@ -17,11 +17,15 @@ import cv2
 import numpy as np
 
 from scanner.decode import DecodeResult
+from scanner.file_checks import ArraySpec, FileRefused, load_npz
 from scanner.pointcloud import OrganisedCloud
+from scanner.session import open_new, temp_path
 from scanner.reconstruct import Triangulator
 from sim.render import GroundTruth, SensorModel
 
 GROUND_TRUTH_FILE = "ground_truth.npz"
+TRUTH_ARRAYS = {"depth": ArraySpec("f", 2), "object_id": ArraySpec("iu", 2, shape_of="depth"),
+                "proj_uv": ArraySpec("f", 3, shape_of="depth")}
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,15 +48,21 @@ class Truth:
 
     def save(self, path: Path) -> None:
         """Write beside a session's raw frames; appears complete or not at all."""
-        tmp = path.with_name(f".{path.name}.part.npz")
-        np.savez_compressed(tmp, depth=self.depth.astype(np.float32), object_id=self.object_id,
-                            proj_uv=self.proj_uv.astype(np.float32))
+        tmp = temp_path(path, ".npz")
+        with open_new(tmp) as f:
+            np.savez_compressed(f, depth=self.depth.astype(np.float32), object_id=self.object_id,
+                                proj_uv=self.proj_uv.astype(np.float32))
         tmp.replace(path)
 
     @classmethod
     def load(cls, path: Path) -> Truth:
-        with np.load(path) as z:
-            return cls(z["depth"], z["object_id"], z["proj_uv"])
+        """The truth saved beside a session, checked (`scanner.file_checks.load_npz`: kinds,
+        shapes, no header that claims more than the file holds); FileRefused when unusable."""
+        z = load_npz(path, TRUTH_ARRAYS, what="simulator ground truth")
+        if z["proj_uv"].shape[2] != 2:
+            raise FileRefused(path, f"not a usable simulator ground truth: 'proj_uv' is {z['proj_uv'].shape}, "
+                                    f"expected (H, W, 2)")
+        return cls(z["depth"], z["object_id"], z["proj_uv"])
 
 
 @dataclass(frozen=True)

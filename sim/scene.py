@@ -90,6 +90,8 @@ _OBJECT_KEYS = {"name", "albedo", "pose", "scale", *KINDS, *_MATERIAL_KEYS}
 _PLANE_KEYS = {"distance_mm", "pose", "size_mm", "albedo", *_MATERIAL_KEYS}
 _SCENE_KEYS = {"name", "reference_plane", "objects", "interreflection"}
 _DEFAULT_PLANE_SIZE = (1000.0, 1000.0)
+MAX_LENGTH_MM = 100_000.0  # 100 m: every length and position of a bench scene lies within it
+MIN_LENGTH_MM = 1e-3  # 1 um: a smaller object is below any camera pixel's footprint on the bench
 MIN_ROUGHNESS = 0.02  # below this GGX is a numerical mirror (alpha ~ 4e-4) one ray per pixel cannot sample
 DEFAULT_ROUGHNESS = 0.5
 
@@ -255,6 +257,91 @@ class Scene:
         return cls(objects=(part,), reference_plane=plane, name=path.stem, path=path)
 
 
+def check_in_view(scene: Scene, camera: Any, world_from_cam: np.ndarray) -> None:
+    """ConfigError naming the object unless every object of `scene` can appear in `camera`'s
+    image (a `Pinhole`, placed by `world_from_cam`): an object wholly behind the camera, or
+    wholly outside one side of its field of view, would be scanned as if absent. Tested:
+    no part of a sphere within the camera's viewing pyramid (`distance_to_pyramid`); a mesh
+    (its vertices), a box or plane (the corners of its bounds) wholly beyond one plane of the
+    pyramid (z = 0 or a side): an object is refused only when none of it can be seen."""
+    cam_from_world = np.linalg.inv(world_from_cam)
+    w, h = camera.width, camera.height
+    rays = np.column_stack([camera.normalized(np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5],
+                                                         [-0.5, h - 0.5]], float)), np.ones(4)])
+    sides = np.cross(rays, np.roll(rays, -1, axis=0))  # inward normals of the pyramid's four sides
+    sides *= np.sign(sides @ rays.mean(axis=0))[:, None]
+    planes = np.vstack([[0.0, 0.0, 1.0], sides])  # z > 0: in front of the camera
+    planes /= np.linalg.norm(planes, axis=1)[:, None]
+    for i, obj in enumerate(scene.objects):
+        lo, hi = obj.bounds()
+        if obj.kind == "sphere":  # exactly: seen when the centre lies within its radius of the pyramid
+            centre = cam_from_world[:3, :3] @ obj.pose[:3, 3] + cam_from_world[:3, 3]
+            r = float(obj.radius_mm)  # type: ignore[arg-type]
+            unseen, behind = distance_to_pyramid(centre, rays, planes[1:]) > r, bool(centre[2] < -r)
+            if not unseen and not sphere_on_a_pixel(centre, r, camera):
+                raise ConfigError(scene.path or scene.name, f"objects[{i}]",
+                                  f"'{obj.name}' (radius {r:g} mm at {np.linalg.norm(centre):.4g} mm) covers no "
+                                  f"camera pixel's centre: the scan would not see it")
+        else:  # a mesh by its vertices, a box or plane by its bounds' corners: wholly beyond one plane
+            points = obj.world_vertices() if obj.kind == "mesh" else np.array(
+                [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+            cam = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+            outside = (cam @ planes.T <= 0).all(axis=0)
+            unseen, behind = bool(outside.any()), bool(outside[0])
+        if unseen:
+            where = "behind the camera" if behind else "outside the camera's field of view"
+            raise ConfigError(scene.path or scene.name, f"objects[{i}]",
+                              f"'{obj.name}' lies wholly {where} (its bounds {np.round(lo, 1).tolist()} .. "
+                              f"{np.round(hi, 1).tolist()} mm in the rig's world frame): the scan would not see it")
+
+
+def sphere_on_a_pixel(centre: np.ndarray, r: float, camera: Any) -> bool:
+    """Whether a sphere (camera frame, mm) covers the centre of at least one of `camera`'s
+    pixels, as a rendering samples it: decided by casting the rays of the pixels within its
+    image's bounds when it images smaller than SMALL_IMAGE_PX across (a larger one in view
+    always covers some)."""
+    distance = float(np.linalg.norm(centre))
+    if centre[2] <= r or distance <= r:
+        return True  # reaches the camera's plane: large in the image wherever it is seen
+    f = float(max(camera.K[0, 0], camera.K[1, 1]))
+    spread = f * r / (centre[2] - r)  # px: bounds the image's radius (a margin for the lens distortion added)
+    if spread > SMALL_IMAGE_PX:
+        return True
+    u, v = camera.project(centre[None])[0]
+    half = spread * 1.5 + 2
+    cols = np.arange(max(int(np.floor(u - half)), 0), min(int(np.ceil(u + half)), camera.width - 1) + 1)
+    rows = np.arange(max(int(np.floor(v - half)), 0), min(int(np.ceil(v + half)), camera.height - 1) + 1)
+    if not len(cols) or not len(rows):
+        return False
+    uu, vv = np.meshgrid(cols, rows)
+    d = np.column_stack([camera.normalized(np.stack([uu.ravel(), vv.ravel()], 1).astype(float)), np.ones(uu.size)])
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    t = d @ centre
+    return bool(np.any(distance ** 2 - t ** 2 <= r * r))
+
+
+SMALL_IMAGE_PX = 8.0
+
+
+def distance_to_pyramid(p: np.ndarray, rays: np.ndarray, sides: np.ndarray) -> float:
+    """Distance (mm) from `p` to the viewing pyramid whose edge rays from the eye are `rays`
+    (4, 3), in order, and whose sides have inward unit normals `sides` (4, 3), side k holding
+    rays k and k + 1: 0 inside, else the nearest side's wedge (where the foot falls between
+    its two rays) or the nearest edge ray."""
+    if (sides @ p >= 0).all():
+        return 0.0
+    unit = rays / np.linalg.norm(rays, axis=1)[:, None]
+    along = np.maximum(unit @ p, 0.0)
+    best = float(np.linalg.norm(p - along[:, None] * unit, axis=1).min())  # the edge rays
+    for k in range(4):
+        a, b = unit[k], unit[(k + 1) % 4]
+        foot = p - (sides[k] @ p) * sides[k]
+        coef = np.linalg.lstsq(np.stack([a, b], axis=1), foot, rcond=None)[0]
+        if (coef >= 0).all():
+            best = min(best, abs(float(sides[k] @ p)))
+    return best
+
+
 def load_scene(scene: Scene | str | Path | None, working_distance_mm: float = 400.0) -> Scene:
     """A Scene as given, loaded from a TOML or mesh path, or the default demo scene."""
     if isinstance(scene, Scene):
@@ -264,20 +351,23 @@ def load_scene(scene: Scene | str | Path | None, working_distance_mm: float = 40
 
 def load_mesh(file: Path, where: Path, key: str | None, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """(vertices float64 mm, triangles int32) of a PLY/STL/OBJ file; errors name `where`/`key`."""
-    import open3d as o3d
+    from scanner.file_checks import FileRefused
+    from scanner.mesh_files import read_mesh
 
     if file.suffix.lower() not in MESH_SUFFIXES:
         raise ConfigError(where, key, f"{file.name}: unsupported mesh format; use {', '.join(MESH_SUFFIXES)}")
-    if not file.is_file():
+    if not file.exists():
         raise ConfigError(where, key, f"mesh file not found: {file}")
-    mesh = o3d.io.read_triangle_mesh(str(file))
-    v = np.asarray(mesh.vertices, dtype=np.float64) * scale
-    t = np.asarray(mesh.triangles, dtype=np.int32)
+    try:
+        v, t = read_mesh(file)
+    except FileRefused as exc:
+        raise ConfigError(where, key, str(exc)) from None
     if len(t) == 0 or len(v) < 3:
         raise ConfigError(where, key, f"{file}: no triangles could be read (unreadable or empty mesh)")
-    if not np.isfinite(v).all() or t.min() < 0 or t.max() >= len(v):
-        raise ConfigError(where, key, f"{file}: corrupt mesh (non-finite vertices or bad triangle indices)")
-    return v, t
+    v = v * scale
+    if not np.isfinite(v).all():
+        raise ConfigError(where, key, f"{file}: scale {scale:g} makes the vertices non-finite")
+    return v, t.astype(np.int32)
 
 
 def _translation(t: list[float]) -> np.ndarray:
@@ -316,7 +406,7 @@ def _pose(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
         raise ConfigError(path, key, f"invalid pose: {exc}") from None
     if not _is_rigid(T):
         raise ConfigError(path, key, "pose matrix is not a rigid transform (rotation must be orthonormal, last row 0 0 0 1)")
-    return T
+    return _position(T, path, key)
 
 
 def _material(table: dict[str, Any], path: Path, prefix: str, default_albedo: float) -> dict[str, float]:
@@ -339,17 +429,38 @@ def _material(table: dict[str, Any], path: Path, prefix: str, default_albedo: fl
 
 def _positive_vector(table: dict[str, Any], key: str, n: int, path: Path, prefix: str, default: Any = ...) -> tuple[float, ...]:
     v = get_vector(table, key, n, path, default, prefix)
-    if not all(x > 0 for x in v):
-        raise ConfigError(path, f"{prefix}.{key}", f"every size must be > 0, got {v}")
+    for x in v:
+        _length(x, path, f"{prefix}.{key}")
     return tuple(v)
+
+
+def _length(x: float, path: Path, key: str) -> float:
+    """A size in mm within MIN_LENGTH_MM .. MAX_LENGTH_MM, else ConfigError naming the key and the range."""
+    if not MIN_LENGTH_MM <= x <= MAX_LENGTH_MM:
+        raise ConfigError(path, key, f"must lie within [{MIN_LENGTH_MM:g}, {MAX_LENGTH_MM:g}] mm, got {x!r}")
+    return x
+
+
+def _position(T: np.ndarray, path: Path, key: str) -> np.ndarray:
+    """A pose whose translation lies within MAX_LENGTH_MM of the origin on every axis."""
+    if np.abs(T[:3, 3]).max() > MAX_LENGTH_MM:
+        raise ConfigError(path, key, f"translation {T[:3, 3].tolist()} mm: every coordinate must lie within "
+                                     f"[-{MAX_LENGTH_MM:g}, {MAX_LENGTH_MM:g}] mm")
+    return T
 
 
 def _texture(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
     """A plane's texture image file as albedo 0..1 (grey; full scale of its bit depth = 1)."""
     import cv2
 
+    from scanner.file_checks import MAX_IMAGE_BYTES, FileRefused, decode_image, read_regular
+
     file = resolve(path, get(table, "texture", str, path, prefix=prefix))
-    img = cv2.imread(str(file), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
+    try:
+        data = read_regular(file, limit=MAX_IMAGE_BYTES)
+    except FileRefused as exc:
+        raise ConfigError(path, f"{prefix}.texture", str(exc)) from None
+    img, _ = decode_image(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
     if img is None or img.dtype not in (np.uint8, np.uint16) or min(img.shape) < 2:
         raise ConfigError(path, f"{prefix}.texture", f"{file}: not readable as an 8- or 16-bit grey image")
     return img.astype(np.float32) / np.float32(np.iinfo(img.dtype).max)
@@ -367,9 +478,7 @@ def _load_toml_scene(path: Path) -> Scene:
         if ("distance_mm" in t) == ("pose" in t):
             raise ConfigError(path, pre, "give exactly one of 'distance_mm' or 'pose'")
         if "distance_mm" in t:
-            dist = get(t, "distance_mm", float, path, prefix=pre)
-            if not dist > 0:
-                raise ConfigError(path, f"{pre}.distance_mm", f"must be > 0 (in front of the camera), got {dist}")
+            dist = _length(get(t, "distance_mm", float, path, prefix=pre), path, f"{pre}.distance_mm")
             pose = _translation([0.0, 0.0, dist])
         else:
             pose = _pose(t, path, pre)
@@ -393,10 +502,12 @@ def _load_toml_scene(path: Path) -> Scene:
         if kind == "mesh":
             rel = get(t, "mesh", str, path, prefix=pre)
             scale = get(t, "scale", float, path, 1.0, pre)
-            if not scale > 0:
-                raise ConfigError(path, f"{pre}.scale", f"must be > 0, got {scale}")
+            if not 1e-6 <= scale <= 1e6:
+                raise ConfigError(path, f"{pre}.scale", f"must lie within [1e-06, 1e+06] (mesh units to mm), "
+                                                        f"got {scale}")
             file = resolve(path, rel)
             v, tri = load_mesh(file, path, f"{pre}.mesh", scale)
+            _length(float(np.ptp(v, axis=0).max()), path, f"{pre}.scale")  # the scaled part's size
             obj = SceneObject(name=get(t, "name", str, path, file.stem, pre), kind="mesh", pose=pose, **material,
                               vertices=v, triangles=tri, source=file)
         else:
@@ -404,11 +515,9 @@ def _load_toml_scene(path: Path) -> Scene:
             kp = f"{pre}.{kind}"
             if kind == "sphere":
                 _check_keys(p, {"radius_mm", "center_mm"}, path, kp)
-                r = get(p, "radius_mm", float, path, prefix=kp)
-                if not r > 0:
-                    raise ConfigError(path, f"{kp}.radius_mm", f"must be > 0, got {r}")
+                r = _length(get(p, "radius_mm", float, path, prefix=kp), path, f"{kp}.radius_mm")
                 centre = get_vector(p, "center_mm", 3, path, [0.0] * 3, kp)
-                pose = pose @ _translation(centre)
+                pose = _position(pose @ _translation(centre), path, f"{kp}.center_mm")
                 obj = SceneObject(name=get(t, "name", str, path, f"sphere{i}", pre), kind="sphere", pose=pose,
                                   radius_mm=r, **material)
             else:

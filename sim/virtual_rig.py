@@ -30,7 +30,7 @@ from scanner.errors import ConfigError
 from scanner.rig import Rig, RigConfig
 from sim.evaluate import GROUND_TRUTH_FILE, Truth
 from sim.render import SUPPORTED_BIT_DEPTHS, Renderer, SensorModel
-from sim.scene import Scene, load_scene
+from sim.scene import Scene, check_in_view, load_scene
 from sim.virtual_devices import Faults, SimCamera, SimProjector, SimTriggerBox
 from sim.virtual_stage import StageFaults, open_sim_stage
 
@@ -57,6 +57,7 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
     toml_faults = Faults.from_config(config)  # validated even when overridden
     faults = toml_faults if faults is None else faults
     scene = load_scene(scene, config.working_distance_mm)
+    check_in_view(scene, model.camera, model.world_from_cam)
 
     renderer = Renderer(model, scene, sensor, blur)
     projector = SimProjector("sim-projector", model.projector.width, model.projector.height)

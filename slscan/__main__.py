@@ -1,7 +1,5 @@
 """`python -m slscan ...` runs the command line."""
 
-import sys
+from slscan.cli import run
 
-from slscan.cli import main
-
-sys.exit(main())
+run()

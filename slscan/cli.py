@@ -18,12 +18,16 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import signal
 import subprocess
 import sys
+import threading
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
-from scanner.errors import ScannerError
+from scanner.errors import ScannerError, Terminated
 from scanner.native_threads import size_opencv_pool
 from scanner.session import disk_problem
 from slscan.commands import COMMANDS
@@ -114,7 +118,45 @@ def main(argv: Sequence[str] | None = None) -> int:
         (commands(parser).get(args.command) if args.command else parser).print_help()
         return Exit.OK
     logging.basicConfig(level=log_level(args), stream=sys.stderr, format=LOG_FORMAT)  # no-op if configured
+    if log_level(args) > logging.DEBUG:  # Rerun's own log lines on stderr (a full disk: three of them) break the
+        os.environ.setdefault("RUST_LOG", "off")  # one-line rule; its failures reach us as errors when it closes
     size_opencv_pool()  # on the main thread before any command's threads start; never at import
+    with terminate_as_interrupt():
+        return _run(args)
+
+
+def run() -> None:
+    """The program (`slscan`, `python -m slscan`): `main`, then exit with its code. A
+    recording whose writer stopped (a full disk) would hold the interpreter's exit forever
+    in its destructor: the process then ends without tearing it down."""
+    code = main()
+    recordings = sys.modules.get("scanner.session_recording")
+    if recordings is not None and recordings.ABANDONED:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise Terminated(signal.Signals(signum).name)
+
+
+@contextmanager
+def terminate_as_interrupt() -> Iterator[None]:
+    """While held (on the main thread), SIGTERM stops the command as Ctrl-C does: the
+    station marks its cycle aborted and keeps the session, a capture keeps its frames."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return int(args.func(args))
     except ScannerError as exc:
@@ -123,10 +165,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:  # the file system refused (full disk, read-only or missing folder): one line
         print(f"\nslscan {args.command}: error: {disk_problem(exc)}", file=sys.stderr)
         return Exit.USAGE
-    except KeyboardInterrupt:
-        print(f"\nslscan {args.command}: interrupted; frames already captured are kept", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        why = f" ({exc})" if str(exc) else ""
+        print(f"\nslscan {args.command}: interrupted{why}; frames already captured are kept", file=sys.stderr)
         return Exit.INTERRUPTED
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

@@ -6,7 +6,7 @@
     2  usage error or refused input: a bad option, a missing or invalid file, a session or
        cloud that cannot be used (argparse's own code for usage errors)
     3  a device fault: a camera, projector or trigger box that fails, times out or disconnects
-  130  interrupted (Ctrl-C); frames already captured are kept
+  130  interrupted (Ctrl-C or SIGTERM); frames already captured are kept
 
 Commands return these names, never bare numbers; `slscan.cli.main` maps an error that
 escapes a command to its code with `for_error`.

@@ -72,3 +72,27 @@ class OutputFlag(argparse.Action):
             warn_deprecated(f"{option_string} {values}", f"{option_string} --out {values}")
             namespace.out = values
         setattr(namespace, self.dest, True)
+
+
+def plain_text_arg(value: str) -> str:
+    """An argparse type for free text (a serial, an operator's name): plain text only
+    (`scanner.schema.plain_text`), else argparse's usage error naming the character."""
+    from scanner.schema import plain_text
+
+    try:
+        return plain_text(value, "the value")
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def count_arg(minimum: int) -> Callable[[str], int]:
+    """An argparse type for a whole number >= `minimum` (`--parts 0` or `-1` is refused)."""
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+        if n < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {n}")
+        return n
+    return parse

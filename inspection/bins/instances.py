@@ -114,10 +114,15 @@ def read_label_image(path: str | Path) -> np.ndarray:
     """An instance label PNG as an int32 (H, W) id image: single-channel 8/16-bit ids as
     they are (0 = background), or a colour image with one colour per instance (black =
     background), numbered in colour order from 1."""
+    from scanner.file_checks import MAX_IMAGE_BYTES, FileRefused, decode_image, read_regular
+
     path = Path(path)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        img, said = decode_image(read_regular(path, limit=MAX_IMAGE_BYTES))
+    except FileRefused as exc:
+        raise MaskError(str(exc)) from None
     if img is None:
-        raise MaskError(f"{path}: not a readable image")
+        raise MaskError(f"{path}: not a readable image" + (f" ({said})" if said else ""))
     if img.dtype not in (np.uint8, np.uint16):
         raise MaskError(f"{path}: a label image holds 8- or 16-bit integer ids, not {img.dtype}")
     if img.ndim == 2:

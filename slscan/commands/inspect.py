@@ -27,7 +27,7 @@ from typing import Any
 from inspection.tolerances import NON_CONFORMING
 from scanner.errors import ConfigError
 from slscan.exit_codes import Exit
-from slscan.options import COARSE_METHODS, coarse_method
+from slscan.options import COARSE_METHODS, coarse_method, plain_text_arg
 
 CAD_UNITS = ("mm", "cm", "m", "in")
 
@@ -157,9 +157,9 @@ def _is_model(path: str) -> bool:
 
 
 def _has_triangles(path: str) -> bool:
-    import open3d as o3d
+    from scanner.mesh_files import triangle_count
 
-    return len(o3d.io.read_triangle_mesh(path).triangles) > 0
+    return triangle_count(path) > 0
 
 
 def cmd_register(args: argparse.Namespace) -> int:
@@ -267,13 +267,13 @@ def report_header(source: Path, program: Any, operator: str | None, serial: str 
         session_id = multiview.id if multiview is not None else session.id
         manifest = session.manifest
         rig = str(manifest.get("rig_config", {}).get("rig", {}).get("name", ""))
-        rig_path = Path(str(manifest.get("rig_config_path", "")))
-        if rig_path.is_file():
+        rig_path, problem = recorded_rig(session)
+        if rig_path is not None:
             info = rig_calibration(RigConfig.load(rig_path))
             cal_id, cal_date = info.id or f"none ({info.problem})", str(info.date or "undated (factory geometry)")
             rig = f"{rig} ({rig_path})"
         else:
-            cal_id = f"not known: the session's rig file {rig_path} is gone"
+            cal_id = f"not known: {problem}"
     return ReportHeader(
         part=f"{program.name} — {program.description}" if program is not None and program.description
         else (program.name if program is not None else ""),
@@ -282,6 +282,29 @@ def report_header(source: Path, program: Any, operator: str | None, serial: str 
         operator=operator if operator is not None else getpass.getuser(),
         date=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S"), rig=rig, calibration_id=cal_id,
         calibration_date=cal_date, software_version=f"slscan {__version__}")
+
+
+def recorded_rig(session: Any) -> tuple[Path | None, str]:
+    """The rig TOML a session was captured with, found by its provenance (absolute path, then
+    relative to the session, each only with the recorded SHA-256; and its calibration file
+    likewise), or by the absolute `rig_config_path` of a session recorded before provenance:
+    (path or None, why not, for people)."""
+    from scanner.session import find_recorded
+
+    record = session.manifest.get("provenance")
+    if record is None:
+        path = Path(str(session.manifest.get("rig_config_path", "")))
+        if path.is_absolute() and path.is_file():
+            return path, ""
+        return None, f"the session's rig file {path} is not found (recorded before sessions kept their provenance)"
+    rig, found = find_recorded(record["rig"], session.root)
+    if rig is None:
+        return None, f"the session's rig file {found}"
+    if record.get("calibration"):
+        calibration, found = find_recorded(record["calibration"], session.root)
+        if calibration is None:
+            return None, f"the session's calibration file {found}"
+    return rig, ""
 
 
 def write_report_files(report: Any, scan: Any, folder: Path, source: Path, program: Any = None,
@@ -307,13 +330,26 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
     """Inspect a session folder, a multi-view folder (its merged cloud) or a cloud file
     against a CAD file (None: the part program's, when `tolerances` is one); write the
     report files (and, for a session without a `recording` given, outputs/inspection.rrd);
-    return the report. `slscan demo` calls this after its scan with the demo part's program."""
+    return the report. `slscan demo` calls this after its scan with the demo part's program.
+    A session or multi-view folder is held (`session_lock`) while its outputs are written."""
+    from scanner.session_lock import session_lock
+
+    if not Path(source).is_dir():
+        return _inspect_source(source, cad, tolerances, out, cad_unit, seed, recording, operator, serial, pdf)
+    with session_lock(source, command="slscan inspect"):
+        return _inspect_source(source, cad, tolerances, out, cad_unit, seed, recording, operator, serial, pdf)
+
+
+def _inspect_source(source: str | Path, cad: str | Path | None, tolerances: str | Path | None, out: str | Path | None,
+                    cad_unit: str, seed: int, recording: Any, operator: str | None, serial: str | None,
+                    pdf: bool) -> Any:
     from dataclasses import replace
 
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import load_source
     from inspection.registration import RegistrationSettings
     from scanner.multiview import MultiViewSession, is_multiview
+    from scanner.session_lock import output_dir
 
     program = None
     if cad is None:
@@ -334,7 +370,7 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
     else:
         scan = load_source(source)
     source = Path(source)
-    folder = Path(out) if out else (source / "outputs" if source.is_dir() else source.parent)
+    folder = Path(out) if out else (output_dir(source, "outputs") if source.is_dir() else source.parent)
     settings = InspectionSettings(registration=RegistrationSettings(seed=seed))
     if program is not None:  # the program's edge margin (a narrow face, e.g. a chamfer, needs less than the default)
         settings = replace(settings, form=program.form_settings())
@@ -374,7 +410,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         print(report.table())
         folder = Path(args.out) if args.out else (Path(args.source) / "outputs" if Path(args.source).is_dir()
                                                   else Path(args.source).parent)
-        print(f"report    {folder / 'inspection.html'} (.json, .csv, .pdf)", file=sys.stderr)
+        print(f"report    {folder / 'inspection.html'} (.json, .csv{'' if args.no_pdf else ', .pdf'})", file=sys.stderr)
     return Exit.FAILED if report.verdict == NON_CONFORMING else Exit.OK
 
 
@@ -411,8 +447,10 @@ def register(sub: Any) -> None:
     i.add_argument("--cad", help="STEP or mesh of the part (default: the one --tolerances PROGRAM names)")
     i.add_argument("--tolerances", help="the part program (config/parts/*.toml: tolerances and face names), or a "
                                         "tolerance file of a model without one (format: inspection/tolerances.py)")
-    i.add_argument("--operator", help="operator named in the report header (default: the login name)")
-    i.add_argument("--serial", help="part serial number in the report header (default: the session id)")
+    i.add_argument("--operator", type=plain_text_arg,
+                   help="operator named in the report header (default: the login name)")
+    i.add_argument("--serial", type=plain_text_arg,
+                   help="part serial number in the report header (default: the session id)")
     i.add_argument("--no-pdf", action="store_true", help="no inspection.pdf (made with headless Chromium)")
     i.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh CAD file")
     i.add_argument("--out", help="folder for inspection.json/.csv/.html (default: beside the data)")

@@ -109,12 +109,12 @@ def load_part(path: str | Path) -> Any:
         model = ThinPartModel.from_mesh(*spec.part.mesh(), spec.name)
         return replace(model, grip_point_mm=spec.grip_point_mm, approach=spec.approach)
     if suffix in MESH_SUFFIXES:
-        import open3d as o3d
+        from scanner.mesh_files import read_mesh
 
-        mesh = o3d.io.read_triangle_mesh(str(path))
-        if len(mesh.triangles) == 0:
+        vertices, triangles = read_mesh(path)
+        if len(triangles) == 0:
             raise CadError(path, "no triangles could be read (unreadable or empty mesh)")
-        return ThinPartModel.from_mesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles), path.stem)
+        return ThinPartModel.from_mesh(vertices, triangles, path.stem)
     raise CadError(path, f"unsupported part file: expected .toml or a mesh ({', '.join(MESH_SUFFIXES)})")
 
 
@@ -156,16 +156,14 @@ def load_scene(path: Path, rig: Path | None) -> tuple[Any, Any, Any]:
         cloud = OrganisedCloud(grid, np.zeros(valid.shape, np.uint8),
                                organised_normals(grid[..., 0], grid[..., 1], grid[..., 2]))
         return cloud, session.rig_model(), session
-    if not path.is_file():
+    if not path.exists():
         raise CloudError(path, "no such cloud file or session folder")
-    import open3d as o3d
+    from scanner.mesh_files import read_points
 
-    pc = o3d.io.read_point_cloud(str(path))
-    points = np.asarray(pc.points, dtype=np.float64)
+    points, normals = read_points(path)
     if len(points) == 0:
         raise CloudError(path, "no points could be read (unreadable or empty cloud)")
     model = RigConfig.load(rig).model if rig is not None else RigConfig.load().nominal_model()
-    normals = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
     return _organise(points, normals, model.camera, str(path)), model, None
 
 

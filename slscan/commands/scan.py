@@ -56,6 +56,7 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     from scanner.patterns import PatternSet
     from scanner.pipeline import scan
     from scanner.rig import RigConfig, open_rig
+    from scanner.session_lock import session_lock
 
     config = RigConfig.load(args.rig)
     patterns = PatternSet.load(args.patterns or config.patterns_path)
@@ -94,7 +95,8 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
             rig.extras["session_files"] = [*rig.extras.get("session_files", ()),
                                            lambda root: truth.save(Path(root) / BIN_TRUTH_FILE)]
         result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args), exposure=exposure)
-    report(result)
+    with session_lock(result.session.root, command="slscan scan"):  # accuracy.json: one writer
+        report(result)
     if truth is not None:
         print(f"bin truth {result.session.root / BIN_TRUTH_FILE}  ({len(truth.ids)} parts, seed {truth.seed}; "
               f"judge poses with: slscan posebench --sessions {result.session.root})")
@@ -169,6 +171,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
     from scanner.multiview import is_multiview
     from scanner.pipeline import reprocess
     from scanner.session import Session
+    from scanner.session_lock import session_lock
 
     if is_multiview(args.session):
         from slscan.commands.views import decode_views
@@ -176,11 +179,16 @@ def cmd_decode(args: argparse.Namespace) -> int:
         return decode_views(args)
     if args.stage_axis is not None:
         raise ScannerError(f"{args.session}: --stage-axis applies to multi-view sessions only")
-    session = Session.open(args.session)
-    model = rig_model_file(Path(args.rig_model), session.rig_model()) if args.rig_model else None
-    result = reprocess(session, ProgressLine(), mode=args.mode, level=_level(args), rig_model=model,
-                       rig_model_source=args.rig_model)
-    report(result)
+    if args.recover:
+        _recover(args)
+    elif args.rig is not None or args.patterns is not None:
+        raise ScannerError("--rig and --patterns apply to `slscan decode --recover` only")
+    with session_lock(args.session, command="slscan decode"):  # the outputs and accuracy.json: one writer
+        session = Session.open(args.session)
+        model = rig_model_file(Path(args.rig_model), session.rig_model()) if args.rig_model else None
+        result = reprocess(session, ProgressLine(), mode=args.mode, level=_level(args), rig_model=model,
+                           rig_model_source=args.rig_model)
+        report(result)
     return Exit.OK
 
 
@@ -206,6 +214,19 @@ def rig_model_file(path: Path, recorded: Any) -> Any:
                                    f"{recorded.projector.size}")
             return model
     return read_calibration(path, recorded.camera.size, recorded.projector.size)[0]
+
+
+def _recover(args: argparse.Namespace) -> None:
+    """`decode --recover`: the manifest rebuilt from capture.json and frames.jsonl (or the
+    given rig and patterns, said to be assumed), each frame checked (`scanner.session_recovery`)."""
+    from scanner.patterns import PatternSet
+    from scanner.rig import RigConfig
+    from scanner.session_recovery import recover_manifest
+
+    rig = RigConfig.load(args.rig) if args.rig is not None else None
+    patterns = PatternSet.load(args.patterns) if args.patterns is not None else None
+    path = recover_manifest(args.session, rig=rig, patterns=patterns)
+    print(f"recovered {path} from the session's own records; every frame checked", file=sys.stderr)
 
 
 def load_demo_part() -> tuple[Any, Any, Any]:
@@ -399,6 +420,13 @@ def register(sub: Any) -> None:
     d.add_argument("--rig-model", metavar="FILE", help="decode with this rig model instead of the one recorded at "
                                                        "capture, on purpose: a JSON rig model (as a manifest holds "
                                                        "it) or a calibration file")
+    d.add_argument("--recover", action="store_true",
+                   help="a session whose capture finished but whose manifest was not written (a killed scan): "
+                        "rebuild the manifest from its capture.json and frames.jsonl, every frame checked, then "
+                        "decode it")
+    d.add_argument("--rig", type=Path, help="--recover of a session without capture.json: the rig it was captured "
+                                            "with (recorded in the manifest as assumed)")
+    d.add_argument("--patterns", type=Path, help="--recover without capture.json: the pattern set, if not the rig's")
     _add_full_recording(d)
     d.set_defaults(func=cmd_decode)
 

@@ -16,6 +16,7 @@ the segmented points under `world/segments` and, for a session, the label image 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import sys
@@ -94,9 +95,11 @@ def cmd_segment(args: argparse.Namespace) -> int:
         labels_out = image
     else:
         labels_out = labels
-    tmp = out.with_name(f".{out.stem}.part.npy")
-    np.save(tmp, labels_out)
-    tmp.replace(out)
+    from scanner.session import write_atomic
+
+    buffer = io.BytesIO()
+    np.save(buffer, labels_out)
+    write_atomic(out, buffer.getvalue())
     sizes = seg.sizes()
     big = np.sort(sizes)[::-1]
     print(f"labels    {out}")
@@ -118,14 +121,14 @@ def _session_points(session: Any) -> tuple[np.ndarray, np.ndarray]:
     """The scan's points (camera frame, mm) in pixel order and the (H, W) mask of pixels
     that have one, from the session's cloud and maps."""
     from scanner.errors import SessionError
+    from scanner.file_checks import ArraySpec, load_npz
     from scanner.pointcloud import read_ply_points
 
     cloud, maps = session.outputs / "cloud.ply", session.outputs / "maps.npz"
     if not (cloud.exists() and maps.exists()):
         raise SessionError(f"{session.root}: no processed scan (outputs/cloud.ply, outputs/maps.npz); "
                            f"run `slscan decode {session.root}` first")
-    with np.load(maps) as z:
-        valid = z["valid"].astype(bool)
+    valid = load_npz(maps, {"valid": ArraySpec("b", 2)}, what="decoded maps file")["valid"]
     points = read_ply_points(cloud)
     if len(points) != int(valid.sum()):
         raise SessionError(f"{cloud}: {len(points)} points but {int(valid.sum())} valid pixels in {maps}; "
@@ -213,14 +216,17 @@ def _load_labels(path: Path) -> np.ndarray:
 
     if not path.is_file():
         raise SegmentationError(f"{path}: no such labels file")
+    from scanner.file_checks import ArraySpec, FileRefused, load_npz, read_regular
+
     try:
         if path.suffix == ".npz":
-            with np.load(path) as z:
-                if "object_id" not in z:
-                    raise SegmentationError(f"{path}: no 'object_id' array (expected a simulator ground_truth.npz)")
-                ids = z["object_id"].astype(np.int32)
-                return np.where(ids == 0, -1, ids)
-        arr = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
+            ids = load_npz(path, {"object_id": ArraySpec("iu", 2)}, what="simulator ground_truth.npz")["object_id"]
+            return np.where(ids == 0, -1, ids.astype(np.int32))
+        arr = np.load(io.BytesIO(read_regular(path)), allow_pickle=False)
+    except FileRefused as exc:
+        raise SegmentationError(str(exc)) from None
+    except (OSError, ValueError, EOFError) as exc:
         raise SegmentationError(f"{path}: not a readable .npy/.npz labels file: {exc}") from None
+    if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "iu":
+        raise SegmentationError(f"{path}: not an integer label array")
     return arr

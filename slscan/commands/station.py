@@ -10,7 +10,7 @@ from typing import Any
 
 from scanner.errors import ScannerError
 from slscan.exit_codes import Exit
-from slscan.options import OutputFlag, add_out
+from slscan.options import OutputFlag, add_out, count_arg, plain_text_arg
 from slscan.station.measure import MEASUREMENTS
 
 
@@ -45,7 +45,7 @@ def cmd_station(args: argparse.Namespace) -> int:
     measurement = load_measurement(args.measurement) if args.measurement else None
     with open_station(args.program, config, args.operator or "", measurement, rig_path=args.rig) as run:
         if args.auto:
-            return run_auto(run, args.parts or 1, progress=ProgressLine())
+            return run_auto(run, args.parts if args.parts is not None else 1, progress=ProgressLine())
         from slscan.station.tui import run_tui
 
         return run_tui(run, args.parts)
@@ -208,17 +208,6 @@ def _write_export(target: Path, write: Any) -> Any:
         raise ScannerError(f"{exc.filename or target}: cannot write: {exc.strerror or exc}") from None
 
 
-def _count(text: str) -> int:
-    """A count on the command line: a whole number >= 0."""
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {n}")
-    return n
-
-
 def cmd_batch(args: argparse.Namespace) -> int:
     from slscan.progress import ProgressLine
     from slscan.station.batch import print_summary, run_batch
@@ -258,8 +247,8 @@ def register(sub: Any) -> None:
     s.add_argument("program", help="part program TOML (config/parts/*.toml)")
     _station_options(s, writes=True)
     s.add_argument("--rig", type=Path, help="rig TOML (default: the station config's)")
-    s.add_argument("--operator", help="operator name stored with every result")
-    s.add_argument("--parts", type=int, help="stop after this many measured parts")
+    s.add_argument("--operator", type=plain_text_arg, help="operator name stored with every result")
+    s.add_argument("--parts", type=count_arg(1), help="stop after this many measured parts (>= 1)")
     s.add_argument("--auto", action="store_true", help="no operator: measure --parts parts one after the other")
     s.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: the station config's)")
     s.set_defaults(func=cmd_station)
@@ -267,11 +256,11 @@ def register(sub: Any) -> None:
     r = sub.add_parser("results", help="query the results history; export CSV; write the HTML report")
     _station_options(r)
     r.add_argument("--program", help="part program name, or its TOML (needed for --report)")
-    r.add_argument("--serial", help="only the results of this part serial number")
+    r.add_argument("--serial", type=plain_text_arg, help="only the results of this part serial number")
     r.add_argument("--status", choices=("in_progress", "pass", "fail", "uncertain", "error", "aborted", "incomplete"),
                    help="only the results with this status")
     r.add_argument("--since", type=_utc_time, help="ISO date/time (UTC unless it says), e.g. 2026-11-23 or 2026-11-23T08:00")
-    r.add_argument("--limit", type=_count, help="only the newest N results (N >= 0)")
+    r.add_argument("--limit", type=count_arg(0), help="only the newest N results (N >= 0)")
     r.add_argument("--csv", nargs="?", const=True, action=OutputFlag,
                    help="export CSV to --out FILE (default: standard output)")
     r.add_argument("--report", nargs="?", const=True, action=OutputFlag,

@@ -82,13 +82,16 @@ def decode_views(args: argparse.Namespace) -> int:
     from scanner.multiview import MultiViewSession
     from scanner.pipeline import reprocess
 
+    from scanner.session_lock import session_lock
+
     session = MultiViewSession.open(args.session)
     model = session.stage_axis_file(args.stage_axis) if args.stage_axis is not None else None
     line = ProgressLine()
-    for view in session.views:
-        print(f"{view.name}: decode", file=sys.stderr)
-        reprocess(view.session, line, mode=args.mode)
-    return report_whole(session, line, model)
+    with session_lock(session.root, command="slscan decode"):
+        for view in session.views:
+            print(f"{view.name}: decode", file=sys.stderr)
+            reprocess(view.session, line, mode=args.mode)
+        return report_whole(session, line, model)
 
 
 def report_whole(session: Any, progress: Any, stage_model: Any = None) -> int:

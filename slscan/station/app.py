@@ -10,6 +10,7 @@ even if the station is killed later.
 from __future__ import annotations
 
 import datetime as dt
+import logging
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -31,6 +32,7 @@ from slscan.station.results import VERDICTS, ResultRow, ResultsStore, ValueRecor
 from slscan.station.station_config import StationConfig
 
 CHART_RECORDING = "control_charts.rrd"
+log = logging.getLogger(__name__)
 
 
 class StationRun:
@@ -68,8 +70,14 @@ class StationRun:
     def __enter__(self) -> StationRun:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, exc: BaseException | None, tb: object) -> None:
+        if exc is None:
+            self.close()
+            return
+        try:  # the error that ended the run is the one line the operator sees, not one from closing after it
+            self.close()
+        except Exception as closing:  # noqa: BLE001
+            log.info("closing the station after %s: %s", type(exc).__name__, closing)
 
     def _history(self) -> tuple[list[ResultRow], dict[int, list[ValueRecord]]]:
         rows = self.store.results(program=self.program.name, limit=STATS_WINDOW)
@@ -85,7 +93,11 @@ class StationRun:
 
     def close(self) -> None:
         try:
-            self.charts.close()
+            try:
+                history = self._history()
+            except StationError:  # the database is unreachable: the charts keep this run's own file
+                history = (None, None)
+            self.charts.close(*history)
         finally:
             self.bench.close()
             self.store.close()

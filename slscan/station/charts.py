@@ -24,12 +24,14 @@ timeline (the result id as the sequence number), beside its tolerance:
 from __future__ import annotations
 
 import os
+import uuid
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
 from inspection.tolerances import UNCERTAIN
+from scanner.session_lock import folder_lock
 from scanner.session_recording import SessionRecording
 from slscan.station.paths import child
 from slscan.station.program import Characteristic, PartProgram
@@ -203,15 +205,21 @@ def control_metric(name: str, what: str) -> str:
 
 
 class ChartRecording:
-    """The control charts as a Rerun recording at `path`. It is written under a name of
-    this process's own and moved to `path` when closed, so two stations sharing a data
-    folder never write into one file (the last to close leaves the complete history)."""
+    """The control charts as a Rerun recording at `path`. While the station runs it is
+    written under a name of this process's own (`control_charts.<pid>.rrd`, a live view of
+    what this station measured); closing with the results history (`close(rows, values)`)
+    writes `path` afresh from that history, the database's, under a folder lock, so two
+    stations sharing a data folder never lose each other's parts: whichever closes last
+    writes every part both stored. Closed without a history (the database unreachable),
+    the own file is kept beside `path`, which is left as it was. `live=False`: written at
+    `path` itself (the history's own writer)."""
 
-    def __init__(self, path: Path, program: PartProgram, recording_id: str) -> None:
+    def __init__(self, path: Path, program: PartProgram, recording_id: str, *, live: bool = True) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         self.program = program
         self.path = path
-        self._own = path.with_name(f"{path.stem}.{os.getpid()}{path.suffix}")
+        self.recording_id = recording_id
+        self._own = path.with_name(f"{path.stem}.{os.getpid()}{path.suffix}") if live else path
         self.rec = SessionRecording(self._own, recording_id, send_blueprint=False)
 
     def __enter__(self) -> ChartRecording:
@@ -220,10 +228,20 @@ class ChartRecording:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def close(self) -> None:
+    def close(self, rows: Sequence[ResultRow] | None = None,
+              values: dict[int, list[ValueRecord]] | None = None) -> None:
         self.rec.close()
-        if self._own.exists():
-            self._own.replace(self.path)
+        if rows is None or self._own == self.path:
+            return
+        with folder_lock(self.path.parent):
+            whole = self.path.with_name(f".{self.path.stem}.{os.getpid()}-{uuid.uuid4().hex[:8]}{self.path.suffix}")
+            try:
+                with ChartRecording(whole, self.program, self.recording_id, live=False) as history:
+                    history.log_history(rows, values or {})
+                whole.replace(self.path)
+            finally:
+                whole.unlink(missing_ok=True)
+        self._own.unlink(missing_ok=True)
 
     def log(self, result_id: int, values: Sequence[ValueRecord]) -> None:
         """One part's measured values at `scan` = its result id, with their tolerances."""

@@ -41,13 +41,15 @@ from scanner.errors import ConfigError, ScannerError
 from scanner.multiview import plan_views
 from scanner.pipeline import Progress, scan
 from scanner.rig import Rig, RigConfig
-from scanner.session import Session, write_json
+from scanner.schema import plain_text
+from scanner.session import Session, disk_problem, write_json
 from slscan.station import StationError
 from slscan.station.calib import describe as describe_calibration
 from slscan.station.calib import refusals as calibration_refusals
 from slscan.station.calib import rig_calibration
 from slscan.station.hardware_bench import Bench
 from slscan.station.measure import Measurement, MeasurementResult
+from slscan.station.part_state import part_state
 from slscan.station.paths import child, safe_name
 from slscan.station.program import PartProgram
 from slscan.station.quality import RunningStats, judge, running_stats
@@ -135,9 +137,10 @@ class Station:
                 ("operator", self.operator or "(none)")]
 
     def recover(self) -> list[int]:
-        """Mark the cycles this station left in progress when it last died as incomplete."""
-        return self.store.mark_interrupted(self.config.name, "the station stopped during this cycle; its session "
-                                                             "is incomplete (no manifest)")
+        """Mark the cycles this station left in progress when it last died as incomplete,
+        each with what its part folder really holds (`part_state`)."""
+        return self.store.mark_interrupted(
+            self.config.name, lambda part_path: f"the station stopped during this cycle; {part_state(part_path)}")
 
     def stats(self) -> RunningStats:
         rows = self.store.results(program=self.program.name, limit=STATS_WINDOW)
@@ -152,6 +155,11 @@ class Station:
         serial = serial.strip()
         if not serial:
             raise StationError("no serial number / part id: enter one before scanning")
+        for what, text in (("the serial number", serial), ("the operator's name", self.operator)):
+            try:
+                plain_text(text, what)
+            except ValueError as exc:
+                raise StationError(f"{exc}: nothing was scanned") from None
         reasons = self.refusals()
         if reasons:
             raise Refused(reasons)
@@ -174,10 +182,14 @@ class Station:
             outcome = CycleOutcome(result_id, serial, attempt, status, message, tuple(values or ()), folder,
                                    tuple(sessions), truth, round(time.perf_counter() - t0, 3))
             self.store.finish_part(result_id, status, message, outcome.values, utcnow())
-            folder.mkdir(parents=True, exist_ok=True)
-            write_json(folder / PART_RECORD, _record(self, outcome, started, measured))
-            if self.on_stored is not None:
-                self.on_stored(outcome)
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                write_json(folder / PART_RECORD, _record(self, outcome, started, measured))
+                if self.on_stored is not None:
+                    self.on_stored(outcome)
+            except OSError as exc:  # a full disk: the result is safe in the database, the station cannot go on
+                raise StationError(f"{disk_problem(exc)}; {serial} (attempt {attempt}) is stored as {status} in "
+                                   f"{self.store.where}; the station stops") from None
             return outcome
 
         def step(stage: str, done: int, total: int) -> None:
@@ -190,8 +202,8 @@ class Station:
                 measured = self._scan_and_measure(part, folder, sessions, step)
         except OperatorAbort as exc:
             return finish("aborted", str(exc))
-        except KeyboardInterrupt:
-            finish("aborted", "interrupted (Ctrl-C); frames already captured are kept")
+        except KeyboardInterrupt as exc:
+            finish("aborted", f"{str(exc) or 'interrupted (Ctrl-C)'}; frames already captured are kept")
             raise
         except Exception as exc:  # noqa: BLE001 — a device or measuring fault ends this cycle, stored
             return finish("error", f"{type(exc).__name__}: {exc}")

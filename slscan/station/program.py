@@ -84,7 +84,7 @@ FORM_METHODS = ("minimum_zone", "least_squares")
 # A mesh face of no known surface type ("mesh") has no form or texture to evaluate.
 SURFACE_KINDS = {"flatness": ("plane",), "cylindricity": ("cylinder",), "sq": ("plane", "cylinder", "cone")}
 
-Name = Annotated[str, Field(strict=True, min_length=1, pattern=r"\S")]  # not empty, not blank
+Name = Annotated[schema.Str, Field(min_length=1, pattern=r"\S")]  # plain text, not empty, not blank
 
 
 class ProgramTable(schema.Schema):

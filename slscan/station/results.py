@@ -49,12 +49,13 @@ import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any, Iterator, Sequence, TextIO
+from typing import Any, Callable, Iterator, Sequence, TextIO
 from urllib.parse import unquote
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
+from scanner.csv_cells import csv_cell
 from slscan.station import StationError
 
 SCHEMA_VERSION = 3
@@ -62,6 +63,7 @@ STATUSES = ("in_progress", "pass", "fail", "uncertain", "error", "aborted", "inc
 VERDICTS = ("pass", "fail", "uncertain", "error")  # the statuses of a cycle that ended with a verdict
 OLD_RULE = "plain (before schema 3)"  # the rule of values stored by a schema 1 or 2 station
 LEASE_S = 60.0  # a running cycle's lease; renewed every LEASE_S / 4
+SCHEMA_LOCK_KEY = 0x736C7363616E  # "slscan": PostgreSQL's advisory lock taken while the schema is made
 ATTEMPT_RETRIES = 50  # inserts retried (after a random pause) when a concurrent writer took the same number
 
 
@@ -326,7 +328,17 @@ class ResultsStore:
             cause = getattr(exc, "orig", None) or exc
             raise ResultsError(f"{where}: cannot {how} the results database: "
                                f"{_one_line(redact(str(cause), url))}") from None
+        self._schema(create)
+
+    def _schema(self, create: bool) -> None:
+        """Make (with `create`) or upgrade the tables and check the schema version, in one
+        transaction that holds the database's write lock from its start (two stations opening
+        one new database would otherwise both find it empty and both write its version)."""
         with self._tx() as conn:
+            if create and conn.dialect.name == "sqlite":
+                conn.exec_driver_sql("BEGIN IMMEDIATE")  # the driver has not begun yet: take the write lock now
+            elif create and conn.dialect.name == "postgresql":
+                conn.execute(sa.text("SELECT pg_advisory_xact_lock(:key)"), {"key": SCHEMA_LOCK_KEY})
             if create:
                 _META.create_all(conn)
             version = self._version(conn)
@@ -337,8 +349,9 @@ class ResultsStore:
                     _upgrade_from_1(conn)
                 _upgrade_from_2(conn)
             elif version != SCHEMA_VERSION:
-                raise ResultsError(f"{where}: results schema version {version}, this slscan uses {SCHEMA_VERSION}"
-                                   + (" (a station opening it upgrades it)" if version in (1, 2) else ""))
+                raise ResultsError(f"{self.where}: results schema version {version}, this slscan uses "
+                                   f"{SCHEMA_VERSION}" + (" (a station opening it upgrades it)" if version in (1, 2)
+                                                          else ""))
 
     def _version(self, conn: sa.Connection) -> int | None:
         if not sa.inspect(conn).has_table("slscan_schema"):
@@ -441,19 +454,22 @@ class ResultsStore:
                 conn.execute(sa.insert(MEASURED), [{"result_id": result_id, "position": k, **asdict(v)}
                                                    for k, v in enumerate(values)])
 
-    def mark_interrupted(self, station: str, message: str, now: dt.datetime | None = None) -> list[int]:
+    def mark_interrupted(self, station: str, message: str | Callable[[str | None], str],
+                         now: dt.datetime | None = None) -> list[int]:
         """Cycles of this station left `in_progress` by a process that is gone (see the
-        module docstring) become `incomplete`; a cycle whose owner still runs is left alone."""
+        module docstring) become `incomplete` with `message` (or `message(part_path)`); a
+        cycle whose owner still runs is left alone."""
         now = now or utcnow()
         c = RESULTS.c
+        say = message if callable(message) else (lambda _: message)
         with self._tx() as conn:
-            rows = conn.execute(sa.select(c.id, c.owner, c.lease_until).where(
+            rows = conn.execute(sa.select(c.id, c.owner, c.lease_until, c.part_path).where(
                 c.station == station, c.status == "in_progress").order_by(c.id)).all()
-            stale = [int(r.id) for r in rows if owner_gone(r.owner, r.lease_until, now)]
-            for rid in stale:
-                conn.execute(sa.update(RESULTS).where(c.id == rid, c.status == "in_progress").values(
-                    status="incomplete", message=message, lease_until=None))
-        return stale
+            stale = [r for r in rows if owner_gone(r.owner, r.lease_until, now)]
+            for r in stale:
+                conn.execute(sa.update(RESULTS).where(c.id == r.id, c.status == "in_progress").values(
+                    status="incomplete", message=_one_line(say(r.part_path)), lease_until=None))
+        return [int(r.id) for r in stale]
 
     # -- reading
 
@@ -529,19 +545,6 @@ def _upgrade_from_2(conn: sa.Connection) -> None:
 # ------------------------------------------------------------------------------ export
 
 _CSV_RESULT_COLUMNS = ["id"] + [c for c in _RESULT_COLUMNS if c != "id"]
-_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
-
-
-def csv_cell(value: Any) -> Any:
-    """A text cell a spreadsheet will not run as a formula: text starting with = + - @, a
-    tab or a carriage return gets a leading apostrophe (numbers are left as numbers)."""
-    if isinstance(value, dt.datetime):
-        return value.isoformat()
-    if isinstance(value, str) and value.startswith(_FORMULA_START):
-        return "'" + value
-    return value
-
-
 def write_csv(out: TextIO, rows: Sequence[ResultRow], values: dict[int, list[ValueRecord]]) -> int:
     """One CSV line per measured characteristic (a cycle without values: one line with
     empty value columns); times in ISO 8601 UTC; text cells escaped (`csv_cell`). Returns
