@@ -977,7 +977,7 @@ class _OrientationDecoder:
         if "frequencies" in sums[0]:
             at = np.concatenate([b["frequencies"]["at"] for b in sums])
             one_path = ~second.ravel()[at] if second is not None else np.ones(at.size, bool)
-            if one_path.mean() < 0.5:  # the mask's premise (most pixels on one path) fails: judge them all
+            if one_path.size and one_path.mean() < 0.5:  # the mask's premise (most pixels on one path) fails: judge them all
                 one_path[:] = True
             q = np.concatenate([b["frequencies"]["q"] for b in sums])[one_path]
             d = np.concatenate([b["frequencies"]["d"] for b in sums])[one_path]

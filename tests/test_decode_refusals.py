@@ -4,12 +4,15 @@ result.json holding every check; the rig model tied to the one recorded at captu
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
-from test_inputs_session import PATTERNS, SCENE, edit_manifest, one_error_line, run_cli, small_rig
+from test_inputs_session import PATTERNS, SCENE, edit_manifest, frame, one_error_line, run_cli, small_rig
 
 from scanner.pipeline import scan
 from scanner.recording_reader import entity_paths
@@ -79,8 +82,15 @@ def test_edited_rig_model_refused_unless_given_on_purpose(copy: Path, tmp_path: 
 
 
 def test_a_frame_in_another_steps_place_fails_the_residual_naming_its_group(copy: Path) -> None:
+    """Frame 2's pattern captured again (fresh camera noise: not a pixel-for-pixel copy, which
+    is refused as such before any decode) where frame 6 belongs."""
+    image = cv2.imread(str(frame(copy, 2)), cv2.IMREAD_UNCHANGED)
+    noise = np.random.default_rng(5).integers(-2, 3, image.shape)
+    again = np.clip(image.astype(np.int64) + noise, 0, np.iinfo(image.dtype).max).astype(image.dtype)
+    cv2.imwrite(str(frame(copy, 6)), again)
+
     def repeat(m: dict) -> None:
-        m["frames"][6] = dict(m["frames"][2], k=6)  # frame 2's image where frame 6 belongs
+        m["frames"][6]["sha256"] = hashlib.sha256(frame(copy, 6).read_bytes()).hexdigest()
 
     edit_manifest(copy, repeat)
     line, checks = refused(copy)
