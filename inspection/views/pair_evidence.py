@@ -29,7 +29,7 @@ comparable points agreed (sigma is, if anything, overestimated).
 or odd), both ways; `score_variance` its variance under re-measurement: a point's class
 changes when noise carries its residual across +-K sigma, with probability
 p = Phi((K sigma - r) / sigma) - Phi((-K sigma - r) / sigma) of staying in the band, a
-change of up to 2 in its score: variance <= 4 p (1 - p). Points are one per half voxel
+change of up to 2 in its score: variance <= 4 p (1 - p). Points are one per voxel
 (`pair_registration`), several camera pixels apart, past the blur that correlates
 neighbouring pixels' noise, so they are taken as independent. Units mm.
 """
@@ -151,6 +151,16 @@ class Evidence:
         both, so this errs toward calling them alike)."""
         se = np.sqrt(self.score_variance + other.score_variance)
         return float((self.score - other.score) / max(se, 1e-12))
+
+
+def score_only(T: np.ndarray, source: tuple[np.ndarray, np.ndarray, SensorView],
+               target: tuple[np.ndarray, np.ndarray, SensorView]) -> float:
+    """`evidence(T, source, target).score` alone (no constraint, no information)."""
+    (sp, sn, sv), (tp, tn, tv) = source, target
+    R, t = T[:3, :3], T[:3, 3]
+    forward = judge_in(sp @ R.T + t, sn @ R.T, sv.sigma_mm, tv)
+    backward = judge_in((tp - t) @ R, tn @ R, tv.sigma_mm, sv)
+    return (forward.score_sum + backward.score_sum) / max(len(sp) + len(tp), 1)
 
 
 def evidence(T: np.ndarray, source: tuple[np.ndarray, np.ndarray, SensorView],

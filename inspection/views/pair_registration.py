@@ -18,7 +18,9 @@ returned without proof:
    views sharing a boss and planes across it leave the turn about the boss to a few edge
    points): the leader is probed, restarted `PROBE_MM` either way along its `PROBED`
    weakest motions (`constraint.overlap_constraint`) and refined again; a probe that
-   settles elsewhere and scores better leads instead (at most `ROUNDS` times);
+   settles elsewhere and scores better leads instead (at most `ROUNDS` times). Then the
+   leader is moved a resolution either way along each of its six constraint motions,
+   unrefined; a move that scores better leads instead (at most `CLIMBS` times);
 3. the leader is refused (`PairNotProven`, exit 1 from `register`), naming why, when
    - a view says nothing of where its sensor was (a cloud without a viewpoint): what it
      could have seen cannot be predicted;
@@ -29,6 +31,10 @@ returned without proof:
    - the comparable points agree less than the noise allows: fewer than p0 = 0.9973 of
      them (K = 3 sigmas) less z = 3.09 binomial standard errors (a right pose is refused
      so with probability 1e-3 when the noise model holds);
+   - the leader moved a resolution along one of its motions scores within z = 3.09
+     standard errors of it: the evidence does not fix that motion as well as claimed (the
+     information's standard deviation assumes the residuals follow the noise; a flat
+     score says they do not, or that the motion is carried by a few points ICP drops);
    - a distinct pose (beyond the resolution) scores within z = 3.09 standard errors of
      the leader's (the score difference under re-measurement noise, `Evidence.beats`): the
      evidence does not tell them apart (a symmetric part, or views sharing only a plane and
@@ -50,18 +56,25 @@ from scipy.special import ndtri
 
 from inspection.errors import CloudError, RegistrationFailed
 from inspection.measured_cloud import ScanCloud, fit_plane
-from inspection.registration import ModelTarget, RegistrationSettings, register
+from inspection.registration import ModelTarget, RegistrationSettings, icp, register
+from inspection.registration.clouds import voxel_grid
 from inspection.views.align import pose_error
 from inspection.views.constraint import along
-from inspection.views.pair_evidence import P_AGREE, Evidence, evidence
-from inspection.views.pairwise import PairSettings, PairView, paired, refine_pair, thin
+from inspection.views.pair_evidence import P_AGREE, Evidence, evidence, score_only
+from inspection.views.pairwise import thin
+from inspection.views.pose_search import face_poses
+from inspection.views.projective import refine_projective
 from inspection.views.quiet import stdout_to_stderr
 from inspection.views.sensor_view import SensorView
 from scanner.geometry import Pinhole
 
-PROBED, PROBE_MM, ROUNDS = 2, 1.0, 3  # the weakest motions probed, how far (mm at the overlap's RMS radius), rounds
+PROBED, PROBE_MM, ROUNDS = 2, 1.0, 2  # the weakest motions probed, how far (mm at the overlap's RMS radius), rounds
+ROUGH, REFINED, ROUGH_POINTS = 24, 4, 400
+CLIMBS = 4  # moves of a resolution along the constraint's motions toward a better score  # starting poses refined roughly, then fully; points judging them roughly
 OPEN_GATE = 1e-9  # the CAD search's min_fitness when a view is the target (settings refuse 0)
 SUPPORT_PLANE = 0.01  # a support plane's RANSAC band, as a share of the view's extent
+
+Judging = tuple[np.ndarray, np.ndarray, SensorView]  # the points a view's evidence is counted on, and its sensor
 
 
 @dataclass(frozen=True)
@@ -72,8 +85,8 @@ class ViewPairSettings:
     pose for its disagreeing points; `motion_risk`: two-sided, a motion's excursion beyond
     the resolution allowed with this chance."""
 
-    resolution_deg: float = 0.1
-    resolution_mm: float = 0.1
+    resolution_deg: float = 0.3
+    resolution_mm: float = 0.5
     false_accept: float = 1e-3
     false_refuse: float = 1e-3
     motion_risk: float = 1e-3
@@ -106,6 +119,7 @@ class ViewPair:
     `refusals` (why not) otherwise; `overlap` the share of the source the target's sensor
     measured at that pose (`overlap_given`: the user's figure instead); `fitness` the share
     of comparable points that agree; `rmse_mm` theirs; `sigma_mm` the pair's noise;
+    `spread` (deg, mm) how far the poses the evidence cannot rank lie from `transform`;
     `alternatives` every distinct pose weighed (`ambiguous`: one is not told apart);
     `weakest_motion` the least fixed motion and `weakest_sd` the largest rotation and
     translation standard deviations (deg, mm at the overlap's centre)."""
@@ -120,6 +134,7 @@ class ViewPair:
     sigma_mm: float
     comparable: int
     score: float
+    spread: tuple[float, float]
     alternatives: tuple[Alternative, ...]
     ambiguous: bool
     weakest_motion: str
@@ -131,11 +146,25 @@ class ViewPair:
         return {"transform": self.transform.tolist(), "proven": self.proven, "refusals": list(self.refusals),
                 "fitness": self.fitness, "rmse": self.rmse_mm, "overlap": self.overlap,
                 "overlap_given": self.overlap_given, "sigma_mm": self.sigma_mm, "comparable_points": self.comparable,
-                "score": self.score, "ambiguous": self.ambiguous,
+                "score": self.score, "spread_deg": self.spread[0], "spread_mm": self.spread[1],
+                "ambiguous": self.ambiguous,
                 "alternatives": [a.as_dict() for a in self.alternatives],
                 "weakest_motion": {"motion": self.weakest_motion, "sd_deg": self.weakest_sd[0],
                                    "sd_mm": self.weakest_sd[1]},
                 "method": self.method, "timings_s": self.timings_s}
+
+    def text(self, source: str, target: str) -> str:
+        """What `slscan register` prints for people."""
+        with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
+            matrix = str(self.transform)
+        head = (f"transform taking {source} onto {target} (mm):\n{matrix}" if self.proven else
+                f"NOT MEASURED: no pose of {source} in {target} is proven ({'; '.join(self.refusals)}); the best "
+                f"(not a result):\n{matrix}")
+        return (f"{head}\noverlap {self.overlap:.0%} of the scan ({'given' if self.overlap_given else 'predicted'}); "
+                f"{self.fitness:.2%} of the {self.comparable} points each sensor could judge agree within 3 sigma "
+                f"({3 * self.sigma_mm:.3g} mm), RMSE {self.rmse_mm:.4f} mm; poses the evidence cannot rank lie within "
+                f"{self.spread[0]:.3f} deg / {self.spread[1]:.3f} mm; {len(self.alternatives)} distinct alternatives "
+                f"weighed; {self.method}")
 
 
 class PairNotProven(RegistrationFailed):
@@ -198,9 +227,16 @@ def register_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None
 def weigh_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None = None,
                     settings: RegistrationSettings = RegistrationSettings(), *, isolate: bool = False,
                     pair: ViewPairSettings = ViewPairSettings()) -> ViewPair:
-    """`register_view_pair`'s leading pose with its evidence, proven or not."""
+    """`register_view_pair`'s leading pose with its evidence, proven or not. Open3D's
+    prints go to standard error meanwhile (stdout may be a command's JSON)."""
     if overlap is not None and not 0 < overlap <= 1:
         raise ValueError(f"overlap must be a share in (0, 1], got {overlap}")
+    with stdout_to_stderr():
+        return _weigh(scan, target, overlap, settings, isolate, pair)
+
+
+def _weigh(scan: ScanCloud, target: ScanCloud, overlap: float | None, settings: RegistrationSettings, isolate: bool,
+           pair: ViewPairSettings) -> ViewPair:
     t0 = time.perf_counter()
     views = [SensorView.build(s, session_camera(s)) for s in (scan, target)]
     missing = [s.source for s, v in zip((scan, target), views) if v is None]
@@ -215,20 +251,15 @@ def weigh_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None = 
     times = {"views": time.perf_counter() - t0}
     t0 = time.perf_counter()
     model = ModelTarget.from_cloud(parts[1])
-    with stdout_to_stderr():
-        starts = _hypotheses(parts[0], model, settings)
-    times["search"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
     voxel = model.voxel_mm
     judged = [_judged_points(s, k, v, voxel) for s, k, v in zip((scan, target), keep, views)]
-    source = paired(parts[0].points, parts[0].normals, thin(parts[0].points, 0.5 * voxel))
-    dense = paired(parts[1].points, parts[1].normals, np.arange(len(parts[1])))
+    starts = _hypotheses(parts[0], model, judged, settings)
+    times["search"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     centre = parts[0].points.mean(axis=0)
-    icp = PairSettings(voxel_mm=voxel, max_distance_mm=2.0 * voxel, min_distance_mm=0.02)
 
     def weigh(T: np.ndarray) -> Evidence:
-        refined = refine_pair(source, dense, T, icp).transform
-        return evidence(refined, judged[0], judged[1])
+        return evidence(refine_projective(T, judged[0], judged[1], 0.5 * voxel), judged[0], judged[1])
 
     tried = [weigh(T) for T in starts]
     best = max(tried, key=lambda e: e.score)
@@ -240,18 +271,44 @@ def weigh_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None = 
         if better.score <= best.score or not _distinct(better.transform, best.transform, centre, pair):
             break
         best = better
+    for _ in range(CLIMBS):
+        displaced = [evidence(M @ best.transform, judged[0], judged[1]) for M in _displacements(best, centre, pair)]
+        top = max(displaced, key=lambda e: e.score)
+        if top.score <= best.score:
+            break
+        tried.append(best)
+        best = top
     times["judge"] = time.perf_counter() - t0
     method = "rscs+" + "+".join(settings.descriptors) + f"+{settings.coarse}+overlap-icp+sensor-evidence"
-    return _verdict(best, tried, centre, overlap, pair, method, {k: round(v, 3) for k, v in times.items()})
+    return _verdict(best, tried, displaced, centre, overlap, pair, method,
+                    {k: round(v, 3) for k, v in times.items()})
 
 
-def _hypotheses(scan: ScanCloud, model: ModelTarget, settings: RegistrationSettings) -> list[np.ndarray]:
-    """Starting poses: the CAD search's pose and alternatives, each with its half turns about
-    the source's principal axes through its centroid."""
+def _displacements(best: Evidence, centre: np.ndarray, pair: ViewPairSettings) -> list[np.ndarray]:
+    """Motions taking the pose a resolution away (`resolution_deg` or `resolution_mm` at
+    `centre`, whichever it reaches first) along each eigenvector of its constraint, both
+    ways: the poses the evidence must rank below it for the pose to be fixed that well."""
+    out = []
+    for k in range(6):
+        unit = along(best.constraint, k, 1.0)
+        deg, mm = pose_error(np.eye(4), unit, centre)
+        shift = min(pair.resolution_deg / max(deg, 1e-12), pair.resolution_mm / max(mm, 1e-12))
+        out += [along(best.constraint, k, s * shift) for s in (-1.0, 1.0)]
+    return out
+
+
+def _hypotheses(scan: ScanCloud, model: ModelTarget, judged: list[Judging],
+                settings: RegistrationSettings) -> list[np.ndarray]:
+    """The `REFINED` most promising starting poses: the CAD search's pose and alternatives,
+    each with its half turns about the source's principal axes through its centroid, and
+    the poses from the views' face directions (`pose_search`); ranked by the evidence at a
+    voxel's tolerance on a few hundred points, the `ROUGH` best refined by a short ICP on
+    the voxel grid and ranked again at half a voxel's."""
     try:
         found = register(scan, model, replace(settings, min_fitness=OPEN_GATE))
+        searched = [found.transform, *found.alternatives]
     except RegistrationFailed:
-        return [np.eye(4)]
+        searched = []
     c = scan.points.mean(axis=0)
     _, axes = np.linalg.eigh(np.cov((scan.points - c).T))
     flips = [np.eye(4)]
@@ -260,15 +317,34 @@ def _hypotheses(scan: ScanCloud, model: ModelTarget, settings: RegistrationSetti
         F[:3, :3] = 2.0 * np.outer(a, a) - np.eye(3)  # a half turn about a
         F[:3, 3] = c - F[:3, :3] @ c
         flips.append(F)
-    return [T @ F for T in (found.transform, *found.alternatives) for F in flips]
+    v = model.voxel_mm
+    grid = voxel_grid(scan.points, scan.normals, v)
+    starts = [T @ F for T in searched for F in flips] + list(face_poses(grid, (model.coarse.points,
+                                                                             model.coarse.normals), v, settings.seed))
+    rng = np.random.default_rng(settings.seed)
+    few = [_few(j, rng) for j in judged]
+    first = sorted(starts, key=lambda T: -_rough(T, few, v))[:ROUGH]
+    pick = rng.choice(len(grid[0]), size=min(1500, len(grid[0])), replace=False)
+    refined = [icp(grid[0][pick], grid[1][pick], model.coarse, T, 8.0 * v, 0.5 * v, 30.0, 20) for T in first]
+    return sorted(refined, key=lambda T: -_rough(T, few, 0.5 * v))[:REFINED]
 
 
-def _judged_points(scan: ScanCloud, keep: np.ndarray, view: SensorView,
-                   voxel: float) -> tuple[np.ndarray, np.ndarray, SensorView]:
+def _few(j: Judging, rng: np.random.Generator) -> Judging:
+    pick = rng.choice(len(j[0]), size=min(ROUGH_POINTS, len(j[0])), replace=False)
+    return j[0][pick], j[1][pick], j[2]
+
+
+def _rough(T: np.ndarray, few: list[Judging], sigma_mm: float) -> float:
+    """The evidence score of pose T with a noise of `sigma_mm` (a coarse pose's error)."""
+    (sp, sn, sv), (tp, tn, tv) = few
+    return score_only(T, (sp, sn, replace(sv, sigma_mm=sigma_mm)), (tp, tn, replace(tv, sigma_mm=sigma_mm)))
+
+
+def _judged_points(scan: ScanCloud, keep: np.ndarray, view: SensorView, voxel: float) -> Judging:
     """The points of a view its evidence is counted on: the part's, measured at smooth
-    pixels of the view's own sensor, one per half voxel."""
+    pixels of the view's own sensor, one per voxel."""
     ok = np.flatnonzero(keep & view.point_smooth)
-    pick = ok[thin(scan.points[ok], 0.5 * voxel)]
+    pick = ok[thin(scan.points[ok], voxel)]
     return scan.points[pick], scan.normals[pick], view
 
 
@@ -277,16 +353,22 @@ def _distinct(a: np.ndarray, b: np.ndarray, centre: np.ndarray, pair: ViewPairSe
     return deg > pair.resolution_deg or mm > pair.resolution_mm
 
 
-def _verdict(best: Evidence, tried: list[Evidence], centre: np.ndarray, overlap: float | None,
-             pair: ViewPairSettings, method: str, times: dict[str, float]) -> ViewPair:
-    """The leader with every refusal its evidence calls for (see the module docstring)."""
+def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], centre: np.ndarray,
+             overlap: float | None, pair: ViewPairSettings, method: str, times: dict[str, float]) -> ViewPair:
+    """The pose the evidence supports with every refusal it calls for (see the module
+    docstring): the mean of the poses that score within z standard errors of the best (the
+    evidence cannot rank them), refused when one of them lies beyond the resolution, or when
+    the best moved a resolution away along a motion (`displaced`) scores as well."""
     z_accept, z_refuse = float(ndtri(1.0 - pair.false_accept)), float(ndtri(1.0 - pair.false_refuse))
     z_motion = float(ndtri(1.0 - pair.motion_risk / 2.0))
+    alike = [e for e in tried if best.beats(e) < z_accept]
+    pose = _mean_pose([e.transform for e in alike], centre)
+    spread = [pose_error(pose, e.transform, centre) for e in alike]
     alternatives: list[Alternative] = []
     for e in sorted(tried, key=lambda e: -e.score):
-        if _distinct(e.transform, best.transform, centre, pair) and \
+        if _distinct(e.transform, pose, centre, pair) and \
                 all(_distinct(e.transform, a.transform, centre, pair) for a in alternatives):
-            deg, mm = pose_error(best.transform, e.transform, centre)
+            deg, mm = pose_error(pose, e.transform, centre)
             alternatives.append(Alternative(e.transform, deg, mm, e.score, best.beats(e)))
     refusals = []
     motion, sd = _weakest(best)
@@ -304,13 +386,35 @@ def _verdict(best: Evidence, tried: list[Evidence], centre: np.ndarray, overlap:
                         f"within 3 sigma = {3 * best.forward.sigma_mm:.3g} mm (the noise lets at least {floor:.2%}): "
                         f"the views disagree at this pose")
     rivals = [a for a in alternatives if a.z < z_accept]
+    loose = [(e, k // 2) for k, e in enumerate(displaced) if best.beats(e) < z_accept]
+    for e, k in loose[:2]:
+        deg, mm = pose_error(best.transform, e.transform, centre)
+        refusals.append(f"the evidence does not fix the {best.constraint.describe(k)} to the resolution: the pose "
+                        f"moved {deg:.2f} deg / {mm:.2f} mm along it scores {e.score:.4f} against {best.score:.4f} "
+                        f"({best.beats(e):.1f} standard errors below, needs {z_accept:.2f})")
+    alternatives += [Alternative(e.transform, *pose_error(pose, e.transform, centre), e.score, best.beats(e))
+                     for e, _ in loose]
     if rivals:
         refusals.append("ambiguous: " + "; ".join(
             f"a pose {a.deg:.2f} deg / {a.mm:.2f} mm away scores {a.score:.4f} against {best.score:.4f} "
-            f"({a.z:.1f} standard errors below, needs {z_accept:.2f})" for a in rivals[:3]))
-    return ViewPair(best.transform, not refusals, tuple(refusals), overlap if overlap is not None else best.overlap,
+            f"({a.z:.1f} standard errors below, needs {z_accept:.2f})" for a in rivals[:3])
+            + f" (resolution {pair.resolution_deg:g} deg / {pair.resolution_mm:g} mm)")
+    return ViewPair(pose, not refusals, tuple(refusals), overlap if overlap is not None else best.overlap,
                     overlap is not None, best.fitness, best.rmse_mm, best.forward.sigma_mm, n, best.score,
-                    tuple(alternatives), bool(rivals), motion, sd, method, times)
+                    (max(d for d, _ in spread), max(m for _, m in spread)), tuple(alternatives), bool(rivals or loose),
+                    motion, sd, method, times)
+
+
+def _mean_pose(poses: list[np.ndarray], centre: np.ndarray) -> np.ndarray:
+    """The mean of nearby poses: their rotations' mean, and the mean place they move
+    `centre` to."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_matrix(np.stack([T[:3, :3] for T in poses])).mean().as_matrix()
+    moved = np.mean([T[:3, :3] @ centre + T[:3, 3] for T in poses], axis=0)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, moved - R @ centre
+    return T
 
 
 def _weakest(e: Evidence) -> tuple[str, tuple[float, float]]:
