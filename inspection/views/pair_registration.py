@@ -60,7 +60,7 @@ from inspection.registration import ModelTarget, RegistrationSettings, icp, regi
 from inspection.registration.clouds import voxel_grid
 from inspection.views.align import pose_error
 from inspection.views.constraint import along
-from inspection.views.pair_evidence import P_AGREE, Evidence, evidence, score_only
+from inspection.views.pair_evidence import K_SIGMA, P_AGREE, Evidence, evidence, score_only
 from inspection.views.pairwise import thin
 from inspection.views.pose_search import face_poses
 from inspection.views.projective import refine_projective
@@ -142,6 +142,11 @@ class ViewPair:
     method: str
     timings_s: dict[str, float] = field(default_factory=dict)
 
+    @property
+    def inlier_mm(self) -> float:
+        """The agreement band: K pair sigmas (mm)."""
+        return K_SIGMA * self.sigma_mm
+
     def as_dict(self) -> dict[str, Any]:
         return {"transform": self.transform.tolist(), "proven": self.proven, "refusals": list(self.refusals),
                 "fitness": self.fitness, "rmse": self.rmse_mm, "overlap": self.overlap,
@@ -162,7 +167,7 @@ class ViewPair:
                 f"(not a result):\n{matrix}")
         return (f"{head}\noverlap {self.overlap:.0%} of the scan ({'given' if self.overlap_given else 'predicted'}); "
                 f"{self.fitness:.2%} of the {self.comparable} points each sensor could judge agree within 3 sigma "
-                f"({3 * self.sigma_mm:.3g} mm), RMSE {self.rmse_mm:.4f} mm; poses the evidence cannot rank lie within "
+                f"({self.inlier_mm:.3g} mm), RMSE {self.rmse_mm:.4f} mm; poses the evidence cannot rank lie within "
                 f"{self.spread[0]:.3f} deg / {self.spread[1]:.3f} mm; {len(self.alternatives)} distinct alternatives "
                 f"weighed; {self.method}")
 
