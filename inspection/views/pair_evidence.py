@@ -29,7 +29,7 @@ comparable points agreed (sigma is, if anything, overestimated).
 or odd), both ways; `score_variance` its variance under re-measurement: a point's class
 changes when noise carries its residual across +-K sigma, with probability
 p = Phi((K sigma - r) / sigma) - Phi((-K sigma - r) / sigma) of staying in the band, a
-change of up to 2 in its score: variance <= 4 p (1 - p). Points are one per voxel
+change of up to 2 in its score: variance <= 4 p (1 - p). Points are one per half voxel
 (`pair_registration`), several camera pixels apart, past the blur that correlates
 neighbouring pixels' noise, so they are taken as independent. Units mm.
 """
@@ -144,6 +144,22 @@ class Evidence:
     def rmse_mm(self) -> float:
         r = np.concatenate([self.forward.residual[self.forward.agree], self.backward.residual[self.backward.agree]])
         return float(np.sqrt(np.mean(r ** 2))) if len(r) else float("inf")
+
+    def sharper(self, other: Evidence) -> float:
+        """How far this pose's truncated quadratic loss, sum of min((r / sigma)^2, K^2) over
+        the points either pose finds on the other's surface (the same points judged at both
+        poses), is below `other`'s, in standard errors under re-measurement: noise e (in
+        sigmas) moves a point's residual at both poses alike, so a point in both bands
+        changes the difference by 2 (z_other - z_this) e, a point in one band by 2 z e. For
+        poses a little apart, where the counts hardly differ: the residuals' sizes do."""
+        diff, var = 0.0, 0.0
+        for a, b in ((self.forward, other.forward), (self.backward, other.backward)):
+            za, zb = np.nan_to_num(a.residual / a.sigma_mm), np.nan_to_num(b.residual / b.sigma_mm)
+            la, lb = np.where(a.agree, za ** 2, K_SIGMA ** 2), np.where(b.agree, zb ** 2, K_SIGMA ** 2)
+            g = np.where(a.agree & b.agree, zb - za, np.where(a.agree, za, np.where(b.agree, zb, 0.0)))
+            diff += float(np.sum(lb - la))
+            var += 4.0 * float(np.sum(g ** 2))
+        return diff / max(np.sqrt(var), 1e-12)
 
     def beats(self, other: Evidence) -> float:
         """How far this pose's score is above `other`'s, in standard errors of the

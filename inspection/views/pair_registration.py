@@ -70,7 +70,8 @@ from scanner.geometry import Pinhole
 
 PROBED, PROBE_MM, ROUNDS = 2, 1.0, 2  # the weakest motions probed, how far (mm at the overlap's RMS radius), rounds
 ROUGH, REFINED, ROUGH_POINTS = 24, 4, 400
-CLIMBS = 4  # moves of a resolution along the constraint's motions toward a better score  # starting poses refined roughly, then fully; points judging them roughly
+CLIMBS = 4  # moves of a resolution along the constraint's motions toward a better score
+SAME_START_DEG = 1.0  # starts closer than 2 of these and 2 voxels are one start  # starting poses refined roughly, then fully; points judging them roughly
 OPEN_GATE = 1e-9  # the CAD search's min_fitness when a view is the target (settings refuse 0)
 SUPPORT_PLANE = 0.01  # a support plane's RANSAC band, as a share of the view's extent
 
@@ -258,13 +259,14 @@ def _weigh(scan: ScanCloud, target: ScanCloud, overlap: float | None, settings: 
     model = ModelTarget.from_cloud(parts[1])
     voxel = model.voxel_mm
     judged = [_judged_points(s, k, v, voxel) for s, k, v in zip((scan, target), keep, views)]
+    fine = [_judged_points(s, k, v, 0.5 * voxel) for s, k, v in zip((scan, target), keep, views)]
     starts = _hypotheses(parts[0], model, judged, settings)
     times["search"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     centre = parts[0].points.mean(axis=0)
 
     def weigh(T: np.ndarray) -> Evidence:
-        return evidence(refine_projective(T, judged[0], judged[1], 0.5 * voxel), judged[0], judged[1])
+        return evidence(refine_projective(T, judged[0], judged[1], 0.5 * voxel), fine[0], fine[1])
 
     tried = [weigh(T) for T in starts]
     best = max(tried, key=lambda e: e.score)
@@ -277,9 +279,9 @@ def _weigh(scan: ScanCloud, target: ScanCloud, overlap: float | None, settings: 
             break
         best = better
     for _ in range(CLIMBS):
-        displaced = [evidence(M @ best.transform, judged[0], judged[1]) for M in _displacements(best, centre, pair)]
-        top = max(displaced, key=lambda e: e.score)
-        if top.score <= best.score:
+        displaced = [evidence(M @ best.transform, fine[0], fine[1]) for M in _displacements(best, centre, pair)]
+        top = min(displaced, key=lambda e: best.sharper(e))
+        if best.sharper(top) >= 0.0:
             break
         tried.append(best)
         best = top
@@ -308,7 +310,7 @@ def _hypotheses(scan: ScanCloud, model: ModelTarget, judged: list[Judging],
     each with its half turns about the source's principal axes through its centroid, and
     the poses from the views' face directions (`pose_search`); ranked by the evidence at a
     voxel's tolerance on a few hundred points, the `ROUGH` best refined by a short ICP on
-    the voxel grid and ranked again at half a voxel's."""
+    the voxel grid and ranked again at half a voxel's, each pose once."""
     try:
         found = register(scan, model, replace(settings, min_fitness=OPEN_GATE))
         searched = [found.transform, *found.alternatives]
@@ -331,7 +333,11 @@ def _hypotheses(scan: ScanCloud, model: ModelTarget, judged: list[Judging],
     first = sorted(starts, key=lambda T: -_rough(T, few, v))[:ROUGH]
     pick = rng.choice(len(grid[0]), size=min(1500, len(grid[0])), replace=False)
     refined = [icp(grid[0][pick], grid[1][pick], model.coarse, T, 8.0 * v, 0.5 * v, 30.0, 20) for T in first]
-    return sorted(refined, key=lambda T: -_rough(T, few, 0.5 * v))[:REFINED]
+    kept: list[np.ndarray] = []
+    for T in sorted(refined, key=lambda T: -_rough(T, few, 0.5 * v)):  # the same pose found twice counts once
+        if all(max(pose_error(T, U, c)[0] / SAME_START_DEG, pose_error(T, U, c)[1] / v) > 2.0 for U in kept):
+            kept.append(T)
+    return kept[:REFINED]
 
 
 def _few(j: Judging, rng: np.random.Generator) -> Judging:
@@ -345,11 +351,12 @@ def _rough(T: np.ndarray, few: list[Judging], sigma_mm: float) -> float:
     return score_only(T, (sp, sn, replace(sv, sigma_mm=sigma_mm)), (tp, tn, replace(tv, sigma_mm=sigma_mm)))
 
 
-def _judged_points(scan: ScanCloud, keep: np.ndarray, view: SensorView, voxel: float) -> Judging:
+def _judged_points(scan: ScanCloud, keep: np.ndarray, view: SensorView, spacing_mm: float) -> Judging:
     """The points of a view its evidence is counted on: the part's, measured at smooth
-    pixels of the view's own sensor, one per voxel."""
+    pixels of the view's own sensor, one per `spacing_mm` cube (a voxel to search and
+    refine, half a voxel to judge)."""
     ok = np.flatnonzero(keep & view.point_smooth)
-    pick = ok[thin(scan.points[ok], voxel)]
+    pick = ok[thin(scan.points[ok], spacing_mm)]
     return scan.points[pick], scan.normals[pick], view
 
 
@@ -391,12 +398,12 @@ def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], c
                         f"within 3 sigma = {3 * best.forward.sigma_mm:.3g} mm (the noise lets at least {floor:.2%}): "
                         f"the views disagree at this pose")
     rivals = [a for a in alternatives if a.z < z_accept]
-    loose = [(e, k // 2) for k, e in enumerate(displaced) if best.beats(e) < z_accept]
+    loose = [(e, k // 2) for k, e in enumerate(displaced) if best.sharper(e) < z_accept]
     for e, k in loose[:2]:
         deg, mm = pose_error(best.transform, e.transform, centre)
         refusals.append(f"the evidence does not fix the {best.constraint.describe(k)} to the resolution: the pose "
-                        f"moved {deg:.2f} deg / {mm:.2f} mm along it scores {e.score:.4f} against {best.score:.4f} "
-                        f"({best.beats(e):.1f} standard errors below, needs {z_accept:.2f})")
+                        f"moved {deg:.2f} deg / {mm:.2f} mm along it fits its residuals only {best.sharper(e):.1f} "
+                        f"standard errors worse (needs {z_accept:.2f})")
     alternatives += [Alternative(e.transform, *pose_error(pose, e.transform, centre), e.score, best.beats(e))
                      for e, _ in loose]
     if rivals:

@@ -13,11 +13,12 @@ different sides).
    Views a half turn apart may share one face direction only (a plate's top): the
    `SWEPT` strongest modes of each are laid onto each other and turned about it every
    `SWEEP_DEG`.
-2. Translations. Under a rotation, a source point and a target point whose normals agree
-   (within `NORMAL_TOL_DEG`) vote for the translation between them; points on three faces
-   of different directions vote for one translation, points on one face for a plane of
-   them: the most voted voxel (`VOTE_VOXELS` of the registration voxel) wins
-   (`translations`).
+2. Translations. Along each face direction a rotation was matched on, the planes facing it
+   in both views fix the offset: the most common difference of their heights (steps give
+   several; the one most points share wins). Across those directions (a line, or a plane
+   for a single direction), the points facing elsewhere vote: a source point and a target
+   point whose normals agree (within `NORMAL_TOL_DEG`) vote for the translation between
+   them, and the most voted cell (`VOTE_VOXELS` registration voxels) wins (`translations`).
 
 Every (rotation, translation) is only a start: `pair_registration` refines and judges it.
 Units mm, degrees.
@@ -71,11 +72,11 @@ def normal_modes(normals: np.ndarray) -> np.ndarray:
     return np.array(modes).reshape(-1, 3)
 
 
-def rotations(source: np.ndarray, target: np.ndarray) -> list[np.ndarray]:
-    """Rotations taking two source modes onto two target modes at the same angle, and each
-    of the `SWEPT` strongest source modes onto each of the target's, turned about it every
-    `SWEEP_DEG` (module docstring)."""
-    out = [_turn(c, np.radians(a)) @ _onto(s, c) for s in source[:SWEPT] for c in target[:SWEPT]
+def rotations(source: np.ndarray, target: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(rotation, the target's face directions it was matched on (k, 3)): two source modes
+    onto two target modes at the same angle, and each of the `SWEPT` strongest source modes
+    onto each of the target's, turned about it every `SWEEP_DEG` (module docstring)."""
+    out = [(_turn(c, np.radians(a)) @ _onto(s, c), c[None]) for s in source[:SWEPT] for c in target[:SWEPT]
            for a in np.arange(0.0, 360.0, SWEEP_DEG)]
     tol = np.radians(ANGLE_TOL_DEG)
     for a in range(len(source)):
@@ -86,7 +87,8 @@ def rotations(source: np.ndarray, target: np.ndarray) -> list[np.ndarray]:
             for c in range(len(target)):
                 for d in range(len(target)):
                     if c != d and abs(np.arccos(np.clip(target[c] @ target[d], -1.0, 1.0)) - angle) < tol:
-                        out.append(_frame(target[c], target[d]) @ _frame(source[a], source[b]).T)
+                        out.append((_frame(target[c], target[d]) @ _frame(source[a], source[b]).T,
+                                    target[[c, d]]))
     return out
 
 
@@ -110,31 +112,49 @@ def _frame(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.column_stack([u, w, np.cross(u, w)])
 
 
-def translations(R: np.ndarray, source: tuple[np.ndarray, np.ndarray], target: tuple[np.ndarray, np.ndarray],
-                 voxel_mm: float, rng: np.random.Generator, best: int = 1) -> list[tuple[float, np.ndarray]]:
-    """The `best` most voted translations (3,) under rotation R with their share of the
-    votes, weighted and not (module docstring); `source`, `target`: (points, normals) on the registration's voxel grid. A
-    voter's vote is shared among the target points its normal agrees with: a point on a big
-    face, agreeing with all of that face, votes for a whole plane of translations and
-    weighs little at any one of them."""
-    sp, sn = source
-    pick = rng.choice(len(sp), size=min(VOTERS, len(sp)), replace=False)
-    p, n = sp[pick] @ R.T, sn[pick] @ R.T
-    pick = rng.choice(len(target[0]), size=min(VOTED, len(target[0])), replace=False)
-    tp, tn = target[0][pick], target[1][pick]
-    i, j = np.nonzero(n @ tn.T > np.cos(np.radians(NORMAL_TOL_DEG)))
+def translations(R: np.ndarray, faces: np.ndarray, source: tuple[np.ndarray, np.ndarray],
+                 target: tuple[np.ndarray, np.ndarray], voxel_mm: float, rng: np.random.Generator) -> list[np.ndarray]:
+    """Translations (3,) under rotation R that was matched on the target's face directions
+    `faces` (k, 3): along each, the most common difference between the heights of the
+    target's and the turned source's points facing it (the face planes' offsets); across
+    them, the most voted of the other points' votes (module docstring), the best two;
+    `source`, `target`: (points, normals) on the registration's voxel grid."""
+    sp, sn = source[0] @ R.T, source[1] @ R.T
+    tp, tn = target
+    cos_face = np.cos(np.radians(NORMAL_TOL_DEG))
+    along = [_offset(sp[sn @ c > cos_face] @ c, tp[tn @ c > cos_face] @ c, voxel_mm, rng) for c in faces]
+    if any(o is None for o in along):
+        return []
+    _, _, vt = np.linalg.svd(faces)
+    across = vt[len(faces):]  # the directions the faces leave free
+    flat = np.all(np.abs(sn @ faces.T) < cos_face, axis=1)
+    pick = rng.choice(np.flatnonzero(flat), size=min(VOTERS, int(flat.sum())), replace=False)
+    flat_t = np.all(np.abs(tn @ faces.T) < cos_face, axis=1)
+    picked = rng.choice(np.flatnonzero(flat_t), size=min(VOTED, int(flat_t.sum())), replace=False)
+    i, j = np.nonzero(sn[pick] @ tn[picked].T > cos_face)
+    A = np.vstack([faces, across])
     if len(i) == 0:
         return []
-    t = tp[j] - p[i]
-    weight = 1.0 / np.bincount(i, minlength=len(p))[i]
-    cell = np.floor(t / (VOTE_VOXELS * voxel_mm)).astype(np.int64)
+    votes = (tp[picked][j] - sp[pick][i]) @ across.T
+    cell = np.floor(votes / (VOTE_VOXELS * voxel_mm)).astype(np.int64)
     cell -= cell.min(axis=0)
-    key = (cell[:, 0] * (cell[:, 1].max() + 1) + cell[:, 1]) * (cell[:, 2].max() + 1) + cell[:, 2]
-    _, inverse = np.unique(key, return_inverse=True)
-    out = []
-    for votes in (np.bincount(inverse, weights=weight), np.bincount(inverse)):
-        out += [(float(votes[k] / votes.sum()), t[inverse == k].mean(axis=0)) for k in np.argsort(-votes)[:best]]
-    return out
+    key = cell[:, 0] * (cell[:, 1].max() + 1) + cell[:, 1] if cell.shape[1] == 2 else cell[:, 0]
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    return [np.linalg.solve(A, np.concatenate([along, votes[inverse.ravel() == k].mean(axis=0)]))
+            for k in np.argsort(-counts)[:2]]
+
+
+def _offset(source: np.ndarray, target: np.ndarray, voxel_mm: float, rng: np.random.Generator) -> float | None:
+    """The most common difference target - source of two sets of heights (mm), None when
+    either is empty."""
+    if len(source) == 0 or len(target) == 0:
+        return None
+    s = rng.choice(source, size=min(300, len(source)), replace=False)
+    t = rng.choice(target, size=min(300, len(target)), replace=False)
+    d = (t[:, None] - s[None, :]).ravel()
+    cell = np.floor((d - d.min()) / (0.5 * voxel_mm)).astype(np.int64)
+    k = int(np.argmax(np.bincount(cell)))
+    return float(d[cell == k].mean())
 
 
 def face_poses(source: tuple[np.ndarray, np.ndarray], target: tuple[np.ndarray, np.ndarray], voxel_mm: float,
@@ -143,8 +163,8 @@ def face_poses(source: tuple[np.ndarray, np.ndarray], target: tuple[np.ndarray, 
     docstring); `source`, `target`: (points, normals) on the registration's voxel grid."""
     rng = np.random.default_rng(seed)
     poses = []
-    for R in rotations(normal_modes(source[1]), normal_modes(target[1])):  # some hundreds
-        for _, t in translations(R, source, target, voxel_mm, rng):
+    for R, faces in rotations(normal_modes(source[1]), normal_modes(target[1])):  # some hundreds
+        for t in translations(R, faces, source, target, voxel_mm, rng):
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R, t
             poses.append(T)
