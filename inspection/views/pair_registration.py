@@ -31,15 +31,18 @@ returned without proof:
    - the comparable points agree less than the noise allows: fewer than p0 = 0.9973 of
      them (K = 3 sigmas) less z = 3.09 binomial standard errors (a right pose is refused
      so with probability 1e-3 when the noise model holds);
-   - the leader moved a resolution along one of its motions scores within z = 3.09
-     standard errors of it: the evidence does not fix that motion as well as claimed (the
+   - the leader moved a resolution along one of its motions scores within z = 3.29
+     standard errors of it both by its points (agreeing less contradicting) and by its
+     residuals' sizes (`Evidence.sharper`; each tested at half the false-accept rate): the evidence does not fix that motion as well as claimed (the
      information's standard deviation assumes the residuals follow the noise; a flat
      score says they do not, or that the motion is carried by a few points ICP drops);
-   - a distinct pose (beyond the resolution) scores within z = 3.09 standard errors of
-     the leader's (the score difference under re-measurement noise, `Evidence.beats`): the
+   - a distinct pose (beyond the resolution) scores within z = 3.29 standard errors of
+     the leader's, both ways (the score differences under re-measurement noise): the
      evidence does not tell them apart (a symmetric part, or views sharing only a plane and
      a cylinder), and preferring the leader would be wrong with probability above 1e-3 if
      the other were right. The alternatives are named (pose, score, how far apart).
+   The leader reported is the mean of the poses tried that the evidence cannot rank below
+   it (`spread`: how far they lie from it).
 
 Transforms map SOURCE points onto the TARGET's frame; mm, degrees.
 """
@@ -371,9 +374,9 @@ def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], c
     docstring): the mean of the poses that score within z standard errors of the best (the
     evidence cannot rank them), refused when one of them lies beyond the resolution, or when
     the best moved a resolution away along a motion (`displaced`) scores as well."""
-    z_accept, z_refuse = float(ndtri(1.0 - pair.false_accept)), float(ndtri(1.0 - pair.false_refuse))
+    z_accept, z_refuse = float(ndtri(1.0 - pair.false_accept / 2.0)), float(ndtri(1.0 - pair.false_refuse))
     z_motion = float(ndtri(1.0 - pair.motion_risk / 2.0))
-    alike = [e for e in tried if best.beats(e) < z_accept]
+    alike = [e for e in tried if _apart(best, e) < z_accept]
     pose = _mean_pose([e.transform for e in alike], centre)
     spread = [pose_error(pose, e.transform, centre) for e in alike]
     alternatives: list[Alternative] = []
@@ -381,7 +384,7 @@ def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], c
         if _distinct(e.transform, pose, centre, pair) and \
                 all(_distinct(e.transform, a.transform, centre, pair) for a in alternatives):
             deg, mm = pose_error(pose, e.transform, centre)
-            alternatives.append(Alternative(e.transform, deg, mm, e.score, best.beats(e)))
+            alternatives.append(Alternative(e.transform, deg, mm, e.score, _apart(best, e)))
     refusals = []
     motion, sd = _weakest(best)
     n = best.comparable
@@ -398,13 +401,14 @@ def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], c
                         f"within 3 sigma = {3 * best.forward.sigma_mm:.3g} mm (the noise lets at least {floor:.2%}): "
                         f"the views disagree at this pose")
     rivals = [a for a in alternatives if a.z < z_accept]
-    loose = [(e, k // 2) for k, e in enumerate(displaced) if best.sharper(e) < z_accept]
+    loose = [(e, k // 2) for k, e in enumerate(displaced) if _apart(best, e) < z_accept]
     for e, k in loose[:2]:
         deg, mm = pose_error(best.transform, e.transform, centre)
         refusals.append(f"the evidence does not fix the {best.constraint.describe(k)} to the resolution: the pose "
-                        f"moved {deg:.2f} deg / {mm:.2f} mm along it fits its residuals only {best.sharper(e):.1f} "
-                        f"standard errors worse (needs {z_accept:.2f})")
-    alternatives += [Alternative(e.transform, *pose_error(pose, e.transform, centre), e.score, best.beats(e))
+                        f"moved {deg:.2f} deg / {mm:.2f} mm along it scores {e.score:.4f} against {best.score:.4f} "
+                        f"and fits its residuals, both only {_apart(best, e):.1f} standard errors worse at most "
+                        f"(needs {z_accept:.2f})")
+    alternatives += [Alternative(e.transform, *pose_error(pose, e.transform, centre), e.score, _apart(best, e))
                      for e, _ in loose]
     if rivals:
         refusals.append("ambiguous: " + "; ".join(
@@ -415,6 +419,13 @@ def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], c
                     overlap is not None, best.fitness, best.rmse_mm, best.forward.sigma_mm, n, best.score,
                     (max(d for d, _ in spread), max(m for _, m in spread)), tuple(alternatives), bool(rivals or loose),
                     motion, sd, method, times)
+
+
+def _apart(best: Evidence, other: Evidence) -> float:
+    """How far the evidence puts `best` above `other`, in standard errors: the larger of the
+    score's (points agreeing less contradicting) and the residuals' (`Evidence.sharper`)
+    difference; each is tested at half the false-accept rate, so either may decide."""
+    return max(best.beats(other), best.sharper(other))
 
 
 def _mean_pose(poses: list[np.ndarray], centre: np.ndarray) -> np.ndarray:
