@@ -207,8 +207,9 @@ def summary(rows: list[dict[str, Any]]) -> str:
         tight = f"; proven errors median {np.median(errs[:, 0]):.4f} deg / {np.median(errs[:, 1]):.4f} mm, max " \
                 f"{errs[:, 0].max():.4f} / {errs[:, 1].max():.4f}" if len(errs) else ""
         lines.append(f"{name}: {len(sel)} pairs; ours {good} within {SUCCESS_DEG} deg / {SUCCESS_MM} mm "
-                     f"({good / len(sel):.0%}), wrong with a proof {len(proven) - good}, refused {len(sel) - len(proven)}"
-                     f"{tight}; Open3D {o3d_good} within ({o3d_good / len(sel):.0%}), {len(sel) - o3d_good} wrong")
+                     f"({good / len(sel):.0%}), wrong with a proof {len(proven) - good}, refused "
+                     f"{len(sel) - len(proven)}{tight}; Open3D {o3d_good} within ({o3d_good / len(sel):.0%}), "
+                     f"{len(sel) - o3d_good} wrong")
     return "\n".join(lines)
 
 

@@ -10,17 +10,22 @@ returned without proof:
 1. hypotheses: the CAD registration's search (`inspection.registration.register`: RSCS
    spheres, FPFH and SHOT, SAC-IA, with the other view as the model and its fitness gate
    opened, since a view is no subset of another) gives its pose and its near-equal
-   alternatives; each with its half turns about the source's principal axes (what a
-   prismatic or symmetric part is confused with);
-2. each is refined on the overlap (`pairwise.refine_pair`: point-to-plane ICP against the
-   target at full density) and judged both ways; the best score (agreeing less
-   contradicting points) leads. ICP may stall on a motion the overlap barely fixes (two
-   views sharing a boss and planes across it leave the turn about the boss to a few edge
-   points): the leader is probed, restarted `PROBE_MM` either way along its `PROBED`
-   weakest motions (`constraint.overlap_constraint`) and refined again; a probe that
-   settles elsewhere and scores better leads instead (at most `ROUNDS` times). Then the
-   leader is moved a resolution either way along each of its six constraint motions,
-   unrefined; a move that scores better leads instead (at most `CLIMBS` times);
+   alternatives, each with its half turns about the source's principal axes (what a
+   prismatic or symmetric part is confused with); the views' face directions give more
+   (`pose_search`: what descriptors miss when the views share mostly planes). All are
+   ranked by the evidence at a voxel's tolerance on a few hundred points, the `ROUGH` best
+   refined by a short ICP on the voxel grid and ranked again, and the `REFINED` best
+   distinct ones go on;
+2. each is refined on what the sensors measured (`projective`: point-to-plane on the
+   pixels each view's points fall on, both ways) and judged both ways on points half a
+   voxel apart; the best score (agreeing less contradicting points) leads. A refinement
+   may stall on a motion the overlap barely fixes (views sharing a boss and planes across
+   it leave the turn about the boss to a few edge points): the leader is probed, restarted
+   `PROBE_MM` either way along its `PROBED` weakest motions (`constraint`) and refined
+   again; a probe that settles elsewhere and scores better leads instead (at most
+   `ROUNDS` times). Then the leader is moved a resolution either way along each of its six
+   constraint motions, unrefined; a move whose residuals fit better leads instead (at most
+   `CLIMBS` times);
 3. the leader is refused (`PairNotProven`, exit 1 from `register`), naming why, when
    - a view says nothing of where its sensor was (a cloud without a viewpoint): what it
      could have seen cannot be predicted;
@@ -33,9 +38,10 @@ returned without proof:
      so with probability 1e-3 when the noise model holds);
    - the leader moved a resolution along one of its motions scores within z = 3.29
      standard errors of it both by its points (agreeing less contradicting) and by its
-     residuals' sizes (`Evidence.sharper`; each tested at half the false-accept rate): the evidence does not fix that motion as well as claimed (the
-     information's standard deviation assumes the residuals follow the noise; a flat
-     score says they do not, or that the motion is carried by a few points ICP drops);
+     residuals' sizes (`Evidence.sharper`; each tested at half the false-accept rate):
+     the evidence does not fix that motion as well as claimed (the information's standard
+     deviation assumes the residuals follow the noise; a flat score says they do not, or
+     that the overlap leaves the motion to points outside it: a sphere's turns);
    - a distinct pose (beyond the resolution) scores within z = 3.29 standard errors of
      the leader's, both ways (the score differences under re-measurement noise): the
      evidence does not tell them apart (a symmetric part, or views sharing only a plane and
@@ -72,9 +78,9 @@ from inspection.views.sensor_view import SensorView
 from scanner.geometry import Pinhole
 
 PROBED, PROBE_MM, ROUNDS = 2, 1.0, 2  # the weakest motions probed, how far (mm at the overlap's RMS radius), rounds
-ROUGH, REFINED, ROUGH_POINTS = 24, 4, 400
-CLIMBS = 4  # moves of a resolution along the constraint's motions toward a better score
-SAME_START_DEG = 1.0  # starts closer than 2 of these and 2 voxels are one start  # starting poses refined roughly, then fully; points judging them roughly
+ROUGH, REFINED, ROUGH_POINTS = 24, 4, 400  # starts refined roughly, then fully; points judging them roughly
+CLIMBS = 4  # moves of a resolution along the constraint's motions toward a better fit
+SAME_START_DEG = 1.0  # starts closer than 2 of these and 2 voxels are one start
 OPEN_GATE = 1e-9  # the CAD search's min_fitness when a view is the target (settings refuse 0)
 SUPPORT_PLANE = 0.01  # a support plane's RANSAC band, as a share of the view's extent
 
@@ -289,7 +295,7 @@ def _weigh(scan: ScanCloud, target: ScanCloud, overlap: float | None, settings: 
         tried.append(best)
         best = top
     times["judge"] = time.perf_counter() - t0
-    method = "rscs+" + "+".join(settings.descriptors) + f"+{settings.coarse}+overlap-icp+sensor-evidence"
+    method = "rscs+" + "+".join(settings.descriptors) + f"+{settings.coarse}+face-directions+projective+sensor-evidence"
     return _verdict(best, tried, displaced, centre, overlap, pair, method,
                     {k: round(v, 3) for k, v in times.items()})
 
