@@ -16,9 +16,11 @@ returned without proof:
    ranked by the evidence at a voxel's tolerance on a few hundred points, the `ROUGH` best
    refined by a short ICP on the voxel grid and ranked again, and the `REFINED` best
    distinct ones go on;
-2. each is refined on what the sensors measured (`projective`: point-to-plane on the
-   pixels each view's points fall on, both ways) and judged both ways on points half a
-   voxel apart; the best score (agreeing less contradicting points) leads. A refinement
+2. each is refined on the overlap (`pairwise.refine_pair`: point-to-plane ICP against the
+   target at full density, its nearest neighbours find the surface itself where a pixel
+   would find what hides it, so it gets in from a voxel or two off), then on what the
+   sensors measured (`projective`: point-to-plane on the pixels each view's points fall
+   on, both ways), and judged both ways on points half a voxel apart; the best score (agreeing less contradicting points) leads. A refinement
    may stall on a motion the overlap barely fixes (views sharing a boss and planes across
    it leave the turn about the boss to a few edge points): the leader is probed, restarted
    `PROBE_MM` either way along its `PROBED` weakest motions (`constraint`) and refined
@@ -36,19 +38,23 @@ returned without proof:
    - the comparable points agree less than the noise allows: fewer than p0 = 0.9973 of
      them (K = 3 sigmas) less z = 3.09 binomial standard errors (a right pose is refused
      so with probability 1e-3 when the noise model holds);
-   - the leader moved a resolution along one of its motions scores within z = 3.29
+   - the leader moved a resolution along one of its motions is still allowed by the noise
+     (its points agree as a right pose's would, above) and scores within z = 3.29
      standard errors of it both by its points (agreeing less contradicting) and by its
      residuals' sizes (`Evidence.sharper`; each tested at half the false-accept rate):
      the evidence does not fix that motion as well as claimed (the information's standard
      deviation assumes the residuals follow the noise; a flat score says they do not, or
      that the overlap leaves the motion to points outside it: a sphere's turns);
-   - a distinct pose (beyond the resolution) scores within z = 3.29 standard errors of
-     the leader's, both ways (the score differences under re-measurement noise): the
+   - a distinct pose (beyond the resolution) that the noise allows scores within z = 3.29
+     standard errors of the leader's, both ways (the score differences under
+     re-measurement noise): the
      evidence does not tell them apart (a symmetric part, or views sharing only a plane and
      a cylinder), and preferring the leader would be wrong with probability above 1e-3 if
      the other were right. The alternatives are named (pose, score, how far apart).
-   The leader reported is the mean of the poses tried that the evidence cannot rank below
-   it (`spread`: how far they lie from it).
+   The leader is the best-scoring pose among those the noise allows (a half turn of a
+   nearly symmetric part may agree on more points while contradicting 2 % of them: refuted
+   whatever its overlap); the pose reported is the mean of it and the poses tried that the
+   evidence cannot rank below it (`spread`: how far they lie from it).
 
 Transforms map SOURCE points onto the TARGET's frame; mm, degrees.
 """
@@ -70,7 +76,7 @@ from inspection.registration.clouds import voxel_grid
 from inspection.views.align import pose_error
 from inspection.views.constraint import along
 from inspection.views.pair_evidence import K_SIGMA, P_AGREE, Evidence, evidence, score_only
-from inspection.views.pairwise import thin
+from inspection.views.pairwise import PairSettings, paired, refine_pair, thin
 from inspection.views.pose_search import face_poses
 from inspection.views.projective import refine_projective
 from inspection.views.quiet import stdout_to_stderr
@@ -110,17 +116,19 @@ class ViewPairSettings:
 @dataclass(frozen=True, eq=False)
 class Alternative:
     """A distinct pose the evidence was weighed against: `deg`/`mm` from the leader, its
-    `score`, and how many standard errors the leader's is above it (`z`)."""
+    `score`, how many standard errors the leader's is above it (`z`), and whether its
+    points agree as the noise allows (`consistent`; a pose they refute is no rival)."""
 
     transform: np.ndarray
     deg: float
     mm: float
     score: float
     z: float
+    consistent: bool
 
     def as_dict(self) -> dict[str, Any]:
         return {"transform": self.transform.tolist(), "deg_from_best": self.deg, "mm_from_best": self.mm,
-                "score": self.score, "best_above_by_se": self.z}
+                "score": self.score, "best_above_by_se": self.z, "allowed_by_the_noise": self.consistent}
 
 
 @dataclass(frozen=True, eq=False)
@@ -274,17 +282,24 @@ def _weigh(scan: ScanCloud, target: ScanCloud, overlap: float | None, settings: 
     t0 = time.perf_counter()
     centre = parts[0].points.mean(axis=0)
 
-    def weigh(T: np.ndarray) -> Evidence:
-        return evidence(refine_projective(T, judged[0], judged[1], 0.5 * voxel), fine[0], fine[1])
+    source = paired(parts[0].points, parts[0].normals, thin(parts[0].points, voxel))
+    dense = paired(parts[1].points, parts[1].normals, np.arange(len(parts[1])))
+    icp_settings = PairSettings(voxel_mm=voxel, max_distance_mm=2.0 * voxel, min_distance_mm=0.02)
 
+    def weigh(T: np.ndarray) -> Evidence:
+        near = refine_pair(source, dense, T, icp_settings).transform
+        return evidence(refine_projective(near, judged[0], judged[1], 0.5 * voxel), fine[0], fine[1])
+
+    z_refuse = float(ndtri(1.0 - pair.false_refuse))
     tried = [weigh(T) for T in starts]
-    best = max(tried, key=lambda e: e.score)
+    best = max(tried, key=lambda e: _rank(e, z_refuse))
     for _ in range(ROUNDS):
         probes = [weigh(along(best.constraint, k, s) @ best.transform) for k in range(PROBED)
                   for s in (-PROBE_MM, PROBE_MM)]
         tried += probes
-        better = max(probes, key=lambda e: e.score)
-        if better.score <= best.score or not _distinct(better.transform, best.transform, centre, pair):
+        better = max(probes, key=lambda e: _rank(e, z_refuse))
+        if _rank(better, z_refuse) <= _rank(best, z_refuse) or \
+                not _distinct(better.transform, best.transform, centre, pair):
             break
         best = better
     for _ in range(CLIMBS):
@@ -382,7 +397,7 @@ def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], c
     the best moved a resolution away along a motion (`displaced`) scores as well."""
     z_accept, z_refuse = float(ndtri(1.0 - pair.false_accept / 2.0)), float(ndtri(1.0 - pair.false_refuse))
     z_motion = float(ndtri(1.0 - pair.motion_risk / 2.0))
-    alike = [e for e in tried if _apart(best, e) < z_accept]
+    alike = [e for e in tried if e is best or (consistent(e, z_refuse) and _apart(best, e) < z_accept)]
     pose = _mean_pose([e.transform for e in alike], centre)
     spread = [pose_error(pose, e.transform, centre) for e in alike]
     alternatives: list[Alternative] = []
@@ -390,7 +405,8 @@ def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], c
         if _distinct(e.transform, pose, centre, pair) and \
                 all(_distinct(e.transform, a.transform, centre, pair) for a in alternatives):
             deg, mm = pose_error(pose, e.transform, centre)
-            alternatives.append(Alternative(e.transform, deg, mm, e.score, _apart(best, e)))
+            alternatives.append(Alternative(e.transform, deg, mm, e.score, _apart(best, e),
+                                            consistent(e, z_refuse)))
     refusals = []
     motion, sd = _weakest(best)
     n = best.comparable
@@ -401,21 +417,21 @@ def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], c
         refusals.append(f"the overlap leaves the {motion} free (standard deviation {sd[0]:.3g} deg / {sd[1]:.3g} mm "
                         f"from {best.agreeing} agreeing points; resolution {pair.resolution_deg:g} deg / "
                         f"{pair.resolution_mm:g} mm)")
-    floor = P_AGREE - z_refuse * np.sqrt(P_AGREE * (1.0 - P_AGREE) / max(n, 1))
+    floor = _agree_floor(n, z_refuse)
     if n and best.fitness < floor:
         refusals.append(f"only {best.fitness:.2%} of the {n} points each view's sensor could judge agree with it "
                         f"within 3 sigma = {3 * best.forward.sigma_mm:.3g} mm (the noise lets at least {floor:.2%}): "
                         f"the views disagree at this pose")
-    rivals = [a for a in alternatives if a.z < z_accept]
-    loose = [(e, k // 2) for k, e in enumerate(displaced) if _apart(best, e) < z_accept]
+    rivals = [a for a in alternatives if a.consistent and a.z < z_accept]
+    loose = [(e, k // 2) for k, e in enumerate(displaced) if consistent(e, z_refuse) and _apart(best, e) < z_accept]
     for e, k in loose[:2]:
         deg, mm = pose_error(best.transform, e.transform, centre)
         refusals.append(f"the evidence does not fix the {best.constraint.describe(k)} to the resolution: the pose "
                         f"moved {deg:.2f} deg / {mm:.2f} mm along it scores {e.score:.4f} against {best.score:.4f} "
                         f"and fits its residuals, both only {_apart(best, e):.1f} standard errors worse at most "
                         f"(needs {z_accept:.2f})")
-    alternatives += [Alternative(e.transform, *pose_error(pose, e.transform, centre), e.score, _apart(best, e))
-                     for e, _ in loose]
+    alternatives += [Alternative(e.transform, *pose_error(pose, e.transform, centre), e.score, _apart(best, e),
+                                 consistent(e, z_refuse)) for e, _ in loose]
     if rivals:
         refusals.append("ambiguous: " + "; ".join(
             f"a pose {a.deg:.2f} deg / {a.mm:.2f} mm away scores {a.score:.4f} against {best.score:.4f} "
@@ -425,6 +441,24 @@ def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], c
                     overlap is not None, best.fitness, best.rmse_mm, best.forward.sigma_mm, n, best.score,
                     (max(d for d, _ in spread), max(m for _, m in spread)), tuple(alternatives), bool(rivals or loose),
                     motion, sd, method, times)
+
+
+def _agree_floor(comparable: int, z_refuse: float) -> float:
+    """The least share of `comparable` points a right pose agrees on (at the false-refuse
+    rate whose z is `z_refuse`): p0 less z binomial standard errors."""
+    return P_AGREE - z_refuse * np.sqrt(P_AGREE * (1.0 - P_AGREE) / max(comparable, 1))
+
+
+def consistent(e: Evidence, z_refuse: float) -> bool:
+    """Whether the points each sensor can judge agree with pose `e` as the noise allows."""
+    return e.comparable > 0 and e.fitness >= _agree_floor(e.comparable, z_refuse)
+
+
+def _rank(e: Evidence, z_refuse: float) -> tuple[bool, float]:
+    """Poses the noise allows first, then by score: a pose contradicting more points than
+    noise can (2 % at a symmetric part's half turn) is refuted whatever its overlap, and a
+    right pose of a smaller overlap must not lose to it on agreeing points."""
+    return consistent(e, z_refuse), e.score
 
 
 def _apart(best: Evidence, other: Evidence) -> float:
