@@ -20,11 +20,12 @@ returned without proof:
    target at full density, its nearest neighbours find the surface itself where a pixel
    would find what hides it, so it gets in from a voxel or two off), then on what the
    sensors measured (`projective`: point-to-plane on the pixels each view's points fall
-   on, both ways), and judged both ways on points half a voxel apart; the best score (agreeing less contradicting points) leads. A refinement
-   may stall on a motion the overlap barely fixes (views sharing a boss and planes across
-   it leave the turn about the boss to a few edge points): the leader is probed, restarted
-   `PROBE_MM` either way along its `PROBED` weakest motions (`constraint`) and refined
-   again; a probe that settles elsewhere and scores better leads instead (at most
+   on, both ways), and judged both ways on points half a voxel apart; the best score
+   (agreeing less contradicting points) among the poses the noise allows (below) leads.
+   A refinement may stall on a motion the overlap barely fixes (views sharing a boss and
+   planes across it leave the turn about the boss to a few edge points): the leader is
+   probed, restarted `PROBE_MM` either way along its `PROBED` weakest motions
+   (`constraint`) and refined again; a probe that settles elsewhere and scores better leads instead (at most
    `ROUNDS` times). Then the leader is moved a resolution either way along each of its six
    constraint motions, unrefined; a move whose residuals fit better leads instead (at most
    `CLIMBS` times);
@@ -397,7 +398,7 @@ def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], c
     the best moved a resolution away along a motion (`displaced`) scores as well."""
     z_accept, z_refuse = float(ndtri(1.0 - pair.false_accept / 2.0)), float(ndtri(1.0 - pair.false_refuse))
     z_motion = float(ndtri(1.0 - pair.motion_risk / 2.0))
-    alike = [e for e in tried if e is best or (consistent(e, z_refuse) and _apart(best, e) < z_accept)]
+    alike = [best] + [e for e in tried if e is not best and consistent(e, z_refuse) and _apart(best, e) < z_accept]
     pose = _mean_pose([e.transform for e in alike], centre)
     spread = [pose_error(pose, e.transform, centre) for e in alike]
     alternatives: list[Alternative] = []
