@@ -238,8 +238,14 @@ def main(argv: list[str] | None = None) -> int:
             session = scan_placement(config, part, rng, args.out / f"placement_{k:03d}", noise_seed)
             for i, j in ((0, 1), (1, 2), (0, 2)):
                 row = {"placement": k, "part": part.name, "part_seed": part_seed, "noise_seed": noise_seed,
-                       "master_seed": master, "load_average": os.getloadavg()[0],
-                       **measure_pair(session, i, j, part_seed % 10_000, axis)}
+                       "master_seed": master, "load_average": os.getloadavg()[0]}
+                try:
+                    row.update(measure_pair(session, i, j, part_seed % 10_000, axis))
+                except Exception as error:  # a crash is a figure too: recorded, counted, and the run goes on
+                    row["error"] = f"{type(error).__name__}: {error}"
+                    print(f"{k:3d} {part.name:>14} {i}->{j} ERROR {row['error']}", flush=True)
+                    log.write(json.dumps(row) + "\n")
+                    continue
                 rows.append(row)
                 log.write(json.dumps(row) + "\n")
                 log.flush()
