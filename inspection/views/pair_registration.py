@@ -452,7 +452,7 @@ def _agree_floor(comparable: int, z_refuse: float) -> float:
 
 def consistent(e: Evidence, z_refuse: float) -> bool:
     """Whether the points each sensor can judge agree with pose `e` as the noise allows."""
-    return e.comparable > 0 and e.fitness >= _agree_floor(e.comparable, z_refuse)
+    return bool(e.comparable > 0 and e.fitness >= _agree_floor(e.comparable, z_refuse))
 
 
 def _rank(e: Evidence, z_refuse: float) -> tuple[bool, float]:
