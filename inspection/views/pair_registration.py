@@ -1,178 +1,228 @@
 """Registering one view of a part to another view of it, with no pose known: what
-`slscan register SCAN CLOUD` does when the target is a cloud.
+`slscan register SCAN CLOUD` does when the target is a cloud or a session.
 
-Two views of one part overlap only in part: the source is not a subset of the target, so
-judging a pose by the share of the whole source lying on the target (as against a CAD
-model) refuses right poses. Here:
+Two views of one part overlap only in part, so a pose is judged by what each view's sensor
+could have seen of the other (`pair_evidence`): the points of each view that fall, at that
+pose, on surfaces the other measured, their residuals against the noise both views show
+(`sensor_view`), and the points lying in space the other sensor looked through. No pose is
+returned without proof:
 
-1. the search is the CAD registration's (`inspection.registration.register`: RSCS
-   spheres, FPFH and SHOT descriptors, SAC-IA, hypotheses refined by ICP and verified, the
-   target being the other view), with its fitness gates opened;
-2. the pose is refined on the overlap (`pairwise.refine_pair`: point-to-plane ICP, partners
-   near the noise only, against the target at full density);
-3. the overlap is estimated: `overlap` is the share of the source within `region` (two
-   voxels) of the target, i.e. where the target has surface at all; the fit is judged on it
-   alone: `fitness` is the share of those points within `inlier_mm` of the target (half a
-   voxel) with normals agreeing. A wrong pose that lays the views across each other puts
-   many points near the target but few on it; a right one puts its overlap on it.
-   `overlap` given (`--overlap 0.4`) replaces the estimate: fitness = inliers / (given
-   overlap x points), for views whose overlap is known;
-4. free space: laying one big face of a view onto another's fits an overlap well at a
-   wrong pose, but then parts of the source lie in front of surfaces the target's sensor
-   saw through that space, or parts of the target in front of what the source's sensor saw
-   (`free_space_violations`, both ways, for views that know their viewpoint). Judged on the
-   target's own pixels (a session's cloud), the true poses of the 1280 x 1024 turntable
-   views 45-135 deg apart show at most 0.013 % (limit 0.1 %), wrong ones 0.2-8 %; judged in
-   ray bins (a cloud file) true poses showed up to 0.23 % there (limit 0.2 %);
-5. ambiguity: a pose that a symmetric part's other views explain as well shows no free-space
-   violation (a turn of 180 deg on 135-deg views of the demo part: 0 %, fitness 0.878
-   where the true pose would score 0.862), and the search then never proposed the true one
-   but ranked distinct poses within its ambiguity margin: such a pair is refused. Of the 24
-   pairs 45-135 deg apart of a 1280 x 1024 turntable scan, the search flagged that 135-deg
-   pair (as on an older scan), one wrong 90-deg pose (refused anyway) and one right 90-deg
-   pose (0.22 deg off: the price); no 45-deg pair;
-6. a pose the overlap barely fixes: two views 90 deg apart may share little more than the
-   boss (a cylinder) and the top faces (planes across its axis), which leave the turn about
-   the boss's axis to the few points on the edges. ICP, its partner distance shrinking to
-   the noise, drops those points as outliers once they lie a little off, and stalls: pair
-   0 -> 2 of the 8-view 1280 x 1024 turntable scan settled 1.18 deg / 0.51 mm off, at
-   fitness 0.887 with 0.02 % in front, where the truth refines to 0.901 and 0 %. The
-   overlap's information on the pose (`constraint.overlap_constraint`, eigenvalues of the
-   scaled 6x6 point-to-plane information per partner) names the weak motions, but its
-   smallest-to-largest ratio does not tell a stalled pose from a right one (the 24 pairs
-   45-135 deg apart: right poses 0.0026-0.071, the stalled one 0.0035). So the kept pose is
-   probed: started `PROBE_MM` either way along each of its `PROBED` weakest motions and
-   refined again; a start that settles elsewhere (beyond `SAME_DEG` / `SAME_MM`) and fits
-   better (fitness less violations) shows ICP stalled on a motion the overlap barely
-   fixes, and the pair is refused, naming that motion. On those 24 pairs the probes of the
-   wrong poses (0 -> 2 at 90 deg; 2 -> 5 at 135 deg, refused by free space anyway)
-   settled 0.8-1.2 deg away and fitted 0.008-0.014 better; those of right poses settled
-   at the same pose (within 0.11 deg), or elsewhere (0.5-1.2 deg) fitting 0.0016-0.012
-   worse; one right pose 0.67 deg off (135 deg) had a probe settle 0.03 deg
-   from the truth fitting 0.005 better, and is refused.
+1. hypotheses: the CAD registration's search (`inspection.registration.register`: RSCS
+   spheres, FPFH and SHOT, SAC-IA, with the other view as the model and its fitness gate
+   opened, since a view is no subset of another) gives its pose and its near-equal
+   alternatives, each with its half turns about the source's principal axes (what a
+   prismatic or symmetric part is confused with); the views' face directions give more
+   (`pose_search`: what descriptors miss when the views share mostly planes). All are
+   ranked by the evidence at a voxel's tolerance on a few hundred points, the `ROUGH` best
+   refined by a short ICP on the voxel grid and ranked again, and the `REFINED` best
+   distinct ones go on;
+2. each is refined on the overlap (`pairwise.refine_pair`: point-to-plane ICP against the
+   target at full density, its nearest neighbours find the surface itself where a pixel
+   would find what hides it, so it gets in from a voxel or two off), then on what the
+   sensors measured (`projective`: point-to-plane on the pixels each view's points fall
+   on, both ways), and judged both ways on points half a voxel apart; the best score
+   (agreeing less contradicting points) among the poses the noise allows (below) leads.
+   A refinement may stall on a motion the overlap barely fixes (views sharing a boss and
+   planes across it leave the turn about the boss to a few edge points): the leader is
+   probed, restarted `PROBE_MM` either way along its `PROBED` weakest motions
+   (`constraint`) and refined again; a probe that settles elsewhere and scores better leads instead (at most
+   `ROUNDS` times). Then the leader is moved a resolution either way along each of its six
+   constraint motions, unrefined; a move whose residuals fit better leads instead (at most
+   `CLIMBS` times);
+3. the leader is refused (`PairNotProven`, exit 1 from `register`), naming why, when
+   - a view says nothing of where its sensor was (a cloud without a viewpoint): what it
+     could have seen cannot be predicted;
+   - the agreeing partners leave a motion free: the pose's covariance (the inverse of its
+     point-to-plane information over the noise) puts a motion's standard deviation, times
+     z = 3.29 (two-sided 1e-3), beyond the resolution (`resolution_deg`, `resolution_mm`:
+     poses closer than that are one answer). Too small an overlap ends here, named;
+   - the comparable points agree less than the noise allows: fewer than p0 = 0.9973 of
+     them (K = 3 sigmas) less z = 3.09 binomial standard errors (a right pose is refused
+     so with probability 1e-3 when the noise model holds);
+   - the leader moved a resolution along one of its motions is still allowed by the noise
+     (its points agree as a right pose's would, above) and scores within z = 3.29
+     standard errors of it both by its points (agreeing less contradicting) and by its
+     residuals' sizes (`Evidence.sharper`; each tested at half the false-accept rate):
+     the evidence does not fix that motion as well as claimed (the information's standard
+     deviation assumes the residuals follow the noise; a flat score says they do not, or
+     that the overlap leaves the motion to points outside it: a sphere's turns);
+   - a distinct pose (beyond the resolution) that the noise allows scores within z = 3.29
+     standard errors of the leader's, both ways (the score differences under
+     re-measurement noise): the
+     evidence does not tell them apart (a symmetric part, or views sharing only a plane and
+     a cylinder), and preferring the leader would be wrong with probability above 1e-3 if
+     the other were right. The alternatives are named (pose, score, how far apart).
+   The leader is the best-scoring pose among those the noise allows (a half turn of a
+   nearly symmetric part may agree on more points while contradicting 2 % of them: refuted
+   whatever its overlap); the pose reported is the mean of it and the poses tried that the
+   evidence cannot rank below it (`spread`: how far they lie from it).
 
-The search's best pose and its near-equal alternatives are each refined (point-to-plane ICP,
-partners no nearer than the target's sample spacing) and judged; the one with the best
-fitness less violations is kept, and refused (RegistrationFailed, with the figures) when
-fitness < `min_fitness`, the overlap < `min_overlap`, more than `max_violations` of the
-source lies in front of the target's surface, the search was ambiguous or (those passed) a
-probe along a weak motion fits better. Transforms map SOURCE
-points onto the TARGET's frame; mm.
+Transforms map SOURCE points onto the TARGET's frame; mm, degrees.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+import time
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-from scipy import ndimage
-from scipy.spatial import cKDTree
+from scipy.special import ndtri
 
-from inspection.errors import RegistrationFailed
-from inspection.measured_cloud import ScanCloud, fit_plane, part_mask
-from inspection.registration import ModelTarget, RegistrationSettings, register, transform_points
+from inspection.errors import CloudError, RegistrationFailed
+from inspection.measured_cloud import ScanCloud, fit_plane
+from inspection.registration import ModelTarget, RegistrationSettings, icp, register
+from inspection.registration.clouds import voxel_grid
 from inspection.views.align import pose_error
-from inspection.views.constraint import Constraint, along, overlap_constraint
-from inspection.views.pairwise import PairSettings, PairView, paired, refine_pair, thin
+from inspection.views.constraint import along
+from inspection.views.pair_evidence import K_SIGMA, P_AGREE, Evidence, evidence, score_only
+from inspection.views.pairwise import PairSettings, paired, refine_pair, thin
+from inspection.views.pose_search import face_poses
+from inspection.views.projective import refine_projective
+from inspection.views.quiet import stdout_to_stderr
+from inspection.views.sensor_view import SensorView
 from scanner.geometry import Pinhole
 
-MIN_FITNESS = 0.8
-MIN_OVERLAP = 0.1
-MAX_VIOLATIONS = 0.002  # in front of the target's surface, judged in ray bins (a cloud file target)
-MAX_VIOLATIONS_ON_PIXELS = 0.001  # ... judged on the target's own pixels (a session target)
-PROBED, PROBE_MM = 2, 1.0  # the weakest motions probed, how far (mm at the overlap's RMS radius)
-SAME_DEG, SAME_MM = 0.2, 0.2  # a probe settling nearer is the same pose
+PROBED, PROBE_MM, ROUNDS = 2, 1.0, 2  # the weakest motions probed, how far (mm at the overlap's RMS radius), rounds
+ROUGH, REFINED, ROUGH_POINTS = 24, 4, 400  # starts refined roughly, then fully; points judging them roughly
+CLIMBS = 4  # moves of a resolution along the constraint's motions toward a better fit
+SAME_START_DEG = 1.0  # starts closer than 2 of these and 2 voxels are one start
 OPEN_GATE = 1e-9  # the CAD search's min_fitness when a view is the target (settings refuse 0)
+SUPPORT_PLANE = 0.01  # a support plane's RANSAC band, as a share of the view's extent
+
+Judging = tuple[np.ndarray, np.ndarray, SensorView]  # the points a view's evidence is counted on, and its sensor
+
+
+@dataclass(frozen=True)
+class ViewPairSettings:
+    """`resolution_deg`/`resolution_mm` (at the source's centre): poses closer than both are
+    one answer; `false_accept`: the chance of preferring the leader over a distinct pose
+    that is right, allowed per alternative; `false_refuse`: the chance of refusing a right
+    pose for its disagreeing points; `motion_risk`: two-sided, a motion's excursion beyond
+    the resolution allowed with this chance."""
+
+    resolution_deg: float = 0.3
+    resolution_mm: float = 0.5
+    false_accept: float = 1e-3
+    false_refuse: float = 1e-3
+    motion_risk: float = 1e-3
+
+    def __post_init__(self) -> None:
+        if not (self.resolution_deg > 0 and self.resolution_mm > 0
+                and all(0 < p < 0.5 for p in (self.false_accept, self.false_refuse, self.motion_risk))):
+            raise ValueError(f"view-pair settings out of range: {self}")
+
+
+@dataclass(frozen=True, eq=False)
+class Alternative:
+    """A distinct pose the evidence was weighed against: `deg`/`mm` from the leader, its
+    `score`, how many standard errors the leader's is above it (`z`), and whether its
+    points agree as the noise allows (`consistent`; a pose they refute is no rival)."""
+
+    transform: np.ndarray
+    deg: float
+    mm: float
+    score: float
+    z: float
+    consistent: bool
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"transform": self.transform.tolist(), "deg_from_best": self.deg, "mm_from_best": self.mm,
+                "score": self.score, "best_above_by_se": self.z, "allowed_by_the_noise": self.consistent}
 
 
 @dataclass(frozen=True, eq=False)
 class ViewPair:
-    """`transform` source -> target; `overlap` estimated (or given: `overlap_given`);
-    `fitness` on the overlap; `rmse_mm` of the inliers; `inlier_mm`, `region_mm` used."""
+    """The leading pose and its evidence: `transform` source -> target; `proven` with the
+    `refusals` (why not) otherwise; `overlap` the share of the source the target's sensor
+    measured at that pose (`overlap_given`: the user's figure instead); `fitness` the share
+    of comparable points that agree; `rmse_mm` theirs; `sigma_mm` the pair's noise;
+    `spread` (deg, mm) how far the poses the evidence cannot rank lie from `transform`;
+    `alternatives` every distinct pose weighed (`ambiguous`: one is not told apart);
+    `weakest_motion` the least fixed motion and `weakest_sd` the largest rotation and
+    translation standard deviations (deg, mm at the overlap's centre)."""
 
     transform: np.ndarray
+    proven: bool
+    refusals: tuple[str, ...]
     overlap: float
     overlap_given: bool
     fitness: float
     rmse_mm: float
-    inlier_mm: float
-    region_mm: float
-    violations: float
-    method: str
+    sigma_mm: float
+    comparable: int
+    score: float
+    spread: tuple[float, float]
+    alternatives: tuple[Alternative, ...]
     ambiguous: bool
-    timings_s: dict[str, float]
+    weakest_motion: str
+    weakest_sd: tuple[float, float]
+    method: str
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def inlier_mm(self) -> float:
+        """The agreement band: K pair sigmas (mm)."""
+        return K_SIGMA * self.sigma_mm
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"transform": self.transform.tolist(), "proven": self.proven, "refusals": list(self.refusals),
+                "fitness": self.fitness, "rmse": self.rmse_mm, "overlap": self.overlap,
+                "overlap_given": self.overlap_given, "sigma_mm": self.sigma_mm, "comparable_points": self.comparable,
+                "score": self.score, "spread_deg": self.spread[0], "spread_mm": self.spread[1],
+                "ambiguous": self.ambiguous,
+                "alternatives": [a.as_dict() for a in self.alternatives],
+                "weakest_motion": {"motion": self.weakest_motion, "sd_deg": self.weakest_sd[0],
+                                   "sd_mm": self.weakest_sd[1]},
+                "method": self.method, "timings_s": self.timings_s}
+
+    def text(self, source: str, target: str) -> str:
+        """What `slscan register` prints for people."""
+        with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
+            matrix = str(self.transform)
+        head = (f"transform taking {source} onto {target} (mm):\n{matrix}" if self.proven else
+                f"NOT MEASURED: no pose of {source} in {target} is proven ({'; '.join(self.refusals)}); the best "
+                f"(not a result):\n{matrix}")
+        return (f"{head}\noverlap {self.overlap:.0%} of the scan ({'given' if self.overlap_given else 'predicted'}); "
+                f"{self.fitness:.2%} of the {self.comparable} points each sensor could judge agree within 3 sigma "
+                f"({self.inlier_mm:.3g} mm), RMSE {self.rmse_mm:.4f} mm; poses the evidence cannot rank lie within "
+                f"{self.spread[0]:.3f} deg / {self.spread[1]:.3f} mm; {len(self.alternatives)} distinct alternatives "
+                f"weighed; {self.method}")
+
+
+class PairNotProven(RegistrationFailed):
+    """The views' evidence does not prove a pose: `pair` holds the leading pose, why it was
+    refused and the alternatives."""
+
+    def __init__(self, source: str, pair: ViewPair) -> None:
+        super().__init__(f"{source}: no pose proven: {'; '.join(pair.refusals)}", pair.fitness, pair.rmse_mm)
+        self.pair = pair
+
+
+def support_mask(scan: ScanCloud, seed: int = 0) -> np.ndarray:
+    """Which points are not the table or platter the part stands on: the dominant plane
+    (RANSAC, a band of `SUPPORT_PLANE` of the view's extent) is a support when more of the
+    other points lie on the sensor's side of it than behind it (a part stands on its support;
+    a face of the part has the rest of the part behind it), and then it and all behind it
+    go; whatever the part's size or the cloud's frame. All points stay without a viewpoint
+    (which side is the sensor's is unknown) or when the plane is no support."""
+    keep = np.ones(len(scan), bool)
+    if scan.viewpoint is None:
+        return keep
+    band = SUPPORT_PLANE * float(np.linalg.norm(np.ptp(scan.points, axis=0)))
+    plane, on = fit_plane(scan.points, band, seed)
+    d = scan.points @ plane[:3] + plane[3]
+    d *= np.sign(scan.viewpoint @ plane[:3] + plane[3]) or 1.0
+    front, behind = ~on & (d > band), ~on & (d < -band)
+    if front.sum() >= 500 and front.sum() > behind.sum():
+        return front
+    return keep
 
 
 def without_support(scan: ScanCloud, seed: int = 0) -> ScanCloud:
-    """The view without the table or platter the part stands on: its dominant plane, when
-    that plane spreads wider than 1.3 times the rest (`measured_cloud.part_mask`, with the
-    rest's extent for the model's); the view as it is otherwise. A square platter turning
-    with the part would otherwise register four ways."""
-    _, plane = fit_plane(scan.points, 0.01 * float(np.linalg.norm(np.ptp(scan.points, axis=0))), seed)
-    rest = ~plane
-    if rest.sum() < 500:
-        return scan
-    diagonal = float(np.linalg.norm(np.ptp(scan.points[rest], axis=0)))
-    if np.linalg.norm(np.ptp(scan.points[~rest], axis=0)) <= 1.3 * diagonal:
-        return scan
-    return scan.subset(part_mask(scan, diagonal, seed))
-
-
-def free_space_violations(points: np.ndarray, target: ScanCloud, tolerance_mm: float,
-                          camera: Pinhole | None = None, cell: float = 4e-4) -> float:
-    """The share of `points` (target frame) that lie in front of the target's surface as its
-    sensor saw it: on a ray from the target's viewpoint, nearer than the surface it hit by
-    more than `tolerance_mm`. Such a point would have hidden that surface from the target's
-    sensor, so the pose that put it there is wrong. A point on a ray the target saw no
-    surface on counts as no violation. 0 without a viewpoint.
-
-    With the target's `camera` (a session cloud: camera frame, every point on its pixel) the
-    points are projected into the target's own image: a point is in front where the target
-    measured that pixel and its 3 x 3 neighbourhood and the point is nearer than every one of
-    those nine surfaces (the edge of what the target measured is no evidence: at the true
-    poses of 1280 x 1024 views every such point lay on the target's last measured pixel
-    beside a silhouette, 4-28 mm in front of the far side). Without one, rays are binned by
-    direction (x/z, y/z from the viewpoint, bins of `cell`, about a camera pixel at 2500 px
-    focal length): a bin mixes a silhouette's near and far surfaces and true poses of
-    1280 x 1024 views show up to 0.23 % there."""
-    if target.viewpoint is None or len(points) == 0:
-        return 0.0
-    if camera is not None and target.pixels is not None:
-        return _in_front_on_pixels(points, target, tolerance_mm, camera)
-
-    def rays(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        v = p - target.viewpoint
-        ok = v[:, 2] > 1e-6
-        key = np.floor(v[:, :2] / np.maximum(v[:, 2:3], 1e-6) / cell).astype(np.int64)
-        return key[:, 0] * 1_000_003 + key[:, 1], np.linalg.norm(v, axis=1), ok
-
-    tkey, trange, tok = rays(target.points)
-    order = np.argsort(tkey[tok])
-    keys, first = np.unique(tkey[tok][order], return_index=True)
-    nearest = np.minimum.reduceat(trange[tok][order], first)
-    qkey, qrange, qok = rays(points)
-    at = np.clip(np.searchsorted(keys, qkey), 0, len(keys) - 1)
-    seen = qok & (keys[at] == qkey)
-    return float((seen & (qrange < nearest[at] - tolerance_mm)).mean())
-
-
-def _in_front_on_pixels(points: np.ndarray, target: ScanCloud, tolerance_mm: float, camera: Pinhole) -> float:
-    """`free_space_violations` on the target's pixel grid (points in its camera frame, mm)."""
-    assert target.pixels is not None
-    h, w = camera.height, camera.width
-    distance = np.full((h, w), np.inf)
-    distance[target.pixels[:, 1], target.pixels[:, 0]] = np.linalg.norm(target.points, axis=1)
-    nearest = ndimage.minimum_filter(distance, size=3, mode="constant", cval=np.inf)
-    inner = ndimage.binary_erosion(np.isfinite(distance), np.ones((3, 3), bool))
-    ahead = points[:, 2] > 1e-6
-    px = np.full((len(points), 2), -1, dtype=np.int64)
-    px[ahead] = np.rint(camera.project(points[ahead])).astype(np.int64)
-    inside = ahead & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-    u, v = np.where(inside, px[:, 0], 0), np.where(inside, px[:, 1], 0)
-    seen = inside & inner[v, u]
-    return float((seen & (np.linalg.norm(points, axis=1) < nearest[v, u] - tolerance_mm)).mean())
+    """The view without the table or platter the part stands on (`support_mask`)."""
+    return scan.subset(support_mask(scan, seed))
 
 
 def session_camera(scan: ScanCloud) -> Pinhole | None:
@@ -186,97 +236,259 @@ def session_camera(scan: ScanCloud) -> Pinhole | None:
 
 
 def register_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None = None,
-                       settings: RegistrationSettings = RegistrationSettings(), min_fitness: float = MIN_FITNESS,
-                       min_overlap: float = MIN_OVERLAP, max_violations: float | None = None,
-                       refuse_ambiguous: bool = True) -> ViewPair:
-    """The pose of view `scan` in view `target` (see the module docstring); `max_violations`
-    None: the limit for how free space is judged there."""
+                       settings: RegistrationSettings = RegistrationSettings(), *, isolate: bool = False,
+                       pair: ViewPairSettings = ViewPairSettings()) -> ViewPair:
+    """The pose of view `scan` in view `target` (see the module docstring), or
+    PairNotProven. `isolate`: the part is taken off its support in each view first (the
+    whole view still says what its sensor saw); `overlap` (a share of `scan`): the user's
+    figure, reported in place of the model's."""
+    pose = weigh_view_pair(scan, target, overlap, settings, isolate=isolate, pair=pair)
+    if not pose.proven:
+        raise PairNotProven(scan.source, pose)
+    return pose
+
+
+def weigh_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None = None,
+                    settings: RegistrationSettings = RegistrationSettings(), *, isolate: bool = False,
+                    pair: ViewPairSettings = ViewPairSettings()) -> ViewPair:
+    """`register_view_pair`'s leading pose with its evidence, proven or not. Open3D's
+    prints go to standard error meanwhile (stdout may be a command's JSON)."""
     if overlap is not None and not 0 < overlap <= 1:
         raise ValueError(f"overlap must be a share in (0, 1], got {overlap}")
-    model = ModelTarget.from_cloud(target)
-    # its fitness gate assumes a subset (opened to the smallest it takes): the pose is judged below
-    coarse = register(scan, model, replace(settings, min_fitness=OPEN_GATE))
+    with stdout_to_stderr():
+        return _weigh(scan, target, overlap, settings, isolate, pair)
+
+
+def _weigh(scan: ScanCloud, target: ScanCloud, overlap: float | None, settings: RegistrationSettings, isolate: bool,
+           pair: ViewPairSettings) -> ViewPair:
+    t0 = time.perf_counter()
+    views = [SensorView.build(s, session_camera(s)) for s in (scan, target)]
+    missing = [s.source for s, v in zip((scan, target), views) if v is None]
+    if missing:
+        raise CloudError(", ".join(missing), "no viewpoint: what the other view's points should look like to this "
+                                             "sensor cannot be predicted; give the session, or the cloud in its "
+                                             "camera's frame (every point in front of the origin)")
+    sv, tv = views
+    assert sv is not None and tv is not None
+    keep = [support_mask(s, settings.seed) if isolate else np.ones(len(s), bool) for s in (scan, target)]
+    parts = [s.subset(k) for s, k in zip((scan, target), keep)]
+    times = {"views": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    model = ModelTarget.from_cloud(parts[1])
     voxel = model.voxel_mm
-    keep = thin(scan.points, 0.5 * voxel)
-    source = paired(scan.points, scan.normals, keep)
-    dense = paired(target.points, target.normals, np.arange(len(target.points)))
-    tree = cKDTree(target.points)
-    cameras = session_camera(target), session_camera(scan)
-    if max_violations is None:
-        max_violations = MAX_VIOLATIONS_ON_PIXELS if None not in cameras else MAX_VIOLATIONS
+    judged = [_judged_points(s, k, v, voxel) for s, k, v in zip((scan, target), keep, views)]
+    fine = [_judged_points(s, k, v, 0.5 * voxel) for s, k, v in zip((scan, target), keep, views)]
+    starts = _hypotheses(parts[0], model, judged, settings)
+    times["search"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    centre = parts[0].points.mean(axis=0)
 
-    def judge(T: np.ndarray) -> _Judged:
-        return _judge(source, dense, tree, T, (target, scan), cameras, voxel, overlap, settings)
+    source = paired(parts[0].points, parts[0].normals, thin(parts[0].points, voxel))
+    dense = paired(parts[1].points, parts[1].normals, np.arange(len(parts[1])))
+    icp_settings = PairSettings(voxel_mm=voxel, max_distance_mm=2.0 * voxel, min_distance_mm=0.02)
 
-    best = max((judge(T) for T in (coarse.transform, *coarse.alternatives)), key=_score)
-    result = ViewPair(best.transform, best.overlap, overlap is not None, min(best.fitness, 1.0), best.rmse_mm,
-                      0.5 * voxel, 2.0 * voxel, best.violations, coarse.method + "+overlap-icp", coarse.ambiguous,
-                      coarse.timings_s)
-    failed = [text for bad, text in (
-        (best.fitness < min_fitness, f"only {best.fitness:.0%} of the overlap lies within {0.5 * voxel:.3g} mm of "
-                                     f"{target.source} (needs {min_fitness:.0%})"),
-        (best.overlap < min_overlap, f"the overlap is {best.overlap:.0%} of the scan "
-                                     f"({'given' if overlap is not None else 'estimated'}; needs {min_overlap:.0%})"),
-        (best.violations > max_violations, f"{best.violations:.1%} of the scan would lie in front of what the "
-                                           f"target's sensor saw (at most {max_violations:.1%}): a wrong pose"),
-        (refuse_ambiguous and coarse.ambiguous, "the search found other poses that explain it about as well "
-                                                "(a symmetric part?): ambiguous")) if bad]
-    loose = None if failed else _loose(best, judge, scan.points.mean(axis=0))
-    if loose is not None:
-        failed.append(loose)
-    if failed:
-        raise RegistrationFailed(f"{scan.source}: {'; '.join(failed)}; not the same part, too little in common, or "
-                                 f"give the overlap with --overlap", best.fitness, best.rmse_mm)
-    return result
+    def weigh(T: np.ndarray) -> Evidence:
+        near = refine_pair(source, dense, T, icp_settings).transform
+        return evidence(refine_projective(near, judged[0], judged[1], 0.5 * voxel), fine[0], fine[1])
 
-
-def _score(j: _Judged) -> float:
-    return j.fitness - j.violations
-
-
-def _loose(best: _Judged, judge: Callable[[np.ndarray], _Judged], centre: np.ndarray) -> str | None:
-    """Why the overlap does not fix `best` (None when it does): a start `PROBE_MM` either way
-    along one of its `PROBED` weakest motions settles elsewhere (more than `SAME_DEG` or
-    `SAME_MM` at the source's `centre`, source frame) and fits better (fitness less violations)."""
-    for k in range(PROBED):
-        for shift in (-PROBE_MM, PROBE_MM):
-            probe = judge(along(best.constraint, k, shift) @ best.transform)
-            deg, mm = pose_error(best.transform, probe.transform, centre)
-            if (deg > SAME_DEG or mm > SAME_MM) and _score(probe) > _score(best):
-                return (f"the overlap barely fixes the {best.constraint.describe(k)}: a start {shift:+g} mm along it "
-                        f"settles {deg:.2f} deg / {mm:.2f} mm away and fits better ({probe.fitness:.3f} against "
-                        f"{best.fitness:.3f}), so ICP stalled short of the best pose")
-    return None
+    z_refuse = float(ndtri(1.0 - pair.false_refuse))
+    tried = [weigh(T) for T in starts]
+    best = max(tried, key=lambda e: _rank(e, z_refuse))
+    for _ in range(ROUNDS):
+        probes = [weigh(along(best.constraint, k, s) @ best.transform) for k in range(PROBED)
+                  for s in (-PROBE_MM, PROBE_MM)]
+        tried += probes
+        better = max(probes, key=lambda e: _rank(e, z_refuse))
+        if _rank(better, z_refuse) <= _rank(best, z_refuse) or \
+                not _distinct(better.transform, best.transform, centre, pair):
+            break
+        best = better
+    for _ in range(CLIMBS):
+        displaced = [evidence(M @ best.transform, fine[0], fine[1]) for M in _displacements(best, centre, pair)]
+        top = min(displaced, key=lambda e: best.sharper(e))
+        if best.sharper(top) >= 0.0:
+            break
+        tried.append(best)
+        best = top
+    times["judge"] = time.perf_counter() - t0
+    method = "rscs+" + "+".join(settings.descriptors) + f"+{settings.coarse}+face-directions+projective+sensor-evidence"
+    return _verdict(best, tried, displaced, centre, overlap, pair, method,
+                    {k: round(v, 3) for k, v in times.items()})
 
 
-@dataclass(frozen=True, eq=False)
-class _Judged:
-    transform: np.ndarray
-    overlap: float
-    fitness: float
-    rmse_mm: float
-    violations: float
-    constraint: Constraint
+def _displacements(best: Evidence, centre: np.ndarray, pair: ViewPairSettings) -> list[np.ndarray]:
+    """Motions taking the pose a resolution away (`resolution_deg` or `resolution_mm` at
+    `centre`, whichever it reaches first) along each eigenvector of its constraint, both
+    ways: the poses the evidence must rank below it for the pose to be fixed that well."""
+    out = []
+    for k in range(6):
+        unit = along(best.constraint, k, 1.0)
+        deg, mm = pose_error(np.eye(4), unit, centre)
+        shift = min(pair.resolution_deg / max(deg, 1e-12), pair.resolution_mm / max(mm, 1e-12))
+        out += [along(best.constraint, k, s * shift) for s in (-1.0, 1.0)]
+    return out
 
 
-def _judge(source: PairView, target: PairView, tree: cKDTree, T: np.ndarray, clouds: tuple[ScanCloud, ScanCloud],
-           cameras: tuple[Pinhole | None, Pinhole | None], voxel: float, overlap: float | None,
-           settings: RegistrationSettings) -> _Judged:
-    """A pose refined on the overlap and judged there (see the module docstring)."""
-    T = refine_pair(source, target, T, PairSettings(voxel_mm=voxel, max_distance_mm=2.0 * voxel,
-                                                    min_distance_mm=0.02)).transform
-    q = transform_points(T, source.points)
-    n = source.normals @ T[:3, :3].T
-    d, j = tree.query(q, distance_upper_bound=2.0 * voxel, workers=-1)
-    near = np.isfinite(d)
-    j = np.where(near, j, 0)
-    agree = np.einsum("ij,ij->i", n, target.normals[j]) > np.cos(np.radians(settings.max_normal_deg))
-    on = near & agree & (d <= 0.5 * voxel)
-    share = overlap if overlap is not None else float(near.mean())
-    fitness = float(on.sum() / max(share * len(q), 1.0))
-    rmse = float(np.sqrt(np.mean(d[on] ** 2))) if on.any() else float("inf")
-    back = np.linalg.inv(T)  # and the other way round: the target in the source's view
-    seen_back = transform_points(back, target.points[thin(target.points, 0.5 * voxel)])
-    violations = max(free_space_violations(q, clouds[0], 2.0 * voxel, cameras[0]),
-                     free_space_violations(seen_back, clouds[1], 2.0 * voxel, cameras[1]))
-    return _Judged(T, share, fitness, rmse, violations, overlap_constraint(q[on], target.normals[j[on]]))
+def _hypotheses(scan: ScanCloud, model: ModelTarget, judged: list[Judging],
+                settings: RegistrationSettings) -> list[np.ndarray]:
+    """The `REFINED` most promising starting poses: the CAD search's pose and alternatives,
+    each with its half turns about the source's principal axes through its centroid, and
+    the poses from the views' face directions (`pose_search`); ranked by the evidence at a
+    voxel's tolerance on a few hundred points, the `ROUGH` best refined by a short ICP on
+    the voxel grid and ranked again at half a voxel's, each pose once."""
+    try:
+        found = register(scan, model, replace(settings, min_fitness=OPEN_GATE))
+        searched = [found.transform, *found.alternatives]
+    except RegistrationFailed:
+        searched = []
+    c = scan.points.mean(axis=0)
+    _, axes = np.linalg.eigh(np.cov((scan.points - c).T))
+    flips = [np.eye(4)]
+    for a in axes.T:
+        F = np.eye(4)
+        F[:3, :3] = 2.0 * np.outer(a, a) - np.eye(3)  # a half turn about a
+        F[:3, 3] = c - F[:3, :3] @ c
+        flips.append(F)
+    v = model.voxel_mm
+    grid = voxel_grid(scan.points, scan.normals, v)
+    starts = [T @ F for T in searched for F in flips] + list(face_poses(grid, (model.coarse.points,
+                                                                             model.coarse.normals), v, settings.seed))
+    rng = np.random.default_rng(settings.seed)
+    few = [_few(j, rng) for j in judged]
+    first = sorted(starts, key=lambda T: -_rough(T, few, v))[:ROUGH]
+    pick = rng.choice(len(grid[0]), size=min(1500, len(grid[0])), replace=False)
+    refined = [icp(grid[0][pick], grid[1][pick], model.coarse, T, 8.0 * v, 0.5 * v, 30.0, 20) for T in first]
+    kept: list[np.ndarray] = []
+    for T in sorted(refined, key=lambda T: -_rough(T, few, 0.5 * v)):  # the same pose found twice counts once
+        if all(max(pose_error(T, U, c)[0] / SAME_START_DEG, pose_error(T, U, c)[1] / v) > 2.0 for U in kept):
+            kept.append(T)
+    return kept[:REFINED]
+
+
+def _few(j: Judging, rng: np.random.Generator) -> Judging:
+    pick = rng.choice(len(j[0]), size=min(ROUGH_POINTS, len(j[0])), replace=False)
+    return j[0][pick], j[1][pick], j[2]
+
+
+def _rough(T: np.ndarray, few: list[Judging], sigma_mm: float) -> float:
+    """The evidence score of pose T with a noise of `sigma_mm` (a coarse pose's error)."""
+    (sp, sn, sv), (tp, tn, tv) = few
+    return score_only(T, (sp, sn, replace(sv, sigma_mm=sigma_mm)), (tp, tn, replace(tv, sigma_mm=sigma_mm)))
+
+
+def _judged_points(scan: ScanCloud, keep: np.ndarray, view: SensorView, spacing_mm: float) -> Judging:
+    """The points of a view its evidence is counted on: the part's, measured at smooth
+    pixels of the view's own sensor, one per `spacing_mm` cube (a voxel to search and
+    refine, half a voxel to judge)."""
+    ok = np.flatnonzero(keep & view.point_smooth)
+    pick = ok[thin(scan.points[ok], spacing_mm)]
+    return scan.points[pick], scan.normals[pick], view
+
+
+def _distinct(a: np.ndarray, b: np.ndarray, centre: np.ndarray, pair: ViewPairSettings) -> bool:
+    deg, mm = pose_error(a, b, centre)
+    return deg > pair.resolution_deg or mm > pair.resolution_mm
+
+
+def _verdict(best: Evidence, tried: list[Evidence], displaced: list[Evidence], centre: np.ndarray,
+             overlap: float | None, pair: ViewPairSettings, method: str, times: dict[str, float]) -> ViewPair:
+    """The pose the evidence supports with every refusal it calls for (see the module
+    docstring): the mean of the poses that score within z standard errors of the best (the
+    evidence cannot rank them), refused when one of them lies beyond the resolution, or when
+    the best moved a resolution away along a motion (`displaced`) scores as well."""
+    z_accept, z_refuse = float(ndtri(1.0 - pair.false_accept / 2.0)), float(ndtri(1.0 - pair.false_refuse))
+    z_motion = float(ndtri(1.0 - pair.motion_risk / 2.0))
+    alike = [best] + [e for e in tried if e is not best and consistent(e, z_refuse) and _apart(best, e) < z_accept]
+    pose = _mean_pose([e.transform for e in alike], centre)
+    spread = [pose_error(pose, e.transform, centre) for e in alike]
+    alternatives: list[Alternative] = []
+    for e in sorted(tried, key=lambda e: -e.score):
+        if _distinct(e.transform, pose, centre, pair) and \
+                all(_distinct(e.transform, a.transform, centre, pair) for a in alternatives):
+            deg, mm = pose_error(pose, e.transform, centre)
+            alternatives.append(Alternative(e.transform, deg, mm, e.score, _apart(best, e),
+                                            consistent(e, z_refuse)))
+    refusals = []
+    motion, sd = _weakest(best)
+    n = best.comparable
+    if n == 0:
+        refusals.append("at the best pose no point of either view falls where the other's sensor measured a surface: "
+                        "no overlap to judge")
+    elif sd[0] * z_motion > pair.resolution_deg or sd[1] * z_motion > pair.resolution_mm:
+        refusals.append(f"the overlap leaves the {motion} free (standard deviation {sd[0]:.3g} deg / {sd[1]:.3g} mm "
+                        f"from {best.agreeing} agreeing points; resolution {pair.resolution_deg:g} deg / "
+                        f"{pair.resolution_mm:g} mm)")
+    floor = _agree_floor(n, z_refuse)
+    if n and best.fitness < floor:
+        refusals.append(f"only {best.fitness:.2%} of the {n} points each view's sensor could judge agree with it "
+                        f"within 3 sigma = {3 * best.forward.sigma_mm:.3g} mm (the noise lets at least {floor:.2%}): "
+                        f"the views disagree at this pose")
+    rivals = [a for a in alternatives if a.consistent and a.z < z_accept]
+    loose = [(e, k // 2) for k, e in enumerate(displaced) if consistent(e, z_refuse) and _apart(best, e) < z_accept]
+    for e, k in loose[:2]:
+        deg, mm = pose_error(best.transform, e.transform, centre)
+        refusals.append(f"the evidence does not fix the {best.constraint.describe(k)} to the resolution: the pose "
+                        f"moved {deg:.2f} deg / {mm:.2f} mm along it scores {e.score:.4f} against {best.score:.4f} "
+                        f"and fits its residuals, both only {_apart(best, e):.1f} standard errors worse at most "
+                        f"(needs {z_accept:.2f})")
+    alternatives += [Alternative(e.transform, *pose_error(pose, e.transform, centre), e.score, _apart(best, e),
+                                 consistent(e, z_refuse)) for e, _ in loose]
+    if rivals:
+        refusals.append("ambiguous: " + "; ".join(
+            f"a pose {a.deg:.2f} deg / {a.mm:.2f} mm away scores {a.score:.4f} against {best.score:.4f} "
+            f"({a.z:.1f} standard errors below, needs {z_accept:.2f})" for a in rivals[:3])
+            + f" (resolution {pair.resolution_deg:g} deg / {pair.resolution_mm:g} mm)")
+    return ViewPair(pose, not refusals, tuple(refusals), overlap if overlap is not None else best.overlap,
+                    overlap is not None, best.fitness, best.rmse_mm, best.forward.sigma_mm, n, best.score,
+                    (max(d for d, _ in spread), max(m for _, m in spread)), tuple(alternatives), bool(rivals or loose),
+                    motion, sd, method, times)
+
+
+def _agree_floor(comparable: int, z_refuse: float) -> float:
+    """The least share of `comparable` points a right pose agrees on (at the false-refuse
+    rate whose z is `z_refuse`): p0 less z binomial standard errors."""
+    return P_AGREE - z_refuse * np.sqrt(P_AGREE * (1.0 - P_AGREE) / max(comparable, 1))
+
+
+def consistent(e: Evidence, z_refuse: float) -> bool:
+    """Whether the points each sensor can judge agree with pose `e` as the noise allows."""
+    return bool(e.comparable > 0 and e.fitness >= _agree_floor(e.comparable, z_refuse))
+
+
+def _rank(e: Evidence, z_refuse: float) -> tuple[bool, float]:
+    """Poses the noise allows first, then by score: a pose contradicting more points than
+    noise can (2 % at a symmetric part's half turn) is refuted whatever its overlap, and a
+    right pose of a smaller overlap must not lose to it on agreeing points."""
+    return consistent(e, z_refuse), e.score
+
+
+def _apart(best: Evidence, other: Evidence) -> float:
+    """How far the evidence puts `best` above `other`, in standard errors: the larger of the
+    score's (points agreeing less contradicting) and the residuals' (`Evidence.sharper`)
+    difference; each is tested at half the false-accept rate, so either may decide."""
+    return max(best.beats(other), best.sharper(other))
+
+
+def _mean_pose(poses: list[np.ndarray], centre: np.ndarray) -> np.ndarray:
+    """The mean of nearby poses: their rotations' mean, and the mean place they move
+    `centre` to."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_matrix(np.stack([T[:3, :3] for T in poses])).mean().as_matrix()
+    moved = np.mean([T[:3, :3] @ centre + T[:3, 3] for T in poses], axis=0)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, moved - R @ centre
+    return T
+
+
+def _weakest(e: Evidence) -> tuple[str, tuple[float, float]]:
+    """The least fixed motion (in words) and its standard deviation (deg, mm) from the
+    pose's information; infinite when the partners leave it free."""
+    H = e.information
+    values, vectors = np.linalg.eigh(H)
+    if values[-1] <= 0 or values[0] <= values[-1] * 1e-12:
+        return e.constraint.describe(0), (float("inf"), float("inf"))
+    cov = vectors @ np.diag(1.0 / values) @ vectors.T
+    sd_deg = float(np.degrees(np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1])))
+    sd_mm = float(np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1]))
+    return e.constraint.describe(0), (sd_deg, sd_mm)

@@ -276,6 +276,7 @@ def _pairs(session: Any, truths: list[np.ndarray]) -> dict[str, Any]:
     from inspection.measured_cloud import load_source
     from inspection.views.align import pose_error
     from inspection.views.pair_registration import register_view_pair, without_support
+    from sim.pair_bench import open3d_pair
 
     views = [without_support(load_source(v.session.root)) for v in session.views]
     n = len(views)
@@ -295,7 +296,7 @@ def _pairs(session: Any, truths: list[np.ndarray]) -> dict[str, Any]:
                 ours.append(pose_error(truth, found, centre))
             except RegistrationFailed:
                 ours.append(None)
-            theirs.append(pose_error(truth, _open3d_pair(views[i], views[j]), centre))
+            theirs.append(pose_error(truth, open3d_pair(views[i], views[j], 0), centre))
         out[f"{apart} deg"] = {"ours": _rates(ours), "open3d_fpfh_ransac_icp": _rates(theirs)}
     return out
 
@@ -306,32 +307,6 @@ def _rates(errors: list[tuple[float, float] | None]) -> dict[str, Any]:
     return {"pairs": len(errors), "found": len(found), "refused": sum(e is None for e in errors),
             "wrong": len(wrong), "median_found_deg": float(np.median([e[0] for e in found])) if found else None,
             "median_found_mm": float(np.median([e[1] for e in found])) if found else None}
-
-
-def _open3d_pair(source: Any, target: Any) -> np.ndarray:
-    """Open3D's own pipeline, one start: FPFH on both voxel clouds, RANSAC on feature
-    matches (mutual filter), then point-to-plane ICP on the denser clouds."""
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    voxel = float(np.linalg.norm(np.ptp(target.points, axis=0))) / 150.0
-
-    def cloud(s: Any, v: float) -> Any:
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(s.points))
-        pc.normals = o3d.utility.Vector3dVector(s.normals)
-        return pc.voxel_down_sample(v)
-
-    src, dst = cloud(source, voxel), cloud(target, voxel)
-    param = o3d.geometry.KDTreeSearchParamHybrid(5 * voxel, 100)
-    fs, fd = reg.compute_fpfh_feature(src, param), reg.compute_fpfh_feature(dst, param)
-    o3d.utility.random.seed(0)
-    ransac = reg.registration_ransac_based_on_feature_matching(
-        src, dst, fs, fd, True, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
-        reg.RANSACConvergenceCriteria(100000, 0.999))
-    icp = reg.registration_icp(cloud(source, voxel / 4), cloud(target, voxel / 4), voxel, ransac.transformation,
-                               reg.TransformationEstimationPointToPlane())
-    return np.asarray(icp.transformation)
 
 
 def _text(f: dict[str, Any]) -> str:
