@@ -28,7 +28,7 @@ from inspection.form import FaceForm, FormSettings
 from inspection.report_header import ReportHeader
 from inspection.report_html import render
 from inspection.report_pdf import print_pdf
-from inspection.tolerances import DECISION_RULES, GUARD_BANDED, overall
+from inspection.tolerances import DECISION_RULES, DECISION_STATUS, GUARD_BANDED, overall
 from inspection.uncertainty import Estimate
 from scanner.csv_cells import csv_cell
 from scanner.session import write_atomic, write_json
@@ -133,7 +133,7 @@ class InspectionReport:
         return overall([v for row in self.faces for _, v in row.verdicts.values()])
 
     def as_dict(self) -> dict[str, Any]:
-        return {"status": "ok", "header": self.header.as_dict(), "model": self.model, "unit": self.unit, "source": self.source,
+        return {"status": DECISION_STATUS[self.verdict], "header": self.header.as_dict(), "model": self.model, "unit": self.unit, "source": self.source,
                 "fitness": self.fitness, "rmse_mm": self.rmse_mm, "verdict": self.verdict,
                 "decision_rule": self.decision_rule, "rule": DECISION_RULES[self.decision_rule],
                 "coverage_factor": 2.0, "calibration_uncertainty": self.calibration,

@@ -110,6 +110,7 @@ def load_tolerances(path: str | Path, labels: dict[str, str]) -> Tolerances:
 
 
 CONFORMING, NON_CONFORMING, UNCERTAIN, NOT_MEASURED = "conforming", "non-conforming", "uncertain", "not measured"
+NO_TOLERANCES = "no tolerances"  # a part without limits: measured, nothing to decide
 GUARD_BANDED, PLAIN = "guard-banded", "plain"
 DECISION_RULES = {
     GUARD_BANDED: "ISO 14253-1: conforming when value + U is within the limit, non-conforming when value - U is "
@@ -140,10 +141,16 @@ def decide(value: float | None, U: float, upper: float, lower: float | None = No
     return UNCERTAIN
 
 
+DECISION_STATUS = {CONFORMING: "ok", NO_TOLERANCES: "ok", NON_CONFORMING: "failed", UNCERTAIN: "no decision",
+                   NOT_MEASURED: "no decision"}
+"""The `status` of a result by its overall verdict, as its exit code says it
+(`slscan.exit_codes`: 0, 1 and 4)."""
+
+
 def overall(verdicts: list[str]) -> str:
     """A part's verdict from its characteristics': non-conforming if any is, else
     uncertain or not measured if any is, else conforming ("no tolerances" without any)."""
     for word in (NON_CONFORMING, UNCERTAIN, NOT_MEASURED):
         if word in verdicts:
             return word
-    return CONFORMING if verdicts else "no tolerances"
+    return CONFORMING if verdicts else NO_TOLERANCES

@@ -2,7 +2,9 @@
 
     0  success: the command did what was asked and every measured part or check passed
     1  a measured part or a check fails: a face out of tolerance, a station part that fails,
-       a calibration refused by its quality limits, results that disagree
+       a calibration refused by its quality limits, a pose not proven, results that disagree
+    4  no decision: a part (or a characteristic of it) not measured or uncertain (within U of
+       its limit, ISO 14253-1), none failing; re-measure or measure it another way
     2  usage error or refused input: a bad option, a missing or invalid file, a session or
        cloud that cannot be used (argparse's own code for usage errors)
     3  a device fault: a camera, projector or trigger box that fails, times out or disconnects
@@ -15,6 +17,7 @@ escapes a command to its code with `for_error`.
 from __future__ import annotations
 
 from enum import IntEnum
+from typing import Iterable
 
 
 class Exit(IntEnum):
@@ -24,12 +27,31 @@ class Exit(IntEnum):
     FAILED = 1
     USAGE = 2
     DEVICE = 3
+    NO_DECISION = 4
     INTERRUPTED = 130
 
 
 SUMMARY = ("exit codes: 0 success; 1 a measured part or check fails; 2 usage error or refused input; "
-           "3 device fault; 130 interrupted")
+           "3 device fault; 4 no decision (a part not measured or uncertain); 130 interrupted")
 """The one-line form `slscan --help` ends with."""
+
+def for_parts(statuses: Iterable[str]) -> Exit:
+    """The exit code of parts judged together (a station run, a batch) from their statuses
+    (`slscan.station.results.STATUSES`, or inspections' verdicts): 1 if any fails, else 4 if
+    any has no decision (uncertain, not measured, an error or an aborted cycle), else 0."""
+    from inspection.tolerances import DECISION_STATUS
+
+    station = {"pass": "ok", "fail": "failed"}
+    found = {DECISION_STATUS.get(s) or station.get(s, "no decision") for s in statuses}
+    return Exit.FAILED if "failed" in found else Exit.NO_DECISION if "no decision" in found else Exit.OK
+
+
+def for_verdict(verdict: str) -> Exit:
+    """The exit code of one part's overall verdict (`inspection.tolerances.overall`), the
+    same as the `status` its JSON states (`DECISION_STATUS`): conforming (or no tolerances to
+    judge) 0, non-conforming 1, uncertain or not measured 4."""
+    return for_parts([verdict])
+
 
 def for_error(exc: BaseException) -> Exit:
     """The exit code for an error that ended a command: device faults 3, a refused

@@ -232,3 +232,14 @@ def test_progress_on_a_terminal_is_one_live_line_per_stage() -> None:
     assert "[####################] 4/4" in lines[0]
     assert lines[1].split("\r")[-1].rstrip() == "decode      finished in 2.00 s"
     assert lines[2].split("\r")[-1].rstrip() == "done        all stages in 6.00 s" and lines[3] == ""
+
+
+def test_parts_judged_together_exit_by_their_worst_decision() -> None:
+    """README "Exit codes": any part failing 1, else any without a decision 4, else 0."""
+    from slscan.exit_codes import for_parts, for_verdict
+
+    assert for_parts(["pass", "pass"]) == Exit.OK and for_parts([]) == Exit.OK
+    assert for_parts(["pass", "uncertain", "fail"]) == Exit.FAILED
+    assert for_parts(["pass", "uncertain"]) == for_parts(["error"]) == for_parts(["aborted"]) == Exit.NO_DECISION
+    assert [for_verdict(v) for v in ("conforming", "no tolerances", "non-conforming", "uncertain", "not measured")] \
+        == [0, 0, 1, 4, 4]

@@ -193,6 +193,31 @@ def test_nominal_faces_read_below_their_detection_limit(run: SimpleNamespace) ->
     assert got.value is None or got.value <= got.U  # not told from zero, or zero within U
 
 
+EXIT_CASES = {  # the part's verdict by its tolerances -> (exit code, JSON status); README "Exit codes"
+    "conforming": ('[faces."#270"]\nflatness_mm = 0.5\n', 0, "ok"),  # the boss top: no defect imposed
+    "non-conforming": ('[faces."#158"]\nflatness_mm = 0.02\n', 1, "failed"),  # a 60 um bow
+    "not measured": ('[faces."#711"]\nflatness_mm = 0.05\n', 4, "no decision"),  # the base: out of view
+    "refused input": ('[faces."#99999"]\nflatness_mm = 0.05\n', 2, None),  # the model has no such face
+}
+
+
+def test_exit_code_is_the_verdict(run: SimpleNamespace, tmp_path: Path, capsys) -> None:
+    """`slscan inspect` exits with its verdict, and inspection.json's status says the same;
+    the table (command x case -> code) is printed."""
+    table = []
+    for case, (text, code, status) in EXIT_CASES.items():
+        tol, out = tmp_path / f"{case}.toml", tmp_path / case.replace(" ", "_")
+        tol.write_text(text)
+        got = cli.main(["inspect", str(run.session), "--cad", str(STEP), "--tolerances", str(tol), "--out", str(out),
+                        "--no-pdf"])
+        err = capsys.readouterr().err
+        table.append(f"inspect  {case:<15} exit {got}")
+        data = json.loads((out / "inspection.json").read_text()) if status else None
+        assert got == code, (case, err)
+        assert status is None or (data["verdict"] == case and data["status"] == status)
+    print("\n".join(table))
+
+
 def test_inspect_command_writes_report_and_recording(run: SimpleNamespace, tmp_path: Path, capsys) -> None:
     tol = tmp_path / "tol.toml"
     tol.write_text('[faces."#158"]\nflatness_mm = 0.02\n[faces."#270"]\nflatness_mm = 0.05\n'

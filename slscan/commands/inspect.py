@@ -24,9 +24,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from inspection.tolerances import NON_CONFORMING
 from scanner.errors import ConfigError
-from slscan.exit_codes import Exit
+from slscan.exit_codes import Exit, for_verdict
 from slscan.options import COARSE_METHODS, coarse_method, plain_text_arg
 
 CAD_UNITS = ("mm", "cm", "m", "in")
@@ -411,7 +410,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         folder = Path(args.out) if args.out else (Path(args.source) / "outputs" if Path(args.source).is_dir()
                                                   else Path(args.source).parent)
         print(f"report    {folder / 'inspection.html'} (.json, .csv{'' if args.no_pdf else ', .pdf'})", file=sys.stderr)
-    return Exit.FAILED if report.verdict == NON_CONFORMING else Exit.OK
+    return for_verdict(report.verdict)
 
 
 def register(sub: Any) -> None:

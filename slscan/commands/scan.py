@@ -17,7 +17,7 @@ from scanner.reconstruct import Triangulator
 from scanner.rig import DEFAULT_RIG
 from scanner.session import write_json
 from scanner.stage_timer import StageTimer
-from slscan.exit_codes import Exit
+from slscan.exit_codes import Exit, for_verdict
 from slscan.progress import ProgressLine
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
@@ -284,9 +284,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     session against the part's STEP model and tolerances: registration, per-face
     segmentation, form table; the verdict is shown as soon as it is known, then the report
     files go to the session's outputs/ and the inspection into its recording. The CAD
-    model is loaded while the part is scanned. Exit 1 when a characteristic is non-conforming."""
-    from inspection.tolerances import NON_CONFORMING
-
+    model is loaded while the part is scanned. Exit by the verdict (`for_verdict`: 1 when a
+    characteristic is non-conforming, 4 when one is not measured or uncertain)."""
     out = args.out or f"sessions/demo-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
     ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[],
                             full_recording=args.full_recording)
@@ -321,7 +320,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"time      inspection {done['seconds']:.1f} s wall, {done['cpu']:.1f} s CPU ({stages} s); demo "
           f"{time.perf_counter() - t0:.1f} s wall")
     print(demo_conclusion(rep, Path(out)))
-    return Exit.FAILED if rep.verdict == NON_CONFORMING else Exit.OK
+    return for_verdict(rep.verdict)
 
 
 def _shown(path: Path) -> str:

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from scanner.errors import ScannerError
-from slscan.exit_codes import Exit
+from slscan.exit_codes import Exit, for_parts
 from slscan.options import OutputFlag, add_out, count_arg, plain_text_arg
 from slscan.station.measure import MEASUREMENTS
 
@@ -216,7 +216,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     summary = run_batch(args.sessions, args.program, scheduler=args.scheduler, workers=args.workers,
                         store_config=config, progress=ProgressLine(), measurement=args.measurement, rig_path=args.rig)
     print_summary(summary, json_out=args.json)
-    return Exit.OK if not summary.failures else Exit.FAILED
+    return for_parts(i.status for i in summary.items)
 
 
 def cmd_batchbench(args: argparse.Namespace) -> int:

@@ -18,7 +18,7 @@ from typing import Any, TextIO
 
 from scanner.pipeline import Progress
 from scanner.rig import RigConfig
-from slscan.exit_codes import Exit
+from slscan.exit_codes import Exit, for_parts
 from slscan.station import StationError
 from slscan.station.charts import ChartRecording
 from slscan.station.hardware_bench import Bench
@@ -180,4 +180,4 @@ def run_auto(run: StationRun, parts: int, out: TextIO | None = None, progress: P
     print(f"results      {run.store.where}", file=out)
     print(f"report       {run.write_report()}", file=out)
     print(f"charts       {run.report_dir / CHART_RECORDING} (written when the station closes)", file=out)
-    return Exit.OK if counts["pass"] == parts else Exit.FAILED
+    return for_parts(o.status for o in outcomes) if len(outcomes) == parts else Exit.NO_DECISION
