@@ -77,11 +77,12 @@ def review_command(paths: Paths, *, display: bool | None = None, port: int = DEF
                    blueprint: Path | None = None) -> list[str]:
     """The command line that shows recordings (one or several, opened together, with a
     blueprint `.rbl` when given): the native viewer when there is a display, otherwise a
-    web viewer served over HTTP (`port`) fed by a gRPC server (`grpc_port`), both listening
-    on `bind` (loopback by default: reach them through an SSH tunnel)."""
+    web viewer served over HTTP (`port`) fed by a gRPC server (`grpc_port`, which the native
+    viewer opens too), both listening on `bind` (loopback by default: reach them through an
+    SSH tunnel)."""
     files = [str(f) for f in _files(paths)] + ([str(blueprint)] if blueprint is not None else [])
     if has_display() if display is None else display:
-        return [*rerun_executable(), *files]
+        return [*rerun_executable(), *files, "--port", str(grpc_port)]  # it too listens for SDK connections
     return [*rerun_executable(), "--serve-web", *files, "--bind", bind,
             "--web-viewer-port", str(port), "--port", str(grpc_port)]
 
@@ -104,10 +105,30 @@ def review_instructions(port: int = DEFAULT_WEB_PORT, grpc_port: int = DEFAULT_G
             f"  then open the same address there. Ctrl-C stops the server.")
 
 
-def start_review(paths: Paths, *, display: bool | None = None, port: int = DEFAULT_WEB_PORT,
-                 grpc_port: int = DEFAULT_GRPC_PORT, bind: str = "127.0.0.1", blueprint: Path | None = None,
+def port_to_use(port: int | None, default: int, bind: str, what: str) -> int:
+    """`port` if given and free (else RecordingError naming it); without one, `default` if
+    it is free, else one the system picks free (a second `review` beside a first)."""
+    from scanner.session_recording import RecordingError
+
+    for candidate in ([port] if port is not None else [default, 0]):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind((bind, candidate))
+            except OSError as exc:
+                if port is not None:
+                    raise RecordingError(f"{what} port {port} on {bind}: {exc.strerror or exc}; choose another "
+                                         f"or leave it out (a free one is taken)") from None
+                continue
+            return int(s.getsockname()[1])
+    raise RecordingError(f"no free {what} port on {bind}")
+
+
+def start_review(paths: Paths, *, display: bool | None = None, port: int | None = None,
+                 grpc_port: int | None = None, bind: str = "127.0.0.1", blueprint: Path | None = None,
                  **popen_kw: Any) -> subprocess.Popen:
-    """Start the viewer or web server on recordings and return at once (see `review`)."""
+    """Start the viewer or web server on recordings and return at once (see `review`).
+    `port`/`grpc_port`: the web viewer's HTTP port and the gRPC port feeding it; None: the
+    defaults when free, else free ones."""
     from scanner.session_recording import RecordingError
 
     for rrd in _files(paths):
@@ -116,6 +137,8 @@ def start_review(paths: Paths, *, display: bool | None = None, port: int = DEFAU
             hint = f"; {part.name} exists but was never closed (interrupted session)" if part.exists() else ""
             raise RecordingError(f"{rrd}: no recording to review{hint}")
     show = has_display() if display is None else display
+    grpc_port = port_to_use(grpc_port, DEFAULT_GRPC_PORT, bind, "the viewer's gRPC")
+    port = port_to_use(port, DEFAULT_WEB_PORT, bind, "the web viewer's HTTP") if not show else DEFAULT_WEB_PORT
     cmd = review_command(paths, display=show, port=port, grpc_port=grpc_port, bind=bind, blueprint=blueprint)
     if not show:
         print(review_instructions(port, grpc_port), flush=True)

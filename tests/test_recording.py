@@ -270,10 +270,10 @@ def test_display_detection() -> None:
 def test_review_command_with_a_display(tmp_path: Path) -> None:
     rrd = tmp_path / R.RECORDING_NAME
     cmd = viewer.review_command(rrd, display=True)
-    assert cmd[-1] == str(rrd)
+    assert cmd[-3:] == [str(rrd), "--port", str(viewer.DEFAULT_GRPC_PORT)]
     assert "--serve-web" not in cmd
     assert Path(cmd[0]).name.startswith("rerun") and Path(cmd[0]).exists()
-    assert viewer.review_command(tmp_path, display=True)[-1] == str(rrd)  # a session folder names its .rrd
+    assert viewer.review_command(tmp_path, display=True)[-3] == str(rrd)  # a session folder names its .rrd
 
 
 def test_review_command_headless(tmp_path: Path) -> None:
@@ -299,6 +299,27 @@ def test_review_runs_the_command_and_waits(session_file: Path, monkeypatch: pyte
                            "--port", str(viewer.DEFAULT_GRPC_PORT)]
     assert "ssh -N -L 9192:localhost:9192" in capsys.readouterr().out
     assert viewer.review(session_file, display=True, stdout=subprocess.DEVNULL) == 0
+
+
+def test_review_takes_a_free_port_when_the_default_is_taken(session_file: Path, monkeypatch: pytest.MonkeyPatch,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """A second `slscan review` beside a first: the gRPC port another holds is not reused (the
+    viewer would exit 1); a port given on purpose and taken is refused naming it."""
+    import socket
+
+    monkeypatch.setenv("RERUN_CLI_PATH", "/bin/echo")
+    with socket.socket() as first:
+        first.bind(("127.0.0.1", 0))
+        first.listen()
+        held = first.getsockname()[1]
+        monkeypatch.setattr(viewer, "DEFAULT_GRPC_PORT", held)
+        proc = viewer.start_review(session_file, display=True, stdout=subprocess.PIPE, text=True)
+        out, _ = proc.communicate(timeout=10)
+        args = out.split()
+        chosen = int(args[args.index("--port") + 1])
+        assert chosen != held and chosen > 0
+        with pytest.raises(R.RecordingError, match=f"port {held} on 127.0.0.1"):
+            viewer.start_review(session_file, display=True, grpc_port=held)
 
 
 def test_review_refuses_a_missing_or_unclosed_recording(tmp_path: Path) -> None:

@@ -9,7 +9,9 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from slscan.viewer import DEFAULT_WEB_PORT
+from scanner.errors import ScannerError
+from slscan.exit_codes import Exit
+from slscan.viewer import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
 
 
 def cmd_review(args: argparse.Namespace) -> int:
@@ -24,7 +26,12 @@ def cmd_review(args: argparse.Namespace) -> int:
         if target.blueprint is not None:
             blueprint = Path(tmp) / f"{target.kind.replace(' ', '_')}.rbl"
             target.blueprint.save(APPLICATION_ID, blueprint)
-        return review(target.recordings, port=args.port, blueprint=blueprint)
+        code = review(target.recordings, port=args.port, grpc_port=args.grpc_port, blueprint=blueprint)
+    if code != 0:  # the viewer's own failure is not a part's: a refused start (exit 2) or a stop by signal
+        if code < 0:
+            return Exit.INTERRUPTED
+        raise ScannerError(f"the Rerun viewer ended with exit code {code} (its messages are above)")
+    return Exit.OK
 
 
 def register(sub: Any) -> None:
@@ -32,6 +39,10 @@ def register(sub: Any) -> None:
                                       "calibration, poses.rrd, any folder with recordings) in the Rerun viewer "
                                       "(web when headless)")
     r.add_argument("path", help="a folder slscan wrote, or a .rrd recording")
-    r.add_argument("--port", type=int, default=DEFAULT_WEB_PORT,
-                   help=f"headless: the web viewer's HTTP port (default {DEFAULT_WEB_PORT})")
+    r.add_argument("--port", type=int, default=None,
+                   help=f"headless: the web viewer's HTTP port (default {DEFAULT_WEB_PORT}, or a free one when "
+                        f"it is taken)")
+    r.add_argument("--grpc-port", type=int, default=None,
+                   help=f"the port the viewer's gRPC server listens on (default {DEFAULT_GRPC_PORT}, or a free one "
+                        f"when it is taken, as by a second review)")
     r.set_defaults(func=cmd_review)
