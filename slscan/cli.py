@@ -28,9 +28,7 @@ from pathlib import Path
 from typing import Iterator, Sequence
 
 from scanner.errors import ScannerError, Terminated
-from scanner.native_threads import size_opencv_pool
-from scanner.session import disk_problem
-from slscan.commands import COMMANDS
+from slscan.commands import COMMANDS, command_module, modules
 from slscan.examples import epilog
 from slscan.exit_codes import SUMMARY, Exit, for_error
 
@@ -86,15 +84,38 @@ def commands(parser: argparse.ArgumentParser, prefix: str = "") -> dict[str, arg
     return found
 
 
-def build_parser() -> argparse.ArgumentParser:
+class _Summarised:
+    """The sub-command adder a command module's `register` is given: each command's one-line
+    summary comes from `slscan.commands.COMMANDS`."""
+
+    def __init__(self, sub: argparse._SubParsersAction) -> None:
+        self.sub = sub
+
+    def add_parser(self, name: str, **kw: object) -> argparse.ArgumentParser:
+        return self.sub.add_parser(name, help=COMMANDS[name][1], **kw)  # type: ignore[arg-type]
+
+
+def chosen_command(argv: Sequence[str]) -> str | None:
+    """The command `argv` runs: its first word that names one (None: bare, --help, --version)."""
+    return next((a for a in argv if a in COMMANDS), None)
+
+
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The `slscan` parser: every command's own parser, or, given the `argv` to parse, only the
+    chosen command's (its module imported) and a name and summary for the others, so
+    `--version`, `--help` and usage errors import no command module."""
     p = argparse.ArgumentParser(prog="slscan", description="Structured-light 3D scanner for a bench station.",
                                 epilog=SUMMARY + "\nslscan COMMAND --help shows each command's options and an "
                                        "example.", formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action=_Version, help="print the version (and git describe of a checkout) and exit")
     _add_logging_options(p, None)
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
-    for module in COMMANDS:
-        module.register(sub)
+    chosen = chosen_command(argv) if argv is not None else None
+    for module in modules() if argv is None else [command_module(chosen)] if chosen else []:
+        module.register(_Summarised(sub))
+    for name, (_, summary) in COMMANDS.items():
+        if name not in sub.choices:
+            sub.add_parser(name, help=summary, add_help=False)  # named only: this run does not use it
     for name, command in commands(p).items():
         command.formatter_class = argparse.RawDescriptionHelpFormatter
         command.epilog = command.epilog or epilog(name)
@@ -112,7 +133,8 @@ def log_level(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; its exit code (`slscan.exit_codes`)."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:  # bare `slscan`: the help, not an error
         (commands(parser).get(args.command) if args.command else parser).print_help()
@@ -120,6 +142,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=log_level(args), stream=sys.stderr, format=LOG_FORMAT)  # no-op if configured
     if log_level(args) > logging.DEBUG:  # Rerun's own log lines on stderr (a full disk: three of them) break the
         os.environ.setdefault("RUST_LOG", "off")  # one-line rule; its failures reach us as errors when it closes
+    from scanner.native_threads import size_opencv_pool
+
     size_opencv_pool()  # on the main thread before any command's threads start; never at import
     with terminate_as_interrupt():
         return _run(args)
@@ -163,6 +187,8 @@ def _run(args: argparse.Namespace) -> int:
         print(f"\nslscan {args.command}: error: {exc}", file=sys.stderr)
         return for_error(exc)
     except OSError as exc:  # the file system refused (full disk, read-only or missing folder): one line
+        from scanner.session import disk_problem
+
         print(f"\nslscan {args.command}: error: {disk_problem(exc)}", file=sys.stderr)
         return Exit.USAGE
     except KeyboardInterrupt as exc:

@@ -12,6 +12,7 @@ import re
 import shlex
 import shutil
 import subprocess
+import sys
 import tomllib
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
@@ -243,3 +244,26 @@ def test_parts_judged_together_exit_by_their_worst_decision() -> None:
     assert for_parts(["pass", "uncertain"]) == for_parts(["error"]) == for_parts(["aborted"]) == Exit.NO_DECISION
     assert [for_verdict(v) for v in ("conforming", "no tolerances", "non-conforming", "uncertain", "not measured")] \
         == [0, 0, 1, 4, 4]
+
+
+def test_the_command_table_names_what_each_module_registers() -> None:
+    """slscan.commands.COMMANDS: each module registers exactly the commands the table gives it."""
+    from slscan.commands import COMMANDS, modules
+
+    for module in modules():
+        parser = argparse.ArgumentParser()
+        module.register(cli._Summarised(parser.add_subparsers()))
+        registered = set(cli.commands(parser)) - {n for n in cli.commands(parser) if " " in n}
+        assert registered == {n for n, (m, _) in COMMANDS.items() if f"slscan.commands.{m}" == module.__name__}
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["--help"], [], ["scan", "--bogus"], ["nosuchcommand"]])
+def test_startup_imports_no_command_module_until_one_runs(argv: list[str]) -> None:
+    """`--version`, `--help` and usage errors are answered before any command module (and the
+    numeric libraries they bring) is imported; a usage error of a command imports its own only."""
+    probe = ("import sys\nfrom slscan import cli\ntry:\n    cli.main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+             "print(sorted(m for m in sys.modules if m.startswith('slscan.commands.') or m in ('numpy', 'cv2')))")
+    out = subprocess.run([sys.executable, "-c", probe, *argv], capture_output=True, text=True, timeout=60).stdout
+    loaded = eval(out.strip().splitlines()[-1])
+    commands = [m for m in loaded if m.startswith("slscan.")]
+    assert commands == ["slscan.commands.scan"] if argv[:1] == ["scan"] else loaded == [], loaded

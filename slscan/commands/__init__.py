@@ -1,29 +1,62 @@
-"""The commands of `slscan`, one module per feature.
+"""The commands of `slscan`, one module per feature, and the one table naming them.
 
 Each module defines `register(subparsers)`, adding its sub-commands to the `slscan` parser
 with `set_defaults(func=...)`; a command function takes the parsed arguments and returns
-the exit code. Modules are imported when the parser is built, so they import heavy
-libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
+the exit code. `COMMANDS` names each command's module and its one-line summary (the help's
+list of commands): the command line imports only the module of the command it runs, after
+its arguments are read, so `slscan --help`, `--version` and a usage error import none of
+them; modules still import heavy libraries (OpenCASCADE, Open3D, USB, ...) inside their
+command functions only.
 """
 
-from slscan.commands import (
-    bench,
-    calibrate,
-    demobench,
-    devices,
-    export,
-    import_,
-    importbench,
-    inspect,
-    pose,
-    review,
-    scan,
-    segment,
-    simbench,
-    station,
-    verify,
-    viewbench,
-)
+from __future__ import annotations
 
-COMMANDS = (scan, import_, review, export, bench, importbench, simbench, demobench, viewbench, devices, calibrate,
-            verify, inspect, pose, segment, station)
+from importlib import import_module
+from types import ModuleType
+
+COMMANDS: dict[str, tuple[str, str]] = {  # command -> (module in slscan.commands, summary)
+    "scan": ("scan", "scan a part into a session folder (raw frames, cloud PLY, Rerun recording)"),
+    "decode": ("scan", "regenerate every output of a session from its raw frames"),
+    "demo": ("scan", "scan the bundled part on the default simulated rig and inspect it against its STEP model"),
+    "import": ("import_", "turn a folder of fringe frames from any tool into a session (conventions detected, other "
+                          "tools' calibrations read)"),
+    "review": ("review", "open what slscan wrote (scan session, multi-view folder, station part, calibration, "
+                         "poses.rrd, any folder with recordings) in the Rerun viewer (web when headless)"),
+    "export": ("export", "write a session's cloud as PLY, XYZ, CSV, E57 or an STL mesh, in the camera or the CAD "
+                         "frame, with per-point deviations"),
+    "bench": ("bench", "decode + reconstruction time and peak memory"),
+    "importbench": ("importbench", "per-rig table and import speed; real-capture flatness and scale"),
+    "simbench": ("simbench", "simulated frame time (with a peer) and sequence period on the bench rig"),
+    "demobench": ("demobench", "scan-to-verdict of the demo part, stage by stage, as a station runs it"),
+    "viewbench": ("viewbench", "multi-view acceptance figures on the simulated turntable"),
+    "devices": ("devices", "list cameras, projectors and serial ports; export LightCrafter images"),
+    "calibrate": ("calibrate", "calibrate the rig (camera, projector, stereo, gamma, phase-to-height), guided on "
+                               "the bench or from captures on disk"),
+    "verify": ("verify", "acceptance / reverification test (VDI/VDE 2634 Part 2): artefacts in the measuring volume "
+                         "against the rig's maximum permissible errors"),
+    "cad": ("inspect", "list a CAD model's faces by STEP id and surface type"),
+    "cadbench": ("inspect", "benchmark: STEP reading time for files of 1, 4, 16 copies of a part"),
+    "register": ("inspect", "register a cloud to a CAD model, a mesh or another cloud"),
+    "inspect": ("inspect", "register a scan to CAD, segment it by face, report form errors per face"),
+    "pose": ("pose", "poses and pick order of thin flat parts in a bin (poses JSON for a robot cell)"),
+    "posebench": ("pose", "pose parts in simulated bins and score them against the truth (both methods, paper 001's "
+                          "four cases)"),
+    "segment": ("segment", "segment a cloud or a session's scan by region growing (one parameter, r)"),
+    "segbench": ("segment", "segment simulated cluttered clouds: time per cloud and alpha, beta, eta against their "
+                            "ground truth"),
+    "segscore": ("segment", "score a segmentation against ground-truth labels (alpha, beta, eta)"),
+    "station": ("station", "the operator loop for a part program (full-screen; --auto without operator)"),
+    "results": ("station", "query the results history; export CSV; write the HTML report"),
+    "batch": ("station", "re-decode and re-inspect stored sessions (in parallel, or on a Dask cluster)"),
+    "batchbench": ("station", "time `slscan batch` serially and on a local Dask cluster; check the results agree"),
+}
+
+
+def command_module(name: str) -> ModuleType:
+    """The module that registers command `name`."""
+    return import_module(f"slscan.commands.{COMMANDS[name][0]}")
+
+
+def modules() -> list[ModuleType]:
+    """Every command module, each once, in the table's order."""
+    return [import_module(f"slscan.commands.{m}") for m in dict.fromkeys(m for m, _ in COMMANDS.values())]

@@ -217,7 +217,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    b = sub.add_parser("bench", help="decode + reconstruction time and peak memory")
+    b = sub.add_parser("bench")
     b.add_argument("--width", type=int, default=2448, help="camera image width in pixels (default 2448)")
     b.add_argument("--height", type=int, default=2048, help="camera image height in pixels (default 2048)")
     b.add_argument("--patterns", help="pattern set TOML (default: 3 frequencies x 4 steps)")

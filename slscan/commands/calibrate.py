@@ -306,8 +306,7 @@ def _install(rig_path: Path, calibration: Path) -> None:
 def register(sub: Any) -> None:
     from scanner.rig import DEFAULT_RIG
 
-    c = sub.add_parser("calibrate", help="calibrate the rig (camera, projector, stereo, gamma, phase-to-height), "
-                                         "guided on the bench or from captures on disk")
+    c = sub.add_parser("calibrate")
     c.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML (default: the simulated bench rig)")
     c.add_argument("--out", type=Path, required=True, help="new folder for the capture, calibration and recording")
     c.add_argument("--board", type=Path, help="board TOML (default: the rig's [calibrate] board, or the bench board)")

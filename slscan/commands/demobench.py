@@ -157,7 +157,7 @@ def format_report(r: dict[str, Any]) -> str:
 
 
 def register(sub: Any) -> None:
-    b = sub.add_parser("demobench", help="scan-to-verdict of the demo part, stage by stage, as a station runs it")
+    b = sub.add_parser("demobench")
     b.add_argument("--parts", type=int, default=2, help="parts scanned one after another (default 2: cold, warm)")
     b.add_argument("--cold", action="store_true", help="no warm start: every part registered by the global search")
     b.add_argument("--full-recording", action="store_true", help="record every map pixel and point")

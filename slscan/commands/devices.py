@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: Any) -> None:
-    d = sub.add_parser("devices", help="list cameras, projectors and serial ports; export LightCrafter images")
+    d = sub.add_parser("devices")
     d.add_argument("--probe", action="store_true", help="ask every serial port whether it is an slscan trigger box "
                                                        "or a GRBL motion stage")
     d.add_argument("--cti", help="GenTL producer (.cti) to list GenICam cameras through (needs slscan[genicam])")

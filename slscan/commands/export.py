@@ -77,8 +77,7 @@ def replace_deviations(cloud: Any, dev: np.ndarray) -> Any:
 
 
 def register(sub: Any) -> None:
-    e = sub.add_parser("export", help="write a session's cloud as PLY, XYZ, CSV, E57 or an STL mesh, in the camera "
-                                      "or the CAD frame, with per-point deviations")
+    e = sub.add_parser("export")
     e.add_argument("session", help="session folder (its outputs/cloud.ply; --aligned and --deviations also its "
                                    "inspection)")
     e.add_argument("--format", choices=FORMATS, help="file format (default: from --out's suffix)")

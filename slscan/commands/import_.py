@@ -191,8 +191,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    p = sub.add_parser("import", help="turn a folder of fringe frames from any tool into a session (conventions "
-                                      "detected, other tools' calibrations read)")
+    p = sub.add_parser("import")
     p.add_argument("frames_folder", metavar="FRAMES", help="folder of frames, taken in natural file-name order")
     p.add_argument("--patterns", required=True, help="pattern set TOML (config/patterns/ has SLMaster's and "
                                                      "OpenCV's); convention keys left out are detected")

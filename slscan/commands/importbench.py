@@ -278,7 +278,7 @@ def format_report(r: dict[str, Any]) -> str:
 
 
 def register(sub: Any) -> None:
-    b = sub.add_parser("importbench", help="per-rig table and import speed; real-capture flatness and scale")
+    b = sub.add_parser("importbench")
     b.add_argument("--procam", help="the procam-calibration sample folder (default ../shared/data/procam-graycode)")
     b.add_argument("--procam-calibration", help="slscan's calibration of that capture (slscan calibrate --from …)")
     b.add_argument("--skip-import", action="store_true", help="leave out the import speed run")

@@ -414,7 +414,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    c = sub.add_parser("cad", help="list a CAD model's faces by STEP id and surface type")
+    c = sub.add_parser("cad")
     c.add_argument("file", help="STEP (.step/.stp) or mesh (.stl/.ply/.obj)")
     c.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh file (STEP files say theirs)")
     c.add_argument("--json", action="store_true", help="print {faces: [...], counts: {...}}")
@@ -422,12 +422,12 @@ def register(sub: Any) -> None:
     c.add_argument("--repeats", type=int, default=5, help="with --sample: timed runs after a warm-up")
     c.set_defaults(func=cmd_cad)
 
-    cb = sub.add_parser("cadbench", help="benchmark: STEP reading time for files of 1, 4, 16 copies of a part")
+    cb = sub.add_parser("cadbench")
     cb.add_argument("file", help="STEP file of one part (e.g. ../shared/data/step/nist_ctc_01_asme1_rd.stp)")
     cb.add_argument("--copies", default="1,4,16", help="comma-separated copy counts (default 1,4,16)")
     cb.set_defaults(func=cmd_cadbench)
 
-    r = sub.add_parser("register", help="register a cloud to a CAD model, a mesh or another cloud")
+    r = sub.add_parser("register")
     r.add_argument("source", help="cloud (PLY/PCD/XYZ) or session folder")
     r.add_argument("target", help="STEP, mesh (STL/PLY/OBJ with triangles), or a cloud or session: another view")
     r.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh target")
@@ -441,7 +441,7 @@ def register(sub: Any) -> None:
     r.add_argument("--json", action="store_true", help="print {transform, fitness, rmse}")
     r.set_defaults(func=cmd_register)
 
-    i = sub.add_parser("inspect", help="register a scan to CAD, segment it by face, report form errors per face")
+    i = sub.add_parser("inspect")
     i.add_argument("source", help="session folder or cloud file (PLY/PCD/XYZ, mm, camera frame)")
     i.add_argument("--cad", help="STEP or mesh of the part (default: the one --tolerances PROGRAM names)")
     i.add_argument("--tolerances", help="the part program (config/parts/*.toml: tolerances and face names), or a "

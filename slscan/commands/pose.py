@@ -45,7 +45,7 @@ POSE_METHODS = {"sac-ia": "sacia", "ndt": "ndt"}  # the command line's spelling 
 
 
 def register(sub: Any) -> None:
-    p = sub.add_parser("pose", help="poses and pick order of thin flat parts in a bin (poses JSON for a robot cell)")
+    p = sub.add_parser("pose")
     p.add_argument("input", help="a session folder or a point cloud file in the camera frame")
     p.add_argument("--part", required=True, help="part file: TOML with a [part] table (kind = \"tab\") or a mesh (mm)")
     p.add_argument("--masks", help="instance masks aligned with the camera image: a label PNG, a Labelme JSON, or "
@@ -62,8 +62,7 @@ def register(sub: Any) -> None:
     p.add_argument("--no-log", action="store_true", help="do not write the Rerun recording")
     p.set_defaults(func=cmd_pose)
 
-    b = sub.add_parser("posebench", help="pose parts in simulated bins and score them against the truth "
-                                         "(both methods, paper 001's four cases)")
+    b = sub.add_parser("posebench")
     b.add_argument("--seeds", type=int, nargs="+", default=list(range(50)), help="bin seeds (default 0..49)")
     b.add_argument("--methods", nargs="+", type=coarse_method, choices=tuple(POSE_METHODS), default=["sac-ia", "ndt"],
                    help="coarse registration methods to compare (default both)")

@@ -35,9 +35,7 @@ def cmd_review(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    r = sub.add_parser("review", help="open what slscan wrote (scan session, multi-view folder, station part, "
-                                      "calibration, poses.rrd, any folder with recordings) in the Rerun viewer "
-                                      "(web when headless)")
+    r = sub.add_parser("review")
     r.add_argument("path", help="a folder slscan wrote, or a .rrd recording")
     r.add_argument("--port", type=int, default=None,
                    help=f"headless: the web viewer's HTTP port (default {DEFAULT_WEB_PORT}, or a free one when "

@@ -381,7 +381,7 @@ def _add_full_recording(parser: argparse.ArgumentParser) -> None:
 
 
 def register(sub: Any) -> None:
-    s = sub.add_parser("scan", help="scan a part into a session folder (raw frames, cloud PLY, Rerun recording)")
+    s = sub.add_parser("scan")
     s.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML (default: the simulated bench rig)")
     s.add_argument("--scene", help="simulated rigs: scene TOML, a mesh file (PLY/STL/OBJ), or bin:SEED[:N_PARTS] for a "
                                    "bin of thin parts (default 5 + SEED %% 16 parts) saved with its true poses, "
@@ -409,7 +409,7 @@ def register(sub: Any) -> None:
     _add_full_recording(s)
     s.set_defaults(func=cmd_scan)
 
-    d = sub.add_parser("decode", help="regenerate every output of a session from its raw frames")
+    d = sub.add_parser("decode")
     d.add_argument("session", help="session or multi-view folder (its raw frames and manifest)")
     d.add_argument("--mode", choices=("triangulation", "phase_to_height"), default="triangulation",
                    help="reconstruction: triangulation with the rig model (default) or Eq. 17 phase-to-height "
@@ -429,8 +429,7 @@ def register(sub: Any) -> None:
     _add_full_recording(d)
     d.set_defaults(func=cmd_decode)
 
-    m = sub.add_parser("demo", help="scan the bundled part on the default simulated rig and inspect it against "
-                                    "its STEP model")
+    m = sub.add_parser("demo")
     m.add_argument("--out", help="session folder (default: sessions/demo-<time>)")
     m.add_argument("--seed", type=int, default=0, help="simulated rig: noise seed (default 0)")
     m.add_argument("--no-inspect", action="store_true", help="scan only (no inspection against the STEP model)")

@@ -32,7 +32,7 @@ SEGMENT_MAP = "maps/segments"
 
 
 def register(sub: Any) -> None:
-    p = sub.add_parser("segment", help="segment a cloud or a session's scan by region growing (one parameter, r)")
+    p = sub.add_parser("segment")
     p.add_argument("input", help="a point cloud file (PLY, PCD, XYZ ... as Open3D reads) or a session folder")
     p.add_argument("--radius", "-r", type=float, metavar="MM",
                    help="radius of interest r in mm: the coarsest detail that counts (features at 0.19 r .. r); "
@@ -41,8 +41,7 @@ def register(sub: Any) -> None:
     p.add_argument("--no-log", action="store_true", help="do not write the Rerun recording")
     p.set_defaults(func=cmd_segment)
 
-    b = sub.add_parser("segbench", help="segment simulated cluttered clouds: time per cloud and alpha, beta, eta "
-                                        "against their ground truth")
+    b = sub.add_parser("segbench")
     b.add_argument("--seeds", type=int, nargs="+", default=[0], help="scene seeds (default: 0)")
     b.add_argument("--spacing", type=float, default=1.0, metavar="MM", help="nearest scanner's point spacing")
     b.add_argument("--radius", "-r", type=float, metavar="MM",
@@ -50,7 +49,7 @@ def register(sub: Any) -> None:
     b.add_argument("--json", action="store_true", help="print a JSON object")
     b.set_defaults(func=cmd_segbench)
 
-    s = sub.add_parser("segscore", help="score a segmentation against ground-truth labels (alpha, beta, eta)")
+    s = sub.add_parser("segscore")
     s.add_argument("labels", help="labels .npy (from slscan segment)")
     s.add_argument("ground_truth", help="ground-truth labels .npy of the same shape (negative: no segment), or a "
                                         "simulated session's ground_truth.npz (its object ids)")

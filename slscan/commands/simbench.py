@@ -98,7 +98,7 @@ def cmd_simbench(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    b = sub.add_parser("simbench", help="simulated frame time (with a peer) and sequence period on the bench rig")
+    b = sub.add_parser("simbench")
     b.add_argument("--repeats", type=int, default=5, help="frames timed per figure (median)")
     b.add_argument("--json", action="store_true", help="print a JSON object")
     b.set_defaults(func=cmd_simbench)

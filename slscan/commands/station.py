@@ -243,7 +243,7 @@ def cmd_batchbench(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    s = sub.add_parser("station", help="the operator loop for a part program (full-screen; --auto without operator)")
+    s = sub.add_parser("station")
     s.add_argument("program", help="part program TOML (config/parts/*.toml)")
     _station_options(s, writes=True)
     s.add_argument("--rig", type=Path, help="rig TOML (default: the station config's)")
@@ -253,7 +253,7 @@ def register(sub: Any) -> None:
     s.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: the station config's)")
     s.set_defaults(func=cmd_station)
 
-    r = sub.add_parser("results", help="query the results history; export CSV; write the HTML report")
+    r = sub.add_parser("results")
     _station_options(r)
     r.add_argument("--program", help="part program name, or its TOML (needed for --report)")
     r.add_argument("--serial", type=plain_text_arg, help="only the results of this part serial number")
@@ -280,7 +280,7 @@ def register(sub: Any) -> None:
                "report's folder)")
     r.set_defaults(func=cmd_results)
 
-    b = sub.add_parser("batch", help="re-decode and re-inspect stored sessions (in parallel, or on a Dask cluster)")
+    b = sub.add_parser("batch")
     b.add_argument("sessions", nargs="+", help="part folders written by the station, or session folders")
     b.add_argument("--program", required=True, help="part program TOML to inspect against")
     b.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786); default: a local cluster")
@@ -293,8 +293,7 @@ def register(sub: Any) -> None:
     b.add_argument("--json", action="store_true", help="print the summary as JSON")
     b.set_defaults(func=cmd_batch)
 
-    bb = sub.add_parser("batchbench", help="time `slscan batch` serially and on a local Dask cluster; check the "
-                                           "results agree")
+    bb = sub.add_parser("batchbench")
     bb.add_argument("sessions", nargs="+", help="part folders written by the station, or session folders")
     bb.add_argument("--program", required=True, help="part program TOML to inspect against")
     bb.add_argument("--workers", type=int, default=2, help="local cluster worker processes (default 2)")

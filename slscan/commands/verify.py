@@ -210,8 +210,7 @@ def register(sub: Any) -> None:
     from scanner.rig import DEFAULT_RIG
     from slscan.commands.calibrate import image_size
 
-    v = sub.add_parser("verify", help="acceptance / reverification test (VDI/VDE 2634 Part 2): artefacts in the "
-                                      "measuring volume against the rig's maximum permissible errors")
+    v = sub.add_parser("verify")
     v.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML with an [acceptance] table (default: the "
                                                                  "simulated bench rig)")
     v.add_argument("--artefacts", type=Path, help="artefact TOML (default: the rig's [acceptance] artefacts)")

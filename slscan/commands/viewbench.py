@@ -46,7 +46,7 @@ NIST = {"ctc01": ("nist_ctc_01_asme1_rd.stp", 0.12, (0.0, 0.0, 1.0)),  # as test
 
 
 def register(sub: Any) -> None:
-    b = sub.add_parser("viewbench", help="multi-view acceptance figures on the simulated turntable")
+    b = sub.add_parser("viewbench")
     b.add_argument("--out", type=Path, required=True, help="new folder for the scan and the figures")
     b.add_argument("--session", type=Path, help="an existing multi-view scan of the turntable scene")
     b.add_argument("--views", type=int, default=8, help="views equally spaced over a turn (default 8)")
