@@ -41,6 +41,10 @@ def _add_logging_options(parser: argparse.ArgumentParser, default: object) -> No
                         help="diagnostics on stderr from this level on (default: warning)")
     parser.add_argument("-v", "--verbose", action="count", default=default,
                         help="more diagnostics on stderr: -v what the devices do, -vv every device exchange")
+    parser.add_argument("-q", "--quiet", action="store_true", default=default,
+                        help="errors only on stderr: no progress lines, no warnings (results still on stdout)")
+    parser.add_argument("--log-file", metavar="FILE", type=Path, default=default,
+                        help="also write the diagnostics to FILE, with times, from info on (or the level asked)")
 
 
 def version() -> str:
@@ -128,7 +132,34 @@ def log_level(args: argparse.Namespace) -> int:
     """The root logger's level from --log-level, else from the -v count."""
     if args.log_level is not None:
         return getattr(logging, args.log_level.upper())
+    if getattr(args, "quiet", False):
+        return logging.ERROR
     return {None: logging.WARNING, 0: logging.WARNING, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
+
+
+def configure_logging(args: argparse.Namespace) -> logging.Handler | None:
+    """stderr from the level asked (`log_level`); `--log-file` from info on (or a lower level
+    asked): its handler, for the caller to remove; `-q` also silences the progress lines."""
+    from slscan.progress import ProgressLine
+
+    level = log_level(args)
+    logging.basicConfig(level=level, stream=sys.stderr, format=LOG_FORMAT)  # no-op if configured
+    ProgressLine.quiet = bool(getattr(args, "quiet", False))
+    if getattr(args, "log_file", None) is not None:
+        try:
+            handler = logging.FileHandler(args.log_file, encoding="utf-8")
+        except OSError as exc:
+            raise ScannerError(f"--log-file {args.log_file}: cannot write: {exc.strerror or exc}") from None
+        handler.setFormatter(logging.Formatter(LOG_FORMAT))
+        handler.setLevel(min(level, logging.INFO))
+        root = logging.getLogger()
+        for h in root.handlers:
+            if h is not handler and h.level == logging.NOTSET:
+                h.setLevel(level)  # stderr keeps the level asked while the root passes info to the file
+        root.setLevel(min(level, logging.INFO))
+        root.addHandler(handler)
+        return handler
+    return None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -139,14 +170,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     if getattr(args, "func", None) is None:  # bare `slscan`: the help, not an error
         (commands(parser).get(args.command) if args.command else parser).print_help()
         return Exit.OK
-    logging.basicConfig(level=log_level(args), stream=sys.stderr, format=LOG_FORMAT)  # no-op if configured
+    try:
+        log_file = configure_logging(args)
+    except ScannerError as exc:
+        print(f"slscan {args.command}: error: {exc}", file=sys.stderr)
+        return Exit.USAGE
     if log_level(args) > logging.DEBUG:  # Rerun's own log lines on stderr (a full disk: three of them) break the
         os.environ.setdefault("RUST_LOG", "off")  # one-line rule; its failures reach us as errors when it closes
     from scanner.native_threads import size_opencv_pool
 
     size_opencv_pool()  # on the main thread before any command's threads start; never at import
-    with terminate_as_interrupt():
-        return _run(args)
+    try:
+        with terminate_as_interrupt():
+            return _run(args)
+    finally:
+        if log_file is not None:
+            logging.getLogger().removeHandler(log_file)
+            log_file.close()
 
 
 def run() -> None:

@@ -17,7 +17,10 @@ from typing import Any
 
 class ProgressLine:
     """Progress on `stream` (stderr by default): a one-line bar when it is a terminal, plain
-    start/finish lines otherwise. `clock` (s) is replaceable for tests."""
+    start/finish lines otherwise. `clock` (s) is replaceable for tests. `quiet` (the command
+    line's -q) silences every instance."""
+
+    quiet = False
 
     def __init__(self, stream: Any = sys.stderr, clock: Callable[[], float] = time.monotonic) -> None:
         self.stream = stream
@@ -30,6 +33,8 @@ class ProgressLine:
         self.last = ""
 
     def __call__(self, stage: str, done: int, total: int) -> None:
+        if self.quiet:
+            return
         now = self.clock()
         if stage != self.stage:
             self._finish(now)

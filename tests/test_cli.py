@@ -267,3 +267,33 @@ def test_startup_imports_no_command_module_until_one_runs(argv: list[str]) -> No
     loaded = eval(out.strip().splitlines()[-1])
     commands = [m for m in loaded if m.startswith("slscan.")]
     assert commands == ["slscan.commands.scan"] if argv[:1] == ["scan"] else loaded == [], loaded
+
+
+def test_quiet_and_log_file(tmp_path: Path, capsys) -> None:
+    """-q: errors only, no progress lines; --log-file: info and up in the file while stderr keeps
+    its level; an unwritable log file is a usage error of one line."""
+    import logging
+
+    from slscan.progress import ProgressLine
+
+    log = tmp_path / "slscan.log"
+    args = cli.build_parser(["devices"]).parse_args(["devices", "--log-file", str(log)])
+    handler = cli.configure_logging(args)
+    try:
+        logging.getLogger("slscan.test").info("an info line for the file")
+        logging.getLogger("slscan.test").debug("a debug line for nobody")
+    finally:
+        logging.getLogger().removeHandler(handler)
+        handler.close()
+    assert "INFO slscan.test: an info line for the file" in log.read_text() and "debug" not in log.read_text()
+    assert "an info line" not in capsys.readouterr().err
+    quiet = cli.build_parser(["devices"]).parse_args(["-q", "devices"])
+    assert cli.log_level(quiet) == logging.ERROR
+    try:
+        cli.configure_logging(quiet)
+        ProgressLine()("load", 0, 1)
+        assert capsys.readouterr().err == ""
+    finally:
+        ProgressLine.quiet = False
+    code, _, err = run("devices", "--log-file", str(tmp_path / "no" / "such.log"))
+    assert code == 2 and err.strip().endswith("cannot write: No such file or directory") and len(err.split("\n")) <= 3
