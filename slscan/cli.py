@@ -220,8 +220,36 @@ def terminate_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+@contextmanager
+def json_stdout() -> Iterator[None]:
+    """While held, the process's stdout descriptor points at stderr, so a library writing to
+    it (Open3D's warnings, a native progress line) cannot break the JSON; `sys.stdout` (where
+    a command prints its JSON) keeps writing to the real stdout."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    try:  # our own stdout, not one a caller redirected in-process
+        real = os.fdopen(os.dup(saved), "w", encoding="utf-8") if sys.stdout.fileno() == 1 else None
+    except (AttributeError, OSError, ValueError):
+        real = None
+    previous = sys.stdout
+    if real is not None:
+        sys.stdout = real
+    try:
+        yield
+    finally:
+        sys.stdout = previous
+        if real is not None:
+            real.close()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def _run(args: argparse.Namespace) -> int:
     try:
+        if getattr(args, "json", False):
+            with json_stdout():
+                return int(args.func(args))
         return int(args.func(args))
     except ScannerError as exc:
         print(f"\nslscan {args.command}: error: {exc}", file=sys.stderr)

@@ -96,3 +96,10 @@ def count_arg(minimum: int) -> Callable[[str], int]:
             raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {n}")
         return n
     return parse
+
+
+def add_json(parser: argparse.ArgumentParser) -> None:
+    """`--json`: the result as one JSON document alone on stdout (`slscan.cli.json_stdout`
+    sends what libraries write there to stderr)."""
+    parser.add_argument("--json", action="store_true",
+                        help="print the result as one JSON document on stdout (progress and messages on stderr)")

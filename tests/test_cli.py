@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import json
 import re
 import shlex
 import shutil
@@ -297,3 +298,23 @@ def test_quiet_and_log_file(tmp_path: Path, capsys) -> None:
         ProgressLine.quiet = False
     code, _, err = run("devices", "--log-file", str(tmp_path / "no" / "such.log"))
     assert code == 2 and err.strip().endswith("cannot write: No such file or directory") and len(err.split("\n")) <= 3
+
+
+def test_json_alone_on_stdout_whatever_libraries_write_there(tmp_path: Path) -> None:
+    """`slscan scan --json` and `decode --json` as a cell runs them (a pipe): stdout parses as one
+    JSON document, although a native library writes to the stdout descriptor meanwhile (as
+    Open3D does its warnings); the scan's own lines go to stderr."""
+    from test_inputs_session import small_rig
+
+    rig = small_rig(tmp_path).path
+    noisy = ("import os, sys\nfrom slscan import cli\nimport scanner.pipeline as p\nwrite = p.write_json\n"
+             "def loud(*a, **k):\n    os.write(1, b'[Open3D WARNING] a library line on fd 1\\n')\n"
+             "    return write(*a, **k)\np.write_json = loud\nsys.exit(cli.main(sys.argv[1:]))\n")
+    for argv in (["scan", "--rig", str(rig), "--out", str(tmp_path / "s"), "--json"],
+                 ["decode", str(tmp_path / "s"), "--json"]):
+        proc = subprocess.run([sys.executable, "-c", noisy, *argv], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        doc = json.loads(proc.stdout)  # one document, nothing else
+        assert doc["status"] == "ok" and doc["points"] > 1000 and Path(doc["cloud"]).is_file()
+        assert doc["accuracy"]["rms_mm"] < 0.1 and {c["name"] for c in doc["checks"]} >= {"phase_residual"}
+        assert "a library line on fd 1" in proc.stderr

@@ -34,6 +34,7 @@ from scanner.geometry import Pinhole, RigModel, look_at
 from scanner.patterns import PatternSet
 from scanner.session import FRAME_LOG, FRAMES_DIR, SessionWriter, sha256
 from slscan.exit_codes import Exit
+from slscan.options import add_json
 
 IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff")
 BIT_DEPTHS = (10, 12, 14, 16)
@@ -185,7 +186,7 @@ def cmd_import(args: argparse.Namespace) -> int:
         print(f"  {f.line()}")
     from slscan.commands.scan import report
 
-    report(result)
+    report(result, as_json=args.json)
     print(f"wall      {wall:.2f} s (import, detect, decode, reconstruct, write)")
     return Exit.OK
 
@@ -204,5 +205,6 @@ def register(sub: Any) -> None:
                    help="the calibration's projector coordinates are S times the frames' (procam: its graycode_step)")
     p.add_argument("--frames", metavar="GLOB", help="only the files matching GLOB (default: every PNG, BMP, TIFF)")
     p.add_argument("--bit-depth", type=int, help="bits per sample of 16-bit frames (default: from the brightest)")
+    add_json(p)
     p.set_defaults(func=cmd_import)
 

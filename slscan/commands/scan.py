@@ -4,7 +4,9 @@ outputs from its raw frames, and the bundled demo (scan, then inspect against CA
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
+import json
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -18,6 +20,7 @@ from scanner.rig import DEFAULT_RIG
 from scanner.session import write_json
 from scanner.stage_timer import StageTimer
 from slscan.exit_codes import Exit, for_verdict
+from slscan.options import add_json
 from slscan.progress import ProgressLine
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
@@ -82,6 +85,9 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     if getattr(args, "views", None) is not None or getattr(args, "angles", None) is not None:
         from slscan.commands.views import scan_views
 
+        if getattr(args, "json", False):
+            raise ScannerError("--json applies to single-view scans (a multi-view scan writes its views' "
+                               "result.json files)")
         return scan_views(args, config, patterns, options, exposure)
     if getattr(args, "stage_axis", None) is not None:
         raise ScannerError("--stage-axis applies to multi-view scans only (--views or --angles)")
@@ -96,8 +102,8 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
                                            lambda root: truth.save(Path(root) / BIN_TRUTH_FILE)]
         result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args), exposure=exposure)
     with session_lock(result.session.root, command="slscan scan"):  # accuracy.json: one writer
-        report(result)
-    if truth is not None:
+        report(result, as_json=getattr(args, "json", False))
+    if truth is not None and not getattr(args, "json", False):
         print(f"bin truth {result.session.root / BIN_TRUTH_FILE}  ({len(truth.ids)} parts, seed {truth.seed}; "
               f"judge poses with: slscan posebench --sessions {result.session.root})")
     return Exit.OK
@@ -122,8 +128,12 @@ def _bin_scene(options: dict[str, Any], config: Any) -> Any:
     return BinTruth.of(b, config.nominal_model().world_from_cam)
 
 
-def report(result: Any) -> None:
-    """Print what a processed session holds, and its accuracy when ground truth is there."""
+def report(result: Any, *, as_json: bool = False) -> None:
+    """Print what a processed session holds, and its accuracy when ground truth is there
+    (`as_json`: one JSON document, `result_record`)."""
+    if as_json:
+        print(json.dumps(result_record(result), default=str))
+        return
     s = result.session
     t = result.timings_s
     print(f"session   {s.root}")
@@ -147,6 +157,22 @@ def report(result: Any) -> None:
     acc = sim_accuracy(result)
     if acc is not None:
         print(f"accuracy  {acc.summary()}")
+
+
+def result_record(result: Any) -> dict[str, Any]:
+    """What `slscan scan/decode/import --json` print: the session, its outputs, the checks that
+    judged the decode and the accuracy against the simulator's truth (None without it)."""
+    s, decoded = result.session, result.decoded
+    acc = sim_accuracy(result)
+    return {"status": "ok", "session": str(s.root), "session_id": s.id,
+            "cloud": str(result.cloud_path) if result.cloud is not None else None,
+            "maps": str(s.outputs / "maps.npz"), "points": len(result.cloud) if result.cloud is not None else 0,
+            "valid_fraction": float(decoded.valid.mean()),
+            "rejected_fraction": {k: v / decoded.valid.size for k, v in decoded.rejected().items()},
+            "recording": str(s.recording_path) if s.recording_path.exists() else None,
+            "exposure": (s.manifest.get("exposure") or {}).get("reason"), "frame_integrity": s.integrity,
+            "timings_s": result.timings_s, "checks": [c.as_dict() for c in result.checks],
+            "accuracy": acc.as_dict() if acc is not None else None}
 
 
 def sim_accuracy(result: Any) -> Any:
@@ -188,7 +214,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
         model = rig_model_file(Path(args.rig_model), session.rig_model()) if args.rig_model else None
         result = reprocess(session, ProgressLine(), mode=args.mode, level=_level(args), rig_model=model,
                            rig_model_source=args.rig_model)
-        report(result)
+        report(result, as_json=args.json)
     return Exit.OK
 
 
@@ -288,7 +314,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     characteristic is non-conforming, 4 when one is not measured or uncertain)."""
     out = args.out or f"sessions/demo-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
     ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[],
-                            full_recording=args.full_recording)
+                            full_recording=args.full_recording, json=args.json and args.no_inspect)
     if args.no_inspect:
         return cmd_scan(ns)
     done: dict[str, Any] = {}
@@ -311,8 +337,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
                                                                   on_verdict=show, program=program)
             done["seconds"], done["cpu"] = time.perf_counter() - t1, time.process_time() - c1
 
-        cmd_scan(ns, inspect_scan)
+        with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
+            cmd_scan(ns, inspect_scan)  # the scan's own lines: on stderr beside the JSON
     rep, outputs = done["report"], Path(out) / "outputs"
+    if args.json:
+        print(json.dumps({"status": rep.as_dict()["status"], "verdict": rep.verdict, "session": str(out),
+                          "conclusion": demo_conclusion(rep, Path(out)), "report": str(outputs / "inspection.html"),
+                          "inspection": rep.as_dict()}, default=str))
+        return for_verdict(rep.verdict)
     print(rep.table())
     print(f"report    {outputs / 'inspection.html'} (.json, .csv, .pdf); inspection in the recording under "
           f"world/inspection/ and inspection/")
@@ -407,6 +439,7 @@ def register(sub: Any) -> None:
     s.add_argument("--stage-fault", action="append", default=[], metavar="NAME=MOVE",
                    help="simulated rigs: a stage fault (alarm_at_move=K, disconnect_at_move=K, silent_at_move=K)")
     _add_full_recording(s)
+    add_json(s)
     s.set_defaults(func=cmd_scan)
 
     d = sub.add_parser("decode")
@@ -427,6 +460,7 @@ def register(sub: Any) -> None:
                                             "with (recorded in the manifest as assumed)")
     d.add_argument("--patterns", type=Path, help="--recover without capture.json: the pattern set, if not the rig's")
     _add_full_recording(d)
+    add_json(d)
     d.set_defaults(func=cmd_decode)
 
     m = sub.add_parser("demo")
@@ -434,4 +468,5 @@ def register(sub: Any) -> None:
     m.add_argument("--seed", type=int, default=0, help="simulated rig: noise seed (default 0)")
     m.add_argument("--no-inspect", action="store_true", help="scan only (no inspection against the STEP model)")
     _add_full_recording(m)
+    add_json(m)
     m.set_defaults(func=cmd_demo)
