@@ -212,8 +212,16 @@ def test_the_station_exits_1_after_a_failed_part(tmp_path: Path) -> None:
     one.mkdir(), two.mkdir()
     code, out, _ = run("station", str(DEMO_PROGRAM), "--config", str(station_config(one)), "--auto", "--parts", "1")
     assert code == 0 and "1 parts: 1 pass" in out
-    code, out, _ = run("station", str(DEMO_PROGRAM), "--config", str(station_config(two)), "--auto", "--parts", "2")
+    code, out, err = run("station", str(DEMO_PROGRAM), "--config", str(station_config(two)), "--auto", "--parts", "2")
     assert code == 1 and "2 parts: 1 pass, 1 fail" in out
+    code, out, err = run("station", str(DEMO_PROGRAM), "--config", str(station_config(two)), "--auto", "--parts", "1",
+                         "--json")  # the same station again, for a cell: one JSON document, the lines on stderr
+    doc = json.loads(out)
+    assert code == 0 and doc["counts"]["pass"] == 1 and "1 parts: 1 pass" in err
+    code, out, _ = run("results", "--config", str(station_config(two)), "--json")
+    stored = json.loads(out)["results"]
+    assert code == 0 and [r["status"] for r in stored] == ["pass", "fail", "pass"]
+    assert stored[2]["serial"] == doc["results"][0]["serial"] and stored[1]["values"]
 
 
 def test_progress_on_a_terminal_is_one_live_line_per_stage() -> None:

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import json
 import sys
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 from scanner.errors import ScannerError
 from slscan.exit_codes import Exit, for_parts
-from slscan.options import OutputFlag, add_out, count_arg, plain_text_arg
+from slscan.options import OutputFlag, add_json, add_out, count_arg, plain_text_arg
 from slscan.station.measure import MEASUREMENTS
 
 
@@ -39,13 +41,15 @@ def cmd_station(args: argparse.Namespace) -> int:
     from slscan.station.app import open_station, run_auto
     from slscan.station.measure import load_measurement
 
+    if args.json and not args.auto:
+        raise ScannerError("--json applies to --auto runs (the operator screen is the terminal)")
     if not args.auto and not (sys.stdin.isatty() and sys.stdout.isatty()):
         raise ScannerError("the operator screen needs a terminal; use --auto --parts N to run without one")
     config = _config(args)
     measurement = load_measurement(args.measurement) if args.measurement else None
     with open_station(args.program, config, args.operator or "", measurement, rig_path=args.rig) as run:
         if args.auto:
-            return run_auto(run, args.parts if args.parts is not None else 1, progress=ProgressLine())
+            return run_auto(run, args.parts if args.parts is not None else 1, progress=ProgressLine(), as_json=args.json)
         from slscan.station.tui import run_tui
 
         return run_tui(run, args.parts)
@@ -164,6 +168,9 @@ def cmd_results(args: argparse.Namespace) -> int:
                 text, n = csv_text(rows, values)
                 _write_export(Path(args.out), lambda path: write_atomic(path, text.encode()))
                 print(f"wrote {n} lines ({len(rows)} results) to {args.out}", file=sys.stderr)
+        elif args.json:
+            print(json.dumps({"where": store.where, "results": [{**asdict(r), "values": [asdict(v) for v in values[r.id]]}
+                                                                for r in rows]}, default=str))
         else:
             print(f"{'id':>5} {'program':<14} {'serial':<24} {'att':>3} {'status':<10} {'finished (UTC)':<19}  values")
             for r in rows:
@@ -251,6 +258,7 @@ def register(sub: Any) -> None:
     s.add_argument("--parts", type=count_arg(1), help="stop after this many measured parts (>= 1)")
     s.add_argument("--auto", action="store_true", help="no operator: measure --parts parts one after the other")
     s.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: the station config's)")
+    add_json(s)
     s.set_defaults(func=cmd_station)
 
     r = sub.add_parser("results")
@@ -266,6 +274,7 @@ def register(sub: Any) -> None:
     r.add_argument("--report", nargs="?", const=True, action=OutputFlag,
                    help="write the HTML report with control charts into the folder --out DIR")
     r.add_argument("--dfq", action="store_true", help="export the values as an AQDEF (Q-DAS) DFQ file to --out FILE")
+    add_json(r)
     r.add_argument("--exclude", action="append", type=_exclusion, metavar="ID=REASON",
                    help="leave result ID out of the limits and capability, for the reason given (shown in the "
                         "report, exported as deactivated); repeat for more")

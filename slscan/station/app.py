@@ -10,9 +10,10 @@ even if the station is killed later.
 from __future__ import annotations
 
 import datetime as dt
+import json
 import logging
 import sys
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -140,12 +141,14 @@ def outcome_lines(program: PartProgram, o: CycleOutcome) -> list[str]:
     return lines
 
 
-def run_auto(run: StationRun, parts: int, out: TextIO | None = None, progress: Progress | None = None) -> int:
+def run_auto(run: StationRun, parts: int, out: TextIO | None = None, progress: Progress | None = None, *,
+             as_json: bool = False) -> int:
     """Measure `parts` parts without an operator (serials AUTO-<time>-<k>); print each
-    verdict and, on the simulator, the verdict the imposed defects call for. Returns the
-    exit code (slscan.exit_codes): 0 when every part passed, 1 when any failed, was
-    uncertain (not passed: re-measure) or could not be measured."""
-    out = out or sys.stdout
+    verdict and, on the simulator, the verdict the imposed defects call for (`as_json`: on
+    stderr, and the run as one JSON document on stdout). Returns the exit code
+    (`slscan.exit_codes.for_parts`): 0 when every part passed, 1 when any failed, else 4
+    when any was uncertain, not measured, in error or aborted."""
+    out = out or (sys.stderr if as_json else sys.stdout)
     station = run.station
     reasons = station.refusals()
     for label, text in station.status_lines():
@@ -180,4 +183,7 @@ def run_auto(run: StationRun, parts: int, out: TextIO | None = None, progress: P
     print(f"results      {run.store.where}", file=out)
     print(f"report       {run.write_report()}", file=out)
     print(f"charts       {run.report_dir / CHART_RECORDING} (written when the station closes)", file=out)
+    if as_json:
+        print(json.dumps({"parts": parts, "counts": counts, "where": run.store.where,
+                          "results": [{**asdict(o), "expected": e} for o, e in judged]}, default=str))
     return for_parts(o.status for o in outcomes) if len(outcomes) == parts else Exit.NO_DECISION
