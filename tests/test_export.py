@@ -7,6 +7,7 @@ One 640 x 512 scan of the demo part, inspected once for the module (~20 s CPU)."
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +69,8 @@ def test_xyz_and_csv_read_back_with_numpy(session: Path, tmp_path: Path) -> None
     xyz = np.loadtxt(tmp_path / "c.xyz")
     assert xyz.shape == pts.shape
     np.testing.assert_allclose(xyz, pts, atol=1e-4)
-    assert run("export", str(session), "--format", "csv", "--out", str(tmp_path / "c.csv"))[0] == 0
+    code, out, _ = run("export", str(session), "--format", "csv", "--out", str(tmp_path / "c.csv"), "--json")
+    assert code == 0 and json.loads(out)["file"] == str(tmp_path / "c.csv")
     header = (tmp_path / "c.csv").read_text().split("\n", 1)[0]
     assert header == "x_mm,y_mm,z_mm,row,col"
     table = np.loadtxt(tmp_path / "c.csv", delimiter=",", skiprows=1)

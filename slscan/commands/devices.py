@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from slscan.exit_codes import Exit
+from slscan.options import add_json
 
 log = logging.getLogger(__name__)
 
@@ -29,6 +30,7 @@ def register(sub: Any) -> None:
     d.add_argument("--probe", action="store_true", help="ask every serial port whether it is an slscan trigger box "
                                                        "or a GRBL motion stage")
     d.add_argument("--cti", help="GenTL producer (.cti) to list GenICam cameras through (needs slscan[genicam])")
+    add_json(d)
     d.set_defaults(func=cmd_devices)
     dsub = d.add_subparsers(dest="devices_command", metavar="ACTION",
                             help="lightcrafter-images (without it: the listing)")
@@ -40,9 +42,12 @@ def register(sub: Any) -> None:
 
 
 def cmd_devices(args: argparse.Namespace) -> int:
-    for title, lines in (("cameras (V4L2)", v4l2_cameras()), ("GenICam cameras", genicam_cameras(args.cti)),
-                         ("USB projectors", usb_projectors()), ("displays", displays()),
-                         ("serial ports", serial_ports(args.probe))):
+    found = {"cameras (V4L2)": v4l2_cameras(), "GenICam cameras": genicam_cameras(args.cti),
+             "USB projectors": usb_projectors(), "displays": displays(), "serial ports": serial_ports(args.probe)}
+    if getattr(args, "json", False):
+        print(json.dumps(found))
+        return Exit.OK
+    for title, lines in found.items():
         print(f"{title}:")
         for line in lines or ["(none found)"]:
             print(f"  {line}")

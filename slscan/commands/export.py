@@ -17,6 +17,7 @@ import numpy as np
 from scanner.errors import ScannerError
 from scanner.exports import FORMATS
 from slscan.exit_codes import Exit
+from slscan.options import add_json
 
 
 def _format(args: argparse.Namespace) -> str:
@@ -61,6 +62,10 @@ def cmd_export(args: argparse.Namespace) -> int:
                                              f"registration)")
     out = Path(args.out) if args.out else session.outputs / f"export{'-cad' if args.aligned else ''}.{fmt}"
     summary = write(cloud, out, fmt, args.max_jump)
+    if args.json:
+        print(json.dumps({"status": "ok", "file": str(out), "format": fmt, "summary": summary, "unit": "mm",
+                          "frame": cloud.frame, "deviations": bool(args.deviations)}))
+        return Exit.OK
     print(f"export    {out}  ({fmt}, {summary}, mm, {cloud.frame}"
           + (", signed deviation from CAD per point" if args.deviations else "") + ")")
     return Exit.OK
@@ -89,4 +94,5 @@ def register(sub: Any) -> None:
     e.add_argument("--max-jump", type=float, metavar="MM",
                    help="stl: leave cells open whose corners' depths differ by more (default 8 x the point spacing)")
     e.add_argument("--out", help="file to write (default: SESSION/outputs/export[-cad].FORMAT)")
+    add_json(e)
     e.set_defaults(func=cmd_export)
