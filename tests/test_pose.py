@@ -114,6 +114,10 @@ def test_pose_command_writes_the_poses_file_and_recording(small_bin: tuple, tmp_
     out = capsys.readouterr().out
     assert "rank" in out and "pickable" in out
     doc = json.loads((tmp_path / "bin.poses.json").read_text())
+    assert main(["pose", str(ply), "--part", str(part), "--masks", str(masks), "--rig", str(DEFAULT_RIG),
+                 "--no-log", "--json"]) == 0
+    again = json.loads(capsys.readouterr().out)  # --json: the same document alone on stdout
+    assert [r["pick_rank"] for r in again["parts"]] == [r["pick_rank"] for r in doc["parts"]]
     assert doc["format"] == "slscan-poses" and doc["part"] == "nickel-tab"
     assert doc["rig"]["name"] == RigConfig.load().name and "uncalibrated" in doc["rig"]["calibration"]
     assert datetime.fromisoformat(doc["created"]).tzinfo is not None and doc["units"]["length"] == "mm"

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from slscan.exit_codes import Exit
-from slscan.options import coarse_method
+from slscan.options import add_json, coarse_method
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off")
 POSE_METHODS = {"sac-ia": "sacia", "ndt": "ndt"}  # the command line's spelling -> inspection.bins' name
@@ -60,6 +60,7 @@ def register(sub: Any) -> None:
                                             "camera frame only)")
     p.add_argument("--out", help="poses file (.json); default <session>/outputs/poses.json or <cloud>.poses.json")
     p.add_argument("--no-log", action="store_true", help="do not write the Rerun recording")
+    add_json(p)
     p.set_defaults(func=cmd_pose)
 
     b = sub.add_parser("posebench")
@@ -273,8 +274,9 @@ def cmd_pose(args: argparse.Namespace) -> int:
         message = f"no part recognised in {src}: none of the {len(poses)} instances fits {model.name}"
     doc = poses_document(poses, model, world_from_cam, str(src), rig, args.max_occlusion, message)
     write_poses(out, doc)
-    print(table(doc))
-    print(f"poses     {out}")
+    text = sys.stderr if args.json else sys.stdout  # --json: the document alone on stdout
+    print(table(doc), file=text)
+    print(f"poses     {out}", file=text)
     if not args.no_log:
         from inspection.bins.picking import log_poses
         from scanner.session_recording import SessionRecording
@@ -284,7 +286,9 @@ def cmd_pose(args: argparse.Namespace) -> int:
             rec.log_rig(rig_model)
             rec.log_cloud(cloud)
             log_poses(rec, doc, poses, instances, model)
-        print(f"recording {rrd}")
+        print(f"recording {rrd}", file=text)
+    if args.json:
+        print(json.dumps(doc, default=str))
     return Exit.OK if any(r["pick_rank"] is not None for r in doc["parts"]) else Exit.FAILED
 
 
