@@ -41,7 +41,7 @@ from calibration.capture import PoseFrames
 from calibration.errors import CalibrationError, DetectionError
 from calibration.graycode import GrayCodeLayout, decode_graycode
 from calibration.views import View
-from scanner.decode import DecodeResult, decode
+from scanner.decode import DecodeResult, DecodeSettings, decode
 from scanner.errors import DecodeError
 from scanner.patterns import PatternSet
 from scanner.session import write_atomic, write_json
@@ -219,10 +219,12 @@ class CaptureSet:
 
 
 def decode_pose(name: str, fringes: np.ndarray, patterns: PatternSet, bit_depth: int,
-                projector_size: tuple[int, int]) -> DecodeResult:
-    """The fringe stack decoded; a wrong or incomplete stack is a DetectionError naming the view."""
+                projector_size: tuple[int, int], *, judged: bool = True) -> DecodeResult:
+    """The fringe stack decoded; a wrong or incomplete stack is a DetectionError naming the view.
+    `judged` False: frames distorted on purpose (the plate captured without gamma compensation,
+    to show what it is worth): their consistency checks are kept in the result, not enforced."""
     try:
-        return decode(fringes, patterns, bit_depth, projector_size)
+        return decode(fringes, patterns, bit_depth, projector_size, DecodeSettings(self_check=judged))
     except DecodeError as exc:
         raise DetectionError(name, f"fringe frames cannot be decoded: {exc}") from None
 

@@ -453,7 +453,8 @@ def calibrate_capture(capture: CaptureSet, settings: CalibrationSettings, rig_na
     corr, failures = correspond_all(board, views, strict, say)
     _log_views(recording, views, corr, csize, psize)
     result = solve_views(board, corr, failures, csize, psize, settings, rig_name, gamma, say, recording)
-    plates = [Plate(h, gm, decode_pose(f"plate at {h} mm", f, patterns, bits, psize))
+    plates = [Plate(h, gm, decode_pose(f"plate at {h} mm", f, patterns, bits, psize,  # 1.0 beside a fitted gamma:
+                                       judged=gamma is None or abs(gm - 1.0) > 1e-9))  # uncompensated on purpose
               for h, gm, f in capture.plates()]
     art = capture.artefact()
     art_decoded = None
@@ -560,7 +561,7 @@ def _capture_checks(rig: Rig, procedure: Procedure, bench: Bench, writer: Captur
             say(f"plate at {h:g} mm" + ("" if g == gamma else " without gamma compensation"))
             fringes = capture_fringes(rig, patterns, g) if g == gamma else capture_uncompensated(rig, patterns)
             writer.add_plate(h, fringes, g)
-            plates.append(Plate(h, g, decode_pose(f"plate at {h} mm", fringes, patterns, bits, psize)))
+            plates.append(Plate(h, g, decode_pose(f"plate at {h} mm", fringes, patterns, bits, psize, judged=g == gamma)))
     if procedure.artefact is None:
         return plates, None
     bench.place_artefact()
