@@ -366,7 +366,8 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     z_gate = float(norm.isf(GRADIENT_FALSE_ACCEPT / 2))
     grid_r = rect.right
     right_rows = _Rows.of(grid_r.resample(right.coordinate[o]), grid_r.resample(right.sigma[o]), z_gate)
-    left_rows = _Rows.of(rect.left.resample(left.coordinate[o]), rect.left.resample(left.sigma[o]), z_gate)
+    left_c = rect.left.resample(left.coordinate[o])
+    left_rows = _Rows.of(left_c, np.zeros_like(left_c), z_gate)  # counted only: no gate, no noise needed
     shape = left.coordinate[o].shape
     pix = np.flatnonzero(np.isfinite(left.coordinate[o]))
     c = left.coordinate[o].ravel()[pix]
@@ -398,14 +399,20 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     sigma_d = np.sqrt(left.sigma[o].ravel()[pix].astype(np.float64) ** 2 + s_r.astype(np.float64) ** 2) / g
     sigma_Z = Z ** 2 / (rect.f * abs(rect.tx_mm)) * sigma_d
 
+    none = inside & ((n0 == 0) | (n1 == 0))
     checks: dict[str, float] = {"pixels_with_coordinate": float(pix.size), "outside_right_view": float((~inside).sum()),
-                                "not_unique": float((inside & ~unique).sum()),
+                                "no_match": float(none.sum()), "not_unique": float((inside & ~unique & ~none).sum()),
                                 "low_gradient": float((unique & ~steep).sum()), "behind": float((steep & ~ahead).sum())}
-    consistent = ahead
     others = [p for p in left.coordinate if p != o]
     if others:
         consistent, figures = _second_orientation(rect, left, right, others[0], pix, xg, yg, ahead)
-        checks |= figures
+    else:
+        rays = rect.model.left.ray_grid.reshape(-1, 3)[pix[ahead]].astype(np.float64)
+        consistent = ahead.copy()
+        consistent[ahead], figures = projector_consistency(
+            rays * (Z[ahead] / rect.left_w.ravel()[pix[ahead]])[:, None], c[ahead].astype(np.float64),
+            np.hypot(left.sigma[o].ravel()[pix[ahead]], s_r[ahead]).astype(np.float64))
+    checks |= figures
     keep = consistent & np.isfinite(sigma_Z)
     checks["points"] = float(keep.sum())
 
@@ -420,13 +427,46 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
         m[pix[sel]] = True
         return m.reshape(shape)
 
-    masks = {"outside_right_view": mask(~inside), "not_unique": mask(inside & ~unique),
+    masks = {"outside_right_view": mask(~inside), "no_match": mask(none), "not_unique": mask(inside & ~unique & ~none),
              "low_gradient": mask(unique & ~steep), "behind": mask(steep & ~ahead),
              "inconsistent": mask(ahead & ~consistent)}
     rays = rect.model.left.ray_grid
     cloud = cloud_from_depth(z_left.reshape(shape), np.ascontiguousarray(rays[..., 0]),
                              np.ascontiguousarray(rays[..., 1]), to_texture8(left.texture, left.bit_depth))
     return BinocularResult(cloud, sig.reshape(shape), rect.model, o, masks, checks)
+
+
+def projector_consistency(X: np.ndarray, c: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+    """Which points X (N, 3) agree with the projector coordinate c (N,) they were matched on,
+    the projector's geometry estimated from the points themselves (no calibration): a 1-D
+    projective camera c = a·X̃ / b·X̃ (direct linear fit), then a cubic in (that coordinate,
+    y/z) absorbing the projector's lens distortion (fitted twice, without the points beyond
+    5 robust sigmas). A point is kept when its residual over sqrt(σ_l² + σ_r²) (the two
+    cameras' coordinate noise) is within z robust sigmas, z for CHECK_FALSE_REFUSE two-sided.
+    This is what removes, with one fringe orientation, the left points the right camera cannot
+    see that matched another surface on the same epipolar plane (their residuals are pixels)."""
+    n = len(X)
+    if n < 50:
+        return np.ones(n, bool), {"projector_fit_points": float(n)}
+    m, scale = X.mean(axis=0), X.std() or 1.0
+    H = np.column_stack([(X - m) / scale, np.ones(n)])
+    cm, cs = float(c.mean()), float(c.std()) or 1.0
+    cn = (c - cm) / cs
+    A = np.column_stack([H, -cn[:, None] * H])
+    p = np.linalg.eigh(A.T @ A)[1][:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = (H @ p[:4]) / (H @ p[4:])
+        y = X[:, 1] / X[:, 2]
+    r = (cn - u) * cs
+    F = np.column_stack([np.ones(n), u, y, u * u, u * y, y * y, u ** 3, u * u * y, u * y * y, y ** 3])
+    fit = np.isfinite(r) & np.isfinite(F).all(axis=1)
+    for _ in range(2):
+        coef = np.linalg.lstsq(F[fit], r[fit], rcond=None)[0]
+        res = (r - F @ coef) / sigma
+        spread = 1.4826 * float(np.median(np.abs(res[fit])))
+        fit &= np.abs(res) <= 5 * spread
+    keep = np.abs(res) <= float(norm.isf(CHECK_FALSE_REFUSE / 2)) * spread
+    return keep, {"projector_fit_sigma": spread, "projector_fit_refused": float((~keep).sum())}
 
 
 def _second_orientation(rect: Rectification, left: CameraPhase, right: CameraPhase, p: str, pix: np.ndarray,
