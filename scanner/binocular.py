@@ -38,6 +38,7 @@ The cloud is organised on the left camera's pixels, in the left camera's frame (
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
@@ -379,11 +380,14 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     t = (gy - j).astype(np.float32)
     inside = (j >= 0) & (j + 1 < grid_r.shape[0])
     j = np.clip(j, 0, grid_r.shape[0] - 2).astype(np.intp)
-    (n0, k0, x0, step0, s0), (n1, k1, x1, step1, s1) = (right_rows.find(c, rows) for rows in (j, j + 1))
     # the left's own (nearest) row must hold the coordinate once: twice means a second surface on the same
     # epipolar plane, which the right may see in this pixel's place (occlusion)
     jl = np.clip(np.rint(yl - rect.left.y0), 0, rect.left.shape[0] - 1)
-    once = left_rows.count(c, jl) <= 1
+    with ThreadPoolExecutor(3, thread_name_prefix="binocular match") as pool:  # searchsorted releases the GIL
+        rows_found = [pool.submit(right_rows.find, c, rows) for rows in (j, j + 1)]
+        left_count = pool.submit(left_rows.count, c, jl)
+        (n0, k0, x0, step0, s0), (n1, k1, x1, step1, s1) = (f.result() for f in rows_found)
+        once = left_count.result() <= 1
     unique = inside & (n0 == 1) & (n1 == 1) & (k0 >= 0) & (k1 >= 0) & once
     steep = unique & right_rows.gate[np.maximum(k0, 0)] & right_rows.gate[np.maximum(k1, 0)]
     xg = (1 - t) * x0 + t * x1  # grid x of the match, on the rectified row through the left pixel
@@ -436,36 +440,62 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     return BinocularResult(cloud, sig.reshape(shape), rect.model, o, masks, checks)
 
 
+PROJECTOR_FIT_SAMPLES = 50_000  # points the projector model is fitted on (17 parameters): every k-th point
+
+
 def projector_consistency(X: np.ndarray, c: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
     """Which points X (N, 3) agree with the projector coordinate c (N,) they were matched on,
     the projector's geometry estimated from the points themselves (no calibration): a 1-D
     projective camera c = a·X̃ / b·X̃ (direct linear fit), then a cubic in (that coordinate,
     y/z) absorbing the projector's lens distortion (fitted twice, without the points beyond
-    5 robust sigmas). A point is kept when its residual over sqrt(σ_l² + σ_r²) (the two
-    cameras' coordinate noise) is within z robust sigmas, z for CHECK_FALSE_REFUSE two-sided.
-    This is what removes, with one fringe orientation, the left points the right camera cannot
-    see that matched another surface on the same epipolar plane (their residuals are pixels)."""
+    5 robust sigmas), both on every k-th point (PROJECTOR_FIT_SAMPLES). A point is kept when
+    its residual over sqrt(σ_l² + σ_r²) (the two cameras' coordinate noise) is within z robust
+    sigmas, z for CHECK_FALSE_REFUSE two-sided. This is what removes, with one fringe
+    orientation, the left points the right camera cannot see that matched another surface on
+    the same epipolar plane (their residuals are pixels)."""
     n = len(X)
     if n < 50:
         return np.ones(n, bool), {"projector_fit_points": float(n)}
-    m, scale = X.mean(axis=0), X.std() or 1.0
-    H = np.column_stack([(X - m) / scale, np.ones(n)])
-    cm, cs = float(c.mean()), float(c.std()) or 1.0
-    cn = (c - cm) / cs
+    fit = slice(None, None, max(n // PROJECTOR_FIT_SAMPLES, 1))
+    m, scale = X[fit].mean(axis=0), float(X[fit].std()) or 1.0
+    cm, cs = float(c[fit].mean()), float(c[fit].std()) or 1.0
+
+    def homogeneous(P: np.ndarray) -> np.ndarray:
+        return np.column_stack([(P - m) / scale, np.ones(len(P))])
+
+    H = homogeneous(X[fit])
+    cn = (c[fit] - cm) / cs
     A = np.column_stack([H, -cn[:, None] * H])
     p = np.linalg.eigh(A.T @ A)[1][:, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = (H @ p[:4]) / (H @ p[4:])
-        y = X[:, 1] / X[:, 2]
+
+    def features(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Hp = homogeneous(P)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = (Hp @ p[:4]) / (Hp @ p[4:])
+            y = P[:, 1] / P[:, 2]
+        return u, np.column_stack([np.ones(len(P)), u, y, u * u, u * y, y * y, u ** 3, u * u * y, u * y * y, y ** 3])
+
+    u, F = features(X[fit])
     r = (cn - u) * cs
-    F = np.column_stack([np.ones(n), u, y, u * u, u * y, y * y, u ** 3, u * u * y, u * y * y, y ** 3])
-    fit = np.isfinite(r) & np.isfinite(F).all(axis=1)
+    w = 1.0 / sigma[fit]
+    use = np.isfinite(r) & np.isfinite(F).all(axis=1) & np.isfinite(w)
     for _ in range(2):
-        coef = np.linalg.lstsq(F[fit], r[fit], rcond=None)[0]
-        res = (r - F @ coef) / sigma
-        spread = 1.4826 * float(np.median(np.abs(res[fit])))
-        fit &= np.abs(res) <= 5 * spread
-    keep = np.abs(res) <= float(norm.isf(CHECK_FALSE_REFUSE / 2)) * spread
+        Fw = F[use] * w[use, None]
+        coef = np.linalg.solve(Fw.T @ Fw, Fw.T @ (r[use] * w[use]))
+        res = (r - F @ coef) * w
+        spread = 1.4826 * float(np.median(np.abs(res[use])))
+        use &= np.abs(res) <= 5 * spread
+    # every point's residual, the features evaluated without forming them (Horner in u)
+    a = p[:3] / scale
+    b = p[4:7] / scale
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u_all = (X @ a + (p[3] - m @ a)) / (X @ b + (p[7] - m @ b))
+        y = X[:, 1] / X[:, 2]
+    k = coef
+    poly = k[0] + u_all * (k[1] + u_all * (k[3] + u_all * k[6])) + y * (k[2] + u_all * (k[4] + u_all * k[7])
+                                                                      + y * (k[5] + u_all * k[8] + y * k[9]))
+    res_all = (c - cm) - cs * u_all - poly
+    keep = np.abs(res_all / sigma) <= float(norm.isf(CHECK_FALSE_REFUSE / 2)) * spread
     return keep, {"projector_fit_sigma": spread, "projector_fit_refused": float((~keep).sum())}
 
 

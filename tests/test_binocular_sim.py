@@ -20,6 +20,7 @@ from scanner.patterns import PatternSet
 from scanner.rig import RigConfig, open_rig
 from scanner.session import Session
 from sim.evaluate import Truth, smooth_region
+from sim.stereo_truth import seen_by
 from sim.virtual_devices import Faults
 
 BINOCULAR = CONFIG_DIR / "rigs" / "sim_binocular.toml"
@@ -70,25 +71,6 @@ def test_the_session_holds_every_camera_and_decodes_again(scanned: tuple) -> Non
     assert "unit: mm" in header and "frame: camera 'left'" in header
 
 
-def seen_by_right(truths: dict) -> np.ndarray:
-    """Left pixels (H, W) whose true point the right camera sees (its own first hit is that
-    point, 3 px from the right's depth edges), from the simulator's per-camera truth."""
-    left, right = truths["left"], truths["right"]
-    P = left.points.reshape(-1, 3)
-    T = np.linalg.inv(right.model.world_from_cam) @ left.model.world_from_cam
-    Xr = P @ T[:3, :3].T + T[:3, 3]
-    ok = np.isfinite(Xr[:, 2]) & (Xr[:, 2] > 0)
-    uv = np.zeros((len(P), 2))
-    uv[ok] = right.model.camera.project(Xr[ok])
-    u = np.rint(uv).astype(int)
-    h, w = right.depth.shape
-    ok &= (u[:, 0] >= 0) & (u[:, 1] >= 0) & (u[:, 0] < w) & (u[:, 1] < h)
-    smooth = smooth_region(Truth.of(right))
-    seen = np.zeros(len(P), bool)
-    seen[ok] = (np.abs(right.depth[u[ok, 1], u[ok, 0]] - Xr[ok, 2]) < 0.5) & smooth[u[ok, 1], u[ok, 0]]
-    return seen.reshape(left.depth.shape)
-
-
 def test_depth_against_the_simulators_truth(scanned: tuple) -> None:
     """Over the left camera's smooth lit pixels that the right camera sees too, the depth error
     is no larger than the predicted noise from both cameras' decoded phase noise, and unbiased;
@@ -102,7 +84,7 @@ def test_depth_against_the_simulators_truth(scanned: tuple) -> None:
     beyond = cloud.valid & ~(np.abs(all_err) <= 5 * sigma)
     print(f"{beyond.sum()} of {cloud.valid.sum()} points beyond 5 sigma")
     assert beyond.sum() < 1e-3 * cloud.valid.sum()
-    sel = smooth_region(gt) & cloud.valid & seen_by_right(truths)
+    sel = smooth_region(gt) & cloud.valid & seen_by(truths['left'], truths['right'])
     err = (cloud.points[..., 2] - gt.depth)[sel].astype(np.float64)
     rms, pred = np.sqrt(np.mean(err ** 2)), np.sqrt(np.mean(sigma[sel].astype(np.float64) ** 2))
     print(f"depth error RMS {rms * 1e3:.2f} um over {sel.sum()} px, predicted {pred * 1e3:.2f} um; "

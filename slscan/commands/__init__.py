@@ -8,6 +8,7 @@ libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
 
 from slscan.commands import (
     bench,
+    binobench,
     calibrate,
     demobench,
     devices,
@@ -25,5 +26,5 @@ from slscan.commands import (
     viewbench,
 )
 
-COMMANDS = (scan, import_, review, export, bench, importbench, simbench, demobench, viewbench, devices, calibrate,
-            verify, inspect, pose, segment, station)
+COMMANDS = (scan, import_, review, export, bench, binobench, importbench, simbench, demobench, viewbench, devices,
+            calibrate, verify, inspect, pose, segment, station)
