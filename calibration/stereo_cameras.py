@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from calibration.errors import NotEnoughData
-from calibration.intrinsics import DeviceCalibration, ViewPoints, calibrate_device
+from calibration.intrinsics import DeviceCalibration, ViewPoints, calibrate_device, outlier_views
 from calibration.stereo import RIG_PARAMETERS, StereoCalibration, initial_extrinsics, joint_refine
 from scanner.binocular import Rectification, StereoModel
 
@@ -38,6 +38,12 @@ class StereoCameraCalibration:
     joint: StereoCalibration
     views: list[int]
     epipolar_px: np.ndarray
+
+    def outliers(self, factor: float) -> list[int]:
+        """Board poses (indices into the capture) whose joint RMS in either camera exceeds
+        `factor` times the median pose's (`calibration.intrinsics.outlier_views`), worst first."""
+        worst = np.maximum(self.joint.per_view_rms_px("camera"), self.joint.per_view_rms_px("projector"))
+        return [self.views[i] for i in outlier_views(worst, factor)]
 
     @property
     def epipolar_rms_px(self) -> float:
@@ -59,7 +65,8 @@ class StereoCameraCalibration:
         j = self.joint
         a, b = self.names
         std = {k.replace("camera.", f"{a}.").replace("projector.", f"{b}."): v for k, v in j.std.items()}
-        return {"views": self.views, "rms_px": {a: j.camera_rms_px, b: j.projector_rms_px, "stereo": j.rms_px,
+        per_view = np.maximum(j.per_view_rms_px("camera"), j.per_view_rms_px("projector"))
+        return {"views": self.views, "per_view_rms_px": dict(zip(self.views, per_view.tolist())), "rms_px": {a: j.camera_rms_px, b: j.projector_rms_px, "stereo": j.rms_px,
                                                 f"{a}_alone": self.left.rms_px, f"{b}_alone": self.right.rms_px},
                 "epipolar_rms_px": self.epipolar_rms_px,
                 "epipolar_max_px": float(np.abs(self.epipolar_px).max()) if self.epipolar_px.size else None,

@@ -136,14 +136,24 @@ class RigConfig:
                                       cam_from_proj=np.linalg.inv(pose) @ first.cam_from_proj)
         return out
 
-    def stereo_model(self) -> StereoModel:
-        """The nominal stereo model of the first two cameras of a [[cameras]] rig."""
+    def stereo_model(self, nominal: bool = False) -> StereoModel:
+        """The stereo model of the first two cameras of a [[cameras]] rig: the [rig]
+        stereo_calibration file's (its sizes checked against the cameras'), or with `nominal`
+        (or without one) the geometry written in the rig file."""
         from scanner.binocular import StereoModel
+        from scanner.stereo_calibration_file import read_stereo_calibration
 
         models = self.camera_models()
         if len(models) < 2:
             raise ConfigError(self.path, "cameras", "binocular reconstruction needs a [[cameras]] list of two cameras")
         (a, left), (b, right) = list(models.items())[:2]
+        file = schema.parse(RigFile, self.raw, self.path).rig.stereo_calibration
+        if file and not nominal:
+            try:
+                model, _ = read_stereo_calibration([resolve(self.path, file)], left.camera.size, right.camera.size)
+            except ScannerError as exc:
+                raise ConfigError(self.path, "rig.stereo_calibration", str(exc)) from None
+            return replace(model, names=(a, b))
         return StereoModel(left.camera, right.camera, np.linalg.inv(right.world_from_cam) @ left.world_from_cam,
                            (a, b))
 

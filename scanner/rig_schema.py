@@ -142,6 +142,7 @@ class RigTable(Schema):
     working_distance_mm: PositiveFloat = 400.0
     patterns: Str = "../patterns/heterodyne_3x4.toml"
     calibration: Str | None = None
+    stereo_calibration: Str | None = None  # a [[cameras]] rig: the first two cameras' (stereo_calibration.json)
 
     @model_validator(mode="after")
     def _period(self) -> RigTable:

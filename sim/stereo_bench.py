@@ -37,3 +37,17 @@ class StereoSimBench:
             return False
         show(self.rig, Scene(objects=(self.target.scene_object(self.poses[index]),), name=f"board pose {index}"))
         return True
+
+
+def render_rows(rig: Rig, rows: np.ndarray, bit_depth: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Every camera's frames (N, H, W) of projector images whose every row is `rows[k]` ((N, Wp)
+    uint8, vertical fringes as another tool makes them, shown as they are: no gamma
+    pre-compensation), at the camera's exposure and `bit_depth`, with fresh noise."""
+    renderers = rig.extras["renderers"]
+    hp = rig.projector.height
+    out = {}
+    for name, renderer in renderers.items():
+        exposure = rig.cameras[name].exposure_s
+        out[name] = np.stack([renderer.render(np.ascontiguousarray(np.broadcast_to(r, (hp, len(r)))), exposure,
+                                              bit_depth, rng) for r in rows])
+    return out

@@ -67,7 +67,7 @@ def _scene_run(config: Any, seed: int) -> dict[str, Any]:
     models = config.camera_models()
     left_model = models["left"]
     wrong_projector = replace(left_model.projector, dist=np.r_[WRONG_K1, left_model.projector.dist[1:]])
-    stereo = config.stereo_model()
+    stereo = config.stereo_model(nominal=True)
     bino = BinocularReconstructor(stereo)
     out: dict[str, Any] = {"seed": seed}
     with open_sim_rig(config, scene=random_scene(rng), seed=int(rng.integers(2 ** 31))) as rig:
@@ -113,7 +113,7 @@ def _timing(config: Any, stacks: dict[str, np.ndarray], repeats: int) -> dict[st
     patterns = PatternSet.load(config.patterns_path)
     model = config.camera_models()["left"]
     size, bits = model.projector.size, 12
-    bino = BinocularReconstructor(config.stereo_model())
+    bino = BinocularReconstructor(config.stereo_model(nominal=True))
     tri = Triangulator(model)
     _ = bino.rectification.left.taps, bino.rectification.right.taps  # once per rig, as in a station
     tri.prepare(("vertical",))

@@ -100,6 +100,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from calibration.workflow import write_result
     from scanner.session_recording import SessionRecording
 
+    if args.source is None:
+        from scanner.rig import RigConfig
+
+        config = RigConfig.load(args.rig)
+        if len(config.cameras) >= 2:  # a rig with two cameras: they are calibrated together
+            from slscan.commands.calibrate_stereo import cmd_calibrate_stereo
+
+            return cmd_calibrate_stereo(args, config, _say)
     out = Path(args.out)
     made = _out_folder(out)
     run_id = f"calibration-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
