@@ -66,8 +66,9 @@ class StereoCameraCalibration:
         a, b = self.names
         std = {k.replace("camera.", f"{a}.").replace("projector.", f"{b}."): v for k, v in j.std.items()}
         per_view = np.maximum(j.per_view_rms_px("camera"), j.per_view_rms_px("projector"))
-        return {"views": self.views, "per_view_rms_px": dict(zip(self.views, per_view.tolist())), "rms_px": {a: j.camera_rms_px, b: j.projector_rms_px, "stereo": j.rms_px,
-                                                f"{a}_alone": self.left.rms_px, f"{b}_alone": self.right.rms_px},
+        rms_px = {a: j.camera_rms_px, b: j.projector_rms_px, "stereo": j.rms_px, f"{a}_alone": self.left.rms_px,
+                  f"{b}_alone": self.right.rms_px}
+        return {"views": self.views, "per_view_rms_px": dict(zip(self.views, per_view.tolist())), "rms_px": rms_px,
                 "epipolar_rms_px": self.epipolar_rms_px,
                 "epipolar_max_px": float(np.abs(self.epipolar_px).max()) if self.epipolar_px.size else None,
                 "baseline_mm": float(np.linalg.norm(j.proj_from_cam[:3, 3])), "std": std,
@@ -121,5 +122,6 @@ def calibrate_stereo_cameras(views: list[tuple[ViewPoints | None, ViewPoints | N
     joint = joint_refine(left_views, right_views, own[0].pinhole, own[1].pinhole,  # type: ignore[arg-type]
                          right_from_left, left_poses, fix_k3=fix_k3)
     model = StereoModel(joint.camera, joint.projector, joint.proj_from_cam, names)
-    errors = epipolar_errors(model, [common_corners(a, b) for a, b in zip(left_views, right_views)])  # type: ignore[arg-type]
+    pairs = [common_corners(a, b) for a, b in zip(left_views, right_views)]  # type: ignore[arg-type]
+    errors = epipolar_errors(model, pairs)
     return StereoCameraCalibration(names, own[0], own[1], joint, both, errors)

@@ -85,7 +85,8 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
              config.trigger, len(cameras), camera.bit_depth)
     extras = {"ground_truth": renderer.ground_truth, "scene": scene, "renderer": renderer, "sensor": renderer.sensor,
               "faults": faults, "seed": seed,
-              "session_files": [lambda root: Truth.of(extras["renderer"].ground_truth).save(Path(root) / GROUND_TRUTH_FILE)]}
+              "session_files": [lambda root: Truth.of(extras["renderer"].ground_truth).save(Path(root) /
+                                                                                          GROUND_TRUTH_FILE)]}
     if config.cameras:  # every camera's truth and renderer by name
         extras |= {"renderers": renderers, "ground_truths": {n: r.ground_truth for n, r in renderers.items()}}
     rig = Rig(config=config, camera=camera, projector=projector, trigger=trigger, model=model, extras=extras,

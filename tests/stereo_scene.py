@@ -92,7 +92,8 @@ def rig(scale: float = 0.5, baseline_mm: float = 200.0) -> TwoCameraRig:
     projector between them; the world frame is the left camera's."""
     w, h = int(1280 * scale), int(1024 * scale)
     left = Pinhole.from_fov(w, h, 26.0, dist=np.array([-0.08, 0.10, 0.0005, -0.0003, 0.0]))
-    right = Pinhole.from_fov(w, h, 25.0, principal=(w / 2 + 7.3, h / 2 - 4.1), dist=np.array([-0.05, 0.04, 0.0, 0.0004, 0.0]))
+    right = Pinhole.from_fov(w, h, 25.0, principal=(w / 2 + 7.3, h / 2 - 4.1),
+                             dist=np.array([-0.05, 0.04, 0.0, 0.0004, 0.0]))
     projector = Pinhole.from_fov(912, 1140, 30.0, pixel_aspect=2.0, dist=np.array([0.02, 0.0, 0.0, 0.0, 0.0]))
     target = np.array([0.0, 0.0, 410.0])
     left_pose = look_at(np.zeros(3), target)

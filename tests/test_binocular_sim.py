@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from binocular_rigs import binocular_rig
 
 from scanner.binocular_pipeline import process_binocular, scan_binocular
 from scanner.binocular_session import camera_session, record
@@ -23,19 +24,11 @@ from sim.evaluate import Truth, smooth_region
 from sim.stereo_truth import seen_by
 from sim.virtual_devices import Faults
 
-BINOCULAR = CONFIG_DIR / "rigs" / "sim_binocular.toml"
 SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
 
 
 def small_rig(tmp: Path, **edits: str) -> Path:
-    """config/rigs/sim_binocular.toml with 400 x 320 cameras (same field of view)."""
-    text = BINOCULAR.read_text().replace("width = 1280", "width = 400").replace("height = 1024", "height = 320")
-    text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
-    for old, new in edits.items():
-        text = text.replace(old, new)
-    path = tmp / "rig.toml"
-    path.write_text(text)
-    return path
+    return binocular_rig(tmp, 400, 320, edits=edits)
 
 
 @pytest.fixture(scope="module")

@@ -10,12 +10,12 @@ pixels to a camera pixel; scanner/convention_detection.py.) Cameras at 400 x 320
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from binocular_rigs import binocular_rig
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import CalibrationFileError, SessionError
@@ -27,19 +27,8 @@ from sim.stereo_bench import render_rows
 from sim.stereo_truth import seen_by
 from slscan.commands.import_binocular import import_binocular
 
-BINOCULAR = CONFIG_DIR / "rigs" / "sim_binocular.toml"
 SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
 PATTERNS = CONFIG_DIR / "patterns" / "slmaster_complementary_12x32.toml"
-
-
-def slmaster_rig(tmp: Path) -> Path:
-    text = BINOCULAR.read_text().replace("width = 1280", "width = 400").replace("height = 1024", "height = 320")
-    text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
-    text = re.sub(r"(?s)\[projector\]\nwidth = 912\nheight = 1140\nhfov_deg = 26.0\npixel_aspect = 2.0",
-                  "[projector]\nwidth = 1920\nheight = 1080\nhfov_deg = 26.0\npixel_aspect = 1.0", text)
-    path = tmp / "rig.toml"
-    path.write_text(text)
-    return path
 
 
 def write_caliinfo(path: Path, model: object, size: tuple[int, int]) -> Path:
@@ -59,7 +48,7 @@ def write_caliinfo(path: Path, model: object, size: tuple[int, int]) -> Path:
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory: pytest.TempPathFactory) -> tuple:
     tmp = tmp_path_factory.mktemp("slmaster_bino")
-    config = RigConfig.load(slmaster_rig(tmp))
+    config = RigConfig.load(binocular_rig(tmp, 400, 320, projector=(1920, 1080, 1.0)))
     seed = int(np.random.SeedSequence().entropy % 2 ** 31)
     print(f"seed {seed}")
     rows = slmaster_complementary(1920)

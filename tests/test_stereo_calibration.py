@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from binocular_rigs import binocular_rig
 
 from calibration.board import Board
 from calibration.stereo_cameras import calibrate_stereo_cameras
@@ -25,22 +26,13 @@ from scanner.stereo_calibration_file import read_stereo_calibration, write_stere
 from sim.calibration_bench import Target, plate_scene
 from sim.stereo_bench import StereoSimBench, plan_stereo_poses
 
-BINOCULAR = CONFIG_DIR / "rigs" / "sim_binocular.toml"
 BOARD = CONFIG_DIR / "boards" / "sim_chess_9x7.toml"
-
-
-def half_size_rig(tmp: Path) -> Path:
-    text = BINOCULAR.read_text().replace("width = 1280", "width = 640").replace("height = 1024", "height = 512")
-    text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
-    path = tmp / "rig.toml"
-    path.write_text(text)
-    return path
 
 
 @pytest.fixture(scope="module")
 def solved(tmp_path_factory: pytest.TempPathFactory) -> tuple:
     tmp = tmp_path_factory.mktemp("stereo_cal")
-    config = RigConfig.load(half_size_rig(tmp))
+    config = RigConfig.load(binocular_rig(tmp, 640, 512))
     seed = int(np.random.SeedSequence().entropy % 2 ** 31)
     print(f"seed {seed}")
     board = Board.load(BOARD)

@@ -14,6 +14,7 @@ from slscan.commands import (
     devices,
     export,
     import_,
+    import_binocular,
     importbench,
     inspect,
     pose,
@@ -26,5 +27,5 @@ from slscan.commands import (
     viewbench,
 )
 
-COMMANDS = (scan, import_, review, export, bench, binobench, importbench, simbench, demobench, viewbench, devices,
-            calibrate, verify, inspect, pose, segment, station)
+COMMANDS = (scan, import_, import_binocular, review, export, bench, binobench, importbench, simbench, demobench,
+            viewbench, devices, calibrate, verify, inspect, pose, segment, station)

@@ -16,7 +16,6 @@ ground truth. The projector is not calibrated here (binocular scans do not need 
 from __future__ import annotations
 
 import argparse
-import re
 from pathlib import Path
 from typing import Any
 
@@ -55,12 +54,14 @@ def report_lines(cal: Any) -> list[str]:
             f"epipolar  {r['epipolar_rms_px']:.4f} px RMS, {r['epipolar_max_px']:.4f} px max (rectified rows)",
             f"baseline  {r['baseline_mm']:.3f} mm ± {r['std']['extrinsic.translation_mm'] * 1e3:.1f} um, rotation ± "
             f"{r['std']['extrinsic.rotation_deg'] * 3600:.1f} arcsec",
-            *(f"{n:<9} fx {c.K[0, 0]:.2f} ± {r['std'][f'{n}.fx']:.3f}, fy {c.K[1, 1]:.2f} ± {r['std'][f'{n}.fy']:.3f},"
-              f" cx {c.K[0, 2]:.2f} ± {r['std'][f'{n}.cx']:.3f}, cy {c.K[1, 2]:.2f} ± {r['std'][f'{n}.cy']:.3f} px"
+            *(f"{n:<9} " + ", ".join(f"{p} {c.K[i, j]:.2f} ± {r['std'][f'{n}.{p}']:.3f}" for i, j, p in
+                                     ((0, 0, "fx"), (1, 1, "fy"), (0, 2, "cx"), (1, 2, "cy"))) + " px"
               for n, c in ((a, cal.model.left), (b, cal.model.right)))]
 
 
-def cmd_calibrate_stereo(args: argparse.Namespace, config: Any, say: Any) -> int:
+def cmd_calibrate_stereo(args: argparse.Namespace, config: Any, say: Any, texels_per_px: float) -> int:
+    """The command (module docstring); `texels_per_px`: the simulated board's print resolution at the
+    working distance (slscan/commands/calibrate.py's)."""
     from calibration.errors import CalibrationRejected
     from calibration.solve import CalibrationSettings
     from calibration.stereo_cameras import calibrate_stereo_cameras
@@ -82,11 +83,10 @@ def cmd_calibrate_stereo(args: argparse.Namespace, config: Any, say: Any) -> int
     if config.driver == "sim":
         from sim.calibration_bench import Target, plate_scene
         from sim.stereo_bench import StereoSimBench, plan_stereo_poses
-        from slscan.commands.calibrate import TEXELS_PER_PX
 
         board, left = procedure.board, config.camera_models()[names[0]].camera
         footprint = config.working_distance_mm / left.K[0, 0]
-        target = Target(board.image(board.texture_density(TEXELS_PER_PX / footprint)), board.size_mm,
+        target = Target(board.image(board.texture_density(texels_per_px / footprint)), board.size_mm,
                         board.image_origin_mm, board.object_points())
         poses = plan_stereo_poses(config, target, procedure.poses, args.seed)
         with open_rig(config, scene=plate_scene(config.working_distance_mm + 200.0), seed=args.seed) as rig:
@@ -120,21 +120,11 @@ def cmd_calibrate_stereo(args: argparse.Namespace, config: Any, say: Any) -> int
     print("\n".join(lines))
     print(f"calibration {path}")
     if args.install:
-        _install(config.path, path)
+        from slscan.rig_install import name_in_rig
+
+        name_in_rig(config.path, "stereo_calibration", path)
         print(f"installed   {config.path} now names this stereo calibration: every binocular scan with it uses it")
     else:
         print(f"to use it   add  stereo_calibration = \"{path.resolve()}\"  under [rig] in {config.path} (or rerun "
               f"with --install)")
     return Exit.OK
-
-
-def _install(rig_path: Path, calibration: Path) -> None:
-    """Name `calibration` as the rig TOML's [rig] stereo_calibration (replacing an earlier one)."""
-    text = rig_path.read_text()
-    line = f'stereo_calibration = "{calibration.resolve()}"'
-    new, n = re.subn(r"(?m)^stereo_calibration\s*=.*$", line, text, count=1)
-    if not n:
-        new, n = re.subn(r"(?m)^\[rig\][^\n]*\n", lambda m: m.group(0) + line + "\n", text, count=1)
-    if not n:
-        raise ConfigError(rig_path, "rig", "no [rig] table to name the stereo calibration in")
-    rig_path.write_text(new)

@@ -177,11 +177,7 @@ def import_frames(folder: Path, patterns_path: Path, projector_size: tuple[int, 
 def cmd_import(args: argparse.Namespace) -> int:
     from slscan.progress import ProgressLine
 
-    if len(args.frames_folder) == 2:  # LEFT_FRAMES RIGHT_FRAMES: a binocular capture
-        from slscan.commands.import_binocular import cmd_import_binocular
-
-        return cmd_import_binocular(args)
-    if len(args.frames_folder) > 2 or len(args.calibration or []) > 1:
+    if len(args.frames_folder) > 1 or len(args.calibration or []) > 1:  # two: slscan/commands/import_binocular.py
         raise SessionError("one folder of frames and one --calibration, or two folders (left, right) of a binocular "
                            "capture and its stereo calibration")
     t0 = time.perf_counter()

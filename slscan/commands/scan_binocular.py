@@ -62,18 +62,21 @@ def report(scan: Any) -> None:
           f"line" + (f"; epipolar offset {s['epipolar_offset_median_px']:+.4f} px" if "epipolar_offset_median_px" in s
                      else ""))
     three = scan.three_rays
-    print("3 rays    " + (f"camera-projector depth minus binocular: median {three['mono_minus_binocular_median_mm'] * 1e3:+.2f}"
-                          f" um, RMS {three['mono_minus_binocular_rms_mm'] * 1e3:.2f} um; projector residual RMS "
-                          f"{three['projector_residual_rms_px']:.4f} px" if three else
-                          "not checked (no calibration of the projector)"))
+    if three:
+        median, rms = three["mono_minus_binocular_median_mm"] * 1e3, three["mono_minus_binocular_rms_mm"] * 1e3
+        print(f"3 rays    camera-projector depth minus binocular: median {median:+.2f} um, RMS {rms:.2f} um; "
+              f"projector residual RMS {three['projector_residual_rms_px']:.4f} px")
+    else:
+        print("3 rays    not checked (no calibration of the projector)")
     t = scan.timings_s
     print(f"timings   decode {t['decode'] * 1e3:.0f} ms (both cameras), match + triangulate {t['match'] * 1e3:.0f} ms")
     if (root / RECORDING).exists():
         print(f"recording {root / RECORDING}   (view: slscan review {root})")
     acc = sim_depth_error(scan)
     if acc is not None:
-        print(f"accuracy  depth error RMS {acc['rms_mm'] * 1e3:.1f} um (predicted {acc['bound_mm'] * 1e3:.1f} um), mean "
-              f"{acc['mean_mm'] * 1e3:+.2f} um over {acc['pixels']} px; {acc['beyond_5_sigma']} points beyond 5 sigma")
+        print(f"accuracy  depth error RMS {acc['rms_mm'] * 1e3:.1f} um (predicted {acc['bound_mm'] * 1e3:.1f} um), "
+              f"mean {acc['mean_mm'] * 1e3:+.2f} um over {acc['pixels']} px; {acc['beyond_5_sigma']} points beyond "
+              f"5 sigma")
 
 
 def cmd_scan_binocular(args: argparse.Namespace, config: Any, patterns: Any, options: dict[str, Any]) -> int:
