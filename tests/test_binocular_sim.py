@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from binocular_rigs import binocular_rig
 
 from scanner.binocular_pipeline import process_binocular, scan_binocular
 from scanner.binocular_session import camera_session, record
@@ -21,6 +20,7 @@ from scanner.patterns import PatternSet
 from scanner.rig import RigConfig, open_rig
 from scanner.session import Session
 from sim.evaluate import Truth, smooth_region
+from sim.stereo_bench import binocular_rig
 from sim.stereo_truth import seen_by
 from sim.virtual_devices import Faults
 

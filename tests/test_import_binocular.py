@@ -15,7 +15,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from binocular_rigs import binocular_rig
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import CalibrationFileError, SessionError
@@ -23,26 +22,12 @@ from scanner.pointcloud import read_ply_pixels
 from scanner.rig import RigConfig, open_rig
 from sim.evaluate import Truth, smooth_region
 from sim.foreign_patterns import slmaster_complementary
-from sim.stereo_bench import render_rows
+from sim.stereo_bench import binocular_rig, render_rows, write_slmaster_caliinfo
 from sim.stereo_truth import seen_by
 from slscan.commands.import_binocular import import_binocular
 
 SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
 PATTERNS = CONFIG_DIR / "patterns" / "slmaster_complementary_12x32.toml"
-
-
-def write_caliinfo(path: Path, model: object, size: tuple[int, int]) -> Path:
-    """The stereo model as SLMaster's binocular caliInfo.yml (rectification recomputed by OpenCV)."""
-    R, T = model.right_from_left[:3, :3], model.right_from_left[:3, 3].reshape(3, 1)
-    L, Rc = model.left, model.right
-    R1, R2, P1, P2, Q, *_ = cv2.stereoRectify(L.K, L.dist, Rc.K, Rc.dist, size, R, T, flags=0)
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    for k, v in (("M1", L.K), ("D1", L.dist.reshape(1, 5)), ("S", np.array([[size[0]], [size[1]]], float)),
-                 ("M2", Rc.K), ("D2", Rc.dist.reshape(1, 5)), ("R1", R1), ("P1", P1), ("R2", R2), ("P2", P2),
-                 ("Q", Q), ("Rlr", R), ("Tlr", T)):
-        fs.write(k, np.asarray(v, np.float64))
-    fs.release()
-    return path
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +47,7 @@ def capture(tmp_path_factory: pytest.TempPathFactory) -> tuple:
         for k, frame in enumerate(stack):
             cv2.imwrite(str(folder / f"{k + 1}.bmp"), frame)
         folders.append(folder)
-    calib = write_caliinfo(tmp / "caliInfo.yml", config.stereo_model(nominal=True), (400, 320))
+    calib = write_slmaster_caliinfo(tmp / "caliInfo.yml", config.stereo_model(nominal=True), (400, 320))
     return tmp, folders, calib, PATTERNS, truths
 
 

@@ -12,10 +12,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from binocular_rigs import binocular_rig
 
 from calibration.board import Board
-from calibration.stereo_cameras import calibrate_stereo_cameras
+from calibration.stereo_cameras import agree_labels, calibrate_stereo_cameras
 from calibration.stereo_capture import capture_board_views
 from scanner.binocular import StereoModel
 from scanner.config import CONFIG_DIR
@@ -24,7 +23,7 @@ from scanner.geometry import Pinhole
 from scanner.rig import RigConfig, open_rig
 from scanner.stereo_calibration_file import read_stereo_calibration, write_stereo_calibration
 from sim.calibration_bench import Target, plate_scene
-from sim.stereo_bench import StereoSimBench, plan_stereo_poses
+from sim.stereo_bench import StereoSimBench, binocular_rig, plan_stereo_poses
 
 BOARD = CONFIG_DIR / "boards" / "sim_chess_9x7.toml"
 
@@ -44,7 +43,8 @@ def solved(tmp_path_factory: pytest.TempPathFactory) -> tuple:
     with open_rig(config, scene=plate_scene(600.0), seed=seed) as rig:
         views = capture_board_views(rig, StereoSimBench(rig, target, poses), board, len(poses), tmp / "capture",
                                     lambda s: None)
-    cal = calibrate_stereo_cameras(views, (left.size, left.size), ("left", "right"))
+    cal = calibrate_stereo_cameras(views, (left.size, left.size), ("left", "right"), symmetries=board.symmetries())
+    print(f"right labels turned in poses {cal.turned}")
     return config, cal
 
 
@@ -74,6 +74,46 @@ def test_both_cameras_and_their_pose_against_the_truth(solved: tuple) -> None:
     assert report["epipolar_rms_px"] < 0.1
     cov = np.array(report["covariance"]["matrix"])
     assert cov.shape == (24, 24) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > -1e-12)
+
+
+@pytest.mark.parametrize(("kind", "corners", "turns"), [
+    ("chessboard", (9, 7), [180]), ("chessboard", (9, 6), []), ("chessboard", (8, 6), [180]),
+    ("chessboard", (7, 7), [180]), ("chessboard", (6, 6), [90, 180, 270]), ("circles_asymmetric", (4, 11), []),
+    ("circles_asymmetric", (4, 10), [180]), ("charuco", (5, 7), [])])
+def test_board_symmetries(kind: str, corners: tuple[int, int], turns: list[int]) -> None:
+    """The turns that map a board's print onto itself, against the printed image itself turned."""
+    extra = {"chessboard": {}, "circles_asymmetric": {"circle_mm": 3.0},
+             "charuco": {"marker_mm": 5.0, "dictionary": "DICT_5X5_100"}}[kind]
+    board = Board.from_dict({"type": kind, "inner_corners": list(corners), "square_mm": 7.0} | extra)
+    got = sorted(round(float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))) % 360 for T in board.symmetries())
+    assert got == turns
+    image = board.image(board.texture_density(4.0))
+    for T in board.symmetries():
+        k = round(float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))) // 90
+        assert np.array_equal(np.rot90(image, k), image)
+
+
+def test_disagreeing_labels_are_turned_back() -> None:
+    """Board poses of a square board seen by two cameras (a known right_from_left), the right's
+    labels turned at random by the board's quarter and half turns: each pose's turn is found."""
+    rng = np.random.default_rng()
+    board = Board.from_dict({"type": "chessboard", "inner_corners": [6, 6], "square_mm": 7.0})
+    turns = [np.eye(4), *board.symmetries()]
+    right_from_left = np.eye(4)
+    right_from_left[:3, :3] = cv2.Rodrigues(np.array([0.0, -0.5, 0.0]) + rng.normal(0, 0.05, 3))[0]
+    right_from_left[:3, 3] = [-200.0, 0.0, 60.0]
+    left = np.stack([np.eye(4) for _ in range(12)])
+    for T in left:
+        T[:3, :3] = cv2.Rodrigues(rng.normal(0, 0.4, 3))[0]
+        T[:3, 3] = rng.normal([0, 0, 400], 40)
+    truth = rng.integers(0, len(turns), len(left))
+    noise = np.stack([np.eye(4) for _ in range(12)])
+    for T in noise:
+        T[:3, :3] = cv2.Rodrigues(rng.normal(0, 1e-3, 3))[0]
+    right = np.stack([n @ right_from_left @ L @ turns[t] for n, L, t in zip(noise, left, truth)])
+    poses, pick = agree_labels(left, right, board.symmetries())
+    assert pick == truth.tolist()
+    assert np.allclose(poses[:, :3, :3] @ np.linalg.inv(left)[:, :3, :3], right_from_left[:3, :3], atol=5e-3)
 
 
 def test_our_file_round_trips(solved: tuple, tmp_path: Path) -> None:

@@ -15,7 +15,11 @@ each run on fresh random scenes (`sim.stereo_truth.random_scene`; the seeds are 
                frames, medians of --repeats, with the peak traced memory of each and the load
                average before and after
 
-    slscan binobench [--scenes N] [--seed S] [--repeats R] [--json] [--out FILE.json]
+    import     a capture made as SLMaster makes one (its 12-step + complementary Gray-code rows on a
+               1920 x 1080 projector, no gamma pre-compensation, 8-bit BMP) with its stereo caliInfo.yml,
+               through `slscan import LEFT RIGHT`, conventions detected and given: cloud against truth
+
+    slscan binobench [--scenes N] [--imports N] [--seed S] [--repeats R] [--json] [--out FILE.json]
 """
 
 from __future__ import annotations
@@ -24,9 +28,11 @@ import argparse
 import json
 import os
 import statistics
+import tempfile
 import time
 import tracemalloc
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -150,7 +156,65 @@ def _timing(config: Any, stacks: dict[str, np.ndarray], repeats: int) -> dict[st
             "load_average_end": [round(x, 2) for x in os.getloadavg()], "cores": os.cpu_count()}
 
 
-def run_binobench(scenes: int, seed: int | None, repeats: int, say: Any = print) -> dict[str, Any]:
+def _import_run(seed: int, folder: Path) -> dict[str, Any]:
+    """A binocular capture as SLMaster makes one (12-step phase + complementary Gray code on a
+    1920 x 1080 projector, shown without gamma pre-compensation, 8-bit BMP frames) of a fresh
+    scene, with its stereo caliInfo.yml (the rig's true geometry), imported: with the pattern
+    file's conventions left to detection, then given; the cloud against the simulator's truth."""
+    import cv2
+
+    from scanner.config import CONFIG_DIR
+    from scanner.errors import ScannerError
+    from scanner.pointcloud import read_ply_pixels
+    from scanner.rig import RigConfig
+    from sim.evaluate import Truth, smooth_region
+    from sim.foreign_patterns import slmaster_complementary
+    from sim.stereo_bench import binocular_rig, render_rows, write_slmaster_caliinfo
+    from sim.stereo_truth import random_scene, seen_by
+    from sim.virtual_rig import open_sim_rig
+    from slscan.commands.import_binocular import import_binocular
+
+    rng = np.random.default_rng(seed)
+    config = RigConfig.load(binocular_rig(folder, 1280, 1024, projector=(1920, 1080, 1.0)))
+    with open_sim_rig(config, scene=random_scene(rng), seed=int(rng.integers(2 ** 31))) as rig:
+        stacks = render_rows(rig, slmaster_complementary(1920), 8, rng)
+        truths = rig.extras["ground_truths"]
+    folders = []
+    for name, stack in stacks.items():
+        (folder / name).mkdir()
+        for k, frame in enumerate(stack):
+            cv2.imwrite(str(folder / name / f"{k + 1}.bmp"), frame)
+        folders.append(folder / name)
+    calib = write_slmaster_caliinfo(folder / "caliInfo.yml", config.stereo_model(nominal=True), (1280, 1024))
+    given = CONFIG_DIR / "patterns" / "slmaster_complementary_12x32.toml"
+    bare = folder / "slmaster_no_conventions.toml"
+    bare.write_text(given.read_text().split("[conventions]")[0])
+    out: dict[str, Any] = {"seed": seed}
+    gt = Truth.of(truths["left"])
+    both = smooth_region(gt) & seen_by(truths["left"], truths["right"])
+    for case, patterns in (("conventions detected", bare), ("conventions given", given)):
+        try:
+            scan, detections = import_binocular(folders, patterns, (1920, 1080), folder / case.replace(" ", "_"),
+                                                [calib])
+        except ScannerError as exc:
+            out[case] = {"refused": str(exc)}
+            continue
+        points, _, pixels = read_ply_pixels(scan.cloud_path)
+        depth = np.full(gt.depth.shape, np.nan)
+        depth[pixels[:, 1], pixels[:, 0]] = points[:, 2]
+        err = depth - gt.depth
+        sel = both & np.isfinite(depth)
+        out[case] = _figures(err, scan.result.depth_sigma_mm, sel) | {
+            "points": int(len(points)), "lit_left_pixels": int(gt.lit.sum()),
+            "beyond_5_sigma": int((np.isfinite(depth) & ~(np.abs(err) <= 5 * scan.result.depth_sigma_mm)).sum()),
+            "over_1_mm": int((np.isfinite(depth) & ~(np.abs(err) <= 1.0)).sum()),
+            "conventions": {f.key: [f.value, f.source] for f in detections[0].findings},
+            "checks": scan.result.checks}
+    return out
+
+
+def run_binobench(scenes: int, seed: int | None, repeats: int, *, imports: int = 0,
+                  say: Any = print) -> dict[str, Any]:
     from scanner.config import CONFIG_DIR
     from scanner.rig import RigConfig
 
@@ -174,11 +238,25 @@ def run_binobench(scenes: int, seed: int | None, repeats: int, say: Any = print)
         say(f"timing: binocular {timing['binocular_s']} s, monocular {timing['monocular_s']} s, ratio "
             f"{timing['ratio']}; peak {timing['binocular_peak_mib']} / {timing['monocular_peak_mib']} MiB; load "
             f"{timing['load_average_start']} -> {timing['load_average_end']}")
-    return {"rig": str(config.path), "root_seed": root.entropy, "scenes": runs, "timing": timing}
+    imported = []
+    for k, child in enumerate(root.spawn(imports)):
+        s = int(child.generate_state(1)[0])
+        with tempfile.TemporaryDirectory(prefix="binobench-import-") as tmp:
+            r = _import_run(s, Path(tmp))
+        imported.append(r)
+        for case in ("conventions detected", "conventions given"):
+            f = r[case]
+            say(f"import {k} (seed {s}) {case}: " + (f"refused: {f['refused']}" if "refused" in f else
+                f"{f['rms_um']:.1f} um (predicted {f['bound_um']:.1f}) over {f['pixels']} px, mean "
+                f"{f['mean_um']:+.2f} um; points {f['points']} of {f['lit_left_pixels']} lit; beyond 5 sigma "
+                f"{f['beyond_5_sigma']}, over 1 mm {f['over_1_mm']}"))
+    return {"rig": str(config.path), "root_seed": root.entropy, "scenes": runs, "timing": timing,
+            "imports": imported}
 
 
 def cmd_binobench(args: argparse.Namespace) -> int:
-    report = run_binobench(args.scenes, args.seed, args.repeats, say=(lambda s: None) if args.json else print)
+    report = run_binobench(args.scenes, args.seed, args.repeats, say=(lambda s: None) if args.json else print,
+                           imports=args.imports)
     text = json.dumps(report, indent=1, default=float)
     if args.out:
         with open(args.out, "w") as f:
@@ -194,6 +272,8 @@ def register(sub: Any) -> None:
     p.add_argument("--scenes", type=int, default=3, help="fresh random scenes (default 3)")
     p.add_argument("--seed", type=int, help="root seed (default: fresh, printed)")
     p.add_argument("--repeats", type=int, default=3, help="timed runs per round (0: no timing)")
+    p.add_argument("--imports", type=int, default=1, help="binocular captures made as SLMaster makes them, imported "
+                                                             "with its stereo file (default 1)")
     p.add_argument("--json", action="store_true")
     p.add_argument("--out", help="write the figures as JSON here")
     p.set_defaults(func=cmd_binobench)

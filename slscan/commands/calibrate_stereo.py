@@ -48,7 +48,9 @@ def report_lines(cal: Any) -> list[str]:
     r = cal.report()
     a, b = cal.names
     rms = r["rms_px"]
-    return [f"views     {len(r['views'])} board poses seen by both cameras",
+    turned = (f"; {b}'s board labels turned to agree with {a}'s in pose(s) {', '.join(map(str, r['turned_poses']))}"
+              if r["turned_poses"] else "")
+    return [f"views     {len(r['views'])} board poses seen by both cameras{turned}",
             f"RMS       {a} {rms[a]:.4f} px ({rms[f'{a}_alone']:.4f} alone), {b} {rms[b]:.4f} px "
             f"({rms[f'{b}_alone']:.4f} alone), stereo {rms['stereo']:.4f} px",
             f"epipolar  {r['epipolar_rms_px']:.4f} px RMS, {r['epipolar_max_px']:.4f} px max (rectified rows)",
@@ -96,7 +98,8 @@ def cmd_calibrate_stereo(args: argparse.Namespace, config: Any, say: Any, texels
         with open_rig(config) as rig:
             views = capture_board_views(rig, OperatorBench(say), procedure.board, procedure.poses, out / "capture",
                                         say)
-    cal = calibrate_stereo_cameras(views, sizes, names, fix_k3=args.fix_k3)  # type: ignore[arg-type]
+    cal = calibrate_stereo_cameras(views, sizes, names, fix_k3=args.fix_k3,
+                                   symmetries=procedure.board.symmetries())  # type: ignore[arg-type]
     factor = CalibrationSettings().outlier_factor
     outliers = cal.outliers(factor)
     if outliers:
@@ -106,7 +109,8 @@ def cmd_calibrate_stereo(args: argparse.Namespace, config: Any, say: Any, texels
                                     " (--drop-outliers solves without them)"))
         if args.drop_outliers:
             kept = [(None, None) if i in outliers else v for i, v in enumerate(views)]
-            cal = calibrate_stereo_cameras(kept, sizes, names, fix_k3=args.fix_k3)  # type: ignore[arg-type]
+            cal = calibrate_stereo_cameras(kept, sizes, names, fix_k3=args.fix_k3,
+                                           symmetries=procedure.board.symmetries())  # type: ignore[arg-type]
     limit = args.max_camera_rms if args.max_camera_rms is not None else 0.5
     if cal.joint.rms_px > limit:
         (out / "rejected.txt").write_text(f"stereo RMS {cal.joint.rms_px:.3f} px above {limit} px\n")
