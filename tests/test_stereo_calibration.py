@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 
 from calibration.board import Board
+from calibration.intrinsics import ViewPoints
+from calibration.stereo import joint_refine
 from calibration.stereo_cameras import agree_labels, calibrate_stereo_cameras
 from calibration.stereo_capture import capture_board_views
 from scanner.binocular import StereoModel
@@ -114,6 +116,58 @@ def test_disagreeing_labels_are_turned_back() -> None:
     poses, pick = agree_labels(left, right, board.symmetries())
     assert pick == truth.tolist()
     assert np.allclose(poses[:, :3, :3] @ np.linalg.inv(left)[:, :3, :3], right_from_left[:3, :3], atol=5e-3)
+
+
+def test_joint_covariance_on_half_turned_boards_against_finite_differences() -> None:
+    """Board poses turned ~180 deg about their normal (as a chessboard detector labels them):
+    the rig covariance equals s^2 (J^T J)^-1 with J from central differences of residuals written
+    here (cv2.projectPoints on composed 4x4 poses, each pose's rotation perturbed about its own axes)."""
+    rng = np.random.default_rng()
+    points = Board.load(BOARD).object_points()
+    K1 = np.array([[1600.0, 0, 320], [0, 1600, 256], [0, 0, 1]])
+    K2 = np.array([[1650.0, 0, 318], [0, 1650, 258], [0, 0, 1]])
+    d1, d2 = np.array([-0.08, 0.1, 0, 0, 0]), np.array([-0.06, 0.07, 0, 0, 0])
+    ext = np.eye(4)
+    ext[:3, :3], ext[:3, 3] = cv2.Rodrigues(np.array([0.0, 0.46, 0.0]))[0], [-200.0, 0.0, 50.0]
+    poses = []
+    for k in range(6):  # the first one exactly a half turn (|r| = pi, the planner's fronto-parallel pose)
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(np.array([0, 0, np.pi]) + (rng.normal(0, 0.3, 3) if k else 0))[0]
+        T[:3, 3] = [28.0, 21.0, 400.0] + rng.normal(0, [20, 20, 30])
+        poses.append(T)
+
+    def project(T: np.ndarray, K: np.ndarray, d: np.ndarray) -> np.ndarray:
+        X = points @ T[:3, :3].T + T[:3, 3]
+        return cv2.projectPoints(X, np.zeros(3), np.zeros(3), K, d)[0].reshape(-1, 2)
+
+    views = [(ViewPoints(points, project(T, K1, d1) + rng.normal(0, 0.01, (len(points), 2))),
+              ViewPoints(points, project(ext @ T, K2, d2) + rng.normal(0, 0.01, (len(points), 2)))) for T in poses]
+    start = [Pinhole(640, 512, K1, d1), Pinhole(640, 512, K2, d2)]
+    cal = joint_refine([a for a, _ in views], [b for _, b in views], *start, ext, np.stack(poses))
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        k = [np.array([[x[i], 0, x[i + 2]], [0, x[i + 1], x[i + 3]], [0, 0, 1]]) for i in (0, 9)]
+        E = np.eye(4)
+        E[:3, :3], E[:3, 3] = cv2.Rodrigues(x[18:21])[0] @ cal.proj_from_cam[:3, :3], x[21:24]
+        out = []
+        for v, (a, b) in enumerate(views):
+            T = cal.board_poses[v].copy()
+            T[:3, :3] = cv2.Rodrigues(x[24 + 6 * v:27 + 6 * v])[0] @ T[:3, :3]
+            T[:3, 3] = x[27 + 6 * v:30 + 6 * v]
+            out += [a.image_points - project(T, k[0], x[4:9]), b.image_points - project(E @ T, k[1], x[13:18])]
+        return np.concatenate(out).ravel()
+
+    intr = [np.r_[p.K[0, 0], p.K[1, 1], p.K[0, 2], p.K[1, 2], p.dist] for p in (cal.camera, cal.projector)]
+    x = np.concatenate([*intr, np.zeros(3), cal.proj_from_cam[:3, 3]]
+                       + [np.r_[0, 0, 0, T[:3, 3]] for T in cal.board_poses])
+    steps = np.maximum(np.abs(x), 1.0) * 1e-6
+    J = np.stack([(residuals(x + h * e) - residuals(x - h * e)) / (2 * h) for h, e in zip(steps, np.eye(len(x)))], 1)
+    r = residuals(x)
+    cov = np.linalg.inv(J.T @ J) * (r @ r) / (len(r) - len(x))
+    sd = np.sqrt(np.diag(cov))[:18]
+    got = np.sqrt(np.diag(cal.covariance))[:18]
+    print(np.round(got / sd, 3))
+    assert np.allclose(got, sd, rtol=0.02)
 
 
 def test_our_file_round_trips(solved: tuple, tmp_path: Path) -> None:
