@@ -175,6 +175,33 @@ class Board:
         ox, oy = self.image_origin_mm
         return np.array([w / 2 - ox, h / 2 - oy, 0.0])
 
+    def symmetries(self) -> list[np.ndarray]:
+        """The in-plane turns (4, 4, board frame) other than the identity that map the printed
+        pattern onto itself: a detector that finds such a board cannot tell which of these
+        labellings it saw (OpenCV orders the points by how they lie in the image), so two
+        cameras may label one pose differently. A chessboard has a half turn when C + R is even
+        (its corner squares' colours then repeat), quarter turns when also square and the turn
+        keeps the colours; a circle grid when its points map onto themselves; ChArUco none."""
+        if self.kind == "charuco":
+            return []
+        points = self.object_points()[:, :2]
+        centre = (points.min(axis=0) + points.max(axis=0)) / 2
+        squares = (np.arange(self.rows + 1)[:, None] + np.arange(self.columns + 1)[None, :]) % 2
+        keys = {tuple(k) for k in np.round(points, 6)}
+        out = []
+        for k in (1, 2, 3):
+            c, s = np.round(np.cos(k * np.pi / 2)), np.round(np.sin(k * np.pi / 2))
+            R = np.array([[c, -s], [s, c]])
+            turned = (points - centre) @ R.T + centre
+            if {tuple(p) for p in np.round(turned, 6)} != keys:
+                continue
+            if self.kind == "chessboard" and not np.array_equal(np.rot90(squares, k), squares):
+                continue
+            T = np.eye(4)
+            T[:2, :2], T[:2, 3] = R, centre - R @ centre
+            out.append(T)
+        return out
+
     # ------------------------------------------------------------------ image
 
     def image(self, px_per_mm: float, black: float = BLACK_ALBEDO, white: float = WHITE_ALBEDO) -> np.ndarray:

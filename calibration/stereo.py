@@ -152,10 +152,17 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     if len(proj_views) != n_views or len(board_poses) != n_views:
         raise NotEnoughData(f"joint refinement: {n_views} camera views, {len(proj_views)} projector views and "
                             f"{len(board_poses)} board poses must match")
+    # each board pose is refined as a rotation δ applied after its starting one (the board points
+    # pre-rotated by it): a board turned ~180° about its normal, as a detector often labels it, has
+    # a Rodrigues vector near |r| = π, where that parametrisation and composeRT's derivatives fail
+    # (pose rotation columns of the Jacobian ~100 % wrong, covariances then 8x too small)
+    start = [np.asarray(T, dtype=np.float64)[:3, :3] for T in board_poses]
+    cam_points = [v.object_points @ R.T for v, R in zip(cam_views, start)]
+    proj_points = [v.object_points @ R.T for v, R in zip(proj_views, start)]
     x0 = [_intrinsic_vector(camera), _intrinsic_vector(projector),
           cv2.Rodrigues(proj_from_cam[:3, :3])[0].ravel(), proj_from_cam[:3, 3]]
     for T in board_poses:
-        x0 += [cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3]]
+        x0 += [np.zeros(3), T[:3, 3]]
     x0 = np.concatenate(x0)
     free = np.ones(len(x0), dtype=bool)
     if fix_k3:
@@ -179,7 +186,7 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
             o = e0 + 6 + 6 * v
             rv, tv = x[o:o + 3], x[o + 3:o + 6]
             n = len(cv)
-            px, J = cv2.projectPoints(cv.object_points, rv, tv, kc, dc)
+            px, J = cv2.projectPoints(cam_points[v], rv, tv, kc, dc)
             res[row:row + 2 * n] = (cv.image_points - px.reshape(-1, 2)).ravel()
             if jac is not None:
                 jac[row:row + 2 * n, o:o + 6] = -J[:, :6]
@@ -189,7 +196,7 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
             if n == 0:
                 continue
             r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = cv2.composeRT(rv, tv, re, te)
-            px, J = cv2.projectPoints(pv.object_points, r3, t3, kp, dp)
+            px, J = cv2.projectPoints(proj_points[v], r3, t3, kp, dp)
             res[row:row + 2 * n] = (pv.image_points - px.reshape(-1, 2)).ravel()
             if jac is not None:
                 d_rt3 = J[:, :6]
@@ -222,6 +229,7 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     proj_from_cam = pose_matrix(x[e0:e0 + 3], x[e0 + 3:e0 + 6])
     poses = np.stack([pose_matrix(x[e0 + 6 + 6 * v:e0 + 9 + 6 * v], x[e0 + 9 + 6 * v:e0 + 12 + 6 * v])
                       for v in range(n_views)])
+    poses[:, :3, :3] = poses[:, :3, :3] @ np.stack(start)
     blocks = np.split(res.reshape(-1, 2), np.cumsum([n for cv, pv in zip(cam_views, proj_views)
                                                      for n in (len(cv), len(pv))])[:-1])
     cam_res, proj_res = blocks[0::2], blocks[1::2]

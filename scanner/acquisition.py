@@ -101,52 +101,81 @@ def acquire_images(rig: Rig, images: np.ndarray, settings: AcquisitionSettings,
     is awaited. `wiring` overrides the rig's (e.g. "software" for lock-step frames of
     images no sequence check applies to; the camera must then be software-triggered).
     Returns the (N, H, W) stack."""
-    cam, proj = rig.camera, rig.projector
+    callback = None if on_frame is None else (lambda camera, k, frame: on_frame(k, frame))
+    return acquire_images_from(rig, [rig.camera], images, settings, callback, wiring)[0]
+
+
+def acquire_all(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings,
+                on_frame: Callable[[str, int, Frame], None]) -> dict[str, np.ndarray]:
+    """`acquire` for every camera of the rig together (`Rig.cameras`, by name): one sequence
+    of patterns exposes them all; frame k is complete when every camera's frame k has been
+    checked, and each camera's stack must fit the patterns. `on_frame(name, k, frame)`."""
+    cameras = rig.cameras or {"camera": rig.camera}
+    by_device = {c.name: n for n, c in cameras.items()}
+    proj = rig.projector
+    stacks = acquire_images_from(rig, list(cameras.values()),
+                                 patterns.render(proj.width, proj.height, rig.model.projector_gamma), settings,
+                                 lambda device, k, frame: on_frame(by_device[device], k, frame))
+    for (name, cam), stack in zip(cameras.items(), stacks):
+        check_signature(stack, patterns, (proj.height, proj.width), cam.bit_depth, cam.name)
+    return dict(zip(cameras, stacks))
+
+
+def acquire_images_from(rig: Rig, cameras: list[Camera], images: np.ndarray, settings: AcquisitionSettings,
+                        on_frame: Callable[[str, int, Frame], None] | None = None,
+                        wiring: str | None = None) -> list[np.ndarray]:
+    """`acquire_images` for several cameras exposed by the same patterns (the same trigger):
+    frame k is awaited from every camera before pattern k + 1 is shown (software wiring) or
+    before frame k + 1 is awaited; `on_frame(camera name, k, frame)`. One (N, H, W) stack per
+    camera, in the order given."""
+    proj = rig.projector
     n = len(images)
     proj.load_patterns(images)
-    cam.arm(n)
-    shape = (cam.height, cam.width)
-    stack: np.ndarray | None = None
+    for cam in cameras:
+        cam.arm(n)
+    stacks: list[np.ndarray | None] = [None] * len(cameras)
     wiring = wiring or rig.config.trigger
     tolerance = TIMESTAMP_TOLERANCE * settings.period_s
-    previous: Frame | None = None
-    running: Status | None = None  # the sequence or pulse train driving the camera
-    log.info("%s: acquiring %d frames, wiring %s", cam.name, n, wiring)
+    previous: list[Frame | None] = [None] * len(cameras)
+    running: Status | None = None  # the sequence or pulse train driving the cameras
+    names = ", ".join(c.name for c in cameras)
+    log.info("%s: acquiring %d frames, wiring %s", names, n, wiring)
     try:
         started = time.monotonic()
         if wiring == "projector":
             running = proj.run_sequence(settings.period_s)
         elif wiring == "trigger_box":
             if rig.trigger is None:
-                raise FrameError(cam.name, "rig is wired for a trigger box but none is open", 0, None)
+                raise FrameError(cameras[0].name, "rig is wired for a trigger box but none is open", 0, None)
             rig.trigger.arm(n, settings.period_s)
             running = rig.trigger.start()
         for k in range(n):
             if wiring == "software":
                 earliest = time.monotonic()
                 proj.show(k)
-                cam.trigger()
+                for cam in cameras:
+                    cam.trigger()
             else:
                 earliest = started + k * settings.period_s
-            frame = grab_while_running(cam, settings.timeout_s, running)
-            check_frame(k, frame, cam.name, shape, cam.bit_depth)
-            check_timing(k, frame, previous, earliest - tolerance, cam.name)
-            if stack is None:
-                stack = np.empty((n, *shape), dtype=frame.image.dtype)
-            stack[k] = frame.image
-            if on_frame is not None:
-                on_frame(k, frame)
-            previous = frame
-            log.debug("%s: frame %d of %d checked", cam.name, k, n)
+            for i, cam in enumerate(cameras):
+                frame = grab_while_running(cam, settings.timeout_s, running)
+                check_frame(k, frame, cam.name, (cam.height, cam.width), cam.bit_depth)
+                check_timing(k, frame, previous[i], earliest - tolerance, cam.name)
+                if stacks[i] is None:
+                    stacks[i] = np.empty((n, cam.height, cam.width), dtype=frame.image.dtype)
+                stacks[i][k] = frame.image  # type: ignore[index]
+                if on_frame is not None:
+                    on_frame(cam.name, k, frame)
+                previous[i] = frame
+            log.debug("%s: frame %d of %d checked", names, k, n)
         if running is not None:
             running.wait(settings.timeout_s)  # an error after the last frame surfaces too
-        log.info("%s: %d frames acquired in %.3g s", cam.name, n, time.monotonic() - started)
+        log.info("%s: %d frames acquired in %.3g s", names, n, time.monotonic() - started)
     except BaseException:
-        release(rig, quiet=True)
+        release(rig, quiet=True, cameras=cameras)
         raise
-    release(rig, quiet=False)
-    assert stack is not None
-    return stack
+    release(rig, quiet=False, cameras=cameras)
+    return stacks  # type: ignore[return-value]
 
 
 def settings_for_exposure(settings: AcquisitionSettings, exposure_s: float) -> AcquisitionSettings:
@@ -189,12 +218,13 @@ def acquire_exposures(rig: Rig, patterns: PatternSet, settings: AcquisitionSetti
     return stacks
 
 
-def release(rig: Rig, quiet: bool) -> None:
-    """Stop the sequence and the pulse train, disarm the camera, blank the projector: every
-    step is tried. `quiet` (an error is already on its way): a failing step is logged, not
-    raised over that error; otherwise the first failure is raised once all were tried."""
+def release(rig: Rig, quiet: bool, cameras: list[Camera] | None = None) -> None:
+    """Stop the sequence and the pulse train, disarm the cameras (default: the rig's camera),
+    blank the projector: every step is tried. `quiet` (an error is already on its way): a
+    failing step is logged, not raised over that error; otherwise the first failure is raised
+    once all were tried."""
     proj, trigger = rig.projector, rig.trigger
-    steps: list[Callable[[], None]] = [proj.stop_sequence, rig.camera.disarm]
+    steps: list[Callable[[], None]] = [proj.stop_sequence, *[c.disarm for c in (cameras or [rig.camera])]]
     if trigger is not None:
         steps.insert(1, trigger.stop)
     if not proj.is_shut_down:

@@ -553,23 +553,31 @@ _CHI2_MEDIAN = (0.4549, 0.6931, 0.7887, 0.8392, 0.8703, 0.8914, 0.9066, 0.9180, 
 
 def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int, full_scale: float) -> NoiseModel:
     """The intensity-noise model of a stack, from ~20 000 of its pixels (32 rows): the
-    residual of the N-step fit per pixel (N − 3 degrees of freedom) regressed on the
-    background; with 3 steps, the background's fine texture (Immerkær's Laplacian estimate,
-    an upper bound where the scene has texture)."""
+    residual of the N-step fit per pixel regressed on the background; with 3 steps, the
+    background's fine texture (Immerkær's Laplacian estimate, an upper bound where the scene
+    has texture).
+
+    The fit holds the fringe's harmonics 2..K besides the background and the fundamental:
+    a projector's gamma puts them in every pixel (the 2nd at ~30 % of the fundamental without
+    gamma compensation), an N-step phase is blind to every harmonic but N ± 1, and left in the
+    residual they would read as intensity noise (15 DN for 1.2 DN in an uncompensated 8-bit
+    12-step capture). K is the largest leaving N − 1 − 2K ≥ 3 degrees of freedom (K = 4 for
+    12 steps, none below 8 steps: the residual then holds whatever harmonics there are)."""
     h, w = stack.shape[1:]
     rs, cs = max(1, h // 32), max(1, w // 640)
     sub = [stack[k, ::rs, ::cs].astype(np.float64) for k in blocks[0]]
     if steps > 3:
         a_all, v_all = [], []
         delta = sign * 2.0 * np.pi * np.arange(steps) / steps
-        basis = np.stack([np.ones(steps), np.cos(delta), np.sin(delta)], axis=1)  # (N, 3)
+        harmonics = range(1, max(1, (steps - 4) // 2) + 1)
+        basis = np.stack([np.ones(steps)] + [f(k * delta) for k in harmonics for f in (np.cos, np.sin)], axis=1)
         projector = np.eye(steps) - basis @ np.linalg.pinv(basis)
         for block in blocks:
             frames = np.stack([stack[k, ::rs, ::cs] for k in block]).reshape(steps, -1).astype(np.float64)
             ok = (frames.max(axis=0) < full_scale) & (frames.min(axis=0) > 0)
             res = projector @ frames[:, ok]
             a_all.append(frames[:, ok].mean(axis=0))
-            v_all.append((res ** 2).sum(axis=0) / (steps - 3))
+            v_all.append((res ** 2).sum(axis=0) / (steps - basis.shape[1]))
         a, v = np.concatenate(a_all), np.concatenate(v_all)
     else:
         mean = np.mean(sub, axis=0)
@@ -580,7 +588,7 @@ def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int,
         return NoiseModel(1.0, 0.0)
     # median variance in background bins (unbiased for the χ² of the residuals), then a line
     # through them with non-negative read and shot terms
-    dof = steps - 3 if steps > 3 else 1
+    dof = steps - 1 - 2 * max(1, (steps - 4) // 2) if steps > 3 else 1  # the fit's harmonics taken out
     return _noise_line(a, v, _CHI2_MEDIAN[dof - 1] if dof <= len(_CHI2_MEDIAN) else (1 - 2 / (9 * dof)) ** 3)
 
 

@@ -109,12 +109,12 @@ def from_planes(x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray | N
     return out
 
 
-def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:
+def write_ply(path: str | Path, cloud: OrganisedCloud, comments: list[str] | None = None) -> int:
     """Write the valid points as a binary little-endian PLY (through `plyfile`): position
     and normal (mm, camera frame), grey colour, and the camera pixel each point came from
     (`row`, `col`, so the organised layout can be rebuilt); the header says the file holds
-    only the valid pixels of a W x H image. Returns the number of points. The file
-    appears complete or not at all."""
+    only the valid pixels of a W x H image, and `comments` add lines to it. Returns the number
+    of points. The file appears complete or not at all."""
     idx = cloud.valid_indices()
     height, width = cloud.valid.shape
     rec = np.empty(len(idx), dtype=PLY_VERTEX)
@@ -126,7 +126,8 @@ def write_ply(path: str | Path, cloud: OrganisedCloud) -> int:
     fields["grey"] = cloud.colors.reshape(-1)[idx][:, None]
     rec["row"], rec["col"] = np.divmod(idx, width)  # row-major, as `flat` orders the points
     comments = ["slscan cloud: mm, camera frame (x right, y down, z forward)",
-                f"the valid pixels only of a {width} x {height} camera image; row, col: the pixel of each point"]
+                f"the valid pixels only of a {width} x {height} camera image; row, col: the pixel of each point",
+                *(comments or [])]
     from scanner.session import open_new, temp_path
 
     path = Path(path)

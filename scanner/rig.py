@@ -13,10 +13,10 @@ this rig's devices and refuses a mismatch.
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -29,6 +29,9 @@ from scanner.geometry import Pinhole, RigModel, look_at
 from scanner.rig_schema import Lens, RigFile, check_geometry
 from scanner.stage import Stage
 from scanner.stage_model import StageConfig
+
+if TYPE_CHECKING:
+    from scanner.binocular import StereoModel
 
 DEFAULT_RIG = CONFIG_DIR / "rigs" / "sim_bench.toml"
 
@@ -55,6 +58,7 @@ class RigConfig:
     raw: dict[str, Any] = field(repr=False)
     calibration_path: Path | None = None
     recording_level: str = "display"  # [recording] level: "full", "display" or "none"
+    cameras: tuple[dict[str, Any], ...] = ()  # a rig with several cameras: each [[cameras]] table as written
 
     @classmethod
     def load(cls, path: str | Path = DEFAULT_RIG) -> RigConfig:
@@ -66,10 +70,13 @@ class RigConfig:
         rig = file.rig
         cfg = cls(path=path, name=rig.name or path.stem, driver=rig.driver, trigger=rig.trigger,
                   timeout_s=rig.timeout_s, period_s=rig.period_s, working_distance_mm=rig.working_distance_mm,
-                  patterns_path=resolve(path, rig.patterns), camera=raw["camera"], projector=raw["projector"],
-                  raw=raw, calibration_path=resolve(path, rig.calibration) if rig.calibration else None,
-                  recording_level=file.recording.level)
+                  patterns_path=resolve(path, rig.patterns), camera=raw.get("camera") or raw["cameras"][0],
+                  projector=raw["projector"], raw=raw,
+                  calibration_path=resolve(path, rig.calibration) if rig.calibration else None,
+                  recording_level=file.recording.level, cameras=tuple(raw.get("cameras") or ()))
         check_geometry(cfg.nominal_model(), cfg.working_distance_mm, path, "projector")
+        for name, model in list(cfg.camera_models().items())[1:]:
+            check_geometry(model, cfg.working_distance_mm, path, f"cameras.{name}")
         if cfg.calibration_path is not None:
             check_geometry(cfg.model, cfg.working_distance_mm, path, "rig.calibration")
         _ = cfg.stage  # and the stage table, if any
@@ -100,8 +107,55 @@ class RigConfig:
         target = np.array(look) if look is not None else np.array([0.0, 0.0, self.working_distance_mm])
         if np.linalg.norm(target - pos) < 1e-6:
             raise ConfigError(self.path, "projector.look_at_mm", "projector looks at its own position")
-        return RigModel(camera=_pinhole(file.camera), projector=_pinhole(file.projector),
+        return RigModel(camera=_pinhole(file.first_camera), projector=_pinhole(file.projector),
                         cam_from_proj=look_at(pos, target), projector_gamma=file.projector.gamma)
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        """The cameras' names ([[cameras]]); a one-camera rig's is ("camera",)."""
+        return tuple(str(c["name"]) for c in self.cameras) or ("camera",)
+
+    def camera_models(self) -> dict[str, RigModel]:
+        """Per camera (by name) its nominal rig model with the projector: the camera placed in
+        the first camera's frame (`world_from_cam`), `cam_from_proj` from its own frame."""
+        first = self.nominal_model()
+        if not self.cameras:
+            return {"camera": first}
+        file = schema.parse(RigFile, self.raw, self.path)
+        out = {}
+        for entry in file.cameras or []:
+            pose = np.eye(4)
+            if entry.position_mm is not None:
+                pos = np.array(entry.position_mm)
+                look = entry.look_at_mm
+                target = np.array(look) if look is not None else np.array([0.0, 0.0, self.working_distance_mm])
+                if np.linalg.norm(target - pos) < 1e-6:
+                    raise ConfigError(self.path, f"cameras.{entry.name}.look_at_mm", "camera looks at its own position")
+                pose = look_at(pos, target)
+            out[entry.name] = replace(first, camera=_pinhole(entry), world_from_cam=pose,
+                                      cam_from_proj=np.linalg.inv(pose) @ first.cam_from_proj)
+        return out
+
+    def stereo_model(self, nominal: bool = False) -> StereoModel:
+        """The stereo model of the first two cameras of a [[cameras]] rig: the [rig]
+        stereo_calibration file's (its sizes checked against the cameras'), or with `nominal`
+        (or without one) the geometry written in the rig file."""
+        from scanner.binocular import StereoModel
+        from scanner.stereo_calibration_file import read_stereo_calibration
+
+        models = self.camera_models()
+        if len(models) < 2:
+            raise ConfigError(self.path, "cameras", "binocular reconstruction needs a [[cameras]] list of two cameras")
+        (a, left), (b, right) = list(models.items())[:2]
+        file = schema.parse(RigFile, self.raw, self.path).rig.stereo_calibration
+        if file and not nominal:
+            try:
+                model, _ = read_stereo_calibration([resolve(self.path, file)], left.camera.size, right.camera.size)
+            except ScannerError as exc:
+                raise ConfigError(self.path, "rig.stereo_calibration", str(exc)) from None
+            return replace(model, names=(a, b))
+        return StereoModel(left.camera, right.camera, np.linalg.inv(right.world_from_cam) @ left.world_from_cam,
+                           (a, b))
 
 
 def _pinhole(lens: Lens) -> Pinhole:
@@ -121,6 +175,7 @@ class Rig:
     model: RigModel
     extras: dict[str, Any] = field(default_factory=dict)  # driver-specific (the simulator's ground truth)
     stage: Stage | None = None  # the motion stage carrying the part, when the rig TOML has a [stage]
+    cameras: dict[str, Camera] = field(default_factory=dict)  # every camera by name, the first being `camera`
 
     def __enter__(self) -> Rig:
         return self
@@ -129,7 +184,8 @@ class Rig:
         self.shutdown()
 
     def shutdown(self) -> None:
-        for dev in (self.camera, self.projector, self.trigger, self.stage):
+        for dev in (self.camera, *[c for c in self.cameras.values() if c is not self.camera], self.projector,
+                    self.trigger, self.stage):
             if dev is not None:
                 dev.shutdown()
 

@@ -134,6 +134,16 @@ class CameraTable(Lens):
         return self
 
 
+class CameraEntry(CameraTable):
+    """One camera of a rig with several (`[[cameras]]`): named; every camera after the first
+    is placed in the first one's frame (which is the rig's camera frame) by `position_mm` and
+    `look_at_mm`, as the projector is."""
+
+    name: Annotated[str, Field(strict=True, min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")]
+    position_mm: Vector3 | None = None
+    look_at_mm: Vector3 | None = None
+
+
 class ProjectorTable(Lens):
     gamma: Gamma = 1.0
     position_mm: Vector3
@@ -165,6 +175,7 @@ class RigTable(Schema):
     working_distance_mm: _within(10.0, 100_000.0) = 400.0  # 1 cm .. 100 m
     patterns: Str = "../patterns/heterodyne_3x4.toml"
     calibration: Str | None = None
+    stereo_calibration: Str | None = None  # a [[cameras]] rig: the first two cameras' (stereo_calibration.json)
 
     @model_validator(mode="after")
     def _period(self) -> RigTable:
@@ -193,7 +204,8 @@ class RigFile(Schema):
     """A rig TOML: [rig], [camera], [projector], and the optional tables."""
 
     rig: RigTable
-    camera: CameraTable
+    camera: CameraTable | None = None
+    cameras: Annotated[list[CameraEntry], Field(min_length=1, max_length=8)] | None = None  # or several, named
     projector: ProjectorTable
     trigger_box: TriggerBoxTable | None = None
     sim: SimTable | None = None
@@ -201,6 +213,28 @@ class RigFile(Schema):
     calibrate: dict[str, Any] | None = None  # validated by calibration.workflow.Procedure (its keys, its rules)
     acceptance: dict[str, Any] | None = None  # validated by inspection.acceptance.Acceptance (`slscan verify`)
     stage: dict[str, Any] | None = None  # validated by scanner.stage_model.StageConfig (its keys, its rules)
+
+    @model_validator(mode="after")
+    def _cameras(self) -> RigFile:
+        if (self.camera is None) == (self.cameras is None):
+            raise ValueError("give one [camera] table or a [[cameras]] list, one of them")
+        if self.cameras is not None:
+            names = [c.name for c in self.cameras]
+            if len(set(names)) != len(names):
+                raise ValueError(f"camera names {names} repeat")
+            first = self.cameras[0]
+            if first.position_mm is not None or first.look_at_mm is not None:
+                raise ValueError(f"the first camera ('{first.name}') is the rig's frame: it takes no position_mm "
+                                 f"or look_at_mm")
+            placed = [c.name for c in self.cameras[1:] if c.position_mm is None]
+            if placed:
+                raise ValueError(f"camera(s) {placed} need position_mm (in the first camera's frame, mm)")
+        return self
+
+    @property
+    def first_camera(self) -> CameraTable:
+        """The rig's camera ([camera], or the first of [[cameras]]): the frame of its geometry."""
+        return self.camera if self.camera is not None else self.cameras[0]  # type: ignore[index]
 
 
 # ---------------------------------------------------------------- the model description

@@ -220,6 +220,7 @@ class SessionWriter:
         self.root = root
         self.id = f"{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
         self.frames: list[dict[str, Any]] = []
+        self.camera_frames: dict[str, list[dict[str, Any]]] = {}  # a rig with several cameras: each one's frames
         self.started = dt.datetime.now(dt.timezone.utc)
         (root / FRAMES_DIR).mkdir(parents=True, exist_ok=False)
 
@@ -236,27 +237,30 @@ class SessionWriter:
         except OSError as exc:
             raise SessionError(f"cannot create the session folder {root}: {disk_problem(exc)}") from None
 
-    def add_frame(self, k: int, frame: Frame) -> None:
+    def add_frame(self, k: int, frame: Frame, camera: str | None = None) -> None:
         """Store frame k losslessly, then log it with its SHA-256; both are complete before
         they are visible. A write that fails (full disk, read-only folder) raises
-        SessionError; the frames stored before it stay."""
+        SessionError; the frames stored before it stay. `camera`: the frame of that camera of a
+        rig with several, stored under frames/<camera>/ and listed in `camera_frames`."""
         img = frame.image
         ok, png = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         if not ok:
             raise SessionError(f"{self.root}: could not encode frame {k} ({img.dtype} {img.shape})")
         data = png.tobytes()
-        entry = {"k": k, "file": f"{FRAMES_DIR}/{frame_name(k)}", "index": frame.index,
+        folder = FRAMES_DIR if camera is None else f"{FRAMES_DIR}/{camera}"
+        (self.root / folder).mkdir(exist_ok=True)
+        entry = {"k": k, "file": f"{folder}/{frame_name(k)}", "index": frame.index,
                  "pattern_index": frame.pattern_index, "timestamp_s": frame.timestamp_s,
                  "exposure_s": frame.exposure_s, "bit_depth": frame.bit_depth,
                  "shape": list(img.shape), "dtype": str(img.dtype), "sha256": sha256(data)}
         try:
-            write_atomic(self.root / FRAMES_DIR / frame_name(k), data)
+            write_atomic(self.root / folder / frame_name(k), data)
             with (self.root / FRAME_LOG).open("a") as f:
                 f.write(json.dumps(entry) + "\n")
         except OSError as exc:
             raise SessionError(f"cannot store frame {k}: {disk_problem(exc)}; the {len(self.frames)} frame(s) "
                                f"stored before it are kept in {self.root / FRAMES_DIR}") from None
-        self.frames.append(entry)
+        (self.frames if camera is None else self.camera_frames.setdefault(camera, [])).append(entry)
 
     def _record(self, rig_config: dict[str, Any], model: RigModel, patterns: PatternSet,
                 devices: dict[str, Any], extra: dict[str, Any] | None) -> dict[str, Any]:

@@ -61,6 +61,13 @@ def show(rig: Rig, scene: Scene) -> None:
     truth = Truth.of(renderer.ground_truth)
     rig.extras.update(scene=scene, renderer=renderer, ground_truth=renderer.ground_truth,
                       session_files=[lambda root: truth.save(Path(root) / GROUND_TRUTH_FILE)])
+    if "renderers" in rig.extras:  # a rig with several cameras: every one looks at the scene
+        renderers = {name: renderer if rig.cameras[name] is rig.camera else
+                     Renderer(r.model, scene, r.sensor, r.projector_blur_sigma_px)
+                     for name, r in rig.extras["renderers"].items()}
+        for name, r in renderers.items():
+            rig.cameras[name].renderer = r  # type: ignore[attr-defined]
+        rig.extras.update(renderers=renderers, ground_truths={n: r.ground_truth for n, r in renderers.items()})
 
 
 def rotation(tilt_x_deg: float, tilt_y_deg: float, spin_deg: float) -> np.ndarray:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from scanner.config import get
+from scanner.config import get, get_table
 from scanner.devices import TriggerMode, TriggerType
 from scanner.errors import ConfigError
 from scanner.rig import Rig, RigConfig
@@ -45,51 +45,53 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
     are the simulated stage's (`sim.virtual_stage`)."""
     model = config.nominal_model()
     p = config.path
-    sensor = SensorModel.from_config(config)
     blur = get(config.projector, "blur_sigma_px", float, p, 0.0, "projector")
     if blur < 0:
         raise ConfigError(p, "projector.blur_sigma_px", f"must be >= 0, got {blur}")
-    bits = get(config.camera, "bit_depth", int, p, 12, "camera")
-    if bits not in SUPPORTED_BIT_DEPTHS:
-        raise ConfigError(p, "camera.bit_depth", f"{bits} not supported by the simulated camera; use one of "
-                                                 f"{SUPPORTED_BIT_DEPTHS}")
-    exposure = get(config.camera, "exposure_s", float, p, 0.01, "camera")
     toml_faults = Faults.from_config(config)  # validated even when overridden
     faults = toml_faults if faults is None else faults
     scene = load_scene(scene, config.working_distance_mm)
-    check_in_view(scene, model.camera, model.world_from_cam)
-
-    renderer = Renderer(model, scene, sensor, blur)
+    check_in_view(scene, model.camera, model.world_from_cam)  # the (first) camera's view
     projector = SimProjector("sim-projector", model.projector.width, model.projector.height)
-    camera = SimCamera("sim-camera", renderer, projector, faults=faults, seed=seed)
+    tables = config.cameras or (config.camera,)
+    models = list(config.camera_models().values())
+    cameras: dict[str, SimCamera] = {}
+    renderers: dict[str, Renderer] = {}
     trigger = None
     try:
-        camera.set_bit_depth(bits)
-        try:
-            camera.set_exposure(exposure)
-        except Exception as exc:
-            raise ConfigError(p, "camera.exposure_s", str(exc)) from None
-        if config.trigger == "software":
-            camera.set_trigger(TriggerType.SOFTWARE, TriggerMode.ONCE)
-        else:
-            camera.set_trigger(TriggerType.RISING_EDGE, TriggerMode.ONCE)
+        for i, (name, table, cam_model) in enumerate(zip(config.camera_names, tables, models)):
+            prefix = "camera" if not config.cameras else f"cameras.{name}"
+            sensor = SensorModel.from_table(get_table(table, "sensor", p, required=False, prefix=prefix), p)
+            renderer = Renderer(cam_model, scene, sensor, blur)
+            device = "sim-camera" if not config.cameras else f"sim-camera-{name}"
+            camera = SimCamera(device, renderer, projector, faults=faults, seed=seed + 7919 * i)
+            cameras[name], renderers[name] = camera, renderer
+            _configure(camera, table, config, prefix)
+        if config.trigger == "trigger_box":
+            trigger = SimTriggerBox("sim-trigger-box")
+            trigger.connect(projector.trigger_in)
+        for camera in cameras.values():
             if config.trigger == "projector":
                 projector.connect_trigger_out(camera.trigger_in)
-            else:
-                trigger = SimTriggerBox("sim-trigger-box")
-                trigger.connect(projector.trigger_in)
-                trigger.connect(camera.trigger_in)
+            elif config.trigger == "trigger_box":
+                trigger.connect(camera.trigger_in)  # type: ignore[union-attr]
     except BaseException:
-        for dev in (camera, projector, trigger):
+        for dev in (*cameras.values(), projector, trigger):
             if dev is not None:
                 dev.shutdown()
         raise
-    log.info("simulated rig %s opened: scene %s, wiring %s, %d-bit camera", config.name, scene.name,
-             config.trigger, bits)
-    extras = {"ground_truth": renderer.ground_truth, "scene": scene, "renderer": renderer, "sensor": sensor,
+    first = next(iter(cameras))
+    camera, renderer = cameras[first], renderers[first]
+    log.info("simulated rig %s opened: scene %s, wiring %s, %d camera(s), %d-bit", config.name, scene.name,
+             config.trigger, len(cameras), camera.bit_depth)
+    extras = {"ground_truth": renderer.ground_truth, "scene": scene, "renderer": renderer, "sensor": renderer.sensor,
               "faults": faults, "seed": seed,
-              "session_files": [lambda root: Truth.of(extras["renderer"].ground_truth).save(Path(root) / GROUND_TRUTH_FILE)]}
-    rig = Rig(config=config, camera=camera, projector=projector, trigger=trigger, model=model, extras=extras)
+              "session_files": [lambda root: Truth.of(extras["renderer"].ground_truth).save(Path(root) /
+                                                                                          GROUND_TRUTH_FILE)]}
+    if config.cameras:  # every camera's truth and renderer by name
+        extras |= {"renderers": renderers, "ground_truths": {n: r.ground_truth for n, r in renderers.items()}}
+    rig = Rig(config=config, camera=camera, projector=projector, trigger=trigger, model=model, extras=extras,
+              cameras=dict(cameras) if config.cameras else {})
     if config.stage is not None:
         try:
             rig.stage = open_sim_stage(config, rig, stage_faults)
@@ -97,3 +99,21 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
             rig.shutdown()
             raise
     return rig
+
+
+def _configure(camera: SimCamera, table: dict, config: RigConfig, prefix: str) -> None:
+    """Bit depth, exposure and trigger type of one simulated camera from its rig table."""
+    p = config.path
+    bits = get(table, "bit_depth", int, p, 12, prefix)
+    if bits not in SUPPORTED_BIT_DEPTHS:
+        raise ConfigError(p, f"{prefix}.bit_depth", f"{bits} not supported by the simulated camera; use one of "
+                                                    f"{SUPPORTED_BIT_DEPTHS}")
+    camera.set_bit_depth(bits)
+    try:
+        camera.set_exposure(get(table, "exposure_s", float, p, 0.01, prefix))
+    except Exception as exc:
+        raise ConfigError(p, f"{prefix}.exposure_s", str(exc)) from None
+    if config.trigger == "software":
+        camera.set_trigger(TriggerType.SOFTWARE, TriggerMode.ONCE)
+    else:
+        camera.set_trigger(TriggerType.RISING_EDGE, TriggerMode.ONCE)

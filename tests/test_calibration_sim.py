@@ -157,7 +157,9 @@ def test_calibration_matches_the_simulators_ground_truth(rig_toml: Path, calibra
         for c in ("cx", "cy"):
             assert abs(e[f"{device}.{c}_px"]) < 1.0, (device, c, e)
             # and the sigma the calibration reports is honest: the truth within four of it, itself not inflated
-            assert abs(e[f"{device}.{c}_px"]) < 4 * std[f"{device}.{c}"] < 4 * 0.5, (device, c, e, std)
+            # (the ceiling was 0.5 px while board poses near a half turn broke the Jacobian and the sigmas came
+            # out too small; the projector's cy is 0.61 px with the Jacobian checked against finite differences)
+            assert abs(e[f"{device}.{c}_px"]) < 4 * std[f"{device}.{c}"] < 4 * 1.0, (device, c, e, std)
     assert e["translation_mm"] < 0.1 and e["rotation_deg"] < 0.02
     assert cal.data["rms_px"]["camera"] <= 0.15 and cal.data["rms_px"]["projector"] <= 0.2
     assert cal.model.projector_gamma == pytest.approx(truth.projector_gamma, abs=0.01)

@@ -25,6 +25,8 @@ COMMANDS: dict[str, tuple[str, str]] = {  # command -> (module in slscan.command
     "export": ("export", "write a session's cloud as PLY, XYZ, CSV, E57 or an STL mesh, in the camera or the CAD "
                          "frame, with per-point deviations"),
     "bench": ("bench", "decode + reconstruction time and peak memory"),
+    "binobench": ("binobench", "binocular reconstruction on the simulated binocular rig: accuracy against truth "
+                               "beside monocular, with a wrong projector model, and its speed"),
     "importbench": ("importbench", "per-rig table and import speed; real-capture flatness and scale"),
     "simbench": ("simbench", "simulated frame time (with a peer) and sequence period on the bench rig"),
     "demobench": ("demobench", "scan-to-verdict of the demo part, stage by stage, as a station runs it"),

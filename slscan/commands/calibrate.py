@@ -100,6 +100,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from calibration.workflow import write_result
     from scanner.session_recording import SessionRecording
 
+    if args.source is None:
+        from scanner.rig import RigConfig
+
+        config = RigConfig.load(args.rig)
+        if len(config.cameras) >= 2:  # a rig with two cameras: they are calibrated together
+            from slscan.commands.calibrate_stereo import cmd_calibrate_stereo
+
+            return cmd_calibrate_stereo(args, config, _say, TEXELS_PER_PX)
     out = Path(args.out)
     made = _out_folder(out)
     run_id = f"calibration-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
@@ -293,14 +301,9 @@ def _phase_height_check(rig: Any, calibrated: Any, plate_mm: float, top_mm: floa
 
 def _install(rig_path: Path, calibration: Path) -> None:
     """Name `calibration` in the rig TOML's [rig] table (replacing an earlier one)."""
-    text = rig_path.read_text()
-    line = f'calibration = "{calibration.resolve()}"'
-    new, n = re.subn(r"(?m)^calibration\s*=.*$", line, text, count=1)
-    if not n:
-        new, n = re.subn(r"(?m)^\[rig\][^\n]*\n", lambda m: m.group(0) + line + "\n", text, count=1)
-    if not n:
-        raise ConfigError(rig_path, "rig", "no [rig] table to name the calibration in")
-    rig_path.write_text(new)
+    from slscan.rig_install import name_in_rig
+
+    name_in_rig(rig_path, "calibration", calibration)
 
 
 def register(sub: Any) -> None:

@@ -91,28 +91,32 @@ def bit_depth_of(stack: np.ndarray) -> int:
     return next(b for b in BIT_DEPTHS if top <= 2 ** b - 1)
 
 
-def _store(writer: SessionWriter, k: int, src: Path, image: np.ndarray, converted: bool, bit_depth: int) -> bool:
+def _store(writer: SessionWriter, k: int, src: Path, image: np.ndarray, converted: bool, bit_depth: int,
+           camera: str | None = None) -> bool:
     """Put frame k into the session: a hard link to `src` (a copy across file systems), or
-    the grey image as PNG when it was converted from colour. Returns whether it is a link."""
+    the grey image as PNG when it was converted from colour. Returns whether it is a link.
+    `camera`: a frame of that camera of a binocular capture, under frames/<camera>/."""
     linked = False
+    folder = FRAMES_DIR if camera is None else f"{FRAMES_DIR}/{camera}"
+    (writer.root / folder).mkdir(exist_ok=True)
     if converted:
         name = f"frame_{k:03d}.png"
         ok, png = cv2.imencode(".png", image)
         if not ok:
             raise SessionError(f"{src}: could not encode frame {k} as PNG")
-        (writer.root / FRAMES_DIR / name).write_bytes(png.tobytes())
+        (writer.root / folder / name).write_bytes(png.tobytes())
     else:
         name = f"frame_{k:03d}{src.suffix.lower()}"
-        dst = writer.root / FRAMES_DIR / name
+        dst = writer.root / folder / name
         try:
             os.link(src, dst)
             linked = True
         except OSError:
             shutil.copyfile(src, dst)
-    entry = {"k": k, "file": f"{FRAMES_DIR}/{name}", "index": k, "pattern_index": k, "timestamp_s": 0.0,
+    entry = {"k": k, "file": f"{folder}/{name}", "index": k, "pattern_index": k, "timestamp_s": 0.0,
              "exposure_s": 0.0, "bit_depth": bit_depth, "shape": list(image.shape), "dtype": str(image.dtype),
-             "sha256": sha256((writer.root / FRAMES_DIR / name).read_bytes())}
-    writer.frames.append(entry)
+             "sha256": sha256((writer.root / folder / name).read_bytes())}
+    (writer.frames if camera is None else writer.camera_frames.setdefault(camera, [])).append(entry)
     with (writer.root / FRAME_LOG).open("a") as f:
         f.write(json.dumps(entry) + "\n")
     return linked
@@ -174,7 +178,11 @@ def import_frames(folder: Path, patterns_path: Path, projector_size: tuple[int, 
 def cmd_import(args: argparse.Namespace) -> int:
     from slscan.progress import ProgressLine
 
+    if len(args.frames_folder) > 1 or len(args.calibration or []) > 1:  # two: slscan/commands/import_binocular.py
+        raise SessionError("one folder of frames and one --calibration, or two folders (left, right) of a binocular "
+                           "capture and its stereo calibration")
     t0 = time.perf_counter()
+    args.frames_folder, args.calibration = args.frames_folder[0], (args.calibration or [None])[0]
     result, detection = import_frames(Path(args.frames_folder), Path(args.patterns), args.projector_size,
                                       Path(args.out), Path(args.calibration) if args.calibration else None,
                                       args.projector_scale, args.frames, args.bit_depth, ProgressLine())
@@ -191,20 +199,35 @@ def cmd_import(args: argparse.Namespace) -> int:
     return Exit.OK
 
 
+def cmd_import_frames(args: argparse.Namespace) -> int:
+    """`slscan import`: two folders are a binocular capture (slscan/commands/import_binocular.py),
+    one goes to the monocular import."""
+    if len(args.frames_folder) == 2:
+        from slscan.commands.import_binocular import cmd_import_binocular
+
+        return cmd_import_binocular(args)
+    return cmd_import(args)
+
+
 def register(sub: Any) -> None:
     p = sub.add_parser("import")
-    p.add_argument("frames_folder", metavar="FRAMES", help="folder of frames, taken in natural file-name order")
+    p.add_argument("frames_folder", metavar="FRAMES", nargs="+",
+                   help="folder of frames, taken in natural file-name order; two folders (left, right): a binocular "
+                        "capture, reconstructed by matching the cameras (slscan/commands/import_binocular.py)")
     p.add_argument("--patterns", required=True, help="pattern set TOML (config/patterns/ has SLMaster's and "
                                                      "OpenCV's); convention keys left out are detected")
     p.add_argument("--projector-size", type=_size, required=True, metavar="WxH",
                    help="projector pixels, e.g. 1920x1080")
     p.add_argument("--out", required=True, help="new session folder")
-    p.add_argument("--calibration", help="calibration: slscan's calibration.json, SLMaster's caliInfo.yml or "
-                                         "procam's calibration_result.xml (without one: maps only, no cloud)")
+    p.add_argument("--calibration", nargs="+", metavar="FILE",
+                   help="calibration: slscan's calibration.json, SLMaster's caliInfo.yml or procam's "
+                        "calibration_result.xml (without one: maps only, no cloud); binocular: the stereo calibration "
+                        "(slscan's stereo_calibration.json, SLMaster's binocular caliInfo.yml, or OpenCV's "
+                        "intrinsics.yml extrinsics.yml)")
     p.add_argument("--projector-scale", type=float, default=1.0, metavar="S",
                    help="the calibration's projector coordinates are S times the frames' (procam: its graycode_step)")
     p.add_argument("--frames", metavar="GLOB", help="only the files matching GLOB (default: every PNG, BMP, TIFF)")
     p.add_argument("--bit-depth", type=int, help="bits per sample of 16-bit frames (default: from the brightest)")
     add_json(p)
-    p.set_defaults(func=cmd_import)
+    p.set_defaults(func=cmd_import_frames)
 

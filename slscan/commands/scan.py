@@ -91,6 +91,10 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
         return scan_views(args, config, patterns, options, exposure)
     if getattr(args, "stage_axis", None) is not None:
         raise ScannerError("--stage-axis applies to multi-view scans only (--views or --angles)")
+    if len(config.cameras) >= 2:  # a binocular rig: every camera captured, points from matching two
+        from slscan.commands.scan_binocular import cmd_scan_binocular
+
+        return cmd_scan_binocular(args, config, patterns, options)
     out = Path(args.out)
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
@@ -211,6 +215,12 @@ def cmd_decode(args: argparse.Namespace) -> int:
         raise ScannerError("--rig and --patterns apply to `slscan decode --recover` only")
     with session_lock(args.session, command="slscan decode"):  # the outputs and accuracy.json: one writer
         session = Session.open(args.session)
+        from scanner.binocular_session import is_binocular
+
+        if is_binocular(session):
+            from slscan.commands.scan_binocular import cmd_decode_binocular
+
+            return cmd_decode_binocular(args, session)
         model = rig_model_file(Path(args.rig_model), session.rig_model()) if args.rig_model else None
         result = reprocess(session, ProgressLine(), mode=args.mode, level=_level(args), rig_model=model,
                            rig_model_source=args.rig_model)

@@ -128,15 +128,20 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
             bench = OperatorArtefactBench(say)
         sensor = sensor_noise(config.raw, rig.camera.bit_depth, config.path)
         tri = Triangulator(model)
+        binocular = binocular_scanner(config) if len(config.cameras) >= 2 else None
         for k, position in enumerate(plan):
             t0 = time.perf_counter()
             if bench.place(position) is False:
                 say(f"{position.name}: skipped")
                 continue
-            stack = capture_fringes(rig, patterns, model.projector_gamma)
-            decoded = decode(stack, patterns, rig.camera.bit_depth, model.projector.size)
-            cloud = triangulate(decoded, tri)
-            data = ScanData(cloud.points, lambda px: scan_uncertainty(decoded, model, sensor, fringe, calibration, px))
+            if binocular is not None:
+                cloud, data = binocular(rig, patterns, model.projector_gamma)
+            else:
+                stack = capture_fringes(rig, patterns, model.projector_gamma)
+                decoded = decode(stack, patterns, rig.camera.bit_depth, model.projector.size)
+                cloud = triangulate(decoded, tri)
+                data = ScanData(cloud.points, lambda px: scan_uncertainty(decoded, model, sensor, fringe, calibration,
+                                                                          px))
             result = evaluate(position, data, artefacts)
             results.append(result)
             _log_position(rec, k, cloud, model, result)
@@ -147,8 +152,24 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
              "none (the rig file has no [camera.sensor]): the fits' residuals stand in for it",
              "calibration uncertainty": calibration.source,
              "fringe error": f"{fringe.rms_px:.4f} projector px RMS (quantised patterns)"}
+    if len(config.cameras) >= 2:
+        notes |= {"reconstruction": f"binocular: cameras {', '.join(config.camera_names[:2])} matched "
+                                    f"(scanner/binocular.py); the projector's geometry unused",
+                  "noise model": "both cameras' decoded phase noise", "calibration uncertainty":
+                  "not propagated: the stereo calibration's covariance is not yet carried into the figures"}
     return AcceptanceReport(config.name, f"geometry {model.calibration or 'nominal (no calibration file)'}",
                             acceptance, artefacts, tuple(results), notes)
+
+
+def binocular_scanner(config: Any) -> Callable[[Any, Any, float], tuple[Any, Any]]:
+    """For a rig with two cameras: a function scanning with all of them (patterns compensated for
+    the projector's gamma) and returning the binocular cloud and its ScanData (slscan/commands/
+    verify_binocular.py)."""
+    from scanner.binocular import BinocularReconstructor
+    from slscan.commands.verify_binocular import binocular_scan_data
+
+    bino = BinocularReconstructor(config.stereo_model())
+    return lambda rig, patterns, gamma: binocular_scan_data(rig, patterns, gamma, bino)
 
 
 def leave_one_out(args: argparse.Namespace, say: Callable[[str], None]) -> int:

@@ -1,0 +1,534 @@
+"""Binocular structured light: two cameras decode the same projected fringes, and a point is
+where their absolute projector coordinates agree on an epipolar line.
+
+The projector is only a source of texture here: its lens distortion, gamma and pose never
+enter the geometry, which is the two cameras' calibration alone (`StereoModel`).
+
+Method, per scan (millimetres, pixels; OpenCV frames):
+
+1. Rectification (`Rectification`): rotations R_l, R_r (OpenCV's `stereoRectify`) turn both
+   cameras so the baseline runs along x; one rectified pinhole (focal f, no distortion) for
+   both. Left pixels are not resampled: each keeps its decoded coordinate exactly and gets its
+   rectified position (x_l, y_l). The right camera's maps are resampled onto a rectified grid
+   by exact bilinear interpolation in float32 (not `cv2.remap`, whose 1/32 px position
+   quantisation would add ~0.01 projector px of error), NaN wherever a neighbour is invalid.
+2. Matching (`match`): on a rectified right row, consecutive valid samples (x, x+1) span an
+   interval of projector coordinate [c(x), c(x+1)). Every interval of every row is put on one
+   number line (row·span + c), sorted once; for each left pixel, two `searchsorted` calls count
+   the intervals of a row holding its coordinate. The match is kept only when exactly one
+   interval holds it on both rows around y_l (the sub-pixel x on each by linear interpolation
+   within the interval, then linearly between the rows: iso-coordinate lines are straight to
+   first order), and when each interval's step |c(x+1) − c(x)| exceeds z·σ_step, σ_step the
+   step's noise from the decoder's per-pixel coordinate noise, z = Φ⁻¹(1 − α/2) with
+   α = GRADIENT_FALSE_ACCEPT: a pair of samples carrying no change of coordinate along the line
+   (fringes parallel to it) passes with probability α.
+3. With both fringe orientations decoded in both cameras, the orientation whose coordinate
+   changes faster along the rectified rows matches; the other checks: at the match the two
+   cameras must read the same coordinate within z·sqrt(σ_l² + σ_r² + (g_y·σ_epi)²) (z for
+   CHECK_FALSE_REFUSE two-sided, g_y the other coordinate's change across rows, σ_epi the
+   calibration's stated epipolar error in px). The offsets it measures, as rectified rows
+   (`epipolar_offset_px`), are the scan's check of the stereo calibration.
+4. Triangulation: the disparity d = x_l − x_r gives the rectified depth Z = −f·T_x/d
+   (T_x: the right camera's x in the rectified frame) and the point on the left pixel's own
+   ray; depth noise σ_z from σ_d² = (σ_cl² + σ_cr²)/g_x² (g_x: the right coordinate's change
+   per rectified px at the match), σ_Z = Z²/(f·|T_x|)·σ_d.
+
+The cloud is organised on the left camera's pixels, in the left camera's frame (mm).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.stats import norm
+
+from scanner.decode import DecodeResult
+from scanner.errors import ConfigError, DecodeError
+from scanner.geometry import Pinhole
+from scanner.pointcloud import OrganisedCloud
+from scanner.reconstruct import cloud_from_depth, to_texture8
+
+GRADIENT_FALSE_ACCEPT = 1e-3  # α of the gradient gate: a sample pair with no change along the line passes this often
+CHECK_FALSE_REFUSE = 1e-4  # of the second orientation's check: a true match is refused this often (Gaussian noise)
+
+
+@dataclass(frozen=True, eq=False)
+class StereoModel:
+    """Two calibrated cameras. `right_from_left` (4x4, mm) maps left-camera points into the
+    right camera's frame (OpenCV stereoCalibrate's R, T). `names` are the cameras' names
+    (session folders, Rerun). `epipolar_sigma_px`: the calibration's RMS distance (px) of a
+    true correspondence from its epipolar line, where the calibration states it (0: none
+    stated, the check then allows the phase noise only). `calibration` names the file."""
+
+    left: Pinhole
+    right: Pinhole
+    right_from_left: np.ndarray
+    names: tuple[str, str] = ("left", "right")
+    epipolar_sigma_px: float = 0.0
+    calibration: str = ""
+
+    def __post_init__(self) -> None:
+        T = np.asarray(self.right_from_left, dtype=np.float64).reshape(4, 4)
+        object.__setattr__(self, "right_from_left", T)
+        if not (np.isfinite(T).all() and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6)
+                and np.linalg.det(T[:3, :3]) > 0 and np.allclose(T[3], [0, 0, 0, 1])):
+            raise ValueError("right_from_left is not a rigid transform")
+        if not np.linalg.norm(T[:3, 3]) > 0:
+            raise ValueError("the two cameras sit at one point: no baseline")
+
+    @property
+    def baseline_mm(self) -> float:
+        return float(np.linalg.norm(self.right_from_left[:3, 3]))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"names": list(self.names), "left": self.left.to_dict(), "right": self.right.to_dict(),
+                "right_from_left": self.right_from_left.tolist(), "epipolar_sigma_px": self.epipolar_sigma_px,
+                "calibration": self.calibration}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], where: str = "stereo model") -> StereoModel:
+        try:
+            return cls(Pinhole.from_dict(d["left"], f"{where}: left"), Pinhole.from_dict(d["right"], f"{where}: right"),
+                       np.array(d["right_from_left"], float), tuple(d.get("names", ("left", "right"))),
+                       float(d.get("epipolar_sigma_px", 0.0)), str(d.get("calibration", "")))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(where, None, f"invalid stereo model: {exc!r}") from None
+
+
+@dataclass(frozen=True, eq=False)
+class RectifiedGrid:
+    """One camera's maps resampled on the rectified frame: grid pixel (i, j) is the rectified
+    position (x0 + i, y0 + j); `source` (Hg, Wg, 2) float32 the original pixel it samples."""
+
+    x0: int
+    y0: int
+    source: np.ndarray
+
+    @classmethod
+    def covering(cls, camera: Pinhole, R: np.ndarray, f: float) -> RectifiedGrid:
+        """The grid covering `camera`'s image rotated by R into the rectified frame (focal f)."""
+        edge = np.concatenate([np.stack([np.linspace(0, camera.width - 1, 64), np.full(64, y)], 1)
+                               for y in (0, camera.height - 1)]
+                              + [np.stack([np.full(64, x), np.linspace(0, camera.height - 1, 64)], 1)
+                                 for x in (0, camera.width - 1)])
+        n = np.column_stack([camera.normalized(edge), np.ones(len(edge))]) @ R.T
+        xy = f * n[:, :2] / n[:, 2:3]
+        x0, y0 = (int(np.floor(v)) - 1 for v in xy.min(axis=0))
+        x1, y1 = (int(np.ceil(v)) + 1 for v in xy.max(axis=0))
+        P = np.array([[f, 0.0, -x0], [0.0, f, -y0], [0.0, 0.0, 1.0]])
+        mx, my = cv2.initUndistortRectifyMap(camera.K, camera.dist, R, P, (x1 - x0 + 1, y1 - y0 + 1), cv2.CV_32FC1)
+        return cls(x0, y0, np.stack([mx, my], axis=-1), (camera.height, camera.width))
+
+    camera_shape: tuple[int, int]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.source.shape[:2]
+
+    @cached_property
+    def taps(self) -> Taps:
+        return Taps.at(self.source[..., 0], self.source[..., 1], self.camera_shape)
+
+    def resample(self, image: np.ndarray) -> np.ndarray:
+        """A map of this camera (H, W) on the grid (Hg, Wg), float32, NaN outside the image or
+        where any of the four neighbours is NaN."""
+        if image.shape != self.camera_shape:
+            raise DecodeError(f"a {image.shape[1]} x {image.shape[0]} px map for a {self.camera_shape[1]} x "
+                              f"{self.camera_shape[0]} px camera")
+        return self.taps(image).reshape(self.shape)
+
+
+@dataclass(frozen=True, eq=False)
+class Rectification:
+    """The rectified pair: `R_left`, `R_right` rotate each camera's frame into its rectified
+    frame; both rectified cameras have focal `f` px and principal point (0, 0); the right one
+    sits at x = `tx_mm` of the left's rectified frame (negative: to the left's right).
+    `left_xy` (H, W, 2) float64 is every left pixel's rectified position, `left_w` (H, W) the
+    z of its ray (x/z, y/z, 1) rotated into the rectified frame; `right` is the grid the right
+    camera's maps are matched on, `left` the grid the left's are (only) counted on."""
+
+    model: StereoModel
+    R_left: np.ndarray
+    R_right: np.ndarray
+    f: float
+    tx_mm: float
+    left_xy: np.ndarray
+    left_w: np.ndarray
+    left: RectifiedGrid
+    right: RectifiedGrid
+
+    @classmethod
+    def of(cls, model: StereoModel) -> Rectification:
+        R, T = model.right_from_left[:3, :3], model.right_from_left[:3, 3]
+        L, Rc = model.left, model.right
+        R1, R2, *_ = cv2.stereoRectify(L.K, L.dist, Rc.K, Rc.dist, L.size, R, T.reshape(3, 1), flags=0, alpha=-1)
+        t = R2 @ T
+        if abs(t[0]) < abs(t[1]):
+            raise DecodeError(f"the cameras are stacked vertically (baseline {T.round(1).tolist()} mm): binocular "
+                              f"matching takes cameras side by side")
+        f = float(np.mean([L.K[0, 0], L.K[1, 1], Rc.K[0, 0], Rc.K[1, 1]]))
+        rays = L.ray_grid.astype(np.float64) @ R1.T
+        w = rays[..., 2]
+        return cls(model, R1, R2, f, float(t[0]), f * rays[..., :2] / w[..., None], w,
+                   RectifiedGrid.covering(L, R1, f), RectifiedGrid.covering(Rc, R2, f))
+
+
+@dataclass(frozen=True, eq=False)
+class Taps:
+    """Bilinear taps of sample positions in an image of `width` px: the flat index of each
+    position's top-left neighbour, its fractional offsets, and whether it lies inside."""
+
+    index: np.ndarray
+    fx: np.ndarray
+    fy: np.ndarray
+    inside: np.ndarray
+    width: int
+
+    @classmethod
+    def at(cls, x: np.ndarray, y: np.ndarray, shape: tuple[int, int]) -> Taps:
+        h, w = shape
+        x = np.asarray(x, np.float32)
+        y = np.asarray(y, np.float32)
+        inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
+        xi = np.clip(np.floor(np.where(inside, x, 0)), 0, max(w - 2, 0)).astype(np.intp)
+        yi = np.clip(np.floor(np.where(inside, y, 0)), 0, max(h - 2, 0)).astype(np.intp)
+        return cls(yi * w + xi, np.where(inside, x - xi, 0).astype(np.float32),
+                   np.where(inside, y - yi, 0).astype(np.float32), inside, w)
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        """`image` sampled at the positions (float32; NaN outside or where a neighbour is NaN)."""
+        flat = np.asarray(image, np.float32).ravel()
+        i, w, fx = self.index, self.width, self.fx
+        top = flat[i] + (flat[i + 1] - flat[i]) * fx
+        bottom = flat[i + w] + (flat[i + w + 1] - flat[i + w]) * fx
+        out = top + (bottom - top) * self.fy
+        out[~self.inside] = np.nan
+        return out
+
+
+def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """`image` (H, W) sampled at (x, y) (pixel centres at integers) by bilinear
+    interpolation in float32 with exact weights; NaN outside or where a neighbour is NaN."""
+    return Taps.at(x, y, image.shape)(image)
+
+
+@dataclass(frozen=True, eq=False)
+class CameraPhase:
+    """One camera's decoded projector coordinates per orientation (H, W) with their predicted
+    one-sigma noise (projector px), NaN where invalid, and its texture (DN) and bit depth."""
+
+    coordinate: dict[str, np.ndarray]
+    sigma: dict[str, np.ndarray]
+    texture: np.ndarray
+    bit_depth: int
+
+    @classmethod
+    def of(cls, decoded: DecodeResult) -> CameraPhase:
+        coords = {o: np.where(m.valid, m.coordinate, np.float32(np.nan)) for o, m in decoded.maps.items()}
+        return cls(coords, {o: m.coordinate_sigma for o, m in decoded.maps.items()}, decoded.texture,
+                   decoded.bit_depth)
+
+
+@dataclass(eq=False)
+class BinocularResult:
+    """A binocular reconstruction. `cloud` is organised on the left camera's pixels, in its
+    frame (mm); `depth_sigma_mm` (H, W) the predicted one-sigma noise of each point's depth;
+    `model` the stereo model it was made with (`right_pixels`: where the right camera saw each point);
+    `masks` why left pixels with a coordinate got no point (first reason counts); `checks`
+    the scan's figures (counts; the second orientation's epipolar offsets, px)."""
+
+    cloud: OrganisedCloud
+    depth_sigma_mm: np.ndarray
+    model: StereoModel
+    orientation: str
+    masks: dict[str, np.ndarray]
+    checks: dict[str, float] = field(default_factory=dict)
+
+    def right_pixels(self) -> tuple[np.ndarray, np.ndarray]:
+        """The left pixels with a point (flat indices) and the right-camera pixel (N, 2) that
+        saw each point (its projection: the match, to the triangulation's rounding)."""
+        idx = self.cloud.valid_indices()
+        T = self.model.right_from_left
+        pts = self.cloud.points.reshape(-1, 3)[idx].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        return idx, self.model.right.project(pts)
+
+
+@dataclass(frozen=True, eq=False)
+class _Rows:
+    """The projector-coordinate intervals between horizontal neighbours of a rectified grid
+    (Hg, Wg): every row's on one number line, key = row·span + (c − base), sorted once by
+    their lower and by their upper ends. `gate` (Hg, Wg − 1): the interval's step passes the
+    gradient gate (|step| ≥ z·σ_step)."""
+
+    c: np.ndarray
+    sigma: np.ndarray
+    lo: np.ndarray
+    lo_index: np.ndarray
+    hi: np.ndarray
+    hi_index: np.ndarray
+    gate: np.ndarray
+    base: float
+    span: float
+
+    @classmethod
+    def of(cls, c: np.ndarray, sigma: np.ndarray, z: float) -> _Rows:
+        finite = c[np.isfinite(c)]
+        base = float(finite.min()) - 1.0 if finite.size else 0.0
+        span = float(finite.max() - base) + 2.0 if finite.size else 1.0
+        a, b = c[:, :-1], c[:, 1:]
+        step = b - a
+        ok = np.isfinite(step) & (step != 0)
+        idx = np.flatnonzero(ok)
+        gate = np.zeros(a.shape, bool)
+        gate[ok] = np.abs(step[ok]) >= np.float32(z) * np.sqrt(sigma[:, :-1][ok] ** 2 + sigma[:, 1:][ok] ** 2)
+        rows = (idx // a.shape[1]).astype(np.float64) * span - base
+        av, bv = a.ravel()[idx], b.ravel()[idx]
+        lo, hi = np.minimum(av, bv) + rows, np.maximum(av, bv) + rows
+        order_lo, order_hi = np.argsort(lo, kind="stable"), np.argsort(hi, kind="stable")
+        return cls(c, sigma, lo[order_lo], idx[order_lo], hi[order_hi], idx[order_hi], gate.ravel(), base, span)
+
+    def _counts(self, c: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        q = c.astype(np.float64) + rows.astype(np.float64) * self.span - self.base
+        n_lo = np.searchsorted(self.lo, q, side="right")
+        n_hi = np.searchsorted(self.hi, q, side="right")
+        return n_lo - n_hi, n_lo, n_hi
+
+    def count(self, c: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """How many intervals of row `rows` (N,) hold each coordinate `c` (N,) (lo ≤ c < hi)."""
+        return self._counts(c, rows)[0]
+
+    def find(self, c: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, ...]:
+        """For coordinates `c` (N,) on rows `rows` (N,): how many intervals hold each; the flat
+        index of the one holding it when that is unique (else -1); the match's sub-pixel grid
+        x; the interval's step (projector px per px) and the noise interpolated at the match."""
+        count, n_lo, n_hi = self._counts(c, rows)
+        unique = count == 1
+        a_flat, b_flat = self.c[:, :-1].ravel(), self.c[:, 1:].ravel()
+
+        def holds(k: np.ndarray) -> np.ndarray:
+            kk = np.maximum(k, 0)
+            lo_v, hi_v = np.minimum(a_flat[kk], b_flat[kk]), np.maximum(a_flat[kk], b_flat[kk])
+            return (k >= 0) & (lo_v <= c) & (c < hi_v)
+
+        if not self.lo.size:
+            none = np.full(c.shape, -1)
+            return count, none, np.full(c.shape, np.nan), np.full(c.shape, np.nan), np.full(c.shape, np.nan)
+        # the holding interval is the last one starting at or below c, unless a wider one
+        # encloses that one: then it is the first one ending above c
+        first = np.where(unique, self.lo_index[np.maximum(n_lo - 1, 0)], -1)
+        second = np.where(unique, self.hi_index[np.minimum(n_hi, len(self.hi_index) - 1)], -1)
+        k = np.where(holds(first), first, np.where(holds(second), second, -1))
+        kk = np.maximum(k, 0)
+        a, b = a_flat[kk], b_flat[kk]
+        u = (c - a) / (b - a)
+        s_a, s_b = self.sigma[:, :-1].ravel()[kk], self.sigma[:, 1:].ravel()[kk]
+        return count, k, (kk % (self.c.shape[1] - 1)) + u, b - a, (1 - u) * s_a + u * s_b
+
+
+def choose_orientation(rect: Rectification, left: CameraPhase) -> str:
+    """The orientation whose left coordinate changes fastest along rectified rows (median
+    |dc/dx_r| over valid pixels): the one that locates a match along the epipolar line."""
+    best, best_g = None, -1.0
+    xy = rect.left_xy
+    for o, c in left.coordinate.items():
+        dc = np.diff(c, axis=1)
+        dx = np.diff(xy[..., 0], axis=1)
+        g = np.abs(dc / dx)
+        g = g[np.isfinite(g)]
+        med = float(np.median(g)) if g.size else 0.0
+        if med > best_g:
+            best, best_g = o, med
+    assert best is not None
+    return best
+
+
+def _check_shapes(rect: Rectification, left: CameraPhase, right: CameraPhase) -> None:
+    if left.coordinate.keys() != right.coordinate.keys():
+        raise DecodeError(f"the cameras decoded different fringe orientations: {sorted(left.coordinate)} and "
+                          f"{sorted(right.coordinate)}")
+    for name, cam, lens in zip(rect.model.names, (left, right), (rect.model.left, rect.model.right)):
+        got = next(iter(cam.coordinate.values())).shape
+        if got != (lens.height, lens.width):
+            raise DecodeError(f"camera '{name}' maps are {got[1]} x {got[0]} px, its calibration {lens.width} x "
+                              f"{lens.height} px")
+
+
+def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientation: str | None = None
+          ) -> BinocularResult:
+    """Match every left pixel to the right camera along its epipolar line and triangulate
+    (see the module docstring)."""
+    _check_shapes(rect, left, right)
+    o = orientation or choose_orientation(rect, left)
+    z_gate = float(norm.isf(GRADIENT_FALSE_ACCEPT / 2))
+    grid_r = rect.right
+    right_rows = _Rows.of(grid_r.resample(right.coordinate[o]), grid_r.resample(right.sigma[o]), z_gate)
+    left_c = rect.left.resample(left.coordinate[o])
+    left_rows = _Rows.of(left_c, np.zeros_like(left_c), z_gate)  # counted only: no gate, no noise needed
+    shape = left.coordinate[o].shape
+    pix = np.flatnonzero(np.isfinite(left.coordinate[o]))
+    c = left.coordinate[o].ravel()[pix]
+    xl = rect.left_xy[..., 0].ravel()[pix]
+    yl = rect.left_xy[..., 1].ravel()[pix]
+
+    gy = yl - grid_r.y0
+    j = np.floor(gy)
+    t = (gy - j).astype(np.float32)
+    inside = (j >= 0) & (j + 1 < grid_r.shape[0])
+    j = np.clip(j, 0, grid_r.shape[0] - 2).astype(np.intp)
+    # the left's own (nearest) row must hold the coordinate once: twice means a second surface on the same
+    # epipolar plane, which the right may see in this pixel's place (occlusion)
+    jl = np.clip(np.rint(yl - rect.left.y0), 0, rect.left.shape[0] - 1)
+    with ThreadPoolExecutor(3, thread_name_prefix="binocular match") as pool:  # searchsorted releases the GIL
+        rows_found = [pool.submit(right_rows.find, c, rows) for rows in (j, j + 1)]
+        left_count = pool.submit(left_rows.count, c, jl)
+        (n0, k0, x0, step0, s0), (n1, k1, x1, step1, s1) = (f.result() for f in rows_found)
+        once = left_count.result() <= 1
+    unique = inside & (n0 == 1) & (n1 == 1) & (k0 >= 0) & (k1 >= 0) & once
+    steep = unique & right_rows.gate[np.maximum(k0, 0)] & right_rows.gate[np.maximum(k1, 0)]
+    xg = (1 - t) * x0 + t * x1  # grid x of the match, on the rectified row through the left pixel
+    yg = gy.astype(np.float32)
+    xr = xg + grid_r.x0
+    d = xl - xr
+    Z = -rect.f * rect.tx_mm / np.where(d != 0, d, np.nan)
+    ahead = steep & (Z > 0)
+
+    # the match's noise: both cameras' coordinate noise over the right coordinate's change per px
+    s_r = (1 - t) * s0 + t * s1
+    g = np.abs((1 - t) * step0 + t * step1)
+    sigma_d = np.sqrt(left.sigma[o].ravel()[pix].astype(np.float64) ** 2 + s_r.astype(np.float64) ** 2) / g
+    sigma_Z = Z ** 2 / (rect.f * abs(rect.tx_mm)) * sigma_d
+
+    none = inside & ((n0 == 0) | (n1 == 0))
+    checks: dict[str, float] = {"pixels_with_coordinate": float(pix.size), "outside_right_view": float((~inside).sum()),
+                                "no_match": float(none.sum()), "not_unique": float((inside & ~unique & ~none).sum()),
+                                "low_gradient": float((unique & ~steep).sum()), "behind": float((steep & ~ahead).sum())}
+    others = [p for p in left.coordinate if p != o]
+    if others:
+        consistent, figures = _second_orientation(rect, left, right, others[0], pix, xg, yg, ahead)
+    else:
+        rays = rect.model.left.ray_grid.reshape(-1, 3)[pix[ahead]].astype(np.float64)
+        consistent = ahead.copy()
+        consistent[ahead], figures = projector_consistency(
+            rays * (Z[ahead] / rect.left_w.ravel()[pix[ahead]])[:, None], c[ahead].astype(np.float64),
+            np.hypot(left.sigma[o].ravel()[pix[ahead]], s_r[ahead]).astype(np.float64))
+    checks |= figures
+    keep = consistent & np.isfinite(sigma_Z)
+    checks["points"] = float(keep.sum())
+
+    n = shape[0] * shape[1]
+    z_left, sig = np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32)
+    w = rect.left_w.ravel()[pix]
+    z_left[pix[keep]] = (Z / w)[keep]
+    sig[pix[keep]] = (sigma_Z / w)[keep]
+
+    def mask(sel: np.ndarray) -> np.ndarray:
+        m = np.zeros(n, bool)
+        m[pix[sel]] = True
+        return m.reshape(shape)
+
+    masks = {"outside_right_view": mask(~inside), "no_match": mask(none), "not_unique": mask(inside & ~unique & ~none),
+             "low_gradient": mask(unique & ~steep), "behind": mask(steep & ~ahead),
+             "inconsistent": mask(ahead & ~consistent)}
+    rays = rect.model.left.ray_grid
+    cloud = cloud_from_depth(z_left.reshape(shape), np.ascontiguousarray(rays[..., 0]),
+                             np.ascontiguousarray(rays[..., 1]), to_texture8(left.texture, left.bit_depth))
+    return BinocularResult(cloud, sig.reshape(shape), rect.model, o, masks, checks)
+
+
+PROJECTOR_FIT_SAMPLES = 50_000  # points the projector model is fitted on (17 parameters): every k-th point
+
+
+def projector_consistency(X: np.ndarray, c: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+    """Which points X (N, 3) agree with the projector coordinate c (N,) they were matched on,
+    the projector's geometry estimated from the points themselves (no calibration): a 1-D
+    projective camera c = a·X̃ / b·X̃ (direct linear fit), then a cubic in (that coordinate,
+    y/z) absorbing the projector's lens distortion (fitted twice, without the points beyond
+    5 robust sigmas), both on every k-th point (PROJECTOR_FIT_SAMPLES). A point is kept when
+    its residual over sqrt(σ_l² + σ_r²) (the two cameras' coordinate noise) is within z robust
+    sigmas, z for CHECK_FALSE_REFUSE two-sided. This is what removes, with one fringe
+    orientation, the left points the right camera cannot see that matched another surface on
+    the same epipolar plane (their residuals are pixels)."""
+    n = len(X)
+    if n < 50:
+        return np.ones(n, bool), {"projector_fit_points": float(n)}
+    fit = slice(None, None, max(n // PROJECTOR_FIT_SAMPLES, 1))
+    m, scale = X[fit].mean(axis=0), float(X[fit].std()) or 1.0
+    cm, cs = float(c[fit].mean()), float(c[fit].std()) or 1.0
+
+    def homogeneous(P: np.ndarray) -> np.ndarray:
+        return np.column_stack([(P - m) / scale, np.ones(len(P))])
+
+    H = homogeneous(X[fit])
+    cn = (c[fit] - cm) / cs
+    A = np.column_stack([H, -cn[:, None] * H])
+    p = np.linalg.eigh(A.T @ A)[1][:, 0]
+
+    def features(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Hp = homogeneous(P)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = (Hp @ p[:4]) / (Hp @ p[4:])
+            y = P[:, 1] / P[:, 2]
+        return u, np.column_stack([np.ones(len(P)), u, y, u * u, u * y, y * y, u ** 3, u * u * y, u * y * y, y ** 3])
+
+    u, F = features(X[fit])
+    r = (cn - u) * cs
+    w = 1.0 / sigma[fit]
+    use = np.isfinite(r) & np.isfinite(F).all(axis=1) & np.isfinite(w)
+    for _ in range(2):
+        Fw = F[use] * w[use, None]
+        coef = np.linalg.solve(Fw.T @ Fw, Fw.T @ (r[use] * w[use]))
+        res = (r - F @ coef) * w
+        spread = 1.4826 * float(np.median(np.abs(res[use])))
+        use &= np.abs(res) <= 5 * spread
+    # every point's residual, the features evaluated without forming them (Horner in u)
+    a = p[:3] / scale
+    b = p[4:7] / scale
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u_all = (X @ a + (p[3] - m @ a)) / (X @ b + (p[7] - m @ b))
+        y = X[:, 1] / X[:, 2]
+    k = coef
+    poly = k[0] + u_all * (k[1] + u_all * (k[3] + u_all * k[6])) + y * (k[2] + u_all * (k[4] + u_all * k[7])
+                                                                      + y * (k[5] + u_all * k[8] + y * k[9]))
+    res_all = (c - cm) - cs * u_all - poly
+    keep = np.abs(res_all / sigma) <= float(norm.isf(CHECK_FALSE_REFUSE / 2)) * spread
+    return keep, {"projector_fit_sigma": spread, "projector_fit_refused": float((~keep).sum())}
+
+
+def _second_orientation(rect: Rectification, left: CameraPhase, right: CameraPhase, p: str, pix: np.ndarray,
+                        xg: np.ndarray, yg: np.ndarray, ahead: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+    """Which matches the other orientation confirms (both cameras read the same coordinate
+    within z·σ, z for CHECK_FALSE_REFUSE two-sided), and the epipolar offsets it measures (px)."""
+    grid = rect.right
+    cr = grid.resample(right.coordinate[p])
+    c_right = bilinear(cr, xg, yg)
+    s2 = left.sigma[p].ravel()[pix] ** 2 + bilinear(grid.resample(right.sigma[p]), xg, yg) ** 2
+    g_y = bilinear(np.gradient(cr, axis=0), xg, yg)  # the coordinate's change across rectified rows
+    s2 += (np.nan_to_num(g_y) * np.float32(rect.model.epipolar_sigma_px)) ** 2
+    r = left.coordinate[p].ravel()[pix] - c_right
+    judged = ahead & np.isfinite(r)
+    consistent = judged & (np.abs(r) <= np.float32(norm.isf(CHECK_FALSE_REFUSE / 2)) * np.sqrt(s2))
+    offset = (r / g_y)[judged & (np.abs(g_y) > 0)].astype(np.float64)
+    return consistent, {"second_orientation_refused": float((judged & ~consistent).sum()),
+                        "second_orientation_missing": float((ahead & ~judged).sum()),
+                        "epipolar_offset_median_px": float(np.median(offset)) if offset.size else float("nan"),
+                        "epipolar_offset_rms_px": float(np.sqrt(np.mean(offset ** 2))) if offset.size else float("nan")}
+
+
+@dataclass(eq=False)
+class BinocularReconstructor:
+    """Binocular reconstruction for one stereo model; the rectification is computed once."""
+
+    model: StereoModel
+
+    @cached_property
+    def rectification(self) -> Rectification:
+        return Rectification.of(self.model)
+
+    def reconstruct(self, left: DecodeResult, right: DecodeResult, orientation: str | None = None) -> BinocularResult:
+        """The binocular cloud of two cameras' decodes of one scan."""
+        return match(self.rectification, CameraPhase.of(left), CameraPhase.of(right), orientation)

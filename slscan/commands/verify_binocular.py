@@ -1,0 +1,38 @@
+"""`slscan verify` on a rig with two cameras: each position scanned by every camera at once and
+measured on the binocular cloud (scanner/binocular.py), its points' noise the binocular
+prediction from both cameras' phase noise. The stereo calibration's covariance is not propagated
+into the figures' uncertainty (the artefacts' U here is the points' noise alone): the report says
+so."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from scanner.binocular import BinocularReconstructor
+
+
+def binocular_scan_data(rig: Any, patterns: Any, gamma: float, bino: BinocularReconstructor) -> tuple[Any, Any]:
+    """(the binocular cloud, its `inspection.acceptance.ScanData`) of one scan of `rig`."""
+    from inspection.acceptance import ScanData
+    from inspection.uncertainty import CalibrationUncertainty, PointNoise, ScanUncertainty
+    from scanner.acquisition import AcquisitionSettings, acquire_all
+    from scanner.decode import decode
+
+    compensated = replace(rig, model=replace(rig.model, projector_gamma=gamma))
+    stacks = acquire_all(compensated, patterns, AcquisitionSettings.for_rig(rig), lambda *a: None)
+    names = list(stacks)[:2]
+    decoded = [decode(stacks[n], patterns, rig.cameras[n].bit_depth, rig.model.projector.size) for n in names]
+    result = bino.reconstruct(decoded[0], decoded[1])
+    rays = bino.model.left.ray_grid
+    calibration = CalibrationUncertainty.none("the stereo calibration's covariance is not propagated (binocular rig)")
+
+    def uncertainty(px: np.ndarray) -> Any:
+        cols, rows = px[:, 0], px[:, 1]
+        noise = PointNoise(result.depth_sigma_mm[rows, cols].astype(np.float64),
+                           rays[rows, cols].astype(np.float64), source="binocular: both cameras' decoded phase noise")
+        return ScanUncertainty(noise, calibration)
+
+    return result.cloud, ScanData(result.cloud.points, uncertainty)
