@@ -154,7 +154,8 @@ def process_binocular(session: Session, progress: Progress = _quiet,
         "session_id": session.id, "cameras": names, "orientation": result.orientation,
         "points": len(result.cloud), "checks": result.checks, "three_ray_check": three,
         "depth_sigma_median_mm": float(np.nanmedian(result.depth_sigma_mm)), "timings_s": timings,
-        "self_check": {n: d.checks for n, d in decoded.items()}, "integrity": session.integrity})
+        "consistency": {n: [c.as_dict() for c in d.checks] for n, d in decoded.items()},
+        "integrity": session.integrity})
     progress("done", 1, 1)
     return BinocularScan(session, decoded, result, three, timings)
 

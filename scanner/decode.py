@@ -551,26 +551,37 @@ def _joined(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 _CHI2_MEDIAN = (0.4549, 0.6931, 0.7887, 0.8392, 0.8703, 0.8914, 0.9066, 0.9180, 0.9270, 0.9342)  # median(χ²_k)/k
 
 
+def harmonic_basis(delta: np.ndarray) -> np.ndarray:
+    """(N, 1 + 2K): the background and the fringe's harmonics 1..K at the N phase steps
+    `delta` (rad). A projector's gamma puts harmonics 2..K in every pixel (the 2nd at ~30 % of
+    the fundamental without gamma compensation); an N-step phase is blind to them all but
+    N ± 1, so they are part of what the frames should be, not noise or a fault. K is the
+    largest leaving N − 1 − 2K ≥ 3 degrees of freedom in the residual (K = 4 for 12 steps, 1
+    below 8 steps: the residual then holds whatever harmonics there are)."""
+    steps = len(delta)
+    harmonics = range(1, max(1, (steps - 4) // 2) + 1)
+    return np.stack([np.ones(steps)] + [f(k * delta) for k in harmonics for f in (np.cos, np.sin)], axis=1)
+
+
+def residual_dof(steps: int) -> int:
+    """Degrees of freedom of an N-step fit's residual about `harmonic_basis`."""
+    return steps - 1 - 2 * max(1, (steps - 4) // 2)
+
+
 def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int, full_scale: float) -> NoiseModel:
     """The intensity-noise model of a stack, from ~20 000 of its pixels (32 rows): the
     residual of the N-step fit per pixel regressed on the background; with 3 steps, the
     background's fine texture (Immerkær's Laplacian estimate, an upper bound where the scene
     has texture).
 
-    The fit holds the fringe's harmonics 2..K besides the background and the fundamental:
-    a projector's gamma puts them in every pixel (the 2nd at ~30 % of the fundamental without
-    gamma compensation), an N-step phase is blind to every harmonic but N ± 1, and left in the
-    residual they would read as intensity noise (15 DN for 1.2 DN in an uncompensated 8-bit
-    12-step capture). K is the largest leaving N − 1 − 2K ≥ 3 degrees of freedom (K = 4 for
-    12 steps, none below 8 steps: the residual then holds whatever harmonics there are)."""
+    The fit holds the fringe's harmonics (`harmonic_basis`): left in the residual they would
+    read as intensity noise (15 DN for 1.2 DN in an uncompensated 8-bit 12-step capture)."""
     h, w = stack.shape[1:]
     rs, cs = max(1, h // 32), max(1, w // 640)
     sub = [stack[k, ::rs, ::cs].astype(np.float64) for k in blocks[0]]
     if steps > 3:
         a_all, v_all = [], []
-        delta = sign * 2.0 * np.pi * np.arange(steps) / steps
-        harmonics = range(1, max(1, (steps - 4) // 2) + 1)
-        basis = np.stack([np.ones(steps)] + [f(k * delta) for k in harmonics for f in (np.cos, np.sin)], axis=1)
+        basis = harmonic_basis(sign * 2.0 * np.pi * np.arange(steps) / steps)
         projector = np.eye(steps) - basis @ np.linalg.pinv(basis)
         for block in blocks:
             frames = np.stack([stack[k, ::rs, ::cs] for k in block]).reshape(steps, -1).astype(np.float64)
@@ -588,7 +599,7 @@ def fit_noise(stack: np.ndarray, blocks: list[list[int]], steps: int, sign: int,
         return NoiseModel(1.0, 0.0)
     # median variance in background bins (unbiased for the χ² of the residuals), then a line
     # through them with non-negative read and shot terms
-    dof = steps - 1 - 2 * max(1, (steps - 4) // 2) if steps > 3 else 1  # the fit's harmonics taken out
+    dof = residual_dof(steps) if steps > 3 else 1
     return _noise_line(a, v, _CHI2_MEDIAN[dof - 1] if dof <= len(_CHI2_MEDIAN) else (1 - 2 / (9 * dof)) ** 3)
 
 
@@ -931,14 +942,15 @@ class _OrientationDecoder:
 
     def _residual_z2(self, stack: np.ndarray, idx: np.ndarray) -> np.ndarray:
         """Per step group (row) and sample pixel (flat indices `idx` of the band `stack`), the
-        N-step fit's residual sum of squares in units of each frame's predicted variance (the
-        sensor model's σ_I² at the group's mean, and the patterns' own error): χ² with N − 3
-        degrees of freedom when the frames are what the pattern set says."""
+        N-step fit's residual sum of squares (about the background and the fringe's harmonics,
+        `harmonic_basis`) in units of each frame's predicted variance (the sensor model's σ_I²
+        at the group's mean, and the patterns' own error): χ² with `residual_dof(N)` degrees of
+        freedom when the frames are what the pattern set says."""
         ps, conv = self.patterns, self.patterns.conventions
         delta = conv.first_phase(ps.steps) + conv.step_sign * 2.0 * np.pi * np.arange(ps.steps) / ps.steps
-        basis = np.stack([np.ones(ps.steps), np.cos(delta), np.sin(delta)], axis=1)
+        basis = harmonic_basis(delta)
         residual = np.eye(ps.steps) - basis @ np.linalg.pinv(basis)  # (N, N): the fit's residual projector
-        cos_sin = np.linalg.pinv(basis)[1:]  # (2, N): B·cos and B·sin of the fit
+        cos_sin = np.linalg.pinv(basis)[1:3]  # (2, N): B·cos and B·sin of the fit's fundamental
         z2 = np.zeros((len(self.blocks), idx.size))
         for g, block in enumerate(self.blocks):
             frames = stack[block].reshape(ps.steps, -1)[:, idx].astype(np.float64)
@@ -974,7 +986,7 @@ class _OrientationDecoder:
                 z2 = joined["residual_z2"]
                 worst = self.blocks[int(np.argmax(np.median(z2, axis=1)))] if z2.shape[1] else [0]
                 spatial = self.noise_source != SENSOR_MODEL
-                out.append(scale_check("phase_residual", o, z2.sum(axis=0), len(self.blocks) * (ps.steps - 3),
+                out.append(scale_check("phase_residual", o, z2.sum(axis=0), len(self.blocks) * residual_dof(ps.steps),
                                        FITTED_MODEL_ACCURACY if spatial else SENSOR_MODEL_ACCURACY,
                                        SPATIAL_MODEL if spatial else self.noise_source,
                                        f"the frames do not follow the patterns: frame {worst[0]} (step group "

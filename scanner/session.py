@@ -466,7 +466,11 @@ class Session:
 
     @property
     def patterns(self) -> PatternSet:
-        return PatternSet.from_dict(self.manifest["patterns"], self.root / MANIFEST, "patterns")
+        """The pattern set on the session's projector (its Gray code's bits and whole-pixel
+        periods follow the projector's size, as the frames were rendered)."""
+        projector = self.manifest["rig_model"]["projector"]
+        return PatternSet.from_dict(self.manifest["patterns"], self.root / MANIFEST, "patterns").for_projector(
+            (projector["width"], projector["height"]))
 
     def rig_model(self) -> RigModel:
         """The geometry the session was captured with, its phase-to-height model (and maps) included."""

@@ -22,9 +22,9 @@ class ProgressLine:
 
     quiet = False
 
-    def __init__(self, stream: Any = sys.stderr, clock: Callable[[], float] = time.monotonic) -> None:
-        self.stream = stream
-        self.tty = stream.isatty()
+    def __init__(self, stream: Any = None, clock: Callable[[], float] = time.monotonic) -> None:
+        self.stream = sys.stderr if stream is None else stream  # the one in use now, not at import
+        self.tty = self.stream.isatty()
         self.clock = clock
         self.started = clock()
         self.stage: str | None = None  # the open stage, its start time and last count

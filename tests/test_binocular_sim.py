@@ -46,7 +46,8 @@ def scanned(tmp_path_factory: pytest.TempPathFactory) -> tuple:
 def test_the_session_holds_every_camera_and_decodes_again(scanned: tuple) -> None:
     scan, _ = scanned
     root = scan.session.root
-    n = PatternSet.load(CONFIG_DIR / "patterns" / "slmaster_complementary_12x32.toml").n_frames
+    projector = scan.session.rig_model().projector.size  # the Gray code's bits follow the projector's width
+    n = PatternSet.load(CONFIG_DIR / "patterns" / "slmaster_complementary_12x32.toml").for_projector(projector).n_frames
     for name in ("left", "right"):
         assert len(list((root / "frames" / name).glob("frame_*.png"))) == n
     manifest = json.loads((root / "manifest.json").read_text())

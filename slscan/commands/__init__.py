@@ -18,7 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {  # command -> (module in slscan.command
     "scan": ("scan", "scan a part into a session folder (raw frames, cloud PLY, Rerun recording)"),
     "decode": ("scan", "regenerate every output of a session from its raw frames"),
     "demo": ("scan", "scan the bundled part on the default simulated rig and inspect it against its STEP model"),
-    "import": ("import_", "turn a folder of fringe frames from any tool into a session (conventions detected, other "
+    "import": ("import_binocular", "turn a folder of fringe frames from any tool into a session (conventions detected, other "
                           "tools' calibrations read)"),
     "review": ("review", "open what slscan wrote (scan session, multi-view folder, station part, calibration, "
                          "poses.rrd, any folder with recordings) in the Rerun viewer (web when headless)"),

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from slscan.exit_codes import Exit
+from slscan.options import add_json
 
 RIG = "sim_binocular.toml"
 WRONG_GAMMA = 1.8
@@ -273,6 +274,6 @@ def register(sub: Any) -> None:
     p.add_argument("--repeats", type=int, default=3, help="timed runs per round (0: no timing)")
     p.add_argument("--imports", type=int, default=1, help="binocular captures made as SLMaster makes them, imported "
                                                              "with its stereo file (default 1)")
-    p.add_argument("--json", action="store_true")
+    add_json(p)
     p.add_argument("--out", help="write the figures as JSON here")
     p.set_defaults(func=cmd_binobench)

@@ -199,17 +199,9 @@ def cmd_import(args: argparse.Namespace) -> int:
     return Exit.OK
 
 
-def cmd_import_frames(args: argparse.Namespace) -> int:
-    """`slscan import`: two folders are a binocular capture (slscan/commands/import_binocular.py),
-    one goes to the monocular import."""
-    if len(args.frames_folder) == 2:
-        from slscan.commands.import_binocular import cmd_import_binocular
-
-        return cmd_import_binocular(args)
-    return cmd_import(args)
-
-
-def register(sub: Any) -> None:
+def register(sub: Any) -> argparse.ArgumentParser:
+    """`slscan import`'s parser (slscan/commands/import_binocular.py registers it, giving it the
+    function that also takes two folders)."""
     p = sub.add_parser("import")
     p.add_argument("frames_folder", metavar="FRAMES", nargs="+",
                    help="folder of frames, taken in natural file-name order; two folders (left, right): a binocular "
@@ -229,5 +221,6 @@ def register(sub: Any) -> None:
     p.add_argument("--frames", metavar="GLOB", help="only the files matching GLOB (default: every PNG, BMP, TIFF)")
     p.add_argument("--bit-depth", type=int, help="bits per sample of 16-bit frames (default: from the brightest)")
     add_json(p)
-    p.set_defaults(func=cmd_import_frames)
+    p.set_defaults(func=cmd_import)
+    return p
 

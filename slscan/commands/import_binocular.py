@@ -27,6 +27,7 @@ from scanner.geometry import Pinhole, RigModel, look_at
 from scanner.patterns import PatternSet
 from scanner.session import SessionWriter
 from slscan.commands.import_ import _store, bit_depth_of, cmd_import, list_frames, read_frames
+from slscan.commands.import_ import register as register_import
 from slscan.exit_codes import Exit
 
 CAMERAS = ("left", "right")
@@ -127,3 +128,13 @@ def cmd_import_binocular(args: argparse.Namespace) -> int:
     print(f"cloud     {scan.cloud_path} (left camera's frame, mm)")
     print(f"wall      {wall:.2f} s (import, detect, decode both cameras, match, write)")
     return Exit.OK
+
+
+def cmd_import_frames(args: argparse.Namespace) -> int:
+    """`slscan import`: two folders are a binocular capture, one goes to the monocular import."""
+    return cmd_import_binocular(args) if len(args.frames_folder) == 2 else cmd_import(args)
+
+
+def register(sub: Any) -> None:
+    """`slscan import` (slscan/commands/import_.py's parser) taking LEFT_FRAMES RIGHT_FRAMES too."""
+    register_import(sub).set_defaults(func=cmd_import_frames)
