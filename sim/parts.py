@@ -241,7 +241,7 @@ def part_scene(vertices: np.ndarray, triangles: np.ndarray, face: np.ndarray, po
     for f in faces:
         fv, ft = _face_mesh(vertices, triangles, face, int(f))
         objects.append(SceneObject(name=f"{name}_face{int(f)}", kind="mesh", pose=pose, albedo=albedo,
-                                   vertices=fv, triangles=ft.astype(np.int32)))
+                                   vertices=fv, triangles=ft.astype(np.int32), body=name))
     plane = None
     if table:
         n = np.asarray(up, float) / np.linalg.norm(up)

@@ -137,6 +137,7 @@ class SceneObject:
     texture: np.ndarray | None = field(default=None, repr=False)
     specular: float = 0.0
     roughness: float = DEFAULT_ROUGHNESS
+    body: str | None = None  # the solid this object is one face of (sim.parts.part_scene): seen as one
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -263,7 +264,8 @@ def check_in_view(scene: Scene, camera: Any, world_from_cam: np.ndarray) -> None
     wholly outside one side of its field of view, would be scanned as if absent. Tested:
     no part of a sphere within the camera's viewing pyramid (`distance_to_pyramid`); a mesh
     (its vertices), a box or plane (the corners of its bounds) wholly beyond one plane of the
-    pyramid (z = 0 or a side): an object is refused only when none of it can be seen."""
+    pyramid (z = 0 or a side): an object is refused only when none of it can be seen, and
+    the faces of one solid (`body`) only when none of them can (a face may lie out of view)."""
     cam_from_world = np.linalg.inv(world_from_cam)
     w, h = camera.width, camera.height
     rays = np.column_stack([camera.normalized(np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5],
@@ -272,6 +274,7 @@ def check_in_view(scene: Scene, camera: Any, world_from_cam: np.ndarray) -> None
     sides *= np.sign(sides @ rays.mean(axis=0))[:, None]
     planes = np.vstack([[0.0, 0.0, 1.0], sides])  # z > 0: in front of the camera
     planes /= np.linalg.norm(planes, axis=1)[:, None]
+    unseen_faces: dict[str, list[tuple[int, str, bool]]] = {}
     for i, obj in enumerate(scene.objects):
         lo, hi = obj.bounds()
         if obj.kind == "sphere":  # exactly: seen when the centre lies within its radius of the pyramid
@@ -288,11 +291,17 @@ def check_in_view(scene: Scene, camera: Any, world_from_cam: np.ndarray) -> None
             cam = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
             outside = (cam @ planes.T <= 0).all(axis=0)
             unseen, behind = bool(outside.any()), bool(outside[0])
-        if unseen:
-            where = "behind the camera" if behind else "outside the camera's field of view"
-            raise ConfigError(scene.path or scene.name, f"objects[{i}]",
-                              f"'{obj.name}' lies wholly {where} (its bounds {np.round(lo, 1).tolist()} .. "
-                              f"{np.round(hi, 1).tolist()} mm in the rig's world frame): the scan would not see it")
+        side = "behind the camera" if behind else "outside the camera's field of view"
+        where = (f"'{obj.name}' lies wholly {side} (its bounds {np.round(lo, 1).tolist()} .. "
+                 f"{np.round(hi, 1).tolist()} mm in the rig's world frame): the scan would not see it")
+        if obj.body is not None:
+            unseen_faces.setdefault(obj.body, []).append((i, where, unseen))
+        elif unseen:
+            raise ConfigError(scene.path or scene.name, f"objects[{i}]", where)
+    for body, faces in unseen_faces.items():
+        if all(unseen for _, _, unseen in faces):
+            i, where, _ = faces[0]
+            raise ConfigError(scene.path or scene.name, f"objects[{i}]", f"every face of '{body}' is unseen: {where}")
 
 
 def sphere_on_a_pixel(centre: np.ndarray, r: float, camera: Any) -> bool:
