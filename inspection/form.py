@@ -59,7 +59,7 @@ import numpy as np
 from scipy import fft, ndimage
 from scipy.optimize import least_squares, linprog
 
-from inspection.uncertainty import DETECTION_QUANTILE, Estimate, PointNoise
+from inspection.uncertainty import DETECTION_QUANTILE, DETECTION_Z, Estimate, PointNoise
 
 ALPHA = float(np.sqrt(np.log(2.0) / np.pi))  # ISO 16610-61
 # threads of the filters' FFTs and the grid's tree query (-1: every core); a thread evaluating a face beside
@@ -672,34 +672,42 @@ def from_draws(value: float, drawn: np.ndarray, noise_only: np.ndarray | None = 
     if noise_only is None:
         return Estimate(value - bias, u, None, bias), parts
     limit = float(np.quantile(noise_only, DETECTION_QUANTILE))
-    return Estimate(value - bias if value > limit else None, u, limit, bias), parts
+    corrected = value - bias  # detected only when what is reported exceeds what noise alone reads in 95 % of scans
+    return Estimate(corrected if corrected > limit else None, u, limit, bias), parts
 
 
 def _sq(rough: np.ndarray, drawn_rough: np.ndarray, inner: np.ndarray, model_rel_u: float
         ) -> tuple[Estimate, float, float, dict[str, float]]:
     """Sq with the noise's mean square removed, its uncertainty and detection limit
-    (module docstring of `inspection.uncertainty`); also Sq before removal and the
-    noise's RMS."""
+    (module docstring of `inspection.uncertainty`, "Detection"); also the ISO 25178-2 Sq
+    of the measured surface (noise included) and the noise's RMS."""
     r = rough[inner]
     e = _columns(drawn_rough, inner)
     raw2 = float(np.mean(r ** 2))
-    stat0 = _by_rows(lambda x: np.mean(x ** 2, axis=1), e)
     noise2 = float(np.mean(e ** 2))
     d = raw2 - noise2
-    # spread of the estimate: mean(2 s e + e^2) over fresh noise, s the noise-free roughness
-    # (the measured one shrunk to the estimated Sq), plus the noise model's own uncertainty
-    shrink = np.sqrt(max(d, 0.0) / raw2) if raw2 > 0 else 0.0
-    stat = _by_rows(lambda x: np.mean(2.0 * shrink * r * x + x ** 2, axis=1), e)
     u_model = 2.0 * model_rel_u * noise2
-    u_d = float(np.hypot(np.std(stat, ddof=1), u_model))
-    u_d0 = float(np.hypot(np.std(stat0, ddof=1), u_model))
-    limit = float(np.sqrt(2.0 * 2.0 * u_d0))
-    parts = {"noise": float(np.std(stat, ddof=1)), "noise model": u_model}
-    if d <= 2.0 * u_d0 or d <= 0.0:
-        return Estimate(None, float(np.sqrt(u_d0)), limit), float(np.sqrt(raw2)), float(np.sqrt(noise2)), parts
+
+    def u_at(sq: float) -> tuple[float, float]:
+        """(u of the estimate of Sq² for a surface of roughness `sq`: mean(2 s e + e²) over
+        fresh noise, s the noise-free roughness (the measured one shrunk to `sq`), with the
+        noise model's own uncertainty; its noise part alone)."""
+        shrink = sq / np.sqrt(raw2) if raw2 > 0 else 0.0
+        stat = _by_rows(lambda x: np.mean(2.0 * shrink * r * x + x ** 2, axis=1), e)
+        spread = float(np.std(stat, ddof=1))
+        return float(np.hypot(spread, u_model)), spread
+
+    u_d0, _ = u_at(0.0)
+    threshold = DETECTION_Z * u_d0  # the estimate of a smooth surface's Sq² exceeds this in 5 % of scans
+    limit = float(np.sqrt(threshold))
+    if d <= threshold:
+        u_d, spread = u_at(limit)
+        return Estimate(None, u_d / (2.0 * limit), limit), float(np.sqrt(raw2)), float(np.sqrt(noise2)), \
+            {"noise": spread / (2.0 * limit), "noise model": u_model / (2.0 * limit)}
     sq = float(np.sqrt(d))
+    u_d, spread = u_at(sq)
     return Estimate(sq, u_d / (2.0 * sq), limit), float(np.sqrt(raw2)), float(np.sqrt(noise2)), \
-        {k: v / (2.0 * sq) for k, v in parts.items()}
+        {"noise": spread / (2.0 * sq), "noise model": u_model / (2.0 * sq)}
 
 
 def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: np.ndarray,

@@ -69,11 +69,23 @@ distribution from none to twice b), with the draws' Monte Carlo error of it
 (`inspection.form.from_draws`). Sq has the modelled noise variance
 removed in quadrature, and u from the variance of a mean of squares.
 
-Detection limits. A figure that noise alone could produce is not distinguishable from
-zero: it is reported as null with its detection limit x_limit_mm (printed `< limit`):
-for zones, the 95th percentile of the zone the modelled noise alone spans on that face;
-for Sq, the Sq whose estimate would clear the decision threshold k·u(Sq²|Sq = 0) with
-95 % probability, sqrt(2·k·u).
+Detection. A figure that noise alone could produce is not distinguishable from zero: it
+is reported as null with its detection limit x_limit_mm L (printed `< L`). The test has a
+stated false-detection rate, FALSE_DETECTION = 5 %: on a truly flat, smooth surface at
+most one scan in twenty reports a value.
+  - zones (and the profile, the deviation extremes): L is the 95th percentile of the zone
+    the modelled noise alone spans on that face (the draws' own zones); a value is
+    reported only when it exceeds L after its noise bias is removed. A truly flat face's
+    raw zone is that of its noise, above L in 5 % of scans; the removed bias is positive
+    for a zone, so the reported value of such a face is above L in fewer (measured on
+    smooth plates: `slscan coverage --case smooth-plate`).
+  - Sq: the estimate of Sq² (mean square less the noise's) of a smooth surface is a mean
+    over thousands of cells, near normal with standard deviation u0 (the draws' spread
+    and the noise model's own uncertainty); it is reported when it exceeds 1.645 u0 (5 %
+    one-sided), so L = sqrt(1.645 u0) and every reported Sq is above L.
+An undetected figure's u is the figure's uncertainty at L (a value at the limit is
+uncertain by that much): `inspection.tolerances.decide` judges "< L" as the interval
+[0, L + U], so it conforms only when L + U is within the tolerance.
 
 The coverage of this model — the true value inside ±U for 95 % of repeat scans with fresh
 noise, and with calibration errors drawn from the calibration's covariance — is measured
@@ -95,7 +107,9 @@ from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator
 
 K = 2.0  # coverage factor of every expanded uncertainty
-DETECTION_QUANTILE = 0.95
+FALSE_DETECTION = 0.05  # the share of truly smooth / flat surfaces a figure is "detected" on (one-sided)
+DETECTION_QUANTILE = 1.0 - FALSE_DETECTION
+DETECTION_Z = 1.6448536  # the standard normal's DETECTION_QUANTILE
 PROJECTOR_BITS = 8  # grey levels of the projector's command images
 
 SensorNoise = Callable[[np.ndarray], np.ndarray]  # mean signal A (DN) -> intensity noise sigma (DN)
@@ -106,8 +120,8 @@ SensorNoise = Callable[[np.ndarray], np.ndarray]  # mean signal A (DN) -> intens
 
 @dataclass(frozen=True)
 class Estimate:
-    """A figure in mm: `value` (None when it cannot be told from zero), its standard
-    uncertainty `u` (k = 1), its detection `limit` (None where the figure is not tested
+    """A figure in mm: `value` (None when it cannot be told from zero; otherwise above
+    `limit`), its standard uncertainty `u` (k = 1; at the limit for a null value), its detection `limit` (None where the figure is not tested
     against zero), the noise `bias` already removed from the value and the coverage
     factor `k` of its U: K for near-normal errors, else what gives the same coverage for
     the error's known distribution (`coverage_factor`)."""

@@ -37,7 +37,8 @@ def test_decision_rules_iso_14253_1() -> None:
     assert decide(0.018, 0.004, 0.020, rule=PLAIN) == CONFORMING  # U not applied
     assert decide(0.021, 0.004, 0.020, rule=PLAIN) == NON_CONFORMING
     assert decide(-0.002, 0.002, 0.005, -0.005) == CONFORMING and decide(-0.006, 0.0005, 0.005, -0.005) == NON_CONFORMING
-    assert decide(None, 0.001, 0.02, limit=0.006) == CONFORMING  # below a detection limit within the tolerance
+    assert decide(None, 0.001, 0.02, limit=0.006) == CONFORMING  # below a detection limit: [0, 0.007] inside
+    assert decide(None, 0.001, 0.0065, limit=0.006) == UNCERTAIN  # the limit inside, the limit + U not
     assert decide(None, 0.001, 0.005, limit=0.006) == UNCERTAIN  # cannot be shown either way
     assert decide(None, 0.0, 0.02) == NOT_MEASURED
     assert overall([CONFORMING, UNCERTAIN]) == UNCERTAIN and overall([UNCERTAIN, NON_CONFORMING]) == NON_CONFORMING
