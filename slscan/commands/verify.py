@@ -7,11 +7,12 @@ The rig file's [acceptance] table gives the measuring volume, the maximum permis
 errors and the decision rule; the artefact file their calibrated values (default: the
 [acceptance] table's `artefacts`). On a simulated rig the simulator places each artefact
 at each position and the test runs unattended; on a real bench the operator is told where
-to put each artefact and presses Enter (s skips a position, q stops), as `slscan
-calibrate` guides its board poses. Each position is scanned with the rig's geometry (its
-calibration file, or `--calibration`), measured, and logged to DIR/recording.rrd (cloud,
-fitted spheres or plane, figures); the report goes to DIR/verify.json and DIR/verify.html.
-Exit code 0 when the rig passes, 1 when it does not.
+to put each artefact and presses Enter (s skips a position, q stops: the positions left
+are not tested), as `slscan calibrate` guides its board poses. Each position is scanned
+with the rig's geometry (its calibration file, or `--calibration`), measured, and logged to
+DIR/recording.rrd (cloud, fitted spheres or plane, figures); the report goes to
+DIR/verify.json and DIR/verify.html. Exit code 0 when the rig passes; 1 when it fails, or
+when a prescribed position was not tested (the result is then "incomplete": no verdict).
 
     slscan verify --leave-one-out DIR --out DIR [--layout opencv-graycode --projector-size WxH --board B]
 
@@ -76,7 +77,8 @@ def _log_position(rec: Any, k: int, cloud: Any, model: Any, result: Any) -> None
                   level="WARN" if result.error else "INFO")
     if result.values:
         rec.log_metrics({f"verify_{p}_mm": v for p, v in result.values.items()}, scan=k)
-    spheres = result.detail.get("spheres", [result.detail] if "radius_mm" in result.detail else [])
+    fit = result.detail.get("sphere") or result.detail.get("ball_bar") or {}
+    spheres = fit.get("spheres", [fit] if "radius_mm" in fit else [])
     spheres = [s for s in spheres if s.get("radius_mm") is not None]
     if spheres:
         rec.stream.log("world/verify/fit", rr.Ellipsoids3D(centers=[s["centre_mm"] for s in spheres],
@@ -87,7 +89,7 @@ def _log_position(rec: Any, k: int, cloud: Any, model: Any, result: Any) -> None
 def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     """Place, scan and measure every position; the AcceptanceReport."""
     from calibration.capture import capture_fringes
-    from inspection.acceptance import Acceptance, AcceptanceReport, ScanData, evaluate, positions
+    from inspection.acceptance import Acceptance, AcceptanceReport, PositionResult, ScanData, evaluate, positions
     from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
     from inspection.uncertainty import scan_uncertainty
     from scanner.decode import decode
@@ -130,8 +132,15 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
         tri = Triangulator(model)
         for k, position in enumerate(plan):
             t0 = time.perf_counter()
-            if bench.place(position) is False:
-                say(f"{position.name}: skipped")
+            try:
+                placed = bench.place(position)
+            except KeyboardInterrupt:
+                say(f"stopped at {position.name}: it and the {len(plan) - k - 1} positions after it are not tested")
+                results.extend(PositionResult.not_tested(p) for p in plan[k:])
+                break
+            if placed is False:
+                say(f"{position.name}: skipped (not tested: the test will be incomplete)")
+                results.append(PositionResult.not_tested(position))
                 continue
             stack = capture_fringes(rig, patterns, model.projector_gamma)
             decoded = decode(stack, patterns, rig.camera.bit_depth, model.projector.size)
