@@ -28,7 +28,7 @@ from inspection.acceptance import (
 )
 from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
 from inspection.tolerances import CONFORMING, NON_CONFORMING, decide
-from inspection.uncertainty import CalibrationUncertainty, perturbed, scan_uncertainty
+from inspection.uncertainty import perturbed
 from scanner.calibration_file import write_calibration
 from scanner.errors import ConfigError
 from scanner.reconstruct import Triangulator, triangulate
@@ -162,10 +162,14 @@ def test_the_guideline_leaves_out_at_most_0_3_percent_of_the_points() -> None:
 def _bar_scan(config: RigConfig, model_of: object) -> object:
     """The first ball-bar position scanned on the simulator (camera window around it) and
     reconstructed with `model_of(true model)`; its result."""
+    from scanner.patterns import PatternSet
     from sim.artefact_scenes import artefact_objects, quick_scan, window_renderer
     from sim.repeat_scans import Bench
+    from slscan.measurement_model import rig_measurement
 
-    bench = Bench.of(config)
+    measurement = rig_measurement(config.raw, config.nominal_model(), PatternSet.load(config.patterns_path), 12,
+                                  config.path)
+    bench = Bench.of(config, measurement)
     art = load_artefacts(DEFAULT_ARTEFACTS)
     position = next(p for p in positions(bench.acceptance, art) if p.kind == "ball_bar")
     renderer = window_renderer(bench.model, artefact_objects(position, art), bench.sensor, bench.projector_blur_px)
@@ -173,9 +177,7 @@ def _bar_scan(config: RigConfig, model_of: object) -> object:
                          np.random.default_rng(7))
     used = model_of(renderer.model)
     cloud = triangulate(decoded, Triangulator(used), with_normals=False)
-    cal = CalibrationUncertainty.none("test")
-    data = ScanData(cloud.points, lambda px: scan_uncertainty(
-        decoded, used, lambda a: bench.sensor.noise_sigma_dn(a, bench.bit_depth), bench.fringe, cal, px))
+    data = ScanData(cloud.points, measurement.of_scan(decoded, used))
     return evaluate(position, data, art)
 
 

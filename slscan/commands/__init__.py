@@ -9,6 +9,7 @@ libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
 from slscan.commands import (
     bench,
     calibrate,
+    coverage,
     demobench,
     devices,
     export,
@@ -26,4 +27,4 @@ from slscan.commands import (
 )
 
 COMMANDS = (scan, import_, review, export, bench, importbench, simbench, demobench, viewbench, devices, calibrate,
-            verify, inspect, pose, segment, station)
+            verify, coverage, inspect, pose, segment, station)

@@ -91,13 +91,12 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     from calibration.capture import capture_fringes
     from inspection.acceptance import Acceptance, AcceptanceReport, PositionResult, ScanData, evaluate, positions
     from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
-    from inspection.uncertainty import scan_uncertainty
     from scanner.decode import decode
     from scanner.patterns import PatternSet
     from scanner.reconstruct import Triangulator, triangulate
     from scanner.rig import RigConfig, open_rig
     from scanner.session_recording import SessionRecording
-    from slscan.measurement_model import calibration_uncertainty, projector_fringe_error, sensor_noise
+    from slscan.measurement_model import rig_measurement
 
     config = RigConfig.load(args.rig)
     acceptance = Acceptance.from_rig(config.raw, config.path, config.working_distance_mm)
@@ -105,8 +104,6 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     plan = positions(acceptance, artefacts)
     model = _model(config, args.calibration)
     patterns = PatternSet.load(config.patterns_path)
-    calibration = calibration_uncertainty(model, config.driver)
-    fringe = projector_fringe_error(patterns, model, config.raw)
     out = _out_folder(Path(args.out))
     say(f"verifying rig {config.name} ({config.driver}) with {artefacts.name}: {len(plan)} positions in a "
         f"{' x '.join(f'{s:g}' for s in acceptance.size_mm)} mm measuring volume; geometry "
@@ -128,7 +125,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
             bench: Any = SimArtefactBench(rig, artefacts)
         else:
             bench = OperatorArtefactBench(say)
-        sensor = sensor_noise(config.raw, rig.camera.bit_depth, config.path)
+        measurement = rig_measurement(config.raw, model, patterns, rig.camera.bit_depth, config.path)
         tri = Triangulator(model)
         for k, position in enumerate(plan):
             t0 = time.perf_counter()
@@ -145,17 +142,18 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
             stack = capture_fringes(rig, patterns, model.projector_gamma)
             decoded = decode(stack, patterns, rig.camera.bit_depth, model.projector.size)
             cloud = triangulate(decoded, tri)
-            data = ScanData(cloud.points, lambda px: scan_uncertainty(decoded, model, sensor, fringe, calibration, px))
+            # the artefact fits leave the outlines out rather than remove the defocus bias (inspection.acceptance)
+            data = ScanData(cloud.points, measurement.of_scan(decoded, model))
             result = evaluate(position, data, artefacts)
             results.append(result)
             _log_position(rec, k, cloud, model, result)
             figures = ", ".join(f"{p} {v * 1e3:.1f} µm" for p, v in result.values.items())
             say(f"{position.name} ({k + 1}/{len(plan)}, {time.perf_counter() - t0:.0f} s): "
                 f"{figures or 'NOT MEASURED: ' + result.error}")
-    notes = {"noise model": "decoder and sensor model" if sensor is not None else
+    notes = {"noise model": "decoder and sensor model" if measurement.sensor is not None else
              "none (the rig file has no [camera.sensor]): the fits' residuals stand in for it",
-             "calibration uncertainty": calibration.source,
-             "fringe error": f"{fringe.rms_px:.4f} projector px RMS (quantised patterns)"}
+             "calibration uncertainty": measurement.calibration.source,
+             "fringe error": f"{measurement.fringe.rms_px:.4f} projector px RMS (quantised patterns)"}  # type: ignore[union-attr]
     return AcceptanceReport(config.name, f"geometry {model.calibration or 'nominal (no calibration file)'}",
                             acceptance, artefacts, tuple(results), notes)
 
