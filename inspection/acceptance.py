@@ -384,10 +384,12 @@ def evaluate(position: Position, data: ScanData, artefacts: ArtefactSet) -> Posi
             assert b is not None
             pxs = find_spheres(data.points, b.radius_mm, 2)
             inner_pxs = [inner_of(p, shape) for p in pxs]
-            whole = measure_ball_bar(tuple(points_at(p) for p in pxs), tuple(data.uncertainties(p) for p in pxs),  # type: ignore[arg-type]
-                                     b.radius_mm, inner=False)
-            inner = measure_ball_bar(tuple(points_at(p) for p in inner_pxs),  # type: ignore[arg-type]
-                                     tuple(data.uncertainties(p) for p in inner_pxs), b.radius_mm)  # type: ignore[arg-type]
+            def bar(sets: list[np.ndarray], inner: bool) -> BallBarResult:
+                return measure_ball_bar(tuple(points_at(p) for p in sets),  # type: ignore[arg-type]
+                                        tuple(data.uncertainties(p) for p in sets),  # type: ignore[arg-type]
+                                        b.radius_mm, inner=inner)
+
+            whole, inner = bar(pxs, False), bar(inner_pxs, True)
             return _bar_result(position, whole, inner, b.length_mm, b.diameter_mm)
         p = artefacts.plane
         assert p is not None
@@ -403,9 +405,11 @@ def evaluate(position: Position, data: ScanData, artefacts: ArtefactSet) -> Posi
 
 
 def _sphere_result(position: Position, whole: SphereResult, inner: SphereResult, diameter_mm: float) -> PositionResult:
-    return PositionResult(position, {"PF": whole.form_range_mm, "PS": 2.0 * whole.radius.value - diameter_mm},  # type: ignore[operator]
-                          {"PS": 2.0 * inner.radius.U}, {"sphere": whole.as_dict(), "inner": inner.as_dict()},
-                          inner={"PF": inner.form_range_mm, "PS": 2.0 * inner.radius.value - diameter_mm})  # type: ignore[operator]
+    def figures(s: SphereResult) -> dict[str, float]:
+        return {"PF": s.form_range_mm, "PS": 2.0 * s.radius.value - diameter_mm}  # type: ignore[operator]
+
+    return PositionResult(position, figures(whole), {"PS": 2.0 * inner.radius.U},
+                          {"sphere": whole.as_dict(), "inner": inner.as_dict()}, inner=figures(inner))
 
 
 def _bar_figures(bar: BallBarResult, length_mm: float, diameter_mm: float) -> dict[str, float]:
@@ -466,7 +470,8 @@ class AcceptanceReport:
     def all_results(self) -> tuple[PositionResult, ...]:
         """A result for every prescribed position: the ones given, the others not tested."""
         given = {r.position.name: r for r in self.results}
-        return tuple(given.get(p.name) or PositionResult.not_tested(p) for p in positions(self.acceptance, self.artefacts))
+        return tuple(given.get(p.name) or PositionResult.not_tested(p)
+                     for p in positions(self.acceptance, self.artefacts))
 
     def not_tested(self) -> list[str]:
         return [r.position.name for r in self.all_results if not r.tested]
@@ -564,8 +569,8 @@ class AcceptanceReport:
             + "".join(f"<td>{um(r.inner.get(p))}</td>" for p in order)
             + f"<td>{html.escape('NOT TESTED' if not r.tested else r.error or r.position.description)}</td></tr>"
             for r in self.all_results)
-        summary = "".join(f"<tr><td>{html.escape(NAMES[p])} {p}</td><td>{um(d[f'{p}_mm'])}</td><td>{um(d[f'{p}_u_mm'])}</td>"
-                          f"<td>{um(self.acceptance.mpe.get(p))}</td><td class='{d['verdicts'][p].replace(' ', '-')}'>"
+        summary = "".join(f"<tr><td>{html.escape(NAMES[p])} {p}</td><td>{um(d[f'{p}_mm'])}</td>"
+                          f"<td>{um(d[f'{p}_u_mm'])}</td><td>{um(self.acceptance.mpe.get(p))}</td><td class='{d['verdicts'][p].replace(' ', '-')}'>"
                           f"{d['verdicts'][p]}</td></tr>" for p in PARAMETERS)
         return (f"<!doctype html><html><head><meta charset='utf-8'><title>Acceptance test {html.escape(self.rig)}</title>"
                 f"<style>body{{font-family:sans-serif}}td,th{{padding:2px 8px;text-align:right}}"

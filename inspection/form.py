@@ -1,6 +1,7 @@
 """Form and texture of one measured face: least-squares and minimum-zone flatness and
-cylindricity, the areal Gaussian filter of ISO 16610-61, Sq (ISO 25178-2) and the
-deviations from nominal, each with its uncertainty (`inspection.uncertainty`).
+cylindricity of the form surface (a second-order Gaussian regression filter), Sq after
+noise removal beside ISO 25178-2's Sq of the measured surface, and the deviations from
+nominal, each with its uncertainty (`inspection.uncertainty`).
 
 Inputs are the face's measured points in the model frame (after registration), their
 signed deviations from the nominal surface (`segmentation`), and optionally their noise
@@ -9,14 +10,18 @@ the points' displacements for each calibration direction. Heights are laid on th
 own 2D coordinates (a plane: its in-plane axes; a cylinder: arc length R*theta and axial
 position, unrolled), resampled on a square grid of about the point spacing.
 
-Filters (ISO 16610-61 weighting function s(x) = exp(-pi (x/(alpha lc))^2)/(alpha lc)^2,
-alpha = sqrt(ln 2 / pi): 50 % transmission at the nesting index lc):
-  - the form surface is the heights filtered with cut-off `form_cutoff_mm`, as a local
-    second-order Gaussian regression (the same weights, a quadratic fitted about each
-    cell): it keeps quadratic form (a bow, a taper) exactly up to the face's edges, where
-    the plain Gaussian mean would pull it toward the interior;
-  - the roughness (S-L) surface is the heights minus their plain Gaussian filter of
-    cut-off `roughness_cutoff_mm` (normalised where the face ends), Sq its RMS.
+Filters (the Gaussian weighting function of ISO 16610-61, s(x) = exp(-pi (x/(alpha
+lc))^2)/(alpha lc)^2, alpha = sqrt(ln 2 / pi): 50 % transmission at the nesting index lc):
+  - the form surface is the heights through a second-order Gaussian regression filter of
+    cut-off `form_cutoff_mm` (those weights, a quadratic fitted about each cell; not ISO
+    16610-61's Gaussian filter, which is the weighted mean): it keeps quadratic form (a
+    bow, a taper) exactly up to the face's edges, where the plain Gaussian mean would pull
+    it toward the interior;
+  - the roughness (S-L) surface is the heights minus their Gaussian filter (ISO 16610-61,
+    the weighted mean, normalised where the face ends) of cut-off `roughness_cutoff_mm`.
+    ISO 25178-2's Sq is its RMS (`sq_raw_mm`, the scanner's noise included); the figure
+    `sq` is Sq after noise removal: the noise's mean square subtracted (an estimate of
+    the true surface's ISO Sq, `_sq`).
 
 Camera defocus. Where the noise model carries the depth bias the camera's blur put on each
 point (`PointNoise.defocus_dz`, `inspection.uncertainty.defocus_bias`: first order, away
@@ -285,6 +290,50 @@ def _add_violators(f: _LsFrames, rows: np.ndarray, active: np.ndarray, sol: np.n
     return rows
 
 
+def mz_zone_sensitivity(xy: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """The minimum-zone flatness's first-order change per unit height at each of the
+    points (N,) of one surface (heights (N,) at `xy` (N, 2)): the zone's LP dual prices on
+    the points that hold it (the others 0), over the cos of its tilt."""
+    frames = _LsFrames.of(xy, height[None])
+    a, b, lo, w = (v[0] for v in _plane_zones(frames, None))
+    xs, ys, zs = (frames.along(e)[0] for e in (frames.u, frames.v, frames.n))
+    r = zs - a * xs - b * ys
+    tol = max(1e-6 * w, 10.0 * ZONE_SLACK_MM)
+    support = np.flatnonzero((r <= lo + tol) | (r >= lo + w - tol))
+    out = np.zeros(len(height))
+    res = _plane_lp_solution(xs[support], ys[support], zs[support])
+    m = len(support)
+    upper, lower = res.ineqlin.marginals[:m], res.ineqlin.marginals[m:]
+    out[support] = (lower - upper) / np.sqrt(1.0 + a * a + b * b)  # d(w)/d(z): the RHS moves -dz above, +dz below
+    return out
+
+
+def ls_zone_sensitivity(xy: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """The least-squares flatness's (range about the LS plane) first-order change per unit
+    height at each point (N,): +1 at the highest residual, -1 at the lowest, less what
+    moving them does to the plane."""
+    A = np.column_stack([xy - xy.mean(axis=0), np.ones(len(xy))])
+    coef = np.linalg.lstsq(A, height, rcond=None)[0]
+    r = height - A @ coef
+    d = np.zeros(len(height))
+    d[int(np.argmax(r))] += 1.0
+    d[int(np.argmin(r))] -= 1.0
+    return d - A @ np.linalg.solve(A.T @ A, A.T @ d)
+
+
+def _plane_lp_solution(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> object:
+    """HiGHS's result (with its dual prices) of one zone's LP over points (xs, ys, zs)
+    (`_plane_lps`'s constraints: the upper side's m rows, then the lower side's)."""
+    m = len(xs)
+    one = np.ones(m)
+    A_ub = np.concatenate([np.stack([-xs, -ys, -one, -one], 1), np.stack([xs, ys, one, 0 * one], 1)])
+    res = linprog([0.0, 0.0, 0.0, 1.0], A_ub=A_ub, b_ub=np.concatenate([-zs, zs]),
+                  bounds=[(None, None)] * 3 + [(0.0, None)], method="highs")
+    if res.status != 0:
+        raise ArithmeticError(f"minimum-zone LP of {m} points: {res.message}")
+    return res
+
+
 def _plane_lps(count: int, s: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
     """One HiGHS LP for `count` independent zones, point m (coordinates xs, ys, zs) held by
     zone s[m]: variables (a, b, lo, w) per zone, minimising the sum of the widths, which,
@@ -404,10 +453,11 @@ _MONOMIALS = ((0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (0, 2))  # (power of x, po
 
 
 class GaussianFilter:
-    """The ISO 16610-61 areal Gaussian filter on a grid of `spacing_mm` cells where `mask`
-    holds data: order 0, the Gaussian mean (normalised where the surface ends); order 2,
-    the local second-order regression with the same weights (exact for quadratic
-    surfaces). The weights depend on the mask only, so they are set up once and the
+    """Areal Gaussian filters on a grid of `spacing_mm` cells where `mask` holds data:
+    order 0, ISO 16610-61's Gaussian (the weighted mean, normalised where the surface
+    ends); order 2, the second-order Gaussian regression filter (the same weights, a local
+    quadratic: exact for quadratic surfaces). The weights depend on the mask only, so they
+    are set up once and the
     filter then applies to any number of fields (`__call__` takes (..., H, W))."""
 
     def __init__(self, mask: np.ndarray, cutoff_mm: float, spacing_mm: float, order: int = 0) -> None:
@@ -524,8 +574,9 @@ class FaceForm:
     carry the noise), `profile` = 2 max|deviation| (the ISO 1101 profile zone centred on
     nominal); `raw_deviation_*` the extremes of the unfiltered points (inside the edge
     margin, spikes dropped), noise included. `noise_mm`: the typical noise of one point
-    along the face normal and `noise_source` where it came from; `sq_raw_mm` and
-    `sq_noise_mm`: the roughness RMS before the noise was removed and the noise's RMS."""
+    along the face normal and `noise_source` where it came from; `sq_raw_mm`: ISO
+    25178-2's Sq of the measured surface (the noise included; `sq` is Sq after noise
+    removal) and `sq_noise_mm` the noise's RMS."""
 
     points: int
     status: str
@@ -655,12 +706,21 @@ def noise_sigma(z: np.ndarray, mask: np.ndarray) -> float | None:
 
 
 def from_draws(value: float, drawn: np.ndarray, noise_only: np.ndarray | None = None,
-                cal: np.ndarray | None = None) -> tuple[Estimate, dict[str, float]]:
+                cal: np.ndarray | None = None, linear: np.ndarray | None = None) -> tuple[Estimate, dict[str, float]]:
     """A figure from its value on the measured surface, its values on the surface plus
     each noise draw (spread: u; mean shift: the noise bias, removed, with its own
     uncertainty), optionally the same figure of the noise alone (its 95th percentile: the
-    detection limit) and its changes for each calibration direction (root sum of squares:
-    u_cal).
+    detection limit), its changes for each calibration direction (root sum of squares:
+    u_cal) and, for an extreme-value figure, its first-order changes with each draw
+    (`linear`: the draw at the cells that hold the extreme, weighted as they hold it).
+
+    The bootstrap of an extreme understates its spread where the measured surface's
+    extreme is itself partly noise: among competing extremes (a bow's four corners) the
+    noise has already picked the deepest, and a draw added to it moves the figure less
+    than the noise moved it from the truth (on the simulator's bowed plate the zone's
+    draws spread 1.2 µm where the corner cells' noise, which sets the error, spread 2.4-3
+    µm). The first-order spread is the figure's when the true extremes are unique; u_noise
+    is the larger of the two.
 
     The removed bias is known only to within its own size: it is the shift that noise
     adds to the already noisy measured surface, not to the true one, and for a zone (an
@@ -671,6 +731,8 @@ def from_draws(value: float, drawn: np.ndarray, noise_only: np.ndarray | None = 
     the mean shift, u_noise/sqrt(D)."""
     bias = float(np.mean(drawn) - value)
     u_noise = float(np.std(drawn, ddof=1)) if len(drawn) > 1 else 0.0
+    if linear is not None and len(linear) > 1:
+        u_noise = max(u_noise, float(np.std(linear, ddof=1)))
     u_bias = float(np.hypot(bias / np.sqrt(3.0), u_noise / np.sqrt(len(drawn)))) if len(drawn) > 1 else abs(bias)
     u_cal = float(np.sqrt(np.sum(np.square(cal)))) if cal is not None and len(cal) else 0.0
     u = float(np.sqrt(u_noise ** 2 + u_bias ** 2 + u_cal ** 2))
@@ -703,8 +765,10 @@ def _sq(rough: np.ndarray, drawn_rough: np.ndarray, inner: np.ndarray, model_rel
         spread = float(np.std(stat, ddof=1))
         return float(np.hypot(spread, u_model)), spread
 
-    u_d0, _ = u_at(0.0)
-    threshold = DETECTION_Z * u_d0  # the estimate of a smooth surface's Sq² exceeds this in 5 % of scans
+    _, spread0 = u_at(0.0)
+    # the estimate of a smooth surface's Sq² exceeds this in at most 5 % of scans while the noise model's error
+    # is within its bound (model_rel_u: its mean square is off by up to 2 model_rel_u, added, not in quadrature)
+    threshold = DETECTION_Z * spread0 + u_model
     limit = float(np.sqrt(threshold))
     if d <= threshold:
         u_d, spread = u_at(limit)
@@ -831,8 +895,8 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         def noise_mz(h: np.ndarray) -> np.ndarray:  # the noise alone: its zone about its own LS plane
             return flatness_mz_many(cxy, h)
 
-        ls, ls_parts = _zone(flat_ls, f, fe, e, cal)
-        mz, mz_parts = _zone(flat_mz, f, fe, e, cal, noise_mz)
+        ls, ls_parts = _zone(flat_ls, f, fe, e, cal, sensitivity=ls_zone_sensitivity(cxy, f))
+        mz, mz_parts = _zone(flat_mz, f, fe, e, cal, noise_mz, mz_zone_sensitivity(cxy, f))
         parts.update(flatness_ls=ls_parts, flatness_mz=mz_parts)
         return FaceForm(flatness_ls=ls, flatness_mz=mz, u_components=parts, **common)  # type: ignore[arg-type]
     if face.type == "cylinder":  # type: ignore[attr-defined]
@@ -862,16 +926,18 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
 
 
 def _zone(figure: Callable[[np.ndarray], np.ndarray], form: np.ndarray, drawn: np.ndarray, noise: np.ndarray,
-          cal: np.ndarray | None, noise_figure: Callable[[np.ndarray], np.ndarray] | None = None
-          ) -> tuple[Estimate, dict[str, float]]:
+          cal: np.ndarray | None, noise_figure: Callable[[np.ndarray], np.ndarray] | None = None,
+          sensitivity: np.ndarray | None = None) -> tuple[Estimate, dict[str, float]]:
     """A zone of the form surface `form` (cells,) with it plus each noise draw `drawn`
     (D, cells), the draws alone `noise`, and calibration moves (D_cal, cells): bias
     removed, u, detection limit. `figure` takes surfaces (B, cells) and gives their zones
     (B,); `noise_figure`, the same zone computed with hints for the noise alone (default:
-    `figure`)."""
+    `figure`); `sensitivity` (cells,): the zone's first-order change per unit height at
+    each cell (`from_draws`, `linear`)."""
     value = float(figure(form[None])[0])
     changes = None if cal is None else figure(form + cal) - value
-    return from_draws(value, figure(drawn), (noise_figure or figure)(noise), changes)
+    return from_draws(value, figure(drawn), (noise_figure or figure)(noise), changes,
+                      None if sensitivity is None else noise @ sensitivity)
 
 
 def _point_draws(noise: PointNoise | None, normals: np.ndarray | None, rng: np.random.Generator, n: int,
@@ -896,8 +962,13 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, noise: np.ndarray, 
              moves: np.ndarray | None, sign: float = 1.0) -> tuple[Estimate, dict[str, float]]:
         value = sign * float(fn(base[None])[0])
         changes = None if moves is None else sign * fn(base + moves) - value
+        held = _EXTREME_CELL.get(fn)
+        linear = None
+        if held is not None:  # the first-order change: the draw at the cell holding the extreme
+            k, factor = held(base)
+            linear = sign * factor * (draws[:, k] - base[k])
         est, parts = from_draws(value, sign * _by_rows(fn, draws), None if noise is None else sign * _by_rows(fn, noise),
-                                changes)
+                                changes, linear)
         if sign < 0:
             est = Estimate(None if est.value is None else -est.value, est.u, est.limit, -est.bias)
         return est, parts
@@ -943,6 +1014,13 @@ def _row_rms(d: np.ndarray) -> np.ndarray:
 def _row_profile(d: np.ndarray) -> np.ndarray:
     """The profile zone 2 max|d| of each row."""
     return 2.0 * np.abs(d).max(axis=1)
+
+
+_EXTREME_CELL: dict[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray], tuple[int, float]]] = {
+    _row_min: lambda d: (int(np.argmin(d)), 1.0),
+    _row_max: lambda d: (int(np.argmax(d)), 1.0),
+    _row_profile: lambda d: (int(np.argmax(np.abs(d))), 2.0 * float(np.sign(d[int(np.argmax(np.abs(d)))]))),
+}  # extreme-value figures of a row (`_deviation_stats`): which cell holds each, and how its height moves it
 
 
 def _unroll(xy: np.ndarray, radius: np.ndarray, R: float) -> np.ndarray:

@@ -7,7 +7,7 @@ without a program:
     decision_rule = "guard-banded"   # optional: how verdicts use U (see DECISION_RULES)
     [faces."#657"]              # a face by its label: "#<STEP ADVANCED_FACE id>" or "F<index>" (meshes)
     flatness_mm = 0.05          # minimum-zone flatness (ISO 1101), planes (flatness_ls_mm: least squares)
-    sq_mm = 0.10                # Sq roughness (ISO 25178-2)
+    sq_mm = 0.10                # Sq after noise removal (the true surface's ISO 25178-2 Sq, estimated)
     [faces."#17"]
     cylindricity_mm = 0.05      # minimum-zone cylindricity, cylinders (cylindricity_ls_mm: least squares)
     profile_mm = 0.4            # profile of a surface: every point within +-profile/2 of nominal
@@ -45,7 +45,8 @@ CHARACTERISTICS = {"flatness_mm": ("plane",), "cylindricity_mm": ("cylinder",), 
 FIGURE_OF = {"flatness_mm": "flatness_mz", "cylindricity_mm": "cylindricity_mz", "sq_mm": "sq", "profile_mm": "profile",
              "flatness_ls_mm": "flatness_ls", "cylindricity_ls_mm": "cylindricity_ls"}
 TITLES = {"flatness_mm": "flatness (minimum zone)", "cylindricity_mm": "cylindricity (minimum zone)",
-          "sq_mm": "Sq roughness", "profile_mm": "profile of a surface", "flatness_ls_mm": "flatness (least squares)",
+          "sq_mm": "Sq after noise removal", "profile_mm": "profile of a surface",
+          "flatness_ls_mm": "flatness (least squares)",
           "cylindricity_ls_mm": "cylindricity (least squares)"}
 
 

@@ -67,7 +67,11 @@ reads what the surface has, not what the noise adds). That shift is what noise a
 already noisy surface, which for a zone differs from what it added to the true one by a
 fraction of itself, either way: the removed bias b enters u as |b|/sqrt(3) (a rectangular
 distribution from none to twice b), with the draws' Monte Carlo error of it
-(`inspection.form.from_draws`). Sq has the modelled noise variance
+(`inspection.form.from_draws`). For an extreme (a zone, the profile, a deviation
+extreme) the draws' spread at the measured surface understates the error's where that
+surface's extreme is itself partly noise (among competing extremes the noise has already
+picked one), so u_noise is at least the first-order spread: the draws at the cells that
+hold the extreme, weighted as they hold it (a zone's LP dual prices, `mz_zone_sensitivity`). Sq has the modelled noise variance
 removed in quadrature, and u from the variance of a mean of squares.
 
 Detection. A figure that noise alone could produce is not distinguishable from zero: it
@@ -81,9 +85,11 @@ most one scan in twenty reports a value.
     for a zone, so the reported value of such a face is above L in fewer (measured on
     smooth plates: `slscan coverage --case smooth-plate`).
   - Sq: the estimate of Sq² (mean square less the noise's) of a smooth surface is a mean
-    over thousands of cells, near normal with standard deviation u0 (the draws' spread
-    and the noise model's own uncertainty); it is reported when it exceeds 1.645 u0 (5 %
-    one-sided), so L = sqrt(1.645 u0) and every reported Sq is above L.
+    over thousands of cells, near normal with standard deviation u0 (the draws' spread);
+    the noise model's own error (its relative bound on sigma, `PointNoise.rel_u`) can shift
+    it by up to b = 2 rel_u <noise²>. It is reported when it exceeds 1.645 u0 + b (5 %
+    one-sided for any model error within its bound: on the simulator's smooth plates 1.645
+    u0 alone let 6 % through), so L = sqrt(1.645 u0 + b) and every reported Sq is above L.
 An undetected figure's u is the figure's uncertainty at L (a value at the limit is
 uncertain by that much): `inspection.tolerances.decide` judges "< L" as the interval
 [0, L + U], so it conforms only when L + U is within the tolerance.
@@ -122,7 +128,8 @@ SensorNoise = Callable[[np.ndarray], np.ndarray]  # mean signal A (DN) -> intens
 @dataclass(frozen=True)
 class Estimate:
     """A figure in mm: `value` (None when it cannot be told from zero; otherwise above
-    `limit`), its standard uncertainty `u` (k = 1; at the limit for a null value), its detection `limit` (None where the figure is not tested
+    `limit`), its standard uncertainty `u` (k = 1; at the limit for a null value), its
+    detection `limit` (None where the figure is not tested
     against zero), the noise `bias` already removed from the value and the coverage
     factor `k` of its U: K for near-normal errors, else what gives the same coverage for
     the error's known distribution (`coverage_factor`)."""

@@ -225,7 +225,9 @@ def _artefact_trial(bench: Bench, position: Position, artefacts: ArtefactSet, re
 
     def uncertainties(pixels: np.ndarray) -> Any:
         unc = at(pixels)
-        return unc if noise_scale == 1.0 else replace(unc, noise=unc.noise.scaled(noise_scale))  # type: ignore[union-attr]
+        if noise_scale == 1.0:
+            return unc
+        return replace(unc, noise=unc.noise.scaled(noise_scale))  # type: ignore[union-attr]
 
     result = evaluate(position, ScanData(points, uncertainties), artefacts)
     if result.error:
@@ -563,8 +565,8 @@ def noise_model_check(bench: Bench, n: int, seed: int = 99, plate: Plate = Plate
         px = np.stack([cols, rows], axis=1)
         measurement = replace(bench.measurement, fringe=None, calibration=CalibrationUncertainty.none("not studied"))
         # as an inspection takes them: the defocus bias removed from each scan, the noise model raised for it
-        moved = [measurement.of_scan(d, renderer.model, defocus=True)(px).noise.defocus_removed()  # type: ignore[union-attr]
-                 for d in scans]
+        moved = [measurement.of_scan(d, renderer.model, defocus=True)(px).noise  # type: ignore[union-attr]
+                 .defocus_removed() for d in scans]
         diff = (z[0] - z[1])[rows, cols] + moved[0][0] - moved[1][0]
         r = diff / (np.sqrt(2.0) * moved[0][1].sigma_z)
         even = (rows + cols) % 2 == 0

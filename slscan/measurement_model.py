@@ -81,7 +81,8 @@ def rig_measurement(rig_config: dict[str, Any], model: RigModel, patterns: Patte
                     where: object) -> MeasurementModel:
     """The measurement model of a rig (its config's content) measuring with `model`."""
     driver = (rig_config.get("rig") or {}).get("driver", "")
-    return MeasurementModel(sensor_noise(rig_config, bit_depth, where), projector_fringe_error(patterns, model, rig_config),
+    return MeasurementModel(sensor_noise(rig_config, bit_depth, where),
+                            projector_fringe_error(patterns, model, rig_config),
                             calibration_uncertainty(model, driver), camera_blur_px(rig_config))
 
 

@@ -100,17 +100,17 @@ def _face() -> object:
 
 
 def test_false_detections_on_noise_only_faces_stay_within_the_stated_rate() -> None:
-    """100 perfectly flat, smooth 12 x 9 mm faces measured through white noise that is
-    exactly the model's: Sq is reported on about FALSE_DETECTION of them (binomial: at
-    most 11 of 100 when the rate is 5 %, p = 0.01), the flatness on no more; every
-    reported figure above its limit."""
+    """100 perfectly flat, smooth 9 x 6 mm faces measured through white noise that is
+    exactly the model's: Sq and flatness are reported on at most FALSE_DETECTION of them
+    (binomial: at most 11 of 100 when the rate is 5 %, p = 0.01); every reported figure
+    above its limit."""
     rng = np.random.default_rng(7)
     face = _face()
-    x, y = np.meshgrid(np.arange(-6, 6, 0.15), np.arange(-4.5, 4.5, 0.15))
+    x, y = np.meshgrid(np.arange(-4.5, 4.5, 0.15), np.arange(-3, 3, 0.15))
     x, y = x.ravel(), y.ravel()
     noise = PointNoise(np.full(x.size, 0.012), np.tile([0.0, 0.0, 1.0], (x.size, 1)))
     normals = np.tile([0.0, 0.0, 1.0], (x.size, 1))
-    settings = FormSettings(draws=32, form_cutoff_mm=2.5, roughness_cutoff_mm=2.5)
+    settings = FormSettings(draws=32, form_cutoff_mm=2.0, roughness_cutoff_mm=2.0)
     sq_found = flat_found = 0
     for k in range(100):
         z = rng.normal(0.0, 0.012, x.size)
@@ -123,4 +123,9 @@ def test_false_detections_on_noise_only_faces_stay_within_the_stated_rate() -> N
     print(f"false detections on 100 noise-only faces: Sq {sq_found}, flatness {flat_found} "
           f"(stated rate {FALSE_DETECTION:.0%})")
     assert sq_found <= 11 and flat_found <= 11
-    assert sq_found >= 1  # the test is not blind: about 5 in 100 is expected
+    # the test is not blind: a model 10 % short of the noise reports Sq on (nearly) every face
+    short = noise.scaled(0.9)
+    found = sum(evaluate_face(face, np.column_stack([x, y, z]), z, np.column_stack([x, y]), settings, seed=k,
+                              noise=short, normals=normals).sq.value is not None
+                for k, z in enumerate(rng.normal(0.0, 0.012, (10, x.size))))
+    assert found >= 9

@@ -26,6 +26,7 @@ from inspection.uncertainty import (
     perturbed,
 )
 from scanner.geometry import Pinhole
+from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator
 from scanner.rig import RigConfig
 

@@ -101,7 +101,8 @@ def _coverage(cases: list[str], calibrated: bool, tmp: Path) -> list[dict]:
         assert cli.main(args) == 0
     out = json.loads(buf.getvalue())
     rows = out if isinstance(out, list) else [out]
-    print(f"{rows}; wall {time.perf_counter() - t0:.0f} s, load average {', '.join(f'{x:.1f}' for x in os.getloadavg())}")
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(f"{rows}; wall {time.perf_counter() - t0:.0f} s, load average {load}")
     return rows
 
 

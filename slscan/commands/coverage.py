@@ -50,7 +50,8 @@ def calibrations(rig: Path, out: Path, seed: int, count: int, say: Callable[[str
                 code = subprocess.call([sys.executable, "-m", "slscan", "calibrate", "--rig", str(rig), "--seed",
                                         str(s), "--out", str(folder)], stdout=log, stderr=subprocess.STDOUT)
             if code != 0 or not result.exists():
-                raise ScannerError(f"simulated calibration seed {s} failed (exit {code}); see {out}/calibration-{s}.log")
+                raise ScannerError(f"simulated calibration seed {s} failed (exit {code}); "
+                                   f"see {out}/calibration-{s}.log")
             import shutil
 
             shutil.rmtree(folder / "capture", ignore_errors=True)  # 0.8 GB of frames, not needed once solved
@@ -91,7 +92,8 @@ def cmd_coverage(args: argparse.Namespace) -> int:
     if {"plate-flatness", "plate-sq"} & set(cases):
         results["plate-flatness"], results["plate-sq"] = rs.plate_figures(bench, args.scans, **common)
     if {"smooth-flatness", "smooth-sq"} & set(cases):
-        results["smooth-flatness"], results["smooth-sq"] = rs.plate_figures(bench, args.scans, plate=rs.SMOOTH, **common)
+        results["smooth-flatness"], results["smooth-sq"] = rs.plate_figures(bench, args.scans, plate=rs.SMOOTH,
+                                                                             **common)
     if "sphere-radius" in cases:
         results["sphere-radius"] = rs.sphere_radius(bench, load_artefacts(DEFAULT_ARTEFACTS), args.scans, **common)
     if "ball-bar" in cases:

@@ -153,7 +153,8 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     notes = {"noise model": "decoder and sensor model" if measurement.sensor is not None else
              "none (the rig file has no [camera.sensor]): the fits' residuals stand in for it",
              "calibration uncertainty": measurement.calibration.source,
-             "fringe error": f"{measurement.fringe.rms_px:.4f} projector px RMS (quantised patterns)"}  # type: ignore[union-attr]
+             "fringe error": f"{measurement.fringe.rms_px:.4f} projector px RMS "  # type: ignore[union-attr]
+                             "(quantised patterns)"}
     return AcceptanceReport(config.name, f"geometry {model.calibration or 'nominal (no calibration file)'}",
                             acceptance, artefacts, tuple(results), notes)
 
