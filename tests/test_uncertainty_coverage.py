@@ -168,3 +168,38 @@ def test_covariance_file_is_a_calibration_covariance() -> None:
     cal = _calibration()
     assert cal.source == "the calibration's covariance"
     assert np.all(np.linalg.eigvalsh(cal.covariance) > -1e-12 * np.abs(cal.covariance).max())
+
+
+def test_plate_truth_of_a_dome_is_its_closed_form() -> None:
+    """`plate_truth` on the true points of a paraboloid dome z = c (1 - r²/R²) over a 30 x 20
+    mm rectangle: the regression filter keeps a quadratic exactly, so the minimum zone is
+    the dome's rise from the corners to the centre, c (15² + 10²)/R² (symmetric: the zone's
+    planes are level); a level plane's Sq is 0 (the Gaussian mean, normalised where the
+    surface ends, keeps a constant)."""
+    from types import SimpleNamespace
+
+    from inspection.form import FormSettings
+    from sim.repeat_scans import plate_truth
+
+    g = 0.2
+    x, y = np.meshgrid(np.arange(-15, 15, g) + g / 2, np.arange(-10, 10, g) + g / 2)
+    c, R2 = 0.02, 15.0 ** 2 + 10.0 ** 2
+    pts = np.column_stack([x.ravel(), y.ravel(), c * (1 - (x.ravel() ** 2 + y.ravel() ** 2) / R2)])
+    form = SimpleNamespace(region=np.ones(len(pts), bool), grid_mm=g, grid_origin_mm=(-15.0, -10.0))
+    flat, sq = plate_truth(form, pts, FormSettings())
+    corner = (15 - g / 2) ** 2 + (10 - g / 2) ** 2  # the outermost cell centres
+    assert flat == pytest.approx(c * (corner - (g / 2) ** 2 * 2) / R2, rel=1e-6)
+    plane = pts.copy()
+    plane[:, 2] = 0.003
+    assert plate_truth(form, plane, FormSettings()) == pytest.approx((0.0, 0.0), abs=1e-9)
+
+
+def test_coverage_command_prints_the_figures(capsys: pytest.CaptureFixture) -> None:
+    """`slscan coverage` as a user runs it: one scan, the published keys."""
+    from slscan import cli
+
+    assert cli.main(["coverage", "--case", "sphere-radius", "--scans", "1", "--seed", "3", "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)
+    assert {"case", "scans", "inside", "coverage", "error_mean_mm", "error_sd_mm", "median_U_mm", "seconds"} <= set(row)
+    assert row["case"] == "sphere-radius" and row["scans"] == 1 and row["coverage"] in (0.0, 1.0)
+    assert 0 < row["median_U_mm"] < 0.005 and row["calibrated"] is False
