@@ -2,14 +2,16 @@
 with the product's own measurement path (`sim.repeat_scans`), so anyone can rerun a
 published coverage figure:
 
-    slscan coverage --case plate-flatness|plate-sq|sphere-radius|ball-bar|pose|smooth-flatness|smooth-sq
-                    --scans N --seed S [--calibrated --out DIR [--calibrations K]] [--processes P] [--json]
+    slscan coverage --case plate-flatness|plate-sq|sphere-radius|ball-bar|pose|smooth-flatness|smooth-sq|
+                           near-limit-flatness|near-limit-sq --scans N --seed S [--calibrated --out DIR [--calibrations K]] [--processes P] [--json]
 
 prints {"case", "scans", "inside", "coverage", "error_mean_mm", "error_sd_mm",
 "median_U_mm", "seconds"} per case (`--case` may be given more than once: the plate's
 cases share their scans; several cases print a JSON list). The smooth-plate cases measure
 a perfectly flat, smooth plate (truth 0): their "detected" is how many scans reported a
-value (false detections; the stated rate is 5 %).
+value (false detections; the stated rate is 5 %). The near-limit cases measure a smooth plate
+whose bow (`sim.repeat_scans.NEAR_LIMIT`) puts its flatness near the detection limit, where
+a zone is reported in some scans and "< L" in the others.
 
 `--calibrated`: each scan is reconstructed with the result of an independent simulated
 calibration (`slscan calibrate --seed 1000·S + j --out DIR/calibration-<seed>`, j <
@@ -31,7 +33,8 @@ from typing import Any, Callable
 
 from scanner.errors import ScannerError
 
-CASES = ("plate-flatness", "plate-sq", "sphere-radius", "ball-bar", "pose", "smooth-flatness", "smooth-sq")
+CASES = ("plate-flatness", "plate-sq", "sphere-radius", "ball-bar", "pose", "smooth-flatness", "smooth-sq",
+         "near-limit-flatness", "near-limit-sq")
 
 
 def calibrations(rig: Path, out: Path, seed: int, count: int, say: Callable[[str], None]) -> list[Path]:
@@ -89,11 +92,10 @@ def cmd_coverage(args: argparse.Namespace) -> int:
                      for p in calibrations(config.path, args.out, args.seed, args.calibrations, say))
     common = dict(seed=args.seed, rigs=rigs, processes=args.processes, progress=say)
     results: dict[str, Any] = {}
-    if {"plate-flatness", "plate-sq"} & set(cases):
-        results["plate-flatness"], results["plate-sq"] = rs.plate_figures(bench, args.scans, **common)
-    if {"smooth-flatness", "smooth-sq"} & set(cases):
-        results["smooth-flatness"], results["smooth-sq"] = rs.plate_figures(bench, args.scans, plate=rs.SMOOTH,
-                                                                             **common)
+    for name, plate in (("plate", rs.Plate()), ("smooth", rs.SMOOTH), ("near-limit", rs.NEAR_LIMIT)):
+        if {f"{name}-flatness", f"{name}-sq"} & set(cases):
+            results[f"{name}-flatness"], results[f"{name}-sq"] = rs.plate_figures(bench, args.scans, plate=plate,
+                                                                                   **common)
     if "sphere-radius" in cases:
         results["sphere-radius"] = rs.sphere_radius(bench, load_artefacts(DEFAULT_ARTEFACTS), args.scans, **common)
     if "ball-bar" in cases:
