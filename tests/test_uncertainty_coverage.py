@@ -203,3 +203,12 @@ def test_coverage_command_prints_the_figures(capsys: pytest.CaptureFixture) -> N
     assert {"case", "scans", "inside", "coverage", "error_mean_mm", "error_sd_mm", "median_U_mm", "seconds"} <= set(row)
     assert row["case"] == "sphere-radius" and row["scans"] == 1 and row["coverage"] in (0.0, 1.0)
     assert 0 < row["median_U_mm"] < 0.005 and row["calibrated"] is False
+
+
+def test_coverage_command_refuses_an_empty_campaign(capsys: pytest.CaptureFixture) -> None:
+    """No scans is a usage error naming the option, never a row of NaNs with exit 0."""
+    from slscan import cli
+
+    assert cli.main(["coverage", "--case", "near-limit-flatness", "--scans", "0", "--seed", "1", "--json"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and "--scans 0" in captured.err

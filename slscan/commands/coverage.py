@@ -76,6 +76,9 @@ def cmd_coverage(args: argparse.Namespace) -> int:
     cases = args.case or []
     if not cases:
         raise ScannerError(f"give --case: one or more of {', '.join(CASES)}")
+    for option in ("scans", "processes", "calibrations"):
+        if getattr(args, option) < 1:
+            raise ScannerError(f"--{option} {getattr(args, option)}: must be at least 1")
     config = RigConfig.load(args.rig)
     if config.driver != "sim":
         raise ScannerError(f"{config.path}: coverage is measured on a simulated rig (driver sim), not {config.driver}")
