@@ -125,6 +125,17 @@ def test_false_detections_on_smooth_flat_plates(tmp_path: Path) -> None:
         assert row["detected"] <= 0.05 * TRIALS + 1.65 * np.sqrt(0.05 * 0.95 * TRIALS), row
 
 
+@pytest.mark.acceptance
+@pytest.mark.slow
+def test_a_zone_at_its_detection_limit_is_covered(tmp_path: Path) -> None:
+    """A smooth plate bowed to sit at its flatness limit (`NEAR_LIMIT`): some scans report the
+    zone, others "< L"; the truth lies within ±U (or [0, L + U]) in 95 % ± 3 % of them, and
+    its Sq (nearly 0: no texture) is reported on at most 5 % (+ the binomial spread)."""
+    flatness, sq = _coverage(["near-limit-flatness", "near-limit-sq"], False, tmp_path)
+    assert 0 < flatness["reported"] < TRIALS and 0.92 <= flatness["coverage"] <= 0.98, flatness
+    assert sq["reported"] <= 0.05 * TRIALS + 1.65 * np.sqrt(0.05 * 0.95 * TRIALS), sq
+
+
 def test_noise_model_predicts_the_simulated_depth_noise(bench: Bench) -> None:
     """Two scans of the plate at 6 placements: their depth difference over sqrt(2) times the
     predicted sigma_z has unit spread, to each placement's statistical precision."""
