@@ -3,7 +3,8 @@ with the product's own measurement path (`sim.repeat_scans`), so anyone can reru
 published coverage figure:
 
     slscan coverage --case plate-flatness|plate-sq|sphere-radius|ball-bar|pose|smooth-flatness|smooth-sq|
-                           near-limit-flatness|near-limit-sq --scans N --seed S [--calibrated --out DIR [--calibrations K]] [--processes P] [--json]
+                           near-limit-flatness|near-limit-sq --scans N --seed S
+                    [--calibrated --out DIR [--calibrations K]] [--processes P] [--json]
 
 prints {"case", "scans", "inside", "coverage", "error_mean_mm", "error_sd_mm",
 "median_U_mm", "seconds"} per case (`--case` may be given more than once: the plate's
