@@ -12,7 +12,7 @@ Modules (each one job):
                   matching (Eq. 11), sac_ia, ndt, hypotheses, verification, point_to_plane (ICP),
                   gauss_newton, face_bias, fine; driver (`register`)
     segmentation  every point assigned to its CAD face (distance, normal, inside the face), signed deviations
-    form          least-squares and minimum-zone flatness/cylindricity, ISO 16610-61 filter, Sq, noise floors,
+    form          least-squares and minimum-zone flatness/cylindricity, Gaussian regression filter, Sq, noise floors,
                   deviations and profile zone of the form surface
     tolerances    per-face limits and ISO 14253-1 verdicts
     report        the per-face table as JSON, CSV, text and HTML with the deviation map

@@ -7,32 +7,48 @@ the camera axis at the rig's working distance, L0 its diagonal):
 
 - probing error, with a sphere of calibrated diameter (0.1-0.2 L0) at 10 places: the
   centre of the volume, its 8 corners (inset so the whole sphere is inside) and the centre
-  of its near face. A least-squares sphere with free radius is fitted to each scan
-  (`inspection.artefacts.fit_sphere`), less a band of `EDGE_MARGIN_PX` pixels along its
-  silhouette (`find_spheres`). Probing error form PF = the range of the radial
-  distances of the points from it, the 0.3 % of points furthest from it left out (the
-  guideline allows up to 0.3 %); probing error size PS = measured diameter - calibrated
-  diameter. The reported PF and PS are the largest (PS: largest in magnitude) over the places.
+  of its near face. A least-squares sphere with free radius is fitted to every point of
+  the sphere's surface in the scan (its connected region, `find_spheres`), the 0.3 % of
+  points furthest from it left out and the sphere fitted again (the guideline allows up to
+  0.3 %). Probing error form PF = the range of the radial distances of the points from it;
+  probing error size PS = measured diameter - calibrated diameter. The reported PF and PS
+  are the largest (PS: largest in magnitude) over the places.
 - sphere-spacing error, with a ball bar (two spheres, calibrated centre distance >= 0.3 L0)
   in 7 positions through the centre of the volume: along its 4 space diagonals, its width,
   its height and the diagonal of its horizontal (x-z) face. SD = measured - calibrated
-  centre distance. Length measurement error E = the same for the outer length, centre
-  distance plus both radii (as a two-point measurement across both spheres would take
-  it): SD plus the spheres' size errors.
+  centre distance, both spheres fitted as for PS.
 - flatness measurement error, with a flat of calibrated flatness (length >= 0.5 L0) in 6
   positions: facing the camera at the centre (long side across and, once, upright), at the
   near and far quarter of the depth, and tilted 30 degrees about each of its axes at the
-  centre. F = the range of the signed distances from the least-squares plane, the 0.3 % of
-  points furthest from it left out, over the flat less a band of `EDGE_MARGIN_PX` pixels
-  along its outline (those pixels see the flat's edge and what lies behind it at once).
+  centre. F = the range of the signed distances from the least-squares plane of every
+  point of the flat, the 0.3 % furthest left out (and the plane fitted again).
+
+Beside the guideline's parameters, and judged against the same MPEs but named apart:
+- OL, the ball bar's outer-length error: the centre distance plus both fitted radii less
+  the certified distance plus diameter, as a two-point measurement across both spheres
+  would read it; it is SD plus both spheres' size errors from the same fits. VDI/VDE
+  2634-2 has no such parameter (its length measurement error E belongs to Part 3, and ISO
+  10360-13's E is not implemented here), so it is not called E.
+
+A named variant, "inner" (`INNER`), is reported beside every position and never decides
+the test: the same fits over the artefact's inner region only, a band of `EDGE_MARGIN_PX`
+pixels along each outline left out (the camera's blur mixes a surface's fringes there with
+what lies beyond: on the simulator it made a 25 mm sphere's radius read +0.56 µm), sphere
+points facing the camera at more than 75 degrees and further than 0.1 R from a first fit,
+and flat points further than 1 mm from a first plane. The scanner's own uncertainty model
+(`inspection.uncertainty`) holds there, so the variant's figures carry its U (`model_u`).
+
+The test is complete only when every prescribed position was measured. A position the
+operator skips (or that a stop leaves) is "not tested"; a parameter with a position not
+tested has no verdict ("incomplete"), and the test's result is "incomplete", never a pass,
+whatever the other positions read. An artefact not found in a position's scan makes its
+parameters "not measured", and the test fails.
 
 Each parameter is judged against its MPE from the rig file's [acceptance.mpe] table with an
 ISO 14253-1 decision rule (`inspection.tolerances.decide`). The uncertainty of a test
 value is that of the artefact's certificate (U of the diameter, the length, the flatness;
 the artefact's own certified form enters PF and F as a systematic and is added to their
-U); the scanner's own errors are what the test measures and are not in it. Each
-position also reports the measured figure's own uncertainty from the scanner's model
-(`inspection.uncertainty`), so the figure's error can be read against it.
+U); the scanner's own errors are what the test measures and are not in it.
 """
 
 from __future__ import annotations
@@ -60,10 +76,14 @@ from inspection.uncertainty import ScanUncertainty
 from scanner.config import get, get_table, get_vector, resolve
 from scanner.errors import ConfigError
 
-PARAMETERS = ("PF", "PS", "SD", "F", "E")
+PARAMETERS = ("PF", "PS", "SD", "F", "OL")
 NAMES = {"PF": "probing error form", "PS": "probing error size", "SD": "sphere-spacing error",
-         "F": "flatness measurement error", "E": "length measurement error"}
-SIGNED = {"PS", "SD", "E"}  # judged by magnitude, within +-MPE
+         "F": "flatness measurement error", "OL": "ball-bar outer-length error (not VDI/VDE 2634-2)"}
+SIGNED = {"PS", "SD", "OL"}  # judged by magnitude, within +-MPE
+INNER = ("inner: the fits over each artefact's inner region (a 3 px band along its outline, sphere points facing "
+         "the camera at more than 75 degrees or beyond 0.1 R of a first fit, flat points beyond 1 mm of a first "
+         "plane left out; then the 0.3 %); reported beside the guideline's figures, never deciding the test")
+NOT_TESTED, INCOMPLETE = "not tested", "incomplete"
 PLANE_TILT_DEG = 30.0
 MAX_STEP_MM = 1.0  # neighbouring pixels further apart than this belong to different surfaces
 EDGE_MARGIN_PX = 3  # the flat's pixels this close to its outline are left out (mixed with what lies behind)
@@ -86,7 +106,7 @@ class Acceptance:
         PS_mm = 0.005
         SD_mm = 0.010
         F_mm = 0.100
-        E_mm = 0.012
+        OL_mm = 0.012                         # the ball bar's outer-length error (not a guideline parameter)
     """
 
     size_mm: tuple[float, float, float]
@@ -120,6 +140,10 @@ class Acceptance:
         mpe = {}
         for k, v in m.items():
             name = k.removesuffix("_mm")
+            if k == "E_mm":
+                raise ConfigError(path, f"acceptance.mpe.{k}", "VDI/VDE 2634-2 has no length measurement error E for "
+                                                               "one view; the ball bar's outer-length error (SD plus "
+                                                               "both spheres' size errors) is OL_mm")
             if name not in PARAMETERS or not k.endswith("_mm"):
                 raise ConfigError(path, f"acceptance.mpe.{k}", f"unknown parameter; use {[p + '_mm' for p in PARAMETERS]}")
             value = get(m, k, float, path, prefix="acceptance.mpe")
@@ -274,11 +298,8 @@ def inner_pixels(surface: np.ndarray) -> np.ndarray:
 
 def find_spheres(points: np.ndarray, radius_mm: float, count: int) -> list[np.ndarray]:
     """Pixels (N, 2) (column, row) of the `count` largest surfaces of an organised cloud
-    (H, W, 3) whose least-squares sphere has about `radius_mm` (within 10 %), less their
-    outline band (`inner_pixels`): at a sphere's silhouette the camera's blur mixes its
-    fringes with the dark beyond and moves the decoded phase outward (on the simulator's
-    bench rig, camera blur σ 0.6 px, the band made the radius of a 25 mm sphere read
-    +0.56 µm on noise-free scans; without it, +0.01 µm, as with no blur)."""
+    (H, W, 3) whose least-squares sphere has about `radius_mm` (within 10 %): every pixel
+    of each (the guideline's fits take them all; `inner_pixels` gives the inner variant's)."""
     from inspection.artefacts import fit_sphere
 
     labels, sizes = regions(points)
@@ -292,75 +313,122 @@ def find_spheres(points: np.ndarray, radius_mm: float, count: int) -> list[np.nd
         except ArtefactError:
             continue
         if abs(fit.radius - radius_mm) < 0.1 * radius_mm:
-            rows, cols = np.nonzero(inner_pixels(labels == k))
             found.append(np.stack([cols, rows], axis=1))
     if len(found) < count:
         raise ArtefactError(f"{len(found)} of {count} sphere(s) of radius {radius_mm:g} mm found in the scan")
     return found
 
 
+def inner_of(pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The pixels (M, 2) of a surface's `pixels` (N, 2) (column, row) in an image of
+    `shape` (H, W) less its outline band (`inner_pixels`)."""
+    mask = np.zeros(shape, bool)
+    mask[pixels[:, 1], pixels[:, 0]] = True
+    rows, cols = np.nonzero(inner_pixels(mask))
+    return np.stack([cols, rows], axis=1)
+
+
 @dataclass(frozen=True)
 class PositionResult:
-    """One position's measured figures (`values`: parameter -> mm), each figure's own
-    uncertainty from the scanner's model (`model_u`: parameter -> U, about 95 %, mm), and the
-    fit behind them."""
+    """One prescribed position: `tested` False when it was not scanned (skipped, or the
+    test stopped before it: "not tested"); the guideline's figures (`values`: parameter ->
+    mm), the inner variant's (`inner`, `INNER`) with each one's U from the scanner's own
+    model (`model_u`: parameter -> U, about 95 %, mm), and the fits behind them; `error`:
+    the artefact was not found."""
 
     position: Position
     values: dict[str, float]
     model_u: dict[str, float]
     detail: dict[str, Any]
     error: str = ""
+    inner: dict[str, float] = field(default_factory=dict)
+    tested: bool = True
+
+    @classmethod
+    def not_tested(cls, position: Position) -> PositionResult:
+        return cls(position, {}, {}, {}, tested=False)
+
+    @property
+    def status(self) -> str:
+        return NOT_TESTED if not self.tested else NOT_MEASURED if self.error else "measured"
 
     def as_dict(self) -> dict[str, Any]:
         return {"name": self.position.name, "kind": self.position.kind, "description": self.position.description,
-                "pose": self.position.pose.tolist(), **{f"{k}_mm": v for k, v in self.values.items()},
-                **{f"{k}_model_u_mm": v for k, v in self.model_u.items()}, "detail": self.detail,
-                **({"error": self.error} if self.error else {})}
+                "status": self.status, "pose": self.position.pose.tolist(),
+                **{f"{k}_mm": v for k, v in self.values.items()},
+                "inner": {**{f"{k}_mm": v for k, v in self.inner.items()},
+                          **{f"{k}_model_u_mm": v for k, v in self.model_u.items()}},
+                "detail": self.detail, **({"error": self.error} if self.error else {})}
 
 
 def evaluate(position: Position, data: ScanData, artefacts: ArtefactSet) -> PositionResult:
-    """The figures of one position's scan; an artefact not found gives a result with
-    `error` set (and no figures), which fails the test."""
+    """The figures of one position's scan, the guideline's and the inner variant's; an
+    artefact not found gives a result with `error` set (and no figures), which fails the
+    test."""
+    shape = data.points.shape[:2]
+
+    def points_at(px: np.ndarray) -> np.ndarray:
+        return data.points[px[:, 1], px[:, 0]].astype(np.float64)
+
     try:
         if position.kind == "sphere":
             s = artefacts.sphere
             assert s is not None
             (px,) = find_spheres(data.points, s.radius_mm, 1)
-            _, res = measure_sphere(data.points[px[:, 1], px[:, 0]].astype(np.float64), data.uncertainties(px),
-                                    s.radius_mm)
-            return _sphere_result(position, res, s.diameter_mm)
+            inner_px = inner_of(px, shape)
+            _, whole = measure_sphere(points_at(px), data.uncertainties(px), s.radius_mm, inner=False)
+            _, inner = measure_sphere(points_at(inner_px), data.uncertainties(inner_px), s.radius_mm)
+            return _sphere_result(position, whole, inner, s.diameter_mm)
         if position.kind == "ball_bar":
             b = artefacts.ball_bar
             assert b is not None
             pxs = find_spheres(data.points, b.radius_mm, 2)
-            bar = measure_ball_bar(tuple(data.points[p[:, 1], p[:, 0]].astype(np.float64) for p in pxs),  # type: ignore[arg-type]
-                                   tuple(data.uncertainties(p) for p in pxs), b.radius_mm)  # type: ignore[arg-type]
-            return _bar_result(position, bar, b.length_mm, b.diameter_mm)
+            inner_pxs = [inner_of(p, shape) for p in pxs]
+            def bar(sets: list[np.ndarray], inner: bool) -> BallBarResult:
+                return measure_ball_bar(tuple(points_at(p) for p in sets),  # type: ignore[arg-type]
+                                        tuple(data.uncertainties(p) for p in sets),  # type: ignore[arg-type]
+                                        b.radius_mm, inner=inner)
+
+            whole, inner = bar(pxs, False), bar(inner_pxs, True)
+            return _bar_result(position, whole, inner, b.length_mm, b.diameter_mm)
         p = artefacts.plane
         assert p is not None
         labels, sizes = regions(data.points)
         if len(sizes) < 2:
             raise ArtefactError("no surface in the scan")
         k = int(np.argmax(sizes[1:])) + 1
-        plane = measure_plane(data.points[inner_pixels(labels == k)].astype(np.float64), band_mm=1.0)
-        return _plane_result(position, plane)
+        whole = measure_plane(data.points[labels == k].astype(np.float64))
+        inner = measure_plane(data.points[inner_pixels(labels == k)].astype(np.float64), band_mm=1.0)
+        return _plane_result(position, whole, inner)
     except ArtefactError as exc:
         return PositionResult(position, {}, {}, {}, str(exc))
 
 
-def _sphere_result(position: Position, res: SphereResult, diameter_mm: float) -> PositionResult:
-    return PositionResult(position, {"PF": res.form_range_mm, "PS": 2.0 * res.radius.value - diameter_mm},  # type: ignore[operator]
-                          {"PS": 2.0 * res.radius.U}, res.as_dict())
+def _sphere_result(position: Position, whole: SphereResult, inner: SphereResult, diameter_mm: float) -> PositionResult:
+    def figures(s: SphereResult) -> dict[str, float]:
+        return {"PF": s.form_range_mm, "PS": 2.0 * s.radius.value - diameter_mm}  # type: ignore[operator]
+
+    return PositionResult(position, figures(whole), {"PS": 2.0 * inner.radius.U},
+                          {"sphere": whole.as_dict(), "inner": inner.as_dict()}, inner=figures(inner))
 
 
-def _bar_result(position: Position, bar: BallBarResult, length_mm: float, diameter_mm: float) -> PositionResult:
-    return PositionResult(position, {"SD": bar.distance.value - length_mm,  # type: ignore[operator]
-                                     "E": bar.outer_length.value - length_mm - diameter_mm},  # type: ignore[operator]
-                          {"SD": bar.distance.U, "E": bar.outer_length.U}, bar.as_dict())
+def _bar_figures(bar: BallBarResult, length_mm: float, diameter_mm: float) -> dict[str, float]:
+    return {"SD": bar.distance.value - length_mm,  # type: ignore[operator]
+            "OL": bar.outer_length.value - length_mm - diameter_mm}  # type: ignore[operator]
 
 
-def _plane_result(position: Position, plane: PlaneResult) -> PositionResult:
-    return PositionResult(position, {"F": plane.flatness_range_mm}, {}, plane.as_dict())
+def _bar_result(position: Position, whole: BallBarResult, inner: BallBarResult, length_mm: float,
+                diameter_mm: float) -> PositionResult:
+    return PositionResult(position, _bar_figures(whole, length_mm, diameter_mm),
+                          {"SD": inner.distance.U, "OL": inner.outer_length.U},
+                          {"ball_bar": whole.as_dict(), "inner": inner.as_dict()},
+                          inner=_bar_figures(inner, length_mm, diameter_mm))
+
+
+def _plane_result(position: Position, whole: PlaneResult, inner: PlaneResult) -> PositionResult:
+    return PositionResult(position, {"F": whole.flatness_range_mm}, {}, {"plane": whole.as_dict(),
+                                                                          "inner": inner.as_dict()},
+                          inner={"F": inner.flatness_range_mm})
 
 
 # ---------------------------------------------------------------------------- report
@@ -375,7 +443,7 @@ def test_uncertainty(parameter: str, artefacts: ArtefactSet) -> float:
         return s.diameter_u_mm
     if parameter == "SD" and b is not None:
         return b.length_u_mm
-    if parameter == "E" and b is not None:
+    if parameter == "OL" and b is not None:
         return float(np.hypot(b.length_u_mm, b.diameter_u_mm)) + b.form_mm
     if parameter == "F" and p is not None:
         return p.flatness_mm + p.flatness_u_mm
@@ -384,9 +452,12 @@ def test_uncertainty(parameter: str, artefacts: ArtefactSet) -> float:
 
 @dataclass(frozen=True)
 class AcceptanceReport:
-    """The test: every position's figures, each parameter's test value (the largest over
-    its positions, by magnitude for signed ones), U, MPE and verdict, and whether the rig
-    passed (every parameter with an MPE conforming under the decision rule)."""
+    """The test: every prescribed position's figures (`results`, one per position of
+    `positions(acceptance, artefacts)`, in order; a position missing counts as not
+    tested), each parameter's test value (the largest over its positions, by magnitude
+    for signed ones), U, MPE and verdict, and the test's `status`: "pass" (every position
+    measured, every parameter with an MPE conforming under the decision rule),
+    "incomplete" (a prescribed position not tested) or "fail"."""
 
     rig: str
     calibration: str
@@ -395,77 +466,117 @@ class AcceptanceReport:
     results: tuple[PositionResult, ...]
     notes: dict[str, str] = field(default_factory=dict)
 
-    def value(self, parameter: str) -> float | None:
-        vals = [r.values[parameter] for r in self.results if parameter in r.values]
+    @property
+    def all_results(self) -> tuple[PositionResult, ...]:
+        """A result for every prescribed position: the ones given, the others not tested."""
+        given = {r.position.name: r for r in self.results}
+        return tuple(given.get(p.name) or PositionResult.not_tested(p)
+                     for p in positions(self.acceptance, self.artefacts))
+
+    def not_tested(self) -> list[str]:
+        return [r.position.name for r in self.all_results if not r.tested]
+
+    def value(self, parameter: str, inner: bool = False) -> float | None:
+        vals = [(r.inner if inner else r.values)[parameter] for r in self.all_results
+                if parameter in (r.inner if inner else r.values)]
         if not vals:
             return None
         return float(max(vals, key=abs)) if parameter in SIGNED else float(max(vals))
 
     def verdict(self, parameter: str) -> str:
         mpe = self.acceptance.mpe.get(parameter)
-        v = self.value(parameter)
         if mpe is None:
             return "no MPE"
-        if v is None or any(r.error for r in self.results if _measures(r.position.kind, parameter)):
+        mine = [r for r in self.all_results if _measures(r.position.kind, parameter)]
+        if not mine or all(not r.tested for r in mine):
+            return NOT_TESTED
+        if any(not r.tested for r in mine):
+            return INCOMPLETE
+        v = self.value(parameter)
+        if v is None or any(r.error for r in mine):
             return NOT_MEASURED
         U = test_uncertainty(parameter, self.artefacts)
         return decide(v, U, mpe, -mpe if parameter in SIGNED else None, self.acceptance.decision_rule)
 
     @property
+    def status(self) -> str:
+        if self.not_tested():
+            return INCOMPLETE
+        ok = all(self.verdict(p) == CONFORMING for p in self.acceptance.mpe) and not any(r.error for r in self.results)
+        return "pass" if ok and any(self.value(p) is not None for p in self.acceptance.mpe) else "fail"
+
+    @property
     def passed(self) -> bool:
-        checked = [p for p in PARAMETERS if p in self.acceptance.mpe and self.value(p) is not None]
-        return bool(checked) and all(self.verdict(p) == CONFORMING for p in self.acceptance.mpe) \
-            and not any(r.error for r in self.results)
+        return self.status == "pass"
+
+    def headline(self) -> str:
+        missing = self.not_tested()
+        total = len(self.all_results)
+        if missing:
+            return (f"INCOMPLETE: {total - len(missing)} of {total} prescribed positions tested; not tested: "
+                    f"{', '.join(missing)} (no verdict)")
+        return "PASS" if self.passed else "FAIL"
 
     def as_dict(self) -> dict[str, Any]:
         return {**{f"{p}_mm": self.value(p) for p in PARAMETERS},
                 **{f"{p}_u_mm": test_uncertainty(p, self.artefacts) for p in PARAMETERS},
                 "mpe": {f"{p}_mm": v for p, v in self.acceptance.mpe.items()},
-                "verdicts": {p: self.verdict(p) for p in PARAMETERS}, "pass": self.passed,
+                "verdicts": {p: self.verdict(p) for p in PARAMETERS}, "status": self.status, "pass": self.passed,
+                "positions_prescribed": len(self.all_results), "positions_not_tested": self.not_tested(),
+                "names": {p: NAMES[p] for p in PARAMETERS},
+                "inner": {"definition": INNER, **{f"{p}_mm": self.value(p, inner=True) for p in PARAMETERS}},
                 "decision_rule": self.acceptance.decision_rule, "rule": DECISION_RULES[self.acceptance.decision_rule],
                 "rig": self.rig, "calibration": self.calibration,
                 "volume_mm": list(self.acceptance.size_mm), "L0_mm": self.acceptance.L0_mm,
                 "artefacts": self.artefacts.as_dict(), "notes": self.notes,
-                "positions": [r.as_dict() for r in self.results]}
+                "positions": [r.as_dict() for r in self.all_results]}
 
     def table(self) -> str:
         """Per position and overall, in µm, for the terminal."""
-        lines = [f"{'position':<12} {'PF':>9} {'PS':>9} {'SD':>9} {'E':>9} {'F':>9}   model U (PS/SD/E)   what"]
-        for r in self.results:
-            cells = [f"{r.values[p] * 1e3:9.1f}" if p in r.values else f"{'-':>9}" for p in ("PF", "PS", "SD", "E", "F")]
-            mu = "/".join(f"{r.model_u[p] * 1e3:.1f}" for p in ("PS", "SD", "E") if p in r.model_u) or "-"
-            lines.append(f"{r.position.name:<12} {' '.join(cells)}   {mu:>17}   "
-                         + (f"NOT MEASURED: {r.error}" if r.error else r.position.description))
+        order = ("PF", "PS", "SD", "OL", "F")
+        lines = [f"{'position':<12} " + " ".join(f"{p:>9}" for p in order) + "   inner variant (model U)   what"]
+        for r in self.all_results:
+            cells = [f"{r.values[p] * 1e3:9.1f}" if p in r.values else f"{'-':>9}" for p in order]
+            inner = ", ".join(f"{p} {v * 1e3:.1f}" + (f"±{r.model_u[p] * 1e3:.1f}" if p in r.model_u else "")
+                              for p, v in r.inner.items()) or "-"
+            what = ("NOT TESTED" if not r.tested else f"NOT MEASURED: {r.error}" if r.error
+                    else r.position.description)
+            lines.append(f"{r.position.name:<12} {' '.join(cells)}   {inner:<24}  {what}")
         lines.append("")
-        lines.append(f"{'parameter':<32} {'value':>9} {'U':>7} {'MPE':>8}  verdict")
+        lines.append(f"{'parameter':<52} {'value':>9} {'U':>7} {'MPE':>8}  verdict")
         for p in PARAMETERS:
             v, mpe = self.value(p), self.acceptance.mpe.get(p)
             value = f"{v * 1e3:9.1f}" if v is not None else f"{'-':>9}"
             limit = f"{mpe * 1e3:8.1f}" if mpe else f"{'-':>8}"
-            lines.append(f"{NAMES[p] + ' ' + p:<32} {value} {test_uncertainty(p, self.artefacts) * 1e3:7.1f} "
+            lines.append(f"{NAMES[p] + ' ' + p:<52} {value} {test_uncertainty(p, self.artefacts) * 1e3:7.1f} "
                          f"{limit}  {self.verdict(p)}")
         lines.append(f"(µm; U of the test value from the artefact certificates, k = 2; decision rule "
-                     f"{self.acceptance.decision_rule}: {DECISION_RULES[self.acceptance.decision_rule]})")
-        lines.append(f"{'PASS' if self.passed else 'FAIL'}: rig {self.rig}, {self.calibration}")
+                     f"{self.acceptance.decision_rule}: {DECISION_RULES[self.acceptance.decision_rule]}; "
+                     f"{INNER})")
+        lines.append(f"{self.headline()}: rig {self.rig}, {self.calibration}")
         return "\n".join(lines)
 
     def html(self) -> str:
         d = self.as_dict()
-        rows = "".join(
-            f"<tr><td>{html.escape(r.position.name)}</td>"
-            + "".join(f"<td>{r.values[p] * 1e3:.1f}</td>" if p in r.values else "<td>-</td>"
-                      for p in ("PF", "PS", "SD", "E", "F"))
-            + f"<td>{html.escape(r.error or r.position.description)}</td></tr>" for r in self.results)
+        order = ("PF", "PS", "SD", "OL", "F")
+
         def um(x: float | None) -> str:
             return "-" if x is None else f"{x * 1e3:.1f}"
 
-        summary = "".join(f"<tr><td>{NAMES[p]} {p}</td><td>{um(d[f'{p}_mm'])}</td><td>{um(d[f'{p}_u_mm'])}</td>"
-                          f"<td>{um(self.acceptance.mpe.get(p))}</td><td class='{d['verdicts'][p]}'>"
+        rows = "".join(
+            f"<tr class='{'not-tested' if not r.tested else ''}'><td>{html.escape(r.position.name)}</td>"
+            + "".join(f"<td>{um(r.values.get(p))}</td>" for p in order)
+            + "".join(f"<td>{um(r.inner.get(p))}</td>" for p in order)
+            + f"<td>{html.escape('NOT TESTED' if not r.tested else r.error or r.position.description)}</td></tr>"
+            for r in self.all_results)
+        summary = "".join(f"<tr><td>{html.escape(NAMES[p])} {p}</td><td>{um(d[f'{p}_mm'])}</td>"
+                          f"<td>{um(d[f'{p}_u_mm'])}</td><td>{um(self.acceptance.mpe.get(p))}</td><td class='{d['verdicts'][p].replace(' ', '-')}'>"
                           f"{d['verdicts'][p]}</td></tr>" for p in PARAMETERS)
         return (f"<!doctype html><html><head><meta charset='utf-8'><title>Acceptance test {html.escape(self.rig)}</title>"
                 f"<style>body{{font-family:sans-serif}}td,th{{padding:2px 8px;text-align:right}}"
                 f".conforming{{background:#cfc}}.non-conforming{{background:#fcc}}.uncertain{{background:#ffc}}"
-                f"</style></head><body><h1>Acceptance test (VDI/VDE 2634 Part 2): {'PASS' if self.passed else 'FAIL'}"
+                f".incomplete,.not-tested,tr.not-tested{{background:#ddd}}"
+                f"</style></head><body><h1>Acceptance test (VDI/VDE 2634 Part 2): {html.escape(self.headline())}"
                 f"</h1><p>rig {html.escape(self.rig)}; {html.escape(self.calibration)}; measuring volume "
                 f"{' x '.join(f'{s:g}' for s in self.acceptance.size_mm)} mm (L0 {self.acceptance.L0_mm:.0f} mm); "
                 f"artefacts {html.escape(self.artefacts.name)}</p>"
@@ -473,13 +584,15 @@ class AcceptanceReport:
                 f"<th>MPE (µm)</th><th>verdict</th></tr>{summary}</table>"
                 f"<p>Decision rule {html.escape(self.acceptance.decision_rule)}: "
                 f"{html.escape(DECISION_RULES[self.acceptance.decision_rule])}. U of a test value: the artefact "
-                f"certificate's.</p><h2>Positions</h2><table><tr><th>position</th><th>PF</th><th>PS</th><th>SD</th>"
-                f"<th>E</th><th>F</th><th>placement</th></tr>{rows}</table><p>µm.</p>"
+                f"certificate's. A position not tested leaves its parameters without a verdict and the test "
+                f"incomplete.</p><h2>Positions</h2><table><tr><th>position</th>"
+                + "".join(f"<th>{p}</th>" for p in order) + "".join(f"<th>{p} inner</th>" for p in order)
+                + f"<th>placement</th></tr>{rows}</table><p>µm. {html.escape(INNER)}.</p>"
                 + "".join(f"<p>{html.escape(k)}: {html.escape(v)}</p>" for k, v in self.notes.items())
                 + "</body></html>")
 
 
-MEASURED_BY = {"sphere": ("PF", "PS"), "ball_bar": ("SD", "E"), "plane": ("F",)}
+MEASURED_BY = {"sphere": ("PF", "PS"), "ball_bar": ("SD", "OL"), "plane": ("F",)}
 
 
 def _measures(kind: str, parameter: str) -> bool:

@@ -2,13 +2,14 @@
 the VDI/VDE 2634 Part 2 figures taken from them, each with its uncertainty.
 
 Every fit is least squares on the artefact's points (camera frame, mm):
-  - sphere: centre and radius free (Gauss-Newton from the algebraic fit), on the points
-    within `band_mm` of the sphere that face the camera at less than `max_view_deg`
-    (silhouette pixels mix the sphere with what lies behind it);
-  - plane: the total least-squares plane;
+  - sphere: centre and radius free (Gauss-Newton from the algebraic fit); optionally only
+    on the points within `band_mm` of a first fit that face the camera at less than
+    `max_view_deg` (silhouette pixels mix the sphere with what lies behind it);
+  - plane: the total least-squares plane (optionally only the points within `band_mm`);
   - ball bar: two spheres, the distance between their centres.
-The probing figures drop the 0.3 % of points furthest from the fit before taking a range,
-as the guideline allows (`OUTLIER_FRACTION`).
+Every fit then leaves out the 0.3 % of its points furthest from it and is solved again on
+the rest (`OUTLIER_FRACTION`: VDI/VDE 2634-2 allows up to 0.3 % of the points to be left
+out); its figures (range of the residuals, radius, centre) are those of that second fit.
 
 Uncertainty (see `inspection.uncertainty`): the fitted parameters are linear in the points
 to first order, so each point's influence on a figure comes from the fit's normal
@@ -50,18 +51,25 @@ class SphereFit:
 
     @property
     def form_range_mm(self) -> float:
-        """PF: the range of radial residuals, the 0.3 % furthest points left out."""
-        return _trimmed_range(self.residuals)
+        """PF: the range of the radial residuals of the points used (the 0.3 % furthest
+        already left out of the fit)."""
+        return float(self.residuals.max() - self.residuals.min())
 
     @property
     def rms_mm(self) -> float:
         return float(np.sqrt(np.mean(self.residuals ** 2)))
 
 
-def _trimmed_range(residuals: np.ndarray) -> float:
-    keep = int(np.ceil(len(residuals) * (1.0 - OUTLIER_FRACTION)))
-    r = residuals[np.argsort(np.abs(residuals - np.median(residuals)))[:keep]]
-    return float(r.max() - r.min())
+def _without_outliers(used: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    """`used` (N,) less the OUTLIER_FRACTION of its points whose |distance| (N,) from a fit
+    is largest (rounded down: never more than the guideline allows)."""
+    drop = int(np.floor(OUTLIER_FRACTION * used.sum()))
+    if drop == 0:
+        return used
+    idx = np.flatnonzero(used)
+    out = used.copy()
+    out[idx[np.argpartition(-np.abs(distance[idx]), drop - 1)[:drop]]] = False
+    return out
 
 
 def _algebraic_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -94,7 +102,8 @@ def fit_sphere(points: np.ndarray, nominal_radius_mm: float | None = None, band_
     """The least-squares sphere of `points` (N, 3). With a `viewpoint` (the camera
     centre), points whose sphere normal turns more than `max_view_deg` from it are left
     out; with `band_mm`, points further than that from the first fit are left out (both
-    then refitted)."""
+    then refitted). Last, the OUTLIER_FRACTION furthest from it are left out and it is
+    refitted (VDI/VDE 2634-2's 0.3 %)."""
     points = np.asarray(points, dtype=np.float64)
     if len(points) < MIN_POINTS:
         raise ArtefactError(f"only {len(points)} points on the sphere; at least {MIN_POINTS} are needed")
@@ -117,6 +126,8 @@ def fit_sphere(points: np.ndarray, nominal_radius_mm: float | None = None, band_
         if used.sum() < MIN_POINTS:
             raise ArtefactError(f"only {int(used.sum())} points near the sphere of radius {r:.3f} mm "
                                 f"(nominal {nominal_radius_mm}); is the sphere in view?")
+    c, r, _, _ = _gauss_newton_sphere(points[used], c, r)
+    used = _without_outliers(used, np.linalg.norm(points - c, axis=1) - r)
     pts = points[used]
     c, r, n, J = _gauss_newton_sphere(pts, c, r)
     residuals = np.linalg.norm(pts - c, axis=1) - r
@@ -144,11 +155,17 @@ class SphereResult:
                 "rms_mm": self.rms_mm, "points": self.points, "radius_u_components_mm": self.components}
 
 
+INNER_BAND = 0.1  # the inner fits keep points within this fraction of the nominal radius of a first fit
+
+
 def measure_sphere(points: np.ndarray, unc: ScanUncertainty, nominal_radius_mm: float,
-                   viewpoint: np.ndarray | None = np.zeros(3)) -> tuple[SphereFit, SphereResult]:
-    """Fit a sphere (`fit_sphere`, band of a tenth of the nominal radius) and propagate
-    the uncertainties to its radius and centre."""
-    fit = fit_sphere(points, nominal_radius_mm, 0.1 * nominal_radius_mm, viewpoint)
+                   viewpoint: np.ndarray | None = np.zeros(3), *, inner: bool = True) -> tuple[SphereFit, SphereResult]:
+    """Fit a sphere and propagate the uncertainties to its radius and centre. `inner`:
+    only the points within INNER_BAND of the nominal radius of a first fit, facing the
+    `viewpoint` at less than MAX_VIEW_DEG (`fit_sphere`); else every point given (the
+    guideline's fit). Both leave out the 0.3 % furthest."""
+    fit = (fit_sphere(points, nominal_radius_mm, INNER_BAND * nominal_radius_mm, viewpoint) if inner
+           else fit_sphere(points, nominal_radius_mm))
     pts, sub = points[fit.used], unc.subset(fit.used)
     radius = sub.linear_u(pts, fit.influence[:, 3], fit.rms_mm)
     centre = tuple(sub.linear_u(pts, fit.influence[:, k], fit.rms_mm).estimate(float(fit.centre[k]))
@@ -176,11 +193,13 @@ class BallBarResult:
 
 
 def measure_ball_bar(points: tuple[np.ndarray, np.ndarray], unc: tuple[ScanUncertainty, ScanUncertainty],
-                     nominal_radius_mm: float, viewpoint: np.ndarray | None = np.zeros(3)) -> BallBarResult:
-    """Both spheres of a ball bar from their points, and the distance between the centres
-    with the uncertainty of the pair (the two spheres share projector columns and the
-    calibration, so their errors are propagated together)."""
-    fits, results = zip(*(measure_sphere(p, u, nominal_radius_mm, viewpoint) for p, u in zip(points, unc)))
+                     nominal_radius_mm: float, viewpoint: np.ndarray | None = np.zeros(3), *,
+                     inner: bool = True) -> BallBarResult:
+    """Both spheres of a ball bar from their points (`measure_sphere`, `inner` as there),
+    and the distance between the centres with the uncertainty of the pair (the two
+    spheres share projector columns and the calibration, so their errors are propagated
+    together)."""
+    fits, results = zip(*(measure_sphere(p, u, nominal_radius_mm, viewpoint, inner=inner) for p, u in zip(points, unc)))
     e = fits[0].centre - fits[1].centre
     length = float(np.linalg.norm(e))
     e /= length
@@ -202,7 +221,8 @@ def measure_ball_bar(points: tuple[np.ndarray, np.ndarray], unc: tuple[ScanUncer
 @dataclass(frozen=True)
 class PlaneResult:
     """A measured flat: the least-squares plane (unit normal toward the camera, a point),
-    F (range of signed distances, the 0.3 % furthest points left out), RMS, points."""
+    F (range of signed distances of the points used, the 0.3 % furthest left out), RMS,
+    points used."""
 
     normal: np.ndarray
     point: np.ndarray
@@ -217,20 +237,25 @@ class PlaneResult:
 
 def measure_plane(points: np.ndarray, band_mm: float | None = None) -> PlaneResult:
     """The least-squares plane of `points` (N, 3) and their spread about it; with
-    `band_mm`, points further than that from a first fit are left out and it is refitted."""
+    `band_mm`, points further than that from a first fit are left out and it is refitted;
+    then the 0.3 % furthest are left out and it is fitted again."""
     points = np.asarray(points, dtype=np.float64)
     if len(points) < MIN_POINTS:
         raise ArtefactError(f"only {len(points)} points on the plane; at least {MIN_POINTS} are needed")
-    used = np.ones(len(points), dtype=bool)
-    for _ in range(2 if band_mm is not None else 1):
+
+    def fit(used: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         c = points[used].mean(axis=0)
         n = np.linalg.svd(points[used] - c, full_matrices=False)[2][2]
-        d = (points - c) @ n
-        if band_mm is not None:
-            used = np.abs(d - np.median(d[used])) <= band_mm
-    c = points[used].mean(axis=0)
-    n = np.linalg.svd(points[used] - c, full_matrices=False)[2][2]
+        return c, n, (points - c) @ n
+
+    used = np.ones(len(points), dtype=bool)
+    c, n, d = fit(used)
+    if band_mm is not None:
+        used = np.abs(d - np.median(d)) <= band_mm
+        c, n, d = fit(used)
+    used = _without_outliers(used, d)
+    c, n, d = fit(used)
     if n @ c > 0:
-        n = -n
-    d = (points[used] - c) @ n
-    return PlaneResult(n, c, _trimmed_range(d), float(np.sqrt(np.mean(d ** 2))), int(used.sum()))
+        n, d = -n, -d
+    d = d[used]
+    return PlaneResult(n, c, float(d.max() - d.min()), float(np.sqrt(np.mean(d ** 2))), int(used.sum()))

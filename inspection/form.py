@@ -1,6 +1,7 @@
 """Form and texture of one measured face: least-squares and minimum-zone flatness and
-cylindricity, the areal Gaussian filter of ISO 16610-61, Sq (ISO 25178-2) and the
-deviations from nominal, each with its uncertainty (`inspection.uncertainty`).
+cylindricity of the form surface (a second-order Gaussian regression filter), Sq after
+noise removal beside ISO 25178-2's Sq of the measured surface, and the deviations from
+nominal, each with its uncertainty (`inspection.uncertainty`).
 
 Inputs are the face's measured points in the model frame (after registration), their
 signed deviations from the nominal surface (`segmentation`), and optionally their noise
@@ -9,14 +10,23 @@ the points' displacements for each calibration direction. Heights are laid on th
 own 2D coordinates (a plane: its in-plane axes; a cylinder: arc length R*theta and axial
 position, unrolled), resampled on a square grid of about the point spacing.
 
-Filters (ISO 16610-61 weighting function s(x) = exp(-pi (x/(alpha lc))^2)/(alpha lc)^2,
-alpha = sqrt(ln 2 / pi): 50 % transmission at the nesting index lc):
-  - the form surface is the heights filtered with cut-off `form_cutoff_mm`, as a local
-    second-order Gaussian regression (the same weights, a quadratic fitted about each
-    cell): it keeps quadratic form (a bow, a taper) exactly up to the face's edges, where
-    the plain Gaussian mean would pull it toward the interior;
-  - the roughness (S-L) surface is the heights minus their plain Gaussian filter of
-    cut-off `roughness_cutoff_mm` (normalised where the face ends), Sq its RMS.
+Filters (the Gaussian weighting function of ISO 16610-61, s(x) = exp(-pi (x/(alpha
+lc))^2)/(alpha lc)^2, alpha = sqrt(ln 2 / pi): 50 % transmission at the nesting index lc):
+  - the form surface is the heights through a second-order Gaussian regression filter of
+    cut-off `form_cutoff_mm` (those weights, a quadratic fitted about each cell; not ISO
+    16610-61's Gaussian filter, which is the weighted mean): it keeps quadratic form (a
+    bow, a taper) exactly up to the face's edges, where the plain Gaussian mean would pull
+    it toward the interior;
+  - the roughness (S-L) surface is the heights minus their Gaussian filter (ISO 16610-61,
+    the weighted mean, normalised where the face ends) of cut-off `roughness_cutoff_mm`.
+    ISO 25178-2's Sq is its RMS (`sq_raw_mm`, the scanner's noise included); the figure
+    `sq` is Sq after noise removal: the noise's mean square subtracted (an estimate of
+    the true surface's ISO Sq, `_sq`).
+
+Camera defocus. Where the noise model carries the depth bias the camera's blur put on each
+point (`PointNoise.defocus_dz`, `inspection.uncertainty.defocus_bias`: first order, away
+from edges), it is removed from the points before anything else, and their noise raised
+by what the removal adds (Sq of a 1.5-4 mm texture read ~3 % low without it).
 
 Scanner noise. A point moves along its camera ray; its deviation moves by (n·ray)·δz. The
 noise model's draws (white noise per point and the fringe systematic per projector
@@ -59,7 +69,7 @@ import numpy as np
 from scipy import fft, ndimage
 from scipy.optimize import least_squares, linprog
 
-from inspection.uncertainty import DETECTION_QUANTILE, Estimate, PointNoise
+from inspection.uncertainty import DETECTION_QUANTILE, DETECTION_Z, Estimate, PointNoise
 
 ALPHA = float(np.sqrt(np.log(2.0) / np.pi))  # ISO 16610-61
 # threads of the filters' FFTs and the grid's tree query (-1: every core); a thread evaluating a face beside
@@ -280,6 +290,50 @@ def _add_violators(f: _LsFrames, rows: np.ndarray, active: np.ndarray, sol: np.n
     return rows
 
 
+def mz_zone_sensitivity(xy: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """The minimum-zone flatness's first-order change per unit height at each of the
+    points (N,) of one surface (heights (N,) at `xy` (N, 2)): the zone's LP dual prices on
+    the points that hold it (the others 0), over the cos of its tilt."""
+    frames = _LsFrames.of(xy, height[None])
+    a, b, lo, w = (v[0] for v in _plane_zones(frames, None))
+    xs, ys, zs = (frames.along(e)[0] for e in (frames.u, frames.v, frames.n))
+    r = zs - a * xs - b * ys
+    tol = max(1e-6 * w, 10.0 * ZONE_SLACK_MM)
+    support = np.flatnonzero((r <= lo + tol) | (r >= lo + w - tol))
+    out = np.zeros(len(height))
+    res = _plane_lp_solution(xs[support], ys[support], zs[support])
+    m = len(support)
+    upper, lower = res.ineqlin.marginals[:m], res.ineqlin.marginals[m:]
+    out[support] = (lower - upper) / np.sqrt(1.0 + a * a + b * b)  # d(w)/d(z): the RHS moves -dz above, +dz below
+    return out
+
+
+def ls_zone_sensitivity(xy: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """The least-squares flatness's (range about the LS plane) first-order change per unit
+    height at each point (N,): +1 at the highest residual, -1 at the lowest, less what
+    moving them does to the plane."""
+    A = np.column_stack([xy - xy.mean(axis=0), np.ones(len(xy))])
+    coef = np.linalg.lstsq(A, height, rcond=None)[0]
+    r = height - A @ coef
+    d = np.zeros(len(height))
+    d[int(np.argmax(r))] += 1.0
+    d[int(np.argmin(r))] -= 1.0
+    return d - A @ np.linalg.solve(A.T @ A, A.T @ d)
+
+
+def _plane_lp_solution(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> object:
+    """HiGHS's result (with its dual prices) of one zone's LP over points (xs, ys, zs)
+    (`_plane_lps`'s constraints: the upper side's m rows, then the lower side's)."""
+    m = len(xs)
+    one = np.ones(m)
+    A_ub = np.concatenate([np.stack([-xs, -ys, -one, -one], 1), np.stack([xs, ys, one, 0 * one], 1)])
+    res = linprog([0.0, 0.0, 0.0, 1.0], A_ub=A_ub, b_ub=np.concatenate([-zs, zs]),
+                  bounds=[(None, None)] * 3 + [(0.0, None)], method="highs")
+    if res.status != 0:
+        raise ArithmeticError(f"minimum-zone LP of {m} points: {res.message}")
+    return res
+
+
 def _plane_lps(count: int, s: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
     """One HiGHS LP for `count` independent zones, point m (coordinates xs, ys, zs) held by
     zone s[m]: variables (a, b, lo, w) per zone, minimising the sum of the widths, which,
@@ -399,10 +453,11 @@ _MONOMIALS = ((0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (0, 2))  # (power of x, po
 
 
 class GaussianFilter:
-    """The ISO 16610-61 areal Gaussian filter on a grid of `spacing_mm` cells where `mask`
-    holds data: order 0, the Gaussian mean (normalised where the surface ends); order 2,
-    the local second-order regression with the same weights (exact for quadratic
-    surfaces). The weights depend on the mask only, so they are set up once and the
+    """Areal Gaussian filters on a grid of `spacing_mm` cells where `mask` holds data:
+    order 0, ISO 16610-61's Gaussian (the weighted mean, normalised where the surface
+    ends); order 2, the second-order Gaussian regression filter (the same weights, a local
+    quadratic: exact for quadratic surfaces). The weights depend on the mask only, so they
+    are set up once and the
     filter then applies to any number of fields (`__call__` takes (..., H, W))."""
 
     def __init__(self, mask: np.ndarray, cutoff_mm: float, spacing_mm: float, order: int = 0) -> None:
@@ -519,8 +574,9 @@ class FaceForm:
     carry the noise), `profile` = 2 max|deviation| (the ISO 1101 profile zone centred on
     nominal); `raw_deviation_*` the extremes of the unfiltered points (inside the edge
     margin, spikes dropped), noise included. `noise_mm`: the typical noise of one point
-    along the face normal and `noise_source` where it came from; `sq_raw_mm` and
-    `sq_noise_mm`: the roughness RMS before the noise was removed and the noise's RMS."""
+    along the face normal and `noise_source` where it came from; `sq_raw_mm`: ISO
+    25178-2's Sq of the measured surface (the noise included; `sq` is Sq after noise
+    removal) and `sq_noise_mm` the noise's RMS."""
 
     points: int
     status: str
@@ -545,6 +601,7 @@ class FaceForm:
     form_cutoff_mm: float | None = None
     roughness_cutoff_mm: float | None = None
     grid_mm: float | None = None
+    grid_origin_mm: tuple[float, float] | None = None  # the grid's corner in the face's 2D coordinates
     u_components: dict[str, dict[str, float]] = field(default_factory=dict)
     region: np.ndarray | None = field(default=None, repr=False, compare=False)  # (N,) bool: the input points used
     surface_mm: np.ndarray | None = field(default=None, repr=False, compare=False)  # (N,): the deviation the figures
@@ -651,12 +708,21 @@ def noise_sigma(z: np.ndarray, mask: np.ndarray) -> float | None:
 
 
 def from_draws(value: float, drawn: np.ndarray, noise_only: np.ndarray | None = None,
-                cal: np.ndarray | None = None) -> tuple[Estimate, dict[str, float]]:
+                cal: np.ndarray | None = None, linear: np.ndarray | None = None) -> tuple[Estimate, dict[str, float]]:
     """A figure from its value on the measured surface, its values on the surface plus
     each noise draw (spread: u; mean shift: the noise bias, removed, with its own
     uncertainty), optionally the same figure of the noise alone (its 95th percentile: the
-    detection limit) and its changes for each calibration direction (root sum of squares:
-    u_cal).
+    detection limit), its changes for each calibration direction (root sum of squares:
+    u_cal) and, for an extreme-value figure, its first-order changes with each draw
+    (`linear`: the draw at the cells that hold the extreme, weighted as they hold it).
+
+    The bootstrap of an extreme understates its spread where the measured surface's
+    extreme is itself partly noise: among competing extremes (a bow's four corners) the
+    noise has already picked the deepest, and a draw added to it moves the figure less
+    than the noise moved it from the truth (on the simulator's bowed plate the zone's
+    draws spread 1.2 µm where the corner cells' noise, which sets the error, spread 2.4-3
+    µm). The first-order spread is the figure's when the true extremes are unique; u_noise
+    is the larger of the two.
 
     The removed bias is known only to within its own size: it is the shift that noise
     adds to the already noisy measured surface, not to the true one, and for a zone (an
@@ -667,6 +733,8 @@ def from_draws(value: float, drawn: np.ndarray, noise_only: np.ndarray | None = 
     the mean shift, u_noise/sqrt(D)."""
     bias = float(np.mean(drawn) - value)
     u_noise = float(np.std(drawn, ddof=1)) if len(drawn) > 1 else 0.0
+    if linear is not None and len(linear) > 1:
+        u_noise = max(u_noise, float(np.std(linear, ddof=1)))
     u_bias = float(np.hypot(bias / np.sqrt(3.0), u_noise / np.sqrt(len(drawn)))) if len(drawn) > 1 else abs(bias)
     u_cal = float(np.sqrt(np.sum(np.square(cal)))) if cal is not None and len(cal) else 0.0
     u = float(np.sqrt(u_noise ** 2 + u_bias ** 2 + u_cal ** 2))
@@ -674,34 +742,44 @@ def from_draws(value: float, drawn: np.ndarray, noise_only: np.ndarray | None = 
     if noise_only is None:
         return Estimate(value - bias, u, None, bias), parts
     limit = float(np.quantile(noise_only, DETECTION_QUANTILE))
-    return Estimate(value - bias if value > limit else None, u, limit, bias), parts
+    corrected = value - bias  # detected only when what is reported exceeds what noise alone reads in 95 % of scans
+    return Estimate(corrected if corrected > limit else None, u, limit, bias), parts
 
 
 def _sq(rough: np.ndarray, drawn_rough: np.ndarray, inner: np.ndarray, model_rel_u: float
         ) -> tuple[Estimate, float, float, dict[str, float]]:
     """Sq with the noise's mean square removed, its uncertainty and detection limit
-    (module docstring of `inspection.uncertainty`); also Sq before removal and the
-    noise's RMS."""
+    (module docstring of `inspection.uncertainty`, "Detection"); also the ISO 25178-2 Sq
+    of the measured surface (noise included) and the noise's RMS."""
     r = rough[inner]
     e = _columns(drawn_rough, inner)
     raw2 = float(np.mean(r ** 2))
-    stat0 = _by_rows(lambda x: np.mean(x ** 2, axis=1), e)
     noise2 = float(np.mean(e ** 2))
     d = raw2 - noise2
-    # spread of the estimate: mean(2 s e + e^2) over fresh noise, s the noise-free roughness
-    # (the measured one shrunk to the estimated Sq), plus the noise model's own uncertainty
-    shrink = np.sqrt(max(d, 0.0) / raw2) if raw2 > 0 else 0.0
-    stat = _by_rows(lambda x: np.mean(2.0 * shrink * r * x + x ** 2, axis=1), e)
     u_model = 2.0 * model_rel_u * noise2
-    u_d = float(np.hypot(np.std(stat, ddof=1), u_model))
-    u_d0 = float(np.hypot(np.std(stat0, ddof=1), u_model))
-    limit = float(np.sqrt(2.0 * 2.0 * u_d0))
-    parts = {"noise": float(np.std(stat, ddof=1)), "noise model": u_model}
-    if d <= 2.0 * u_d0 or d <= 0.0:
-        return Estimate(None, float(np.sqrt(u_d0)), limit), float(np.sqrt(raw2)), float(np.sqrt(noise2)), parts
+
+    def u_at(sq: float) -> tuple[float, float]:
+        """(u of the estimate of Sq² for a surface of roughness `sq`: mean(2 s e + e²) over
+        fresh noise, s the noise-free roughness (the measured one shrunk to `sq`), with the
+        noise model's own uncertainty; its noise part alone)."""
+        shrink = sq / np.sqrt(raw2) if raw2 > 0 else 0.0
+        stat = _by_rows(lambda x: np.mean(2.0 * shrink * r * x + x ** 2, axis=1), e)
+        spread = float(np.std(stat, ddof=1))
+        return float(np.hypot(spread, u_model)), spread
+
+    _, spread0 = u_at(0.0)
+    # the estimate of a smooth surface's Sq² exceeds this in at most 5 % of scans while the noise model's error
+    # is within its bound (model_rel_u: its mean square is off by up to 2 model_rel_u, added, not in quadrature)
+    threshold = DETECTION_Z * spread0 + u_model
+    limit = float(np.sqrt(threshold))
+    if d <= threshold:
+        u_d, spread = u_at(limit)
+        return Estimate(None, u_d / (2.0 * limit), limit), float(np.sqrt(raw2)), float(np.sqrt(noise2)), \
+            {"noise": spread / (2.0 * limit), "noise model": u_model / (2.0 * limit)}
     sq = float(np.sqrt(d))
+    u_d, spread = u_at(sq)
     return Estimate(sq, u_d / (2.0 * sq), limit), float(np.sqrt(raw2)), float(np.sqrt(noise2)), \
-        {k: v / (2.0 * sq) for k, v in parts.items()}
+        {"noise": spread / (2.0 * sq), "noise model": u_model / (2.0 * sq)}
 
 
 def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: np.ndarray,
@@ -734,6 +812,10 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         normals = normals[keep]  # type: ignore[index]
     if shifts is not None:
         shifts = shifts[:, keep]
+    if noise is not None and normals is not None:  # the camera defocus's modelled bias removed (module docstring)
+        dz, noise = noise.defocus_removed()
+        points = points + dz[:, None] * noise.ray
+        deviation = deviation + dz * np.einsum("ij,ij->i", normals, noise.ray)
     rng = np.random.default_rng(seed)
     xy = _surface_coordinates(face, points, uv)
     if xy is None:  # no surface coordinates: deviations of the raw points, their noise included
@@ -801,6 +883,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     common = dict(points=int(raw_sel.sum()), status="ok", sq=sq, sq_raw_mm=sq_raw, sq_noise_mm=sq_noise,
                   noise_mm=typical, noise_source=source, form_cutoff_mm=settings.form_cutoff_mm,
                   roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=grid.spacing,
+                  grid_origin_mm=(float(grid.origin[0]), float(grid.origin[1])),
                   deviation_source="form surface", region=used, surface_mm=seen, **stats)
     cxy = grid.centres(inner)
     if face.type == "plane":  # type: ignore[attr-defined]
@@ -819,8 +902,8 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         def noise_mz(h: np.ndarray) -> np.ndarray:  # the noise alone: its zone about its own LS plane
             return flatness_mz_many(cxy, h)
 
-        ls, ls_parts = _zone(flat_ls, f, fe, e, cal)
-        mz, mz_parts = _zone(flat_mz, f, fe, e, cal, noise_mz)
+        ls, ls_parts = _zone(flat_ls, f, fe, e, cal, sensitivity=ls_zone_sensitivity(cxy, f))
+        mz, mz_parts = _zone(flat_mz, f, fe, e, cal, noise_mz, mz_zone_sensitivity(cxy, f))
         parts.update(flatness_ls=ls_parts, flatness_mz=mz_parts)
         return FaceForm(flatness_ls=ls, flatness_mz=mz, u_components=parts, **common)  # type: ignore[arg-type]
     if face.type == "cylinder":  # type: ignore[attr-defined]
@@ -850,16 +933,18 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
 
 
 def _zone(figure: Callable[[np.ndarray], np.ndarray], form: np.ndarray, drawn: np.ndarray, noise: np.ndarray,
-          cal: np.ndarray | None, noise_figure: Callable[[np.ndarray], np.ndarray] | None = None
-          ) -> tuple[Estimate, dict[str, float]]:
+          cal: np.ndarray | None, noise_figure: Callable[[np.ndarray], np.ndarray] | None = None,
+          sensitivity: np.ndarray | None = None) -> tuple[Estimate, dict[str, float]]:
     """A zone of the form surface `form` (cells,) with it plus each noise draw `drawn`
     (D, cells), the draws alone `noise`, and calibration moves (D_cal, cells): bias
     removed, u, detection limit. `figure` takes surfaces (B, cells) and gives their zones
     (B,); `noise_figure`, the same zone computed with hints for the noise alone (default:
-    `figure`)."""
+    `figure`); `sensitivity` (cells,): the zone's first-order change per unit height at
+    each cell (`from_draws`, `linear`)."""
     value = float(figure(form[None])[0])
     changes = None if cal is None else figure(form + cal) - value
-    return from_draws(value, figure(drawn), (noise_figure or figure)(noise), changes)
+    return from_draws(value, figure(drawn), (noise_figure or figure)(noise), changes,
+                      None if sensitivity is None else noise @ sensitivity)
 
 
 def _point_draws(noise: PointNoise | None, normals: np.ndarray | None, rng: np.random.Generator, n: int,
@@ -884,8 +969,13 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, noise: np.ndarray, 
              moves: np.ndarray | None, sign: float = 1.0) -> tuple[Estimate, dict[str, float]]:
         value = sign * float(fn(base[None])[0])
         changes = None if moves is None else sign * fn(base + moves) - value
+        held = _EXTREME_CELL.get(fn)
+        linear = None
+        if held is not None:  # the first-order change: the draw at the cell holding the extreme
+            k, factor = held(base)
+            linear = sign * factor * (draws[:, k] - base[k])
         est, parts = from_draws(value, sign * _by_rows(fn, draws), None if noise is None else sign * _by_rows(fn, noise),
-                                changes)
+                                changes, linear)
         if sign < 0:
             est = Estimate(None if est.value is None else -est.value, est.u, est.limit, -est.bias)
         return est, parts
@@ -931,6 +1021,13 @@ def _row_rms(d: np.ndarray) -> np.ndarray:
 def _row_profile(d: np.ndarray) -> np.ndarray:
     """The profile zone 2 max|d| of each row."""
     return 2.0 * np.abs(d).max(axis=1)
+
+
+_EXTREME_CELL: dict[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray], tuple[int, float]]] = {
+    _row_min: lambda d: (int(np.argmin(d)), 1.0),
+    _row_max: lambda d: (int(np.argmax(d)), 1.0),
+    _row_profile: lambda d: (int(np.argmax(np.abs(d))), 2.0 * float(np.sign(d[int(np.argmax(np.abs(d)))]))),
+}  # extreme-value figures of a row (`_deviation_stats`): which cell holds each, and how its height moves it
 
 
 def _unroll(xy: np.ndarray, radius: np.ndarray, R: float) -> np.ndarray:

@@ -116,14 +116,8 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
 
     def row(face: Any) -> FaceRow:  # one face's figures and verdicts
         sel = seg.face == face.index
-        noise, shifts = None, None
-        if unc is not None:
-            face_unc = unc.subset(sel)
-            noise = None if face_unc.noise is None else face_unc.noise.rotated(R)
-            moves = face_unc.shifts(part.points[sel])
-            shifts = None if moves is None else moves @ R.T
-        form = evaluate_face(face, q[sel], seg.deviation_mm[sel], seg.uv[sel], settings.form, noise=noise,
-                             normals=seg.normal[sel], shifts=shifts)
+        form = measure_face(face, part.points[sel], None if unc is None else unc.subset(sel), R, q[sel],
+                            seg.deviation_mm[sel], seg.uv[sel], seg.normal[sel], settings.form)
         form = pose.added_to(form, q[sel], seg.normal[sel])
         return FaceRow.of(face, form, _verdicts(face.label, form, tolerances, rule),
                           tolerances.name(face.label) if tolerances is not None else "")
@@ -152,6 +146,22 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
 
         log_inspection(recording, report, scan, model)
     return report
+
+
+def measure_face(face: Any, camera_points: np.ndarray, uncertainty: ScanUncertainty | None, R: np.ndarray,
+                 points: np.ndarray, deviation: np.ndarray, uv: np.ndarray, normals: np.ndarray,
+                 settings: FormSettings) -> FaceForm:
+    """One face's figures (`inspection.form.evaluate_face`) from its points in the camera
+    frame (N, 3) and, registered (rotation `R` camera -> model), in the model frame, their
+    deviations, surface parameters and the face's normals there, with the scan's
+    uncertainty of these points (None: estimated from the data) turned into the model
+    frame. What `inspect` and the plate's repeat scans (`sim.repeat_scans`) both call."""
+    noise, shifts = None, None
+    if uncertainty is not None:
+        noise = None if uncertainty.noise is None else uncertainty.noise.rotated(R)
+        moves = uncertainty.shifts(camera_points)
+        shifts = None if moves is None else moves @ R.T
+    return evaluate_face(face, points, deviation, uv, settings, noise=noise, normals=normals, shifts=shifts)
 
 
 @dataclass(frozen=True)

@@ -3,8 +3,10 @@ minimum-zone figures, uncertainties, detection limits, tolerances and ISO 14253-
 as JSON, CSV, text and a human-readable HTML page with the deviation map.
 
 Figures (mm in files, µm in the text table): flatness / cylindricity by least squares
-(paper 000 Eq. 20-22) and minimum zone (ISO 1101), both on the form surface (ISO 16610-61
-Gaussian, cut-off in the report); Sq (ISO 25178-2); signed deviations from nominal
+(paper 000 Eq. 20-22) and minimum zone (ISO 1101), both on the form surface (a
+second-order Gaussian regression filter, cut-off in the report); Sq after noise removal
+(`sq_mm`) beside ISO 25178-2's Sq of the measured surface, noise included (`sq_raw_mm`);
+signed deviations from nominal
 (positive = excess material) and the profile zone of the form surface; the raw points'
 extremes. In JSON and CSV every figure `x_mm` has `x_u_mm`, its expanded uncertainty
 (k = 2); a figure that cannot be told from zero is null with `x_limit_mm`, its detection
@@ -38,8 +40,10 @@ NOISE_NOTE = ("Every figure is given with its expanded uncertainty U (k = 2): sc
               "of the projector's quantised patterns, and the calibration's covariance where the rig has one. "
               "Noise adds to zones and to Sq: each zone, the profile, the deviation extremes and Sq are reported "
               "with that noise bias removed (zones and profile: the mean shift of the same figure over noise "
-              "draws; Sq: the noise's mean square subtracted). A figure that noise alone could produce is "
-              "reported as below its detection limit (< limit), not as a number. Zones, deviations and the "
+              "draws; Sq: the noise's mean square subtracted, beside ISO 25178-2's Sq of the measured surface). "
+              "A figure is reported as a number only when it exceeds its detection limit (a truly flat, smooth "
+              "face reads above it in at most 5 % of scans); otherwise as < limit, which conforms only when "
+              "the limit plus its U is within the tolerance. Zones, deviations and the "
               "profile are those of the form surface (features longer than the form cut-off); the raw points' "
               "extremes include the noise.")
 
@@ -158,8 +162,9 @@ class InspectionReport:
                          f"{v or m.status if m.status != 'ok' else v}")
         s = self.form_settings
         lines.append(f"µm, value ± U (k = 2); < x: below the detection limit x (noise alone could read that much). "
-                     f"Zones, profile and deviations of the form surface (ISO 16610-61, cut-off {s.form_cutoff_mm} mm, "
-                     f"2nd-order regression); Sq with roughness cut-off {s.roughness_cutoff_mm} mm; noise bias removed; "
+                     f"Zones, profile and deviations of the form surface (second-order Gaussian regression "
+                     f"filter, cut-off {s.form_cutoff_mm} mm); Sq after noise removal (ISO 25178-2 Sq of the measured surface: "
+                     f"sq_raw_mm), roughness cut-off {s.roughness_cutoff_mm} mm; noise bias removed; "
                      f"edge margin {s.edge_margin_mm} mm.")
         lines.append(f"registration fitness {self.fitness:.3f}, RMSE {self.rmse_mm * 1e3:.1f} um "
                      f"({self.registration.method}{', AMBIGUOUS pose' if self.registration.ambiguous else ''}"

@@ -104,7 +104,7 @@ def _characteristics_table(rows: list[dict[str, Any]]) -> str:
                  else f"<span class='note'>{html.escape(c['note'] or '—')}</span>")
         body.append(f"<tr><td class='l'>{html.escape(c['face'])}</td><td class='l'>{html.escape(c['characteristic'])}"
                     f"</td><td>{_mm(c['nominal_mm'])}</td><td>{_mm(c['tolerance_mm'])}</td><td>{value}</td>"
-                    f"<td>{'&plusmn; ' + _mm(c['u_mm']) if c['value_mm'] is not None else ''}</td>"
+                    f"<td>{'&plusmn; ' + _mm(c['u_mm']) if c['u_mm'] is not None else ''}</td>"
                     f"<td>{_mm(c['limit_mm'])}</td><td class='l {_css(c['verdict'])}'>{html.escape(c['verdict'])}"
                     f"</td></tr>")
     return f"<div class='scroll'><table>{head}{''.join(body)}</table></div>"
@@ -210,7 +210,8 @@ def render(report: Any, scale: ColourScale, noise_note: str, deviation_png: byte
         f"({e(report.registration.method)}); {report.assigned_points} of {report.part_points} part points on faces.</p>"
         f"<h2>Characteristics</h2><section id='characteristics'>{_characteristics_table(rows)}</section>"
         f"<p class='note'>Value ± U: U is the expanded uncertainty (k = 2, about 95 %). &lt; x: below the detection "
-        f"limit x (the scanner's noise alone could read that much). Conforming only when value + U is within the "
+        f"limit x (the scanner's noise alone reads that much on a truly flat, smooth face in 5 % of scans); its "
+        f"U is the figure's U at the limit. Conforming only when value + U (&lt; x: x + U) is within the "
         f"tolerance; non-conforming when value − U is beyond it; otherwise uncertain. Nominal 0: a form tolerance "
         f"limits the zone width about the ideal form, a profile tolerance the zone about the CAD surface.</p>"
         f"<section class='keep'><h2>The part, coloured by deviation</h2><div id='views'>"
@@ -220,9 +221,10 @@ def render(report: Any, scale: ColourScale, noise_note: str, deviation_png: byte
         f"<section class='keep'><h2>Deviation histogram</h2><div id='histogram'>"
         f"{_img(deviation_histogram(report, profiles), 'deviation histogram')}</div></section>"
         f"<section class='keep'><h2>Filtered and raw figures</h2><div id='raw-filtered'>{_raw_filtered(report)}"
-        f"<p class='note'>Zones, profile and deviations are those of the form surface (ISO 16610-61 Gaussian, "
-        f"cut-off {s.form_cutoff_mm} mm, noise bias removed); the raw points' extremes include the noise; Sq "
-        f"has the noise's mean square subtracted (roughness cut-off {s.roughness_cutoff_mm} mm).</p></div></section>"
+        f"<p class='note'>Zones, profile and deviations are those of the form surface (second-order Gaussian "
+        f"regression filter, cut-off {s.form_cutoff_mm} mm, noise bias removed); the raw points' extremes include "
+        f"the noise; Sq is after noise removal: ISO 25178-2's Sq of the measured surface less the noise's mean "
+        f"square (roughness cut-off {s.roughness_cutoff_mm} mm).</p></div></section>"
         f"{faces}{camera}"
         f"<h2>All face figures</h2><section id='figures'>{_all_figures(report)}</section>"
         f"<p class='note'>{e(noise_note)}</p></main></body></html>")

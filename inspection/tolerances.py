@@ -7,7 +7,7 @@ without a program:
     decision_rule = "guard-banded"   # optional: how verdicts use U (see DECISION_RULES)
     [faces."#657"]              # a face by its label: "#<STEP ADVANCED_FACE id>" or "F<index>" (meshes)
     flatness_mm = 0.05          # minimum-zone flatness (ISO 1101), planes (flatness_ls_mm: least squares)
-    sq_mm = 0.10                # Sq roughness (ISO 25178-2)
+    sq_mm = 0.10                # Sq after noise removal (the true surface's ISO 25178-2 Sq, estimated)
     [faces."#17"]
     cylindricity_mm = 0.05      # minimum-zone cylindricity, cylinders (cylindricity_ls_mm: least squares)
     profile_mm = 0.4            # profile of a surface: every point within +-profile/2 of nominal
@@ -19,8 +19,12 @@ characteristic is "conforming" when conformance is proven (its value plus its ex
 uncertainty U is within the limit), "non-conforming" when non-conformance is proven (the
 value minus U is beyond it), else "uncertain" — a measurement its uncertainty cannot decide
 is never called conforming. The "plain" rule judges the value alone (U is still reported).
-A figure below its detection limit is judged by that limit: conforming when the limit is
-within the tolerance, else uncertain (it cannot be shown to be out).
+A figure below its detection limit ("< L": the measurement could not tell it from zero) is
+judged like any value, with the interval [0, L + U] in place of [value - U, value + U]: its
+true value lies below about L, and L is itself uncertain by the figure's U there
+(`inspection.uncertainty.Estimate`). So it is conforming only when L + U is within the
+upper limit (and 0 above any lower one), non-conforming when L + U is below a lower limit,
+else uncertain; the plain rule judges L alone.
 """
 
 from __future__ import annotations
@@ -41,7 +45,8 @@ CHARACTERISTICS = {"flatness_mm": ("plane",), "cylindricity_mm": ("cylinder",), 
 FIGURE_OF = {"flatness_mm": "flatness_mz", "cylindricity_mm": "cylindricity_mz", "sq_mm": "sq", "profile_mm": "profile",
              "flatness_ls_mm": "flatness_ls", "cylindricity_ls_mm": "cylindricity_ls"}
 TITLES = {"flatness_mm": "flatness (minimum zone)", "cylindricity_mm": "cylindricity (minimum zone)",
-          "sq_mm": "Sq roughness", "profile_mm": "profile of a surface", "flatness_ls_mm": "flatness (least squares)",
+          "sq_mm": "Sq after noise removal", "profile_mm": "profile of a surface",
+          "flatness_ls_mm": "flatness (least squares)",
           "cylindricity_ls_mm": "cylindricity (least squares)"}
 
 
@@ -114,8 +119,9 @@ NO_TOLERANCES = "no tolerances"  # a part without limits: measured, nothing to d
 GUARD_BANDED, PLAIN = "guard-banded", "plain"
 DECISION_RULES = {
     GUARD_BANDED: "ISO 14253-1: conforming when value + U is within the limit, non-conforming when value - U is "
-                  "beyond it, otherwise uncertain",
-    PLAIN: "the value against the limit (simple acceptance); U reported but not applied",
+                  "beyond it, otherwise uncertain; a figure below its detection limit L (< L) as the value L: "
+                  "conforming only when L + U is within the limit",
+    PLAIN: "the value against the limit (simple acceptance; a figure < L judged by L); U reported but not applied",
 }
 
 
@@ -124,16 +130,22 @@ def decide(value: float | None, U: float, upper: float, lower: float | None = No
     """The ISO 14253-1 verdict of a measured figure against its specification [lower,
     upper] (mm; `lower` None: an upper limit only, as for form tolerances): "conforming",
     "non-conforming", "uncertain" or "not measured" (see the module docstring). `U`: the
-    value's expanded uncertainty; `limit`: its detection limit when `value` is None
-    because the figure could not be told from zero."""
+    value's expanded uncertainty (for a figure below its detection limit, the figure's U
+    at that limit); `limit`: its detection limit when `value` is None because the figure
+    could not be told from zero (a figure >= 0: zones, Sq, magnitudes)."""
     if rule not in DECISION_RULES:
         raise ValueError(f"unknown decision rule {rule!r}; use one of {sorted(DECISION_RULES)}")
+    band = U if rule == GUARD_BANDED else 0.0
+    lo = -np.inf if lower is None else lower
     if value is None:
         if limit is None:
             return NOT_MEASURED
-        return CONFORMING if limit <= upper and (lower is None or lower <= 0.0) else UNCERTAIN
-    band = U if rule == GUARD_BANDED else 0.0
-    lo = -np.inf if lower is None else lower
+        top = limit + band  # the measurement says the figure lies in [0, top]
+        if lo <= 0.0 and top <= upper:
+            return CONFORMING
+        if top < lo:
+            return NON_CONFORMING
+        return UNCERTAIN
     if lo + band <= value <= upper - band:
         return CONFORMING
     if value - band > upper or value + band < lo:

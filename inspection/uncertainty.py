@@ -36,13 +36,14 @@ and the fringe's values at every offset as they are (`coverage_factor`, GUM Supp
    mixes the surface's fringes with the dark beyond): the artefact fits leave the
    outline band out (`inspection.acceptance.inner_pixels`; on the simulator it had made
    the radius of a 25 mm sphere read +0.56 µm noise-free, about one u). Inside, it is a
-   low-pass on texture (Sq of a 1.5-4 mm texture read 1-5 % low on the simulator): where
-   a textured surface, `defocus_corrected` removes it (Sq's bias on the simulator -0.24 µm ->
-   -0.003 µm, noise-free); the plate's repeat scans use it. Not the artefact fits: a few
-   pixels inside the silhouette band the first order fails the other way, and on a sphere
-   the correction moves the radius by -0.3 µm (noise-free, 3 placements; uncorrected the
-   band-free fit is unbiased, +0.006 µm), so neither `slscan verify` nor the scan pipeline
-   applies it yet: where it belongs (surfaces away from edges) is open.
+   low-pass on texture (Sq of a 1.5-4 mm texture read ~3 % low on the simulator). An
+   inspection removes it from the surfaces it measures (`MeasurementModel.of_scan(...,
+   defocus=True)` gives each point its modelled depth bias, `inspection.form` removes it
+   and raises the point's noise by what the removal adds, `_correction_gain`); the rig
+   states its camera's blur ([camera.sensor] blur_sigma_px; a rig that does not has
+   none removed). The artefact fits of `slscan verify` do not: near a silhouette the
+   first order fails the other way (on a sphere it moved the radius by -0.3 µm), so their
+   inner variant leaves the outline band out instead.
 
 3. Calibration. The rig's parameters (both devices' intrinsics and distortion, the
    extrinsics) carry the covariance the calibration solve found (`calibration.json`:
@@ -66,14 +67,32 @@ reads what the surface has, not what the noise adds). That shift is what noise a
 already noisy surface, which for a zone differs from what it added to the true one by a
 fraction of itself, either way: the removed bias b enters u as |b|/sqrt(3) (a rectangular
 distribution from none to twice b), with the draws' Monte Carlo error of it
-(`inspection.form.from_draws`). Sq has the modelled noise variance
+(`inspection.form.from_draws`). For an extreme (a zone, the profile, a deviation
+extreme) the draws' spread at the measured surface understates the error's where that
+surface's extreme is itself partly noise (among competing extremes the noise has already
+picked one), so u_noise is at least the first-order spread: the draws at the cells that
+hold the extreme, weighted as they hold it (a zone's LP dual prices, `mz_zone_sensitivity`). Sq has the modelled noise variance
 removed in quadrature, and u from the variance of a mean of squares.
 
-Detection limits. A figure that noise alone could produce is not distinguishable from
-zero: it is reported as null with its detection limit x_limit_mm (printed `< limit`):
-for zones, the 95th percentile of the zone the modelled noise alone spans on that face;
-for Sq, the Sq whose estimate would clear the decision threshold k·u(Sq²|Sq = 0) with
-95 % probability, sqrt(2·k·u).
+Detection. A figure that noise alone could produce is not distinguishable from zero: it
+is reported as null with its detection limit x_limit_mm L (printed `< L`). The test has a
+stated false-detection rate, FALSE_DETECTION = 5 %: on a truly flat, smooth surface at
+most one scan in twenty reports a value.
+  - zones (and the profile, the deviation extremes): L is the 95th percentile of the zone
+    the modelled noise alone spans on that face (the draws' own zones); a value is
+    reported only when it exceeds L after its noise bias is removed. A truly flat face's
+    raw zone is that of its noise, above L in 5 % of scans; the removed bias is positive
+    for a zone, so the reported value of such a face is above L in fewer (measured on
+    smooth plates: `slscan coverage --case smooth-plate`).
+  - Sq: the estimate of Sq² (mean square less the noise's) of a smooth surface is a mean
+    over thousands of cells, near normal with standard deviation u0 (the draws' spread);
+    the noise model's own error (its relative bound on sigma, `PointNoise.rel_u`) can shift
+    it by up to b = 2 rel_u <noise²>. It is reported when it exceeds 1.645 u0 + b (5 %
+    one-sided for any model error within its bound: on the simulator's smooth plates 1.645
+    u0 alone let 6 % through), so L = sqrt(1.645 u0 + b) and every reported Sq is above L.
+An undetected figure's u is the figure's uncertainty at L (a value at the limit is
+uncertain by that much): `inspection.tolerances.decide` judges "< L" as the interval
+[0, L + U], so it conforms only when L + U is within the tolerance.
 
 The coverage of this model — the true value inside ±U for 95 % of repeat scans with fresh
 noise, and with calibration errors drawn from the calibration's covariance — is measured
@@ -95,7 +114,9 @@ from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator
 
 K = 2.0  # coverage factor of every expanded uncertainty
-DETECTION_QUANTILE = 0.95
+FALSE_DETECTION = 0.05  # the share of truly smooth / flat surfaces a figure is "detected" on (one-sided)
+DETECTION_QUANTILE = 1.0 - FALSE_DETECTION
+DETECTION_Z = 1.6448536  # the standard normal's DETECTION_QUANTILE
 PROJECTOR_BITS = 8  # grey levels of the projector's command images
 
 SensorNoise = Callable[[np.ndarray], np.ndarray]  # mean signal A (DN) -> intensity noise sigma (DN)
@@ -106,8 +127,9 @@ SensorNoise = Callable[[np.ndarray], np.ndarray]  # mean signal A (DN) -> intens
 
 @dataclass(frozen=True)
 class Estimate:
-    """A figure in mm: `value` (None when it cannot be told from zero), its standard
-    uncertainty `u` (k = 1), its detection `limit` (None where the figure is not tested
+    """A figure in mm: `value` (None when it cannot be told from zero; otherwise above
+    `limit`), its standard uncertainty `u` (k = 1; at the limit for a null value), its
+    detection `limit` (None where the figure is not tested
     against zero), the noise `bias` already removed from the value and the coverage
     factor `k` of its U: K for near-normal errors, else what gives the same coverage for
     the error's known distribution (`coverage_factor`)."""
@@ -238,7 +260,10 @@ class PointNoise:
     orientation, the fringe systematic `fringe` (a FringeError) at that orientation's
     projector coordinate `columns[o]` (N,) px, reaching depth through `gains[o]` (N,)
     mm/px. `source` says where sigma_z came from, `rel_u` how well it is known (one-sigma
-    relative uncertainty of sigma_z, from that source: `DECODER_MODEL_REL_U`)."""
+    relative uncertainty of sigma_z, from that source: `DECODER_MODEL_REL_U`). `defocus_dz`
+    (N,) mm: the depth bias the camera's defocus put on each point (`defocus_bias`, NaN
+    where it cannot be estimated: near edges), None when not modelled; removing it raises
+    the noise of those points by `defocus_gain` (`defocus_removed`)."""
 
     sigma_z: np.ndarray
     ray: np.ndarray
@@ -247,13 +272,26 @@ class PointNoise:
     fringe: FringeError | None = None
     source: str = "decoder and sensor model"
     rel_u: float = DECODER_MODEL_REL_U
+    defocus_dz: np.ndarray | None = None
+    defocus_gain: float = 1.0
 
     def __len__(self) -> int:
         return len(self.sigma_z)
 
     def subset(self, mask: np.ndarray) -> PointNoise:
         return replace(self, sigma_z=self.sigma_z[mask], ray=self.ray[mask],
-                       columns=tuple(c[mask] for c in self.columns), gains=tuple(g[mask] for g in self.gains))
+                       columns=tuple(c[mask] for c in self.columns), gains=tuple(g[mask] for g in self.gains),
+                       defocus_dz=None if self.defocus_dz is None else self.defocus_dz[mask])
+
+    def defocus_removed(self) -> tuple[np.ndarray, PointNoise]:
+        """(the depth moves (N,) mm that remove the modelled defocus bias, 0 where it is not
+        known; this model for the corrected points: their noise raised by `defocus_gain`,
+        no defocus left to remove)."""
+        if self.defocus_dz is None:
+            return np.zeros(len(self)), self
+        fix = np.isfinite(self.defocus_dz)
+        return (np.where(fix, -self.defocus_dz, 0.0),
+                replace(self, sigma_z=np.where(fix, self.sigma_z * self.defocus_gain, self.sigma_z), defocus_dz=None))
 
     def rotated(self, R: np.ndarray) -> PointNoise:
         """The same model with the rays turned by the rotation R (3, 3) into another frame."""
@@ -563,10 +601,44 @@ def scan_uncertainty(decoded: DecodeResult, model: RigModel, sensor: SensorNoise
     """The ScanUncertainty of the points a decoded scan gives at `pixels` (N, 2) (column,
     row), triangulated with `model`. Without a `sensor` noise model there is no noise
     model (None): the figures then estimate the noise from the data."""
-    maps = depth_noise(decoded, Triangulator(model), sensor)
-    c, r = pixels[:, 0], pixels[:, 1]
-    noise = None if sensor is None else maps.at(pixels, model.camera, fringe, "decoder and sensor model")
-    return ScanUncertainty(noise, calibration, model, {o: w[r, c] for o, w in maps.weight.items()})
+    return MeasurementModel(sensor, fringe, calibration).of_scan(decoded, model)(pixels)
+
+
+@dataclass(frozen=True, eq=False)
+class MeasurementModel:
+    """What a rig's figures are propagated with: the camera's intensity noise (`sensor`,
+    None: not known), the projector's fringe error, the calibration's covariance and the
+    camera's defocus (`camera_blur_px`, Gaussian sigma in camera pixels; 0: not known or
+    none). One per rig; `slscan.measurement_model.rig_measurement` makes it from a rig
+    file, and `scan`, `inspect`, `verify` and `slscan coverage` all use it so."""
+
+    sensor: SensorNoise | None
+    fringe: FringeError | None
+    calibration: CalibrationUncertainty
+    camera_blur_px: float = 0.0
+
+    def of_scan(self, decoded: DecodeResult, model: RigModel, *, defocus: bool = False
+                ) -> Callable[[np.ndarray], ScanUncertainty]:
+        """ScanUncertainty of the points at camera pixels (N, 2) (column, row) of a scan
+        triangulated with `model`; the per-pixel maps are made once. `defocus`: model the
+        camera defocus's depth bias per point (`PointNoise.defocus_dz`; inspected surfaces
+        remove it, the artefact fits leave their outlines out instead)."""
+        maps = depth_noise(decoded, Triangulator(model), self.sensor)
+        dz = None
+        if defocus and self.camera_blur_px > 0 and self.sensor is not None:
+            bias = defocus_bias(decoded, self.camera_blur_px)
+            dz = sum(maps.gain[o] * bias[o] for o in bias)
+        gain = _correction_gain(self.camera_blur_px) if dz is not None else 1.0
+
+        def at(pixels: np.ndarray) -> ScanUncertainty:
+            c, r = pixels[:, 0], pixels[:, 1]
+            noise = None
+            if self.sensor is not None:
+                noise = replace(maps.at(pixels, model.camera, self.fringe, "decoder and sensor model"),
+                                defocus_dz=None if dz is None else dz[r, c].astype(np.float64), defocus_gain=gain)
+            return ScanUncertainty(noise, self.calibration, model, {o: w[r, c] for o, w in maps.weight.items()})
+
+        return at
 
 
 # ------------------------------------------------------------------------ camera defocus
@@ -648,34 +720,13 @@ def defocus_bias(decoded: DecodeResult, blur_sigma_px: float) -> dict[str, np.nd
     return out
 
 
-def defocus_corrected(decoded: DecodeResult, blur_sigma_px: float) -> DecodeResult:
-    """`decoded` with each orientation's coordinate less its camera-defocus bias
-    (`defocus_bias`) for a camera blur of `blur_sigma_px` (camera px, the rig's stated
-    value; 0: `decoded` itself); unchanged in the band along edges where the bias cannot
-    be estimated. Validated on textured flat surfaces (module docstring, 2.), not near
-    silhouettes.
-
-    The bias is estimated from the noisy coordinate itself: its Laplacian term subtracts
-    a filtered copy of the noise, which raises the noise by the factor `_correction_gain`
-    (1.005 at σ = 0.6 px; measured on the simulator's plate: noisy minus noise-free
-    decode over the predicted σ_z 0.999 -> 1.004 and 0.995 -> 1.000 at two placements).
-    The corrected pixels' phase precision (`phase_weight`) is lowered by its square, so
-    the noise model (`depth_noise`) sees it; the gradient terms' share is second order."""
-    if blur_sigma_px <= 0.0:
-        return decoded
-    bias = defocus_bias(decoded, blur_sigma_px)
-    gain2 = _correction_gain(blur_sigma_px) ** 2
-    maps = {o: replace(m, coordinate=(m.coordinate - np.nan_to_num(bias[o])).astype(m.coordinate.dtype),
-                       phase_weight=np.where(np.isfinite(bias[o]), m.phase_weight / gain2, m.phase_weight)
-                       .astype(m.phase_weight.dtype))
-            for o, m in decoded.maps.items()}
-    return replace(decoded, maps=maps)
-
-
 def _correction_gain(blur_sigma_px: float) -> float:
-    """How much `defocus_corrected` raises white coordinate noise (a factor ≥ 1): the
-    corrected value is c − σ²/2·(L∗c) + ..., L the Laplacian of `local_quadratic`'s
-    window fit, whose weights come from fitting a single unit impulse."""
+    """How much removing the defocus bias (`defocus_bias`, estimated from the noisy
+    coordinate itself) raises white coordinate noise (a factor ≥ 1): the corrected value
+    is c − σ²/2·(L∗c) + ..., L the Laplacian of `local_quadratic`'s window fit, whose
+    weights come from fitting a single unit impulse (1.005 at σ = 0.6 px; measured on the
+    simulator's plate: noisy minus noise-free decode over the predicted σ_z 0.999 -> 1.004
+    and 0.995 -> 1.000 at two placements). The gradient terms' share is second order."""
     h = QUADRATIC_HALF_PX
     impulse = np.zeros((4 * h + 1, 4 * h + 1))
     impulse[2 * h, 2 * h] = 1.0

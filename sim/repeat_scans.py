@@ -1,40 +1,50 @@
 """Repeat-scan studies of the uncertainty model (`inspection.uncertainty`): how often the
-true value lies within ±U.
+true value lies within ±U, measured on the product's own code path (`slscan coverage`).
 
-Each trial places the artefact somewhere new in the rig's measuring volume (so the fringe
+Each trial places an artefact somewhere new in the rig's measuring volume (so the fringe
 systematics, fixed for one placement, are drawn afresh as the model assumes), renders it
-with fresh noise, decodes it and measures it with the same estimator `slscan verify` uses,
-on the camera window around the artefact (`sim.artefact_scenes.window_renderer`: the same
-pixels, fewer of them to render). With a `calibration`, each trial also reconstructs with
-a rig whose parameters are drawn from that covariance (the simulator still renders with
-the true one), and U includes the calibration term. `noise_scale` scales the noise model
-the U is computed from (not the simulated noise): below 1 it underestimates it.
+with fresh noise on the camera window around it (`sim.artefact_scenes.window_renderer`:
+the same pixels as a full frame, fewer of them rendered), decodes it with the decoder
+`slscan scan` runs (`quick_scan`: `scanner.decode.decode`, default settings),
+triangulates it with the rig model in use and measures it with what the command measures
+it with, the measurement model made as the commands make it (`Bench.measurement`, from
+`slscan.measurement_model.rig_measurement`):
+  - sphere radius, ball-bar length: `inspection.acceptance.evaluate`, as `slscan verify`
+    (the inner variant's fit, which carries the scanner model's U);
+  - flatness and Sq of a plate: `inspection.inspect_scan.measure_face`, as `slscan
+    inspect` measures a face, with its defocus correction, after an ideal registration
+    (`registered`; the registration is the pose case's);
+  - the pose of the demo part: `inspection.inspect_scan.inspect`, its pose U as reported.
+A correction either ships in those functions or is not used here.
+
+Truths come from the simulator's geometry only: the artefacts' certificates (the
+simulator makes them exactly), the plate's ray-cast surface points (its rendered mesh)
+at the pixels the measurement used, filtered and zoned by the figures' definitions
+(`plate_truth`, not `evaluate_face`), and the part's pose in the scene.
+
+Calibration errors: with `rigs` (`MeasuringRig.from_calibration`: the results of
+independent simulated calibrations, `slscan calibrate --seed`), trial k reconstructs with
+rigs[k mod len(rigs)] and its U holds that calibration's covariance; the simulator
+renders with the true geometry. Trials sharing a calibration share its error: the
+calibrations, not the trials, are the independent draws of it.
 """
 
 from __future__ import annotations
 
+import json
 import multiprocessing
 import time
 from dataclasses import dataclass, replace
-from typing import Callable, Iterator, TypeVar
+from pathlib import Path
+from typing import Any, Callable, Iterator, TypeVar
 
 import numpy as np
 
-from inspection.acceptance import Acceptance, Position, find_spheres, frame_along, pose_of
+from inspection.acceptance import Acceptance, Position, ScanData, evaluate, frame_along, pose_of
 from inspection.artefact_file import ArtefactSet
-from inspection.artefacts import measure_ball_bar, measure_sphere
-from inspection.uncertainty import (
-    CalibrationUncertainty,
-    Estimate,
-    FringeError,
-    ScanUncertainty,
-    defocus_corrected,
-    fringe_error,
-    perturbed,
-    scan_uncertainty,
-)
+from inspection.uncertainty import CalibrationUncertainty, Estimate, MeasurementModel
 from scanner.decode import DecodeResult
-from scanner.geometry import RigModel
+from scanner.geometry import Pinhole, RigModel
 from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator, triangulate
 from scanner.rig import RigConfig
@@ -44,7 +54,8 @@ from sim.render import Renderer, SensorModel
 
 @dataclass(frozen=True)
 class Trial:
-    """One repeat: the estimate, the truth (mm) and the seconds it took."""
+    """One repeat: the estimate (value with U, or below its detection limit), the truth
+    (mm) and the seconds it took."""
 
     estimate: Estimate
     truth: float
@@ -52,7 +63,12 @@ class Trial:
 
     @property
     def inside(self) -> bool:
-        return self.estimate.value is not None and abs(self.estimate.value - self.truth) <= self.estimate.U
+        """The truth within ±U of the value; for a figure below its limit L, within [0, L + U]
+        (what `inspection.tolerances.decide` takes it to say)."""
+        e = self.estimate
+        if e.value is None:
+            return e.limit is not None and self.truth <= e.limit + e.U
+        return abs(e.value - self.truth) <= e.U
 
 
 @dataclass(frozen=True)
@@ -70,18 +86,35 @@ class CoverageResult:
     def seconds(self) -> float:
         return float(sum(t.seconds for t in self.trials))
 
+    def errors(self) -> np.ndarray:
+        return np.array([t.estimate.value - t.truth for t in self.trials if t.estimate.value is not None])
+
+    def as_json(self, case: str) -> dict[str, Any]:
+        """The figures `slscan coverage --json` prints."""
+        err = self.errors()
+        return {"case": case, "scans": len(self.trials), "inside": int(sum(t.inside for t in self.trials)),
+                "coverage": self.fraction, "error_mean_mm": float(err.mean()) if len(err) else None,
+                "error_sd_mm": float(err.std(ddof=1)) if len(err) > 1 else None,
+                "median_U_mm": float(np.median([t.estimate.U for t in self.trials])), "seconds": self.seconds,
+                "reported": int(len(err)), "below_limit": int(len(self.trials) - len(err))}
+
     def summary(self) -> str:
-        err = np.array([t.estimate.value - t.truth for t in self.trials if t.estimate.value is not None])
+        err = self.errors()
         U = np.array([t.estimate.U for t in self.trials])
-        return (f"{self.figure}: truth within ±U in {self.fraction:.1%} of {len(self.trials)} trials; error mean "
-                f"{err.mean() * 1e3:+.3f} µm, std {err.std(ddof=1) * 1e3:.3f} µm; median U {np.median(U) * 1e3:.3f} µm "
-                f"(95 %); {self.seconds:.0f} s")
+        errors = "no value reported"
+        if len(err) > 1:
+            t = err.mean() / (err.std(ddof=1) / np.sqrt(len(err)))
+            errors = f"error mean {err.mean() * 1e3:+.3f} µm (t = {t:+.1f}), std {err.std(ddof=1) * 1e3:.3f} µm"
+        return (f"{self.figure}: truth within ±U in {self.fraction:.1%} of {len(self.trials)} trials; {errors}; "
+                f"median U {np.median(U) * 1e3:.3f} µm (95 %); {len(self.trials) - len(err)} below their limit; "
+                f"{self.seconds:.0f} s")
 
 
 @dataclass(frozen=True, eq=False)
 class Bench:
-    """The simulated rig of a study: its true geometry, sensor, pattern set and the
-    fringe error of its projector."""
+    """The simulated rig of a study: its true geometry, sensor, pattern set, and the
+    measurement model its commands use (`measurement`, made by the caller with
+    `slscan.measurement_model.rig_measurement`, the calibration term as the rig has it)."""
 
     model: RigModel
     sensor: SensorModel
@@ -89,31 +122,51 @@ class Bench:
     projector_blur_px: float
     exposure_s: float
     bit_depth: int
-    fringe: FringeError
     acceptance: Acceptance
+    measurement: MeasurementModel
 
     @classmethod
-    def of(cls, config: RigConfig) -> Bench:
-        model = config.nominal_model()
-        patterns = PatternSet.load(config.patterns_path)
-        blur = float(config.projector.get("blur_sigma_px", 0.0))
-        return cls(model, SensorModel.from_config(config), patterns, blur,
-                   float(config.camera.get("exposure_s", 0.01)), int(config.camera.get("bit_depth", 12)),
-                   fringe_error(patterns, model.projector.width, model.projector_gamma, blur),
-                   Acceptance.from_rig(config.raw, config.path, config.working_distance_mm))
+    def of(cls, config: RigConfig, measurement: MeasurementModel) -> Bench:
+        return cls(config.nominal_model(), SensorModel.from_config(config), PatternSet.load(config.patterns_path),
+                   float(config.projector.get("blur_sigma_px", 0.0)), float(config.camera.get("exposure_s", 0.01)),
+                   int(config.camera.get("bit_depth", 12)),
+                   Acceptance.from_rig(config.raw, config.path, config.working_distance_mm), measurement)
 
-    def sensor_noise(self, mean_dn: np.ndarray) -> np.ndarray:
-        """The camera's intensity noise (DN, one sigma) at a mean signal (DN)."""
-        return self.sensor.noise_sigma_dn(mean_dn, self.bit_depth)
-
-    def scan(self, renderer: Renderer, rng: np.random.Generator, defocus: bool = False) -> DecodeResult:
-        """One decoded scan of `renderer`'s scene with fresh noise; with `defocus`, its
-        coordinates corrected for the camera's stated blur (`defocus_corrected`)."""
-        decoded = quick_scan(renderer, self.patterns, self.model.projector_gamma, self.exposure_s, self.bit_depth, rng)
-        return defocus_corrected(decoded, self.sensor.blur_sigma_px) if defocus else decoded
+    def scan(self, renderer: Renderer, rng: np.random.Generator) -> DecodeResult:
+        """One decoded scan of `renderer`'s scene with fresh noise."""
+        return quick_scan(renderer, self.patterns, self.model.projector_gamma, self.exposure_s, self.bit_depth, rng)
 
 
-Measure = Callable[[np.ndarray, Callable[[np.ndarray], ScanUncertainty]], Estimate]
+@dataclass(frozen=True, eq=False)
+class MeasuringRig:
+    """The geometry a trial reconstructs with and the calibration covariance its U uses."""
+
+    model: RigModel
+    calibration: CalibrationUncertainty
+
+    @classmethod
+    def true(cls, bench: Bench) -> MeasuringRig:
+        return cls(bench.model, CalibrationUncertainty.none("none: the simulator's exact geometry"))
+
+    @classmethod
+    def from_calibration(cls, path: str | Path, bench: Bench) -> MeasuringRig:
+        """The rig a calibration file (`slscan calibrate`) describes, with its covariance."""
+        from scanner.calibration_file import load_rig_model
+
+        model = load_rig_model(path, bench.model.camera.size, bench.model.projector.size)
+        return cls(model, CalibrationUncertainty.from_report(json.loads(Path(path).read_text())))
+
+    def windowed(self, window: Pinhole) -> RigModel:
+        """The rig with its camera cut to `window` (a window of the full camera,
+        `sim.artefact_scenes.cropped_camera`): the principal point moved by the window's
+        offset, the lens unchanged."""
+        full = self.model.camera
+        K = full.K.copy()
+        K[:2, 2] -= (full.K[:2, 2] - window.K[:2, 2])
+        return replace(self.model, camera=Pinhole(window.width, window.height, K, full.dist))
+
+
+Measure = Callable[[np.ndarray, Callable[[np.ndarray], Any]], Estimate]
 TrialFunction = Callable[[int], tuple[Trial, ...]]  # trial k -> one Trial per figure
 T = TypeVar("T")
 
@@ -154,60 +207,68 @@ def run_trials(figures: tuple[str, ...], trial: TrialFunction, n: int, processes
     return tuple(CoverageResult(f, tuple(t[i] for t in done)) for i, f in enumerate(figures))
 
 
-def _trial(bench: Bench, position: Position, artefacts: ArtefactSet, measure: Measure, truth: float,
-           rng: np.random.Generator, calibration: CalibrationUncertainty | None, noise_scale: float) -> Trial:
+def _rig_for(k: int, bench: Bench, rigs: tuple[MeasuringRig, ...]) -> MeasuringRig:
+    return rigs[k % len(rigs)] if rigs else MeasuringRig.true(bench)
+
+
+def _artefact_trial(bench: Bench, position: Position, artefacts: ArtefactSet, read: Callable[[Any], Estimate],
+                    truth: float, rng: np.random.Generator, rig: MeasuringRig, noise_scale: float) -> Trial:
+    """One scan of an artefact measured as `slscan verify` measures it (`evaluate`);
+    `read` takes the figure from its PositionResult."""
     t0 = time.perf_counter()
     renderer = window_renderer(bench.model, artefact_objects(position, artefacts), bench.sensor, bench.projector_blur_px)
     decoded = bench.scan(renderer, rng)
-    used = renderer.model
-    if calibration is not None:
-        used = perturbed(used, calibration.draw(rng))
+    used = rig.windowed(renderer.model.camera)
     points = triangulate(decoded, Triangulator(used), with_normals=False).points
-    cal = calibration or CalibrationUncertainty.none("the simulator's exact geometry")
+    measurement = replace(bench.measurement, calibration=rig.calibration)
+    at = measurement.of_scan(decoded, used)
 
-    def uncertainties(pixels: np.ndarray) -> ScanUncertainty:
-        unc = scan_uncertainty(decoded, used, bench.sensor_noise, bench.fringe, cal, pixels)
+    def uncertainties(pixels: np.ndarray) -> Any:
+        unc = at(pixels)
+        if noise_scale == 1.0:
+            return unc
         return replace(unc, noise=unc.noise.scaled(noise_scale))  # type: ignore[union-attr]
 
-    return Trial(measure(points, uncertainties), truth, time.perf_counter() - t0)
+    result = evaluate(position, ScanData(points, uncertainties), artefacts)
+    if result.error:
+        raise RuntimeError(f"trial at {position.pose[:3, 3].round(1).tolist()}: {result.error}")
+    return Trial(read(result), truth, time.perf_counter() - t0)
 
 
-def sphere_radius(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0,
-                  calibration: CalibrationUncertainty | None = None, noise_scale: float = 1.0,
-                  processes: int = 1, progress: Callable[[str], None] | None = None) -> CoverageResult:
-    """Coverage of the sphere radius: the artefact set's sphere at random places."""
+def _inner_estimate(fields: dict[str, Any], name: str) -> Estimate:
+    """An Estimate with U from a fit's JSON fields (`name_mm`, `name_u_mm`)."""
+    return Estimate(fields[f"{name}_mm"], fields[f"{name}_u_mm"] / 2.0, k=2.0)
+
+
+def sphere_radius(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (),
+                  noise_scale: float = 1.0, processes: int = 1,
+                  progress: Callable[[str], None] | None = None) -> CoverageResult:
+    """Coverage of the sphere radius as `slscan verify` measures it (inner variant, with
+    its model U): the artefact set's sphere at random places."""
     s = artefacts.sphere
     assert s is not None
     half = np.array(bench.acceptance.size_mm) / 2 - s.radius_mm - 2.0
     c0 = np.array(bench.acceptance.centre_mm)
 
-    def measure(points: np.ndarray, unc: Callable[[np.ndarray], ScanUncertainty]) -> Estimate:
-        (px,) = find_spheres(points, s.radius_mm, 1)
-        return measure_sphere(points[px[:, 1], px[:, 0]].astype(np.float64), unc(px), s.radius_mm)[1].radius
-
     def trial(k: int) -> tuple[Trial]:
         rng = np.random.default_rng((seed, k))
-        return (_trial(bench, Position("sphere", k, pose_of(np.eye(3), c0 + rng.uniform(-half, half)), ""),
-                       artefacts, measure, s.radius_mm, rng, calibration, noise_scale),)
+        position = Position("sphere", k, pose_of(np.eye(3), c0 + rng.uniform(-half, half)), "")
+        return (_artefact_trial(bench, position, artefacts, lambda r: _inner_estimate(r.detail["inner"], "radius"),
+                                s.radius_mm, rng, _rig_for(k, bench, rigs), noise_scale),)
 
     return run_trials(("sphere radius",), trial, n, processes, progress)[0]
 
 
-def ball_bar_length(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0,
-                    calibration: CalibrationUncertainty | None = None, noise_scale: float = 1.0,
-                    processes: int = 1, progress: Callable[[str], None] | None = None) -> CoverageResult:
-    """Coverage of the ball bar's centre distance: random directions (kept inside the
-    measuring volume) through random places near its centre."""
+def ball_bar_length(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (),
+                    noise_scale: float = 1.0, processes: int = 1,
+                    progress: Callable[[str], None] | None = None) -> CoverageResult:
+    """Coverage of the ball bar's centre distance as `slscan verify` measures it (inner
+    variant, with its model U): random directions (kept inside the measuring volume)
+    through random places near its centre."""
     b = artefacts.ball_bar
     assert b is not None
     half = np.array(bench.acceptance.size_mm) / 2
     c0 = np.array(bench.acceptance.centre_mm)
-
-    def measure(points: np.ndarray, unc: Callable[[np.ndarray], ScanUncertainty]) -> Estimate:
-        pxs = find_spheres(points, b.radius_mm, 2)
-        bar = measure_ball_bar(tuple(points[p[:, 1], p[:, 0]].astype(np.float64) for p in pxs),  # type: ignore[arg-type]
-                               tuple(unc(p) for p in pxs), b.radius_mm)  # type: ignore[arg-type]
-        return bar.distance
 
     def trial(k: int) -> tuple[Trial]:
         rng = np.random.default_rng((seed, k))
@@ -220,9 +281,9 @@ def ball_bar_length(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0,
             lateral = np.hypot(R[0, 0], R[1, 0]) * b.length_mm
             if (room > 0).all() and lateral > 2.2 * b.radius_mm:
                 break
-        pose = pose_of(R, c0 + rng.uniform(-room, room))
-        return (_trial(bench, Position("ball_bar", k, pose, ""), artefacts, measure, b.length_mm, rng, calibration,
-                       noise_scale),)
+        position = Position("ball_bar", k, pose_of(R, c0 + rng.uniform(-room, room)), "")
+        return (_artefact_trial(bench, position, artefacts, lambda r: _inner_estimate(r.detail["inner"], "distance"),
+                                b.length_mm, rng, _rig_for(k, bench, rigs), noise_scale),)
 
     return run_trials(("ball-bar length",), trial, n, processes, progress)[0]
 
@@ -251,12 +312,20 @@ class Plate:
         x, y = np.meshgrid(np.arange(-w / 2, w / 2 + 1e-9, PLATE_STEP_MM), np.arange(-h / 2, h / 2 + 1e-9, PLATE_STEP_MM))
         p = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
         z = self.bow_mm * (1.0 - (p[:, 0] ** 2 + p[:, 1] ** 2) / ((w / 2) ** 2 + (h / 2) ** 2))
-        z += Roughness(0, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), self.texture_mm, self.wavelengths_mm, seed=seed).height(p)
+        if self.texture_mm > 0:
+            z += Roughness(0, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), self.texture_mm, self.wavelengths_mm,
+                           seed=seed).height(p)
         p[:, 2] = z
         rows, cols = x.shape
         k = np.arange(rows * cols).reshape(rows, cols)[:-1, :-1].ravel()
         tris = np.concatenate([np.stack([k, k + 1, k + cols], 1), np.stack([k + 1, k + cols + 1, k + cols], 1)])
         return p, tris.astype(np.int32)
+
+
+SMOOTH = Plate(bow_mm=0.0, texture_mm=0.0)  # perfectly flat and smooth: every form figure's truth is 0
+# smooth, bowed 10 um: its flatness over the region a scan measures (~8.7 um) sits at the bench's
+# flatness detection limit (7-9 um), so some scans report a zone and others read "< L"
+NEAR_LIMIT = Plate(bow_mm=0.010, texture_mm=0.0)
 
 
 def _plate_face() -> object:
@@ -273,9 +342,7 @@ def registered(measured: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.
     """The rigid move (R, t) that best lays `measured` points (N, 3) on the true ones of
     the same pixels (least squares, Kabsch): an inspection's registration, made ideal. It
     takes out what a calibration error does to the plate as a whole (on the bench rig
-    ~10 µm and ~0.03 mrad), which registration takes out of an inspection too; left in,
-    it re-bins the points on the form grid and moves the flatness by up to ~1 µm,
-    more than its calibration term, in a way no inspection sees."""
+    ~10 µm and ~0.03 mrad), which registration takes out of an inspection too."""
     a, b = measured.mean(axis=0), truth.mean(axis=0)
     u, _, vt = np.linalg.svd((measured - a).T @ (truth - b))
     R = (u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt).T
@@ -297,61 +364,156 @@ def _plate_renderer(bench: Bench, plate: Plate, seed: int, k: int,
     return window_renderer(bench.model, (obj,), bench.sensor, bench.projector_blur_px), pose
 
 
-def plate_figures(bench: Bench, n: int, seed: int = 0, calibration: CalibrationUncertainty | None = None,
-                  noise_scale: float = 1.0, plate: Plate = Plate(), draws: int = 32, processes: int = 1,
+def plate_truth(form: Any, true_points: np.ndarray, settings: Any) -> tuple[float, float]:
+    """(minimum-zone flatness, Sq) of the true surface over the region a measurement took
+    its figures over: the simulator's surface points (N, 3, plate frame) at the pixels
+    measured, those the measurement used (`form.region`) averaged on its grid (`grid_mm`,
+    `grid_origin_mm`, so the cells are the same), then the figures' definitions: the form
+    surface, the second-order Gaussian regression filter of the form cut-off, its minimum
+    zone (linear programme); Sq, the RMS of the heights less their Gaussian mean at the
+    roughness cut-off."""
+    from inspection.form import GaussianFilter, flatness_mz_many
+
+    p = true_points[form.region]
+    g = float(form.grid_mm)
+    ij = np.floor((p[:, :2] - np.asarray(form.grid_origin_mm)) / g).astype(np.int64)
+    ij -= ij.min(axis=0)
+    shape = (int(ij[:, 1].max()) + 1, int(ij[:, 0].max()) + 1)
+    flat = ij[:, 1] * shape[1] + ij[:, 0]
+    count = np.bincount(flat, minlength=shape[0] * shape[1])
+    mask = (count > 0).reshape(shape)
+    z = np.full(shape, np.nan)
+    z[mask] = (np.bincount(flat, p[:, 2], shape[0] * shape[1])[count > 0] / count[count > 0])
+    form_surface = GaussianFilter(mask, settings.form_cutoff_mm, g, order=2)(z)
+    mean = GaussianFilter(mask, settings.roughness_cutoff_mm, g, order=0)(z)
+    rows, cols = np.nonzero(mask)
+    centres = (np.stack([cols, rows], axis=1) + 0.5) * g
+    flatness = float(flatness_mz_many(centres, form_surface[mask][None])[0])
+    return flatness, float(np.sqrt(np.mean((z - mean)[mask] ** 2)))
+
+
+def plate_figures(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (), noise_scale: float = 1.0,
+                  plate: Plate = Plate(), processes: int = 1,
                   progress: Callable[[str], None] | None = None) -> tuple[CoverageResult, CoverageResult]:
-    """Coverage of the minimum-zone flatness and of Sq of a textured, bowed plate
-    (`Plate`) placed at random in the measuring volume, tilted up to 20 degrees: the
-    plate's points taken into its own frame with its true pose after an ideal registration
-    (`registered`: registration is not what is studied here), evaluated as an inspection evaluates a plane face
-    (`inspection.form.evaluate_face`), the decoded coordinates corrected for the camera's
-    stated blur (`defocus_corrected`: not yet in the scan pipeline). The truth: the same
-    evaluation of the noise-free surface points the same pixels see, over the points the
-    measurement's figures were taken over (`FaceForm.region`: the silhouette's mixed
-    pixels, up to ~0.1 mm off, fail the spike test and the edge margin is counted from
-    what is left, so a truth taken over every pixel held corner cells the measurement did
-    not and read up to 4 µm wider) and binned on the measurement's grid (the true heights
-    at the measured points' in-plane places, a few µm from their own: a grid started at
-    the true points' corner moves the border cells, where the form filter's end effects
-    and the bow's slope are largest, by up to a cell)."""
-    from inspection.form import FormSettings, evaluate_face
+    """Coverage of the minimum-zone flatness and of Sq of a plate (`Plate`) placed at
+    random in the measuring volume, tilted up to 20 degrees, measured as `slscan inspect`
+    measures a plane face (`measure_face`, its default settings; the camera defocus's bias
+    removed, as an inspection does), the plate's points taken into its own frame by an
+    ideal registration (`registered`). The truth: `plate_truth`."""
+    from inspection.inspect_scan import InspectionSettings, measure_face
 
     face = _plate_face()
-    cal = calibration or CalibrationUncertainty.none("the simulator's exact geometry")
-    settings = FormSettings(draws=draws)
+    settings = InspectionSettings()
 
     def trial(k: int) -> tuple[Trial, Trial]:
         rng = np.random.default_rng((seed, k))
         t0 = time.perf_counter()
         renderer, pose = _plate_renderer(bench, plate, seed, k, rng)
-        decoded = bench.scan(renderer, rng, defocus=True)
-        used = renderer.model if calibration is None else perturbed(renderer.model, calibration.draw(rng))
+        decoded = bench.scan(renderer, rng)
+        rig = _rig_for(k, bench, rigs)
+        used = rig.windowed(renderer.model.camera)
         points = triangulate(decoded, Triangulator(used), with_normals=False).points
         gt = renderer.ground_truth
         ok = np.isfinite(points).all(axis=2) & (gt.object_id == 2)
         rows, cols = np.nonzero(ok)
-        px = np.stack([cols, rows], axis=1)
-        unc = scan_uncertainty(decoded, used, bench.sensor_noise, bench.fringe, cal, px)
+        camera_points = points[rows, cols].astype(np.float64)
+        R, t = registered(camera_points, gt.points[rows, cols].astype(np.float64))
         inv = np.linalg.inv(pose)
-        true_pts = gt.points[rows, cols] @ inv[:3, :3].T + inv[:3, 3]
-        R, t = registered(points[rows, cols].astype(np.float64), gt.points[rows, cols].astype(np.float64))
         R, t = inv[:3, :3] @ R, inv[:3, :3] @ t + inv[:3, 3]
-        measured = points[rows, cols].astype(np.float64) @ R.T + t
-        normals = np.tile([0.0, 0.0, 1.0], (len(measured), 1))
-        moves = unc.shifts(points[rows, cols].astype(np.float64))
-        got = evaluate_face(face, measured, measured[:, 2], measured[:, :2], settings, seed=k,
-                            noise=unc.noise.rotated(R).scaled(noise_scale), normals=normals,  # type: ignore[union-attr]
-                            shifts=None if moves is None else moves @ R.T)
-        true_pts = np.column_stack([measured[:, :2], true_pts[:, 2]])  # on the measurement's grid (its cells)
-        truth = evaluate_face(face, true_pts, true_pts[:, 2], true_pts[:, :2], FormSettings(draws=2), seed=k,
-                              noise=unc.noise.rotated(R).scaled(0.0), normals=normals,  # type: ignore[union-attr]
-                              region=got.region)
+        measured = camera_points @ R.T + t
+        near = np.abs(measured[:, 2]) <= settings.max_distance_mm  # the segmentation's distance gate
+        unc = replace(bench.measurement, calibration=rig.calibration).of_scan(decoded, used, defocus=True)(
+            np.stack([cols, rows], axis=1)[near])
+        if noise_scale != 1.0:
+            unc = replace(unc, noise=unc.noise.scaled(noise_scale))  # type: ignore[union-attr]
+        m = measured[near]
+        got = measure_face(face, camera_points[near], unc, R, m, m[:, 2], m[:, :2],
+                           np.tile([0.0, 0.0, 1.0], (len(m), 1)), settings.form)
+        true_points = gt.points[rows, cols][near].astype(np.float64) @ inv[:3, :3].T + inv[:3, 3]
+        flat, sq = plate_truth(got, true_points, settings.form)
         dt_s = time.perf_counter() - t0
-        return (Trial(got.flatness_mz, truth.flatness_mz.value, dt_s / 2),  # type: ignore[union-attr,arg-type]
-                Trial(got.sq, truth.sq.value, dt_s / 2))  # type: ignore[union-attr,arg-type]
+        return (Trial(got.flatness_mz, flat, dt_s / 2), Trial(got.sq, sq, dt_s / 2))  # type: ignore[arg-type]
 
     flat, sq = run_trials(("flatness (minimum zone)", "Sq"), trial, n, processes, progress)
     return flat, sq
+
+
+# ------------------------------------------------------------------------------ pose
+
+
+def pose_error(transform: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
+    """(translation error at the model's origin (mm), rotation error (degrees)) of a
+    registration `transform` (scan/camera -> model frame) against the part's true `pose`
+    (model -> camera): transform · pose is the identity when exact."""
+    E = transform @ pose
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+    return float(np.linalg.norm(E[:3, 3])), angle
+
+
+def demo_part_pose(bench: Bench, rng: np.random.Generator) -> np.ndarray:
+    """The demo part face up (its CAD +z toward the camera, as `config/scenes/demo.toml`
+    lays it), turned at random about the camera axis, tilted up to 15 degrees and moved
+    up to 15 mm across and 20 mm in depth about the centre of the measuring volume."""
+    from sim.calibration_bench import rotation
+
+    R = rotation(*rng.uniform(-15.0, 15.0, 2), rng.uniform(0.0, 360.0)) @ np.diag([1.0, -1.0, -1.0])
+    return pose_of(R, np.array(bench.acceptance.centre_mm) + rng.uniform([-15, -15, -20], [15, 15, 20]))
+
+
+def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (), processes: int = 1,
+                  progress: Callable[[str], None] | None = None) -> CoverageResult:
+    """Coverage of the registration's pose U as `slscan inspect` reports it: the demo part
+    (`config/parts/demo_part.ply`, CAD `demo_part.step`) at random poses (`demo_part_pose`),
+    inspected (`inspection.inspect_scan.inspect`: registration, segmentation, the pose's
+    U; the faces' figures with 2 noise draws, which the pose does not use). A trial is
+    inside when both its translation error (at the model's origin) and its rotation error
+    are within their U; the Estimate recorded is the translation's."""
+    from inspection.cad import load_cad
+    from inspection.form import FormSettings
+    from inspection.inspect_scan import InspectionSettings, inspect
+    from inspection.measured_cloud import from_organised
+    from inspection.registration import RegistrationSettings
+    from scanner.config import CONFIG_DIR
+    from sim.scene import SceneObject, load_mesh
+
+    parts = CONFIG_DIR / "parts"
+    vertices, triangles = load_mesh(parts / "demo_part.ply", parts, None)
+    cad = load_cad(parts / "demo_part.step")
+
+    def trial(k: int) -> tuple[Trial]:
+        rng = np.random.default_rng((seed, k))
+        t0 = time.perf_counter()
+        pose = demo_part_pose(bench, rng)
+        obj = SceneObject("demo_part", "mesh", pose, 0.7, vertices=vertices, triangles=triangles)
+        renderer = window_renderer(bench.model, (obj,), bench.sensor, bench.projector_blur_px)
+        decoded = bench.scan(renderer, rng)
+        rig = _rig_for(k, bench, rigs)
+        used = rig.windowed(renderer.model.camera)
+        cloud = triangulate(decoded, Triangulator(used))
+        scan = from_organised(cloud, f"pose trial {k}")
+        unc = replace(bench.measurement, calibration=rig.calibration).of_scan(decoded, used, defocus=True)(scan.pixels)
+        settings = InspectionSettings(registration=RegistrationSettings(seed=k), form=FormSettings(draws=2))
+        report = inspect(scan, cad, None, settings, uncertainty=unc)
+        t_err, r_err = pose_error(report.registration.transform, pose)
+        U_t, U_r = report.pose_u["translation_u_mm"], report.pose_u["rotation_u_deg"]
+        return (PoseTrial(Estimate(t_err, U_t / 2.0, k=2.0), 0.0, time.perf_counter() - t0, r_err, U_r,
+                          t_err <= U_t and r_err <= U_r),)
+
+    return run_trials(("pose",), trial, n, processes, progress)[0]
+
+
+@dataclass(frozen=True)
+class PoseTrial(Trial):
+    """A pose trial: the translation error as `estimate` (truth 0), the rotation error
+    and its U (degrees), and whether both were within their U."""
+
+    rotation_error_deg: float = 0.0
+    rotation_u_deg: float = 0.0
+    both_inside: bool = False
+
+    @property
+    def inside(self) -> bool:
+        return self.both_inside
 
 
 @dataclass(frozen=True)
@@ -397,15 +559,19 @@ def noise_model_check(bench: Bench, n: int, seed: int = 99, plate: Plate = Plate
     def placement(k: int) -> tuple[float, float, float, int]:
         rng = np.random.default_rng((seed, k))
         renderer, _ = _plate_renderer(bench, plate, seed, k, rng)
-        scans = [bench.scan(renderer, rng, defocus=True) for _ in range(2)]
+        scans = [bench.scan(renderer, rng) for _ in range(2)]
         z = [triangulate(d, Triangulator(renderer.model), with_normals=False).points[..., 2].astype(np.float64)
              for d in scans]
         inside = np.isfinite(z[0]) & np.isfinite(z[1]) & (renderer.ground_truth.object_id == 2)
         inside = ndimage.binary_erosion(inside, np.ones((17, 17)))
         rows, cols = np.nonzero(inside)
-        unc = scan_uncertainty(scans[0], renderer.model, bench.sensor_noise, None, CalibrationUncertainty.none("not studied"),
-                               np.stack([cols, rows], axis=1))
-        r = (z[0] - z[1])[rows, cols] / (np.sqrt(2.0) * unc.noise.sigma_z)  # type: ignore[union-attr]
+        px = np.stack([cols, rows], axis=1)
+        measurement = replace(bench.measurement, fringe=None, calibration=CalibrationUncertainty.none("not studied"))
+        # as an inspection takes them: the defocus bias removed from each scan, the noise model raised for it
+        moved = [measurement.of_scan(d, renderer.model, defocus=True)(px).noise  # type: ignore[union-attr]
+                 .defocus_removed() for d in scans]
+        diff = (z[0] - z[1])[rows, cols] + moved[0][0] - moved[1][0]
+        r = diff / (np.sqrt(2.0) * moved[0][1].sigma_z)
         even = (rows + cols) % 2 == 0
         return float(np.std(r)), float(np.std(r[even])), float(np.std(r[~even])), len(r)
 

@@ -43,6 +43,9 @@ EXAMPLES: dict[str, str] = {
               "slscan verify --leave-one-out ../shared/data/procam-graycode --layout opencv-graycode "
               "--projector-size 1024x768 --board config/boards/procam_chess_9x7_75mm.toml --pose-folders 'capture_*' "
               "--out verify/procam",
+    "coverage": "slscan coverage --case sphere-radius --scans 200 --seed 5 --json\n"
+                "slscan coverage --case plate-flatness --case plate-sq --scans 200 --seed 6 --calibrated "
+                "--out coverage/calibrations --processes 2",
     "register": "slscan register sessions/demo config/parts/demo_part.step --coarse sac-ia --json\n"
                 "slscan register sessions/part-all-round/view_001 sessions/part-all-round/view_000 --json",
     "inspect": "slscan inspect sessions/demo --tolerances config/parts/demo_part.toml   (the part program names "

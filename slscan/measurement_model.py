@@ -10,7 +10,12 @@ give every figure its uncertainty, read from the session and its rig.
     projector's blur when the rig file gives it);
   - the calibration's covariance, from the calibration file the session's rig model
     names; a rig without one uses its nominal geometry: exact on the simulator, unknown
-    (and said to be not in U) on a real rig.
+    (and said to be not in U) on a real rig;
+  - the camera's defocus ([camera.sensor] blur_sigma_px; 0 without it), whose depth bias
+    an inspection removes from the surfaces it measures (`inspection.uncertainty.defocus_bias`).
+
+`rig_measurement` is the one place this is put together: `scan`, `inspect`, `verify` and
+`slscan coverage` (the repeat-scan studies) all take it from there.
 """
 
 from __future__ import annotations
@@ -24,10 +29,10 @@ import numpy as np
 from inspection.uncertainty import (
     CalibrationUncertainty,
     FringeError,
+    MeasurementModel,
     ScanUncertainty,
     SensorNoise,
     fringe_error,
-    scan_uncertainty,
 )
 from scanner.decode import DecodeResult
 from scanner.geometry import RigModel
@@ -67,18 +72,29 @@ def calibration_uncertainty(model: RigModel, driver: str) -> CalibrationUncertai
                                        "not in U")
 
 
+def camera_blur_px(rig_config: dict[str, Any]) -> float:
+    """The camera's stated defocus (Gaussian sigma, px) from [camera.sensor], else 0."""
+    return float(((rig_config.get("camera") or {}).get("sensor") or {}).get("blur_sigma_px", 0.0))
+
+
+def rig_measurement(rig_config: dict[str, Any], model: RigModel, patterns: PatternSet, bit_depth: int,
+                    where: object) -> MeasurementModel:
+    """The measurement model of a rig (its config's content) measuring with `model`."""
+    driver = (rig_config.get("rig") or {}).get("driver", "")
+    return MeasurementModel(sensor_noise(rig_config, bit_depth, where),
+                            projector_fringe_error(patterns, model, rig_config),
+                            calibration_uncertainty(model, driver), camera_blur_px(rig_config))
+
+
 def session_uncertainty(session: Any, decoded: DecodeResult | None = None) -> Callable[[np.ndarray], ScanUncertainty]:
     """For a `scanner.session.Session`: a function giving the ScanUncertainty of the
-    points at camera pixels (N, 2) (column, row) of its cloud. `decoded`: the session's
-    decode when it is at hand (a scan just processed: `ScanResult.decoded`), else its
-    frames are decoded again."""
-    manifest = session.manifest
-    config = manifest.get("rig_config", {})
+    points at camera pixels (N, 2) (column, row) of its cloud, with the camera defocus's
+    depth bias per point for the inspection to remove. `decoded`: the session's decode
+    when it is at hand (a scan just processed: `ScanResult.decoded`), else its frames are
+    decoded again."""
+    config = session.manifest.get("rig_config", {})
     model = session.rig_model()
-    patterns = session.patterns
     if decoded is None:
         decoded = decode_session(session)
-    sensor = sensor_noise(config, session.bit_depth, session.root / "manifest.json")
-    fringe = projector_fringe_error(patterns, model, config)
-    calibration = calibration_uncertainty(model, (config.get("rig") or {}).get("driver", ""))
-    return lambda pixels: scan_uncertainty(decoded, model, sensor, fringe, calibration, pixels)
+    measurement = rig_measurement(config, model, session.patterns, session.bit_depth, session.root / "manifest.json")
+    return measurement.of_scan(decoded, model, defocus=True)

@@ -164,7 +164,8 @@ def test_characteristic_table_has_units_values_and_verdicts() -> None:
     flat = cells["flatness (minimum zone)"]
     assert flat[0] == "high top #657" and flat[3:6] == ["0.0500", "0.0123", "&plusmn; 0.0020"]
     assert flat[7] == iso_14253(0.0123, 0.002, 0.05) == "conforming"
-    assert cells["Sq roughness"][4] == "&lt; 0.0046" and cells["Sq roughness"][6] == "0.0046"
+    sq = cells["Sq after noise removal"]  # below its limit: < L, with the U at the limit its verdict uses
+    assert sq[4] == "&lt; 0.0046" and sq[5] == "&plusmn; 0.0040" and sq[6] == "0.0046"
     assert cells["cylindricity (minimum zone)"][7] == iso_14253(0.048, 0.006, 0.05) == "uncertain"
     # raw and filtered side by side: the raw extremes differ from the form surface's
     raw = page[page.index("id='raw-filtered'"):]

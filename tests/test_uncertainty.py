@@ -26,6 +26,7 @@ from inspection.uncertainty import (
     perturbed,
 )
 from scanner.geometry import Pinhole
+from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator
 from scanner.rig import RigConfig
 
@@ -37,7 +38,8 @@ def test_decision_rules_iso_14253_1() -> None:
     assert decide(0.018, 0.004, 0.020, rule=PLAIN) == CONFORMING  # U not applied
     assert decide(0.021, 0.004, 0.020, rule=PLAIN) == NON_CONFORMING
     assert decide(-0.002, 0.002, 0.005, -0.005) == CONFORMING and decide(-0.006, 0.0005, 0.005, -0.005) == NON_CONFORMING
-    assert decide(None, 0.001, 0.02, limit=0.006) == CONFORMING  # below a detection limit within the tolerance
+    assert decide(None, 0.001, 0.02, limit=0.006) == CONFORMING  # below a detection limit: [0, 0.007] inside
+    assert decide(None, 0.001, 0.0065, limit=0.006) == UNCERTAIN  # the limit inside, the limit + U not
     assert decide(None, 0.001, 0.005, limit=0.006) == UNCERTAIN  # cannot be shown either way
     assert decide(None, 0.0, 0.02) == NOT_MEASURED
     assert overall([CONFORMING, UNCERTAIN]) == UNCERTAIN and overall([UNCERTAIN, NON_CONFORMING]) == NON_CONFORMING
@@ -328,12 +330,15 @@ def test_defocus_bias_matches_the_simulators_blur() -> None:
 
     from inspection.acceptance import Position, pose_of
     from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
-    from inspection.uncertainty import defocus_bias, defocus_corrected
+    from inspection.uncertainty import defocus_bias
     from scanner.decode import decode
     from sim.artefact_scenes import artefact_objects, window_renderer
     from sim.repeat_scans import Bench
+    from slscan.measurement_model import rig_measurement
 
-    bench = Bench.of(RigConfig.load())
+    config = RigConfig.load()
+    bench = Bench.of(config, rig_measurement(config.raw, config.nominal_model(), PatternSet.load(config.patterns_path),
+                                             12, config.path))
     sigma = bench.sensor.blur_sigma_px
     assert sigma > 0
     position = Position("sphere", 0, pose_of(np.eye(3), np.array(bench.acceptance.centre_mm) + [5.0, -3.0, 2.0]), "")
@@ -347,7 +352,6 @@ def test_defocus_bias_matches_the_simulators_blur() -> None:
                                                                                bench.model.projector_gamma)])
         decoded[blur] = decode(frames, bench.patterns, bench.bit_depth, p.size)
     predicted = defocus_bias(decoded[sigma], sigma)
-    corrected = defocus_corrected(decoded[sigma], sigma)
     both = decoded[sigma].valid & decoded[0.0].valid
     inside = ndimage.distance_transform_edt(both) > 8
     for orientation, m in decoded[sigma].maps.items():
@@ -359,12 +363,9 @@ def test_defocus_bias_matches_the_simulators_blur() -> None:
         assert 0.85 < slope < 1.1, slope
         assert np.corrcoef(predicted[orientation][sel], actual[sel])[0, 1] > 0.9
         assert np.std(actual[sel] - predicted[orientation][sel]) < 0.5 * np.std(actual[sel])
-        # the scan corrected by it (`defocus_corrected`, as verify triangulates): nearer the unblurred decode
-        fixed = corrected.maps[orientation].coordinate.astype(np.float64) - decoded[0.0].maps[orientation].coordinate
+        # the scan less it (as an inspection removes it): nearer the unblurred decode
+        fixed = actual - predicted[orientation]
         assert np.sqrt(np.mean(fixed[sel] ** 2)) < 0.5 * np.sqrt(np.mean(actual[sel] ** 2))
-        band = both & np.isnan(predicted[orientation])
-        assert np.array_equal(corrected.maps[orientation].coordinate[band], m.coordinate[band])  # left as decoded
-    assert defocus_corrected(decoded[0.0], 0.0) is decoded[0.0]
 
 
 def test_defocus_correction_noise_gain_matches_a_monte_carlo() -> None:

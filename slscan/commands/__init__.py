@@ -18,8 +18,8 @@ COMMANDS: dict[str, tuple[str, str]] = {  # command -> (module in slscan.command
     "scan": ("scan", "scan a part into a session folder (raw frames, cloud PLY, Rerun recording)"),
     "decode": ("scan", "regenerate every output of a session from its raw frames"),
     "demo": ("scan", "scan the bundled part on the default simulated rig and inspect it against its STEP model"),
-    "import": ("import_binocular", "turn a folder of fringe frames from any tool into a session (conventions detected, other "
-                          "tools' calibrations read)"),
+    "import": ("import_binocular", "turn a folder of fringe frames from any tool into a session (conventions "
+                                   "detected, other tools' calibrations read)"),
     "review": ("review", "open what slscan wrote (scan session, multi-view folder, station part, calibration, "
                          "poses.rrd, any folder with recordings) in the Rerun viewer (web when headless)"),
     "export": ("export", "write a session's cloud as PLY, XYZ, CSV, E57 or an STL mesh, in the camera or the CAD "
@@ -36,6 +36,8 @@ COMMANDS: dict[str, tuple[str, str]] = {  # command -> (module in slscan.command
                                "the bench or from captures on disk"),
     "verify": ("verify", "acceptance / reverification test (VDI/VDE 2634 Part 2): artefacts in the measuring volume "
                          "against the rig's maximum permissible errors"),
+    "coverage": ("coverage", "how often the truth lies within ±U: repeat scans on the simulated bench measured as "
+                             "scan/inspect/verify measure them"),
     "cad": ("inspect", "list a CAD model's faces by STEP id and surface type"),
     "cadbench": ("inspect", "benchmark: STEP reading time for files of 1, 4, 16 copies of a part"),
     "register": ("inspect", "register a cloud to a CAD model, a mesh or another cloud"),

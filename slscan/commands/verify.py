@@ -7,11 +7,12 @@ The rig file's [acceptance] table gives the measuring volume, the maximum permis
 errors and the decision rule; the artefact file their calibrated values (default: the
 [acceptance] table's `artefacts`). On a simulated rig the simulator places each artefact
 at each position and the test runs unattended; on a real bench the operator is told where
-to put each artefact and presses Enter (s skips a position, q stops), as `slscan
-calibrate` guides its board poses. Each position is scanned with the rig's geometry (its
-calibration file, or `--calibration`), measured, and logged to DIR/recording.rrd (cloud,
-fitted spheres or plane, figures); the report goes to DIR/verify.json and DIR/verify.html.
-Exit code 0 when the rig passes, 1 when it does not.
+to put each artefact and presses Enter (s skips a position, q stops: the positions left
+are not tested), as `slscan calibrate` guides its board poses. Each position is scanned
+with the rig's geometry (its calibration file, or `--calibration`), measured, and logged to
+DIR/recording.rrd (cloud, fitted spheres or plane, figures); the report goes to
+DIR/verify.json and DIR/verify.html. Exit code 0 when the rig passes; 1 when it fails; 4
+when a prescribed position was not tested (the result is then "incomplete": no verdict).
 
     slscan verify --leave-one-out DIR --out DIR [--layout opencv-graycode --projector-size WxH --board B]
 
@@ -32,6 +33,7 @@ import numpy as np
 
 from scanner.errors import ScannerError
 from scanner.session import write_atomic, write_json
+from slscan.exit_codes import for_parts
 
 
 class OperatorArtefactBench:
@@ -76,7 +78,8 @@ def _log_position(rec: Any, k: int, cloud: Any, model: Any, result: Any) -> None
                   level="WARN" if result.error else "INFO")
     if result.values:
         rec.log_metrics({f"verify_{p}_mm": v for p, v in result.values.items()}, scan=k)
-    spheres = result.detail.get("spheres", [result.detail] if "radius_mm" in result.detail else [])
+    fit = result.detail.get("sphere") or result.detail.get("ball_bar") or {}
+    spheres = fit.get("spheres", [fit] if "radius_mm" in fit else [])
     spheres = [s for s in spheres if s.get("radius_mm") is not None]
     if spheres:
         rec.stream.log("world/verify/fit", rr.Ellipsoids3D(centers=[s["centre_mm"] for s in spheres],
@@ -87,15 +90,14 @@ def _log_position(rec: Any, k: int, cloud: Any, model: Any, result: Any) -> None
 def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     """Place, scan and measure every position; the AcceptanceReport."""
     from calibration.capture import capture_fringes
-    from inspection.acceptance import Acceptance, AcceptanceReport, ScanData, evaluate, positions
+    from inspection.acceptance import Acceptance, AcceptanceReport, PositionResult, ScanData, evaluate, positions
     from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
-    from inspection.uncertainty import scan_uncertainty
     from scanner.decode import decode
     from scanner.patterns import PatternSet
     from scanner.reconstruct import Triangulator, triangulate
     from scanner.rig import RigConfig, open_rig
     from scanner.session_recording import SessionRecording
-    from slscan.measurement_model import calibration_uncertainty, projector_fringe_error, sensor_noise
+    from slscan.measurement_model import rig_measurement
 
     config = RigConfig.load(args.rig)
     acceptance = Acceptance.from_rig(config.raw, config.path, config.working_distance_mm)
@@ -103,8 +105,6 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     plan = positions(acceptance, artefacts)
     model = _model(config, args.calibration)
     patterns = PatternSet.load(config.patterns_path)
-    calibration = calibration_uncertainty(model, config.driver)
-    fringe = projector_fringe_error(patterns, model, config.raw)
     out = _out_folder(Path(args.out))
     say(f"verifying rig {config.name} ({config.driver}) with {artefacts.name}: {len(plan)} positions in a "
         f"{' x '.join(f'{s:g}' for s in acceptance.size_mm)} mm measuring volume; geometry "
@@ -126,13 +126,20 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
             bench: Any = SimArtefactBench(rig, artefacts)
         else:
             bench = OperatorArtefactBench(say)
-        sensor = sensor_noise(config.raw, rig.camera.bit_depth, config.path)
+        measurement = rig_measurement(config.raw, model, patterns, rig.camera.bit_depth, config.path)
         tri = Triangulator(model)
         binocular = binocular_scanner(config) if len(config.cameras) >= 2 else None
         for k, position in enumerate(plan):
             t0 = time.perf_counter()
-            if bench.place(position) is False:
-                say(f"{position.name}: skipped")
+            try:
+                placed = bench.place(position)
+            except KeyboardInterrupt:
+                say(f"stopped at {position.name}: it and the {len(plan) - k - 1} positions after it are not tested")
+                results.extend(PositionResult.not_tested(p) for p in plan[k:])
+                break
+            if placed is False:
+                say(f"{position.name}: skipped (not tested: the test will be incomplete)")
+                results.append(PositionResult.not_tested(position))
                 continue
             if binocular is not None:
                 cloud, data = binocular(rig, patterns, model.projector_gamma)
@@ -140,18 +147,19 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
                 stack = capture_fringes(rig, patterns, model.projector_gamma)
                 decoded = decode(stack, patterns, rig.camera.bit_depth, model.projector.size)
                 cloud = triangulate(decoded, tri)
-                data = ScanData(cloud.points, lambda px: scan_uncertainty(decoded, model, sensor, fringe, calibration,
-                                                                          px))
+                # the artefact fits leave the outlines out rather than remove the defocus bias (inspection.acceptance)
+                data = ScanData(cloud.points, measurement.of_scan(decoded, model))
             result = evaluate(position, data, artefacts)
             results.append(result)
             _log_position(rec, k, cloud, model, result)
             figures = ", ".join(f"{p} {v * 1e3:.1f} µm" for p, v in result.values.items())
             say(f"{position.name} ({k + 1}/{len(plan)}, {time.perf_counter() - t0:.0f} s): "
                 f"{figures or 'NOT MEASURED: ' + result.error}")
-    notes = {"noise model": "decoder and sensor model" if sensor is not None else
+    notes = {"noise model": "decoder and sensor model" if measurement.sensor is not None else
              "none (the rig file has no [camera.sensor]): the fits' residuals stand in for it",
-             "calibration uncertainty": calibration.source,
-             "fringe error": f"{fringe.rms_px:.4f} projector px RMS (quantised patterns)"}
+             "calibration uncertainty": measurement.calibration.source,
+             "fringe error": f"{measurement.fringe.rms_px:.4f} projector px RMS "  # type: ignore[union-attr]
+                             "(quantised patterns)"}
     if len(config.cameras) >= 2:
         notes |= {"reconstruction": f"binocular: cameras {', '.join(config.camera_names[:2])} matched "
                                     f"(scanner/binocular.py); the projector's geometry unused",
@@ -224,7 +232,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
     else:
         print(report.table())
         print(f"report    {out / 'verify.html'} (.json); recording {out / 'recording.rrd'}")
-    return 0 if report.passed else 1
+    return for_parts([report.status])  # pass 0, fail 1, incomplete 4 (no verdict)
 
 
 def register(sub: Any) -> None:
