@@ -129,11 +129,11 @@ def test_a_test_with_a_position_not_tested_is_incomplete_never_a_pass(config: Ri
 def test_verify_command_with_skipped_positions_is_incomplete(tmp_path: Path, capsys: pytest.CaptureFixture,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     """An operator who skips every position: the command says which were not tested,
-    writes an incomplete report and exits 1 (no scan is taken: fast)."""
+    writes an incomplete report and exits 4, no decision (no scan is taken: fast)."""
     from sim.artefact_scenes import SimArtefactBench
 
     monkeypatch.setattr(SimArtefactBench, "place", lambda self, position: False)
-    assert cli.main(["verify", "--out", str(tmp_path / "v"), "--json"]) == 1
+    assert cli.main(["verify", "--out", str(tmp_path / "v"), "--json"]) == 4
     data = json.loads(capsys.readouterr().out)
     assert data["status"] == INCOMPLETE and not data["pass"] and len(data["positions_not_tested"]) == 23
     assert set(data["verdicts"].values()) == {NOT_TESTED}
