@@ -28,7 +28,7 @@ import numpy as np
 
 from calibration.errors import CalibrationRejected, NotEnoughData
 from calibration.intrinsics import DeviceCalibration, ViewPoints, calibrate_device, outlier_views
-from calibration.stereo import StereoCalibration, covariance, initial_extrinsics, joint_refine
+from calibration.stereo import CornerLinks, StereoCalibration, covariance, initial_extrinsics, joint_refine
 from calibration.views import Correspondence
 
 
@@ -151,13 +151,28 @@ def _solve_once(views: list[Correspondence], camera_size: tuple[int, int], proje
     projector = calibrate_device("projector", [c.projector for c in views], projector_size, settings.fix_k3)
     start = initial_extrinsics(camera.poses, projector.poses)
     cams, projs = [c.camera for c in views], [c.projector for c in views]
-    stereo = joint_refine(cams, projs, camera.pinhole, projector.pinhole, start, camera.poses, settings.fix_k3)
+    links = corner_links(views)
+    stereo = joint_refine(cams, projs, camera.pinhole, projector.pinhole, start, camera.poses, settings.fix_k3,
+                          links=links)
     choice = choose_camera(camera, stereo, settings.max_joint_camera_std)
     if choice.source != "joint refinement":
         fixed = joint_refine(cams, projs, camera.pinhole, projector.pinhole, start, camera.poses, settings.fix_k3,
-                             fix_camera=True, camera_covariance=own_covariance(camera, cams, settings.fix_k3))
+                             fix_camera=True, camera_covariance=own_covariance(camera, cams, settings.fix_k3),
+                             links=links)
         stereo = replace(fixed, std=fixed.std | {f"camera.{n}": v for n, v in camera.std.items()})
     return Solution([c.name for c in views], list(views), camera, projector, stereo, choice, dict(dropped))
+
+
+def corner_links(views: list[Correspondence]) -> list[CornerLinks] | None:
+    """How each view's projector points were measured from its camera corners (None when
+    the views do not say, e.g. correspondences made elsewhere: errors then independent)."""
+    if any(c.projector_corners is None for c in views):
+        return None
+    out = []
+    for c in views:
+        found = c.projector_corners.found
+        out.append(CornerLinks(np.flatnonzero(found), c.projector_corners.jacobian[found]))
+    return out
 
 
 def own_covariance(device: DeviceCalibration, views: list[ViewPoints], fix_k3: bool) -> np.ndarray:

@@ -167,8 +167,8 @@ class CalibrationResult:
         sol, s = self.solution, self.solution.stereo
         views = [{"name": n, "camera_rms_px": float(c), "projector_rms_px": float(p),
                   "camera_points": len(corr.camera), "projector_points": len(corr.projector),
-                  # decoded projector pixels about each corner's local homography: the decoding's noise
-                  "homography_fit_rms_px": float(np.nanmedian(corr.projector_corners.fit_rms_px)),
+                  # decoded projector pixels about each corner's local fit: the decoding's noise
+                  "projector_fit_rms_px": float(np.nanmedian(corr.projector_corners.fit_rms_px)),
                   "pixels_per_corner": int(np.median(corr.projector_corners.pixels_used))}
                  for n, c, p, corr in zip(sol.names, s.per_view_rms_px("camera"), s.per_view_rms_px("projector"),
                                           sol.correspondences)]
@@ -178,7 +178,8 @@ class CalibrationResult:
             "board": self.board.to_dict(),
             "rms_px": {"camera": s.camera_rms_px, "projector": s.projector_rms_px, "stereo": s.rms_px},
             "uncertainty": s.std,
-            "covariance": {"parameters": list(RIG_PARAMETERS), "matrix": s.covariance.tolist()},
+            "covariance": {"parameters": list(RIG_PARAMETERS), "matrix": s.covariance.tolist(),
+                           "noise_model": s.noise.to_dict()},
             "camera_intrinsics": asdict(sol.camera_choice), "views": views,
             "dropped_views": {**sol.dropped, **self.failures},
             "outlier_views": self.outliers(),
@@ -235,6 +236,8 @@ class CalibrationResult:
                f"stereo    baseline {np.linalg.norm(s.cam_from_proj[:3, 3]):.3f} mm "
                f"(± {std['extrinsic.translation_mm']:.4f} mm), rotation ± {std['extrinsic.rotation_deg']:.4f} deg, "
                f"RMS {s.rms_px:.4f} px",
+               f"          the ± are one sigma from the {s.noise.summary()}; a projector corner carries its camera "
+               f"corner's error through the local fit, and the fit is weighted by that model",
                f"          {sol.camera.summary()} (own views, before the joint refinement)",
                f"          {sol.projector.summary()} (own views, before the joint refinement)"]
         out.append(f"gamma     {self.gamma.summary()}" if self.gamma else "gamma     not measured (1.0 assumed)")
@@ -485,7 +488,7 @@ def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: 
     csize, psize = (cam.width, cam.height), (proj.width, proj.height)
     with CaptureWriter(out, procedure.board, procedure.patterns, csize, psize, cam.bit_depth,
                        rig.config.name) as writer:
-        gamma, corr, failures = _capture_poses(rig, procedure, bench, writer, say, recording)
+        gamma, corr, failures = capture_board_poses(rig, procedure, bench, say, writer, recording)
         result = solve_views(procedure.board, corr, failures, csize, psize, procedure.settings, rig.config.name,
                              gamma, say, recording)
         check_limits(result.solution, result.settings)  # before spending time on the plate and artefact
@@ -493,9 +496,11 @@ def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: 
     return finish(result, plates, artefact, say, recording)
 
 
-def _capture_poses(rig: Rig, procedure: Procedure, bench: Bench, writer: CaptureWriter, say: Say,
-                   recording: CalibrationRecording | None) -> tuple[GammaFit, list[Correspondence], dict[str, str]]:
-    """Gamma, then board poses until enough are usable (at most twice as many attempts)."""
+def capture_board_poses(rig: Rig, procedure: Procedure, bench: Bench, say: Say, writer: CaptureWriter | None = None,
+                        recording: CalibrationRecording | None = None
+                        ) -> tuple[GammaFit, list[Correspondence], dict[str, str]]:
+    """Gamma, then board poses until enough are usable (at most twice as many attempts);
+    the frames go to `writer` when given."""
     board, patterns = procedure.board, procedure.patterns
     cam, proj = rig.camera, rig.projector
     csize, psize = (cam.width, cam.height), (proj.width, proj.height)
@@ -512,7 +517,8 @@ def _capture_poses(rig: Rig, procedure: Procedure, bench: Bench, writer: Capture
     say("measuring the projector response (flat grey levels)")
     levels = procedure.gamma_levels
     flats = show_images(rig, flat_images(levels, proj.width, proj.height))
-    writer.add_gamma(levels, flats)
+    if writer is not None:
+        writer.add_gamma(levels, flats)
     gamma = fit_gamma(levels, flats, float(2 ** cam.bit_depth - 1))
     say(gamma.summary())
     if recording:
@@ -522,7 +528,7 @@ def _capture_poses(rig: Rig, procedure: Procedure, bench: Bench, writer: Capture
         if index > 0 and not bench.place_board(index, needed()):
             break
         frames = capture_pose(rig, patterns, gamma.gamma)
-        name = writer.add_pose(frames, gamma.gamma)
+        name = writer.add_pose(frames, gamma.gamma) if writer is not None else f"pose_{index:03d}"
         found = None
         try:
             found = correspond(board, pose_view(name, frames, patterns, cam.bit_depth, psize), index)

@@ -9,7 +9,7 @@ the projector row on the procam capture, whose projector sits above the camera);
 pose the calibration would solve for the left-out view is never used.
 
 - Corners: detected in the board's white image (sub-pixel), their projector column from
-  a local homography of the decoded coordinates around each (`calibration.correspond`),
+  a local quadratic fit of the decoded coordinates around each (`calibration.correspond`),
   then intersected. Their noise (`CornerNoise`): the covariance of the errors of two
   corners' camera pixel and coded projector coordinate as a function of their lag on the
   board, estimated from the residuals the calibration left on its own views (type A): the

@@ -5,6 +5,8 @@ captures on disk (calibration/).
     slscan calibrate --from CAPTURE --out DIR          solve again from a capture made by slscan
     slscan calibrate --from DIR --layout opencv-graycode --projector-size 1024x768 --board BOARD.toml --out DIR
     slscan calibrate --stage-axis --rig RIG.toml --out DIR   the turntable's axis (slscan/commands/stage_axis.py)
+    slscan calibrate --covariance-check N --seed S --out DIR   N independent simulated calibrations against the
+                                                               true rig: is the reported covariance true?
 
 On a simulated rig the simulator moves the board, the plate and the artefact, and the
 report ends with the calibration's errors against the simulator's ground truth and a scan
@@ -95,6 +97,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         from slscan.commands.stage_axis import cmd_stage_axis
 
         return cmd_stage_axis(args)
+    if args.covariance_check is not None:
+        return _covariance_check(args)
     from calibration.calibration_recording import CalibrationRecording
     from calibration.errors import CalibrationRejected
     from calibration.workflow import write_result
@@ -140,6 +144,28 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         else:
             print(f"to use it   add  calibration = \"{path.resolve()}\"  under [rig] in {rig_path} (or rerun with "
                   f"--install)")
+    return Exit.OK
+
+
+def _covariance_check(args: argparse.Namespace) -> int:
+    """`--covariance-check N`: the Mahalanobis check of the covariance (slscan/covariance_check.py);
+    the report on stdout (or JSON) and in DIR/covariance_check.json."""
+    import json
+
+    from scanner.session import write_json
+    from slscan.covariance_check import covariance_check
+
+    if args.covariance_check < 1:
+        raise ScannerError("--covariance-check: give the number of calibrations (>= 1; 30 or more to judge)")
+    out = Path(args.out)
+    _out_folder(out)
+    try:
+        check = covariance_check(args.rig, args.covariance_check, args.seed, args.poses, _say)
+    except ValueError as exc:
+        raise ScannerError(str(exc)) from None
+    summary = check.summary()
+    write_json(out / "covariance_check.json", summary)
+    print(json.dumps(summary) if args.json else "\n".join(check.lines()))
     return Exit.OK
 
 
@@ -195,9 +221,10 @@ def _on_rig(args: argparse.Namespace, out: Path, say: Any, log: Any) -> tuple[An
     return result, config.path, lines
 
 
-def simulated_bench(rig: Any, procedure: Any, seed: int = 0) -> Any:
+def simulated_bench(rig: Any, procedure: Any, seed: int = 0, jitter_deg: float = 2.0) -> Any:
     """The simulator's `Bench` for an open simulated rig: the procedure's board printed as
-    a texture (TEXELS_PER_PX at the working distance), moved through planned poses; the
+    a texture (TEXELS_PER_PX at the working distance), moved through planned poses (each
+    but the first turned by up to `jitter_deg` about each axis, drawn from `seed`); the
     plate PLATE_BEHIND_MM behind the working distance; the sphere pair ARTEFACT_BEFORE_MM
     in front of it."""
     from sim.calibration_bench import SimBench, Target, plan_target_poses
@@ -207,7 +234,7 @@ def simulated_bench(rig: Any, procedure: Any, seed: int = 0) -> Any:
     target = Target(board.image(board.texture_density(TEXELS_PER_PX / footprint_mm)), board.size_mm,
                     board.image_origin_mm, board.object_points())
     try:
-        poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, seed)
+        poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, seed, jitter_deg)
     except ValueError as exc:
         raise ScannerError(f"simulated bench: {exc}") from None
     artefact = procedure.artefact
@@ -336,4 +363,8 @@ def register(sub: Any) -> None:
     c.add_argument("--stage-axis", action="store_true", help="calibrate the rig's turntable axis from a board it turns "
                                                               "(writes stage_axis.json)")
     c.add_argument("--angles", metavar="DEG,DEG,...", help="--stage-axis: the stage angles (default -90..90 by 30)")
+    c.add_argument("--covariance-check", type=int, metavar="N",
+                   help="simulated rigs: N independent calibrations (seeds --seed, --seed + 1, ...), each against the "
+                        "true rig: the Mahalanobis distance of the truth under the covariance each reports")
+    c.add_argument("--json", action="store_true", help="--covariance-check: print the summary as JSON")
     c.set_defaults(func=cmd_calibrate)

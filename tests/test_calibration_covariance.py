@@ -1,0 +1,133 @@
+"""The calibration's covariance against the truth it claims to bound.
+
+Correspondences are generated here the way the bench measures them (`calibration.correspond`):
+a camera corner with an error e, and its projector pixel where the camera-to-projector
+mapping of the board plane takes the erroneous camera corner, plus the decoding's own error
+n. The mapping's Jacobian A is computed here from the rig and the board pose (ray, plane,
+projection), independently of the solver's fit. A true covariance gives the true rig a
+Mahalanobis distance d² whose mean over independent draws is its degrees of freedom.
+
+The rendered check (camera images, decoding, detection: `slscan calibrate
+--covariance-check`) takes minutes per calibration; it is the slow test at the end.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calibration.board import Board
+from calibration.consistency import mahalanobis, model_parameters, rig_parameters
+from calibration.correspond import ProjectorCorners
+from calibration.intrinsics import ViewPoints
+from calibration.solve import solve
+from calibration.views import Correspondence
+from scanner.config import CONFIG_DIR
+from scanner.geometry import RigModel
+from scanner.rig import DEFAULT_RIG, RigConfig
+from sim.calibration_bench import Target, plan_target_poses
+from sim.render import project_points
+
+BENCH = RigConfig.load(DEFAULT_RIG).nominal_model()
+BOARD = Board.load(CONFIG_DIR / "boards" / "sim_chess_9x7.toml")
+CAMERA_PX, DECODING_PX = 0.0054, (0.0025, 0.0045)  # the simulated bench's, measured against its truth
+
+
+def camera_to_projector(model: RigModel, pose: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Projector pixels (N, 2) of the board-plane points seen at camera `pixels` (N, 2)."""
+    rays = np.column_stack([cv2.undistortPoints(pixels.reshape(-1, 1, 2), model.camera.K, model.camera.dist,
+                                                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100,
+                                                          1e-14)).reshape(-1, 2), np.ones(len(pixels))])
+    normal, origin = pose[:3, 2], pose[:3, 3]
+    X = rays * ((normal @ origin) / (rays @ normal))[:, None]
+    P = model.proj_from_cam
+    return project_points(model.projector, X @ P[:3, :3].T + P[:3, 3])
+
+
+def measured_views(model: RigModel, n: int, rng: np.random.Generator, half_turn_first: bool = False
+                   ) -> list[Correspondence]:
+    """Board views as the bench measures them (module docstring); `half_turn_first`: the
+    first (frontal) view's corners numbered from the other end, as the chessboard detector
+    may report an odd x odd board: its pose is then a half turn from the others'."""
+    target = Target(np.ones((4, 4), np.float32), BOARD.size_mm, BOARD.image_origin_mm, BOARD.object_points())
+    obj = BOARD.object_points()
+    out = []
+    for k, pose in enumerate(plan_target_poses(model, target, n, 400.0, int(rng.integers(1 << 30)))):
+        X = obj @ pose[:3, :3].T + pose[:3, 3]
+        true_cam = project_points(model.camera, X)
+        camera = true_cam + rng.normal(0.0, CAMERA_PX, true_cam.shape)
+        h = 1e-3
+        A = np.stack([(camera_to_projector(model, pose, true_cam + d) - camera_to_projector(model, pose, true_cam - d))
+                      / (2 * h) for d in ([h, 0.0], [0.0, h])], axis=2)
+        projector = camera_to_projector(model, pose, camera) + rng.normal(0.0, DECODING_PX, true_cam.shape)
+        board = obj
+        if half_turn_first and k == 0:
+            order = np.arange(len(obj))[::-1]
+            board, camera, projector, A = obj, camera[order], projector[order], A[order]
+        found = np.ones(len(obj), dtype=bool)
+        corners = ProjectorCorners(projector, found, np.full(len(obj), 400), np.full(len(obj), 0.03), A)
+        out.append(Correspondence(f"pose_{k:03d}", None, ViewPoints(board, camera),  # type: ignore[arg-type]
+                                  ViewPoints(board, projector), corners))
+    return out
+
+
+def distance_of(views: list[Correspondence]) -> tuple[float, int, object]:
+    s = solve(views, BENCH.camera.size, BENCH.projector.size).stereo
+    d = mahalanobis(rig_parameters(s.camera, s.projector, s.proj_from_cam), model_parameters(BENCH), s.covariance)
+    return d.d2, d.dof, s
+
+
+def test_the_refinement_estimates_the_noise_it_is_given_and_weights_by_it() -> None:
+    d2, dof, s = distance_of(measured_views(BENCH, 10, np.random.default_rng(7)))
+    sigma = s.noise.sigma_px
+    assert s.noise.coupled
+    assert sigma[0] == pytest.approx(CAMERA_PX, rel=0.1) and sigma[1] == pytest.approx(CAMERA_PX, rel=0.1)
+    assert sigma[2] == pytest.approx(DECODING_PX[0], rel=0.1) and sigma[3] == pytest.approx(DECODING_PX[1], rel=0.1)
+    assert sum(s.noise.redundancy) == pytest.approx(4 * 63 * 10 - (24 + 6 * 10), abs=0.5)  # rows minus parameters
+    assert dof == 24 and d2 < 51.2  # chi-square 99.9 % point on 24 dof
+
+
+def test_a_board_found_turned_by_a_half_turn_solves_to_the_same_rig() -> None:
+    """The frontal view's corners numbered from the other end put its pose at a half turn,
+    where a Rodrigues vector's inverse is discontinuous: the solve must reach the same
+    minimum as with the view numbered the usual way (same measurements)."""
+    plain = measured_views(BENCH, 8, np.random.default_rng(11))
+    turned = measured_views(BENCH, 8, np.random.default_rng(11), half_turn_first=True)
+    a = solve(plain, BENCH.camera.size, BENCH.projector.size).stereo
+    b = solve(turned, BENCH.camera.size, BENCH.projector.size).stereo
+    sd = np.sqrt(np.diag(a.covariance))
+    difference = rig_parameters(a.camera, a.projector, a.proj_from_cam) - rig_parameters(b.camera, b.projector,
+                                                                                           b.proj_from_cam)
+    assert np.all(np.abs(difference) <= 0.01 * sd)
+
+
+@pytest.mark.slow  # 40 solves, ~2 min
+def test_mahalanobis_distance_of_the_truth_follows_its_chi_square() -> None:
+    rng = np.random.default_rng(20261204)
+    d2 = np.array([distance_of(measured_views(BENCH, 10, rng))[0] for _ in range(40)])
+    ratio = d2.mean() / 24
+    print(f"40 draws: mean d²/dof {ratio:.3f}, {np.mean(d2 <= 36.415):.0%} under the chi-square 95 % point")
+    assert abs(ratio - 1.0) < 3 * np.sqrt(2 / 24 / 40)
+    assert np.mean(d2 <= 36.415) >= 0.85  # 95 % expected; 40 draws put the binomial's 1st percentile at 0.85
+
+
+@pytest.mark.slow
+@pytest.mark.acceptance  # 30 rendered calibrations at half size: hours on 2 cores; run on purpose
+def test_rendered_calibrations_cover_the_true_rig(tmp_path: Path) -> None:
+    from slscan import cli
+
+    text = DEFAULT_RIG.read_text().replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
+    text = text.replace("width = 1280", "width = 640").replace("height = 1024", "height = 512")
+    rig = tmp_path / "rig.toml"
+    rig.write_text(text + f'\n[calibrate]\nboard = "{CONFIG_DIR / "boards" / "sim_chess_9x7.toml"}"\nposes = 12\n')
+    seed = int(np.random.default_rng().integers(1 << 20))
+    print(f"seeds {seed}..{seed + 29}")
+    assert cli.main(["calibrate", "--rig", str(rig), "--covariance-check", "30", "--seed", str(seed), "--out",
+                     str(tmp_path / "check")]) == 0
+    s = json.loads((tmp_path / "check" / "covariance_check.json").read_text())
+    assert abs(s["mean_d2_over_dof"] - 1.0) < 3 * s["mean_d2_over_dof_expected_sd"]
+    assert s["under_chi2_95_interval"][0] <= 0.95 <= s["under_chi2_95_interval"][1]
