@@ -96,7 +96,10 @@ class StereoCalibration:
     devices' intrinsics and distortion, then proj_from_cam as a Rodrigues vector (rad) and a
     translation (mm)), the board poses marginalised out; zero where a parameter was held fixed.
     `std` holds one-sigma uncertainties ('camera.fx', 'projector.cy', 'extrinsic.tx' (mm),
-    'extrinsic.rotation_deg', ...); `noise` the corners' error model they rest on."""
+    'extrinsic.rotation_deg', ...); `noise` the corners' error model they rest on;
+    `camera_tests`, `projector_tests` per view each point's outlier statistic under that
+    model (`_Whitening.point_tests`: chi-square with 2 degrees of freedom for a point that
+    fits it)."""
 
     camera: Pinhole
     projector: Pinhole
@@ -107,6 +110,8 @@ class StereoCalibration:
     std: dict[str, float]
     covariance: np.ndarray
     noise: CornerErrorModel
+    camera_tests: list[np.ndarray]
+    projector_tests: list[np.ndarray]
 
     @property
     def cam_from_proj(self) -> np.ndarray:
@@ -232,6 +237,15 @@ class _Whitening:
         J = jac.reshape(-1, 2, jac.shape[1]).copy()
         J[self.proj] -= np.einsum("mij,mjp->mip", self.A, J[self.cam])
         return (J / sigma[self.group][..., None]).reshape(jac.shape)
+
+    def point_tests(self, res: np.ndarray, J: np.ndarray) -> np.ndarray:
+        """Per point (camera or projector, in the rows' order): the sum of its two whitened
+        residuals squared, each over its redundancy 1 − leverage (Baarda's standardised
+        residuals): chi-square with 2 degrees of freedom when the point follows the model.
+        A projector point's residual is its decoding's part alone (the camera's error
+        taken out), so a gross camera corner error shows in the camera point only."""
+        leverage = np.einsum("ij,jk,ik->i", J, covariance(J, 1.0), J)
+        return np.sum((res ** 2 / np.maximum(1.0 - leverage, 1e-9)).reshape(-1, 2), axis=1)
 
     def variance_factors(self, res: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per group: its whitened residuals' sum of squares over its redundancy (the
@@ -379,10 +393,12 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     poses = np.stack([pose_matrix(x[e0 + 6 + 6 * v:e0 + 9 + 6 * v], x[e0 + 9 + 6 * v:e0 + 12 + 6 * v])
                       for v in range(n_views)])
     poses[:, :3, :3] = poses[:, :3, :3] @ start
-    blocks = np.split(raw.reshape(-1, 2), np.cumsum([n for cv, pv in zip(cam_views, proj_views)
-                                                     for n in (len(cv), len(pv))])[:-1])
+    splits = np.cumsum([n for cv, pv in zip(cam_views, proj_views) for n in (len(cv), len(pv))])[:-1]
+    blocks = np.split(raw.reshape(-1, 2), splits)
     cam_res, proj_res = blocks[0::2], blocks[1::2]
+    tests = np.split(weigh.point_tests(res, J[:, free]), splits)
     return StereoCalibration(_pinhole(camera.size, x[:_N_INTR]), _pinhole(projector.size, x[_N_INTR:e0]),
                              proj_from_cam, poses, cam_res, proj_res, std, cov,
                              CornerErrorModel(tuple(float(v) for v in sigma),  # type: ignore[arg-type]
-                                              tuple(float(v) for v in redundancy), weigh.coupled))
+                                              tuple(float(v) for v in redundancy), weigh.coupled),
+                             tests[0::2], tests[1::2])

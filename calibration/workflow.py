@@ -35,7 +35,8 @@ from calibration.fit import fit_plane, plane_rms
 from calibration.gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images, phase_error_rad
 from calibration.intrinsics import calibrate_device
 from calibration.phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, local_pitch_range_mm
-from calibration.solve import CalibrationSettings, Solution, Stability, check_limits, leave_one_out, solve, without_view
+from calibration.solve import (OUTLIER_ALPHA, OUTLIER_GATE, CalibrationSettings, Solution, Stability, check_limits,
+                               leave_one_out, solve, without_view)
 from calibration.stereo import RIG_PARAMETERS
 from calibration.store import CaptureSet, CaptureWriter, decode_pose, pose_view
 from calibration.validate import Artefact, Validation, measure_sphere_pair
@@ -182,6 +183,11 @@ class CalibrationResult:
                            "noise_model": s.noise.to_dict()},
             "camera_intrinsics": asdict(sol.camera_choice), "views": views,
             "dropped_views": {**sol.dropped, **self.failures},
+            "outlier_corners": {"test": f"a corner whose camera or projector point's standardised residuals (squared, "
+                                        f"summed) exceed {OUTLIER_GATE:.1f}, the chi-square (2 dof) point a point "
+                                        f"following the noise model exceeds with probability {OUTLIER_ALPHA:g}",
+                                "failed": {name: {str(k): v for k, v in ids.items()}
+                                             for name, ids in sol.outlier_corners.items()}},
             "outlier_views": self.outliers(),
             "coverage": {name: {"fraction": c.fraction, "cells": c.counts.tolist(), "uncovered": c.empty_zones()}
                          for name, c in self.coverage().items()},
@@ -220,6 +226,9 @@ class CalibrationResult:
         outliers = self.outliers()
         out = [f"views     {len(sol.names)} used" + (f", left out: {'; '.join(f'{k} ({v})' for k, v in left_out.items())}"
                                                  if left_out else ""),
+               *([f"corners   fail the outlier test (a good corner fails it with probability {OUTLIER_ALPHA:g}; kept): "
+                  + "; ".join(f"{name} {', '.join(str(k) for k in ids)}" for name, ids in sol.outlier_corners.items())]
+                 if sol.outlier_corners else []),
                *([f"outliers  {'; '.join(f'{k} ({v})' for k, v in outliers.items())} stand out (over "
                   f"{self.settings.outlier_factor:g} x the median view): re-take them, or solve with --drop-outliers"]
                  if outliers else []),

@@ -29,7 +29,8 @@ def test_each_left_out_board_measures_its_corner_distances_within_u(tmp_path: Pa
                      "1024x768", "--board", str(BOARD), "--pose-folders", "capture_*", "--out", str(tmp_path / "loo"),
                      "--json"])
     assert code == 0
-    rows = json.loads(capsys.readouterr().out)
+    report = json.loads(capsys.readouterr().out)
+    rows, pooled = report["poses"], report["summary"]
     assert [r["pose"] for r in rows] == [f"capture_{i}" for i in range(5)]
     for r in rows:
         print(f"{r['pose']}: adjacent corners error RMS {r['adjacent_error_rms_mm']:.3f} mm (U median "
