@@ -9,18 +9,18 @@ parameter, the measure of how well the views determine the rig.
 
 The errors' model (`CornerErrorModel`), from how the points are measured: a camera corner is
 found in the camera image with an error e (σ per axis); its projector pixel is the local
-fit of the decoded coordinates evaluated at that camera corner
-(`calibration.correspond`), so it carries A·e (A = the fit's Jacobian there) plus
-the decoding's own error n (σ per projector axis; the two axes come from separate fringe
-sequences). A corner's four coordinates are therefore correlated: on the simulated bench
-the camera and projector errors of a corner correlate at 0.93-0.96, and treating them as
-independent gave a covariance the true rig lay far outside of (Mahalanobis d² 75 on 22
-degrees of freedom at half size, 82 on 24 at full size). The refinement is the
-maximum-likelihood fit under that model: each projector residual is replaced by its part
-the camera's error does not explain, r_p − A·r_c, and every row is divided by its σ. The
-four σ are estimated from the residuals themselves (variance component estimation, each
-group's sum of squares over its redundancy; Förstner 1979), so the covariance is
-(JᵀJ)⁻¹ of the whitened problem, in the units of the data's own scatter.
+fit of the decoded coordinates evaluated at that camera corner (`calibration.correspond`),
+so it carries A·e (A = the fit's Jacobian there) plus the decoding's own error n (σ per
+projector axis; the two axes come from separate fringe sequences). A corner's four
+coordinates are therefore correlated: on the simulated bench its camera and projector
+errors correlate at 0.93-0.96. The fit weights each device's rows by its own σ (each group's σ estimated
+from its residuals over its redundancy: variance component estimation, Förstner 1979); its
+covariance is that weighted fit's under the model, B·M·B with B = (JᵀJ)⁻¹ of the weighted
+rows and M adding each projector point's correlation with its camera corner and its own
+variance A·Σₑ·Aᵀ + Σₙ. Weighting by the model itself (each projector residual minus A times
+its camera residual) is the maximum-likelihood fit and held on the simulator, but on the
+real procam capture it leaned on the Gray-code decoding's systematic errors: the projector's
+focal length moved by 1.05 % between leave-one-pose-out solutions (0.50 % weighted this way).
 """
 
 from __future__ import annotations
@@ -53,38 +53,45 @@ class CornerLinks:
     jacobian: np.ndarray
 
 
-NOISE_GROUPS = ("camera x", "camera y", "decoding x", "decoding y")
+WEIGHT_GROUPS = ("camera x", "camera y", "projector x", "projector y")
 
 
 @dataclass(frozen=True)
 class CornerErrorModel:
-    """The corners' error model the refinement is weighted by and its covariance rests on
-    (module docstring): one-sigma `sigma_px` per group of NOISE_GROUPS (camera corner
-    error per axis; the decoding's error of a projector corner per projector axis, beyond
-    what the camera's error carries into it), each estimated from its residuals over its
-    `redundancy` (degrees of freedom); `coupled` whether projector points carried the
-    camera's error (False: the views gave no links, the devices' errors independent)."""
+    """The corners' error model the covariance rests on (module docstring): `sigma_px` the
+    one-sigma of each group of WEIGHT_GROUPS, which weights the fit, each estimated from
+    its residuals over its `redundancy` (degrees of freedom); `decoding_px` the decoding's
+    own one-sigma per projector axis, beyond what the camera corner's error carries into
+    the projector point (NaN when `coupled` is False: the views gave no links and the two
+    devices' errors are taken as independent)."""
 
     sigma_px: tuple[float, float, float, float]
+    decoding_px: tuple[float, float]
     redundancy: tuple[float, float, float, float]
     coupled: bool
 
     def to_dict(self) -> dict[str, object]:
         return {"model": ("projector corner = local fit of the decoded coordinates at the camera corner: its error "
                           "is A·e_camera + e_decoding, A the fit's Jacobian; camera and decoding errors independent, "
-                          "Gaussian, one sigma per axis" if self.coupled else
+                          "Gaussian, one sigma per axis; the fit weights each device's rows by its sigma and its "
+                          "covariance carries the correlation" if self.coupled else
                           "camera and projector corner errors independent, Gaussian, one sigma per axis"),
-                "sigma_px": dict(zip(NOISE_GROUPS, self.sigma_px)),
-                "redundancy": dict(zip(NOISE_GROUPS, self.redundancy)),
+                "sigma_px": dict(zip(WEIGHT_GROUPS, self.sigma_px)),
+                "decoding_px": dict(zip(("x", "y"), self.decoding_px)) if self.coupled else None,
+                "redundancy": dict(zip(WEIGHT_GROUPS, self.redundancy)),
                 "estimated": "variance components: each group's residual sum of squares over its redundancy",
-                "assumed": "the board's printed geometry (square size, flatness) exact: its errors are not in the "
-                           "covariance"}
+                "assumed": "the board's printed geometry (square size, flatness) exact; the corners' errors "
+                           "independent from corner to corner: errors that are fields over a view (a lens or a "
+                           "window the model lacks) are not in the covariance"}
 
     def summary(self) -> str:
         s = self.sigma_px
-        what = "decoding beyond the camera's error" if self.coupled else "projector"
-        return (f"corner noise (estimated from the residuals): camera {s[0]:.4f} x {s[1]:.4f} px, {what} "
+        text = (f"corner noise (estimated from the residuals): camera {s[0]:.4f} x {s[1]:.4f} px, projector "
                 f"{s[2]:.4f} x {s[3]:.4f} px")
+        if self.coupled:
+            text += (f", of which the decoding's own {self.decoding_px[0]:.4f} x {self.decoding_px[1]:.4f} px (the "
+                     f"rest is the camera corner's error carried through the local fit)")
+        return text
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,7 +105,7 @@ class StereoCalibration:
     `std` holds one-sigma uncertainties ('camera.fx', 'projector.cy', 'extrinsic.tx' (mm),
     'extrinsic.rotation_deg', ...); `noise` the corners' error model they rest on;
     `camera_tests`, `projector_tests` per view each point's outlier statistic under that
-    model (`_Whitening.point_tests`: chi-square with 2 degrees of freedom for a point that
+    model (`_Weighting.point_tests`: chi-square with 2 degrees of freedom for a point that
     fits it)."""
 
     camera: Pinhole
@@ -134,12 +141,9 @@ class StereoCalibration:
         return np.array([rms(r) for r in res])
 
 
-def _uncertainties(res: np.ndarray, J: np.ndarray, free: np.ndarray, e0: int) -> tuple[dict[str, float], np.ndarray]:
-    """One-sigma uncertainty of every parameter, and the covariance of the rig's
-    parameters (the first e0 + 6), from the residuals and Jacobian at the solution."""
-    dof = max(len(res) - int(free.sum()), 1)
-    cov = np.zeros((len(free), len(free)))
-    cov[np.ix_(free, free)] = covariance(J[:, free], float(res @ res) / dof)
+def _uncertainties(cov: np.ndarray, e0: int) -> tuple[dict[str, float], np.ndarray]:
+    """One-sigma uncertainty of every parameter from the parameters' covariance, and the
+    covariance of the rig's parameters (the first e0 + 6)."""
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     std = {f"camera.{n}": float(sd[i]) for i, n in enumerate(INTRINSIC_NAMES)}
     std |= {f"projector.{n}": float(sd[_N_INTR + i]) for i, n in enumerate(INTRINSIC_NAMES)}
@@ -204,10 +208,10 @@ MAX_VARIANCE_ROUNDS = 30
 VARIANCE_TOLERANCE = 1e-3  # the groups' variances settle to 0.1 %
 
 
-class _Whitening:
-    """The joint problem's residuals and Jacobian in units of their noise (module
-    docstring): projector rows minus A times their camera corner's rows, every row over
-    its group's sigma (NOISE_GROUPS); and the groups' variance factors from a fit."""
+class _Weighting:
+    """The joint problem's rows over their group's sigma (WEIGHT_GROUPS), the groups'
+    variance factors from a fit, and the covariance of that weighted fit under the
+    corners' error model (module docstring)."""
 
     def __init__(self, cam_views: list[ViewPoints], proj_views: list[ViewPoints],
                  links: list[CornerLinks] | None) -> None:
@@ -229,33 +233,57 @@ class _Whitening:
         self.group = np.array(group, dtype=np.int64).reshape(-1, 2)
 
     def residuals(self, res: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-        r = res.reshape(-1, 2).copy()
-        r[self.proj] -= np.einsum("mij,mj->mi", self.A, r[self.cam])
-        return (r / sigma[self.group]).ravel()
+        return (res.reshape(-1, 2) / sigma[self.group]).ravel()
 
     def jacobian(self, jac: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-        J = jac.reshape(-1, 2, jac.shape[1]).copy()
-        J[self.proj] -= np.einsum("mij,mjp->mip", self.A, J[self.cam])
-        return (J / sigma[self.group][..., None]).reshape(jac.shape)
+        return (jac.reshape(-1, 2, jac.shape[1]) / sigma[self.group][..., None]).reshape(jac.shape)
 
     def point_tests(self, res: np.ndarray, J: np.ndarray) -> np.ndarray:
-        """Per point (camera or projector, in the rows' order): the sum of its two whitened
+        """Per point (camera or projector, in the rows' order): the sum of its two weighted
         residuals squared, each over its redundancy 1 − leverage (Baarda's standardised
-        residuals): chi-square with 2 degrees of freedom when the point follows the model.
-        A projector point's residual is its decoding's part alone (the camera's error
-        taken out), so a gross camera corner error shows in the camera point only."""
+        residuals): about chi-square with 2 degrees of freedom when the point follows the
+        model."""
         leverage = np.einsum("ij,jk,ik->i", J, covariance(J, 1.0), J)
         return np.sum((res ** 2 / np.maximum(1.0 - leverage, 1e-9)).reshape(-1, 2), axis=1)
 
     def variance_factors(self, res: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per group: its whitened residuals' sum of squares over its redundancy (the
+        """Per group: its weighted residuals' sum of squares over its redundancy (the
         rows' share of the degrees of freedom, 1 − leverage summed), and that redundancy."""
         leverage = np.einsum("ij,jk,ik->i", J, covariance(J, 1.0), J)
         g = self.group.ravel()
-        redundancy = np.bincount(g, 1.0 - leverage, len(NOISE_GROUPS))
-        squares = np.bincount(g, res ** 2, len(NOISE_GROUPS))
+        redundancy = np.bincount(g, 1.0 - leverage, len(WEIGHT_GROUPS))
+        squares = np.bincount(g, res ** 2, len(WEIGHT_GROUPS))
         factor = np.where(redundancy > 0.5, squares / np.maximum(redundancy, 0.5), 1.0)
         return factor, redundancy
+
+    def decoding_sigma(self, raw: np.ndarray, redundancy: np.ndarray) -> np.ndarray:
+        """The decoding's own one-sigma per projector axis (px): the projector residuals
+        minus A times their camera corner's, over the projector rows' redundancy."""
+        if not self.coupled:
+            return np.full(2, np.nan)
+        r = raw.reshape(-1, 2)
+        n = r[self.proj] - np.einsum("mij,mj->mi", self.A, r[self.cam])
+        return np.sqrt(np.sum(n ** 2, axis=0) / np.maximum(redundancy[2:4], 1.0))
+
+    def covariance(self, J: np.ndarray, sigma: np.ndarray, decoding: np.ndarray) -> np.ndarray:
+        """The fitted parameters' covariance (B M B, B = (JᵀJ)⁻¹ of the weighted rows J):
+        M = JᵀJ where the rows' errors are independent with the groups' sigmas, plus, for a
+        projector point carrying its camera corner's error (error A·e + n), the
+        correlation with that corner's rows and its own variance under the model."""
+        B = covariance(J, 1.0)
+        M = J.T @ J
+        if self.coupled:
+            P = J.shape[1]
+            Jp = J.reshape(-1, 2, P)[self.proj]  # (m, 2, P), rows over the projector sigmas
+            Jc = J.reshape(-1, 2, P)[self.cam]
+            sc, sp = sigma[:2], sigma[2:4]
+            ce = np.diag(sc ** 2)
+            pp = np.einsum("mij,jk,mlk->mil", self.A, ce, self.A) + np.diag(decoding ** 2)  # (m, 2, 2) px²
+            pp = pp / np.outer(sp, sp) - np.eye(2)  # beyond the weighting's own identity
+            pc = np.einsum("mij,jk->mik", self.A, ce) / np.outer(sp, sc)  # Cov(projector, camera rows)
+            M = M + np.einsum("mip,mij,mjq->pq", Jp, pp, Jp) + np.einsum("mip,mij,mjq->pq", Jp, pc, Jc)
+            M = M + np.einsum("mip,mij,mjq->pq", Jc, np.transpose(pc, (0, 2, 1)), Jp)
+        return B @ M @ B
 
 
 MAX_POLISH_STEPS = 50
@@ -361,8 +389,8 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
             row += 2 * n
         return res, jac
 
-    weigh = _Whitening(cam_views, proj_views, links)
-    sigma = np.ones(len(NOISE_GROUPS))
+    weigh = _Weighting(cam_views, proj_views, links)
+    sigma = np.ones(len(WEIGHT_GROUPS))
 
     def fun(xf: np.ndarray) -> np.ndarray:
         x = x0.copy()
@@ -386,7 +414,10 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     x[free] = xf
     raw, J_raw = residuals_and_jacobian(x, True)
     res, J = weigh.residuals(raw, sigma), weigh.jacobian(J_raw, sigma)  # type: ignore[arg-type]
-    std, cov = _uncertainties(res, J, free, e0)
+    decoding = weigh.decoding_sigma(raw, redundancy)
+    full = np.zeros((len(free), len(free)))
+    full[np.ix_(free, free)] = weigh.covariance(J[:, free], sigma, decoding)
+    std, cov = _uncertainties(full, e0)
     if fix_camera and camera_covariance is not None:
         cov = _with_camera(J, free, e0, cov, camera_covariance)
     proj_from_cam = pose_matrix(x[e0:e0 + 3], x[e0 + 3:e0 + 6])
@@ -400,5 +431,6 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     return StereoCalibration(_pinhole(camera.size, x[:_N_INTR]), _pinhole(projector.size, x[_N_INTR:e0]),
                              proj_from_cam, poses, cam_res, proj_res, std, cov,
                              CornerErrorModel(tuple(float(v) for v in sigma),  # type: ignore[arg-type]
+                                              tuple(float(v) for v in decoding),  # type: ignore[arg-type]
                                               tuple(float(v) for v in redundancy), weigh.coupled),
                              tests[0::2], tests[1::2])
