@@ -9,7 +9,7 @@ where the truth is known (the simulator, `slscan calibrate --covariance-check`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -33,6 +33,22 @@ def rig_parameters(camera: Pinhole, projector: Pinhole, proj_from_cam: np.ndarra
 def model_parameters(model: RigModel) -> np.ndarray:
     """`rig_parameters` of a rig model."""
     return rig_parameters(model.camera, model.projector, model.proj_from_cam)
+
+
+def parameters_model(parameters: np.ndarray, like: RigModel) -> RigModel:
+    """The rig `like` (its device sizes, world pose, gamma) with the geometry `parameters`
+    (P,) in the order of `rig_parameters`: its inverse."""
+    p = np.asarray(parameters, dtype=np.float64)
+
+    def device(old: Pinhole, q: np.ndarray) -> Pinhole:
+        K = np.array([[q[0], 0.0, q[2]], [0.0, q[1], q[3]], [0.0, 0.0, 1.0]])
+        return Pinhole(old.width, old.height, K, q[4:9].copy())
+
+    proj_from_cam = np.eye(4)
+    proj_from_cam[:3, :3] = cv2.Rodrigues(p[18:21])[0]
+    proj_from_cam[:3, 3] = p[21:24]
+    return replace(like, camera=device(like.camera, p[:9]), projector=device(like.projector, p[9:18]),
+                   cam_from_proj=np.linalg.inv(proj_from_cam), phase_to_height=None)
 
 
 @dataclass(frozen=True)

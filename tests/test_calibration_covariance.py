@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from calibration.board import Board
-from calibration.consistency import mahalanobis, model_parameters, rig_parameters
+from calibration.consistency import mahalanobis, model_parameters, parameters_model, rig_parameters
 from calibration.correspond import ProjectorCorners
 from calibration.intrinsics import ViewPoints
 from calibration.solve import solve
@@ -123,6 +123,41 @@ def test_a_corner_the_detector_got_wrong_is_named() -> None:
     solution = solve(views, BENCH.camera.size, BENCH.projector.size)
     assert 20 in solution.outlier_corners.get("pose_003", {})
     assert sum(len(v) for v in solution.outlier_corners.values()) <= 2
+
+
+def test_rig_parameters_and_the_model_built_from_them_agree() -> None:
+    p = model_parameters(BENCH)
+    again = parameters_model(p, BENCH)
+    assert np.allclose(again.cam_from_proj, BENCH.cam_from_proj, atol=1e-9)
+    assert np.allclose(again.camera.K, BENCH.camera.K) and np.allclose(again.projector.dist, BENCH.projector.dist)
+    assert again.camera.size == BENCH.camera.size and np.allclose(model_parameters(again), p)
+
+
+def test_a_calibration_scaled_in_its_baseline_reads_depth_scaled_by_the_same_factor() -> None:
+    """Closed form: a rig whose projector translation is (1 + ε) times the true one
+    triangulates every point at (1 + ε) times its depth (similar triangles), so its mean
+    depth error over the scene is ε times the mean true depth; a covariance that only lets
+    the translation's length vary with a relative sigma s gives that mean a sigma of s
+    times the mean depth."""
+    from sim.evaluate import Truth, smooth_region
+    from sim.render import compute_ground_truth
+    from sim.scene import load_scene
+    from slscan.calibration_depth import calibration_depth_bias
+    from slscan.commands.calibrate import SCAN_CHECK_SCENE
+
+    truth = BENCH.with_camera_size(320, 256)
+    p = model_parameters(truth)
+    eps, s = 2e-4, 5e-5
+    estimate = p.copy()
+    estimate[21:24] *= 1 + eps
+    covariance = np.zeros((24, 24))
+    covariance[21:24, 21:24] = s ** 2 * np.outer(p[21:24], p[21:24])
+    gt = Truth.of(compute_ground_truth(truth, load_scene(SCAN_CHECK_SCENE)))
+    mean_depth_um = float(np.mean(gt.depth[smooth_region(gt)])) * 1e3
+    bias = calibration_depth_bias(truth, estimate, covariance, SCAN_CHECK_SCENE)
+    assert bias.error_um == pytest.approx(eps * mean_depth_um, rel=0.01)
+    assert bias.sigma_um == pytest.approx(s * mean_depth_um, rel=0.01)
+    assert bias.z == pytest.approx(eps / s, rel=0.02)
 
 
 @pytest.mark.slow  # 40 solves, ~2 min

@@ -215,6 +215,7 @@ def _on_rig(args: argparse.Namespace, out: Path, say: Any, log: Any) -> tuple[An
         lines = ["against the simulator's ground truth:", *("          " + x for x in
                                                            error_lines(model_errors(result.model, truth)))]
         lines += _scan_check(rig, result.model, truth, say)
+        lines += [_calibration_depth_line(result.model, result.solution.stereo.covariance, truth, say)]
         if result.model.phase_to_height is not None:
             lines += _phase_height_check(rig, result.model, config.working_distance_mm + PLATE_BEHIND_MM,
                                          max(procedure.plate_heights_mm), say)
@@ -267,6 +268,17 @@ def _scan_check(rig: Any, calibrated: Any, truth: Any, say: Any) -> list[str]:
     return [f"scan check (sphere + plane, {patterns.family}): depth RMS {c.rms_mm * 1e3:.2f} um with the calibrated "
             f"rig, {t.rms_mm * 1e3:.2f} um with the ground-truth rig (ratio {c.rms_mm / t.rms_mm:.3f}); mean "
             f"{c.mean_mm * 1e3:+.2f} / {t.mean_mm * 1e3:+.2f} um"]
+
+
+def _calibration_depth_line(calibrated: Any, covariance: np.ndarray, truth: Any, say: Any) -> str:
+    """The calibration's own share of the scan check's mean depth error, and its one-sigma
+    from the calibration's covariance (slscan/calibration_depth.py)."""
+    from calibration.consistency import model_parameters
+    from slscan.calibration_depth import calibration_depth_bias
+
+    say("scan check: the calibration's own depth error and its sigma from the covariance")
+    bias = calibration_depth_bias(truth, model_parameters(calibrated), covariance, SCAN_CHECK_SCENE)
+    return "          " + bias.summary()
 
 
 def _measuring_volume_scene(camera: Any, plate_mm: float, top_mm: float) -> Any:
