@@ -103,7 +103,9 @@ class StereoCalibration:
     devices' intrinsics and distortion, then proj_from_cam as a Rodrigues vector (rad) and a
     translation (mm)), the board poses marginalised out; zero where a parameter was held fixed.
     `std` holds one-sigma uncertainties ('camera.fx', 'projector.cy', 'extrinsic.tx' (mm),
-    'extrinsic.rotation_deg', ...); `noise` the corners' error model they rest on;
+    'extrinsic.rotation_deg', ...); `decoding_covariance` (24, 24) the part of `covariance`
+    the decoding's own error makes (the rest is the camera corners'); `noise` the corners'
+    error model they rest on;
     `camera_tests`, `projector_tests` per view each point's outlier statistic under that
     model (`_Weighting.point_tests`: chi-square with 2 degrees of freedom for a point that
     fits it)."""
@@ -116,6 +118,7 @@ class StereoCalibration:
     projector_residuals: list[np.ndarray]
     std: dict[str, float]
     covariance: np.ndarray
+    decoding_covariance: np.ndarray
     noise: CornerErrorModel
     camera_tests: list[np.ndarray]
     projector_tests: list[np.ndarray]
@@ -123,6 +126,12 @@ class StereoCalibration:
     @property
     def cam_from_proj(self) -> np.ndarray:
         return np.linalg.inv(self.proj_from_cam)
+
+    def decoding_share(self) -> dict[str, float]:
+        """Per parameter of RIG_PARAMETERS with a variance: the fraction of it the decoding's
+        own error makes (the rest is the camera corners' error)."""
+        total, part = np.diag(self.covariance), np.diag(self.decoding_covariance)
+        return {n: float(p / t) for n, t, p in zip(RIG_PARAMETERS, total, part) if t > 0}
 
     @property
     def camera_rms_px(self) -> float:
@@ -265,25 +274,30 @@ class _Weighting:
         n = r[self.proj] - np.einsum("mij,mj->mi", self.A, r[self.cam])
         return np.sqrt(np.sum(n ** 2, axis=0) / np.maximum(redundancy[2:4], 1.0))
 
-    def covariance(self, J: np.ndarray, sigma: np.ndarray, decoding: np.ndarray) -> np.ndarray:
+    def covariance(self, J: np.ndarray, sigma: np.ndarray, decoding: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The fitted parameters' covariance (B M B, B = (JᵀJ)⁻¹ of the weighted rows J):
         M = JᵀJ where the rows' errors are independent with the groups' sigmas, plus, for a
         projector point carrying its camera corner's error (error A·e + n), the
-        correlation with that corner's rows and its own variance under the model."""
+        correlation with that corner's rows and its own variance under the model; and the
+        part of it the decoding's own error n makes (B M_n B; the rest is the camera
+        corners' error e; without links, the projector points' whole error)."""
         B = covariance(J, 1.0)
         M = J.T @ J
-        if self.coupled:
-            P = J.shape[1]
-            Jp = J.reshape(-1, 2, P)[self.proj]  # (m, 2, P), rows over the projector sigmas
-            Jc = J.reshape(-1, 2, P)[self.cam]
-            sc, sp = sigma[:2], sigma[2:4]
-            ce = np.diag(sc ** 2)
-            pp = np.einsum("mij,jk,mlk->mil", self.A, ce, self.A) + np.diag(decoding ** 2)  # (m, 2, 2) px²
-            pp = pp / np.outer(sp, sp) - np.eye(2)  # beyond the weighting's own identity
-            pc = np.einsum("mij,jk->mik", self.A, ce) / np.outer(sp, sc)  # Cov(projector, camera rows)
-            M = M + np.einsum("mip,mij,mjq->pq", Jp, pp, Jp) + np.einsum("mip,mij,mjq->pq", Jp, pc, Jc)
-            M = M + np.einsum("mip,mij,mjq->pq", Jc, np.transpose(pc, (0, 2, 1)), Jp)
-        return B @ M @ B
+        P = J.shape[1]
+        if not self.coupled:
+            Jp = J.reshape(-1, 2, P)[self.group[:, 0] == 2].reshape(-1, P)
+            return B @ M @ B, B @ (Jp.T @ Jp) @ B
+        Jp = J.reshape(-1, 2, P)[self.proj]  # (m, 2, P), rows over the projector sigmas
+        Jc = J.reshape(-1, 2, P)[self.cam]
+        sc, sp = sigma[:2], sigma[2:4]
+        ce = np.diag(sc ** 2)
+        pp = np.einsum("mij,jk,mlk->mil", self.A, ce, self.A) + np.diag(decoding ** 2)  # (m, 2, 2) px²
+        pp = pp / np.outer(sp, sp) - np.eye(2)  # beyond the weighting's own identity
+        pc = np.einsum("mij,jk->mik", self.A, ce) / np.outer(sp, sc)  # Cov(projector, camera rows)
+        M = M + np.einsum("mip,mij,mjq->pq", Jp, pp, Jp) + np.einsum("mip,mij,mjq->pq", Jp, pc, Jc)
+        M = M + np.einsum("mip,mij,mjq->pq", Jc, np.transpose(pc, (0, 2, 1)), Jp)
+        M_n = np.einsum("mip,i,miq->pq", Jp, decoding ** 2 / sp ** 2, Jp)
+        return B @ M @ B, B @ M_n @ B
 
 
 MAX_POLISH_STEPS = 50
@@ -415,8 +429,8 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     raw, J_raw = residuals_and_jacobian(x, True)
     res, J = weigh.residuals(raw, sigma), weigh.jacobian(J_raw, sigma)  # type: ignore[arg-type]
     decoding = weigh.decoding_sigma(raw, redundancy)
-    full = np.zeros((len(free), len(free)))
-    full[np.ix_(free, free)] = weigh.covariance(J[:, free], sigma, decoding)
+    full, from_decoding = np.zeros((2, len(free), len(free)))
+    full[np.ix_(free, free)], from_decoding[np.ix_(free, free)] = weigh.covariance(J[:, free], sigma, decoding)
     std, cov = _uncertainties(full, e0)
     if fix_camera and camera_covariance is not None:
         cov = _with_camera(J, free, e0, cov, camera_covariance)
@@ -429,7 +443,7 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     cam_res, proj_res = blocks[0::2], blocks[1::2]
     tests = np.split(weigh.point_tests(res, J[:, free]), splits)
     return StereoCalibration(_pinhole(camera.size, x[:_N_INTR]), _pinhole(projector.size, x[_N_INTR:e0]),
-                             proj_from_cam, poses, cam_res, proj_res, std, cov,
+                             proj_from_cam, poses, cam_res, proj_res, std, cov, from_decoding[:e0 + 6, :e0 + 6],
                              CornerErrorModel(tuple(float(v) for v in sigma),  # type: ignore[arg-type]
                                               tuple(float(v) for v in decoding),  # type: ignore[arg-type]
                                               tuple(float(v) for v in redundancy), weigh.coupled),

@@ -53,6 +53,8 @@ from scanner.rig import Rig, RigConfig
 DEFAULT_BOARD = CONFIG_DIR / "boards" / "sim_chess_9x7.toml"
 DEFAULT_HEIGHTS_MM = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
 DEFAULT_ARTEFACT = Artefact(radius_mm=10.0, distance_mm=50.0)
+SHARE_SHOWN = ("camera.fx", "camera.cx", "camera.cy", "projector.fx", "projector.cx", "projector.cy", "extrinsic.rx",
+               "extrinsic.ry", "extrinsic.tx", "extrinsic.tz")  # the report's source split of the variance
 _KEYS = {"board", "poses", "plate_heights_mm", "artefact", "fix_k3", "drop_outliers", "max_camera_rms_px",
          "max_projector_rms_px", "max_validation_mm", "min_views", "max_joint_camera_std"}
 
@@ -180,7 +182,7 @@ class CalibrationResult:
             "rms_px": {"camera": s.camera_rms_px, "projector": s.projector_rms_px, "stereo": s.rms_px},
             "uncertainty": s.std,
             "covariance": {"parameters": list(RIG_PARAMETERS), "matrix": s.covariance.tolist(),
-                           "noise_model": s.noise.to_dict()},
+                           "decoding_matrix": s.decoding_covariance.tolist(), "noise_model": s.noise.to_dict()},
             "camera_intrinsics": asdict(sol.camera_choice), "views": views,
             "dropped_views": {**sol.dropped, **self.failures},
             "outlier_corners": {"test": f"a corner whose camera or projector point's standardised residuals (squared, "
@@ -224,6 +226,7 @@ class CalibrationResult:
         Kc, Kp = s.camera.K, s.projector.K
         left_out = {**sol.dropped, **self.failures}
         outliers = self.outliers()
+        share = s.decoding_share()
         out = [f"views     {len(sol.names)} used" + (f", left out: {'; '.join(f'{k} ({v})' for k, v in left_out.items())}"
                                                  if left_out else ""),
                *([f"corners   fail the outlier test (a good corner fails it with probability {OUTLIER_ALPHA:g}; kept): "
@@ -247,6 +250,8 @@ class CalibrationResult:
                f"RMS {s.rms_px:.4f} px",
                f"          the ± are one sigma from the {s.noise.summary()}; a projector corner carries its camera "
                f"corner's error through the local fit, and the fit is weighted by that model",
+               "          share of each variance from the decoding's own error (the rest from the camera corners'): "
+               + ", ".join(f"{n} {share[n]:.0%}" for n in SHARE_SHOWN if n in share),
                f"          {sol.camera.summary()} (own views, before the joint refinement)",
                f"          {sol.projector.summary()} (own views, before the joint refinement)"]
         out.append(f"gamma     {self.gamma.summary()}" if self.gamma else "gamma     not measured (1.0 assumed)")

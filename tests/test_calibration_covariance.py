@@ -48,11 +48,13 @@ def camera_to_projector(model: RigModel, pose: np.ndarray, pixels: np.ndarray) -
     return project_points(model.projector, X @ P[:3, :3].T + P[:3, 3])
 
 
-def measured_views(model: RigModel, n: int, rng: np.random.Generator, half_turn_first: bool = False
-                   ) -> list[Correspondence]:
+def measured_views(model: RigModel, n: int, rng: np.random.Generator, half_turn_first: bool = False,
+                   decoding_rng: np.random.Generator | None = None) -> list[Correspondence]:
     """Board views as the bench measures them (module docstring); `half_turn_first`: the
     first (frontal) view's corners numbered from the other end, as the chessboard detector
-    may report an odd x odd board: its pose is then a half turn from the others'."""
+    may report an odd x odd board: its pose is then a half turn from the others';
+    `decoding_rng`: the decoding's errors drawn from it (the poses and camera errors from
+    `rng`)."""
     target = Target(np.ones((4, 4), np.float32), BOARD.size_mm, BOARD.image_origin_mm, BOARD.object_points())
     obj = BOARD.object_points()
     out = []
@@ -63,7 +65,8 @@ def measured_views(model: RigModel, n: int, rng: np.random.Generator, half_turn_
         h = 1e-3
         A = np.stack([(camera_to_projector(model, pose, true_cam + d) - camera_to_projector(model, pose, true_cam - d))
                       / (2 * h) for d in ([h, 0.0], [0.0, h])], axis=2)
-        projector = camera_to_projector(model, pose, camera) + rng.normal(0.0, DECODING_PX, true_cam.shape)
+        projector = camera_to_projector(model, pose, camera) + (decoding_rng or rng).normal(0.0, DECODING_PX,
+                                                                                             true_cam.shape)
         board = obj
         if half_turn_first and k == 0:
             order = np.arange(len(obj))[::-1]
@@ -160,6 +163,19 @@ def test_a_calibration_scaled_in_its_baseline_reads_depth_scaled_by_the_same_fac
     assert bias.z == pytest.approx(eps / s, rel=0.02)
 
 
+@pytest.mark.parametrize("rig, count, says", [("hdmi_genicam.toml", "3", "needs a simulated rig"),
+                                              ("sim_bench.toml", "0", "give the number of calibrations")])
+def test_the_covariance_check_refuses_what_it_cannot_check(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                           rig: str, count: str, says: str) -> None:
+    """Only a simulated rig has a true rig to check against; a check of no calibration is
+    a usage error. Both before any calibration runs."""
+    from slscan import cli
+
+    code = cli.main(["calibrate", "--rig", str(CONFIG_DIR / "rigs" / rig), "--covariance-check", count, "--seed", "1",
+                     "--out", str(tmp_path / "check")])
+    assert code == 2 and says in capsys.readouterr().err
+
+
 @pytest.mark.slow  # 40 solves, ~2 min
 def test_mahalanobis_distance_of_the_truth_follows_its_chi_square() -> None:
     rng = np.random.default_rng(20261204)
@@ -168,6 +184,28 @@ def test_mahalanobis_distance_of_the_truth_follows_its_chi_square() -> None:
     print(f"40 draws: mean d²/dof {ratio:.3f}, {np.mean(d2 <= 36.415):.0%} under the chi-square 95 % point")
     assert abs(ratio - 1.0) < 3 * np.sqrt(2 / 24 / 40)
     assert np.mean(d2 <= 36.415) >= 0.85  # 95 % expected; 40 draws put the binomial's 1st percentile at 0.85
+
+
+@pytest.mark.slow  # 30 solves, ~2 min
+def test_the_decodings_share_of_the_covariance_is_the_spread_its_errors_alone_make() -> None:
+    """Board poses and camera corners' errors held, the decoding's errors drawn afresh: the
+    estimates then scatter by the decoding's part of the covariance alone (to first order),
+    B·M_n·B. Each parameter's sample variance over 30 draws over that part has mean 1 and a
+    standard deviation of sqrt(2/29) = 0.26; averaged over the 24 (correlated) parameters it
+    must lie within 0.7..1.4."""
+    draws = 30
+    estimates, parts = [], []
+    for k in range(draws):
+        views = measured_views(BENCH, 10, np.random.default_rng(20261205), decoding_rng=np.random.default_rng(k))
+        s = solve(views, BENCH.camera.size, BENCH.projector.size).stereo
+        estimates.append(rig_parameters(s.camera, s.projector, s.proj_from_cam))
+        parts.append(np.diag(s.decoding_covariance))
+    ratio = np.var(np.array(estimates), axis=0, ddof=1) / np.mean(parts, axis=0)
+    total = np.diag(s.covariance)
+    print(f"sample variance over the decoding's part, per parameter: {np.round(ratio, 2)}; mean {ratio.mean():.2f}; "
+          f"decoding's share of the variance {np.round(np.mean(parts, axis=0) / total, 2)}")
+    assert 0.7 <= ratio.mean() <= 1.4
+    assert np.all(np.mean(parts, axis=0) <= total)
 
 
 @pytest.mark.slow
