@@ -81,7 +81,8 @@ def coded_orientation(model: RigModel, view: Any) -> str:
 @dataclass(frozen=True)
 class PoseCheck:
     """One left-out pose: its flatness, and per corner pair on a row or column the
-    nominal distance (mm), the measured minus nominal and its U (k = 2)."""
+    nominal distance (mm), the measured minus nominal and its U (k = 2), and the part of U
+    the corners' noise makes (`U_noise_mm`; the rest is the calibration's uncertainty)."""
 
     name: str
     corners: int
@@ -90,6 +91,7 @@ class PoseCheck:
     nominal_mm: np.ndarray
     error_mm: np.ndarray
     U_mm: np.ndarray
+    U_noise_mm: np.ndarray
     calibration_rms_px: dict[str, float]
     orientation: str
 
@@ -106,6 +108,10 @@ class PoseCheck:
                 "adjacent_error_rms_mm": float(np.sqrt(np.mean(self.error_mm[adj] ** 2))),
                 "adjacent_error_max_mm": float(np.abs(self.error_mm[adj]).max()),
                 "adjacent_U_median_mm": float(np.median(self.U_mm[adj])),
+                # U's sources for adjacent corners: the corners' noise, and the calibration's uncertainty
+                "adjacent_U_noise_median_mm": float(np.median(self.U_noise_mm[adj])),
+                "adjacent_U_calibration_median_mm": float(np.median(np.sqrt(np.maximum(
+                    self.U_mm[adj] ** 2 - self.U_noise_mm[adj] ** 2, 0.0)))),
                 # U (k = 2) over the error's RMS: 2 when U is honest for this pose
                 "adjacent_U_over_error_rms": float(np.median(self.U_mm[adj]) / np.sqrt(np.mean(self.error_mm[adj] ** 2))),
                 # RMS of error / (U / 2) over every distance: 1 when U is honest
@@ -306,13 +312,14 @@ def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: 
     dist = np.linalg.norm(d, axis=1)
     e = d / dist[:, None]
     pair = cov[i, :, i] + cov[j, :, j] - cov[i, :, j] - cov[j, :, i]
-    var = np.einsum("ni,nij,nj->n", e, pair, e)
+    noise_var = np.einsum("ni,nij,nj->n", e, pair, e)
+    var = noise_var.copy()
     if shifts is not None:
         var += np.sum(np.einsum("dni,ni->dn", shifts[:, i] - shifts[:, j], e) ** 2, axis=0)
     nominal = np.linalg.norm(obj[i] - obj[j], axis=1)
     flat, rms = _flatness(X, cov, shifts)
-    return PoseCheck(view.name, int(found.sum()), flat, rms, nominal, dist - nominal, 2.0 * np.sqrt(var), rms_px,
-                     orientation)
+    return PoseCheck(view.name, int(found.sum()), flat, rms, nominal, dist - nominal, 2.0 * np.sqrt(var),
+                     2.0 * np.sqrt(noise_var), rms_px, orientation)
 
 
 def _flatness(X: np.ndarray, cov: np.ndarray, shifts: np.ndarray | None, draws: int = 200,

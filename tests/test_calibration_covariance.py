@@ -225,3 +225,12 @@ def test_rendered_calibrations_cover_the_true_rig(tmp_path: Path) -> None:
     s = json.loads((tmp_path / "check" / "covariance_check.json").read_text())
     assert abs(s["mean_d2_over_dof"] - 1.0) < 3 * s["mean_d2_over_dof_expected_sd"]
     assert s["under_chi2_95_interval"][0] <= 0.95 <= s["under_chi2_95_interval"][1]
+    # the calibration's mean depth error on the scan check's scene in its own sigmas: standard
+    # normal over the draws, so its mean within 3.3 / sqrt(n) of 0 and its spread inside the
+    # chi distribution's 99.9 % interval
+    from scipy.stats import chi2
+
+    n = s["calibrations"]
+    assert abs(s["depth_z_mean"]) < 3.3 / np.sqrt(n)
+    assert np.sqrt(chi2.ppf(0.0005, n - 1) / (n - 1)) <= s["depth_z_sd"] * np.sqrt(n / (n - 1)) <= np.sqrt(
+        chi2.ppf(0.9995, n - 1) / (n - 1))

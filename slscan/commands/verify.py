@@ -193,6 +193,8 @@ def leave_one_out(args: argparse.Namespace, say: Callable[[str], None]) -> int:
           f"RMS {p['normalised_error_rms']:.2f} (1 when U is honest; per pose "
           f"{', '.join(f'{v:.2f}' for v in p['normalised_error_rms_per_pose'])}); adjacent corners: U median "
           f"{p['adjacent_U_median_mm']:.3f} mm, {p['adjacent_U_over_error_rms']:.1f} x the error's RMS (2 for k = 2)")
+    print("adjacent corners' U (median, mm) from the corners' noise | from the calibration: " + ", ".join(
+        f"{r['pose']} {r['adjacent_U_noise_median_mm']:.3f} | {r['adjacent_U_calibration_median_mm']:.3f}" for r in rows))
     print(f"truth: {p['truth']}")
     return 0
 
