@@ -113,7 +113,8 @@ class PoseCheck:
                 "adjacent_U_calibration_median_mm": float(np.median(np.sqrt(np.maximum(
                     self.U_mm[adj] ** 2 - self.U_noise_mm[adj] ** 2, 0.0)))),
                 # U (k = 2) over the error's RMS: 2 when U is honest for this pose
-                "adjacent_U_over_error_rms": float(np.median(self.U_mm[adj]) / np.sqrt(np.mean(self.error_mm[adj] ** 2))),
+                "adjacent_U_over_error_rms": float(np.median(self.U_mm[adj])
+                                                   / np.sqrt(np.mean(self.error_mm[adj] ** 2))),
                 # RMS of error / (U / 2) over every distance: 1 when U is honest
                 "normalised_error_rms": float(np.sqrt(np.mean((2.0 * self.error_mm / self.U_mm) ** 2))),
                 "longest_nominal_mm": float(self.nominal_mm.max()),

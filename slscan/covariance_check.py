@@ -103,7 +103,8 @@ class CovarianceCheck:
                 f"each), seeds {s['seeds'][0]}..{s['seeds'][-1]}: the true rig's Mahalanobis distance under each "
                 f"calibration's covariance",
                 f"mean d²/dof {s['mean_d2_over_dof']:.2f} (1 for a true covariance, "
-                f"± {s['mean_d2_over_dof_expected_sd']:.2f} for {s['calibrations']} draws); {s['under_chi2_95']:.0%} under the chi-square 95 % point "
+                f"± {s['mean_d2_over_dof_expected_sd']:.2f} for {s['calibrations']} draws); "
+                f"{s['under_chi2_95']:.0%} under the chi-square 95 % point "
                 f"(95 % interval {lo:.0%}..{hi:.0%}; 95 % for a true covariance)",
                 "largest spread of a parameter's error in its own sigmas (1 for a true covariance): "
                 + ", ".join(f"{k} {v:.2f}" for k, v in z_sd),

@@ -89,7 +89,8 @@ def test_the_refinement_estimates_the_noise_it_is_given() -> None:
     sigma, decoding = s.noise.sigma_px, s.noise.decoding_px
     assert s.noise.coupled
     assert sigma[0] == pytest.approx(CAMERA_PX, rel=0.1) and sigma[1] == pytest.approx(CAMERA_PX, rel=0.1)
-    assert decoding[0] == pytest.approx(DECODING_PX[0], rel=0.1) and decoding[1] == pytest.approx(DECODING_PX[1], rel=0.1)
+    assert decoding[0] == pytest.approx(DECODING_PX[0], rel=0.1)
+    assert decoding[1] == pytest.approx(DECODING_PX[1], rel=0.1)
     assert sum(s.noise.redundancy) == pytest.approx(4 * 63 * 10 - (24 + 6 * 10), abs=0.5)  # rows minus parameters
     assert dof == 24 and d2 < 51.2  # chi-square 99.9 % point on 24 dof
 
