@@ -3,7 +3,8 @@ simulator's true rig: the Mahalanobis distance d² of the true parameters under 
 covariance the calibration reports (`calibration.consistency`).
 
 Each calibration is a fresh draw: its own seed for the sensor noise and for the board
-poses (every pose but the frontal first one turned by up to JITTER_DEG about each axis),
+poses (every pose, the frontal first one too, turned by up to JITTER_DEG about each axis:
+a pose the same in every draw would repeat its detection errors in all of them),
 captured, decoded and solved as `slscan calibrate` does on the simulated rig (the board
 poses only: no plate, no artefact, no leave-one-out). A true covariance gives a mean d²
 equal to its degrees of freedom and 95 % of the calibrations under the chi-square 95 %
@@ -126,7 +127,7 @@ def simulated_draw(rig_toml: Path, seed: int, poses: int | None, jitter_deg: flo
     procedure = Procedure.for_rig(config, poses=poses)
     truth = config.nominal_model()
     with open_rig(config, scene=plate_scene(config.working_distance_mm + PLATE_BEHIND_MM), seed=seed) as rig:
-        bench = simulated_bench(rig, procedure, seed, jitter_deg)
+        bench = simulated_bench(rig, procedure, seed, jitter_deg, jitter_first=True)
         _, views, _ = capture_board_poses(rig, procedure, bench, lambda text: None)
         sizes = (rig.camera.width, rig.camera.height), (rig.projector.width, rig.projector.height)
     s = solve(views, *sizes, procedure.settings).stereo

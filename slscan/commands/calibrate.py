@@ -222,12 +222,13 @@ def _on_rig(args: argparse.Namespace, out: Path, say: Any, log: Any) -> tuple[An
     return result, config.path, lines
 
 
-def simulated_bench(rig: Any, procedure: Any, seed: int = 0, jitter_deg: float = 2.0) -> Any:
+def simulated_bench(rig: Any, procedure: Any, seed: int = 0, jitter_deg: float = 2.0, *,
+                    jitter_first: bool = False) -> Any:
     """The simulator's `Bench` for an open simulated rig: the procedure's board printed as
     a texture (TEXELS_PER_PX at the working distance), moved through planned poses (each
-    but the first turned by up to `jitter_deg` about each axis, drawn from `seed`); the
-    plate PLATE_BEHIND_MM behind the working distance; the sphere pair ARTEFACT_BEFORE_MM
-    in front of it."""
+    but the first, or with `jitter_first` each, turned by up to `jitter_deg` about each
+    axis, drawn from `seed`); the plate PLATE_BEHIND_MM behind the working distance; the
+    sphere pair ARTEFACT_BEFORE_MM in front of it."""
     from sim.calibration_bench import SimBench, Target, plan_target_poses
 
     config, truth, board = rig.config, rig.config.nominal_model(), procedure.board
@@ -235,7 +236,8 @@ def simulated_bench(rig: Any, procedure: Any, seed: int = 0, jitter_deg: float =
     target = Target(board.image(board.texture_density(TEXELS_PER_PX / footprint_mm)), board.size_mm,
                     board.image_origin_mm, board.object_points())
     try:
-        poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, seed, jitter_deg)
+        poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, seed, jitter_deg,
+                                  jitter_first=jitter_first)
     except ValueError as exc:
         raise ScannerError(f"simulated bench: {exc}") from None
     artefact = procedure.artefact
