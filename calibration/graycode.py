@@ -17,7 +17,7 @@ boards usable.
 
 The result is the projector pixel (column, row) each camera pixel sees (NaN where not
 decoded), with those weights: sub-pixel precision comes from fitting many such pixels, in
-local homographies.
+local fits (`calibration.correspond`).
 """
 
 from __future__ import annotations

@@ -7,17 +7,25 @@ reprojection errors (pixels) of both devices together, with OpenCV's analytic de
 (`projectPoints`, `composeRT`). Its covariance gives one-sigma uncertainties of every
 parameter, the measure of how well the views determine the rig.
 
-Both devices' residuals count equally, as in OpenCV's `stereoCalibrate`. Weighting each by
-its own RMS would be the maximum-likelihood choice for independent noise, but the
-residuals left here are mostly systematic (corner localisation, decoding near square
-edges): on the simulated bench such weights moved the principal points 5x further from the
-truth at half resolution (0.76 against 0.15 px) and changed nothing at full resolution.
-The uncertainties assume independent noise of the residuals' own size, so they are a lower
-bound when systematic errors dominate.
+The errors' model (`CornerErrorModel`), from how the points are measured: a camera corner is
+found in the camera image with an error e (σ per axis); its projector pixel is the local
+fit of the decoded coordinates evaluated at that camera corner (`calibration.correspond`),
+so it carries A·e (A = the fit's Jacobian there) plus the decoding's own error n (σ per
+projector axis; the two axes come from separate fringe sequences). A corner's four
+coordinates are therefore correlated: on the simulated bench its camera and projector
+errors correlate at 0.93-0.96. The fit weights each device's rows by its own σ (each group's σ estimated
+from its residuals over its redundancy: variance component estimation, Förstner 1979); its
+covariance is that weighted fit's under the model, B·M·B with B = (JᵀJ)⁻¹ of the weighted
+rows and M adding each projector point's correlation with its camera corner and its own
+variance A·Σₑ·Aᵀ + Σₙ. Weighting by the model itself (each projector residual minus A times
+its camera residual) is the maximum-likelihood fit and held on the simulator, but on the
+real procam capture it leaned on the Gray-code decoding's systematic errors: the projector's
+focal length moved by 1.05 % between leave-one-pose-out solutions (0.50 % weighted this way).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -34,6 +42,58 @@ RIG_PARAMETERS = tuple(f"{d}.{n}" for d in ("camera", "projector") for n in INTR
     tuple(f"extrinsic.{n}" for n in EXTRINSIC_NAMES)
 
 
+@dataclass(frozen=True)
+class CornerLinks:
+    """How one view's projector points were measured from its camera points:
+    `camera_index` (M,) the camera point each projector point was evaluated at, and
+    `jacobian` (M, 2, 2) ∂(projector px)/∂(camera px) there (the local fit's,
+    `calibration.correspond.ProjectorCorners`)."""
+
+    camera_index: np.ndarray
+    jacobian: np.ndarray
+
+
+WEIGHT_GROUPS = ("camera x", "camera y", "projector x", "projector y")
+
+
+@dataclass(frozen=True)
+class CornerErrorModel:
+    """The corners' error model the covariance rests on (module docstring): `sigma_px` the
+    one-sigma of each group of WEIGHT_GROUPS, which weights the fit, each estimated from
+    its residuals over its `redundancy` (degrees of freedom); `decoding_px` the decoding's
+    own one-sigma per projector axis, beyond what the camera corner's error carries into
+    the projector point (NaN when `coupled` is False: the views gave no links and the two
+    devices' errors are taken as independent)."""
+
+    sigma_px: tuple[float, float, float, float]
+    decoding_px: tuple[float, float]
+    redundancy: tuple[float, float, float, float]
+    coupled: bool
+
+    def to_dict(self) -> dict[str, object]:
+        return {"model": ("projector corner = local fit of the decoded coordinates at the camera corner: its error "
+                          "is A·e_camera + e_decoding, A the fit's Jacobian; camera and decoding errors independent, "
+                          "Gaussian, one sigma per axis; the fit weights each device's rows by its sigma and its "
+                          "covariance carries the correlation" if self.coupled else
+                          "camera and projector corner errors independent, Gaussian, one sigma per axis"),
+                "sigma_px": dict(zip(WEIGHT_GROUPS, self.sigma_px)),
+                "decoding_px": dict(zip(("x", "y"), self.decoding_px)) if self.coupled else None,
+                "redundancy": dict(zip(WEIGHT_GROUPS, self.redundancy)),
+                "estimated": "variance components: each group's residual sum of squares over its redundancy",
+                "assumed": "the board's printed geometry (square size, flatness) exact; the corners' errors "
+                           "independent from corner to corner: errors that are fields over a view (a lens or a "
+                           "window the model lacks) are not in the covariance"}
+
+    def summary(self) -> str:
+        s = self.sigma_px
+        text = (f"corner noise (estimated from the residuals): camera {s[0]:.4f} x {s[1]:.4f} px, projector "
+                f"{s[2]:.4f} x {s[3]:.4f} px")
+        if self.coupled:
+            text += (f", of which the decoding's own {self.decoding_px[0]:.4f} x {self.decoding_px[1]:.4f} px (the "
+                     f"rest is the camera corner's error carried through the local fit)")
+        return text
+
+
 @dataclass(frozen=True, eq=False)
 class StereoCalibration:
     """The jointly refined rig. `proj_from_cam` maps camera-frame points into the projector
@@ -43,7 +103,12 @@ class StereoCalibration:
     devices' intrinsics and distortion, then proj_from_cam as a Rodrigues vector (rad) and a
     translation (mm)), the board poses marginalised out; zero where a parameter was held fixed.
     `std` holds one-sigma uncertainties ('camera.fx', 'projector.cy', 'extrinsic.tx' (mm),
-    'extrinsic.rotation_deg', ...)."""
+    'extrinsic.rotation_deg', ...); `decoding_covariance` (24, 24) the part of `covariance`
+    the decoding's own error makes (the rest is the camera corners'); `noise` the corners'
+    error model they rest on;
+    `camera_tests`, `projector_tests` per view each point's outlier statistic under that
+    model (`_Weighting.point_tests`: chi-square with 2 degrees of freedom for a point that
+    fits it)."""
 
     camera: Pinhole
     projector: Pinhole
@@ -53,10 +118,20 @@ class StereoCalibration:
     projector_residuals: list[np.ndarray]
     std: dict[str, float]
     covariance: np.ndarray
+    decoding_covariance: np.ndarray
+    noise: CornerErrorModel
+    camera_tests: list[np.ndarray]
+    projector_tests: list[np.ndarray]
 
     @property
     def cam_from_proj(self) -> np.ndarray:
         return np.linalg.inv(self.proj_from_cam)
+
+    def decoding_share(self) -> dict[str, float]:
+        """Per parameter of RIG_PARAMETERS with a variance: the fraction of it the decoding's
+        own error makes (the rest is the camera corners' error)."""
+        total, part = np.diag(self.covariance), np.diag(self.decoding_covariance)
+        return {n: float(p / t) for n, t, p in zip(RIG_PARAMETERS, total, part) if t > 0}
 
     @property
     def camera_rms_px(self) -> float:
@@ -75,12 +150,9 @@ class StereoCalibration:
         return np.array([rms(r) for r in res])
 
 
-def _uncertainties(res: np.ndarray, J: np.ndarray, free: np.ndarray, e0: int) -> tuple[dict[str, float], np.ndarray]:
-    """One-sigma uncertainty of every parameter, and the covariance of the rig's
-    parameters (the first e0 + 6), from the residuals and Jacobian at the solution."""
-    dof = max(len(res) - int(free.sum()), 1)
-    cov = np.zeros((len(free), len(free)))
-    cov[np.ix_(free, free)] = covariance(J[:, free], float(res @ res) / dof)
+def _uncertainties(cov: np.ndarray, e0: int) -> tuple[dict[str, float], np.ndarray]:
+    """One-sigma uncertainty of every parameter from the parameters' covariance, and the
+    covariance of the rig's parameters (the first e0 + 6)."""
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     std = {f"camera.{n}": float(sd[i]) for i, n in enumerate(INTRINSIC_NAMES)}
     std |= {f"projector.{n}": float(sd[_N_INTR + i]) for i, n in enumerate(INTRINSIC_NAMES)}
@@ -141,24 +213,146 @@ def covariance(J: np.ndarray, s2: float) -> np.ndarray:
     return (v * inv) @ v.T * np.outer(scale, scale) * s2
 
 
+MAX_VARIANCE_ROUNDS = 30
+VARIANCE_TOLERANCE = 1e-3  # the groups' variances settle to 0.1 %
+
+
+class _Weighting:
+    """The joint problem's rows over their group's sigma (WEIGHT_GROUPS), the groups'
+    variance factors from a fit, and the covariance of that weighted fit under the
+    corners' error model (module docstring)."""
+
+    def __init__(self, cam_views: list[ViewPoints], proj_views: list[ViewPoints],
+                 links: list[CornerLinks] | None) -> None:
+        starts, cam, proj, A, group = 0, [], [], [], []
+        for v, (cv, pv) in enumerate(zip(cam_views, proj_views)):
+            n, m = len(cv), len(pv)
+            group += [(0, 1)] * n + [(2, 3)] * m
+            if links is not None and m:
+                cam.append(starts + np.asarray(links[v].camera_index, dtype=np.int64))
+                proj.append(starts + n + np.arange(m))
+                A.append(np.asarray(links[v].jacobian, dtype=np.float64))
+            starts += n + m
+        self.coupled = bool(cam)
+        self.cam = np.concatenate(cam) if cam else np.zeros(0, np.int64)
+        self.proj = np.concatenate(proj) if proj else np.zeros(0, np.int64)
+        self.A = np.concatenate(A) if A else np.zeros((0, 2, 2))
+        if not np.isfinite(self.A).all():
+            raise NotEnoughData("joint refinement: a projector point without its local fit's Jacobian")
+        self.group = np.array(group, dtype=np.int64).reshape(-1, 2)
+
+    def residuals(self, res: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        return (res.reshape(-1, 2) / sigma[self.group]).ravel()
+
+    def jacobian(self, jac: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        return (jac.reshape(-1, 2, jac.shape[1]) / sigma[self.group][..., None]).reshape(jac.shape)
+
+    def point_tests(self, res: np.ndarray, J: np.ndarray) -> np.ndarray:
+        """Per point (camera or projector, in the rows' order): the sum of its two weighted
+        residuals squared, each over its redundancy 1 − leverage (Baarda's standardised
+        residuals): about chi-square with 2 degrees of freedom when the point follows the
+        model."""
+        leverage = np.einsum("ij,jk,ik->i", J, covariance(J, 1.0), J)
+        return np.sum((res ** 2 / np.maximum(1.0 - leverage, 1e-9)).reshape(-1, 2), axis=1)
+
+    def variance_factors(self, res: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per group: its weighted residuals' sum of squares over its redundancy (the
+        rows' share of the degrees of freedom, 1 − leverage summed), and that redundancy."""
+        leverage = np.einsum("ij,jk,ik->i", J, covariance(J, 1.0), J)
+        g = self.group.ravel()
+        redundancy = np.bincount(g, 1.0 - leverage, len(WEIGHT_GROUPS))
+        squares = np.bincount(g, res ** 2, len(WEIGHT_GROUPS))
+        factor = np.where(redundancy > 0.5, squares / np.maximum(redundancy, 0.5), 1.0)
+        return factor, redundancy
+
+    def decoding_sigma(self, raw: np.ndarray, redundancy: np.ndarray) -> np.ndarray:
+        """The decoding's own one-sigma per projector axis (px): the projector residuals
+        minus A times their camera corner's, over the projector rows' redundancy."""
+        if not self.coupled:
+            return np.full(2, np.nan)
+        r = raw.reshape(-1, 2)
+        n = r[self.proj] - np.einsum("mij,mj->mi", self.A, r[self.cam])
+        return np.sqrt(np.sum(n ** 2, axis=0) / np.maximum(redundancy[2:4], 1.0))
+
+    def covariance(self, J: np.ndarray, sigma: np.ndarray, decoding: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The fitted parameters' covariance (B M B, B = (JᵀJ)⁻¹ of the weighted rows J):
+        M = JᵀJ where the rows' errors are independent with the groups' sigmas, plus, for a
+        projector point carrying its camera corner's error (error A·e + n), the
+        correlation with that corner's rows and its own variance under the model; and the
+        part of it the decoding's own error n makes (B M_n B; the rest is the camera
+        corners' error e; without links, the projector points' whole error)."""
+        B = covariance(J, 1.0)
+        M = J.T @ J
+        P = J.shape[1]
+        if not self.coupled:
+            Jp = J.reshape(-1, 2, P)[self.group[:, 0] == 2].reshape(-1, P)
+            return B @ M @ B, B @ (Jp.T @ Jp) @ B
+        Jp = J.reshape(-1, 2, P)[self.proj]  # (m, 2, P), rows over the projector sigmas
+        Jc = J.reshape(-1, 2, P)[self.cam]
+        sc, sp = sigma[:2], sigma[2:4]
+        ce = np.diag(sc ** 2)
+        pp = np.einsum("mij,jk,mlk->mil", self.A, ce, self.A) + np.diag(decoding ** 2)  # (m, 2, 2) px²
+        pp = pp / np.outer(sp, sp) - np.eye(2)  # beyond the weighting's own identity
+        pc = np.einsum("mij,jk->mik", self.A, ce) / np.outer(sp, sc)  # Cov(projector, camera rows)
+        M = M + np.einsum("mip,mij,mjq->pq", Jp, pp, Jp) + np.einsum("mip,mij,mjq->pq", Jp, pc, Jc)
+        M = M + np.einsum("mip,mij,mjq->pq", Jc, np.transpose(pc, (0, 2, 1)), Jp)
+        M_n = np.einsum("mip,i,miq->pq", Jp, decoding ** 2 / sp ** 2, Jp)
+        return B @ M @ B, B @ M_n @ B
+
+
+MAX_POLISH_STEPS = 50
+POLISH_TOLERANCE = 1e-3  # of each parameter's one-sigma
+
+
+def converged(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], np.ndarray],
+              x: np.ndarray) -> np.ndarray:
+    """`x` moved to the least-squares minimum by Gauss-Newton steps until the last step is
+    below POLISH_TOLERANCE of every parameter's one-sigma. Levenberg-Marquardt's own tests
+    (relative change of x and of the cost) stop early along the joint problem's flat
+    valleys: on the simulated bench its answer still lay 1-2 sigma (of projector cy, the
+    extrinsic ty and rz) from the minimum, which alone made the true rig lie outside the
+    covariance. A step that raises the cost is halved."""
+    r = fun(x)
+    for _ in range(MAX_POLISH_STEPS):
+        J = jac(x)
+        C = covariance(J, 1.0)
+        step = -C @ (J.T @ r)
+        sd = np.sqrt(np.maximum(np.diag(C), 1e-300) * max(float(r @ r) / max(len(r) - len(x), 1), 1e-300))
+        for _ in range(30):
+            new = fun(x + step)
+            if new @ new <= r @ r:
+                break
+            step = step / 2
+        else:
+            return x
+        x, r = x + step, new
+        if np.all(np.abs(step) <= POLISH_TOLERANCE * sd):
+            break
+    return x
+
+
 def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], camera: Pinhole, projector: Pinhole,
                  proj_from_cam: np.ndarray, board_poses: np.ndarray, fix_k3: bool = False,
-                 fix_camera: bool = False, camera_covariance: np.ndarray | None = None) -> StereoCalibration:
+                 fix_camera: bool = False, camera_covariance: np.ndarray | None = None,
+                 links: list[CornerLinks] | None = None) -> StereoCalibration:
     """Refine every parameter from the starting values given; `fix_camera` keeps the
     camera's intrinsics and distortion as given (their uncertainties are then reported as
     0, unless `camera_covariance` (9, 9) gives theirs: it is then carried into the
-    covariance, with the refined parameters' response to the camera's, `_with_camera`)."""
+    covariance, with the refined parameters' response to the camera's, `_with_camera`).
+    `links` (one per view): how the projector points were measured from the camera's,
+    weighting the fit by the corners' correlated errors (module docstring); None: the two
+    devices' points have independent errors."""
     n_views = len(cam_views)
     if len(proj_views) != n_views or len(board_poses) != n_views:
         raise NotEnoughData(f"joint refinement: {n_views} camera views, {len(proj_views)} projector views and "
                             f"{len(board_poses)} board poses must match")
-    # each board pose is refined as a rotation δ applied after its starting one (the board points
-    # pre-rotated by it): a board turned ~180° about its normal, as a detector often labels it, has
-    # a Rodrigues vector near |r| = π, where that parametrisation and composeRT's derivatives fail
-    # (pose rotation columns of the Jacobian ~100 % wrong, covariances then 8x too small)
-    start = [np.asarray(T, dtype=np.float64)[:3, :3] for T in board_poses]
-    cam_points = [v.object_points @ R.T for v, R in zip(cam_views, start)]
-    proj_points = [v.object_points @ R.T for v, R in zip(proj_views, start)]
+    # each board pose is solved as a small rotation after its starting one (the board's
+    # points turned by it beforehand): a Rodrigues vector near 0, never near π, where its
+    # inverse (and so the projector's composed pose) is discontinuous and its derivatives lose
+    # their precision (a frontal chessboard found turned by a half turn sits exactly there)
+    start = np.asarray(board_poses, dtype=np.float64)[:, :3, :3]
+    cam_obj = [np.ascontiguousarray(v.object_points @ R.T) for v, R in zip(cam_views, start)]
+    proj_obj = [np.ascontiguousarray(v.object_points @ R.T) for v, R in zip(proj_views, start)]
     x0 = [_intrinsic_vector(camera), _intrinsic_vector(projector),
           cv2.Rodrigues(proj_from_cam[:3, :3])[0].ravel(), proj_from_cam[:3, 3]]
     for T in board_poses:
@@ -186,7 +380,7 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
             o = e0 + 6 + 6 * v
             rv, tv = x[o:o + 3], x[o + 3:o + 6]
             n = len(cv)
-            px, J = cv2.projectPoints(cam_points[v], rv, tv, kc, dc)
+            px, J = cv2.projectPoints(cam_obj[v], rv, tv, kc, dc)
             res[row:row + 2 * n] = (cv.image_points - px.reshape(-1, 2)).ravel()
             if jac is not None:
                 jac[row:row + 2 * n, o:o + 6] = -J[:, :6]
@@ -196,7 +390,7 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
             if n == 0:
                 continue
             r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = cv2.composeRT(rv, tv, re, te)
-            px, J = cv2.projectPoints(proj_points[v], r3, t3, kp, dp)
+            px, J = cv2.projectPoints(proj_obj[v], r3, t3, kp, dp)
             res[row:row + 2 * n] = (pv.image_points - px.reshape(-1, 2)).ravel()
             if jac is not None:
                 d_rt3 = J[:, :6]
@@ -209,29 +403,48 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
             row += 2 * n
         return res, jac
 
+    weigh = _Weighting(cam_views, proj_views, links)
+    sigma = np.ones(len(WEIGHT_GROUPS))
+
     def fun(xf: np.ndarray) -> np.ndarray:
         x = x0.copy()
         x[free] = xf
-        return residuals_and_jacobian(x, False)[0]
+        return weigh.residuals(residuals_and_jacobian(x, False)[0], sigma)
 
     def jac(xf: np.ndarray) -> np.ndarray:
         x = x0.copy()
         x[free] = xf
-        return residuals_and_jacobian(x, True)[1][:, free]  # type: ignore[index]
+        return weigh.jacobian(residuals_and_jacobian(x, True)[1], sigma)[:, free]  # type: ignore[arg-type]
 
-    sol = least_squares(fun, x0[free], jac=jac, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12, max_nfev=200)
+    xf = x0[free]
+    for _ in range(MAX_VARIANCE_ROUNDS):  # fit, re-estimate the groups' sigmas from their residuals, fit again
+        xf = least_squares(fun, xf, jac=jac, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12, max_nfev=200).x
+        xf = converged(fun, jac, xf)
+        factor, redundancy = weigh.variance_factors(fun(xf), jac(xf))
+        sigma = np.maximum(sigma * np.sqrt(factor), 1e-12)
+        if np.all(np.abs(factor - 1.0) < VARIANCE_TOLERANCE):
+            break
     x = x0.copy()
-    x[free] = sol.x
-    res, J = residuals_and_jacobian(x, True)
-    std, cov = _uncertainties(res, J, free, e0)  # type: ignore[arg-type]
+    x[free] = xf
+    raw, J_raw = residuals_and_jacobian(x, True)
+    res, J = weigh.residuals(raw, sigma), weigh.jacobian(J_raw, sigma)  # type: ignore[arg-type]
+    decoding = weigh.decoding_sigma(raw, redundancy)
+    full, from_decoding = np.zeros((2, len(free), len(free)))
+    full[np.ix_(free, free)], from_decoding[np.ix_(free, free)] = weigh.covariance(J[:, free], sigma, decoding)
+    std, cov = _uncertainties(full, e0)
     if fix_camera and camera_covariance is not None:
-        cov = _with_camera(J, free, e0, cov, camera_covariance)  # type: ignore[arg-type]
+        cov = _with_camera(J, free, e0, cov, camera_covariance)
     proj_from_cam = pose_matrix(x[e0:e0 + 3], x[e0 + 3:e0 + 6])
     poses = np.stack([pose_matrix(x[e0 + 6 + 6 * v:e0 + 9 + 6 * v], x[e0 + 9 + 6 * v:e0 + 12 + 6 * v])
                       for v in range(n_views)])
-    poses[:, :3, :3] = poses[:, :3, :3] @ np.stack(start)
-    blocks = np.split(res.reshape(-1, 2), np.cumsum([n for cv, pv in zip(cam_views, proj_views)
-                                                     for n in (len(cv), len(pv))])[:-1])
+    poses[:, :3, :3] = poses[:, :3, :3] @ start
+    splits = np.cumsum([n for cv, pv in zip(cam_views, proj_views) for n in (len(cv), len(pv))])[:-1]
+    blocks = np.split(raw.reshape(-1, 2), splits)
     cam_res, proj_res = blocks[0::2], blocks[1::2]
+    tests = np.split(weigh.point_tests(res, J[:, free]), splits)
     return StereoCalibration(_pinhole(camera.size, x[:_N_INTR]), _pinhole(projector.size, x[_N_INTR:e0]),
-                             proj_from_cam, poses, cam_res, proj_res, std, cov)
+                             proj_from_cam, poses, cam_res, proj_res, std, cov, from_decoding[:e0 + 6, :e0 + 6],
+                             CornerErrorModel(tuple(float(v) for v in sigma),  # type: ignore[arg-type]
+                                              tuple(float(v) for v in decoding),  # type: ignore[arg-type]
+                                              tuple(float(v) for v in redundancy), weigh.coupled),
+                             tests[0::2], tests[1::2])

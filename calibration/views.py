@@ -4,7 +4,7 @@ their projector pixels.
 A `View` is what a pose yields whatever captured it: the camera image of the board under
 uniform light and, per camera pixel, the decoded projector coordinates (phase shift in both
 orientations with their precision weights, or Gray code). `correspond` finds the board and
-each corner's projector pixel (local homographies) and refuses a view that does not show
+each corner's projector pixel (local fits of the decoded coordinates) and refuses a view that does not show
 the board or the projector pattern, saying which.
 """
 
@@ -15,13 +15,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.board import Board
-from calibration.correspond import ProjectorCorners, local_homography_points
+from calibration.correspond import ProjectorCorners, local_projector_points
 from calibration.detect import Detection, corner_spacing_px, detect
 from calibration.errors import DetectionError
 from calibration.intrinsics import ViewPoints
 
-HOMOGRAPHY_WINDOW = 0.6  # local-homography window radius, as a fraction of the corner spacing
-MAX_HOMOGRAPHY_WINDOW_PX = 60.0
+FIT_WINDOW = 0.6  # local fit window radius, as a fraction of the corner spacing
+MAX_FIT_WINDOW_PX = 60.0
 MIN_PROJECTOR_FRACTION = 0.5  # of the detected corners; below this the projector pattern is missing
 
 
@@ -65,8 +65,8 @@ def correspond(board: Board, view: View, index: int) -> Correspondence:
         raise DetectionError(where, f"{board.describe()} not found in the camera image; check that the whole board "
                                     f"is in view and lit, and that the board description matches the printed board "
                                     f"(count its inner corners)")
-    radius = min(HOMOGRAPHY_WINDOW * corner_spacing_px(found.image_points), MAX_HOMOGRAPHY_WINDOW_PX)
-    pc = local_homography_points(found.image_points, view.u, view.v, radius, view.weight_u, view.weight_v)
+    radius = min(FIT_WINDOW * corner_spacing_px(found.image_points), MAX_FIT_WINDOW_PX)
+    pc = local_projector_points(found.image_points, view.u, view.v, radius, view.weight_u, view.weight_v)
     if pc.found.sum() < MIN_PROJECTOR_FRACTION * len(found):
         raise DetectionError(where, f"the projector pattern is missing on the board: {int(pc.found.sum())} of "
                                     f"{len(found)} corners have decoded projector coordinates around them; check "

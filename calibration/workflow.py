@@ -35,7 +35,8 @@ from calibration.fit import fit_plane, plane_rms
 from calibration.gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images, phase_error_rad
 from calibration.intrinsics import calibrate_device
 from calibration.phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, local_pitch_range_mm
-from calibration.solve import CalibrationSettings, Solution, Stability, check_limits, leave_one_out, solve, without_view
+from calibration.solve import (OUTLIER_ALPHA, OUTLIER_GATE, CalibrationSettings, Solution, Stability, check_limits,
+                               leave_one_out, solve, without_view)
 from calibration.stereo import RIG_PARAMETERS
 from calibration.store import CaptureSet, CaptureWriter, decode_pose, pose_view
 from calibration.validate import Artefact, Validation, measure_sphere_pair
@@ -52,6 +53,8 @@ from scanner.rig import Rig, RigConfig
 DEFAULT_BOARD = CONFIG_DIR / "boards" / "sim_chess_9x7.toml"
 DEFAULT_HEIGHTS_MM = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
 DEFAULT_ARTEFACT = Artefact(radius_mm=10.0, distance_mm=50.0)
+SHARE_SHOWN = ("camera.fx", "camera.cx", "camera.cy", "projector.fx", "projector.cx", "projector.cy", "extrinsic.rx",
+               "extrinsic.ry", "extrinsic.tx", "extrinsic.tz")  # the report's source split of the variance
 _KEYS = {"board", "poses", "plate_heights_mm", "artefact", "fix_k3", "drop_outliers", "max_camera_rms_px",
          "max_projector_rms_px", "max_validation_mm", "min_views", "max_joint_camera_std"}
 
@@ -167,8 +170,8 @@ class CalibrationResult:
         sol, s = self.solution, self.solution.stereo
         views = [{"name": n, "camera_rms_px": float(c), "projector_rms_px": float(p),
                   "camera_points": len(corr.camera), "projector_points": len(corr.projector),
-                  # decoded projector pixels about each corner's local homography: the decoding's noise
-                  "homography_fit_rms_px": float(np.nanmedian(corr.projector_corners.fit_rms_px)),
+                  # decoded projector pixels about each corner's local fit: the decoding's noise
+                  "projector_fit_rms_px": float(np.nanmedian(corr.projector_corners.fit_rms_px)),
                   "pixels_per_corner": int(np.median(corr.projector_corners.pixels_used))}
                  for n, c, p, corr in zip(sol.names, s.per_view_rms_px("camera"), s.per_view_rms_px("projector"),
                                           sol.correspondences)]
@@ -178,9 +181,15 @@ class CalibrationResult:
             "board": self.board.to_dict(),
             "rms_px": {"camera": s.camera_rms_px, "projector": s.projector_rms_px, "stereo": s.rms_px},
             "uncertainty": s.std,
-            "covariance": {"parameters": list(RIG_PARAMETERS), "matrix": s.covariance.tolist()},
+            "covariance": {"parameters": list(RIG_PARAMETERS), "matrix": s.covariance.tolist(),
+                           "decoding_matrix": s.decoding_covariance.tolist(), "noise_model": s.noise.to_dict()},
             "camera_intrinsics": asdict(sol.camera_choice), "views": views,
             "dropped_views": {**sol.dropped, **self.failures},
+            "outlier_corners": {"test": f"a corner whose camera or projector point's standardised residuals (squared, "
+                                        f"summed) exceed {OUTLIER_GATE:.1f}, the chi-square (2 dof) point a point "
+                                        f"following the noise model exceeds with probability {OUTLIER_ALPHA:g}",
+                                "failed": {name: {str(k): v for k, v in ids.items()}
+                                             for name, ids in sol.outlier_corners.items()}},
             "outlier_views": self.outliers(),
             "coverage": {name: {"fraction": c.fraction, "cells": c.counts.tolist(), "uncovered": c.empty_zones()}
                          for name, c in self.coverage().items()},
@@ -217,8 +226,12 @@ class CalibrationResult:
         Kc, Kp = s.camera.K, s.projector.K
         left_out = {**sol.dropped, **self.failures}
         outliers = self.outliers()
+        share = s.decoding_share()
         out = [f"views     {len(sol.names)} used" + (f", left out: {'; '.join(f'{k} ({v})' for k, v in left_out.items())}"
                                                  if left_out else ""),
+               *([f"corners   fail the outlier test (a good corner fails it with probability {OUTLIER_ALPHA:g}; kept): "
+                  + "; ".join(f"{name} {', '.join(str(k) for k in ids)}" for name, ids in sol.outlier_corners.items())]
+                 if sol.outlier_corners else []),
                *([f"outliers  {'; '.join(f'{k} ({v})' for k, v in outliers.items())} stand out (over "
                   f"{self.settings.outlier_factor:g} x the median view): re-take them, or solve with --drop-outliers"]
                  if outliers else []),
@@ -235,6 +248,10 @@ class CalibrationResult:
                f"stereo    baseline {np.linalg.norm(s.cam_from_proj[:3, 3]):.3f} mm "
                f"(± {std['extrinsic.translation_mm']:.4f} mm), rotation ± {std['extrinsic.rotation_deg']:.4f} deg, "
                f"RMS {s.rms_px:.4f} px",
+               f"          the ± are one sigma from the {s.noise.summary()}; a projector corner carries its camera "
+               f"corner's error through the local fit, and the fit is weighted by that model",
+               "          share of each variance from the decoding's own error (the rest from the camera corners'): "
+               + ", ".join(f"{n} {share[n]:.0%}" for n in SHARE_SHOWN if n in share),
                f"          {sol.camera.summary()} (own views, before the joint refinement)",
                f"          {sol.projector.summary()} (own views, before the joint refinement)"]
         out.append(f"gamma     {self.gamma.summary()}" if self.gamma else "gamma     not measured (1.0 assumed)")
@@ -486,7 +503,7 @@ def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: 
     csize, psize = (cam.width, cam.height), (proj.width, proj.height)
     with CaptureWriter(out, procedure.board, procedure.patterns, csize, psize, cam.bit_depth,
                        rig.config.name) as writer:
-        gamma, corr, failures = _capture_poses(rig, procedure, bench, writer, say, recording)
+        gamma, corr, failures = capture_board_poses(rig, procedure, bench, say, writer, recording)
         result = solve_views(procedure.board, corr, failures, csize, psize, procedure.settings, rig.config.name,
                              gamma, say, recording)
         check_limits(result.solution, result.settings)  # before spending time on the plate and artefact
@@ -494,9 +511,11 @@ def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: 
     return finish(result, plates, artefact, say, recording)
 
 
-def _capture_poses(rig: Rig, procedure: Procedure, bench: Bench, writer: CaptureWriter, say: Say,
-                   recording: CalibrationRecording | None) -> tuple[GammaFit, list[Correspondence], dict[str, str]]:
-    """Gamma, then board poses until enough are usable (at most twice as many attempts)."""
+def capture_board_poses(rig: Rig, procedure: Procedure, bench: Bench, say: Say, writer: CaptureWriter | None = None,
+                        recording: CalibrationRecording | None = None
+                        ) -> tuple[GammaFit, list[Correspondence], dict[str, str]]:
+    """Gamma, then board poses until enough are usable (at most twice as many attempts);
+    the frames go to `writer` when given."""
     board, patterns = procedure.board, procedure.patterns
     cam, proj = rig.camera, rig.projector
     csize, psize = (cam.width, cam.height), (proj.width, proj.height)
@@ -513,7 +532,8 @@ def _capture_poses(rig: Rig, procedure: Procedure, bench: Bench, writer: Capture
     say("measuring the projector response (flat grey levels)")
     levels = procedure.gamma_levels
     flats = show_images(rig, flat_images(levels, proj.width, proj.height))
-    writer.add_gamma(levels, flats)
+    if writer is not None:
+        writer.add_gamma(levels, flats)
     gamma = fit_gamma(levels, flats, float(2 ** cam.bit_depth - 1))
     say(gamma.summary())
     if recording:
@@ -523,7 +543,7 @@ def _capture_poses(rig: Rig, procedure: Procedure, bench: Bench, writer: Capture
         if index > 0 and not bench.place_board(index, needed()):
             break
         frames = capture_pose(rig, patterns, gamma.gamma)
-        name = writer.add_pose(frames, gamma.gamma)
+        name = writer.add_pose(frames, gamma.gamma) if writer is not None else f"pose_{index:03d}"
         found = None
         try:
             found = correspond(board, pose_view(name, frames, patterns, cam.bit_depth, psize), index)

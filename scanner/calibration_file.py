@@ -10,10 +10,16 @@ maps in an .npz beside it.
                    phase-to-height coefficients included (their maps in the .npz),
       "rms_px": {"camera": ..., "projector": ..., "stereo": ...},
       "uncertainty": one-sigma of every parameter,
-      "covariance": {"parameters": [24 names], "matrix": 24 x 24}: the covariance of the
-                   rig's parameters (both devices' intrinsics and distortion, the extrinsic
-                   as a Rodrigues vector (rad) and a translation (mm)), for the uncertainty
-                   of measurements (`inspection.uncertainty`),
+      "covariance": {"parameters": [24 names], "matrix": 24 x 24, "decoding_matrix": 24 x 24,
+                   "noise_model": {...}}:
+                   the covariance of the rig's parameters (both devices' intrinsics and
+                   distortion, the extrinsic as a Rodrigues vector (rad) and a translation
+                   (mm)), for the uncertainty of measurements (`inspection.uncertainty`),
+                   the part of it the decoding's own error makes (the rest is the camera
+                   corners'),
+                   and the corners' error model it rests on: its statement, the one-sigma
+                   of each noise group (px) with its degrees of freedom, how they were
+                   estimated and what is assumed (`calibration.stereo.CornerErrorModel`),
       "views": per view: name, camera and projector RMS (px), points,
       "dropped_views": name -> reason,
       "separate": each device's own calibration before the joint refinement,

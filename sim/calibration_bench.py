@@ -129,16 +129,19 @@ _POSE_TEMPLATES = (
 MAX_POSES = len(_POSE_TEMPLATES)
 
 
-def plan_target_poses(model: RigModel, target: Target, n: int, distance_mm: float, seed: int = 0) -> list[np.ndarray]:
+def plan_target_poses(model: RigModel, target: Target, n: int, distance_mm: float, seed: int = 0,
+                      jitter_deg: float = 2.0, *, jitter_first: bool = False) -> list[np.ndarray]:
     """`n` (<= MAX_POSES) poses of `target` that the camera and the projector both see whole:
     frontal, tilted up to ~30 degrees each way, spun, pushed toward each side of the field
-    as far as visibility allows, and nearer and farther. `seed` adds a little jitter."""
+    as far as visibility allows, and nearer and farther. `seed` turns every pose but the
+    first (frontal) by up to `jitter_deg` about each axis; `jitter_first`: the first too
+    (independent draws: a pose the same in every draw repeats its detection errors)."""
     if not 1 <= n <= MAX_POSES:
         raise ValueError(f"between 1 and {MAX_POSES} target poses can be planned, not {n}")
     rng = np.random.default_rng(seed)
     poses = []
     for k, (tx, ty, spin, fx, fy, fz) in enumerate(_POSE_TEMPLATES[:n]):
-        jitter = rng.uniform(-2.0, 2.0, 3) if k else np.zeros(3)
+        jitter = rng.uniform(-jitter_deg, jitter_deg, 3) if k or jitter_first else np.zeros(3)
         R = rotation(tx + jitter[0], ty + jitter[1], spin + jitter[2])
         placed = None
         for shrink in (1.0, 0.7, 0.5, 0.3):  # pull in tilt and distance change until a placement exists

@@ -9,16 +9,16 @@ the projector row on the procam capture, whose projector sits above the camera);
 pose the calibration would solve for the left-out view is never used.
 
 - Corners: detected in the board's white image (sub-pixel), their projector column from
-  a local homography of the decoded coordinates around each (`calibration.correspond`),
-  then intersected. Their noise (`CornerNoise`): the covariance of the errors of two
-  corners' camera pixel and coded projector coordinate as a function of their lag on the
-  board, estimated from the residuals the calibration left on its own views (type A): the
-  residuals are anisotropic (on the procam capture camera x 0.28 / y 0.11 px, projector
-  coded axis 0.10 px) and correlated between neighbouring corners (0.55-0.65), so a
-  distance between nearby corners sees far less noise than two independent corners
-  would; through ∂X/∂(pixel, coordinate) (`inspection.uncertainty.measurement_jacobian`);
-  plus the calibration's covariance. Distances are taken between corners on one row or
-  one column of the board (nominal k x square).
+  a local quadratic fit of the decoded coordinates around each (`calibration.correspond`),
+  then intersected. Their noise (`CornerNoise`), in terms of its sources: the camera
+  corner's error and the decoding's error beyond what the camera's error carries into the
+  projector coordinate (the local fit is evaluated at the camera corner), each with its
+  covariance as a function of the lag between two corners on the board, estimated
+  robustly from the residuals the calibration left on its own views (type A) and mixed
+  with the left-out pose's own local-fit Jacobians; through ∂X/∂(pixel, coordinate)
+  (`inspection.uncertainty.measurement_jacobian`); plus the calibration's covariance.
+  Distances are taken between corners on one row or one column of the board (nominal
+  k x square).
 - Flatness: the minimum-zone flatness of the triangulated corners (each corner's
   projector coordinate comes from thousands of decoded pixels; a single pixel's Gray code
   is a whole projector row, quantised to several millimetres of depth at this stand-off),
@@ -81,7 +81,8 @@ def coded_orientation(model: RigModel, view: Any) -> str:
 @dataclass(frozen=True)
 class PoseCheck:
     """One left-out pose: its flatness, and per corner pair on a row or column the
-    nominal distance (mm), the measured minus nominal and its U (k = 2)."""
+    nominal distance (mm), the measured minus nominal and its U (k = 2), and the part of U
+    the corners' noise makes (`U_noise_mm`; the rest is the calibration's uncertainty)."""
 
     name: str
     corners: int
@@ -90,6 +91,7 @@ class PoseCheck:
     nominal_mm: np.ndarray
     error_mm: np.ndarray
     U_mm: np.ndarray
+    U_noise_mm: np.ndarray
     calibration_rms_px: dict[str, float]
     orientation: str
 
@@ -106,10 +108,66 @@ class PoseCheck:
                 "adjacent_error_rms_mm": float(np.sqrt(np.mean(self.error_mm[adj] ** 2))),
                 "adjacent_error_max_mm": float(np.abs(self.error_mm[adj]).max()),
                 "adjacent_U_median_mm": float(np.median(self.U_mm[adj])),
+                # U's sources for adjacent corners: the corners' noise, and the calibration's uncertainty
+                "adjacent_U_noise_median_mm": float(np.median(self.U_noise_mm[adj])),
+                "adjacent_U_calibration_median_mm": float(np.median(np.sqrt(np.maximum(
+                    self.U_mm[adj] ** 2 - self.U_noise_mm[adj] ** 2, 0.0)))),
+                # U (k = 2) over the error's RMS: 2 when U is honest for this pose
+                "adjacent_U_over_error_rms": float(np.median(self.U_mm[adj])
+                                                   / np.sqrt(np.mean(self.error_mm[adj] ** 2))),
+                # RMS of error / (U / 2) over every distance: 1 when U is honest
+                "normalised_error_rms": float(np.sqrt(np.mean((2.0 * self.error_mm / self.U_mm) ** 2))),
                 "longest_nominal_mm": float(self.nominal_mm.max()),
                 "longest_error_mm": self.error_mm[longest].tolist(), "longest_U_mm": self.U_mm[longest].tolist(),
                 "within_U": self.inside, "calibration_rms_px": self.calibration_rms_px,
                 "coded_axis": "projector rows" if self.orientation == "horizontal" else "projector columns"}
+
+
+def pooled_summary(checks: list[PoseCheck], square_mm: float) -> dict[str, Any]:
+    """What the poses say together, counted honestly: each pose is one independent check
+    (its own left-out board pose, its own calibration of the others); its distances share
+    both, so they are not independent trials. The truth is the board's nominal geometry,
+    the scale the calibrations assumed too: an error of the printed square size is not
+    seen here."""
+    errors = np.concatenate([c.error_mm for c in checks])
+    U = np.concatenate([c.U_mm for c in checks])
+    adj = np.concatenate([np.isclose(c.nominal_mm, square_mm) for c in checks])
+    normalised = [float(np.sqrt(np.mean((2.0 * c.error_mm / c.U_mm) ** 2))) for c in checks]
+    return {"independent_poses": len(checks), "distances": int(len(errors)),
+            "within_U": float(np.mean(np.abs(errors) <= U)),
+            "poses_with_95_percent_within_U": int(sum(c.inside >= 0.95 for c in checks)),
+            "adjacent_error_rms_mm": float(np.sqrt(np.mean(errors[adj] ** 2))),
+            "adjacent_U_median_mm": float(np.median(U[adj])),
+            "adjacent_U_over_error_rms": float(np.median(U[adj]) / np.sqrt(np.mean(errors[adj] ** 2))),
+            "normalised_error_rms": float(np.sqrt(np.mean(np.square(normalised)))),
+            "normalised_error_rms_per_pose": normalised,
+            "truth": f"the board's nominal geometry (multiples of {square_mm:g} mm), the scale the calibrations "
+                     f"assumed: a wrong printed square size is not seen by this check"}
+
+
+OUTLIER_ALPHA = 1e-3  # the chance that a Gaussian residual vector is set aside by `robust_second_moment`
+
+
+def robust_second_moment(v: np.ndarray, rounds: int = 5) -> np.ndarray:
+    """E[v vᵀ] (3, 3) of vectors `v` (n, 3) that are Gaussian about 0 but for a few gross
+    errors: start from the components' median absolute values (1.4826 x, the Gaussian's
+    sigma), set aside the vectors beyond the chi-square (3 dof) point a Gaussian vector
+    exceeds with probability OUTLIER_ALPHA, take the second moment of the rest, corrected
+    for that truncation (for a Gaussian, E[v vᵀ | inside] = Σ · P(χ²₅ ≤ q) / P(χ²₃ ≤ q)),
+    and repeat."""
+    from scipy.stats import chi2
+
+    if len(v) == 0:
+        return np.zeros((3, 3))
+    q = float(chi2.ppf(1.0 - OUTLIER_ALPHA, 3))
+    shrink = float(chi2.cdf(q, 5) / chi2.cdf(q, 3))
+    S = np.diag(np.maximum((1.4826 * np.median(np.abs(v), axis=0)) ** 2, 1e-30))
+    for _ in range(rounds):
+        inside = np.einsum("ni,ij,nj->n", v, np.linalg.pinv(S), v) <= q
+        if not inside.any():
+            break
+        S = v[inside].T @ v[inside] / inside.sum() / shrink
+    return 0.5 * (S + S.T)
 
 
 def _grid(obj: np.ndarray, square_mm: float) -> np.ndarray:
@@ -119,31 +177,61 @@ def _grid(obj: np.ndarray, square_mm: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CornerNoise:
-    """How the errors of two corners' (camera x, camera y, coded projector coordinate) (px)
-    covary with their lag on the board: `lags` (L, 2) in squares (canonical: dx > 0, or
-    dx = 0 and dy >= 0) and their covariances (L, 3, 3), C(h) = E[r(g) r(g + h)ᵀ]; the lag
-    -h has C(h)ᵀ. Estimated from the residuals a calibration left on its own views, pooled
-    over views and corner pairs; `pairs` how many pairs each lag pooled."""
+    """How the errors of two corners covary with their lag on the board, in the terms of
+    their sources: the camera corner's error e (x, y) and the decoding's error n of the
+    coded projector coordinate beyond what e carries into it (the projector coordinate is
+    the local fit evaluated at the camera corner: its error is a·e + n, a the fit's
+    Jacobian row of the coded axis, `calibration.stereo.CornerErrorModel`). `lags` (L, 2) in
+    squares (canonical: dx > 0, or dx = 0 and dy >= 0) and their covariances (L, 3, 3) of
+    (e_x, e_y, n), C(h) = E[s(g) s(g + h)ᵀ]; the lag -h has C(h)ᵀ. Estimated from the
+    residuals a calibration left on its own views (each view's own a taken out), pooled
+    over views and corner pairs; `pairs` how many pairs each lag pooled.
+
+    Pooling the residuals of (camera, coded coordinate) as they are mixes views whose a
+    differ (the board's tilt sets it): the camera error's share of the coded coordinate,
+    which moves a triangulated corner along the board and not in depth, then reads as
+    depth noise (on the procam capture, at 3.4 m, it set the adjacent distances' U to
+    ~0.3 mm of noise where the errors were 0.09-0.12 mm RMS)."""
 
     lags: np.ndarray
     covariances: np.ndarray
     pairs: np.ndarray
 
     @classmethod
-    def from_residuals(cls, views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], axis: int,
-                       square_mm: float) -> CornerNoise:
+    def from_residuals(cls, views: list[tuple[np.ndarray, ...]], axis: int, square_mm: float) -> CornerNoise:
         """`views`: per calibration view the camera's object points (N, 3) and residuals
-        (N, 2), the projector's (M, 3) and (M, 2) (px); `axis` the projector's coded
-        coordinate (0 x, 1 y). Only corners seen by both devices count."""
-        lag_parts, product_parts = [], []
-        for cam_obj, cam_res, proj_obj, proj_res in views:
+        (N, 2), the projector's (M, 3) and (M, 2) (px), and optionally the projector
+        points' local-fit Jacobians (M, 2, 2) (absent: the coded coordinate's error is
+        taken as independent of the camera's); `axis` the projector's coded coordinate
+        (0 x, 1 y). Only corners seen by both devices count.
+
+        C(0) is the pooled second moment of a corner's residuals; C(h) for h != 0 is C(0)
+        minus half the pooled second moment of the differences r(g + h) − r(g) over the
+        pairs at that lag (plus the products' antisymmetric part, the cross-covariance's
+        direction), so a distance between corners at lag h sees exactly the spread the
+        residuals' differences at that lag have: the views' residuals are not stationary
+        (a view's smooth misfit across the board, a few corners far off in one view), and
+        products pooled over different pairs than C(0) misstate the difference
+        (on the procam capture the adjacent camera-x spread came out 0.32 px from the
+        products, 0.27 px measured on the differences). Both second moments are robust
+        (`robust_second_moment`): a few corners the detector got wrong by pixels (the
+        capture's poses seen through a glass pane's edge) would otherwise set the spread of
+        every distance (adjacent camera-x differences: 0.27 px RMS, 0.12 px without them);
+        a distance to such a corner then falls outside its U, and the share of distances
+        outside U says how often that happens."""
+        lag_parts, product_parts, vector_parts = [], [], []
+        for cam_obj, cam_res, proj_obj, proj_res, *jacobian in views:
             g_cam, g_proj = _grid(cam_obj, square_mm), _grid(proj_obj, square_mm)
             index = {tuple(g): k for k, g in enumerate(g_cam)}
             both = [(index[tuple(g)], k) for k, g in enumerate(g_proj) if tuple(g) in index]
             if not both:
                 continue
             ci, pi = np.array(both).T
-            r = np.column_stack([np.asarray(cam_res).reshape(-1, 2)[ci], np.asarray(proj_res).reshape(-1, 2)[pi, axis]])
+            e = np.asarray(cam_res).reshape(-1, 2)[ci]
+            n = np.asarray(proj_res).reshape(-1, 2)[pi, axis]
+            if jacobian:
+                n = n - np.einsum("mj,mj->m", np.asarray(jacobian[0])[pi, axis, :], e)
+            r = np.column_stack([e, n])
             g = g_cam[ci]
             a, b = (x.ravel() for x in np.meshgrid(np.arange(len(g)), np.arange(len(g)), indexing="ij"))
             h = g[b] - g[a]
@@ -151,18 +239,27 @@ class CornerNoise:
             a, b = a[canonical], b[canonical]
             lag_parts.append(h[canonical])
             product_parts.append((r[a][:, :, None] * r[b][:, None, :]).reshape(-1, 9))
+            vector_parts.append(np.where((a == b)[:, None], r[a], r[b] - r[a]))  # lag 0: the residual itself
         lags, inverse, pairs = np.unique(np.concatenate(lag_parts), axis=0, return_inverse=True, return_counts=True)
-        products = np.concatenate(product_parts)
-        sums = np.stack([np.bincount(inverse.ravel(), products[:, c], len(lags)) for c in range(9)], axis=1)
-        cov = (sums / pairs[:, None]).reshape(-1, 3, 3)
+        inverse = inverse.ravel()
+        values = np.concatenate(product_parts)
+        sums = np.stack([np.bincount(inverse, values[:, c], len(lags)) for c in range(9)], axis=1)
+        products = (sums / pairs[:, None]).reshape(-1, 3, 3)
+        vectors = np.concatenate(vector_parts)
+        moments = np.stack([robust_second_moment(vectors[inverse == k]) for k in range(len(lags))])
         zero = np.all(lags == 0, axis=1)
-        cov[zero] = 0.5 * (cov[zero] + np.transpose(cov[zero], (0, 2, 1)))
+        c0 = moments[zero][0]
+        cov = c0 - 0.5 * moments + 0.5 * (products - np.transpose(products, (0, 2, 1)))
+        cov[zero] = c0
         return cls(lags, cov, pairs)
 
-    def covariance(self, grid: np.ndarray) -> np.ndarray:
-        """The joint covariance (N, 3, N, 3) of corners at `grid` (N, 2) (squares): C of
-        each pair's lag (zero for a lag the calibration never saw), made positive
-        semi-definite (negative eigenvalues of the pooled estimate set to 0)."""
+    def covariance(self, grid: np.ndarray, coupling: np.ndarray | None = None) -> np.ndarray:
+        """The joint covariance (N, 3, N, 3) of the measured (camera x, camera y, coded
+        projector coordinate) of corners at `grid` (N, 2) (squares) whose local fits have
+        the coded axis' Jacobian rows `coupling` (N, 2) (None: zero): the sources' C of each
+        pair's lag (zero for a lag the calibration never saw), made positive semi-definite
+        (negative eigenvalues of the pooled estimate set to 0), then mixed,
+        measured = (e, a·e + n)."""
         n = len(grid)
         h = (grid[None, :, :] - grid[:, None, :]).reshape(-1, 2)
         flip = ~((h[:, 0] > 0) | ((h[:, 0] == 0) & (h[:, 1] >= 0)))
@@ -173,15 +270,21 @@ class CornerNoise:
         blocks[flip] = np.transpose(blocks[flip], (0, 2, 1))
         full = blocks.reshape(n, n, 3, 3).transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
         w, v = np.linalg.eigh(0.5 * (full + full.T))
-        return ((v * np.clip(w, 0.0, None)) @ v.T).reshape(n, 3, n, 3)
+        sources = ((v * np.clip(w, 0.0, None)) @ v.T).reshape(n, 3, n, 3)
+        if coupling is None:
+            return sources
+        mix = np.tile(np.eye(3), (n, 1, 1))
+        mix[:, 2, :2] = coupling
+        return np.einsum("iab,ibjc,jdc->iajd", mix, sources, mix)
 
     @classmethod
     def from_calibration(cls, solution: Any, axis: int, square_mm: float) -> CornerNoise:
         """From a `calibration.solve.Solution`: its joint refinement's residuals per view."""
         s = solution.stereo
-        return cls.from_residuals([(c.camera.object_points, rc, c.projector.object_points, rp) for c, rc, rp in
-                                   zip(solution.correspondences, s.camera_residuals, s.projector_residuals)],
-                                  axis, square_mm)
+        return cls.from_residuals([(c.camera.object_points, rc, c.projector.object_points, rp,
+                                    c.projector_corners.jacobian[c.projector_corners.found])
+                                   for c, rc, rp in zip(solution.correspondences, s.camera_residuals,
+                                                        s.projector_residuals)], axis, square_mm)
 
 
 def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: CalibrationUncertainty,
@@ -200,7 +303,8 @@ def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: 
     X = triangulate_corners(model, pix, coded, orientation)
     A = measurement_jacobian(X, model, orientation)
     # corners' joint covariance in mm (N, 3, N, 3): A_i C_ij A_jᵀ
-    cov = np.einsum("iab,ibjc,jdc->iajd", A, noise(axis).covariance(_grid(obj, board.square_mm)), A)
+    coupling = corr.projector_corners.jacobian[found][:, axis, :]
+    cov = np.einsum("iab,ibjc,jdc->iajd", A, noise(axis).covariance(_grid(obj, board.square_mm), coupling), A)
     shifts = calibration.shifts(X, model, {orientation: np.ones(len(X))})
     i, j = np.triu_indices(len(X), 1)
     same_line = np.isclose(obj[i, 0], obj[j, 0]) | np.isclose(obj[i, 1], obj[j, 1])
@@ -209,13 +313,14 @@ def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: 
     dist = np.linalg.norm(d, axis=1)
     e = d / dist[:, None]
     pair = cov[i, :, i] + cov[j, :, j] - cov[i, :, j] - cov[j, :, i]
-    var = np.einsum("ni,nij,nj->n", e, pair, e)
+    noise_var = np.einsum("ni,nij,nj->n", e, pair, e)
+    var = noise_var.copy()
     if shifts is not None:
         var += np.sum(np.einsum("dni,ni->dn", shifts[:, i] - shifts[:, j], e) ** 2, axis=0)
     nominal = np.linalg.norm(obj[i] - obj[j], axis=1)
     flat, rms = _flatness(X, cov, shifts)
-    return PoseCheck(view.name, int(found.sum()), flat, rms, nominal, dist - nominal, 2.0 * np.sqrt(var), rms_px,
-                     orientation)
+    return PoseCheck(view.name, int(found.sum()), flat, rms, nominal, dist - nominal, 2.0 * np.sqrt(var),
+                     2.0 * np.sqrt(noise_var), rms_px, orientation)
 
 
 def _flatness(X: np.ndarray, cov: np.ndarray, shifts: np.ndarray | None, draws: int = 200,

@@ -35,7 +35,8 @@ EXAMPLES: dict[str, str] = {
                                    "--out lcr-images",
     "calibrate": "slscan calibrate --out calibrations/bench                   (the simulated bench rig)\n"
                  "slscan calibrate --from calibrations/bench/capture --drop-outliers --out calibrations/bench-2\n"
-                 "slscan calibrate --stage-axis --rig config/rigs/sim_turntable.toml --out calibrations/turntable",
+                 "slscan calibrate --stage-axis --rig config/rigs/sim_turntable.toml --out calibrations/turntable\n"
+                 "slscan calibrate --covariance-check 30 --seed 5100 --out calibrations/covariance-check",
     "cad": "slscan cad config/parts/demo_part.step\n"
            "slscan cad config/parts/demo_part.step --sample 20000 --repeats 3",
     "cadbench": "slscan cadbench ../shared/data/step/nist_ctc_01_asme1_rd.stp --copies 1,4,16",

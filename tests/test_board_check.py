@@ -40,7 +40,9 @@ def _views(n: int, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarra
 
 
 def test_corner_noise_recovers_a_known_correlated_anisotropic_field() -> None:
-    noise = CornerNoise.from_residuals(_views(600, np.random.default_rng(3)), axis=1, square_mm=SQUARE_MM)
+    # 1500 views: at the lags only edge corners span (e.g. 4 x 6 squares) a few pairs per view estimate the
+    # difference of two independent residuals, whose spread needs this many to stay inside the tolerance
+    noise = CornerNoise.from_residuals(_views(1500, np.random.default_rng(3)), axis=1, square_mm=SQUARE_MM)
     table = {tuple(k): c for k, c in zip(noise.lags, noise.covariances)}
     scale = np.sqrt(np.outer(np.diag(MIX @ MIX.T), np.diag(MIX @ MIX.T)))  # for relative comparison
     for lag in [(0, 0), (1, 0), (0, 1), (1, 1), (1, -1), (2, 0), (3, 2)]:
@@ -65,3 +67,41 @@ def test_a_distance_between_neighbours_sees_the_difference_of_correlated_errors(
     model = cov[0, 2, 0, 2] + cov[1, 2, 1, 2] - 2.0 * cov[0, 2, 1, 2]
     var = (MIX @ MIX.T)[2, 2]
     assert abs(model / (2.0 * (1.0 - np.exp(-1.0 / LENGTH_SQUARES)) * var) - 1.0) < 0.1
+
+
+def test_the_camera_error_carried_into_the_projector_coordinate_is_modelled_per_pose() -> None:
+    """Residuals made as the bench makes them: camera errors e (a correlated field), the
+    coded projector coordinate a·e + n with a the local fit's Jacobian row, which differs
+    from view to view (the board's tilt), and n the decoding's own field. Given each view's
+    Jacobians, the sources are recovered and re-mixed with a new pose's own: the measured
+    covariance matches the closed form, where pooling (camera, coded) residuals as they are
+    would give the new pose the views' average coupling."""
+    rng = np.random.default_rng(8)
+    g = _grid()
+    rho = np.exp(-np.linalg.norm(g[:, None] - g[None], axis=2) / LENGTH_SQUARES)
+    L = np.linalg.cholesky(rho)
+    obj = np.column_stack([g * SQUARE_MM, np.zeros(len(g))])
+    camera_mix, decoding_sd = np.array([[0.2, 0.0], [0.05, 0.1]]), 0.03
+    views = []
+    for _ in range(800):
+        e = (L @ rng.standard_normal((len(g), 2))) @ camera_mix.T
+        n = decoding_sd * (L @ rng.standard_normal(len(g)))
+        a = rng.normal(0.0, 1.0, 2) + [0.2, 2.0]  # this view's coupling of the coded axis (1) to the camera
+        jacobian = np.zeros((len(g), 2, 2))
+        jacobian[:, 1, :] = a
+        proj = np.column_stack([rng.normal(0.0, 5.0, len(g)), e @ a + n])
+        views.append((obj, e, obj, proj, jacobian))
+    noise = CornerNoise.from_residuals(views, axis=1, square_mm=SQUARE_MM)
+    pair = np.array([[0, 0], [1, 0]])
+    a_new = np.array([[1.5, -0.5], [1.4, -0.4]])
+    cov = noise.covariance(pair, a_new)
+    Ce = [camera_mix @ camera_mix.T * np.exp(-d / LENGTH_SQUARES) for d in (0.0, 1.0)]
+    Cn = [decoding_sd ** 2 * np.exp(-d / LENGTH_SQUARES) for d in (0.0, 1.0)]
+    for i, j in ((0, 0), (0, 1), (1, 1)):
+        lag = abs(i - j)
+        truth = np.zeros((3, 3))
+        truth[:2, :2] = Ce[lag]
+        truth[:2, 2] = Ce[lag] @ a_new[j]
+        truth[2, :2] = a_new[i] @ Ce[lag]
+        truth[2, 2] = a_new[i] @ Ce[lag] @ a_new[j] + Cn[lag]
+        assert np.allclose(cov[i, :, j, :], truth, atol=0.08 * truth[2, 2]), (i, j, cov[i, :, j, :], truth)

@@ -5,6 +5,8 @@ captures on disk (calibration/).
     slscan calibrate --from CAPTURE --out DIR          solve again from a capture made by slscan
     slscan calibrate --from DIR --layout opencv-graycode --projector-size 1024x768 --board BOARD.toml --out DIR
     slscan calibrate --stage-axis --rig RIG.toml --out DIR   the turntable's axis (slscan/commands/stage_axis.py)
+    slscan calibrate --covariance-check N --seed S --out DIR   N independent simulated calibrations against the
+                                                               true rig: is the reported covariance true?
 
 On a simulated rig the simulator moves the board, the plate and the artefact, and the
 report ends with the calibration's errors against the simulator's ground truth and a scan
@@ -95,6 +97,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         from slscan.commands.stage_axis import cmd_stage_axis
 
         return cmd_stage_axis(args)
+    if args.covariance_check is not None:
+        return _covariance_check(args)
     from calibration.calibration_recording import CalibrationRecording
     from calibration.errors import CalibrationRejected
     from calibration.workflow import write_result
@@ -151,6 +155,28 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return Exit.OK
 
 
+def _covariance_check(args: argparse.Namespace) -> int:
+    """`--covariance-check N`: the Mahalanobis check of the covariance (slscan/covariance_check.py);
+    the report on stdout (or JSON) and in DIR/covariance_check.json."""
+    import json
+
+    from scanner.session import write_json
+    from slscan.covariance_check import covariance_check
+
+    if args.covariance_check < 1:
+        raise ScannerError("--covariance-check: give the number of calibrations (>= 1; 30 or more to judge)")
+    out = Path(args.out)
+    _out_folder(out)
+    try:
+        check = covariance_check(args.rig, args.covariance_check, args.seed, args.poses, _say)
+    except ValueError as exc:
+        raise ScannerError(str(exc)) from None
+    summary = check.summary()
+    write_json(out / "covariance_check.json", summary)
+    print(json.dumps(summary) if args.json else "\n".join(check.lines()))
+    return Exit.OK
+
+
 def _from_disk(args: argparse.Namespace, say: Any, log: Any) -> Any:
     from calibration.board import Board
     from calibration.graycode import GrayCodeLayout
@@ -197,17 +223,20 @@ def _on_rig(args: argparse.Namespace, out: Path, say: Any, log: Any) -> tuple[An
         lines = ["against the simulator's ground truth:", *("          " + x for x in
                                                            error_lines(model_errors(result.model, truth)))]
         lines += _scan_check(rig, result.model, truth, say)
+        lines += [_calibration_depth_line(result.model, result.solution.stereo.covariance, truth, say)]
         if result.model.phase_to_height is not None:
             lines += _phase_height_check(rig, result.model, config.working_distance_mm + PLATE_BEHIND_MM,
                                          max(procedure.plate_heights_mm), say)
     return result, config.path, lines
 
 
-def simulated_bench(rig: Any, procedure: Any, seed: int = 0) -> Any:
+def simulated_bench(rig: Any, procedure: Any, seed: int = 0, jitter_deg: float = 2.0, *,
+                    jitter_first: bool = False) -> Any:
     """The simulator's `Bench` for an open simulated rig: the procedure's board printed as
-    a texture (TEXELS_PER_PX at the working distance), moved through planned poses; the
-    plate PLATE_BEHIND_MM behind the working distance; the sphere pair ARTEFACT_BEFORE_MM
-    in front of it."""
+    a texture (TEXELS_PER_PX at the working distance), moved through planned poses (each
+    but the first, or with `jitter_first` each, turned by up to `jitter_deg` about each
+    axis, drawn from `seed`); the plate PLATE_BEHIND_MM behind the working distance; the
+    sphere pair ARTEFACT_BEFORE_MM in front of it."""
     from sim.calibration_bench import SimBench, Target, plan_target_poses
 
     config, truth, board = rig.config, rig.config.nominal_model(), procedure.board
@@ -215,7 +244,8 @@ def simulated_bench(rig: Any, procedure: Any, seed: int = 0) -> Any:
     target = Target(board.image(board.texture_density(TEXELS_PER_PX / footprint_mm)), board.size_mm,
                     board.image_origin_mm, board.object_points())
     try:
-        poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, seed)
+        poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, seed, jitter_deg,
+                                  jitter_first=jitter_first)
     except ValueError as exc:
         raise ScannerError(f"simulated bench: {exc}") from None
     artefact = procedure.artefact
@@ -248,6 +278,17 @@ def _scan_check(rig: Any, calibrated: Any, truth: Any, say: Any) -> list[str]:
     return [f"scan check (sphere + plane, {patterns.family}): depth RMS {c.rms_mm * 1e3:.2f} um with the calibrated "
             f"rig, {t.rms_mm * 1e3:.2f} um with the ground-truth rig (ratio {c.rms_mm / t.rms_mm:.3f}); mean "
             f"{c.mean_mm * 1e3:+.2f} / {t.mean_mm * 1e3:+.2f} um"]
+
+
+def _calibration_depth_line(calibrated: Any, covariance: np.ndarray, truth: Any, say: Any) -> str:
+    """The calibration's own share of the scan check's mean depth error, and its one-sigma
+    from the calibration's covariance (slscan/calibration_depth.py)."""
+    from calibration.consistency import model_parameters
+    from slscan.calibration_depth import calibration_depth_bias
+
+    say("scan check: the calibration's own depth error and its sigma from the covariance")
+    bias = calibration_depth_bias(truth, model_parameters(calibrated), covariance, SCAN_CHECK_SCENE)
+    return "          " + bias.summary()
 
 
 def _measuring_volume_scene(camera: Any, plate_mm: float, top_mm: float) -> Any:
@@ -338,4 +379,8 @@ def register(sub: Any) -> None:
     c.add_argument("--stage-axis", action="store_true", help="calibrate the rig's turntable axis from a board it turns "
                                                               "(writes stage_axis.json)")
     c.add_argument("--angles", metavar="DEG,DEG,...", help="--stage-axis: the stage angles (default -90..90 by 30)")
+    c.add_argument("--covariance-check", type=int, metavar="N",
+                   help="simulated rigs: N independent calibrations (seeds --seed, --seed + 1, ...), each against the "
+                        "true rig: the Mahalanobis distance of the truth under the covariance each reports")
+    c.add_argument("--json", action="store_true", help="--covariance-check: print the summary as JSON")
     c.set_defaults(func=cmd_calibrate)

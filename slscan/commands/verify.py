@@ -187,6 +187,7 @@ def leave_one_out(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     from calibration.graycode import GrayCodeLayout
     from calibration.store import CaptureSet, graycode_views
     from slscan.board_check import leave_one_out as check
+    from slscan.board_check import pooled_summary
 
     if args.layout == "opencv-graycode":
         if args.projector_size is None or args.board is None:
@@ -200,9 +201,10 @@ def leave_one_out(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     out = _out_folder(Path(args.out))
     checks = check(views, board, size, say)
     rows = [c.summary(board.square_mm) for c in checks]
-    write_json(out / "leave_one_out.json", rows)
+    pooled = pooled_summary(checks, board.square_mm)
+    write_json(out / "leave_one_out.json", {"poses": rows, "summary": pooled})
     if args.json:
-        print(json.dumps(rows))
+        print(json.dumps({"poses": rows, "summary": pooled}))
         return 0
     print(f"{'pose':<12} {'flatness (corners)':>20} {'plane RMS':>10} {'adjacent err RMS':>17} {'max':>7} "
           f"{'U (median)':>11} {'longest err ± U':>22} {'within U':>9}")
@@ -212,7 +214,21 @@ def leave_one_out(args: argparse.Namespace, say: Callable[[str], None]) -> int:
               f"{r['adjacent_error_rms_mm']:17.3f} {r['adjacent_error_max_mm']:7.3f} {r['adjacent_U_median_mm']:11.3f} "
               f"{longest:>22} {r['within_U']:9.0%}")
     print(f"mm (flatness in um); corner distances along rows and columns against multiples of {board.square_mm:g} mm; "
-          f"'longest': the {rows[0]['longest_nominal_mm']:g} mm distances; U with k = 2; report {out / 'leave_one_out.json'}")
+          f"'longest': the {rows[0]['longest_nominal_mm']:g} mm distances; U with k = 2; report "
+          f"{out / 'leave_one_out.json'}")
+    p = pooled
+    print(f"{p['independent_poses']} independent poses ({p['distances']} distances, not independent: a pose's share "
+          f"its "
+          f"calibration and its board pose): {p['within_U']:.1%} of the distances within ±U, "
+          f"{p['poses_with_95_percent_within_U']} of {p['independent_poses']} poses with 95 % or more; error / (U/2) "
+          f"RMS {p['normalised_error_rms']:.2f} (1 when U is honest; per pose "
+          f"{', '.join(f'{v:.2f}' for v in p['normalised_error_rms_per_pose'])}); adjacent corners: U median "
+          f"{p['adjacent_U_median_mm']:.3f} mm, {p['adjacent_U_over_error_rms']:.1f} x the error's RMS "
+          f"(2 for k = 2)")
+    print("adjacent corners' U (median, mm) from the corners' noise | from the calibration: " + ", ".join(
+        f"{r['pose']} {r['adjacent_U_noise_median_mm']:.3f} | {r['adjacent_U_calibration_median_mm']:.3f}"
+        for r in rows))
+    print(f"truth: {p['truth']}")
     return 0
 
 
