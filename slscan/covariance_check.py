@@ -120,7 +120,7 @@ def simulated_draw(rig_toml: Path, seed: int, poses: int | None, jitter_deg: flo
     from calibration.workflow import Procedure, capture_board_poses
     from scanner.rig import RigConfig, open_rig
     from sim.calibration_bench import plate_scene
-    from slscan.commands.calibrate import PLATE_BEHIND_MM, SCAN_CHECK_SCENE, simulated_bench
+    from slscan.simulated_calibration_bench import PLATE_BEHIND_MM, SCAN_CHECK_SCENE, simulated_bench
 
     t0 = time.perf_counter()
     config = RigConfig.load(rig_toml)

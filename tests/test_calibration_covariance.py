@@ -147,7 +147,7 @@ def test_a_calibration_scaled_in_its_baseline_reads_depth_scaled_by_the_same_fac
     from sim.render import compute_ground_truth
     from sim.scene import load_scene
     from slscan.calibration_depth import calibration_depth_bias
-    from slscan.commands.calibrate import SCAN_CHECK_SCENE
+    from slscan.simulated_calibration_bench import SCAN_CHECK_SCENE
 
     truth = BENCH.with_camera_size(320, 256)
     p = model_parameters(truth)

@@ -28,14 +28,15 @@ from typing import Any
 import cv2
 import numpy as np
 
-from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError, ScannerError
 from slscan.exit_codes import Exit
+from slscan.simulated_calibration_bench import (
+    PLATE_BEHIND_MM,
+    SCAN_CHECK_SCENE,
+    TEXELS_PER_PX,
+    simulated_bench,
+)
 
-SCAN_CHECK_SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
-TEXELS_PER_PX = 4.0  # simulated board texture: texels per camera pixel at the working distance
-PLATE_BEHIND_MM = 20.0  # simulated reference plate, beyond the working distance
-ARTEFACT_BEFORE_MM = 10.0  # simulated sphere pair, nearer than the working distance
 
 
 def image_size(text: str) -> tuple[int, int]:
@@ -228,30 +229,6 @@ def _on_rig(args: argparse.Namespace, out: Path, say: Any, log: Any) -> tuple[An
             lines += _phase_height_check(rig, result.model, config.working_distance_mm + PLATE_BEHIND_MM,
                                          max(procedure.plate_heights_mm), say)
     return result, config.path, lines
-
-
-def simulated_bench(rig: Any, procedure: Any, seed: int = 0, jitter_deg: float = 2.0, *,
-                    jitter_first: bool = False) -> Any:
-    """The simulator's `Bench` for an open simulated rig: the procedure's board printed as
-    a texture (TEXELS_PER_PX at the working distance), moved through planned poses (each
-    but the first, or with `jitter_first` each, turned by up to `jitter_deg` about each
-    axis, drawn from `seed`); the plate PLATE_BEHIND_MM behind the working distance; the
-    sphere pair ARTEFACT_BEFORE_MM in front of it."""
-    from sim.calibration_bench import SimBench, Target, plan_target_poses
-
-    config, truth, board = rig.config, rig.config.nominal_model(), procedure.board
-    footprint_mm = config.working_distance_mm / truth.camera.K[0, 0]
-    target = Target(board.image(board.texture_density(TEXELS_PER_PX / footprint_mm)), board.size_mm,
-                    board.image_origin_mm, board.object_points())
-    try:
-        poses = plan_target_poses(truth, target, procedure.poses, config.working_distance_mm, seed, jitter_deg,
-                                  jitter_first=jitter_first)
-    except ValueError as exc:
-        raise ScannerError(f"simulated bench: {exc}") from None
-    artefact = procedure.artefact
-    return SimBench(rig, target, poses, config.working_distance_mm + PLATE_BEHIND_MM,
-                    artefact.radius_mm if artefact else 10.0, artefact.distance_mm if artefact else 50.0,
-                    config.working_distance_mm - ARTEFACT_BEFORE_MM)
 
 
 def _scan_check(rig: Any, calibrated: Any, truth: Any, say: Any) -> list[str]:
