@@ -1,7 +1,8 @@
 """The start-ups that deadlocked, run many times under a watchdog (slow: ~2-4 s a start):
-`slscan demo`'s (the main thread imports Open3D while the "load CAD" thread reads the STEP
-model, prepares its registration target and limits the native pools, as the inspection
-does) and the station's (its cycle thread imports the inspection and limits the pools while
+`slscan demo`'s (Open3D imported first on the main thread, as the demo does; then the "load
+CAD" thread reads the STEP model, prepares its registration target and limits the native
+pools, as the inspection does, while the main thread imports the scan's libraries: the
+simulator, OpenCV's users, Rerun) and the station's (its cycle thread imports the inspection and limits the pools while
 the main thread imports the operator screen). Each start is a fresh process: the loader's
 lock and the import state start clean each time, as they do for a user.
 
@@ -34,9 +35,12 @@ def cad():
     with native_threads(1):
         return len(model.faces)
 
+import open3d  # noqa: F401  (first, on the main thread, as cmd_demo does)
+
 with ThreadPoolExecutor(1, thread_name_prefix="load CAD") as pool:
     faces = pool.submit(cad)
-    import open3d  # the main thread's import racing the thread's native work
+    import scanner.pipeline, scanner.session_recording, sim.virtual_rig  # noqa: E401,F401  racing the thread
+    import rerun  # noqa: F401
     print("done", faces.result(), flush=True)
 """
 
