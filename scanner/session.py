@@ -213,6 +213,18 @@ def manifest_record(root: Path, session_id: str, started: dt.datetime, rig_confi
             "patterns_sha256": rig_model_sha256(json_ready(patterns.to_dict())), "devices": devices, **(extra or {})}
 
 
+def refuse_used_folder(root: Path) -> None:
+    """SessionError unless `root` (a new session's folder) is new or empty: no earlier session
+    is overwritten. Commands check it before their slow start (the demo's CAD and libraries)."""
+    try:
+        used = root.exists() and any(root.iterdir())
+    except OSError as exc:
+        raise SessionError(f"cannot use the session folder {root}: {disk_problem(exc)}") from None
+    if used:
+        raise SessionError(f"{root}: output folder exists and is not empty; choose a new --out folder so no "
+                           f"earlier session is overwritten")
+
+
 class SessionWriter:
     """Writes one capture into a new session folder."""
 
@@ -229,9 +241,7 @@ class SessionWriter:
         """A new session folder; `out_dir` must not exist or be empty, and must be writable."""
         root = Path(out_dir)
         try:
-            if root.exists() and any(root.iterdir()):
-                raise SessionError(f"{root}: output folder exists and is not empty; choose a new --out folder "
-                                   f"so no earlier session is overwritten")
+            refuse_used_folder(root)
             root.mkdir(parents=True, exist_ok=True)
             return cls(root)
         except OSError as exc:

@@ -326,3 +326,16 @@ def test_json_alone_on_stdout_whatever_libraries_write_there(tmp_path: Path) -> 
         assert doc["status"] == "ok" and doc["points"] > 1000 and Path(doc["cloud"]).is_file()
         assert doc["accuracy"]["rms_mm"] < 0.1 and {c["name"] for c in doc["checks"]} >= {"phase_residual"}
         assert "a library line on fd 1" in proc.stderr
+
+
+@pytest.mark.parametrize("command", ["demo", "scan"])
+def test_a_used_output_folder_is_refused_before_the_slow_start(command: str, tmp_path: Path) -> None:
+    """`demo` and `scan` into a folder that holds something: one line and exit 2 before the
+    rig opens, the CAD loads or Open3D is imported (it took 79 s of a demo before)."""
+    (tmp_path / "earlier.txt").write_text("an earlier session")
+    probe = ("import sys\nfrom slscan import cli\ncode = cli.main(sys.argv[1:])\n"
+             "print(code, 'open3d' in sys.modules, 'OCP' in sys.modules)")
+    p = subprocess.run([sys.executable, "-c", probe, command, "--out", str(tmp_path)], capture_output=True,
+                       text=True, timeout=120)
+    assert p.stdout.split() == ["2", "False", "False"], p.stderr
+    assert "output folder exists and is not empty" in p.stderr and (tmp_path / "earlier.txt").exists()

@@ -59,6 +59,7 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
     from scanner.patterns import PatternSet
     from scanner.pipeline import scan
     from scanner.rig import RigConfig, open_rig
+    from scanner.session import refuse_used_folder
     from scanner.session_lock import session_lock
 
     config = RigConfig.load(args.rig)
@@ -96,6 +97,7 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
 
         return cmd_scan_binocular(args, config, patterns, options)
     out = Path(args.out)
+    refuse_used_folder(out)  # before the rig opens
     print(f"rig {config.name} ({config.driver}, {config.trigger} trigger), {patterns.family} "
           f"{patterns.n_frames} frames -> {out}", file=sys.stderr)
     with open_rig(config, **options) as rig:
@@ -322,7 +324,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     files go to the session's outputs/ and the inspection into its recording. The CAD
     model is loaded while the part is scanned. Exit by the verdict (`for_verdict`: 1 when a
     characteristic is non-conforming, 4 when one is not measured or uncertain)."""
+    from scanner.session import refuse_used_folder
+
     out = args.out or f"sessions/demo-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    refuse_used_folder(Path(out))  # before the CAD and the libraries load (seconds)
     ns = argparse.Namespace(rig=DEFAULT_RIG, scene=DEMO_SCENE, out=out, patterns=None, seed=args.seed, fault=[],
                             full_recording=args.full_recording, json=args.json and args.no_inspect)
     if args.no_inspect:
