@@ -17,6 +17,7 @@ ISO 14253-1 verdict (`inspection.tolerances.decide`) under the tolerance file's 
 
 from __future__ import annotations
 
+import threading
 import time
 import weakref
 from concurrent.futures import ThreadPoolExecutor
@@ -62,7 +63,8 @@ def prepare(model: CadModel) -> ModelTarget:
 def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = None,
             settings: InspectionSettings = InspectionSettings(), recording: Any = None,
             prior: Registration | None = None, uncertainty: ScanUncertainty | None = None,
-            on_verdict: Callable[[InspectionReport], None] | None = None) -> InspectionReport:
+            on_verdict: Callable[[InspectionReport], None] | None = None, *,
+            progress: Callable[[str, int, int], None] | None = None) -> InspectionReport:
     """Register `scan` to `model`, segment it by CAD face and evaluate every face seen.
     `recording`: a `scanner.session_recording.SessionRecording` to log the result into;
     `prior`: the previous part's registration on this station, tried first (warm start);
@@ -74,15 +76,19 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
     (`FACE_WORKERS`). BLAS runs on one thread inside (restored after; a process-wide limit):
     its products here are thin and memory-bound, and a second BLAS thread busy-waits between
     calls on the core the faces' threads need (the demo part's registration and segmentation:
-    1.45 -> 1.16 s CPU)."""
+    1.45 -> 1.16 s CPU). `progress(stage, done, total)`: told as each stage starts (isolate,
+    register, segment) and as each face's figures are done (faces, n of N)."""
     with native_threads(1):
-        return _inspect(scan, model, tolerances, settings, recording, prior, uncertainty, on_verdict)
+        return _inspect(scan, model, tolerances, settings, recording, prior, uncertainty, on_verdict,
+                        progress or (lambda stage, done, total: None))
 
 
 def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, settings: InspectionSettings,
              recording: Any, prior: Registration | None, uncertainty: ScanUncertainty | None,
-             on_verdict: Callable[[InspectionReport], None] | None) -> InspectionReport:
+             on_verdict: Callable[[InspectionReport], None] | None,
+             progress: Callable[[str, int, int], None]) -> InspectionReport:
     times: dict[str, float] = {}
+    progress("isolate", 0, 1)
     t0 = time.perf_counter()
     mask = part_mask(scan, model.diagonal_mm)
     part = scan.subset(mask)
@@ -90,8 +96,10 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
     t0 = time.perf_counter()
     target = prepare(model)
     times["model"] = time.perf_counter() - t0
+    progress("register", 0, 1)
     reg = register_with_prior(part, target, prior, settings.registration)
     times["register"] = reg.timings_s.get("total", 0.0)
+    progress("segment", 0, 1)
     t0 = time.perf_counter()
     q = transform_points(reg.transform, part.points)
     qn = part.normals @ reg.transform[:3, :3].T
@@ -133,12 +141,22 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
 
     # the faces the tolerances ask for first: the verdict needs only them; the others' figures follow
     asked = [f for f in seen if tolerances is not None and tolerances.for_face(f.label)]
-    rows.update(_each_face(row, asked, seg))
+    done, lock = [0], threading.Lock()
+
+    def counted(face: Any) -> FaceRow:  # one face's row, told to `progress` (faces, n of N)
+        figures = row(face)
+        with lock:
+            done[0] += 1
+            progress("faces", done[0], len(seen))
+        return figures
+
+    progress("faces", 0, len(seen))
+    rows.update(_each_face(counted, asked, seg))
     times["form"] = time.perf_counter() - t0
     if on_verdict is not None:
         on_verdict(report_of(rows))
     t0 = time.perf_counter()
-    rows.update(_each_face(row, [f for f in seen if f not in asked], seg))
+    rows.update(_each_face(counted, [f for f in seen if f not in asked], seg))
     times["form_after_verdict"] = time.perf_counter() - t0
     report = report_of(rows)
     if recording is not None:

@@ -55,8 +55,13 @@ def test_inspection_is_logged_in_the_rigs_world_frame(world_from_cam: np.ndarray
     pose = lying_pose(model.tessellation.vertices, 0.35, 400.0, (0.3, 0.1))   # part -> camera, the truth
     view = virtual_view(model, pose)
     path = tmp_path / "inspection.rrd"
+    heard: list[tuple[str, int, int]] = []
     with _recording(path, world_from_cam) as rec:
-        report = inspect(view, model, recording=rec)
+        report = inspect(view, model, recording=rec, progress=lambda *told: heard.append(told))
+    # the long inspection is told as it goes: each stage, then each face seen, one by one
+    assert [s for s, _, _ in heard[:3]] == ["isolate", "register", "segment"]
+    seen = sum(r.form.points > 0 and r.form.status != "not seen" for r in report.faces)
+    assert [d for s, d, _ in heard if s == "faces"] == list(range(seen + 1)) and heard[-1][2] == seen
     expected = _apply(world_from_cam, view.points[report.part_mask])
     for entity in (DEVIATION, FACES):
         assert np.allclose(read_points(path, entity)[0], expected, atol=1e-3)

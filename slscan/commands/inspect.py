@@ -393,7 +393,9 @@ def _inspect_source(source: str | Path, cad: str | Path | None, tolerances: str 
     try:
         if own is not None:  # the session's rig: its world frame is the recording's `world`
             own.log_rig(session.rig_model())
-        report = inspect(scan, model, tol, settings, recording, uncertainty=uncertainty)
+        from slscan.progress import ProgressLine
+
+        report = inspect(scan, model, tol, settings, recording, uncertainty=uncertainty, progress=ProgressLine())
     finally:
         if own is not None:
             own.close()

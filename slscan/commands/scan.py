@@ -282,7 +282,8 @@ def load_demo_part() -> tuple[Any, Any, Any]:
 
 def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: Any, seed: int = 0,
                           prior: Any = None, on_verdict: Callable[[Any], None] | None = None,
-                          program: Any = None, pdf: bool = True) -> tuple[Any, StageTimer]:
+                          program: Any = None, pdf: bool = True,
+                          progress: Callable[[str, int, int], None] | None = None) -> tuple[Any, StageTimer]:
     """Inspect a processed scan against `model`, the verdict first: `on_verdict(report)`
     runs as soon as it is known (a report of the faces the tolerances ask for,
     `inspection.inspect_scan.inspect`); then the work that does not change it, the other
@@ -291,7 +292,8 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
     recorded). The session is complete when this returns: until then outputs/ has no
     inspection.json and the recording is still `recording.rrd.part`. `prior`: the previous
     part's registration (warm start); `program` names the part in the report's header, `pdf`
-    prints inspection.pdf. Returns the report and the time of each stage."""
+    prints inspection.pdf; `progress(stage, done, total)` hears the inspection's stages and
+    faces. Returns the report and the time of each stage."""
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import from_organised, load_session
     from inspection.registration import RegistrationSettings
@@ -306,7 +308,7 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
         # the decoder's noise model and calibration, from the decode the scan was made of
         uncertainty = session_uncertainty(result.session, result.decoded)(scan.pixels)
         report = inspect(scan, model, tolerances, InspectionSettings(registration=RegistrationSettings(seed=seed)),
-                         prior=prior, uncertainty=uncertainty, on_verdict=on_verdict)
+                         prior=prior, uncertainty=uncertainty, on_verdict=on_verdict, progress=progress)
     with timer.stage("report_files"):
         report = write_report_files(report, scan, result.session.outputs, result.session.root, program, pdf=pdf)
     if recording is not None:
@@ -349,7 +351,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             model, tolerances, program = part.result()
             t1, c1 = time.perf_counter(), time.process_time()
             done["report"], done["timer"] = inspect_verdict_first(result, recording, model, tolerances, args.seed,
-                                                                  on_verdict=show, program=program)
+                                                                  on_verdict=show, program=program,
+                                                                  progress=ProgressLine())
             done["seconds"], done["cpu"] = time.perf_counter() - t1, time.process_time() - c1
 
         with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
