@@ -148,15 +148,15 @@ class InspectionReport:
                 "timings_s": self.timings_s, "faces": [row.as_dict() for row in self.faces]}
 
     def table(self) -> str:
-        """The per-face table as text: figures in µm as value ± U (k = 2), or < detection
-        limit; each limit with its verdict."""
+        """The per-face table as text, every length in µm: figures as value ± U (k = 2), or
+        < detection limit; each limit with its verdict."""
         width = max([8] + [len(r.title) for r in self.faces])
         head = (f"{'face':<{width}} {'type':<9} {'points':>7} " + " ".join(f"{h + ' µm':>13}" for h, _ in TABLE)
-                + "  tolerance (mm) verdict")
+                + "  tolerance µm, verdict")
         lines = [head, "-" * len(head)]
         for row in self.faces:
             m = row.form
-            v = ", ".join(f"{k.removesuffix('_mm')} {lim:.3f} {w}" for k, (lim, w) in row.verdicts.items())
+            v = ", ".join(f"{k.removesuffix('_mm')} {lim * 1e3:g} {w}" for k, (lim, w) in row.verdicts.items())
             cells = " ".join(cell_text(m.figure(name)) for _, name in TABLE)
             lines.append(f"{row.title:<{width}} {row.type:<9} {m.points:>7} {cells}  "
                          f"{v or m.status if m.status != 'ok' else v}")

@@ -23,7 +23,7 @@ def test_demo_scans_and_inspects(tmp_path: Path, capsys) -> None:
     # the nominal part fails none of its tolerances; the boss's cylindricity is not measured: no decision
     assert cli.main(["demo", "--out", str(out)]) == Exit.NO_DECISION == 4
     text = capsys.readouterr().out
-    assert "high top #657" in text and "flatness 0.050 conforming" in text
+    assert "high top #657" in text and "flatness 50 conforming" in text
     assert "verdict not measured" in text  # the boss's side is grazing from above: its cylindricity is not measured
     data = json.loads((out / "outputs" / "inspection.json").read_text())
     rows = {r["label"]: r for r in data["faces"]}

@@ -507,9 +507,9 @@ def test_demo_report_in_a_browser(tmp_path: Path, capsys) -> None:
     out = tmp_path / "demo"
     assert cli.main(["demo", "--out", str(out)]) == 4  # no decision: the boss side's cylindricity not measured
     text = capsys.readouterr().out
-    assert "high top #657" in text and "low top #158" in text and "flatness 0.050 conforming" in text
+    assert "high top #657" in text and "low top #158" in text and "flatness 50 conforming" in text
     # seen from straight above the boss's side is grazing: its cylindricity is not measured, and said so
-    assert "boss side #17" in text and "cylindricity 0.050 not measured" in text
+    assert "boss side #17" in text and "cylindricity 50 not measured" in text
     last = text.strip().splitlines()[-1]  # the verdict, why, and what to run next
     assert last.startswith("RESULT    NOT MEASURED: boss side #17 cylindricity not measured: ")
     assert "Next: slscan " in last
