@@ -120,8 +120,10 @@ def test_disagreeing_labels_are_turned_back() -> None:
 
 def test_joint_covariance_on_half_turned_boards_against_finite_differences() -> None:
     """Board poses turned ~180 deg about their normal (as a chessboard detector labels them):
-    the rig covariance equals s^2 (J^T J)^-1 with J from central differences of residuals written
-    here (cv2.projectPoints on composed 4x4 poses, each pose's rotation perturbed about its own axes)."""
+    the rig covariance equals (J^T W J)^-1 with J from central differences of residuals written
+    here (cv2.projectPoints on composed 4x4 poses, each pose's rotation perturbed about its own axes)
+    and W each row's weight 1/sigma^2 by the fit's own error model (one sigma per device and axis,
+    its variance components: `cal.noise.sigma_px`, uncoupled for two cameras)."""
     rng = np.random.default_rng()
     points = Board.load(BOARD).object_points()
     K1 = np.array([[1600.0, 0, 320], [0, 1600, 256], [0, 0, 1]])
@@ -162,8 +164,13 @@ def test_joint_covariance_on_half_turned_boards_against_finite_differences() -> 
                        + [np.r_[0, 0, 0, T[:3, 3]] for T in cal.board_poses])
     steps = np.maximum(np.abs(x), 1.0) * 1e-6
     J = np.stack([(residuals(x + h * e) - residuals(x - h * e)) / (2 * h) for h, e in zip(steps, np.eye(len(x)))], 1)
-    r = residuals(x)
-    cov = np.linalg.inv(J.T @ J) * (r @ r) / (len(r) - len(x))
+    assert not cal.noise.coupled
+    camera_x, camera_y, second_x, second_y = cal.noise.sigma_px
+    sigma = np.concatenate([np.tile([camera_x, camera_y], len(a.image_points)) if device == 0 else
+                            np.tile([second_x, second_y], len(b.image_points))
+                            for a, b in views for device in (0, 1)])
+    Jw = J / sigma[:, None]
+    cov = np.linalg.inv(Jw.T @ Jw)
     sd = np.sqrt(np.diag(cov))[:18]
     got = np.sqrt(np.diag(cal.covariance))[:18]
     print(np.round(got / sd, 3))
