@@ -26,10 +26,18 @@ from slscan.station.station_config import StationConfig
 TESTS = Path(__file__).resolve().parent
 
 
+def _ctrl_c_delivered() -> None:
+    """In the child before it runs: SIGINT at its default, as for a job in the foreground of a
+    terminal. A test run started in the background by a script inherits SIGINT ignored (POSIX:
+    `cmd &` without job control), and Python then keeps ignoring it, rightly."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def slscan(*args: str, **kw: object) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
     return subprocess.Popen([sys.executable, "-m", "slscan.cli", *args], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, **kw)  # type: ignore[call-overload]
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_ctrl_c_delivered,
+                            **kw)  # type: ignore[call-overload]
 
 
 def wait_for_frames(folder: Path, serial_suffix: str, n: int, proc: subprocess.Popen, timeout_s: float = 600) -> Path:
