@@ -73,9 +73,11 @@ def nominal_capture_s(session: Session) -> float:
 
 def session_figures(path: str, interreflection: bool = True) -> dict[str, Any]:
     """Decode a session's raw frames again (its outputs left as they are) and measure it
-    (`part_figures`)."""
+    (`part_figures`). Without the interreflection mask the decode is the study's foil: its
+    consistency checks (which the second paths fail: coordinates out of order) are kept, not
+    enforced; with it, the decode must pass them as a scan does."""
     session = Session.open(path)
-    decoded = decode_session(session, DecodeSettings(interreflection=interreflection))
+    decoded = decode_session(session, DecodeSettings(interreflection=interreflection, self_check=interreflection))
     result = ScanResult(session, decoded, triangulate(decoded, Triangulator(session.rig_model())), {})
     return part_figures(result, Truth.load(session.root / GROUND_TRUTH_FILE))
 

@@ -30,8 +30,13 @@ PART_ROI = "218,162,832,690"  # the demo part's bounding box in the bench camera
 
 
 def scan_session(root: Path, scene: str, exposure: str | None, seed: int = 0) -> str:
-    """Scan `scene` on the bench rig (frame timeout raised for a loaded machine) into `root`."""
+    """Scan `scene` on the bench rig (frame timeout raised for a loaded machine) into `root`.
+    Its measuring volume is declared 200 mm deep: the concave corner's backdrop lies 80 mm
+    behind the working distance, beyond the bench's 80 mm, and the decode refuses a cloud
+    whose bulk lies outside the declared volume (docs/consistency.md)."""
     text = (CONFIG_DIR / "rigs" / "sim_bench.toml").read_text()
+    assert "volume_mm = [130.0, 110.0, 80.0]" in text
+    text = text.replace("volume_mm = [130.0, 110.0, 80.0]", "volume_mm = [130.0, 110.0, 200.0]")
     text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
     rig_path = root.parent / f"{root.name}_rig.toml"
     rig_path.write_text(text.replace("timeout_s = 2.0", "timeout_s = 30.0"))
