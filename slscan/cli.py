@@ -23,7 +23,7 @@ import signal
 import subprocess
 import sys
 import threading
-from contextlib import contextmanager
+from contextlib import contextmanager, redirect_stdout
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -222,28 +222,24 @@ def terminate_as_interrupt() -> Iterator[None]:
 
 @contextmanager
 def json_stdout() -> Iterator[None]:
-    """While held, the process's stdout descriptor points at stderr, so a library writing to
-    it (Open3D's warnings, a native progress line) cannot break the JSON; `sys.stdout` (where
-    a command prints its JSON) keeps writing to the real stdout."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    os.dup2(2, 1)
-    try:  # our own stdout, not one a caller redirected in-process
-        real = os.fdopen(os.dup(saved), "w", encoding="utf-8") if sys.stdout.fileno() == 1 else None
-    except (AttributeError, OSError, ValueError):
-        real = None
-    previous = sys.stdout
-    if real is not None:
-        sys.stdout = real
-    try:
-        yield
-    finally:
-        sys.stdout = previous
-        if real is not None:
-            real.close()
-        os.dup2(saved, 1)
-        os.close(saved)
+    """While held, what libraries write to the stdout descriptor goes to stderr
+    (`inspection.views.quiet.stdout_to_stderr`: Open3D's warnings cannot break the JSON), while
+    `sys.stdout`, where a command prints its JSON, keeps writing where it did: our own stdout
+    (a copy of its descriptor), or the stream a caller put there in-process."""
+    from inspection.views.quiet import stdout_to_stderr
 
+    sys.stdout.flush()
+    try:
+        own = sys.stdout.fileno() == 1
+    except (AttributeError, OSError, ValueError):
+        own = False
+    target = os.fdopen(os.dup(1), "w", encoding="utf-8") if own else sys.stdout
+    try:
+        with stdout_to_stderr(), redirect_stdout(target):
+            yield
+    finally:
+        if own:
+            target.close()
 
 def _run(args: argparse.Namespace) -> int:
     try:
