@@ -3,12 +3,15 @@
     slscan cad FILE [--json] [--sample N]            faces by STEP id and surface type, counts per type;
                                                      --sample: time to sample N labelled points
     slscan cadbench FILE [--copies 1,4,16]           STEP reading time of files holding copies of FILE
-    slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE;
+    slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE,
+                                                     pose U; exit 1 when the evidence does not prove the
+                                                     pose (another fits as well, a motion left free);
                                                      a cloud or session TARGET is another view of the part
                                                      (partial overlap, fitness on the overlap, --overlap)
     slscan inspect SESSION|MULTIVIEW|CLOUD [--cad FILE] --tolerances PROGRAM|FILE
                                                      register, segment by CAD face, per-face form table
 
+`--json` prints JSON alone on stdout (whatever the libraries print goes to stderr).
 `inspect` writes inspection.json/.csv/.html beside the data (a session's outputs/, or the
 cloud's folder, or --out) and, for a session, outputs/inspection.rrd: a Rerun recording
 with the session's recording id, so the viewer shows it together with recording.rrd
@@ -19,10 +22,12 @@ inside the command functions.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from inspection.tolerances import NON_CONFORMING
 from scanner.errors import ConfigError
@@ -162,7 +167,56 @@ def _has_triangles(path: str) -> bool:
     return len(o3d.io.read_triangle_mesh(path).triangles) > 0
 
 
+@contextlib.contextmanager
+def stdout_to_stderr() -> Iterator[None]:
+    """Everything written to file descriptor 1 inside (Open3D's and OpenCASCADE's messages
+    from C++ included) goes to stderr, so that `--json` prints JSON alone on stdout."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def cmd_register(args: argparse.Namespace) -> int:
+    if not args.json:
+        return _register(args)
+    with stdout_to_stderr():
+        code, payload = _register_json(args)
+    print(json.dumps(payload))
+    return code
+
+
+def _register_json(args: argparse.Namespace) -> tuple[int, dict[str, Any]]:
+    """(exit code, the JSON `register --json` prints); an error is raised as usual."""
+    out: dict[str, Any] = {}
+    code = _register(args, out)
+    return code, out
+
+
+def registration_record(reg: Any) -> dict[str, Any]:
+    """What `register --json` prints for a CAD target: the pose only when it is proven
+    (`transform` null otherwise), what the evidence says, the alternatives and free motions."""
+    d = reg.as_dict()
+    return {"status": reg.status, "transform": reg.transform.tolist() if reg.proven else None,
+            "best_unproven": None if reg.proven else reg.transform.tolist(), "reason": reg.reason,
+            "fitness": reg.fitness, "rmse": reg.rmse_mm, "ambiguous": reg.ambiguous, "method": reg.method,
+            "alternatives": d["alternatives"], "rejected_alternatives": d["rejected_alternatives"],
+            "free_motions": d["free_motions"], "rotation_u_deg": d.get("rotation_u_deg"),
+            "translation_u_mm": d.get("translation_u_mm"), "pose_covariance": d.get("pose_covariance"),
+            "pose_centre_mm": d.get("pose_centre_mm"), "timings_s": reg.timings_s}
+
+
+def registration_exit(reg: Any) -> int:
+    """Exit.OK for a proven pose, Exit.FAILED for one the evidence leaves ambiguous."""
+    return Exit.OK if reg.proven else Exit.FAILED
+
+
+def _register(args: argparse.Namespace, json_out: dict[str, Any] | None = None) -> int:
     import numpy as np
 
     from inspection.measured_cloud import isolate_part, load_source
@@ -170,7 +224,7 @@ def cmd_register(args: argparse.Namespace) -> int:
 
     settings = RegistrationSettings(descriptors=tuple(args.descriptors.split(",")), coarse=args.coarse, seed=args.seed)
     if not _is_model(args.target):
-        return _register_views(args, settings)
+        return _register_views(args, settings, json_out)
     from inspection.registration import ModelTarget
 
     target = ModelTarget.from_cad(_load_model(args.target, args.cad_unit))
@@ -178,20 +232,24 @@ def cmd_register(args: argparse.Namespace) -> int:
     if not args.no_isolate:
         scan = isolate_part(scan, target.diagonal_mm)
     reg = register(scan, target, settings)
-    if args.json:
-        print(json.dumps({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
-                          "ambiguous": reg.ambiguous, "method": reg.method}))
-        return Exit.OK
+    if json_out is not None:
+        json_out.update(registration_record(reg))
+        return registration_exit(reg)
+    if not reg.proven:
+        print(f"{args.source}: not registered: {reg.reason}", file=sys.stderr)
+        return registration_exit(reg)
     with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
         print(f"transform taking {args.source} onto {args.target} (mm):")
         print(reg.transform)
+    u = reg.covariance.bounds() if reg.covariance is not None else None
     print(f"fitness {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, "
-          f"{reg.method}, {reg.timings_s.get('total', 0):.2f} s" + ("; AMBIGUOUS: another pose fits as well"
-                                                                    if reg.ambiguous else ""))
-    return Exit.OK
+          f"{reg.method}, {reg.timings_s.get('total', 0):.2f} s"
+          + (f"; pose U {u[0]:.4f} deg, {u[1]:.4f} mm (95 %)" if u else "")
+          + "".join(f"; free: {m.describe()}" for m in reg.free))
+    return registration_exit(reg)
 
 
-def _register_views(args: argparse.Namespace, settings: Any) -> int:
+def _register_views(args: argparse.Namespace, settings: Any, json_out: dict[str, Any] | None = None) -> int:
     """A cloud (or session) target is another view of the part: partial overlap, judged on
     the overlap (`inspection.views.pair_registration`)."""
     import numpy as np
@@ -203,10 +261,10 @@ def _register_views(args: argparse.Namespace, settings: Any) -> int:
     if not args.no_isolate:
         scan, target = without_support(scan, args.seed), without_support(target, args.seed)
     reg = register_view_pair(scan, target, args.overlap, settings)
-    if args.json:
-        print(json.dumps({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
-                          "overlap": reg.overlap, "overlap_given": reg.overlap_given, "ambiguous": reg.ambiguous,
-                          "method": reg.method}))
+    if json_out is not None:
+        json_out.update({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
+                         "overlap": reg.overlap, "overlap_given": reg.overlap_given, "ambiguous": reg.ambiguous,
+                         "method": reg.method})
         return Exit.OK
     with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
         print(f"transform taking {args.source} onto {args.target} (mm):")
@@ -366,8 +424,9 @@ def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str |
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    report = inspect_source(args.source, args.cad, args.tolerances, args.out, args.cad_unit, args.seed,
-                            operator=args.operator, serial=args.serial, pdf=not args.no_pdf)
+    with stdout_to_stderr() if args.json else contextlib.nullcontext():
+        report = inspect_source(args.source, args.cad, args.tolerances, args.out, args.cad_unit, args.seed,
+                                operator=args.operator, serial=args.serial, pdf=not args.no_pdf)
     if args.json:
         print(json.dumps(report.as_dict(), default=str))
     else:
@@ -375,7 +434,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         folder = Path(args.out) if args.out else (Path(args.source) / "outputs" if Path(args.source).is_dir()
                                                   else Path(args.source).parent)
         print(f"report    {folder / 'inspection.html'} (.json, .csv, .pdf)", file=sys.stderr)
-    return Exit.FAILED if report.verdict == NON_CONFORMING else Exit.OK
+    return Exit.FAILED if report.verdict == NON_CONFORMING or report.status != "ok" else Exit.OK
 
 
 def register(sub: Any) -> None:
@@ -403,7 +462,8 @@ def register(sub: Any) -> None:
     r.add_argument("--seed", type=int, default=0, help="random seed of the coarse search (default 0)")
     r.add_argument("--overlap", type=float, metavar="SHARE", help="cloud targets: the share of SOURCE the target "
                                                                    "also saw (default: estimated)")
-    r.add_argument("--json", action="store_true", help="print {transform, fitness, rmse}")
+    r.add_argument("--json", action="store_true", help="print {status, transform (null unless proven), fitness, "
+                                                        "rmse, alternatives, free_motions, pose U}")
     r.set_defaults(func=cmd_register)
 
     i = sub.add_parser("inspect", help="register a scan to CAD, segment it by face, report form errors per face")
