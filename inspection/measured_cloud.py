@@ -208,7 +208,7 @@ def find_support(scan: ScanCloud, seed: int = 0) -> Support | None:
     rng = np.random.default_rng(seed)
     sample = rng.choice(len(pts), size=min(SUPPORT_SAMPLE, len(pts)), replace=False)
     sp, sn = pts[sample], scan.normals[sample]
-    spacing = float(np.median(cKDTree(sp).query(sp, k=2)[0][:, 1])) * np.sqrt(len(sp) / len(pts))
+    spacing = point_spacing(sp, len(pts))
     remaining = np.arange(len(sp))
     for _ in range(SUPPORT_CANDIDATES):
         if len(remaining) < 100:
@@ -220,6 +220,14 @@ def find_support(scan: ScanCloud, seed: int = 0) -> Support | None:
             return support
         remaining = remaining[~inl]
     return None
+
+
+def point_spacing(sample: np.ndarray, n: int) -> float:
+    """The spacing (mm) of a scanned surface of `n` points from a random `sample` of them:
+    the median nearest-neighbour distance of a sample of density rho on a surface is
+    sqrt(ln 2 / (pi rho)) (a Poisson process), the spacing of all n points 1 / sqrt(rho n / m)."""
+    nn = float(np.median(cKDTree(sample).query(sample, k=2)[0][:, 1]))
+    return nn * np.sqrt(np.pi / np.log(2.0)) * np.sqrt(len(sample) / n)
 
 
 def dominant_plane(points: np.ndarray, normals: np.ndarray, threshold_mm: float, rng: np.random.Generator,
@@ -282,17 +290,44 @@ def _area(xy: np.ndarray) -> float:
 
 def part_mask(scan: ScanCloud, model_diagonal_mm: float, seed: int = 0) -> np.ndarray:
     """Which points are the part: the table it stands on (`find_support`) and what lies
-    behind it are removed, then the largest connected piece (with pieces near it) is kept.
-    Raises UnitMismatch when what is left cannot be the model at its units."""
+    behind it are removed, then the largest piece left is kept: in an organised scan the
+    largest region of the image that no table pixel crosses (the part's faces at different
+    heights, and the shadows between them, are one region; stray points beyond the table,
+    one), else the largest piece connected in space, with the pieces near it. Raises
+    UnitMismatch when what is left cannot be the model at its units."""
     pts = scan.points
     support = find_support(scan, seed)
-    keep = support.above(pts) if support is not None else np.ones(len(pts), bool)
+    keep = _off_support(scan, support) if support is not None else np.ones(len(pts), bool)
     if keep.sum() < MIN_POINTS:
         raise CloudError(scan.source, "nothing but the table in view: no part found in the scan")
-    # connected pieces on a grid of the scan's own spacing; keep the largest and those near it
+    if scan.pixels is not None and scan.image_shape is not None and support is not None:
+        mask = _largest_image_region(scan, keep)
+    else:
+        mask = _largest_piece(pts, keep, model_diagonal_mm, seed)
+    check_units(scan.subset(mask), model_diagonal_mm)
+    return mask
+
+
+def _largest_image_region(scan: ScanCloud, keep: np.ndarray) -> np.ndarray:
+    """The kept points in the largest (by kept points) 8-connected image region of kept
+    pixels and pixels without a point, table pixels being the walls between regions."""
+    from scipy.ndimage import label
+
+    assert scan.pixels is not None and scan.image_shape is not None
+    table = np.zeros(scan.image_shape, bool)
+    table[scan.pixels[~keep, 1], scan.pixels[~keep, 0]] = True
+    regions, _ = label(~table, structure=np.ones((3, 3)))
+    of_point = regions[scan.pixels[:, 1], scan.pixels[:, 0]]
+    big = int(np.argmax(np.bincount(of_point[keep])))
+    return keep & (of_point == big)
+
+
+def _largest_piece(pts: np.ndarray, keep: np.ndarray, model_diagonal_mm: float, seed: int) -> np.ndarray:
+    """The kept points of the largest piece connected in space (on a grid of 4 point
+    spacings), with the pieces whose centres lie within 0.75 model diagonals of it."""
     part = np.flatnonzero(keep)
-    sample = pts[part][:: max(1, len(part) // SUPPORT_SAMPLE)]
-    step = 4.0 * float(np.median(cKDTree(sample).query(sample, k=2)[0][:, 1])) * np.sqrt(len(sample) / len(part))
+    sample = pts[np.random.default_rng(seed).choice(part, size=min(SUPPORT_SAMPLE, len(part)), replace=False)]
+    step = 4.0 * point_spacing(sample, len(part))
     cell = np.floor((pts[part] - pts[part].min(axis=0)) / step).astype(np.int64)
     dims = cell.max(axis=0) + 1
     codes, lab = np.unique((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2], return_inverse=True)
@@ -302,12 +337,34 @@ def part_mask(scan: ScanCloud, model_diagonal_mm: float, seed: int = 0) -> np.nd
     big = int(np.argmax(sizes))
     centre = pts[part[lab == big]].mean(axis=0)
     centres = np.stack([np.bincount(lab, weights=pts[part, i]) for i in range(3)], 1) / np.maximum(sizes, 1)[:, None]
-    near = (np.linalg.norm(centres - centre, axis=1) < 0.75 * max(model_diagonal_mm, step)) & (sizes >= 0.002 * sizes[big])
+    near = ((np.linalg.norm(centres - centre, axis=1) < 0.75 * max(model_diagonal_mm, step))
+            & (sizes >= 0.002 * sizes[big]))
     near[big] = True
     mask = np.zeros(len(pts), bool)
     mask[part[near[lab]]] = True
-    check_units(scan.subset(mask), model_diagonal_mm)
     return mask
+
+
+def _off_support(scan: ScanCloud, support: Support, k: int = 8) -> np.ndarray:
+    """The points on the part's side of the support, beyond its band, whose neighbours are
+    mostly so too (the 3 x 3 pixels about them in an organised scan, else the `k` nearest):
+    the table's own outliers (its noise has longer tails than its band) are surrounded by
+    table points and stay with the table."""
+    above = support.above(scan.points)
+    if scan.pixels is not None and scan.image_shape is not None:
+        from scipy.ndimage import uniform_filter
+
+        up, seen = np.zeros(scan.image_shape), np.zeros(scan.image_shape)
+        up[scan.pixels[:, 1], scan.pixels[:, 0]] = above
+        seen[scan.pixels[:, 1], scan.pixels[:, 0]] = 1.0
+        share = uniform_filter(up, 3) / np.maximum(uniform_filter(seen, 3), 1e-9)
+        return above & (share[scan.pixels[:, 1], scan.pixels[:, 0]] > 0.5)
+    tree = cKDTree(scan.points, balanced_tree=False, compact_nodes=False)
+    idx = np.flatnonzero(above)
+    _, nb = tree.query(scan.points[idx], k=k + 1)
+    keep = np.zeros(len(above), bool)
+    keep[idx] = above[nb[:, 1:]].mean(axis=1) > 0.5
+    return keep
 
 
 def _connected(cells: np.ndarray, of_point: np.ndarray) -> np.ndarray:

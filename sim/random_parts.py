@@ -263,7 +263,8 @@ class SimulatedScan:
     true_face: np.ndarray
 
 
-def part_pose(vertices: np.ndarray, placement: Placement, up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+def part_pose(vertices: np.ndarray, placement: Placement,
+              up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
     """Part -> camera pose of a part with vertices `vertices` (part frame, its base
     perpendicular to `up`) at `placement`."""
     from sim.parts import lying_pose

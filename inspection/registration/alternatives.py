@@ -87,8 +87,12 @@ def surviving(scan: ScanCloud, target: ModelTarget, coarse_best: tuple[np.ndarra
     points, normals = scan.points[idx], scan.normals[idx]
     where = None if scan.pixels is None else scan.pixels[idx].astype(np.float64)
     correlation = None if cov is None else cov.correlation
+    model_centre = transform_points(coarse_best[1], centre[None])[0]
+    voxel_deg = float(np.degrees(v / max(radius, 1e-9)))
     out = []
     for T in others:  # a handful
+        if any(m.symmetry for m in free) and within(coarse_best[1], T, model_centre, voxel_deg, v, free):
+            continue  # the best turned about a symmetry axis of the part: the same pose
         rough = compare(coarse_best[0], T, sp, sn, target, scan.viewpoint, 1.5 * v, settings, None, None)
         if rough.p_value < alpha:  # rejected on the voxels (each a voxel apart: independent noise)
             out.append(rough)

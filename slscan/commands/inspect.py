@@ -228,10 +228,13 @@ def _register(args: argparse.Namespace, json_out: dict[str, Any] | None = None) 
     from inspection.registration import ModelTarget
 
     target = ModelTarget.from_cad(_load_model(args.target, args.cad_unit))
+    from scanner.native_threads import native_threads
+
     scan = load_source(args.source)
-    if not args.no_isolate:
-        scan = isolate_part(scan, target.diagonal_mm)
-    reg = register(scan, target, settings)
+    with native_threads(1):  # thin, memory-bound products: a second BLAS thread only spins
+        if not args.no_isolate:
+            scan = isolate_part(scan, target.diagonal_mm)
+        reg = register(scan, target, settings)
     if json_out is not None:
         json_out.update(registration_record(reg))
         return registration_exit(reg)
