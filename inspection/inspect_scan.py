@@ -35,7 +35,8 @@ from inspection.measured_cloud import ScanCloud, make_scan, part_mask
 from inspection.registration import ModelTarget, Registration, RegistrationSettings, transform_points
 from inspection.registration.warm_start import register_with_prior
 from inspection.report import FaceRow, InspectionReport
-from inspection.registration.evidence import PoseCovariance, jacobian
+from inspection.registration.driver import AMBIGUOUS
+from inspection.registration.evidence import SYMMETRY_ZERO, FreeMotion, PoseCovariance, jacobian, moves
 from inspection.segmentation import UNASSIGNED, Segmentation, assign_faces
 from inspection.tolerances import FIGURE_OF, GUARD_BANDED, NOT_MEASURED, Tolerances, decide
 from inspection.uncertainty import ScanUncertainty
@@ -96,7 +97,7 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
     times["model"] = time.perf_counter() - t0
     reg = register_with_prior(part, target, prior, settings.registration)
     times["register"] = reg.timings_s.get("total", 0.0)
-    if not reg.proven:
+    if reg.status == AMBIGUOUS:
         report = _ambiguous_report(scan, part, model, reg, tolerances, settings, mask, times, uncertainty)
         if on_verdict is not None:
             on_verdict(report)
@@ -127,8 +128,15 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
             rows[face.index] = FaceRow.of(face, unseen, _verdicts(face.label, unseen, tolerances, rule),
                                           tolerances.name(face.label))
 
+    loose = [m for m in reg.free if not m.symmetry]
+
     def row(face: Any) -> FaceRow:  # one face's figures and verdicts
         sel = seg.face == face.index
+        moved = _moved_by(loose, q[sel], seg.normal[sel], reg, settings.registration.pose_tolerance_mm)
+        if moved:
+            unfixed = FaceForm(int(sel.sum()), NOT_MEASURED, f"depends on the {moved}, which the view does not fix")
+            return FaceRow.of(face, unfixed, _verdicts(face.label, unfixed, tolerances, rule),
+                              tolerances.name(face.label) if tolerances is not None else "")
         noise, shifts = None, None
         if unc is not None:
             face_unc = unc.subset(sel)
@@ -148,7 +156,8 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
             form_settings=settings.form, timings_s={k: round(v, 4) for k, v in times.items()},
             part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose.as_dict(),
             calibration=uncertainty.calibration.source if uncertainty is not None else "not known (a bare cloud): not in U",
-            cad=model)
+            cad=model, status=reg.status, status_note=(f"the view does not fix the pose: {reg.reason}; the faces that "
+                                                       f"depend on it are not measured" if loose else ""))
 
     # the faces the tolerances ask for first: the verdict needs only them; the others' figures follow
     asked = [f for f in seen if tolerances is not None and tolerances.for_face(f.label)]
@@ -193,6 +202,22 @@ class PoseUncertainty:
             if e is not None:
                 changes[name] = replace(e, u=float(np.hypot(e.u, scale * u)))
         return replace(form, **changes)
+
+
+def _moved_by(loose: list[FreeMotion], points: np.ndarray, normals: np.ndarray, reg: Registration,
+              tolerance_mm: float) -> str:
+    """The free motions (not symmetries of the part) that move a face's points along their
+    normals by more than `tolerance_mm` at their U (an unbounded one: by more than a
+    numerical zero), described; "" when none does."""
+    if not loose or reg.covariance is None or not len(points):
+        return ""
+    centre, radius = reg.covariance.centre, reg.covariance.radius_mm
+    out = []
+    for m in loose:
+        limit = tolerance_mm if np.isfinite(m.u) else SYMMETRY_ZERO * (radius if m.kind == "rotation" else 1.0)
+        if moves(m, points, normals, centre) > limit:
+            out.append(m.describe())
+    return "; ".join(out)
 
 
 def ambiguity_note(reg: Registration) -> str:

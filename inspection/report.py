@@ -97,8 +97,9 @@ class InspectionReport:
     translation in mm, with its covariance); `header` who, what, when and with what
     (`inspection.report_header`), filled by the command that inspects; `cad` the CAD model
     inspected against (an `inspection.cad.CadModel`, drawn behind the points in the report's
-    views; None: not kept); `status` "ok", or "ambiguous" when the registration could not
-    prove its pose (then nothing is measured and `status_note` says why)."""
+    views; None: not kept); `status` the registration's: "ok", "ambiguous" when another pose
+    explains the scan as well (then nothing is measured), "free" when the view leaves a
+    motion free (the faces it moves are not measured); `status_note` says why."""
 
     model: str
     unit: str
@@ -132,8 +133,8 @@ class InspectionReport:
     def verdict(self) -> str:
         """non-conforming if any characteristic is, else uncertain / not measured if any is,
         conforming if all are, "no tolerances" without limits; "not measured" whatever the
-        limits when the pose is not proven."""
-        if self.status != "ok":
+        limits when the pose is ambiguous."""
+        if self.status == "ambiguous":
             return NOT_MEASURED
         return overall([v for row in self.faces for _, v in row.verdicts.values()])
 

@@ -51,8 +51,7 @@ class Case:
 def scan_cases(out: Path, parts: int, seed: int, nist_placements: int = 2) -> list[Case]:
     """Generate `parts` random parts and scan each once, and each NIST file
     `nist_placements` times, into `out` (npz per scan and cases.json)."""
-    from inspection.cad import load_cad
-    from sim.random_parts import placement_for, random_part, scan_part
+    from sim.random_parts import random_part
 
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -68,7 +67,20 @@ def scan_cases(out: Path, parts: int, seed: int, nist_placements: int = 2) -> li
                 ls, ns, ss = (int(x) for x in rng.integers(0, 2 ** 31, 3))
                 cases.append(Case(f"{Path(file).stem}_{k}", str(NIST_DIR / file), scale, up, None, ls, ns, ss))
     (out / "cases.json").write_text(json.dumps([asdict(c) for c in cases], indent=1))
+    scan_saved(out, cases)
+    return cases
+
+
+def scan_saved(out: Path, cases: list[Case]) -> None:
+    """Scan every case of `out` not scanned yet (a campaign cut short goes on where it was)."""
+    import gc
+
+    from inspection.cad import load_cad
+    from sim.random_parts import placement_for, scan_part
+
     for c in cases:
+        if (out / f"{c.name}.npz").exists():
+            continue
         t0 = time.perf_counter()
         model = load_cad(c.step, scale=c.scale)
         fine = load_cad(c.step, scale=c.scale, deflection_mm=1e-3 * max(1.0, model.diagonal_mm / 100.0))
@@ -81,7 +93,8 @@ def scan_cases(out: Path, parts: int, seed: int, nist_placements: int = 2) -> li
                  face=s.true_face.astype(np.int16), shape=np.array(s.scan.image_shape))
         print(f"scanned {c.name} ({Path(c.step).name}, scale {c.scale}, rig x{placement.rig_scale:.2f}): "
               f"{len(s.scan)} points, {time.perf_counter() - t0:.1f} s", flush=True)
-    return cases
+        del s, model, fine
+        gc.collect()  # the fine tessellations and the simulator's buffers: one part's at a time
 
 
 def random_start(seed: int) -> np.ndarray:
@@ -219,8 +232,9 @@ def summary(rows: list[dict[str, Any]]) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m sim.registration_bench", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="what", required=True)
-    s = sub.add_parser("scan")
+    s = sub.add_parser("scan", help="new cases (a fresh seed) or, with --resume, the rest of OUT's")
     s.add_argument("out", type=Path)
+    s.add_argument("--resume", action="store_true", help="scan the cases of OUT/cases.json not scanned yet")
     s.add_argument("--parts", type=int, default=60)
     s.add_argument("--nist-placements", type=int, default=2)
     s.add_argument("--seed", type=int, default=None, help="default: drawn fresh and printed")
@@ -228,7 +242,10 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("out", type=Path)
     e.add_argument("--no-open3d", action="store_true")
     args = p.parse_args(argv)
-    if args.what == "scan":
+    if args.what == "scan" and args.resume:
+        cases = [Case(**{**c, "up": tuple(c["up"])}) for c in json.loads((args.out / "cases.json").read_text())]
+        scan_saved(args.out, cases)
+    elif args.what == "scan":
         seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 2 ** 31)
         print(f"campaign seed {seed}", flush=True)
         scan_cases(args.out, args.parts, seed, args.nist_placements)

@@ -23,6 +23,7 @@ from inspection.registration.verification import evaluate_pose, explore, fitness
 
 PROVEN = "ok"
 AMBIGUOUS = "ambiguous"
+FREE = "free"
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,10 @@ class Registration:
 
     What the evidence proves (`evidence`): `status` "ok" when the pose is proven (every
     other pose the search found rejected, every motion fixed or a symmetry of the part),
-    "ambiguous" otherwise, `reason` why in a sentence; `ambiguous` the same as a flag;
+    "ambiguous" when another pose explains the scan as well, "free" when the view leaves a
+    motion free that is not a symmetry of the part (the pose is known up to it: the faces
+    it does not move can still be measured); `reason` why in a sentence; `ambiguous` the
+    first as a flag;
     `alternatives` the poses the test could not reject (4x4 each), `comparisons` every
     comparison made; `covariance` the pose's (None: not computed); `free` the motions the
     fit leaves free (a symmetry of the part, or what the view does not fix)."""
@@ -136,7 +140,8 @@ def judge(reg: Registration, comparisons: tuple[Comparison, ...], settings: Regi
             f"{c.angle_deg:.1f} deg / {c.shift_mm:.2f} mm away, p = {c.p_value:.2g}" for c in standing) + ")")
     if loose:
         reasons.append("the view does not fix the " + "; ".join(m.describe() for m in loose))
-    return replace(reg, status=AMBIGUOUS if reasons else PROVEN, ambiguous=bool(reasons), reason="; ".join(reasons),
+    status = AMBIGUOUS if standing else FREE if loose else PROVEN
+    return replace(reg, status=status, ambiguous=bool(standing), reason="; ".join(reasons),
                    alternatives=tuple(c.transform for c in standing), comparisons=comparisons,
                    timings_s=timings if timings is not None else reg.timings_s)
 

@@ -15,8 +15,16 @@ field itself by block sums: the image (a bare cloud: space, in units of its poin
 cut into squares of side 4, 8, ... 128, B = g/(g - 1) sum_b s_b s_b', s_b = sum over block b
 of psi_i J_i, at each side that leaves at least `MIN_BLOCKS` blocks, and the side giving the
 largest covariance kept (the correlation's reach is not known in advance; fewer blocks
-estimate B too poorly). Correlation reaching further than the blocks (a calibration error,
-which the simulator has none of) is not in it.
+estimate B too poorly). A face's measurement may also be off as a whole (a narrow wall
+seen near a depth step is all mixed pixels: on the simulated bench a 12 mm step wall of
+the demo part read 34 um inside the material, and, the wall being what fixed the part's
+turn, turned it 0.025 deg): B is also estimated with the CAD faces as the clusters, each
+face's sum divided by the share of a face offset the fit leaves in its residuals (1 - h_f,
+h_f = m_f' A^-1 m_f / n_f, m_f = sum of the face's J_i: the fit absorbs part of a face's
+offset into the pose, which a cluster sandwich would otherwise miss; a bias-reduced
+cluster estimator), and the largest of all these covariances is the pose's. Correlation
+reaching further than the blocks (a calibration error, which the simulator has none of)
+is not in it.
 
 **Free motions.** A motion (an eigenvector of Cov) whose expanded uncertainty (k = 2) exceeds
 the pose tolerance the registration must prove (`RegistrationSettings.pose_tolerance_deg` and
@@ -170,11 +178,12 @@ class PoseCovariance:
                 "correlation_inflation": self.inflation}
 
 
-def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, where: np.ndarray,
-                    unit: str) -> PoseCovariance:
+def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, where: np.ndarray, unit: str,
+                    faces: np.ndarray | None = None) -> PoseCovariance:
     """The covariance of the pose fitted to model-frame `points` with their faces' `normals`
     and residuals `r` (mm); `where` the points' image positions (or scan positions) and `unit`
-    their lag unit, for the residuals' correlation (module docstring)."""
+    their lag unit, for the residuals' correlation; `faces` the CAD face of each point, for
+    offsets of a face's measurement as a whole (module docstring)."""
     centre = points.mean(axis=0)
     radius = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))
     S = np.diag([1.0 / radius] * 3 + [1.0] * 3)  # rotations as mm at the points' radius: a conditioned system
@@ -191,21 +200,45 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
     cov, corr = indep, ResidualCorrelation(0.0, 0.0, unit)
     for size in BLOCKS:
         label = _blocks(where, size)
-        g = int(label.max()) + 1
-        if g < MIN_BLOCKS:
+        blocked = _clustered(score, label, Ainv)
+        if blocked is None:
             break
-        sums = np.stack([np.bincount(label, weights=score[:, c], minlength=g) for c in range(6)], axis=1)
-        blocked = Ainv @ (sums.T @ sums) @ Ainv * g / (g - 1.0)
         if np.trace(blocked) > np.trace(cov):
-            n = np.bincount(label, minlength=g).astype(np.float64)
-            psum = np.bincount(label, weights=psi, minlength=g)
-            # the mean pair correlation in a block: (sum of block sums^2 - sum psi^2) / (pairs x variance)
-            pair = (np.sum(psum ** 2) - np.sum(psi ** 2)) / max(np.sum(n * (n - 1.0)) * np.mean(psi ** 2), 1e-300)
-            cov, corr = blocked, ResidualCorrelation(float(size), max(float(pair), 0.0), unit)
+            cov, corr = blocked, ResidualCorrelation(float(size), _pair_correlation(psi, label), unit)
+    if faces is not None:
+        _, label = np.unique(faces, return_inverse=True)
+        lever = np.bincount(label, minlength=label.max() + 1).astype(np.float64)
+        m = np.stack([np.bincount(label, weights=J[:, c]) for c in range(6)], axis=1)
+        h = np.einsum("fi,ij,fj->f", m, Ainv, m) / np.maximum(lever, 1.0)  # a face offset's share the fit absorbs
+        by_face = _clustered(score, label.ravel(), Ainv, 1.0 / np.maximum(1.0 - np.minimum(h, 0.9), 0.1), min_groups=2)
+        if by_face is not None and np.trace(by_face) > np.trace(cov):
+            cov, corr = by_face, ResidualCorrelation(0.0, _pair_correlation(psi, label.ravel()), "faces")
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)
     return PoseCovariance(0.5 * (S @ cov @ S + (S @ cov @ S).T), centre, sigma, len(points), corr,
                           float(np.trace(cov) / max(np.trace(indep), 1e-300)), radius, unbounded)
+
+
+def _clustered(score: np.ndarray, label: np.ndarray, Ainv: np.ndarray, scale: np.ndarray | None = None,
+               min_groups: int = MIN_BLOCKS) -> np.ndarray | None:
+    """The cluster sandwich A^-1 (g/(g-1) sum_c s_c s_c') A^-1 of the scores summed per
+    `label` (each sum times `scale[c]`), or None with fewer than `min_groups` clusters."""
+    g = int(label.max()) + 1
+    if g < min_groups:
+        return None
+    sums = np.stack([np.bincount(label, weights=score[:, c], minlength=g) for c in range(6)], axis=1)
+    if scale is not None:
+        sums = sums * scale[:, None]
+    return Ainv @ (sums.T @ sums) @ Ainv * g / (g - 1.0)
+
+
+def _pair_correlation(psi: np.ndarray, label: np.ndarray) -> float:
+    """The mean correlation of two influences in one cluster: (sum of the clusters' sums
+    squared - sum of squares) / (pairs x variance), at least 0."""
+    n = np.bincount(label).astype(np.float64)
+    psum = np.bincount(label, weights=psi)
+    pair = (np.sum(psum ** 2) - np.sum(psi ** 2)) / max(np.sum(n * (n - 1.0)) * np.mean(psi ** 2), 1e-300)
+    return max(float(pair), 0.0)
 
 
 def free_motions(cov: PoseCovariance, tolerance_deg: float, tolerance_mm: float,
@@ -244,6 +277,19 @@ def _named(x: np.ndarray, centre: np.ndarray, rot_u: float, shift_u: float, rho:
         return FreeMotion("rotation", tuple(float(y) for y in a), tuple(float(y) for y in point), rot_u, symmetry)
     a = t / np.linalg.norm(t)
     return FreeMotion("translation", tuple(float(y) for y in a), None, shift_u, symmetry)
+
+
+def moves(m: FreeMotion, points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> float:
+    """RMS move (mm) of model-frame `points` along their `normals` when the pose moves along
+    the free motion `m` by its U (a unit motion when U is unbounded: the ratio then only
+    says whether it moves them at all)."""
+    x = np.concatenate([np.asarray(m.axis), np.cross(np.asarray(m.axis), centre - np.asarray(m.point))]
+                       if m.kind == "rotation" else [np.zeros(3), np.asarray(m.axis)])
+    if m.kind == "rotation" and np.isfinite(m.u):
+        x = x * np.radians(m.u)
+    elif np.isfinite(m.u):
+        x = x * m.u
+    return float(np.sqrt(np.mean((jacobian(points, normals, centre) @ x) ** 2))) if len(points) else 0.0
 
 
 def twist(a: np.ndarray, b: np.ndarray, centre: np.ndarray) -> np.ndarray:

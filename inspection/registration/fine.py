@@ -9,9 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from inspection.measured_cloud import ScanCloud
+from inspection.measured_cloud import ScanCloud, point_spacing
 from inspection.registration.clouds import normal_space_sample
 from inspection.registration.evidence import PoseCovariance, free_motions, pose_covariance
 from inspection.registration.face_bias import without_biased_faces, without_offset_face
@@ -36,18 +35,14 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
               rng: np.random.Generator) -> tuple[np.ndarray, FinalFit]:
     """(pose, the points it rests on): point-to-plane ICP on the dense scan (points seen more
     obliquely than `max_incidence_deg` left out, the rest drawn by normal-space sampling) on
-    a quarter of the points; then, for a STEP model, `refine_exact`, else ICP on all of them.
+    a quarter of the points; then, for a STEP model, `refine_exact` on the points well seen
+    (`well_seen`: neither grazing nor in an outline band), or, when those leave a motion
+    free, on all but the grazing ones, or then on all; else ICP on all of them.
     (Before the exact step a pass on all would add nothing: its threshold closes to 0.05
     voxel, within which only the ~5 % of points nearest a model sample pair up.)"""
     v = target.voxel_mm
     p, n = scan.points, scan.normals
-    usable = np.arange(len(scan))
-    if scan.viewpoint is not None:  # grazing views of a surface measure it worst: leave them out
-        ray = scan.viewpoint - p
-        grazing = (np.einsum("ij,ij->i", ray, n)
-                   < np.cos(np.radians(settings.max_incidence_deg)) * np.linalg.norm(ray, axis=1))
-        if (~grazing).sum() > 100:
-            usable = np.flatnonzero(~grazing)
+    usable = well_seen(scan, settings.max_incidence_deg, outline=False)
     sel = usable[normal_space_sample(n[usable], settings.max_points, rng)]
     first = sel[: max(len(sel) // 4, 1)]
     T = icp(p[first], n[first], target.dense, T, 1.5 * v, 0.1 * v, settings.max_normal_deg, 15,
@@ -57,8 +52,76 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
                 settings.tangential_weight)
         d, _ = target.dense.tree.query(transform_points(T, p[sel]), distance_upper_bound=0.5 * v)
         return T, FinalFit(sel[np.isfinite(d)])
-    sel = rng.choice(len(scan), size=min(settings.exact_points, len(scan)), replace=False)  # any point will do
-    return refine_exact(scan, sel, T, target, 0.3 * v, settings, offset_limit_mm=0.5 * v)
+    fit = None
+    for points in _from_best_seen(scan, settings.max_incidence_deg):  # the best measured first
+        sel = rng.choice(points, size=min(settings.exact_points, len(points)), replace=False)  # any will do
+        fit = refine_exact(scan, sel, T, target, 0.3 * v, settings, offset_limit_mm=0.5 * v)
+        if not _frees(scan, target, *fit, settings):
+            break
+    assert fit is not None
+    return fit
+
+
+def _from_best_seen(scan: ScanCloud, max_incidence_deg: float) -> list[np.ndarray]:
+    """The point sets the exact fit tries, best measured first, each only if it adds points:
+    the well seen (`well_seen`), then those not grazing, then all (a part seen from straight
+    above has its walls only at grazing incidence, and they are what fixes its turn)."""
+    sets = [well_seen(scan, max_incidence_deg, outline=True), well_seen(scan, max_incidence_deg, outline=False),
+            np.arange(len(scan))]
+    return [x for k, x in enumerate(sets) if k == 0 or len(x) > len(sets[k - 1])]
+
+
+def _frees(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: FinalFit,
+           settings: RegistrationSettings) -> bool:
+    """Whether the fit of pose T on `fit`'s points leaves a motion free (`evidence.free_motions`)."""
+    return len(fit.index) < 6 or bool(free_motions(fit_covariance(scan, target, T, fit), settings.pose_tolerance_deg,
+                                                   settings.pose_tolerance_mm))
+
+
+def well_seen(scan: ScanCloud, max_incidence_deg: float, outline: bool) -> np.ndarray:
+    """Indices of the points measured well enough to rest a pose on: not seen more
+    obliquely than `max_incidence_deg` (grazing views measure a surface worst), and, with
+    `outline`, in an organised scan, not within `EDGE_MARGIN_PX` of the outline of the surface they lie on
+    (the image's edge of the points, or a step in depth: two neighbouring pixels farther
+    apart than one surface seen at that incidence puts them), where the camera's blur mixes
+    the surface's fringes with what lies beyond (`inspection.acceptance.inner_pixels`: on
+    the simulated bench a 12 mm step wall of the demo part read 34 um inside the material,
+    enough to turn the part 0.025 deg about its axis). All points when fewer than 100 remain."""
+    keep = np.ones(len(scan), bool)
+    if scan.viewpoint is not None:
+        ray = scan.viewpoint - scan.points
+        keep &= (np.einsum("ij,ij->i", ray, scan.normals)
+                 >= np.cos(np.radians(max_incidence_deg)) * np.linalg.norm(ray, axis=1))
+    if outline and scan.pixels is not None and scan.image_shape is not None:
+        keep &= _inside_outline(scan, max_incidence_deg)
+    return np.flatnonzero(keep) if keep.sum() >= 100 else np.arange(len(scan))
+
+
+def _inside_outline(scan: ScanCloud, max_incidence_deg: float) -> np.ndarray:
+    """Which points of an organised scan lie at least `EDGE_MARGIN_PX` inside the outline
+    of their surface (`well_seen`)."""
+    import cv2
+
+    from inspection.acceptance import EDGE_MARGIN_PX
+
+    assert scan.pixels is not None and scan.image_shape is not None
+    col, row = scan.pixels[:, 0], scan.pixels[:, 1]
+    grid = np.full(scan.image_shape + (3,), np.nan)
+    grid[row, col] = scan.points
+    surface = np.zeros(scan.image_shape, bool)
+    surface[row, col] = True
+    gaps = [np.linalg.norm(np.diff(grid, axis=a), axis=2) for a in (0, 1)]
+    step = np.nanmedian(np.concatenate([g[np.isfinite(g)] for g in gaps]))
+    limit = step / np.cos(np.radians(max_incidence_deg))
+    with np.errstate(invalid="ignore"):
+        jump0, jump1 = gaps[0] > limit, gaps[1] > limit
+    surface[:-1] &= ~jump0
+    surface[1:] &= ~jump0
+    surface[:, :-1] &= ~jump1
+    surface[:, 1:] &= ~jump1
+    kernel = np.ones((2 * EDGE_MARGIN_PX + 1,) * 2, np.uint8)
+    inner = cv2.erode(surface.view(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    return inner[row, col]
 
 
 def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, target: ModelTarget, tol: float,
@@ -112,7 +175,7 @@ def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fin
         normal = target.dense.normals[j]
         r = np.einsum("ij,ij->i", q - target.dense.points[j], normal)
     if scan.pixels is not None:
-        return pose_covariance(q, normal, r, scan.pixels[fit.index].astype(np.float64), "px")
+        return pose_covariance(q, normal, r, scan.pixels[fit.index].astype(np.float64), "px", fit.face)
     where = scan.points[fit.index]
-    spacing = float(np.median(cKDTree(where).query(where, k=2)[0][:, 1])) * np.sqrt(len(where) / len(scan))
-    return pose_covariance(q, normal, r, where / max(spacing, 1e-9), f"x {spacing:.3g} mm")
+    spacing = point_spacing(where, len(scan))
+    return pose_covariance(q, normal, r, where / max(spacing, 1e-9), f"x {spacing:.3g} mm", fit.face)

@@ -437,7 +437,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         folder = Path(args.out) if args.out else (Path(args.source) / "outputs" if Path(args.source).is_dir()
                                                   else Path(args.source).parent)
         print(f"report    {folder / 'inspection.html'} (.json, .csv, .pdf)", file=sys.stderr)
-    return Exit.FAILED if report.verdict == NON_CONFORMING or report.status != "ok" else Exit.OK
+    return Exit.FAILED if report.verdict == NON_CONFORMING or report.status == "ambiguous" else Exit.OK
 
 
 def register(sub: Any) -> None:
