@@ -310,15 +310,21 @@ def part_mask(scan: ScanCloud, model_diagonal_mm: float, seed: int = 0) -> np.nd
 
 def _largest_image_region(scan: ScanCloud, keep: np.ndarray) -> np.ndarray:
     """The kept points in the largest (by kept points) 8-connected image region of kept
-    pixels and pixels without a point, table pixels being the walls between regions."""
+    pixels and pixels without a point, table pixels being the walls between regions; so
+    are pixels without a point that reach the image's border (outside the field or beyond
+    the table, not a shadow among the part's faces)."""
     from scipy.ndimage import label
 
     assert scan.pixels is not None and scan.image_shape is not None
-    table = np.zeros(scan.image_shape, bool)
-    table[scan.pixels[~keep, 1], scan.pixels[~keep, 0]] = True
-    regions, _ = label(~table, structure=np.ones((3, 3)))
+    wall = np.ones(scan.image_shape, bool)  # no point ...
+    wall[scan.pixels[:, 1], scan.pixels[:, 0]] = False
+    empty, _ = label(wall, structure=np.ones((3, 3)))
+    border = np.unique(np.concatenate([empty[0], empty[-1], empty[:, 0], empty[:, -1]]))
+    wall = np.isin(empty, border[border > 0])  # ... reaching the border
+    wall[scan.pixels[~keep, 1], scan.pixels[~keep, 0]] = True  # and the table
+    regions, _ = label(~wall, structure=np.ones((3, 3)))
     of_point = regions[scan.pixels[:, 1], scan.pixels[:, 0]]
-    big = int(np.argmax(np.bincount(of_point[keep])))
+    big = int(np.argmax(np.bincount(of_point[keep])[1:])) + 1
     return keep & (of_point == big)
 
 
