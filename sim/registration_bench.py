@@ -6,7 +6,8 @@ simulated table, scanned through the whole fringe chain as the scanner writes th
 ICP on the same isolated clouds beside it.
 
     python -m sim.registration_bench scan OUT --parts 60 [--seed S]     scans into OUT (seeds printed)
-    python -m sim.registration_bench evaluate OUT                         registers them, prints the table
+    python -m sim.registration_bench evaluate OUT [--shard K/N]           registers them, prints the table
+    python -m sim.registration_bench summary OUT                          the table of every shard's results
 
 A seed not given is drawn from the operating system and printed: every measurement runs on
 new parts. Outcomes per scan: "success" (proven, within 0.05 deg and 0.05 mm of the truth at
@@ -134,9 +135,10 @@ def open3d_baseline(points: np.ndarray, normals: np.ndarray, target: Any, voxel:
     return np.asarray(icp.transformation)
 
 
-def evaluate(out: Path, open3d: bool = True) -> list[dict[str, Any]]:
-    """Register every scan of `out` from its random start (module docstring); one JSON line
-    per scan in `out`/results.jsonl, the table printed."""
+def evaluate(out: Path, open3d: bool = True, shard: tuple[int, int] = (0, 1)) -> list[dict[str, Any]]:
+    """Register every scan of `out` from its random start (module docstring), or, with
+    `shard` (k, n), every n-th from the k-th (processes sharing the cases); one JSON line
+    per scan in `out`/results_k_n.jsonl, the table printed."""
     from inspection.cad import load_cad
     from inspection.errors import InspectionError
     from inspection.measured_cloud import ScanCloud, isolate_part
@@ -145,8 +147,8 @@ def evaluate(out: Path, open3d: bool = True) -> list[dict[str, Any]]:
 
     cases = [Case(**{**c, "up": tuple(c["up"])}) for c in json.loads((out / "cases.json").read_text())]
     rows = []
-    with (out / "results.jsonl").open("w") as log, native_threads(1):
-        for c in cases:
+    with (out / f"results_{shard[0]}_{shard[1]}.jsonl").open("w") as log, native_threads(1):
+        for c in cases[shard[0]::shard[1]]:
             if not (out / f"{c.name}.npz").exists():
                 continue
             d = np.load(out / f"{c.name}.npz")
@@ -241,6 +243,9 @@ def main(argv: list[str] | None = None) -> int:
     e = sub.add_parser("evaluate")
     e.add_argument("out", type=Path)
     e.add_argument("--no-open3d", action="store_true")
+    e.add_argument("--shard", default="0/1", help="K/N: every N-th case from the K-th (default all)")
+    t = sub.add_parser("summary")
+    t.add_argument("out", type=Path)
     args = p.parse_args(argv)
     if args.what == "scan" and args.resume:
         cases = [Case(**{**c, "up": tuple(c["up"])}) for c in json.loads((args.out / "cases.json").read_text())]
@@ -249,8 +254,12 @@ def main(argv: list[str] | None = None) -> int:
         seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 2 ** 31)
         print(f"campaign seed {seed}", flush=True)
         scan_cases(args.out, args.parts, seed, args.nist_placements)
+    elif args.what == "evaluate":
+        k, n = (int(x) for x in args.shard.split("/"))
+        evaluate(args.out, open3d=not args.no_open3d, shard=(k, n))
     else:
-        evaluate(args.out, open3d=not args.no_open3d)
+        rows = [json.loads(line) for f in sorted(args.out.glob("results_*.jsonl")) for line in f.open()]
+        print(summary(rows))
     return 0
 
 

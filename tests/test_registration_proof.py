@@ -209,3 +209,24 @@ def test_random_part_is_proven(tmp_path: Path) -> None:
     assert reg.proven and not reg.free, reg.reason
     assert angle < 0.05 and shift < 0.05
     assert reg.covariance is not None and all(u < 0.05 for u in reg.covariance.bounds())
+
+
+def test_top_view_leaves_the_turn_about_the_boss_free() -> None:
+    """The demo part seen from straight above: its walls are grazing, so nothing the fit
+    rests on fixes its turn about the boss's axis (the boss and its bore are coaxial). The
+    pose is "free" (register would exit 1), the motion named: about z through the boss
+    centre (20, 0) mm; it is not a symmetry of the part."""
+    from scanner.config import CONFIG_DIR
+
+    model = load_cad(CONFIG_DIR / "parts" / "demo_part.step")
+    scan, truth = _moved_view(model, (0.0, 0.0), seed=2)
+    reg = register(scan, ModelTarget.from_cad(model), RegistrationSettings(seed=3))
+    assert reg.status == "free" and not reg.proven, reg.reason
+    turn = [m for m in reg.free if m.kind == "rotation"]
+    assert len(turn) == 1 and not turn[0].symmetry
+    assert abs(abs(turn[0].axis[2]) - 1.0) < 1e-3 and np.hypot(turn[0].point[0] - 20.0, turn[0].point[1]) < 0.5
+    # everything but that turn is right: the boss axis where it belongs, the tops at their heights
+    E = reg.transform @ np.linalg.inv(truth)
+    assert np.degrees(np.arccos(np.clip(E[2, 2], -1, 1))) < 0.05
+    boss = np.array([20.0, 0.0, 20.0])
+    assert np.linalg.norm((E[:3, :3] @ boss + E[:3, 3] - boss)[:2]) < 0.05 and abs(E[2, 3]) < 0.05

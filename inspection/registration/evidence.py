@@ -55,7 +55,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 from scipy.special import betainc
 
 from inspection.registration.rigid import transform_points
@@ -212,7 +211,7 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
         h = np.einsum("fi,ij,fj->f", m, Ainv, m) / np.maximum(lever, 1.0)  # a face offset's share the fit absorbs
         by_face = _clustered(score, label.ravel(), Ainv, 1.0 / np.maximum(1.0 - np.minimum(h, 0.9), 0.1), min_groups=2)
         if by_face is not None and np.trace(by_face) > np.trace(cov):
-            cov, corr = by_face, ResidualCorrelation(0.0, _pair_correlation(psi, label.ravel()), "faces")
+            cov = by_face  # `corr` stays the image's: face offsets do not make points disagree by chance
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)
     return PoseCovariance(0.5 * (S @ cov @ S + (S @ cov @ S).T), centre, sigma, len(points), corr,
@@ -357,7 +356,6 @@ class Comparison:
     fitness: float
     angle_deg: float = 0.0
     shift_mm: float = 0.0
-    extra: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, object]:
         return {"transform": self.transform.tolist(), "points_for_best": self.for_best,
