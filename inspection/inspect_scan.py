@@ -222,7 +222,7 @@ def _moved_by(loose: list[FreeMotion], points: np.ndarray, normals: np.ndarray, 
 
 def ambiguity_note(reg: Registration) -> str:
     """"the pose is ambiguous between ...": what a report says in place of figures."""
-    return f"the pose is ambiguous: {reg.reason}"
+    return f"the pose is {reg.reason}"
 
 
 def _ambiguous_report(scan: ScanCloud, part: ScanCloud, model: CadModel, reg: Registration,

@@ -135,21 +135,26 @@ def open3d_baseline(points: np.ndarray, normals: np.ndarray, target: Any, voxel:
     return np.asarray(icp.transformation)
 
 
-def evaluate(out: Path, open3d: bool = True, shard: tuple[int, int] = (0, 1)) -> list[dict[str, Any]]:
-    """Register every scan of `out` from its random start (module docstring), or, with
-    `shard` (k, n), every n-th from the k-th (processes sharing the cases); one JSON line
-    per scan in `out`/results_k_n.jsonl, the table printed."""
+def evaluate(out: Path, open3d: bool = True, ours: bool = True, shard: tuple[int, int] = (0, 1)) -> list[dict]:
+    """Register every scan of `out` from its random start (module docstring), ours and/or
+    Open3D's, or, with `shard` (k, n), every n-th from the k-th (processes sharing the
+    cases); cases another run already wrote a result for are skipped. One JSON line per scan
+    in `out`/results_<what>_k_n.jsonl; the table printed."""
     from inspection.cad import load_cad
     from inspection.errors import InspectionError
     from inspection.measured_cloud import ScanCloud, isolate_part
-    from inspection.registration import ModelTarget, RegistrationSettings, pose_difference, register
+    from inspection.registration import ModelTarget, pose_difference
     from scanner.native_threads import native_threads
 
     cases = [Case(**{**c, "up": tuple(c["up"])}) for c in json.loads((out / "cases.json").read_text())]
+    done = merged(out)
+    what = "both" if ours and open3d else "ours" if ours else "open3d"
     rows = []
-    with (out / f"results_{shard[0]}_{shard[1]}.jsonl").open("w") as log, native_threads(1):
+    with (out / f"results_{what}_{shard[0]}_{shard[1]}.jsonl").open("a") as log, native_threads(1):
         for c in cases[shard[0]::shard[1]]:
-            if not (out / f"{c.name}.npz").exists():
+            have = done.get(c.name, {})
+            todo_ours, todo_o3d = ours and "outcome" not in have, open3d and "open3d_success" not in have
+            if not (out / f"{c.name}.npz").exists() or not (todo_ours or todo_o3d):
                 continue
             d = np.load(out / f"{c.name}.npz")
             model = load_cad(c.step, scale=c.scale)
@@ -167,25 +172,18 @@ def evaluate(out: Path, open3d: bool = True, shard: tuple[int, int] = (0, 1)) ->
                 t1 = time.perf_counter()
                 part = isolate_part(scan, target.diagonal_mm)
                 isolate_s = time.perf_counter() - t1
-                target.prepare(part)  # the model's once-per-part cost, apart
-                row["model_s"] = round(time.perf_counter() - t0 - isolate_s, 2)
-                t1 = time.perf_counter()
-                reg = register(part, target, RegistrationSettings(seed=c.start_seed))
-                row["seconds"] = round(isolate_s + time.perf_counter() - t1, 2)
-                centre = part.points.mean(axis=0)
-                angle, shift = pose_difference(reg.transform, truth, centre)
-                row.update(exit=0 if reg.proven else 1, angle_deg=angle, shift_mm=shift, reason=reg.reason,
-                           free=[m.describe() for m in reg.free], fitness=reg.fitness,
-                           alternatives=len(reg.alternatives),
-                           u=reg.covariance.bounds() if reg.covariance is not None else None)
             except InspectionError as exc:
-                row.update(exit=2, reason=str(exc), seconds=round(time.perf_counter() - t0, 2))
-                part = None
-            good = row.get("angle_deg", np.inf) <= SUCCESS_DEG and row.get("shift_mm", np.inf) <= SUCCESS_MM
-            row["outcome"] = ("success" if row["exit"] == 0 and good else "wrong" if row["exit"] == 0
-                              else "refused")
-            row["right_but_refused"] = bool(row["exit"] == 1 and good)
-            if open3d and part is not None:
+                part, isolate_s = None, time.perf_counter() - t1
+                if todo_ours:
+                    row.update(exit=2, reason=str(exc), seconds=round(isolate_s, 2))
+            if todo_ours and part is not None:
+                row.update(_ours(part, target, truth, c.start_seed, isolate_s, t0))
+            if todo_ours:
+                good = row.get("angle_deg", np.inf) <= SUCCESS_DEG and row.get("shift_mm", np.inf) <= SUCCESS_MM
+                row["outcome"] = ("success" if row["exit"] == 0 and good else "wrong" if row["exit"] == 0
+                                  else "refused")
+                row["right_but_refused"] = bool(row["exit"] == 1 and good)
+            if todo_o3d and part is not None:
                 t1 = time.perf_counter()
                 T = open3d_baseline(part.points, part.normals, target, target.voxel_mm)
                 a, s = pose_difference(T, truth, part.points.mean(axis=0))
@@ -196,25 +194,57 @@ def evaluate(out: Path, open3d: bool = True, shard: tuple[int, int] = (0, 1)) ->
             log.write(json.dumps(row, default=float) + "\n")
             log.flush()
             print(_line(row), flush=True)
-    print(summary(rows))
+    print(summary(list(merged(out).values())))
     return rows
+
+
+def _ours(part: Any, target: Any, truth: np.ndarray, seed: int, isolate_s: float, t0: float) -> dict[str, Any]:
+    """Our registration of the isolated `part` as `slscan register` runs it: the figures of
+    one row (`evaluate`); `t0` when the model's preparation began."""
+    from inspection.errors import InspectionError
+    from inspection.registration import RegistrationSettings, pose_difference, register
+
+    row: dict[str, Any] = {}
+    target.prepare(part)  # the model's once-per-part cost, apart
+    row["model_s"] = round(time.perf_counter() - t0 - isolate_s, 2)
+    t1 = time.perf_counter()
+    try:
+        reg = register(part, target, RegistrationSettings(seed=seed))
+    except InspectionError as exc:
+        return {**row, "exit": 2, "reason": str(exc), "seconds": round(isolate_s + time.perf_counter() - t1, 2)}
+    angle, shift = pose_difference(reg.transform, truth, part.points.mean(axis=0))
+    return {**row, "seconds": round(isolate_s + time.perf_counter() - t1, 2), "exit": 0 if reg.proven else 1,
+            "status": reg.status, "angle_deg": angle, "shift_mm": shift, "reason": reg.reason,
+            "free": [m.describe() for m in reg.free], "fitness": reg.fitness, "alternatives": len(reg.alternatives),
+            "u": reg.covariance.bounds() if reg.covariance is not None else None}
+
+
+def merged(out: Path) -> dict[str, dict[str, Any]]:
+    """Every result row written in `out`, ours and Open3D's merged per case."""
+    cases: dict[str, dict[str, Any]] = {}
+    for f in sorted(out.glob("results_*.jsonl")):
+        for line in f.open():
+            r = json.loads(line)
+            cases.setdefault(r["case"], {}).update(r)
+    return cases
 
 
 def _line(r: dict[str, Any]) -> str:
     err = f"{r['angle_deg']:.4f} deg {r['shift_mm']:.4f} mm" if "angle_deg" in r else "-"
     o3d = (f"; open3d {r['open3d_angle_deg']:.3f} deg {r['open3d_shift_mm']:.3f} mm"
            if "open3d_angle_deg" in r else "")
-    return (f"{r['case']:<34} exit {r['exit']} {r['outcome']:<8} {err} {r.get('seconds', 0):6.1f} s"
+    return (f"{r['case']:<34} exit {r.get('exit', '-')} {r.get('outcome', '-'):<8} {err} {r.get('seconds', 0):6.1f} s"
             f"{o3d}{'; ' + r['reason'][:160] if r.get('reason') else ''}")
 
 
 def summary(rows: list[dict[str, Any]]) -> str:
     """The campaign's figures as text."""
+    o3d = [r for r in rows if "open3d_success" in r]
+    rows = [r for r in rows if "outcome" in r]
     n = len(rows)
     if not n:
         return "no scans"
     count = {k: sum(r["outcome"] == k for r in rows) for k in ("success", "wrong", "refused")}
-    o3d = [r for r in rows if "open3d_success" in r]
     secs = [r["seconds"] for r in rows if r["exit"] != 2]
     lines = [f"{n} scans: success {count['success']} ({count['success'] / n:.1%}), wrong with exit 0 "
              f"{count['wrong']}, refused {count['refused']} (of which the best pose was right: "
@@ -242,7 +272,8 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--seed", type=int, default=None, help="default: drawn fresh and printed")
     e = sub.add_parser("evaluate")
     e.add_argument("out", type=Path)
-    e.add_argument("--no-open3d", action="store_true")
+    e.add_argument("--no-open3d", action="store_true", help="ours only")
+    e.add_argument("--open3d-only", action="store_true", help="Open3D's only")
     e.add_argument("--shard", default="0/1", help="K/N: every N-th case from the K-th (default all)")
     t = sub.add_parser("summary")
     t.add_argument("out", type=Path)
@@ -256,10 +287,9 @@ def main(argv: list[str] | None = None) -> int:
         scan_cases(args.out, args.parts, seed, args.nist_placements)
     elif args.what == "evaluate":
         k, n = (int(x) for x in args.shard.split("/"))
-        evaluate(args.out, open3d=not args.no_open3d, shard=(k, n))
+        evaluate(args.out, open3d=not args.no_open3d, ours=not args.open3d_only, shard=(k, n))
     else:
-        rows = [json.loads(line) for f in sorted(args.out.glob("results_*.jsonl")) for line in f.open()]
-        print(summary(rows))
+        print(summary(list(merged(args.out).values())))
     return 0
 
 

@@ -159,7 +159,7 @@ def test_symmetric_block_is_refused_with_its_alternatives(parts: dict[str, Path]
     code = cli.main(["register", str(cloud), str(parts["box"]), "--json", "--no-isolate"])
     out = json.loads(capsys.readouterr().out)  # the whole of stdout is one JSON document
     assert code == 1 and out["status"] == "ambiguous" and out["transform"] is None
-    assert out["alternatives"] and "explain the scan as well" in out["reason"]
+    assert out["alternatives"] and out["reason"].startswith("ambiguous between the best pose and")
     turns = [a["angle_deg"] for a in out["alternatives"]]
     assert any(abs(t - 180.0) < 1.0 for t in turns), turns
     # the best unproven pose and each alternative are right up to the block's symmetry
@@ -177,7 +177,7 @@ def test_symmetric_block_is_refused_with_its_alternatives(parts: dict[str, Path]
     assert all(f["status"] == "not measured" and f["note"].startswith("the pose is ambiguous") for f in report["faces"])
     page = (tmp_path / "report" / "inspection.html").read_text()
     verdict_box = page[page.index("id='verdict'"):page.index("</p>", page.index("id='verdict'"))]
-    assert "not measured: the pose is ambiguous" in verdict_box
+    assert "not measured: the pose is ambiguous between" in verdict_box
 
 
 def test_ring_is_registered_with_its_free_turn_named(parts: dict[str, Path]) -> None:

@@ -136,7 +136,8 @@ def judge(reg: Registration, comparisons: tuple[Comparison, ...], settings: Regi
     loose = [m for m in reg.free if not m.symmetry]
     reasons = []
     if standing:
-        reasons.append(f"{len(standing)} other pose(s) explain the scan as well (" + "; ".join(
+        reasons.append(f"ambiguous between the best pose and {len(standing)} other pose(s) that explain the scan "
+                       "as well (" + "; ".join(
             f"{c.angle_deg:.1f} deg / {c.shift_mm:.2f} mm away, p = {c.p_value:.2g}" for c in standing) + ")")
     if loose:
         reasons.append("the view does not fix the " + "; ".join(m.describe() for m in loose))

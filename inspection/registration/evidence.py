@@ -162,9 +162,14 @@ class PoseCovariance:
 
     def bounds(self) -> tuple[float, float]:
         """(rotation angle deg, displacement of the centre mm) that the pose's error stays
-        within with 95 % probability (quantiles of the norms of draws from the covariance;
-        the unbounded motions left out)."""
-        w, v = np.linalg.eigh(self.covariance)
+        within with 95 % probability (`bounds_of`)."""
+        return self.bounds_of(self.covariance)
+
+    @staticmethod
+    def bounds_of(covariance: np.ndarray) -> tuple[float, float]:
+        """The 95 % bounds of a pose covariance (6, 6) (`bounds`): quantiles of the norms of
+        draws from it (the unbounded motions, zero there, left out)."""
+        w, v = np.linalg.eigh(covariance)
         draws = np.random.default_rng(0).standard_normal((U_DRAWS, 6)) * np.sqrt(np.maximum(w, 0.0)) @ v.T
         return (float(np.degrees(np.quantile(np.linalg.norm(draws[:, :3], axis=1), 0.95))),
                 float(np.quantile(np.linalg.norm(draws[:, 3:], axis=1), 0.95)))

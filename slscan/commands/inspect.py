@@ -208,7 +208,8 @@ def registration_record(reg: Any) -> dict[str, Any]:
             "alternatives": d["alternatives"], "rejected_alternatives": d["rejected_alternatives"],
             "free_motions": d["free_motions"], "rotation_u_deg": d.get("rotation_u_deg"),
             "translation_u_mm": d.get("translation_u_mm"), "pose_covariance": d.get("pose_covariance"),
-            "pose_centre_mm": d.get("pose_centre_mm"), "timings_s": reg.timings_s}
+            "pose_centre_mm": d.get("pose_centre_mm"), "correlation_inflation": d.get("correlation_inflation"),
+            "timings_s": reg.timings_s}
 
 
 def registration_exit(reg: Any) -> int:
