@@ -72,7 +72,8 @@ def run(out: Path, part: str, scans: int, seed: int, command: bool = False) -> d
         for k, placement in enumerate(placements(seed, scans, scale)):
             noise = int(rng.integers(0, 2 ** 31))
             t0 = time.perf_counter()
-            status, T, cov, centre, inflation = measure(_scan(out / f"scan_{seed}_{k}", fine, placement, noise, command), k)
+            cloud = _scan(out / f"scan_{seed}_{k}", fine, placement, noise, command)
+            status, T, cov, centre, inflation = measure(cloud, k)
             truth = np.load(out / f"scan_{seed}_{k}.npz")["truth"]
             row = {"scan": k, "placement_seed": placement.seed, "noise_seed": noise, "status": status,
                    "seconds": round(time.perf_counter() - t0, 1), "load": os.getloadavg()[0]}

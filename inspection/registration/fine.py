@@ -29,6 +29,8 @@ class FinalFit:
 
     index: np.ndarray
     face: np.ndarray | None = None
+    left_out: np.ndarray | None = None  # points assigned to faces but left out as off (`refine_exact`)
+    left_out_face: np.ndarray | None = None
 
 
 def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: RegistrationSettings,
@@ -59,7 +61,29 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
         if not _frees(scan, target, *fit, settings):
             break
     assert fit is not None
-    return fit
+    return fit[0], with_the_rest(scan, target, *fit, settings, rng)
+
+
+def with_the_rest(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: FinalFit, settings: RegistrationSettings,
+                  rng: np.random.Generator) -> FinalFit:
+    """`fit` with a sample of the scan's other points (outline bands, grazing, faces left out:
+    up to `exact_points` of them) that lie on a CAD face at pose T added to its `left_out`:
+    the pose claims them too, so how far their faces sit off as a whole is evidence of the
+    face offsets' variance (`evidence.pose_covariance`); a pose a few tenths of a degree
+    off that the points it rests on cannot tell shows there as walls tens of um off."""
+    assert target.model is not None and target.samples is not None
+    known = np.zeros(len(scan), bool)
+    known[fit.index] = True
+    if fit.left_out is not None:
+        known[fit.left_out] = True
+    rest = np.flatnonzero(~known)
+    rest = rng.choice(rest, size=min(settings.exact_points, len(rest)), replace=False)
+    seg = assign_faces(transform_points(T, scan.points[rest]), scan.normals[rest] @ T[:3, :3].T, target.model,
+                       target.samples, target.dense.tree, 0.3 * target.voxel_mm, settings.max_normal_deg)
+    index = np.concatenate([fit.left_out if fit.left_out is not None else np.zeros(0, np.int64), rest[seg.assigned]])
+    face = np.concatenate([fit.left_out_face if fit.left_out_face is not None else np.zeros(0, seg.face.dtype),
+                           seg.face[seg.assigned]])
+    return FinalFit(fit.index, fit.face, index, face)
 
 
 def _from_best_seen(scan: ScanCloud, max_incidence_deg: float) -> list[np.ndarray]:
@@ -134,8 +158,9 @@ def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, target: ModelT
     group (median residual beyond `face_bias_sigma` times the spread of the faces' medians)
     are left out and the steps repeated; a large face off as a whole, by less than
     `offset_limit_mm`, is found by leaving faces out in turn (`face_bias.without_offset_face`).
-    Leaving faces out is undone when it would leave a motion free that all of them fix (the
-    one wall seen along a plate is not "off": it is all that places the plate)."""
+    A motion that only the faces left out fix is then free: the data call the one face that
+    would place the part along it off, so the pose along it is not proven (taking such a
+    face back in had placed random part seed 1458621907/part_000 0.136 mm off, exit 0)."""
     assert target.model is not None and target.samples is not None
     src, src_nrm = scan.points[sel], scan.normals[sel]
     seg = assign_faces(transform_points(T, src), src_nrm @ T[:3, :3].T, target.model, target.samples,
@@ -152,30 +177,35 @@ def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, target: ModelT
         keep, T = without_offset_face(src, face, T, target.model, iterations, offset_limit_mm,
                                       settings.offset_noise_ratio, settings.big_face_fraction)
         sel, face = sel[keep], face[keep]
-    if len(sel) == len(whole[1].index):
-        return T, FinalFit(sel, face)
-    loose = free_motions(fit_covariance(scan, target, T, FinalFit(sel, face)), settings.pose_tolerance_deg,
-                         settings.pose_tolerance_mm)
-    if loose and not free_motions(fit_covariance(scan, target, *whole), settings.pose_tolerance_deg,
-                                  settings.pose_tolerance_mm):
-        return whole
-    return T, FinalFit(sel, face)
+    return T, FinalFit(sel, face, *_left_out(whole[1], sel))
+
+
+def _left_out(whole: FinalFit, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(points, faces) of `whole` not among `kept`."""
+    out = ~np.isin(whole.index, kept)
+    assert whole.face is not None
+    return whole.index[out], whole.face[out]
 
 
 def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: FinalFit) -> PoseCovariance:
     """The covariance of pose T from the points of `fit` (`evidence.pose_covariance`): their
     residuals to their exact faces (or the dense samples' tangent planes), the residual
     field's correlation taken over the camera image (pixels) or, for a bare cloud, over the
-    scan's point spacing."""
-    q = transform_points(T, scan.points[fit.index])
-    if fit.face is not None and target.model is not None:
-        _, _, normal, r = project_to_faces(target.model, q, fit.face)
+    scan's point spacing; faces the fit left out as off are evidence of how far a face's
+    measurement may be off as a whole (they are in the face offsets' variance, not the fit)."""
+    index, face = fit.index, fit.face
+    if fit.left_out is not None and len(fit.left_out) and face is not None:
+        index, face = np.concatenate([index, fit.left_out]), np.concatenate([face, fit.left_out_face])
+    in_fit = np.arange(len(index)) < len(fit.index)
+    q = transform_points(T, scan.points[index])
+    if face is not None and target.model is not None:
+        _, _, normal, r = project_to_faces(target.model, q, face)
     else:
         _, j = target.dense.tree.query(q)
         normal = target.dense.normals[j]
         r = np.einsum("ij,ij->i", q - target.dense.points[j], normal)
     if scan.pixels is not None:
-        return pose_covariance(q, normal, r, scan.pixels[fit.index].astype(np.float64), "px", fit.face)
-    where = scan.points[fit.index]
-    spacing = point_spacing(where, len(scan))
-    return pose_covariance(q, normal, r, where / max(spacing, 1e-9), f"x {spacing:.3g} mm", fit.face)
+        return pose_covariance(q, normal, r, scan.pixels[index].astype(np.float64), "px", face, in_fit=in_fit)
+    where = scan.points[index]
+    spacing = point_spacing(scan.points[fit.index], len(scan))
+    return pose_covariance(q, normal, r, where / max(spacing, 1e-9), f"x {spacing:.3g} mm", face, in_fit=in_fit)
