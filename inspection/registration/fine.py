@@ -6,7 +6,7 @@ left out (`face_bias`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -31,6 +31,8 @@ class FinalFit:
     face: np.ndarray | None = None
     left_out: np.ndarray | None = None  # points assigned to faces but left out as off (`refine_exact`)
     left_out_face: np.ndarray | None = None
+    unseen: np.ndarray | None = None  # points on faces the fit has none of and left none out (`with_the_rest`)
+    unseen_face: np.ndarray | None = None
 
 
 def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: RegistrationSettings,
@@ -66,11 +68,16 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
 
 def with_the_rest(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: FinalFit, settings: RegistrationSettings,
                   rng: np.random.Generator) -> FinalFit:
-    """`fit` with a sample of the scan's other points (outline bands, grazing, faces left out:
-    up to `exact_points` of them) that lie on a CAD face at pose T added to its `left_out`:
-    the pose claims them too, so how far their faces sit off as a whole is evidence of the
-    face offsets' variance (`evidence.pose_covariance`); a pose a few tenths of a degree
-    off that the points it rests on cannot tell shows there as walls tens of um off."""
+    """`fit` with its `unseen`: points the fit does not rest on whose faces' offsets as a whole
+    tell how far the scanner may measure a face off (`evidence.pose_covariance`): a sample of
+    the scan's other points (outline bands, grazing: up to `exact_points` of them) on CAD
+    faces at pose T that the fit has no point of, and the faces it left out as off that lie
+    mostly in outline bands (`edge_faces`). A pose a few tenths of a degree off that the
+    points it rests on cannot tell shows there, as walls tens of um off. A face left out as
+    off that is measured mostly away from any outline is not among them: the scanner's
+    face-level error comes from the camera's blur mixing a surface with what lies beyond
+    its outline (`well_seen`), so such a face's offset is the part's own (what the
+    inspection measures), not the scanner's."""
     assert target.model is not None and target.samples is not None
     known = np.zeros(len(scan), bool)
     known[fit.index] = True
@@ -80,10 +87,27 @@ def with_the_rest(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fina
     rest = rng.choice(rest, size=min(settings.exact_points, len(rest)), replace=False)
     seg = assign_faces(transform_points(T, scan.points[rest]), scan.normals[rest] @ T[:3, :3].T, target.model,
                        target.samples, target.dense.tree, 0.3 * target.voxel_mm, settings.max_normal_deg)
-    index = np.concatenate([fit.left_out if fit.left_out is not None else np.zeros(0, np.int64), rest[seg.assigned]])
-    face = np.concatenate([fit.left_out_face if fit.left_out_face is not None else np.zeros(0, seg.face.dtype),
-                           seg.face[seg.assigned]])
-    return FinalFit(fit.index, fit.face, index, face)
+    used = np.concatenate([fit.face if fit.face is not None else [], fit.left_out_face
+                           if fit.left_out_face is not None else []])
+    new = seg.assigned & ~np.isin(seg.face, used)
+    index, face = rest[new], seg.face[new]
+    if fit.left_out is not None and fit.left_out_face is not None and len(fit.left_out):
+        edge = np.isin(fit.left_out_face, edge_faces(scan, fit.left_out, fit.left_out_face, settings.max_incidence_deg))
+        index = np.concatenate([index, fit.left_out[edge]])
+        face = np.concatenate([face, fit.left_out_face[edge]])
+    return replace(fit, unseen=index, unseen_face=face)
+
+
+def edge_faces(scan: ScanCloud, index: np.ndarray, face: np.ndarray, max_incidence_deg: float) -> np.ndarray:
+    """The faces (ids of `face`, one per scan point `index`) whose points lie mostly within
+    `EDGE_MARGIN_PX` of their surface's outline in the image (`_inside_outline`); none for
+    a bare cloud, which has no image to tell an outline by."""
+    if scan.pixels is None or scan.image_shape is None or len(index) == 0:
+        return np.zeros(0, face.dtype)
+    outer = ~_inside_outline(scan, max_incidence_deg)[index]
+    ids, which = np.unique(face, return_inverse=True)
+    share = np.bincount(which.ravel(), weights=outer) / np.bincount(which.ravel())
+    return ids[share > 0.5]
 
 
 def _from_best_seen(scan: ScanCloud, max_incidence_deg: float) -> list[np.ndarray]:
@@ -191,11 +215,11 @@ def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fin
     """The covariance of pose T from the points of `fit` (`evidence.pose_covariance`): their
     residuals to their exact faces (or the dense samples' tangent planes), the residual
     field's correlation taken over the camera image (pixels) or, for a bare cloud, over the
-    scan's point spacing; faces the fit left out as off are evidence of how far a face's
-    measurement may be off as a whole (they are in the face offsets' variance, not the fit)."""
+    scan's point spacing; the faces the fit never saw (`with_the_rest`) are evidence of how
+    far a face's measurement may be off as a whole (in the face offsets' variance, not the fit)."""
     index, face = fit.index, fit.face
-    if fit.left_out is not None and len(fit.left_out) and face is not None:
-        index, face = np.concatenate([index, fit.left_out]), np.concatenate([face, fit.left_out_face])
+    if fit.unseen is not None and len(fit.unseen) and face is not None:
+        index, face = np.concatenate([index, fit.unseen]), np.concatenate([face, fit.unseen_face])
     in_fit = np.arange(len(index)) < len(fit.index)
     q = transform_points(T, scan.points[index])
     if face is not None and target.model is not None:
