@@ -195,7 +195,8 @@ def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, settings: R
         raise RegistrationFailed(f"{scan.source}: after the fine step only {fit:.0%} of the scan lies within "
                                  f"{fine_inlier:.3g} mm of {target.name} (needs {settings.min_fitness:.0%}): wrong "
                                  f"part, or a part far from its model", fit, rmse)
-    cov = fit_covariance(scan, target, T, fit_points) if len(fit_points.index) >= 6 else None
+    cov = (fit_covariance(scan, target, T, fit_points, max_incidence_deg=settings.max_incidence_deg)
+           if len(fit_points.index) >= 6 else None)
     model = target.dense if target.model is not None else None
     free = () if cov is None else tuple(free_motions(cov, settings.pose_tolerance_deg, settings.pose_tolerance_mm,
                                                      None if model is None else model.points,

@@ -122,8 +122,10 @@ def _from_best_seen(scan: ScanCloud, max_incidence_deg: float) -> list[np.ndarra
 def _frees(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: FinalFit,
            settings: RegistrationSettings) -> bool:
     """Whether the fit of pose T on `fit`'s points leaves a motion free (`evidence.free_motions`)."""
-    return len(fit.index) < 6 or bool(free_motions(fit_covariance(scan, target, T, fit), settings.pose_tolerance_deg,
-                                                   settings.pose_tolerance_mm))
+    if len(fit.index) < 6:
+        return True
+    cov = fit_covariance(scan, target, T, fit, max_incidence_deg=settings.max_incidence_deg)
+    return bool(free_motions(cov, settings.pose_tolerance_deg, settings.pose_tolerance_mm))
 
 
 def well_seen(scan: ScanCloud, max_incidence_deg: float, outline: bool) -> np.ndarray:
@@ -211,12 +213,14 @@ def _left_out(whole: FinalFit, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return whole.index[out], whole.face[out]
 
 
-def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: FinalFit) -> PoseCovariance:
+def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: FinalFit, *,
+                   max_incidence_deg: float) -> PoseCovariance:
     """The covariance of pose T from the points of `fit` (`evidence.pose_covariance`): their
     residuals to their exact faces (or the dense samples' tangent planes), the residual
     field's correlation taken over the camera image (pixels) or, for a bare cloud, over the
     scan's point spacing; the faces the fit never saw (`with_the_rest`) are evidence of how
-    far a face's measurement may be off as a whole (in the face offsets' variance, not the fit)."""
+    far a face's measurement may be off as a whole (in the face offsets' variance, not the fit),
+    faces mostly in outline bands (`_inside_outline` at `max_incidence_deg`) apart from the rest."""
     index, face = fit.index, fit.face
     if fit.unseen is not None and len(fit.unseen) and face is not None:
         index, face = np.concatenate([index, fit.unseen]), np.concatenate([face, fit.unseen_face])
@@ -229,7 +233,9 @@ def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fin
         normal = target.dense.normals[j]
         r = np.einsum("ij,ij->i", q - target.dense.points[j], normal)
     if scan.pixels is not None:
-        return pose_covariance(q, normal, r, scan.pixels[index].astype(np.float64), "px", face, in_fit=in_fit)
+        edge = None if scan.image_shape is None else ~_inside_outline(scan, max_incidence_deg)[index]
+        return pose_covariance(q, normal, r, scan.pixels[index].astype(np.float64), "px", face, in_fit=in_fit,
+                               edge=edge)
     where = scan.points[index]
     spacing = point_spacing(scan.points[fit.index], len(scan))
     return pose_covariance(q, normal, r, where / max(spacing, 1e-9), f"x {spacing:.3g} mm", face, in_fit=in_fit)
