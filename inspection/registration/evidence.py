@@ -218,7 +218,8 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
     centre = points[in_fit].mean(axis=0)
     radius = float(np.sqrt(np.mean(np.sum((points[in_fit] - centre) ** 2, axis=1))))
     S = np.diag([1.0 / radius] * 3 + [1.0] * 3)  # rotations as mm at the points' radius: a conditioned system
-    J = jacobian(points, normals, centre) @ S * in_fit[:, None]
+    J_all = jacobian(points, normals, centre) @ S
+    J = J_all * in_fit[:, None]
     sigma = residual_scale(r[in_fit])
     k = HUBER_K * max(sigma, 1e-12)
     inside = (np.abs(r) < k) & in_fit
@@ -245,11 +246,10 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
             pair = _pair_correlation(psi[in_fit], label[in_fit])
             cov, corr, chosen = blocked, ResidualCorrelation(float(size), pair, unit), label
     if faces is not None:
-        kind = np.zeros(int(face.max()) + 1, bool)
+        edge_face = np.zeros(int(face.max()) + 1, bool)
         if edge is not None:  # a face mostly in outline bands: the scanner's edge errors dominate its offset
-            kind = np.bincount(face, weights=edge, minlength=len(kind)) > 0.5 * np.bincount(face, minlength=len(kind))
-        for k in (False, True):
-            cov = cov + _face_offsets(r, e, face, chosen, J * inside[:, None], Ainv, kind == k)
+            edge_face = np.bincount(face, weights=edge, minlength=len(edge_face)) > 0.5 * n_f
+        cov = cov + _face_offsets(r, e, face, chosen, J_all, inside, Ainv, edge_face)
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)
     return PoseCovariance(0.5 * (S @ cov @ S + (S @ cov @ S).T), centre, sigma, int(in_fit.sum()), corr,
@@ -257,19 +257,25 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
 
 
 def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, block: np.ndarray, J: np.ndarray,
-                  Ainv: np.ndarray, kind: np.ndarray) -> np.ndarray:
-    """The pose covariance that offsets of whole faces of one kind (`kind[f]` True) give
-    (module docstring): each face's measurement off by b_f, independent across faces with one
-    variance tau^2 per kind, the pose moved by -A^-1 m_f b_f (m_f the sum of the face's J_i).
-    tau^2 by moments from the fitted residuals' face means: E[rbar_f^2] = (1 - h_f) tau^2 + v_f,
-    h_f = m_f' A^-1 m_f / n_f the share of a face offset the fit absorbs, v_f the variance of
-    the face's mean noise (from the sums over `block`s of the residuals `e` about the face's
-    mean); faces with fewer than `MIN_BLOCKS` points left out of tau^2 (not of its effect).
-    The kinds: faces measured mostly in outline bands, where the camera's blur mixes a surface
-    with what lies beyond (a 12 mm step wall of the demo part read 34 um off as a whole), and
-    the rest, whose offsets are a few um: one variance for both would give the walls the tops'
-    (a random part's one x-facing wall in the fit, 58 um off, held its pose 0.081 mm off with a
-    U of 0.03 mm) or the tops the walls'."""
+                  inside: np.ndarray, Ainv: np.ndarray, kind: np.ndarray) -> np.ndarray:
+    """The pose covariance that offsets of whole faces give (module docstring): each face's
+    measurement off by b_f, independent across faces with one variance tau_k^2 per kind of
+    face (`kind[f]`), the pose moved by -A^-1 sum_g m_g b_g (m_g the sum of face g's rows of
+    `J` over the points the fit rests on, `inside`). The variances by moments from the faces'
+    mean residuals: rbar_f = sum_g R_fg b_g + noise, R = I - H, H_fg = jbar_f' A^-1 m_g (jbar_f
+    the mean row of face f over all its points: what of the offsets the fit moves into f's
+    mean), so E[rbar_f^2] = sum_g R_fg^2 tau_k(g)^2 + v_f, v_f the variance of f's mean noise
+    (from the sums over `block`s of the residuals `e` about the face's mean); summed over
+    each kind's faces, two equations in tau_0^2, tau_1^2, solved non-negative. Faces with
+    fewer than `MIN_BLOCKS` points are no measure of their offset (a few stray points) and
+    are left out of the sums, not of the effect. The kinds: faces measured mostly in
+    outline bands, where the camera's blur mixes a surface with what lies beyond (a 12 mm
+    step wall of the demo part read 34 um off as a whole), and the rest, whose offsets are a
+    few um: one variance for both gives the walls the tops' (a random part's one x-facing
+    wall in the fit, 58 um off, held its pose 0.081 mm off with a U of 0.03 mm) or the tops
+    the walls'."""
+    from scipy.optimize import nnls
+
     g = int(face.max()) + 1
     n = np.bincount(face, minlength=g).astype(np.float64)
     mean = np.bincount(face, weights=r, minlength=g) / np.maximum(n, 1.0)
@@ -277,13 +283,19 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, block: np.ndar
     cell_face = np.zeros(int(cell.max()) + 1, np.int64)
     cell_face[cell.ravel()] = face
     v = np.bincount(cell_face, weights=np.bincount(cell.ravel(), weights=e) ** 2, minlength=g) / np.maximum(n, 1.0) ** 2
-    m = np.stack([np.bincount(face, weights=J[:, c], minlength=g) for c in range(6)], axis=1)
-    h = np.minimum(np.einsum("fi,ij,fj->f", m, Ainv, m) / np.maximum(n, 1.0), 1.0)
-    told = (n >= MIN_BLOCKS) & kind  # a face's mean from fewer points is no measure of its offset (a few stray points)
-    if np.sum(told) < 2 or np.sum(1.0 - h[told]) <= 0.0:
+    m = np.stack([np.bincount(face, weights=J[:, c] * inside, minlength=g) for c in range(6)], axis=1)
+    jbar = np.stack([np.bincount(face, weights=J[:, c], minlength=g) for c in range(6)], axis=1) / np.maximum(n, 1.0)[:, None]
+    R2 = (np.eye(g) - jbar @ Ainv @ m.T) ** 2
+    told = n >= MIN_BLOCKS
+    kinds = [kind, ~kind]
+    rows = [told & k for k in kinds]
+    if sum(int(np.sum(x)) for x in rows) < 2:
         return np.zeros((6, 6))
-    tau2 = max(float(np.sum(mean[told] ** 2 - v[told]) / np.sum(1.0 - h[told])), 0.0)
-    return tau2 * Ainv @ (m[kind].T @ m[kind]) @ Ainv
+    lhs = np.array([np.sum(mean[x] ** 2 - v[x]) for x in rows])
+    coef = np.array([[np.sum(R2[np.ix_(x, k)]) for k in kinds] for x in rows])
+    tau2 = nnls(coef, lhs)[0] if np.all(lhs > 0) else nnls(coef, np.maximum(lhs, 0.0))[0]
+    weight = np.where(kind, tau2[0], tau2[1])
+    return Ainv @ ((m * weight[:, None]).T @ m) @ Ainv
 
 
 def _clustered(score: np.ndarray, label: np.ndarray, Ainv: np.ndarray, scale: np.ndarray | None = None,
