@@ -261,7 +261,8 @@ def test_symmetric_block_is_refused_with_its_alternatives(parts: dict[str, Path]
     code = cli.main(["inspect", str(cloud), "--cad", str(parts["box"]), "--tolerances", str(tolerances), "--json",
                      "--no-pdf", "--out", str(tmp_path / "report")])
     report = json.loads(capsys.readouterr().out)
-    assert code == 1 and report["status"] == "ambiguous" and report["verdict"] == "not measured"
+    assert code == 4 and report["status"] == "no decision" and report["verdict"] == "not measured"  # README: exit codes
+    assert report["pose_status"] == "ambiguous" and report["status_note"].startswith("not measured: the pose is ambiguous")
     assert report["registration"]["alternatives"] and len(report["faces"]) == len(model.faces)
     assert all(f["status"] == "not measured" and f["note"].startswith("the pose is ambiguous") for f in report["faces"])
     page = (tmp_path / "report" / "inspection.html").read_text()
