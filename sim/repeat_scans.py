@@ -192,6 +192,8 @@ def map_trials(job: Callable[[int], T], n: int, processes: int = 1) -> Iterator[
     try:
         with multiprocessing.get_context("fork").Pool(processes) as pool:
             yield from pool.imap(_run_job, range(n))  # type: ignore[misc]
+            pool.close()  # let the workers exit on their own: the pool's exit would SIGTERM them, which
+            pool.join()  # the command's handler turns into a traceback on stderr
     finally:
         _JOB = None
 
