@@ -48,11 +48,14 @@ and the fringe's values at every offset as they are (`coverage_factor`, GUM Supp
 3. Calibration. The rig's parameters (both devices' intrinsics and distortion, the
    extrinsics) carry the covariance the calibration solve found (`calibration.json`:
    "covariance"; older files and other tools' only one-sigmas, then taken as uncorrelated,
-   which is stated). It is propagated by re-triangulating the measured projector
-   coordinates with the rig moved one sigma each way along every principal direction of
-   the covariance (central differences: exact for figures linear in the geometry). A rig
-   with no calibration file uses its nominal geometry: on the simulator that is the truth
-   (u_cal = 0); on a real rig it is unknown, and U then says it covers noise only.
+   which is stated). It is one error common to every point of a scan (and to every scan
+   made with that calibration), never averaged over points: along each principal
+   direction d of the covariance the points move together by δX_d,i = J_i δ_d
+   (`calibration_jacobian`, the triangulation linearised; checked against
+   re-triangulation), the figure by Σ_i g_i·δX_d,i, and only the directions add in
+   quadrature. A rig with no calibration file uses its nominal geometry: on the simulator
+   that is the truth (u_cal = 0); on a real rig it is unknown, and U then says it covers
+   noise only.
 
 Propagation. Least-squares figures (sphere centre and radius, plane, distances between
 centres) are linear in the points to first order: each point's influence g_i = ∂x/∂X_i is
@@ -95,8 +98,8 @@ uncertain by that much): `inspection.tolerances.decide` judges "< L" as the inte
 [0, L + U], so it conforms only when L + U is within the tolerance.
 
 The coverage of this model — the true value inside ±U for 95 % of repeat scans with fresh
-noise, and with calibration errors drawn from the calibration's covariance — is measured
-on the simulator (`sim.artefact_scenes`, tests/test_uncertainty_coverage.py).
+noise, and with the errors of independent simulated calibrations — is measured on the
+simulator (`slscan coverage [--calibrated]`, `sim.repeat_scans`, tests/test_uncertainty_coverage.py).
 """
 
 from __future__ import annotations

@@ -156,13 +156,16 @@ class MeasuringRig:
         model = load_rig_model(path, bench.model.camera.size, bench.model.projector.size)
         return cls(model, CalibrationUncertainty.from_report(json.loads(Path(path).read_text())))
 
-    def windowed(self, window: Pinhole) -> RigModel:
-        """The rig with its camera cut to `window` (a window of the full camera,
-        `sim.artefact_scenes.cropped_camera`): the principal point moved by the window's
-        offset, the lens unchanged."""
+    def windowed(self, window: Pinhole, *, cut_from: Pinhole) -> RigModel:
+        """The rig with its camera cut to `window`, a window of the full camera `cut_from`
+        (the true one the simulator renders with, `sim.artefact_scenes.cropped_camera`): this
+        rig's principal point moved by the window's pixel offset, its lens unchanged. The
+        offset is the window's on the sensor, the same for every rig model; taken from this
+        rig's own principal point instead it would give every model the true one and drop
+        the calibration's principal-point errors from the reconstruction."""
         full = self.model.camera
         K = full.K.copy()
-        K[:2, 2] -= (full.K[:2, 2] - window.K[:2, 2])
+        K[:2, 2] -= cut_from.K[:2, 2] - window.K[:2, 2]
         return replace(self.model, camera=Pinhole(window.width, window.height, K, full.dist))
 
 
@@ -189,6 +192,8 @@ def map_trials(job: Callable[[int], T], n: int, processes: int = 1) -> Iterator[
     try:
         with multiprocessing.get_context("fork").Pool(processes) as pool:
             yield from pool.imap(_run_job, range(n))  # type: ignore[misc]
+            pool.close()  # let the workers exit on their own: the pool's exit would SIGTERM them, which
+            pool.join()  # the command's handler turns into a traceback on stderr
     finally:
         _JOB = None
 
@@ -218,7 +223,7 @@ def _artefact_trial(bench: Bench, position: Position, artefacts: ArtefactSet, re
     t0 = time.perf_counter()
     renderer = window_renderer(bench.model, artefact_objects(position, artefacts), bench.sensor, bench.projector_blur_px)
     decoded = bench.scan(renderer, rng)
-    used = rig.windowed(renderer.model.camera)
+    used = rig.windowed(renderer.model.camera, cut_from=bench.model.camera)
     points = triangulate(decoded, Triangulator(used), with_normals=False).points
     measurement = replace(bench.measurement, calibration=rig.calibration)
     at = measurement.of_scan(decoded, used)
@@ -411,7 +416,7 @@ def plate_figures(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig,
         renderer, pose = _plate_renderer(bench, plate, seed, k, rng)
         decoded = bench.scan(renderer, rng)
         rig = _rig_for(k, bench, rigs)
-        used = rig.windowed(renderer.model.camera)
+        used = rig.windowed(renderer.model.camera, cut_from=bench.model.camera)
         points = triangulate(decoded, Triangulator(used), with_normals=False).points
         gt = renderer.ground_truth
         ok = np.isfinite(points).all(axis=2) & (gt.object_id == 2)
@@ -488,7 +493,7 @@ def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig,
         renderer = window_renderer(bench.model, (obj,), bench.sensor, bench.projector_blur_px)
         decoded = bench.scan(renderer, rng)
         rig = _rig_for(k, bench, rigs)
-        used = rig.windowed(renderer.model.camera)
+        used = rig.windowed(renderer.model.camera, cut_from=bench.model.camera)
         cloud = triangulate(decoded, Triangulator(used))
         scan = from_organised(cloud, f"pose trial {k}")
         unc = replace(bench.measurement, calibration=rig.calibration).of_scan(decoded, used, defocus=True)(scan.pixels)

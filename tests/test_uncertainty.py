@@ -91,6 +91,51 @@ def test_calibration_jacobian_matches_retriangulation() -> None:
         assert np.abs(J[:, :, p] * step - numeric).max() < 0.02 * scale + 6e-5, RIG_PARAMETERS[p]  # float32 depths
 
 
+def test_a_figures_calibration_u_is_the_spread_of_refits_with_drawn_calibrations() -> None:
+    """The calibration error is one error common to all points of a scan: a sphere's true
+    projector coordinates (ray-sphere intersections, written here) triangulated again
+    with rigs drawn from a simulated calibration's covariance (every parameter, both
+    devices and the extrinsic) and refitted; the radius's and the centre's spread over the
+    draws against the u_cal the fit propagates. Propagated as if independent from point to
+    point, the same moves give a u_cal far off (moves the radius does not see, such as a
+    shift of the whole sphere, no longer cancel)."""
+    import json
+    from pathlib import Path
+
+    model = RigConfig.load().nominal_model().with_camera_size(160, 128)
+    cov = json.loads((Path(__file__).parent / "data" / "sim_calibration_covariance.json").read_text())
+    calibration = CalibrationUncertainty.from_report(cov)
+    centre, radius = np.array([8.0, -6.0, 400.0]), 12.7
+    rays = model.camera.ray_grid.astype(np.float64)
+    b = rays @ centre
+    disc = b ** 2 - (rays ** 2).sum(axis=2) * (centre @ centre - radius ** 2)
+    t = (b - np.sqrt(np.where(disc > 0, disc, np.nan))) / (rays ** 2).sum(axis=2)
+    X = rays * t[..., None]
+    rows, cols = np.nonzero(np.isfinite(t) & (disc > 0.2 * np.nanmax(disc)))  # away from the outline
+    Xp = X[rows, cols] @ model.proj_from_cam[:3, :3].T + model.proj_from_cam[:3, 3]
+    coord = np.full(t.shape, np.nan, np.float32)
+    coord[rows, cols] = model.projector.project(Xp)[:, 0]
+    points = X[rows, cols]
+    unc = ScanUncertainty(None, calibration, model, {"vertical": np.ones(len(points))})
+    fit, res = measure_sphere(points, unc, radius, viewpoint=None, inner=False)
+    rng = np.random.default_rng(12)
+    fits = []
+    for _ in range(150):
+        m = perturbed(model, calibration.draw(rng))
+        z = Triangulator(m).depth_scale(coord, "vertical")
+        fits.append(fit_sphere(m.camera.ray_grid.astype(np.float64)[rows, cols] * z[rows, cols, None]))
+    assert len(points) > 300
+    # 150 draws: the spread's own standard error is 6 %
+    mc = np.std([f.radius for f in fits], ddof=1)
+    assert res.components["calibration"] == pytest.approx(mc, rel=0.15)
+    assert res.centre[2].u == pytest.approx(np.std([f.centre[2] for f in fits], ddof=1), rel=0.15)
+    moves = np.einsum("nip,dp->dni", calibration_jacobian(points[fit.used], model,
+                                                          {"vertical": np.ones(int(fit.used.sum()))}),
+                      calibration.directions())
+    per_point = np.sqrt(np.sum(np.einsum("dni,ni->dn", moves, fit.influence[:, 3]) ** 2))
+    assert not 1.0 / 3.0 < per_point / mc < 3.0
+
+
 def test_calibration_directions_span_the_covariance_and_draws_follow_it() -> None:
     rng = np.random.default_rng(3)
     A = rng.normal(size=(24, 24)) * np.r_[np.full(18, 0.2), np.full(3, 1e-5), np.full(3, 3e-3)]

@@ -18,7 +18,11 @@ a zone is reported in some scans and "< L" in the others.
 calibration (`slscan calibrate --seed 1000·S + j --out DIR/calibration-<seed>`, j <
 K; made once, then reused from DIR; their captures are deleted once solved) and its U
 holds that calibration's covariance; scan k uses calibration k mod K. Without it the
-rig's exact geometry is used (no calibration term).
+rig's exact geometry is used (no calibration term). Each calibration's Mahalanobis d² of
+the true rig under its own covariance is printed beside the figures ("calibration_d2",
+"calibration_dof", "calibration_d2_95": the chi-square 95 % point): the coverage measures
+U only as far as the calibrations are representative (a calibration above its 95 % point,
+or one made by older code and reused from DIR, says its covariance is not).
 """
 
 from __future__ import annotations
@@ -65,6 +69,9 @@ def calibrations(rig: Path, out: Path, seed: int, count: int, say: Callable[[str
 
 
 def cmd_coverage(args: argparse.Namespace) -> int:
+    from scipy.stats import chi2
+
+    from calibration.consistency import mahalanobis, model_parameters
     from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
     from scanner.patterns import PatternSet
     from scanner.rig import RigConfig
@@ -94,6 +101,11 @@ def cmd_coverage(args: argparse.Namespace) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         rigs = tuple(rs.MeasuringRig.from_calibration(p, bench)
                      for p in calibrations(config.path, args.out, args.seed, args.calibrations, say))
+    distances = [mahalanobis(model_parameters(r.model), model_parameters(model), r.calibration.covariance)
+                 for r in rigs]
+    for j, d in enumerate(distances):
+        say(f"calibration seed {1000 * args.seed + j}: d² of the true rig {d.d2:.1f} on {d.dof} dof "
+            f"(95 % point {chi2.ppf(0.95, d.dof):.1f})")
     common = dict(seed=args.seed, rigs=rigs, processes=args.processes, progress=say)
     results: dict[str, Any] = {}
     for name, plate in (("plate", rs.Plate()), ("smooth", rs.SMOOTH), ("near-limit", rs.NEAR_LIMIT)):
@@ -111,6 +123,10 @@ def cmd_coverage(args: argparse.Namespace) -> int:
         r = results[case]
         row = r.as_json(case)
         row.update(seed=args.seed, calibrated=bool(rigs), calibrations=len(rigs))
+        if distances:
+            row.update(calibration_seeds=[1000 * args.seed + j for j in range(len(rigs))],
+                       calibration_d2=[d.d2 for d in distances], calibration_dof=distances[0].dof,
+                       calibration_d2_95=float(chi2.ppf(0.95, distances[0].dof)))
         if case.startswith("smooth"):
             row.update(detected=row["reported"], false_detection_rate=row["reported"] / row["scans"])
         if case == "pose":
