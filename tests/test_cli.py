@@ -278,6 +278,35 @@ def test_startup_imports_no_command_module_until_one_runs(argv: list[str]) -> No
     assert commands == ["slscan.commands.scan"] if argv[:1] == ["scan"] else loaded == [], loaded
 
 
+def test_every_command_reads_its_arguments_before_any_heavy_import() -> None:
+    """A usage error of every command in `slscan.commands.COMMANDS` (an unknown option) is
+    answered with its own module imported but not numpy, OpenCV or Open3D: the command
+    modules import those inside their command functions. One process tries them in turn,
+    naming the first command whose parser brought one in."""
+    probe = ("import sys\nfrom slscan import cli\nfrom slscan.commands import COMMANDS\n"
+             "for name in COMMANDS:\n    try:\n        cli.main([name, '--no-such-option'])\n"
+             "    except SystemExit as exc:\n        assert exc.code == 2, (name, exc.code)\n"
+             "    print(name, *sorted(m for m in ('numpy', 'cv2', 'open3d', 'OCP') if m in sys.modules))\n")
+    proc = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = [line.split() for line in proc.stdout.splitlines()]
+    from slscan.commands import COMMANDS as TABLE
+
+    assert [line[0] for line in lines] == list(TABLE)
+    heavy = [line for line in lines if len(line) > 1]
+    assert not heavy, f"slscan {heavy[0][0]} --no-such-option imported {heavy[0][1:]}"
+
+
+def test_light_names_agree_with_the_modules_they_stand_for() -> None:
+    """Names the command line reads without importing numpy match the registries they mirror."""
+    from scanner.exports import FORMATS
+    from slscan.commands.export import FORMATS as COMMAND_LINE_FORMATS
+    from slscan.station import MEASUREMENT_NAMES
+    from slscan.station.measure import MEASUREMENTS
+
+    assert COMMAND_LINE_FORMATS == FORMATS and tuple(MEASUREMENTS) == MEASUREMENT_NAMES
+
+
 def test_quiet_and_log_file(tmp_path: Path, capsys) -> None:
     """-q: errors only, no progress lines; --log-file: info and up in the file while stderr keeps
     its level; an unwritable log file is a usage error of one line."""

@@ -15,9 +15,7 @@ from typing import Any, Callable, Sequence
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError, ScannerError
-from scanner.reconstruct import Triangulator
-from scanner.rig import DEFAULT_RIG
-from scanner.session import write_json
+from scanner.config import DEFAULT_RIG
 from scanner.stage_timer import StageTimer
 from slscan.exit_codes import Exit, for_verdict
 from slscan.options import add_json
@@ -183,6 +181,9 @@ def result_record(result: Any) -> dict[str, Any]:
 
 def sim_accuracy(result: Any) -> Any:
     """Accuracy against the simulator's ground truth, if the session has it."""
+    from scanner.reconstruct import Triangulator
+    from scanner.session import write_json
+
     if "import" in result.session.manifest:
         return None  # another tool's frames carry no simulator truth (and the simulator takes ~0.3 s to import)
     from sim.evaluate import GROUND_TRUTH_FILE, Truth, evaluate

@@ -13,7 +13,7 @@ from typing import Any
 from scanner.errors import ScannerError
 from slscan.exit_codes import Exit, for_parts
 from slscan.options import OutputFlag, add_json, add_out, count_arg, plain_text_arg
-from slscan.station.measure import MEASUREMENTS
+from slscan.station import MEASUREMENT_NAMES
 
 
 def _station_options(p: argparse.ArgumentParser, writes: bool = False) -> None:
@@ -264,7 +264,7 @@ def register(sub: Any) -> None:
     s.add_argument("--operator", type=plain_text_arg, help="operator name stored with every result")
     s.add_argument("--parts", type=count_arg(1), help="stop after this many measured parts (>= 1)")
     s.add_argument("--auto", action="store_true", help="no operator: measure --parts parts one after the other")
-    s.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: the station config's)")
+    s.add_argument("--measurement", choices=sorted(MEASUREMENT_NAMES), help="measuring step (default: the station config's)")
     add_json(s)
     s.set_defaults(func=cmd_station)
 
@@ -305,7 +305,7 @@ def register(sub: Any) -> None:
                                             "one recorded at capture")
     b.add_argument("--store", action="store_true", help="store the re-inspection results (source 'batch')")
     _station_options(b)
-    b.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: the station config's)")
+    b.add_argument("--measurement", choices=sorted(MEASUREMENT_NAMES), help="measuring step (default: the station config's)")
     b.add_argument("--json", action="store_true", help="print the summary as JSON")
     b.set_defaults(func=cmd_batch)
 
@@ -313,6 +313,6 @@ def register(sub: Any) -> None:
     bb.add_argument("sessions", nargs="+", help="part folders written by the station, or session folders")
     bb.add_argument("--program", required=True, help="part program TOML to inspect against")
     bb.add_argument("--workers", type=int, default=2, help="local cluster worker processes (default 2)")
-    bb.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: inspection)")
+    bb.add_argument("--measurement", choices=sorted(MEASUREMENT_NAMES), help="measuring step (default: inspection)")
     add_json(bb)
     bb.set_defaults(func=cmd_batchbench)
