@@ -175,8 +175,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ScannerError as exc:
         print(f"slscan {args.command}: error: {exc}", file=sys.stderr)
         return Exit.USAGE
-    if log_level(args) > logging.DEBUG:  # Rerun's own log lines on stderr (a full disk: three of them) break the
-        os.environ.setdefault("RUST_LOG", "off")  # one-line rule; its failures reach us as errors when it closes
+    from slscan.library_logs import hold_to
+
+    hold_to(log_level(args))  # Dask, Rerun and Open3D at the level asked (a full disk: three Rerun lines otherwise)
     from scanner.native_threads import size_opencv_pool
 
     size_opencv_pool()  # on the main thread before any command's threads start; never at import

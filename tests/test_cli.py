@@ -368,3 +368,22 @@ def test_a_used_output_folder_is_refused_before_the_slow_start(command: str, tmp
                        text=True, timeout=120)
     assert p.stdout.split() == ["2", "False", "False"], p.stderr
     assert "output folder exists and is not empty" in p.stderr and (tmp_path / "earlier.txt").exists()
+
+
+@pytest.mark.parametrize("verbose", [[], ["-v"]])
+def test_dask_and_open3d_log_at_the_level_asked(verbose: list[str]) -> None:
+    """Dask's INFO lines (35 in a default `slscan batch` before) and Open3D's warnings (on
+    stdout) show only from -v on; Dask's go through our log format. The command here is
+    `slscan devices` with the libraries imported after the command line set the levels,
+    as a command imports them."""
+    probe = ("import logging, sys\nfrom slscan import cli\nfrom slscan.commands import devices\n"
+             "def run(args):\n    import distributed, open3d\n"
+             "    logging.getLogger('distributed.scheduler').info('a dask info line')\n"
+             "    open3d.io.read_triangle_mesh('/nonexistent/mesh.stl')\n    return 0\n"
+             "devices.cmd_devices = run\nsys.exit(cli.main(sys.argv[1:]))\n")
+    proc = subprocess.run([sys.executable, "-c", probe, *verbose, "devices"], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    shown = bool(verbose)
+    assert ("INFO distributed.scheduler: a dask info line" in proc.stderr) == shown, proc.stderr
+    assert ("[Open3D WARNING]" in proc.stdout) == shown, proc.stdout
