@@ -387,3 +387,15 @@ def test_dask_and_open3d_log_at_the_level_asked(verbose: list[str]) -> None:
     shown = bool(verbose)
     assert ("INFO distributed.scheduler: a dask info line" in proc.stderr) == shown, proc.stderr
     assert ("[Open3D WARNING]" in proc.stdout) == shown, proc.stdout
+
+
+def test_json_stdout_keeps_open3d_lines_off_the_document() -> None:
+    """Open3D prints its warnings through Python's `sys.stdout` (pybind11), which `--json`
+    points at the real stdout for the command's document: its lines go to stderr, whole."""
+    probe = ("from slscan import cli\nimport open3d\n"
+             "open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Warning)\n"
+             "with cli.json_stdout():\n    open3d.io.read_triangle_mesh('/nonexistent/mesh.stl')\n"
+             "    print('{\"status\": \"ok\"}')\n")
+    proc = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert json.loads(proc.stdout) == {"status": "ok"}
+    assert "[Open3D WARNING]" in proc.stderr and proc.stderr.endswith("\n")
