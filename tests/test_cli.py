@@ -399,3 +399,27 @@ def test_json_stdout_keeps_open3d_lines_off_the_document() -> None:
     proc = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert json.loads(proc.stdout) == {"status": "ok"}
     assert "[Open3D WARNING]" in proc.stderr and proc.stderr.endswith("\n")
+
+
+def test_paper_chosen_on_the_command_line_sizes_the_pdf(tmp_path: Path) -> None:
+    """`--paper a4|letter` on the commands that print a PDF report (inspect, demo): held
+    around the report's writing, it sets the PDF's page size (points: A4 595 x 842, Letter
+    612 x 792, read from the PDF's MediaBox)."""
+    from inspection.report_pdf import chromium, print_pdf
+    from slscan.options import on_paper
+
+    for command in (["inspect", "session"], ["demo"]):
+        assert cli.build_parser(command).parse_args([*command, "--paper", "letter"]).paper == "letter"
+        assert cli.build_parser(command).parse_args(command).paper == "a4"
+    code, _, err = run("demo", "--paper", "legal")
+    assert code == 2 and "invalid choice: 'legal'" in err
+    if chromium() is None:
+        pytest.skip("no Chromium: the PDF's size is not checked")
+    page = tmp_path / "page.html"
+    page.write_text("<html><head></head><body><h1>a report</h1></body></html>")
+    for paper, size in (("letter", (612, 792)), ("a4", (595, 842))):
+        with on_paper(paper):
+            pdf = print_pdf(page, tmp_path / f"{paper}.pdf")
+        assert pdf is not None
+        boxes = re.findall(rb"/MediaBox \[0 0 ([0-9.]+) ([0-9.]+)\]", pdf.read_bytes())
+        assert boxes and all(abs(float(w) - size[0]) < 1.5 and abs(float(h) - size[1]) < 1.5 for w, h in boxes), boxes

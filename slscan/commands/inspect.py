@@ -26,7 +26,7 @@ from typing import Any
 
 from scanner.errors import ConfigError
 from slscan.exit_codes import Exit, for_verdict
-from slscan.options import COARSE_METHODS, add_json, coarse_method, plain_text_arg
+from slscan.options import COARSE_METHODS, add_json, add_paper, coarse_method, on_paper, plain_text_arg
 
 CAD_UNITS = ("mm", "cm", "m", "in")
 
@@ -415,8 +415,9 @@ def _inspect_source(source: str | Path, cad: str | Path | None, tolerances: str 
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    report = inspect_source(args.source, args.cad, args.tolerances, args.out, args.cad_unit, args.seed,
-                            operator=args.operator, serial=args.serial, pdf=not args.no_pdf)
+    with on_paper(args.paper):
+        report = inspect_source(args.source, args.cad, args.tolerances, args.out, args.cad_unit, args.seed,
+                                operator=args.operator, serial=args.serial, pdf=not args.no_pdf)
     if args.json:
         print(json.dumps(report.as_dict(), default=str))
     else:
@@ -466,6 +467,7 @@ def register(sub: Any) -> None:
     i.add_argument("--serial", type=plain_text_arg,
                    help="part serial number in the report header (default: the session id)")
     i.add_argument("--no-pdf", action="store_true", help="no inspection.pdf (made with headless Chromium)")
+    add_paper(i)
     i.add_argument("--cad-unit", choices=CAD_UNITS, default="mm", help="unit of a mesh CAD file")
     i.add_argument("--out", help="folder for inspection.json/.csv/.html (default: beside the data)")
     i.add_argument("--seed", type=int, default=0, help="random seed of the registration (default 0)")
