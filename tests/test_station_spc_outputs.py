@@ -113,6 +113,16 @@ def test_options_that_need_a_report_are_refused_without_one(tmp_path: Path, caps
     assert results(db, "--report", "--dfq", "--out", str(tmp_path / "r")) == 2
 
 
+AQDEF_FIELDS = {"K0100": "number of characteristics", "K1001": "part number", "K1002": "part description",
+                "K2001": "characteristic number", "K2002": "characteristic description", "K2101": "nominal value",
+                "K2110": "lower specification limit", "K2111": "upper specification limit",
+                "K2120": "type of lower limit", "K2121": "type of upper limit", "K2142": "unit",
+                "K0001": "value", "K0002": "attribute", "K0004": "date/time", "K0008": "operator",
+                "K0014": "part ident"}
+"""The AQDEF (Q-DAS ASCII transfer format) fields slscan writes, by the format's field list;
+K2120/K2121 coding: 0 no limit, 1 specification limit, 2 natural boundary."""
+
+
 def parse_dfq(text: str) -> tuple[dict[str, str], list[dict[str, str]]]:
     """A DFQ file read from the AQDEF description: header fields K1xxx/K2xxx (with /i), and
     the value records, a new record for characteristic i starting at each K0001/i."""
@@ -123,6 +133,7 @@ def parse_dfq(text: str) -> tuple[dict[str, str], list[dict[str, str]]]:
         key, _, value = line.partition(" ")
         assert key.startswith("K") and key[1:5].isdigit(), line
         field, _, index = key.partition("/")
+        assert field in AQDEF_FIELDS, f"{field} is not a field slscan is meant to write: {line}"
         if int(field[1:5]) < 100:  # K0001..K0099: a value's fields
             if field == "K0001":
                 records.append({"i": index})
@@ -148,6 +159,8 @@ def test_dfq_export_has_every_value_censored_and_excluded_ones_marked(tmp_path: 
     for c in program.characteristics:
         i = names[c.name]
         assert float(header[f"K2111/{i}"]) == c.tolerance_mm and header[f"K2142/{i}"] == "mm"
+        # a zero-bounded figure: lower limit 0 of type natural boundary, the upper a specification limit
+        assert (float(header[f"K2110/{i}"]), header[f"K2120/{i}"], header[f"K2121/{i}"]) == (0.0, "2", "1")
         mine = [r for r in records if r["i"] == i]
         want = [LIMIT_MM if v is None else v for v in put[c.name]]
         assert [float(r["K0001"]) for r in mine] == pytest.approx(want, abs=1e-6)
