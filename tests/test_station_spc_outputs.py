@@ -191,3 +191,37 @@ def test_the_chart_has_whole_part_numbers_and_its_legend_apart() -> None:
     for ax in (top, bottom):
         assert not box.overlaps(ax.get_window_extent())
     assert "no limits: 7 values, limits need 25" in fig._suptitle.get_text()
+
+
+def test_exclusions_are_recorded_with_who_and_when_and_applied_later(tmp_path: Path, capsys) -> None:
+    """`--exclude ID=REASON --by NAME` is stored in the results database (reason, who, when),
+    listed by `--exclusions`, applied by every later export and report without being given
+    again, and lifted by `--include ID`; an unknown result or a database that is not there
+    is refused (exit 2) without writing anything."""
+    db = tmp_path / "results.sqlite"
+    fill(db, 12, seed=6)
+    before = dt.datetime.now(dt.timezone.utc)
+    assert results(db, "--exclude", "5=gauge dropped", "--by", "ben") == 0
+    assert "excluded  result 5: gauge dropped (ben, " in capsys.readouterr().err
+    with open_results(f"sqlite:{db}", create=False) as store:
+        [(rid, e)] = store.exclusions().items()
+    assert (rid, e.reason, e.excluded_by) == (5, "gauge dropped", "ben")
+    assert before <= e.excluded_at <= dt.datetime.now(dt.timezone.utc)
+    assert results(db, "--exclusions", "--json") == 0
+    listed = json.loads(capsys.readouterr().out)["exclusions"]
+    assert [(x["result_id"], x["serial"], x["reason"], x["excluded_by"]) for x in listed] == \
+           [(5, "SN-0005", "gauge dropped", "ben")]
+    out = tmp_path / "values.dfq"
+    assert results(db, "--dfq", "--out", str(out)) == 0  # no --exclude given: the recorded one applies
+    _, records = parse_dfq(out.read_bytes().decode("utf-8"))
+    assert {r["K0014"] for r in records if r["K0002"] == "255"} == {"SN-0005"}
+    assert results(db, "--report", "--out", str(tmp_path / "r")) == 0
+    assert "gauge dropped" in (tmp_path / "r" / "report.html").read_text()
+    assert results(db) == 0 and "[excluded: gauge dropped (ben, " in capsys.readouterr().out
+    assert results(db, "--include", "5") == 0
+    assert results(db, "--dfq", "--out", str(out)) == 0
+    assert {r["K0002"] for r in parse_dfq(out.read_bytes().decode("utf-8"))[1]} == {"0"}
+    capsys.readouterr()
+    assert results(db, "--exclude", "99=no such part") == 2 and "no result 99" in capsys.readouterr().err
+    missing = tmp_path / "elsewhere" / "results.sqlite"
+    assert results(missing, "--exclude", "1=x") == 2 and not missing.parent.exists()
