@@ -22,6 +22,7 @@ import json
 import os
 import re
 import shutil
+import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -200,15 +201,16 @@ def cmd_import(args: argparse.Namespace) -> int:
                                       Path(args.out), Path(args.calibration) if args.calibration else None,
                                       args.projector_scale, args.frames, args.bit_depth, ProgressLine())
     wall = time.perf_counter() - t0
+    lines = sys.stderr if args.json else sys.stdout  # with --json: the JSON alone on stdout
     print(f"imported  {len(result.session.manifest['frames'])} frames from {args.frames_folder} "
-          f"({result.session.manifest['import']['hard_linked']} hard-linked)")
-    print("conventions")
+          f"({result.session.manifest['import']['hard_linked']} hard-linked)", file=lines)
+    print("conventions", file=lines)
     for f in detection.findings:
-        print(f"  {f.line()}")
+        print(f"  {f.line()}", file=lines)
     from slscan.commands.scan import report
 
     report(result, as_json=args.json)
-    print(f"wall      {wall:.2f} s (import, detect, decode, reconstruct, write)")
+    print(f"wall      {wall:.2f} s (import, detect, decode, reconstruct, write)", file=lines)
     return Exit.OK
 
 
