@@ -423,3 +423,11 @@ def test_paper_chosen_on_the_command_line_sizes_the_pdf(tmp_path: Path) -> None:
         assert pdf is not None
         boxes = re.findall(rb"/MediaBox \[0 0 ([0-9.]+) ([0-9.]+)\]", pdf.read_bytes())
         assert boxes and all(abs(float(w) - size[0]) < 1.5 and abs(float(h) - size[1]) < 1.5 for w, h in boxes), boxes
+
+
+@pytest.mark.parametrize("command", ["batch", "batchbench"])
+def test_a_part_folder_that_is_not_there_is_bad_input(command: str, tmp_path: Path) -> None:
+    """`batch` and `batchbench` given a folder that does not exist: one line and exit 2
+    before any work (a folder that exists but cannot be measured is that part's error)."""
+    code, _, err = run(command, str(tmp_path / "no-such-part"), "--program", "config/parts/demo_part.toml")
+    assert code == 2 and err.strip().endswith("no-such-part: no such part or session folder"), err

@@ -66,7 +66,7 @@ def import_binocular(folders: list[Path], patterns_path: Path, projector_size: t
     from scanner.binocular_pipeline import process_binocular
     from scanner.convention_detection import detect
     from scanner.patterns import PatternSet
-    from scanner.session import SessionWriter, Session
+    from scanner.session import Session, SessionWriter
     from scanner.stereo_calibration_file import read_stereo_calibration
 
     if not calibration:

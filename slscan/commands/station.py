@@ -255,10 +255,20 @@ def _write_export(target: Path, write: Any) -> Any:
         raise ScannerError(f"{exc.filename or target}: cannot write: {exc.strerror or exc}") from None
 
 
+def _existing(paths: list[str]) -> None:
+    """Refuse a part or session folder that is not there (bad input, exit 2) before any work;
+    one that is there but cannot be measured is that part's error in the batch (exit 4)."""
+    missing = [p for p in paths if not Path(p).is_dir()]
+    if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise ScannerError(f"{missing[0]}: no such part or session folder{more}")
+
+
 def cmd_batch(args: argparse.Namespace) -> int:
     from slscan.progress import ProgressLine
     from slscan.station.batch import print_summary, run_batch
 
+    _existing(args.sessions)
     config = _config(args) if args.store else None
     summary = run_batch(args.sessions, args.program, scheduler=args.scheduler, workers=args.workers,
                         store_config=config, progress=ProgressLine(), measurement=args.measurement, rig_path=args.rig)
@@ -271,6 +281,7 @@ def cmd_batchbench(args: argparse.Namespace) -> int:
 
     from slscan.station.batch import compare, run_batch
 
+    _existing(args.sessions)
     text = sys.stderr if args.json else sys.stdout  # --json: the figures as one document on stdout
     runs, loads = {}, {}
     for label, workers in (("serial", 0), (f"dask, {args.workers} local workers", args.workers)):
