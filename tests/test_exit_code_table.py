@@ -4,14 +4,14 @@ input, every cell a real run on the simulated bench (small camera where the comm
 asserted against the README's "Exit codes" table and written to the test's folder and the
 -s output:
 
-    pytest -m acceptance -s tests/test_exit_code_table.py
+    pytest -m slow -s tests/test_exit_code_table.py
 
 A command is one row of `ROWS`: a case it cannot produce (the demo scans the bundled nominal
 part only) is a cell with the reason instead of a run. `register` is not a row yet (its exit
 codes are being changed); its row is one more entry.
 
-The table's test is `acceptance`: the runs take minutes together (a demo, four inspections,
-two verifications of the flat artefact's six positions)."""
+The table's test is `acceptance` and `slow`: its runs take about ten minutes together on two
+loaded cores (a demo, five inspections, a whole verification of 23 positions)."""
 
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ from scanner.config import CONFIG_DIR, DEFAULT_RIG
 from slscan import cli
 
 CASES = ("conforming", "non-conforming", "not measured", "bad input")
+MPES = ("PF", "PS", "SD", "F", "OL")  # the rig file's [acceptance.mpe] parameters
 README = Path(__file__).resolve().parent.parent / "README.md"
 
 
@@ -74,14 +75,15 @@ class Bench:
         path.write_text('name = "plane alone"\n\n[plane]' + text.split("[plane]", 1)[1].split("\n[", 1)[0] + "\n")
         return str(path)
 
-    def rig_with_flatness_mpe(self, mpe_mm: float) -> str:
-        """The bench rig with the flatness measurement error's MPE (F) set to `mpe_mm`: far
-        above what the simulated rig reads (a conforming test) or far below (non-conforming)."""
+    def rig_with_mpes(self, name: str, mpe_mm: float, parameters: tuple[str, ...] = MPES) -> str:
+        """The bench rig with the MPEs of `parameters` set to `mpe_mm`: far above what the
+        simulated rig reads (a conforming test) or far below (non-conforming)."""
         text = DEFAULT_RIG.read_text().replace('artefacts = "../artefacts/', f'artefacts = "{CONFIG_DIR}/artefacts/')
         text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
-        text, n = re.subn(r"^F_mm = [0-9.]+", f"F_mm = {mpe_mm}", text, flags=re.M)
-        assert n == 1
-        path = self.tmp / f"rig_f_{mpe_mm:g}.toml"
+        for p in parameters:
+            text, n = re.subn(rf"^{p}_mm = [0-9.]+", f"{p}_mm = {mpe_mm}", text, flags=re.M)
+            assert n == 1, p
+        path = self.tmp / f"rig_{name}.toml"
         path.write_text(text)
         return str(path)
 
@@ -135,10 +137,10 @@ ROWS: dict[str, dict[str, Cell]] = {
         "bad input": lambda b: ["inspect", str(b.tmp / "no-such-session"), "--tolerances", str(DEMO_PROGRAM)],
     },
     "verify": {
-        "conforming": lambda b: ["verify", "--rig", b.rig_with_flatness_mpe(5.0), "--artefacts", b.artefacts(),
-                                 "--out", str(b.tmp / "verify-wide")],
-        "non-conforming": lambda b: ["verify", "--rig", b.rig_with_flatness_mpe(0.0001), "--artefacts", b.artefacts(),
-                                     "--out", str(b.tmp / "verify-strict")],
+        # every artefact: a test passes only when every parameter is measured and conforming
+        "conforming": lambda b: ["verify", "--rig", b.rig_with_mpes("wide", 5.0), "--out", str(b.tmp / "verify-wide")],
+        "non-conforming": lambda b: ["verify", "--rig", b.rig_with_mpes("strict", 0.0001, ("F",)), "--artefacts",
+                                     b.artefacts(), "--out", str(b.tmp / "verify-strict")],
         "not measured": _skip_every_position,
         "bad input": lambda b: ["verify", "--rig", str(b.tmp / "no-such-rig.toml"), "--out", str(b.tmp / "verify-x")],
     },
@@ -160,6 +162,7 @@ def exit_code(argv: list[str]) -> int:
 
 
 @pytest.mark.acceptance
+@pytest.mark.slow
 def test_exit_codes_of_every_command_and_case(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     expected = documented_codes()
     bench = Bench(tmp_path, monkeypatch, small_rig(tmp_path), station_config(tmp_path))
