@@ -280,6 +280,7 @@ def _c_streams_flushed() -> Iterator[None]:
 
         ctypes.CDLL(None).fflush(None)
 
+
 def _run(args: argparse.Namespace) -> int:
     try:
         if getattr(args, "json", False):

@@ -8,9 +8,10 @@
     Rerun               written by its Rust core to stderr (no Python logging to route
                         into): RUST_LOG, off below -v (its errors reach us as exceptions
                         when a recording closes), warnings at -v, its default at -vv
-    Open3D              written by its C++ core to stdout (no callback to route): its
-                        verbosity set when it is first imported, errors only below -v,
-                        warnings at -v, debug at -vv; `cli.json_stdout` keeps it off --json
+    Open3D              printed by its C++ core through Python's `sys.stdout` (no callback
+                        to route): its verbosity set when it is first imported, errors only
+                        below -v, warnings at -v, debug at -vv; `cli.json_stdout` sends its
+                        lines to stderr under --json
 """
 
 from __future__ import annotations
