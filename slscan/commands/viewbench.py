@@ -25,8 +25,10 @@ part's true pose in the stage frame from the scene):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -75,6 +77,17 @@ def peer_s() -> float:
 
 
 def cmd_viewbench(args: argparse.Namespace) -> int:
+    """The figures (below), also in --out/viewbench.json; with --json the scan's and the
+    stage axis's lines go to stderr and stdout gets the figures alone."""
+    document = sys.stdout
+    with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
+        figures, text = _viewbench(args)
+    print(json.dumps(figures, default=float) if args.json else text, file=document)
+    return Exit.OK
+
+
+def _viewbench(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """The figures of the benchmark asked, and their text."""
     from inspection.views.align import align_views
     from inspection.views.whole import whole_part
     from scanner.multiview import MultiViewSession
@@ -87,10 +100,8 @@ def cmd_viewbench(args: argparse.Namespace) -> int:
         figures = {"part": args.part or "demo", "views": len(session.views), "camera": _camera(session),
                    "pairs": _pairs(session, truths)}
         (args.out / "viewbench.json").write_text(json.dumps(figures, indent=2, default=float) + "\n")
-        print(json.dumps(figures, default=float) if args.json else "\n".join(
-            f"{figures['part']} pairs {k} apart: ours {p['ours']}; Open3D {p['open3d_fpfh_ransac_icp']}"
-            for k, p in figures["pairs"].items()))
-        return Exit.OK
+        return figures, "\n".join(f"{figures['part']} pairs {k} apart: ours {p['ours']}; Open3D "
+                                  f"{p['open3d_fpfh_ransac_icp']}" for k, p in figures["pairs"].items())
     figures: dict[str, Any] = {"views": len(session.views), "camera": _camera(session)}
     load0, peer0 = os.getloadavg()[0], peer_s()
     whole = whole_part(session)
@@ -109,8 +120,7 @@ def cmd_viewbench(args: argparse.Namespace) -> int:
     if not args.no_pairs:
         figures["pairs"] = _pairs(session, truths)
     (args.out / "viewbench.json").write_text(json.dumps(figures, indent=2, default=float) + "\n")
-    print(json.dumps(figures, default=float) if args.json else _text(figures))
-    return Exit.OK
+    return figures, _text(figures)
 
 
 def _scan(args: argparse.Namespace) -> Path:
