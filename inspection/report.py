@@ -188,10 +188,10 @@ class InspectionReport:
         return "\n".join(lines)
 
     def write(self, folder: str | Path, stem: str = "inspection", deviation_png: bytes | None = None,
-              pdf: bool = False, paper: str = "A4") -> list[Path]:
+              pdf: bool = False, paper: str | None = None) -> list[Path]:
         """inspection.json, inspection.csv and inspection.html (with the deviation map) in
         `folder`, and with `pdf` inspection.pdf printed from the page on `paper` (A4 or
-        Letter) by headless Chromium when it is installed (`inspection.report_pdf`); returns
+        Letter; default `report_pdf.on_paper`'s, else A4) by headless Chromium when it is installed; returns
         the paths written."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)

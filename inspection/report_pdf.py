@@ -11,11 +11,16 @@ import shutil
 import signal
 import subprocess
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
 log = logging.getLogger(__name__)
 NAMES = ("chromium", "chromium-browser", "google-chrome")
 PAPERS = ("A4", "Letter")  # the CSS page sizes a report prints on
+PAPER: ContextVar[str] = ContextVar("PAPER", default="A4")
+"""The paper reports print on while `on_paper` holds (a command's --paper); A4 otherwise."""
 TIMEOUT_S = 180.0  # a loaded 2-core machine takes ~10 s for a page with a few MB of images
 
 
@@ -45,11 +50,24 @@ def _run(page: Path, *options: str) -> subprocess.CompletedProcess[str] | None:
         return subprocess.CompletedProcess(cmd, browser.returncode, out, err)
 
 
-def print_pdf(page: Path, out: Path, paper: str = "A4") -> Path | None:
-    """`page` (HTML) printed to `out` (PDF) on `paper` (one of `PAPERS`) with the page's
-    print styles; None without Chromium or when it wrote nothing (the reason on the log).
-    The paper size is set by a copy of the page beside it (its relative links resolve)
-    with `@page {size: ...}` added, removed after printing."""
+@contextmanager
+def on_paper(paper: str) -> Iterator[None]:
+    """While held, reports print on `paper` (one of `PAPERS`) unless a call names another."""
+    if paper not in PAPERS:
+        raise ValueError(f"paper must be one of {', '.join(PAPERS)}, got {paper!r}")
+    token = PAPER.set(paper)
+    try:
+        yield
+    finally:
+        PAPER.reset(token)
+
+
+def print_pdf(page: Path, out: Path, paper: str | None = None) -> Path | None:
+    """`page` (HTML) printed to `out` (PDF) on `paper` (one of `PAPERS`; default the one
+    `on_paper` holds, else A4) with the page's print styles; None without Chromium or when
+    it wrote nothing (the reason on the log). The paper size is set by a copy of the page
+    beside it (its relative links resolve) with `@page {size: ...}` added, removed after printing."""
+    paper = paper or PAPER.get()
     if paper not in PAPERS:
         raise ValueError(f"paper must be one of {', '.join(PAPERS)}, got {paper!r}")
     page = Path(page)

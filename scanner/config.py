@@ -13,6 +13,7 @@ from scanner.file_checks import FileRefused, read_regular
 T = TypeVar("T")
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+DEFAULT_RIG = CONFIG_DIR / "rigs" / "sim_bench.toml"  # the simulated bench rig, every command's default
 
 
 MAX_TOML_BYTES = 16 * 1024 ** 2  # a config file of settings: kilobytes; this bounds what a reader holds

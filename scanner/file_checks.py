@@ -22,10 +22,12 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from scanner.errors import ScannerError
+
+if TYPE_CHECKING:
+    import numpy as np
 
 MAX_FILE_BYTES = 2 * 1024 ** 3
 """The largest model, cloud or array file read (2 GiB): its arrays take about as much memory
@@ -97,6 +99,8 @@ def ascii_numbers(path: object, text: bytes, what: str) -> np.ndarray:
     FileRefused naming `what` when something in it is not a number."""
     import warnings
 
+    import numpy as np
+
     if not text.strip():
         return np.empty(0)
     with warnings.catch_warnings():
@@ -112,6 +116,7 @@ def decode_image(data: bytes, flags: int | None = None) -> tuple[np.ndarray | No
     its codec said while decoding (libpng writes "libpng error: ..." to stderr, which would
     break a command's one-line error): (image or None, the codec's first line or "")."""
     import cv2
+    import numpy as np
 
     if not data:
         return None, "empty file"
@@ -135,6 +140,8 @@ class ArraySpec:
 
 def _member_header(z: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple[int, ...], np.dtype, int]:
     """(shape, dtype, header bytes) of an .npy member, from its header alone."""
+    import numpy as np
+
     with z.open(info) as f:
         version = np.lib.format.read_magic(f)
         read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
@@ -149,6 +156,8 @@ def load_npz(path: str | Path, specs: dict[str, ArraySpec], *, what: str, limit:
     present (unless `optional`), no pickled objects, its header's shape times its item size
     equal to the bytes the member holds (a header cannot make the reader allocate more than
     the file holds), its dtype kind and dimensions as `specs` says, and shared shapes equal."""
+    import numpy as np
+
     regular_size(path, limit=limit)
     out: dict[str, np.ndarray] = {}
     try:

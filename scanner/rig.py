@@ -22,7 +22,7 @@ import numpy as np
 
 from scanner import schema
 from scanner.calibration_file import load_rig_model
-from scanner.config import CONFIG_DIR, load_toml, resolve
+from scanner.config import DEFAULT_RIG, load_toml, resolve
 from scanner.devices import Camera, Projector, TriggerSource
 from scanner.errors import ConfigError, ScannerError
 from scanner.geometry import Pinhole, RigModel, look_at
@@ -32,8 +32,6 @@ from scanner.stage_model import StageConfig
 
 if TYPE_CHECKING:
     from scanner.binocular import StereoModel
-
-DEFAULT_RIG = CONFIG_DIR / "rigs" / "sim_bench.toml"
 
 # driver name -> "module:function" returning a Rig; imported only when used
 DRIVERS = {"sim": "sim.virtual_rig:open_sim_rig", "hardware": "scanner.drivers.hardware_rig:open_hardware_rig"}

@@ -17,15 +17,17 @@ after the command (`slscan -v scan ...`, `slscan scan -v ...`).
 from __future__ import annotations
 
 import argparse
+import io
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
 import threading
 from contextlib import contextmanager, redirect_stdout
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Iterator, Sequence, TextIO
 
 from scanner.errors import ScannerError, Terminated
 from slscan.commands import COMMANDS, command_module, modules
@@ -175,8 +177,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ScannerError as exc:
         print(f"slscan {args.command}: error: {exc}", file=sys.stderr)
         return Exit.USAGE
-    if log_level(args) > logging.DEBUG:  # Rerun's own log lines on stderr (a full disk: three of them) break the
-        os.environ.setdefault("RUST_LOG", "off")  # one-line rule; its failures reach us as errors when it closes
+    from slscan.library_logs import hold_to
+
+    hold_to(log_level(args))  # Dask, Rerun and Open3D at the level asked (a full disk: three Rerun lines otherwise)
     from scanner.native_threads import size_opencv_pool
 
     size_opencv_pool()  # on the main thread before any command's threads start; never at import
@@ -235,11 +238,48 @@ def json_stdout() -> Iterator[None]:
         own = False
     target = os.fdopen(os.dup(1), "w", encoding="utf-8") if own else sys.stdout
     try:
-        with stdout_to_stderr(), redirect_stdout(target):
+        with stdout_to_stderr(), _c_streams_flushed(), redirect_stdout(_LibraryLinesApart(target)):
             yield
     finally:
         if own:
             target.close()
+
+
+class _LibraryLinesApart(io.TextIOBase):
+    """`sys.stdout` under `json_stdout`: the command's own writes go to `target`; lines a
+    library prints through Python's `sys.stdout` (Open3D's, by pybind11: "[Open3D WARNING] ...",
+    coloured) go to stderr, each with the line end written after it."""
+
+    MARKERS = ("[Open3D ",)
+
+    def __init__(self, target: TextIO) -> None:
+        super().__init__()
+        self.target, self.in_library_line = target, False
+
+    def write(self, text: str) -> int:
+        plain = re.sub(r"\x1b\[[0-9;]*m", "", text)
+        if self.in_library_line or plain.startswith(self.MARKERS):
+            sys.stderr.write(text)
+            self.in_library_line = not text.endswith("\n")
+            return len(text)
+        return self.target.write(text)
+
+    def flush(self) -> None:
+        self.target.flush()
+
+
+@contextmanager
+def _c_streams_flushed() -> Iterator[None]:
+    """On leaving, flush the C library's stdio buffers: a native library's line (Open3D's
+    warnings) held in its buffer while stdout is a pipe goes where the descriptor points
+    now, not onto the JSON once the descriptor is restored."""
+    try:
+        yield
+    finally:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+
 
 def _run(args: argparse.Namespace) -> int:
     try:

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 
@@ -96,6 +97,26 @@ def count_arg(minimum: int) -> Callable[[str], int]:
             raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {n}")
         return n
     return parse
+
+
+PAPERS = ("a4", "letter")
+"""`--paper` as the command line spells it (`inspection.report_pdf.PAPERS`: A4, Letter)."""
+
+
+def add_paper(parser: argparse.ArgumentParser) -> None:
+    """`--paper a4|letter`: the size of the PDF report the command prints (default a4); hold
+    it around the command with `on_paper(args.paper)`."""
+    parser.add_argument("--paper", choices=PAPERS, default="a4", help="paper of the PDF report (default a4)")
+
+
+@contextmanager
+def on_paper(paper: str) -> Iterator[None]:
+    """While held, PDF reports print on `paper` (`--paper`'s spelling)."""
+    from inspection.report_pdf import PAPERS as REPORT_PAPERS
+    from inspection.report_pdf import on_paper as report_on_paper
+
+    with report_on_paper(dict(zip(PAPERS, REPORT_PAPERS, strict=True))[paper]):
+        yield
 
 
 def add_json(parser: argparse.ArgumentParser) -> None:

@@ -2,9 +2,10 @@
 
     python tests/startup_bench.py [--runs 5]
 
-Wall time of `slscan --version`, `slscan --help` and `slscan scan` with a missing argument
-(a usage error), each the median of `--runs` fresh processes, beside its peer measured in
-the same run: a bare Python start (`python -c pass`); the load average before and after."""
+Wall time of `slscan --version`, `slscan --help` and a usage error (an unknown option) of
+every command in `slscan.commands.COMMANDS`, each the median of `--runs` fresh processes,
+beside its peer measured in the same run: a bare Python start (`python -c pass`); the load
+average before and after."""
 
 from __future__ import annotations
 
@@ -15,8 +16,11 @@ import subprocess
 import sys
 import time
 
+from slscan.commands import COMMANDS
+
 CASES = {"python -c pass": ["-c", "pass"], "slscan --version": ["-m", "slscan", "--version"],
-         "slscan --help": ["-m", "slscan", "--help"], "slscan scan (usage error)": ["-m", "slscan", "scan"]}
+         "slscan --help": ["-m", "slscan", "--help"],
+         **{f"slscan {name} --bogus": ["-m", "slscan", name, "--bogus"] for name in COMMANDS}}
 
 
 def median_wall(args: list[str], runs: int) -> float:
@@ -38,7 +42,8 @@ def main() -> None:
     for name, args in CASES.items():
         wall = median_wall(args, runs)
         peer = peer or wall
-        print(f"{name:<28} median {wall * 1e3:7.0f} ms of {runs}  ({wall / peer:4.1f}x a bare Python start)")
+        print(f"{name:<28} median {wall * 1e3:7.0f} ms of {runs}  ({wall / peer:4.1f}x a bare Python start)",
+              flush=True)
     print(f"load average after  {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 

@@ -278,6 +278,35 @@ def test_startup_imports_no_command_module_until_one_runs(argv: list[str]) -> No
     assert commands == ["slscan.commands.scan"] if argv[:1] == ["scan"] else loaded == [], loaded
 
 
+def test_every_command_reads_its_arguments_before_any_heavy_import() -> None:
+    """A usage error of every command in `slscan.commands.COMMANDS` (an unknown option) is
+    answered with its own module imported but not numpy, OpenCV or Open3D: the command
+    modules import those inside their command functions. One process tries them in turn,
+    naming the first command whose parser brought one in."""
+    probe = ("import sys\nfrom slscan import cli\nfrom slscan.commands import COMMANDS\n"
+             "for name in COMMANDS:\n    try:\n        cli.main([name, '--no-such-option'])\n"
+             "    except SystemExit as exc:\n        assert exc.code == 2, (name, exc.code)\n"
+             "    print(name, *sorted(m for m in ('numpy', 'cv2', 'open3d', 'OCP') if m in sys.modules))\n")
+    proc = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = [line.split() for line in proc.stdout.splitlines()]
+    from slscan.commands import COMMANDS as TABLE
+
+    assert [line[0] for line in lines] == list(TABLE)
+    heavy = [line for line in lines if len(line) > 1]
+    assert not heavy, f"slscan {heavy[0][0]} --no-such-option imported {heavy[0][1:]}"
+
+
+def test_light_names_agree_with_the_modules_they_stand_for() -> None:
+    """Names the command line reads without importing numpy match the registries they mirror."""
+    from scanner.exports import FORMATS
+    from slscan.commands.export import FORMATS as COMMAND_LINE_FORMATS
+    from slscan.station import MEASUREMENT_NAMES
+    from slscan.station.measure import MEASUREMENTS
+
+    assert COMMAND_LINE_FORMATS == FORMATS and tuple(MEASUREMENTS) == MEASUREMENT_NAMES
+
+
 def test_quiet_and_log_file(tmp_path: Path, capsys) -> None:
     """-q: errors only, no progress lines; --log-file: info and up in the file while stderr keeps
     its level; an unwritable log file is a usage error of one line."""
@@ -339,3 +368,66 @@ def test_a_used_output_folder_is_refused_before_the_slow_start(command: str, tmp
                        text=True, timeout=120)
     assert p.stdout.split() == ["2", "False", "False"], p.stderr
     assert "output folder exists and is not empty" in p.stderr and (tmp_path / "earlier.txt").exists()
+
+
+@pytest.mark.parametrize("verbose", [[], ["-v"]])
+def test_dask_and_open3d_log_at_the_level_asked(verbose: list[str]) -> None:
+    """Dask's INFO lines (35 in a default `slscan batch` before) and Open3D's warnings (on
+    stdout) show only from -v on; Dask's go through our log format. The command here is
+    `slscan devices` with the libraries imported after the command line set the levels,
+    as a command imports them."""
+    probe = ("import logging, sys\nfrom slscan import cli\nfrom slscan.commands import devices\n"
+             "def run(args):\n    import distributed, open3d\n"
+             "    logging.getLogger('distributed.scheduler').info('a dask info line')\n"
+             "    open3d.io.read_triangle_mesh('/nonexistent/mesh.stl')\n    return 0\n"
+             "devices.cmd_devices = run\nsys.exit(cli.main(sys.argv[1:]))\n")
+    proc = subprocess.run([sys.executable, "-c", probe, *verbose, "devices"], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    shown = bool(verbose)
+    assert ("INFO distributed.scheduler: a dask info line" in proc.stderr) == shown, proc.stderr
+    assert ("[Open3D WARNING]" in proc.stdout) == shown, proc.stdout
+
+
+def test_json_stdout_keeps_open3d_lines_off_the_document() -> None:
+    """Open3D prints its warnings through Python's `sys.stdout` (pybind11), which `--json`
+    points at the real stdout for the command's document: its lines go to stderr, whole."""
+    probe = ("from slscan import cli\nimport open3d\n"
+             "open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Warning)\n"
+             "with cli.json_stdout():\n    open3d.io.read_triangle_mesh('/nonexistent/mesh.stl')\n"
+             "    print('{\"status\": \"ok\"}')\n")
+    proc = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert json.loads(proc.stdout) == {"status": "ok"}
+    assert "[Open3D WARNING]" in proc.stderr and proc.stderr.endswith("\n")
+
+
+def test_paper_chosen_on_the_command_line_sizes_the_pdf(tmp_path: Path) -> None:
+    """`--paper a4|letter` on the commands that print a PDF report (inspect, demo): held
+    around the report's writing, it sets the PDF's page size (points: A4 595 x 842, Letter
+    612 x 792, read from the PDF's MediaBox)."""
+    from inspection.report_pdf import chromium, print_pdf
+    from slscan.options import on_paper
+
+    for command in (["inspect", "session"], ["demo"]):
+        assert cli.build_parser(command).parse_args([*command, "--paper", "letter"]).paper == "letter"
+        assert cli.build_parser(command).parse_args(command).paper == "a4"
+    code, _, err = run("demo", "--paper", "legal")
+    assert code == 2 and "invalid choice: 'legal'" in err
+    if chromium() is None:
+        pytest.skip("no Chromium: the PDF's size is not checked")
+    page = tmp_path / "page.html"
+    page.write_text("<html><head></head><body><h1>a report</h1></body></html>")
+    for paper, size in (("letter", (612, 792)), ("a4", (595, 842))):
+        with on_paper(paper):
+            pdf = print_pdf(page, tmp_path / f"{paper}.pdf")
+        assert pdf is not None
+        boxes = re.findall(rb"/MediaBox \[0 0 ([0-9.]+) ([0-9.]+)\]", pdf.read_bytes())
+        assert boxes and all(abs(float(w) - size[0]) < 1.5 and abs(float(h) - size[1]) < 1.5 for w, h in boxes), boxes
+
+
+@pytest.mark.parametrize("command", ["batch", "batchbench"])
+def test_a_part_folder_that_is_not_there_is_bad_input(command: str, tmp_path: Path) -> None:
+    """`batch` and `batchbench` given a folder that does not exist: one line and exit 2
+    before any work (a folder that exists but cannot be measured is that part's error)."""
+    code, _, err = run(command, str(tmp_path / "no-such-part"), "--program", "config/parts/demo_part.toml")
+    assert code == 2 and err.strip().endswith("no-such-part: no such part or session folder"), err

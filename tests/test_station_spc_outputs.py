@@ -113,6 +113,16 @@ def test_options_that_need_a_report_are_refused_without_one(tmp_path: Path, caps
     assert results(db, "--report", "--dfq", "--out", str(tmp_path / "r")) == 2
 
 
+AQDEF_FIELDS = {"K0100": "number of characteristics", "K1001": "part number", "K1002": "part description",
+                "K2001": "characteristic number", "K2002": "characteristic description", "K2101": "nominal value",
+                "K2110": "lower specification limit", "K2111": "upper specification limit",
+                "K2120": "type of lower limit", "K2121": "type of upper limit", "K2142": "unit",
+                "K0001": "value", "K0002": "attribute", "K0004": "date/time", "K0008": "operator",
+                "K0014": "part ident"}
+"""The AQDEF (Q-DAS ASCII transfer format) fields slscan writes, by the format's field list;
+K2120/K2121 coding: 0 no limit, 1 specification limit, 2 natural boundary."""
+
+
 def parse_dfq(text: str) -> tuple[dict[str, str], list[dict[str, str]]]:
     """A DFQ file read from the AQDEF description: header fields K1xxx/K2xxx (with /i), and
     the value records, a new record for characteristic i starting at each K0001/i."""
@@ -123,6 +133,7 @@ def parse_dfq(text: str) -> tuple[dict[str, str], list[dict[str, str]]]:
         key, _, value = line.partition(" ")
         assert key.startswith("K") and key[1:5].isdigit(), line
         field, _, index = key.partition("/")
+        assert field in AQDEF_FIELDS, f"{field} is not a field slscan is meant to write: {line}"
         if int(field[1:5]) < 100:  # K0001..K0099: a value's fields
             if field == "K0001":
                 records.append({"i": index})
@@ -148,6 +159,8 @@ def test_dfq_export_has_every_value_censored_and_excluded_ones_marked(tmp_path: 
     for c in program.characteristics:
         i = names[c.name]
         assert float(header[f"K2111/{i}"]) == c.tolerance_mm and header[f"K2142/{i}"] == "mm"
+        # a zero-bounded figure: lower limit 0 of type natural boundary, the upper a specification limit
+        assert (float(header[f"K2110/{i}"]), header[f"K2120/{i}"], header[f"K2121/{i}"]) == (0.0, "2", "1")
         mine = [r for r in records if r["i"] == i]
         want = [LIMIT_MM if v is None else v for v in put[c.name]]
         assert [float(r["K0001"]) for r in mine] == pytest.approx(want, abs=1e-6)
@@ -178,3 +191,37 @@ def test_the_chart_has_whole_part_numbers_and_its_legend_apart() -> None:
     for ax in (top, bottom):
         assert not box.overlaps(ax.get_window_extent())
     assert "no limits: 7 values, limits need 25" in fig._suptitle.get_text()
+
+
+def test_exclusions_are_recorded_with_who_and_when_and_applied_later(tmp_path: Path, capsys) -> None:
+    """`--exclude ID=REASON --by NAME` is stored in the results database (reason, who, when),
+    listed by `--exclusions`, applied by every later export and report without being given
+    again, and lifted by `--include ID`; an unknown result or a database that is not there
+    is refused (exit 2) without writing anything."""
+    db = tmp_path / "results.sqlite"
+    fill(db, 12, seed=6)
+    before = dt.datetime.now(dt.timezone.utc)
+    assert results(db, "--exclude", "5=gauge dropped", "--by", "ben") == 0
+    assert "excluded  result 5: gauge dropped (ben, " in capsys.readouterr().err
+    with open_results(f"sqlite:{db}", create=False) as store:
+        [(rid, e)] = store.exclusions().items()
+    assert (rid, e.reason, e.excluded_by) == (5, "gauge dropped", "ben")
+    assert before <= e.excluded_at <= dt.datetime.now(dt.timezone.utc)
+    assert results(db, "--exclusions", "--json") == 0
+    listed = json.loads(capsys.readouterr().out)["exclusions"]
+    assert [(x["result_id"], x["serial"], x["reason"], x["excluded_by"]) for x in listed] == \
+           [(5, "SN-0005", "gauge dropped", "ben")]
+    out = tmp_path / "values.dfq"
+    assert results(db, "--dfq", "--out", str(out)) == 0  # no --exclude given: the recorded one applies
+    _, records = parse_dfq(out.read_bytes().decode("utf-8"))
+    assert {r["K0014"] for r in records if r["K0002"] == "255"} == {"SN-0005"}
+    assert results(db, "--report", "--out", str(tmp_path / "r")) == 0
+    assert "gauge dropped" in (tmp_path / "r" / "report.html").read_text()
+    assert results(db) == 0 and "[excluded: gauge dropped (ben, " in capsys.readouterr().out
+    assert results(db, "--include", "5") == 0
+    assert results(db, "--dfq", "--out", str(out)) == 0
+    assert {r["K0002"] for r in parse_dfq(out.read_bytes().decode("utf-8"))[1]} == {"0"}
+    capsys.readouterr()
+    assert results(db, "--exclude", "99=no such part") == 2 and "no result 99" in capsys.readouterr().err
+    missing = tmp_path / "elsewhere" / "results.sqlite"
+    assert results(missing, "--exclude", "1=x") == 2 and not missing.parent.exists()

@@ -27,16 +27,15 @@ import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from scanner.conventions import NATIVE
-from scanner.geometry import RigModel
-from scanner.patterns import PatternSet
-from scanner.rig import RigConfig
-from sim.analytic_stack import synthetic_stack
 from slscan.exit_codes import Exit
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from scanner.geometry import RigModel
+    from scanner.patterns import PatternSet
 
 PEERS_VENV = Path(os.environ.get("SLSCAN_PEERS_VENV", "~/.cache/slscan/bench-peers")).expanduser()
 PEER_PACKAGES = ("opencv-contrib-python-headless==5.0.0.93", "fringes==2.1.0")  # exact pins: the peers measured
@@ -52,7 +51,11 @@ def _vm_hwm_mb() -> float:
 
 
 def _child(stack_path: str, rig_dict: dict, patterns_dict: dict, repeats: int, queue: mp.Queue) -> None:
+    import numpy as np
+
     from scanner.decode import decode
+    from scanner.geometry import RigModel
+    from scanner.patterns import PatternSet
     from scanner.reconstruct import Triangulator, triangulate
 
     stack = np.load(stack_path)
@@ -106,6 +109,12 @@ def run_peers(rig: RigModel, patterns: PatternSet, width: int, height: int, repe
               tmp: str) -> list[dict[str, Any]]:
     """The peers on the same scene: OpenCV's PSP on three frames of the finest frequency
     rendered with OpenCV's own conventions (a sine shifted by +2π/3, 8-bit), and `fringes`."""
+    import numpy as np
+
+    from scanner.conventions import NATIVE
+    from scanner.patterns import PatternSet
+    from sim.analytic_stack import synthetic_stack
+
     periods = int(max(patterns.fringes))
     psp = PatternSet("graycode", 3, (float(periods),)).with_conventions(
         replace(NATIVE, phase_origin=-np.pi / 2, pixel_centre=0.0))
@@ -123,6 +132,8 @@ def _floor(stack: np.ndarray, patterns: PatternSet, repeats: int = 3) -> dict[st
     """What bounds the decode on this machine: memory bandwidth (a 256 MB copy; GB/s of
     bytes read + written) and the minimal phase-shift kernel (every frequency's N-step sums
     and atan2 over the whole image, in bands on every core, as decode runs it)."""
+    import numpy as np
+
     from scanner.decode import in_bands, phase_shift
 
     src = np.ones(64 * 2 ** 20, np.float32)
@@ -150,6 +161,12 @@ def _floor(stack: np.ndarray, patterns: PatternSet, repeats: int = 3) -> dict[st
 def run_bench(width: int, height: int, patterns_path: Path | None = None, rig_path: Path | None = None,
               repeats: int = 5, peers: bool = True, with_fringes: bool = False) -> dict:
     """Measure decode + reconstruction, and the peers; returns the figures (seconds, MB)."""
+    import numpy as np
+
+    from scanner.patterns import PatternSet
+    from scanner.rig import RigConfig
+    from sim.analytic_stack import synthetic_stack
+
     load0 = os.getloadavg()
     config = RigConfig.load(rig_path) if rig_path else RigConfig.load()
     patterns = PatternSet.load(patterns_path or config.patterns_path)

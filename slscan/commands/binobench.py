@@ -33,12 +33,13 @@ import time
 import tracemalloc
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from slscan.exit_codes import Exit
 from slscan.options import add_json
+
+if TYPE_CHECKING:
+    import numpy as np
 
 RIG = "sim_binocular.toml"
 WRONG_GAMMA = 1.8
@@ -53,6 +54,8 @@ def _capture(rig: Any, patterns: Any, gamma: float) -> dict[str, np.ndarray]:
 
 
 def _figures(err: np.ndarray, sigma: np.ndarray, sel: np.ndarray) -> dict[str, float]:
+    import numpy as np
+
     e = err[sel].astype(np.float64)
     s = sigma[sel].astype(np.float64)
     return {"pixels": int(sel.sum()), "rms_um": float(np.sqrt(np.mean(e ** 2)) * 1e3),
@@ -61,6 +64,8 @@ def _figures(err: np.ndarray, sigma: np.ndarray, sel: np.ndarray) -> dict[str, f
 
 def _scene_run(config: Any, seed: int) -> dict[str, Any]:
     """Both reconstructions of one fresh scene, right and wrong projector."""
+    import numpy as np
+
     from scanner.binocular import BinocularReconstructor
     from scanner.decode import decode
     from scanner.patterns import PatternSet
@@ -163,6 +168,7 @@ def _import_run(seed: int, folder: Path) -> dict[str, Any]:
     scene, with its stereo caliInfo.yml (the rig's true geometry), imported: with the pattern
     file's conventions left to detection, then given; the cloud against the simulator's truth."""
     import cv2
+    import numpy as np
 
     from scanner.config import CONFIG_DIR
     from scanner.errors import ScannerError
@@ -216,6 +222,8 @@ def _import_run(seed: int, folder: Path) -> dict[str, Any]:
 
 def run_binobench(scenes: int, seed: int | None, repeats: int, *, imports: int = 0,
                   say: Any = print) -> dict[str, Any]:
+    import numpy as np
+
     from scanner.config import CONFIG_DIR
     from scanner.rig import RigConfig
 

@@ -23,13 +23,11 @@ import shutil
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
-
-import cv2
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from scanner.errors import ConfigError, ScannerError
 from slscan.exit_codes import Exit
+from slscan.options import add_json
 from slscan.simulated_calibration_bench import (
     PLATE_BEHIND_MM,
     SCAN_CHECK_SCENE,
@@ -37,6 +35,8 @@ from slscan.simulated_calibration_bench import (
     simulated_bench,
 )
 
+if TYPE_CHECKING:
+    import numpy as np
 
 
 def image_size(text: str) -> tuple[int, int]:
@@ -93,7 +93,35 @@ def _say(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
+RESULT_FILES = ("calibration.json", "stereo_calibration.json", "stage_axis.json")
+"""What each kind of `slscan calibrate` writes into --out (projector-camera, two cameras, the
+stage's axis): the result `--json` prints."""
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    """The command; with `--json` (other than --covariance-check, whose summary is its result)
+    the report goes to stderr and stdout gets one JSON document: the status, the file written
+    and its content, or the refusal of a calibration its quality limits reject."""
+    if not args.json or args.covariance_check is not None:
+        return _calibrate(args)
+    import json
+
+    from calibration.errors import CalibrationRejected
+
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            code = _calibrate(args)
+    except CalibrationRejected as exc:
+        print(json.dumps({"status": "failed", "error": str(exc), "out": str(args.out)}))
+        raise
+    written = next(Path(args.out) / name for name in RESULT_FILES if (Path(args.out) / name).is_file())
+    recording = Path(args.out) / "recording.rrd"
+    print(json.dumps({"status": "ok", "file": str(written), "recording": str(recording) if recording.is_file() else None,
+                      "installed": bool(args.install), "result": json.loads(written.read_text())}))
+    return code
+
+
+def _calibrate(args: argparse.Namespace) -> int:
     if args.stage_axis:
         from slscan.commands.stage_axis import cmd_stage_axis
 
@@ -174,7 +202,7 @@ def _covariance_check(args: argparse.Namespace) -> int:
         raise ScannerError(str(exc)) from None
     summary = check.summary()
     write_json(out / "covariance_check.json", summary)
-    print(json.dumps(summary) if args.json else "\n".join(check.lines()))
+    print(json.dumps({"status": "ok", **summary}) if args.json else "\n".join(check.lines()))
     return Exit.OK
 
 
@@ -272,6 +300,9 @@ def _measuring_volume_scene(camera: Any, plate_mm: float, top_mm: float) -> Any:
     """A simulated scene filling the phase-to-height model's measuring volume: the plate at
     `plate_mm` (the reference plane), a ramp rising from 7 % to 93 % of `top_mm` in the left
     half of the view and a ball whose top is at 93 % of `top_mm` in the right half."""
+    import cv2
+    import numpy as np
+
     from sim.calibration_bench import plate_scene
     from sim.scene import Scene, SceneObject
 
@@ -293,6 +324,8 @@ def _phase_height_check(rig: Any, calibrated: Any, plate_mm: float, top_mm: floa
     """A scan of `_measuring_volume_scene` reconstructed with the calibrated phase-to-height
     model (per pixel and global) and by triangulation: height errors against the
     simulator's truth over the measuring volume."""
+    import numpy as np
+
     from calibration.capture import capture_fringes
     from calibration.phase_height import scan_height_errors
     from scanner.decode import decode
@@ -325,7 +358,7 @@ def _install(rig_path: Path, calibration: Path) -> None:
 
 
 def register(sub: Any) -> None:
-    from scanner.rig import DEFAULT_RIG
+    from scanner.config import DEFAULT_RIG
 
     c = sub.add_parser("calibrate")
     c.add_argument("--rig", type=Path, default=DEFAULT_RIG, help="rig TOML (default: the simulated bench rig)")
@@ -359,5 +392,5 @@ def register(sub: Any) -> None:
     c.add_argument("--covariance-check", type=int, metavar="N",
                    help="simulated rigs: N independent calibrations (seeds --seed, --seed + 1, ...), each against the "
                         "true rig: the Mahalanobis distance of the truth under the covariance each reports")
-    c.add_argument("--json", action="store_true", help="--covariance-check: print the summary as JSON")
+    add_json(c)
     c.set_defaults(func=cmd_calibrate)

@@ -141,7 +141,7 @@ def cmd_coverage(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    from scanner.rig import DEFAULT_RIG
+    from scanner.config import DEFAULT_RIG
 
     c = sub.add_parser("coverage")
     c.add_argument("--case", action="append", choices=CASES, help="the figure (repeatable)")

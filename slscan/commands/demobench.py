@@ -28,9 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from scanner.rig import DEFAULT_RIG
+from scanner.config import DEFAULT_RIG
 from scanner.stage_timer import StageTimer
 from slscan.commands.scan import DEMO_SCENE, inspect_verdict_first, load_demo_part
 from slscan.exit_codes import Exit
@@ -39,6 +37,8 @@ from slscan.exit_codes import Exit
 def numpy_peer(repeats: int = 3) -> dict[str, float]:
     """The fixed numpy workload (best of `repeats`): seconds of a 256 MB float32 copy and of
     a 1024 x 1024 float64 matrix product."""
+    import numpy as np
+
     src = np.ones(64 * 2 ** 20, np.float32)
     dst = np.empty_like(src)
     a = np.random.default_rng(0).random((1024, 1024))

@@ -10,14 +10,18 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from scanner.errors import ScannerError
-from scanner.exports import FORMATS
 from slscan.exit_codes import Exit
 from slscan.options import add_json
+
+if TYPE_CHECKING:
+    import numpy as np
+
+FORMATS = ("ply", "xyz", "csv", "e57", "stl")
+"""`scanner.exports.FORMATS`, named here so the command line reads --format without numpy
+(tests/test_cli.py checks the two agree)."""
 
 
 def _format(args: argparse.Namespace) -> str:
@@ -39,6 +43,8 @@ def _inspection(session: Any, why: str) -> dict[str, Any]:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from inspection.point_deviations import read_point_deviations
     from scanner.exports import read_session_cloud, write
     from scanner.session import Session
@@ -74,6 +80,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 def replace_deviations(cloud: Any, dev: np.ndarray) -> Any:
     """Only the points with a deviation (the part's, on a face), carrying it."""
     from dataclasses import replace
+
+    import numpy as np
 
     keep = np.isfinite(dev)
     print(f"deviations for {int(keep.sum())} of {len(cloud)} points (the part's points on a CAD face)",

@@ -22,19 +22,19 @@ import json
 import os
 import re
 import shutil
+import sys
 import time
 from pathlib import Path
-from typing import Any
-
-import cv2
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from scanner.errors import SessionError
-from scanner.geometry import Pinhole, RigModel, look_at
-from scanner.patterns import PatternSet
-from scanner.session import FRAME_LOG, FRAMES_DIR, SessionWriter, sha256
 from slscan.exit_codes import Exit
 from slscan.options import add_json
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from scanner.session import SessionWriter
 
 IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff")
 BIT_DEPTHS = (10, 12, 14, 16)
@@ -61,6 +61,9 @@ def list_frames(folder: Path, pattern: str | None) -> list[Path]:
 def read_frames(files: list[Path]) -> tuple[np.ndarray, list[bool]]:
     """(N, H, W) stack of grey frames and, per frame, whether it was converted from colour;
     SessionError naming the file that is unreadable or of another size or type."""
+    import cv2
+    import numpy as np
+
     stack, converted = None, []
     for k, path in enumerate(files):
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -85,6 +88,8 @@ def read_frames(files: list[Path]) -> tuple[np.ndarray, list[bool]]:
 def bit_depth_of(stack: np.ndarray) -> int:
     """8 for 8-bit frames; for 16-bit ones the least of 10, 12, 14, 16 bits holding the
     brightest value (cameras store 10- and 12-bit samples in 16-bit files)."""
+    import numpy as np
+
     if stack.dtype == np.uint8:
         return 8
     top = int(stack.max())
@@ -96,6 +101,10 @@ def _store(writer: SessionWriter, k: int, src: Path, image: np.ndarray, converte
     """Put frame k into the session: a hard link to `src` (a copy across file systems), or
     the grey image as PNG when it was converted from colour. Returns whether it is a link.
     `camera`: a frame of that camera of a binocular capture, under frames/<camera>/."""
+    import cv2
+
+    from scanner.session import FRAME_LOG, FRAMES_DIR, sha256
+
     linked = False
     folder = FRAMES_DIR if camera is None else f"{FRAMES_DIR}/{camera}"
     (writer.root / folder).mkdir(exist_ok=True)
@@ -133,9 +142,14 @@ def import_frames(folder: Path, patterns_path: Path, projector_size: tuple[int, 
                   calibration: Path | None = None, projector_scale: float = 1.0, frames_glob: str | None = None,
                   bit_depth: int | None = None, progress: Any = None) -> Any:
     """Import and process one capture (module docstring); returns (ScanResult, Detection)."""
+    import numpy as np
+
     from scanner.convention_detection import detect
     from scanner.foreign_calibration import read_calibration
+    from scanner.geometry import Pinhole, RigModel, look_at
+    from scanner.patterns import PatternSet
     from scanner.pipeline import process
+    from scanner.session import SessionWriter
 
     t0 = time.perf_counter()
     files = list_frames(folder, frames_glob)
@@ -187,15 +201,16 @@ def cmd_import(args: argparse.Namespace) -> int:
                                       Path(args.out), Path(args.calibration) if args.calibration else None,
                                       args.projector_scale, args.frames, args.bit_depth, ProgressLine())
     wall = time.perf_counter() - t0
+    lines = sys.stderr if args.json else sys.stdout  # with --json: the JSON alone on stdout
     print(f"imported  {len(result.session.manifest['frames'])} frames from {args.frames_folder} "
-          f"({result.session.manifest['import']['hard_linked']} hard-linked)")
-    print("conventions")
+          f"({result.session.manifest['import']['hard_linked']} hard-linked)", file=lines)
+    print("conventions", file=lines)
     for f in detection.findings:
-        print(f"  {f.line()}")
+        print(f"  {f.line()}", file=lines)
     from slscan.commands.scan import report
 
     report(result, as_json=args.json)
-    print(f"wall      {wall:.2f} s (import, detect, decode, reconstruct, write)")
+    print(f"wall      {wall:.2f} s (import, detect, decode, reconstruct, write)", file=lines)
     return Exit.OK
 
 

@@ -18,17 +18,16 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from scanner.errors import SessionError
-from scanner.geometry import Pinhole, RigModel, look_at
-from scanner.patterns import PatternSet
-from scanner.session import SessionWriter
 from slscan.commands.import_ import _store, bit_depth_of, cmd_import, list_frames, read_frames
 from slscan.commands.import_ import register as register_import
 from slscan.exit_codes import Exit
+
+if TYPE_CHECKING:
+    from scanner.geometry import Pinhole, RigModel
+    from scanner.patterns import PatternSet
 
 CAMERAS = ("left", "right")
 
@@ -36,6 +35,10 @@ CAMERAS = ("left", "right")
 def placeholder_model(camera: Pinhole, projector_size: tuple[int, int]) -> RigModel:
     """The camera with a nominal projector beside it: what a session's manifest needs to
     name the camera's image; never triangulated (the session says `projector_calibrated`: false)."""
+    import numpy as np
+
+    from scanner.geometry import Pinhole, RigModel, look_at
+
     return RigModel(camera, Pinhole.from_fov(*projector_size, 30.0),
                     look_at(np.array([100.0, 0.0, 0.0]), np.array([0.0, 0.0, 500.0])))
 
@@ -58,9 +61,12 @@ def import_binocular(folders: list[Path], patterns_path: Path, projector_size: t
                      progress: Any = None) -> tuple[Any, list[Any]]:
     """Import and reconstruct one binocular capture (module docstring); returns (BinocularScan,
     the two cameras' convention detections)."""
+    import numpy as np
+
     from scanner.binocular_pipeline import process_binocular
     from scanner.convention_detection import detect
-    from scanner.session import Session
+    from scanner.patterns import PatternSet
+    from scanner.session import Session, SessionWriter
     from scanner.stereo_calibration_file import read_stereo_calibration
 
     if not calibration:

@@ -29,14 +29,15 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
-
-import cv2
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from scanner.config import CONFIG_DIR
-from scanner.geometry import Pinhole, RigModel, look_at
 from slscan.exit_codes import Exit
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from scanner.geometry import RigModel
 
 PROCAM_DEFAULT = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "procam-graycode"
 SLMASTER_PATTERNS = CONFIG_DIR / "patterns" / "slmaster_complementary_12x32.toml"
@@ -46,6 +47,10 @@ OPENCV_GRAYCODE = CONFIG_DIR / "patterns" / "opencv_graycode.toml"
 def synthetic_rig(camera: tuple[int, int] = (1280, 1024), projector: tuple[int, int] = (1920, 1080)) -> RigModel:
     """A camera and projector 150 mm apart, converging at 600 mm, both with lens distortion;
     the projector lights ~95 % of the camera's view of `plane_coordinates`' plane."""
+    import numpy as np
+
+    from scanner.geometry import Pinhole, RigModel, look_at
+
     cam = Pinhole.from_fov(*camera, 26.0, dist=np.array([-0.12, 0.15, 0.0004, -0.0003, 0.0]))
     proj = Pinhole.from_fov(*projector, 34.0, principal=(projector[0] / 2 - 0.5, projector[1] * 0.5 - 0.5),
                             dist=np.array([0.05, -0.08, 0.0002, 0.0001, 0.0]))
@@ -57,6 +62,8 @@ def plane_coordinates(rig: RigModel, normal: tuple[float, float, float] = (0.15,
                       distance_mm: float = 600.0) -> tuple[np.ndarray, np.ndarray]:
     """Depth (H, W, mm) of the plane n·X = distance seen by the rig's camera and the
     projector (u, v) of each of its points (distortion included)."""
+    import numpy as np
+
     rays = rig.camera.ray_grid.astype(np.float64)
     n = np.asarray(normal, float) / np.linalg.norm(normal)
     z = distance_mm / (rays @ n)
@@ -68,6 +75,9 @@ def plane_coordinates(rig: RigModel, normal: tuple[float, float, float] = (0.15,
 def write_slmaster_calibration(path: Path, rig: RigModel) -> None:
     """`rig` as an SLMaster caliInfo.yml: M1/D1 camera, M4/D4 projector, Rlp/Tlp taking
     camera-frame points into the projector frame, S the camera size (w, h)."""
+    import cv2
+    import numpy as np
+
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     proj_from_cam = rig.proj_from_cam
     for key, value in (("M1", rig.camera.K), ("D1", rig.camera.dist.reshape(1, 5)), ("M4", rig.projector.K),
@@ -81,6 +91,8 @@ def write_slmaster_calibration(path: Path, rig: RigModel) -> None:
 def slmaster_capture(folder: Path, rig: RigModel, seed: int = 0) -> np.ndarray:
     """An SLMaster 12-step + 6-frame complementary Gray-code capture of a tilted plane
     written as frame_1.bmp … frame_18.bmp; returns the true projector column per pixel."""
+    import cv2
+
     from sim.foreign_patterns import capture, slmaster_complementary
 
     _, uv = plane_coordinates(rig)
@@ -111,6 +123,9 @@ def _run(args: list[str]) -> tuple[float, float, str]:
 def table_timing(rig: RigModel) -> dict[str, float]:
     """Seconds to build the triangulation tables for both orientations, and to undistort
     every camera pixel one by one (what the rays cost before, the peer)."""
+    import numpy as np
+
+    from scanner.geometry import Pinhole, RigModel
     from scanner.reconstruct import Triangulator
 
     fresh = RigModel(Pinhole(rig.camera.width, rig.camera.height, rig.camera.K, rig.camera.dist), rig.projector,
@@ -129,6 +144,9 @@ def import_timing(workdir: Path, runs: int = 3) -> dict[str, Any]:
     capture, `runs` times each into a fresh session (the first run pays cold caches, as a
     user's first does: every run is kept, the median is the figure), with the floor: reading
     its frames, and starting the command line."""
+    import cv2
+    import numpy as np
+
     rig = synthetic_rig()
     frames = workdir / "frames"
     truth = slmaster_capture(frames, rig)
@@ -169,6 +187,9 @@ def board_figures(session: Path, white: np.ndarray, model: RigModel, square_mm: 
     inside the board's corners to their least-squares plane (mm), and the errors of the
     distances between neighbouring corners (mm), each corner placed where the camera ray
     through it meets that plane."""
+    import cv2
+    import numpy as np
+
     from scanner.pointcloud import read_ply_points
 
     found, corners = cv2.findChessboardCornersSB(white, pattern)

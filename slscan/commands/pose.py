@@ -33,12 +33,13 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from slscan.exit_codes import Exit
 from slscan.options import add_json, coarse_method
+
+if TYPE_CHECKING:
+    import numpy as np
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off")
 POSE_METHODS = {"sac-ia": "sacia", "ndt": "ndt"}  # the command line's spelling -> inspection.bins' name
@@ -84,6 +85,7 @@ def register(sub: Any) -> None:
     b.add_argument("--summary", nargs="+", type=Path, metavar="ROWS",
                    help="print the saved-bins figures of rows files written by `--sessions --rows` runs (a long "
                         "run done in pieces) instead of posing anything")
+    add_json(b)
     b.set_defaults(func=cmd_posebench)
 
 
@@ -121,6 +123,8 @@ def load_part(path: str | Path) -> Any:
 def _organise(points: np.ndarray, normals: np.ndarray | None, camera: Any, where: str) -> Any:
     """An organised cloud on `camera`'s image from camera-frame points (nearest point per
     pixel), with normals from the organised points where none are given."""
+    import numpy as np
+
     from inspection.errors import CloudError
     from scanner.pointcloud import OrganisedCloud, organised_normals
 
@@ -141,6 +145,8 @@ def _organise(points: np.ndarray, normals: np.ndarray | None, camera: Any, where
 def load_scene(path: Path, rig: Path | None) -> tuple[Any, Any, Any]:
     """(organised cloud, rig model, session or None) of a session or a cloud file (placed
     on the camera of the rig TOML `rig`, default the simulated bench rig)."""
+    import numpy as np
+
     from inspection.errors import CloudError
     from scanner.rig import RigConfig
 
@@ -231,6 +237,8 @@ def pose_scene(cloud: Any, camera: Any, model: Any, settings: Any, instances: li
 def rig_of(rig_model: Any, session: Any, rig_file: Path | None) -> tuple[np.ndarray | None, dict[str, Any] | None]:
     """(world_from_camera, the poses file's `rig` entry) of a session (its rig), or of a
     cloud file with `--rig` (that rig); a cloud file without one has no world frame (None, None)."""
+    import numpy as np
+
     calibration = rig_model.calibration or "nominal (uncalibrated)"
     if session is not None:
         conf = session.manifest.get("rig_config", {}).get("rig", {})
@@ -299,12 +307,23 @@ CASES = ("front up", "back up", "occluded front", "occluded back")
 
 
 def cmd_posebench(args: argparse.Namespace) -> int:
+    """The benchmark asked (simulated bins, `--sessions` or `--summary`): its lines on stdout,
+    or with `--json` on stderr and its figures as one JSON document on stdout."""
+    run = rows_summary if args.summary else saved_bins_bench if args.sessions else simulated_bins_bench
+    if not args.json:
+        run(args)
+        return Exit.OK
+    with contextlib.redirect_stdout(sys.stderr):
+        figures = run(args)
+    print(json.dumps({"status": "ok", **figures}, default=float))
+    return Exit.OK
+
+
+def simulated_bins_bench(args: argparse.Namespace) -> dict[str, Any]:
     """Per bin: render, lift the simulator's instance masks, pose every part with each
-    method (wall and process CPU time per part), compare with the true poses."""
-    if args.summary:
-        return rows_summary(args)
-    if args.sessions:
-        return saved_bins_bench(args)
+    method (wall and process CPU time per part), compare with the true poses; the rows."""
+    import numpy as np
+
     from inspection.bins.instance_plane import SceneContext
     from inspection.bins.instances import instances_from_label_image
     from inspection.bins.part_model import ThinPartModel
@@ -356,9 +375,11 @@ def cmd_posebench(args: argparse.Namespace) -> int:
         print(f"bin {seed}: {n} parts; " + "; ".join(
             f"{m} {sum(r['found'] for r in done if r['method'] == m)} posed" for m in args.methods), flush=True)
     load1 = os.getloadavg()
-    print(summary(rows, args.methods))
+    text = summary(rows, args.methods)
+    print(text)
     print(f"load average at the end {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
-    return Exit.OK
+    return {"bench": "simulated bins", "scans": scanned, "methods": args.methods, "rows": rows,
+            "summary": text.splitlines(), "load_average": {"start": load0, "end": load1}}
 
 
 def bin_sessions(paths: list[Path]) -> list[Path]:
@@ -378,7 +399,10 @@ def bin_sessions(paths: list[Path]) -> list[Path]:
 
 def saved_bins_bench(args: argparse.Namespace) -> int:
     """`slscan posebench --sessions`: `pose_scene` on every saved bin, judged by
-    `sim.bin_judge` (wall and CPU time of every part's pose, and of each bin's instances and context)."""
+    `sim.bin_judge` (wall and CPU time of every part's pose, and of each bin's instances and context);
+    the figures: each bin's judgement, the summary lines, the load averages."""
+    import numpy as np
+
     from inspection.bins.instances import instances_from_label_image
     from inspection.bins.picking import pick_order
     from inspection.bins.pose_settings import PoseSettings
@@ -393,7 +417,7 @@ def saved_bins_bench(args: argparse.Namespace) -> int:
     print(f"{len(sessions)} saved bins, {settings.method}, instances from "
           f"{'the simulator ids' if args.truth_masks else 'flat patches (no masks)'}; "
           f"load average {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}", flush=True)
-    bins, times, steps = [], [], []
+    bins, times, steps, records = [], [], [], []
     for path in sessions:
         truth = BinTruth.load(path / BIN_TRUTH_FILE)
         if truth.part not in models:
@@ -418,21 +442,25 @@ def saved_bins_bench(args: argparse.Namespace) -> int:
               f"tolerance); pose step {1000 * wall:.0f} ms wall, {1000 * cpu:.0f} ms CPU, of which instances and "
               f"scene context {1000 * scene_wall:.0f} ms wall, {1000 * scene_cpu:.0f} ms CPU",
               flush=True)
+        records.append({"session": str(path), **{k: x for k, x in j.items() if k != "verdicts"},
+                        "verdicts": [vars(x) for x in v], "pose_times_s": [[p.time_s, p.cpu_s] for p in poses],
+                        "bin_step_s": [scene_wall, scene_cpu]})
         if args.rows:   # one JSON line per bin: what `--summary` needs
             with open(args.rows, "a") as f:
-                f.write(json.dumps({"session": str(path), **{k: x for k, x in j.items() if k != "verdicts"},
-                                    "verdicts": [vars(x) for x in v],
-                                    "pose_times_s": [[p.time_s, p.cpu_s] for p in poses],
-                                    "bin_step_s": [scene_wall, scene_cpu]}, default=float) + "\n")
-    print(saved_bins_summary(bins, np.array(times), (PICK_MM, PICK_DEG), (WRONG_MM, WRONG_DEG), np.array(steps)))
+                f.write(json.dumps(records[-1], default=float) + "\n")
+    text = saved_bins_summary(bins, np.array(times), (PICK_MM, PICK_DEG), (WRONG_MM, WRONG_DEG), np.array(steps))
+    print(text)
     load1 = os.getloadavg()
     print(f"load average at the end {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
-    return Exit.OK
+    return {"bench": "saved bins", "method": settings.method, "bins": records, "summary": text.splitlines(),
+            "load_average": {"start": load0, "end": load1}}
 
 
 def rows_summary(args: argparse.Namespace) -> int:
     """`slscan posebench --summary ROWS...`: the saved-bins figures of rows files written by
-    `--sessions --rows` runs (a long benchmark run in pieces, or stopped part way)."""
+    `--sessions --rows` runs (a long benchmark run in pieces, or stopped part way); the summary lines."""
+    import numpy as np
+
     from sim.bin_judge import PICK_DEG, PICK_MM, WRONG_DEG, WRONG_MM, PoseVerdict
 
     bins, times, steps = [], [], []
@@ -450,8 +478,10 @@ def rows_summary(args: argparse.Namespace) -> int:
                                    f"({exc})") from None
     print(f"{len(bins)} saved bins from {len(args.summary)} rows file(s)")
     known = None if any(x is None for x in steps) else np.array(steps, dtype=float).reshape(-1, 2)
-    print(saved_bins_summary(bins, np.array(times).reshape(-1, 2), (PICK_MM, PICK_DEG), (WRONG_MM, WRONG_DEG), known))
-    return Exit.OK
+    text = saved_bins_summary(bins, np.array(times).reshape(-1, 2), (PICK_MM, PICK_DEG), (WRONG_MM, WRONG_DEG), known)
+    print(text)
+    return {"bench": "summary of saved bins", "rows_files": [str(p) for p in args.summary], "bins": len(bins),
+            "summary": text.splitlines()}
 
 
 def saved_bins_summary(bins: list[dict[str, Any]], times: np.ndarray, pick: tuple[float, float],
@@ -460,6 +490,8 @@ def saved_bins_summary(bins: list[dict[str, Any]], times: np.ndarray, pick: tupl
     each part's pose (wall, CPU s), `steps` (bins, 2) each bin's instances and scene
     context (None: not recorded). The time per part with its share of the bin step (all
     bin steps and part poses over the instances posed) is what a robot cell waits per part."""
+    import numpy as np
+
     v = [x for b in bins for x in b["verdicts"]]
     picks = [x for x in v if x.picked]
     occ = np.array([x.occlusion - x.true_occlusion for x in v if x.part >= 0])
@@ -501,6 +533,8 @@ def _case(r: dict[str, Any]) -> str:
 def summary(rows: list[dict[str, Any]], methods: list[str], trans_tol: float = 0.1, rot_tol: float = 0.5) -> str:
     """Acceptance figures per method over the parts less than 30 % occluded, and the
     four-case table (success: a pose within the tolerances with the right side)."""
+    import numpy as np
+
     out = []
     for m in methods:
         rs = [r for r in rows if r["method"] == m]

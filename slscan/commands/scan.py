@@ -15,12 +15,10 @@ from typing import Any, Callable, Sequence
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError, ScannerError
-from scanner.reconstruct import Triangulator
-from scanner.rig import DEFAULT_RIG
-from scanner.session import write_json
+from scanner.config import DEFAULT_RIG
 from scanner.stage_timer import StageTimer
 from slscan.exit_codes import Exit, for_verdict
-from slscan.options import add_json
+from slscan.options import add_json, add_paper, on_paper
 from slscan.progress import ProgressLine
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
@@ -183,6 +181,9 @@ def result_record(result: Any) -> dict[str, Any]:
 
 def sim_accuracy(result: Any) -> Any:
     """Accuracy against the simulator's ground truth, if the session has it."""
+    from scanner.reconstruct import Triangulator
+    from scanner.session import write_json
+
     if "import" in result.session.manifest:
         return None  # another tool's frames carry no simulator truth (and the simulator takes ~0.3 s to import)
     from sim.evaluate import GROUND_TRUTH_FILE, Truth, evaluate
@@ -350,9 +351,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
             print(f"inspect   {result.session.root} against the part program {DEMO_PROGRAM}", file=sys.stderr)
             model, tolerances, program = part.result()
             t1, c1 = time.perf_counter(), time.process_time()
-            done["report"], done["timer"] = inspect_verdict_first(result, recording, model, tolerances, args.seed,
-                                                                  on_verdict=show, program=program,
-                                                                  progress=ProgressLine())
+            with on_paper(args.paper):
+                done["report"], done["timer"] = inspect_verdict_first(result, recording, model, tolerances, args.seed,
+                                                                      on_verdict=show, program=program,
+                                                                      progress=ProgressLine())
             done["seconds"], done["cpu"] = time.perf_counter() - t1, time.process_time() - c1
 
         with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
@@ -485,6 +487,7 @@ def register(sub: Any) -> None:
     m.add_argument("--out", help="session folder (default: sessions/demo-<time>)")
     m.add_argument("--seed", type=int, default=0, help="simulated rig: noise seed (default 0)")
     m.add_argument("--no-inspect", action="store_true", help="scan only (no inspection against the STEP model)")
+    add_paper(m)
     _add_full_recording(m)
     add_json(m)
     m.set_defaults(func=cmd_demo)

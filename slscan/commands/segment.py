@@ -21,11 +21,13 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from slscan.exit_codes import Exit
+from slscan.options import add_json
+
+if TYPE_CHECKING:
+    import numpy as np
 
 SEGMENTS = "world/segments"
 SEGMENT_MAP = "maps/segments"
@@ -39,6 +41,7 @@ def register(sub: Any) -> None:
                         "default 35 point spacings of the cloud")
     p.add_argument("--out", help="labels file (.npy); default beside the cloud, or <session>/outputs/segments.npy")
     p.add_argument("--no-log", action="store_true", help="do not write the Rerun recording")
+    add_json(p)
     p.set_defaults(func=cmd_segment)
 
     b = sub.add_parser("segbench")
@@ -46,18 +49,20 @@ def register(sub: Any) -> None:
     b.add_argument("--spacing", type=float, default=1.0, metavar="MM", help="nearest scanner's point spacing")
     b.add_argument("--radius", "-r", type=float, metavar="MM",
                    help="radius of interest r (default: slscan segment's, 35 point spacings of each cloud)")
-    b.add_argument("--json", action="store_true", help="print a JSON object")
+    add_json(b)
     b.set_defaults(func=cmd_segbench)
 
     s = sub.add_parser("segscore")
     s.add_argument("labels", help="labels .npy (from slscan segment)")
     s.add_argument("ground_truth", help="ground-truth labels .npy of the same shape (negative: no segment), or a "
                                         "simulated session's ground_truth.npz (its object ids)")
-    s.add_argument("--json", action="store_true", help="print a JSON object")
+    add_json(s)
     s.set_defaults(func=cmd_segscore)
 
 
 def cmd_segment(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from inspection.regions.region_growing import DEFAULT_RADIUS_SPACINGS, default_radius, segment
     from inspection.regions.segmetrics import NO_POINT
     from scanner.errors import ScannerError
@@ -101,16 +106,24 @@ def cmd_segment(args: argparse.Namespace) -> int:
     write_atomic(out, buffer.getvalue())
     sizes = seg.sizes()
     big = np.sort(sizes)[::-1]
+    rrd = None if args.no_log else out.with_name(out.stem + ".rrd")
+    if rrd is not None:
+        _log(rrd, session, points, labels, labels_out if valid is not None else None, seg.timings_s,
+             recording_id=session.id if session is not None else src.stem)
+    if args.json:
+        print(json.dumps({"status": "ok", "labels": str(out), "radius_mm": radius, "points": len(points),
+                          "subsampled": len(seg.subsample), "unsegmented_fraction": float((labels < 0).mean()),
+                          "segments": seg.n_segments, "segments_over_1pct": int((sizes >= 0.01 * len(points)).sum()),
+                          "largest": [int(s) for s in big[:8]], "timings_s": seg.timings_s,
+                          "recording": None if rrd is None else str(rrd)}))
+        return Exit.OK
     print(f"labels    {out}")
     print(f"points    {len(points)} ({len(seg.subsample)} after the 0.1 r subsample), "
           f"{(labels < 0).mean() * 100:.1f} % unsegmented")
     print(f"segments  {seg.n_segments} ({int((sizes >= 0.01 * len(points)).sum())} with >= 1 % of the points); "
           f"largest {', '.join(str(int(s)) for s in big[:8])}")
     print("timings   " + ", ".join(f"{k} {v:.2f} s" for k, v in seg.timings_s.items()))
-    if not args.no_log:
-        rrd = out.with_name(out.stem + ".rrd")
-        _log(rrd, session, points, labels, labels_out if valid is not None else None, seg.timings_s,
-             recording_id=session.id if session is not None else src.stem)
+    if rrd is not None:
         print(f"recording {rrd}" + (f"   (view with the session: rerun {session.recording_path} {rrd})"
                                    if session is not None else ""))
     return Exit.OK
@@ -137,6 +150,7 @@ def _session_points(session: Any) -> tuple[np.ndarray, np.ndarray]:
 
 def _log(path: Path, session: Any, points: np.ndarray, labels: np.ndarray, image: np.ndarray | None,
          timings: dict[str, float], recording_id: str) -> None:
+    import numpy as np
     import rerun as rr
 
     from scanner.session_recording import SessionRecording
@@ -157,6 +171,8 @@ def _log(path: Path, session: Any, points: np.ndarray, labels: np.ndarray, image
 
 def _class_ids(labels: np.ndarray) -> np.ndarray:
     """Rerun class ids: 0 for no segment, 1 + label otherwise (wrapping past 65535)."""
+    import numpy as np
+
     return np.where(labels >= 0, 1 + labels % 65535, 0).astype(np.uint16)
 
 
@@ -174,6 +190,8 @@ def cmd_segbench(args: argparse.Namespace) -> int:
     """Per seed: build the cloud, segment it (wall-clock and process CPU time of the
     segmentation alone), score it; then the means over seeds."""
     import time
+
+    import numpy as np
 
     from inspection.regions.region_growing import segment
     from inspection.regions.segmetrics import score
@@ -211,6 +229,8 @@ def cmd_segbench(args: argparse.Namespace) -> int:
 def _load_labels(path: Path) -> np.ndarray:
     """An integer label array from .npy, or the object ids of a simulator ground truth
     .npz (0, background, becomes -1: no surface)."""
+    import numpy as np
+
     from inspection.errors import SegmentationError
 
     if not path.is_file():

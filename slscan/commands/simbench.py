@@ -22,8 +22,6 @@ import threading
 import time
 from typing import Any
 
-import numpy as np
-
 from slscan.exit_codes import Exit
 
 
@@ -35,6 +33,8 @@ def _timed(fn: Any, *args: Any) -> float:
 
 def run_simbench(repeats: int = 5) -> dict[str, Any]:
     """Measure frame rendering, its peer and the sequence period; returns the figures (s)."""
+    import numpy as np
+
     from scanner.patterns import PatternSet
     from scanner.rig import RigConfig
     from sim.virtual_rig import open_sim_rig

@@ -13,7 +13,7 @@ from typing import Any
 from scanner.errors import ScannerError
 from slscan.exit_codes import Exit, for_parts
 from slscan.options import OutputFlag, add_json, add_out, count_arg, plain_text_arg
-from slscan.station.measure import MEASUREMENTS
+from slscan.station import MEASUREMENT_NAMES
 
 
 def _station_options(p: argparse.ArgumentParser, writes: bool = False) -> None:
@@ -111,15 +111,35 @@ def _rules(text: str) -> tuple[int, ...]:
     return rules
 
 
-def _spc_options(args: argparse.Namespace, program: Any) -> Any:
-    """The report's statistics options from the command line (frozen limits read here)."""
+def _spc_options(args: argparse.Namespace, program: Any, exclusions: dict[int, Any]) -> Any:
+    """The report's statistics options from the command line (frozen limits read here) and
+    the exclusions recorded in the database (`results.Exclusion`: their reasons)."""
     from slscan.station.limits_file import load_limits
     from slscan.station.quality import SpcOptions
     from slscan.station.spc import DEFAULT_RULES
 
     frozen, source = load_limits(args.limits, program) if args.limits else ({}, "")
-    return SpcOptions(exclusions=dict(args.exclude or []), rules=args.rules or DEFAULT_RULES,
+    return SpcOptions(exclusions={rid: e.reason for rid, e in exclusions.items()}, rules=args.rules or DEFAULT_RULES,
                       baseline=args.baseline, frozen=frozen, frozen_source=source)
+
+
+def _record_exclusions(args: argparse.Namespace, url: str) -> None:
+    """`--exclude ID=REASON` and `--include ID`: recorded in the results database (who: --by,
+    else the login name; when: now), for every later report and export."""
+    import getpass
+
+    from slscan.station.results import open_results
+
+    try:
+        by = args.by or getpass.getuser()
+    except (KeyError, OSError):
+        raise ScannerError("slscan results --exclude: give who excludes with --by NAME (no login name here)") from None
+    open_results(url, create=False).close()  # the database must exist: a mistyped folder is an error, not a new one
+    with open_results(url) as store:
+        for rid, why in args.exclude or []:
+            print(f"excluded  result {rid}: {store.exclude(rid, why, by).shown()}", file=sys.stderr)
+        for rid in args.include or []:
+            print(f"included  result {rid}" + ("" if store.include(rid) else " (it was not excluded)"), file=sys.stderr)
 
 
 def _check_results_args(args: argparse.Namespace, program: Any) -> None:
@@ -136,8 +156,8 @@ def _check_results_args(args: argparse.Namespace, program: Any) -> None:
     spc = [f for f in ("baseline", "limits", "save_limits", "rules") if getattr(args, f)]
     if spc and not args.report:
         raise ScannerError(f"slscan results: --{spc[0].replace('_', '-')} applies to --report")
-    if args.exclude and not (args.report or args.dfq):
-        raise ScannerError("slscan results: --exclude applies to --report and --dfq")
+    if args.by and not args.exclude:
+        raise ScannerError("slscan results: --by names who gives --exclude")
     if args.limits and (args.baseline or args.save_limits):
         raise ScannerError("slscan results: --limits uses frozen limits; --baseline and --save-limits make new ones")
 
@@ -149,12 +169,17 @@ def cmd_results(args: argparse.Namespace) -> int:
 
     name, program = _program_name(args.program)
     _check_results_args(args, program)
-    options = _spc_options(args, program) if args.report or args.dfq else None
     config = _config(args)
+    if args.exclude or args.include:
+        _record_exclusions(args, config.database_url)
     with open_results(config.database_url, create=False) as store:
+        excluded = store.exclusions()
+        options = _spc_options(args, program, excluded) if args.report or args.dfq else None
         rows = store.results(program=name, serial=args.serial, status=args.status, since=args.since, limit=args.limit)
         values = store.values([r.id for r in rows])
-        if args.dfq:
+        if args.exclusions:
+            _list_exclusions(store, excluded, as_json=args.json)
+        elif args.dfq:
             from slscan.station.dfq import dfq_text
 
             text, n = dfq_text(program, rows, values, options.exclusions)
@@ -169,8 +194,9 @@ def cmd_results(args: argparse.Namespace) -> int:
                 _write_export(Path(args.out), lambda path: write_atomic(path, text.encode()))
                 print(f"wrote {n} lines ({len(rows)} results) to {args.out}", file=sys.stderr)
         elif args.json:
-            print(json.dumps({"where": store.where, "results": [{**asdict(r), "values": [asdict(v) for v in values[r.id]]}
-                                                                for r in rows]}, default=str))
+            print(json.dumps({"where": store.where, "results": [{**asdict(r), "values": [asdict(v) for v in values[r.id]],
+                                                                 "excluded": asdict(excluded[r.id]) if r.id in excluded
+                                                                 else None} for r in rows]}, default=str))
         else:
             print(f"{'id':>5} {'program':<14} {'serial':<24} {'att':>3} {'status':<10} {'finished (UTC)':<19}  values")
             for r in rows:
@@ -179,7 +205,8 @@ def cmd_results(args: argparse.Namespace) -> int:
                                  f"{v.characteristic}=--" for v in values[r.id])
                 when = f"{r.finished_at:%Y-%m-%d %H:%M:%S}" if r.finished_at else ""
                 print(f"{r.id:>5} {r.program:<14} {r.serial:<24} {r.attempt:>3} {r.status:<10} {when:<19}  {vals}"
-                      + (f"  [{r.message}]" if r.message and r.status != "fail" else ""))
+                      + (f"  [{r.message}]" if r.message and r.status != "fail" else "")
+                      + (f"  [excluded: {excluded[r.id].shown()}]" if r.id in excluded else ""))
             print(f"{len(rows)} results in {store.where}", file=sys.stderr)
         if args.report:
             path = _write_export(Path(args.out), lambda folder: write_report(folder, program, rows, values,
@@ -188,6 +215,19 @@ def cmd_results(args: argparse.Namespace) -> int:
             if args.save_limits:
                 _save_limits(args, program, rows, values, options, store.where)
     return Exit.OK
+
+
+def _list_exclusions(store: Any, excluded: dict[int, Any], *, as_json: bool) -> None:
+    """`--exclusions`: every recorded exclusion with its result's serial (or one JSON document)."""
+    serials = {rid: store.result(rid).serial for rid in excluded}
+    if as_json:
+        print(json.dumps({"where": store.where, "exclusions": [{**asdict(e), "serial": serials[rid]}
+                                                               for rid, e in excluded.items()]}, default=str))
+        return
+    print(f"{'id':>5} {'serial':<24} {'excluded (UTC)':<16}  {'by':<12} reason")
+    for rid, e in excluded.items():
+        print(f"{rid:>5} {serials[rid]:<24} {e.excluded_at:%Y-%m-%d %H:%M}  {e.excluded_by:<12} {e.reason}")
+    print(f"{len(excluded)} exclusions in {store.where}", file=sys.stderr)
 
 
 def _save_limits(args: argparse.Namespace, program: Any, rows: Any, values: Any, options: Any, where: str) -> None:
@@ -215,10 +255,20 @@ def _write_export(target: Path, write: Any) -> Any:
         raise ScannerError(f"{exc.filename or target}: cannot write: {exc.strerror or exc}") from None
 
 
+def _existing(paths: list[str]) -> None:
+    """Refuse a part or session folder that is not there (bad input, exit 2) before any work;
+    one that is there but cannot be measured is that part's error in the batch (exit 4)."""
+    missing = [p for p in paths if not Path(p).is_dir()]
+    if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise ScannerError(f"{missing[0]}: no such part or session folder{more}")
+
+
 def cmd_batch(args: argparse.Namespace) -> int:
     from slscan.progress import ProgressLine
     from slscan.station.batch import print_summary, run_batch
 
+    _existing(args.sessions)
     config = _config(args) if args.store else None
     summary = run_batch(args.sessions, args.program, scheduler=args.scheduler, workers=args.workers,
                         store_config=config, progress=ProgressLine(), measurement=args.measurement, rig_path=args.rig)
@@ -231,6 +281,7 @@ def cmd_batchbench(args: argparse.Namespace) -> int:
 
     from slscan.station.batch import compare, run_batch
 
+    _existing(args.sessions)
     text = sys.stderr if args.json else sys.stdout  # --json: the figures as one document on stdout
     runs, loads = {}, {}
     for label, workers in (("serial", 0), (f"dask, {args.workers} local workers", args.workers)):
@@ -264,7 +315,7 @@ def register(sub: Any) -> None:
     s.add_argument("--operator", type=plain_text_arg, help="operator name stored with every result")
     s.add_argument("--parts", type=count_arg(1), help="stop after this many measured parts (>= 1)")
     s.add_argument("--auto", action="store_true", help="no operator: measure --parts parts one after the other")
-    s.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: the station config's)")
+    s.add_argument("--measurement", choices=sorted(MEASUREMENT_NAMES), help="measuring step (default: the station config's)")
     add_json(s)
     s.set_defaults(func=cmd_station)
 
@@ -283,8 +334,14 @@ def register(sub: Any) -> None:
     r.add_argument("--dfq", action="store_true", help="export the values as an AQDEF (Q-DAS) DFQ file to --out FILE")
     add_json(r)
     r.add_argument("--exclude", action="append", type=_exclusion, metavar="ID=REASON",
-                   help="leave result ID out of the limits and capability, for the reason given (shown in the "
-                        "report, exported as deactivated); repeat for more")
+                   help="leave result ID out of the limits and capability, for the reason given: recorded in the "
+                        "results database (who, when, why) for every later report (shown there) and export "
+                        "(deactivated); repeat for more")
+    r.add_argument("--by", type=plain_text_arg, metavar="NAME",
+                   help="with --exclude: who excludes (default: the login name)")
+    r.add_argument("--include", action="append", type=count_arg(1), metavar="ID",
+                   help="lift the recorded exclusion of result ID; repeat for more")
+    r.add_argument("--exclusions", action="store_true", help="list the recorded exclusions (who, when, why)")
     r.add_argument("--rules", type=_rules, metavar="N,N,...",
                    help="Nelson rules to flag (1..8 or 'all'; default 1,2,5,6, the Western Electric set)")
     r.add_argument("--baseline", type=_ids, metavar="IDS",
@@ -305,7 +362,7 @@ def register(sub: Any) -> None:
                                             "one recorded at capture")
     b.add_argument("--store", action="store_true", help="store the re-inspection results (source 'batch')")
     _station_options(b)
-    b.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: the station config's)")
+    b.add_argument("--measurement", choices=sorted(MEASUREMENT_NAMES), help="measuring step (default: the station config's)")
     b.add_argument("--json", action="store_true", help="print the summary as JSON")
     b.set_defaults(func=cmd_batch)
 
@@ -313,6 +370,6 @@ def register(sub: Any) -> None:
     bb.add_argument("sessions", nargs="+", help="part folders written by the station, or session folders")
     bb.add_argument("--program", required=True, help="part program TOML to inspect against")
     bb.add_argument("--workers", type=int, default=2, help="local cluster worker processes (default 2)")
-    bb.add_argument("--measurement", choices=sorted(MEASUREMENTS), help="measuring step (default: inspection)")
+    bb.add_argument("--measurement", choices=sorted(MEASUREMENT_NAMES), help="measuring step (default: inspection)")
     add_json(bb)
     bb.set_defaults(func=cmd_batchbench)

@@ -29,10 +29,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-
 from scanner.errors import ScannerError
-from scanner.session import write_atomic, write_json
 from slscan.exit_codes import for_parts
 
 
@@ -183,9 +180,12 @@ def binocular_scanner(config: Any) -> Callable[[Any, Any, float], tuple[Any, Any
 def leave_one_out(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     """`--leave-one-out`: each pose of a capture checked by a calibration of the others
     (`slscan.board_check`); table on stdout (or JSON), DIR/leave_one_out.json."""
+    import numpy as np
+
     from calibration.board import Board
     from calibration.graycode import GrayCodeLayout
     from calibration.store import CaptureSet, graycode_views
+    from scanner.session import write_json
     from slscan.board_check import leave_one_out as check
     from slscan.board_check import pooled_summary
 
@@ -233,6 +233,8 @@ def leave_one_out(args: argparse.Namespace, say: Callable[[str], None]) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
+    from scanner.session import write_atomic, write_json
+
     def say(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
@@ -252,7 +254,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    from scanner.rig import DEFAULT_RIG
+    from scanner.config import DEFAULT_RIG
     from slscan.commands.calibrate import image_size
 
     v = sub.add_parser("verify")

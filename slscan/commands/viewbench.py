@@ -25,16 +25,19 @@ part's true pose in the stage frame from the scene):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import sys
 import time
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from scanner.config import CONFIG_DIR
 from slscan.exit_codes import Exit
+
+if TYPE_CHECKING:
+    import numpy as np
 
 TURNTABLE = CONFIG_DIR / "rigs" / "sim_turntable.toml"
 SCENE = CONFIG_DIR / "scenes" / "turntable_demo.toml"
@@ -65,6 +68,8 @@ def register(sub: Any) -> None:
 
 def peer_s() -> float:
     """A fixed CPU task timed beside the figures: the SVD of a 1200 x 1200 matrix (s)."""
+    import numpy as np
+
     a = np.random.default_rng(0).standard_normal((1200, 1200))
     t0 = time.perf_counter()
     np.linalg.svd(a)
@@ -72,6 +77,17 @@ def peer_s() -> float:
 
 
 def cmd_viewbench(args: argparse.Namespace) -> int:
+    """The figures (below), also in --out/viewbench.json; with --json the scan's and the
+    stage axis's lines go to stderr and stdout gets the figures alone."""
+    document = sys.stdout
+    with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
+        figures, text = _viewbench(args)
+    print(json.dumps(figures, default=float) if args.json else text, file=document)
+    return Exit.OK
+
+
+def _viewbench(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """The figures of the benchmark asked, and their text."""
     from inspection.views.align import align_views
     from inspection.views.whole import whole_part
     from scanner.multiview import MultiViewSession
@@ -84,10 +100,8 @@ def cmd_viewbench(args: argparse.Namespace) -> int:
         figures = {"part": args.part or "demo", "views": len(session.views), "camera": _camera(session),
                    "pairs": _pairs(session, truths)}
         (args.out / "viewbench.json").write_text(json.dumps(figures, indent=2, default=float) + "\n")
-        print(json.dumps(figures, default=float) if args.json else "\n".join(
-            f"{figures['part']} pairs {k} apart: ours {p['ours']}; Open3D {p['open3d_fpfh_ransac_icp']}"
-            for k, p in figures["pairs"].items()))
-        return Exit.OK
+        return figures, "\n".join(f"{figures['part']} pairs {k} apart: ours {p['ours']}; Open3D "
+                                  f"{p['open3d_fpfh_ransac_icp']}" for k, p in figures["pairs"].items())
     figures: dict[str, Any] = {"views": len(session.views), "camera": _camera(session)}
     load0, peer0 = os.getloadavg()[0], peer_s()
     whole = whole_part(session)
@@ -106,8 +120,7 @@ def cmd_viewbench(args: argparse.Namespace) -> int:
     if not args.no_pairs:
         figures["pairs"] = _pairs(session, truths)
     (args.out / "viewbench.json").write_text(json.dumps(figures, indent=2, default=float) + "\n")
-    print(json.dumps(figures, default=float) if args.json else _text(figures))
-    return Exit.OK
+    return figures, _text(figures)
 
 
 def _scan(args: argparse.Namespace) -> Path:
@@ -159,10 +172,14 @@ def _camera(session: Any) -> str:
 
 
 def _truth(view: Path) -> np.ndarray:
+    import numpy as np
+
     return np.linalg.inv(np.array(json.loads((view / "ground_truth_stage.json").read_text())["world_from_stage"]))
 
 
 def _errors(alignment: Any, truths: list[np.ndarray]) -> dict[str, Any]:
+    import numpy as np
+
     from inspection.views.align import pose_error
 
     e = np.array([pose_error(t, p, alignment.centre) for t, p in zip(truths, alignment.poses)])
@@ -174,6 +191,8 @@ def _errors(alignment: Any, truths: list[np.ndarray]) -> dict[str, Any]:
 
 def _miscalibrated(session: Any, tilt_deg: float, shift_mm: float) -> Any:
     """The stage model with the axis tilted and moved (what a miscalibration gives)."""
+    import numpy as np
+
     from scanner.stage_model import AxisGeometry, StageModel, rotation_about
 
     a = session.stage_model.axes[0]
@@ -195,6 +214,8 @@ def _calibrated_axis(session: Any, out: Path) -> Any:
 
 def _axis_error(model: Any, truth: Any) -> list[float]:
     """[tilt deg, distance mm from the true axis point to the line of `model`'s axis]."""
+    import numpy as np
+
     a, t = model.axes[0], truth.axes[0]
     off = a.point_mm - t.point_mm
     off -= a.direction * (a.direction @ off)
@@ -204,6 +225,8 @@ def _axis_error(model: Any, truth: Any) -> list[float]:
 def _with_priors(views: list[Any], session: Any, model: Any) -> list[Any]:
     """The views with their priors from `model` at their recorded stage positions."""
     from dataclasses import replace
+
+    import numpy as np
 
     return [replace(v, prior=np.linalg.inv(model.world_from_stage(s.position))) for v, s in zip(views, session.views)]
 
@@ -215,6 +238,7 @@ def _part_from_cad() -> np.ndarray:
 
 
 def _coverage_and_noise(whole: Any, session: Any) -> tuple[dict[str, float], dict[str, float]]:
+    import numpy as np
     from scipy.spatial import cKDTree
 
     from inspection.cad import load_cad
@@ -272,6 +296,8 @@ def _form(root: Path) -> dict[str, Any]:
 
 
 def _pairs(session: Any, truths: list[np.ndarray]) -> dict[str, Any]:
+    import numpy as np
+
     from inspection.errors import RegistrationFailed
     from inspection.measured_cloud import load_source
     from inspection.views.align import pose_error
@@ -302,6 +328,8 @@ def _pairs(session: Any, truths: list[np.ndarray]) -> dict[str, Any]:
 
 
 def _rates(errors: list[tuple[float, float] | None]) -> dict[str, Any]:
+    import numpy as np
+
     found = [e for e in errors if e is not None and e[0] <= 1.0 and e[1] <= 1.0]
     wrong = [e for e in errors if e is not None and not (e[0] <= 1.0 and e[1] <= 1.0)]
     return {"pairs": len(errors), "found": len(found), "refused": sum(e is None for e in errors),

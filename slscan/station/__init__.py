@@ -22,6 +22,10 @@ re-inspection. An application layer above every package, like the CLI.
 
 from scanner.errors import ScannerError
 
+MEASUREMENT_NAMES = ("inspection", "simulator-truth")
+"""The measuring steps a station config or `--measurement` can name (`measure.MEASUREMENTS`
+maps each to its class), here so a command line lists them without importing numpy."""
+
 
 class StationError(ScannerError):
     """Base of the station's errors: each names what failed and where (file, key, session)."""

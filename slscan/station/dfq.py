@@ -8,8 +8,13 @@ One key field per line, `Kxxxx/i value` for characteristic i (1-based), CR LF li
     K2001/i         characteristic number (its name in the program)
     K2002/i         characteristic description (kind, method, face)
     K2101/i         nominal value (0: an ideal form, or the nominal surface itself)
-    K2111/i         upper specification limit (the tolerance, mm); no lower limit is written:
-                    every figure is a zone width or a height with the natural bound 0
+    K2110/i         lower limit: 0, the natural bound of every figure here (a zone width
+                    or a height, `program.KINDS`), not a specification limit
+    K2111/i         upper specification limit (the tolerance, mm)
+    K2120/i         type of the lower limit: 2, a natural boundary (AQDEF: 0 none, 1 a
+                    specification limit, 2 a natural boundary), so capability is one-sided
+                    (Cpk from the upper limit) as for a zero-bounded figure
+    K2121/i         type of the upper limit: 1, a specification limit
     K2142/i         unit (mm)
     per value:
     K0001/i         the value (mm); a value below its detection limit is written as that limit
@@ -33,6 +38,7 @@ from slscan.station.quality import chart_series
 from slscan.station.results import ResultRow, ValueRecord
 
 USED, DEACTIVATED = 0, 255  # K0002 attributes
+SPECIFICATION_LIMIT, NATURAL_BOUNDARY = 1, 2  # K2120/K2121 limit types
 
 
 def _text(value: str) -> str:
@@ -50,7 +56,8 @@ def dfq_text(program: PartProgram, rows: Sequence[ResultRow], values: dict[int, 
     for i, c in enumerate(program.characteristics, 1):
         what = c.kind + (f" ({c.method.replace('_', ' ')})" if c.method else "")
         lines += [f"K2001/{i} {_text(c.name)}", f"K2002/{i} {_text(what)} {_text(program.face_names.get(c.face, ''))} "
-                  f"{_text(c.face)}".replace("  ", " "), f"K2101/{i} 0", f"K2111/{i} {c.tolerance_mm:g}",
+                  f"{_text(c.face)}".replace("  ", " "), f"K2101/{i} 0", f"K2110/{i} 0",
+                  f"K2111/{i} {c.tolerance_mm:g}", f"K2120/{i} {NATURAL_BOUNDARY}", f"K2121/{i} {SPECIFICATION_LIMIT}",
                   f"K2142/{i} mm"]
     n = 0
     per_part = zip(*(series[c.name] for c in program.characteristics))  # one part's points, in program order

@@ -45,6 +45,7 @@ import numpy as np
 from inspection.tolerances import DECISION_RULES
 from scanner.errors import ConfigError
 from scanner.session import Session, write_json
+from slscan.station import MEASUREMENT_NAMES
 from slscan.station.program import Characteristic, PartProgram, program_tolerances
 
 if TYPE_CHECKING:
@@ -311,9 +312,9 @@ class SimulatorTruth:
         return self.measure([v.session for v in session.views], program)
 
 
-# the measurements a station config or `--measurement` can name
-MEASUREMENTS: dict[str, type[InspectionMeasurement] | type[SimulatorTruth]] = {
-    "inspection": InspectionMeasurement, "simulator-truth": SimulatorTruth}
+# the measurements a station config or `--measurement` can name (`MEASUREMENT_NAMES`, in this order)
+MEASUREMENTS: dict[str, type[InspectionMeasurement] | type[SimulatorTruth]] = dict(zip(
+    MEASUREMENT_NAMES, (InspectionMeasurement, SimulatorTruth), strict=True))
 DEFAULT_MEASUREMENT = "inspection"
 
 

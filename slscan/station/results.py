@@ -27,6 +27,11 @@ Tables (lengths in mm, times as UTC timestamps):
               non-conforming, NULL: uncertain or not measured), points, note, u_mm (expanded uncertainty,
               k = 2), limit_mm (detection limit), decision (conforming | non-conforming | uncertain |
               not measured, ISO 14253-1), rule (the decision rule: guard-banded | plain)
+    exclusions  result_id, reason, excluded_by, excluded_at: a result the user left out of the
+              statistics (`slscan results --exclude ID=REASON`), applied to every later report and
+              export until lifted (`--include ID`); the table is made by the first writer that
+              opens the database, and a database without it has no exclusions (the schema
+              version stays: an older slscan reading the database ignores the table)
 
 Schema version 2 added `owner`, `lease_until` and the unique attempt index; version 3 the
 values' `u_mm`, `limit_mm`, `decision` and `rule`. An older database is upgraded when a
@@ -125,6 +130,12 @@ MEASURED = sa.Table(
     sa.Column("u_mm", sa.Float), sa.Column("limit_mm", sa.Float), sa.Column("decision", sa.Text),
     sa.Column("rule", sa.Text))
 _V3_VALUE_COLUMNS = ("u_mm", "limit_mm", "decision", "rule")
+EXCLUSIONS = sa.Table(
+    "exclusions", _META,
+    sa.Column("result_id", sa.BigInteger().with_variant(sa.Integer, "sqlite"),
+              sa.ForeignKey("results.id", ondelete="CASCADE"), primary_key=True),
+    sa.Column("reason", sa.Text, nullable=False), sa.Column("excluded_by", sa.Text, nullable=False),
+    sa.Column("excluded_at", UtcTime, nullable=False))
 
 
 @dataclass(frozen=True)
@@ -183,6 +194,20 @@ class ResultRow(PartStart):
     status: str = ""
     message: str = ""
     finished_at: dt.datetime | None = None
+
+
+@dataclass(frozen=True)
+class Exclusion:
+    """A result left out of the statistics by a user: why, who, when (UTC)."""
+
+    result_id: int
+    reason: str
+    excluded_by: str
+    excluded_at: dt.datetime
+
+    def shown(self) -> str:
+        """The reason with who and when, as the report and the listing show it."""
+        return f"{self.reason} ({self.excluded_by}, {self.excluded_at:%Y-%m-%d %H:%M} UTC)"
 
 
 _START_COLUMNS = [f.name for f in fields(PartStart)]
@@ -511,6 +536,30 @@ class ResultsStore:
             rec = r._asdict()
             out[int(rec.pop("result_id"))].append(ValueRecord(**rec))
         return out
+
+
+    def exclude(self, result_id: int, reason: str, by: str, at: dt.datetime | None = None) -> Exclusion:
+        """Record that result `result_id` is left out of the statistics, `by` whom and why
+        (an earlier exclusion of it is replaced); ResultsError when there is no such result."""
+        self.result(result_id)
+        done = Exclusion(result_id, reason, by, at or utcnow())
+        with self._tx() as conn:
+            conn.execute(sa.delete(EXCLUSIONS).where(EXCLUSIONS.c.result_id == result_id))
+            conn.execute(sa.insert(EXCLUSIONS).values(**asdict(done)))
+        return done
+
+    def include(self, result_id: int) -> bool:
+        """Lift the exclusion of `result_id`; whether there was one."""
+        with self._tx() as conn:
+            return conn.execute(sa.delete(EXCLUSIONS).where(EXCLUSIONS.c.result_id == result_id)).rowcount > 0
+
+    def exclusions(self) -> dict[int, Exclusion]:
+        """Every recorded exclusion by result id (none in a database that has no table yet)."""
+        with self._tx() as conn:
+            if not sa.inspect(conn).has_table(EXCLUSIONS.name):
+                return {}
+            rows = conn.execute(sa.select(EXCLUSIONS).order_by(EXCLUSIONS.c.result_id)).all()
+        return {int(r.result_id): Exclusion(**r._asdict()) for r in rows}
 
 
 def _upgrade_from_1(conn: sa.Connection) -> None:
