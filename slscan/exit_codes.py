@@ -46,6 +46,12 @@ def for_parts(statuses: Iterable[str]) -> Exit:
     return Exit.FAILED if "failed" in found else Exit.NO_DECISION if "no decision" in found else Exit.OK
 
 
+def status_of(code: Exit) -> str:
+    """The JSON `status` that says what exit `code` says (`inspection.tolerances.DECISION_STATUS`'s
+    words): "ok" 0, "failed" 1, "no decision" 4."""
+    return {Exit.OK: "ok", Exit.FAILED: "failed", Exit.NO_DECISION: "no decision"}[code]
+
+
 def for_verdict(verdict: str) -> Exit:
     """The exit code of one part's overall verdict (`inspection.tolerances.overall`), the
     same as the `status` its JSON states (`DECISION_STATUS`): conforming (or no tolerances to

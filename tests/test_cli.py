@@ -218,6 +218,7 @@ def test_the_station_exits_1_after_a_failed_part(tmp_path: Path) -> None:
                          "--json")  # the same station again, for a cell: one JSON document, the lines on stderr
     doc = json.loads(out)
     assert code == 0 and doc["counts"]["pass"] == 1 and "1 parts: 1 pass" in err
+    assert doc["status"] == "ok"  # what the exit code says
     code, out, _ = run("results", "--config", str(station_config(two)), "--json")
     stored = json.loads(out)["results"]
     assert code == 0 and [r["status"] for r in stored] == ["pass", "fail", "pass"]

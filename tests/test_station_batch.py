@@ -91,6 +91,7 @@ def test_batch_command_stores_results_and_prints_a_summary(stored: tuple[Station
     assert code == 1  # one part failed
     summary = json.loads(capsys.readouterr().out)
     assert summary["counts"] == {"pass": 2, "fail": 1, "uncertain": 0, "error": 1} and len(summary["items"]) == 4
+    assert summary["status"] == "failed"  # what the exit code says
     with open_results(config.database_url) as store:
         batch = [r for r in store.results() if r.source == "batch"]
         assert [(r.serial, r.status, r.operator) for r in batch] == [

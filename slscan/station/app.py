@@ -19,7 +19,7 @@ from typing import Any, TextIO
 
 from scanner.pipeline import Progress
 from scanner.rig import RigConfig
-from slscan.exit_codes import Exit, for_parts
+from slscan.exit_codes import Exit, for_parts, status_of
 from slscan.station import StationError
 from slscan.station.charts import ChartRecording
 from slscan.station.hardware_bench import Bench
@@ -183,7 +183,8 @@ def run_auto(run: StationRun, parts: int, out: TextIO | None = None, progress: P
     print(f"results      {run.store.where}", file=out)
     print(f"report       {run.write_report()}", file=out)
     print(f"charts       {run.report_dir / CHART_RECORDING} (written when the station closes)", file=out)
+    code = for_parts(o.status for o in outcomes) if len(outcomes) == parts else Exit.NO_DECISION
     if as_json:
-        print(json.dumps({"parts": parts, "counts": counts, "where": run.store.where,
+        print(json.dumps({"status": status_of(code), "parts": parts, "counts": counts, "where": run.store.where,
                           "results": [{**asdict(o), "expected": e} for o, e in judged]}, default=str))
-    return for_parts(o.status for o in outcomes) if len(outcomes) == parts else Exit.NO_DECISION
+    return code

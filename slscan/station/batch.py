@@ -250,7 +250,10 @@ def print_summary(summary: BatchSummary, out: TextIO | None = None, json_out: bo
     """Per-part lines, the failures, counts and wall time (or the whole summary as JSON)."""
     out = out or sys.stdout
     if json_out:
-        print(json.dumps({"program": summary.program, "where": summary.where, "wall_s": summary.wall_s,
+        from slscan.exit_codes import for_parts, status_of
+
+        print(json.dumps({"status": status_of(for_parts(i.status for i in summary.items)),
+                          "program": summary.program, "where": summary.where, "wall_s": summary.wall_s,
                           "counts": summary.counts(), "items": [asdict(i) for i in summary.items]}, indent=1),
               file=out)
         return
