@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from slscan.exit_codes import Exit
+from slscan.resident_memory import StagePeaks, resident_mib
 from slscan.options import add_json
 
 RIG = "sim_binocular.toml"
@@ -59,8 +60,9 @@ def _figures(err: np.ndarray, sigma: np.ndarray, sel: np.ndarray) -> dict[str, f
             "mean_um": float(np.mean(e) * 1e3), "bound_um": float(np.sqrt(np.mean(s ** 2)) * 1e3)}
 
 
-def _scene_run(config: Any, seed: int) -> dict[str, Any]:
-    """Both reconstructions of one fresh scene, right and wrong projector."""
+def _scene_run(config: Any, seed: int, peaks: StagePeaks) -> dict[str, Any]:
+    """Both reconstructions of one fresh scene, right and wrong projector; each stage's peak
+    resident memory into `peaks`."""
     from scanner.binocular import BinocularReconstructor
     from scanner.decode import decode
     from scanner.patterns import PatternSet
@@ -77,7 +79,9 @@ def _scene_run(config: Any, seed: int) -> dict[str, Any]:
     stereo = config.stereo_model(nominal=True)
     bino = BinocularReconstructor(stereo)
     out: dict[str, Any] = {"seed": seed}
-    with open_sim_rig(config, scene=random_scene(rng), seed=int(rng.integers(2 ** 31))) as rig:
+    with peaks.stage("render scene"):
+        rig = open_sim_rig(config, scene=random_scene(rng), seed=int(rng.integers(2 ** 31)))
+    with rig:
         truths = rig.extras["ground_truths"]
         sensor = rig.extras["renderers"]["left"].sensor
         gt = Truth.of(truths["left"])
@@ -85,12 +89,16 @@ def _scene_run(config: Any, seed: int) -> dict[str, Any]:
         bits = rig.camera.bit_depth
         for case, gamma, model in (("true projector", left_model.projector_gamma, left_model),
                                    ("wrong projector", WRONG_GAMMA, replace(left_model, projector=wrong_projector))):
-            stacks = _capture(rig, patterns, gamma)
+            with peaks.stage("capture"):
+                stacks = _capture(rig, patterns, gamma)
             size = left_model.projector.size
-            decoded = {n: decode(s, patterns, bits, size) for n, s in stacks.items()}
-            b = bino.reconstruct(decoded["left"], decoded["right"])
+            with peaks.stage("decode"):
+                decoded = {n: decode(s, patterns, bits, size) for n, s in stacks.items()}
+            with peaks.stage("binocular"):
+                b = bino.reconstruct(decoded["left"], decoded["right"])
             tri = Triangulator(model)
-            mono = triangulate(decoded["left"], tri)
+            with peaks.stage("monocular"):
+                mono = triangulate(decoded["left"], tri)
             err_b = b.cloud.points[..., 2] - gt.depth
             err_m = mono.points[..., 2] - gt.depth
             bound_m = depth_noise_bound(decoded["left"], Triangulator(left_model), sensor)
@@ -224,16 +232,22 @@ def run_binobench(scenes: int, seed: int | None, repeats: int, *, imports: int =
     say(f"binobench: root seed {root.entropy}")
     runs = []
     stacks = None
+    peaks = StagePeaks()
     for k, child in enumerate(root.spawn(scenes)):
         s = int(child.generate_state(1)[0])
-        r = _scene_run(config, s)
+        stacks = None  # the last scene's frames go to the timing; no earlier scene's are kept
+        r = _scene_run(config, s, peaks)
         stacks = r.pop("stacks")
+        r["resident_mib_after"] = round(resident_mib(), 1)
         runs.append(r)
         for case in ("true projector", "wrong projector"):
             b, m = r[case]["binocular"], r[case]["monocular"]
             say(f"scene {k} (seed {s}) {case}: binocular {b['rms_um']:.1f} um (bound {b['bound_um']:.1f}), "
                 f"monocular {m['rms_um']:.1f} um (bound {m['bound_um']:.1f}) over {b['pixels']} px; beyond 5 sigma "
                 f"{b['beyond_5_sigma']} / {m['beyond_5_sigma']}; points {b['points']} / {m['points']}")
+        say(f"scene {k}: peak resident memory so far by stage (MiB): "
+            + ", ".join(f"{n} {v:.0f}" for n, v in peaks.peaks.items())
+            + f"; resident after {r['resident_mib_after']:.0f}")
     timing = _timing(config, stacks, repeats) if repeats > 0 and stacks is not None else None
     if timing:
         say(f"timing: binocular {timing['binocular_s']} s, monocular {timing['monocular_s']} s, ratio "
@@ -252,7 +266,7 @@ def run_binobench(scenes: int, seed: int | None, repeats: int, *, imports: int =
                 f"{f['mean_um']:+.2f} um; points {f['points']} of {f['lit_left_pixels']} lit; beyond 5 sigma "
                 f"{f['beyond_5_sigma']}, over 1 mm {f['over_1_mm']}"))
     return {"rig": str(config.path), "root_seed": root.entropy, "scenes": runs, "timing": timing,
-            "imports": imported}
+            "imports": imported, "peak_resident_mib": peaks.peaks}
 
 
 def cmd_binobench(args: argparse.Namespace) -> int:
