@@ -5,6 +5,9 @@ included), not the run's."""
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import gc
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -26,6 +29,20 @@ def _status_mib(key: str) -> float:
 def resident_mib() -> float:
     """The resident set now (MiB; NaN where /proc is not there)."""
     return _status_mib("VmRSS")
+
+
+def release_memory() -> None:
+    """Give what the process no longer uses back to the system: collect the reference cycles
+    (a closed simulated rig's renderers wait in them for the cyclic collector), then ask glibc to
+    return its arenas' free pages (`malloc_trim`: without it a closed 1.3 MP binocular scene left
+    ~0.7 GB resident, freed but kept by the allocator, and a run of scenes grew by ~0.9 GB each)."""
+    gc.collect()
+    name = ctypes.util.find_library("c")
+    if name:
+        try:
+            ctypes.CDLL(name).malloc_trim(0)
+        except (OSError, AttributeError):  # not glibc
+            pass
 
 
 class StagePeaks:

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from slscan.exit_codes import Exit
-from slscan.resident_memory import StagePeaks, resident_mib
+from slscan.resident_memory import StagePeaks, release_memory, resident_mib
 from slscan.options import add_json
 
 RIG = "sim_binocular.toml"
@@ -64,10 +64,8 @@ def _scene_run(config: Any, seed: int, peaks: StagePeaks) -> dict[str, Any]:
     """Both reconstructions of one fresh scene, right and wrong projector; each stage's peak
     resident memory into `peaks`."""
     from scanner.binocular import BinocularReconstructor
-    from scanner.decode import decode
     from scanner.patterns import PatternSet
-    from scanner.reconstruct import Triangulator, triangulate
-    from sim.evaluate import Truth, depth_noise_bound, smooth_region
+    from sim.evaluate import Truth, smooth_region
     from sim.stereo_truth import random_scene, seen_by
     from sim.virtual_rig import open_sim_rig
 
@@ -83,38 +81,48 @@ def _scene_run(config: Any, seed: int, peaks: StagePeaks) -> dict[str, Any]:
         rig = open_sim_rig(config, scene=random_scene(rng), seed=int(rng.integers(2 ** 31)))
     with rig:
         truths = rig.extras["ground_truths"]
-        sensor = rig.extras["renderers"]["left"].sensor
         gt = Truth.of(truths["left"])
         both = smooth_region(gt) & seen_by(truths["left"], truths["right"])
-        bits = rig.camera.bit_depth
         for case, gamma, model in (("true projector", left_model.projector_gamma, left_model),
                                    ("wrong projector", WRONG_GAMMA, replace(left_model, projector=wrong_projector))):
-            with peaks.stage("capture"):
-                stacks = _capture(rig, patterns, gamma)
-            size = left_model.projector.size
-            with peaks.stage("decode"):
-                decoded = {n: decode(s, patterns, bits, size) for n, s in stacks.items()}
-            with peaks.stage("binocular"):
-                b = bino.reconstruct(decoded["left"], decoded["right"])
-            tri = Triangulator(model)
-            with peaks.stage("monocular"):
-                mono = triangulate(decoded["left"], tri)
-            err_b = b.cloud.points[..., 2] - gt.depth
-            err_m = mono.points[..., 2] - gt.depth
-            bound_m = depth_noise_bound(decoded["left"], Triangulator(left_model), sensor)
-            sel = both & b.cloud.valid & mono.valid
-            out[case] = {
-                "binocular": _figures(err_b, b.depth_sigma_mm, sel) | {
-                    "beyond_5_sigma": int((b.cloud.valid & ~(np.abs(err_b) <= 5 * b.depth_sigma_mm)).sum()),
-                    "over_1_mm": int((b.cloud.valid & ~(np.abs(err_b) <= 1.0)).sum()),
-                    "points": int(b.cloud.valid.sum()), "checks": b.checks},
-                "monocular": _figures(err_m, bound_m, sel) | {
-                    "beyond_5_sigma": int((mono.valid & ~(np.abs(err_m) <= 5 * bound_m)).sum()),
-                    "over_1_mm": int((mono.valid & ~(np.abs(err_m) <= 1.0)).sum()),
-                    "points": int(mono.valid.sum())},
-                "lit_left_pixels": int(gt.lit.sum())}
-        out["stacks"] = stacks
+            out.pop("stacks", None)
+            out[case], out["stacks"] = _case(rig, patterns, gamma, model, bino, gt, both, peaks)
+        out["lit_left_pixels"] = int(gt.lit.sum())
     return out
+
+
+def _case(rig: Any, patterns: Any, gamma: float, model: Any, bino: Any, gt: Any, both: np.ndarray,
+          peaks: StagePeaks) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """One scan of the open scene with the projector compensated for `gamma`, reconstructed
+    binocularly and monocularly with `model`: the figures, and the frames (the case's arrays
+    are freed on return: the next case never holds two scans' worth)."""
+    from scanner.decode import decode
+    from scanner.reconstruct import Triangulator, triangulate
+    from sim.evaluate import depth_noise_bound
+
+    left_model = rig.config.camera_models()["left"]
+    sensor = rig.extras["renderers"]["left"].sensor
+    with peaks.stage("capture"):
+        stacks = _capture(rig, patterns, gamma)
+    size = left_model.projector.size
+    with peaks.stage("decode"):
+        decoded = {n: decode(s, patterns, rig.camera.bit_depth, size) for n, s in stacks.items()}
+    with peaks.stage("binocular"):
+        b = bino.reconstruct(decoded["left"], decoded["right"])
+    with peaks.stage("monocular"):
+        mono = triangulate(decoded["left"], Triangulator(model))
+    err_b = b.cloud.points[..., 2] - gt.depth
+    err_m = mono.points[..., 2] - gt.depth
+    bound_m = depth_noise_bound(decoded["left"], Triangulator(left_model), sensor)
+    sel = both & b.cloud.valid & mono.valid
+    return {"binocular": _figures(err_b, b.depth_sigma_mm, sel) | {
+                "beyond_5_sigma": int((b.cloud.valid & ~(np.abs(err_b) <= 5 * b.depth_sigma_mm)).sum()),
+                "over_1_mm": int((b.cloud.valid & ~(np.abs(err_b) <= 1.0)).sum()),
+                "points": int(b.cloud.valid.sum()), "checks": b.checks},
+            "monocular": _figures(err_m, bound_m, sel) | {
+                "beyond_5_sigma": int((mono.valid & ~(np.abs(err_m) <= 5 * bound_m)).sum()),
+                "over_1_mm": int((mono.valid & ~(np.abs(err_m) <= 1.0)).sum()),
+                "points": int(mono.valid.sum())}}, stacks
 
 
 def _timing(config: Any, stacks: dict[str, np.ndarray], repeats: int) -> dict[str, Any]:
@@ -238,6 +246,7 @@ def run_binobench(scenes: int, seed: int | None, repeats: int, *, imports: int =
         stacks = None  # the last scene's frames go to the timing; no earlier scene's are kept
         r = _scene_run(config, s, peaks)
         stacks = r.pop("stacks")
+        release_memory()  # the scene's rig and arrays, before the next scene is built
         r["resident_mib_after"] = round(resident_mib(), 1)
         runs.append(r)
         for case in ("true projector", "wrong projector"):
