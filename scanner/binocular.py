@@ -312,12 +312,15 @@ class _Rows:
         x; the interval's step (projector px per px) and the noise interpolated at the match."""
         count, n_lo, n_hi = self._counts(c, rows)
         unique = count == 1
-        a_flat, b_flat = self.c[:, :-1].ravel(), self.c[:, 1:].ravel()
+        flat, width = self.c.ravel(), self.c.shape[1]  # interval k joins grid samples p(k) and p(k) + 1
+
+        def ends(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            p = k + k // (width - 1)
+            return flat[p], flat[p + 1]
 
         def holds(k: np.ndarray) -> np.ndarray:
-            kk = np.maximum(k, 0)
-            lo_v, hi_v = np.minimum(a_flat[kk], b_flat[kk]), np.maximum(a_flat[kk], b_flat[kk])
-            return (k >= 0) & (lo_v <= c) & (c < hi_v)
+            a, b = ends(np.maximum(k, 0))
+            return (k >= 0) & (np.minimum(a, b) <= c) & (c < np.maximum(a, b))
 
         if not self.lo.size:
             none = np.full(c.shape, -1)
@@ -328,10 +331,11 @@ class _Rows:
         second = np.where(unique, self.hi_index[np.minimum(n_hi, len(self.hi_index) - 1)], -1)
         k = np.where(holds(first), first, np.where(holds(second), second, -1))
         kk = np.maximum(k, 0)
-        a, b = a_flat[kk], b_flat[kk]
+        a, b = ends(kk)
         u = (c - a) / (b - a)
-        s_a, s_b = self.sigma[:, :-1].ravel()[kk], self.sigma[:, 1:].ravel()[kk]
-        return count, k, (kk % (self.c.shape[1] - 1)) + u, b - a, (1 - u) * s_a + u * s_b
+        p = kk + kk // (width - 1)
+        sigma = self.sigma.ravel()
+        return count, k, (kk % (width - 1)) + u, b - a, (1 - u) * sigma[p] + u * sigma[p + 1]
 
 
 @dataclass(frozen=True, eq=False)
