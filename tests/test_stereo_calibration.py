@@ -307,3 +307,59 @@ def test_calibrate_from_a_two_camera_capture(solved: tuple, tmp_path: Path) -> N
     refused = tmp_path / "refused"
     assert main(["calibrate", "--from", str(mixed), "--out", str(refused)]) == 2
     assert f"pose {len(poses) // 2}:" in (refused / "rejected.txt").read_text()
+
+
+def _corrupted(views: list, board: Board, rng: np.random.Generator, noise_px: float) -> tuple[list, int, str]:
+    """`views` with one random pose's view in one camera corrupted one of three ways: a corner
+    moved 3-15 px, a board row moved 1 px, or every corner with `noise_px` of noise per axis."""
+    pose, camera = int(rng.integers(len(views))), int(rng.integers(2))
+    view = views[pose][camera]
+    img = view.image_points.copy()
+    kind = ["corner", "row", "noise"][int(rng.integers(3))]
+    turn = rng.uniform(0, 2 * np.pi)
+    if kind == "corner":
+        img[rng.integers(len(img))] += rng.uniform(3, 15) * np.array([np.cos(turn), np.sin(turn)])
+    elif kind == "row":
+        y = np.round(view.object_points[:, 1], 6)
+        img[y == rng.choice(np.unique(y))] += np.array([np.cos(turn), np.sin(turn)])
+    else:
+        img += rng.normal(0, noise_px, img.shape)
+    bad = list(views)
+    bad[pose] = tuple(ViewPoints(view.object_points, img) if k == camera else v for k, v in enumerate(views[pose]))
+    return bad, pose, kind
+
+
+@pytest.mark.slow
+def test_pose_gate_on_fresh_captures(tmp_path: Path) -> None:
+    """The pose gate's two error rates on 20 fresh simulated captures (seeds printed): each as
+    captured (a refusal is a false one; the gate's model allows 0.1 % per calibration, so one in
+    20 would already be a 2 % event) and with one pose corrupted (`_corrupted`; noise 8 x the
+    median pose's RMS): the corrupted pose, and only it, must be refused."""
+    board = Board.load(BOARD)
+    root = np.random.SeedSequence()
+    print(f"root seed {root.entropy}")
+    refused, missed = [], []
+    for child in root.spawn(20):
+        seed = int(child.generate_state(1)[0] % 2 ** 31)
+        config = RigConfig.load(binocular_rig(tmp_path, 640, 512))
+        left = config.camera_models()["left"].camera
+        footprint = config.working_distance_mm / left.K[0, 0]
+        target = Target(board.image(board.texture_density(4.0 / footprint)), board.size_mm, board.image_origin_mm,
+                        board.object_points())
+        poses = plan_stereo_poses(config, target, 10, seed)
+        with open_rig(config, scene=plate_scene(600.0), seed=seed) as rig:
+            views = capture_board_views(rig, StereoSimBench(rig, target, poses), board, len(poses),
+                                        tmp_path / str(seed), lambda s: None)
+        sizes = (left.size, left.size)
+        gate, cal = gated_stereo_calibration(views, sizes, symmetries=board.symmetries())
+        if gate.failures:
+            refused.append((seed, gate.poses))
+        noise = 8 * float(np.median(list(cal.report()["per_view_rms_px"].values()))) / np.sqrt(2)
+        bad, pose, kind = _corrupted(views, board, np.random.default_rng(seed), noise)
+        gate, _ = gated_stereo_calibration(bad, sizes, symmetries=board.symmetries())
+        print(f"seed {seed}: clean refused {refused[-1][1] if refused and refused[-1][0] == seed else []}; "
+              f"pose {pose} {kind}: refused {gate.poses}")
+        if gate.poses != [pose]:
+            missed.append((seed, pose, kind, gate.poses))
+    assert len(refused) <= 1, refused
+    assert not missed, missed
