@@ -1,15 +1,15 @@
-"""Which board poses a calibration must not keep: each pose left out in turn, the rig solved
-from the others, and the pose's residuals under that solve judged against the other poses', one
-test per residual group (a device's x or y axis), at a stated chance of refusing a good calibration.
+"""Which board poses a calibration must not keep: each pose's residuals against the other poses'
+residuals in the solve without it (leave-one-out), one test per residual group (a device's x or y
+axis), at a stated chance of refusing a good calibration.
 
-The model: a pose's residuals in group g are Gaussian with a variance of its own; the detector's
-noise level differs from pose to pose (the board's tilt, blur, vignetting and place in the image:
-on the simulated stereo bench a good pose's RMS is 0.5-2.5 x the median pose's), so the poses' log
-mean squares x_vg = ln(SS_vg / d_vg) (SS the sum of squares, d its degrees of freedom) are taken as
-normal across poses, mean and spread unknown. The pose left out is placed by its first device's
-points alone (its board pose, 6 parameters, with the intrinsics and extrinsics of the solve without
-it), so its residuals are the solve's prediction; the others' d is their rows' share of the solve's
-redundancy. Estimated from the other n poses, a good pose's x_vg lies above their mean by
+The model: a pose's residuals in group g are Gaussian with a variance of its own. A corner's error
+scales inversely with the board's size in the image (on the simulated stereo bench a pose's RMS times
+its corner spacing s is 104-126 px² over spacings of 12-30 px), and what is left differs from pose to
+pose (tilt, blur, vignetting), so the poses' scaled log mean squares x_vg = ln(SS_vg / d_vg · s_vg²)
+(SS the sum of squares, d its degrees of freedom: its rows' share of the solve's redundancy) are
+taken as normal across poses, mean and spread unknown. The pose under test keeps its x_vg from the
+solve that includes it; the other n poses' come from the solve without it, so an error in the pose
+under test cannot raise them. A good pose's x_vg then lies above their mean by
 (x_vg - mean) / (sd·√(1 + 1/n)), a Student t with n - 1 degrees of freedom (the prediction interval
 of a normal sample). A pose whose t exceeds the point a good pose exceeds with probability
 α / (poses x groups) fails (Bonferroni): a calibration whose poses all follow the model is refused
@@ -19,23 +19,23 @@ gross failures are caught (t limit 28 sd with 5 poses, 8.6 with 9, 7.3 with 11).
 Why leave the pose out: a pose the detector got wrong (a corner found pixels off, corners
 mislabelled, a reflection) bends the fit towards it, which spreads its error over the other poses
 and hides it: one corner 14 px off among eleven poses of 63 moved the simulated stereo bench's
-principal points by 13-62 px and raised another pose's RMS twentyfold. Poses are tried worst first
-(by the full solve's residuals) until one passes; a pose that fails leaves every later solve, so a
+principal points by 13-62 px and raised another pose's RMS fiftyfold. Its own residuals are not
+predicted from the solve without it: a pose alone in a corner of the image carries the lens's
+distortion there, and its prediction's error is not the detector's. Poses are tried worst first (by
+the solve's scaled residuals) until one passes; a pose that fails leaves every later solve, so a
 second bad pose cannot hide behind the first.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.stats import t as student
 
-from calibration.intrinsics import ViewPoints, pose_matrix
+from calibration.intrinsics import ViewPoints
 from calibration.stereo import WEIGHT_GROUPS, StereoCalibration
-from scanner.geometry import Pinhole
 
 FALSE_REFUSAL = 1e-3  # the chance that a calibration whose every pose follows the model is refused
 
@@ -43,7 +43,7 @@ FALSE_REFUSAL = 1e-3  # the chance that a calibration whose every pose follows t
 @dataclass(frozen=True)
 class PoseFailure:
     """One pose that fails the gate: `pose` (index into the poses tested), `group` (e.g.
-    'left x'), its residual RMS `rms_px` and the RMS the other poses' noise predicts for it
+    'left x'), its residuals' RMS per degree of freedom `rms_px` and the one the other poses' predict
     `expected_px` (px), `limit_px` the RMS above which it fails, and the chance `p_value` of a
     ratio this large for a good pose."""
 
@@ -116,12 +116,10 @@ def _t_test(others: np.ndarray, value: float, level: float) -> tuple[float, floa
 
 
 def pose_gate(views: list[tuple[ViewPoints, ViewPoints]], solve: Callable[[list[int]], StereoCalibration],
-              devices: tuple[str, str] = ("camera", "projector"), *, turns: Sequence[np.ndarray] = (),
-              alpha: float = FALSE_REFUSAL) -> PoseGate:
+              devices: tuple[str, str] = ("camera", "projector"), *, alpha: float = FALSE_REFUSAL) -> PoseGate:
     """The gate (module docstring) on `views` (per pose, the first and the second device's points);
     `solve(kept)` is the joint solve (`calibration.stereo.joint_refine`) from the poses `kept`
-    (indices into `views`, ascending), its residuals in that order; `devices` name the groups;
-    `turns` the board's symmetries the second device's labels may be turned by (two cameras)."""
+    (indices into `views`, ascending), its residuals in that order; `devices` name the groups."""
     names = [f"{d} {axis}" for d in devices for axis in ("x", "y")]
     tests = 2 * sum(len(a) > 0 for a, _ in views) + 2 * sum(len(b) > 0 for _, b in views)
     level = alpha / max(tests, 1)

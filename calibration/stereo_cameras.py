@@ -143,7 +143,7 @@ def gated_stereo_calibration(views: list[tuple[ViewPoints | None, ViewPoints | N
         cal = solved[tuple(kept)] = calibrate_stereo_cameras(pick, sizes, names, fix_k3, symmetries=symmetries)
         return cal.joint
 
-    gate = pose_gate([views[i] for i in both], solve, names, turns=symmetries, alpha=alpha)  # type: ignore[misc]
+    gate = pose_gate([views[i] for i in both], solve, names, alpha=alpha)  # type: ignore[arg-type]
     failed = set(gate.poses)
     final = tuple(k for k in range(len(both)) if k not in failed)
     if final not in solved:

@@ -20,6 +20,7 @@ from calibration.board import Board
 from calibration.capture import WHITE
 from calibration.detect import detect
 from calibration.errors import CalibrationError
+from calibration.store import CAPTURE_FILE, read_manifest
 from calibration.intrinsics import ViewPoints
 from scanner.acquisition import AcquisitionSettings, acquire_images_from
 from scanner.devices import TriggerMode, TriggerType
@@ -69,8 +70,6 @@ def is_stereo_capture(root: Path) -> bool:
     frame per camera and no single-camera capture's manifest)."""
     if (root / STEREO_CAPTURE_FILE).is_file():
         return True
-    from calibration.store import CAPTURE_FILE
-
     first = sorted(root.glob("pose_*"))
     return not (root / CAPTURE_FILE).exists() and bool(first) and len(list(first[0].glob("*.png"))) >= 2
 
@@ -85,13 +84,7 @@ def open_stereo_capture(root: Path, *, board: Board | None = None, names: tuple[
     path = root / STEREO_CAPTURE_FILE
     manifest: dict[str, Any] = {}
     if path.is_file():
-        try:
-            manifest = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise CalibrationError(f"{path}: unreadable: {exc}") from None
-        if manifest.get("format") != STEREO_CAPTURE_FORMAT or manifest.get("version") != STEREO_CAPTURE_VERSION:
-            raise CalibrationError(f"{path}: format {manifest.get('format')!r} version {manifest.get('version')!r}; "
-                                   f"this slscan reads {STEREO_CAPTURE_FORMAT!r} version {STEREO_CAPTURE_VERSION}")
+        manifest = read_manifest(path, STEREO_CAPTURE_FORMAT, STEREO_CAPTURE_VERSION)
     found = sorted(p.stem for p in poses[0].glob("*.png"))
     order = tuple(manifest.get("cameras", ())) or names
     if not order or not set(order) <= set(found):

@@ -31,6 +31,17 @@ from sim.stereo_bench import StereoSimBench, binocular_rig, plan_stereo_poses
 BOARD = CONFIG_DIR / "boards" / "sim_chess_9x7.toml"
 
 
+def _capture(config: RigConfig, board: Board, seed: int, folder: Path) -> list:
+    """Ten planned board poses (those the projector lights) captured by the simulated cameras."""
+    left = config.camera_models()["left"].camera
+    footprint = config.working_distance_mm / left.K[0, 0]
+    target = Target(board.image(board.texture_density(4.0 / footprint)), board.size_mm, board.image_origin_mm,
+                    board.object_points())
+    poses = plan_stereo_poses(config, target, 10, seed)
+    with open_rig(config, scene=plate_scene(600.0), seed=seed) as rig:
+        return capture_board_views(rig, StereoSimBench(rig, target, poses), board, len(poses), folder, lambda s: None)
+
+
 @pytest.fixture(scope="module")
 def solved(tmp_path_factory: pytest.TempPathFactory) -> tuple:
     tmp = tmp_path_factory.mktemp("stereo_cal")
@@ -39,13 +50,7 @@ def solved(tmp_path_factory: pytest.TempPathFactory) -> tuple:
     print(f"seed {seed}")
     board = Board.load(BOARD)
     left = config.camera_models()["left"].camera
-    footprint = config.working_distance_mm / left.K[0, 0]
-    target = Target(board.image(board.texture_density(4.0 / footprint)), board.size_mm, board.image_origin_mm,
-                    board.object_points())
-    poses = plan_stereo_poses(config, target, 10, seed)
-    with open_rig(config, scene=plate_scene(600.0), seed=seed) as rig:
-        views = capture_board_views(rig, StereoSimBench(rig, target, poses), board, len(poses), tmp / "capture",
-                                    lambda s: None)
+    views = _capture(config, board, seed, tmp / "capture")
     cal = calibrate_stereo_cameras(views, (left.size, left.size), ("left", "right"), symmetries=board.symmetries())
     print(f"right labels turned in poses {cal.turned}")
     return config, cal, views, tmp / "capture"
@@ -343,13 +348,7 @@ def test_pose_gate_on_fresh_captures(tmp_path: Path) -> None:
         seed = int(child.generate_state(1)[0] % 2 ** 31)
         config = RigConfig.load(binocular_rig(tmp_path, 640, 512))
         left = config.camera_models()["left"].camera
-        footprint = config.working_distance_mm / left.K[0, 0]
-        target = Target(board.image(board.texture_density(4.0 / footprint)), board.size_mm, board.image_origin_mm,
-                        board.object_points())
-        poses = plan_stereo_poses(config, target, 10, seed)
-        with open_rig(config, scene=plate_scene(600.0), seed=seed) as rig:
-            views = capture_board_views(rig, StereoSimBench(rig, target, poses), board, len(poses),
-                                        tmp_path / str(seed), lambda s: None)
+        views = _capture(config, board, seed, tmp_path / str(seed))
         sizes = (left.size, left.size)
         gate, cal = gated_stereo_calibration(views, sizes, symmetries=board.symmetries())
         if gate.failures:
