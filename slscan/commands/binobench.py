@@ -14,6 +14,9 @@ each run on fresh random scenes (`sim.stereo_truth.random_scene`; the seeds are 
                at once, as `slscan` does) beside one monocular decode + triangulation of the left
                frames, medians of --repeats, with the peak traced memory of each and the load
                average before and after
+    memory     each stage's peak resident memory (render scene, capture, decode, binocular, monocular:
+               the process's high-water mark reset at the stage's start, so what earlier stages still
+               hold is in it) and the resident set after each scene, its rig and arrays released
 
     import     a capture made as SLMaster makes one (its 12-step + complementary Gray-code rows on a
                1920 x 1080 projector, no gamma pre-compensation, 8-bit BMP) with its stereo caliInfo.yml,
