@@ -34,3 +34,14 @@ class CalibrationRejected(CalibrationError):
     def __init__(self, problem: str, blame: list[int] | None = None) -> None:
         super().__init__(problem)
         self.blame = list(blame or [])
+
+
+class PoseRefused(CalibrationError):
+    """A board pose whose residuals the other poses' noise cannot explain (`calibration.pose_gate`):
+    the capture is refused as input (a detection gone wrong), not saved as a calibration.
+
+    `poses` lists the failing poses (indices into the capture), worst first."""
+
+    def __init__(self, problem: str, poses: list[int]) -> None:
+        super().__init__(problem)
+        self.poses = list(poses)

@@ -13,14 +13,15 @@ orientation's check allows for (scanner/binocular.py).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
 import cv2
 import numpy as np
 
 from calibration.errors import NotEnoughData
-from calibration.intrinsics import DeviceCalibration, ViewPoints, calibrate_device, outlier_views
+from calibration.intrinsics import DeviceCalibration, ViewPoints, calibrate_device
+from calibration.pose_gate import FALSE_REFUSAL, PoseGate, pose_gate
 from calibration.stereo import RIG_PARAMETERS, StereoCalibration, initial_extrinsics, joint_refine
 from scanner.binocular import Rectification, StereoModel
 
@@ -41,12 +42,6 @@ class StereoCameraCalibration:
     views: list[int]
     epipolar_px: np.ndarray
     turned: list[int]
-
-    def outliers(self, factor: float) -> list[int]:
-        """Board poses (indices into the capture) whose joint RMS in either camera exceeds
-        `factor` times the median pose's (`calibration.intrinsics.outlier_views`), worst first."""
-        worst = np.maximum(self.joint.per_view_rms_px("camera"), self.joint.per_view_rms_px("projector"))
-        return [self.views[i] for i in outlier_views(worst, factor)]
 
     @property
     def epipolar_rms_px(self) -> float:
@@ -131,6 +126,29 @@ def agree_labels(left_poses: np.ndarray, right_poses: np.ndarray,
     total = np.take_along_axis(angle, choice[..., None], axis=2)[..., 0].sum(axis=1)
     pick = choice[int(total.argmin())]
     return poses[np.arange(len(pick)), pick], pick.tolist()
+
+
+def gated_stereo_calibration(views: list[tuple[ViewPoints | None, ViewPoints | None]],
+                             sizes: tuple[tuple[int, int], tuple[int, int]], names: tuple[str, str] = ("left", "right"),
+                             fix_k3: bool = False, *, symmetries: Sequence[np.ndarray] = (),
+                             alpha: float = FALSE_REFUSAL) -> tuple[PoseGate, StereoCameraCalibration]:
+    """`calibration.pose_gate` on the poses both cameras saw (`calibrate_stereo_cameras`' arguments),
+    its failures' `pose` indices into `views`, and the calibration without the poses that fail."""
+    both = [i for i, (a, b) in enumerate(views) if a is not None and b is not None]
+    solved: dict[tuple[int, ...], StereoCameraCalibration] = {}
+
+    def solve(kept: list[int]) -> StereoCalibration:
+        chosen = {both[k] for k in kept}
+        pick = [v if i in chosen or i not in both else (None, None) for i, v in enumerate(views)]
+        cal = solved[tuple(kept)] = calibrate_stereo_cameras(pick, sizes, names, fix_k3, symmetries=symmetries)
+        return cal.joint
+
+    gate = pose_gate([views[i] for i in both], solve, names, alpha=alpha)  # type: ignore[arg-type]
+    failed = set(gate.poses)
+    final = tuple(k for k in range(len(both)) if k not in failed)
+    if final not in solved:
+        solve(list(final))
+    return replace(gate, failures=tuple(replace(f, pose=both[f.pose]) for f in gate.failures)), solved[final]
 
 
 def calibrate_stereo_cameras(views: list[tuple[ViewPoints | None, ViewPoints | None]], sizes: tuple[tuple[int, int],

@@ -143,6 +143,19 @@ class CaptureWriter:
         self._save()
 
 
+def read_manifest(path: Path, format_name: str, version: int) -> dict[str, Any]:
+    """A capture's JSON manifest, checked to be `format_name` at `version` (CalibrationError
+    naming the file otherwise)."""
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise CalibrationError(f"{path}: unreadable: {exc}") from None
+    if manifest.get("format") != format_name or manifest.get("version") != version:
+        raise CalibrationError(f"{path}: format {manifest.get('format')!r} version {manifest.get('version')!r}; "
+                               f"this slscan reads {format_name!r} version {version}")
+    return manifest
+
+
 @dataclass(frozen=True, eq=False)
 class CaptureSet:
     """A capture folder written by `CaptureWriter`, read back."""
@@ -157,14 +170,7 @@ class CaptureSet:
         if not path.is_file():
             raise CalibrationError(f"{root}: no {CAPTURE_FILE}; not a slscan calibration capture (for captures made "
                                    f"by other tools give --layout)")
-        try:
-            manifest = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise CalibrationError(f"{path}: unreadable: {exc}") from None
-        if manifest.get("format") != CAPTURE_FORMAT or manifest.get("version") != CAPTURE_VERSION:
-            raise CalibrationError(f"{path}: format {manifest.get('format')!r} version {manifest.get('version')!r}; "
-                                   f"this slscan reads {CAPTURE_FORMAT!r} version {CAPTURE_VERSION}")
-        return cls(root, manifest)
+        return cls(root, read_manifest(path, CAPTURE_FORMAT, CAPTURE_VERSION))
 
     @property
     def board(self) -> Board:

@@ -258,6 +258,21 @@ class BinocularResult:
         return idx, self.model.right.project(pts)
 
 
+def _intervals(c: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
+    """The intervals between horizontal neighbours of `c` (Hg, Wg) that hold a change of
+    coordinate: (base, span, their flat indices into (Hg, Wg − 1), lower and upper ends as
+    keys row·span + (c − base), float64)."""
+    finite = c[np.isfinite(c)]
+    base = float(finite.min()) - 1.0 if finite.size else 0.0
+    span = float(finite.max() - base) + 2.0 if finite.size else 1.0
+    a, b = c[:, :-1], c[:, 1:]
+    step = b - a
+    idx = np.flatnonzero(np.isfinite(step) & (step != 0))
+    rows = (idx // a.shape[1]).astype(np.float64) * span - base
+    av, bv = a.ravel()[idx], b.ravel()[idx]
+    return base, span, idx, np.minimum(av, bv) + rows, np.maximum(av, bv) + rows
+
+
 @dataclass(frozen=True, eq=False)
 class _Rows:
     """The projector-coordinate intervals between horizontal neighbours of a rectified grid
@@ -277,20 +292,13 @@ class _Rows:
 
     @classmethod
     def of(cls, c: np.ndarray, sigma: np.ndarray, z: float) -> _Rows:
-        finite = c[np.isfinite(c)]
-        base = float(finite.min()) - 1.0 if finite.size else 0.0
-        span = float(finite.max() - base) + 2.0 if finite.size else 1.0
+        base, span, idx, lo, hi = _intervals(c)
         a, b = c[:, :-1], c[:, 1:]
-        step = b - a
-        ok = np.isfinite(step) & (step != 0)
-        idx = np.flatnonzero(ok)
-        gate = np.zeros(a.shape, bool)
-        gate[ok] = np.abs(step[ok]) >= np.float32(z) * np.sqrt(sigma[:, :-1][ok] ** 2 + sigma[:, 1:][ok] ** 2)
-        rows = (idx // a.shape[1]).astype(np.float64) * span - base
-        av, bv = a.ravel()[idx], b.ravel()[idx]
-        lo, hi = np.minimum(av, bv) + rows, np.maximum(av, bv) + rows
+        gate = np.zeros(a.size, bool)
+        sa, sb = sigma[:, :-1].ravel()[idx], sigma[:, 1:].ravel()[idx]
+        gate[idx] = np.abs(b.ravel()[idx] - a.ravel()[idx]) >= np.float32(z) * np.sqrt(sa * sa + sb * sb)
         order_lo, order_hi = np.argsort(lo, kind="stable"), np.argsort(hi, kind="stable")
-        return cls(c, sigma, lo[order_lo], idx[order_lo], hi[order_hi], idx[order_hi], gate.ravel(), base, span)
+        return cls(c, sigma, lo[order_lo], idx[order_lo], hi[order_hi], idx[order_hi], gate, base, span)
 
     def _counts(self, c: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         q = c.astype(np.float64) + rows.astype(np.float64) * self.span - self.base
@@ -298,22 +306,21 @@ class _Rows:
         n_hi = np.searchsorted(self.hi, q, side="right")
         return n_lo - n_hi, n_lo, n_hi
 
-    def count(self, c: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """How many intervals of row `rows` (N,) hold each coordinate `c` (N,) (lo ≤ c < hi)."""
-        return self._counts(c, rows)[0]
-
     def find(self, c: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, ...]:
         """For coordinates `c` (N,) on rows `rows` (N,): how many intervals hold each; the flat
         index of the one holding it when that is unique (else -1); the match's sub-pixel grid
         x; the interval's step (projector px per px) and the noise interpolated at the match."""
         count, n_lo, n_hi = self._counts(c, rows)
         unique = count == 1
-        a_flat, b_flat = self.c[:, :-1].ravel(), self.c[:, 1:].ravel()
+        flat, width = self.c.ravel(), self.c.shape[1]  # interval k joins grid samples p(k) and p(k) + 1
+
+        def ends(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            p = k + k // (width - 1)
+            return flat[p], flat[p + 1]
 
         def holds(k: np.ndarray) -> np.ndarray:
-            kk = np.maximum(k, 0)
-            lo_v, hi_v = np.minimum(a_flat[kk], b_flat[kk]), np.maximum(a_flat[kk], b_flat[kk])
-            return (k >= 0) & (lo_v <= c) & (c < hi_v)
+            a, b = ends(np.maximum(k, 0))
+            return (k >= 0) & (np.minimum(a, b) <= c) & (c < np.maximum(a, b))
 
         if not self.lo.size:
             none = np.full(c.shape, -1)
@@ -324,10 +331,32 @@ class _Rows:
         second = np.where(unique, self.hi_index[np.minimum(n_hi, len(self.hi_index) - 1)], -1)
         k = np.where(holds(first), first, np.where(holds(second), second, -1))
         kk = np.maximum(k, 0)
-        a, b = a_flat[kk], b_flat[kk]
+        a, b = ends(kk)
         u = (c - a) / (b - a)
-        s_a, s_b = self.sigma[:, :-1].ravel()[kk], self.sigma[:, 1:].ravel()[kk]
-        return count, k, (kk % (self.c.shape[1] - 1)) + u, b - a, (1 - u) * s_a + u * s_b
+        p = kk + kk // (width - 1)
+        sigma = self.sigma.ravel()
+        return count, k, (kk % (width - 1)) + u, b - a, (1 - u) * sigma[p] + u * sigma[p + 1]
+
+
+@dataclass(frozen=True, eq=False)
+class _Counts:
+    """The intervals of a rectified grid's rows as `_Rows` puts them on one number line, only to
+    count how many of a row hold a coordinate: the ends sorted, no indices kept."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    base: float
+    span: float
+
+    @classmethod
+    def of(cls, c: np.ndarray) -> _Counts:
+        base, span, idx, lo, hi = _intervals(c)
+        return cls(np.sort(lo, kind="stable"), np.sort(hi, kind="stable"), base, span)  # nearly sorted rows
+
+    def count(self, c: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """How many intervals of row `rows` (N,) hold each coordinate `c` (N,) (lo ≤ c < hi)."""
+        q = c.astype(np.float64) + rows.astype(np.float64) * self.span - self.base
+        return np.searchsorted(self.lo, q, side="right") - np.searchsorted(self.hi, q, side="right")
 
 
 def choose_orientation(rect: Rectification, left: CameraPhase) -> str:
@@ -367,8 +396,7 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     z_gate = float(norm.isf(GRADIENT_FALSE_ACCEPT / 2))
     grid_r = rect.right
     right_rows = _Rows.of(grid_r.resample(right.coordinate[o]), grid_r.resample(right.sigma[o]), z_gate)
-    left_c = rect.left.resample(left.coordinate[o])
-    left_rows = _Rows.of(left_c, np.zeros_like(left_c), z_gate)  # counted only: no gate, no noise needed
+    left_rows = _Counts.of(rect.left.resample(left.coordinate[o]))  # counted only: no gate, no noise needed
     shape = left.coordinate[o].shape
     pix = np.flatnonzero(np.isfinite(left.coordinate[o]))
     c = left.coordinate[o].ravel()[pix]

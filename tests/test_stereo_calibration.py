@@ -7,6 +7,7 @@ the seeds are drawn fresh and printed."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import cv2
@@ -16,7 +17,7 @@ import pytest
 from calibration.board import Board
 from calibration.intrinsics import ViewPoints
 from calibration.stereo import joint_refine
-from calibration.stereo_cameras import agree_labels, calibrate_stereo_cameras
+from calibration.stereo_cameras import agree_labels, calibrate_stereo_cameras, gated_stereo_calibration
 from calibration.stereo_capture import capture_board_views
 from scanner.binocular import StereoModel
 from scanner.config import CONFIG_DIR
@@ -30,6 +31,17 @@ from sim.stereo_bench import StereoSimBench, binocular_rig, plan_stereo_poses
 BOARD = CONFIG_DIR / "boards" / "sim_chess_9x7.toml"
 
 
+def _capture(config: RigConfig, board: Board, seed: int, folder: Path) -> list:
+    """Ten planned board poses (those the projector lights) captured by the simulated cameras."""
+    left = config.camera_models()["left"].camera
+    footprint = config.working_distance_mm / left.K[0, 0]
+    target = Target(board.image(board.texture_density(4.0 / footprint)), board.size_mm, board.image_origin_mm,
+                    board.object_points())
+    poses = plan_stereo_poses(config, target, 10, seed)
+    with open_rig(config, scene=plate_scene(600.0), seed=seed) as rig:
+        return capture_board_views(rig, StereoSimBench(rig, target, poses), board, len(poses), folder, lambda s: None)
+
+
 @pytest.fixture(scope="module")
 def solved(tmp_path_factory: pytest.TempPathFactory) -> tuple:
     tmp = tmp_path_factory.mktemp("stereo_cal")
@@ -38,23 +50,17 @@ def solved(tmp_path_factory: pytest.TempPathFactory) -> tuple:
     print(f"seed {seed}")
     board = Board.load(BOARD)
     left = config.camera_models()["left"].camera
-    footprint = config.working_distance_mm / left.K[0, 0]
-    target = Target(board.image(board.texture_density(4.0 / footprint)), board.size_mm, board.image_origin_mm,
-                    board.object_points())
-    poses = plan_stereo_poses(config, target, 10, seed)
-    with open_rig(config, scene=plate_scene(600.0), seed=seed) as rig:
-        views = capture_board_views(rig, StereoSimBench(rig, target, poses), board, len(poses), tmp / "capture",
-                                    lambda s: None)
+    views = _capture(config, board, seed, tmp / "capture")
     cal = calibrate_stereo_cameras(views, (left.size, left.size), ("left", "right"), symmetries=board.symmetries())
     print(f"right labels turned in poses {cal.turned}")
-    return config, cal
+    return config, cal, views, tmp / "capture"
 
 
 def test_both_cameras_and_their_pose_against_the_truth(solved: tuple) -> None:
     """Every intrinsic within 4 of its reported sigmas (plus 0.05 px of detection bias) of the
     truth, the baseline and rotation within 4 sigmas, reprojection and epipolar errors at the
     detector's level."""
-    config, cal = solved
+    config, cal, *_ = solved
     truth = config.stereo_model(nominal=True)
     model = cal.model
     report = cal.report()
@@ -178,7 +184,7 @@ def test_joint_covariance_on_half_turned_boards_against_finite_differences() -> 
 
 
 def test_our_file_round_trips(solved: tuple, tmp_path: Path) -> None:
-    _, cal = solved
+    _, cal, *_ = solved
     path = write_stereo_calibration(tmp_path / "stereo_calibration.json", cal.model, cal.report())
     model, fmt = read_stereo_calibration([path], (640, 512), (640, 512))
     assert fmt == "slscan" and np.allclose(model.right_from_left, cal.model.right_from_left)
@@ -247,3 +253,112 @@ def test_contradicting_or_foreign_stereo_files_are_refused(tmp_path: Path) -> No
     mono = _write_fs(tmp_path / "mono.yml", {"cam_int": m.left.K})
     with pytest.raises(CalibrationFileError, match="none of a stereo calibration's keys"):
         read_stereo_calibration([mono], (1280, 1024), (1280, 1024))
+
+
+def _principal_point_errors(model: StereoModel, truth: StereoModel) -> np.ndarray:
+    return np.array([got.K[i, 2] - true.K[i, 2] for got, true in ((model.left, truth.left), (model.right, truth.right))
+                     for i in (0, 1)])
+
+
+def test_a_pose_found_wrong_is_refused_and_left_out(solved: tuple) -> None:
+    """The pose gate (calibration/pose_gate.py) on the simulated capture: no pose fails as captured;
+    with one corner of a random pose moved 5-15 px (a detection gone wrong) exactly that pose fails,
+    and the calibration without it has the principal points of the one without the corruption."""
+    config, cal, views, _ = solved
+    board = Board.load(BOARD)
+    size = config.camera_models()["left"].camera.size
+    gate, clean = gated_stereo_calibration(views, (size, size), symmetries=board.symmetries())
+    assert gate.failures == ()
+    rng = np.random.default_rng()
+    pose, camera = int(rng.choice(cal.views)), int(rng.integers(2))
+    view = views[pose][camera]
+    moved = view.image_points.copy()
+    moved[rng.integers(len(moved))] += rng.uniform(5, 15) * np.array([1.0, rng.uniform(-1, 1)]) / np.sqrt(2)
+    bad = list(views)
+    bad[pose] = tuple(ViewPoints(view.object_points, moved) if k == camera else v for k, v in enumerate(views[pose]))
+    print(f"pose {pose}, camera {camera}")
+    gate, dropped = gated_stereo_calibration(bad, (size, size), symmetries=board.symmetries())
+    print([f.describe(f"pose {f.pose}") for f in gate.failures])
+    assert gate.poses == [pose]
+    assert pose not in dropped.views
+    truth = config.stereo_model(nominal=True)
+    kept = calibrate_stereo_cameras(bad, (size, size), symmetries=board.symmetries())
+    print("principal point errors (px): clean", _principal_point_errors(clean.model, truth), "corrupt pose kept",
+          _principal_point_errors(kept.model, truth), "dropped", _principal_point_errors(dropped.model, truth))
+    sd = np.array([dropped.report()["std"][f"{n}.{p}"] for n in ("left", "right") for p in ("cx", "cy")])
+    assert np.all(np.abs(_principal_point_errors(dropped.model, truth)) <= 4 * sd + 0.05)
+
+
+def test_calibrate_from_a_two_camera_capture(solved: tuple, tmp_path: Path) -> None:
+    """`slscan calibrate --from DIR` on the capture the stereo calibration wrote: the same views,
+    the cameras against the simulator's truth; a capture with one pose's right frame swapped for
+    another pose's is refused (exit 2) naming that pose."""
+    from slscan.cli import main
+
+    config, cal, _, capture = solved
+    out = tmp_path / "from_disk"
+    assert main(["calibrate", "--from", str(capture), "--out", str(out)]) == 0
+    model, _ = read_stereo_calibration([out / "stereo_calibration.json"], (640, 512), (640, 512))
+    truth = config.stereo_model(nominal=True)
+    assert np.allclose(model.right_from_left, cal.model.right_from_left, atol=1e-6)
+    report = cal.report()
+    for name, got, true in (("left", model.left, truth.left), ("right", model.right, truth.right)):
+        for i, j, p in ((0, 0, "fx"), (1, 1, "fy"), (0, 2, "cx"), (1, 2, "cy")):
+            assert abs(got.K[i, j] - true.K[i, j]) <= 4 * report["std"][f"{name}.{p}"] + 0.05, (name, p)
+    mixed = tmp_path / "mixed"
+    shutil.copytree(capture, mixed)
+    poses = sorted(mixed.glob("pose_*"))
+    shutil.copy(poses[0] / "right.png", poses[len(poses) // 2] / "right.png")
+    refused = tmp_path / "refused"
+    assert main(["calibrate", "--from", str(mixed), "--out", str(refused)]) == 2
+    assert f"pose {len(poses) // 2}:" in (refused / "rejected.txt").read_text()
+
+
+def _corrupted(views: list, board: Board, rng: np.random.Generator, noise_px: float) -> tuple[list, int, str]:
+    """`views` with one random pose's view in one camera corrupted one of three ways: a corner
+    moved 3-15 px, a board row moved 1 px, or every corner with `noise_px` of noise per axis."""
+    pose, camera = int(rng.integers(len(views))), int(rng.integers(2))
+    view = views[pose][camera]
+    img = view.image_points.copy()
+    kind = ["corner", "row", "noise"][int(rng.integers(3))]
+    turn = rng.uniform(0, 2 * np.pi)
+    if kind == "corner":
+        img[rng.integers(len(img))] += rng.uniform(3, 15) * np.array([np.cos(turn), np.sin(turn)])
+    elif kind == "row":
+        y = np.round(view.object_points[:, 1], 6)
+        img[y == rng.choice(np.unique(y))] += np.array([np.cos(turn), np.sin(turn)])
+    else:
+        img += rng.normal(0, noise_px, img.shape)
+    bad = list(views)
+    bad[pose] = tuple(ViewPoints(view.object_points, img) if k == camera else v for k, v in enumerate(views[pose]))
+    return bad, pose, kind
+
+
+@pytest.mark.slow
+def test_pose_gate_on_fresh_captures(tmp_path: Path) -> None:
+    """The pose gate's two error rates on 20 fresh simulated captures (seeds printed): each as
+    captured (a refusal is a false one; the gate's model allows 0.1 % per calibration, so one in
+    20 would already be a 2 % event) and with one pose corrupted (`_corrupted`; noise 8 x the
+    median pose's RMS): the corrupted pose, and only it, must be refused."""
+    board = Board.load(BOARD)
+    root = np.random.SeedSequence()
+    print(f"root seed {root.entropy}")
+    refused, missed = [], []
+    for child in root.spawn(20):
+        seed = int(child.generate_state(1)[0] % 2 ** 31)
+        config = RigConfig.load(binocular_rig(tmp_path, 640, 512))
+        left = config.camera_models()["left"].camera
+        views = _capture(config, board, seed, tmp_path / str(seed))
+        sizes = (left.size, left.size)
+        gate, cal = gated_stereo_calibration(views, sizes, symmetries=board.symmetries())
+        if gate.failures:
+            refused.append((seed, gate.poses))
+        noise = 8 * float(np.median(list(cal.report()["per_view_rms_px"].values()))) / np.sqrt(2)
+        bad, pose, kind = _corrupted(views, board, np.random.default_rng(seed), noise)
+        gate, _ = gated_stereo_calibration(bad, sizes, symmetries=board.symmetries())
+        print(f"seed {seed}: clean refused {refused[-1][1] if refused and refused[-1][0] == seed else []}; "
+              f"pose {pose} {kind}: refused {gate.poses}")
+        if gate.poses != [pose]:
+            missed.append((seed, pose, kind, gate.poses))
+    assert len(refused) <= 1, refused
+    assert not missed, missed

@@ -14,6 +14,9 @@ each run on fresh random scenes (`sim.stereo_truth.random_scene`; the seeds are 
                at once, as `slscan` does) beside one monocular decode + triangulation of the left
                frames, medians of --repeats, with the peak traced memory of each and the load
                average before and after
+    memory     each stage's peak resident memory (render scene, capture, decode, binocular, monocular:
+               the process's high-water mark reset at the stage's start, so what earlier stages still
+               hold is in it) and the resident set after each scene, its rig and arrays released
 
     import     a capture made as SLMaster makes one (its 12-step + complementary Gray-code rows on a
                1920 x 1080 projector, no gamma pre-compensation, 8-bit BMP) with its stereo caliInfo.yml,
@@ -37,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 from slscan.exit_codes import Exit
 from slscan.options import add_json
+from slscan.resident_memory import StagePeaks, release_memory, resident_mib
 
 if TYPE_CHECKING:
     import numpy as np
@@ -62,15 +66,14 @@ def _figures(err: np.ndarray, sigma: np.ndarray, sel: np.ndarray) -> dict[str, f
             "mean_um": float(np.mean(e) * 1e3), "bound_um": float(np.sqrt(np.mean(s ** 2)) * 1e3)}
 
 
-def _scene_run(config: Any, seed: int) -> dict[str, Any]:
-    """Both reconstructions of one fresh scene, right and wrong projector."""
+def _scene_run(config: Any, seed: int, peaks: StagePeaks) -> dict[str, Any]:
+    """Both reconstructions of one fresh scene, right and wrong projector; each stage's peak
+    resident memory into `peaks`."""
     import numpy as np
 
     from scanner.binocular import BinocularReconstructor
-    from scanner.decode import decode
     from scanner.patterns import PatternSet
-    from scanner.reconstruct import Triangulator, triangulate
-    from sim.evaluate import Truth, depth_noise_bound, smooth_region
+    from sim.evaluate import Truth, smooth_region
     from sim.stereo_truth import random_scene, seen_by
     from sim.virtual_rig import open_sim_rig
 
@@ -82,36 +85,52 @@ def _scene_run(config: Any, seed: int) -> dict[str, Any]:
     stereo = config.stereo_model(nominal=True)
     bino = BinocularReconstructor(stereo)
     out: dict[str, Any] = {"seed": seed}
-    with open_sim_rig(config, scene=random_scene(rng), seed=int(rng.integers(2 ** 31))) as rig:
+    with peaks.stage("render scene"):
+        rig = open_sim_rig(config, scene=random_scene(rng), seed=int(rng.integers(2 ** 31)))
+    with rig:
         truths = rig.extras["ground_truths"]
-        sensor = rig.extras["renderers"]["left"].sensor
         gt = Truth.of(truths["left"])
         both = smooth_region(gt) & seen_by(truths["left"], truths["right"])
-        bits = rig.camera.bit_depth
         for case, gamma, model in (("true projector", left_model.projector_gamma, left_model),
                                    ("wrong projector", WRONG_GAMMA, replace(left_model, projector=wrong_projector))):
-            stacks = _capture(rig, patterns, gamma)
-            size = left_model.projector.size
-            decoded = {n: decode(s, patterns, bits, size) for n, s in stacks.items()}
-            b = bino.reconstruct(decoded["left"], decoded["right"])
-            tri = Triangulator(model)
-            mono = triangulate(decoded["left"], tri)
-            err_b = b.cloud.points[..., 2] - gt.depth
-            err_m = mono.points[..., 2] - gt.depth
-            bound_m = depth_noise_bound(decoded["left"], Triangulator(left_model), sensor)
-            sel = both & b.cloud.valid & mono.valid
-            out[case] = {
-                "binocular": _figures(err_b, b.depth_sigma_mm, sel) | {
-                    "beyond_5_sigma": int((b.cloud.valid & ~(np.abs(err_b) <= 5 * b.depth_sigma_mm)).sum()),
-                    "over_1_mm": int((b.cloud.valid & ~(np.abs(err_b) <= 1.0)).sum()),
-                    "points": int(b.cloud.valid.sum()), "checks": b.checks},
-                "monocular": _figures(err_m, bound_m, sel) | {
-                    "beyond_5_sigma": int((mono.valid & ~(np.abs(err_m) <= 5 * bound_m)).sum()),
-                    "over_1_mm": int((mono.valid & ~(np.abs(err_m) <= 1.0)).sum()),
-                    "points": int(mono.valid.sum())},
-                "lit_left_pixels": int(gt.lit.sum())}
-        out["stacks"] = stacks
+            out.pop("stacks", None)
+            out[case], out["stacks"] = _case(rig, patterns, gamma, model, bino, gt, both, peaks)
+        out["lit_left_pixels"] = int(gt.lit.sum())
     return out
+
+
+def _case(rig: Any, patterns: Any, gamma: float, model: Any, bino: Any, gt: Any, both: np.ndarray,
+          peaks: StagePeaks) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """One scan of the open scene with the projector compensated for `gamma`, reconstructed
+    binocularly and monocularly with `model`: the figures, and the frames (the case's arrays
+    are freed on return: the next case never holds two scans' worth)."""
+    from scanner.decode import decode
+    from scanner.reconstruct import Triangulator, triangulate
+    from sim.evaluate import depth_noise_bound
+
+    left_model = rig.config.camera_models()["left"]
+    sensor = rig.extras["renderers"]["left"].sensor
+    with peaks.stage("capture"):
+        stacks = _capture(rig, patterns, gamma)
+    size = left_model.projector.size
+    with peaks.stage("decode"):
+        decoded = {n: decode(s, patterns, rig.camera.bit_depth, size) for n, s in stacks.items()}
+    with peaks.stage("binocular"):
+        b = bino.reconstruct(decoded["left"], decoded["right"])
+    with peaks.stage("monocular"):
+        mono = triangulate(decoded["left"], Triangulator(model))
+    err_b = b.cloud.points[..., 2] - gt.depth
+    err_m = mono.points[..., 2] - gt.depth
+    bound_m = depth_noise_bound(decoded["left"], Triangulator(left_model), sensor)
+    sel = both & b.cloud.valid & mono.valid
+    return {"binocular": _figures(err_b, b.depth_sigma_mm, sel) | {
+                "beyond_5_sigma": int((b.cloud.valid & ~(np.abs(err_b) <= 5 * b.depth_sigma_mm)).sum()),
+                "over_1_mm": int((b.cloud.valid & ~(np.abs(err_b) <= 1.0)).sum()),
+                "points": int(b.cloud.valid.sum()), "checks": b.checks},
+            "monocular": _figures(err_m, bound_m, sel) | {
+                "beyond_5_sigma": int((mono.valid & ~(np.abs(err_m) <= 5 * bound_m)).sum()),
+                "over_1_mm": int((mono.valid & ~(np.abs(err_m) <= 1.0)).sum()),
+                "points": int(mono.valid.sum())}}, stacks
 
 
 def _timing(config: Any, stacks: dict[str, np.ndarray], repeats: int) -> dict[str, Any]:
@@ -232,16 +251,23 @@ def run_binobench(scenes: int, seed: int | None, repeats: int, *, imports: int =
     say(f"binobench: root seed {root.entropy}")
     runs = []
     stacks = None
+    peaks = StagePeaks()
     for k, child in enumerate(root.spawn(scenes)):
         s = int(child.generate_state(1)[0])
-        r = _scene_run(config, s)
+        stacks = None  # the last scene's frames go to the timing; no earlier scene's are kept
+        r = _scene_run(config, s, peaks)
         stacks = r.pop("stacks")
+        release_memory()  # the scene's rig and arrays, before the next scene is built
+        r["resident_mib_after"] = round(resident_mib(), 1)
         runs.append(r)
         for case in ("true projector", "wrong projector"):
             b, m = r[case]["binocular"], r[case]["monocular"]
             say(f"scene {k} (seed {s}) {case}: binocular {b['rms_um']:.1f} um (bound {b['bound_um']:.1f}), "
                 f"monocular {m['rms_um']:.1f} um (bound {m['bound_um']:.1f}) over {b['pixels']} px; beyond 5 sigma "
                 f"{b['beyond_5_sigma']} / {m['beyond_5_sigma']}; points {b['points']} / {m['points']}")
+        say(f"scene {k}: peak resident memory so far by stage (MiB): "
+            + ", ".join(f"{n} {v:.0f}" for n, v in peaks.peaks.items())
+            + f"; resident after {r['resident_mib_after']:.0f}")
     timing = _timing(config, stacks, repeats) if repeats > 0 and stacks is not None else None
     if timing:
         say(f"timing: binocular {timing['binocular_s']} s, monocular {timing['monocular_s']} s, ratio "
@@ -260,7 +286,7 @@ def run_binobench(scenes: int, seed: int | None, repeats: int, *, imports: int =
                 f"{f['mean_um']:+.2f} um; points {f['points']} of {f['lit_left_pixels']} lit; beyond 5 sigma "
                 f"{f['beyond_5_sigma']}, over 1 mm {f['over_1_mm']}"))
     return {"rig": str(config.path), "root_seed": root.entropy, "scenes": runs, "timing": timing,
-            "imports": imported}
+            "imports": imported, "peak_resident_mib": peaks.peaks}
 
 
 def cmd_binobench(args: argparse.Namespace) -> int:

@@ -133,6 +133,13 @@ def _calibrate(args: argparse.Namespace) -> int:
     from calibration.workflow import write_result
     from scanner.session_recording import SessionRecording
 
+    if args.source is not None and args.layout == "slscan":
+        from calibration.stereo_capture import is_stereo_capture
+
+        if is_stereo_capture(Path(args.source)):  # board poses of two cameras (calibrate_stereo writes them)
+            from slscan.commands.calibrate_stereo import cmd_calibrate_stereo_from
+
+            return cmd_calibrate_stereo_from(args, _say)
     if args.source is None:
         from scanner.rig import RigConfig
 
@@ -368,7 +375,8 @@ def register(sub: Any) -> None:
     c.add_argument("--seed", type=int, default=0, help="simulated rigs: noise and pose jitter seed")
     c.add_argument("--from", dest="source", type=Path, help="solve from captures in this folder instead of capturing")
     c.add_argument("--layout", choices=("slscan", "opencv-graycode"), default="slscan",
-                   help="--from: how the captures are laid out (default: a capture written by slscan calibrate)")
+                   help="--from: how the captures are laid out (default: a capture written by slscan calibrate, "
+                        "one camera or two)")
     c.add_argument("--projector-size", type=image_size, help="--layout opencv-graycode: projector WIDTHxHEIGHT")
     c.add_argument("--pose-folders", default="*", metavar="GLOB",
                    help="--layout opencv-graycode: the sub-folders holding one pose each (default: all)")

@@ -3,14 +3,19 @@ relative pose from board poses both see (calibration/stereo_cameras.py), written
 DIR/stereo_calibration.json (scanner/stereo_calibration_file.py) with DIR/report.txt; the board
 frames stay in DIR/capture/pose_NNN/<camera>.png.
 
-    slscan calibrate --rig RIG.toml --out DIR [--board B.toml] [--poses N] [--install]
+    slscan calibrate --rig RIG.toml --out DIR [--board B.toml] [--poses N] [--install] [--drop-outliers]
+    slscan calibrate --from DIR/capture --out DIR2   (the same solve from the frames on disk)
 
 The report gives each camera's reprojection RMS (alone and in the joint solve), the stereo RMS, the
 epipolar error (rectified row difference of every corner both cameras found: what binocular
 matching relies on), the baseline, and every parameter's one-sigma from the covariance (saved
 whole in the file). A solve whose stereo RMS exceeds --max-camera-rms (default 0.5 px) is refused.
-On a simulated rig the simulator moves the board and the report ends with the errors against its
-ground truth. The projector is not calibrated here (binocular scans do not need it).
+Every pose both cameras saw must pass `calibration.pose_gate` (its residuals against the other poses'
+noise; a calibration whose poses all follow the model is refused with probability 0.1 %): a pose that
+fails is named with its figures and the capture refused (exit 2), or with --drop-outliers left out
+and the rig solved again without it, said so. On a simulated rig the simulator moves the board and
+the report ends with the errors against its ground truth. The projector is not calibrated here
+(binocular scans do not need it).
 """
 
 from __future__ import annotations
@@ -61,27 +66,27 @@ def report_lines(cal: Any) -> list[str]:
               for n, c in ((a, cal.model.left), (b, cal.model.right)))]
 
 
-def cmd_calibrate_stereo(args: argparse.Namespace, config: Any, say: Any, texels_per_px: float) -> int:
-    """The command (module docstring); `texels_per_px`: the simulated board's print resolution at the
-    working distance (slscan/commands/calibrate.py's)."""
-    from calibration.errors import CalibrationRejected
-    from calibration.solve import CalibrationSettings
-    from calibration.stereo_cameras import calibrate_stereo_cameras
-    from calibration.stereo_capture import capture_board_views
-    from calibration.workflow import OperatorBench, Procedure
-    from scanner.rig import open_rig
-    from scanner.stereo_calibration_file import write_stereo_calibration
-
+def _out(args: argparse.Namespace) -> Path:
     out = Path(args.out)
     if out.exists() and any(out.iterdir()):
         raise ConfigError("--out", "", f"{out}: output folder exists and is not empty; choose a new --out folder")
     out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def cmd_calibrate_stereo(args: argparse.Namespace, config: Any, say: Any, texels_per_px: float) -> int:
+    """The command (module docstring); `texels_per_px`: the simulated board's print resolution at the
+    working distance (slscan/commands/calibrate.py's)."""
+    from calibration.stereo_capture import capture_board_views
+    from calibration.workflow import OperatorBench, Procedure
+    from scanner.rig import open_rig
+
+    out = _out(args)
     procedure = Procedure.for_rig(config, board=args.board, poses=args.poses)
     names = config.camera_names[:2]
     sizes = tuple(m.camera.size for m in list(config.camera_models().values())[:2])
     say(f"calibrating the cameras {names[0]} and {names[1]} of rig {config.name} ({config.driver}) with "
         f"{procedure.board.describe()}, {procedure.poses} poses -> {out}")
-    lines: list[str] = []
     if config.driver == "sim":
         from sim.calibration_bench import Target, plate_scene
         from sim.stereo_bench import StereoSimBench, plan_stereo_poses
@@ -98,37 +103,78 @@ def cmd_calibrate_stereo(args: argparse.Namespace, config: Any, say: Any, texels
         with open_rig(config) as rig:
             views = capture_board_views(rig, OperatorBench(say), procedure.board, procedure.poses, out / "capture",
                                         say)
-    cal = calibrate_stereo_cameras(views, sizes, names, fix_k3=args.fix_k3,
-                                   symmetries=procedure.board.symmetries())  # type: ignore[arg-type]
-    factor = CalibrationSettings().outlier_factor
-    outliers = cal.outliers(factor)
-    if outliers:
-        rms = cal.report()["per_view_rms_px"]
-        say(f"pose(s) {', '.join(f'{i} ({rms[i]:.3f} px)' for i in outliers)} stand out: more than {factor:g} x the "
-            f"median pose's RMS" + ("; solving again without them" if args.drop_outliers else
-                                    " (--drop-outliers solves without them)"))
-        if args.drop_outliers:
-            kept = [(None, None) if i in outliers else v for i, v in enumerate(views)]
-            cal = calibrate_stereo_cameras(kept, sizes, names, fix_k3=args.fix_k3,
-                                           symmetries=procedure.board.symmetries())  # type: ignore[arg-type]
+    truth = config.stereo_model(nominal=True) if config.driver == "sim" else None
+    return _solve_and_write(args, views, sizes, names, procedure.board, out, say, truth=truth, rig_path=config.path)
+
+
+def cmd_calibrate_stereo_from(args: argparse.Namespace, say: Any) -> int:
+    """`slscan calibrate --from DIR` on a capture of board poses seen by two cameras
+    (`calibration.stereo_capture`: as this command writes it under DIR/capture): the same solve,
+    gate and files as on the rig. A folder without its manifest needs --board and a --rig whose
+    [[cameras]] name its cameras (the first the rig's frame)."""
+    from calibration.board import Board
+    from calibration.stereo_capture import STEREO_CAPTURE_FILE, open_stereo_capture, read_board_views
+    from scanner.rig import RigConfig
+
+    source = Path(args.source)
+    names = board = None
+    if not (source / STEREO_CAPTURE_FILE).is_file():
+        config = RigConfig.load(args.rig)
+        names = tuple(config.camera_names) if len(config.cameras) >= 2 else None
+        board = Board.load(args.board) if args.board else None
+    capture = open_stereo_capture(source, board=board, names=names)
+    if len(capture.names) < 2:
+        raise ConfigError("--from", "", f"{source}: frames of one camera only; a stereo calibration needs two")
+    out = _out(args)
+    say(f"reading the stereo capture in {source} ({len(capture.poses)} poses, cameras {', '.join(capture.names)}) "
+        f"with {capture.board.describe()} -> {out}")
+    views = [v[:2] for v in read_board_views(capture, say)]
+    return _solve_and_write(args, views, capture.sizes[:2], capture.names[:2], capture.board, out, say,
+                            truth=None, rig_path=None, frames=source)
+
+
+def _solve_and_write(args: argparse.Namespace, views: list[Any], sizes: Any, names: Any, board: Any, out: Path,
+                     say: Any, *, truth: Any, rig_path: Path | None, frames: Path | None = None) -> int:
+    """The gate, the solve, the limit and the files (module docstring); `truth` the simulator's
+    stereo model (the report ends with the errors against it), `frames` where the board frames are."""
+    from calibration.errors import CalibrationRejected, PoseRefused
+    from calibration.stereo_cameras import gated_stereo_calibration
+    from scanner.stereo_calibration_file import write_stereo_calibration
+
+    frames = frames or out / "capture"
+    gate, cal = gated_stereo_calibration(views, sizes, names, fix_k3=args.fix_k3, symmetries=board.symmetries())
+    dropped: list[str] = []
+    if gate.failures:
+        figures = "; ".join(f.describe(f"pose {f.pose}") for f in gate.failures)
+        one = len(gate.failures) == 1
+        if not args.drop_outliers:
+            (out / "rejected.txt").write_text(f"{figures}\n{gate.model()}\n")
+            raise PoseRefused(f"{figures}: the board likely found wrong in {'that pose' if one else 'those poses'} (a "
+                              f"corner off, blur, glare, the board cut by the image edge); re-take "
+                              f"{'it' if one else 'them'} or solve with --drop-outliers (frames kept in {frames})",
+                              gate.poses)
+        say(f"dropped {figures}; solved again without {'it' if one else 'them'} (--drop-outliers)")
+        dropped = [f"dropped   {figures} ({gate.model()})"]
     limit = args.max_camera_rms if args.max_camera_rms is not None else 0.5
     if cal.joint.rms_px > limit:
         (out / "rejected.txt").write_text(f"stereo RMS {cal.joint.rms_px:.3f} px above {limit} px\n")
         raise CalibrationRejected(f"stereo RMS {cal.joint.rms_px:.3f} px exceeds --max-camera-rms {limit} px; the "
-                                  f"board frames are kept in {out / 'capture'}")
+                                  f"board frames are kept in {frames}")
     path = write_stereo_calibration(out / "stereo_calibration.json", cal.model, cal.report())
-    lines = report_lines(cal)
-    if config.driver == "sim":
-        lines += _truth_lines(cal, config.stereo_model(nominal=True))
+    lines = report_lines(cal) + dropped
+    if truth is not None:
+        lines += _truth_lines(cal, truth)
     (out / "report.txt").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     print(f"calibration {path}")
+    if rig_path is None:
+        return Exit.OK
     if args.install:
         from slscan.rig_install import name_in_rig
 
-        name_in_rig(config.path, "stereo_calibration", path)
-        print(f"installed   {config.path} now names this stereo calibration: every binocular scan with it uses it")
+        name_in_rig(rig_path, "stereo_calibration", path)
+        print(f"installed   {rig_path} now names this stereo calibration: every binocular scan with it uses it")
     else:
-        print(f"to use it   add  stereo_calibration = \"{path.resolve()}\"  under [rig] in {config.path} (or rerun "
+        print(f"to use it   add  stereo_calibration = \"{path.resolve()}\"  under [rig] in {rig_path} (or rerun "
               f"with --install)")
     return Exit.OK
