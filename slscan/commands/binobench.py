@@ -104,6 +104,8 @@ def _case(rig: Any, patterns: Any, gamma: float, model: Any, bino: Any, gt: Any,
     """One scan of the open scene with the projector compensated for `gamma`, reconstructed
     binocularly and monocularly with `model`: the figures, and the frames (the case's arrays
     are freed on return: the next case never holds two scans' worth)."""
+    import numpy as np
+
     from scanner.decode import decode
     from scanner.reconstruct import Triangulator, triangulate
     from sim.evaluate import depth_noise_bound
