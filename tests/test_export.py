@@ -26,14 +26,33 @@ STEP = CONFIG_DIR / "parts" / "demo_part.step"
 MESH = CONFIG_DIR / "parts" / "demo_part.ply"
 
 
+TILT_RAD = 0.4  # the demo part tilted about the camera's x axis: its walls fix the pose (from straight above
+# the turn about the boss is free, tests/test_registration_proof.py), so the inspection proves it
+
+
 @pytest.fixture(scope="module")
-def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The demo scene with the part tilted by `TILT_RAD`."""
+    from scipy.spatial.transform import Rotation
+
+    part = next(o for o in load_scene(DEMO_SCENE).objects if o.name == "demo_part")
+    tilted = Rotation.from_rotvec([TILT_RAD, 0.0, 0.0]) * Rotation.from_matrix(part.pose[:3, :3])
+    text = DEMO_SCENE.read_text().replace('"../parts/', f'"{CONFIG_DIR}/parts/')
+    head, tail = text.split("pose = { rotation_rad = [", 1)
+    rv = ", ".join(repr(float(x)) for x in tilted.as_rotvec())
+    path = tmp_path_factory.mktemp("scene") / "tilted_demo.toml"
+    path.write_text(head + f"pose = {{ rotation_rad = [{rv}" + tail[tail.index("]"):])
+    return path
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory: pytest.TempPathFactory, scene: Path) -> Path:
     tmp = tmp_path_factory.mktemp("export")
     rig = small_rig(tmp, 640, 512)
     root = tmp / "demo"
-    assert run("scan", "--rig", str(rig), "--scene", str(DEMO_SCENE), "--out", str(root))[0] == 0
+    assert run("scan", "--rig", str(rig), "--scene", str(scene), "--out", str(root))[0] == 0
     code, _, err = run("inspect", str(root), "--cad", str(STEP))
-    assert code == 0, err
+    assert code == 0, err  # proven (no tolerances: nothing to judge)
     return root
 
 
@@ -46,9 +65,9 @@ def session_cloud(root: Path) -> tuple[np.ndarray, np.ndarray]:
     return pts, col_row[:, ::-1]
 
 
-def true_cad_from_camera() -> np.ndarray:
-    """The simulator's truth: the inverse of the demo part's pose in the scene (camera = world)."""
-    part = next(o for o in load_scene(DEMO_SCENE).objects if o.name == "demo_part")
+def true_cad_from_camera(scene: Path) -> np.ndarray:
+    """The simulator's truth: the inverse of the demo part's pose in `scene` (camera = world)."""
+    part = next(o for o in load_scene(scene).objects if o.name == "demo_part")
     return np.linalg.inv(part.pose)
 
 
@@ -129,11 +148,10 @@ def test_grid_mesh_leaves_a_depth_step_open() -> None:
     assert len(data) == 84 + 50 * n
 
 
-def test_aligned_cloud_lies_where_the_simulator_put_the_part(session: Path, tmp_path: Path) -> None:
+def test_aligned_cloud_lies_where_the_simulator_put_the_part(session: Path, scene: Path, tmp_path: Path) -> None:
     """The export applies the inspection's registration exactly; that pose is checked against
-    the simulator's: at 640 x 512 the registration turns the part by 0.66 deg about its
-    vertical axis and shifts it 0.23 mm (measured; the side walls that fix the in-plane
-    turn are steep in this view), so the cloud is within 1 mm of the truth, not 0.05 mm."""
+    the simulator's (a pose the inspection proved; the bounds are the ones this test held
+    when the part lay flat and its registration was 0.66 deg off, before poses needed proof)."""
     import cv2
 
     pts, _ = session_cloud(session)
@@ -146,12 +164,30 @@ def test_aligned_cloud_lies_where_the_simulator_put_the_part(session: Path, tmp_
 
     pose = np.array(json.loads((session / "outputs" / "inspection.json").read_text())["registration"]["transform"])
     np.testing.assert_allclose(got, pts @ pose[:3, :3].T + pose[:3, 3], atol=1e-4)  # float32 file
-    truth = true_cad_from_camera()
+    truth = true_cad_from_camera(scene)
     off = pose @ np.linalg.inv(truth)  # identity for a perfect registration
     assert np.degrees(np.linalg.norm(cv2.Rodrigues(off[:3, :3])[0])) < 1.0 and np.linalg.norm(off[:3, 3]) < 0.5
     err = np.linalg.norm(got - (pts @ truth[:3, :3].T + truth[:3, 3]), axis=1)
     on_part = np.linalg.norm(got[:, :2], axis=1) < 55.0  # the part's footprint (90 x 60 mm) and a margin
     assert np.percentile(err[on_part], 95) < 1.0
+
+
+def test_an_unproven_pose_gives_no_aligned_cloud(session: Path, tmp_path: Path) -> None:
+    """An inspection whose pose its evidence leaves ambiguous (its JSON says so): `export
+    --aligned` exits 1, one line naming why, and writes nothing."""
+    import json
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(session, copy)
+    path = copy / "outputs" / "inspection.json"
+    report = json.loads(path.read_text())
+    report.update(pose_status="ambiguous", status_note="not measured: the pose is ambiguous between the best pose "
+                                                       "and 1 other pose(s)")
+    path.write_text(json.dumps(report))
+    code, out, err = run("export", str(copy), "--aligned", "--out", str(tmp_path / "a.ply"))
+    assert code == 1 and not (tmp_path / "a.ply").exists()
+    assert len(err.strip().splitlines()) == 1 and "pose is not proven (ambiguous" in err
 
 
 def test_deviations_match_the_distance_to_the_part(session: Path, tmp_path: Path) -> None:

@@ -63,6 +63,11 @@ def cmd_export(args: argparse.Namespace) -> int:
         cloud = replace_deviations(cloud, dev)
     if args.aligned:
         report = _inspection(session, "--aligned")
+        if report.get("pose_status", "ok") != "ok":  # no pose without proof (an inspection before proofs has none)
+            print(f"slscan export: {session.root}: --aligned: the inspection's pose is not proven "
+                  f"({report['pose_status']}: {report.get('status_note', '')}); no aligned cloud written",
+                  file=sys.stderr)
+            return Exit.FAILED
         transform = np.asarray(report["registration"]["transform"], dtype=np.float64)
         cloud = cloud.transformed(transform, f"CAD frame of {Path(report['model']).name} (the inspection's "
                                              f"registration)")
