@@ -189,17 +189,21 @@ def cmd_register(args: argparse.Namespace) -> int:
     if not args.no_isolate:
         scan = isolate_part(scan, target.diagonal_mm)
     reg = register(scan, target, settings)
+    code = Exit.FAILED if reg.ambiguous else Exit.OK  # a pose another explains as well is no result
     if args.json:
-        print(json.dumps({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
-                          "ambiguous": reg.ambiguous, "method": reg.method}))
-        return Exit.OK
+        print(json.dumps({"status": "ambiguous" if reg.ambiguous else "ok",
+                          "transform": None if reg.ambiguous else reg.transform.tolist(),
+                          "best_unproven": reg.transform.tolist() if reg.ambiguous else None,
+                          "fitness": reg.fitness, "rmse": reg.rmse_mm, "ambiguous": reg.ambiguous,
+                          "method": reg.method}))
+        return code
     with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
         print(f"transform taking {args.source} onto {args.target} (mm):")
         print(reg.transform)
     print(f"fitness {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, "
-          f"{reg.method}, {reg.timings_s.get('total', 0):.2f} s" + ("; AMBIGUOUS: another pose fits as well"
-                                                                    if reg.ambiguous else ""))
-    return Exit.OK
+          f"{reg.method}, {reg.timings_s.get('total', 0):.2f} s" + ("; AMBIGUOUS: another pose fits as well "
+                                                                    "(not a result: exit 1)" if reg.ambiguous else ""))
+    return code
 
 
 def _register_views(args: argparse.Namespace, settings: Any) -> int:
