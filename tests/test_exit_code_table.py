@@ -7,8 +7,9 @@ asserted against the README's "Exit codes" table and written to the test's folde
     pytest -m slow -s tests/test_exit_code_table.py
 
 A command is one row of `ROWS`: a case it cannot produce (the demo scans the bundled nominal
-part only) is a cell with the reason instead of a run. `register` is not a row yet (its exit
-codes are being changed); its row is one more entry.
+part only) is a cell with the reason instead of a run; a case whose code the README gives in
+other words (`register`: "a pose not proven" is its failing case, exit 1) is a run with those
+words.
 
 The table's test is `acceptance` and `slow`: its runs take about ten minutes together on two
 loaded cores (a demo, five inspections, a whole verification of 23 positions)."""
@@ -31,15 +32,20 @@ MPES = ("PF", "PS", "SD", "F", "OL")  # the rig file's [acceptance.mpe] paramete
 README = Path(__file__).resolve().parent.parent / "README.md"
 
 
-def documented_codes() -> dict[str, int]:
-    """The exit code the README's "Exit codes" table gives each case, found by its wording."""
+def documented_code(words: str) -> int:
+    """The one exit code whose meaning in the README's "Exit codes" table holds `words`."""
     section = README.read_text().split("## Exit codes", 1)[1].split("\n## ", 1)[0]
     rows = {int(code): meaning for code, meaning in re.findall(r"^\| (\d+) \| (.+) \|$", section, re.M)}
+    found = [code for code, meaning in rows.items() if words in meaning]
+    assert len(found) == 1, (words, found)
+    return found[0]
+
+
+def documented_codes() -> dict[str, int]:
+    """The exit code the README's "Exit codes" table gives each case, found by its wording."""
     words = {"conforming": "success", "non-conforming": "a check fails", "not measured": "not measured",
              "bad input": "usage error"}
-    found = {case: [code for code, meaning in rows.items() if word in meaning] for case, word in words.items()}
-    assert all(len(codes) == 1 for codes in found.values()), found
-    return {case: codes[0] for case, codes in found.items()}
+    return {case: documented_code(word) for case, word in words.items()}
 
 
 @dataclass
@@ -68,6 +74,32 @@ class Bench:
                                    flags=re.M))
         return str(path)
 
+    def view(self, name: str, step: Path, tilt: tuple[float, float]) -> tuple[str, str]:
+        """(cloud, STEP): the model `step` seen from above, tilted by `tilt` rad
+        (tests/test_inspection_registration.py's virtual view), as a PLY cloud."""
+        import open3d as o3d
+        from test_inspection_registration import virtual_view
+
+        from inspection.cad import load_cad
+        from sim.parts import lying_pose
+
+        model = load_cad(step)
+        scan = virtual_view(model, lying_pose(model.tessellation.vertices, 0.4, 400.0, tilt), seed=3)
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scan.points))
+        cloud.normals = o3d.utility.Vector3dVector(scan.normals)
+        o3d.io.write_point_cloud(str(self.tmp / f"{name}.ply"), cloud)
+        return str(self.tmp / f"{name}.ply"), str(step)
+
+    def block(self) -> Path:
+        """A plain 60 x 40 x 15 mm block's STEP file: its half turn fits as well as its pose."""
+        from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox
+        from OCP.gp import gp_Pnt
+
+        from sim.parts_demo import write_step
+
+        write_step(BRepPrimAPI_MakeBox(gp_Pnt(-30, -20, 0), gp_Pnt(30, 20, 15)).Shape(), self.tmp / "block.step")
+        return self.tmp / "block.step"
+
     def artefacts(self) -> str:
         """The bench's flat artefact alone (six positions: a complete test of that set, quick)."""
         text = (CONFIG_DIR / "artefacts" / "sim_bench.toml").read_text()
@@ -89,7 +121,7 @@ class Bench:
 
 
 Run = Callable[[Bench], list[str]]
-Cell = Run | str  # the argv of a run, or why the command cannot produce the case
+Cell = Run | str | tuple[Run, str]  # a run, why the command cannot produce the case, or a run and the README's words
 
 
 def _station(parts: int, measurement: str, out: str) -> Run:
@@ -144,6 +176,14 @@ ROWS: dict[str, dict[str, Cell]] = {
         "not measured": _skip_every_position,
         "bad input": lambda b: ["verify", "--rig", str(b.tmp / "no-such-rig.toml"), "--out", str(b.tmp / "verify-x")],
     },
+    "register": {
+        "conforming": lambda b: ["register", *b.view("demo", CONFIG_DIR / "parts" / "demo_part.step", (0.5, 0.2))],
+        "non-conforming": "register judges a pose, not a part: a pose not proven is its failing case",
+        "not measured": (lambda b: ["register", *b.view("block", b.block(), (0.35, 0.2)), "--no-isolate"],
+                         "a pose not proven"),
+        "bad input": lambda b: ["register", str(b.tmp / "no-such-cloud.ply"), str(CONFIG_DIR / "parts" /
+                                                                                 "demo_part.step")],
+    },
     "demo": {
         "conforming": "the demo scans the bundled nominal part only (its boss is not measured from above)",
         "non-conforming": "the demo scans the bundled nominal part only",
@@ -167,11 +207,14 @@ def test_exit_codes_of_every_command_and_case(tmp_path: Path, monkeypatch: pytes
     expected = documented_codes()
     bench = Bench(tmp_path, monkeypatch, small_rig(tmp_path), station_config(tmp_path))
     got: dict[str, dict[str, int | str]] = {}
+    wanted: dict[tuple[str, str], int] = {}  # cells the README gives in other words
     for command, cells in ROWS.items():
         got[command] = {}
         for case in CASES:
-            cell = cells[case]
-            got[command][case] = cell if isinstance(cell, str) else exit_code(cell(bench))
+            run, words = cells[case] if isinstance(cells[case], tuple) else (cells[case], None)
+            got[command][case] = run if isinstance(run, str) else exit_code(run(bench))
+            if words is not None:
+                wanted[(command, case)] = documented_code(words)
     table = ["| command | " + " | ".join(f"{c} (README: {expected[c]})" for c in CASES) + " |",
              "|---" * (len(CASES) + 1) + "|"]
     table += [f"| {command} | " + " | ".join(str(got[command][c]) if isinstance(got[command][c], int)
@@ -179,8 +222,9 @@ def test_exit_codes_of_every_command_and_case(tmp_path: Path, monkeypatch: pytes
     text = "\n".join(table)
     (tmp_path / "exit_codes.md").write_text(text + "\n")
     print("\n" + text)
-    wrong = [f"{command} {case}: exit {code}, README {expected[case]}" for command in ROWS
-             for case, code in got[command].items() if isinstance(code, int) and code != expected[case]]
+    wrong = [f"{command} {case}: exit {code}, README {wanted.get((command, case), expected[case])}"
+             for command in ROWS for case, code in got[command].items()
+             if isinstance(code, int) and code != wanted.get((command, case), expected[case])]
     assert not wrong, "\n".join(wrong) + "\n" + text
 
 
