@@ -6,7 +6,10 @@
 
 A scan that does not match the model (another part, other units, too little in view)
 ends in an exception, never in numbers: `RegistrationFailed`, `UnitMismatch`,
-`CloudError`.
+`CloudError`. A pose its own evidence does not prove (another pose explains the scan as
+well, or the view leaves a motion free: `Registration.status`) measures nothing: the
+report's status is "ambiguous" and every face row says "not measured: the pose is
+ambiguous ...", with the alternatives in its registration record.
 
 Every figure carries its uncertainty (`inspection.uncertainty`): the scan's noise model
 and calibration covariance (`ScanUncertainty`, per scan point, camera frame) are turned
@@ -33,7 +36,9 @@ from inspection.measured_cloud import ScanCloud, make_scan, part_mask
 from inspection.registration import ModelTarget, Registration, RegistrationSettings, transform_points
 from inspection.registration.warm_start import register_with_prior
 from inspection.report import FaceRow, InspectionReport
-from inspection.segmentation import assign_faces
+from inspection.registration.driver import AMBIGUOUS
+from inspection.registration.evidence import SYMMETRY_ZERO, FreeMotion, PoseCovariance, jacobian, moves
+from inspection.segmentation import UNASSIGNED, Segmentation, assign_faces
 from inspection.tolerances import FIGURE_OF, GUARD_BANDED, NOT_MEASURED, Tolerances, decide
 from inspection.uncertainty import ScanUncertainty
 from scanner.native_threads import native_threads
@@ -99,6 +104,15 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
     progress("register", 0, 1)
     reg = register_with_prior(part, target, prior, settings.registration)
     times["register"] = reg.timings_s.get("total", 0.0)
+    if reg.status == AMBIGUOUS:
+        report = _ambiguous_report(scan, part, model, reg, tolerances, settings, mask, times, uncertainty)
+        if on_verdict is not None:
+            on_verdict(report)
+        if recording is not None:
+            from inspection.inspection_recording import log_inspection
+
+            log_inspection(recording, report, scan, model)
+        return report
     progress("segment", 0, 1)
     t0 = time.perf_counter()
     q = transform_points(reg.transform, part.points)
@@ -110,7 +124,7 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
     t0 = time.perf_counter()
     R = reg.transform[:3, :3]
     unc = None if uncertainty is None else uncertainty.subset(mask)
-    pose = PoseUncertainty.of(q, seg)
+    pose = PoseUncertainty(reg.covariance)
     rule = tolerances.decision_rule if tolerances is not None else GUARD_BANDED
     rows: dict[int, FaceRow] = {}
     seen = []
@@ -122,8 +136,15 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
             rows[face.index] = FaceRow.of(face, unseen, _verdicts(face.label, unseen, tolerances, rule),
                                           tolerances.name(face.label))
 
+    loose = [m for m in reg.free if not m.symmetry]
+
     def row(face: Any) -> FaceRow:  # one face's figures and verdicts
         sel = seg.face == face.index
+        moved = _moved_by(loose, q[sel], seg.normal[sel], reg, settings.registration.pose_tolerance_mm)
+        if moved:
+            unfixed = FaceForm(int(sel.sum()), NOT_MEASURED, f"depends on the {moved}, which the view does not fix")
+            return FaceRow.of(face, unfixed, _verdicts(face.label, unfixed, tolerances, rule),
+                              tolerances.name(face.label) if tolerances is not None else "")
         form = measure_face(face, part.points[sel], None if unc is None else unc.subset(sel), R, q[sel],
                             seg.deviation_mm[sel], seg.uv[sel], seg.normal[sel], settings.form)
         form = pose.added_to(form, q[sel], seg.normal[sel])
@@ -137,7 +158,8 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
             form_settings=settings.form, timings_s={k: round(v, 4) for k, v in times.items()},
             part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose.as_dict(),
             calibration=uncertainty.calibration.source if uncertainty is not None else "not known (a bare cloud): not in U",
-            cad=model)
+            cad=model, status=reg.status, status_note=(f"the view does not fix the pose: {reg.reason}; the faces that "
+                                                       f"depend on it are not measured" if loose else ""))
 
     # the faces the tolerances ask for first: the verdict needs only them; the others' figures follow
     asked = [f for f in seen if tolerances is not None and tolerances.for_face(f.label)]
@@ -184,38 +206,23 @@ def measure_face(face: Any, camera_points: np.ndarray, uncertainty: ScanUncertai
 
 @dataclass(frozen=True)
 class PoseUncertainty:
-    """The registration pose's covariance (6, 6: a small rotation (rad) and a translation
-    (mm) of the scan in the model frame) from the point-to-plane normal equations at the
-    final pose, the points' residual about their faces taken as their noise:
-    Σ = s²(JᵀJ)⁻¹, J_i = [(q_i × n_i)ᵀ, n_iᵀ]. It moves each face's points along its normal
-    as a whole, so it is added to the deviation figures (not to form, which it cannot
-    change). A statistical figure: what pulls a best fit off (defects, a partial view) is
-    not in it."""
+    """The registration pose's covariance (`evidence.PoseCovariance`, from the residuals
+    and the Jacobian of the final fit, the residual field's correlation included; None: not
+    known). It moves each face's points along its normal as a whole, so it is added to the
+    deviation figures (not to form, which it cannot change)."""
 
-    covariance: np.ndarray
+    covariance: PoseCovariance | None
 
-    @classmethod
-    def of(cls, points: np.ndarray, seg: Any) -> PoseUncertainty:
-        ok = seg.assigned & np.isfinite(seg.deviation_mm)
-        if ok.sum() < 6:
-            return cls(np.zeros((6, 6)))
-        n = seg.normal[ok]
-        J = np.column_stack([np.cross(points[ok], n), n])
-        s2 = float(np.mean(seg.deviation_mm[ok] ** 2))
-        return cls(s2 * np.linalg.pinv(J.T @ J))
-
-    def as_dict(self) -> dict[str, float]:
-        sd = np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
-        return {"rotation_u_deg": float(2.0 * np.degrees(np.linalg.norm(sd[:3]))),
-                "translation_u_mm": float(2.0 * np.linalg.norm(sd[3:]))}
+    def as_dict(self) -> dict[str, Any]:
+        return {} if self.covariance is None else self.covariance.as_dict()
 
     def added_to(self, form: FaceForm, points: np.ndarray, normals: np.ndarray) -> FaceForm:
         """The face's deviation figures with the pose's uncertainty added (the mean move
         of the face along its normals; twice that for the profile zone 2 max|d|)."""
-        if form.status != "ok" or not np.any(self.covariance):
+        if form.status != "ok" or self.covariance is None:
             return form
-        m = np.column_stack([np.cross(points, normals), normals]).mean(axis=0)
-        u = float(np.sqrt(max(m @ self.covariance @ m, 0.0)))
+        m = jacobian(points, normals, self.covariance.centre).mean(axis=0)
+        u = float(np.sqrt(max(m @ self.covariance.covariance @ m, 0.0)))
         changes = {}
         for name, scale in (("deviation_min", 1.0), ("deviation_max", 1.0), ("deviation_mean", 1.0),
                             ("profile", 2.0)):
@@ -223,6 +230,48 @@ class PoseUncertainty:
             if e is not None:
                 changes[name] = replace(e, u=float(np.hypot(e.u, scale * u)))
         return replace(form, **changes)
+
+
+def _moved_by(loose: list[FreeMotion], points: np.ndarray, normals: np.ndarray, reg: Registration,
+              tolerance_mm: float) -> str:
+    """The free motions (not symmetries of the part) that move a face's points along their
+    normals by more than `tolerance_mm` at their U (an unbounded one: by more than a
+    numerical zero), described; "" when none does."""
+    if not loose or reg.covariance is None or not len(points):
+        return ""
+    centre, radius = reg.covariance.centre, reg.covariance.radius_mm
+    out = []
+    for m in loose:
+        limit = tolerance_mm if np.isfinite(m.u) else SYMMETRY_ZERO * (radius if m.kind == "rotation" else 1.0)
+        if moves(m, points, normals, centre) > limit:
+            out.append(m.describe())
+    return "; ".join(out)
+
+
+def ambiguity_note(reg: Registration) -> str:
+    """"the pose is ambiguous between ...": what a report says in place of figures."""
+    return f"the pose is {reg.reason}"
+
+
+def _ambiguous_report(scan: ScanCloud, part: ScanCloud, model: CadModel, reg: Registration,
+                      tolerances: Tolerances | None, settings: InspectionSettings, mask: np.ndarray,
+                      times: dict[str, float], uncertainty: ScanUncertainty | None) -> InspectionReport:
+    """The report of a scan whose pose is not proven: every face of the model "not
+    measured" with the reason, every characteristic asked for "not measured"."""
+    note = ambiguity_note(reg)
+    unmeasured = FaceForm(0, NOT_MEASURED, note)
+    rule = tolerances.decision_rule if tolerances is not None else GUARD_BANDED
+    rows = tuple(FaceRow.of(face, unmeasured, _verdicts(face.label, unmeasured, tolerances, rule),
+                            tolerances.name(face.label) if tolerances is not None else "") for face in model.faces)
+    n = len(part)
+    seg = Segmentation(np.full(n, UNASSIGNED, np.int32), np.full(n, np.nan), np.full((n, 3), np.nan),
+                       np.full((n, 3), np.nan), np.full((n, 2), np.nan))
+    return InspectionReport(
+        model=str(model.path), unit=model.unit, source=scan.source, scan_points=len(scan), part_points=n,
+        assigned_points=0, registration=reg, faces=rows, form_settings=settings.form,
+        timings_s={k: round(v, 4) for k, v in times.items()}, part_mask=mask, segmentation=seg, decision_rule=rule,
+        pose_u={}, calibration=uncertainty.calibration.source if uncertainty is not None
+        else "not known (a bare cloud): not in U", cad=model, status=reg.status, status_note=f"not measured: {note}")
 
 
 FACE_WORKERS = 2  # faces evaluated at once: threads, the form's numpy and FFT work releasing the GIL

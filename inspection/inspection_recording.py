@@ -51,8 +51,10 @@ def log_inspection(recording: SessionRecording, report: InspectionReport, scan: 
     tess = model.tessellation
     stream = recording.stream
     recording.at_scan(scan_index)
-    stream.log(CAD, rr.Mesh3D(vertex_positions=transform_points(world_from_model, tess.vertices).astype(np.float32),
-                              triangle_indices=tess.triangles, albedo_factor=[0.75, 0.78, 0.85, 0.35]), strict=True)
+    if report.status == "ok":  # an unproven pose is not drawn as if it were the part's
+        stream.log(CAD, rr.Mesh3D(vertex_positions=transform_points(world_from_model, tess.vertices).astype(np.float32),
+                                  triangle_indices=tess.triangles, albedo_factor=[0.75, 0.78, 0.85, 0.35]),
+                   strict=True)
     part = transform_points(world_from_cam, scan.points[report.part_mask]).astype(np.float32)
     seg = report.segmentation
     scale = scale_of(report)

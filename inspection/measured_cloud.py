@@ -12,15 +12,15 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
-from scipy.spatial import cKDTree
+from scipy.spatial import Delaunay, cKDTree
 
 from inspection.errors import CloudError, UnitMismatch
 from scanner.pointcloud import OrganisedCloud
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".pts")
-SUPPORT_EXTENT = 1.3  # a plane wider than this many model diagonals is the table, not the part
 MIN_POINTS = 500
+SUPPORT_CANDIDATES = 4  # planes tried for the table, largest first: the part's own faces come before it
+SUPPORT_SAMPLE = 20000  # points the table search samples
 PIXEL_CHECK_POINTS = 2000  # a session's PLY: points projected to check the pixels it names
 PIXEL_CHECK_PX = 1.0  # ... and how far they may land from them (triangulation residual, rounding)
 _UNIT_FACTORS = {1000.0: "the model looks like metres and the scan millimetres (use --cad-unit m)",
@@ -184,54 +184,226 @@ def isolate_part(scan: ScanCloud, model_diagonal_mm: float, seed: int = 0) -> Sc
     return scan.subset(part_mask(scan, model_diagonal_mm, seed))
 
 
-def part_mask(scan: ScanCloud, model_diagonal_mm: float, seed: int = 0) -> np.ndarray:
-    """Which points are the part: the table it lies on (a plane much wider than the
-    model) and what lies behind it are removed, then the largest connected piece (with
-    pieces near it) is kept. Raises UnitMismatch when what is left cannot be the model
-    at its units."""
+@dataclass(frozen=True)
+class Support:
+    """The plane the part stands on: `plane` (a, b, c, d) with unit normal pointing to the
+    side the part is on, `band_mm` the distance within which a point is the plane's (4
+    robust sigma of its points about it)."""
+
+    plane: np.ndarray
+    band_mm: float
+
+    def above(self, points: np.ndarray) -> np.ndarray:
+        """Which points lie on the part's side of the plane, beyond its band."""
+        return points @ self.plane[:3] + self.plane[3] > self.band_mm
+
+
+def find_support(scan: ScanCloud, seed: int = 0) -> Support | None:
+    """The table the part stands on, or None when the scan shows none. The largest planes
+    (RANSAC, `SUPPORT_CANDIDATES` of them, each found among the points the ones before left)
+    are tried in turn; a plane is the support when the part stands on it: more of the points
+    off it (beyond its band) lie on the sensor's side of it than behind it (the table is
+    seen from the part's side: the part's own top has the rest of the part and the table
+    behind it), and more than half of those project, along the plane's normal, inside the
+    plane's own points (the part stands within the table, not beside it: a lower step of
+    the part has the higher section beside it). Without a known sensor position the part's
+    side is the side most of the points are on, and the plane must also spread wider than
+    what stands on it. All of it is independent of the part's size and of the cloud's frame
+    (distances scale with the scan's own point spacing and noise)."""
     pts = scan.points
-    extent = float(np.linalg.norm(np.ptp(pts, axis=0)))
-    voxel = extent / 300.0
-    keep = np.ones(len(pts), bool)
-    remaining = np.random.default_rng(seed).choice(len(pts), size=min(20000, len(pts)), replace=False)
-    for attempt in range(3):  # the largest plane may be the part's own top: look further
+    rng = np.random.default_rng(seed)
+    sample = rng.choice(len(pts), size=min(SUPPORT_SAMPLE, len(pts)), replace=False)
+    sp, sn = pts[sample], scan.normals[sample]
+    spacing = point_spacing(sp, len(pts))
+    remaining = np.arange(len(sp))
+    for _ in range(SUPPORT_CANDIDATES):
         if len(remaining) < 100:
-            break
-        plane, inl = fit_plane(pts[remaining], 2.0 * voxel, seed + attempt)
-        support = pts[remaining[inl]]
-        if np.linalg.norm(np.ptp(support, axis=0)) > SUPPORT_EXTENT * model_diagonal_mm:
-            d = pts @ plane[:3] + plane[3]
-            front = np.sign(np.median(d[np.abs(d) > 2.0 * voxel])) if np.any(np.abs(d) > 2.0 * voxel) else 1.0
-            if scan.viewpoint is not None:
-                front = np.sign(scan.viewpoint @ plane[:3] + plane[3]) or front
-            keep &= d * front > 2.0 * voxel
-            break
+            return None
+        plane, inl = dominant_plane(sp[remaining], sn[remaining], 3.0 * spacing, rng)
+        on = remaining[inl]
+        support = _support_from(sp, on, plane, scan.viewpoint)
+        if support is not None:
+            return support
         remaining = remaining[~inl]
+    return None
+
+
+def point_spacing(sample: np.ndarray, n: int) -> float:
+    """The spacing (mm) of a scanned surface of `n` points from a random `sample` of them:
+    the median nearest-neighbour distance of a sample of density rho on a surface is
+    sqrt(ln 2 / (pi rho)) (a Poisson process), the spacing of all n points 1 / sqrt(rho n / m)."""
+    nn = float(np.median(cKDTree(sample).query(sample, k=2)[0][:, 1]))
+    return nn * np.sqrt(np.pi / np.log(2.0)) * np.sqrt(len(sample) / n)
+
+
+def dominant_plane(points: np.ndarray, normals: np.ndarray, threshold_mm: float, rng: np.random.Generator,
+                   hypotheses: int = 500) -> tuple[np.ndarray, np.ndarray]:
+    """(plane (a, b, c, d), inlier mask) of the plane holding the most points within
+    `threshold_mm` whose normals lie nearer its normal than its tangent (within 45 deg:
+    the strips where walls cross the plane are not its points), by RANSAC over `hypotheses`
+    random triplets, scored on at most 5000 points at once (one matrix product)."""
+    tri = points[rng.integers(0, len(points), size=(hypotheses, 3))]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-12
+    n = n[ok] / norm[ok, None]
+    planes = np.concatenate([n, -np.einsum("ij,ij->i", n, tri[ok, 0])[:, None]], axis=1)
+    pick = rng.choice(len(points), size=min(5000, len(points)), replace=False)
+    homo = np.concatenate([points[pick], np.ones((len(pick), 1))], axis=1)
+    near = (np.abs(planes @ homo.T) < threshold_mm) & (np.abs(planes[:, :3] @ normals[pick].T) > np.sqrt(0.5))
+    best = planes[int(np.argmax(near.sum(axis=1)))]
+    inliers = ((np.abs(points @ best[:3] + best[3]) < threshold_mm)
+               & (np.abs(normals @ best[:3]) > np.sqrt(0.5)))
+    return best, inliers
+
+
+def _support_from(sp: np.ndarray, on: np.ndarray, plane: np.ndarray, viewpoint: np.ndarray | None) -> Support | None:
+    """The plane through the sample points `on` as the support, if the rest of `sp` stands
+    on it (`find_support`); None otherwise."""
+    c = sp[on].mean(axis=0)
+    _, _, vt = np.linalg.svd(sp[on] - c, full_matrices=False)  # least squares through its points
+    n = vt[2] if vt[2] @ plane[:3] >= 0 else -vt[2]
+    d = (sp - c) @ n
+    band = 4.0 * float(1.4826 * np.median(np.abs(d[on])))
+    off = np.ones(len(sp), bool)
+    off[on] = False
+    off &= np.abs(d) > band
+    if off.sum() < MIN_POINTS // 10:
+        return None
+    side = np.sign(float((viewpoint - c) @ n)) if viewpoint is not None else np.sign(np.median(d[off]))
+    side = side or 1.0
+    n, d = side * n, side * d
+    front = off & (d > 0)
+    if front.sum() <= (off & (d < 0)).sum():
+        return None
+    u = vt[0]
+    v = np.cross(n, u)
+    flat = np.stack([(sp - c) @ u, (sp - c) @ v], axis=1)
+    hull = Delaunay(flat[on][:: max(1, on.size // 4000)])
+    inside = hull.find_simplex(flat[front]) >= 0
+    if inside.mean() <= 0.5:
+        return None
+    if viewpoint is None and _area(flat[on]) <= _area(flat[front]):
+        return None
+    return Support(np.append(n, -float(n @ c)), band)
+
+
+def _area(xy: np.ndarray) -> float:
+    from scipy.spatial import ConvexHull
+
+    return float(ConvexHull(xy[:: max(1, len(xy) // 4000)]).volume) if len(xy) >= 3 else 0.0
+
+
+def part_mask(scan: ScanCloud, model_diagonal_mm: float, seed: int = 0) -> np.ndarray:
+    """Which points are the part: the table it stands on (`find_support`) and what lies
+    behind it are removed, then the largest piece left is kept: in an organised scan the
+    largest region of the image that no table pixel crosses (the part's faces at different
+    heights, and the shadows between them, are one region; stray points beyond the table,
+    one), else the largest piece connected in space, with the pieces near it. Raises
+    UnitMismatch when what is left cannot be the model at its units."""
+    pts = scan.points
+    support = find_support(scan, seed)
+    keep = _off_support(scan, support) if support is not None else np.ones(len(pts), bool)
     if keep.sum() < MIN_POINTS:
         raise CloudError(scan.source, "nothing but the table in view: no part found in the scan")
-    # connected pieces on a voxel grid; keep the largest and those near it
-    part = np.flatnonzero(keep)
-    cell = np.floor((pts[part] - pts[part].min(axis=0)) / (2.0 * voxel)).astype(np.int64)
-    grid = np.zeros(cell.max(axis=0) + 1, bool)
-    grid[tuple(cell.T)] = True
-    labels, n = ndimage.label(grid, structure=np.ones((3, 3, 3)))
-    lab = labels[tuple(cell.T)]
-    sizes = np.bincount(lab, minlength=n + 1)
-    sizes[0] = 0
-    big = np.argmax(sizes)
-    centre = pts[part[lab == big]].mean(axis=0)
-    centres = np.stack([np.bincount(lab, weights=pts[part, i], minlength=n + 1) for i in range(3)], 1) / np.maximum(sizes, 1)[:, None]
-    near = (np.linalg.norm(centres - centre, axis=1) < 0.75 * max(model_diagonal_mm, voxel)) & (sizes >= 0.002 * sizes[big])
-    near[big] = True
-    mask = np.zeros(len(pts), bool)
-    mask[part[near[lab]]] = True
+    if scan.pixels is not None and scan.image_shape is not None and support is not None:
+        mask = _largest_image_region(scan, keep)
+    else:
+        mask = _largest_piece(pts, keep, model_diagonal_mm, seed)
     check_units(scan.subset(mask), model_diagonal_mm)
     return mask
 
 
+def _largest_image_region(scan: ScanCloud, keep: np.ndarray) -> np.ndarray:
+    """The kept points in the largest (by kept points) 8-connected image region of kept
+    pixels and pixels without a point, table pixels being the walls between regions; so
+    are pixels without a point that reach the image's border (outside the field or beyond
+    the table, not a shadow among the part's faces)."""
+    from scipy.ndimage import label
+
+    assert scan.pixels is not None and scan.image_shape is not None
+    wall = np.ones(scan.image_shape, bool)  # no point ...
+    wall[scan.pixels[:, 1], scan.pixels[:, 0]] = False
+    empty, _ = label(wall, structure=np.ones((3, 3)))
+    border = np.unique(np.concatenate([empty[0], empty[-1], empty[:, 0], empty[:, -1]]))
+    wall = np.isin(empty, border[border > 0])  # ... reaching the border
+    wall[scan.pixels[~keep, 1], scan.pixels[~keep, 0]] = True  # and the table
+    regions, _ = label(~wall, structure=np.ones((3, 3)))
+    of_point = regions[scan.pixels[:, 1], scan.pixels[:, 0]]
+    big = int(np.argmax(np.bincount(of_point[keep])[1:])) + 1
+    return keep & (of_point == big)
+
+
+def _largest_piece(pts: np.ndarray, keep: np.ndarray, model_diagonal_mm: float, seed: int) -> np.ndarray:
+    """The kept points of the largest piece connected in space (on a grid of 4 point
+    spacings), with the pieces whose centres lie within 0.75 model diagonals of it."""
+    part = np.flatnonzero(keep)
+    sample = pts[np.random.default_rng(seed).choice(part, size=min(SUPPORT_SAMPLE, len(part)), replace=False)]
+    step = 4.0 * point_spacing(sample, len(part))
+    cell = np.floor((pts[part] - pts[part].min(axis=0)) / step).astype(np.int64)
+    dims = cell.max(axis=0) + 1
+    codes, lab = np.unique((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2], return_inverse=True)
+    cells = np.stack([codes // (dims[1] * dims[2]), codes // dims[2] % dims[1], codes % dims[2]], axis=1)
+    lab = _connected(cells, lab.ravel())
+    sizes = np.bincount(lab)
+    big = int(np.argmax(sizes))
+    centre = pts[part[lab == big]].mean(axis=0)
+    centres = np.stack([np.bincount(lab, weights=pts[part, i]) for i in range(3)], 1) / np.maximum(sizes, 1)[:, None]
+    near = ((np.linalg.norm(centres - centre, axis=1) < 0.75 * max(model_diagonal_mm, step))
+            & (sizes >= 0.002 * sizes[big]))
+    near[big] = True
+    mask = np.zeros(len(pts), bool)
+    mask[part[near[lab]]] = True
+    return mask
+
+
+def _off_support(scan: ScanCloud, support: Support, k: int = 8) -> np.ndarray:
+    """The points on the part's side of the support, beyond its band, whose neighbours are
+    mostly so too (the 3 x 3 pixels about them in an organised scan, else the `k` nearest):
+    the table's own outliers (its noise has longer tails than its band) are surrounded by
+    table points and stay with the table."""
+    above = support.above(scan.points)
+    if scan.pixels is not None and scan.image_shape is not None:
+        from scipy.ndimage import uniform_filter
+
+        up, seen = np.zeros(scan.image_shape), np.zeros(scan.image_shape)
+        up[scan.pixels[:, 1], scan.pixels[:, 0]] = above
+        seen[scan.pixels[:, 1], scan.pixels[:, 0]] = 1.0
+        share = uniform_filter(up, 3) / np.maximum(uniform_filter(seen, 3), 1e-9)
+        return above & (share[scan.pixels[:, 1], scan.pixels[:, 0]] > 0.5)
+    tree = cKDTree(scan.points, balanced_tree=False, compact_nodes=False)
+    idx = np.flatnonzero(above)
+    _, nb = tree.query(scan.points[idx], k=k + 1)
+    keep = np.zeros(len(above), bool)
+    keep[idx] = above[nb[:, 1:]].mean(axis=1) > 0.5
+    return keep
+
+
+def _connected(cells: np.ndarray, of_point: np.ndarray) -> np.ndarray:
+    """Label per point of the 26-connected pieces formed by the occupied grid `cells` (K, 3)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    tree = cKDTree(cells)
+    pairs = tree.query_pairs(np.sqrt(3.0) + 1e-6, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(cells), len(cells)))
+    _, labels = connected_components(graph, directed=False)
+    return labels[of_point]
+
+
+def principal_diagonal(points: np.ndarray) -> float:
+    """The diagonal (mm) of the points' bounding box along their principal axes: the same in
+    any frame (an axis-aligned box grows when the points turn)."""
+    sample = points[:: max(1, len(points) // 20000)]
+    c = sample.mean(axis=0)
+    _, _, vt = np.linalg.svd(sample - c, full_matrices=False)
+    return float(np.linalg.norm(np.ptp((points - c) @ vt.T, axis=0)))
+
+
 def check_units(scan: ScanCloud, model_diagonal_mm: float) -> None:
-    """Raise UnitMismatch when the isolated part is far too large or small for the model."""
-    size = float(np.linalg.norm(np.ptp(scan.points, axis=0)))
+    """Raise UnitMismatch when the isolated part is far too large or small for the model
+    (the part's size: the diagonal of its box along its principal axes, whatever the frame)."""
+    size = principal_diagonal(scan.points)
     ratio = size / model_diagonal_mm
     if 1.0 / 40.0 < ratio < 1.5:
         return

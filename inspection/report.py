@@ -30,7 +30,7 @@ from inspection.form import FaceForm, FormSettings
 from inspection.report_header import ReportHeader
 from inspection.report_html import render
 from inspection.report_pdf import print_pdf
-from inspection.tolerances import DECISION_RULES, DECISION_STATUS, GUARD_BANDED, overall
+from inspection.tolerances import DECISION_RULES, DECISION_STATUS, GUARD_BANDED, NOT_MEASURED, overall
 from inspection.uncertainty import Estimate
 from scanner.csv_cells import csv_cell
 from scanner.session import write_atomic, write_json
@@ -99,10 +99,13 @@ class InspectionReport:
     """The result of `pipeline.inspect`. `registration` is a `registration.Registration`;
     `part_mask` which scan points are the part, `segmentation` their faces;
     `decision_rule` how verdicts used U; `calibration` where the calibration term came from;
-    `pose_u` the registration pose's expanded uncertainty (k = 2: rotation in degrees,
-    translation in mm); `header` who, what, when and with what (`inspection.report_header`),
-    filled by the command that inspects; `cad` the CAD model inspected against (an
-    `inspection.cad.CadModel`, drawn behind the points in the report's views; None: not kept)."""
+    `pose_u` the registration pose's expanded uncertainty (95 % bounds: rotation in degrees,
+    translation in mm, with its covariance); `header` who, what, when and with what
+    (`inspection.report_header`), filled by the command that inspects; `cad` the CAD model
+    inspected against (an `inspection.cad.CadModel`, drawn behind the points in the report's
+    views; None: not kept); `status` the registration's: "ok", "ambiguous" when another pose
+    explains the scan as well (then nothing is measured), "free" when the view leaves a
+    motion free (the faces it moves are not measured); `status_note` says why."""
 
     model: str
     unit: str
@@ -121,6 +124,8 @@ class InspectionReport:
     pose_u: dict[str, float] = field(default_factory=dict)
     header: ReportHeader = ReportHeader()
     cad: Any = field(default=None, repr=False)
+    status: str = "ok"
+    status_note: str = ""
 
     @property
     def fitness(self) -> float:
@@ -133,11 +138,16 @@ class InspectionReport:
     @property
     def verdict(self) -> str:
         """non-conforming if any characteristic is, else uncertain / not measured if any is,
-        conforming if all are, "no tolerances" without limits."""
+        conforming if all are, "no tolerances" without limits; "not measured" whatever the
+        limits when the pose is ambiguous."""
+        if self.status == "ambiguous":
+            return NOT_MEASURED
         return overall([v for row in self.faces for _, v in row.verdicts.values()])
 
     def as_dict(self) -> dict[str, Any]:
-        return {"status": DECISION_STATUS[self.verdict], "header": self.header.as_dict(), "model": self.model, "unit": self.unit, "source": self.source,
+        return {"status": DECISION_STATUS[self.verdict], "pose_status": self.status,
+                **({"status_note": self.status_note} if self.status_note else {}),
+                "header": self.header.as_dict(), "model": self.model, "unit": self.unit, "source": self.source,
                 "fitness": self.fitness, "rmse_mm": self.rmse_mm, "verdict": self.verdict,
                 "decision_rule": self.decision_rule, "rule": DECISION_RULES[self.decision_rule],
                 "coverage_factor": 2.0, "calibration_uncertainty": self.calibration,
@@ -169,9 +179,12 @@ class InspectionReport:
         lines.append(f"registration fitness {self.fitness:.3f}, RMSE {self.rmse_mm * 1e3:.1f} um "
                      f"({self.registration.method}{', AMBIGUOUS pose' if self.registration.ambiguous else ''}"
                      + (f"; pose U {self.pose_u['translation_u_mm'] * 1e3:.2f} um, {self.pose_u['rotation_u_deg']:.5f} deg"
-                        if self.pose_u else "") + "); "
+                        if self.pose_u else "")
+                     + "".join(f"; free: {m.describe()}" for m in getattr(self.registration, "free", ())) + "); "
                      f"{self.assigned_points}/{self.part_points} part points on faces; calibration: {self.calibration}; "
                      f"decision rule {self.decision_rule}; verdict {self.verdict}")
+        if self.status_note:
+            lines.append(self.status_note)
         return "\n".join(lines)
 
     def write(self, folder: str | Path, stem: str = "inspection", deviation_png: bytes | None = None,

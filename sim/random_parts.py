@@ -223,8 +223,12 @@ class Placement:
 def random_placement(part: RandomPart, seed: int) -> Placement:
     """A random placement of `part` (module docstring): the rig scaled so the part fills
     `FILL` of the field's height, the part anywhere it stays in the field."""
+    return placement_for(math.hypot(part.length_mm, part.width_mm), seed)
+
+
+def placement_for(extent: float, seed: int) -> Placement:
+    """A random placement of a part `extent` mm across its footprint (`random_placement`)."""
     rng = np.random.default_rng(seed)
-    extent = math.hypot(part.length_mm, part.width_mm)
     scale = max(0.5, extent / (BENCH_FIELD_HEIGHT_MM * rng.uniform(*FILL)))
     tilt = np.radians(rng.uniform(10.0, 35.0))
     a = rng.uniform(0.0, 2.0 * np.pi)
@@ -259,20 +263,23 @@ class SimulatedScan:
     true_face: np.ndarray
 
 
-def part_pose(vertices: np.ndarray, placement: Placement) -> np.ndarray:
-    """Part -> camera pose of a part with vertices `vertices` (part frame, base on z = 0)
-    at `placement`."""
+def part_pose(vertices: np.ndarray, placement: Placement,
+              up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """Part -> camera pose of a part with vertices `vertices` (part frame, its base
+    perpendicular to `up`) at `placement`."""
     from sim.parts import lying_pose
 
-    pose = lying_pose(vertices, placement.turn_rad, placement.distance_mm, placement.tilt_rad)
+    pose = lying_pose(vertices, placement.turn_rad, placement.distance_mm, placement.tilt_rad, up)
     pose[:2, 3] += placement.offset_mm
     return pose
 
 
-def scan_part(model: Any, placement: Placement, seed: int, config: Any = None) -> SimulatedScan:
+def scan_part(model: Any, placement: Placement, seed: int, config: Any = None,
+              up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> SimulatedScan:
     """Scan `model` (an `inspection.cad.CadModel` of the part, tessellated finely enough that
-    its chords are far below the noise) at `placement` on the table, with noise seed `seed`,
-    through the whole fringe chain (acquire, decode, triangulate)."""
+    its chords are far below the noise) at `placement` on the table (its base perpendicular
+    to `up`), with noise seed `seed`, through the whole fringe chain (acquire, decode,
+    triangulate)."""
     from inspection.measured_cloud import from_organised
     from scanner.acquisition import AcquisitionSettings, acquire
     from scanner.decode import decode
@@ -284,8 +291,8 @@ def scan_part(model: Any, placement: Placement, seed: int, config: Any = None) -
 
     config = scaled_rig(config or RigConfig.load(), placement.rig_scale)
     tess = model.tessellation
-    pose = part_pose(tess.vertices, placement)
-    scene, face_of_id = part_scene(tess.vertices, tess.triangles, tess.face, pose)
+    pose = part_pose(tess.vertices, placement, up)
+    scene, face_of_id = part_scene(tess.vertices, tess.triangles, tess.face, pose, up)
     patterns = PatternSet.load(config.patterns_path)
     with native_threads(1), open_rig(config, scene=scene, seed=seed) as rig:
         stack = acquire(rig, patterns, AcquisitionSettings.for_rig(rig), lambda i, f: None)

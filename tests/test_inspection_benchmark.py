@@ -96,29 +96,10 @@ def moved(part: ScanCloud, G: np.ndarray) -> ScanCloud:
 
 
 def open3d_baseline(part: ScanCloud, target: ModelTarget, voxel: float) -> np.ndarray:
-    """Open3D's own pipeline, single start: FPFH on both voxel clouds, RANSAC on feature
-    matches (mutual filter), then point-to-plane ICP against the dense model."""
-    import open3d as o3d
+    """Open3D's own pipeline, single start (`sim.registration_bench.open3d_baseline`)."""
+    from sim.registration_bench import open3d_baseline as baseline
 
-    reg = o3d.pipelines.registration
-
-    def cloud(p: np.ndarray, n: np.ndarray) -> o3d.geometry.PointCloud:
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
-        pc.normals = o3d.utility.Vector3dVector(n)
-        return pc
-
-    src = cloud(part.points, part.normals).voxel_down_sample(voxel)
-    dst = cloud(target.coarse.points, target.coarse.normals)
-    param = o3d.geometry.KDTreeSearchParamHybrid(5 * voxel, 100)
-    fs, fd = reg.compute_fpfh_feature(src, param), reg.compute_fpfh_feature(dst, param)
-    ransac = reg.registration_ransac_based_on_feature_matching(
-        src, dst, fs, fd, True, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
-        reg.RANSACConvergenceCriteria(100000, 0.999))
-    icp = reg.registration_icp(cloud(part.points, part.normals).voxel_down_sample(voxel / 4),
-                               cloud(target.dense.points, target.dense.normals), voxel, ransac.transformation,
-                               reg.TransformationEstimationPointToPlane())
-    return np.asarray(icp.transformation)
+    return baseline(part.points, part.normals, target, voxel)
 
 
 def bench_methods() -> dict[str, tuple[str, tuple[str, ...] | None]]:

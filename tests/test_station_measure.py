@@ -12,7 +12,7 @@ from test_station_support import DEMO_PROGRAM, station_config
 
 from scanner.config import CONFIG_DIR
 from slscan.station.app import expected_status, open_station
-from slscan.station.measure import _pick
+from slscan.station.measure import REPORT_COLUMNS, _pick
 from slscan.station.program import Characteristic, load_program
 from slscan.station.results import ValueRecord
 from slscan.station.station_config import StationConfig
@@ -84,3 +84,28 @@ def test_measured_verdict_of_a_bowed_part(tmp_path: Path) -> None:
 @pytest.mark.acceptance
 def test_five_parts_with_imposed_defects_get_the_right_verdicts(tmp_path: Path) -> None:
     _run_demo_parts(tmp_path, [0, 1, 2, 3, 4])
+
+
+def test_a_view_whose_pose_is_not_proven_measures_nothing() -> None:
+    """A view whose registration is ambiguous gives no values (its faces left out, though its
+    table has points on them); with no proven view the part is not measured and its message
+    names the ambiguity (`judge`: status "error")."""
+    from slscan.station.measure import view_values
+    from slscan.station.quality import judge
+
+    program = load_program(DEMO_PROGRAM)
+    flat = program.characteristics[0]
+    column = REPORT_COLUMNS[(flat.kind, flat.method)]
+    row = {"label": flat.face, "points": 2000, column: 0.5}
+    note = "not measured: the pose is ambiguous between the best pose and 1 other pose(s) that explain the scan"
+    ambiguous = {"status": "ambiguous", "status_note": note}
+    proven = view_values(program, [{flat.face: row}, {flat.face: {**row, "points": 300, column: 0.02}}],
+                         [ambiguous, {"status": "ok"}], {}, [])
+    assert proven.ok and proven.value(flat.name).value_mm == 0.02  # the ambiguous view's 2000 points are not used
+    alone = view_values(program, [{flat.face: row}, {}], [ambiguous, {"status": "ok"}], {}, [])
+    assert alone.value(flat.name).value_mm is None and "view 0: not measured: the pose is ambiguous" in \
+        alone.value(flat.name).note
+    none = view_values(program, [{flat.face: row}], [ambiguous], {}, [])
+    status, records, message = judge(program, none)
+    assert not none.ok and status == "error" and not records
+    assert message.startswith("not measured: view 0: the pose is ambiguous between the best pose"), message

@@ -9,24 +9,38 @@ import numpy as np
 
 from inspection.errors import RegistrationFailed
 from inspection.measured_cloud import ScanCloud
+from inspection.registration.alternatives import surviving, unrejected
 from inspection.registration.clouds import voxel_grid
-from inspection.registration.fine import fine_pose
+from inspection.registration.evidence import Comparison, FreeMotion, PoseCovariance, free_motions
+from inspection.registration.fine import fine_pose, fit_covariance
 from inspection.registration.hypotheses import plane_poses, with_flips
 from inspection.registration.ndt import coarse_ndt_poses
 from inspection.registration.point_to_plane import icp
-from inspection.registration.rigid import pose_difference
 from inspection.registration.sac_ia import coarse_feature_poses
 from inspection.registration.settings import RegistrationSettings
 from inspection.registration.target import ModelTarget
 from inspection.registration.verification import evaluate_pose, explore, fitness
+
+PROVEN = "ok"
+AMBIGUOUS = "ambiguous"
+FREE = "free"
 
 
 @dataclass(frozen=True)
 class Registration:
     """`transform` (4x4) takes scan points onto the model; `fitness`: fraction of scan
     points within `inlier_mm` of the model (normals agreeing); `rmse_mm` their RMS
-    distance; `coarse` the pose before the fine step; `ambiguous` when another pose
-    (`alternatives`) explains the scan as well; `timings_s` per stage."""
+    distance; `coarse` the pose before the fine step; `timings_s` per stage.
+
+    What the evidence proves (`evidence`): `status` "ok" when the pose is proven (every
+    other pose the search found rejected, every motion fixed or a symmetry of the part),
+    "ambiguous" when another pose explains the scan as well, "free" when the view leaves a
+    motion free that is not a symmetry of the part (the pose is known up to it: the faces
+    it does not move can still be measured); `reason` why in a sentence; `ambiguous` the
+    first as a flag;
+    `alternatives` the poses the test could not reject (4x4 each), `comparisons` every
+    comparison made; `covariance` the pose's (None: not computed); `free` the motions the
+    fit leaves free (a symmetry of the part, or what the view does not fix)."""
 
     transform: np.ndarray
     fitness: float
@@ -38,17 +52,33 @@ class Registration:
     alternatives: tuple[np.ndarray, ...] = ()
     hidden_fraction: float = 0.0
     timings_s: dict[str, float] = field(default_factory=dict)
+    status: str = PROVEN
+    reason: str = ""
+    comparisons: tuple[Comparison, ...] = ()
+    covariance: PoseCovariance | None = None
+    free: tuple[FreeMotion, ...] = ()
+
+    @property
+    def proven(self) -> bool:
+        return self.status == PROVEN
 
     def as_dict(self) -> dict[str, object]:
         return {"transform": self.transform.tolist(), "fitness": self.fitness, "rmse_mm": self.rmse_mm,
-                "inlier_mm": self.inlier_mm, "method": self.method, "ambiguous": self.ambiguous,
+                "inlier_mm": self.inlier_mm, "method": self.method, "status": self.status, "reason": self.reason,
+                "ambiguous": self.ambiguous, "alternatives": [c.as_dict() for c in self.comparisons
+                                                              if any(c.transform is a for a in self.alternatives)],
+                "rejected_alternatives": [c.as_dict() for c in self.comparisons
+                                          if not any(c.transform is a for a in self.alternatives)],
+                "free_motions": [m.as_dict() for m in self.free],
+                **({} if self.covariance is None else self.covariance.as_dict()),
                 "hidden_fraction": self.hidden_fraction, "timings_s": self.timings_s}
 
 
 def register(scan: ScanCloud, target: ModelTarget,
              settings: RegistrationSettings = RegistrationSettings()) -> Registration:
-    """The pose taking `scan` onto `target` (the stages: `inspection.registration`).
-    Raises RegistrationFailed when no pose explains the scan."""
+    """The pose taking `scan` onto `target` (the stages: `inspection.registration`), with
+    what its evidence proves (`Registration.status`). Raises RegistrationFailed when no
+    pose explains the scan."""
     rng = np.random.default_rng(settings.seed)
     times: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -68,16 +98,17 @@ def register(scan: ScanCloud, target: ModelTarget,
     inlier = 1.5 * v
     sub = rng.choice(len(src_pts), size=min(1500, len(src_pts)), replace=False)
     sp, sn = src_pts[sub], src_nrm[sub]
-    refined = [coarse_icp(sp, sn, target, T, settings) for T in poses]
+    before = [coarse_icp(sp, sn, target, T, settings) for T in poses]
+    refined = list(before)
     fits = fitness(sp, sn, target.coarse, np.array(refined), inlier, settings.max_normal_deg)
     order = np.argsort(-fits)
     for k in order[:settings.explored]:  # the most promising few: explored further
         refined[k] = explore(sp, sn, target.coarse, refined[k], inlier, settings.coarse_turns_deg, 4.0 * v, settings)
     judged = []
-    for T in refined:  # a handful of distinct hypotheses
+    for k, T in enumerate(refined):  # a handful of distinct hypotheses
         fit, rmse = evaluate_pose(sp, sn, target.dense, T, inlier, settings.max_normal_deg)
         hidden = target.hidden_fraction(T, sp, scan.viewpoint, 2.0 * v) if scan.viewpoint is not None else 0.0
-        judged.append((fit - hidden, fit, rmse, hidden, T))
+        judged.append((fit - hidden, fit, rmse, hidden, T, before[k]))
     judged.sort(key=lambda j: -j[0])
     best = judged[0]
     times["verify"] = time.perf_counter() - t0
@@ -85,15 +116,35 @@ def register(scan: ScanCloud, target: ModelTarget,
         raise RegistrationFailed(f"{scan.source}: the best pose fits only {best[1]:.0%} of the scan within "
                                  f"{inlier:.3g} mm of {target.name} (needs {settings.min_fitness - 0.1:.0%}); wrong part, "
                                  f"too little of it in view, or other units", best[1], best[2])
-    centre = src_pts.mean(axis=0)
-
-    def apart(T: np.ndarray) -> bool:  # another pose, not the same one found twice
-        angle, shift = pose_difference(T, best[4], centre)
-        return angle > 10.0 or shift > 0.1 * target.diagonal_mm
-
-    alternatives = tuple(j[4] for j in judged[1:] if j[0] >= best[0] - settings.ambiguity_margin and apart(j[4]))
     method = f"rscs+{'+'.join(settings.descriptors)}+{settings.coarse}+icp" if settings.coarse != "ndt" else "ndt+icp"
-    return refine(scan, target, best[4], settings, rng, times, method, alternatives)
+    reg = refine(scan, target, best[4], settings, rng, times, method)
+    t0 = time.perf_counter()
+    comparisons = surviving(scan, target, (best[5], best[4]), reg.transform, [j[5] for j in judged[1:]], (sp, sn),
+                            list(reg.free), reg.covariance, settings, rng)
+    times["alternatives"] = time.perf_counter() - t0
+    times["total"] = sum(x for k, x in times.items() if k != "total")
+    return judge(reg, comparisons, settings, {k: round(x, 4) for k, x in times.items()})
+
+
+def judge(reg: Registration, comparisons: tuple[Comparison, ...], settings: RegistrationSettings,
+          timings: dict[str, float] | None = None) -> Registration:
+    """`reg` with its status (`Registration`): ambiguous when an alternative is not rejected
+    or a motion is free that is not a symmetry of the part."""
+    from dataclasses import replace
+
+    standing = unrejected(comparisons, settings)
+    loose = [m for m in reg.free if not m.symmetry]
+    reasons = []
+    if standing:
+        reasons.append(f"ambiguous between the best pose and {len(standing)} other pose(s) that explain the scan "
+                       "as well (" + "; ".join(
+            f"{c.angle_deg:.1f} deg / {c.shift_mm:.2f} mm away, p = {c.p_value:.2g}" for c in standing) + ")")
+    if loose:
+        reasons.append("the view does not fix the " + "; ".join(m.describe() for m in loose))
+    status = AMBIGUOUS if standing else FREE if loose else PROVEN
+    return replace(reg, status=status, ambiguous=bool(standing), reason="; ".join(reasons),
+                   alternatives=tuple(c.transform for c in standing), comparisons=comparisons,
+                   timings_s=timings if timings is not None else reg.timings_s)
 
 
 def scan_voxels(scan: ScanCloud, target: ModelTarget) -> tuple[np.ndarray, np.ndarray]:
@@ -117,13 +168,13 @@ def coarse_icp(sp: np.ndarray, sn: np.ndarray, target: ModelTarget, T: np.ndarra
 
 
 def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, settings: RegistrationSettings,
-           rng: np.random.Generator, times: dict[str, float], method: str,
-           alternatives: tuple[np.ndarray, ...] = (), local_search: bool = True) -> Registration:
+           rng: np.random.Generator, times: dict[str, float], method: str, local_search: bool = True) -> Registration:
     """The fine step from a verified coarse pose (local search and ICP on the dense scan,
-    then the exact faces) and the final judgement on `settings.max_points` scan points:
-    RegistrationFailed when too little of the scan lies near the model. `local_search`
-    False leaves out the search about `coarse` (a warm start's: its prior is a pose the
-    search has already settled). `times` gains "fine", "evaluate" and "total" (s)."""
+    then the exact faces), the final judgement on `settings.max_points` scan points
+    (RegistrationFailed when too little of the scan lies near the model), and the pose's
+    covariance and free motions (`evidence`). `local_search` False leaves out the search
+    about `coarse` (a warm start's: its prior is a pose the search has already settled).
+    `times` gains "fine", "evaluate" and "total" (s)."""
     v = target.voxel_mm
     t0 = time.perf_counter()
     T = coarse
@@ -131,7 +182,7 @@ def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, settings: R
         dense = rng.choice(len(scan), size=min(3000, len(scan)), replace=False)
         T = explore(scan.points[dense], scan.normals[dense], target.dense, T, 0.3 * v, settings.fine_turns_deg,
                     1.0 * v, settings)
-    T = fine_pose(scan, target, T, settings, rng)
+    T, fit_points = fine_pose(scan, target, T, settings, rng)
     times["fine"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     dense = rng.choice(len(scan), size=min(settings.max_points, len(scan)), replace=False)
@@ -144,7 +195,13 @@ def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, settings: R
         raise RegistrationFailed(f"{scan.source}: after the fine step only {fit:.0%} of the scan lies within "
                                  f"{fine_inlier:.3g} mm of {target.name} (needs {settings.min_fitness:.0%}): wrong "
                                  f"part, or a part far from its model", fit, rmse)
+    cov = (fit_covariance(scan, target, T, fit_points, max_incidence_deg=settings.max_incidence_deg)
+           if len(fit_points.index) >= 6 else None)
+    model = target.dense if target.model is not None else None
+    free = () if cov is None else tuple(free_motions(cov, settings.pose_tolerance_deg, settings.pose_tolerance_mm,
+                                                     None if model is None else model.points,
+                                                     None if model is None else model.normals))
     times["evaluate"] = time.perf_counter() - t0
-    times["total"] = sum(times.values())
-    return Registration(T, fit, rmse, fine_inlier, coarse, method, bool(alternatives), alternatives, hidden,
-                        {k: round(x, 4) for k, x in times.items()})
+    times["total"] = sum(x for k, x in times.items() if k != "total")
+    return Registration(T, fit, rmse, fine_inlier, coarse, method, hidden_fraction=hidden,
+                        timings_s={k: round(x, 4) for k, x in times.items()}, covariance=cov, free=free)

@@ -9,36 +9,32 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from inspection.cad import CadModel
+from inspection.registration.evidence import robust_sigma
 from inspection.registration.gauss_newton import gauss_newton
 from inspection.registration.rigid import transform_points
 from inspection.segmentation import project_to_faces
 
 
-def robust_sigma(r: np.ndarray) -> float:
-    """1.4826 x the median absolute deviation of `r`: its standard deviation for normal
-    noise, untouched by a minority of outliers."""
-    return float(1.4826 * np.median(np.abs(r - np.median(r))))
-
-
 def without_biased_faces(src: np.ndarray, face: np.ndarray, T: np.ndarray, model: CadModel, iterations: int,
-                         sigmas: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(points, faces, pose) after leaving out the faces whose points sit off their surface
-    as a group at the converged pose T (median residual beyond `sigmas` times the robust
-    spread of the faces' medians) and refining on the rest, provided the rest hold at
-    least half the points; otherwise the inputs unchanged."""
+                         sigmas: float) -> tuple[np.ndarray, np.ndarray]:
+    """(which points are kept, pose) after leaving out the faces whose points sit off their
+    surface as a group at the converged pose T (median residual beyond `sigmas` times the
+    robust spread of the faces' medians) and refining on the rest, provided the rest hold at
+    least half the points; otherwise all points and T."""
     _, _, _, r = project_to_faces(model, transform_points(T, src), face)
     labels, inv, count = np.unique(face, return_inverse=True, return_counts=True)
     med = np.array([np.median(r[inv == k]) for k in range(len(labels))])  # one per face seen
     spread = robust_sigma(med)
     off = np.abs(med - np.median(med)) > sigmas * max(spread, 1e-4)
+    keep = np.ones(len(src), bool)
     if off.any() and count[~off].sum() >= 0.5 * len(src):
-        src, face = src[~off[inv]], face[~off[inv]]
-        T = gauss_newton(src, face, T, model, iterations)
-    return src, face, T
+        keep = ~off[inv]
+        T = gauss_newton(src[keep], face[keep], T, model, iterations)
+    return keep, T
 
 
 def without_offset_face(src: np.ndarray, face: np.ndarray, T: np.ndarray, model: CadModel, iterations: int,
-                        limit_mm: float, noise_ratio: float, big_fraction: float) -> np.ndarray:
+                        limit_mm: float, noise_ratio: float, big_fraction: float) -> tuple[np.ndarray, np.ndarray]:
     """A large face off its nominal place as a whole pulls the best fit of all faces into a
     compromise (tilted, shifted) that then shows as deviations on faces that conform.
     When the residuals spread more than the noise (their robust sigma over `noise_ratio`
@@ -49,14 +45,15 @@ def without_offset_face(src: np.ndarray, face: np.ndarray, T: np.ndarray, model:
     fine step's inlier distance, so that the face still counts in the fitness) is kept,
     the best such. A part whose faces conform never gets here. A face off by more keeps
     the compromise: the part then reads off on several faces (a profile failure) rather
-    than failing registration."""
+    than failing registration. Returns (which points the pose rests on, the pose)."""
     _, _, _, r = project_to_faces(model, transform_points(T, src), face)
     _, nb = cKDTree(src).query(src, k=2)
     noise = robust_sigma(r - r[nb[:, 1]]) / np.sqrt(2.0)
+    everything = np.ones(len(src), bool)
     if robust_sigma(r) <= noise_ratio * noise:
-        return T
+        return everything, T
     _, inv, count = np.unique(face, return_inverse=True, return_counts=True)
-    best, best_sigma = T, np.inf
+    best, best_sigma, kept = T, np.inf, everything
     for k in np.flatnonzero(count >= big_fraction * len(face)):
         rest = inv != k
         U = gauss_newton(src[rest], face[rest], T, model, iterations)
@@ -64,5 +61,5 @@ def without_offset_face(src: np.ndarray, face: np.ndarray, T: np.ndarray, model:
         sigma = robust_sigma(ru[rest])
         offset = abs(np.median(ru[~rest]) - np.median(ru[rest]))
         if sigma < min(0.8 * robust_sigma(r[rest]), best_sigma) and 3.0 * sigma < offset < limit_mm:
-            best, best_sigma = U, sigma
-    return best
+            best, best_sigma, kept = U, sigma, rest
+    return kept, best

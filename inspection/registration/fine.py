@@ -6,64 +6,236 @@ left out (`face_bias`)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 import numpy as np
 
-from inspection.measured_cloud import ScanCloud
+from inspection.measured_cloud import ScanCloud, point_spacing
 from inspection.registration.clouds import normal_space_sample
+from inspection.registration.evidence import PoseCovariance, free_motions, pose_covariance
 from inspection.registration.face_bias import without_biased_faces, without_offset_face
 from inspection.registration.gauss_newton import gauss_newton
 from inspection.registration.point_to_plane import icp
 from inspection.registration.rigid import transform_points
 from inspection.registration.settings import RegistrationSettings
 from inspection.registration.target import ModelTarget
-from inspection.segmentation import assign_faces
+from inspection.segmentation import assign_faces, project_to_faces
+
+
+@dataclass(frozen=True)
+class FinalFit:
+    """The points the final pose rests on: `index` into the scan, and for a STEP model
+    their faces (else they were fitted to the dense samples' tangent planes)."""
+
+    index: np.ndarray
+    face: np.ndarray | None = None
+    left_out: np.ndarray | None = None  # points assigned to faces but left out as off (`refine_exact`)
+    left_out_face: np.ndarray | None = None
+    unseen: np.ndarray | None = None  # points on faces the fit has none of and left none out (`with_the_rest`)
+    unseen_face: np.ndarray | None = None
 
 
 def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: RegistrationSettings,
-              rng: np.random.Generator) -> np.ndarray:
-    """Point-to-plane ICP on the dense scan (points seen more obliquely than
-    `max_incidence_deg` left out, the rest drawn by normal-space sampling) on a quarter of
-    the points; then, for a STEP model, `refine_exact`, else ICP on all of them. (Before
-    the exact step a pass on all would add nothing: its threshold closes to 0.05 voxel,
-    within which only the ~5 % of points nearest a model sample pair up.)"""
+              rng: np.random.Generator) -> tuple[np.ndarray, FinalFit]:
+    """(pose, the points it rests on): point-to-plane ICP on the dense scan (points seen more
+    obliquely than `max_incidence_deg` left out, the rest drawn by normal-space sampling) on
+    a quarter of the points; then, for a STEP model, `refine_exact` on the points well seen
+    (`well_seen`: neither grazing nor in an outline band), or, when those leave a motion
+    free, on all but the grazing ones, or then on all; else ICP on all of them.
+    (Before the exact step a pass on all would add nothing: its threshold closes to 0.05
+    voxel, within which only the ~5 % of points nearest a model sample pair up.)"""
     v = target.voxel_mm
     p, n = scan.points, scan.normals
-    if scan.viewpoint is not None:  # grazing views of a surface measure it worst: leave them out
-        ray = scan.viewpoint - p
-        grazing = (np.einsum("ij,ij->i", ray, n)
-                   < np.cos(np.radians(settings.max_incidence_deg)) * np.linalg.norm(ray, axis=1))
-        if (~grazing).sum() > 100:
-            p, n = p[~grazing], n[~grazing]
-    sel = normal_space_sample(n, settings.max_points, rng)
+    usable = well_seen(scan, settings.max_incidence_deg, outline=False)
+    sel = usable[normal_space_sample(n[usable], settings.max_points, rng)]
     first = sel[: max(len(sel) // 4, 1)]
     T = icp(p[first], n[first], target.dense, T, 1.5 * v, 0.1 * v, settings.max_normal_deg, 15,
             settings.tangential_weight)
     if target.model is None or target.model.kind != "step":
-        return icp(p[sel], n[sel], target.dense, T, 0.5 * v, 0.05 * v, settings.max_normal_deg, 10,
-                   settings.tangential_weight)
-    sel = rng.choice(len(scan), size=min(settings.exact_points, len(scan)), replace=False)  # any point will do
-    return refine_exact(scan.points[sel], scan.normals[sel], T, target, 0.3 * v, settings, offset_limit_mm=0.5 * v)
+        T = icp(p[sel], n[sel], target.dense, T, 0.5 * v, 0.05 * v, settings.max_normal_deg, 10,
+                settings.tangential_weight)
+        d, _ = target.dense.tree.query(transform_points(T, p[sel]), distance_upper_bound=0.5 * v)
+        return T, FinalFit(sel[np.isfinite(d)])
+    fit = None
+    for points in _from_best_seen(scan, settings.max_incidence_deg):  # the best measured first
+        sel = rng.choice(points, size=min(settings.exact_points, len(points)), replace=False)  # any will do
+        fit = refine_exact(scan, sel, T, target, 0.3 * v, settings, offset_limit_mm=0.5 * v)
+        if not _frees(scan, target, *fit, settings):
+            break
+    assert fit is not None
+    return fit[0], with_the_rest(scan, target, *fit, settings, rng)
 
 
-def refine_exact(src: np.ndarray, src_nrm: np.ndarray, T: np.ndarray, target: ModelTarget, tol: float,
-                 settings: RegistrationSettings, iterations: int = 6,
-                 offset_limit_mm: float | None = None) -> np.ndarray:
-    """Gauss-Newton on the distances to the exact CAD faces: the points are assigned to
-    faces once (`segmentation.assign_faces`: within `tol` mm and `max_normal_deg`, inside
-    the face), then each step projects them onto their face's surface (`gauss_newton`).
-    Once converged, faces whose points sit off their surface as a group (median residual
-    beyond `face_bias_sigma` times the spread of the faces' medians) are left out and the
-    steps repeated. Last, a large face off as a whole, by less than `offset_limit_mm`, is
-    found by leaving faces out in turn (`face_bias.without_offset_face`)."""
+def with_the_rest(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: FinalFit, settings: RegistrationSettings,
+                  rng: np.random.Generator) -> FinalFit:
+    """`fit` with its `unseen`: points the fit does not rest on whose faces' offsets as a whole
+    tell how far the scanner may measure a face off (`evidence.pose_covariance`): a sample of
+    the scan's other points (outline bands, grazing: up to `exact_points` of them) on CAD
+    faces at pose T that the fit has no point of, and the faces it left out as off that lie
+    mostly in outline bands (`edge_faces`). A pose a few tenths of a degree off that the
+    points it rests on cannot tell shows there, as walls tens of um off. A face left out as
+    off that is measured mostly away from any outline is not among them: the scanner's
+    face-level error comes from the camera's blur mixing a surface with what lies beyond
+    its outline (`well_seen`), so such a face's offset is the part's own (what the
+    inspection measures), not the scanner's."""
     assert target.model is not None and target.samples is not None
+    known = np.zeros(len(scan), bool)
+    known[fit.index] = True
+    if fit.left_out is not None:
+        known[fit.left_out] = True
+    rest = np.flatnonzero(~known)
+    rest = rng.choice(rest, size=min(settings.exact_points, len(rest)), replace=False)
+    seg = assign_faces(transform_points(T, scan.points[rest]), scan.normals[rest] @ T[:3, :3].T, target.model,
+                       target.samples, target.dense.tree, 0.3 * target.voxel_mm, settings.max_normal_deg)
+    used = np.concatenate([fit.face if fit.face is not None else [], fit.left_out_face
+                           if fit.left_out_face is not None else []])
+    new = seg.assigned & ~np.isin(seg.face, used)
+    index, face = rest[new], seg.face[new]
+    if fit.left_out is not None and fit.left_out_face is not None and len(fit.left_out):
+        edge = np.isin(fit.left_out_face, edge_faces(scan, fit.left_out, fit.left_out_face, settings.max_incidence_deg))
+        index = np.concatenate([index, fit.left_out[edge]])
+        face = np.concatenate([face, fit.left_out_face[edge]])
+    return replace(fit, unseen=index, unseen_face=face)
+
+
+def edge_faces(scan: ScanCloud, index: np.ndarray, face: np.ndarray, max_incidence_deg: float) -> np.ndarray:
+    """The faces (ids of `face`, one per scan point `index`) whose points lie mostly within
+    `EDGE_MARGIN_PX` of their surface's outline in the image (`_inside_outline`); none for
+    a bare cloud, which has no image to tell an outline by."""
+    if scan.pixels is None or scan.image_shape is None or len(index) == 0:
+        return np.zeros(0, face.dtype)
+    outer = ~_inside_outline(scan, max_incidence_deg)[index]
+    ids, which = np.unique(face, return_inverse=True)
+    share = np.bincount(which.ravel(), weights=outer) / np.bincount(which.ravel())
+    return ids[share > 0.5]
+
+
+def _from_best_seen(scan: ScanCloud, max_incidence_deg: float) -> list[np.ndarray]:
+    """The point sets the exact fit tries, best measured first, each only if it adds points:
+    the well seen (`well_seen`), then those not grazing, then all (a part seen from straight
+    above has its walls only at grazing incidence, and they are what fixes its turn)."""
+    sets = [well_seen(scan, max_incidence_deg, outline=True), well_seen(scan, max_incidence_deg, outline=False),
+            np.arange(len(scan))]
+    return [x for k, x in enumerate(sets) if k == 0 or len(x) > len(sets[k - 1])]
+
+
+def _frees(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: FinalFit,
+           settings: RegistrationSettings) -> bool:
+    """Whether the fit of pose T on `fit`'s points leaves a motion free (`evidence.free_motions`)."""
+    if len(fit.index) < 6:
+        return True
+    cov = fit_covariance(scan, target, T, fit, max_incidence_deg=settings.max_incidence_deg)
+    return bool(free_motions(cov, settings.pose_tolerance_deg, settings.pose_tolerance_mm))
+
+
+def well_seen(scan: ScanCloud, max_incidence_deg: float, outline: bool) -> np.ndarray:
+    """Indices of the points measured well enough to rest a pose on: not seen more
+    obliquely than `max_incidence_deg` (grazing views measure a surface worst), and, with
+    `outline`, in an organised scan, not within `EDGE_MARGIN_PX` of the outline of the surface they lie on
+    (the image's edge of the points, or a step in depth: two neighbouring pixels farther
+    apart than one surface seen at that incidence puts them), where the camera's blur mixes
+    the surface's fringes with what lies beyond (`inspection.acceptance.inner_pixels`: on
+    the simulated bench a 12 mm step wall of the demo part read 34 um inside the material,
+    enough to turn the part 0.025 deg about its axis). All points when fewer than 100 remain."""
+    keep = np.ones(len(scan), bool)
+    if scan.viewpoint is not None:
+        ray = scan.viewpoint - scan.points
+        keep &= (np.einsum("ij,ij->i", ray, scan.normals)
+                 >= np.cos(np.radians(max_incidence_deg)) * np.linalg.norm(ray, axis=1))
+    if outline and scan.pixels is not None and scan.image_shape is not None:
+        keep &= _inside_outline(scan, max_incidence_deg)
+    return np.flatnonzero(keep) if keep.sum() >= 100 else np.arange(len(scan))
+
+
+def _inside_outline(scan: ScanCloud, max_incidence_deg: float) -> np.ndarray:
+    """Which points of an organised scan lie at least `EDGE_MARGIN_PX` inside the outline
+    of their surface (`well_seen`)."""
+    import cv2
+
+    from inspection.acceptance import EDGE_MARGIN_PX
+
+    assert scan.pixels is not None and scan.image_shape is not None
+    col, row = scan.pixels[:, 0], scan.pixels[:, 1]
+    grid = np.full(scan.image_shape + (3,), np.nan)
+    grid[row, col] = scan.points
+    surface = np.zeros(scan.image_shape, bool)
+    surface[row, col] = True
+    gaps = [np.linalg.norm(np.diff(grid, axis=a), axis=2) for a in (0, 1)]
+    step = np.nanmedian(np.concatenate([g[np.isfinite(g)] for g in gaps]))
+    limit = step / np.cos(np.radians(max_incidence_deg))
+    with np.errstate(invalid="ignore"):
+        jump0, jump1 = gaps[0] > limit, gaps[1] > limit
+    surface[:-1] &= ~jump0
+    surface[1:] &= ~jump0
+    surface[:, :-1] &= ~jump1
+    surface[:, 1:] &= ~jump1
+    kernel = np.ones((2 * EDGE_MARGIN_PX + 1,) * 2, np.uint8)
+    inner = cv2.erode(surface.view(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    return inner[row, col]
+
+
+def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, target: ModelTarget, tol: float,
+                 settings: RegistrationSettings, iterations: int = 10,
+                 offset_limit_mm: float | None = None) -> tuple[np.ndarray, FinalFit]:
+    """Gauss-Newton on the distances of the scan points `sel` to the exact CAD faces: the
+    points are assigned to faces once (`segmentation.assign_faces`: within `tol` mm and
+    `max_normal_deg`, inside the face), then each step projects them onto their face's
+    surface (`gauss_newton`). Once converged, faces whose points sit off their surface as a
+    group (median residual beyond `face_bias_sigma` times the spread of the faces' medians)
+    are left out and the steps repeated; a large face off as a whole, by less than
+    `offset_limit_mm`, is found by leaving faces out in turn (`face_bias.without_offset_face`).
+    A motion that only the faces left out fix is then free: the data call the one face that
+    would place the part along it off, so the pose along it is not proven (taking such a
+    face back in had placed random part seed 1458621907/part_000 0.136 mm off, exit 0)."""
+    assert target.model is not None and target.samples is not None
+    src, src_nrm = scan.points[sel], scan.normals[sel]
     seg = assign_faces(transform_points(T, src), src_nrm @ T[:3, :3].T, target.model, target.samples,
                        target.dense.tree, tol, settings.max_normal_deg)
-    src, face = src[seg.assigned], seg.face[seg.assigned]
-    if len(src) < 6:
-        return T
+    sel, face = sel[seg.assigned], seg.face[seg.assigned]
+    if len(sel) < 6:
+        return T, FinalFit(sel, face)
+    src = scan.points[sel]
     T = gauss_newton(src, face, T, target.model, iterations)
-    src, face, T = without_biased_faces(src, face, T, target.model, iterations, settings.face_bias_sigma)
-    if offset_limit_mm is None:
-        return T
-    return without_offset_face(src, face, T, target.model, iterations, offset_limit_mm, settings.offset_noise_ratio,
-                               settings.big_face_fraction)
+    whole = (T, FinalFit(sel, face))
+    keep, T = without_biased_faces(src, face, T, target.model, iterations, settings.face_bias_sigma)
+    sel, src, face = sel[keep], src[keep], face[keep]
+    if offset_limit_mm is not None:
+        keep, T = without_offset_face(src, face, T, target.model, iterations, offset_limit_mm,
+                                      settings.offset_noise_ratio, settings.big_face_fraction)
+        sel, face = sel[keep], face[keep]
+    return T, FinalFit(sel, face, *_left_out(whole[1], sel))
+
+
+def _left_out(whole: FinalFit, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(points, faces) of `whole` not among `kept`."""
+    out = ~np.isin(whole.index, kept)
+    assert whole.face is not None
+    return whole.index[out], whole.face[out]
+
+
+def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: FinalFit, *,
+                   max_incidence_deg: float) -> PoseCovariance:
+    """The covariance of pose T from the points of `fit` (`evidence.pose_covariance`): their
+    residuals to their exact faces (or the dense samples' tangent planes), the residual
+    field's correlation taken over the camera image (pixels) or, for a bare cloud, over the
+    scan's point spacing; the faces the fit never saw (`with_the_rest`) are evidence of how
+    far a face's measurement may be off as a whole (in the face offsets' variance, not the fit),
+    faces mostly in outline bands (`_inside_outline` at `max_incidence_deg`) apart from the rest."""
+    index, face = fit.index, fit.face
+    if fit.unseen is not None and len(fit.unseen) and face is not None:
+        index, face = np.concatenate([index, fit.unseen]), np.concatenate([face, fit.unseen_face])
+    in_fit = np.arange(len(index)) < len(fit.index)
+    q = transform_points(T, scan.points[index])
+    if face is not None and target.model is not None:
+        _, _, normal, r = project_to_faces(target.model, q, face)
+    else:
+        _, j = target.dense.tree.query(q)
+        normal = target.dense.normals[j]
+        r = np.einsum("ij,ij->i", q - target.dense.points[j], normal)
+    if scan.pixels is not None:
+        edge = None if scan.image_shape is None else ~_inside_outline(scan, max_incidence_deg)[index]
+        return pose_covariance(q, normal, r, scan.pixels[index].astype(np.float64), "px", face, in_fit=in_fit,
+                               edge=edge)
+    where = scan.points[index]
+    spacing = point_spacing(scan.points[fit.index], len(scan))
+    return pose_covariance(q, normal, r, where / max(spacing, 1e-9), f"x {spacing:.3g} mm", face, in_fit=in_fit)

@@ -41,16 +41,18 @@ def icp(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, ma
 
 
 def point_to_plane_step(p: np.ndarray, q: np.ndarray, n: np.ndarray, tangential: float = 0.0,
-                        damping: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
-    """The small motion x = (omega, t) minimising sum e'We, e = p + omega x p + t - q,
+                        damping: float = 1e-12, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The small motion x = (omega, t) minimising sum w e'We, e = p + omega x p + t - q,
     W = (1 - l^2) n n' + l^2 I: point-to-plane plus a weak (l = `tangential`) point-to-point
-    term, Levenberg damping `damping` x the largest curvature. Normal equations from sums
-    over the points (O(n)); returns (x, normal residuals)."""
+    term (unweighted), Levenberg damping `damping` x the largest curvature, `weights` w per
+    point (None: 1). Normal equations from sums over the points (O(n)); returns (x, normal
+    residuals)."""
     e = p - q
     r = np.einsum("ij,ij->i", e, n)
     a = np.concatenate([cross_rows(p, n), n], axis=1)  # d(e.n)/dx
-    H = (1.0 - tangential ** 2) * (a.T @ a)
-    g = (1.0 - tangential ** 2) * (a.T @ r)
+    wa = a if weights is None else a * weights[:, None]
+    H = (1.0 - tangential ** 2) * (wa.T @ a)
+    g = (1.0 - tangential ** 2) * (wa.T @ r)
     if tangential > 0:  # point-to-point: J = [-[p]x, I], J'J and J'e from sums
         sp, m = p.sum(axis=0), len(p)
         px = np.array([[0, -sp[2], sp[1]], [sp[2], 0, -sp[0]], [-sp[1], sp[0], 0]])

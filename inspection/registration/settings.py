@@ -50,7 +50,11 @@ class RegistrationSettings:
     `min_fitness`: below it the registration fails; `max_normal_deg`: ICP's normal-angle
     rejection (deg); `max_points`: scan points used by the fine step; `ambiguity_margin`:
     another pose judged within it of the best makes the result ambiguous; `seed`:
-    randomness. The fields after `seed` tune the stages; their comments say why."""
+    randomness. `pose_tolerance_deg` / `pose_tolerance_mm`: the accuracy a pose must be
+    proven to (a motion whose U exceeds it is free; two poses within it are the same);
+    `false_accept`: the largest probability of returning a pose when another the search
+    found explains the scan as well (`evidence`). The fields after `false_accept` tune the
+    stages; their comments say why."""
 
     descriptors: tuple[str, ...] = DESCRIPTORS
     coarse: str = "sac-ia"
@@ -62,6 +66,9 @@ class RegistrationSettings:
     max_points: int = 40000
     ambiguity_margin: float = 0.02
     seed: int = 0
+    pose_tolerance_deg: float = 0.05
+    pose_tolerance_mm: float = 0.05
+    false_accept: float = 1e-3
     # SAC-IA: hypotheses scored on every evaluation point after a pre-score on a fifth of
     # them (poses): the pre-score is five times cheaper and only has to keep the good ones
     prescored: int = 150
@@ -94,6 +101,9 @@ class RegistrationSettings:
     # faces holding at least this share of the scan's points are the ones tried left out
     # (fraction): smaller faces cannot pull the fit far
     big_face_fraction: float = 0.05
+    # scan points on which the best pose and each alternative are compared (points): the
+    # sign test's power grows with them, its cost too (one ray cast per point and pose)
+    eval_points: int = 4000
     # ICP: weight of a point-to-point term along the surface (ratio to the plane term): it
     # keeps points from sliding off a face's edge, which the plane metric alone does not see
     tangential_weight: float = 0.1
@@ -105,7 +115,8 @@ class RegistrationSettings:
             raise ValueError(f"descriptors must be a non-empty subset of {DESCRIPTORS}, got {self.descriptors}")
         _check_positive(self, ("hypotheses", "verify", "min_fitness", "max_normal_deg", "max_points", "prescored",
                                "explored", "explore_prescore_stride", "explore_top", "max_incidence_deg",
-                               "exact_points", "face_bias_sigma", "offset_noise_ratio", "big_face_fraction"))
+                               "exact_points", "face_bias_sigma", "offset_noise_ratio", "big_face_fraction",
+                               "pose_tolerance_deg", "pose_tolerance_mm", "false_accept", "eval_points"))
         if not self.spheres or any(m <= 0 for m in self.spheres):
             raise ValueError(f"RegistrationSettings.spheres must be positive sphere counts, got {self.spheres}")
         if self.ambiguity_margin < 0 or not 0 <= self.tangential_weight < 1:

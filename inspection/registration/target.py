@@ -79,12 +79,17 @@ class ModelTarget:
 
     def hidden_fraction(self, T: np.ndarray, points: np.ndarray, viewpoint: np.ndarray, tol_mm: float) -> float:
         """Fraction of scan `points` (scan frame) that the model, posed by T (scan ->
-        model), would hide from `viewpoint`: a model surface crossed more than `tol_mm`
-        before the point on the ray from the sensor."""
+        model), would hide from `viewpoint` (`hidden`)."""
+        return float(np.mean(self.hidden(T, points, viewpoint, tol_mm)))
+
+    def hidden(self, T: np.ndarray, points: np.ndarray, viewpoint: np.ndarray, tol_mm: float) -> np.ndarray:
+        """Which scan `points` (scan frame) the model, posed by T (scan -> model), would hide
+        from `viewpoint`: a model surface crossed more than `tol_mm` before the point on the
+        ray from the sensor (all False for a target without a model)."""
         import open3d as o3d
 
         if self.model is None:
-            return 0.0
+            return np.zeros(len(points), bool)
         if self._mesh_scene is None:
             tess = self.model.tessellation
             self._mesh_scene = o3d.t.geometry.RaycastingScene()
@@ -96,4 +101,4 @@ class ModelTarget:
         dist = np.linalg.norm(d, axis=1)
         rays = np.concatenate([np.broadcast_to(o, q.shape), d / dist[:, None]], axis=1).astype(np.float32)
         t = self._mesh_scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        return float(np.mean(t < dist - tol_mm))
+        return t < dist - tol_mm

@@ -11,6 +11,7 @@ from inspection.registration.clouds import Samples
 from inspection.registration.point_to_plane import icp
 from inspection.registration.rigid import transform_points
 from inspection.registration.settings import RegistrationSettings
+from inspection.registration.target import ModelTarget
 
 
 def fitness(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, inlier_mm: float,
@@ -39,6 +40,21 @@ def evaluate_pose(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.n
     # distance to the tangent plane of the nearest sample: free of the sampling spacing
     dp = np.abs(np.einsum("ij,ij->i", q - target.points[j], target.normals[j]))
     return float(ok.mean()), float(np.sqrt(np.mean(dp[ok] ** 2))) if ok.any() else float("nan")
+
+
+def explained(src: np.ndarray, src_nrm: np.ndarray, target: ModelTarget, T: np.ndarray, inlier_mm: float,
+              max_normal_deg: float, viewpoint: np.ndarray | None) -> np.ndarray:
+    """Which points (scan frame) pose T explains: within `inlier_mm` of the target's dense
+    samples with normals agreeing within `max_normal_deg`, and not hidden from `viewpoint`
+    behind the posed model (`ModelTarget.hidden`, at twice the inlier distance)."""
+    q = transform_points(T, src)
+    d, j = target.dense.tree.query(q, distance_upper_bound=inlier_mm, workers=1)
+    ok = np.isfinite(d)
+    j = np.where(ok, j, 0)
+    ok &= np.einsum("ij,ij->i", src_nrm @ T[:3, :3].T, target.dense.normals[j]) > np.cos(np.radians(max_normal_deg))
+    if viewpoint is not None:
+        ok &= ~target.hidden(T, src, viewpoint, 2.0 * inlier_mm)
+    return ok
 
 
 def explore(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, inlier_mm: float,

@@ -22,7 +22,7 @@ import numpy as np
 
 from inspection.errors import RegistrationFailed
 from inspection.measured_cloud import ScanCloud
-from inspection.registration.driver import Registration, coarse_icp, refine, register, scan_voxels
+from inspection.registration.driver import Registration, coarse_icp, judge, refine, register, scan_voxels
 from inspection.registration.settings import RegistrationSettings
 from inspection.registration.target import ModelTarget
 from inspection.registration.verification import evaluate_pose, explore
@@ -36,7 +36,7 @@ def register_from_prior(scan: ScanCloud, target: ModelTarget, prior: Registratio
     """The pose taking `scan` onto `target` found from `prior` (the previous part's
     registration on this station), or None when the check fails (module docstring). It
     is ambiguous when the prior was (the same part in the same fixture has the same
-    symmetries; its alternatives are the prior's)."""
+    symmetries; its alternatives are the prior's); its free motions are its own."""
     rng = np.random.default_rng(settings.seed)
     times: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -58,10 +58,12 @@ def register_from_prior(scan: ScanCloud, target: ModelTarget, prior: Registratio
     if fit - hidden < settings.min_fitness:
         return None
     try:
-        reg = refine(scan, target, T, settings, rng, times, WARM_METHOD, prior.alternatives, local_search=False)
+        reg = refine(scan, target, T, settings, rng, times, WARM_METHOD, local_search=False)
     except RegistrationFailed:
         return None
-    return reg if reg.fitness >= prior.fitness - WARM_FITNESS_DROP else None
+    if reg.fitness < prior.fitness - WARM_FITNESS_DROP:
+        return None
+    return judge(reg, prior.comparisons, settings)
 
 
 def register_with_prior(scan: ScanCloud, target: ModelTarget, prior: Registration | None,

@@ -3,12 +3,15 @@
     slscan cad FILE [--json] [--sample N]            faces by STEP id and surface type, counts per type;
                                                      --sample: time to sample N labelled points
     slscan cadbench FILE [--copies 1,4,16]           STEP reading time of files holding copies of FILE
-    slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE;
+    slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE,
+                                                     pose U; exit 1 when the evidence does not prove the
+                                                     pose (another fits as well, a motion left free);
                                                      a cloud or session TARGET is another view of the part
                                                      (partial overlap, fitness on the overlap, --overlap)
     slscan inspect SESSION|MULTIVIEW|CLOUD [--cad FILE] --tolerances PROGRAM|FILE
                                                      register, segment by CAD face, per-face form table
 
+`--json` prints JSON alone on stdout (whatever the libraries print goes to stderr).
 `inspect` writes inspection.json/.csv/.html beside the data (a session's outputs/, or the
 cloud's folder, or --out) and, for a session, outputs/inspection.rrd: a Rerun recording
 with the session's recording id, so the viewer shows it together with recording.rrd
@@ -174,6 +177,34 @@ def _has_triangles(path: str) -> bool:
 
 
 def cmd_register(args: argparse.Namespace) -> int:
+    if not args.json:
+        return _register(args)
+    out: dict[str, Any] = {}
+    code = _register(args, out)
+    print(json.dumps(out))
+    return code
+
+
+def registration_record(reg: Any) -> dict[str, Any]:
+    """What `register --json` prints for a CAD target: the pose only when it is proven
+    (`transform` null otherwise), what the evidence says, the alternatives and free motions."""
+    d = reg.as_dict()
+    return {"status": reg.status, "transform": reg.transform.tolist() if reg.proven else None,
+            "best_unproven": None if reg.proven else reg.transform.tolist(), "reason": reg.reason,
+            "fitness": reg.fitness, "rmse": reg.rmse_mm, "ambiguous": reg.ambiguous, "method": reg.method,
+            "alternatives": d["alternatives"], "rejected_alternatives": d["rejected_alternatives"],
+            "free_motions": d["free_motions"], "rotation_u_deg": d.get("rotation_u_deg"),
+            "translation_u_mm": d.get("translation_u_mm"), "pose_covariance": d.get("pose_covariance"),
+            "pose_centre_mm": d.get("pose_centre_mm"), "correlation_inflation": d.get("correlation_inflation"),
+            "timings_s": reg.timings_s}
+
+
+def registration_exit(reg: Any) -> int:
+    """Exit.OK for a proven pose, Exit.FAILED for one the evidence leaves ambiguous."""
+    return Exit.OK if reg.proven else Exit.FAILED
+
+
+def _register(args: argparse.Namespace, json_out: dict[str, Any] | None = None) -> int:
     import numpy as np
 
     from inspection.measured_cloud import isolate_part, load_source
@@ -181,32 +212,35 @@ def cmd_register(args: argparse.Namespace) -> int:
 
     settings = RegistrationSettings(descriptors=tuple(args.descriptors.split(",")), coarse=args.coarse, seed=args.seed)
     if not _is_model(args.target):
-        return _register_views(args, settings)
+        return _register_views(args, settings, json_out)
     from inspection.registration import ModelTarget
 
     target = ModelTarget.from_cad(_load_model(args.target, args.cad_unit))
+    from scanner.native_threads import native_threads
+
     scan = load_source(args.source)
-    if not args.no_isolate:
-        scan = isolate_part(scan, target.diagonal_mm)
-    reg = register(scan, target, settings)
-    code = Exit.FAILED if reg.ambiguous else Exit.OK  # a pose another explains as well is no result
-    if args.json:
-        print(json.dumps({"status": "ambiguous" if reg.ambiguous else "ok",
-                          "transform": None if reg.ambiguous else reg.transform.tolist(),
-                          "best_unproven": reg.transform.tolist() if reg.ambiguous else None,
-                          "fitness": reg.fitness, "rmse": reg.rmse_mm, "ambiguous": reg.ambiguous,
-                          "method": reg.method}))
-        return code
+    with native_threads(1):  # thin, memory-bound products: a second BLAS thread only spins
+        if not args.no_isolate:
+            scan = isolate_part(scan, target.diagonal_mm)
+        reg = register(scan, target, settings)
+    if json_out is not None:
+        json_out.update(registration_record(reg))
+        return registration_exit(reg)
+    if not reg.proven:
+        print(f"{args.source}: not registered: {reg.reason}", file=sys.stderr)
+        return registration_exit(reg)
     with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
         print(f"transform taking {args.source} onto {args.target} (mm):")
         print(reg.transform)
+    u = reg.covariance.bounds() if reg.covariance is not None else None
     print(f"fitness {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, "
-          f"{reg.method}, {reg.timings_s.get('total', 0):.2f} s" + ("; AMBIGUOUS: another pose fits as well "
-                                                                    "(not a result: exit 1)" if reg.ambiguous else ""))
-    return code
+          f"{reg.method}, {reg.timings_s.get('total', 0):.2f} s"
+          + (f"; pose U {u[0]:.4f} deg, {u[1]:.4f} mm (95 %)" if u else "")
+          + "".join(f"; free: {m.describe()}" for m in reg.free))
+    return registration_exit(reg)
 
 
-def _register_views(args: argparse.Namespace, settings: Any) -> int:
+def _register_views(args: argparse.Namespace, settings: Any, json_out: dict[str, Any] | None = None) -> int:
     """A cloud (or session) target is another view of the part: partial overlap, judged on
     the overlap (`inspection.views.pair_registration`)."""
     import numpy as np
@@ -218,10 +252,10 @@ def _register_views(args: argparse.Namespace, settings: Any) -> int:
     if not args.no_isolate:
         scan, target = without_support(scan, args.seed), without_support(target, args.seed)
     reg = register_view_pair(scan, target, args.overlap, settings)
-    if args.json:
-        print(json.dumps({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
-                          "overlap": reg.overlap, "overlap_given": reg.overlap_given, "ambiguous": reg.ambiguous,
-                          "method": reg.method}))
+    if json_out is not None:
+        json_out.update({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
+                         "overlap": reg.overlap, "overlap_given": reg.overlap_given, "ambiguous": reg.ambiguous,
+                         "method": reg.method})
         return Exit.OK
     with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
         print(f"transform taking {args.source} onto {args.target} (mm):")
@@ -458,7 +492,8 @@ def register(sub: Any) -> None:
     r.add_argument("--seed", type=int, default=0, help="random seed of the coarse search (default 0)")
     r.add_argument("--overlap", type=float, metavar="SHARE", help="cloud targets: the share of SOURCE the target "
                                                                    "also saw (default: estimated)")
-    r.add_argument("--json", action="store_true", help="print {transform, fitness, rmse}")
+    r.add_argument("--json", action="store_true", help="print {status, transform (null unless proven), fitness, "
+                                                        "rmse, alternatives, free_motions, pose U}")
     r.set_defaults(func=cmd_register)
 
     i = sub.add_parser("inspect")

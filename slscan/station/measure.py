@@ -178,10 +178,10 @@ class InspectionMeasurement:
             except InspectionError as exc:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
             paths.append(path)
-            details[f"view{k}"] = {key: data[key] for key in ("fitness", "rmse_mm", "verdict") if key in data}
+            details[f"view{k}"] = {key: data[key] for key in ("fitness", "rmse_mm", "verdict", "status", "status_note")
+                                   if key in data}
             tables.append(table)
-        values = tuple(_pick(c, tables) for c in program.characteristics)
-        return MeasurementResult(True, values, details=details, report_paths=tuple(paths))
+        return view_values(program, tables, [details[f"view{k}"] for k in range(len(sessions))], details, paths)
 
     def measure_whole(self, session: MultiViewSession, program: PartProgram) -> MeasurementResult:
         """The merged cloud of the views (`inspection.views.whole.load_merged`, part frame)
@@ -196,9 +196,8 @@ class InspectionMeasurement:
                                               session.outputs, session.id, None, None)
         except InspectionError as exc:
             return MeasurementResult(False, message=f"multi-view session {session.root}: {exc}")
-        details = {"whole": {key: data[key] for key in ("fitness", "rmse_mm", "verdict") if key in data}}
-        return MeasurementResult(True, tuple(_pick(c, [table]) for c in program.characteristics), details=details,
-                                 report_paths=(path,))
+        whole = {key: data[key] for key in ("fitness", "rmse_mm", "verdict", "status", "status_note") if key in data}
+        return view_values(program, [table], [whole], {"whole": whole}, [path])
 
     def _inspect(self, scan: ScanCloud, program: PartProgram, session: Session, outputs: Path, recording_id: str,
                  view: int | None, uncertainty: ScanUncertainty | None) -> tuple[dict[str, dict[str, Any]],
@@ -249,12 +248,31 @@ def view_decisions(program: PartProgram, table: Mapping[str, Mapping[str, Any]],
             "rule": DECISION_RULES[program.decision_rule], "characteristics": rows}
 
 
-def _pick(c: Characteristic, tables: Sequence[Mapping[str, Mapping[str, Any]]]) -> MeasuredValue:
+def view_values(program: PartProgram, tables: Sequence[Mapping[str, Mapping[str, Any]]],
+                reports: Sequence[Mapping[str, Any]], details: Mapping[str, Any],
+                paths: Sequence[Path]) -> MeasurementResult:
+    """The part's values from its views' per-face tables (`_pick`); `reports` each view's
+    registration status and note (`InspectionReport.as_dict`). A view whose pose is not
+    proven ("ambiguous") measured nothing: its faces are left out, and when no view's pose
+    is proven the part is not measured at all, the message naming the ambiguity."""
+    unproven = [f"view {k}: {r.get('status_note') or r['status']}" for k, r in enumerate(reports)
+                if r.get("status") == "ambiguous"]
+    if len(unproven) == len(reports):
+        return MeasurementResult(False, message="; ".join(n.replace("not measured: ", "") for n in unproven),
+                                 details=details, report_paths=tuple(paths))
+    proven = [t for t, r in zip(tables, reports) if r.get("status") != "ambiguous"]
+    values = tuple(_pick(c, proven, unproven="; ".join(unproven)) for c in program.characteristics)
+    return MeasurementResult(True, values, details=details, report_paths=tuple(paths))
+
+
+def _pick(c: Characteristic, tables: Sequence[Mapping[str, Mapping[str, Any]]], *, unproven: str = "") -> MeasuredValue:
     """A characteristic's value, its U and detection limit from the view whose report has
-    the most points on its face."""
+    the most points on its face; `unproven` the views left out (their pose not proven), named
+    when no other view sees the face."""
     rows = [(k, t[c.face]) for k, t in enumerate(tables) if c.face in t and int(t[c.face].get("points", 0)) > 0]
     if not rows:
-        return MeasuredValue(c.name, None, note=f"face {c.face} not seen in any view")
+        return MeasuredValue(c.name, None, note=f"face {c.face} not seen in any view"
+                             + (f" with a proven pose ({unproven})" if unproven else ""))
     k, row = max(rows, key=lambda kr: int(kr[1]["points"]))
     column = REPORT_COLUMNS[(c.kind, c.method)]
     value = row.get(column)
