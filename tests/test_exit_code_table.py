@@ -8,8 +8,8 @@ asserted against the README's "Exit codes" table and written to the test's folde
 
 A command is one row of `ROWS`: a case it cannot produce (the demo scans the bundled nominal
 part only) is a cell with the reason instead of a run; a case whose code the README gives in
-other words (`register`: "a pose not proven" is its failing case, exit 1) is a run with those
-words.
+other words (`register`: "a pose not proven" is its failing case, exit 1)
+is a run with those words.
 
 The table's test is `acceptance` and `slow`: its runs take about ten minutes together on two
 loaded cores (a demo, five inspections, a whole verification of 23 positions)."""
@@ -74,31 +74,25 @@ class Bench:
                                    flags=re.M))
         return str(path)
 
-    def view(self, name: str, step: Path, tilt: tuple[float, float]) -> tuple[str, str]:
-        """(cloud, STEP): the model `step` seen from above, tilted by `tilt` rad
-        (tests/test_inspection_registration.py's virtual view), as a PLY cloud."""
-        import open3d as o3d
-        from test_inspection_registration import virtual_view
-
+    def random_part_view(self) -> tuple[str, str]:
+        """(cloud, STEP) of a generated part (seed 11) seen from a random start: a view whose
+        pose its evidence proves (tests/test_registration_proof.py)."""
         from inspection.cad import load_cad
-        from sim.parts import lying_pose
+        from registration_support import moved_view, write_ply
+        from sim.random_parts import random_part
 
-        model = load_cad(step)
-        scan = virtual_view(model, lying_pose(model.tessellation.vertices, 0.4, 400.0, tilt), seed=3)
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scan.points))
-        cloud.normals = o3d.utility.Vector3dVector(scan.normals)
-        o3d.io.write_point_cloud(str(self.tmp / f"{name}.ply"), cloud)
-        return str(self.tmp / f"{name}.ply"), str(step)
+        step = random_part(11).write(self.tmp / "part.step")
+        scan, _ = moved_view(load_cad(step), (0.3, -0.2), seed=7)
+        return str(write_ply(scan, self.tmp / "part.ply")), str(step)
 
-    def block(self) -> Path:
-        """A plain 60 x 40 x 15 mm block's STEP file: its half turn fits as well as its pose."""
-        from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox
-        from OCP.gp import gp_Pnt
+    def block_view(self) -> tuple[str, str]:
+        """(cloud, STEP) of a plain block from above: its half turn fits as well (ambiguous)."""
+        from inspection.cad import load_cad
+        from registration_support import box_step, moved_view, write_ply
 
-        from sim.parts_demo import write_step
-
-        write_step(BRepPrimAPI_MakeBox(gp_Pnt(-30, -20, 0), gp_Pnt(30, 20, 15)).Shape(), self.tmp / "block.step")
-        return self.tmp / "block.step"
+        step = box_step(self.tmp / "block.step")
+        scan, _ = moved_view(load_cad(step), (0.35, 0.2), seed=3)
+        return str(write_ply(scan, self.tmp / "block.ply")), str(step)
 
     def artefacts(self) -> str:
         """The bench's flat artefact alone (six positions: a complete test of that set, quick)."""
@@ -177,10 +171,9 @@ ROWS: dict[str, dict[str, Cell]] = {
         "bad input": lambda b: ["verify", "--rig", str(b.tmp / "no-such-rig.toml"), "--out", str(b.tmp / "verify-x")],
     },
     "register": {
-        "conforming": lambda b: ["register", *b.view("demo", CONFIG_DIR / "parts" / "demo_part.step", (0.5, 0.2))],
+        "conforming": lambda b: ["register", *b.random_part_view(), "--seed", "2", "--no-isolate"],  # proven
         "non-conforming": "register judges a pose, not a part: a pose not proven is its failing case",
-        "not measured": (lambda b: ["register", *b.view("block", b.block(), (0.35, 0.2)), "--no-isolate"],
-                         "a pose not proven"),
+        "not measured": (lambda b: ["register", *b.block_view(), "--no-isolate"], "a pose not proven"),
         "bad input": lambda b: ["register", str(b.tmp / "no-such-cloud.ply"), str(CONFIG_DIR / "parts" /
                                                                                  "demo_part.step")],
     },
@@ -211,7 +204,8 @@ def test_exit_codes_of_every_command_and_case(tmp_path: Path, monkeypatch: pytes
     for command, cells in ROWS.items():
         got[command] = {}
         for case in CASES:
-            run, words = cells[case] if isinstance(cells[case], tuple) else (cells[case], None)
+            cell = cells[case]
+            run, words = cell if isinstance(cell, tuple) else (cell, None)
             got[command][case] = run if isinstance(run, str) else exit_code(run(bench))
             if words is not None:
                 wanted[(command, case)] = documented_code(words)

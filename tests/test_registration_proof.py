@@ -14,24 +14,14 @@ from typing import Any
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 from scipy.stats import binomtest
 
 from inspection.cad import load_cad
 from inspection.registration import ModelTarget, RegistrationSettings, pose_difference, register
 from inspection.registration.evidence import ResidualCorrelation, pose_covariance, sign_test
-from sim.parts import lying_pose
 from sim.parts_demo import write_step
 from slscan import cli
-from tests.test_inspection_registration import virtual_view
-
-
-def _box(path: Path) -> Path:
-    from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox
-    from OCP.gp import gp_Pnt
-
-    write_step(BRepPrimAPI_MakeBox(gp_Pnt(-30, -20, 0), gp_Pnt(30, 20, 15)).Shape(), path)
-    return path
+from tests.registration_support import box_step, moved_view, write_ply
 
 
 def _ring(path: Path) -> Path:
@@ -60,19 +50,6 @@ def _ring(path: Path) -> Path:
     bore = BRepPrimAPI_MakeCylinder(gp_Ax2(gp_Pnt(0, 0, -1), gp_Dir(0, 0, 1)), 18.0, 14.0).Shape()
     write_step(BRepAlgoAPI_Cut(chamfer.Shape(), bore).Shape(), path)
     return path
-
-
-def _moved_view(model, tilt: tuple[float, float], seed: int):
-    """A view of `model` from a random start: (scan, the true moved-scan -> model pose, G)."""
-    pose = lying_pose(model.tessellation.vertices, 0.4, 400.0, tilt)
-    view = virtual_view(model, pose, seed=seed)
-    G = np.eye(4)
-    G[:3, :3] = Rotation.random(random_state=seed).as_matrix()
-    G[:3, 3] = [80.0, -120.0, 60.0]
-    from inspection.measured_cloud import ScanCloud
-
-    moved = ScanCloud(view.points @ G[:3, :3].T + G[:3, 3], view.normals @ G[:3, :3].T, "moved view", G[:3, 3].copy())
-    return moved, np.linalg.inv(pose) @ np.linalg.inv(G)
 
 
 def test_sign_test_is_the_binomial_tail() -> None:
@@ -228,7 +205,7 @@ def test_edge_faces_offsets_have_their_own_variance() -> None:
 @pytest.fixture(scope="module")
 def parts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     folder = tmp_path_factory.mktemp("proof")
-    return {"box": _box(folder / "box.step"), "ring": _ring(folder / "ring.step")}
+    return {"box": box_step(folder / "box.step"), "ring": _ring(folder / "ring.step")}
 
 
 def test_symmetric_block_is_refused_with_its_alternatives(parts: dict[str, Path], tmp_path: Path,
@@ -236,14 +213,9 @@ def test_symmetric_block_is_refused_with_its_alternatives(parts: dict[str, Path]
     """A plain block seen from above fits its half turn exactly as well: `register --json`
     exits 1, prints JSON alone on stdout, no transform, the alternatives listed (one of
     them the half turn)."""
-    import open3d as o3d
-
     model = load_cad(parts["box"])
-    scan, truth = _moved_view(model, (0.35, 0.2), seed=3)
-    cloud = tmp_path / "block.ply"
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scan.points))
-    pc.normals = o3d.utility.Vector3dVector(scan.normals)
-    o3d.io.write_point_cloud(str(cloud), pc)
+    scan, truth = moved_view(model, (0.35, 0.2), seed=3)
+    cloud = write_ply(scan, tmp_path / "block.ply")
     capsys.readouterr()
     code = cli.main(["register", str(cloud), str(parts["box"]), "--json", "--no-isolate"])
     out = json.loads(capsys.readouterr().out)  # the whole of stdout is one JSON document
@@ -274,7 +246,7 @@ def test_ring_is_registered_with_its_free_turn_named(parts: dict[str, Path]) -> 
     """A ring: the pose is proven up to the turn about its axis, which is named (the model's
     z axis through the origin) and marked a symmetry; every other motion within tolerance."""
     model = load_cad(parts["ring"])
-    scan, truth = _moved_view(model, (0.4, 0.1), seed=5)
+    scan, truth = moved_view(model, (0.4, 0.1), seed=5)
     reg = register(scan, ModelTarget.from_cad(model), RegistrationSettings(seed=1))
     assert reg.proven, reg.reason
     turns = [m for m in reg.free if m.kind == "rotation"]
@@ -293,7 +265,7 @@ def test_random_part_is_proven(tmp_path: Path) -> None:
     from sim.random_parts import random_part
 
     model = load_cad(random_part(11).write(tmp_path / "part.step"))
-    scan, truth = _moved_view(model, (0.3, -0.2), seed=7)
+    scan, truth = moved_view(model, (0.3, -0.2), seed=7)
     reg = register(scan, ModelTarget.from_cad(model), RegistrationSettings(seed=2))
     angle, shift = pose_difference(reg.transform, truth, scan.points.mean(axis=0))
     assert reg.proven and not reg.free, reg.reason
@@ -309,7 +281,7 @@ def test_top_view_leaves_the_turn_about_the_boss_free() -> None:
     from scanner.config import CONFIG_DIR
 
     model = load_cad(CONFIG_DIR / "parts" / "demo_part.step")
-    scan, truth = _moved_view(model, (0.0, 0.0), seed=2)
+    scan, truth = moved_view(model, (0.0, 0.0), seed=2)
     reg = register(scan, ModelTarget.from_cad(model), RegistrationSettings(seed=3))
     assert reg.status == "free" and not reg.proven, reg.reason
     turn = [m for m in reg.free if m.kind == "rotation"]
