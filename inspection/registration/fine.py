@@ -22,6 +22,8 @@ from inspection.registration.target import ModelTarget
 from inspection.segmentation import assign_faces, project_to_faces
 
 
+ASSIGN_VOXELS = 0.3  # scan points within this many voxels of a CAD face are assigned to it (the exact fit)
+
 @dataclass(frozen=True)
 class FinalFit:
     """The points the final pose rests on: `index` into the scan, and for a STEP model
@@ -59,7 +61,7 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
     fit = None
     for points in _from_best_seen(scan, settings.max_incidence_deg):  # the best measured first
         sel = rng.choice(points, size=min(settings.exact_points, len(points)), replace=False)  # any will do
-        fit = refine_exact(scan, sel, T, target, 0.3 * v, settings, offset_limit_mm=0.5 * v)
+        fit = refine_exact(scan, sel, T, target, ASSIGN_VOXELS * v, settings, offset_limit_mm=0.5 * v)
         if not _frees(scan, target, *fit, settings):
             break
     assert fit is not None
@@ -86,7 +88,7 @@ def with_the_rest(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fina
     rest = np.flatnonzero(~known)
     rest = rng.choice(rest, size=min(settings.exact_points, len(rest)), replace=False)
     seg = assign_faces(transform_points(T, scan.points[rest]), scan.normals[rest] @ T[:3, :3].T, target.model,
-                       target.samples, target.dense.tree, 0.3 * target.voxel_mm, settings.max_normal_deg)
+                       target.samples, target.dense.tree, ASSIGN_VOXELS * target.voxel_mm, settings.max_normal_deg)
     used = np.concatenate([fit.face if fit.face is not None else [], fit.left_out_face
                            if fit.left_out_face is not None else []])
     new = seg.assigned & ~np.isin(seg.face, used)
@@ -235,7 +237,8 @@ def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fin
     if scan.pixels is not None:
         edge = None if scan.image_shape is None else ~_inside_outline(scan, max_incidence_deg)[index]
         return pose_covariance(q, normal, r, scan.pixels[index].astype(np.float64), "px", face, in_fit=in_fit,
-                               edge=edge)
+                               edge=edge, offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm)
     where = scan.points[index]
     spacing = point_spacing(scan.points[fit.index], len(scan))
-    return pose_covariance(q, normal, r, where / max(spacing, 1e-9), f"x {spacing:.3g} mm", face, in_fit=in_fit)
+    return pose_covariance(q, normal, r, where / max(spacing, 1e-9), f"x {spacing:.3g} mm", face, in_fit=in_fit,
+                           offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm)
