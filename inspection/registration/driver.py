@@ -11,7 +11,8 @@ from inspection.errors import RegistrationFailed
 from inspection.measured_cloud import ScanCloud
 from inspection.registration.alternatives import surviving, unrejected
 from inspection.registration.clouds import voxel_grid
-from inspection.registration.evidence import Comparison, FreeMotion, PoseCovariance, free_motions
+from inspection.registration.evidence import (Comparison, FreeMotion, PoseCovariance, disagreement, free_motions,
+                                              within)
 from inspection.registration.fine import fine_pose, fit_covariance
 from inspection.registration.hypotheses import plane_poses, with_flips
 from inspection.registration.ndt import coarse_ndt_poses
@@ -201,6 +202,11 @@ def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, settings: R
     free = () if cov is None else tuple(free_motions(cov, settings.pose_tolerance_deg, settings.pose_tolerance_mm,
                                                      None if model is None else model.points,
                                                      None if model is None else model.normals))
+    claimed = fit_points.claimed
+    if cov is not None and claimed is not None and not within(T, claimed, cov.centre, settings.pose_tolerance_deg,
+                                                               settings.pose_tolerance_mm, list(free)):
+        free += (disagreement(T, claimed, cov.centre, cov.radius_mm, "the faces the pose rests on and the other "
+                              "faces it claims place the part this far apart"),)
     times["evaluate"] = time.perf_counter() - t0
     times["total"] = sum(x for k, x in times.items() if k != "total")
     return Registration(T, fit, rmse, fine_inlier, coarse, method, hidden_fraction=hidden,

@@ -71,7 +71,7 @@ pose with the free motion.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.special import betainc
@@ -145,6 +145,7 @@ class FreeMotion:
     u: float
     symmetry: bool
     turn_u: float = 0.0
+    note: str = ""
 
     def describe(self) -> str:
         a = ", ".join(f"{x:.3f}" for x in self.axis)
@@ -156,7 +157,7 @@ class FreeMotion:
         else:
             turn = f", turning {self.turn_u:.3g} deg" if np.isfinite(self.u) and self.turn_u >= 5e-4 else ""
             what = f"translation along ({a}) ({u}{turn})"
-        return what + (", a symmetry of the part" if self.symmetry else "")
+        return what + (", a symmetry of the part" if self.symmetry else "") + (f": {self.note}" if self.note else "")
 
     def as_dict(self) -> dict[str, object]:
         return {"kind": self.kind, "axis": list(self.axis), "point": None if self.point is None else list(self.point),
@@ -363,6 +364,14 @@ def _named(x: np.ndarray, centre: np.ndarray, rot_u: float, shift_u: float, rho:
         return FreeMotion("rotation", tuple(float(y) for y in a), tuple(float(y) for y in point), rot_u, symmetry)
     a = t / np.linalg.norm(t)
     return FreeMotion("translation", tuple(float(y) for y in a), None, shift_u, symmetry, rot_u)
+
+
+def disagreement(a: np.ndarray, b: np.ndarray, centre: np.ndarray, radius_mm: float, why: str) -> FreeMotion:
+    """The motion taking pose `a` to pose `b` (scan -> model) about `centre` as a free motion
+    whose U is its size (deg, mm), `why` the note saying what the two poses rest on."""
+    x = twist(a, b, centre)
+    return replace(_named(x, centre, float(np.degrees(np.linalg.norm(x[:3]))), float(np.linalg.norm(x[3:])),
+                          max(radius_mm, 1e-9), False), note=why)
 
 
 def moves(m: FreeMotion, points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> float:
