@@ -136,11 +136,14 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
             rows[face.index] = FaceRow.of(face, unseen, _verdicts(face.label, unseen, tolerances, rule),
                                           tolerances.name(face.label))
 
-    loose = [m for m in reg.free if not m.symmetry]
+    # a motion the view leaves free is a symmetry (nothing depends on it), bounded (its U,
+    # in the pose covariance, is carried by every deviation figure as any pose U is; form
+    # figures are blind to a rigid motion) or unbounded: the faces it moves are not measured
+    unbounded = [m for m in reg.free if not m.symmetry and not np.isfinite(m.u)]
 
     def row(face: Any) -> FaceRow:  # one face's figures and verdicts
         sel = seg.face == face.index
-        moved = _moved_by(loose, q[sel], seg.normal[sel], reg, settings.registration.pose_tolerance_mm)
+        moved = _moved_by(unbounded, q[sel], seg.normal[sel], reg)
         if moved:
             unfixed = FaceForm(int(sel.sum()), NOT_MEASURED, f"depends on the {moved}, which the view does not fix")
             return FaceRow.of(face, unfixed, _verdicts(face.label, unfixed, tolerances, rule),
@@ -158,8 +161,7 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
             form_settings=settings.form, timings_s={k: round(v, 4) for k, v in times.items()},
             part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose.as_dict(),
             calibration=uncertainty.calibration.source if uncertainty is not None else "not known (a bare cloud): not in U",
-            cad=model, status=reg.status, status_note=(f"the view does not fix the pose: {reg.reason}; the faces that "
-                                                       f"depend on it are not measured" if loose else ""))
+            cad=model, status=reg.status, status_note=_free_note(reg, unbounded))
 
     # the faces the tolerances ask for first: the verdict needs only them; the others' figures follow
     asked = [f for f in seen if tolerances is not None and tolerances.for_face(f.label)]
@@ -232,20 +234,25 @@ class PoseUncertainty:
         return replace(form, **changes)
 
 
-def _moved_by(loose: list[FreeMotion], points: np.ndarray, normals: np.ndarray, reg: Registration,
-              tolerance_mm: float) -> str:
-    """The free motions (not symmetries of the part) that move a face's points along their
-    normals by more than `tolerance_mm` at their U (an unbounded one: by more than a
-    numerical zero), described; "" when none does."""
-    if not loose or reg.covariance is None or not len(points):
+def _free_note(reg: Registration, unbounded: list[FreeMotion]) -> str:
+    """What a report says of a pose with free motions (none: "")."""
+    loose = [m for m in reg.free if not m.symmetry]
+    if not loose:
+        return ""
+    if unbounded:
+        return f"the view does not fix the pose: {reg.reason}; the faces that depend on it are not measured"
+    return (f"the view fixes the pose only within its U: {reg.reason}; the deviation and profile figures carry it "
+            f"(form figures do not depend on the pose)")
+
+
+def _moved_by(unbounded: list[FreeMotion], points: np.ndarray, normals: np.ndarray, reg: Registration) -> str:
+    """The unbounded free motions (not symmetries of the part) that move a face's points
+    along their normals by more than a numerical zero, described; "" when none does."""
+    if not unbounded or reg.covariance is None or not len(points):
         return ""
     centre, radius = reg.covariance.centre, reg.covariance.radius_mm
-    out = []
-    for m in loose:
-        limit = tolerance_mm if np.isfinite(m.u) else SYMMETRY_ZERO * (radius if m.kind == "rotation" else 1.0)
-        if moves(m, points, normals, centre) > limit:
-            out.append(m.describe())
-    return "; ".join(out)
+    return "; ".join(m.describe() for m in unbounded
+                     if moves(m, points, normals, centre) > SYMMETRY_ZERO * (radius if m.kind == "rotation" else 1.0))
 
 
 def ambiguity_note(reg: Registration) -> str:

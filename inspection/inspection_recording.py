@@ -27,9 +27,10 @@ import numpy as np
 import rerun as rr
 
 from inspection.cad import CadModel
+from inspection.deviation_colours import ColourScale, deviation_image, scale_of, shown_deviations
 from inspection.measured_cloud import ScanCloud
 from inspection.registration import transform_points
-from inspection.deviation_colours import ColourScale, deviation_image, scale_of, shown_deviations
+from inspection.registration.driver import AMBIGUOUS
 from inspection.report import InspectionReport
 from scanner.session_recording import SessionRecording
 
@@ -51,7 +52,8 @@ def log_inspection(recording: SessionRecording, report: InspectionReport, scan: 
     tess = model.tessellation
     stream = recording.stream
     recording.at_scan(scan_index)
-    if report.status == "ok":  # an unproven pose is not drawn as if it were the part's
+    if report.status != AMBIGUOUS:  # a pose another explains as well is not drawn as the part's; one with a
+        # free motion is: the faces it measures do not depend on that motion
         stream.log(CAD, rr.Mesh3D(vertex_positions=transform_points(world_from_model, tess.vertices).astype(np.float32),
                                   triangle_indices=tess.triangles, albedo_factor=[0.75, 0.78, 0.85, 0.35]),
                    strict=True)
