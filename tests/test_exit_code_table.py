@@ -74,6 +74,16 @@ class Bench:
                                    flags=re.M))
         return str(path)
 
+    def base_program(self) -> str:
+        """The demo program asking also for the flatness of the base (#711), which lies on the
+        bench and no view sees: that characteristic is not measured, whatever the noise."""
+        folder = self.tmp / "program-base"
+        folder.mkdir(exist_ok=True)
+        path = program_copy(folder)
+        path.write_text(path.read_text() + '\n[[characteristic]]\nname = "base_flatness"\nface = "#711"\n'
+                        'kind = "flatness"\nmethod = "minimum_zone"\ntolerance_mm = 0.05\n')
+        return str(path)
+
     def random_part_view(self) -> tuple[str, str]:
         """(cloud, STEP) of a generated part (seed 11) seen from a random start: a view whose
         pose its evidence proves (tests/test_registration_proof.py)."""
@@ -118,8 +128,9 @@ Run = Callable[[Bench], list[str]]
 Cell = Run | str | tuple[Run, str]  # a run, why the command cannot produce the case, or a run and the README's words
 
 
-def _station(parts: int, measurement: str, out: str) -> Run:
-    return lambda b: ["station", str(DEMO_PROGRAM), "--config", str(b.station), "--out", str(b.tmp / out), "--auto",
+def _station(parts: int, measurement: str, out: str, program: Callable[[Bench], str] = lambda b: str(DEMO_PROGRAM)
+             ) -> Run:
+    return lambda b: ["station", program(b), "--config", str(b.station), "--out", str(b.tmp / out), "--auto",
                       "--parts", str(parts), "--measurement", measurement]
 
 
@@ -140,7 +151,7 @@ ROWS: dict[str, dict[str, Cell]] = {
     "station": {
         "conforming": _station(1, TRUTH_GAUGE, "station-one"),  # the first simulated part is nominal
         "non-conforming": _station(2, TRUTH_GAUGE, "stored"),   # the second is bowed 150 um
-        "not measured": _station(1, "inspection", "station-inspected"),  # the boss: uncertain on the small camera
+        "not measured": _station(1, "inspection", "station-inspected", Bench.base_program),  # the base: unseen
         "bad input": lambda b: ["station", str(b.tmp / "no-such-program.toml"), "--config", str(b.station), "--auto",
                                 "--parts", "1"],
     },
@@ -149,7 +160,7 @@ ROWS: dict[str, dict[str, Cell]] = {
                                  "--measurement", TRUTH_GAUGE],
         "non-conforming": lambda b: ["batch", str(b.parts()[1]), "--program", str(DEMO_PROGRAM), "--workers", "0",
                                      "--measurement", TRUTH_GAUGE],
-        "not measured": lambda b: ["batch", str(b.parts()[0]), "--program", str(DEMO_PROGRAM), "--workers", "0",
+        "not measured": lambda b: ["batch", str(b.parts()[0]), "--program", b.base_program(), "--workers", "0",
                                    "--measurement", "inspection"],
         "bad input": lambda b: ["batch", str(b.tmp / "no-such-part"), "--program", str(DEMO_PROGRAM), "--workers", "0"],
     },
