@@ -6,10 +6,11 @@
 
 A scan that does not match the model (another part, other units, too little in view)
 ends in an exception, never in numbers: `RegistrationFailed`, `UnitMismatch`,
-`CloudError`. A pose its own evidence does not prove (another pose explains the scan as
-well, or the view leaves a motion free: `Registration.status`) measures nothing: the
-report's status is "ambiguous" and every face row says "not measured: the pose is
-ambiguous ...", with the alternatives in its registration record.
+`CloudError`. A pose another pose explains as well (`Registration.status` "ambiguous")
+measures nothing: every face row says "not measured: the pose is ambiguous ...", with the
+alternatives in its registration record. A pose the view leaves a motion free in ("free")
+measures every face that motion does not move; a motion fixed only to a U above the pose
+tolerance moves none (form figures are blind to it, deviation figures carry its U).
 
 Every figure carries its uncertainty (`inspection.uncertainty`): the scan's noise model
 and calibration covariance (`ScanUncertainty`, per scan point, camera frame) are turned
