@@ -134,8 +134,7 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
             seen.append(face)
         elif tolerances is not None and face.label in tolerances.faces:  # asked for, not seen: said so
             unseen = FaceForm(0, "not seen", "no scan point on this face")
-            rows[face.index] = FaceRow.of(face, unseen, _verdicts(face.label, unseen, tolerances, rule),
-                                          tolerances.name(face.label))
+            rows[face.index] = _face_row(face, unseen, tolerances, rule)
 
     # a motion the view leaves free is a symmetry (nothing depends on it), bounded (its U,
     # in the pose covariance, is carried by every deviation figure as any pose U is; form
@@ -147,13 +146,11 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
         moved = _moved_by(unbounded, q[sel], seg.normal[sel], reg)
         if moved:
             unfixed = FaceForm(int(sel.sum()), NOT_MEASURED, f"depends on the {moved}, which the view does not fix")
-            return FaceRow.of(face, unfixed, _verdicts(face.label, unfixed, tolerances, rule),
-                              tolerances.name(face.label) if tolerances is not None else "")
+            return _face_row(face, unfixed, tolerances, rule)
         form = measure_face(face, part.points[sel], None if unc is None else unc.subset(sel), R, q[sel],
                             seg.deviation_mm[sel], seg.uv[sel], seg.normal[sel], settings.form)
         form = pose.added_to(form, q[sel], seg.normal[sel])
-        return FaceRow.of(face, form, _verdicts(face.label, form, tolerances, rule),
-                          tolerances.name(face.label) if tolerances is not None else "")
+        return _face_row(face, form, tolerances, rule)
 
     def report_of(done: dict[int, FaceRow]) -> InspectionReport:
         return InspectionReport(
@@ -269,8 +266,7 @@ def _ambiguous_report(scan: ScanCloud, part: ScanCloud, model: CadModel, reg: Re
     note = ambiguity_note(reg)
     unmeasured = FaceForm(0, NOT_MEASURED, note)
     rule = tolerances.decision_rule if tolerances is not None else GUARD_BANDED
-    rows = tuple(FaceRow.of(face, unmeasured, _verdicts(face.label, unmeasured, tolerances, rule),
-                            tolerances.name(face.label) if tolerances is not None else "") for face in model.faces)
+    rows = tuple(_face_row(face, unmeasured, tolerances, rule) for face in model.faces)
     n = len(part)
     seg = Segmentation(np.full(n, UNASSIGNED, np.int32), np.full(n, np.nan), np.full((n, 3), np.nan),
                        np.full((n, 3), np.nan), np.full((n, 2), np.nan))
@@ -298,6 +294,12 @@ def _each_face(row: Callable[[Any], FaceRow], faces: list[Any], seg: Any) -> dic
 
     with ThreadPoolExecutor(FACE_WORKERS, thread_name_prefix="face form") as pool:
         return {f.index: r for f, r in zip(faces, pool.map(beside, faces))}
+
+
+def _face_row(face: Any, form: FaceForm, tolerances: Tolerances | None, rule: str) -> FaceRow:
+    """One face's row: its figures, their verdicts and the face's name in the tolerances."""
+    return FaceRow.of(face, form, _verdicts(face.label, form, tolerances, rule),
+                      tolerances.name(face.label) if tolerances is not None else "")
 
 
 def _verdicts(label: str, form: Any, tolerances: Tolerances | None, rule: str) -> dict[str, tuple[float, str]]:

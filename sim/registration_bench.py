@@ -29,7 +29,10 @@ from typing import Any
 
 import numpy as np
 
-SUCCESS_DEG, SUCCESS_MM = 0.05, 0.05
+from inspection.registration.settings import RegistrationSettings
+
+# a success is a pose within the tolerance the proof proves poses to (deg, mm)
+SUCCESS_DEG, SUCCESS_MM = RegistrationSettings.pose_tolerance_deg, RegistrationSettings.pose_tolerance_mm
 NIST = {"nist_ctc_01_asme1_rd.stp": (0.16, (0.0, 0.0, 1.0)), "nist_ctc_01_asme1_ap242-e1.stp": (0.16, (0.0, 0.0, 1.0)),
         "nist_ftc_06_asme1_rd.stp": (0.4, (0.0, 1.0, 0.0))}  # scale models that fit the bench, as in the NIST test
 NIST_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "step"

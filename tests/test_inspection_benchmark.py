@@ -53,7 +53,7 @@ METHODS = {"both": ("multivariate (FPFH+SHOT)", ("fpfh", "shot")), "fpfh": ("FPF
            "shot": ("SHOT alone", ("shot",)), "open3d": ("Open3D FPFH+RANSAC+ICP", None)}
 
 SUCCESS_DEG, SUCCESS_MM = 0.02, 0.02  # a success: proven and this close to the truth (deg, mm)
-tolerance = RegistrationSettings()  # a proven pose farther than its pose tolerance is wrong
+PROOF = RegistrationSettings()  # a proven pose farther than its pose tolerance is wrong
 
 pytestmark = pytest.mark.skipif(not STEP_DIR.is_dir(), reason=f"NIST STEP files not present ({STEP_DIR})")
 
@@ -196,7 +196,7 @@ def benchmark(name: str, methods: dict[str, tuple[str, ...] | None], views: int 
         within = (r[:, 0] <= SUCCESS_DEG) & (r[:, 1] <= SUCCESS_MM)
         ok = proven & within
         found = np.isfinite(r[:, 0])
-        wrong = proven & ((r[:, 0] > tolerance.pose_tolerance_deg) | (r[:, 1] > tolerance.pose_tolerance_mm))
+        wrong = proven & ((r[:, 0] > PROOF.pose_tolerance_deg) | (r[:, 1] > PROOF.pose_tolerance_mm))
         table[label] = {"runs": len(r), "success": float(ok.mean()), "not_proven": int((~proven).sum()),
                         "proven_within_tolerance": float((proven & ~wrong).mean()),
                         "not_proven_but_within": int((~proven & within).sum()), "wrong_proven": int(wrong.sum()),
