@@ -74,7 +74,7 @@ class TabPart:
         t0, tw, td = self.tongue_mm
         nc, nw, nd = self.notch_mm
         ok = (self.length_mm > 0 and self.width_mm > 0 and 0 < self.thickness_mm < self.width_mm
-              and 0 < t0 and t0 + tw < self.length_mm and td > 0 and 0 < nd < self.width_mm / 2
+              and t0 > 0 and t0 + tw < self.length_mm and td > 0 and 0 < nd < self.width_mm / 2
               and t0 + tw < nc - nw / 2 and nc + nw / 2 < self.length_mm and 0 <= self.chamfer_mm < t0
               and 0 <= self.hole_radius_mm < self.width_mm / 2 - self.mesh_step_mm and self.mesh_step_mm > 0)
         if not ok:

@@ -19,8 +19,8 @@ import numpy as np
 from scanner.decode import DecodeResult
 from scanner.file_checks import ArraySpec, FileRefused, load_npz
 from scanner.pointcloud import OrganisedCloud
-from scanner.session import open_new, temp_path
 from scanner.reconstruct import Triangulator
+from scanner.session import open_new, temp_path
 from sim.render import GroundTruth, SensorModel
 
 GROUND_TRUTH_FILE = "ground_truth.npz"

@@ -34,9 +34,10 @@ from __future__ import annotations
 import json
 import multiprocessing
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Iterator, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -96,7 +97,7 @@ class CoverageResult:
                 "coverage": self.fraction, "error_mean_mm": float(err.mean()) if len(err) else None,
                 "error_sd_mm": float(err.std(ddof=1)) if len(err) > 1 else None,
                 "median_U_mm": float(np.median([t.estimate.U for t in self.trials])), "seconds": self.seconds,
-                "reported": int(len(err)), "below_limit": int(len(self.trials) - len(err))}
+                "reported": len(err), "below_limit": int(len(self.trials) - len(err))}
 
     def summary(self) -> str:
         err = self.errors()

@@ -25,9 +25,10 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, redirect_stdout
 from pathlib import Path
-from typing import Iterator, Sequence, TextIO
+from typing import TextIO
 
 from scanner.errors import ScannerError, Terminated
 from slscan.commands import COMMANDS, command_module, modules

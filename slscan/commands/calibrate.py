@@ -25,7 +25,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from scanner.errors import ConfigError, ScannerError
+from scanner.errors import ScannerError
 from slscan.exit_codes import Exit
 from slscan.options import add_json
 from slscan.simulated_calibration_bench import (

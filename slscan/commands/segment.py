@@ -80,7 +80,7 @@ def cmd_segment(args: argparse.Namespace) -> int:
     elif src.is_file():
         try:
             points = read_ply_points(src)
-        except Exception as exc:  # noqa: BLE001 — Open3D raises plain RuntimeErrors
+        except Exception as exc:  # Open3D raises plain RuntimeErrors
             raise ScannerError(f"{src}: cannot read a point cloud: {exc}") from None
         valid, viewpoint = None, None
         out = Path(args.out) if args.out else src.with_name(src.stem + ".segments.npy")

@@ -62,7 +62,7 @@ def _utc_time(text: str) -> dt.datetime:
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not an ISO date/time such as 2026-11-23 or "
                                          f"2026-11-23T08:00") from None
-    return t if t.tzinfo else t.replace(tzinfo=dt.timezone.utc)
+    return t if t.tzinfo else t.replace(tzinfo=dt.UTC)
 
 
 def _program_name(value: str | None) -> tuple[str | None, Any]:

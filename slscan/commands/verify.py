@@ -26,8 +26,9 @@ import datetime as dt
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from scanner.errors import ScannerError
 from slscan.exit_codes import for_parts

@@ -77,7 +77,7 @@ class StationRun:
             return
         try:  # the error that ended the run is the one line the operator sees, not one from closing after it
             self.close()
-        except Exception as closing:  # noqa: BLE001
+        except Exception as closing:  # any fault in closing is logged; the run's own error is raised
             log.info("closing the station after %s: %s", type(exc).__name__, closing)
 
     def _history(self) -> tuple[list[ResultRow], dict[int, list[ValueRecord]]]:

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import datetime as dt
 import html
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from inspection.report_header import HEADER_CSS, ReportHeader, file_sha256, header_html
 from inspection.tolerances import CONFORMING, DECISION_RULES, NON_CONFORMING, UNCERTAIN
@@ -124,7 +124,7 @@ def station_header(program: PartProgram, rows: Sequence[ResultRow]) -> ReportHea
         part=f"{program.name} — {program.description}" if program.description else program.name,
         serial=f"{len({r.serial for r in rows})} serials: " + seen([r.serial for r in rows]) if rows else "",
         program=f"{program.path} (version {program.version})", program_sha256=file_sha256(program.path),
-        operator=seen([r.operator for r in rows]), date=f"{dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M:%S}",
+        operator=seen([r.operator for r in rows]), date=f"{dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M:%S}",
         rig=seen([r.rig for r in rows]), calibration_id=seen([r.calibration_id for r in rows]),
         calibration_date=seen(dates) or ("undated (factory geometry)" if rows and all(
             (r.calibration_id or "").startswith(FACTORY_PREFIX) for r in rows) else ""),
@@ -173,7 +173,7 @@ def write_report(folder: Path, program: PartProgram, rows: Sequence[ResultRow],
            f"<style>{_STYLE}{HEADER_CSS}</style></head><body>",
            f"<h1>{e(program.name)} v{e(program.version)} — results</h1>", header_html(station_header(program, rows)),
            f"<p>Program {e(str(program.path))} [{e(program.fingerprint)}], CAD {e(program.cad_path.name)}; results "
-           f"from {e(source)}; written {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M:%S} UTC by slscan "
+           f"from {e(source)}; written {dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M:%S} UTC by slscan "
            f"{__version__}.</p>",
            "<section><h2>Running statistics</h2>",
            f"<p>{stats.parts} parts (last cycle per serial): {stats.passed} pass, {stats.failed} fail, "

@@ -110,7 +110,7 @@ class StationTUI:
             st.event(f"{outcome.serial} attempt {outcome.attempt}: {outcome.status.upper()} (result {outcome.result_id})")
         except ScannerError as exc:  # refused, or no serial: said on screen
             st.message = str(exc)
-        except Exception as exc:  # noqa: BLE001 — shown, never a dead screen
+        except Exception as exc:  # shown, never a dead screen
             st.message = f"error: {type(exc).__name__}: {exc}"
         finally:
             self._status = None
