@@ -356,7 +356,8 @@ def leave_one_out(views: list[Any], board: Any, projector_size: tuple[int, int],
         result = calibrate_views(board, others, projector_size, CalibrationSettings(), "leave-one-out", lambda s: None)
         report = result.report()
         check = check_pose(view, k, board, result.model, CalibrationUncertainty.from_report(report),
-                           lambda axis: CornerNoise.from_calibration(result.solution, axis, board.square_mm),
+                           lambda axis, solution=result.solution: CornerNoise.from_calibration(solution, axis,
+                                                                                               board.square_mm),
                            {"camera": report["rms_px"]["camera"], "projector": report["rms_px"]["projector"]})
         s = check.summary(board.square_mm)
         say(f"{view.name}: flatness {check.flatness.text()}, adjacent corners error RMS "

@@ -62,7 +62,7 @@ def version() -> str:
     root = Path(__file__).resolve().parents[1]
     try:
         git = subprocess.run(["git", "-C", str(root), "describe", "--always", "--dirty", "--tags"],
-                             capture_output=True, text=True, timeout=10)
+                             capture_output=True, text=True, timeout=10, check=False)
     except (OSError, subprocess.TimeoutExpired):
         return text
     return text + (f" (git {git.stdout.strip()})" if git.returncode == 0 and git.stdout.strip() else "")

@@ -116,7 +116,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise
     written = next(Path(args.out) / name for name in RESULT_FILES if (Path(args.out) / name).is_file())
     recording = Path(args.out) / "recording.rrd"
-    print(json.dumps({"status": "ok", "file": str(written), "recording": str(recording) if recording.is_file() else None,
+    print(json.dumps({"status": "ok", "file": str(written),
+                      "recording": str(recording) if recording.is_file() else None,
                       "installed": bool(args.install), "result": json.loads(written.read_text())}))
     return code
 

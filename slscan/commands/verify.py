@@ -44,7 +44,8 @@ class OperatorArtefactBench:
     def place(self, position: Any) -> bool:
         """False when the operator skips the position; raises KeyboardInterrupt on q."""
         self.say(f"{position.name}: put the {position.description}")
-        answer = self.ask("press Enter to scan, s and Enter to skip this position, q and Enter to stop: ").strip().lower()
+        answer = self.ask("press Enter to scan, s and Enter to skip this position, q and Enter to stop: ")
+        answer = answer.strip().lower()
         if answer == "q":
             raise KeyboardInterrupt
         return answer != "s"

@@ -52,7 +52,8 @@ class StationRun:
             self.store.close()
             raise
         try:
-            self.station = Station(program, config, self.bench, measurement or load_measurement(config.measurement, config.path),
+            self.station = Station(program, config, self.bench,
+                                   measurement or load_measurement(config.measurement, config.path),
                                    self.store, operator, on_stored=self._stored)
             self.recovered = self.station.recover()
             self.charts = ChartRecording(self.report_dir / CHART_RECORDING, program,

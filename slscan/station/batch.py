@@ -9,7 +9,8 @@ regenerated; the recording and the manifest are left as they were), measured (a 
 session's views aligned and fused again first, its merged cloud measured), and judged
 against the program. Given a rig TOML (`--rig`), the sessions are
 reconstructed with that rig's geometry, i.e. its current calibration, instead of the one
-recorded at capture; the calibration id stored with the result says which was used. A part that fails is reported with its error; the batch goes on.
+recorded at capture; the calibration id stored with the result says which was used. A
+part that fails is reported with its error; the batch goes on.
 Units are independent, so the results do not depend on where or in which order they ran.
 """
 

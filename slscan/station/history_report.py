@@ -18,7 +18,14 @@ from scanner.session import write_atomic
 from slscan.station.calib import FACTORY_PREFIX
 from slscan.station.charts import write_charts
 from slscan.station.program import PartProgram
-from slscan.station.quality import DECISION_MARKS, CharacteristicStats, SpcOptions, latest_per_serial, running_stats
+from slscan.station.quality import (
+    DECISION_MARKS,
+    SPC_DEFAULTS,
+    CharacteristicStats,
+    SpcOptions,
+    latest_per_serial,
+    running_stats,
+)
 from slscan.station.results import ResultRow, ValueRecord
 from slscan.station.spc import MIN_CAPABILITY_N, MIN_INDIVIDUALS, MIN_SUBGROUPS, NELSON_RULES, Index
 
@@ -84,8 +91,8 @@ def _limits_table(stats: Sequence[CharacteristicStats]) -> str:
 
 def _capability_table(stats: Sequence[CharacteristicStats]) -> str:
     head = [("characteristic", "l"), ("n", ""), ("mean (mm)", ""), ("&sigma; overall (mm)", ""),
-            ("Cp, 0..tol. [95 %]", ""), ("Cpk [95 %]", ""), ("Pp, 0..tol. [95 %]", ""), ("Ppk [95 %]", ""), ("normality", "l"),
-            ("Weibull Pp / Ppk", ""), ("read", "l"), ("note", "l")]
+            ("Cp, 0..tol. [95 %]", ""), ("Cpk [95 %]", ""), ("Pp, 0..tol. [95 %]", ""), ("Ppk [95 %]", ""),
+            ("normality", "l"), ("Weibull Pp / Ppk", ""), ("read", "l"), ("note", "l")]
     rows = []
     for st in stats:
         cap = st.capability
@@ -153,16 +160,17 @@ def _method(program: PartProgram, options: SpcOptions) -> str:
             "(tolerance &minus; mean) / 3&sigma;<sub>within</sub>; Pp and Ppk the same with "
             "&sigma;<sub>overall</sub> (the sample SD). Minitab leaves Cp and Pp out when the lower end is a "
             "natural bound; here they compare the spread with the whole band 0..tolerance, so Cpk exceeds Cp when "
-            "the process sits in the band's lower half (where a form error should be). 95 % intervals (chi-squared for Cp and Pp, Bissell for Cpk "
-            "and Ppk). Normality by the Anderson-Darling test; when it rejects the normal at 5 % (or, with censored "
-            "values, the Weibull fits better) read the Weibull model's Pp / Ppk (ISO 22514-2 percentile method). "
+            "the process sits in the band's lower half (where a form error should be). 95 % intervals "
+            "(chi-squared for Cp and Pp, Bissell for Cpk and Ppk). Normality by the Anderson-Darling test; when it "
+            "rejects the normal at 5 % (or, with censored values, the Weibull fits better) read the Weibull model's "
+            "Pp / Ppk (ISO 22514-2 percentile method). "
             f"Fewer than {MIN_CAPABILITY_N} values: the indices are marked as too uncertain. Nelson rules used: "
             f"{rules}."
             f"{baseline}{frozen}</p>")
 
 
 def write_report(folder: Path, program: PartProgram, rows: Sequence[ResultRow],
-                 values: dict[int, list[ValueRecord]], source: str, options: SpcOptions = SpcOptions()) -> Path:
+                 values: dict[int, list[ValueRecord]], source: str, options: SpcOptions = SPC_DEFAULTS) -> Path:
     """Write `folder/report.html` and `folder/charts/*.png`; returns the page's path.
     `source` names where the results came from (shown on the page)."""
     folder.mkdir(parents=True, exist_ok=True)

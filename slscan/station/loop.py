@@ -226,7 +226,7 @@ class Station:
                 self._set_exposure(rig)
                 sessions.append(folder / f"view{k}")
                 scanned.append(scan(rig, self.patterns, sessions[-1],
-                                    lambda stage, done, total: step(stage + where, done, total)).session)
+                                    lambda stage, done, total, where=where: step(stage + where, done, total)).session)
         return self._measured(lambda: self.measurement.measure(scanned, self.program), step)
 
     def _scan_whole(self, part: int, folder: Path, sessions: list[Path],

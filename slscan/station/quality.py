@@ -287,8 +287,11 @@ class SpcOptions:
     frozen_source: str = ""
 
 
+SPC_DEFAULTS = SpcOptions()  # nothing left out, the default rules, limits from every value
+
+
 def running_stats(program: PartProgram, rows: Sequence[ResultRow], values: dict[int, list[ValueRecord]],
-                  options: SpcOptions = SpcOptions()) -> RunningStats:
+                  options: SpcOptions = SPC_DEFAULTS) -> RunningStats:
     """Statistics of the program's parts from stored results (`rows` of this program)."""
     parts = latest_per_serial(rows)
     series = chart_series(program, rows, values, options.exclusions)

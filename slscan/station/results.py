@@ -52,7 +52,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, TextIO
@@ -451,10 +451,8 @@ class ResultsStore:
 
         def renew() -> None:
             while not stop.wait(every_s):
-                try:
+                with suppress(ResultsError):  # the database is away for now; the next renewal tries again
                     self.renew(result_id)
-                except ResultsError:
-                    pass  # the database is away for now; the next renewal tries again
         thread = threading.Thread(target=renew, name=f"lease-{result_id}", daemon=True)
         thread.start()
         try:
