@@ -39,7 +39,8 @@ def artefact_objects(position: Position, artefacts: ArtefactSet) -> tuple[SceneO
     if position.kind == "ball_bar":
         b = artefacts.ball_bar
         assert b is not None
-        return tuple(SceneObject(f"ball_{k}", "sphere", _translated(position.pose, np.array([sign * b.length_mm / 2, 0, 0])),
+        return tuple(SceneObject(f"ball_{k}", "sphere",
+                                 _translated(position.pose, np.array([sign * b.length_mm / 2, 0, 0])),
                                  b.albedo, radius_mm=b.radius_mm) for k, sign in enumerate((1.0, -1.0)))
     p = artefacts.plane
     assert p is not None

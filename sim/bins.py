@@ -74,7 +74,7 @@ class TabPart:
         t0, tw, td = self.tongue_mm
         nc, nw, nd = self.notch_mm
         ok = (self.length_mm > 0 and self.width_mm > 0 and 0 < self.thickness_mm < self.width_mm
-              and 0 < t0 and t0 + tw < self.length_mm and td > 0 and 0 < nd < self.width_mm / 2
+              and t0 > 0 and t0 + tw < self.length_mm and td > 0 and 0 < nd < self.width_mm / 2
               and t0 + tw < nc - nw / 2 and nc + nw / 2 < self.length_mm and 0 <= self.chamfer_mm < t0
               and 0 <= self.hole_radius_mm < self.width_mm / 2 - self.mesh_step_mm and self.mesh_step_mm > 0)
         if not ok:
@@ -271,12 +271,13 @@ class BinScene:
     def object_ids(self) -> np.ndarray:
         return np.arange(2, 2 + len(self.poses))
 
-    def occlusion(self, camera_mm: np.ndarray = np.zeros(3), spacing_mm: float = 0.2) -> np.ndarray:
+    def occlusion(self, camera_mm: np.ndarray | None = None, spacing_mm: float = 0.2) -> np.ndarray:
         """Per part, the fraction (0..1) of its face toward the camera that other parts hide
-        from the camera centre `camera_mm` (scene frame): rays from the camera to face
-        samples every `spacing_mm`, hidden where another part is hit first."""
+        from the camera centre `camera_mm` (scene frame; None: its origin): rays from the camera
+        to face samples every `spacing_mm`, hidden where another part is hit first."""
         import open3d as o3d
 
+        camera_mm = np.zeros(3) if camera_mm is None else camera_mm
         verts, tris = self.part.mesh()
         lo, hi = verts[:, :2].min(axis=0), verts[:, :2].max(axis=0)
         gx, gy = np.meshgrid(np.arange(lo[0], hi[0], spacing_mm), np.arange(lo[1], hi[1], spacing_mm))
@@ -284,7 +285,8 @@ class BinScene:
         grid = grid[_inside(grid, _loops(self.part))]
         rc = o3d.t.geometry.RaycastingScene()
         for o in self.scene.objects:
-            rc.add_triangles(o3d.core.Tensor(o.world_vertices().astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32)))
+            rc.add_triangles(o3d.core.Tensor(o.world_vertices().astype(np.float32)),
+                             o3d.core.Tensor(tris.astype(np.uint32)))
         out = np.zeros(len(self.poses))
         for k, (T, up) in enumerate(zip(self.poses, self.front_up)):
             z = self.part.thickness_mm if up else 0.0

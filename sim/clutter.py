@@ -83,7 +83,8 @@ class _Builder:
         for cap, z in (("cap-", -length / 2), ("cap+", length / 2)):
             fan = np.c_[np.zeros((1, 2)), [[z]]]
             verts = np.concatenate([fan, np.c_[ring, np.full(segments, z)]])
-            self.add(world(verts), np.stack([np.zeros(segments, int), i + 1, j + 1], 1), self.surface(f"{name}/{cap}", roughness))
+            self.add(world(verts), np.stack([np.zeros(segments, int), i + 1, j + 1], 1),
+                     self.surface(f"{name}/{cap}", roughness))
 
     def dome(self, name: str, radius: float, centre: np.ndarray, roughness: float, n: int = 64) -> None:
         """The upper half of a sphere (a UV mesh)."""
@@ -95,11 +96,13 @@ class _Builder:
         r, c = np.meshgrid(np.arange(rows - 1), np.arange(cols), indexing="ij")
         a = r * cols + c
         b = r * cols + (c + 1) % cols
-        t = np.concatenate([np.stack([a, b + cols, b], -1).reshape(-1, 3), np.stack([a, a + cols, b + cols], -1).reshape(-1, 3)])
+        t = np.concatenate([np.stack([a, b + cols, b], -1).reshape(-1, 3),
+                            np.stack([a, a + cols, b + cols], -1).reshape(-1, 3)])
         self.add(v, t, self.surface(name, roughness))
 
 
-def _pose(yaw: float = 0.0, tilt_axis: str | None = None, position: tuple[float, float, float] = (0, 0, 0)) -> np.ndarray:
+def _pose(yaw: float = 0.0, tilt_axis: str | None = None,
+          position: tuple[float, float, float] = (0, 0, 0)) -> np.ndarray:
     T = np.eye(4)
     R = rotation_about(np.array([0.0, 0.0, 1.0]), yaw)
     if tilt_axis == "x":   # a cylinder's axis (its z) laid along the yawed x
@@ -119,8 +122,10 @@ def clutter_cloud(seed: int = 0, spacing_mm: float = 1.0, radius_mm: float | Non
     rng = np.random.default_rng(seed)
     b = _Builder()
     rough = lambda: float(rng.choice([0.05, 0.1, 0.2, 0.4]))  # noqa: E731
-    b.quad(np.array([[-350, -250, 0], [350, -250, 0], [350, 250, 0], [-350, 250, 0]], float), b.surface("floor", rough()))
-    b.quad(np.array([[-350, 250, 0], [350, 250, 0], [350, 250, 300], [-350, 250, 300]], float), b.surface("wall", rough()))
+    b.quad(np.array([[-350, -250, 0], [350, -250, 0], [350, 250, 0], [-350, 250, 0]], float),
+           b.surface("floor", rough()))
+    b.quad(np.array([[-350, 250, 0], [350, 250, 0], [350, 250, 300], [-350, 250, 300]], float),
+           b.surface("wall", rough()))
     jitter = lambda s: rng.uniform(-s, s)  # noqa: E731
     # a layout with clearance between objects (no interpenetration), jittered within it:
     # a box against the wall with a box on top, two boxes touching side by side (different

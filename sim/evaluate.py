@@ -19,8 +19,8 @@ import numpy as np
 from scanner.decode import DecodeResult
 from scanner.file_checks import ArraySpec, FileRefused, load_npz
 from scanner.pointcloud import OrganisedCloud
-from scanner.session import open_new, temp_path
 from scanner.reconstruct import Triangulator
+from scanner.session import open_new, temp_path
 from sim.render import GroundTruth, SensorModel
 
 GROUND_TRUTH_FILE = "ground_truth.npz"
@@ -137,5 +137,6 @@ def evaluate(decoded: DecodeResult, cloud: OrganisedCloud, gt: Truth, sensor: Se
         order_all += int((off & valid & gt.lit).sum())
         order_smooth += int((off & smooth).sum())
     return Accuracy(pixels=int(smooth.sum()), rms_mm=rms, mean_mm=float(np.mean(e)) if e.size else float("nan"),
-                    bound_mm=bound_rms, ratio=rms / bound_rms if bound_rms > 0 else float("nan"), coverage=float((valid & eligible).sum() / max(eligible.sum(), 1)),
+                    bound_mm=bound_rms, ratio=rms / bound_rms if bound_rms > 0 else float("nan"),
+                    coverage=float((valid & eligible).sum() / max(eligible.sum(), 1)),
                     order_errors=order_smooth, order_errors_all=order_all)

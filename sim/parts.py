@@ -213,7 +213,8 @@ def _face_mesh(vertices: np.ndarray, triangles: np.ndarray, face: np.ndarray, f:
 
 
 def lying_pose(vertices: np.ndarray, turn_rad: float = 0.0, distance_mm: float = 400.0,
-               tilt_rad: tuple[float, float] = (0.0, 0.0), up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+               tilt_rad: tuple[float, float] = (0.0, 0.0),
+               up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
     """Part -> camera pose of a part whose CAD `up` direction faces the camera, turned by
     `turn_rad` about the camera axis and tilted by `tilt_rad` (about the camera's x and y
     axes), its bounding box centred on the camera axis at `distance_mm`."""

@@ -142,7 +142,8 @@ def _by_command(step: Path) -> Any:
 
     def measure(ply: Path, k: int) -> tuple[str, Any, Any, Any, float]:
         done = subprocess.run([sys.executable, "-m", "slscan", "register", str(ply), str(step), "--json",
-                               "--seed", str(k)], capture_output=True, text=True, env=env, cwd=root)
+                               "--seed", str(k)], capture_output=True, text=True, env=env, cwd=root,
+                              check=False)
         try:
             r = json.loads(done.stdout)
         except json.JSONDecodeError:

@@ -283,10 +283,10 @@ def scan_part(model: Any, placement: Placement, seed: int, config: Any = None,
     from inspection.measured_cloud import from_organised
     from scanner.acquisition import AcquisitionSettings, acquire
     from scanner.decode import decode
+    from scanner.native_threads import native_threads
     from scanner.patterns import PatternSet
     from scanner.reconstruct import Triangulator, triangulate
     from scanner.rig import RigConfig, open_rig
-    from scanner.native_threads import native_threads
     from sim.parts import part_scene
 
     config = scaled_rig(config or RigConfig.load(), placement.rig_scale)

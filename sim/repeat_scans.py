@@ -34,9 +34,10 @@ from __future__ import annotations
 import json
 import multiprocessing
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Iterator, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -96,7 +97,7 @@ class CoverageResult:
                 "coverage": self.fraction, "error_mean_mm": float(err.mean()) if len(err) else None,
                 "error_sd_mm": float(err.std(ddof=1)) if len(err) > 1 else None,
                 "median_U_mm": float(np.median([t.estimate.U for t in self.trials])), "seconds": self.seconds,
-                "reported": int(len(err)), "below_limit": int(len(self.trials) - len(err))}
+                "reported": len(err), "below_limit": int(len(self.trials) - len(err))}
 
     def summary(self) -> str:
         err = self.errors()
@@ -221,7 +222,8 @@ def _artefact_trial(bench: Bench, position: Position, artefacts: ArtefactSet, re
     """One scan of an artefact measured as `slscan verify` measures it (`evaluate`);
     `read` takes the figure from its PositionResult."""
     t0 = time.perf_counter()
-    renderer = window_renderer(bench.model, artefact_objects(position, artefacts), bench.sensor, bench.projector_blur_px)
+    renderer = window_renderer(bench.model, artefact_objects(position, artefacts), bench.sensor,
+                               bench.projector_blur_px)
     decoded = bench.scan(renderer, rng)
     used = rig.windowed(renderer.model.camera, cut_from=bench.model.camera)
     points = triangulate(decoded, Triangulator(used), with_normals=False).points
@@ -314,7 +316,8 @@ class Plate:
         from sim.parts import Roughness
 
         w, h = PLATE_MM
-        x, y = np.meshgrid(np.arange(-w / 2, w / 2 + 1e-9, PLATE_STEP_MM), np.arange(-h / 2, h / 2 + 1e-9, PLATE_STEP_MM))
+        x, y = np.meshgrid(np.arange(-w / 2, w / 2 + 1e-9, PLATE_STEP_MM),
+                           np.arange(-h / 2, h / 2 + 1e-9, PLATE_STEP_MM))
         p = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
         z = self.bow_mm * (1.0 - (p[:, 0] ** 2 + p[:, 1] ** 2) / ((w / 2) ** 2 + (h / 2) ** 2))
         if self.texture_mm > 0:

@@ -414,7 +414,8 @@ def _pose(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
     except (ValueError, TypeError) as exc:
         raise ConfigError(path, key, f"invalid pose: {exc}") from None
     if not _is_rigid(T):
-        raise ConfigError(path, key, "pose matrix is not a rigid transform (rotation must be orthonormal, last row 0 0 0 1)")
+        raise ConfigError(path, key, "pose matrix is not a rigid transform "
+                                     "(rotation must be orthonormal, last row 0 0 0 1)")
     return _position(T, path, key)
 
 
@@ -436,7 +437,8 @@ def _material(table: dict[str, Any], path: Path, prefix: str, default_albedo: fl
     return out
 
 
-def _positive_vector(table: dict[str, Any], key: str, n: int, path: Path, prefix: str, default: Any = ...) -> tuple[float, ...]:
+def _positive_vector(table: dict[str, Any], key: str, n: int, path: Path, prefix: str,
+                     default: Any = ...) -> tuple[float, ...]:
     v = get_vector(table, key, n, path, default, prefix)
     for x in v:
         _length(x, path, f"{prefix}.{key}")

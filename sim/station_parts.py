@@ -139,7 +139,7 @@ def make_part(name: str, bow_mm: float = 0.0, lobe_mm: float = 0.0, raise_mm: fl
     lobing (mm, 0 = none) and its truth; placed `turn_rad`, `shift_mm` from the base placement."""
     model = nominal_model()
     tess = model.tessellation
-    truth = {c: 0.0 for c in {**CHARACTERISTIC_FACES, **TURNTABLE_FACES}}
+    truth = dict.fromkeys({**CHARACTERISTIC_FACES, **TURNTABLE_FACES}, 0.0)
     defects: list[Defect] = []
     said = []
     v = tess.vertices

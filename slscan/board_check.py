@@ -28,8 +28,9 @@ pose the calibration would solve for the left-out view is never used.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -104,7 +105,7 @@ class PoseCheck:
         adj = np.isclose(self.nominal_mm, square_mm)
         longest = self.nominal_mm >= self.nominal_mm.max() - 1e-6
         return {"pose": self.name, "corners": self.corners, **self.flatness.fields("flatness_mz"),
-                "plane_rms_mm": self.plane_rms_mm, "pairs": int(len(self.error_mm)),
+                "plane_rms_mm": self.plane_rms_mm, "pairs": len(self.error_mm),
                 "adjacent_error_rms_mm": float(np.sqrt(np.mean(self.error_mm[adj] ** 2))),
                 "adjacent_error_max_mm": float(np.abs(self.error_mm[adj]).max()),
                 "adjacent_U_median_mm": float(np.median(self.U_mm[adj])),
@@ -133,7 +134,7 @@ def pooled_summary(checks: list[PoseCheck], square_mm: float) -> dict[str, Any]:
     U = np.concatenate([c.U_mm for c in checks])
     adj = np.concatenate([np.isclose(c.nominal_mm, square_mm) for c in checks])
     normalised = [float(np.sqrt(np.mean((2.0 * c.error_mm / c.U_mm) ** 2))) for c in checks]
-    return {"independent_poses": len(checks), "distances": int(len(errors)),
+    return {"independent_poses": len(checks), "distances": len(errors),
             "within_U": float(np.mean(np.abs(errors) <= U)),
             "poses_with_95_percent_within_U": int(sum(c.inside >= 0.95 for c in checks)),
             "adjacent_error_rms_mm": float(np.sqrt(np.mean(errors[adj] ** 2))),
@@ -355,7 +356,8 @@ def leave_one_out(views: list[Any], board: Any, projector_size: tuple[int, int],
         result = calibrate_views(board, others, projector_size, CalibrationSettings(), "leave-one-out", lambda s: None)
         report = result.report()
         check = check_pose(view, k, board, result.model, CalibrationUncertainty.from_report(report),
-                           lambda axis: CornerNoise.from_calibration(result.solution, axis, board.square_mm),
+                           lambda axis, solution=result.solution: CornerNoise.from_calibration(solution, axis,
+                                                                                               board.square_mm),
                            {"camera": report["rms_px"]["camera"], "projector": report["rms_px"]["projector"]})
         s = check.summary(board.square_mm)
         say(f"{view.name}: flatness {check.flatness.text()}, adjacent corners error RMS "

@@ -25,9 +25,10 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, redirect_stdout
 from pathlib import Path
-from typing import Iterator, Sequence, TextIO
+from typing import TextIO
 
 from scanner.errors import ScannerError, Terminated
 from slscan.commands import COMMANDS, command_module, modules
@@ -61,7 +62,7 @@ def version() -> str:
     root = Path(__file__).resolve().parents[1]
     try:
         git = subprocess.run(["git", "-C", str(root), "describe", "--always", "--dirty", "--tags"],
-                             capture_output=True, text=True, timeout=10)
+                             capture_output=True, text=True, timeout=10, check=False)
     except (OSError, subprocess.TimeoutExpired):
         return text
     return text + (f" (git {git.stdout.strip()})" if git.returncode == 0 and git.stdout.strip() else "")

@@ -24,7 +24,8 @@ EXAMPLES: dict[str, str] = {
               "slscan export sessions/demo --format ply --aligned --deviations --out demo-cad-frame.ply",
     "bench": "slscan bench --width 1280 --height 1024 --repeats 3 --no-peers",
     "binobench": "slscan binobench --scenes 1 --imports 1 --repeats 1\n"
-                 "slscan binobench --scenes 3 --seed 219780649385936647750815756770131625442 --json --out binobench.json",
+                 "slscan binobench --scenes 3 --seed 219780649385936647750815756770131625442 --json "
+                 "--out binobench.json",
     "importbench": "slscan importbench --skip-procam",
     "simbench": "slscan simbench --repeats 3",
     "demobench": "slscan demobench --parts 2",

@@ -16,8 +16,8 @@ escapes a command to its code with `for_error`.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from enum import IntEnum
-from typing import Iterable
 
 
 class Exit(IntEnum):

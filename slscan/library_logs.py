@@ -21,8 +21,8 @@ import importlib.machinery
 import logging
 import os
 import sys
+from collections.abc import Callable, Sequence
 from types import ModuleType
-from typing import Callable, Sequence
 
 
 def hold_to(level: int) -> None:

@@ -21,8 +21,9 @@ give every figure its uncertainty, read from the session and its rig.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 

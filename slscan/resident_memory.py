@@ -9,7 +9,7 @@ import ctypes
 import ctypes.util
 import gc
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 _STATUS = Path("/proc/self/status")
@@ -39,10 +39,8 @@ def release_memory() -> None:
     gc.collect()
     name = ctypes.util.find_library("c")
     if name:
-        try:
+        with suppress(OSError, AttributeError):  # not glibc
             ctypes.CDLL(name).malloc_trim(0)
-        except (OSError, AttributeError):  # not glibc
-            pass
 
 
 class StagePeaks:
@@ -53,10 +51,8 @@ class StagePeaks:
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
-        try:
+        with suppress(OSError):
             _CLEAR.write_text("5")  # reset the high-water mark to the resident set now
-        except OSError:
-            pass
         try:
             yield
         finally:

@@ -96,7 +96,7 @@ def review_instructions(port: int = DEFAULT_WEB_PORT, grpc_port: int = DEFAULT_G
     """What to open, and how to tunnel both ports from another machine."""
     try:
         login = f"{getpass.getuser()}@{socket.gethostname()}"
-    except Exception:  # noqa: BLE001 — only used in a hint
+    except Exception:  # only used in a hint
         login = "USER@HOST"
     return (f"No display here: serving the recording to a web browser.\n"
             f"  Open:  {web_url(port, grpc_port)}\n"

@@ -13,8 +13,10 @@ def projector_field(projector: Pinhole, margin: float = 0.05) -> tuple[np.ndarra
     widened by `margin` of the span: beyond it the distortion polynomial may fold back."""
     w, h = projector.width, projector.height
     s = np.linspace(0.0, 1.0, 65)
-    border = np.concatenate([np.stack([s * (w - 1), np.zeros_like(s)], 1), np.stack([s * (w - 1), np.full_like(s, h - 1)], 1),
-                             np.stack([np.zeros_like(s), s * (h - 1)], 1), np.stack([np.full_like(s, w - 1), s * (h - 1)], 1)])
+    border = np.concatenate([np.stack([s * (w - 1), np.zeros_like(s)], 1),
+                             np.stack([s * (w - 1), np.full_like(s, h - 1)], 1),
+                             np.stack([np.zeros_like(s), s * (h - 1)], 1),
+                             np.stack([np.full_like(s, w - 1), s * (h - 1)], 1)])
     border = border + np.sign(border - [(w - 1) / 2, (h - 1) / 2]) * 0.5
     xy = projector.normalized(border)
     lo, hi = xy.min(axis=0), xy.max(axis=0)

@@ -78,7 +78,8 @@ class Renderer:
         s = self.projector_blur_sigma_px
         if s > 0:
             K = self.model.projector.K
-            img = cv2.GaussianBlur(img, (0, 0), sigmaX=s, sigmaY=s * K[1, 1] / K[0, 0], borderType=cv2.BORDER_REFLECT_101)
+            img = cv2.GaussianBlur(img, (0, 0), sigmaX=s, sigmaY=s * K[1, 1] / K[0, 0],
+                                   borderType=cv2.BORDER_REFLECT_101)
         return img
 
     def sample_projector(self, image: np.ndarray) -> np.ndarray:
@@ -120,7 +121,8 @@ class Renderer:
 
     def _output_coefficients(self, pattern: np.ndarray, digest: bytes) -> np.ndarray:
         K = self.model.projector.K
-        key = (digest, self.projector_shape, self.model.projector_gamma, self.projector_blur_sigma_px, K[1, 1] / K[0, 0])
+        key = (digest, self.projector_shape, self.model.projector_gamma, self.projector_blur_sigma_px,
+               K[1, 1] / K[0, 0])
         with _OUTPUT_LOCK:
             if key in _OUTPUT_CACHE:
                 _OUTPUT_CACHE.move_to_end(key)

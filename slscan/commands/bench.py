@@ -99,7 +99,8 @@ def _peer(args: list[str]) -> dict[str, Any]:
     python = PEERS_VENV / "bin" / "python"
     if not python.exists():
         return {"error": f"no peers' Python in {PEERS_VENV}: run `slscan bench --setup-peers` once"}
-    done = subprocess.run([str(python), "-I", str(PEER_SCRIPT), *args], capture_output=True, text=True, timeout=1800)
+    done = subprocess.run([str(python), "-I", str(PEER_SCRIPT), *args], capture_output=True, text=True, timeout=1800,
+                          check=False)
     if done.returncode != 0:
         return {"error": (done.stderr.strip().splitlines() or ["failed"])[-1]}
     return json.loads(done.stdout.strip().splitlines()[-1])

@@ -233,7 +233,7 @@ def _import_run(seed: int, folder: Path) -> dict[str, Any]:
         err = depth - gt.depth
         sel = both & np.isfinite(depth)
         out[case] = _figures(err, scan.result.depth_sigma_mm, sel) | {
-            "points": int(len(points)), "lit_left_pixels": int(gt.lit.sum()),
+            "points": len(points), "lit_left_pixels": int(gt.lit.sum()),
             "beyond_5_sigma": int((np.isfinite(depth) & ~(np.abs(err) <= 5 * scan.result.depth_sigma_mm)).sum()),
             "over_1_mm": int((np.isfinite(depth) & ~(np.abs(err) <= 1.0)).sum()),
             "conventions": {f.key: [f.value, f.source] for f in detections[0].findings},

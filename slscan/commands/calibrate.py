@@ -25,7 +25,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from scanner.errors import ConfigError, ScannerError
+from scanner.errors import ScannerError
 from slscan.exit_codes import Exit
 from slscan.options import add_json
 from slscan.simulated_calibration_bench import (
@@ -116,7 +116,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise
     written = next(Path(args.out) / name for name in RESULT_FILES if (Path(args.out) / name).is_file())
     recording = Path(args.out) / "recording.rrd"
-    print(json.dumps({"status": "ok", "file": str(written), "recording": str(recording) if recording.is_file() else None,
+    print(json.dumps({"status": "ok", "file": str(written),
+                      "recording": str(recording) if recording.is_file() else None,
                       "installed": bool(args.install), "result": json.loads(written.read_text())}))
     return code
 

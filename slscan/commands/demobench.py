@@ -11,9 +11,10 @@ the scan, and from the capture's end, i.e. when processing starts: on a real ben
 capture is the camera's time, here the simulator's rendering; with the CPU seconds of every
 thread from the capture's end to the verdict, the figure a loaded machine distorts least;
 the outputs are written behind the inspection), then the report files and the
-Rerun recording written after it, and the session complete. Wall and CPU seconds side by side, with the load average and a peer
-measured in the same run (a fixed numpy workload: a 256 MB memory copy and a 1024 x 1024
-float64 matrix product), so a figure from a busy machine can be scaled.
+Rerun recording written after it, and the session complete. Wall and CPU seconds side by
+side, with the load average and a peer measured in the same run (a fixed numpy workload: a
+256 MB memory copy and a 1024 x 1024 float64 matrix product), so a figure from a busy
+machine can be scaled.
 
 Timings depend on the machine's load; no test asserts them.
 """
@@ -110,7 +111,8 @@ def cmd_demobench(args: argparse.Namespace) -> int:
     report: dict[str, Any] = {"load_average_start": os.getloadavg(), "peer": numpy_peer()}
     t0, c0 = time.perf_counter(), time.process_time()
     model, tolerances, _ = load_demo_part()
-    report["setup_s"] = {"cad_and_target_wall": time.perf_counter() - t0, "cad_and_target_cpu": time.process_time() - c0}
+    report["setup_s"] = {"cad_and_target_wall": time.perf_counter() - t0,
+                         "cad_and_target_cpu": time.process_time() - c0}
     parts = []
     prior = None
     with tempfile.TemporaryDirectory() as tmp:
@@ -144,8 +146,8 @@ def format_report(r: dict[str, Any]) -> str:
         after = ", ".join(f"{k} {v:.2f} ({row['after_scan_cpu_s'][k]:.2f} CPU)" for k, v in row["after_scan_s"].items())
         sizes = ", ".join(f"{k} {v:.1f}" for k, v in row["sizes_mb"].items())
         lines += [f"part {row['part']}: verdict {row['verdict']} after {row['verdict_after_s']:.2f} s "
-                  f"({row['verdict_after_capture_s']:.2f} s after the capture, {row['verdict_cpu_after_capture_s']:.2f} s "
-                  f"CPU), session "
+                  f"({row['verdict_after_capture_s']:.2f} s after the capture, "
+                  f"{row['verdict_cpu_after_capture_s']:.2f} s CPU), session "
                   f"complete after {row['complete_after_s']:.2f} s (registration {row['method']}, fitness "
                   f"{row['fitness']:.4f}); simulator opening the rig {row['sim_open_rig_s']:.2f} s (not counted)",
                   f"  before the capture (session folder, recording opened) {row['before_capture_s']:.2f} s; capture "

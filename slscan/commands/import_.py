@@ -155,7 +155,7 @@ def import_frames(folder: Path, patterns_path: Path, projector_size: tuple[int, 
     files = list_frames(folder, frames_glob)
     stack, converted = read_frames(files)
     depth = bit_depth or bit_depth_of(stack)
-    if stack.dtype == np.uint8 and depth != 8 or depth > 16 or int(stack.max()) > 2 ** depth - 1:
+    if (stack.dtype == np.uint8 and depth != 8) or depth > 16 or int(stack.max()) > 2 ** depth - 1:
         raise SessionError(f"--bit-depth {depth} does not fit {stack.dtype} frames whose brightest value is "
                            f"{int(stack.max())}")
     camera_size = (stack.shape[2], stack.shape[1])

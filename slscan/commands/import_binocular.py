@@ -80,7 +80,7 @@ def import_binocular(folders: list[Path], patterns_path: Path, projector_size: t
     stacks = [r[0] for r in read]
     depths = [bit_depth or bit_depth_of(s) for s in stacks]
     for folder, stack, depth in zip(folders, stacks, depths):
-        if stack.dtype == np.uint8 and depth != 8 or depth > 16 or int(stack.max()) > 2 ** depth - 1:
+        if (stack.dtype == np.uint8 and depth != 8) or depth > 16 or int(stack.max()) > 2 ** depth - 1:
             raise SessionError(f"{folder}: --bit-depth {depth} does not fit {stack.dtype} frames whose brightest value "
                                f"is {int(stack.max())}")
     sizes = [(s.shape[2], s.shape[1]) for s in stacks]

@@ -111,7 +111,7 @@ def _run(args: list[str]) -> tuple[float, float, str]:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "slscan", *args], capture_output=True, text=True, env=env,
-                          timeout=600)
+                          timeout=600, check=False)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
@@ -208,7 +208,7 @@ def board_figures(session: Path, white: np.ndarray, model: RigModel, square_mm: 
     inside = mask[rows, cols].astype(bool)
     board = pts[inside].astype(np.float64)
     centre = board.mean(axis=0)
-    _, s, vt = np.linalg.svd(board - centre, full_matrices=False)
+    _, _, vt = np.linalg.svd(board - centre, full_matrices=False)
     normal = vt[2]
     residual = (board - centre) @ normal
     rays = np.c_[model.camera.normalized(corners), np.ones(len(corners))]

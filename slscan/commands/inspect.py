@@ -329,7 +329,7 @@ def report_header(source: Path, program: Any, operator: str | None, serial: str 
         serial=serial or session_id, program=f"{program.path} (version {program.version})" if program else "",
         program_sha256=file_sha256(program.path) if program is not None else "",
         operator=operator if operator is not None else getpass.getuser(),
-        date=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S"), rig=rig, calibration_id=cal_id,
+        date=dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M:%S"), rig=rig, calibration_id=cal_id,
         calibration_date=cal_date, software_version=f"slscan {__version__}")
 
 

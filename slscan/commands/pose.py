@@ -10,8 +10,9 @@ estimates each instance's pose (`inspection.bins.pose`), ranks the pickable ones
 Rerun recording beside the poses file. A cloud file is placed on the camera image of the
 rig (`--rig`, default the simulated bench rig), as slscan's own clouds are in its camera
 frame; without `--rig` the poses file has no world frame (camera frame only), so a robot
-cell never reads an identity it did not ask for. The part file is a TOML `[part]` table (`kind = "tab"`: the parameters of
-`sim.bins.TabPart`, see config/parts/nickel_tab.toml) or a mesh (PLY, STL, OBJ, OFF; mm).
+cell never reads an identity it did not ask for. The part file is a TOML `[part]` table
+(`kind = "tab"`: the parameters of `sim.bins.TabPart`, see config/parts/nickel_tab.toml) or
+a mesh (PLY, STL, OBJ, OFF; mm).
 Exit code 0 when at least one part is pickable, 1 when none is (the file is written anyway).
 
 `slscan posebench` renders simulated bins (`sim.bins.bin_scene` + `scan_bin`: ray-cast
@@ -349,7 +350,8 @@ def simulated_bins_bench(args: argparse.Namespace) -> dict[str, Any]:
         cloud, ids = fringe_scan_bin(b, seed) if args.fringe else scan_bin(b, rig, args.noise, seed)
         truth_occ = b.occlusion()
         instances = {i.id: i for i in instances_from_label_image(np.where(ids >= 2, ids, 0), cloud)}
-        context = SceneContext.of_cloud(cloud, rig.camera if not args.fringe else RigConfig.load().nominal_model().camera)
+        camera = rig.camera if not args.fringe else RigConfig.load().nominal_model().camera
+        context = SceneContext.of_cloud(cloud, camera)
         for method in args.methods:
             settings = PoseSettings(method=POSE_METHODS[method])
             for k in range(n):
@@ -365,7 +367,8 @@ def simulated_bins_bench(args: argparse.Namespace) -> dict[str, Any]:
                     row["reason"] = r.reason
                     if r.ok:
                         rot, trans = pose_difference(b.poses[k], r.pose)
-                        row.update(rot_deg=rot, trans_mm=trans, trans_centre_mm=pose_difference(b.poses[k], r.pose, centre)[1],
+                        row.update(rot_deg=rot, trans_mm=trans,
+                                   trans_centre_mm=pose_difference(b.poses[k], r.pose, centre)[1],
                                    side_ok=(r.side == "front") == bool(b.front_up[k]), est_occlusion=r.occlusion)
                 rows.append(row)
         done = [r for r in rows if r["seed"] == seed]
@@ -503,7 +506,8 @@ def saved_bins_summary(bins: list[dict[str, Any]], times: np.ndarray, pick: tupl
         f"true parts                    {tot('parts')} ({tot('visible_parts')} showing >= 200 pixels)",
         f"instances found               {tot('instances')} ({tot('phantom_instances')} mostly off every part); "
         f"parts with an instance {tot('parts_with_instance')}",
-        f"poses reported ok             {len(v)}: right (side, <= {wrong[0]} mm / {wrong[1]} deg) {len(v) - sum(x.wrong for x in v)}, "
+        f"poses reported ok             {len(v)}: right (side, <= {wrong[0]} mm / {wrong[1]} deg) "
+        f"{len(v) - sum(x.wrong for x in v)}, "
         f"wrong {sum(x.wrong for x in v)}; parts posed {tot('parts_posed')} of {tot('visible_parts')} visible",
         f"  error of the right ones     translation median {np.median(te):.4f} mm, max {np.max(te):.4f}; "
         f"rotation median {np.median(re):.3f} deg, max {np.max(re):.3f}",
@@ -552,19 +556,23 @@ def summary(rows: list[dict[str, Any]], methods: list[str], trans_tol: float = 0
                    f"max {te.max():.4f}; within {trans_tol} mm: {np.mean(te <= trans_tol):.1%}")
         out.append(f"  rotation error               median {np.median(re):.4f} deg, 95 % {np.percentile(re, 95):.4f}, "
                    f"max {re.max():.4f}; within {rot_tol} deg: {np.mean(re <= rot_tol):.1%}")
-        out.append(f"  front/back correct           {np.mean([r['side_ok'] for r in found]) if found else float('nan'):.2%}")
-        out.append(f"  time per part                median {1000 * np.median([r['wall_s'] for r in timed]):.0f} ms wall, "
-                   f"{1000 * np.median([r['cpu_s'] for r in timed]):.0f} ms CPU (mean {1000 * np.mean([r['wall_s'] for r in timed]):.0f} ms wall)")
+        side_ok = np.mean([r["side_ok"] for r in found]) if found else float("nan")
+        out.append(f"  front/back correct           {side_ok:.2%}")
+        wall, cpu = [r["wall_s"] for r in timed], [r["cpu_s"] for r in timed]
+        out.append(f"  time per part                median {1000 * np.median(wall):.0f} ms wall, "
+                   f"{1000 * np.median(cpu):.0f} ms CPU (mean {1000 * np.mean(wall):.0f} ms wall)")
         out.append(f"  >= 30 % occluded             {sum(r['found'] for r in heavy)}/{len(heavy)} posed; "
                    f"poses outside the tolerances or on the wrong side, all parts: {len(wrong)}")
     out.append("")
-    out.append("paper 001 Tables 4-5: success = pose within %.1f mm / %.1f deg, right side (parts < 30 %% occluded; "
-               "occluded: >= 2 %%)" % (trans_tol, rot_tol))
-    out.append(f"{'method':<12} {'case':<16} {'parts':>5} {'success':>8} {'trans mm':>9} {'rot deg':>8} {'ms wall':>8} {'ms CPU':>7}")
+    out.append(f"paper 001 Tables 4-5: success = pose within {trans_tol:.1f} mm / {rot_tol:.1f} deg, right side "
+               "(parts < 30 % occluded; occluded: >= 2 %)")
+    out.append(f"{'method':<12} {'case':<16} {'parts':>5} {'success':>8} {'trans mm':>9} {'rot deg':>8} "
+               f"{'ms wall':>8} {'ms CPU':>7}")
     for m in methods:
         for case in CASES:
             rs = [r for r in rows if r["method"] == m and r["occlusion"] < 0.3 and _case(r) == case]
-            ok = [r for r in rs if r["found"] and r["trans_mm"] <= trans_tol and r["rot_deg"] <= rot_tol and r["side_ok"]]
+            ok = [r for r in rs
+                  if r["found"] and r["trans_mm"] <= trans_tol and r["rot_deg"] <= rot_tol and r["side_ok"]]
             f = [r for r in rs if r["found"]]
             t = [r for r in rs if "wall_s" in r]
             out.append(f"{m + ' + ICP':<12} {case:<16} {len(rs):>5} {len(ok) / max(len(rs), 1):>8.1%} "

@@ -9,13 +9,13 @@ import datetime as dt
 import json
 import sys
 import time
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
-from scanner.config import CONFIG_DIR
+from scanner.config import CONFIG_DIR, DEFAULT_RIG
 from scanner.errors import ConfigError, ScannerError
-from scanner.config import DEFAULT_RIG
 from scanner.stage_timer import StageTimer
 from slscan.exit_codes import Exit, for_verdict
 from slscan.options import add_json, add_paper, on_paper

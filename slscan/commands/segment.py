@@ -80,7 +80,7 @@ def cmd_segment(args: argparse.Namespace) -> int:
     elif src.is_file():
         try:
             points = read_ply_points(src)
-        except Exception as exc:  # noqa: BLE001 — Open3D raises plain RuntimeErrors
+        except Exception as exc:  # Open3D raises plain RuntimeErrors
             raise ScannerError(f"{src}: cannot read a point cloud: {exc}") from None
         valid, viewpoint = None, None
         out = Path(args.out) if args.out else src.with_name(src.stem + ".segments.npy")
@@ -214,11 +214,12 @@ def cmd_segbench(args: argparse.Namespace) -> int:
                   f"{wall:.1f} s wall, {cpu:.1f} s CPU; {len(sc.segments)} true segments: "
                   f"alpha {100 * sc.mean_alpha:.4f} %, beta {100 * sc.mean_beta:.2f} %, eta {sc.mean_eta:.2f}",
                   flush=True)
-    means = {k: float(np.mean([r[k] for r in rows])) for k in ("mean_alpha", "mean_beta", "mean_eta", "wall_s", "cpu_s")}
+    means = {k: float(np.mean([r[k] for r in rows]))
+             for k in ("mean_alpha", "mean_beta", "mean_eta", "wall_s", "cpu_s")}
     load = [round(x, 2) for x in os.getloadavg()]   # wall time depends on what else runs: report it
     if args.json:
-        print(json.dumps({"radius_mm": args.radius or "default", "spacing_mm": args.spacing, "runs": rows, "means": means,
-                          "load_average": load}, indent=2))
+        print(json.dumps({"radius_mm": args.radius or "default", "spacing_mm": args.spacing, "runs": rows,
+                          "means": means, "load_average": load}, indent=2))
     else:
         print(f"mean over {len(rows)}: alpha {100 * means['mean_alpha']:.4f} %, beta {100 * means['mean_beta']:.2f} %, "
               f"eta {means['mean_eta']:.2f}; {means['wall_s']:.1f} s wall, {means['cpu_s']:.1f} s CPU per cloud; "

@@ -78,8 +78,10 @@ def run_simbench(repeats: int = 5) -> dict[str, Any]:
 def format_table(r: dict[str, Any]) -> str:
     ms = 1e3
     rows = [("camera", f"{r['width']} x {r['height']}, {r['bit_depth']} bits (default bench rig)"),
-            ("frame, new pattern", f"{r['frame_new_pattern_s'] * ms:.0f} ms  ({r['frame_new_over_peer']:.2f} x peer)"),
-            ("frame, seen pattern", f"{r['frame_seen_pattern_s'] * ms:.0f} ms  ({r['frame_seen_over_peer']:.2f} x peer)"),
+            ("frame, new pattern",
+             f"{r['frame_new_pattern_s'] * ms:.0f} ms  ({r['frame_new_over_peer']:.2f} x peer)"),
+            ("frame, seen pattern",
+             f"{r['frame_seen_pattern_s'] * ms:.0f} ms  ({r['frame_seen_over_peer']:.2f} x peer)"),
             ("peer: sensor model", f"{r['peer_sensor_s'] * ms:.0f} ms"),
             ("sequence period", f"mean {r['mean_period_s'] * ms:.2f} ms for {r['period_s'] * ms:.0f} ms configured, "
                                 f"worst deviation {r['worst_period_deviation_s'] * ms:.2f} ms over "

@@ -66,8 +66,9 @@ def cmd_stage_axis(args: argparse.Namespace) -> int:
         solution = calibrate_stage_axis(image, angles, board, model.camera, model.world_from_cam, say)
     path = write_stage_axis(out / "stage_axis.json", solution, config.stage.nominal, axis.name)
     print(f"axis      {axis.name}: direction {np.round(solution.direction, 6).tolist()}, through "
-          f"{np.round(solution.point_mm, 3).tolist()} mm; {solution.views} views, residual {solution.residual_mm:.4f} mm "
-          f"RMS, turns off by at most {max(abs(a) for a in solution.angle_residuals_deg):.4f} deg")
+          f"{np.round(solution.point_mm, 3).tolist()} mm; {solution.views} views, "
+          f"residual {solution.residual_mm:.4f} mm RMS, "
+          f"turns off by at most {max(abs(a) for a in solution.angle_residuals_deg):.4f} deg")
     if config.driver == "sim":
         truth = config.stage.nominal.axes[[a.name for a in config.stage.nominal.axes].index(axis.name)]
         tilt = math.degrees(math.acos(min(1.0, float(truth.direction @ solution.direction))))

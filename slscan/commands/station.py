@@ -25,7 +25,8 @@ def _station_options(p: argparse.ArgumentParser, writes: bool = False) -> None:
                    "config's)", old=("--data",))
     else:
         p.add_argument("--data", help="the station's data folder to read (default: the station config's)")
-    p.add_argument("--db", help="results database: sqlite:PATH or postgresql://... (default: SQLite in the data folder)")
+    p.add_argument("--db", help="results database: sqlite:PATH or postgresql://... "
+                                "(default: SQLite in the data folder)")
 
 
 def _config(args: argparse.Namespace) -> Any:
@@ -49,7 +50,8 @@ def cmd_station(args: argparse.Namespace) -> int:
     measurement = load_measurement(args.measurement) if args.measurement else None
     with open_station(args.program, config, args.operator or "", measurement, rig_path=args.rig) as run:
         if args.auto:
-            return run_auto(run, args.parts if args.parts is not None else 1, progress=ProgressLine(), as_json=args.json)
+            return run_auto(run, args.parts if args.parts is not None else 1, progress=ProgressLine(),
+                            as_json=args.json)
         from slscan.station.tui import run_tui
 
         return run_tui(run, args.parts)
@@ -62,7 +64,7 @@ def _utc_time(text: str) -> dt.datetime:
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not an ISO date/time such as 2026-11-23 or "
                                          f"2026-11-23T08:00") from None
-    return t if t.tzinfo else t.replace(tzinfo=dt.timezone.utc)
+    return t if t.tzinfo else t.replace(tzinfo=dt.UTC)
 
 
 def _program_name(value: str | None) -> tuple[str | None, Any]:
@@ -194,9 +196,9 @@ def cmd_results(args: argparse.Namespace) -> int:
                 _write_export(Path(args.out), lambda path: write_atomic(path, text.encode()))
                 print(f"wrote {n} lines ({len(rows)} results) to {args.out}", file=sys.stderr)
         elif args.json:
-            print(json.dumps({"where": store.where, "results": [{**asdict(r), "values": [asdict(v) for v in values[r.id]],
-                                                                 "excluded": asdict(excluded[r.id]) if r.id in excluded
-                                                                 else None} for r in rows]}, default=str))
+            results = [{**asdict(r), "values": [asdict(v) for v in values[r.id]],
+                        "excluded": asdict(excluded[r.id]) if r.id in excluded else None} for r in rows]
+            print(json.dumps({"where": store.where, "results": results}, default=str))
         else:
             print(f"{'id':>5} {'program':<14} {'serial':<24} {'att':>3} {'status':<10} {'finished (UTC)':<19}  values")
             for r in rows:
@@ -315,7 +317,8 @@ def register(sub: Any) -> None:
     s.add_argument("--operator", type=plain_text_arg, help="operator name stored with every result")
     s.add_argument("--parts", type=count_arg(1), help="stop after this many measured parts (>= 1)")
     s.add_argument("--auto", action="store_true", help="no operator: measure --parts parts one after the other")
-    s.add_argument("--measurement", choices=sorted(MEASUREMENT_NAMES), help="measuring step (default: the station config's)")
+    s.add_argument("--measurement", choices=sorted(MEASUREMENT_NAMES),
+                   help="measuring step (default: the station config's)")
     add_json(s)
     s.set_defaults(func=cmd_station)
 
@@ -325,7 +328,8 @@ def register(sub: Any) -> None:
     r.add_argument("--serial", type=plain_text_arg, help="only the results of this part serial number")
     r.add_argument("--status", choices=("in_progress", "pass", "fail", "uncertain", "error", "aborted", "incomplete"),
                    help="only the results with this status")
-    r.add_argument("--since", type=_utc_time, help="ISO date/time (UTC unless it says), e.g. 2026-11-23 or 2026-11-23T08:00")
+    r.add_argument("--since", type=_utc_time,
+                   help="ISO date/time (UTC unless it says), e.g. 2026-11-23 or 2026-11-23T08:00")
     r.add_argument("--limit", type=count_arg(0), help="only the newest N results (N >= 0)")
     r.add_argument("--csv", nargs="?", const=True, action=OutputFlag,
                    help="export CSV to --out FILE (default: standard output)")
@@ -362,7 +366,8 @@ def register(sub: Any) -> None:
                                             "one recorded at capture")
     b.add_argument("--store", action="store_true", help="store the re-inspection results (source 'batch')")
     _station_options(b)
-    b.add_argument("--measurement", choices=sorted(MEASUREMENT_NAMES), help="measuring step (default: the station config's)")
+    b.add_argument("--measurement", choices=sorted(MEASUREMENT_NAMES),
+                   help="measuring step (default: the station config's)")
     b.add_argument("--json", action="store_true", help="print the summary as JSON")
     b.set_defaults(func=cmd_batch)
 

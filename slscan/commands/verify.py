@@ -26,8 +26,9 @@ import datetime as dt
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from scanner.errors import ScannerError
 from slscan.exit_codes import for_parts
@@ -43,7 +44,8 @@ class OperatorArtefactBench:
     def place(self, position: Any) -> bool:
         """False when the operator skips the position; raises KeyboardInterrupt on q."""
         self.say(f"{position.name}: put the {position.description}")
-        answer = self.ask("press Enter to scan, s and Enter to skip this position, q and Enter to stop: ").strip().lower()
+        answer = self.ask("press Enter to scan, s and Enter to skip this position, q and Enter to stop: ")
+        answer = answer.strip().lower()
         if answer == "q":
             raise KeyboardInterrupt
         return answer != "s"

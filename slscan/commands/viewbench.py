@@ -350,7 +350,8 @@ def _text(f: dict[str, Any]) -> str:
              f"max {c['max_deg']:.4f} deg / {c['max_mm']:.4f} mm (median {c['median_deg']:.4f} / "
              f"{c['median_mm']:.4f})",
              f"coverage of the CAD surface: {f['coverage']['area_share']:.1%} of its area within 0.5 mm of the merged "
-             f"cloud; per face: " + ", ".join(f"{k[5:]} {v:.0%}" for k, v in f["coverage"].items() if k != "area_share"),
+             "cloud; per face: " + ", ".join(f"{k[5:]} {v:.0%}" for k, v in f["coverage"].items()
+                                             if k != "area_share"),
              f"noise on the high top (#657) against its true plane: merged {f['noise']['merged_rms_mm'] * 1e3:.1f} um "
              f"RMS, one view {f['noise']['single_view_rms_mm'] * 1e3:.1f} um (on the same cells "
              f"{f['noise']['single_view_same_cells_rms_mm'] * 1e3:.1f} um)",

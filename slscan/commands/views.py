@@ -81,7 +81,6 @@ def decode_views(args: argparse.Namespace) -> int:
     whole part (alignment, merged cloud, mesh, recording)."""
     from scanner.multiview import MultiViewSession
     from scanner.pipeline import reprocess
-
     from scanner.session_lock import session_lock
 
     session = MultiViewSession.open(args.session)

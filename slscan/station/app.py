@@ -52,7 +52,8 @@ class StationRun:
             self.store.close()
             raise
         try:
-            self.station = Station(program, config, self.bench, measurement or load_measurement(config.measurement, config.path),
+            self.station = Station(program, config, self.bench,
+                                   measurement or load_measurement(config.measurement, config.path),
                                    self.store, operator, on_stored=self._stored)
             self.recovered = self.station.recover()
             self.charts = ChartRecording(self.report_dir / CHART_RECORDING, program,
@@ -77,7 +78,7 @@ class StationRun:
             return
         try:  # the error that ended the run is the one line the operator sees, not one from closing after it
             self.close()
-        except Exception as closing:  # noqa: BLE001
+        except Exception as closing:  # any fault in closing is logged; the run's own error is raised
             log.info("closing the station after %s: %s", type(exc).__name__, closing)
 
     def _history(self) -> tuple[list[ResultRow], dict[int, list[ValueRecord]]]:

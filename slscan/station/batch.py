@@ -9,7 +9,8 @@ regenerated; the recording and the manifest are left as they were), measured (a 
 session's views aligned and fused again first, its merged cloud measured), and judged
 against the program. Given a rig TOML (`--rig`), the sessions are
 reconstructed with that rig's geometry, i.e. its current calibration, instead of the one
-recorded at capture; the calibration id stored with the result says which was used. A part that fails is reported with its error; the batch goes on.
+recorded at capture; the calibration id stored with the result says which was used. A
+part that fails is reported with its error; the batch goes on.
 Units are independent, so the results do not depend on where or in which order they ran.
 """
 
@@ -19,10 +20,11 @@ import datetime as dt
 import json
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Sequence, TextIO
+from typing import Any, TextIO
 
 from scanner import __version__
 from scanner.geometry import RigModel
@@ -137,7 +139,7 @@ def reinspect(part: str, program_path: str, measurement: str = DEFAULT_MEASUREME
             whole_part(multiview, mesh=False)
             measured = measure.measure_whole(multiview, program)
         status, values, message = judge(program, measured)
-    except Exception as exc:  # noqa: BLE001 — one part's failure is reported, the batch goes on
+    except Exception as exc:  # one part's failure is reported, the batch goes on
         return BatchItem(part, "error", f"{type(exc).__name__}: {exc}", serial=serial, calibration_id=calibration,
                          worker=worker, seconds=round(time.perf_counter() - t0, 3), truth=truth)
     return BatchItem(part, status, message, tuple(values), serial, calibration, worker,
@@ -205,7 +207,7 @@ def run_batch(parts: Sequence[str | Path], program_path: str | Path, scheduler: 
                 for k, fut in enumerate(as_completed(futures)):
                     try:
                         done[futures[fut]] = fut.result()
-                    except Exception as exc:  # noqa: BLE001 — a lost worker fails its part, not the batch
+                    except Exception as exc:  # a lost worker fails its part, not the batch
                         done[futures[fut]] = BatchItem(futures[fut], "error", f"{type(exc).__name__}: {exc}")
                     progress("batch", k + 1, len(paths))
                 summary.items = [done[p] for p in paths]
@@ -236,7 +238,7 @@ def compare(a: BatchSummary, b: BatchSummary) -> tuple[list[str], float, str]:
 
 
 def _store(summary: BatchSummary, program: PartProgram, config: StationConfig, entry: str) -> None:
-    now = dt.datetime.now(dt.timezone.utc)
+    now = dt.datetime.now(dt.UTC)
     with open_results(config.database_url) as store:
         for item in summary.items:
             rid, _ = store.begin_part(PartStart(

@@ -58,7 +58,7 @@ def rig_calibration(config: RigConfig) -> CalibrationInfo:
                                        "(run `slscan calibrate`, then name the file as rig.calibration)")
     try:
         cal = load_calibration(path)
-    except Exception as exc:  # noqa: BLE001 — any failure to read it refuses measuring, with the reason
+    except Exception as exc:  # any failure to read it refuses measuring, with the reason
         return CalibrationInfo(None, None, None, None, str(path), problem=f"{path}: {exc}")
     created = dt.datetime.fromisoformat(str(cal.data["created"]))
     ident = str(cal.data.get("id") or f"{cal.data.get('rig', config.name)}@{created:%Y-%m-%dT%H:%M:%S}")

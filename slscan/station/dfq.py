@@ -31,7 +31,7 @@ has no value line."""
 
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 from slscan.station.program import PartProgram
 from slscan.station.quality import chart_series

@@ -19,9 +19,10 @@ Call it between cycles only: the scan talks to the same box.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Protocol
+from typing import Any, Protocol
 
 from scanner.errors import ScannerError
 from scanner.rig import Rig, RigConfig, open_rig

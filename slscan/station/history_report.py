@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import datetime as dt
 import html
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from inspection.report_header import HEADER_CSS, ReportHeader, file_sha256, header_html
 from inspection.tolerances import CONFORMING, DECISION_RULES, NON_CONFORMING, UNCERTAIN
@@ -18,7 +18,14 @@ from scanner.session import write_atomic
 from slscan.station.calib import FACTORY_PREFIX
 from slscan.station.charts import write_charts
 from slscan.station.program import PartProgram
-from slscan.station.quality import DECISION_MARKS, CharacteristicStats, SpcOptions, latest_per_serial, running_stats
+from slscan.station.quality import (
+    DECISION_MARKS,
+    SPC_DEFAULTS,
+    CharacteristicStats,
+    SpcOptions,
+    latest_per_serial,
+    running_stats,
+)
 from slscan.station.results import ResultRow, ValueRecord
 from slscan.station.spc import MIN_CAPABILITY_N, MIN_INDIVIDUALS, MIN_SUBGROUPS, NELSON_RULES, Index
 
@@ -84,8 +91,8 @@ def _limits_table(stats: Sequence[CharacteristicStats]) -> str:
 
 def _capability_table(stats: Sequence[CharacteristicStats]) -> str:
     head = [("characteristic", "l"), ("n", ""), ("mean (mm)", ""), ("&sigma; overall (mm)", ""),
-            ("Cp, 0..tol. [95 %]", ""), ("Cpk [95 %]", ""), ("Pp, 0..tol. [95 %]", ""), ("Ppk [95 %]", ""), ("normality", "l"),
-            ("Weibull Pp / Ppk", ""), ("read", "l"), ("note", "l")]
+            ("Cp, 0..tol. [95 %]", ""), ("Cpk [95 %]", ""), ("Pp, 0..tol. [95 %]", ""), ("Ppk [95 %]", ""),
+            ("normality", "l"), ("Weibull Pp / Ppk", ""), ("read", "l"), ("note", "l")]
     rows = []
     for st in stats:
         cap = st.capability
@@ -124,7 +131,7 @@ def station_header(program: PartProgram, rows: Sequence[ResultRow]) -> ReportHea
         part=f"{program.name} — {program.description}" if program.description else program.name,
         serial=f"{len({r.serial for r in rows})} serials: " + seen([r.serial for r in rows]) if rows else "",
         program=f"{program.path} (version {program.version})", program_sha256=file_sha256(program.path),
-        operator=seen([r.operator for r in rows]), date=f"{dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M:%S}",
+        operator=seen([r.operator for r in rows]), date=f"{dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M:%S}",
         rig=seen([r.rig for r in rows]), calibration_id=seen([r.calibration_id for r in rows]),
         calibration_date=seen(dates) or ("undated (factory geometry)" if rows and all(
             (r.calibration_id or "").startswith(FACTORY_PREFIX) for r in rows) else ""),
@@ -153,16 +160,17 @@ def _method(program: PartProgram, options: SpcOptions) -> str:
             "(tolerance &minus; mean) / 3&sigma;<sub>within</sub>; Pp and Ppk the same with "
             "&sigma;<sub>overall</sub> (the sample SD). Minitab leaves Cp and Pp out when the lower end is a "
             "natural bound; here they compare the spread with the whole band 0..tolerance, so Cpk exceeds Cp when "
-            "the process sits in the band's lower half (where a form error should be). 95 % intervals (chi-squared for Cp and Pp, Bissell for Cpk "
-            "and Ppk). Normality by the Anderson-Darling test; when it rejects the normal at 5 % (or, with censored "
-            "values, the Weibull fits better) read the Weibull model's Pp / Ppk (ISO 22514-2 percentile method). "
+            "the process sits in the band's lower half (where a form error should be). 95 % intervals "
+            "(chi-squared for Cp and Pp, Bissell for Cpk and Ppk). Normality by the Anderson-Darling test; when it "
+            "rejects the normal at 5 % (or, with censored values, the Weibull fits better) read the Weibull model's "
+            "Pp / Ppk (ISO 22514-2 percentile method). "
             f"Fewer than {MIN_CAPABILITY_N} values: the indices are marked as too uncertain. Nelson rules used: "
             f"{rules}."
             f"{baseline}{frozen}</p>")
 
 
 def write_report(folder: Path, program: PartProgram, rows: Sequence[ResultRow],
-                 values: dict[int, list[ValueRecord]], source: str, options: SpcOptions = SpcOptions()) -> Path:
+                 values: dict[int, list[ValueRecord]], source: str, options: SpcOptions = SPC_DEFAULTS) -> Path:
     """Write `folder/report.html` and `folder/charts/*.png`; returns the page's path.
     `source` names where the results came from (shown on the page)."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -173,7 +181,7 @@ def write_report(folder: Path, program: PartProgram, rows: Sequence[ResultRow],
            f"<style>{_STYLE}{HEADER_CSS}</style></head><body>",
            f"<h1>{e(program.name)} v{e(program.version)} — results</h1>", header_html(station_header(program, rows)),
            f"<p>Program {e(str(program.path))} [{e(program.fingerprint)}], CAD {e(program.cad_path.name)}; results "
-           f"from {e(source)}; written {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M:%S} UTC by slscan "
+           f"from {e(source)}; written {dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M:%S} UTC by slscan "
            f"{__version__}.</p>",
            "<section><h2>Running statistics</h2>",
            f"<p>{stats.parts} parts (last cycle per serial): {stats.passed} pass, {stats.failed} fail, "

@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+from collections.abc import Mapping
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from scanner.errors import ConfigError
 from scanner.session import write_atomic
@@ -34,7 +35,7 @@ def save_limits(path: Path, program: PartProgram, charts: Mapping[str, ControlCh
     missing = [name for name, chart in charts.items() if chart is None]
     data = {"format": FORMAT, "program": program.name, "program_fingerprint": program.fingerprint,
             "subgroup_size": program.subgroup_size,
-            "written_utc": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"), "source": source,
+            "written_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "source": source,
             "characteristics": {name: asdict(chart) for name, chart in charts.items() if chart is not None}}
     write_atomic(path, (json.dumps(data, indent=1) + "\n").encode())
     return missing

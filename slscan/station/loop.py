@@ -32,9 +32,10 @@ from __future__ import annotations
 import datetime as dt
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from scanner import __version__
 from scanner.errors import ConfigError, ScannerError
@@ -205,7 +206,7 @@ class Station:
         except KeyboardInterrupt as exc:
             finish("aborted", f"{str(exc) or 'interrupted (Ctrl-C)'}; frames already captured are kept")
             raise
-        except Exception as exc:  # noqa: BLE001 — a device or measuring fault ends this cycle, stored
+        except Exception as exc:  # a device or measuring fault ends this cycle, stored
             return finish("error", f"{type(exc).__name__}: {exc}")
         status, values, message = judge(self.program, measured)
         return finish(status, message, values)
@@ -225,7 +226,7 @@ class Station:
                 self._set_exposure(rig)
                 sessions.append(folder / f"view{k}")
                 scanned.append(scan(rig, self.patterns, sessions[-1],
-                                    lambda stage, done, total: step(stage + where, done, total)).session)
+                                    lambda stage, done, total, where=where: step(stage + where, done, total)).session)
         return self._measured(lambda: self.measurement.measure(scanned, self.program), step)
 
     def _scan_whole(self, part: int, folder: Path, sessions: list[Path],

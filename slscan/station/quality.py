@@ -32,8 +32,8 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Collection, Mapping, Sequence
 
 import numpy as np
 
@@ -287,8 +287,11 @@ class SpcOptions:
     frozen_source: str = ""
 
 
+SPC_DEFAULTS = SpcOptions()  # nothing left out, the default rules, limits from every value
+
+
 def running_stats(program: PartProgram, rows: Sequence[ResultRow], values: dict[int, list[ValueRecord]],
-                  options: SpcOptions = SpcOptions()) -> RunningStats:
+                  options: SpcOptions = SPC_DEFAULTS) -> RunningStats:
     """Statistics of the program's parts from stored results (`rows` of this program)."""
     parts = latest_per_serial(rows)
     series = chart_series(program, rows, values, options.exclusions)

@@ -51,10 +51,11 @@ import re
 import socket
 import threading
 import time
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager, suppress
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence, TextIO
+from typing import Any, TextIO
 from urllib.parse import unquote
 
 import sqlalchemy as sa
@@ -89,14 +90,14 @@ class UtcTime(sa.TypeDecorator):
     def process_bind_param(self, value: dt.datetime | None, dialect: sa.Dialect) -> Any:
         if value is None:
             return None
-        value = value.astimezone(dt.timezone.utc)
+        value = value.astimezone(dt.UTC)
         return value.isoformat(timespec="microseconds") if dialect.name == "sqlite" else value
 
     def process_result_value(self, value: Any, dialect: sa.Dialect) -> dt.datetime | None:
         if value is None:
             return None
         t = dt.datetime.fromisoformat(value) if isinstance(value, str) else value
-        return t.replace(tzinfo=dt.timezone.utc) if t.tzinfo is None else t.astimezone(dt.timezone.utc)
+        return t.replace(tzinfo=dt.UTC) if t.tzinfo is None else t.astimezone(dt.UTC)
 
 
 _META = sa.MetaData()
@@ -282,7 +283,7 @@ def owner_gone(owner: str | None, lease_until: dt.datetime | None, now: dt.datet
 
 
 def utcnow() -> dt.datetime:
-    return dt.datetime.now(dt.timezone.utc)
+    return dt.datetime.now(dt.UTC)
 
 
 # ------------------------------------------------------------------------------ opening
@@ -450,10 +451,8 @@ class ResultsStore:
 
         def renew() -> None:
             while not stop.wait(every_s):
-                try:
+                with suppress(ResultsError):  # the database is away for now; the next renewal tries again
                     self.renew(result_id)
-                except ResultsError:
-                    pass  # the database is away for now; the next renewal tries again
         thread = threading.Thread(target=renew, name=f"lease-{result_id}", daemon=True)
         thread.start()
         try:

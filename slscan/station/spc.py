@@ -87,9 +87,9 @@ test is possible on them) the model of the higher likelihood (both have 2 parame
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
-from typing import Sequence
+from functools import cache
 
 import numpy as np
 
@@ -113,7 +113,7 @@ NELSON_RULES = {
 DEFAULT_RULES = (1, 2, 5, 6)  # the Western Electric set, in Nelson's numbering
 
 
-@lru_cache(maxsize=None)
+@cache
 def range_constants(n: int) -> tuple[float, float]:
     """(d2, d3): mean and standard deviation of the range R of `n` independent standard
     normal values (the published tables' source), by the trapezoidal rule on a grid over

@@ -72,8 +72,9 @@ class StationConfig:
         st = schema.load(StationFile, path)
         database = st.station.database
         if database and not database.startswith(("postgresql://", "postgres://", "sqlite:")):
-            raise ConfigError(path, "station.database", f"'{redact(database, database)}': give a postgresql:// URL, "
-                                                        f"a sqlite:PATH, or leave it empty for SQLite in the data folder")
+            raise ConfigError(path, "station.database",
+                              f"'{redact(database, database)}': give a postgresql:// URL, "
+                              "a sqlite:PATH, or leave it empty for SQLite in the data folder")
         return cls(path=path, name=st.station.name or path.stem, rig_path=resolve(path, st.station.rig).resolve(),
                    data_dir=resolve(path, st.station.data_dir).resolve(), database=database,
                    max_calibration_age_days=st.station.max_calibration_age_days, operator=st.station.operator,

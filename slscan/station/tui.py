@@ -107,10 +107,11 @@ class StationTUI:
                 st.last, st.last_part = outcome, part
                 if outcome.status in VERDICTS:
                     st.measured.add(outcome.serial)
-            st.event(f"{outcome.serial} attempt {outcome.attempt}: {outcome.status.upper()} (result {outcome.result_id})")
+            st.event(f"{outcome.serial} attempt {outcome.attempt}: {outcome.status.upper()} "
+                     f"(result {outcome.result_id})")
         except ScannerError as exc:  # refused, or no serial: said on screen
             st.message = str(exc)
-        except Exception as exc:  # noqa: BLE001 — shown, never a dead screen
+        except Exception as exc:  # shown, never a dead screen
             st.message = f"error: {type(exc).__name__}: {exc}"
         finally:
             self._status = None
@@ -173,7 +174,8 @@ class StationTUI:
 
         def put(text: str, attr: int = 0, wrap: bool = False) -> None:
             nonlocal row
-            for line in textwrap.wrap(text, w - 1, subsequent_indent="    ", break_on_hyphens=False) if wrap else [text]:
+            lines = textwrap.wrap(text, w - 1, subsequent_indent="    ", break_on_hyphens=False) if wrap else [text]
+            for line in lines:
                 if row < h - 1:
                     scr.addnstr(row, 0, line, w - 1, attr)
                 row += 1
