@@ -25,7 +25,7 @@ from scanner.config import DEFAULT_RIG, load_toml, resolve
 from scanner.devices import Camera, Projector, TriggerSource
 from scanner.errors import ConfigError, ScannerError
 from scanner.geometry import Pinhole, RigModel, look_at
-from scanner.rig_schema import Device, Lens, RigFile, check_geometry, device_settings, parse_rig_file
+from scanner.rig_schema import DriverSettings, Lens, RigFile, check_geometry, device_settings, parse_rig_file
 from scanner.stage import Stage
 from scanner.stage_model import StageConfig
 
@@ -55,7 +55,7 @@ class RigConfig:
     calibration_path: Path | None = None
     recording_level: str = "display"  # [recording] level: "full", "display" or "none"
     cameras: tuple[dict[str, Any], ...] = ()  # a rig with several cameras: each [[cameras]] table as written
-    devices: dict[str, Device] = field(default_factory=dict, repr=False)
+    devices: dict[str, DriverSettings] = field(default_factory=dict, repr=False)
 
     @classmethod
     def load(cls, path: str | Path = DEFAULT_RIG) -> RigConfig:

@@ -181,7 +181,7 @@ class RigFile(Schema):
 
 
 @dataclass(frozen=True, eq=False)
-class Device:
+class DriverSettings:
     """A table's driver and its keys validated by the driver's schema."""
 
     driver: Driver
@@ -196,14 +196,14 @@ def parse_rig_file(raw: dict[str, Any], path: str | Path) -> RigFile:
     return schema.parse(RigFile, {k: v for k, v in raw.items() if k != name or k in RigFile.model_fields}, path)
 
 
-def device_settings(file: RigFile, raw: dict[str, Any], path: str | Path) -> dict[str, Device]:
+def device_settings(file: RigFile, raw: dict[str, Any], path: str | Path) -> dict[str, DriverSettings]:
     """The driver of each device table of `file` (parsed from `raw`) with its settings: keys
     "rig" (the rig driver, its settings the top-level table named after it), "camera" (the first camera),
     "cameras.<name>" (each of [[cameras]]), "projector" and "trigger_box" (when present).
     ConfigError naming the key for an unknown driver, one another rig driver opens, or a
     key no driver of its kind knows (`scanner.drivers.registry.own_settings`)."""
     rig = lookup("rig", file.rig.driver, None, path, "rig.driver")
-    out = {"rig": Device(rig, schema.parse(rig.settings, raw.get(rig.name, {}), path, rig.name))}
+    out = {"rig": DriverSettings(rig, schema.parse(rig.settings, raw.get(rig.name, {}), path, rig.name))}
     tables: list[tuple[str, Kind, str, DeviceTable]] = []
     if file.camera is not None:
         tables.append(("camera", "camera", "camera", file.camera))
@@ -219,9 +219,9 @@ def device_settings(file: RigFile, raw: dict[str, Any], path: str | Path) -> dic
     return out
 
 
-def _device(kind: Kind, table: DeviceTable, rig: str, path: str | Path, prefix: str) -> Device:
+def _device(kind: Kind, table: DeviceTable, rig: str, path: str | Path, prefix: str) -> DriverSettings:
     driver = lookup(kind, table.driver, rig, path, f"{prefix}.driver")
-    return Device(driver, own_settings(driver, table.model_extra or {}, type(table).model_fields, path, prefix))
+    return DriverSettings(driver, own_settings(driver, table.model_extra or {}, type(table).model_fields, path, prefix))
 
 
 # ---------------------------------------------------------------- the model description

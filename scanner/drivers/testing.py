@@ -348,7 +348,8 @@ class FakeNodeMap:
 
     def __getattr__(self, name: str) -> _Node:
         try:
-            return self.__dict__["_nodes"][name]  # type: ignore[no-any-return]  # the dict holds _Node only
+            node: _Node = self.__dict__["_nodes"][name]
+            return node
         except KeyError:
             raise AttributeError(name) from None
 
