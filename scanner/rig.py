@@ -1,7 +1,8 @@
 """A rig: its configuration (TOML), its nominal geometry, and its open devices.
 
-The factory picks drivers by name and imports them lazily, so the scanner core does not
-depend on the simulator or on hardware libraries.
+`open_rig` opens the rig driver the TOML names (`[rig] driver`), found in the registry of
+drivers (`scanner.drivers.registry`: each driver module declares itself there), which
+imports hardware libraries and the simulator only when a rig opens.
 
 A rig TOML may name its calibration file (`[rig] calibration = "path.json"`, relative to
 the TOML): the rig then reconstructs with the calibrated geometry (`RigConfig.model`,
@@ -12,7 +13,6 @@ this rig's devices and refuses a mismatch.
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
@@ -20,28 +20,26 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from scanner import schema
 from scanner.calibration_file import load_rig_model
 from scanner.config import DEFAULT_RIG, load_toml, resolve
 from scanner.devices import Camera, Projector, TriggerSource
 from scanner.errors import ConfigError, ScannerError
 from scanner.geometry import Pinhole, RigModel, look_at
-from scanner.rig_schema import Lens, RigFile, check_geometry
+from scanner.rig_schema import DriverSettings, Lens, RigFile, check_geometry, device_settings, parse_rig_file
 from scanner.stage import Stage
 from scanner.stage_model import StageConfig
 
 if TYPE_CHECKING:
     from scanner.binocular import StereoModel
 
-# driver name -> "module:function" returning a Rig; imported only when used
-DRIVERS = {"sim": "sim.virtual_rig:open_sim_rig", "hardware": "scanner.drivers.hardware_rig:open_hardware_rig"}
-
 
 @dataclass(frozen=True, eq=False)
 class RigConfig:
     """A parsed, validated rig TOML (`scanner.rig_schema.RigFile`). `raw` keeps the whole
     file for the session manifest; `camera` and `projector` are its tables as written, for
-    the drivers (every key in them is known and typed)."""
+    the drivers (every key in them is known and typed); `devices` their drivers and the
+    drivers' settings (`scanner.rig_schema.device_settings`: "rig", "camera", "projector",
+    "trigger_box", "cameras.<name>")."""
 
     path: Path
     name: str
@@ -57,6 +55,7 @@ class RigConfig:
     calibration_path: Path | None = None
     recording_level: str = "display"  # [recording] level: "full", "display" or "none"
     cameras: tuple[dict[str, Any], ...] = ()  # a rig with several cameras: each [[cameras]] table as written
+    devices: dict[str, DriverSettings] = field(default_factory=dict, repr=False)
 
     @classmethod
     def load(cls, path: str | Path = DEFAULT_RIG) -> RigConfig:
@@ -64,14 +63,15 @@ class RigConfig:
         nominal geometry able to triangulate (a common field of view at the working distance)."""
         path = Path(path)
         raw = load_toml(path)
-        file = schema.parse(RigFile, raw, path)
+        file = parse_rig_file(raw, path)
         rig = file.rig
         cfg = cls(path=path, name=rig.name or path.stem, driver=rig.driver, trigger=rig.trigger,
                   timeout_s=rig.timeout_s, period_s=rig.period_s, working_distance_mm=rig.working_distance_mm,
                   patterns_path=resolve(path, rig.patterns), camera=raw.get("camera") or raw["cameras"][0],
                   projector=raw["projector"], raw=raw,
                   calibration_path=resolve(path, rig.calibration) if rig.calibration else None,
-                  recording_level=file.recording.level, cameras=tuple(raw.get("cameras") or ()))
+                  recording_level=file.recording.level, cameras=tuple(raw.get("cameras") or ()),
+                  devices=device_settings(file, raw, path))
         check_geometry(cfg.nominal_model(), cfg.working_distance_mm, path, "projector")
         for name, model in list(cfg.camera_models().items())[1:]:
             check_geometry(model, cfg.working_distance_mm, path, f"cameras.{name}")
@@ -79,6 +79,11 @@ class RigConfig:
             check_geometry(cfg.model, cfg.working_distance_mm, path, "rig.calibration")
         _ = cfg.stage  # and the stage table, if any
         return cfg
+
+    @cached_property
+    def file(self) -> RigFile:
+        """The validated rig file."""
+        return parse_rig_file(self.raw, self.path)
 
     @cached_property
     def model(self) -> RigModel:
@@ -99,7 +104,7 @@ class RigConfig:
 
     def nominal_model(self) -> RigModel:
         """The rig geometry written in the config (for the simulator: its ground truth)."""
-        file = schema.parse(RigFile, self.raw, self.path)
+        file = self.file
         pos = np.array(file.projector.position_mm)
         look = file.projector.look_at_mm
         target = np.array(look) if look is not None else np.array([0.0, 0.0, self.working_distance_mm])
@@ -119,7 +124,7 @@ class RigConfig:
         first = self.nominal_model()
         if not self.cameras:
             return {"camera": first}
-        file = schema.parse(RigFile, self.raw, self.path)
+        file = self.file
         out = {}
         for entry in file.cameras or []:
             pose = np.eye(4)
@@ -145,7 +150,7 @@ class RigConfig:
         if len(models) < 2:
             raise ConfigError(self.path, "cameras", "binocular reconstruction needs a [[cameras]] list of two cameras")
         (a, left), (b, right) = list(models.items())[:2]
-        file = schema.parse(RigFile, self.raw, self.path).rig.stereo_calibration
+        file = self.file.rig.stereo_calibration
         if file and not nominal:
             try:
                 model, _ = read_stereo_calibration([resolve(self.path, file)], left.camera.size, right.camera.size)
@@ -159,6 +164,7 @@ class RigConfig:
 def _pinhole(lens: Lens) -> Pinhole:
     if lens.K is not None:
         return Pinhole(lens.width, lens.height, np.array(lens.K), np.array(lens.dist))
+    assert lens.hfov_deg is not None  # the schema gives either K or hfov_deg
     return Pinhole.from_fov(lens.width, lens.height, lens.hfov_deg, lens.pixel_aspect, dist=np.array(lens.dist))
 
 
@@ -189,10 +195,9 @@ class Rig:
 
 
 def open_rig(config: RigConfig, **driver_options: Any) -> Rig:
-    """Open the devices named by `config` (driver options, e.g. the simulator's scene, pass through)."""
-    module_name, func = DRIVERS[config.driver].split(":")
-    factory = getattr(importlib.import_module(module_name), func)
-    rig = factory(config, **driver_options)
+    """Open the devices named by `config` with its rig driver (driver options, e.g. the
+    simulator's scene, pass through)."""
+    rig: Rig = config.devices["rig"].driver.opener()(config, **driver_options)
     if config.calibration_path is not None:
         rig.model = config.model  # reconstruct with the calibrated geometry
     return rig

@@ -1,9 +1,11 @@
 """The rig TOML and the rig model description as schemas, and the physics a rig must obey.
 
-`RigFile` is every table a rig TOML may hold (see `config/rigs/`). Keys a driver reads are
-declared here too (uvc, genicam, hdmi, lightcrafter4500: see scanner/drivers/hardware_rig.py),
-and so are the simulator's tables (`[camera.sensor]`, `[sim.faults]`), so a typo is refused
-at load instead of being silently ignored. `[calibrate]` belongs to the
+`RigFile` is every table a rig TOML may hold (see `config/rigs/`): of each device table
+([camera], [[cameras]], [projector], [trigger_box]) the keys every device of its kind has
+and `driver`; every other key of the table belongs to that driver, which declares them
+(`scanner.drivers.registry`, docs/drivers.md) and validates them (`device_settings`), as
+the rig driver does the top-level table named after it (`[sim]`). So a typo is refused at
+load instead of being silently ignored. `[calibrate]` belongs to the
 calibration package, which validates it when a calibration is run (the core cannot import it),
 and `[acceptance]` to `slscan verify` (`inspection.acceptance.Acceptance` validates it).
 
@@ -15,20 +17,22 @@ away, a projector at the camera (no baseline, no triangulation).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
+from scanner import schema
+from scanner.drivers.registry import Driver, Kind, lookup, own_settings
 from scanner.errors import ConfigError
 from scanner.geometry import RigModel
 from scanner.schema import (
     Bool,
     Float,
-    Int,
     Matrix3,
     Matrix4,
-    NonNegativeFloat,
     PositiveFloat,
     Schema,
     Str,
@@ -43,7 +47,17 @@ FieldOfView = Annotated[float, Field(strict=True, gt=1.0, lt=170.0)]
 PixelAspect = Annotated[float, Field(strict=True, ge=0.1, le=10.0)]
 
 
-class Lens(Schema):
+class DeviceTable(Schema):
+    """A device's table: the keys the core reads, `driver` (absent: the one driver of its
+    kind the rig driver opens), and the driver's own keys, kept as given (`model_extra`)
+    for `device_settings` to validate with the driver's schema."""
+
+    model_config = ConfigDict(extra="allow")
+
+    driver: Str | None = None
+
+
+class Lens(DeviceTable):
     """What camera and projector share: image size and intrinsics (K, or hfov_deg and pixel_aspect)."""
 
     width: ImageSide
@@ -52,7 +66,6 @@ class Lens(Schema):
     pixel_aspect: PixelAspect = 1.0
     K: Matrix3 | None = None
     dist: Distortion = [0.0] * 5
-    driver: Str | None = None
 
     @model_validator(mode="after")
     def _intrinsics(self) -> Lens:
@@ -61,51 +74,6 @@ class Lens(Schema):
         if self.K is not None:
             check_intrinsics(np.array(self.K), self.width, self.height)
         return self
-
-
-def _within(lo: float, hi: float) -> Any:
-    """A finite float in [lo, hi]."""
-    return Annotated[float, Field(strict=True, ge=lo, le=hi)]
-
-
-MAX_BLUR_SIGMA_PX = 10.0
-"""The widest defocus (Gaussian sigma, px) a rig can take: a blur of sigma s keeps
-exp(-2 pi^2 s^2 / p^2) of a fringe of period p px, so at s = 10 px even a 40 px fringe keeps
-under 1 % of its modulation and nothing decodes; wider values are typing errors (a 1e6 px
-sigma made the simulator's blur kernel take 19.5 GB)."""
-
-
-class SensorTable(Schema):
-    """[camera.sensor] of a simulated rig (read by sim.render.SensorModel), each key within the
-    range real sensors span, refused outside it:
-
-        full_well_e    1e3 .. 1e6 e-     (small-pixel CMOS ~2 000, large CCD pixels ~500 000)
-        read_noise_e   0 .. 100 e-       (scientific CMOS ~1, CCDs 5-20, the noisiest webcams ~50)
-        flux_e_per_s   1e2 .. 1e10 e-/s  (albedo-1 surface under full white, normal incidence)
-        ambient        0 .. 1            (ambient light as a fraction of the projector's white;
-                                          at 1 the fringes are under half the signal)
-        blur_sigma_px  0 .. MAX_BLUR_SIGMA_PX px"""
-
-    full_well_e: _within(1e3, 1e6) = 10500.0
-    read_noise_e: _within(0.0, 100.0) = 6.0
-    flux_e_per_s: _within(1e2, 1e10) = 900000.0
-    ambient: _within(0.0, 1.0) = 0.04
-    blur_sigma_px: _within(0.0, MAX_BLUR_SIGMA_PX) = 0.0
-
-
-class FaultsTable(Schema):
-    """[sim.faults] of a simulated rig (read by sim.virtual_devices.Faults): frame indices, s."""
-
-    drop_frame: Annotated[int, Field(strict=True, ge=0)] | None = None
-    delay_frame: Annotated[int, Field(strict=True, ge=0)] | None = None
-    delay_s: _within(0.0, 3600.0) = 0.0  # no longer than the longest rig timeout_s
-    disconnect_after: Annotated[int, Field(strict=True, ge=0)] | None = None
-    stale_frame: Annotated[int, Field(strict=True, ge=0)] | None = None
-    repeat: Bool = False
-
-
-class SimTable(Schema):
-    faults: FaultsTable | None = None
 
 
 MAX_CAMERA_PIXELS = 24_000_000
@@ -117,14 +85,6 @@ which ~150 MB are the interpreter and its libraries), so 24 MP fill the ~4 GB a 
 class CameraTable(Lens):
     bit_depth: Annotated[int, Field(strict=True, ge=1, le=16)] | None = None
     exposure_s: Annotated[float, Field(strict=True, gt=0, le=60)] | None = None
-    sensor: SensorTable | None = None  # the simulated camera
-    device: Str | Int | None = None  # uvc: device, fps, gain; genicam: cti, serial, trigger_line, gain_db
-    fps: PositiveFloat | None = None
-    gain: Float | None = None
-    cti: Str | None = None
-    serial: Str | None = None
-    trigger_line: Str | None = None
-    gain_db: Float | None = None
 
     @model_validator(mode="after")
     def _pixels(self) -> CameraTable:
@@ -148,31 +108,15 @@ class ProjectorTable(Lens):
     gamma: Gamma = 1.0
     position_mm: Vector3
     look_at_mm: Vector3 | None = None
-    blur_sigma_px: _within(0.0, MAX_BLUR_SIGMA_PX) | None = None  # the simulated projector
-    display: Int | None = None  # hdmi: display, video_display, refresh_hz, latency_frames; then lightcrafter4500
-    video_display: Int | None = None
-    refresh_hz: PositiveFloat | None = None
-    latency_frames: Annotated[int, Field(strict=True, ge=0)] | None = None
-    source: Literal["flash", "video"] | None = None
-    flash_first_image: Annotated[int, Field(strict=True, ge=0)] | None = None
-    flash_images_sha256: Str | None = None
-    leds: Str | None = None
-    led_currents: Annotated[list[Annotated[int, Field(strict=True, ge=0, le=255)]],
-                            Field(min_length=3, max_length=3)] | None = None
-    trig_out1_delays_us: Annotated[list[Float], Field(min_length=2, max_length=2)] | None = None
-    trig_out2_delay_us: Float | None = None
-    trig_in1_delay_us: Float | None = None
-    odd_row_shift: Float | None = None
-    usb_serial: Str | None = None
 
 
 class RigTable(Schema):
     name: Str | None = None
-    driver: Literal["sim", "hardware"]
+    driver: Str  # a rig driver: "sim", "hardware" (scanner.drivers.registry)
     trigger: Literal["software", "projector", "trigger_box"] = "software"
     timeout_s: Annotated[float, Field(strict=True, gt=0, le=3600)] = 2.0
     period_s: PositiveFloat = 0.05
-    working_distance_mm: _within(10.0, 100_000.0) = 400.0  # 1 cm .. 100 m
+    working_distance_mm: Annotated[float, Field(strict=True, ge=10.0, le=100_000.0)] = 400.0  # 1 cm .. 100 m
     patterns: Str = "../patterns/heterodyne_3x4.toml"
     calibration: Str | None = None
     stereo_calibration: Str | None = None  # a [[cameras]] rig: the first two cameras' (stereo_calibration.json)
@@ -195,20 +139,19 @@ class RecordingTable(Schema):
     level: RecordingLevel = "display"
 
 
-class TriggerBoxTable(Schema):
-    port: Str
-    boot_timeout_s: PositiveFloat = 3.0
+class TriggerBoxTable(DeviceTable):
+    """[trigger_box]: the driver's keys only (the port, ...)."""
 
 
 class RigFile(Schema):
-    """A rig TOML: [rig], [camera], [projector], and the optional tables."""
+    """A rig TOML: [rig], [camera], [projector], and the optional tables (the rig driver's
+    own table, named after it, is set aside by `parse_rig_file`)."""
 
     rig: RigTable
     camera: CameraTable | None = None
     cameras: Annotated[list[CameraEntry], Field(min_length=1, max_length=8)] | None = None  # or several, named
     projector: ProjectorTable
     trigger_box: TriggerBoxTable | None = None
-    sim: SimTable | None = None
     recording: RecordingTable = RecordingTable()
     calibrate: dict[str, Any] | None = None  # validated by calibration.workflow.Procedure (its keys, its rules)
     acceptance: dict[str, Any] | None = None  # validated by inspection.acceptance.Acceptance (`slscan verify`)
@@ -235,6 +178,50 @@ class RigFile(Schema):
     def first_camera(self) -> CameraTable:
         """The rig's camera ([camera], or the first of [[cameras]]): the frame of its geometry."""
         return self.camera if self.camera is not None else self.cameras[0]  # type: ignore[index]
+
+
+@dataclass(frozen=True, eq=False)
+class DriverSettings:
+    """A table's driver and its keys validated by the driver's schema."""
+
+    driver: Driver
+    settings: Any  # an instance of driver.settings
+
+
+def parse_rig_file(raw: dict[str, Any], path: str | Path) -> RigFile:
+    """`raw` (a rig TOML's contents) validated as a RigFile, the top-level table named after
+    the rig driver set aside (its keys are the driver's: `device_settings` checks them)."""
+    rig = raw.get("rig")
+    name = rig.get("driver") if isinstance(rig, dict) else None
+    return schema.parse(RigFile, {k: v for k, v in raw.items() if k != name or k in RigFile.model_fields}, path)
+
+
+def device_settings(file: RigFile, raw: dict[str, Any], path: str | Path) -> dict[str, DriverSettings]:
+    """The driver of each device table of `file` (parsed from `raw`) with its settings: keys
+    "rig" (the rig driver, its settings the top-level table named after it), "camera" (the first camera),
+    "cameras.<name>" (each of [[cameras]]), "projector" and "trigger_box" (when present).
+    ConfigError naming the key for an unknown driver, one another rig driver opens, or a
+    key no driver of its kind knows (`scanner.drivers.registry.own_settings`)."""
+    rig = lookup("rig", file.rig.driver, None, path, "rig.driver")
+    out = {"rig": DriverSettings(rig, schema.parse(rig.settings, raw.get(rig.name, {}), path, rig.name))}
+    tables: list[tuple[str, Kind, str, DeviceTable]] = []
+    if file.camera is not None:
+        tables.append(("camera", "camera", "camera", file.camera))
+    for i, entry in enumerate(file.cameras or []):
+        tables.append((f"cameras.{entry.name}", "camera", f"cameras[{i}]", entry))
+    tables.append(("projector", "projector", "projector", file.projector))
+    if file.trigger_box is not None:
+        tables.append(("trigger_box", "trigger_box", "trigger_box", file.trigger_box))
+    for name, kind, prefix, table in tables:
+        out[name] = _device(kind, table, rig.name, path, prefix)
+    if file.cameras:
+        out["camera"] = out[f"cameras.{file.cameras[0].name}"]
+    return out
+
+
+def _device(kind: Kind, table: DeviceTable, rig: str, path: str | Path, prefix: str) -> DriverSettings:
+    driver = lookup(kind, table.driver, rig, path, f"{prefix}.driver")
+    return DriverSettings(driver, own_settings(driver, table.model_extra or {}, type(table).model_fields, path, prefix))
 
 
 # ---------------------------------------------------------------- the model description

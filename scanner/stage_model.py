@@ -16,15 +16,16 @@ inv(world_from_stage(q)).
 The rig TOML (`[stage]`, optional; lengths mm, angles in degrees where the key says so):
 
     [stage]
-    driver = "sim"                     # sim (simulated rigs) | grbl (hardware rigs)
+    driver = "sim"                     # a stage driver of the rig's driver: sim (simulated
+                                       #   rigs) | grbl (hardware rigs); absent: the only one
     settle_s = 0.3                     # wait after each move before a view is captured
     calibration = "stage_axis.json"    # optional: the calibrated axes (`slscan calibrate
                                        # --stage-axis`), replacing direction and point_mm
-    port = "/dev/ttyUSB0"              # grbl: the controller's serial port,
-    boot_timeout_s = 5.0               #   how long it may take to answer after opening,
-    timeout_s = 1.0                    #   and to answer a command
-    home = true                        # grbl: the controller homes (it then refuses moves
-                                       #   until homed); sim: the same, simulated
+    home = true                        # the controller homes (it then refuses moves until
+                                       #   homed); sim: the same, simulated
+    port = "/dev/ttyUSB0"              # the driver's own keys (scanner/drivers/grbl.py):
+    boot_timeout_s = 5.0               #   the controller's serial port, how long it may take
+    timeout_s = 1.0                    #   to answer after opening, and to answer a command
 
     [[stage.axes]]                     # base first
     name = "turntable"
@@ -34,8 +35,8 @@ The rig TOML (`[stage]`, optional; lengths mm, angles in degrees where the key s
     limits_deg = [-400.0, 400.0]       # rotary travel (default endless); linear: limits_mm
     speed_deg_s = 30.0                 # nominal speed (linear: speed_mm_s)
     tolerance_deg = 0.01               # reported position must be this close (linear: tolerance_mm)
-    letter = "X"                       # grbl: the controller axis driving it
-    units_per_turn = 360.0             # grbl, rotary: controller units per turn (steps/unit set so)
+    letter = "X"                       # the driver's own keys (grbl: the controller axis driving
+    units_per_turn = 360.0             #   it; rotary: controller units per turn)
 
 The calibration file (`stage_axis.json`, written by `calibration.stage_axis`): JSON with
 `slscan_stage_axis` (format version), `axes` (name, kind, direction, point_mm as above),
@@ -47,21 +48,22 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
 from scanner.config import get, get_vector, resolve
+from scanner.drivers.registry import lookup, own_settings
 from scanner.errors import ConfigError
 from scanner.stage import Axis, AxisKind
 
 STAGE_AXIS_VERSION = 1
-STAGE_DRIVERS = ("sim", "grbl")
-_STAGE_KEYS = {"driver", "settle_s", "calibration", "port", "boot_timeout_s", "timeout_s", "home", "axes"}
+_STAGE_KEYS = {"driver", "settle_s", "calibration", "home", "axes"}  # and the driver's `settings`
 _AXIS_KEYS = {"name", "kind", "direction", "point_mm", "limits_deg", "limits_mm", "speed_deg_s", "speed_mm_s",
-              "tolerance_deg", "tolerance_mm", "letter", "units_per_turn"}
+              "tolerance_deg", "tolerance_mm"}  # and the driver's `axis_settings`
 
 
 def rotation_about(direction: np.ndarray, angle: float) -> np.ndarray:
@@ -144,7 +146,8 @@ class StageModel:
 @dataclass(frozen=True, eq=False)
 class StageConfig:
     """A rig TOML's `[stage]` table, checked: the axes the driver moves, their geometry
-    (calibrated when the table names a calibration file), and the driver's own keys."""
+    (calibrated when the table names a calibration file), and the driver's own keys
+    (`settings`, and `axis_settings` per axis: instances of its declared schemas)."""
 
     path: Path
     driver: str
@@ -155,17 +158,20 @@ class StageConfig:
     model: StageModel
     table: dict[str, Any] = field(repr=False)
     axis_tables: tuple[dict[str, Any], ...] = field(repr=False, default=())
+    settings: Any = None
+    axis_settings: tuple[Any, ...] = ()
 
     @classmethod
-    def from_rig(cls, raw: Mapping[str, Any], path: Path) -> StageConfig | None:
-        """The `[stage]` table of a rig TOML's contents `raw` (None when it has none)."""
+    def from_rig(cls, raw: dict[str, Any], path: Path) -> StageConfig | None:
+        """The `[stage]` table of a rig TOML's contents `raw` (None when it has none), its
+        driver one the rig's driver (`[rig] driver`) opens."""
         if "stage" not in raw:
             return None
         table = get(raw, "stage", dict, path)
-        _check_keys(table, _STAGE_KEYS, path, "stage")
-        driver = get(table, "driver", str, path, prefix="stage")
-        if driver not in STAGE_DRIVERS:
-            raise ConfigError(path, "stage.driver", f"'{driver}' is not one of {STAGE_DRIVERS}")
+        name = get(table, "driver", str, path, None, "stage")
+        driver = lookup("stage", name, get(get(raw, "rig", dict, path), "driver", str, path, prefix="rig"), path,
+                        "stage.driver")
+        settings = own_settings(driver, table, _STAGE_KEYS, path, "stage")
         settle = get(table, "settle_s", float, path, 0.0, "stage")
         if not 0 <= settle <= 60:
             raise ConfigError(path, "stage.settle_s", f"must be 0..60 s, got {settle}")
@@ -173,11 +179,12 @@ class StageConfig:
         entries = get(table, "axes", list, path, prefix="stage")
         if not entries:
             raise ConfigError(path, "stage.axes", "a stage needs at least one [[stage.axes]] table")
-        axes, geometry = [], []
+        axes, geometry, own = [], [], []
         for i, t in enumerate(entries):
             axis, geo = _axis(t, path, f"stage.axes[{i}]", home)
             axes.append(axis)
             geometry.append(geo)
+            own.append(own_settings(driver, t, _AXIS_KEYS, path, f"stage.axes[{i}]", axis=True))
         names = [a.name for a in axes]
         if len(set(names)) != len(names):
             raise ConfigError(path, "stage.axes", f"axis names must be unique, got {names}")
@@ -186,7 +193,8 @@ class StageConfig:
         calibration = get(table, "calibration", str, path, None, "stage")
         if calibration is not None:
             model = load_stage_model(resolve(path, calibration), nominal, path)
-        return cls(path, driver, settle, home, tuple(axes), nominal, model, table, tuple(entries))
+        return cls(path, driver.name, settle, home, tuple(axes), nominal, model, table, tuple(entries), settings,
+                   tuple(own))
 
 
 def load_stage_model(file: Path, nominal: StageModel, rig_path: object, key: str = "stage.calibration") -> StageModel:
@@ -215,7 +223,6 @@ def load_stage_model(file: Path, nominal: StageModel, rig_path: object, key: str
 def _axis(t: Any, path: Path, pre: str, home: bool) -> tuple[Axis, AxisGeometry]:
     if not isinstance(t, dict):
         raise ConfigError(path, pre, "expected a table ([[stage.axes]])")
-    _check_keys(t, _AXIS_KEYS, path, pre)
     name = get(t, "name", str, path, prefix=pre)
     kind_text = get(t, "kind", str, path, prefix=pre)
     try:
@@ -227,7 +234,8 @@ def _axis(t: Any, path: Path, pre: str, home: bool) -> tuple[Axis, AxisGeometry]
     wrong = "mm" if rotary else "deg"
     for k in (f"limits_{wrong}", f"speed_{wrong}_s", f"tolerance_{wrong}"):
         if k in t:
-            raise ConfigError(path, f"{pre}.{k}", f"a {kind.value} axis gives this in {unit} ({k.replace(wrong, unit)})")
+            raise ConfigError(path, f"{pre}.{k}",
+                              f"a {kind.value} axis gives this in {unit} ({k.replace(wrong, unit)})")
     if not rotary and ("point_mm" in t or "units_per_turn" in t):
         raise ConfigError(path, pre, "a linear axis has no point_mm or units_per_turn")
     limits = get_vector(t, f"limits_{unit}", 2, path, prefix=pre) if f"limits_{unit}" in t else [-math.inf, math.inf]
@@ -241,9 +249,3 @@ def _axis(t: Any, path: Path, pre: str, home: bool) -> tuple[Axis, AxisGeometry]
     except ValueError as exc:
         raise ConfigError(path, pre, str(exc)) from None
     return axis, geometry
-
-
-def _check_keys(table: Mapping[str, Any], allowed: set[str], path: Path, prefix: str) -> None:
-    for k in table:
-        if k not in allowed:
-            raise ConfigError(path, f"{prefix}.{k}", f"unknown key; expected one of {sorted(allowed)}")

@@ -57,8 +57,9 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, fields
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -100,7 +101,8 @@ class Faults:
 
     @property
     def any(self) -> bool:
-        return any(getattr(self, n) is not None for n in ("drop_frame", "delay_frame", "disconnect_after", "stale_frame"))
+        return any(getattr(self, n) is not None
+                   for n in ("drop_frame", "delay_frame", "disconnect_after", "stale_frame"))
 
     @classmethod
     def from_table(cls, table: dict[str, Any], path: object, prefix: str = "sim.faults") -> Faults:
@@ -445,13 +447,15 @@ class SimCamera(Camera):
     # internals (callers hold self._cv where noted)
     def _check_connected(self) -> None:
         if self._gone:
-            raise DeviceDisconnected(self.name, "camera disconnected; check the cable and power, then open the rig again")
+            raise DeviceDisconnected(self.name, "camera disconnected; check the cable and power, then open the rig "
+                                                "again")
 
     def _can_trigger(self) -> bool:  # holds _cv
         return self._armed > 0 and self._triggered < self._armed
 
     def _queue(self, index: int | None, image: np.ndarray | None, stamp: float) -> None:  # holds _cv
-        self._jobs.append(_Job(self._generation, self._triggered, index, image, stamp, self._exposure_s, self._bit_depth))
+        self._jobs.append(_Job(self._generation, self._triggered, index, image, stamp, self._exposure_s,
+                               self._bit_depth))
         self._triggered += 1
         self._cv.notify_all()
 

@@ -1,5 +1,8 @@
 """The `sim` driver: a complete virtual rig from a rig config (`scanner.rig.open_rig`).
 
+Declared, with the rig-file keys it reads, in `scanner.drivers.simulator` (the core
+cannot import this layer): [camera.sensor], projector.blur_sigma_px, [sim.faults].
+
     rig = open_sim_rig(RigConfig.load(), scene="config/scenes/sphere_plane.toml", seed=1)
     rig.extras["ground_truth"]   # sim.render.GroundTruth of the scene for this rig
     rig.extras["scene"]          # sim.scene.Scene
@@ -45,9 +48,7 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
     are the simulated stage's (`sim.virtual_stage`)."""
     model = config.nominal_model()
     p = config.path
-    blur = get(config.projector, "blur_sigma_px", float, p, 0.0, "projector")
-    if blur < 0:
-        raise ConfigError(p, "projector.blur_sigma_px", f"must be >= 0, got {blur}")
+    blur = config.devices["projector"].settings.blur_sigma_px  # scanner.drivers.simulator: validated at load
     toml_faults = Faults.from_config(config)  # validated even when overridden
     faults = toml_faults if faults is None else faults
     scene = load_scene(scene, config.working_distance_mm)

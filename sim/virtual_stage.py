@@ -27,8 +27,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -89,7 +90,7 @@ class SimStage(Stage):
         self.moves = 0  # moves started since the stage opened
         self._on_moved = on_moved
         self._state = threading.Lock()
-        self._position = {a: 0.0 for a in self.axes}
+        self._position = dict.fromkeys(self.axes, 0.0)
         self._move: tuple[dict[str, float], dict[str, float], float, float] | None = None  # from, to, t0, t1
         self._timer: threading.Timer | None = None
         self._gone = False
@@ -123,7 +124,7 @@ class SimStage(Stage):
     def _do_home(self, status: Status) -> None:
         self._check_connected()
         start = self._do_position()
-        zero = {n: 0.0 for n in start}
+        zero = dict.fromkeys(start, 0.0)
         duration = max(abs(start[n]) / self.axes[n].speed for n in start)
         self._begin(start, zero, duration, lambda: self._arrived(zero, status))
 
@@ -204,10 +205,7 @@ def open_sim_stage(config: RigConfig, rig: Rig, faults: StageFaults | None = Non
     move re-renders it with the carried objects at the stage's true pose (the TOML's
     nominal axes), and each later session gets that pose in STAGE_TRUTH_FILE."""
     stage_config = config.stage
-    assert stage_config is not None
-    if stage_config.driver != "sim":
-        raise ConfigError(config.path, "stage.driver", f"a simulated rig drives a simulated stage; set driver = "
-                                                       f"'sim' (got '{stage_config.driver}')")
+    assert stage_config is not None  # and its driver "sim": a sim rig's only stage driver (refused at load else)
     base_scene: Scene = rig.extras["scene"]
     extras = rig.extras
     extras["world_from_stage"] = np.eye(4)

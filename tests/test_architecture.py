@@ -21,10 +21,10 @@ ALLOWED = {
     "sim": {"scanner", "inspection"},
     "slscan": {"scanner", "calibration", "inspection", "sim"},
 }
-# the places a module is named by a string: the rig's driver registry (the core cannot import the
-# simulator or hardware libraries it selects) and the command table (the command line imports only the
-# module of the command it runs; test_cli checks the table against what each module registers)
-STRING_IMPORTS_ALLOWED = {"scanner/rig.py", "slscan/commands/__init__.py"}
+# the places a module is named by a string: the registry of drivers (it finds the driver modules by a
+# package scan, and the core cannot import the simulator it opens) and the command table (the command
+# line imports only the module of the command it runs; test_cli checks the table against what each module registers)
+STRING_IMPORTS_ALLOWED = {"scanner/drivers/registry.py", "slscan/commands/__init__.py"}
 
 
 def _modules() -> dict[str, Path]:

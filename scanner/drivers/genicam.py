@@ -19,12 +19,18 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Callable
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from scanner.devices import Camera, Frame, TriggerType
+from scanner.drivers.registry import Driver, Triggers, register
 from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting, WaitTimeout
+from scanner.schema import Float, Schema, Str
+
+if TYPE_CHECKING:
+    from scanner.rig import RigConfig
 
 log = logging.getLogger(__name__)
 
@@ -230,3 +236,25 @@ class GenICamCamera(Camera):
         self._drop()
         return DeviceDisconnected(self.name, f"camera lost while {doing} ({kind}: {exc}); check the cable, then "
                                              f"scan again (the driver reopens it)")
+
+
+class GenICamSettings(Schema):
+    """The [camera] keys of a GenICam camera: `cti` the maker's GenTL producer, `serial`
+    (empty or absent: the first camera found), `trigger_line` its hardware trigger input,
+    `gain_db` (None: left as it is)."""
+
+    cti: Str
+    serial: Str | None = None
+    trigger_line: Str = "Line0"
+    gain_db: Float | None = None
+
+
+def open_genicam(config: RigConfig, settings: GenICamSettings, transports: Mapping[str, Any]) -> GenICamCamera:
+    """The rig's GenICam camera; transports["camera"] replaces the harvesters opener."""
+    lens = config.file.first_camera
+    opener = transports.get("camera") or harvester_opener("genicam-camera", settings.cti, settings.serial)
+    return GenICamCamera(opener, "genicam-camera", lens.width, lens.height, settings.trigger_line, settings.gain_db)
+
+
+DRIVER = register(Driver("camera", "genicam", "hardware", GenICamSettings, open_genicam,
+                         triggers=lambda settings: Triggers(input=True)))

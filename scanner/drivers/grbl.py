@@ -38,16 +38,22 @@ import math
 import re
 import threading
 import time
-from typing import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import serial
 
 from scanner.config import get
+from scanner.drivers.registry import Driver, register
 from scanner.drivers.transport import DropsLostPort, SerialLink, open_serial
 from scanner.errors import ConfigError, DeviceError, DeviceTimeout, StageAlarm
+from scanner.schema import Float, PositiveFloat, Schema, Str
 from scanner.stage import Axis, AxisKind, Stage
 from scanner.stage_model import StageConfig
 from scanner.status import Status
+
+if TYPE_CHECKING:
+    from scanner.rig import RigConfig
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +103,7 @@ class GrblStage(DropsLostPort, Stage):
                 raise ValueError(f"{name}: axis {axis.name} needs a controller letter, one of {LETTERS}")
             if axis.kind is AxisKind.ROTARY and not turns.get(axis.name, 360.0) > 0:
                 raise ValueError(f"{name}: units_per_turn of {axis.name} must be > 0")
-        if len(set(letters[a] for a in self.axes)) != len(self.axes):
+        if len({letters[a] for a in self.axes}) != len(self.axes):
             raise ValueError(f"{name}: two axes on one controller letter: {dict(letters)}")
         self.letters = {a: letters[a] for a in self.axes}
         self._scale = {a.name: (turns.get(a.name, 360.0) / (2 * math.pi) if a.kind is AxisKind.ROTARY else 1.0)
@@ -330,3 +336,27 @@ def open_grbl_stage(config: StageConfig, opener: Callable[[], SerialLink] | None
         opener = serial_opener("grbl-stage", get(table, "port", str, p, prefix="stage"), min(timeout, 0.2))
     return GrblStage(opener, config.axes, letters, turns, "grbl-stage", config.settle_s,
                      get(table, "boot_timeout_s", float, p, 5.0, "stage"), timeout)
+
+
+class GrblSettings(Schema):
+    """The [stage] keys of a GRBL controller (see `open_grbl_stage`), s."""
+
+    port: Str
+    boot_timeout_s: PositiveFloat = 5.0
+    timeout_s: PositiveFloat = 1.0
+
+
+class GrblAxisSettings(Schema):
+    """The [[stage.axes]] keys of a GRBL axis (see `open_grbl_stage`)."""
+
+    letter: Str | None = None
+    units_per_turn: Float = 360.0
+
+
+def _open(config: RigConfig, settings: GrblSettings, transports: Mapping[str, Any]) -> GrblStage:
+    """The rig's GRBL stage; transports["stage"] replaces the serial port."""
+    assert config.stage is not None  # the hardware rig opens a stage driver only for a [stage] table
+    return open_grbl_stage(config.stage, transports.get("stage"))
+
+
+DRIVER = register(Driver("stage", "grbl", "hardware", GrblSettings, _open, axis_settings=GrblAxisSettings))

@@ -24,13 +24,20 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Callable, Protocol
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Annotated, Any, Protocol
 
 import numpy as np
+from pydantic import Field
 
 from scanner.devices import Projector
-from scanner.errors import DeviceError, ScannerError, UnsupportedSetting
+from scanner.drivers.registry import Driver, Triggers, register
+from scanner.errors import ConfigError, DeviceError, ScannerError, UnsupportedSetting
+from scanner.schema import Int, PositiveFloat, Schema
 from scanner.status import Status
+
+if TYPE_CHECKING:
+    from scanner.rig import RigConfig
 
 log = logging.getLogger(__name__)
 
@@ -196,3 +203,41 @@ class HdmiProjector(Projector):
     def describe(self) -> dict[str, object]:
         return {**super().describe(), "refresh_hz": self.display.refresh_hz,
                 "latency_frames": self.display.latency_frames}
+
+
+LatencyFrames = Annotated[int, Field(strict=True, ge=0)]
+
+
+class HdmiSettings(Schema):
+    """The [projector] keys of an HDMI projector: `display` its index among the desktop's
+    displays, `refresh_hz` its refresh rate (Hz), `latency_frames` the refreshes between a
+    present and the image being on screen."""
+
+    display: Int = 1
+    refresh_hz: PositiveFloat = 60.0
+    latency_frames: LatencyFrames = 2
+
+
+def open_display(index: int, refresh_hz: float, latency_frames: int, transports: Mapping[str, Any]) -> HdmiDisplay:
+    """The fullscreen window on display `index`; transports["display"] replaces its backend."""
+    backend = transports.get("display") or PygameBackend("hdmi-projector", index)
+    return HdmiDisplay(backend, "hdmi-projector", refresh_hz, latency_frames)
+
+
+def open_hdmi(config: RigConfig, settings: HdmiSettings, transports: Mapping[str, Any]) -> HdmiProjector:
+    """The rig's HDMI projector, its display's mode checked against the rig's size."""
+    lens = config.file.projector
+    projector = HdmiProjector(open_display(settings.display, settings.refresh_hz, settings.latency_frames, transports),
+                              "hdmi-projector")
+    if (projector.width, projector.height) != (lens.width, lens.height):
+        projector.shutdown()
+        raise ConfigError(config.path, "projector.width", f"display {settings.display} is {projector.width}x"
+                                                          f"{projector.height}, the rig says {lens.width}x"
+                                                          f"{lens.height}; set the display mode or the TOML")
+    return projector
+
+
+DRIVER = register(Driver(
+    "projector", "hdmi", "hardware", HdmiSettings, open_hdmi,
+    triggers=lambda settings: Triggers(output="call", refusal="an HDMI projector has no trigger input; use "
+                                                              "'software' or 'projector'")))

@@ -34,16 +34,24 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Callable, Protocol
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Protocol
 
 import numpy as np
+from pydantic import Field
 
 from scanner.devices import Projector
 from scanner.drivers import lightcrafter_protocol as p
+from scanner.drivers.hdmi import LatencyFrames, open_display
 from scanner.drivers.lightcrafter_images import PATTERNS_PER_IMAGE, diamond_resample, fingerprint, pack_rgb24
+from scanner.drivers.registry import Driver, Triggers, register
 from scanner.drivers.transport import HidLink
-from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+from scanner.errors import ConfigError, DeviceDisconnected, DeviceError, DeviceTimeout, UnsupportedSetting
+from scanner.schema import Float, Int, PositiveFloat, Schema, Str
 from scanner.status import Status
+
+if TYPE_CHECKING:
+    from scanner.rig import RigConfig
 
 log = logging.getLogger(__name__)
 
@@ -75,8 +83,9 @@ class LightCrafter4500(Projector):
     def __init__(self, open_link: Callable[[], HidLink], name: str = "lightcrafter4500", *,
                  source: str = "flash", trigger: str = "internal", period_s: float = 0.05,
                  flash_first_image: int = 0, flash_images_sha256: str | None = None, leds: str = "white",
-                 led_currents: tuple[int, int, int] | None = None, trig_out1_delays_us: tuple[float, float] = (0.0, 0.0),
-                 trig_out2_delay_us: float = 0.0, trig_in1_delay_us: float = 0.0, odd_row_shift: float = 0.5,
+                 led_currents: tuple[int, int, int] | None = None,
+                 trig_out1_delays_us: tuple[float, float] = (0.0, 0.0), trig_out2_delay_us: float = 0.0,
+                 trig_in1_delay_us: float = 0.0, odd_row_shift: float = 0.5,
                  video: VideoOutput | None = None, timeout_s: float = 1.0, validate_timeout_s: float = 2.0) -> None:
         super().__init__(name, p.WIDTH, p.HEIGHT)
         if source not in SOURCES:
@@ -303,7 +312,7 @@ class LightCrafter4500(Projector):
             timer.cancel()
 
     def _period_us(self, period_s: float) -> int:
-        period_us = int(round(period_s * 1e6))
+        period_us = round(period_s * 1e6)
         if period_us < p.EXPOSURE_GAP_US:
             raise UnsupportedSetting(self.name, f"pattern period {period_s} s is too short")
         return period_us
@@ -355,3 +364,67 @@ class LightCrafter4500(Projector):
             raise DeviceError(self.name, f"{what} was refused (NACK); the projector may be in the wrong mode "
                                          f"or the value out of range (payload {payload.hex(' ') or 'none'})")
         return p.reply_data(reports, header)
+
+
+Byte = Annotated[int, Field(strict=True, ge=0, le=255)]
+
+
+class LightCrafterSettings(Schema):
+    """The [projector] keys of a LightCrafter 4500 (see the module docstring): the pattern
+    `source`; for "flash" the first image holding the patterns and their fingerprint; the
+    LEDs and their PWM currents (bytes as sent); trigger delays (us); the diamond rows'
+    shift (px); the USB serial (None: the first found); for "video" the display of its HDMI
+    input, its refresh rate (Hz) and latency (refreshes)."""
+
+    source: Literal["flash", "video"] = "flash"
+    flash_first_image: Annotated[int, Field(strict=True, ge=0)] = 0
+    flash_images_sha256: Str | None = None
+    leds: Str = "white"
+    led_currents: Annotated[list[Byte], Field(min_length=3, max_length=3)] | None = None
+    trig_out1_delays_us: Annotated[list[Float], Field(min_length=2, max_length=2)] = Field(
+        default_factory=lambda: [0.0, 0.0])
+    trig_out2_delay_us: Float = 0.0
+    trig_in1_delay_us: Float = 0.0
+    odd_row_shift: Float = 0.5
+    usb_serial: Str | None = None
+    video_display: Int = 1
+    refresh_hz: PositiveFloat = 60.0
+    latency_frames: LatencyFrames = 2
+
+
+def open_lightcrafter(config: RigConfig, settings: LightCrafterSettings,
+                      transports: Mapping[str, Any]) -> LightCrafter4500:
+    """The rig's LightCrafter, externally triggered in wiring `trigger_box`; transports
+    "projector" (the USB link) and "display" (the video source's backend) replace the devices."""
+    lens = config.file.projector
+    if (lens.width, lens.height) != (p.WIDTH, p.HEIGHT):
+        raise ConfigError(config.path, "projector.width", f"the LightCrafter 4500 DMD is {p.WIDTH}x{p.HEIGHT} "
+                                                          f"(diamond pixels); the rig says {lens.width}x{lens.height}")
+    video = None
+    if settings.source == "video":
+        video = open_display(settings.video_display, settings.refresh_hz, settings.latency_frames, transports)
+    opener = transports.get("projector") or open_usb("lightcrafter4500", settings.usb_serial)
+    currents, delays = settings.led_currents, settings.trig_out1_delays_us
+    try:
+        return LightCrafter4500(
+            opener, "lightcrafter4500", source=settings.source,
+            trigger="external" if config.trigger == "trigger_box" else "internal", period_s=config.period_s,
+            flash_first_image=settings.flash_first_image, flash_images_sha256=settings.flash_images_sha256,
+            leds=settings.leds, led_currents=(currents[0], currents[1], currents[2]) if currents else None,
+            trig_out1_delays_us=(delays[0], delays[1]), trig_out2_delay_us=settings.trig_out2_delay_us,
+            trig_in1_delay_us=settings.trig_in1_delay_us, odd_row_shift=settings.odd_row_shift, video=video)
+    except BaseException:
+        if video is not None:
+            video.close()
+        raise
+
+
+def _triggers(settings: LightCrafterSettings) -> Triggers:
+    if settings.source == "video":
+        return Triggers(refusal="a LightCrafter on its video port runs wiring 'software' only; use projector.source "
+                                "= 'flash' for hardware-timed sequences")
+    return Triggers(input=True, output="pulse")
+
+
+DRIVER = register(Driver("projector", "lightcrafter4500", "hardware", LightCrafterSettings, open_lightcrafter,
+                         triggers=_triggers))

@@ -17,10 +17,11 @@ import contextlib
 import threading
 import time
 from collections import deque
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterator, TypeVar
+from typing import TypeVar
 
-from scanner.devices import Camera
+from scanner.devices import Camera, Frame
 from scanner.errors import DeviceDisconnected, DeviceTimeout
 
 T = TypeVar("T")
@@ -41,9 +42,9 @@ def grab_in_thread(camera: Camera, timeout_s: float) -> tuple[threading.Thread, 
     entered = threading.Event()
     inner = camera._do_grab
 
-    def grab_signalling(t: float):  # noqa: ANN202
+    def grab_signalling(timeout_s: float) -> Frame:
         entered.set()
-        return inner(t)
+        return inner(timeout_s)
 
     camera._do_grab = grab_signalling  # type: ignore[method-assign]
     outcome: list[object] = []
@@ -113,7 +114,8 @@ class _Script:
             self.pending_sent.extend(step.sent_parts)
         expected = self.pending_sent.popleft()
         if data != expected:
-            raise ProtocolMismatch(f"step {len(self.played)}: host sent\n  {data.hex(' ')}\nexpected\n  {expected.hex(' ')}")
+            raise ProtocolMismatch(f"step {len(self.played)}: host sent\n  {data.hex(' ')}\nexpected\n  "
+                                   f"{expected.hex(' ')}")
         current = self.played[-1]
         assert isinstance(current, Exchange)
         return current
@@ -155,8 +157,8 @@ class FakeSerial:
     """A serial port (`transport.SerialLink`) playing a script of line exchanges.
 
     Bytes in `realtime` are exchanges of their own, sent without a line end (a GRBL
-    controller's real-time commands). `banner` is printed by the device `banner_delay_s` after the port opens (a board that
-    resets when the port opens). `readline` waits at most `timeout` like pyserial."""
+    controller's real-time commands). `banner` is printed by the device `banner_delay_s` after
+    the port opens (a board that resets when the port opens). `readline` waits at most `timeout` like pyserial."""
 
     def __init__(self, steps: list[Step], banner: bytes = b"", banner_delay_s: float = 0.0,
                  timeout: float | None = 0.2, realtime: bytes = b"") -> None:
@@ -310,7 +312,7 @@ class FakeCapture:
 
 
 class _Node:
-    def __init__(self, nodes: "FakeNodeMap", name: str, value: object = None,
+    def __init__(self, nodes: FakeNodeMap, name: str, value: object = None,
                  on_execute: Callable[[], None] | None = None) -> None:
         self._nodes, self._name, self._value, self._on_execute = nodes, name, value, on_execute
 
@@ -338,18 +340,28 @@ class FakeNodeMap:
     def __init__(self, features: dict[str, object], allowed: dict[str, tuple[object, ...]]) -> None:
         self.log: list[tuple[str, object]] = []
         self.allowed = allowed
-        for name, value in features.items():
-            setattr(self, name, _Node(self, name, value))
+        self._nodes = {name: _Node(self, name, value) for name, value in features.items()}
+
+    def add(self, name: str, on_execute: Callable[[], None]) -> None:
+        """A command feature (executed, no value)."""
+        self._nodes[name] = _Node(self, name, on_execute=on_execute)
+
+    def __getattr__(self, name: str) -> _Node:
+        try:
+            node: _Node = self.__dict__["_nodes"][name]
+            return node
+        except KeyError:
+            raise AttributeError(name) from None
 
 
 class _Payload:
-    def __init__(self, image) -> None:  # noqa: ANN001
+    def __init__(self, image) -> None:
         self.components = [type("Component", (), {"data": image.ravel(), "width": image.shape[1],
                                                    "height": image.shape[0]})()]
 
 
 class FakeBuffer:
-    def __init__(self, owner: "FakeAcquirer", image, frame_id: int, timestamp_ns: int) -> None:  # noqa: ANN001
+    def __init__(self, owner: FakeAcquirer, image, frame_id: int, timestamp_ns: int) -> None:
         self._owner, self.payload, self.frame_id, self.timestamp_ns = owner, _Payload(image), frame_id, timestamp_ns
 
     def queue(self) -> None:
@@ -372,8 +384,8 @@ class FakeAcquirer:
              "Continuous", "TriggerSelector": "FrameStart", "TriggerMode": "Off", "TriggerSource": "Software",
              "TriggerActivation": "RisingEdge", "TimestampLatchValue": 0, "Width": width, "Height": height},
             {"PixelFormat": ("Mono8", "Mono12"), "TriggerSource": ("Software", "Line0", "Line1")})
-        self.nodes.TriggerSoftware = _Node(self.nodes, "TriggerSoftware", on_execute=self._software)
-        self.nodes.TimestampLatch = _Node(self.nodes, "TimestampLatch", on_execute=self._latch)
+        self.nodes.add("TriggerSoftware", self._software)
+        self.nodes.add("TimestampLatch", self._latch)
         self.remote_device = type("Remote", (), {"node_map": self.nodes})()
         self.num_buffers = 8
         self.outstanding = 0
@@ -465,7 +477,7 @@ class FakeDisplay:
     def fail_after(self, presents: int, exc: Exception) -> None:
         self._failure = (len(self.shown) + presents, exc)
 
-    def present(self, rgb) -> float:  # noqa: ANN001
+    def present(self, rgb) -> float:
         if self._failure is not None and len(self.shown) >= self._failure[0]:
             raise self._failure[1]
         if not self.vsync:
@@ -527,7 +539,8 @@ class TriggerBoxEmulator(FakeSerial):
 
     def __init__(self, protocol: int = 2) -> None:
         super().__init__([], timeout=0.05)
-        self.period_us, self.width_us, self.armed, self.started_at = 50000, 100, 0, None
+        self.period_us, self.width_us, self.armed = 50000, 100, 0
+        self.started_at: float | None = None  # time.monotonic() of START
         self.protocol, self.pressed = protocol, 0
         self.lines: list[str] = []
 

@@ -9,10 +9,12 @@ DeviceDisconnected, a silent one DeviceTimeout. Every read has a finite timeout.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import time
-from typing import Any, Callable, Protocol
+from collections.abc import Callable
+from typing import Any, Protocol
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import DeviceDisconnected, DeviceError, DeviceTimeout
@@ -201,10 +203,8 @@ def close_serial(name: str, port: SerialLink | None) -> None:
     if port is None:
         return
     log.info("%s: serial port closed", name)
-    try:
+    with contextlib.suppress(serial.SerialException, OSError):
         port.close()
-    except (serial.SerialException, OSError):
-        pass
 
 
 class DropsLostPort:

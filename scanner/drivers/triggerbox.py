@@ -39,12 +39,18 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
 
 from scanner.devices import TriggerSource
+from scanner.drivers.registry import Driver, register
 from scanner.drivers.transport import DropsLostPort, SerialLink, open_serial
 from scanner.errors import DeviceError, DeviceTimeout, UnsupportedSetting
+from scanner.schema import PositiveFloat, Schema, Str
 from scanner.status import Status
+
+if TYPE_CHECKING:
+    from scanner.rig import RigConfig
 
 log = logging.getLogger(__name__)
 
@@ -198,3 +204,20 @@ class TriggerBox(DropsLostPort, TriggerSource):
 
     def _send(self, port: SerialLink, command: str) -> None:
         self._write(port, command.encode("ascii") + b"\n", command)
+
+
+class TriggerBoxSettings(Schema):
+    """The [trigger_box] keys: its serial `port`, and how long it may take to answer after
+    opening (`boot_timeout_s`, s)."""
+
+    port: Str
+    boot_timeout_s: PositiveFloat = 3.0
+
+
+def open_trigger_box(config: RigConfig, settings: TriggerBoxSettings, transports: Mapping[str, Any]) -> TriggerBox:
+    """The rig's trigger box; transports["trigger_box"] replaces the serial port."""
+    opener = transports.get("trigger_box") or serial_opener("trigger-box", settings.port)
+    return TriggerBox(opener, "trigger-box", settings.boot_timeout_s)
+
+
+DRIVER = register(Driver("trigger_box", "triggerbox", "hardware", TriggerBoxSettings, open_trigger_box))

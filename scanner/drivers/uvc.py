@@ -21,12 +21,18 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Callable, Protocol
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from scanner.devices import Camera, Frame, TriggerType
+from scanner.drivers.registry import Driver, Triggers, register
 from scanner.errors import DeviceDisconnected, DeviceError, UnsupportedSetting, WaitTimeout
+from scanner.schema import Float, Int, PositiveFloat, Schema, Str
+
+if TYPE_CHECKING:
+    from scanner.rig import RigConfig
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +67,7 @@ def v4l2_opener(name: str, device: str | int, width: int, height: int, fps: floa
             raise DeviceDisconnected(name, f"cannot open video device {device}: is it plugged in and free? "
                                            f"(`slscan devices` lists cameras; if it exists, add yourself to the "
                                            f"'video' group: sudo usermod -aG video $USER, then log in again)")
-        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*"YUYV"))  # uncompressed: no JPEG artefacts
+        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*"YUYV"))  # uncompressed: no JPEG artefacts
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
         cap.set(cv2.CAP_PROP_FPS, fps)
@@ -219,3 +225,26 @@ class UvcCamera(Camera):
                 self._latest = (np.ascontiguousarray(gray, dtype=np.uint8),
                                 buffer_ms / 1e3 if from_buffer else arrived, from_buffer)
                 self._cv.notify_all()
+
+
+class UvcSettings(Schema):
+    """The [camera] keys of a UVC camera: `device` a V4L2 path or index, `fps` the streaming
+    rate (frames/s), `gain` the device's own units (None: left as it is)."""
+
+    device: Str | Int = "/dev/video0"
+    fps: PositiveFloat = 30.0
+    gain: Float | None = None
+
+
+def open_uvc(config: RigConfig, settings: UvcSettings, transports: Mapping[str, Any]) -> UvcCamera:
+    """The rig's UVC camera; transports["camera"] replaces the V4L2 capture opener."""
+    lens = config.file.first_camera
+    opener = transports.get("camera") or v4l2_opener("uvc-camera", settings.device, lens.width, lens.height,
+                                                      settings.fps)
+    return UvcCamera(opener, "uvc-camera", lens.width, lens.height, settings.fps, settings.gain)
+
+
+DRIVER = register(Driver(
+    "camera", "uvc", "hardware", UvcSettings, open_uvc,
+    triggers=lambda settings: Triggers(refusal="a UVC camera has no trigger input, so wiring '{wiring}' cannot "
+                                               "expose it; use 'software' (or an HDMI projector with 'projector')")))
