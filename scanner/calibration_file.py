@@ -89,7 +89,7 @@ def write_calibration(path: str | Path, model: RigModel, report: dict[str, Any],
         extra["reference_maps"] = npz.name
     data: dict[str, Any] = {
         "format": CALIBRATION_FORMAT, "version": CALIBRATION_VERSION,
-        "created": dt.datetime.now(dt.timezone.utc).isoformat(), "software_version": __version__, "rig": rig_name,
+        "created": dt.datetime.now(dt.UTC).isoformat(), "software_version": __version__, "rig": rig_name,
         "image_sizes": {"camera": list(model.camera.size), "projector": list(model.projector.size)},
         "rig_model": replace(model, calibration="").to_dict(), **report, **extra}
     write_json(path, data)

@@ -87,7 +87,7 @@ def _layouts(ps: PatternSet, n_frames: int, fixed: bool) -> list[PatternSet]:
         cand = ps.with_conventions(conv)
         try:
             frames = tuple(cand.frames())
-        except Exception:  # noqa: BLE001 - a layout that cannot be formed is no candidate
+        except Exception:  # a layout that cannot be formed is no candidate
             continue
         if len(frames) == n_frames and frames not in seen:
             seen.add(frames)
@@ -104,7 +104,7 @@ def _all_layouts(ps: PatternSet) -> list[PatternSet]:
         try:
             cand = ps.with_conventions(replace(c, **dict(zip(keys, combo))).filled(NATIVE))
             cand.frames()
-        except Exception:  # noqa: BLE001 - a layout that cannot be formed is no candidate
+        except Exception:  # a layout that cannot be formed is no candidate
             continue
         out.append(cand)
     return out

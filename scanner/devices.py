@@ -21,9 +21,9 @@ from __future__ import annotations
 import abc
 import logging
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
-from typing import Callable
 
 import numpy as np
 
@@ -82,7 +82,7 @@ class Device(abc.ABC):
         self._lock = threading.RLock()
         self._running: Status | None = None  # the long action (sequence, pulse train) in progress
 
-    def __enter__(self) -> "Device":
+    def __enter__(self) -> Device:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -46,7 +46,7 @@ def read_stl(path: Path) -> tuple[np.ndarray, np.ndarray]:
     after the 84-byte header) or an ASCII STL (every `facet` complete, then `endsolid`);
     vertices shared between triangles merged."""
     data = read_regular(path)
-    if data[:5].lower() == b"solid" and b"facet" in data[:4096] or data.strip() == b"solid":
+    if (data[:5].lower() == b"solid" and b"facet" in data[:4096]) or data.strip() == b"solid":
         corners = _ascii_stl(path, data)
     else:
         if len(data) < 84:

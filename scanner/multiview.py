@@ -30,9 +30,10 @@ import json
 import math
 import time
 import uuid
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -209,7 +210,7 @@ class MultiViewWriter:
         self.root = root
         self.id = f"{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
         self.model = model or stage.model
-        self.started = dt.datetime.now(dt.timezone.utc)
+        self.started = dt.datetime.now(dt.UTC)
         self.views: list[dict[str, Any]] = []
         write_json(root / PLAN, {
             "slscan_multiview": MULTIVIEW_VERSION, "multiview_id": self.id, "software_version": __version__,
@@ -238,14 +239,14 @@ class MultiViewWriter:
     def finish(self) -> Path:
         write_json(self.root / MULTIVIEW, {
             "slscan_multiview": MULTIVIEW_VERSION, "multiview_id": self.id, "created": self.started.isoformat(),
-            "completed": dt.datetime.now(dt.timezone.utc).isoformat(), "views": self.views})
+            "completed": dt.datetime.now(dt.UTC).isoformat(), "views": self.views})
         return self.root / MULTIVIEW
 
     def fail(self, error: BaseException, view: int, stage: str) -> None:
         write_json(self.root / ERROR, {
             "multiview_id": self.id, "view": view, "stage": stage, "error": type(error).__name__,
             "message": str(error), "views_kept": [v["folder"] for v in self.views],
-            "time": dt.datetime.now(dt.timezone.utc).isoformat()})
+            "time": dt.datetime.now(dt.UTC).isoformat()})
 
 
 def capture_views(rig: Rig, plan: Sequence[Mapping[str, float]], out_dir: str | Path,

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import hashlib
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -44,12 +45,12 @@ from scanner.devices import Frame
 from scanner.errors import DecodeError, ScannerError, SessionError
 from scanner.exposure import ExposurePlan, ExposureRequest, FusedOrientationMaps, fuse, plan_exposures, probe_images
 from scanner.geometry import RigModel
+from scanner.native_threads import native_threads
 from scanner.patterns import PatternSet
 from scanner.pointcloud import OrganisedCloud, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from scanner.rig import Rig
 from scanner.rig_schema import check_patterns_fit
-from scanner.native_threads import native_threads
 from scanner.session import (
     OUTPUTS_DIR,
     RECORDING,

@@ -233,7 +233,7 @@ class SessionWriter:
         self.id = f"{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
         self.frames: list[dict[str, Any]] = []
         self.camera_frames: dict[str, list[dict[str, Any]]] = {}  # a rig with several cameras: each one's frames
-        self.started = dt.datetime.now(dt.timezone.utc)
+        self.started = dt.datetime.now(dt.UTC)
         (root / FRAMES_DIR).mkdir(parents=True, exist_ok=False)
 
     @classmethod
@@ -290,7 +290,7 @@ class SessionWriter:
                devices: dict[str, Any], timings: dict[str, float], extra: dict[str, Any] | None = None) -> Path:
         """Write the manifest: from now on the session is complete."""
         manifest = {**self._record(rig_config, model, patterns, devices, extra),
-                    "completed": dt.datetime.now(dt.timezone.utc).isoformat(), "timings_s": timings,
+                    "completed": dt.datetime.now(dt.UTC).isoformat(), "timings_s": timings,
                     "frames": self.frames}
         try:
             write_json(self.root / MANIFEST, manifest)
@@ -305,7 +305,7 @@ class SessionWriter:
         try:
             write_json(self.root / ERROR, {
                 "session_id": self.id, "stage": stage, "error": type(error).__name__, "message": str(error),
-                "frames_stored": len(self.frames), "time": dt.datetime.now(dt.timezone.utc).isoformat()})
+                "frames_stored": len(self.frames), "time": dt.datetime.now(dt.UTC).isoformat()})
         except OSError:
             pass
 

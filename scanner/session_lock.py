@@ -58,8 +58,8 @@ def leftovers(root: Path) -> list[Path]:
     for folder in (root, root / "frames", root / "outputs"):
         try:
             with os.scandir(folder) as entries:
-                found += [Path(e.path) for e in entries if is_leftover(e.name) and e.is_file(follow_symlinks=False)
-                          or is_leftover(e.name) and e.is_symlink()]
+                found += [Path(e.path) for e in entries if (is_leftover(e.name) and e.is_file(follow_symlinks=False))
+                          or (is_leftover(e.name) and e.is_symlink())]
         except (FileNotFoundError, NotADirectoryError):
             continue
     return found

@@ -349,7 +349,7 @@ class SessionRecording:
             if not self._closed:
                 self.log_event(f"session aborted: {exc_type.__name__ if exc_type else 'error'}: {exc}", level="ERROR")
             self.close()
-        except Exception:  # noqa: BLE001
+        except Exception:
             pass
 
     @property
@@ -374,12 +374,12 @@ class SessionRecording:
                 if self._blueprint_pending:
                     self._send_blueprint((), 0)
                 self._flush()
-            except Exception as exc:  # noqa: BLE001 — a writer that cannot flush cannot disconnect either
+            except Exception as exc:  # a writer that cannot flush cannot disconnect either
                 errors.append(exc)
                 return
             try:
                 self.stream.disconnect()  # closes the file sink: footer written
-            except Exception as exc:  # noqa: BLE001
+            except Exception as exc:
                 errors.append(exc)
 
         worker = threading.Thread(target=finish, name=f"close {self.path.name}", daemon=True)
