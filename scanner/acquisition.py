@@ -30,6 +30,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 
@@ -116,7 +117,7 @@ def acquire_all(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings,
     stacks = acquire_images_from(rig, list(cameras.values()),
                                  patterns.render(proj.width, proj.height, rig.model.projector_gamma), settings,
                                  lambda device, k, frame: on_frame(by_device[device], k, frame))
-    for (name, cam), stack in zip(cameras.items(), stacks):
+    for cam, stack in zip(cameras.values(), stacks):
         check_signature(stack, patterns, (proj.height, proj.width), cam.bit_depth, cam.name)
     return dict(zip(cameras, stacks))
 
@@ -214,7 +215,7 @@ def acquire_exposures(rig: Rig, patterns: PatternSet, settings: AcquisitionSetti
             on_frame(offset + k, frame)
 
         log.info("%s: exposure %d of %d, %.4g s", rig.camera.name, i + 1, len(exposures_s), t)
-        stacks.append(at_exposure(rig, t, lambda: acquire(rig, patterns, settings_for_exposure(settings, t), shifted)))
+        stacks.append(at_exposure(rig, t, partial(acquire, rig, patterns, settings_for_exposure(settings, t), shifted)))
     return stacks
 
 

@@ -11,8 +11,9 @@ B(t) = c·(W − K)/2·t/t0: the saturation and modulation histograms at any t f
 probe. A pixel is *covered* at t when it stays below `SATURATION_LEVEL` of full scale and its
 B reaches `GOOD_MODULATION` of full scale: three-frequency heterodyne unwrapping amplifies the
 phase noise ~15x (beat of 6 fringes), so a rare order error needs B ≳ 35 σ_I; for a 10 ke
-full-well sensor at 12 bits (shot-noise σ_I ≈ 14 DN at 500 DN) that is ~10 % of full scale. When the probe itself saturates
-more than `PROBE_MAX_SATURATED` of the ROI, it is repeated at t0/8 (at most `PROBE_TRIES`).
+full-well sensor at 12 bits (shot-noise σ_I ≈ 14 DN at 500 DN) that is ~10 % of full scale.
+When the probe itself saturates more than `PROBE_MAX_SATURATED` of the ROI, it is repeated
+at t0/8 (at most `PROBE_TRIES`).
   - `auto`: the one exposure (of a half-stop grid within the camera's range) that covers the
     most ROI pixels, the longest of those within 0.2 % of the best (less noise);
   - `hdr`: exposures chosen greedily, each covering the most pixels not yet covered, until one

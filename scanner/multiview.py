@@ -214,7 +214,8 @@ class MultiViewWriter:
         self.views: list[dict[str, Any]] = []
         write_json(root / PLAN, {
             "slscan_multiview": MULTIVIEW_VERSION, "multiview_id": self.id, "software_version": __version__,
-            "created": self.started.isoformat(), "rig_config_path": str(rig.config.path.resolve()), "rig_config": rig.config.raw,
+            "created": self.started.isoformat(), "rig_config_path": str(rig.config.path.resolve()),
+            "rig_config": rig.config.raw,
             "stage_model": self.model.to_dict(), "views": [{"target": dict(q)} for q in plan]})
 
     @classmethod
@@ -284,7 +285,8 @@ def _capture_views(writer: MultiViewWriter, rig: Rig, plan: Sequence[Mapping[str
             t0 = time.perf_counter()
             session = scan_view(writer.root / view_name(k), {"stage": writer.stage_record(position), "view": k,
                                                              "multiview_id": writer.id})
-            writer.view_done(k, session, position, {"move": round(moved, 4), "scan": round(time.perf_counter() - t0, 4)})
+            writer.view_done(k, session, position,
+                             {"move": round(moved, 4), "scan": round(time.perf_counter() - t0, 4)})
         except BaseException as exc:
             writer.fail(exc, k, what)
             raise

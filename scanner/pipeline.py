@@ -24,7 +24,7 @@ from scanner.acquisition import (
     settings_for_exposure,
 )
 from scanner.calibration_file import load_rig_model
-from scanner.decode import DecodeResult, DecodeSettings, NoiseModel, decode
+from scanner.decode import DEFAULT_DECODE_SETTINGS, DecodeResult, DecodeSettings, NoiseModel, decode
 from scanner.decode_checks import (
     FITTED_MODEL_ACCURACY,
     MIN_JUDGED,
@@ -204,7 +204,7 @@ def provenance(rig: Rig, session_root: Path) -> dict[str, Any]:
 
 
 def process(session: Session, progress: Progress = _quiet, recording: SessionRecording | None = None,
-            settings: DecodeSettings = DecodeSettings(), mode: str = "triangulation",
+            settings: DecodeSettings = DEFAULT_DECODE_SETTINGS, mode: str = "triangulation",
             frames: dict[int, np.ndarray] | None = None, write_behind: bool = False, *,
             rig_model: RigModel | None = None, rig_model_source: str | None = None) -> ScanResult:
     """Decode and reconstruct a complete session from its raw frames; write the outputs
@@ -430,7 +430,7 @@ def exposure_stacks(session: Session, stack: np.ndarray, model: RigModel) -> lis
 
 
 def decode_exposures(session: Session, stacks: list[np.ndarray], model: RigModel,
-                     settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
+                     settings: DecodeSettings = DEFAULT_DECODE_SETTINGS) -> DecodeResult:
     """One decode of a session: each exposure's pattern set decoded on its own, fused per
     pixel (`scanner.exposure.fuse`; a single exposure's decode as it is), judged against the
     noise of the session's sensor model when its rig file has one."""
@@ -439,7 +439,7 @@ def decode_exposures(session: Session, stacks: list[np.ndarray], model: RigModel
                 session.exposures_s)
 
 
-def decode_session(session: Session, settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
+def decode_session(session: Session, settings: DecodeSettings = DEFAULT_DECODE_SETTINGS) -> DecodeResult:
     """A session's raw frames checked and decoded again, every exposure fused: the decode its
     outputs come from (`process`), for whatever needs it beside them (uncertainty, figures)."""
     stack = session.load_stack()
@@ -467,7 +467,8 @@ def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first
             k, j = first + i, first + seen[digest]
             raise DecodeError(f"{where}: frame {k} ({session.frame_path(k).name}) repeats frame {j} "
                               f"({session.frame_path(j).name}) pixel for pixel: two patterns cannot give the same "
-                              f"image with camera noise; the frames were copied or the capture repeated a frame; re-scan")
+                              f"image with camera noise; the frames were copied or the capture repeated a frame; "
+                              f"re-scan")
         seen[digest] = i
 
 

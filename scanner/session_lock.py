@@ -42,7 +42,9 @@ def _holder(fd: int) -> str:
     try:
         os.lseek(fd, 0, os.SEEK_SET)
         info = json.loads(os.read(fd, 4096) or b"{}")
-        return f"PID {int(info['pid'])} ({str(info.get('command', '?'))[:60]}, since {str(info.get('since', '?'))[:19]})"
+        pid = int(info["pid"])
+        command, since = str(info.get("command", "?"))[:60], str(info.get("since", "?"))[:19]
+        return f"PID {pid} ({command}, since {since})"
     except (OSError, ValueError, KeyError, TypeError):
         return "another process"
 

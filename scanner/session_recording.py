@@ -230,7 +230,8 @@ def _every(masks: Mapping[str, np.ndarray], step: int) -> dict[str, np.ndarray]:
 def _annotation_context(ids: Mapping[str, int]) -> rr.AnnotationContext:
     infos = [rr.AnnotationInfo(id=VALID_CLASS, label="valid", color=(0, 0, 0, 0)),
              rr.AnnotationInfo(id=REJECTED_CLASS, label="rejected", color=_OTHER_REASON_COLOR)]
-    infos += [rr.AnnotationInfo(id=i, label=n, color=_REASON_COLORS.get(n, _OTHER_REASON_COLOR)) for n, i in ids.items()]
+    infos += [rr.AnnotationInfo(id=i, label=n, color=_REASON_COLORS.get(n, _OTHER_REASON_COLOR))
+              for n, i in ids.items()]
     return rr.AnnotationContext(infos)
 
 

@@ -108,8 +108,8 @@ def recover_manifest(root: str | Path, *, rig: Any = None, patterns: PatternSet 
                 raise SessionError(f"{root / FRAME_LOG}: frame {k} is missing (the log goes on with frame {e['k']})")
             _check_frame(root, k, e)
         if len(entries) != needed:
-            raise SessionError(f"{root}: holds {len(entries)} of the {needed} frames the pattern set needs: the capture "
-                               f"did not finish; re-scan the part (the frames are kept)")
+            raise SessionError(f"{root}: holds {len(entries)} of the {needed} frames the pattern set needs: the "
+                               f"capture did not finish; re-scan the part (the frames are kept)")
         error = _read_json(root / ERROR) if (root / ERROR).exists() else None
         manifest = {**record, "timings_s": record.get("timings_s", {}), "frames": entries,
                     "recovered": {"time": dt.datetime.now(dt.UTC).isoformat(),
