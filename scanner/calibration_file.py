@@ -64,11 +64,11 @@ class CalibrationFile:
 
     @property
     def camera_size(self) -> tuple[int, int]:
-        return tuple(self.data["image_sizes"]["camera"])  # type: ignore[return-value]
+        return tuple(self.data["image_sizes"]["camera"])
 
     @property
     def projector_size(self) -> tuple[int, int]:
-        return tuple(self.data["image_sizes"]["projector"])  # type: ignore[return-value]
+        return tuple(self.data["image_sizes"]["projector"])
 
 
 def maps_path(path: Path) -> Path:

@@ -244,7 +244,7 @@ class FusedOrientationMaps(OrientationMaps):
     fused_sigma: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
 
     @cached_property
-    def phase_sigma(self) -> np.ndarray:  # type: ignore[override]
+    def phase_sigma(self) -> np.ndarray:
         return self.fused_sigma
 
 

@@ -107,19 +107,20 @@ def read_pcd(path: Path) -> tuple[np.ndarray, np.ndarray | None] | None:
     if kind == "binary_compressed":
         return None
     body = data[at:]
+    columns = dtype.names or ()  # "name#k": item k of field `name`
     if kind == "binary":
         if n < 0 or len(body) != n * dtype.itemsize:
             raise FileRefused(path, f"not a usable PCD file: its header declares {n} points of {dtype.itemsize} "
                                     f"bytes, {len(body)} bytes follow it (cut short, or a header that lies)")
         table = np.frombuffer(body, dtype, n)
-        column = {name: table[name].astype(np.float64) for name in dtype.names or ()}
+        column = {name: table[name].astype(np.float64) for name in columns}
     elif kind == "ascii":
         tokens = ascii_numbers(path, body, "PCD file")
-        if n < 0 or len(tokens) != n * len(dtype.names or ()):
-            raise FileRefused(path, f"not a usable PCD file: its header declares {n} points of {len(dtype.names)} "
+        if n < 0 or len(tokens) != n * len(columns):
+            raise FileRefused(path, f"not a usable PCD file: its header declares {n} points of {len(columns)} "
                                     f"values, {len(tokens)} numbers follow it (cut short, or a header that lies)")
-        table = tokens.reshape(n, -1)
-        column = {name: table[:, k] for k, name in enumerate(dtype.names or ())}
+        rows = tokens.reshape(n, -1)
+        column = {name: rows[:, k] for k, name in enumerate(columns)}
     else:
         raise FileRefused(path, f"not a usable PCD file: DATA {kind!r} is not ascii, binary or binary_compressed")
     if not {"x#0", "y#0", "z#0"} <= column.keys():

@@ -45,8 +45,7 @@ class PatternFile(schema.Schema):
     steps: Annotated[int, Field(strict=True, ge=0, le=64)] = 0
     fringes: Annotated[list[Annotated[float, Field(strict=True, gt=0, le=10000)]],
                        Field(max_length=8)] = Field(default_factory=list)
-    orientations: Annotated[list[Orientation], Field(min_length=1, max_length=2)] = Field(
-        default_factory=lambda: ["vertical"])
+    orientations: Annotated[list[Orientation], Field(min_length=1, max_length=2)] = Field(default=["vertical"])
     conventions: ConventionsFile = ConventionsFile()
     projector_size: Annotated[list[Annotated[int, Field(strict=True, ge=2, le=100000)]],
                               Field(min_length=2, max_length=2)] | None = None

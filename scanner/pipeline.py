@@ -456,10 +456,10 @@ def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first
     full = 2 ** session.bit_depth - 1
     flat = stack.reshape(len(stack), -1)
     lo, hi = flat.min(axis=1), flat.max(axis=1)
-    for i in np.flatnonzero(hi - lo <= BLANK_FRAME_RANGE * full):
-        k = first + int(i)
+    for blank in np.flatnonzero(hi - lo <= BLANK_FRAME_RANGE * full):
+        k = first + int(blank)
         raise DecodeError(f"{where}: frame {k} ({session.frame_path(k).name}) is blank (every pixel "
-                          f"{int(lo[i])}..{int(hi[i])} DN): it cannot be a fringe image; re-scan")
+                          f"{int(lo[blank])}..{int(hi[blank])} DN): it cannot be a fringe image; re-scan")
     seen: dict[bytes, int] = {}
     for i, image in enumerate(stack):  # a frame copied over another: named as such, not blamed on a third
         digest = hashlib.sha256(image.tobytes()).digest()
@@ -518,7 +518,7 @@ def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triang
     done; a processing error (with the consistency checks of a refused decode) is logged
     into it before it is closed and raised."""
     level = level or recording_level(session)
-    given = {"rig_model": rig_model, "rig_model_source": rig_model_source}
+    given: dict[str, Any] = {"rig_model": rig_model, "rig_model_source": rig_model_source}  # for `process`
     with session_lock(session.root, command="slscan decode"):
         if level == "none":
             session.recording_path.unlink(missing_ok=True)  # an older recording would not match the new outputs
@@ -570,7 +570,10 @@ def log_session_frames(recording: SessionRecording, session: Session) -> None:
         path = session.frame_path(k)
         data = path.read_bytes()
         if path.suffix.lower() != ".png":
-            data = png_bytes(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED))
+            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                raise SessionError(f"{path}: frame {k} is not a readable image")
+            data = png_bytes(image)
         recording.log_png_frame(k, data, spec)
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property, partial
+from typing import Literal, overload
 
 import cv2
 import numpy as np
@@ -124,6 +125,17 @@ class Triangulator:
     @cached_property
     def _horizontal(self) -> tuple:
         return self._constants(1) + (_UndistortTable(self.rig.projector, 1),)
+
+    @overload
+    def depth_scale(self, coord: np.ndarray, orientation: str, sensitivity: Literal[False] = False) -> np.ndarray: ...
+
+    @overload
+    def depth_scale(self, coord: np.ndarray, orientation: str,
+                    sensitivity: Literal[True]) -> tuple[np.ndarray, np.ndarray]: ...
+
+    @overload
+    def depth_scale(self, coord: np.ndarray, orientation: str,
+                    sensitivity: bool) -> np.ndarray | tuple[np.ndarray, np.ndarray]: ...
 
     def depth_scale(self, coord: np.ndarray, orientation: str,
                     sensitivity: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
