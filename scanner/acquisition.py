@@ -162,9 +162,10 @@ def acquire_images_from(rig: Rig, cameras: list[Camera], images: np.ndarray, set
                 frame = grab_while_running(cam, settings.timeout_s, running)
                 check_frame(k, frame, cam.name, (cam.height, cam.width), cam.bit_depth)
                 check_timing(k, frame, previous[i], earliest - tolerance, cam.name)
-                if stacks[i] is None:
-                    stacks[i] = np.empty((n, cam.height, cam.width), dtype=frame.image.dtype)
-                stacks[i][k] = frame.image  # type: ignore[index]
+                stack = stacks[i]
+                if stack is None:
+                    stack = stacks[i] = np.empty((n, cam.height, cam.width), dtype=frame.image.dtype)
+                stack[k] = frame.image
                 if on_frame is not None:
                     on_frame(cam.name, k, frame)
                 previous[i] = frame
@@ -176,7 +177,10 @@ def acquire_images_from(rig: Rig, cameras: list[Camera], images: np.ndarray, set
         release(rig, quiet=True, cameras=cameras)
         raise
     release(rig, quiet=False, cameras=cameras)
-    return stacks  # type: ignore[return-value]
+    filled = [s for s in stacks if s is not None]
+    if len(filled) != len(cameras):
+        raise FrameError(names, "no frames acquired: no patterns were given", 0, None)
+    return filled
 
 
 def settings_for_exposure(settings: AcquisitionSettings, exposure_s: float) -> AcquisitionSettings:

@@ -70,17 +70,19 @@ class ExposureRequest:
     @classmethod
     def parse(cls, text: str, roi: str | None = None, where: str = "--exposure") -> ExposureRequest:
         """From the command line: "auto", "hdr", or exposures in seconds "0.004,0.016,0.064"."""
-        box = None
+        box: tuple[int, int, int, int] | None = None
         if roi is not None:
             try:
-                box = tuple(int(v) for v in roi.split(","))
+                parts = tuple(int(v) for v in roi.split(","))
             except ValueError:
-                box = ()
-            if len(box) != 4 or box[2] <= 0 or box[3] <= 0 or min(box[:2]) < 0:
+                parts = ()
+            if len(parts) != 4 or parts[2] <= 0 or parts[3] <= 0 or min(parts[:2]) < 0:
                 raise ConfigError("--exposure-roi", roi, "expected x,y,width,height in camera pixels (width, "
                                                          "height > 0)")
+            x, y, w, h = parts
+            box = (x, y, w, h)
         if text in ("auto", "hdr"):
-            return cls(text, (), box)  # type: ignore[arg-type]
+            return cls(text, (), box)
         try:
             values = tuple(float(v) for v in text.split(","))
         except ValueError:
@@ -89,7 +91,7 @@ class ExposureRequest:
             raise ConfigError(where, text, "expected auto, hdr, or exposures in seconds, e.g. 0.004,0.016,0.064")
         if len(set(values)) != len(values):
             raise ConfigError(where, text, "an exposure is listed twice")
-        return cls("given", tuple(sorted(values)), box)  # type: ignore[arg-type]
+        return cls("given", tuple(sorted(values)), box)
 
 
 @dataclass(frozen=True)
@@ -292,11 +294,11 @@ def fuse(results: list[DecodeResult], exposures_s: tuple[float, ...]) -> DecodeR
         raise ValueError("one decode per exposure is needed")
     if len(results) == 1:
         return results[0]
-    maps = {o: fuse_orientation([r.maps[o] for r in results]) for o in results[0].maps}
+    fused = {o: fuse_orientation([r.maps[o] for r in results]) for o in results[0].maps}
     scale = [np.float32(exposures_s[0] / t) for t in exposures_s]
-    first = next(iter(maps.values()))
+    first = next(iter(fused.values()))
     texture = _pick([r.texture * s for r, s in zip(results, scale)], first.exposure_index)
-    valid = np.logical_and.reduce([m.valid for m in maps.values()])
+    valid = np.logical_and.reduce([m.valid for m in fused.values()])
     checks = [replace(c, scope=f"{c.scope}, exposure {i}") for i, r in enumerate(results) for c in r.checks]
-    return DecodeResult(results[0].patterns, results[0].bit_depth, maps, texture, valid,  # type: ignore[arg-type]
-                        checks)
+    maps: dict[str, OrientationMaps] = dict(fused)  # as the base type DecodeResult holds
+    return DecodeResult(results[0].patterns, results[0].bit_depth, maps, texture, valid, checks)

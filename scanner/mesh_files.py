@@ -13,7 +13,9 @@ must be finite and triangle indices inside the vertex list.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -22,14 +24,14 @@ from scanner.ply_file import face_triangles, read_ply, vertex_positions
 
 FAILURE_WORDS = ("fail", "error", "unable", "cannot", "invalid")  # in a line Open3D writes while it reads
 
+T = TypeVar("T")
 
-def _open3d_read(path: Path, read: str) -> object:
-    """Open3D's `read` ("read_triangle_mesh" or "read_point_cloud") of `path`, its messages
-    judged: a failure line refuses the file."""
-    import open3d as o3d
 
+def _open3d_read(path: Path, read: Callable[[Path], T]) -> T:
+    """Open3D's reader `read` (o3d.io.read_triangle_mesh or read_point_cloud) of `path`, its
+    messages judged: a failure line refuses the file."""
     with native_output() as said:
-        result = getattr(o3d.io, read)(str(path))
+        result = read(path)
     failed = said.failures(*FAILURE_WORDS)
     if failed:
         raise FileRefused(path, f"unreadable ({failed[0].replace('[Open3D WARNING]', 'Open3D:').strip()[:160]})")
@@ -159,9 +161,11 @@ def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if suffix == ".stl":
         v, t = read_stl(path)
     else:
-        mesh = _open3d_read(path, "read_triangle_mesh")
-        v = np.asarray(mesh.vertices, dtype=np.float64)  # type: ignore[attr-defined]
-        t = np.asarray(mesh.triangles, dtype=np.int64)  # type: ignore[attr-defined]
+        import open3d as o3d
+
+        mesh = _open3d_read(path, o3d.io.read_triangle_mesh)
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        t = np.asarray(mesh.triangles, dtype=np.int64)
         if suffix == ".obj":
             _obj_counts(path, len(v), len(t))
     bad = ~np.isfinite(v).all(axis=1)
@@ -200,10 +204,12 @@ def read_points(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
             points, normals = read
             _finite(path, points)
             return points, normals
-    pc = _open3d_read(path, "read_point_cloud")
-    points = np.asarray(pc.points, dtype=np.float64)  # type: ignore[attr-defined]
+    import open3d as o3d
+
+    pc = _open3d_read(path, o3d.io.read_point_cloud)
+    points = np.asarray(pc.points, dtype=np.float64)
     _finite(path, points)
-    normals = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None  # type: ignore[attr-defined]
+    normals = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
     return points, normals
 
 

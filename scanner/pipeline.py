@@ -153,8 +153,9 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
 
     def on_frame(k: int, frame: Frame) -> None:
         for f in stored:
-            if f.done() and f.exception() is not None:
-                raise f.exception()  # type: ignore[misc]
+            failure = f.exception() if f.done() else None
+            if failure is not None:
+                raise failure
         stored.append(pool.submit(store, k, replace(frame, image=frame.image.copy())))  # a driver may reuse its buffer
         progress("capture", k + 1, n * (len(plan.exposures_s) if plan else 1))
 
