@@ -28,8 +28,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Callable
+from functools import partial
 
 import numpy as np
 
@@ -116,7 +117,7 @@ def acquire_all(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings,
     stacks = acquire_images_from(rig, list(cameras.values()),
                                  patterns.render(proj.width, proj.height, rig.model.projector_gamma), settings,
                                  lambda device, k, frame: on_frame(by_device[device], k, frame))
-    for (name, cam), stack in zip(cameras.items(), stacks):
+    for cam, stack in zip(cameras.values(), stacks):
         check_signature(stack, patterns, (proj.height, proj.width), cam.bit_depth, cam.name)
     return dict(zip(cameras, stacks))
 
@@ -161,9 +162,10 @@ def acquire_images_from(rig: Rig, cameras: list[Camera], images: np.ndarray, set
                 frame = grab_while_running(cam, settings.timeout_s, running)
                 check_frame(k, frame, cam.name, (cam.height, cam.width), cam.bit_depth)
                 check_timing(k, frame, previous[i], earliest - tolerance, cam.name)
-                if stacks[i] is None:
-                    stacks[i] = np.empty((n, cam.height, cam.width), dtype=frame.image.dtype)
-                stacks[i][k] = frame.image  # type: ignore[index]
+                stack = stacks[i]
+                if stack is None:
+                    stack = stacks[i] = np.empty((n, cam.height, cam.width), dtype=frame.image.dtype)
+                stack[k] = frame.image
                 if on_frame is not None:
                     on_frame(cam.name, k, frame)
                 previous[i] = frame
@@ -175,7 +177,10 @@ def acquire_images_from(rig: Rig, cameras: list[Camera], images: np.ndarray, set
         release(rig, quiet=True, cameras=cameras)
         raise
     release(rig, quiet=False, cameras=cameras)
-    return stacks  # type: ignore[return-value]
+    filled = [s for s in stacks if s is not None]
+    if len(filled) != len(cameras):
+        raise FrameError(names, "no frames acquired: no patterns were given", 0, None)
+    return filled
 
 
 def settings_for_exposure(settings: AcquisitionSettings, exposure_s: float) -> AcquisitionSettings:
@@ -214,7 +219,7 @@ def acquire_exposures(rig: Rig, patterns: PatternSet, settings: AcquisitionSetti
             on_frame(offset + k, frame)
 
         log.info("%s: exposure %d of %d, %.4g s", rig.camera.name, i + 1, len(exposures_s), t)
-        stacks.append(at_exposure(rig, t, lambda: acquire(rig, patterns, settings_for_exposure(settings, t), shifted)))
+        stacks.append(at_exposure(rig, t, partial(acquire, rig, patterns, settings_for_exposure(settings, t), shifted)))
     return stacks
 
 

@@ -350,7 +350,7 @@ class _Counts:
 
     @classmethod
     def of(cls, c: np.ndarray) -> _Counts:
-        base, span, idx, lo, hi = _intervals(c)
+        base, span, _, lo, hi = _intervals(c)
         return cls(np.sort(lo, kind="stable"), np.sort(hi, kind="stable"), base, span)  # nearly sorted rows
 
     def count(self, c: np.ndarray, rows: np.ndarray) -> np.ndarray:

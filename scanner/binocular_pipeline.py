@@ -19,7 +19,7 @@ import numpy as np
 from scanner.acquisition import AcquisitionSettings, acquire_all
 from scanner.binocular import BinocularReconstructor, BinocularResult
 from scanner.binocular_session import camera_model, camera_session, record, stereo_model
-from scanner.decode import DecodeResult, DecodeSettings
+from scanner.decode import DEFAULT_DECODE_SETTINGS, DecodeResult, DecodeSettings
 from scanner.devices import Frame
 from scanner.errors import DecodeError
 from scanner.geometry import RigModel
@@ -87,7 +87,7 @@ def capture_binocular(rig: Rig, patterns: PatternSet, writer: SessionWriter, pro
 
 
 def decode_camera(session: Session, name: str, frames: dict[int, np.ndarray] | None = None,
-                  settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
+                  settings: DecodeSettings = DEFAULT_DECODE_SETTINGS) -> DecodeResult:
     """Camera `name`'s decode of a binocular session, from its frames in memory or on disk."""
     view = camera_session(session, name)
     model = view.rig_model()
@@ -117,7 +117,7 @@ def three_ray_check(result: BinocularResult, decoded: DecodeResult, model: RigMo
 
 def process_binocular(session: Session, progress: Progress = _quiet,
                       frames: dict[str, dict[int, np.ndarray]] | None = None,
-                      settings: DecodeSettings = DecodeSettings()) -> BinocularScan:
+                      settings: DecodeSettings = DEFAULT_DECODE_SETTINGS) -> BinocularScan:
     """Decode every camera of a binocular session (two at once), match the first two and
     triangulate; write outputs/cloud.ply (first camera's frame, mm), each camera's maps and
     outputs/binocular.json."""

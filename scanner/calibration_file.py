@@ -64,11 +64,11 @@ class CalibrationFile:
 
     @property
     def camera_size(self) -> tuple[int, int]:
-        return tuple(self.data["image_sizes"]["camera"])  # type: ignore[return-value]
+        return tuple(self.data["image_sizes"]["camera"])
 
     @property
     def projector_size(self) -> tuple[int, int]:
-        return tuple(self.data["image_sizes"]["projector"])  # type: ignore[return-value]
+        return tuple(self.data["image_sizes"]["projector"])
 
 
 def maps_path(path: Path) -> Path:
@@ -89,7 +89,7 @@ def write_calibration(path: str | Path, model: RigModel, report: dict[str, Any],
         extra["reference_maps"] = npz.name
     data: dict[str, Any] = {
         "format": CALIBRATION_FORMAT, "version": CALIBRATION_VERSION,
-        "created": dt.datetime.now(dt.timezone.utc).isoformat(), "software_version": __version__, "rig": rig_name,
+        "created": dt.datetime.now(dt.UTC).isoformat(), "software_version": __version__, "rig": rig_name,
         "image_sizes": {"camera": list(model.camera.size), "projector": list(model.projector.size)},
         "rig_model": replace(model, calibration="").to_dict(), **report, **extra}
     write_json(path, data)

@@ -54,7 +54,7 @@ def get(table: dict[str, Any], key: str, kind: type[T] | tuple[type, ...], path:
         raise ConfigError(path, full, f"expected {names}, got {type(value).__name__} {value!r}")
     if isinstance(value, float) and not math.isfinite(value):
         raise ConfigError(path, full, f"must be a finite number, got {value!r}")
-    return value  # type: ignore[return-value]
+    return value  # type: ignore[return-value]  # checked against `kind` above; a tuple of kinds binds no T
 
 
 def get_vector(table: dict[str, Any], key: str, n: int, path: str | Path, default: Any = ...,

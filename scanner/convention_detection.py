@@ -40,11 +40,12 @@ from typing import Any
 
 import numpy as np
 
-from scanner.conventions import CHOICES, NATIVE, Conventions
+from scanner.conventions import CHOICES, NATIVE, Conventions, known
 from scanner.decode import gray_phase_offset, phase_shift, read_complementary_code
 from scanner.decode_checks import predicted_direction
 from scanner.errors import DecodeError
 from scanner.geometry import RigModel
+from scanner.pattern_families import temporal
 from scanner.patterns import PatternSet
 from scanner.pixel_code import read_pixel_code
 
@@ -87,7 +88,7 @@ def _layouts(ps: PatternSet, n_frames: int, fixed: bool) -> list[PatternSet]:
         cand = ps.with_conventions(conv)
         try:
             frames = tuple(cand.frames())
-        except Exception:  # noqa: BLE001 - a layout that cannot be formed is no candidate
+        except Exception:  # a layout that cannot be formed is no candidate
             continue
         if len(frames) == n_frames and frames not in seen:
             seen.add(frames)
@@ -101,10 +102,11 @@ def _all_layouts(ps: PatternSet) -> list[PatternSet]:
     keys = [k for k in ("references", "frame_order", "gray_position", "gray_code") if getattr(c, k) is None]
     out = []
     for combo in itertools.product(*(CHOICES[k] for k in keys)):
+        layout: dict[str, Any] = dict(zip(keys, combo))  # str-valued keys of `Conventions`
         try:
-            cand = ps.with_conventions(replace(c, **dict(zip(keys, combo))).filled(NATIVE))
+            cand = ps.with_conventions(replace(c, **layout).filled(NATIVE))
             cand.frames()
-        except Exception:  # noqa: BLE001 - a layout that cannot be formed is no candidate
+        except Exception:  # a layout that cannot be formed is no candidate
             continue
         out.append(cand)
     return out
@@ -115,7 +117,7 @@ def _layout_name(ps: PatternSet) -> str:
     keys = ps.kind.layout_keys(len(ps.fringes))
     parts = [f"references {c.references}"]
     if "frame_order" in keys:
-        parts.insert(0, c.frame_order)
+        parts.insert(0, known(c.frame_order, "frame_order"))
     if "gray_code" in keys:
         parts += [f"Gray code {c.gray_code} {c.gray_position} the phase"]
     return ", ".join(parts)
@@ -171,7 +173,7 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
     shifted = [phase_shift(sub[b], ps.steps, 0.0, 1) for b in blocks]
     wrapped = [w for w, _, _ in shifted]
     mod = [m for _, m, _ in shifted]
-    background = sum(a for _, _, a in shifted) / len(shifted)
+    background = sum((a for _, _, a in shifted), np.zeros_like(shifted[0][2])) / len(shifted)
     usable = (mod[-1] > 0.12 * background) & (mod[-1] > 0.005 * full) & (background < full)
     refs = _refs_score(sub, ps, usable)
     if ps.unwrapping in ("complementary", "pixel_phase"):
@@ -188,7 +190,7 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
             reference = (coord + np.float32(0.5)) * np.float32(2 * np.pi * f / extent)
         sel = usable & clear
         ev = _Evidence(0.0)
-        Rs = {}
+        Rs: dict[int, float] = {}
         for sign in (1, -1):
             theta = wrapped[0] if sign == 1 else np.mod(-wrapped[0], np.float32(2 * np.pi))
             if reference is None:
@@ -204,15 +206,16 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
             ev.sign_r = {k: v / max(max(Rs.values()), 1e-9) for k, v in Rs.items()}
         ev.score = max(Rs.values()) * refs
         return ev
-    beat = ps.kind.offset_free_phase(ps.fringes, wrapped)
+    beat = temporal(ps.kind).offset_free_phase(ps.fringes, wrapped)
     if beat is not None:  # each frequency's offset from the phase its beats predict
         phase, count = beat
-        Rs, offsets = [], []
+        resultants: list[float] = []
+        offsets: list[tuple[float, float]] = []
         for w, fi in zip(wrapped, ps.fringes):
             eps, R, se = _circular((w - phase * np.float32(fi / count))[usable])
-            Rs.append(R)
+            resultants.append(R)
             offsets.append((eps, se))
-        ev = _Evidence(float(np.mean(Rs)) * refs)
+        ev = _Evidence(float(np.mean(resultants)) * refs)
         eps, R, se = _circular(np.array([e for e, _ in offsets]))
         ev.offset[1] = (eps, max(s for _, s in offsets))
         return ev
@@ -361,6 +364,7 @@ def _phase_keys(stack: np.ndarray, ps: PatternSet, ev: _Evidence, projector_size
     extent = projector_size[0] if o == "vertical" else projector_size[1]
     coded = ps.gray_bits(o) > 0
     f = ps.fringes[0] if coded else max(ps.fringes)
+    eps: float | None  # the phase's offset the frames show (rad); None: nothing measures it
     if coded:
         sign = _gray_sign(c, ev, findings)
         eps, se = ev.offset[sign]
@@ -388,7 +392,7 @@ def _phase_keys(stack: np.ndarray, ps: PatternSet, ev: _Evidence, projector_size
     # the phase's offset the frames show, less what the pixel centre accounts for (Gray code:
     # ε = first phase + 2π·f·(δ − 0.5)/W; heterodyne: the beats cancel δ, ε = first phase)
     rad_per_px = 2 * np.pi * f / extent
-    measured = _wrap(eps - (c.pixel_centre - 0.5) * rad_per_px) if coded else eps
+    measured = _wrap(eps - (known(c.pixel_centre, "pixel_centre") - 0.5) * rad_per_px) if coded else eps
     against = "the Gray code's edges" if coded else "its frequencies' beats"
     evidence = f"the phase sits {measured:+.3f} ± {se:.3f} rad from {against}"
     step = 2 * np.pi / ps.steps
@@ -396,7 +400,7 @@ def _phase_keys(stack: np.ndarray, ps: PatternSet, ev: _Evidence, projector_size
         k = c.step_offset or 0
         d = _wrap(measured - c.phase_origin - sign * k * step)
         if abs(d) > max(step / 4, 3 * se):
-            steps_off = int(round(d / step * sign)) % ps.steps
+            steps_off = round(d / step * sign) % ps.steps
             rotated = (f"; {steps_off} whole step(s): every group's frames rotated by {steps_off} (set "
                        f"conventions.step_offset = {(k + steps_off) % ps.steps} if so), or not this description's "
                        f"patterns") if abs(_wrap(d - sign * steps_off * step)) <= max(step / 4, 3 * se) else \

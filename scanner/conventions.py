@@ -41,18 +41,24 @@ key, our own values by default (NATIVE).
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar, get_args
 
 import numpy as np
 from pydantic import Field, Strict, field_validator
 
 from scanner import schema
+from scanner.errors import ConfigError
 
-FRAME_ORDERS = ("frequency-major", "step-major")
-GRAY_POSITIONS = ("after", "before")
-GRAY_CODES = ("complementary", "opencv")
-REFERENCES = ("none", "first", "last")
-PERIOD_ROUNDINGS = ("none", "floor")
+FrameOrder = Literal["frequency-major", "step-major"]
+GrayPosition = Literal["after", "before"]
+GrayCode = Literal["complementary", "opencv"]
+References = Literal["none", "first", "last"]
+PeriodRounding = Literal["none", "floor"]
+FRAME_ORDERS: tuple[str, ...] = get_args(FrameOrder)
+GRAY_POSITIONS: tuple[str, ...] = get_args(GrayPosition)
+GRAY_CODES: tuple[str, ...] = get_args(GrayCode)
+REFERENCES: tuple[str, ...] = get_args(References)
+PERIOD_ROUNDINGS: tuple[str, ...] = get_args(PeriodRounding)
 LAYOUT_KEYS = ("frame_order", "gray_position", "gray_code", "references")  # the keys that order the frames
 CHOICES: dict[str, tuple[str, ...]] = {"frame_order": FRAME_ORDERS, "gray_position": GRAY_POSITIONS,
                                        "gray_code": GRAY_CODES, "references": REFERENCES}
@@ -75,7 +81,9 @@ class Conventions:
     def first_phase(self, steps: int) -> float:
         """The phase (rad) the first frame of every group adds: the origin and the groups'
         rotation (`step_offset` steps)."""
-        return float(self.phase_origin) + self.step_sign * 2.0 * np.pi * self.step_offset / steps
+        origin = known(self.phase_origin, "phase_origin")
+        sign, offset = known(self.step_sign, "step_sign"), known(self.step_offset, "step_offset")
+        return float(origin) + sign * 2.0 * np.pi * offset / steps
 
     def missing(self) -> list[str]:
         """Names of the keys not known yet."""
@@ -93,18 +101,29 @@ class Conventions:
         return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
 
 
+T = TypeVar("T")
+
+
+def known(value: T | None, key: str) -> T:
+    """`value`, the convention `key`, where the caller needs it known: a ConfigError naming
+    the key while it is None (neither given nor detected yet)."""
+    if value is None:
+        raise ConfigError("pattern set", f"conventions.{key}", "not known until it is given or detected")
+    return value
+
+
 class ConventionsFile(schema.Schema):
     """The `[conventions]` table as typed keys (module docstring); every key optional."""
 
     phase_origin: schema.Float | None = None
     step_sign: Annotated[int, Strict(), Field(ge=-1, le=1)] | None = None
     pixel_centre: Annotated[float, Strict(), Field(ge=0.0, lt=1.0)] | None = None
-    frame_order: Literal[FRAME_ORDERS] | None = None
-    gray_position: Literal[GRAY_POSITIONS] | None = None
-    gray_code: Literal[GRAY_CODES] | None = None
-    references: Literal[REFERENCES] | None = None
+    frame_order: FrameOrder | None = None
+    gray_position: GrayPosition | None = None
+    gray_code: GrayCode | None = None
+    references: References | None = None
     step_offset: Annotated[int, Strict(), Field(ge=0, le=63)] | None = None
-    period_rounding: Literal[PERIOD_ROUNDINGS] | None = None
+    period_rounding: PeriodRounding | None = None
 
     @field_validator("step_sign")
     @classmethod

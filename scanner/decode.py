@@ -17,14 +17,17 @@ from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any, Callable
+from itertools import pairwise
+from typing import Any
 
 import cv2
 import numpy as np
 
+from scanner.conventions import known
 from scanner.decode_checks import (
     ALPHA,
     FITTED_MODEL_ACCURACY,
@@ -43,7 +46,7 @@ from scanner.decode_checks import (
     scale_check,
 )
 from scanner.errors import DecodeError
-from scanner.pattern_families import TWO_PI, unwrap_step
+from scanner.pattern_families import TWO_PI, temporal, unwrap_step
 from scanner.patterns import FrameSpec, PatternSet, gray_to_binary
 from scanner.pixel_code import read_pixel_code
 
@@ -105,6 +108,9 @@ class DecodeSettings:
     interreflection_min_rad: float = 0.2
     interreflection_ratio: float = 0.15
     sliver_px: int = 2
+
+
+DEFAULT_DECODE_SETTINGS = DecodeSettings()  # the defaults every decode entry point takes
 
 
 @dataclass(frozen=True)
@@ -185,7 +191,7 @@ def _weighted_sum(frames: list[np.ndarray], weights: np.ndarray) -> np.ndarray:
     for i in range(0, len(terms), 2):
         if i + 1 < len(terms):
             (f1, w1), (f2, w2) = terms[i], terms[i + 1]
-            t = cv2.addWeighted(f1, w1, f2, w2, 0.0, dtype=cv2.CV_32F)
+            t: np.ndarray = cv2.addWeighted(f1, w1, f2, w2, 0.0, dtype=cv2.CV_32F)
         else:
             t = terms[i][0].astype(np.float32)
             t *= np.float32(terms[i][1])
@@ -222,7 +228,7 @@ def _magnitude(c: np.ndarray, s: np.ndarray, out: np.ndarray | None = None) -> n
 def _residual_sigma(ps: PatternSet, phase_sigmas: list[np.ndarray]) -> np.ndarray:
     """Predicted one-sigma of the largest unwrapping residual (fraction of π) from each
     frequency's phase noise (rad), propagated through the family's unwrapping steps."""
-    steps = ps.kind.residual_variances(ps.fringes, [s * s for s in phase_sigmas])
+    steps = temporal(ps.kind).residual_variances(ps.fringes, [s * s for s in phase_sigmas])
     return np.sqrt(np.maximum.reduce(steps)) / np.float32(np.pi)
 
 
@@ -626,7 +632,7 @@ def _noise_line(a: np.ndarray, v: np.ndarray, unbias: float) -> NoiseModel:
     mean), a line with non-negative terms, read at least the quantisation 1/12 DN²."""
     edges = np.quantile(a, np.linspace(0, 1, 9))
     centres, medians = [], []
-    for lo, hi in zip(edges[:-1], edges[1:]):
+    for lo, hi in pairwise(edges):
         sel = (a >= lo) & (a <= hi)
         if sel.sum() >= 10:
             centres.append(np.median(a[sel]))
@@ -643,7 +649,7 @@ def _noise_line(a: np.ndarray, v: np.ndarray, unbias: float) -> NoiseModel:
 
 def _rotation_cause(steps_off: float, steps: int) -> str:
     """The likely cause of a common phase offset of `steps_off` phase steps (of `steps`)."""
-    k = int(round(steps_off)) % steps
+    k = round(steps_off) % steps
     if k and abs(steps_off - round(steps_off)) < 0.25:
         return (f"phase steps rotated by {k} of {steps} in every group (each frame showing the step {k} after its "
                 f"own: a trigger out of step), or a phase origin {2 * np.pi * k / steps:.2f} rad off?")
@@ -690,7 +696,7 @@ def _frame_indices(specs: list[FrameSpec]) -> dict[tuple[str, str, int, int], in
 
 
 def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_size: tuple[int, int],
-           settings: DecodeSettings = DecodeSettings(), sensor_noise: NoiseModel | None = None) -> DecodeResult:
+           settings: DecodeSettings = DEFAULT_DECODE_SETTINGS, sensor_noise: NoiseModel | None = None) -> DecodeResult:
     """Decode an (N, H, W) fringe stack taken with `patterns` on a projector of
     `projector_size` = (width, height) pixels. `sensor_noise`: the camera's intensity noise
     from its sensor model, when known; the consistency checks then judge the fit residual
@@ -713,7 +719,8 @@ def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
     saturated = np.zeros(stack.shape[1:], dtype=bool)
     if all_phase:  # judged on the frames that carry the measurement: a clipped binary frame still reads
         saturated = _saturated(stack, all_phase, full_scale)
-        noise = fit_noise(stack, phase_blocks[patterns.orientations[0]], patterns.steps, conv.step_sign, full_scale)
+        noise = fit_noise(stack, phase_blocks[patterns.orientations[0]], patterns.steps,
+                          known(conv.step_sign, "step_sign"), full_scale)
     else:
         noise = NoiseModel(1.0, 0.0)
     refs = (stack[index[(patterns.orientations[0], "white", 0, 0)]].astype(np.float32),
@@ -828,8 +835,8 @@ class _OrientationDecoder:
         background = maps["background"]
         background.fill(0.0)
         for block, out in zip(self.blocks, dest):
-            phi, b, a = phase_shift([stack[k] for k in block], ps.steps, conv.first_phase(ps.steps), conv.step_sign,
-                                    out)
+            phi, b, a = phase_shift([stack[k] for k in block], ps.steps, conv.first_phase(ps.steps),
+                                    known(conv.step_sign, "step_sign"), out)
             wrapped.append(phi)
             modulation.append(b)
             background += a
@@ -876,7 +883,8 @@ class _OrientationDecoder:
             coordinate_g, run, readable, beyond = self._pixel_code(frame, contrast)
             beyond &= usable
             sums["readable"] = int(((readable | beyond) & usable).sum())
-            predicted = (coordinate_g + np.float32(conv.pixel_centre)) * np.float32(2 * np.pi * f_max / self.extent)
+            predicted = (coordinate_g + np.float32(known(conv.pixel_centre, "pixel_centre"))) \
+                * np.float32(2 * np.pi * f_max / self.extent)
             worst = np.zeros_like(background)
             phase = unwrap_step(predicted, 1.0, wrapped[0], worst)
             quant = np.float32(2 * np.pi * f_max / self.extent / np.sqrt(12.0) / np.pi)
@@ -890,7 +898,7 @@ class _OrientationDecoder:
             maps["phase"][...] = phase
             np.square(modulation[0], out=maps["weight"])
         else:
-            absolute, residual = ps.kind.unwrap(ps.fringes, wrapped)
+            absolute, residual = temporal(ps.kind).unwrap(ps.fringes, wrapped)
 
             def residual_sigma(idx: np.ndarray) -> np.ndarray:
                 return _residual_sigma(ps, [sigma_of(lv)(idx) for lv in range(len(ps.fringes))])
@@ -919,7 +927,7 @@ class _OrientationDecoder:
             sums["residual_z2"] = self._residual_z2(stack, at_samples())
         coordinate = np.multiply(maps["phase"], np.float32(self.extent / (2.0 * np.pi * f_max)),
                                  out=maps["coordinate"])
-        coordinate -= np.float32(conv.pixel_centre)
+        coordinate -= np.float32(known(conv.pixel_centre, "pixel_centre"))
         if "readable" not in sums:  # a fringe order beyond the projector's pixels is an order error
             beyond = self._beyond(coordinate, usable & ~masks["order_error"], sigma_of(finest))
             masks["order_error"] |= beyond
@@ -946,8 +954,11 @@ class _OrientationDecoder:
         `harmonic_basis`) in units of each frame's predicted variance (the sensor model's σ_I²
         at the group's mean, and the patterns' own error): χ² with `residual_dof(N)` degrees of
         freedom when the frames are what the pattern set says."""
-        ps, conv = self.patterns, self.patterns.conventions
-        delta = conv.first_phase(ps.steps) + conv.step_sign * 2.0 * np.pi * np.arange(ps.steps) / ps.steps
+        ps, conv, noise = self.patterns, self.patterns.conventions, self.residual_noise
+        if noise is None:
+            raise DecodeError("the fit residual is judged only against a noise model (`judges_residual`)")
+        sign = known(conv.step_sign, "step_sign")
+        delta = conv.first_phase(ps.steps) + sign * 2.0 * np.pi * np.arange(ps.steps) / ps.steps
         basis = harmonic_basis(delta)
         residual = np.eye(ps.steps) - basis @ np.linalg.pinv(basis)  # (N, N): the fit's residual projector
         cos_sin = np.linalg.pinv(basis)[1:3]  # (2, N): B·cos and B·sin of the fit's fundamental
@@ -956,7 +967,7 @@ class _OrientationDecoder:
             frames = stack[block].reshape(ps.steps, -1)[:, idx].astype(np.float64)
             res = residual @ frames
             b2 = np.square(cos_sin @ frames).sum(axis=0)
-            var = np.square(self.residual_noise.sigma(frames.mean(axis=0)), dtype=np.float64) + PATTERN_ERROR ** 2 * b2
+            var = np.square(noise.sigma(frames.mean(axis=0)), dtype=np.float64) + PATTERN_ERROR ** 2 * b2
             z2[g] = (res * res).sum(axis=0) / var
         return z2
 
@@ -997,7 +1008,8 @@ class _OrientationDecoder:
         if "frequencies" in sums[0]:
             at = np.concatenate([b["frequencies"]["at"] for b in sums])
             one_path = ~second.ravel()[at] if second is not None else np.ones(at.size, bool)
-            if one_path.size and one_path.mean() < 0.5:  # the mask's premise (most pixels on one path) fails: judge them all
+            if one_path.size and one_path.mean() < 0.5:
+                # the mask's premise (most pixels on one path) fails: judge them all
                 one_path[:] = True
             q = np.concatenate([b["frequencies"]["q"] for b in sums])[one_path]
             d = np.concatenate([b["frequencies"]["d"] for b in sums])[one_path]

@@ -21,9 +21,9 @@ from __future__ import annotations
 import abc
 import logging
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
-from typing import Callable
 
 import numpy as np
 
@@ -82,7 +82,7 @@ class Device(abc.ABC):
         self._lock = threading.RLock()
         self._running: Status | None = None  # the long action (sequence, pulse train) in progress
 
-    def __enter__(self) -> "Device":
+    def __enter__(self) -> Device:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -158,7 +158,8 @@ class Camera(Device):
     def set_bit_depth(self, bits: int) -> None:
         self._check_alive()
         if bits not in self.supported_bit_depths:
-            raise UnsupportedSetting(self.name, f"bit depth {bits} not supported; choose one of {self.supported_bit_depths}")
+            raise UnsupportedSetting(self.name, f"bit depth {bits} not supported; "
+                                                f"choose one of {self.supported_bit_depths}")
         self._do_set_bit_depth(bits)
         self._bit_depth = bits
 
@@ -170,7 +171,8 @@ class Camera(Device):
         self._check_alive()
         lo, hi = self.exposure_range_s
         if not lo <= seconds <= hi:
-            raise UnsupportedSetting(self.name, f"exposure {seconds * 1e3:.4g} ms outside {lo * 1e3:.4g}..{hi * 1e3:.4g} ms")
+            raise UnsupportedSetting(self.name, f"exposure {seconds * 1e3:.4g} ms outside "
+                                                f"{lo * 1e3:.4g}..{hi * 1e3:.4g} ms")
         self._do_set_exposure(seconds)
         self._exposure_s = seconds
 
@@ -188,7 +190,8 @@ class Camera(Device):
             raise UnsupportedSetting(self.name, f"trigger type {ttype.value} not supported; choose one of "
                                                 f"{[t.value for t in self.supported_trigger_types]}")
         if not isinstance(tmode, TriggerMode):
-            raise UnsupportedSetting(self.name, f"trigger mode {tmode!r} is not one of {[m.value for m in TriggerMode]}")
+            raise UnsupportedSetting(self.name, f"trigger mode {tmode!r} is not one of "
+                                                f"{[m.value for m in TriggerMode]}")
         self._do_set_trigger(ttype)
         self._trigger_type, self._trigger_mode = ttype, tmode
 
@@ -208,7 +211,8 @@ class Camera(Device):
         """Software trigger: start one exposure now."""
         self._check_alive()
         if self._trigger_type is not TriggerType.SOFTWARE:
-            raise UnsupportedSetting(self.name, "software trigger requested but the camera waits for a hardware trigger")
+            raise UnsupportedSetting(self.name, "software trigger requested but the camera waits for a hardware "
+                                                "trigger")
         self._do_trigger()
 
     def grab(self, timeout_s: float) -> Frame:
@@ -355,7 +359,8 @@ class TriggerSource(Device):
     def arm(self, count: int, period_s: float, pulse_width_s: float = 1e-4) -> None:
         self._check_alive()
         if count < 1 or period_s <= 0 or not 0 < pulse_width_s < period_s:
-            raise UnsupportedSetting(self.name, f"bad pulse train: count={count}, period={period_s} s, width={pulse_width_s} s")
+            raise UnsupportedSetting(self.name, f"bad pulse train: count={count}, period={period_s} s, "
+                                                f"width={pulse_width_s} s")
         self._do_arm(count, period_s, pulse_width_s)
         self._armed = (count, period_s, pulse_width_s)
 

@@ -109,19 +109,20 @@ def write_ply(cloud: ExportCloud, path: Path) -> None:
 
 def write_xyz(cloud: ExportCloud, path: Path) -> None:
     """Text, one point per line: x y z (mm) [deviation_mm]; a `#` comment line first."""
-    dev = cloud.deviation_mm is not None
-    data = np.hstack([cloud.points] + ([cloud.deviation_mm[:, None]] if dev else []))
-    names = "x y z" + (" deviation_mm" if dev else "")
+    dev = cloud.deviation_mm
+    data = np.hstack([cloud.points] + ([dev[:, None]] if dev is not None else []))
+    names = "x y z" + (" deviation_mm" if dev is not None else "")
     _write_text(path, f"# {cloud.describe()}; columns: {names}; no pixel index\n", data, ["%.5f"] * data.shape[1],
                 " ")
 
 
 def write_csv(cloud: ExportCloud, path: Path) -> None:
     """CSV with a header row: x_mm, y_mm, z_mm, row, col[, deviation_mm]."""
-    dev = cloud.deviation_mm is not None
-    names = ["x_mm", "y_mm", "z_mm", "row", "col"] + (["deviation_mm"] if dev else [])
-    data = np.hstack([cloud.points, cloud.pixels] + ([cloud.deviation_mm[:, None]] if dev else []))
-    _write_text(path, ",".join(names) + "\n", data, ["%.5f"] * 3 + ["%d"] * 2 + (["%.5f"] if dev else []), ",")
+    dev = cloud.deviation_mm
+    names = ["x_mm", "y_mm", "z_mm", "row", "col"] + (["deviation_mm"] if dev is not None else [])
+    data = np.hstack([cloud.points, cloud.pixels] + ([dev[:, None]] if dev is not None else []))
+    _write_text(path, ",".join(names) + "\n", data, ["%.5f"] * 3 + ["%d"] * 2 + (["%.5f"] if dev is not None else []),
+                ",")
 
 
 def _write_text(path: Path, header: str, data: np.ndarray, formats: list[str], sep: str,
@@ -192,8 +193,8 @@ def read_session_cloud(path: str | Path, source: str) -> ExportCloud:
 
     header, elements = read_ply(path)
     v = elements.get("vertex", {})
-    names = {k for k, a in v.items() if isinstance(a, np.ndarray)}
-    if not {"row", "col"} <= names:
+    scalar = {k: a for k, a in v.items() if isinstance(a, np.ndarray)}  # the properties that are not lists
+    if not {"row", "col"} <= scalar.keys():
         raise SessionError(f"{path}: the cloud has no pixel index (row, col); run `slscan decode` on the session "
                            f"to write it again")
     size = next((c.split(" of a ")[1].split(" camera")[0] for c in header.comments if " of a " in c), None)
@@ -205,9 +206,10 @@ def read_session_cloud(path: str | Path, source: str) -> ExportCloud:
         raise SessionError(f"{path}: the header's camera image size {size!r} is not W x H; run `slscan decode` "
                            f"again") from None
     points = vertex_positions(path, v)
-    normals = np.stack([v["nx"], v["ny"], v["nz"]], axis=1).astype(np.float64) if "nx" in names else None
-    grey = v["red"].astype(np.uint8) if "red" in names else np.zeros(len(points), np.uint8)
-    pixels = np.stack([v["row"], v["col"]], axis=1).astype(np.int64)
+    normals = np.stack([scalar["nx"], scalar["ny"], scalar["nz"]], axis=1).astype(np.float64) \
+        if "nx" in scalar else None
+    grey = scalar["red"].astype(np.uint8) if "red" in scalar else np.zeros(len(points), np.uint8)
+    pixels = np.stack([scalar["row"], scalar["col"]], axis=1).astype(np.int64)
     outside = (pixels < 0).any(axis=1) | (pixels[:, 0] >= h) | (pixels[:, 1] >= w)
     if not 0 < w <= 65536 or not 0 < h <= 65536 or outside.any():
         raise SessionError(f"{path}: point {int(np.argmax(outside))} names pixel {pixels[np.argmax(outside)].tolist()} "

@@ -11,8 +11,9 @@ B(t) = c·(W − K)/2·t/t0: the saturation and modulation histograms at any t f
 probe. A pixel is *covered* at t when it stays below `SATURATION_LEVEL` of full scale and its
 B reaches `GOOD_MODULATION` of full scale: three-frequency heterodyne unwrapping amplifies the
 phase noise ~15x (beat of 6 fringes), so a rare order error needs B ≳ 35 σ_I; for a 10 ke
-full-well sensor at 12 bits (shot-noise σ_I ≈ 14 DN at 500 DN) that is ~10 % of full scale. When the probe itself saturates
-more than `PROBE_MAX_SATURATED` of the ROI, it is repeated at t0/8 (at most `PROBE_TRIES`).
+full-well sensor at 12 bits (shot-noise σ_I ≈ 14 DN at 500 DN) that is ~10 % of full scale.
+When the probe itself saturates more than `PROBE_MAX_SATURATED` of the ROI, it is repeated
+at t0/8 (at most `PROBE_TRIES`).
   - `auto`: the one exposure (of a half-stop grid within the camera's range) that covers the
     most ROI pixels, the longest of those within 0.2 % of the best (less noise);
   - `hdr`: exposures chosen greedily, each covering the most pixels not yet covered, until one
@@ -33,9 +34,10 @@ exposure so it stays within full scale.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -68,17 +70,19 @@ class ExposureRequest:
     @classmethod
     def parse(cls, text: str, roi: str | None = None, where: str = "--exposure") -> ExposureRequest:
         """From the command line: "auto", "hdr", or exposures in seconds "0.004,0.016,0.064"."""
-        box = None
+        box: tuple[int, int, int, int] | None = None
         if roi is not None:
             try:
-                box = tuple(int(v) for v in roi.split(","))
+                parts = tuple(int(v) for v in roi.split(","))
             except ValueError:
-                box = ()
-            if len(box) != 4 or box[2] <= 0 or box[3] <= 0 or min(box[:2]) < 0:
+                parts = ()
+            if len(parts) != 4 or parts[2] <= 0 or parts[3] <= 0 or min(parts[:2]) < 0:
                 raise ConfigError("--exposure-roi", roi, "expected x,y,width,height in camera pixels (width, "
                                                          "height > 0)")
+            x, y, w, h = parts
+            box = (x, y, w, h)
         if text in ("auto", "hdr"):
-            return cls(text, (), box)  # type: ignore[arg-type]
+            return cls(text, (), box)
         try:
             values = tuple(float(v) for v in text.split(","))
         except ValueError:
@@ -87,7 +91,7 @@ class ExposureRequest:
             raise ConfigError(where, text, "expected auto, hdr, or exposures in seconds, e.g. 0.004,0.016,0.064")
         if len(set(values)) != len(values):
             raise ConfigError(where, text, "an exposure is listed twice")
-        return cls("given", tuple(sorted(values)), box)  # type: ignore[arg-type]
+        return cls("given", tuple(sorted(values)), box)
 
 
 @dataclass(frozen=True)
@@ -242,7 +246,7 @@ class FusedOrientationMaps(OrientationMaps):
     fused_sigma: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
 
     @cached_property
-    def phase_sigma(self) -> np.ndarray:  # type: ignore[override]
+    def phase_sigma(self) -> np.ndarray:
         return self.fused_sigma
 
 
@@ -290,11 +294,11 @@ def fuse(results: list[DecodeResult], exposures_s: tuple[float, ...]) -> DecodeR
         raise ValueError("one decode per exposure is needed")
     if len(results) == 1:
         return results[0]
-    maps = {o: fuse_orientation([r.maps[o] for r in results]) for o in results[0].maps}
+    fused = {o: fuse_orientation([r.maps[o] for r in results]) for o in results[0].maps}
     scale = [np.float32(exposures_s[0] / t) for t in exposures_s]
-    first = next(iter(maps.values()))
+    first = next(iter(fused.values()))
     texture = _pick([r.texture * s for r, s in zip(results, scale)], first.exposure_index)
-    valid = np.logical_and.reduce([m.valid for m in maps.values()])
+    valid = np.logical_and.reduce([m.valid for m in fused.values()])
     checks = [replace(c, scope=f"{c.scope}, exposure {i}") for i, r in enumerate(results) for c in r.checks]
-    return DecodeResult(results[0].patterns, results[0].bit_depth, maps, texture, valid,  # type: ignore[arg-type]
-                        checks)
+    maps: dict[str, OrientationMaps] = dict(fused)  # as the base type DecodeResult holds
+    return DecodeResult(results[0].patterns, results[0].bit_depth, maps, texture, valid, checks)

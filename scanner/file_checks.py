@@ -19,7 +19,7 @@ import tempfile
 import threading
 import zipfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -223,10 +223,8 @@ def native_output() -> Iterator[NativeOutput]:
     result = NativeOutput()
     with _CAPTURE_LOCK, tempfile.TemporaryFile() as sink:
         for stream in (sys.stdout, sys.stderr):
-            try:
+            with suppress(OSError, ValueError):
                 stream.flush()
-            except (OSError, ValueError):
-                pass
         saved = []
         try:
             for fd in (1, 2):

@@ -2,11 +2,12 @@
 
 The one place that says which matrix is which, in what unit and which way:
 
-| file | camera K, dist | projector K, dist | extrinsics | camera size |
-|---|---|---|---|---|
-| slscan `calibration.json` | `rig_model.camera` | `rig_model.projector` | `cam_from_proj` | `image_sizes` |
-| SLMaster `caliInfo.yml` | `M1`, `D1` | `M4`, `D4` | `Rlp`, `Tlp` | `S` (w, h) |
-| procam `calibration_result.xml` | `cam_int`, `cam_dist` | `proj_int`, `proj_dist` | `roration`, `translation` | `img_shape` (h, w) |
+| | slscan `calibration.json` | SLMaster `caliInfo.yml` | procam `calibration_result.xml` |
+|---|---|---|---|
+| camera K, dist | `rig_model.camera` | `M1`, `D1` | `cam_int`, `cam_dist` |
+| projector K, dist | `rig_model.projector` | `M4`, `D4` | `proj_int`, `proj_dist` |
+| extrinsics | `cam_from_proj` | `Rlp`, `Tlp` | `roration`, `translation` |
+| camera size | `image_sizes` | `S` (w, h) | `img_shape` (h, w) |
 
 (both foreign files are OpenCV FileStorage, YAML and XML; ours is described in
 scanner/calibration_file.py.)
@@ -139,7 +140,7 @@ def _stored_camera_size(fs: cv2.FileStorage, name: str, path: Path) -> tuple[int
     if v.size != 2:
         return None
     w, h = (v[0], v[1]) if name == "slmaster" else (v[1], v[0])
-    return int(round(w)), int(round(h))
+    return round(w), round(h)
 
 
 def read_calibration(path: str | Path, camera_size: tuple[int, int], projector_size: tuple[int, int],

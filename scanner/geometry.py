@@ -14,6 +14,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from scanner.errors import ConfigError
 
@@ -86,7 +87,8 @@ class Pinhole:
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "pinhole") -> Pinhole:
         try:
-            return cls(int(d["width"]), int(d["height"]), np.array(d["K"], float), np.array(d.get("dist", [0] * 5), float))
+            return cls(int(d["width"]), int(d["height"]), np.array(d["K"], float),
+                       np.array(d.get("dist", [0] * 5), float))
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(where, None, f"invalid pinhole description: {exc}") from exc
 
@@ -162,7 +164,7 @@ def pose_from_dict(d: dict[str, Any]) -> np.ndarray:
     return T
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, -1.0, 0.0])) -> np.ndarray:
+def look_at(eye: np.ndarray, target: np.ndarray, up: npt.ArrayLike = (0.0, -1.0, 0.0)) -> np.ndarray:
     """Pose (device-to-world, 4x4) of a device at `eye` whose optical axis (+z) points at
     `target`, with image 'up' (−y) as close to `up` as possible."""
     z = np.asarray(target, float) - np.asarray(eye, float)
@@ -237,7 +239,7 @@ class PhaseToHeight:
     def maps(self) -> dict[str, np.ndarray]:
         """The arrays to store (float32), by PHASE_MAP_KEYS name."""
         arrays = {"reference_phase": self.reference_phase}
-        if self.per_pixel:
+        if self.l_map_mm is not None and self.k_map_rad is not None:  # per_pixel: the two come together
             arrays |= {"l_map_mm": self.l_map_mm, "k_map_rad": self.k_map_rad}
         return {k: np.asarray(v, np.float32) for k, v in arrays.items()}
 

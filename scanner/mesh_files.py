@@ -13,7 +13,9 @@ must be finite and triangle indices inside the vertex list.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -22,14 +24,14 @@ from scanner.ply_file import face_triangles, read_ply, vertex_positions
 
 FAILURE_WORDS = ("fail", "error", "unable", "cannot", "invalid")  # in a line Open3D writes while it reads
 
+T = TypeVar("T")
 
-def _open3d_read(path: Path, read: str) -> object:
-    """Open3D's `read` ("read_triangle_mesh" or "read_point_cloud") of `path`, its messages
-    judged: a failure line refuses the file."""
-    import open3d as o3d
 
+def _open3d_read(path: Path, read: Callable[[Path], T]) -> T:
+    """Open3D's reader `read` (o3d.io.read_triangle_mesh or read_point_cloud) of `path`, its
+    messages judged: a failure line refuses the file."""
     with native_output() as said:
-        result = getattr(o3d.io, read)(str(path))
+        result = read(path)
     failed = said.failures(*FAILURE_WORDS)
     if failed:
         raise FileRefused(path, f"unreadable ({failed[0].replace('[Open3D WARNING]', 'Open3D:').strip()[:160]})")
@@ -46,7 +48,7 @@ def read_stl(path: Path) -> tuple[np.ndarray, np.ndarray]:
     after the 84-byte header) or an ASCII STL (every `facet` complete, then `endsolid`);
     vertices shared between triangles merged."""
     data = read_regular(path)
-    if data[:5].lower() == b"solid" and b"facet" in data[:4096] or data.strip() == b"solid":
+    if (data[:5].lower() == b"solid" and b"facet" in data[:4096]) or data.strip() == b"solid":
         corners = _ascii_stl(path, data)
     else:
         if len(data) < 84:
@@ -107,19 +109,20 @@ def read_pcd(path: Path) -> tuple[np.ndarray, np.ndarray | None] | None:
     if kind == "binary_compressed":
         return None
     body = data[at:]
+    columns = dtype.names or ()  # "name#k": item k of field `name`
     if kind == "binary":
         if n < 0 or len(body) != n * dtype.itemsize:
             raise FileRefused(path, f"not a usable PCD file: its header declares {n} points of {dtype.itemsize} "
                                     f"bytes, {len(body)} bytes follow it (cut short, or a header that lies)")
         table = np.frombuffer(body, dtype, n)
-        column = {name: table[name].astype(np.float64) for name in dtype.names or ()}
+        column = {name: table[name].astype(np.float64) for name in columns}
     elif kind == "ascii":
         tokens = ascii_numbers(path, body, "PCD file")
-        if n < 0 or len(tokens) != n * len(dtype.names or ()):
-            raise FileRefused(path, f"not a usable PCD file: its header declares {n} points of {len(dtype.names)} "
+        if n < 0 or len(tokens) != n * len(columns):
+            raise FileRefused(path, f"not a usable PCD file: its header declares {n} points of {len(columns)} "
                                     f"values, {len(tokens)} numbers follow it (cut short, or a header that lies)")
-        table = tokens.reshape(n, -1)
-        column = {name: table[:, k] for k, name in enumerate(dtype.names or ())}
+        rows = tokens.reshape(n, -1)
+        column = {name: rows[:, k] for k, name in enumerate(columns)}
     else:
         raise FileRefused(path, f"not a usable PCD file: DATA {kind!r} is not ascii, binary or binary_compressed")
     if not {"x#0", "y#0", "z#0"} <= column.keys():
@@ -158,9 +161,11 @@ def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if suffix == ".stl":
         v, t = read_stl(path)
     else:
-        mesh = _open3d_read(path, "read_triangle_mesh")
-        v = np.asarray(mesh.vertices, dtype=np.float64)  # type: ignore[attr-defined]
-        t = np.asarray(mesh.triangles, dtype=np.int64)  # type: ignore[attr-defined]
+        import open3d as o3d
+
+        mesh = _open3d_read(path, o3d.io.read_triangle_mesh)
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        t = np.asarray(mesh.triangles, dtype=np.int64)
         if suffix == ".obj":
             _obj_counts(path, len(v), len(t))
     bad = ~np.isfinite(v).all(axis=1)
@@ -199,10 +204,12 @@ def read_points(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
             points, normals = read
             _finite(path, points)
             return points, normals
-    pc = _open3d_read(path, "read_point_cloud")
-    points = np.asarray(pc.points, dtype=np.float64)  # type: ignore[attr-defined]
+    import open3d as o3d
+
+    pc = _open3d_read(path, o3d.io.read_point_cloud)
+    points = np.asarray(pc.points, dtype=np.float64)
     _finite(path, points)
-    normals = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None  # type: ignore[attr-defined]
+    normals = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
     return points, normals
 
 

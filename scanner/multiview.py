@@ -30,9 +30,10 @@ import json
 import math
 import time
 import uuid
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -209,11 +210,12 @@ class MultiViewWriter:
         self.root = root
         self.id = f"{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
         self.model = model or stage.model
-        self.started = dt.datetime.now(dt.timezone.utc)
+        self.started = dt.datetime.now(dt.UTC)
         self.views: list[dict[str, Any]] = []
         write_json(root / PLAN, {
             "slscan_multiview": MULTIVIEW_VERSION, "multiview_id": self.id, "software_version": __version__,
-            "created": self.started.isoformat(), "rig_config_path": str(rig.config.path.resolve()), "rig_config": rig.config.raw,
+            "created": self.started.isoformat(), "rig_config_path": str(rig.config.path.resolve()),
+            "rig_config": rig.config.raw,
             "stage_model": self.model.to_dict(), "views": [{"target": dict(q)} for q in plan]})
 
     @classmethod
@@ -238,14 +240,14 @@ class MultiViewWriter:
     def finish(self) -> Path:
         write_json(self.root / MULTIVIEW, {
             "slscan_multiview": MULTIVIEW_VERSION, "multiview_id": self.id, "created": self.started.isoformat(),
-            "completed": dt.datetime.now(dt.timezone.utc).isoformat(), "views": self.views})
+            "completed": dt.datetime.now(dt.UTC).isoformat(), "views": self.views})
         return self.root / MULTIVIEW
 
     def fail(self, error: BaseException, view: int, stage: str) -> None:
         write_json(self.root / ERROR, {
             "multiview_id": self.id, "view": view, "stage": stage, "error": type(error).__name__,
             "message": str(error), "views_kept": [v["folder"] for v in self.views],
-            "time": dt.datetime.now(dt.timezone.utc).isoformat()})
+            "time": dt.datetime.now(dt.UTC).isoformat()})
 
 
 def capture_views(rig: Rig, plan: Sequence[Mapping[str, float]], out_dir: str | Path,
@@ -283,7 +285,8 @@ def _capture_views(writer: MultiViewWriter, rig: Rig, plan: Sequence[Mapping[str
             t0 = time.perf_counter()
             session = scan_view(writer.root / view_name(k), {"stage": writer.stage_record(position), "view": k,
                                                              "multiview_id": writer.id})
-            writer.view_done(k, session, position, {"move": round(moved, 4), "scan": round(time.perf_counter() - t0, 4)})
+            writer.view_done(k, session, position,
+                             {"move": round(moved, 4), "scan": round(time.perf_counter() - t0, 4)})
         except BaseException as exc:
             writer.fail(exc, k, what)
             raise

@@ -20,10 +20,10 @@ from __future__ import annotations
 import ctypes
 import os
 import threading
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
 
 # (set, get) thread-count symbols of the BLAS builds wheels ship (OpenBLAS with its
 # scipy-openblas prefixes and 64-bit suffix, BLIS, MKL) and of the OpenMP runtimes

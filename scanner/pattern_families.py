@@ -14,6 +14,7 @@ those that are (`family`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 from typing import Any, ClassVar
 
 import numpy as np
@@ -171,9 +172,9 @@ class Hierarchical(TemporalFamily):
     def check(self, fringes: tuple[float, ...], steps: int, where: Any) -> None:
         super().check(fringes, steps, where)
         f = fringes
-        if f[0] != 1 or any(b <= a for a, b in zip(f, f[1:])):
+        if f[0] != 1 or any(b <= a for a, b in pairwise(f)):
             raise ConfigError(where, "fringes", f"hierarchical counts must start at 1 and increase, got {list(f)}")
-        if any(b / a > 16 for a, b in zip(f, f[1:])):
+        if any(b / a > 16 for a, b in pairwise(f)):
             raise ConfigError(where, "fringes", f"ratio between successive counts above 16 is not reliably "
                                                 f"unwrappable: {list(f)}")
 
@@ -263,6 +264,14 @@ class PixelGrayCode(PatternFamily):
 
 FAMILIES: dict[str, PatternFamily] = {f.name: f for f in (Heterodyne(), Hierarchical(), GrayCodePhase(),
                                                           PixelGrayCode())}
+
+
+def temporal(kind: PatternFamily) -> TemporalFamily:
+    """`kind`, where the caller unwraps by its frequencies (`unwrapping` "temporal"): a
+    ConfigError for a family whose fringe order a Gray code gives."""
+    if not isinstance(kind, TemporalFamily):
+        raise ConfigError("pattern set", "family", f"'{kind.name}' does not unwrap by its frequencies")
+    return kind
 
 
 def family(name: str, where: Any = "pattern set") -> PatternFamily:

@@ -18,20 +18,21 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from scanner import schema
 from scanner.config import load_toml
-from scanner.conventions import LAYOUT_KEYS, NATIVE, Conventions, ConventionsFile
+from scanner.conventions import LAYOUT_KEYS, NATIVE, Conventions, ConventionsFile, known
 from scanner.errors import ConfigError
 from scanner.pattern_families import FAMILIES, FrameSpec, PatternFamily, family, gray_code, gray_to_binary
 
 __all__ = ["FAMILIES", "FrameSpec", "PatternFile", "PatternSet", "gray_code", "gray_to_binary"]
 
-ORIENTATIONS = ("vertical", "horizontal")
+Orientation = Literal["vertical", "horizontal"]
+ORIENTATIONS: tuple[str, ...] = get_args(Orientation)
 KINDS = ("phase", "gray", "gray_inverse", "white", "black")
 
 
@@ -42,8 +43,9 @@ class PatternFile(schema.Schema):
 
     family: schema.Str
     steps: Annotated[int, Field(strict=True, ge=0, le=64)] = 0
-    fringes: Annotated[list[Annotated[float, Field(strict=True, gt=0, le=10000)]], Field(max_length=8)] = []
-    orientations: Annotated[list[Literal[ORIENTATIONS]], Field(min_length=1, max_length=2)] = ["vertical"]
+    fringes: Annotated[list[Annotated[float, Field(strict=True, gt=0, le=10000)]],
+                       Field(max_length=8)] = Field(default_factory=list)
+    orientations: Annotated[list[Orientation], Field(min_length=1, max_length=2)] = Field(default=["vertical"])
     conventions: ConventionsFile = ConventionsFile()
     projector_size: Annotated[list[Annotated[int, Field(strict=True, ge=2, le=100000)]],
                               Field(min_length=2, max_length=2)] | None = None
@@ -201,9 +203,10 @@ class PatternSet:
         c = np.arange(extent, dtype=np.float64)
         conv = self.conventions
         if s.kind == "phase":
-            phase = 2.0 * np.pi * self.fringes[s.level] * (c + conv.pixel_centre) / extent
+            centre, sign = known(conv.pixel_centre, "pixel_centre"), known(conv.step_sign, "step_sign")
+            phase = 2.0 * np.pi * self.fringes[s.level] * (c + centre) / extent
             phase += conv.first_phase(self.steps)
-            return 0.5 + 0.5 * np.cos(phase + conv.step_sign * 2.0 * np.pi * s.step / self.steps)
+            return 0.5 + 0.5 * np.cos(phase + sign * 2.0 * np.pi * s.step / self.steps)
         if s.kind in ("white", "black"):
             return np.full(extent, 1.0 if s.kind == "white" else 0.0)
         return self.kind.code_profile(s, extent, self.fringes, self.uses_pixel_code)

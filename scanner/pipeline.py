@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import hashlib
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -23,7 +24,7 @@ from scanner.acquisition import (
     settings_for_exposure,
 )
 from scanner.calibration_file import load_rig_model
-from scanner.decode import DecodeResult, DecodeSettings, NoiseModel, decode
+from scanner.decode import DEFAULT_DECODE_SETTINGS, DecodeResult, DecodeSettings, NoiseModel, decode
 from scanner.decode_checks import (
     FITTED_MODEL_ACCURACY,
     MIN_JUDGED,
@@ -44,12 +45,12 @@ from scanner.devices import Frame
 from scanner.errors import DecodeError, ScannerError, SessionError
 from scanner.exposure import ExposurePlan, ExposureRequest, FusedOrientationMaps, fuse, plan_exposures, probe_images
 from scanner.geometry import RigModel
+from scanner.native_threads import native_threads
 from scanner.patterns import PatternSet
 from scanner.pointcloud import OrganisedCloud, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
 from scanner.rig import Rig
 from scanner.rig_schema import check_patterns_fit
-from scanner.native_threads import native_threads
 from scanner.session import (
     OUTPUTS_DIR,
     RECORDING,
@@ -152,8 +153,9 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Pro
 
     def on_frame(k: int, frame: Frame) -> None:
         for f in stored:
-            if f.done() and f.exception() is not None:
-                raise f.exception()  # type: ignore[misc]
+            failure = f.exception() if f.done() else None
+            if failure is not None:
+                raise failure
         stored.append(pool.submit(store, k, replace(frame, image=frame.image.copy())))  # a driver may reuse its buffer
         progress("capture", k + 1, n * (len(plan.exposures_s) if plan else 1))
 
@@ -203,7 +205,7 @@ def provenance(rig: Rig, session_root: Path) -> dict[str, Any]:
 
 
 def process(session: Session, progress: Progress = _quiet, recording: SessionRecording | None = None,
-            settings: DecodeSettings = DecodeSettings(), mode: str = "triangulation",
+            settings: DecodeSettings = DEFAULT_DECODE_SETTINGS, mode: str = "triangulation",
             frames: dict[int, np.ndarray] | None = None, write_behind: bool = False, *,
             rig_model: RigModel | None = None, rig_model_source: str | None = None) -> ScanResult:
     """Decode and reconstruct a complete session from its raw frames; write the outputs
@@ -429,7 +431,7 @@ def exposure_stacks(session: Session, stack: np.ndarray, model: RigModel) -> lis
 
 
 def decode_exposures(session: Session, stacks: list[np.ndarray], model: RigModel,
-                     settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
+                     settings: DecodeSettings = DEFAULT_DECODE_SETTINGS) -> DecodeResult:
     """One decode of a session: each exposure's pattern set decoded on its own, fused per
     pixel (`scanner.exposure.fuse`; a single exposure's decode as it is), judged against the
     noise of the session's sensor model when its rig file has one."""
@@ -438,7 +440,7 @@ def decode_exposures(session: Session, stacks: list[np.ndarray], model: RigModel
                 session.exposures_s)
 
 
-def decode_session(session: Session, settings: DecodeSettings = DecodeSettings()) -> DecodeResult:
+def decode_session(session: Session, settings: DecodeSettings = DEFAULT_DECODE_SETTINGS) -> DecodeResult:
     """A session's raw frames checked and decoded again, every exposure fused: the decode its
     outputs come from (`process`), for whatever needs it beside them (uncertainty, figures)."""
     stack = session.load_stack()
@@ -455,10 +457,10 @@ def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first
     full = 2 ** session.bit_depth - 1
     flat = stack.reshape(len(stack), -1)
     lo, hi = flat.min(axis=1), flat.max(axis=1)
-    for i in np.flatnonzero(hi - lo <= BLANK_FRAME_RANGE * full):
-        k = first + int(i)
+    for blank in np.flatnonzero(hi - lo <= BLANK_FRAME_RANGE * full):
+        k = first + int(blank)
         raise DecodeError(f"{where}: frame {k} ({session.frame_path(k).name}) is blank (every pixel "
-                          f"{int(lo[i])}..{int(hi[i])} DN): it cannot be a fringe image; re-scan")
+                          f"{int(lo[blank])}..{int(hi[blank])} DN): it cannot be a fringe image; re-scan")
     seen: dict[bytes, int] = {}
     for i, image in enumerate(stack):  # a frame copied over another: named as such, not blamed on a third
         digest = hashlib.sha256(image.tobytes()).digest()
@@ -466,7 +468,8 @@ def check_frames_fit(session: Session, stack: np.ndarray, model: RigModel, first
             k, j = first + i, first + seen[digest]
             raise DecodeError(f"{where}: frame {k} ({session.frame_path(k).name}) repeats frame {j} "
                               f"({session.frame_path(j).name}) pixel for pixel: two patterns cannot give the same "
-                              f"image with camera noise; the frames were copied or the capture repeated a frame; re-scan")
+                              f"image with camera noise; the frames were copied or the capture repeated a frame; "
+                              f"re-scan")
         seen[digest] = i
 
 
@@ -516,7 +519,7 @@ def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triang
     done; a processing error (with the consistency checks of a refused decode) is logged
     into it before it is closed and raised."""
     level = level or recording_level(session)
-    given = {"rig_model": rig_model, "rig_model_source": rig_model_source}
+    given: dict[str, Any] = {"rig_model": rig_model, "rig_model_source": rig_model_source}  # for `process`
     with session_lock(session.root, command="slscan decode"):
         if level == "none":
             session.recording_path.unlink(missing_ok=True)  # an older recording would not match the new outputs
@@ -568,7 +571,10 @@ def log_session_frames(recording: SessionRecording, session: Session) -> None:
         path = session.frame_path(k)
         data = path.read_bytes()
         if path.suffix.lower() != ".png":
-            data = png_bytes(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED))
+            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                raise SessionError(f"{path}: frame {k} is not a readable image")
+            data = png_bytes(image)
         recording.log_png_frame(k, data, spec)
 
 

@@ -12,7 +12,7 @@ one-pixel run's). Used by scan decoding and by calibration from other tools' cap
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

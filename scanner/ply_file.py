@@ -177,7 +177,7 @@ def _check_counts(path: object, header: PlyHeader, available: int) -> None:
 
 
 def _uniform_dtype(e: PlyElementSpec, lengths: dict[str, int], order: str) -> np.dtype:
-    fields = []
+    fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = []
     for p in e.properties:
         if p.count_type is None:
             fields.append((p.name, order + p.type))
@@ -193,7 +193,7 @@ def _read_binary(path: object, header: PlyHeader, data: bytes) -> dict[str, Elem
     _check_counts(path, header, len(body))
     at = 0
     out: dict[str, Element] = {}
-    for i, e in enumerate(header.elements):
+    for e in header.elements:
         lists = [p for p in e.properties if p.count_type is not None]
         lengths = {}
         if lists and e.count:  # the first record's list lengths, taken as every record's (checked below)

@@ -13,9 +13,18 @@ from plyfile import PlyData, PlyElement
 PLY_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
                        ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("row", "<i4"), ("col", "<i4")])
 
+
+def _offset(dtype: np.dtype, name: str) -> int:
+    """The byte offset of field `name` in the structured `dtype`."""
+    fields = dtype.fields
+    if fields is None:
+        raise TypeError(f"{dtype} is not a structured dtype")
+    return int(fields[name][1])
+
+
 _PLY_GROUPS = np.dtype({"names": ["position", "normal", "grey", "row", "col"],  # PLY_VERTEX's bytes, grouped
                         "formats": [("<f4", 3), ("<f4", 3), ("u1", 3), "<i4", "<i4"],
-                        "offsets": [PLY_VERTEX.fields[k][1] for k in ("x", "nx", "red", "row", "col")],
+                        "offsets": [_offset(PLY_VERTEX, k) for k in ("x", "nx", "red", "row", "col")],
                         "itemsize": PLY_VERTEX.itemsize})
 
 

@@ -10,7 +10,8 @@ The second mode is the reference-plane phase-to-height model of paper 000, Eq. 1
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, partial
+from typing import Literal, overload
 
 import cv2
 import numpy as np
@@ -125,6 +126,17 @@ class Triangulator:
     def _horizontal(self) -> tuple:
         return self._constants(1) + (_UndistortTable(self.rig.projector, 1),)
 
+    @overload
+    def depth_scale(self, coord: np.ndarray, orientation: str, sensitivity: Literal[False] = False) -> np.ndarray: ...
+
+    @overload
+    def depth_scale(self, coord: np.ndarray, orientation: str,
+                    sensitivity: Literal[True]) -> tuple[np.ndarray, np.ndarray]: ...
+
+    @overload
+    def depth_scale(self, coord: np.ndarray, orientation: str,
+                    sensitivity: bool) -> np.ndarray | tuple[np.ndarray, np.ndarray]: ...
+
     def depth_scale(self, coord: np.ndarray, orientation: str,
                     sensitivity: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """Ray parameter s (= depth z in mm, since rays have z = 1) for every pixel with a
@@ -155,14 +167,14 @@ class Triangulator:
         def flat(rows: slice) -> slice:
             return slice(rows.start * width, rows.stop * width)
 
-        def one_pass(rows: slice) -> None:
+        def one_pass(rows: slice, first: bool) -> None:
             sl = flat(rows)
-            x = x_n[sl] if passes else (c[sl] - np.float32(K[axis, 2])) * np.float32(1.0 / K[axis, axis])
+            x = (c[sl] - np.float32(K[axis, 2])) * np.float32(1.0 / K[axis, axis]) if first else x_n[sl]
             x_n[sl] = refine(x, sl)  # the first pass starts from the distortion-free coordinate
 
         probe = slice(0, None, 97)  # convergence is judged on a dense subsample, not a full pass
         for passes in range(_MAX_PASSES):
-            in_bands(shape[0], one_pass)
+            in_bands(shape[0], partial(one_pass, first=passes == 0))
             if not np.nanmax(np.abs(refine(x_n[probe], probe) - x_n[probe]), initial=0.0) >= _CONVERGED:
                 break
         z = np.empty(c.size, np.float32)

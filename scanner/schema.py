@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import difflib
 import types
-import unicodedata
 import typing
+import unicodedata
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 

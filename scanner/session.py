@@ -41,6 +41,7 @@ import os
 import platform
 import uuid
 import zipfile
+from contextlib import suppress
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Any, BinaryIO, Literal
@@ -57,7 +58,8 @@ from scanner.geometry import PhaseToHeight, RigModel
 from scanner.patterns import PatternFile, PatternSet
 from scanner.rig_schema import RigModelSchema, check_geometry
 
-MANIFEST_VERSION = 1
+ManifestVersion = Literal[1]  # the manifest format this slscan writes and reads
+MANIFEST_VERSION: ManifestVersion = 1
 MANIFEST = "manifest.json"
 CAPTURE = "capture.json"
 ERROR = "error.json"
@@ -233,7 +235,7 @@ class SessionWriter:
         self.id = f"{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
         self.frames: list[dict[str, Any]] = []
         self.camera_frames: dict[str, list[dict[str, Any]]] = {}  # a rig with several cameras: each one's frames
-        self.started = dt.datetime.now(dt.timezone.utc)
+        self.started = dt.datetime.now(dt.UTC)
         (root / FRAMES_DIR).mkdir(parents=True, exist_ok=False)
 
     @classmethod
@@ -290,7 +292,7 @@ class SessionWriter:
                devices: dict[str, Any], timings: dict[str, float], extra: dict[str, Any] | None = None) -> Path:
         """Write the manifest: from now on the session is complete."""
         manifest = {**self._record(rig_config, model, patterns, devices, extra),
-                    "completed": dt.datetime.now(dt.timezone.utc).isoformat(), "timings_s": timings,
+                    "completed": dt.datetime.now(dt.UTC).isoformat(), "timings_s": timings,
                     "frames": self.frames}
         try:
             write_json(self.root / MANIFEST, manifest)
@@ -302,12 +304,10 @@ class SessionWriter:
     def fail(self, error: BaseException, stage: str) -> None:
         """Record why the capture stopped; the frames already stored stay. When even that
         cannot be written (the disk is full), the error itself is what the user sees."""
-        try:
+        with suppress(OSError):
             write_json(self.root / ERROR, {
                 "session_id": self.id, "stage": stage, "error": type(error).__name__, "message": str(error),
-                "frames_stored": len(self.frames), "time": dt.datetime.now(dt.timezone.utc).isoformat()})
-        except OSError:
-            pass
+                "frames_stored": len(self.frames), "time": dt.datetime.now(dt.UTC).isoformat()})
 
 
 BitDepth = Annotated[int, Field(strict=True, ge=1, le=16)]
@@ -400,9 +400,9 @@ class Manifest(schema.Schema):
 
     model_config = ConfigDict(extra="allow")
 
-    slscan_manifest: Literal[MANIFEST_VERSION]
+    slscan_manifest: ManifestVersion
     session_id: Annotated[str, Field(strict=True, min_length=1)]
-    rig_config: dict[str, Any] = {}
+    rig_config: dict[str, Any] = Field(default_factory=dict)
     rig_model: RigModelSchema
     patterns: PatternFile
     frames: Annotated[list[FrameEntry], Field(min_length=1)]
@@ -461,8 +461,8 @@ class Session:
         try:
             m = schema.parse(Manifest, manifest, mpath)
             PatternSet.from_dict(manifest["patterns"], mpath, "patterns")
-            rig = m.rig_config.get("rig") if isinstance(m.rig_config.get("rig"), dict) else {}
-            distance = rig.get("working_distance_mm")
+            rig = m.rig_config.get("rig")
+            distance = rig.get("working_distance_mm") if isinstance(rig, dict) else None
             check_geometry(RigModel.from_dict(manifest["rig_model"], f"{mpath}: rig_model"),
                            float(distance) if isinstance(distance, (int, float)) and distance > 0 else None,
                            mpath, "rig_model")
@@ -542,7 +542,8 @@ class Session:
                                    f"{shape[1]} x {shape[0]}")
             img, said = decode_image(data)
             if img is None:
-                raise SessionError(f"{path}: frame {k} missing or unreadable (not an image{': ' + said if said else ''})")
+                raise SessionError(f"{path}: frame {k} missing or unreadable "
+                                   f"(not an image{': ' + said if said else ''})")
             if img.shape != shape or str(img.dtype) != e["dtype"]:
                 raise SessionError(f"{path}: frame {k} is {_describe(img)}, expected {e['dtype']} "
                                    f"{shape[1]}x{shape[0]} single-channel")

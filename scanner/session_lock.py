@@ -42,7 +42,9 @@ def _holder(fd: int) -> str:
     try:
         os.lseek(fd, 0, os.SEEK_SET)
         info = json.loads(os.read(fd, 4096) or b"{}")
-        return f"PID {int(info['pid'])} ({str(info.get('command', '?'))[:60]}, since {str(info.get('since', '?'))[:19]})"
+        pid = int(info["pid"])
+        command, since = str(info.get("command", "?"))[:60], str(info.get("since", "?"))[:19]
+        return f"PID {pid} ({command}, since {since})"
     except (OSError, ValueError, KeyError, TypeError):
         return "another process"
 
@@ -58,8 +60,8 @@ def leftovers(root: Path) -> list[Path]:
     for folder in (root, root / "frames", root / "outputs"):
         try:
             with os.scandir(folder) as entries:
-                found += [Path(e.path) for e in entries if is_leftover(e.name) and e.is_file(follow_symlinks=False)
-                          or is_leftover(e.name) and e.is_symlink()]
+                found += [Path(e.path) for e in entries if (is_leftover(e.name) and e.is_file(follow_symlinks=False))
+                          or (is_leftover(e.name) and e.is_symlink())]
         except (FileNotFoundError, NotADirectoryError):
             continue
     return found

@@ -230,7 +230,8 @@ def _every(masks: Mapping[str, np.ndarray], step: int) -> dict[str, np.ndarray]:
 def _annotation_context(ids: Mapping[str, int]) -> rr.AnnotationContext:
     infos = [rr.AnnotationInfo(id=VALID_CLASS, label="valid", color=(0, 0, 0, 0)),
              rr.AnnotationInfo(id=REJECTED_CLASS, label="rejected", color=_OTHER_REASON_COLOR)]
-    infos += [rr.AnnotationInfo(id=i, label=n, color=_REASON_COLORS.get(n, _OTHER_REASON_COLOR)) for n, i in ids.items()]
+    infos += [rr.AnnotationInfo(id=i, label=n, color=_REASON_COLORS.get(n, _OTHER_REASON_COLOR))
+              for n, i in ids.items()]
     return rr.AnnotationContext(infos)
 
 
@@ -349,7 +350,7 @@ class SessionRecording:
             if not self._closed:
                 self.log_event(f"session aborted: {exc_type.__name__ if exc_type else 'error'}: {exc}", level="ERROR")
             self.close()
-        except Exception:  # noqa: BLE001
+        except Exception:
             pass
 
     @property
@@ -374,12 +375,12 @@ class SessionRecording:
                 if self._blueprint_pending:
                     self._send_blueprint((), 0)
                 self._flush()
-            except Exception as exc:  # noqa: BLE001 — a writer that cannot flush cannot disconnect either
+            except Exception as exc:  # a writer that cannot flush cannot disconnect either
                 errors.append(exc)
                 return
             try:
                 self.stream.disconnect()  # closes the file sink: footer written
-            except Exception as exc:  # noqa: BLE001
+            except Exception as exc:
                 errors.append(exc)
 
         worker = threading.Thread(target=finish, name=f"close {self.path.name}", daemon=True)

@@ -108,11 +108,11 @@ def recover_manifest(root: str | Path, *, rig: Any = None, patterns: PatternSet 
                 raise SessionError(f"{root / FRAME_LOG}: frame {k} is missing (the log goes on with frame {e['k']})")
             _check_frame(root, k, e)
         if len(entries) != needed:
-            raise SessionError(f"{root}: holds {len(entries)} of the {needed} frames the pattern set needs: the capture "
-                               f"did not finish; re-scan the part (the frames are kept)")
+            raise SessionError(f"{root}: holds {len(entries)} of the {needed} frames the pattern set needs: the "
+                               f"capture did not finish; re-scan the part (the frames are kept)")
         error = _read_json(root / ERROR) if (root / ERROR).exists() else None
         manifest = {**record, "timings_s": record.get("timings_s", {}), "frames": entries,
-                    "recovered": {"time": dt.datetime.now(dt.timezone.utc).isoformat(),
+                    "recovered": {"time": dt.datetime.now(dt.UTC).isoformat(),
                                   "from": [FRAME_LOG] + ([] if assumed else [CAPTURE]),
                                   "assumed": assumed, "frames_checked": "sha256" if entries[0].get("sha256") else
                                   "not checked (no checksums logged)", "note": note, "error_json": error}}
@@ -138,7 +138,7 @@ def _capture_record(root: Path, rig: Any, patterns: PatternSet | None) -> tuple[
                            f"give the rig the session was captured with, `--rig RIG.toml` (and `--patterns` if the "
                            f"scan used other patterns); the manifest will say they were assumed")
     patterns = patterns or PatternSet.load(rig.patterns_path)
-    started = dt.datetime.fromtimestamp((root / FRAME_LOG).stat().st_mtime, dt.timezone.utc)
+    started = dt.datetime.fromtimestamp((root / FRAME_LOG).stat().st_mtime, dt.UTC)
     record = manifest_record(root, root.name, started, rig.raw, rig.model, patterns, {},
                              {"rig_config_path": str(rig.path.resolve())})
     return record, f"rig {rig.path} and patterns {patterns.family} given on the command line, not recorded"

@@ -30,9 +30,9 @@ import abc
 import logging
 import math
 import threading
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum
-from typing import Mapping, Sequence
 
 from scanner import devices
 from scanner.devices import Device
@@ -150,7 +150,7 @@ class Stage(Device):
         require homing may move. Returns the status of the cycle."""
         self._check_alive()
         self._check_idle()
-        self._prepare({n: 0.0 for n in self.axes})
+        self._prepare(dict.fromkeys(self.axes, 0.0))
         status = self._start_action("homing cycle", max(_homing_s(a) for a in self.axes.values()) + self.settle_s)
         status.add_callback(self._on_homed)
         try:
