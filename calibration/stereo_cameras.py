@@ -13,8 +13,9 @@ orientation's check allows for (scanner/binocular.py).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Sequence
+from typing import Any
 
 import cv2
 import numpy as np

@@ -84,7 +84,7 @@ class CaptureWriter:
         self.root.mkdir(parents=True, exist_ok=True)
         self.manifest: dict[str, Any] = {
             "format": CAPTURE_FORMAT, "version": CAPTURE_VERSION, "rig": rig_name,
-            "created": dt.datetime.now(dt.timezone.utc).isoformat(), "board": board.to_dict(),
+            "created": dt.datetime.now(dt.UTC).isoformat(), "board": board.to_dict(),
             "patterns": patterns.to_dict(), "camera_size": list(camera_size), "projector_size": list(projector_size),
             "bit_depth": bit_depth, "gamma_levels": None, "poses": [], "plates": [], "artefact": None}
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="capture-writer")

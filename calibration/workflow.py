@@ -20,9 +20,10 @@ before; whatever a capture lacks (gamma, plate, artefact) is reported as not mea
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -35,8 +36,17 @@ from calibration.fit import fit_plane, plane_rms
 from calibration.gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images, phase_error_rad
 from calibration.intrinsics import calibrate_device
 from calibration.phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, local_pitch_range_mm
-from calibration.solve import (OUTLIER_ALPHA, OUTLIER_GATE, CalibrationSettings, Solution, Stability, check_limits,
-                               leave_one_out, solve, without_view)
+from calibration.solve import (
+    OUTLIER_ALPHA,
+    OUTLIER_GATE,
+    CalibrationSettings,
+    Solution,
+    Stability,
+    check_limits,
+    leave_one_out,
+    solve,
+    without_view,
+)
 from calibration.stereo import RIG_PARAMETERS
 from calibration.store import CaptureSet, CaptureWriter, decode_pose, pose_view
 from calibration.validate import Artefact, Validation, measure_sphere_pair

@@ -25,16 +25,17 @@ from __future__ import annotations
 
 import re
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from inspection.errors import CadError
+from inspection.surfaces import BSpline, Cone, Cylinder, Plane, Sphere, Surface, Torus
 from scanner.file_checks import FileRefused, regular_size
 from scanner.mesh_files import read_mesh
-from inspection.surfaces import BSpline, Cone, Cylinder, Plane, Sphere, Surface, Torus
 
 STEP_SUFFIXES = (".step", ".stp")
 MESH_SUFFIXES = (".stl", ".ply", ".obj")
@@ -466,7 +467,7 @@ def _load_step(path: Path, deflection_mm: float | None, scale: float, progress: 
         name = f"face #{step_ids[i]}" if step_ids[i] is not None else f"face {i + 1} (no STEP id)"
         try:
             face = _step_face(f, len(faces), step_ids[i], defl)
-        except Exception as exc:  # noqa: BLE001 — OpenCASCADE's own failures on one face (Standard_Failure)
+        except Exception as exc:  # OpenCASCADE's own failures on one face (Standard_Failure)
             face, why = None, f"{type(exc).__name__}: {exc}"
         else:
             why = "no surface and no triangles"
@@ -642,7 +643,7 @@ class MeshSurface:
         return np.zeros((len(points), 2)), foot, n, np.einsum("ij,ij->i", points - foot, n)
 
     def params(self) -> dict[str, Any]:
-        return {"triangles": int(len(self.triangles))}
+        return {"triangles": len(self.triangles)}
 
 
 def _load_mesh(path: Path, unit: str) -> CadModel:

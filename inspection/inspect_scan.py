@@ -24,9 +24,10 @@ from __future__ import annotations
 import threading
 import time
 import weakref
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -35,10 +36,10 @@ from inspection.errors import InspectionError
 from inspection.form import FORM_WORKERS, FaceForm, FormSettings, evaluate_face
 from inspection.measured_cloud import ScanCloud, make_scan, part_mask
 from inspection.registration import ModelTarget, Registration, RegistrationSettings, transform_points
-from inspection.registration.warm_start import register_with_prior
-from inspection.report import FaceRow, InspectionReport
 from inspection.registration.driver import AMBIGUOUS
 from inspection.registration.evidence import SYMMETRY_ZERO, FreeMotion, PoseCovariance, jacobian, moves
+from inspection.registration.warm_start import register_with_prior
+from inspection.report import FaceRow, InspectionReport
 from inspection.segmentation import UNASSIGNED, Segmentation, assign_faces
 from inspection.tolerances import FIGURE_OF, GUARD_BANDED, NOT_MEASURED, Tolerances, decide
 from inspection.uncertainty import ScanUncertainty

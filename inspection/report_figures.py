@@ -23,12 +23,12 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-from inspection.deviation_colours import ColourScale, shown_count, shown_deviations  # noqa: E402
-from inspection.tolerances import FIGURE_OF, overall  # noqa: E402
+from inspection.deviation_colours import ColourScale, shown_count, shown_deviations
+from inspection.tolerances import FIGURE_OF, overall
 
 MAX_POINTS = 40_000
 MAX_TRIANGLES = 6_000  # the CAD mesh drawn behind the points is decimated to this many

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import hashlib
 import html
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable
 
 LABELS = {"part": "Part", "serial": "Serial number", "program": "Part program", "program_sha256": "Program SHA-256",
           "operator": "Operator", "date": "Date (UTC)", "rig": "Rig", "calibration_id": "Calibration id",

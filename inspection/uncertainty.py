@@ -104,8 +104,9 @@ simulator (`slscan coverage [--calibrated]`, `sim.repeat_scans`, tests/test_unce
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np

@@ -30,6 +30,7 @@ point per pickable part ("#rank id side"); ``pose/table`` the table;
 from __future__ import annotations
 
 from dataclasses import replace
+from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -119,8 +120,6 @@ def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: 
                    message: str = "") -> dict[str, Any]:
     """The poses file's content (see the module docstring); `world_from_cam` None: no rig,
     camera frame only; `rig`: its name, calibration and session id as the file states them."""
-    from datetime import datetime, timezone
-
     W = None if world_from_cam is None else np.asarray(world_from_cam, np.float64)
     ranks = pick_order(poses, max_occlusion)
     parts = []
@@ -150,7 +149,7 @@ def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: 
             row["label"] = p.label
         parts.append(row)
     return {"format": POSES_FORMAT, "version": POSES_VERSION,
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "source": source, "rig": rig, "part": model.name,
             "units": {"length": "mm", "angles": "none (quaternions, rotation matrices, unit vectors)"},
             "frames": {"pose": "part -> frame: a part-frame point p maps to R p + position",

@@ -11,8 +11,7 @@ from inspection.errors import RegistrationFailed
 from inspection.measured_cloud import ScanCloud
 from inspection.registration.alternatives import surviving, unrejected
 from inspection.registration.clouds import voxel_grid
-from inspection.registration.evidence import (Comparison, FreeMotion, PoseCovariance, disagreement, free_motions,
-                                              within)
+from inspection.registration.evidence import Comparison, FreeMotion, PoseCovariance, disagreement, free_motions, within
 from inspection.registration.fine import fine_pose, fit_covariance
 from inspection.registration.hypotheses import plane_poses, with_flips
 from inspection.registration.ndt import coarse_ndt_poses
