@@ -211,7 +211,7 @@ class Board:
         whole numbers of texels (BoardError otherwise), so edges are exact; circles are
         area-sampled 4 x 4 per texel."""
         w_mm, h_mm = self.size_mm
-        W, H = int(round(w_mm * px_per_mm)), int(round(h_mm * px_per_mm))
+        W, H = round(w_mm * px_per_mm), round(h_mm * px_per_mm)
         ox, oy = self.image_origin_mm
         if self.kind == "circles_asymmetric":
             ss = 4
@@ -230,7 +230,7 @@ class Board:
         if abs(step - round(step)) > 1e-6 or abs(margin - round(margin)) > 1e-6:
             raise BoardError(f"board '{self.name}': square {self.square_mm} mm and margin {self.margin_mm} mm must be "
                              f"whole numbers of texels at {px_per_mm} px/mm for exact edges; choose another density")
-        step, margin = int(round(step)), int(round(margin))
+        step, margin = round(step), round(margin)
         if self.kind == "charuco":
             board = self.opencv_charuco()
             img = board.generateImage((W, H), marginSize=margin, borderBits=1)

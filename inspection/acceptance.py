@@ -139,7 +139,7 @@ class Acceptance:
             raise ConfigError(path, "acceptance.decision_rule", f"{rule!r}: use one of {sorted(DECISION_RULES)}")
         m = get_table(t, "mpe", path, prefix="acceptance")
         mpe = {}
-        for k, v in m.items():
+        for k in m:
             name = k.removesuffix("_mm")
             if k == "E_mm":
                 raise ConfigError(path, f"acceptance.mpe.{k}", "VDI/VDE 2634-2 has no length measurement error E for "
@@ -276,7 +276,7 @@ def regions(points: np.ndarray, max_step_mm: float = MAX_STEP_MM) -> tuple[np.nd
             else:
                 ok[:, :-1] &= ~jump
                 ok[:, 1:] &= ~jump
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(ok.view(np.uint8), connectivity=4)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(ok.view(np.uint8), connectivity=4)
     return labels, stats[:, cv2.CC_STAT_AREA]
 
 

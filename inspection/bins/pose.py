@@ -198,7 +198,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
     ambiguous = _ambiguity(judged, patch, settings)
     if ambiguous is not None:
         return ambiguous
-    score, side, T = judged[0]
+    _, side, T = judged[0]
     margin = _side_margin(judged)
     sm = model.sides[side]
     v = settings.voxel_mm
