@@ -146,7 +146,8 @@ class Acceptance:
                                                                "one view; the ball bar's outer-length error (SD plus "
                                                                "both spheres' size errors) is OL_mm")
             if name not in PARAMETERS or not k.endswith("_mm"):
-                raise ConfigError(path, f"acceptance.mpe.{k}", f"unknown parameter; use {[p + '_mm' for p in PARAMETERS]}")
+                raise ConfigError(path, f"acceptance.mpe.{k}",
+                                  f"unknown parameter; use {[p + '_mm' for p in PARAMETERS]}")
             value = get(m, k, float, path, prefix="acceptance.mpe")
             if not 0 < value < np.inf:
                 raise ConfigError(path, f"acceptance.mpe.{k}", f"an MPE must be a finite number > 0 (mm), got {value}")
@@ -571,9 +572,11 @@ class AcceptanceReport:
             + f"<td>{html.escape('NOT TESTED' if not r.tested else r.error or r.position.description)}</td></tr>"
             for r in self.all_results)
         summary = "".join(f"<tr><td>{html.escape(NAMES[p])} {p}</td><td>{um(d[f'{p}_mm'])}</td>"
-                          f"<td>{um(d[f'{p}_u_mm'])}</td><td>{um(self.acceptance.mpe.get(p))}</td><td class='{d['verdicts'][p].replace(' ', '-')}'>"
-                          f"{d['verdicts'][p]}</td></tr>" for p in PARAMETERS)
-        return (f"<!doctype html><html><head><meta charset='utf-8'><title>Acceptance test {html.escape(self.rig)}</title>"
+                          f"<td>{um(d[f'{p}_u_mm'])}</td><td>{um(self.acceptance.mpe.get(p))}</td>"
+                          f"<td class='{d['verdicts'][p].replace(' ', '-')}'>{d['verdicts'][p]}</td></tr>"
+                          for p in PARAMETERS)
+        return (f"<!doctype html><html><head><meta charset='utf-8'>"
+                f"<title>Acceptance test {html.escape(self.rig)}</title>"
                 f"<style>body{{font-family:sans-serif}}td,th{{padding:2px 8px;text-align:right}}"
                 f".conforming{{background:#cfc}}.non-conforming{{background:#fcc}}.uncertain{{background:#ffc}}"
                 f".incomplete,.not-tested,tr.not-tested{{background:#ddd}}"

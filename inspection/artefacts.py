@@ -156,10 +156,13 @@ class SphereResult:
 
 
 INNER_BAND = 0.1  # the inner fits keep points within this fraction of the nominal radius of a first fit
+CAMERA_ORIGIN = np.zeros(3)  # the default viewpoint: the camera frame's origin (mm); shared, so read-only
+CAMERA_ORIGIN.flags.writeable = False
 
 
 def measure_sphere(points: np.ndarray, unc: ScanUncertainty, nominal_radius_mm: float,
-                   viewpoint: np.ndarray | None = np.zeros(3), *, inner: bool = True) -> tuple[SphereFit, SphereResult]:
+                   viewpoint: np.ndarray | None = CAMERA_ORIGIN, *,
+                   inner: bool = True) -> tuple[SphereFit, SphereResult]:
     """Fit a sphere and propagate the uncertainties to its radius and centre. `inner`:
     only the points within INNER_BAND of the nominal radius of a first fit, facing the
     `viewpoint` at less than MAX_VIEW_DEG (`fit_sphere`); else every point given (the
@@ -193,7 +196,7 @@ class BallBarResult:
 
 
 def measure_ball_bar(points: tuple[np.ndarray, np.ndarray], unc: tuple[ScanUncertainty, ScanUncertainty],
-                     nominal_radius_mm: float, viewpoint: np.ndarray | None = np.zeros(3), *,
+                     nominal_radius_mm: float, viewpoint: np.ndarray | None = CAMERA_ORIGIN, *,
                      inner: bool = True) -> BallBarResult:
     """Both spheres of a ball bar from their points (`measure_sphere`, `inner` as there),
     and the distance between the centres with the uncertainty of the pair (the two

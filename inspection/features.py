@@ -99,7 +99,8 @@ def shot(points: np.ndarray, normals: np.ndarray, centres: np.ndarray, radius: f
     return np.where(norm > 0, hist / np.where(norm > 0, norm, 1.0), 0.0)
 
 
-def fpfh(points: np.ndarray, normals: np.ndarray, keypoints: np.ndarray, radius: float, max_nn: int = 128) -> np.ndarray:
+def fpfh(points: np.ndarray, normals: np.ndarray, keypoints: np.ndarray, radius: float,
+         max_nn: int = 128) -> np.ndarray:
     """Open3D's FPFH (K, 33) of the points indexed by `keypoints`, from neighbourhoods of
     `radius` (mm) in `points`/`normals`; each row normalised to unit length."""
     import open3d as o3d

@@ -159,7 +159,8 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
             assigned_points=int(seg.assigned.sum()), registration=reg, faces=tuple(done[k] for k in sorted(done)),
             form_settings=settings.form, timings_s={k: round(v, 4) for k, v in times.items()},
             part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose.as_dict(),
-            calibration=uncertainty.calibration.source if uncertainty is not None else "not known (a bare cloud): not in U",
+            calibration=(uncertainty.calibration.source if uncertainty is not None
+                         else "not known (a bare cloud): not in U"),
             cad=model, status=reg.status, status_note=_free_note(reg, unbounded))
 
     # the faces the tolerances ask for first: the verdict needs only them; the others' figures follow

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from inspection.bins.pose_settings import PoseSettings
+from inspection.bins.pose_settings import DEFAULT_POSE_SETTINGS, PoseSettings
 from inspection.errors import CadError
 from inspection.registration import ModelTarget, Samples
 
@@ -91,7 +91,7 @@ class ThinPartModel:
 
     @classmethod
     def from_mesh(cls, vertices: np.ndarray, triangles: np.ndarray, name: str,
-                  settings: PoseSettings = PoseSettings(), spacing_mm: float = 0.1) -> ThinPartModel:
+                  settings: PoseSettings = DEFAULT_POSE_SETTINGS, spacing_mm: float = 0.1) -> ThinPartModel:
         """The model of a closed thin plate given as a triangle mesh (mm). The front face is
         the large face whose normal has a positive part-frame z (or x, y if z is in-plane)."""
         v = np.asarray(vertices, dtype=np.float64)

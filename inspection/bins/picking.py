@@ -138,8 +138,8 @@ def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: 
                                      "world": None if W is None else _rounded(W[:3, :3] @ a_cam, 8)}})
             if grip is not None:
                 g_cam = transform_points(p.pose, grip[None])[0]
-                row["grip_point_mm"] = {"camera": _rounded(g_cam, 5),
-                                        "world": None if W is None else _rounded(transform_points(W, g_cam[None])[0], 5)}
+                g_world = None if W is None else _rounded(transform_points(W, g_cam[None])[0], 5)
+                row["grip_point_mm"] = {"camera": _rounded(g_cam, 5), "world": g_world}
             if p.instance_id not in ranks:
                 row["reason"] = (f"occluded {p.occlusion:.0%} (limit {max_occlusion:.0%} less the estimate's "
                                  f"error bound {OCCLUSION_BOUND:.0%})")

@@ -45,7 +45,7 @@ import numpy as np
 from inspection.bins.instance_plane import InstancePatch, SceneContext, instance_patch, onto_plane
 from inspection.bins.instances import Instance
 from inspection.bins.part_model import SideModel, ThinPartModel
-from inspection.bins.pose_settings import PoseError, PoseSettings
+from inspection.bins.pose_settings import DEFAULT_POSE_SETTINGS, PoseError, PoseSettings
 from inspection.downsample import downsample
 from inspection.registration import RegistrationSettings, fitness, icp, pose_difference, transform_points
 from inspection.registration.hypotheses import with_flips
@@ -81,7 +81,7 @@ class PartPose:
 
 
 def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContext | None = None,
-                  settings: PoseSettings = PoseSettings()) -> PartPose:
+                  settings: PoseSettings = DEFAULT_POSE_SETTINGS) -> PartPose:
     """The pose of `model` explaining `instance` (camera frame), or a failed PartPose
     saying why (see the module docstring)."""
     t0, c0 = time.perf_counter(), time.process_time()
@@ -232,7 +232,8 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
                 f"(limit {settings.max_spill:.0%}): no pose explains the instance's outline", kw, True)
     if occl > settings.max_pose_occlusion:
         return (f"the best pose ({side} up) leaves {occl:.0%} of the part covered (limit "
-                f"{settings.max_pose_occlusion:.0%}): too little of it shows to rule out the part turned over", kw, False)
+                f"{settings.max_pose_occlusion:.0%}): too little of it shows to rule out the part turned over",
+                kw, False)
     return PartPose(0, True, "", f"{settings.method}+icp", 0, pose, side, fit, rmse, occl, margin, edge_fit=edge)
 
 
@@ -391,7 +392,7 @@ def _ndt_poses(src: np.ndarray, patch: InstancePatch, model: ThinPartModel, sm: 
 
 
 def estimate_poses(instances: list[Instance], model: ThinPartModel, context: SceneContext | None = None,
-                   settings: PoseSettings = PoseSettings()) -> list[PartPose]:
+                   settings: PoseSettings = DEFAULT_POSE_SETTINGS) -> list[PartPose]:
     """`estimate_pose` for every instance, with the scene as context (None: every
     instance edge is taken as a true outline edge)."""
     return [estimate_pose(i, model, context, settings) for i in instances]

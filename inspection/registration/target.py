@@ -9,7 +9,12 @@ from inspection.cad import CadModel
 from inspection.measured_cloud import ScanCloud
 from inspection.registration.clouds import Samples, voxel_grid
 from inspection.registration.rigid import transform_points
-from inspection.registration.settings import RegistrationSettings, TargetSettings
+from inspection.registration.settings import (
+    DEFAULT_REGISTRATION_SETTINGS,
+    DEFAULT_TARGET_SETTINGS,
+    RegistrationSettings,
+    TargetSettings,
+)
 from inspection.registration.spheres import SphereFeatures, describe, screen, sphere_radii
 from inspection.sampling import LabelledCloud, sample_model
 
@@ -21,7 +26,7 @@ class ModelTarget:
 
     def __init__(self, points: np.ndarray, normals: np.ndarray, name: str, voxel_mm: float | None = None,
                  model: CadModel | None = None, samples: LabelledCloud | None = None,
-                 settings: TargetSettings = TargetSettings()) -> None:
+                 settings: TargetSettings = DEFAULT_TARGET_SETTINGS) -> None:
         self.name = name
         self.model = model
         self.samples = samples  # CAD targets: the labelled samples `points`/`normals` come from
@@ -35,14 +40,14 @@ class ModelTarget:
 
     @classmethod
     def from_cad(cls, model: CadModel, voxel_mm: float | None = None, seed: int = 0,
-                 settings: TargetSettings = TargetSettings()) -> ModelTarget:
+                 settings: TargetSettings = DEFAULT_TARGET_SETTINGS) -> ModelTarget:
         voxel = voxel_mm or model.diagonal_mm / settings.voxel_fraction
         s = sample_model(model, voxel / settings.dense_fraction, seed=seed)
         return cls(s.points, s.normals, str(model.path), voxel, model, s, settings)
 
     @classmethod
     def from_cloud(cls, scan: ScanCloud, voxel_mm: float | None = None,
-                   settings: TargetSettings = TargetSettings()) -> ModelTarget:
+                   settings: TargetSettings = DEFAULT_TARGET_SETTINGS) -> ModelTarget:
         return cls(scan.points, scan.normals, scan.source, voxel_mm, settings=settings)
 
     def describe(self, cloud: Samples, idx: np.ndarray, radius: float,
@@ -66,7 +71,7 @@ class ModelTarget:
             self._features[radius] = f
         return f
 
-    def prepare(self, scan: ScanCloud, settings: RegistrationSettings = RegistrationSettings()) -> None:
+    def prepare(self, scan: ScanCloud, settings: RegistrationSettings = DEFAULT_REGISTRATION_SETTINGS) -> None:
         """Compute, ahead of registration, what `register` would compute for a scan like
         `scan` the first time: the sphere descriptors at its RSCS radii (a once-per-model
         cost, kept for every later scan of that size) and the ray-casting scene."""
