@@ -131,7 +131,8 @@ class Acceptance:
         for k in t:
             if k not in known:
                 raise ConfigError(path, f"acceptance.{k}", f"unknown key; expected one of {sorted(known)}")
-        size = tuple(get_vector(t, "volume_mm", 3, path, prefix="acceptance"))
+        sx, sy, sz = get_vector(t, "volume_mm", 3, path, prefix="acceptance")
+        size = (sx, sy, sz)
         if not all(s > 0 for s in size):
             raise ConfigError(path, "acceptance.volume_mm", f"sizes must be > 0, got {list(size)}")
         rule = get(t, "decision_rule", str, path, GUARD_BANDED, "acceptance")
@@ -153,7 +154,7 @@ class Acceptance:
                 raise ConfigError(path, f"acceptance.mpe.{k}", f"an MPE must be a finite number > 0 (mm), got {value}")
             mpe[name] = value
         art = get(t, "artefacts", str, path, None, "acceptance")
-        return cls(size, (0.0, 0.0, working_distance_mm), mpe, rule, resolve(path, art) if art else None)  # type: ignore[arg-type]
+        return cls(size, (0.0, 0.0, working_distance_mm), mpe, rule, resolve(path, art) if art else None)
 
 
 # ------------------------------------------------------------------------- positions
@@ -214,7 +215,7 @@ def positions(acceptance: Acceptance, artefacts: ArtefactSet) -> list[Position]:
             raise ConfigError(artefacts.path or "artefacts", "sphere.diameter_mm",
                               f"a sphere of {artefacts.sphere.diameter_mm} mm does not fit the measuring volume "
                               f"{list(acceptance.size_mm)} mm")
-        places = [np.zeros(3)] + [inset * np.array(s) for s in np.ndindex(2, 2, 2) for s in [np.array(s) * 2 - 1]] \
+        places = [np.zeros(3)] + [inset * (np.array(s) * 2 - 1) for s in np.ndindex(2, 2, 2)] \
             + [np.array([0.0, 0.0, -inset[2]])]
         for i, p in enumerate(places):
             out.append(Position("sphere", i, pose_of(np.eye(3), c + p),
@@ -305,7 +306,7 @@ def find_spheres(points: np.ndarray, radius_mm: float, count: int) -> list[np.nd
     from inspection.artefacts import fit_sphere
 
     labels, sizes = regions(points)
-    found = []
+    found: list[np.ndarray] = []
     for k in np.argsort(sizes[1:])[::-1] + 1:
         if sizes[k] < 100 or len(found) == count:
             break
@@ -387,36 +388,37 @@ def evaluate(position: Position, data: ScanData, artefacts: ArtefactSet) -> Posi
             pxs = find_spheres(data.points, b.radius_mm, 2)
             inner_pxs = [inner_of(p, shape) for p in pxs]
             def bar(sets: list[np.ndarray], inner: bool) -> BallBarResult:
-                return measure_ball_bar(tuple(points_at(p) for p in sets),  # type: ignore[arg-type]
-                                        tuple(data.uncertainties(p) for p in sets),  # type: ignore[arg-type]
+                first, second = sets
+                return measure_ball_bar((points_at(first), points_at(second)),
+                                        (data.uncertainties(first), data.uncertainties(second)),
                                         b.radius_mm, inner=inner)
 
-            whole, inner = bar(pxs, False), bar(inner_pxs, True)
-            return _bar_result(position, whole, inner, b.length_mm, b.diameter_mm)
+            bar_whole, bar_inner = bar(pxs, False), bar(inner_pxs, True)
+            return _bar_result(position, bar_whole, bar_inner, b.length_mm, b.diameter_mm)
         p = artefacts.plane
         assert p is not None
         labels, sizes = regions(data.points)
         if len(sizes) < 2:
             raise ArtefactError("no surface in the scan")
         k = int(np.argmax(sizes[1:])) + 1
-        whole = measure_plane(data.points[labels == k].astype(np.float64))
-        inner = measure_plane(data.points[inner_pixels(labels == k)].astype(np.float64), band_mm=1.0)
-        return _plane_result(position, whole, inner)
+        plane_whole = measure_plane(data.points[labels == k].astype(np.float64))
+        plane_inner = measure_plane(data.points[inner_pixels(labels == k)].astype(np.float64), band_mm=1.0)
+        return _plane_result(position, plane_whole, plane_inner)
     except ArtefactError as exc:
         return PositionResult(position, {}, {}, {}, str(exc))
 
 
 def _sphere_result(position: Position, whole: SphereResult, inner: SphereResult, diameter_mm: float) -> PositionResult:
     def figures(s: SphereResult) -> dict[str, float]:
-        return {"PF": s.form_range_mm, "PS": 2.0 * s.radius.value - diameter_mm}  # type: ignore[operator]
+        return {"PF": s.form_range_mm, "PS": 2.0 * s.radius.value_or_raise() - diameter_mm}
 
     return PositionResult(position, figures(whole), {"PS": 2.0 * inner.radius.U},
                           {"sphere": whole.as_dict(), "inner": inner.as_dict()}, inner=figures(inner))
 
 
 def _bar_figures(bar: BallBarResult, length_mm: float, diameter_mm: float) -> dict[str, float]:
-    return {"SD": bar.distance.value - length_mm,  # type: ignore[operator]
-            "OL": bar.outer_length.value - length_mm - diameter_mm}  # type: ignore[operator]
+    return {"SD": bar.distance.value_or_raise() - length_mm,
+            "OL": bar.outer_length.value_or_raise() - length_mm - diameter_mm}
 
 
 def _bar_result(position: Position, whole: BallBarResult, inner: BallBarResult, length_mm: float,

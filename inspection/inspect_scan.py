@@ -225,7 +225,7 @@ class PoseUncertainty:
             return form
         m = jacobian(points, normals, self.covariance.centre).mean(axis=0)
         u = float(np.sqrt(max(m @ self.covariance.covariance @ m, 0.0)))
-        changes = {}
+        changes: dict[str, Any] = {}  # FaceForm's figure fields by name: replace() cannot check them
         for name, scale in (("deviation_min", 1.0), ("deviation_max", 1.0), ("deviation_mean", 1.0),
                             ("profile", 2.0)):
             e = form.figure(name)

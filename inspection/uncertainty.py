@@ -150,6 +150,13 @@ class Estimate:
         """Expanded uncertainty (mm), about 95 % coverage: k·u."""
         return self.k * self.u
 
+    def value_or_raise(self) -> float:
+        """`value` (mm) of a figure that has one: one not tested against zero always does;
+        ValueError for a figure below its detection limit."""
+        if self.value is None:
+            raise ValueError(f"the figure has no value: below its detection limit {self.limit} mm")
+        return self.value
+
     def fields(self, name: str) -> dict[str, float | None]:
         """JSON fields: `name_mm`, `name_u_mm` (U, about 95 %) and, when tested against zero,
         `name_limit_mm`. `name` without its unit suffix."""
@@ -332,9 +339,10 @@ class PointNoise:
         if len(each) == 1:
             return u_noise, each[0]
         rng = np.random.default_rng(0)
-        pairs = sum(e[rng.integers(0, len(e), 8192)] for e in each)
+        draws = [e[rng.integers(0, len(e), 8192)] for e in each]
+        pairs = sum(draws[1:], draws[0])
         exact = float(np.sqrt(sum(np.var(e) for e in each)))  # the pairs' shape, the exact spread
-        return u_noise, pairs * (exact / max(float(np.std(pairs)), 1e-300))  # type: ignore[operator]
+        return u_noise, pairs * (exact / max(float(np.std(pairs)), 1e-300))
 
 
 @dataclass(frozen=True, eq=False)

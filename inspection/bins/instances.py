@@ -262,7 +262,7 @@ class OnnxInstanceSegmenter:
         self.min_score = min_score
         self.mask_threshold = mask_threshold
         try:
-            import onnxruntime  # type: ignore[import-not-found]
+            import onnxruntime  # type: ignore[import-not-found]  # optional, not installed: no stubs to find
         except ImportError:
             raise MaskError(f"{self.path}: running an ONNX instance segmentation model needs the 'onnxruntime' "
                             "package, which slscan does not install: pip install onnxruntime") from None

@@ -73,7 +73,7 @@ class ThinPartModel:
     grip_point_mm: tuple[float, float] | None = None
     approach: tuple[float, float, float] | None = None
 
-    def up_face(self, side: str) -> tuple[np.ndarray, np.ndarray]:
+    def up_face(self, side: str) -> tuple[np.ndarray | None, np.ndarray]:
         """(grip point on the face that is up (part frame, mm; None without a grip point),
         unit approach direction (part frame)) for `side` up: the file's approach, mirrored
         through the mid-plane when the back is up, or else the up face's outward normal."""
@@ -146,6 +146,8 @@ class ThinPartModel:
             mask[ij[:, 1], ij[:, 0]] = 1
             skew = skew_moment(cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)))
             sides[side] = SideModel(side, Samples(pts, face_n), b_pts, b_nrm, target, skew)
+        if u0 is None:  # the first side's samples set it
+            raise CadError(name, "no in-plane direction: no face samples")
         return cls(name, v, t, axis, u0, thickness, face_area, length, sides)
 
 

@@ -362,9 +362,13 @@ def _named(x: np.ndarray, centre: np.ndarray, rot_u: float, shift_u: float, rho:
     if np.linalg.norm(omega) * rho > np.linalg.norm(t):  # mostly a turn: its axis
         a = omega / np.linalg.norm(omega)
         point = centre + np.cross(omega, t) / float(omega @ omega)
-        return FreeMotion("rotation", tuple(float(y) for y in a), tuple(float(y) for y in point), rot_u, symmetry)
+        return FreeMotion("rotation", _triple(a), _triple(point), rot_u, symmetry)
     a = t / np.linalg.norm(t)
-    return FreeMotion("translation", tuple(float(y) for y in a), None, shift_u, symmetry, rot_u)
+    return FreeMotion("translation", _triple(a), None, shift_u, symmetry, rot_u)
+
+
+def _triple(v: np.ndarray) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
 
 
 def disagreement(a: np.ndarray, b: np.ndarray, centre: np.ndarray, radius_mm: float, why: str) -> FreeMotion:

@@ -3,6 +3,8 @@ cloud, the sphere descriptors per radius, and a ray-casting scene of the CAD mod
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from inspection.cad import CadModel
@@ -17,6 +19,9 @@ from inspection.registration.settings import (
 )
 from inspection.registration.spheres import SphereFeatures, describe, screen, sphere_radii
 from inspection.sampling import LabelledCloud, sample_model
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 
 class ModelTarget:
@@ -36,7 +41,7 @@ class ModelTarget:
         self.voxel_mm = voxel_mm or self.diagonal_mm / settings.voxel_fraction
         self.coarse = Samples(*voxel_grid(points, normals, self.voxel_mm))
         self._features: dict[float, SphereFeatures] = {}
-        self._mesh_scene = None
+        self._mesh_scene: o3d.t.geometry.RaycastingScene | None = None  # built when first needed (`hidden`)
 
     @classmethod
     def from_cad(cls, model: CadModel, voxel_mm: float | None = None, seed: int = 0,
@@ -95,15 +100,17 @@ class ModelTarget:
 
         if self.model is None:
             return np.zeros(len(points), bool)
-        if self._mesh_scene is None:
+        cpu = o3d.core.Device("CPU:0")
+        scene = self._mesh_scene
+        if scene is None:
             tess = self.model.tessellation
-            self._mesh_scene = o3d.t.geometry.RaycastingScene()
-            self._mesh_scene.add_triangles(o3d.core.Tensor(tess.vertices.astype(np.float32)),
-                                           o3d.core.Tensor(tess.triangles.astype(np.uint32)))
+            scene = self._mesh_scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.core.Tensor(tess.vertices.astype(np.float32), o3d.core.float32, cpu),
+                                o3d.core.Tensor(tess.triangles.astype(np.uint32), o3d.core.uint32, cpu))
         o = transform_points(T, viewpoint[None])[0]
         q = transform_points(T, points)
         d = q - o
         dist = np.linalg.norm(d, axis=1)
         rays = np.concatenate([np.broadcast_to(o, q.shape), d / dist[:, None]], axis=1).astype(np.float32)
-        t = self._mesh_scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        t = scene.cast_rays(o3d.core.Tensor(rays, o3d.core.float32, cpu))["t_hit"].numpy()
         return t < dist - tol_mm

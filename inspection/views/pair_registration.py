@@ -277,8 +277,8 @@ def _weigh(scan: ScanCloud, target: ScanCloud, overlap: float | None, settings: 
     t0 = time.perf_counter()
     model = ModelTarget.from_cloud(parts[1])
     voxel = model.voxel_mm
-    judged = [_judged_points(s, k, v, voxel) for s, k, v in zip((scan, target), keep, views)]
-    fine = [_judged_points(s, k, v, 0.5 * voxel) for s, k, v in zip((scan, target), keep, views)]
+    judged = [_judged_points(s, k, v, voxel) for s, k, v in zip((scan, target), keep, (sv, tv))]
+    fine = [_judged_points(s, k, v, 0.5 * voxel) for s, k, v in zip((scan, target), keep, (sv, tv))]
     starts = _hypotheses(parts[0], model, judged, settings)
     times["search"] = time.perf_counter() - t0
     t0 = time.perf_counter()
