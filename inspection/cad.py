@@ -65,6 +65,11 @@ class Tessellation:
         return self.vertices[used], inverse.reshape(-1, 3).astype(np.int32)
 
 
+# what `_Domain._raster` builds a face's raster from: UV box, mm per unit of u and v, the
+# triangulation's UV points and triangles, and its deflection (mm)
+_RasterInputs = tuple[tuple[float, float, float, float], tuple[float, float], np.ndarray, np.ndarray, float]
+
+
 class _Domain:
     """The trimmed parameter domain of a STEP face: a raster over the UV box marks cells
     certainly inside or outside (from the library's triangulation in UV); points in the
@@ -76,9 +81,7 @@ class _Domain:
                  uv: np.ndarray, triangles: np.ndarray, deflection_mm: float) -> None:
         self._face = face
         self._classifier: Any = None
-        # the raster's inputs, dropped once it is built
-        self._args: tuple[tuple[float, float, float, float], tuple[float, float], np.ndarray, np.ndarray,
-                          float] | None = (box, scale, uv, triangles, deflection_mm)
+        self._args: _RasterInputs | None = (box, scale, uv, triangles, deflection_mm)  # dropped once it is built
         self._state: np.ndarray | None = None
 
     @property

@@ -87,7 +87,7 @@ class PartPose:
         return self.pose, self.side
 
 
-class Figures(TypedDict, total=False):
+class _Figures(TypedDict, total=False):
     """What a failed PartPose reports of its best pose (PartPose's fields of those names)."""
 
     fitness: float
@@ -98,7 +98,7 @@ class Figures(TypedDict, total=False):
 
 
 # (why the instance fails, the figures of its best pose, whether another attempt may succeed)
-Failure = tuple[str, Figures, bool]
+_Failure = tuple[str, _Figures, bool]
 
 
 def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContext | None = None,
@@ -110,7 +110,7 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
     pts = np.asarray(instance.points, dtype=np.float64)
     pts = pts[np.isfinite(pts).all(axis=1)]
 
-    def failed(reason: str, **kw: Unpack[Figures]) -> PartPose:
+    def failed(reason: str, **kw: Unpack[_Figures]) -> PartPose:
         return PartPose(instance.id, False, reason, method, len(pts), time_s=time.perf_counter() - t0,
                         cpu_s=time.process_time() - c0, label=instance.label, **kw)
 
@@ -129,7 +129,7 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
         return failed(f"larger than one part: {patch.extent_mm:.1f} mm across, ~{area:.0f} mm² "
                       f"(the part: {model.length_mm:.1f} mm, {model.area_mm2:.0f} mm²); merged instances?")
     rng = np.random.default_rng(settings.seed)
-    outcome: Failure = ("", {}, True)
+    outcome: _Failure = ("", {}, True)
     judged: list[tuple[float, str, np.ndarray]] = []   # every attempt's judged poses: a rival found once stays one
     for _ in range(settings.attempts if settings.method == "sacia" else 1):   # SAC-IA is randomised: retry
         result = _fit(flat, raw, patch, model, settings, rng, judged)
@@ -143,7 +143,7 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
 
 
 def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPartModel, settings: PoseSettings,
-         rng: np.random.Generator, judged: list[tuple[float, str, np.ndarray]]) -> PartPose | Failure:
+         rng: np.random.Generator, judged: list[tuple[float, str, np.ndarray]]) -> PartPose | _Failure:
     """One coarse + fine fit of the instance's points on its plane `pts` (`raw`: as
     measured, row for row), adding its judged poses to those of earlier attempts
     (`judged`, extended in place: a later attempt that misses a rival must not report the
@@ -241,7 +241,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
     edge = _edge_fit(patch, sm, T, settings.inlier_mm)
     spill = _spill(patch, sm, T)
     occl = _occlusion(patch, sm, T)
-    kw: Figures = {"fitness": fit, "rmse_mm": rmse, "occlusion": occl, "side_margin": margin, "edge_fit": edge}
+    kw: _Figures = {"fitness": fit, "rmse_mm": rmse, "occlusion": occl, "side_margin": margin, "edge_fit": edge}
     if fit < settings.min_fitness:
         return (f"the best pose ({side} up) puts only {fit:.0%} of the points on the part's face within "
                 f"{settings.inlier_mm:g} mm (needs {settings.min_fitness:.0%}): not this part, or a wrongly "
@@ -260,7 +260,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
 
 
 def _ambiguity(judged: list[tuple[float, str, np.ndarray]], patch: InstancePatch,
-               settings: PoseSettings) -> Failure | None:
+               settings: PoseSettings) -> _Failure | None:
     """(why the instance is ambiguous, the side margin, whether another attempt may settle
     it) when a pose distinct from the best (or the other side) is judged within the
     ambiguity margin of it (`judged` sorted best first), else None. A rival within the
