@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import cv2
 import numpy as np
@@ -42,7 +42,8 @@ from calibration.errors import BoardError
 from scanner import schema
 from scanner.config import load_toml
 
-KINDS = ("chessboard", "charuco", "circles_asymmetric")
+BoardKind = Literal["chessboard", "charuco", "circles_asymmetric"]
+KINDS: tuple[str, ...] = get_args(BoardKind)
 BLACK_ALBEDO = 0.05  # printed black and white, as reflectance
 WHITE_ALBEDO = 0.85
 
@@ -51,7 +52,7 @@ class BoardFile(schema.Schema):
     """A board TOML as typed keys (lengths in mm); `Board.validate` adds the printing rules."""
 
     name: schema.Str = "board"
-    type: Literal[KINDS]
+    type: BoardKind
     inner_corners: schema.Vector2
     square_mm: schema.PositiveFloat
     margin_mm: schema.NonNegativeFloat = 0.0
@@ -141,6 +142,12 @@ class Board:
     def n_points(self) -> int:
         return self.columns * self.rows
 
+    def _circle_mm(self) -> float:
+        """The circles' diameter (mm); `validate` makes sure a circles board has one."""
+        if self.circle_mm is None:
+            raise BoardError(f"board '{self.name}' ({self.kind}) has no circle_mm")
+        return self.circle_mm
+
     def object_points(self) -> np.ndarray:
         """(N, 3) float64 model points in the board frame (mm), point id = r·C + c."""
         r, c = np.divmod(np.arange(self.n_points), self.columns)
@@ -152,7 +159,7 @@ class Board:
         """(x0, y0, x1, y1): the printed pattern's outline in the board frame, without margin."""
         s = self.square_mm
         if self.kind == "circles_asymmetric":
-            r = self.circle_mm / 2  # type: ignore[operator]
+            r = self._circle_mm() / 2
             return (-r, -r, (2 * self.columns - 1) * s + r, (self.rows - 1) * s + r)
         return (-s, -s, self.columns * s, self.rows * s)
 
@@ -211,17 +218,18 @@ class Board:
         whole numbers of texels (BoardError otherwise), so edges are exact; circles are
         area-sampled 4 x 4 per texel."""
         w_mm, h_mm = self.size_mm
-        W, H = int(round(w_mm * px_per_mm)), int(round(h_mm * px_per_mm))
+        W, H = round(w_mm * px_per_mm), round(h_mm * px_per_mm)
         ox, oy = self.image_origin_mm
         if self.kind == "circles_asymmetric":
             ss = 4
             u = (np.arange(W * ss) + 0.5) / (ss * px_per_mm) - ox
             v = (np.arange(H * ss) + 0.5) / (ss * px_per_mm) - oy
             dark = np.zeros((H * ss, W * ss), dtype=bool)
-            r2 = (self.circle_mm / 2) ** 2  # type: ignore[operator]
+            circle = self._circle_mm()
+            r2 = (circle / 2) ** 2
             for x, y, _ in self.object_points():  # a loop over the board's circles, each on its own window
-                cols = np.flatnonzero(np.abs(u - x) <= self.circle_mm)
-                rows = np.flatnonzero(np.abs(v - y) <= self.circle_mm)
+                cols = np.flatnonzero(np.abs(u - x) <= circle)
+                rows = np.flatnonzero(np.abs(v - y) <= circle)
                 dark[np.ix_(rows, cols)] |= ((u[cols][None, :] - x) ** 2 + (v[rows][:, None] - y) ** 2) <= r2
             cover = dark.reshape(H, ss, W, ss).mean(axis=(1, 3))
             return (white + (black - white) * cover).astype(np.float32)
@@ -230,7 +238,7 @@ class Board:
         if abs(step - round(step)) > 1e-6 or abs(margin - round(margin)) > 1e-6:
             raise BoardError(f"board '{self.name}': square {self.square_mm} mm and margin {self.margin_mm} mm must be "
                              f"whole numbers of texels at {px_per_mm} px/mm for exact edges; choose another density")
-        step, margin = int(round(step)), int(round(margin))
+        step, margin = round(step), round(margin)
         if self.kind == "charuco":
             board = self.opencv_charuco()
             img = board.generateImage((W, H), marginSize=margin, borderBits=1)
@@ -255,5 +263,7 @@ class Board:
         """The matching `cv2.aruco.CharucoBoard` (charuco boards only)."""
         if self.kind != "charuco":
             raise BoardError(f"board '{self.name}' is a {self.kind}, not a charuco board")
-        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))  # type: ignore[arg-type]
+        if self.marker_mm is None or self.dictionary is None:  # `validate` makes sure a charuco board has both
+            raise BoardError(f"board '{self.name}' (charuco) needs marker_mm and dictionary")
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
         return cv2.aruco.CharucoBoard((self.columns + 1, self.rows + 1), self.square_mm, self.marker_mm, dictionary)

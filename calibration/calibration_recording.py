@@ -78,15 +78,16 @@ class CalibrationRecording:
         self.rec.log_rig(model)
         for i, name in enumerate(solution.names):
             self._at_view(i)
-            for device, res, corr_pts in (("camera", s.camera_residuals[i], solution.correspondences[i].camera),
-                                          ("projector", s.projector_residuals[i], solution.correspondences[i].projector)):
+            corr = solution.correspondences[i]
+            for device, res, corr_pts in (("camera", s.camera_residuals[i], corr.camera),
+                                          ("projector", s.projector_residuals[i], corr.projector)):
                 self.stream.log(f"{ROOT}/errors/{device}", rr.Scalars(float(np.sqrt(np.mean(np.sum(res ** 2, 1))))),
                                 strict=True)
                 path = f"{ROOT}/camera/image/residuals" if device == "camera" else f"{ROOT}/projector/residuals"
                 self.stream.log(path, rr.Arrows2D(origins=corr_pts.image_points + 0.5,
                                                   vectors=res * RESIDUAL_SCALE), strict=True)
             T = model.world_from_cam @ s.board_poses[i]
-            X = solution.correspondences[i].camera.object_points
+            X = corr.camera.object_points
             self.stream.log(f"world/calibration/board/{name}", rr.Points3D(X @ T[:3, :3].T + T[:3, 3], radii=0.4),
                             static=True, strict=True)
 
@@ -106,7 +107,7 @@ class CalibrationRecording:
                 self.stream.log(f"{ROOT}/phase_to_height/{method}", rr.Scalars(value), strict=True)
 
     def artefact(self, cloud: OrganisedCloud, model: RigModel) -> None:
-        pts, grey, _ = cloud.flat()
+        pts, _, _ = cloud.flat()
         T = model.world_from_cam
         self.stream.log("world/calibration/artefact", rr.Points3D(pts @ T[:3, :3].T.astype(np.float32)
                                                                   + T[:3, 3].astype(np.float32)),

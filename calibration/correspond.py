@@ -81,7 +81,7 @@ def local_projector_points(corners: np.ndarray, u: np.ndarray, v: np.ndarray, ra
     fit_rms = np.full(n, np.nan)
     jacobian = np.full((n, 2, 2), np.nan)
     for i, (cx, cy) in enumerate(corners):  # one small fit per board corner
-        ix, iy = int(round(cx)) + dx, int(round(cy)) + dy
+        ix, iy = round(cx) + dx, round(cy) + dy
         ok = (ix >= 0) & (iy >= 0) & (ix < w) & (iy < h)
         ix, iy = ix[ok], iy[ok]
         pu, pv = u[iy, ix].astype(np.float64), v[iy, ix].astype(np.float64)

@@ -89,8 +89,9 @@ def decode_graycode(stack: np.ndarray, layout: GrayCodeLayout, min_contrast: flo
     """Projector coordinates per camera pixel from an (n_frames, H, W) capture of `layout`;
     without white and black images the contrast test uses the bit pairs alone."""
     if stack.ndim != 3 or stack.shape[0] != layout.n_frames:
+        got = stack.shape[0] if stack.ndim == 3 else stack.shape
         raise DetectionError(view, f"OpenCV Gray code for a {layout.width} x {layout.height} projector needs "
-                                   f"{layout.n_frames} images, got {stack.shape[0] if stack.ndim == 3 else stack.shape}")
+                                   f"{layout.n_frames} images, got {got}")
     frames = stack.astype(np.int16 if stack.dtype == np.uint8 else np.int32)
     shape = frames.shape[1:]
     valid = np.ones(shape, dtype=bool)

@@ -75,7 +75,8 @@ def rms(residuals: list[np.ndarray] | np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(r ** 2, axis=1)))) if len(r) else float("nan")
 
 
-def calibrate_device(name: str, views: list[ViewPoints], size: tuple[int, int], fix_k3: bool = False) -> DeviceCalibration:
+def calibrate_device(name: str, views: list[ViewPoints], size: tuple[int, int],
+                     fix_k3: bool = False) -> DeviceCalibration:
     """Intrinsics, distortion and board poses of a device of `size` = (width, height) px."""
     if len(views) < MIN_VIEWS:
         raise NotEnoughData(f"{name}: {len(views)} usable view(s); at least {MIN_VIEWS} are needed (10-15 recommended)")
@@ -85,13 +86,15 @@ def calibrate_device(name: str, views: list[ViewPoints], size: tuple[int, int], 
     obj = [v.object_points.astype(np.float32) for v in views]
     img = [v.image_points.astype(np.float32).reshape(-1, 1, 2) for v in views]
     flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
-    rms_cv, K, dist, rvecs, tvecs, std_in, _, per_view = cv2.calibrateCameraExtended(
+    found = cv2.calibrateCameraExtended(  # type: ignore[call-overload]  # stubs refuse None: OpenCV estimates K, dist
         obj, img, size, None, None, flags=flags, criteria=_CRITERIA)
+    _, K, dist, rvecs, tvecs, std_in, _, _ = found
     pinhole = Pinhole(size[0], size[1], K, dist.ravel()[:5])
     poses = np.stack([pose_matrix(r, t) for r, t in zip(rvecs, tvecs)])
     residuals = reprojection_residuals(pinhole, views, poses)
     std = dict(zip(INTRINSIC_NAMES, (float(s) for s in np.asarray(std_in).ravel()[:9])))
-    return DeviceCalibration(name, pinhole, rms(residuals), np.array([rms(r) for r in residuals]), poses, residuals, std)
+    return DeviceCalibration(name, pinhole, rms(residuals), np.array([rms(r) for r in residuals]), poses, residuals,
+                             std)
 
 
 def outlier_views(per_view_rms_px: np.ndarray, factor: float = 3.0, floor_px: float = 0.05) -> list[int]:

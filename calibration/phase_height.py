@@ -53,7 +53,7 @@ class PhaseHeightFit:
         """RMS over the (held-out or fitted) heights: (Eq. 17, per-pixel, triangulation)."""
         sel = [e for e in self.errors if e.held_out == held_out and e.height_mm != 0.0]
         if not sel:
-            return (float("nan"),) * 3  # type: ignore[return-value]
+            return (float("nan"),) * 3
         w = np.array([e.pixels for e in sel], dtype=np.float64)
 
         def pooled(vals: list[float]) -> float:
@@ -169,11 +169,9 @@ def evaluate(heights_mm: list[float], fit_mask: list[bool], phases: list[np.ndar
         ok = np.isfinite(eq17) & np.isfinite(pp) & np.isfinite(tri)
         if not ok.any():
             raise CalibrationError(f"phase-to-height: nothing decoded on the plate at {h} mm")
-
-        def rms(x: np.ndarray) -> float:
-            return float(np.sqrt(np.mean((x[ok].astype(np.float64) - h) ** 2)))
-
-        out.append(HeightError(float(h), not fitted, rms(eq17), rms(pp), rms(tri), int(ok.sum())))
+        eq17_rms, pp_rms, tri_rms = (float(np.sqrt(np.mean((x[ok].astype(np.float64) - h) ** 2)))
+                                     for x in (eq17, pp, tri))
+        out.append(HeightError(float(h), not fitted, eq17_rms, pp_rms, tri_rms, int(ok.sum())))
     return out
 
 

@@ -93,7 +93,7 @@ def choose_camera(camera: DeviceCalibration, joint: StereoCalibration, max_std: 
         return CameraChoice("joint refinement", f"it determines fx, fy, cx, cy to {max(std.values()):.3f} px (limit "
                                                 f"{limit:.3f} px); it moved them by {shift} px from the camera's own "
                                                 f"calibration", values, std, limit)
-    worst = max(loose, key=std.get)
+    worst = max(loose, key=lambda n: std[n])
     return CameraChoice("camera views", f"the joint refinement determines the camera's {', '.join(loose)} only to "
                                         f"±{std[worst]:.2f} px ({worst}), above the limit {limit:.2f} px "
                                         f"({max_std:.2%} of the focal length); it would have moved them by {shift} "

@@ -24,9 +24,9 @@ from __future__ import annotations
 
 import datetime as dt
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -190,7 +190,7 @@ def write_stage_axis(path: str | Path, solution: StageAxisSolution, nominal: Sta
         raise StageAxisError(f"the rig's stage has no axis named {axis_name!r}")
     path = Path(path)
     write_json(path, {"slscan_stage_axis": STAGE_AXIS_VERSION, "software_version": __version__,
-                      "created": dt.datetime.now(dt.timezone.utc).isoformat(),
+                      "created": dt.datetime.now(dt.UTC).isoformat(),
                       **StageModel(axes).to_dict(), "residual_mm": solution.residual_mm,
                       "angle_residuals_deg": list(solution.angle_residuals_deg), "views": solution.views})
     return path

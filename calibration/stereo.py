@@ -353,11 +353,11 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     start = np.asarray(board_poses, dtype=np.float64)[:, :3, :3]
     cam_obj = [np.ascontiguousarray(v.object_points @ R.T) for v, R in zip(cam_views, start)]
     proj_obj = [np.ascontiguousarray(v.object_points @ R.T) for v, R in zip(proj_views, start)]
-    x0 = [_intrinsic_vector(camera), _intrinsic_vector(projector),
-          cv2.Rodrigues(proj_from_cam[:3, :3])[0].ravel(), proj_from_cam[:3, 3]]
+    x0_parts = [_intrinsic_vector(camera), _intrinsic_vector(projector),
+               cv2.Rodrigues(proj_from_cam[:3, :3])[0].ravel(), proj_from_cam[:3, 3]]
     for T in board_poses:
-        x0 += [np.zeros(3), T[:3, 3]]
-    x0 = np.concatenate(x0)
+        x0_parts += [np.zeros(3), T[:3, 3]]
+    x0 = np.concatenate(x0_parts)
     free = np.ones(len(x0), dtype=bool)
     if fix_k3:
         free[[8, _N_INTR + 8]] = False
@@ -369,9 +369,10 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
         raise NotEnoughData(f"joint refinement: {rows // 2} points for {int(free.sum())} parameters")
     e0 = 2 * _N_INTR  # first extrinsic parameter
 
-    def residuals_and_jacobian(x: np.ndarray, want_jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    def raw_residuals(x: np.ndarray, jac: np.ndarray | None = None) -> np.ndarray:
+        """The unweighted residuals at `x`; their Jacobian written into `jac` (rows, len(x),
+        zeros) when given."""
         res = np.empty(rows)
-        jac = np.zeros((rows, len(x))) if want_jac else None
         kc, dc = _pinhole((1, 1), x[:_N_INTR]).K, x[4:9]
         kp, dp = _pinhole((1, 1), x[_N_INTR:e0]).K, x[_N_INTR + 4:e0]
         re, te = x[e0:e0 + 3], x[e0 + 3:e0 + 6]
@@ -401,7 +402,7 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
                 jac[row:row + 2 * n, e0:e0 + 6] = -d_ext
                 jac[row:row + 2 * n, _N_INTR:e0] = -J[:, 6:6 + _N_INTR]
             row += 2 * n
-        return res, jac
+        return res
 
     weigh = _Weighting(cam_views, proj_views, links)
     sigma = np.ones(len(WEIGHT_GROUPS))
@@ -409,12 +410,14 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     def fun(xf: np.ndarray) -> np.ndarray:
         x = x0.copy()
         x[free] = xf
-        return weigh.residuals(residuals_and_jacobian(x, False)[0], sigma)
+        return weigh.residuals(raw_residuals(x), sigma)
 
     def jac(xf: np.ndarray) -> np.ndarray:
         x = x0.copy()
         x[free] = xf
-        return weigh.jacobian(residuals_and_jacobian(x, True)[1], sigma)[:, free]  # type: ignore[arg-type]
+        J = np.zeros((rows, len(x)))
+        raw_residuals(x, J)
+        return weigh.jacobian(J, sigma)[:, free]
 
     xf = x0[free]
     for _ in range(MAX_VARIANCE_ROUNDS):  # fit, re-estimate the groups' sigmas from their residuals, fit again
@@ -426,8 +429,9 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
             break
     x = x0.copy()
     x[free] = xf
-    raw, J_raw = residuals_and_jacobian(x, True)
-    res, J = weigh.residuals(raw, sigma), weigh.jacobian(J_raw, sigma)  # type: ignore[arg-type]
+    J_raw = np.zeros((rows, len(x)))
+    raw = raw_residuals(x, J_raw)
+    res, J = weigh.residuals(raw, sigma), weigh.jacobian(J_raw, sigma)
     decoding = weigh.decoding_sigma(raw, redundancy)
     full, from_decoding = np.zeros((2, len(free), len(free)))
     full[np.ix_(free, free)], from_decoding[np.ix_(free, free)] = weigh.covariance(J[:, free], sigma, decoding)
@@ -442,9 +446,10 @@ def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], came
     blocks = np.split(raw.reshape(-1, 2), splits)
     cam_res, proj_res = blocks[0::2], blocks[1::2]
     tests = np.split(weigh.point_tests(res, J[:, free]), splits)
+    s_cx, s_cy, s_px, s_py = (float(v) for v in sigma)
+    d_x, d_y = (float(v) for v in decoding)
+    r_cx, r_cy, r_px, r_py = (float(v) for v in redundancy)
+    corners = CornerErrorModel((s_cx, s_cy, s_px, s_py), (d_x, d_y), (r_cx, r_cy, r_px, r_py), weigh.coupled)
     return StereoCalibration(_pinhole(camera.size, x[:_N_INTR]), _pinhole(projector.size, x[_N_INTR:e0]),
                              proj_from_cam, poses, cam_res, proj_res, std, cov, from_decoding[:e0 + 6, :e0 + 6],
-                             CornerErrorModel(tuple(float(v) for v in sigma),  # type: ignore[arg-type]
-                                              tuple(float(v) for v in decoding),  # type: ignore[arg-type]
-                                              tuple(float(v) for v in redundancy), weigh.coupled),
-                             tests[0::2], tests[1::2])
+                             corners, tests[0::2], tests[1::2])

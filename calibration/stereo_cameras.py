@@ -13,8 +13,9 @@ orientation's check allows for (scanner/binocular.py).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -143,7 +144,8 @@ def gated_stereo_calibration(views: list[tuple[ViewPoints | None, ViewPoints | N
         cal = solved[tuple(kept)] = calibrate_stereo_cameras(pick, sizes, names, fix_k3, symmetries=symmetries)
         return cal.joint
 
-    gate = pose_gate([views[i] for i in both], solve, names, alpha=alpha)  # type: ignore[arg-type]
+    seen = [(a, b) for a, b in views if a is not None and b is not None]  # the poses of `both`, in order
+    gate = pose_gate(seen, solve, names, alpha=alpha)
     failed = set(gate.poses)
     final = tuple(k for k in range(len(both)) if k not in failed)
     if final not in solved:
@@ -159,10 +161,10 @@ def calibrate_stereo_cameras(views: list[tuple[ViewPoints | None, ViewPoints | N
     (`Board.symmetries`: the right camera's labels are made to agree with the left's first)."""
     own = []
     for k, (name, size) in enumerate(zip(names, sizes)):
-        mine = [v[k] for v in views if v[k] is not None]
+        mine = [p for p in (v[k] for v in views) if p is not None]
         if len(mine) < min_views:
             raise NotEnoughData(f"camera '{name}' found the board in {len(mine)} pose(s); at least {min_views} needed")
-        own.append(calibrate_device(name, mine, size, fix_k3))  # type: ignore[arg-type]
+        own.append(calibrate_device(name, mine, size, fix_k3))
     both = [i for i, (a, b) in enumerate(views) if a is not None and b is not None]
     if len(both) < min_views:
         raise NotEnoughData(f"both cameras found the board in {len(both)} pose(s); at least {min_views} needed")
@@ -170,12 +172,13 @@ def calibrate_stereo_cameras(views: list[tuple[ViewPoints | None, ViewPoints | N
     left_poses = own[0].poses[[index[0][i] for i in both]]
     right_poses, turn = agree_labels(left_poses, own[1].poses[[index[1][i] for i in both]], symmetries)
     right_from_left = initial_extrinsics(left_poses, right_poses)
-    left_views = [views[i][0] for i in both]
+    seen = [(a, b) for a, b in views if a is not None and b is not None]  # the poses of `both`, in order
+    left_views = [a for a, _ in seen]
     turns = [np.eye(4), *symmetries]
-    right_views = [_turned(views[i][1], turns[t]) for i, t in zip(both, turn)]  # type: ignore[arg-type]
-    joint = joint_refine(left_views, right_views, own[0].pinhole, own[1].pinhole,  # type: ignore[arg-type]
+    right_views = [_turned(b, turns[t]) for (_, b), t in zip(seen, turn)]
+    joint = joint_refine(left_views, right_views, own[0].pinhole, own[1].pinhole,
                          right_from_left, left_poses, fix_k3=fix_k3)
     model = StereoModel(joint.camera, joint.projector, joint.proj_from_cam, names)
-    pairs = [common_corners(a, b) for a, b in zip(left_views, right_views)]  # type: ignore[arg-type]
+    pairs = [common_corners(a, b) for a, b in zip(left_views, right_views)]
     errors = epipolar_errors(model, pairs)
     return StereoCameraCalibration(names, own[0], own[1], joint, both, errors, [i for i, t in zip(both, turn) if t])

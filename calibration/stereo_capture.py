@@ -9,9 +9,10 @@ the file existed reads with the board and the cameras' order given."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -20,8 +21,8 @@ from calibration.board import Board
 from calibration.capture import WHITE
 from calibration.detect import detect
 from calibration.errors import CalibrationError
-from calibration.store import CAPTURE_FILE, read_manifest
 from calibration.intrinsics import ViewPoints
+from calibration.store import CAPTURE_FILE, read_manifest
 from scanner.acquisition import AcquisitionSettings, acquire_images_from
 from scanner.devices import TriggerMode, TriggerType
 from scanner.rig import Rig

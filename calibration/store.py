@@ -84,7 +84,7 @@ class CaptureWriter:
         self.root.mkdir(parents=True, exist_ok=True)
         self.manifest: dict[str, Any] = {
             "format": CAPTURE_FORMAT, "version": CAPTURE_VERSION, "rig": rig_name,
-            "created": dt.datetime.now(dt.timezone.utc).isoformat(), "board": board.to_dict(),
+            "created": dt.datetime.now(dt.UTC).isoformat(), "board": board.to_dict(),
             "patterns": patterns.to_dict(), "camera_size": list(camera_size), "projector_size": list(projector_size),
             "bit_depth": bit_depth, "gamma_levels": None, "poses": [], "plates": [], "artefact": None}
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="capture-writer")
@@ -182,11 +182,11 @@ class CaptureSet:
 
     @property
     def camera_size(self) -> tuple[int, int]:
-        return tuple(self.manifest["camera_size"])  # type: ignore[return-value]
+        return tuple(self.manifest["camera_size"])
 
     @property
     def projector_size(self) -> tuple[int, int]:
-        return tuple(self.manifest["projector_size"])  # type: ignore[return-value]
+        return tuple(self.manifest["projector_size"])
 
     @property
     def bit_depth(self) -> int:
@@ -263,7 +263,8 @@ def graycode_views(root: str | Path, layout: GrayCodeLayout, folders: str = "*",
     root = Path(root)
     if not root.is_dir():
         raise CalibrationError(f"{root}: no such folder")
-    if not layout.white_black:
+    white = layout.white_index  # None: the layout has no white and black images
+    if white is None:
         raise CalibrationError("the Gray-code layout must end with white and black images (board detection uses white)")
     views = []
     for folder in sorted(p for p in root.glob(folders) if p.is_dir()):
@@ -276,8 +277,7 @@ def graycode_views(root: str | Path, layout: GrayCodeLayout, folders: str = "*",
         stack = np.stack([_read_image(f) for f in files[:layout.n_frames]])
         full = float(np.iinfo(stack.dtype).max)
         maps = decode_graycode(stack, layout, min_contrast * full, min_bit_difference * full, folder.name)
-        views.append(View(folder.name, stack[layout.white_index], maps.u, maps.v, maps.weight_u,  # type: ignore[index]
-                          maps.weight_v))
+        views.append(View(folder.name, stack[white], maps.u, maps.v, maps.weight_u, maps.weight_v))
     if not views:
         raise CalibrationError(f"{root}: no sub-folder matching '{folders}' holds images; expected one folder of "
                                f"{layout.n_frames} images per board pose")

@@ -12,6 +12,7 @@ the plate's flatness RMS (a wavy plate betrays an uncompensated projector respon
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -34,7 +35,7 @@ class Artefact:
     distance_mm: float
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], where: object = "artefact") -> Artefact:
+    def from_dict(cls, d: dict[str, Any], where: str | Path = "artefact") -> Artefact:
         kind = get(d, "type", str, where, "sphere_pair")
         if kind != "sphere_pair":
             raise CalibrationError(f"{where}: artefact type '{kind}' is not supported; use 'sphere_pair'")

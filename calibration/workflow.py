@@ -20,9 +20,11 @@ before; whatever a capture lacks (gamma, plate, artefact) is reported as not mea
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
+from itertools import pairwise
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -35,8 +37,17 @@ from calibration.fit import fit_plane, plane_rms
 from calibration.gamma import DEFAULT_LEVELS, GammaFit, fit_gamma, flat_images, phase_error_rad
 from calibration.intrinsics import calibrate_device
 from calibration.phase_height import PhaseHeightFit, evaluate, fit_phase_to_height, local_pitch_range_mm
-from calibration.solve import (OUTLIER_ALPHA, OUTLIER_GATE, CalibrationSettings, Solution, Stability, check_limits,
-                               leave_one_out, solve, without_view)
+from calibration.solve import (
+    OUTLIER_ALPHA,
+    OUTLIER_GATE,
+    CalibrationSettings,
+    Solution,
+    Stability,
+    check_limits,
+    leave_one_out,
+    solve,
+    without_view,
+)
 from calibration.stereo import RIG_PARAMETERS
 from calibration.store import CaptureSet, CaptureWriter, decode_pose, pose_view
 from calibration.validate import Artefact, Validation, measure_sphere_pair
@@ -93,7 +104,7 @@ class Procedure:
     board: Board
     patterns: PatternSet
     poses: int = 12
-    settings: CalibrationSettings = CalibrationSettings()
+    settings: CalibrationSettings = field(default_factory=CalibrationSettings)
     plate_heights_mm: tuple[float, ...] = DEFAULT_HEIGHTS_MM
     artefact: Artefact | None = DEFAULT_ARTEFACT
     gamma_levels: np.ndarray = field(default_factory=lambda: DEFAULT_LEVELS.copy())
@@ -122,7 +133,7 @@ class Procedure:
         artefact = o.pop("artefact", None) or (Artefact.from_dict(get_table(table, "artefact", p, prefix="calibrate"),
                                                                   f"{p}, key 'calibrate.artefact'")
                                                if "artefact" in table else DEFAULT_ARTEFACT)
-        if heights and (heights[0] != 0.0 or any(b <= a for a, b in zip(heights, heights[1:]))):
+        if heights and (heights[0] != 0.0 or any(b <= a for a, b in pairwise(heights))):
             raise ConfigError(p, "calibrate.plate_heights_mm", f"{list(heights)}: start at 0 (the reference plane) "
                                                                f"and increase")
         poses = int(o.pop("poses", get(table, "poses", int, p, 12, "calibrate")))
@@ -227,8 +238,8 @@ class CalibrationResult:
         left_out = {**sol.dropped, **self.failures}
         outliers = self.outliers()
         share = s.decoding_share()
-        out = [f"views     {len(sol.names)} used" + (f", left out: {'; '.join(f'{k} ({v})' for k, v in left_out.items())}"
-                                                 if left_out else ""),
+        left_out_text = "; ".join(f"{k} ({v})" for k, v in left_out.items())
+        out = [f"views     {len(sol.names)} used" + (f", left out: {left_out_text}" if left_out else ""),
                *([f"corners   fail the outlier test (a good corner fails it with probability {OUTLIER_ALPHA:g}; kept): "
                   + "; ".join(f"{name} {', '.join(str(k) for k in ids)}" for name, ids in sol.outlier_corners.items())]
                  if sol.outlier_corners else []),
@@ -270,8 +281,9 @@ class CalibrationResult:
             out.append("Eq. 17    not calibrated (no plate scans)")
         g = self.gamma_check
         if "ripple_uncompensated_mm" in g:
-            out.append(f"          uncompensated, these fringes would carry up to {g['phase_error_uncompensated_rad']:.4f} "
-                       f"rad of phase error per frequency (up to {g['ripple_uncompensated_mm'] * 1e3:.1f} um of depth "
+            out.append(f"          uncompensated, these fringes would carry up to "
+                       f"{g['phase_error_uncompensated_rad']:.4f} rad of phase error per frequency "
+                       f"(up to {g['ripple_uncompensated_mm'] * 1e3:.1f} um of depth "
                        f"ripple on this rig); compensated {g['phase_error_compensated_rad']:.4f} rad "
                        f"({g['ripple_compensated_mm'] * 1e3:.2f} um)")
         if "flatness_compensated_mm" in g:
@@ -307,7 +319,8 @@ class OperatorBench:
 # ---------------------------------------------------------------------------- steps
 
 
-def correspond_all(board: Board, views: list[View], strict: bool, say: Say) -> tuple[list[Correspondence], dict[str, str]]:
+def correspond_all(board: Board, views: list[View], strict: bool,
+                   say: Say) -> tuple[list[Correspondence], dict[str, str]]:
     """Correspondences of every view. `strict`: a view without the board or the projector
     pattern is an error; otherwise it is reported and left out."""
     found, failures = [], {}
@@ -581,7 +594,8 @@ def _capture_checks(rig: Rig, procedure: Procedure, bench: Bench, writer: Captur
             say(f"plate at {h:g} mm" + ("" if g == gamma else " without gamma compensation"))
             fringes = capture_fringes(rig, patterns, g) if g == gamma else capture_uncompensated(rig, patterns)
             writer.add_plate(h, fringes, g)
-            plates.append(Plate(h, g, decode_pose(f"plate at {h} mm", fringes, patterns, bits, psize, judged=g == gamma)))
+            decoded = decode_pose(f"plate at {h} mm", fringes, patterns, bits, psize, judged=g == gamma)
+            plates.append(Plate(h, g, decoded))
     if procedure.artefact is None:
         return plates, None
     bench.place_artefact()

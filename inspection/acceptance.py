@@ -54,9 +54,10 @@ U); the scanner's own errors are what the test measures and are not in it.
 from __future__ import annotations
 
 import html
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -130,7 +131,8 @@ class Acceptance:
         for k in t:
             if k not in known:
                 raise ConfigError(path, f"acceptance.{k}", f"unknown key; expected one of {sorted(known)}")
-        size = tuple(get_vector(t, "volume_mm", 3, path, prefix="acceptance"))
+        sx, sy, sz = get_vector(t, "volume_mm", 3, path, prefix="acceptance")
+        size = (sx, sy, sz)
         if not all(s > 0 for s in size):
             raise ConfigError(path, "acceptance.volume_mm", f"sizes must be > 0, got {list(size)}")
         rule = get(t, "decision_rule", str, path, GUARD_BANDED, "acceptance")
@@ -138,20 +140,21 @@ class Acceptance:
             raise ConfigError(path, "acceptance.decision_rule", f"{rule!r}: use one of {sorted(DECISION_RULES)}")
         m = get_table(t, "mpe", path, prefix="acceptance")
         mpe = {}
-        for k, v in m.items():
+        for k in m:
             name = k.removesuffix("_mm")
             if k == "E_mm":
                 raise ConfigError(path, f"acceptance.mpe.{k}", "VDI/VDE 2634-2 has no length measurement error E for "
                                                                "one view; the ball bar's outer-length error (SD plus "
                                                                "both spheres' size errors) is OL_mm")
             if name not in PARAMETERS or not k.endswith("_mm"):
-                raise ConfigError(path, f"acceptance.mpe.{k}", f"unknown parameter; use {[p + '_mm' for p in PARAMETERS]}")
+                raise ConfigError(path, f"acceptance.mpe.{k}",
+                                  f"unknown parameter; use {[p + '_mm' for p in PARAMETERS]}")
             value = get(m, k, float, path, prefix="acceptance.mpe")
             if not 0 < value < np.inf:
                 raise ConfigError(path, f"acceptance.mpe.{k}", f"an MPE must be a finite number > 0 (mm), got {value}")
             mpe[name] = value
         art = get(t, "artefacts", str, path, None, "acceptance")
-        return cls(size, (0.0, 0.0, working_distance_mm), mpe, rule, resolve(path, art) if art else None)  # type: ignore[arg-type]
+        return cls(size, (0.0, 0.0, working_distance_mm), mpe, rule, resolve(path, art) if art else None)
 
 
 # ------------------------------------------------------------------------- positions
@@ -212,7 +215,7 @@ def positions(acceptance: Acceptance, artefacts: ArtefactSet) -> list[Position]:
             raise ConfigError(artefacts.path or "artefacts", "sphere.diameter_mm",
                               f"a sphere of {artefacts.sphere.diameter_mm} mm does not fit the measuring volume "
                               f"{list(acceptance.size_mm)} mm")
-        places = [np.zeros(3)] + [inset * np.array(s) for s in np.ndindex(2, 2, 2) for s in [np.array(s) * 2 - 1]] \
+        places = [np.zeros(3)] + [inset * (np.array(s) * 2 - 1) for s in np.ndindex(2, 2, 2)] \
             + [np.array([0.0, 0.0, -inset[2]])]
         for i, p in enumerate(places):
             out.append(Position("sphere", i, pose_of(np.eye(3), c + p),
@@ -275,7 +278,7 @@ def regions(points: np.ndarray, max_step_mm: float = MAX_STEP_MM) -> tuple[np.nd
             else:
                 ok[:, :-1] &= ~jump
                 ok[:, 1:] &= ~jump
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(ok.view(np.uint8), connectivity=4)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(ok.view(np.uint8), connectivity=4)
     return labels, stats[:, cv2.CC_STAT_AREA]
 
 
@@ -303,7 +306,7 @@ def find_spheres(points: np.ndarray, radius_mm: float, count: int) -> list[np.nd
     from inspection.artefacts import fit_sphere
 
     labels, sizes = regions(points)
-    found = []
+    found: list[np.ndarray] = []
     for k in np.argsort(sizes[1:])[::-1] + 1:
         if sizes[k] < 100 or len(found) == count:
             break
@@ -385,36 +388,37 @@ def evaluate(position: Position, data: ScanData, artefacts: ArtefactSet) -> Posi
             pxs = find_spheres(data.points, b.radius_mm, 2)
             inner_pxs = [inner_of(p, shape) for p in pxs]
             def bar(sets: list[np.ndarray], inner: bool) -> BallBarResult:
-                return measure_ball_bar(tuple(points_at(p) for p in sets),  # type: ignore[arg-type]
-                                        tuple(data.uncertainties(p) for p in sets),  # type: ignore[arg-type]
+                first, second = sets
+                return measure_ball_bar((points_at(first), points_at(second)),
+                                        (data.uncertainties(first), data.uncertainties(second)),
                                         b.radius_mm, inner=inner)
 
-            whole, inner = bar(pxs, False), bar(inner_pxs, True)
-            return _bar_result(position, whole, inner, b.length_mm, b.diameter_mm)
+            bar_whole, bar_inner = bar(pxs, False), bar(inner_pxs, True)
+            return _bar_result(position, bar_whole, bar_inner, b.length_mm, b.diameter_mm)
         p = artefacts.plane
         assert p is not None
         labels, sizes = regions(data.points)
         if len(sizes) < 2:
             raise ArtefactError("no surface in the scan")
         k = int(np.argmax(sizes[1:])) + 1
-        whole = measure_plane(data.points[labels == k].astype(np.float64))
-        inner = measure_plane(data.points[inner_pixels(labels == k)].astype(np.float64), band_mm=1.0)
-        return _plane_result(position, whole, inner)
+        plane_whole = measure_plane(data.points[labels == k].astype(np.float64))
+        plane_inner = measure_plane(data.points[inner_pixels(labels == k)].astype(np.float64), band_mm=1.0)
+        return _plane_result(position, plane_whole, plane_inner)
     except ArtefactError as exc:
         return PositionResult(position, {}, {}, {}, str(exc))
 
 
 def _sphere_result(position: Position, whole: SphereResult, inner: SphereResult, diameter_mm: float) -> PositionResult:
     def figures(s: SphereResult) -> dict[str, float]:
-        return {"PF": s.form_range_mm, "PS": 2.0 * s.radius.value - diameter_mm}  # type: ignore[operator]
+        return {"PF": s.form_range_mm, "PS": 2.0 * s.radius.value_or_raise() - diameter_mm}
 
     return PositionResult(position, figures(whole), {"PS": 2.0 * inner.radius.U},
                           {"sphere": whole.as_dict(), "inner": inner.as_dict()}, inner=figures(inner))
 
 
 def _bar_figures(bar: BallBarResult, length_mm: float, diameter_mm: float) -> dict[str, float]:
-    return {"SD": bar.distance.value - length_mm,  # type: ignore[operator]
-            "OL": bar.outer_length.value - length_mm - diameter_mm}  # type: ignore[operator]
+    return {"SD": bar.distance.value_or_raise() - length_mm,
+            "OL": bar.outer_length.value_or_raise() - length_mm - diameter_mm}
 
 
 def _bar_result(position: Position, whole: BallBarResult, inner: BallBarResult, length_mm: float,
@@ -570,9 +574,11 @@ class AcceptanceReport:
             + f"<td>{html.escape('NOT TESTED' if not r.tested else r.error or r.position.description)}</td></tr>"
             for r in self.all_results)
         summary = "".join(f"<tr><td>{html.escape(NAMES[p])} {p}</td><td>{um(d[f'{p}_mm'])}</td>"
-                          f"<td>{um(d[f'{p}_u_mm'])}</td><td>{um(self.acceptance.mpe.get(p))}</td><td class='{d['verdicts'][p].replace(' ', '-')}'>"
-                          f"{d['verdicts'][p]}</td></tr>" for p in PARAMETERS)
-        return (f"<!doctype html><html><head><meta charset='utf-8'><title>Acceptance test {html.escape(self.rig)}</title>"
+                          f"<td>{um(d[f'{p}_u_mm'])}</td><td>{um(self.acceptance.mpe.get(p))}</td>"
+                          f"<td class='{d['verdicts'][p].replace(' ', '-')}'>{d['verdicts'][p]}</td></tr>"
+                          for p in PARAMETERS)
+        return (f"<!doctype html><html><head><meta charset='utf-8'>"
+                f"<title>Acceptance test {html.escape(self.rig)}</title>"
                 f"<style>body{{font-family:sans-serif}}td,th{{padding:2px 8px;text-align:right}}"
                 f".conforming{{background:#cfc}}.non-conforming{{background:#fcc}}.uncertain{{background:#ffc}}"
                 f".incomplete,.not-tested,tr.not-tested{{background:#ddd}}"

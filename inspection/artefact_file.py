@@ -113,7 +113,8 @@ def load_artefacts(path: str | Path = DEFAULT_ARTEFACTS) -> ArtefactSet:
         for k in sorted(keys - {"certificate", "size_mm"}):
             values[k] = get(t, k, float, path, 0.7 if k == "albedo" else ..., prefix=kind)
             positive = k.endswith(("diameter_mm", "length_mm"))
-            if not (values[k] > 0 if positive else values[k] >= 0) or values[k] != values[k] or values[k] == float("inf"):
+            in_range = values[k] > 0 if positive else values[k] >= 0
+            if not in_range or values[k] != values[k] or values[k] == float("inf"):
                 raise ConfigError(path, f"{kind}.{k}", f"must be a finite number {'> 0' if positive else '>= 0'}, "
                                                        f"got {values[k]}")
         if "albedo" in values and values["albedo"] > 1.0:

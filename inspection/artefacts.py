@@ -156,10 +156,13 @@ class SphereResult:
 
 
 INNER_BAND = 0.1  # the inner fits keep points within this fraction of the nominal radius of a first fit
+CAMERA_ORIGIN = np.zeros(3)  # the default viewpoint: the camera frame's origin (mm); shared, so read-only
+CAMERA_ORIGIN.flags.writeable = False
 
 
 def measure_sphere(points: np.ndarray, unc: ScanUncertainty, nominal_radius_mm: float,
-                   viewpoint: np.ndarray | None = np.zeros(3), *, inner: bool = True) -> tuple[SphereFit, SphereResult]:
+                   viewpoint: np.ndarray | None = CAMERA_ORIGIN, *,
+                   inner: bool = True) -> tuple[SphereFit, SphereResult]:
     """Fit a sphere and propagate the uncertainties to its radius and centre. `inner`:
     only the points within INNER_BAND of the nominal radius of a first fit, facing the
     `viewpoint` at less than MAX_VIEW_DEG (`fit_sphere`); else every point given (the
@@ -168,9 +171,8 @@ def measure_sphere(points: np.ndarray, unc: ScanUncertainty, nominal_radius_mm: 
            else fit_sphere(points, nominal_radius_mm))
     pts, sub = points[fit.used], unc.subset(fit.used)
     radius = sub.linear_u(pts, fit.influence[:, 3], fit.rms_mm)
-    centre = tuple(sub.linear_u(pts, fit.influence[:, k], fit.rms_mm).estimate(float(fit.centre[k]))
-                   for k in range(3))
-    return fit, SphereResult(radius.estimate(fit.radius), centre, fit.form_range_mm, fit.rms_mm,  # type: ignore[arg-type]
+    cx, cy, cz = (sub.linear_u(pts, fit.influence[:, k], fit.rms_mm).estimate(float(fit.centre[k])) for k in range(3))
+    return fit, SphereResult(radius.estimate(fit.radius), (cx, cy, cz), fit.form_range_mm, fit.rms_mm,
                              int(fit.used.sum()), radius.components)
 
 
@@ -193,7 +195,7 @@ class BallBarResult:
 
 
 def measure_ball_bar(points: tuple[np.ndarray, np.ndarray], unc: tuple[ScanUncertainty, ScanUncertainty],
-                     nominal_radius_mm: float, viewpoint: np.ndarray | None = np.zeros(3), *,
+                     nominal_radius_mm: float, viewpoint: np.ndarray | None = CAMERA_ORIGIN, *,
                      inner: bool = True) -> BallBarResult:
     """Both spheres of a ball bar from their points (`measure_sphere`, `inner` as there),
     and the distance between the centres with the uncertainty of the pair (the two
@@ -211,7 +213,7 @@ def measure_ball_bar(points: tuple[np.ndarray, np.ndarray], unc: tuple[ScanUncer
     rms = float(np.hypot(fits[0].rms_mm, fits[1].rms_mm) / np.sqrt(2.0))
     distance = joined.linear_u(pts, d_infl, rms)
     outer = joined.linear_u(pts, d_infl + r_infl, rms)
-    return BallBarResult(tuple(results), distance.estimate(length),  # type: ignore[arg-type]
+    return BallBarResult(tuple(results), distance.estimate(length),
                          outer.estimate(length + fits[0].radius + fits[1].radius), distance.components)
 
 

@@ -25,16 +25,17 @@ from __future__ import annotations
 
 import re
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from inspection.errors import CadError
+from inspection.surfaces import BSpline, Cone, Cylinder, Plane, Sphere, Surface, Torus
 from scanner.file_checks import FileRefused, regular_size
 from scanner.mesh_files import read_mesh
-from inspection.surfaces import BSpline, Cone, Cylinder, Plane, Sphere, Surface, Torus
 
 STEP_SUFFIXES = (".step", ".stp")
 MESH_SUFFIXES = (".stl", ".ply", ".obj")
@@ -64,6 +65,11 @@ class Tessellation:
         return self.vertices[used], inverse.reshape(-1, 3).astype(np.int32)
 
 
+# what `_Domain._raster` builds a face's raster from: UV box, mm per unit of u and v, the
+# triangulation's UV points and triangles, and its deflection (mm)
+_RasterInputs = tuple[tuple[float, float, float, float], tuple[float, float], np.ndarray, np.ndarray, float]
+
+
 class _Domain:
     """The trimmed parameter domain of a STEP face: a raster over the UV box marks cells
     certainly inside or outside (from the library's triangulation in UV); points in the
@@ -75,15 +81,17 @@ class _Domain:
                  uv: np.ndarray, triangles: np.ndarray, deflection_mm: float) -> None:
         self._face = face
         self._classifier: Any = None
-        self._args = (box, scale, uv, triangles, deflection_mm)
+        self._args: _RasterInputs | None = (box, scale, uv, triangles, deflection_mm)  # dropped once it is built
         self._state: np.ndarray | None = None
 
     @property
     def state(self) -> np.ndarray:
         """Per raster cell (one cell of margin all round): _OUT, _IN or _UNSURE."""
         if self._state is None:
+            if self._args is None:
+                raise RuntimeError("a face domain's raster inputs are gone but no raster was built")
             self._state = self._raster(*self._args)
-            self._args = None  # type: ignore[assignment]
+            self._args = None
         return self._state
 
     def _raster(self, box: tuple[float, float, float, float], scale: tuple[float, float], uv: np.ndarray,
@@ -111,7 +119,11 @@ class _Domain:
         band = (np.ceil(deflection_mm / cell_mm).astype(int) + 1).clip(1, 64)
         k = np.ones((2 * band[1] + 1, 2 * band[0] + 1), np.uint8)
         k3 = np.ones((3, 3), np.uint8)
-        unsure = cv2.dilate(boundary, k) | (cv2.dilate(filled, k3) & ~cv2.erode(filled, k3) & 1)
+        # uint8 masks (OpenCV's stubs say any numeric array, which `~` does not take)
+        near_boundary: np.ndarray = cv2.dilate(boundary, k)
+        grown: np.ndarray = cv2.dilate(filled, k3)
+        shrunk: np.ndarray = cv2.erode(filled, k3)
+        unsure = near_boundary | (grown & ~shrunk & 1)
         return np.where(unsure > 0, _UNSURE, np.where(filled > 0, _IN, _OUT)).astype(np.uint8)
 
     def contains(self, uv: np.ndarray) -> np.ndarray:
@@ -466,7 +478,7 @@ def _load_step(path: Path, deflection_mm: float | None, scale: float, progress: 
         name = f"face #{step_ids[i]}" if step_ids[i] is not None else f"face {i + 1} (no STEP id)"
         try:
             face = _step_face(f, len(faces), step_ids[i], defl)
-        except Exception as exc:  # noqa: BLE001 — OpenCASCADE's own failures on one face (Standard_Failure)
+        except Exception as exc:  # OpenCASCADE's own failures on one face (Standard_Failure)
             face, why = None, f"{type(exc).__name__}: {exc}"
         else:
             why = "no surface and no triangles"
@@ -494,19 +506,23 @@ def _step_face(f: Any, index: int, step_id: int | None, deflection_mm: float) ->
     if surf is None:
         mesh = _face_mesh(f, sense)
         return None if mesh is None else _mesh_face(index, step_id, *mesh)
-    box = tuple(float(x) for x in BRepTools.UVBounds_s(f))
+    u0, u1, v0, v1 = BRepTools.UVBounds_s(f)
+    box = (float(u0), float(u1), float(v0), float(v1))
     props = GProp_GProps()
     BRepGProp.SurfaceProperties_s(f, props)
     v, uv, t = _face_triangulation(f, surf, sense)
     return Face(index=index, step_id=step_id, type=surf.kind, area_mm2=float(props.Mass()), surface=surf,
-                sense=sense, box=box, domain=_Domain(f, box, surf.metric_scale(box), uv, t, deflection_mm),  # type: ignore[arg-type]
+                sense=sense, box=box, domain=_Domain(f, box, surf.metric_scale(box), uv, t, deflection_mm),
                 mesh=(v, t))
 
 
 def _tessellation(faces: list[Face]) -> Tessellation:
     """The faces' triangles in one array (vertices not shared between faces)."""
-    verts = [f.mesh[0] for f in faces]  # type: ignore[index]
-    tris = [f.mesh[1] for f in faces]  # type: ignore[index]
+    meshes = [f.mesh for f in faces if f.mesh is not None]
+    if len(meshes) != len(faces):
+        raise ValueError("the tessellation needs every face's triangles; a face has none")
+    verts = [v for v, _ in meshes]
+    tris = [t for _, t in meshes]
     offsets = np.cumsum([0] + [len(v) for v in verts[:-1]])
     return Tessellation(np.concatenate(verts), np.concatenate([t + o for t, o in zip(tris, offsets)]).astype(np.int32),
                         np.repeat(np.arange(len(faces), dtype=np.int32), [len(t) for t in tris]))
@@ -628,21 +644,23 @@ class MeshSurface:
                      vertices[triangles[:, 2]] - vertices[triangles[:, 0]])
         self.areas = 0.5 * np.linalg.norm(n, axis=1)
         self.normals = n / np.maximum(2 * self.areas, 1e-300)[:, None]
+        cpu = o3d.core.Device("CPU:0")
         self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
-                                  o3d.core.Tensor(triangles.astype(np.uint32)))
+        self._scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32), o3d.core.float32, cpu),
+                                  o3d.core.Tensor(triangles.astype(np.uint32), o3d.core.uint32, cpu))
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(uv (zeros), foot points, outward triangle normals, signed distance)."""
         import open3d as o3d
 
-        ans = self._scene.compute_closest_points(o3d.core.Tensor(np.asarray(points, np.float32)))
+        query = o3d.core.Tensor(np.asarray(points, np.float32), o3d.core.float32, o3d.core.Device("CPU:0"))
+        ans = self._scene.compute_closest_points(query)
         foot = ans["points"].numpy().astype(np.float64)
         n = self.normals[ans["primitive_ids"].numpy().astype(np.int64)]
         return np.zeros((len(points), 2)), foot, n, np.einsum("ij,ij->i", points - foot, n)
 
     def params(self) -> dict[str, Any]:
-        return {"triangles": int(len(self.triangles))}
+        return {"triangles": len(self.triangles)}
 
 
 def _load_mesh(path: Path, unit: str) -> CadModel:
@@ -693,4 +711,4 @@ def _mesh_face(index: int, step_id: int | None, vertices: np.ndarray, triangles:
     ms = MeshSurface(vertices, triangles)
     flat = np.abs(ms.normals @ np.average(ms.normals, axis=0, weights=ms.areas)).min() > np.cos(np.radians(0.5))
     return Face(index=index, step_id=step_id, type="plane" if flat else "mesh", area_mm2=float(ms.areas.sum()),
-                mesh=(vertices, triangles), surface=ms)  # type: ignore[arg-type]
+                mesh=(vertices, triangles), surface=ms)

@@ -122,7 +122,7 @@ def legend_strip(scale: ColourScale, height: int) -> np.ndarray:
     k = max(height / 700.0, 0.6)  # lettering scale: about 0.6 of a line per 1 % of the image's height
 
     def at(v: float) -> int:
-        return int(round(v * k))
+        return round(v * k)
 
     panel = np.full((max(height, at(330)), at(380), 3), 255, np.uint8)
     font, size, thick = cv2.FONT_HERSHEY_SIMPLEX, 0.45 * k, max(1, at(1.2))
@@ -132,7 +132,7 @@ def legend_strip(scale: ColourScale, height: int) -> np.ndarray:
     rows.append((np.nan, "no deviation shown (not in the figures)", np.full(3, GREY)))
     for j, (_, text, rgb) in enumerate(rows):
         y = at(44 + 30 * j)
-        cv2.rectangle(panel, (at(10), y), (at(34), y + at(20)), tuple(int(round(255 * c)) for c in rgb), -1)
+        cv2.rectangle(panel, (at(10), y), (at(34), y + at(20)), tuple(round(255 * c) for c in rgb), -1)
         cv2.rectangle(panel, (at(10), y), (at(34), y + at(20)), (90, 90, 90), 1)
         cv2.putText(panel, text, (at(42), y + at(15)), font, size, (0, 0, 0), thick, cv2.LINE_AA)
     y = at(44 + 30 * len(rows) + 20)

@@ -101,7 +101,9 @@ def downsample(points: np.ndarray, voxel_mm: float | None = None, method: str = 
     pts = _checked(points)
     size = density_voxel_size(pts, alpha, scale) if voxel_mm is None else float(voxel_mm)
     order, cell, counts = _voxel_sort(pts, size)
-    centre = np.stack([np.bincount(cell, weights=pts[:, k], minlength=len(counts)) for k in range(3)], axis=1)
+    # weighted bincounts are float (numpy's stubs say integer)
+    centre: np.ndarray = np.stack([np.bincount(cell, weights=pts[:, k], minlength=len(counts)) for k in range(3)],
+                                  axis=1)
     centre /= counts[:, None]
     if method == "average":
         return Downsampled(centre, cell, None, size)

@@ -94,12 +94,13 @@ def shot(points: np.ndarray, normals: np.ndarray, centres: np.ndarray, radius: f
             flat = flat + (b1 if upper else b0) * stride
             weight = weight * (w1 if upper else w0)
         hist += np.bincount(flat, weights=weight, minlength=len(hist))
-    hist = hist.reshape(len(centres), SHOT_DIM)
-    norm = np.linalg.norm(hist, axis=1, keepdims=True)
-    return np.where(norm > 0, hist / np.where(norm > 0, norm, 1.0), 0.0)
+    per_centre = hist.reshape(len(centres), SHOT_DIM)
+    norm = np.linalg.norm(per_centre, axis=1, keepdims=True)
+    return np.where(norm > 0, per_centre / np.where(norm > 0, norm, 1.0), 0.0)
 
 
-def fpfh(points: np.ndarray, normals: np.ndarray, keypoints: np.ndarray, radius: float, max_nn: int = 128) -> np.ndarray:
+def fpfh(points: np.ndarray, normals: np.ndarray, keypoints: np.ndarray, radius: float,
+         max_nn: int = 128) -> np.ndarray:
     """Open3D's FPFH (K, 33) of the points indexed by `keypoints`, from neighbourhoods of
     `radius` (mm) in `points`/`normals`; each row normalised to unit length."""
     import open3d as o3d
@@ -112,7 +113,7 @@ def fpfh(points: np.ndarray, normals: np.ndarray, keypoints: np.ndarray, radius:
     if not len(keys):
         return np.zeros((0, 33))
     f = o3d.pipelines.registration.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius, max_nn),
-                                                        o3d.utility.IntVector(keys.tolist()))
+                                                        keys.tolist())
     d = np.asarray(f.data).T[back.ravel()]
     norm = np.linalg.norm(d, axis=1, keepdims=True)
     return np.where(norm > 0, d / np.where(norm > 0, norm, 1.0), 0.0)

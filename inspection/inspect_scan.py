@@ -24,9 +24,10 @@ from __future__ import annotations
 import threading
 import time
 import weakref
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -35,10 +36,10 @@ from inspection.errors import InspectionError
 from inspection.form import FORM_WORKERS, FaceForm, FormSettings, evaluate_face
 from inspection.measured_cloud import ScanCloud, make_scan, part_mask
 from inspection.registration import ModelTarget, Registration, RegistrationSettings, transform_points
-from inspection.registration.warm_start import register_with_prior
-from inspection.report import FaceRow, InspectionReport
 from inspection.registration.driver import AMBIGUOUS
 from inspection.registration.evidence import SYMMETRY_ZERO, FreeMotion, PoseCovariance, jacobian, moves
+from inspection.registration.warm_start import register_with_prior
+from inspection.report import FaceRow, InspectionReport
 from inspection.segmentation import UNASSIGNED, Segmentation, assign_faces
 from inspection.tolerances import FIGURE_OF, GUARD_BANDED, NOT_MEASURED, Tolerances, decide
 from inspection.uncertainty import ScanUncertainty
@@ -158,7 +159,8 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
             assigned_points=int(seg.assigned.sum()), registration=reg, faces=tuple(done[k] for k in sorted(done)),
             form_settings=settings.form, timings_s={k: round(v, 4) for k, v in times.items()},
             part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose.as_dict(),
-            calibration=uncertainty.calibration.source if uncertainty is not None else "not known (a bare cloud): not in U",
+            calibration=(uncertainty.calibration.source if uncertainty is not None
+                         else "not known (a bare cloud): not in U"),
             cad=model, status=reg.status, status_note=_free_note(reg, unbounded))
 
     # the faces the tolerances ask for first: the verdict needs only them; the others' figures follow
@@ -223,7 +225,7 @@ class PoseUncertainty:
             return form
         m = jacobian(points, normals, self.covariance.centre).mean(axis=0)
         u = float(np.sqrt(max(m @ self.covariance.covariance @ m, 0.0)))
-        changes = {}
+        changes: dict[str, Any] = {}  # FaceForm's figure fields by name: replace() cannot check them
         for name, scale in (("deviation_min", 1.0), ("deviation_max", 1.0), ("deviation_mean", 1.0),
                             ("profile", 2.0)):
             e = form.figure(name)

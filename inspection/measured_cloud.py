@@ -150,7 +150,8 @@ def load_session(path: str | Path) -> ScanCloud:
     inside = (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
     if not inside.all():
         raise CloudError(ply, "points do not project into the session's camera: not this session's cloud")
-    return replace(scan, source=str(session.root), viewpoint=np.zeros(3), pixels=px, image_shape=(cam.height, cam.width))
+    return replace(scan, source=str(session.root), viewpoint=np.zeros(3), pixels=px,
+                   image_shape=(cam.height, cam.width))
 
 
 def load_source(path: str | Path) -> ScanCloud:

@@ -31,7 +31,7 @@ def write_point_deviations(folder: str | Path, scan: Any, report: Any) -> Path:
     tmp = temp_path(path, ".npz")
     try:
         with open_new(tmp) as f:
-            np.savez_compressed(f, **arrays)
+            np.savez_compressed(f, allow_pickle=False, **arrays)  # numeric arrays: nothing to pickle
         tmp.replace(path)
     except BaseException:  # e.g. a full disk: no partial file left behind
         tmp.unlink(missing_ok=True)

@@ -23,12 +23,12 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-from inspection.deviation_colours import ColourScale, shown_count, shown_deviations  # noqa: E402
-from inspection.tolerances import FIGURE_OF, overall  # noqa: E402
+from inspection.deviation_colours import ColourScale, shown_count, shown_deviations
+from inspection.tolerances import FIGURE_OF, overall
 
 MAX_POINTS = 40_000
 MAX_TRIANGLES = 6_000  # the CAD mesh drawn behind the points is decimated to this many
@@ -196,9 +196,10 @@ CLOSEUP_AXES = (0.1, 0.12, 0.7, 0.74)  # the face's map in a close-up (figure fr
 CLOSEUP_CELLS = 160  # map cells along the face's longer side
 
 
-def face_map(uv: np.ndarray, dev: np.ndarray, cells: int = CLOSEUP_CELLS) -> tuple[np.ndarray, list[float]]:
+def face_map(uv: np.ndarray, dev: np.ndarray,
+             cells: int = CLOSEUP_CELLS) -> tuple[np.ndarray, tuple[float, float, float, float]]:
     """The mean signed deviation (mm) per cell of a regular grid over the face's surface
-    coordinates (NaN: no point), rows from v low to high; and its extent [u0, u1, v0, v1]."""
+    coordinates (NaN: no point), rows from v low to high; and its extent (u0, u1, v0, v1)."""
     lo, hi = uv.min(axis=0), uv.max(axis=0)
     span = np.maximum(hi - lo, 1e-9)
     shape = np.maximum(np.round(cells * span / span.max()).astype(int), 1)
@@ -207,7 +208,7 @@ def face_map(uv: np.ndarray, dev: np.ndarray, cells: int = CLOSEUP_CELLS) -> tup
     count, _, _ = np.histogram2d(uv[:, 0], uv[:, 1], edges)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(count > 0, total / count, np.nan)
-    return mean.T, [float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])]
+    return mean.T, (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
 
 
 def face_closeup(report: Any, row: Any, scale: ColourScale) -> bytes:
@@ -219,7 +220,7 @@ def face_closeup(report: Any, row: Any, scale: ColourScale) -> bytes:
     seg = report.segmentation
     shown = shown_deviations(report)
     on = (seg.face == row.index) & np.isfinite(shown)
-    grid, extent = face_map(seg.uv[on], shown[on]) if on.any() else (np.full((1, 1), np.nan), [0.0, 1.0, 0.0, 1.0])
+    grid, extent = face_map(seg.uv[on], shown[on]) if on.any() else (np.full((1, 1), np.nan), (0.0, 1.0, 0.0, 1.0))
     aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9) if row.type == "plane" else 0.6
     width = 7.2
     height = float(np.clip(width * CLOSEUP_AXES[2] * aspect / CLOSEUP_AXES[3], 2.6, 6.0))

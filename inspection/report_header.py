@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import hashlib
 import html
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable
 
 LABELS = {"part": "Part", "serial": "Serial number", "program": "Part program", "program_sha256": "Program SHA-256",
           "operator": "Operator", "date": "Date (UTC)", "rig": "Rig", "calibration_id": "Calibration id",
@@ -48,7 +48,8 @@ def file_sha256(path: str | Path) -> str:
 
 
 HEADER_CSS = ("#header table{width:100%;border-collapse:collapse}#header th,#header td{border:1px solid #ccc;"
-              "padding:3px 7px;text-align:left}#header th{width:22%;background:#eef0f3}#header td{word-break:break-all}")
+              "padding:3px 7px;text-align:left}#header th{width:22%;background:#eef0f3}"
+              "#header td{word-break:break-all}")
 
 
 def header_html(header: ReportHeader, extra: Iterable[tuple[str, str]] = ()) -> str:

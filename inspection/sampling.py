@@ -14,8 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from inspection.cad import CadModel, Face
+from inspection.cad import CadModel, Face, MeshSurface
 from inspection.errors import CadError
+from inspection.surfaces import Surface
 
 
 @dataclass(frozen=True, eq=False)
@@ -35,27 +36,32 @@ class LabelledCloud:
 
 
 def _sample_surface_face(face: Face, density: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    surface, domain = face.surface, face.domain
+    if not isinstance(surface, Surface) or domain is None:
+        raise CadError(f"face {face.label}", "not an exact surface with a trimmed domain: cannot sample it as one")
     u0, u1, v0, v1 = face.box
-    jmax = face.surface.max_jacobian(face.box)  # type: ignore[union-attr]
+    jmax = surface.max_jacobian(face.box)
     n = rng.poisson((u1 - u0) * (v1 - v0) * jmax * density)
     uv = np.column_stack([rng.uniform(u0, u1, n), rng.uniform(v0, v1, n)])
-    p, nrm, jac = face.surface.evaluate(uv)  # type: ignore[union-attr]
+    p, nrm, jac = surface.evaluate(uv)
     keep = rng.random(n) * jmax < jac
     uv, p, nrm = uv[keep], p[keep], nrm[keep]
-    inside = face.domain.contains(uv)  # type: ignore[union-attr]
+    inside = domain.contains(uv)
     return p[inside], face.sense * nrm[inside]
 
 
 def _sample_mesh_face(face: Face, density: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     ms = face.surface
+    if not isinstance(ms, MeshSurface):
+        raise CadError(f"face {face.label}", "has no triangles to sample")
     n = rng.poisson(face.area_mm2 * density)
-    tri = rng.choice(len(ms.triangles), size=n, p=ms.areas / ms.areas.sum())  # type: ignore[union-attr]
+    tri = rng.choice(len(ms.triangles), size=n, p=ms.areas / ms.areas.sum())
     a, b = rng.random(n), rng.random(n)
     flip = a + b > 1
     a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
-    v = ms.vertices[ms.triangles[tri]]  # type: ignore[union-attr]
+    v = ms.vertices[ms.triangles[tri]]
     p = v[:, 0] + a[:, None] * (v[:, 1] - v[:, 0]) + b[:, None] * (v[:, 2] - v[:, 0])
-    return p, ms.normals[tri]  # type: ignore[union-attr]
+    return p, ms.normals[tri]
 
 
 def sample_model(model: CadModel, spacing_mm: float, seed: int = 0, faces: list[int] | None = None) -> LabelledCloud:

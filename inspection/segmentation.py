@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 
 from inspection.cad import CadModel
 from inspection.downsample import first_minimum_per_run
+from inspection.errors import CadError
 from inspection.sampling import LabelledCloud
 
 UNASSIGNED = -1
@@ -64,7 +65,9 @@ def project_to_faces(model: CadModel, points: np.ndarray,
     uv, foot, normal, dist = np.zeros((n, 2)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
     for index, sel in by_face(face, len(model.faces)):  # one call per face
         f = model.faces[index]
-        u, p, nn, d = f.surface.project(points[sel])  # type: ignore[union-attr]
+        if f.surface is None:
+            raise CadError(model.path, f"face {f.label} has no surface to project onto")
+        u, p, nn, d = f.surface.project(points[sel])
         uv[sel], foot[sel], normal[sel], dist[sel] = u if f.domain is None else f.wrap(u), p, f.sense * nn, f.sense * d
     return uv, foot, normal, dist
 

@@ -225,6 +225,11 @@ class BSpline(Surface):
     degrees: tuple[int, int] = (1, 1)
     control: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 4)))
     kind: str = field(init=False, default="bspline")
+    # set by __post_init__: the spline (scipy NdBSpline), and a dense grid of parameters
+    # with a KD-tree (scipy cKDTree) of its points, where projection starts
+    _spline: Any = field(init=False, repr=False)
+    _grid_uv: np.ndarray = field(init=False, repr=False)
+    _grid_tree: Any = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         from scipy.interpolate import NdBSpline
@@ -240,7 +245,7 @@ class BSpline(Surface):
         object.__setattr__(self, "_grid_tree", cKDTree(self._point_and_derivatives(g)[0]))
 
     def _rational(self, uv: np.ndarray, order: tuple[int, int]) -> np.ndarray:
-        return self._spline(uv, nu=order)  # type: ignore[attr-defined]
+        return self._spline(uv, nu=order)
 
     def _point_and_derivatives(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         h = self._rational(uv, (0, 0))
@@ -251,8 +256,8 @@ class BSpline(Surface):
         return p, (hu[:, :3] - p * hu[:, 3:]) / w, (hv[:, :3] - p * hv[:, 3:]) / w
 
     def _closest_uv(self, p: np.ndarray) -> np.ndarray:
-        _, idx = self._grid_tree.query(p)  # type: ignore[attr-defined]
-        uv = self._grid_uv[idx].copy()  # type: ignore[attr-defined]
+        _, idx = self._grid_tree.query(p)
+        uv = self._grid_uv[idx].copy()
         tu, tv = self.knots
         du, dv = self.degrees
         lo = np.array([tu[du], tv[dv]])

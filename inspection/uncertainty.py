@@ -74,8 +74,9 @@ distribution from none to twice b), with the draws' Monte Carlo error of it
 extreme) the draws' spread at the measured surface understates the error's where that
 surface's extreme is itself partly noise (among competing extremes the noise has already
 picked one), so u_noise is at least the first-order spread: the draws at the cells that
-hold the extreme, weighted as they hold it (a zone's LP dual prices, `mz_zone_sensitivity`). Sq has the modelled noise variance
-removed in quadrature, and u from the variance of a mean of squares.
+hold the extreme, weighted as they hold it (a zone's LP dual prices, `mz_zone_sensitivity`).
+Sq has the modelled noise variance removed in quadrature, and u from the variance of a mean of
+squares.
 
 Detection. A figure that noise alone could produce is not distinguishable from zero: it
 is reported as null with its detection limit x_limit_mm L (printed `< L`). The test has a
@@ -104,8 +105,9 @@ simulator (`slscan coverage [--calibrated]`, `sim.repeat_scans`, tests/test_unce
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -147,6 +149,13 @@ class Estimate:
     def U(self) -> float:
         """Expanded uncertainty (mm), about 95 % coverage: k·u."""
         return self.k * self.u
+
+    def value_or_raise(self) -> float:
+        """`value` (mm) of a figure that has one: one not tested against zero always does;
+        ValueError for a figure below its detection limit."""
+        if self.value is None:
+            raise ValueError(f"the figure has no value: below its detection limit {self.limit} mm")
+        return self.value
 
     def fields(self, name: str) -> dict[str, float | None]:
         """JSON fields: `name_mm`, `name_u_mm` (U, about 95 %) and, when tested against zero,
@@ -330,9 +339,10 @@ class PointNoise:
         if len(each) == 1:
             return u_noise, each[0]
         rng = np.random.default_rng(0)
-        pairs = sum(e[rng.integers(0, len(e), 8192)] for e in each)
+        draws = [e[rng.integers(0, len(e), 8192)] for e in each]
+        pairs = sum(draws[1:], draws[0])
         exact = float(np.sqrt(sum(np.var(e) for e in each)))  # the pairs' shape, the exact spread
-        return u_noise, pairs * (exact / max(float(np.std(pairs)), 1e-300))  # type: ignore[operator]
+        return u_noise, pairs * (exact / max(float(np.std(pairs)), 1e-300))
 
 
 @dataclass(frozen=True, eq=False)
@@ -589,13 +599,19 @@ class ScanUncertainty:
     def join(cls, parts: list[ScanUncertainty]) -> ScanUncertainty:
         """One model for the points of several parts of the same scan (or rig), in order."""
         first = parts[0]
-        n = [p.noise for p in parts]
-        noise = None if any(x is None for x in n) else PointNoise(np.concatenate([x.sigma_z for x in n]), np.concatenate([x.ray for x in n]),
-                           tuple(np.concatenate(c) for c in zip(*(x.columns for x in n))),
-                           tuple(np.concatenate(g) for g in zip(*(x.gains for x in n))), first.noise.fringe,
-                           first.noise.source, first.noise.rel_u)  # type: ignore[union-attr]
-        weights = None if first.weights is None else {
-            o: np.concatenate([p.weights[o] for p in parts]) for o in first.weights}  # type: ignore[index]
+        n = [p.noise for p in parts if p.noise is not None]
+        noise = None
+        if len(n) == len(parts):  # a noise model only when every part has one
+            noise = PointNoise(np.concatenate([x.sigma_z for x in n]), np.concatenate([x.ray for x in n]),
+                               tuple(np.concatenate(c) for c in zip(*(x.columns for x in n))),
+                               tuple(np.concatenate(g) for g in zip(*(x.gains for x in n))), n[0].fringe,
+                               n[0].source, n[0].rel_u)
+        weights = None
+        if first.weights is not None:
+            w = [p.weights for p in parts if p.weights is not None]
+            if len(w) != len(parts):
+                raise ValueError("ScanUncertainty.join: the first part has depth weights, another has none")
+            weights = {o: np.concatenate([x[o] for x in w]) for o in first.weights}
         return cls(noise, first.calibration, first.model, weights)
 
 
@@ -689,9 +705,9 @@ def defocus_bias(decoded: DecodeResult, blur_sigma_px: float) -> dict[str, np.nd
     makes where the coordinate or the fringe modulation is not linear across the blur.
 
     Phase shifting measures the phase of the complex fringe signal s = B·e^{iφ} (B the
-    modulation, the same shape for every frequency: albedo, shading and the projector's contrast; φ = 2π·f·c). The camera
-    blur G of variance σ² is linear, so every frame, and hence s, is blurred alike; to
-    first order G∗s = s + σ²/2·∇²s, and
+    modulation, the same shape for every frequency: albedo, shading and the projector's contrast;
+    φ = 2π·f·c). The camera blur G of variance σ² is linear, so every frame, and hence s, is
+    blurred alike; to first order G∗s = s + σ²/2·∇²s, and
         arg(G∗s) − φ = σ²·(∇ln B·∇φ + ½·∇²φ)
     (the real part of ∇²s/s only changes the modulation). In coordinate units the same
     for every frequency: δc = σ²·(∇ln B·∇c + ½·∇²c), derivatives in camera pixels. On a

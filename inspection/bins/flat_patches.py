@@ -149,10 +149,8 @@ def _components(core: np.ndarray, z: np.ndarray, step_mm: float) -> np.ndarray:
     differ by `step_mm` or more from a core 4-neighbour (so no component crosses a step)."""
     keep = core.copy()
     for axis in (0, 1):
-        a = [slice(None)] * 2
-        b = [slice(None)] * 2
-        a[axis], b[axis] = slice(None, -1), slice(1, None)
-        a, b = tuple(a), tuple(b)
+        a = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
+        b = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
         jump = core[a] & core[b] & ~(np.abs(z[a] - z[b]) < step_mm)
         keep[a] &= ~jump
         keep[b] &= ~jump

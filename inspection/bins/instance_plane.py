@@ -110,7 +110,7 @@ def instance_patch(points: np.ndarray, context: SceneContext | None, thickness: 
     the plane, toward the camera, count as higher, the others as lower."""
     c = points.mean(axis=0)
     d = points - c
-    _, s, vt = np.linalg.svd(d[:: max(1, len(d) // 5000)], full_matrices=False)
+    _, _, vt = np.linalg.svd(d[:: max(1, len(d) // 5000)], full_matrices=False)
     n = vt[2] * (-1.0 if vt[2] @ c > 0 else 1.0)   # toward the camera at the origin
     e1 = vt[0] - (vt[0] @ n) * n
     e1 /= np.linalg.norm(e1)

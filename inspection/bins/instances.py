@@ -202,7 +202,7 @@ def _shape_mask(shape: dict[str, object], kind: str, size: tuple[int, int], wher
         if len(pts) != 2:
             raise MaskError(f"{where}: a circle needs its centre and a point on it, got {len(pts)} points")
         radius = float(np.linalg.norm(pts[1] - pts[0]))
-        cv2.circle(canvas, tuple(int(v) for v in fixed(pts[0])), int(round(radius * (1 << shift))), 1, -1, shift=shift)
+        cv2.circle(canvas, tuple(int(v) for v in fixed(pts[0])), round(radius * (1 << shift)), 1, -1, shift=shift)
     elif kind == "mask":
         if len(pts) < 1 or not shape.get("mask"):
             raise MaskError(f"{where}: a mask shape needs its top-left point and base64 PNG 'mask'")
@@ -210,7 +210,7 @@ def _shape_mask(shape: dict[str, object], kind: str, size: tuple[int, int], wher
         sub = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
         if sub is None:
             raise MaskError(f"{where}: the 'mask' is not a readable PNG")
-        x0, y0 = (int(round(v)) for v in pts[0])
+        x0, y0 = (round(v) for v in pts[0])
         ys, xs = np.nonzero(sub)
         ys, xs = ys + y0, xs + x0
         keep = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)
@@ -262,7 +262,7 @@ class OnnxInstanceSegmenter:
         self.min_score = min_score
         self.mask_threshold = mask_threshold
         try:
-            import onnxruntime  # type: ignore[import-not-found]
+            import onnxruntime  # type: ignore[import-not-found]  # optional, not installed: no stubs to find
         except ImportError:
             raise MaskError(f"{self.path}: running an ONNX instance segmentation model needs the 'onnxruntime' "
                             "package, which slscan does not install: pip install onnxruntime") from None
@@ -276,7 +276,7 @@ class OnnxInstanceSegmenter:
         x = (img.astype(np.float32) / scale)
         x = np.repeat(x[None], 3, axis=0) if x.ndim == 2 else np.transpose(x[..., :3], (2, 0, 1))
         name = self.session.get_inputs()[0].name
-        boxes, labels, scores, masks = self.session.run(None, {name: x})[:4]
+        _, labels, scores, masks = self.session.run(None, {name: x})[:4]
         return predictions_from_maskrcnn(labels, scores, masks, img.shape[:2], self.classes, self.min_score,
                                          self.mask_threshold)
 

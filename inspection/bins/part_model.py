@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from inspection.bins.pose_settings import PoseSettings
+from inspection.bins.pose_settings import DEFAULT_POSE_SETTINGS, PoseSettings
 from inspection.errors import CadError
 from inspection.registration import ModelTarget, Samples
 
@@ -73,7 +73,7 @@ class ThinPartModel:
     grip_point_mm: tuple[float, float] | None = None
     approach: tuple[float, float, float] | None = None
 
-    def up_face(self, side: str) -> tuple[np.ndarray, np.ndarray]:
+    def up_face(self, side: str) -> tuple[np.ndarray | None, np.ndarray]:
         """(grip point on the face that is up (part frame, mm; None without a grip point),
         unit approach direction (part frame)) for `side` up: the file's approach, mirrored
         through the mid-plane when the back is up, or else the up face's outward normal."""
@@ -91,7 +91,7 @@ class ThinPartModel:
 
     @classmethod
     def from_mesh(cls, vertices: np.ndarray, triangles: np.ndarray, name: str,
-                  settings: PoseSettings = PoseSettings(), spacing_mm: float = 0.1) -> ThinPartModel:
+                  settings: PoseSettings = DEFAULT_POSE_SETTINGS, spacing_mm: float = 0.1) -> ThinPartModel:
         """The model of a closed thin plate given as a triangle mesh (mm). The front face is
         the large face whose normal has a positive part-frame z (or x, y if z is in-plane)."""
         v = np.asarray(vertices, dtype=np.float64)
@@ -146,6 +146,8 @@ class ThinPartModel:
             mask[ij[:, 1], ij[:, 0]] = 1
             skew = skew_moment(cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)))
             sides[side] = SideModel(side, Samples(pts, face_n), b_pts, b_nrm, target, skew)
+        if u0 is None:  # the first side's samples set it
+            raise CadError(name, "no in-plane direction: no face samples")
         return cls(name, v, t, axis, u0, thickness, face_area, length, sides)
 
 

@@ -30,6 +30,7 @@ point per pickable part ("#rank id side"); ``pose/table`` the table;
 from __future__ import annotations
 
 from dataclasses import replace
+from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -69,7 +70,8 @@ def merge_duplicates(poses: list[PartPose], model: ThinPartModel | None = None, 
     piece of a part posed apart from its other piece, or a wrong pose."""
     kept: list[PartPose] = []
     for p in sorted(poses, key=lambda p: -p.points):
-        if p.ok and any(k.ok and all(np.less(pose_difference(k.pose, p.pose), (angle_deg, dist_mm))) for k in kept):
+        if p.ok and any(k.ok and all(np.less(pose_difference(k.posed()[0], p.posed()[0]), (angle_deg, dist_mm)))
+                        for k in kept):
             continue
         if p.ok and model is not None:
             other = next((k for k in kept if k.ok and _overlap(model, p, k) > max_overlap), None)
@@ -87,9 +89,10 @@ def _overlap(model: ThinPartModel, p: PartPose, k: PartPose) -> float:
     up face, where a part lying on k (its up face one thickness above) or under it (one
     below) cannot be."""
     t = model.thickness_mm
-    q = transform_points(np.linalg.inv(k.pose) @ p.pose, model.sides[p.side].interior)
-    face = model.sides[k.side].face
-    sign = 1.0 if k.side == "front" else -1.0
+    (p_pose, p_side), (k_pose, k_side) = p.posed(), k.posed()
+    q = transform_points(np.linalg.inv(k_pose) @ p_pose, model.sides[p_side].interior)
+    face = model.sides[k_side].face
+    sign = 1.0 if k_side == "front" else -1.0
     level = float(np.median(face.points @ model.axis))
     h = sign * (q @ model.axis - level)
     plan = q - np.outer(q @ model.axis - level, model.axis)
@@ -101,7 +104,7 @@ def pick_order(poses: list[PartPose], max_occlusion: float = PoseSettings.max_oc
                free_occlusion: float = 0.02) -> dict[int, int]:
     """{instance id: rank from 1} of the pickable parts (see the module docstring)."""
     pickable = [p for p in poses if p.ok and p.occlusion + OCCLUSION_BOUND <= max_occlusion]
-    order = sorted(pickable, key=lambda p: (p.occlusion > free_occlusion, float(p.pose[2, 3]), p.occlusion))
+    order = sorted(pickable, key=lambda p: (p.occlusion > free_occlusion, float(p.posed()[0][2, 3]), p.occlusion))
     return {p.instance_id: k for k, p in enumerate(order, start=1)}
 
 
@@ -119,8 +122,6 @@ def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: 
                    message: str = "") -> dict[str, Any]:
     """The poses file's content (see the module docstring); `world_from_cam` None: no rig,
     camera frame only; `rig`: its name, calibration and session id as the file states them."""
-    from datetime import datetime, timezone
-
     W = None if world_from_cam is None else np.asarray(world_from_cam, np.float64)
     ranks = pick_order(poses, max_occlusion)
     parts = []
@@ -129,18 +130,19 @@ def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: 
                                "pick_rank": ranks.get(p.instance_id), "points": p.points, "method": p.method,
                                "time_ms": round(1000 * p.time_s, 1), "cpu_ms": round(1000 * p.cpu_s, 1)}
         if p.ok:
-            grip, approach = model.up_face(p.side)
-            a_cam = p.pose[:3, :3] @ approach
-            row.update({"side_up": p.side, "occlusion": round(p.occlusion, 4), "fitness": round(p.fitness, 4),
+            pose, side = p.posed()
+            grip, approach = model.up_face(side)
+            a_cam = pose[:3, :3] @ approach
+            row.update({"side_up": side, "occlusion": round(p.occlusion, 4), "fitness": round(p.fitness, 4),
                         "rmse_mm": round(p.rmse_mm, 5), "edge_fit": round(p.edge_fit, 4),
                         "side_margin": round(p.side_margin, 4),
-                        "camera": _frame(p.pose), "world": None if W is None else _frame(W @ p.pose),
+                        "camera": _frame(pose), "world": None if W is None else _frame(W @ pose),
                         "approach": {"camera": _rounded(a_cam, 8),
                                      "world": None if W is None else _rounded(W[:3, :3] @ a_cam, 8)}})
             if grip is not None:
-                g_cam = transform_points(p.pose, grip[None])[0]
-                row["grip_point_mm"] = {"camera": _rounded(g_cam, 5),
-                                        "world": None if W is None else _rounded(transform_points(W, g_cam[None])[0], 5)}
+                g_cam = transform_points(pose, grip[None])[0]
+                g_world = None if W is None else _rounded(transform_points(W, g_cam[None])[0], 5)
+                row["grip_point_mm"] = {"camera": _rounded(g_cam, 5), "world": g_world}
             if p.instance_id not in ranks:
                 row["reason"] = (f"occluded {p.occlusion:.0%} (limit {max_occlusion:.0%} less the estimate's "
                                  f"error bound {OCCLUSION_BOUND:.0%})")
@@ -150,7 +152,7 @@ def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: 
             row["label"] = p.label
         parts.append(row)
     return {"format": POSES_FORMAT, "version": POSES_VERSION,
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "source": source, "rig": rig, "part": model.name,
             "units": {"length": "mm", "angles": "none (quaternions, rotation matrices, unit vectors)"},
             "frames": {"pose": "part -> frame: a part-frame point p maps to R p + position",

@@ -39,13 +39,14 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
+from typing import TypedDict, Unpack
 
 import numpy as np
 
 from inspection.bins.instance_plane import InstancePatch, SceneContext, instance_patch, onto_plane
 from inspection.bins.instances import Instance
 from inspection.bins.part_model import SideModel, ThinPartModel
-from inspection.bins.pose_settings import PoseError, PoseSettings
+from inspection.bins.pose_settings import DEFAULT_POSE_SETTINGS, PoseError, PoseSettings
 from inspection.downsample import downsample
 from inspection.registration import RegistrationSettings, fitness, icp, pose_difference, transform_points
 from inspection.registration.hypotheses import with_flips
@@ -79,9 +80,29 @@ class PartPose:
     label: str | None = None
     edge_fit: float = float("nan")
 
+    def posed(self) -> tuple[np.ndarray, str]:
+        """(`pose`, `side`) of an instance posed (`ok`); PoseError for one without a pose."""
+        if self.pose is None or self.side is None:
+            raise PoseError(f"instance {self.instance_id} has no pose: {self.reason}")
+        return self.pose, self.side
+
+
+class _Figures(TypedDict, total=False):
+    """What a failed PartPose reports of its best pose (PartPose's fields of those names)."""
+
+    fitness: float
+    rmse_mm: float
+    occlusion: float
+    side_margin: float
+    edge_fit: float
+
+
+# (why the instance fails, the figures of its best pose, whether another attempt may succeed)
+_Failure = tuple[str, _Figures, bool]
+
 
 def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContext | None = None,
-                  settings: PoseSettings = PoseSettings()) -> PartPose:
+                  settings: PoseSettings = DEFAULT_POSE_SETTINGS) -> PartPose:
     """The pose of `model` explaining `instance` (camera frame), or a failed PartPose
     saying why (see the module docstring)."""
     t0, c0 = time.perf_counter(), time.process_time()
@@ -89,7 +110,7 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
     pts = np.asarray(instance.points, dtype=np.float64)
     pts = pts[np.isfinite(pts).all(axis=1)]
 
-    def failed(reason: str, **kw: float) -> PartPose:
+    def failed(reason: str, **kw: Unpack[_Figures]) -> PartPose:
         return PartPose(instance.id, False, reason, method, len(pts), time_s=time.perf_counter() - t0,
                         cpu_s=time.process_time() - c0, label=instance.label, **kw)
 
@@ -108,20 +129,21 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
         return failed(f"larger than one part: {patch.extent_mm:.1f} mm across, ~{area:.0f} mm² "
                       f"(the part: {model.length_mm:.1f} mm, {model.area_mm2:.0f} mm²); merged instances?")
     rng = np.random.default_rng(settings.seed)
-    outcome: tuple[str, dict, bool] = ("", {}, True)
+    outcome: _Failure = ("", {}, True)
     judged: list[tuple[float, str, np.ndarray]] = []   # every attempt's judged poses: a rival found once stays one
     for _ in range(settings.attempts if settings.method == "sacia" else 1):   # SAC-IA is randomised: retry
-        outcome = _fit(flat, raw, patch, model, settings, rng, judged)
-        if isinstance(outcome, PartPose):
-            return replace(outcome, instance_id=instance.id, points=len(pts), time_s=time.perf_counter() - t0,
+        result = _fit(flat, raw, patch, model, settings, rng, judged)
+        if isinstance(result, PartPose):
+            return replace(result, instance_id=instance.id, points=len(pts), time_s=time.perf_counter() - t0,
                            cpu_s=time.process_time() - c0, label=instance.label)
+        outcome = result
         if not outcome[2]:   # no attempt can settle it
             break
     return failed(outcome[0], **outcome[1])
 
 
 def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPartModel, settings: PoseSettings,
-         rng: np.random.Generator, judged: list[tuple[float, str, np.ndarray]]) -> PartPose | tuple[str, dict, bool]:
+         rng: np.random.Generator, judged: list[tuple[float, str, np.ndarray]]) -> PartPose | _Failure:
     """One coarse + fine fit of the instance's points on its plane `pts` (`raw`: as
     measured, row for row), adding its judged poses to those of earlier attempts
     (`judged`, extended in place: a later attempt that misses a rival must not report the
@@ -198,7 +220,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
     ambiguous = _ambiguity(judged, patch, settings)
     if ambiguous is not None:
         return ambiguous
-    score, side, T = judged[0]
+    _, side, T = judged[0]
     margin = _side_margin(judged)
     sm = model.sides[side]
     v = settings.voxel_mm
@@ -219,7 +241,7 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
     edge = _edge_fit(patch, sm, T, settings.inlier_mm)
     spill = _spill(patch, sm, T)
     occl = _occlusion(patch, sm, T)
-    kw = dict(fitness=fit, rmse_mm=rmse, occlusion=occl, side_margin=margin, edge_fit=edge)
+    kw: _Figures = {"fitness": fit, "rmse_mm": rmse, "occlusion": occl, "side_margin": margin, "edge_fit": edge}
     if fit < settings.min_fitness:
         return (f"the best pose ({side} up) puts only {fit:.0%} of the points on the part's face within "
                 f"{settings.inlier_mm:g} mm (needs {settings.min_fitness:.0%}): not this part, or a wrongly "
@@ -232,12 +254,13 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPart
                 f"(limit {settings.max_spill:.0%}): no pose explains the instance's outline", kw, True)
     if occl > settings.max_pose_occlusion:
         return (f"the best pose ({side} up) leaves {occl:.0%} of the part covered (limit "
-                f"{settings.max_pose_occlusion:.0%}): too little of it shows to rule out the part turned over", kw, False)
+                f"{settings.max_pose_occlusion:.0%}): too little of it shows to rule out the part turned over",
+                kw, False)
     return PartPose(0, True, "", f"{settings.method}+icp", 0, pose, side, fit, rmse, occl, margin, edge_fit=edge)
 
 
 def _ambiguity(judged: list[tuple[float, str, np.ndarray]], patch: InstancePatch,
-               settings: PoseSettings) -> tuple[str, dict, bool] | None:
+               settings: PoseSettings) -> _Failure | None:
     """(why the instance is ambiguous, the side margin, whether another attempt may settle
     it) when a pose distinct from the best (or the other side) is judged within the
     ambiguity margin of it (`judged` sorted best first), else None. A rival within the
@@ -391,7 +414,7 @@ def _ndt_poses(src: np.ndarray, patch: InstancePatch, model: ThinPartModel, sm: 
 
 
 def estimate_poses(instances: list[Instance], model: ThinPartModel, context: SceneContext | None = None,
-                   settings: PoseSettings = PoseSettings()) -> list[PartPose]:
+                   settings: PoseSettings = DEFAULT_POSE_SETTINGS) -> list[PartPose]:
     """`estimate_pose` for every instance, with the scene as context (None: every
     instance edge is taken as a true outline edge)."""
     return [estimate_pose(i, model, context, settings) for i in instances]

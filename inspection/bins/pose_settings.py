@@ -76,3 +76,6 @@ class PoseSettings:
             raise PoseError(f"unknown pose method {self.method!r}; use one of {METHODS}")
         if not (self.extrude_mm > 0 and self.wall_levels >= 1 and self.voxel_mm > 0 and 0 < self.min_fitness <= 1):
             raise PoseError(f"inconsistent pose settings: {self}")
+
+
+DEFAULT_POSE_SETTINGS = PoseSettings()  # the defaults, shared (frozen): the functions' default argument

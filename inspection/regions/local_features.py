@@ -406,8 +406,8 @@ def _monomials(a: np.ndarray, b: np.ndarray, h: np.ndarray, one: np.ndarray) -> 
     out = np.empty((a.shape[0], len(_MONOMIALS), a.shape[1]), dtype=np.float32)
     for name, x in (("1", one), ("a", a), ("b", b), ("h", h)):
         out[:, _M[name]] = x
-    for name, x, y in _PRODUCTS:
-        np.multiply(out[:, _M[x]], out[:, _M[y]], out=out[:, _M[name]])
+    for name, left, right in _PRODUCTS:
+        np.multiply(out[:, _M[left]], out[:, _M[right]], out=out[:, _M[name]])
     return out
 
 

@@ -11,14 +11,13 @@ from inspection.errors import RegistrationFailed
 from inspection.measured_cloud import ScanCloud
 from inspection.registration.alternatives import surviving, unrejected
 from inspection.registration.clouds import voxel_grid
-from inspection.registration.evidence import (Comparison, FreeMotion, PoseCovariance, disagreement, free_motions,
-                                              within)
+from inspection.registration.evidence import Comparison, FreeMotion, PoseCovariance, disagreement, free_motions, within
 from inspection.registration.fine import fine_pose, fit_covariance
 from inspection.registration.hypotheses import plane_poses, with_flips
 from inspection.registration.ndt import coarse_ndt_poses
 from inspection.registration.point_to_plane import icp
 from inspection.registration.sac_ia import coarse_feature_poses
-from inspection.registration.settings import RegistrationSettings
+from inspection.registration.settings import DEFAULT_REGISTRATION_SETTINGS, RegistrationSettings
 from inspection.registration.target import ModelTarget
 from inspection.registration.verification import evaluate_pose, explore, fitness
 
@@ -76,7 +75,7 @@ class Registration:
 
 
 def register(scan: ScanCloud, target: ModelTarget,
-             settings: RegistrationSettings = RegistrationSettings()) -> Registration:
+             settings: RegistrationSettings = DEFAULT_REGISTRATION_SETTINGS) -> Registration:
     """The pose taking `scan` onto `target` (the stages: `inspection.registration`), with
     what its evidence proves (`Registration.status`). Raises RegistrationFailed when no
     pose explains the scan."""
@@ -115,8 +114,8 @@ def register(scan: ScanCloud, target: ModelTarget,
     times["verify"] = time.perf_counter() - t0
     if best[1] < settings.min_fitness - 0.1:  # the coarse fit counts at a looser distance
         raise RegistrationFailed(f"{scan.source}: the best pose fits only {best[1]:.0%} of the scan within "
-                                 f"{inlier:.3g} mm of {target.name} (needs {settings.min_fitness - 0.1:.0%}); wrong part, "
-                                 f"too little of it in view, or other units", best[1], best[2])
+                                 f"{inlier:.3g} mm of {target.name} (needs {settings.min_fitness - 0.1:.0%}); "
+                                 f"wrong part, too little of it in view, or other units", best[1], best[2])
     method = f"rscs+{'+'.join(settings.descriptors)}+{settings.coarse}+icp" if settings.coarse != "ndt" else "ndt+icp"
     reg = refine(scan, target, best[4], settings, rng, times, method)
     t0 = time.perf_counter()

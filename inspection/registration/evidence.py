@@ -47,10 +47,10 @@ is not in it.
 the pose tolerance the registration must prove (`RegistrationSettings.pose_tolerance_deg` and
 `pose_tolerance_mm`, at the scan's RMS radius) is free; so is the leading one when the 95 %
 bounds of the pose's rotation angle or of its centre's displacement (`PoseCovariance.bounds`,
-the terms the tolerance is stated in) exceed the tolerance, though no single motion's does. A free motion that also leaves the
-whole CAD model in place (its surface moves by less than 1e-3 of the motion, a numerical
-zero: a ring turned about its axis) is a symmetry of the part: the pose is reported with it
-named. Any other free motion means the view does not fix the pose.
+the terms the tolerance is stated in) exceed the tolerance, though no single motion's does. A
+free motion that also leaves the whole CAD model in place (its surface moves by less than 1e-3
+of the motion, a numerical zero: a ring turned about its axis) is a symmetry of the part: the
+pose is reported with it named. Any other free motion means the view does not fix the pose.
 
 **Alternatives.** Each other pose the search found, refined, is compared with the best on the
 same scan points by which points each explains (within the inlier distance of the model,
@@ -290,7 +290,8 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, block: np.ndar
     cell_face[cell.ravel()] = face
     v = np.bincount(cell_face, weights=np.bincount(cell.ravel(), weights=e) ** 2, minlength=g) / np.maximum(n, 1.0) ** 2
     m = np.stack([np.bincount(face, weights=J[:, c] * inside, minlength=g) for c in range(6)], axis=1)
-    jbar = np.stack([np.bincount(face, weights=J[:, c], minlength=g) for c in range(6)], axis=1) / np.maximum(n, 1.0)[:, None]
+    jbar = (np.stack([np.bincount(face, weights=J[:, c], minlength=g) for c in range(6)], axis=1)
+            / np.maximum(n, 1.0)[:, None])
     R2 = (np.eye(g) - jbar @ Ainv @ m.T) ** 2
     told = n >= MIN_BLOCKS
     kinds = [kind, ~kind]
@@ -361,9 +362,13 @@ def _named(x: np.ndarray, centre: np.ndarray, rot_u: float, shift_u: float, rho:
     if np.linalg.norm(omega) * rho > np.linalg.norm(t):  # mostly a turn: its axis
         a = omega / np.linalg.norm(omega)
         point = centre + np.cross(omega, t) / float(omega @ omega)
-        return FreeMotion("rotation", tuple(float(y) for y in a), tuple(float(y) for y in point), rot_u, symmetry)
+        return FreeMotion("rotation", _triple(a), _triple(point), rot_u, symmetry)
     a = t / np.linalg.norm(t)
-    return FreeMotion("translation", tuple(float(y) for y in a), None, shift_u, symmetry, rot_u)
+    return FreeMotion("translation", _triple(a), None, shift_u, symmetry, rot_u)
+
+
+def _triple(v: np.ndarray) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
 
 
 def disagreement(a: np.ndarray, b: np.ndarray, centre: np.ndarray, radius_mm: float, why: str) -> FreeMotion:

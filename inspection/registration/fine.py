@@ -21,7 +21,6 @@ from inspection.registration.settings import RegistrationSettings
 from inspection.registration.target import ModelTarget
 from inspection.segmentation import assign_faces, project_to_faces
 
-
 ASSIGN_VOXELS = 0.3  # scan points within this many voxels of a CAD face are assigned to it (the exact fit)
 
 @dataclass(frozen=True)

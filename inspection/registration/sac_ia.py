@@ -17,9 +17,9 @@ from inspection.registration.spheres import rscs, sphere_radii
 from inspection.registration.target import ModelTarget
 
 
-def huber(l: np.ndarray, ml: float) -> np.ndarray:
-    """Paper 001 Eq. 22: l^2/2 below ml, ml (2 l - ml)/2 above."""
-    return np.where(l < ml, 0.5 * l * l, 0.5 * ml * (2.0 * l - ml))
+def huber(d: np.ndarray, ml: float) -> np.ndarray:
+    """Paper 001 Eq. 22 of the distances `d` (the paper's l): d^2/2 below ml, ml (2 d - ml)/2 above."""
+    return np.where(d < ml, 0.5 * d * d, 0.5 * ml * (2.0 * d - ml))
 
 
 def triplets(src: np.ndarray, dst: np.ndarray, w: np.ndarray, n: int, min_sep: float, tol: float,

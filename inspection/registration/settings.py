@@ -122,3 +122,8 @@ class RegistrationSettings:
         if self.ambiguity_margin < 0 or not 0 <= self.tangential_weight < 1:
             raise ValueError(f"RegistrationSettings: ambiguity_margin must be >= 0 and tangential_weight in [0, 1), "
                              f"got {self.ambiguity_margin}, {self.tangential_weight}")
+
+
+# The defaults as shared instances (settings are frozen): the functions' default arguments.
+DEFAULT_TARGET_SETTINGS = TargetSettings()
+DEFAULT_REGISTRATION_SETTINGS = RegistrationSettings()

@@ -3,15 +3,25 @@ cloud, the sphere descriptors per radius, and a ray-casting scene of the CAD mod
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from inspection.cad import CadModel
 from inspection.measured_cloud import ScanCloud
 from inspection.registration.clouds import Samples, voxel_grid
 from inspection.registration.rigid import transform_points
-from inspection.registration.settings import RegistrationSettings, TargetSettings
+from inspection.registration.settings import (
+    DEFAULT_REGISTRATION_SETTINGS,
+    DEFAULT_TARGET_SETTINGS,
+    RegistrationSettings,
+    TargetSettings,
+)
 from inspection.registration.spheres import SphereFeatures, describe, screen, sphere_radii
 from inspection.sampling import LabelledCloud, sample_model
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 
 class ModelTarget:
@@ -21,7 +31,7 @@ class ModelTarget:
 
     def __init__(self, points: np.ndarray, normals: np.ndarray, name: str, voxel_mm: float | None = None,
                  model: CadModel | None = None, samples: LabelledCloud | None = None,
-                 settings: TargetSettings = TargetSettings()) -> None:
+                 settings: TargetSettings = DEFAULT_TARGET_SETTINGS) -> None:
         self.name = name
         self.model = model
         self.samples = samples  # CAD targets: the labelled samples `points`/`normals` come from
@@ -31,18 +41,18 @@ class ModelTarget:
         self.voxel_mm = voxel_mm or self.diagonal_mm / settings.voxel_fraction
         self.coarse = Samples(*voxel_grid(points, normals, self.voxel_mm))
         self._features: dict[float, SphereFeatures] = {}
-        self._mesh_scene = None
+        self._mesh_scene: o3d.t.geometry.RaycastingScene | None = None  # built when first needed (`hidden`)
 
     @classmethod
     def from_cad(cls, model: CadModel, voxel_mm: float | None = None, seed: int = 0,
-                 settings: TargetSettings = TargetSettings()) -> ModelTarget:
+                 settings: TargetSettings = DEFAULT_TARGET_SETTINGS) -> ModelTarget:
         voxel = voxel_mm or model.diagonal_mm / settings.voxel_fraction
         s = sample_model(model, voxel / settings.dense_fraction, seed=seed)
         return cls(s.points, s.normals, str(model.path), voxel, model, s, settings)
 
     @classmethod
     def from_cloud(cls, scan: ScanCloud, voxel_mm: float | None = None,
-                   settings: TargetSettings = TargetSettings()) -> ModelTarget:
+                   settings: TargetSettings = DEFAULT_TARGET_SETTINGS) -> ModelTarget:
         return cls(scan.points, scan.normals, scan.source, voxel_mm, settings=settings)
 
     def describe(self, cloud: Samples, idx: np.ndarray, radius: float,
@@ -66,7 +76,7 @@ class ModelTarget:
             self._features[radius] = f
         return f
 
-    def prepare(self, scan: ScanCloud, settings: RegistrationSettings = RegistrationSettings()) -> None:
+    def prepare(self, scan: ScanCloud, settings: RegistrationSettings = DEFAULT_REGISTRATION_SETTINGS) -> None:
         """Compute, ahead of registration, what `register` would compute for a scan like
         `scan` the first time: the sphere descriptors at its RSCS radii (a once-per-model
         cost, kept for every later scan of that size) and the ray-casting scene."""
@@ -90,15 +100,17 @@ class ModelTarget:
 
         if self.model is None:
             return np.zeros(len(points), bool)
-        if self._mesh_scene is None:
+        cpu = o3d.core.Device("CPU:0")
+        scene = self._mesh_scene
+        if scene is None:
             tess = self.model.tessellation
-            self._mesh_scene = o3d.t.geometry.RaycastingScene()
-            self._mesh_scene.add_triangles(o3d.core.Tensor(tess.vertices.astype(np.float32)),
-                                           o3d.core.Tensor(tess.triangles.astype(np.uint32)))
+            scene = self._mesh_scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.core.Tensor(tess.vertices.astype(np.float32), o3d.core.float32, cpu),
+                                o3d.core.Tensor(tess.triangles.astype(np.uint32), o3d.core.uint32, cpu))
         o = transform_points(T, viewpoint[None])[0]
         q = transform_points(T, points)
         d = q - o
         dist = np.linalg.norm(d, axis=1)
         rays = np.concatenate([np.broadcast_to(o, q.shape), d / dist[:, None]], axis=1).astype(np.float32)
-        t = self._mesh_scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        t = scene.cast_rays(o3d.core.Tensor(rays, o3d.core.float32, cpu))["t_hit"].numpy()
         return t < dist - tol_mm

@@ -23,7 +23,7 @@ import numpy as np
 from inspection.errors import RegistrationFailed
 from inspection.measured_cloud import ScanCloud
 from inspection.registration.driver import Registration, coarse_icp, judge, refine, register, scan_voxels
-from inspection.registration.settings import RegistrationSettings
+from inspection.registration.settings import DEFAULT_REGISTRATION_SETTINGS, RegistrationSettings
 from inspection.registration.target import ModelTarget
 from inspection.registration.verification import evaluate_pose, explore
 
@@ -32,7 +32,7 @@ WARM_METHOD = "prior+icp"
 
 
 def register_from_prior(scan: ScanCloud, target: ModelTarget, prior: Registration,
-                        settings: RegistrationSettings = RegistrationSettings()) -> Registration | None:
+                        settings: RegistrationSettings = DEFAULT_REGISTRATION_SETTINGS) -> Registration | None:
     """The pose taking `scan` onto `target` found from `prior` (the previous part's
     registration on this station), or None when the check fails (module docstring). It
     is ambiguous when the prior was (the same part in the same fixture has the same
@@ -67,7 +67,7 @@ def register_from_prior(scan: ScanCloud, target: ModelTarget, prior: Registratio
 
 
 def register_with_prior(scan: ScanCloud, target: ModelTarget, prior: Registration | None,
-                        settings: RegistrationSettings = RegistrationSettings()) -> Registration:
+                        settings: RegistrationSettings = DEFAULT_REGISTRATION_SETTINGS) -> Registration:
     """`register_from_prior` when there is a prior and it passes its check, else the global
     search (`register`); the result's timings say which ran ("warm_start" is the time a
     failed warm start cost before the global search)."""

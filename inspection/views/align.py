@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -117,7 +118,7 @@ def align_views(views: list[ViewCloud], settings: AlignSettings = AlignSettings(
     order = turn_order(priors)
     within = {(i, j) for i in range(len(views)) for j in range(i + 1, len(views))
               if rotation_deg(np.linalg.inv(priors[j]) @ priors[i]) <= settings.max_pair_deg}
-    ring = {tuple(sorted(p)) for p in zip(order, order[1:])}
+    ring = {tuple(sorted(p)) for p in pairwise(order)}
     ring |= {tuple(sorted((order[-1], order[0])))} & within  # closing the turn, if its ends are near
     pairs = sorted(ring | within)
     ref = _reference(views)
@@ -176,9 +177,11 @@ def _inconsistency(fit: PairFit, fits: dict[tuple[int, int], PairFit], order: li
     position = {k: n for n, k in enumerate(order)}
     a, b = position[fit.source], position[fit.target]
     n = len(order)
-    for path in ([order[(a + s) % n] for s in range((b - a) % n + 1)], [order[(a - s) % n] for s in range((a - b) % n + 1)]):
+    forward = [order[(a + s) % n] for s in range((b - a) % n + 1)]
+    backward = [order[(a - s) % n] for s in range((a - b) % n + 1)]
+    for path in (forward, backward):
         chain = np.eye(4)
-        for u, v in zip(path, path[1:]):
+        for u, v in pairwise(path):
             step = fits.get((u, v)) or fits.get((v, u))
             if step is None:
                 break

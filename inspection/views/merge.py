@@ -66,9 +66,10 @@ def fuse(views: list[ViewCloud], poses: list[np.ndarray], cell_mm: float) -> Mer
     m = int(group.max()) + 1
     w = 1.0 / np.maximum(sigma, 1e-9) ** 2
     total = np.bincount(group, weights=w, minlength=m)
-    fused = np.stack([np.bincount(group, weights=w * points[:, i], minlength=m) for i in range(3)], axis=1)
+    # weighted bincounts are float (numpy's stubs say integer)
+    fused: np.ndarray = np.stack([np.bincount(group, weights=w * points[:, i], minlength=m) for i in range(3)], axis=1)
     fused /= total[:, None]
-    nrm = np.stack([np.bincount(group, weights=w * normals[:, i], minlength=m) for i in range(3)], axis=1)
+    nrm: np.ndarray = np.stack([np.bincount(group, weights=w * normals[:, i], minlength=m) for i in range(3)], axis=1)
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     seen = np.zeros((m, len(views)), bool)
     seen[group, source] = True

@@ -117,7 +117,7 @@ def write_mesh(path: str | Path, surface: SurfaceMesh) -> Path:
     mesh.compute_triangle_normals()
     mesh.compute_vertex_normals()
     tmp = path.with_name(f".{path.stem}.part{path.suffix}")
-    if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
+    if not o3d.io.write_triangle_mesh(tmp, mesh, write_ascii=False):
         raise CloudError(path, "Open3D could not write the mesh")
     tmp.replace(path)
     return path

@@ -74,6 +74,7 @@ from inspection.errors import CloudError, RegistrationFailed
 from inspection.measured_cloud import ScanCloud, fit_plane
 from inspection.registration import ModelTarget, RegistrationSettings, icp, register
 from inspection.registration.clouds import voxel_grid
+from inspection.registration.settings import DEFAULT_REGISTRATION_SETTINGS
 from inspection.views.align import pose_error
 from inspection.views.constraint import along
 from inspection.views.pair_evidence import K_SIGMA, P_AGREE, Evidence, evidence, score_only
@@ -236,7 +237,7 @@ def session_camera(scan: ScanCloud) -> Pinhole | None:
 
 
 def register_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None = None,
-                       settings: RegistrationSettings = RegistrationSettings(), *, isolate: bool = False,
+                       settings: RegistrationSettings = DEFAULT_REGISTRATION_SETTINGS, *, isolate: bool = False,
                        pair: ViewPairSettings = ViewPairSettings()) -> ViewPair:
     """The pose of view `scan` in view `target` (see the module docstring), or
     PairNotProven. `isolate`: the part is taken off its support in each view first (the
@@ -249,7 +250,7 @@ def register_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None
 
 
 def weigh_view_pair(scan: ScanCloud, target: ScanCloud, overlap: float | None = None,
-                    settings: RegistrationSettings = RegistrationSettings(), *, isolate: bool = False,
+                    settings: RegistrationSettings = DEFAULT_REGISTRATION_SETTINGS, *, isolate: bool = False,
                     pair: ViewPairSettings = ViewPairSettings()) -> ViewPair:
     """`register_view_pair`'s leading pose with its evidence, proven or not. Open3D's
     prints go to standard error meanwhile (stdout may be a command's JSON)."""
@@ -276,8 +277,8 @@ def _weigh(scan: ScanCloud, target: ScanCloud, overlap: float | None, settings: 
     t0 = time.perf_counter()
     model = ModelTarget.from_cloud(parts[1])
     voxel = model.voxel_mm
-    judged = [_judged_points(s, k, v, voxel) for s, k, v in zip((scan, target), keep, views)]
-    fine = [_judged_points(s, k, v, 0.5 * voxel) for s, k, v in zip((scan, target), keep, views)]
+    judged = [_judged_points(s, k, v, voxel) for s, k, v in zip((scan, target), keep, (sv, tv))]
+    fine = [_judged_points(s, k, v, 0.5 * voxel) for s, k, v in zip((scan, target), keep, (sv, tv))]
     starts = _hypotheses(parts[0], model, judged, settings)
     times["search"] = time.perf_counter() - t0
     t0 = time.perf_counter()
