@@ -61,14 +61,15 @@ transform.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Iterator
 from contextvars import ContextVar
 from dataclasses import dataclass, field, fields, replace
-from typing import Callable, Iterable, Iterator
 
 import numpy as np
 from scipy import fft, ndimage
 from scipy.optimize import least_squares, linprog
 
+from inspection import figures
 from inspection.uncertainty import DETECTION_QUANTILE, DETECTION_Z, Estimate, PointNoise
 
 ALPHA = float(np.sqrt(np.log(2.0) / np.pi))  # ISO 16610-61
@@ -301,9 +302,9 @@ def mz_zone_sensitivity(xy: np.ndarray, height: np.ndarray) -> np.ndarray:
     tol = max(1e-6 * w, 10.0 * ZONE_SLACK_MM)
     support = np.flatnonzero((r <= lo + tol) | (r >= lo + w - tol))
     out = np.zeros(len(height))
-    res = _plane_lp_solution(xs[support], ys[support], zs[support])
+    duals = _plane_lp_duals(xs[support], ys[support], zs[support])
     m = len(support)
-    upper, lower = res.ineqlin.marginals[:m], res.ineqlin.marginals[m:]
+    upper, lower = duals[:m], duals[m:]
     out[support] = (lower - upper) / np.sqrt(1.0 + a * a + b * b)  # d(w)/d(z): the RHS moves -dz above, +dz below
     return out
 
@@ -321,9 +322,9 @@ def ls_zone_sensitivity(xy: np.ndarray, height: np.ndarray) -> np.ndarray:
     return d - A @ np.linalg.solve(A.T @ A, A.T @ d)
 
 
-def _plane_lp_solution(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> object:
-    """HiGHS's result (with its dual prices) of one zone's LP over points (xs, ys, zs)
-    (`_plane_lps`'s constraints: the upper side's m rows, then the lower side's)."""
+def _plane_lp_duals(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
+    """HiGHS's dual prices (2m,) of one zone's LP over points (xs, ys, zs) (`_plane_lps`'s
+    constraints: the upper side's m rows, then the lower side's)."""
     m = len(xs)
     one = np.ones(m)
     A_ub = np.concatenate([np.stack([-xs, -ys, -one, -one], 1), np.stack([xs, ys, one, 0 * one], 1)])
@@ -331,7 +332,7 @@ def _plane_lp_solution(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> object
                   bounds=[(None, None)] * 3 + [(0.0, None)], method="highs")
     if res.status != 0:
         raise ArithmeticError(f"minimum-zone LP of {m} points: {res.message}")
-    return res
+    return np.asarray(res.ineqlin.marginals)
 
 
 def _plane_lps(count: int, s: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
@@ -560,20 +561,17 @@ class FormSettings:
     draws: int = 32
 
 
-FIGURES = ("flatness_ls", "flatness_mz", "cylindricity_ls", "cylindricity_mz", "sq", "profile", "deviation_min",
-           "deviation_max", "deviation_mean", "deviation_rms", "raw_deviation_min", "raw_deviation_max")
-
-
 @dataclass(frozen=True)
 class FaceForm:
-    """Figures of one face, each an `Estimate` (mm; None where they do not apply or could
-    not be measured; the extremes' detection limits are magnitudes). `*_mz` are minimum-zone widths of the form surface, `*_ls` its
-    least-squares widths; `sq` the roughness with the noise removed; `deviation_*` the
-    signed deviations from nominal of the form surface (`deviation_source` "form surface";
-    "raw points" for a face without surface coordinates to filter on, whose figures then
-    carry the noise), `profile` = 2 max|deviation| (the ISO 1101 profile zone centred on
-    nominal); `raw_deviation_*` the extremes of the unfiltered points (inside the edge
-    margin, spikes dropped), noise included. `noise_mm`: the typical noise of one point
+    """Figures of one face (`inspection.figures`), each an `Estimate` (mm; None where they do
+    not apply or could not be measured; the extremes' detection limits are magnitudes).
+    `*_mz` are minimum-zone widths of the form surface, `*_ls` its least-squares widths;
+    `sq` the roughness with the noise removed; `deviation_*` the signed deviations from
+    nominal of the form surface (`deviation_source` "form surface"; "raw points" for a face
+    without surface coordinates to filter on, whose figures then carry the noise),
+    `profile` = 2 max|deviation| (the ISO 1101 profile zone centred on nominal);
+    `raw_deviation_*` the extremes of the unfiltered points (inside the edge margin, spikes
+    dropped), noise included. `noise_mm`: the typical noise of one point
     along the face normal and `noise_source` where it came from; `sq_raw_mm`: ISO
     25178-2's Sq of the measured surface (the noise included; `sq` is Sq after noise
     removal) and `sq_noise_mm` the noise's RMS."""
@@ -608,16 +606,18 @@ class FaceForm:
     # see at each input point (the form surface's at its grid cell; a raw-points face's own), NaN where not used
 
     def figure(self, name: str) -> Estimate | None:
-        return getattr(self, name)
+        """The figure called `name` (`inspection.figures`; an unknown name is refused)."""
+        return getattr(self, figures.figure(name).name)
 
     def as_dict(self) -> dict[str, object]:
-        """Flat JSON: every figure as `name_mm`, `name_u_mm` (U, k = 2) and, for figures
-        tested against zero, `name_limit_mm` (null value: below that limit)."""
+        """Flat JSON: every figure's report columns (`inspection.figures.Figure.fields`:
+        value, U (k = 2) and, below its detection limit, the limit), the rest as they are."""
         out: dict[str, object] = {}
+        names = {g.name for g in figures.FIGURES}
         for f in fields(self):
             v = getattr(self, f.name)
-            if f.name in FIGURES:
-                out.update(v.fields(f.name) if v is not None else {f"{f.name}_mm": None, f"{f.name}_u_mm": None})
+            if f.name in names:
+                out.update(figures.figure(f.name).fields(v))
             elif f.name not in ("u_components", "region", "surface_mm"):
                 out[f.name] = v
         out["u_components_mm"] = self.u_components
@@ -797,6 +797,8 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     without the spike test and the edge margin; the result's `region` says which points
     the figures were taken over (spikes dropped, inside the edge margin)."""
     n = len(points)
+    if normals is None and (noise is not None or shifts is not None):
+        raise ValueError("a noise model or calibration moves need the points' normals")
     if n < MIN_POINTS:
         return FaceForm(n, "too few points", f"{n} points; at least {MIN_POINTS} are needed")
     if region is None:
@@ -820,13 +822,14 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     xy = _surface_coordinates(face, points, uv)
     if xy is None:  # no surface coordinates: deviations of the raw points, their noise included
         draws = _point_draws(noise, normals, rng, settings.draws, len(points), float(np.std(deviation)))
-        dev_shift = None if shifts is None else np.einsum("dij,ij->di", shifts, normals) if normals is not None else None
+        dev_shift = (None if shifts is None or normals is None
+                     else np.einsum("dij,ij->di", shifts, normals))
         stats, parts = _deviation_stats(deviation, deviation[None] + draws, draws, deviation, draws, dev_shift)
         seen = np.full(n, np.nan)
         seen[keep] = deviation
         note = f"{face.type}: deviations of raw points only (no form filter)"  # type: ignore[attr-defined]
         return FaceForm(len(points), "ok", note, deviation_source="raw points", u_components=parts, region=keep,
-                        surface_mm=seen, **stats)
+                        surface_mm=seen, **stats)  # type: ignore[arg-type]  # stats: the deviation figures' Estimates
     grid = _grid(xy)
     zg = grid.mean(deviation)
     mask = np.isfinite(zg)
@@ -842,7 +845,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     used = np.zeros(n, bool)
     used[np.flatnonzero(keep)[raw_sel]] = True
     seen = np.full(n, np.nan)
-    if noise is not None:
+    if noise is not None and normals is not None:
         point_draws = noise.draw(rng, settings.draws)
         point_draws *= np.einsum("ij,ij->i", normals, noise.ray)
         cell_draws = grid.mean(point_draws)
@@ -856,7 +859,7 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
         source, model_rel_u = "estimated from the data (fourth differences)", 1.0 / np.sqrt(max(inner.sum(), 1))
     cell_draws[:, ~inner] = np.nan
     cal_cells = None
-    if shifts is not None:
+    if shifts is not None and normals is not None:
         cal_cells = np.where(inner, grid.mean(np.einsum("dij,ij->di", shifts, normals)), 0.0)
     form_filter = GaussianFilter(inner, settings.form_cutoff_mm, grid.spacing, order=2)
     if settings.roughness_cutoff_mm == settings.form_cutoff_mm:  # the L-filter's mean comes with the form filter
@@ -964,7 +967,7 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, noise: np.ndarray, 
     and the extremes of the `raw` point deviations
     with theirs; `cal` (D_cal, cells): calibration moves. The extremes and the profile are
     tested against zero (an extreme the noise alone reaches is not a deviation: null, with
-    that reach, in magnitude, as its limit); the mean and RMS are not."""
+    that reach, in magnitude, as its limit); the mean and RMS are not (`Figure.zero_tested`)."""
     def each(fn: Callable[[np.ndarray], np.ndarray], base: np.ndarray, draws: np.ndarray, noise: np.ndarray | None,
              moves: np.ndarray | None, sign: float = 1.0) -> tuple[Estimate, dict[str, float]]:
         value = sign * float(fn(base[None])[0])
@@ -974,20 +977,22 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, noise: np.ndarray, 
         if held is not None:  # the first-order change: the draw at the cell holding the extreme
             k, factor = held(base)
             linear = sign * factor * (draws[:, k] - base[k])
-        est, parts = from_draws(value, sign * _by_rows(fn, draws), None if noise is None else sign * _by_rows(fn, noise),
-                                changes, linear)
+        est, parts = from_draws(value, sign * _by_rows(fn, draws),
+                                None if noise is None else sign * _by_rows(fn, noise), changes, linear)
         if sign < 0:
             est = Estimate(None if est.value is None else -est.value, est.u, est.limit, -est.bias)
         return est, parts
 
     out, parts = {}, {}
-    for name, fn, tested, sign in (("deviation_min", _row_min, True, -1.0), ("deviation_max", _row_max, True, 1.0),
-                                   ("deviation_mean", _row_mean, False, 1.0), ("deviation_rms", _row_rms, False, 1.0),
-                                   ("profile", _row_profile, True, 1.0)):
+    for name, fn, sign in (("deviation_min", _row_min, -1.0), ("deviation_max", _row_max, 1.0),
+                           ("deviation_mean", _row_mean, 1.0), ("deviation_rms", _row_rms, 1.0),
+                           ("profile", _row_profile, 1.0)):
+        tested = figures.figure(name).zero_tested
         out[name], parts[name] = each(fn, surface, drawn, noise if tested else None, cal, sign)
     raw_drawn = raw[None] + raw_draws
     for name, fn, sign in (("raw_deviation_min", _row_min, -1.0), ("raw_deviation_max", _row_max, 1.0)):
-        out[name], parts[name] = each(fn, raw, raw_drawn, raw_draws, None, sign)
+        tested = figures.figure(name).zero_tested
+        out[name], parts[name] = each(fn, raw, raw_drawn, raw_draws if tested else None, None, sign)
     return out, parts
 
 

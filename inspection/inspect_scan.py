@@ -33,6 +33,7 @@ import numpy as np
 
 from inspection.cad import CadModel
 from inspection.errors import InspectionError
+from inspection.figures import limited_by
 from inspection.form import FORM_WORKERS, FaceForm, FormSettings, evaluate_face
 from inspection.measured_cloud import ScanCloud, make_scan, part_mask
 from inspection.registration import ModelTarget, Registration, RegistrationSettings, transform_points
@@ -41,7 +42,7 @@ from inspection.registration.evidence import SYMMETRY_ZERO, FreeMotion, PoseCova
 from inspection.registration.warm_start import register_with_prior
 from inspection.report import FaceRow, InspectionReport
 from inspection.segmentation import UNASSIGNED, Segmentation, assign_faces
-from inspection.tolerances import FIGURE_OF, GUARD_BANDED, NOT_MEASURED, Tolerances, decide
+from inspection.tolerances import GUARD_BANDED, NOT_MEASURED, Tolerances, decide
 from inspection.uncertainty import ScanUncertainty
 from scanner.native_threads import native_threads
 
@@ -313,7 +314,7 @@ def _verdicts(label: str, form: Any, tolerances: Tolerances | None, rule: str) -
     for key, limit in tolerances.for_face(label).items():
         if form.status != "ok" and key not in own:
             continue  # a default limit does not ask for a face seen too little to measure
-        e = form.figure(FIGURE_OF[key]) if form.status == "ok" else None
+        e = form.figure(limited_by(key).name) if form.status == "ok" else None
         out[key] = (limit, NOT_MEASURED if e is None else decide(e.value, e.U, limit, None, rule, e.limit))
     return out
 

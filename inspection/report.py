@@ -12,7 +12,8 @@ extremes. In JSON and CSV every figure `x_mm` has `x_u_mm`, its expanded uncerta
 (k = 2); a figure that cannot be told from zero is null with `x_limit_mm`, its detection
 limit (the text table prints `< limit`). Each toleranced characteristic has
 `tolerance_x_mm` and `verdict_x`: conforming, non-conforming or uncertain under the
-recorded decision rule. How to read them: README, "Reading the figures".
+recorded decision rule. The figures and their column names: `inspection.figures`. How to
+read them: README, "Reading the figures".
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from inspection.deviation_colours import deviation_image, scale_of  # noqa: F401 (deviation_image: the commands')
+from inspection.figures import FIGURES, limited_by
 from inspection.form import FaceForm, FormSettings
 from inspection.report_header import ReportHeader
 from inspection.report_html import render
@@ -47,8 +49,7 @@ NOISE_NOTE = ("Every figure is given with its expanded uncertainty U (k = 2): sc
               "profile are those of the form surface (features longer than the form cut-off); the raw points' "
               "extremes include the noise.")
 
-TABLE = (("flat MZ", "flatness_mz"), ("cyl MZ", "cylindricity_mz"), ("Sq", "sq"), ("profile", "profile"),
-         ("dev min", "deviation_min"), ("dev max", "deviation_max"))
+TABLE = tuple(f for f in FIGURES if f.abbrev)  # the text table's figures
 
 
 def cell_text(e: Estimate | None, width: int = 13) -> str:
@@ -89,8 +90,9 @@ class FaceRow:
         d: dict[str, Any] = {"label": self.label, "name": self.name, "id": self.id, "type": self.type,
                              **self.form.as_dict()}
         for key, (limit, v) in self.verdicts.items():
-            d[f"tolerance_{key}"] = limit
-            d[f"verdict_{key.removesuffix('_mm')}"] = v
+            figure = limited_by(key)
+            d[figure.tolerance_column] = limit
+            d[figure.verdict_column] = v
         return d
 
 
@@ -122,7 +124,7 @@ class InspectionReport:
     decision_rule: str = GUARD_BANDED
     calibration: str = ""
     pose_u: dict[str, float] = field(default_factory=dict)
-    header: ReportHeader = ReportHeader()
+    header: ReportHeader = field(default_factory=ReportHeader)
     cad: Any = field(default=None, repr=False)
     status: str = "ok"
     status_note: str = ""
@@ -161,27 +163,29 @@ class InspectionReport:
         """The per-face table as text, every length in µm: figures as value ± U (k = 2), or
         < detection limit; each limit with its verdict."""
         width = max([8] + [len(r.title) for r in self.faces])
-        head = (f"{'face':<{width}} {'type':<9} {'points':>7} " + " ".join(f"{h + ' µm':>13}" for h, _ in TABLE)
+        head = (f"{'face':<{width}} {'type':<9} {'points':>7} " + " ".join(f"{f.abbrev + ' µm':>13}" for f in TABLE)
                 + "  tolerance µm, verdict")
         lines = [head, "-" * len(head)]
         for row in self.faces:
             m = row.form
-            v = ", ".join(f"{k.removesuffix('_mm')} {lim * 1e3:g} {w}" for k, (lim, w) in row.verdicts.items())
-            cells = " ".join(cell_text(m.figure(name)) for _, name in TABLE)
+            v = ", ".join(f"{limited_by(k).characteristic} {lim * 1e3:g} {w}" for k, (lim, w) in row.verdicts.items())
+            cells = " ".join(cell_text(m.figure(f.name)) for f in TABLE)
             lines.append(f"{row.title:<{width}} {row.type:<9} {m.points:>7} {cells}  "
                          f"{v or m.status if m.status != 'ok' else v}")
         s = self.form_settings
         lines.append(f"µm, value ± U (k = 2); < x: below the detection limit x (noise alone could read that much). "
                      f"Zones, profile and deviations of the form surface (second-order Gaussian regression "
-                     f"filter, cut-off {s.form_cutoff_mm} mm); Sq after noise removal (ISO 25178-2 Sq of the measured surface: "
+                     f"filter, cut-off {s.form_cutoff_mm} mm); Sq after noise removal (ISO 25178-2 Sq of the "
+                     f"measured surface: "
                      f"sq_raw_mm), roughness cut-off {s.roughness_cutoff_mm} mm; noise bias removed; "
                      f"edge margin {s.edge_margin_mm} mm.")
         lines.append(f"registration fitness {self.fitness:.3f}, RMSE {self.rmse_mm * 1e3:.1f} um "
                      f"({self.registration.method}{', AMBIGUOUS pose' if self.registration.ambiguous else ''}"
-                     + (f"; pose U {self.pose_u['translation_u_mm'] * 1e3:.2f} um, {self.pose_u['rotation_u_deg']:.5f} deg"
-                        if self.pose_u else "")
+                     + (f"; pose U {self.pose_u['translation_u_mm'] * 1e3:.2f} um, "
+                        f"{self.pose_u['rotation_u_deg']:.5f} deg" if self.pose_u else "")
                      + "".join(f"; free: {m.describe()}" for m in getattr(self.registration, "free", ())) + "); "
-                     f"{self.assigned_points}/{self.part_points} part points on faces; calibration: {self.calibration}; "
+                     f"{self.assigned_points}/{self.part_points} part points on faces; "
+                     f"calibration: {self.calibration}; "
                      f"decision rule {self.decision_rule}; verdict {self.verdict}")
         if self.status_note:
             lines.append(self.status_note)

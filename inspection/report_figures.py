@@ -28,7 +28,8 @@ import numpy as np
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from inspection.deviation_colours import ColourScale, shown_count, shown_deviations
-from inspection.tolerances import FIGURE_OF, overall
+from inspection.figures import limited_by
+from inspection.tolerances import overall
 
 MAX_POINTS = 40_000
 MAX_TRIANGLES = 6_000  # the CAD mesh drawn behind the points is decimated to this many
@@ -167,7 +168,7 @@ def callout_text(row: Any) -> str:
     """A face's callout: its title, then per characteristic its value, tolerance (mm) and verdict."""
     lines = [row.title]
     for key, (tol, verdict) in row.verdicts.items():
-        e = row.form.figure(FIGURE_OF[key]) if row.form.status == "ok" else None
+        e = row.form.figure(limited_by(key).name) if row.form.status == "ok" else None
         lines.append(f"{key.removesuffix('_mm').replace('_ls', ' LS')} {value_text(e)} / {tol:.3f} mm: {verdict}")
     return "\n".join(lines)
 

@@ -25,13 +25,15 @@ from __future__ import annotations
 
 import base64
 import html
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from inspection.deviation_colours import ColourScale, shown_count
+from inspection.figures import DEVIATION, FIGURES, FORM, figure, limited_by
 from inspection.report_figures import deviation_histogram, face_closeup, part_views
 from inspection.report_header import HEADER_CSS, header_html
-from inspection.tolerances import DECISION_RULES, FIGURE_OF, TITLES
+from inspection.tolerances import DECISION_RULES
 from inspection.uncertainty import Estimate
 
 STYLE = """
@@ -85,8 +87,9 @@ def characteristic_rows(report: Any) -> list[dict[str, Any]]:
     rows = []
     for r in report.faces:
         for key, (tol, verdict) in r.verdicts.items():
-            e = r.form.figure(FIGURE_OF[key]) if r.form.status == "ok" else None
-            rows.append({"face": r.title, "characteristic": TITLES[key], "nominal_mm": 0.0, "tolerance_mm": tol,
+            limited = limited_by(key)
+            e = r.form.figure(limited.name) if r.form.status == "ok" else None
+            rows.append({"face": r.title, "characteristic": limited.title, "nominal_mm": 0.0, "tolerance_mm": tol,
                          "value_mm": None if e is None else e.value, "u_mm": None if e is None else e.U,
                          "limit_mm": None if e is None else e.limit, "verdict": verdict,
                          "note": "" if r.form.status == "ok" else f"{r.form.status}: {r.form.note}"})
@@ -113,17 +116,17 @@ def _characteristics_table(rows: list[dict[str, Any]]) -> str:
 def _raw_filtered(report: Any) -> str:
     """Per measured face, the form surface's figure beside the raw points' one where the
     two differ as printed (µm)."""
-    pairs = (("deviation min", "deviation_min", "raw_deviation_min"),
-             ("deviation max", "deviation_max", "raw_deviation_max"))
+    pairs = [(figure(raw.raw_of), raw) for raw in FIGURES if raw.raw_of]
     rows = []
     for r in report.faces:
         m = r.form
         if m.status != "ok":
             continue
-        for what, filtered, raw in pairs:
-            a, b = _um_cell(m.figure(filtered)), _um_cell(m.figure(raw))
+        for filtered, raw in pairs:
+            a, b = _um_cell(m.figure(filtered.name)), _um_cell(m.figure(raw.name))
             if a != b:
-                rows.append(f"<tr><td class='l'>{html.escape(r.title)}</td><td class='l'>{what}</td>{a}{b}</tr>")
+                rows.append(f"<tr><td class='l'>{html.escape(r.title)}</td><td class='l'>{filtered.heading}</td>"
+                            f"{a}{b}</tr>")
         if m.sq_raw_mm is not None and m.sq_noise_mm is not None:
             rows.append(f"<tr><td class='l'>{html.escape(r.title)}</td><td class='l'>Sq</td>{_um_cell(m.sq)}"
                         f"<td>{m.sq_raw_mm * 1e3:.1f} (noise {m.sq_noise_mm * 1e3:.1f})</td></tr>")
@@ -134,21 +137,16 @@ def _raw_filtered(report: Any) -> str:
             + "".join(rows) + "</table></div>")
 
 
-FORM_FIGURES = (("flatness_ls", "flatness LS"), ("flatness_mz", "flatness MZ"), ("cylindricity_ls", "cylindricity LS"),
-                ("cylindricity_mz", "cylindricity MZ"), ("sq", "Sq"), ("profile", "profile"))
-DEVIATION_FIGURES = (("deviation_min", "min"), ("deviation_max", "max"), ("deviation_mean", "mean"),
-                     ("deviation_rms", "RMS"), ("raw_deviation_min", "raw points min"),
-                     ("raw_deviation_max", "raw points max"))
-
-
-def _figures_table(report: Any, figures: tuple[tuple[str, str], ...], head: str, last: tuple[str, Any]) -> str:
-    """One table of every face's `figures` (µm) with the `last` (header, row -> text) column."""
+def _figures_table(report: Any, group: str, last: tuple[str, Any]) -> str:
+    """One table of every face's figures of `group` (µm, `inspection.figures`) with the
+    `last` (header, row -> text) column."""
+    shown = [f for f in FIGURES if f.group == group]
     body = "".join(
         f"<tr><td class='l'>{html.escape(r.title)}</td><td class='l'>{r.type}</td><td>{r.form.points}</td>"
-        + "".join(_um_cell(r.form.figure(n)) for n, _ in figures)
+        + "".join(_um_cell(r.form.figure(f.name)) for f in shown)
         + f"<td class='l'>{html.escape(last[1](r))}</td></tr>" for r in report.faces)
     return ("<div class='scroll'><table><thead><tr><th class='l'>face</th><th class='l'>type</th><th>points</th>"
-            + "".join(f"<th>{head}{t} (µm)</th>" for _, t in figures) + f"<th class='l'>{last[0]}</th></tr></thead>"
+            + "".join(f"<th>{f.heading} (µm)</th>" for f in shown) + f"<th class='l'>{last[0]}</th></tr></thead>"
             f"<tbody>{body}</tbody></table></div>")
 
 
@@ -156,11 +154,10 @@ def _all_figures(report: Any) -> str:
     """Every face's figures in two tables that fit a printed page: form and texture, then
     the deviations from nominal."""
     return ("<h3>Form and texture</h3>"
-            + _figures_table(report, FORM_FIGURES, "", ("status", lambda r: r.form.status if r.form.status != "ok"
-                                                        else r.form.note or "ok"))
+            + _figures_table(report, FORM, ("status", lambda r: r.form.status if r.form.status != "ok"
+                                            else r.form.note or "ok"))
             + "<h3>Deviations from nominal</h3>"
-            + _figures_table(report, DEVIATION_FIGURES, "deviation ", ("noise model", lambda r: r.form.noise_source
-                                                                        or r.form.status)))
+            + _figures_table(report, DEVIATION, ("noise model", lambda r: r.form.noise_source or r.form.status)))
 
 
 def _header(report: Any) -> str:
@@ -186,7 +183,7 @@ def render(report: Any, scale: ColourScale, noise_note: str, deviation_png: byte
     as the recording's; `noise_note` how noise was treated, said once."""
     e = html.escape
     rows = characteristic_rows(report)
-    profiles = {r.title: t for r in report.faces for k, (t, _) in r.verdicts.items() if k == "profile_mm"}
+    profiles = {r.title: t for r in report.faces for k, (t, _) in r.verdicts.items() if limited_by(k).name == "profile"}
     s = report.form_settings
     closeups = [
         f"<section class='keep' id='face-{e(r.label.lstrip('#'))}'><h3>{e(r.title)}</h3>"

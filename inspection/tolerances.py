@@ -14,6 +14,9 @@ without a program:
     [default]                   # optional: limits for every face without its own table
     profile_mm = 1.0
 
+The keys, the figure each limits and the surface types it applies to are
+`inspection.figures`' (`TOLERANCE_KEYS`, `limited_by`).
+
 Verdicts follow ISO 14253-1 (`decide`): with the default "guard-banded" rule a
 characteristic is "conforming" when conformance is proven (its value plus its expanded
 uncertainty U is within the limit), "non-conforming" when non-conformance is proven (the
@@ -37,17 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from inspection.errors import ToleranceError
+from inspection.figures import TOLERANCE_KEYS, limited_by
 from scanner.schema import nearest
-
-CHARACTERISTICS = {"flatness_mm": ("plane",), "cylindricity_mm": ("cylinder",), "sq_mm": None, "profile_mm": None,
-                   "flatness_ls_mm": ("plane",), "cylindricity_ls_mm": ("cylinder",)}
-# characteristic key -> the report figure it limits, and how people call it
-FIGURE_OF = {"flatness_mm": "flatness_mz", "cylindricity_mm": "cylindricity_mz", "sq_mm": "sq", "profile_mm": "profile",
-             "flatness_ls_mm": "flatness_ls", "cylindricity_ls_mm": "cylindricity_ls"}
-TITLES = {"flatness_mm": "flatness (minimum zone)", "cylindricity_mm": "cylindricity (minimum zone)",
-          "sq_mm": "Sq after noise removal", "profile_mm": "profile of a surface",
-          "flatness_ls_mm": "flatness (least squares)",
-          "cylindricity_ls_mm": "cylindricity (least squares)"}
 
 
 @dataclass(frozen=True)
@@ -92,16 +86,17 @@ def load_tolerances(path: str | Path, labels: dict[str, str]) -> Tolerances:
             raise ToleranceError(f"{path}: {where} must be a table")
         out = {}
         for key, value in table.items():
-            if key not in CHARACTERISTICS:
-                guess = nearest(key, CHARACTERISTICS)
+            if key not in TOLERANCE_KEYS:
+                guess = nearest(key, TOLERANCE_KEYS)
                 raise ToleranceError(f"{path}: {where}.{key}: unknown characteristic; "
-                                     + (f"did you mean '{guess}'?" if guess else f"use {sorted(CHARACTERISTICS)}"))
+                                     + (f"did you mean '{guess}'?" if guess else f"use {sorted(TOLERANCE_KEYS)}"))
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
                 raise ToleranceError(f"{path}: {where}.{key}: a tolerance must be a finite number > 0 (mm), "
                                      f"got {value!r}")
-            types = CHARACTERISTICS[key]
-            if face_type is not None and types is not None and face_type not in types:
-                raise ToleranceError(f"{path}: {where}.{key}: face is a {face_type}; {key} applies to {types[0]}s")
+            figure = limited_by(key)
+            if face_type is not None and not figure.applies_to(face_type):
+                raise ToleranceError(f"{path}: {where}.{key}: face is a {face_type}; {key} applies to "
+                                     f"{' or '.join(f'{t}s' for t in figure.surfaces or ())}")
             out[key] = float(value)
         return out
 

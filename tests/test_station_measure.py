@@ -10,9 +10,10 @@ from pathlib import Path
 import pytest
 from test_station_support import DEMO_PROGRAM, station_config
 
+from inspection.figures import asked_by
 from scanner.config import CONFIG_DIR
 from slscan.station.app import expected_status, open_station
-from slscan.station.measure import REPORT_COLUMNS, _pick
+from slscan.station.measure import _pick
 from slscan.station.program import Characteristic, load_program
 from slscan.station.results import ValueRecord
 from slscan.station.station_config import StationConfig
@@ -95,7 +96,7 @@ def test_a_view_whose_pose_is_not_proven_measures_nothing() -> None:
 
     program = load_program(DEMO_PROGRAM)
     flat = program.characteristics[0]
-    column = REPORT_COLUMNS[(flat.kind, flat.method)]
+    column = asked_by(flat.kind, flat.method).value_column
     row = {"label": flat.face, "points": 2000, column: 0.5}
     note = "not measured: the pose is ambiguous between the best pose and 1 other pose(s) that explain the scan"
     ambiguous = {"status": "ambiguous", "status_note": note}

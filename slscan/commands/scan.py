@@ -391,7 +391,8 @@ def _value(e: Any) -> str:
 
 def demo_conclusion(report: Any, session: Path) -> str:
     """The demo's last line: the verdict, why, and the command to run next."""
-    from inspection.tolerances import CONFORMING, FIGURE_OF, NON_CONFORMING, NOT_MEASURED, UNCERTAIN
+    from inspection.figures import limited_by
+    from inspection.tolerances import CONFORMING, NON_CONFORMING, NOT_MEASURED, UNCERTAIN
 
     def items(verdict: str) -> list[tuple[Any, str, float]]:
         return [(row, key, tol) for row in report.faces for key, (tol, v) in row.verdicts.items() if v == verdict]
@@ -400,7 +401,7 @@ def demo_conclusion(report: Any, session: Path) -> str:
         return f"{row.title} {key.removesuffix('_mm').replace('_ls', ' (least squares)')}"
 
     def figure(row: Any, key: str) -> Any:
-        return row.form.figure(FIGURE_OF[key]) if row.form.status == "ok" else None
+        return row.form.figure(limited_by(key).name) if row.form.status == "ok" else None
 
     html = _shown(session / "outputs" / "inspection.html")
     verdict = report.verdict

@@ -19,8 +19,10 @@ ever a number.
   decoder's noise and the calibration's covariance in U) and the program's decision rule;
   its report (`outputs/inspection.json`) is the per-face table, `{"faces": [{"label":
   "#12", "type": ..., "points": n, <value columns>, "tolerance_<key>": t, "verdict_<figure>":
-  v}, ...], "fitness": f, "rmse_mm": r, ...}` with the value columns of `REPORT_COLUMNS`
-  (each with `_u_mm` and, tested against zero, `_limit_mm`), plus `"program"`: the part
+  v}, ...], "fitness": f, "rmse_mm": r, ...}` with each characteristic's figure's value, U and
+  detection limit columns (`inspection.figures.asked_by`: the profile's is the zone width
+  2 max|d| of the form surface's signed deviations, the noise filtered out like the form
+  figures'; the raw points' extremes carry 4-5 sigma of noise), plus `"program"`: the part
   program and the decision of each of its characteristics on this view
   (`view_decisions`); the inspection's recording (`outputs/inspection.rrd`: registered
   cloud, CAD, deviations, deviation map, report) unless the session's rig records nothing.
@@ -35,13 +37,15 @@ ever a number.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from inspection.figures import asked_by
 from inspection.tolerances import DECISION_RULES
 from scanner.errors import ConfigError
 from scanner.session import Session, write_json
@@ -56,18 +60,6 @@ if TYPE_CHECKING:
 
 REPORT_FILE = "inspection.json"  # written into the session's outputs/ by the adapter
 RECORDING_FILE = "inspection.rrd"  # the inspection's Rerun recording, beside it (`slscan review PART` shows it)
-
-# (kind, method) -> the report's per-face column that gives the value, in mm. The profile
-# value is the report's zone width 2 max|d| of the signed deviations of the form surface
-# (noise filtered out like the form figures; the raw points' extremes carry 4-5 sigma of noise).
-REPORT_COLUMNS: dict[tuple[str, str | None], str] = {
-    ("flatness", "minimum_zone"): "flatness_mz_mm",
-    ("flatness", "least_squares"): "flatness_ls_mm",
-    ("cylindricity", "minimum_zone"): "cylindricity_mz_mm",
-    ("cylindricity", "least_squares"): "cylindricity_ls_mm",
-    ("sq", None): "sq_mm",
-    ("profile", None): "profile_mm",
-}
 
 
 @dataclass(frozen=True)
@@ -274,9 +266,9 @@ def _pick(c: Characteristic, tables: Sequence[Mapping[str, Mapping[str, Any]]], 
         return MeasuredValue(c.name, None, note=f"face {c.face} not seen in any view"
                              + (f" with a proven pose ({unproven})" if unproven else ""))
     k, row = max(rows, key=lambda kr: int(kr[1]["points"]))
-    column = REPORT_COLUMNS[(c.kind, c.method)]
-    value = row.get(column)
-    u, limit = (row.get(column.removesuffix("_mm") + suffix) for suffix in ("_u_mm", "_limit_mm"))
+    figure = asked_by(c.kind, c.method)
+    column = figure.value_column
+    value, u, limit = row.get(column), row.get(figure.u_column), row.get(figure.limit_column)
     u = None if u is None or not np.isfinite(float(u)) else float(u)
     if value is None and limit is not None:  # below its detection limit (inspection.uncertainty): no value
         return MeasuredValue(c.name, None, int(row["points"]), k, limit_mm=float(limit),

@@ -36,7 +36,7 @@
     name = "high_top_flatness"          # unique; results and charts are filed under it
     face = "#657"                       # CAD face: "#<STEP ADVANCED_FACE id>" (`slscan cad FILE` lists
                                         # them with their types), or "F<index>" of a mesh
-    kind = "flatness"                   # flatness | cylindricity | sq | profile
+    kind = "flatness"                   # flatness | cylindricity | sq | profile (`inspection.figures`)
     method = "minimum_zone"             # flatness, cylindricity: minimum_zone (default) | least_squares
     tolerance_mm = 0.05                 # upper limit of the measured value
 
@@ -61,13 +61,15 @@ from __future__ import annotations
 
 import hashlib
 import math
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Callable, Literal, Mapping, Sequence
+from typing import TYPE_CHECKING, Annotated, Literal
 
 from pydantic import Field, field_validator
 
 from inspection.cad import MESH_UNITS_MM
+from inspection.figures import FORM_METHODS, KINDS, asked_by, methods
 from inspection.tolerances import CONFORMING, DECISION_RULES, GUARD_BANDED, PLAIN, Tolerances, decide
 from scanner import schema
 from scanner.config import resolve
@@ -77,12 +79,6 @@ from slscan.station.spc import MAX_SUBGROUP
 
 if TYPE_CHECKING:
     from inspection.form import FormSettings
-
-KINDS = ("flatness", "cylindricity", "sq", "profile")
-FORM_METHODS = ("minimum_zone", "least_squares")
-# Surface types each characteristic can be evaluated on (profile: any face, its deviations).
-# A mesh face of no known surface type ("mesh") has no form or texture to evaluate.
-SURFACE_KINDS = {"flatness": ("plane",), "cylindricity": ("cylinder",), "sq": ("plane", "cylinder", "cone")}
 
 Name = Annotated[schema.Str, Field(min_length=1, pattern=r"\S")]  # plain text, not empty, not blank
 
@@ -147,7 +143,7 @@ class ProgramFile(schema.Schema):
     calibration: CalibrationTable
     control: ControlTable = ControlTable()
     inspection: InspectionTable = InspectionTable()
-    faces: dict[str, Name] = {}
+    faces: dict[str, Name] = Field(default_factory=dict)
     characteristic: Annotated[list[CharacteristicTable], Field(min_length=1)]
 
 
@@ -274,8 +270,8 @@ def validate_faces(program: PartProgram, faces: Mapping[str, str]) -> None:
             some = ", ".join(list(faces)[:12]) + (" ..." if len(faces) > 12 else "")
             raise ConfigError(program.path, key, f"face {c.face!r} ({c.name}) is not in {program.cad_path.name}; "
                                                  f"its faces are {some}")
-        allowed = SURFACE_KINDS.get(c.kind)
-        kind = faces[c.face]
+        allowed = asked_by(c.kind, c.method).surfaces  # None: any face (a mesh face of no known surface
+        kind = faces[c.face]                           # type, "mesh", has no form or texture to evaluate)
         if allowed and kind not in allowed:
             raise ConfigError(program.path, key, f"{c.kind} applies to {' or '.join(allowed)} faces; "
                                                  f"face {c.face} of {program.cad_path.name} is a {kind}"
@@ -295,7 +291,7 @@ def _characteristics(items: Sequence[CharacteristicTable], path: Path) -> tuple[
         if t.name in {c.name for c in out}:
             raise ConfigError(path, f"{pre}.name", f"names must be unique; {t.name!r} is used twice")
         method = t.method
-        if t.kind in ("flatness", "cylindricity"):
+        if methods(t.kind):
             method = method or FORM_METHODS[0]
         elif method is not None:
             raise ConfigError(path, f"{pre}.method", f"{t.kind} takes no method")
@@ -311,7 +307,7 @@ def program_tolerances(program: PartProgram) -> Tolerances:
     inspection report, so they are refused."""
     faces: dict[str, dict[str, float]] = {}
     for i, c in enumerate(program.characteristics):
-        key = f"{c.kind}_ls_mm" if c.method == "least_squares" else f"{c.kind}_mm"
+        key = asked_by(c.kind, c.method).tolerance_key
         limits = faces.setdefault(c.face, {})
         if key in limits:
             raise ConfigError(program.path, f"characteristic[{i}]", f"a second {c.kind} of face {c.face} ({c.name}); "
