@@ -1,15 +1,14 @@
-"""Shared fixtures: small analytic rigs and fringe stacks with known truth."""
+"""Shared fixtures: small analytic rigs and one small simulated session."""
 
 from __future__ import annotations
 
 import os
 import sys
+from pathlib import Path
 
-import numpy as np
 import pytest
 
 from scanner.geometry import RigModel
-from scanner.patterns import PatternSet
 from scanner.rig import RigConfig
 
 
@@ -25,19 +24,13 @@ def small_rig(bench_model: RigModel) -> RigModel:
     return bench_model.with_camera_size(320, 256)
 
 
-def fringe_stack(u: np.ndarray, patterns: PatternSet, extent: int, amplitude: float = 1200.0,
-                 offset: float = 1500.0, noise: float = 0.0, seed: int = 0, bits: int = 12) -> np.ndarray:
-    """Frames for projector coordinates `u` (H, W) along the coded axis, as the camera
-    would see them (no blur), with Gaussian noise of `noise` DN."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for s in patterns.frames():
-        profile = patterns.profile(s, extent)
-        shown = np.interp(u, np.arange(extent), profile)
-        img = offset + amplitude * (2 * shown - 1) + rng.normal(0, noise, u.shape) if noise else \
-            offset + amplitude * (2 * shown - 1)
-        out.append(np.clip(np.rint(img), 0, 2 ** bits - 1).astype(np.uint16))
-    return np.stack(out)
+@pytest.fixture(scope="module")
+def clean_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One small simulated scan (320 x 256, 12 frames), copied by each test that edits it.
+    (Imported here: the scanner's pipeline loads only for the modules that ask for it.)"""
+    from session_support import scan_small_session
+
+    return scan_small_session(tmp_path_factory.mktemp("clean"))
 
 
 _EXIT_STATUS = {"status": 0}

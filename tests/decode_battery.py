@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from scanner.config import CONFIG_DIR
-from scanner.decode_checks import ConsistencyError, LEAD
+from scanner.decode_checks import LEAD, ConsistencyError
 from scanner.errors import ScannerError
 from scanner.patterns import PatternSet
 from scanner.pipeline import ScanResult, process, scan

@@ -15,6 +15,7 @@ import tomllib
 import unicodedata
 import zipfile
 from pathlib import Path
+
 import numpy as np
 from hostile import Case
 
@@ -48,7 +49,7 @@ def write_ply(path: Path, v: np.ndarray, faces: list[np.ndarray] | None, fmt: st
               normals: bool) -> int:
     """A PLY written here (not by any reader's library); returns the byte offset of the data."""
     props = [("x", vtype), ("y", vtype), ("z", vtype)] + ([("nx", "f4"), ("ny", "f4"), ("nz", "f4")] if normals else [])
-    head = [f"ply", f"format {fmt} 1.0", "comment hostile test", f"element vertex {len(v)}"]
+    head = ["ply", f"format {fmt} 1.0", "comment hostile test", f"element vertex {len(v)}"]
     head += [f"property {PLY_TYPES[t]} {n}" for n, t in props]
     if faces is not None:
         head += [f"element face {len(faces)}", f"property list uchar {PLY_TYPES[itype]} vertex_indices"]

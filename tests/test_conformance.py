@@ -15,7 +15,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 import pytest
-from test_session import SCENE, small_rig_toml
+from session_support import SCENE, small_rig_toml
 
 from scanner.devices import Camera, Projector, TriggerMode, TriggerSource, TriggerType
 from scanner.drivers.genicam import GenICamCamera

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fringe_frames import fringe_stack
 
 from scanner.decode import CHUNK_ROWS, DecodeSettings, decode, interreflection_slivers, small_regions
 from scanner.errors import ConfigError, DecodeError
 from scanner.patterns import PatternSet, gray_code, gray_to_binary
-from tests.conftest import fringe_stack
 
 PROJ = (912, 1140)
 FAMILIES = {

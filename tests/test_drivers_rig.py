@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from driver_rigs import LCR, lcr_transports, variant
 
 from scanner.acquisition import AcquisitionSettings, acquire, acquire_images
 from scanner.config import CONFIG_DIR
@@ -16,30 +17,14 @@ from scanner.devices import TriggerType
 from scanner.drivers.genicam import GenICamCamera
 from scanner.drivers.hdmi import HdmiProjector
 from scanner.drivers.lightcrafter import LightCrafter4500
-from scanner.drivers.testing import Dlpc350Emulator, FakeAcquirer, FakeCapture, FakeDisplay, TriggerBoxEmulator
+from scanner.drivers.testing import FakeAcquirer, FakeCapture, FakeDisplay
 from scanner.drivers.triggerbox import TriggerBox
 from scanner.drivers.uvc import UvcCamera
 from scanner.errors import ConfigError
 from scanner.patterns import PatternSet
-from scanner.rig import RigConfig, open_rig
+from scanner.rig import open_rig
 
-LCR = CONFIG_DIR / "rigs" / "lightcrafter_uvc_box.toml"
 HDMI = CONFIG_DIR / "rigs" / "hdmi_genicam.toml"
-
-
-def variant(tmp: Path, source: Path, *edits: tuple[str, str]) -> RigConfig:
-    text = source.read_text().replace('"../patterns/', f'"{CONFIG_DIR}/patterns/')
-    for old, new in edits:
-        assert old in text, old
-        text = text.replace(old, new)
-    path = tmp / source.name
-    path.write_text(text)
-    return RigConfig.load(path)
-
-
-def lcr_transports(acq: FakeAcquirer | None = None) -> dict:
-    cam = (lambda: (acq, acq.close)) if acq else (lambda: FakeCapture(lambda t: np.zeros((720, 1280, 3), np.uint8)))
-    return {"projector": Dlpc350Emulator, "camera": cam, "trigger_box": TriggerBoxEmulator}
 
 
 def test_lightcrafter_uvc_example_opens_with_software_wiring(tmp_path: Path) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_session import SCENE, small_rig_toml
+from session_support import SCENE, small_rig_toml
 
 from scanner.acquisition import AcquisitionSettings, acquire, check_signature, check_timing
 from scanner.config import CONFIG_DIR

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fringe_frames import fringe_stack
 
 from scanner.decode import decode
 from scanner.errors import DecodeError
@@ -11,7 +12,6 @@ from scanner.geometry import PhaseToHeight, Pinhole, RigModel
 from scanner.patterns import PatternSet
 from scanner.pointcloud import read_ply_points, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
-from tests.conftest import fringe_stack
 
 HET = PatternSet("heterodyne", 4, (70.0, 64.0, 59.0))
 

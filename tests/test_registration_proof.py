@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from registration_support import box_step, moved_view, write_ply
 from scipy.stats import binomtest
 
 from inspection.cad import load_cad
@@ -21,7 +22,6 @@ from inspection.registration import ModelTarget, RegistrationSettings, pose_diff
 from inspection.registration.evidence import ResidualCorrelation, pose_covariance, sign_test
 from sim.parts_demo import write_step
 from slscan import cli
-from tests.registration_support import box_step, moved_view, write_ply
 
 
 def _ring(path: Path) -> Path:

@@ -11,7 +11,7 @@ from typing import Iterator
 
 import numpy as np
 import pytest
-from test_drivers_rig import LCR, lcr_transports, variant
+from driver_rigs import LCR, lcr_transports, variant
 
 from scanner.config import CONFIG_DIR
 from scanner.drivers.grbl import GrblStage

@@ -13,7 +13,7 @@ from typing import Iterator
 
 import numpy as np
 import pytest
-from test_station_support import DEMO_PROGRAM, TRUTH_GAUGE, station_config
+from station_support import DEMO_PROGRAM, TRUTH_GAUGE, station_config
 
 from scanner.pointcloud import read_ply_points
 from scanner.rig import DEFAULT_RIG, RigConfig

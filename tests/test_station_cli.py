@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from test_station_support import DEMO_PROGRAM, station_config
+from station_support import DEMO_PROGRAM, program_copy, station_config
 
 from scanner.errors import IncompleteSession
 from scanner.session import ERROR, Session
@@ -151,8 +151,6 @@ def test_names_from_programs_never_write_outside_their_folder(tmp_path: Path, ca
     """Issue 15 item 9: a program named '../../evil' and a characteristic named
     '../../../escaped_chart' made `results --report` write outside the report folder."""
     import datetime as dt
-
-    from test_station_support import program_copy
 
     from slscan import cli
     from slscan.station.program import load_program

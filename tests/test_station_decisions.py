@@ -16,7 +16,7 @@ from typing import Sequence
 
 import numpy as np
 import pytest
-from test_station_support import DEMO_PROGRAM, program_copy, station_config
+from station_support import DEMO_PROGRAM, program_copy, station_config
 
 from inspection.tolerances import GUARD_BANDED
 from scanner.config import CONFIG_DIR

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Iterator, Sequence
 
 import pytest
-from test_station_support import DEMO_PROGRAM, program_copy, station_config
+from station_support import DEMO_PROGRAM, program_copy, station_config
 
 from scanner.errors import IncompleteSession
 from scanner.recording_reader import read_component, read_summary

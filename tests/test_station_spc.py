@@ -23,13 +23,13 @@ from slscan.station.spc import (
     Limits,
     anderson_darling,
     capability,
-    mr_dof,
-    range_dof,
     chart_constants,
     individuals_limits,
+    mr_dof,
     nelson,
     normal_fit,
     range_constants,
+    range_dof,
     subgroup_limits,
 )
 

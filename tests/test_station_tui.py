@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pexpect
 import pyte
-from test_station_support import DEMO_PROGRAM, program_copy, station_config
+from station_support import DEMO_PROGRAM, program_copy, station_config
 
 from slscan.station.results import open_results
 from slscan.station.station_config import StationConfig
