@@ -32,7 +32,8 @@ def defective_run(out: Path, bow: float, lobes: float, taper: float, texture: fl
     on the high top (mm), scanned into session `out` and inspected; with the truth."""
     fine = load_cad(STEP, deflection_mm=2.5e-4)
     low, top, boss = fine.by_label("#158"), fine.by_label("#657"), fine.by_label("#17")
-    defects = [PlaneBow(low.index, (17.5, 0.0, 10.0), (0.0, 0.0, 1.0), bow, float(np.hypot(27.5, 30.0)), max_edge_mm=4.0),
+    defects = [PlaneBow(low.index, (17.5, 0.0, 10.0), (0.0, 0.0, 1.0), bow, float(np.hypot(27.5, 30.0)),
+                        max_edge_mm=4.0),
                Lobing(boss.index, (20.0, 0.0, 0.0), (0.0, 0.0, 1.0), 1, lobes=3, amplitude_mm=lobes),
                Taper(boss.index, (20.0, 0.0, 22.0), (0.0, 0.0, 1.0), 1, per_mm=taper),
                Roughness(top.index, (-27.5, 0.0, 22.0), (0.0, 0.0, 1.0), texture, (2.0, 4.0), max_edge_mm=0.15)]

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 import pytest
@@ -71,7 +71,8 @@ def projector(request: pytest.FixtureRequest) -> Iterator[Projector]:
     if request.param == "sim":
         proj: Projector = SimProjector("sim-projector", 912, 1140)
     elif request.param == "lightcrafter4500":
-        proj = LightCrafter4500(Dlpc350Emulator, flash_images_sha256=fingerprint(pack_rgb24(diamond_resample(PATTERNS))))
+        flashed = fingerprint(pack_rgb24(diamond_resample(PATTERNS)))
+        proj = LightCrafter4500(Dlpc350Emulator, flash_images_sha256=flashed)
     else:
         proj = HdmiProjector(HdmiDisplay(FakeDisplay((912, 1140), 500.0), "hdmi", 500.0, 1))
     yield proj

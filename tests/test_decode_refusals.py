@@ -67,7 +67,7 @@ def test_edited_rig_model_refused_unless_given_on_purpose(copy: Path, tmp_path: 
         m["rig_model"]["camera"]["K"][0][0] *= 1.01
 
     edit_manifest(copy, edit)
-    line, checks = refused(copy)
+    line, _checks = refused(copy)
     assert "rig_model (session) failed" in line and "--rig-model" in line
     model = tmp_path / "model.json"
     model.write_text(json.dumps(json.loads((copy / MANIFEST).read_text())["rig_model"]))

@@ -36,7 +36,8 @@ def test_lightcrafter_uvc_example_opens_with_software_wiring(tmp_path: Path) -> 
 
 def test_lightcrafter_with_trigger_box_and_genicam(tmp_path: Path) -> None:
     config = variant(tmp_path, LCR, ('trigger = "software"', 'trigger = "trigger_box"'),
-                     ('driver = "uvc"', 'driver = "genicam"\ncti = "/x.cti"'), ("exposure_s = 0.02", "exposure_s = 0.05"))
+                     ('driver = "uvc"', 'driver = "genicam"\ncti = "/x.cti"'),
+                     ("exposure_s = 0.02", "exposure_s = 0.05"))
     with open_rig(config, transports=lcr_transports(FakeAcquirer(lambda t: np.zeros((720, 1280), np.uint8), 1280,
                                                                  720))) as rig:
         assert isinstance(rig.trigger, TriggerBox) and rig.projector.trigger == "external"
@@ -106,7 +107,7 @@ def test_camera_unplugged_mid_scan_keeps_frames_then_next_scan_reconnects(tmp_pa
     grabs = {"n": 0}
     real_try_fetch = first.try_fetch
 
-    def unplug_after_five(timeout: float = 0.0):  # noqa: ANN202
+    def unplug_after_five(timeout: float = 0.0):
         grabs["n"] += 1
         if grabs["n"] == 6:
             first.unplug()
@@ -126,7 +127,7 @@ def test_camera_unplugged_mid_scan_keeps_frames_then_next_scan_reconnects(tmp_pa
     assert len(session.manifest["frames"]) == 12 and first.closed
 
 
-def _display_render(display: FakeDisplay):  # noqa: ANN202
+def _display_render(display: FakeDisplay):
     """What the camera sees of the projector's window: its light, gamma 2.2, at 320 x 256."""
 
     def render(t: float) -> np.ndarray:

@@ -185,7 +185,7 @@ def test_an_unproven_pose_gives_no_aligned_cloud(session: Path, tmp_path: Path) 
     report.update(pose_status="ambiguous", status_note="not measured: the pose is ambiguous between the best pose "
                                                        "and 1 other pose(s)")
     path.write_text(json.dumps(report))
-    code, out, err = run("export", str(copy), "--aligned", "--out", str(tmp_path / "a.ply"))
+    code, _out, err = run("export", str(copy), "--aligned", "--out", str(tmp_path / "a.ply"))
     assert code == 1 and not (tmp_path / "a.ply").exists()
     assert len(err.strip().splitlines()) == 1 and "pose is not proven (ambiguous" in err
 

@@ -25,6 +25,9 @@ QUICK = {"ply": 40, "other": 24, "step": 6, "truth": 20, "frames": 8, "config": 
 CAMPAIGN = {"ply": 1200, "other": 600, "step": 120, "truth": 400, "frames": 80, "config": 800, "projector": 200,
             "scene": 600, "text": 2000}
 
+GENERATORS = {"ply": gen.ply_cases, "other": gen.other_mesh_cases, "step": gen.step_cases, "truth": gen.truth_cases,
+              "config": gen.config_cases, "projector": gen.projector_fit_cases, "text": gen.text_cases}
+
 
 def run_campaign(counts: dict[str, int], clean_session: Path, tmp_path: Path) -> Campaign:
     seed = campaign_seed()
@@ -34,15 +37,12 @@ def run_campaign(counts: dict[str, int], clean_session: Path, tmp_path: Path) ->
         for name, n in counts.items():
             folder = tmp_path / name
             folder.mkdir()
-            cases = {"ply": lambda: gen.ply_cases(folder, rng, n),
-                     "other": lambda: gen.other_mesh_cases(folder, rng, n),
-                     "step": lambda: gen.step_cases(folder, rng, n),
-                     "truth": lambda: gen.truth_cases(folder, rng, n),
-                     "frames": lambda: gen.frame_cases(clean_session, folder, rng, n),
-                     "config": lambda: gen.config_cases(folder, rng, n),
-                     "projector": lambda: gen.projector_fit_cases(folder, rng, n),
-                     "scene": lambda: gen.scene_cases(folder, rng, n, RIG),
-                     "text": lambda: gen.text_cases(folder, rng, n)}[name]()
+            if name == "frames":
+                cases = gen.frame_cases(clean_session, folder, rng, n)
+            elif name == "scene":
+                cases = gen.scene_cases(folder, rng, n, RIG)
+            else:
+                cases = GENERATORS[name](folder, rng, n)
             campaign.run(cases)
     finally:
         campaign.close()

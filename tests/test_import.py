@@ -138,7 +138,8 @@ def test_native_decode_of_slmaster_frames_refuses_instead_of_a_wrong_cloud() -> 
     """The issue's failure: decoded with our conventions, SLMaster's complementary set gave a
     cloud 10-100 mm wrong with exit 0 and its heterodyne set 0 % valid pixels; now both refuse."""
     comple = shoot(slmaster_complementary(PROJ[0]), U, seed=6)
-    with pytest.raises(DecodeError, match="gray_offset \\(vertical\\) failed: 3.0.* rad .*phase steps rotated by 6 of 12"):
+    with pytest.raises(DecodeError,
+                       match="gray_offset \\(vertical\\) failed: 3.0.* rad .*phase steps rotated by 6 of 12"):
         decode(comple, PatternSet("graycode", 12, (32.0,)), 8, PROJ)  # SLMaster's origin -π: six steps of 12
     het = shoot(slmaster_heterodyne(PROJ[0]), U, seed=6)
     with pytest.raises(DecodeError, match="consistency checks"):

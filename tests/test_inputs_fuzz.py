@@ -12,9 +12,10 @@ import json
 import math
 import shutil
 import traceback
+from collections.abc import Callable
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -48,7 +49,7 @@ def attempt(what: str, fn: Callable[[], Any]) -> None:
         fn()
     except ScannerError as exc:
         assert "\n" not in str(exc).strip(), f"{what}: a multi-line error: {exc}"
-    except Exception as exc:  # noqa: BLE001 — counted and reported
+    except Exception as exc:  # counted and reported
         COUNTS["tracebacks"] += 1
         FOUND.append(f"{what}: {type(exc).__name__}: {exc}"[:200])
         raise AssertionError(f"{what}: traceback\n{traceback.format_exc()}") from None
@@ -134,7 +135,8 @@ CONFIGS: dict[str, tuple[Path, Callable[[Path], Any]]] = {
     "scene": (CONFIG_DIR / "scenes" / "sphere_plane.toml", Scene.load),
     "board": (CONFIG_DIR / "boards" / "sim_charuco_7x5.toml", Board.load),
     "tolerances": (Path(__file__).parent / "data" / "tolerance_file.toml",
-                   lambda p: load_tolerances(p, {"#657": "plane", "#158": "plane", "#270": "plane", "#17": "cylinder"})),
+                   lambda p: load_tolerances(p, {"#657": "plane", "#158": "plane", "#270": "plane",
+                                                 "#17": "cylinder"})),
     "station": (CONFIG_DIR / "station" / "sim_bench.toml", StationConfig.load),
     "part program": (CONFIG_DIR / "parts" / "demo_part.toml", load_program),
 }
@@ -243,8 +245,8 @@ def test_fuzz_cli(clean_session: Path, tmp_path: Path) -> None:
     junk.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n")
     (tmp_path / "junk.json").write_text("[1, 2")
     (tmp_path / "empty").mkdir()
-    files = [str(clean_session), str(junk), str(tmp_path / "junk.json"), str(tmp_path / "empty"), str(tmp_path / "nope"),
-             "/etc/passwd", str(tmp_path)]
+    files = [str(clean_session), str(junk), str(tmp_path / "junk.json"), str(tmp_path / "empty"),
+             str(tmp_path / "nope"), "/etc/passwd", str(tmp_path)]
     commands = {
         "decode": lambda f, g: ["decode", f] + (["--mode", g] if g else []),
         "segment": lambda f, g: ["segment", f, "--radius", g, "--no-log", "--out", str(tmp_path / "seg")],

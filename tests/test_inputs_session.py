@@ -209,7 +209,7 @@ def test_three_channel_frame_message_says_channels(copy: Path) -> None:
         Session.open(copy).load_stack()
 
 
-# ------------------------------------------------------------------ items 1 and 8: full disk, read-only folder, dead writer
+# ------------------------------------------------- items 1 and 8: full disk, read-only folder, dead writer
 
 def scan_within_bound(tmp_path: Path, out: Path, bound_s: float = 300.0) -> list[BaseException]:
     """Scan the small rig into `out` in a thread; fail if it has not ended within `bound_s`
@@ -221,7 +221,7 @@ def scan_within_bound(tmp_path: Path, out: Path, bound_s: float = 300.0) -> list
         try:
             with open_rig(RigConfig.load(small_rig_toml(tmp_path)), scene=SCENE) as rig:
                 scan(rig, PATTERNS, out)
-        except BaseException as exc:  # noqa: BLE001 — returned to the test
+        except BaseException as exc:  # returned to the test
             errors.append(exc)
         done.set()
 
@@ -342,7 +342,8 @@ def test_real_full_disk_gives_one_error_and_keeps_every_frame(small_disk: Path, 
     assert not list((small_disk / "s" / "frames").glob(".*part"))
 
 
-def test_full_disk_while_writing_the_outputs_keeps_the_frames_and_decode_finishes(clean_session: Path, tmp_path: Path) -> None:
+def test_full_disk_while_writing_the_outputs_keeps_the_frames_and_decode_finishes(clean_session: Path,
+                                                                                  tmp_path: Path) -> None:
     """A real disk (tmpfs) that holds the frames and manifest but not the outputs: decoding
     stops with one SessionError naming the session and `slscan decode`, leaves no partial file
     and every frame intact; once there is space, decoding the same session writes its cloud."""

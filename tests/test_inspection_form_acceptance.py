@@ -8,7 +8,8 @@ The truth of each figure is computed in the test from the simulator's noise-free
 points over the region measured (the simulator's face ids where the scan has a point, the
 1 mm edge margin left out), with the true pose (`defective_part.true_form`: minimum
 zones by LP on every point, Sq of the texture's analytic heights through the test's own
-FFT Gaussian filter): the imposed defect as far as the view and the edge margin show it. Targets: flatness and cylindricity (minimum zone on the form surface)
+FFT Gaussian filter): the imposed defect as far as the view and the edge margin show it.
+Targets: flatness and cylindricity (minimum zone on the form surface)
 within 5 um + 2 % of the truth; Sq within 5 % of the truth for textures of at least 5x
 the depth noise (~14 um RMS). Printed per case: imposed, truth, measured, the raw zone,
 the noise floor and the filter cut-off.
@@ -51,5 +52,6 @@ def test_form_figures_against_truth(case: str, tmp_path: Path) -> None:
     # a zone below its detection limit is reported as "< limit" (no value; issue 27): the limit then
     # stands for the reading and the truth must lie within the same bound of it
     assert abs(_reading(flat.flatness_mz) - flat_true.flatness_mz_mm) <= 0.005 + 0.02 * flat_true.flatness_mz_mm
-    assert abs(_reading(cyl.cylindricity_mz) - cyl_true.cylindricity_mz_mm) <= 0.005 + 0.02 * cyl_true.cylindricity_mz_mm
+    assert (abs(_reading(cyl.cylindricity_mz) - cyl_true.cylindricity_mz_mm)
+            <= 0.005 + 0.02 * cyl_true.cylindricity_mz_mm)
     assert abs(rough.sq.value - rough_true.sq_mm) <= 0.05 * rough_true.sq_mm

@@ -40,7 +40,7 @@ def demo():
 
 
 def test_shot_is_invariant_to_rigid_motion(demo) -> None:
-    model, target = demo
+    _model, target = demo
     pts, nrm = target.coarse.points, target.coarse.normals
     keys = pts[::50]
     R = Rotation.random(random_state=3).as_matrix()

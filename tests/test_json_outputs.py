@@ -141,7 +141,8 @@ RUNS: dict[str, Callable[[Inputs, Path], list[str]]] = {
 
 
 def test_every_command_with_json_has_a_run_here() -> None:
-    with_json = {name for name, p in cli.commands(cli.build_parser()).items() if any(a.dest == "json" for a in p._actions)}
+    with_json = {name for name, p in cli.commands(cli.build_parser()).items()
+                 if any(a.dest == "json" for a in p._actions)}
     assert with_json == set(RUNS)
 
 

@@ -51,7 +51,7 @@ def viewer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 def opened(log: Path) -> list[str]:
     args = (log / "args.txt").read_text().split()
-    return [a for a in args[1: args.index("--bind")]]  # after --serve-web, before the server options
+    return args[1: args.index("--bind")]  # after --serve-web, before the server options
 
 
 def views(blueprint_file: Path) -> bool:

@@ -150,9 +150,8 @@ def test_fault_gives_named_error_and_keeps_frames(tmp_path: Path, faults: Faults
                                                   stored: int) -> None:
     config = RigConfig.load(small_rig_toml(tmp_path, trigger=wiring, timeout_s=0.5))
     out = tmp_path / "s"
-    with open_rig(config, scene=SCENE, faults=faults) as rig:
-        with pytest.raises(error) as exc:
-            scan(rig, PATTERNS, out)
+    with open_rig(config, scene=SCENE, faults=faults) as rig, pytest.raises(error) as exc:
+        scan(rig, PATTERNS, out)
     assert "sim-camera" in str(exc.value)
     frames = sorted((out / "frames").glob("frame_*.png"))
     assert [f.name for f in frames] == [f"frame_{k:03d}.png" for k in range(stored)]
@@ -189,9 +188,8 @@ def test_damaged_session_is_refused_with_file_named(tmp_path: Path, small_config
 def test_existing_output_folder_is_not_overwritten(tmp_path: Path, small_config: RigConfig) -> None:
     (tmp_path / "s").mkdir()
     (tmp_path / "s" / "keep.txt").write_text("earlier work")
-    with open_rig(small_config, scene=SCENE) as rig:
-        with pytest.raises(SessionError, match="not empty"):
-            scan(rig, PATTERNS, tmp_path / "s")
+    with open_rig(small_config, scene=SCENE) as rig, pytest.raises(SessionError, match="not empty"):
+        scan(rig, PATTERNS, tmp_path / "s")
     assert (tmp_path / "s" / "keep.txt").read_text() == "earlier work"
 
 

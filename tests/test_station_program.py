@@ -76,7 +76,8 @@ def test_face_the_cad_does_not_have_is_refused(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("edit, problem", [
     (('face = "#158"', 'face = "#105"'), "flatness applies to plane faces; face #105 of demo_part.step is a cone"),
-    (('face = "#17"', 'face = "#270"'), "cylindricity applies to cylinder faces; face #270 of demo_part.step is a plane"),
+    (('face = "#17"', 'face = "#270"'),
+     "cylindricity applies to cylinder faces; face #270 of demo_part.step is a plane"),
 ])
 def test_characteristic_on_a_face_of_the_wrong_type_is_refused(tmp_path: Path, edit: tuple[str, str],
                                                                problem: str) -> None:
@@ -152,7 +153,7 @@ def test_calibration_file_named_by_the_rig_gives_its_id_and_date_and_can_expire(
     from scanner.calibration_file import write_calibration
 
     rig = small_rig_toml(tmp_path)
-    created = dt.datetime(2026, 4, 1, 9, 30, 5, tzinfo=dt.timezone.utc)
+    created = dt.datetime(2026, 4, 1, 9, 30, 5, tzinfo=dt.UTC)
     cal = write_calibration(tmp_path / "cal.json", RigConfig.load(rig).nominal_model(), {}, "sim-bench")
     cal.write_text(json.dumps({**json.loads(cal.read_text()), "created": created.isoformat()}))
     rig.write_text(rig.read_text().replace("[rig]\n", '[rig]\ncalibration = "cal.json"\n', 1))
