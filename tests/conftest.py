@@ -1,9 +1,13 @@
-"""Shared fixtures: small analytic rigs and one small simulated session."""
+"""Shared fixtures: small analytic rigs and one small simulated session; and every Rerun
+recording a test leaves behind released, so the test process ends as any other does."""
 
 from __future__ import annotations
 
-import os
+import atexit
+import gc
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -33,19 +37,41 @@ def clean_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return scan_small_session(tmp_path_factory.mktemp("clean"))
 
 
-_EXIT_STATUS = {"status": 0}
+RELEASE_TIMEOUT_S = 30.0  # a healthy writer disconnects at once; a stuck one fails the test instead of hanging
 
 
-def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
-    _EXIT_STATUS["status"] = int(exitstatus)
+@pytest.fixture(autouse=True)
+def _recordings_abandoned_by_the_test() -> Iterator[None]:
+    """After a test that made a recording's writer stall or fail: the recordings the product
+    gave up on (`session_recording.ABANDONED`, kept open so the process could end by
+    `os._exit`) disconnected, and Rerun's exit handler, which giving up unregisters, back."""
+    yield
+    recordings = sys.modules.get("scanner.session_recording")
+    if recordings is None or not recordings.ABANDONED:
+        return
+    import rerun as rr
+
+    for stream in list(recordings.ABANDONED):
+        closing = threading.Thread(target=stream.disconnect, daemon=True)
+        closing.start()
+        closing.join(RELEASE_TIMEOUT_S)
+        assert not closing.is_alive(), "an abandoned recording's writer did not disconnect"
+        recordings.ABANDONED.remove(stream)
+    atexit.unregister(rr.rerun_shutdown)  # registered once, as on import
+    atexit.register(rr.rerun_shutdown)
 
 
-@pytest.hookimpl(trylast=True)
-def pytest_unconfigure(config: pytest.Config) -> None:
-    """Leave as soon as pytest has reported and cleaned up: Rerun's exit-time flush of the
-    recordings the tests opened can deadlock the interpreter's shutdown (seen once: a
-    fresh clone's default run hung after its summary, 264 RecordingStream threads waiting,
-    which CI would only end at its time limit)."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(_EXIT_STATUS["status"])
+@pytest.fixture(autouse=True, scope="module")
+def _recordings_released_after_the_module() -> Iterator[None]:
+    """After each module, the native side of the recordings its tests closed released. Rerun
+    0.41 keeps every stream (two threads each) after its last reference is gone, until
+    `rerun.init` or its exit handler flushes them all; a whole run's worth (264) once hung
+    the process after the summary. (The blueprint stream each `send_blueprint` makes stays
+    even so: nothing reachable holds it.)"""
+    yield
+    if "rerun" in sys.modules:
+        import rerun_bindings
+
+        gc.collect()  # the last references to closed streams (cycles, tracebacks)
+        rerun_bindings.flush_and_cleanup_orphaned_recordings()
+
