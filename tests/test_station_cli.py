@@ -1,7 +1,7 @@
 """`slscan station --auto` and `slscan results` (query, CSV, HTML report) as the operator's
 shell sees them, including a station killed (SIGKILL) or interrupted (SIGINT) in the
 middle of a scan. The station
-config measures with the simulator's truth (`measure.SimulatorTruth`) (see test_station_support.py)."""
+config measures with the simulator's truth (`measure.SimulatorTruth`) (see station_support.py)."""
 
 from __future__ import annotations
 
