@@ -1,15 +1,18 @@
-"""Shared fixtures: small analytic rigs and fringe stacks with known truth."""
+"""Shared fixtures: small analytic rigs and one small simulated session; and every Rerun
+recording a test leaves behind released, so the test process ends as any other does."""
 
 from __future__ import annotations
 
-import os
+import atexit
+import gc
 import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
 
-import numpy as np
 import pytest
 
 from scanner.geometry import RigModel
-from scanner.patterns import PatternSet
 from scanner.rig import RigConfig
 
 
@@ -25,34 +28,50 @@ def small_rig(bench_model: RigModel) -> RigModel:
     return bench_model.with_camera_size(320, 256)
 
 
-def fringe_stack(u: np.ndarray, patterns: PatternSet, extent: int, amplitude: float = 1200.0,
-                 offset: float = 1500.0, noise: float = 0.0, seed: int = 0, bits: int = 12) -> np.ndarray:
-    """Frames for projector coordinates `u` (H, W) along the coded axis, as the camera
-    would see them (no blur), with Gaussian noise of `noise` DN."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for s in patterns.frames():
-        profile = patterns.profile(s, extent)
-        shown = np.interp(u, np.arange(extent), profile)
-        img = offset + amplitude * (2 * shown - 1) + rng.normal(0, noise, u.shape) if noise else \
-            offset + amplitude * (2 * shown - 1)
-        out.append(np.clip(np.rint(img), 0, 2 ** bits - 1).astype(np.uint16))
-    return np.stack(out)
+@pytest.fixture(scope="module")
+def clean_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One small simulated scan (320 x 256, 12 frames), copied by each test that edits it.
+    (Imported here: the scanner's pipeline loads only for the modules that ask for it.)"""
+    from session_support import scan_small_session
+
+    return scan_small_session(tmp_path_factory.mktemp("clean"))
 
 
-_EXIT_STATUS = {"status": 0}
+RELEASE_TIMEOUT_S = 30.0  # a healthy writer disconnects at once; a stuck one fails the test instead of hanging
 
 
-def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
-    _EXIT_STATUS["status"] = int(exitstatus)
+@pytest.fixture(autouse=True)
+def _recordings_abandoned_by_the_test() -> Iterator[None]:
+    """After a test that made a recording's writer stall or fail: the recordings the product
+    gave up on (`session_recording.ABANDONED`, kept open so the process could end by
+    `os._exit`) disconnected, and Rerun's exit handler, which giving up unregisters, back."""
+    yield
+    recordings = sys.modules.get("scanner.session_recording")
+    if recordings is None or not recordings.ABANDONED:
+        return
+    import rerun as rr
+
+    for stream in list(recordings.ABANDONED):
+        closing = threading.Thread(target=stream.disconnect, daemon=True)
+        closing.start()
+        closing.join(RELEASE_TIMEOUT_S)
+        assert not closing.is_alive(), "an abandoned recording's writer did not disconnect"
+        recordings.ABANDONED.remove(stream)
+    atexit.unregister(rr.rerun_shutdown)  # registered once, as on import
+    atexit.register(rr.rerun_shutdown)
 
 
-@pytest.hookimpl(trylast=True)
-def pytest_unconfigure(config: pytest.Config) -> None:
-    """Leave as soon as pytest has reported and cleaned up: Rerun's exit-time flush of the
-    recordings the tests opened can deadlock the interpreter's shutdown (seen once: a
-    fresh clone's default run hung after its summary, 264 RecordingStream threads waiting,
-    which CI would only end at its time limit)."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(_EXIT_STATUS["status"])
+@pytest.fixture(autouse=True, scope="module")
+def _recordings_released_after_the_module() -> Iterator[None]:
+    """After each module, the native side of the recordings its tests closed released. Rerun
+    0.41 keeps every stream (two threads each) after its last reference is gone, until
+    `rerun.init` or its exit handler flushes them all; a whole run's worth (264) once hung
+    the process after the summary. (The blueprint stream each `send_blueprint` makes stays
+    even so: nothing reachable holds it.)"""
+    yield
+    if "rerun" in sys.modules:
+        import rerun_bindings
+
+        gc.collect()  # the last references to closed streams (cycles, tracebacks)
+        rerun_bindings.flush_and_cleanup_orphaned_recordings()
+

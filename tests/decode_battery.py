@@ -27,13 +27,14 @@ import sys
 import tempfile
 import time
 from collections import defaultdict
+from contextlib import suppress
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from scanner.config import CONFIG_DIR
-from scanner.decode_checks import ConsistencyError, LEAD
+from scanner.decode_checks import LEAD, ConsistencyError
 from scanner.errors import ScannerError
 from scanner.patterns import PatternSet
 from scanner.pipeline import ScanResult, process, scan
@@ -86,7 +87,7 @@ def rig_config(name: str, width: int) -> RigConfig:
     return replace(cfg, camera=camera, raw={**cfg.raw, "camera": camera})
 
 
-def random_scene(rig: str, rng: np.random.Generator, outside: bool = False):  # noqa: ANN201 - sim.scene.Scene
+def random_scene(rig: str, rng: np.random.Generator, outside: bool = False):  # -> sim.scene.Scene
     """The demo part on a tilted plane at a random place and turn (bench), or the turntable
     scene turned about its axis; `outside`: the whole scene moved beyond the volume."""
     from scipy.spatial.transform import Rotation
@@ -126,11 +127,9 @@ def random_scene(rig: str, rng: np.random.Generator, outside: bool = False):  # 
 
 def capture(rig: str, patterns: str, width: int, seed: int, out: Path, outside: bool = False) -> Path:
     rng = np.random.default_rng(seed)
-    with open_rig(rig_config(rig, width), scene=random_scene(rig, rng, outside), seed=seed) as r:
-        try:
-            scan(r, PATTERNS[patterns](), out, level="none")
-        except ConsistencyError:
-            pass  # judged by `judge` below; the session is complete
+    with (open_rig(rig_config(rig, width), scene=random_scene(rig, rng, outside), seed=seed) as r,
+          suppress(ConsistencyError)):  # a refusal is judged by `judge` below; the session is complete
+        scan(r, PATTERNS[patterns](), out, level="none")
     return out
 
 
@@ -212,8 +211,8 @@ def make_fault(fault: str, src: Path, dst: Path, rng: np.random.Generator, other
     elif fault == "wrong_projector_size":
         scale = float(rng.choice([-1, 1]) * rng.uniform(0.01, 0.1))
         p = m["rig_model"]["projector"]
-        p["width"] = int(round(p["width"] * (1 + scale)))
-        p["height"] = int(round(p["height"] * (1 + scale)))
+        p["width"] = round(p["width"] * (1 + scale))
+        p["height"] = round(p["height"] * (1 + scale))
         detail = f"{scale:+.1%}"
     elif fault == "rig_model_perturbed":
         detail = perturb(m["rig_model"], rng)

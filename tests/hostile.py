@@ -26,9 +26,11 @@ import resource
 import time
 import traceback
 from collections import Counter, defaultdict
-from contextlib import redirect_stderr, redirect_stdout
+from collections.abc import Callable
+from contextlib import redirect_stderr, redirect_stdout, suppress
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from pathlib import Path
+from typing import Any
 
 CASE_MEMORY_BYTES = 2 * 1024 ** 3  # what one case may add to the worker's address space
 CASE_TIMEOUT_S = 60.0
@@ -58,10 +60,15 @@ class Case:
     expect: Any = None
 
 
+def _vm_size_kib() -> int:
+    """This process's address space (kiB)."""
+    return int(Path("/proc/self/status").read_text().split("VmSize:")[1].split()[0])
+
+
 def _worker(conn: Any) -> None:
     for name in WARM_IMPORTS:
         importlib.import_module(name)
-    size = int(open("/proc/self/status").read().split("VmSize:")[1].split()[0]) * 1024
+    size = _vm_size_kib() * 1024
     resource.setrlimit(resource.RLIMIT_AS, (size + CASE_MEMORY_BYTES, size + CASE_MEMORY_BYTES))
     from scanner.errors import ScannerError
 
@@ -78,10 +85,10 @@ def _worker(conn: Any) -> None:
         except ScannerError as exc:
             conn.send(("refused", str(exc)))
         except MemoryError as exc:
-            vm = open("/proc/self/status").read().split("VmSize:")[1].split()[0]
+            vm = _vm_size_kib()
             conn.send(("oom", f"MemoryError {exc} (address space {int(vm) // 1024} MB, cap "
                               f"{(size + CASE_MEMORY_BYTES) // 2 ** 20} MB)\n{traceback.format_exc(limit=6)}"))
-        except BaseException as exc:  # noqa: BLE001 — every other outcome is a traceback, reported
+        except BaseException as exc:  # every other outcome is a traceback, reported
             conn.send(("traceback", f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=4)}"))
 
 
@@ -127,10 +134,8 @@ class Worker:
 
     def close(self) -> None:
         if self.alive():
-            try:
+            with suppress(OSError):  # a worker already gone (BrokenPipeError is an OSError)
                 self.conn.send(None)
-            except (BrokenPipeError, OSError):
-                pass
             self.proc.join(10)
             if self.alive():
                 self.kill()

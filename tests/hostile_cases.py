@@ -128,7 +128,7 @@ def stored_serial(db: str, serial: str) -> tuple[bool, Any]:
         rid, _ = store.begin_part(PartStart(program="p", program_version="1", program_fingerprint="f", serial=serial,
                                             operator="o", station="s", rig="r", calibration_id="c",
                                             software_version="v", measurement="m", part_path="",
-                                            started_at=dt.datetime.now(dt.timezone.utc)))
+                                            started_at=dt.datetime.now(dt.UTC)))
         back = store.result(rid).serial
     return back == serial, csv_cell(back)
 

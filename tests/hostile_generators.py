@@ -15,6 +15,7 @@ import tomllib
 import unicodedata
 import zipfile
 from pathlib import Path
+
 import numpy as np
 from hostile import Case
 
@@ -48,7 +49,7 @@ def write_ply(path: Path, v: np.ndarray, faces: list[np.ndarray] | None, fmt: st
               normals: bool) -> int:
     """A PLY written here (not by any reader's library); returns the byte offset of the data."""
     props = [("x", vtype), ("y", vtype), ("z", vtype)] + ([("nx", "f4"), ("ny", "f4"), ("nz", "f4")] if normals else [])
-    head = [f"ply", f"format {fmt} 1.0", "comment hostile test", f"element vertex {len(v)}"]
+    head = ["ply", f"format {fmt} 1.0", "comment hostile test", f"element vertex {len(v)}"]
     head += [f"property {PLY_TYPES[t]} {n}" for n, t in props]
     if faces is not None:
         head += [f"element face {len(faces)}", f"property list uchar {PLY_TYPES[itype]} vertex_indices"]
@@ -105,7 +106,8 @@ def ply_cases(folder: Path, rng: np.random.Generator, n: int) -> list[Case]:
             lie = int(rng.choice([true + int(rng.integers(1, 1000)), max(true - int(rng.integers(1, 3)), 0),
                                   10 ** 9, 2 ** 31 - 1, 2 ** 32 + true, 10 ** 18, 2 ** 64 + true]))
             lie = lie if lie != true else true + 1
-            path.write_bytes(data.replace(f"element {element} {true}\n".encode(), f"element {element} {lie}\n".encode()))
+            path.write_bytes(data.replace(f"element {element} {true}\n".encode(),
+                                          f"element {element} {lie}\n".encode()))
             what = f"{element} count {true} -> {lie} ({fmt})"
         elif what == "junk":
             junk = rng.integers(33, 127, int(rng.integers(1, 2000)), dtype=np.uint8).tobytes()
@@ -153,7 +155,7 @@ def other_mesh_cases(folder: Path, rng: np.random.Generator, n: int) -> list[Cas
     cases = []
     for i in range(n):
         kind = str(rng.choice(["stl-binary", "stl-ascii", "pcd", "obj"]))
-        v, faces = random_mesh(rng)
+        v, _faces = random_mesh(rng)
         v = np.unique(np.round(v, 3), axis=0).astype(np.float32).astype(np.float64)  # distinct, exact in float32
         tris = rng.integers(0, len(v), (int(rng.integers(1, 800)), 3))
         tris = tris[(tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])]
@@ -453,7 +455,8 @@ def scene_cases(folder: Path, rng: np.random.Generator, n: int, rig: Path) -> li
         distance = float(draw_value(rng, 1e-3, 1e5)) if rng.random() < 0.3 else 900.0
         path = folder / f"scene{i}.toml"
         path.write_text(f"[reference_plane]\ndistance_mm = {toml_float(distance)}\n\n[[objects]]\n"
-                        f"sphere = {{ radius_mm = {toml_float(r)}, center_mm = [{', '.join(toml_float(x) for x in c)}] }}\n")
+                        f"sphere = {{ radius_mm = {toml_float(r)}, "
+                        f"center_mm = [{', '.join(toml_float(x) for x in c)}] }}\n")
         lengths_ok = 1e-3 <= r <= 1e5 and 1e-3 <= distance <= 1e5 and np.abs(c).max() <= 1e5
         # a ray t d (unit d) meets the sphere where |t d - c| = r: t = d.c +- sqrt(r^2 - (|c|^2 - (d.c)^2)),
         # in front of the camera when the farther root is > 0

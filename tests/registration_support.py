@@ -1,5 +1,5 @@
-"""Scenes the registration tests share: a plain block's STEP file (symmetric: its half turn
-fits as well) and a simulated view of a model from a random start."""
+"""Scenes the registration tests share: the demo part's STEP file, a plain block's (symmetric:
+its half turn fits as well), and simulated views of a model, placed or from a random start."""
 
 from __future__ import annotations
 
@@ -9,9 +9,40 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from inspection.measured_cloud import ScanCloud, make_scan
+from inspection.sampling import sample_model
+from scanner.config import CONFIG_DIR
 from sim.parts import lying_pose
 from sim.parts_demo import write_step
-from tests.test_inspection_registration import virtual_view
+
+STEP = CONFIG_DIR / "parts" / "demo_part.step"  # the demo part's model
+
+
+def virtual_view(model, pose: np.ndarray, noise_mm: float = 0.014, spacing_mm: float = 0.25, seed: int = 0,
+                 offsets: dict[str, float] | None = None) -> ScanCloud:
+    """The model's surface seen from a camera at the origin (model placed by `pose`, part ->
+    camera): visible samples, with noise along the viewing rays; normals estimated.
+    `offsets`: faces (by label) moved as a whole along their outward normal (mm)."""
+    import open3d as o3d
+
+    s = sample_model(model, spacing_mm, seed=seed)
+    points = s.points.copy()
+    for label, mm in (offsets or {}).items():
+        sel = s.face == model.by_label(label).index
+        points[sel] += mm * s.normals[sel]
+    p = points @ pose[:3, :3].T + pose[:3, 3]
+    n = s.normals @ pose[:3, :3].T
+    tess = model.tessellation
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor((tess.vertices @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)),
+                        o3d.core.Tensor(tess.triangles.astype(np.uint32)))
+    dist = np.linalg.norm(p, axis=1)
+    ray = p / dist[:, None]
+    hit = scene.cast_rays(o3d.core.Tensor(np.concatenate([np.zeros_like(p), ray], 1).astype(np.float32)))
+    seen = (hit["t_hit"].numpy() > dist - 0.01) & (np.einsum("ij,ij->i", n, ray) < -0.1)
+    rng = np.random.default_rng(seed)
+    q = p[seen] + ray[seen] * rng.normal(0, noise_mm, seen.sum())[:, None]
+    return make_scan(q, None, "virtual view", np.zeros(3))
 
 
 def box_step(path: Path) -> Path:
@@ -30,8 +61,6 @@ def moved_view(model: Any, tilt: tuple[float, float], seed: int) -> tuple[Any, n
     G = np.eye(4)
     G[:3, :3] = Rotation.random(random_state=seed).as_matrix()
     G[:3, 3] = [80.0, -120.0, 60.0]
-    from inspection.measured_cloud import ScanCloud
-
     moved = ScanCloud(view.points @ G[:3, :3].T + G[:3, 3], view.normals @ G[:3, :3].T, "moved view", G[:3, 3].copy())
     return moved, np.linalg.inv(pose) @ np.linalg.inv(G)
 

@@ -91,9 +91,8 @@ def test_depth_against_the_simulators_truth(scanned: tuple) -> None:
 
 def test_a_dropped_frame_of_either_camera_leaves_an_incomplete_session(tmp_path: Path) -> None:
     config = RigConfig.load(small_rig(tmp_path))
-    with open_rig(config, scene=SCENE, seed=1, faults=Faults(drop_frame=4)) as rig:
-        with pytest.raises(FrameDropped):
-            scan_binocular(rig, PatternSet.load(config.patterns_path), tmp_path / "session")
+    with open_rig(config, scene=SCENE, seed=1, faults=Faults(drop_frame=4)) as rig, pytest.raises(FrameDropped):
+        scan_binocular(rig, PatternSet.load(config.patterns_path), tmp_path / "session")
     with pytest.raises(IncompleteSession):
         Session.open(tmp_path / "session")
     assert json.loads((tmp_path / "session" / "error.json").read_text())["stage"] == "capture"

@@ -59,7 +59,7 @@ def test_bin_parts_rest_without_interpenetrating(bin12: object) -> None:
     verts, tris = b.part.mesh()
     world = [o.world_vertices() for o in b.scene.objects]
     assert len(world) == 12 and b.poses.shape == (12, 4, 4)
-    for T, obj, w in zip(b.poses, b.scene.objects, world):
+    for T, w in zip(b.poses, world):
         assert np.allclose(verts @ T[:3, :3].T + T[:3, 3], w)
         assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3))
     for i, w in enumerate(world):
@@ -96,7 +96,7 @@ def test_bin_ground_truth_gives_overlapping_instances(bin12: object, small_rig: 
     assert seen <= set(b.object_ids.tolist()) and len(seen) >= 10
     # overlaps: some part is partly hidden by parts dropped after it
     alone = []
-    for k, obj in enumerate(b.scene.objects):
+    for obj in b.scene.objects:
         solo = compute_ground_truth(small_rig, type(b.scene)(objects=(obj,), reference_plane=b.scene.reference_plane))
         alone.append((solo.object_id == 2).sum())
     visible = np.array([(ids == i).sum() for i in b.object_ids])
@@ -172,7 +172,7 @@ def test_bin_scan_segments_into_its_parts(bin12: object) -> None:
     s = score(labels, np.where(ids > 0, ids, -1))
     assert s.mean_alpha <= 0.0003 and s.mean_beta <= 0.08 and s.mean_eta <= 1.5
     for x in s.segments:   # pieces the parts on top leave visible (>= 5 %), each split at most once more
-        n, comp = cv2.connectedComponents((ids == x.label).astype(np.uint8), connectivity=8)
+        _n, comp = cv2.connectedComponents((ids == x.label).astype(np.uint8), connectivity=8)
         pieces = max(1, int((np.bincount(comp[comp > 0]) >= 0.05 * x.points).sum()))
         assert 1 <= x.eta <= 2 * pieces
     # instances from the segments: the tray's segment left out, each part's largest piece found
@@ -238,7 +238,10 @@ def test_judge_tells_right_wrong_and_phantom_poses() -> None:
     flip = np.eye(4)
     flip[:3, :3] = rotation_about(np.array([1.0, 0.0, 0.0]), np.pi)
     flip[:3, 3] = [0.0, TabPart().width_mm, TabPart().thickness_mm]
-    side = lambda k, turned=False: "front" if bool(truth.front_up[k]) != turned else "back"  # noqa: E731
+
+    def side(k: int, turned: bool = False) -> str:
+        return "front" if bool(truth.front_up[k]) != turned else "back"
+
     poses = [SimpleNamespace(ok=True, instance_id=1, pose=truth.camera_from_part[0], side=side(0), occlusion=0.0),
              SimpleNamespace(ok=True, instance_id=2, pose=truth.camera_from_part[1] @ flip, side=side(1, True),
                              occlusion=0.1),

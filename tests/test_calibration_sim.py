@@ -6,8 +6,9 @@ software triggering, 6 board poses and 4 plate heights; the full-size acceptance
 x 1024, 12 poses, 7 heights) is the last test here (`-m acceptance`). The figures asserted
 here are the issue's acceptance limits, except the principal points, which 6 poses at half
 resolution determine to about +-0.25 px (one sigma): they must lie within 1 px of the truth,
-and within four of the calibration's own reported sigmas (each below 0.5 px) of it. The scan and phase-to-height checks are
-computed here from the saved calibration, not read from the command's printed report.
+and within four of the calibration's own reported sigmas (each below 0.5 px) of it. The scan
+and phase-to-height checks are computed here from the saved calibration, not read from the
+command's printed report.
 """
 
 from __future__ import annotations
@@ -107,7 +108,8 @@ def scan_check(rig_toml: Path, calibrated: RigModel) -> tuple[float, float]:
         cloud = triangulate(decoded, Triangulator(model), with_normals=False)
         sel = smooth_region(truth) & cloud.valid
         rms.append(float(np.sqrt(np.mean((cloud.points[..., 2] - truth.depth)[sel].astype(np.float64) ** 2))))
-    print(f"scan check: depth RMS {rms[0] * 1e3:.2f} um with the calibrated rig, {rms[1] * 1e3:.2f} um with the true one")
+    print(f"scan check: depth RMS {rms[0] * 1e3:.2f} um with the calibrated rig, "
+          f"{rms[1] * 1e3:.2f} um with the true one")
     return rms[0], rms[1]
 
 
@@ -194,7 +196,8 @@ def test_outputs_report_and_recording(calibrated: tuple[Path, str, str]) -> None
                    "world/projector", "world/calibration/board/pose_000", "world/calibration/artefact",
                    "metrics/calibration/stereo_rms_px", "events"):
         assert entity in rec.entities, entity
-    assert rec.entities["calibration/camera/image"].rows == 6 and "view" in rec.entities["calibration/errors/camera"].timelines
+    assert rec.entities["calibration/camera/image"].rows == 6
+    assert "view" in rec.entities["calibration/errors/camera"].timelines
 
 
 def test_solving_the_capture_again_from_disk_gives_the_same_calibration(calibrated: tuple[Path, str, str],
@@ -225,7 +228,7 @@ def test_installed_calibration_is_used_by_later_scans(calibrated: tuple[Path, st
     config = RigConfig.load(rig)
     assert config.calibration_path == (out / "calibration.json").resolve()
     scene = CONFIG_DIR / "scenes" / "sphere_plane.toml"
-    code, printed, log = run(["scan", "--rig", str(rig), "--scene", str(scene), "--out", str(tmp_path / "scan")])
+    code, _printed, log = run(["scan", "--rig", str(rig), "--scene", str(scene), "--out", str(tmp_path / "scan")])
     assert code == 0, log
     manifest = json.loads((tmp_path / "scan" / "manifest.json").read_text())
     assert np.allclose(manifest["rig_model"]["camera"]["K"], config.model.camera.K)
@@ -366,7 +369,7 @@ def test_acceptance_on_the_full_size_simulated_bench(tmp_path: Path) -> None:
     model on a ramp and a ball filling the measuring volume. Several minutes; the same
     figures print from `slscan calibrate --out DIR`."""
     rig = rig_copy(tmp_path, small=False)
-    code, printed, log = run(["calibrate", "--rig", str(rig), "--out", str(tmp_path / "cal")])
+    code, _printed, log = run(["calibrate", "--rig", str(rig), "--out", str(tmp_path / "cal")])
     assert code == 0, log
     cal = load_calibration(tmp_path / "cal" / "calibration.json", (1280, 1024), (912, 1140))
     e = model_errors(cal.model, RigConfig.load(DEFAULT_RIG).nominal_model())

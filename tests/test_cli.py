@@ -15,10 +15,13 @@ import shutil
 import subprocess
 import sys
 import tomllib
-from contextlib import redirect_stderr, redirect_stdout
+from contextlib import redirect_stderr
 from pathlib import Path
 
 import pytest
+from cli_support import run
+from session_support import small_rig_toml
+from station_support import DEMO_PROGRAM, station_config
 
 from calibration.errors import CalibrationRejected
 from scanner.errors import ConfigError, DeviceTimeout, FrameDropped, ScannerError
@@ -28,17 +31,6 @@ from slscan.progress import ProgressLine
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMANDS = cli.commands(cli.build_parser())
-
-
-def run(*argv: str) -> tuple[int, str, str]:
-    """The command line in-process: exit code (a SystemExit's too), stdout, stderr."""
-    out, err = io.StringIO(), io.StringIO()
-    with redirect_stdout(out), redirect_stderr(err):
-        try:
-            code = cli.main(list(argv))
-        except SystemExit as exc:
-            code = exc.code if isinstance(exc.code, int) else 2
-    return int(code), out.getvalue(), err.getvalue()
 
 
 def test_the_command_table_is_complete() -> None:
@@ -151,7 +143,8 @@ def test_a_device_fault_in_a_command_exits_3(monkeypatch: pytest.MonkeyPatch) ->
 
     monkeypatch.setattr(devices, "serial_ports", unplugged)
     code, _, err = run("devices", "--probe")
-    assert code == 3 and "serial /dev/ttyACM0: device timeout: no reply to PING after 1 s" in err and "Traceback" not in err
+    assert code == 3 and "Traceback" not in err
+    assert "serial /dev/ttyACM0: device timeout: no reply to PING after 1 s" in err
 
 
 class Clock:
@@ -206,8 +199,6 @@ def test_calibrate_from_a_bad_folder_leaves_no_output_folder(tmp_path: Path) -> 
 def test_the_station_exits_1_after_a_failed_part(tmp_path: Path) -> None:
     """The simulated station's second part carries a defect that fails its program (the
     simulator's truth as the gauge, a 320 x 256 camera): one good part exits 0, two exit 1."""
-    from tests.test_station_support import DEMO_PROGRAM, station_config
-
     one, two = tmp_path / "one", tmp_path / "two"
     one.mkdir(), two.mkdir()
     code, out, _ = run("station", str(DEMO_PROGRAM), "--config", str(station_config(one)), "--auto", "--parts", "1")
@@ -342,9 +333,7 @@ def test_json_alone_on_stdout_whatever_libraries_write_there(tmp_path: Path) -> 
     """`slscan scan --json` and `decode --json` as a cell runs them (a pipe): stdout parses as one
     JSON document, although a native library writes to the stdout descriptor meanwhile (as
     Open3D does its warnings); the scan's own lines go to stderr."""
-    from test_inputs_session import small_rig
-
-    rig = small_rig(tmp_path).path
+    rig = small_rig_toml(tmp_path)
     noisy = ("import os, sys\nfrom slscan import cli\nimport scanner.pipeline as p\nwrite = p.write_json\n"
              "def loud(*a, **k):\n    os.write(1, b'[Open3D WARNING] a library line on fd 1\\n')\n"
              "    return write(*a, **k)\np.write_json = loud\nsys.exit(cli.main(sys.argv[1:]))\n")

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 import pytest
-from test_session import SCENE, small_rig_toml
+from session_support import SCENE, small_rig_toml
 
 from scanner.devices import Camera, Projector, TriggerMode, TriggerSource, TriggerType
 from scanner.drivers.genicam import GenICamCamera
@@ -71,7 +71,8 @@ def projector(request: pytest.FixtureRequest) -> Iterator[Projector]:
     if request.param == "sim":
         proj: Projector = SimProjector("sim-projector", 912, 1140)
     elif request.param == "lightcrafter4500":
-        proj = LightCrafter4500(Dlpc350Emulator, flash_images_sha256=fingerprint(pack_rgb24(diamond_resample(PATTERNS))))
+        flashed = fingerprint(pack_rgb24(diamond_resample(PATTERNS)))
+        proj = LightCrafter4500(Dlpc350Emulator, flash_images_sha256=flashed)
     else:
         proj = HdmiProjector(HdmiDisplay(FakeDisplay((912, 1140), 500.0), "hdmi", 500.0, 1))
     yield proj

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fringe_frames import fringe_stack
 
 from scanner.decode import CHUNK_ROWS, DecodeSettings, decode, interreflection_slivers, small_regions
 from scanner.errors import ConfigError, DecodeError
 from scanner.patterns import PatternSet, gray_code, gray_to_binary
-from tests.conftest import fringe_stack
 
 PROJ = (912, 1140)
 FAMILIES = {
@@ -168,7 +168,8 @@ def test_second_path_mask_matches_the_whole_image_rule(monkeypatch) -> None:
     sigma_b = m.noise.sigma(m.background) * np.float32(np.sqrt(2.0 / ps.steps))
     absolute, _ = ps.kind.unwrap(ps.fringes, m.wrapped)
     scaled = [a * np.float32(f_max / f) for a, f in zip(absolute, ps.fringes)]
-    noise = [sigma_b / np.maximum(b, np.float32(1e-6)) * np.float32(f_max / f) for b, f in zip(m.modulation, ps.fringes)]
+    noise = [sigma_b / np.maximum(b, np.float32(1e-6)) * np.float32(f_max / f)
+             for b, f in zip(m.modulation, ps.fringes)]
 
     def sample(judged: np.ndarray) -> np.ndarray:
         idx = np.flatnonzero(judged)

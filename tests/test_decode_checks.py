@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fringe_frames import fringe_stack
 
 from scanner.decode import DecodeSettings, NoiseModel, decode
 from scanner.decode_checks import (
@@ -19,7 +20,6 @@ from scanner.decode_checks import (
 )
 from scanner.patterns import PatternSet
 from slscan.commands.importbench import plane_coordinates, synthetic_rig
-from tests.conftest import fringe_stack
 
 PROJ = (912, 1140)
 HET = PatternSet("heterodyne", 4, (70.0, 64.0, 59.0))

@@ -12,20 +12,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from test_inputs_session import PATTERNS, SCENE, edit_manifest, frame, one_error_line, run_cli, small_rig
+from cli_support import run_cli
+from session_support import edit_manifest, frame, one_error_line, scan_small_session
 
-from scanner.pipeline import scan
 from scanner.recording_reader import entity_paths
-from scanner.rig import open_rig
 from scanner.session import MANIFEST
 
 
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    tmp = tmp_path_factory.mktemp("refusals")
-    with open_rig(small_rig(tmp), scene=SCENE) as rig:
-        scan(rig, PATTERNS, tmp / "s", level="none")
-    return tmp / "s"
+    """The small scan, unrecorded (level "none"): the tests decode it again."""
+    return scan_small_session(tmp_path_factory.mktemp("refusals"), level="none")
 
 
 @pytest.fixture
@@ -70,7 +67,7 @@ def test_edited_rig_model_refused_unless_given_on_purpose(copy: Path, tmp_path: 
         m["rig_model"]["camera"]["K"][0][0] *= 1.01
 
     edit_manifest(copy, edit)
-    line, checks = refused(copy)
+    line, _checks = refused(copy)
     assert "rig_model (session) failed" in line and "--rig-model" in line
     model = tmp_path / "model.json"
     model.write_text(json.dumps(json.loads((copy / MANIFEST).read_text())["rig_model"]))

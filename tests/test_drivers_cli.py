@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from session_support import SCENE, small_rig_toml
 
 from scanner.config import CONFIG_DIR
 from scanner.drivers.lightcrafter import LightCrafter4500
@@ -62,8 +63,6 @@ def test_log_level_options(argv: list[str], level: int) -> None:
 
 
 def test_device_life_cycle_is_logged_per_module(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    from test_session import SCENE, small_rig_toml
-
     from scanner.rig import open_rig
 
     caplog.set_level(logging.DEBUG)

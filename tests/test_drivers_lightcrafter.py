@@ -187,23 +187,23 @@ def test_patterns_are_resampled_for_the_diamond_array() -> None:
 
 
 def test_flash_images_must_match_the_patterns() -> None:
-    with expected_protocol(lambda o: LightCrafter4500(o, flash_images_sha256="0" * 64), FakeHid([])) as d:
-        with pytest.raises(UnsupportedSetting, match=f'slscan devices lightcrafter-images.*{SHA}'):
-            d.load_patterns(PATTERNS)
+    with (expected_protocol(lambda o: LightCrafter4500(o, flash_images_sha256="0" * 64), FakeHid([])) as d,
+          pytest.raises(UnsupportedSetting, match=f'slscan devices lightcrafter-images.*{SHA}')):
+        d.load_patterns(PATTERNS)
 
 
 def test_nack_names_the_command() -> None:
     script = [Exchange(rep("40 00 03 00 24 1a 02"), ack(0, flags=0x20))]
-    with expected_protocol(lcr, FakeHid(script)) as d:
-        with pytest.raises(DeviceError, match=r"command 0x1A24 \(START_STOP\) was refused \(NACK\)"):
-            d.start()
+    with (expected_protocol(lcr, FakeHid(script)) as d,
+          pytest.raises(DeviceError, match=r"command 0x1A24 \(START_STOP\) was refused \(NACK\)")):
+        d.start()
 
 
 def test_validation_error_refuses_the_sequence() -> None:
     script = [w(0, "1a 1a 00"), Exchange(rep("c0 01 02 00 1a 1a"), rep("00 01 01 00 03"))]
-    with expected_protocol(lcr, FakeHid(script)) as d:
-        with pytest.raises(DeviceError, match="exposure or frame period settings are invalid; pattern numbers"):
-            d.validate()
+    with (expected_protocol(lcr, FakeHid(script)) as d,
+          pytest.raises(DeviceError, match="exposure or frame period settings are invalid; pattern numbers")):
+        d.validate()
 
 
 def test_validation_that_never_finishes_times_out_in_bounded_time() -> None:
@@ -240,12 +240,12 @@ def test_unplugged_mid_setup_then_reconnects_for_next_scan() -> None:
 
 
 def test_wrong_sequence_byte_in_reply_is_refused() -> None:
-    with expected_protocol(lcr, FakeHid([Exchange(rep("40 00 03 00 24 1a 00"), ack(5))])) as d:
-        with pytest.raises(DeviceError, match="sequence byte 5, expected 0"):
-            d.stop()
+    with (expected_protocol(lcr, FakeHid([Exchange(rep("40 00 03 00 24 1a 00"), ack(5))])) as d,
+          pytest.raises(DeviceError, match="sequence byte 5, expected 0")):
+        d.stop()
 
 
 def test_fake_reports_any_deviation() -> None:
-    with pytest.raises(ProtocolMismatch, match="expected\n  40 00 03 00 24 1a 00"):
-        with expected_protocol(lcr, FakeHid([w(0, "24 1a 00")])) as d:
-            d.start()
+    with (pytest.raises(ProtocolMismatch, match="expected\n  40 00 03 00 24 1a 00"),
+          expected_protocol(lcr, FakeHid([w(0, "24 1a 00")])) as d):
+        d.start()

@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from driver_rigs import LCR, lcr_transports, variant
 
 from scanner.acquisition import AcquisitionSettings, acquire, acquire_images
 from scanner.config import CONFIG_DIR
@@ -16,30 +17,14 @@ from scanner.devices import TriggerType
 from scanner.drivers.genicam import GenICamCamera
 from scanner.drivers.hdmi import HdmiProjector
 from scanner.drivers.lightcrafter import LightCrafter4500
-from scanner.drivers.testing import Dlpc350Emulator, FakeAcquirer, FakeCapture, FakeDisplay, TriggerBoxEmulator
+from scanner.drivers.testing import FakeAcquirer, FakeCapture, FakeDisplay
 from scanner.drivers.triggerbox import TriggerBox
 from scanner.drivers.uvc import UvcCamera
 from scanner.errors import ConfigError
 from scanner.patterns import PatternSet
-from scanner.rig import RigConfig, open_rig
+from scanner.rig import open_rig
 
-LCR = CONFIG_DIR / "rigs" / "lightcrafter_uvc_box.toml"
 HDMI = CONFIG_DIR / "rigs" / "hdmi_genicam.toml"
-
-
-def variant(tmp: Path, source: Path, *edits: tuple[str, str]) -> RigConfig:
-    text = source.read_text().replace('"../patterns/', f'"{CONFIG_DIR}/patterns/')
-    for old, new in edits:
-        assert old in text, old
-        text = text.replace(old, new)
-    path = tmp / source.name
-    path.write_text(text)
-    return RigConfig.load(path)
-
-
-def lcr_transports(acq: FakeAcquirer | None = None) -> dict:
-    cam = (lambda: (acq, acq.close)) if acq else (lambda: FakeCapture(lambda t: np.zeros((720, 1280, 3), np.uint8)))
-    return {"projector": Dlpc350Emulator, "camera": cam, "trigger_box": TriggerBoxEmulator}
 
 
 def test_lightcrafter_uvc_example_opens_with_software_wiring(tmp_path: Path) -> None:
@@ -51,7 +36,8 @@ def test_lightcrafter_uvc_example_opens_with_software_wiring(tmp_path: Path) -> 
 
 def test_lightcrafter_with_trigger_box_and_genicam(tmp_path: Path) -> None:
     config = variant(tmp_path, LCR, ('trigger = "software"', 'trigger = "trigger_box"'),
-                     ('driver = "uvc"', 'driver = "genicam"\ncti = "/x.cti"'), ("exposure_s = 0.02", "exposure_s = 0.05"))
+                     ('driver = "uvc"', 'driver = "genicam"\ncti = "/x.cti"'),
+                     ("exposure_s = 0.02", "exposure_s = 0.05"))
     with open_rig(config, transports=lcr_transports(FakeAcquirer(lambda t: np.zeros((720, 1280), np.uint8), 1280,
                                                                  720))) as rig:
         assert isinstance(rig.trigger, TriggerBox) and rig.projector.trigger == "external"
@@ -120,7 +106,7 @@ def test_camera_unplugged_mid_scan_keeps_frames_then_next_scan_reconnects(tmp_pa
     grabs = {"n": 0}
     real_try_fetch = first.try_fetch
 
-    def unplug_after_five(timeout: float = 0.0):  # noqa: ANN202
+    def unplug_after_five(timeout: float = 0.0):
         grabs["n"] += 1
         if grabs["n"] == 6:
             first.unplug()
@@ -140,7 +126,7 @@ def test_camera_unplugged_mid_scan_keeps_frames_then_next_scan_reconnects(tmp_pa
     assert len(session.manifest["frames"]) == 12 and first.closed
 
 
-def _display_render(display: FakeDisplay):  # noqa: ANN202
+def _display_render(display: FakeDisplay):
     """What the camera sees of the projector's window: its light, gamma 2.2, at 320 x 256."""
 
     def render(t: float) -> np.ndarray:

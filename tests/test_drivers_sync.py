@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_session import SCENE, small_rig_toml
+from session_support import SCENE, small_rig_toml
 
 from scanner.acquisition import AcquisitionSettings, acquire, check_signature, check_timing
 from scanner.config import CONFIG_DIR
@@ -84,9 +84,8 @@ def test_true_sequence_passes_without_pattern_index(tmp_path: Path, wiring: str)
 @pytest.mark.parametrize("wiring", ["software", "projector", "trigger_box"])
 def test_sequence_shifted_by_one_frame_is_refused_and_frames_kept(tmp_path: Path, wiring: str) -> None:
     rig, patterns = blind_rig(tmp_path, wiring, lag=1)
-    with rig:
-        with pytest.raises(FrameOutOfOrder, match="frames do not follow the patterns: frame .* fits worst") as exc:
-            scan(rig, patterns, tmp_path / "s")
+    with rig, pytest.raises(FrameOutOfOrder, match="frames do not follow the patterns: frame .* fits worst") as exc:
+        scan(rig, patterns, tmp_path / "s")
     assert "blind-camera" in str(exc.value)
     assert len(list((tmp_path / "s" / "frames").glob("frame_*.png"))) == 12  # every frame kept
     assert (tmp_path / "s" / ERROR).exists() and not (tmp_path / "s" / "manifest.json").exists()

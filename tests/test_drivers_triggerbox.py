@@ -68,15 +68,14 @@ def test_wrong_device_or_protocol_is_refused() -> None:
 def test_error_reply_names_the_command() -> None:
     script = [HELLO, Exchange(b"PERIOD 50000\n", b"OK\n"), Exchange(b"WIDTH 100\n", b"OK\n"),
               Exchange(b"ARM 12\n", b"ERR 5 busy\n")]
-    with expected_protocol(box, FakeSerial(script)) as b:
-        with pytest.raises(DeviceError, match="'ARM 12' refused: error 5, busy"):
-            b.arm(12, 0.05, 1e-4)
+    with (expected_protocol(box, FakeSerial(script)) as b,
+          pytest.raises(DeviceError, match="'ARM 12' refused: error 5, busy")):
+        b.arm(12, 0.05, 1e-4)
 
 
 def test_out_of_range_train_is_refused_before_sending() -> None:
-    with expected_protocol(box, FakeSerial([HELLO])) as b:
-        with pytest.raises(UnsupportedSetting, match="period 50 us"):
-            b.arm(3, 50e-6, 1e-6)
+    with expected_protocol(box, FakeSerial([HELLO])) as b, pytest.raises(UnsupportedSetting, match="period 50 us"):
+        b.arm(3, 50e-6, 1e-6)
 
 
 def test_no_reply_times_out_and_reconnects() -> None:
@@ -144,9 +143,9 @@ def test_foot_switch_on_protocol_1_firmware_is_refused_without_asking() -> None:
 
 
 def test_garbled_press_count_is_an_error() -> None:
-    with expected_protocol(box, FakeSerial([HELLO, Exchange(b"PRESSES?\n", b"PRESSES x\n")])) as b:
-        with pytest.raises(DeviceError, match="unexpected reply to PRESSES\\?: 'PRESSES x'"):
-            b.presses()
+    with (expected_protocol(box, FakeSerial([HELLO, Exchange(b"PRESSES?\n", b"PRESSES x\n")])) as b,
+          pytest.raises(DeviceError, match="unexpected reply to PRESSES\\?: 'PRESSES x'")):
+        b.presses()
 
 
 def test_simulated_box_counts_its_foot_switch_like_the_driver() -> None:

@@ -22,7 +22,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from test_station_support import DEMO_PROGRAM, TRUTH_GAUGE, program_copy, small_rig, station_config
+from registration_support import box_step, moved_view, write_ply
+from session_support import small_rig_toml
+from station_support import DEMO_PROGRAM, TRUTH_GAUGE, program_copy, station_config
 
 from scanner.config import CONFIG_DIR, DEFAULT_RIG
 from slscan import cli
@@ -88,7 +90,6 @@ class Bench:
         """(cloud, STEP) of a generated part (seed 11) seen from a random start: a view whose
         pose its evidence proves (tests/test_registration_proof.py)."""
         from inspection.cad import load_cad
-        from registration_support import moved_view, write_ply
         from sim.random_parts import random_part
 
         step = random_part(11).write(self.tmp / "part.step")
@@ -98,7 +99,6 @@ class Bench:
     def block_view(self) -> tuple[str, str]:
         """(cloud, STEP) of a plain block from above: its half turn fits as well (ambiguous)."""
         from inspection.cad import load_cad
-        from registration_support import box_step, moved_view, write_ply
 
         step = box_step(self.tmp / "block.step")
         scan, _ = moved_view(load_cad(step), (0.35, 0.2), seed=3)
@@ -209,7 +209,7 @@ def exit_code(argv: list[str]) -> int:
 @pytest.mark.slow
 def test_exit_codes_of_every_command_and_case(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     expected = documented_codes()
-    bench = Bench(tmp_path, monkeypatch, small_rig(tmp_path), station_config(tmp_path))
+    bench = Bench(tmp_path, monkeypatch, small_rig_toml(tmp_path), station_config(tmp_path))
     got: dict[str, dict[str, int | str]] = {}
     wanted: dict[tuple[str, str], int] = {}  # cells the README gives in other words
     for command, cells in ROWS.items():

@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_support import run
 from plyfile import PlyData
+from session_support import small_rig_toml
 
 from scanner.config import CONFIG_DIR
 from scanner.exports import ExportCloud, write
 from scanner.session import Session
 from sim.scene import load_scene
-from tests.test_cli import run
-from tests.test_station_support import small_rig
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
 STEP = CONFIG_DIR / "parts" / "demo_part.step"
@@ -48,7 +48,7 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def session(tmp_path_factory: pytest.TempPathFactory, scene: Path) -> Path:
     tmp = tmp_path_factory.mktemp("export")
-    rig = small_rig(tmp, 640, 512)
+    rig = small_rig_toml(tmp, width=640, height=512)
     root = tmp / "demo"
     assert run("scan", "--rig", str(rig), "--scene", str(scene), "--out", str(root))[0] == 0
     code, _, err = run("inspect", str(root), "--cad", str(STEP))
@@ -185,7 +185,7 @@ def test_an_unproven_pose_gives_no_aligned_cloud(session: Path, tmp_path: Path) 
     report.update(pose_status="ambiguous", status_note="not measured: the pose is ambiguous between the best pose "
                                                        "and 1 other pose(s)")
     path.write_text(json.dumps(report))
-    code, out, err = run("export", str(copy), "--aligned", "--out", str(tmp_path / "a.ply"))
+    code, _out, err = run("export", str(copy), "--aligned", "--out", str(tmp_path / "a.ply"))
     assert code == 1 and not (tmp_path / "a.ply").exists()
     assert len(err.strip().splitlines()) == 1 and "pose is not proven (ambiguous" in err
 

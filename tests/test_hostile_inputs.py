@@ -14,12 +14,10 @@ from pathlib import Path
 import hostile_generators as gen
 import numpy as np
 import pytest
-import test_inputs_session
 from hostile import Campaign, campaign_seed
 
 from scanner.config import CONFIG_DIR
 
-clean = test_inputs_session.clean  # the shared small simulated session (320 x 256, 12 frames)
 RIG = CONFIG_DIR / "rigs" / "sim_bench.toml"
 
 QUICK = {"ply": 40, "other": 24, "step": 6, "truth": 20, "frames": 8, "config": 30, "projector": 10, "scene": 20,
@@ -27,8 +25,11 @@ QUICK = {"ply": 40, "other": 24, "step": 6, "truth": 20, "frames": 8, "config": 
 CAMPAIGN = {"ply": 1200, "other": 600, "step": 120, "truth": 400, "frames": 80, "config": 800, "projector": 200,
             "scene": 600, "text": 2000}
 
+GENERATORS = {"ply": gen.ply_cases, "other": gen.other_mesh_cases, "step": gen.step_cases, "truth": gen.truth_cases,
+              "config": gen.config_cases, "projector": gen.projector_fit_cases, "text": gen.text_cases}
 
-def run_campaign(counts: dict[str, int], clean: Path, tmp_path: Path) -> Campaign:
+
+def run_campaign(counts: dict[str, int], clean_session: Path, tmp_path: Path) -> Campaign:
     seed = campaign_seed()
     rng = np.random.default_rng(seed)
     campaign = Campaign(seed)
@@ -36,31 +37,28 @@ def run_campaign(counts: dict[str, int], clean: Path, tmp_path: Path) -> Campaig
         for name, n in counts.items():
             folder = tmp_path / name
             folder.mkdir()
-            cases = {"ply": lambda: gen.ply_cases(folder, rng, n),
-                     "other": lambda: gen.other_mesh_cases(folder, rng, n),
-                     "step": lambda: gen.step_cases(folder, rng, n),
-                     "truth": lambda: gen.truth_cases(folder, rng, n),
-                     "frames": lambda: gen.frame_cases(clean, folder, rng, n),
-                     "config": lambda: gen.config_cases(folder, rng, n),
-                     "projector": lambda: gen.projector_fit_cases(folder, rng, n),
-                     "scene": lambda: gen.scene_cases(folder, rng, n, RIG),
-                     "text": lambda: gen.text_cases(folder, rng, n)}[name]()
+            if name == "frames":
+                cases = gen.frame_cases(clean_session, folder, rng, n)
+            elif name == "scene":
+                cases = gen.scene_cases(folder, rng, n, RIG)
+            else:
+                cases = GENERATORS[name](folder, rng, n)
             campaign.run(cases)
     finally:
         campaign.close()
     return campaign
 
 
-def test_hostile_inputs_quick(clean: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    campaign = run_campaign(QUICK, clean, tmp_path)
+def test_hostile_inputs_quick(clean_session: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    campaign = run_campaign(QUICK, clean_session, tmp_path)
     with capsys.disabled():
         print("\n" + campaign.table())
     assert campaign.n_wrong() == 0, campaign.table()
 
 
 @pytest.mark.slow
-def test_hostile_inputs_campaign(clean: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    campaign = run_campaign(CAMPAIGN, clean, tmp_path)
+def test_hostile_inputs_campaign(clean_session: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    campaign = run_campaign(CAMPAIGN, clean_session, tmp_path)
     with capsys.disabled():
         print("\n" + campaign.table())
     assert campaign.n_wrong() == 0, campaign.table()

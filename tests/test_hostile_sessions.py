@@ -23,15 +23,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import test_inputs_session
 from hostile import campaign_seed
+from session_support import SCENE, small_rig_toml
 
 from scanner.session import MANIFEST, Session, sha256
 from scanner.session_lock import session_lock
 
-clean = test_inputs_session.clean  # one small simulated scan (320 x 256, 12 frames)
 REPO = Path(__file__).resolve().parents[1]
-SCENE = str(test_inputs_session.SCENE)
 
 
 def slscan(*argv: str, timeout_s: float = 120, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
@@ -49,15 +47,10 @@ def error_line(proc: subprocess.CompletedProcess, command: str) -> str:
 
 
 @pytest.fixture
-def session(clean: Path, tmp_path: Path) -> Path:
+def session(clean_session: Path, tmp_path: Path) -> Path:
     out = tmp_path / "s"
-    shutil.copytree(clean, out)
+    shutil.copytree(clean_session, out)
     return out
-
-
-def small_rig_file(tmp: Path) -> Path:
-    test_inputs_session.small_rig(tmp)
-    return tmp / "rig.toml"
 
 
 # ------------------------------------------------------------------ one writer at a time
@@ -149,9 +142,9 @@ def test_recover_refuses_a_frame_changed_since_it_was_logged(session: Path) -> N
 # ------------------------------------------------------------------ kills and signals
 
 def test_sigterm_ends_a_scan_as_ctrl_c(tmp_path: Path) -> None:
-    rig = small_rig_file(tmp_path)
+    rig = small_rig_toml(tmp_path)
     out = tmp_path / "scan"
-    proc = subprocess.Popen([sys.executable, "-m", "slscan", "scan", "--rig", str(rig), "--scene", SCENE, "--out",
+    proc = subprocess.Popen([sys.executable, "-m", "slscan", "scan", "--rig", str(rig), "--scene", str(SCENE), "--out",
                              str(out), "--fault", "delay_frame=6", "--fault", "delay_s=1.5"], cwd=REPO, text=True,
                             stderr=subprocess.PIPE, stdout=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(REPO)})
     deadline = time.monotonic() + 90
@@ -211,11 +204,11 @@ def check_after_kill(root: Path) -> str:
 
 
 def test_a_scan_killed_at_a_random_moment_leaves_a_truthful_session(tmp_path: Path, capsys) -> None:
-    rig = small_rig_file(tmp_path)
+    rig = small_rig_toml(tmp_path)
     rng = np.random.default_rng(seed := campaign_seed())
     after = float(rng.uniform(0.0, 3.0))
     root = tmp_path / "k"
-    _kill_at(["scan", "--rig", str(rig), "--scene", SCENE, "--out", str(root)], root, after)
+    _kill_at(["scan", "--rig", str(rig), "--scene", str(SCENE), "--out", str(root)], root, after)
     state = check_after_kill(root)
     with capsys.disabled():
         print(f"\nkilled {after:.2f} s after its session folder appeared (seed {seed}): {state}")
@@ -225,8 +218,8 @@ def test_a_scan_killed_at_a_random_moment_leaves_a_truthful_session(tmp_path: Pa
 def test_scans_killed_at_every_stage_leave_truthful_sessions(tmp_path: Path, capsys) -> None:
     """SIGKILL at 40 moments spread over a scan's life from its session folder's creation
     to its end (a first, unkilled scan measures that span here), with jitter."""
-    rig = small_rig_file(tmp_path)
-    argv = ["scan", "--rig", str(rig), "--scene", SCENE, "--out"]
+    rig = small_rig_toml(tmp_path)
+    argv = ["scan", "--rig", str(rig), "--scene", str(SCENE), "--out"]
     span = _kill_at(argv + [str(tmp_path / "whole")], tmp_path / "whole", 300.0)
     rng = np.random.default_rng(seed := campaign_seed())
     states: dict[str, int] = {}
@@ -264,9 +257,9 @@ def small_disk(tmp_path: Path):
 
 def test_scan_on_a_full_disk(tmp_path: Path, small_disk) -> None:
     disk = small_disk(1.0)
-    rig = small_rig_file(tmp_path)
+    rig = small_rig_toml(tmp_path)
     t0 = time.perf_counter()
-    proc = slscan("scan", "--rig", str(rig), "--scene", SCENE, "--out", str(disk / "s"), timeout_s=120)
+    proc = slscan("scan", "--rig", str(rig), "--scene", str(SCENE), "--out", str(disk / "s"), timeout_s=120)
     line = error_line(proc, "scan")
     assert proc.returncode == 2 and "No space left on device" in line and time.perf_counter() - t0 < 60
     assert "kept" in line  # says where the frames stored are

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import pytest
 from hostile import campaign_seed
+from session_support import small_rig_toml
 
 from scanner.config import CONFIG_DIR
 
@@ -36,11 +37,8 @@ PROGRAM = str(CONFIG_DIR / "parts" / "demo_part.toml")
 @pytest.fixture
 def bench(tmp_path: Path) -> Path:
     """A station config on a 320 x 256 simulated bench rig, measuring by the simulator's truth."""
-    rig = (CONFIG_DIR / "rigs" / "sim_bench.toml").read_text().replace("width = 1280", "width = 320").replace(
-        "height = 1024", "height = 256").replace('"../patterns/', f'"{CONFIG_DIR}/patterns/')
-    (tmp_path / "rig.toml").write_text(rig)
     station = (CONFIG_DIR / "station" / "sim_bench.toml").read_text().replace(
-        'rig = "../rigs/sim_bench.toml"', f'rig = "{tmp_path / "rig.toml"}"').replace(
+        'rig = "../rigs/sim_bench.toml"', f'rig = "{small_rig_toml(tmp_path)}"').replace(
         'measurement = "inspection"', 'measurement = "simulator-truth"')
     (tmp_path / "station.toml").write_text(station)
     return tmp_path / "station.toml"
@@ -84,8 +82,9 @@ def check_consistent(data: Path) -> list[dict]:
         part = Path(r["part_path"])
         if r["status"] == "incomplete":
             state = folder_state(part)
-            expect = {"complete": "complete", "all frames": "decode --recover", "none": "no session was started",
-                      "frames 0/12": "no frame stored"}.get(state) or f"{state[7:].split('/')[0]} of 12 frames, no manifest"
+            expect = ({"complete": "complete", "all frames": "decode --recover", "none": "no session was started",
+                       "frames 0/12": "no frame stored"}.get(state)
+                      or f"{state[7:].split('/')[0]} of 12 frames, no manifest")
             assert expect in r["message"], (state, r["message"])
             assert not (part / "part.json").exists()
         else:
@@ -190,7 +189,7 @@ def _open_store(path: str, results: Any) -> None:
     try:
         with open_results(f"sqlite:{path}"):
             results.put("ok")
-    except Exception as exc:  # noqa: BLE001 — reported to the test
+    except Exception as exc:  # reported to the test
         results.put(f"{type(exc).__name__}: {exc}")
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from foreign_capture import CONFIG, DEPTH, PROJ, RIG, UV, U, shoot, write_frames
 
 from scanner.convention_detection import detect
 from scanner.conventions import NATIVE, Conventions
@@ -22,22 +23,10 @@ from scanner.errors import CalibrationFileError, ConfigError, DecodeError
 from scanner.foreign_calibration import read_calibration
 from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator, triangulate
-from sim.foreign_patterns import capture, fringe_rows, opencv_graycode, slmaster_complementary, slmaster_heterodyne
+from sim.foreign_patterns import fringe_rows, opencv_graycode, slmaster_complementary, slmaster_heterodyne
 from slscan.cli import main
 from slscan.commands.import_ import natural_key
-from slscan.commands.importbench import plane_coordinates, synthetic_rig, write_slmaster_calibration
-
-CONFIG = Path(__file__).resolve().parent.parent / "config" / "patterns"
-RIG = synthetic_rig(camera=(320, 256))
-PROJ = RIG.projector.size
-DEPTH, UV = plane_coordinates(RIG)
-U = UV[..., 0]
-LIT = (UV[..., 1] > -0.5) & (UV[..., 1] < PROJ[1] - 0.5)  # the projector's rows reach these pixels
-
-
-def shoot(rows: np.ndarray, coordinate: np.ndarray = U, **kwargs) -> np.ndarray:
-    """What the camera sees of `rows` on the plane."""
-    return capture(rows, coordinate, lit=LIT, **kwargs)
+from slscan.commands.importbench import write_slmaster_calibration
 
 
 def unknown(family: str, steps: int, fringes: tuple[float, ...], **given) -> PatternSet:
@@ -149,7 +138,8 @@ def test_native_decode_of_slmaster_frames_refuses_instead_of_a_wrong_cloud() -> 
     """The issue's failure: decoded with our conventions, SLMaster's complementary set gave a
     cloud 10-100 mm wrong with exit 0 and its heterodyne set 0 % valid pixels; now both refuse."""
     comple = shoot(slmaster_complementary(PROJ[0]), U, seed=6)
-    with pytest.raises(DecodeError, match="gray_offset \\(vertical\\) failed: 3.0.* rad .*phase steps rotated by 6 of 12"):
+    with pytest.raises(DecodeError,
+                       match="gray_offset \\(vertical\\) failed: 3.0.* rad .*phase steps rotated by 6 of 12"):
         decode(comple, PatternSet("graycode", 12, (32.0,)), 8, PROJ)  # SLMaster's origin -π: six steps of 12
     het = shoot(slmaster_heterodyne(PROJ[0]), U, seed=6)
     with pytest.raises(DecodeError, match="consistency checks"):
@@ -290,18 +280,12 @@ def test_procam_calibration_read_with_its_scale() -> None:
         read_calibration(xml, (1280, 1024), (1024, 768))
 
 
-def _write_frames(folder: Path, stack: np.ndarray, names: list[str]) -> None:
-    folder.mkdir()
-    for img, name in zip(stack, names):
-        assert cv2.imwrite(str(folder / name), img)
-
-
 def test_import_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """SLMaster's complementary capture as BMP files named 1..18 (natural order), its
     caliInfo.yml: a session with a cloud on the analytic plane; decode regenerates it."""
     stack = shoot(slmaster_complementary(PROJ[0]), U, seed=9)
     names = [f"{k + 1}.bmp" for k in range(len(stack))]
-    _write_frames(tmp_path / "frames", stack, names)
+    write_frames(tmp_path / "frames", stack, names)
     cal = tmp_path / "caliInfo.yml"
     write_slmaster_calibration(cal, RIG)
     out = tmp_path / "session"
@@ -326,7 +310,7 @@ def test_import_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture
 
 def test_decode_of_a_session_with_wrong_conventions_fails_without_a_cloud(tmp_path: Path) -> None:
     stack = shoot(slmaster_complementary(PROJ[0]), U, seed=10)
-    _write_frames(tmp_path / "frames", stack, [f"f{k:02d}.png" for k in range(len(stack))])
+    write_frames(tmp_path / "frames", stack, [f"f{k:02d}.png" for k in range(len(stack))])
     out = tmp_path / "session"
     assert main(["import", str(tmp_path / "frames"), "--patterns", str(CONFIG / "slmaster_complementary_12x32.toml"),
                  "--projector-size", f"{PROJ[0]}x{PROJ[1]}", "--out", str(out)]) == 0
@@ -342,7 +326,7 @@ def test_decode_of_a_session_with_wrong_conventions_fails_without_a_cloud(tmp_pa
 def test_frames_16_bit_png_and_tiff_read_in_natural_order(tmp_path: Path) -> None:
     stack = shoot(fringe_rows(PROJ[0], [70.0, 64.0, 59.0], 4), U, bits=12, seed=11)
     names = [f"img{k}.{'tif' if k % 2 else 'png'}" for k in range(len(stack))]
-    _write_frames(tmp_path / "frames", stack, names)
+    write_frames(tmp_path / "frames", stack, names)
     assert sorted(names, key=natural_key)[:3] == ["img0.png", "img1.tif", "img2.png"]
     out = tmp_path / "session"
     assert main(["import", str(tmp_path / "frames"), "--patterns", str(CONFIG / "heterodyne_3x4.toml"),

@@ -10,8 +10,6 @@ pixels to a camera pixel; scanner/convention_detection.py.) Cameras at 400 x 320
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import Field
 
 from scanner import schema
 from scanner.config import CONFIG_DIR
@@ -73,7 +74,7 @@ def test_pattern_values_are_typed_and_finite(tmp_path: Path, old: str, new: str,
     assert refused(PatternSet.load, edited(tmp_path, PATTERNS, old, new, "p.toml")).key == key
 
 
-# ------------------------------------------------------------------ item 7: absurd geometry, refused at load with the reason
+# ------------------------------------------------- item 7: absurd geometry, refused at load with the reason
 
 @pytest.mark.parametrize("old, new, key, words", [
     ("hfov_deg = 22.6 ", "K = [[0, 0, 640], [0, 0, 512], [0, 0, 1]] ", "camera", "focal lengths"),
@@ -140,14 +141,15 @@ def test_every_bundled_rig_and_pattern_loads() -> None:
 def test_schema_error_names_file_key_and_value() -> None:
     class Table(schema.Schema):
         radius_mm: schema.PositiveFloat
-        centre_mm: schema.Vector3 = [0.0, 0.0, 0.0]
+        centre_mm: schema.Vector3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
 
     class File(schema.Schema):
         objects: list[Table]
 
     cases = [({"objects": [{"radius_mm": 1}, {"radius_mm": -2}]}, "objects[1].radius_mm", "greater than 0, got -2"),
              ({"objects": [{"radius_mm": 1, "centre_mm": [0, 0]}]}, "objects[0].centre_mm", "list of 3 values"),
-             ({"objects": [{"radius_mm": 1, "centr_mm": [0, 0, 1]}]}, "objects[0].centr_mm", "did you mean 'centre_mm'"),
+             ({"objects": [{"radius_mm": 1, "centr_mm": [0, 0, 1]}]}, "objects[0].centr_mm",
+              "did you mean 'centre_mm'"),
              ({"objects": [{"radius_mm": "1"}]}, "objects[0].radius_mm", "expected a number, got '1'"),
              ({"objects": [{"radius_mm": float("inf")}]}, "objects[0].radius_mm", "finite")]
     for data, key, words in cases:

@@ -12,12 +12,12 @@ import json
 import math
 import shutil
 import traceback
+from collections.abc import Callable
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import pytest
-import test_inputs_session
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -36,7 +36,6 @@ from slscan import cli
 from slscan.station.program import load_program
 from slscan.station.station_config import StationConfig
 
-clean = test_inputs_session.clean  # the shared small simulated session (a module-scoped fixture)
 COUNTS = {"inputs": 0, "tracebacks": 0}
 FOUND: list[str] = []
 FUZZ = settings(max_examples=40, deadline=None, derandomize=True, database=None,
@@ -50,7 +49,7 @@ def attempt(what: str, fn: Callable[[], Any]) -> None:
         fn()
     except ScannerError as exc:
         assert "\n" not in str(exc).strip(), f"{what}: a multi-line error: {exc}"
-    except Exception as exc:  # noqa: BLE001 — counted and reported
+    except Exception as exc:  # counted and reported
         COUNTS["tracebacks"] += 1
         FOUND.append(f"{what}: {type(exc).__name__}: {exc}"[:200])
         raise AssertionError(f"{what}: traceback\n{traceback.format_exc()}") from None
@@ -136,7 +135,8 @@ CONFIGS: dict[str, tuple[Path, Callable[[Path], Any]]] = {
     "scene": (CONFIG_DIR / "scenes" / "sphere_plane.toml", Scene.load),
     "board": (CONFIG_DIR / "boards" / "sim_charuco_7x5.toml", Board.load),
     "tolerances": (Path(__file__).parent / "data" / "tolerance_file.toml",
-                   lambda p: load_tolerances(p, {"#657": "plane", "#158": "plane", "#270": "plane", "#17": "cylinder"})),
+                   lambda p: load_tolerances(p, {"#657": "plane", "#158": "plane", "#270": "plane",
+                                                 "#17": "cylinder"})),
     "station": (CONFIG_DIR / "station" / "sim_bench.toml", StationConfig.load),
     "part program": (CONFIG_DIR / "parts" / "demo_part.toml", load_program),
 }
@@ -194,10 +194,10 @@ def test_fuzz_labelme_points(points: Any) -> None:
 
 # ------------------------------------------------------------------ sessions: manifests and frames
 
-def test_fuzz_manifests(clean: Path, tmp_path: Path) -> None:
-    original = json.loads((clean / MANIFEST).read_text())
+def test_fuzz_manifests(clean_session: Path, tmp_path: Path) -> None:
+    original = json.loads((clean_session / MANIFEST).read_text())
     root = tmp_path / "s"
-    shutil.copytree(clean, root)
+    shutil.copytree(clean_session, root)
 
     @settings(max_examples=40, deadline=None, derandomize=True, database=None)
     @given(mutated(original))
@@ -208,7 +208,7 @@ def test_fuzz_manifests(clean: Path, tmp_path: Path) -> None:
     check()
 
 
-def test_fuzz_frame_bytes(clean: Path, tmp_path: Path) -> None:
+def test_fuzz_frame_bytes(clean_session: Path, tmp_path: Path) -> None:
     """Flipped bytes, truncated or emptied frames: always refused, naming the frame."""
     root = tmp_path / "s"
 
@@ -217,7 +217,7 @@ def test_fuzz_frame_bytes(clean: Path, tmp_path: Path) -> None:
     def check(k: int, how: str, where: int) -> None:
         if root.exists():
             shutil.rmtree(root)
-        shutil.copytree(clean, root)
+        shutil.copytree(clean_session, root)
         f = root / "frames" / f"frame_{k:03d}.png"
         data = bytearray(f.read_bytes())
         if how == "flip":
@@ -238,15 +238,15 @@ def test_fuzz_frame_bytes(clean: Path, tmp_path: Path) -> None:
 GARBAGE = st.one_of(st.text(max_size=20), st.sampled_from(["-1", "nan", "inf", "0", "1e309", "", "--", "-x"]))
 
 
-def test_fuzz_cli(clean: Path, tmp_path: Path) -> None:
+def test_fuzz_cli(clean_session: Path, tmp_path: Path) -> None:
     """Subcommands that read files, given garbage files and garbage arguments: exit 0, 1 or
     2 with a one-line error, or argparse's usage error; never a traceback."""
     junk = tmp_path / "junk.ply"
     junk.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n")
     (tmp_path / "junk.json").write_text("[1, 2")
     (tmp_path / "empty").mkdir()
-    files = [str(clean), str(junk), str(tmp_path / "junk.json"), str(tmp_path / "empty"), str(tmp_path / "nope"),
-             "/etc/passwd", str(tmp_path)]
+    files = [str(clean_session), str(junk), str(tmp_path / "junk.json"), str(tmp_path / "empty"),
+             str(tmp_path / "nope"), "/etc/passwd", str(tmp_path)]
     commands = {
         "decode": lambda f, g: ["decode", f] + (["--mode", g] if g else []),
         "segment": lambda f, g: ["segment", f, "--radius", g, "--no-log", "--out", str(tmp_path / "seg")],
@@ -256,7 +256,7 @@ def test_fuzz_cli(clean: Path, tmp_path: Path) -> None:
         "calibrate": lambda f, g: ["calibrate", "--from", f, "--out", str(tmp_path / "cal")] + (
             ["--poses", g] if g else []),
         "scan": lambda f, g: ["scan", "--rig", f, "--out", str(tmp_path / "o"), "--patterns", g or f],
-        "inspect": lambda f, g: ["inspect", f if f != str(clean) else str(junk), "--cad",
+        "inspect": lambda f, g: ["inspect", f if f != str(clean_session) else str(junk), "--cad",
                                  str(CONFIG_DIR / "parts" / "demo_part.step"), "--out", str(tmp_path / "insp")]
         + (["--tolerances", g] if g else []),
     }

@@ -6,71 +6,30 @@ keeps every captured frame."""
 from __future__ import annotations
 
 import errno
-import io
 import json
 import shutil
 import threading
-from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from cli_support import run_cli
+from session_support import PATTERNS, SCENE, edit_manifest, frame, one_error_line, small_rig_toml
 
 from scanner import session as session_module
-from scanner.config import CONFIG_DIR
 from scanner.errors import ScannerError, SessionError
-from scanner.patterns import PatternSet
 from scanner.pipeline import reprocess, scan
-from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
+from scanner.rig import RigConfig, open_rig
 from scanner.session import MANIFEST, Session, sha256, write_json
 from scanner.session_recording import RecordingError, SessionRecording
-from slscan import cli
-
-SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
-PATTERNS = PatternSet.load(CONFIG_DIR / "patterns" / "heterodyne_3x4.toml")
-
-
-def small_rig(tmp: Path) -> RigConfig:
-    text = DEFAULT_RIG.read_text().replace("width = 1280", "width = 320").replace("height = 1024", "height = 256")
-    path = tmp / "rig.toml"
-    path.write_text(text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/'))
-    return RigConfig.load(path)
-
-
-@pytest.fixture(scope="module")
-def clean(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One small simulated scan (320 x 256, 12 frames), copied by each test that edits it."""
-    tmp = tmp_path_factory.mktemp("clean")
-    with open_rig(small_rig(tmp), scene=SCENE) as rig:
-        scan(rig, PATTERNS, tmp / "s")
-    return tmp / "s"
 
 
 @pytest.fixture
-def copy(clean: Path, tmp_path: Path) -> Path:
+def copy(clean_session: Path, tmp_path: Path) -> Path:
     out = tmp_path / "s"
-    shutil.copytree(clean, out)
+    shutil.copytree(clean_session, out)
     return out
-
-
-def run_cli(*argv: str) -> tuple[int, str]:
-    """The command line in-process: exit code and stderr; a traceback fails the test."""
-    err, out = io.StringIO(), io.StringIO()
-    with redirect_stderr(err), redirect_stdout(out):
-        code = cli.main(list(argv))
-    return code, err.getvalue()
-
-
-def edit_manifest(root: Path, edit) -> None:
-    """`edit` changes the manifest in place (or returns what to write instead: a JSON list)."""
-    m = json.loads((root / MANIFEST).read_text())
-    out = edit(m)
-    (root / MANIFEST).write_text(json.dumps(out if isinstance(out, list) and out == [m] else m))
-
-
-def frame(root: Path, k: int) -> Path:
-    return root / "frames" / f"frame_{k:03d}.png"
 
 
 def drop_checksums(root: Path) -> None:
@@ -78,20 +37,14 @@ def drop_checksums(root: Path) -> None:
     edit_manifest(root, lambda m: [f.pop("sha256") for f in m["frames"]] and m)
 
 
-def one_error_line(stderr: str) -> str:
-    lines = [ln for ln in stderr.splitlines() if ln.strip() and "slscan decode: error" in ln]
-    assert len(lines) == 1 and "Traceback" not in stderr, stderr
-    return lines[0]
-
-
 # ------------------------------------------------------------------ item 2: frame integrity
 
-def test_frames_carry_their_sha256(clean: Path) -> None:
-    log = [json.loads(line) for line in (clean / "frames.jsonl").read_text().splitlines()]
-    manifest = json.loads((clean / MANIFEST).read_text())
+def test_frames_carry_their_sha256(clean_session: Path) -> None:
+    log = [json.loads(line) for line in (clean_session / "frames.jsonl").read_text().splitlines()]
+    manifest = json.loads((clean_session / MANIFEST).read_text())
     for k, (entry, logged) in enumerate(zip(manifest["frames"], log)):
-        assert entry["sha256"] == logged["sha256"] == sha256(frame(clean, k).read_bytes())
-    assert Session.open(clean).integrity == "sha256"
+        assert entry["sha256"] == logged["sha256"] == sha256(frame(clean_session, k).read_bytes())
+    assert Session.open(clean_session).integrity == "sha256"
 
 
 def swap(root: Path, i: int, j: int) -> None:
@@ -256,7 +209,7 @@ def test_three_channel_frame_message_says_channels(copy: Path) -> None:
         Session.open(copy).load_stack()
 
 
-# ------------------------------------------------------------------ items 1 and 8: full disk, read-only folder, dead writer
+# ------------------------------------------------- items 1 and 8: full disk, read-only folder, dead writer
 
 def scan_within_bound(tmp_path: Path, out: Path, bound_s: float = 300.0) -> list[BaseException]:
     """Scan the small rig into `out` in a thread; fail if it has not ended within `bound_s`
@@ -266,9 +219,9 @@ def scan_within_bound(tmp_path: Path, out: Path, bound_s: float = 300.0) -> list
 
     def run() -> None:
         try:
-            with open_rig(small_rig(tmp_path), scene=SCENE) as rig:
+            with open_rig(RigConfig.load(small_rig_toml(tmp_path)), scene=SCENE) as rig:
                 scan(rig, PATTERNS, out)
-        except BaseException as exc:  # noqa: BLE001 — returned to the test
+        except BaseException as exc:  # returned to the test
             errors.append(exc)
         done.set()
 
@@ -389,7 +342,8 @@ def test_real_full_disk_gives_one_error_and_keeps_every_frame(small_disk: Path, 
     assert not list((small_disk / "s" / "frames").glob(".*part"))
 
 
-def test_full_disk_while_writing_the_outputs_keeps_the_frames_and_decode_finishes(clean: Path, tmp_path: Path) -> None:
+def test_full_disk_while_writing_the_outputs_keeps_the_frames_and_decode_finishes(clean_session: Path,
+                                                                                  tmp_path: Path) -> None:
     """A real disk (tmpfs) that holds the frames and manifest but not the outputs: decoding
     stops with one SessionError naming the session and `slscan decode`, leaves no partial file
     and every frame intact; once there is space, decoding the same session writes its cloud."""
@@ -397,7 +351,7 @@ def test_full_disk_while_writing_the_outputs_keeps_the_frames_and_decode_finishe
 
     mount = tmp_path / "disk"
     mount.mkdir()
-    kept = [p for p in clean.rglob("*") if p.is_file() and p.parent.name != "outputs" and p.suffix != ".rrd"]
+    kept = [p for p in clean_session.rglob("*") if p.is_file() and p.parent.name != "outputs" and p.suffix != ".rrd"]
     size_kib = sum(p.stat().st_size for p in kept) // 1024 + 16 * len(kept) + 256  # the outputs need ~3.8 MB
     if shutil.os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kib}k", "tmpfs",
                                                    str(mount)], capture_output=True).returncode != 0:
@@ -405,8 +359,8 @@ def test_full_disk_while_writing_the_outputs_keeps_the_frames_and_decode_finishe
     try:
         session_dir = mount / "s"
         for p in kept:
-            (session_dir / p.relative_to(clean)).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(p, session_dir / p.relative_to(clean))
+            (session_dir / p.relative_to(clean_session)).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(p, session_dir / p.relative_to(clean_session))
         with pytest.raises(SessionError) as raised:
             reprocess(Session.open(session_dir), level="none")
         message = str(raised.value)

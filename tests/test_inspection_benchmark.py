@@ -112,7 +112,8 @@ def bench_methods() -> dict[str, tuple[str, tuple[str, ...] | None]]:
     keys = [k.strip() for k in os.environ.get("BENCH_METHODS", ",".join(METHODS)).split(",") if k.strip()]
     unknown = [k for k in keys if k not in METHODS]
     if unknown or not keys:
-        raise ValueError(f"BENCH_METHODS={os.environ.get('BENCH_METHODS')!r}: unknown {unknown}; use any of {list(METHODS)}")
+        raise ValueError(f"BENCH_METHODS={os.environ.get('BENCH_METHODS')!r}: unknown {unknown}; "
+                         f"use any of {list(METHODS)}")
     return dict(METHODS[k] for k in keys)
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_inspection_registration import virtual_view
+from registration_support import virtual_view
 
 from inspection.cad import load_cad
 from scanner.config import CONFIG_DIR

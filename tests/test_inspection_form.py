@@ -146,7 +146,7 @@ def test_sq_of_texture_with_noise_removed(model) -> None:
     noise removed, against the texture's analytic heights on a 0.125 mm grid over the face
     inside its margin, less their Gaussian mean (8 mm) by the test's own FFT filter."""
     tex = Roughness(model.by_label("#657").index, (-27.5, 0.0, 22.0), (0, 0, 1), 0.07, (2.0, 4.0))
-    face, p, dev, uv, nominal = _face_points(model, "#657", [tex], 0.014)
+    face, p, dev, uv, _nominal = _face_points(model, "#657", [tex], 0.014)
     r = evaluate_face(face, p, dev, uv)
     g = 0.125
     (x0, x1), (y0, y1) = HIGH_TOP_INNER

@@ -6,9 +6,10 @@ Each case imposes a bow on the low top (#158), 3-lobe lobing plus a taper on the
 (#17) and a random texture on the high top (#657), scans the part once and inspects it.
 The truth of each figure is computed in the test from the simulator's noise-free surface
 points over the region measured (the simulator's face ids where the scan has a point, the
-1 mm edge margin left out), with the true pose (`test_inspection_sim._true_form`: minimum
+1 mm edge margin left out), with the true pose (`defective_part.true_form`: minimum
 zones by LP on every point, Sq of the texture's analytic heights through the test's own
-FFT Gaussian filter): the imposed defect as far as the view and the edge margin show it. Targets: flatness and cylindricity (minimum zone on the form surface)
+FFT Gaussian filter): the imposed defect as far as the view and the edge margin show it.
+Targets: flatness and cylindricity (minimum zone on the form surface)
 within 5 um + 2 % of the truth; Sq within 5 % of the truth for textures of at least 5x
 the depth noise (~14 um RMS). Printed per case: imposed, truth, measured, the raw zone,
 the noise floor and the filter cut-off.
@@ -19,7 +20,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from test_inspection_sim import _row, _true_form, defective_run
+from defective_part import defective_run, form_row, true_form
 
 pytestmark = pytest.mark.acceptance
 
@@ -36,9 +37,9 @@ def _reading(e) -> float:
 def test_form_figures_against_truth(case: str, tmp_path: Path) -> None:
     bow, lobes, taper, texture, seed, turn = CASES[case]
     run = defective_run(tmp_path / "session", bow, lobes, taper, texture, seed, turn)
-    flat, flat_true = _row(run, "#158"), _true_form(run, "#158")
-    cyl, cyl_true = _row(run, "#17"), _true_form(run, "#17")
-    rough, rough_true = _row(run, "#657"), _true_form(run, "#657")
+    flat, flat_true = form_row(run, "#158"), true_form(run, "#158")
+    cyl, cyl_true = form_row(run, "#17"), true_form(run, "#17")
+    rough, rough_true = form_row(run, "#657"), true_form(run, "#657")
     print(f"\n{case}: cut-off {flat.form_cutoff_mm} mm (form), {rough.roughness_cutoff_mm} mm (roughness)")
     print(f"  flatness MZ {flat.flatness_mz.text()}, truth {flat_true.flatness_mz_mm * 1e3:.2f} um "
           f"(imposed bow {bow * 1e3:.0f} um), noise bias removed {flat.flatness_mz.bias * 1e3:.2f} um, detection "
@@ -51,5 +52,6 @@ def test_form_figures_against_truth(case: str, tmp_path: Path) -> None:
     # a zone below its detection limit is reported as "< limit" (no value; issue 27): the limit then
     # stands for the reading and the truth must lie within the same bound of it
     assert abs(_reading(flat.flatness_mz) - flat_true.flatness_mz_mm) <= 0.005 + 0.02 * flat_true.flatness_mz_mm
-    assert abs(_reading(cyl.cylindricity_mz) - cyl_true.cylindricity_mz_mm) <= 0.005 + 0.02 * cyl_true.cylindricity_mz_mm
+    assert (abs(_reading(cyl.cylindricity_mz) - cyl_true.cylindricity_mz_mm)
+            <= 0.005 + 0.02 * cyl_true.cylindricity_mz_mm)
     assert abs(rough.sq.value - rough_true.sq_mm) <= 0.05 * rough_true.sq_mm

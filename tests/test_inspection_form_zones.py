@@ -83,7 +83,8 @@ def _support(xy: np.ndarray, h: np.ndarray) -> set[int]:
     _, _, vt = np.linalg.svd(p - c, full_matrices=False)
     x, y, z = ((p - c) @ vt.T).T
     one = np.ones_like(x)
-    res = linprog([0, 0, 0, 1], A_ub=np.concatenate([np.stack([-x, -y, -one, -one], 1), np.stack([x, y, one, 0 * one], 1)]),
+    a_ub = np.concatenate([np.stack([-x, -y, -one, -one], 1), np.stack([x, y, one, 0 * one], 1)])
+    res = linprog([0, 0, 0, 1], A_ub=a_ub,
                   b_ub=np.concatenate([-z, z]), bounds=[(None, None)] * 3 + [(0, None)], method="highs")
     a, b, lo, w = res.x
     r = z - a * x - b * y
@@ -122,7 +123,8 @@ def test_form_filter_hands_back_the_gaussian_mean() -> None:
         np.testing.assert_array_equal(mean[k], alone[1])
         truth = gaussian_mean(np.where(mask, fields[k], 0.0), mask, 8.0, g)
         assert np.abs(mean[k] - truth)[mask].max() < 1e-9  # mm; the two kernels end at 2.6 and 3 alpha lc
-        assert np.abs(gaussian_filter(fields[k], mask, 8.0, g) - truth)[mask].max() < 1e-9  # mm; the two kernels end at 2.6 and 3 alpha lc
+        # mm; the two kernels end at 2.6 and 3 alpha lc
+        assert np.abs(gaussian_filter(fields[k], mask, 8.0, g) - truth)[mask].max() < 1e-9
 
 
 def test_noise_draws_filtered_in_single_precision_stay_within_a_nanometre() -> None:
@@ -137,7 +139,7 @@ def test_noise_draws_filtered_in_single_precision_stay_within_a_nanometre() -> N
     rng = np.random.default_rng(11)
     fields = 2e-4 * (X - 20) ** 2 + rng.standard_normal((4, *X.shape)) * 0.010
     f = GaussianFilter(mask, 8.0, g, order=2)
-    reg, mean = f.with_mean(fields)
+    reg, _mean = f.with_mean(fields)
     reg32, mean32 = f.with_mean(fields, single=True)
     assert reg32.dtype == np.float32 and mean32.dtype == np.float32
     ok = np.isfinite(reg)

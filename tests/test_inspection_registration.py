@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from registration_support import STEP, virtual_view
 from scipy.spatial.transform import Rotation
 
 from inspection.cad import load_cad
@@ -27,39 +28,9 @@ from inspection.registration import (
     pose_difference,
     register,
 )
-from inspection.sampling import sample_model
 from scanner.config import CONFIG_DIR
 from sim.parts import lying_pose
 from slscan import cli
-
-STEP = CONFIG_DIR / "parts" / "demo_part.step"
-
-
-def virtual_view(model, pose: np.ndarray, noise_mm: float = 0.014, spacing_mm: float = 0.25, seed: int = 0,
-                 offsets: dict[str, float] | None = None) -> ScanCloud:
-    """The model's surface seen from a camera at the origin (model placed by `pose`, part ->
-    camera): visible samples, with noise along the viewing rays; normals estimated.
-    `offsets`: faces (by label) moved as a whole along their outward normal (mm)."""
-    import open3d as o3d
-
-    s = sample_model(model, spacing_mm, seed=seed)
-    points = s.points.copy()
-    for label, mm in (offsets or {}).items():
-        sel = s.face == model.by_label(label).index
-        points[sel] += mm * s.normals[sel]
-    p = points @ pose[:3, :3].T + pose[:3, 3]
-    n = s.normals @ pose[:3, :3].T
-    tess = model.tessellation
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor((tess.vertices @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)),
-                        o3d.core.Tensor(tess.triangles.astype(np.uint32)))
-    dist = np.linalg.norm(p, axis=1)
-    ray = p / dist[:, None]
-    hit = scene.cast_rays(o3d.core.Tensor(np.concatenate([np.zeros_like(p), ray], 1).astype(np.float32)))
-    seen = (hit["t_hit"].numpy() > dist - 0.01) & (np.einsum("ij,ij->i", n, ray) < -0.1)
-    rng = np.random.default_rng(seed)
-    q = p[seen] + ray[seen] * rng.normal(0, noise_mm, seen.sum())[:, None]
-    return make_scan(q, None, "virtual view", np.zeros(3))
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +40,7 @@ def demo():
 
 
 def test_shot_is_invariant_to_rigid_motion(demo) -> None:
-    model, target = demo
+    _model, target = demo
     pts, nrm = target.coarse.points, target.coarse.normals
     keys = pts[::50]
     R = Rotation.random(random_state=3).as_matrix()

@@ -21,15 +21,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from form_truth import (
-    cylinder_min_zone,
-    inside_margin,
-    plane_frame,
-    plane_min_zone,
-    raster,
-    roughness_sq,
-)
-from scipy import ndimage
+from defective_part import defective_run, form_row, true_form
+from registration_support import STEP
 from scipy.spatial import cKDTree
 
 from inspection.cad import load_cad
@@ -37,45 +30,12 @@ from inspection.inspect_scan import inspect
 from inspection.measured_cloud import from_organised
 from inspection.registration import pose_difference, transform_points
 from inspection.sampling import sample_model
-from scanner.config import CONFIG_DIR
 from scanner.patterns import PatternSet
-from scanner.pipeline import scan
 from scanner.recording_reader import read_summary
 from scanner.rig import RigConfig, open_rig
-from sim.parts import Lobing, PlaneBow, Roughness, Taper, deform, lying_pose, part_scene
-from sim.parts_demo import BOSS_CENTER
 from slscan import cli
 
-STEP = CONFIG_DIR / "parts" / "demo_part.step"
 BOW, LOBES, TAPER, TEXTURE = 0.06, 0.02, 0.0015, 0.07  # mm; the texture is 5x the ~14 um depth noise
-EDGE_MARGIN_MM = 1.0  # inspection's default edge margin: the truth leaves out the same band
-CUTOFF_MM = 8.0  # the form and roughness filters' nesting index (inspection's default)
-
-
-def defective_run(out: Path, bow: float, lobes: float, taper: float, texture: float, seed: int = 5,
-                  turn: float = 0.3) -> SimpleNamespace:
-    """The demo part with a bow on the low top, lobing and a taper on the boss and a texture
-    on the high top (mm), scanned into session `out` and inspected; with the truth."""
-    fine = load_cad(STEP, deflection_mm=2.5e-4)
-    low, top, boss = fine.by_label("#158"), fine.by_label("#657"), fine.by_label("#17")
-    defects = [PlaneBow(low.index, (17.5, 0.0, 10.0), (0.0, 0.0, 1.0), bow, float(np.hypot(27.5, 30.0)), max_edge_mm=4.0),
-               Lobing(boss.index, (20.0, 0.0, 0.0), (0.0, 0.0, 1.0), 1, lobes=3, amplitude_mm=lobes),
-               Taper(boss.index, (20.0, 0.0, 22.0), (0.0, 0.0, 1.0), 1, per_mm=taper),
-               Roughness(top.index, (-27.5, 0.0, 22.0), (0.0, 0.0, 1.0), texture, (2.0, 4.0), max_edge_mm=0.15)]
-    tess = fine.tessellation
-    v, t, f = deform(tess.vertices, tess.triangles, tess.face, defects)
-    pose = lying_pose(v, turn, 400.0, (0.6, 0.0))  # tilted 34 degrees: the boss's side is in view
-    scene, face_of_id = part_scene(v, t, f, pose)
-    config = RigConfig.load()
-    patterns = PatternSet.load(config.patterns_path)
-    with open_rig(config, scene=scene, seed=seed) as rig:
-        result = scan(rig, patterns, out)
-        gt = rig.extras["ground_truth"]
-    model = load_cad(STEP)
-    cloud = from_organised(result.cloud, str(out))
-    report = inspect(cloud, model)
-    return SimpleNamespace(model=model, pose=pose, gt=gt, face_of_id=face_of_id, cloud=cloud, report=report,
-                           session=out, defects=defects, valid=result.cloud.valid)
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +49,8 @@ def test_registration_recovers_true_pose(run: SimpleNamespace) -> None:
     to 0.02 mm / 0.02 deg in test_inspection_registration.py)."""
     reg = run.report.registration
     angle, shift = pose_difference(reg.transform, np.linalg.inv(run.pose), run.cloud.points.mean(axis=0))
-    print(f"pose error {angle:.4f} deg, {shift * 1e3:.1f} um; fitness {reg.fitness:.3f}, RMSE {reg.rmse_mm * 1e3:.1f} um")
+    print(f"pose error {angle:.4f} deg, {shift * 1e3:.1f} um; fitness {reg.fitness:.3f}, "
+          f"RMSE {reg.rmse_mm * 1e3:.1f} um")
     assert angle < 0.05 and shift < 0.05
     assert reg.fitness > 0.95 and not reg.ambiguous
 
@@ -117,63 +78,19 @@ def test_segmentation_matches_true_faces(run: SimpleNamespace) -> None:
     assert inner.sum() > 100_000 and agree >= 0.99
 
 
-def part_points(run: SimpleNamespace) -> np.ndarray:
-    """The simulator's noise-free surface point of every pixel (H, W, 3) in the part frame."""
-    return transform_points(np.linalg.inv(run.pose), run.gt.points.reshape(-1, 3)).reshape(run.gt.points.shape)
-
-
-def measured_region(on: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Pixels (H, W) a face's truth is taken over: `on` (the face's pixels where the scan
-    has a point), single-pixel gaps closed, at least the edge margin from the region's
-    border (`points` (H, W, 3): the true surface points)."""
-    closed = ndimage.binary_closing(on, np.ones((3, 3)), border_value=0) | on
-    return inside_margin(closed, points, EDGE_MARGIN_MM) & on
-
-
-def face_region(run: SimpleNamespace, label: str) -> np.ndarray:
-    """The region measured of a face whose pixels the simulator's face ids give."""
-    on = (run.face_of_id[run.gt.object_id] == run.model.by_label(label).index) & run.valid
-    return measured_region(on, part_points(run))
-
-
-def _true_form(run: SimpleNamespace, label: str) -> SimpleNamespace:
-    """The face's figures over the region measured, from the simulator's noise-free surface
-    points there: minimum zones by LP on every point (the boss's about its design axis),
-    Sq of the imposed defects' analytic heights on a 0.15 mm grid through the Gaussian
-    L-filter. (The form filter keeps these defects: bow and taper exactly, 3-lobe lobing on
-    the boss, 25 mm long, to 0.2 %.)"""
-    face = run.model.by_label(label)
-    q = part_points(run)[face_region(run, label)]
-    truth = SimpleNamespace(points=len(q), flatness_mz_mm=None, cylindricity_mz_mm=None, sq_mm=None)
-    if face.type == "plane":
-        truth.flatness_mz_mm = plane_min_zone(q)
-        centre, axes = plane_frame(q)
-        spacing = 0.15
-        mask, cells, _ = raster((q - centre) @ axes[:2].T, spacing)
-        at = (centre + cells[..., :1] * axes[0] + cells[..., 1:] * axes[1]).reshape(-1, 3)
-        heights = sum((d.height(at) for d in run.defects if d.face == face.index), np.zeros(len(at)))
-        truth.sq_mm = roughness_sq(heights.reshape(mask.shape), mask, CUTOFF_MM, spacing)
-    elif face.type == "cylinder":
-        truth.cylindricity_mz_mm = cylinder_min_zone(q, np.array([*BOSS_CENTER, 0.0]), np.array([0.0, 0.0, 1.0]))
-    return truth
-
-
-def _row(run: SimpleNamespace, label: str) -> object:
-    return next(r.form for r in run.report.faces if r.label == label)
-
-
 def test_flatness_of_bowed_face(run: SimpleNamespace) -> None:
-    true, got = _true_form(run, "#158"), _row(run, "#158")
+    true, got = true_form(run, "#158"), form_row(run, "#158")
     print(f"flatness MZ {got.flatness_mz.text()} (truth {true.flatness_mz_mm * 1e3:.2f} um, noise bias removed "
           f"{got.flatness_mz.bias * 1e3:.2f} um, detection limit {got.flatness_mz.limit * 1e3:.2f} um, cut-off "
           f"{got.form_cutoff_mm} mm)")
     assert 0.8 * BOW < true.flatness_mz_mm <= BOW + 1e-9  # the bow, seen over the visible region
     assert abs(got.flatness_mz.value - true.flatness_mz_mm) <= 0.005 + 0.02 * true.flatness_mz_mm
-    assert got.raw_deviation_max.value - got.raw_deviation_min.value > true.flatness_mz_mm + 0.05  # raw: noise adds > 50 um
+    raw = got.raw_deviation_max.value - got.raw_deviation_min.value
+    assert raw > true.flatness_mz_mm + 0.05  # raw: noise adds > 50 um
 
 
 def test_cylindricity_of_lobed_tapered_boss(run: SimpleNamespace) -> None:
-    true, got = _true_form(run, "#17"), _row(run, "#17")
+    true, got = true_form(run, "#17"), form_row(run, "#17")
     print(f"cylindricity MZ {got.cylindricity_mz.text()} (truth {true.cylindricity_mz_mm * 1e3:.2f} um), "
           f"{got.points} points, detection limit {got.cylindricity_mz.limit * 1e3:.2f} um")
     assert true.cylindricity_mz_mm > 0.02
@@ -181,7 +98,7 @@ def test_cylindricity_of_lobed_tapered_boss(run: SimpleNamespace) -> None:
 
 
 def test_sq_of_textured_face(run: SimpleNamespace) -> None:
-    true, got = _true_form(run, "#657"), _row(run, "#657")
+    true, got = true_form(run, "#657"), form_row(run, "#657")
     print(f"Sq {got.sq.text()} (truth {true.sq_mm * 1e3:.2f} um; before noise removal {got.sq_raw_mm * 1e3:.2f}, "
           f"noise {got.noise_mm * 1e3:.2f} um per point)")
     assert true.sq_mm > 0.06
@@ -189,7 +106,7 @@ def test_sq_of_textured_face(run: SimpleNamespace) -> None:
 
 
 def test_nominal_faces_read_below_their_detection_limit(run: SimpleNamespace) -> None:
-    got = _row(run, "#270").flatness_mz  # the boss top: no defect imposed
+    got = form_row(run, "#270").flatness_mz  # the boss top: no defect imposed
     assert got.value is None or got.value <= got.U  # not told from zero, or zero within U
 
 

@@ -69,7 +69,8 @@ def test_verdict_first_holds_the_asked_faces_and_agrees_with_the_full_report(sce
     for r in first.faces:
         assert _figures(r) == _figures(row[r.label])
     # one face at a time, in reverse order: the same figures (each face's depend on its points only)
-    monkeypatch.setattr(inspect_scan, "_each_face", lambda row_of, faces, seg: {f.index: row_of(f) for f in faces[::-1]})
+    monkeypatch.setattr(inspect_scan, "_each_face",
+                        lambda row_of, faces, seg: {f.index: row_of(f) for f in faces[::-1]})
     again = _inspect(scene)
     assert [_figures(r) for r in again.faces] == [_figures(r) for r in report.faces]
 

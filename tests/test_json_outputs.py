@@ -16,10 +16,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from test_station_support import DEMO_PROGRAM, TRUTH_GAUGE, small_rig, station_config
+from foreign_capture import CONFIG, PROJ, RIG, shoot, write_frames
+from session_support import small_rig_toml
+from station_support import DEMO_PROGRAM, TRUTH_GAUGE, station_config
 
 from scanner.config import CONFIG_DIR
+from sim.foreign_patterns import slmaster_complementary
 from slscan import cli
+from slscan.commands.importbench import write_slmaster_calibration
 
 STEP = CONFIG_DIR / "parts" / "demo_part.step"
 NOISY = """\
@@ -64,7 +68,7 @@ class Inputs:
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory: pytest.TempPathFactory) -> Inputs:
     tmp = tmp_path_factory.mktemp("json")
-    rig = small_rig(tmp)
+    rig = small_rig_toml(tmp)
     session, bins = tmp / "session", tmp / "bin"
     assert cli.main(["-q", "scan", "--rig", str(rig), "--out", str(session)]) == 0
     assert cli.main(["-q", "scan", "--rig", str(rig), "--scene", "bin:0:5", "--out", str(bins)]) == 0
@@ -76,13 +80,11 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Inputs:
 
 
 def _import_frames(i: Inputs) -> list[str]:
-    """SLMaster's complementary capture of a plane as BMP files, with its calibration (tests/test_import.py's)."""
-    from test_import import CONFIG, PROJ, RIG, _write_frames, shoot, slmaster_complementary, write_slmaster_calibration
-
+    """SLMaster's complementary capture of a plane as BMP files, with its calibration (`foreign_capture`)."""
     frames = i.tmp / "frames"
     if not frames.exists():
         stack = shoot(slmaster_complementary(PROJ[0]), seed=9)
-        _write_frames(frames, stack, [f"{k + 1}.bmp" for k in range(len(stack))])
+        write_frames(frames, stack, [f"{k + 1}.bmp" for k in range(len(stack))])
         write_slmaster_calibration(i.tmp / "caliInfo.yml", RIG)
     return [str(frames), "--patterns", str(CONFIG / "slmaster_complementary_12x32.toml"), "--projector-size",
             f"{PROJ[0]}x{PROJ[1]}", "--calibration", str(i.tmp / "caliInfo.yml")]
@@ -139,7 +141,8 @@ RUNS: dict[str, Callable[[Inputs, Path], list[str]]] = {
 
 
 def test_every_command_with_json_has_a_run_here() -> None:
-    with_json = {name for name, p in cli.commands(cli.build_parser()).items() if any(a.dest == "json" for a in p._actions)}
+    with_json = {name for name, p in cli.commands(cli.build_parser()).items()
+                 if any(a.dest == "json" for a in p._actions)}
     assert with_json == set(RUNS)
 
 

@@ -182,7 +182,8 @@ def test_stage_axis_calibration_on_the_simulated_turntable(tmp_path: Path, capsy
     off = axis.point_mm - truth.point_mm
     assert np.linalg.norm(off - truth.direction * (truth.direction @ off)) < 0.1
     # the rig then takes it: its stage model is the calibrated one
-    text = rig.read_text().replace("settle_s = 0.0", f'settle_s = 0.0\ncalibration = "{tmp_path / "axis" / "stage_axis.json"}"')
+    axis = tmp_path / "axis" / "stage_axis.json"
+    text = rig.read_text().replace("settle_s = 0.0", f'settle_s = 0.0\ncalibration = "{axis}"')
     rig.write_text(text)
     assert RigConfig.load(rig).stage.model.calibration.endswith("stage_axis.json")
 

@@ -94,7 +94,7 @@ def test_agreement_at_the_true_pose_follows_the_noise_model() -> None:
     judged = judge_in(second.points, second.normals, first.sigma_mm, first)
     share = judged.agree[judged.comparable].mean()
     n = judged.comparable.sum()
-    assert P_AGREE == pytest.approx(float(ndtr(K_SIGMA) - ndtr(-K_SIGMA)))
+    assert pytest.approx(float(ndtr(K_SIGMA) - ndtr(-K_SIGMA))) == P_AGREE
     assert abs(share - P_AGREE) < 4.0 * np.sqrt(P_AGREE * (1 - P_AGREE) / n) + 0.002  # sigma estimated: +-6 %
     assert not judged.front.any() or judged.front.mean() < 0.005
 

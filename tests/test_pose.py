@@ -200,14 +200,15 @@ def test_no_recognisable_part_is_reported_as_failed(model: ThinPartModel) -> Non
 
 def test_masks_of_the_wrong_size_are_an_error(small_bin: tuple, tmp_path: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
-    b, cloud, ids, occlusion = small_bin
+    _b, cloud, ids, _occlusion = small_bin
     ply = _write_bin_cloud(cloud, ids, tmp_path / "bin.ply")
     small = tmp_path / "small.png"
     cv2.imwrite(str(small), np.ones((100, 120), np.uint8))
     with pytest.raises(MaskError, match=r"small.png.*120x100.*1280x1024"):
         load_masks(small, cloud)
     assert main(["pose", str(ply), "--part", str(PARTS / "nickel_tab.toml"), "--masks", str(small), "--no-log"]) == 2
-    assert re.search(r"error: .*small.png: label image is 120x100, the camera image is 1280x1024", capsys.readouterr().err)
+    assert re.search(r"error: .*small.png: label image is 120x100, the camera image is 1280x1024",
+                     capsys.readouterr().err)
     assert not (tmp_path / "bin.poses.json").exists()
 
 
@@ -215,7 +216,8 @@ def test_masks_of_the_wrong_size_are_an_error(small_bin: tuple, tmp_path: Path,
     ("this is [not toml", "not valid TOML"),
     ("[other]\nx = 1\n", r"key 'other': unknown key in the top level"),
     ("[part]\nkind = \"gear\"\n", r"key 'part.kind': must be 'tab'"),
-    ("[part]\nkind = \"tab\"\nlenght_mm = 3\n", r"key 'part.lenght_mm': unknown key in \[part\]; did you mean 'length_mm'"),
+    ("[part]\nkind = \"tab\"\nlenght_mm = 3\n",
+     r"key 'part.lenght_mm': unknown key in \[part\]; did you mean 'length_mm'"),
     ("[part]\nkind = \"tab\"\nwidth_mm = -8\n", r"key 'part.width_mm': must be greater than 0"),
     ("[part]\nkind = \"tab\"\nnotch_mm = [14.0, 3.0, 5.0]\n", r"key 'part': .*inconsistent"),
     ("[part]\nkind = \"tab\"\ngrip_point_mm = [24.0, 4.0]\n", r"key 'part.grip_point_mm': .* not on the part"),
@@ -258,7 +260,8 @@ def test_poses_from_a_full_fringe_scan_of_a_bin(model: ThinPartModel) -> None:
         else:
             print(f"part {p.instance_id - 2}: failed: {p.reason}")
     pad = np.pad(ids, 1)
-    edge = (ids >= 2) & ((pad[:-2, 1:-1] != ids) | (pad[2:, 1:-1] != ids) | (pad[1:-1, :-2] != ids) | (pad[1:-1, 2:] != ids))
+    edge = (ids >= 2) & ((pad[:-2, 1:-1] != ids) | (pad[2:, 1:-1] != ids)
+                         | (pad[1:-1, :-2] != ids) | (pad[1:-1, 2:] != ids))
     outline = [float(np.mean(edge.ravel()[i.indices])) for i in inst]
     print("share of each instance's points on its outline (simulator's ids):", ", ".join(f"{f:.1%}" for f in outline))
     # The fitness floor (a fixed 0.93, above the method's own acceptance of 0.90): pixels on
@@ -332,8 +335,11 @@ def test_poses_that_would_share_space_are_not_both_reported(small_bin: tuple, mo
     from inspection.bins.pose import PartPose
     from sim.bins import rotation_about
 
-    b, cloud, ids, occlusion = small_bin
-    side = lambda k: "front" if b.front_up[k] else "back"  # noqa: E731
+    b, _cloud, _ids, _occlusion = small_bin
+
+    def side(k: int) -> str:
+        return "front" if b.front_up[k] else "back"
+
     true = [PartPose(k + 1, True, "", "truth", 1000 - k, b.poses[k], side(k)) for k in range(len(b.poses))]
     assert all(p.ok for p in merge_duplicates(true, model))
     off = np.eye(4)
@@ -377,7 +383,8 @@ def _box_filtered_scan(part: TabPart, raise_mm: float, yaw_deg: float, mixed: bo
     T = np.eye(4)
     T[:2, :2], T[:2, 3] = R, -R @ centre
     T[2, 3] = z_part - part.thickness_mm   # front face (z = thickness) on the part plane
-    cloud = OrganisedCloud(grid, np.zeros((h, w), np.uint8), organised_normals(grid[..., 0], grid[..., 1], grid[..., 2]))
+    normals = organised_normals(grid[..., 0], grid[..., 1], grid[..., 2])
+    cloud = OrganisedCloud(grid, np.zeros((h, w), np.uint8), normals)
     return cloud, cam, T
 
 
@@ -423,7 +430,8 @@ def test_two_parts_meeting_at_the_same_depth_are_two_instances(tilt_deg: float) 
     z[tilted] = top / (1 + np.tan(np.radians(tilt_deg)) * u[tilted])   # the plane z = top - tan(tilt) x
     z += np.random.default_rng(1).normal(0, 0.01, z.shape)
     grid = (np.stack([u, v, np.ones_like(u)], axis=-1) * z[..., None]).astype(np.float32)
-    cloud = OrganisedCloud(grid, np.zeros((h, w), np.uint8), organised_normals(grid[..., 0], grid[..., 1], grid[..., 2]))
+    normals = organised_normals(grid[..., 0], grid[..., 1], grid[..., 2])
+    cloud = OrganisedCloud(grid, np.zeros((h, w), np.uint8), normals)
     instances = instances_from_flat_patches(cloud, TabPart().thickness_mm)
     assert len(instances) == 2, [len(i.indices) for i in instances]
     for truth in (flat, tilted):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fringe_frames import fringe_stack
 
 from scanner.decode import decode
 from scanner.errors import DecodeError
@@ -11,7 +12,6 @@ from scanner.geometry import PhaseToHeight, Pinhole, RigModel
 from scanner.patterns import PatternSet
 from scanner.pointcloud import read_ply_points, write_ply
 from scanner.reconstruct import Triangulator, phase_to_height_cloud, triangulate
-from tests.conftest import fringe_stack
 
 HET = PatternSet("heterodyne", 4, (70.0, 64.0, 59.0))
 
@@ -56,7 +56,7 @@ def test_triangulated_cloud_and_normals(small_rig: RigModel) -> None:
 
 
 def test_camera_size_mismatch_is_refused(small_rig: RigModel, bench_model: RigModel) -> None:
-    z, uv = plane_view(small_rig, np.array([0, 0, 1.0]), 400.0)
+    _z, uv = plane_view(small_rig, np.array([0, 0, 1.0]), 400.0)
     d = decode(fringe_stack(uv[..., 0], HET, 912), HET, 12, small_rig.projector.size)
     with pytest.raises(DecodeError, match="rig camera is"):
         triangulate(d, Triangulator(bench_model))
@@ -106,14 +106,14 @@ def test_phase_to_height_eq17_recovers_heights() -> None:
 
 
 def test_phase_to_height_needs_calibration(small_rig: RigModel) -> None:
-    z, uv = plane_view(small_rig, np.array([0, 0, 1.0]), 400.0)
+    _z, uv = plane_view(small_rig, np.array([0, 0, 1.0]), 400.0)
     d = decode(fringe_stack(uv[..., 0], HET, 912), HET, 12, small_rig.projector.size)
     with pytest.raises(DecodeError, match="phase-to-height"):
         phase_to_height_cloud(d, small_rig)
 
 
 def test_ply_roundtrip(small_rig: RigModel, tmp_path) -> None:
-    z, uv = plane_view(small_rig, np.array([0, 0, 1.0]), 400.0)
+    _z, uv = plane_view(small_rig, np.array([0, 0, 1.0]), 400.0)
     d = decode(fringe_stack(uv[..., 0], HET, 912), HET, 12, small_rig.projector.size)
     cloud = triangulate(d, Triangulator(small_rig))
     n = write_ply(tmp_path / "c.ply", cloud)

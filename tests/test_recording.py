@@ -105,7 +105,7 @@ def test_expected_entity_paths(scan: Scan, summary: reader.RecordingSummary) -> 
 
 def test_one_image_per_frame_on_the_pattern_timeline(scan: Scan, session_file: Path,
                                                      summary: reader.RecordingSummary) -> None:
-    n, h, w = scan.stack.shape
+    n, _h, _w = scan.stack.shape
     image = summary.entities[R.CAMERA_IMAGE]
     assert image.rows == n
     assert {R.TIMELINE_PATTERN, R.TIMELINE_SCAN} <= image.timelines
@@ -192,11 +192,10 @@ def test_unclosed_recording_is_not_complete(scan: Scan, tmp_path: Path) -> None:
 
 def test_closed_on_exception_with_the_error_logged(scan: Scan, tmp_path: Path) -> None:
     path = tmp_path / "aborted.rrd"
-    with pytest.raises(RuntimeError, match="camera vanished"):
-        with R.SessionRecording(path, "aborted") as rec:
-            rec.log_rig(scan.rig)
-            rec.log_frame(0, scan.stack[0], scan.patterns.frames()[0])
-            raise RuntimeError("camera vanished")
+    with pytest.raises(RuntimeError, match="camera vanished"), R.SessionRecording(path, "aborted") as rec:
+        rec.log_rig(scan.rig)
+        rec.log_frame(0, scan.stack[0], scan.patterns.frames()[0])
+        raise RuntimeError("camera vanished")
     assert rec.closed
     (_, text), = reader.read_component(path, R.EVENTS, "TextLog:text")
     assert "camera vanished" in str(text[0])

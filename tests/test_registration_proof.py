@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from registration_support import box_step, moved_view, write_ply
 from scipy.stats import binomtest
 
 from inspection.cad import load_cad
@@ -21,7 +22,6 @@ from inspection.registration import ModelTarget, RegistrationSettings, pose_diff
 from inspection.registration.evidence import ResidualCorrelation, pose_covariance, sign_test
 from sim.parts_demo import write_step
 from slscan import cli
-from tests.registration_support import box_step, moved_view, write_ply
 
 
 def _ring(path: Path) -> Path:
@@ -198,7 +198,7 @@ def test_edge_faces_offsets_have_their_own_variance() -> None:
         return float(w.min()), float(w.max())
 
     lo, hi = spread(kinds)
-    assert 0.6 < lo and hi < 4.0, (lo, hi)
+    assert lo > 0.6 and hi < 4.0, (lo, hi)
     assert spread(pooled)[1] > 3.0 * hi, (spread(pooled), hi)
 
 
@@ -234,7 +234,8 @@ def test_symmetric_block_is_refused_with_its_alternatives(parts: dict[str, Path]
                      "--no-pdf", "--out", str(tmp_path / "report")])
     report = json.loads(capsys.readouterr().out)
     assert code == 4 and report["status"] == "no decision" and report["verdict"] == "not measured"  # README: exit codes
-    assert report["pose_status"] == "ambiguous" and report["status_note"].startswith("not measured: the pose is ambiguous")
+    assert report["pose_status"] == "ambiguous"
+    assert report["status_note"].startswith("not measured: the pose is ambiguous")
     assert report["registration"]["alternatives"] and len(report["faces"]) == len(model.faces)
     assert all(f["status"] == "not measured" and f["note"].startswith("the pose is ambiguous") for f in report["faces"])
     page = (tmp_path / "report" / "inspection.html").read_text()

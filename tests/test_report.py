@@ -72,7 +72,8 @@ def test_a_program_naming_a_face_the_model_lacks_is_refused(tmp_path: Path) -> N
     bad.write_text(text.replace('"#711" = "base"', '"#999" = "base"'))
     with pytest.raises(ConfigError, match=r'p\.toml.*faces\."#999"'):
         load_tolerance_source(bad, DEMO_LABELS)
-    bad.write_text(text + '\n[[characteristic]]\nname = "again"\nface = "#657"\nkind = "flatness"\ntolerance_mm = 0.1\n')
+    bad.write_text(text + '\n[[characteristic]]\nname = "again"\nface = "#657"\nkind = "flatness"\n'
+                          'tolerance_mm = 0.1\n')
     with pytest.raises(ConfigError, match="second flatness of face #657"):
         load_tolerance_source(bad, DEMO_LABELS)
 
@@ -220,18 +221,18 @@ def check_in_browser(page: Path, tmp: Path, ids: tuple[str, ...], closeup: str |
     assert screenshot(page, full, WIDTH, int(box["scrollHeight"]) + 20) is not None
     img = cv2.imread(str(full))
     for i in ids:
-        x, y, w, h = (int(round(t)) for t in box["boxes"][i])
+        x, y, w, h = (round(t) for t in box["boxes"][i])
         crop = img[y:y + h, x:x + w]
         assert crop.size and (crop < 200).any(axis=2).mean() > 0.002, f"#{i} is blank in the screenshot"
     if save is not None:
         save.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(save / f"{stem}-first-page.png"), img[:HEIGHT])
         if "views" in box["boxes"]:
-            x, y, w, h = (int(round(t)) for t in box["boxes"]["views"])
+            x, y, w, h = (round(t) for t in box["boxes"]["views"])
             cv2.imwrite(str(save / f"{stem}-views.png"), img[max(y - 30, 0):y + h + 10, x:x + w])
         if closeup is None:
             return
-        x, y, w, h = (int(round(t)) for t in box["boxes"][closeup])
+        x, y, w, h = (round(t) for t in box["boxes"][closeup])
         what = "face-closeup" if closeup.startswith("face-") else closeup
         cv2.imwrite(str(save / f"{stem}-{what}.png"), img[max(y - 30, 0):y + h + 10, x:x + w])
 
@@ -248,8 +249,9 @@ def test_report_in_a_browser(tmp_path: Path) -> None:
     paths = rep.write(tmp_path, pdf=True)
     page = tmp_path / "inspection.html"
     assert "src=\"data:image/png;base64," in page.read_text() and "src=\"http" not in page.read_text()
-    check_in_browser(page, tmp_path, ("header", "verdict", "characteristics", "views", "histogram", "raw-filtered",
-                                      "face-657", "face-17", "figures"), "face-657", saved_screenshots(), "known-report")
+    sections = ("header", "verdict", "characteristics", "views", "histogram", "raw-filtered", "face-657", "face-17",
+                "figures")
+    check_in_browser(page, tmp_path, sections, "face-657", saved_screenshots(), "known-report")
     pdf = tmp_path / "inspection.pdf"
     assert pdf in paths and pdf.read_bytes()[:5] == b"%PDF-" and pdf.stat().st_size > 50_000
 
@@ -310,7 +312,7 @@ def test_the_pdf_prints_whole_on_a4_and_letter(tmp_path: Path) -> None:
         assert abs(float(size.group(1)) - w_pt) < 1 and abs(float(size.group(2)) - h_pt) < 1, info
         pages = pdf_pages(pdf, out)
         px = 50 / 72  # pixels per point
-        strip = int(round(6 / 25.4 * 50))  # 6 mm at 50 dpi
+        strip = round(6 / 25.4 * 50)  # 6 mm at 50 dpi
         for k, (img, lines) in enumerate(pages, 1):
             for edge in (img[:, :strip], img[:, -strip:], img[:strip], img[-strip // 2:]):  # the number sits low
                 assert edge.min() > 200, f"{paper} page {k}: something drawn within 6 mm of the paper's edge"
@@ -457,7 +459,7 @@ def station_cycles(n: int = 12) -> tuple[list, dict]:
     program = load_program(PROGRAM)
     rng = np.random.default_rng(3)
     rows, values = [], {}
-    t0 = dt.datetime(2026, 12, 1, 8, 0, tzinfo=dt.timezone.utc)
+    t0 = dt.datetime(2026, 12, 1, 8, 0, tzinfo=dt.UTC)
     for k in range(n):
         vals = []
         for c in program.characteristics:
@@ -474,7 +476,8 @@ def station_cycles(n: int = 12) -> tuple[list, dict]:
         decisions = {v.decision for v in vals}
         status = "fail" if "non-conforming" in decisions else "uncertain" if "uncertain" in decisions else "pass"
         rows.append(ResultRow(program.name, program.version, program.fingerprint, f"SN-{k + 1:04d}", "ana", "bench-1",
-                              "sim-bench", "factory-sim-bench", "0.1.0", "cad", f"/parts/{k}", t0 + dt.timedelta(minutes=k),
+                              "sim-bench", "factory-sim-bench", "0.1.0", "cad", f"/parts/{k}",
+                              t0 + dt.timedelta(minutes=k),
                               id=k + 1, attempt=1, status=status, finished_at=t0 + dt.timedelta(minutes=k, seconds=40)))
         values[k + 1] = vals
     return rows, values

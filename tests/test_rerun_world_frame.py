@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from registration_support import virtual_view
 from scipy.spatial.transform import Rotation
-from test_inspection_registration import virtual_view
 
 from inspection.bins.instances import Instance
 from inspection.bins.part_model import ThinPartModel

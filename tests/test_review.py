@@ -14,13 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rerun as rr
+from cli_support import run
 from rerun.chunk import RrdReader
+from session_support import small_rig_toml
 
 from scanner.config import CONFIG_DIR
 from scanner.recording_reader import entity_paths
 from slscan.review_target import find_target
-from tests.test_cli import run
-from tests.test_station_support import small_rig
 
 SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
 
@@ -29,7 +29,7 @@ SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
 def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A real 320 x 256 scan session (sphere and plane)."""
     tmp = tmp_path_factory.mktemp("review")
-    rig = small_rig(tmp, 320, 256)
+    rig = small_rig_toml(tmp)
     assert run("scan", "--rig", str(rig), "--scene", str(SCENE), "--out", str(tmp / "s"))[0] == 0
     return tmp / "s"
 
@@ -51,7 +51,7 @@ def viewer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 def opened(log: Path) -> list[str]:
     args = (log / "args.txt").read_text().split()
-    return [a for a in args[1: args.index("--bind")]]  # after --serve-web, before the server options
+    return args[1: args.index("--bind")]  # after --serve-web, before the server options
 
 
 def views(blueprint_file: Path) -> bool:

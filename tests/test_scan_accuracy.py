@@ -185,7 +185,7 @@ def test_sphere_radius(scans: dict, rig: Rig) -> None:
     gt = Truth.of(rig.extras["ground_truth"])
     cloud = scans["heterodyne_3x4"][1]
     sel = smooth_region(gt) & cloud.valid & (gt.object_id == 2)
-    centre, radius = fit_sphere(cloud.points[sel].astype(np.float64))
+    _centre, radius = fit_sphere(cloud.points[sel].astype(np.float64))
     assert sel.sum() > 50_000
     assert abs(radius - SPHERE_RADIUS_MM) < 0.02, radius
 

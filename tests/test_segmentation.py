@@ -38,7 +38,10 @@ def _room(seed: int = 0, noise: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
     seen) and a half pipe lying on the floor, uniformly sampled (~0.2 mm spacing); labels
     0..5 per surface."""
     rng = np.random.default_rng(seed)
-    u = lambda lo, hi, n: rng.uniform(lo, hi, n)  # noqa: E731
+
+    def u(lo: float, hi: float, n: int) -> np.ndarray:
+        return rng.uniform(lo, hi, n)
+
     floor = np.c_[u(0, 40, 30000), u(0, 30, 30000), np.zeros(30000)]
     floor = floor[~((floor[:, 0] > 20) & (floor[:, 0] < 30) & (floor[:, 1] > 10) & (floor[:, 1] < 20))]
     wall = np.c_[np.zeros(12000), u(0, 30, 12000), u(0, 16, 12000)]

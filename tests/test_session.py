@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import json
-import re
 import zipfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from session_support import PATTERNS, SCENE, small_rig_toml
 
-from scanner.config import CONFIG_DIR
 from scanner.errors import (
     ConfigError,
     DeviceDisconnected,
@@ -22,32 +21,13 @@ from scanner.errors import (
     SessionError,
     WaitTimeout,
 )
-from scanner.patterns import PatternSet
 from scanner.pipeline import reprocess, scan
 from scanner.pointcloud import read_ply_points
 from scanner.recording_reader import read_component, read_points, read_summary
-from scanner.rig import DEFAULT_RIG, RigConfig, open_rig
+from scanner.rig import RigConfig, open_rig
 from scanner.session import ERROR, MANIFEST, Session
 from sim.virtual_devices import Faults
 from slscan import cli
-
-SCENE = CONFIG_DIR / "scenes" / "sphere_plane.toml"
-PATTERNS = PatternSet.load(CONFIG_DIR / "patterns" / "heterodyne_3x4.toml")
-
-
-def small_rig_toml(tmp: Path, **rig_keys: object) -> Path:
-    """The bench rig with a 320 x 256 camera (same lens field of view) and extra [rig] keys."""
-    text = DEFAULT_RIG.read_text()
-    text = text.replace("width = 1280", "width = 320").replace("height = 1024", "height = 256")
-    text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
-    for key, value in rig_keys.items():
-        line = f"{key} = {json.dumps(value)}"
-        text, n = re.subn(rf"^{key} = .*$", line, text, count=1, flags=re.M)
-        if not n:
-            text = text.replace("[rig]\n", f"[rig]\n{line}\n", 1)
-    path = tmp / "rig.toml"
-    path.write_text(text)
-    return path
 
 
 @pytest.fixture
@@ -170,9 +150,8 @@ def test_fault_gives_named_error_and_keeps_frames(tmp_path: Path, faults: Faults
                                                   stored: int) -> None:
     config = RigConfig.load(small_rig_toml(tmp_path, trigger=wiring, timeout_s=0.5))
     out = tmp_path / "s"
-    with open_rig(config, scene=SCENE, faults=faults) as rig:
-        with pytest.raises(error) as exc:
-            scan(rig, PATTERNS, out)
+    with open_rig(config, scene=SCENE, faults=faults) as rig, pytest.raises(error) as exc:
+        scan(rig, PATTERNS, out)
     assert "sim-camera" in str(exc.value)
     frames = sorted((out / "frames").glob("frame_*.png"))
     assert [f.name for f in frames] == [f"frame_{k:03d}.png" for k in range(stored)]
@@ -209,9 +188,8 @@ def test_damaged_session_is_refused_with_file_named(tmp_path: Path, small_config
 def test_existing_output_folder_is_not_overwritten(tmp_path: Path, small_config: RigConfig) -> None:
     (tmp_path / "s").mkdir()
     (tmp_path / "s" / "keep.txt").write_text("earlier work")
-    with open_rig(small_config, scene=SCENE) as rig:
-        with pytest.raises(SessionError, match="not empty"):
-            scan(rig, PATTERNS, tmp_path / "s")
+    with open_rig(small_config, scene=SCENE) as rig, pytest.raises(SessionError, match="not empty"):
+        scan(rig, PATTERNS, tmp_path / "s")
     assert (tmp_path / "s" / "keep.txt").read_text() == "earlier work"
 
 

@@ -219,6 +219,6 @@ def test_second_light_path_is_masked_with_its_own_reason():
 
 
 def test_single_path_noise_is_not_called_interreflection():
-    stack, ps, _, second = two_path_stack(ratio=0.0, shift_px=0.0, noise_dn=6.0, seed=3)
+    stack, ps, _, _second = two_path_stack(ratio=0.0, shift_px=0.0, noise_dn=6.0, seed=3)
     m = decode(stack, ps, 12, MODEL.projector.size, DecodeSettings(spatial_check=False)).maps["vertical"]
     assert m.masks["interreflection"].mean() < 0.005

@@ -1,4 +1,5 @@
-"""Issue 18's acceptance figures on the simulated bench rig (full-resolution scans; CI runs them with the acceptance tests).
+"""Issue 18's acceptance figures on the simulated bench rig (full-resolution scans; CI runs
+them with the acceptance tests).
 
 - The demo part in polished aluminium (config/scenes/demo_aluminium.toml) at the rig's
   exposure, with `--exposure auto` and with `--exposure hdr` (ROI: the part's bounding box):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 import time
+from contextlib import suppress
 from pathlib import Path
 
 import numpy as np
@@ -42,8 +43,8 @@ def small_model(width: int = 320, height: int = 256, **kw: object) -> RigModel:
     K[1, 1] *= s
     K[0, 2] = (width - 1) / 2
     K[1, 2] = (height - 1) / 2
-    args = dict(camera=Pinhole(width, height, K, cam.dist), projector=MODEL.projector, cam_from_proj=MODEL.cam_from_proj,
-                projector_gamma=MODEL.projector_gamma)
+    args = dict(camera=Pinhole(width, height, K, cam.dist), projector=MODEL.projector,
+                cam_from_proj=MODEL.cam_from_proj, projector_gamma=MODEL.projector_gamma)
     args.update(kw)
     return RigModel(**args)  # type: ignore[arg-type]
 
@@ -168,7 +169,8 @@ def test_bare_mesh_scene_placement():
     ('[[objects]]\nsphere = { radius_mm = 5.0 }\nalbdo = 0.5\n', "objects[0].albdo"),
     ('[[objects]]\nsphere = { radius_mm = 5.0 }\nbox = { size_mm = [1, 2, 3] }\n', "objects[0]"),
     ('[[objects]]\nbox = { size_mm = [1, 2] }\n', "objects[0].box.size_mm"),
-    ('[[objects]]\nsphere = { radius_mm = 5.0 }\npose = { translation_mm = [0, 0] }\n', "objects[0].pose.translation_mm"),
+    ('[[objects]]\nsphere = { radius_mm = 5.0 }\npose = { translation_mm = [0, 0] }\n',
+     "objects[0].pose.translation_mm"),
     ('[reference_plane]\nsize_mm = [10.0, 10.0]\n', "reference_plane"),
     ('[reference_plane]\ndistance_mm = "far"\n', "reference_plane.distance_mm"),
 ])
@@ -646,10 +648,8 @@ def test_faults_from_rig_toml(rig_toml, sphere_scene):
             idx = []
             for _ in range(3):
                 rig.camera.trigger()
-                try:
+                with suppress(WaitTimeout):
                     idx.append(rig.camera.grab(SHORT).index)
-                except WaitTimeout:
-                    pass
             assert idx == [0, 2]
     bad_path = rig_toml("software", extra="[sim.faults]\ndrop_frme = 1\n")
     with pytest.raises(ConfigError) as err:  # refused when the rig is loaded, before any device opens

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from registration_support import STEP, virtual_view
 from scipy.spatial.transform import Rotation
-from test_inspection_registration import STEP, virtual_view
 
 from inspection.cad import load_cad
 from inspection.registration import ModelTarget, RegistrationSettings, pose_difference, register

@@ -6,12 +6,12 @@ rig opening its GRBL turntable."""
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import pytest
-from test_drivers_rig import LCR, lcr_transports, variant
+from driver_rigs import LCR, lcr_transports, variant
 
 from scanner.config import CONFIG_DIR
 from scanner.drivers.grbl import GrblStage
@@ -215,7 +215,8 @@ def test_simulated_silent_stage_fails_at_the_move_deadline(monkeypatch: pytest.M
 
     monkeypatch.setattr(devices, "SEQUENCE_DEADLINE_SLACK_S", 0.5)
     s = SimStage("sim-stage", [FAST], faults=StageFaults(silent_at_move=0))
-    with pytest.raises(DeviceTimeout, match="move \\(turntable to 45 deg\\) not finished after 0.812 s; the device stopped advancing it"):
+    with pytest.raises(DeviceTimeout, match="move \\(turntable to 45 deg\\) not finished after 0.812 s; "
+                                             "the device stopped advancing it"):
         s.move_to({"turntable": math.radians(45)}).wait(wait_bound_s(0.812))
     s.shutdown()
 

@@ -33,7 +33,7 @@ def port(script: list, **kw) -> FakeSerial:
 
 
 def stage(opener, axes=(TURNTABLE,), **kw) -> GrblStage:
-    return GrblStage(opener, list(axes), {a.name: l for a, l in zip(axes, "XYZ")}, {"turntable": 360.0},
+    return GrblStage(opener, list(axes), {a.name: letter for a, letter in zip(axes, "XYZ")}, {"turntable": 360.0},
                      boot_timeout_s=kw.pop("boot_timeout_s", 1.0), timeout_s=kw.pop("timeout_s", REPLY_TIMEOUT_S), **kw)
 
 
@@ -175,9 +175,9 @@ def test_homing_not_enabled_in_the_controller_is_named() -> None:
 
 def test_controller_restarting_mid_move_is_reported() -> None:
     script = [HELLO, AT_0, Exchange(b"G21G90G0X45.000\n", b"ok\r\n"), Exchange(b"G4P0.01\n", BANNER)]
-    with expected_protocol(stage, port(script)) as s:
-        with pytest.raises(DeviceError, match="the controller restarted while handling 'G4P0.01'"):
-            s.move_to({"turntable": math.radians(45)}).wait(wait_bound_s(1.0))
+    with (expected_protocol(stage, port(script)) as s,
+          pytest.raises(DeviceError, match="the controller restarted while handling 'G4P0.01'")):
+        s.move_to({"turntable": math.radians(45)}).wait(wait_bound_s(1.0))
 
 
 # ------------------------------------------------------------------ on the emulator

@@ -7,13 +7,13 @@ from __future__ import annotations
 import importlib.util
 import json
 import threading
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import pytest
-from test_station_support import DEMO_PROGRAM, TRUTH_GAUGE, station_config
+from station_support import DEMO_PROGRAM, TRUTH_GAUGE, station_config
 
 from scanner.pointcloud import read_ply_points
 from scanner.rig import DEFAULT_RIG, RigConfig
@@ -51,7 +51,7 @@ def scheduler() -> Iterator[str]:
 
 def test_dask_batch_gives_the_serial_results_and_reports_failures_without_stopping(
         stored: tuple[StationConfig, list[Path]], scheduler: str) -> None:
-    config, parts = stored
+    _config, parts = stored
     serial = run_batch(parts, DEMO_PROGRAM, workers=0, measurement=TRUTH_GAUGE)
     seen: list[tuple[int, int]] = []
     dask = run_batch(parts, DEMO_PROGRAM, scheduler=scheduler, measurement=TRUTH_GAUGE,
@@ -112,7 +112,8 @@ def test_batch_reconstructs_with_the_rig_given_and_its_calibration(stored: tuple
     shifted[0, 3] += 2.0  # a calibration that puts the projector 2 mm further right
     write_calibration(tmp_path / "cal.json", replace(moved, cam_from_proj=shifted), {}, "sim-bench")
     recal = tmp_path / "rig.toml"
-    recal.write_text(config.rig_path.read_text().replace("[rig]\n", f'[rig]\ncalibration = "{tmp_path / "cal.json"}"\n'))
+    calibration = tmp_path / "cal.json"
+    recal.write_text(config.rig_path.read_text().replace("[rig]\n", f'[rig]\ncalibration = "{calibration}"\n'))
     [item] = run_batch(parts[:1], DEMO_PROGRAM, workers=0, measurement=TRUTH_GAUGE, rig_path=recal).items
     assert item.status == "pass" and item.calibration_id.startswith("sim-bench@")
     again = read_ply_points(cloud)

@@ -1,7 +1,7 @@
 """`slscan station --auto` and `slscan results` (query, CSV, HTML report) as the operator's
 shell sees them, including a station killed (SIGKILL) or interrupted (SIGINT) in the
 middle of a scan. The station
-config measures with the simulator's truth (`measure.SimulatorTruth`) (see test_station_support.py)."""
+config measures with the simulator's truth (`measure.SimulatorTruth`) (see station_support.py)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from test_station_support import DEMO_PROGRAM, station_config
+from station_support import DEMO_PROGRAM, program_copy, station_config
 
 from scanner.errors import IncompleteSession
 from scanner.session import ERROR, Session
@@ -100,7 +100,8 @@ def test_interrupted_mid_scan_stores_the_cycle_as_aborted(tmp_path: Path) -> Non
     proc = slscan("station", str(DEMO_PROGRAM), "--config", str(cfg), "--parts", "3", "--auto")
     view = wait_for_frames(config.sessions_dir / "demo-part", "-001", 3, proc)
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=300)  # liveness: storing the aborted cycle and its charts took 10-30 s at load 20-40
+    # liveness: storing the aborted cycle and its charts took 10-30 s at load 20-40
+    _out, err = proc.communicate(timeout=300)
     assert proc.returncode == 130 and "interrupted" in err, err[-3000:]
     with open_results(config.database_url) as store:
         [row] = store.results()
@@ -147,12 +148,11 @@ def test_results_refuses_a_negative_limit(tmp_path: Path, capsys: pytest.Capture
     assert exc.value.code == 2 and "must be >= 0, got -1" in capsys.readouterr().err
 
 
-def test_names_from_programs_never_write_outside_their_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_names_from_programs_never_write_outside_their_folder(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
     """Issue 15 item 9: a program named '../../evil' and a characteristic named
     '../../../escaped_chart' made `results --report` write outside the report folder."""
     import datetime as dt
-
-    from test_station_support import program_copy
 
     from slscan import cli
     from slscan.station.program import load_program
@@ -164,17 +164,17 @@ def test_names_from_programs_never_write_outside_their_folder(tmp_path: Path, ca
     (tmp_path / "station").mkdir()
     cfg = station_config(tmp_path / "station")
     config = StationConfig.load(cfg)
-    t0 = dt.datetime(2026, 11, 23, tzinfo=dt.timezone.utc)
+    t0 = dt.datetime(2026, 11, 23, tzinfo=dt.UTC)
     with open_results(config.database_url) as store:
         for k in range(3):
             rid, _ = store.begin_part(PartStart(program.name, "1", "x", f"SN-{k}", "ana", "b", "r", None, "0", "m",
                                                 "/p", t0 + dt.timedelta(minutes=k)))
             store.finish_part(rid, "pass", "", [ValueRecord(c.name, c.kind, c.face, 0.01 + 0.001 * k, c.tolerance_mm,
                                                             True, 10) for c in program.characteristics], t0)
-    before = {p for p in tmp_path.rglob("*")}
+    before = set(tmp_path.rglob("*"))
     report = tmp_path / "deep" / "er" / "report"
     assert cli.main(["results", "--config", str(cfg), "--program", str(program_path), "--report", str(report)]) == 0
-    new = {p for p in tmp_path.rglob("*")} - before
+    new = set(tmp_path.rglob("*")) - before
     outside = [p for p in new if p != report and report not in p.parents and p not in report.parents
                and not p.name.endswith(("-wal", "-shm"))]  # SQLite's side files of a WAL database being read
     assert new and not outside, outside

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import pytest
-from test_station_support import DEMO_PROGRAM, program_copy, station_config
+from station_support import DEMO_PROGRAM, program_copy, station_config
 
 from inspection.tolerances import GUARD_BANDED
 from scanner.config import CONFIG_DIR

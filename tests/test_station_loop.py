@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import json
 import threading
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Iterator, Sequence
 
 import pytest
-from test_station_support import DEMO_PROGRAM, program_copy, station_config
+from station_support import DEMO_PROGRAM, program_copy, station_config
 
 from scanner.errors import IncompleteSession
 from scanner.recording_reader import read_component, read_summary
@@ -133,9 +133,9 @@ def test_a_part_that_cannot_be_measured_is_stored_as_error_never_as_a_number(con
 
 
 def test_an_unavailable_measuring_step_refuses_to_measure(config: StationConfig) -> None:
-    with open_station(DEMO_PROGRAM, config, "ana", Unavailable()) as r:
-        with pytest.raises(Refused, match=r"measuring step \(missing \(test double\)\) unavailable"):
-            r.station.run_cycle("SN-1")
+    with (open_station(DEMO_PROGRAM, config, "ana", Unavailable()) as r,
+          pytest.raises(Refused, match=r"measuring step \(missing \(test double\)\) unavailable")):
+        r.station.run_cycle("SN-1")
 
 
 def test_foot_switch_on_the_trigger_box_input_starts_one_scan_per_press(run: StationRun) -> None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from test_station_support import DEMO_PROGRAM, station_config
+from station_support import DEMO_PROGRAM, station_config
 
 from inspection.figures import asked_by
 from scanner.config import CONFIG_DIR

@@ -8,7 +8,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from test_station_support import DEMO_PROGRAM, program_copy, small_rig, station_config
+from session_support import small_rig_toml
+from station_support import DEMO_PROGRAM, program_copy, station_config
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError
@@ -75,7 +76,8 @@ def test_face_the_cad_does_not_have_is_refused(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("edit, problem", [
     (('face = "#158"', 'face = "#105"'), "flatness applies to plane faces; face #105 of demo_part.step is a cone"),
-    (('face = "#17"', 'face = "#270"'), "cylindricity applies to cylinder faces; face #270 of demo_part.step is a plane"),
+    (('face = "#17"', 'face = "#270"'),
+     "cylindricity applies to cylinder faces; face #270 of demo_part.step is a plane"),
 ])
 def test_characteristic_on_a_face_of_the_wrong_type_is_refused(tmp_path: Path, edit: tuple[str, str],
                                                                problem: str) -> None:
@@ -118,14 +120,14 @@ def test_station_config_errors_name_the_key(tmp_path: Path) -> None:
 
 
 def test_simulated_rig_has_the_factory_calibration_and_it_matches_the_demo_program(tmp_path: Path) -> None:
-    config = RigConfig.load(small_rig(tmp_path))
+    config = RigConfig.load(small_rig_toml(tmp_path))
     info = rig_calibration(config)
     assert info.id == "factory-sim-bench" and info.date is None and info.camera_size == (320, 256)
     assert refusals(info, config, load_program(DEMO_PROGRAM), 365, TODAY) == []
 
 
 def test_calibration_mismatch_expiry_and_sizes_refuse_measuring(tmp_path: Path) -> None:
-    config = RigConfig.load(small_rig(tmp_path))
+    config = RigConfig.load(small_rig_toml(tmp_path))
     program = load_program(DEMO_PROGRAM)  # expects factory-sim-bench, at most 180 days old
     dated = CalibrationInfo("factory-sim-bench", TODAY - dt.timedelta(days=200), (320, 256), (912, 1140), "cal.toml")
     [why] = refusals(dated, config, program, 365, TODAY)
@@ -140,7 +142,7 @@ def test_calibration_mismatch_expiry_and_sizes_refuse_measuring(tmp_path: Path) 
 
 
 def test_hardware_rig_without_calibration_file_is_uncalibrated(tmp_path: Path) -> None:
-    config = RigConfig.load(small_rig(tmp_path))
+    config = RigConfig.load(small_rig_toml(tmp_path))
     hw = replace(config, driver="hardware")
     info = rig_calibration(hw)
     assert info.id is None and "uncalibrated" in info.problem
@@ -150,8 +152,8 @@ def test_hardware_rig_without_calibration_file_is_uncalibrated(tmp_path: Path) -
 def test_calibration_file_named_by_the_rig_gives_its_id_and_date_and_can_expire(tmp_path: Path) -> None:
     from scanner.calibration_file import write_calibration
 
-    rig = small_rig(tmp_path)
-    created = dt.datetime(2026, 4, 1, 9, 30, 5, tzinfo=dt.timezone.utc)
+    rig = small_rig_toml(tmp_path)
+    created = dt.datetime(2026, 4, 1, 9, 30, 5, tzinfo=dt.UTC)
     cal = write_calibration(tmp_path / "cal.json", RigConfig.load(rig).nominal_model(), {}, "sim-bench")
     cal.write_text(json.dumps({**json.loads(cal.read_text()), "created": created.isoformat()}))
     rig.write_text(rig.read_text().replace("[rig]\n", '[rig]\ncalibration = "cal.json"\n', 1))

@@ -12,8 +12,8 @@ import importlib.util
 import io
 import os
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 from urllib.parse import quote
 
 import pytest
@@ -32,7 +32,7 @@ from slscan.station.results import (
 )
 
 PG_URL = os.environ.get("SLSCAN_TEST_PG_URL")
-T0 = dt.datetime(2026, 11, 23, 8, 0, 0, 123456, tzinfo=dt.timezone.utc)
+T0 = dt.datetime(2026, 11, 23, 8, 0, 0, 123456, tzinfo=dt.UTC)
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -84,7 +84,8 @@ def test_round_trip_keeps_every_field(store: ResultsStore) -> None:
     assert row == store.result(rid)
     assert (row.id, row.serial, row.attempt, row.status) == (rid, "SN-1", 1, "fail")
     assert (row.program, row.program_version, row.program_fingerprint) == ("demo-part", "1.0", "abcdef012345")
-    assert (row.operator, row.station, row.rig, row.calibration_id) == ("ana", "bench-1", "sim-bench", "factory-sim-bench")
+    assert ((row.operator, row.station, row.rig, row.calibration_id)
+            == ("ana", "bench-1", "sim-bench", "factory-sim-bench"))
     assert (row.software_version, row.measurement, row.part_path, row.source) == ("0.1.0", "inspection", "/data/SN-1",
                                                                                   "station")
     assert row.started_at == T0 and row.finished_at == T0 + dt.timedelta(seconds=9.5)
@@ -97,7 +98,7 @@ def test_rescans_are_new_attempts_and_lose_nothing(store: ResultsStore) -> None:
     store.finish_part(first, "aborted", "aborted by the operator during capture", [], T0)
     second, a2 = store.begin_part(start("SN-7", 1))
     store.finish_part(second, "pass", "", VALUES[:1], T0)
-    other, a3 = store.begin_part(start("SN-7", 2, program="other-part"))
+    _other, a3 = store.begin_part(start("SN-7", 2, program="other-part"))
     assert (a1, a2, a3) == (1, 2, 1)  # attempts count per program and serial
     rows = store.results(program="demo-part", serial="SN-7")
     assert [(r.attempt, r.status) for r in rows] == [(1, "aborted"), (2, "pass")]
@@ -131,7 +132,7 @@ def test_only_cycles_whose_owner_is_gone_are_marked_incomplete(store: ResultsSto
     assert store.result(dead).status == "incomplete" and store.result(dead).message == "station stopped"
     assert [store.result(i).status for i in (done, running, remote, elsewhere)] == [
         "pass", "in_progress", "in_progress", "in_progress"]
-    later = dt.datetime.now(dt.timezone.utc) + dt.timedelta(seconds=2 * LEASE_S)  # the remote lease has run out
+    later = dt.datetime.now(dt.UTC) + dt.timedelta(seconds=2 * LEASE_S)  # the remote lease has run out
     assert store.mark_interrupted("bench-1", "again", now=later) == [remote]
     assert store.result(running).status == "in_progress"
 
@@ -141,11 +142,11 @@ def test_a_held_cycle_has_its_lease_renewed(store: ResultsStore) -> None:
 
     rid, _ = store.begin_part(start("SN-1"))
     first = _lease(store, rid)
-    assert first > dt.datetime.now(dt.timezone.utc) + dt.timedelta(seconds=LEASE_S / 2)
+    assert first > dt.datetime.now(dt.UTC) + dt.timedelta(seconds=LEASE_S / 2)
     renewed = threading.Event()
     with store.hold(rid, every_s=0.05):
-        deadline = dt.datetime.now(dt.timezone.utc) + dt.timedelta(seconds=60)
-        while dt.datetime.now(dt.timezone.utc) < deadline and not renewed.is_set():
+        deadline = dt.datetime.now(dt.UTC) + dt.timedelta(seconds=60)
+        while dt.datetime.now(dt.UTC) < deadline and not renewed.is_set():
             if _lease(store, rid) > first:
                 renewed.set()
             renewed.wait(0.05)
@@ -302,7 +303,7 @@ def test_a_version_1_database_is_upgraded_and_its_duplicate_attempts_renumbered(
     with open_results(f"sqlite:{path}") as s:
         rows = s.results()
         assert [r.attempt for r in rows] == [1, 2, 3]
-        assert rows[0].started_at == dt.datetime(2026, 11, 23, 8, 0, tzinfo=dt.timezone.utc)
+        assert rows[0].started_at == dt.datetime(2026, 11, 23, 8, 0, tzinfo=dt.UTC)
         assert s.begin_part(start("SN-1"))[1] == 4 and s.begin_part(start("SN-1", program="other"))[1] == 1
 
 

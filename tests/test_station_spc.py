@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import datetime as dt
 import math
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -23,13 +24,13 @@ from slscan.station.spc import (
     Limits,
     anderson_darling,
     capability,
-    mr_dof,
-    range_dof,
     chart_constants,
     individuals_limits,
+    mr_dof,
     nelson,
     normal_fit,
     range_constants,
+    range_dof,
     subgroup_limits,
 )
 
@@ -51,7 +52,7 @@ def test_range_constants_match_the_published_table(n: int) -> None:
 
 def test_individuals_limits_by_hand() -> None:
     x = [0.021, 0.025, 0.019, 0.030, 0.024, 0.022, 0.027]
-    mrs = [abs(b - a) for a, b in zip(x, x[1:])]
+    mrs = [abs(b - a) for a, b in pairwise(x)]
     mr_bar = sum(mrs) / len(mrs)
     mean = sum(x) / len(x)
     chart = individuals_limits(x)
@@ -226,7 +227,7 @@ def test_weibull_interval_coverage_on_fresh_draws() -> None:
         assert all(0.91 <= h / 600 <= 0.98 for h in hits), (shape, hits / 600)
 
 
-T0 = dt.datetime(2026, 11, 23, tzinfo=dt.timezone.utc)
+T0 = dt.datetime(2026, 11, 23, tzinfo=dt.UTC)
 FLAT = Characteristic("flat", "#1", "flatness", 0.05, "minimum_zone")
 
 

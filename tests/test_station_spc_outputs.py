@@ -18,7 +18,7 @@ from slscan.station.quality import SpcOptions, running_stats
 from slscan.station.results import PartStart, ValueRecord, open_results
 
 PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"
-T0 = dt.datetime(2026, 12, 1, 8, 0, tzinfo=dt.timezone.utc)
+T0 = dt.datetime(2026, 12, 1, 8, 0, tzinfo=dt.UTC)
 LIMIT_MM = 0.009  # the detection limit of the censored values
 
 
@@ -200,13 +200,13 @@ def test_exclusions_are_recorded_with_who_and_when_and_applied_later(tmp_path: P
     is refused (exit 2) without writing anything."""
     db = tmp_path / "results.sqlite"
     fill(db, 12, seed=6)
-    before = dt.datetime.now(dt.timezone.utc)
+    before = dt.datetime.now(dt.UTC)
     assert results(db, "--exclude", "5=gauge dropped", "--by", "ben") == 0
     assert "excluded  result 5: gauge dropped (ben, " in capsys.readouterr().err
     with open_results(f"sqlite:{db}", create=False) as store:
         [(rid, e)] = store.exclusions().items()
     assert (rid, e.reason, e.excluded_by) == (5, "gauge dropped", "ben")
-    assert before <= e.excluded_at <= dt.datetime.now(dt.timezone.utc)
+    assert before <= e.excluded_at <= dt.datetime.now(dt.UTC)
     assert results(db, "--exclusions", "--json") == 0
     listed = json.loads(capsys.readouterr().out)["exclusions"]
     assert [(x["result_id"], x["serial"], x["reason"], x["excluded_by"]) for x in listed] == \

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pexpect
 import pyte
-from test_station_support import DEMO_PROGRAM, program_copy, station_config
+from station_support import DEMO_PROGRAM, program_copy, station_config
 
 from slscan.station.results import open_results
 from slscan.station.station_config import StationConfig
@@ -27,7 +27,8 @@ class Terminal:
     """`slscan ...` in a pseudo-terminal, its screen kept up to date."""
 
     def __init__(self, *args: str) -> None:
-        env = {**os.environ, "TERM": "xterm", "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
+        path = os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])
+        env = {**os.environ, "TERM": "xterm", "PYTHONPATH": path}
         self.child = pexpect.spawn(sys.executable, ["-m", "slscan.cli", *args], env=env, dimensions=(ROWS, COLS),
                                    encoding="utf-8", codec_errors="replace")
         self.screen = pyte.Screen(COLS, ROWS)

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_station_support import TRUTH_GAUGE, program_copy, small_rig, station_config
+from session_support import small_rig_toml
+from station_support import TRUTH_GAUGE, program_copy, station_config
 
 from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError, IncompleteSession
@@ -46,7 +47,7 @@ def _program(folder: Path, views: str) -> Path:
 
 
 def _turntable_station(folder: Path, measurement: str = TRUTH_GAUGE, full_size: bool = False) -> StationConfig:
-    rig = TURNTABLE_RIG if full_size else small_rig(folder, rig=TURNTABLE_RIG)
+    rig = TURNTABLE_RIG if full_size else small_rig_toml(folder, source=TURNTABLE_RIG)
     return StationConfig.load(station_config(folder, measurement=measurement, rig=rig))
 
 

@@ -119,7 +119,7 @@ def _coverage(cases: list[str], calibrated: bool, tmp: Path) -> list[dict]:
     """`slscan coverage` of `cases`, TRIALS scans each, as a user runs it."""
     from slscan import cli
 
-    args = ["coverage", *sum((["--case", c] for c in cases), []), "--scans", str(TRIALS), "--seed", str(SEED),
+    args = ["coverage", *(arg for c in cases for arg in ("--case", c)), "--scans", str(TRIALS), "--seed", str(SEED),
             "--processes", str(PROCESSES), "--json"]
     if calibrated:
         args += ["--calibrated", "--out", str(tmp / "calibrations")]
@@ -228,7 +228,7 @@ def test_plate_truth_of_a_dome_is_its_closed_form() -> None:
     c, R2 = 0.02, 15.0 ** 2 + 10.0 ** 2
     pts = np.column_stack([x.ravel(), y.ravel(), c * (1 - (x.ravel() ** 2 + y.ravel() ** 2) / R2)])
     form = SimpleNamespace(region=np.ones(len(pts), bool), grid_mm=g, grid_origin_mm=(-15.0, -10.0))
-    flat, sq = plate_truth(form, pts, FormSettings())
+    flat, _sq = plate_truth(form, pts, FormSettings())
     corner = (15 - g / 2) ** 2 + (10 - g / 2) ** 2  # the outermost cell centres
     assert flat == pytest.approx(c * (corner - (g / 2) ** 2 * 2) / R2, rel=1e-6)
     plane = pts.copy()

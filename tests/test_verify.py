@@ -46,7 +46,8 @@ def test_artefact_file_errors_name_file_and_key(tmp_path: Path) -> None:
     bad.write_text('[sphere]\ncertificate = "x"\ndiameter_mm = -25.4\ndiameter_u_mm = 0.001\nform_mm = 0.0\n')
     with pytest.raises(ConfigError, match=r"a.toml.*sphere.diameter_mm.*> 0"):
         load_artefacts(bad)
-    bad.write_text('[sphere]\ncertificate = "x"\ndiameter_mm = 25.4\ndiameter_u_mm = 0.001\nform_mm = 0.0\nradius = 1\n')
+    bad.write_text('[sphere]\ncertificate = "x"\ndiameter_mm = 25.4\ndiameter_u_mm = 0.001\nform_mm = 0.0\n'
+                   'radius = 1\n')
     with pytest.raises(ConfigError, match=r"sphere.radius.*unknown key"):
         load_artefacts(bad)
     bad.write_text('[ball_bar]\ncertificate = "x"\nlength_mm = 10\nlength_u_mm = 0.001\ndiameter_mm = 20\n'
@@ -86,7 +87,8 @@ def test_positions_keep_the_artefacts_inside_the_measuring_volume(config: RigCon
             pts = np.concatenate([e + np.vstack([np.eye(3), -np.eye(3)]) * art.ball_bar.radius_mm for e in ends])
         else:
             a, b = art.plane.size_mm
-            pts = np.array([T[:3, 3] + sx * a / 2 * T[:3, 0] + sy * b / 2 * T[:3, 1] for sx in (1, -1) for sy in (1, -1)])
+            pts = np.array([T[:3, 3] + sx * a / 2 * T[:3, 0] + sy * b / 2 * T[:3, 1]
+                            for sx in (1, -1) for sy in (1, -1)])
         assert ((pts >= lo) & (pts <= hi)).all(), p.name
     bars = [p.pose[:3, 0] for p in plan if p.kind == "ball_bar"]
     assert len({tuple(np.round(d, 6)) for d in bars}) == 7  # seven different directions

@@ -5,8 +5,8 @@
 
 Every test here is marked `hardware`; without a rig (or with devices absent) each is
 skipped with the reason. (`--rig` exists only when pytest starts in tests/hardware,
-where this conftest is loaded early enough to add options; the variable works always.) The marker is registered here because the project's pytest
-configuration lives in pyproject.toml.
+where this conftest is loaded early enough to add options; the variable works always.) The
+marker is registered here because the project's pytest configuration lives in pyproject.toml.
 """
 
 from __future__ import annotations

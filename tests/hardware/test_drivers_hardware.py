@@ -3,8 +3,8 @@ Skipped, with the reason, when no rig is given or its devices cannot be opened."
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import pytest
 

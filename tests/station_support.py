@@ -1,5 +1,5 @@
-"""Shared pieces of the station tests (no tests here): a small simulated bench and a station
-config around it, measuring with the simulator's truth (`measure.SimulatorTruth`) unless told."""
+"""Shared pieces of the station tests: a station config around the small simulated bench
+(`session_support.small_rig_toml`), measuring with the simulator's truth (`measure.SimulatorTruth`) unless told."""
 
 from __future__ import annotations
 
@@ -7,27 +7,18 @@ import json
 import re
 from pathlib import Path
 
+from session_support import small_rig_toml
+
 from scanner.config import CONFIG_DIR
-from scanner.rig import DEFAULT_RIG
 
 DEMO_PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"
 TRUTH_GAUGE = "simulator-truth"  # measures nothing: reports the simulated part's imposed defects
 
 
-def small_rig(folder: Path, width: int = 320, height: int = 256, rig: Path = DEFAULT_RIG) -> Path:
-    """The bench rig (or `rig`) with a smaller camera (same lens field of view), written into `folder`."""
-    text = rig.read_text().replace("width = 1280", f"width = {width}").replace("height = 1024",
-                                                                                       f"height = {height}")
-    text = text.replace('patterns = "../patterns/', f'patterns = "{CONFIG_DIR}/patterns/')
-    path = folder / "rig.toml"
-    path.write_text(text)
-    return path
-
-
 def station_config(folder: Path, database: str = "", measurement: str = TRUTH_GAUGE, rig: Path | None = None,
                    **station_keys: object) -> Path:
     """A station config in `folder`: the small rig, data in `folder/data`."""
-    rig = rig or small_rig(folder)
+    rig = rig or small_rig_toml(folder)
     lines = ["[station]", 'name = "test-bench"', f'rig = "{rig}"', f'data_dir = "{folder / "data"}"',
              f'database = "{database}"', f'measurement = "{measurement}"']
     lines += [f"{k} = {json.dumps(v)}" for k, v in station_keys.items()]
