@@ -198,7 +198,7 @@ def measure_face(face: Any, camera_points: np.ndarray, uncertainty: ScanUncertai
     frame (N, 3) and, registered (rotation `R` camera -> model), in the model frame, their
     deviations, surface parameters and the face's normals there, with the scan's
     uncertainty of these points (None: estimated from the data) turned into the model
-    frame. What `inspect` and the plate's repeat scans (`sim.repeat_scans`) both call."""
+    frame. What `inspect` and the plate's repeat scans (`studies.repeat_scans`) both call."""
     noise, shifts = None, None
     if uncertainty is not None:
         noise = None if uncertainty.noise is None else uncertainty.noise.rotated(R)

@@ -100,7 +100,7 @@ uncertain by that much): `inspection.tolerances.decide` judges "< L" as the inte
 
 The coverage of this model — the true value inside ±U for 95 % of repeat scans with fresh
 noise, and with the errors of independent simulated calibrations — is measured on the
-simulator (`slscan coverage [--calibrated]`, `sim.repeat_scans`, tests/test_uncertainty_coverage.py).
+simulator (`slscan coverage [--calibrated]`, `studies.repeat_scans`, tests/test_uncertainty_coverage.py).
 """
 
 from __future__ import annotations
@@ -255,7 +255,7 @@ class FringeError:
 
 # How well the decoder-and-sensor model knows σ_z (one-sigma, relative): on the simulator
 # (whose sensor model is the camera's own), two scans of the textured plate at each of 120
-# random placements (`sim.repeat_scans.noise_model_check`, ~62 thousand pixels each): their
+# random placements (`studies.repeat_scans.noise_model_check`, ~62 thousand pixels each): their
 # depth difference over sqrt(2)·σ_z had spread 0.9999 mean, 0.0031 standard deviation over
 # the placements, of which 0.0029 is each placement's statistical precision; the model's own
 # RMS error is below 0.196 % (95 % upper bound, tests/test_uncertainty_coverage.py checks it). It

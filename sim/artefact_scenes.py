@@ -1,7 +1,7 @@
 """The acceptance-test artefacts in the simulator: scenes of a sphere, a ball bar and a flat
 at a position of the measuring volume (`inspection.acceptance.Position`), exact primitives
 made to their certificates; the bench that places them for `slscan verify` on a simulated
-rig; and quick scans of them for repeat-scan studies (`sim.repeat_scans`).
+rig; and quick scans of them for repeat-scan studies (`studies.repeat_scans`).
 
 A ball bar's bar is not modelled: its two spheres float at their certified distance (on
 a bench the bar is behind the spheres and its points lie on neither sphere).

@@ -11,8 +11,9 @@ import open3d as o3d
 import pytest
 
 from inspection.bins.instances import instances_from_label_image
+from inspection.bins.part_file import TabPart
 from scanner.pointcloud import OrganisedCloud
-from sim.bins import TabPart, bin_scene, rotation_about, scan_bin
+from sim.bins import bin_scene, rotation_about, scan_bin
 from sim.clutter import clutter_cloud
 from sim.render import compute_ground_truth
 from sim.scene import REFERENCE_PLANE_ID
@@ -219,13 +220,13 @@ def test_bin_truth_round_trips_and_names_a_bad_key(tmp_path) -> None:
 
 
 def test_judge_tells_right_wrong_and_phantom_poses() -> None:
-    """sim.bin_judge against poses made from the truth: the true pose is right (and
+    """studies.bin_judge against poses made from the truth: the true pose is right (and
     pickable), the part turned over about its long axis is wrong, an instance on the tray
     is a phantom; the occlusion it compares is the truth's."""
     from types import SimpleNamespace
 
-    from sim.bin_judge import judge
     from sim.bins import BinTruth
+    from studies.bin_judge import judge
 
     b = bin_scene(5, seed=7, spread_mm=(12.0, 8.0))
     truth = BinTruth.of(b, np.eye(4))
@@ -350,10 +351,10 @@ def _judge_fringe_bins(seeds: list[int]) -> None:
     from inspection.bins.picking import pick_order
     from inspection.bins.pose_settings import PoseSettings
     from scanner.rig import RigConfig
-    from sim.bin_judge import judge
     from sim.bins import BIN_TRUTH_FILE, BinTruth, default_parts, fringe_scan_bin
     from sim.evaluate import Truth
     from slscan.commands.pose import load_scene, pose_scene
+    from studies.bin_judge import judge
 
     model = ThinPartModel.from_mesh(*TabPart().mesh(), "tab")
     camera = RigConfig.load().nominal_model().camera

@@ -101,8 +101,8 @@ def moved(part: ScanCloud, G: np.ndarray) -> ScanCloud:
 
 
 def open3d_baseline(part: ScanCloud, target: ModelTarget, voxel: float) -> np.ndarray:
-    """Open3D's own pipeline, single start (`sim.registration_bench.open3d_baseline`)."""
-    from sim.registration_bench import open3d_baseline as baseline
+    """Open3D's own pipeline, single start (`studies.registration_bench.open3d_baseline`)."""
+    from studies.registration_bench import open3d_baseline as baseline
 
     return baseline(part.points, part.normals, target, voxel)
 

@@ -17,6 +17,7 @@ import pytest
 
 from inspection.bins.instance_plane import SceneContext
 from inspection.bins.instances import instances_from_depth_steps, instances_from_label_image
+from inspection.bins.part_file import TabPart
 from inspection.bins.picking import pick_order
 from inspection.bins.pose import PoseSettings, ThinPartModel, estimate_poses
 from inspection.errors import CadError, InspectionError, MaskError
@@ -25,7 +26,7 @@ from scanner.errors import ConfigError
 from scanner.recording_reader import entity_paths
 from scanner.rig import DEFAULT_RIG, RigConfig
 from scanner.session_recording import CLOUD
-from sim.bins import TabPart, bin_scene, fringe_scan_bin, scan_bin
+from sim.bins import bin_scene, fringe_scan_bin, scan_bin
 from slscan.cli import main
 from slscan.commands.pose import load_masks, load_part
 
@@ -224,7 +225,7 @@ def test_masks_of_the_wrong_size_are_an_error(small_bin: tuple, tmp_path: Path,
     ("[part]\nkind = \"tab\"\napproach = [0.0, 0.0, -1.0]\n", r"must point away from the front face"),
 ])
 def test_nonsense_part_files_are_errors(tmp_path: Path, text: str, match: str) -> None:
-    """Part files go through the one validation layer (sim.bins.PartFile): the file and key named."""
+    """Part files go through the one validation layer (inspection.bins.part_file.PartFile): the file and key named."""
     f = tmp_path / "part.toml"
     f.write_text(text)
     with pytest.raises(ConfigError, match=rf"part.toml.*{match}"):
@@ -359,9 +360,9 @@ def _box_filtered_scan(part: TabPart, raise_mm: float, yaw_deg: float, mixed: bo
     `sub` samples each): a pixel straddling the part's edge measures the depth blended by
     the part's share of it, as the fringe chain's mixed pixels do (without `mixed`: no
     measurement there, as a decoder rejecting them leaves it). Depth noise 0.005 mm."""
+    from inspection.bins.part_file import outline_loops
     from scanner.geometry import Pinhole
     from scanner.pointcloud import OrganisedCloud, organised_normals
-    from sim.bins import _loops
 
     w, h, f = 280, 220, 3000.0   # ~0.13 mm pixels at 400 mm, as the bins' scans; the part well inside
     cam = Pinhole(w, h, np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]]))
@@ -372,7 +373,7 @@ def _box_filtered_scan(part: TabPart, raise_mm: float, yaw_deg: float, mixed: bo
     mask = np.zeros((h * sub, w * sub), np.uint8)
     # the outline and its hole on the part plane (camera x, y mm) in sub-samples: pixel j
     # spans j -/+ 0.5 (OpenCV's centres at integers), its sub-samples' centres at integers
-    loops = [((loop - centre) @ R.T * f / z_part + [w / 2, h / 2] + 0.5) * sub - 0.5 for loop in _loops(part)]
+    loops = [((loop - centre) @ R.T * f / z_part + [w / 2, h / 2] + 0.5) * sub - 0.5 for loop in outline_loops(part)]
     cv2.fillPoly(mask, [np.rint(px * 256).astype(np.int32) for px in loops], 1, lineType=cv2.LINE_8, shift=8)
     share = mask.reshape(h, sub, w, sub).mean(axis=(1, 3))
     u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
@@ -397,7 +398,7 @@ def test_outline_points_lie_on_the_simulated_outline_on_the_tray_and_on_a_part(r
     (0.13 mm) inside it, nor pushed out where the step is the tray's."""
     from inspection.bins.flat_patches import instances_from_flat_patches
     from inspection.bins.instance_plane import instance_patch, onto_plane
-    from sim.bins import _distance_to_loops, _inside, _loops
+    from inspection.bins.part_file import distance_to_loops, inside_loops, outline_loops
 
     part = TabPart()
     cloud, cam, camera_from_part = _box_filtered_scan(part, raise_mm, yaw_deg=17.0, mixed=mixed)
@@ -406,7 +407,8 @@ def test_outline_points_lie_on_the_simulated_outline_on_the_tray_and_on_a_part(r
     patch = instance_patch(flat, SceneContext.of_cloud(cloud, cam), part.thickness_mm, PoseSettings())
     T = np.linalg.inv(camera_from_part)
     xy = (patch.edge_pts @ T[:3, :3].T + T[:3, 3])[:, :2]
-    signed = _distance_to_loops(xy, _loops(part)) * np.where(_inside(xy, _loops(part)), -1.0, 1.0)   # mm, + outside
+    loops = outline_loops(part)
+    signed = distance_to_loops(xy, loops) * np.where(inside_loops(xy, loops), -1.0, 1.0)   # mm, + outside
     assert len(signed) > 350   # the whole outline is a true edge (nothing covers the part)
     assert abs(np.median(signed)) < 0.025, np.quantile(signed, [0.1, 0.5, 0.9])
     assert np.mean(np.abs(signed) < 0.06) > 0.9, np.quantile(signed, [0.1, 0.5, 0.9])

@@ -3,9 +3,9 @@
 
 - part-in-whole on CAMPAIGN_PARTS (default 60) random generated parts and the NIST files,
   scanned with the table in view, random start: success (proven, within 0.05 deg / 0.05 mm)
-  on at least 98 %, no wrong pose with exit 0 (`sim.registration_bench`);
+  on at least 98 %, no wrong pose with exit 0 (`studies.registration_bench`);
 - the pose uncertainty's coverage over COVERAGE_SCANS (default 100) repeat scans of the demo
-  part at fresh placements: 95 % +- 3 % (`sim.pose_coverage`).
+  part at fresh placements: 95 % +- 3 % (`studies.pose_coverage`).
 
 Seeds are drawn from the operating system and printed; the folders are kept under
 CAMPAIGN_OUT (default: pytest's temporary folder)."""
@@ -26,7 +26,7 @@ def _out(tmp_path: Path, name: str) -> Path:
 
 
 def test_registration_on_fresh_random_parts(tmp_path: Path) -> None:
-    from sim.registration_bench import evaluate, scan_cases
+    from studies.registration_bench import evaluate, scan_cases
 
     seed = int(np.random.SeedSequence().entropy % 2 ** 31)
     print(f"campaign seed {seed}")
@@ -40,7 +40,7 @@ def test_registration_on_fresh_random_parts(tmp_path: Path) -> None:
 
 
 def test_pose_uncertainty_covers(tmp_path: Path) -> None:
-    from sim.pose_coverage import run
+    from studies.pose_coverage import run
 
     seed = int(np.random.SeedSequence().entropy % 2 ** 31)
     print(f"coverage seed {seed}")

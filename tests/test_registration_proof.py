@@ -4,7 +4,7 @@ part is proven; the statistics underneath against independent implementations (s
 binomial test, least squares by Monte Carlo); `--json` prints JSON alone on stdout.
 
 Views are rendered without the fringe pipeline (`virtual_view`: visible CAD samples with
-noise along the viewing rays); the whole chain on random parts is `sim.registration_bench`."""
+noise along the viewing rays); the whole chain on random parts is `studies.registration_bench`."""
 
 from __future__ import annotations
 

@@ -15,6 +15,7 @@ from registration_support import virtual_view
 from scipy.spatial.transform import Rotation
 
 from inspection.bins.instances import Instance
+from inspection.bins.part_file import TabPart
 from inspection.bins.part_model import ThinPartModel
 from inspection.bins.picking import INSTANCES, MODELS, log_poses, poses_document
 from inspection.bins.pose import PartPose
@@ -25,7 +26,6 @@ from scanner.config import CONFIG_DIR
 from scanner.recording_reader import entity_paths, read_component, read_points
 from scanner.rig import RigConfig
 from scanner.session_recording import SessionRecording
-from sim.bins import TabPart
 from sim.parts import lying_pose
 
 STEP = CONFIG_DIR / "parts" / "demo_part.step"

@@ -8,7 +8,7 @@ them with the acceptance tests).
   the interreflection mask removes most of the phase error and the fringe-order errors.
 - The matte demo part: the interreflection mask leaves its figures as they were.
 
-Figures from `sim.shiny_figures` (ground truth of the simulator). Printed for the record.
+Figures from `studies.shiny_figures` (ground truth of the simulator). Printed for the record.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from scanner.exposure import ExposureRequest
 from scanner.patterns import PatternSet
 from scanner.pipeline import scan
 from scanner.rig import RigConfig, open_rig
-from sim.shiny_figures import session_figures
+from studies.shiny_figures import session_figures
 
 pytestmark = pytest.mark.acceptance
 

@@ -380,8 +380,8 @@ def test_defocus_bias_matches_the_simulators_blur() -> None:
     from inspection.uncertainty import defocus_bias
     from scanner.decode import decode
     from sim.artefact_scenes import artefact_objects, window_renderer
-    from sim.repeat_scans import Bench
     from slscan.measurement_model import rig_measurement
+    from studies.repeat_scans import Bench
 
     config = RigConfig.load()
     bench = Bench.of(config, rig_measurement(config.raw, config.nominal_model(), PatternSet.load(config.patterns_path),

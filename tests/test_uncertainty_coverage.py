@@ -1,4 +1,4 @@
-"""Coverage of the uncertainty model on the simulator (`sim.repeat_scans`, the measurement
+"""Coverage of the uncertainty model on the simulator (`studies.repeat_scans`, the measurement
 path of `slscan scan`, `inspect` and `verify`; `slscan coverage` runs the same studies):
 over repeat scans with fresh noise, each at a new place in the measuring volume, the true
 value lies within ±U for 95 % ± 3 % of the scans — sphere radius, ball-bar length, the
@@ -21,7 +21,7 @@ import pytest
 from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
 from inspection.uncertainty import DECODER_MODEL_REL_U, CalibrationUncertainty
 from scanner.rig import RigConfig
-from sim.repeat_scans import Bench, ball_bar_length, noise_model_check, sphere_radius
+from studies.repeat_scans import Bench, ball_bar_length, noise_model_check, sphere_radius
 
 COVARIANCE = Path(__file__).parent / "data" / "sim_calibration_covariance.json"
 TRIALS = 200
@@ -66,7 +66,7 @@ def test_registration_of_the_plate_recovers_a_known_rigid_move() -> None:
     measured ones (closed form: a move made in the test), also with noise on the points."""
     from scipy.spatial.transform import Rotation
 
-    from sim.repeat_scans import registered
+    from studies.repeat_scans import registered
 
     rng = np.random.default_rng(4)
     truth = rng.uniform(-20.0, 20.0, (500, 3)) * [1.0, 1.0, 0.05]
@@ -89,7 +89,7 @@ def test_a_scan_window_keeps_the_calibrated_rigs_own_principal_point(bench: Benc
 
     from inspection.uncertainty import perturbed
     from sim.artefact_scenes import cropped_camera
-    from sim.repeat_scans import MeasuringRig
+    from studies.repeat_scans import MeasuringRig
 
     points = np.array([[10.0, -5.0, 400.0], [-20.0, 15.0, 420.0], [5.0, 25.0, 380.0]])  # camera frame, mm
 
@@ -181,7 +181,7 @@ def test_noise_model_bound_catches_an_unmodelled_scatter() -> None:
     """NoiseModelCheck on synthetic ratios (120 placements, statistical precision 0.3 %):
     right on average, its bound stays below the 0.2 % the model is given; with a
     placement-to-placement error of 0.5 % added, or a 0.4 % offset, it is above it."""
-    from sim.repeat_scans import NoiseModelCheck
+    from studies.repeat_scans import NoiseModelCheck
 
     rng = np.random.default_rng(21)
 
@@ -221,7 +221,7 @@ def test_plate_truth_of_a_dome_is_its_closed_form() -> None:
     from types import SimpleNamespace
 
     from inspection.form import FormSettings
-    from sim.repeat_scans import plate_truth
+    from studies.repeat_scans import plate_truth
 
     g = 0.2
     x, y = np.meshgrid(np.arange(-15, 15, g) + g / 2, np.arange(-10, 10, g) + g / 2)

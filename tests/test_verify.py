@@ -166,8 +166,8 @@ def _bar_scan(config: RigConfig, model_of: object) -> object:
     reconstructed with `model_of(true model)`; its result."""
     from scanner.patterns import PatternSet
     from sim.artefact_scenes import artefact_objects, quick_scan, window_renderer
-    from sim.repeat_scans import Bench
     from slscan.measurement_model import rig_measurement
+    from studies.repeat_scans import Bench
 
     measurement = rig_measurement(config.raw, config.nominal_model(), PatternSet.load(config.patterns_path), 12,
                                   config.path)

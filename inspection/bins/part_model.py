@@ -1,6 +1,6 @@
 """The model of a thin flat part, from its triangle mesh (paper 001, sections 3-4).
 
-A thin sheet-metal part (paper 001's nickel tab; `sim.bins.TabPart`) seen from above is
+A thin sheet-metal part (paper 001's nickel tab; `inspection.bins.part_file.TabPart`) seen from above is
 a flat patch: its 0.25 mm walls are below the scanner's resolution, so local 3D
 descriptors see a plane and nothing else, and its two faces are indistinguishable by
 depth. What carries the pose in the plane, and the side, is the outline. So the model is

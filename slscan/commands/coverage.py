@@ -1,5 +1,5 @@
 """`slscan coverage`: how often the truth lies within ±U, measured on the simulated bench
-with the product's own measurement path (`sim.repeat_scans`), so anyone can rerun a
+with the product's own measurement path (`studies.repeat_scans`), so anyone can rerun a
 published coverage figure:
 
     slscan coverage --case plate-flatness|plate-sq|sphere-radius|ball-bar|pose|smooth-flatness|smooth-sq|
@@ -11,7 +11,7 @@ prints {"case", "scans", "inside", "coverage", "error_mean_mm", "error_sd_mm",
 cases share their scans; several cases print a JSON list). The smooth-plate cases measure
 a perfectly flat, smooth plate (truth 0): their "detected" is how many scans reported a
 value (false detections; the stated rate is 5 %). The near-limit cases measure a smooth plate
-whose bow (`sim.repeat_scans.NEAR_LIMIT`) puts its flatness near the detection limit, where
+whose bow (`studies.repeat_scans.NEAR_LIMIT`) puts its flatness near the detection limit, where
 a zone is reported in some scans and "< L" in the others.
 
 `--calibrated`: each scan is reconstructed with the result of an independent simulated
@@ -76,8 +76,8 @@ def cmd_coverage(args: argparse.Namespace) -> int:
     from inspection.artefact_file import DEFAULT_ARTEFACTS, load_artefacts
     from scanner.patterns import PatternSet
     from scanner.rig import RigConfig
-    from sim import repeat_scans as rs
     from slscan.measurement_model import rig_measurement
+    from studies import repeat_scans as rs
 
     def say(text: str) -> None:
         print(f"{time.strftime('%H:%M:%S')} {text} (load {os.getloadavg()[0]:.1f})", file=sys.stderr, flush=True)

@@ -11,7 +11,7 @@ Rerun recording beside the poses file. A cloud file is placed on the camera imag
 rig (`--rig`, default the simulated bench rig), as slscan's own clouds are in its camera
 frame; without `--rig` the poses file has no world frame (camera frame only), so a robot
 cell never reads an identity it did not ask for. The part file is a TOML `[part]` table
-(`kind = "tab"`: the parameters of `sim.bins.TabPart`, see config/parts/nickel_tab.toml) or
+(`kind = "tab"`: the parameters of `inspection.bins.part_file.TabPart`, see config/parts/nickel_tab.toml) or
 a mesh (PLY, STL, OBJ, OFF; mm).
 Exit code 0 when at least one part is pickable, 1 when none is (the file is written anyway).
 
@@ -106,7 +106,7 @@ def load_part(path: str | Path) -> Any:
         raise CadError(path, "no such part file")
     suffix = path.suffix.lower()
     if suffix == ".toml":
-        from sim.bins import load_part_file
+        from inspection.bins.part_file import load_part_file
 
         spec = load_part_file(path)
         model = ThinPartModel.from_mesh(*spec.part.mesh(), spec.name)
@@ -402,16 +402,16 @@ def bin_sessions(paths: list[Path]) -> list[Path]:
 
 def saved_bins_bench(args: argparse.Namespace) -> int:
     """`slscan posebench --sessions`: `pose_scene` on every saved bin, judged by
-    `sim.bin_judge` (wall and CPU time of every part's pose, and of each bin's instances and context);
+    `studies.bin_judge` (wall and CPU time of every part's pose, and of each bin's instances and context);
     the figures: each bin's judgement, the summary lines, the load averages."""
     import numpy as np
 
     from inspection.bins.instances import instances_from_label_image
     from inspection.bins.picking import pick_order
     from inspection.bins.pose_settings import PoseSettings
-    from sim.bin_judge import PICK_DEG, PICK_MM, WRONG_DEG, WRONG_MM, judge
     from sim.bins import BIN_TRUTH_FILE, BinTruth, TabPart
     from sim.evaluate import Truth
+    from studies.bin_judge import PICK_DEG, PICK_MM, WRONG_DEG, WRONG_MM, judge
 
     sessions = bin_sessions(args.sessions)
     settings = PoseSettings(method=POSE_METHODS[args.methods[0]])
@@ -464,7 +464,7 @@ def rows_summary(args: argparse.Namespace) -> int:
     `--sessions --rows` runs (a long benchmark run in pieces, or stopped part way); the summary lines."""
     import numpy as np
 
-    from sim.bin_judge import PICK_DEG, PICK_MM, WRONG_DEG, WRONG_MM, PoseVerdict
+    from studies.bin_judge import PICK_DEG, PICK_MM, WRONG_DEG, WRONG_MM, PoseVerdict
 
     bins, times, steps = [], [], []
     for path in args.summary:

@@ -302,7 +302,7 @@ def _pairs(session: Any, truths: list[np.ndarray]) -> dict[str, Any]:
     from inspection.measured_cloud import load_source
     from inspection.views.align import pose_error
     from inspection.views.pair_registration import register_view_pair, without_support
-    from sim.pair_bench import open3d_pair
+    from studies.pair_bench import open3d_pair
 
     views = [without_support(load_source(v.session.root)) for v in session.views]
     n = len(views)

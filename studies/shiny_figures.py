@@ -7,7 +7,7 @@ valid pixels, fringe-order errors (valid pixels off by half a period or more), p
 per reason, and the session's exposures and capture time (the simulator's wall time, which is
 mostly rendering, and the nominal time the rig's pattern period and exposures take).
 
-    python -m sim.shiny_figures SESSION [--interreflection-off]
+    python -m studies.shiny_figures SESSION [--interreflection-off]
 
 prints them as JSON (decoding the session's raw frames again; `--interreflection-off` decodes
 without the interreflection mask, for the before/after comparison).

@@ -4,7 +4,7 @@ anew) with fresh noise, through the whole fringe chain; each registered (the par
 by the scanner's truth: the question here is the pose's U, not the table's removal) and its
 error against the simulator's true pose set beside the covariance the registration states.
 
-    python -m sim.pose_coverage OUT [--part demo|SEED] [--scans 100] [--seed S]
+    python -m studies.pose_coverage OUT [--part demo|SEED] [--scans 100] [--seed S]
 
 Each scan's cloud and truth are kept in OUT (`scan_K.npz`); run again with the same seed,
 the scans are read back instead of taken (a change to the registration re-measured on the
@@ -183,7 +183,7 @@ def coverage(rows: list[dict[str, Any]], ellipsoid: float) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sim.pose_coverage", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m studies.pose_coverage", description=__doc__.split("\n\n")[0])
     p.add_argument("out", type=Path)
     p.add_argument("--part", default="demo", help="demo, or the seed of a random part")
     p.add_argument("--scans", type=int, default=100)

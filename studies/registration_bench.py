@@ -5,9 +5,9 @@ simulated table, scanned through the whole fringe chain as the scanner writes th
 (`isolate_part`, `register`, exit 0 only for a proven pose), with Open3D's FPFH + RANSAC +
 ICP on the same isolated clouds beside it.
 
-    python -m sim.registration_bench scan OUT --parts 60 [--seed S]     scans into OUT (seeds printed)
-    python -m sim.registration_bench evaluate OUT [--shard K/N]           registers them, prints the table
-    python -m sim.registration_bench summary OUT                          the table of every shard's results
+    python -m studies.registration_bench scan OUT --parts 60 [--seed S]     scans into OUT (seeds printed)
+    python -m studies.registration_bench evaluate OUT [--shard K/N]           registers them, prints the table
+    python -m studies.registration_bench summary OUT                          the table of every shard's results
 
 A seed not given is drawn from the operating system and printed: every measurement runs on
 new parts. Outcomes per scan: "success" (proven, within 0.05 deg and 0.05 mm of the truth at
@@ -265,7 +265,7 @@ def summary(rows: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sim.registration_bench", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m studies.registration_bench", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="what", required=True)
     s = sub.add_parser("scan", help="new cases (a fresh seed) or, with --resume, the rest of OUT's")
     s.add_argument("out", type=Path)

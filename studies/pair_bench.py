@@ -1,7 +1,7 @@
 """View pairs drawn at random on the simulated turntable, registered by
 `inspection.views.pair_registration` and by Open3D's FPFH + RANSAC + ICP beside it (issue 26).
 
-    python -m sim.pair_bench --out DIR [--placements 20] [--seed S] [--parts demo,ctc01,ftc06,random]
+    python -m studies.pair_bench --out DIR [--placements 20] [--seed S] [--parts demo,ctc01,ftc06,random]
 
 A placement is a part standing on the platter of `config/rigs/sim_turntable.toml`: the demo
 part, a NIST part of ../shared/data/step (scaled to the platter, as `slscan viewbench
@@ -214,7 +214,7 @@ def summary(rows: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sim.pair_bench", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m studies.pair_bench", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--placements", type=int, default=20)
     p.add_argument("--seed", type=int, help="master seed (default: drawn, and printed)")
