@@ -531,7 +531,7 @@ def _tessellation(faces: list[Face]) -> Tessellation:
 def write_copies(source: str | Path, copies: int, out: str | Path, spacing_mm: float | None = None) -> Path:
     """A STEP file holding `copies` translated copies of `source`'s shape, on a grid with
     `spacing_mm` between origins (default: 1.5 x the part's diagonal), each copy with its
-    own faces: a large real file for timing the reader (`slscan cadbench`)."""
+    own faces: a large real file for timing the reader (`slscan bench cad`)."""
     from OCP.Bnd import Bnd_Box
     from OCP.BRep import BRep_Builder
     from OCP.BRepBndLib import BRepBndLib

@@ -526,7 +526,7 @@ def _row_chunks(rows: int) -> Iterator[slice]:
     """Stacks of noise draws (32 fields or surfaces) are worked on ROW_CHUNK rows at a time:
     a piece's temporaries (a few MB) are reused from the allocator's free memory, where a
     whole stack's (40-100 MB each) are fresh mappings the kernel zeroes page by page every
-    time (in `slscan demobench`, 0.8-1.1 s of each face thread's 1.7-2.2 s CPU was the
+    time (in `slscan bench demo`, 0.8-1.1 s of each face thread's 1.7-2.2 s CPU was the
     kernel zeroing pages). The results are the same bit for bit."""
     return (slice(i, i + ROW_CHUNK) for i in range(0, rows, ROW_CHUNK))
 

@@ -109,7 +109,7 @@ def native_threads(count: int, *, openmp: bool = False) -> Iterator[None]:
 
 def size_opencv_pool() -> None:
     """OpenCV's thread pool sized to the CPUs this process may run on (left at its default,
-    the pool showed 3x run-to-run swings in decode time on a 2-core VM, `slscan bench`).
+    the pool showed 3x run-to-run swings in decode time on a 2-core VM, `slscan bench decode`).
     Called once by the command line on its main thread, not at import."""
     import cv2
 

@@ -105,7 +105,7 @@ class BinScene:
 
 
 def default_parts(seed: int) -> int:
-    """Parts in the bin of `seed` when the count is not given: 5..20, as posebench draws them."""
+    """Parts in the bin of `seed` when the count is not given: 5..20, as `slscan bench pose` draws them."""
     return 5 + seed % 16
 
 

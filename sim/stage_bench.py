@@ -5,7 +5,7 @@ simulated stage turns with everything else in the scene (`sim.virtual_stage`).
 up (toward the camera side of the axis), its centre `offset_mm` from the axis, at the
 height of the axis point, with the stage at 0. `slscan calibrate --stage-axis` opens the
 simulated rig on it and turns it. `part_on_stage` stands a CAD part on the platter (the
-NIST parts of `slscan viewbench --part`).
+NIST parts of `slscan bench views --part`).
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import TextIO
 
 from scanner.errors import ScannerError, Terminated
-from slscan.commands import COMMANDS, command_module, modules
+from slscan.commands import COMMANDS, GROUP, GROUPS, MOVED, command_module, modules, table
 from slscan.examples import epilog
 from slscan.exit_codes import SUMMARY, Exit, for_error
 
@@ -93,18 +93,77 @@ def commands(parser: argparse.ArgumentParser, prefix: str = "") -> dict[str, arg
 
 class _Summarised:
     """The sub-command adder a command module's `register` is given: each command's one-line
-    summary comes from `slscan.commands.COMMANDS`."""
+    summary comes from its table, `slscan.commands.COMMANDS` or a group's (`BENCHES`)."""
 
-    def __init__(self, sub: argparse._SubParsersAction) -> None:
-        self.sub = sub
+    def __init__(self, sub: argparse._SubParsersAction, summaries: dict[str, tuple[str, str]] = COMMANDS) -> None:
+        self.sub, self.summaries = sub, summaries
 
     def add_parser(self, name: str, **kw: object) -> argparse.ArgumentParser:
-        return self.sub.add_parser(name, help=COMMANDS[name][1], **kw)  # type: ignore[arg-type]
+        return self.sub.add_parser(name, help=self.summaries[name][1], **kw)  # type: ignore[arg-type]
 
 
-def chosen_command(argv: Sequence[str]) -> str | None:
-    """The command `argv` runs: its first word that names one (None: bare, --help, --version)."""
-    return next((a for a in argv if a in COMMANDS), None)
+MEMBER = "group_member"  # where the parsed arguments keep the member of a group command (`slscan bench NAME`)
+
+
+def chosen_command(argv: Sequence[str], group: str | None = None) -> str | None:
+    """The command `argv` runs (of `group`: `argv` the words after it): its first word that
+    names one (None: bare, --help, --version)."""
+    return next((a for a in argv if a in table(group)), None)
+
+
+def command_name(args: argparse.Namespace) -> str:
+    """The command the parsed `args` run, as typed: "scan", "bench sim"."""
+    member = getattr(args, MEMBER, None) if args.command in GROUPS else None
+    return f"{args.command} {member}" if member else str(args.command)
+
+
+def moved(argv: Sequence[str]) -> str | None:
+    """The line refusing a former command's name in `argv` (`slscan.commands.MOVED`: the
+    benches, now under `slscan bench`), naming the command now; None when `argv` uses none."""
+    word = next((a for a in argv if a in COMMANDS or a in MOVED), None)
+    if word is None or word in COMMANDS:
+        return None
+    return f"slscan: error: `slscan {word}` is now `slscan {MOVED[word]}` (slscan bench --help lists the benches)"
+
+
+def _member_first(parser: argparse.ArgumentParser, argv: Sequence[str]) -> None:
+    """A group command given an option of its own member before any member (`slscan bench
+    --json`, the former decode benchmark): a usage error (exit 2) saying to name the member."""
+    group = chosen_command(argv)
+    if group not in GROUPS:
+        return
+    rest = argv[list(argv).index(group) + 1:]
+    if chosen_command(rest, group) is not None:
+        return
+    own = {s for action in commands(parser)[group]._actions for s in action.option_strings}
+    unknown = [a for a in rest if a.startswith("-") and a.split("=")[0] not in own
+               and not (a[:2] in own and not a.startswith("--"))]  # -vv: short flags together
+    if unknown:
+        former = f" (the former `slscan {group}` is `slscan {MOVED[group]}`)" if group in MOVED else ""
+        commands(parser)[group].error(f"{unknown[0]}: name the {group} to run first, `slscan {group} NAME "
+                                      f"{unknown[0]} ...`{former}")
+
+
+def _add_commands(sub: argparse._SubParsersAction, argv: Sequence[str] | None, group: str | None = None) -> None:
+    """Under `sub`, the commands of `slscan` (or of `slscan GROUP`): every command's own parser,
+    or, given the `argv` to parse, only the chosen command's (its module imported) and a name
+    and summary for the others. A group command's parser holds its members' the same way."""
+    summaries = table(group)
+    chosen = chosen_command(argv, group) if argv is not None else None
+    if argv is None:
+        chosen_modules = modules(group)
+    else:
+        chosen_modules = [command_module(chosen, group)] if chosen and summaries[chosen][0] != GROUP else []
+    for module in chosen_modules:
+        module.register(_Summarised(sub, summaries))
+    for name in GROUPS if group is None else ():
+        if argv is None or name == chosen:
+            members = sub.add_parser(name, help=summaries[name][1], description=summaries[name][1]).add_subparsers(
+                dest=MEMBER, metavar="NAME", help=f"the {name} to run (each with its own --help)")
+            _add_commands(members, None if argv is None else argv[list(argv).index(name) + 1:], name)
+    for name, (_, summary) in summaries.items():
+        if name not in sub.choices:
+            sub.add_parser(name, help=summary, add_help=False)  # named only: this run does not use it
 
 
 def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
@@ -116,18 +175,12 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
                                        "example.", formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action=_Version, help="print the version (and git describe of a checkout) and exit")
     _add_logging_options(p, None)
-    sub = p.add_subparsers(dest="command", metavar="COMMAND")
-    chosen = chosen_command(argv) if argv is not None else None
-    for module in modules() if argv is None else [command_module(chosen)] if chosen else []:
-        module.register(_Summarised(sub))
-    for name, (_, summary) in COMMANDS.items():
-        if name not in sub.choices:
-            sub.add_parser(name, help=summary, add_help=False)  # named only: this run does not use it
+    _add_commands(p.add_subparsers(dest="command", metavar="COMMAND"), argv)
     for name, command in commands(p).items():
         command.formatter_class = argparse.RawDescriptionHelpFormatter
         command.epilog = command.epilog or epilog(name)
-        if " " not in name:
-            _add_logging_options(command, argparse.SUPPRESS)  # given after the command: overrides the one before
+        if " " not in name or name.split()[0] in GROUPS:  # given after the command: overrides the one before
+            _add_logging_options(command, argparse.SUPPRESS)
     return p
 
 
@@ -168,15 +221,20 @@ def configure_logging(args: argparse.Namespace) -> logging.Handler | None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; its exit code (`slscan.exit_codes`)."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    refusal = moved(argv)
+    if refusal is not None:
+        print(refusal, file=sys.stderr)
+        return Exit.USAGE
     parser = build_parser(argv)
+    _member_first(parser, argv)
     args = parser.parse_args(argv)
-    if getattr(args, "func", None) is None:  # bare `slscan`: the help, not an error
+    if getattr(args, "func", None) is None:  # bare `slscan` or `slscan bench`: the help, not an error
         (commands(parser).get(args.command) if args.command else parser).print_help()
         return Exit.OK
     try:
         log_file = configure_logging(args)
     except ScannerError as exc:
-        print(f"slscan {args.command}: error: {exc}", file=sys.stderr)
+        print(f"slscan {command_name(args)}: error: {exc}", file=sys.stderr)
         return Exit.USAGE
     from slscan.library_logs import hold_to
 
@@ -289,16 +347,16 @@ def _run(args: argparse.Namespace) -> int:
                 return int(args.func(args))
         return int(args.func(args))
     except ScannerError as exc:
-        print(f"\nslscan {args.command}: error: {exc}", file=sys.stderr)
+        print(f"\nslscan {command_name(args)}: error: {exc}", file=sys.stderr)
         return for_error(exc)
     except OSError as exc:  # the file system refused (full disk, read-only or missing folder): one line
         from scanner.session import disk_problem
 
-        print(f"\nslscan {args.command}: error: {disk_problem(exc)}", file=sys.stderr)
+        print(f"\nslscan {command_name(args)}: error: {disk_problem(exc)}", file=sys.stderr)
         return Exit.USAGE
     except KeyboardInterrupt as exc:
         why = f" ({exc})" if str(exc) else ""
-        print(f"\nslscan {args.command}: interrupted{why}; frames already captured are kept", file=sys.stderr)
+        print(f"\nslscan {command_name(args)}: interrupted{why}; frames already captured are kept", file=sys.stderr)
         return Exit.INTERRUPTED
 
 

@@ -22,15 +22,18 @@ EXAMPLES: dict[str, str] = {
               "slscan review sessions/bin/outputs/poses.rrd --port 9091",
     "export": "slscan export sessions/demo --format e57 --out demo.e57\n"
               "slscan export sessions/demo --format ply --aligned --deviations --out demo-cad-frame.ply",
-    "bench": "slscan bench --width 1280 --height 1024 --repeats 3 --no-peers",
-    "binobench": "slscan binobench --scenes 1 --imports 1 --repeats 1\n"
-                 "slscan binobench --scenes 3 --seed 219780649385936647750815756770131625442 --json "
+    "bench": "slscan bench decode --width 1280 --height 1024 --repeats 3 --no-peers\n"
+             "slscan bench coverage --case sphere-radius --scans 200 --seed 5 --json\n"
+             "slscan bench sim --repeats 3",
+    "bench decode": "slscan bench decode --width 1280 --height 1024 --repeats 3 --no-peers",
+    "bench binocular": "slscan bench binocular --scenes 1 --imports 1 --repeats 1\n"
+                 "slscan bench binocular --scenes 3 --seed 219780649385936647750815756770131625442 --json "
                  "--out binobench.json",
-    "importbench": "slscan importbench --skip-procam",
-    "simbench": "slscan simbench --repeats 3",
-    "demobench": "slscan demobench --parts 2",
-    "viewbench": "slscan viewbench --out viewbench/demo --views 8 --width 640 --height 512\n"
-                 "slscan viewbench --out viewbench/ctc01 --part ctc01 --views 8",
+    "bench import": "slscan bench import --skip-procam",
+    "bench sim": "slscan bench sim --repeats 3",
+    "bench demo": "slscan bench demo --parts 2",
+    "bench views": "slscan bench views --out viewbench/demo --views 8 --width 640 --height 512\n"
+                 "slscan bench views --out viewbench/ctc01 --part ctc01 --views 8",
     "devices": "slscan devices --probe",
     "devices lightcrafter-images": "slscan devices lightcrafter-images --rig config/rigs/lightcrafter_uvc_box.toml "
                                    "--out lcr-images",
@@ -40,13 +43,13 @@ EXAMPLES: dict[str, str] = {
                  "slscan calibrate --covariance-check 30 --seed 5100 --out calibrations/covariance-check",
     "cad": "slscan cad config/parts/demo_part.step\n"
            "slscan cad config/parts/demo_part.step --sample 20000 --repeats 3",
-    "cadbench": "slscan cadbench ../shared/data/step/nist_ctc_01_asme1_rd.stp --copies 1,4,16",
+    "bench cad": "slscan bench cad ../shared/data/step/nist_ctc_01_asme1_rd.stp --copies 1,4,16",
     "verify": "slscan verify --out verify/bench                                (the simulated bench rig)\n"
               "slscan verify --leave-one-out ../shared/data/procam-graycode --layout opencv-graycode "
               "--projector-size 1024x768 --board config/boards/procam_chess_9x7_75mm.toml --pose-folders 'capture_*' "
               "--out verify/procam",
-    "coverage": "slscan coverage --case sphere-radius --scans 200 --seed 5 --json\n"
-                "slscan coverage --case plate-flatness --case plate-sq --scans 200 --seed 6 --calibrated "
+    "bench coverage": "slscan bench coverage --case sphere-radius --scans 200 --seed 5 --json\n"
+                "slscan bench coverage --case plate-flatness --case plate-sq --scans 200 --seed 6 --calibrated "
                 "--out coverage/calibrations --processes 2",
     "register": "slscan register sessions/demo config/parts/demo_part.step --coarse sac-ia --json\n"
                 "slscan register sessions/part-all-round/view_001 sessions/part-all-round/view_000 --json",
@@ -54,9 +57,9 @@ EXAMPLES: dict[str, str] = {
                "its CAD)\n"
                "slscan inspect sessions/part-all-round --tolerances config/parts/demo_part.toml",
     "pose": "slscan pose sessions/bin --part config/parts/nickel_tab.toml --method sac-ia",
-    "posebench": "slscan posebench --seeds 0 1 2 --methods sac-ia",
+    "bench pose": "slscan bench pose --seeds 0 1 2 --methods sac-ia",
     "segment": "slscan segment sessions/demo --radius 12",
-    "segbench": "slscan segbench --seeds 0 1 --radius 12",
+    "bench segment": "slscan bench segment --seeds 0 1 --radius 12",
     "segscore": "slscan segscore labels.npy truth.npy --json",
     "station": "slscan station config/parts/demo_part.toml --auto --parts 5 --out station-data",
     "results": "slscan results --data station-data --program config/parts/demo_part.toml --report --out reports/demo\n"
@@ -67,7 +70,7 @@ EXAMPLES: dict[str, str] = {
                "--limits limits.json --rules all\n"
                "slscan results --data station-data --program config/parts/demo_part.toml --dfq --out values.dfq",
     "batch": "slscan batch station-data/sessions/demo-part/* --program config/parts/demo_part.toml --workers 2",
-    "batchbench": "slscan batchbench station-data/sessions/demo-part/* --program config/parts/demo_part.toml",
+    "bench batch": "slscan bench batch station-data/sessions/demo-part/* --program config/parts/demo_part.toml",
 }
 
 

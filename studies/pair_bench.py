@@ -4,7 +4,7 @@
     python -m studies.pair_bench --out DIR [--placements 20] [--seed S] [--parts demo,ctc01,ftc06,random]
 
 A placement is a part standing on the platter of `config/rigs/sim_turntable.toml`: the demo
-part, a NIST part of ../shared/data/step (scaled to the platter, as `slscan viewbench
+part, a NIST part of ../shared/data/step (scaled to the platter, as `slscan bench views
 --part`), or a random prismatic part (`sim.random_parts`, scaled so that its diagonal is
 60-140 mm: the platter is 160 mm), turned at random about the axis and shifted up to 10 mm
 across it; three views at random stage angles, scanned through the whole fringe chain, give
@@ -36,7 +36,7 @@ from scanner.config import CONFIG_DIR
 
 TURNTABLE = CONFIG_DIR / "rigs" / "sim_turntable.toml"
 STEP_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "step"
-NIST = {"ctc01": ("nist_ctc_01_asme1_rd.stp", 0.12, (0.0, 0.0, 1.0)),  # as `slscan viewbench --part`
+NIST = {"ctc01": ("nist_ctc_01_asme1_rd.stp", 0.12, (0.0, 0.0, 1.0)),  # as `slscan bench views --part`
         "ftc06": ("nist_ftc_06_asme1_rd.stp", 0.3, (0.0, 1.0, 0.0))}
 SUCCESS_DEG, SUCCESS_MM = 0.3, 0.5  # the success for a view pair
 OVERLAP_MM = 0.3  # a source point is in the overlap when a target point lies this near it at the true pose

@@ -10,7 +10,7 @@ import numpy as np
 
 from scanner.config import CONFIG_DIR
 from sim.foreign_patterns import capture
-from slscan.commands.importbench import plane_coordinates, synthetic_rig
+from slscan.commands.bench.import_ import plane_coordinates, synthetic_rig
 
 CONFIG = CONFIG_DIR / "patterns"  # the shipped pattern descriptions
 RIG = synthetic_rig(camera=(320, 256))

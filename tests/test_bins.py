@@ -257,7 +257,7 @@ def test_judge_tells_right_wrong_and_phantom_poses() -> None:
 
 
 def test_posebench_summary_of_rows_counts_what_the_rows_say(tmp_path, capsys) -> None:
-    """`slscan posebench --summary ROWS` over rows files of saved-bins runs: counts and
+    """`slscan bench pose --summary ROWS` over rows files of saved-bins runs: counts and
     medians computed here from the rows written (two bins, two files); a broken line is an
     error naming the file and line."""
     import json
@@ -279,7 +279,7 @@ def test_posebench_summary_of_rows_counts_what_the_rows_say(tmp_path, capsys) ->
     files = [tmp_path / "a.jsonl", tmp_path / "b.jsonl"]
     for f, b in zip(files, bins):
         f.write_text(json.dumps(b) + "\n")
-    assert main(["posebench", "--summary", *map(str, files)]) == 0
+    assert main(["bench", "pose", "--summary", *map(str, files)]) == 0
     out = capsys.readouterr().out
     assert "2 saved bins" in out and re.search(r"true parts +12 \(11 showing", out)
     assert re.search(r"instances found +13 \(1 mostly off every part\); parts with an instance 11", out)
@@ -297,11 +297,11 @@ def test_posebench_summary_of_rows_counts_what_the_rows_say(tmp_path, capsys) ->
     assert re.search(r"time per part, bin step shared +mean 1000 ms wall, 455 ms CPU", out)
     # rows written before the bin step was recorded: no such line, the rest as before
     files[1].write_text(json.dumps({k: v for k, v in bins[1].items() if k != "bin_step_s"}) + "\n")
-    assert main(["posebench", "--summary", *map(str, files)]) == 0
+    assert main(["bench", "pose", "--summary", *map(str, files)]) == 0
     out = capsys.readouterr().out
     assert "median 250 ms wall, 80 ms CPU" in out and "bin step" not in out
     files[1].write_text("{not json\n")
-    assert main(["posebench", "--summary", *map(str, files)]) == 2
+    assert main(["bench", "pose", "--summary", *map(str, files)]) == 2
     assert re.search(r"b.jsonl, line 1: not a saved-bins row", capsys.readouterr().err)
 
 
@@ -317,7 +317,7 @@ def test_a_bin_scanned_without_masks_gives_no_wrong_pose_and_no_bad_pick() -> No
 @pytest.mark.slow   # 50 bins scanned through the whole chain: ~1-2 h on 2 cores; run with -m slow
 @pytest.mark.acceptance
 def test_fifty_bins_without_masks_give_no_wrong_pose_and_no_bad_pick() -> None:
-    """The acceptance figures of `slscan posebench --sessions` over 50 bins (seeds 0..49,
+    """The acceptance figures of `slscan bench pose --sessions` over 50 bins (seeds 0..49,
     5..20 parts), scanned through the whole simulated chain as `slscan scan --scene
     bin:SEED` saves them. SLSCAN_BIN_SESSIONS may name a folder of such saved sessions
     (e.g. made by `slscan scan --scene bin:SEED --out DIR/seed-NN` for NN in 00..49): the
@@ -333,7 +333,7 @@ def _saved_bins() -> dict[int, object]:
     from pathlib import Path
 
     from sim.bins import BIN_TRUTH_FILE, BinTruth, default_parts
-    from slscan.commands.pose import bin_sessions
+    from slscan.commands.bench.pose import bin_sessions
 
     folder = os.environ.get("SLSCAN_BIN_SESSIONS")
     if not folder:
@@ -380,7 +380,7 @@ def _judge_fringe_bins(seeds: list[int]) -> None:
 @pytest.mark.slow
 def test_scan_saves_a_bin_with_its_truth_and_posebench_judges_it(tmp_path, capsys) -> None:
     """`slscan scan --scene bin:3:5` keeps the bin's truth in the session (the poses of
-    `bin_scene(5, seed=3)`, the simulator's instance ids); `slscan posebench --sessions`
+    `bin_scene(5, seed=3)`, the simulator's instance ids); `slscan bench pose --sessions`
     poses it without masks and reports no wrong pose and no pick out of tolerance."""
     import re
 
@@ -401,7 +401,7 @@ def test_scan_saves_a_bin_with_its_truth_and_posebench_judges_it(tmp_path, capsy
     object_id = Truth.load(out / "ground_truth.npz").object_id
     assert set(truth.ids) <= set(np.unique(object_id))
     capsys.readouterr()
-    assert main(["posebench", "--sessions", str(out.parent)]) == 0
+    assert main(["bench", "pose", "--sessions", str(out.parent)]) == 0
     text = capsys.readouterr().out
     assert re.search(r"poses reported ok +\d+: right .* wrong 0;", text), text
     assert re.search(r"picks offered +\d+: outside 0.1 mm / 0.5 deg 0", text), text

@@ -95,7 +95,7 @@ def test_one_spelling_for_methods_the_old_one_warned() -> None:
     assert args.method == "sac-ia" and "'sacia' is deprecated; use 'sac-ia'" in err
     args, err = parse("register", "a", "b", "--coarse", "sacia")
     assert args.coarse == "sac-ia" and "deprecated" in err
-    args, _ = parse("posebench", "--methods", "sacia", "ndt")
+    args, _ = parse("bench", "pose", "--methods", "sacia", "ndt")
     assert args.methods == ["sac-ia", "ndt"]
     assert "sacia" not in cli.commands(cli.build_parser())["pose"].format_help()
 
@@ -247,15 +247,35 @@ def test_parts_judged_together_exit_by_their_worst_decision() -> None:
         == [0, 0, 1, 4, 4]
 
 
-def test_the_command_table_names_what_each_module_registers() -> None:
-    """slscan.commands.COMMANDS: each module registers exactly the commands the table gives it."""
-    from slscan.commands import COMMANDS, modules
+@pytest.mark.parametrize("group", [None, "bench"])
+def test_the_command_table_names_what_each_module_registers(group: str | None) -> None:
+    """slscan.commands.COMMANDS (and BENCHES, `slscan bench NAME`): each module registers
+    exactly the commands the table gives it."""
+    from slscan.commands import modules, table
 
-    for module in modules():
+    package = "slscan.commands." + (f"{group}." if group else "")
+    for module in modules(group):
         parser = argparse.ArgumentParser()
-        module.register(cli._Summarised(parser.add_subparsers()))
+        module.register(cli._Summarised(parser.add_subparsers(), table(group)))
         registered = set(cli.commands(parser)) - {n for n in cli.commands(parser) if " " in n}
-        assert registered == {n for n, (m, _) in COMMANDS.items() if f"slscan.commands.{m}" == module.__name__}
+        assert registered == {n for n, (m, _) in table(group).items() if package + m == module.__name__}
+
+
+def test_the_benches_are_one_group_and_their_old_names_are_refused() -> None:
+    """`slscan --help` lists the user's commands and one `bench` entry; a bench's former
+    top-level name is refused with one line naming the new form (exit 2); the former
+    `slscan bench` (the decode benchmark) given its options is told to name a bench."""
+    from slscan.commands import BENCHES, MOVED
+
+    code, out, _ = run("--help")
+    assert code == 0 and "\n    bench " in out and not any(f"\n    {old} " in out for old in MOVED if old != "bench")
+    code, out, _ = run("bench")
+    assert code == 0 and all(f"\n    {name} " in out for name in BENCHES)
+    code, _, err = run("-v", "simbench", "--repeats", "1")
+    assert code == 2 and err.strip().splitlines() == ["slscan: error: `slscan simbench` is now `slscan bench sim` "
+                                                      "(slscan bench --help lists the benches)"]
+    code, _, err = run("bench", "--width", "320")
+    assert code == 2 and "`slscan bench decode`" in err.strip().splitlines()[-1]
 
 
 @pytest.mark.parametrize("argv", [["--version"], ["--help"], [], ["scan", "--bogus"], ["nosuchcommand"]])
@@ -271,20 +291,21 @@ def test_startup_imports_no_command_module_until_one_runs(argv: list[str]) -> No
 
 
 def test_every_command_reads_its_arguments_before_any_heavy_import() -> None:
-    """A usage error of every command in `slscan.commands.COMMANDS` (an unknown option) is
+    """A usage error of every command in `slscan.commands.COMMANDS` and `BENCHES` (an unknown option) is
     answered with its own module imported but not numpy, OpenCV or Open3D: the command
     modules import those inside their command functions. One process tries them in turn,
     naming the first command whose parser brought one in."""
-    probe = ("import sys\nfrom slscan import cli\nfrom slscan.commands import COMMANDS\n"
-             "for name in COMMANDS:\n    try:\n        cli.main([name, '--no-such-option'])\n"
+    from slscan.commands import BENCHES, COMMANDS
+
+    names = [*COMMANDS, *(f"bench/{name}" for name in BENCHES)]
+    probe = ("import sys\nfrom slscan import cli\n"
+             "for name in sys.argv[1:]:\n    try:\n        cli.main([*name.split('/'), '--no-such-option'])\n"
              "    except SystemExit as exc:\n        assert exc.code == 2, (name, exc.code)\n"
              "    print(name, *sorted(m for m in ('numpy', 'cv2', 'open3d', 'OCP') if m in sys.modules))\n")
-    proc = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-c", probe, *names], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     lines = [line.split() for line in proc.stdout.splitlines()]
-    from slscan.commands import COMMANDS as TABLE
-
-    assert [line[0] for line in lines] == list(TABLE)
+    assert [line[0] for line in lines] == names
     heavy = [line for line in lines if len(line) > 1]
     assert not heavy, f"slscan {heavy[0][0]} --no-such-option imported {heavy[0][1:]}"
 
@@ -415,9 +436,9 @@ def test_paper_chosen_on_the_command_line_sizes_the_pdf(tmp_path: Path) -> None:
         assert boxes and all(abs(float(w) - size[0]) < 1.5 and abs(float(h) - size[1]) < 1.5 for w, h in boxes), boxes
 
 
-@pytest.mark.parametrize("command", ["batch", "batchbench"])
-def test_a_part_folder_that_is_not_there_is_bad_input(command: str, tmp_path: Path) -> None:
-    """`batch` and `batchbench` given a folder that does not exist: one line and exit 2
+@pytest.mark.parametrize("command", [["batch"], ["bench", "batch"]])
+def test_a_part_folder_that_is_not_there_is_bad_input(command: list[str], tmp_path: Path) -> None:
+    """`batch` and `bench batch` given a folder that does not exist: one line and exit 2
     before any work (a folder that exists but cannot be measured is that part's error)."""
-    code, _, err = run(command, str(tmp_path / "no-such-part"), "--program", "config/parts/demo_part.toml")
+    code, _, err = run(*command, str(tmp_path / "no-such-part"), "--program", "config/parts/demo_part.toml")
     assert code == 2 and err.strip().endswith("no-such-part: no such part or session folder"), err

@@ -19,7 +19,7 @@ from scanner.decode_checks import (
     scale_threshold,
 )
 from scanner.patterns import PatternSet
-from slscan.commands.importbench import plane_coordinates, synthetic_rig
+from slscan.commands.bench.import_ import plane_coordinates, synthetic_rig
 
 PROJ = (912, 1140)
 HET = PatternSet("heterodyne", 4, (70.0, 64.0, 59.0))

@@ -26,7 +26,7 @@ from scanner.reconstruct import Triangulator, triangulate
 from sim.foreign_patterns import fringe_rows, opencv_graycode, slmaster_complementary, slmaster_heterodyne
 from slscan.cli import main
 from slscan.commands.import_ import natural_key
-from slscan.commands.importbench import write_slmaster_calibration
+from slscan.commands.bench.import_ import write_slmaster_calibration
 
 
 def unknown(family: str, steps: int, fringes: tuple[float, ...], **given) -> PatternSet:

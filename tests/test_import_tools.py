@@ -23,7 +23,7 @@ from scanner.decode import decode
 from scanner.errors import DecodeError
 from scanner.patterns import PatternSet
 from sim.foreign_patterns import capture
-from slscan.commands.importbench import plane_coordinates, synthetic_rig
+from slscan.commands.bench.import_ import plane_coordinates, synthetic_rig
 
 CONFIG = Path(__file__).resolve().parent.parent / "config" / "patterns"
 RIG = synthetic_rig(camera=(320, 256))

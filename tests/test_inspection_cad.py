@@ -261,7 +261,7 @@ def test_a_face_opencascade_cannot_evaluate_is_named_and_left_out(tmp_path: Path
 def test_many_copies_of_a_part_keep_every_face_id(tmp_path: Path, models: dict) -> None:
     """Four located copies of a NIST part in one file: every face gets its own entity id, the
     file's ADVANCED_FACE ids exactly, and each copy has the part's face areas (the time of
-    1, 4, 16 copies is a benchmark: `slscan cadbench FILE`)."""
+    1, 4, 16 copies is a benchmark: `slscan bench cad FILE`)."""
     from inspection.cad import write_copies
 
     path = write_copies(STEP_DIR / "nist_ctc_01_asme1_rd.stp", 4, tmp_path / "four.stp")

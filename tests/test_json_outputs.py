@@ -23,7 +23,7 @@ from station_support import DEMO_PROGRAM, TRUTH_GAUGE, station_config
 from scanner.config import CONFIG_DIR
 from sim.foreign_patterns import slmaster_complementary
 from slscan import cli
-from slscan.commands.importbench import write_slmaster_calibration
+from slscan.commands.bench.import_ import write_slmaster_calibration
 
 STEP = CONFIG_DIR / "parts" / "demo_part.step"
 NOISY = """\
@@ -101,7 +101,7 @@ def _cloud(i: Inputs) -> str:
     return str(i.session / "outputs" / "cloud.ply")
 
 
-SLOW = {"verify", "demobench", "binobench", "viewbench", "batchbench"}  # 50-110 s each on two loaded cores
+SLOW = {"verify", "bench demo", "bench binocular", "bench views", "bench batch"}  # 50-110 s each on two loaded cores
 
 RUNS: dict[str, Callable[[Inputs, Path], list[str]]] = {
     "scan": lambda i, out: ["--rig", str(i.rig), "--out", str(out / "s")],
@@ -109,33 +109,33 @@ RUNS: dict[str, Callable[[Inputs, Path], list[str]]] = {
     "demo": lambda i, out: ["--no-inspect", "--out", str(out / "d")],
     "import": lambda i, out: [*_import_frames(i), "--out", str(out / "imported")],
     "export": lambda i, out: [str(i.session), "--out", str(out / "cloud.xyz")],
-    "bench": lambda i, out: ["--width", "320", "--height", "256", "--repeats", "1", "--no-peers"],
-    "binobench": lambda i, out: ["--scenes", "1", "--seed", "1", "--repeats", "0", "--imports", "0"],
-    "importbench": lambda i, out: ["--skip-procam", "--runs", "1"],
-    "simbench": lambda i, out: ["--repeats", "1"],
-    "demobench": lambda i, out: ["--parts", "1"],
-    "viewbench": lambda i, out: ["--out", str(out / "v"), "--views", "3", "--no-pairs"],  # the stage axis: 3 views
+    "bench decode": lambda i, out: ["--width", "320", "--height", "256", "--repeats", "1", "--no-peers"],
+    "bench binocular": lambda i, out: ["--scenes", "1", "--seed", "1", "--repeats", "0", "--imports", "0"],
+    "bench import": lambda i, out: ["--skip-procam", "--runs", "1"],
+    "bench sim": lambda i, out: ["--repeats", "1"],
+    "bench demo": lambda i, out: ["--parts", "1"],
+    "bench views": lambda i, out: ["--out", str(out / "v"), "--views", "3", "--no-pairs"],  # the stage axis: 3 views
     "devices": lambda i, out: [],
     "calibrate": lambda i, out: ["--stage-axis", "--rig", str(CONFIG_DIR / "rigs" / "sim_turntable.toml"),
                                  "--angles=-30,0,30", "--out", str(out / "axis")],
     "verify": lambda i, out: ["--out", str(out / "verify")],
-    "coverage": lambda i, out: ["--case", "plate-flatness", "--scans", "2", "--seed", "1"],
+    "bench coverage": lambda i, out: ["--case", "plate-flatness", "--scans", "2", "--seed", "1"],
     "cad": lambda i, out: [str(STEP)],
-    "cadbench": lambda i, out: [str(STEP), "--copies", "1"],
+    "bench cad": lambda i, out: [str(STEP), "--copies", "1"],
     "register": lambda i, out: [_cloud(i), _cloud(i)],
     "inspect": lambda i, out: [str(i.session), "--cad", str(STEP), "--out", str(out / "inspection")],
     "pose": lambda i, out: [str(i.bin_session), "--part", str(CONFIG_DIR / "parts" / "nickel_tab.toml"), "--out",
                             str(out / "poses.json")],
-    "posebench": lambda i, out: ["--seeds", "0", "--methods", "sac-ia", "--size", "320", "256"],
+    "bench pose": lambda i, out: ["--seeds", "0", "--methods", "sac-ia", "--size", "320", "256"],
     "segment": lambda i, out: [str(i.session), "--out", str(out / "segments.npy")],
-    "segbench": lambda i, out: ["--seeds", "0", "--spacing", "4"],
+    "bench segment": lambda i, out: ["--seeds", "0", "--spacing", "4"],
     "segscore": lambda i, out: _labels(i),
     "station": lambda i, out: [str(DEMO_PROGRAM), "--config", str(i.station), "--out", str(out / "data"), "--auto",
                                "--parts", "1", "--measurement", TRUTH_GAUGE],
     "results": lambda i, out: ["--config", str(i.station)],
     "batch": lambda i, out: [str(i.part), "--program", str(DEMO_PROGRAM), "--measurement", TRUTH_GAUGE,
                              "--workers", "2"],
-    "batchbench": lambda i, out: [str(i.part), "--program", str(DEMO_PROGRAM), "--measurement", TRUTH_GAUGE,
+    "bench batch": lambda i, out: [str(i.part), "--program", str(DEMO_PROGRAM), "--measurement", TRUTH_GAUGE,
                                   "--workers", "2"],
 }
 
@@ -149,7 +149,7 @@ def test_every_command_with_json_has_a_run_here() -> None:
 @pytest.mark.acceptance
 @pytest.mark.parametrize("command", [pytest.param(c, marks=pytest.mark.slow) if c in SLOW else c for c in RUNS])
 def test_json_alone_on_stdout_with_library_output_provoked(command: str, inputs: Inputs, tmp_path: Path) -> None:
-    argv = ["-v", command, *RUNS[command](inputs, tmp_path), "--json"]
+    argv = ["-v", *command.split(), *RUNS[command](inputs, tmp_path), "--json"]
     proc = subprocess.run([sys.executable, "-c", NOISY, *argv], capture_output=True, text=True, timeout=900)
     assert proc.returncode in (0, 1, 4), f"slscan {' '.join(argv)}: exit {proc.returncode}\n{proc.stderr[-3000:]}"
     json.loads(proc.stdout)  # one document and nothing else

@@ -1,5 +1,5 @@
 """Issue 13's acceptance figures (slow; run on purpose: pytest -m slow tests/test_multiview_acceptance.py -s):
-`slscan viewbench` on the simulated turntable, demo part, 8 views at 1280 x 1024. Thresholds are
+`slscan bench views` on the simulated turntable, demo part, 8 views at 1280 x 1024. Thresholds are
 what the method delivers with margin, checked against the simulator's truth; the figures are
 printed (and written to viewbench.json in the run's folder)."""
 
@@ -16,7 +16,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.acceptance]
 
 
 def test_whole_part_acceptance(tmp_path: Path) -> None:
-    assert cli.main(["viewbench", "--out", str(tmp_path), "--views", "8"]) == 0
+    assert cli.main(["bench", "views", "--out", str(tmp_path), "--views", "8"]) == 0
     f = json.loads((tmp_path / "viewbench.json").read_text())
     for key in ("alignment", "alignment_axis_error"):  # with and without a stage-axis calibration error
         assert f[key]["max_deg"] < 0.02 and f[key]["max_mm"] < 0.05, (key, f[key])

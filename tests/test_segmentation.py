@@ -391,7 +391,7 @@ def test_cli_segment_and_segscore(tmp_path: Path, room: tuple[np.ndarray, np.nda
 def clutter_scores() -> list[object]:
     """Seeds 0-2 of the simulated cluttered room (~0.78 M points each, planes, pipes of
     four diameters, boxes touching, roughness 0.05-0.4 mm, five scanner positions),
-    segmented with r = 20 mm (as `slscan segbench --seeds 0 1 2 --radius 20`)."""
+    segmented with r = 20 mm (as `slscan bench segment --seeds 0 1 2 --radius 20`)."""
     from sim.clutter import clutter_cloud
 
     out = []

@@ -242,7 +242,7 @@ def test_cli_scan_decode_and_errors(tmp_path: Path, capsys: pytest.CaptureFixtur
 
 
 def test_cli_bench_json(capsys: pytest.CaptureFixture) -> None:
-    assert cli.main(["bench", "--width", "320", "--height", "256", "--repeats", "1", "--json"]) == 0
+    assert cli.main(["bench", "decode", "--width", "320", "--height", "256", "--repeats", "1", "--json"]) == 0
     r = json.loads(capsys.readouterr().out)
     assert {"width", "height", "frames", "decode_s", "reconstruct_s", "total_s", "peak_mb"} <= set(r)
     assert r["width"] == 320 and r["frames"] == 12 and r["valid_fraction"] > 0.95

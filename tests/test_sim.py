@@ -3,7 +3,7 @@
 Most tests use the bench rig with a reduced camera (same field of view, fewer pixels) so
 the whole file runs in well under a minute. Nothing here measures wall time: the
 simulated frame time at full resolution and the sequence period are measured by
-`slscan simbench` (with the load average and a peer); tests synchronise on events.
+`slscan bench sim` (with the load average and a peer); tests synchronise on events.
 """
 
 from __future__ import annotations
@@ -518,7 +518,7 @@ def test_projector_sequence_triggers_camera(rig_toml, sphere_scene):
         assert [f.index for f in frames] == list(range(6))
         assert [f.pattern_index for f in frames] == list(range(6)) == seen
         stamps = np.array([f.timestamp_s for f in frames])
-        assert (np.diff(stamps) > 0).all()  # the period itself is measured by `slscan simbench`
+        assert (np.diff(stamps) > 0).all()  # the period itself is measured by `slscan bench sim`
         with pytest.raises(DeviceError):
             rig.camera.trigger()  # hardware-triggered: software trigger refused
 
@@ -669,9 +669,9 @@ def test_faults_validation():
 
 @pytest.mark.slow
 def test_simbench_reports_every_figure_with_the_load():
-    """`slscan simbench` runs on the default bench rig and reports each figure beside the
+    """`slscan bench sim` runs on the default bench rig and reports each figure beside the
     load average (its values are timings: printed, never asserted)."""
-    from slscan.commands.simbench import format_table, run_simbench
+    from slscan.commands.bench.simulator import format_table, run_simbench
 
     r = run_simbench(repeats=1)
     assert (r["width"], r["height"], r["sequence_patterns"]) == (1280, 1024, 12)

@@ -55,7 +55,7 @@ TABLE = "pose/table"
 METRICS = "pose"  # under the core's metrics/
 # how much the occlusion estimate (`inspection.bins.pose`, face samples checked at their
 # pixels) may fall short of the truth: the largest shortfall measured over the saved
-# simulated bins (`slscan posebench --sessions`, "occlusion estimate - truth"), rounded up:
+# simulated bins (`slscan bench pose --sessions`, "occlusion estimate - truth"), rounded up:
 # 0.045 over 77 poses of 10 fringe-scanned bins (seeds 0-9; the estimate exceeded the truth
 # by up to 0.068). A small sample: re-measure over more bins before trusting the margin
 OCCLUSION_BOUND = 0.05

@@ -84,7 +84,7 @@ MIN_RADIUS_SPACINGS = 5.0   # r must span at least this many point spacings
 # the default r, in point spacings (`default_radius`): on the simulated rooms
 # (`sim.clutter`, nominal spacing 1 mm, measured median nearest-neighbour spacing
 # 0.55-0.61 mm) the fixed 12 mm default gave beta 13 %, and beta <= 8 % came at ~20 mm;
-# at 35 spacings (r 19.2-21.4 mm) seeds 0-4 give beta 6.3-7.4 %, mean 6.85 % (`slscan segbench
+# at 35 spacings (r 19.2-21.4 mm) seeds 0-4 give beta 6.3-7.4 %, mean 6.85 % (`slscan bench segment
 # --seeds 0 1 2 3 4`)
 DEFAULT_RADIUS_SPACINGS = 35.0
 MIN_SUBSAMPLED = 20         # fewer voxels than this: r is too large for the cloud

@@ -2,7 +2,6 @@
 
     slscan cad FILE [--json] [--sample N]            faces by STEP id and surface type, counts per type;
                                                      --sample: time to sample N labelled points
-    slscan cadbench FILE [--copies 1,4,16]           STEP reading time of files holding copies of FILE
     slscan register SOURCE TARGET [--json]           4x4 transform taking SOURCE onto TARGET, fitness, RMSE,
                                                      pose U; exit 1 when the evidence does not prove the
                                                      pose (another fits as well, a motion left free);
@@ -29,7 +28,7 @@ from typing import Any
 
 from scanner.errors import ConfigError
 from slscan.exit_codes import Exit, for_verdict
-from slscan.options import COARSE_METHODS, add_json, add_paper, coarse_method, on_paper, plain_text_arg
+from slscan.options import COARSE_METHODS, add_paper, coarse_method, on_paper, plain_text_arg
 
 CAD_UNITS = ("mm", "cm", "m", "in")
 
@@ -62,63 +61,6 @@ def cmd_cad(args: argparse.Namespace) -> int:
     print("counts: " + ", ".join(f"{n} {t}" for t, n in model.counts.items()))
     for line in model.skipped:
         print(f"  skipped {line}")
-    return Exit.OK
-
-
-def cmd_cadbench(args: argparse.Namespace) -> int:
-    """STEP reading time for files holding 1, 4, 16 ... copies of one part, each read by
-    `slscan cad` in a fresh process: wall and CPU s, peak memory, faces, and the time per
-    face against the one-copy file (its peer in the same run), with the load average; with
-    `--json` the table goes to stderr and its rows to stdout as one JSON document."""
-    import os
-    import subprocess
-    import tempfile
-    import time
-
-    from OCP.Message import Message, Message_Gravity
-
-    from inspection.cad import write_copies
-
-    for printer in Message.DefaultMessenger_s().Printers():  # the STEP writer's statistics are not ours to print
-        printer.SetTraceLevel(Message_Gravity.Message_Fail)
-    counts = [int(c) for c in args.copies.split(",")]
-    table = sys.stderr if args.json else sys.stdout
-    rows: list[dict[str, Any]] = []
-    load0 = os.getloadavg()
-    print(f"{'copies':>6} {'MB':>6} {'faces':>6} {'wall s':>7} {'CPU s':>7} {'peak MB':>7} "
-          f"{'CPU ms/face':>11} {'marginal':>8}  load average (1, 5, 15 min) before", file=table)
-    first: tuple[int, float] | None = None
-    with tempfile.TemporaryDirectory() as tmp:
-        for n in counts:
-            path = write_copies(args.file, n, Path(tmp) / f"copies_{n}.stp")
-            load = os.getloadavg()
-            t0 = time.perf_counter()
-            proc = subprocess.Popen([sys.executable, "-m", "slscan", "cad", str(path), "--json"],
-                                    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-            out = proc.stdout.read()  # type: ignore[union-attr]
-            _, status, usage = os.wait4(proc.pid, 0)
-            wall = time.perf_counter() - t0
-            if status != 0:
-                print(f"{n:>6}: slscan cad failed (wait status {status})", file=sys.stderr)
-                return Exit.FAILED
-            faces = len(json.loads(out)["faces"])
-            cpu = usage.ru_utime + usage.ru_stime
-            first = first or (faces, cpu)
-            marginal = f"{1e3 * (cpu - first[1]) / (faces - first[0]):8.2f}" if faces > first[0] else f"{'':>8}"
-            print(f"{n:>6} {path.stat().st_size / 1e6:6.1f} {faces:>6} {wall:7.2f} {cpu:7.2f} "
-                  f"{usage.ru_maxrss / 1024:7.0f} {1e3 * cpu / faces:11.2f} {marginal}  "
-                  + " ".join(f"{x:.2f}" for x in load), flush=True, file=table)
-            rows.append({"copies": n, "bytes": path.stat().st_size, "faces": faces, "wall_s": wall, "cpu_s": cpu,
-                         "peak_rss_mb": usage.ru_maxrss / 1024, "cpu_ms_per_face": 1e3 * cpu / faces,
-                         "marginal_cpu_ms_per_face": 1e3 * (cpu - first[1]) / (faces - first[0])
-                         if faces > first[0] else None, "load_average_before": load})
-    print("marginal: CPU ms per face added over the first file (the fixed start-up of ~2 s excluded); "
-          "a constant marginal cost is linear growth", file=table)
-    load1 = os.getloadavg()
-    print("load average after " + " ".join(f"{x:.2f}" for x in load1), file=table)
-    if args.json:
-        print(json.dumps({"status": "ok", "file": str(args.file), "rows": rows,
-                          "load_average": {"start": load0, "end": load1}}))
     return Exit.OK
 
 
@@ -474,12 +416,6 @@ def register(sub: Any) -> None:
     c.add_argument("--sample", type=int, metavar="N", help="benchmark: time sampling N labelled points")
     c.add_argument("--repeats", type=int, default=5, help="with --sample: timed runs after a warm-up")
     c.set_defaults(func=cmd_cad)
-
-    cb = sub.add_parser("cadbench")
-    cb.add_argument("file", help="STEP file of one part (e.g. ../shared/data/step/nist_ctc_01_asme1_rd.stp)")
-    cb.add_argument("--copies", default="1,4,16", help="comma-separated copy counts (default 1,4,16)")
-    add_json(cb)
-    cb.set_defaults(func=cmd_cadbench)
 
     r = sub.add_parser("register")
     r.add_argument("source", help="cloud (PLY/PCD/XYZ) or session folder")

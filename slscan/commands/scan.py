@@ -109,7 +109,7 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
         report(result, as_json=getattr(args, "json", False))
     if truth is not None and not getattr(args, "json", False):
         print(f"bin truth {result.session.root / BIN_TRUTH_FILE}  ({len(truth.ids)} parts, seed {truth.seed}; "
-              f"judge poses with: slscan posebench --sessions {result.session.root})")
+              f"judge poses with: slscan bench pose --sessions {result.session.root})")
     return Exit.OK
 
 

@@ -1,7 +1,7 @@
-"""`slscan segment`, `slscan segscore` and `slscan segbench`: context-free region growing
-(paper 002) of a point cloud file or a session's scan, the score of a segmentation against
-ground truth (α, β, η per ground-truth segment), and a benchmark on simulated cluttered
-clouds (`sim.clutter.clutter_cloud`) printing the time and the scores.
+"""`slscan segment` and `slscan segscore`: context-free region growing (paper 002) of a point
+cloud file or a session's scan, and the score of a segmentation against ground truth (α, β,
+η per ground-truth segment); the benchmark on simulated cluttered clouds is `slscan bench
+segment` (`slscan.commands.bench.segment`).
 
 Label files are .npy int32 arrays. For a point cloud file: one label per point, in the
 file's order (`<cloud stem>.segments.npy` beside it). For a session: an image of the
@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -43,14 +42,6 @@ def register(sub: Any) -> None:
     p.add_argument("--no-log", action="store_true", help="do not write the Rerun recording")
     add_json(p)
     p.set_defaults(func=cmd_segment)
-
-    b = sub.add_parser("segbench")
-    b.add_argument("--seeds", type=int, nargs="+", default=[0], help="scene seeds (default: 0)")
-    b.add_argument("--spacing", type=float, default=1.0, metavar="MM", help="nearest scanner's point spacing")
-    b.add_argument("--radius", "-r", type=float, metavar="MM",
-                   help="radius of interest r (default: slscan segment's, 35 point spacings of each cloud)")
-    add_json(b)
-    b.set_defaults(func=cmd_segbench)
 
     s = sub.add_parser("segscore")
     s.add_argument("labels", help="labels .npy (from slscan segment)")
@@ -183,47 +174,6 @@ def cmd_segscore(args: argparse.Namespace) -> int:
     truth = _load_labels(Path(args.ground_truth))
     result = score(test, truth)
     print(json.dumps(result.as_dict(), indent=2) if args.json else result.table())
-    return Exit.OK
-
-
-def cmd_segbench(args: argparse.Namespace) -> int:
-    """Per seed: build the cloud, segment it (wall-clock and process CPU time of the
-    segmentation alone), score it; then the means over seeds."""
-    import time
-
-    import numpy as np
-
-    from inspection.regions.region_growing import segment
-    from inspection.regions.segmetrics import score
-    from sim.clutter import clutter_cloud
-
-    rows = []
-    for seed in args.seeds:
-        cloud = clutter_cloud(seed, args.spacing, args.radius)   # None: slscan segment's default radius
-        radius = cloud.radius_mm
-        wall, cpu = time.perf_counter(), time.process_time()
-        seg = segment(cloud.points, radius)
-        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-        sc = score(seg.labels, cloud.labels)
-        rows.append({"seed": seed, "radius_mm": radius, "points": len(cloud.points), "subsampled": len(seg.subsample),
-                     "wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "stages_s": seg.timings_s,
-                     "truth_segments": len(sc.segments), "mean_alpha": sc.mean_alpha, "mean_beta": sc.mean_beta,
-                     "mean_eta": sc.mean_eta})
-        if not args.json:
-            print(f"seed {seed}: {len(cloud.points)} points ({len(seg.subsample)} subsampled), r = {radius:g} mm: "
-                  f"{wall:.1f} s wall, {cpu:.1f} s CPU; {len(sc.segments)} true segments: "
-                  f"alpha {100 * sc.mean_alpha:.4f} %, beta {100 * sc.mean_beta:.2f} %, eta {sc.mean_eta:.2f}",
-                  flush=True)
-    means = {k: float(np.mean([r[k] for r in rows]))
-             for k in ("mean_alpha", "mean_beta", "mean_eta", "wall_s", "cpu_s")}
-    load = [round(x, 2) for x in os.getloadavg()]   # wall time depends on what else runs: report it
-    if args.json:
-        print(json.dumps({"radius_mm": args.radius or "default", "spacing_mm": args.spacing, "runs": rows,
-                          "means": means, "load_average": load}, indent=2))
-    else:
-        print(f"mean over {len(rows)}: alpha {100 * means['mean_alpha']:.4f} %, beta {100 * means['mean_beta']:.2f} %, "
-              f"eta {means['mean_eta']:.2f}; {means['wall_s']:.1f} s wall, {means['cpu_s']:.1f} s CPU per cloud; "
-              f"load average {load[0]} {load[1]} {load[2]} on {os.cpu_count()} CPUs")
     return Exit.OK
 
 

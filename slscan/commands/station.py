@@ -257,7 +257,7 @@ def _write_export(target: Path, write: Any) -> Any:
         raise ScannerError(f"{exc.filename or target}: cannot write: {exc.strerror or exc}") from None
 
 
-def _existing(paths: list[str]) -> None:
+def check_part_folders(paths: list[str]) -> None:
     """Refuse a part or session folder that is not there (bad input, exit 2) before any work;
     one that is there but cannot be measured is that part's error in the batch (exit 4)."""
     missing = [p for p in paths if not Path(p).is_dir()]
@@ -270,43 +270,12 @@ def cmd_batch(args: argparse.Namespace) -> int:
     from slscan.progress import ProgressLine
     from slscan.station.batch import print_summary, run_batch
 
-    _existing(args.sessions)
+    check_part_folders(args.sessions)
     config = _config(args) if args.store else None
     summary = run_batch(args.sessions, args.program, scheduler=args.scheduler, workers=args.workers,
                         store_config=config, progress=ProgressLine(), measurement=args.measurement, rig_path=args.rig)
     print_summary(summary, json_out=args.json)
     return for_parts(i.status for i in summary.items)
-
-
-def cmd_batchbench(args: argparse.Namespace) -> int:
-    import os
-
-    from slscan.station.batch import compare, run_batch
-
-    _existing(args.sessions)
-    text = sys.stderr if args.json else sys.stdout  # --json: the figures as one document on stdout
-    runs, loads = {}, {}
-    for label, workers in (("serial", 0), (f"dask, {args.workers} local workers", args.workers)):
-        load = loads[label] = os.getloadavg()
-        runs[label] = run_batch(args.sessions, args.program, workers=workers, measurement=args.measurement)
-        counts = runs[label].counts()
-        print(f"{label:<24} wall {runs[label].wall_s:8.2f} s  ({len(args.sessions)} parts: {counts['pass']} pass, "
-              f"{counts['fail']} fail, {counts['error']} failed; load average before "
-              f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f})", file=text, flush=True)
-    serial, dask = runs.values()
-    differ, worst, where = compare(serial, dask)
-    if args.json:
-        print(json.dumps({"runs": {k: {"wall_s": r.wall_s, "counts": r.counts(), "load_before": loads[k]}
-                                   for k, r in runs.items()}, "agree": not differ, "differences": differ,
-                          "largest_value_difference_mm": worst, "where": where,
-                          "speed_up": serial.wall_s / dask.wall_s, "load_after": os.getloadavg()}))
-        return Exit.OK if not differ else Exit.FAILED
-    print(f"results agree: {'yes' if not differ else 'NO'} (statuses and messages of {len(serial.items)} parts; "
-          f"largest value difference {worst * 1e3:.4f} um" + (f", {where}" if where else "") + f"); speed-up "
-          f"{serial.wall_s / dask.wall_s:.2f}x; load average after {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    for line in differ:
-        print("DIFFERS " + line)
-    return Exit.OK if not differ else Exit.FAILED
 
 
 def register(sub: Any) -> None:
@@ -370,11 +339,3 @@ def register(sub: Any) -> None:
                    help="measuring step (default: the station config's)")
     b.add_argument("--json", action="store_true", help="print the summary as JSON")
     b.set_defaults(func=cmd_batch)
-
-    bb = sub.add_parser("batchbench")
-    bb.add_argument("sessions", nargs="+", help="part folders written by the station, or session folders")
-    bb.add_argument("--program", required=True, help="part program TOML to inspect against")
-    bb.add_argument("--workers", type=int, default=2, help="local cluster worker processes (default 2)")
-    bb.add_argument("--measurement", choices=sorted(MEASUREMENT_NAMES), help="measuring step (default: inspection)")
-    add_json(bb)
-    bb.set_defaults(func=cmd_batchbench)

@@ -1,12 +1,12 @@
-"""The peers `slscan bench` measures beside slscan, run as a script by the peers' own Python
-(`slscan bench --setup-peers` makes it: OpenCV contrib and `fringes` cannot share slscan's
+"""The peers `slscan bench decode` measures beside slscan, run as a script by the peers' own Python
+(`slscan bench decode --setup-peers` makes it: OpenCV contrib and `fringes` cannot share slscan's
 environment, whose OpenCV has no contrib modules). It imports nothing from slscan; -I keeps
 its folder (with a module named `inspect`) off the import path.
 
-    python -I bench_peers.py opencv_psp FRAMES.npy PROJ_W PROJ_H PERIODS REPEATS
+    python -I peers.py opencv_psp FRAMES.npy PROJ_W PROJ_H PERIODS REPEATS
         OpenCV contrib structured_light.SinusoidalPattern, PSP method: wrapped phase of three
         frames shifted by 2π/3 (computePhaseMap) and its spatial unwrapping (unwrapPhaseMap).
-    python -I bench_peers.py fringes WIDTH HEIGHT REPEATS
+    python -I peers.py fringes WIDTH HEIGHT REPEATS
         The `fringes` package: it encodes its own 3-frequency x 4-step sequence at WIDTH x
         HEIGHT and decodes it (temporal unwrapping, with a per-pixel uncertainty); the first
         decode compiles it (numba) and is not counted.

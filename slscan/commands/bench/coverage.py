@@ -1,8 +1,8 @@
-"""`slscan coverage`: how often the truth lies within ±U, measured on the simulated bench
+"""`slscan bench coverage`: how often the truth lies within ±U, measured on the simulated bench
 with the product's own measurement path (`studies.repeat_scans`), so anyone can rerun a
 published coverage figure:
 
-    slscan coverage --case plate-flatness|plate-sq|sphere-radius|ball-bar|pose|smooth-flatness|smooth-sq|
+    slscan bench coverage --case plate-flatness|plate-sq|sphere-radius|ball-bar|pose|smooth-flatness|smooth-sq|
                            near-limit-flatness|near-limit-sq --scans N --seed S
                     [--calibrated --out DIR [--calibrations K]] [--processes P] [--json]
 

@@ -1,4 +1,4 @@
-"""`slscan binobench`: binocular reconstruction measured on the simulated binocular rig
+"""`slscan bench binocular`: binocular reconstruction measured on the simulated binocular rig
 (config/rigs/sim_binocular.toml: two 1280 x 1024 cameras 200 mm apart, the bench projector),
 each run on fresh random scenes (`sim.stereo_truth.random_scene`; the seeds are printed).
 
@@ -22,7 +22,7 @@ each run on fresh random scenes (`sim.stereo_truth.random_scene`; the seeds are 
                1920 x 1080 projector, no gamma pre-compensation, 8-bit BMP) with its stereo caliInfo.yml,
                through `slscan import LEFT RIGHT`, conventions detected and given: cloud against truth
 
-    slscan binobench [--scenes N] [--imports N] [--seed S] [--repeats R] [--json] [--out FILE.json]
+    slscan bench binocular [--scenes N] [--imports N] [--seed S] [--repeats R] [--json] [--out FILE.json]
 """
 
 from __future__ import annotations
@@ -304,7 +304,7 @@ def cmd_binobench(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    p = sub.add_parser("binobench")
+    p = sub.add_parser("binocular")
     p.add_argument("--scenes", type=int, default=3, help="fresh random scenes (default 3)")
     p.add_argument("--seed", type=int, help="root seed (default: fresh, printed)")
     p.add_argument("--repeats", type=int, default=3, help="timed runs per round (0: no timing)")

@@ -1,4 +1,4 @@
-"""`slscan demobench`: scan-to-verdict of the demo part as a station runs it, stage by stage.
+"""`slscan bench demo`: scan-to-verdict of the demo part as a station runs it, stage by stage.
 
 The station's one-time work (the CAD model read and its registration target prepared)
 is timed apart; then `--parts` parts are scanned on the simulated rig, one after another,
@@ -159,7 +159,7 @@ def format_report(r: dict[str, Any]) -> str:
 
 
 def register(sub: Any) -> None:
-    b = sub.add_parser("demobench")
+    b = sub.add_parser("demo")
     b.add_argument("--parts", type=int, default=2, help="parts scanned one after another (default 2: cold, warm)")
     b.add_argument("--cold", action="store_true", help="no warm start: every part registered by the global search")
     b.add_argument("--full-recording", action="store_true", help="record every map pixel and point")

@@ -1,4 +1,4 @@
-"""`slscan bench`: decode + reconstruction time and peak memory for one fringe stack, beside
+"""`slscan bench decode`: decode + reconstruction time and peak memory for one fringe stack, beside
 its peers in the same run.
 
 The stack is synthesised analytically (a tilted plane with a smooth bump, seen by a camera
@@ -7,7 +7,7 @@ the figures do not depend on the simulator. Timing runs in a fresh child process
 peak resident memory (VmHWM: interpreter, libraries, input stack and all working arrays)
 is the reported peak; the median phase noise slscan predicts per pixel is reported too.
 
-Peers (`bench_peers.py`, run by their own Python made by `slscan bench --setup-peers` in
+Peers (`peers.py`, run by their own Python made by `slscan bench decode --setup-peers` in
 PEERS_VENV): OpenCV contrib's structured_light SinusoidalPattern PSP (wrapped phase and
 spatial unwrapping) on three frames of the same scene and size, and, with `--fringes`, the
 `fringes` package decoding its own 3 x 4 sequence at 1280 x 1024 (it reports a per-pixel
@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 
 PEERS_VENV = Path(os.environ.get("SLSCAN_PEERS_VENV", "~/.cache/slscan/bench-peers")).expanduser()
 PEER_PACKAGES = ("opencv-contrib-python-headless==5.0.0.93", "fringes==2.1.0")  # exact pins: the peers measured
-PEER_SCRIPT = Path(__file__).with_name("bench_peers.py")
+PEER_SCRIPT = Path(__file__).with_name("peers.py")
 
 
 def _vm_hwm_mb() -> float:
@@ -98,7 +98,7 @@ def setup_peers() -> Path:
 def _peer(args: list[str]) -> dict[str, Any]:
     python = PEERS_VENV / "bin" / "python"
     if not python.exists():
-        return {"error": f"no peers' Python in {PEERS_VENV}: run `slscan bench --setup-peers` once"}
+        return {"error": f"no peers' Python in {PEERS_VENV}: run `slscan bench decode --setup-peers` once"}
     done = subprocess.run([str(python), "-I", str(PEER_SCRIPT), *args], capture_output=True, text=True, timeout=1800,
                           check=False)
     if done.returncode != 0:
@@ -235,7 +235,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    b = sub.add_parser("bench")
+    b = sub.add_parser("decode")
     b.add_argument("--width", type=int, default=2448, help="camera image width in pixels (default 2448)")
     b.add_argument("--height", type=int, default=2048, help="camera image height in pixels (default 2048)")
     b.add_argument("--patterns", help="pattern set TOML (default: 3 frequencies x 4 steps)")

@@ -1,6 +1,6 @@
-"""`slscan viewbench`: issue 13's acceptance figures on the simulated turntable.
+"""`slscan bench views`: issue 13's acceptance figures on the simulated turntable.
 
-    slscan viewbench --out DIR [--views 8] [--width 1280 --height 1024] [--session DIR] [--json]
+    slscan bench views --out DIR [--views 8] [--width 1280 --height 1024] [--session DIR] [--json]
 
 Scans the demo part all round (or takes an existing multi-view `--session` of the turntable
 scene), then prints, against the simulator's truth (each view's true stage pose, and the
@@ -49,7 +49,7 @@ NIST = {"ctc01": ("nist_ctc_01_asme1_rd.stp", 0.12, (0.0, 0.0, 1.0)),  # as test
 
 
 def register(sub: Any) -> None:
-    b = sub.add_parser("viewbench")
+    b = sub.add_parser("views")
     b.add_argument("--out", type=Path, required=True, help="new folder for the scan and the figures")
     b.add_argument("--session", type=Path, help="an existing multi-view scan of the turntable scene")
     b.add_argument("--views", type=int, default=8, help="views equally spaced over a turn (default 8)")

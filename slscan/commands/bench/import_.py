@@ -1,4 +1,4 @@
-"""`slscan importbench`: how fast and how well other tools' captures come in.
+"""`slscan bench import`: how fast and how well other tools' captures come in.
 
 1. Per-rig tables: building a new rig's triangulation tables (camera rays, projector
    undistortion) at 1280 x 1024, beside the per-pixel undistortion they replace.
@@ -299,7 +299,7 @@ def format_report(r: dict[str, Any]) -> str:
 
 
 def register(sub: Any) -> None:
-    b = sub.add_parser("importbench")
+    b = sub.add_parser("import")
     b.add_argument("--procam", help="the procam-calibration sample folder (default ../shared/data/procam-graycode)")
     b.add_argument("--procam-calibration", help="slscan's calibration of that capture (slscan calibrate --from …)")
     b.add_argument("--skip-import", action="store_true", help="leave out the import speed run")

@@ -1,4 +1,4 @@
-"""`slscan simbench`: how fast the simulator makes frames and how well it keeps a
+"""`slscan bench sim`: how fast the simulator makes frames and how well it keeps a
 sequence's period, on the default bench rig (the timings the tests no longer assert).
 
     frame     one full-resolution frame: rendering a pattern not seen before, and one seen
@@ -100,7 +100,7 @@ def cmd_simbench(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    b = sub.add_parser("simbench")
+    b = sub.add_parser("sim")
     b.add_argument("--repeats", type=int, default=5, help="frames timed per figure (median)")
     b.add_argument("--json", action="store_true", help="print a JSON object")
     b.set_defaults(func=cmd_simbench)
