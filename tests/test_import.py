@@ -25,8 +25,8 @@ from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator, triangulate
 from sim.foreign_patterns import fringe_rows, opencv_graycode, slmaster_complementary, slmaster_heterodyne
 from slscan.cli import main
-from slscan.commands.import_ import natural_key
 from slscan.commands.bench.import_ import write_slmaster_calibration
+from slscan.commands.import_ import natural_key
 
 
 def unknown(family: str, steps: int, fringes: tuple[float, ...], **given) -> PatternSet:

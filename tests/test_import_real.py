@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from slscan.commands.import_ import import_frames, list_frames, read_frames
 from slscan.commands.bench.import_ import OPENCV_GRAYCODE, board_figures
+from slscan.commands.import_ import import_frames, list_frames, read_frames
 
 PROCAM = Path(__file__).resolve().parents[2] / "shared" / "data" / "procam-graycode"
 

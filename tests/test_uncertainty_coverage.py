@@ -119,8 +119,8 @@ def _coverage(cases: list[str], calibrated: bool, tmp: Path) -> list[dict]:
     """`slscan bench coverage` of `cases`, TRIALS scans each, as a user runs it."""
     from slscan import cli
 
-    args = ["bench", "coverage", *(arg for c in cases for arg in ("--case", c)), "--scans", str(TRIALS), "--seed", str(SEED),
-            "--processes", str(PROCESSES), "--json"]
+    args = ["bench", "coverage", *(arg for c in cases for arg in ("--case", c)), "--scans", str(TRIALS),
+            "--seed", str(SEED), "--processes", str(PROCESSES), "--json"]
     if calibrated:
         args += ["--calibrated", "--out", str(tmp / "calibrations")]
     t0 = time.perf_counter()
@@ -251,6 +251,7 @@ def test_coverage_command_refuses_an_empty_campaign(capsys: pytest.CaptureFixtur
     """No scans is a usage error naming the option, never a row of NaNs with exit 0."""
     from slscan import cli
 
-    assert cli.main(["bench", "coverage", "--case", "near-limit-flatness", "--scans", "0", "--seed", "1", "--json"]) == 2
+    argv = ["bench", "coverage", "--case", "near-limit-flatness", "--scans", "0", "--seed", "1", "--json"]
+    assert cli.main(argv) == 2
     captured = capsys.readouterr()
     assert captured.out == "" and "--scans 0" in captured.err
