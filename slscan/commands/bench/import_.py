@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 
     from scanner.geometry import RigModel
 
-PROCAM_DEFAULT = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "procam-graycode"
+PROCAM_DEFAULT = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "procam-graycode"
 SLMASTER_PATTERNS = CONFIG_DIR / "patterns" / "slmaster_complementary_12x32.toml"
 OPENCV_GRAYCODE = CONFIG_DIR / "patterns" / "opencv_graycode.toml"
 
@@ -107,7 +107,7 @@ def slmaster_capture(folder: Path, rig: RigModel, seed: int = 0) -> np.ndarray:
 def _run(args: list[str]) -> tuple[float, float, str]:
     """`slscan ARGS` in a fresh process: (wall s, CPU s of the process, all threads, user +
     system; on a quiet machine the wall time is at most this), its output."""
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[3])}
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "slscan", *args], capture_output=True, text=True, env=env,
