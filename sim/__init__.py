@@ -11,7 +11,7 @@ Modules:
     calibration_bench moving targets, plates and artefacts for `slscan calibrate` on the simulator
     parts             CAD parts on a table, one scene object per face, with imposed defects
     station_parts     the demo part with known defects, for the station
-    bins              bins of thin parts (the tab part, dropped parts, quick and fringe scans)
+    bins              bins of thin parts (inspection.bins.part_file's tab part dropped; quick and fringe scans)
     clutter           cluttered labelled clouds (room corners) for region growing
     parts_demo        script writing config/parts/demo_part.step and .ply
 """
