@@ -4,11 +4,11 @@
 Each family says what its frames are (the frame layout of its code block and the keys that
 order its frames), how to draw each of them (`code_profile`; the phase frames are common to
 all phase-shift families), how its fringe order is found (`unwrapping`, an `Unwrapping`:
-temporal — the frequencies unwrap each other, their rules in `unwrap` and `residual_sigma` —,
-complementary — a Gray code of the periods with a half-period bit —, pixel phase — OpenCV's
-Gray code of every projector pixel unwrapping one phase — or pixel only), and which
-conventions its frames can determine (`determines`). A family not here is refused by name with the list of
-those that are (`family`).
+temporal — the frequencies unwrap each other, their rules in `unwrap` and
+`residual_variances` —, complementary — a Gray code of the periods with a half-period bit —,
+pixel phase — OpenCV's Gray code of every projector pixel unwrapping one phase — or pixel
+only), and which conventions its frames can determine (`determines`). A family not here is
+refused by name with the list of those that are (`family`).
 """
 
 from __future__ import annotations
