@@ -93,7 +93,7 @@ class Figure:
 
 
 PLANE, CYLINDER = ("plane",), ("cylinder",)
-TEXTURED = ("plane", "cylinder", "cone")  # faces with surface coordinates to filter on (`form._surface_coordinates`)
+TEXTURED = ("plane", "cylinder", "cone")  # faces with surface coordinates to filter on (`form._SURFACE_FORMS`)
 
 FIGURES = (
     Figure("flatness_ls", "flatness (least squares)", "flatness LS", FORM, PLANE, True,

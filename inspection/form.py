@@ -64,13 +64,18 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator
 from contextvars import ContextVar
 from dataclasses import dataclass, field, fields, replace
+from typing import TYPE_CHECKING, TypedDict, TypeVar
 
 import numpy as np
 from scipy import fft, ndimage
 from scipy.optimize import least_squares, linprog
 
 from inspection import figures
+from inspection.surfaces import Cone, Cylinder, Surface
 from inspection.uncertainty import DETECTION_QUANTILE, DETECTION_Z, Estimate, PointNoise
+
+if TYPE_CHECKING:
+    from inspection.cad import Face
 
 ALPHA = float(np.sqrt(np.log(2.0) / np.pi))  # ISO 16610-61
 # threads of the filters' FFTs and the grid's tree query (-1: every core); a thread evaluating a face beside
@@ -624,24 +629,41 @@ class FaceForm:
         return out
 
 
-def _surface_coordinates(face: object, points: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
-    """2D metric coordinates (N, 2) mm of the points on the face: in-plane axes of a
-    plane, (R theta, axial) of a cylinder or cone (theta unwrapped), None otherwise."""
-    s = face.surface  # type: ignore[attr-defined]
-    if face.type == "plane":  # type: ignore[attr-defined]
-        if hasattr(s, "local"):
-            return s.local(points)[:, :2]
-        c = points.mean(axis=0)  # a planar mesh face: its principal axes
-        _, _, vt = np.linalg.svd(points - c, full_matrices=False)
-        return (points - c) @ vt[:2].T
-    if face.type in ("cylinder", "cone"):  # type: ignore[attr-defined]
-        t = np.mod(uv[:, 0], 2 * np.pi)
-        ts = np.sort(t)
-        k = int(np.argmax(np.diff(np.append(ts, ts[0] + 2 * np.pi))))
-        t = np.mod(t - ts[(k + 1) % len(ts)], 2 * np.pi)  # the largest empty arc at the seam
-        radius = s.radius if face.type == "cylinder" else s.ref_radius  # type: ignore[attr-defined]
-        return np.stack([radius * t, uv[:, 1]], axis=1)
-    return None
+def _plane_coordinates(face: Face, points: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """A plane's in-plane axes; a planar mesh face's principal axes."""
+    if isinstance(face.surface, Surface):
+        return face.surface.local(points)[:, :2]
+    c = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    return (points - c) @ vt[:2].T
+
+
+def _unrolled(uv: np.ndarray, radius: float) -> np.ndarray:
+    """(R theta, axial) of points on a surface of revolution of radius R, theta unwrapped
+    from the largest empty arc (the seam)."""
+    t = np.mod(uv[:, 0], 2 * np.pi)
+    ts = np.sort(t)
+    k = int(np.argmax(np.diff(np.append(ts, ts[0] + 2 * np.pi))))
+    t = np.mod(t - ts[(k + 1) % len(ts)], 2 * np.pi)
+    return np.stack([radius * t, uv[:, 1]], axis=1)
+
+
+def _cylinder_coordinates(face: Face, points: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    return _unrolled(uv, _surface(face, Cylinder).radius)
+
+
+def _cone_coordinates(face: Face, points: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    return _unrolled(uv, _surface(face, Cone).ref_radius)
+
+
+_S = TypeVar("_S", bound=Surface)
+
+
+def _surface(face: Face, kind: type[_S]) -> _S:
+    """The face's surface, which its type says is a `kind`."""
+    if not isinstance(face.surface, kind):
+        raise TypeError(f"a {face.type} face with a {type(face.surface).__name__} surface")
+    return face.surface
 
 
 @dataclass(frozen=True, eq=False)
@@ -782,7 +804,7 @@ def _sq(rough: np.ndarray, drawn_rough: np.ndarray, inner: np.ndarray, model_rel
         {"noise": spread / (2.0 * sq), "noise model": u_model / (2.0 * sq)}
 
 
-def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: np.ndarray,
+def evaluate_face(face: Face, points: np.ndarray, deviation: np.ndarray, uv: np.ndarray,
                   settings: FormSettings = FormSettings(), seed: int = 0, noise: PointNoise | None = None,
                   normals: np.ndarray | None = None, shifts: np.ndarray | None = None,
                   region: np.ndarray | None = None) -> FaceForm:
@@ -795,7 +817,9 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     `region` (N,) bool: take the figures over exactly these points (another evaluation's
     `FaceForm.region`, e.g. the noise-free truth over the region a measurement evaluated),
     without the spike test and the edge margin; the result's `region` says which points
-    the figures were taken over (spikes dropped, inside the edge margin)."""
+    the figures were taken over (spikes dropped, inside the edge margin). A face of a type
+    with surface coordinates (`_SURFACE_FORMS`) is evaluated on its form surface, any
+    other on its raw points."""
     n = len(points)
     if normals is None and (noise is not None or shifts is not None):
         raise ValueError("a noise model or calibration moves need the points' normals")
@@ -808,28 +832,53 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     else:
         keep = region.copy()
         settings = replace(settings, edge_margin_mm=0.0)
-    points, deviation, uv = points[keep], deviation[keep], uv[keep]
-    if noise is not None:
-        noise = noise.subset(keep)
-        normals = normals[keep]  # type: ignore[index]
-    if shifts is not None:
-        shifts = shifts[:, keep]
-    if noise is not None and normals is not None:  # the camera defocus's modelled bias removed (module docstring)
-        dz, noise = noise.defocus_removed()
-        points = points + dz[:, None] * noise.ray
-        deviation = deviation + dz * np.einsum("ij,ij->i", normals, noise.ray)
+    kept = _Kept(keep, points[keep], deviation[keep], uv[keep], None if noise is None else noise.subset(keep),
+                 None if normals is None else normals[keep], None if shifts is None else shifts[:, keep])
+    if kept.noise is not None and kept.normals is not None:  # the camera defocus's modelled bias removed
+        dz, kept.noise = kept.noise.defocus_removed()  # (module docstring)
+        kept.points = kept.points + dz[:, None] * kept.noise.ray
+        kept.deviation = kept.deviation + dz * np.einsum("ij,ij->i", kept.normals, kept.noise.ray)
     rng = np.random.default_rng(seed)
-    xy = _surface_coordinates(face, points, uv)
-    if xy is None:  # no surface coordinates: deviations of the raw points, their noise included
-        draws = _point_draws(noise, normals, rng, settings.draws, len(points), float(np.std(deviation)))
-        dev_shift = (None if shifts is None or normals is None
-                     else np.einsum("dij,ij->di", shifts, normals))
-        stats, parts = _deviation_stats(deviation, deviation[None] + draws, draws, deviation, draws, dev_shift)
-        seen = np.full(n, np.nan)
-        seen[keep] = deviation
-        note = f"{face.type}: deviations of raw points only (no form filter)"  # type: ignore[attr-defined]
-        return FaceForm(len(points), "ok", note, deviation_source="raw points", u_components=parts, region=keep,
-                        surface_mm=seen, **stats)  # type: ignore[arg-type]  # stats: the deviation figures' Estimates
+    kind = _SURFACE_FORMS.get(face.type)
+    if kind is None:  # no surface coordinates: deviations of the raw points, their noise included
+        return _raw_points_form(face, kept, rng, settings)
+    return _surface_form(face, kind, kept, rng, settings)
+
+
+@dataclass(eq=False)
+class _Kept:
+    """The points `evaluate_face` takes the figures over (`keep` (N,) bool of the input
+    points: spikes dropped, or the given region), with their deviations, surface
+    parameters, noise model, normals and calibration moves (the camera defocus's bias
+    removed from the points and deviations)."""
+
+    keep: np.ndarray
+    points: np.ndarray
+    deviation: np.ndarray
+    uv: np.ndarray
+    noise: PointNoise | None
+    normals: np.ndarray | None
+    shifts: np.ndarray | None
+
+
+def _raw_points_form(face: Face, kept: _Kept, rng: np.random.Generator, settings: FormSettings) -> FaceForm:
+    """The deviation figures of the raw points, their noise included (no form filter)."""
+    deviation, normals, shifts = kept.deviation, kept.normals, kept.shifts
+    draws = _point_draws(kept.noise, normals, rng, settings.draws, len(kept.points), float(np.std(deviation)))
+    dev_shift = None if shifts is None or normals is None else np.einsum("dij,ij->di", shifts, normals)
+    stats, parts = _deviation_stats(deviation, deviation[None] + draws, draws, deviation, draws, dev_shift)
+    seen = np.full(len(kept.keep), np.nan)
+    seen[kept.keep] = deviation
+    return FaceForm(len(kept.points), "ok", f"{face.type}: deviations of raw points only (no form filter)",
+                    deviation_source="raw points", u_components=parts, region=kept.keep, surface_mm=seen, **stats)
+
+
+def _surface_form(face: Face, kind: _SurfaceForm, kept: _Kept, rng: np.random.Generator,
+                  settings: FormSettings) -> FaceForm:
+    """The figures of the form surface: the heights laid on the face's 2D coordinates
+    (`kind.coordinates`), gridded, filtered; the zones of its surface type (`kind.zones`)."""
+    points, deviation, noise, normals, shifts = kept.points, kept.deviation, kept.noise, kept.normals, kept.shifts
+    xy = kind.coordinates(face, points, kept.uv)
     grid = _grid(xy)
     zg = grid.mean(deviation)
     mask = np.isfinite(zg)
@@ -842,9 +891,9 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
                         f"left inside the {settings.edge_margin_mm} mm edge margin")
     zg = np.where(inner, zg, np.nan)  # the border band's mixed pixels must not leak into the filters
     raw_sel = inner.ravel()[grid.cell]
-    used = np.zeros(n, bool)
-    used[np.flatnonzero(keep)[raw_sel]] = True
-    seen = np.full(n, np.nan)
+    used = np.zeros(len(kept.keep), bool)
+    used[np.flatnonzero(kept.keep)[raw_sel]] = True
+    seen = np.full(len(kept.keep), np.nan)
     if noise is not None and normals is not None:
         point_draws = noise.draw(rng, settings.draws)
         point_draws *= np.einsum("ij,ij->i", normals, noise.ray)
@@ -883,56 +932,109 @@ def evaluate_face(face: object, points: np.ndarray, deviation: np.ndarray, uv: n
     fe = f + e  # the form surface plus each draw's
     stats, parts = _deviation_stats(f, fe, e, raw_dev, raw_draws, cal)
     parts["sq"] = sq_parts
-    common = dict(points=int(raw_sel.sum()), status="ok", sq=sq, sq_raw_mm=sq_raw, sq_noise_mm=sq_noise,
-                  noise_mm=typical, noise_source=source, form_cutoff_mm=settings.form_cutoff_mm,
-                  roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=grid.spacing,
-                  grid_origin_mm=(float(grid.origin[0]), float(grid.origin[1])),
-                  deviation_source="form surface", region=used, surface_mm=seen, **stats)
-    cxy = grid.centres(inner)
-    if face.type == "plane":  # type: ignore[attr-defined]
-        tilt = plane_zone_tilt(cxy, f)  # the draws' zones are held near the measured zone's
-        drawn_frames = _LsFrames.of(cxy, fe)  # shared by the draws' LS and MZ zones
+    zones, note = _ZoneFigures(), f"{face.type}: texture and deviations only"
+    if kind.zones is not None:
+        zones, zone_parts = kind.zones(face, _Cells(grid.centres(inner), f, fe, e, cal))
+        parts.update(zone_parts)
+        note = ""
+    return FaceForm(int(raw_sel.sum()), "ok", note, sq=sq, sq_raw_mm=sq_raw, sq_noise_mm=sq_noise, noise_mm=typical,
+                    noise_source=source, form_cutoff_mm=settings.form_cutoff_mm,
+                    roughness_cutoff_mm=settings.roughness_cutoff_mm, grid_mm=grid.spacing,
+                    grid_origin_mm=(float(grid.origin[0]), float(grid.origin[1])), deviation_source="form surface",
+                    u_components=parts, region=used, surface_mm=seen, **stats, **zones)
 
-        def frames(h: np.ndarray) -> _LsFrames:
-            return drawn_frames if h is fe else _LsFrames.of(cxy, h)
 
-        def flat_ls(h: np.ndarray) -> np.ndarray:
-            return _ls_widths(frames(h))
+@dataclass(frozen=True, eq=False)
+class _Cells:
+    """A face's form surface on its grid's inner cells, which its zones are figures of:
+    the cells' centres `cxy` (cells, 2) mm in the face's 2D coordinates, the form surface
+    `f` (cells,) mm, it plus each noise draw `fe` (D, cells), the draws alone `e` and the
+    calibration moves `cal` (D_cal, cells; None: not known)."""
 
-        def flat_mz(h: np.ndarray) -> np.ndarray:
-            return _mz_widths(frames(h), tilt)
+    cxy: np.ndarray
+    f: np.ndarray
+    fe: np.ndarray
+    e: np.ndarray
+    cal: np.ndarray | None
 
-        def noise_mz(h: np.ndarray) -> np.ndarray:  # the noise alone: its zone about its own LS plane
-            return flatness_mz_many(cxy, h)
 
-        ls, ls_parts = _zone(flat_ls, f, fe, e, cal, sensitivity=ls_zone_sensitivity(cxy, f))
-        mz, mz_parts = _zone(flat_mz, f, fe, e, cal, noise_mz, mz_zone_sensitivity(cxy, f))
-        parts.update(flatness_ls=ls_parts, flatness_mz=mz_parts)
-        return FaceForm(flatness_ls=ls, flatness_mz=mz, u_components=parts, **common)  # type: ignore[arg-type]
-    if face.type == "cylinder":  # type: ignore[attr-defined]
-        s = face.surface  # type: ignore[attr-defined]
-        R = s.radius
-        sign = face.sense * np.sign(np.dot(s.evaluate(np.zeros((1, 2)))[1][0], s.x))  # type: ignore[attr-defined]
-        axis0, o0 = np.array([0.0, 0.0, 1.0]), np.zeros(3)
+class _ZoneFigures(TypedDict, total=False):
+    """The zone figures of a face's surface type (`inspection.figures`)."""
 
-        def cyl_ls(hs: np.ndarray) -> np.ndarray:
-            out = []
-            for h in hs:  # one least-squares fit per surface
-                p = _unroll(cxy, R + sign * h, R)
-                o, a, _ = cylinder_ls(p, o0, axis0)
-                d = p - o
-                r = np.linalg.norm(d - np.outer(d @ a, a), axis=1)
-                out.append(r.max() - r.min())
-            return np.array(out)
+    flatness_ls: Estimate
+    flatness_mz: Estimate
+    cylindricity_ls: Estimate
+    cylindricity_mz: Estimate
 
-        def cyl_mz(hs: np.ndarray) -> np.ndarray:
-            return np.array([cylindricity_mz(_unroll(cxy, R + sign * h, R), o0, axis0) for h in hs])
 
-        ls, ls_parts = _zone(cyl_ls, f, fe, e, cal)
-        mz, mz_parts = _zone(cyl_mz, f, fe, e, cal)
-        parts.update(cylindricity_ls=ls_parts, cylindricity_mz=mz_parts)
-        return FaceForm(cylindricity_ls=ls, cylindricity_mz=mz, u_components=parts, **common)  # type: ignore[arg-type]
-    return FaceForm(note=f"{face.type}: texture and deviations only", u_components=parts, **common)  # type: ignore[attr-defined,arg-type]
+_Parts = dict[str, dict[str, float]]  # uncertainty components per figure (`FaceForm.u_components`)
+
+
+def _flatness(face: Face, c: _Cells) -> tuple[_ZoneFigures, _Parts]:
+    """Least-squares and minimum-zone flatness of a plane's form surface."""
+    cxy, f, fe = c.cxy, c.f, c.fe
+    tilt = plane_zone_tilt(cxy, f)  # the draws' zones are held near the measured zone's
+    drawn_frames = _LsFrames.of(cxy, fe)  # shared by the draws' LS and MZ zones
+
+    def frames(h: np.ndarray) -> _LsFrames:
+        return drawn_frames if h is fe else _LsFrames.of(cxy, h)
+
+    def flat_ls(h: np.ndarray) -> np.ndarray:
+        return _ls_widths(frames(h))
+
+    def flat_mz(h: np.ndarray) -> np.ndarray:
+        return _mz_widths(frames(h), tilt)
+
+    def noise_mz(h: np.ndarray) -> np.ndarray:  # the noise alone: its zone about its own LS plane
+        return flatness_mz_many(cxy, h)
+
+    ls, ls_parts = _zone(flat_ls, f, fe, c.e, c.cal, sensitivity=ls_zone_sensitivity(cxy, f))
+    mz, mz_parts = _zone(flat_mz, f, fe, c.e, c.cal, noise_mz, mz_zone_sensitivity(cxy, f))
+    return _ZoneFigures(flatness_ls=ls, flatness_mz=mz), {"flatness_ls": ls_parts, "flatness_mz": mz_parts}
+
+
+def _cylindricity(face: Face, c: _Cells) -> tuple[_ZoneFigures, _Parts]:
+    """Least-squares and minimum-zone cylindricity of a cylinder's form surface (its heights
+    along the outward normal rolled back onto the cylinder)."""
+    s = _surface(face, Cylinder)
+    R = s.radius
+    sign = face.sense * np.sign(np.dot(s.evaluate(np.zeros((1, 2)))[1][0], s.x))
+    axis0, o0 = np.array([0.0, 0.0, 1.0]), np.zeros(3)
+
+    def cyl_ls(hs: np.ndarray) -> np.ndarray:
+        out = []
+        for h in hs:  # one least-squares fit per surface
+            p = _unroll(c.cxy, R + sign * h, R)
+            o, a, _ = cylinder_ls(p, o0, axis0)
+            d = p - o
+            r = np.linalg.norm(d - np.outer(d @ a, a), axis=1)
+            out.append(r.max() - r.min())
+        return np.array(out)
+
+    def cyl_mz(hs: np.ndarray) -> np.ndarray:
+        return np.array([cylindricity_mz(_unroll(c.cxy, R + sign * h, R), o0, axis0) for h in hs])
+
+    ls, ls_parts = _zone(cyl_ls, c.f, c.fe, c.e, c.cal)
+    mz, mz_parts = _zone(cyl_mz, c.f, c.fe, c.e, c.cal)
+    return (_ZoneFigures(cylindricity_ls=ls, cylindricity_mz=mz),
+            {"cylindricity_ls": ls_parts, "cylindricity_mz": mz_parts})
+
+
+@dataclass(frozen=True)
+class _SurfaceForm:
+    """How the faces of one surface type are evaluated: `coordinates` lays their points on
+    2D metric coordinates (N, 2) mm, where the heights are gridded and filtered; `zones`,
+    for a type with zone figures, gives those (None: texture and deviations only)."""
+
+    coordinates: Callable[[Face, np.ndarray, np.ndarray], np.ndarray]
+    zones: Callable[[Face, _Cells], tuple[_ZoneFigures, _Parts]] | None = None
+
+
+_SURFACE_FORMS = {"plane": _SurfaceForm(_plane_coordinates, _flatness),
+                  "cylinder": _SurfaceForm(_cylinder_coordinates, _cylindricity),
+                  "cone": _SurfaceForm(_cone_coordinates)}
+"""The surface types with surface coordinates (`inspection.figures.TEXTURED`); a face of
+another type is evaluated on its raw points."""
 
 
 def _zone(figure: Callable[[np.ndarray], np.ndarray], form: np.ndarray, drawn: np.ndarray, noise: np.ndarray,
@@ -960,8 +1062,7 @@ def _point_draws(noise: PointNoise | None, normals: np.ndarray | None, rng: np.r
 
 
 def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, noise: np.ndarray, raw: np.ndarray,
-                     raw_draws: np.ndarray, cal: np.ndarray | None
-                     ) -> tuple[dict[str, Estimate], dict[str, dict[str, float]]]:
+                     raw_draws: np.ndarray, cal: np.ndarray | None) -> tuple[_Deviations, _Parts]:
     """Deviation figures of `surface` (the form surface's deviations, or the raw ones) with
     it plus each draw (`drawn`) and the draws alone (`noise`), its profile zone 2 max|d|,
     and the extremes of the `raw` point deviations
@@ -983,17 +1084,39 @@ def _deviation_stats(surface: np.ndarray, drawn: np.ndarray, noise: np.ndarray, 
             est = Estimate(None if est.value is None else -est.value, est.u, est.limit, -est.bias)
         return est, parts
 
-    out, parts = {}, {}
-    for name, fn, sign in (("deviation_min", _row_min, -1.0), ("deviation_max", _row_max, 1.0),
-                           ("deviation_mean", _row_mean, 1.0), ("deviation_rms", _row_rms, 1.0),
-                           ("profile", _row_profile, 1.0)):
-        tested = figures.figure(name).zero_tested
-        out[name], parts[name] = each(fn, surface, drawn, noise if tested else None, cal, sign)
+    parts: _Parts = {}
     raw_drawn = raw[None] + raw_draws
-    for name, fn, sign in (("raw_deviation_min", _row_min, -1.0), ("raw_deviation_max", _row_max, 1.0)):
+
+    def of_surface(name: str, fn: Callable[[np.ndarray], np.ndarray], sign: float) -> Estimate:
         tested = figures.figure(name).zero_tested
-        out[name], parts[name] = each(fn, raw, raw_drawn, raw_draws if tested else None, None, sign)
+        est, parts[name] = each(fn, surface, drawn, noise if tested else None, cal, sign)
+        return est
+
+    def of_raw(name: str, fn: Callable[[np.ndarray], np.ndarray], sign: float) -> Estimate:
+        tested = figures.figure(name).zero_tested
+        est, parts[name] = each(fn, raw, raw_drawn, raw_draws if tested else None, None, sign)
+        return est
+
+    out = _Deviations(deviation_min=of_surface("deviation_min", _row_min, -1.0),
+                      deviation_max=of_surface("deviation_max", _row_max, 1.0),
+                      deviation_mean=of_surface("deviation_mean", _row_mean, 1.0),
+                      deviation_rms=of_surface("deviation_rms", _row_rms, 1.0),
+                      profile=of_surface("profile", _row_profile, 1.0),
+                      raw_deviation_min=of_raw("raw_deviation_min", _row_min, -1.0),
+                      raw_deviation_max=of_raw("raw_deviation_max", _row_max, 1.0))
     return out, parts
+
+
+class _Deviations(TypedDict):
+    """The deviation figures of a face (`_deviation_stats`)."""
+
+    deviation_min: Estimate
+    deviation_max: Estimate
+    deviation_mean: Estimate
+    deviation_rms: Estimate
+    profile: Estimate
+    raw_deviation_min: Estimate
+    raw_deviation_max: Estimate
 
 
 def _columns(a: np.ndarray, where: np.ndarray) -> np.ndarray:

@@ -161,7 +161,7 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
     o = ps.orientations[0]
     extent = projector_size[0] if o == "vertical" else projector_size[1]
     full = float(2 ** bit_depth - 1)
-    if ps.unwrapping == "pixel_only":
+    if not ps.kind.has_phase:  # a pixel Gray code alone
         diffs = [sub[index[(o, "gray", b, 0)]].astype(np.float32) - sub[index[(o, "gray_inverse", b, 0)]]
                  for b in range(ps.gray_bits(o))]
         contrast = np.max(np.abs(diffs), axis=0)
@@ -176,9 +176,9 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
     background = sum((a for _, _, a in shifted), np.zeros_like(shifted[0][2])) / len(shifted)
     usable = (mod[-1] > 0.12 * background) & (mod[-1] > 0.005 * full) & (background < full)
     refs = _refs_score(sub, ps, usable)
-    if ps.unwrapping in ("complementary", "pixel_phase"):
+    if not ps.unwrapping.by_frequencies:  # a Gray code unwraps the phase
         f = ps.fringes[0]
-        if ps.unwrapping == "complementary":
+        if not ps.unwrapping.pixel_code:
             bits = [sub[index[(o, "gray", b, 0)]] for b in range(ps.gray_bits() + 1)]
             half, unclear, half_unclear = read_complementary_code(bits, background, mod[0], 0.3)
             clear = (unclear == 0) & ~half_unclear

@@ -46,7 +46,7 @@ from scanner.decode_checks import (
     scale_check,
 )
 from scanner.errors import DecodeError
-from scanner.pattern_families import TWO_PI, temporal, unwrap_step
+from scanner.pattern_families import TWO_PI, Unwrapping, temporal, unwrap_step
 from scanner.patterns import FrameSpec, PatternSet, gray_to_binary
 from scanner.pixel_code import read_pixel_code
 
@@ -788,7 +788,7 @@ class _OrientationDecoder:
         stay in cache; numpy and OpenCV release the GIL), then the spatial check on the whole
         map and the consistency checks (`scanner.decode_checks`) from every band's samples."""
         ps, s = self.patterns, self.settings
-        if ps.unwrapping == "pixel_only":
+        if not ps.kind.has_phase:
             return self._pixel_graycode_only({"saturated": self.saturated})
         h, w = self.stack.shape[1:]
         n_freq = len(self.blocks)
@@ -825,10 +825,11 @@ class _OrientationDecoder:
     def _band(self, rows: slice, dest: list[tuple[np.ndarray, np.ndarray]], maps: dict[str, np.ndarray],
               scaled: list[np.ndarray] | None) -> dict[str, Any]:
         """The per-pixel work on rows `rows`: phases and modulations (written into `dest`, per
-        frequency), masks, unwrapping, and the background, phase, weight and coordinate
-        (written into `maps`' views of those rows), each frequency's absolute phase in units of
-        the finest fringe (into `scaled`, when given); returns the masks and, in `sums`, the
-        counts and the samples (every SAMPLE_STEP-th row and column) the checks judge."""
+        frequency), masks, unwrapping (the family's, `_UNWRAP`), and the background, phase,
+        weight and coordinate (written into `maps`' views of those rows), each frequency's
+        absolute phase in units of the finest fringe (into `scaled`, when given); returns the
+        masks and, in `sums`, the counts and the samples (every SAMPLE_STEP-th row and column)
+        the checks judge."""
         ps, s, conv = self.patterns, self.settings, self.patterns.conventions
         stack = self.stack[:, rows]
         wrapped, modulation = [], []
@@ -841,98 +842,93 @@ class _OrientationDecoder:
             modulation.append(b)
             background += a
         saturated = self.saturated[rows]
-        masks: dict[str, np.ndarray] = {}
-        sums: dict[str, Any] = {}
         background /= np.float32(len(self.blocks))
-        f_max = max(ps.fringes)
-        finest = ps.fringes.index(f_max)
-        b_fine = modulation[finest]
-        masks["shadow"] = b_fine < s.min_contrast * np.maximum(background, 1e-6)
-        masks["low_modulation"] = ~masks["shadow"] & (b_fine < s.min_modulation * self.full_scale)
+        b_fine = modulation[ps.fringes.index(max(ps.fringes))]
+        shadow = b_fine < s.min_contrast * np.maximum(background, 1e-6)
+        masks = {"shadow": shadow, "low_modulation": ~shadow & (b_fine < s.min_modulation * self.full_scale)}
         usable = ~(saturated | masks["shadow"] | masks["low_modulation"])
-        sqrt_2n = np.float32(np.sqrt(2.0 / ps.steps))
-
-        def sigma_of(level: int) -> Callable[[np.ndarray], np.ndarray]:
-            return lambda idx: self.noise.sigma(background.flat[idx]) * sqrt_2n / np.maximum(
-                modulation[level].flat[idx], np.float32(1e-6))
-
-        def frame(kind: str, level: int) -> np.ndarray:
-            return stack[self.index[(self.orientation, kind, level, 0)]]
-
-        def at_samples() -> np.ndarray:
-            """Flat indices (in the band) of the judged sample pixels: usable, no order error."""
-            grid = np.zeros(usable.shape, bool)
-            grid[(-rows.start) % SAMPLE_STEP::SAMPLE_STEP, ::SAMPLE_STEP] = True
-            return np.flatnonzero(grid & usable & ~masks["order_error"])
-
-        check_sigma = self.check_noise.sigma  # σ_I (DN) the checks judge by
-        if ps.unwrapping == "complementary":
-            bits = [frame("gray", b) for b in range(ps.gray_bits() + 1)]
-            phase, masks["order_error"], half, clear = _graycode_unwrap(wrapped[0], bits, background,
-                                                                        modulation[0], s.gray_certainty)
-            idx = at_samples()
-            idx = idx[clear.flat[idx]]  # the code's edges judged where every bit reads clearly
-            sums["gray_offset"] = gray_phase_offset(wrapped[0].flat[idx], half.flat[idx])
-            sums["phase_sigma"] = np.hypot(check_sigma(background.flat[idx]) / np.maximum(
-                modulation[0].flat[idx], np.float32(1e-6)), np.float32(PATTERN_ERROR)) * sqrt_2n
-            maps["phase"][...] = phase
-            np.square(modulation[0], out=maps["weight"])
-        elif ps.unwrapping == "pixel_phase":  # phase unwrapped by OpenCV's pixel Gray code
-            contrast = self.refs[0][rows] - self.refs[1][rows] if self.refs is not None else \
-                np.float32(2.0) * b_fine
-            coordinate_g, run, readable, beyond = self._pixel_code(frame, contrast)
-            beyond &= usable
-            sums["readable"] = int(((readable | beyond) & usable).sum())
-            predicted = (coordinate_g + np.float32(known(conv.pixel_centre, "pixel_centre"))) \
-                * np.float32(2 * np.pi * f_max / self.extent)
-            worst = np.zeros_like(background)
-            phase = unwrap_step(predicted, 1.0, wrapped[0], worst)
-            quant = np.float32(2 * np.pi * f_max / self.extent / np.sqrt(12.0) / np.pi)
-
-            def code_sigma(idx: np.ndarray) -> np.ndarray:
-                return np.hypot(sigma_of(0)(idx) / np.float32(np.pi), quant * run.flat[idx])
-
-            masks["order_error"] = ~readable | _order_errors(worst, code_sigma, s)
-            idx = at_samples()
-            sums["gray_offset"] = np.angle(np.exp(1j * (wrapped[0].flat[idx] - predicted.flat[idx])))
-            maps["phase"][...] = phase
-            np.square(modulation[0], out=maps["weight"])
-        else:
-            absolute, residual = temporal(ps.kind).unwrap(ps.fringes, wrapped)
-
-            def residual_sigma(idx: np.ndarray) -> np.ndarray:
-                return _residual_sigma(ps, [sigma_of(lv)(idx) for lv in range(len(ps.fringes))])
-
-            masks["order_error"] = _order_errors(residual, residual_sigma, s)
-            idx = at_samples()
-            sums["frequencies"] = _frequency_samples(ps, self.extent, absolute, modulation,
-                                                     check_sigma(background.flat[idx]) * sqrt_2n, idx)
-            sums["frequencies"]["at"] = idx + rows.start * usable.shape[1]  # flat in the image
-            if scaled is not None:
-                for phi_abs, fi, dst in zip(absolute, ps.fringes, scaled):
-                    np.multiply(phi_abs, np.float32(f_max / fi), out=dst)
-            # inverse-variance combination of all frequencies, in units of the finest fringe
-            phase, weight = maps["phase"], maps["weight"]
-            phase.fill(0.0)
-            weight.fill(0.0)
-            for phi_abs, b, fi in zip(absolute, modulation, ps.fringes):
-                w = np.square(b)
-                w *= np.float32((fi / f_max) ** 2)
-                weight += w
-                w *= phi_abs
-                phase += np.multiply(w, np.float32(f_max / fi), out=w)
-            phase /= np.maximum(weight, np.float32(1e-12))
+        band = _Band(self, rows, stack, wrapped, modulation, background, usable, masks, {}, maps, scaled)
+        _UNWRAP[ps.unwrapping](self, band)
+        sums = band.sums
         sums["usable"], sums["order_bad"] = int(usable.sum()), int((masks["order_error"] & usable).sum())
         if self.judges_residual:
-            sums["residual_z2"] = self._residual_z2(stack, at_samples())
-        coordinate = np.multiply(maps["phase"], np.float32(self.extent / (2.0 * np.pi * f_max)),
+            sums["residual_z2"] = self._residual_z2(stack, band.at_samples())
+        coordinate = np.multiply(maps["phase"], np.float32(self.extent / (2.0 * np.pi * band.f_max)),
                                  out=maps["coordinate"])
         coordinate -= np.float32(known(conv.pixel_centre, "pixel_centre"))
-        if "readable" not in sums:  # a fringe order beyond the projector's pixels is an order error
-            beyond = self._beyond(coordinate, usable & ~masks["order_error"], sigma_of(finest))
-            masks["order_error"] |= beyond
+        if band.beyond is None:  # a fringe order beyond the projector's pixels is an order error
+            band.beyond = self._beyond(coordinate, usable & ~masks["order_error"], band.sigma_of(band.finest))
+            masks["order_error"] |= band.beyond
             sums["readable"] = sums["usable"]
-        return {"masks": masks, "usable": usable, "sums": sums, "beyond": beyond}
+        return {"masks": masks, "usable": usable, "sums": sums, "beyond": band.beyond}
+
+    def _unwrap_complementary(self, band: _Band) -> None:
+        """Phase unwrapped by a complementary Gray code of the periods (Wu et al.)."""
+        masks, sums, maps, background, modulation = band.masks, band.sums, band.maps, band.background, band.modulation
+        bits = [band.frame("gray", b) for b in range(self.patterns.gray_bits() + 1)]
+        phase, masks["order_error"], half, clear = _graycode_unwrap(band.wrapped[0], bits, background,
+                                                                    modulation[0], self.settings.gray_certainty)
+        idx = band.at_samples()
+        idx = idx[clear.flat[idx]]  # the code's edges judged where every bit reads clearly
+        sums["gray_offset"] = gray_phase_offset(band.wrapped[0].flat[idx], half.flat[idx])
+        sums["phase_sigma"] = np.hypot(self.check_noise.sigma(background.flat[idx]) / np.maximum(
+            modulation[0].flat[idx], np.float32(1e-6)), np.float32(PATTERN_ERROR)) * band.sqrt_2n
+        maps["phase"][...] = phase
+        np.square(modulation[0], out=maps["weight"])
+
+    def _unwrap_pixel_phase(self, band: _Band) -> None:
+        """Phase unwrapped by OpenCV's Gray code of every projector pixel."""
+        masks, sums, maps, usable, rows = band.masks, band.sums, band.maps, band.usable, band.rows
+        conv, f_max, wrapped = self.patterns.conventions, band.f_max, band.wrapped
+        contrast = self.refs[0][rows] - self.refs[1][rows] if self.refs is not None else \
+            np.float32(2.0) * band.modulation[band.finest]
+        coordinate_g, run, readable, beyond = self._pixel_code(band.frame, contrast)
+        beyond &= usable
+        band.beyond = beyond
+        sums["readable"] = int(((readable | beyond) & usable).sum())
+        predicted = (coordinate_g + np.float32(known(conv.pixel_centre, "pixel_centre"))) \
+            * np.float32(2 * np.pi * f_max / self.extent)
+        worst = np.zeros_like(band.background)
+        phase = unwrap_step(predicted, 1.0, wrapped[0], worst)
+        quant = np.float32(2 * np.pi * f_max / self.extent / np.sqrt(12.0) / np.pi)
+
+        def code_sigma(idx: np.ndarray) -> np.ndarray:
+            return np.hypot(band.sigma_of(0)(idx) / np.float32(np.pi), quant * run.flat[idx])
+
+        masks["order_error"] = ~readable | _order_errors(worst, code_sigma, self.settings)
+        idx = band.at_samples()
+        sums["gray_offset"] = np.angle(np.exp(1j * (wrapped[0].flat[idx] - predicted.flat[idx])))
+        maps["phase"][...] = phase
+        np.square(band.modulation[0], out=maps["weight"])
+
+    def _unwrap_temporal(self, band: _Band) -> None:
+        """The frequencies unwrap each other (the family's `unwrap`); the phase is their
+        inverse-variance combination."""
+        ps, masks, sums, maps, f_max = self.patterns, band.masks, band.sums, band.maps, band.f_max
+        absolute, residual = temporal(ps.kind).unwrap(ps.fringes, band.wrapped)
+
+        def residual_sigma(idx: np.ndarray) -> np.ndarray:
+            return _residual_sigma(ps, [band.sigma_of(lv)(idx) for lv in range(len(ps.fringes))])
+
+        masks["order_error"] = _order_errors(residual, residual_sigma, self.settings)
+        idx = band.at_samples()
+        sums["frequencies"] = _frequency_samples(ps, self.extent, absolute, band.modulation,
+                                                 self.check_noise.sigma(band.background.flat[idx]) * band.sqrt_2n, idx)
+        sums["frequencies"]["at"] = idx + band.rows.start * band.usable.shape[1]  # flat in the image
+        if band.scaled is not None:
+            for phi_abs, fi, dst in zip(absolute, ps.fringes, band.scaled):
+                np.multiply(phi_abs, np.float32(f_max / fi), out=dst)
+        # inverse-variance combination of all frequencies, in units of the finest fringe
+        phase, weight = maps["phase"], maps["weight"]
+        phase.fill(0.0)
+        weight.fill(0.0)
+        for phi_abs, b, fi in zip(absolute, band.modulation, ps.fringes):
+            w = np.square(b)
+            w *= np.float32((fi / f_max) ** 2)
+            weight += w
+            w *= phi_abs
+            phase += np.multiply(w, np.float32(f_max / fi), out=w)
+        phase /= np.maximum(weight, np.float32(1e-12))
 
     def _beyond(self, coordinate: np.ndarray, judged: np.ndarray, phase_sigma: Callable[[np.ndarray], np.ndarray]
                 ) -> np.ndarray:
@@ -1108,7 +1104,7 @@ class _OrientationDecoder:
     @property
     def _judges_paths(self) -> bool:
         """Whether this decode looks for second light paths (several phase-shift frequencies)."""
-        return (self.settings.interreflection and self.patterns.unwrapping == "temporal"
+        return (self.settings.interreflection and self.patterns.unwrapping.by_frequencies
                 and len(self.patterns.fringes) > 1)
 
     def _pixel_graycode_only(self, masks: dict[str, np.ndarray]) -> tuple[OrientationMaps, list[Check]]:
@@ -1170,3 +1166,61 @@ class _OrientationDecoder:
             phase[slivers] = nan
         return OrientationMaps(self.orientation, coordinate, phase, wrapped, modulation, background, weight, masks,
                                valid, fringes, self.extent, self.noise, max(self.patterns.steps, 1))
+
+
+_UNWRAP: dict[Unwrapping, Callable[[_OrientationDecoder, _Band], None]] = {
+    Unwrapping.COMPLEMENTARY: _OrientationDecoder._unwrap_complementary,
+    Unwrapping.PIXEL_PHASE: _OrientationDecoder._unwrap_pixel_phase,
+    Unwrapping.TEMPORAL: _OrientationDecoder._unwrap_temporal,
+}  # how a band's fringe order is found, per the family's unwrapping (pixel only: `_pixel_graycode_only`)
+
+
+@dataclass(eq=False)
+class _Band:
+    """One band of rows in `_OrientationDecoder._band`: its frames (`stack`), each frequency's
+    wrapped phase and modulation B, the background A (DN), the usable pixels, and what the
+    unwrapping writes: the masks, the checks' samples (`sums`), the maps' views of these rows
+    and, for the second-path test, each frequency's absolute phase scaled to the finest
+    (`scaled`); `beyond`: the pixels a code names beyond the projector (None: judged after)."""
+
+    decoder: _OrientationDecoder
+    rows: slice
+    stack: np.ndarray
+    wrapped: list[np.ndarray]
+    modulation: list[np.ndarray]
+    background: np.ndarray
+    usable: np.ndarray
+    masks: dict[str, np.ndarray]
+    sums: dict[str, Any]
+    maps: dict[str, np.ndarray]
+    scaled: list[np.ndarray] | None
+    beyond: np.ndarray | None = None
+
+    @property
+    def f_max(self) -> float:
+        return max(self.decoder.patterns.fringes)
+
+    @property
+    def finest(self) -> int:
+        """The index of the finest frequency."""
+        return self.decoder.patterns.fringes.index(self.f_max)
+
+    @property
+    def sqrt_2n(self) -> np.float32:
+        return np.float32(np.sqrt(2.0 / self.decoder.patterns.steps))
+
+    def sigma_of(self, level: int) -> Callable[[np.ndarray], np.ndarray]:
+        """The phase noise (rad) of frequency `level` at flat indices of the band."""
+        d = self.decoder
+        return lambda idx: d.noise.sigma(self.background.flat[idx]) * self.sqrt_2n / np.maximum(
+            self.modulation[level].flat[idx], np.float32(1e-6))
+
+    def frame(self, kind: str, level: int) -> np.ndarray:
+        d = self.decoder
+        return self.stack[d.index[(d.orientation, kind, level, 0)]]
+
+    def at_samples(self) -> np.ndarray:
+        """Flat indices (in the band) of the judged sample pixels: usable, no order error."""
+        grid = np.zeros(self.usable.shape, bool)
+        grid[(-self.rows.start) % SAMPLE_STEP::SAMPLE_STEP, ::SAMPLE_STEP] = True
+        return np.flatnonzero(grid & self.usable & ~self.masks["order_error"])

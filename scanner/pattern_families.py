@@ -3,17 +3,18 @@
 
 Each family says what its frames are (the frame layout of its code block and the keys that
 order its frames), how to draw each of them (`code_profile`; the phase frames are common to
-all phase-shift families), how its fringe order is found (`unwrapping`: "temporal" — the
-frequencies unwrap each other, their rules in `unwrap` and `residual_sigma` —, "complementary"
-— a Gray code of the periods with a half-period bit —, "pixel_phase" — OpenCV's Gray code of
-every projector pixel unwrapping one phase — or "pixel_only"), and which conventions its
-frames can determine (`determines`). A family not here is refused by name with the list of
-those that are (`family`).
+all phase-shift families), how its fringe order is found (`unwrapping`, an `Unwrapping`:
+temporal — the frequencies unwrap each other, their rules in `unwrap` and
+`residual_variances` —, complementary — a Gray code of the periods with a half-period bit —,
+pixel phase — OpenCV's Gray code of every projector pixel unwrapping one phase — or pixel
+only), and which conventions its frames can determine (`determines`). A family not here is
+refused by name with the list of those that are (`family`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 from itertools import pairwise
 from typing import Any, ClassVar
 
@@ -32,6 +33,26 @@ class FrameSpec:
     kind: str  # phase | gray | gray_inverse | white | black
     level: int  # phase: frequency index; gray: bit index (0 = most significant)
     step: int  # phase: step index n; otherwise 0
+
+
+class Unwrapping(Enum):
+    """How a family finds its fringe order (module docstring): what the decoder and the
+    convention detection dispatch on."""
+
+    TEMPORAL = "temporal"
+    COMPLEMENTARY = "complementary"
+    PIXEL_PHASE = "pixel_phase"
+    PIXEL_ONLY = "pixel_only"
+
+    @property
+    def by_frequencies(self) -> bool:
+        """The phase-shift frequencies unwrap each other (no Gray code)."""
+        return self is Unwrapping.TEMPORAL
+
+    @property
+    def pixel_code(self) -> bool:
+        """A Gray code of every projector pixel (OpenCV's layout) rather than of the periods."""
+        return self in (Unwrapping.PIXEL_PHASE, Unwrapping.PIXEL_ONLY)
 
 
 def gray_code(n: np.ndarray) -> np.ndarray:
@@ -84,7 +105,7 @@ class PatternFamily:
         if not fringes or any(x <= 0 for x in fringes):
             raise ConfigError(where, "fringes", "fringe counts must be positive")
 
-    def unwrapping(self, gray_code_variant: str | None) -> str:
+    def unwrapping(self, gray_code_variant: str | None) -> Unwrapping:
         raise NotImplementedError
 
     def layout_keys(self, n_fringes: int) -> list[str]:
@@ -108,8 +129,8 @@ class TemporalFamily(PatternFamily):
     determines = ("the frame layout; the phase's offset (origin and step rotation) from the frequencies' beats; "
                   "the step sign only against a calibrated geometry")
 
-    def unwrapping(self, gray_code_variant: str | None) -> str:
-        return "temporal"
+    def unwrapping(self, gray_code_variant: str | None) -> Unwrapping:
+        return Unwrapping.TEMPORAL
 
     def unwrap(self, fringes: tuple[float, ...], wrapped: list[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
         """Absolute phase per frequency and the worst unwrapping residual (fraction of π)."""
@@ -201,8 +222,8 @@ class GrayCodePhase(PatternFamily):
         if len(fringes) != 1:
             raise ConfigError(where, "fringes", f"graycode takes one phase-shift fringe count, got {list(fringes)}")
 
-    def unwrapping(self, gray_code_variant: str | None) -> str:
-        return "pixel_phase" if gray_code_variant == "opencv" else "complementary"
+    def unwrapping(self, gray_code_variant: str | None) -> Unwrapping:
+        return Unwrapping.PIXEL_PHASE if gray_code_variant == "opencv" else Unwrapping.COMPLEMENTARY
 
     def layout_keys(self, n_fringes: int) -> list[str]:
         return ["gray_position", "gray_code"]
@@ -241,8 +262,8 @@ class PixelGrayCode(PatternFamily):
         if fringes or steps:
             raise ConfigError(where, "fringes", "pixel_graycode has no phase shift: leave out steps and fringes")
 
-    def unwrapping(self, gray_code_variant: str | None) -> str:
-        return "pixel_only"
+    def unwrapping(self, gray_code_variant: str | None) -> Unwrapping:
+        return Unwrapping.PIXEL_ONLY
 
     def layout_keys(self, n_fringes: int) -> list[str]:
         return []
@@ -267,7 +288,7 @@ FAMILIES: dict[str, PatternFamily] = {f.name: f for f in (Heterodyne(), Hierarch
 
 
 def temporal(kind: PatternFamily) -> TemporalFamily:
-    """`kind`, where the caller unwraps by its frequencies (`unwrapping` "temporal"): a
+    """`kind`, where the caller unwraps by its frequencies (`Unwrapping.TEMPORAL`): a
     ConfigError for a family whose fringe order a Gray code gives."""
     if not isinstance(kind, TemporalFamily):
         raise ConfigError("pattern set", "family", f"'{kind.name}' does not unwrap by its frequencies")

@@ -27,7 +27,7 @@ from scanner import schema
 from scanner.config import load_toml
 from scanner.conventions import LAYOUT_KEYS, NATIVE, Conventions, ConventionsFile, known
 from scanner.errors import ConfigError
-from scanner.pattern_families import FAMILIES, FrameSpec, PatternFamily, family, gray_code, gray_to_binary
+from scanner.pattern_families import FAMILIES, FrameSpec, PatternFamily, Unwrapping, family, gray_code, gray_to_binary
 
 __all__ = ["FAMILIES", "FrameSpec", "PatternFile", "PatternSet", "gray_code", "gray_to_binary"]
 
@@ -98,7 +98,7 @@ class PatternSet:
         return FAMILIES[self.family]
 
     @property
-    def unwrapping(self) -> str:
+    def unwrapping(self) -> Unwrapping:
         """How its fringe order is found (`PatternFamily.unwrapping`)."""
         return self.kind.unwrapping(self.conventions.gray_code)
 
@@ -153,7 +153,7 @@ class PatternSet:
     @property
     def uses_pixel_code(self) -> bool:
         """Gray code of every projector pixel (OpenCV's layout) rather than of the periods."""
-        return self.unwrapping in ("pixel_phase", "pixel_only")
+        return self.unwrapping.pixel_code
 
     def gray_bits(self, orientation: str = "vertical") -> int:
         """Gray-code bits per orientation: of the phase-shift periods (without the
