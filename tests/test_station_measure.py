@@ -8,12 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from station_support import DEMO_PROGRAM, station_config
+from station_support import DEMO_PROGRAM, face_row, station_config
 
 from inspection.figures import asked_by
-from inspection.form import FaceForm
-from inspection.report import FaceRow
-from inspection.uncertainty import Estimate
 from scanner.config import CONFIG_DIR
 from slscan.station.app import expected_status, open_station
 from slscan.station.measure import ViewReport, _pick
@@ -25,18 +22,10 @@ FLAT = Characteristic("high_top_flatness", "#657", "flatness", 0.05, "minimum_zo
 PROFILE = Characteristic("high_top_profile", "#657", "profile", 0.4)
 
 
-def face(label: str, points: int, note: str = "", status: str = "ok", **figures_mm: float | None
-         ) -> dict[str, FaceRow]:
-    """A report's face row by its label: `figures_mm` the figures measured (mm, U 0), None
-    where not measured."""
-    estimates = {name: None if v is None else Estimate(v, 0.0) for name, v in figures_mm.items()}
-    return {label: FaceRow(label, None, "plane", FaceForm(points, status, note, **estimates))}
-
-
 def test_adapter_takes_each_value_from_the_view_that_sees_the_face_best() -> None:
-    views = [face("#657", 900, flatness_mz=0.031, flatness_ls=0.035, profile=0.10, raw_deviation_min=-0.08,
+    views = [face_row("#657", 900, flatness_mz=0.031, flatness_ls=0.035, profile=0.10, raw_deviation_min=-0.08,
                   raw_deviation_max=0.09),
-             face("#657", 1500, flatness_mz=0.027, flatness_ls=0.030, profile=0.18, raw_deviation_min=-0.13,
+             face_row("#657", 1500, flatness_mz=0.027, flatness_ls=0.030, profile=0.18, raw_deviation_min=-0.13,
                   raw_deviation_max=0.08)]
     flat = _pick(FLAT, views)
     assert (flat.value_mm, flat.points, flat.view) == (0.027, 1500, 1)
@@ -45,11 +34,11 @@ def test_adapter_takes_each_value_from_the_view_that_sees_the_face_best() -> Non
 
 
 def test_a_face_not_seen_or_not_evaluated_has_no_value_and_says_why() -> None:
-    unseen = _pick(FLAT, [face("#158", 10), face("#657", 0)])
+    unseen = _pick(FLAT, [face_row("#158", 10), face_row("#657", 0)])
     assert unseen.value_mm is None and unseen.note == "face #657 not seen in any view"
-    failed = _pick(FLAT, [face("#657", 40, "too few points for a minimum zone", flatness_mz=None)])
+    failed = _pick(FLAT, [face_row("#657", 40, "too few points for a minimum zone", flatness_mz=None)])
     assert failed.value_mm is None and failed.note == "face #657: too few points for a minimum zone"
-    nan = _pick(FLAT, [face("#657", 40, status="", flatness_mz=float("nan"))])
+    nan = _pick(FLAT, [face_row("#657", 40, status="", flatness_mz=float("nan"))])
     assert nan.value_mm is None and "flatness_mz_mm" in nan.note
 
 
@@ -107,11 +96,11 @@ def test_a_view_whose_pose_is_not_proven_measures_nothing() -> None:
     program = load_program(DEMO_PROGRAM)
     flat = program.characteristics[0]
     name = asked_by(flat.kind, flat.method).name
-    seen = face(flat.face, 2000, **{name: 0.5})
+    seen = face_row(flat.face, 2000, **{name: 0.5})
     note = "not measured: the pose is ambiguous between the best pose and 1 other pose(s) that explain the scan"
     ambiguous = ViewReport(0.9, 0.01, "not measured", "ambiguous", note)
     ok = ViewReport(0.9, 0.01, "conforming")
-    proven = view_values(program, [seen, face(flat.face, 300, **{name: 0.02})], [ambiguous, ok], {}, [])
+    proven = view_values(program, [seen, face_row(flat.face, 300, **{name: 0.02})], [ambiguous, ok], {}, [])
     assert proven.ok and proven.value(flat.name).value_mm == 0.02  # the ambiguous view's 2000 points are not used
     alone = view_values(program, [seen, {}], [ambiguous, ok], {}, [])
     assert alone.value(flat.name).value_mm is None and "view 0: not measured: the pose is ambiguous" in \
