@@ -361,7 +361,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
             cmd_scan(ns, inspect_scan)  # the scan's own lines: on stderr beside the JSON
     rep, outputs = done["report"], Path(out) / "outputs"
     if args.json:
-        print(json.dumps({"status": rep.as_dict()["status"], "verdict": rep.verdict, "session": str(out),
+        from inspection.tolerances import DECISION_STATUS
+
+        print(json.dumps({"status": DECISION_STATUS[rep.verdict], "verdict": rep.verdict, "session": str(out),
                           "conclusion": demo_conclusion(rep, Path(out)), "report": str(outputs / "inspection.html"),
                           "inspection": rep.as_dict()}, default=str))
         return for_verdict(rep.verdict)
