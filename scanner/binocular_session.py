@@ -20,8 +20,7 @@ rig model of camera `name`, to decode (and, with a projector calibration, triang
 
 from __future__ import annotations
 
-from dataclasses import replace
-from typing import Annotated, Any
+from typing import Annotated
 
 from pydantic import Field, model_validator
 
@@ -90,18 +89,19 @@ class BinocularRecord(schema.Schema):
 
 
 def is_binocular(session: Session) -> bool:
-    return "stereo_model" in session.manifest
+    return "stereo_model" in (session.manifest.model_extra or {})
 
 
 def record(session: Session) -> BinocularRecord:
     """The session's binocular keys, validated (SessionError naming the manifest and key)."""
     keys = ("cameras", "camera_frames", "camera_models", "projector_calibrated", "stereo_model")
-    data = {k: session.manifest[k] for k in keys if k in session.manifest}
+    recorded = session.manifest.as_recorded()
+    data = {k: recorded[k] for k in keys if k in recorded}
     try:
         rec = schema.parse(BinocularRecord, data, session.root / MANIFEST)
     except ConfigError as exc:
         raise SessionError(str(exc)) from None
-    first = session.manifest["frames"]
+    first = session.manifest.frames
     for name, frames in rec.camera_frames.items():
         if len(frames) != len(first):
             raise SessionError(f"{session.root / MANIFEST}: camera '{name}' has {len(frames)} frames, camera "
@@ -110,11 +110,12 @@ def record(session: Session) -> BinocularRecord:
 
 
 def stereo_model(session: Session) -> StereoModel:
-    return StereoModel.from_dict(session.manifest["stereo_model"], f"{session.root / MANIFEST}: stereo_model")
+    return StereoModel.from_dict(session.manifest.recorded("stereo_model"), f"{session.root / MANIFEST}: stereo_model")
 
 
 def camera_model(session: Session, name: str) -> RigModel:
-    return RigModel.from_dict(session.manifest["camera_models"][name], f"{session.root / MANIFEST}: camera_models")
+    return RigModel.from_dict(session.manifest.recorded("camera_models")[name],
+                              f"{session.root / MANIFEST}: camera_models")
 
 
 def camera_session(session: Session, name: str) -> Session:
@@ -124,7 +125,5 @@ def camera_session(session: Session, name: str) -> Session:
         raise SessionError(f"{session.root}: no camera '{name}' (cameras: {', '.join(rec.cameras)})")
     if name == rec.cameras[0]:
         return session
-    manifest: dict[str, Any] = dict(session.manifest)
-    manifest["frames"] = session.manifest["camera_frames"][name]
-    manifest["rig_model"] = session.manifest["camera_models"][name]
-    return replace(session, manifest=manifest)
+    return session.replaced(frames=session.manifest.recorded("camera_frames")[name],
+                            rig_model=session.manifest.recorded("camera_models")[name])

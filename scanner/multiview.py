@@ -167,7 +167,7 @@ class MultiViewSession:
                     raise SessionError(f"{folder}: view {k} of a complete multi-view session has no {MANIFEST}")
                 break  # views are captured in order: the first incomplete one ends the run
             session = Session.open(folder)
-            stage = session.manifest.get("stage")
+            stage = session.manifest.stage
             if not isinstance(stage, dict) or "position" not in stage or "world_from_stage" not in stage:
                 raise SessionError(f"{folder / MANIFEST}: no stage pose recorded: not a view of a multi-view session")
             views.append(View(k, session, {n: float(v) for n, v in stage["position"].items()},

@@ -233,15 +233,16 @@ def _process(session: Session, progress: Progress, recording: SessionRecording |
         stack = session.load_stack() if frames is None else np.stack([frames[k] for k in range(len(frames))])
         model = rig_model or session.rig_model()
         stacks = exposure_stacks(session, stack, model)
-    used = model.to_dict() if rig_model is not None else session.manifest["rig_model"]
-    named = session.manifest["rig_model"].get("calibration")
-    tie = rig_model_tie(session.manifest.get("rig_model_sha256"), used, rig_model_source,
-                        (named, session.manifest["calibration_sha256"]) if named and
-                        session.manifest.get("calibration_sha256") else None, holds_its_calibration(used, model))
+    manifest = session.manifest
+    used = model.to_dict() if rig_model is not None else manifest.recorded("rig_model")  # as checksummed
+    named = manifest.rig_model.calibration
+    tie = rig_model_tie(manifest.rig_model_sha256, used, rig_model_source,
+                        (named, manifest.calibration_sha256) if named and manifest.calibration_sha256 else None,
+                        holds_its_calibration(used, model))
     progress("decode", 0, 1)
     with timer.stage("decode"):
         decoded = decode_exposures(session, stacks, model, replace(settings, self_check=False))
-    calibrated = session.manifest.get("calibrated", True)
+    calibrated = manifest.calibrated
     progress("reconstruct", 0, 1)
     with timer.stage("reconstruct"):
         cloud = None
@@ -251,7 +252,7 @@ def _process(session: Session, progress: Progress, recording: SessionRecording |
             cloud = triangulate(decoded, Triangulator(model))
         else:
             cloud = phase_to_height_cloud(decoded, model)
-    described = pattern_set_tie(session.manifest.get("patterns_sha256"), session.manifest["patterns"])
+    described = pattern_set_tie(manifest.patterns_sha256, manifest.recorded("patterns"))
     checks = [tie, described, *decoded.checks, *rig_checks(session, decoded, cloud, model, calibrated)]
     progress("write", 0, 1)
     out = output_dir(session.root, OUTPUTS_DIR)
@@ -333,7 +334,7 @@ def rig_checks(session: Session, decoded: DecodeResult, cloud: OrganisedCloud | 
         if ordering_check is not None:
             out.append(direction(ordering_check, model, o, calibrated))
     if cloud is not None and len(cloud):
-        volume = Volume.of_rig_config(session.manifest.get("rig_config", {}))
+        volume = Volume.of_rig_config(session.manifest.rig_config)
         out.append(measurement_volume(cloud.points, model, volume, tuple(decoded.maps)))
     if calibrated and set(decoded.maps) == {"vertical", "horizontal"}:
         accuracy = model_accuracy_px(session, model)
@@ -349,8 +350,8 @@ def model_accuracy_px(session: Session, model: RigModel) -> float | None:
     reprojection RMS on its own views only, not its error on a new one (on the real procam
     capture the epipolar distance is twice that RMS allows), and a nominal hardware geometry
     states nothing: None, the epipolar check is then not judged."""
-    imported = session.manifest.get("import", {}).get("calibration")
-    driver = session.manifest.get("rig_config", {}).get("rig", {}).get("driver")
+    imported = (session.manifest.imported or {}).get("calibration")
+    driver = session.manifest.rig_config.get("rig", {}).get("driver")
     return 0.0 if driver == "sim" and not model.calibration and not imported else None
 
 
@@ -390,7 +391,7 @@ def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: bool, model_p
 
 def sensor_noise(session: Session) -> NoiseModel | None:
     """The camera's intensity noise from the session's rig file ([camera.sensor]), or None."""
-    terms = sensor_noise_terms(session.manifest.get("rig_config", {}), session.bit_depth)
+    terms = sensor_noise_terms(session.manifest.rig_config, session.bit_depth)
     return NoiseModel(*terms) if terms is not None else None
 
 
@@ -504,7 +505,7 @@ def save_maps(path: Path, decoded: DecodeResult) -> None:
 def recording_level(session: Session) -> str:
     """The recording level the session was captured with (its rig's `[recording] level`;
     "display" when the rig said nothing, or for imported frames)."""
-    table = session.manifest.get("rig_config", {}).get("recording", {})
+    table = session.manifest.rig_config.get("recording", {})
     return str(table.get("level", "display")) if isinstance(table, dict) else "display"
 
 
@@ -566,7 +567,7 @@ def log_session_frames(recording: SessionRecording, session: Session) -> None:
     from scanner.session_recording import png_bytes
 
     specs = session.patterns.frames()
-    for k in range(len(session.manifest["frames"])):  # every exposure's frames (HDR: the pattern set per exposure)
+    for k in range(len(session.manifest.frames)):  # every exposure's frames (HDR: the pattern set per exposure)
         spec = specs[k % len(specs)]
         path = session.frame_path(k)
         data = path.read_bytes()

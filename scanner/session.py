@@ -43,12 +43,13 @@ import uuid
 import zipfile
 from contextlib import suppress
 from dataclasses import dataclass, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Annotated, Any, BinaryIO, Literal
 
 import cv2
 import numpy as np
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, ModelWrapValidatorHandler, PrivateAttr, model_validator
 
 from scanner import __version__, schema
 from scanner.devices import Frame
@@ -343,6 +344,7 @@ class ExposureRecord(schema.Schema):
     exposures_s: Annotated[list[schema.PositiveFloat], Field(min_length=1)]
     mode: Literal["given", "auto", "hdr"]
     reason: str
+    probe_captures: Annotated[int, Field(strict=True, ge=0)] = 0  # auto exposure: probes taken (3 frames each)
 
     @model_validator(mode="after")
     def _ascending(self) -> ExposureRecord:
@@ -376,27 +378,29 @@ def file_record(path: Path, session_root: Path) -> dict[str, str]:
             "sha256": sha256(read_regular(real))}
 
 
-def find_recorded(record: dict[str, str], session_root: Path) -> tuple[Path | None, str]:
+def find_recorded(record: FileRecord, session_root: Path) -> tuple[Path | None, str]:
     """The file a `FileRecord` names, looked for at its absolute path and then relative to
     the session folder, accepted only with the recorded SHA-256: (path or None, what was
     found, for people)."""
     seen = []
-    for candidate in (Path(record["path"]), Path(session_root) / record["relative"]):
+    for candidate in (Path(record.path), Path(session_root) / record.relative):
         try:
             data = read_regular(candidate)
         except FileRefused:
             continue
-        if sha256(data) == record["sha256"]:
+        if sha256(data) == record.sha256:
             return candidate, "found"
         seen.append(str(candidate))
     if seen:
         return None, f"{seen[0]} has changed since the capture (its SHA-256 differs)"
-    return None, f"{record['path']} is gone (not found there or at {record['relative']} from the session)"
+    return None, f"{record.path} is gone (not found there or at {record.relative} from the session)"
 
 
 class Manifest(schema.Schema):
     """manifest.json: what decoding reads is typed and checked; the other keys (devices,
-    timings, versions, ...) are a record for people and kept as written."""
+    timings, versions, ...) are a record for people and kept as written. The object the file
+    held is kept too (`recorded`): the descriptions checksummed at capture are compared as
+    written, and the records other modules validate (the binocular keys) are read from it."""
 
     model_config = ConfigDict(extra="allow")
 
@@ -411,6 +415,27 @@ class Manifest(schema.Schema):
     calibration_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # its file's
     patterns_sha256: Annotated[str, Field(strict=True, pattern="^[0-9a-f]{64}$")] | None = None  # of patterns
     provenance: Provenance | None = None  # sessions before it had only rig_config_path
+    rig_config_path: str | None = None  # sessions before `provenance`: the rig TOML they were captured with
+    calibrated: schema.Bool = True  # False: imported without a calibration (decoded maps, no cloud)
+    imported: dict[str, Any] | None = Field(default=None, alias="import")  # `slscan import`: where from, how
+    stage: dict[str, Any] | None = None  # a view of a multi-view session: the stage's position and pose
+    timings_s: dict[str, Any] = Field(default_factory=dict)  # seconds per stage of the capture
+    _recorded: dict[str, Any] = PrivateAttr(default_factory=dict)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _keep(cls, data: Any, handler: ModelWrapValidatorHandler[Manifest]) -> Manifest:
+        manifest = handler(data)
+        manifest._recorded = data
+        return manifest
+
+    def recorded(self, key: str) -> Any:
+        """The value of `key` exactly as the file holds it (None when absent); not to be changed."""
+        return self._recorded.get(key)
+
+    def as_recorded(self) -> dict[str, Any]:
+        """The object the file held (a shallow copy)."""
+        return dict(self._recorded)
 
     @model_validator(mode="after")
     def _frames(self) -> Manifest:
@@ -434,10 +459,11 @@ class Manifest(schema.Schema):
 
 @dataclass(frozen=True, eq=False)
 class Session:
-    """A complete session read back from disk, its manifest validated."""
+    """A complete session read back from disk, its manifest validated (`Manifest`) once: what
+    the layers above read is the typed record."""
 
     root: Path
-    manifest: dict[str, Any]
+    manifest: Manifest
 
     @classmethod
     def open(cls, path: str | Path) -> Session:
@@ -458,82 +484,102 @@ class Session:
         version = manifest.get("slscan_manifest")
         if version != MANIFEST_VERSION:
             raise SessionError(f"{mpath}: manifest version {version!r}, this slscan reads {MANIFEST_VERSION}")
+        return cls.checked(root, manifest)
+
+    @classmethod
+    def checked(cls, root: Path, manifest: dict[str, Any]) -> Session:
+        """The session in `root` with the manifest `manifest` (a JSON object), validated as a
+        file's would be: keys and types, the pattern set's rules, the rig model's geometry."""
+        mpath = root / MANIFEST
         try:
             m = schema.parse(Manifest, manifest, mpath)
-            PatternSet.from_dict(manifest["patterns"], mpath, "patterns")
+            session = cls(root, m)
+            session.pattern_set  # noqa: B018  # the family's rules, checked once here
             rig = m.rig_config.get("rig")
             distance = rig.get("working_distance_mm") if isinstance(rig, dict) else None
-            check_geometry(RigModel.from_dict(manifest["rig_model"], f"{mpath}: rig_model"),
+            check_geometry(RigModel.from_dict(m.recorded("rig_model"), f"{mpath}: rig_model"),
                            float(distance) if isinstance(distance, (int, float)) and distance > 0 else None,
                            mpath, "rig_model")
         except ConfigError as exc:
             raise SessionError(str(exc)) from None
-        return cls(root, manifest)
+        return session
+
+    def replaced(self, **keys: Any) -> Session:
+        """The session as it would be with these manifest keys (JSON-ready values) instead of
+        its own, in memory only, validated as `checked` does (SessionError otherwise)."""
+        return Session.checked(self.root, {**self.manifest.as_recorded(), **keys})
 
     @property
     def id(self) -> str:
-        return self.manifest["session_id"]
+        return self.manifest.session_id
 
-    @property
+    @cached_property
+    def pattern_set(self) -> PatternSet:
+        """The manifest's pattern set as recorded, parsed once (`checked` parses it first)."""
+        return PatternSet.from_dict(self.manifest.recorded("patterns"), self.root / MANIFEST, "patterns")
+
+    @cached_property
     def patterns(self) -> PatternSet:
         """The pattern set on the session's projector (its Gray code's bits and whole-pixel
         periods follow the projector's size, as the frames were rendered)."""
-        projector = self.manifest["rig_model"]["projector"]
-        return PatternSet.from_dict(self.manifest["patterns"], self.root / MANIFEST, "patterns").for_projector(
-            (projector["width"], projector["height"]))
+        projector = self.manifest.rig_model.projector
+        return self.pattern_set.for_projector((projector.width, projector.height))
 
     def rig_model(self) -> RigModel:
         """The geometry the session was captured with, its phase-to-height model (and maps) included."""
-        return RigModel.from_dict(self.manifest["rig_model"], f"{self.root / MANIFEST}: rig_model", self.root)
+        return self._rig_model
+
+    @cached_property
+    def _rig_model(self) -> RigModel:  # read once: the maps are ~12 MB at 1280 x 1024
+        return RigModel.from_dict(self.manifest.recorded("rig_model"), f"{self.root / MANIFEST}: rig_model", self.root)
 
     @property
     def bit_depth(self) -> int:
-        return int(self.manifest["frames"][0]["bit_depth"])
+        return self.manifest.frames[0].bit_depth
 
     @property
     def exposures_s(self) -> tuple[float, ...]:
         """The exposures the pattern set was captured at, ascending (one for a plain session:
         its frames' recorded exposure, or 0 when not recorded)."""
-        record = self.manifest.get("exposure")
-        if record:
-            return tuple(float(t) for t in record["exposures_s"])
-        return (float(self.manifest["frames"][0].get("exposure_s") or 0.0),)
+        if self.manifest.exposure is not None:
+            return tuple(self.manifest.exposure.exposures_s)
+        return (self.manifest.frames[0].exposure_s or 0.0,)
 
     @property
     def integrity(self) -> str:
         """What `load_stack` can vouch for: "sha256" when every frame carries its checksum,
         else a sentence saying the frames cannot be checked (sessions written before
         checksums were recorded)."""
-        if all(e.get("sha256") for e in self.manifest["frames"]):
+        if all(e.sha256 for e in self.manifest.frames):
             return "sha256"
         return ("not checked: this session was written before slscan recorded frame checksums, so altered or "
                 "replaced frames cannot be detected")
 
     def frame_path(self, k: int) -> Path:
         """Frame k's file (`confined_frame_path`)."""
-        return confined_frame_path(self.root, self.manifest["frames"][k]["file"], k,
+        return confined_frame_path(self.root, self.manifest.frames[k].file, k,
                                    f"{self.root / MANIFEST}, key 'frames[{k}].file'")
 
     def load_stack(self) -> np.ndarray:
         """The raw frames as (N, H, W), each checked: inside the session folder, its SHA-256
         as recorded (when the session has checksums), its size, type and bit depth."""
-        entries = self.manifest["frames"]
+        entries = self.manifest.frames
         n_exposures = len(self.exposures_s)
         n_expected = self.patterns.n_frames * n_exposures
         if len(entries) != n_expected:
             times = f" x {n_exposures} exposures" if n_exposures > 1 else ""
             raise SessionError(f"{self.root / MANIFEST}: lists {len(entries)} frames, pattern set needs "
                                f"{self.patterns.n_frames}{times}")
-        cam = self.manifest["rig_model"]["camera"]
-        shape = (cam["height"], cam["width"])
+        cam = self.manifest.rig_model.camera
+        shape = (cam.height, cam.width)
         stack = None
         for k, e in enumerate(entries):
             path = self.frame_path(k)
             try:
-                data = read_regular(path, limit=frame_bytes_limit(shape, e["dtype"]))
+                data = read_regular(path, limit=frame_bytes_limit(shape, e.dtype))
             except FileRefused as exc:
                 raise SessionError(f"{path}: frame {k} missing or unreadable ({exc.problem})") from None
-            if e.get("sha256") and sha256(data) != e["sha256"]:
+            if e.sha256 and sha256(data) != e.sha256:
                 raise SessionError(f"{path}: frame {k} has been altered or replaced since it was captured (its "
                                    f"SHA-256 is not the one in the manifest); re-scan, or restore the original file")
             declared = png_size(data)
@@ -544,12 +590,12 @@ class Session:
             if img is None:
                 raise SessionError(f"{path}: frame {k} missing or unreadable "
                                    f"(not an image{': ' + said if said else ''})")
-            if img.shape != shape or str(img.dtype) != e["dtype"]:
-                raise SessionError(f"{path}: frame {k} is {_describe(img)}, expected {e['dtype']} "
+            if img.shape != shape or str(img.dtype) != e.dtype:
+                raise SessionError(f"{path}: frame {k} is {_describe(img)}, expected {e.dtype} "
                                    f"{shape[1]}x{shape[0]} single-channel")
-            if int(img.max()) >= 2 ** e["bit_depth"]:
+            if int(img.max()) >= 2 ** e.bit_depth:
                 raise SessionError(f"{path}: frame {k} holds values up to {int(img.max())}, beyond its "
-                                   f"{e['bit_depth']}-bit depth in the manifest")
+                                   f"{e.bit_depth}-bit depth in the manifest")
             if stack is None:
                 stack = np.empty((len(entries), *shape), dtype=img.dtype)
             stack[k] = img

@@ -93,7 +93,7 @@ def session_uncertainty(session: Any, decoded: DecodeResult | None = None) -> Ca
     depth bias per point for the inspection to remove. `decoded`: the session's decode
     when it is at hand (a scan just processed: `ScanResult.decoded`), else its frames are
     decoded again."""
-    config = session.manifest.get("rig_config", {})
+    config = session.manifest.rig_config
     model = session.rig_model()
     if decoded is None:
         decoded = decode_session(session)

@@ -54,9 +54,9 @@ def part_figures(result: ScanResult, truth: Truth) -> dict[str, Any]:
         "fringe_order_errors": int((np.abs(coord_err) >= m.period_px / 2).sum()),
         "masked_on_part": {k: int((v & part).sum()) for k, v in m.masks.items()},
         "exposures_s": list(result.session.exposures_s),
-        "capture_s": manifest.get("timings_s", {}).get("capture"),
+        "capture_s": manifest.timings_s.get("capture"),
         "nominal_capture_s": round(nominal_capture_s(result.session), 3),
-        "exposure_reason": (manifest.get("exposure") or {}).get("reason"),
+        "exposure_reason": manifest.exposure.reason if manifest.exposure is not None else None,
     }
 
 
@@ -64,10 +64,10 @@ def nominal_capture_s(session: Session) -> float:
     """Capture time the rig's sequencing takes (s), the renderer's time left out: every frame
     (the probe's three per pre-capture included) holds a pattern for max(period, exposure +
     margin), as `scanner.acquisition.settings_for_exposure` sets it."""
-    period = float(session.manifest["rig_config"]["rig"]["period_s"])
+    period = float(session.manifest.rig_config["rig"]["period_s"])
     n = session.patterns.n_frames
-    record = session.manifest.get("exposure") or {}
-    probe = 3 * int(record.get("probe_captures", 0)) * period
+    record = session.manifest.exposure
+    probe = 3 * (record.probe_captures if record is not None else 0) * period
     return probe + sum(n * max(period, t + EXPOSURE_PERIOD_MARGIN_S) for t in session.exposures_s)
 
 

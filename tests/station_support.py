@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
+from typing import Any
 
 from session_support import small_rig_toml
 
@@ -41,3 +42,15 @@ def program_copy(folder: Path, edit: tuple[str, str] | None = None, **subs: str)
     path = folder / "program.toml"
     path.write_text(text)
     return path
+
+
+def face_row(label: str, points: int, note: str = "", status: str = "ok", **figures: Any) -> dict[str, Any]:
+    """One face of an inspection report as the station reads it (`inspection.report.FaceRow`
+    by its label): `figures` by name (`inspection.figures`), each an `Estimate`, a value in
+    mm (U 0) or None (not measured)."""
+    from inspection.form import FaceForm
+    from inspection.report import FaceRow
+    from inspection.uncertainty import Estimate
+
+    estimates = {k: Estimate(v, 0.0) if isinstance(v, float) else v for k, v in figures.items()}
+    return {label: FaceRow(label, None, "plane", FaceForm(points, status, note, **estimates))}

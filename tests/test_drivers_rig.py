@@ -123,7 +123,7 @@ def test_camera_unplugged_mid_scan_keeps_frames_then_next_scan_reconnects(tmp_pa
         with pytest.raises(IncompleteSession, match="5 raw frame"):
             Session.open(tmp_path / "a")
         session = capture(rig, patterns, SessionWriter.create(tmp_path / "b"))  # reopened at the next arm
-    assert len(session.manifest["frames"]) == 12 and first.closed
+    assert len(session.manifest.frames) == 12 and first.closed
 
 
 def _display_render(display: FakeDisplay):

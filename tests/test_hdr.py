@@ -206,9 +206,9 @@ def test_hdr_session_keeps_every_exposure_and_redecodes_bit_identically(tmp_path
     session = Session.open(tmp_path / "s")
     n = patterns.n_frames
     assert session.exposures_s == (0.004, 0.016)
-    frames = session.manifest["frames"]
-    assert len(frames) == 2 * n and {f["exposure_s"] for f in frames[:n]} == {0.004}
-    assert {f["exposure_s"] for f in frames[n:]} == {0.016}
+    frames = session.manifest.frames
+    assert len(frames) == 2 * n and {f.exposure_s for f in frames[:n]} == {0.004}
+    assert {f.exposure_s for f in frames[n:]} == {0.016}
     outputs = session.outputs
     with np.load(outputs / "maps.npz") as z:
         index = z["vertical/exposure_index"]
@@ -267,9 +267,9 @@ def test_auto_exposure_capture_records_its_choice(tmp_path):
     with open_rig(config, scene=CONFIG_DIR / "scenes" / "sphere_plane.toml", seed=2) as rig:
         scan(rig, patterns, tmp_path / "s", exposure=ExposureRequest.parse("auto"))
     session = Session.open(tmp_path / "s")
-    record = session.manifest["exposure"]
-    assert record["mode"] == "auto" and len(record["exposures_s"]) == 1 and "cover" in record["reason"]
-    assert {f["exposure_s"] for f in session.manifest["frames"]} == set(record["exposures_s"])
-    assert record["predicted_coverage"] > 0.9
-    assert session.manifest["timings_s"]["exposure_plan"] > 0
+    record = session.manifest.exposure
+    assert record is not None and record.mode == "auto" and len(record.exposures_s) == 1 and "cover" in record.reason
+    assert {f.exposure_s for f in session.manifest.frames} == set(record.exposures_s)
+    assert session.manifest.recorded("exposure")["predicted_coverage"] > 0.9
+    assert session.manifest.timings_s["exposure_plan"] > 0
 

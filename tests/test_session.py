@@ -41,8 +41,8 @@ def test_scan_writes_complete_session(tmp_path: Path, wiring: str) -> None:
     with open_rig(config, scene=SCENE) as rig:
         result = scan(rig, PATTERNS, tmp_path / "s")
     s = Session.open(tmp_path / "s")
-    assert len(s.manifest["frames"]) == 12 and s.manifest["wiring"] == wiring
-    assert s.manifest["rig_model"]["camera"]["width"] == 320
+    assert len(s.manifest.frames) == 12 and s.manifest.recorded("wiring") == wiring
+    assert s.manifest.rig_model.camera.width == 320
     stack = s.load_stack()
     assert stack.dtype == np.uint16 and stack.shape == (12, 256, 320) and stack.max() < 4096
     assert result.cloud_path.exists() and len(result.cloud) > 0.8 * 320 * 256

@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from station_support import DEMO_PROGRAM, program_copy, station_config
+from station_support import DEMO_PROGRAM, face_row, program_copy, station_config
 
 from inspection.tolerances import GUARD_BANDED
+from inspection.uncertainty import Estimate, K
 from scanner.config import CONFIG_DIR
 from scanner.errors import ConfigError
 from scanner.session import Session
@@ -101,8 +102,7 @@ def test_a_part_fails_on_any_proven_nonconformity_and_is_never_passed_on_a_missi
 
 
 def test_the_adapter_reads_U_and_a_detection_limit_and_keeps_a_below_limit_figure_unnumbered() -> None:
-    table = {"#657": {"label": "#657", "points": 900, "flatness_mz_mm": 0.031, "flatness_mz_u_mm": 0.0025,
-                      "flatness_mz_limit_mm": 0.007, "sq_mm": None, "sq_u_mm": None, "sq_limit_mm": 0.0046}}
+    table = face_row("#657", 900, flatness_mz=Estimate(0.031, 0.0025 / K, 0.007), sq=Estimate(None, 0.002, 0.0046))
     flat = _pick(FLAT, [table])
     assert (flat.value_mm, flat.u_mm, flat.limit_mm) == (0.031, 0.0025, 0.007)
     sq = _pick(Characteristic("high_top_sq", "#657", "sq", 0.03), [table])
@@ -111,8 +111,8 @@ def test_the_adapter_reads_U_and_a_detection_limit_and_keeps_a_below_limit_figur
 
 def test_a_views_json_names_each_characteristic_with_its_tolerance_and_decision() -> None:
     program = program_with({"high_top_flatness": 0.032})
-    table = {"#657": {"label": "#657", "points": 900, "flatness_mz_mm": 0.031, "flatness_mz_u_mm": 0.0025,
-                      "profile_mm": 0.02, "profile_u_mm": 0.002, "sq_mm": None, "sq_limit_mm": 0.0046}}
+    table = face_row("#657", 900, flatness_mz=Estimate(0.031, 0.0025 / K), profile=Estimate(0.02, 0.002 / K),
+                     sq=Estimate(None, 0.002, 0.0046))
     block = view_decisions(program, table, 1)
     assert (block["name"], block["view"], block["decision_rule"]) == ("demo-part", 1, "guard-banded")
     rows = {r["name"]: r for r in block["characteristics"]}

@@ -8,12 +8,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from station_support import DEMO_PROGRAM, station_config
+from station_support import DEMO_PROGRAM, face_row, station_config
 
 from inspection.figures import asked_by
 from scanner.config import CONFIG_DIR
 from slscan.station.app import expected_status, open_station
-from slscan.station.measure import _pick
+from slscan.station.measure import ViewReport, _pick
 from slscan.station.program import Characteristic, load_program
 from slscan.station.results import ValueRecord
 from slscan.station.station_config import StationConfig
@@ -23,10 +23,10 @@ PROFILE = Characteristic("high_top_profile", "#657", "profile", 0.4)
 
 
 def test_adapter_takes_each_value_from_the_view_that_sees_the_face_best() -> None:
-    views = [{"#657": {"label": "#657", "points": 900, "flatness_mz_mm": 0.031, "flatness_ls_mm": 0.035,
-                       "profile_mm": 0.10, "raw_deviation_min_mm": -0.08, "raw_deviation_max_mm": 0.09}},
-             {"#657": {"label": "#657", "points": 1500, "flatness_mz_mm": 0.027, "flatness_ls_mm": 0.030,
-                       "profile_mm": 0.18, "raw_deviation_min_mm": -0.13, "raw_deviation_max_mm": 0.08}}]
+    views = [face_row("#657", 900, flatness_mz=0.031, flatness_ls=0.035, profile=0.10, raw_deviation_min=-0.08,
+                  raw_deviation_max=0.09),
+             face_row("#657", 1500, flatness_mz=0.027, flatness_ls=0.030, profile=0.18, raw_deviation_min=-0.13,
+                  raw_deviation_max=0.08)]
     flat = _pick(FLAT, views)
     assert (flat.value_mm, flat.points, flat.view) == (0.027, 1500, 1)
     assert _pick(Characteristic("f", "#657", "flatness", 0.05, "least_squares"), views).value_mm == 0.030
@@ -34,12 +34,11 @@ def test_adapter_takes_each_value_from_the_view_that_sees_the_face_best() -> Non
 
 
 def test_a_face_not_seen_or_not_evaluated_has_no_value_and_says_why() -> None:
-    unseen = _pick(FLAT, [{"#158": {"label": "#158", "points": 10}}, {"#657": {"label": "#657", "points": 0}}])
+    unseen = _pick(FLAT, [face_row("#158", 10), face_row("#657", 0)])
     assert unseen.value_mm is None and unseen.note == "face #657 not seen in any view"
-    failed = _pick(FLAT, [{"#657": {"label": "#657", "points": 40, "flatness_mz_mm": None,
-                                  "note": "too few points for a minimum zone"}}])
+    failed = _pick(FLAT, [face_row("#657", 40, "too few points for a minimum zone", flatness_mz=None)])
     assert failed.value_mm is None and failed.note == "face #657: too few points for a minimum zone"
-    nan = _pick(FLAT, [{"#657": {"label": "#657", "points": 40, "flatness_mz_mm": float("nan")}}])
+    nan = _pick(FLAT, [face_row("#657", 40, status="", flatness_mz=float("nan"))])
     assert nan.value_mm is None and "flatness_mz_mm" in nan.note
 
 
@@ -96,17 +95,17 @@ def test_a_view_whose_pose_is_not_proven_measures_nothing() -> None:
 
     program = load_program(DEMO_PROGRAM)
     flat = program.characteristics[0]
-    column = asked_by(flat.kind, flat.method).value_column
-    row = {"label": flat.face, "points": 2000, column: 0.5}
+    name = asked_by(flat.kind, flat.method).name
+    seen = face_row(flat.face, 2000, **{name: 0.5})
     note = "not measured: the pose is ambiguous between the best pose and 1 other pose(s) that explain the scan"
-    ambiguous = {"status": "ambiguous", "status_note": note}
-    proven = view_values(program, [{flat.face: row}, {flat.face: {**row, "points": 300, column: 0.02}}],
-                         [ambiguous, {"status": "ok"}], {}, [])
+    ambiguous = ViewReport(0.9, 0.01, "not measured", "ambiguous", note)
+    ok = ViewReport(0.9, 0.01, "conforming")
+    proven = view_values(program, [seen, face_row(flat.face, 300, **{name: 0.02})], [ambiguous, ok], {}, [])
     assert proven.ok and proven.value(flat.name).value_mm == 0.02  # the ambiguous view's 2000 points are not used
-    alone = view_values(program, [{flat.face: row}, {}], [ambiguous, {"status": "ok"}], {}, [])
+    alone = view_values(program, [seen, {}], [ambiguous, ok], {}, [])
     assert alone.value(flat.name).value_mm is None and "view 0: not measured: the pose is ambiguous" in \
         alone.value(flat.name).note
-    none = view_values(program, [{flat.face: row}], [ambiguous], {}, [])
+    none = view_values(program, [seen], [ambiguous], {}, [])
     status, records, message = judge(program, none)
     assert not none.ok and status == "error" and not records
     assert message.startswith("not measured: view 0: the pose is ambiguous between the best pose"), message

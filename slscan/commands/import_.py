@@ -202,8 +202,9 @@ def cmd_import(args: argparse.Namespace) -> int:
                                       args.projector_scale, args.frames, args.bit_depth, ProgressLine())
     wall = time.perf_counter() - t0
     lines = sys.stderr if args.json else sys.stdout  # with --json: the JSON alone on stdout
-    print(f"imported  {len(result.session.manifest['frames'])} frames from {args.frames_folder} "
-          f"({result.session.manifest['import']['hard_linked']} hard-linked)", file=lines)
+    manifest = result.session.manifest
+    print(f"imported  {len(manifest.frames)} frames from {args.frames_folder} "
+          f"({(manifest.imported or {})['hard_linked']} hard-linked)", file=lines)
     print("conventions", file=lines)
     for f in detection.findings:
         print(f"  {f.line()}", file=lines)

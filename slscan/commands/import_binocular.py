@@ -123,7 +123,7 @@ def cmd_import_binocular(args: argparse.Namespace) -> int:
                                         args.projector_size, Path(args.out), [Path(c) for c in args.calibration or []],
                                         args.frames, args.bit_depth, ProgressLine())
     wall = time.perf_counter() - t0
-    n = len(scan.session.manifest["frames"])
+    n = len(scan.session.manifest.frames)
     print(f"imported  {n} frames per camera from {args.frames_folder[0]} (left) and {args.frames_folder[1]} (right)")
     print("conventions (left frames; the right agreed)")
     for f in detections[0].findings:

@@ -256,8 +256,7 @@ def report_header(source: Path, program: Any, operator: str | None, serial: str 
         multiview = MultiViewSession.open(source) if is_multiview(source) else None
         session = multiview.views[0].session if multiview is not None else Session.open(source)  # the views' rig
         session_id = multiview.id if multiview is not None else session.id
-        manifest = session.manifest
-        rig = str(manifest.get("rig_config", {}).get("rig", {}).get("name", ""))
+        rig = str(session.manifest.rig_config.get("rig", {}).get("name", ""))
         rig_path, problem = recorded_rig(session)
         if rig_path is not None:
             info = rig_calibration(RigConfig.load(rig_path))
@@ -282,17 +281,17 @@ def recorded_rig(session: Any) -> tuple[Path | None, str]:
     (path or None, why not, for people)."""
     from scanner.session import find_recorded
 
-    record = session.manifest.get("provenance")
+    record = session.manifest.provenance
     if record is None:
-        path = Path(str(session.manifest.get("rig_config_path", "")))
+        path = Path(session.manifest.rig_config_path or "")
         if path.is_absolute() and path.is_file():
             return path, ""
         return None, f"the session's rig file {path} is not found (recorded before sessions kept their provenance)"
-    rig, found = find_recorded(record["rig"], session.root)
+    rig, found = find_recorded(record.rig, session.root)
     if rig is None:
         return None, f"the session's rig file {found}"
-    if record.get("calibration"):
-        calibration, found = find_recorded(record["calibration"], session.root)
+    if record.calibration is not None:
+        calibration, found = find_recorded(record.calibration, session.root)
         if calibration is None:
             return None, f"the session's calibration file {found}"
     return rig, ""

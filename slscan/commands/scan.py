@@ -151,9 +151,8 @@ def report(result: Any, *, as_json: bool = False) -> None:
                                    if v) + " of the pixels")
     if s.recording_path.exists():
         print(f"recording {s.recording_path}   (view: slscan review {s.root})")
-    plan = s.manifest.get("exposure")
-    if plan:
-        print(f"exposure  {plan['reason']}")
+    if s.manifest.exposure is not None:
+        print(f"exposure  {s.manifest.exposure.reason}")
     print(f"timings   decode {t['decode'] * 1e3:.0f} ms, reconstruct {t['reconstruct'] * 1e3:.0f} ms")
     print("checks    " + "\n          ".join(c.line() for c in result.checks))
     if s.integrity != "sha256":
@@ -174,7 +173,8 @@ def result_record(result: Any) -> dict[str, Any]:
             "valid_fraction": float(decoded.valid.mean()),
             "rejected_fraction": {k: v / decoded.valid.size for k, v in decoded.rejected().items()},
             "recording": str(s.recording_path) if s.recording_path.exists() else None,
-            "exposure": (s.manifest.get("exposure") or {}).get("reason"), "frame_integrity": s.integrity,
+            "exposure": s.manifest.exposure.reason if s.manifest.exposure is not None else None,
+            "frame_integrity": s.integrity,
             "timings_s": result.timings_s, "checks": [c.as_dict() for c in result.checks],
             "accuracy": acc.as_dict() if acc is not None else None}
 
@@ -184,7 +184,7 @@ def sim_accuracy(result: Any) -> Any:
     from scanner.reconstruct import Triangulator
     from scanner.session import write_json
 
-    if "import" in result.session.manifest:
+    if result.session.manifest.imported is not None:
         return None  # another tool's frames carry no simulator truth (and the simulator takes ~0.3 s to import)
     from sim.evaluate import GROUND_TRUTH_FILE, Truth, evaluate
     from sim.render import SensorModel
@@ -193,8 +193,8 @@ def sim_accuracy(result: Any) -> Any:
     if not path.exists() or len(result.decoded.maps) != 1 or result.cloud is None:
         return None
 
-    manifest = result.session.manifest
-    sensor = SensorModel.from_table(manifest["rig_config"]["camera"]["sensor"], result.session.root / "manifest.json")
+    sensor = SensorModel.from_table(result.session.manifest.rig_config["camera"]["sensor"],
+                                    result.session.root / "manifest.json")
     acc = evaluate(result.decoded, result.cloud, Truth.load(path), sensor, Triangulator(result.session.rig_model()))
     write_json(result.session.outputs / "accuracy.json", acc.as_dict())
     return acc
@@ -361,7 +361,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
             cmd_scan(ns, inspect_scan)  # the scan's own lines: on stderr beside the JSON
     rep, outputs = done["report"], Path(out) / "outputs"
     if args.json:
-        print(json.dumps({"status": rep.as_dict()["status"], "verdict": rep.verdict, "session": str(out),
+        from inspection.tolerances import DECISION_STATUS
+
+        print(json.dumps({"status": DECISION_STATUS[rep.verdict], "verdict": rep.verdict, "session": str(out),
                           "conclusion": demo_conclusion(rep, Path(out)), "report": str(outputs / "inspection.html"),
                           "inspection": rep.as_dict()}, default=str))
         return for_verdict(rep.verdict)

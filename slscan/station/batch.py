@@ -31,7 +31,7 @@ from scanner.geometry import RigModel
 from scanner.multiview import MultiViewSession, is_multiview
 from scanner.pipeline import Progress, process
 from scanner.rig import RigConfig
-from scanner.session import Session
+from scanner.session import Session, json_ready
 from slscan.station import StationError
 from slscan.station.calib import rig_calibration
 from slscan.station.loop import MULTIVIEW_FOLDER, PART_RECORD
@@ -154,7 +154,7 @@ def _with_model(session: Session, model: RigModel) -> Session:
         raise StationError(f"{session.root}: captured with a {captured.camera.size} camera and a "
                            f"{captured.projector.size} projector; the rig given has {model.camera.size} and "
                            f"{model.projector.size}")
-    return Session(session.root, {**session.manifest, "rig_model": model.to_dict()})
+    return session.replaced(rig_model=json_ready(model.to_dict()))
 
 
 def _worker_name() -> str:

@@ -17,14 +17,15 @@ ever a number.
   CAD model, segmented by face and evaluated by the `inspection` package with the
   program's tolerances, the session's measurement model (`slscan.measurement_model`: the
   decoder's noise and the calibration's covariance in U) and the program's decision rule;
-  its report (`outputs/inspection.json`) is the per-face table, `{"faces": [{"label":
-  "#12", "type": ..., "points": n, <value columns>, "tolerance_<key>": t, "verdict_<figure>":
-  v}, ...], "fitness": f, "rmse_mm": r, ...}` with each characteristic's figure's value, U and
-  detection limit columns (`inspection.figures.asked_by`: the profile's is the zone width
-  2 max|d| of the form surface's signed deviations, the noise filtered out like the form
-  figures'; the raw points' extremes carry 4-5 sigma of noise), plus `"program"`: the part
-  program and the decision of each of its characteristics on this view
-  (`view_decisions`); the inspection's recording (`outputs/inspection.rrd`: registered
+  each characteristic's value, U and detection limit are its figure's estimate
+  (`inspection.figures.asked_by`: the profile's is the zone width 2 max|d| of the form
+  surface's signed deviations, the noise filtered out like the form figures'; the raw
+  points' extremes carry 4-5 sigma of noise) on the report's typed face row
+  (`inspection.report.FaceRow`). The report is kept (`outputs/inspection.json`: the
+  per-face table `{"faces": [{"label": "#12", "type": ..., "points": n, <value columns>,
+  "tolerance_<key>": t, "verdict_<figure>": v}, ...], "fitness": f, "rmse_mm": r, ...}`),
+  plus `"program"`: the part program and the decision of each of its characteristics on
+  this view (`view_decisions`); the inspection's recording (`outputs/inspection.rrd`: registered
   cloud, CAD, deviations, deviation map, report) unless the session's rig records nothing.
   A multi-view session's merged cloud is inspected once, its report and recording in the
   multi-view folder's outputs/. The program's `edge_margin_mm` is the form figures' edge margin.
@@ -46,7 +47,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from inspection.figures import asked_by
-from inspection.tolerances import DECISION_RULES
+from inspection.tolerances import DECISION_RULES, DECISION_STATUS
 from scanner.errors import ConfigError
 from scanner.session import Session, write_json
 from slscan.station import MEASUREMENT_NAMES
@@ -55,6 +56,7 @@ from slscan.station.program import Characteristic, PartProgram, program_toleranc
 if TYPE_CHECKING:
     from inspection.cad import CadModel
     from inspection.measured_cloud import ScanCloud
+    from inspection.report import FaceRow, InspectionReport
     from inspection.uncertainty import ScanUncertainty
     from scanner.multiview import MultiViewSession
 
@@ -99,6 +101,33 @@ class MeasurementResult:
     def as_dict(self) -> dict[str, Any]:
         return {"ok": self.ok, "message": self.message, "details": dict(self.details),
                 "values": [asdict(v) for v in self.values], "report_paths": [str(p) for p in self.report_paths]}
+
+
+@dataclass(frozen=True)
+class ViewReport:
+    """What the station keeps of one inspection (a view's, or a multi-view session's merged
+    cloud's): the registration's `fitness` and `rmse_mm`, the report's `verdict`, and the
+    pose's status ("ok", "free" or "ambiguous": nothing measured) and why (`status_note`)."""
+
+    fitness: float
+    rmse_mm: float
+    verdict: str
+    pose_status: str = "ok"
+    status_note: str = ""
+
+    @classmethod
+    def of(cls, report: InspectionReport) -> ViewReport:
+        return cls(report.fitness, report.rmse_mm, report.verdict, report.status, report.status_note)
+
+    def details(self) -> dict[str, Any]:
+        """The view's entry in `MeasurementResult.details`: its figures under the keys of the
+        inspection report's JSON (`status`: the verdict's, as its exit code says it)."""
+        note = {"status_note": self.status_note} if self.status_note else {}
+        return {"fitness": self.fitness, "rmse_mm": self.rmse_mm, "verdict": self.verdict,
+                "status": DECISION_STATUS[self.verdict], **note}
+
+
+FaceTable = Mapping[str, "FaceRow"]  # one inspection's face rows by label ("#657")
 
 
 class Measurement(Protocol):
@@ -159,21 +188,22 @@ class InspectionMeasurement:
         from inspection.measured_cloud import load_session
         from slscan.measurement_model import session_uncertainty
 
-        tables: list[dict[str, dict[str, Any]]] = []
+        tables: list[FaceTable] = []
+        views: list[ViewReport] = []
         details: dict[str, Any] = {}
         paths: list[Path] = []
         for k, session in enumerate(sessions):
             try:
                 scan = load_session(session.root)
-                table, data, path = self._inspect(scan, program, session, session.outputs, session.id, k,
+                table, view, path = self._inspect(scan, program, session, session.outputs, session.id, k,
                                                   session_uncertainty(session)(scan.pixels))
             except InspectionError as exc:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
             paths.append(path)
-            details[f"view{k}"] = {key: data[key] for key in ("fitness", "rmse_mm", "verdict", "status", "status_note")
-                                   if key in data}
+            details[f"view{k}"] = view.details()
             tables.append(table)
-        return view_values(program, tables, [details[f"view{k}"] for k in range(len(sessions))], details, paths)
+            views.append(view)
+        return view_values(program, tables, views, details, paths)
 
     def measure_whole(self, session: MultiViewSession, program: PartProgram) -> MeasurementResult:
         """The merged cloud of the views (`inspection.views.whole.load_merged`, part frame)
@@ -184,20 +214,19 @@ class InspectionMeasurement:
         from inspection.views.whole import load_merged
 
         try:
-            table, data, path = self._inspect(load_merged(session), program, session.views[0].session,
-                                              session.outputs, session.id, None, None)
+            table, whole, path = self._inspect(load_merged(session), program, session.views[0].session,
+                                               session.outputs, session.id, None, None)
         except InspectionError as exc:
             return MeasurementResult(False, message=f"multi-view session {session.root}: {exc}")
-        whole = {key: data[key] for key in ("fitness", "rmse_mm", "verdict", "status", "status_note") if key in data}
-        return view_values(program, [table], [whole], {"whole": whole}, [path])
+        return view_values(program, [table], [whole], {"whole": whole.details()}, [path])
 
     def _inspect(self, scan: ScanCloud, program: PartProgram, session: Session, outputs: Path, recording_id: str,
-                 view: int | None, uncertainty: ScanUncertainty | None) -> tuple[dict[str, dict[str, Any]],
-                                                                              dict[str, Any], Path]:
+                 view: int | None, uncertainty: ScanUncertainty | None) -> tuple[FaceTable, ViewReport, Path]:
         """Inspect `scan` (one view's, or the merged cloud: `view` None) for `program`, starting
         from the registration of the last part seen the same way; write its report (and its
         recording, at the level of `session`, whose rig frames the scan) into `outputs`.
-        Returns the per-face table, the report and the report's path. Raises InspectionError."""
+        Returns the face rows by label, what the station keeps of the report and the report's
+        path. Raises InspectionError."""
         from inspection.inspect_scan import InspectionSettings, inspect
         from scanner.pipeline import recording_level
         from scanner.session_recording import SessionRecording
@@ -212,16 +241,14 @@ class InspectionMeasurement:
             report = inspect(scan, self._model(program), program_tolerances(program), settings, recording,
                              prior=self._priors.get(prior_key), uncertainty=uncertainty)
         self._priors[prior_key] = report.registration
-        data = report.as_dict()
-        table = {str(row["label"]): row for row in data["faces"]}
-        data["program"] = view_decisions(program, table, view)
+        table = {row.label: row for row in report.faces}
         outputs.mkdir(parents=True, exist_ok=True)
         path = outputs / REPORT_FILE
-        write_json(path, data)
-        return table, data, path
+        write_json(path, {**report.as_dict(), "program": view_decisions(program, table, view)})  # the file's format
+        return table, ViewReport.of(report), path
 
 
-def view_decisions(program: PartProgram, table: Mapping[str, Mapping[str, Any]], view: int | None) -> dict[str, Any]:
+def view_decisions(program: PartProgram, table: FaceTable, view: int | None) -> dict[str, Any]:
     """The part program and the ISO 14253-1 decision of each of its characteristics on one
     view's per-face table (`view` None: a multi-view session's merged cloud's), what its
     `inspection.json` says under "program": name,
@@ -240,43 +267,43 @@ def view_decisions(program: PartProgram, table: Mapping[str, Mapping[str, Any]],
             "rule": DECISION_RULES[program.decision_rule], "characteristics": rows}
 
 
-def view_values(program: PartProgram, tables: Sequence[Mapping[str, Mapping[str, Any]]],
-                reports: Sequence[Mapping[str, Any]], details: Mapping[str, Any],
-                paths: Sequence[Path]) -> MeasurementResult:
-    """The part's values from its views' per-face tables (`_pick`); `reports` each view's
-    registration status and note (`InspectionReport.as_dict`). A view whose pose is not
-    proven ("ambiguous") measured nothing: its faces are left out, and when no view's pose
-    is proven the part is not measured at all, the message naming the ambiguity."""
-    unproven = [f"view {k}: {r.get('status_note') or r['status']}" for k, r in enumerate(reports)
-                if r.get("status") == "ambiguous"]
+def view_values(program: PartProgram, tables: Sequence[FaceTable], reports: Sequence[ViewReport],
+                details: Mapping[str, Any], paths: Sequence[Path]) -> MeasurementResult:
+    """The part's values from its views' face rows (`_pick`); `reports` each view's
+    registration status and note. A view whose pose is not proven ("ambiguous") measured
+    nothing: its faces are left out, and when no view's pose is proven the part is not
+    measured at all, the message naming the ambiguity."""
+    unproven = [f"view {k}: {r.status_note or r.pose_status}" for k, r in enumerate(reports)
+                if r.pose_status == "ambiguous"]
     if len(unproven) == len(reports):
         return MeasurementResult(False, message="; ".join(n.replace("not measured: ", "") for n in unproven),
                                  details=details, report_paths=tuple(paths))
-    proven = [t for t, r in zip(tables, reports) if r.get("status") != "ambiguous"]
+    proven = [t for t, r in zip(tables, reports) if r.pose_status != "ambiguous"]
     values = tuple(_pick(c, proven, unproven="; ".join(unproven)) for c in program.characteristics)
     return MeasurementResult(True, values, details=details, report_paths=tuple(paths))
 
 
-def _pick(c: Characteristic, tables: Sequence[Mapping[str, Mapping[str, Any]]], *, unproven: str = "") -> MeasuredValue:
-    """A characteristic's value, its U and detection limit from the view whose report has
-    the most points on its face; `unproven` the views left out (their pose not proven), named
-    when no other view sees the face."""
-    rows = [(k, t[c.face]) for k, t in enumerate(tables) if c.face in t and int(t[c.face].get("points", 0)) > 0]
+def _pick(c: Characteristic, tables: Sequence[FaceTable], *, unproven: str = "") -> MeasuredValue:
+    """A characteristic's value, its U and detection limit (its figure's `Estimate`) from the
+    view whose report has the most points on its face; `unproven` the views left out (their
+    pose not proven), named when no other view sees the face."""
+    rows = [(k, t[c.face].form) for k, t in enumerate(tables) if c.face in t and int(t[c.face].form.points) > 0]
     if not rows:
         return MeasuredValue(c.name, None, note=f"face {c.face} not seen in any view"
                              + (f" with a proven pose ({unproven})" if unproven else ""))
-    k, row = max(rows, key=lambda kr: int(kr[1]["points"]))
+    k, form = max(rows, key=lambda kf: int(kf[1].points))
+    points = int(form.points)
     figure = asked_by(c.kind, c.method)
-    column = figure.value_column
-    value, u, limit = row.get(column), row.get(figure.u_column), row.get(figure.limit_column)
-    u = None if u is None or not np.isfinite(float(u)) else float(u)
+    e = form.figure(figure.name)
+    value, limit = (None, None) if e is None else (e.value, e.limit)
+    u = None if e is None or not np.isfinite(float(e.U)) else float(e.U)
     if value is None and limit is not None:  # below its detection limit (inspection.uncertainty): no value
-        return MeasuredValue(c.name, None, int(row["points"]), k, limit_mm=float(limit),
+        return MeasuredValue(c.name, None, points, k, limit_mm=float(limit),
                              note=f"below the detection limit {float(limit) * 1e3:.1f} um")
     if value is None or not np.isfinite(float(value)):
-        reason = row.get("note") or row.get("status") or f"no {column} in the report"
-        return MeasuredValue(c.name, None, int(row["points"]), k, note=f"face {c.face}: {reason}")
-    return MeasuredValue(c.name, float(value), int(row["points"]), k, u_mm=u,
+        reason = form.note or form.status or f"no {figure.value_column} in the report"
+        return MeasuredValue(c.name, None, points, k, note=f"face {c.face}: {reason}")
+    return MeasuredValue(c.name, float(value), points, k, u_mm=u,
                          limit_mm=None if limit is None else float(limit))
 
 

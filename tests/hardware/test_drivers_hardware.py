@@ -59,4 +59,4 @@ def test_trigger_source_counts_its_pulses(rig: Rig) -> None:
 def test_full_capture_passes_every_synchronisation_check(rig: Rig, tmp_path: Path) -> None:
     patterns = PatternSet.load(rig.config.patterns_path)
     session = capture(rig, patterns, SessionWriter.create(tmp_path / "s"))
-    assert len(session.manifest["frames"]) == patterns.n_frames
+    assert len(session.manifest.frames) == patterns.n_frames

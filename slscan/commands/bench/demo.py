@@ -89,7 +89,7 @@ def run_part(k: int, workdir: Path, model: Any, tolerances: Any, prior: Any, ful
         complete = time.perf_counter()
     report, inner = done["report"], done["timer"]
     processed = json.loads((result.session.outputs / "result.json").read_text())
-    capture = result.session.manifest["timings_s"]["capture"]
+    capture = result.session.manifest.timings_s["capture"]
     rrd = result.session.recording_path
     return {"part": k, "verdict": report.verdict, "method": report.registration.method,
             "fitness": report.registration.fitness, "transform": report.registration.transform.tolist(),
