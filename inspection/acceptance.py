@@ -138,6 +138,8 @@ class Acceptance:
         if table.decision_rule not in DECISION_RULES:
             raise ConfigError(path, "acceptance.decision_rule", f"{table.decision_rule!r}: use one of "
                                                                 f"{sorted(DECISION_RULES)}")
+        if table.mpe is None:
+            raise ConfigError(path, "acceptance.mpe", "required key is missing")
         mpe = {k.removesuffix("_mm"): v for k, v in table.mpe.model_dump(exclude_none=True).items()}
         sx, sy, sz = table.volume_mm
         return cls((sx, sy, sz), (0.0, 0.0, working_distance_mm), mpe, table.decision_rule,

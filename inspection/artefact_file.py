@@ -76,7 +76,7 @@ class Plane(Schema):
     """A calibrated flat: its measured face (length, width) and flatness with its U (mm)."""
 
     certificate: Str
-    size_mm: tuple[PositiveFloat, PositiveFloat]
+    size_mm: Annotated[list[PositiveFloat], Field(min_length=2, max_length=2)]  # length, width
     flatness_mm: NonNegativeFloat
     flatness_u_mm: NonNegativeFloat
     albedo: Albedo = 0.8

@@ -206,7 +206,7 @@ class AcceptanceTable(Schema):
     volume_mm: Annotated[list[PositiveFloat], Field(min_length=3, max_length=3)]
     artefacts: Str | None = None
     decision_rule: Str = "guard-banded"
-    mpe: MpeTable
+    mpe: MpeTable | None = None  # required by `slscan verify`
 
 
 class RigFile(Schema):

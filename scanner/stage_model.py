@@ -159,16 +159,20 @@ class AxisTable(Schema):
     tolerance_deg: Float | None = None
     tolerance_mm: Float | None = None
 
-    @field_validator("limits_mm", "speed_mm_s", "tolerance_mm", "limits_deg", "speed_deg_s", "tolerance_deg",
-                     "point_mm")
+    @field_validator("limits_mm", "speed_mm_s", "tolerance_mm", "limits_deg", "speed_deg_s", "tolerance_deg")
     @classmethod
     def _in_its_unit(cls, value: Any, info: ValidationInfo) -> Any:
         kind, key = info.data.get("kind"), str(info.field_name)
-        if kind == "linear" and key == "point_mm":
-            raise ValueError("a linear axis has no point_mm")
         unit, wrong = ("deg", "mm") if kind == "rotary" else ("mm", "deg")
         if kind is not None and wrong in key.split("_"):
             raise ValueError(f"a {kind} axis gives this in {unit} ({key.replace(wrong, unit)})")
+        return value
+
+    @field_validator("point_mm")
+    @classmethod
+    def _rotary_only(cls, value: Any, info: ValidationInfo) -> Any:
+        if info.data.get("kind") == "linear":
+            raise ValueError("a linear axis has no point_mm")
         return value
 
 

@@ -392,6 +392,8 @@ def _is_rigid(T: np.ndarray) -> bool:
 Length = Annotated[float, Field(strict=True, ge=MIN_LENGTH_MM, le=MAX_LENGTH_MM)]  # mm
 Fraction = Annotated[float, Field(strict=True, ge=0.0, le=1.0)]
 Roughness = Annotated[float, Field(strict=True, ge=MIN_ROUGHNESS, le=1.0)]
+Size2 = Annotated[list[Length], Field(min_length=2, max_length=2)]  # mm
+Size3 = Annotated[list[Length], Field(min_length=3, max_length=3)]  # mm
 
 
 class PoseTable(Schema):
@@ -428,7 +430,7 @@ class SurfaceTable(Schema):
 
 class ReferencePlaneTable(SurfaceTable):
     distance_mm: Length | None = None
-    size_mm: tuple[Length, Length] = _DEFAULT_PLANE_SIZE
+    size_mm: Size2 = Field(default_factory=lambda: list(_DEFAULT_PLANE_SIZE))
 
     @model_validator(mode="after")
     def _placed(self) -> ReferencePlaneTable:
@@ -443,12 +445,12 @@ class SphereShape(Schema):
 
 
 class PlaneShape(Schema):
-    size_mm: tuple[Length, Length]
+    size_mm: Size2
     texture: Str | None = None  # a grey image file, relative to the scene TOML
 
 
 class BoxShape(Schema):
-    size_mm: tuple[Length, Length, Length]
+    size_mm: Size3
 
 
 class ObjectTable(SurfaceTable):
