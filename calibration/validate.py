@@ -11,6 +11,7 @@ the plate's flatness RMS (a wavy plate betrays an uncompensated projector respon
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,8 @@ import numpy as np
 
 from calibration.errors import CalibrationError
 from calibration.fit import fit_sphere, plane_rms
-from scanner.config import get
+from scanner import schema
+from scanner.rig_schema import SpherePairTable
 
 PLANE_TOLERANCE_MM = 1.0  # points this close to the plate belong to it
 EDGE_MARGIN_PX = 3  # sphere pixels this close to the silhouette are left out (mixed pixels)
@@ -35,15 +37,13 @@ class Artefact:
     distance_mm: float
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], where: str | Path = "artefact") -> Artefact:
-        kind = get(d, "type", str, where, "sphere_pair")
-        if kind != "sphere_pair":
-            raise CalibrationError(f"{where}: artefact type '{kind}' is not supported; use 'sphere_pair'")
-        r = get(d, "radius_mm", float, where)
-        dist = get(d, "distance_mm", float, where)
-        if not (r > 0 and dist > 2 * r):
-            raise CalibrationError(f"{where}: need radius_mm > 0 and distance_mm > 2 x radius_mm, got {r}, {dist}")
-        return cls(r, dist)
+    def of(cls, table: SpherePairTable) -> Artefact:
+        return cls(table.radius_mm, table.distance_mm)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], where: str | Path = "artefact", prefix: str = "") -> Artefact:
+        """From `to_dict` (a capture's manifest); errors name `where` and the key."""
+        return cls.of(schema.parse(SpherePairTable, d, where, prefix))
 
     def to_dict(self) -> dict[str, Any]:
         return {"type": "sphere_pair", "radius_mm": self.radius_mm, "distance_mm": self.distance_mm}

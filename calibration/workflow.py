@@ -53,7 +53,7 @@ from calibration.store import CaptureSet, CaptureWriter, decode_pose, pose_view
 from calibration.validate import Artefact, Validation, measure_sphere_pair
 from calibration.views import Correspondence, View, correspond
 from scanner.calibration_file import write_calibration
-from scanner.config import CONFIG_DIR, get, get_table, resolve
+from scanner.config import CONFIG_DIR, resolve
 from scanner.decode import DecodeResult
 from scanner.errors import ConfigError
 from scanner.geometry import RigModel
@@ -66,8 +66,7 @@ DEFAULT_HEIGHTS_MM = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
 DEFAULT_ARTEFACT = Artefact(radius_mm=10.0, distance_mm=50.0)
 SHARE_SHOWN = ("camera.fx", "camera.cx", "camera.cy", "projector.fx", "projector.cx", "projector.cy", "extrinsic.rx",
                "extrinsic.ry", "extrinsic.tx", "extrinsic.tz")  # the report's source split of the variance
-_KEYS = {"board", "poses", "plate_heights_mm", "artefact", "fix_k3", "drop_outliers", "max_camera_rms_px",
-         "max_projector_rms_px", "max_validation_mm", "min_views", "max_joint_camera_std"}
+CALIBRATION_SETTINGS = tuple(CalibrationSettings.__dataclass_fields__)  # solver keys of [calibrate] and overrides
 
 Say = Callable[[str], None]
 
@@ -113,30 +112,22 @@ class Procedure:
     def for_rig(cls, config: RigConfig, **overrides: Any) -> Procedure:
         """From the rig's [calibrate] table; `overrides` (None = keep) take precedence:
         board (a path), poses, plate_heights_mm, artefact and any CalibrationSettings field."""
-        p = config.path
-        table = get_table(config.raw, "calibrate", p, required=False)
-        for k in table:
-            if k not in _KEYS:
-                raise ConfigError(p, f"calibrate.{k}", f"unknown key; expected one of {sorted(_KEYS)}")
+        p, table = config.path, config.file.calibrate
+        given = {k: v for k, v in table.model_dump(exclude_none=True).items() if k in CALIBRATION_SETTINGS}
         o = {k: v for k, v in overrides.items() if v is not None}
-        board_path = o.pop("board", None) or (resolve(p, get(table, "board", str, p, prefix="calibrate"))
-                                              if "board" in table else DEFAULT_BOARD)
-        settings = {k: o.pop(k, get(table, k, type(getattr(CalibrationSettings(), k)), p,
-                                    getattr(CalibrationSettings(), k), "calibrate"))
-                    for k in CalibrationSettings.__dataclass_fields__}
+        board_path = o.pop("board", None) or (resolve(p, table.board) if table.board is not None else DEFAULT_BOARD)
         try:
-            solver = CalibrationSettings(**settings)
+            solver = CalibrationSettings(**{**given, **{k: o.pop(k) for k in CALIBRATION_SETTINGS if k in o}})
         except ValueError as exc:
             raise ConfigError(p, "calibrate", str(exc)) from None
-        heights = tuple(float(h) for h in o.pop("plate_heights_mm", get(table, "plate_heights_mm", list, p,
-                                                                         list(DEFAULT_HEIGHTS_MM), "calibrate")))
-        artefact = o.pop("artefact", None) or (Artefact.from_dict(get_table(table, "artefact", p, prefix="calibrate"),
-                                                                  f"{p}, key 'calibrate.artefact'")
-                                               if "artefact" in table else DEFAULT_ARTEFACT)
+        written = DEFAULT_HEIGHTS_MM if table.plate_heights_mm is None else table.plate_heights_mm
+        heights = tuple(float(h) for h in o.pop("plate_heights_mm", written))
+        artefact = o.pop("artefact", None) or (Artefact.of(table.artefact) if table.artefact is not None
+                                               else DEFAULT_ARTEFACT)
         if heights and (heights[0] != 0.0 or any(b <= a for a, b in pairwise(heights))):
             raise ConfigError(p, "calibrate.plate_heights_mm", f"{list(heights)}: start at 0 (the reference plane) "
                                                                f"and increase")
-        poses = int(o.pop("poses", get(table, "poses", int, p, 12, "calibrate")))
+        poses = int(o.pop("poses", 12 if table.poses is None else table.poses))
         if o:
             raise ConfigError(p, "calibrate", f"unknown overrides {sorted(o)}")
         if poses < solver.min_views:

@@ -57,7 +57,7 @@ import html
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -74,8 +74,12 @@ from inspection.artefacts import (
 )
 from inspection.tolerances import CONFORMING, DECISION_RULES, GUARD_BANDED, NOT_MEASURED, decide
 from inspection.uncertainty import ScanUncertainty
-from scanner.config import get, get_table, get_vector, resolve
+from scanner.config import resolve
 from scanner.errors import ConfigError
+from scanner.rig_schema import AcceptanceTable
+
+if TYPE_CHECKING:
+    from scanner.rig import RigConfig
 
 PARAMETERS = ("PF", "PS", "SD", "F", "OL")
 NAMES = {"PF": "probing error form", "PS": "probing error size", "SD": "sphere-spacing error",
@@ -121,40 +125,25 @@ class Acceptance:
         return float(np.linalg.norm(self.size_mm))
 
     @classmethod
-    def from_rig(cls, raw: dict[str, Any], path: Path, working_distance_mm: float) -> Acceptance:
-        """From a rig TOML's content (`RigConfig.raw`); errors name the file and key."""
-        if "acceptance" not in raw:
+    def for_rig(cls, config: RigConfig) -> Acceptance:
+        """From a rig's [acceptance] table (validated at load); errors name the file and key."""
+        return cls.of(config.file.acceptance, config.path, config.working_distance_mm)
+
+    @classmethod
+    def of(cls, table: AcceptanceTable | None, path: Path, working_distance_mm: float) -> Acceptance:
+        """From a rig file's [acceptance] table, the volume centred at `working_distance_mm`."""
+        if table is None:
             raise ConfigError(path, "acceptance", "the rig has no [acceptance] table: give its measuring volume "
                                                   "and the MPEs to verify it against (see config/rigs/sim_bench.toml)")
-        t = get_table(raw, "acceptance", path)
-        known = {"volume_mm", "artefacts", "decision_rule", "mpe"}
-        for k in t:
-            if k not in known:
-                raise ConfigError(path, f"acceptance.{k}", f"unknown key; expected one of {sorted(known)}")
-        sx, sy, sz = get_vector(t, "volume_mm", 3, path, prefix="acceptance")
-        size = (sx, sy, sz)
-        if not all(s > 0 for s in size):
-            raise ConfigError(path, "acceptance.volume_mm", f"sizes must be > 0, got {list(size)}")
-        rule = get(t, "decision_rule", str, path, GUARD_BANDED, "acceptance")
-        if rule not in DECISION_RULES:
-            raise ConfigError(path, "acceptance.decision_rule", f"{rule!r}: use one of {sorted(DECISION_RULES)}")
-        m = get_table(t, "mpe", path, prefix="acceptance")
-        mpe = {}
-        for k in m:
-            name = k.removesuffix("_mm")
-            if k == "E_mm":
-                raise ConfigError(path, f"acceptance.mpe.{k}", "VDI/VDE 2634-2 has no length measurement error E for "
-                                                               "one view; the ball bar's outer-length error (SD plus "
-                                                               "both spheres' size errors) is OL_mm")
-            if name not in PARAMETERS or not k.endswith("_mm"):
-                raise ConfigError(path, f"acceptance.mpe.{k}",
-                                  f"unknown parameter; use {[p + '_mm' for p in PARAMETERS]}")
-            value = get(m, k, float, path, prefix="acceptance.mpe")
-            if not 0 < value < np.inf:
-                raise ConfigError(path, f"acceptance.mpe.{k}", f"an MPE must be a finite number > 0 (mm), got {value}")
-            mpe[name] = value
-        art = get(t, "artefacts", str, path, None, "acceptance")
-        return cls(size, (0.0, 0.0, working_distance_mm), mpe, rule, resolve(path, art) if art else None)
+        if table.decision_rule not in DECISION_RULES:
+            raise ConfigError(path, "acceptance.decision_rule", f"{table.decision_rule!r}: use one of "
+                                                                f"{sorted(DECISION_RULES)}")
+        if table.mpe is None:
+            raise ConfigError(path, "acceptance.mpe", "required key is missing")
+        mpe = {k.removesuffix("_mm"): v for k, v in table.mpe.model_dump(exclude_none=True).items()}
+        sx, sy, sz = table.volume_mm
+        return cls((sx, sy, sz), (0.0, 0.0, working_distance_mm), mpe, table.decision_rule,
+                   resolve(path, table.artefacts) if table.artefacts else None)
 
 
 # ------------------------------------------------------------------------- positions

@@ -32,47 +32,69 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from scanner.config import CONFIG_DIR, get, get_table, get_vector, load_toml
-from scanner.errors import ConfigError
+from pydantic import Field, ValidationInfo, field_validator, model_validator
+
+from scanner import schema
+from scanner.config import CONFIG_DIR
+from scanner.schema import NonNegativeFloat, PositiveFloat, Schema, Str
 
 DEFAULT_ARTEFACTS = CONFIG_DIR / "artefacts" / "sim_bench.toml"
-_KEYS = {"sphere": {"certificate", "diameter_mm", "diameter_u_mm", "form_mm", "albedo"},
-         "ball_bar": {"certificate", "length_mm", "length_u_mm", "diameter_mm", "diameter_u_mm", "form_mm", "albedo"},
-         "plane": {"certificate", "size_mm", "flatness_mm", "flatness_u_mm", "albedo"}}
+Albedo = Annotated[float, Field(strict=True, ge=0.0, le=1.0)]  # simulator only: the surface's reflectance
 
 
-@dataclass(frozen=True)
-class Sphere:
+class Sphere(Schema):
     """A calibrated sphere (diameter, its U, its form deviation; mm)."""
 
-    certificate: str
-    diameter_mm: float
-    diameter_u_mm: float
-    form_mm: float
-    albedo: float = 0.7
+    certificate: Str
+    diameter_mm: PositiveFloat
+    diameter_u_mm: NonNegativeFloat
+    form_mm: NonNegativeFloat
+    albedo: Albedo = 0.7
 
     @property
     def radius_mm(self) -> float:
         return self.diameter_mm / 2.0
 
 
-@dataclass(frozen=True, kw_only=True)
 class BallBar(Sphere):
     """Two spheres of the calibrated diameter whose centres are `length_mm` apart."""
 
-    length_mm: float
-    length_u_mm: float
+    length_mm: PositiveFloat
+    length_u_mm: NonNegativeFloat
+
+    @field_validator("length_mm")
+    @classmethod
+    def _apart(cls, length: float, info: ValidationInfo) -> float:
+        if length <= info.data.get("diameter_mm", 0.0):
+            raise ValueError("the spheres would overlap: length_mm must exceed diameter_mm")
+        return length
 
 
-@dataclass(frozen=True)
-class Plane:
-    certificate: str
-    size_mm: tuple[float, float]
-    flatness_mm: float
-    flatness_u_mm: float
-    albedo: float = 0.8
+class Plane(Schema):
+    """A calibrated flat: its measured face (length, width) and flatness with its U (mm)."""
+
+    certificate: Str
+    size_mm: Annotated[list[PositiveFloat], Field(min_length=2, max_length=2)]  # length, width
+    flatness_mm: NonNegativeFloat
+    flatness_u_mm: NonNegativeFloat
+    albedo: Albedo = 0.8
+
+
+class ArtefactFile(Schema):
+    """An artefact TOML (see the module docstring): at least one artefact."""
+
+    name: Str | None = None
+    sphere: Sphere | None = None
+    ball_bar: BallBar | None = None
+    plane: Plane | None = None
+
+    @model_validator(mode="after")
+    def _some(self) -> ArtefactFile:
+        if self.sphere is None and self.ball_bar is None and self.plane is None:
+            raise ValueError("no artefact: give at least one of the tables ['ball_bar', 'plane', 'sphere']")
+        return self
 
 
 @dataclass(frozen=True)
@@ -87,50 +109,13 @@ class ArtefactSet:
     path: Path | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        from dataclasses import asdict
-
         return {"name": self.name, "path": str(self.path) if self.path else None,
-                **{k: asdict(v) if v is not None else None for k, v in
+                **{k: v.model_dump() if v is not None else None for k, v in
                    (("sphere", self.sphere), ("ball_bar", self.ball_bar), ("plane", self.plane))}}
 
 
 def load_artefacts(path: str | Path = DEFAULT_ARTEFACTS) -> ArtefactSet:
     """Read and check an artefact file; errors name the file and the key."""
     path = Path(path)
-    raw = load_toml(path)
-    unknown = set(raw) - {"name", *_KEYS}
-    if unknown:
-        raise ConfigError(path, sorted(unknown)[0], f"unknown key; expected name and the tables {sorted(_KEYS)}")
-    tables = {}
-    for kind, keys in _KEYS.items():
-        if kind not in raw:
-            continue
-        t = get_table(raw, kind, path)
-        for k in t:
-            if k not in keys:
-                raise ConfigError(path, f"{kind}.{k}", f"unknown key; expected one of {sorted(keys)}")
-        values: dict[str, Any] = {"certificate": get(t, "certificate", str, path, prefix=kind)}
-        for k in sorted(keys - {"certificate", "size_mm"}):
-            values[k] = get(t, k, float, path, 0.7 if k == "albedo" else ..., prefix=kind)
-            positive = k.endswith(("diameter_mm", "length_mm"))
-            in_range = values[k] > 0 if positive else values[k] >= 0
-            if not in_range or values[k] != values[k] or values[k] == float("inf"):
-                raise ConfigError(path, f"{kind}.{k}", f"must be a finite number {'> 0' if positive else '>= 0'}, "
-                                                       f"got {values[k]}")
-        if "albedo" in values and values["albedo"] > 1.0:
-            raise ConfigError(path, f"{kind}.albedo", f"{values['albedo']} outside 0..1")
-        if kind == "plane":
-            size = get_vector(t, "size_mm", 2, path, prefix=kind)
-            if not all(s > 0 for s in size):
-                raise ConfigError(path, "plane.size_mm", f"sizes must be > 0, got {size}")
-            values["size_mm"] = tuple(size)
-        tables[kind] = values
-    if not tables:
-        raise ConfigError(path, None, f"no artefact: give at least one of the tables {sorted(_KEYS)}")
-    bar = tables.get("ball_bar")
-    if bar is not None and bar["length_mm"] <= bar["diameter_mm"]:
-        raise ConfigError(path, "ball_bar.length_mm", "the spheres would overlap: length_mm must exceed diameter_mm")
-    return ArtefactSet(get(raw, "name", str, path, path.stem),
-                       Sphere(**tables["sphere"]) if "sphere" in tables else None,
-                       BallBar(**tables["ball_bar"]) if "ball_bar" in tables else None,
-                       Plane(**tables["plane"]) if "plane" in tables else None, path)
+    file = schema.load(ArtefactFile, path)
+    return ArtefactSet(file.name or path.stem, file.sphere, file.ball_bar, file.plane, path)

@@ -25,7 +25,17 @@ from scanner.config import DEFAULT_RIG, load_toml, resolve
 from scanner.devices import Camera, Projector, TriggerSource
 from scanner.errors import ConfigError, ScannerError
 from scanner.geometry import Pinhole, RigModel, look_at
-from scanner.rig_schema import DriverSettings, Lens, RigFile, check_geometry, device_settings, parse_rig_file
+from scanner.rig_schema import (
+    CameraEntry,
+    CameraTable,
+    DriverSettings,
+    Lens,
+    ProjectorTable,
+    RigFile,
+    check_geometry,
+    device_settings,
+    parse_rig_file,
+)
 from scanner.stage import Stage
 from scanner.stage_model import StageConfig
 
@@ -35,11 +45,11 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True, eq=False)
 class RigConfig:
-    """A parsed, validated rig TOML (`scanner.rig_schema.RigFile`). `raw` keeps the whole
-    file for the session manifest; `camera` and `projector` are its tables as written, for
-    the drivers (every key in them is known and typed); `devices` their drivers and the
-    drivers' settings (`scanner.rig_schema.device_settings`: "rig", "camera", "projector",
-    "trigger_box", "cameras.<name>")."""
+    """A parsed, validated rig TOML: `file` is its record (`scanner.rig_schema.RigFile`),
+    every table typed; `raw` the file as written, for the session manifest; `camera` (the
+    first camera), `projector` and `cameras` ([[cameras]]) its device tables; `devices`
+    their drivers and the drivers' settings (`scanner.rig_schema.device_settings`: "rig",
+    "camera", "projector", "trigger_box", "cameras.<name>"); `stage` its [stage], checked."""
 
     path: Path
     name: str
@@ -49,41 +59,51 @@ class RigConfig:
     period_s: float
     working_distance_mm: float
     patterns_path: Path
-    camera: dict[str, Any]
-    projector: dict[str, Any]
+    file: RigFile = field(repr=False)
     raw: dict[str, Any] = field(repr=False)
     calibration_path: Path | None = None
     recording_level: str = "display"  # [recording] level: "full", "display" or "none"
-    cameras: tuple[dict[str, Any], ...] = ()  # a rig with several cameras: each [[cameras]] table as written
     devices: dict[str, DriverSettings] = field(default_factory=dict, repr=False)
+    stage: StageConfig | None = None  # the motion stage of a `[stage]` table (`scanner.stage_model`)
 
     @classmethod
     def load(cls, path: str | Path = DEFAULT_RIG) -> RigConfig:
         """Read and validate a rig TOML: every key known, typed, in range and finite, and the
         nominal geometry able to triangulate (a common field of view at the working distance)."""
         path = Path(path)
-        raw = load_toml(path)
+        return cls.from_toml(load_toml(path), path)
+
+    @classmethod
+    def from_toml(cls, raw: dict[str, Any], path: Path) -> RigConfig:
+        """A rig TOML's contents `raw`, validated as `load` does (relative paths from `path`)."""
         file = parse_rig_file(raw, path)
         rig = file.rig
+        stage = StageConfig.from_table(file.stage, rig.driver, path) if file.stage is not None else None
         cfg = cls(path=path, name=rig.name or path.stem, driver=rig.driver, trigger=rig.trigger,
                   timeout_s=rig.timeout_s, period_s=rig.period_s, working_distance_mm=rig.working_distance_mm,
-                  patterns_path=resolve(path, rig.patterns), camera=raw.get("camera") or raw["cameras"][0],
-                  projector=raw["projector"], raw=raw,
+                  patterns_path=resolve(path, rig.patterns), file=file, raw=raw,
                   calibration_path=resolve(path, rig.calibration) if rig.calibration else None,
-                  recording_level=file.recording.level, cameras=tuple(raw.get("cameras") or ()),
-                  devices=device_settings(file, raw, path))
+                  recording_level=file.recording.level, devices=device_settings(file, raw, path), stage=stage)
         check_geometry(cfg.nominal_model(), cfg.working_distance_mm, path, "projector")
         for name, model in list(cfg.camera_models().items())[1:]:
             check_geometry(model, cfg.working_distance_mm, path, f"cameras.{name}")
         if cfg.calibration_path is not None:
             check_geometry(cfg.model, cfg.working_distance_mm, path, "rig.calibration")
-        _ = cfg.stage  # and the stage table, if any
         return cfg
 
-    @cached_property
-    def file(self) -> RigFile:
-        """The validated rig file."""
-        return parse_rig_file(self.raw, self.path)
+    @property
+    def camera(self) -> CameraTable:
+        """The rig's camera table ([camera], or the first of [[cameras]])."""
+        return self.file.first_camera
+
+    @property
+    def projector(self) -> ProjectorTable:
+        return self.file.projector
+
+    @property
+    def cameras(self) -> tuple[CameraEntry, ...]:
+        """Each [[cameras]] table of a rig with several cameras (else empty)."""
+        return tuple(self.file.cameras or ())
 
     @cached_property
     def model(self) -> RigModel:
@@ -96,11 +116,6 @@ class RigConfig:
             return load_rig_model(self.calibration_path, nominal.camera.size, nominal.projector.size)
         except ScannerError as exc:
             raise ConfigError(self.path, "rig.calibration", str(exc)) from None
-
-    @cached_property
-    def stage(self) -> StageConfig | None:
-        """The motion stage of a `[stage]` table, checked (`scanner.stage_model`); None without one."""
-        return StageConfig.from_rig(self.raw, self.path)
 
     def nominal_model(self) -> RigModel:
         """The rig geometry written in the config (for the simulator: its ground truth)."""
@@ -116,7 +131,7 @@ class RigConfig:
     @property
     def camera_names(self) -> tuple[str, ...]:
         """The cameras' names ([[cameras]]); a one-camera rig's is ("camera",)."""
-        return tuple(str(c["name"]) for c in self.cameras) or ("camera",)
+        return tuple(c.name for c in self.cameras) or ("camera",)
 
     def camera_models(self) -> dict[str, RigModel]:
         """Per camera (by name) its nominal rig model with the projector: the camera placed in

@@ -5,9 +5,10 @@
 and `driver`; every other key of the table belongs to that driver, which declares them
 (`scanner.drivers.registry`, docs/drivers.md) and validates them (`device_settings`), as
 the rig driver does the top-level table named after it (`[sim]`). So a typo is refused at
-load instead of being silently ignored. `[calibrate]` belongs to the
-calibration package, which validates it when a calibration is run (the core cannot import it),
-and `[acceptance]` to `slscan verify` (`inspection.acceptance.Acceptance` validates it).
+load instead of being silently ignored. The tables read by the layers above the core are
+typed here too, so the whole file is checked at load: `[calibrate]` (`CalibrateTable`, read
+by `calibration.workflow.Procedure`), `[acceptance]` (`AcceptanceTable`, read by
+`inspection.acceptance.Acceptance`), `[stage]` (`scanner.stage_model.StageTable`).
 
 `RigModelSchema` is the geometry as `RigModel.to_dict` writes it (session manifests,
 calibration files). `check_geometry` refuses a rig that cannot measure anything: a camera
@@ -22,7 +23,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from scanner import schema
 from scanner.drivers.registry import Driver, Kind, lookup, own_settings
@@ -31,14 +32,17 @@ from scanner.geometry import RigModel
 from scanner.schema import (
     Bool,
     Float,
+    Int,
     Matrix3,
     Matrix4,
     PositiveFloat,
+    PositiveInt,
     Schema,
     Str,
     Vector3,
     Vector4,
 )
+from scanner.stage_model import StageTable
 
 ImageSide = Annotated[int, Field(strict=True, ge=1, le=65536)]
 Distortion = Annotated[list[Float], Field(min_length=5, max_length=5)]
@@ -143,6 +147,68 @@ class TriggerBoxTable(DeviceTable):
     """[trigger_box]: the driver's keys only (the port, ...)."""
 
 
+class SpherePairTable(Schema):
+    """A validation artefact ([calibrate] artefact, a calibration capture's): two spheres of
+    `radius_mm` (nominal), centres `distance_mm` apart (certified)."""
+
+    type: Literal["sphere_pair"] = "sphere_pair"
+    radius_mm: PositiveFloat
+    distance_mm: PositiveFloat
+
+    @model_validator(mode="after")
+    def _apart(self) -> SpherePairTable:
+        if not self.distance_mm > 2 * self.radius_mm:
+            raise ValueError(f"need distance_mm > 2 x radius_mm, got {self.radius_mm}, {self.distance_mm}")
+        return self
+
+
+class CalibrateTable(Schema):
+    """[calibrate]: how `slscan calibrate` runs on this rig (`calibration.workflow.Procedure`,
+    which holds the defaults: a key left out keeps the procedure's). `board` is relative to
+    the rig TOML; the limits are those of `calibration.solve.CalibrationSettings`."""
+
+    board: Str | None = None
+    poses: PositiveInt | None = None
+    plate_heights_mm: list[Float] | None = None  # first = the reference plane, 0
+    artefact: SpherePairTable | None = None
+    fix_k3: Bool | None = None
+    drop_outliers: Bool | None = None
+    min_views: Int | None = None
+    max_camera_rms_px: Float | None = None
+    max_projector_rms_px: Float | None = None
+    max_validation_mm: Float | None = None
+    max_joint_camera_std: Float | None = None
+
+
+class MpeTable(Schema):
+    """[acceptance.mpe]: the maximum permissible errors (mm) of the parameters of
+    `inspection.acceptance` (a parameter left out has no MPE)."""
+
+    PF_mm: PositiveFloat | None = None
+    PS_mm: PositiveFloat | None = None
+    SD_mm: PositiveFloat | None = None
+    F_mm: PositiveFloat | None = None
+    OL_mm: PositiveFloat | None = None
+    E_mm: Any = None  # refused, with why (`_no_E`)
+
+    @field_validator("E_mm")
+    @classmethod
+    def _no_E(cls, value: Any) -> Any:
+        raise ValueError("VDI/VDE 2634-2 has no length measurement error E for one view; the ball bar's "
+                         "outer-length error (SD plus both spheres' size errors) is OL_mm")
+
+
+class AcceptanceTable(Schema):
+    """[acceptance]: the measuring volume (mm: width, height, depth about the working
+    distance), the artefact file (relative to the rig TOML), the decision rule (one of
+    `inspection.tolerances.DECISION_RULES`) and the MPEs (see `inspection.acceptance`)."""
+
+    volume_mm: Annotated[list[PositiveFloat], Field(min_length=3, max_length=3)]
+    artefacts: Str | None = None
+    decision_rule: Str = "guard-banded"
+    mpe: MpeTable | None = None  # required by `slscan verify`
+
+
 class RigFile(Schema):
     """A rig TOML: [rig], [camera], [projector], and the optional tables (the rig driver's
     own table, named after it, is set aside by `parse_rig_file`)."""
@@ -153,9 +219,9 @@ class RigFile(Schema):
     projector: ProjectorTable
     trigger_box: TriggerBoxTable | None = None
     recording: RecordingTable = RecordingTable()
-    calibrate: dict[str, Any] | None = None  # validated by calibration.workflow.Procedure (its keys, its rules)
-    acceptance: dict[str, Any] | None = None  # validated by inspection.acceptance.Acceptance (`slscan verify`)
-    stage: dict[str, Any] | None = None  # validated by scanner.stage_model.StageConfig (its keys, its rules)
+    calibrate: CalibrateTable = CalibrateTable()
+    acceptance: AcceptanceTable | None = None
+    stage: StageTable | None = None
 
     @model_validator(mode="after")
     def _cameras(self) -> RigFile:

@@ -51,19 +51,18 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
+from pydantic import ConfigDict, Field, ValidationInfo, field_validator
 
-from scanner.config import get, get_vector, resolve
+from scanner.config import resolve
 from scanner.drivers.registry import lookup, own_settings
 from scanner.errors import ConfigError
+from scanner.schema import Bool, Float, Schema, Str, Vector2, Vector3
 from scanner.stage import Axis, AxisKind
 
 STAGE_AXIS_VERSION = 1
-_STAGE_KEYS = {"driver", "settle_s", "calibration", "home", "axes"}  # and the driver's `settings`
-_AXIS_KEYS = {"name", "kind", "direction", "point_mm", "limits_deg", "limits_mm", "speed_deg_s", "speed_mm_s",
-              "tolerance_deg", "tolerance_mm"}  # and the driver's `axis_settings`
 
 
 def rotation_about(direction: np.ndarray, angle: float) -> np.ndarray:
@@ -143,6 +142,63 @@ class StageModel:
         return cls(axes, str(d.get("calibration", "")))
 
 
+class AxisTable(Schema):
+    """One [[stage.axes]] table: the keys every axis has, in the axis's unit (rotary: deg,
+    linear: mm); every other key is the stage driver's (`axis_settings`)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    name: Str
+    kind: Literal["rotary", "linear"]
+    direction: Vector3
+    point_mm: Vector3 | None = None
+    limits_deg: Vector2 | None = None
+    limits_mm: Vector2 | None = None
+    speed_deg_s: Float | None = None
+    speed_mm_s: Float | None = None
+    tolerance_deg: Float | None = None
+    tolerance_mm: Float | None = None
+
+    @field_validator("limits_mm", "speed_mm_s", "tolerance_mm", "limits_deg", "speed_deg_s", "tolerance_deg")
+    @classmethod
+    def _in_its_unit(cls, value: Any, info: ValidationInfo) -> Any:
+        kind, key = info.data.get("kind"), str(info.field_name)
+        unit, wrong = ("deg", "mm") if kind == "rotary" else ("mm", "deg")
+        if kind is not None and wrong in key.split("_"):
+            raise ValueError(f"a {kind} axis gives this in {unit} ({key.replace(wrong, unit)})")
+        return value
+
+    @field_validator("point_mm")
+    @classmethod
+    def _rotary_only(cls, value: Any, info: ValidationInfo) -> Any:
+        if info.data.get("kind") == "linear":
+            raise ValueError("a linear axis has no point_mm")
+        return value
+
+
+class StageTable(Schema):
+    """A rig TOML's [stage] table (see the module docstring): the keys every stage has and
+    `driver`; every other key is the stage driver's (`settings`)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    driver: Str | None = None
+    settle_s: Annotated[float, Field(strict=True, ge=0.0, le=60.0)] = 0.0
+    calibration: Str | None = None
+    home: Bool = False
+    axes: list[AxisTable]
+
+    @field_validator("axes")
+    @classmethod
+    def _axes(cls, axes: list[AxisTable]) -> list[AxisTable]:
+        if not axes:
+            raise ValueError("a stage needs at least one [[stage.axes]] table")
+        names = [a.name for a in axes]
+        if len(set(names)) != len(names):
+            raise ValueError(f"axis names must be unique, got {names}")
+        return axes
+
+
 @dataclass(frozen=True, eq=False)
 class StageConfig:
     """A rig TOML's `[stage]` table, checked: the axes the driver moves, their geometry
@@ -156,45 +212,27 @@ class StageConfig:
     axes: tuple[Axis, ...]
     nominal: StageModel
     model: StageModel
-    table: dict[str, Any] = field(repr=False)
-    axis_tables: tuple[dict[str, Any], ...] = field(repr=False, default=())
     settings: Any = None
     axis_settings: tuple[Any, ...] = ()
 
     @classmethod
-    def from_rig(cls, raw: dict[str, Any], path: Path) -> StageConfig | None:
-        """The `[stage]` table of a rig TOML's contents `raw` (None when it has none), its
-        driver one the rig's driver (`[rig] driver`) opens."""
-        if "stage" not in raw:
-            return None
-        table = get(raw, "stage", dict, path)
-        name = get(table, "driver", str, path, None, "stage")
-        driver = lookup("stage", name, get(get(raw, "rig", dict, path), "driver", str, path, prefix="rig"), path,
-                        "stage.driver")
-        settings = own_settings(driver, table, _STAGE_KEYS, path, "stage")
-        settle = get(table, "settle_s", float, path, 0.0, "stage")
-        if not 0 <= settle <= 60:
-            raise ConfigError(path, "stage.settle_s", f"must be 0..60 s, got {settle}")
-        home = get(table, "home", bool, path, False, "stage")
-        entries = get(table, "axes", list, path, prefix="stage")
-        if not entries:
-            raise ConfigError(path, "stage.axes", "a stage needs at least one [[stage.axes]] table")
+    def from_table(cls, table: StageTable, rig_driver: str, path: Path) -> StageConfig:
+        """The stage of a rig file's `[stage]` table, its driver one the rig's driver opens
+        and the driver's keys validated by its schemas."""
+        driver = lookup("stage", table.driver, rig_driver, path, "stage.driver")
+        settings = own_settings(driver, table.model_extra or {}, StageTable.model_fields, path, "stage")
         axes, geometry, own = [], [], []
-        for i, t in enumerate(entries):
-            axis, geo = _axis(t, path, f"stage.axes[{i}]", home)
+        for i, t in enumerate(table.axes):
+            pre = f"stage.axes[{i}]"
+            axis, geo = _axis(t, path, pre, table.home)
             axes.append(axis)
             geometry.append(geo)
-            own.append(own_settings(driver, t, _AXIS_KEYS, path, f"stage.axes[{i}]", axis=True))
-        names = [a.name for a in axes]
-        if len(set(names)) != len(names):
-            raise ConfigError(path, "stage.axes", f"axis names must be unique, got {names}")
+            own.append(own_settings(driver, t.model_extra or {}, AxisTable.model_fields, path, pre, axis=True))
         nominal = StageModel(tuple(geometry))
         model = nominal
-        calibration = get(table, "calibration", str, path, None, "stage")
-        if calibration is not None:
-            model = load_stage_model(resolve(path, calibration), nominal, path)
-        return cls(path, driver.name, settle, home, tuple(axes), nominal, model, table, tuple(entries), settings,
-                   tuple(own))
+        if table.calibration is not None:
+            model = load_stage_model(resolve(path, table.calibration), nominal, path)
+        return cls(path, driver.name, table.settle_s, table.home, tuple(axes), nominal, model, settings, tuple(own))
 
 
 def load_stage_model(file: Path, nominal: StageModel, rig_path: object, key: str = "stage.calibration") -> StageModel:
@@ -220,32 +258,18 @@ def load_stage_model(file: Path, nominal: StageModel, rig_path: object, key: str
     return StageModel(model.axes, str(file))
 
 
-def _axis(t: Any, path: Path, pre: str, home: bool) -> tuple[Axis, AxisGeometry]:
-    if not isinstance(t, dict):
-        raise ConfigError(path, pre, "expected a table ([[stage.axes]])")
-    name = get(t, "name", str, path, prefix=pre)
-    kind_text = get(t, "kind", str, path, prefix=pre)
-    try:
-        kind = AxisKind(kind_text)
-    except ValueError:
-        raise ConfigError(path, f"{pre}.kind", f"'{kind_text}' is not one of {[k.value for k in AxisKind]}") from None
+def _axis(t: AxisTable, path: Path, pre: str, home: bool) -> tuple[Axis, AxisGeometry]:
+    kind = AxisKind(t.kind)
     rotary = kind is AxisKind.ROTARY
-    unit, scale = ("deg", math.radians(1.0)) if rotary else ("mm", 1.0)
-    wrong = "mm" if rotary else "deg"
-    for k in (f"limits_{wrong}", f"speed_{wrong}_s", f"tolerance_{wrong}"):
-        if k in t:
-            raise ConfigError(path, f"{pre}.{k}",
-                              f"a {kind.value} axis gives this in {unit} ({k.replace(wrong, unit)})")
-    if not rotary and ("point_mm" in t or "units_per_turn" in t):
-        raise ConfigError(path, pre, "a linear axis has no point_mm or units_per_turn")
-    limits = get_vector(t, f"limits_{unit}", 2, path, prefix=pre) if f"limits_{unit}" in t else [-math.inf, math.inf]
-    speed = get(t, f"speed_{unit}_s", float, path, 30.0 if rotary else 10.0, pre)
-    tolerance = get(t, f"tolerance_{unit}", float, path, 0.01, pre)
-    direction = np.array(get_vector(t, "direction", 3, path, prefix=pre))
-    point = np.array(get_vector(t, "point_mm", 3, path, [0.0, 0.0, 0.0], pre))
+    scale = math.radians(1.0) if rotary else 1.0
+    limits, speed, tolerance = (t.limits_deg, t.speed_deg_s, t.tolerance_deg) if rotary else \
+        (t.limits_mm, t.speed_mm_s, t.tolerance_mm)
+    limits = [-math.inf, math.inf] if limits is None else limits
+    speed = (30.0 if rotary else 10.0) if speed is None else speed
+    tolerance = 0.01 if tolerance is None else tolerance
     try:
-        axis = Axis(name, kind, (limits[0] * scale, limits[1] * scale), speed * scale, tolerance * scale, home)
-        geometry = AxisGeometry(name, kind, direction, point)
+        axis = Axis(t.name, kind, (limits[0] * scale, limits[1] * scale), speed * scale, tolerance * scale, home)
+        geometry = AxisGeometry(t.name, kind, np.array(t.direction), np.array(t.point_mm or [0.0, 0.0, 0.0]))
     except ValueError as exc:
         raise ConfigError(path, pre, str(exc)) from None
     return axis, geometry

@@ -23,7 +23,7 @@ by its own seed; a measurement draws new seeds each time and prints them.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -247,7 +247,7 @@ def scaled_rig(config: Any, scale: float) -> Any:
         if key in raw["projector"]:
             raw["projector"][key] = [float(x) * scale for x in raw["projector"][key]]
     raw.pop("acceptance", None)  # its measuring volume is the unscaled rig's
-    return replace(config, working_distance_mm=config.working_distance_mm * scale, projector=raw["projector"], raw=raw)
+    return type(config).from_toml(raw, config.path)  # validated again, as the rig file it stands for
 
 
 @dataclass(frozen=True, eq=False)

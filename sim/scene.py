@@ -69,14 +69,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from scanner.config import CONFIG_DIR, get, get_table, get_vector, load_toml, resolve
+from scanner import schema
+from scanner.config import CONFIG_DIR, resolve
 from scanner.errors import ConfigError
 from scanner.geometry import pose_from_dict
-from scanner.schema import unknown_key_problem
+from scanner.schema import Bool, Matrix4, Schema, Str, Vector3
 
 DEFAULT_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
@@ -85,10 +87,6 @@ BACKGROUND_ID = 0
 REFERENCE_PLANE_ID = 1
 FIRST_OBJECT_ID = 2
 
-_MATERIAL_KEYS = {"material", "specular", "roughness"}
-_OBJECT_KEYS = {"name", "albedo", "pose", "scale", *KINDS, *_MATERIAL_KEYS}
-_PLANE_KEYS = {"distance_mm", "pose", "size_mm", "albedo", *_MATERIAL_KEYS}
-_SCENE_KEYS = {"name", "reference_plane", "objects", "interreflection"}
 _DEFAULT_PLANE_SIZE = (1000.0, 1000.0)
 MAX_LENGTH_MM = 100_000.0  # 100 m: every length and position of a bench scene lies within it
 MIN_LENGTH_MM = 1e-3  # 1 um: a smaller object is below any camera pixel's footprint on the bench
@@ -391,26 +389,112 @@ def _is_rigid(T: np.ndarray) -> bool:
                 and np.allclose(T[3], [0, 0, 0, 1]) and np.isfinite(T).all())
 
 
-def _check_keys(table: dict[str, Any], allowed: set[str], path: Path, prefix: str) -> None:
-    for k in table:
-        if k not in allowed:
-            full = f"{prefix}.{k}" if prefix else k
-            raise ConfigError(path, full, unknown_key_problem(k, allowed, prefix))
+Length = Annotated[float, Field(strict=True, ge=MIN_LENGTH_MM, le=MAX_LENGTH_MM)]  # mm
+Fraction = Annotated[float, Field(strict=True, ge=0.0, le=1.0)]
+Roughness = Annotated[float, Field(strict=True, ge=MIN_ROUGHNESS, le=1.0)]
+Size2 = Annotated[list[Length], Field(min_length=2, max_length=2)]  # mm
+Size3 = Annotated[list[Length], Field(min_length=3, max_length=3)]  # mm
 
 
-def _pose(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
-    if "pose" not in table:
+class PoseTable(Schema):
+    """A pose: `rotation_rad` (Rodrigues) and `translation_mm`, or a 4x4 `matrix`."""
+
+    rotation_rad: Vector3 | None = None
+    translation_mm: Vector3 | None = None
+    matrix: Matrix4 | None = None
+
+    @model_validator(mode="after")
+    def _one_form(self) -> PoseTable:
+        if self.matrix is not None and (self.rotation_rad is not None or self.translation_mm is not None):
+            raise ValueError("give either 'matrix' or 'rotation_rad'/'translation_mm', not both")
+        return self
+
+
+class SurfaceTable(Schema):
+    """What objects and the reference plane share: a pose and a material (a preset of
+    MATERIALS, each of its values overridable by its own key)."""
+
+    pose: PoseTable | None = None
+    material: Str | None = None
+    albedo: Fraction | None = None
+    specular: Fraction | None = None
+    roughness: Roughness | None = None
+
+    @field_validator("material")
+    @classmethod
+    def _known(cls, name: str) -> str:
+        if name not in MATERIALS:
+            raise ValueError(f"unknown material {name!r}; known: {sorted(MATERIALS)}")
+        return name
+
+
+class ReferencePlaneTable(SurfaceTable):
+    distance_mm: Length | None = None
+    size_mm: Size2 = Field(default_factory=lambda: list(_DEFAULT_PLANE_SIZE))
+
+    @model_validator(mode="after")
+    def _placed(self) -> ReferencePlaneTable:
+        if (self.distance_mm is None) == (self.pose is None):
+            raise ValueError("give exactly one of 'distance_mm' or 'pose'")
+        return self
+
+
+class SphereShape(Schema):
+    radius_mm: Length
+    center_mm: Vector3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])  # in the object frame (its pose)
+
+
+class PlaneShape(Schema):
+    size_mm: Size2
+    texture: Str | None = None  # a grey image file, relative to the scene TOML
+
+
+class BoxShape(Schema):
+    size_mm: Size3
+
+
+class ObjectTable(SurfaceTable):
+    """One [[objects]] table: exactly one of mesh, sphere, plane, box."""
+
+    name: Str | None = None
+    mesh: Str | None = None
+    sphere: SphereShape | None = None
+    plane: PlaneShape | None = None
+    box: BoxShape | None = None
+    scale: Annotated[float, Field(strict=True, ge=1e-6, le=1e6)] = 1.0  # mesh units -> mm
+
+    @field_validator("scale")
+    @classmethod
+    def _mesh_only(cls, scale: float, info: ValidationInfo) -> float:
+        if info.data.get("mesh") is None:
+            raise ValueError("only meshes take a scale")
+        return scale
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> ObjectTable:
+        if len(self.kinds) != 1:
+            raise ValueError(f"give exactly one of {list(KINDS)}, got {self.kinds or 'none'}")
+        return self
+
+    @property
+    def kinds(self) -> list[str]:
+        return [k for k in KINDS if getattr(self, k) is not None]
+
+
+class SceneFile(Schema):
+    """A scene TOML (see the module docstring)."""
+
+    name: Str | None = None
+    interreflection: Bool = False
+    reference_plane: ReferencePlaneTable | None = None
+    objects: list[ObjectTable] = Field(default_factory=list)
+
+
+def _pose(pose: PoseTable | None, path: Path, key: str) -> np.ndarray:
+    if pose is None:
         return np.eye(4)
-    d = get_table(table, "pose", path, prefix=prefix)
-    key = f"{prefix}.pose" if prefix else "pose"
-    _check_keys(d, {"rotation_rad", "translation_mm", "matrix"}, path, key)
-    if "matrix" in d and len(d) > 1:
-        raise ConfigError(path, key, "give either 'matrix' or 'rotation_rad'/'translation_mm', not both")
-    if "matrix" not in d:
-        get_vector(d, "rotation_rad", 3, path, [0.0] * 3, key)
-        get_vector(d, "translation_mm", 3, path, [0.0] * 3, key)
     try:
-        T = pose_from_dict(d)
+        T = pose_from_dict(pose.model_dump(exclude_none=True))
     except (ValueError, TypeError) as exc:
         raise ConfigError(path, key, f"invalid pose: {exc}") from None
     if not _is_rigid(T):
@@ -419,30 +503,12 @@ def _pose(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
     return _position(T, path, key)
 
 
-def _material(table: dict[str, Any], path: Path, prefix: str, default_albedo: float) -> dict[str, float]:
-    """albedo, specular and roughness of an object table: a `material` preset (if given), each
-    overridden by its own key; every value range-checked with the file and key named."""
-    base = Material(albedo=default_albedo)
-    if "material" in table:
-        name = get(table, "material", str, path, prefix=prefix)
-        if name not in MATERIALS:
-            raise ConfigError(path, f"{prefix}.material", f"unknown material {name!r}; known: {sorted(MATERIALS)}")
-        base = MATERIALS[name]
-    out = {}
-    for key, lo in (("albedo", 0.0), ("specular", 0.0), ("roughness", MIN_ROUGHNESS)):
-        v = get(table, key, float, path, getattr(base, key), prefix)
-        if not lo <= v <= 1.0:
-            raise ConfigError(path, f"{prefix}.{key}", f"{v} outside {lo}..1")
-        out[key] = v
-    return out
-
-
-def _positive_vector(table: dict[str, Any], key: str, n: int, path: Path, prefix: str,
-                     default: Any = ...) -> tuple[float, ...]:
-    v = get_vector(table, key, n, path, default, prefix)
-    for x in v:
-        _length(x, path, f"{prefix}.{key}")
-    return tuple(v)
+def _material(table: SurfaceTable, default_albedo: float) -> dict[str, float]:
+    """albedo, specular and roughness of an object table: its `material` preset (if given),
+    each overridden by its own key."""
+    base = MATERIALS[table.material] if table.material is not None else Material(albedo=default_albedo)
+    return {key: getattr(base, key) if getattr(table, key) is None else getattr(table, key)
+            for key in ("albedo", "specular", "roughness")}
 
 
 def _length(x: float, path: Path, key: str) -> float:
@@ -460,83 +526,53 @@ def _position(T: np.ndarray, path: Path, key: str) -> np.ndarray:
     return T
 
 
-def _texture(table: dict[str, Any], path: Path, prefix: str) -> np.ndarray:
-    """A plane's texture image file as albedo 0..1 (grey; full scale of its bit depth = 1)."""
+def _texture(file: Path, path: Path, key: str) -> np.ndarray:
+    """A plane's texture image `file` as albedo 0..1 (grey; full scale of its bit depth = 1)."""
     import cv2
 
     from scanner.file_checks import MAX_IMAGE_BYTES, FileRefused, decode_image, read_regular
 
-    file = resolve(path, get(table, "texture", str, path, prefix=prefix))
     try:
         data = read_regular(file, limit=MAX_IMAGE_BYTES)
     except FileRefused as exc:
-        raise ConfigError(path, f"{prefix}.texture", str(exc)) from None
+        raise ConfigError(path, key, str(exc)) from None
     img, _ = decode_image(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
     if img is None or img.dtype not in (np.uint8, np.uint16) or min(img.shape) < 2:
-        raise ConfigError(path, f"{prefix}.texture", f"{file}: not readable as an 8- or 16-bit grey image")
+        raise ConfigError(path, key, f"{file}: not readable as an 8- or 16-bit grey image")
     return img.astype(np.float32) / np.float32(np.iinfo(img.dtype).max)
 
 
 def _load_toml_scene(path: Path) -> Scene:
-    raw = load_toml(path)
-    _check_keys(raw, _SCENE_KEYS, path, "")
-    name = get(raw, "name", str, path, path.stem)
+    file = schema.load(SceneFile, path)
     plane = None
-    if "reference_plane" in raw:
-        t = get_table(raw, "reference_plane", path)
-        pre = "reference_plane"
-        _check_keys(t, _PLANE_KEYS, path, pre)
-        if ("distance_mm" in t) == ("pose" in t):
-            raise ConfigError(path, pre, "give exactly one of 'distance_mm' or 'pose'")
-        if "distance_mm" in t:
-            dist = _length(get(t, "distance_mm", float, path, prefix=pre), path, f"{pre}.distance_mm")
-            pose = _translation([0.0, 0.0, dist])
-        else:
-            pose = _pose(t, path, pre)
-        plane = SceneObject(name="reference_plane", kind="plane", pose=pose, **_material(t, path, pre, 0.8),
-                            size_mm=_positive_vector(t, "size_mm", 2, path, pre, list(_DEFAULT_PLANE_SIZE)))
+    if file.reference_plane is not None:
+        t = file.reference_plane
+        pose = _pose(t.pose, path, "reference_plane.pose") if t.distance_mm is None else \
+            _translation([0.0, 0.0, t.distance_mm])
+        plane = SceneObject(name="reference_plane", kind="plane", pose=pose, **_material(t, 0.8),
+                            size_mm=tuple(t.size_mm))
     objects = []
-    entries = get(raw, "objects", list, path, [])
-    for i, t in enumerate(entries):
+    for i, t in enumerate(file.objects):
         pre = f"objects[{i}]"
-        if not isinstance(t, dict):
-            raise ConfigError(path, pre, "expected a table ([[objects]])")
-        _check_keys(t, _OBJECT_KEYS, path, pre)
-        kinds = [k for k in KINDS if k in t]
-        if len(kinds) != 1:
-            raise ConfigError(path, pre, f"give exactly one of {list(KINDS)}, got {kinds or 'none'}")
-        kind = kinds[0]
-        if "scale" in t and kind != "mesh":
-            raise ConfigError(path, f"{pre}.scale", "only meshes take a scale")
-        pose = _pose(t, path, pre)
-        material = _material(t, path, pre, 0.7)
-        if kind == "mesh":
-            rel = get(t, "mesh", str, path, prefix=pre)
-            scale = get(t, "scale", float, path, 1.0, pre)
-            if not 1e-6 <= scale <= 1e6:
-                raise ConfigError(path, f"{pre}.scale", f"must lie within [1e-06, 1e+06] (mesh units to mm), "
-                                                        f"got {scale}")
-            file = resolve(path, rel)
-            v, tri = load_mesh(file, path, f"{pre}.mesh", scale)
+        pose = _pose(t.pose, path, f"{pre}.pose")
+        material = _material(t, 0.7)
+        if t.mesh is not None:
+            source = resolve(path, t.mesh)
+            v, tri = load_mesh(source, path, f"{pre}.mesh", t.scale)
             _length(float(np.ptp(v, axis=0).max()), path, f"{pre}.scale")  # the scaled part's size
-            obj = SceneObject(name=get(t, "name", str, path, file.stem, pre), kind="mesh", pose=pose, **material,
-                              vertices=v, triangles=tri, source=file)
+            obj = SceneObject(name=t.name or source.stem, kind="mesh", pose=pose, **material, vertices=v,
+                              triangles=tri, source=source)
+        elif t.sphere is not None:
+            pose = _position(pose @ _translation(t.sphere.center_mm), path, f"{pre}.sphere.center_mm")
+            obj = SceneObject(name=t.name or f"sphere{i}", kind="sphere", pose=pose, radius_mm=t.sphere.radius_mm,
+                              **material)
         else:
-            p = get_table(t, kind, path, prefix=pre)
-            kp = f"{pre}.{kind}"
-            if kind == "sphere":
-                _check_keys(p, {"radius_mm", "center_mm"}, path, kp)
-                r = _length(get(p, "radius_mm", float, path, prefix=kp), path, f"{kp}.radius_mm")
-                centre = get_vector(p, "center_mm", 3, path, [0.0] * 3, kp)
-                pose = _position(pose @ _translation(centre), path, f"{kp}.center_mm")
-                obj = SceneObject(name=get(t, "name", str, path, f"sphere{i}", pre), kind="sphere", pose=pose,
-                                  radius_mm=r, **material)
-            else:
-                _check_keys(p, {"size_mm", "texture"} if kind == "plane" else {"size_mm"}, path, kp)
-                size = _positive_vector(p, "size_mm", 2 if kind == "plane" else 3, path, kp)
-                texture = _texture(p, path, kp) if "texture" in p else None
-                obj = SceneObject(name=get(t, "name", str, path, f"{kind}{i}", pre), kind=kind, pose=pose,
-                                  size_mm=size, texture=texture, **material)
+            kind, shape = ("plane", t.plane) if t.plane is not None else ("box", t.box)
+            assert shape is not None  # ObjectTable holds exactly one kind
+            texture = _texture(resolve(path, t.plane.texture), path, f"{pre}.plane.texture") \
+                if t.plane is not None and t.plane.texture is not None else None
+            obj = SceneObject(name=t.name or f"{kind}{i}", kind=kind, pose=pose, size_mm=tuple(shape.size_mm),
+                              texture=texture, **material)
         objects.append(obj)
     names = [o.name for o in objects] + (["reference_plane"] if plane is not None else [])
     dup = {n for n in names if names.count(n) > 1}
@@ -544,5 +580,5 @@ def _load_toml_scene(path: Path) -> Scene:
         raise ConfigError(path, "objects", f"object names must be unique; repeated: {sorted(dup)}")
     if not objects and plane is None:
         raise ConfigError(path, "objects", "the scene is empty: give at least one object or a reference plane")
-    return Scene(objects=tuple(objects), reference_plane=plane, name=name, path=path,
-                 interreflection=get(raw, "interreflection", bool, path, False))
+    return Scene(objects=tuple(objects), reference_plane=plane, name=file.name or path.stem, path=path,
+                 interreflection=file.interreflection)

@@ -57,17 +57,21 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from scanner.config import get, get_table
+from scanner import schema
 from scanner.devices import Camera, Frame, Projector, TriggerSource, TriggerType
+from scanner.drivers.simulator import FaultsTable
 from scanner.errors import ConfigError, DeviceDisconnected, DeviceError, UnsupportedSetting, WaitTimeout
 from scanner.status import Status
 from sim.render import Renderer
+
+if TYPE_CHECKING:
+    from scanner.rig import RigConfig
 
 log = logging.getLogger(__name__)
 
@@ -105,29 +109,23 @@ class Faults:
                    for n in ("drop_frame", "delay_frame", "disconnect_after", "stale_frame"))
 
     @classmethod
-    def from_table(cls, table: dict[str, Any], path: object, prefix: str = "sim.faults") -> Faults:
-        """From a [sim.faults] table; errors name the file and key."""
-        known = {f.name for f in fields(cls)}
-        for k in table:
-            if k not in known:
-                raise ConfigError(path, f"{prefix}.{k}", f"unknown fault; expected one of {sorted(known)}")
-        vals: dict[str, Any] = {}
-        for k in ("drop_frame", "delay_frame", "disconnect_after", "stale_frame"):
-            v = get(table, k, int, path, None, prefix)
-            if v is not None and v < 0:
-                raise ConfigError(path, f"{prefix}.{k}", f"must be >= 0, got {v}")
-            vals[k] = v
-        vals["delay_s"] = get(table, "delay_s", float, path, 0.0, prefix)
-        vals["repeat"] = get(table, "repeat", bool, path, False, prefix)
-        if vals["delay_frame"] is not None and not vals["delay_s"] > 0:
+    def of(cls, table: FaultsTable | None, path: object, prefix: str = "sim.faults") -> Faults:
+        """From a validated [sim.faults] table (None: no faults); errors name the file and key."""
+        if table is None:
+            return cls()
+        if table.delay_frame is not None and not table.delay_s > 0:
             raise ConfigError(path, f"{prefix}.delay_s", "delay_frame needs delay_s > 0 (seconds late)")
-        return cls(**vals)
+        return cls(**table.model_dump())
 
     @classmethod
-    def from_config(cls, config: Any) -> Faults:
-        """From the optional [sim.faults] table of a `scanner.rig.RigConfig`."""
-        sim = get_table(config.raw, "sim", config.path, required=False)
-        return cls.from_table(get_table(sim, "faults", config.path, required=False, prefix="sim"), config.path)
+    def from_table(cls, table: Mapping[str, Any], path: str, prefix: str = "sim.faults") -> Faults:
+        """From a [sim.faults] table as given (the command line's `--fault`s)."""
+        return cls.of(schema.parse(FaultsTable, table, path, prefix), path, prefix)
+
+    @classmethod
+    def from_config(cls, config: RigConfig) -> Faults:
+        """From the optional [sim.faults] table of a rig (validated at load)."""
+        return cls.of(config.devices["rig"].settings.faults, config.path)
 
 
 class _Ticker:

@@ -27,10 +27,10 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from scanner.config import get, get_table
 from scanner.devices import TriggerMode, TriggerType
 from scanner.errors import ConfigError
 from scanner.rig import Rig, RigConfig
+from scanner.rig_schema import CameraTable
 from sim.evaluate import GROUND_TRUTH_FILE, Truth
 from sim.render import SUPPORTED_BIT_DEPTHS, Renderer, SensorModel
 from sim.scene import Scene, check_in_view, load_scene
@@ -47,14 +47,13 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
     TOML's optional [sim.faults] table; `seed` makes the noise reproducible; `stage_faults`
     are the simulated stage's (`sim.virtual_stage`)."""
     model = config.nominal_model()
-    p = config.path
     blur = config.devices["projector"].settings.blur_sigma_px  # scanner.drivers.simulator: validated at load
     toml_faults = Faults.from_config(config)  # validated even when overridden
     faults = toml_faults if faults is None else faults
     scene = load_scene(scene, config.working_distance_mm)
     check_in_view(scene, model.camera, model.world_from_cam)  # the (first) camera's view
     projector = SimProjector("sim-projector", model.projector.width, model.projector.height)
-    tables = config.cameras or (config.camera,)
+    tables: tuple[CameraTable, ...] = config.cameras or (config.camera,)
     models = list(config.camera_models().values())
     cameras: dict[str, SimCamera] = {}
     renderers: dict[str, Renderer] = {}
@@ -62,7 +61,7 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
     try:
         for i, (name, table, cam_model) in enumerate(zip(config.camera_names, tables, models)):
             prefix = "camera" if not config.cameras else f"cameras.{name}"
-            sensor = SensorModel.from_table(get_table(table, "sensor", p, required=False, prefix=prefix), p)
+            sensor = SensorModel.of(config.devices[prefix].settings.sensor)  # validated at load
             renderer = Renderer(cam_model, scene, sensor, blur)
             device = "sim-camera" if not config.cameras else f"sim-camera-{name}"
             camera = SimCamera(device, renderer, projector, faults=faults, seed=seed + 7919 * i)
@@ -102,16 +101,17 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
     return rig
 
 
-def _configure(camera: SimCamera, table: dict, config: RigConfig, prefix: str) -> None:
-    """Bit depth, exposure and trigger type of one simulated camera from its rig table."""
+def _configure(camera: SimCamera, table: CameraTable, config: RigConfig, prefix: str) -> None:
+    """Bit depth (default 12), exposure (default 10 ms) and trigger type of one simulated
+    camera from its rig table."""
     p = config.path
-    bits = get(table, "bit_depth", int, p, 12, prefix)
+    bits = 12 if table.bit_depth is None else table.bit_depth
     if bits not in SUPPORTED_BIT_DEPTHS:
         raise ConfigError(p, f"{prefix}.bit_depth", f"{bits} not supported by the simulated camera; use one of "
                                                     f"{SUPPORTED_BIT_DEPTHS}")
     camera.set_bit_depth(bits)
     try:
-        camera.set_exposure(get(table, "exposure_s", float, p, 0.01, prefix))
+        camera.set_exposure(0.01 if table.exposure_s is None else table.exposure_s)
     except Exception as exc:
         raise ConfigError(p, f"{prefix}.exposure_s", str(exc)) from None
     if config.trigger == "software":

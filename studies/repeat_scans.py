@@ -129,9 +129,8 @@ class Bench:
     @classmethod
     def of(cls, config: RigConfig, measurement: MeasurementModel) -> Bench:
         return cls(config.nominal_model(), SensorModel.from_config(config), PatternSet.load(config.patterns_path),
-                   float(config.projector.get("blur_sigma_px", 0.0)), float(config.camera.get("exposure_s", 0.01)),
-                   int(config.camera.get("bit_depth", 12)),
-                   Acceptance.from_rig(config.raw, config.path, config.working_distance_mm), measurement)
+                   config.devices["projector"].settings.blur_sigma_px, config.camera.exposure_s or 0.01,
+                   config.camera.bit_depth or 12, Acceptance.for_rig(config), measurement)
 
     def scan(self, renderer: Renderer, rng: np.random.Generator) -> DecodeResult:
         """One decoded scan of `renderer`'s scene with fresh noise."""

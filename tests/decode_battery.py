@@ -83,8 +83,8 @@ class Outcome:
 def rig_config(name: str, width: int) -> RigConfig:
     """The rig at a camera `width` (height in proportion), same field of view."""
     cfg = RigConfig.load(RIGS[name])
-    camera = {**cfg.camera, "width": width, "height": width * cfg.camera["height"] // cfg.camera["width"]}
-    return replace(cfg, camera=camera, raw={**cfg.raw, "camera": camera})
+    camera = {**cfg.raw["camera"], "width": width, "height": width * cfg.camera.height // cfg.camera.width}
+    return RigConfig.from_toml({**cfg.raw, "camera": camera}, cfg.path)
 
 
 def random_scene(rig: str, rng: np.random.Generator, outside: bool = False):  # -> sim.scene.Scene

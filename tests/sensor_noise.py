@@ -59,8 +59,8 @@ def depth_sigma(rig: object, patterns: PatternSet) -> np.ndarray:
     config, model = rig.config, rig.model  # type: ignore[attr-defined]
     if tuple(patterns.orientations) != ("vertical",):
         raise ValueError("depth_sigma: vertical fringes only")
-    bits = int(config.camera.get("bit_depth", 12))
-    exposure = float(config.camera.get("exposure_s", 0.01))
+    bits = config.camera.bit_depth or 12
+    exposure = config.camera.exposure_s or 0.01
     gain = sensor.full_well_e / (2 ** bits - 1)
     s = exposure * sensor.flux_e_per_s / gain
     w = gt.albedo * gt.cos_incidence

@@ -29,7 +29,7 @@ LABELS = {"#657": "plane", "#17": "cylinder"}
 
 
 @pytest.mark.parametrize("old, new, key", [
-    ("center_mm = [0.0, 0.0, 400.0]", "center_mm = [0.0, nan, 400.0]", "objects[0].sphere.center_mm"),
+    ("center_mm = [0.0, 0.0, 400.0]", "center_mm = [0.0, nan, 400.0]", "objects[0].sphere.center_mm[1]"),
     ("radius_mm = 20.0", "radius_mm = inf", "objects[0].sphere.radius_mm"),
     ("distance_mm = 440.0", "distance_mm = nan", "reference_plane.distance_mm"),
     ("albedo = 0.7", "albedo = nan", "objects[0].albedo"),

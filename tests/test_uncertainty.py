@@ -371,7 +371,6 @@ def test_defocus_bias_matches_the_simulators_blur() -> None:
     coordinate of a sphere rendered noise-free with that blur minus the one rendered
     without it is the bias `defocus_bias` predicts from the blurred scan alone, inside
     the silhouette band it leaves out (NaN there)."""
-    from dataclasses import replace
 
     from scipy import ndimage
 
@@ -392,7 +391,7 @@ def test_defocus_bias_matches_the_simulators_blur() -> None:
     decoded = {}
     for blur in (sigma, 0.0):
         r = window_renderer(bench.model, artefact_objects(position, load_artefacts(DEFAULT_ARTEFACTS)),
-                            replace(bench.sensor, blur_sigma_px=blur), bench.projector_blur_px)
+                            bench.sensor.model_copy(update={"blur_sigma_px": blur}), bench.projector_blur_px)
         p = r.model.projector
         frames = np.stack([np.rint(r.mean_dn(img, bench.exposure_s, bench.bit_depth)).clip(0, 2 ** bench.bit_depth - 1)
                            .astype(np.uint16) for img in bench.patterns.render(p.width, p.height,

@@ -35,7 +35,7 @@ def bench() -> Bench:
 
     config = RigConfig.load()
     return Bench.of(config, rig_measurement(config.raw, config.nominal_model(), PatternSet.load(config.patterns_path),
-                                            int(config.camera["bit_depth"]), config.path))
+                                            config.camera.bit_depth, config.path))
 
 
 def test_ball_bar_coverage_quick_and_it_falls_with_an_underestimated_noise(bench: Bench) -> None:

@@ -44,7 +44,7 @@ def config() -> RigConfig:
 def test_artefact_file_errors_name_file_and_key(tmp_path: Path) -> None:
     bad = tmp_path / "a.toml"
     bad.write_text('[sphere]\ncertificate = "x"\ndiameter_mm = -25.4\ndiameter_u_mm = 0.001\nform_mm = 0.0\n')
-    with pytest.raises(ConfigError, match=r"a.toml.*sphere.diameter_mm.*> 0"):
+    with pytest.raises(ConfigError, match=r"a.toml.*sphere.diameter_mm.*greater than 0"):
         load_artefacts(bad)
     bad.write_text('[sphere]\ncertificate = "x"\ndiameter_mm = 25.4\ndiameter_u_mm = 0.001\nform_mm = 0.0\n'
                    'radius = 1\n')
@@ -59,19 +59,19 @@ def test_artefact_file_errors_name_file_and_key(tmp_path: Path) -> None:
 def test_acceptance_table_errors(tmp_path: Path, config: RigConfig) -> None:
     raw = {k: v for k, v in config.raw.items() if k != "acceptance"}
     with pytest.raises(ConfigError, match=r"no \[acceptance\] table"):
-        Acceptance.from_rig(raw, config.path, 400.0)
-    table = dict(config.raw["acceptance"], mpe={"PQ_mm": 0.1})
-    with pytest.raises(ConfigError, match=r"acceptance.mpe.PQ_mm.*unknown parameter"):
-        Acceptance.from_rig({**raw, "acceptance": table}, config.path, 400.0)
+        Acceptance.for_rig(RigConfig.from_toml(raw, config.path))
+    table = dict(config.raw["acceptance"], mpe={"PQ_mm": 0.1})  # refused when the rig is loaded
+    with pytest.raises(ConfigError, match=r"acceptance.mpe.PQ_mm.*unknown key"):
+        RigConfig.from_toml({**raw, "acceptance": table}, config.path)
     table = dict(config.raw["acceptance"], mpe={"E_mm": 0.1})  # not the guideline's: named for what it is
     with pytest.raises(ConfigError, match=r"acceptance.mpe.E_mm.*OL_mm"):
-        Acceptance.from_rig({**raw, "acceptance": table}, config.path, 400.0)
+        RigConfig.from_toml({**raw, "acceptance": table}, config.path)
 
 
 def test_positions_keep_the_artefacts_inside_the_measuring_volume(config: RigConfig) -> None:
     """10 sphere places, 7 ball-bar and 6 flat positions, as the module docstring says;
     every artefact's extreme points (sphere surfaces, the flat's corners) inside the box."""
-    acc = Acceptance.from_rig(config.raw, config.path, config.working_distance_mm)
+    acc = Acceptance.for_rig(config)
     art = load_artefacts(DEFAULT_ARTEFACTS)
     plan = positions(acc, art)
     kinds = [p.kind for p in plan]
@@ -97,7 +97,7 @@ def test_positions_keep_the_artefacts_inside_the_measuring_volume(config: RigCon
 def _synthetic(config: RigConfig, skip: set[str], error: float = 0.0) -> AcceptanceReport:
     """A report of every prescribed position with figures well inside the MPEs (plus
     `error` mm on each), the positions named in `skip` not tested."""
-    acc = Acceptance.from_rig(config.raw, config.path, config.working_distance_mm)
+    acc = Acceptance.for_rig(config)
     art = load_artefacts(DEFAULT_ARTEFACTS)
     figures = {"sphere": {"PF": 0.05, "PS": 0.001}, "ball_bar": {"SD": 0.002, "OL": 0.003}, "plane": {"F": 0.05}}
     results = tuple(PositionResult.not_tested(p) if p.name in skip else
@@ -111,7 +111,7 @@ def test_a_test_with_a_position_not_tested_is_incomplete_never_a_pass(config: Ri
     incomplete, their parameters without a verdict, whatever the others read; skipping
     all but 3 (issue 27: that was a PASS) or dropping a position from the results alike."""
     assert _synthetic(config, set()).status == "pass"
-    names = [p.name for p in positions(Acceptance.from_rig(config.raw, config.path, config.working_distance_mm),
+    names = [p.name for p in positions(Acceptance.for_rig(config),
                                        load_artefacts(DEFAULT_ARTEFACTS))]
     report = _synthetic(config, set(names[3:]))
     assert report.status == INCOMPLETE and not report.passed
@@ -188,7 +188,7 @@ def test_ball_bar_on_the_simulator_true_geometry_conforms_perturbed_calibration_
     (inner variant) and SD conforms to its 10 µm MPE; reconstructed with the projector's
     focal length 0.3 % off (a calibration beyond the MPE: about 0.3 % of the bar's depth
     extent), SD is non-conforming."""
-    acc = Acceptance.from_rig(config.raw, config.path, config.working_distance_mm)
+    acc = Acceptance.for_rig(config)
     U = load_artefacts(DEFAULT_ARTEFACTS).ball_bar.length_u_mm
     result = _bar_scan(config, lambda m: m)
     assert result.error == ""
@@ -225,7 +225,7 @@ def test_operator_is_told_where_each_artefact_goes(config: RigConfig) -> None:
     """On a real bench: each position said in words, Enter scans, s skips, q stops."""
     from slscan.commands.verify import OperatorArtefactBench
 
-    acc = Acceptance.from_rig(config.raw, config.path, config.working_distance_mm)
+    acc = Acceptance.for_rig(config)
     plan = positions(acc, load_artefacts(DEFAULT_ARTEFACTS))
     said: list[str] = []
     answers = iter(["", "s", "q"])

@@ -39,15 +39,14 @@ import re
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import serial
 
-from scanner.config import get
 from scanner.drivers.registry import Driver, register
 from scanner.drivers.transport import DropsLostPort, SerialLink, open_serial
 from scanner.errors import ConfigError, DeviceError, DeviceTimeout, StageAlarm
-from scanner.schema import Float, PositiveFloat, Schema, Str
+from scanner.schema import PositiveFloat, Schema, Str
 from scanner.stage import Axis, AxisKind, Stage
 from scanner.stage_model import StageConfig
 from scanner.status import Status
@@ -315,31 +314,30 @@ def identify(port: str, boot_timeout_s: float = 2.5) -> str:
 
 
 def open_grbl_stage(config: StageConfig, opener: Callable[[], SerialLink] | None = None) -> GrblStage:
-    """The GRBL stage of a rig TOML's [stage] table (`scanner.stage_model`): `port`,
-    `boot_timeout_s`, `timeout_s`, and per axis its `letter` (default X, Y, Z in order) and,
-    for a rotary axis, `units_per_turn` (default 360). `opener` replaces the serial port
-    (tests, the emulator)."""
-    p, table = config.path, config.table
+    """The GRBL stage of a rig TOML's [stage] table (`scanner.stage_model`), its keys
+    validated by `GrblSettings` and, per axis, `GrblAxisSettings`. `opener` replaces the
+    serial port (tests, the emulator)."""
+    p, settings = config.path, config.settings
     letters, turns = {}, {}
-    for i, (axis, t) in enumerate(zip(config.axes, config.axis_tables)):
+    for i, (axis, own) in enumerate(zip(config.axes, config.axis_settings)):
         pre = f"stage.axes[{i}]"
-        letters[axis.name] = get(t, "letter", str, p, LETTERS[i] if i < 3 else None, pre)
-        if letters[axis.name] not in LETTERS:
-            raise ConfigError(p, f"{pre}.letter", f"'{letters[axis.name]}' is not a GRBL axis, one of {LETTERS}")
-        turns[axis.name] = get(t, "units_per_turn", float, p, 360.0, pre)
-        if not turns[axis.name] > 0:
-            raise ConfigError(p, f"{pre}.units_per_turn", f"must be > 0, got {turns[axis.name]}")
+        letter = own.letter if own.letter is not None else LETTERS[i] if i < 3 else None
+        if letter is None:
+            raise ConfigError(p, f"{pre}.letter", f"required key is missing (past the third axis); one of {LETTERS}")
+        if axis.kind is AxisKind.LINEAR and "units_per_turn" in own.model_fields_set:
+            raise ConfigError(p, f"{pre}.units_per_turn", "a linear axis has no units_per_turn")
+        letters[axis.name], turns[axis.name] = letter, own.units_per_turn
     if len(set(letters.values())) != len(letters):
         raise ConfigError(p, "stage.axes", f"two axes on one controller letter: {letters}")
-    timeout = get(table, "timeout_s", float, p, 1.0, "stage")
     if opener is None:
-        opener = serial_opener("grbl-stage", get(table, "port", str, p, prefix="stage"), min(timeout, 0.2))
-    return GrblStage(opener, config.axes, letters, turns, "grbl-stage", config.settle_s,
-                     get(table, "boot_timeout_s", float, p, 5.0, "stage"), timeout)
+        opener = serial_opener("grbl-stage", settings.port, min(settings.timeout_s, 0.2))
+    return GrblStage(opener, config.axes, letters, turns, "grbl-stage", config.settle_s, settings.boot_timeout_s,
+                     settings.timeout_s)
 
 
 class GrblSettings(Schema):
-    """The [stage] keys of a GRBL controller (see `open_grbl_stage`), s."""
+    """The [stage] keys of a GRBL controller: its serial port, how long it may take to
+    answer after opening and to answer a command (s)."""
 
     port: Str
     boot_timeout_s: PositiveFloat = 5.0
@@ -347,10 +345,11 @@ class GrblSettings(Schema):
 
 
 class GrblAxisSettings(Schema):
-    """The [[stage.axes]] keys of a GRBL axis (see `open_grbl_stage`)."""
+    """The [[stage.axes]] keys of a GRBL axis: the controller axis driving it (default X,
+    Y, Z in order) and, for a rotary axis, the controller's units per turn (360: degrees)."""
 
-    letter: Str | None = None
-    units_per_turn: Float = 360.0
+    letter: Literal["X", "Y", "Z", "A", "B", "C"] | None = None  # LETTERS
+    units_per_turn: PositiveFloat = 360.0
 
 
 def _open(config: RigConfig, settings: GrblSettings, transports: Mapping[str, Any]) -> GrblStage:

@@ -8,57 +8,43 @@ quantisation and clipping.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from scanner.config import get, get_table
-from scanner.errors import ConfigError
+from scanner import schema
+from scanner.drivers.simulator import SensorTable
+
+if TYPE_CHECKING:
+    from scanner.rig import RigConfig
 
 SUPPORTED_BIT_DEPTHS = (8, 10, 12)
 
 
-@dataclass(frozen=True)
-class SensorModel:
-    """The simulated camera sensor and illumination levels ([camera.sensor] in the rig TOML).
+class SensorModel(SensorTable):
+    """The simulated camera sensor and illumination levels: a [camera.sensor] table of the
+    rig TOML (`scanner.drivers.simulator.SensorTable`: its keys, ranges and defaults) and
+    what it does to an image.
 
     `flux_e_per_s`: electrons per second for an albedo-1 surface under full projector
     white at normal incidence; `ambient`: uniform ambient light as a fraction of that;
     `blur_sigma_px`: camera defocus (Gaussian sigma, camera pixels)."""
 
-    full_well_e: float = 10500.0
-    read_noise_e: float = 6.0
-    flux_e_per_s: float = 900000.0
-    ambient: float = 0.04
-    blur_sigma_px: float = 0.0
-
-    def __post_init__(self) -> None:
-        if not self.full_well_e > 0 or self.read_noise_e < 0 or self.flux_e_per_s < 0:
-            raise ValueError(f"implausible sensor: {self}")
-        if self.ambient < 0 or self.blur_sigma_px < 0:
-            raise ValueError(f"ambient and blur must be >= 0: {self}")
+    @classmethod
+    def of(cls, table: SensorTable | None) -> SensorModel:
+        """The sensor of a validated [camera.sensor] table (None: the defaults)."""
+        return cls() if table is None else cls.model_validate(table.model_dump())
 
     @classmethod
-    def from_table(cls, table: dict[str, Any], path: object, prefix: str = "camera.sensor") -> SensorModel:
-        """From a [camera.sensor] table; errors name the file and key."""
-        known = {"full_well_e", "read_noise_e", "flux_e_per_s", "ambient", "blur_sigma_px"}
-        for k in table:
-            if k not in known:
-                raise ConfigError(path, f"{prefix}.{k}", f"unknown key; expected one of {sorted(known)}")
-        d = cls()
-        vals = {k: get(table, k, float, path, getattr(d, k), prefix) for k in sorted(known)}
-        for k, lo in (("full_well_e", 1e-9), ("read_noise_e", 0.0), ("flux_e_per_s", 0.0), ("ambient", 0.0),
-                      ("blur_sigma_px", 0.0)):
-            if vals[k] < lo:
-                raise ConfigError(path, f"{prefix}.{k}", f"must be {'> 0' if lo else '>= 0'}, got {vals[k]}")
-        return cls(**vals)
+    def from_table(cls, table: Mapping[str, Any], path: object, prefix: str = "camera.sensor") -> SensorModel:
+        """From a [camera.sensor] table as written (a session manifest's); errors name the file and key."""
+        return schema.parse(cls, table, str(path), prefix)
 
     @classmethod
-    def from_config(cls, config: Any) -> SensorModel:
-        """From a `scanner.rig.RigConfig` (its [camera.sensor] table, optional)."""
-        return cls.from_table(get_table(config.camera, "sensor", config.path, required=False, prefix="camera"),
-                              config.path)
+    def from_config(cls, config: RigConfig) -> SensorModel:
+        """From a rig's camera ([camera.sensor], validated at load; optional)."""
+        return cls.of(config.devices["camera"].settings.sensor)
 
     @staticmethod
     def max_dn(bit_depth: int) -> int:

@@ -55,7 +55,7 @@ def cmd_devices(args: argparse.Namespace) -> int:
 
 
 def cmd_lightcrafter_images(args: argparse.Namespace) -> int:
-    from scanner.config import get
+    from scanner.drivers.lightcrafter import LightCrafterSettings
     from scanner.drivers.lightcrafter_images import diamond_resample, export_flash_images, pack_rgb24
     from scanner.drivers.lightcrafter_protocol import HEIGHT, WIDTH
     from scanner.errors import ConfigError
@@ -66,7 +66,10 @@ def cmd_lightcrafter_images(args: argparse.Namespace) -> int:
     if config.nominal_model().projector.size != (WIDTH, HEIGHT):
         raise ConfigError(config.path, "projector.width", f"the LightCrafter 4500 is {WIDTH}x{HEIGHT}")
     patterns = PatternSet.load(args.patterns or config.patterns_path)
-    shift = get(config.projector, "odd_row_shift", float, config.path, 0.5, "projector")
+    settings = config.devices["projector"].settings  # validated at load by the projector's driver
+    if not isinstance(settings, LightCrafterSettings):  # another driver's projector of the LightCrafter's size
+        settings = LightCrafterSettings()
+    shift = settings.odd_row_shift
     stack = diamond_resample(patterns.render(WIDTH, HEIGHT, config.nominal_model().projector_gamma), shift)
     images = pack_rgb24(stack)
     manifest = export_flash_images(images, args.out)

@@ -99,7 +99,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     from slscan.measurement_model import rig_measurement
 
     config = RigConfig.load(args.rig)
-    acceptance = Acceptance.from_rig(config.raw, config.path, config.working_distance_mm)
+    acceptance = Acceptance.for_rig(config)
     artefacts = load_artefacts(args.artefacts or acceptance.artefacts or DEFAULT_ARTEFACTS)
     plan = positions(acceptance, artefacts)
     model = _model(config, args.calibration)

@@ -93,7 +93,7 @@ def cmd_coverage(args: argparse.Namespace) -> int:
         raise ScannerError(f"{config.path}: coverage is measured on a simulated rig (driver sim), not {config.driver}")
     model = config.nominal_model()
     measurement = rig_measurement(config.raw, model, PatternSet.load(config.patterns_path),
-                                  int(config.camera.get("bit_depth", 12)), config.path)
+                                  config.camera.bit_depth or 12, config.path)
     bench = rs.Bench.of(config, measurement)
     rigs: tuple[Any, ...] = ()
     if args.calibrated:
