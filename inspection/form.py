@@ -511,7 +511,8 @@ class GaussianFilter:
         draws, whose figures' spread is all that is used of them."""
         if (flat := _large_stack(z)) is not None:
             done = [self.with_mean(flat[c], single) for c in _row_chunks(len(flat))]
-            return tuple(np.concatenate(each).reshape(z.shape) for each in zip(*done))  # type: ignore[return-value]
+            regression, mean = (np.concatenate(each).reshape(z.shape) for each in zip(*done))
+            return regression, mean
         spec = self._spectrum(z, single)
         row = self._row32 if single else self._row
         terms = self._c.apply(spec, [(b, a) for a, b in _MONOMIALS])

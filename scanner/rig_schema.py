@@ -243,7 +243,11 @@ class RigFile(Schema):
     @property
     def first_camera(self) -> CameraTable:
         """The rig's camera ([camera], or the first of [[cameras]]): the frame of its geometry."""
-        return self.camera if self.camera is not None else self.cameras[0]  # type: ignore[index]
+        if self.camera is not None:
+            return self.camera
+        if not self.cameras:
+            raise ValueError("a rig file has a [camera] table or a [[cameras]] list")  # the validator refuses it first
+        return self.cameras[0]
 
 
 @dataclass(frozen=True, eq=False)

@@ -168,7 +168,7 @@ def load_part_file(path: Path) -> PartSpec:
     if table.approach is not None:
         a = np.asarray(table.approach, dtype=np.float64)
         approach = tuple(float(x) for x in a / np.linalg.norm(a))
-    return PartSpec(part, table.name or path.stem, tuple(grip) if grip else None, approach)  # type: ignore[arg-type]
+    return PartSpec(part, table.name or path.stem, tuple(grip) if grip else None, approach)  # type: ignore[arg-type]  # 2-/3-tuples by the schema
 
 
 def outline_loops(part: TabPart) -> list[np.ndarray]:
@@ -216,4 +216,4 @@ def distance_to_loops(points: np.ndarray, loops: list[np.ndarray]) -> np.ndarray
 
 def tab_part(params: dict[str, object]) -> TabPart:
     """A TabPart from its parameters as a file holds them (lists for the tuples)."""
-    return TabPart(**{k: tuple(v) if isinstance(v, list) else v for k, v in params.items()})  # type: ignore[arg-type]
+    return TabPart(**{k: tuple(v) if isinstance(v, list) else v for k, v in params.items()})  # type: ignore[arg-type]  # the file's schema types

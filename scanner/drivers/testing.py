@@ -46,7 +46,7 @@ def grab_in_thread(camera: Camera, timeout_s: float) -> tuple[threading.Thread, 
         entered.set()
         return inner(timeout_s)
 
-    camera._do_grab = grab_signalling  # type: ignore[method-assign]
+    camera._do_grab = grab_signalling  # type: ignore[method-assign]  # the fake wraps this one camera's grab
     outcome: list[object] = []
 
     def grab() -> None:
