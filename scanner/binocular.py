@@ -362,6 +362,55 @@ class _Counts:
         return np.searchsorted(self.lo, q, side="right") - np.searchsorted(self.hi, q, side="right")
 
 
+@dataclass(frozen=True, eq=False)
+class _Search:
+    """Each left pixel's search of the right camera's rectified rows (N,): whether its rows lie in
+    the right grid (`inside`), no interval of one of them holds its coordinate (`none`), exactly one
+    of each does and its own row holds it once (`unique`), and both intervals pass the gradient gate
+    (`steep`); the match's grid position (`x`, `y`, px), the right coordinate's change per px there
+    (`step`, absolute) and its noise (`sigma`, projector px). Only these outlive the search: its
+    rows and per-row results are freed before the triangulation."""
+
+    inside: np.ndarray
+    none: np.ndarray
+    unique: np.ndarray
+    steep: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    step: np.ndarray
+    sigma: np.ndarray
+
+    @classmethod
+    def of(cls, rect: Rectification, left: CameraPhase, right: CameraPhase, o: str, c: np.ndarray,
+           yl: np.ndarray) -> _Search:
+        """The search for left coordinates `c` (N,) of orientation `o` at rectified rows `yl` (N,)."""
+        z_gate = float(norm.isf(GRADIENT_FALSE_ACCEPT / 2))
+        grid_r = rect.right
+        gy = yl - grid_r.y0
+        j = np.floor(gy)
+        t = (gy - j).astype(np.float32)
+        inside = (j >= 0) & (j + 1 < grid_r.shape[0])
+        j = np.clip(j, 0, grid_r.shape[0] - 2).astype(np.intp)
+        # the left's own (nearest) row must hold the coordinate once: twice means a second surface on the
+        # same epipolar plane, which the right may see in this pixel's place (occlusion)
+        jl = np.clip(np.rint(yl - rect.left.y0), 0, rect.left.shape[0] - 1)
+        # numpy's sorts and searches release the GIL: the right rows are built while the left ones count
+        with ThreadPoolExecutor(3, thread_name_prefix="binocular match") as pool:
+            building = pool.submit(lambda: _Rows.of(grid_r.resample(right.coordinate[o]),
+                                                    grid_r.resample(right.sigma[o]), z_gate))
+            left_rows = _Counts.of(rect.left.resample(left.coordinate[o]))  # counted only: no gate, no noise
+            left_count = pool.submit(left_rows.count, c, jl)
+            right_rows = building.result()
+            rows_found = [pool.submit(right_rows.find, c, rows) for rows in (j, j + 1)]
+            (n0, k0, x0, step0, s0), (n1, k1, x1, step1, s1) = (f.result() for f in rows_found)
+            once = left_count.result() <= 1
+        unique = inside & (n0 == 1) & (n1 == 1) & (k0 >= 0) & (k1 >= 0) & once
+        steep = unique & right_rows.gate[np.maximum(k0, 0)] & right_rows.gate[np.maximum(k1, 0)]
+        return cls(inside, inside & ((n0 == 0) | (n1 == 0)), unique, steep,
+                   (1 - t) * x0 + t * x1,  # on the rectified row through the left pixel
+                   gy, np.abs((1 - t) * step0 + t * step1), (1 - t) * s0 + t * s1)
+
+
 _REASONS = ("outside_right_view", "no_match", "not_unique", "low_gradient", "behind", "inconsistent")
 
 
@@ -399,51 +448,27 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     (see the module docstring)."""
     _check_shapes(rect, left, right)
     o = orientation or (next(iter(left.coordinate)) if len(left.coordinate) == 1 else choose_orientation(rect, left))
-    z_gate = float(norm.isf(GRADIENT_FALSE_ACCEPT / 2))
     grid_r = rect.right
     shape = left.coordinate[o].shape
     pix = np.flatnonzero(np.isfinite(left.coordinate[o]))
     c = left.coordinate[o].ravel()[pix]
     xl = rect.left_xy[..., 0].ravel()[pix]
-    yl = rect.left_xy[..., 1].ravel()[pix]
-
-    gy = yl - grid_r.y0
-    j = np.floor(gy)
-    t = (gy - j).astype(np.float32)
-    inside = (j >= 0) & (j + 1 < grid_r.shape[0])
-    j = np.clip(j, 0, grid_r.shape[0] - 2).astype(np.intp)
-    # the left's own (nearest) row must hold the coordinate once: twice means a second surface on the same
-    # epipolar plane, which the right may see in this pixel's place (occlusion)
-    jl = np.clip(np.rint(yl - rect.left.y0), 0, rect.left.shape[0] - 1)
-    # numpy's sorts and searches release the GIL: the right rows are built while the left ones count
-    with ThreadPoolExecutor(3, thread_name_prefix="binocular match") as pool:
-        building = pool.submit(lambda: _Rows.of(grid_r.resample(right.coordinate[o]), grid_r.resample(right.sigma[o]),
-                                                z_gate))
-        left_rows = _Counts.of(rect.left.resample(left.coordinate[o]))  # counted only: no gate, no noise needed
-        left_count = pool.submit(left_rows.count, c, jl)
-        right_rows = building.result()
-        rows_found = [pool.submit(right_rows.find, c, rows) for rows in (j, j + 1)]
-        (n0, k0, x0, step0, s0), (n1, k1, x1, step1, s1) = (f.result() for f in rows_found)
-        once = left_count.result() <= 1
-    unique = inside & (n0 == 1) & (n1 == 1) & (k0 >= 0) & (k1 >= 0) & once
-    steep = unique & right_rows.gate[np.maximum(k0, 0)] & right_rows.gate[np.maximum(k1, 0)]
-    xg = (1 - t) * x0 + t * x1  # grid x of the match, on the rectified row through the left pixel
-    yg = gy.astype(np.float32)
-    xr = xg + grid_r.x0
-    d = xl - xr
+    found = _Search.of(rect, left, right, o, c, rect.left_xy[..., 1].ravel()[pix])
+    inside, none, unique, steep, xg = found.inside, found.none, found.unique, found.steep, found.x
+    yg = found.y.astype(np.float32)
+    d = xl - (xg + grid_r.x0)
     Z = -rect.f * rect.tx_mm / np.where(d != 0, d, np.nan)
     ahead = steep & (Z > 0)
 
     # the match's noise: both cameras' coordinate noise over the right coordinate's change per px
-    s_r = (1 - t) * s0 + t * s1
-    g = np.abs((1 - t) * step0 + t * step1)
-    sigma_d = np.sqrt(left.sigma[o].ravel()[pix].astype(np.float64) ** 2 + s_r.astype(np.float64) ** 2) / g
+    s_r = found.sigma
+    sigma_d = np.sqrt(left.sigma[o].ravel()[pix].astype(np.float64) ** 2 + s_r.astype(np.float64) ** 2) / found.step
     sigma_Z = Z ** 2 / (rect.f * abs(rect.tx_mm)) * sigma_d
+    del found, xl, d, sigma_d  # not needed past here: freed before the consistency check, the peak of memory
 
     # each left pixel's first reason for no point as the number of stages it passed (each stage's pixels
     # are among the previous one's): 0 outside the right view, 1 no match, 2 not unique, 3 low gradient,
     # 4 behind, 5 inconsistent, 6 consistent
-    none = inside & ((n0 == 0) | (n1 == 0))
     stage = inside.view(np.uint8) + (inside & ~none) + unique + steep + ahead
     passed = np.bincount(stage, minlength=6)
     checks: dict[str, float] = {"pixels_with_coordinate": float(pix.size)} | {
