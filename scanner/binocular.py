@@ -478,11 +478,12 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     if others:
         consistent, figures = _second_orientation(rect, left, right, others[0], pix, xg, yg, ahead)
     else:
-        rays = rect.model.left.ray_grid.reshape(-1, 3)[pix[ahead]].astype(np.float64)
+        X = rect.model.left.ray_grid.reshape(-1, 3)[pix[ahead]].astype(np.float64)
+        X *= (Z[ahead] / w[ahead])[:, None]  # the points on their rays (mm), in place: one (N, 3) array
         consistent = ahead.copy()
         consistent[ahead], figures = projector_consistency(
-            rays * (Z[ahead] / w[ahead])[:, None], c[ahead].astype(np.float64),
-            np.hypot(left.sigma[o].ravel()[pix[ahead]], s_r[ahead]).astype(np.float64))
+            X, c[ahead].astype(np.float64), np.hypot(left.sigma[o].ravel()[pix[ahead]], s_r[ahead]).astype(np.float64))
+        del X
     checks |= figures
     keep = consistent & np.isfinite(sigma_Z)
     checks["points"] = float(keep.sum())
