@@ -38,9 +38,10 @@ The cloud is organised on the left camera's pixels, in the left camera's frame (
 
 from __future__ import annotations
 
+import json
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import cv2
@@ -593,3 +594,25 @@ class BinocularReconstructor:
     def reconstruct(self, left: DecodeResult, right: DecodeResult, orientation: str | None = None) -> BinocularResult:
         """The binocular cloud of two cameras' decodes of one scan."""
         return match(self.rectification, CameraPhase.of(left), CameraPhase.of(right), orientation)
+
+
+RECONSTRUCTORS_KEPT = 2  # stereo models whose rectification a process keeps (~130 MB each at 2 x 1.3 MP)
+
+
+def reconstructor_for(model: StereoModel) -> BinocularReconstructor:
+    """The reconstructor of `model`, kept (by the model's content) for the last RECONSTRUCTORS_KEPT
+    models: a process scanning again with one rig rectifies it once (~1 s at 2 x 1.3 MP), not per scan."""
+    return _kept(_ByContent(json.dumps(model.to_dict(), sort_keys=True), model))
+
+
+@dataclass(frozen=True)
+class _ByContent:
+    """A stereo model compared and hashed by its content (`StereoModel` compares by identity)."""
+
+    key: str
+    model: StereoModel = field(compare=False, hash=False)
+
+
+@lru_cache(maxsize=RECONSTRUCTORS_KEPT)
+def _kept(model: _ByContent) -> BinocularReconstructor:
+    return BinocularReconstructor(model.model)
