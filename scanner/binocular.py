@@ -262,8 +262,8 @@ class BinocularResult:
 def _intervals(c: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The intervals between horizontal neighbours of `c` (Hg, Wg) that hold a change of
     coordinate: (base, span, their flat indices into (Hg, Wg − 1), lower and upper ends as
-    keys row·span + (c − base), float64, and the flat grid index of each one's left sample
-    with its left and right samples' coordinates, float32)."""
+    keys row·span + (c − base), float64, the flat grid index of each one's left sample, and its
+    step: the right sample's coordinate minus the left's, float32)."""
     finite = c[np.isfinite(c)]
     base = float(finite.min()) - 1.0 if finite.size else 0.0
     span = float(finite.max() - base) + 2.0 if finite.size else 1.0
