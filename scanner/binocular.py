@@ -38,9 +38,10 @@ The cloud is organised on the left camera's pixels, in the left camera's frame (
 
 from __future__ import annotations
 
+import json
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import cv2
@@ -258,19 +259,23 @@ class BinocularResult:
         return idx, self.model.right.project(pts)
 
 
-def _intervals(c: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
+def _intervals(c: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The intervals between horizontal neighbours of `c` (Hg, Wg) that hold a change of
     coordinate: (base, span, their flat indices into (Hg, Wg − 1), lower and upper ends as
-    keys row·span + (c − base), float64)."""
+    keys row·span + (c − base), float64, the flat grid index of each one's left sample, and its
+    step: the right sample's coordinate minus the left's, float32)."""
     finite = c[np.isfinite(c)]
     base = float(finite.min()) - 1.0 if finite.size else 0.0
     span = float(finite.max() - base) + 2.0 if finite.size else 1.0
-    a, b = c[:, :-1], c[:, 1:]
-    step = b - a
+    step = c[:, 1:] - c[:, :-1]
     idx = np.flatnonzero(np.isfinite(step) & (step != 0))
-    rows = (idx // a.shape[1]).astype(np.float64) * span - base
-    av, bv = a.ravel()[idx], b.ravel()[idx]
-    return base, span, idx, np.minimum(av, bv) + rows, np.maximum(av, bv) + rows
+    del step
+    row = idx // (c.shape[1] - 1)
+    p = idx + row  # interval k joins grid samples p(k) and p(k) + 1
+    flat = c.ravel()
+    av, bv = flat[p], flat[p + 1]
+    keys = row.astype(np.float64) * span - base
+    return base, span, idx, np.minimum(av, bv) + keys, np.maximum(av, bv) + keys, p, bv - av
 
 
 @dataclass(frozen=True, eq=False)
@@ -292,11 +297,11 @@ class _Rows:
 
     @classmethod
     def of(cls, c: np.ndarray, sigma: np.ndarray, z: float) -> _Rows:
-        base, span, idx, lo, hi = _intervals(c)
-        a, b = c[:, :-1], c[:, 1:]
-        gate = np.zeros(a.size, bool)
-        sa, sb = sigma[:, :-1].ravel()[idx], sigma[:, 1:].ravel()[idx]
-        gate[idx] = np.abs(b.ravel()[idx] - a.ravel()[idx]) >= np.float32(z) * np.sqrt(sa * sa + sb * sb)
+        base, span, idx, lo, hi, p, step = _intervals(c)
+        gate = np.zeros(c.shape[0] * (c.shape[1] - 1), bool)
+        flat = sigma.ravel()
+        sa, sb = flat[p], flat[p + 1]
+        gate[idx] = np.abs(step) >= np.float32(z) * np.sqrt(sa * sa + sb * sb)
         order_lo, order_hi = np.argsort(lo, kind="stable"), np.argsort(hi, kind="stable")
         return cls(c, sigma, lo[order_lo], idx[order_lo], hi[order_hi], idx[order_hi], gate, base, span)
 
@@ -311,31 +316,30 @@ class _Rows:
         index of the one holding it when that is unique (else -1); the match's sub-pixel grid
         x; the interval's step (projector px per px) and the noise interpolated at the match."""
         count, n_lo, n_hi = self._counts(c, rows)
-        unique = count == 1
-        flat, width = self.c.ravel(), self.c.shape[1]  # interval k joins grid samples p(k) and p(k) + 1
-
-        def ends(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            p = k + k // (width - 1)
-            return flat[p], flat[p + 1]
-
-        def holds(k: np.ndarray) -> np.ndarray:
-            a, b = ends(np.maximum(k, 0))
-            return (k >= 0) & (np.minimum(a, b) <= c) & (c < np.maximum(a, b))
-
         if not self.lo.size:
             none = np.full(c.shape, -1)
             return count, none, np.full(c.shape, np.nan), np.full(c.shape, np.nan), np.full(c.shape, np.nan)
+        unique = count == 1
+        flat, width = self.c.ravel(), self.c.shape[1]  # interval k joins grid samples p(k) and p(k) + 1
         # the holding interval is the last one starting at or below c, unless a wider one
-        # encloses that one: then it is the first one ending above c
-        first = np.where(unique, self.lo_index[np.maximum(n_lo - 1, 0)], -1)
-        second = np.where(unique, self.hi_index[np.minimum(n_hi, len(self.hi_index) - 1)], -1)
-        k = np.where(holds(first), first, np.where(holds(second), second, -1))
-        kk = np.maximum(k, 0)
-        a, b = ends(kk)
+        # encloses that one: then it is the first one ending above c (looked up only there)
+        k = np.where(unique, self.lo_index[np.maximum(n_lo - 1, 0)], -1)
+        p = np.maximum(k, 0)
+        p += p // (width - 1)
+        a, b = flat[p], flat[p + 1]
+        held = (k >= 0) & (np.minimum(a, b) <= c) & (c < np.maximum(a, b))
+        other = np.flatnonzero(unique & ~held)
+        if other.size:
+            k2 = self.hi_index[np.minimum(n_hi[other], len(self.hi_index) - 1)]
+            p2 = k2 + k2 // (width - 1)
+            a2, b2, c2 = flat[p2], flat[p2 + 1], c[other]
+            held2 = (np.minimum(a2, b2) <= c2) & (c2 < np.maximum(a2, b2))
+            k[other] = np.where(held2, k2, -1)
+            p[other] = np.where(held2, p2, 0)
+            a[other], b[other] = flat[p[other]], flat[p[other] + 1]
         u = (c - a) / (b - a)
-        p = kk + kk // (width - 1)
         sigma = self.sigma.ravel()
-        return count, k, (kk % (width - 1)) + u, b - a, (1 - u) * sigma[p] + u * sigma[p + 1]
+        return count, k, (np.maximum(k, 0) % (width - 1)) + u, b - a, (1 - u) * sigma[p] + u * sigma[p + 1]
 
 
 @dataclass(frozen=True, eq=False)
@@ -350,13 +354,65 @@ class _Counts:
 
     @classmethod
     def of(cls, c: np.ndarray) -> _Counts:
-        base, span, _, lo, hi = _intervals(c)
+        base, span, _, lo, hi, _, _ = _intervals(c)
         return cls(np.sort(lo, kind="stable"), np.sort(hi, kind="stable"), base, span)  # nearly sorted rows
 
     def count(self, c: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """How many intervals of row `rows` (N,) hold each coordinate `c` (N,) (lo ≤ c < hi)."""
         q = c.astype(np.float64) + rows.astype(np.float64) * self.span - self.base
         return np.searchsorted(self.lo, q, side="right") - np.searchsorted(self.hi, q, side="right")
+
+
+@dataclass(frozen=True, eq=False)
+class _Search:
+    """Each left pixel's search of the right camera's rectified rows (N,): whether its rows lie in
+    the right grid (`inside`), no interval of one of them holds its coordinate (`none`), exactly one
+    of each does and its own row holds it once (`unique`), and both intervals pass the gradient gate
+    (`steep`); the match's grid position (`x`, `y`, px), the right coordinate's change per px there
+    (`step`, absolute) and its noise (`sigma`, projector px). Only these outlive the search: its
+    rows and per-row results are freed before the triangulation."""
+
+    inside: np.ndarray
+    none: np.ndarray
+    unique: np.ndarray
+    steep: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    step: np.ndarray
+    sigma: np.ndarray
+
+    @classmethod
+    def of(cls, rect: Rectification, left: CameraPhase, right: CameraPhase, o: str, c: np.ndarray,
+           yl: np.ndarray) -> _Search:
+        """The search for left coordinates `c` (N,) of orientation `o` at rectified rows `yl` (N,)."""
+        z_gate = float(norm.isf(GRADIENT_FALSE_ACCEPT / 2))
+        grid_r = rect.right
+        gy = yl - grid_r.y0
+        j = np.floor(gy)
+        t = (gy - j).astype(np.float32)
+        inside = (j >= 0) & (j + 1 < grid_r.shape[0])
+        j = np.clip(j, 0, grid_r.shape[0] - 2).astype(np.intp)
+        # the left's own (nearest) row must hold the coordinate once: twice means a second surface on the
+        # same epipolar plane, which the right may see in this pixel's place (occlusion)
+        jl = np.clip(np.rint(yl - rect.left.y0), 0, rect.left.shape[0] - 1)
+        # numpy's sorts and searches release the GIL: the right rows are built while the left ones count
+        with ThreadPoolExecutor(3, thread_name_prefix="binocular match") as pool:
+            building = pool.submit(lambda: _Rows.of(grid_r.resample(right.coordinate[o]),
+                                                    grid_r.resample(right.sigma[o]), z_gate))
+            left_rows = _Counts.of(rect.left.resample(left.coordinate[o]))  # counted only: no gate, no noise
+            left_count = pool.submit(left_rows.count, c, jl)
+            right_rows = building.result()
+            rows_found = [pool.submit(right_rows.find, c, rows) for rows in (j, j + 1)]
+            (n0, k0, x0, step0, s0), (n1, k1, x1, step1, s1) = (f.result() for f in rows_found)
+            once = left_count.result() <= 1
+        unique = inside & (n0 == 1) & (n1 == 1) & (k0 >= 0) & (k1 >= 0) & once
+        steep = unique & right_rows.gate[np.maximum(k0, 0)] & right_rows.gate[np.maximum(k1, 0)]
+        return cls(inside, inside & ((n0 == 0) | (n1 == 0)), unique, steep,
+                   (1 - t) * x0 + t * x1,  # on the rectified row through the left pixel
+                   gy, np.abs((1 - t) * step0 + t * step1), (1 - t) * s0 + t * s1)
+
+
+_REASONS = ("outside_right_view", "no_match", "not_unique", "low_gradient", "behind", "inconsistent")
 
 
 def choose_orientation(rect: Rectification, left: CameraPhase) -> str:
@@ -392,76 +448,54 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     """Match every left pixel to the right camera along its epipolar line and triangulate
     (see the module docstring)."""
     _check_shapes(rect, left, right)
-    o = orientation or choose_orientation(rect, left)
-    z_gate = float(norm.isf(GRADIENT_FALSE_ACCEPT / 2))
+    o = orientation or (next(iter(left.coordinate)) if len(left.coordinate) == 1 else choose_orientation(rect, left))
     grid_r = rect.right
-    right_rows = _Rows.of(grid_r.resample(right.coordinate[o]), grid_r.resample(right.sigma[o]), z_gate)
-    left_rows = _Counts.of(rect.left.resample(left.coordinate[o]))  # counted only: no gate, no noise needed
     shape = left.coordinate[o].shape
     pix = np.flatnonzero(np.isfinite(left.coordinate[o]))
     c = left.coordinate[o].ravel()[pix]
     xl = rect.left_xy[..., 0].ravel()[pix]
-    yl = rect.left_xy[..., 1].ravel()[pix]
-
-    gy = yl - grid_r.y0
-    j = np.floor(gy)
-    t = (gy - j).astype(np.float32)
-    inside = (j >= 0) & (j + 1 < grid_r.shape[0])
-    j = np.clip(j, 0, grid_r.shape[0] - 2).astype(np.intp)
-    # the left's own (nearest) row must hold the coordinate once: twice means a second surface on the same
-    # epipolar plane, which the right may see in this pixel's place (occlusion)
-    jl = np.clip(np.rint(yl - rect.left.y0), 0, rect.left.shape[0] - 1)
-    with ThreadPoolExecutor(3, thread_name_prefix="binocular match") as pool:  # searchsorted releases the GIL
-        rows_found = [pool.submit(right_rows.find, c, rows) for rows in (j, j + 1)]
-        left_count = pool.submit(left_rows.count, c, jl)
-        (n0, k0, x0, step0, s0), (n1, k1, x1, step1, s1) = (f.result() for f in rows_found)
-        once = left_count.result() <= 1
-    unique = inside & (n0 == 1) & (n1 == 1) & (k0 >= 0) & (k1 >= 0) & once
-    steep = unique & right_rows.gate[np.maximum(k0, 0)] & right_rows.gate[np.maximum(k1, 0)]
-    xg = (1 - t) * x0 + t * x1  # grid x of the match, on the rectified row through the left pixel
-    yg = gy.astype(np.float32)
-    xr = xg + grid_r.x0
-    d = xl - xr
+    found = _Search.of(rect, left, right, o, c, rect.left_xy[..., 1].ravel()[pix])
+    inside, none, unique, steep, xg = found.inside, found.none, found.unique, found.steep, found.x
+    yg = found.y.astype(np.float32)
+    d = xl - (xg + grid_r.x0)
     Z = -rect.f * rect.tx_mm / np.where(d != 0, d, np.nan)
     ahead = steep & (Z > 0)
 
     # the match's noise: both cameras' coordinate noise over the right coordinate's change per px
-    s_r = (1 - t) * s0 + t * s1
-    g = np.abs((1 - t) * step0 + t * step1)
-    sigma_d = np.sqrt(left.sigma[o].ravel()[pix].astype(np.float64) ** 2 + s_r.astype(np.float64) ** 2) / g
+    s_r = found.sigma
+    sigma_d = np.sqrt(left.sigma[o].ravel()[pix].astype(np.float64) ** 2 + s_r.astype(np.float64) ** 2) / found.step
     sigma_Z = Z ** 2 / (rect.f * abs(rect.tx_mm)) * sigma_d
+    del found, xl, d, sigma_d  # not needed past here: freed before the consistency check, the peak of memory
 
-    none = inside & ((n0 == 0) | (n1 == 0))
-    checks: dict[str, float] = {"pixels_with_coordinate": float(pix.size), "outside_right_view": float((~inside).sum()),
-                                "no_match": float(none.sum()), "not_unique": float((inside & ~unique & ~none).sum()),
-                                "low_gradient": float((unique & ~steep).sum()), "behind": float((steep & ~ahead).sum())}
+    # each left pixel's first reason for no point as the number of stages it passed (each stage's pixels
+    # are among the previous one's): 0 outside the right view, 1 no match, 2 not unique, 3 low gradient,
+    # 4 behind, 5 inconsistent, 6 consistent
+    stage = inside.view(np.uint8) + (inside & ~none) + unique + steep + ahead
+    passed = np.bincount(stage, minlength=6)
+    checks: dict[str, float] = {"pixels_with_coordinate": float(pix.size)} | {
+        name: float(passed[k]) for k, name in enumerate(_REASONS[:5])}
+    w = rect.left_w.ravel()[pix]
     others = [p for p in left.coordinate if p != o]
     if others:
         consistent, figures = _second_orientation(rect, left, right, others[0], pix, xg, yg, ahead)
     else:
-        rays = rect.model.left.ray_grid.reshape(-1, 3)[pix[ahead]].astype(np.float64)
+        X = rect.model.left.ray_grid.reshape(-1, 3)[pix[ahead]].astype(np.float64)
+        X *= (Z[ahead] / w[ahead])[:, None]  # the points on their rays (mm), in place: one (N, 3) array
         consistent = ahead.copy()
         consistent[ahead], figures = projector_consistency(
-            rays * (Z[ahead] / rect.left_w.ravel()[pix[ahead]])[:, None], c[ahead].astype(np.float64),
-            np.hypot(left.sigma[o].ravel()[pix[ahead]], s_r[ahead]).astype(np.float64))
+            X, c[ahead].astype(np.float64), np.hypot(left.sigma[o].ravel()[pix[ahead]], s_r[ahead]).astype(np.float64))
+        del X
     checks |= figures
     keep = consistent & np.isfinite(sigma_Z)
     checks["points"] = float(keep.sum())
 
     n = shape[0] * shape[1]
     z_left, sig = np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32)
-    w = rect.left_w.ravel()[pix]
-    z_left[pix[keep]] = (Z / w)[keep]
-    sig[pix[keep]] = (sigma_Z / w)[keep]
-
-    def mask(sel: np.ndarray) -> np.ndarray:
-        m = np.zeros(n, bool)
-        m[pix[sel]] = True
-        return m.reshape(shape)
-
-    masks = {"outside_right_view": mask(~inside), "no_match": mask(none), "not_unique": mask(inside & ~unique & ~none),
-             "low_gradient": mask(unique & ~steep), "behind": mask(steep & ~ahead),
-             "inconsistent": mask(ahead & ~consistent)}
+    z_left[pix[keep]] = Z[keep] / w[keep]
+    sig[pix[keep]] = sigma_Z[keep] / w[keep]
+    reason = np.full(n, len(_REASONS) + 1, np.uint8)  # pixels without a coordinate: no reason
+    reason[pix] = stage + consistent
+    masks = {name: (reason == k).reshape(shape) for k, name in enumerate(_REASONS)}
     rays = rect.model.left.ray_grid
     cloud = cloud_from_depth(z_left.reshape(shape), np.ascontiguousarray(rays[..., 0]),
                              np.ascontiguousarray(rays[..., 1]), to_texture8(left.texture, left.bit_depth))
@@ -560,3 +594,25 @@ class BinocularReconstructor:
     def reconstruct(self, left: DecodeResult, right: DecodeResult, orientation: str | None = None) -> BinocularResult:
         """The binocular cloud of two cameras' decodes of one scan."""
         return match(self.rectification, CameraPhase.of(left), CameraPhase.of(right), orientation)
+
+
+RECONSTRUCTORS_KEPT = 2  # stereo models whose rectification a process keeps (~130 MB each at 2 x 1.3 MP)
+
+
+def reconstructor_for(model: StereoModel) -> BinocularReconstructor:
+    """The reconstructor of `model`, kept (by the model's content) for the last RECONSTRUCTORS_KEPT
+    models: a process scanning again with one rig rectifies it once (~1 s at 2 x 1.3 MP), not per scan."""
+    return _kept(_ByContent(json.dumps(model.to_dict(), sort_keys=True), model))
+
+
+@dataclass(frozen=True)
+class _ByContent:
+    """A stereo model compared and hashed by its content (`StereoModel` compares by identity)."""
+
+    key: str
+    model: StereoModel = field(compare=False, hash=False)
+
+
+@lru_cache(maxsize=RECONSTRUCTORS_KEPT)
+def _kept(model: _ByContent) -> BinocularReconstructor:
+    return BinocularReconstructor(model.model)

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from scanner.acquisition import AcquisitionSettings, acquire_all
-from scanner.binocular import BinocularReconstructor, BinocularResult
+from scanner.binocular import BinocularResult, reconstructor_for
 from scanner.binocular_session import camera_model, camera_session, record, stereo_model
 from scanner.decode import DEFAULT_DECODE_SETTINGS, DecodeResult, DecodeSettings
 from scanner.devices import Frame
@@ -134,7 +134,7 @@ def process_binocular(session: Session, progress: Progress = _quiet,
     progress("match", 0, 1)
     t0 = time.perf_counter()
     model = stereo_model(session)
-    result = BinocularReconstructor(model).reconstruct(decoded[names[0]], decoded[names[1]])
+    result = reconstructor_for(model).reconstruct(decoded[names[0]], decoded[names[1]])
     timings["match"] = round(time.perf_counter() - t0, 4)
     if not result.cloud.valid.any():
         raise DecodeError(f"{session.root}: no left pixel found a unique match in camera '{names[1]}': "

@@ -19,6 +19,7 @@ from scanner.binocular import (
     _Rows,
     bilinear,
     match,
+    reconstructor_for,
 )
 from scanner.errors import DecodeError
 
@@ -173,6 +174,24 @@ def test_the_gradient_gate_passes_flat_steps_at_its_stated_rate() -> None:
     lo, hi = binom.ppf([0.0005, 0.9995], n, GRADIENT_FALSE_ACCEPT)
     print(f"{rows.gate.sum()} of {n} pass (expected {n * GRADIENT_FALSE_ACCEPT:.0f})")
     assert lo <= rows.gate.sum() <= hi
+
+
+def test_an_interval_enclosing_a_later_one_is_found() -> None:
+    """The one interval holding a coordinate is found when a later, narrower interval of the row
+    starts below the coordinate without holding it (the lookup by upper ends)."""
+    nan = np.nan
+    c = np.array([[0.0, 10.0, nan, 2.0, 3.0], [0.0, 1.0, 2.0, 3.0, 4.0]], np.float32)
+    rows = _Rows.of(c, np.full(c.shape, 0.01, np.float32), 3.0)
+    count, k, x, step, sigma = rows.find(np.array([5.0, 2.5], np.float32), np.array([0, 1]))
+    assert count.tolist() == [1, 1] and k.tolist() == [0, 6]  # intervals: 4 per row, flat
+    assert np.allclose(x, [0.5, 2.5]) and np.allclose(step, [10.0, 1.0]) and np.allclose(sigma, 0.01)
+
+
+def test_reconstructors_are_kept_by_the_models_content(scene: tuple) -> None:
+    r = scene[0]
+    first = reconstructor_for(StereoModel(r.left, r.right, r.right_from_left))
+    assert reconstructor_for(StereoModel(r.left, r.right, r.right_from_left.copy())) is first
+    assert reconstructor_for(StereoModel(r.left, r.right, r.right_from_left, epipolar_sigma_px=0.1)) is not first
 
 
 def test_mismatched_inputs_are_refused(scene: tuple) -> None:

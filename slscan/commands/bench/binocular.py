@@ -13,7 +13,9 @@ each run on fresh random scenes (`sim.stereo_truth.random_scene`; the seeds are 
     timing     decode + matching + triangulation of the 2 x 1.3 MP frames (both cameras decoded
                at once, as `slscan` does) beside one monocular decode + triangulation of the left
                frames, medians of --repeats, with the peak traced memory of each and the load
-               average before and after
+               average before and after; and each one's processor time (every thread's, medians):
+               on a loaded machine the wall times say how the load was shared, the processor
+               times what each path costs
     memory     each stage's peak resident memory (render scene, capture, decode, binocular, monocular:
                the process's high-water mark reset at the stage's start, so what earlier stages still
                hold is in it) and the resident set after each scene, its rig and arrays released
@@ -159,24 +161,27 @@ def _timing(config: Any, stacks: dict[str, np.ndarray], repeats: int) -> dict[st
             d = list(pool.map(lambda s: decode(s, patterns, bits, size), (stacks["left"], stacks["right"])))
         bino.reconstruct(d[0], d[1])
 
-    def measure(fn: Any) -> tuple[float, float]:
+    def measure(fn: Any) -> tuple[float, float, float]:
         tracemalloc.start()
         fn()
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
-        times = []
+        times, cpu = [], []
         for _ in range(repeats):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             fn()
             times.append(time.perf_counter() - t0)
-        return statistics.median(times), peak / 2 ** 20
+            cpu.append(time.process_time() - c0)
+        return statistics.median(times), peak / 2 ** 20, statistics.median(cpu)
 
     load0 = os.getloadavg()
     rounds = [(measure(mono), measure(binocular)) for _ in range(2)]  # interleaved: both see the same load
-    m_t = statistics.median([r[0][0] for r in rounds])
-    b_t = statistics.median([r[1][0] for r in rounds])
+    m_t, b_t = (statistics.median([r[k][0] for r in rounds]) for k in (0, 1))
+    m_cpu, b_cpu = (statistics.median([r[k][2] for r in rounds]) for k in (0, 1))
     return {"frames": int(stacks["left"].shape[0]), "size": list(stacks["left"].shape[1:][::-1]),
             "monocular_s": round(m_t, 3), "binocular_s": round(b_t, 3), "ratio": round(b_t / m_t, 2),
+            "monocular_cpu_s": round(m_cpu, 3), "binocular_cpu_s": round(b_cpu, 3),
+            "cpu_ratio": round(b_cpu / m_cpu, 2),
             "monocular_peak_mib": round(max(r[0][1] for r in rounds), 1),
             "binocular_peak_mib": round(max(r[1][1] for r in rounds), 1),
             "load_average_start": [round(x, 2) for x in load0],
@@ -273,7 +278,8 @@ def run_binobench(scenes: int, seed: int | None, repeats: int, *, imports: int =
     timing = _timing(config, stacks, repeats) if repeats > 0 and stacks is not None else None
     if timing:
         say(f"timing: binocular {timing['binocular_s']} s, monocular {timing['monocular_s']} s, ratio "
-            f"{timing['ratio']}; peak {timing['binocular_peak_mib']} / {timing['monocular_peak_mib']} MiB; load "
+            f"{timing['ratio']} (processor time {timing['binocular_cpu_s']} / {timing['monocular_cpu_s']} s, ratio "
+            f"{timing['cpu_ratio']}); peak {timing['binocular_peak_mib']} / {timing['monocular_peak_mib']} MiB; load "
             f"{timing['load_average_start']} -> {timing['load_average_end']}")
     imported = []
     for k, child in enumerate(root.spawn(imports)):
