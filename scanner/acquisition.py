@@ -36,6 +36,7 @@ import numpy as np
 
 from scanner.devices import Camera, Frame
 from scanner.errors import FrameDropped, FrameError, FrameOutOfOrder, WaitTimeout
+from scanner.pattern_families import FrameKind
 from scanner.patterns import FrameSpec, PatternSet
 from scanner.rig import Rig
 from scanner.status import Status
@@ -288,7 +289,7 @@ def _orientation_groups(specs: list[FrameSpec], orientation: str) -> list[list[i
     groups: dict[tuple[str, int], list[int]] = {}
     for k, s in enumerate(specs):
         if s.orientation == orientation:
-            groups.setdefault((s.kind, s.level if s.kind == "phase" else 0), []).append(k)
+            groups.setdefault((s.kind, s.level if s.kind is FrameKind.PHASE else 0), []).append(k)
     return list(groups.values())
 
 

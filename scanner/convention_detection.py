@@ -45,9 +45,11 @@ from scanner.decode import gray_phase_offset, phase_shift, read_complementary_co
 from scanner.decode_checks import predicted_direction
 from scanner.errors import DecodeError
 from scanner.geometry import RigModel
-from scanner.pattern_families import temporal
+from scanner.pattern_families import REFERENCES, FrameKind, temporal
 from scanner.patterns import PatternSet
 from scanner.pixel_code import read_pixel_code
+
+GRAY, GRAY_INVERSE = FrameKind.GRAY, FrameKind.GRAY_INVERSE
 
 SUBSAMPLE = 4  # every 4th pixel on both axes
 MIN_R = 0.3  # below this resultant length the code-phase agreement is no evidence
@@ -144,10 +146,11 @@ def _refs_score(sub: np.ndarray, ps: PatternSet, usable: np.ndarray) -> float:
     """Share of usable pixels whose white frame is the brightest and black the darkest."""
     specs = ps.frames()
     kinds = [s.kind for s in specs]
-    if "white" not in kinds:
+    if FrameKind.WHITE not in kinds:
         return 1.0
-    white, black = sub[kinds.index("white")].astype(np.float32), sub[kinds.index("black")].astype(np.float32)
-    others = sub[[k for k, kind in enumerate(kinds) if kind not in ("white", "black")]].astype(np.float32)
+    white = sub[kinds.index(FrameKind.WHITE)].astype(np.float32)
+    black = sub[kinds.index(FrameKind.BLACK)].astype(np.float32)
+    others = sub[[k for k, kind in enumerate(kinds) if kind not in REFERENCES]].astype(np.float32)
     slack = 0.05 * (white - black)
     ok = (white >= others.max(axis=0) - np.abs(slack)) & (black <= others.min(axis=0) + np.abs(slack))
     return float(ok[usable].mean()) if usable.any() else 0.0
@@ -162,14 +165,14 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
     extent = projector_size[0] if o == "vertical" else projector_size[1]
     full = float(2 ** bit_depth - 1)
     if not ps.kind.has_phase:  # a pixel Gray code alone
-        diffs = [sub[index[(o, "gray", b, 0)]].astype(np.float32) - sub[index[(o, "gray_inverse", b, 0)]]
+        diffs = [sub[index[(o, GRAY, b, 0)]].astype(np.float32) - sub[index[(o, GRAY_INVERSE, b, 0)]]
                  for b in range(ps.gray_bits(o))]
         contrast = np.max(np.abs(diffs), axis=0)
         usable = contrast > 0.05 * full
         coordinate, _, readable = read_pixel_code(diffs, np.maximum(0.15 * contrast, 1.0), 0)
         inside = float((readable & (coordinate < extent))[usable].mean()) if usable.any() else 0.0
         return _Evidence(inside * _refs_score(sub, ps, usable))
-    blocks = [[index[(o, "phase", lv, n)] for n in range(ps.steps)] for lv in range(len(ps.fringes))]
+    blocks = [[index[(o, FrameKind.PHASE, lv, n)] for n in range(ps.steps)] for lv in range(len(ps.fringes))]
     shifted = [phase_shift(sub[b], ps.steps, 0.0, 1) for b in blocks]
     wrapped = [w for w, _, _ in shifted]
     mod = [m for _, m, _ in shifted]
@@ -179,12 +182,12 @@ def _evidence(stack: np.ndarray, ps: PatternSet, projector_size: tuple[int, int]
     if not ps.unwrapping.by_frequencies:  # a Gray code unwraps the phase
         f = ps.fringes[0]
         if not ps.unwrapping.pixel_code:
-            bits = [sub[index[(o, "gray", b, 0)]] for b in range(ps.gray_bits() + 1)]
+            bits = [sub[index[(o, GRAY, b, 0)]] for b in range(ps.gray_bits() + 1)]
             half, unclear, half_unclear = read_complementary_code(bits, background, mod[0], 0.3)
             clear = (unclear == 0) & ~half_unclear
             reference = None
         else:
-            diffs = [sub[index[(o, "gray", b, 0)]].astype(np.float32) - sub[index[(o, "gray_inverse", b, 0)]]
+            diffs = [sub[index[(o, GRAY, b, 0)]].astype(np.float32) - sub[index[(o, GRAY_INVERSE, b, 0)]]
                      for b in range(ps.gray_bits(o))]
             coord, _, clear = read_pixel_code(diffs, np.maximum(0.3 * 2 * mod[0], 1.0), 0)
             reference = (coord + np.float32(0.5)) * np.float32(2 * np.pi * f / extent)
@@ -237,8 +240,8 @@ def _edge_agreement(stack: np.ndarray, ps: PatternSet, bit_depth: int) -> float:
     counting), since the phase may advance by most of a period over a few pixels."""
     o = ps.orientations[0]
     index = {(s.orientation, s.kind, s.level, s.step): k for k, s in enumerate(ps.frames())}
-    block = [index[(o, "phase", 0, n)] for n in range(ps.steps)]
-    bits = [index[(o, "gray", b, 0)] for b in range(ps.gray_bits() + 1)]
+    block = [index[(o, FrameKind.PHASE, 0, n)] for n in range(ps.steps)]
+    bits = [index[(o, GRAY, b, 0)] for b in range(ps.gray_bits() + 1)]
     full = float(2 ** bit_depth - 1)
     best = (0, 0.5)
     for axis, view in ((1, stack[:, ::SUBSAMPLE, :]), (0, stack[:, :, ::SUBSAMPLE])):

@@ -46,7 +46,7 @@ from scanner.decode_checks import (
     scale_check,
 )
 from scanner.errors import DecodeError
-from scanner.pattern_families import TWO_PI, Unwrapping, temporal, unwrap_step
+from scanner.pattern_families import PIXEL_CODE_PAIR, TWO_PI, FrameKind, Unwrapping, temporal, unwrap_step
 from scanner.patterns import FrameSpec, PatternSet, gray_to_binary
 from scanner.pixel_code import read_pixel_code
 
@@ -691,7 +691,7 @@ def _saturated(stack: np.ndarray, frames: list[int], full_scale: float) -> np.nd
     return out
 
 
-def _frame_indices(specs: list[FrameSpec]) -> dict[tuple[str, str, int, int], int]:
+def _frame_indices(specs: list[FrameSpec]) -> dict[tuple[str, FrameKind, int, int], int]:
     return {(s.orientation, s.kind, s.level, s.step): k for k, s in enumerate(specs)}
 
 
@@ -713,7 +713,7 @@ def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
     index = _frame_indices(specs)
     conv = patterns.conventions
     full_scale = float(2 ** bit_depth - 1)
-    phase_blocks = {o: [[index[(o, "phase", lv, n)] for n in range(patterns.steps)]
+    phase_blocks = {o: [[index[(o, FrameKind.PHASE, lv, n)] for n in range(patterns.steps)]
                         for lv in range(len(patterns.fringes))] for o in patterns.orientations}
     all_phase = [k for o in patterns.orientations for block in phase_blocks[o] for k in block]
     saturated = np.zeros(stack.shape[1:], dtype=bool)
@@ -723,8 +723,8 @@ def decode(stack: np.ndarray, patterns: PatternSet, bit_depth: int, projector_si
                           known(conv.step_sign, "step_sign"), full_scale)
     else:
         noise = NoiseModel(1.0, 0.0)
-    refs = (stack[index[(patterns.orientations[0], "white", 0, 0)]].astype(np.float32),
-            stack[index[(patterns.orientations[0], "black", 0, 0)]].astype(np.float32)) \
+    refs = (stack[index[(patterns.orientations[0], FrameKind.WHITE, 0, 0)]].astype(np.float32),
+            stack[index[(patterns.orientations[0], FrameKind.BLACK, 0, 0)]].astype(np.float32)) \
         if conv.references != "none" else None
 
     maps: dict[str, OrientationMaps] = {}
@@ -755,7 +755,7 @@ class _OrientationDecoder:
     patterns: PatternSet
     orientation: str
     extent: int
-    index: dict[tuple[str, str, int, int], int]
+    index: dict[tuple[str, FrameKind, int, int], int]
     blocks: list[list[int]]
     saturated: np.ndarray
     refs: tuple[np.ndarray, np.ndarray] | None
@@ -766,15 +766,15 @@ class _OrientationDecoder:
     noise_source: str
     residual_noise: NoiseModel | None  # the noise the fit residual is judged by: not fitted to it (None: not judged)
 
-    def _frame(self, kind: str, level: int) -> np.ndarray:
+    def _frame(self, kind: FrameKind, level: int) -> np.ndarray:
         return self.stack[self.index[(self.orientation, kind, level, 0)]]
 
-    def _pixel_code(self, frame: Callable[[str, int], np.ndarray],
+    def _pixel_code(self, frame: Callable[[FrameKind, int], np.ndarray],
                     contrast: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(coordinate, run length, readable, beyond the projector) from this orientation's
         pixel-code frames (`frame(kind, bit)`)."""
         ps = self.patterns
-        diffs = [frame("gray", b).astype(np.float32) - frame("gray_inverse", b)
+        diffs = [frame(FrameKind.GRAY, b).astype(np.float32) - frame(FrameKind.GRAY_INVERSE, b)
                  for b in range(ps.gray_bits(self.orientation))]
         threshold = np.float32(self.settings.code_certainty) * contrast
         coordinate, run, readable = read_pixel_code(diffs, np.maximum(threshold, np.float32(1.0)),
@@ -865,7 +865,7 @@ class _OrientationDecoder:
     def _unwrap_complementary(self, band: _Band) -> None:
         """Phase unwrapped by a complementary Gray code of the periods (Wu et al.)."""
         masks, sums, maps, background, modulation = band.masks, band.sums, band.maps, band.background, band.modulation
-        bits = [band.frame("gray", b) for b in range(self.patterns.gray_bits() + 1)]
+        bits = [band.frame(FrameKind.GRAY, b) for b in range(self.patterns.gray_bits() + 1)]
         phase, masks["order_error"], half, clear = _graycode_unwrap(band.wrapped[0], bits, background,
                                                                     modulation[0], self.settings.gray_certainty)
         idx = band.at_samples()
@@ -1115,7 +1115,7 @@ class _OrientationDecoder:
             background = (white + black) * np.float32(0.5)
             contrast = white - black
         else:
-            pairs = [(self._frame("gray", b).astype(np.float32), self._frame("gray_inverse", b).astype(np.float32))
+            pairs = [tuple(self._frame(kind, b).astype(np.float32) for kind in PIXEL_CODE_PAIR)
                      for b in range(self.patterns.gray_bits(self.orientation))]
             background = sum(p + q for p, q in pairs) * np.float32(0.5 / len(pairs))
             contrast = np.max([np.abs(p - q) for p, q in pairs], axis=0)
@@ -1215,7 +1215,7 @@ class _Band:
         return lambda idx: d.noise.sigma(self.background.flat[idx]) * self.sqrt_2n / np.maximum(
             self.modulation[level].flat[idx], np.float32(1e-6))
 
-    def frame(self, kind: str, level: int) -> np.ndarray:
+    def frame(self, kind: FrameKind, level: int) -> np.ndarray:
         d = self.decoder
         return self.stack[d.index[(d.orientation, kind, level, 0)]]
 

@@ -43,6 +43,7 @@ import numpy as np
 
 from scanner.decode import DecodeResult, OrientationMaps
 from scanner.errors import ConfigError
+from scanner.pattern_families import FrameKind
 from scanner.patterns import PatternSet
 
 ROI_MIN_CONTRAST = 0.01  # of full scale at the probe exposure: a pixel the projector lights
@@ -206,7 +207,7 @@ def probe_images(patterns: PatternSet, width: int, height: int, gamma: float) ->
     """(3, height, width) uint8: white, black and the first frame of the finest fringes."""
     specs = patterns.frames()
     finest = max(patterns.fringes) if patterns.fringes else None
-    k = next((i for i, s in enumerate(specs) if s.kind == "phase" and patterns.fringes[s.level] == finest), 0)
+    k = next((i for i, s in enumerate(specs) if s.kind is FrameKind.PHASE and patterns.fringes[s.level] == finest), 0)
     fringe = patterns.render(width, height, gamma)[k]
     return np.stack([np.full((height, width), 255, np.uint8), np.zeros((height, width), np.uint8), fringe])
 

@@ -14,7 +14,7 @@ refused by name with the list of those that are (`family`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
+from enum import Enum, StrEnum
 from itertools import pairwise
 from typing import Any, ClassVar
 
@@ -25,12 +25,26 @@ from scanner.errors import ConfigError
 TWO_PI = np.float32(2.0 * np.pi)
 
 
+class FrameKind(StrEnum):
+    """What a frame shows; its value is the name sessions and pattern files write."""
+
+    PHASE = "phase"  # one phase step of one fringe frequency
+    GRAY = "gray"  # one bit of a Gray code
+    GRAY_INVERSE = "gray_inverse"  # that bit inverted (a pixel Gray code's pair)
+    WHITE = "white"  # the full-on reference
+    BLACK = "black"  # the full-off reference
+
+
+REFERENCES = (FrameKind.WHITE, FrameKind.BLACK)  # the frames a sequence's intensities are read against
+PIXEL_CODE_PAIR = (FrameKind.GRAY, FrameKind.GRAY_INVERSE)  # each bit of a pixel Gray code, then its inverse
+
+
 @dataclass(frozen=True)
 class FrameSpec:
     """What one frame of the sequence shows."""
 
     orientation: str  # vertical | horizontal (white and black: the first orientation)
-    kind: str  # phase | gray | gray_inverse | white | black
+    kind: FrameKind
     level: int  # phase: frequency index; gray: bit index (0 = most significant)
     step: int  # phase: step index n; otherwise 0
 
@@ -236,7 +250,7 @@ class GrayCodePhase(PatternFamily):
     def code_frames(self, orientation: str, bits: int, pixel_code: bool) -> list[FrameSpec]:
         if pixel_code:
             return PixelGrayCode().code_frames(orientation, bits, True)
-        return [FrameSpec(orientation, "gray", b, 0) for b in range(bits + 1)]
+        return [FrameSpec(orientation, FrameKind.GRAY, b, 0) for b in range(bits + 1)]
 
     def code_profile(self, spec: FrameSpec, extent: int, fringes: tuple[float, ...], pixel_code: bool) -> np.ndarray:
         if pixel_code:
@@ -275,12 +289,12 @@ class PixelGrayCode(PatternFamily):
         return int(np.ceil(np.log2(extent)))
 
     def code_frames(self, orientation: str, bits: int, pixel_code: bool) -> list[FrameSpec]:
-        return [FrameSpec(orientation, kind, b, 0) for b in range(bits) for kind in ("gray", "gray_inverse")]
+        return [FrameSpec(orientation, kind, b, 0) for b in range(bits) for kind in PIXEL_CODE_PAIR]
 
     def code_profile(self, spec: FrameSpec, extent: int, fringes: tuple[float, ...], pixel_code: bool) -> np.ndarray:
         n_bits = int(np.ceil(np.log2(extent)))
         bit = ((gray_code(np.arange(extent, dtype=np.int64)) >> (n_bits - 1 - spec.level)) & 1).astype(np.float64)
-        return bit if spec.kind == "gray" else 1.0 - bit
+        return bit if spec.kind is FrameKind.GRAY else 1.0 - bit
 
 
 FAMILIES: dict[str, PatternFamily] = {f.name: f for f in (Heterodyne(), Hierarchical(), GrayCodePhase(),

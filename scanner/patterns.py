@@ -27,13 +27,22 @@ from scanner import schema
 from scanner.config import load_toml
 from scanner.conventions import LAYOUT_KEYS, NATIVE, Conventions, ConventionsFile, known
 from scanner.errors import ConfigError
-from scanner.pattern_families import FAMILIES, FrameSpec, PatternFamily, Unwrapping, family, gray_code, gray_to_binary
+from scanner.pattern_families import (
+    FAMILIES,
+    REFERENCES,
+    FrameKind,
+    FrameSpec,
+    PatternFamily,
+    Unwrapping,
+    family,
+    gray_code,
+    gray_to_binary,
+)
 
 __all__ = ["FAMILIES", "FrameSpec", "PatternFile", "PatternSet", "gray_code", "gray_to_binary"]
 
 Orientation = Literal["vertical", "horizontal"]
 ORIENTATIONS: tuple[str, ...] = get_args(Orientation)
-KINDS = ("phase", "gray", "gray_inverse", "white", "black")
 
 
 class PatternFile(schema.Schema):
@@ -175,10 +184,10 @@ class PatternSet:
         for o in self.orientations:
             pairs = [(lv, n) for lv in levels for n in steps] if c.frame_order == "frequency-major" else \
                 [(lv, n) for n in steps for lv in levels]
-            phase = [FrameSpec(o, "phase", lv, n) for lv, n in pairs]
+            phase = [FrameSpec(o, FrameKind.PHASE, lv, n) for lv, n in pairs]
             gray = self.kind.code_frames(o, self.gray_bits(o), self.uses_pixel_code)
             out += phase + gray if c.gray_position == "after" else gray + phase
-        refs = [FrameSpec(self.orientations[0], "white", 0, 0), FrameSpec(self.orientations[0], "black", 0, 0)]
+        refs = [FrameSpec(self.orientations[0], kind, 0, 0) for kind in REFERENCES]
         return refs + out if c.references == "first" else out + refs if c.references == "last" else out
 
     @property
@@ -202,11 +211,11 @@ class PatternSet:
         """Desired displayed intensity (0..1) along the coded axis."""
         c = np.arange(extent, dtype=np.float64)
         conv = self.conventions
-        if s.kind == "phase":
+        if s.kind is FrameKind.PHASE:
             centre, sign = known(conv.pixel_centre, "pixel_centre"), known(conv.step_sign, "step_sign")
             phase = 2.0 * np.pi * self.fringes[s.level] * (c + centre) / extent
             phase += conv.first_phase(self.steps)
             return 0.5 + 0.5 * np.cos(phase + sign * 2.0 * np.pi * s.step / self.steps)
-        if s.kind in ("white", "black"):
-            return np.full(extent, 1.0 if s.kind == "white" else 0.0)
+        if s.kind in REFERENCES:
+            return np.full(extent, 1.0 if s.kind is FrameKind.WHITE else 0.0)
         return self.kind.code_profile(s, extent, self.fringes, self.uses_pixel_code)

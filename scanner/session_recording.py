@@ -83,6 +83,7 @@ from scanner.decode import DecodeResult, OrientationMaps
 from scanner.devices import Frame
 from scanner.errors import ScannerError
 from scanner.geometry import Pinhole, RigModel
+from scanner.pattern_families import FrameKind
 from scanner.patterns import FrameSpec, PatternSet
 from scanner.pointcloud import OrganisedCloud
 from scanner.rig_schema import RecordingLevel
@@ -167,7 +168,7 @@ def png_bytes(image: np.ndarray) -> bytes:
 
 def spec_name(spec: FrameSpec) -> str:
     """Short human-readable name of a frame's pattern, e.g. 'vertical phase f0 s2'."""
-    if spec.kind == "phase":
+    if spec.kind is FrameKind.PHASE:
         return f"{spec.orientation} phase f{spec.level} s{spec.step}"
     return f"{spec.orientation} {spec.kind} b{spec.level}"
 
