@@ -169,6 +169,7 @@ def test_inspect_command_writes_report_and_recording(run: SimpleNamespace, inspe
             "inspection/deviation_map", "inspection/report"} <= set(rec.entity_paths)
 
 
+@pytest.mark.slow  # a known failure (xfail, not strict): its outcome cannot fail a run, so it runs on purpose
 @pytest.mark.xfail(strict=False, reason="known, issue 12: with the interreflection mask on (issue 18) the nominal "
                    "boss top #270 reads flatness 4.7 +- 1.9 um where the truth is 0 (a coverage miss); with the mask "
                    "off, 2 of its 9852 pixels differ and it reads < 5.7 um (below its detection limit)")
