@@ -15,7 +15,9 @@ limit, or zero within its U.
 
 from __future__ import annotations
 
+import io
 import json
+from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -112,16 +114,34 @@ def test_nominal_faces_read_below_their_detection_limit(run: SimpleNamespace) ->
 
 EXIT_CASES = {  # the part's verdict by its tolerances -> (exit code, JSON status); README "Exit codes"
     "conforming": ('[faces."#270"]\nflatness_mm = 0.5\n', 0, "ok"),  # the boss top: no defect imposed
-    "non-conforming": ('[faces."#158"]\nflatness_mm = 0.02\n', 1, "failed"),  # a 60 um bow
     "not measured": ('[faces."#711"]\nflatness_mm = 0.05\n', 4, "no decision"),  # the base: out of view
     "refused input": ('[faces."#99999"]\nflatness_mm = 0.05\n', 2, None),  # the model has no such face
-}
+}  # "non-conforming" (exit 1, "failed"): the `inspected` run, whose 60 um bow fails a 20 um flatness limit
+REPORT_TOLERANCES = ('[faces."#158"]\nflatness_mm = 0.02\n[faces."#270"]\nflatness_mm = 0.05\n'
+                     '[faces."#657"]\nsq_mm = 0.2\n')
 
 
-def test_exit_code_is_the_verdict(run: SimpleNamespace, tmp_path: Path, capsys) -> None:
+@pytest.fixture(scope="module")
+def inspected(run: SimpleNamespace, tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
+    """`slscan inspect` of the session against REPORT_TOLERANCES, into the session's outputs
+    (report files with the PDF, and the recording): its exit code, stdout, stderr and
+    inspection.json. One run (about 40 s) for the exit-code table's non-conforming row and
+    the report's checks."""
+    tol = tmp_path_factory.mktemp("tolerances") / "tol.toml"
+    tol.write_text(REPORT_TOLERANCES)
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        code = cli.main(["inspect", str(run.session), "--cad", str(STEP), "--tolerances", str(tol)])
+    data = json.loads((run.session / "outputs" / "inspection.json").read_text())
+    return SimpleNamespace(code=code, out=out.getvalue(), err=err.getvalue(), data=data)
+
+
+def test_exit_code_is_the_verdict(run: SimpleNamespace, inspected: SimpleNamespace, tmp_path: Path, capsys) -> None:
     """`slscan inspect` exits with its verdict, and inspection.json's status says the same;
     the table (command x case -> code) is printed."""
-    table = []
+    assert inspected.code == 1, inspected.err
+    assert inspected.data["verdict"] == "non-conforming" and inspected.data["status"] == "failed"
+    table = [f"inspect  {'non-conforming':<15} exit {inspected.code}"]
     for case, (text, code, status) in EXIT_CASES.items():
         tol, out = tmp_path / f"{case}.toml", tmp_path / case.replace(" ", "_")
         tol.write_text(text)
@@ -135,14 +155,9 @@ def test_exit_code_is_the_verdict(run: SimpleNamespace, tmp_path: Path, capsys) 
     print("\n".join(table))
 
 
-def test_inspect_command_writes_report_and_recording(run: SimpleNamespace, tmp_path: Path, capsys) -> None:
-    tol = tmp_path / "tol.toml"
-    tol.write_text('[faces."#158"]\nflatness_mm = 0.02\n[faces."#270"]\nflatness_mm = 0.05\n'
-                   '[faces."#657"]\nsq_mm = 0.2\n')
-    code = cli.main(["inspect", str(run.session), "--cad", str(STEP), "--tolerances", str(tol)])
-    out = capsys.readouterr().out
+def test_inspect_command_writes_report_and_recording(run: SimpleNamespace, inspected: SimpleNamespace) -> None:
+    code, out, data = inspected.code, inspected.out, inspected.data
     assert code == 1 and "#158" in out and "non-conforming" in out  # the 60 um bow fails a 20 um flatness limit
-    data = json.loads((run.session / "outputs" / "inspection.json").read_text())
     rows = {r["label"]: r for r in data["faces"]}
     assert rows["#158"]["verdict_flatness"] == "non-conforming" and rows["#270"]["verdict_flatness"] == "conforming"
     assert rows["#657"]["verdict_sq"] == "conforming" and data["verdict"] == "non-conforming"
@@ -154,6 +169,7 @@ def test_inspect_command_writes_report_and_recording(run: SimpleNamespace, tmp_p
             "inspection/deviation_map", "inspection/report"} <= set(rec.entity_paths)
 
 
+@pytest.mark.slow  # a known failure (xfail, not strict): its outcome cannot fail a run, so it runs on purpose
 @pytest.mark.xfail(strict=False, reason="known, issue 12: with the interreflection mask on (issue 18) the nominal "
                    "boss top #270 reads flatness 4.7 +- 1.9 um where the truth is 0 (a coverage miss); with the mask "
                    "off, 2 of its 9852 pixels differ and it reads < 5.7 um (below its detection limit)")

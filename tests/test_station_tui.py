@@ -28,7 +28,9 @@ class Terminal:
 
     def __init__(self, *args: str) -> None:
         path = os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])
-        env = {**os.environ, "TERM": "xterm", "PYTHONPATH": path}
+        # the pty's size, not COLUMNS/LINES inherited from the test run (pytest-xdist's workers set 80 x 24)
+        env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
+        env.update(TERM="xterm", PYTHONPATH=path)
         self.child = pexpect.spawn(sys.executable, ["-m", "slscan.cli", *args], env=env, dimensions=(ROWS, COLS),
                                    encoding="utf-8", codec_errors="replace")
         self.screen = pyte.Screen(COLS, ROWS)
