@@ -87,7 +87,7 @@ most one scan in twenty reports a value.
     reported only when it exceeds L after its noise bias is removed. A truly flat face's
     raw zone is that of its noise, above L in 5 % of scans; the removed bias is positive
     for a zone, so the reported value of such a face is above L in fewer (measured on
-    smooth plates: `slscan bench coverage --case smooth-plate`).
+    smooth plates: `slscan coverage --case smooth-flatness`).
   - Sq: the estimate of Sq² (mean square less the noise's) of a smooth surface is a mean
     over thousands of cells, near normal with standard deviation u0 (the draws' spread);
     the noise model's own error (its relative bound on sigma, `PointNoise.rel_u`) can shift
@@ -100,7 +100,7 @@ uncertain by that much): `inspection.tolerances.decide` judges "< L" as the inte
 
 The coverage of this model — the true value inside ±U for 95 % of repeat scans with fresh
 noise, and with the errors of independent simulated calibrations — is measured on the
-simulator (`slscan bench coverage [--calibrated]`, `studies.repeat_scans`, tests/test_uncertainty_coverage.py).
+simulator (`slscan coverage [--calibrated]`, `studies.repeat_scans`, tests/test_uncertainty_coverage.py).
 """
 
 from __future__ import annotations
@@ -629,7 +629,7 @@ class MeasurementModel:
     None: not known), the projector's fringe error, the calibration's covariance and the
     camera's defocus (`camera_blur_px`, Gaussian sigma in camera pixels; 0: not known or
     none). One per rig; `slscan.measurement_model.rig_measurement` makes it from a rig
-    file, and `scan`, `inspect`, `verify` and `slscan bench coverage` all use it so."""
+    file, and `scan`, `inspect`, `verify` and `slscan coverage` all use it so."""
 
     sensor: SensorNoise | None
     fringe: FringeError | None

@@ -119,11 +119,18 @@ def command_name(args: argparse.Namespace) -> str:
 
 def moved(argv: Sequence[str]) -> str | None:
     """The line refusing a former command's name in `argv` (`slscan.commands.MOVED`: the
-    benches, now under `slscan bench`), naming the command now; None when `argv` uses none."""
+    benches, now under `slscan bench`; `slscan bench coverage`, now `slscan coverage`),
+    naming the command now; None when `argv` uses none."""
     word = next((a for a in argv if a in COMMANDS or a in MOVED), None)
-    if word is None or word in COMMANDS:
+    if word in GROUPS:
+        rest = argv[list(argv).index(word) + 1:]
+        member = next((a for a in rest if a in table(word) or f"{word} {a}" in MOVED), None)
+        word = f"{word} {member}" if member else word
+    if word is None or word not in MOVED or word in COMMANDS:
         return None
-    return f"slscan: error: `slscan {word}` is now `slscan {MOVED[word]}` (slscan bench --help lists the benches)"
+    now = MOVED[word]
+    lists = "slscan bench --help lists the benches" if now.split()[0] in GROUPS else "slscan --help lists the commands"
+    return f"slscan: error: `slscan {word}` is now `slscan {now}` ({lists})"
 
 
 def _member_first(parser: argparse.ArgumentParser, argv: Sequence[str]) -> None:

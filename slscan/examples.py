@@ -23,7 +23,6 @@ EXAMPLES: dict[str, str] = {
     "export": "slscan export sessions/demo --format e57 --out demo.e57\n"
               "slscan export sessions/demo --format ply --aligned --deviations --out demo-cad-frame.ply",
     "bench": "slscan bench decode --width 1280 --height 1024 --repeats 3 --no-peers\n"
-             "slscan bench coverage --case sphere-radius --scans 200 --seed 5 --json\n"
              "slscan bench sim --repeats 3",
     "bench decode": "slscan bench decode --width 1280 --height 1024 --repeats 3 --no-peers",
     "bench binocular": "slscan bench binocular --scenes 1 --imports 1 --repeats 1\n"
@@ -48,8 +47,8 @@ EXAMPLES: dict[str, str] = {
               "slscan verify --leave-one-out ../shared/data/procam-graycode --layout opencv-graycode "
               "--projector-size 1024x768 --board config/boards/procam_chess_9x7_75mm.toml --pose-folders 'capture_*' "
               "--out verify/procam",
-    "bench coverage": "slscan bench coverage --case sphere-radius --scans 200 --seed 5 --json\n"
-                "slscan bench coverage --case plate-flatness --case plate-sq --scans 200 --seed 6 --calibrated "
+    "coverage": "slscan coverage --case sphere-radius --scans 200 --seed 5 --json\n"
+                "slscan coverage --case plate-flatness --case plate-sq --scans 200 --seed 6 --calibrated "
                 "--out coverage/calibrations --processes 2",
     "register": "slscan register sessions/demo config/parts/demo_part.step --coarse sac-ia --json\n"
                 "slscan register sessions/part-all-round/view_001 sessions/part-all-round/view_000 --json",

@@ -15,7 +15,7 @@ give every figure its uncertainty, read from the session and its rig.
     an inspection removes from the surfaces it measures (`inspection.uncertainty.defocus_bias`).
 
 `rig_measurement` is the one place this is put together: `scan`, `inspect`, `verify` and
-`slscan bench coverage` (the repeat-scan studies) all take it from there.
+`slscan coverage` (the repeat-scan studies) all take it from there.
 """
 
 from __future__ import annotations

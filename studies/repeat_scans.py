@@ -1,5 +1,5 @@
 """Repeat-scan studies of the uncertainty model (`inspection.uncertainty`): how often the
-true value lies within ±U, measured on the product's own code path (`slscan bench coverage`).
+true value lies within ±U, measured on the product's own code path (`slscan coverage`).
 
 Each trial places an artefact somewhere new in the rig's measuring volume (so the fringe
 systematics, fixed for one placement, are drawn afresh as the model assumes), renders it
@@ -91,7 +91,7 @@ class CoverageResult:
         return np.array([t.estimate.value - t.truth for t in self.trials if t.estimate.value is not None])
 
     def as_json(self, case: str) -> dict[str, Any]:
-        """The figures `slscan bench coverage --json` prints."""
+        """The figures `slscan coverage --json` prints."""
         err = self.errors()
         return {"case": case, "scans": len(self.trials), "inside": int(sum(t.inside for t in self.trials)),
                 "coverage": self.fraction, "error_mean_mm": float(err.mean()) if len(err) else None,

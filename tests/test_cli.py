@@ -278,6 +278,18 @@ def test_the_benches_are_one_group_and_their_old_names_are_refused() -> None:
     assert code == 2 and "`slscan bench decode`" in err.strip().splitlines()[-1]
 
 
+def test_coverage_is_the_users_command_and_its_bench_form_is_refused() -> None:
+    """`slscan coverage` (issue 27's command) is listed among the user's commands, not the
+    benches; `slscan bench coverage` is refused with one line naming it (exit 2)."""
+    code, out, _ = run("--help")
+    assert code == 0 and "\n    coverage " in out
+    code, out, _ = run("bench")
+    assert code == 0 and "\n    coverage " not in out
+    code, _, err = run("bench", "coverage", "--case", "plate-sq", "--scans", "1", "--seed", "1")
+    assert code == 2 and err.strip().splitlines() == ["slscan: error: `slscan bench coverage` is now `slscan coverage` "
+                                                      "(slscan --help lists the commands)"]
+
+
 @pytest.mark.parametrize("argv", [["--version"], ["--help"], [], ["scan", "--bogus"], ["nosuchcommand"]])
 def test_startup_imports_no_command_module_until_one_runs(argv: list[str]) -> None:
     """`--version`, `--help` and usage errors are answered before any command module (and the

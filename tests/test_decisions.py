@@ -6,7 +6,7 @@ product's arithmetic: a measurement is an interval of values the true figure may
 form being >= 0); conformity is proven when that interval lies inside the specification
 zone, non-conformity when it lies wholly outside it, and neither otherwise. The detection
 test's false-detection rate is counted on synthetic noise-only faces whose noise is
-exactly the model's (the simulator's smooth plates are `slscan bench coverage --case
+exactly the model's (the simulator's smooth plates are `slscan coverage --case
 smooth-plate`, run on purpose)."""
 
 from __future__ import annotations

@@ -119,7 +119,7 @@ RUNS: dict[str, Callable[[Inputs, Path], list[str]]] = {
     "calibrate": lambda i, out: ["--stage-axis", "--rig", str(CONFIG_DIR / "rigs" / "sim_turntable.toml"),
                                  "--angles=-30,0,30", "--out", str(out / "axis")],
     "verify": lambda i, out: ["--out", str(out / "verify")],
-    "bench coverage": lambda i, out: ["--case", "plate-flatness", "--scans", "2", "--seed", "1"],
+    "coverage": lambda i, out: ["--case", "plate-flatness", "--scans", "2", "--seed", "1"],
     "cad": lambda i, out: [str(STEP)],
     "bench cad": lambda i, out: [str(STEP), "--copies", "1"],
     "register": lambda i, out: [_cloud(i), _cloud(i)],

@@ -1,9 +1,9 @@
 """Coverage of the uncertainty model on the simulator (`studies.repeat_scans`, the measurement
-path of `slscan scan`, `inspect` and `verify`; `slscan bench coverage` runs the same studies):
+path of `slscan scan`, `inspect` and `verify`; `slscan coverage` runs the same studies):
 over repeat scans with fresh noise, each at a new place in the measuring volume, the true
 value lies within ±U for 95 % ± 3 % of the scans — sphere radius, ball-bar length, the
 minimum-zone flatness and Sq of a bowed, textured plate. With calibration errors the
-studies reconstruct with independent simulated calibrations (`slscan bench coverage
+studies reconstruct with independent simulated calibrations (`slscan coverage
 --calibrated`, run on purpose: an hour of calibrations). A quick version runs by default:
 a handful of scans, coverage far above chance, and a deliberately underestimated noise
 model (a third of the real one) covering much less."""
@@ -116,10 +116,10 @@ SEED = int(os.environ.get("SLSCAN_COVERAGE_SEED", "2027"))  # fresh seeds: set i
 
 
 def _coverage(cases: list[str], calibrated: bool, tmp: Path) -> list[dict]:
-    """`slscan bench coverage` of `cases`, TRIALS scans each, as a user runs it."""
+    """`slscan coverage` of `cases`, TRIALS scans each, as a user runs it."""
     from slscan import cli
 
-    args = ["bench", "coverage", *(arg for c in cases for arg in ("--case", c)), "--scans", str(TRIALS),
+    args = ["coverage", *(arg for c in cases for arg in ("--case", c)), "--scans", str(TRIALS),
             "--seed", str(SEED), "--processes", str(PROCESSES), "--json"]
     if calibrated:
         args += ["--calibrated", "--out", str(tmp / "calibrations")]
@@ -237,10 +237,10 @@ def test_plate_truth_of_a_dome_is_its_closed_form() -> None:
 
 
 def test_coverage_command_prints_the_figures(capsys: pytest.CaptureFixture) -> None:
-    """`slscan bench coverage` as a user runs it: one scan, the published keys."""
+    """`slscan coverage` as a user runs it: one scan, the published keys."""
     from slscan import cli
 
-    assert cli.main(["bench", "coverage", "--case", "sphere-radius", "--scans", "1", "--seed", "3", "--json"]) == 0
+    assert cli.main(["coverage", "--case", "sphere-radius", "--scans", "1", "--seed", "3", "--json"]) == 0
     row = json.loads(capsys.readouterr().out)
     assert {"case", "scans", "inside", "coverage", "error_mean_mm", "error_sd_mm", "median_U_mm", "seconds"} <= set(row)
     assert row["case"] == "sphere-radius" and row["scans"] == 1 and row["coverage"] in (0.0, 1.0)
@@ -251,7 +251,7 @@ def test_coverage_command_refuses_an_empty_campaign(capsys: pytest.CaptureFixtur
     """No scans is a usage error naming the option, never a row of NaNs with exit 0."""
     from slscan import cli
 
-    argv = ["bench", "coverage", "--case", "near-limit-flatness", "--scans", "0", "--seed", "1", "--json"]
+    argv = ["coverage", "--case", "near-limit-flatness", "--scans", "0", "--seed", "1", "--json"]
     assert cli.main(argv) == 2
     captured = capsys.readouterr()
     assert captured.out == "" and "--scans 0" in captured.err

@@ -4,8 +4,10 @@ Each module defines `register(subparsers)`, adding its sub-commands to the `slsc
 with `set_defaults(func=...)`; a command function takes the parsed arguments and returns
 the exit code. `COMMANDS` names each command's module and its one-line summary (the help's
 list of commands); `BENCHES` those of the group `slscan bench NAME` (benchmarks and studies,
-their modules in `slscan.commands.bench`, the only commands that may import `studies`);
-`MOVED` the benches' former top-level names, refused with the new form named. The command
+their modules in `slscan.commands.bench`, the only commands that may import `studies`; the
+user's `slscan coverage`, which runs the repeat-scan study, has its module there too);
+`MOVED` the commands' former names ("simbench", "bench coverage"), refused with the new
+form named. The command
 line imports only the module of the command it runs, after its arguments are read, so
 `slscan --help`, `--version` and a usage error import none of them; modules still import
 heavy libraries (OpenCASCADE, Open3D, USB, ...) inside their command functions only.
@@ -33,6 +35,8 @@ COMMANDS: dict[str, tuple[str, str]] = {  # command -> (module in slscan.command
                                "the bench or from captures on disk"),
     "verify": ("verify", "acceptance / reverification test (VDI/VDE 2634 Part 2): artefacts in the measuring volume "
                          "against the rig's maximum permissible errors"),
+    "coverage": ("bench.coverage", "how often the truth lies within ±U: repeat scans on the simulated bench "
+                                   "measured as scan/inspect/verify measure them"),
     "cad": ("inspect", "list a CAD model's faces by STEP id and surface type"),
     "register": ("inspect", "register a cloud to a CAD model, a mesh or another cloud"),
     "inspect": ("inspect", "register a scan to CAD, segment it by face, report form errors per face"),
@@ -53,8 +57,6 @@ BENCHES: dict[str, tuple[str, str]] = {  # `slscan bench NAME` -> (module in sls
     "views": ("views", "multi-view acceptance figures on the simulated turntable"),
     "binocular": ("binocular", "binocular reconstruction on the simulated binocular rig: accuracy against truth "
                                "beside monocular, with a wrong projector model, and its speed"),
-    "coverage": ("coverage", "how often the truth lies within ±U: repeat scans on the simulated bench measured as "
-                             "scan/inspect/verify measure them"),
     "cad": ("cad", "STEP reading time for files of 1, 4, 16 copies of a part"),
     "pose": ("pose", "pose parts in simulated bins and score them against the truth (both methods, paper 001's "
                      "four cases)"),
@@ -63,10 +65,11 @@ BENCHES: dict[str, tuple[str, str]] = {  # `slscan bench NAME` -> (module in sls
     "batch": ("batch", "time `slscan batch` serially and on a local Dask cluster; check the results agree"),
 }
 GROUPS = {"bench": BENCHES}  # a command whose words after it name one of its table's commands
-MOVED = {  # a former command -> what it is now; the command line refuses the old name, naming this
+MOVED = {  # a former command, as typed -> what it is now; the command line refuses the old name, naming this
     "bench": "bench decode", "importbench": "bench import", "simbench": "bench sim", "demobench": "bench demo",
-    "viewbench": "bench views", "binobench": "bench binocular", "coverage": "bench coverage", "cadbench": "bench cad",
+    "viewbench": "bench views", "binobench": "bench binocular", "cadbench": "bench cad",
     "posebench": "bench pose", "segbench": "bench segment", "batchbench": "bench batch",
+    "bench coverage": "coverage",
 }
 
 

@@ -1,9 +1,10 @@
-"""`slscan bench coverage`: how often the truth lies within ±U, measured on the simulated bench
+"""`slscan coverage`: how often the truth lies within ±U, measured on the simulated bench
 with the product's own measurement path (`studies.repeat_scans`), so anyone can rerun a
-published coverage figure:
+published coverage figure (a user's command, not a bench; its module is here, beside the
+benches, because it runs a study):
 
-    slscan bench coverage --case plate-flatness|plate-sq|sphere-radius|ball-bar|pose|smooth-flatness|smooth-sq|
-                           near-limit-flatness|near-limit-sq --scans N --seed S
+    slscan coverage --case plate-flatness|plate-sq|sphere-radius|ball-bar|pose|smooth-flatness|smooth-sq|
+                    near-limit-flatness|near-limit-sq --scans N --seed S
                     [--calibrated --out DIR [--calibrations K]] [--processes P] [--json]
 
 prints {"case", "scans", "inside", "coverage", "error_mean_mm", "error_sd_mm",
