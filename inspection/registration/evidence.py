@@ -270,22 +270,21 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, block: np.ndar
     (from the sums over `block`s of the residuals `e` about the face's mean); summed over
     each kind's faces, two equations in tau_0^2, tau_1^2, solved non-negative. Faces with
     fewer than `MIN_BLOCKS` points are no measure of their offset (a few stray points) and
-    are left out of the sums, not of the effect. A kind with fewer than two faces to measure
-    its variance by has no estimate of its own: it takes one variance pooled over every
-    measurable face of both kinds, at its 95 % upper confidence limit (`_pooled_upper`: the
-    estimate's own chi-square spread over its few degrees of freedom), at most the most its
-    faces' offsets could be, uniform within `bound` (mm, the distance within which points
-    are assigned to a face: variance bound^2 / 3; a random part whose turn across y rested
-    on four walls of 4-14 points, 112-235 um off as a whole, was held 0.149 mm off with a U
-    of 0.046 mm). The bound alone had refused right poses: campaign 1273036622 part_016,
-    its translation along y resting on one wall, the only measurable face of its kind, was
-    refused with a U of 0.18 mm, the pose 0.3 um off, the wall's true offset 0.3 um, the
-    six others' within 1 um. Consequences: with few faces (few degrees of freedom) the limit
-    reaches the bound and the pose is refused as free (a false refusal, the price of not
-    knowing); with many it is the pooled estimate, and a lone face of a kind whose offsets
-    are truly larger than the pooled ones (a narrow wall all mixed pixels) is understated:
-    what the campaigns measure: wrong poses with exit 0 (`studies.registration_bench`) and
-    the pose U coverage (`studies.pose_coverage`).
+    are left out of the sums, not of the effect; a kind with fewer than two faces to measure
+    its variance by takes the most its faces' offsets could be, uniform within `bound` (mm,
+    the distance within which points are assigned to a face: variance bound^2 / 3), when
+    one is given (a random part whose turn across y rested on four walls of 4-14 points,
+    112-235 um off as a whole, was held 0.149 mm off with a U of 0.046 mm). The bound refuses
+    some right poses (campaign 1273036622 part_016: its translation along y resting on one
+    wall, the only measurable face of its kind, U 0.18 mm, the pose 0.3 um off), but the two
+    estimates tried instead lied: one variance pooled over both kinds at its 95 % upper
+    confidence limit (Satterthwaite's degrees of freedom) gave the outline-band walls the
+    tops' few um, and campaign 905155588 part_011, its turn resting on walls of 4-14 fit
+    points each (none of 30 to measure the kind by; their faces' offsets 17-89 um), was
+    proven 0.059 deg off with a U of 0.030 deg, exit 0; each face split into its band and
+    its inner part, each part's offset apart, gave walls' inner parts the tops' variance,
+    yet they read 14-28 um off (part_016 and part_033 of campaign 1273036622, fitted on
+    their walls' inner points: 0.014 and 0.028 mm off with U 0.010 and 0.018 mm).
     The kinds: faces measured mostly in
     outline bands, where the camera's blur mixes a surface with what lies beyond (a 12 mm
     step wall of the demo part read 34 um off as a whole), and the rest, whose offsets are a
@@ -311,32 +310,10 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, block: np.ndar
     lhs = np.array([np.sum(mean[x] ** 2 - v[x]) for x in rows])
     coef = np.array([[np.sum(R2[np.ix_(x, k)]) for k in kinds] for x in rows])
     tau2 = nnls(coef, np.maximum(lhs, 0.0))[0] if coef.any() else np.zeros(2)
-    short = [int(np.sum(x)) < 2 for x in rows]
-    if any(short):
-        tau2 = np.where(short, _pooled_upper(mean[told], v[told], R2[told].sum(axis=1), bound), tau2)
+    if bound is not None:
+        tau2 = np.where([np.sum(x) < 2 for x in rows], bound ** 2 / 3.0, tau2)
     weight = np.where(kind, tau2[0], tau2[1])
     return Ainv @ ((m * weight[:, None]).T @ m) @ Ainv
-
-
-def _pooled_upper(mean: np.ndarray, v: np.ndarray, share: np.ndarray, bound: float | None) -> float:
-    """The 95 % upper confidence limit of one offset variance tau^2 shared by the faces whose
-    mean residuals are `mean` (mm), their noise's variances `v` and `share` the part of tau^2
-    each mean keeps after the fit (`_face_offsets`): S = sum mean^2 has E[S] = tau^2 sum
-    share + sum v and, a sum of squared normals of unequal variances, Satterthwaite's nu =
-    (sum w)^2 / sum w^2 degrees of freedom (w = share tau^2 + v at the point estimate); the
-    limit of E[S] is S nu / chi2_0.05(nu). At most `bound`^2 / 3 (the most an offset within
-    the assignment window can vary), which it is when no face tells (None: 0)."""
-    from scipy.stats import chi2
-
-    cap = np.inf if bound is None else bound ** 2 / 3.0
-    total = float(np.sum(share))
-    if total <= 0:
-        return 0.0 if bound is None else cap
-    point = max(float(np.sum(mean ** 2 - v)) / total, 0.0)
-    w = share * point + v
-    nu = float(np.sum(w)) ** 2 / max(float(np.sum(w ** 2)), 1e-300)
-    upper = float(np.sum(mean ** 2)) * nu / chi2.ppf(0.05, nu)
-    return float(min(max(upper - float(np.sum(v)), 0.0) / total, cap))
 
 
 def _clustered(score: np.ndarray, label: np.ndarray, Ainv: np.ndarray, scale: np.ndarray | None = None,
