@@ -207,6 +207,30 @@ def test_model_in_metres_is_a_unit_error(demo, tmp_path: Path) -> None:
     assert isolate_part(view, load_cad(path, mesh_unit="m").diagonal_mm) is not None
 
 
+def test_shadow_border_on_the_table_is_not_the_part(tmp_path: Path) -> None:
+    """A random part filling the view, scanned through the whole fringe chain (campaign
+    1273036622 part_056: 100 mm across, its shadow on the table edged by a line of mixed
+    pixels up to 0.7 mm above the table, 80 px from the part): isolated, it is the part's
+    points (the simulator's true faces) with a few table pixels at most (mixed pixels
+    where the table touches it), its size the part's own: no unit error."""
+    from inspection.measured_cloud import principal_diagonal
+    from sim.random_parts import placement_for, random_part, scan_part
+
+    step = random_part(613680017).write(tmp_path / "part.step")
+    model = load_cad(step)
+    fine = load_cad(step, deflection_mm=1e-3 * max(1.0, model.diagonal_mm / 100.0))
+    lo, hi = fine.tessellation.vertices.min(axis=0), fine.tessellation.vertices.max(axis=0)
+    s = scan_part(fine, placement_for(float(np.linalg.norm((hi - lo)[:2])), 884320547), 1200799972)
+    on = s.true_face >= 0
+    mask = np.zeros(len(on), bool)
+    index = {(int(c), int(r)): k for k, (c, r) in enumerate(s.scan.pixels)}
+    for c, r in isolate_part(s.scan, model.diagonal_mm).pixels:
+        mask[index[(int(c), int(r))]] = True
+    assert on.sum() > 100000 and (mask & on).sum() > 0.999 * on.sum()
+    assert (mask & ~on).sum() < 0.005 * mask.sum()
+    assert principal_diagonal(s.scan.points[mask]) < 1.02 * principal_diagonal(s.scan.points[on])
+
+
 def test_nothing_to_register_is_an_error() -> None:
     with pytest.raises(CloudError, match="at least"):
         make_scan(np.random.default_rng(0).normal(size=(100, 3)) + [0, 0, 400], None, "tiny", np.zeros(3))

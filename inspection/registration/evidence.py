@@ -274,7 +274,18 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, block: np.ndar
     its variance by takes the most its faces' offsets could be, uniform within `bound` (mm,
     the distance within which points are assigned to a face: variance bound^2 / 3), when
     one is given (a random part whose turn across y rested on four walls of 4-14 points,
-    112-235 um off as a whole, was held 0.149 mm off with a U of 0.046 mm). The kinds: faces measured mostly in
+    112-235 um off as a whole, was held 0.149 mm off with a U of 0.046 mm). The bound refuses
+    some right poses (campaign 1273036622 part_016: its translation along y resting on one
+    wall, the only measurable face of its kind, U 0.18 mm, the pose 0.3 um off), but the two
+    estimates tried instead lied: one variance pooled over both kinds at its 95 % upper
+    confidence limit (Satterthwaite's degrees of freedom) gave the outline-band walls the
+    tops' few um, and campaign 905155588 part_011, its turn resting on walls of 4-14 fit
+    points each (none of 30 to measure the kind by; their faces' offsets 17-89 um), was
+    proven 0.059 deg off with a U of 0.030 deg, exit 0; each face split into its band and
+    its inner part, each part's offset apart, gave walls' inner parts the tops' variance,
+    yet they read 14-28 um off (part_016 and part_033 of campaign 1273036622, fitted on
+    their walls' inner points: 0.014 and 0.028 mm off with U 0.010 and 0.018 mm).
+    The kinds: faces measured mostly in
     outline bands, where the camera's blur mixes a surface with what lies beyond (a 12 mm
     step wall of the demo part read 34 um off as a whole), and the rest, whose offsets are a
     few um: one variance for both gives the walls the tops' (a random part's one x-facing
