@@ -294,6 +294,8 @@ class FakeCapture:
             return False
         self._next = max(self._next + 1.0 / self.fps, time.monotonic())
         time.sleep(max(0.0, self._next - time.monotonic()))
+        if self._unplugged or self.released:  # unplugged during the exposure: that frame never arrives
+            return False
         end = time.monotonic()
         self._last = (self.render(end - self.exposure_s), end)
         with self._counted:
