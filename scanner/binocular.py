@@ -323,17 +323,22 @@ class _Rows:
         flat, width = self.c.ravel(), self.c.shape[1]  # interval k joins grid samples p(k) and p(k) + 1
         # the holding interval is the last one starting at or below c, unless a wider one
         # encloses that one: then it is the first one ending above c (looked up only there)
+
+        def ends(k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            p = k + k // (width - 1)
+            return p, flat[p], flat[p + 1]
+
+        def holds(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+            return (np.minimum(a, b) <= c) & (c < np.maximum(a, b))
+
         k = np.where(unique, self.lo_index[np.maximum(n_lo - 1, 0)], -1)
-        p = np.maximum(k, 0)
-        p += p // (width - 1)
-        a, b = flat[p], flat[p + 1]
-        held = (k >= 0) & (np.minimum(a, b) <= c) & (c < np.maximum(a, b))
+        p, a, b = ends(np.maximum(k, 0))
+        held = (k >= 0) & holds(a, b, c)
         other = np.flatnonzero(unique & ~held)
         if other.size:
             k2 = self.hi_index[np.minimum(n_hi[other], len(self.hi_index) - 1)]
-            p2 = k2 + k2 // (width - 1)
-            a2, b2, c2 = flat[p2], flat[p2 + 1], c[other]
-            held2 = (np.minimum(a2, b2) <= c2) & (c2 < np.maximum(a2, b2))
+            p2, a2, b2 = ends(k2)
+            held2 = holds(a2, b2, c[other])
             k[other] = np.where(held2, k2, -1)
             p[other] = np.where(held2, p2, 0)
             a[other], b[other] = flat[p[other]], flat[p[other] + 1]
@@ -417,7 +422,10 @@ _REASONS = ("outside_right_view", "no_match", "not_unique", "low_gradient", "beh
 
 def choose_orientation(rect: Rectification, left: CameraPhase) -> str:
     """The orientation whose left coordinate changes fastest along rectified rows (median
-    |dc/dx_r| over valid pixels): the one that locates a match along the epipolar line."""
+    |dc/dx_r| over valid pixels): the one that locates a match along the epipolar line; a
+    decode of one orientation has nothing to choose."""
+    if len(left.coordinate) == 1:
+        return next(iter(left.coordinate))
     best, best_g = None, -1.0
     xy = rect.left_xy
     for o, c in left.coordinate.items():
@@ -448,7 +456,7 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     """Match every left pixel to the right camera along its epipolar line and triangulate
     (see the module docstring)."""
     _check_shapes(rect, left, right)
-    o = orientation or (next(iter(left.coordinate)) if len(left.coordinate) == 1 else choose_orientation(rect, left))
+    o = orientation or choose_orientation(rect, left)
     grid_r = rect.right
     shape = left.coordinate[o].shape
     pix = np.flatnonzero(np.isfinite(left.coordinate[o]))
