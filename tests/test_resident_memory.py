@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,10 +13,8 @@ from slscan.resident_memory import StagePeaks, release_memory, resident_mib
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self")
 
 
-def test_each_stage_reports_its_own_peak() -> None:
-    """A stage touching 200 MiB peaks at least that above the resident set before it; the next
-    stage, allocating nothing, peaks below that stage's peak (the high-water mark was reset)."""
-    peaks = StagePeaks()
+def _big_then_small(peaks: StagePeaks) -> float:
+    """Run a stage touching 200 MiB, then one allocating nothing; the resident set before (MiB)."""
     release_memory()
     before = resident_mib()
     with peaks.stage("big"):
@@ -23,5 +22,39 @@ def test_each_stage_reports_its_own_peak() -> None:
         del block
     with peaks.stage("small"):
         pass
-    assert peaks.peaks["big"] >= before + 190
-    assert peaks.peaks["small"] < peaks.peaks["big"] - 150
+    return before
+
+
+def test_each_stage_reports_its_own_peak_or_says_it_cannot() -> None:
+    """Where the kernel resets the high-water mark, a stage touching 200 MiB peaks at least that
+    above the resident set before it and the next stage, allocating nothing, peaks below it; where
+    it does not (CI's sandbox), both stages are "not measured" with the reason, never the run's peak
+    under a stage's name."""
+    peaks = StagePeaks()
+    before = _big_then_small(peaks)
+    if peaks.not_measured is None:
+        big, small = peaks.peaks["big"], peaks.peaks["small"]
+        assert big is not None and small is not None
+        assert big >= before + 190
+        assert small < big - 150
+    else:
+        assert peaks.peaks == {"big": None, "small": None}
+        assert "high-water mark" in peaks.not_measured
+
+
+def test_a_reset_that_does_not_take_is_not_measured(tmp_path: Path) -> None:
+    """A clear_refs that accepts the write but resets nothing (a plain file here) leaves the
+    high-water mark above the resident set after the 200 MiB stage: the next stage is not measured."""
+    peaks = StagePeaks(clear_refs=tmp_path / "clear_refs")
+    _big_then_small(peaks)
+    assert peaks.peaks["small"] is None
+    assert peaks.not_measured is not None and "does not reset it" in peaks.not_measured
+
+
+def test_a_reset_refused_is_not_measured(tmp_path: Path) -> None:
+    """A clear_refs that cannot be written names the file and the error."""
+    peaks = StagePeaks(clear_refs=tmp_path / "missing" / "clear_refs")
+    with peaks.stage("any"):
+        pass
+    assert peaks.peaks == {"any": None}
+    assert peaks.not_measured is not None and "clear_refs" in peaks.not_measured

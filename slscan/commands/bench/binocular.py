@@ -273,7 +273,8 @@ def run_binobench(scenes: int, seed: int | None, repeats: int, *, imports: int =
                 f"monocular {m['rms_um']:.1f} um (bound {m['bound_um']:.1f}) over {b['pixels']} px; beyond 5 sigma "
                 f"{b['beyond_5_sigma']} / {m['beyond_5_sigma']}; points {b['points']} / {m['points']}")
         say(f"scene {k}: peak resident memory so far by stage (MiB): "
-            + ", ".join(f"{n} {v:.0f}" for n, v in peaks.peaks.items())
+            + (f"not measured: {peaks.not_measured}" if peaks.not_measured else
+               ", ".join(f"{n} {v:.0f}" for n, v in peaks.peaks.items() if v is not None))
             + f"; resident after {r['resident_mib_after']:.0f}")
     timing = _timing(config, stacks, repeats) if repeats > 0 and stacks is not None else None
     if timing:
@@ -294,7 +295,8 @@ def run_binobench(scenes: int, seed: int | None, repeats: int, *, imports: int =
                 f"{f['mean_um']:+.2f} um; points {f['points']} of {f['lit_left_pixels']} lit; beyond 5 sigma "
                 f"{f['beyond_5_sigma']}, over 1 mm {f['over_1_mm']}"))
     return {"rig": str(config.path), "root_seed": root.entropy, "scenes": runs, "timing": timing,
-            "imports": imported, "peak_resident_mib": peaks.peaks}
+            "imports": imported, "peak_resident_mib": peaks.peaks,
+            "peak_resident_not_measured": peaks.not_measured}
 
 
 def cmd_binobench(args: argparse.Namespace) -> int:
