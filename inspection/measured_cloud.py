@@ -44,6 +44,13 @@ class ScanCloud:
     def __len__(self) -> int:
         return len(self.points)
 
+    def camera_pixels(self) -> np.ndarray:
+        """`pixels`, for a step that needs each point's camera pixel (the noise model's maps)."""
+        if self.pixels is None:
+            raise CloudError(self.source, "the cloud has no camera pixels (an unorganised cloud), "
+                                          "so its noise cannot be read off the session's maps")
+        return self.pixels
+
     def subset(self, mask: np.ndarray) -> ScanCloud:
         return replace(self, points=self.points[mask], normals=self.normals[mask],
                        pixels=None if self.pixels is None else self.pixels[mask])

@@ -32,7 +32,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
 from pydantic import Field
@@ -41,6 +41,10 @@ from inspection.bins.part_file import TabPart, inside_loops, outline_loops, tab_
 from scanner import schema
 from scanner.errors import ConfigError
 from sim.scene import Scene, SceneObject
+
+if TYPE_CHECKING:
+    from scanner.geometry import RigModel
+    from scanner.pointcloud import OrganisedCloud
 
 BIN_SCENE_PREFIX = "bin:"
 BIN_TRUTH_FILE = "bin_truth.json"
@@ -199,7 +203,7 @@ class BinTruth:
                    np.array([p.front_up for p in doc.parts]), np.array([p.occlusion for p in doc.parts]))
 
 
-def scan_bin(b: BinScene, model: object, noise_mm: float = 0.01, seed: int = 0) -> tuple[object, np.ndarray]:
+def scan_bin(b: BinScene, model: RigModel, noise_mm: float = 0.01, seed: int = 0) -> tuple[OrganisedCloud, np.ndarray]:
     """A quick simulated scan of bin `b` with the rig `model` (`scanner.geometry.RigModel`):
     the simulator's ray-cast ground truth (no fringe rendering or decoding), Gaussian depth
     noise of `noise_mm` along each camera ray, pixels the projector does not light left
@@ -209,7 +213,7 @@ def scan_bin(b: BinScene, model: object, noise_mm: float = 0.01, seed: int = 0) 
     from scanner.pointcloud import OrganisedCloud, organised_normals
     from sim.render import compute_ground_truth
 
-    gt = compute_ground_truth(model, b.scene)  # type: ignore[arg-type]
+    gt = compute_ground_truth(model, b.scene)
     rng = np.random.default_rng(seed)
     ray = gt.points / np.linalg.norm(gt.points, axis=2, keepdims=True)
     pts = gt.points + rng.normal(0.0, noise_mm, gt.shape)[..., None] * ray
@@ -220,7 +224,7 @@ def scan_bin(b: BinScene, model: object, noise_mm: float = 0.01, seed: int = 0) 
     return OrganisedCloud(pts, np.zeros(gt.shape, np.uint8), normals), ids
 
 
-def fringe_scan_bin(b: BinScene, seed: int = 0) -> tuple[object, np.ndarray]:
+def fringe_scan_bin(b: BinScene, seed: int = 0) -> tuple[OrganisedCloud, np.ndarray]:
     """Bin `b` scanned through the whole simulated chain on the default rig: its fringe
     patterns rendered with sensor noise and blur, decoded and triangulated (pixels that
     straddle a part's edge decode to depths mixed with what lies behind, as on a real

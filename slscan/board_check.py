@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import cv2
@@ -76,7 +77,7 @@ def coded_orientation(model: RigModel, view: Any) -> str:
     tri = Triangulator(model)
     slopes = {o: np.nanmedian(tri.depth_scale(m.astype(np.float32), o, sensitivity=True)[1])
               for o, m in (("vertical", view.u), ("horizontal", view.v))}
-    return min(slopes, key=slopes.get)
+    return min(slopes, key=lambda o: slopes[o])
 
 
 @dataclass(frozen=True)
@@ -356,8 +357,7 @@ def leave_one_out(views: list[Any], board: Any, projector_size: tuple[int, int],
         result = calibrate_views(board, others, projector_size, CalibrationSettings(), "leave-one-out", lambda s: None)
         report = result.report()
         check = check_pose(view, k, board, result.model, CalibrationUncertainty.from_report(report),
-                           lambda axis, solution=result.solution: CornerNoise.from_calibration(solution, axis,
-                                                                                               board.square_mm),
+                           partial(CornerNoise.from_calibration, result.solution, square_mm=board.square_mm),
                            {"camera": report["rms_px"]["camera"], "projector": report["rms_px"]["projector"]})
         s = check.summary(board.square_mm)
         say(f"{view.name}: flatness {check.flatness.text()}, adjacent corners error RMS "

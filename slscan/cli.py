@@ -71,8 +71,9 @@ def version() -> str:
 class _Version(argparse.Action):
     """`--version`: computed only when asked (it runs git)."""
 
-    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, **kw: object) -> None:
-        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kw)
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, *,
+                 help: str | None = None) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=help)
 
     def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
         print(version())
@@ -99,7 +100,7 @@ class _Summarised:
         self.sub, self.summaries = sub, summaries
 
     def add_parser(self, name: str, **kw: object) -> argparse.ArgumentParser:
-        return self.sub.add_parser(name, help=self.summaries[name][1], **kw)  # type: ignore[arg-type]
+        return self.sub.add_parser(name, help=self.summaries[name][1], **kw)  # type: ignore[arg-type]  # argparse's options pass through
 
 
 MEMBER = "group_member"  # where the parsed arguments keep the member of a group command (`slscan bench NAME`)
@@ -236,7 +237,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     _member_first(parser, argv)
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:  # bare `slscan` or `slscan bench`: the help, not an error
-        (commands(parser).get(args.command) if args.command else parser).print_help()
+        (commands(parser).get(args.command, parser) if args.command else parser).print_help()
         return Exit.OK
     try:
         log_file = configure_logging(args)

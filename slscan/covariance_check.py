@@ -162,5 +162,6 @@ def covariance_check(rig_toml: Path, calibrations: int, seed: int, poses: int | 
         check.draws.append(draw)
         say(f"[{k + 1}/{calibrations}] {draw.line()}")
     if not check.draws:
-        raise DeviceError(f"none of the {calibrations} simulated calibrations completed: {check.failed}")
+        raise DeviceError("simulated calibration",
+                          f"none of the {calibrations} simulated calibrations completed: {check.failed}")
     return check

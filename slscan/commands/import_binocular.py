@@ -57,7 +57,7 @@ def _agreed(detections: list[Any]) -> PatternSet:
 
 
 def import_binocular(folders: list[Path], patterns_path: Path, projector_size: tuple[int, int], out: Path,
-                     calibration: list[Path], frames_glob: str | None = None, bit_depth: int | None = None,
+                     calibration: list[str | Path], frames_glob: str | None = None, bit_depth: int | None = None,
                      progress: Any = None) -> tuple[Any, list[Any]]:
     """Import and reconstruct one binocular capture (module docstring); returns (BinocularScan,
     the two cameras' convention detections)."""

@@ -374,7 +374,7 @@ def _inspect_source(source: str | Path, cad: str | Path | None, tolerances: str 
         # the merged cloud has no one camera's pixels, so its figures estimate their noise from the data
         session = multiview.views[0].session if multiview is not None else Session.open(source)
         if multiview is None:
-            uncertainty = session_uncertainty(session)(scan.pixels)
+            uncertainty = session_uncertainty(session)(scan.camera_pixels())
         if recording is None:
             from scanner.session_recording import SessionRecording
 

@@ -307,7 +307,7 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
                 else load_session(result.session.root))
     with timer.stage("inspect"):
         # the decoder's noise model and calibration, from the decode the scan was made of
-        uncertainty = session_uncertainty(result.session, result.decoded)(scan.pixels)
+        uncertainty = session_uncertainty(result.session, result.decoded)(scan.camera_pixels())
         report = inspect(scan, model, tolerances, InspectionSettings(registration=RegistrationSettings(seed=seed)),
                          prior=prior, uncertainty=uncertainty, on_verdict=on_verdict, progress=progress)
     with timer.stage("report_files"):

@@ -56,11 +56,12 @@ def cmd_stage_axis(args: argparse.Namespace) -> int:
         print(text, file=sys.stderr, flush=True)
 
     with open_rig(config, **options) as rig:
-        assert rig.stage is not None
+        stage = rig.stage
+        assert stage is not None
         white = np.full((1, rig.projector.height, rig.projector.width), 255, np.uint8)
 
         def image(q: float) -> np.ndarray:
-            rig.stage.move_to({axis.name: q}).wait(rig.stage.action_deadline_s + 5.0)
+            stage.move_to({axis.name: q}).wait(stage.action_deadline_s + 5.0)
             return show_images(rig, white)[0]
 
         solution = calibrate_stage_axis(image, angles, board, model.camera, model.world_from_cam, say)

@@ -184,6 +184,7 @@ def cmd_results(args: argparse.Namespace) -> int:
         elif args.dfq:
             from slscan.station.dfq import dfq_text
 
+            assert options is not None  # made for --dfq above
             text, n = dfq_text(program, rows, values, options.exclusions)
             _write_export(Path(args.out), lambda path: write_atomic(path, text.encode("utf-8")))
             print(f"wrote {n} values of {len(program.characteristics)} characteristics (AQDEF) to {args.out}",
@@ -211,6 +212,7 @@ def cmd_results(args: argparse.Namespace) -> int:
                       + (f"  [excluded: {excluded[r.id].shown()}]" if r.id in excluded else ""))
             print(f"{len(rows)} results in {store.where}", file=sys.stderr)
         if args.report:
+            assert options is not None  # made for --report above
             path = _write_export(Path(args.out), lambda folder: write_report(folder, program, rows, values,
                                                                               store.where, options))
             print(f"report {path}", file=sys.stderr)

@@ -108,7 +108,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     say(f"verifying rig {config.name} ({config.driver}) with {artefacts.name}: {len(plan)} positions in a "
         f"{' x '.join(f'{s:g}' for s in acceptance.size_mm)} mm measuring volume; geometry "
         f"{model.calibration or 'nominal (no calibration file)'} -> {out}")
-    results = []
+    results: list[PositionResult] = []
     sim = config.driver == "sim"
     options: dict[str, Any] = {"seed": args.seed} if sim else {}
     if sim:
@@ -157,8 +157,8 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     notes = {"noise model": "decoder and sensor model" if measurement.sensor is not None else
              "none (the rig file has no [camera.sensor]): the fits' residuals stand in for it",
              "calibration uncertainty": measurement.calibration.source,
-             "fringe error": f"{measurement.fringe.rms_px:.4f} projector px RMS "  # type: ignore[union-attr]
-                             "(quantised patterns)"}
+             "fringe error": f"{measurement.fringe.rms_px:.4f} projector px RMS (quantised patterns)"
+                             if measurement.fringe is not None else "not modelled"}
     if len(config.cameras) >= 2:
         notes |= {"reconstruction": f"binocular: cameras {', '.join(config.camera_names[:2])} matched "
                                     f"(scanner/binocular.py); the projector's geometry unused",

@@ -96,10 +96,11 @@ class StationRun:
     def close(self) -> None:
         try:
             try:
-                history = self._history()
+                rows, values = self._history()
             except StationError:  # the database is unreachable: the charts keep this run's own file
-                history = (None, None)
-            self.charts.close(*history)
+                self.charts.close()
+            else:
+                self.charts.close(rows, values)
         finally:
             self.bench.close()
             self.store.close()

@@ -232,8 +232,9 @@ def compare(a: BatchSummary, b: BatchSummary) -> tuple[list[str], float, str]:
                 or any((vx[c] is None) != (vy[c] is None) for c in vx):
             differ.append(f"{x.path}: {x.status} '{x.message}' vs {y.status} '{y.message}'")
         for c in vx.keys() & vy.keys():
-            if None not in (vx[c], vy[c]) and abs(vx[c] - vy[c]) > worst:
-                worst, where = abs(vx[c] - vy[c]), f"{x.serial} {c}: {vx[c]:.6f} vs {vy[c]:.6f} mm"
+            u, v = vx[c], vy[c]
+            if u is not None and v is not None and abs(u - v) > worst:
+                worst, where = abs(u - v), f"{x.serial} {c}: {u:.6f} vs {v:.6f} mm"
     return differ, worst, where
 
 

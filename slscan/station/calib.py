@@ -62,7 +62,7 @@ def rig_calibration(config: RigConfig) -> CalibrationInfo:
         return CalibrationInfo(None, None, None, None, str(path), problem=f"{path}: {exc}")
     created = dt.datetime.fromisoformat(str(cal.data["created"]))
     ident = str(cal.data.get("id") or f"{cal.data.get('rig', config.name)}@{created:%Y-%m-%dT%H:%M:%S}")
-    return CalibrationInfo(ident, created.date(), tuple(cal.camera_size), tuple(cal.projector_size), str(path))
+    return CalibrationInfo(ident, created.date(), cal.camera_size, cal.projector_size, str(path))
 
 
 def max_age_days(station_limit: float, program: PartProgram) -> float | None:

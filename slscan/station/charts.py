@@ -155,7 +155,7 @@ def draw_chart(c: Characteristic, s: CharacteristicStats) -> Any:
     _limit_lines(bottom, chart.spread if chart else None)
     if s.subgroup == 1 and s.uncertain:
         top.scatter([a for a, p in zip(x, s.plotted) if p.decision == UNCERTAIN],
-                    [p.charted_mm for p in s.plotted if p.decision == UNCERTAIN], s=60, marker="^",
+                    [v for v, p in zip(s.values_mm, s.plotted) if p.decision == UNCERTAIN], s=60, marker="^",
                     facecolors="none", edgecolors=_PURPLE, linewidths=1.4, zorder=5,
                     label="uncertain: within U of the tolerance (re-measure)")
     top.axhline(c.tolerance_mm, color=_RED, linewidth=1.5, label=f"tolerance {c.tolerance_mm:.3f} mm")
@@ -178,8 +178,8 @@ def draw_chart(c: Characteristic, s: CharacteristicStats) -> Any:
     more = dist.get_legend_handles_labels()
     flagged = ([top.scatter([], [], s=110, facecolors="none", edgecolors=_ORANGE, linewidths=1.5)],
                [f"flagged by a Nelson rule (rules used: {','.join(map(str, s.rules))})"])
-    legend_cell.legend(handles[0] + more[0] + flagged[0], handles[1] + more[1] + flagged[1], loc="upper left",
-                       fontsize=7, frameon=False)
+    legend_cell.legend([*handles[0], *more[0], *flagged[0]], [*handles[1], *more[1], *flagged[1]],
+                       loc="upper left", fontsize=7, frameon=False)
     kind = "individuals / moving range" if s.subgroup == 1 else f"X-bar / R (subgroups of {s.subgroup})"
     head = f"{c.name}: {c.label} - {kind}; {s.limits_note}"
     fig.suptitle("\n".join([head] + capability_lines(s)), fontsize=9)

@@ -22,13 +22,14 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 from scanner.errors import ScannerError
 from scanner.rig import Rig, RigConfig, open_rig
 from scanner.session import write_json
 
 
+@runtime_checkable
 class StartInput(Protocol):
     """A foot switch on a trigger box's input: presses since the previous call."""
 
@@ -80,7 +81,7 @@ class Bench:
         try:
             if not self.simulated and self._input is None and not self.input_problem:
                 trigger = self._hardware_rig().trigger
-                if not callable(getattr(trigger, "presses", None)):
+                if not isinstance(trigger, StartInput):
                     self.input_problem = f"rig {self.config.name} has no trigger box: no foot switch"
                     return False
                 self._input = trigger

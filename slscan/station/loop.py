@@ -225,8 +225,11 @@ class Station:
             with self.bench.view(part, k, views) as rig:
                 self._set_exposure(rig)
                 sessions.append(folder / f"view{k}")
-                scanned.append(scan(rig, self.patterns, sessions[-1],
-                                    lambda stage, done, total, where=where: step(stage + where, done, total)).session)
+
+                def view_step(stage: str, done: int, total: int, where: str = where) -> None:
+                    step(stage + where, done, total)
+
+                scanned.append(scan(rig, self.patterns, sessions[-1], view_step).session)
         return self._measured(lambda: self.measurement.measure(scanned, self.program), step)
 
     def _scan_whole(self, part: int, folder: Path, sessions: list[Path],

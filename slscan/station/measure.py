@@ -196,7 +196,7 @@ class InspectionMeasurement:
             try:
                 scan = load_session(session.root)
                 table, view, path = self._inspect(scan, program, session, session.outputs, session.id, k,
-                                                  session_uncertainty(session)(scan.pixels))
+                                                  session_uncertainty(session)(scan.camera_pixels()))
             except InspectionError as exc:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
             paths.append(path)

@@ -87,9 +87,9 @@ class ProgramTable(schema.Schema):
     name: Name
     version: schema.Str | schema.Int | schema.Float
     cad: schema.Str
-    mesh_unit: Literal[tuple(MESH_UNITS_MM)] = "mm"  # type: ignore[valid-type]
+    mesh_unit: Literal[tuple(MESH_UNITS_MM)] = "mm"  # type: ignore[valid-type]  # Literal built from the registry
     description: schema.Str = ""
-    decision_rule: Literal[tuple(DECISION_RULES)] = GUARD_BANDED  # type: ignore[valid-type]
+    decision_rule: Literal[tuple(DECISION_RULES)] = GUARD_BANDED  # type: ignore[valid-type]  # from the registry
 
 
 MAX_VIEWS = 16
@@ -130,8 +130,8 @@ class ControlTable(schema.Schema):
 class CharacteristicTable(schema.Schema):
     name: Name
     face: schema.Str
-    kind: Literal[KINDS]  # type: ignore[valid-type]
-    method: Literal[FORM_METHODS] | None = None  # type: ignore[valid-type]
+    kind: Literal[KINDS]  # type: ignore[valid-type]  # Literal built from the figures registry
+    method: Literal[FORM_METHODS] | None = None  # type: ignore[valid-type]  # from the figures registry
     tolerance_mm: schema.PositiveFloat  # finite: the base schema refuses inf and NaN
 
 
@@ -245,10 +245,11 @@ def load_program(path: str | Path, faces: Callable[[PartProgram], Mapping[str, s
     chars = _characteristics(f.characteristic, path)
     views = f.scan.views
     angles = None if isinstance(views, int) else tuple(views)
+    count = views if isinstance(views, int) else len(views)
     program = PartProgram(
         path=path, name=f.program.name, version=str(f.program.version), cad_path=cad, mesh_unit=f.program.mesh_unit,
         description=f.program.description,
-        scan=ScanSettings(patterns, f.scan.exposure_s, len(angles) if angles else int(views), angles),
+        scan=ScanSettings(patterns, f.scan.exposure_s, count, angles),
         calibration_id=f.calibration.id, max_calibration_age_days=f.calibration.max_age_days,
         characteristics=chars, fingerprint=hashlib.sha256(path.read_bytes()).hexdigest()[:12],
         face_check="not checked", subgroup_size=f.control.subgroup_size, face_names=dict(f.faces),

@@ -148,7 +148,7 @@ class CharacteristicStats:
     @property
     def values_mm(self) -> list[float]:
         """The charted values (a censored one at its limit), in time order."""
-        return [p.charted_mm for p in self.plotted]  # type: ignore[misc]
+        return [v for p in self.plotted if (v := p.charted_mm) is not None]  # every plotted point has one
 
     @property
     def mean_mm(self) -> float | None:
@@ -243,7 +243,7 @@ def characteristic_stats(c: Characteristic, points: Sequence[ChartPoint], subgro
         k = len(x) // subgroup
         groups = x[:k * subgroup].reshape(k, subgroup)
         group_cens = cens[:k * subgroup].reshape(k, subgroup)
-        location, location_cens = groups.mean(axis=1), group_cens.any(axis=1)
+        location, location_cens = groups.mean(axis=1), np.any(group_cens, axis=1)
         in_limits = use[:k * subgroup].reshape(k, subgroup).all(axis=1)
         spread = np.where(location_cens, np.nan, np.ptp(groups, axis=1))
     need = minimum_points(subgroup)

@@ -306,7 +306,7 @@ def open_results(url: str, create: bool = True) -> ResultsStore:
                                    f"{exc.strerror or exc}") from None
         elif not path.is_file():
             raise ResultsError(f"{path}: no results database there (is the data folder or --db right?)")
-        target = f"sqlite:///{path}" if create else f"sqlite:///file:{path}?mode=ro&uri=true"
+        target: str | sa.URL = f"sqlite:///{path}" if create else f"sqlite:///file:{path}?mode=ro&uri=true"
         engine = sa.create_engine(target, connect_args={"timeout": 30.0})
         sa.event.listen(engine, "connect", _sqlite_pragmas(create))
     elif url.startswith(("postgresql://", "postgres://")):
@@ -602,7 +602,8 @@ def write_csv(out: TextIO, rows: Sequence[ResultRow], values: dict[int, list[Val
     n = 0
     for r in rows:
         head = [csv_cell(getattr(r, c)) for c in _CSV_RESULT_COLUMNS]
-        for v in values.get(r.id) or [None]:
+        cycle: list[ValueRecord | None] = [*values.get(r.id, [])] or [None]  # None: one line without values
+        for v in cycle:
             w.writerow(head + ([csv_cell(getattr(v, c)) for c in _VALUE_COLUMNS] if v else [""] * len(_VALUE_COLUMNS)))
             n += 1
     return n

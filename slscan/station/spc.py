@@ -183,15 +183,15 @@ def individuals_limits(x: Sequence[float], censored: Sequence[bool] | None = Non
     """I-MR limits from values in time order (censored values at their detection limit,
     `censored` marking them; module docstring). Any number of values >= 3: the minimum
     sample is the caller's (`minimum_points`)."""
-    x = np.asarray(x, float)
-    cens = _censored(x, censored)
+    values = np.asarray(x, float)
+    cens = _censored(values, censored)
     known = ~cens[1:] & ~cens[:-1]
     if known.sum() < 2:
         raise ValueError(f"I-MR limits need at least 2 moving ranges of measured values, got {int(known.sum())}")
-    mr_bar = float(np.abs(np.diff(x))[known].mean())
+    mr_bar = float(np.abs(np.diff(values))[known].mean())
     d2, d3_factor, d4_factor = chart_constants(2)
     sigma = mr_bar / d2
-    mean = normal_fit(x, cens)[0]
+    mean = normal_fit(values, cens)[0]
     mr_sigma = mr_bar * range_constants(2)[1] / d2
     return ControlChart("I-MR", 1, _clipped(mean, 3 * sigma, sigma),
                         Limits(mr_bar, d3_factor * mr_bar, d4_factor * mr_bar, mr_sigma), sigma, len(x),
@@ -253,7 +253,8 @@ def _count_in(ok: np.ndarray, length: int, need: int) -> np.ndarray:
     return out
 
 
-def nelson(points: Sequence[float], limits: Limits, rules: Sequence[int] = DEFAULT_RULES) -> list[set[int]]:
+def nelson(points: Sequence[float] | np.ndarray, limits: Limits,
+           rules: Sequence[int] = DEFAULT_RULES) -> list[set[int]]:
     """Per point, the chosen Nelson rules (module docstring) whose run ends at it."""
     unknown = sorted(set(rules) - set(NELSON_RULES))
     if unknown:

@@ -232,7 +232,11 @@ def _import_run(seed: int, folder: Path) -> dict[str, Any]:
         except ScannerError as exc:
             out[case] = {"refused": str(exc)}
             continue
-        points, _, pixels = read_ply_pixels(scan.cloud_path)
+        read = read_ply_pixels(scan.cloud_path)
+        if read is None:
+            out[case] = {"refused": f"{scan.cloud_path}: no pixel columns"}
+            continue
+        points, _, pixels = read
         depth = np.full(gt.depth.shape, np.nan)
         depth[pixels[:, 1], pixels[:, 0]] = points[:, 2]
         err = depth - gt.depth

@@ -43,7 +43,7 @@ def cmd_cad_bench(args: argparse.Namespace) -> int:
             t0 = time.perf_counter()
             proc = subprocess.Popen([sys.executable, "-m", "slscan", "cad", str(path), "--json"],
                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-            out = proc.stdout.read()  # type: ignore[union-attr]
+            out = proc.stdout.read() if proc.stdout is not None else b""  # PIPE: always there
             _, status, usage = os.wait4(proc.pid, 0)
             wall = time.perf_counter() - t0
             if status != 0:

@@ -36,10 +36,11 @@ def opencv_psp(frames_path: str, proj_w: int, proj_h: int, periods: int, repeats
 
     frames = np.load(frames_path)
     imgs = [np.ascontiguousarray(f) for f in frames]
-    p = cv2.structured_light.SinusoidalPattern.Params()
+    sl = cv2.structured_light  # type: ignore[attr-defined]  # opencv-contrib's module, absent from the stubs
+    p = sl.SinusoidalPattern.Params()
     p.width, p.height, p.nbrOfPeriods = proj_w, proj_h, periods
-    p.methodId, p.shiftValue = cv2.structured_light.PSP, float(2 * np.pi / 3)
-    sp = cv2.structured_light.SinusoidalPattern_create(p)
+    p.methodId, p.shiftValue = sl.PSP, float(2 * np.pi / 3)
+    sp = sl.SinusoidalPattern_create(p)
     size = (imgs[0].shape[1], imgs[0].shape[0])
     times = []
     for _ in range(repeats + 1):  # the first run warms caches and is not counted

@@ -114,7 +114,7 @@ def simulated_bins_bench(args: argparse.Namespace) -> dict[str, Any]:
                     row["wall_s"] = r.time_s
                     row["found"] = r.ok
                     row["reason"] = r.reason
-                    if r.ok:
+                    if r.ok and r.pose is not None:
                         rot, trans = pose_difference(b.poses[k], r.pose)
                         row.update(rot_deg=rot, trans_mm=trans,
                                    trans_centre_mm=pose_difference(b.poses[k], r.pose, centre)[1],
@@ -149,7 +149,7 @@ def bin_sessions(paths: list[Path]) -> list[Path]:
     return out
 
 
-def saved_bins_bench(args: argparse.Namespace) -> int:
+def saved_bins_bench(args: argparse.Namespace) -> dict[str, Any]:
     """`slscan bench pose --sessions`: `pose_scene` on every saved bin, judged by
     `studies.bin_judge` (wall and CPU time of every part's pose, and of each bin's instances and context);
     the figures: each bin's judgement, the summary lines, the load averages."""
@@ -208,7 +208,7 @@ def saved_bins_bench(args: argparse.Namespace) -> int:
             "load_average": {"start": load0, "end": load1}}
 
 
-def rows_summary(args: argparse.Namespace) -> int:
+def rows_summary(args: argparse.Namespace) -> dict[str, Any]:
     """`slscan bench pose --summary ROWS...`: the saved-bins figures of rows files written by
     `--sessions --rows` runs (a long benchmark run in pieces, or stopped part way); the summary lines."""
     import numpy as np

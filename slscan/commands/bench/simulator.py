@@ -37,6 +37,7 @@ def run_simbench(repeats: int = 5) -> dict[str, Any]:
 
     from scanner.patterns import PatternSet
     from scanner.rig import RigConfig
+    from sim.virtual_devices import SimProjector
     from sim.virtual_rig import open_sim_rig
 
     config = RigConfig.load()
@@ -60,6 +61,7 @@ def run_simbench(repeats: int = 5) -> dict[str, Any]:
             with lock:
                 stamps.append(time.monotonic())
 
+        assert isinstance(proj, SimProjector)  # open_sim_rig's projector
         proj.connect_trigger_out(stamp)
         proj.load_patterns(patterns)
         proj.run_sequence(config.period_s).wait(10 * len(patterns) * config.period_s + 10.0)

@@ -97,11 +97,11 @@ def _viewbench(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     session = MultiViewSession.open(root)
     if args.part or args.pairs_only:
         truths = [_truth(v.session.root) for v in session.views]
-        figures = {"part": args.part or "demo", "views": len(session.views), "camera": _camera(session),
-                   "pairs": _pairs(session, truths)}
-        (args.out / "viewbench.json").write_text(json.dumps(figures, indent=2, default=float) + "\n")
-        return figures, "\n".join(f"{figures['part']} pairs {k} apart: ours {p['ours']}; Open3D "
-                                  f"{p['open3d_fpfh_ransac_icp']}" for k, p in figures["pairs"].items())
+        part, pairs = args.part or "demo", _pairs(session, truths)
+        doc = {"part": part, "views": len(session.views), "camera": _camera(session), "pairs": pairs}
+        (args.out / "viewbench.json").write_text(json.dumps(doc, indent=2, default=float) + "\n")
+        return doc, "\n".join(f"{part} pairs {k} apart: ours {p['ours']}; Open3D "
+                               f"{p['open3d_fpfh_ransac_icp']}" for k, p in pairs.items())
     figures: dict[str, Any] = {"views": len(session.views), "camera": _camera(session)}
     load0, peer0 = os.getloadavg()[0], peer_s()
     whole = whole_part(session)
@@ -150,16 +150,19 @@ def _nist_scene(part: str, rig: Path, out: Path) -> Path:
     if not (STEP_DIR / file).is_file():
         raise ScannerError(f"{STEP_DIR / file}: the NIST STEP files are not here")
     tess = load_cad(STEP_DIR / file, scale=scale, deflection_mm=0.01).tessellation
-    scene = part_on_stage(tess.vertices, tess.triangles, tess.face, up, RigConfig.load(rig).stage.nominal)
+    stage = RigConfig.load(rig).stage
+    if stage is None:
+        raise ScannerError(f"{rig}: the rig has no [stage] to stand the part on")
+    scene = part_on_stage(tess.vertices, tess.triangles, tess.face, up, stage.nominal)
     lines = [f'name = "{part} on the turntable"']
     for obj in scene.objects:
-        if obj.kind == "mesh":
+        if obj.kind == "mesh" and obj.triangles is not None:
             mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(obj.world_vertices()),
                                              o3d.utility.Vector3iVector(obj.triangles))
-            o3d.io.write_triangle_mesh(str(out / f"{obj.name}.ply"), mesh)
+            o3d.io.write_triangle_mesh(out / f"{obj.name}.ply", mesh)
             lines += ["[[objects]]", f'name = "{obj.name}"', f'mesh = "{obj.name}.ply"']
         else:
-            lines += ["[[objects]]", f'name = "{obj.name}"', f"plane = {{ size_mm = {list(obj.size_mm)} }}",
+            lines += ["[[objects]]", f'name = "{obj.name}"', f"plane = {{ size_mm = {list(obj.size_mm or ())} }}",
                       f"albedo = {obj.albedo}", f"pose = {{ matrix = {obj.pose.tolist()} }}"]
     path = out / "scene.toml"
     path.write_text("\n".join(lines) + "\n")
@@ -312,7 +315,8 @@ def _pairs(session: Any, truths: list[np.ndarray]) -> dict[str, Any]:
         k = round(apart / step)
         if k < 1 or abs(k * step - apart) > 1e-6:
             continue
-        ours, theirs = [], []
+        ours: list[tuple[float, float] | None] = []
+        theirs: list[tuple[float, float] | None] = []
         for i in range(n):
             j = (i + k) % n
             truth = np.linalg.inv(truths[j]) @ truths[i]
