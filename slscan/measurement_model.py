@@ -35,6 +35,7 @@ from inspection.uncertainty import (
     SensorNoise,
     fringe_error,
 )
+from scanner.camera_noise import CameraNoise
 from scanner.decode import DecodeResult
 from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
@@ -44,12 +45,10 @@ from scanner.pipeline import decode_session
 def sensor_noise(rig_config: dict[str, Any], bit_depth: int, where: object) -> SensorNoise | None:
     """The camera's intensity noise (DN) as a function of its mean signal, from a rig
     config's [camera.sensor] table (None without one)."""
-    from sim.render import SensorModel
-
     table = (rig_config.get("camera") or {}).get("sensor")
     if not table:
         return None
-    model = SensorModel.from_table(table, where)
+    model = CameraNoise.from_table(table, where)
     return lambda mean: model.noise_sigma_dn(mean, bit_depth)
 
 

@@ -32,7 +32,8 @@ Blur = Annotated[float, Field(strict=True, ge=0.0, le=MAX_BLUR_SIGMA_PX)]  # Gau
 
 
 class SensorTable(Schema):
-    """[camera.sensor] of a simulated rig (read by sim.render.SensorModel), each key within the
+    """[camera.sensor] of a simulated rig (read by scanner.camera_noise.CameraNoise, the noise model,
+    and sim.render.SensorModel, the simulated sensor), each key within the
     range real sensors span, refused outside it:
 
         full_well_e    1e3 .. 1e6 e-     (small-pixel CMOS ~2 000, large CCD pixels ~500 000)

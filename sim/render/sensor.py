@@ -8,12 +8,11 @@ quantisation and clipping.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from scanner import schema
+from scanner.camera_noise import CameraNoise
 from scanner.drivers.simulator import SensorTable
 
 if TYPE_CHECKING:
@@ -22,10 +21,10 @@ if TYPE_CHECKING:
 SUPPORTED_BIT_DEPTHS = (8, 10, 12)
 
 
-class SensorModel(SensorTable):
+class SensorModel(CameraNoise):
     """The simulated camera sensor and illumination levels: a [camera.sensor] table of the
-    rig TOML (`scanner.drivers.simulator.SensorTable`: its keys, ranges and defaults) and
-    what it does to an image.
+    rig TOML and what it does to an image (its noise: `scanner.camera_noise.CameraNoise`, the
+    model the product's uncertainty uses).
 
     `flux_e_per_s`: electrons per second for an albedo-1 surface under full projector
     white at normal incidence; `ambient`: uniform ambient light as a fraction of that;
@@ -37,11 +36,6 @@ class SensorModel(SensorTable):
         return cls() if table is None else cls.model_validate(table.model_dump())
 
     @classmethod
-    def from_table(cls, table: Mapping[str, Any], path: object, prefix: str = "camera.sensor") -> SensorModel:
-        """From a [camera.sensor] table as written (a session manifest's); errors name the file and key."""
-        return schema.parse(cls, table, str(path), prefix)
-
-    @classmethod
     def from_config(cls, config: RigConfig) -> SensorModel:
         """From a rig's camera ([camera.sensor], validated at load; optional)."""
         return cls.of(config.devices["camera"].settings.sensor)
@@ -49,18 +43,7 @@ class SensorModel(SensorTable):
     @staticmethod
     def max_dn(bit_depth: int) -> int:
         check_bits(bit_depth)
-        return (1 << bit_depth) - 1
-
-    def gain_e_per_dn(self, bit_depth: int) -> float:
-        """Electrons per digital number: the full well maps onto the full range."""
-        return self.full_well_e / self.max_dn(bit_depth)
-
-    def noise_sigma_dn(self, mean_dn: np.ndarray | float, bit_depth: int) -> np.ndarray:
-        """Temporal noise (DN, one sigma) of a pixel whose mean signal is `mean_dn`:
-        shot noise, read noise and quantisation (1/12 DN^2). Valid below saturation."""
-        g = self.gain_e_per_dn(bit_depth)
-        m = np.maximum(np.asarray(mean_dn, dtype=np.float64), 0.0)
-        return np.sqrt(m / g + (self.read_noise_e / g) ** 2 + 1.0 / 12.0)
+        return CameraNoise.max_dn(bit_depth)
 
     def expose(self, mean_electrons: np.ndarray, bit_depth: int, rng: np.random.Generator) -> np.ndarray:
         """A noisy digitised image of a mean electron image."""
