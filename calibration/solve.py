@@ -205,13 +205,13 @@ def _refine(views: list[Correspondence], camera_size: tuple[int, int], projector
     start = initial_extrinsics(camera.poses, projector.poses)
     cams, projs = [c.camera for c in views], [c.projector for c in views]
     links = corner_links(views)
-    stereo = joint_refine(cams, projs, camera.pinhole, projector.pinhole, start, camera.poses, settings.fix_k3,
+    stereo = joint_refine(cams, projs, camera.pinhole, projector.pinhole, start, camera.poses, fix_k3=settings.fix_k3,
                           links=links)
     choice = choose_camera(camera, stereo, settings.max_joint_camera_std)
     if choice.source != "joint refinement":
-        fixed = joint_refine(cams, projs, camera.pinhole, projector.pinhole, start, camera.poses, settings.fix_k3,
-                             fix_camera=True, camera_covariance=own_covariance(camera, cams, settings.fix_k3),
-                             links=links)
+        fixed = joint_refine(cams, projs, camera.pinhole, projector.pinhole, start, camera.poses,
+                             fix_k3=settings.fix_k3, fix_camera=True,
+                             camera_covariance=own_covariance(camera, cams, settings.fix_k3), links=links)
         stereo = replace(fixed, std=fixed.std | {f"camera.{n}": v for n, v in camera.std.items()})
     return camera, projector, stereo, choice
 

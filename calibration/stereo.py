@@ -332,7 +332,7 @@ def converged(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray
 
 
 def joint_refine(cam_views: list[ViewPoints], proj_views: list[ViewPoints], camera: Pinhole, projector: Pinhole,
-                 proj_from_cam: np.ndarray, board_poses: np.ndarray, fix_k3: bool = False,
+                 proj_from_cam: np.ndarray, board_poses: np.ndarray, *, fix_k3: bool = False,
                  fix_camera: bool = False, camera_covariance: np.ndarray | None = None,
                  links: list[CornerLinks] | None = None) -> StereoCalibration:
     """Refine every parameter from the starting values given; `fix_camera` keeps the

@@ -431,7 +431,7 @@ def write_result(result: CalibrationResult, path: str | Path) -> Path:
 def solve_views(board: Board, correspondences: list[Correspondence], failures: dict[str, str],
                 camera_size: tuple[int, int], projector_size: tuple[int, int], settings: CalibrationSettings,
                 rig_name: str, gamma: GammaFit | None, say: Say,
-                recording: CalibrationRecording | None = None) -> CalibrationResult:
+                *, recording: CalibrationRecording | None = None) -> CalibrationResult:
     say(f"solving from {len(correspondences)} views")
     solution = solve(correspondences, camera_size, projector_size, settings)
     result = CalibrationResult(rig_name, board, settings, solution, gamma, failures)
@@ -444,7 +444,7 @@ def solve_views(board: Board, correspondences: list[Correspondence], failures: d
 
 
 def calibrate_views(board: Board, views: list[View], projector_size: tuple[int, int], settings: CalibrationSettings,
-                    rig_name: str, say: Say, recording: CalibrationRecording | None = None,
+                    rig_name: str, say: Say, *, recording: CalibrationRecording | None = None,
                     strict: bool = True) -> CalibrationResult:
     """Calibrate from decoded views alone (e.g. another tool's Gray-code captures)."""
     if not views:
@@ -452,12 +452,13 @@ def calibrate_views(board: Board, views: list[View], projector_size: tuple[int, 
     corr, failures = correspond_all(board, views, strict, say)
     camera_size = views[0].size
     _log_views(recording, views, corr, camera_size, projector_size)
-    result = solve_views(board, corr, failures, camera_size, projector_size, settings, rig_name, None, say, recording)
+    result = solve_views(board, corr, failures, camera_size, projector_size, settings, rig_name, None, say,
+                         recording=recording)
     return finish(result, [], None, say, recording)
 
 
 def calibrate_capture(capture: CaptureSet, settings: CalibrationSettings, rig_name: str, say: Say,
-                      recording: CalibrationRecording | None = None, strict: bool = True,
+                      *, recording: CalibrationRecording | None = None, strict: bool = True,
                       board: Board | None = None) -> CalibrationResult:
     """Calibrate from a capture folder written by `calibrate_rig`; `board` replaces the
     board description the capture was made with (e.g. to correct it)."""
@@ -473,7 +474,7 @@ def calibrate_capture(capture: CaptureSet, settings: CalibrationSettings, rig_na
     views = capture.views()
     corr, failures = correspond_all(board, views, strict, say)
     _log_views(recording, views, corr, csize, psize)
-    result = solve_views(board, corr, failures, csize, psize, settings, rig_name, gamma, say, recording)
+    result = solve_views(board, corr, failures, csize, psize, settings, rig_name, gamma, say, recording=recording)
     plates = [Plate(h, gm, decode_pose(f"plate at {h} mm", f, patterns, bits, psize,  # 1.0 beside a fitted gamma:
                                        judged=gamma is None or abs(gm - 1.0) > 1e-9))  # uncompensated on purpose
               for h, gm, f in capture.plates()]
@@ -509,7 +510,7 @@ def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: 
                        rig.config.name) as writer:
         gamma, corr, failures = capture_board_poses(rig, procedure, bench, say, writer, recording)
         result = solve_views(procedure.board, corr, failures, csize, psize, procedure.settings, rig.config.name,
-                             gamma, say, recording)
+                             gamma, say, recording=recording)
         check_limits(result.solution, result.settings)  # before spending time on the plate and artefact
         plates, artefact = _capture_checks(rig, procedure, bench, writer, gamma.gamma, say)
     return finish(result, plates, artefact, say, recording)

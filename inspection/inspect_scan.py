@@ -121,8 +121,8 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
     q = transform_points(reg.transform, part.points)
     qn = part.normals @ reg.transform[:3, :3].T
     assert target.samples is not None
-    seg = assign_faces(q, qn, model, target.samples, target.dense.tree, settings.max_distance_mm,
-                       settings.max_normal_deg)
+    seg = assign_faces(q, qn, model, target.samples, tree=target.dense.tree, max_distance_mm=settings.max_distance_mm,
+                       max_normal_deg=settings.max_normal_deg)
     times["segment"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     R = reg.transform[:3, :3]

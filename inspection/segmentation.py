@@ -84,7 +84,7 @@ def inside_faces(model: CadModel, uv: np.ndarray, face: np.ndarray) -> np.ndarra
 
 
 def assign_faces(points: np.ndarray, normals: np.ndarray, model: CadModel, samples: LabelledCloud,
-                 tree: cKDTree | None = None, max_distance_mm: float = 0.5, max_normal_deg: float = 45.0,
+                 *, tree: cKDTree | None = None, max_distance_mm: float = 0.5, max_normal_deg: float = 45.0,
                  k: int = 8) -> Segmentation:
     """Assign each point (N, 3), with its unit normal, to a face of `model` (see the
     module docstring); `samples` are dense labelled samples of the model (and `tree`

@@ -196,7 +196,7 @@ def offset_check(name: str, scope: str, offset: float, standard_error: float, fa
 
 
 def majority_check(name: str, scope: str, share: float | None, judged: int, unit: str, expected: str,
-                   cause: str, note: str = "", below: bool = True, minimum: int = MIN_JUDGED) -> Check:
+                   cause: str, *, note: str = "", below: bool = True, minimum: int = MIN_JUDGED) -> Check:
     """A share judged by majority: it fails when more than half (`below`: the share must
     stay at or below 0.5; else at or above it) of what is judged (at least `minimum`) says so."""
     if share is None or judged < minimum:

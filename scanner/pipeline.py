@@ -120,7 +120,7 @@ def plan_for_rig(rig: Rig, patterns: PatternSet, request: ExposureRequest) -> Ex
                           float(2 ** cam.bit_depth - 1))
 
 
-def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, progress: Progress = _quiet,
+def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, *, progress: Progress = _quiet,
             recording: SessionRecording | None = None, exposure: ExposureRequest | None = None,
             extra: dict[str, Any] | None = None, keep: dict[int, np.ndarray] | None = None) -> Session:
     """Capture one scan into the writer's new session folder and return it, complete;
@@ -579,7 +579,7 @@ def log_session_frames(recording: SessionRecording, session: Session) -> None:
         recording.log_png_frame(k, data, spec)
 
 
-def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress = _quiet,
+def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, *, progress: Progress = _quiet,
          then: Callable[[ScanResult, SessionRecording | None], None] | None = None,
          level: str | None = None, exposure: ExposureRequest | None = None,
          extra: dict[str, Any] | None = None) -> ScanResult:
@@ -601,7 +601,8 @@ def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, progress: Progress
             SessionRecording(writer.root / RECORDING, writer.id, level=level))
         if rec is not None:
             rec.log_rig(rig.model)
-        session = capture(rig, patterns, writer, progress, rec, exposure, extra, keep=frames)
+        session = capture(rig, patterns, writer, progress=progress, recording=rec, exposure=exposure, extra=extra,
+                          keep=frames)
         if then is not None:  # BLAS on one thread: the stages' parallelism is their own threads', and an idle
             stack.enter_context(native_threads(1))  # BLAS thread spins, taking a core from them
         result = process(session, progress, rec, frames=frames, write_behind=then is not None)

@@ -246,7 +246,7 @@ def fringe_scan_bin(b: BinScene, seed: int = 0) -> tuple[OrganisedCloud, np.ndar
     return cloud, ids
 
 
-def bin_scene(n_parts: int, seed: int = 0, part: TabPart = NICKEL_TAB, tray_mm: float = 420.0,
+def bin_scene(n_parts: int, *, seed: int = 0, part: TabPart = NICKEL_TAB, tray_mm: float = 420.0,
               spread_mm: tuple[float, float] = (30.0, 24.0), max_tilt_rad: float = np.radians(6.0),
               drop_height_mm: float = 30.0) -> BinScene:
     """`n_parts` parts dropped at random onto a tray `tray_mm` from the camera, their

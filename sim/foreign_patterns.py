@@ -72,7 +72,7 @@ def opencv_graycode(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     return cols, rows
 
 
-def fringe_rows(extent: int, fringes: list[float], steps: int, origin: float = 0.0, sign: int = 1,
+def fringe_rows(extent: int, fringes: list[float], steps: int, *, origin: float = 0.0, sign: int = 1,
                 delta: float = 0.5, order: str = "frequency-major", gray: str | None = None,
                 gray_position: str = "after", references: str = "none") -> np.ndarray:
     """(n_frames, extent) rows in 0..1 of a phase-shift set in the given conventions (module
@@ -97,7 +97,7 @@ def fringe_rows(extent: int, fringes: list[float], steps: int, origin: float = 0
     return np.array(rows)
 
 
-def capture(rows: np.ndarray, coordinate: np.ndarray, bits: int = 8, dark: float = 0.08, bright: float = 0.85,
+def capture(rows: np.ndarray, coordinate: np.ndarray, *, bits: int = 8, dark: float = 0.08, bright: float = 0.85,
             noise: float = 0.004, seed: int = 0, lit: np.ndarray | None = None) -> np.ndarray:
     """Frames a camera takes of rows shown along the coded axis, each pixel seeing projector
     coordinate `coordinate` (H, W; OpenCV pixel centres, NaN: not lit; the rows interpolated

@@ -231,7 +231,7 @@ def lying_pose(vertices: np.ndarray, turn_rad: float = 0.0, distance_mm: float =
 
 
 def part_scene(vertices: np.ndarray, triangles: np.ndarray, face: np.ndarray, pose: np.ndarray,
-               up: tuple[float, float, float] = (0.0, 0.0, 1.0), albedo: float = 0.7, table: bool = True,
+               *, up: tuple[float, float, float] = (0.0, 0.0, 1.0), albedo: float = 0.7, table: bool = True,
                name: str = "part") -> tuple[Scene, np.ndarray]:
     """(scene, face_of_id): one mesh object per face, placed by `pose` (part -> camera),
     lying on a table: the plane through the part's lowest point along its CAD `up`

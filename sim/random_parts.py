@@ -292,7 +292,7 @@ def scan_part(model: Any, placement: Placement, seed: int, config: Any = None,
     config = scaled_rig(config or RigConfig.load(), placement.rig_scale)
     tess = model.tessellation
     pose = part_pose(tess.vertices, placement, up)
-    scene, face_of_id = part_scene(tess.vertices, tess.triangles, tess.face, pose, up)
+    scene, face_of_id = part_scene(tess.vertices, tess.triangles, tess.face, pose, up=up)
     patterns = PatternSet.load(config.patterns_path)
     with native_threads(1), open_rig(config, scene=scene, seed=seed) as rig:
         stack = acquire(rig, patterns, AcquisitionSettings.for_rig(rig), lambda i, f: None)

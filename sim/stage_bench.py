@@ -34,7 +34,7 @@ def board_on_stage(target: Target, stage: StageModel, offset_mm: float = 10.0) -
 
 
 def part_on_stage(vertices: np.ndarray, triangles: np.ndarray, face: np.ndarray, up: tuple[float, float, float],
-                  stage: StageModel, platter_mm: float = 160.0, placement: np.ndarray | None = None) -> Scene:
+                  stage: StageModel, *, platter_mm: float = 160.0, placement: np.ndarray | None = None) -> Scene:
     """A part (a tessellated CAD model, one mesh object per face) standing on the platter of
     `stage`'s first rotary axis: its CAD `up` along the axis, its bounding box centred on the
     axis, its lowest point on the platter (a square plane of `platter_mm`, through the axis
@@ -55,7 +55,7 @@ def part_on_stage(vertices: np.ndarray, triangles: np.ndarray, face: np.ndarray,
     pose[:3, 3] = axis.point_mm - centre - a * (w @ a).min()
     if placement is not None:
         pose = pose @ placement
-    scene, _ = part_scene(vertices, triangles, face, pose, tuple(up), table=False)
+    scene, _ = part_scene(vertices, triangles, face, pose, up=tuple(up), table=False)
     x = np.cross(a, [0.0, 0.0, 1.0])
     x /= np.linalg.norm(x)
     plate = np.eye(4)

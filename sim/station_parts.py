@@ -133,7 +133,7 @@ def raise_high_section(vertices: np.ndarray, raise_mm: float) -> np.ndarray:
     return v
 
 
-def make_part(name: str, bow_mm: float = 0.0, lobe_mm: float = 0.0, raise_mm: float = 0.0,
+def make_part(name: str, *, bow_mm: float = 0.0, lobe_mm: float = 0.0, raise_mm: float = 0.0,
               turn_rad: float = 0.0, shift_mm: tuple[float, float] = (0.0, 0.0), chamfer_mm: float = 0.0) -> SimPart:
     """The demo part with a high-top bow, boss lobing, a raised high section and chamfer
     lobing (mm, 0 = none) and its truth; placed `turn_rad`, `shift_mm` from the base placement."""

@@ -246,7 +246,7 @@ def _inner_estimate(fields: dict[str, Any], name: str) -> Estimate:
     return Estimate(fields[f"{name}_mm"], fields[f"{name}_u_mm"] / 2.0, k=2.0)
 
 
-def sphere_radius(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (),
+def sphere_radius(bench: Bench, artefacts: ArtefactSet, n: int, *, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (),
                   noise_scale: float = 1.0, processes: int = 1,
                   progress: Callable[[str], None] | None = None) -> CoverageResult:
     """Coverage of the sphere radius as `slscan verify` measures it (inner variant, with
@@ -265,7 +265,7 @@ def sphere_radius(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0, r
     return run_trials(("sphere radius",), trial, n, processes, progress)[0]
 
 
-def ball_bar_length(bench: Bench, artefacts: ArtefactSet, n: int, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (),
+def ball_bar_length(bench: Bench, artefacts: ArtefactSet, n: int, *, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (),
                     noise_scale: float = 1.0, processes: int = 1,
                     progress: Callable[[str], None] | None = None) -> CoverageResult:
     """Coverage of the ball bar's centre distance as `slscan verify` measures it (inner
@@ -399,7 +399,7 @@ def plate_truth(form: Any, true_points: np.ndarray, settings: Any) -> tuple[floa
     return flatness, float(np.sqrt(np.mean((z - mean)[mask] ** 2)))
 
 
-def plate_figures(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (), noise_scale: float = 1.0,
+def plate_figures(bench: Bench, n: int, *, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (), noise_scale: float = 1.0,
                   plate: Plate = Plate(), processes: int = 1,
                   progress: Callable[[str], None] | None = None) -> tuple[CoverageResult, CoverageResult]:
     """Coverage of the minimum-zone flatness and of Sq of a plate (`Plate`) placed at

@@ -20,7 +20,7 @@ pytestmark = pytest.mark.skipif(not PROCAM.is_dir(), reason="../shared/data/proc
 def _pose(name: str, tmp_path: Path) -> dict:
     pose = PROCAM / name
     result, detection = import_frames(pose, OPENCV_GRAYCODE, (1024, 768), tmp_path / name,
-                                      PROCAM / "calibration_result.xml", 2.0)
+                                      calibration=PROCAM / "calibration_result.xml", projector_scale=2.0)
     assert {f.key: f.value for f in detection.findings} == {"references": "last"}
     stack, _ = read_frames(list_frames(pose, None))
     return board_figures(tmp_path / name, stack[-2], result.session.rig_model(), 75.0)

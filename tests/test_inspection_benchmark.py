@@ -71,7 +71,7 @@ def scans(name: str, views: int) -> tuple[object, list]:
         a = rng.uniform(0, 2 * np.pi)
         tilt = rng.uniform(0.25, 0.45) * np.array([np.cos(a), np.sin(a)])
         pose = lying_pose(tess.vertices, rng.uniform(0, 2 * np.pi), 400.0, tuple(tilt), up)
-        scene, face_of_id = part_scene(tess.vertices, tess.triangles, tess.face, pose, up)
+        scene, face_of_id = part_scene(tess.vertices, tess.triangles, tess.face, pose, up=up)
         with open_rig(config, scene=scene, seed=k) as rig:
             stack = acquire(rig, patterns, AcquisitionSettings.for_rig(rig), lambda i, f: None)
             cloud = triangulate(decode(stack, patterns, rig.camera.bit_depth, rig.model.projector.size),
@@ -186,7 +186,7 @@ def benchmark(name: str, methods: dict[str, tuple[str, ...] | None], views: int 
                 if label == main_label and s == 0 and reg is not None:
                     q = transform_points(reg.transform @ G, part.points)
                     seg = assign_faces(q, part.normals @ (reg.transform @ G)[:3, :3].T, model, target.samples,
-                                       target.dense.tree, 0.5, 45.0)
+                                       tree=target.dense.tree, max_distance_mm=0.5, max_normal_deg=45.0)
                     tq = transform_points(truth, truth_points)
                     edge = edges.edge_distance(tq, truth_face)
                     inner = (truth_face >= 0) & (edge > 0.5)

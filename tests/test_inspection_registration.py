@@ -167,7 +167,7 @@ def test_face_off_as_a_whole_does_not_tilt_the_fit(demo) -> None:
     reg = register(view, target)
     angle, shift = pose_difference(reg.transform, np.linalg.inv(pose), view.points.mean(axis=0))
     seg = assign_faces(transform_points(reg.transform, view.points), view.normals @ reg.transform[:3, :3].T, model,
-                       target.samples, target.dense.tree, 0.5, 45.0)
+                       target.samples, tree=target.dense.tree, max_distance_mm=0.5, max_normal_deg=45.0)
     raised = np.median(seg.deviation_mm[seg.face == model.by_label("#657").index])
     low = np.median(seg.deviation_mm[seg.face == model.by_label("#158").index])
     print(f"{angle:.4f} deg, {shift * 1e3:.1f} um; high top {raised * 1e3:.1f} um, low top {low * 1e3:.1f} um")

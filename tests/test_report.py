@@ -560,4 +560,4 @@ def test_inspect_without_cad_needs_a_program(tmp_path: Path) -> None:
     from slscan.commands.inspect import inspect_source
 
     with pytest.raises(ConfigError, match="give --cad FILE, or a part program"):
-        inspect_source(tmp_path / "cloud.ply", None, TOLERANCE_FILE)
+        inspect_source(tmp_path / "cloud.ply", None, tolerances=TOLERANCE_FILE)

@@ -238,7 +238,7 @@ def instances_from_model(model: InstanceSegmenter, image: np.ndarray, cloud: Org
         mask = owner == k + 1
         idx = np.flatnonzero(mask.ravel() & valid)
         if len(idx) >= min_points:
-            out.append(_instance(k + 1, idx, cloud, "model", mask, p.label, float(p.score)))
+            out.append(_instance(k + 1, idx, cloud, "model", mask, p.label, score=float(p.score)))
     return out
 
 
@@ -277,12 +277,12 @@ class OnnxInstanceSegmenter:
         x = np.repeat(x[None], 3, axis=0) if x.ndim == 2 else np.transpose(x[..., :3], (2, 0, 1))
         name = self.session.get_inputs()[0].name
         _, labels, scores, masks = self.session.run(None, {name: x})[:4]
-        return predictions_from_maskrcnn(labels, scores, masks, img.shape[:2], self.classes, self.min_score,
-                                         self.mask_threshold)
+        return predictions_from_maskrcnn(labels, scores, masks, img.shape[:2], self.classes, min_score=self.min_score,
+                                         mask_threshold=self.mask_threshold)
 
 
 def predictions_from_maskrcnn(labels: np.ndarray, scores: np.ndarray, masks: np.ndarray, image_shape: tuple[int, int],
-                              classes: dict[int, str], min_score: float = 0.5,
+                              classes: dict[int, str], *, min_score: float = 0.5,
                               mask_threshold: float = 0.5) -> list[MaskPrediction]:
     """`MaskPrediction`s from Mask R-CNN outputs: labels (N,), scores (N,), soft masks
     (N, 1, H, W) or (N, H, W) at the image's size."""
@@ -345,7 +345,7 @@ def _check_shape(mask: np.ndarray, cloud: OrganisedCloud, what: str) -> np.ndarr
 
 
 def _instance(i: int, idx: np.ndarray, cloud: OrganisedCloud, source: str, mask: np.ndarray, label: str | None,
-              score: float | None = None) -> Instance:
+              *, score: float | None = None) -> Instance:
     pts = cloud.points.reshape(-1, 3)[idx].astype(np.float64)
     nrm = cloud.normals.reshape(-1, 3)[idx].astype(np.float64)
     return Instance(i, idx.astype(np.int64), pts, nrm, source, mask, label, score)

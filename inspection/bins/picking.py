@@ -118,7 +118,7 @@ def _frame(T: np.ndarray) -> dict[str, Any]:
 
 
 def poses_document(poses: list[PartPose], model: ThinPartModel, world_from_cam: np.ndarray | None, source: str,
-                   rig: dict[str, Any] | None = None, max_occlusion: float = PoseSettings.max_occlusion,
+                   *, rig: dict[str, Any] | None = None, max_occlusion: float = PoseSettings.max_occlusion,
                    message: str = "") -> dict[str, Any]:
     """The poses file's content (see the module docstring); `world_from_cam` None: no rig,
     camera frame only; `rig`: its name, calibration and session id as the file states them."""

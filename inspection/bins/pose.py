@@ -300,7 +300,7 @@ def _side_margin(judged: list[tuple[float, str, np.ndarray]]) -> float:
 
 
 def _judge(patch: InstancePatch, sm: SideModel, sp: np.ndarray, sn: np.ndarray, poses: list[np.ndarray],
-           settings: PoseSettings, keep: int | None = None) -> list[tuple[float, str, np.ndarray]]:
+           settings: PoseSettings, *, keep: int | None = None) -> list[tuple[float, str, np.ndarray]]:
     """(outline-fit score, side, pose) of each pose (scan -> part) refined by point-to-plane
     ICP with normal-angle rejection on the instance's extruded cloud `sp`/`sn` (coarse to
     fine: `PoseSettings.judge_icp_stride`, `judge_icp_iterations`): fitness

@@ -88,7 +88,8 @@ def with_the_rest(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fina
     rest = np.flatnonzero(~known)
     rest = rng.choice(rest, size=min(settings.exact_points, len(rest)), replace=False)
     seg = assign_faces(transform_points(T, scan.points[rest]), scan.normals[rest] @ T[:3, :3].T, target.model,
-                       target.samples, target.dense.tree, ASSIGN_VOXELS * target.voxel_mm, settings.max_normal_deg)
+                       target.samples, tree=target.dense.tree, max_distance_mm=ASSIGN_VOXELS * target.voxel_mm,
+                       max_normal_deg=settings.max_normal_deg)
     used = np.concatenate([fit.face if fit.face is not None else [], fit.left_out_face
                            if fit.left_out_face is not None else []])
     new = seg.assigned & ~np.isin(seg.face, used)
@@ -207,7 +208,7 @@ def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, target: ModelT
     assert target.model is not None and target.samples is not None
     src, src_nrm = scan.points[sel], scan.normals[sel]
     seg = assign_faces(transform_points(T, src), src_nrm @ T[:3, :3].T, target.model, target.samples,
-                       target.dense.tree, tol, settings.max_normal_deg)
+                       tree=target.dense.tree, max_distance_mm=tol, max_normal_deg=settings.max_normal_deg)
     sel, face = sel[seg.assigned], seg.face[seg.assigned]
     if len(sel) < 6:
         return T, FinalFit(sel, face)

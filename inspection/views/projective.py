@@ -52,7 +52,7 @@ def refine_projective(T: np.ndarray, source: Judging, target: Judging, start_mm:
 
 
 def _steps(T: np.ndarray, source: Judging, target: Judging, scale: float, floor: float, anneal: float,
-           cutoff: float, plain: bool = False) -> np.ndarray:
+           cutoff: float, *, plain: bool = False) -> np.ndarray:
     """Gauss-Newton steps, the Cauchy scale from `scale` down by `anneal` to `floor`,
     residuals beyond `cutoff` scales left out; `plain`: least squares (weights 1) inside."""
     (sp, sn, sv), (tp, tn, tv) = source, target

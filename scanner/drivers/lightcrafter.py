@@ -74,7 +74,7 @@ def open_usb(name: str = "lightcrafter4500", serial_number: str | None = None) -
     """A factory opening the LightCrafter's HID interface through libusb ([PYC] endpoints)."""
     from scanner.drivers.transport import PyUsbHid
 
-    return lambda: PyUsbHid.open(name, p.VENDOR_ID, p.PRODUCT_ID, serial_number)
+    return lambda: PyUsbHid.open(name, p.VENDOR_ID, p.PRODUCT_ID, serial_number=serial_number)
 
 
 class LightCrafter4500(Projector):

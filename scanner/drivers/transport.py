@@ -76,7 +76,7 @@ class PyUsbHid:
         self._reattach = False
 
     @classmethod
-    def open(cls, name: str, vendor_id: int, product_id: int, serial_number: str | None = None,
+    def open(cls, name: str, vendor_id: int, product_id: int, *, serial_number: str | None = None,
              interface: int = 0, ep_out: int = 0x01, ep_in: int = 0x81) -> PyUsbHid:
         """Open the first device with these ids (and serial number, if given)."""
         import usb.core

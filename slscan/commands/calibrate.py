@@ -230,11 +230,11 @@ def _from_disk(args: argparse.Namespace, say: Any, log: Any) -> Any:
         views = graycode_views(args.source, layout, args.pose_folders)
         board = Board.load(args.board)
         return calibrate_views(board, views, args.projector_size, _settings(args, CalibrationSettings()), "from-disk",
-                               say, log, strict)
+                               say, recording=log, strict=strict)
     capture = CaptureSet.open(args.source)
     say(f"reading the slscan capture in {args.source} ({len(capture.pose_names)} poses)")
     return calibrate_capture(capture, _settings(args, CalibrationSettings()), capture.manifest.get("rig", "rig"),
-                             say, log, strict, Board.load(args.board) if args.board else None)
+                             say, recording=log, strict=strict, board=Board.load(args.board) if args.board else None)
 
 
 def _on_rig(args: argparse.Namespace, out: Path, say: Any, log: Any) -> tuple[Any, Path, list[str]]:

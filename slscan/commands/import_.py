@@ -97,7 +97,7 @@ def bit_depth_of(stack: np.ndarray) -> int:
 
 
 def _store(writer: SessionWriter, k: int, src: Path, image: np.ndarray, converted: bool, bit_depth: int,
-           camera: str | None = None) -> bool:
+           *, camera: str | None = None) -> bool:
     """Put frame k into the session: a hard link to `src` (a copy across file systems), or
     the grey image as PNG when it was converted from colour. Returns whether it is a link.
     `camera`: a frame of that camera of a binocular capture, under frames/<camera>/."""
@@ -139,7 +139,7 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def import_frames(folder: Path, patterns_path: Path, projector_size: tuple[int, int], out: Path,
-                  calibration: Path | None = None, projector_scale: float = 1.0, frames_glob: str | None = None,
+                  *, calibration: Path | None = None, projector_scale: float = 1.0, frames_glob: str | None = None,
                   bit_depth: int | None = None, progress: Any = None) -> Any:
     """Import and process one capture (module docstring); returns (ScanResult, Detection)."""
     import numpy as np
@@ -198,8 +198,9 @@ def cmd_import(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     args.frames_folder, args.calibration = args.frames_folder[0], (args.calibration or [None])[0]
     result, detection = import_frames(Path(args.frames_folder), Path(args.patterns), args.projector_size,
-                                      Path(args.out), Path(args.calibration) if args.calibration else None,
-                                      args.projector_scale, args.frames, args.bit_depth, ProgressLine())
+                                      Path(args.out), calibration=Path(args.calibration) if args.calibration else None,
+                                      projector_scale=args.projector_scale, frames_glob=args.frames,
+                                      bit_depth=args.bit_depth, progress=ProgressLine())
     wall = time.perf_counter() - t0
     lines = sys.stderr if args.json else sys.stdout  # with --json: the JSON alone on stdout
     manifest = result.session.manifest

@@ -57,7 +57,7 @@ def _agreed(detections: list[Any]) -> PatternSet:
 
 
 def import_binocular(folders: list[Path], patterns_path: Path, projector_size: tuple[int, int], out: Path,
-                     calibration: list[str | Path], frames_glob: str | None = None, bit_depth: int | None = None,
+                     calibration: list[str | Path], *, frames_glob: str | None = None, bit_depth: int | None = None,
                      progress: Any = None) -> tuple[Any, list[Any]]:
     """Import and reconstruct one binocular capture (module docstring); returns (BinocularScan,
     the two cameras' convention detections)."""
@@ -121,7 +121,7 @@ def cmd_import_binocular(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     scan, detections = import_binocular([Path(f) for f in args.frames_folder], Path(args.patterns),
                                         args.projector_size, Path(args.out), [Path(c) for c in args.calibration or []],
-                                        args.frames, args.bit_depth, ProgressLine())
+                                        frames_glob=args.frames, bit_depth=args.bit_depth, progress=ProgressLine())
     wall = time.perf_counter() - t0
     n = len(scan.session.manifest.frames)
     print(f"imported  {n} frames per camera from {args.frames_folder[0]} (left) and {args.frames_folder[1]} (right)")

@@ -297,7 +297,7 @@ def recorded_rig(session: Any) -> tuple[Path | None, str]:
     return rig, ""
 
 
-def write_report_files(report: Any, scan: Any, folder: Path, source: Path, program: Any = None,
+def write_report_files(report: Any, scan: Any, folder: Path, source: Path, *, program: Any = None,
                        operator: str | None = None, serial: str | None = None, pdf: bool = True) -> Any:
     """The report with its header (`report_header`) written to `folder` (JSON, CSV, HTML with
     the deviation map, PDF when `pdf`) with the per-point deviations `slscan export
@@ -313,7 +313,7 @@ def write_report_files(report: Any, scan: Any, folder: Path, source: Path, progr
     return report
 
 
-def inspect_source(source: str | Path, cad: str | Path | None, tolerances: str | Path | None = None,
+def inspect_source(source: str | Path, cad: str | Path | None, *, tolerances: str | Path | None = None,
                    out: str | Path | None = None, cad_unit: str = "mm", seed: int = 0,
                    recording: Any = None, operator: str | None = None, serial: str | None = None,
                    pdf: bool = True) -> Any:
@@ -390,13 +390,13 @@ def _inspect_source(source: str | Path, cad: str | Path | None, tolerances: str 
     finally:
         if own is not None:
             own.close()
-    return write_report_files(report, scan, folder, source, program, operator, serial, pdf)
+    return write_report_files(report, scan, folder, source, program=program, operator=operator, serial=serial, pdf=pdf)
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
     with on_paper(args.paper):
-        report = inspect_source(args.source, args.cad, args.tolerances, args.out, args.cad_unit, args.seed,
-                                operator=args.operator, serial=args.serial, pdf=not args.no_pdf)
+        report = inspect_source(args.source, args.cad, tolerances=args.tolerances, out=args.out, cad_unit=args.cad_unit,
+                                seed=args.seed, operator=args.operator, serial=args.serial, pdf=not args.no_pdf)
     if args.json:
         print(json.dumps(report.as_dict(), default=str))
     else:

@@ -246,7 +246,8 @@ def cmd_pose(args: argparse.Namespace) -> int:
                    f"no parts found in {src}: nothing stands above the tray plane")
     elif not any(p.ok for p in poses):
         message = f"no part recognised in {src}: none of the {len(poses)} instances fits {model.name}"
-    doc = poses_document(poses, model, world_from_cam, str(src), rig, args.max_occlusion, message)
+    doc = poses_document(poses, model, world_from_cam, str(src), rig=rig, max_occlusion=args.max_occlusion,
+                         message=message)
     write_poses(out, doc)
     text = sys.stderr if args.json else sys.stdout  # --json: the document alone on stdout
     print(table(doc), file=text)

@@ -104,7 +104,7 @@ def cmd_scan(args: argparse.Namespace, then: Any = None) -> int:
 
             rig.extras["session_files"] = [*rig.extras.get("session_files", ()),
                                            lambda root: truth.save(Path(root) / BIN_TRUTH_FILE)]
-        result = scan(rig, patterns, out, ProgressLine(), then, level=_level(args), exposure=exposure)
+        result = scan(rig, patterns, out, progress=ProgressLine(), then=then, level=_level(args), exposure=exposure)
     with session_lock(result.session.root, command="slscan scan"):  # accuracy.json: one writer
         report(result, as_json=getattr(args, "json", False))
     if truth is not None and not getattr(args, "json", False):
@@ -281,7 +281,7 @@ def load_demo_part() -> tuple[Any, Any, Any]:
     return model, tolerances, program
 
 
-def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: Any, seed: int = 0,
+def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: Any, *, seed: int = 0,
                           prior: Any = None, on_verdict: Callable[[Any], None] | None = None,
                           program: Any = None, pdf: bool = True,
                           progress: Callable[[str, int, int], None] | None = None) -> tuple[Any, StageTimer]:
@@ -311,7 +311,7 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
         report = inspect(scan, model, tolerances, InspectionSettings(registration=RegistrationSettings(seed=seed)),
                          prior=prior, uncertainty=uncertainty, on_verdict=on_verdict, progress=progress)
     with timer.stage("report_files"):
-        report = write_report_files(report, scan, result.session.outputs, result.session.root, program, pdf=pdf)
+        report = write_report_files(report, scan, result.session.outputs, result.session.root, program=program, pdf=pdf)
     if recording is not None:
         from inspection.inspection_recording import log_inspection
 
@@ -352,8 +352,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             model, tolerances, program = part.result()
             t1, c1 = time.perf_counter(), time.process_time()
             with on_paper(args.paper):
-                done["report"], done["timer"] = inspect_verdict_first(result, recording, model, tolerances, args.seed,
-                                                                      on_verdict=show, program=program,
+                done["report"], done["timer"] = inspect_verdict_first(result, recording, model, tolerances,
+                                                                      seed=args.seed, on_verdict=show, program=program,
                                                                       progress=ProgressLine())
             done["seconds"], done["cpu"] = time.perf_counter() - t1, time.process_time() - c1
 

@@ -62,7 +62,7 @@ def scan_views(args: argparse.Namespace, config: Any, patterns: Any, options: di
 
     with open_rig(config, **options) as rig:
         try:
-            session = capture_views(rig, plan, out, lambda folder, extra: scan(rig, patterns, folder, line,
+            session = capture_views(rig, plan, out, lambda folder, extra: scan(rig, patterns, folder, progress=line,
                                                                                 exposure=exposure,
                                                                                 extra=extra).session,
                                     view_progress, model)

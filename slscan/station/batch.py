@@ -166,7 +166,7 @@ def _worker_name() -> str:
         return "local"
 
 
-def run_batch(parts: Sequence[str | Path], program_path: str | Path, scheduler: str | None = None, workers: int = 2,
+def run_batch(parts: Sequence[str | Path], program_path: str | Path, *, scheduler: str | None = None, workers: int = 2,
               store_config: StationConfig | None = None, progress: Progress | None = None,
               measurement: str | None = None, rig_path: str | Path | None = None) -> BatchSummary:
     """Re-inspect `parts`: serially in this process when `workers` is 0 and no `scheduler`

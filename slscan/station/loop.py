@@ -229,7 +229,7 @@ class Station:
                 def view_step(stage: str, done: int, total: int, where: str = where) -> None:
                     step(stage + where, done, total)
 
-                scanned.append(scan(rig, self.patterns, sessions[-1], view_step).session)
+                scanned.append(scan(rig, self.patterns, sessions[-1], progress=view_step).session)
         return self._measured(lambda: self.measurement.measure(scanned, self.program), step)
 
     def _scan_whole(self, part: int, folder: Path, sessions: list[Path],
@@ -248,8 +248,8 @@ class Station:
 
             def scan_view(out: Path, extra: dict[str, Any]) -> Session:
                 where = f" (view {extra['view'] + 1}/{n})"
-                return scan(rig, self.patterns, out, lambda stage, done, total: step(stage + where, done, total),
-                            extra=extra).session
+                return scan(rig, self.patterns, out,
+                            progress=lambda stage, done, total: step(stage + where, done, total), extra=extra).session
 
             views = capture_views(rig, self.stage_plan, sessions[-1], scan_view,
                                   lambda k, _, what: step(f"{what} (view {k + 1}/{n})", k, n))

@@ -159,7 +159,7 @@ def _floor(stack: np.ndarray, patterns: PatternSet, repeats: int = 3) -> dict[st
             "stack_mb": stack.nbytes / 1e6}
 
 
-def run_bench(width: int, height: int, patterns_path: Path | None = None, rig_path: Path | None = None,
+def run_bench(width: int, height: int, *, patterns_path: Path | None = None, rig_path: Path | None = None,
               repeats: int = 5, peers: bool = True, with_fringes: bool = False) -> dict:
     """Measure decode + reconstruction, and the peers; returns the figures (seconds, MB)."""
     import numpy as np
@@ -228,8 +228,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.setup_peers:
         print(f"peers' Python ready in {setup_peers()}")
         return Exit.OK
-    r = run_bench(args.width, args.height, Path(args.patterns) if args.patterns else None, repeats=args.repeats,
-                  peers=not args.no_peers, with_fringes=args.fringes)
+    r = run_bench(args.width, args.height, patterns_path=Path(args.patterns) if args.patterns else None,
+                  repeats=args.repeats, peers=not args.no_peers, with_fringes=args.fringes)
     print(json.dumps(r) if args.json else format_table(r))
     return Exit.OK
 

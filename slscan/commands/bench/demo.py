@@ -84,7 +84,7 @@ def run_part(k: int, workdir: Path, model: Any, tolerances: Any, prior: Any, ful
     with rig:
         t0 = time.perf_counter()
         with outer.stage("scan_to_complete"):
-            result = scan(rig, patterns, workdir / f"part-{k}", progress, then=inspect,
+            result = scan(rig, patterns, workdir / f"part-{k}", progress=progress, then=inspect,
                           level="full" if full_recording else None)
         complete = time.perf_counter()
     report, inner = done["report"], done["timer"]

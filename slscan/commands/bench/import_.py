@@ -235,7 +235,8 @@ def procam_figures(root: Path, calibrations: list[tuple[str, Path, float]], work
         old_saturated = float((stack.max(axis=0) >= 255).mean())  # the old rule: any frame clipped
         for name, cal, scale in calibrations:
             session = workdir / f"{pose.name}-{name}"
-            result, _ = import_frames(pose, OPENCV_GRAYCODE, (1024, 768), session, cal, scale)
+            result, _ = import_frames(pose, OPENCV_GRAYCODE, (1024, 768), session, calibration=cal,
+                                      projector_scale=scale)
             model = result.session.rig_model()
             rejected = {k: v / result.decoded.valid.size for k, v in result.decoded.rejected().items() if v}
             out.append({"pose": pose.name, "calibration": name, "valid_fraction": float(result.decoded.valid.mean()),

@@ -291,7 +291,7 @@ def _form(root: Path) -> dict[str, Any]:
                 "sq_mm", "verdicts")
         return {row.get("label", "?"): {k: row.get(k) for k in keys if k in row} for row in report.as_dict()["faces"]}
 
-    report = inspect_source(root, CAD, PROGRAM)
+    report = inspect_source(root, CAD, tolerances=PROGRAM)
     narrow = inspect(load_merged(MultiViewSession.open(root)), load_cad(CAD),
                      settings=InspectionSettings(form=FormSettings(edge_margin_mm=0.3)))
     return {"verdict": report.verdict, "faces": rows(report),
