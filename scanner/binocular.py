@@ -111,11 +111,12 @@ class StereoModel:
             raise ValueError("the two cameras sit at one point: no baseline")
         if self.covariance is not None:
             C = np.asarray(self.covariance, dtype=np.float64)
-            object.__setattr__(self, "covariance", C)
             if C.shape != (N_PARAMETERS, N_PARAMETERS) or not np.isfinite(C).all():
                 raise ValueError(f"the covariance is not a finite {N_PARAMETERS} x {N_PARAMETERS} matrix")
-            if not np.allclose(C, C.T, rtol=1e-9, atol=0.0):
-                raise ValueError("the covariance is not symmetric")
+            sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+            if np.any(np.abs(C - C.T) > 1e-6 * np.outer(sd, sd)) or np.any(np.diag(C) < 0):
+                raise ValueError("the covariance is not symmetric with a non-negative diagonal")
+            object.__setattr__(self, "covariance", (C + C.T) / 2)  # a solve's B·M·B is symmetric to rounding
 
     @property
     def baseline_mm(self) -> float:

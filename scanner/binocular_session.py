@@ -34,6 +34,13 @@ from scanner.session import MANIFEST, FrameEntry, Session
 CameraName = Annotated[str, Field(strict=True, min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")]
 
 
+class StereoCovarianceSchema(schema.Schema):
+    """`StereoModel.covariance` as `to_dict` writes it (its shape and names checked by `from_dict`)."""
+
+    parameters: list[schema.Str]
+    matrix: list[list[float]]
+
+
 class StereoModelSchema(schema.Schema):
     """`StereoModel.to_dict` as written in manifests and stereo calibration files."""
 
@@ -43,6 +50,7 @@ class StereoModelSchema(schema.Schema):
     right_from_left: schema.Matrix4
     epipolar_sigma_px: schema.NonNegativeFloat = 0.0
     calibration: schema.Str = ""
+    covariance: StereoCovarianceSchema | None = None
 
     @model_validator(mode="after")
     def _pose(self) -> StereoModelSchema:
