@@ -322,8 +322,13 @@ class BinocularResult:
     (its one-sigma per point), with `calibration_term` saying whether it is included. A figure
     linear in the points (∂x/∂X_i = g_i) gets u_cal² = gᵀ·J·Σ·Jᵀ·g, J stacking every point's
     ∂X/∂θ: the points move together, so their g_i·J_i add before the covariance, never in
-    quadrature point by point (`inspection.uncertainty`'s monocular rule, the same shape: its
-    u_cal² = Σ_d (Σ_i g_i·J_i·δ_d)² over the covariance's principal directions δ_d)."""
+    quadrature point by point. That is `inspection.uncertainty`'s rule for a monocular rig
+    (u_cal² = Σ_d (Σ_i g_i·J_i·δ_d)², δ_d the covariance's principal directions; the 24
+    parameters in the same order, the right camera in the projector's place), and the U it
+    belongs in is `slscan verify`'s on a binocular rig (slscan/commands/verify_binocular.py),
+    whose ScanUncertainty must take this J in place of the monocular `calibration_jacobian`;
+    until it does, that U leaves the term out and says so. outputs/binocular.json states it per
+    scan (`calibration_figures`)."""
 
     cloud: OrganisedCloud
     depth_sigma_mm: np.ndarray

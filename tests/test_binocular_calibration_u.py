@@ -57,7 +57,8 @@ def calibrate(truth: StereoModel, rng: np.random.Generator) -> StereoModel:
         T[:3, 3] = [rng.uniform(-70, 40), rng.uniform(-50, 30), rng.uniform(360, 460)]
         seen = []
         for lens, E in ((truth.left, np.eye(4)), (truth.right, truth.right_from_left)):
-            px = lens.project(BOARD @ (E @ T)[:3, :3].T + (E @ T)[:3, 3]) + rng.normal(0, CORNER_NOISE_PX, (len(BOARD), 2))
+            px = lens.project(BOARD @ (E @ T)[:3, :3].T + (E @ T)[:3, 3])
+            px += rng.normal(0, CORNER_NOISE_PX, px.shape)
             inside = (px >= 0).all(axis=1) & (px[:, 0] <= lens.width - 1) & (px[:, 1] <= lens.height - 1)
             seen.append(ViewPoints(BOARD[inside], px[inside]))
         views.append(seen)
@@ -148,8 +149,9 @@ def test_the_calibration_sigma_against_rigs_drawn_from_the_covariance(scene: tup
     z, z_linear = np.array(z)[:, ok], np.array(z_linear)[:, ok]
     rms, rms_linear = np.sqrt(np.mean(z ** 2)), np.sqrt(np.mean(z_linear ** 2))
     cover = float(np.mean(np.abs(z) <= 1.96))
-    print(f"seed {SEED}: {ok.sum()} of {len(points)} points, calibration depth sigma median {np.median(sigma) * 1e3:.1f} um; "
-          f"normalised RMS {rms:.3f} (linear {rms_linear:.3f}), within 1.96 sigma {cover:.3f}")
+    print(f"seed {SEED}: {ok.sum()} of {len(points)} points, calibration depth sigma median "
+          f"{np.median(sigma) * 1e3:.1f} um; normalised RMS {rms:.3f} (linear {rms_linear:.3f}), within 1.96 sigma "
+          f"{cover:.3f}")
     assert ok.mean() > 0.98
     assert np.sqrt(np.mean((z - z_linear) ** 2)) < 0.02 * rms_linear
     assert 0.6 < rms < 1.45
