@@ -364,7 +364,7 @@ class BinocularResult:
             out[part] = np.sqrt(np.maximum(np.einsum("np,pq,nq->n", jz, C, jz), 0.0))
         return out
 
-    def calibration_figures(self, grid_px: int = CALIBRATION_GRID_PX) -> dict[str, Any]:
+    def calibration_figures(self, *, grid_px: int = CALIBRATION_GRID_PX) -> dict[str, Any]:
         """The calibration term as binocular.json states it: on the points of a grid of every
         `grid_px`-th left pixel, the median and largest one-sigma of the depth (mm)."""
         if self.model.covariance is None:
@@ -642,8 +642,6 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     cloud = cloud_from_depth(z_left.reshape(shape), np.ascontiguousarray(rays[..., 0]),
                              np.ascontiguousarray(rays[..., 1]), to_texture8(left.texture, left.bit_depth))
     return BinocularResult(cloud, sig.reshape(shape), rect.model, o, iso.reshape(shape), masks, checks)
-
-
 
 
 def calibration_jacobian(model: StereoModel, points: np.ndarray, iso_slope: np.ndarray) -> np.ndarray:

@@ -9,7 +9,8 @@ with every other camera's frames and the stereo geometry beside it.
         camera_models  {name: model}  every camera with the projector (RigModel.to_dict), in its own
                                       frame; `projector_calibrated` says whether the projector part
                                       was calibrated (else nominal: the three-ray check is skipped)
-        stereo_model   {...}          the two cameras' geometry (StereoModel.to_dict): what points come from
+        stereo_model   {...}          the two cameras' geometry (StereoModel.to_dict): what points come from,
+                                      with the calibration's covariance where it states one
     outputs/cloud.ply                 the binocular cloud, in the first camera's frame, mm
     outputs/binocular.json            the reconstruction's figures (matches, refusals, self-checks)
     outputs/<camera>/maps.npz         each camera's decoded maps
