@@ -51,7 +51,8 @@ class StereoCameraCalibration:
     @property
     def model(self) -> StereoModel:
         j = self.joint
-        return StereoModel(j.camera, j.projector, j.proj_from_cam, self.names, self.epipolar_rms_px)
+        return StereoModel(j.camera, j.projector, j.proj_from_cam, self.names, self.epipolar_rms_px,
+                           covariance=j.covariance)
 
     def parameter_names(self) -> list[str]:
         """The covariance's rows: the left's then the right's intrinsics (px, distortion

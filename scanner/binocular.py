@@ -32,6 +32,17 @@ Method, per scan (millimetres, pixels; OpenCV frames):
    (T_x: the right camera's x in the rectified frame) and the point on the left pixel's own
    ray; depth noise σ_z from σ_d² = (σ_cl² + σ_cr²)/g_x² (g_x: the right coordinate's change
    per rectified px at the match), σ_Z = Z²/(f·|T_x|)·σ_d.
+5. The calibration's term (`calibration_jacobian`): the stereo calibration's error moves every
+   point of a scan together (one error for the whole scan, and for every scan made with that
+   calibration), so it is kept apart from the noise σ_Z, never in it: a figure averaging many
+   points averages noise away, not this. A point satisfies π_l(X; θ) = its left pixel and
+   n·π_r(X; θ) = n·(its match), n the normal, in the right camera's pixels, of the line along
+   which the right camera reads the matched coordinate (a calibration moved by δθ moves the
+   epipolar line, and the match slides along that line: in the rectified frame its slope is the
+   difference of the matches on the two rows around the left pixel, `BinocularResult.iso_slope`).
+   Implicit differentiation with OpenCV's analytic projection derivatives gives ∂X/∂θ = −A⁻¹B
+   per point over the 24 parameters of `StereoModel.covariance`; a model stating no covariance
+   (another tool's file, a rig file's nominal geometry) has the term "not included", said so.
 
 The cloud is organised on the left camera's pixels, in the left camera's frame (mm).
 """
@@ -40,7 +51,7 @@ from __future__ import annotations
 
 import json
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property, lru_cache
 from typing import Any
 
@@ -54,8 +65,19 @@ from scanner.geometry import Pinhole
 from scanner.pointcloud import OrganisedCloud
 from scanner.reconstruct import cloud_from_depth, to_texture8
 
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")  # px, then OpenCV's distortion (unitless)
+EXTRINSIC_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")  # right_from_left: Rodrigues vector (rad), translation (mm)
+N_PARAMETERS = 2 * len(INTRINSIC_NAMES) + len(EXTRINSIC_NAMES)
 GRADIENT_FALSE_ACCEPT = 1e-3  # α of the gradient gate: a sample pair with no change along the line passes this often
 CHECK_FALSE_REFUSE = 1e-4  # of the second orientation's check: a true match is refused this often (Gaussian noise)
+JACOBIAN_CHUNK = 100_000  # points per batch of calibration_jacobian (~1.6 KB each while it runs)
+CALIBRATION_GRID_PX = 8  # binocular.json's calibration figures: the points of every 8th left pixel each way
+
+
+def parameter_names(cameras: tuple[str, str]) -> list[str]:
+    """The rows of a stereo covariance: each camera's intrinsics by its name ('left.fx', ...), then
+    'extrinsic.rx', ... 'extrinsic.tz'."""
+    return [f"{c}.{n}" for c in cameras for n in INTRINSIC_NAMES] + [f"extrinsic.{n}" for n in EXTRINSIC_NAMES]
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,7 +86,12 @@ class StereoModel:
     right camera's frame (OpenCV stereoCalibrate's R, T). `names` are the cameras' names
     (session folders, Rerun). `epipolar_sigma_px`: the calibration's RMS distance (px) of a
     true correspondence from its epipolar line, where the calibration states it (0: none
-    stated, the check then allows the phase noise only). `calibration` names the file."""
+    stated, the check then allows the phase noise only). `calibration` names the file.
+    `covariance` (24, 24): the calibration's covariance of its parameters (`parameter_names`:
+    each camera's intrinsics in px and distortion, then right_from_left as a Rodrigues vector
+    (rad) and a translation (mm), as `calibration.stereo_cameras` solves them); None where the
+    calibration states none (another tool's file, a rig file's nominal geometry): the points'
+    calibration term is then not included (module docstring, 5.)."""
 
     left: Pinhole
     right: Pinhole
@@ -72,6 +99,7 @@ class StereoModel:
     names: tuple[str, str] = ("left", "right")
     epipolar_sigma_px: float = 0.0
     calibration: str = ""
+    covariance: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         T = np.asarray(self.right_from_left, dtype=np.float64).reshape(4, 4)
@@ -81,22 +109,59 @@ class StereoModel:
             raise ValueError("right_from_left is not a rigid transform")
         if not np.linalg.norm(T[:3, 3]) > 0:
             raise ValueError("the two cameras sit at one point: no baseline")
+        if self.covariance is not None:
+            C = np.asarray(self.covariance, dtype=np.float64)
+            if C.shape != (N_PARAMETERS, N_PARAMETERS) or not np.isfinite(C).all():
+                raise ValueError(f"the covariance is not a finite {N_PARAMETERS} x {N_PARAMETERS} matrix")
+            sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+            if np.any(np.abs(C - C.T) > 1e-6 * np.outer(sd, sd)) or np.any(np.diag(C) < 0):
+                raise ValueError("the covariance is not symmetric with a non-negative diagonal")
+            object.__setattr__(self, "covariance", (C + C.T) / 2)  # a solve's B·M·B is symmetric to rounding
 
     @property
     def baseline_mm(self) -> float:
         return float(np.linalg.norm(self.right_from_left[:3, 3]))
 
+    def parameter_names(self) -> list[str]:
+        return parameter_names(self.names)
+
+    def perturbed(self, delta: np.ndarray) -> StereoModel:
+        """The model with its parameters moved by `delta` (24,) (order of `parameter_names`; the
+        rotation's Rodrigues vector moved additively, as the calibration solves it), no covariance."""
+        def lens(p: Pinhole, d: np.ndarray) -> Pinhole:
+            K = p.K.copy()
+            K[0, 0], K[1, 1], K[0, 2], K[1, 2] = K[0, 0] + d[0], K[1, 1] + d[1], K[0, 2] + d[2], K[1, 2] + d[3]
+            return Pinhole(p.width, p.height, K, p.dist + d[4:9])
+
+        k = len(INTRINSIC_NAMES)
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(self.right_from_left[:3, :3])[0].ravel() + delta[2 * k:2 * k + 3])[0]
+        T[:3, 3] = self.right_from_left[:3, 3] + delta[2 * k + 3:]
+        return replace(self, left=lens(self.left, delta[:k]), right=lens(self.right, delta[k:2 * k]), right_from_left=T,
+                       covariance=None)
+
     def to_dict(self) -> dict[str, Any]:
-        return {"names": list(self.names), "left": self.left.to_dict(), "right": self.right.to_dict(),
-                "right_from_left": self.right_from_left.tolist(), "epipolar_sigma_px": self.epipolar_sigma_px,
-                "calibration": self.calibration}
+        """The model as manifests hold it; "covariance" only where the calibration states one."""
+        out = {"names": list(self.names), "left": self.left.to_dict(), "right": self.right.to_dict(),
+               "right_from_left": self.right_from_left.tolist(), "epipolar_sigma_px": self.epipolar_sigma_px,
+               "calibration": self.calibration}
+        if self.covariance is not None:
+            out["covariance"] = {"parameters": self.parameter_names(), "matrix": self.covariance.tolist()}
+        return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "stereo model") -> StereoModel:
         try:
+            names = tuple(d.get("names", ("left", "right")))
+            cov = d.get("covariance")
+            if cov is not None:
+                expected = parameter_names(names)
+                if list(cov["parameters"]) != expected:
+                    raise ValueError(f"covariance parameters {list(cov['parameters'])}, expected {expected}")
+                cov = np.array(cov["matrix"], float)
             return cls(Pinhole.from_dict(d["left"], f"{where}: left"), Pinhole.from_dict(d["right"], f"{where}: right"),
-                       np.array(d["right_from_left"], float), tuple(d.get("names", ("left", "right"))),
-                       float(d.get("epipolar_sigma_px", 0.0)), str(d.get("calibration", "")))
+                       np.array(d["right_from_left"], float), names, float(d.get("epipolar_sigma_px", 0.0)),
+                       str(d.get("calibration", "")), cov)
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(where, None, f"invalid stereo model: {exc!r}") from None
 
@@ -165,18 +230,24 @@ class Rectification:
 
     @classmethod
     def of(cls, model: StereoModel) -> Rectification:
-        R, T = model.right_from_left[:3, :3], model.right_from_left[:3, 3]
-        L, Rc = model.left, model.right
-        R1, R2, *_ = cv2.stereoRectify(L.K, L.dist, Rc.K, Rc.dist, L.size, R, T.reshape(3, 1), flags=0, alpha=-1)
-        t = R2 @ T
-        if abs(t[0]) < abs(t[1]):
-            raise DecodeError(f"the cameras are stacked vertically (baseline {T.round(1).tolist()} mm): binocular "
-                              f"matching takes cameras side by side")
-        f = float(np.mean([L.K[0, 0], L.K[1, 1], Rc.K[0, 0], Rc.K[1, 1]]))
+        R1, R2, f, tx = _rectifying(model)
+        L = model.left
         rays = L.ray_grid.astype(np.float64) @ R1.T
         w = rays[..., 2]
-        return cls(model, R1, R2, f, float(t[0]), f * rays[..., :2] / w[..., None], w,
-                   RectifiedGrid.covering(L, R1, f), RectifiedGrid.covering(Rc, R2, f))
+        return cls(model, R1, R2, f, tx, f * rays[..., :2] / w[..., None], w,
+                   RectifiedGrid.covering(L, R1, f), RectifiedGrid.covering(model.right, R2, f))
+
+
+def _rectifying(model: StereoModel) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The rectification's rotations R_left, R_right, its focal f (px) and tx_mm (`Rectification`)."""
+    R, T = model.right_from_left[:3, :3], model.right_from_left[:3, 3]
+    L, Rc = model.left, model.right
+    R1, R2, *_ = cv2.stereoRectify(L.K, L.dist, Rc.K, Rc.dist, L.size, R, T.reshape(3, 1), flags=0, alpha=-1)
+    t = R2 @ T
+    if abs(t[0]) < abs(t[1]):
+        raise DecodeError(f"the cameras are stacked vertically (baseline {T.round(1).tolist()} mm): binocular "
+                          f"matching takes cameras side by side")
+    return R1, R2, float(np.mean([L.K[0, 0], L.K[1, 1], Rc.K[0, 0], Rc.K[1, 1]])), float(t[0])
 
 
 @dataclass(frozen=True, eq=False)
@@ -241,14 +312,73 @@ class BinocularResult:
     frame (mm); `depth_sigma_mm` (H, W) the predicted one-sigma noise of each point's depth;
     `model` the stereo model it was made with (`right_pixels`: where the right camera saw each point);
     `masks` why left pixels with a coordinate got no point (first reason counts); `checks`
-    the scan's figures (counts; the second orientation's epipolar offsets, px)."""
+    the scan's figures (counts; the second orientation's epipolar offsets, px); `iso_slope`
+    (H, W) the slope dx/dy, in the rectified frame, of the line along which the right camera
+    reads each point's matched coordinate (NaN without a point), for the calibration term.
+
+    `depth_sigma_mm` is noise, independent from point to point. The stereo calibration's
+    error is not in it: it is one error common to every point of the scan (module docstring,
+    5.), given apart by `calibration_jacobian` (∂X/∂θ per point) and `calibration_depth_sigma_mm`
+    (its one-sigma per point), with `calibration_term` saying whether it is included. A figure
+    linear in the points (∂x/∂X_i = g_i) gets u_cal² = gᵀ·J·Σ·Jᵀ·g, J stacking every point's
+    ∂X/∂θ: the points move together, so their g_i·J_i add before the covariance, never in
+    quadrature point by point. That is `inspection.uncertainty`'s rule for a monocular rig
+    (u_cal² = Σ_d (Σ_i g_i·J_i·δ_d)², δ_d the covariance's principal directions; the 24
+    parameters in the same order, the right camera in the projector's place), and the U it
+    belongs in is `slscan verify`'s on a binocular rig (slscan/commands/verify_binocular.py),
+    whose ScanUncertainty must take this J in place of the monocular `calibration_jacobian`;
+    until it does, that U leaves the term out and says so. outputs/binocular.json states it per
+    scan (`calibration_figures`)."""
 
     cloud: OrganisedCloud
     depth_sigma_mm: np.ndarray
     model: StereoModel
     orientation: str
+    iso_slope: np.ndarray
     masks: dict[str, np.ndarray]
     checks: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def calibration_term(self) -> str:
+        """Where the points' calibration term comes from, or "not included" and why."""
+        if self.model.covariance is None:
+            return ("not included: the stereo calibration states no covariance (another tool's file or the rig "
+                    "file's nominal geometry)")
+        return f"the stereo calibration's covariance ({self.model.calibration or 'stated with the model'})"
+
+    def calibration_jacobian(self, idx: np.ndarray) -> np.ndarray:
+        """∂X/∂θ (N, 3, 24), mm per unit of each parameter of `model.covariance`, of the points
+        at left pixels `idx` (flat indices with a point, as `cloud.valid_indices()`)."""
+        return calibration_jacobian(self.model, self.cloud.points.reshape(-1, 3)[idx].astype(np.float64),
+                                    self.iso_slope.ravel()[idx])
+
+    def calibration_depth_sigma_mm(self, idx: np.ndarray) -> np.ndarray | None:
+        """The calibration's one-sigma (mm) of the depth z of each point at left pixels `idx`
+        (the same error in every point of the scan: not noise); None when not included."""
+        C = self.model.covariance
+        if C is None:
+            return None
+        out = np.empty(len(idx))
+        for part in np.array_split(np.arange(len(idx)), max(1, -(-len(idx) // JACOBIAN_CHUNK))):
+            jz = self.calibration_jacobian(idx[part])[:, 2]
+            out[part] = np.sqrt(np.maximum(np.einsum("np,pq,nq->n", jz, C, jz), 0.0))
+        return out
+
+    def calibration_figures(self, *, grid_px: int = CALIBRATION_GRID_PX) -> dict[str, Any]:
+        """The calibration term as binocular.json states it: on the points of a grid of every
+        `grid_px`-th left pixel, the median and largest one-sigma of the depth (mm)."""
+        if self.model.covariance is None:
+            return {"included": False, "term": self.calibration_term}
+        h, w = self.iso_slope.shape
+        grid = np.zeros((h, w), bool)
+        grid[grid_px // 2::grid_px, grid_px // 2::grid_px] = True
+        idx = np.flatnonzero(grid.ravel() & self.cloud.valid.ravel())
+        sigma = self.calibration_depth_sigma_mm(idx)
+        assert sigma is not None
+        return {"included": True, "term": self.calibration_term, "grid_px": grid_px, "points": int(idx.size),
+                "depth_sigma_median_mm": float(np.median(sigma)) if idx.size else None,
+                "depth_sigma_max_mm": float(sigma.max()) if idx.size else None,
+                "correlation": "one error common to every point of the scan: not to be averaged over points"}
 
     def right_pixels(self) -> tuple[np.ndarray, np.ndarray]:
         """The left pixels with a point (flat indices) and the right-camera pixel (N, 2) that
@@ -374,8 +504,10 @@ class _Search:
     the right grid (`inside`), no interval of one of them holds its coordinate (`none`), exactly one
     of each does and its own row holds it once (`unique`), and both intervals pass the gradient gate
     (`steep`); the match's grid position (`x`, `y`, px), the right coordinate's change per px there
-    (`step`, absolute) and its noise (`sigma`, projector px). Only these outlive the search: its
-    rows and per-row results are freed before the triangulation."""
+    (`step`, absolute) and its noise (`sigma`, projector px), and the slope dx/dy of the line along
+    which the right grid reads the coordinate there (`slope`: the matches' x on the two rows
+    around it, subtracted). Only these outlive the search: its rows and per-row results are freed
+    before the triangulation."""
 
     inside: np.ndarray
     none: np.ndarray
@@ -385,6 +517,7 @@ class _Search:
     y: np.ndarray
     step: np.ndarray
     sigma: np.ndarray
+    slope: np.ndarray
 
     @classmethod
     def of(cls, rect: Rectification, left: CameraPhase, right: CameraPhase, o: str, c: np.ndarray,
@@ -414,7 +547,7 @@ class _Search:
         steep = unique & right_rows.gate[np.maximum(k0, 0)] & right_rows.gate[np.maximum(k1, 0)]
         return cls(inside, inside & ((n0 == 0) | (n1 == 0)), unique, steep,
                    (1 - t) * x0 + t * x1,  # on the rectified row through the left pixel
-                   gy, np.abs((1 - t) * step0 + t * step1), (1 - t) * s0 + t * s1)
+                   gy, np.abs((1 - t) * step0 + t * step1), (1 - t) * s0 + t * s1, (x1 - x0).astype(np.float32))
 
 
 _REASONS = ("outside_right_view", "no_match", "not_unique", "low_gradient", "behind", "inconsistent")
@@ -470,7 +603,7 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     ahead = steep & (Z > 0)
 
     # the match's noise: both cameras' coordinate noise over the right coordinate's change per px
-    s_r = found.sigma
+    s_r, slope = found.sigma, found.slope
     sigma_d = np.sqrt(left.sigma[o].ravel()[pix].astype(np.float64) ** 2 + s_r.astype(np.float64) ** 2) / found.step
     sigma_Z = Z ** 2 / (rect.f * abs(rect.tx_mm)) * sigma_d
     del found, xl, d, sigma_d  # not needed past here: freed before the consistency check, the peak of memory
@@ -498,16 +631,44 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     checks["points"] = float(keep.sum())
 
     n = shape[0] * shape[1]
-    z_left, sig = np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32)
+    z_left, sig, iso = np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32)
     z_left[pix[keep]] = Z[keep] / w[keep]
     sig[pix[keep]] = sigma_Z[keep] / w[keep]
+    iso[pix[keep]] = slope[keep]
     reason = np.full(n, len(_REASONS) + 1, np.uint8)  # pixels without a coordinate: no reason
     reason[pix] = stage + consistent
     masks = {name: (reason == k).reshape(shape) for k, name in enumerate(_REASONS)}
     rays = rect.model.left.ray_grid
     cloud = cloud_from_depth(z_left.reshape(shape), np.ascontiguousarray(rays[..., 0]),
                              np.ascontiguousarray(rays[..., 1]), to_texture8(left.texture, left.bit_depth))
-    return BinocularResult(cloud, sig.reshape(shape), rect.model, o, masks, checks)
+    return BinocularResult(cloud, sig.reshape(shape), rect.model, o, iso.reshape(shape), masks, checks)
+
+
+def calibration_jacobian(model: StereoModel, points: np.ndarray, iso_slope: np.ndarray) -> np.ndarray:
+    """∂X/∂θ (N, 3, 24) of left-camera points X (N, 3, mm) matched by `match` with the iso-line
+    slopes `iso_slope` (N,) (`BinocularResult.iso_slope`), over the parameters θ of
+    `model.covariance` (module docstring, 5.): −A⁻¹B, A = ∂(π_l, n·π_r)/∂X, B = ∂(π_l, n·π_r)/∂θ,
+    n ⊥ the tangent (s, 1) of the iso-line carried from the rectified frame into the right
+    camera's pixels (through R_rightᵀ and ∂π_r/∂X_r; the tangent's scale does not matter)."""
+    X = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 1, 3)
+    n = len(X)
+    if n == 0:
+        return np.zeros((0, 3, N_PARAMETERS))
+    L, Rc, T = model.left, model.right, model.right_from_left
+    _, R2, _, _ = _rectifying(model)
+    _, Jl = cv2.projectPoints(X, np.zeros(3), np.zeros(3), L.K, L.dist)
+    _, Jr = cv2.projectPoints(X, cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3], Rc.K, Rc.dist)
+    Jl, Jr = Jl.reshape(n, 2, -1), Jr.reshape(n, 2, -1)  # columns: rvec, tvec, fx, fy, cx, cy, k1, k2, p1, p2, k3
+    s = np.asarray(iso_slope, dtype=np.float64).ravel()
+    tangent = np.einsum("nij,nj->ni", Jr[:, :, 3:6], np.column_stack([s, np.ones(n), np.zeros(n)]) @ R2)
+    normal = np.column_stack([tangent[:, 1], -tangent[:, 0]])
+    A = np.concatenate([Jl[:, :, 3:6], np.einsum("ni,nij->nj", normal, Jr[:, :, 3:6])[:, None, :] @ T[:3, :3]], axis=1)
+    k = len(INTRINSIC_NAMES)
+    B = np.zeros((n, 3, N_PARAMETERS))
+    B[:, :2, :k] = Jl[:, :, 6:15]
+    B[:, 2, k:2 * k] = np.einsum("ni,nij->nj", normal, Jr[:, :, 6:15])
+    B[:, 2, 2 * k:] = np.einsum("ni,nij->nj", normal, Jr[:, :, 0:6])
+    return -np.linalg.solve(A, B)
 
 
 PROJECTOR_FIT_SAMPLES = 50_000  # points the projector model is fitted on (17 parameters): every k-th point

@@ -4,6 +4,10 @@ the first two matched and triangulated (scanner/binocular.py).
 
 Where the projector's calibration is known (`projector_calibrated`), the camera-projector rays
 must meet the binocular point: `three_ray_check` reports how far apart they are, per scan.
+
+outputs/binocular.json states the points' noise (`depth_sigma_median_mm`) and, apart, the stereo
+calibration's term ("calibration": `BinocularResult.calibration_figures`, one error common to the
+whole scan), or that it is not included (a calibration stating no covariance).
 """
 
 from __future__ import annotations
@@ -153,7 +157,8 @@ def process_binocular(session: Session, progress: Progress = _quiet,
     write_json(out / "binocular.json", {
         "session_id": session.id, "cameras": names, "orientation": result.orientation,
         "points": len(result.cloud), "checks": result.checks, "three_ray_check": three,
-        "depth_sigma_median_mm": float(np.nanmedian(result.depth_sigma_mm)), "timings_s": timings,
+        "depth_sigma_median_mm": float(np.nanmedian(result.depth_sigma_mm)),
+        "calibration": result.calibration_figures(), "timings_s": timings,
         "consistency": {n: [c.as_dict() for c in d.checks] for n, d in decoded.items()},
         "integrity": session.integrity})
     progress("done", 1, 1)

@@ -9,7 +9,8 @@ with every other camera's frames and the stereo geometry beside it.
         camera_models  {name: model}  every camera with the projector (RigModel.to_dict), in its own
                                       frame; `projector_calibrated` says whether the projector part
                                       was calibrated (else nominal: the three-ray check is skipped)
-        stereo_model   {...}          the two cameras' geometry (StereoModel.to_dict): what points come from
+        stereo_model   {...}          the two cameras' geometry (StereoModel.to_dict): what points come from,
+                                      with the calibration's covariance where it states one
     outputs/cloud.ply                 the binocular cloud, in the first camera's frame, mm
     outputs/binocular.json            the reconstruction's figures (matches, refusals, self-checks)
     outputs/<camera>/maps.npz         each camera's decoded maps
@@ -34,6 +35,13 @@ from scanner.session import MANIFEST, FrameEntry, Session
 CameraName = Annotated[str, Field(strict=True, min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")]
 
 
+class StereoCovarianceSchema(schema.Schema):
+    """`StereoModel.covariance` as `to_dict` writes it (its shape and names checked by `from_dict`)."""
+
+    parameters: list[schema.Str]
+    matrix: list[list[float]]
+
+
 class StereoModelSchema(schema.Schema):
     """`StereoModel.to_dict` as written in manifests and stereo calibration files."""
 
@@ -43,6 +51,7 @@ class StereoModelSchema(schema.Schema):
     right_from_left: schema.Matrix4
     epipolar_sigma_px: schema.NonNegativeFloat = 0.0
     calibration: schema.Str = ""
+    covariance: StereoCovarianceSchema | None = None
 
     @model_validator(mode="after")
     def _pose(self) -> StereoModelSchema:

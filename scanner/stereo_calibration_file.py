@@ -22,11 +22,16 @@ The one place that says which matrix is which:
   longer vectors with non-zero extra terms are refused.
 - The image size comes from the frames; a file that states one (`S`) must agree with them.
 - The files say nothing of a projector: a binocular import needs none.
+- Ours holds the solve's covariance of the 24 parameters (`report.covariance`: parameters and
+  matrix, `StereoModel.covariance`), which gives the points their calibration term
+  (scanner/binocular.py); the other tools' files hold none: their points' calibration term is
+  "not included".
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -44,13 +49,16 @@ RECTIFICATION_TOLERANCE = 1e-6  # of a rotation matrix's entries: stored doubles
 
 
 def write_stereo_calibration(path: str | Path, model: StereoModel, report: dict[str, Any]) -> Path:
-    """Write ours (module docstring): the model, the image sizes and the solve's `report`."""
+    """Write ours (module docstring): the model, the image sizes and the solve's `report`; the
+    model's covariance once, as the report's "covariance"."""
     from scanner.session import write_json
 
     path = Path(path)
-    write_json(path, {"slscan_stereo_calibration": STEREO_CALIBRATION_VERSION, "stereo_model": model.to_dict(),
+    stereo = model.to_dict()
+    covariance = stereo.pop("covariance", None)
+    write_json(path, {"slscan_stereo_calibration": STEREO_CALIBRATION_VERSION, "stereo_model": stereo,
                       "image_sizes": {"left": list(model.left.size), "right": list(model.right.size)},
-                      "report": report})
+                      "report": report | ({"covariance": covariance} if covariance is not None else {})})
     return path
 
 
@@ -164,7 +172,7 @@ def read_stereo_calibration(paths: list[str | Path], left_size: tuple[int, int],
 
 
 def _read_ours(path: Path, left_size: tuple[int, int], right_size: tuple[int, int]) -> StereoModel:
-    from scanner.binocular_session import StereoModelSchema
+    from scanner.binocular_session import StereoCovarianceSchema, StereoModelSchema
 
     try:
         data = json.loads(path.read_text())
@@ -173,14 +181,18 @@ def _read_ours(path: Path, left_size: tuple[int, int], right_size: tuple[int, in
     if not isinstance(data, dict) or data.get("slscan_stereo_calibration") != STEREO_CALIBRATION_VERSION:
         raise CalibrationFileError(path, f"not an slscan stereo calibration (version "
                                          f"{STEREO_CALIBRATION_VERSION})")
+    report = data.get("report")
+    covariance = report.get("covariance") if isinstance(report, dict) else None
     try:
         schema.parse(StereoModelSchema, data.get("stereo_model"), path, prefix="stereo_model")
+        if covariance is not None:
+            schema.parse(StereoCovarianceSchema, covariance, path, prefix="report.covariance")
+        model = StereoModel.from_dict(data["stereo_model"] | ({"covariance": covariance} if covariance else {}),
+                                      str(path))
     except ConfigError as exc:
         raise CalibrationFileError(path, str(exc)) from None
-    model = StereoModel.from_dict(data["stereo_model"], str(path))
     for name, lens, size in (("left", model.left, left_size), ("right", model.right, right_size)):
         if lens.size != tuple(size):
             raise CalibrationFileError(path, f"the {name} camera is calibrated at {lens.width} x {lens.height} px, "
                                              f"its frames are {size[0]} x {size[1]} px")
-    return StereoModel(model.left, model.right, model.right_from_left, model.names, model.epipolar_sigma_px,
-                       str(path.resolve()))
+    return replace(model, calibration=str(path.resolve()))

@@ -61,6 +61,9 @@ def test_the_session_holds_every_camera_and_decodes_again(scanned: tuple) -> Non
     again = process_binocular(session)
     assert np.array_equal(np.isnan(again.result.cloud.points), np.isnan(scan.result.cloud.points))
     assert np.nanmax(np.abs(again.result.cloud.points - scan.result.cloud.points)) == 0.0
+    figures = json.loads((root / "outputs" / "binocular.json").read_text())
+    assert figures["calibration"]["included"] is False  # the rig file's nominal geometry states no covariance
+    assert figures["calibration"]["term"].startswith("not included")
     header = (root / "outputs" / "cloud.ply").read_bytes()[:800].decode("latin-1")
     assert "unit: mm" in header and "frame: camera 'left'" in header
 
