@@ -562,23 +562,51 @@ class LinearU:
 
 
 @dataclass(frozen=True, eq=False)
+class PointJacobian:
+    """∂X/∂θ of points as the triangulation that made them gives it (a binocular rig's matcher,
+    `scanner.binocular.BinocularResult.calibration_jacobian`, over the stereo calibration's 24
+    parameters): `of(index)` (n, 3, P) for the points at `index` of that triangulation (flat left
+    pixels), these points being at `index`."""
+
+    of: Callable[[np.ndarray], np.ndarray]
+    index: np.ndarray
+
+    def subset(self, mask: np.ndarray) -> PointJacobian:
+        return replace(self, index=self.index[mask])
+
+    def __call__(self) -> np.ndarray:
+        return self.of(self.index)
+
+
+@dataclass(frozen=True, eq=False)
 class ScanUncertainty:
     """What the figures measured on N points of a scan are propagated with: the points'
     noise model, the calibration's covariance, the rig model they were triangulated with
-    and each point's share of the depth per fringe orientation (`weights`, (N,) each)."""
+    and each point's share of the depth per fringe orientation (`weights`, (N,) each), or, where
+    the triangulation gives it itself (a binocular rig), each point's ∂X/∂θ (`jacobian`)."""
 
     noise: PointNoise | None
     calibration: CalibrationUncertainty
     model: RigModel | None = None
     weights: dict[str, np.ndarray] | None = None
+    jacobian: PointJacobian | None = None
 
     def subset(self, mask: np.ndarray) -> ScanUncertainty:
         w = None if self.weights is None else {o: v[mask] for o, v in self.weights.items()}
-        return ScanUncertainty(None if self.noise is None else self.noise.subset(mask), self.calibration, self.model, w)
+        return ScanUncertainty(None if self.noise is None else self.noise.subset(mask), self.calibration, self.model, w,
+                               None if self.jacobian is None else self.jacobian.subset(mask))
 
     def shifts(self, points: np.ndarray) -> np.ndarray | None:
         """The points' (N, 3, camera frame) moves (D, N, 3) for each principal calibration
-        direction; None without calibration uncertainty."""
+        direction; None without calibration uncertainty. One move of the calibration moves every
+        point: a figure adds its points' moves before squaring (`linear_u`)."""
+        if self.calibration.is_zero:
+            return None
+        if self.jacobian is not None:
+            J = self.jacobian()
+            if len(J) != len(points):
+                raise ValueError(f"{len(points)} points, a Jacobian of {len(J)}")
+            return np.einsum("nip,dp->dni", J, self.calibration.directions())
         if self.model is None or self.weights is None:
             return None
         return self.calibration.shifts(points, self.model, self.weights)
@@ -612,7 +640,13 @@ class ScanUncertainty:
             if len(w) != len(parts):
                 raise ValueError("ScanUncertainty.join: the first part has depth weights, another has none")
             weights = {o: np.concatenate([x[o] for x in w]) for o in first.weights}
-        return cls(noise, first.calibration, first.model, weights)
+        jacobian = None
+        if first.jacobian is not None:
+            js = [p.jacobian for p in parts if p.jacobian is not None]
+            if len(js) != len(parts) or any(j.of != first.jacobian.of for j in js):
+                raise ValueError("ScanUncertainty.join: the parts' points come from different triangulations")
+            jacobian = PointJacobian(first.jacobian.of, np.concatenate([j.index for j in js]))
+        return cls(noise, first.calibration, first.model, weights, jacobian)
 
 
 def scan_uncertainty(decoded: DecodeResult, model: RigModel, sensor: SensorNoise | None, fringe: FringeError | None,

@@ -11,6 +11,7 @@ either camera (there a moved epipolar line can move a match onto the other surfa
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -209,3 +210,44 @@ def test_the_covariance_is_stored_read_and_said_missing(scene: tuple, tmp_path: 
     assert without.calibration_depth_sigma_mm(points) is None
     assert without.calibration_figures() == {"included": False, "term": without.calibration_term}
     assert without.calibration_term.startswith("not included")
+
+
+def test_a_figure_on_the_binocular_points_carries_the_calibration_term(scene: tuple) -> None:
+    """`slscan verify`'s binocular U (slscan/commands/verify_binocular.py): a figure linear in the
+    points (their mean depth) gets u_cal = sqrt(gᵀ·J·Σ·Jᵀ·g), written out here, for the points
+    kept after a subset; it is one error of the whole scan, so it stays near the points' own
+    calibration sigma instead of falling as 1/sqrt(N); and the matcher run again with rigs drawn
+    from the covariance moves the figure by gᵀ·J·δ, to 2 %."""
+    from inspection.uncertainty import PointJacobian, PointNoise, ScanUncertainty
+    from slscan.commands.verify_binocular import binocular_calibration
+
+    truth, L, R, _, points = scene
+    rng = np.random.default_rng(SEED + 1)
+    cov = calibrate(truth, rng).covariance
+    assert cov is not None
+    model = StereoModel(truth.left, truth.right, truth.right_from_left, epipolar_sigma_px=0.5, covariance=cov)
+    result = match(Rectification.of(model), L, R)
+    X = result.cloud.points.reshape(-1, 3)[points].astype(np.float64)
+    noise = PointNoise(np.full(len(points), 1e-3), X / X[:, 2:3])
+    whole = ScanUncertainty(noise, binocular_calibration(model), jacobian=PointJacobian(result.calibration_jacobian,
+                                                                                        points))
+    keep = rng.random(len(points)) < 0.5
+    kept = whole.subset(keep)
+    g = np.zeros((int(keep.sum()), 3))
+    g[:, 2] = 1.0 / keep.sum()
+    u_cal = kept.linear_u(X[keep], g).calibration
+    Jz = result.calibration_jacobian(points[keep])[:, 2]
+    gJ = g[:, 2] @ Jz
+    assert u_cal == pytest.approx(float(np.sqrt(gJ @ cov @ gJ)), rel=1e-9)
+    sigma = result.calibration_depth_sigma_mm(points[keep])
+    assert sigma is not None
+    assert u_cal > 0.3 * np.median(sigma) > 10 * np.sqrt(np.sum((g[:, 2] * sigma) ** 2))
+    assert binocular_calibration(replace(model, covariance=None)).is_zero
+    w, v = np.linalg.eigh(cov)
+    for _ in range(6):
+        delta = v @ (np.sqrt(np.maximum(w, 0)) * rng.standard_normal(len(w)))
+        moved = _points(model.perturbed(delta), scene)[keep, 2]
+        ok = np.isfinite(moved)
+        assert ok.mean() > 0.98
+        change = np.mean(moved[ok] - X[keep][ok, 2])
+        assert change == pytest.approx(float(np.mean(Jz[ok] @ delta)), rel=0.02, abs=0.02 * u_cal)

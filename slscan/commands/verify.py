@@ -127,7 +127,8 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
             bench = OperatorArtefactBench(say)
         measurement = rig_measurement(config.raw, model, patterns, rig.camera.bit_depth, config.path)
         tri = Triangulator(model)
-        binocular = binocular_scanner(config) if len(config.cameras) >= 2 else None
+        stereo = config.stereo_model() if len(config.cameras) >= 2 else None
+        binocular = binocular_scanner(stereo) if stereo is not None else None
         for k, position in enumerate(plan):
             t0 = time.perf_counter()
             try:
@@ -159,23 +160,25 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
              "calibration uncertainty": measurement.calibration.source,
              "fringe error": f"{measurement.fringe.rms_px:.4f} projector px RMS (quantised patterns)"
                              if measurement.fringe is not None else "not modelled"}
-    if len(config.cameras) >= 2:
+    if stereo is not None:
+        from slscan.commands.verify_binocular import binocular_calibration
+
         notes |= {"reconstruction": f"binocular: cameras {', '.join(config.camera_names[:2])} matched "
                                     f"(scanner/binocular.py); the projector's geometry unused",
                   "noise model": "both cameras' decoded phase noise", "calibration uncertainty":
-                  "not propagated: the stereo calibration's covariance is not yet carried into the figures"}
+                  binocular_calibration(stereo).source}
     return AcceptanceReport(config.name, f"geometry {model.calibration or 'nominal (no calibration file)'}",
                             acceptance, artefacts, tuple(results), notes)
 
 
-def binocular_scanner(config: Any) -> Callable[[Any, Any, float], tuple[Any, Any]]:
-    """For a rig with two cameras: a function scanning with all of them (patterns compensated for
-    the projector's gamma) and returning the binocular cloud and its ScanData (slscan/commands/
-    verify_binocular.py)."""
+def binocular_scanner(stereo: Any) -> Callable[[Any, Any, float], tuple[Any, Any]]:
+    """For a rig with two cameras and their `stereo` model: a function scanning with all of them
+    (patterns compensated for the projector's gamma) and returning the binocular cloud and its
+    ScanData (slscan/commands/verify_binocular.py)."""
     from scanner.binocular import BinocularReconstructor
     from slscan.commands.verify_binocular import binocular_scan_data
 
-    bino = BinocularReconstructor(config.stereo_model())
+    bino = BinocularReconstructor(stereo)
     return lambda rig, patterns, gamma: binocular_scan_data(rig, patterns, gamma, bino)
 
 
