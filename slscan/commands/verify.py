@@ -105,9 +105,10 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
     model = _model(config, args.calibration)
     patterns = PatternSet.load(config.patterns_path)
     out = _out_folder(Path(args.out))
+    stereo = config.stereo_model() if len(config.cameras) >= 2 else None
+    geometry = (stereo.calibration if stereo is not None else model.calibration) or "nominal (no calibration file)"
     say(f"verifying rig {config.name} ({config.driver}) with {artefacts.name}: {len(plan)} positions in a "
-        f"{' x '.join(f'{s:g}' for s in acceptance.size_mm)} mm measuring volume; geometry "
-        f"{model.calibration or 'nominal (no calibration file)'} -> {out}")
+        f"{' x '.join(f'{s:g}' for s in acceptance.size_mm)} mm measuring volume; geometry {geometry} -> {out}")
     results: list[PositionResult] = []
     sim = config.driver == "sim"
     options: dict[str, Any] = {"seed": args.seed} if sim else {}
@@ -127,7 +128,6 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
             bench = OperatorArtefactBench(say)
         measurement = rig_measurement(config.raw, model, patterns, rig.camera.bit_depth, config.path)
         tri = Triangulator(model)
-        stereo = config.stereo_model() if len(config.cameras) >= 2 else None
         binocular = binocular_scanner(stereo) if stereo is not None else None
         for k, position in enumerate(plan):
             t0 = time.perf_counter()
@@ -167,7 +167,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> Any:
                                     f"(scanner/binocular.py); the projector's geometry unused",
                   "noise model": "both cameras' decoded phase noise", "calibration uncertainty":
                   binocular_calibration(stereo).source}
-    return AcceptanceReport(config.name, f"geometry {model.calibration or 'nominal (no calibration file)'}",
+    return AcceptanceReport(config.name, f"geometry {geometry}",
                             acceptance, artefacts, tuple(results), notes)
 
 
