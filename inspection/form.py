@@ -102,6 +102,10 @@ def plane_ls(points: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.nda
     return c0 + c * normal, n / np.linalg.norm(n)
 
 
+LS_TOL = 1e-12  # the cylinder fit's tolerances (LM's, relative): its minimum to round-off (the default 1e-8
+# stopped up to 1e-7 mm short on a noisy cylinder)
+
+
 def cylinder_ls(points: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Paper 000 Eq. 21-22: the axis (point, direction) minimising sum (r_i - mean r)^2,
     r_i = |o p_i x n|, from the nominal axis; returns (origin, unit axis, mean radius).
@@ -110,7 +114,8 @@ def cylinder_ls(points: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> tup
     u, v = _frame(axis)
     o0 = origin + ((points - origin) @ axis).mean() * axis  # centred along the axis
     radii = _AxisRadii(points - o0, u, v, axis)
-    res = least_squares(radii.spread, np.zeros(4), jac=radii.spread_jacobian, method="lm")
+    res = least_squares(radii.spread, np.zeros(4), jac=radii.spread_jacobian, method="lm",
+                        xtol=LS_TOL, ftol=LS_TOL, gtol=LS_TOL)
     o, n = _axis(o0, u, v, axis, res.x)
     return o, n, float(radii.radii(res.x).mean())
 
