@@ -61,6 +61,7 @@ transform.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable, Iterable, Iterator
 from contextvars import ContextVar
 from dataclasses import dataclass, field, fields, replace
@@ -411,9 +412,17 @@ def _plane_lps(count: int, s: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np
 
 def cylindricity_mz(points: np.ndarray, origin: np.ndarray, axis: np.ndarray, rounds: int = 6) -> float:
     """Minimum-zone cylindricity: the least radial distance between two coaxial cylinders
-    holding the points. An LP on the axis's four small-displacement parameters about the
-    current axis (`_cylinder_zone`), relinearised until the zone stops narrowing."""
+    holding the points, from their least-squares axis (`cylinder_ls`, from the nominal
+    axis (`origin`, `axis`)); `cylinder_mz_from`."""
     o, n, _ = cylinder_ls(points, origin, axis)
+    return cylinder_mz_from(points, o, n, rounds=rounds)
+
+
+def cylinder_mz_from(points: np.ndarray, origin: np.ndarray, axis: np.ndarray, *, rounds: int = 6) -> float:
+    """`cylindricity_mz` from the axis (`origin`, unit `axis`) of the points' least-squares
+    fit: an LP on the axis's four small-displacement parameters about the current axis
+    (`_cylinder_zone`), relinearised until the zone stops narrowing (at most `rounds`)."""
+    o, n = origin, axis
     width = np.inf
     at_axis = np.zeros(4)
     for _ in range(rounds):
@@ -429,18 +438,19 @@ def cylindricity_mz(points: np.ndarray, origin: np.ndarray, axis: np.ndarray, ro
     return float(width)
 
 
-CYLINDER_CANDIDATES = 400  # extreme radii per side a cylinder zone's LP starts from
-CYLINDER_VIOLATORS = 200  # the worst points outside its zone added to it at a time
+CYLINDER_CANDIDATES = 50  # extreme radii per side a cylinder zone's LP starts from
+CYLINDER_VIOLATORS = 50  # the worst points outside its zone added to it at a time
 CYLINDER_SLACK_MM = 1e-9  # a point this far outside the zone counts as inside
 
 
 def _cylinder_zone(r: np.ndarray, J: np.ndarray) -> np.ndarray:
     """The axis displacement x (4,) of the narrowest zone R <= r + J x <= R + w holding
-    every point (radii r (N,), their derivatives J (N, 4)): the LP over the points with
-    the most extreme radii, then the worst violators added and solved again until none
-    is left, which is exact (the zone of a subset is never wider, and one holding every
-    point is the zone of them all). A point already in the LP is never a violator: one
-    HiGHS leaves outside by its feasibility tolerance (1e-7) would only repeat the LP."""
+    every point (radii r (N,), their derivatives J (N, 4)): the LP over the points with the
+    most extreme radii, then the worst violators added and solved again until none is left,
+    which is exact (the zone of a subset is never wider, and one holding every point is
+    the zone of them all). A point already in the LP is never a violator: one HiGHS leaves
+    outside by its feasibility tolerance (1e-7) would only repeat the LP. Small sets: an
+    LP's cost grows with its points, and a zone rests on six."""
     k = min(len(r), CYLINDER_CANDIDATES)
     active = np.zeros(len(r), bool)
     active[np.argpartition(r, k - 1)[:k]] = True
@@ -1064,18 +1074,22 @@ def _cylindricity(face: Face, c: _Cells) -> tuple[_ZoneFigures, _Parts]:
     sign = face.sense * np.sign(np.dot(s.evaluate(np.zeros((1, 2)))[1][0], s.x))
     axis0, o0 = np.array([0.0, 0.0, 1.0]), np.zeros(3)
 
-    def cyl_ls(hs: np.ndarray) -> np.ndarray:
-        out = []
-        for h in hs:  # one least-squares fit per surface
+    fitted: dict[bytes, tuple[float, float]] = {}  # (LS, MZ) zone of each surface, by its heights' digest
+
+    def zones(h: np.ndarray) -> tuple[float, float]:  # both zones about one least-squares fit
+        key = hashlib.blake2b(h.tobytes(), digest_size=16).digest()
+        if key not in fitted:
             p = _unroll(c.cxy, R + sign * h, R)
             o, a, _ = cylinder_ls(p, o0, axis0)
-            d = p - o
-            r = np.linalg.norm(d - np.outer(d @ a, a), axis=1)
-            out.append(r.max() - r.min())
-        return np.array(out)
+            r = _AxisRadii(p - o, *_frame(a), a).radii(np.zeros(4))
+            fitted[key] = float(r.max() - r.min()), cylinder_mz_from(p, o, a)
+        return fitted[key]
+
+    def cyl_ls(hs: np.ndarray) -> np.ndarray:
+        return np.array([zones(h)[0] for h in hs])
 
     def cyl_mz(hs: np.ndarray) -> np.ndarray:
-        return np.array([cylindricity_mz(_unroll(c.cxy, R + sign * h, R), o0, axis0) for h in hs])
+        return np.array([zones(h)[1] for h in hs])
 
     ls, ls_parts = _zone(cyl_ls, c.f, c.fe, c.e, c.cal)
     mz, mz_parts = _zone(cyl_mz, c.f, c.fe, c.e, c.cal)
