@@ -69,7 +69,7 @@ from typing import TYPE_CHECKING, TypedDict, TypeVar
 
 import numpy as np
 from scipy import fft, ndimage
-from scipy.optimize import least_squares, linprog
+from scipy.optimize import leastsq, linprog
 
 from inspection import figures
 from inspection.surfaces import Cone, Cylinder, Surface
@@ -113,12 +113,13 @@ def cylinder_ls(points: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> tup
     Levenberg-Marquardt on the axis's four parameters (`_AxisRadii`), derivatives analytic."""
     axis = axis / np.linalg.norm(axis)
     u, v = _frame(axis)
-    o0 = origin + ((points - origin) @ axis).mean() * axis  # centred along the axis
+    o0 = origin + (points - origin).mean(axis=0) @ axis * axis  # centred along the axis
     radii = _AxisRadii(points - o0, u, v, axis)
-    res = least_squares(radii.spread, np.zeros(4), jac=radii.spread_jacobian, method="lm",
-                        xtol=LS_TOL, ftol=LS_TOL, gtol=LS_TOL)
-    o, n = _axis(o0, u, v, axis, res.x)
-    return o, n, float(radii.radii(res.x).mean())
+    # MINPACK's lmder (as least_squares' "lm"), the Jacobian handed over a row per parameter as it is made
+    x, *_ = leastsq(radii.spread, np.zeros(4), Dfun=radii.spread_jacobian, col_deriv=True,
+                    xtol=LS_TOL, ftol=LS_TOL, gtol=LS_TOL)
+    o, n = _axis(o0, u, v, axis, x)
+    return o, n, float(radii.radii(x).mean())
 
 
 class _AxisRadii:
@@ -132,7 +133,8 @@ class _AxisRadii:
     ((A, B, C) - a m / s) / r, from r^2 = |d|^2 - (d.n)^2 (d: point less axis point)."""
 
     def __init__(self, q: np.ndarray, u: np.ndarray, v: np.ndarray, n0: np.ndarray) -> None:
-        self.qu, self.qv, self.qn = q @ u, q @ v, q @ n0
+        # einsum: no BLAS threads on thin products (a pool contending with other work costs more than it saves)
+        self.qu, self.qv, self.qn = np.einsum("ij,kj->ki", q, np.stack([u, v, n0]))
         self._x = np.full(4, np.nan)
         self._at: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float] | None = None
 
@@ -153,10 +155,10 @@ class _AxisRadii:
         return self._terms(x)[0]
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
-        """dr/dx (N, 4) at x."""
+        """dr/dx (4, N) at x, a row per parameter."""
         r, A, B, a, s = self._terms(x)
         eu, ev = (A - a * x[0] / s) / r, (B - a * x[1] / s) / r
-        return np.column_stack([-a * eu / s, -a * ev / s, -eu, -ev])
+        return np.stack([-a * eu / s, -a * ev / s, -eu, -ev])
 
     def spread(self, x: np.ndarray) -> np.ndarray:
         """r - mean r (N,): the residuals of Eq. 21."""
@@ -164,9 +166,9 @@ class _AxisRadii:
         return r - r.mean()
 
     def spread_jacobian(self, x: np.ndarray) -> np.ndarray:
-        """d(r - mean r)/dx (N, 4)."""
+        """d(r - mean r)/dx (4, N)."""
         J = self.jacobian(x)
-        return J - J.mean(axis=0)
+        return J - J.mean(axis=1, keepdims=True)
 
 
 def _axis(o0: np.ndarray, u: np.ndarray, v: np.ndarray, n0: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -445,7 +447,7 @@ CYLINDER_SLACK_MM = 1e-9  # a point this far outside the zone counts as inside
 
 def _cylinder_zone(r: np.ndarray, J: np.ndarray) -> np.ndarray:
     """The axis displacement x (4,) of the narrowest zone R <= r + J x <= R + w holding
-    every point (radii r (N,), their derivatives J (N, 4)): the LP over the points with the
+    every point (radii r (N,), their derivatives J^T (4, N)): the LP over the points with the
     most extreme radii, then the worst violators added and solved again until none is left,
     which is exact (the zone of a subset is never wider, and one holding every point is
     the zone of them all). A point already in the LP is never a violator: one HiGHS leaves
@@ -456,8 +458,8 @@ def _cylinder_zone(r: np.ndarray, J: np.ndarray) -> np.ndarray:
     active[np.argpartition(r, k - 1)[:k]] = True
     active[np.argpartition(-r, k - 1)[:k]] = True
     while True:
-        x, R, w = _cylinder_lp(r[active], J[active])
-        rr = r + J @ x
+        x, R, w = _cylinder_lp(r[active], J[:, active].T)
+        rr = r + np.einsum("j,ji->i", x, J)
         excess = np.maximum(R - rr, rr - R - w)
         excess[active] = -np.inf
         out = np.flatnonzero(excess > CYLINDER_SLACK_MM)

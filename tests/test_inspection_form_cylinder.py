@@ -78,7 +78,7 @@ def test_radii_derivatives_against_central_differences() -> None:
             m = n + x[0] * u + x[1] * v
             assert f.radii(x) == pytest.approx(radii(p, o0 + x[2] * u + x[3] * v, m / np.linalg.norm(m)), abs=1e-11)
             h = 1e-6
-            numeric = np.column_stack([(f.radii(x + h * e) - f.radii(x - h * e)) / (2 * h) for e in np.eye(4)])
+            numeric = np.stack([(f.radii(x + h * e) - f.radii(x - h * e)) / (2 * h) for e in np.eye(4)])
             assert np.abs(f.jacobian(x) - numeric).max() < 1e-6
 
 
