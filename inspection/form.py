@@ -56,7 +56,8 @@ Speed (the draws are most of the work): a plane's zones of the measured surface,
 plus each draw and of each draw alone are solved a batch at a time, in one LP over a few
 candidate points per surface, every point then checked and the violators added (exact);
 the draws are filtered as one stack, the L-filter's mean taken from the form filter's
-transform.
+transform. A cylinder's surfaces are each fitted once for both zones, by Levenberg-Marquardt
+with the radii's analytic derivatives, and its zone's LPs start from a few extreme points.
 """
 
 from __future__ import annotations
@@ -445,21 +446,22 @@ CYLINDER_VIOLATORS = 50  # the worst points outside its zone added to it at a ti
 CYLINDER_SLACK_MM = 1e-9  # a point this far outside the zone counts as inside
 
 
-def _cylinder_zone(r: np.ndarray, J: np.ndarray) -> np.ndarray:
-    """The axis displacement x (4,) of the narrowest zone R <= r + J x <= R + w holding
-    every point (radii r (N,), their derivatives J^T (4, N)): the LP over the points with the
-    most extreme radii, then the worst violators added and solved again until none is left,
-    which is exact (the zone of a subset is never wider, and one holding every point is
-    the zone of them all). A point already in the LP is never a violator: one HiGHS leaves
-    outside by its feasibility tolerance (1e-7) would only repeat the LP. Small sets: an
-    LP's cost grows with its points, and a zone rests on six."""
+def _cylinder_zone(r: np.ndarray, dr: np.ndarray) -> np.ndarray:
+    """The axis displacement x (4,) of the narrowest zone R <= r + x.dr <= R + w holding
+    every point (radii r (N,), their derivatives dr (4, N), a row per parameter): the LP
+    over the points with the most extreme radii, then the worst violators added and solved
+    again until none is left (each round adds one at least), which is exact (the zone of a
+    subset is never wider, and one holding every point is the zone of them all). A point
+    already in the LP is never a violator: one HiGHS leaves outside by its feasibility
+    tolerance (1e-7) would only repeat the LP. Small sets: an LP's cost grows with its
+    points, and a zone rests on six."""
     k = min(len(r), CYLINDER_CANDIDATES)
     active = np.zeros(len(r), bool)
     active[np.argpartition(r, k - 1)[:k]] = True
     active[np.argpartition(-r, k - 1)[:k]] = True
     while True:
-        x, R, w = _cylinder_lp(r[active], J[:, active].T)
-        rr = r + np.einsum("j,ji->i", x, J)
+        x, R, w = _cylinder_lp(r[active], dr[:, active].T)
+        rr = r + np.einsum("j,ji->i", x, dr)
         excess = np.maximum(R - rr, rr - R - w)
         excess[active] = -np.inf
         out = np.flatnonzero(excess > CYLINDER_SLACK_MM)
