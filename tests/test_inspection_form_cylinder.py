@@ -14,12 +14,17 @@ from scipy.optimize import least_squares
 from inspection.form import _AxisRadii, cylinder_ls, cylindricity_mz
 
 
+def _perpendicular(rng: np.random.Generator, n: np.ndarray) -> np.ndarray:
+    """A random unit vector perpendicular to unit n."""
+    u = np.cross(n, rng.standard_normal(3))
+    return u / np.linalg.norm(u)
+
+
 def _random_axis(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A random axis (point, unit direction) and two unit vectors completing it to a frame."""
     n = rng.standard_normal(3)
     n /= np.linalg.norm(n)
-    u = np.cross(n, rng.standard_normal(3))
-    u /= np.linalg.norm(u)
+    u = _perpendicular(rng, n)
     return rng.uniform(-50.0, 50.0, 3), n, u, np.cross(n, u)
 
 
@@ -68,9 +73,7 @@ def test_radii_derivatives_against_central_differences() -> None:
     rng = np.random.default_rng(11)
     for _ in range(5):
         p, o, n = _cylinder(rng, 300, rng.uniform(3.0, 40.0), rng.uniform(5.0, 80.0), 0.5)
-        _, _, u, v = _random_axis(rng)  # the frame must be orthonormal about n, not about a random axis
-        u = np.cross(n, u)
-        u /= np.linalg.norm(u)
+        u = _perpendicular(rng, n)
         v = np.cross(n, u)
         o0 = o + rng.normal(0.0, 1.0, 3)
         f = _AxisRadii(p - o0, u, v, n)
@@ -89,7 +92,7 @@ def test_least_squares_axis_of_an_exact_cylinder() -> None:
     for _ in range(3):
         p, o, n = _cylinder(rng, 2000, rng.uniform(3.0, 40.0), rng.uniform(5.0, 80.0), 0.0)
         radius = float(radii(p, o, n).mean())
-        _, _, u, _ = _random_axis(rng)
+        u = _perpendicular(rng, n)
         got_o, got_n, got_r = cylinder_ls(p, o + 0.5 * np.cross(n, u), n + 0.05 * u)
         assert _line_gap(o, n, got_o, got_n, 50.0) < 1e-9
         assert got_r == pytest.approx(radius, rel=1e-12)
@@ -103,7 +106,7 @@ def test_least_squares_axis_against_the_tests_own_fit() -> None:
     for _ in range(6):
         length, radius = rng.uniform(5.0, 80.0), rng.uniform(3.0, 40.0)
         p, o, n = _cylinder(rng, 3000, radius, length, rng.uniform(0.005, 0.5))
-        _, _, u, _ = _random_axis(rng)
+        u = _perpendicular(rng, n)
         start_o, start_n = o + 0.3 * np.cross(n, u), n + 0.03 * u
         got_o, got_n, got_r = cylinder_ls(p, start_o, start_n)
         own_o, own_n, own_r = _own_fit(p, start_o, start_n)
@@ -119,7 +122,7 @@ def test_minimum_zone_against_one_lp_over_every_point() -> None:
     for _ in range(4):
         length = rng.uniform(5.0, 80.0)
         p, o, n = _cylinder(rng, 5000, rng.uniform(3.0, 40.0), length, rng.uniform(0.005, 0.5))
-        _, _, u, _ = _random_axis(rng)
+        u = _perpendicular(rng, n)
         got = cylindricity_mz(p, o + 0.3 * np.cross(n, u), n + 0.03 * u)
         assert got == pytest.approx(cylinder_min_zone(p, o, n, rounds=6), abs=1e-7)
         ls_o, ls_n, _ = cylinder_ls(p, o, n)
