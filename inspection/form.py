@@ -56,11 +56,13 @@ Speed (the draws are most of the work): a plane's zones of the measured surface,
 plus each draw and of each draw alone are solved a batch at a time, in one LP over a few
 candidate points per surface, every point then checked and the violators added (exact);
 the draws are filtered as one stack, the L-filter's mean taken from the form filter's
-transform.
+transform. A cylinder's surfaces are each fitted once for both zones, by Levenberg-Marquardt
+with the radii's analytic derivatives, and its zone's LPs start from a few extreme points.
 """
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable, Iterable, Iterator
 from contextvars import ContextVar
 from dataclasses import dataclass, field, fields, replace
@@ -68,7 +70,7 @@ from typing import TYPE_CHECKING, TypedDict, TypeVar
 
 import numpy as np
 from scipy import fft, ndimage
-from scipy.optimize import least_squares, linprog
+from scipy.optimize import leastsq, linprog
 
 from inspection import figures
 from inspection.surfaces import Cone, Cylinder, Surface
@@ -102,21 +104,72 @@ def plane_ls(points: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.nda
     return c0 + c * normal, n / np.linalg.norm(n)
 
 
+LS_TOL = 1e-12  # the cylinder fit's tolerances (LM's, relative): its minimum to round-off (the default 1e-8
+# stopped up to 1e-7 mm short on a noisy cylinder)
+
+
 def cylinder_ls(points: np.ndarray, origin: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Paper 000 Eq. 21-22: the axis (point, direction) minimising sum (r_i - mean r)^2,
-    r_i = |o p_i x n|, from the nominal axis; returns (origin, unit axis, mean radius)."""
+    r_i = |o p_i x n|, from the nominal axis; returns (origin, unit axis, mean radius).
+    Levenberg-Marquardt on the axis's four parameters (`_AxisRadii`), derivatives analytic."""
     axis = axis / np.linalg.norm(axis)
     u, v = _frame(axis)
-    o0 = origin + ((points - origin) @ axis).mean() * axis  # centred along the axis
+    o0 = origin + (points - origin).mean(axis=0) @ axis * axis  # centred along the axis
+    radii = _AxisRadii(points - o0, u, v, axis)
+    # MINPACK's lmder (as least_squares' "lm"), the Jacobian handed over a row per parameter as it is made
+    x, *_ = leastsq(radii.spread, np.zeros(4), Dfun=radii.spread_jacobian, col_deriv=True,
+                    xtol=LS_TOL, ftol=LS_TOL, gtol=LS_TOL)
+    o, n = _axis(o0, u, v, axis, x)
+    return o, n, float(radii.radii(x).mean())
 
-    def radii(x: np.ndarray) -> np.ndarray:
-        o, n = _axis(o0, u, v, axis, x)
-        d = points - o
-        return np.linalg.norm(d - np.outer(d @ n, n), axis=1)
 
-    res = least_squares(lambda x: radii(x) - radii(x).mean(), np.zeros(4), method="lm")
-    o, n = _axis(o0, u, v, axis, res.x)
-    return o, n, float(radii(res.x).mean())
+class _AxisRadii:
+    """The radii of points about the axis through o0 + x2 u + x3 v along n0 + x0 u + x1 v
+    (`_axis`; (u, v, n0) orthonormal) as functions of x (4,), and their derivatives. With
+    the points' coordinates (A, B, C) = (q.u - x2, q.v - x3, q.n0) about that axis point
+    (q: relative to o0) and m = (x0, x1, 1) the unnormalised direction, s = |m|:
+        r = |(A, B, C) x m| / s   (no cancellation, however long the cylinder),
+        dr/dx2 = -e.u, dr/dx3 = -e.v, dr/dx0 = -a e.u / s, dr/dx1 = -a e.v / s,
+    a = (A, B, C).m / s the axial coordinate and e the unit radial direction
+    ((A, B, C) - a m / s) / r, from r^2 = |d|^2 - (d.n)^2 (d: point less axis point)."""
+
+    def __init__(self, q: np.ndarray, u: np.ndarray, v: np.ndarray, n0: np.ndarray) -> None:
+        # einsum: no BLAS threads on thin products (a pool contending with other work costs more than it saves)
+        self.qu, self.qv, self.qn = np.einsum("ij,kj->ki", q, np.stack([u, v, n0]))
+        self._x = np.full(4, np.nan)
+        self._at: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float] | None = None
+
+    def _terms(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """(r, A, B, a, s) at x; the last x's are kept (LM asks for the Jacobian where it has
+        just evaluated the residuals)."""
+        if not np.array_equal(x, self._x):
+            x0, x1, x2, x3 = x
+            A, B, C = self.qu - x2, self.qv - x3, self.qn
+            s = float(np.sqrt(1.0 + x0 * x0 + x1 * x1))
+            r = np.sqrt((B - C * x1) ** 2 + (C * x0 - A) ** 2 + (A * x1 - B * x0) ** 2) / s
+            self._x, self._at = x.copy(), (r, A, B, (A * x0 + B * x1 + C) / s, s)
+        assert self._at is not None
+        return self._at
+
+    def radii(self, x: np.ndarray) -> np.ndarray:
+        """The radii (N,) about the axis x."""
+        return self._terms(x)[0]
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """dr/dx (4, N) at x, a row per parameter."""
+        r, A, B, a, s = self._terms(x)
+        eu, ev = (A - a * x[0] / s) / r, (B - a * x[1] / s) / r
+        return np.stack([-a * eu / s, -a * ev / s, -eu, -ev])
+
+    def spread(self, x: np.ndarray) -> np.ndarray:
+        """r - mean r (N,): the residuals of Eq. 21."""
+        r = self.radii(x)
+        return r - r.mean()
+
+    def spread_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """d(r - mean r)/dx (4, N)."""
+        J = self.jacobian(x)
+        return J - J.mean(axis=1, keepdims=True)
 
 
 def _axis(o0: np.ndarray, u: np.ndarray, v: np.ndarray, n0: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -362,38 +415,59 @@ def _plane_lps(count: int, s: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np
 
 def cylindricity_mz(points: np.ndarray, origin: np.ndarray, axis: np.ndarray, rounds: int = 6) -> float:
     """Minimum-zone cylindricity: the least radial distance between two coaxial cylinders
-    holding the points. An LP on the axis's four small-displacement parameters about the
-    current axis, relinearised; each LP holds only the points with the most extreme radii
-    (plus any point the previous solution left outside its zone), which is exact: the
-    zone is fixed by a handful of extreme points."""
+    holding the points, from their least-squares axis (`cylinder_ls`, from the nominal
+    axis (`origin`, `axis`)); `cylinder_mz_from`."""
     o, n, _ = cylinder_ls(points, origin, axis)
+    return cylinder_mz_from(points, o, n, rounds=rounds)
+
+
+def cylinder_mz_from(points: np.ndarray, origin: np.ndarray, axis: np.ndarray, *, rounds: int = 6) -> float:
+    """`cylindricity_mz` from the axis (`origin`, unit `axis`) of the points' least-squares
+    fit: an LP on the axis's four small-displacement parameters about the current axis
+    (`_cylinder_zone`), relinearised until the zone stops narrowing (at most `rounds`)."""
+    o, n = origin, axis
     width = np.inf
+    at_axis = np.zeros(4)
     for _ in range(rounds):
         u, v = _frame(n)
-        d = points - o
-        a = d @ n
-        radial = d - np.outer(a, n)
-        r = np.linalg.norm(radial, axis=1)
-        e = radial / r[:, None]
-        # dr/dx for the axis o + x2 u + x3 v, direction n + x0 u + x1 v
-        J = np.stack([-a * (e @ u), -a * (e @ v), -(e @ u), -(e @ v)], axis=1)
-        k = min(len(r), 400)
-        active = np.union1d(np.argpartition(r, k - 1)[:k], np.argpartition(-r, k - 1)[:k])
-        for _ in range(20):  # add violators until the zone holds every point
-            x, R, w = _cylinder_lp(r[active], J[active])
-            rr = r + J @ x
-            out = np.flatnonzero((rr < R - 1e-9) | (rr > R + w + 1e-9))
-            if not out.size:
-                break
-            active = np.union1d(active, out[np.argsort(-np.maximum(R - rr[out], rr[out] - R - w))[:200]])
-        o, n = _axis(o, u, v, n, x)
-        d = points - o
-        r_new = np.linalg.norm(d - np.outer(d @ n, n), axis=1)
-        new = float(r_new.max() - r_new.min())
+        radii = _AxisRadii(points - o, u, v, n)
+        x = _cylinder_zone(radii.radii(at_axis), radii.jacobian(at_axis))
+        r = radii.radii(x)
+        new = float(r.max() - r.min())
         if new >= width - 1e-9:
             break
+        o, n = _axis(o, u, v, n, x)
         width = new
     return float(width)
+
+
+CYLINDER_CANDIDATES = 50  # extreme radii per side a cylinder zone's LP starts from
+CYLINDER_VIOLATORS = 50  # the worst points outside its zone added to it at a time
+CYLINDER_SLACK_MM = 1e-9  # a point this far outside the zone counts as inside
+
+
+def _cylinder_zone(r: np.ndarray, dr: np.ndarray) -> np.ndarray:
+    """The axis displacement x (4,) of the narrowest zone R <= r + x.dr <= R + w holding
+    every point (radii r (N,), their derivatives dr (4, N), a row per parameter): the LP
+    over the points with the most extreme radii, then the worst violators added and solved
+    again until none is left (each round adds one at least), which is exact (the zone of a
+    subset is never wider, and one holding every point is the zone of them all). A point
+    already in the LP is never a violator: one HiGHS leaves outside by its feasibility
+    tolerance (1e-7) would only repeat the LP. Small sets: an LP's cost grows with its
+    points, and a zone rests on six."""
+    k = min(len(r), CYLINDER_CANDIDATES)
+    active = np.zeros(len(r), bool)
+    active[np.argpartition(r, k - 1)[:k]] = True
+    active[np.argpartition(-r, k - 1)[:k]] = True
+    while True:
+        x, R, w = _cylinder_lp(r[active], dr[:, active].T)
+        rr = r + np.einsum("j,ji->i", x, dr)
+        excess = np.maximum(R - rr, rr - R - w)
+        excess[active] = -np.inf
+        out = np.flatnonzero(excess > CYLINDER_SLACK_MM)
+        if not out.size:
+            return x
+        active[out[np.argsort(-excess[out])[:CYLINDER_VIOLATORS]]] = True
 
 
 def _cylinder_lp(r: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -402,6 +476,8 @@ def _cylinder_lp(r: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, float, float
     A_ub = np.concatenate([np.column_stack([-J, ones, 0 * ones]), np.column_stack([J, -ones, -ones])])
     b_ub = np.concatenate([r, -r])
     res = linprog([0, 0, 0, 0, 0, 1], A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * 5 + [(0, None)], method="highs")
+    if res.status != 0:
+        raise ArithmeticError(f"minimum-zone LP of {len(r)} points: {res.message}")
     return res.x[:4], float(res.x[4]), float(res.x[5])
 
 
@@ -1002,18 +1078,22 @@ def _cylindricity(face: Face, c: _Cells) -> tuple[_ZoneFigures, _Parts]:
     sign = face.sense * np.sign(np.dot(s.evaluate(np.zeros((1, 2)))[1][0], s.x))
     axis0, o0 = np.array([0.0, 0.0, 1.0]), np.zeros(3)
 
-    def cyl_ls(hs: np.ndarray) -> np.ndarray:
-        out = []
-        for h in hs:  # one least-squares fit per surface
+    fitted: dict[bytes, tuple[float, float]] = {}  # (LS, MZ) zone of each surface, by its heights' digest
+
+    def zones(h: np.ndarray) -> tuple[float, float]:  # both zones about one least-squares fit
+        key = hashlib.blake2b(h.tobytes(), digest_size=16).digest()
+        if key not in fitted:
             p = _unroll(c.cxy, R + sign * h, R)
             o, a, _ = cylinder_ls(p, o0, axis0)
-            d = p - o
-            r = np.linalg.norm(d - np.outer(d @ a, a), axis=1)
-            out.append(r.max() - r.min())
-        return np.array(out)
+            r = _AxisRadii(p - o, *_frame(a), a).radii(np.zeros(4))
+            fitted[key] = float(r.max() - r.min()), cylinder_mz_from(p, o, a)
+        return fitted[key]
+
+    def cyl_ls(hs: np.ndarray) -> np.ndarray:
+        return np.array([zones(h)[0] for h in hs])
 
     def cyl_mz(hs: np.ndarray) -> np.ndarray:
-        return np.array([cylindricity_mz(_unroll(c.cxy, R + sign * h, R), o0, axis0) for h in hs])
+        return np.array([zones(h)[1] for h in hs])
 
     ls, ls_parts = _zone(cyl_ls, c.f, c.fe, c.e, c.cal)
     mz, mz_parts = _zone(cyl_mz, c.f, c.fe, c.e, c.cal)
