@@ -29,7 +29,7 @@ pose the calibration would solve for the left-out view is never used.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
@@ -38,7 +38,7 @@ import numpy as np
 
 from inspection.form import flatness_mz, from_draws
 from inspection.uncertainty import CalibrationUncertainty, Estimate, measurement_jacobian
-from scanner.geometry import Pinhole, RigModel
+from scanner.geometry import RigModel
 from scanner.reconstruct import Triangulator
 
 
@@ -96,7 +96,6 @@ class PoseCheck:
     U_noise_mm: np.ndarray
     calibration_rms_px: dict[str, float]
     orientation: str
-    noise_scale: tuple[float, float] = (1.0, 1.0)
 
     @property
     def inside(self) -> float:
@@ -123,8 +122,6 @@ class PoseCheck:
                 "longest_nominal_mm": float(self.nominal_mm.max()),
                 "longest_error_mm": self.error_mm[longest].tolist(), "longest_U_mm": self.U_mm[longest].tolist(),
                 "within_U": self.inside, "calibration_rms_px": self.calibration_rms_px,
-                # this pose's corners' misfit to a plane over the calibration views' (camera, projector)
-                "noise_scale": {"camera": self.noise_scale[0], "projector": self.noise_scale[1]},
                 "coded_axis": "projector rows" if self.orientation == "horizontal" else "projector columns"}
 
 
@@ -201,21 +198,6 @@ class CornerNoise:
     lags: np.ndarray
     covariances: np.ndarray
     pairs: np.ndarray
-    reference: tuple[float, float] | None = None  # the views' mean plane misfit (camera, projector), px²
-
-    def for_pose(self, misfit: tuple[float, float]) -> tuple[CornerNoise, tuple[float, float]]:
-        """This noise at the level of one pose whose corners' plane misfit (`plane_misfit`:
-        camera, coded projector coordinate; px²) is `misfit`: the camera error's covariances
-        scaled by the camera misfit over the views' (`reference`), the decoding's by the
-        projector's, their cross terms by the geometric mean; and the two scales. The poses of
-        one capture differ in noise (the procam capture's errors: capture_4's three times
-        capture_0's), so a model pooled over the calibration's views alone would be too large
-        for a clean pose and too small for a noisy one. Without a reference: unscaled."""
-        if self.reference is None:
-            return self, (1.0, 1.0)
-        scale = (misfit[0] / self.reference[0], misfit[1] / self.reference[1])
-        d = np.sqrt([scale[0], scale[0], scale[1]])
-        return replace(self, covariances=self.covariances * np.outer(d, d)), scale
 
     @classmethod
     def from_residuals(cls, views: list[tuple[np.ndarray, ...]], axis: int, square_mm: float) -> CornerNoise:
@@ -299,42 +281,12 @@ class CornerNoise:
 
     @classmethod
     def from_calibration(cls, solution: Any, axis: int, square_mm: float) -> CornerNoise:
-        """From a `calibration.solve.Solution`: its joint refinement's residuals per view, and
-        the views' mean plane misfit as the `reference` a left-out pose is scaled against."""
+        """From a `calibration.solve.Solution`: its joint refinement's residuals per view."""
         s = solution.stereo
-        noise = cls.from_residuals([(c.camera.object_points, rc, c.projector.object_points, rp,
-                                     c.projector_corners.jacobian[c.projector_corners.found])
-                                    for c, rc, rp in zip(solution.correspondences, s.camera_residuals,
-                                                         s.projector_residuals)], axis, square_mm)
-        misfits = np.array([plane_misfit(c.camera, c.projector, s.camera, s.projector, axis)
-                            for c in solution.correspondences])
-        return replace(noise, reference=(float(misfits[:, 0].mean()), float(misfits[:, 1].mean())))
-
-
-def plane_misfit(camera: Any, projector: Any, camera_lens: Pinhole, projector_lens: Pinhole,
-                 axis: int) -> tuple[float, float]:
-    """One view's own measure of its corners' noise, needing no calibration of its pose: how far
-    its corners lie from the homography that best maps the board's points (`ViewPoints`) onto
-    them, each lens's distortion taken out (least median of squares: a few corners the detector
-    got wrong by pixels do not tilt it), as the robust second moment (`robust_second_moment`) of
-    (camera x, camera y, coded projector coordinate along `axis`) over the corners both saw;
-    returns (camera, projector) mean squares, px². The board is flat, so a view whose corners
-    scatter more about a plane has noisier corners (a view whose lens model misfits reads that
-    too, as its distances do). The homography takes 8 of 2N degrees of freedom alike in every
-    view: ratios between views are what it is for."""
-    def misfit(points: Any, lens: Pinhole) -> tuple[np.ndarray, np.ndarray]:
-        obj = np.asarray(points.object_points, np.float64)[:, :2]
-        und = cv2.undistortPoints(np.asarray(points.image_points, np.float64).reshape(-1, 1, 2), lens.K, lens.dist,
-                                  P=lens.K).reshape(-1, 2)
-        H, _ = cv2.findHomography(obj, und, cv2.LMEDS)
-        return obj, und - cv2.perspectiveTransform(obj.reshape(-1, 1, 2), H).reshape(-1, 2)
-
-    (oc, rc), (op, rp) = misfit(camera, camera_lens), misfit(projector, projector_lens)
-    index = {tuple(o): k for k, o in enumerate(np.round(oc, 6))}
-    both = [(index[tuple(o)], k) for k, o in enumerate(np.round(op, 6)) if tuple(o) in index]
-    ci, pi = np.array(both).T
-    S = robust_second_moment(np.column_stack([rc[ci], rp[pi, axis]]))
-    return float((S[0, 0] + S[1, 1]) / 2), float(S[2, 2])
+        return cls.from_residuals([(c.camera.object_points, rc, c.projector.object_points, rp,
+                                    c.projector_corners.jacobian[c.projector_corners.found])
+                                   for c, rc, rp in zip(solution.correspondences, s.camera_residuals,
+                                                        s.projector_residuals)], axis, square_mm)
 
 
 def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: CalibrationUncertainty,
@@ -354,9 +306,7 @@ def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: 
     A = measurement_jacobian(X, model, orientation)
     # corners' joint covariance in mm (N, 3, N, 3): A_i C_ij A_jᵀ
     coupling = corr.projector_corners.jacobian[found][:, axis, :]
-    pose_noise, scale = noise(axis).for_pose(plane_misfit(corr.camera, corr.projector, model.camera,
-                                                          model.projector, axis))
-    cov = np.einsum("iab,ibjc,jdc->iajd", A, pose_noise.covariance(_grid(obj, board.square_mm), coupling), A)
+    cov = np.einsum("iab,ibjc,jdc->iajd", A, noise(axis).covariance(_grid(obj, board.square_mm), coupling), A)
     shifts = calibration.shifts(X, model, {orientation: np.ones(len(X))})
     i, j = np.triu_indices(len(X), 1)
     same_line = np.isclose(obj[i, 0], obj[j, 0]) | np.isclose(obj[i, 1], obj[j, 1])
@@ -372,7 +322,7 @@ def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: 
     nominal = np.linalg.norm(obj[i] - obj[j], axis=1)
     flat, rms = _flatness(X, cov, shifts)
     return PoseCheck(view.name, int(found.sum()), flat, rms, nominal, dist - nominal, 2.0 * np.sqrt(var),
-                     2.0 * np.sqrt(noise_var), rms_px, orientation, scale)
+                     2.0 * np.sqrt(noise_var), rms_px, orientation)
 
 
 def _flatness(X: np.ndarray, cov: np.ndarray, shifts: np.ndarray | None, draws: int = 200,
@@ -412,8 +362,6 @@ def leave_one_out(views: list[Any], board: Any, projector_size: tuple[int, int],
         s = check.summary(board.square_mm)
         say(f"{view.name}: flatness {check.flatness.text()}, adjacent corners error RMS "
             f"{s['adjacent_error_rms_mm']:.3f} mm (U median {s['adjacent_U_median_mm']:.3f} mm), "
-            f"{check.inside:.0%} of {s['pairs']} distances within ±U; its corners' noise at "
-            f"{check.noise_scale[0]:.2f} (camera) and {check.noise_scale[1]:.2f} (projector) times the calibration "
-            f"views' (their plane misfit)")
+            f"{check.inside:.0%} of {s['pairs']} distances within ±U")
         out.append(check)
     return out
