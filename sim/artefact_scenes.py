@@ -44,7 +44,7 @@ def artefact_objects(position: Position, artefacts: ArtefactSet) -> tuple[SceneO
                                  b.albedo, radius_mm=b.radius_mm) for k, sign in enumerate((1.0, -1.0)))
     p = artefacts.plane
     assert p is not None
-    return (SceneObject("flat", "plane", position.pose, p.albedo, size_mm=p.size_mm),)
+    return (SceneObject("flat", "plane", position.pose, p.albedo, size_mm=tuple(p.size_mm)),)
 
 
 def artefact_scene(position: Position, artefacts: ArtefactSet) -> Scene:
@@ -99,4 +99,4 @@ def window_renderer(model: RigModel, objects: tuple[SceneObject, ...], sensor: o
         -> Renderer:
     """A renderer of `objects` on the camera window around them (`cropped_camera`)."""
     cam = cropped_camera(model.camera, bounding_points(objects))
-    return Renderer(replace(model, camera=cam), Scene(objects, name="window"), sensor, projector_blur_px)  # type: ignore[arg-type]
+    return Renderer(replace(model, camera=cam), Scene(objects, name="window"), sensor, projector_blur_px)  # type: ignore[arg-type]  # a window scene

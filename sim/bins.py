@@ -92,9 +92,10 @@ class BinScene:
         grid = np.stack([gx.ravel(), gy.ravel()], axis=1)
         grid = grid[inside_loops(grid, outline_loops(self.part))]
         rc = o3d.t.geometry.RaycastingScene()
+        cpu = o3d.core.Device("CPU:0")
         for o in self.scene.objects:
-            rc.add_triangles(o3d.core.Tensor(o.world_vertices().astype(np.float32)),
-                             o3d.core.Tensor(tris.astype(np.uint32)))
+            rc.add_triangles(o3d.core.Tensor(o.world_vertices().astype(np.float32), o3d.core.float32, cpu),
+                             o3d.core.Tensor(tris.astype(np.uint32), o3d.core.uint32, cpu))
         out = np.zeros(len(self.poses))
         for k, (T, up) in enumerate(zip(self.poses, self.front_up)):
             z = self.part.thickness_mm if up else 0.0
@@ -102,7 +103,7 @@ class BinScene:
             d = face - camera_mm
             dist = np.linalg.norm(d, axis=1)
             rays = np.c_[np.broadcast_to(camera_mm, d.shape), d / dist[:, None]].astype(np.float32)
-            ans = rc.cast_rays(o3d.core.Tensor(rays))
+            ans = rc.cast_rays(o3d.core.Tensor(rays, o3d.core.float32, cpu))
             hit_t, geom = ans["t_hit"].numpy(), ans["geometry_ids"].numpy()
             out[k] = np.mean((hit_t < dist - 1e-3) & (geom != k))
         return out
@@ -296,13 +297,13 @@ def _free_fall(o3d: object, moving: np.ndarray, tris: np.ndarray, fixed_v: list[
     """How far (mm) `moving` (a mesh's world vertices) can move along +z before it touches
     a fixed mesh: rays along +z from its vertices onto the fixed meshes, and along -z from
     the fixed vertices onto it (inf when nothing is below)."""
-    core = o3d.core  # type: ignore[attr-defined]
-    below = o3d.t.geometry.RaycastingScene()  # type: ignore[attr-defined]
+    core = o3d.core  # type: ignore[attr-defined]  # Open3D's stubs omit core
+    below = o3d.t.geometry.RaycastingScene()  # type: ignore[attr-defined]  # stubs omit o3d.t
     for v, t in zip(fixed_v, fixed_t):
         below.add_triangles(core.Tensor(v.astype(np.float32)), core.Tensor(t.astype(np.uint32)))
     down = np.c_[moving, np.tile([0.0, 0.0, 1.0], (len(moving), 1))].astype(np.float32)
     hit_down = below.cast_rays(core.Tensor(down))["t_hit"].numpy()
-    mine = o3d.t.geometry.RaycastingScene()  # type: ignore[attr-defined]
+    mine = o3d.t.geometry.RaycastingScene()  # type: ignore[attr-defined]  # stubs omit o3d.t
     mine.add_triangles(core.Tensor(moving.astype(np.float32)), core.Tensor(tris.astype(np.uint32)))
     fixed = np.concatenate(fixed_v)
     up = np.c_[fixed, np.tile([0.0, 0.0, -1.0], (len(fixed), 1))].astype(np.float32)

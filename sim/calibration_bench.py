@@ -57,7 +57,7 @@ def show(rig: Rig, scene: Scene) -> None:
     """Make the simulated `rig` look at `scene` from now on (call between acquisitions)."""
     old: Renderer = rig.extras["renderer"]
     renderer = Renderer(old.model, scene, old.sensor, old.projector_blur_sigma_px)
-    rig.camera.renderer = renderer  # type: ignore[attr-defined]
+    rig.camera.renderer = renderer  # type: ignore[attr-defined]  # a SimCamera
     truth = Truth.of(renderer.ground_truth)
     rig.extras.update(scene=scene, renderer=renderer, ground_truth=renderer.ground_truth,
                       session_files=[lambda root: truth.save(Path(root) / GROUND_TRUTH_FILE)])
@@ -66,7 +66,7 @@ def show(rig: Rig, scene: Scene) -> None:
                      Renderer(r.model, scene, r.sensor, r.projector_blur_sigma_px)
                      for name, r in rig.extras["renderers"].items()}
         for name, r in renderers.items():
-            rig.cameras[name].renderer = r  # type: ignore[attr-defined]
+            rig.cameras[name].renderer = r  # type: ignore[attr-defined]  # SimCameras
         rig.extras.update(renderers=renderers, ground_truths={n: r.ground_truth for n, r in renderers.items()})
 
 

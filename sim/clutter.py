@@ -151,16 +151,18 @@ def clutter_cloud(seed: int = 0, spacing_mm: float = 1.0, radius_mm: float | Non
     T = np.concatenate(b.triangles)
     tri_label = np.concatenate(b.labels)
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(T.astype(np.uint32)))
+    cpu = o3d.core.Device("CPU:0")
+    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32), o3d.core.float32, cpu),
+                        o3d.core.Tensor(T.astype(np.uint32), o3d.core.uint32, cpu))
     points, labels = [], []
     target = np.array([0.0, 0.0, 60.0])
     for pos, step in (((-500, -700, 650), 1.0), ((550, -650, 700), 1.4), ((0, -900, 900), 1.8),
                       ((-650, 100, 750), 2.2), ((700, 150, 800), 2.0)):
         origin = np.asarray(pos, float) + rng.uniform(-30, 30, 3)
-        dist = np.linalg.norm(target - origin)
+        dist = float(np.linalg.norm(target - origin))
         dirs = _view_rays(origin, target, 1.25 * 450 / dist, step * spacing_mm / dist)
         rays = np.c_[np.tile(origin, (len(dirs), 1)), dirs].astype(np.float32)
-        ans = scene.cast_rays(o3d.core.Tensor(rays))
+        ans = scene.cast_rays(o3d.core.Tensor(rays, o3d.core.float32, cpu))
         t = ans["t_hit"].numpy().astype(np.float64)
         hit = np.isfinite(t)
         prim = ans["primitive_ids"].numpy()[hit].astype(np.int64)

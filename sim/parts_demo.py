@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("demo part mesh is not watertight: this is a bug in sim/parts_demo.py")
     mesh.compute_triangle_normals()
     out = step_path.with_suffix(".ply")
-    if not o3d.io.write_triangle_mesh(str(out), mesh, write_ascii=False, write_vertex_normals=False):
+    if not o3d.io.write_triangle_mesh(out, mesh, write_ascii=False, write_vertex_normals=False):
         raise SystemExit(f"could not write {out}")
     lo, hi = v.min(axis=0), v.max(axis=0)
     print(f"wrote {step_path} and {out}: {len(v)} vertices, {len(t)} triangles, volume {mesh.get_volume():.1f} mm^3, "

@@ -100,7 +100,11 @@ def _round_corners(shape: Any, rng: np.random.Generator, size: float) -> tuple[A
     """Some vertical corner edges of the plate filleted or chamfered (one radius)."""
     from OCP.BRepFilletAPI import BRepFilletAPI_MakeChamfer, BRepFilletAPI_MakeFillet
 
-    vertical = [e for e in _edges(shape) if np.allclose(*(p[:2] for p in _edge_ends(e)))]
+    def is_vertical(edge: Any) -> bool:
+        a, b = _edge_ends(edge)
+        return bool(np.allclose(a[:2], b[:2]))
+
+    vertical = [e for e in _edges(shape) if is_vertical(e)]
     chosen = [e for e in vertical if rng.random() < 0.6]
     if not chosen:
         return shape, None
@@ -300,5 +304,6 @@ def scan_part(model: Any, placement: Placement, seed: int, config: Any = None,
                             Triangulator(rig.model))
         gt = rig.extras["ground_truth"]
     scan = from_organised(cloud, f"part {model.path.name} placement {placement.seed} noise {seed}")
-    true_face = face_of_id[gt.object_id[scan.pixels[:, 1], scan.pixels[:, 0]]]
+    px = scan.camera_pixels()
+    true_face = face_of_id[gt.object_id[px[:, 1], px[:, 0]]]
     return SimulatedScan(cloud, scan, np.linalg.inv(pose), config, true_face)

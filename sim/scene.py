@@ -69,7 +69,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, TypedDict
 
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
@@ -171,9 +171,11 @@ class SceneObject:
             v = self.world_vertices()
             return v.min(axis=0), v.max(axis=0)
         if self.kind == "sphere":
-            c, r = self.pose[:3, 3], float(self.radius_mm)  # type: ignore[arg-type]
+            assert self.radius_mm is not None  # a sphere has its radius
+            c, r = self.pose[:3, 3], float(self.radius_mm)
             return c - r, c + r
-        half = np.array(list(self.size_mm) + ([0.0] if self.kind == "plane" else []), float) / 2  # type: ignore[arg-type]
+        assert self.size_mm is not None  # a plane or a box has its size
+        half = np.array([*self.size_mm, *([0.0] if self.kind == "plane" else [])], dtype=np.float64) / 2
         corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
         w = corners @ self.pose[:3, :3].T + self.pose[:3, 3]
         return w.min(axis=0), w.max(axis=0)
@@ -277,7 +279,7 @@ def check_in_view(scene: Scene, camera: Any, world_from_cam: np.ndarray) -> None
         lo, hi = obj.bounds()
         if obj.kind == "sphere":  # exactly: seen when the centre lies within its radius of the pyramid
             centre = cam_from_world[:3, :3] @ obj.pose[:3, 3] + cam_from_world[:3, 3]
-            r = float(obj.radius_mm)  # type: ignore[arg-type]
+            r = float(obj.radius_mm)  # type: ignore[arg-type]  # a sphere: radius set
             unseen, behind = distance_to_pyramid(centre, rays, planes[1:]) > r, bool(centre[2] < -r)
             if not unseen and not sphere_on_a_pixel(centre, r, camera):
                 raise ConfigError(scene.path or scene.name, f"objects[{i}]",
@@ -503,12 +505,21 @@ def _pose(pose: PoseTable | None, path: Path, key: str) -> np.ndarray:
     return _position(T, path, key)
 
 
-def _material(table: SurfaceTable, default_albedo: float) -> dict[str, float]:
+class _Surface(TypedDict):
+    """A SceneObject's reflectance keywords."""
+
+    albedo: float
+    specular: float
+    roughness: float
+
+
+def _material(table: SurfaceTable, default_albedo: float) -> _Surface:
     """albedo, specular and roughness of an object table: its `material` preset (if given),
     each overridden by its own key."""
     base = MATERIALS[table.material] if table.material is not None else Material(albedo=default_albedo)
-    return {key: getattr(base, key) if getattr(table, key) is None else getattr(table, key)
-            for key in ("albedo", "specular", "roughness")}
+    return _Surface(albedo=base.albedo if table.albedo is None else table.albedo,
+                    specular=base.specular if table.specular is None else table.specular,
+                    roughness=base.roughness if table.roughness is None else table.roughness)
 
 
 def _length(x: float, path: Path, key: str) -> float:
@@ -552,26 +563,26 @@ def _load_toml_scene(path: Path) -> Scene:
         plane = SceneObject(name="reference_plane", kind="plane", pose=pose, **_material(t, 0.8),
                             size_mm=tuple(t.size_mm))
     objects = []
-    for i, t in enumerate(file.objects):
+    for i, o in enumerate(file.objects):
         pre = f"objects[{i}]"
-        pose = _pose(t.pose, path, f"{pre}.pose")
-        material = _material(t, 0.7)
-        if t.mesh is not None:
-            source = resolve(path, t.mesh)
-            v, tri = load_mesh(source, path, f"{pre}.mesh", t.scale)
+        pose = _pose(o.pose, path, f"{pre}.pose")
+        material = _material(o, 0.7)
+        if o.mesh is not None:
+            source = resolve(path, o.mesh)
+            v, tri = load_mesh(source, path, f"{pre}.mesh", o.scale)
             _length(float(np.ptp(v, axis=0).max()), path, f"{pre}.scale")  # the scaled part's size
-            obj = SceneObject(name=t.name or source.stem, kind="mesh", pose=pose, **material, vertices=v,
+            obj = SceneObject(name=o.name or source.stem, kind="mesh", pose=pose, **material, vertices=v,
                               triangles=tri, source=source)
-        elif t.sphere is not None:
-            pose = _position(pose @ _translation(t.sphere.center_mm), path, f"{pre}.sphere.center_mm")
-            obj = SceneObject(name=t.name or f"sphere{i}", kind="sphere", pose=pose, radius_mm=t.sphere.radius_mm,
+        elif o.sphere is not None:
+            pose = _position(pose @ _translation(o.sphere.center_mm), path, f"{pre}.sphere.center_mm")
+            obj = SceneObject(name=o.name or f"sphere{i}", kind="sphere", pose=pose, radius_mm=o.sphere.radius_mm,
                               **material)
         else:
-            kind, shape = ("plane", t.plane) if t.plane is not None else ("box", t.box)
+            kind, shape = ("plane", o.plane) if o.plane is not None else ("box", o.box)
             assert shape is not None  # ObjectTable holds exactly one kind
-            texture = _texture(resolve(path, t.plane.texture), path, f"{pre}.plane.texture") \
-                if t.plane is not None and t.plane.texture is not None else None
-            obj = SceneObject(name=t.name or f"{kind}{i}", kind=kind, pose=pose, size_mm=tuple(shape.size_mm),
+            texture = _texture(resolve(path, o.plane.texture), path, f"{pre}.plane.texture") \
+                if o.plane is not None and o.plane.texture is not None else None
+            obj = SceneObject(name=o.name or f"{kind}{i}", kind=kind, pose=pose, size_mm=tuple(shape.size_mm),
                               texture=texture, **material)
         objects.append(obj)
     names = [o.name for o in objects] + (["reference_plane"] if plane is not None else [])

@@ -55,7 +55,7 @@ def part_on_stage(vertices: np.ndarray, triangles: np.ndarray, face: np.ndarray,
     pose[:3, 3] = axis.point_mm - centre - a * (w @ a).min()
     if placement is not None:
         pose = pose @ placement
-    scene, _ = part_scene(vertices, triangles, face, pose, up=tuple(up), table=False)
+    scene, _ = part_scene(vertices, triangles, face, pose, up=(float(up[0]), float(up[1]), float(up[2])), table=False)
     x = np.cross(a, [0.0, 0.0, 1.0])
     x /= np.linalg.norm(x)
     plate = np.eye(4)

@@ -243,7 +243,7 @@ class SimProjector(Projector):
 
     def _do_run_sequence(self, period_s: float, on_pattern: Callable[[int], None] | None, status: Status) -> None:
         with self._state:
-            n = len(self._patterns)  # type: ignore[arg-type]
+            n = len(self._patterns)  # type: ignore[arg-type]  # loaded: run_sequence checked it
 
         def tick(k: int) -> None:
             self._display(k)

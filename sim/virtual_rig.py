@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 from scanner.devices import TriggerMode, TriggerType
 from scanner.errors import ConfigError
@@ -74,7 +75,7 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
             if config.trigger == "projector":
                 projector.connect_trigger_out(camera.trigger_in)
             elif config.trigger == "trigger_box":
-                trigger.connect(camera.trigger_in)  # type: ignore[union-attr]
+                trigger.connect(camera.trigger_in)  # type: ignore[union-attr]  # wiring 'box': a trigger box
     except BaseException:
         for dev in (*cameras.values(), projector, trigger):
             if dev is not None:
@@ -84,10 +85,10 @@ def open_sim_rig(config: RigConfig, scene: Scene | str | Path | None = None, fau
     camera, renderer = cameras[first], renderers[first]
     log.info("simulated rig %s opened: scene %s, wiring %s, %d camera(s), %d-bit", config.name, scene.name,
              config.trigger, len(cameras), camera.bit_depth)
-    extras = {"ground_truth": renderer.ground_truth, "scene": scene, "renderer": renderer, "sensor": renderer.sensor,
-              "faults": faults, "seed": seed,
-              "session_files": [lambda root: Truth.of(extras["renderer"].ground_truth).save(Path(root) /
-                                                                                          GROUND_TRUTH_FILE)]}
+    extras: dict[str, Any] = {"ground_truth": renderer.ground_truth, "scene": scene, "renderer": renderer,
+                              "sensor": renderer.sensor, "faults": faults, "seed": seed,
+                              "session_files": [lambda root: Truth.of(extras["renderer"].ground_truth).save(
+                                  Path(root) / GROUND_TRUTH_FILE)]}
     if config.cameras:  # every camera's truth and renderer by name
         extras |= {"renderers": renderers, "ground_truths": {n: r.ground_truth for n, r in renderers.items()}}
     rig = Rig(config=config, camera=camera, projector=projector, trigger=trigger, model=model, extras=extras,

@@ -223,7 +223,7 @@ def open_sim_stage(config: RigConfig, rig: Rig, faults: StageFaults | None = Non
         if at.keys() != positions.keys() or not all(abs(at[n] - positions[n]) < 1e-12 for n in positions):
             render(positions)  # not where the move was prepared for (not expected): render now
         renderer = prepared["renderer"]
-        rig.camera.renderer = renderer  # type: ignore[attr-defined]
+        rig.camera.renderer = renderer  # type: ignore[attr-defined]  # a SimCamera
         extras.update(renderer=renderer, ground_truth=renderer.ground_truth,
                       world_from_stage=prepared["world_from_stage"])
 

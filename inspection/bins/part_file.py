@@ -15,6 +15,7 @@ The simulator drops the same parts into its bins (`sim.bins`). Units: mm.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Literal
@@ -214,6 +215,6 @@ def distance_to_loops(points: np.ndarray, loops: list[np.ndarray]) -> np.ndarray
     return best
 
 
-def tab_part(params: dict[str, object]) -> TabPart:
+def tab_part(params: Mapping[str, object]) -> TabPart:
     """A TabPart from its parameters as a file holds them (lists for the tuples)."""
     return TabPart(**{k: tuple(v) if isinstance(v, list) else v for k, v in params.items()})  # type: ignore[arg-type]  # the file's schema types

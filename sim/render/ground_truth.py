@@ -63,7 +63,8 @@ class GroundTruth:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.depth.shape  # type: ignore[return-value]
+        h, w = self.depth.shape
+        return h, w
 
     @property
     def hit(self) -> np.ndarray:

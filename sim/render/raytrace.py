@@ -58,13 +58,17 @@ class Tracer:
                 self.analytic.append((oid, obj.kind, cam_from_world @ obj.pose, obj))
         if meshes:
             self.rc = o3d.t.geometry.RaycastingScene()
-            verts, tris, tri_offset, v_offset, geom_to_oid = [], [], [], 0, []
+            verts, tris, tri_offset, v_offset = [], [], [], 0
+            geom_to_oid: list[int] = []
             n_tris = 0
+            cpu = o3d.core.Device("CPU:0")
             for oid, obj in meshes:
+                assert obj.vertices is not None and obj.triangles is not None  # a mesh object has both
                 T = cam_from_world @ obj.pose
-                v = obj.vertices @ T[:3, :3].T + T[:3, 3]  # type: ignore[operator]
-                t = obj.triangles.astype(np.int64)  # type: ignore[union-attr]
-                gid = self.rc.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(t.astype(np.uint32)))
+                v = obj.vertices @ T[:3, :3].T + T[:3, 3]
+                t = obj.triangles.astype(np.int64)
+                gid = self.rc.add_triangles(o3d.core.Tensor(v.astype(np.float32), o3d.core.float32, cpu),
+                                            o3d.core.Tensor(t.astype(np.uint32), o3d.core.uint32, cpu))
                 if gid != len(geom_to_oid):
                     raise RuntimeError("unexpected Open3D geometry id order")
                 geom_to_oid.append(oid)
@@ -92,11 +96,11 @@ class Tracer:
             self._cast_meshes(o, dirs, t_min, t_best, oid, normal)
         for obj_id, kind, T, obj in self.analytic:
             if kind == "sphere":
-                t, nrm = _hit_sphere(o, dirs, T[:3, 3], float(obj.radius_mm), t_min)  # type: ignore[arg-type]
+                t, nrm = _hit_sphere(o, dirs, T[:3, 3], float(obj.radius_mm), t_min)  # type: ignore[arg-type]  # kind: set
             elif kind == "plane":
-                t, nrm = _hit_plane(o, dirs, T, obj.size_mm, t_min)  # type: ignore[arg-type]
+                t, nrm = _hit_plane(o, dirs, T, obj.size_mm, t_min)  # type: ignore[arg-type]  # kind: size set
             else:
-                t, nrm = _hit_box(o, dirs, T, obj.size_mm, t_min)  # type: ignore[arg-type]
+                t, nrm = _hit_box(o, dirs, T, obj.size_mm, t_min)  # type: ignore[arg-type]  # kind: size set
             better = t < t_best
             t_best[better] = t[better]
             oid[better] = obj_id
@@ -109,7 +113,8 @@ class Tracer:
         rays = np.empty((len(dirs), 6), dtype=np.float32)
         rays[:, :3] = o
         rays[:, 3:] = dirs
-        ans = self.rc.cast_rays(o3d.core.Tensor(rays))  # type: ignore[union-attr]
+        assert self.rc is not None  # called only for a scene with meshes
+        ans = self.rc.cast_rays(o3d.core.Tensor(rays, o3d.core.float32, o3d.core.Device("CPU:0")))
         t32 = ans["t_hit"].numpy()
         hit = np.flatnonzero(np.isfinite(t32))
         if not hit.size:

@@ -102,7 +102,7 @@ class Renderer:
             if key in self._cache:
                 self._cache.move_to_end(key)
                 return self._cache[key]
-        out = np.zeros(self.shape[0] * self.shape[1], dtype=np.float32)
+        out: np.ndarray = np.zeros(self.shape[0] * self.shape[1], dtype=np.float32)
         coeff = self._output_coefficients(pattern, key)
         if self._lit_index.size:
             out[self._lit_index] = self._sampler.sample(coeff) * self.paths[0].weight
