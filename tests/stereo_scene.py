@@ -7,8 +7,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
+from scanner.binocular import CameraPhase
 from scanner.geometry import Pinhole, look_at
 
 PLANE_NORMAL = np.array([0.1, -0.05, -1.0]) / np.linalg.norm([0.1, -0.05, -1.0])  # facing the cameras
@@ -101,3 +103,23 @@ def rig(scale: float = 0.5, baseline_mm: float = 200.0) -> TwoCameraRig:
     world_from_right = np.linalg.inv(left_pose) @ world_from_right
     world_from_proj = look_at(np.array([baseline_mm / 2, -40.0, 0.0]), target)
     return TwoCameraRig(left, right, projector, world_from_right, world_from_proj)
+
+
+def camera_phase(view: View, sigma: float, *, rng: np.random.Generator | None = None,
+                 orientations: tuple[str, ...] = ("vertical", "horizontal")) -> CameraPhase:
+    """The view's projector coordinates as a camera's decode gives them, with a stated noise of
+    `sigma` projector px; with `rng`, that noise drawn and added (per orientation, in order)."""
+    axes = {"vertical": 0, "horizontal": 1}
+    c = {o: (view.proj_uv[..., axes[o]] + (0.0 if rng is None else rng.normal(0, sigma, view.depth.shape))
+             ).astype(np.float32) for o in orientations}
+    s = {o: np.where(np.isfinite(c[o]), np.float32(sigma), np.float32(np.nan)) for o in orientations}
+    return CameraPhase(c, s, np.full(view.depth.shape, 2000.0, np.float32), 12)
+
+
+def depth_edges(depth: np.ndarray, px: int, *, step_mm: float) -> np.ndarray:
+    """Pixels within `px` of a depth step above `step_mm` inside a 3 x 3 neighbourhood (nothing
+    seen counts as depth 0)."""
+    d = np.nan_to_num(depth, nan=0.0).astype(np.float32)
+    k = np.ones((3, 3), np.uint8)
+    edge = ((cv2.dilate(d, k) - cv2.erode(d, k)) > step_mm).astype(np.uint8)
+    return cv2.dilate(edge, np.ones((2 * px + 1, 2 * px + 1), np.uint8)) > 0

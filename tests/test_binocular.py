@@ -41,18 +41,11 @@ def scene() -> tuple:
 
 def _phase(view: stereo_scene.View, sigma: float, rng: np.random.Generator,
            orientations: tuple[str, ...] = ("vertical", "horizontal")) -> CameraPhase:
-    axes = {"vertical": 0, "horizontal": 1}
-    c = {o: (view.proj_uv[..., axes[o]] + rng.normal(0, sigma, view.depth.shape)).astype(np.float32)
-         for o in orientations}
-    s = {o: np.where(np.isfinite(c[o]), np.float32(sigma), np.float32(np.nan)) for o in orientations}
-    return CameraPhase(c, s, np.full(view.depth.shape, 2000.0, np.float32), 12)
+    return stereo_scene.camera_phase(view, sigma, rng=rng, orientations=orientations)
 
 
 def _edges(depth: np.ndarray, px: int) -> np.ndarray:
-    d = np.nan_to_num(depth, nan=0.0).astype(np.float32)
-    k = np.ones((3, 3), np.uint8)
-    edge = ((cv2.dilate(d, k) - cv2.erode(d, k)) > 0.5).astype(np.uint8)
-    return cv2.dilate(edge, np.ones((2 * px + 1, 2 * px + 1), np.uint8)) > 0
+    return stereo_scene.depth_edges(depth, px, step_mm=0.5)
 
 
 def test_rectification_puts_both_projections_of_a_point_on_one_row(scene: tuple) -> None:

@@ -36,16 +36,11 @@ SEED = 20261206  # fixed here: the bounds below are for this draw (the slow test
 
 def _phase(view: stereo_scene.View) -> CameraPhase:
     """Noise-free coordinates of both orientations, stated noise 0.02 projector px (the gates')."""
-    c = {o: view.proj_uv[..., a].astype(np.float32) for o, a in (("vertical", 0), ("horizontal", 1))}
-    s = {o: np.where(np.isfinite(v), np.float32(0.02), np.float32(np.nan)) for o, v in c.items()}
-    return CameraPhase(c, s, np.full(view.depth.shape, 2000.0, np.float32), 12)
+    return stereo_scene.camera_phase(view, 0.02)
 
 
 def _edges(depth: np.ndarray, px: int) -> np.ndarray:
-    d = np.nan_to_num(depth, nan=0.0).astype(np.float32)
-    k = np.ones((3, 3), np.uint8)
-    edge = ((cv2.dilate(d, k) - cv2.erode(d, k)) > 2.0).astype(np.uint8)
-    return cv2.dilate(edge, np.ones((2 * px + 1, 2 * px + 1), np.uint8)) > 0
+    return stereo_scene.depth_edges(depth, px, step_mm=2.0)
 
 
 def calibrate(truth: StereoModel, rng: np.random.Generator) -> StereoModel:
