@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 from collections.abc import Callable
 
 import numpy as np
 
 from inspection.form import cylinder_ls, cylindricity_mz
+from slscan.bench_timing import median_times
 
 
 def boss(points: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -40,17 +40,6 @@ def boss(points: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def plane_peer(p: np.ndarray) -> None:
     """The peer: one least-squares plane through the same points."""
     np.linalg.lstsq(np.column_stack([p[:, 0], p[:, 1], np.ones(len(p))]), p[:, 2], rcond=None)
-
-
-def median_times(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
-    """Median (wall, CPU) seconds of `repeats` calls."""
-    wall, cpu = [], []
-    for _ in range(repeats):
-        w, c = time.perf_counter(), time.process_time()
-        fn()
-        wall.append(time.perf_counter() - w)
-        cpu.append(time.process_time() - c)
-    return float(np.median(wall)), float(np.median(cpu))
 
 
 def main() -> None:

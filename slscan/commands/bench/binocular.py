@@ -34,12 +34,12 @@ import json
 import os
 import statistics
 import tempfile
-import time
 import tracemalloc
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from slscan.bench_timing import median_times
 from slscan.exit_codes import Exit
 from slscan.options import add_json
 from slscan.resident_memory import StagePeaks, release_memory, resident_mib
@@ -166,13 +166,8 @@ def _timing(config: Any, stacks: dict[str, np.ndarray], repeats: int) -> dict[st
         fn()
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
-        times, cpu = [], []
-        for _ in range(repeats):
-            t0, c0 = time.perf_counter(), time.process_time()
-            fn()
-            times.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-        return statistics.median(times), peak / 2 ** 20, statistics.median(cpu)
+        wall, cpu = median_times(fn, repeats)
+        return wall, peak / 2 ** 20, cpu
 
     load0 = os.getloadavg()
     rounds = [(measure(mono), measure(binocular)) for _ in range(2)]  # interleaved: both see the same load
