@@ -114,7 +114,7 @@ import numpy as np
 from scipy import ndimage
 
 from scanner.decode import DecodeResult, DecodeSettings, decode
-from scanner.geometry import Pinhole, RigModel
+from scanner.geometry import Pinhole, RigModel, perturbed_pose
 from scanner.patterns import PatternSet
 from scanner.reconstruct import Triangulator
 
@@ -472,19 +472,8 @@ class CalibrationUncertainty:
 
 def perturbed(model: RigModel, delta: np.ndarray) -> RigModel:
     """The rig with its parameters moved by `delta` (P,) (order of `RIG_PARAMETERS`)."""
-    def device(p: Pinhole, d: np.ndarray) -> Pinhole:
-        Kp = p.K.copy()
-        Kp[0, 0] += d[0]
-        Kp[1, 1] += d[1]
-        Kp[0, 2] += d[2]
-        Kp[1, 2] += d[3]
-        return Pinhole(p.width, p.height, Kp, p.dist + d[4:9])
-
-    P = model.proj_from_cam
-    Q = np.eye(4)
-    Q[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(P[:3, :3])[0].ravel() + delta[18:21])[0]
-    Q[:3, 3] = P[:3, 3] + delta[21:24]
-    return replace(model, camera=device(model.camera, delta[:9]), projector=device(model.projector, delta[9:18]),
+    Q = perturbed_pose(model.proj_from_cam, delta[18:24])
+    return replace(model, camera=model.camera.perturbed(delta[:9]), projector=model.projector.perturbed(delta[9:18]),
                    cam_from_proj=np.linalg.inv(Q), phase_to_height=None)
 
 

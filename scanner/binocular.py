@@ -61,7 +61,7 @@ from scipy.stats import norm
 
 from scanner.decode import DecodeResult
 from scanner.errors import ConfigError, DecodeError
-from scanner.geometry import Pinhole
+from scanner.geometry import Pinhole, perturbed_pose
 from scanner.pointcloud import OrganisedCloud
 from scanner.reconstruct import cloud_from_depth, to_texture8
 
@@ -128,17 +128,9 @@ class StereoModel:
     def perturbed(self, delta: np.ndarray) -> StereoModel:
         """The model with its parameters moved by `delta` (24,) (order of `parameter_names`; the
         rotation's Rodrigues vector moved additively, as the calibration solves it), no covariance."""
-        def lens(p: Pinhole, d: np.ndarray) -> Pinhole:
-            K = p.K.copy()
-            K[0, 0], K[1, 1], K[0, 2], K[1, 2] = K[0, 0] + d[0], K[1, 1] + d[1], K[0, 2] + d[2], K[1, 2] + d[3]
-            return Pinhole(p.width, p.height, K, p.dist + d[4:9])
-
         k = len(INTRINSIC_NAMES)
-        T = np.eye(4)
-        T[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(self.right_from_left[:3, :3])[0].ravel() + delta[2 * k:2 * k + 3])[0]
-        T[:3, 3] = self.right_from_left[:3, 3] + delta[2 * k + 3:]
-        return replace(self, left=lens(self.left, delta[:k]), right=lens(self.right, delta[k:2 * k]), right_from_left=T,
-                       covariance=None)
+        return replace(self, left=self.left.perturbed(delta[:k]), right=self.right.perturbed(delta[k:2 * k]),
+                       right_from_left=perturbed_pose(self.right_from_left, delta[2 * k:]), covariance=None)
 
     def to_dict(self) -> dict[str, Any]:
         """The model as manifests hold it; "covariance" only where the calibration states one."""

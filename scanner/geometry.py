@@ -46,6 +46,16 @@ class Pinhole:
         """(width, height) in pixels."""
         return (self.width, self.height)
 
+    def perturbed(self, delta: np.ndarray) -> Pinhole:
+        """This device with its calibration parameters moved by `delta` (9,): fx, fy, cx, cy (px),
+        then k1, k2, p1, p2, k3 (as a calibration's covariance orders them)."""
+        K = self.K.copy()
+        K[0, 0] += delta[0]
+        K[1, 1] += delta[1]
+        K[0, 2] += delta[2]
+        K[1, 2] += delta[3]
+        return Pinhole(self.width, self.height, K, self.dist + delta[4:9])
+
     def project(self, points: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N, 2) of points (N, 3) given in this device's frame (mm)."""
         pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 1, 3)
@@ -162,6 +172,15 @@ def pose_from_dict(d: dict[str, Any]) -> np.ndarray:
     T[:3, :3] = cv2.Rodrigues(np.array(d.get("rotation_rad", [0, 0, 0]), dtype=np.float64))[0]
     T[:3, 3] = np.array(d.get("translation_mm", [0, 0, 0]), dtype=np.float64)
     return T
+
+
+def perturbed_pose(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """The rigid transform T (4x4) with its Rodrigues vector moved by delta[:3] (rad) and its
+    translation by delta[3:6] (mm), as a calibration solves and states its extrinsic."""
+    out = np.eye(4)
+    out[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(T[:3, :3])[0].ravel() + delta[:3])[0]
+    out[:3, 3] = T[:3, 3] + delta[3:6]
+    return out
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: npt.ArrayLike = (0.0, -1.0, 0.0)) -> np.ndarray:
