@@ -16,11 +16,11 @@ _STATUS = Path("/proc/self/status")
 _CLEAR = Path("/proc/self/clear_refs")
 
 
-def _status_mib(*keys: str) -> tuple[float, ...]:
+def _status_mib(*keys: str, status: Path = _STATUS) -> tuple[float, ...]:
     """The named lines of /proc/self/status (MiB), read at one instant; NaN where missing."""
     found: dict[str, float] = {}
     with suppress(OSError):
-        for line in _STATUS.read_text().splitlines():
+        for line in status.read_text().splitlines():
             key, _, value = line.partition(":")
             if key in keys:
                 found[key] = int(value.split()[0]) / 1024.0
@@ -47,32 +47,62 @@ def release_memory() -> None:
 # A reset high-water mark reads as the resident set at that instant; both come from one read of
 # /proc/self/status, so they differ only by pages another thread touched in between (a few).
 _RESET_SLACK_MIB = 4.0
+# The probe that shows a reset takes: a block touched, freed (it is above glibc's largest mmap
+# threshold, 32 MiB, so freeing unmaps it), then a reset, after which the high-water mark must
+# have fallen by at least half the block. A sandbox whose resident set does not fall when memory is
+# unmapped (seen on CI: VmRSS and VmHWM equal and never falling) fails it, as does a kernel that
+# ignores the write.
+_PROBE_MIB = 64
 
 
 class StagePeaks:
     """Each stage's peak resident memory (MiB), by name, in the order run; None ("not measured")
-    for a stage whose start could not reset the high-water mark (a kernel or sandbox without
-    /proc/self/clear_refs, seen on CI: there VmHWM is the run's peak, not the stage's), with the
-    reason in `not_measured`."""
+    for every stage when a probe shows the high-water mark cannot be reset to the resident set
+    (no /proc/self/clear_refs, a kernel that ignores it, or a sandbox whose resident set does not
+    fall when memory is freed): there VmHWM is the run's peak, not the stage's. The reason is in
+    `not_measured`."""
 
-    def __init__(self, *, clear_refs: Path = _CLEAR) -> None:
+    def __init__(self, *, clear_refs: Path = _CLEAR, status: Path = _STATUS) -> None:
         self.peaks: dict[str, float | None] = {}
         self.not_measured: str | None = None
         self._clear_refs = clear_refs
+        self._status = status
+        self._probed = False
 
-    def _reset(self) -> bool:
-        """Reset the high-water mark to the resident set now; True when the kernel shows it did."""
+    def _read(self, *keys: str) -> tuple[float, ...]:
+        return _status_mib(*keys, status=self._status)
+
+    def _write_reset(self) -> bool:
         try:
             self._clear_refs.write_text("5")
         except OSError as e:
             self.not_measured = f"the high-water mark cannot be reset ({self._clear_refs}: {e.strerror})"
             return False
-        hwm, rss = _status_mib("VmHWM", "VmRSS")
-        if not hwm - rss <= _RESET_SLACK_MIB:
-            self.not_measured = (f"writing {self._clear_refs} left the high-water mark at {hwm:.0f} MiB, "
-                                 f"above the resident set's {rss:.0f} MiB: this kernel does not reset it")
+        return True
+
+    def _probe(self) -> bool:
+        """Touch and free a block of _PROBE_MIB, reset, and check the high-water mark fell."""
+        block = b"\x01" * (_PROBE_MIB << 20)  # every page written
+        (peak,) = self._read("VmHWM")
+        del block
+        if not self._write_reset():
+            return False
+        hwm, rss = self._read("VmHWM", "VmRSS")
+        if not (peak - hwm >= _PROBE_MIB / 2 and hwm - rss <= _RESET_SLACK_MIB):
+            self.not_measured = (f"after touching and freeing {_PROBE_MIB} MiB and writing "
+                                 f"{self._clear_refs}, the high-water mark went from {peak:.0f} to "
+                                 f"{hwm:.0f} MiB (resident set {rss:.0f} MiB): this system does not "
+                                 "reset it to the resident set")
             return False
         return True
+
+    def _reset(self) -> bool:
+        """Reset the high-water mark to the resident set now; True when the probe showed it can."""
+        if not self._probed:
+            self._probed = True
+            if not self._probe():
+                return False
+        return self.not_measured is None and self._write_reset()
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
@@ -84,4 +114,4 @@ class StagePeaks:
             if not reset or earlier is None:
                 self.peaks[name] = None
             else:
-                self.peaks[name] = max(earlier, round(_status_mib("VmHWM")[0], 1))
+                self.peaks[name] = max(earlier, round(self._read("VmHWM")[0], 1))
