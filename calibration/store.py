@@ -75,7 +75,7 @@ class CaptureWriter:
     as a context manager, or call `close()`: both wait for every queued file and raise the
     first error a write met."""
 
-    def __init__(self, root: str | Path, board: Board, patterns: PatternSet, camera_size: tuple[int, int],
+    def __init__(self, root: str | Path, board: Board, patterns: PatternSet, *, camera_size: tuple[int, int],
                  projector_size: tuple[int, int], bit_depth: int, rig_name: str) -> None:
         self.root = Path(root)
         if self.root.exists() and any(self.root.iterdir()):

@@ -429,9 +429,9 @@ def write_result(result: CalibrationResult, path: str | Path) -> Path:
 
 
 def solve_views(board: Board, correspondences: list[Correspondence], failures: dict[str, str],
-                camera_size: tuple[int, int], projector_size: tuple[int, int], settings: CalibrationSettings,
+                *, camera_size: tuple[int, int], projector_size: tuple[int, int], settings: CalibrationSettings,
                 rig_name: str, gamma: GammaFit | None, say: Say,
-                *, recording: CalibrationRecording | None = None) -> CalibrationResult:
+                recording: CalibrationRecording | None = None) -> CalibrationResult:
     say(f"solving from {len(correspondences)} views")
     solution = solve(correspondences, camera_size, projector_size, settings)
     result = CalibrationResult(rig_name, board, settings, solution, gamma, failures)
@@ -452,7 +452,8 @@ def calibrate_views(board: Board, views: list[View], projector_size: tuple[int, 
     corr, failures = correspond_all(board, views, strict, say)
     camera_size = views[0].size
     _log_views(recording, views, corr, camera_size, projector_size)
-    result = solve_views(board, corr, failures, camera_size, projector_size, settings, rig_name, None, say,
+    result = solve_views(board, corr, failures, camera_size=camera_size, projector_size=projector_size,
+                         settings=settings, rig_name=rig_name, gamma=None, say=say,
                          recording=recording)
     return finish(result, [], None, say, recording)
 
@@ -474,7 +475,8 @@ def calibrate_capture(capture: CaptureSet, settings: CalibrationSettings, rig_na
     views = capture.views()
     corr, failures = correspond_all(board, views, strict, say)
     _log_views(recording, views, corr, csize, psize)
-    result = solve_views(board, corr, failures, csize, psize, settings, rig_name, gamma, say, recording=recording)
+    result = solve_views(board, corr, failures, camera_size=csize, projector_size=psize, settings=settings,
+                         rig_name=rig_name, gamma=gamma, say=say, recording=recording)
     plates = [Plate(h, gm, decode_pose(f"plate at {h} mm", f, patterns, bits, psize,  # 1.0 beside a fitted gamma:
                                        judged=gamma is None or abs(gm - 1.0) > 1e-9))  # uncompensated on purpose
               for h, gm, f in capture.plates()]
@@ -506,11 +508,13 @@ def calibrate_rig(rig: Rig, procedure: Procedure, bench: Bench, out: Path, say: 
     go to `out` (a new folder), so `calibrate_capture` can solve them again."""
     cam, proj = rig.camera, rig.projector
     csize, psize = (cam.width, cam.height), (proj.width, proj.height)
-    with CaptureWriter(out, procedure.board, procedure.patterns, csize, psize, cam.bit_depth,
-                       rig.config.name) as writer:
+    with CaptureWriter(out, procedure.board, procedure.patterns, camera_size=csize, projector_size=psize,
+                       bit_depth=cam.bit_depth,
+                       rig_name=rig.config.name) as writer:
         gamma, corr, failures = capture_board_poses(rig, procedure, bench, say, writer, recording)
-        result = solve_views(procedure.board, corr, failures, csize, psize, procedure.settings, rig.config.name,
-                             gamma, say, recording=recording)
+        result = solve_views(procedure.board, corr, failures, camera_size=csize, projector_size=psize,
+                             settings=procedure.settings, rig_name=rig.config.name,
+                             gamma=gamma, say=say, recording=recording)
         check_limits(result.solution, result.settings)  # before spending time on the plate and artefact
         plates, artefact = _capture_checks(rig, procedure, bench, writer, gamma.gamma, say)
     return finish(result, plates, artefact, say, recording)

@@ -881,7 +881,7 @@ def _sq(rough: np.ndarray, drawn_rough: np.ndarray, inner: np.ndarray, model_rel
         {"noise": spread / (2.0 * sq), "noise model": u_model / (2.0 * sq)}
 
 
-def evaluate_face(face: Face, points: np.ndarray, deviation: np.ndarray, uv: np.ndarray,
+def evaluate_face(face: Face, points: np.ndarray, deviation: np.ndarray, *, uv: np.ndarray,
                   settings: FormSettings = FormSettings(), seed: int = 0, noise: PointNoise | None = None,
                   normals: np.ndarray | None = None, shifts: np.ndarray | None = None,
                   region: np.ndarray | None = None) -> FaceForm:
@@ -1065,8 +1065,9 @@ def _flatness(face: Face, c: _Cells) -> tuple[_ZoneFigures, _Parts]:
     def noise_mz(h: np.ndarray) -> np.ndarray:  # the noise alone: its zone about its own LS plane
         return flatness_mz_many(cxy, h)
 
-    ls, ls_parts = _zone(flat_ls, f, fe, c.e, c.cal, sensitivity=ls_zone_sensitivity(cxy, f))
-    mz, mz_parts = _zone(flat_mz, f, fe, c.e, c.cal, noise_mz, mz_zone_sensitivity(cxy, f))
+    ls, ls_parts = _zone(flat_ls, f, fe, noise=c.e, cal=c.cal, sensitivity=ls_zone_sensitivity(cxy, f))
+    mz, mz_parts = _zone(flat_mz, f, fe, noise=c.e, cal=c.cal, noise_figure=noise_mz,
+                         sensitivity=mz_zone_sensitivity(cxy, f))
     return _ZoneFigures(flatness_ls=ls, flatness_mz=mz), {"flatness_ls": ls_parts, "flatness_mz": mz_parts}
 
 
@@ -1095,8 +1096,8 @@ def _cylindricity(face: Face, c: _Cells) -> tuple[_ZoneFigures, _Parts]:
     def cyl_mz(hs: np.ndarray) -> np.ndarray:
         return np.array([zones(h)[1] for h in hs])
 
-    ls, ls_parts = _zone(cyl_ls, c.f, c.fe, c.e, c.cal)
-    mz, mz_parts = _zone(cyl_mz, c.f, c.fe, c.e, c.cal)
+    ls, ls_parts = _zone(cyl_ls, c.f, c.fe, noise=c.e, cal=c.cal)
+    mz, mz_parts = _zone(cyl_mz, c.f, c.fe, noise=c.e, cal=c.cal)
     return (_ZoneFigures(cylindricity_ls=ls, cylindricity_mz=mz),
             {"cylindricity_ls": ls_parts, "cylindricity_mz": mz_parts})
 
@@ -1118,7 +1119,7 @@ _SURFACE_FORMS = {"plane": _SurfaceForm(_plane_coordinates, _flatness),
 another type is evaluated on its raw points."""
 
 
-def _zone(figure: Callable[[np.ndarray], np.ndarray], form: np.ndarray, drawn: np.ndarray, noise: np.ndarray,
+def _zone(figure: Callable[[np.ndarray], np.ndarray], form: np.ndarray, drawn: np.ndarray, *, noise: np.ndarray,
           cal: np.ndarray | None, noise_figure: Callable[[np.ndarray], np.ndarray] | None = None,
           sensitivity: np.ndarray | None = None) -> tuple[Estimate, dict[str, float]]:
     """A zone of the form surface `form` (cells,) with it plus each noise draw `drawn`

@@ -69,9 +69,9 @@ def prepare(model: CadModel) -> ModelTarget:
 
 
 def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = None,
-            settings: InspectionSettings = InspectionSettings(), recording: Any = None,
+            *, settings: InspectionSettings = InspectionSettings(), recording: Any = None,
             prior: Registration | None = None, uncertainty: ScanUncertainty | None = None,
-            on_verdict: Callable[[InspectionReport], None] | None = None, *,
+            on_verdict: Callable[[InspectionReport], None] | None = None,
             progress: Callable[[str, int, int], None] | None = None) -> InspectionReport:
     """Register `scan` to `model`, segment it by CAD face and evaluate every face seen.
     `recording`: a `scanner.session_recording.SessionRecording` to log the result into;
@@ -87,11 +87,12 @@ def inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None = No
     1.45 -> 1.16 s CPU). `progress(stage, done, total)`: told as each stage starts (isolate,
     register, segment) and as each face's figures are done (faces, n of N)."""
     with native_threads(1):
-        return _inspect(scan, model, tolerances, settings, recording, prior, uncertainty, on_verdict,
-                        progress or (lambda stage, done, total: None))
+        return _inspect(scan, model, tolerances, settings=settings, recording=recording, prior=prior,
+                        uncertainty=uncertainty, on_verdict=on_verdict,
+                        progress=progress or (lambda stage, done, total: None))
 
 
-def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, settings: InspectionSettings,
+def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, *, settings: InspectionSettings,
              recording: Any, prior: Registration | None, uncertainty: ScanUncertainty | None,
              on_verdict: Callable[[InspectionReport], None] | None,
              progress: Callable[[str, int, int], None]) -> InspectionReport:
@@ -108,7 +109,8 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
     reg = register_with_prior(part, target, prior, settings.registration)
     times["register"] = reg.timings_s.get("total", 0.0)
     if reg.status == AMBIGUOUS:
-        report = _ambiguous_report(scan, part, model, reg, tolerances, settings, mask, times, uncertainty)
+        report = _ambiguous_report(scan, part, model, reg=reg, tolerances=tolerances, settings=settings, mask=mask,
+                                   times=times, uncertainty=uncertainty)
         if on_verdict is not None:
             on_verdict(report)
         if recording is not None:
@@ -149,8 +151,9 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
         if moved:
             unfixed = FaceForm(int(sel.sum()), NOT_MEASURED, f"depends on the {moved}, which the view does not fix")
             return _face_row(face, unfixed, tolerances, rule)
-        form = measure_face(face, part.points[sel], None if unc is None else unc.subset(sel), R, q[sel],
-                            seg.deviation_mm[sel], seg.uv[sel], seg.normal[sel], settings.form)
+        form = measure_face(face, part.points[sel], None if unc is None else unc.subset(sel), R=R, points=q[sel],
+                            deviation=seg.deviation_mm[sel], uv=seg.uv[sel], normals=seg.normal[sel],
+                            settings=settings.form)
         form = pose.added_to(form, q[sel], seg.normal[sel])
         return _face_row(face, form, tolerances, rule)
 
@@ -191,7 +194,7 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, se
     return report
 
 
-def measure_face(face: Any, camera_points: np.ndarray, uncertainty: ScanUncertainty | None, R: np.ndarray,
+def measure_face(face: Any, camera_points: np.ndarray, uncertainty: ScanUncertainty | None, *, R: np.ndarray,
                  points: np.ndarray, deviation: np.ndarray, uv: np.ndarray, normals: np.ndarray,
                  settings: FormSettings) -> FaceForm:
     """One face's figures (`inspection.form.evaluate_face`) from its points in the camera
@@ -204,7 +207,7 @@ def measure_face(face: Any, camera_points: np.ndarray, uncertainty: ScanUncertai
         noise = None if uncertainty.noise is None else uncertainty.noise.rotated(R)
         moves = uncertainty.shifts(camera_points)
         shifts = None if moves is None else moves @ R.T
-    return evaluate_face(face, points, deviation, uv, settings, noise=noise, normals=normals, shifts=shifts)
+    return evaluate_face(face, points, deviation, uv=uv, settings=settings, noise=noise, normals=normals, shifts=shifts)
 
 
 @dataclass(frozen=True)
@@ -261,7 +264,7 @@ def ambiguity_note(reg: Registration) -> str:
     return f"the pose is {reg.reason}"
 
 
-def _ambiguous_report(scan: ScanCloud, part: ScanCloud, model: CadModel, reg: Registration,
+def _ambiguous_report(scan: ScanCloud, part: ScanCloud, model: CadModel, *, reg: Registration,
                       tolerances: Tolerances | None, settings: InspectionSettings, mask: np.ndarray,
                       times: dict[str, float], uncertainty: ScanUncertainty | None) -> InspectionReport:
     """The report of a scan whose pose is not proven: every face of the model "not

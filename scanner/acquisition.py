@@ -335,7 +335,8 @@ def check_signature(stack: np.ndarray, patterns: PatternSet, projector_shape: tu
             var = (model ** 2).sum(axis=0)
             cov = np.maximum(intensity @ model, 0.0)  # gains are non-negative
             explained += np.divide(cov ** 2, var, out=np.zeros_like(cov, dtype=np.float64), where=var > 1e-12)
-        scores = _frame_scores(pixels, groups, grid[explained.argmax(axis=1)], c, patterns, specs, extent)
+        scores = _frame_scores(pixels, groups, grid[explained.argmax(axis=1)], c=c, patterns=patterns, specs=specs,
+                               extent=extent)
         worst = max(scores, key=scores.__getitem__)
         if scores[worst] > SIGNATURE_MAX_RESIDUAL:
             raise FrameOutOfOrder(camera_name, (
@@ -346,7 +347,7 @@ def check_signature(stack: np.ndarray, patterns: PatternSet, projector_shape: tu
                 worst, None)
 
 
-def _frame_scores(pixels: dict[int, np.ndarray], groups: list[list[int]], u: np.ndarray, c: np.ndarray,
+def _frame_scores(pixels: dict[int, np.ndarray], groups: list[list[int]], u: np.ndarray, *, c: np.ndarray,
                   patterns: PatternSet, specs: list[FrameSpec], extent: int) -> dict[int, float]:
     """Per frame: the median, over pixels, of its squared residual at the pixel's best
     coordinate `u`, relative to the mean squared fringe signal of a frame of its group."""

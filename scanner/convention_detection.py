@@ -374,7 +374,8 @@ def _phase_keys(stack: np.ndarray, ps: PatternSet, ev: _Evidence, projector_size
     else:
         eps_plus, se = ev.offset.get(1, (None, 0.0))
         origin_plus = _discrete(eps_plus, ps.steps)[0] if eps_plus is not None else 0.0
-        sign = _phase_only_sign(stack, ps, c, projector_size, bit_depth, rig, origin_plus, findings)
+        sign = _phase_only_sign(stack, ps, c, projector_size=projector_size, bit_depth=bit_depth, rig=rig,
+                                origin_plus=origin_plus, findings=findings)
         eps = None if eps_plus is None else (-eps_plus if sign == -1 else eps_plus)  # the beats' offsets mirror
     c = replace(c, step_sign=sign)
     if c.pixel_centre is None:
@@ -452,7 +453,7 @@ def _gray_sign(c: Conventions, ev: _Evidence, findings: list[Finding]) -> int:
     return best
 
 
-def _phase_only_sign(stack: np.ndarray, ps: PatternSet, c: Conventions, projector_size: tuple[int, int],
+def _phase_only_sign(stack: np.ndarray, ps: PatternSet, c: Conventions, *, projector_size: tuple[int, int],
                      bit_depth: int, rig: RigModel | None, origin_plus: float, findings: list[Finding]) -> int:
     """The step sign of a set without a Gray code: given, or from the rig's geometry, or assumed."""
     o = ps.orientations[0]

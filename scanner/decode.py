@@ -265,7 +265,7 @@ class _SecondPaths:
     MEDIAN_SAMPLE = 200000
 
     def __init__(self, fringes: tuple[float, ...], scaled: list[np.ndarray], modulation: list[np.ndarray],
-                 background: np.ndarray, noise: NoiseModel, steps: int, settings: DecodeSettings) -> None:
+                 *, background: np.ndarray, noise: NoiseModel, steps: int, settings: DecodeSettings) -> None:
         self.fringes, self.scaled, self.modulation = list(fringes), scaled, modulation
         self.background, self.noise, self.settings = background, noise, settings
         self.sqrt_2n = np.float32(np.sqrt(2.0 / steps))
@@ -814,11 +814,13 @@ class _OrientationDecoder:
 
         sums = in_bands(h, band)
         if scaled is not None:
-            masks["interreflection"] = _SecondPaths(ps.fringes, scaled, modulation, out["background"], self.noise,
-                                                    ps.steps, s).mask(usable, masks["order_error"])
+            masks["interreflection"] = _SecondPaths(ps.fringes, scaled, modulation, background=out["background"],
+                                                    noise=self.noise,
+                                                    steps=ps.steps, settings=s).mask(usable, masks["order_error"])
         f_max = max(ps.fringes)
-        maps = self._finish(masks, usable, out["coordinate"], out["phase"], wrapped, modulation, out["background"],
-                            out["weight"], f_max)
+        maps = self._finish(masks, usable, out["coordinate"], phase=out["phase"], wrapped=wrapped,
+                            modulation=modulation, background=out["background"],
+                            weight=out["weight"], fringes=f_max)
         coded = [self._range(beyond, sum(b["readable"] for b in sums))] if ps.gray_bits(self.orientation) else []
         return maps, self._map_checks(sums, masks.get("interreflection")) + coded + self._ordering(maps)
 
@@ -993,12 +995,13 @@ class _OrientationDecoder:
                 z2 = joined["residual_z2"]
                 worst = self.blocks[int(np.argmax(np.median(z2, axis=1)))] if z2.shape[1] else [0]
                 spatial = self.noise_source != SENSOR_MODEL
-                out.append(scale_check("phase_residual", o, z2.sum(axis=0), len(self.blocks) * residual_dof(ps.steps),
-                                       FITTED_MODEL_ACCURACY if spatial else SENSOR_MODEL_ACCURACY,
-                                       SPATIAL_MODEL if spatial else self.noise_source,
-                                       f"the frames do not follow the patterns: frame {worst[0]} (step group "
-                                       f"{worst[0]}..{worst[-1]}) fits worst; frames swapped, repeated or from "
-                                       f"another scan?", "each pixel's N-step fit residual"))
+                out.append(scale_check("phase_residual", o, z2.sum(axis=0),
+                                       dof=len(self.blocks) * residual_dof(ps.steps),
+                                       accuracy=FITTED_MODEL_ACCURACY if spatial else SENSOR_MODEL_ACCURACY,
+                                       noise_source=SPATIAL_MODEL if spatial else self.noise_source,
+                                       cause=f"the frames do not follow the patterns: frame {worst[0]} (step group "
+                                             f"{worst[0]}..{worst[-1]}) fits worst; frames swapped, repeated or from "
+                                             f"another scan?", what="each pixel's N-step fit residual"))
             else:
                 out.append(not_judged("phase_residual", o, "x noise", "three steps leave no residual"))
         if "frequencies" in sums[0]:
@@ -1009,18 +1012,21 @@ class _OrientationDecoder:
                 one_path[:] = True
             q = np.concatenate([b["frequencies"]["q"] for b in sums])[one_path]
             d = np.concatenate([b["frequencies"]["d"] for b in sums])[one_path]
-            out.append(scale_check("frequency_agreement", o, q, len(ps.fringes) - 1, accuracy, self.noise_source,
-                                   "a wrong fringe count, frames from another scan, or frequencies out of order?",
-                                   "the frequencies' spread about their mean coordinate"))
+            out.append(scale_check("frequency_agreement", o, q, dof=len(ps.fringes) - 1, accuracy=accuracy,
+                                   noise_source=self.noise_source,
+                                   cause="a wrong fringe count, frames from another scan, or frequencies out of order?",
+                                   what="the frequencies' spread about their mean coordinate"))
             out.append(self._frequency_offset(d))
         if "gray_offset" in joined:
             out.append(self._gray_offset(joined["gray_offset"]))
         if "phase_sigma" in joined:
             out.append(self._gray_edges(joined["gray_offset"], joined["phase_sigma"]))
-        out.append(majority_check("fringe_orders", o, total["order_bad"] / max(total["usable"], 1), total["usable"],
-                                  "of usable pixels", "a fringe order consistent with the noise on most pixels",
-                                  "wrong fringe counts, frame order or projector size, or phase steps rotated by "
-                                  "half a group (every phase half a period off: no order fits)?"))
+        out.append(majority_check("fringe_orders", o, total["order_bad"] / max(total["usable"], 1),
+                                  judged=total["usable"],
+                                  unit="of usable pixels",
+                                  expected="a fringe order consistent with the noise on most pixels",
+                                  cause="wrong fringe counts, frame order or projector size, or phase steps rotated by "
+                                        "half a group (every phase half a period off: no order fits)?"))
         return out
 
     def _frequency_offset(self, d: np.ndarray) -> Check:
@@ -1033,9 +1039,9 @@ class _OrientationDecoder:
             return not_judged("frequency_offset", self.orientation, "px", f"{d.size} pixels")
         se = 1.2533 * float(np.std(d)) / np.sqrt(d.size)  # standard error of a median
         offset = float(np.median(d))
-        return offset_check("frequency_offset", self.orientation, offset, se, fault, "px",
-                            "the median of the finest less the coarsest frequency's coordinate",
-                            _rotation_cause(offset / fault if fault else 0.0, ps.steps), int(d.size))
+        return offset_check("frequency_offset", self.orientation, offset, standard_error=se, fault=fault, unit="px",
+                            what="the median of the finest less the coarsest frequency's coordinate",
+                            cause=_rotation_cause(offset / fault if fault else 0.0, ps.steps), judged=int(d.size))
 
     def _gray_offset(self, r: np.ndarray) -> Check:
         """The phase's common offset from where the Gray code says it is (rad, circular mean):
@@ -1048,9 +1054,10 @@ class _OrientationDecoder:
         steps = self.patterns.steps
         fault = min(2.0 * np.pi / steps, np.pi / 2)
         offset = float(np.angle(z))
-        return offset_check("gray_offset", self.orientation, offset, spread / np.sqrt(r.size), fault, "rad",
-                            "the phase's mean offset from the Gray code's period",
-                            _rotation_cause(offset * steps / (2 * np.pi), steps), int(r.size))
+        return offset_check("gray_offset", self.orientation, offset, standard_error=spread / np.sqrt(r.size),
+                            fault=fault, unit="rad",
+                            what="the phase's mean offset from the Gray code's period",
+                            cause=_rotation_cause(offset * steps / (2 * np.pi), steps), judged=int(r.size))
 
     def _gray_edges(self, r: np.ndarray, phase_sigma: np.ndarray) -> Check:
         """Where the complementary Gray code, read clearly, and the phase disagree: a phase
@@ -1127,10 +1134,11 @@ class _OrientationDecoder:
         masks["order_error"] = ~readable
         weight = np.float32(12.0) / np.square(run, dtype=np.float32)  # 1 / variance of a uniform run (px⁻²)
         phase = (coordinate + np.float32(0.5)) * TWO_PI  # one "fringe" per projector pixel
-        maps = self._finish(masks, usable, coordinate, phase, [], [b], background, weight, float(self.extent))
+        maps = self._finish(masks, usable, coordinate, phase=phase, wrapped=[], modulation=[b], background=background,
+                            weight=weight, fringes=float(self.extent))
         return maps, [self._range(beyond & usable, int(((readable | beyond) & usable).sum()))] + self._ordering(maps)
 
-    def _finish(self, masks: dict[str, np.ndarray], usable: np.ndarray, coordinate: np.ndarray, phase: np.ndarray,
+    def _finish(self, masks: dict[str, np.ndarray], usable: np.ndarray, coordinate: np.ndarray, *, phase: np.ndarray,
                 wrapped: list[np.ndarray], modulation: list[np.ndarray], background: np.ndarray,
                 weight: np.ndarray, fringes: float) -> OrientationMaps:
         s = self.settings

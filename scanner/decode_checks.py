@@ -164,7 +164,7 @@ def scale_threshold(dof: int, n: int, accuracy: float, alpha: float = ALPHA) -> 
     return (1.0 + accuracy) ** 2 * (1.0 + normal_isf(alpha) * sd / m)
 
 
-def scale_check(name: str, scope: str, z2: np.ndarray, dof: int, accuracy: float, noise_source: str,
+def scale_check(name: str, scope: str, z2: np.ndarray, *, dof: int, accuracy: float, noise_source: str,
                 cause: str, what: str) -> Check:
     """A noise-scale test (module docstring) of per-pixel z² values that are χ²_dof under the model."""
     z2 = z2[np.isfinite(z2)]
@@ -182,7 +182,7 @@ def scale_check(name: str, scope: str, z2: np.ndarray, dof: int, accuracy: float
 # ---- discrete-fault tests ----------------------------------------------------------------
 
 
-def offset_check(name: str, scope: str, offset: float, standard_error: float, fault: float, unit: str,
+def offset_check(name: str, scope: str, offset: float, *, standard_error: float, fault: float, unit: str,
                  what: str, cause: str, judged: int) -> Check:
     """A common offset judged at the midpoint `fault`/2 between agreement (0) and the
     smallest fault's offset; the false-refusal rate is the normal tail of the offset's
@@ -195,8 +195,8 @@ def offset_check(name: str, scope: str, offset: float, standard_error: float, fa
                  judged, figures={"offset": offset})
 
 
-def majority_check(name: str, scope: str, share: float | None, judged: int, unit: str, expected: str,
-                   cause: str, *, note: str = "", below: bool = True, minimum: int = MIN_JUDGED) -> Check:
+def majority_check(name: str, scope: str, share: float | None, *, judged: int, unit: str, expected: str,
+                   cause: str, note: str = "", below: bool = True, minimum: int = MIN_JUDGED) -> Check:
     """A share judged by majority: it fails when more than half (`below`: the share must
     stay at or below 0.5; else at or above it) of what is judged (at least `minimum`) says so."""
     if share is None or judged < minimum:
@@ -260,9 +260,10 @@ def ordering(coordinate: np.ndarray, valid: np.ndarray, sigma: np.ndarray, perio
     share = float((stepping & judged).sum() / n_judged) if n_judged else None
     line_name = "rows" if orientation == "vertical" else "columns"
     check = majority_check(
-        "ordering", orientation, share, n_judged, f"of {line_name}",
-        f"the coordinate runs one way along each of the {line_name} (steps back only at a scene's few overhangs)",
-        "Gray-code frames out of order, a wrong fringe or period count, or frames from another scan?",
+        "ordering", orientation, share, judged=n_judged, unit=f"of {line_name}",
+        expected=f"the coordinate runs one way along each of the {line_name} "
+                 "(steps back only at a scene's few overhangs)",
+        cause="Gray-code frames out of order, a wrong fringe or period count, or frames from another scan?",
         minimum=MIN_LINES)
     return replace_figures(check, {"steps_back": int(back.sum()), "rising_share": rising / max(n_moving, 1)})
 
@@ -314,9 +315,10 @@ def direction(ordering_check: Check, rig: Any, orientation: str, calibrated: boo
                                                    "coordinate runs (assumed: as the frames show)")
     share = rising if predicted > 0 else 1.0 - rising
     way = "rises" if predicted > 0 else "falls"
-    return majority_check(name, orientation, share, ordering_check.judged, unit,
-                          f"the coordinate {way} along the camera's lines as the rig's geometry predicts (share 1)",
-                          "phase steps in reverse order (or a mirrored projector, or the wrong rig model)?",
+    return majority_check(name, orientation, share, judged=ordering_check.judged, unit=unit,
+                          expected=f"the coordinate {way} along the camera's lines as the rig's geometry "
+                                   "predicts (share 1)",
+                          cause="phase steps in reverse order (or a mirrored projector, or the wrong rig model)?",
                           below=False, minimum=MIN_LINES)
 
 
@@ -370,11 +372,11 @@ def measurement_volume(points: np.ndarray, rig: Any, volume: Volume, orientation
     depth = float(np.median(sample[:, 2]))
     where = (f"depth {volume.near_mm:.0f}..{volume.far_mm:.0f} mm" if volume.near_mm is not None
              else "the common field of view")
-    check = majority_check(name, "cloud", share, len(sample), "of points",
-                           f"most points lie in the measuring volume ({where}, {volume.source}); median depth "
-                           f"found {depth:.0f} mm",
-                           "the part outside the measuring volume, or a decode the rig model cannot place "
-                           "(phase steps reversed, a wrong projector size or rig model)?", below=False)
+    check = majority_check(name, "cloud", share, judged=len(sample), unit="of points",
+                           expected=f"most points lie in the measuring volume ({where}, {volume.source}); median depth "
+                                    f"found {depth:.0f} mm",
+                           cause="the part outside the measuring volume, or a decode the rig model cannot place "
+                                 "(phase steps reversed, a wrong projector size or rig model)?", below=False)
     return replace_figures(check, {"median_depth_mm": depth})
 
 
@@ -442,7 +444,7 @@ def sensor_noise_terms(rig_config: dict[str, Any], bit_depth: int) -> tuple[floa
     return (read_e / g) ** 2 + 1.0 / 12.0, 1.0 / g
 
 
-def epipolar(v_measured: np.ndarray, v_sigma: np.ndarray, v_from_u: np.ndarray, v_from_u_shifted: np.ndarray,
+def epipolar(v_measured: np.ndarray, v_sigma: np.ndarray, v_from_u: np.ndarray, *, v_from_u_shifted: np.ndarray,
              u_sigma: np.ndarray, shift_px: float, accuracy: float, noise_source: str, model_px: float) -> Check:
     """With both fringe orientations on a calibrated rig, the two projector coordinates of a
     pixel must meet the epipolar geometry: the point the column u triangulates projects to
@@ -452,6 +454,6 @@ def epipolar(v_measured: np.ndarray, v_sigma: np.ndarray, v_from_u: np.ndarray, 
     camera's and the projector's image), is χ²_1: a noise-scale test."""
     dvdu = (v_from_u_shifted - v_from_u) / shift_px
     z2 = np.square(v_measured - v_from_u) / (np.square(v_sigma) + np.square(dvdu * u_sigma) + 2 * model_px ** 2)
-    return scale_check("epipolar", "cloud", z2.astype(np.float64), 1, accuracy, noise_source,
-                       "the wrong rig model (intrinsics, principal points or the projector's pose), or a wrong "
-                       "projector size?", "the two coordinates' distance from the epipolar geometry")
+    return scale_check("epipolar", "cloud", z2.astype(np.float64), dof=1, accuracy=accuracy, noise_source=noise_source,
+                       cause="the wrong rig model (intrinsics, principal points or the projector's pose), or a wrong "
+                             "projector size?", what="the two coordinates' distance from the epipolar geometry")

@@ -205,8 +205,8 @@ def provenance(rig: Rig, session_root: Path) -> dict[str, Any]:
 
 
 def process(session: Session, progress: Progress = _quiet, recording: SessionRecording | None = None,
-            settings: DecodeSettings = DEFAULT_DECODE_SETTINGS, mode: str = "triangulation",
-            frames: dict[int, np.ndarray] | None = None, write_behind: bool = False, *,
+            *, settings: DecodeSettings = DEFAULT_DECODE_SETTINGS, mode: str = "triangulation",
+            frames: dict[int, np.ndarray] | None = None, write_behind: bool = False,
             rig_model: RigModel | None = None, rig_model_source: str | None = None) -> ScanResult:
     """Decode and reconstruct a complete session from its raw frames; write the outputs
     (cloud PLY, maps, result JSON) beside them. `frames`: the session's frames still in
@@ -220,11 +220,12 @@ def process(session: Session, progress: Progress = _quiet, recording: SessionRec
     if mode not in ("triangulation", "phase_to_height"):
         raise ScannerError(f"unknown reconstruction mode '{mode}'; use triangulation or phase_to_height")
     with session_lock(session.root, command="slscan decode"):
-        return _process(session, progress, recording, settings, mode, frames, write_behind, rig_model,
-                        rig_model_source)
+        return _process(session, progress, recording, settings=settings, mode=mode, frames=frames,
+                        write_behind=write_behind, rig_model=rig_model,
+                        rig_model_source=rig_model_source)
 
 
-def _process(session: Session, progress: Progress, recording: SessionRecording | None, settings: DecodeSettings,
+def _process(session: Session, progress: Progress, recording: SessionRecording | None, *, settings: DecodeSettings,
              mode: str, frames: dict[int, np.ndarray] | None, write_behind: bool, rig_model: RigModel | None,
              rig_model_source: str | None) -> ScanResult:
     timer = StageTimer()
@@ -384,9 +385,9 @@ def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: bool, model_p
     accuracy = SENSOR_MODEL_ACCURACY if sensor else FITTED_MODEL_ACCURACY
     measured, given = decoded.maps[other], decoded.maps[source]
     return epipolar(measured.coordinate[sample].astype(np.float64),
-                    measured.coordinate_sigma[sample].astype(np.float64), predicted[0], predicted[1],
-                    given.coordinate_sigma[sample].astype(np.float64), 0.5, accuracy,
-                    "sensor model" if sensor else "noise model fitted to the frames", model_px)
+                    measured.coordinate_sigma[sample].astype(np.float64), predicted[0], v_from_u_shifted=predicted[1],
+                    u_sigma=given.coordinate_sigma[sample].astype(np.float64), shift_px=0.5, accuracy=accuracy,
+                    noise_source="sensor model" if sensor else "noise model fitted to the frames", model_px=model_px)
 
 
 def sensor_noise(session: Session) -> NoiseModel | None:

@@ -200,7 +200,7 @@ def frame_name(k: int) -> str:
     return f"frame_{k:03d}.png"
 
 
-def manifest_record(root: Path, session_id: str, started: dt.datetime, rig_config: dict[str, Any], model: RigModel,
+def manifest_record(root: Path, session_id: str, started: dt.datetime, *, rig_config: dict[str, Any], model: RigModel,
                     patterns: PatternSet, devices: dict[str, Any], extra: dict[str, Any] | None) -> dict[str, Any]:
     """A session's manifest without its frames and timings. The phase-to-height maps of
     `model`, if any, are put in the session folder `root` (`keep_maps`) once."""
@@ -277,7 +277,8 @@ class SessionWriter:
 
     def _record(self, rig_config: dict[str, Any], model: RigModel, patterns: PatternSet,
                 devices: dict[str, Any], extra: dict[str, Any] | None) -> dict[str, Any]:
-        return manifest_record(self.root, self.id, self.started, rig_config, model, patterns, devices, extra)
+        return manifest_record(self.root, self.id, self.started, rig_config=rig_config, model=model, patterns=patterns,
+                               devices=devices, extra=extra)
 
     def begin(self, rig_config: dict[str, Any], model: RigModel, patterns: PatternSet,
               devices: dict[str, Any], extra: dict[str, Any] | None = None) -> None:

@@ -139,8 +139,9 @@ def _capture_record(root: Path, rig: Any, patterns: PatternSet | None) -> tuple[
                            f"scan used other patterns); the manifest will say they were assumed")
     patterns = patterns or PatternSet.load(rig.patterns_path)
     started = dt.datetime.fromtimestamp((root / FRAME_LOG).stat().st_mtime, dt.UTC)
-    record = manifest_record(root, root.name, started, rig.raw, rig.model, patterns, {},
-                             {"rig_config_path": str(rig.path.resolve())})
+    record = manifest_record(root, root.name, started, rig_config=rig.raw, model=rig.model, patterns=patterns,
+                             devices={},
+                             extra={"rig_config_path": str(rig.path.resolve())})
     return record, f"rig {rig.path} and patterns {patterns.family} given on the command line, not recorded"
 
 

@@ -289,7 +289,7 @@ class CornerNoise:
                                                         s.projector_residuals)], axis, square_mm)
 
 
-def check_pose(view: Any, index: int, board: Any, model: RigModel, calibration: CalibrationUncertainty,
+def check_pose(view: Any, index: int, board: Any, *, model: RigModel, calibration: CalibrationUncertainty,
                noise: Callable[[int], CornerNoise], rms_px: dict[str, float]) -> PoseCheck:
     """Triangulate the left-out `view` with `model` and measure it (module docstring);
     `noise(axis)`: the corners' noise for the coded projector axis."""
@@ -356,9 +356,9 @@ def leave_one_out(views: list[Any], board: Any, projector_size: tuple[int, int],
         say(f"{view.name}: calibrating on {', '.join(v.name for v in others)}")
         result = calibrate_views(board, others, projector_size, CalibrationSettings(), "leave-one-out", lambda s: None)
         report = result.report()
-        check = check_pose(view, k, board, result.model, CalibrationUncertainty.from_report(report),
-                           partial(CornerNoise.from_calibration, result.solution, square_mm=board.square_mm),
-                           {"camera": report["rms_px"]["camera"], "projector": report["rms_px"]["projector"]})
+        check = check_pose(view, k, board, model=result.model, calibration=CalibrationUncertainty.from_report(report),
+                           noise=partial(CornerNoise.from_calibration, result.solution, square_mm=board.square_mm),
+                           rms_px={"camera": report["rms_px"]["camera"], "projector": report["rms_px"]["projector"]})
         s = check.summary(board.square_mm)
         say(f"{view.name}: flatness {check.flatness.text()}, adjacent corners error RMS "
             f"{s['adjacent_error_rms_mm']:.3f} mm (U median {s['adjacent_U_median_mm']:.3f} mm), "

@@ -35,6 +35,7 @@ def simulated_bench(rig: Any, procedure: Any, seed: int = 0, jitter_deg: float =
     except ValueError as exc:
         raise ScannerError(f"simulated bench: {exc}") from None
     artefact = procedure.artefact
-    return SimBench(rig, target, poses, config.working_distance_mm + PLATE_BEHIND_MM,
-                    artefact.radius_mm if artefact else 10.0, artefact.distance_mm if artefact else 50.0,
-                    config.working_distance_mm - ARTEFACT_BEFORE_MM)
+    return SimBench(rig, target, poses, plate_distance_mm=config.working_distance_mm + PLATE_BEHIND_MM,
+                    sphere_radius_mm=artefact.radius_mm if artefact else 10.0,
+                    sphere_distance_mm=artefact.distance_mm if artefact else 50.0,
+                    artefact_distance_mm=config.working_distance_mm - ARTEFACT_BEFORE_MM)

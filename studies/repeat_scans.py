@@ -216,7 +216,7 @@ def _rig_for(k: int, bench: Bench, rigs: tuple[MeasuringRig, ...]) -> MeasuringR
     return rigs[k % len(rigs)] if rigs else MeasuringRig.true(bench)
 
 
-def _artefact_trial(bench: Bench, position: Position, artefacts: ArtefactSet, read: Callable[[Any], Estimate],
+def _artefact_trial(bench: Bench, position: Position, artefacts: ArtefactSet, *, read: Callable[[Any], Estimate],
                     truth: float, rng: np.random.Generator, rig: MeasuringRig, noise_scale: float) -> Trial:
     """One scan of an artefact measured as `slscan verify` measures it (`evaluate`);
     `read` takes the figure from its PositionResult."""
@@ -259,8 +259,8 @@ def sphere_radius(bench: Bench, artefacts: ArtefactSet, n: int, *, seed: int = 0
     def trial(k: int) -> tuple[Trial]:
         rng = np.random.default_rng((seed, k))
         position = Position("sphere", k, pose_of(np.eye(3), c0 + rng.uniform(-half, half)), "")
-        return (_artefact_trial(bench, position, artefacts, lambda r: _inner_estimate(r.detail["inner"], "radius"),
-                                s.radius_mm, rng, _rig_for(k, bench, rigs), noise_scale),)
+        return (_artefact_trial(bench, position, artefacts, read=lambda r: _inner_estimate(r.detail["inner"], "radius"),
+                                truth=s.radius_mm, rng=rng, rig=_rig_for(k, bench, rigs), noise_scale=noise_scale),)
 
     return run_trials(("sphere radius",), trial, n, processes, progress)[0]
 
@@ -288,8 +288,9 @@ def ball_bar_length(bench: Bench, artefacts: ArtefactSet, n: int, *, seed: int =
             if (room > 0).all() and lateral > 2.2 * b.radius_mm:
                 break
         position = Position("ball_bar", k, pose_of(R, c0 + rng.uniform(-room, room)), "")
-        return (_artefact_trial(bench, position, artefacts, lambda r: _inner_estimate(r.detail["inner"], "distance"),
-                                b.length_mm, rng, _rig_for(k, bench, rigs), noise_scale),)
+        return (_artefact_trial(bench, position, artefacts, read=lambda r: _inner_estimate(r.detail["inner"],
+                                                                                           "distance"),
+                                truth=b.length_mm, rng=rng, rig=_rig_for(k, bench, rigs), noise_scale=noise_scale),)
 
     return run_trials(("ball-bar length",), trial, n, processes, progress)[0]
 
@@ -434,8 +435,8 @@ def plate_figures(bench: Bench, n: int, *, seed: int = 0, rigs: tuple[MeasuringR
         if noise_scale != 1.0:
             unc = replace(unc, noise=unc.noise.scaled(noise_scale))  # type: ignore[union-attr]
         m = measured[near]
-        got = measure_face(face, camera_points[near], unc, R, m, m[:, 2], m[:, :2],
-                           np.tile([0.0, 0.0, 1.0], (len(m), 1)), settings.form)
+        got = measure_face(face, camera_points[near], unc, R=R, points=m, deviation=m[:, 2], uv=m[:, :2],
+                           normals=np.tile([0.0, 0.0, 1.0], (len(m), 1)), settings=settings.form)
         true_points = gt.points[rows, cols][near].astype(np.float64) @ inv[:3, :3].T + inv[:3, 3]
         flat, sq = plate_truth(got, true_points, settings.form)
         dt_s = time.perf_counter() - t0
@@ -500,7 +501,7 @@ def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig,
         scan = from_organised(cloud, f"pose trial {k}")
         unc = replace(bench.measurement, calibration=rig.calibration).of_scan(decoded, used, defocus=True)(scan.pixels)
         settings = InspectionSettings(registration=RegistrationSettings(seed=k), form=FormSettings(draws=2))
-        report = inspect(scan, cad, None, settings, uncertainty=unc)
+        report = inspect(scan, cad, None, settings=settings, uncertainty=unc)
         t_err, r_err = pose_error(report.registration.transform, pose)
         U_t, U_r = report.pose_u["translation_u_mm"], report.pose_u["rotation_u_deg"]
         return (PoseTrial(Estimate(t_err, U_t / 2.0, k=2.0), 0.0, time.perf_counter() - t0, r_err, U_r,

@@ -115,7 +115,7 @@ def test_false_detections_on_noise_only_faces_stay_within_the_stated_rate() -> N
     for k in range(100):
         z = rng.normal(0.0, 0.012, x.size)
         pts = np.column_stack([x, y, z])
-        got = evaluate_face(face, pts, z, pts[:, :2], settings, seed=k, noise=noise, normals=normals)
+        got = evaluate_face(face, pts, z, uv=pts[:, :2], settings=settings, seed=k, noise=noise, normals=normals)
         for e in (got.sq, got.flatness_mz):
             assert e.value is None or e.value > e.limit
         sq_found += got.sq.value is not None
@@ -125,7 +125,8 @@ def test_false_detections_on_noise_only_faces_stay_within_the_stated_rate() -> N
     assert sq_found <= 11 and flat_found <= 11
     # the test is not blind: a model 10 % short of the noise reports Sq on (nearly) every face
     short = noise.scaled(0.9)
-    found = sum(evaluate_face(face, np.column_stack([x, y, z]), z, np.column_stack([x, y]), settings, seed=k,
+    found = sum(evaluate_face(face, np.column_stack([x, y, z]), z, uv=np.column_stack([x, y]), settings=settings,
+                              seed=k,
                               noise=short, normals=normals).sq.value is not None
                 for k, z in enumerate(rng.normal(0.0, 0.012, (10, x.size))))
     assert found >= 9

@@ -166,9 +166,11 @@ def test_epipolar_statistic_is_chi2_of_the_predicted_spread() -> None:
     su, sv = np.full(n, 0.04), np.full(n, 0.03)
     v_from_u = v + 1.7 * rng.normal(0, 0.04, n)
     measured = v + rng.normal(0, 0.03, n)
-    ok = epipolar(measured, sv, v_from_u, v_from_u + 1.7 * 0.5, su, 0.5, 0.1, "test", 0.0)
+    ok = epipolar(measured, sv, v_from_u, v_from_u_shifted=v_from_u + 1.7 * 0.5, u_sigma=su, shift_px=0.5,
+                  accuracy=0.1, noise_source="test", model_px=0.0)
     assert ok.passed and ok.statistic == pytest.approx(1.0, abs=0.05)
-    off = epipolar(measured + 3 * np.hypot(0.03, 1.7 * 0.04), sv, v_from_u, v_from_u + 0.85, su, 0.5, 0.1, "test", 0.0)
+    off = epipolar(measured + 3 * np.hypot(0.03, 1.7 * 0.04), sv, v_from_u, v_from_u_shifted=v_from_u + 0.85,
+                   u_sigma=su, shift_px=0.5, accuracy=0.1, noise_source="test", model_px=0.0)
     assert off.passed is False and off.statistic > 5
 
 

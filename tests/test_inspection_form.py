@@ -122,7 +122,7 @@ def test_bow_flatness_through_noise(model) -> None:
     rho = np.hypot(17.5, 30.0)
     bow = PlaneBow(model.by_label("#657").index, (-27.5, 0.0, 22.0), (0, 0, 1), 0.06, rho)
     face, p, dev, uv, _ = _face_points(model, "#657", [bow], 0.014)
-    r = evaluate_face(face, p, dev, uv)
+    r = evaluate_face(face, p, dev, uv=uv)
     inner_corner = np.hypot(17.5 - 1.0, 30.0 - 1.0)
     truth = 0.06 * inner_corner ** 2 / rho ** 2
     assert abs(r.flatness_mz.value - truth) <= 0.005 + 0.02 * truth
@@ -134,11 +134,11 @@ def test_full_lobing_and_taper(model) -> None:
     boss = model.by_label("#17")
     lob = Lobing(boss.index, (20.0, 0.0, 0.0), (0, 0, 1), 1, lobes=3, amplitude_mm=0.02)
     face, p, dev, uv, _ = _face_points(model, "#17", [lob], 0.0)
-    assert evaluate_face(face, p, dev, uv).cylindricity_mz.value == pytest.approx(0.04, abs=0.001)
+    assert evaluate_face(face, p, dev, uv=uv).cylindricity_mz.value == pytest.approx(0.04, abs=0.001)
     tap = Taper(boss.index, (20.0, 0.0, 22.0), (0, 0, 1), 1, per_mm=0.002)
     face, p, dev, uv, _ = _face_points(model, "#17", [tap], 0.014)
     height = 35.0 - 1.5 - 10.0 - 2.0  # the boss's cylinder less the 1 mm margins
-    assert evaluate_face(face, p, dev, uv).cylindricity_mz.value == pytest.approx(0.002 * height, abs=0.005 + 0.001)
+    assert evaluate_face(face, p, dev, uv=uv).cylindricity_mz.value == pytest.approx(0.002 * height, abs=0.005 + 0.001)
 
 
 def test_sq_of_texture_with_noise_removed(model) -> None:
@@ -147,7 +147,7 @@ def test_sq_of_texture_with_noise_removed(model) -> None:
     inside its margin, less their Gaussian mean (8 mm) by the test's own FFT filter."""
     tex = Roughness(model.by_label("#657").index, (-27.5, 0.0, 22.0), (0, 0, 1), 0.07, (2.0, 4.0))
     face, p, dev, uv, _nominal = _face_points(model, "#657", [tex], 0.014)
-    r = evaluate_face(face, p, dev, uv)
+    r = evaluate_face(face, p, dev, uv=uv)
     g = 0.125
     (x0, x1), (y0, y1) = HIGH_TOP_INNER
     X, Y = np.meshgrid(np.arange(x0 + g / 2, x1, g), np.arange(y0 + g / 2, y1, g))
@@ -159,7 +159,7 @@ def test_sq_of_texture_with_noise_removed(model) -> None:
 
 def test_too_few_points_is_not_a_number(model) -> None:
     face, p, dev, uv, _ = _face_points(model, "#718", [], 0.0)
-    r = evaluate_face(face, p[:30], dev[:30], uv[:30])
+    r = evaluate_face(face, p[:30], dev[:30], uv=uv[:30])
     assert r.status == "too few points" and r.flatness_mz is None
 
 

@@ -61,7 +61,7 @@ def test_matte_weight_is_exactly_lambertian():
     n = rng.normal(size=(500, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     albedo, cos = rng.uniform(0, 1, 500), rng.uniform(0, 1, 500)
-    w = surface_weight(albedo, cos, n, n, n, np.zeros(500), np.full(500, 0.3))
+    w = surface_weight(albedo, cos, n, to_light=n, to_view=n, f0=np.zeros(500), roughness=np.full(500, 0.3))
     assert np.array_equal(w, albedo * cos)
 
 

@@ -33,7 +33,8 @@ def port(script: list, **kw) -> FakeSerial:
 
 
 def stage(opener, axes=(TURNTABLE,), **kw) -> GrblStage:
-    return GrblStage(opener, list(axes), {a.name: letter for a, letter in zip(axes, "XYZ")}, {"turntable": 360.0},
+    return GrblStage(opener, list(axes), {a.name: letter for a, letter in zip(axes, "XYZ")},
+                     units_per_turn={"turntable": 360.0},
                      boot_timeout_s=kw.pop("boot_timeout_s", 1.0), timeout_s=kw.pop("timeout_s", REPLY_TIMEOUT_S), **kw)
 
 

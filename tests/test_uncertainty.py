@@ -246,15 +246,15 @@ def test_sq_with_the_noise_removed_and_its_detection_limit() -> None:
     rng = np.random.default_rng(5)
     face = _plane_face()
     pts, h, noise, normals = _plate(0.0, 0.012, 0.014, rng)
-    truth = evaluate_face(face, pts, h, pts[:, :2], noise=noise.scaled(0.0), normals=normals).sq
+    truth = evaluate_face(face, pts, h, uv=pts[:, :2], noise=noise.scaled(0.0), normals=normals).sq
     noisy = pts.copy()
     noisy[:, 2] += rng.normal(0, 0.014, len(pts))
-    got = evaluate_face(face, noisy, noisy[:, 2], noisy[:, :2], noise=noise, normals=normals)
+    got = evaluate_face(face, noisy, noisy[:, 2], uv=noisy[:, :2], noise=noise, normals=normals)
     assert got.sq.value is not None and abs(got.sq.value - truth.value) <= got.sq.U
     assert got.sq_raw_mm > truth.value + 0.003  # before the noise was removed it read high
     smooth, _hs, _, _ = _plate(0.0, 0.0, 0.014, rng)
     smooth[:, 2] += rng.normal(0, 0.014, len(smooth))
-    flat = evaluate_face(face, smooth, smooth[:, 2], smooth[:, :2], noise=noise.subset(np.arange(len(smooth))),
+    flat = evaluate_face(face, smooth, smooth[:, 2], uv=smooth[:, :2], noise=noise.subset(np.arange(len(smooth))),
                          normals=normals[:len(smooth)])
     assert flat.sq.value is None and 0 < flat.sq.limit < 0.01
     assert flat.flatness_mz.value is None and 0 < flat.flatness_mz.limit < 0.01  # nothing but noise
@@ -267,10 +267,10 @@ def test_flatness_noise_bias_removed() -> None:
     rng = np.random.default_rng(6)
     face = _plane_face()
     pts, h, noise, normals = _plate(0.030, 0.0, 0.014, rng)
-    truth = evaluate_face(face, pts, h, pts[:, :2], noise=noise.scaled(0.0), normals=normals).flatness_mz
+    truth = evaluate_face(face, pts, h, uv=pts[:, :2], noise=noise.scaled(0.0), normals=normals).flatness_mz
     noisy = pts.copy()
     noisy[:, 2] += rng.normal(0, 0.014, len(pts))
-    got = evaluate_face(face, noisy, noisy[:, 2], noisy[:, :2], FormSettings(draws=48), noise=noise,
+    got = evaluate_face(face, noisy, noisy[:, 2], uv=noisy[:, :2], settings=FormSettings(draws=48), noise=noise,
                         normals=normals).flatness_mz
     # the bow inside the 1 mm margin
     assert truth.value == pytest.approx(0.030 * (14.0 ** 2 + 9.0 ** 2) / 325.0, abs=0.002)
@@ -303,14 +303,14 @@ def test_a_truth_over_the_measured_region() -> None:
     edge = (np.abs(pts[:, 0]) > 14.8) | (np.abs(pts[:, 1]) > 9.8)
     noisy = pts.copy()
     noisy[:, 2] += rng.normal(0, 0.002, len(pts)) + np.where(edge, rng.choice([-0.1, 0.1], len(pts)), 0.0)
-    got = evaluate_face(face, noisy, noisy[:, 2], noisy[:, :2], noise=noise, normals=normals)
+    got = evaluate_face(face, noisy, noisy[:, 2], uv=noisy[:, :2], noise=noise, normals=normals)
     region = got.region
     assert region is not None and not region[edge].any() and 0.5 * len(pts) < region.sum() < len(pts)
     inside = (np.abs(pts[:, 0]) < 13.0) & (np.abs(pts[:, 1]) < 8.0)  # 2 mm inside the outline: past spikes and margin
     assert region[inside].all()
-    truth = evaluate_face(face, pts, h, pts[:, :2], noise=noise.scaled(0.0), normals=normals, region=region)
+    truth = evaluate_face(face, pts, h, uv=pts[:, :2], noise=noise.scaled(0.0), normals=normals, region=region)
     assert truth.region is not None and (truth.region == region).all()
-    again = evaluate_face(face, noisy, noisy[:, 2], noisy[:, :2], noise=noise, normals=normals, region=region)
+    again = evaluate_face(face, noisy, noisy[:, 2], uv=noisy[:, :2], noise=noise, normals=normals, region=region)
     assert again.points == got.points
     # the same points on a grid started at the region's own corner: the same zone within its u
     assert again.flatness_mz.value == pytest.approx(got.flatness_mz.value, abs=got.flatness_mz.u)
@@ -342,7 +342,7 @@ def test_calibration_moves_reach_the_face_figures() -> None:
     shifts = np.zeros((2, len(pts), 3))
     shifts[0, :, 2] = 1e-3 * pts[:, 0] / 15.0  # a tilt of 1 um over the half-length
     shifts[1, :, 2] = 0.005 * (1.0 - r2)  # the same dome, 5 um higher
-    got = evaluate_face(face, pts, h, pts[:, :2], noise=noise, normals=normals, shifts=shifts)
+    got = evaluate_face(face, pts, h, uv=pts[:, :2], noise=noise, normals=normals, shifts=shifts)
     expected = 0.005 * (14.0 ** 2 + 9.0 ** 2) / 325.0  # the added dome's span inside the 1 mm margin
     assert got.u_components["flatness_mz"]["calibration"] == pytest.approx(expected, rel=0.1)
     assert got.u_components["flatness_ls"]["calibration"] == pytest.approx(expected, rel=0.1)

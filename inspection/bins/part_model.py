@@ -138,7 +138,7 @@ class ThinPartModel:
             wall_n = np.tile(b_nrm, (len(depth), 1))
             rim_n = np.tile(sign * axis, (len(b_pts), 1))
             target = ModelTarget(np.concatenate([pts, b_pts, walls]), np.concatenate([face_n, rim_n, wall_n]),
-                                 f"{name} ({side} up)", settings.voxel_mm)
+                                 f"{name} ({side} up)", voxel_mm=settings.voxel_mm)
             up = sign * axis   # toward the camera; (u0, up x u0, up) right-handed like an instance's grid
             uv = np.stack([pts @ u0, pts @ np.cross(up, u0)], axis=1)
             ij = np.floor((uv - uv.min(axis=0)) / (2.0 * spacing_mm)).astype(np.int64)

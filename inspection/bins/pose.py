@@ -132,7 +132,7 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
     outcome: _Failure = ("", {}, True)
     judged: list[tuple[float, str, np.ndarray]] = []   # every attempt's judged poses: a rival found once stays one
     for _ in range(settings.attempts if settings.method == "sacia" else 1):   # SAC-IA is randomised: retry
-        result = _fit(flat, raw, patch, model, settings, rng, judged)
+        result = _fit(flat, raw, patch, model=model, settings=settings, rng=rng, judged=judged)
         if isinstance(result, PartPose):
             return replace(result, instance_id=instance.id, points=len(pts), time_s=time.perf_counter() - t0,
                            cpu_s=time.process_time() - c0, label=instance.label)
@@ -142,7 +142,7 @@ def estimate_pose(instance: Instance, model: ThinPartModel, context: SceneContex
     return failed(outcome[0], **outcome[1])
 
 
-def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, model: ThinPartModel, settings: PoseSettings,
+def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, *, model: ThinPartModel, settings: PoseSettings,
          rng: np.random.Generator, judged: list[tuple[float, str, np.ndarray]]) -> PartPose | _Failure:
     """One coarse + fine fit of the instance's points on its plane `pts` (`raw`: as
     measured, row for row), adding its judged poses to those of earlier attempts
@@ -314,7 +314,8 @@ def _judge(patch: InstancePatch, sm: SideModel, sp: np.ndarray, sn: np.ndarray, 
         return []
     v = settings.voxel_mm
     if keep is not None and len(poses) > keep:
-        first = fitness(sp, sn, sm.target.coarse, np.array(poses), 6.0 * v, settings.max_normal_deg, workers=1)
+        first = fitness(sp, sn, sm.target.coarse, T=np.array(poses), inlier_mm=6.0 * v,
+                        max_normal_deg=settings.max_normal_deg, workers=1)
         poses = [poses[i] for i in np.argsort(-first)[:keep]]
     # coarse to fine: the threshold shrinking from 6 voxels on every k-th point, then the
     # last iterations on all of them at the final threshold (the best pose is refined
@@ -323,7 +324,9 @@ def _judge(patch: InstancePatch, sm: SideModel, sp: np.ndarray, sn: np.ndarray, 
     deg, tgt = settings.max_normal_deg, sm.target.coarse
     posed = [icp(sp, sn, tgt, icp(sp[::k], sn[::k], tgt, T, 6.0 * v, 0.5 * v, deg, first_its), 0.5 * v, 0.5 * v,
                  deg, last_its) for T in poses]
-    fit = fitness(sp, sn, sm.target.coarse, np.array(posed), 1.5 * v, settings.max_normal_deg, workers=1)
+    fit = fitness(sp, sn, sm.target.coarse, T=np.array(posed), inlier_mm=1.5 * v,
+                  max_normal_deg=settings.max_normal_deg,
+                  workers=1)
     return [(float(f) + _edge_fit(patch, sm, T, 2 * settings.inlier_mm) - _spill(patch, sm, T), sm.side, T)
             for f, T in zip(fit, posed)]
 

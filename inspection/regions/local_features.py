@@ -337,7 +337,7 @@ def _scale_features(v: np.ndarray, ok: np.ndarray, d: float, slab: float) -> tup
     inside = (np.abs(b[:, :, None] * _COS - a[:, :, None] * _SIN) < ts) & ok[:, :, None]
     G = np.matmul(mono, inside.astype(np.float32)).astype(np.float64)  # (n, monomials, planes)
     sw, sx, sh, sz, sxx, sxz, szz, sxh, szh = _plane_moments(G)
-    A, B, D, good = _solve_circle(sw, sx, sh, sz, sxx, sxz, szz, sxh, szh)
+    A, B, D, good = _solve_circle(sw, sx, sh, sz=sz, sxx=sxx, sxz=sxz, szz=szz, sxh=sxh, szh=szh)
     Q = B * B + 1.0 - 4.0 * A * D
     good &= Q > 0
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -429,7 +429,7 @@ def _plane_moments(G: np.ndarray) -> tuple[np.ndarray, ...]:
             c * g["ah"] + s * g["bh"], sxxh + g["hhh"])
 
 
-def _solve_circle(sw: np.ndarray, sx: np.ndarray, sh: np.ndarray, sz: np.ndarray, sxx: np.ndarray,
+def _solve_circle(sw: np.ndarray, sx: np.ndarray, sh: np.ndarray, *, sz: np.ndarray, sxx: np.ndarray,
                   sxz: np.ndarray, szz: np.ndarray, sxh: np.ndarray, szh: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(A, B, D, solvable) of the normal equations of min Σ (A z + B x + h + D)² from

@@ -50,14 +50,16 @@ def _apart(a: np.ndarray, b: np.ndarray, centre: np.ndarray, voxel_mm: float, ra
     return float(np.linalg.norm(x[:3]) * radius_mm + np.linalg.norm(x[3:])) > voxel_mm
 
 
-def compare(best: np.ndarray, other: np.ndarray, points: np.ndarray, normals: np.ndarray, target: ModelTarget,
+def compare(best: np.ndarray, other: np.ndarray, points: np.ndarray, *, normals: np.ndarray, target: ModelTarget,
             viewpoint: np.ndarray | None, inlier_mm: float, settings: RegistrationSettings,
             correlation: ResidualCorrelation | None, where: np.ndarray | None) -> Comparison:
     """The best pose against `other` on the scan `points` (`evidence`, "Alternatives"):
     discordant points, their variance inflation over `where` (their image positions), the
     one-sided p-value."""
-    a = explained(points, normals, target, best, inlier_mm, settings.max_normal_deg, viewpoint)
-    b = explained(points, normals, target, other, inlier_mm, settings.max_normal_deg, viewpoint)
+    a = explained(points, normals, target, T=best, inlier_mm=inlier_mm, max_normal_deg=settings.max_normal_deg,
+                  viewpoint=viewpoint)
+    b = explained(points, normals, target, T=other, inlier_mm=inlier_mm, max_normal_deg=settings.max_normal_deg,
+                  viewpoint=viewpoint)
     for_best, for_other = int(np.sum(a & ~b)), int(np.sum(b & ~a))
     discordant = a != b
     kappa = 1.0 if correlation is None or where is None else correlation.inflation(where[discordant])
@@ -66,7 +68,7 @@ def compare(best: np.ndarray, other: np.ndarray, points: np.ndarray, normals: np
                       angle, shift)
 
 
-def surviving(scan: ScanCloud, target: ModelTarget, coarse_best: tuple[np.ndarray, np.ndarray], final: np.ndarray,
+def surviving(scan: ScanCloud, target: ModelTarget, coarse_best: tuple[np.ndarray, np.ndarray], *, final: np.ndarray,
               candidates: list[np.ndarray], coarse_points: tuple[np.ndarray, np.ndarray],
               free: list[FreeMotion], cov: PoseCovariance | None, settings: RegistrationSettings,
               rng: np.random.Generator) -> tuple[Comparison, ...]:
@@ -93,18 +95,22 @@ def surviving(scan: ScanCloud, target: ModelTarget, coarse_best: tuple[np.ndarra
     for T in others:  # a handful
         if any(m.symmetry for m in free) and within(coarse_best[1], T, model_centre, voxel_deg, v, free):
             continue  # the best turned about a symmetry axis of the part: the same pose
-        rough = compare(coarse_best[0], T, sp, sn, target, scan.viewpoint, 1.5 * v, settings, None, None)
+        rough = compare(coarse_best[0], T, sp, normals=sn, target=target, viewpoint=scan.viewpoint, inlier_mm=1.5 * v,
+                        settings=settings, correlation=None, where=None)
         if rough.p_value < alpha:  # rejected on the voxels (each a voxel apart: independent noise)
             out.append(rough)
             continue
-        T = explore(sp, sn, target.coarse, T, 1.5 * v, settings.coarse_turns_deg, 4.0 * v, settings)
-        rough = compare(coarse_best[1], T, sp, sn, target, scan.viewpoint, 1.5 * v, settings, None, None)
+        T = explore(sp, sn, target.coarse, T=T, inlier_mm=1.5 * v, degrees=settings.coarse_turns_deg, icp_mm=4.0 * v,
+                    settings=settings)
+        rough = compare(coarse_best[1], T, sp, normals=sn, target=target, viewpoint=scan.viewpoint, inlier_mm=1.5 * v,
+                        settings=settings, correlation=None, where=None)
         if rough.p_value < alpha:
             out.append(rough)
             continue
         dense = rng.choice(len(scan), size=min(3000, len(scan)), replace=False)
-        T = explore(scan.points[dense], scan.normals[dense], target.dense, T, 0.3 * v, settings.fine_turns_deg,
-                    1.0 * v, settings)
+        T = explore(scan.points[dense], scan.normals[dense], target.dense, T=T, inlier_mm=0.3 * v,
+                    degrees=settings.fine_turns_deg,
+                    icp_mm=1.0 * v, settings=settings)
         T = icp(scan.points[dense], scan.normals[dense], target.dense, T, 1.0 * v, 0.05 * v, settings.max_normal_deg,
                 30, settings.tangential_weight)
         centre = transform_points(final, scan.points[dense]).mean(axis=0)  # model frame
@@ -115,8 +121,9 @@ def surviving(scan: ScanCloud, target: ModelTarget, coarse_best: tuple[np.ndarra
             angle, shift = pose_difference(final, T, points.mean(axis=0))
             out.append(Comparison(T, 0, 0, 1.0, local_test(final, T, cov), 1.0, angle, shift))
         else:
-            out.append(compare(final, T, points, normals, target, scan.viewpoint, 0.5 * v, settings, correlation,
-                               where))
+            out.append(compare(final, T, points, normals=normals, target=target, viewpoint=scan.viewpoint,
+                               inlier_mm=0.5 * v, settings=settings, correlation=correlation,
+                               where=where))
     return tuple(out)
 
 

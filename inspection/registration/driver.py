@@ -100,10 +100,11 @@ def register(scan: ScanCloud, target: ModelTarget,
     sp, sn = src_pts[sub], src_nrm[sub]
     before = [coarse_icp(sp, sn, target, T, settings) for T in poses]
     refined = list(before)
-    fits = fitness(sp, sn, target.coarse, np.array(refined), inlier, settings.max_normal_deg)
+    fits = fitness(sp, sn, target.coarse, T=np.array(refined), inlier_mm=inlier, max_normal_deg=settings.max_normal_deg)
     order = np.argsort(-fits)
     for k in order[:settings.explored]:  # the most promising few: explored further
-        refined[k] = explore(sp, sn, target.coarse, refined[k], inlier, settings.coarse_turns_deg, 4.0 * v, settings)
+        refined[k] = explore(sp, sn, target.coarse, T=refined[k], inlier_mm=inlier, degrees=settings.coarse_turns_deg,
+                             icp_mm=4.0 * v, settings=settings)
     judged = []
     for k, T in enumerate(refined):  # a handful of distinct hypotheses
         fit, rmse = evaluate_pose(sp, sn, target.dense, T, inlier, settings.max_normal_deg)
@@ -117,10 +118,11 @@ def register(scan: ScanCloud, target: ModelTarget,
                                  f"{inlier:.3g} mm of {target.name} (needs {settings.min_fitness - 0.1:.0%}); "
                                  f"wrong part, too little of it in view, or other units", best[1], best[2])
     method = f"rscs+{'+'.join(settings.descriptors)}+{settings.coarse}+icp" if settings.coarse != "ndt" else "ndt+icp"
-    reg = refine(scan, target, best[4], settings, rng, times, method)
+    reg = refine(scan, target, best[4], settings=settings, rng=rng, times=times, method=method)
     t0 = time.perf_counter()
-    comparisons = surviving(scan, target, (best[5], best[4]), reg.transform, [j[5] for j in judged[1:]], (sp, sn),
-                            list(reg.free), reg.covariance, settings, rng)
+    comparisons = surviving(scan, target, (best[5], best[4]), final=reg.transform,
+                            candidates=[j[5] for j in judged[1:]], coarse_points=(sp, sn),
+                            free=list(reg.free), cov=reg.covariance, settings=settings, rng=rng)
     times["alternatives"] = time.perf_counter() - t0
     times["total"] = sum(x for k, x in times.items() if k != "total")
     return judge(reg, comparisons, settings, {k: round(x, 4) for k, x in times.items()})
@@ -167,7 +169,7 @@ def coarse_icp(sp: np.ndarray, sn: np.ndarray, target: ModelTarget, T: np.ndarra
     return icp(sp, sn, target.coarse, near, 8.0 * v, 0.5 * v, deg, 10, tw)
 
 
-def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, settings: RegistrationSettings,
+def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, *, settings: RegistrationSettings,
            rng: np.random.Generator, times: dict[str, float], method: str, local_search: bool = True) -> Registration:
     """The fine step from a verified coarse pose (local search and ICP on the dense scan,
     then the exact faces), the final judgement on `settings.max_points` scan points
@@ -180,8 +182,9 @@ def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, settings: R
     T = coarse
     if local_search:
         dense = rng.choice(len(scan), size=min(3000, len(scan)), replace=False)
-        T = explore(scan.points[dense], scan.normals[dense], target.dense, T, 0.3 * v, settings.fine_turns_deg,
-                    1.0 * v, settings)
+        T = explore(scan.points[dense], scan.normals[dense], target.dense, T=T, inlier_mm=0.3 * v,
+                    degrees=settings.fine_turns_deg,
+                    icp_mm=1.0 * v, settings=settings)
     T, fit_points = fine_pose(scan, target, T, settings, rng)
     times["fine"] = time.perf_counter() - t0
     t0 = time.perf_counter()

@@ -251,14 +251,15 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
         edge_face = np.zeros(int(face.max()) + 1, bool)
         if edge is not None:  # a face mostly in outline bands: the scanner's edge errors dominate its offset
             edge_face = np.bincount(face, weights=edge, minlength=len(edge_face)) > 0.5 * n_f
-        cov = cov + _face_offsets(r, e, face, chosen, J_all, inside, Ainv, edge_face, offset_bound_mm)
+        cov = cov + _face_offsets(r, e, face, block=chosen, J=J_all, inside=inside, Ainv=Ainv, kind=edge_face,
+                                  bound=offset_bound_mm)
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)
     return PoseCovariance(0.5 * (S @ cov @ S + (S @ cov @ S).T), centre, sigma, int(in_fit.sum()), corr,
                           float(np.trace(cov) / max(np.trace(indep), 1e-300)), radius, unbounded)
 
 
-def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, block: np.ndarray, J: np.ndarray,
+def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.ndarray, J: np.ndarray,
                   inside: np.ndarray, Ainv: np.ndarray, kind: np.ndarray, bound: float | None) -> np.ndarray:
     """The pose covariance that offsets of whole faces give (module docstring): each face's
     measurement off by b_f, independent across faces with one variance tau_k^2 per kind of

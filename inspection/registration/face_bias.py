@@ -33,7 +33,7 @@ def without_biased_faces(src: np.ndarray, face: np.ndarray, T: np.ndarray, model
     return keep, T
 
 
-def without_offset_face(src: np.ndarray, face: np.ndarray, T: np.ndarray, model: CadModel, iterations: int,
+def without_offset_face(src: np.ndarray, face: np.ndarray, T: np.ndarray, *, model: CadModel, iterations: int,
                         limit_mm: float, noise_ratio: float, big_fraction: float) -> tuple[np.ndarray, np.ndarray]:
     """A large face off its nominal place as a whole pulls the best fit of all faces into a
     compromise (tilted, shifted) that then shows as deviations on faces that conform.

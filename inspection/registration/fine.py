@@ -61,7 +61,8 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
     fit = None
     for points in _from_best_seen(scan, settings.max_incidence_deg):  # the best measured first
         sel = rng.choice(points, size=min(settings.exact_points, len(points)), replace=False)  # any will do
-        fit = refine_exact(scan, sel, T, target, ASSIGN_VOXELS * v, settings, offset_limit_mm=0.5 * v)
+        fit = refine_exact(scan, sel, T, target=target, tol=ASSIGN_VOXELS * v, settings=settings,
+                           offset_limit_mm=0.5 * v)
         if not _frees(scan, target, *fit, settings):
             break
     assert fit is not None
@@ -192,7 +193,7 @@ def _inside_outline(scan: ScanCloud, max_incidence_deg: float) -> np.ndarray:
     return inner[row, col]
 
 
-def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, target: ModelTarget, tol: float,
+def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, *, target: ModelTarget, tol: float,
                  settings: RegistrationSettings, iterations: int = 10,
                  offset_limit_mm: float | None = None) -> tuple[np.ndarray, FinalFit]:
     """Gauss-Newton on the distances of the scan points `sel` to the exact CAD faces: the
@@ -218,8 +219,8 @@ def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, target: ModelT
     keep, T = without_biased_faces(src, face, T, target.model, iterations, settings.face_bias_sigma)
     sel, src, face = sel[keep], src[keep], face[keep]
     if offset_limit_mm is not None:
-        keep, T = without_offset_face(src, face, T, target.model, iterations, offset_limit_mm,
-                                      settings.offset_noise_ratio, settings.big_face_fraction)
+        keep, T = without_offset_face(src, face, T, model=target.model, iterations=iterations, limit_mm=offset_limit_mm,
+                                      noise_ratio=settings.offset_noise_ratio, big_fraction=settings.big_face_fraction)
         sel, face = sel[keep], face[keep]
     return T, FinalFit(sel, face, *_left_out(whole[1], sel))
 

@@ -67,8 +67,9 @@ def plane_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: ModelTarget, n
     pick = rng.choice(len(src_pts), size=min(300, len(src_pts)), replace=False)
     v = target.voxel_mm
     P = np.array(poses)
-    first = np.argsort(-fitness(src_pts[pick], src_nrm[pick], target.coarse, P, 6.0 * v, 45.0))[:3 * n_best]
+    first = np.argsort(-fitness(src_pts[pick], src_nrm[pick], target.coarse, T=P, inlier_mm=6.0 * v,
+                                max_normal_deg=45.0))[:3 * n_best]
     P = np.array([icp(src_pts[pick], src_nrm[pick], target.coarse, P[i], 20.0 * v, 2.0 * v, 45.0, 8, 0.5)
                   for i in first])  # a short, nearly point-to-point ICP: the plane centroids are only a guess
-    fits = fitness(src_pts[pick], src_nrm[pick], target.coarse, P, 3.0 * v, 45.0)
+    fits = fitness(src_pts[pick], src_nrm[pick], target.coarse, T=P, inlier_mm=3.0 * v, max_normal_deg=45.0)
     return [P[i] for i in np.argsort(-fits)[:n_best]]

@@ -22,7 +22,7 @@ def huber(d: np.ndarray, ml: float) -> np.ndarray:
     return np.where(d < ml, 0.5 * d * d, 0.5 * ml * (2.0 * d - ml))
 
 
-def triplets(src: np.ndarray, dst: np.ndarray, w: np.ndarray, n: int, min_sep: float, tol: float,
+def triplets(src: np.ndarray, dst: np.ndarray, w: np.ndarray, *, n: int, min_sep: float, tol: float,
              rng: np.random.Generator, max_corr: int = 1500) -> np.ndarray:
     """Up to n index triplets (n, 3) of mutually consistent correspondences: every pair
     of the three has its scan points at least `min_sep` apart and the same distance on
@@ -89,7 +89,7 @@ def coarse_feature_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: Model
         return []
     src, dst, w = np.concatenate(S), np.concatenate(D), np.concatenate(W) + 1e-3
     tol = 2.0 * target.voxel_mm
-    trip = triplets(src, dst, w, settings.hypotheses, 0.1 * rc, tol, rng)
+    trip = triplets(src, dst, w, n=settings.hypotheses, min_sep=0.1 * rc, tol=tol, rng=rng)
     if not len(trip):
         return []
     T = kabsch(src[trip], dst[trip])

@@ -29,7 +29,7 @@ class ModelTarget:
     face labels), the voxel-grid cloud the descriptors are computed on, and the sphere
     descriptors per radius (computed when first needed, then kept)."""
 
-    def __init__(self, points: np.ndarray, normals: np.ndarray, name: str, voxel_mm: float | None = None,
+    def __init__(self, points: np.ndarray, normals: np.ndarray, name: str, *, voxel_mm: float | None = None,
                  model: CadModel | None = None, samples: LabelledCloud | None = None,
                  settings: TargetSettings = DEFAULT_TARGET_SETTINGS) -> None:
         self.name = name
@@ -48,12 +48,12 @@ class ModelTarget:
                  settings: TargetSettings = DEFAULT_TARGET_SETTINGS) -> ModelTarget:
         voxel = voxel_mm or model.diagonal_mm / settings.voxel_fraction
         s = sample_model(model, voxel / settings.dense_fraction, seed=seed)
-        return cls(s.points, s.normals, str(model.path), voxel, model, s, settings)
+        return cls(s.points, s.normals, str(model.path), voxel_mm=voxel, model=model, samples=s, settings=settings)
 
     @classmethod
     def from_cloud(cls, scan: ScanCloud, voxel_mm: float | None = None,
                    settings: TargetSettings = DEFAULT_TARGET_SETTINGS) -> ModelTarget:
-        return cls(scan.points, scan.normals, scan.source, voxel_mm, settings=settings)
+        return cls(scan.points, scan.normals, scan.source, voxel_mm=voxel_mm, settings=settings)
 
     def describe(self, cloud: Samples, idx: np.ndarray, radius: float,
                  descriptors: tuple[str, ...]) -> dict[str, np.ndarray]:

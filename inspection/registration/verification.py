@@ -14,7 +14,7 @@ from inspection.registration.settings import RegistrationSettings
 from inspection.registration.target import ModelTarget
 
 
-def fitness(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, inlier_mm: float,
+def fitness(src: np.ndarray, src_nrm: np.ndarray, target: Samples, *, T: np.ndarray, inlier_mm: float,
             max_normal_deg: float, workers: int = -1) -> np.ndarray:
     """Fitness (H,) of each pose (H, 4, 4): the fraction of points within inlier_mm of the
     target whose normals agree within max_normal_deg (one batched KD-tree query with
@@ -42,7 +42,7 @@ def evaluate_pose(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.n
     return float(ok.mean()), float(np.sqrt(np.mean(dp[ok] ** 2))) if ok.any() else float("nan")
 
 
-def explained(src: np.ndarray, src_nrm: np.ndarray, target: ModelTarget, T: np.ndarray, inlier_mm: float,
+def explained(src: np.ndarray, src_nrm: np.ndarray, target: ModelTarget, *, T: np.ndarray, inlier_mm: float,
               max_normal_deg: float, viewpoint: np.ndarray | None) -> np.ndarray:
     """Which points (scan frame) pose T explains: within `inlier_mm` of the target's dense
     samples with normals agreeing within `max_normal_deg`, and not hidden from `viewpoint`
@@ -57,7 +57,7 @@ def explained(src: np.ndarray, src_nrm: np.ndarray, target: ModelTarget, T: np.n
     return ok
 
 
-def explore(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, inlier_mm: float,
+def explore(src: np.ndarray, src_nrm: np.ndarray, target: Samples, *, T: np.ndarray, inlier_mm: float,
             degrees: tuple[float, ...], icp_mm: float, settings: RegistrationSettings, rounds: int = 4) -> np.ndarray:
     """Local search of the fitness about a refined pose: the scan turned by `degrees`
     either way about each of its principal axes (through its centroid), and shifted along
@@ -81,19 +81,19 @@ def explore(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray
                 F[:3, 3] = sgn * deg * inlier_mm * a
                 moves.append(F)
     M = np.array(moves)
-    best = fitness(src, src_nrm, target, T[None], inlier_mm, max_normal_deg)[0]
+    best = fitness(src, src_nrm, target, T=T[None], inlier_mm=inlier_mm, max_normal_deg=max_normal_deg)[0]
     pre = slice(None, None, settings.explore_prescore_stride)
     for _ in range(rounds):
         cand = np.einsum("ij,mjk->mik", T, M)
         # pre-score every move on a subsample, then the most promising on all points
-        pre_fits = fitness(src[pre], src_nrm[pre], target, cand, inlier_mm, max_normal_deg)
+        pre_fits = fitness(src[pre], src_nrm[pre], target, T=cand, inlier_mm=inlier_mm, max_normal_deg=max_normal_deg)
         top = np.argsort(-pre_fits)[:settings.explore_top]
-        fits = fitness(src, src_nrm, target, cand[top], inlier_mm, max_normal_deg)
+        fits = fitness(src, src_nrm, target, T=cand[top], inlier_mm=inlier_mm, max_normal_deg=max_normal_deg)
         k, fit_k = int(top[np.argmax(fits)]), float(fits.max())
         if fit_k <= best + 0.002:
             break
         U = icp(src, src_nrm, target, cand[k], icp_mm, 0.5 * inlier_mm, max_normal_deg, 20,
                 settings.tangential_weight)
-        fit = fitness(src, src_nrm, target, U[None], inlier_mm, max_normal_deg)[0]
+        fit = fitness(src, src_nrm, target, T=U[None], inlier_mm=inlier_mm, max_normal_deg=max_normal_deg)[0]
         T, best = (U, fit) if fit > fit_k else (cand[k], fit_k)
     return T

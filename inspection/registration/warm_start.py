@@ -51,14 +51,15 @@ def register_from_prior(scan: ScanCloud, target: ModelTarget, prior: Registratio
     sub = rng.choice(len(src_pts), size=min(1500, len(src_pts)), replace=False)
     sp, sn = src_pts[sub], src_nrm[sub]
     T = coarse_icp(sp, sn, target, prior.transform, settings)
-    T = explore(sp, sn, target.coarse, T, inlier, settings.coarse_turns_deg, 4.0 * v, settings)
+    T = explore(sp, sn, target.coarse, T=T, inlier_mm=inlier, degrees=settings.coarse_turns_deg, icp_mm=4.0 * v,
+                settings=settings)
     fit, _ = evaluate_pose(sp, sn, target.dense, T, inlier, settings.max_normal_deg)
     hidden = target.hidden_fraction(T, sp, scan.viewpoint, 2.0 * v) if scan.viewpoint is not None else 0.0
     times["verify"] = time.perf_counter() - t0
     if fit - hidden < settings.min_fitness:
         return None
     try:
-        reg = refine(scan, target, T, settings, rng, times, WARM_METHOD, local_search=False)
+        reg = refine(scan, target, T, settings=settings, rng=rng, times=times, method=WARM_METHOD, local_search=False)
     except RegistrationFailed:
         return None
     if reg.fitness < prior.fitness - WARM_FITNESS_DROP:

@@ -47,12 +47,12 @@ def refine_projective(T: np.ndarray, source: Judging, target: Judging, start_mm:
     """Pose T (source -> target, 4x4) refined (module docstring); `source`, `target`:
     (points, normals, SensorView) of each view in its own frame."""
     sigma = float(np.hypot(source[2].sigma_mm, target[2].sigma_mm))
-    T = _steps(T, source, target, max(start_mm, sigma), sigma, ANNEAL, CUTOFF)
-    return _steps(T, source, target, start_mm, start_mm, 1.0, 1.0, plain=True)
+    T = _steps(T, source, target, scale=max(start_mm, sigma), floor=sigma, anneal=ANNEAL, cutoff=CUTOFF)
+    return _steps(T, source, target, scale=start_mm, floor=start_mm, anneal=1.0, cutoff=1.0, plain=True)
 
 
-def _steps(T: np.ndarray, source: Judging, target: Judging, scale: float, floor: float, anneal: float,
-           cutoff: float, *, plain: bool = False) -> np.ndarray:
+def _steps(T: np.ndarray, source: Judging, target: Judging, *, scale: float, floor: float, anneal: float,
+           cutoff: float, plain: bool = False) -> np.ndarray:
     """Gauss-Newton steps, the Cauchy scale from `scale` down by `anneal` to `floor`,
     residuals beyond `cutoff` scales left out; `plain`: least squares (weights 1) inside."""
     (sp, sn, sv), (tp, tn, tv) = source, target

@@ -92,7 +92,7 @@ class GrblStage(DropsLostPort, Stage):
     gives, for each rotary axis, the controller's units per full turn (360: degrees)."""
 
     def __init__(self, open_port: Callable[[], SerialLink], axes: Sequence[Axis], letters: Mapping[str, str],
-                 units_per_turn: Mapping[str, float] | None = None, name: str = "grbl-stage", settle_s: float = 0.0,
+                 *, units_per_turn: Mapping[str, float] | None = None, name: str = "grbl-stage", settle_s: float = 0.0,
                  boot_timeout_s: float = 5.0, timeout_s: float = 1.0) -> None:
         super().__init__(name, axes, settle_s)
         turns = dict(units_per_turn or {})
@@ -240,9 +240,10 @@ class GrblStage(DropsLostPort, Stage):
         return state, where
 
     def _connect(self) -> SerialLink:
-        return self._handshake(RESET, "soft reset", self._greeting, _RESET_RETRY_S, self.boot_timeout_s,
-                               "no GRBL welcome banner after a soft reset",
-                               "is this the stage controller's port, at 115200 baud, with GRBL 1.1 flashed?")
+        return self._handshake(RESET, "soft reset", self._greeting, retry_s=_RESET_RETRY_S,
+                               timeout_s=self.boot_timeout_s,
+                               missing="no GRBL welcome banner after a soft reset",
+                               advice="is this the stage controller's port, at 115200 baud, with GRBL 1.1 flashed?")
 
     def _greeting(self, line: str) -> bool | None:
         """True on GRBL's welcome banner (its version checked); None: keep listening."""
@@ -331,8 +332,9 @@ def open_grbl_stage(config: StageConfig, opener: Callable[[], SerialLink] | None
         raise ConfigError(p, "stage.axes", f"two axes on one controller letter: {letters}")
     if opener is None:
         opener = serial_opener("grbl-stage", settings.port, min(settings.timeout_s, 0.2))
-    return GrblStage(opener, config.axes, letters, turns, "grbl-stage", config.settle_s, settings.boot_timeout_s,
-                     settings.timeout_s)
+    return GrblStage(opener, config.axes, letters, units_per_turn=turns, name="grbl-stage", settle_s=config.settle_s,
+                     boot_timeout_s=settings.boot_timeout_s,
+                     timeout_s=settings.timeout_s)
 
 
 class GrblSettings(Schema):

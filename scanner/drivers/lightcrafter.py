@@ -178,7 +178,7 @@ class LightCrafter4500(Projector):
             log.warning("%s: sequence validation warning: %s", self.name, text)
         return self.warnings
 
-    def program(self, entries: list[p.LutEntry], images: list[int], mode: p.TriggerMode, source: p.PatternSource,
+    def program(self, entries: list[p.LutEntry], images: list[int], mode: p.TriggerMode, *, source: p.PatternSource,
                 repeat: bool, exposure_us: int, period_us: int) -> None:
         """The full set-up of a pattern sequence, in the order of TI's API: stop, pattern
         mode, source, trigger mode, timing, LUT configuration, trigger lines, LEDs, pattern
@@ -235,7 +235,7 @@ class LightCrafter4500(Projector):
         period_us = self._period_us(self.period_s)
         entry = p.LutEntry(p.LutTrigger.INTERNAL, k % PATTERNS_PER_IMAGE, leds=self.leds, buffer_swap=True)
         self.program([entry], [self.flash_first_image + k // PATTERNS_PER_IMAGE], p.TriggerMode.INTERNAL_OR_EXTERNAL,
-                     p.PatternSource.FLASH, True, period_us, period_us)
+                     source=p.PatternSource.FLASH, repeat=True, exposure_us=period_us, period_us=period_us)
         self._programmed = "single"
         self.start()
 
@@ -291,8 +291,8 @@ class LightCrafter4500(Projector):
                    for k in range(n)]
         images = [self.flash_first_image + i for i in range(-(-n // PATTERNS_PER_IMAGE))]
         period_us = self._period_us(period_s)
-        self.program(entries, images, p.TriggerMode.INTERNAL_OR_EXTERNAL, p.PatternSource.FLASH, False,
-                     period_us, period_us)
+        self.program(entries, images, p.TriggerMode.INTERNAL_OR_EXTERNAL, source=p.PatternSource.FLASH, repeat=False,
+                     exposure_us=period_us, period_us=period_us)
         self.period_s = period_s
         self._programmed = "sequence"
 
@@ -302,7 +302,8 @@ class LightCrafter4500(Projector):
         assert self._video is not None
         period_us = int(1e6 / self._video.refresh_hz)
         entry = p.LutEntry(p.LutTrigger.EXTERNAL_POSITIVE, 0, leds=self.leds)
-        self.program([entry], [0], p.TriggerMode.VSYNC, p.PatternSource.VIDEO, True, period_us, period_us)
+        self.program([entry], [0], p.TriggerMode.VSYNC, source=p.PatternSource.VIDEO, repeat=True,
+                     exposure_us=period_us, period_us=period_us)
         self._programmed = "video"
         self.start()
 

@@ -216,7 +216,7 @@ class DropsLostPort:
     _port: SerialLink | None
     _open_port: Callable[[], SerialLink]
 
-    def _handshake(self, probe: bytes, what: str, greeting: Callable[[str], bool | None], retry_s: float,
+    def _handshake(self, probe: bytes, what: str, greeting: Callable[[str], bool | None], *, retry_s: float,
                    timeout_s: float, missing: str, advice: str) -> SerialLink:
         """The open port, opened now if it is not: `probe` (`what`: its name for messages) is sent
         every `retry_s` s until `greeting(line)` accepts a line (True; it raises on a device of the

@@ -154,8 +154,10 @@ class TriggerBox(DropsLostPort, TriggerSource):
             timer.cancel()
 
     def _connect(self) -> SerialLink:
-        return self._handshake(b"ID?\n", "ID?", self._greeting, _ID_RETRY_S, self.boot_timeout_s, "no answer to ID?",
-                               "is this the trigger box's port and is its firmware (firmware/triggerbox) flashed?")
+        return self._handshake(b"ID?\n", "ID?", self._greeting, retry_s=_ID_RETRY_S, timeout_s=self.boot_timeout_s,
+                               missing="no answer to ID?",
+                               advice="is this the trigger box's port and is its firmware "
+                                      "(firmware/triggerbox) flashed?")
 
     def _greeting(self, line: str) -> bool | None:
         """True on the board's identity line (checked); False on its boot line READY (ask again

@@ -58,8 +58,8 @@ def direct_path(gt: GroundTruth, scene: Scene) -> LightPath:
     normal = gt.normal.reshape(-1, 3)[index]
     _, f0, rough = material_maps(scene, gt.object_id.ravel()[index])
     Cp = gt.model.cam_from_proj[:3, 3]
-    weight = surface_weight(gt.albedo.ravel()[index], gt.cos_incidence.ravel()[index], normal, _unit(Cp - X),
-                            _unit(-X), f0, rough)
+    weight = surface_weight(gt.albedo.ravel()[index], gt.cos_incidence.ravel()[index], normal, to_light=_unit(Cp - X),
+                            to_view=_unit(-X), f0=f0, roughness=rough)
     return LightPath("direct", index, gt.proj_uv.reshape(-1, 2)[index], weight.astype(np.float32))
 
 
@@ -84,7 +84,7 @@ def bounce_path(gt: GroundTruth, scene: Scene) -> LightPath:
     f0_1 = f0_all[index]
     albedo2, f0_2, rough2 = material_maps(scene, oid)
     Cp = model.cam_from_proj[:3, 3]
-    radiance = surface_weight(albedo2, cos_inc, n2, _unit(Cp - X2), -r, f0_2, rough2)
+    radiance = surface_weight(albedo2, cos_inc, n2, to_light=_unit(Cp - X2), to_view=-r, f0=f0_2, roughness=rough2)
     weight = schlick_fresnel(cos1, f0_1) * radiance
     keep = weight > 0
     return LightPath("bounce", index[keep], uv[keep], weight[keep].astype(np.float32))

@@ -72,7 +72,7 @@ def specular_weight(normal: np.ndarray, to_light: np.ndarray, to_view: np.ndarra
     return np.where(ok, w, 0.0)
 
 
-def surface_weight(albedo: np.ndarray, cos_incidence: np.ndarray, normal: np.ndarray, to_light: np.ndarray,
+def surface_weight(albedo: np.ndarray, cos_incidence: np.ndarray, normal: np.ndarray, *, to_light: np.ndarray,
                    to_view: np.ndarray, f0: np.ndarray, roughness: np.ndarray) -> np.ndarray:
     """The full weight (N,) float64: albedo·cos θ_l plus the specular lobe where `f0` > 0
     (matte points keep the Lambertian weight exactly)."""

@@ -104,7 +104,8 @@ def cmd_calibrate_stereo(args: argparse.Namespace, config: Any, say: Any, texels
             views = capture_board_views(rig, OperatorBench(say), procedure.board, procedure.poses, out / "capture",
                                         say)
     truth = config.stereo_model(nominal=True) if config.driver == "sim" else None
-    return _solve_and_write(args, views, sizes, names, procedure.board, out, say, truth=truth, rig_path=config.path)
+    return _solve_and_write(args, views, sizes, names=names, board=procedure.board, out=out, say=say, truth=truth,
+                            rig_path=config.path)
 
 
 def cmd_calibrate_stereo_from(args: argparse.Namespace, say: Any) -> int:
@@ -129,12 +130,13 @@ def cmd_calibrate_stereo_from(args: argparse.Namespace, say: Any) -> int:
     say(f"reading the stereo capture in {source} ({len(capture.poses)} poses, cameras {', '.join(capture.names)}) "
         f"with {capture.board.describe()} -> {out}")
     views = [v[:2] for v in read_board_views(capture, say)]
-    return _solve_and_write(args, views, capture.sizes[:2], capture.names[:2], capture.board, out, say,
+    return _solve_and_write(args, views, capture.sizes[:2], names=capture.names[:2], board=capture.board, out=out,
+                            say=say,
                             truth=None, rig_path=None, frames=source)
 
 
-def _solve_and_write(args: argparse.Namespace, views: list[Any], sizes: Any, names: Any, board: Any, out: Path,
-                     say: Any, *, truth: Any, rig_path: Path | None, frames: Path | None = None) -> int:
+def _solve_and_write(args: argparse.Namespace, views: list[Any], sizes: Any, *, names: Any, board: Any, out: Path,
+                     say: Any, truth: Any, rig_path: Path | None, frames: Path | None = None) -> int:
     """The gate, the solve, the limit and the files (module docstring); `truth` the simulator's
     stereo model (the report ends with the errors against it), `frames` where the board frames are."""
     from calibration.errors import CalibrationRejected, PoseRefused

@@ -325,12 +325,15 @@ def inspect_source(source: str | Path, cad: str | Path | None, *, tolerances: st
     from scanner.session_lock import session_lock
 
     if not Path(source).is_dir():
-        return _inspect_source(source, cad, tolerances, out, cad_unit, seed, recording, operator, serial, pdf)
+        return _inspect_source(source, cad, tolerances, out=out, cad_unit=cad_unit, seed=seed, recording=recording,
+                               operator=operator, serial=serial, pdf=pdf)
     with session_lock(source, command="slscan inspect"):
-        return _inspect_source(source, cad, tolerances, out, cad_unit, seed, recording, operator, serial, pdf)
+        return _inspect_source(source, cad, tolerances, out=out, cad_unit=cad_unit, seed=seed, recording=recording,
+                               operator=operator, serial=serial, pdf=pdf)
 
 
-def _inspect_source(source: str | Path, cad: str | Path | None, tolerances: str | Path | None, out: str | Path | None,
+def _inspect_source(source: str | Path, cad: str | Path | None, tolerances: str | Path | None, *,
+                    out: str | Path | None,
                     cad_unit: str, seed: int, recording: Any, operator: str | None, serial: str | None,
                     pdf: bool) -> Any:
     from dataclasses import replace
@@ -386,7 +389,8 @@ def _inspect_source(source: str | Path, cad: str | Path | None, tolerances: str 
             own.log_rig(session.rig_model())
         from slscan.progress import ProgressLine
 
-        report = inspect(scan, model, tol, settings, recording, uncertainty=uncertainty, progress=ProgressLine())
+        report = inspect(scan, model, tol, settings=settings, recording=recording, uncertainty=uncertainty,
+                         progress=ProgressLine())
     finally:
         if own is not None:
             own.close()

@@ -308,7 +308,8 @@ def inspect_verdict_first(result: Any, recording: Any, model: Any, tolerances: A
     with timer.stage("inspect"):
         # the decoder's noise model and calibration, from the decode the scan was made of
         uncertainty = session_uncertainty(result.session, result.decoded)(scan.camera_pixels())
-        report = inspect(scan, model, tolerances, InspectionSettings(registration=RegistrationSettings(seed=seed)),
+        report = inspect(scan, model, tolerances,
+                         settings=InspectionSettings(registration=RegistrationSettings(seed=seed)),
                          prior=prior, uncertainty=uncertainty, on_verdict=on_verdict, progress=progress)
     with timer.stage("report_files"):
         report = write_report_files(report, scan, result.session.outputs, result.session.root, program=program, pdf=pdf)

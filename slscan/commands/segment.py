@@ -99,7 +99,8 @@ def cmd_segment(args: argparse.Namespace) -> int:
     big = np.sort(sizes)[::-1]
     rrd = None if args.no_log else out.with_name(out.stem + ".rrd")
     if rrd is not None:
-        _log(rrd, session, points, labels, labels_out if valid is not None else None, seg.timings_s,
+        _log(rrd, session, points, labels=labels, image=labels_out if valid is not None else None,
+             timings=seg.timings_s,
              recording_id=session.id if session is not None else src.stem)
     if args.json:
         print(json.dumps({"status": "ok", "labels": str(out), "radius_mm": radius, "points": len(points),
@@ -139,7 +140,7 @@ def _session_points(session: Any) -> tuple[np.ndarray, np.ndarray]:
     return points, valid
 
 
-def _log(path: Path, session: Any, points: np.ndarray, labels: np.ndarray, image: np.ndarray | None,
+def _log(path: Path, session: Any, points: np.ndarray, *, labels: np.ndarray, image: np.ndarray | None,
          timings: dict[str, float], recording_id: str) -> None:
     import numpy as np
     import rerun as rr

@@ -53,8 +53,8 @@ class StationRun:
             raise
         try:
             self.station = Station(program, config, self.bench,
-                                   measurement or load_measurement(config.measurement, config.path),
-                                   self.store, operator, on_stored=self._stored)
+                                   measurement=measurement or load_measurement(config.measurement, config.path),
+                                   store=self.store, operator=operator, on_stored=self._stored)
             self.recovered = self.station.recover()
             self.charts = ChartRecording(self.report_dir / CHART_RECORDING, program,
                                          f"station-{config.name}-{program.name}-{utcnow():%Y%m%d-%H%M%S}")

@@ -60,7 +60,7 @@ def _xy(xs: Sequence[int], ys: Sequence[float], keep: Sequence[bool]) -> tuple[l
     return [a for a, k in zip(xs, keep) if k], [y for y, k in zip(ys, keep) if k]
 
 
-def _points(ax: Any, xs: list[int], ys: Sequence[float], in_limits: Sequence[bool], censored: Sequence[bool],
+def _points(ax: Any, xs: list[int], ys: Sequence[float], *, in_limits: Sequence[bool], censored: Sequence[bool],
             flags: Sequence[frozenset[int]], limited: bool) -> None:
     """The chart's points by kind (module docstring), their connecting line and the rule
     flags; `limited`: the chart has limits (the values' label says they are in them)."""
@@ -148,10 +148,12 @@ def draw_chart(c: Characteristic, s: CharacteristicStats) -> Any:
         spread_x = x
         names = (f"mean of {s.subgroup} (mm)", f"range of {s.subgroup} (mm)")
         missing = []
-    _points(top, x, s.location, s.in_limits, s.censored, s.location_flags, chart is not None)
+    _points(top, x, s.location, in_limits=s.in_limits, censored=s.censored, flags=s.location_flags,
+            limited=chart is not None)
     _limit_lines(top, chart.location if chart else None)
     known = [not np.isnan(r) for r in s.spread]
-    _points(bottom, spread_x, s.spread, known, [False] * len(s.spread), s.spread_flags, chart is not None)
+    _points(bottom, spread_x, s.spread, in_limits=known, censored=[False] * len(s.spread), flags=s.spread_flags,
+            limited=chart is not None)
     _limit_lines(bottom, chart.spread if chart else None)
     if s.subgroup == 1 and s.uncertain:
         top.scatter([a for a, p in zip(x, s.plotted) if p.decision == UNCERTAIN],

@@ -100,7 +100,7 @@ class Station:
     """A station running one part program on one bench; `on_stored` is called with every
     stored cycle (e.g. to extend the control charts)."""
 
-    def __init__(self, program: PartProgram, config: StationConfig, bench: Bench, measurement: Measurement,
+    def __init__(self, program: PartProgram, config: StationConfig, bench: Bench, *, measurement: Measurement,
                  store: ResultsStore, operator: str,
                  on_stored: Callable[[CycleOutcome], None] | None = None) -> None:
         self.program = program

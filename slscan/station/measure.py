@@ -195,8 +195,9 @@ class InspectionMeasurement:
         for k, session in enumerate(sessions):
             try:
                 scan = load_session(session.root)
-                table, view, path = self._inspect(scan, program, session, session.outputs, session.id, k,
-                                                  session_uncertainty(session)(scan.camera_pixels()))
+                table, view, path = self._inspect(scan, program, session, outputs=session.outputs,
+                                                  recording_id=session.id, view=k,
+                                                  uncertainty=session_uncertainty(session)(scan.camera_pixels()))
             except InspectionError as exc:
                 return MeasurementResult(False, message=f"session {session.root}: {exc}", details=details)
             paths.append(path)
@@ -215,12 +216,13 @@ class InspectionMeasurement:
 
         try:
             table, whole, path = self._inspect(load_merged(session), program, session.views[0].session,
-                                               session.outputs, session.id, None, None)
+                                               outputs=session.outputs, recording_id=session.id, view=None,
+                                               uncertainty=None)
         except InspectionError as exc:
             return MeasurementResult(False, message=f"multi-view session {session.root}: {exc}")
         return view_values(program, [table], [whole], {"whole": whole.details()}, [path])
 
-    def _inspect(self, scan: ScanCloud, program: PartProgram, session: Session, outputs: Path, recording_id: str,
+    def _inspect(self, scan: ScanCloud, program: PartProgram, session: Session, *, outputs: Path, recording_id: str,
                  view: int | None, uncertainty: ScanUncertainty | None) -> tuple[FaceTable, ViewReport, Path]:
         """Inspect `scan` (one view's, or the merged cloud: `view` None) for `program`, starting
         from the registration of the last part seen the same way; write its report (and its
@@ -238,7 +240,8 @@ class InspectionMeasurement:
               SessionRecording(outputs / RECORDING_FILE, recording_id, send_blueprint=False, level=level)) as recording:
             if recording is not None:
                 recording.log_rig(session.rig_model())
-            report = inspect(scan, self._model(program), program_tolerances(program), settings, recording,
+            report = inspect(scan, self._model(program), program_tolerances(program), settings=settings,
+                             recording=recording,
                              prior=self._priors.get(prior_key), uncertainty=uncertainty)
         self._priors[prior_key] = report.registration
         table = {row.label: row for row in report.faces}

@@ -106,7 +106,7 @@ def _peer(args: list[str]) -> dict[str, Any]:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def run_peers(rig: RigModel, patterns: PatternSet, width: int, height: int, repeats: int, with_fringes: bool,
+def run_peers(rig: RigModel, patterns: PatternSet, width: int, *, height: int, repeats: int, with_fringes: bool,
               tmp: str) -> list[dict[str, Any]]:
     """The peers on the same scene: OpenCV's PSP on three frames of the finest frequency
     rendered with OpenCV's own conventions (a sine shifted by +2π/3, 8-bit), and `fringes`."""
@@ -182,7 +182,8 @@ def run_bench(width: int, height: int, *, patterns_path: Path | None = None, rig
         proc.start()
         result = queue.get(timeout=600)
         proc.join(timeout=60)
-        peer_figures = run_peers(rig, patterns, width, height, repeats, with_fringes, tmp) if peers else []
+        peer_figures = run_peers(rig, patterns, width, height=height, repeats=repeats, with_fringes=with_fringes,
+                                 tmp=tmp) if peers else []
     total = result["decode_s"] + result["reconstruct_s"]
     mpx = width * height / total / 1e6
     for p in peer_figures:
