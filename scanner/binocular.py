@@ -568,10 +568,11 @@ class _Search:
             (n0, k0, x0, step0, s0), (n1, k1, x1, step1, s1) = (f.result() for f in rows_found)
             once = left_count.result() <= 1
         unique = inside & (n0 == 1) & (n1 == 1) & (k0 >= 0) & (k1 >= 0) & once
-        steep = unique & right_rows.gate[np.maximum(k0, 0)] & right_rows.gate[np.maximum(k1, 0)]
+        steep = unique & right_rows.gate.take(np.maximum(k0, 0)) & right_rows.gate.take(np.maximum(k1, 0))
+        s = 1 - t
         return cls(inside, inside & ((n0 == 0) | (n1 == 0)), unique, steep,
-                   (1 - t) * x0 + t * x1,  # on the rectified row through the left pixel
-                   gy, np.abs((1 - t) * step0 + t * step1), (1 - t) * s0 + t * s1, (x1 - x0).astype(np.float32))
+                   s * x0 + t * x1,  # on the rectified row through the left pixel
+                   gy, np.abs(s * step0 + t * step1), s * s0 + t * s1, (x1 - x0).astype(np.float32))
 
 
 _REASONS = ("outside_right_view", "no_match", "not_unique", "low_gradient", "behind", "inconsistent")
@@ -644,22 +645,24 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     if others:
         consistent, figures = _second_orientation(rect, left, right, others[0], pix, xg, yg, ahead)
     else:
-        X = rect.model.left.ray_grid.reshape(-1, 3).take(pix[ahead], axis=0).astype(np.float64)
-        X *= (Z[ahead] / w[ahead])[:, None]  # the points on their rays (mm), in place: one (N, 3) array
+        at = np.flatnonzero(ahead)  # taken by index, not by the mask, six times
+        X = rect.model.left.ray_grid.reshape(-1, 3).take(pix.take(at), axis=0).astype(np.float64)
+        X *= (Z.take(at) / w.take(at))[:, None]  # the points on their rays (mm), in place: one (N, 3) array
         consistent = ahead.copy()
-        consistent[ahead], figures = projector_consistency(
-            X, c[ahead].astype(np.float64), np.hypot(s_l[ahead], s_r[ahead]).astype(np.float64))
-        del X
+        consistent[at], figures = projector_consistency(
+            X, c.take(at).astype(np.float64), np.hypot(s_l.take(at), s_r.take(at)).astype(np.float64))
+        del X, at
     checks |= figures
     keep = consistent & np.isfinite(sigma_Z)
     checks["points"] = float(keep.sum())
 
     n = shape[0] * shape[1]
     z_left, sig, iso = np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32)
-    at, w_kept = pix[keep], w[keep]
-    z_left[at] = Z[keep] / w_kept
-    sig[at] = sigma_Z[keep] / w_kept
-    iso[at] = slope[keep]
+    kept = np.flatnonzero(keep)
+    at, w_kept = pix.take(kept), w.take(kept)
+    z_left[at] = Z.take(kept) / w_kept
+    sig[at] = sigma_Z.take(kept) / w_kept
+    iso[at] = slope.take(kept)
     reason = np.full(n, len(_REASONS) + 1, np.uint8)  # pixels without a coordinate: no reason
     reason[pix] = stage + consistent
     masks = {name: (reason == k).reshape(shape) for k, name in enumerate(_REASONS)}
