@@ -628,8 +628,9 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     ahead = steep & (Z > 0)
 
     # the match's noise: both cameras' coordinate noise over the right coordinate's change per px
-    s_l, s_r, slope = left.sigma[o].ravel().take(pix), found.sigma, found.slope
-    sigma_d = np.sqrt(s_l.astype(np.float64) ** 2 + s_r.astype(np.float64) ** 2) / found.step
+    s_r, slope = found.sigma, found.slope
+    s_l = left.sigma[o].ravel()
+    sigma_d = np.sqrt(s_l.take(pix).astype(np.float64) ** 2 + s_r.astype(np.float64) ** 2) / found.step
     sigma_Z = Z ** 2 / (rect.f * abs(rect.tx_mm)) * sigma_d
     del found, xl, d, sigma_d  # not needed past here: freed before the consistency check, the peak of memory
 
@@ -645,13 +646,16 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     if others:
         consistent, figures = _second_orientation(rect, left, right, others[0], pix, xg, yg, ahead)
     else:
-        at = np.flatnonzero(ahead)  # taken by index, not by the mask, six times
-        X = rect.model.left.ray_grid.reshape(-1, 3).take(pix.take(at), axis=0).astype(np.float64)
+        at = np.flatnonzero(ahead)  # taken by index, not by the mask, for each array
+        px = pix.take(at)
+        X = rect.model.left.ray_grid.reshape(-1, 3).take(px, axis=0).astype(np.float64)
         X *= (Z.take(at) / w.take(at))[:, None]  # the points on their rays (mm), in place: one (N, 3) array
+        c_at = c.take(at).astype(np.float64)
+        sigma_at = np.hypot(s_l.take(px), s_r.take(at)).astype(np.float64)
+        del at, px  # freed before the consistency check, the peak of memory
         consistent = ahead.copy()
-        consistent[at], figures = projector_consistency(
-            X, c.take(at).astype(np.float64), np.hypot(s_l.take(at), s_r.take(at)).astype(np.float64))
-        del X, at
+        consistent[ahead], figures = projector_consistency(X, c_at, sigma_at)
+        del X, c_at, sigma_at
     checks |= figures
     keep = consistent & np.isfinite(sigma_Z)
     checks["points"] = float(keep.sum())
