@@ -496,9 +496,11 @@ class _Rows:
             a[other], b[other] = flat[p[other]], flat[p[other] + 1]
         u = (c - a) / (b - a)
         sigma = self.sigma.ravel()
-        k_or_0 = np.maximum(k, 0)
-        column = k_or_0 - (p - k_or_0) * (width - 1)  # k mod (Wg − 1): p − k is the interval's row
-        return count, k, column + u, b - a, (1 - u) * sigma.take(p) + u * sigma[1:].take(p)
+        s = (1 - u) * sigma.take(p) + u * sigma[1:].take(p)
+        column = np.maximum(k, 0)
+        column -= (p - column) * (width - 1)  # k mod (Wg − 1): p − k is the interval's row
+        del p
+        return count, k, column + u, b - a, s
 
 
 @dataclass(frozen=True, eq=False)
