@@ -206,7 +206,7 @@ class Rectification:
     """The rectified pair: `R_left`, `R_right` rotate each camera's frame into its rectified
     frame; both rectified cameras have focal `f` px and principal point (0, 0); the right one
     sits at x = `tx_mm` of the left's rectified frame (negative: to the left's right).
-    `left_xy` (H, W, 2) float64 is every left pixel's rectified position, `left_w` (H, W) the
+    `left_xy` (2, H, W) float64 is every left pixel's rectified position (x plane, y plane), `left_w` (H, W) the
     z of its ray (x/z, y/z, 1) rotated into the rectified frame; `right` is the grid the right
     camera's maps are matched on, `left` the grid the left's are (only) counted on."""
 
@@ -226,8 +226,14 @@ class Rectification:
         L = model.left
         rays = L.ray_grid.astype(np.float64) @ R1.T
         w = rays[..., 2]
-        return cls(model, R1, R2, f, tx, f * rays[..., :2] / w[..., None], w,
-                   RectifiedGrid.covering(L, R1, f), RectifiedGrid.covering(model.right, R2, f))
+        return cls(model, R1, R2, f, tx, np.ascontiguousarray(np.moveaxis(f * rays[..., :2] / w[..., None], -1, 0)),
+                   w, RectifiedGrid.covering(L, R1, f), RectifiedGrid.covering(model.right, R2, f))
+
+    @cached_property
+    def left_ray_planes(self) -> tuple[np.ndarray, np.ndarray]:
+        """The left camera's rays (x/z, y/z) as two contiguous (H, W) planes, for `cloud_from_depth`."""
+        rays = self.model.left.ray_grid
+        return np.ascontiguousarray(rays[..., 0]), np.ascontiguousarray(rays[..., 1])
 
 
 def _rectifying(model: StereoModel) -> tuple[np.ndarray, np.ndarray, float, float]:
@@ -268,9 +274,18 @@ class Taps:
         """`image` sampled at the positions (float32; NaN outside or where a neighbour is NaN)."""
         flat = np.asarray(image, np.float32).ravel()
         i, w, fx = self.index, self.width, self.fx
-        top = flat[i] + (flat[i + 1] - flat[i]) * fx
-        bottom = flat[i + w] + (flat[i + w + 1] - flat[i + w]) * fx
-        out = top + (bottom - top) * self.fy
+        # the neighbours by taking at offset views (no index arithmetic), the arithmetic in place:
+        # top + (bottom - top)·fy, top = a + (b - a)·fx, bottom = c + (d - c)·fx, as written
+        out, b, c, d = flat.take(i), flat[1:].take(i), flat[w:].take(i), flat[w + 1:].take(i)
+        b -= out
+        b *= fx
+        out += b
+        d -= c
+        d *= fx
+        c += d
+        c -= out
+        c *= self.fy
+        out += c
         out[~self.inside] = np.nan
         return out
 
@@ -386,18 +401,30 @@ def _intervals(c: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray, np.
     coordinate: (base, span, their flat indices into (Hg, Wg − 1), lower and upper ends as
     keys row·span + (c − base), float64, the flat grid index of each one's left sample, and its
     step: the right sample's coordinate minus the left's, float32)."""
-    finite = c[np.isfinite(c)]
-    base = float(finite.min()) - 1.0 if finite.size else 0.0
-    span = float(finite.max() - base) + 2.0 if finite.size else 1.0
+    low, high = np.fmin.reduce(c, axis=None), np.fmax.reduce(c, axis=None)  # NaN: no sample has a coordinate
+    base = float(low) - 1.0 if np.isfinite(low) else 0.0
+    span = float(high - base) + 2.0 if np.isfinite(low) else 1.0
     step = c[:, 1:] - c[:, :-1]
-    idx = np.flatnonzero(np.isfinite(step) & (step != 0))
-    del step
-    row = idx // (c.shape[1] - 1)
-    p = idx + row  # interval k joins grid samples p(k) and p(k) + 1
+    has = np.isfinite(step)
+    has &= step != 0
+    idx = np.flatnonzero(has)
+    per_row = np.count_nonzero(has, axis=1)
+    del step, has
+    p = idx + np.repeat(np.arange(c.shape[0]), per_row)  # interval k joins grid samples p(k) and p(k) + 1
     flat = c.ravel()
-    av, bv = flat[p], flat[p + 1]
-    keys = row.astype(np.float64) * span - base
-    return base, span, idx, np.minimum(av, bv) + keys, np.maximum(av, bv) + keys, p, bv - av
+    av, bv = flat.take(p), flat[1:].take(p)
+    keys = np.repeat(np.arange(c.shape[0], dtype=np.float64) * span - base, per_row)
+    lo = np.minimum(av, bv) + keys
+    keys += np.maximum(av, bv)
+    return base, span, idx, lo, keys, p, bv - av
+
+
+def _at_most(keys: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """How many of the sorted keys (positive, float64, as `_intervals` makes them) are ≤ each q
+    (finite float64): `np.searchsorted(keys, q, side="right")` on the numbers' bits as int64. IEEE 754
+    doubles ≥ +0 order as their bits do, and a negative q's bits are a negative integer, below every
+    key's as its value is; integer comparisons skip the NaN handling of float ones (~25% faster)."""
+    return np.searchsorted(keys.view(np.int64), q.view(np.int64), side="right")
 
 
 @dataclass(frozen=True, eq=False)
@@ -422,15 +449,18 @@ class _Rows:
         base, span, idx, lo, hi, p, step = _intervals(c)
         gate = np.zeros(c.shape[0] * (c.shape[1] - 1), bool)
         flat = sigma.ravel()
-        sa, sb = flat[p], flat[p + 1]
-        gate[idx] = np.abs(step) >= np.float32(z) * np.sqrt(sa * sa + sb * sb)
+        sa, sb = flat.take(p), flat[1:].take(p)
+        sa *= sa
+        sb *= sb
+        sa += sb
+        gate[idx] = np.abs(step) >= np.float32(z) * np.sqrt(sa, out=sa)
         order_lo, order_hi = np.argsort(lo, kind="stable"), np.argsort(hi, kind="stable")
-        return cls(c, sigma, lo[order_lo], idx[order_lo], hi[order_hi], idx[order_hi], gate, base, span)
+        return cls(c, sigma, lo.take(order_lo), idx.take(order_lo), hi.take(order_hi), idx.take(order_hi), gate,
+                   base, span)
 
     def _counts(self, c: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         q = c.astype(np.float64) + rows.astype(np.float64) * self.span - self.base
-        n_lo = np.searchsorted(self.lo, q, side="right")
-        n_hi = np.searchsorted(self.hi, q, side="right")
+        n_lo, n_hi = _at_most(self.lo, q), _at_most(self.hi, q)
         return n_lo - n_hi, n_lo, n_hi
 
     def find(self, c: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -448,12 +478,12 @@ class _Rows:
 
         def ends(k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             p = k + k // (width - 1)
-            return p, flat[p], flat[p + 1]
+            return p, flat.take(p), flat[1:].take(p)
 
         def holds(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
             return (np.minimum(a, b) <= c) & (c < np.maximum(a, b))
 
-        k = np.where(unique, self.lo_index[np.maximum(n_lo - 1, 0)], -1)
+        k = np.where(unique, self.lo_index.take(np.maximum(n_lo - 1, 0)), -1)
         p, a, b = ends(np.maximum(k, 0))
         held = (k >= 0) & holds(a, b, c)
         other = np.flatnonzero(unique & ~held)
@@ -466,7 +496,11 @@ class _Rows:
             a[other], b[other] = flat[p[other]], flat[p[other] + 1]
         u = (c - a) / (b - a)
         sigma = self.sigma.ravel()
-        return count, k, (np.maximum(k, 0) % (width - 1)) + u, b - a, (1 - u) * sigma[p] + u * sigma[p + 1]
+        s = (1 - u) * sigma.take(p) + u * sigma[1:].take(p)
+        column = np.maximum(k, 0)
+        column -= (p - column) * (width - 1)  # k mod (Wg − 1): p − k is the interval's row
+        del p
+        return count, k, column + u, b - a, s
 
 
 @dataclass(frozen=True, eq=False)
@@ -487,7 +521,7 @@ class _Counts:
     def count(self, c: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """How many intervals of row `rows` (N,) hold each coordinate `c` (N,) (lo ≤ c < hi)."""
         q = c.astype(np.float64) + rows.astype(np.float64) * self.span - self.base
-        return np.searchsorted(self.lo, q, side="right") - np.searchsorted(self.hi, q, side="right")
+        return _at_most(self.lo, q) - _at_most(self.hi, q)
 
 
 @dataclass(frozen=True, eq=False)
@@ -536,10 +570,11 @@ class _Search:
             (n0, k0, x0, step0, s0), (n1, k1, x1, step1, s1) = (f.result() for f in rows_found)
             once = left_count.result() <= 1
         unique = inside & (n0 == 1) & (n1 == 1) & (k0 >= 0) & (k1 >= 0) & once
-        steep = unique & right_rows.gate[np.maximum(k0, 0)] & right_rows.gate[np.maximum(k1, 0)]
+        steep = unique & right_rows.gate.take(np.maximum(k0, 0)) & right_rows.gate.take(np.maximum(k1, 0))
+        s = 1 - t
         return cls(inside, inside & ((n0 == 0) | (n1 == 0)), unique, steep,
-                   (1 - t) * x0 + t * x1,  # on the rectified row through the left pixel
-                   gy, np.abs((1 - t) * step0 + t * step1), (1 - t) * s0 + t * s1, (x1 - x0).astype(np.float32))
+                   s * x0 + t * x1,  # on the rectified row through the left pixel
+                   gy, np.abs(s * step0 + t * step1), s * s0 + t * s1, (x1 - x0).astype(np.float32))
 
 
 _REASONS = ("outside_right_view", "no_match", "not_unique", "low_gradient", "behind", "inconsistent")
@@ -555,7 +590,7 @@ def choose_orientation(rect: Rectification, left: CameraPhase) -> str:
     xy = rect.left_xy
     for o, c in left.coordinate.items():
         dc = np.diff(c, axis=1)
-        dx = np.diff(xy[..., 0], axis=1)
+        dx = np.diff(xy[0], axis=1)
         g = np.abs(dc / dx)
         g = g[np.isfinite(g)]
         med = float(np.median(g)) if g.size else 0.0
@@ -585,9 +620,9 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     grid_r = rect.right
     shape = left.coordinate[o].shape
     pix = np.flatnonzero(np.isfinite(left.coordinate[o]))
-    c = left.coordinate[o].ravel()[pix]
-    xl = rect.left_xy[..., 0].ravel()[pix]
-    found = _Search.of(rect, left, right, o, c, rect.left_xy[..., 1].ravel()[pix])
+    c = left.coordinate[o].ravel().take(pix)
+    xl = rect.left_xy[0].ravel().take(pix)
+    found = _Search.of(rect, left, right, o, c, rect.left_xy[1].ravel().take(pix))
     inside, none, unique, steep, xg = found.inside, found.none, found.unique, found.steep, found.x
     yg = found.y.astype(np.float32)
     d = xl - (xg + grid_r.x0)
@@ -596,7 +631,8 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
 
     # the match's noise: both cameras' coordinate noise over the right coordinate's change per px
     s_r, slope = found.sigma, found.slope
-    sigma_d = np.sqrt(left.sigma[o].ravel()[pix].astype(np.float64) ** 2 + s_r.astype(np.float64) ** 2) / found.step
+    s_l = left.sigma[o].ravel()
+    sigma_d = np.sqrt(s_l.take(pix).astype(np.float64) ** 2 + s_r.astype(np.float64) ** 2) / found.step
     sigma_Z = Z ** 2 / (rect.f * abs(rect.tx_mm)) * sigma_d
     del found, xl, d, sigma_d  # not needed past here: freed before the consistency check, the peak of memory
 
@@ -607,32 +643,36 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     passed = np.bincount(stage, minlength=6)
     checks: dict[str, float] = {"pixels_with_coordinate": float(pix.size)} | {
         name: float(passed[k]) for k, name in enumerate(_REASONS[:5])}
-    w = rect.left_w.ravel()[pix]
+    w = rect.left_w.ravel().take(pix)
     others = [p for p in left.coordinate if p != o]
     if others:
         consistent, figures = _second_orientation(rect, left, right, others[0], pix, xg, yg, ahead)
     else:
-        X = rect.model.left.ray_grid.reshape(-1, 3)[pix[ahead]].astype(np.float64)
-        X *= (Z[ahead] / w[ahead])[:, None]  # the points on their rays (mm), in place: one (N, 3) array
+        at = np.flatnonzero(ahead)  # taken by index, not by the mask, for each array
+        px = pix.take(at)
+        X = rect.model.left.ray_grid.reshape(-1, 3).take(px, axis=0).astype(np.float64)
+        X *= (Z.take(at) / w.take(at))[:, None]  # the points on their rays (mm), in place: one (N, 3) array
+        c_at = c.take(at).astype(np.float64)
+        sigma_at = np.hypot(s_l.take(px), s_r.take(at)).astype(np.float64)
+        del at, px  # freed before the consistency check, the peak of memory
         consistent = ahead.copy()
-        consistent[ahead], figures = projector_consistency(
-            X, c[ahead].astype(np.float64), np.hypot(left.sigma[o].ravel()[pix[ahead]], s_r[ahead]).astype(np.float64))
-        del X
+        consistent[ahead], figures = projector_consistency(X, c_at, sigma_at)
+        del X, c_at, sigma_at
     checks |= figures
     keep = consistent & np.isfinite(sigma_Z)
     checks["points"] = float(keep.sum())
 
     n = shape[0] * shape[1]
     z_left, sig, iso = np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32)
-    z_left[pix[keep]] = Z[keep] / w[keep]
-    sig[pix[keep]] = sigma_Z[keep] / w[keep]
-    iso[pix[keep]] = slope[keep]
+    kept = np.flatnonzero(keep)
+    at, w_kept = pix.take(kept), w.take(kept)
+    z_left[at] = Z.take(kept) / w_kept
+    sig[at] = sigma_Z.take(kept) / w_kept
+    iso[at] = slope.take(kept)
     reason = np.full(n, len(_REASONS) + 1, np.uint8)  # pixels without a coordinate: no reason
     reason[pix] = stage + consistent
     masks = {name: (reason == k).reshape(shape) for k, name in enumerate(_REASONS)}
-    rays = rect.model.left.ray_grid
-    cloud = cloud_from_depth(z_left.reshape(shape), np.ascontiguousarray(rays[..., 0]),
-                             np.ascontiguousarray(rays[..., 1]), to_texture8(left.texture, left.bit_depth))
+    cloud = cloud_from_depth(z_left.reshape(shape), *rect.left_ray_planes, to_texture8(left.texture, left.bit_depth))
     return BinocularResult(cloud, sig.reshape(shape), rect.model, o, iso.reshape(shape), masks, checks)
 
 

@@ -150,7 +150,8 @@ def _timing(config: Any, stacks: dict[str, np.ndarray], repeats: int) -> dict[st
     size, bits = model.projector.size, 12
     bino = BinocularReconstructor(config.stereo_model(nominal=True))
     tri = Triangulator(model)
-    _ = bino.rectification.left.taps, bino.rectification.right.taps  # once per rig, as in a station
+    rect = bino.rectification  # its tables once per rig, as in a station, as the triangulator's:
+    _ = rect.left.taps, rect.right.taps, rect.left_ray_planes
     tri.prepare(("vertical",))
 
     def mono() -> None:
