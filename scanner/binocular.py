@@ -646,7 +646,7 @@ def match(rect: Rectification, left: CameraPhase, right: CameraPhase, orientatio
     w = rect.left_w.ravel().take(pix)
     others = [p for p in left.coordinate if p != o]
     if others:
-        consistent, figures = _second_orientation(rect, left, right, others[0], pix, xg, yg, ahead)
+        consistent, figures = _second_orientation(rect, left, right, p=others[0], pix=pix, xg=xg, yg=yg, ahead=ahead)
     else:
         at = np.flatnonzero(ahead)  # taken by index, not by the mask, for each array
         px = pix.take(at)
@@ -762,7 +762,7 @@ def projector_consistency(X: np.ndarray, c: np.ndarray, sigma: np.ndarray) -> tu
     return keep, {"projector_fit_sigma": spread, "projector_fit_refused": float((~keep).sum())}
 
 
-def _second_orientation(rect: Rectification, left: CameraPhase, right: CameraPhase, p: str, pix: np.ndarray,
+def _second_orientation(rect: Rectification, left: CameraPhase, right: CameraPhase, *, p: str, pix: np.ndarray,
                         xg: np.ndarray, yg: np.ndarray, ahead: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
     """Which matches the other orientation confirms (both cameras read the same coordinate
     within z·σ, z for CHECK_FALSE_REFUSE two-sided), and the epipolar offsets it measures (px)."""

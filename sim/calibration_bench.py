@@ -195,7 +195,7 @@ class SimBench:
     `plate_distance_mm` from the camera on a stage that raises it toward the camera, and
     the artefact is a sphere pair centred on the camera axis in front of the plate."""
 
-    def __init__(self, rig: Rig, target: Target, poses: list[np.ndarray], plate_distance_mm: float,
+    def __init__(self, rig: Rig, target: Target, poses: list[np.ndarray], *, plate_distance_mm: float,
                  sphere_radius_mm: float, sphere_distance_mm: float, artefact_distance_mm: float) -> None:
         self.rig = rig
         self.target = target

@@ -96,12 +96,13 @@ def _scene_run(config: Any, seed: int, peaks: StagePeaks) -> dict[str, Any]:
         for case, gamma, model in (("true projector", left_model.projector_gamma, left_model),
                                    ("wrong projector", WRONG_GAMMA, replace(left_model, projector=wrong_projector))):
             out.pop("stacks", None)
-            out[case], out["stacks"] = _case(rig, patterns, gamma, model, bino, gt, both, peaks)
+            out[case], out["stacks"] = _case(rig, patterns, gamma, model=model, bino=bino, gt=gt, both=both,
+                                             peaks=peaks)
         out["lit_left_pixels"] = int(gt.lit.sum())
     return out
 
 
-def _case(rig: Any, patterns: Any, gamma: float, model: Any, bino: Any, gt: Any, both: np.ndarray,
+def _case(rig: Any, patterns: Any, gamma: float, *, model: Any, bino: Any, gt: Any, both: np.ndarray,
           peaks: StagePeaks) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """One scan of the open scene with the projector compensated for `gamma`, reconstructed
     binocularly and monocularly with `model`: the figures, and the frames (the case's arrays
