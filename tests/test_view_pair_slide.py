@@ -35,11 +35,11 @@ def test_a_weakly_fixed_slide_is_within_the_stated_spread_or_refused_by_name() -
     rng = np.random.default_rng(3)
     raw = [(np.array([0.35, 0.0, -1.0]), -400.0), (np.array([-0.35, 0.0, -1.0]), -400.0),
            (np.array([0.0, 0.25, -1.0]), -418.0)]
-    planes = [(n / np.linalg.norm(n), d / np.linalg.norm(n)) for n, d in raw]
+    planes = [(n / np.linalg.norm(n), d / float(np.linalg.norm(n))) for n, d in raw]
     G = np.eye(4)
     G[:3, :3] = rotation_about(np.array([0.2, 1.0, 0.1]) / np.linalg.norm([0.2, 1.0, 0.1]), np.radians(3.0))
     G[:3, 3] = [1.0, -2.0, 0.5]
-    moved = [(G[:3, :3] @ n, d + (G[:3, :3] @ n) @ G[:3, 3]) for n, d in planes]  # the planes in the moved frame
+    moved = [(G[:3, :3] @ n, d + float((G[:3, :3] @ n) @ G[:3, 3])) for n, d in planes]  # the planes in the moved frame
     source, target = groove_view(planes, 0.05, rng), groove_view(moved, 0.05, rng)
     pair = weigh_view_pair(source, target)
     deg, mm = pose_error(G, pair.transform, source.points.mean(axis=0))

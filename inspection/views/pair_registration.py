@@ -26,9 +26,16 @@ returned without proof:
    planes across it leave the turn about the boss to a few edge points): the leader is
    probed, restarted `PROBE_MM` either way along its `PROBED` weakest motions
    (`constraint`) and refined again; a probe that settles elsewhere and scores better leads instead (at most
-   `ROUNDS` times). Then the leader is moved a resolution either way along each of its six
-   constraint motions, unrefined; a move whose residuals fit better leads instead (at most
-   `CLIMBS` times);
+   `ROUNDS` times). Then the leader climbs along each of its six constraint motions,
+   unrefined, by steps from a resolution halving down (`_climb`): a move whose residuals fit
+   better leads instead. ICP's minimum is not the evidence's: along a motion few partners
+   fix, their normals' errors pull it (a turntable pair of the NIST CTC-01 stopped 0.16 mm
+   from the truth along a flat face, where the evidence ranked the truth 2.8 standard errors
+   better, and every restart stopped there too). Last, each motion is bounded both ways
+   (`_bounds`): the least step at which the evidence ranks the moved pose below the leader
+   (below, by the test of the ambiguity refusal); the `spread` reaches those bounds, so it
+   is the pose's uncertainty as the evidence itself states it (at 1e-3 a side), not the
+   restarts' scatter, which is nil when all restarts settle in one minimum;
 3. the leader is refused (`PairNotProven`, exit 1 from `register`), naming why, when
    - a view says nothing of where its sensor was (a cloud without a viewpoint): what it
      could have seen cannot be predicted;
@@ -39,7 +46,8 @@ returned without proof:
    - the comparable points agree less than the noise allows: fewer than p0 = 0.9973 of
      them (K = 3 sigmas) less z = 3.09 binomial standard errors (a right pose is refused
      so with probability 1e-3 when the noise model holds);
-   - the leader moved a resolution along one of its motions is still allowed by the noise
+   - the leader moved a resolution along one of its motions (the top of its ladder) is
+     still allowed by the noise
      (its points agree as a right pose's would, above) and scores within z = 3.29
      standard errors of it both by its points (agreeing less contradicting) and by its
      residuals' sizes (`Evidence.sharper`; each tested at half the false-accept rate):
@@ -55,7 +63,8 @@ returned without proof:
    The leader is the best-scoring pose among those the noise allows (a half turn of a
    nearly symmetric part may agree on more points while contradicting 2 % of them: refuted
    whatever its overlap); the pose reported is the mean of it and the poses tried that the
-   evidence cannot rank below it (`spread`: how far they lie from it).
+   evidence cannot rank below it (`spread`: how far they and each motion's bounds lie from
+   it).
 
 Transforms map SOURCE points onto the TARGET's frame; mm, degrees.
 """
@@ -141,7 +150,8 @@ class ViewPair:
     `refusals` (why not) otherwise; `overlap` the share of the source the target's sensor
     measured at that pose (`overlap_given`: the user's figure instead); `fitness` the share
     of comparable points that agree; `rmse_mm` theirs; `sigma_mm` the pair's noise;
-    `spread` (deg, mm) how far the poses the evidence cannot rank lie from `transform`;
+    `spread` (deg, mm) how far the poses the evidence cannot rank below the leader lie from
+    `transform` (the restarts alike, and each motion's bounds: the pose's uncertainty);
     `alternatives` every distinct pose weighed (`ambiguous`: one is not told apart);
     `weakest_motion` the least fixed motion and `weakest_sd` the largest rotation and
     translation standard deviations (deg, mm at the overlap's centre)."""
@@ -359,17 +369,13 @@ def _ladders(best: Evidence, centre: np.ndarray, pair: ViewPairSettings) -> list
 
 
 def _climb(best: Evidence, ladders: list[Ladder], fine: list[Judging], tried: list[Evidence]) -> Evidence:
-    """The leader moved down each ladder toward what the evidence fits best: at each step,
-    either way while the moved pose's residuals fit better (`Evidence.sharper`; at most
-    `CLIMBS` moves a step), then the next, half as long, down to a `CLIMB_HALVINGS`-fold
-    halving of the resolution: an offset left below that lies inside the bounds the
-    leader's spread reports (`_bounds`: they reach every pose the evidence does not rank
-    below the leader, the better-fitting ones too), so climbing further buys accuracy the
-    spread already owns up to, at 2 evidence evaluations a step. ICP's minimum is not the
-    evidence's: along a motion few partners fix, their normals' errors (several degrees on
-    measured normals) pull it, and on simulated turntable views it stopped 0.16 mm from
-    the truth along a slide the evidence put 0.1-0.2 mm back. The poses left go to
-    `tried`."""
+    """The leader moved down each ladder toward what the evidence fits best (module
+    docstring, step 2): at each step, either way while the moved pose's residuals fit
+    better (`Evidence.sharper`; at most `CLIMBS` moves a step), then the next, half as long,
+    down to a `CLIMB_HALVINGS`-fold halving of the resolution: an offset left below that
+    lies inside the bounds the spread reports (`_bounds` reach every pose the evidence does
+    not rank below the leader, the better-fitting ones too), at 2 evidence evaluations a
+    step. The poses left go to `tried`."""
     for ladder in ladders:
         for step in ladder.steps[:CLIMB_HALVINGS + 1]:
             for _ in range(CLIMBS):
