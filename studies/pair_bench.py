@@ -1,7 +1,7 @@
 """View pairs drawn at random on the simulated turntable, registered by
 `inspection.views.pair_registration` and by Open3D's FPFH + RANSAC + ICP beside it (issue 26).
 
-    python -m studies.pair_bench --out DIR [--placements 20] [--seed S] [--parts demo,ctc01,ftc06,random]
+    python -m studies.pair_bench --out DIR [--placements 20] [--seed S] [--parts demo,ctc01,ftc06,random] [--only K]
 
 A placement is a part standing on the platter of `config/rigs/sim_turntable.toml`: the demo
 part, a NIST part of ../shared/data/step (scaled to the platter, as `slscan bench views
@@ -15,8 +15,11 @@ the true pose (part points: more than 0.05 mm above the platter's true plane).
 Per pair: ours (proven or refused, the error of the pose against the truth at the source's
 centre, why refused), Open3D's (its error: it always returns a pose), the true overlap, the
 seeds; one JSON line each in DIR/pairs.jsonl, a summary at the end (success within
-`SUCCESS_DEG` / `SUCCESS_MM`, wrong poses proven, refusals, by overlap) with the load
-average. Every seed is printed; a run draws new ones unless --seed is given.
+`SUCCESS_DEG` / `SUCCESS_MM`, wrong poses proven, proven poses farther from the truth than
+their own stated spread, refusals, by overlap) with the load average. Every seed is
+printed; a run draws new ones unless --seed is given. `--only K` (with --seed) reproduces
+placement K of a run alone: the draws of the placements before it are made and discarded,
+so K gets the same part, noise, placement and angles.
 """
 
 from __future__ import annotations
@@ -87,8 +90,30 @@ def turntable_config(out: Path, width: int, height: int) -> Any:
     return RigConfig.load(path)
 
 
-def scan_placement(config: Any, part: Part, rng: np.random.Generator, out: Path, noise_seed: int) -> Path:
-    """Three views of `part` at a random placement and random stage angles (a multi-view
+@dataclass(frozen=True)
+class Draw:
+    """One placement's draws from the master generator, in the order they are made: the
+    part's and the noise's seeds, the turn about the resting direction (rad), the shift
+    across it (mm, three draws) and the three stage angles (deg)."""
+
+    part_seed: int
+    noise_seed: int
+    turn_rad: float
+    shift_mm: np.ndarray
+    angles_deg: tuple[float, ...]
+
+
+def draw_placement(rng: np.random.Generator) -> Draw:
+    """The next placement's draws (`Draw`): the same draws whether it is scanned or skipped."""
+    part_seed, noise_seed = (int(x) for x in rng.integers(0, 2 ** 31, 2))
+    turn = float(rng.uniform(0.0, 2 * np.pi))
+    shift = rng.uniform(-10.0, 10.0, 3)
+    angles = tuple(sorted(float(a) for a in rng.uniform(0.0, 360.0, 3)))
+    return Draw(part_seed, noise_seed, turn, shift, angles)
+
+
+def scan_placement(config: Any, part: Part, draw: Draw, out: Path) -> Path:
+    """Three views of `part` at the placement and stage angles of `draw` (a multi-view
     session in `out`)."""
     from scanner.multiview import capture_views, plan_views
     from scanner.native_threads import native_threads
@@ -99,14 +124,12 @@ def scan_placement(config: Any, part: Part, rng: np.random.Generator, out: Path,
     from sim.stage_bench import part_on_stage
 
     placement = np.eye(4)
-    placement[:3, :3] = rotation_about(np.asarray(part.up, float) / np.linalg.norm(part.up),
-                                       float(rng.uniform(0.0, 2 * np.pi)))
-    placement[:3, 3] = rng.uniform(-10.0, 10.0, 3) * (1.0 - np.abs(np.asarray(part.up, float)))
+    placement[:3, :3] = rotation_about(np.asarray(part.up, float) / np.linalg.norm(part.up), draw.turn_rad)
+    placement[:3, 3] = draw.shift_mm * (1.0 - np.abs(np.asarray(part.up, float)))
     scene = part_on_stage(part.vertices, part.triangles, part.face, part.up, config.stage.nominal, placement=placement)
-    angles = sorted(float(a) for a in rng.uniform(0.0, 360.0, 3))
-    plan = plan_views(config.stage, angles_deg=angles)
+    plan = plan_views(config.stage, angles_deg=list(draw.angles_deg))
     patterns = PatternSet.load(config.patterns_path)
-    with native_threads(1), open_rig(config, scene=scene, seed=noise_seed) as rig:
+    with native_threads(1), open_rig(config, scene=scene, seed=draw.noise_seed) as rig:
         capture_views(rig, plan, out, lambda folder, extra: scan(rig, patterns, folder, level="none",
                                                                    extra=extra).session)
     return out
@@ -186,7 +209,8 @@ def measure_pair(session: Path, i: int, j: int, seed: int, axis: Any) -> dict[st
     return {"pair": [i, j], "true_overlap": true_overlap(S, V, truth, P, axis), "model_overlap": ours.overlap,
             "ours": {"proven": ours.proven, "deg": deg, "mm": mm, "refusals": list(ours.refusals),
                      "fitness": ours.fitness, "comparable": ours.comparable, "sigma_mm": ours.sigma_mm,
-                     "spread": list(ours.spread), "alternatives": len(ours.alternatives), "seconds": ours_s,
+                     "spread": list(ours.spread), "weakest_sd": list(ours.weakest_sd),
+                     "alternatives": len(ours.alternatives), "seconds": ours_s,
                      "timings_s": ours.timings_s},
             "open3d": {"deg": tdeg, "mm": tmm, "seconds": theirs_s}}
 
@@ -206,10 +230,12 @@ def summary(rows: list[dict[str, Any]]) -> str:
         errs = np.array([[r["ours"]["deg"], r["ours"]["mm"]] for r in proven if ok(r["ours"]["deg"], r["ours"]["mm"])])
         tight = f"; proven errors median {np.median(errs[:, 0]):.4f} deg / {np.median(errs[:, 1]):.4f} mm, max " \
                 f"{errs[:, 0].max():.4f} / {errs[:, 1].max():.4f}" if len(errs) else ""
+        beyond = sum(r["ours"]["deg"] > r["ours"]["spread"][0] or r["ours"]["mm"] > r["ours"]["spread"][1]
+                     for r in proven)
         lines.append(f"{name}: {len(sel)} pairs; ours {good} within {SUCCESS_DEG} deg / {SUCCESS_MM} mm "
-                     f"({good / len(sel):.0%}), wrong with a proof {len(proven) - good}, refused "
-                     f"{len(sel) - len(proven)}{tight}; Open3D {o3d_good} within ({o3d_good / len(sel):.0%}), "
-                     f"{len(sel) - o3d_good} wrong")
+                     f"({good / len(sel):.0%}), wrong with a proof {len(proven) - good}, proven beyond their own "
+                     f"spread {beyond}, refused {len(sel) - len(proven)}{tight}; Open3D {o3d_good} within "
+                     f"({o3d_good / len(sel):.0%}), {len(sel) - o3d_good} wrong")
     return "\n".join(lines)
 
 
@@ -219,6 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--placements", type=int, default=20)
     p.add_argument("--seed", type=int, help="master seed (default: drawn, and printed)")
     p.add_argument("--parts", default="demo,ctc01,ftc06,random")
+    p.add_argument("--only", type=int, metavar="K",
+                   help="scan and measure placement K alone (0-based; the draws of those before it are replayed)")
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=1024)
     args = p.parse_args(argv)
@@ -231,11 +259,15 @@ def main(argv: list[str] | None = None) -> int:
     names = args.parts.split(",")
     rows: list[dict[str, Any]] = []
     with open(args.out / "pairs.jsonl", "a") as log:
-        for k in range(args.placements):
+        for k in range(args.placements if args.only is None else args.only + 1):
+            draw = draw_placement(rng)
+            if args.only is not None and k != args.only:
+                continue
             name = names[k % len(names)]
-            part_seed, noise_seed = (int(x) for x in rng.integers(0, 2 ** 31, 2))
+            part_seed, noise_seed = draw.part_seed, draw.noise_seed
+            print(f"placement {k}: {name}, part seed {part_seed}, noise seed {noise_seed}", flush=True)
             part = load_part(name, part_seed, args.out)
-            session = scan_placement(config, part, rng, args.out / f"placement_{k:03d}", noise_seed)
+            session = scan_placement(config, part, draw, args.out / f"placement_{k:03d}")
             for i, j in ((0, 1), (1, 2), (0, 2)):
                 row = {"placement": k, "part": part.name, "part_seed": part_seed, "noise_seed": noise_seed,
                        "master_seed": master, "load_average": os.getloadavg()[0]}
