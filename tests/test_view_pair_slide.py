@@ -49,3 +49,5 @@ def test_a_weakly_fixed_slide_is_within_the_stated_spread_or_refused_by_name() -
         assert deg <= pair.spread[0] and mm <= pair.spread[1], (deg, mm, pair.spread)
     else:
         assert any("does not fix" in why or "free" in why for why in pair.refusals), pair.refusals
+        heads = [why.split(":")[0] for why in pair.refusals]  # each motion named once, both its sides in one reason
+        assert len(set(heads)) == len(heads), pair.refusals

@@ -520,12 +520,19 @@ def _verdict(best: Evidence, tried: list[Evidence], bounds: list[Bound], centre:
                         f"the views disagree at this pose")
     rivals = [a for a in alternatives if a.consistent and a.z < z_accept]
     loose = [(e, b.ladder) for b in bounds for e, step in zip(b.at_resolution, b.steps) if step is None]
-    for e, ladder in loose[:2]:
-        deg, mm = pose_error(best.transform, e.transform, centre)
-        refusals.append(f"the evidence does not fix the {ladder.constraint.describe(ladder.k)} to the resolution: "
-                        f"the pose moved {deg:.2f} deg / {mm:.2f} mm along it scores {e.score:.4f} against "
-                        f"{best.score:.4f} and fits its residuals, both only {_apart(best, e):.1f} standard errors "
-                        f"worse at most (needs {z_accept:.2f})")
+    by_motion: dict[int, list[Evidence]] = {}  # both sides of one motion: one reason
+    for e, ladder in loose:
+        by_motion.setdefault(id(ladder), []).append(e)
+    ladders = {id(ladder): ladder for _, ladder in loose}
+    for key, moved in list(by_motion.items())[:2]:
+        sides = []
+        for e, way in zip(moved, ("one way", "the other way")):
+            deg, mm = pose_error(best.transform, e.transform, centre)
+            sides.append(f"moved {deg:.2f} deg / {mm:.2f} mm {way} along it the pose scores {e.score:.4f}, only "
+                         f"{_apart(best, e):.1f} standard errors worse at most")
+        refusals.append(f"the evidence does not fix the {ladders[key].constraint.describe(ladders[key].k)} to the "
+                        f"resolution: {'; '.join(sides)} (against {best.score:.4f}, score and residual fit; "
+                        f"needs {z_accept:.2f})")
     alternatives += [Alternative(e.transform, *pose_error(pose, e.transform, centre), e.score, _apart(best, e),
                                  consistent(e, z_refuse)) for e, _ in loose]
     if rivals:
