@@ -229,7 +229,8 @@ def _fit(pts: np.ndarray, raw: np.ndarray, patch: InstancePatch, *, model: ThinP
     walls = patch.wall_pts[: len(patch.wall_pts) // settings.wall_levels]
     fp = np.concatenate([fine, walls])
     fn = np.concatenate([np.tile(patch.n, (len(fine), 1)), patch.wall_nrm[: len(walls)]])
-    T = icp(fp, fn, sm.target.dense, T, 2.0 * v, 2.0 * patch.spacing, settings.max_normal_deg, 15)
+    T = icp(fp, fn, sm.target.dense, T=T, max_dist=2.0 * v, min_dist=2.0 * patch.spacing,
+            max_normal_deg=settings.max_normal_deg, iterations=15)
     pose = np.linalg.inv(T)
     pick = rng.choice(len(pts), size=min(2000, len(pts)), replace=False)
     q = transform_points(T, pts[pick])
@@ -322,8 +323,10 @@ def _judge(patch: InstancePatch, sm: SideModel, sp: np.ndarray, sn: np.ndarray, 
     # again on the dense instance: these poses are only judged)
     k, (first_its, last_its) = settings.judge_icp_stride, settings.judge_icp_iterations
     deg, tgt = settings.max_normal_deg, sm.target.coarse
-    posed = [icp(sp, sn, tgt, icp(sp[::k], sn[::k], tgt, T, 6.0 * v, 0.5 * v, deg, first_its), 0.5 * v, 0.5 * v,
-                 deg, last_its) for T in poses]
+    near = [icp(sp[::k], sn[::k], tgt, T=T, max_dist=6.0 * v, min_dist=0.5 * v, max_normal_deg=deg,
+                iterations=first_its) for T in poses]
+    posed = [icp(sp, sn, tgt, T=T, max_dist=0.5 * v, min_dist=0.5 * v, max_normal_deg=deg, iterations=last_its)
+             for T in near]
     fit = fitness(sp, sn, sm.target.coarse, T=np.array(posed), inlier_mm=1.5 * v,
                   max_normal_deg=settings.max_normal_deg,
                   workers=1)

@@ -111,8 +111,9 @@ def surviving(scan: ScanCloud, target: ModelTarget, coarse_best: tuple[np.ndarra
         T = explore(scan.points[dense], scan.normals[dense], target.dense, T=T, inlier_mm=0.3 * v,
                     degrees=settings.fine_turns_deg,
                     icp_mm=1.0 * v, settings=settings)
-        T = icp(scan.points[dense], scan.normals[dense], target.dense, T, 1.0 * v, 0.05 * v, settings.max_normal_deg,
-                30, settings.tangential_weight)
+        T = icp(scan.points[dense], scan.normals[dense], target.dense, T=T, max_dist=1.0 * v, min_dist=0.05 * v,
+                max_normal_deg=settings.max_normal_deg,
+                iterations=30, tangential=settings.tangential_weight)
         centre = transform_points(final, scan.points[dense]).mean(axis=0)  # model frame
         if within(final, T, centre, settings.pose_tolerance_deg, settings.pose_tolerance_mm, free):
             continue  # the same pose (or the same up to a symmetry of the part)

@@ -165,8 +165,10 @@ def coarse_icp(sp: np.ndarray, sn: np.ndarray, target: ModelTarget, T: np.ndarra
     """A coarse pose `T` refined against the model's coarse samples: ICP on every third
     point first (most of the way in), then on all of them."""
     v, deg, tw = target.voxel_mm, settings.max_normal_deg, settings.tangential_weight
-    near = icp(sp[::3], sn[::3], target.coarse, T, 8.0 * v, 0.5 * v, deg, 20, tw)
-    return icp(sp, sn, target.coarse, near, 8.0 * v, 0.5 * v, deg, 10, tw)
+    near = icp(sp[::3], sn[::3], target.coarse, T=T, max_dist=8.0 * v, min_dist=0.5 * v, max_normal_deg=deg,
+               iterations=20, tangential=tw)
+    return icp(sp, sn, target.coarse, T=near, max_dist=8.0 * v, min_dist=0.5 * v, max_normal_deg=deg, iterations=10,
+               tangential=tw)
 
 
 def refine(scan: ScanCloud, target: ModelTarget, coarse: np.ndarray, *, settings: RegistrationSettings,

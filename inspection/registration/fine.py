@@ -51,11 +51,13 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
     usable = well_seen(scan, settings.max_incidence_deg, outline=False)
     sel = usable[normal_space_sample(n[usable], settings.max_points, rng)]
     first = sel[: max(len(sel) // 4, 1)]
-    T = icp(p[first], n[first], target.dense, T, 1.5 * v, 0.1 * v, settings.max_normal_deg, 15,
-            settings.tangential_weight)
+    T = icp(p[first], n[first], target.dense, T=T, max_dist=1.5 * v, min_dist=0.1 * v,
+            max_normal_deg=settings.max_normal_deg, iterations=15,
+            tangential=settings.tangential_weight)
     if target.model is None or target.model.kind != "step":
-        T = icp(p[sel], n[sel], target.dense, T, 0.5 * v, 0.05 * v, settings.max_normal_deg, 10,
-                settings.tangential_weight)
+        T = icp(p[sel], n[sel], target.dense, T=T, max_dist=0.5 * v, min_dist=0.05 * v,
+                max_normal_deg=settings.max_normal_deg, iterations=10,
+                tangential=settings.tangential_weight)
         d, _ = target.dense.tree.query(transform_points(T, p[sel]), distance_upper_bound=0.5 * v)
         return T, FinalFit(sel[np.isfinite(d)])
     fit = None

@@ -69,7 +69,8 @@ def plane_poses(src_pts: np.ndarray, src_nrm: np.ndarray, target: ModelTarget, n
     P = np.array(poses)
     first = np.argsort(-fitness(src_pts[pick], src_nrm[pick], target.coarse, T=P, inlier_mm=6.0 * v,
                                 max_normal_deg=45.0))[:3 * n_best]
-    P = np.array([icp(src_pts[pick], src_nrm[pick], target.coarse, P[i], 20.0 * v, 2.0 * v, 45.0, 8, 0.5)
+    P = np.array([icp(src_pts[pick], src_nrm[pick], target.coarse, T=P[i], max_dist=20.0 * v, min_dist=2.0 * v,
+                      max_normal_deg=45.0, iterations=8, tangential=0.5)
                   for i in first])  # a short, nearly point-to-point ICP: the plane centroids are only a guess
     fits = fitness(src_pts[pick], src_nrm[pick], target.coarse, T=P, inlier_mm=3.0 * v, max_normal_deg=45.0)
     return [P[i] for i in np.argsort(-fits)[:n_best]]

@@ -11,7 +11,7 @@ from inspection.registration.rigid import cross_rows, transform_points, twist_ma
 from inspection.registration.settings import RegistrationSettings
 
 
-def icp(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.ndarray, max_dist: float,
+def icp(src: np.ndarray, src_nrm: np.ndarray, target: Samples, *, T: np.ndarray, max_dist: float,
         min_dist: float, max_normal_deg: float, iterations: int = 30,
         tangential: float = RegistrationSettings.tangential_weight) -> np.ndarray:
     """Point-to-plane ICP with normal-angle rejection: pairs farther than a threshold

@@ -92,8 +92,9 @@ def explore(src: np.ndarray, src_nrm: np.ndarray, target: Samples, *, T: np.ndar
         k, fit_k = int(top[np.argmax(fits)]), float(fits.max())
         if fit_k <= best + 0.002:
             break
-        U = icp(src, src_nrm, target, cand[k], icp_mm, 0.5 * inlier_mm, max_normal_deg, 20,
-                settings.tangential_weight)
+        U = icp(src, src_nrm, target, T=cand[k], max_dist=icp_mm, min_dist=0.5 * inlier_mm,
+                max_normal_deg=max_normal_deg, iterations=20,
+                tangential=settings.tangential_weight)
         fit = fitness(src, src_nrm, target, T=U[None], inlier_mm=inlier_mm, max_normal_deg=max_normal_deg)[0]
         T, best = (U, fit) if fit > fit_k else (cand[k], fit_k)
     return T

@@ -321,8 +321,8 @@ def _weigh(scan: ScanCloud, target: ScanCloud, overlap: float | None, settings: 
     bounds = _bounds(best, ladders, fine, pair)
     times["judge"] = time.perf_counter() - t0
     method = "rscs+" + "+".join(settings.descriptors) + f"+{settings.coarse}+face-directions+projective+sensor-evidence"
-    return _verdict(best, tried, bounds, centre, overlap, pair, method,
-                    {k: round(v, 3) for k, v in times.items()})
+    return _verdict(best, tried, bounds, centre=centre, overlap=overlap, pair=pair, method=method,
+                    times={k: round(v, 3) for k, v in times.items()})
 
 
 @dataclass(frozen=True, eq=False)
@@ -449,7 +449,8 @@ def _hypotheses(scan: ScanCloud, model: ModelTarget, judged: list[Judging],
     few = [_few(j, rng) for j in judged]
     first = sorted(starts, key=lambda T: -_rough(T, few, v))[:ROUGH]
     pick = rng.choice(len(grid[0]), size=min(1500, len(grid[0])), replace=False)
-    refined = [icp(grid[0][pick], grid[1][pick], model.coarse, T, 8.0 * v, 0.5 * v, 30.0, 20) for T in first]
+    refined = [icp(grid[0][pick], grid[1][pick], model.coarse, T=T, max_dist=8.0 * v, min_dist=0.5 * v,
+                   max_normal_deg=30.0, iterations=20) for T in first]
     kept: list[np.ndarray] = []
     for T in sorted(refined, key=lambda T: -_rough(T, few, 0.5 * v)):  # the same pose found twice counts once
         if all(max(pose_error(T, U, c)[0] / SAME_START_DEG, pose_error(T, U, c)[1] / v) > 2.0 for U in kept):
@@ -482,7 +483,7 @@ def _distinct(a: np.ndarray, b: np.ndarray, centre: np.ndarray, pair: ViewPairSe
     return deg > pair.resolution_deg or mm > pair.resolution_mm
 
 
-def _verdict(best: Evidence, tried: list[Evidence], bounds: list[Bound], centre: np.ndarray,
+def _verdict(best: Evidence, tried: list[Evidence], bounds: list[Bound], *, centre: np.ndarray,
              overlap: float | None, pair: ViewPairSettings, method: str, times: dict[str, float]) -> ViewPair:
     """The pose the evidence supports with every refusal it calls for (see the module
     docstring): the mean of the poses that score within z standard errors of the best (the

@@ -114,8 +114,8 @@ def refine_pair(source: PairView, target: PairView, init: np.ndarray, settings: 
     """Refine the pose `init` of `source` in `target` (see the module docstring)."""
     spacing = target.spacing_mm if settings.spacing_floor else 0.0
     floor = min(max(settings.min_distance_mm, spacing), settings.max_distance_mm)
-    T = icp(source.points, source.normals, target.dense, np.asarray(init, float), settings.max_distance_mm,
-            floor, settings.max_normal_deg, settings.iterations, tangential=0.0)
+    T = icp(source.points, source.normals, target.dense, T=np.asarray(init, float), max_dist=settings.max_distance_mm,
+            min_dist=floor, max_normal_deg=settings.max_normal_deg, iterations=settings.iterations, tangential=0.0)
     q = transform_points(T, source.points)
     n = source.normals @ T[:3, :3].T
     d, j = target.dense.tree.query(q, distance_upper_bound=settings.voxel_mm, workers=-1)
