@@ -82,13 +82,15 @@ def surviving(scan: ScanCloud, target: ModelTarget, coarse_best: tuple[np.ndarra
     centre = sp.mean(axis=0)
     radius = float(np.sqrt(np.mean(np.sum((sp - centre) ** 2, axis=1))))
     others = distinct([coarse_best[1], *candidates], centre, v, radius)[1:]
-    if not others:
-        return ()
-    alpha = settings.false_accept / len(others)
+    alpha = settings.false_accept / max(len(others), 1)
     idx = rng.choice(len(scan), size=min(settings.eval_points, len(scan)), replace=False)
     points, normals = scan.points[idx], scan.normals[idx]
     where = None if scan.pixels is None else scan.pixels[idx].astype(np.float64)
     correlation = None if cov is None else cov.correlation
+    climbed = () if cov is None else climb(final, cov, points, normals=normals, target=target,
+                                            viewpoint=scan.viewpoint, where=where, settings=settings)
+    if not others:
+        return climbed
     model_centre = transform_points(coarse_best[1], centre[None])[0]
     voxel_deg = float(np.degrees(v / max(radius, 1e-9)))
     out = []
@@ -125,7 +127,81 @@ def surviving(scan: ScanCloud, target: ModelTarget, coarse_best: tuple[np.ndarra
             out.append(compare(final, T, points, normals=normals, target=target, viewpoint=scan.viewpoint,
                                inlier_mm=0.5 * v, settings=settings, correlation=correlation,
                                where=where))
-    return tuple(out)
+    return tuple(out) + climbed
+
+
+CLIMB_STEPS = 5  # the climb's steps: from two voxels at the fit's radius, halving
+CLIMBS = 8  # at most this many moves a step along one motion
+
+
+def climb(final: np.ndarray, cov: PoseCovariance, points: np.ndarray, *, normals: np.ndarray, target: ModelTarget,
+          viewpoint: np.ndarray | None, where: np.ndarray | None,
+          settings: RegistrationSettings) -> tuple[Comparison, ...]:
+    """The final pose moved along each of its covariance's principal motions (the unbounded
+    first, then the loosest), unrefined, by steps from two voxels at the fit's radius halving
+    down (`CLIMB_STEPS`), while the moved pose explains the scan `points` better than the
+    current one by the alternatives' own test (`compare`: the current rejected in its favour
+    at `false_accept`, the discordant points' correlation counted); where that ends beyond
+    the pose tolerance, its comparison with the final (which then stands: the final pose is
+    not proven). The exact fit rests on faces; a motion that moves none of them (the demo
+    part seen from above, all its seen faces coaxial with the boss: a turn about the boss
+    axis) is fixed only by the faces' outlines, which a fitness search turning about the
+    scan's own axes may not reach (pose-coverage campaign 635461529 scan 49: 1.41 deg about
+    the boss axis off, stated U 0.01 deg, proven; the truth explained 5502 more of its points
+    and 737 fewer)."""
+    v = target.voxel_mm
+    a = explained(points, normals, target, T=final, inlier_mm=0.5 * v, max_normal_deg=settings.max_normal_deg,
+                  viewpoint=viewpoint)
+    current, start = final, a
+    for m in _motions(cov):
+        for step in (2.0 * v / 2.0 ** k for k in range(CLIMB_STEPS)):
+            for _ in range(CLIMBS):
+                moves = [_move(current, m * s, cov.centre) for s in (-step, step)]
+                seen = [explained(points, normals, target, T=M, inlier_mm=0.5 * v,
+                                  max_normal_deg=settings.max_normal_deg, viewpoint=viewpoint) for M in moves]
+                p = [_rejects(a, b, where, cov, settings) for b in seen]
+                k = int(np.argmin(p))
+                if p[k] >= settings.false_accept:
+                    break
+                current, a = moves[k], seen[k]
+    if current is final or within(final, current, cov.centre, settings.pose_tolerance_deg, settings.pose_tolerance_mm):
+        return ()
+    for_best, for_other = int(np.sum(start & ~a)), int(np.sum(a & ~start))
+    kappa = 1.0 if where is None else cov.correlation.inflation(where[start != a])
+    angle, shift = pose_difference(final, current, points.mean(axis=0))
+    return (Comparison(current, for_best, for_other, kappa, sign_test(for_best, for_other, kappa), float(a.mean()),
+                       angle, shift),)
+
+
+def _rejects(a: np.ndarray, b: np.ndarray, where: np.ndarray | None, cov: PoseCovariance,
+             settings: RegistrationSettings) -> float:
+    """p-value of the pose explaining points `a` against the one explaining `b` (`sign_test`)."""
+    kappa = 1.0 if where is None else cov.correlation.inflation(where[a != b])
+    return sign_test(int(np.sum(b & ~a)), int(np.sum(a & ~b)), kappa) if (b & ~a).any() else 1.0
+
+
+def _motions(cov: PoseCovariance) -> np.ndarray:
+    """(6, 6) unit motions (rotation rad, translation mm about `cov.centre`; a rotation's
+    unit the turn moving the fit's radius by 1 mm), the unbounded and loosest first."""
+    r = max(cov.radius_mm, 1e-9)
+    scale = np.array([r, r, r, 1.0, 1.0, 1.0])
+    S = cov.covariance * np.outer(scale, scale)
+    if len(cov.unbounded):
+        U = cov.unbounded * scale
+        U /= np.linalg.norm(U, axis=1, keepdims=True)
+        S = S + (np.trace(S) + 1.0) * U.T @ U
+    _, vec = np.linalg.eigh(S)
+    return (vec[:, ::-1] / scale[:, None]).T
+
+
+def _move(T: np.ndarray, x: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Pose T (scan -> model) moved by the motion x (rotation rad, translation of `centre` mm)."""
+    from scipy.spatial.transform import Rotation
+
+    M = np.eye(4)
+    M[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
+    M[:3, 3] = centre + x[3:] - M[:3, :3] @ centre
+    return M @ T
 
 
 def unrejected(comparisons: tuple[Comparison, ...], settings: RegistrationSettings) -> tuple[Comparison, ...]:
