@@ -10,7 +10,10 @@ search and ICP on the dense samples) and compared with the final pose there. Eac
 comparison is the sign test of `evidence.sign_test` at `false_accept` / K, except where the
 alternative moves no scan point further than the inlier distance from where the final pose
 puts it: there both explain the same points, and the evidence is in the residuals, so the
-test is the likelihood ratio of the fit's own covariance (`evidence.local_test`).
+test is the likelihood ratio of the fit's own covariance (`evidence.local_test`). Last, the
+final pose climbs along its covariance's principal motions while the same sign test prefers
+the moved pose (`climb`): a pose the exact fit left on a motion its faces do not fix is
+compared with where the scan's outlines put it.
 """
 
 from __future__ import annotations
@@ -75,8 +78,8 @@ def surviving(scan: ScanCloud, target: ModelTarget, coarse_best: tuple[np.ndarra
     """The comparisons of the final pose with each other candidate (coarse poses, scan ->
     model, ICP-refined; `coarse_best` the best's as refined the same way and after the local
     search) that is a distinct pose (not within the pose tolerance of the best, symmetries in
-    `free` taken out); those the test cannot reject are the alternatives (`p_value` above
-    `false_accept` / K)."""
+    `free` taken out), and with where the climb along its motions ends (`climb`); those the
+    test cannot reject are the alternatives (`p_value` above `false_accept` / K)."""
     v = target.voxel_mm
     sp, sn = coarse_points
     centre = sp.mean(axis=0)
