@@ -68,7 +68,10 @@ most `false_accept` (1e-3) per registration. The false-refusal rate is not bound
 (it depends on how much of the part that tells the poses apart is in view): it is measured on
 random parts (`sim.random_parts`, README). An alternative within the pose tolerance of the
 best is the same pose; one that differs from it only by a symmetry of the part is the same
-pose with the free motion.
+pose with the free motion. The search's poses are not the only alternatives: the final pose
+is also moved along its covariance's principal motions while this test prefers the moved
+pose (`alternatives.climb`), and where that ends beyond the pose tolerance it is one more
+alternative (a fit left on a motion its faces do not fix, which only the outlines fix).
 """
 
 from __future__ import annotations
