@@ -27,29 +27,13 @@ def _big_then_small(peaks: StagePeaks) -> float:
     return before
 
 
-_ALONE = """
-import json
-from slscan.resident_memory import StagePeaks, release_memory, resident_mib
-import numpy as np
-peaks = StagePeaks()
-release_memory()
-before = resident_mib()
-with peaks.stage("big"):
-    block = np.ones(200 * 2 ** 20 // 8)  # 200 MiB, every page touched
-    del block
-with peaks.stage("small"):
-    pass
-print(json.dumps({"before": before, "peaks": peaks.peaks, "not_measured": peaks.not_measured}))
-"""
-
-
 def test_each_stage_reports_its_own_peak_or_says_it_cannot() -> None:
     """Where the kernel resets the high-water mark, a stage touching 200 MiB peaks at least that
     above the resident set before it and the next stage, allocating nothing, peaks below it; where
     it does not (CI's sandbox), both stages are "not measured" with the reason, never the run's peak
     under a stage's name. Run in a process of its own: in a test worker, threads left by other
     tests allocate too, and the resident set is the process's."""
-    run = subprocess.run([sys.executable, "-c", _ALONE], capture_output=True, text=True, check=True,
+    run = subprocess.run([sys.executable, __file__], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[1])
     out = json.loads(run.stdout.splitlines()[-1])
     if out["not_measured"] is None:
@@ -90,3 +74,9 @@ def test_a_reset_refused_is_not_measured(tmp_path: Path) -> None:
         pass
     assert peaks.peaks == {"any": None}
     assert peaks.not_measured is not None and "clear_refs" in peaks.not_measured
+
+
+if __name__ == "__main__":  # the stages alone in this process (test_each_stage_reports_its_own_peak_or_says_it_cannot)
+    alone = StagePeaks()
+    before = _big_then_small(alone)
+    print(json.dumps({"before": before, "peaks": alone.peaks, "not_measured": alone.not_measured}))
