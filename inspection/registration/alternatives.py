@@ -32,7 +32,7 @@ from inspection.registration.evidence import (
     within,
 )
 from inspection.registration.point_to_plane import icp
-from inspection.registration.rigid import pose_difference, transform_points
+from inspection.registration.rigid import pose_difference, transform_points, twist_matrix
 from inspection.registration.settings import RegistrationSettings
 from inspection.registration.target import ModelTarget
 from inspection.registration.verification import explained, explore
@@ -199,11 +199,8 @@ def _motions(cov: PoseCovariance) -> np.ndarray:
 
 def _move(T: np.ndarray, x: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """Pose T (scan -> model) moved by the motion x (rotation rad, translation of `centre` mm)."""
-    from scipy.spatial.transform import Rotation
-
-    M = np.eye(4)
-    M[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
-    M[:3, 3] = centre + x[3:] - M[:3, :3] @ centre
+    M = twist_matrix(x)
+    M[:3, 3] += centre - M[:3, :3] @ centre  # the turn about `centre`, not the origin
     return M @ T
 
 
