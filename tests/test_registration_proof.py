@@ -349,3 +349,35 @@ def test_climb_refuses_a_pose_turned_about_the_boss_and_keeps_the_truth() -> Non
     (found,) = run(turn @ truth)
     assert found.p_value >= settings.false_accept and found.for_other > found.for_best
     assert pose_difference(found.transform, truth, points.mean(axis=0))[0] < 0.7
+
+
+def test_an_alternative_inside_the_poses_own_region_is_a_loose_motion_not_another_pose() -> None:
+    """`judge`: an unrejected alternative whose offset from the pose lies inside the pose's
+    95 % error ellipsoid (Mahalanobis distance squared below scipy's chi-square 95 % quantile
+    on 6 degrees of freedom, computed here from the diagonal covariance) leaves the pose
+    "free" with the move to it as a named motion of that size; one just outside that region
+    is another pose: "ambiguous", listed among the alternatives."""
+    from scipy.stats import chi2
+
+    from inspection.registration.driver import Registration, judge
+    from inspection.registration.evidence import Comparison, PoseCovariance
+
+    sd = np.array([np.radians(0.01)] * 3 + [0.05] * 3)  # rad, mm
+    centre = np.array([1.0, 2.0, 3.0])
+    cov = PoseCovariance(np.diag(sd ** 2), centre, 0.01, 5000, ResidualCorrelation(8.0, 0.0, "px"), 1.0, 40.0)
+    reg = Registration(np.eye(4), 0.95, 0.01, 0.1, np.eye(4), "test", covariance=cov)
+    limit = float(np.sqrt(chi2.ppf(0.95, 6)))  # the ellipsoid's radius in standard deviations
+
+    def moved(d: float) -> Comparison:
+        """An alternative translated by `d` standard deviations along x: p 0.5, never rejected."""
+        T = np.eye(4)
+        T[0, 3] = d * sd[3]
+        return Comparison(T, 10, 10, 1.0, 0.5, 0.95, 0.0, d * sd[3])
+
+    inside = judge(reg, (moved(0.98 * limit),), RegistrationSettings())
+    assert inside.status == "free" and inside.alternatives == ()
+    (m,) = inside.free
+    assert m.kind == "translation" and abs(abs(m.axis[0]) - 1.0) < 1e-9
+    assert m.u == pytest.approx(0.98 * limit * sd[3], rel=1e-9)
+    outside = judge(reg, (moved(1.02 * limit),), RegistrationSettings())
+    assert outside.status == "ambiguous" and len(outside.alternatives) == 1 and outside.free == ()

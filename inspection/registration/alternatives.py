@@ -146,10 +146,11 @@ def climb(final: np.ndarray, cov: PoseCovariance, points: np.ndarray, *, normals
     current one by the alternatives' own test (`compare`: the current rejected in its favour
     at `false_accept`, the discordant points' correlation counted); where that ends beyond
     the pose tolerance, its comparison with the final (which then stands: the final pose is
-    not proven). The exact fit rests on faces; a motion that moves none of them (the demo
-    part seen from above, all its seen faces coaxial with the boss: a turn about the boss
-    axis) is fixed only by the faces' outlines, which a fitness search turning about the
-    scan's own axes may not reach (pose-coverage campaign 635461529 scan 49: 1.41 deg about
+    not proven; `driver.judge` keeps it as a free motion when the pose's U covers it). The
+    exact fit rests on faces; a motion that moves none of them (the demo part seen from
+    above, all its seen faces coaxial with the boss: a turn about the boss axis) is fixed
+    only by the faces' outlines, which a fitness search turning about the scan's own axes
+    may not reach (pose-coverage campaign 635461529 scan 49: 1.41 deg about
     the boss axis off, stated U 0.01 deg, proven; the truth explained 5502 more of its points
     and 737 fewer)."""
     v = target.voxel_mm

@@ -72,6 +72,9 @@ pose with the free motion. The search's poses are not the only alternatives: the
 is also moved along its covariance's principal motions while this test prefers the moved
 pose (`alternatives.climb`), and where that ends beyond the pose tolerance it is one more
 alternative (a fit left on a motion its faces do not fix, which only the outlines fix).
+An unrejected alternative inside the pose's own error ellipsoid at `U_LEVEL` (`covers`) is
+not another pose: the stated U already covers it, and it is kept as a free motion of its
+size (`driver.judge`), so the pose is "free", not "ambiguous".
 """
 
 from __future__ import annotations
@@ -88,6 +91,7 @@ BLOCKS = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0)  # block sides tried for the residu
 MIN_BLOCKS = 30  # fewer blocks than this estimate their covariance too poorly to use
 SYMMETRY_ZERO = 1e-3  # a motion moving the whole model's surface by less than this share of itself: a symmetry
 U_DRAWS = 20000  # draws from the covariance for the 95 % bounds of the rotation angle and the displacement
+U_LEVEL = 0.95  # the coverage probability of every pose U stated (k = 2)
 
 
 def jacobian(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -199,8 +203,8 @@ class PoseCovariance:
         draws from it (the unbounded motions, zero there, left out)."""
         w, v = np.linalg.eigh(covariance)
         draws = np.random.default_rng(0).standard_normal((U_DRAWS, 6)) * np.sqrt(np.maximum(w, 0.0)) @ v.T
-        return (float(np.degrees(np.quantile(np.linalg.norm(draws[:, :3], axis=1), 0.95))),
-                float(np.quantile(np.linalg.norm(draws[:, 3:], axis=1), 0.95)))
+        return (float(np.degrees(np.quantile(np.linalg.norm(draws[:, :3], axis=1), U_LEVEL))),
+                float(np.quantile(np.linalg.norm(draws[:, 3:], axis=1), U_LEVEL)))
 
     def as_dict(self) -> dict[str, object]:
         rot, shift = self.bounds()
@@ -507,6 +511,12 @@ def local_test(final: np.ndarray, other: np.ndarray, cov: PoseCovariance) -> flo
     keep = w > 1e-12 * max(w.max(), 1e-300)
     d2 = float(np.sum((v[:, keep].T @ x) ** 2 / w[keep]))
     return float(chi2.sf(d2, int(keep.sum())))
+
+
+def covers(final: np.ndarray, other: np.ndarray, cov: PoseCovariance) -> bool:
+    """Whether pose `other` lies inside the region `final`'s stated U covers: its error
+    ellipsoid at `U_LEVEL` (`local_test`)."""
+    return local_test(final, other, cov) >= 1.0 - U_LEVEL
 
 
 @dataclass(frozen=True)
