@@ -441,11 +441,10 @@ def sensor_noise_terms(sensor: CameraNoise | None, bit_depth: int) -> tuple[floa
     gain g = full well / full scale e-/DN, read = (read noise / g)² + 1/12 (quantisation),
     shot = 1/g. None when the rig file has no such table or it gives no full_well_e; a read
     noise left out is 0 here (the keys as written, not the table's defaults)."""
-    given = sensor.model_fields_set if sensor is not None else set()
-    if sensor is None or "full_well_e" not in given:
+    if sensor is None or "full_well_e" not in sensor.model_fields_set:
         return None
     g = sensor.full_well_e / float(2 ** bit_depth - 1)
-    read_e = sensor.read_noise_e if "read_noise_e" in given else 0.0
+    read_e = sensor.read_noise_e if "read_noise_e" in sensor.model_fields_set else 0.0
     return (read_e / g) ** 2 + 1.0 / 12.0, 1.0 / g
 
 

@@ -10,6 +10,11 @@ typed here too, so the whole file is checked at load: `[calibrate]` (`CalibrateT
 by `calibration.workflow.Procedure`), `[acceptance]` (`AcceptanceTable`, read by
 `inspection.acceptance.Acceptance`), `[stage]` (`scanner.stage_model.StageTable`).
 
+`RecordedRig` reads the copy of a rig TOML a session recorded (manifest.json `rig_config`)
+through typed tables of the keys read after the capture, each when first asked for: an
+imported session records a stand-in without tables, an older one tables this schema may
+now refuse, and both must read as they did.
+
 `RigModelSchema` is the geometry as `RigModel.to_dict` writes it (session manifests,
 calibration files). `check_geometry` refuses a rig that cannot measure anything: a camera
 and projector without a common field of view at the working distance, a projector looking
