@@ -29,11 +29,15 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 from statistics import NormalDist
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from scanner.errors import DecodeError
+from scanner.errors import ConfigError, DecodeError
+
+if TYPE_CHECKING:
+    from scanner.camera_noise import CameraNoise
+    from scanner.rig_schema import RecordedRig
 
 ALPHA = 1e-4  # false-refusal rate of each noise-scale test when the noise model holds
 SENSOR_MODEL_ACCURACY = 0.10  # relative accuracy of σ_I from a camera's photon-transfer table (EMVA 1288 gain)
@@ -332,16 +336,17 @@ class Volume:
     source: str
 
     @classmethod
-    def of_rig_config(cls, rig_config: dict[str, Any]) -> Volume:
-        """The rig file's declared measuring volume ([acceptance] volume_mm about
-        [rig] working_distance_mm), or none."""
-        acceptance = rig_config.get("acceptance") if isinstance(rig_config, dict) else None
-        rig = rig_config.get("rig") if isinstance(rig_config, dict) else None
-        size = acceptance.get("volume_mm") if isinstance(acceptance, dict) else None
-        distance = rig.get("working_distance_mm") if isinstance(rig, dict) else None
-        if isinstance(size, list) and len(size) == 3 and isinstance(distance, (int, float)):
-            depth = float(size[2])
-            return cls(float(distance) - depth / 2, float(distance) + depth / 2,
+    def of_recorded(cls, rig: RecordedRig) -> Volume:
+        """The recorded rig file's declared measuring volume ([acceptance] volume_mm about
+        [rig] working_distance_mm), or none: also when either table is malformed, as before
+        the tables were typed (the volume only narrows a check)."""
+        try:
+            size, distance = rig.acceptance.volume_mm, rig.rig.working_distance_mm
+        except ConfigError:
+            size = distance = None
+        if size is not None and distance is not None:
+            depth = size[2]
+            return cls(distance - depth / 2, distance + depth / 2,
                        f"the rig file's [acceptance] volume_mm {size} about its working distance {distance} mm")
         return cls(None, None, "no measuring volume declared (the rig file's [acceptance] volume_mm)")
 
@@ -430,17 +435,16 @@ def pattern_set_tie(recorded: str | None, used: dict[str, Any]) -> Check:
                  "0 (a checksum)", 1)
 
 
-def sensor_noise_terms(rig_config: dict[str, Any], bit_depth: int) -> tuple[float, float] | None:
+def sensor_noise_terms(sensor: CameraNoise | None, bit_depth: int) -> tuple[float, float] | None:
     """(read, shot) of the camera's intensity noise σ_I² = read + shot·A (DN², A in DN) from
     its photon-transfer table (the rig file's [camera.sensor]: full_well_e, read_noise_e):
     gain g = full well / full scale e-/DN, read = (read noise / g)² + 1/12 (quantisation),
-    shot = 1/g. None when the rig file has no such table."""
-    camera = rig_config.get("camera") if isinstance(rig_config, dict) else None
-    table = camera.get("sensor") if isinstance(camera, dict) else None
-    if not isinstance(table, dict) or "full_well_e" not in table:
+    shot = 1/g. None when the rig file has no such table or it gives no full_well_e; a read
+    noise left out is 0 here (the keys as written, not the table's defaults)."""
+    if sensor is None or "full_well_e" not in sensor.model_fields_set:
         return None
-    g = float(table["full_well_e"]) / float(2 ** bit_depth - 1)
-    read_e = float(table.get("read_noise_e", 0.0))
+    g = sensor.full_well_e / float(2 ** bit_depth - 1)
+    read_e = sensor.read_noise_e if "read_noise_e" in sensor.model_fields_set else 0.0
     return (read_e / g) ** 2 + 1.0 / 12.0, 1.0 / g
 
 

@@ -335,7 +335,7 @@ def rig_checks(session: Session, decoded: DecodeResult, cloud: OrganisedCloud | 
         if ordering_check is not None:
             out.append(direction(ordering_check, model, o, calibrated))
     if cloud is not None and len(cloud):
-        volume = Volume.of_rig_config(session.manifest.rig_config)
+        volume = Volume.of_recorded(session.manifest.recorded_rig)
         out.append(measurement_volume(cloud.points, model, volume, tuple(decoded.maps)))
     if calibrated and set(decoded.maps) == {"vertical", "horizontal"}:
         accuracy = model_accuracy_px(session, model)
@@ -352,7 +352,7 @@ def model_accuracy_px(session: Session, model: RigModel) -> float | None:
     capture the epipolar distance is twice that RMS allows), and a nominal hardware geometry
     states nothing: None, the epipolar check is then not judged."""
     imported = (session.manifest.imported or {}).get("calibration")
-    driver = session.manifest.rig_config.get("rig", {}).get("driver")
+    driver = session.manifest.recorded_rig.rig.driver
     return 0.0 if driver == "sim" and not model.calibration and not imported else None
 
 
@@ -392,7 +392,7 @@ def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: bool, model_p
 
 def sensor_noise(session: Session) -> NoiseModel | None:
     """The camera's intensity noise from the session's rig file ([camera.sensor]), or None."""
-    terms = sensor_noise_terms(session.manifest.rig_config, session.bit_depth)
+    terms = sensor_noise_terms(session.manifest.recorded_rig.sensor, session.bit_depth)
     return NoiseModel(*terms) if terms is not None else None
 
 
@@ -505,9 +505,9 @@ def save_maps(path: Path, decoded: DecodeResult) -> None:
 
 def recording_level(session: Session) -> str:
     """The recording level the session was captured with (its rig's `[recording] level`;
-    "display" when the rig said nothing, or for imported frames)."""
-    table = session.manifest.rig_config.get("recording", {})
-    return str(table.get("level", "display")) if isinstance(table, dict) else "display"
+    "display" when the rig said nothing, or for imported frames; ConfigError for a level
+    that is none of them)."""
+    return session.manifest.recorded_rig.recording.level
 
 
 def reprocess(session: Session, progress: Progress = _quiet, mode: str = "triangulation",

@@ -10,6 +10,11 @@ typed here too, so the whole file is checked at load: `[calibrate]` (`CalibrateT
 by `calibration.workflow.Procedure`), `[acceptance]` (`AcceptanceTable`, read by
 `inspection.acceptance.Acceptance`), `[stage]` (`scanner.stage_model.StageTable`).
 
+`RecordedRig` reads the copy of a rig TOML a session recorded (manifest.json `rig_config`)
+through typed tables of the keys read after the capture, each when first asked for: an
+imported session records a stand-in without tables, an older one tables this schema may
+now refuse, and both must read as they did.
+
 `RigModelSchema` is the geometry as `RigModel.to_dict` writes it (session manifests,
 calibration files). `check_geometry` refuses a rig that cannot measure anything: a camera
 and projector without a common field of view at the working distance, a projector looking
@@ -18,14 +23,17 @@ away, a projector at the camera (no baseline, no triangulation).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from scanner import schema
+from scanner.camera_noise import CameraNoise
 from scanner.drivers.registry import Driver, Kind, lookup, own_settings
 from scanner.errors import ConfigError
 from scanner.geometry import RigModel
@@ -43,6 +51,8 @@ from scanner.schema import (
     Vector4,
 )
 from scanner.stage_model import StageTable
+
+T = TypeVar("T", bound=Schema)
 
 ImageSide = Annotated[int, Field(strict=True, ge=1, le=65536)]
 Distortion = Annotated[list[Float], Field(min_length=5, max_length=5)]
@@ -248,6 +258,95 @@ class RigFile(Schema):
         if not self.cameras:
             raise ValueError("a rig file has a [camera] table or a [[cameras]] list")  # the validator refuses it first
         return self.cameras[0]
+
+
+class RecordedTable(Schema):
+    """A table of a rig config as a session recorded it (manifest.json `rig_config`: the rig
+    TOML at capture, or the stand-in `slscan import` writes), typed for the readers after the
+    capture: only the keys they read, without the file schema's ranges and cross-key rules
+    (the config was judged at capture, by the schema of its day); the other keys are ignored,
+    so an older session's tables read as before. A key left out reads as None, or its default."""
+
+    model_config = ConfigDict(extra="ignore")
+
+
+class RecordedRigTable(RecordedTable):
+    name: Str | None = None
+    driver: Str | None = None
+    working_distance_mm: Float | None = None
+
+
+class RecordedCameraTable(RecordedTable):
+    bit_depth: Int | None = None  # [camera.sensor]: `RecordedRig.sensor`
+
+
+class RecordedProjectorTable(RecordedTable):
+    blur_sigma_px: Float = 0.0  # the simulator's projector defocus (Gaussian sigma, px); 0: none stated
+
+
+class RecordedRecordingTable(RecordedTable):
+    level: RecordingLevel = "display"
+
+
+class RecordedAcceptanceTable(RecordedTable):
+    volume_mm: Annotated[list[Float], Field(min_length=3, max_length=3)] | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class RecordedRig:
+    """A session's recorded rig config read through typed tables, each validated when first
+    read and kept: a table or key left out reads as its default, one present but malformed
+    (a table that is not one, a value of the wrong type) raises ConfigError naming it.
+    `key` is where `config` sits in the file at `path` ("rig_config" in a manifest, "" for a
+    rig TOML read as recorded)."""
+
+    config: Mapping[str, object]
+    path: str | Path
+    key: str = "rig_config"
+
+    @cached_property
+    def rig(self) -> RecordedRigTable:
+        return self._table(RecordedRigTable, "rig")
+
+    @cached_property
+    def camera(self) -> RecordedCameraTable:
+        return self._table(RecordedCameraTable, "camera")
+
+    @cached_property
+    def projector(self) -> RecordedProjectorTable:
+        return self._table(RecordedProjectorTable, "projector")
+
+    @cached_property
+    def recording(self) -> RecordedRecordingTable:
+        return self._table(RecordedRecordingTable, "recording")
+
+    @cached_property
+    def acceptance(self) -> RecordedAcceptanceTable:
+        return self._table(RecordedAcceptanceTable, "acceptance")
+
+    @cached_property
+    def sensor(self) -> CameraNoise | None:
+        """[camera.sensor] as the camera's noise model (the simulator's `SensorTable`, its
+        ranges too), read apart from [camera] so that a sensor table the current schema
+        refuses stops only its readers. None when absent or empty (an empty table states no
+        sensor to the readers after capture; the simulator renders it with the defaults)."""
+        table = self._mapping("camera").get("sensor")
+        return schema.parse(CameraNoise, table, self.path, self._dotted("camera.sensor")) if table else None
+
+    def _table(self, table: type[T], key: str) -> T:
+        return schema.parse(table, self._mapping(key), self.path, self._dotted(key))
+
+    def _mapping(self, key: str) -> Mapping[str, object]:
+        """The recorded table `key` as written ({} when absent or null)."""
+        value = self.config.get(key)
+        if value is None:
+            return {}
+        if not isinstance(value, Mapping):
+            raise ConfigError(self.path, self._dotted(key), f"expected a table, got {value!r:.60}")
+        return value
+
+    def _dotted(self, key: str) -> str:
+        return f"{self.key}.{key}" if self.key else key
 
 
 @dataclass(frozen=True, eq=False)

@@ -57,7 +57,7 @@ from scanner.errors import ConfigError, IncompleteSession, SessionError
 from scanner.file_checks import FileRefused, decode_image, read_regular
 from scanner.geometry import PhaseToHeight, RigModel
 from scanner.patterns import PatternFile, PatternSet
-from scanner.rig_schema import RigModelSchema, check_geometry
+from scanner.rig_schema import RecordedRig, RigModelSchema, check_geometry
 
 ManifestVersion = Literal[1]  # the manifest format this slscan writes and reads
 MANIFEST_VERSION: ManifestVersion = 1
@@ -430,6 +430,12 @@ class Manifest(schema.Schema):
         manifest._recorded = data
         return manifest
 
+    @cached_property
+    def recorded_rig(self) -> RecordedRig:
+        """`rig_config` read through typed tables (`scanner.rig_schema.RecordedRig`), each
+        validated when first read: an imported session's stand-in reads as empty tables."""
+        return RecordedRig(self.rig_config, MANIFEST)
+
     def recorded(self, key: str) -> Any:
         """The value of `key` exactly as the file holds it (None when absent); not to be changed."""
         return self._recorded.get(key)
@@ -451,8 +457,7 @@ class Manifest(schema.Schema):
                                  f"{self.rig_model.camera.width} x {self.rig_model.camera.height} px")
         if len({f.sha256 is None for f in self.frames}) > 1:
             raise ValueError("some frames have a sha256 and others not: the frame list was edited")
-        camera = self.rig_config.get("camera") if isinstance(self.rig_config, dict) else None
-        configured = camera.get("bit_depth") if isinstance(camera, dict) else None
+        configured = self.recorded_rig.camera.bit_depth
         if configured is not None and configured not in depths:
             raise ValueError(f"frames are {depths.pop()}-bit, the rig_config's camera.bit_depth is {configured!r}")
         return self
@@ -496,11 +501,12 @@ class Session:
             m = schema.parse(Manifest, manifest, mpath)
             session = cls(root, m)
             session.pattern_set  # noqa: B018  # the family's rules, checked once here
-            rig = m.rig_config.get("rig")
-            distance = rig.get("working_distance_mm") if isinstance(rig, dict) else None
+            try:
+                distance = m.recorded_rig.rig.working_distance_mm
+            except ConfigError:  # a malformed [rig] states no distance: judged at any, as before the typed read
+                distance = None
             check_geometry(RigModel.from_dict(m.recorded("rig_model"), f"{mpath}: rig_model"),
-                           float(distance) if isinstance(distance, (int, float)) and distance > 0 else None,
-                           mpath, "rig_model")
+                           distance if distance is not None and distance > 0 else None, mpath, "rig_model")
         except ConfigError as exc:
             raise SessionError(str(exc)) from None
         return session

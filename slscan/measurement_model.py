@@ -14,14 +14,16 @@ give every figure its uncertainty, read from the session and its rig.
   - the camera's defocus ([camera.sensor] blur_sigma_px; 0 without it), whose depth bias
     an inspection removes from the surfaces it measures (`inspection.uncertainty.defocus_bias`).
 
-`rig_measurement` is the one place this is put together: `scan`, `inspect`, `verify` and
-`slscan coverage` (the repeat-scan studies) all take it from there.
+`recorded_measurement` is the one place this is put together, from the rig config read
+through its typed tables (`scanner.rig_schema.RecordedRig`: a session's recorded one, or a
+rig TOML's by `rig_measurement`): `scan`, `inspect`, `verify` and `slscan coverage` (the
+repeat-scan studies) all take it from there.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -40,24 +42,22 @@ from scanner.decode import DecodeResult
 from scanner.geometry import RigModel
 from scanner.patterns import PatternSet
 from scanner.pipeline import decode_session
+from scanner.rig_schema import RecordedRig
 
 
-def sensor_noise(rig_config: dict[str, Any], bit_depth: int, where: object) -> SensorNoise | None:
+def sensor_noise(sensor: CameraNoise | None, bit_depth: int) -> SensorNoise | None:
     """The camera's intensity noise (DN) as a function of its mean signal, from a rig
     config's [camera.sensor] table (None without one)."""
-    table = (rig_config.get("camera") or {}).get("sensor")
-    if not table:
+    if sensor is None:
         return None
-    model = CameraNoise.from_table(table, where)
-    return lambda mean: model.noise_sigma_dn(mean, bit_depth)
+    return lambda mean: sensor.noise_sigma_dn(mean, bit_depth)
 
 
-def projector_fringe_error(patterns: PatternSet, model: RigModel, rig_config: dict[str, Any]) -> FringeError:
-    """The fringe error of the rig's projector showing `patterns` (its blur from the rig
-    config's projector.blur_sigma_px when given, else none)."""
-    blur = float((rig_config.get("projector") or {}).get("blur_sigma_px", 0.0))
+def projector_fringe_error(patterns: PatternSet, model: RigModel, blur_px: float) -> FringeError:
+    """The fringe error of the rig's projector showing `patterns`, blurred by `blur_px`
+    (Gaussian sigma, projector px; the rig config's projector.blur_sigma_px, 0 when not given)."""
     extent = model.projector.width if "vertical" in patterns.orientations else model.projector.height
-    return fringe_error(patterns, extent, model.projector_gamma, blur)
+    return fringe_error(patterns, extent, model.projector_gamma, blur_px)
 
 
 def calibration_uncertainty(model: RigModel, driver: str) -> CalibrationUncertainty:
@@ -72,18 +72,21 @@ def calibration_uncertainty(model: RigModel, driver: str) -> CalibrationUncertai
                                        "not in U")
 
 
-def camera_blur_px(rig_config: dict[str, Any]) -> float:
-    """The camera's stated defocus (Gaussian sigma, px) from [camera.sensor], else 0."""
-    return float(((rig_config.get("camera") or {}).get("sensor") or {}).get("blur_sigma_px", 0.0))
-
-
-def rig_measurement(rig_config: dict[str, Any], model: RigModel, patterns: PatternSet, bit_depth: int,
+def rig_measurement(rig_config: Mapping[str, object], model: RigModel, patterns: PatternSet, bit_depth: int,
                     where: object) -> MeasurementModel:
-    """The measurement model of a rig (its config's content) measuring with `model`."""
-    driver = (rig_config.get("rig") or {}).get("driver", "")
-    return MeasurementModel(sensor_noise(rig_config, bit_depth, where),
-                            projector_fringe_error(patterns, model, rig_config),
-                            calibration_uncertainty(model, driver), camera_blur_px(rig_config))
+    """The measurement model of a rig (its TOML's content, from the file `where`) measuring with `model`."""
+    return recorded_measurement(RecordedRig(rig_config, str(where), key=""), model, patterns, bit_depth)
+
+
+def recorded_measurement(rig: RecordedRig, model: RigModel, patterns: PatternSet, bit_depth: int) -> MeasurementModel:
+    """The measurement model of a rig config read through its typed tables (a session's
+    recorded one, or a rig TOML's): ConfigError for a table they need that is malformed.
+    The camera's defocus is [camera.sensor] blur_sigma_px (0 without the table)."""
+    sensor = rig.sensor
+    return MeasurementModel(sensor_noise(sensor, bit_depth),
+                            projector_fringe_error(patterns, model, rig.projector.blur_sigma_px),
+                            calibration_uncertainty(model, rig.rig.driver or ""),
+                            sensor.blur_sigma_px if sensor is not None else 0.0)
 
 
 def session_uncertainty(session: Any, decoded: DecodeResult | None = None) -> Callable[[np.ndarray], ScanUncertainty]:
@@ -92,9 +95,8 @@ def session_uncertainty(session: Any, decoded: DecodeResult | None = None) -> Ca
     depth bias per point for the inspection to remove. `decoded`: the session's decode
     when it is at hand (a scan just processed: `ScanResult.decoded`), else its frames are
     decoded again."""
-    config = session.manifest.rig_config
     model = session.rig_model()
     if decoded is None:
         decoded = decode_session(session)
-    measurement = rig_measurement(config, model, session.patterns, session.bit_depth, session.root / "manifest.json")
+    measurement = recorded_measurement(session.manifest.recorded_rig, model, session.patterns, session.bit_depth)
     return measurement.of_scan(decoded, model, defocus=True)
