@@ -256,7 +256,7 @@ def report_header(source: Path, program: Any, operator: str | None, serial: str 
         multiview = MultiViewSession.open(source) if is_multiview(source) else None
         session = multiview.views[0].session if multiview is not None else Session.open(source)  # the views' rig
         session_id = multiview.id if multiview is not None else session.id
-        rig = str(session.manifest.rig_config.get("rig", {}).get("name", ""))
+        rig = session.manifest.recorded_rig.rig.name or ""
         rig_path, problem = recorded_rig(session)
         if rig_path is not None:
             info = rig_calibration(RigConfig.load(rig_path))

@@ -207,8 +207,7 @@ def rig_of(rig_model: Any, session: Any, rig_file: Path | None) -> tuple[np.ndar
 
     calibration = rig_model.calibration or "nominal (uncalibrated)"
     if session is not None:
-        conf = session.manifest.rig_config.get("rig", {})
-        name = conf.get("name") if isinstance(conf, dict) else None
+        name = session.manifest.recorded_rig.rig.name
         return (np.asarray(rig_model.world_from_cam, np.float64),
                 {"name": name, "calibration": calibration, "session": session.id})
     if rig_file is None:
