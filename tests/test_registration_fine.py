@@ -126,3 +126,22 @@ def test_a_crease_is_an_outline_though_no_step_in_depth() -> None:
     assert plain[middle & (pixels[:, 0] > EDGE_MARGIN_PX) & (pixels[:, 0] < 39 - EDGE_MARGIN_PX)].all()
     assert not creased[middle & near].any()
     assert creased[middle & ~near & (pixels[:, 0] > EDGE_MARGIN_PX) & (pixels[:, 0] < 39 - EDGE_MARGIN_PX)].all()
+
+
+def test_only_blurred_motions_join_the_unbounded_once() -> None:
+    """`fit_covariance`'s side: a motion only blurred points bound is added to the covariance's
+    unbounded motions (so `free_motions` names it free) unless it is one of them already."""
+    from inspection.registration.evidence import PoseCovariance, ResidualCorrelation, free_motions
+    from inspection.registration.fine import _with_unbounded
+
+    radius = 30.0
+    turn = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])  # (omega, t) about the centre
+    shift = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
+    cov = PoseCovariance(1e-10 * np.eye(6), np.zeros(3), 0.01, 1000, ResidualCorrelation(0.0, 0.0, "px"), 1.0,
+                         radius, unbounded=shift[None, :])
+    scaled = np.stack([turn, shift], axis=1)  # in scaled coordinates both are unit columns already
+    out = _with_unbounded(cov, scaled)
+    assert len(out.unbounded) == 2
+    assert np.allclose(np.abs(out.unbounded[1]), turn)
+    assert len(free_motions(out, SETTINGS.pose_tolerance_deg, SETTINGS.pose_tolerance_mm)) == 2
+    assert _with_unbounded(cov, scaled[:, :0]) is cov

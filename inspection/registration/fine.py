@@ -286,8 +286,8 @@ def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fin
     faces mostly in outline bands (`_inside_outline` at `max_incidence_deg`) apart from the rest.
     With the fit's blurred-pixel model (`FinalFit.mixed`), the motions the exact fit would not
     step along (`gauss_newton.MixedPixels`: only blurred points bound them) are named
-    unbounded (`_only_blurred`), so a pose is never proven along a motion the fit left
-    where ICP put it."""
+    unbounded (`_with_unbounded`), so a pose is never proven along a motion the fit left
+    where the stage before it (ICP) put it."""
     index, face = fit.index, fit.face
     if fit.unseen is not None and len(fit.unseen) and face is not None:
         index, face = np.concatenate([index, fit.unseen]), np.concatenate([face, fit.unseen_face])
