@@ -65,11 +65,13 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
         d, _ = target.dense.tree.query(transform_points(T, p[sel]), distance_upper_bound=0.5 * v)
         return T, FinalFit(sel[np.isfinite(d)])
     fit = None
-    mixed = mixed_pixels(blurred(scan, target, T, settings), voxel_mm=v, settings=settings)
+    faces = assigned_faces(scan, target, T, settings)
+    mixed = mixed_pixels(blurred(scan, faces, max_incidence_deg=settings.max_incidence_deg), voxel_mm=v,
+                         settings=settings)
     for points in _from_best_seen(scan, settings.max_incidence_deg):  # the best measured first
         sel = rng.choice(points, size=min(settings.exact_points, len(points)), replace=False)  # any will do
         fit = refine_exact(scan, sel, T, target=target, tol=ASSIGN_VOXELS * v, settings=settings,
-                           offset_limit_mm=0.5 * v, mixed=mixed)
+                           offset_limit_mm=0.5 * v, mixed=mixed, faces=faces)
         if not _frees(scan, target, *fit, settings):
             break
     assert fit is not None
@@ -174,19 +176,26 @@ def well_seen(scan: ScanCloud, max_incidence_deg: float, outline: bool) -> np.nd
     return np.flatnonzero(keep) if keep.sum() >= 100 else np.arange(len(scan))
 
 
-def blurred(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: RegistrationSettings) -> np.ndarray:
-    """Which points of the scan (bool per point) the camera's blur mixes with another
-    surface: within `EDGE_MARGIN_PX` of their surface's outline in the image, a depth step
-    (`_inside_outline`) or a crease, two neighbouring pixels assigned at pose T to different
-    CAD faces (`segmentation.assign_faces`, as the exact fit assigns them). A convex crease
-    is no step in depth, yet its pixels read a mix of both faces (on top-down views of the
-    demo part 50-130 um off their face). None for a bare cloud (no image to tell it by)."""
-    if scan.pixels is None or scan.image_shape is None or target.model is None or target.samples is None:
-        return np.zeros(len(scan), bool)
+def assigned_faces(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: RegistrationSettings) -> np.ndarray:
+    """The CAD face of every scan point at pose T (-1: none), as the exact fit assigns them
+    (`segmentation.assign_faces` within `ASSIGN_VOXELS` voxels and `max_normal_deg`)."""
+    assert target.model is not None and target.samples is not None
     seg = assign_faces(transform_points(T, scan.points), scan.normals @ T[:3, :3].T, target.model, target.samples,
                        tree=target.dense.tree, max_distance_mm=ASSIGN_VOXELS * target.voxel_mm,
                        max_normal_deg=settings.max_normal_deg)
-    return ~_inside_outline(scan, settings.max_incidence_deg, face=np.where(seg.assigned, seg.face, -1))
+    return np.where(seg.assigned, seg.face, -1)
+
+
+def blurred(scan: ScanCloud, face: np.ndarray, *, max_incidence_deg: float) -> np.ndarray:
+    """Which points of the scan (bool per point) the camera's blur mixes with another
+    surface: within `EDGE_MARGIN_PX` of their surface's outline in the image, a depth step
+    (`_inside_outline` at `max_incidence_deg`) or a crease, two neighbouring pixels on
+    different CAD faces (`face`, one per point, -1 none: `assigned_faces`). A convex crease
+    is no step in depth, yet its pixels read a mix of both faces (on top-down views of the
+    demo part 50-130 um off their face). None for a bare cloud (no image to tell it by)."""
+    if scan.pixels is None or scan.image_shape is None:
+        return np.zeros(len(scan), bool)
+    return ~_inside_outline(scan, max_incidence_deg, face=face)
 
 
 def mixed_pixels(band: np.ndarray, *, voxel_mm: float, settings: RegistrationSettings) -> MixedPixels:
@@ -234,7 +243,8 @@ def _inside_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarr
 
 def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, *, target: ModelTarget, tol: float,
                  settings: RegistrationSettings, iterations: int = 10,
-                 offset_limit_mm: float | None = None, mixed: MixedPixels | None = None) -> tuple[np.ndarray, FinalFit]:
+                 offset_limit_mm: float | None = None, mixed: MixedPixels | None = None,
+                 faces: np.ndarray | None = None) -> tuple[np.ndarray, FinalFit]:
     """Gauss-Newton on the distances of the scan points `sel` to the exact CAD faces: the
     points are assigned to faces once (`segmentation.assign_faces`: within `tol` mm and
     `max_normal_deg`, inside the face), then each step projects them onto their face's
@@ -246,12 +256,17 @@ def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, *, target: Mod
     would place the part along it off, so the pose along it is not proven (taking such a
     face back in had placed random part seed 1458621907/part_000 0.136 mm off, exit 0).
     `mixed` (one entry per scan point): every step only along the motions the points bound
-    with their blurred ones' offsets allowed for (`gauss_newton.MixedPixels`; None: plain)."""
+    with their blurred ones' offsets allowed for (`gauss_newton.MixedPixels`; None: plain).
+    `faces`: every scan point's face at T within `tol` (`assigned_faces`), else assigned here."""
     assert target.model is not None and target.samples is not None
-    src, src_nrm = scan.points[sel], scan.normals[sel]
-    seg = assign_faces(transform_points(T, src), src_nrm @ T[:3, :3].T, target.model, target.samples,
-                       tree=target.dense.tree, max_distance_mm=tol, max_normal_deg=settings.max_normal_deg)
-    sel, face = sel[seg.assigned], seg.face[seg.assigned]
+    if faces is None:
+        seg = assign_faces(transform_points(T, scan.points[sel]), scan.normals[sel] @ T[:3, :3].T, target.model,
+                           target.samples, tree=target.dense.tree, max_distance_mm=tol,
+                           max_normal_deg=settings.max_normal_deg)
+        faces_sel = np.where(seg.assigned, seg.face, -1)
+    else:
+        faces_sel = faces[sel]
+    sel, face = sel[faces_sel >= 0], faces_sel[faces_sel >= 0]
     if len(sel) < 6:
         return T, FinalFit(sel, face, mixed=mixed)
     src = scan.points[sel]
