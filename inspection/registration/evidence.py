@@ -181,7 +181,8 @@ class PoseCovariance:
     field's, `inflation` how much it widened the trace of the covariance over independent
     points, `radius_mm` the points' RMS distance from the centre, `unbounded` (k, 6) the
     motions the fit has no information on at all (a ring's turn about its axis), whose
-    variance `covariance` leaves at 0."""
+    variance `covariance` leaves at 0, and those only blurred pixels inform, which the fit
+    does not step along (`fine.fit_covariance`; `covariance` keeps their variance)."""
 
     covariance: np.ndarray
     centre: np.ndarray

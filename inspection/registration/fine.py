@@ -2,7 +2,8 @@
 with normal-angle rejection on the dense scan (points seen at grazing incidence left out,
 normal-space sampling so walls and holes weigh in) against dense model samples; then, for
 STEP models, Gauss-Newton on the exact point-to-face distances with faces off as a whole
-left out (`face_bias`)."""
+left out (`face_bias`), stepping only along the motions that points other than blurred ones
+(`blurred`: near a depth step or a crease) bound (`gauss_newton.MixedPixels`)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from inspection.measured_cloud import ScanCloud, point_spacing
 from inspection.registration.clouds import normal_space_sample
 from inspection.registration.evidence import PoseCovariance, free_motions, pose_covariance
 from inspection.registration.face_bias import without_biased_faces, without_offset_face
-from inspection.registration.gauss_newton import gauss_newton
+from inspection.registration.gauss_newton import MixedPixels, gauss_newton, information
 from inspection.registration.point_to_plane import icp
 from inspection.registration.rigid import transform_points
 from inspection.registration.settings import RegistrationSettings
@@ -35,6 +36,7 @@ class FinalFit:
     unseen: np.ndarray | None = None  # points on faces the fit has none of and left none out (`with_the_rest`)
     unseen_face: np.ndarray | None = None
     claimed: np.ndarray | None = None  # the pose refitted on these points and the unseen together (`with_claims`)
+    mixed: MixedPixels | None = None  # the exact fit's blurred-pixel model, one entry per scan point (`blurred`)
 
 
 def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: RegistrationSettings,
@@ -43,7 +45,9 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
     obliquely than `max_incidence_deg` left out, the rest drawn by normal-space sampling) on
     a quarter of the points; then, for a STEP model, `refine_exact` on the points well seen
     (`well_seen`: neither grazing nor in an outline band), or, when those leave a motion
-    free, on all but the grazing ones, or then on all; else ICP on all of them.
+    free, on all but the grazing ones, or then on all; else ICP on all of them. The exact
+    fit steps only along the motions its points bound once the blurred ones (`blurred`, at
+    the ICP pose) may be off by a common offset per face (`mixed_pixels`).
     (Before the exact step a pass on all would add nothing: its threshold closes to 0.05
     voxel, within which only the ~5 % of points nearest a model sample pair up.)"""
     v = target.voxel_mm
@@ -61,10 +65,13 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
         d, _ = target.dense.tree.query(transform_points(T, p[sel]), distance_upper_bound=0.5 * v)
         return T, FinalFit(sel[np.isfinite(d)])
     fit = None
+    faces = assigned_faces(scan, target, T, settings)
+    mixed = mixed_pixels(blurred(scan, faces, max_incidence_deg=settings.max_incidence_deg), voxel_mm=v,
+                         settings=settings)
     for points in _from_best_seen(scan, settings.max_incidence_deg):  # the best measured first
         sel = rng.choice(points, size=min(settings.exact_points, len(points)), replace=False)  # any will do
         fit = refine_exact(scan, sel, T, target=target, tol=ASSIGN_VOXELS * v, settings=settings,
-                           offset_limit_mm=0.5 * v)
+                           offset_limit_mm=0.5 * v, mixed=mixed, faces=faces)
         if not _frees(scan, target, *fit, settings):
             break
     assert fit is not None
@@ -116,7 +123,8 @@ def with_claims(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: FinalF
     if fit.unseen is None or fit.face is None or len(fit.unseen) == 0:
         return fit
     index, face = np.concatenate([fit.index, fit.unseen]), np.concatenate([fit.face, fit.unseen_face])
-    return replace(fit, claimed=gauss_newton(scan.points[index], face, T, target.model, 10))
+    mixed = None if fit.mixed is None else fit.mixed.subset(index)
+    return replace(fit, claimed=gauss_newton(scan.points[index], face, T, target.model, 10, mixed=mixed))
 
 
 def edge_faces(scan: ScanCloud, index: np.ndarray, face: np.ndarray, max_incidence_deg: float) -> np.ndarray:
@@ -168,9 +176,41 @@ def well_seen(scan: ScanCloud, max_incidence_deg: float, outline: bool) -> np.nd
     return np.flatnonzero(keep) if keep.sum() >= 100 else np.arange(len(scan))
 
 
-def _inside_outline(scan: ScanCloud, max_incidence_deg: float) -> np.ndarray:
+def assigned_faces(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: RegistrationSettings) -> np.ndarray:
+    """The CAD face of every scan point at pose T (-1: none), as the exact fit assigns them
+    (`segmentation.assign_faces` within `ASSIGN_VOXELS` voxels and `max_normal_deg`)."""
+    assert target.model is not None and target.samples is not None
+    seg = assign_faces(transform_points(T, scan.points), scan.normals @ T[:3, :3].T, target.model, target.samples,
+                       tree=target.dense.tree, max_distance_mm=ASSIGN_VOXELS * target.voxel_mm,
+                       max_normal_deg=settings.max_normal_deg)
+    return np.where(seg.assigned, seg.face, -1)
+
+
+def blurred(scan: ScanCloud, face: np.ndarray, *, max_incidence_deg: float) -> np.ndarray:
+    """Which points of the scan (bool per point) the camera's blur mixes with another
+    surface: within `EDGE_MARGIN_PX` of their surface's outline in the image, a depth step
+    (`_inside_outline` at `max_incidence_deg`) or a crease, two neighbouring pixels on
+    different CAD faces (`face`, one per point, -1 none: `assigned_faces`). A convex crease
+    is no step in depth, yet its pixels read a mix of both faces (on top-down views of the
+    demo part 50-130 um off their face). None for a bare cloud (no image to tell it by)."""
+    if scan.pixels is None or scan.image_shape is None:
+        return np.zeros(len(scan), bool)
+    return ~_inside_outline(scan, max_incidence_deg, face=face)
+
+
+def mixed_pixels(band: np.ndarray, *, voxel_mm: float, settings: RegistrationSettings) -> MixedPixels:
+    """The exact fit's blurred-pixel model (`gauss_newton.MixedPixels`) for the scan points
+    `band` flags (`blurred`): each face's band points off by a common offset uniform within
+    the assignment bound (`ASSIGN_VOXELS` voxels of `voxel_mm`: a point farther off is not
+    assigned), tau^2 = bound^2 / 3; steps bounded to the pose tolerance of `settings`."""
+    return MixedPixels(band, (ASSIGN_VOXELS * voxel_mm) ** 2 / 3.0, settings.pose_tolerance_deg,
+                       settings.pose_tolerance_mm)
+
+
+def _inside_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarray | None = None) -> np.ndarray:
     """Which points of an organised scan lie at least `EDGE_MARGIN_PX` inside the outline
-    of their surface (`well_seen`)."""
+    of their surface (`well_seen`); with `face` (one CAD face id per point, -1 none), a
+    crease between two faces counts as outline too (`blurred`)."""
     import cv2
 
     from inspection.acceptance import EDGE_MARGIN_PX
@@ -186,6 +226,12 @@ def _inside_outline(scan: ScanCloud, max_incidence_deg: float) -> np.ndarray:
     limit = step / np.cos(np.radians(max_incidence_deg))
     with np.errstate(invalid="ignore"):
         jump0, jump1 = gaps[0] > limit, gaps[1] > limit
+    if face is not None:  # a crease: neighbours on two different faces
+        label = np.full(scan.image_shape, -1)
+        label[row, col] = face
+        for a, jump in ((0, jump0), (1, jump1)):
+            lo, hi = np.delete(label, -1, axis=a), np.delete(label, 0, axis=a)
+            jump |= (lo >= 0) & (hi >= 0) & (lo != hi)
     surface[:-1] &= ~jump0
     surface[1:] &= ~jump0
     surface[:, :-1] &= ~jump1
@@ -197,7 +243,8 @@ def _inside_outline(scan: ScanCloud, max_incidence_deg: float) -> np.ndarray:
 
 def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, *, target: ModelTarget, tol: float,
                  settings: RegistrationSettings, iterations: int = 10,
-                 offset_limit_mm: float | None = None) -> tuple[np.ndarray, FinalFit]:
+                 offset_limit_mm: float | None = None, mixed: MixedPixels | None = None,
+                 faces: np.ndarray | None = None) -> tuple[np.ndarray, FinalFit]:
     """Gauss-Newton on the distances of the scan points `sel` to the exact CAD faces: the
     points are assigned to faces once (`segmentation.assign_faces`: within `tol` mm and
     `max_normal_deg`, inside the face), then each step projects them onto their face's
@@ -207,24 +254,34 @@ def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, *, target: Mod
     `offset_limit_mm`, is found by leaving faces out in turn (`face_bias.without_offset_face`).
     A motion that only the faces left out fix is then free: the data call the one face that
     would place the part along it off, so the pose along it is not proven (taking such a
-    face back in had placed random part seed 1458621907/part_000 0.136 mm off, exit 0)."""
+    face back in had placed random part seed 1458621907/part_000 0.136 mm off, exit 0).
+    `mixed` (one entry per scan point): every step only along the motions the points bound
+    with their blurred ones' offsets allowed for (`gauss_newton.MixedPixels`; None: plain).
+    `faces`: every scan point's face at T within `tol` (`assigned_faces`), else assigned here."""
     assert target.model is not None and target.samples is not None
-    src, src_nrm = scan.points[sel], scan.normals[sel]
-    seg = assign_faces(transform_points(T, src), src_nrm @ T[:3, :3].T, target.model, target.samples,
-                       tree=target.dense.tree, max_distance_mm=tol, max_normal_deg=settings.max_normal_deg)
-    sel, face = sel[seg.assigned], seg.face[seg.assigned]
+    if faces is None:
+        seg = assign_faces(transform_points(T, scan.points[sel]), scan.normals[sel] @ T[:3, :3].T, target.model,
+                           target.samples, tree=target.dense.tree, max_distance_mm=tol,
+                           max_normal_deg=settings.max_normal_deg)
+        faces_sel = np.where(seg.assigned, seg.face, -1)
+    else:
+        faces_sel = faces[sel]
+    sel, face = sel[faces_sel >= 0], faces_sel[faces_sel >= 0]
     if len(sel) < 6:
-        return T, FinalFit(sel, face)
+        return T, FinalFit(sel, face, mixed=mixed)
     src = scan.points[sel]
-    T = gauss_newton(src, face, T, target.model, iterations)
+    own = None if mixed is None else mixed.subset(sel)
+    T = gauss_newton(src, face, T, target.model, iterations, mixed=own)
     whole = (T, FinalFit(sel, face))
-    keep, T = without_biased_faces(src, face, T, target.model, iterations, settings.face_bias_sigma)
+    keep, T = without_biased_faces(src, face, T, target.model, iterations, settings.face_bias_sigma, mixed=own)
     sel, src, face = sel[keep], src[keep], face[keep]
     if offset_limit_mm is not None:
+        own = None if mixed is None else mixed.subset(sel)
         keep, T = without_offset_face(src, face, T, model=target.model, iterations=iterations, limit_mm=offset_limit_mm,
-                                      noise_ratio=settings.offset_noise_ratio, big_fraction=settings.big_face_fraction)
+                                      noise_ratio=settings.offset_noise_ratio, big_fraction=settings.big_face_fraction,
+                                      mixed=own)
         sel, face = sel[keep], face[keep]
-    return T, FinalFit(sel, face, *_left_out(whole[1], sel))
+    return T, FinalFit(sel, face, *_left_out(whole[1], sel), mixed=mixed)
 
 
 def _left_out(whole: FinalFit, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -241,7 +298,11 @@ def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fin
     field's correlation taken over the camera image (pixels) or, for a bare cloud, over the
     scan's point spacing; the faces the fit never saw (`with_the_rest`) are evidence of how
     far a face's measurement may be off as a whole (in the face offsets' variance, not the fit),
-    faces mostly in outline bands (`_inside_outline` at `max_incidence_deg`) apart from the rest."""
+    faces mostly in outline bands (`_inside_outline` at `max_incidence_deg`) apart from the rest.
+    With the fit's blurred-pixel model (`FinalFit.mixed`), the motions the exact fit would not
+    step along (`gauss_newton.MixedPixels`: only blurred points bound them) are named
+    unbounded (`_with_unbounded`), so a pose is never proven along a motion the fit left
+    where the stage before it (ICP) put it."""
     index, face = fit.index, fit.face
     if fit.unseen is not None and len(fit.unseen) and face is not None:
         index, face = np.concatenate([index, fit.unseen]), np.concatenate([face, fit.unseen_face])
@@ -255,9 +316,33 @@ def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fin
         r = np.einsum("ij,ij->i", q - target.dense.points[j], normal)
     if scan.pixels is not None:
         edge = None if scan.image_shape is None else ~_inside_outline(scan, max_incidence_deg)[index]
-        return pose_covariance(q, normal, r, scan.pixels[index].astype(np.float64), "px", face, in_fit=in_fit,
-                               edge=edge, offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm)
-    where = scan.points[index]
-    spacing = point_spacing(scan.points[fit.index], len(scan))
-    return pose_covariance(q, normal, r, where / max(spacing, 1e-9), f"x {spacing:.3g} mm", face, in_fit=in_fit,
-                           offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm)
+        cov = pose_covariance(q, normal, r, scan.pixels[index].astype(np.float64), "px", face, in_fit=in_fit,
+                              edge=edge, offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm)
+    else:
+        where = scan.points[index]
+        spacing = point_spacing(scan.points[fit.index], len(scan))
+        cov = pose_covariance(q, normal, r, where / max(spacing, 1e-9), f"x {spacing:.3g} mm", face, in_fit=in_fit,
+                              offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm)
+    if fit.mixed is None or face is None:
+        return cov
+    mixed = fit.mixed.subset(fit.index)
+    _, only_blurred = information(q[in_fit], normal[in_fit], r[in_fit], face[in_fit], mixed).directions(
+        mixed.tolerance_deg, mixed.tolerance_mm)
+    return _with_unbounded(cov, only_blurred)
+
+
+def _with_unbounded(cov: PoseCovariance, directions: np.ndarray) -> PoseCovariance:
+    """`cov` with the motions `directions` (orthonormal columns in the scaled coordinates
+    of `gauss_newton.Information`: rotations as mm at `cov.radius_mm` about `cov.centre`)
+    among its unbounded ones (`free_motions` names them free), each whose part outside
+    their span is over 1/2 (the rest is in it already). Its covariance along them stays
+    what the points, blurred ones included, say: the fit did not move the pose there."""
+    if directions.shape[1] == 0:
+        return cov
+    S = np.diag([1.0 / cov.radius_mm] * 3 + [1.0] * 3)
+    known = np.linalg.solve(S, cov.unbounded.T)
+    basis = np.linalg.qr(known)[0] if known.shape[1] else known
+    rest = directions - basis @ (basis.T @ directions)
+    new = (S @ rest[:, np.linalg.norm(rest, axis=0) > 0.5]).T
+    new /= np.linalg.norm(new, axis=1, keepdims=True)
+    return replace(cov, unbounded=np.concatenate([cov.unbounded, new]))

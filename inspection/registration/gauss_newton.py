@@ -5,30 +5,139 @@ cylinder by up to s^2/(8R) (s the sample spacing), which the exact faces do not.
 
 The loss is Huber's (iteratively reweighted), not a cut at a few sigma: a face that alone
 fixes a motion (the one wall seen along a plate) and starts off by more than the cut would
-otherwise be dropped whole and the pose left to slide along it."""
+otherwise be dropped whole and the pose left to slide along it.
+
+**Mixed pixels** (`MixedPixels`, issue 26). A point within the camera's blur of its
+surface's outline (a depth step, or a crease where another CAD face begins) reads a mix of
+both surfaces, off its face by up to the assignment bound. Least squares takes such a point
+as fully informative (leverage 1 where it alone has a lever arm): on top-down views of the
+demo part one to four crease pixels 50-130 um off their face were all that fixed the turn
+about the boss axis, and the fit turned the part until they read 0 (stored pose-coverage
+scan 635461529/88: 0.19 deg; scan 49: 1.41 deg). So the band points of each face share one
+unknown offset b_f of variance tau^2, taken out of the information (its Schur complement):
+A = H - sum_f m_f m_f' / (sum_(i in band f) w_i + sigma^2 / tau^2), m_f = sum_(i in band f)
+w_i J_i; a lone band point then counts with variance sigma^2 + tau^2, while many band points
+on one face still fix what their face's shape fixes. A step is taken only along the
+eigen-directions of A whose standard deviation sigma / sqrt(eigenvalue) is within the pose
+tolerance; along the others the pose stays where the previous stage put it, and
+`fine.fit_covariance` names those directions free: a pose is never accepted along a motion
+only band points fix (false accept), at the price of refusing as free a pose whose only
+lever along some motion is band points that happen to read right (false refusal)."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from inspection.cad import CadModel
-from inspection.registration.evidence import huber_weights, residual_scale
+from inspection.registration.evidence import huber_weights, jacobian, residual_scale
 from inspection.registration.point_to_plane import point_to_plane_step
 from inspection.registration.rigid import transform_points, twist_matrix
 from inspection.segmentation import project_to_faces
 
 
-def gauss_newton(src: np.ndarray, face: np.ndarray, T: np.ndarray, model: CadModel, iterations: int) -> np.ndarray:
+@dataclass(frozen=True)
+class MixedPixels:
+    """The exact fit's model of blurred points (module docstring): `band` (N,) bool, which
+    of the fit's points lie within the blur of an outline (`fine.blurred`);
+    `offset_variance_mm2` tau^2 (mm^2), the variance of the common offset of one face's band
+    points (an offset uniform within the assignment bound B has B^2/3; a larger tau^2
+    refuses more poses as free, a smaller one lets band points turn the pose again);
+    `tolerance_deg` / `tolerance_mm` the pose tolerance a direction's standard deviation
+    must be within (rotations at the points' RMS radius) for the fit to step along it."""
+
+    band: np.ndarray
+    offset_variance_mm2: float
+    tolerance_deg: float
+    tolerance_mm: float
+
+    def subset(self, keep: np.ndarray) -> MixedPixels:
+        """The model for the points `keep` (a mask or indices) of these."""
+        return replace(self, band=self.band[keep])
+
+
+@dataclass(frozen=True)
+class Information:
+    """The exact fit's weighted least-squares system at one pose, in scaled coordinates
+    z = S^-1 (omega, t) about `centre` (rotations as mm at `radius_mm`; `scale` = S): `H` =
+    sum w J J', `gradient` = sum w r J, `A` what is left of H once each face's band points'
+    common offset is taken out (module docstring), `sigma` the residuals' scale (mm)."""
+
+    centre: np.ndarray
+    radius_mm: float
+    scale: np.ndarray
+    H: np.ndarray
+    gradient: np.ndarray
+    A: np.ndarray
+    sigma: float
+
+    def directions(self, tolerance_deg: float, tolerance_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        """(bounded, unbounded): the eigenvectors of A (columns, scaled coordinates) whose
+        standard deviation sigma / sqrt(eigenvalue) is within the tolerance (the smaller of
+        `tolerance_mm` and `tolerance_deg` at the points' RMS radius), and the others."""
+        lam, U = np.linalg.eigh(self.A / self.sigma ** 2)
+        tol = min(tolerance_mm, self.radius_mm * np.radians(tolerance_deg))
+        ok = lam > 1.0 / tol ** 2
+        return U[:, ok], U[:, ~ok]
+
+
+def information(q: np.ndarray, normal: np.ndarray, r: np.ndarray, face: np.ndarray,
+                mixed: MixedPixels) -> Information:
+    """The exact fit's `Information` at model-frame points `q` (N, 3) with their faces'
+    `normal`s and residuals `r` (mm), Huber-weighted as `gauss_newton` weighs them; each
+    face's band points (`mixed`) sharing one offset of variance tau^2 (one rank-one update
+    per face)."""
+    sigma = max(residual_scale(r), 1e-6)
+    w = huber_weights(r, sigma)
+    centre = q.mean(axis=0)
+    radius = max(float(np.sqrt(np.mean(np.sum((q - centre) ** 2, axis=1)))), 1e-9)
+    S = np.diag([1.0 / radius] * 3 + [1.0] * 3)
+    J = jacobian(q, normal, centre) @ S
+    wJ = J * w[:, None]
+    H = wJ.T @ J
+    A = H.copy()
+    band = mixed.band
+    if band.any() and mixed.offset_variance_mm2 > 0:
+        _, group = np.unique(face[band], return_inverse=True)
+        group = group.ravel()
+        m = np.stack([np.bincount(group, weights=col) for col in wJ[band].T], axis=1)  # (faces, 6)
+        denom = np.bincount(group, weights=w[band]) + sigma ** 2 / mixed.offset_variance_mm2
+        A -= (m / denom[:, None]).T @ m
+    return Information(centre, radius, S, H, wJ.T @ r, A, sigma)
+
+
+def gauss_newton(src: np.ndarray, face: np.ndarray, T: np.ndarray, model: CadModel, iterations: int, *,
+                 mixed: MixedPixels | None = None) -> np.ndarray:
     """The pose T (scan -> model) refined by up to `iterations` Gauss-Newton steps on the
     points `src` (N, 3) assigned to the faces `face` (N,), Huber-weighted (threshold from
     the residuals' robust sigma); a numerical damping (1e-9 of the largest curvature) keeps a
-    motion the data do not constrain at all (a ring's turn about its axis) where it is."""
+    motion the data do not constrain at all (a ring's turn about its axis) where it is.
+    With `mixed`, each step is the least-squares step within the directions the points
+    bound to the pose tolerance once their band points' offsets are allowed for (module
+    docstring); along the others the pose stays as T has it."""
     for _ in range(iterations):
         q = transform_points(T, src)
         _, foot, normal, r = project_to_faces(model, q, face)
-        w = huber_weights(r, max(residual_scale(r), 1e-6))
-        step, _ = point_to_plane_step(q, foot, normal, damping=1e-9, weights=w)
+        if mixed is None:
+            w = huber_weights(r, max(residual_scale(r), 1e-6))
+            step, _ = point_to_plane_step(q, foot, normal, damping=1e-9, weights=w)
+        else:
+            step = _bounded_step(information(q, normal, r, face, mixed), mixed)
         T = twist_matrix(step) @ T
         if np.linalg.norm(step) < 1e-9:
             break
     return T
+
+
+def _bounded_step(info: Information, mixed: MixedPixels) -> np.ndarray:
+    """The Gauss-Newton step (omega, t about the origin) within the directions `info` bounds
+    to the pose tolerance (`Information.directions`); zero when it bounds none."""
+    U, _ = info.directions(mixed.tolerance_deg, mixed.tolerance_mm)
+    if U.shape[1] == 0:
+        return np.zeros(6)
+    reduced = U.T @ info.H @ U
+    z = -U @ np.linalg.solve(reduced + 1e-12 * np.abs(np.diag(reduced)).max() * np.eye(U.shape[1]),
+                             U.T @ info.gradient)
+    x = info.scale @ z  # (omega, t) about the centre
+    return np.concatenate([x[:3], x[3:] - np.cross(x[:3], info.centre)])

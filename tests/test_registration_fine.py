@@ -1,0 +1,147 @@
+"""The fine step's exact-face fit against blurred pixels (issue 26): a motion only points in
+an outline band fix (a crease between two CAD faces, a depth step) is not turned by them.
+
+The scenes are the demo part's own surface samples in the model frame (the true pose the
+identity): its tops and the cone round the boss, which leave exactly one motion free, the
+turn about the boss axis (the tops have no lever along it, the cone is coaxial), and a few
+points of the x = -45 end wall, whose lever along that turn is their y (mm): wall points at
+one y read b mm outside their face make the least-squares turn -b / y rad (closed form: the
+turn alone zeroes their residuals at no cost to the rest), which is what the plain fit does
+and the fix must not."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from registration_support import STEP
+
+from inspection.cad import load_cad
+from inspection.measured_cloud import ScanCloud
+from inspection.registration.fine import _inside_outline, mixed_pixels
+from inspection.registration.gauss_newton import gauss_newton, information
+from inspection.registration.settings import RegistrationSettings
+from inspection.registration.target import DEFAULT_TARGET_SETTINGS
+from inspection.sampling import sample_model
+
+SETTINGS = RegistrationSettings()
+BOSS = np.array([20.0, 0.0, 0.0])  # a point on the boss axis (model frame, mm); the axis is z
+NOISE_MM = 0.01
+CREASE_Y = 20.0  # mm: the crease points' y, their lever along the turn about the boss axis
+
+
+@pytest.fixture(scope="module")
+def demo():
+    """(model, samples, which faces by role): the demo part sampled at 1 mm."""
+    model = load_cad(STEP)
+    s = sample_model(model, 1.0, seed=0)
+    mean_nz = np.array([s.normals[s.face == f, 2].mean() for f in range(len(model.faces))])
+    tops = np.flatnonzero(mean_nz > 0.99)
+    cone = np.flatnonzero((mean_nz > 0.5) & (mean_nz < 0.9))
+    end = [f for f in range(len(model.faces)) if s.normals[s.face == f, 0].mean() < -0.99
+           and s.points[s.face == f, 0].max() < -44.9]
+    assert len(tops) >= 3 and len(cone) == 1 and len(end) == 1
+    return model, s, tops, cone, end[0]
+
+
+def _turn(T: np.ndarray) -> float:
+    """The turn (rad) of pose T about z (the boss axis' direction)."""
+    return float(np.arctan2(T[1, 0], T[0, 0]))
+
+
+def _scene(demo, *, offset_mm: float, wall: str, seed: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points, faces, band): tops and cone with noise along their normals; three end-wall
+    points at its crease with the top (y = `CREASE_Y`, z 21.5-21.9 mm) read `offset_mm`
+    outside their face, in the band; with `wall` "seen" also the wall's own samples, noisy
+    and not in it."""
+    _, s, tops, cone, end = demo
+    rng = np.random.default_rng(seed)
+    noisy = np.flatnonzero(np.isin(s.face, np.concatenate([tops, cone] + ([[end]] if wall == "seen" else []))))
+    crease = np.array([[-45.0 - offset_mm, CREASE_Y, z] for z in (21.5, 21.7, 21.9)])
+    p = np.concatenate([s.points[noisy] + s.normals[noisy] * rng.normal(0, NOISE_MM, len(noisy))[:, None], crease])
+    face = np.concatenate([s.face[noisy], np.full(len(crease), end)])
+    band = np.arange(len(p)) >= len(noisy)
+    return p, face, band
+
+
+def _mixed(demo, band: np.ndarray):
+    model = demo[0]
+    return mixed_pixels(band, voxel_mm=model.diagonal_mm / DEFAULT_TARGET_SETTINGS.voxel_fraction, settings=SETTINGS)
+
+
+def test_biased_crease_points_turn_the_plain_fit_but_not_the_bounded_one(demo) -> None:
+    model = demo[0]
+    b = 0.08  # mm: the crease pixels of scan 635461529/88 read 50-130 um off their face
+    p, face, band = _scene(demo, offset_mm=b, wall="crease only")
+    expected = -b / (CREASE_Y - BOSS[1])  # the turn that zeroes their residuals
+    plain = gauss_newton(p, face, np.eye(4), model, 10)
+    unbiased = gauss_newton(*_scene(demo, offset_mm=0.0, wall="crease only")[:2], np.eye(4), model, 10)
+    # (the same noise with the crease read right: the noise's own shift of the cone taken out)
+    assert _turn(plain) - _turn(unbiased) == pytest.approx(expected, rel=0.01)
+    mixed = _mixed(demo, band)
+    fixed = gauss_newton(p, face, np.eye(4), model, 10, mixed=mixed)
+    assert abs(_turn(fixed)) < 0.02 * abs(expected)
+    # the covariance's side: exactly that turn is the one only blurred points bound
+    from inspection.segmentation import project_to_faces
+
+    _, _, n, r = project_to_faces(model, p, face)
+    info = information(p, n, r, face, mixed)
+    bounded, only_blurred = info.directions(mixed.tolerance_deg, mixed.tolerance_mm)
+    assert only_blurred.shape[1] == 1 and bounded.shape[1] == 5
+    omega, t = np.split(info.scale @ only_blurred[:, 0], 2)  # about info.centre
+    assert abs(omega[2]) / np.linalg.norm(omega) > 0.999
+    through = info.centre + np.cross(omega, t) / (omega @ omega)  # t = omega x (centre - axis point)
+    assert np.hypot(*(through - BOSS)[:2]) < 0.5
+
+
+def test_unbiased_crease_with_the_wall_seen_costs_no_precision(demo) -> None:
+    """The wall well seen bounds the turn: the bounded fit takes the same steps as the plain
+    one (the model leaves every direction bounded, so it costs nothing), and its turn is
+    within 3 sd of the truth, sd = sigma / sqrt(sum of the wall points' y^2)."""
+    model = demo[0]
+    p, face, band = _scene(demo, offset_mm=0.0, wall="seen")
+    plain = gauss_newton(p, face, np.eye(4), model, 10)
+    fixed = gauss_newton(p, face, np.eye(4), model, 10, mixed=_mixed(demo, band))
+    assert np.abs(fixed[:3, :3] - plain[:3, :3]).max() < 1e-7
+    assert np.abs(fixed[:3, 3] - plain[:3, 3]).max() < 1e-5
+    wall = face == demo[4]
+    sd = NOISE_MM / np.sqrt(((p[wall, 1] - BOSS[1]) ** 2).sum())
+    assert abs(_turn(fixed)) < 3.0 * sd
+
+
+def test_a_crease_is_an_outline_though_no_step_in_depth() -> None:
+    """A flat organised grid whose left and right halves are two faces: without faces only the
+    image's edge is outline; with them the columns within EDGE_MARGIN_PX of the crease too."""
+    from inspection.acceptance import EDGE_MARGIN_PX
+
+    rows, cols = np.mgrid[0:40, 0:40]
+    pixels = np.stack([cols.ravel(), rows.ravel()], axis=1)
+    points = np.stack([0.1 * cols.ravel(), 0.1 * rows.ravel(), np.zeros(pixels.shape[0])], axis=1)
+    normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    scan = ScanCloud(points, normals, "grid", np.array([2.0, 2.0, 100.0]), pixels, (40, 40))
+    face = (pixels[:, 0] >= 20).astype(int)
+    plain = _inside_outline(scan, SETTINGS.max_incidence_deg)
+    creased = _inside_outline(scan, SETTINGS.max_incidence_deg, face=face)
+    middle = (pixels[:, 1] == 20)
+    near = np.abs(pixels[:, 0] - 19.5) < EDGE_MARGIN_PX + 1
+    assert plain[middle & (pixels[:, 0] > EDGE_MARGIN_PX) & (pixels[:, 0] < 39 - EDGE_MARGIN_PX)].all()
+    assert not creased[middle & near].any()
+    assert creased[middle & ~near & (pixels[:, 0] > EDGE_MARGIN_PX) & (pixels[:, 0] < 39 - EDGE_MARGIN_PX)].all()
+
+
+def test_only_blurred_motions_join_the_unbounded_once() -> None:
+    """`fit_covariance`'s side: a motion only blurred points bound is added to the covariance's
+    unbounded motions (so `free_motions` names it free) unless it is one of them already."""
+    from inspection.registration.evidence import PoseCovariance, ResidualCorrelation, free_motions
+    from inspection.registration.fine import _with_unbounded
+
+    radius = 30.0
+    turn = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])  # (omega, t) about the centre
+    shift = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
+    cov = PoseCovariance(1e-10 * np.eye(6), np.zeros(3), 0.01, 1000, ResidualCorrelation(0.0, 0.0, "px"), 1.0,
+                         radius, unbounded=shift[None, :])
+    scaled = np.stack([turn, shift], axis=1)  # in scaled coordinates both are unit columns already
+    out = _with_unbounded(cov, scaled)
+    assert len(out.unbounded) == 2
+    assert np.allclose(np.abs(out.unbounded[1]), turn)
+    assert len(free_motions(out, SETTINGS.pose_tolerance_deg, SETTINGS.pose_tolerance_mm)) == 2
+    assert _with_unbounded(cov, scaled[:, :0]) is cov
