@@ -70,8 +70,8 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
                          settings=settings)
     for points in _from_best_seen(scan, settings.max_incidence_deg):  # the best measured first
         sel = rng.choice(points, size=min(settings.exact_points, len(points)), replace=False)  # any will do
-        fit = refine_exact(scan, sel, T, target=target, tol=ASSIGN_VOXELS * v, settings=settings,
-                           offset_limit_mm=0.5 * v, mixed=mixed, faces=faces)
+        fit = refine_exact(scan, sel, T, target=target, faces=faces, settings=settings, offset_limit_mm=0.5 * v,
+                           mixed=mixed)
         if not _frees(scan, target, *fit, settings):
             break
     assert fit is not None
@@ -241,13 +241,12 @@ def _inside_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarr
     return inner[row, col]
 
 
-def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, *, target: ModelTarget, tol: float,
+def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, *, target: ModelTarget, faces: np.ndarray,
                  settings: RegistrationSettings, iterations: int = 10,
-                 offset_limit_mm: float | None = None, mixed: MixedPixels | None = None,
-                 faces: np.ndarray | None = None) -> tuple[np.ndarray, FinalFit]:
+                 offset_limit_mm: float | None = None, mixed: MixedPixels | None = None) -> tuple[np.ndarray, FinalFit]:
     """Gauss-Newton on the distances of the scan points `sel` to the exact CAD faces: the
-    points are assigned to faces once (`segmentation.assign_faces`: within `tol` mm and
-    `max_normal_deg`, inside the face), then each step projects them onto their face's
+    points keep the faces `faces` gives every scan point at T (`assigned_faces`; -1: none,
+    left out), then each step projects them onto their face's
     surface (`gauss_newton`). Once converged, faces whose points sit off their surface as a
     group (median residual beyond `face_bias_sigma` times the spread of the faces' medians)
     are left out and the steps repeated; a large face off as a whole, by less than
@@ -256,16 +255,9 @@ def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, *, target: Mod
     would place the part along it off, so the pose along it is not proven (taking such a
     face back in had placed random part seed 1458621907/part_000 0.136 mm off, exit 0).
     `mixed` (one entry per scan point): every step only along the motions the points bound
-    with their blurred ones' offsets allowed for (`gauss_newton.MixedPixels`; None: plain).
-    `faces`: every scan point's face at T within `tol` (`assigned_faces`), else assigned here."""
-    assert target.model is not None and target.samples is not None
-    if faces is None:
-        seg = assign_faces(transform_points(T, scan.points[sel]), scan.normals[sel] @ T[:3, :3].T, target.model,
-                           target.samples, tree=target.dense.tree, max_distance_mm=tol,
-                           max_normal_deg=settings.max_normal_deg)
-        faces_sel = np.where(seg.assigned, seg.face, -1)
-    else:
-        faces_sel = faces[sel]
+    with their blurred ones' offsets allowed for (`gauss_newton.MixedPixels`; None: plain)."""
+    assert target.model is not None
+    faces_sel = faces[sel]
     sel, face = sel[faces_sel >= 0], faces_sel[faces_sel >= 0]
     if len(sel) < 6:
         return T, FinalFit(sel, face, mixed=mixed)
