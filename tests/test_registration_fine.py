@@ -139,9 +139,27 @@ def test_only_blurred_motions_join_the_unbounded_once() -> None:
     shift = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
     cov = PoseCovariance(1e-10 * np.eye(6), np.zeros(3), 0.01, 1000, ResidualCorrelation(0.0, 0.0, "px"), 1.0,
                          radius, unbounded=shift[None, :])
-    scaled = np.stack([turn, shift], axis=1)  # in scaled coordinates both are unit columns already
-    out = _with_unbounded(cov, scaled)
+    out = _with_unbounded(cov, np.stack([turn, 3.0 * shift]))
     assert len(out.unbounded) == 2
     assert np.allclose(np.abs(out.unbounded[1]), turn)
-    assert len(free_motions(out, SETTINGS.pose_tolerance_deg, SETTINGS.pose_tolerance_mm)) == 2
-    assert _with_unbounded(cov, scaled[:, :0]) is cov
+    named = free_motions(out, SETTINGS.pose_tolerance_deg, SETTINGS.pose_tolerance_mm)
+    assert [m.blurred for m in named] == [False, True]
+    assert "not determined at all" in named[0].describe() and "only by blurred pixels" in named[1].describe()
+    assert _with_unbounded(cov, np.zeros((0, 6))) is cov
+
+
+def test_a_motion_moved_to_another_centre_moves_every_point_alike() -> None:
+    """`Information.motions`: a direction in the fit's scaled coordinates about its centre,
+    written about another centre, displaces any point by the same vector (omega x (p - c) + t,
+    computed here for both centres)."""
+    from inspection.registration.gauss_newton import Information
+
+    rng = np.random.default_rng(7)
+    radius, centre, other = 40.0, rng.normal(0, 50, 3), rng.normal(0, 50, 3)
+    scale = np.diag([1.0 / radius] * 3 + [1.0] * 3)
+    info = Information(centre, radius, scale, np.eye(6), np.zeros(6), np.eye(6), 0.01)
+    directions = np.linalg.qr(rng.normal(size=(6, 2)))[0]
+    p = rng.normal(0, 80, (50, 3))
+    for z, moved in zip(directions.T, info.motions(directions, other)):
+        omega, t = np.split(scale @ z, 2)
+        assert np.allclose(np.cross(omega, p - centre) + t, np.cross(moved[:3], p - other) + moved[3:])

@@ -146,7 +146,9 @@ class FreeMotion:
     """A motion the fit does not fix: `kind` "rotation" (about `axis` through `point`) or
     "translation" (along `axis`), model frame; `u` its expanded uncertainty (k = 2, degrees
     or mm); `symmetry` whether it leaves the whole CAD model in place; `turn_u` the U (deg)
-    of the turn a translation comes with (a screw: what may make it free)."""
+    of the turn a translation comes with (a screw: what may make it free); `blurred` an
+    unbounded motion only blurred pixels (creases, outlines) inform, which the fit does not
+    step along."""
 
     kind: str
     axis: tuple[float, float, float]
@@ -155,11 +157,13 @@ class FreeMotion:
     symmetry: bool
     turn_u: float = 0.0
     note: str = ""
+    blurred: bool = False
 
     def describe(self) -> str:
         a = ", ".join(f"{x:.3f}" for x in self.axis)
         unit = "deg" if self.kind == "rotation" else "mm"
-        u = "not determined at all" if not np.isfinite(self.u) else f"U {self.u:.3g} {unit}"
+        u = (f"U {self.u:.3g} {unit}" if np.isfinite(self.u) else
+             "fixed only by blurred pixels, not measured" if self.blurred else "not determined at all")
         if self.kind == "rotation":
             p = ", ".join(f"{x:.2f}" for x in self.point or (0.0, 0.0, 0.0))
             what = f"rotation about the axis ({a}) through ({p}) mm ({u})"
@@ -170,7 +174,8 @@ class FreeMotion:
 
     def as_dict(self) -> dict[str, object]:
         return {"kind": self.kind, "axis": list(self.axis), "point": None if self.point is None else list(self.point),
-                "u": self.u if np.isfinite(self.u) else None, "symmetry": self.symmetry, "description": self.describe()}
+                "u": self.u if np.isfinite(self.u) else None, "symmetry": self.symmetry,
+                "only_blurred_pixels": self.blurred, "description": self.describe()}
 
 
 @dataclass(frozen=True)
@@ -182,7 +187,8 @@ class PoseCovariance:
     points, `radius_mm` the points' RMS distance from the centre, `unbounded` (k, 6) the
     motions the fit has no information on at all (a ring's turn about its axis), whose
     variance `covariance` leaves at 0, and those only blurred pixels inform, which the fit
-    does not step along (`fine.fit_covariance`; `covariance` keeps their variance)."""
+    does not step along (`fine.fit_covariance`; `covariance` keeps their variance), the
+    last `blurred` rows of `unbounded`."""
 
     covariance: np.ndarray
     centre: np.ndarray
@@ -192,6 +198,7 @@ class PoseCovariance:
     inflation: float
     radius_mm: float
     unbounded: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    blurred: int = 0
 
     def bounds(self) -> tuple[float, float]:
         """(rotation angle deg, displacement of the centre mm) that the pose's error stays
@@ -407,6 +414,7 @@ def free_motions(cov: PoseCovariance, tolerance_deg: float, tolerance_mm: float,
     S = np.diag([rho, rho, rho, 1.0, 1.0, 1.0])  # rotations as mm at the scan's radius
     w, v = np.linalg.eigh(S @ cov.covariance @ S)
     motions = [(x, np.inf, np.inf) for x in cov.unbounded]
+    first_blurred = len(cov.unbounded) - cov.blurred
     rot_b, shift_b = cov.bounds()
     beyond = rot_b > tolerance_deg or shift_b > tolerance_mm  # the error's 95 % bounds: the tolerance's terms
     for k, (lam, e) in enumerate(zip(w[::-1], v.T[::-1])):
@@ -418,13 +426,14 @@ def free_motions(cov: PoseCovariance, tolerance_deg: float, tolerance_mm: float,
             break  # eigenvalues descend: the rest are fixed
         motions.append((x, rot_u, shift_u))
     out = []
-    for x, rot_u, shift_u in motions:
+    for k, (x, rot_u, shift_u) in enumerate(motions):
         symmetry = False
         if model_points is not None and model_normals is not None:
             moves = jacobian(model_points, model_normals, cov.centre) @ x
             size = rho * np.linalg.norm(x[:3]) + np.linalg.norm(x[3:])
             symmetry = bool(np.sqrt(np.mean(moves ** 2)) < SYMMETRY_ZERO * size)
-        out.append(_named(x, cov.centre, rot_u, shift_u, rho, symmetry))
+        out.append(replace(_named(x, cov.centre, rot_u, shift_u, rho, symmetry),
+                           blurred=first_blurred <= k < len(cov.unbounded)))
     return out
 
 

@@ -318,23 +318,25 @@ def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fin
     if fit.mixed is None or face is None:
         return cov
     mixed = fit.mixed.subset(fit.index)
-    _, only_blurred = information(q[in_fit], normal[in_fit], r[in_fit], face[in_fit], mixed).directions(
-        mixed.tolerance_deg, mixed.tolerance_mm)
-    return _with_unbounded(cov, only_blurred)
+    info = information(q[in_fit], normal[in_fit], r[in_fit], face[in_fit], mixed)
+    _, only_blurred = info.directions(mixed.tolerance_deg, mixed.tolerance_mm)
+    return _with_unbounded(cov, info.motions(only_blurred, cov.centre))
 
 
-def _with_unbounded(cov: PoseCovariance, directions: np.ndarray) -> PoseCovariance:
-    """`cov` with the motions `directions` (orthonormal columns in the scaled coordinates
-    of `gauss_newton.Information`: rotations as mm at `cov.radius_mm` about `cov.centre`)
-    among its unbounded ones (`free_motions` names them free), each whose part outside
-    their span is over 1/2 (the rest is in it already). Its covariance along them stays
-    what the points, blurred ones included, say: the fit did not move the pose there."""
-    if directions.shape[1] == 0:
+def _with_unbounded(cov: PoseCovariance, motions: np.ndarray) -> PoseCovariance:
+    """`cov` with `motions` (rows (omega rad, t mm) about `cov.centre`) among its unbounded
+    ones (`free_motions` names them free), each whose part outside their span is over 1/2
+    in `cov`'s scaled coordinates (rotations as mm at `cov.radius_mm`; the rest is in the
+    span already). Its covariance along them stays what the points, blurred ones included,
+    say: the fit did not move the pose there."""
+    if len(motions) == 0:
         return cov
     S = np.diag([1.0 / cov.radius_mm] * 3 + [1.0] * 3)
     known = np.linalg.solve(S, cov.unbounded.T)
     basis = np.linalg.qr(known)[0] if known.shape[1] else known
+    directions = np.linalg.solve(S, motions.T)
+    directions /= np.linalg.norm(directions, axis=0, keepdims=True)
     rest = directions - basis @ (basis.T @ directions)
     new = (S @ rest[:, np.linalg.norm(rest, axis=0) > 0.5]).T
     new /= np.linalg.norm(new, axis=1, keepdims=True)
-    return replace(cov, unbounded=np.concatenate([cov.unbounded, new]))
+    return replace(cov, unbounded=np.concatenate([cov.unbounded, new]), blurred=cov.blurred + len(new))

@@ -81,6 +81,14 @@ class Information:
         ok = lam > 1.0 / tol ** 2
         return U[:, ok], U[:, ~ok]
 
+    def motions(self, directions: np.ndarray, centre: np.ndarray) -> np.ndarray:
+        """`directions` (columns in this system's scaled coordinates) as rows (omega rad,
+        t mm) of small rigid motions about `centre` (mm): the same displacement field, its
+        translation moved with the centre, t' = t + omega x (centre - self.centre)."""
+        m = (self.scale @ directions).T
+        m[:, 3:] += np.cross(m[:, :3], np.asarray(centre, np.float64) - self.centre)
+        return m
+
 
 def information(q: np.ndarray, normal: np.ndarray, r: np.ndarray, face: np.ndarray,
                 mixed: MixedPixels) -> Information:
