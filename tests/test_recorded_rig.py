@@ -6,6 +6,7 @@ the current rig schema refuses, and malformed tables."""
 from __future__ import annotations
 
 import copy
+import json
 from pathlib import Path
 from typing import Any
 
@@ -114,6 +115,25 @@ def test_a_malformed_value_is_refused_where_it_was_read(tmp_path: Path) -> None:
         recording_level(session)
     with pytest.raises(ConfigError, match=r"rig_config\.projector\.blur_sigma_px"):
         recorded_measurement(session.manifest.recorded_rig, CONFIG.nominal_model(), session.patterns, 12)
+
+
+def test_an_error_names_the_sessions_manifest(tmp_path: Path) -> None:
+    """Of many sessions, the one whose manifest is malformed: its folder's manifest.json is named,
+    whether the key is refused on opening or when first read."""
+    def written(name: str, **tables: Any) -> Path:
+        root = tmp_path / name
+        root.mkdir()
+        (root / "manifest.json").write_text(json.dumps(manifest(edited(**tables))))
+        return root
+
+    refused = written("scan-0007", camera={**CAPTURED["camera"], "bit_depth": "12"})
+    with pytest.raises(SessionError) as opening:
+        Session.open(refused)
+    assert str(opening.value).startswith(f"{refused / 'manifest.json'}, key 'rig_config.camera.bit_depth'")
+    later = written("scan-0008", camera={**CAPTURED["camera"], "sensor": {"full_well_e": 5.0}})
+    with pytest.raises(ConfigError) as reading:
+        sensor_noise_terms(Session.open(later).manifest.recorded_rig.sensor, 12)
+    assert str(reading.value).startswith(f"{later / 'manifest.json'}, key 'rig_config.camera.sensor.full_well_e'")
 
 
 def test_a_malformed_rig_or_acceptance_table_declares_no_distance_as_before(tmp_path: Path) -> None:
