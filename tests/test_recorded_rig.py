@@ -18,6 +18,7 @@ from scanner.errors import ConfigError, SessionError
 from scanner.patterns import PatternSet
 from scanner.pipeline import model_accuracy_px, recording_level
 from scanner.rig import DEFAULT_RIG, RigConfig
+from scanner.rig_schema import RigTable
 from scanner.session import MANIFEST_VERSION, Session, json_ready
 from slscan.measurement_model import recorded_measurement, rig_measurement, sensor_noise
 
@@ -49,6 +50,7 @@ def test_a_captured_config_reads_as_its_tables(tmp_path: Path) -> None:
     session = opened(CAPTURED, tmp_path)
     rig = session.manifest.recorded_rig
     assert (rig.rig.name, rig.rig.driver, rig.rig.working_distance_mm) == ("sim-bench", "sim", 400.0)
+    assert rig.rig.period_s == CAPTURED["rig"]["period_s"] == 0.05
     assert rig.camera.bit_depth == 12 and rig.projector.blur_sigma_px == 0.8 and rig.recording.level == "display"
     assert rig.sensor is not None and (rig.sensor.full_well_e, rig.sensor.blur_sigma_px) == (10500.0, 0.6)
     assert rig is session.manifest.recorded_rig  # read once, kept
@@ -68,6 +70,7 @@ def test_an_imported_or_empty_config_reads_as_the_defaults(tmp_path: Path, confi
     rig = session.manifest.recorded_rig
     assert (rig.rig.driver, rig.rig.working_distance_mm, rig.camera.bit_depth, rig.sensor) == (None, None, None, None)
     assert (rig.projector.blur_sigma_px, recording_level(session)) == (0.0, "display")
+    assert rig.rig.period_s == RigTable.model_fields["period_s"].default  # what a capture sequences without one
     assert Volume.of_recorded(rig).near_mm is None and sensor_noise_terms(rig.sensor, 12) is None
     assert model_accuracy_px(session, CONFIG.nominal_model()) is None and sensor_noise(rig.sensor, 12) is None
 
@@ -75,11 +78,12 @@ def test_an_imported_or_empty_config_reads_as_the_defaults(tmp_path: Path, confi
 def test_an_older_sessions_tables_read_though_the_rig_schema_refuses_them(tmp_path: Path) -> None:
     """Keys no reader after capture needs are ignored: a [rig] key since removed, a camera
     without its lens, an [acceptance] MPE the current schema refuses (E_mm)."""
-    config = edited(rig={**CAPTURED["rig"], "retired_key": 1},
+    config = edited(rig={**CAPTURED["rig"], "retired_key": 1, "period_s": 0.1},
                     camera={"bit_depth": 12, "sensor": CAPTURED["camera"]["sensor"]},
                     acceptance={**CAPTURED["acceptance"], "mpe": {"E_mm": 0.1}})
     rig = opened(config, tmp_path).manifest.recorded_rig
     assert rig.rig.driver == "sim" and rig.camera.bit_depth == 12 and rig.acceptance.volume_mm == [130.0, 110.0, 80.0]
+    assert rig.rig.period_s == 0.1
 
 
 def test_a_sensor_table_the_schema_refuses_stops_its_readers_only(tmp_path: Path) -> None:
