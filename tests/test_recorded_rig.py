@@ -10,10 +10,11 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from scanner.config import load_toml
-from scanner.decode_checks import Volume, sensor_noise_terms
+from scanner.decode_checks import Volume, sensor_noise_source, sensor_noise_terms
 from scanner.errors import ConfigError, SessionError
 from scanner.patterns import PatternSet
 from scanner.pipeline import model_accuracy_px, recording_level
@@ -94,16 +95,26 @@ def test_a_sensor_table_the_schema_refuses_stops_its_readers_only(tmp_path: Path
         sensor_noise_terms(session.manifest.recorded_rig.sensor, 12)
 
 
-def test_sensor_terms_take_the_keys_as_written(tmp_path: Path) -> None:
-    """Without full_well_e no photon transfer is stated; a read noise left out is 0 for the
-    decoder (not the table's default); an empty table states no sensor."""
+def test_sensor_terms_take_what_the_measurement_model_assumes(tmp_path: Path) -> None:
+    """Without full_well_e no photon transfer is stated; a read noise left out is the one the
+    simulator rendered and the measurement model assumes (6 e-, the [camera.sensor] default),
+    and the noise source says it is assumed; an empty table states no sensor."""
     def rig(sensor: dict[str, Any]) -> Any:
         return opened(edited(camera={**CAPTURED["camera"], "sensor": sensor}), tmp_path).manifest.recorded_rig
 
     assert sensor_noise_terms(rig({"read_noise_e": 6.0}).sensor, 12) is None
-    g = 10500.0 / 4095
-    assert sensor_noise_terms(rig({"full_well_e": 10500.0}).sensor, 12) == pytest.approx((1 / 12, 1 / g))
+    assert sensor_noise_source(rig({"read_noise_e": 6.0}).sensor) is None
     assert rig({}).sensor is None
+    gain = 10500.0 / (2 ** 12 - 1)  # e-/DN: the full well over the full scale
+    for table, read_e in (({"full_well_e": 10500.0}, 6.0), ({"full_well_e": 10500.0, "read_noise_e": 2.0}, 2.0)):
+        sensor = rig(table).sensor
+        read, shot = sensor_noise_terms(sensor, 12)
+        assert (read, shot) == pytest.approx(((read_e / gain) ** 2 + 1 / 12, 1 / gain), rel=1e-12)
+        mean_dn = np.array([0.0, 40.0, 1500.0, 4000.0])
+        assert np.sqrt(read + shot * mean_dn) == pytest.approx(sensor_noise(sensor, 12)(mean_dn), rel=1e-12)
+    assert sensor_noise_source(rig({"full_well_e": 10500.0, "read_noise_e": 2.0}).sensor) == "sensor model"
+    assumed = sensor_noise_source(rig({"full_well_e": 10500.0}).sensor)
+    assert assumed == "sensor model (read noise 6 e- assumed: the rig file's [camera.sensor] states none)"
 
 
 def test_a_malformed_value_is_refused_where_it_was_read(tmp_path: Path) -> None:
