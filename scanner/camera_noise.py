@@ -9,12 +9,8 @@ The decoder's noise maps and every uncertainty rest on it; the simulator's senso
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any, Self
-
 import numpy as np
 
-from scanner import schema
 from scanner.drivers.simulator import SensorTable
 
 MAX_BIT_DEPTH = 16  # the deepest camera frames a session stores (uint16)
@@ -22,11 +18,6 @@ MAX_BIT_DEPTH = 16  # the deepest camera frames a session stores (uint16)
 
 class CameraNoise(SensorTable):
     """A [camera.sensor] table and the noise it gives a pixel (DN, one sigma)."""
-
-    @classmethod
-    def from_table(cls, table: Mapping[str, Any], path: object, prefix: str = "camera.sensor") -> Self:
-        """From a [camera.sensor] table as written (a session manifest's); errors name the file and key."""
-        return schema.parse(cls, table, str(path), prefix)
 
     @staticmethod
     def max_dn(bit_depth: int) -> int:

@@ -30,9 +30,11 @@ import numpy as np
 from scanner.conventions import known
 from scanner.decode_checks import (
     ALPHA,
+    FITTED_MODEL,
     FITTED_MODEL_ACCURACY,
     MIN_JUDGED,
     PATTERN_ERROR,
+    SENSOR_MODEL,
     SENSOR_MODEL_ACCURACY,
     Check,
     ConsistencyError,
@@ -52,8 +54,6 @@ from scanner.pixel_code import read_pixel_code
 
 CHUNK_ROWS = 128  # rows decoded together (a band's float32 maps fit in cache)
 SAMPLE_STEP = 4  # the consistency checks judge every 4th pixel of every 4th row
-SENSOR_MODEL = "sensor model"
-FITTED_MODEL = "noise model fitted to the frames"
 SPATIAL_MODEL = "frames' noise along the fringes (an upper bound)"
 
 

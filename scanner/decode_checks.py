@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 from statistics import NormalDist
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeGuard
 
 import numpy as np
 
@@ -40,6 +40,8 @@ if TYPE_CHECKING:
     from scanner.rig_schema import RecordedRig
 
 ALPHA = 1e-4  # false-refusal rate of each noise-scale test when the noise model holds
+SENSOR_MODEL = "sensor model"  # the noise sources the checks name (`noise_source`)
+FITTED_MODEL = "noise model fitted to the frames"
 SENSOR_MODEL_ACCURACY = 0.10  # relative accuracy of σ_I from a camera's photon-transfer table (EMVA 1288 gain)
 FITTED_MODEL_ACCURACY = 0.25  # relative accuracy of σ_I fitted to the frames' own N-step residuals
 PATTERN_ERROR = 2.0 / (255.0 * np.sqrt(12.0))
@@ -439,13 +441,28 @@ def sensor_noise_terms(sensor: CameraNoise | None, bit_depth: int) -> tuple[floa
     """(read, shot) of the camera's intensity noise σ_I² = read + shot·A (DN², A in DN) from
     its photon-transfer table (the rig file's [camera.sensor]: full_well_e, read_noise_e):
     gain g = full well / full scale e-/DN, read = (read noise / g)² + 1/12 (quantisation),
-    shot = 1/g. None when the rig file has no such table or it gives no full_well_e; a read
-    noise left out is 0 here (the keys as written, not the table's defaults)."""
-    if sensor is None or "full_well_e" not in sensor.model_fields_set:
+    shot = 1/g. None when the rig file has no such table or it gives no full_well_e. A read
+    noise left out is the table's default, as the simulator renders the frames and the
+    measurement model assumes (`CameraNoise.noise_sigma_dn`); `sensor_noise_source` says so."""
+    if not _transfer_stated(sensor):
         return None
-    g = sensor.full_well_e / float(2 ** bit_depth - 1)
-    read_e = sensor.read_noise_e if "read_noise_e" in sensor.model_fields_set else 0.0
-    return (read_e / g) ** 2 + 1.0 / 12.0, 1.0 / g
+    g = sensor.gain_e_per_dn(bit_depth)
+    return (sensor.read_noise_e / g) ** 2 + 1.0 / 12.0, 1.0 / g
+
+
+def sensor_noise_source(sensor: CameraNoise | None) -> str | None:
+    """The noise source `sensor_noise_terms` stands for, as the checks report it: the sensor
+    model, naming the read noise it assumes when the table states none; None without one."""
+    if not _transfer_stated(sensor):
+        return None
+    if "read_noise_e" in sensor.model_fields_set:
+        return SENSOR_MODEL
+    return f"{SENSOR_MODEL} (read noise {sensor.read_noise_e:g} e- assumed: the rig file's [camera.sensor] states none)"
+
+
+def _transfer_stated(sensor: CameraNoise | None) -> TypeGuard[CameraNoise]:
+    """Whether the rig file states the sensor's photon transfer (its full well)."""
+    return sensor is not None and "full_well_e" in sensor.model_fields_set
 
 
 def epipolar(v_measured: np.ndarray, v_sigma: np.ndarray, v_from_u: np.ndarray, *, v_from_u_shifted: np.ndarray,

@@ -26,6 +26,7 @@ from scanner.acquisition import (
 from scanner.calibration_file import load_rig_model
 from scanner.decode import DEFAULT_DECODE_SETTINGS, DecodeResult, DecodeSettings, NoiseModel, decode
 from scanner.decode_checks import (
+    FITTED_MODEL,
     FITTED_MODEL_ACCURACY,
     MIN_JUDGED,
     SENSOR_MODEL_ACCURACY,
@@ -39,6 +40,7 @@ from scanner.decode_checks import (
     not_judged,
     pattern_set_tie,
     rig_model_tie,
+    sensor_noise_source,
     sensor_noise_terms,
 )
 from scanner.devices import Frame
@@ -260,7 +262,7 @@ def _process(session: Session, progress: Progress, recording: SessionRecording |
     n_points = len(cloud) if cloud is not None else 0
     stats = {"points": n_points, "valid_fraction": round(float(decoded.valid.mean()), 5),
              "rejected": decoded.rejected(), "consistency": [c.as_dict() for c in checks],
-             "noise_source": "sensor model" if sensor_noise(session) is not None else
+             "noise_source": sensor_noise_source(session.manifest.recorded_rig.sensor) or
              "the frames (fitted to their N-step residuals; the residual itself judged by their noise along the "
              "fringes)",
              "rig_model": rig_model_source or "the session's", "integrity": session.integrity}
@@ -341,7 +343,8 @@ def rig_checks(session: Session, decoded: DecodeResult, cloud: OrganisedCloud | 
         accuracy = model_accuracy_px(session, model)
         out.append(not_judged("epipolar", "cloud", "x noise", "the rig model's error on a new view is not known (a "
                               "calibration states its RMS on its own views only)") if accuracy is None else
-                   epipolar_check(decoded, model, sensor_noise(session) is not None, accuracy))
+                   epipolar_check(decoded, model, sensor_noise_source(session.manifest.recorded_rig.sensor),
+                                  accuracy))
     return out
 
 
@@ -356,11 +359,13 @@ def model_accuracy_px(session: Session, model: RigModel) -> float | None:
     return 0.0 if driver == "sim" and not model.calibration and not imported else None
 
 
-def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: bool, model_px: float) -> Check:
+def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: str | None, model_px: float) -> Check:
     """`decode_checks.epipolar` on every 4th pixel of every 4th row valid in both orientations:
     the depth from the orientation that fixes it best (the smaller |dz/dcoordinate|, along the
     baseline), the other coordinate that depth predicts through the rig, and the same from a
-    coordinate half a pixel further; `model_px` the rig model's own reprojection error (px)."""
+    coordinate half a pixel further; `model_px` the rig model's own reprojection error (px);
+    `sensor` the sensor model the noise comes from (`decode_checks.sensor_noise_source`; None:
+    the noise fitted to the frames)."""
     sample = np.zeros(decoded.valid.shape, bool)
     sample[::4, ::4] = True
     sample &= decoded.valid
@@ -387,7 +392,7 @@ def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: bool, model_p
     return epipolar(measured.coordinate[sample].astype(np.float64),
                     measured.coordinate_sigma[sample].astype(np.float64), predicted[0], v_from_u_shifted=predicted[1],
                     u_sigma=given.coordinate_sigma[sample].astype(np.float64), shift_px=0.5, accuracy=accuracy,
-                    noise_source="sensor model" if sensor else "noise model fitted to the frames", model_px=model_px)
+                    noise_source=sensor or FITTED_MODEL, model_px=model_px)
 
 
 def sensor_noise(session: Session) -> NoiseModel | None:

@@ -124,12 +124,15 @@ class ProjectorTable(Lens):
     look_at_mm: Vector3 | None = None
 
 
+PERIOD_S = 0.05  # the pattern period (s) of a rig file that states none
+
+
 class RigTable(Schema):
     name: Str | None = None
     driver: Str  # a rig driver: "sim", "hardware" (scanner.drivers.registry)
     trigger: Literal["software", "projector", "trigger_box"] = "software"
     timeout_s: Annotated[float, Field(strict=True, gt=0, le=3600)] = 2.0
-    period_s: PositiveFloat = 0.05
+    period_s: PositiveFloat = PERIOD_S
     working_distance_mm: Annotated[float, Field(strict=True, ge=10.0, le=100_000.0)] = 400.0  # 1 cm .. 100 m
     patterns: Str = "../patterns/heterodyne_3x4.toml"
     calibration: Str | None = None
@@ -274,6 +277,7 @@ class RecordedRigTable(RecordedTable):
     name: Str | None = None
     driver: Str | None = None
     working_distance_mm: Float | None = None
+    period_s: Float = PERIOD_S  # left out: the capture sequenced at the default
 
 
 class RecordedCameraTable(RecordedTable):

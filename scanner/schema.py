@@ -21,6 +21,7 @@ import difflib
 import types
 import typing
 import unicodedata
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
@@ -74,11 +75,19 @@ class Schema(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
 
+@dataclass(frozen=True)
+class Source:
+    """What `parse` tells the validators (their `ValidationInfo.context`): the file being
+    read, for a record that validates more of itself later to name it."""
+
+    path: str | Path
+
+
 def parse(schema: type[S], data: Any, path: str | Path, prefix: str = "") -> S:
     """`data` validated as `schema`; `prefix` is the dotted name of `data` in the file (for
     a sub-table validated on its own). ConfigError naming the file and key otherwise."""
     try:
-        return schema.model_validate(data)
+        return schema.model_validate(data, context=Source(path))
     except ValidationError as exc:
         raise _config_error(exc, schema, path, prefix) from None
 

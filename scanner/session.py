@@ -49,7 +49,7 @@ from typing import Annotated, Any, BinaryIO, Literal
 
 import cv2
 import numpy as np
-from pydantic import ConfigDict, Field, ModelWrapValidatorHandler, PrivateAttr, model_validator
+from pydantic import ConfigDict, Field, ModelWrapValidatorHandler, PrivateAttr, ValidationInfo, model_validator
 
 from scanner import __version__, schema
 from scanner.devices import Frame
@@ -422,19 +422,23 @@ class Manifest(schema.Schema):
     stage: dict[str, Any] | None = None  # a view of a multi-view session: the stage's position and pose
     timings_s: dict[str, Any] = Field(default_factory=dict)  # seconds per stage of the capture
     _recorded: dict[str, Any] = PrivateAttr(default_factory=dict)
+    _path: str | Path = PrivateAttr(default=MANIFEST)  # the file read (`schema.parse`): its session's
 
-    @model_validator(mode="wrap")
+    @model_validator(mode="wrap")  # before `_frames`, which reads `recorded_rig`: it needs `_path`
     @classmethod
-    def _keep(cls, data: Any, handler: ModelWrapValidatorHandler[Manifest]) -> Manifest:
+    def _keep(cls, data: Any, handler: ModelWrapValidatorHandler[Manifest], info: ValidationInfo) -> Manifest:
         manifest = handler(data)
         manifest._recorded = data
+        if isinstance(info.context, schema.Source):
+            manifest._path = info.context.path
         return manifest
 
     @cached_property
     def recorded_rig(self) -> RecordedRig:
         """`rig_config` read through typed tables (`scanner.rig_schema.RecordedRig`), each
-        validated when first read: an imported session's stand-in reads as empty tables."""
-        return RecordedRig(self.rig_config, MANIFEST)
+        validated when first read, errors naming the session's manifest: an imported
+        session's stand-in reads as empty tables."""
+        return RecordedRig(self.rig_config, self._path)
 
     def recorded(self, key: str) -> Any:
         """The value of `key` exactly as the file holds it (None when absent); not to be changed."""

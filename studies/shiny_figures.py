@@ -64,7 +64,7 @@ def nominal_capture_s(session: Session) -> float:
     """Capture time the rig's sequencing takes (s), the renderer's time left out: every frame
     (the probe's three per pre-capture included) holds a pattern for max(period, exposure +
     margin), as `scanner.acquisition.settings_for_exposure` sets it."""
-    period = float(session.manifest.rig_config["rig"]["period_s"])
+    period = session.manifest.recorded_rig.rig.period_s
     n = session.patterns.n_frames
     record = session.manifest.exposure
     probe = 3 * (record.probe_captures if record is not None else 0) * period

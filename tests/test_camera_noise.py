@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from scanner import schema
 from scanner.camera_noise import CameraNoise
 from scanner.errors import ConfigError
 
@@ -32,4 +33,4 @@ def test_a_bit_depth_no_frame_has_is_refused() -> None:
 
 def test_a_table_outside_what_sensors_span_names_the_file_and_key() -> None:
     with pytest.raises(ConfigError, match=r"rig\.toml.*camera\.sensor\.read_noise_e"):
-        CameraNoise.from_table({"read_noise_e": 500.0}, "rig.toml")
+        schema.parse(CameraNoise, {"read_noise_e": 500.0}, "rig.toml", "camera.sensor")

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from scanner.config import CONFIG_DIR, DEFAULT_RIG
 from scanner.errors import ConfigError, ScannerError
@@ -20,6 +20,10 @@ from scanner.stage_timer import StageTimer
 from slscan.exit_codes import Exit, for_verdict
 from slscan.options import add_json, add_paper, on_paper
 from slscan.progress import ProgressLine
+
+if TYPE_CHECKING:
+    from scanner.pipeline import ScanResult
+    from sim.evaluate import Accuracy
 
 DEMO_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
 DEMO_PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"  # the demo part's program: its CAD, tolerances, face names
@@ -179,7 +183,7 @@ def result_record(result: Any) -> dict[str, Any]:
             "accuracy": acc.as_dict() if acc is not None else None}
 
 
-def sim_accuracy(result: Any) -> Any:
+def sim_accuracy(result: ScanResult) -> Accuracy | None:
     """Accuracy against the simulator's ground truth, if the session has it."""
     from scanner.reconstruct import Triangulator
     from scanner.session import write_json
@@ -193,8 +197,7 @@ def sim_accuracy(result: Any) -> Any:
     if not path.exists() or len(result.decoded.maps) != 1 or result.cloud is None:
         return None
 
-    sensor = SensorModel.from_table(result.session.manifest.rig_config["camera"]["sensor"],
-                                    result.session.root / "manifest.json")
+    sensor = SensorModel.of(result.session.manifest.recorded_rig.sensor)  # none stated: rendered with the defaults
     acc = evaluate(result.decoded, result.cloud, Truth.load(path), sensor, Triangulator(result.session.rig_model()))
     write_json(result.session.outputs / "accuracy.json", acc.as_dict())
     return acc
