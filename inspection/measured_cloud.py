@@ -107,23 +107,37 @@ def make_scan(points: np.ndarray, normals: np.ndarray | None, source: str, viewp
 
 def read_cloud(path: str | Path) -> ScanCloud:
     """A PLY, PCD or XYZ cloud in mm. A cloud lying in front of the origin (z > 0, as
-    scans in a camera frame do) is taken as seen from the origin."""
+    scans in a camera frame do) is taken as seen from the origin. A PLY the scanner wrote
+    keeps each point's camera pixel (`read_ply_pixels`), so a cloud file carries the same
+    evidence as its session (the image's outlines and blocks of neighbouring pixels)."""
     from scanner.file_checks import FileRefused
     from scanner.mesh_files import read_points
+    from scanner.pointcloud import read_ply_pixels
 
     path = Path(path)
     if not path.exists():
         raise CloudError(path, "no such file")
     if path.suffix.lower() not in CLOUD_SUFFIXES:
         raise CloudError(path, f"not a point cloud: expected one of {', '.join(CLOUD_SUFFIXES)}")
+    nrm: np.ndarray | None
     try:
-        pts, nrm = read_points(path)
+        organised = read_ply_pixels(path) if path.suffix.lower() == ".ply" else None
+        if organised is not None and organised.is_image():
+            pts, nrm = organised.points.astype(np.float64), organised.normals.astype(np.float64)
+            pixels, shape = organised.pixels, organised.image_shape or _image_of(organised.pixels)
+        else:
+            (pts, nrm), pixels, shape = read_points(path), None, None
     except FileRefused as exc:
         raise CloudError(path, exc.problem) from None
     if len(pts) == 0:
         raise CloudError(path, "no points could be read (unreadable or empty cloud)")
     viewpoint = np.zeros(3) if np.all(pts[:, 2] > 0) else None
-    return make_scan(pts, nrm, str(path), viewpoint)
+    return make_scan(pts, nrm, str(path), viewpoint, pixels, shape)
+
+
+def _image_of(pixels: np.ndarray) -> tuple[int, int]:
+    """The smallest image (H, W) holding `pixels` (column, row)."""
+    return int(pixels[:, 1].max()) + 1, int(pixels[:, 0].max()) + 1
 
 
 def load_session(path: str | Path) -> ScanCloud:
@@ -147,8 +161,8 @@ def load_session(path: str | Path) -> ScanCloud:
         scan = read_cloud(ply)
         px = np.rint(cam.project(scan.points)).astype(np.int64)
     else:
-        points, normals, px = stored
-        scan = make_scan(points.astype(np.float64), normals.astype(np.float64), str(ply), np.zeros(3))
+        px = stored.pixels
+        scan = make_scan(stored.points.astype(np.float64), stored.normals.astype(np.float64), str(ply), np.zeros(3))
         sample = np.linspace(0, len(px) - 1, min(len(px), PIXEL_CHECK_POINTS)).astype(np.int64)
         off = np.abs(cam.project(scan.points[sample]) - px[sample]).max(initial=0.0)
         if not off <= PIXEL_CHECK_PX:
@@ -315,18 +329,21 @@ def part_mask(scan: ScanCloud, model_diagonal_mm: float, seed: int = 0) -> np.nd
     if keep.sum() < MIN_POINTS:
         raise CloudError(scan.source, "nothing but the table in view: no part found in the scan")
     if scan.pixels is not None and scan.image_shape is not None and support is not None:
-        mask = _largest_image_region(scan, keep)
+        mask = _largest_image_region(scan, keep, model_diagonal_mm)
     else:
         mask = _largest_piece(pts, keep, model_diagonal_mm, seed)
     check_units(scan.subset(mask), model_diagonal_mm)
     return mask
 
 
-def _largest_image_region(scan: ScanCloud, keep: np.ndarray) -> np.ndarray:
+def _largest_image_region(scan: ScanCloud, keep: np.ndarray, model_diagonal_mm: float) -> np.ndarray:
     """The kept points in the largest (by kept points) 8-connected image region of kept
-    pixels and pixels without a point, table pixels being the walls between regions; so
-    are pixels without a point that reach the image's border (outside the field or beyond
-    the table, not a shadow among the part's faces). Of the region, only the pieces of kept
+    pixels and pixels without a point, with the regions near it (`_near_pieces`), table
+    pixels being the walls between regions; so are pixels without a point that reach the
+    image's border (outside the field or beyond the table, not a shadow among the part's
+    faces). A step's wall in its own shadow can join such pixels along the part's outline
+    and cut the part in two (the demo part at random placements: its raised block, half
+    the part, was left out). Of the regions, only the pieces of kept
     pixels (8-connected among themselves) that are surfaces: at least one pixel with all
     eight neighbours kept. The border of the part's shadow on the table is a line of mixed
     pixels one or two wide, read up to 0.7 mm above the table's plane (far beyond its
@@ -344,13 +361,14 @@ def _largest_image_region(scan: ScanCloud, keep: np.ndarray) -> np.ndarray:
     wall[scan.pixels[~keep, 1], scan.pixels[~keep, 0]] = True  # and the table
     regions, _ = label(~wall, structure=np.ones((3, 3)))
     of_point = regions[scan.pixels[:, 1], scan.pixels[:, 0]]
-    big = int(np.argmax(np.bincount(of_point[keep])[1:])) + 1
+    part = np.flatnonzero(keep)
+    near = _near_pieces(scan.points[part], of_point[part], model_diagonal_mm)
     kept = np.zeros(scan.image_shape, bool)
     kept[scan.pixels[keep, 1], scan.pixels[keep, 0]] = True
     pieces, count = label(kept, structure=np.ones((3, 3)))
     solid = np.zeros(count + 1, bool)
     solid[pieces[binary_erosion(kept, structure=np.ones((3, 3)))]] = True
-    return keep & (of_point == big) & solid[pieces[scan.pixels[:, 1], scan.pixels[:, 0]]]
+    return keep & near[of_point] & solid[pieces[scan.pixels[:, 1], scan.pixels[:, 0]]]
 
 
 def _largest_piece(pts: np.ndarray, keep: np.ndarray, model_diagonal_mm: float, seed: int) -> np.ndarray:
@@ -364,16 +382,22 @@ def _largest_piece(pts: np.ndarray, keep: np.ndarray, model_diagonal_mm: float, 
     codes, lab = np.unique((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2], return_inverse=True)
     cells = np.stack([codes // (dims[1] * dims[2]), codes // dims[2] % dims[1], codes % dims[2]], axis=1)
     lab = _connected(cells, lab.ravel())
-    sizes = np.bincount(lab)
-    big = int(np.argmax(sizes))
-    centre = pts[part[lab == big]].mean(axis=0)
-    centres = np.stack([np.bincount(lab, weights=pts[part, i]) for i in range(3)], 1) / np.maximum(sizes, 1)[:, None]
-    near = ((np.linalg.norm(centres - centre, axis=1) < 0.75 * max(model_diagonal_mm, step))
-            & (sizes >= 0.002 * sizes[big]))
-    near[big] = True
     mask = np.zeros(len(pts), bool)
-    mask[part[near[lab]]] = True
+    mask[part[_near_pieces(pts[part], lab, max(model_diagonal_mm, step))[lab]]] = True
     return mask
+
+
+def _near_pieces(points: np.ndarray, piece: np.ndarray, model_diagonal_mm: float) -> np.ndarray:
+    """Which pieces (bool per label of `piece`, one per point of `points`) are the part: the
+    largest, and those of at least 0.2 % of its points whose centres lie within 0.75 model
+    diagonals of its centre."""
+    sizes = np.bincount(piece)
+    big = int(np.argmax(sizes))
+    centres = (np.stack([np.bincount(piece, weights=points[:, i], minlength=len(sizes)) for i in range(3)], 1)
+               / np.maximum(sizes, 1)[:, None])
+    near = (np.linalg.norm(centres - centres[big], axis=1) < 0.75 * model_diagonal_mm) & (sizes >= 0.002 * sizes[big])
+    near[big] = True
+    return near
 
 
 def _off_support(scan: ScanCloud, support: Support, k: int = 8) -> np.ndarray:

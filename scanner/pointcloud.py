@@ -3,6 +3,7 @@ normals, and PLY output (the valid points with the pixel each came from)."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -151,18 +152,47 @@ def write_ply(path: str | Path, cloud: OrganisedCloud, comments: list[str] | Non
     return len(idx)
 
 
-def read_ply_pixels(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(points (M, 3) mm, normals (M, 3), zero where the scanner had none, pixels (M, 2)
-    int (column, row)) of a PLY `write_ply` wrote, verified (`scanner.ply_file`: counts
-    against the file's bytes, finite points); None for a PLY without the pixel columns."""
-    from scanner.ply_file import vertex_positions
+@dataclass(frozen=True, eq=False)
+class PlyPixels:
+    """A PLY `write_ply` wrote: `points` (M, 3) mm, `normals` (M, 3), zero where the scanner
+    had none, `pixels` (M, 2) int (column, row) of each point's camera pixel, and
+    `image_shape` (H, W) as the header states it (None when it does not)."""
 
-    vertex = _vertex(path)
-    if not all(isinstance(vertex.get(k), np.ndarray) for k in ("row", "col", "nx", "ny", "nz")):
+    points: np.ndarray
+    normals: np.ndarray
+    pixels: np.ndarray
+    image_shape: tuple[int, int] | None
+
+    def is_image(self) -> bool:
+        """Whether the pixels can be an image's: non-negative, inside the stated shape and
+        one point per pixel (what a writer other than `write_ply` may not keep)."""
+        px = self.pixels
+        if len(px) == 0 or px.min() < 0:
+            return False
+        h, w = self.image_shape or (int(px[:, 1].max()) + 1, int(px[:, 0].max()) + 1)
+        if px[:, 0].max() >= w or px[:, 1].max() >= h:
+            return False
+        return len(np.unique(px[:, 1] * w + px[:, 0])) == len(px)
+
+
+IMAGE_COMMENT = re.compile(r"the valid pixels only of a (\d+) x (\d+) camera image")
+
+
+def read_ply_pixels(path: str | Path) -> PlyPixels | None:
+    """The points, normals and camera pixels of a PLY `write_ply` wrote, verified
+    (`scanner.ply_file`: counts against the file's bytes, finite points); None for a PLY
+    without the pixel columns."""
+    from scanner.ply_file import read_ply, vertex_positions
+
+    header, elements = read_ply(path)
+    vertex = elements.get("vertex", {})
+    columns = {k: v for k in ("col", "row", "nx", "ny", "nz") if isinstance(v := vertex.get(k), np.ndarray)}
+    if len(columns) < 5:
         return None
-    points = vertex_positions(path, vertex)
-    normals = np.stack([vertex["n" + k] for k in "xyz"], axis=1)
-    return points, normals, np.stack([vertex["col"], vertex["row"]], axis=1).astype(np.int64)
+    size = next((m for m in map(IMAGE_COMMENT.search, header.comments) if m), None)
+    return PlyPixels(vertex_positions(path, vertex), np.stack([columns["n" + k] for k in "xyz"], axis=1),
+                     np.stack([columns["col"], columns["row"]], axis=1).astype(np.int64),
+                     None if size is None else (int(size[2]), int(size[1])))
 
 
 def read_ply_points(path: str | Path) -> np.ndarray:

@@ -56,7 +56,9 @@ def test_the_imported_cloud_against_the_truth(capture: tuple) -> None:
     print(found)
     assert found["phase_origin"] == pytest.approx(-np.pi) and found["gray_code"] == "complementary"
     assert {f.key: f.source for f in detections[0].findings}["phase_origin"] == "given"
-    points, _, pixels = read_ply_pixels(scan.cloud_path)
+    stored = read_ply_pixels(scan.cloud_path)
+    assert stored is not None
+    points, pixels = stored.points, stored.pixels
     header = scan.cloud_path.read_bytes()[:1000].decode("latin-1")
     assert "frame: camera 'left', unit: mm" in header
     gt = Truth.of(truths["left"])

@@ -45,6 +45,30 @@ def test_ply_holds_every_valid_point_with_its_pixel(tmp_path: Path) -> None:
     assert np.array_equal(grey, np.repeat(cloud.colors[row, col][:, None], 3, axis=1))
 
 
+
+def test_a_cloud_file_the_scanner_wrote_keeps_its_pixels(tmp_path: Path) -> None:
+    """`slscan register CLOUD.ply` reads the same organised scan its session gives: each
+    point on the pixel it came from (the valid pixels of the image, row-major, found here
+    from the cloud itself) in the image the header names. The same points with two on one
+    pixel (no image's) are read as a bare cloud."""
+    from plyfile import PlyData, PlyElement
+
+    from inspection.measured_cloud import read_cloud
+
+    cloud = _cloud(40, 31)
+    path = tmp_path / "cloud.ply"
+    write_ply(path, cloud)
+    scan = read_cloud(path)
+    row, col = np.nonzero(~np.isnan(cloud.points[..., 2]))
+    assert scan.image_shape == (40, 31)
+    assert scan.pixels is not None and np.array_equal(scan.pixels, np.stack([col, row], axis=1))
+    assert np.array_equal(scan.points, cloud.points[row, col].astype(np.float64))
+    vertex = PlyData.read(str(path))["vertex"].data.copy()
+    vertex["row"][1], vertex["col"][1] = vertex["row"][0], vertex["col"][0]
+    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(tmp_path / "twice.ply"))
+    bare = read_cloud(tmp_path / "twice.ply")
+    assert bare.pixels is None and bare.image_shape is None and len(bare) == len(scan)
+
 def test_ply_header_is_honest(tmp_path: Path) -> None:
     cloud = _cloud(10, 16)
     path = tmp_path / "cloud.ply"

@@ -233,7 +233,7 @@ def _import_run(seed: int, folder: Path) -> dict[str, Any]:
         if read is None:
             out[case] = {"refused": f"{scan.cloud_path}: no pixel columns"}
             continue
-        points, _, pixels = read
+        points, pixels = read.points, read.pixels
         depth = np.full(gt.depth.shape, np.nan)
         depth[pixels[:, 1], pixels[:, 0]] = points[:, 2]
         err = depth - gt.depth
