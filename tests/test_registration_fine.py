@@ -128,6 +128,31 @@ def test_a_crease_is_an_outline_though_no_step_in_depth() -> None:
     assert creased[middle & ~near & (pixels[:, 0] > EDGE_MARGIN_PX) & (pixels[:, 0] < 39 - EDGE_MARGIN_PX)].all()
 
 
+
+def test_a_grazing_face_is_no_outline_along_itself() -> None:
+    """A flat face (0.1 mm pixel gaps) beside a steep one whose neighbouring pixels lie 2 mm
+    apart (seen near grazing: gaps beyond the flat's step / cos(max incidence)): without
+    faces every steep pixel is a depth step; with them only the crease's and the image
+    edge's pixels are outline, the steep face's own gaps being its slope."""
+    from inspection.acceptance import EDGE_MARGIN_PX
+
+    rows, cols = np.mgrid[0:40, 0:40]
+    pixels = np.stack([cols.ravel(), rows.ravel()], axis=1)
+    steep = pixels[:, 0] >= 20
+    x = np.where(steep, 2.0, 0.1 * cols.ravel())
+    z = np.where(steep, 2.0 * (cols.ravel() - 19), 0.0)
+    points = np.stack([x, 0.1 * rows.ravel(), z], axis=1)
+    normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    scan = ScanCloud(points, normals, "grid", np.array([2.0, 2.0, 100.0]), pixels, (40, 40))
+    face = steep.astype(int)
+    plain = _inside_outline(scan, SETTINGS.max_incidence_deg)
+    faced = _inside_outline(scan, SETTINGS.max_incidence_deg, face=face)
+    off_edge = (np.minimum(pixels, 39 - pixels) >= EDGE_MARGIN_PX).all(axis=1)
+    off_crease = np.abs(pixels[:, 0] - 19.5) > EDGE_MARGIN_PX + 1
+    assert not plain[steep].any()
+    assert faced[off_edge & off_crease].all()
+    assert not faced[np.abs(pixels[:, 0] - 19.5) < EDGE_MARGIN_PX].any()
+
 def test_only_blurred_motions_join_the_unbounded_once() -> None:
     """`fit_covariance`'s side: a motion only blurred points bound is added to the covariance's
     unbounded motions (so `free_motions` names it free) unless it is one of them already."""

@@ -209,8 +209,12 @@ def mixed_pixels(band: np.ndarray, *, voxel_mm: float, settings: RegistrationSet
 
 def _inside_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarray | None = None) -> np.ndarray:
     """Which points of an organised scan lie at least `EDGE_MARGIN_PX` inside the outline
-    of their surface (`well_seen`); with `face` (one CAD face id per point, -1 none), a
-    crease between two faces counts as outline too (`blurred`)."""
+    of their surface (`well_seen`): neighbours further apart than the image's median step
+    at `max_incidence_deg` are a depth step. With `face` (one CAD face id per point, -1
+    none), a crease between two faces counts as outline too, and two neighbours on one face
+    are no step however far apart: that gap is the face's slope, seen near grazing
+    (`blurred`; such points read their face to a few um at the true pose, where points
+    within the margin of a crease read tens)."""
     import cv2
 
     from inspection.acceptance import EDGE_MARGIN_PX
@@ -226,12 +230,14 @@ def _inside_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarr
     limit = step / np.cos(np.radians(max_incidence_deg))
     with np.errstate(invalid="ignore"):
         jump0, jump1 = gaps[0] > limit, gaps[1] > limit
-    if face is not None:  # a crease: neighbours on two different faces
+    if face is not None:  # a crease: neighbours on two faces; a gap within one face is its slope, not a step
         label = np.full(scan.image_shape, -1)
         label[row, col] = face
         for a, jump in ((0, jump0), (1, jump1)):
             lo, hi = np.delete(label, -1, axis=a), np.delete(label, 0, axis=a)
-            jump |= (lo >= 0) & (hi >= 0) & (lo != hi)
+            both = (lo >= 0) & (hi >= 0)
+            jump &= ~(both & (lo == hi))
+            jump |= both & (lo != hi)
     surface[:-1] &= ~jump0
     surface[1:] &= ~jump0
     surface[:, :-1] &= ~jump1
