@@ -1,7 +1,7 @@
 """No view-pair pose without proof, on the simulated turntable: a sphere, which any turn
 about its centre maps onto itself, is refused naming the free motion and the alternatives
 (the truth: the sphere's symmetry, written out in the scene here); the refusal's record is
-JSON, and Open3D's prints never reach stdout."""
+JSON (`slscan register` prints it and exits 1), and Open3D's prints never reach stdout."""
 
 from __future__ import annotations
 
@@ -43,8 +43,13 @@ def sphere_views(tmp: Path) -> Path:
 
 
 @pytest.mark.acceptance
-def test_a_sphere_is_refused_with_its_free_turn_named(tmp_path: Path) -> None:
+def test_a_sphere_is_refused_with_its_free_turn_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     views = sphere_views(tmp_path)
+    capsys.readouterr()
+    assert cli.main(["register", str(views / "view_001"), str(views / "view_000"), "--json"]) == 1
+    said = json.loads(capsys.readouterr().out)  # JSON alone on stdout, the refusal in it
+    assert said["status"] == "refused" and said["transform"] is None and len(said["best_unproven"]) == 4
+    assert said["refusals"] and said["alternatives"]
     source, target = load_source(views / "view_001"), load_source(views / "view_000")
     pair = weigh_view_pair(source, target, isolate=True)
     assert not pair.proven and pair.refusals

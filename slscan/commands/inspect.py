@@ -184,28 +184,23 @@ def _register(args: argparse.Namespace, json_out: dict[str, Any] | None = None) 
 
 def _register_views(args: argparse.Namespace, settings: Any, json_out: dict[str, Any] | None = None) -> int:
     """A cloud (or session) target is another view of the part: partial overlap, judged on
-    the overlap (`inspection.views.pair_registration`)."""
-    import numpy as np
-
+    the overlap (`inspection.views.pair_registration`). The pose only when its evidence
+    proves it (exit 0); otherwise why not, the best pose and the alternatives (exit 1)."""
     from inspection.measured_cloud import load_source
-    from inspection.views.pair_registration import register_view_pair, without_support
+    from inspection.views.pair_registration import weigh_view_pair, without_support
 
     scan, target = load_source(args.source), load_source(args.target)
     if not args.no_isolate:
         scan, target = without_support(scan, args.seed), without_support(target, args.seed)
-    reg = register_view_pair(scan, target, args.overlap, settings)
+    pair = weigh_view_pair(scan, target, args.overlap, settings)
     if json_out is not None:
-        json_out.update({"transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse_mm,
-                         "overlap": reg.overlap, "overlap_given": reg.overlap_given, "ambiguous": reg.ambiguous,
-                         "method": reg.method})
-        return Exit.OK
-    with np.printoptions(precision=6, suppress=True, floatmode="fixed"):
-        print(f"transform taking {args.source} onto {args.target} (mm):")
-        print(reg.transform)
-    print(f"overlap {reg.overlap:.0%} of the scan ({'given' if reg.overlap_given else 'estimated'}); fitness on the "
-          f"overlap {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, {reg.method}"
-          + ("; AMBIGUOUS: another pose fits as well" if reg.ambiguous else ""))
-    return Exit.OK
+        d = pair.as_dict()
+        json_out.update({**d, "status": "ok" if pair.proven else "refused",
+                         "transform": d["transform"] if pair.proven else None,
+                         "best_unproven": None if pair.proven else d["transform"]})
+    else:
+        print(pair.text(args.source, args.target), file=sys.stdout if pair.proven else sys.stderr)
+    return Exit.OK if pair.proven else Exit.FAILED
 
 
 def is_program(path: str | Path) -> bool:
