@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
 from inspection.errors import CloudError, UnitMismatch
-from scanner.pointcloud import OrganisedCloud
+from scanner.pointcloud import OrganisedCloud, PlyPixels
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".pts")
 MIN_POINTS = 500
@@ -111,7 +111,6 @@ def read_cloud(path: str | Path) -> ScanCloud:
     keeps each point's camera pixel (`read_ply_pixels`), so a cloud file carries the same
     evidence as its session (the image's outlines and blocks of neighbouring pixels)."""
     from scanner.file_checks import FileRefused
-    from scanner.mesh_files import read_points
     from scanner.pointcloud import read_ply_pixels
 
     path = Path(path)
@@ -119,25 +118,29 @@ def read_cloud(path: str | Path) -> ScanCloud:
         raise CloudError(path, "no such file")
     if path.suffix.lower() not in CLOUD_SUFFIXES:
         raise CloudError(path, f"not a point cloud: expected one of {', '.join(CLOUD_SUFFIXES)}")
-    nrm: np.ndarray | None
     try:
-        organised = read_ply_pixels(path) if path.suffix.lower() == ".ply" else None
-        if organised is not None and organised.is_image():
-            pts, nrm = organised.points.astype(np.float64), organised.normals.astype(np.float64)
-            pixels, shape = organised.pixels, organised.image_shape or _image_of(organised.pixels)
-        else:
-            (pts, nrm), pixels, shape = read_points(path), None, None
+        return _cloud_of(path, read_ply_pixels(path) if path.suffix.lower() == ".ply" else None)
     except FileRefused as exc:
         raise CloudError(path, exc.problem) from None
+
+
+def _cloud_of(path: Path, organised: PlyPixels | None) -> ScanCloud:
+    """`read_cloud`'s scan of `path`, from the PLY already read with its pixels (`organised`;
+    the pixels kept when they form an image), else read as a bare cloud."""
+    from scanner.mesh_files import read_points
+
+    nrm: np.ndarray | None
+    pixels, shape = None, None
+    if organised is None:
+        pts, nrm = read_points(path)
+    else:
+        pts, nrm = organised.points.astype(np.float64), organised.normals.astype(np.float64)
+        if organised.is_image():
+            pixels, shape = organised.pixels, organised.shape()
     if len(pts) == 0:
         raise CloudError(path, "no points could be read (unreadable or empty cloud)")
     viewpoint = np.zeros(3) if np.all(pts[:, 2] > 0) else None
     return make_scan(pts, nrm, str(path), viewpoint, pixels, shape)
-
-
-def _image_of(pixels: np.ndarray) -> tuple[int, int]:
-    """The smallest image (H, W) holding `pixels` (column, row)."""
-    return int(pixels[:, 1].max()) + 1, int(pixels[:, 0].max()) + 1
 
 
 def load_session(path: str | Path) -> ScanCloud:
@@ -155,14 +158,14 @@ def load_session(path: str | Path) -> ScanCloud:
     cam = session.rig_model().camera
     try:
         stored = read_ply_pixels(ply)
+        scan = (_cloud_of(ply, None) if stored is None else
+                make_scan(stored.points.astype(np.float64), stored.normals.astype(np.float64), str(ply), np.zeros(3)))
     except FileRefused as exc:
         raise CloudError(ply, exc.problem) from None
     if stored is None:  # another writer's PLY: place every point by projecting it
-        scan = read_cloud(ply)
         px = np.rint(cam.project(scan.points)).astype(np.int64)
     else:
         px = stored.pixels
-        scan = make_scan(stored.points.astype(np.float64), stored.normals.astype(np.float64), str(ply), np.zeros(3))
         sample = np.linspace(0, len(px) - 1, min(len(px), PIXEL_CHECK_POINTS)).astype(np.int64)
         off = np.abs(cam.project(scan.points[sample]) - px[sample]).max(initial=0.0)
         if not off <= PIXEL_CHECK_PX:

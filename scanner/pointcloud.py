@@ -163,13 +163,17 @@ class PlyPixels:
     pixels: np.ndarray
     image_shape: tuple[int, int] | None
 
+    def shape(self) -> tuple[int, int]:
+        """The image (H, W): as the header states it, else the smallest holding the pixels."""
+        return self.image_shape or (int(self.pixels[:, 1].max()) + 1, int(self.pixels[:, 0].max()) + 1)
+
     def is_image(self) -> bool:
         """Whether the pixels can be an image's: non-negative, inside the stated shape and
         one point per pixel (what a writer other than `write_ply` may not keep)."""
         px = self.pixels
         if len(px) == 0 or px.min() < 0:
             return False
-        h, w = self.image_shape or (int(px[:, 1].max()) + 1, int(px[:, 0].max()) + 1)
+        h, w = self.shape()
         if px[:, 0].max() >= w or px[:, 1].max() >= h:
             return False
         return len(np.unique(px[:, 1] * w + px[:, 0])) == len(px)
