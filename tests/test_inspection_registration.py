@@ -3,8 +3,8 @@ failures (another part, a model in other units, nothing to register).
 
 Views here are rendered without the fringe pipeline (the visible CAD samples from a
 camera, with 14 um noise along the viewing rays): fast, with an exact true pose. The
-full scanner chain is in test_inspection_sim.py; the NIST benchmark in
-test_inspection_benchmark.py (slow)."""
+full scanner chain is in test_inspection_sim.py; the NIST figures in
+test_inspection_benchmark.py (acceptance) and `python -m studies.nist_registration`."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """What registration can be tuned by: how a model target is prepared (`TargetSettings`)
 and how a scan is registered to it (`RegistrationSettings`). Every figure carries its
 unit and the reason for its default; the defaults are the ones the NIST benchmark
-(tests/test_inspection_benchmark.py) was measured with."""
+(studies/nist_registration.py) was measured with."""
 
 from __future__ import annotations
 

@@ -44,7 +44,7 @@ SCENE = CONFIG_DIR / "scenes" / "turntable_demo.toml"
 CAD = CONFIG_DIR / "parts" / "demo_part.step"
 PROGRAM = CONFIG_DIR / "parts" / "demo_part.toml"  # the demo part's program: its tolerances and face names
 STEP_DIR = Path(__file__).resolve().parents[4] / "shared" / "data" / "step"
-NIST = {"ctc01": ("nist_ctc_01_asme1_rd.stp", 0.12, (0.0, 0.0, 1.0)),  # as tests/test_inspection_benchmark.py,
+NIST = {"ctc01": ("nist_ctc_01_asme1_rd.stp", 0.12, (0.0, 0.0, 1.0)),  # as studies/nist_registration.py,
         "ftc06": ("nist_ftc_06_asme1_rd.stp", 0.3, (0.0, 1.0, 0.0))}  # a little smaller to fit the platter
 
 
