@@ -191,7 +191,7 @@ def map_trials(job: Callable[[int], T], n: int, processes: int = 1) -> Iterator[
     _JOB = job
     try:
         with multiprocessing.get_context("fork").Pool(processes) as pool:
-            yield from pool.imap(_run_job, range(n))  # type: ignore[misc]
+            yield from pool.imap(_run_job, range(n))  # type: ignore[misc]  # the pool's results are job's, typed Any
             pool.close()  # let the workers exit on their own: the pool's exit would SIGTERM them, which
             pool.join()  # the command's handler turns into a traceback on stderr
     finally:
@@ -233,7 +233,8 @@ def _artefact_trial(bench: Bench, position: Position, artefacts: ArtefactSet, *,
         unc = at(pixels)
         if noise_scale == 1.0:
             return unc
-        return replace(unc, noise=unc.noise.scaled(noise_scale))  # type: ignore[union-attr]
+        assert unc.noise is not None, "the bench's measurement model has a noise model"
+        return replace(unc, noise=unc.noise.scaled(noise_scale))
 
     result = evaluate(position, ScanData(points, uncertainties), artefacts)
     if result.error:
@@ -433,14 +434,17 @@ def plate_figures(bench: Bench, n: int, *, seed: int = 0, rigs: tuple[MeasuringR
         unc = replace(bench.measurement, calibration=rig.calibration).of_scan(decoded, used, defocus=True)(
             np.stack([cols, rows], axis=1)[near])
         if noise_scale != 1.0:
-            unc = replace(unc, noise=unc.noise.scaled(noise_scale))  # type: ignore[union-attr]
+            assert unc.noise is not None, "the bench's measurement model has a noise model"
+            unc = replace(unc, noise=unc.noise.scaled(noise_scale))
         m = measured[near]
         got = measure_face(face, camera_points[near], unc, R=R, points=m, deviation=m[:, 2], uv=m[:, :2],
                            normals=np.tile([0.0, 0.0, 1.0], (len(m), 1)), settings=settings.form)
         true_points = gt.points[rows, cols][near].astype(np.float64) @ inv[:3, :3].T + inv[:3, 3]
         flat, sq = plate_truth(got, true_points, settings.form)
         dt_s = time.perf_counter() - t0
-        return (Trial(got.flatness_mz, flat, dt_s / 2), Trial(got.sq, sq, dt_s / 2))  # type: ignore[arg-type]
+        if got.flatness_mz is None or got.sq is None:
+            raise RuntimeError(f"plate trial {k}: {got.status} ({got.note})")
+        return (Trial(got.flatness_mz, flat, dt_s / 2), Trial(got.sq, sq, dt_s / 2))
 
     flat, sq = run_trials(("flatness (minimum zone)", "Sq"), trial, n, processes, progress)
     return flat, sq
@@ -576,8 +580,9 @@ def noise_model_check(bench: Bench, n: int, seed: int = 99, plate: Plate = Plate
         px = np.stack([cols, rows], axis=1)
         measurement = replace(bench.measurement, fringe=None, calibration=CalibrationUncertainty.none("not studied"))
         # as an inspection takes them: the defocus bias removed from each scan, the noise model raised for it
-        moved = [measurement.of_scan(d, renderer.model, defocus=True)(px).noise  # type: ignore[union-attr]
-                 .defocus_removed() for d in scans]
+        noises = [measurement.of_scan(d, renderer.model, defocus=True)(px).noise for d in scans]
+        assert all(n is not None for n in noises), "the bench's measurement model has a noise model"
+        moved = [n.defocus_removed() for n in noises if n is not None]
         diff = (z[0] - z[1])[rows, cols] + moved[0][0] - moved[1][0]
         r = diff / (np.sqrt(2.0) * moved[0][1].sigma_z)
         even = (rows + cols) % 2 == 0
