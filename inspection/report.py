@@ -123,7 +123,7 @@ class InspectionReport:
     segmentation: Any = field(repr=False)
     decision_rule: str = GUARD_BANDED
     calibration: str = ""
-    pose_u: dict[str, float] = field(default_factory=dict)
+    pose_u: dict[str, Any] = field(default_factory=dict)
     header: ReportHeader = field(default_factory=ReportHeader)
     cad: Any = field(default=None, repr=False)
     status: str = "ok"
@@ -159,6 +159,14 @@ class InspectionReport:
                 "form_settings": asdict(self.form_settings), "noise_treatment": NOISE_NOTE,
                 "timings_s": self.timings_s, "faces": [row.as_dict() for row in self.faces]}
 
+    def _pose_u_text(self) -> str:
+        """"; pose U …" for the report's registration line ("" when none is known)."""
+        if not self.pose_u:
+            return ""
+        if self.pose_u.get("translation_u_mm") is None:
+            return f"; pose U {self.pose_u.get('pose_u_note', 'not bounded')}"
+        return f"; pose U {self.pose_u['translation_u_mm'] * 1e3:.2f} um, {self.pose_u['rotation_u_deg']:.5f} deg"
+
     def table(self) -> str:
         """The per-face table as text, every length in µm: figures as value ± U (k = 2), or
         < detection limit; each limit with its verdict."""
@@ -181,8 +189,7 @@ class InspectionReport:
                      f"edge margin {s.edge_margin_mm} mm.")
         lines.append(f"registration fitness {self.fitness:.3f}, RMSE {self.rmse_mm * 1e3:.1f} um "
                      f"({self.registration.method}{', AMBIGUOUS pose' if self.registration.ambiguous else ''}"
-                     + (f"; pose U {self.pose_u['translation_u_mm'] * 1e3:.2f} um, "
-                        f"{self.pose_u['rotation_u_deg']:.5f} deg" if self.pose_u else "")
+                     + self._pose_u_text()
                      + "".join(f"; free: {m.describe()}" for m in getattr(self.registration, "free", ())) + "); "
                      f"{self.assigned_points}/{self.part_points} part points on faces; "
                      f"calibration: {self.calibration}; "

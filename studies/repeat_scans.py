@@ -74,14 +74,16 @@ class Trial:
 
 @dataclass(frozen=True)
 class CoverageResult:
-    """Trials of one figure; `fraction` of them with the truth within ±U."""
+    """Trials of one figure; `fraction` of them with the truth within ±U; `not_measured`
+    the trials left out as giving no figure to cover (a pose not proven)."""
 
     figure: str
     trials: tuple[Trial, ...]
+    not_measured: int = 0
 
     @property
     def fraction(self) -> float:
-        return float(np.mean([t.inside for t in self.trials]))
+        return float(np.mean([t.inside for t in self.trials])) if self.trials else float("nan")
 
     @property
     def seconds(self) -> float:
@@ -96,8 +98,10 @@ class CoverageResult:
         return {"case": case, "scans": len(self.trials), "inside": int(sum(t.inside for t in self.trials)),
                 "coverage": self.fraction, "error_mean_mm": float(err.mean()) if len(err) else None,
                 "error_sd_mm": float(err.std(ddof=1)) if len(err) > 1 else None,
-                "median_U_mm": float(np.median([t.estimate.U for t in self.trials])), "seconds": self.seconds,
-                "reported": len(err), "below_limit": int(len(self.trials) - len(err))}
+                "median_U_mm": float(np.median([t.estimate.U for t in self.trials])) if self.trials else None,
+                "seconds": self.seconds,
+                "reported": len(err), "below_limit": int(len(self.trials) - len(err)),
+                "not_measured": self.not_measured}
 
     def summary(self) -> str:
         err = self.errors()
@@ -108,7 +112,7 @@ class CoverageResult:
             errors = f"error mean {err.mean() * 1e3:+.3f} µm (t = {t:+.1f}), std {err.std(ddof=1) * 1e3:.3f} µm"
         return (f"{self.figure}: truth within ±U in {self.fraction:.1%} of {len(self.trials)} trials; {errors}; "
                 f"median U {np.median(U) * 1e3:.3f} µm (95 %); {len(self.trials) - len(err)} below their limit; "
-                f"{self.seconds:.0f} s")
+                + (f"{self.not_measured} not measured; " if self.not_measured else "") + f"{self.seconds:.0f} s")
 
 
 @dataclass(frozen=True, eq=False)
@@ -453,15 +457,6 @@ def plate_figures(bench: Bench, n: int, *, seed: int = 0, rigs: tuple[MeasuringR
 # ------------------------------------------------------------------------------ pose
 
 
-def pose_error(transform: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
-    """(translation error at the model's origin (mm), rotation error (degrees)) of a
-    registration `transform` (scan/camera -> model frame) against the part's true `pose`
-    (model -> camera): transform · pose is the identity when exact."""
-    E = transform @ pose
-    angle = float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
-    return float(np.linalg.norm(E[:3, 3])), angle
-
-
 def demo_part_pose(bench: Bench, rng: np.random.Generator) -> np.ndarray:
     """The demo part face up (its CAD +z toward the camera, as `config/scenes/demo.toml`
     lays it), turned at random about the camera axis, tilted up to 15 degrees and moved
@@ -478,13 +473,15 @@ def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig,
     (`config/parts/demo_part.ply`, CAD `demo_part.step`) at random poses (`demo_part_pose`),
     inspected (`inspection.inspect_scan.inspect`: registration, segmentation, the pose's
     U; the faces' figures with 2 noise draws, which the pose does not use). A trial is
-    inside when both its translation error (at the model's origin) and its rotation error
-    are within their U; the Estimate recorded is the translation's."""
+    inside when both its translation error (the displacement of the pose's centre, which
+    its U bounds) and its rotation error are within their U; the Estimate recorded is the
+    translation's. A pose the inspection gives no U for (not proven) is not measured."""
     from inspection.cad import load_cad
     from inspection.form import FormSettings
     from inspection.inspect_scan import InspectionSettings, inspect
     from inspection.measured_cloud import from_organised
     from inspection.registration import RegistrationSettings
+    from inspection.views.align import pose_error
     from scanner.config import CONFIG_DIR
     from sim.scene import SceneObject, load_mesh
 
@@ -506,22 +503,29 @@ def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig,
         unc = replace(bench.measurement, calibration=rig.calibration).of_scan(decoded, used, defocus=True)(scan.pixels)
         settings = InspectionSettings(registration=RegistrationSettings(seed=k), form=FormSettings(draws=2))
         report = inspect(scan, cad, None, settings=settings, uncertainty=unc)
-        t_err, r_err = pose_error(report.registration.transform, pose)
-        U_t, U_r = report.pose_u["translation_u_mm"], report.pose_u["rotation_u_deg"]
+        U_t, U_r = report.pose_u.get("translation_u_mm"), report.pose_u.get("rotation_u_deg")
+        if U_t is None or U_r is None:  # ambiguous, or a motion the view does not fix: no pose U to cover
+            return (PoseTrial(Estimate(0.0, 0.0), 0.0, time.perf_counter() - t0, measured=False),)
+        # transform · pose is the identity when exact; U_t bounds the displacement of the pose's centre
+        r_err, t_err = pose_error(np.linalg.inv(report.registration.transform), pose, report.pose_u["pose_centre_mm"])
         return (PoseTrial(Estimate(t_err, U_t / 2.0, k=2.0), 0.0, time.perf_counter() - t0, r_err, U_r,
                           t_err <= U_t and r_err <= U_r),)
 
-    return run_trials(("pose",), trial, n, processes, progress)[0]
+    trials = run_trials(("pose",), trial, n, processes, progress)[0].trials
+    return CoverageResult("pose", tuple(t for t in trials if not isinstance(t, PoseTrial) or t.measured),
+                          not_measured=sum(isinstance(t, PoseTrial) and not t.measured for t in trials))
 
 
 @dataclass(frozen=True)
 class PoseTrial(Trial):
     """A pose trial: the translation error as `estimate` (truth 0), the rotation error
-    and its U (degrees), and whether both were within their U."""
+    and its U (degrees), and whether both were within their U; not `measured` when the
+    inspection states no pose U (ambiguous, or a motion the view does not fix at all)."""
 
     rotation_error_deg: float = 0.0
     rotation_u_deg: float = 0.0
     both_inside: bool = False
+    measured: bool = True
 
     @property
     def inside(self) -> bool:

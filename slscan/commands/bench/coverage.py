@@ -131,9 +131,12 @@ def cmd_coverage(args: argparse.Namespace) -> int:
                        calibration_d2_95=float(chi2.ppf(0.95, distances[0].dof)))
         if case.startswith("smooth"):
             row.update(detected=row["reported"], false_detection_rate=row["reported"] / row["scans"])
-        if case == "pose":
-            row.update(rotation_error_deg_mean=float(sum(t.rotation_error_deg for t in r.trials) / len(r.trials)),
-                       median_rotation_U_deg=sorted(t.rotation_u_deg for t in r.trials)[len(r.trials) // 2])
+        if case == "pose" and r.trials:
+            n = len(r.trials)
+            row.update(rotation_error_deg_mean=float(sum(t.rotation_error_deg for t in r.trials) / n),
+                       median_rotation_U_deg=sorted(t.rotation_u_deg for t in r.trials)[n // 2],
+                       rotation_coverage=sum(t.rotation_error_deg <= t.rotation_u_deg for t in r.trials) / n,
+                       translation_coverage=sum(abs(t.estimate.value or 0.0) <= t.estimate.U for t in r.trials) / n)
         rows.append(row)
         if not args.json:
             print(r.summary())
