@@ -182,17 +182,21 @@ class PlyPixels:
 IMAGE_COMMENT = re.compile(r"the valid pixels only of a (\d+) x (\d+) camera image")
 
 
+PIXEL_COLUMNS = frozenset({"col", "row", "nx", "ny", "nz"})  # the vertex columns `write_ply` adds to x, y, z
+
+
 def read_ply_pixels(path: str | Path) -> PlyPixels | None:
     """The points, normals and camera pixels of a PLY `write_ply` wrote, verified
     (`scanner.ply_file`: counts against the file's bytes, finite points); None for a PLY
-    without the pixel columns."""
-    from scanner.ply_file import read_ply, vertex_positions
+    without the pixel columns, known from its header alone (its body is not read)."""
+    from scanner.ply_file import read_header, read_ply, vertex_positions
 
+    spec = read_header(path).element("vertex")
+    if spec is None or not PIXEL_COLUMNS.issubset(p.name for p in spec.properties if p.count_type is None):
+        return None
     header, elements = read_ply(path)
     vertex = elements.get("vertex", {})
-    columns = {k: v for k in ("col", "row", "nx", "ny", "nz") if isinstance(v := vertex.get(k), np.ndarray)}
-    if len(columns) < 5:
-        return None
+    columns = {k: v for k in PIXEL_COLUMNS if isinstance(v := vertex.get(k), np.ndarray)}
     size = next((m for m in map(IMAGE_COMMENT.search, header.comments) if m), None)
     return PlyPixels(vertex_positions(path, vertex), np.stack([columns["n" + k] for k in "xyz"], axis=1),
                      np.stack([columns["col"], columns["row"]], axis=1).astype(np.int64),
