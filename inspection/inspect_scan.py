@@ -26,7 +26,7 @@ import time
 import weakref
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -36,9 +36,10 @@ from inspection.errors import InspectionError
 from inspection.figures import limited_by
 from inspection.form import FORM_WORKERS, FaceForm, FormSettings, evaluate_face
 from inspection.measured_cloud import ScanCloud, make_scan, part_mask
+from inspection.pose_uncertainty import PoseUncertainty
 from inspection.registration import ModelTarget, Registration, RegistrationSettings, transform_points
 from inspection.registration.driver import AMBIGUOUS
-from inspection.registration.evidence import SYMMETRY_ZERO, FreeMotion, PoseCovariance, jacobian, moves
+from inspection.registration.evidence import SYMMETRY_ZERO, FreeMotion, moves
 from inspection.registration.warm_start import register_with_prior
 from inspection.report import FaceRow, InspectionReport
 from inspection.segmentation import UNASSIGNED, Segmentation, assign_faces
@@ -164,7 +165,7 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, *,
             model=str(model.path), unit=model.unit, source=scan.source, scan_points=len(scan), part_points=len(part),
             assigned_points=int(seg.assigned.sum()), registration=reg, faces=tuple(done[k] for k in sorted(done)),
             form_settings=settings.form, timings_s={k: round(v, 4) for k, v in times.items()},
-            part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose.as_dict(),
+            part_mask=mask, segmentation=seg, decision_rule=rule, pose_u=pose,
             calibration=(uncertainty.calibration.source if uncertainty is not None
                          else "not known (a bare cloud): not in U"),
             cad=model, status=reg.status, status_note=_free_note(reg, unbounded))
@@ -212,96 +213,6 @@ def measure_face(face: Any, camera_points: np.ndarray, uncertainty: ScanUncertai
     return evaluate_face(face, points, deviation, uv=uv, settings=settings, noise=noise, normals=normals, shifts=shifts)
 
 
-POSE_CALIBRATION_POINTS = 50_000  # points the calibration's pose term is computed on (a smooth sum: a subset will do)
-
-
-@dataclass(frozen=True)
-class PoseUncertainty:
-    """The registration pose's covariance (`evidence.PoseCovariance`, from the residuals
-    and the Jacobian of the final fit, the residual field's correlation included; None: not
-    known) and the calibration's share (6, 6; None: no calibration term): one calibration
-    error moves every point of the scan (`ScanUncertainty.shifts`), and the fit moves the
-    pose to follow. The reported U and `pose_covariance` are their sum. The fit's own part
-    moves each face's points along its normal as a whole, so it is added to the deviation
-    figures (not to form, which it cannot change); the calibration's part is not, as each
-    figure carries the calibration's moves of its own points already."""
-
-    covariance: PoseCovariance | None
-    calibration: np.ndarray | None = None
-    unbounded: str = ""
-
-    @classmethod
-    def of(cls, covariance: PoseCovariance | None, camera_points: np.ndarray, points: np.ndarray,
-           seg: Segmentation, *, R: np.ndarray, uncertainty: ScanUncertainty | None,
-           unbounded: str = "") -> PoseUncertainty:
-        """The pose's uncertainty of a scan whose camera-frame `camera_points` (N, 3) lie at
-        model-frame `points` (`R` camera -> model) with faces `seg`: the fit's `covariance`
-        and the calibration's term (`calibration_covariance`) when `uncertainty` has one;
-        `unbounded` the motions the view does not fix at all, described ("" none): the
-        pose's U is then not bounded, and not reported."""
-        if covariance is None or uncertainty is None or uncertainty.calibration.is_zero:
-            return cls(covariance, unbounded=unbounded)
-        idx = np.flatnonzero(seg.assigned)
-        idx = idx[:: max(1, len(idx) // POSE_CALIBRATION_POINTS)]
-        moves = uncertainty.subset(idx).shifts(camera_points[idx])
-        if moves is None:
-            return cls(covariance, unbounded=unbounded)
-        return cls(covariance, calibration_covariance(points[idx], seg.normal[idx], covariance.centre, moves @ R.T),
-                   unbounded)
-
-    def total(self) -> np.ndarray | None:
-        """The pose's covariance (6, 6) with the calibration's share."""
-        if self.covariance is None:
-            return None
-        return self.covariance.covariance if self.calibration is None else self.covariance.covariance + self.calibration
-
-    def as_dict(self) -> dict[str, Any]:
-        total = self.total()
-        if self.covariance is None or total is None:
-            return {}
-        out: dict[str, Any] = {**self.covariance.as_dict(),
-                               "pose_u_calibration": "not included (no calibration covariance)"
-                               if self.calibration is None else "included"}
-        if self.unbounded:  # the covariance says nothing of the motions the view leaves free
-            return {**out, "rotation_u_deg": None, "translation_u_mm": None, "pose_covariance": None,
-                    "pose_u_note": f"not bounded: {self.unbounded}"}
-        rot, shift = PoseCovariance.bounds_of(total)
-        out.update(rotation_u_deg=rot, translation_u_mm=shift, pose_covariance=total.tolist())
-        if self.calibration is not None:
-            out["pose_covariance_calibration"] = self.calibration.tolist()
-        return out
-
-    def added_to(self, form: FaceForm, points: np.ndarray, normals: np.ndarray) -> FaceForm:
-        """The face's deviation figures with the fit's pose uncertainty added (the mean move
-        of the face along its normals; twice that for the profile zone 2 max|d|)."""
-        if form.status != "ok" or self.covariance is None:
-            return form
-        m = jacobian(points, normals, self.covariance.centre).mean(axis=0)
-        u = float(np.sqrt(max(m @ self.covariance.covariance @ m, 0.0)))
-        changes: dict[str, Any] = {}  # FaceForm's figure fields by name: replace() cannot check them
-        for name, scale in (("deviation_min", 1.0), ("deviation_max", 1.0), ("deviation_mean", 1.0),
-                            ("profile", 2.0)):
-            e = form.figure(name)
-            if e is not None:
-                changes[name] = replace(e, u=float(np.hypot(e.u, scale * u)))
-        return replace(form, **changes)
-
-
-def calibration_covariance(points: np.ndarray, normals: np.ndarray, centre: np.ndarray,
-                           moves: np.ndarray) -> np.ndarray:
-    """The pose's covariance (6, 6; rotation rad about `centre`, translation mm, model
-    frame) from the calibration's: model-frame `points` (N, 3) on faces with `normals`
-    move by `moves` (D, N, 3) mm along each principal one-sigma direction of the
-    calibration's covariance; the point-to-plane fit follows each move with the motion
-    ξ_d = −(JᵀJ)⁻¹ Jᵀ (n·move_d) (J the fit's Jacobian, `evidence.jacobian`), and the
-    directions are independent: Σ = Σ_d ξ_d ξ_dᵀ. Motions the points do not fix (a
-    turn about a ring's axis) take no share (the least-norm solution)."""
-    J = jacobian(points, normals, centre)
-    along = np.einsum("dni,ni->nd", moves, normals)
-    xi = -np.linalg.lstsq(J, along, rcond=None)[0].T
-    return xi.T @ xi
-
-
 def _free_note(reg: Registration, unbounded: list[FreeMotion]) -> str:
     """What a report says of a pose with free motions (none: "")."""
     loose = [m for m in reg.free if not m.symmetry]
@@ -344,7 +255,7 @@ def _ambiguous_report(scan: ScanCloud, part: ScanCloud, model: CadModel, *, reg:
         model=str(model.path), unit=model.unit, source=scan.source, scan_points=len(scan), part_points=n,
         assigned_points=0, registration=reg, faces=rows, form_settings=settings.form,
         timings_s={k: round(v, 4) for k, v in times.items()}, part_mask=mask, segmentation=seg, decision_rule=rule,
-        pose_u={}, calibration=uncertainty.calibration.source if uncertainty is not None
+        pose_u=None, calibration=uncertainty.calibration.source if uncertainty is not None
         else "not known (a bare cloud): not in U", cad=model, status=reg.status, status_note=f"not measured: {note}")
 
 

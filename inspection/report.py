@@ -29,6 +29,7 @@ import numpy as np
 from inspection.deviation_colours import deviation_image, scale_of  # noqa: F401 (deviation_image: the commands')
 from inspection.figures import FIGURES, limited_by
 from inspection.form import FaceForm, FormSettings
+from inspection.pose_uncertainty import PoseUncertainty
 from inspection.report_header import ReportHeader
 from inspection.report_html import render
 from inspection.report_pdf import print_pdf
@@ -101,8 +102,7 @@ class InspectionReport:
     """The result of `pipeline.inspect`. `registration` is a `registration.Registration`;
     `part_mask` which scan points are the part, `segmentation` their faces;
     `decision_rule` how verdicts used U; `calibration` where the calibration term came from;
-    `pose_u` the registration pose's expanded uncertainty (95 % bounds: rotation in degrees,
-    translation in mm, with its covariance); `header` who, what, when and with what
+    `pose_u` the registration pose's uncertainty (None: not known); `header` who, what, when and with what
     (`inspection.report_header`), filled by the command that inspects; `cad` the CAD model
     inspected against (an `inspection.cad.CadModel`, drawn behind the points in the report's
     views; None: not kept); `status` the registration's: "ok", "ambiguous" when another pose
@@ -123,7 +123,7 @@ class InspectionReport:
     segmentation: Any = field(repr=False)
     decision_rule: str = GUARD_BANDED
     calibration: str = ""
-    pose_u: dict[str, Any] = field(default_factory=dict)
+    pose_u: PoseUncertainty | None = None
     header: ReportHeader = field(default_factory=ReportHeader)
     cad: Any = field(default=None, repr=False)
     status: str = "ok"
@@ -153,19 +153,11 @@ class InspectionReport:
                 "fitness": self.fitness, "rmse_mm": self.rmse_mm, "verdict": self.verdict,
                 "decision_rule": self.decision_rule, "rule": DECISION_RULES[self.decision_rule],
                 "coverage_factor": 2.0, "calibration_uncertainty": self.calibration,
-                "registration": {**self.registration.as_dict(), **self.pose_u},
+                "registration": {**self.registration.as_dict(), **(self.pose_u.as_dict() if self.pose_u else {})},
                 "points": {"scan": self.scan_points, "part": self.part_points, "assigned": self.assigned_points,
                            "unassigned": self.part_points - self.assigned_points},
                 "form_settings": asdict(self.form_settings), "noise_treatment": NOISE_NOTE,
                 "timings_s": self.timings_s, "faces": [row.as_dict() for row in self.faces]}
-
-    def _pose_u_text(self) -> str:
-        """"; pose U …" for the report's registration line ("" when none is known)."""
-        if not self.pose_u:
-            return ""
-        if self.pose_u.get("translation_u_mm") is None:
-            return f"; pose U {self.pose_u.get('pose_u_note', 'not bounded')}"
-        return f"; pose U {self.pose_u['translation_u_mm'] * 1e3:.2f} um, {self.pose_u['rotation_u_deg']:.5f} deg"
 
     def table(self) -> str:
         """The per-face table as text, every length in µm: figures as value ± U (k = 2), or
@@ -189,7 +181,7 @@ class InspectionReport:
                      f"edge margin {s.edge_margin_mm} mm.")
         lines.append(f"registration fitness {self.fitness:.3f}, RMSE {self.rmse_mm * 1e3:.1f} um "
                      f"({self.registration.method}{', AMBIGUOUS pose' if self.registration.ambiguous else ''}"
-                     + self._pose_u_text()
+                     + (f"; {self.pose_u.text()}" if self.pose_u is not None else "")
                      + "".join(f"; free: {m.describe()}" for m in getattr(self.registration, "free", ())) + "); "
                      f"{self.assigned_points}/{self.part_points} part points on faces; "
                      f"calibration: {self.calibration}; "

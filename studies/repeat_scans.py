@@ -503,11 +503,13 @@ def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig,
         unc = replace(bench.measurement, calibration=rig.calibration).of_scan(decoded, used, defocus=True)(scan.pixels)
         settings = InspectionSettings(registration=RegistrationSettings(seed=k), form=FormSettings(draws=2))
         report = inspect(scan, cad, None, settings=settings, uncertainty=unc)
-        U_t, U_r = report.pose_u.get("translation_u_mm"), report.pose_u.get("rotation_u_deg")
-        if U_t is None or U_r is None:  # ambiguous, or a motion the view does not fix: no pose U to cover
+        bounds = None if report.pose_u is None else report.pose_u.bounds()
+        if report.pose_u is None or report.pose_u.covariance is None or bounds is None:
+            # ambiguous, or a motion the view does not fix: no pose U to cover
             return (PoseTrial(Estimate(0.0, 0.0), 0.0, time.perf_counter() - t0, measured=False),)
+        U_r, U_t = bounds
         # transform · pose is the identity when exact; U_t bounds the displacement of the pose's centre
-        r_err, t_err = pose_error(np.linalg.inv(report.registration.transform), pose, report.pose_u["pose_centre_mm"])
+        r_err, t_err = pose_error(np.linalg.inv(report.registration.transform), pose, report.pose_u.covariance.centre)
         return (PoseTrial(Estimate(t_err, U_t / 2.0, k=2.0), 0.0, time.perf_counter() - t0, r_err, U_r,
                           t_err <= U_t and r_err <= U_r),)
 

@@ -1,0 +1,120 @@
+"""The registration pose's uncertainty as an inspection reports it: the fit's covariance
+(`registration.evidence.PoseCovariance`) plus the calibration's share, the 95 % bounds of
+their sum, and none at all where the view leaves a motion free."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from inspection.form import FaceForm
+from inspection.registration.evidence import PoseCovariance, jacobian
+from inspection.segmentation import Segmentation
+from inspection.uncertainty import ScanUncertainty
+
+POSE_CALIBRATION_POINTS = 50_000  # points the calibration's pose term is computed on (a smooth sum: a subset will do)
+
+
+@dataclass(frozen=True)
+class PoseUncertainty:
+    """The registration pose's covariance (`evidence.PoseCovariance`, from the residuals
+    and the Jacobian of the final fit, the residual field's correlation included; None: not
+    known) and the calibration's share (6, 6; None: no calibration term): one calibration
+    error moves every point of the scan (`ScanUncertainty.shifts`), and the fit moves the
+    pose to follow. The reported U and `pose_covariance` are their sum. The fit's own part
+    moves each face's points along its normal as a whole, so it is added to the deviation
+    figures (not to form, which it cannot change); the calibration's part is not, as each
+    figure carries the calibration's moves of its own points already."""
+
+    covariance: PoseCovariance | None
+    calibration: np.ndarray | None = None
+    unbounded: str = ""
+
+    @classmethod
+    def of(cls, covariance: PoseCovariance | None, camera_points: np.ndarray, points: np.ndarray,
+           seg: Segmentation, *, R: np.ndarray, uncertainty: ScanUncertainty | None,
+           unbounded: str = "") -> PoseUncertainty:
+        """The pose's uncertainty of a scan whose camera-frame `camera_points` (N, 3) lie at
+        model-frame `points` (`R` camera -> model) with faces `seg`: the fit's `covariance`
+        and the calibration's term (`calibration_covariance`) when `uncertainty` has one;
+        `unbounded` the motions the view does not fix at all, described ("" none): the
+        pose's U is then not bounded, and not reported."""
+        if covariance is None or uncertainty is None or uncertainty.calibration.is_zero:
+            return cls(covariance, unbounded=unbounded)
+        idx = np.flatnonzero(seg.assigned)
+        idx = idx[:: max(1, len(idx) // POSE_CALIBRATION_POINTS)]
+        moves = uncertainty.subset(idx).shifts(camera_points[idx])
+        if moves is None:
+            return cls(covariance, unbounded=unbounded)
+        return cls(covariance, calibration_covariance(points[idx], seg.normal[idx], covariance.centre, moves @ R.T),
+                   unbounded)
+
+    def total(self) -> np.ndarray | None:
+        """The pose's covariance (6, 6) with the calibration's share; None when not known
+        or not bounded (`unbounded`: it says nothing of the motions the view leaves free)."""
+        if self.covariance is None or self.unbounded:
+            return None
+        return self.covariance.covariance if self.calibration is None else self.covariance.covariance + self.calibration
+
+    def bounds(self) -> tuple[float, float] | None:
+        """(rotation deg, displacement of the centre mm) the pose's error stays within with
+        95 % probability (`PoseCovariance.bounds_of` of `total`); None when not bounded."""
+        total = self.total()
+        return None if total is None else PoseCovariance.bounds_of(total)
+
+    def text(self) -> str:
+        """"pose U …" for a report's line."""
+        bounds = self.bounds()
+        if bounds is None:
+            return f"pose U not bounded: {self.unbounded or 'not known'}"
+        return f"pose U {bounds[1] * 1e3:.2f} um, {bounds[0]:.5f} deg"
+
+    def as_dict(self) -> dict[str, Any]:
+        """The report's pose fields (JSON): the 95 % bounds, the covariance with the
+        calibration's share, and how it was made ({} when not known)."""
+        if self.covariance is None:
+            return {}
+        total, bounds = self.total(), self.bounds()
+        out: dict[str, Any] = {**self.covariance.as_dict(),
+                               "pose_u_calibration": "not included (no calibration covariance)"
+                               if self.calibration is None else "included",
+                               "rotation_u_deg": None if bounds is None else bounds[0],
+                               "translation_u_mm": None if bounds is None else bounds[1],
+                               "pose_covariance": None if total is None else total.tolist()}
+        if self.unbounded:
+            out["pose_u_note"] = f"not bounded: {self.unbounded}"
+        elif self.calibration is not None:
+            out["pose_covariance_calibration"] = self.calibration.tolist()
+        return out
+
+    def added_to(self, form: FaceForm, points: np.ndarray, normals: np.ndarray) -> FaceForm:
+        """The face's deviation figures with the fit's pose uncertainty added (the mean move
+        of the face along its normals; twice that for the profile zone 2 max|d|)."""
+        if form.status != "ok" or self.covariance is None:
+            return form
+        m = jacobian(points, normals, self.covariance.centre).mean(axis=0)
+        u = float(np.sqrt(max(m @ self.covariance.covariance @ m, 0.0)))
+        changes: dict[str, Any] = {}  # FaceForm's figure fields by name: replace() cannot check them
+        for name, scale in (("deviation_min", 1.0), ("deviation_max", 1.0), ("deviation_mean", 1.0),
+                            ("profile", 2.0)):
+            e = form.figure(name)
+            if e is not None:
+                changes[name] = replace(e, u=float(np.hypot(e.u, scale * u)))
+        return replace(form, **changes)
+
+
+def calibration_covariance(points: np.ndarray, normals: np.ndarray, centre: np.ndarray,
+                           moves: np.ndarray) -> np.ndarray:
+    """The pose's covariance (6, 6; rotation rad about `centre`, translation mm, model
+    frame) from the calibration's: model-frame `points` (N, 3) on faces with `normals`
+    move by `moves` (D, N, 3) mm along each principal one-sigma direction of the
+    calibration's covariance; the point-to-plane fit follows each move with the motion
+    ξ_d = −(JᵀJ)⁻¹ Jᵀ (n·move_d) (J the fit's Jacobian, `evidence.jacobian`), and the
+    directions are independent: Σ = Σ_d ξ_d ξ_dᵀ. Motions the points do not fix (a
+    turn about a ring's axis) take no share (the least-norm solution)."""
+    J = jacobian(points, normals, centre)
+    along = np.einsum("dni,ni->nd", moves, normals)
+    xi = -np.linalg.lstsq(J, along, rcond=None)[0].T
+    return xi.T @ xi
