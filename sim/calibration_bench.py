@@ -25,7 +25,8 @@ from sim.evaluate import GROUND_TRUTH_FILE, Truth
 from sim.render import Renderer, project_points
 from sim.scene import Scene, SceneObject
 
-VISIBILITY_MARGIN = 0.03  # points kept this fraction of the image size inside both images
+VISIBILITY_MARGIN = 0.03  # target points kept this fraction of the image size inside both images
+OUTLINE_SAMPLES = 33  # points along each edge of the printed sheet (a lens bends its straight edges)
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,6 +45,16 @@ class Target:
     def centre(self) -> np.ndarray:
         """The target's centre in its own frame."""
         return np.array([self.size_mm[0] / 2 - self.origin_mm[0], self.size_mm[1] / 2 - self.origin_mm[1], 0.0])
+
+    @property
+    def outline(self) -> np.ndarray:
+        """(4 x OUTLINE_SAMPLES, 3) points along the printed sheet's four edges, in the target frame."""
+        w, h = self.size_mm
+        ox, oy = self.origin_mm
+        corners = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]]) - [ox, oy]
+        t = np.linspace(0.0, 1.0, OUTLINE_SAMPLES, endpoint=False)[:, None]
+        edges = np.concatenate([a + t * (b - a) for a, b in zip(corners, np.roll(corners, -1, axis=0))])
+        return np.c_[edges, np.zeros(len(edges))]
 
     def scene_object(self, pose: np.ndarray, name: str = "target") -> SceneObject:
         """The target as a textured plane placed at `pose` (target frame -> world)."""
@@ -87,21 +98,25 @@ def target_pose(target: Target, R: np.ndarray, centre_world: np.ndarray) -> np.n
     return T
 
 
-def visible(model: RigModel, target: Target, pose: np.ndarray, margin: float = VISIBILITY_MARGIN) -> bool:
-    """Every target point is in front of both devices, inside both images by `margin`, and
-    the target faces the camera and the projector at less than 70 degrees."""
-    X = target.points @ pose[:3, :3].T + pose[:3, 3]
+def visible(model: RigModel, target: Target, pose: np.ndarray, margin: float = VISIBILITY_MARGIN, *,
+            whole_sheet: bool = False) -> bool:
+    """Every target point is in front of both devices, inside both images by `margin` (a
+    fraction of the image size), and the target faces the camera and the projector at less
+    than 70 degrees; `whole_sheet`: the printed sheet's outline (`Target.outline`: the pattern
+    and its white border) inside both images too, in front of both."""
+    R, t = pose[:3, :3], pose[:3, 3]
+    X = (np.concatenate([target.points, target.outline]) if whole_sheet else target.points) @ R.T + t
     Xp = X @ model.proj_from_cam[:3, :3].T + model.proj_from_cam[:3, 3]
-    normal = pose[:3, 2]
+    inset = np.where(np.arange(len(X)) < len(target.points), margin, 0.0)[:, None]  # the outline: none
     for pts, centre, dev in ((X, np.zeros(3), model.camera), (Xp, model.cam_from_proj[:3, 3], model.projector)):
         if (pts[:, 2] <= 0).any():
             return False
         uv = project_points(dev, pts)
-        lo = margin * np.array(dev.size)
-        if not ((uv >= lo).all() and (uv <= np.array(dev.size) - 1 - lo).all()):
+        size = np.array(dev.size)
+        if not ((uv >= inset * size).all() and (uv <= size - 1 - inset * size).all()):
             return False
-        view = pose[:3, 3] - centre
-        if abs(view @ normal) / np.linalg.norm(view) < np.cos(np.radians(70)):
+        view = t - centre
+        if abs(view @ R[:, 2]) / np.linalg.norm(view) < np.cos(np.radians(70)):
             return False
     return True
 
@@ -130,15 +145,21 @@ MAX_POSES = len(_POSE_TEMPLATES)
 
 
 def plan_target_poses(model: RigModel, target: Target, n: int, distance_mm: float, seed: int = 0,
-                      jitter_deg: float = 2.0, *, jitter_first: bool = False) -> list[np.ndarray]:
-    """`n` (<= MAX_POSES) poses of `target` that the camera and the projector both see whole:
-    frontal, tilted up to ~30 degrees each way, spun, pushed toward each side of the field
-    as far as visibility allows, and nearer and farther. `seed` turns every pose but the
-    first (frontal) by up to `jitter_deg` about each axis; `jitter_first`: the first too
-    (independent draws: a pose the same in every draw repeats its detection errors)."""
+                      jitter_deg: float = 2.0, *, jitter_first: bool = False, whole_sheet: bool = False,
+                      also: tuple[RigModel, ...] = ()) -> list[np.ndarray]:
+    """`n` (<= MAX_POSES) poses of `target` that the camera and the projector both see whole
+    (`visible`, with `whole_sheet`), and so does each device pair in `also`: frontal, tilted up
+    to ~30 degrees each way, spun, pushed toward each side of the field as far as visibility
+    allows, and nearer and farther. `seed` turns every pose but the first (frontal) by up to
+    `jitter_deg` about each axis; `jitter_first`: the first too (independent draws: a pose the
+    same in every draw repeats its detection errors)."""
     if not 1 <= n <= MAX_POSES:
         raise ValueError(f"between 1 and {MAX_POSES} target poses can be planned, not {n}")
     rng = np.random.default_rng(seed)
+
+    def seen(pose: np.ndarray) -> bool:
+        return all(visible(m, target, pose, whole_sheet=whole_sheet) for m in (model, *also))
+
     poses = []
     for k, (tx, ty, spin, fx, fy, fz) in enumerate(_POSE_TEMPLATES[:n]):
         jitter = rng.uniform(-jitter_deg, jitter_deg, 3) if k or jitter_first else np.zeros(3)
@@ -148,19 +169,19 @@ def plan_target_poses(model: RigModel, target: Target, n: int, distance_mm: floa
             Rk = rotation((tx + jitter[0]) * shrink, (ty + jitter[1]) * shrink, spin + jitter[2]) if shrink < 1 else R
             z = distance_mm * (1.0 + 0.15 * fz * shrink)
             centre = np.array([0.0, 0.0, z])
-            if not visible(model, target, target_pose(target, Rk, centre)):
+            if not seen(target_pose(target, Rk, centre)):
                 continue
             lo, hi = 0.0, 0.5 * z  # bisect the push toward (fx, fy) that still keeps everything visible
             direction = np.array([fx, fy, 0.0])
             for _ in range(20):
                 mid = (lo + hi) / 2
-                ok = visible(model, target, target_pose(target, Rk, centre + mid * direction))
+                ok = seen(target_pose(target, Rk, centre + mid * direction))
                 lo, hi = (mid, hi) if ok else (lo, mid)
             placed = target_pose(target, Rk, centre + lo * direction)
             break
         if placed is None:
-            raise ValueError(f"target pose {k}: the target does not fit in the common field of camera and projector "
-                             f"at {distance_mm:.0f} mm; use a smaller target")
+            raise ValueError(f"target pose {k}: the target does not fit in the common field of the rig's devices at "
+                             f"{distance_mm:.0f} mm; use a smaller target")
         poses.append(placed)
     return poses
 

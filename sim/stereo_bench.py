@@ -1,6 +1,6 @@
 """The simulator's bench for rigs with two cameras: a printed board moved through poses both
 cameras see whole and the projector lights (`sim.calibration_bench`'s planner, run with the second
-camera in the projector's place, each pose then checked against the projector too); captures as
+camera in the projector's place and the first camera with the projector as a further pair); captures as
 another tool makes them (its pattern rows shown as they are, its stereo file written its way); the
 binocular rig file at another camera size, for quick runs."""
 
@@ -16,23 +16,21 @@ import numpy as np
 from scanner.binocular import StereoModel
 from scanner.config import CONFIG_DIR
 from scanner.rig import Rig, RigConfig
-from sim.calibration_bench import Target, plan_target_poses, show, visible
+from sim.calibration_bench import Target, plan_target_poses, show
 from sim.scene import Scene
 
 BINOCULAR = CONFIG_DIR / "rigs" / "sim_binocular.toml"
 
 
 def plan_stereo_poses(config: RigConfig, target: Target, n: int, seed: int = 0) -> list[np.ndarray]:
-    """Up to `n` board poses (board -> first camera's frame) both cameras see whole and the
-    projector lights; ValueError when the planner finds none."""
+    """`n` board poses (board -> first camera's frame) in which both cameras see the whole printed
+    sheet (the pattern and its white border) and the projector lights all of it
+    (`sim.calibration_bench.plan_target_poses` with `whole_sheet`: the board's points 3 % of each
+    image inside all three; ValueError when a pose cannot be placed)."""
     models = list(config.camera_models().values())
     left, right = models[0], models[1]
-    pair = replace(left, projector=right.camera, cam_from_proj=np.linalg.inv(right.world_from_cam))
-    poses = plan_target_poses(pair, target, n, config.working_distance_mm, seed)
-    lit = [P for P in poses if visible(left, target, P, margin=0.0)]
-    if not lit:
-        raise ValueError("no planned board pose is lit by the projector")
-    return lit
+    pair = replace(left, projector=right.camera, cam_from_proj=right.world_from_cam)  # second camera -> first
+    return plan_target_poses(pair, target, n, config.working_distance_mm, seed, whole_sheet=True, also=(left,))
 
 
 class StereoSimBench:
