@@ -309,6 +309,12 @@ def test_top_view_leaves_the_turn_about_the_boss_free() -> None:
     assert np.degrees(np.arccos(np.clip(E[2, 2], -1, 1))) < 0.05
     boss = np.array([20.0, 0.0, 20.0])
     assert np.linalg.norm((E[:3, :3] @ boss + E[:3, 3] - boss)[:2]) < 0.05 and abs(E[2, 3]) < 0.05
+    # `register --json` states no U for it: the covariance says nothing along the turn
+    from slscan.commands.inspect import registration_record
+
+    record = registration_record(reg)
+    assert record["transform"] is None and record["rotation_u_deg"] is None and record["pose_covariance"] is None
+    assert record["pose_u_note"].startswith("not bounded: rotation about the axis")
 
 
 def test_climb_refuses_a_pose_turned_about_the_boss_and_keeps_the_truth() -> None:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -129,8 +130,12 @@ def cmd_register(args: argparse.Namespace) -> int:
 
 def registration_record(reg: Any) -> dict[str, Any]:
     """What `register --json` prints for a CAD target: the pose only when it is proven
-    (`transform` null otherwise), what the evidence says, the alternatives and free motions."""
+    (`transform` null otherwise), what the evidence says, the alternatives and free motions;
+    the pose's U only when every motion is bounded (`pose_u_note` names the others)."""
     d = reg.as_dict()
+    free = [m.describe() for m in reg.free if not m.symmetry and not math.isfinite(m.u)]
+    if free:  # the covariance says nothing along a motion the view does not fix: no U
+        d.update(rotation_u_deg=None, translation_u_mm=None, pose_covariance=None)
     return {"status": reg.status, "transform": reg.transform.tolist() if reg.proven else None,
             "best_unproven": None if reg.proven else reg.transform.tolist(), "reason": reg.reason,
             "fitness": reg.fitness, "rmse": reg.rmse_mm, "ambiguous": reg.ambiguous, "method": reg.method,
@@ -138,6 +143,7 @@ def registration_record(reg: Any) -> dict[str, Any]:
             "free_motions": d["free_motions"], "rotation_u_deg": d.get("rotation_u_deg"),
             "translation_u_mm": d.get("translation_u_mm"), "pose_covariance": d.get("pose_covariance"),
             "pose_centre_mm": d.get("pose_centre_mm"), "correlation_inflation": d.get("correlation_inflation"),
+            "pose_u_note": f"not bounded: {'; '.join(free)}" if free else None,
             "timings_s": reg.timings_s}
 
 
