@@ -56,11 +56,13 @@ from sim.render import Renderer, SensorModel
 @dataclass(frozen=True)
 class Trial:
     """One repeat: the estimate (value with U, or below its detection limit), the truth
-    (mm) and the seconds it took."""
+    (mm) and the seconds it took; not `measured` when the command states no figure with a
+    U to cover (a pose not proven), left out of the coverage."""
 
     estimate: Estimate
     truth: float
     seconds: float
+    measured: bool = True
 
     @property
     def inside(self) -> bool:
@@ -208,12 +210,20 @@ def run_trials(figures: tuple[str, ...], trial: TrialFunction, n: int, processes
     the way."""
     done: list[tuple[Trial, ...]] = []
     step = max(1, n // 10)
+
+    def result(i: int, f: str) -> CoverageResult:  # figure i's measured trials, and how many were not
+        kept = tuple(t[i] for t in done if t[i].measured)
+        return CoverageResult(f, kept, not_measured=len(done) - len(kept))
+
+    def line(i: int, f: str) -> str:
+        c = result(i, f)
+        return f"{f}: {c.fraction:.1%}" + (f" of {len(c.trials)} measured" if c.not_measured else "")
+
     for r in map_trials(trial, n, processes):
         done.append(r)
         if progress is not None and (len(done) % step == 0 or len(done) == n):
-            progress("; ".join(f"{f}: {CoverageResult(f, tuple(t[i] for t in done)).fraction:.1%}"
-                               for i, f in enumerate(figures)) + f" inside ±U after {len(done)} of {n}")
-    return tuple(CoverageResult(f, tuple(t[i] for t in done)) for i, f in enumerate(figures))
+            progress("; ".join(line(i, f) for i, f in enumerate(figures)) + f" inside ±U after {len(done)} of {n}")
+    return tuple(result(i, f) for i, f in enumerate(figures))
 
 
 def _rig_for(k: int, bench: Bench, rigs: tuple[MeasuringRig, ...]) -> MeasuringRig:
@@ -510,12 +520,10 @@ def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig,
         U_r, U_t = bounds
         # transform · pose is the identity when exact; U_t bounds the displacement of the pose's centre
         r_err, t_err = pose_error(np.linalg.inv(report.registration.transform), pose, report.pose_u.covariance.centre)
-        return (PoseTrial(Estimate(t_err, U_t / 2.0, k=2.0), 0.0, time.perf_counter() - t0, r_err, U_r,
-                          t_err <= U_t and r_err <= U_r),)
+        return (PoseTrial(Estimate(t_err, U_t / 2.0, k=2.0), 0.0, time.perf_counter() - t0, rotation_error_deg=r_err,
+                          rotation_u_deg=U_r, both_inside=t_err <= U_t and r_err <= U_r),)
 
-    trials = run_trials(("pose",), trial, n, processes, progress)[0].trials
-    return CoverageResult("pose", tuple(t for t in trials if not isinstance(t, PoseTrial) or t.measured),
-                          not_measured=sum(isinstance(t, PoseTrial) and not t.measured for t in trials))
+    return run_trials(("pose",), trial, n, processes, progress)[0]
 
 
 @dataclass(frozen=True)
@@ -527,7 +535,6 @@ class PoseTrial(Trial):
     rotation_error_deg: float = 0.0
     rotation_u_deg: float = 0.0
     both_inside: bool = False
-    measured: bool = True
 
     @property
     def inside(self) -> bool:
