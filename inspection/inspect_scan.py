@@ -130,9 +130,8 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, *,
     t0 = time.perf_counter()
     R = reg.transform[:3, :3]
     unc = None if uncertainty is None else uncertainty.subset(mask)
-    unbounded = [m for m in reg.free if not m.symmetry and not np.isfinite(m.u)]
-    pose = PoseUncertainty.of(reg.covariance, part.points, q, seg, R=R, uncertainty=unc,
-                              unbounded="; ".join(m.describe() for m in unbounded))
+    unbounded = list(reg.unbounded)
+    pose = PoseUncertainty.of(reg.covariance, part.points, q, seg, R=R, uncertainty=unc, unbounded=reg.unbounded)
     rule = tolerances.decision_rule if tolerances is not None else GUARD_BANDED
     rows: dict[int, FaceRow] = {}
     seen = []

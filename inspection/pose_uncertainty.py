@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from inspection.form import FaceForm
-from inspection.registration.evidence import PoseCovariance, jacobian
+from inspection.registration.evidence import FreeMotion, PoseCovariance, jacobian
 from inspection.segmentation import Segmentation
 from inspection.uncertainty import ScanUncertainty
 
@@ -30,17 +30,17 @@ class PoseUncertainty:
 
     covariance: PoseCovariance | None
     calibration: np.ndarray | None = None
-    unbounded: str = ""
+    unbounded: tuple[FreeMotion, ...] = ()
 
     @classmethod
     def of(cls, covariance: PoseCovariance | None, camera_points: np.ndarray, points: np.ndarray,
            seg: Segmentation, *, R: np.ndarray, uncertainty: ScanUncertainty | None,
-           unbounded: str = "") -> PoseUncertainty:
+           unbounded: tuple[FreeMotion, ...] = ()) -> PoseUncertainty:
         """The pose's uncertainty of a scan whose camera-frame `camera_points` (N, 3) lie at
         model-frame `points` (`R` camera -> model) with faces `seg`: the fit's `covariance`
         and the calibration's term (`calibration_covariance`) when `uncertainty` has one;
-        `unbounded` the motions the view does not fix at all, described ("" none): the
-        pose's U is then not bounded, and not reported."""
+        `unbounded` the motions the view does not fix at all (`Registration.unbounded`):
+        the pose's U is then not bounded, and not reported."""
         if covariance is None or uncertainty is None or uncertainty.calibration.is_zero:
             return cls(covariance, unbounded=unbounded)
         idx = np.flatnonzero(seg.assigned)
@@ -64,11 +64,15 @@ class PoseUncertainty:
         total = self.total()
         return None if total is None else PoseCovariance.bounds_of(total)
 
+    def note(self) -> str:
+        """The motions that leave the pose's U unbounded, named ("" none)."""
+        return "not bounded: " + "; ".join(m.describe() for m in self.unbounded) if self.unbounded else ""
+
     def text(self) -> str:
         """"pose U …" for a report's line."""
         bounds = self.bounds()
         if bounds is None:
-            return f"pose U not bounded: {self.unbounded or 'not known'}"
+            return f"pose U {self.note() or 'not known'}"
         return f"pose U {bounds[1] * 1e3:.2f} um, {bounds[0]:.5f} deg"
 
     def as_dict(self) -> dict[str, Any]:
@@ -84,7 +88,7 @@ class PoseUncertainty:
                                "translation_u_mm": None if bounds is None else bounds[1],
                                "pose_covariance": None if total is None else total.tolist()}
         if self.unbounded:
-            out["pose_u_note"] = f"not bounded: {self.unbounded}"
+            out["pose_u_note"] = self.note()
         elif self.calibration is not None:
             out["pose_covariance_calibration"] = self.calibration.tolist()
         return out

@@ -99,7 +99,7 @@ def test_reported_pose_u_adds_the_calibration_and_is_withheld_when_a_motion_is_f
     (drawn here from the sum), and a pose with a motion the view does not fix at all
     states no U (its covariance says nothing along that motion)."""
     from inspection.pose_uncertainty import PoseUncertainty
-    from inspection.registration.evidence import pose_covariance
+    from inspection.registration.evidence import FreeMotion, pose_covariance
 
     rng = np.random.default_rng(11)
     points, normals = _corner(rng, 4000)
@@ -112,7 +112,8 @@ def test_reported_pose_u_adds_the_calibration_and_is_withheld_when_a_motion_is_f
     assert d["rotation_u_deg"] == pytest.approx(np.degrees(np.quantile(np.linalg.norm(draws[:, :3], axis=1), 0.95)),
                                                 rel=0.02)
     assert np.allclose(d["pose_covariance"], fit.covariance + cal) and d["pose_u_calibration"] == "included"
-    free = PoseUncertainty(fit, cal, "rotation about the axis (0, 0, 1) through (0, 0, 0) mm")
+    turn = FreeMotion("rotation", (0.0, 0.0, 1.0), (0.0, 0.0, 0.0), float("inf"), False)
+    free = PoseUncertainty(fit, cal, (turn,))
     fields = free.as_dict()
     assert fields["translation_u_mm"] is None and fields["rotation_u_deg"] is None and fields["pose_covariance"] is None
     assert "not bounded: rotation about the axis" in fields["pose_u_note"] and free.bounds() is None

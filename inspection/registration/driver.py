@@ -70,6 +70,12 @@ class Registration:
     def proven(self) -> bool:
         return self.status == PROVEN
 
+    @property
+    def unbounded(self) -> tuple[FreeMotion, ...]:
+        """The free motions the view does not fix at all and that are no symmetry of the
+        part: the pose's covariance says nothing along them."""
+        return tuple(m for m in self.free if not m.symmetry and not np.isfinite(m.u))
+
     def as_dict(self) -> dict[str, object]:
         return {"transform": self.transform.tolist(), "fitness": self.fitness, "rmse_mm": self.rmse_mm,
                 "inlier_mm": self.inlier_mm, "method": self.method, "status": self.status, "reason": self.reason,

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -132,18 +131,19 @@ def registration_record(reg: Any) -> dict[str, Any]:
     """What `register --json` prints for a CAD target: the pose only when it is proven
     (`transform` null otherwise), what the evidence says, the alternatives and free motions;
     the pose's U only when every motion is bounded (`pose_u_note` names the others)."""
+    from inspection.pose_uncertainty import PoseUncertainty
+
     d = reg.as_dict()
-    free = [m.describe() for m in reg.free if not m.symmetry and not math.isfinite(m.u)]
-    if free:  # the covariance says nothing along a motion the view does not fix: no U
-        d.update(rotation_u_deg=None, translation_u_mm=None, pose_covariance=None)
+    pose = PoseUncertainty(reg.covariance, unbounded=reg.unbounded)
+    u = pose.as_dict()
     return {"status": reg.status, "transform": reg.transform.tolist() if reg.proven else None,
             "best_unproven": None if reg.proven else reg.transform.tolist(), "reason": reg.reason,
             "fitness": reg.fitness, "rmse": reg.rmse_mm, "ambiguous": reg.ambiguous, "method": reg.method,
             "alternatives": d["alternatives"], "rejected_alternatives": d["rejected_alternatives"],
-            "free_motions": d["free_motions"], "rotation_u_deg": d.get("rotation_u_deg"),
-            "translation_u_mm": d.get("translation_u_mm"), "pose_covariance": d.get("pose_covariance"),
-            "pose_centre_mm": d.get("pose_centre_mm"), "correlation_inflation": d.get("correlation_inflation"),
-            "pose_u_note": f"not bounded: {'; '.join(free)}" if free else None,
+            "free_motions": d["free_motions"], "rotation_u_deg": u.get("rotation_u_deg"),
+            "translation_u_mm": u.get("translation_u_mm"), "pose_covariance": u.get("pose_covariance"),
+            "pose_centre_mm": u.get("pose_centre_mm"), "correlation_inflation": u.get("correlation_inflation"),
+            "pose_u_note": pose.note() or None,
             "timings_s": reg.timings_s}
 
 
