@@ -521,7 +521,7 @@ def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig,
         # transform · pose is the identity when exact; U_t bounds the displacement of the pose's centre
         r_err, t_err = pose_error(np.linalg.inv(report.registration.transform), pose, report.pose_u.covariance.centre)
         return (PoseTrial(Estimate(t_err, U_t / 2.0, k=2.0), 0.0, time.perf_counter() - t0, rotation_error_deg=r_err,
-                          rotation_u_deg=U_r, both_inside=t_err <= U_t and r_err <= U_r),)
+                          rotation_u_deg=U_r),)
 
     return run_trials(("pose",), trial, n, processes, progress)[0]
 
@@ -529,16 +529,23 @@ def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig,
 @dataclass(frozen=True)
 class PoseTrial(Trial):
     """A pose trial: the translation error as `estimate` (truth 0), the rotation error
-    and its U (degrees), and whether both were within their U; not `measured` when the
+    and its U (degrees); inside when both are within their U; not `measured` when the
     inspection states no pose U (ambiguous, or a motion the view does not fix at all)."""
 
     rotation_error_deg: float = 0.0
     rotation_u_deg: float = 0.0
-    both_inside: bool = False
+
+    @property
+    def translation_inside(self) -> bool:
+        return super().inside
+
+    @property
+    def rotation_inside(self) -> bool:
+        return self.rotation_error_deg <= self.rotation_u_deg
 
     @property
     def inside(self) -> bool:
-        return self.both_inside
+        return self.measured and self.translation_inside and self.rotation_inside
 
 
 @dataclass(frozen=True)

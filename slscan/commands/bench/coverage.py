@@ -135,8 +135,8 @@ def cmd_coverage(args: argparse.Namespace) -> int:
             n = len(r.trials)
             row.update(rotation_error_deg_mean=float(sum(t.rotation_error_deg for t in r.trials) / n),
                        median_rotation_U_deg=sorted(t.rotation_u_deg for t in r.trials)[n // 2],
-                       rotation_coverage=sum(t.rotation_error_deg <= t.rotation_u_deg for t in r.trials) / n,
-                       translation_coverage=sum(abs(t.estimate.value or 0.0) <= t.estimate.U for t in r.trials) / n)
+                       rotation_coverage=sum(t.rotation_inside for t in r.trials) / n,
+                       translation_coverage=sum(t.translation_inside for t in r.trials) / n)
         rows.append(row)
         if not args.json:
             print(r.summary())
