@@ -155,7 +155,7 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, *,
             return _face_row(face, unfixed, tolerances, rule)
         form = measure_face(face, part.points[sel], None if unc is None else unc.subset(sel), R=R, points=q[sel],
                             deviation=seg.deviation_mm[sel], uv=seg.uv[sel], normals=seg.normal[sel],
-                            settings=settings.form)
+                            settings=settings.form, pose=pose)
         form = pose.added_to(form, q[sel], seg.normal[sel])
         return _face_row(face, form, tolerances, rule)
 
@@ -198,17 +198,21 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, *,
 
 def measure_face(face: Any, camera_points: np.ndarray, uncertainty: ScanUncertainty | None, *, R: np.ndarray,
                  points: np.ndarray, deviation: np.ndarray, uv: np.ndarray, normals: np.ndarray,
-                 settings: FormSettings) -> FaceForm:
+                 settings: FormSettings, pose: PoseUncertainty | None = None) -> FaceForm:
     """One face's figures (`inspection.form.evaluate_face`) from its points in the camera
     frame (N, 3) and, registered (rotation `R` camera -> model), in the model frame, their
     deviations, surface parameters and the face's normals there, with the scan's
     uncertainty of these points (None: estimated from the data) turned into the model
-    frame. What `inspect` and the plate's repeat scans (`studies.repeat_scans`) both call."""
+    frame; `pose` the registration's, whose following of a calibration error takes its
+    share off the points' calibration moves (None: the model frame is not fitted to the
+    scan). What `inspect` and the plate's repeat scans (`studies.repeat_scans`) both call."""
     noise, shifts = None, None
     if uncertainty is not None:
         noise = None if uncertainty.noise is None else uncertainty.noise.rotated(R)
         moves = uncertainty.shifts(camera_points)
         shifts = None if moves is None else moves @ R.T
+        if shifts is not None and pose is not None:
+            shifts = pose.followed(shifts, points)
     return evaluate_face(face, points, deviation, uv=uv, settings=settings, noise=noise, normals=normals, shifts=shifts)
 
 

@@ -21,15 +21,17 @@ POSE_CALIBRATION_POINTS = 50_000  # points the calibration's pose term is comput
 class PoseUncertainty:
     """The registration pose's covariance (`evidence.PoseCovariance`, from the residuals
     and the Jacobian of the final fit, the residual field's correlation included; None: not
-    known) and the calibration's share (6, 6; None: no calibration term): one calibration
-    error moves every point of the scan (`ScanUncertainty.shifts`), and the fit moves the
-    pose to follow. The reported U and `pose_covariance` are their sum. The fit's own part
-    moves each face's points along its normal as a whole, so it is added to the deviation
-    figures (not to form, which it cannot change); the calibration's part is not, as each
-    figure carries the calibration's moves of its own points already."""
+    known) and how the fit follows a calibration error (`following`, (D, 6); None: no
+    calibration term): each principal one-sigma calibration error moves every point of the
+    scan (`ScanUncertainty.shifts`), and the fit moves the pose to follow. The reported U
+    and `pose_covariance` are the fit's covariance plus the calibration's share. The fit's
+    own part moves each face's points along its normal as a whole, so it is added to the
+    deviation figures (not to form, which it cannot change); the calibration's part is not:
+    each figure carries its own points' calibration moves less the pose's following of
+    them (`followed`), which is what their deviations from the registered model change by."""
 
     covariance: PoseCovariance | None
-    calibration: np.ndarray | None = None
+    following: np.ndarray | None = None  # (D, 6): rad about the centre, mm; model frame
     unbounded: tuple[FreeMotion, ...] = ()
 
     @classmethod
@@ -38,7 +40,8 @@ class PoseUncertainty:
            unbounded: tuple[FreeMotion, ...] = ()) -> PoseUncertainty:
         """The pose's uncertainty of a scan whose camera-frame `camera_points` (N, 3) lie at
         model-frame `points` (`R` camera -> model) with faces `seg`: the fit's `covariance`
-        and the calibration's term (`calibration_covariance`) when `uncertainty` has one;
+        and the fit's following of the calibration's errors (`calibration_following`) when
+        `uncertainty` has one;
         `unbounded` the motions the view does not fix at all (`Registration.unbounded`):
         the pose's U is then not bounded, and not reported."""
         if covariance is None or uncertainty is None or uncertainty.calibration.is_zero:
@@ -48,8 +51,24 @@ class PoseUncertainty:
         moves = uncertainty.subset(idx).shifts(camera_points[idx])
         if moves is None:
             return cls(covariance, unbounded=unbounded)
-        return cls(covariance, calibration_covariance(points[idx], seg.normal[idx], covariance.centre, moves @ R.T),
+        return cls(covariance, calibration_following(points[idx], seg.normal[idx], covariance.centre, moves @ R.T),
                    unbounded)
+
+    @property
+    def calibration(self) -> np.ndarray | None:
+        """The calibration's share of the pose covariance (6, 6): Σ_d ξ_d ξ_dᵀ over the
+        principal directions (None: no calibration term)."""
+        return None if self.following is None else self.following.T @ self.following
+
+    def followed(self, moves: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Model-frame `points`' (N, 3) calibration `moves` (D, N, 3) mm, one per principal
+        direction, with the fit's following motion ξ_d = (ω_d, t_d) added: a point moves by
+        move_d + ω_d × (p − c) + t_d relative to the registered model (unchanged without a
+        calibration term)."""
+        if self.following is None or self.covariance is None:
+            return moves
+        w, t = self.following[:, None, :3], self.following[:, None, 3:]
+        return moves + np.cross(w, points - self.covariance.centre) + t
 
     def total(self) -> np.ndarray | None:
         """The pose's covariance (6, 6) with the calibration's share; None when not known
@@ -109,16 +128,16 @@ class PoseUncertainty:
         return replace(form, **changes)
 
 
-def calibration_covariance(points: np.ndarray, normals: np.ndarray, centre: np.ndarray,
-                           moves: np.ndarray) -> np.ndarray:
-    """The pose's covariance (6, 6; rotation rad about `centre`, translation mm, model
-    frame) from the calibration's: model-frame `points` (N, 3) on faces with `normals`
-    move by `moves` (D, N, 3) mm along each principal one-sigma direction of the
-    calibration's covariance; the point-to-plane fit follows each move with the motion
-    ξ_d = −(JᵀJ)⁻¹ Jᵀ (n·move_d) (J the fit's Jacobian, `evidence.jacobian`), and the
-    directions are independent: Σ = Σ_d ξ_d ξ_dᵀ. Motions the points do not fix (a
-    turn about a ring's axis) take no share (the least-norm solution)."""
+def calibration_following(points: np.ndarray, normals: np.ndarray, centre: np.ndarray,
+                          moves: np.ndarray) -> np.ndarray:
+    """How the pose follows the calibration's errors (D, 6; rotation rad about `centre`,
+    translation mm, model frame): model-frame `points` (N, 3) on faces with `normals` move
+    by `moves` (D, N, 3) mm along each principal one-sigma direction of the calibration's
+    covariance, and the point-to-plane fit follows each move with the motion
+    ξ_d = −(JᵀJ)⁻¹ Jᵀ (n·move_d) (J the fit's Jacobian, `evidence.jacobian`). The
+    directions are independent: the pose's covariance from the calibration is Σ_d ξ_d ξ_dᵀ.
+    Motions the points do not fix (a turn about a ring's axis) take no share (the
+    least-norm solution)."""
     J = jacobian(points, normals, centre)
     along = np.einsum("dni,ni->nd", moves, normals)
-    xi = -np.linalg.lstsq(J, along, rcond=None)[0].T
-    return xi.T @ xi
+    return -np.linalg.lstsq(J, along, rcond=None)[0].T
