@@ -14,13 +14,15 @@ it with, the measurement model made as the commands make it (`Bench.measurement`
   - flatness and Sq of a plate: `inspection.inspect_scan.measure_face`, as `slscan
     inspect` measures a face, with its defocus correction, after an ideal registration
     (`registered`; the registration is the pose case's);
-  - the pose of the demo part: `inspection.inspect_scan.inspect`, its pose U as reported.
+  - the pose of the demo part and the mean deviation of one of its plane faces:
+    `inspection.inspect_scan.inspect`, as reported (`demo_part_coverage`).
 A correction either ships in those functions or is not used here.
 
 Truths come from the simulator's geometry only: the artefacts' certificates (the
 simulator makes them exactly), the plate's ray-cast surface points (its rendered mesh)
 at the pixels the measurement used, filtered and zoned by the figures' definitions
-(`plate_truth`, not `evaluate_face`), and the part's pose in the scene.
+(`plate_truth`, not `evaluate_face`), and the part's pose in the scene (its faces where
+the CAD has them: a face's mean deviation is 0).
 
 Calibration errors: with `rigs` (`MeasuringRig.from_calibration`: the results of
 independent simulated calibrations, `slscan calibrate --seed`), trial k reconstructs with
@@ -37,7 +39,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -51,6 +53,9 @@ from scanner.reconstruct import Triangulator, triangulate
 from scanner.rig import RigConfig
 from sim.artefact_scenes import artefact_objects, quick_scan, window_renderer
 from sim.render import Renderer, SensorModel
+
+if TYPE_CHECKING:
+    from inspection.report import InspectionReport
 
 
 @dataclass(frozen=True)
@@ -477,15 +482,25 @@ def demo_part_pose(bench: Bench, rng: np.random.Generator) -> np.ndarray:
     return pose_of(R, np.array(bench.acceptance.centre_mm) + rng.uniform([-15, -15, -20], [15, 15, 20]))
 
 
-def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (), processes: int = 1,
-                  progress: Callable[[str], None] | None = None) -> CoverageResult:
-    """Coverage of the registration's pose U as `slscan inspect` reports it: the demo part
-    (`config/parts/demo_part.ply`, CAD `demo_part.step`) at random poses (`demo_part_pose`),
-    inspected (`inspection.inspect_scan.inspect`: registration, segmentation, the pose's
-    U; the faces' figures with 2 noise draws, which the pose does not use). A trial is
-    inside when both its translation error (the displacement of the pose's centre, which
-    its U bounds) and its rotation error are within their U; the Estimate recorded is the
-    translation's. A pose the inspection gives no U for (not proven) is not measured."""
+DEMO_PART_FIGURES = ("pose", "face-position")
+
+
+def demo_part_coverage(bench: Bench, n: int, figures: tuple[str, ...] = ("pose",), seed: int = 0,
+                       rigs: tuple[MeasuringRig, ...] = (), processes: int = 1,
+                       progress: Callable[[str], None] | None = None) -> tuple[CoverageResult, ...]:
+    """Coverage of what `slscan inspect` reports of the demo part (`config/parts/demo_part.ply`,
+    CAD `demo_part.step`) at random poses (`demo_part_pose`), inspected
+    (`inspection.inspect_scan.inspect`), one result per name in `figures`:
+
+    - "pose": the registration's pose U. A trial is inside when both its translation error
+      (the displacement of the pose's centre, which its U bounds) and its rotation error are
+      within their U; the Estimate recorded is the translation's. A pose the inspection
+      gives no U for (not proven) is not measured. Alone, the faces' figures take 2 noise
+      draws (the pose does not use them).
+    - "face-position": the mean deviation of one plane face drawn at random from those
+      measured (the mesh the simulator renders is the CAD's: its truth is 0), its U with the
+      noise, the pose's fit and the calibration less the pose's following of it; a scan
+      with no plane face measured is not measured."""
     from inspection.cad import load_cad
     from inspection.form import FormSettings
     from inspection.inspect_scan import InspectionSettings, inspect
@@ -495,11 +510,32 @@ def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig,
     from scanner.config import CONFIG_DIR
     from sim.scene import SceneObject, load_mesh
 
+    unknown = set(figures) - set(DEMO_PART_FIGURES)
+    if unknown:
+        raise ValueError(f"demo part figures {sorted(unknown)}: not among {DEMO_PART_FIGURES}")
     parts = CONFIG_DIR / "parts"
     vertices, triangles = load_mesh(parts / "demo_part.ply", parts, None)
     cad = load_cad(parts / "demo_part.step")
+    form = FormSettings(draws=2) if figures == ("pose",) else FormSettings()
 
-    def trial(k: int) -> tuple[Trial]:
+    def pose_trial(report: InspectionReport, pose: np.ndarray, seconds: float) -> PoseTrial:
+        bounds = None if report.pose_u is None else report.pose_u.bounds()
+        if report.pose_u is None or report.pose_u.covariance is None or bounds is None:
+            # ambiguous, or a motion the view does not fix: no pose U to cover
+            return PoseTrial(Estimate(0.0, 0.0), 0.0, seconds, measured=False)
+        U_r, U_t = bounds
+        # transform · pose is the identity when exact; U_t bounds the displacement of the pose's centre
+        r_err, t_err = pose_error(np.linalg.inv(report.registration.transform), pose, report.pose_u.covariance.centre)
+        return PoseTrial(Estimate(t_err, U_t / 2.0, k=2.0), 0.0, seconds, rotation_error_deg=r_err, rotation_u_deg=U_r)
+
+    def face_trial(report: InspectionReport, rng: np.random.Generator, seconds: float) -> Trial:
+        measured = [e for e in (row.form.figure("deviation_mean") for row in report.faces if row.type == "plane")
+                    if e is not None and e.value is not None]
+        if not measured:
+            return Trial(Estimate(0.0, 0.0), 0.0, seconds, measured=False)
+        return Trial(measured[int(rng.integers(len(measured)))], 0.0, seconds)
+
+    def trial(k: int) -> tuple[Trial, ...]:
         rng = np.random.default_rng((seed, k))
         t0 = time.perf_counter()
         pose = demo_part_pose(bench, rng)
@@ -509,21 +545,16 @@ def pose_coverage(bench: Bench, n: int, seed: int = 0, rigs: tuple[MeasuringRig,
         rig = _rig_for(k, bench, rigs)
         used = rig.windowed(renderer.model.camera, cut_from=bench.model.camera)
         cloud = triangulate(decoded, Triangulator(used))
-        scan = from_organised(cloud, f"pose trial {k}")
+        scan = from_organised(cloud, f"demo part trial {k}")
         unc = replace(bench.measurement, calibration=rig.calibration).of_scan(decoded, used, defocus=True)(scan.pixels)
-        settings = InspectionSettings(registration=RegistrationSettings(seed=k), form=FormSettings(draws=2))
+        settings = InspectionSettings(registration=RegistrationSettings(seed=k), form=form)
         report = inspect(scan, cad, None, settings=settings, uncertainty=unc)
-        bounds = None if report.pose_u is None else report.pose_u.bounds()
-        if report.pose_u is None or report.pose_u.covariance is None or bounds is None:
-            # ambiguous, or a motion the view does not fix: no pose U to cover
-            return (PoseTrial(Estimate(0.0, 0.0), 0.0, time.perf_counter() - t0, measured=False),)
-        U_r, U_t = bounds
-        # transform · pose is the identity when exact; U_t bounds the displacement of the pose's centre
-        r_err, t_err = pose_error(np.linalg.inv(report.registration.transform), pose, report.pose_u.covariance.centre)
-        return (PoseTrial(Estimate(t_err, U_t / 2.0, k=2.0), 0.0, time.perf_counter() - t0, rotation_error_deg=r_err,
-                          rotation_u_deg=U_r),)
+        seconds = (time.perf_counter() - t0) / len(figures)
+        made = {"pose": lambda: pose_trial(report, pose, seconds),
+                "face-position": lambda: face_trial(report, np.random.default_rng((seed, k, 1)), seconds)}
+        return tuple(made[f]() for f in figures)
 
-    return run_trials(("pose",), trial, n, processes, progress)[0]
+    return run_trials(figures, trial, n, processes, progress)
 
 
 @dataclass(frozen=True)

@@ -140,8 +140,9 @@ def _coverage(cases: list[str], calibrated: bool, tmp: Path) -> list[dict]:
 @pytest.mark.acceptance
 @pytest.mark.slow  # hours on 2 cores (the calibrated runs first make 10 simulated calibrations): run on purpose
 @pytest.mark.parametrize("calibrated", [False, True], ids=["noise", "noise+calibration"])
-@pytest.mark.parametrize("cases", [["sphere-radius"], ["ball-bar"], ["plate-flatness", "plate-sq"], ["pose"]],
-                         ids=["sphere_radius", "ball_bar_length", "plate", "pose"])
+@pytest.mark.parametrize("cases", [["sphere-radius"], ["ball-bar"], ["plate-flatness", "plate-sq"],
+                                   ["pose", "face-position"]],
+                         ids=["sphere_radius", "ball_bar_length", "plate", "demo_part"])
 def test_coverage_on_the_shipped_path(cases: list[str], calibrated: bool, tmp_path: Path) -> None:
     for row in _coverage(cases, calibrated, tmp_path):
         assert 0.92 <= row["coverage"] <= 0.98, row

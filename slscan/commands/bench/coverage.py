@@ -3,13 +3,14 @@ with the product's own measurement path (`studies.repeat_scans`), so anyone can 
 published coverage figure (a user's command, not a bench; its module is here, beside the
 benches, because it runs a study):
 
-    slscan coverage --case plate-flatness|plate-sq|sphere-radius|ball-bar|pose|smooth-flatness|smooth-sq|
-                    near-limit-flatness|near-limit-sq --scans N --seed S
+    slscan coverage --case plate-flatness|plate-sq|sphere-radius|ball-bar|pose|face-position|smooth-flatness|
+                    smooth-sq|near-limit-flatness|near-limit-sq --scans N --seed S
                     [--calibrated --out DIR [--calibrations K]] [--processes P] [--json]
 
 prints {"case", "scans", "inside", "coverage", "error_mean_mm", "error_sd_mm",
 "median_U_mm", "seconds"} per case (`--case` may be given more than once: the plate's
-cases share their scans; several cases print a JSON list). The smooth-plate cases measure
+cases share their scans, as do the demo part's: its pose and a plane face's mean deviation,
+"face-position"; several cases print a JSON list). The smooth-plate cases measure
 a perfectly flat, smooth plate (truth 0): their "detected" is how many scans reported a
 value (false detections; the stated rate is 5 %). The near-limit cases measure a smooth plate
 whose bow (`studies.repeat_scans.NEAR_LIMIT`) puts its flatness near the detection limit, where
@@ -40,8 +41,8 @@ from typing import Any
 
 from scanner.errors import ScannerError
 
-CASES = ("plate-flatness", "plate-sq", "sphere-radius", "ball-bar", "pose", "smooth-flatness", "smooth-sq",
-         "near-limit-flatness", "near-limit-sq")
+CASES = ("plate-flatness", "plate-sq", "sphere-radius", "ball-bar", "pose", "face-position", "smooth-flatness",
+         "smooth-sq", "near-limit-flatness", "near-limit-sq")
 
 
 def calibrations(rig: Path, out: Path, seed: int, count: int, say: Callable[[str], None]) -> list[Path]:
@@ -118,8 +119,9 @@ def cmd_coverage(args: argparse.Namespace) -> int:
         results["sphere-radius"] = rs.sphere_radius(bench, load_artefacts(DEFAULT_ARTEFACTS), args.scans, **common)
     if "ball-bar" in cases:
         results["ball-bar"] = rs.ball_bar_length(bench, load_artefacts(DEFAULT_ARTEFACTS), args.scans, **common)
-    if "pose" in cases:
-        results["pose"] = rs.pose_coverage(bench, args.scans, **common)
+    demo = tuple(c for c in rs.DEMO_PART_FIGURES if c in cases)  # one inspection per scan serves both
+    if demo:
+        results.update(zip(demo, rs.demo_part_coverage(bench, args.scans, demo, **common)))
     rows = []
     for case in cases:
         r = results[case]
