@@ -188,3 +188,14 @@ def test_a_motion_moved_to_another_centre_moves_every_point_alike() -> None:
     for z, moved in zip(directions.T, info.motions(directions, other)):
         omega, t = np.split(scale @ z, 2)
         assert np.allclose(np.cross(omega, p - centre) + t, np.cross(moved[:3], p - other) + moved[3:])
+
+
+@pytest.mark.parametrize("shape, high", [((5000, 2), 40), ((5000, 3), 12), ((300, 2), 10 ** 6), ((1, 3), 5)])
+def test_block_labels_rank_the_distinct_blocks_as_a_sort_does(shape: tuple[int, int], high: int) -> None:
+    """`_dense_labels` (no sort where the blocks span a small grid; a sort where they are
+    sparse) against NumPy's sort-based `unique` of the rows, negative keys included."""
+    from inspection.registration.evidence import _dense_labels
+
+    keys = np.random.default_rng(sum(shape) + high).integers(-high, high, shape)
+    assert np.array_equal(_dense_labels(keys), np.unique(keys, axis=0, return_inverse=True)[1].ravel())
+    assert _dense_labels(np.zeros((0, 2), np.int64)).shape == (0,)

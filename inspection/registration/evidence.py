@@ -131,14 +131,29 @@ class ResidualCorrelation:
         number of pairs sharing a block, both ways, times `pair`, over N."""
         if len(where) == 0 or self.pair <= 0:
             return 1.0
-        m = np.unique(_blocks(where, self.block), return_counts=True)[1].astype(np.float64)
+        m = np.bincount(_blocks(where, self.block)).astype(np.float64)
         return float(1.0 + self.pair * np.sum(m * (m - 1.0)) / len(where))
 
 
 def _blocks(where: np.ndarray, size: float) -> np.ndarray:
     """Block index of each position on a grid of squares (cubes) of side `size`."""
-    key = np.floor(where / size).astype(np.int64)
-    return np.unique(key, axis=0, return_inverse=True)[1].ravel()
+    return _dense_labels(np.floor(where / size).astype(np.int64))
+
+
+def _dense_labels(keys: np.ndarray) -> np.ndarray:
+    """The rank of each row of integer `keys` (N, d) among the distinct rows, in
+    lexicographic order: `np.unique(keys, axis=0, return_inverse=True)[1]`, without its
+    sort where the keys span a grid of at most 4 N cells (as blocks of a scan do)."""
+    if len(keys) == 0:
+        return np.zeros(0, np.int64)
+    lo = keys.min(axis=0)
+    span = keys.max(axis=0) - lo + 1
+    if float(np.prod(span.astype(np.float64))) > max(4.0 * len(keys), 65536.0):
+        return np.unique(keys, axis=0, return_inverse=True)[1].ravel()
+    cell = np.ravel_multi_index(tuple((keys - lo).T), tuple(int(x) for x in span))
+    present = np.zeros(int(np.prod(span)), bool)
+    present[cell] = True
+    return (np.cumsum(present) - 1)[cell]
 
 
 @dataclass(frozen=True)
@@ -334,7 +349,7 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.n
     g = int(face.max()) + 1
     n = np.bincount(face, minlength=g).astype(np.float64)
     mean = np.bincount(face, weights=r, minlength=g) / np.maximum(n, 1.0)
-    _, cell = np.unique(face.astype(np.int64) * (int(block.max()) + 1) + block, return_inverse=True)
+    cell = _dense_labels(np.stack([face, block], axis=1).astype(np.int64))
     cell_face = np.zeros(int(cell.max()) + 1, np.int64)
     cell_face[cell.ravel()] = face
     v = np.bincount(cell_face, weights=np.bincount(cell.ravel(), weights=e) ** 2, minlength=g) / np.maximum(n, 1.0) ** 2
