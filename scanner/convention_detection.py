@@ -48,6 +48,7 @@ from scanner.geometry import RigModel
 from scanner.pattern_families import REFERENCES, FrameKind, temporal
 from scanner.patterns import PatternSet
 from scanner.pixel_code import read_pixel_code
+from scanner.session import ConventionFinding
 
 GRAY, GRAY_INVERSE = FrameKind.GRAY, FrameKind.GRAY_INVERSE
 
@@ -74,8 +75,9 @@ class Detection:
     patterns: PatternSet  # with every convention known
     findings: list[Finding] = field(default_factory=list)
 
-    def as_dict(self) -> dict[str, dict[str, Any]]:
-        return {f.key: {"value": f.value, "source": f.source, "evidence": f.evidence} for f in self.findings}
+    def record(self) -> dict[str, ConventionFinding]:
+        """The findings as an import's manifest records them (`ImportRecord.conventions`), by key."""
+        return {f.key: ConventionFinding(value=f.value, source=f.source, evidence=f.evidence) for f in self.findings}
 
 
 def _layouts(ps: PatternSet, n_frames: int, fixed: bool) -> list[PatternSet]:

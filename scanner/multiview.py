@@ -40,7 +40,7 @@ import numpy as np
 from scanner import __version__
 from scanner.errors import IncompleteSession, ScannerError, SessionError
 from scanner.rig import Rig
-from scanner.session import ERROR, MANIFEST, Session, stop_reason, write_json
+from scanner.session import ERROR, MANIFEST, Session, StageRecord, ViewPlace, stop_reason, write_json
 from scanner.session_lock import session_lock
 from scanner.stage import AxisKind
 from scanner.stage_model import StageConfig, StageModel, load_stage_model
@@ -167,11 +167,10 @@ class MultiViewSession:
                     raise SessionError(f"{folder}: view {k} of a complete multi-view session has no {MANIFEST}")
                 break  # views are captured in order: the first incomplete one ends the run
             session = Session.open(folder)
-            stage = session.manifest.stage
-            if not isinstance(stage, dict) or "position" not in stage or "world_from_stage" not in stage:
+            stage = session.manifest.stage  # validated with the manifest (`StageRecord`)
+            if stage is None:
                 raise SessionError(f"{folder / MANIFEST}: no stage pose recorded: not a view of a multi-view session")
-            views.append(View(k, session, {n: float(v) for n, v in stage["position"].items()},
-                              np.array(stage["world_from_stage"], float)))
+            views.append(View(k, session, dict(stage.position), np.array(stage.world_from_stage)))
         return cls(root, plan, tuple(views), done)
 
 
@@ -228,10 +227,10 @@ class MultiViewWriter:
         root.mkdir(parents=True, exist_ok=True)
         return cls(root, rig, plan, model)
 
-    def stage_record(self, position: Mapping[str, float]) -> dict[str, Any]:
+    def stage_record(self, position: Mapping[str, float]) -> StageRecord:
         """What a view's manifest records of the stage: position and the model's pose."""
-        return {"position": dict(position), "world_from_stage": self.model.world_from_stage(position),
-                "stage_model": self.model.to_dict()}
+        return StageRecord(position=dict(position), world_from_stage=self.model.world_from_stage(position).tolist(),
+                           stage_model=self.model.to_dict())
 
     def view_done(self, k: int, session: Session, position: Mapping[str, float], timings: dict[str, float]) -> None:
         self.views.append({"view": k, "folder": view_name(k), "session_id": session.id, "position": dict(position),
@@ -251,11 +250,11 @@ class MultiViewWriter:
 
 
 def capture_views(rig: Rig, plan: Sequence[Mapping[str, float]], out_dir: str | Path,
-                  scan_view: Callable[[Path, dict[str, Any]], Session],
+                  scan_view: Callable[[Path, ViewPlace], Session],
                   progress: ViewProgress = _quiet, model: StageModel | None = None) -> MultiViewSession:
     """Move the stage to each planned position and scan a view there; return the complete
-    multi-view session. `scan_view(folder, extra)` captures (and processes) one view into
-    the new session folder `folder` with `extra` in its manifest (`scanner.pipeline.scan`).
+    multi-view session. `scan_view(folder, place)` captures (and processes) one view into
+    the new session folder `folder`, its `ViewPlace` in its manifest (`scanner.pipeline.scan`).
     `model`: the stage geometry the views' poses are recorded with (default the rig's:
     its [stage] calibration file's, else the nominal axes).
 
@@ -267,7 +266,7 @@ def capture_views(rig: Rig, plan: Sequence[Mapping[str, float]], out_dir: str | 
 
 
 def _capture_views(writer: MultiViewWriter, rig: Rig, plan: Sequence[Mapping[str, float]],
-                   scan_view: Callable[[Path, dict[str, Any]], Session], progress: ViewProgress) -> MultiViewSession:
+                   scan_view: Callable[[Path, ViewPlace], Session], progress: ViewProgress) -> MultiViewSession:
     stage = rig.stage
     assert stage is not None
     n = len(plan)
@@ -283,8 +282,7 @@ def _capture_views(writer: MultiViewWriter, rig: Rig, plan: Sequence[Mapping[str
             what = "capture"
             progress(k, n, "capture")
             t0 = time.perf_counter()
-            session = scan_view(writer.root / view_name(k), {"stage": writer.stage_record(position), "view": k,
-                                                             "multiview_id": writer.id})
+            session = scan_view(writer.root / view_name(k), ViewPlace(k, writer.id, writer.stage_record(position)))
             writer.view_done(k, session, position,
                              {"move": round(moved, 4), "scan": round(time.perf_counter() - t0, 4)})
         except BaseException as exc:

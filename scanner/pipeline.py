@@ -58,6 +58,7 @@ from scanner.session import (
     RECORDING,
     Session,
     SessionWriter,
+    ViewPlace,
     disk_problem,
     file_record,
     json_ready,
@@ -124,12 +125,13 @@ def plan_for_rig(rig: Rig, patterns: PatternSet, request: ExposureRequest) -> Ex
 
 def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, *, progress: Progress = _quiet,
             recording: SessionRecording | None = None, exposure: ExposureRequest | None = None,
-            extra: dict[str, Any] | None = None, keep: dict[int, np.ndarray] | None = None) -> Session:
+            view: ViewPlace | None = None, keep: dict[int, np.ndarray] | None = None) -> Session:
     """Capture one scan into the writer's new session folder and return it, complete;
     `exposure` (None: the rig's) chooses or lists exposures, the pattern set captured once
-    per exposure (HDR) with the plan and its reason in the manifest; `extra` goes into the
-    manifest too (a multi-view session's stage pose); `keep`, if given, receives each frame
-    stored (k -> image), for a decode that follows at once (not read back from the PNGs).
+    per exposure (HDR) with the plan and its reason in the manifest; `view`, for a view of a
+    multi-view session, its place (the stage pose) in the manifest too; `keep`, if given,
+    receives each frame stored (k -> image), for a decode that follows at once (not read
+    back from the PNGs).
 
     On any failure the frames already captured stay on disk, `error.json` says what
     happened, the session has no manifest (so it is reported incomplete), and the error
@@ -165,7 +167,7 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, *, progress: 
     timings: dict[str, float] = {}
     manifest_extra: dict[str, object] = {"rig_config_path": str(rig.config.path.resolve()),
                                          "provenance": provenance(rig, writer.root), "wiring": rig.config.trigger,
-                                         **(extra or {})}
+                                         **(view.manifest_keys() if view is not None else {})}
 
     def begin() -> None:
         if plan is not None:
@@ -354,9 +356,10 @@ def model_accuracy_px(session: Session, model: RigModel) -> float | None:
     reprojection RMS on its own views only, not its error on a new one (on the real procam
     capture the epipolar distance is twice that RMS allows), and a nominal hardware geometry
     states nothing: None, the epipolar check is then not judged."""
-    imported = (session.manifest.imported or {}).get("calibration")
+    imported = session.manifest.imported
+    calibrated_elsewhere = imported is not None and imported.calibration is not None
     driver = session.manifest.recorded_rig.rig.driver
-    return 0.0 if driver == "sim" and not model.calibration and not imported else None
+    return 0.0 if driver == "sim" and not model.calibration and not calibrated_elsewhere else None
 
 
 def epipolar_check(decoded: DecodeResult, model: RigModel, sensor: str | None, model_px: float) -> Check:
@@ -588,12 +591,12 @@ def log_session_frames(recording: SessionRecording, session: Session) -> None:
 def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, *, progress: Progress = _quiet,
          then: Callable[[ScanResult, SessionRecording | None], None] | None = None,
          level: str | None = None, exposure: ExposureRequest | None = None,
-         extra: dict[str, Any] | None = None) -> ScanResult:
+         view: ViewPlace | None = None) -> ScanResult:
     """Capture, decode and reconstruct one scan, recording every stage to the session's
     Rerun file at `level` (default the rig's `[recording] level`; "none": no recording, and
     `then` gets None). `then(result, recording)`, if given, runs a later stage (`slscan
     demo`'s inspection) into the same recording before it is closed, while the outputs are
-    written behind it; `exposure` and `extra` as for `capture`. Returns once every file is
+    written behind it; `exposure` and `view` as for `capture`. Returns once every file is
     on disk."""
     from scanner.session_recording import SessionRecording
 
@@ -607,7 +610,7 @@ def scan(rig: Rig, patterns: PatternSet, out_dir: str | Path, *, progress: Progr
             SessionRecording(writer.root / RECORDING, writer.id, level=level))
         if rec is not None:
             rec.log_rig(rig.model)
-        session = capture(rig, patterns, writer, progress=progress, recording=rec, exposure=exposure, extra=extra,
+        session = capture(rig, patterns, writer, progress=progress, recording=rec, exposure=exposure, view=view,
                           keep=frames)
         if then is not None:  # BLAS on one thread: the stages' parallelism is their own threads', and an idle
             stack.enter_context(native_threads(1))  # BLAS thread spins, taking a core from them

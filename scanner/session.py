@@ -14,7 +14,10 @@ Layout (all files appear complete or not at all):
                              device settings, software version, timings, frame list, and
                              (`exposure`) the exposures chosen and why: a multi-exposure (HDR)
                              session holds the whole pattern set once per exposure, frames
-                             i·N .. i·N + N − 1 at exposures_s[i] (ascending), every one kept
+                             i·N .. i·N + N − 1 at exposures_s[i] (ascending), every one kept;
+                             a view of a multi-view session adds `stage`, `view` and
+                             `multiview_id` (`ViewPlace`), an imported session `import`
+                             (`ImportRecord`)
     capture.json             written before the first frame: the manifest-to-be (rig, patterns, devices,
                              provenance), so `slscan decode --recover` can rebuild a manifest a kill prevented
     error.json               written instead of the manifest when a capture fails
@@ -49,7 +52,15 @@ from typing import Annotated, Any, BinaryIO, Literal
 
 import cv2
 import numpy as np
-from pydantic import ConfigDict, Field, ModelWrapValidatorHandler, PrivateAttr, ValidationInfo, model_validator
+from pydantic import (
+    ConfigDict,
+    Field,
+    ModelWrapValidatorHandler,
+    PrivateAttr,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from scanner import __version__, schema
 from scanner.devices import Frame
@@ -58,6 +69,7 @@ from scanner.file_checks import FileRefused, decode_image, read_regular
 from scanner.geometry import PhaseToHeight, RigModel
 from scanner.patterns import PatternFile, PatternSet
 from scanner.rig_schema import RecordedRig, RigModelSchema, check_geometry
+from scanner.stage_model import StageModel
 
 ManifestVersion = Literal[1]  # the manifest format this slscan writes and reads
 MANIFEST_VERSION: ManifestVersion = 1
@@ -145,8 +157,10 @@ def write_json(path: Path, obj: Any) -> None:
 
 
 def json_ready(o: Any) -> Any:
-    """`o` with numpy arrays and scalars as lists and numbers, paths as strings and every
-    non-finite float as None."""
+    """`o` with numpy arrays and scalars as lists and numbers, paths as strings, records
+    (`schema.Schema`) as the objects their files hold and every non-finite float as None."""
+    if isinstance(o, schema.Schema):  # a record as its writer built it: the keys it was given, in its order
+        return json_ready(o.model_dump(by_alias=True, exclude_unset=True))
     if isinstance(o, dict):
         return {str(k): json_ready(v) for k, v in o.items()}
     if isinstance(o, (list, tuple)):
@@ -397,6 +411,105 @@ def find_recorded(record: FileRecord, session_root: Path) -> tuple[Path | None, 
     return None, f"{record.path} is gone (not found there or at {record.relative} from the session)"
 
 
+class StageRecord(schema.Schema):
+    """manifest.json `stage`, in a view of a multi-view session (`scanner.multiview`): the
+    position the stage reported after the move (axis name -> rad or mm), the pose of the
+    stage frame in the world the stage model gives for it (4x4, mm) and that model
+    (`StageModel.to_dict`)."""
+
+    position: dict[str, schema.Float]
+    world_from_stage: schema.Matrix4
+    stage_model: dict[str, Any]
+
+    @field_validator("world_from_stage")
+    @classmethod
+    def _rigid(cls, T: list[list[float]]) -> list[list[float]]:
+        a = np.array(T)
+        R = a[:3, :3]
+        if not (a[3].tolist() == [0.0, 0.0, 0.0, 1.0] and np.allclose(R.T @ R, np.eye(3), atol=1e-6)
+                and np.linalg.det(R) > 0):
+            raise ValueError("not a rigid motion (a rotation, a translation and the last row 0 0 0 1)")
+        return T
+
+    @field_validator("stage_model")
+    @classmethod
+    def _model(cls, d: dict[str, Any]) -> dict[str, Any]:
+        try:
+            StageModel.from_dict(d, "stage_model")
+        except ConfigError as exc:
+            raise ValueError(exc.problem) from None
+        return d
+
+
+@dataclass(frozen=True)
+class ViewPlace:
+    """Where a session lies in a multi-view session: its view (0-based), the multi-view id
+    and the stage's record; its manifest holds them as `stage`, `view` and `multiview_id`."""
+
+    view: int
+    multiview_id: str
+    stage: StageRecord
+
+    def manifest_keys(self) -> dict[str, Any]:
+        return {"stage": self.stage, "view": self.view, "multiview_id": self.multiview_id}
+
+
+class ImportedCalibration(schema.Schema):
+    """manifest.json `import.calibration`: the other tool's calibration the rig model was
+    read from (`file`; a binocular capture's stereo calibration: `files`), its format and,
+    for one camera, the projector scale applied to it."""
+
+    file: str | None = None
+    files: Annotated[list[str], Field(min_length=1)] | None = None
+    format: str
+    projector_scale: schema.PositiveFloat | None = None
+
+    @model_validator(mode="after")
+    def _one(self) -> ImportedCalibration:
+        if (self.file is None) == (self.files is None):
+            raise ValueError("names its calibration by 'file' (one camera) or 'files' (two), one of them")
+        return self
+
+
+class ConventionFinding(schema.Schema):
+    """How `slscan import` settled one convention key (`scanner.convention_detection.Finding`):
+    its value, the source (given, detected or assumed) and the evidence, for people."""
+
+    value: Any
+    source: str
+    evidence: str
+
+
+Count = Annotated[int, Field(strict=True, ge=0)]
+
+
+class ImportRecord(schema.Schema):
+    """manifest.json `import` (`slscan import`): where the frames came from (one folder and
+    its files in order, or a binocular capture's two folders), how they were chosen and
+    stored (hard-linked or copied), the pattern file and projector size given, the frames'
+    bit depth (a binocular capture's: one per camera), the calibration read and the
+    conventions settled (a binocular capture's: per camera)."""
+
+    source_folder: str | None = None
+    source_folders: Annotated[list[str], Field(min_length=2, max_length=2)] | None = None
+    sources: list[str] | None = None  # one folder's files; sessions before it have only source_folder
+    frames_glob: str | None
+    patterns_file: str
+    projector_size: Annotated[list[schema.PositiveInt], Field(min_length=2, max_length=2)]
+    bit_depth: BitDepth | list[BitDepth]
+    hard_linked: Count
+    copied: Count
+    calibration: ImportedCalibration | None
+    conventions: dict[str, ConventionFinding] | dict[str, dict[str, ConventionFinding]]
+
+    @model_validator(mode="after")
+    def _one(self) -> ImportRecord:
+        if (self.source_folder is None) == (self.source_folders is None):
+            raise ValueError("names where the frames came from by 'source_folder' (one camera) or 'source_folders' "
+                             "(two), one of them")
+        return self
+
+
 class Manifest(schema.Schema):
     """manifest.json: what decoding reads is typed and checked; the other keys (devices,
     timings, versions, ...) are a record for people and kept as written. The object the file
@@ -418,8 +531,10 @@ class Manifest(schema.Schema):
     provenance: Provenance | None = None  # sessions before it had only rig_config_path
     rig_config_path: str | None = None  # sessions before `provenance`: the rig TOML they were captured with
     calibrated: schema.Bool = True  # False: imported without a calibration (decoded maps, no cloud)
-    imported: dict[str, Any] | None = Field(default=None, alias="import")  # `slscan import`: where from, how
-    stage: dict[str, Any] | None = None  # a view of a multi-view session: the stage's position and pose
+    imported: ImportRecord | None = Field(default=None, alias="import")  # `slscan import`: where from, how
+    stage: StageRecord | None = None  # a view of a multi-view session (`ViewPlace`): the stage's position and pose
+    view: Count | None = None  # its view
+    multiview_id: Annotated[str, Field(strict=True, min_length=1)] | None = None  # its multi-view session
     timings_s: dict[str, Any] = Field(default_factory=dict)  # seconds per stage of the capture
     _recorded: dict[str, Any] = PrivateAttr(default_factory=dict)
     _path: str | Path = PrivateAttr(default=MANIFEST)  # the file read (`schema.parse`): its session's

@@ -130,8 +130,8 @@ def scan_placement(config: Any, part: Part, draw: Draw, out: Path) -> Path:
     plan = plan_views(config.stage, angles_deg=list(draw.angles_deg))
     patterns = PatternSet.load(config.patterns_path)
     with native_threads(1), open_rig(config, scene=scene, seed=draw.noise_seed) as rig:
-        capture_views(rig, plan, out, lambda folder, extra: scan(rig, patterns, folder, level="none",
-                                                                   extra=extra).session)
+        capture_views(rig, plan, out, lambda folder, place: scan(rig, patterns, folder, level="none",
+                                                                   view=place).session)
     return out
 
 

@@ -188,6 +188,10 @@ MALFORMED = {
                          "frames[0].bit_depth"),
     "bit_depth 16": (lambda m: [f.__setitem__("bit_depth", 16) for f in m["frames"]] and m, "camera.bit_depth is 12"),
     "projector_gamma 0": (lambda m: m["rig_model"].__setitem__("projector_gamma", 0) or m, "projector_gamma"),
+    "stage pose 3x3": (lambda m: m.update(stage={"position": {"turntable": 0.0}, "stage_model": {},
+                                                 "world_from_stage": np.eye(3).tolist()}) or m,
+                       "key 'stage.world_from_stage[0]'"),
+    "import hard_linked -1": (lambda m: m.update({"import": {"hard_linked": -1}}) or m, "key 'import."),
 }
 
 
@@ -198,6 +202,19 @@ def test_malformed_manifest_gives_one_line(copy: Path, case: str) -> None:
     code, err = run_cli("decode", str(copy))
     line = one_error_line(err)
     assert code == 2 and words in line and "manifest.json" in line
+
+
+def test_an_import_record_from_before_sources_still_opens(copy: Path) -> None:
+    """`import` as the first `slscan import` wrote it (no `sources`), read as typed."""
+    record = {"source_folder": "/data/capture_0", "frames_glob": None, "patterns_file": "opencv_graycode.toml",
+              "projector_size": [1024, 768], "bit_depth": 8, "hard_linked": 40, "copied": 2,
+              "calibration": {"file": "/data/calibration_result.xml", "format": "procam", "projector_scale": 2.0},
+              "conventions": {"pixel_centre": {"value": 0.0, "source": "assumed", "evidence": "not observable"}}}
+    edit_manifest(copy, lambda m: m.update({"import": record}))
+    imported = Session.open(copy).manifest.imported
+    assert imported is not None and imported.sources is None and imported.hard_linked == 40
+    assert imported.calibration is not None and imported.calibration.projector_scale == 2.0
+    assert imported.conventions["pixel_centre"].source == "assumed"
 
 
 def test_three_channel_frame_message_says_channels(copy: Path) -> None:

@@ -9,19 +9,22 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from session_support import edit_manifest
 
 from calibration.stage_axis import StageAxisError, solve_stage_axis
 from inspection.views.align import pose_error
 from inspection.views.merge import fuse
 from inspection.views.view_clouds import ViewCloud
 from scanner.config import CONFIG_DIR
-from scanner.errors import IncompleteSession, ScannerError
+from scanner.errors import IncompleteSession, ScannerError, SessionError
 from scanner.multiview import MULTIVIEW, PLAN, MultiViewSession, plan_views, view_name
 from scanner.rig import RigConfig
+from scanner.session import MANIFEST, write_json
 from scanner.stage import AxisKind
 from scanner.stage_model import AxisGeometry, StageModel, rotation_about
 from slscan import cli
@@ -121,6 +124,49 @@ def test_interrupted_run_keeps_every_finished_view(tmp_path: Path, capsys: pytes
     partial = MultiViewSession.open(out, partial=True)
     assert [v.name for v in partial.views] == ["view_000", "view_001"] and not partial.complete
     assert len(partial.views[1].session.load_stack()) == 12  # the finished views are whole
+
+
+def one_view_folder(clean_session: Path, out: Path, stage: dict) -> Path:
+    """A complete multi-view folder of one view (a copy of `clean_session`) whose manifest
+    records `stage`; the view's manifest path."""
+    shutil.copytree(clean_session, out / view_name(0))
+    write_json(out / PLAN, {"slscan_multiview": 1, "multiview_id": "mv-test",
+                            "views": [{"target": {"turntable": 0.5}}]})
+    write_json(out / MULTIVIEW, {"slscan_multiview": 1, "multiview_id": "mv-test", "views": []})
+    edit_manifest(out / view_name(0), lambda m: m.update(stage=stage, view=0, multiview_id="mv-test"))
+    return out / view_name(0) / MANIFEST
+
+
+TURNED = [[0.0, -1.0, 0.0, 10.0], [1.0, 0.0, 0.0, -20.0], [0.0, 0.0, 1.0, 30.0], [0.0, 0.0, 0.0, 1.0]]  # 90 deg about z
+STAGE = {"position": {"turntable": 0.5}, "world_from_stage": TURNED,
+         "stage_model": {"axes": [{"name": "turntable", "kind": "rotary", "direction": [0.0, 0.0, 1.0],
+                                   "point_mm": [0.0, 0.0, 400.0]}], "calibration": ""}}
+
+
+def test_a_views_stage_record_is_read_as_written(clean_session: Path, tmp_path: Path) -> None:
+    one_view_folder(clean_session, tmp_path / "mv", STAGE)
+    view = MultiViewSession.open(tmp_path / "mv").views[0]
+    assert view.position == {"turntable": 0.5} and np.array_equal(view.world_from_stage, np.array(TURNED))
+
+
+@pytest.mark.parametrize(("edit", "words"), [
+    (lambda s: s.pop("position"), "key 'stage.position': required key is missing"),
+    (lambda s: s["position"].update(turntable="half a turn"), "key 'stage.position.turntable': expected a number"),
+    (lambda s: s.update(world_from_stage=[row[:3] for row in TURNED[:3]]),
+     "key 'stage.world_from_stage[0]': expected a list of 4 values"),
+    (lambda s: s.update(world_from_stage=[[2.0 * v for v in row[:3]] + row[3:] for row in TURNED[:3]] + TURNED[3:]),
+     "key 'stage.world_from_stage': not a rigid motion"),
+    (lambda s: s["stage_model"]["axes"][0].update(kind="spiral"), "key 'stage.stage_model': not a stage model"),
+], ids=["no position", "position not a number", "pose 3x3", "pose scaled", "unknown axis kind"])
+def test_a_malformed_stage_record_is_refused_naming_the_manifest(clean_session: Path, tmp_path: Path, edit,
+                                                                 words: str) -> None:
+    stage = json.loads(json.dumps(STAGE))
+    edit(stage)
+    manifest = one_view_folder(clean_session, tmp_path / "mv", stage)
+    with pytest.raises(SessionError) as refused:
+        MultiViewSession.open(tmp_path / "mv")
+    message = str(refused.value)
+    assert message.startswith(f"{manifest}, ") and words in message and "\n" not in message, message
 
 
 def test_plan_views_and_its_refusals(tmp_path: Path) -> None:

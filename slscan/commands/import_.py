@@ -149,7 +149,7 @@ def import_frames(folder: Path, patterns_path: Path, projector_size: tuple[int, 
     from scanner.geometry import Pinhole, RigModel, look_at
     from scanner.patterns import PatternSet
     from scanner.pipeline import process
-    from scanner.session import SessionWriter
+    from scanner.session import ImportedCalibration, ImportRecord, SessionWriter
 
     t0 = time.perf_counter()
     files = list_frames(folder, frames_glob)
@@ -160,9 +160,11 @@ def import_frames(folder: Path, patterns_path: Path, projector_size: tuple[int, 
                            f"{int(stack.max())}")
     camera_size = (stack.shape[2], stack.shape[1])
     patterns = PatternSet.load(patterns_path, detect=True)
-    model, source = None, None
+    model, calibration_read = None, None
     if calibration is not None:
         model, source = read_calibration(calibration, camera_size, projector_size, projector_scale)
+        calibration_read = ImportedCalibration(file=str(Path(calibration).resolve()), format=source,
+                                               projector_scale=projector_scale)
     t_read = time.perf_counter() - t0
     t0 = time.perf_counter()
     detection = detect(stack, patterns, depth, projector_size, model)
@@ -174,12 +176,10 @@ def import_frames(folder: Path, patterns_path: Path, projector_size: tuple[int, 
                          look_at(np.array([100.0, 0.0, 0.0]), np.array([0.0, 0.0, 500.0])))
     writer = SessionWriter.create(out)
     linked = [_store(writer, k, f, stack[k], c, depth) for k, (f, c) in enumerate(zip(files, converted))]
-    info = {"source_folder": str(folder.resolve()), "sources": [str(f.resolve()) for f in files],
-            "frames_glob": frames_glob, "patterns_file": str(patterns_path),
-            "projector_size": list(projector_size), "bit_depth": depth, "hard_linked": sum(linked),
-            "copied": len(linked) - sum(linked), "calibration": None if calibration is None else {
-                "file": str(Path(calibration).resolve()), "format": source, "projector_scale": projector_scale},
-            "conventions": detection.as_dict()}
+    info = ImportRecord(source_folder=str(folder.resolve()), sources=[str(f.resolve()) for f in files],
+                        frames_glob=frames_glob, patterns_file=str(patterns_path), projector_size=list(projector_size),
+                        bit_depth=depth, hard_linked=sum(linked), copied=len(linked) - sum(linked),
+                        calibration=calibration_read, conventions=detection.record())
     writer.finish({"name": f"imported from {folder}", "driver": "import"}, model, detection.patterns, {},
                   {"read": round(t_read, 4), "detect": round(t_detect, 4)},
                   {"import": info, "calibrated": calibrated})
@@ -204,8 +204,9 @@ def cmd_import(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     lines = sys.stderr if args.json else sys.stdout  # with --json: the JSON alone on stdout
     manifest = result.session.manifest
+    assert manifest.imported is not None  # written by import_frames
     print(f"imported  {len(manifest.frames)} frames from {args.frames_folder} "
-          f"({(manifest.imported or {})['hard_linked']} hard-linked)", file=lines)
+          f"({manifest.imported.hard_linked} hard-linked)", file=lines)
     print("conventions", file=lines)
     for f in detection.findings:
         print(f"  {f.line()}", file=lines)

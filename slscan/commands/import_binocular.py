@@ -66,7 +66,7 @@ def import_binocular(folders: list[Path], patterns_path: Path, projector_size: t
     from scanner.binocular_pipeline import process_binocular
     from scanner.convention_detection import detect
     from scanner.patterns import PatternSet
-    from scanner.session import Session, SessionWriter
+    from scanner.session import ImportedCalibration, ImportRecord, Session, SessionWriter
     from scanner.stereo_calibration_file import read_stereo_calibration
 
     if not calibration:
@@ -100,11 +100,12 @@ def import_binocular(folders: list[Path], patterns_path: Path, projector_size: t
         linked += sum(_store(writer, k, f, stack[k], c, depth, camera=name)
                       for k, (f, c) in enumerate(zip(fs, converted)))
     writer.frames = writer.camera_frames.pop(CAMERAS[0])
-    info = {"source_folders": [str(f.resolve()) for f in folders], "frames_glob": frames_glob,
-            "patterns_file": str(patterns_path), "projector_size": list(projector_size), "bit_depth": depths,
-            "hard_linked": linked, "copied": 2 * len(files[0]) - linked,
-            "calibration": {"files": [str(Path(c).resolve()) for c in calibration], "format": source},
-            "conventions": {n: d.as_dict() for n, d in zip(CAMERAS, detections)}}
+    info = ImportRecord(source_folders=[str(f.resolve()) for f in folders], frames_glob=frames_glob,
+                        patterns_file=str(patterns_path), projector_size=list(projector_size), bit_depth=depths,
+                        hard_linked=linked, copied=2 * len(files[0]) - linked,
+                        calibration=ImportedCalibration(files=[str(Path(c).resolve()) for c in calibration],
+                                                        format=source),
+                        conventions={n: d.record() for n, d in zip(CAMERAS, detections)})
     writer.finish({"name": f"imported from {folders[0]} and {folders[1]}", "driver": "import"}, models["left"],
                   agreed, {}, {"read": round(t_read, 4), "detect": round(t_detect, 4)},
                   {"import": info, "calibrated": False, "cameras": list(CAMERAS),

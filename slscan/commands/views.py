@@ -62,9 +62,9 @@ def scan_views(args: argparse.Namespace, config: Any, patterns: Any, options: di
 
     with open_rig(config, **options) as rig:
         try:
-            session = capture_views(rig, plan, out, lambda folder, extra: scan(rig, patterns, folder, progress=line,
+            session = capture_views(rig, plan, out, lambda folder, place: scan(rig, patterns, folder, progress=line,
                                                                                 exposure=exposure,
-                                                                                extra=extra).session,
+                                                                                view=place).session,
                                     view_progress, model)
         except (ScannerError, KeyboardInterrupt):
             if (out / "views.json").exists():

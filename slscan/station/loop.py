@@ -43,7 +43,7 @@ from scanner.multiview import plan_views
 from scanner.pipeline import Progress, scan
 from scanner.rig import Rig, RigConfig
 from scanner.schema import plain_text
-from scanner.session import Session, disk_problem, write_json
+from scanner.session import Session, ViewPlace, disk_problem, write_json
 from slscan.station import StationError
 from slscan.station.calib import describe as describe_calibration
 from slscan.station.calib import refusals as calibration_refusals
@@ -246,10 +246,10 @@ class Station:
         with self.bench.on_stage(part) as rig:
             self._set_exposure(rig)
 
-            def scan_view(out: Path, extra: dict[str, Any]) -> Session:
-                where = f" (view {extra['view'] + 1}/{n})"
+            def scan_view(out: Path, place: ViewPlace) -> Session:
+                where = f" (view {place.view + 1}/{n})"
                 return scan(rig, self.patterns, out,
-                            progress=lambda stage, done, total: step(stage + where, done, total), extra=extra).session
+                            progress=lambda stage, done, total: step(stage + where, done, total), view=place).session
 
             views = capture_views(rig, self.stage_plan, sessions[-1], scan_view,
                                   lambda k, _, what: step(f"{what} (view {k + 1}/{n})", k, n))
