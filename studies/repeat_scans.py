@@ -485,7 +485,7 @@ def demo_part_pose(bench: Bench, rng: np.random.Generator) -> np.ndarray:
 DEMO_PART_FIGURES = ("pose", "face-position")
 
 
-def demo_part_coverage(bench: Bench, n: int, figures: tuple[str, ...] = ("pose",), seed: int = 0,
+def demo_part_coverage(bench: Bench, n: int, figures: tuple[str, ...] = ("pose",), *, seed: int = 0,
                        rigs: tuple[MeasuringRig, ...] = (), processes: int = 1,
                        progress: Callable[[str], None] | None = None) -> tuple[CoverageResult, ...]:
     """Coverage of what `slscan inspect` reports of the demo part (`config/parts/demo_part.ply`,
