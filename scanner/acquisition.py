@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from functools import partial
 
@@ -208,7 +208,7 @@ def at_exposure(rig: Rig, exposure_s: float, grab: Callable[[], np.ndarray]) -> 
     return out
 
 
-def acquire_exposures(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings, exposures_s: tuple[float, ...],
+def acquire_exposures(rig: Rig, patterns: PatternSet, settings: AcquisitionSettings, exposures_s: Sequence[float],
                       on_frame: FrameCallback) -> list[np.ndarray]:
     """The whole pattern set captured once per exposure (s), in the order given; frame k of
     exposure i is passed to `on_frame` as i·n_frames + k, each exposure's stack checked like a

@@ -37,7 +37,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any
 
 import numpy as np
 
@@ -45,6 +44,7 @@ from scanner.decode import DecodeResult, OrientationMaps
 from scanner.errors import ConfigError
 from scanner.pattern_families import FrameKind
 from scanner.patterns import PatternSet
+from scanner.session import ExposureMode, ExposureRecord
 
 ROI_MIN_CONTRAST = 0.01  # of full scale at the probe exposure: a pixel the projector lights
 SATURATION_LEVEL = 0.98  # of full scale: brighter than this at the peak counts as saturated
@@ -64,7 +64,7 @@ class ExposureRequest:
     or "given" (`exposures_s` as listed); `roi` (x, y, width, height) camera pixels or None
     (every lit pixel)."""
 
-    mode: str
+    mode: ExposureMode
     exposures_s: tuple[float, ...] = ()
     roi: tuple[int, int, int, int] | None = None
 
@@ -82,8 +82,9 @@ class ExposureRequest:
                                                          "height > 0)")
             x, y, w, h = parts
             box = (x, y, w, h)
-        if text in ("auto", "hdr"):
-            return cls(text, (), box)
+        match text:
+            case "auto" | "hdr":
+                return cls(text, (), box)
         try:
             values = tuple(float(v) for v in text.split(","))
         except ValueError:
@@ -119,19 +120,6 @@ class Probe:
         return float((self.white[roi] >= SATURATION_LEVEL * self.full_scale).mean()) if roi.any() else 0.0
 
 
-@dataclass(frozen=True)
-class ExposurePlan:
-    """The exposures to capture (s, ascending), how they were chosen and why."""
-
-    exposures_s: tuple[float, ...]
-    mode: str
-    reason: str
-    figures: dict[str, Any] = field(default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"exposures_s": list(self.exposures_s), "mode": self.mode, "reason": self.reason, **self.figures}
-
-
 def fringe_contrast(probe: Probe, roi: np.ndarray) -> float:
     """The displayed fringes' contrast at the camera (0..1): mean |F − mid|/half·π/2 over the
     ROI's unsaturated pixels (1 for a sharp sinusoid, less through defocus)."""
@@ -158,8 +146,8 @@ def candidate_exposures(lo_s: float, hi_s: float) -> np.ndarray:
     return lo_s * GRID_STEP ** np.arange(max(n, 1))
 
 
-def choose_exposures(probe: Probe, mode: str, exposure_range_s: tuple[float, float],
-                     box: tuple[int, int, int, int] | None = None) -> ExposurePlan:
+def choose_exposures(probe: Probe, mode: ExposureMode, exposure_range_s: tuple[float, float],
+                     box: tuple[int, int, int, int] | None = None) -> ExposureRecord:
     """The plan for `mode` "auto" or "hdr" from a probe (see the module docstring)."""
     roi = probe.roi(box)
     n_roi = int(roi.sum())
@@ -188,7 +176,7 @@ def choose_exposures(probe: Probe, mode: str, exposure_range_s: tuple[float, flo
     dark = float(np.logical_not(np.logical_or.reduce(table[chosen]) |
                                 (probe.white[roi] * grid[chosen[-1]] / probe.exposure_s
                                  >= SATURATION_LEVEL * probe.full_scale)).mean())
-    exposures = tuple(float(round(grid[k], 6)) for k in chosen)
+    exposures = [float(round(grid[k], 6)) for k in chosen]
     names = ", ".join(f"{t * 1e3:.3g}" for t in exposures)
     reason = (f"{mode}: {'exposures' if len(exposures) > 1 else 'exposure'} {names} ms predicted to cover "
               f"{total:.1%} of the {n_roi} lit ROI pixels (unsaturated, modulation >= {GOOD_MODULATION:.0%} of full "
@@ -196,11 +184,11 @@ def choose_exposures(probe: Probe, mode: str, exposure_range_s: tuple[float, flo
               f"{coverage[best_single]:.1%}; {saturating:.1%} saturate even at the shortest chosen and {dark:.1%} "
               f"stay too dark at the longest; fringe contrast {fringe_contrast(probe, roi):.2f}; projector brightness "
               f"not adjusted (its interface offers no brightness control)")
-    figures = {"probe_exposure_s": probe.exposure_s, "roi_pixels": n_roi, "roi_box": list(box) if box else None,
-               "predicted_coverage": round(total, 5), "best_single_exposure_s": float(round(grid[best_single], 6)),
-               "best_single_coverage": round(float(coverage[best_single]), 5),
-               "fringe_contrast": round(fringe_contrast(probe, roi), 4)}
-    return ExposurePlan(exposures, mode, reason, figures)
+    return ExposureRecord(exposures_s=exposures, mode=mode, reason=reason, probe_exposure_s=probe.exposure_s,
+                          roi_pixels=n_roi, roi_box=list(box) if box else None, predicted_coverage=round(total, 5),
+                          best_single_exposure_s=float(round(grid[best_single], 6)),
+                          best_single_coverage=round(float(coverage[best_single]), 5),
+                          fringe_contrast=round(fringe_contrast(probe, roi), 4))
 
 
 def probe_images(patterns: PatternSet, width: int, height: int, gamma: float) -> np.ndarray:
@@ -213,7 +201,7 @@ def probe_images(patterns: PatternSet, width: int, height: int, gamma: float) ->
 
 
 def plan_exposures(request: ExposureRequest, capture_probe: Callable[[float], np.ndarray], start_s: float,
-                   exposure_range_s: tuple[float, float], full_scale: float) -> ExposurePlan:
+                   exposure_range_s: tuple[float, float], full_scale: float) -> ExposureRecord:
     """The exposures for `request`; "auto" and "hdr" pre-capture with `capture_probe(t)`
     (returns the three probe frames at exposure t), shortened while the probe saturates."""
     lo, hi = exposure_range_s
@@ -222,7 +210,8 @@ def plan_exposures(request: ExposureRequest, capture_probe: Callable[[float], np
         if bad:
             raise ConfigError("--exposure", ",".join(map(str, request.exposures_s)),
                               f"{bad[0] * 1e3:.4g} ms is outside the camera's range {lo * 1e3:.4g}..{hi * 1e3:.4g} ms")
-        return ExposurePlan(request.exposures_s, "given", f"given: {len(request.exposures_s)} exposure(s) as listed")
+        return ExposureRecord(exposures_s=list(request.exposures_s), mode="given",
+                              reason=f"given: {len(request.exposures_s)} exposure(s) as listed")
     t = float(np.clip(start_s, lo, hi))
     probes = 0
     while True:
@@ -234,7 +223,7 @@ def plan_exposures(request: ExposureRequest, capture_probe: Callable[[float], np
             break
         t /= PROBE_SHORTEN
     plan = choose_exposures(probe, request.mode, exposure_range_s, request.roi)
-    return replace(plan, figures={**plan.figures, "probe_captures": probes})
+    return plan.model_copy(update={"probe_captures": probes})
 
 
 @dataclass(eq=False)

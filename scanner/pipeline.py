@@ -45,7 +45,7 @@ from scanner.decode_checks import (
 )
 from scanner.devices import Frame
 from scanner.errors import DecodeError, ScannerError, SessionError
-from scanner.exposure import ExposurePlan, ExposureRequest, FusedOrientationMaps, fuse, plan_exposures, probe_images
+from scanner.exposure import ExposureRequest, FusedOrientationMaps, fuse, plan_exposures, probe_images
 from scanner.geometry import RigModel
 from scanner.native_threads import native_threads
 from scanner.patterns import PatternSet
@@ -56,6 +56,8 @@ from scanner.rig_schema import check_patterns_fit
 from scanner.session import (
     OUTPUTS_DIR,
     RECORDING,
+    ExposureRecord,
+    Provenance,
     Session,
     SessionWriter,
     ViewPlace,
@@ -105,7 +107,7 @@ class ScanResult:
 AUTO_RANGE = (1 / 64, 16.0)  # auto exposure searches this range around the rig's exposure_s (factors)
 
 
-def plan_for_rig(rig: Rig, patterns: PatternSet, request: ExposureRequest) -> ExposurePlan:
+def plan_for_rig(rig: Rig, patterns: PatternSet, request: ExposureRequest) -> ExposureRecord:
     """The exposures for `request` on this rig: "auto"/"hdr" pre-capture white, black and
     one fringe frame (`scanner.exposure`), searching AUTO_RANGE x the rig's exposure within
     the camera's range."""
@@ -138,7 +140,7 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, *, progress: 
     is raised again."""
     n = patterns.n_frames
     specs = patterns.frames()
-    plan: ExposurePlan | None = None
+    plan: ExposureRecord | None = None
     for save in rig.extras.get("session_files", ()):  # driver-specific data kept with the raw frames
         save(writer.root)
 
@@ -171,7 +173,7 @@ def capture(rig: Rig, patterns: PatternSet, writer: SessionWriter, *, progress: 
 
     def begin() -> None:
         if plan is not None:
-            manifest_extra["exposure"] = plan.to_dict()
+            manifest_extra["exposure"] = plan
         writer.begin(rig.config.raw, rig.model, patterns, describe_devices(rig), manifest_extra)
 
     with ThreadPoolExecutor(1, thread_name_prefix="store frames") as pool:
@@ -200,12 +202,12 @@ def describe_devices(rig: Rig) -> dict[str, Any]:
             (("camera", rig.camera), ("projector", rig.projector), ("trigger", rig.trigger)) if dev is not None}
 
 
-def provenance(rig: Rig, session_root: Path) -> dict[str, Any]:
-    """manifest.json `provenance` (`scanner.session.Provenance`): the rig TOML and its
-    calibration file by absolute and session-relative path and SHA-256."""
+def provenance(rig: Rig, session_root: Path) -> Provenance:
+    """manifest.json `provenance`: the rig TOML and its calibration file by absolute and
+    session-relative path and SHA-256."""
     calibration = rig.config.calibration_path
-    return {"rig": file_record(rig.config.path, session_root),
-            "calibration": file_record(calibration, session_root) if calibration is not None else None}
+    return Provenance(rig=file_record(rig.config.path, session_root),
+                      calibration=file_record(calibration, session_root) if calibration is not None else None)
 
 
 def process(session: Session, progress: Progress = _quiet, recording: SessionRecording | None = None,

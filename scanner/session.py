@@ -159,7 +159,7 @@ def write_json(path: Path, obj: Any) -> None:
 def json_ready(o: Any) -> Any:
     """`o` with numpy arrays and scalars as lists and numbers, paths as strings, records
     (`schema.Schema`) as the objects their files hold and every non-finite float as None."""
-    if isinstance(o, schema.Schema):  # a record as its writer built it: the keys it was given, in its order
+    if isinstance(o, schema.Schema):  # a record as its writer built it: the keys it was given, in declared order
         return json_ready(o.model_dump(by_alias=True, exclude_unset=True))
     if isinstance(o, dict):
         return {str(k): json_ready(v) for k, v in o.items()}
@@ -327,6 +327,9 @@ class SessionWriter:
 
 
 BitDepth = Annotated[int, Field(strict=True, ge=1, le=16)]
+Count = Annotated[int, Field(strict=True, ge=0)]
+Share = Annotated[float, Field(strict=True, ge=0, le=1)]  # of a whole
+ExposureMode = Literal["given", "auto", "hdr"]  # exposures as listed, one chosen, several chosen (HDR)
 
 
 class FrameEntry(schema.Schema):
@@ -351,15 +354,25 @@ class FrameEntry(schema.Schema):
 
 
 class ExposureRecord(schema.Schema):
-    """manifest.json `exposure`: the exposures captured (s, ascending: frames i·N .. i·N + N − 1
-    at exposures_s[i]), how they were chosen (`mode`) and why; other keys are figures."""
-
-    model_config = ConfigDict(extra="allow")
+    """manifest.json `exposure` (`scanner.exposure.plan_exposures` builds it): the exposures
+    captured (s, ascending: frames i·N .. i·N + N − 1 at exposures_s[i]), how they were chosen
+    (`mode`) and why; an auto or HDR plan adds the pre-capture's figures (a given plan has
+    none): the probe's exposure (s), the lit ROI pixels and the rectangle asked for (x, y,
+    width, height px; None: every lit pixel), the share of the ROI the plan is predicted to
+    cover, the best single exposure (s) and its share, the fringes' contrast (0..1) and the
+    probes taken (3 frames each)."""
 
     exposures_s: Annotated[list[schema.PositiveFloat], Field(min_length=1)]
-    mode: Literal["given", "auto", "hdr"]
+    mode: ExposureMode
     reason: str
-    probe_captures: Annotated[int, Field(strict=True, ge=0)] = 0  # auto exposure: probes taken (3 frames each)
+    probe_exposure_s: schema.PositiveFloat | None = None
+    roi_pixels: schema.PositiveInt | None = None
+    roi_box: Annotated[list[Count], Field(min_length=4, max_length=4)] | None = None
+    predicted_coverage: Share | None = None
+    best_single_exposure_s: schema.PositiveFloat | None = None
+    best_single_coverage: Share | None = None
+    fringe_contrast: Share | None = None
+    probe_captures: Count = 0
 
     @model_validator(mode="after")
     def _ascending(self) -> ExposureRecord:
@@ -379,18 +392,19 @@ class FileRecord(schema.Schema):
 
 
 class Provenance(schema.Schema):
-    """manifest.json `provenance`: the rig TOML and the calibration file (None: the rig names
-    none) the session was captured with, by path and content (`FileRecord`)."""
+    """manifest.json `provenance` (`scanner.pipeline.provenance` builds it): the rig TOML and
+    the calibration file (None: the rig names none) the session was captured with, by path
+    and content (`FileRecord`)."""
 
     rig: FileRecord
     calibration: FileRecord | None = None
 
 
-def file_record(path: Path, session_root: Path) -> dict[str, str]:
+def file_record(path: Path, session_root: Path) -> FileRecord:
     """`FileRecord` of `path` as seen from the session folder `session_root`."""
     real = Path(path).resolve()
-    return {"path": str(real), "relative": os.path.relpath(real, Path(session_root).resolve()),
-            "sha256": sha256(read_regular(real))}
+    return FileRecord(path=str(real), relative=os.path.relpath(real, Path(session_root).resolve()),
+                      sha256=sha256(read_regular(real)))
 
 
 def find_recorded(record: FileRecord, session_root: Path) -> tuple[Path | None, str]:
@@ -478,9 +492,6 @@ class ConventionFinding(schema.Schema):
     value: Any
     source: str
     evidence: str
-
-
-Count = Annotated[int, Field(strict=True, ge=0)]
 
 
 class ImportRecord(schema.Schema):

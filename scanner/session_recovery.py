@@ -22,6 +22,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from scanner import schema
 from scanner.errors import ScannerError, SessionError
 from scanner.file_checks import FileRefused, read_regular
 from scanner.patterns import PatternSet
@@ -30,6 +31,7 @@ from scanner.session import (
     ERROR,
     FRAME_LOG,
     MANIFEST,
+    ExposureRecord,
     FrameEntry,
     Session,
     confined_frame_path,
@@ -83,8 +85,8 @@ def capture_progress(root: Path) -> tuple[int, int | None]:
         entries = []
     try:
         record, _ = _capture_record(root, None, None)
-        needed = PatternSet.from_dict(record["patterns"], root / CAPTURE, "patterns").n_frames * len(
-            (record.get("exposure") or {}).get("exposures_s") or [0])
+        pattern_set = PatternSet.from_dict(record["patterns"], root / CAPTURE, "patterns")
+        needed = pattern_set.n_frames * _exposures(root, record)
     except ScannerError:
         needed = None
     return len(entries), needed
@@ -101,8 +103,7 @@ def recover_manifest(root: str | Path, *, rig: Any = None, patterns: PatternSet 
         record, assumed = _capture_record(root, rig, patterns)
         entries, note = logged_frames(root)
         pattern_set = PatternSet.from_dict(record["patterns"], root / CAPTURE, "patterns")
-        exposures = len((record.get("exposure") or {}).get("exposures_s") or [0])
-        needed = pattern_set.n_frames * exposures
+        needed = pattern_set.n_frames * _exposures(root, record)
         for k, e in enumerate(entries):
             if e["k"] != k:
                 raise SessionError(f"{root / FRAME_LOG}: frame {k} is missing (the log goes on with frame {e['k']})")
@@ -143,6 +144,13 @@ def _capture_record(root: Path, rig: Any, patterns: PatternSet | None) -> tuple[
                              devices={},
                              extra={"rig_config_path": str(rig.path.resolve())})
     return record, f"rig {rig.path} and patterns {patterns.family} given on the command line, not recorded"
+
+
+def _exposures(root: Path, record: dict[str, Any]) -> int:
+    """How many times the capture record's exposure plan (`ExposureRecord`) takes the pattern
+    set: once without a plan."""
+    plan = record.get("exposure")
+    return 1 if plan is None else len(schema.parse(ExposureRecord, plan, root / CAPTURE, "exposure").exposures_s)
 
 
 def _check_frame(root: Path, k: int, entry: dict[str, Any]) -> None:

@@ -90,7 +90,7 @@ def test_hdr_covers_the_dynamic_range_a_single_exposure_cannot():
     union = np.logical_or.reduce([covered_at(rate, t) for t in plan.exposures_s])
     single = max(covered_at(rate, t).mean() for t in candidate_exposures(1e-4, 0.1))
     assert union.mean() > 0.9 and union.mean() > single + 0.4  # four exposures at most (HDR_MAX_EXPOSURES)
-    assert plan.figures["predicted_coverage"] == pytest.approx(union.mean(), abs=0.02)
+    assert plan.predicted_coverage == pytest.approx(union.mean(), abs=0.02)
 
 
 def test_saturated_probe_is_repeated_shorter():
@@ -104,9 +104,9 @@ def test_saturated_probe_is_repeated_shorter():
 
     plan = plan_exposures(ExposureRequest("hdr"), capture_probe, 0.05, (1e-5, 0.2), FULL)
     assert taken[0] == 0.05 and len(taken) >= 2 and taken[1] == pytest.approx(0.05 / 8)
-    assert plan.figures["probe_captures"] == len(taken)
+    assert plan.probe_captures == len(taken)
     given = plan_exposures(ExposureRequest.parse("0.004,0.016"), capture_probe, 0.05, (1e-5, 0.2), FULL)
-    assert given.exposures_s == (0.004, 0.016) and len(taken) == plan.figures["probe_captures"]
+    assert given.exposures_s == [0.004, 0.016] and len(taken) == plan.probe_captures
     with pytest.raises(ConfigError, match="outside the camera's range"):
         plan_exposures(ExposureRequest.parse("0.5"), capture_probe, 0.05, (1e-5, 0.2), FULL)
 
@@ -270,6 +270,6 @@ def test_auto_exposure_capture_records_its_choice(tmp_path):
     record = session.manifest.exposure
     assert record is not None and record.mode == "auto" and len(record.exposures_s) == 1 and "cover" in record.reason
     assert {f.exposure_s for f in session.manifest.frames} == set(record.exposures_s)
-    assert session.manifest.recorded("exposure")["predicted_coverage"] > 0.9
+    assert record.predicted_coverage is not None and record.predicted_coverage > 0.9
     assert session.manifest.timings_s["exposure_plan"] > 0
 

@@ -131,6 +131,22 @@ def test_recover_refuses_a_capture_with_frames_missing(session: Path) -> None:
     assert not (session / MANIFEST).exists() and len(list((session / "frames").glob("*.png"))) == 12
 
 
+@pytest.mark.parametrize("plan, words", [
+    ("hdr", "capture.json, key 'exposure'"),
+    ({"exposures_s": [0.016, 0.004], "mode": "given", "reason": "r"}, "capture.json, key 'exposure'"),
+    ({"exposures_s": [0.004, 0.016], "mode": "given", "reason": "r"}, "holds 12 of the 24 frames"),
+])
+def test_recover_reads_the_capture_records_exposure_plan(session: Path, plan: object, words: str) -> None:
+    """The plan in capture.json is read as the manifest's `exposure` is: a malformed one is
+    refused in one line naming it; a two-exposure plan needs the pattern set twice."""
+    (session / MANIFEST).unlink()
+    record = json.loads((session / "capture.json").read_text())
+    (session / "capture.json").write_text(json.dumps({**record, "exposure": plan}))
+    proc = slscan("decode", "--recover", str(session))
+    assert proc.returncode == 2 and words in error_line(proc, "decode")
+    assert not (session / MANIFEST).exists()
+
+
 def test_recover_refuses_a_frame_changed_since_it_was_logged(session: Path) -> None:
     (session / MANIFEST).unlink()
     f = session / "frames" / "frame_005.png"

@@ -192,6 +192,13 @@ MALFORMED = {
                                                  "world_from_stage": np.eye(3).tolist()}) or m,
                        "key 'stage.world_from_stage[0]'"),
     "import hard_linked -1": (lambda m: m.update({"import": {"hard_linked": -1}}) or m, "key 'import."),
+    "exposure coverage 1.5": (lambda m: m.update(exposure={"exposures_s": [0.01], "mode": "auto", "reason": "r",
+                                                           "predicted_coverage": 1.5}) or m,
+                              "key 'exposure.predicted_coverage'"),
+    "exposure roi_box of 3": (lambda m: m.update(exposure={"exposures_s": [0.01], "mode": "hdr", "reason": "r",
+                                                           "roi_box": [0, 0, 10]}) or m, "key 'exposure.roi_box'"),
+    "exposure unknown key": (lambda m: m.update(exposure={"exposures_s": [0.01], "mode": "given", "reason": "r",
+                                                          "coverage": 0.9}) or m, "exposure.coverage"),
 }
 
 
