@@ -121,8 +121,9 @@ class Tracer:
             return
         gid = ans["geometry_ids"].numpy()[hit].astype(np.int64)
         prim = ans["primitive_ids"].numpy()[hit].astype(np.int64)
-        tri = self.triangles[self.tri_offset_arr[gid] + prim]
-        v0, v1, v2 = (self.vertices[tri[:, k]] for k in range(3))
+        # `take` copies the same rows as fancy indexing in about half the time
+        tri = self.triangles.take(self.tri_offset_arr[gid] + prim, axis=0)
+        v0, v1, v2 = self.vertices.take(tri, axis=0).transpose(1, 0, 2)
         nrm = np.cross(v1 - v0, v2 - v0)
         nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
         d = dirs[hit]
