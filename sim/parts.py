@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.scene import FIRST_OBJECT_ID, Scene, SceneObject
+from sim.scene import FIRST_OBJECT_ID, Scene, SceneObject, rows_at
 
 TABLE_SIZE_MM = (1000.0, 1000.0)
 
@@ -134,7 +134,7 @@ class Roughness:
         d = p - np.asarray(self.origin_mm, float)
         xy = np.stack([d @ u, d @ v], axis=1)
         amp = self.sq_mm * np.sqrt(2.0 / self.waves)
-        return amp * np.cos(xy @ self._k.T + self._phase).sum(axis=1)
+        return amp * np.cos(rows_at(xy, self._k.T) + self._phase).sum(axis=1)
 
     def direction(self, p: np.ndarray) -> np.ndarray:
         return np.broadcast_to(np.asarray(self.normal, float), p.shape)
@@ -152,7 +152,11 @@ def refine(vertices: np.ndarray, triangles: np.ndarray, max_edge_mm: float) -> t
     while True:
         e = np.stack([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]], axis=1)  # (T, 3, 2): edge k opposite vertex k+2
         key = np.sort(e.reshape(-1, 2), axis=1)
-        uniq, inv = np.unique(key, axis=0, return_inverse=True)
+        # pair (i, j), i <= j < n, as one int64 i n + j: a 1-D unique in the same order as
+        # the row-wise one (which sorts a structured view, several times slower)
+        n = len(v)
+        code, inv = np.unique(key[:, 0] * n + key[:, 1], return_inverse=True)
+        uniq = np.stack([code // n, code % n], axis=1)
         inv = inv.reshape(-1, 3)
         long = np.linalg.norm(v[uniq[:, 0]] - v[uniq[:, 1]], axis=1) > max_edge_mm
         if not long.any():

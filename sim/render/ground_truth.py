@@ -30,7 +30,7 @@ from scipy import ndimage
 from scanner.geometry import Pinhole, RigModel
 from sim.render.projection import project_points, projector_field
 from sim.render.raytrace import Tracer, camera_rays
-from sim.scene import BACKGROUND_ID, REFERENCE_PLANE_ID, Scene, SceneObject
+from sim.scene import BACKGROUND_ID, REFERENCE_PLANE_ID, Scene, SceneObject, rows_at
 
 OCCLUSION_TOL_MM = 1e-3  # a projector ray hitting something this much before the point is blocked
 
@@ -93,7 +93,7 @@ def texture_albedo(obj: SceneObject, cam_from_obj: np.ndarray, points: np.ndarra
     tex = obj.texture
     assert tex is not None and obj.size_mm is not None
     R, p = cam_from_obj[:3, :3], cam_from_obj[:3, 3]
-    local = (points - p) @ R
+    local = rows_at(points - p, R)
     w, h = obj.size_mm
     th, tw = tex.shape
     sx, sy = tw / w, th / h  # texels per mm
@@ -123,7 +123,7 @@ def projector_view(model: RigModel, tracer: Tracer, X: np.ndarray, normal: np.nd
     occluded = tp * dist < dist - OCCLUSION_TOL_MM
     cos_inc = -np.einsum("ij,ij->i", normal, dp) / dist
     P = model.proj_from_cam
-    Xp = X @ P[:3, :3].T + P[:3, 3]
+    Xp = rows_at(X, P[:3, :3].T) + P[:3, 3]
     lo, hi = projector_field(proj)
     with np.errstate(divide="ignore", invalid="ignore"):
         xy = Xp[:, :2] / Xp[:, 2:3]

@@ -15,7 +15,7 @@ from collections import OrderedDict
 import numpy as np
 
 from scanner.geometry import Pinhole
-from sim.scene import Scene, SceneObject
+from sim.scene import Scene, SceneObject, rows_at
 
 _RAY_CACHE: OrderedDict[tuple, np.ndarray] = OrderedDict()
 _RAY_LOCK = threading.Lock()
@@ -65,7 +65,7 @@ class Tracer:
             for oid, obj in meshes:
                 assert obj.vertices is not None and obj.triangles is not None  # a mesh object has both
                 T = cam_from_world @ obj.pose
-                v = obj.vertices @ T[:3, :3].T + T[:3, 3]
+                v = rows_at(obj.vertices, T[:3, :3].T) + T[:3, 3]
                 t = obj.triangles.astype(np.int64)
                 gid = self.rc.add_triangles(o3d.core.Tensor(v.astype(np.float32), o3d.core.float32, cpu),
                                             o3d.core.Tensor(t.astype(np.uint32), o3d.core.uint32, cpu))
@@ -121,8 +121,9 @@ class Tracer:
             return
         gid = ans["geometry_ids"].numpy()[hit].astype(np.int64)
         prim = ans["primitive_ids"].numpy()[hit].astype(np.int64)
-        tri = self.triangles[self.tri_offset_arr[gid] + prim]
-        v0, v1, v2 = (self.vertices[tri[:, k]] for k in range(3))
+        # `take` copies the same rows as fancy indexing in about half the time
+        tri = self.triangles.take(self.tri_offset_arr[gid] + prim, axis=0)
+        v0, v1, v2 = self.vertices.take(tri, axis=0).transpose(1, 0, 2)
         nrm = np.cross(v1 - v0, v2 - v0)
         nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
         d = dirs[hit]
@@ -167,8 +168,8 @@ def _hit_sphere(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: float, t_min: fl
 def _hit_plane(o: np.ndarray, d: np.ndarray, T: np.ndarray, size: tuple[float, float], t_min: float
                ) -> tuple[np.ndarray, np.ndarray]:
     R, p = T[:3, :3], T[:3, 3]
-    ol = R.T @ (o - p) if o.ndim == 1 else (o - p) @ R
-    dl = d @ R
+    ol = R.T @ (o - p) if o.ndim == 1 else rows_at(o - p, R)
+    dl = rows_at(d, R)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = -ol[..., 2] / dl[:, 2]
     x = ol[..., 0] + t * dl[:, 0]
@@ -181,8 +182,8 @@ def _hit_plane(o: np.ndarray, d: np.ndarray, T: np.ndarray, size: tuple[float, f
 def _hit_box(o: np.ndarray, d: np.ndarray, T: np.ndarray, size: tuple[float, float, float], t_min: float
              ) -> tuple[np.ndarray, np.ndarray]:
     R, p = T[:3, :3], T[:3, 3]
-    ol = R.T @ (o - p) if o.ndim == 1 else (o - p) @ R
-    dl = d @ R
+    ol = R.T @ (o - p) if o.ndim == 1 else rows_at(o - p, R)
+    dl = rows_at(d, R)
     h = np.asarray(size, float) / 2
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / dl
@@ -201,4 +202,4 @@ def _hit_box(o: np.ndarray, d: np.ndarray, T: np.ndarray, size: tuple[float, flo
     axis = np.where(t_near > t_min, lo.argmax(axis=1), hi.argmin(axis=1))
     nl = np.zeros_like(dl)
     nl[np.arange(len(d)), axis] = 1.0
-    return t, nl @ R.T
+    return t, rows_at(nl, R.T)

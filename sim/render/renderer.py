@@ -137,8 +137,9 @@ class Renderer:
 
     def mean_electrons(self, pattern: np.ndarray | None, exposure_s: float) -> np.ndarray:
         """Noise-free signal (H, W) float32 in electrons (before saturation)."""
-        scale = np.float32(exposure_s * self.sensor.flux_e_per_s)
-        return scale * (np.float32(self.sensor.ambient) + self.irradiance(pattern))
+        out = self.irradiance(pattern) + np.float32(self.sensor.ambient)
+        out *= np.float32(exposure_s * self.sensor.flux_e_per_s)  # in place: no second full-frame temporary
+        return out
 
     def mean_dn(self, pattern: np.ndarray | None, exposure_s: float, bit_depth: int) -> np.ndarray:
         """Noise-free signal (H, W) float64 in DN, neither quantised nor clipped."""

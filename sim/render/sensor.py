@@ -51,10 +51,13 @@ class SensorModel(CameraNoise):
         lam = np.maximum(mean_electrons, 0.0)
         e = rng.poisson(lam).astype(np.float32)
         if self.read_noise_e > 0:
-            e += rng.standard_normal(e.shape, dtype=np.float32) * np.float32(self.read_noise_e)
-        dn = np.rint(e * np.float32(1.0 / g))
-        np.clip(dn, 0, self.max_dn(bit_depth), out=dn)
-        return dn.astype(np.uint8 if bit_depth == 8 else np.uint16)
+            noise = rng.standard_normal(e.shape, dtype=np.float32)
+            noise *= np.float32(self.read_noise_e)
+            e += noise
+        e *= np.float32(1.0 / g)  # in place, as above: no full-frame temporaries
+        np.rint(e, out=e)
+        np.clip(e, 0, self.max_dn(bit_depth), out=e)
+        return e.astype(np.uint8 if bit_depth == 8 else np.uint16)
 
 
 def check_bits(bit_depth: int) -> None:
