@@ -57,7 +57,8 @@ plus each draw and of each draw alone are solved a batch at a time, in one LP ov
 candidate points per surface, every point then checked and the violators added (exact);
 the draws are filtered as one stack, the L-filter's mean taken from the form filter's
 transform. A cylinder's surfaces are each fitted once for both zones, by Levenberg-Marquardt
-with the radii's analytic derivatives, and its zone's LPs start from a few extreme points.
+with the radii's analytic derivatives, and its zone's LP solved by a dual simplex on its
+six-row bases (HiGHS only where that fails), each relinearisation from the last one's basis.
 """
 
 from __future__ import annotations
@@ -424,14 +425,17 @@ def cylindricity_mz(points: np.ndarray, origin: np.ndarray, axis: np.ndarray, ro
 def cylinder_mz_from(points: np.ndarray, origin: np.ndarray, axis: np.ndarray, *, rounds: int = 6) -> float:
     """`cylindricity_mz` from the axis (`origin`, unit `axis`) of the points' least-squares
     fit: an LP on the axis's four small-displacement parameters about the current axis
-    (`_cylinder_zone`), relinearised until the zone stops narrowing (at most `rounds`)."""
+    (`_cylinder_zone`), relinearised until the zone stops narrowing (at most `rounds`), each
+    round's LP started from the last one's optimal basis (the axis moves little, so it
+    mostly still is one)."""
     o, n = origin, axis
     width = np.inf
     at_axis = np.zeros(4)
+    basis = None
     for _ in range(rounds):
         u, v = _frame(n)
         radii = _AxisRadii(points - o, u, v, n)
-        x = _cylinder_zone(radii.radii(at_axis), radii.jacobian(at_axis))
+        x, basis = _cylinder_zone(radii.radii(at_axis), radii.jacobian(at_axis), basis)
         r = radii.radii(x)
         new = float(r.max() - r.min())
         if new >= width - 1e-9:
@@ -441,33 +445,120 @@ def cylinder_mz_from(points: np.ndarray, origin: np.ndarray, axis: np.ndarray, *
     return float(width)
 
 
-CYLINDER_CANDIDATES = 50  # extreme radii per side a cylinder zone's LP starts from
+CYLINDER_CANDIDATES = 50  # extreme radii per side a cylinder zone starts from
 CYLINDER_VIOLATORS = 50  # the worst points outside its zone added to it at a time
 CYLINDER_SLACK_MM = 1e-9  # a point this far outside the zone counts as inside
+CYLINDER_PIVOTS = 200  # dual simplex steps on a set of points before HiGHS takes over
+CYLINDER_BOX = 1e3  # |x_j| <= this: the bounds a zone's dual simplex starts from (`_box_basis`)
+DUAL_TOL = 1e-12  # a basis's dual prices (each side's sum to 1) this far below 0 still count as feasible
 
 
-def _cylinder_zone(r: np.ndarray, dr: np.ndarray) -> np.ndarray:
+def _cylinder_zone(r: np.ndarray, dr: np.ndarray, basis: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
     """The axis displacement x (4,) of the narrowest zone R <= r + x.dr <= R + w holding
-    every point (radii r (N,), their derivatives dr (4, N), a row per parameter): the LP
-    over the points with the most extreme radii, then the worst violators added and solved
-    again until none is left (each round adds one at least), which is exact (the zone of a
-    subset is never wider, and one holding every point is the zone of them all). A point
-    already in the LP is never a violator: one HiGHS leaves outside by its feasibility
-    tolerance (1e-7) would only repeat the LP. Small sets: an LP's cost grows with its
-    points, and a zone rests on six."""
+    every point (radii r (N,), their derivatives dr (4, N), a row per parameter), and the
+    zone's optimal basis (`_zone_rows`; None where HiGHS found the zone): the dual simplex
+    over every point from `basis` (a previous round's: mostly still optimal, or a few steps
+    from it), else the zone of the points with the most extreme radii, then the worst
+    violators added and solved again (`_held_zone`, from the last basis) until none is left
+    (each round adds one at least), which is exact (the zone of a subset is never wider,
+    and one holding every point is the zone of them all). A point already held is never a
+    violator: one HiGHS leaves outside by its feasibility tolerance (1e-7) would only
+    repeat the LP. Small sets: a step's cost grows with its points, and a zone rests on six."""
+    if basis is not None and (found := _dual_simplex(r, dr, basis)) is not None:
+        return found[0][:4], found[1]
     k = min(len(r), CYLINDER_CANDIDATES)
     active = np.zeros(len(r), bool)
     active[np.argpartition(r, k - 1)[:k]] = True
     active[np.argpartition(-r, k - 1)[:k]] = True
+    basis = None
     while True:
-        x, R, w = _cylinder_lp(r[active], dr[:, active].T)
+        x, R, w, basis = _held_zone(r, dr, np.flatnonzero(active), basis)
         rr = r + np.einsum("j,ji->i", x, dr)
         excess = np.maximum(R - rr, rr - R - w)
         excess[active] = -np.inf
         out = np.flatnonzero(excess > CYLINDER_SLACK_MM)
         if not out.size:
-            return x
-        active[out[np.argsort(-excess[out])[:CYLINDER_VIOLATORS]]] = True
+            return x, basis
+        if out.size > CYLINDER_VIOLATORS:
+            out = out[np.argpartition(-excess[out], CYLINDER_VIOLATORS - 1)[:CYLINDER_VIOLATORS]]
+        active[out] = True
+
+
+def _held_zone(r: np.ndarray, dr: np.ndarray, held: np.ndarray,
+               basis: np.ndarray | None) -> tuple[np.ndarray, float, float, np.ndarray | None]:
+    """(x, R, w) of the zone of the points `held` (sorted indices) and its optimal basis:
+    the dual simplex (`_dual_simplex`) from `basis` (the zone's of fewer of them, rows
+    numbered over all the N points: still dual feasible, its rows being the same), else
+    from the bounds on x (`_box_basis`); HiGHS should both fail (basis None)."""
+    m, n = len(held), len(r)
+    r_held, dr_held = r[held], dr[:, held]
+    found = None
+    if basis is not None:
+        found = _dual_simplex(r_held, dr_held, np.searchsorted(held, basis % n) + m * (basis >= n))
+    if found is None:
+        found = _dual_simplex(r_held, dr_held, _box_basis(r_held, dr_held))
+    if found is None:
+        return *_cylinder_lp(r_held, dr_held.T), None
+    y, rows = found
+    return y[:4], float(y[4]), float(y[5]), held[rows % m] + n * (rows >= m)
+
+
+def _zone_rows(r: np.ndarray, dr: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (A (M, 6), b (M,)) of the zone's LP A (x, R, w) <= b over the N points: row
+    i < N is point i's inner side R <= r + x.dr, row N + i its outer side r + x.dr <= R + w;
+    row 2N + 2j bounds x_j <= CYLINDER_BOX, row 2N + 2j + 1 -x_j <= CYLINDER_BOX."""
+    n = len(r)
+    bound = rows >= 2 * n
+    i, outer = rows % n, ((rows >= n) & ~bound).astype(float)
+    s = 2.0 * outer - 1.0
+    A = np.column_stack([s[:, None] * dr[:, i].T, -s, -outer])
+    b = -s * r[i]
+    j = rows[bound] - 2 * n
+    A[bound] = 0.0
+    A[np.flatnonzero(bound), j // 2] = 1.0 - 2.0 * (j % 2)
+    b[bound] = CYLINDER_BOX
+    return A, b
+
+
+def _box_basis(r: np.ndarray, dr: np.ndarray) -> np.ndarray:
+    """A dual feasible basis (`_zone_rows`) to start from without any LP: the inner side of
+    the lowest radius, the outer side of the highest, and the bound on each x_j pricing its
+    derivatives' difference away (dual prices 1, 1 and |dr_j(high) - dr_j(low)|)."""
+    low, high = int(np.argmin(r)), int(np.argmax(r))
+    return np.concatenate([[low, len(r) + high], 2 * len(r) + 2 * np.arange(4) + (dr[:, high] > dr[:, low])])
+
+
+def _dual_simplex(r: np.ndarray, dr: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The zone's LP (`_zone_rows`, min w) by the dual simplex from `basis` (6 rows): while
+    the basis's vertex leaves a point outside its zone (beyond CYLINDER_SLACK_MM), the worst
+    such row enters and the one whose dual price first falls to 0 leaves (the dual's
+    objective only grows). A basis of points' rows with dual prices >= 0 whose vertex holds
+    every point is optimal (the KKT conditions; the bounds, never entering, are only a
+    start): returns y = (x, R, w) (6,) and the basis there; None where `basis` is not dual
+    feasible, is singular, ends holding a bound, or CYLINDER_PIVOTS steps did not end."""
+    A, b = _zone_rows(r, dr, basis)
+    basis = basis.copy()
+    for _ in range(CYLINDER_PIVOTS):
+        try:
+            inverse = np.linalg.inv(A)
+        except np.linalg.LinAlgError:
+            return None
+        y, dual = inverse @ b, -inverse[5]  # the vertex; the prices of A^T dual = -(0, 0, 0, 0, 0, 1)
+        if dual.min() < -DUAL_TOL:
+            return None
+        rr = r + np.einsum("j,ji->i", y[:4], dr)
+        low, high = int(np.argmin(rr)), int(np.argmax(rr))
+        below, above = y[4] - rr[low], rr[high] - y[4] - y[5]
+        if max(below, above) <= CYLINDER_SLACK_MM:
+            return (y, basis) if basis.max() < 2 * len(r) else None
+        enter = low if below >= above else len(r) + high
+        row, bound = _zone_rows(r, dr, np.array([enter]))
+        step = inverse.T @ row[0]
+        if step.max() <= 0.0:
+            return None
+        leave = np.argmin(np.where(step > 0.0, dual / np.where(step > 0.0, step, 1.0), np.inf))
+        basis[leave], A[leave], b[leave] = enter, row[0], bound[0]
+    return None
 
 
 def _cylinder_lp(r: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, float, float]:
