@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import atexit
 import gc
+import os
 import sys
 import threading
 from collections.abc import Iterator
@@ -14,6 +15,19 @@ import pytest
 
 from scanner.geometry import RigModel
 from scanner.rig import RigConfig
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """In an xdist worker (`-n 2`: one per core), BLAS on one thread: the libraries loaded
+    already (numpy's) set so, those loaded later and the programs the tests start by the
+    environment. A second BLAS thread has no core of its own there and only spins."""
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        return
+    from scanner.native_threads import loaded_pools
+
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    for pool in loaded_pools():
+        pool.set_threads(1)
 
 
 @pytest.fixture(scope="session")

@@ -6,6 +6,7 @@ running (where its walk is safe)."""
 from __future__ import annotations
 
 import ast
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -19,7 +20,10 @@ ROUNDS = 250  # imports racing walks per run (each import a fresh dlopen of a 1.
 
 
 def _run(code: str, timeout: float = 120) -> str:
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+    """`code` run by a fresh interpreter, BLAS's thread count its own (not the test workers' 1: conftest)."""
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout, cwd=ROOT,
+                       env=env)
     assert p.returncode == 0, p.stderr[-2000:]
     return p.stdout
 
