@@ -90,6 +90,7 @@ def _recordings_released_after_the_module() -> Iterator[None]:
         rerun_bindings.flush_and_cleanup_orphaned_recordings()
 
 
+@pytest.hookimpl(optionalhook=True)  # without xdist (-p no:xdist) the hook is unknown
 def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
     """`--dist loadfile` with the longest tests sent out first, each alone (`scheduling`)."""
     if config.getoption("dist") != "loadfile":
