@@ -23,7 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.scene import FIRST_OBJECT_ID, Scene, SceneObject, rows_at
+from scanner.native_threads import native_threads
+from sim.scene import FIRST_OBJECT_ID, Scene, SceneObject
 
 TABLE_SIZE_MM = (1000.0, 1000.0)
 
@@ -134,7 +135,7 @@ class Roughness:
         d = p - np.asarray(self.origin_mm, float)
         xy = np.stack([d @ u, d @ v], axis=1)
         amp = self.sq_mm * np.sqrt(2.0 / self.waves)
-        return amp * np.cos(rows_at(xy, self._k.T) + self._phase).sum(axis=1)
+        return amp * np.cos(xy @ self._k.T + self._phase).sum(axis=1)
 
     def direction(self, p: np.ndarray) -> np.ndarray:
         return np.broadcast_to(np.asarray(self.normal, float), p.shape)
@@ -191,22 +192,24 @@ def deform(vertices: np.ndarray, triangles: np.ndarray, face: np.ndarray,
     """(vertices, triangles, face) of a per-face tessellation (vertices not shared between
     faces, e.g. `inspection.cad.Tessellation`) with `defects` imposed: faces with a
     planar defect are refined first, then every vertex of a face moves by the sum of its
-    defects' heights along their directions."""
+    defects' heights along their directions. BLAS runs on one thread inside, as for
+    `sim.render.compute_ground_truth` (the heights are thin products over every vertex)."""
     verts, tris, labels = [], [], []
     offset = 0
-    for f in np.unique(face):
-        fv, ft = _face_mesh(vertices, triangles, face, int(f))
-        mine = [d for d in defects if d.face == f]
-        edges = [d.max_edge_mm for d in mine if d.max_edge_mm is not None]
-        if edges:
-            fv, ft = refine(fv, ft, min(edges))
-        moved = fv.copy()
-        for d in mine:
-            moved += d.height(fv)[:, None] * d.direction(fv)
-        verts.append(moved)
-        tris.append(ft + offset)
-        labels.append(np.full(len(ft), f, np.int32))
-        offset += len(fv)
+    with native_threads(1):
+        for f in np.unique(face):
+            fv, ft = _face_mesh(vertices, triangles, face, int(f))
+            mine = [d for d in defects if d.face == f]
+            edges = [d.max_edge_mm for d in mine if d.max_edge_mm is not None]
+            if edges:
+                fv, ft = refine(fv, ft, min(edges))
+            moved = fv.copy()
+            for d in mine:
+                moved += d.height(fv)[:, None] * d.direction(fv)
+            verts.append(moved)
+            tris.append(ft + offset)
+            labels.append(np.full(len(ft), f, np.int32))
+            offset += len(fv)
     return np.concatenate(verts), np.concatenate(tris).astype(np.int32), np.concatenate(labels)
 
 

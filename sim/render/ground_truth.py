@@ -28,9 +28,10 @@ import numpy as np
 from scipy import ndimage
 
 from scanner.geometry import Pinhole, RigModel
+from scanner.native_threads import native_threads
 from sim.render.projection import project_points, projector_field
 from sim.render.raytrace import Tracer, camera_rays
-from sim.scene import BACKGROUND_ID, REFERENCE_PLANE_ID, Scene, SceneObject, rows_at
+from sim.scene import BACKGROUND_ID, REFERENCE_PLANE_ID, Scene, SceneObject
 
 OCCLUSION_TOL_MM = 1e-3  # a projector ray hitting something this much before the point is blocked
 
@@ -93,7 +94,7 @@ def texture_albedo(obj: SceneObject, cam_from_obj: np.ndarray, points: np.ndarra
     tex = obj.texture
     assert tex is not None and obj.size_mm is not None
     R, p = cam_from_obj[:3, :3], cam_from_obj[:3, 3]
-    local = rows_at(points - p, R)
+    local = (points - p) @ R
     w, h = obj.size_mm
     th, tw = tex.shape
     sx, sy = tw / w, th / h  # texels per mm
@@ -123,7 +124,7 @@ def projector_view(model: RigModel, tracer: Tracer, X: np.ndarray, normal: np.nd
     occluded = tp * dist < dist - OCCLUSION_TOL_MM
     cos_inc = -np.einsum("ij,ij->i", normal, dp) / dist
     P = model.proj_from_cam
-    Xp = rows_at(X, P[:3, :3].T) + P[:3, 3]
+    Xp = X @ P[:3, :3].T + P[:3, 3]
     lo, hi = projector_field(proj)
     with np.errstate(divide="ignore", invalid="ignore"):
         xy = Xp[:, :2] / Xp[:, 2:3]
@@ -140,28 +141,32 @@ def projector_view(model: RigModel, tracer: Tracer, X: np.ndarray, normal: np.nd
 
 def compute_ground_truth(model: RigModel, scene: Scene, texture_blur_px: float = 0.0) -> GroundTruth:
     """Ray-cast the scene from the camera and the projector (see the module docstring);
-    textures are blurred by `texture_blur_px` (camera pixels) before they are sampled."""
+    textures are blurred by `texture_blur_px` (camera pixels) before they are sampled.
+    BLAS runs on one thread inside (restored after; a process-wide limit): its products are
+    thin, (rays, 3) @ (3, 3), and OpenBLAS threads them badly on busy cores (1.3 M rows:
+    0.21 s on two threads against 0.02 s on one, load 4 on 2 cores)."""
     cam = model.camera
     H, W = cam.height, cam.width
     cam_from_world = np.linalg.inv(model.world_from_cam)
-    tracer = Tracer(scene, cam_from_world)
-    dirs = camera_rays(cam).reshape(-1, 3)
-    t, oid, nrm = tracer.first_hit(np.zeros(3), dirs)
-    hit = np.flatnonzero(np.isfinite(t))
-    X = dirs[hit] * t[hit, None]
-    nh = nrm[hit]
-    nh[np.einsum("ij,ij->i", nh, dirs[hit]) > 0] *= -1.0  # toward the camera
+    with native_threads(1):
+        tracer = Tracer(scene, cam_from_world)
+        dirs = camera_rays(cam).reshape(-1, 3)
+        t, oid, nrm = tracer.first_hit(np.zeros(3), dirs)
+        hit = np.flatnonzero(np.isfinite(t))
+        X = dirs[hit] * t[hit, None]
+        nh = nrm[hit]
+        nh[np.einsum("ij,ij->i", nh, dirs[hit]) > 0] *= -1.0  # toward the camera
 
-    uv, lit, occluded, cos_inc = projector_view(model, tracer, X, nh)
+        uv, lit, occluded, cos_inc = projector_view(model, tracer, X, nh)
 
-    albedo_of = np.zeros(max([REFERENCE_PLANE_ID, *scene.by_id()]) + 1)
-    for i, o in scene.by_id().items():
-        albedo_of[i] = o.albedo
-    albedo = albedo_of[oid[hit]]
-    for i, o in scene.by_id().items():
-        on = oid[hit] == i
-        if o.texture is not None and on.any():
-            albedo[on] *= texture_albedo(o, cam_from_world @ o.pose, X[on], cam, texture_blur_px)
+        albedo_of = np.zeros(max([REFERENCE_PLANE_ID, *scene.by_id()]) + 1)
+        for i, o in scene.by_id().items():
+            albedo_of[i] = o.albedo
+        albedo = albedo_of[oid[hit]]
+        for i, o in scene.by_id().items():
+            on = oid[hit] == i
+            if o.texture is not None and on.any():
+                albedo[on] *= texture_albedo(o, cam_from_world @ o.pose, X[on], cam, texture_blur_px)
 
     def full(shape_tail: tuple[int, ...], fill: float, values: np.ndarray, dtype: Any = np.float64) -> np.ndarray:
         a = np.full((H * W, *shape_tail), fill, dtype=dtype)

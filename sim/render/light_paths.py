@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scanner.native_threads import native_threads
 from sim.render.ground_truth import GroundTruth, projector_view
 from sim.render.raytrace import Tracer
 from sim.render.reflectance import material_maps, schlick_fresnel, surface_weight
@@ -91,8 +92,10 @@ def bounce_path(gt: GroundTruth, scene: Scene) -> LightPath:
 
 
 def light_paths(gt: GroundTruth, scene: Scene) -> list[LightPath]:
-    """The direct path, and the bounce path when the scene asks for interreflection."""
-    paths = [direct_path(gt, scene)]
-    if scene.interreflection:
-        paths.append(bounce_path(gt, scene))
+    """The direct path, and the bounce path when the scene asks for interreflection. BLAS
+    on one thread inside, as for `compute_ground_truth` (the bounce casts rays again)."""
+    with native_threads(1):
+        paths = [direct_path(gt, scene)]
+        if scene.interreflection:
+            paths.append(bounce_path(gt, scene))
     return paths

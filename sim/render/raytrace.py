@@ -15,7 +15,7 @@ from collections import OrderedDict
 import numpy as np
 
 from scanner.geometry import Pinhole
-from sim.scene import Scene, SceneObject, rows_at
+from sim.scene import Scene, SceneObject
 
 _RAY_CACHE: OrderedDict[tuple, np.ndarray] = OrderedDict()
 _RAY_LOCK = threading.Lock()
@@ -65,7 +65,7 @@ class Tracer:
             for oid, obj in meshes:
                 assert obj.vertices is not None and obj.triangles is not None  # a mesh object has both
                 T = cam_from_world @ obj.pose
-                v = rows_at(obj.vertices, T[:3, :3].T) + T[:3, 3]
+                v = obj.vertices @ T[:3, :3].T + T[:3, 3]
                 t = obj.triangles.astype(np.int64)
                 gid = self.rc.add_triangles(o3d.core.Tensor(v.astype(np.float32), o3d.core.float32, cpu),
                                             o3d.core.Tensor(t.astype(np.uint32), o3d.core.uint32, cpu))
@@ -168,8 +168,8 @@ def _hit_sphere(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: float, t_min: fl
 def _hit_plane(o: np.ndarray, d: np.ndarray, T: np.ndarray, size: tuple[float, float], t_min: float
                ) -> tuple[np.ndarray, np.ndarray]:
     R, p = T[:3, :3], T[:3, 3]
-    ol = R.T @ (o - p) if o.ndim == 1 else rows_at(o - p, R)
-    dl = rows_at(d, R)
+    ol = R.T @ (o - p) if o.ndim == 1 else (o - p) @ R
+    dl = d @ R
     with np.errstate(divide="ignore", invalid="ignore"):
         t = -ol[..., 2] / dl[:, 2]
     x = ol[..., 0] + t * dl[:, 0]
@@ -182,8 +182,8 @@ def _hit_plane(o: np.ndarray, d: np.ndarray, T: np.ndarray, size: tuple[float, f
 def _hit_box(o: np.ndarray, d: np.ndarray, T: np.ndarray, size: tuple[float, float, float], t_min: float
              ) -> tuple[np.ndarray, np.ndarray]:
     R, p = T[:3, :3], T[:3, 3]
-    ol = R.T @ (o - p) if o.ndim == 1 else rows_at(o - p, R)
-    dl = rows_at(d, R)
+    ol = R.T @ (o - p) if o.ndim == 1 else (o - p) @ R
+    dl = d @ R
     h = np.asarray(size, float) / 2
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / dl
@@ -202,4 +202,4 @@ def _hit_box(o: np.ndarray, d: np.ndarray, T: np.ndarray, size: tuple[float, flo
     axis = np.where(t_near > t_min, lo.argmax(axis=1), hi.argmin(axis=1))
     nl = np.zeros_like(dl)
     nl[np.arange(len(d)), axis] = 1.0
-    return t, rows_at(nl, R.T)
+    return t, nl @ R.T
