@@ -236,9 +236,11 @@ def _rig_for(k: int, bench: Bench, rigs: tuple[MeasuringRig, ...]) -> MeasuringR
 
 
 def _artefact_trial(bench: Bench, position: Position, artefacts: ArtefactSet, *, read: Callable[[Any], Estimate],
-                    truth: float, rng: np.random.Generator, rig: MeasuringRig, noise_scale: float) -> Trial:
-    """One scan of an artefact measured as `slscan verify` measures it (`evaluate`);
-    `read` takes the figure from its PositionResult."""
+                    truth: float, rng: np.random.Generator, rig: MeasuringRig,
+                    noise_scales: tuple[float, ...]) -> tuple[Trial, ...]:
+    """One scan of an artefact measured as `slscan verify` measures it (`evaluate`), once per
+    noise model scale of `noise_scales` (the scan rendered once); `read` takes the figure
+    from its PositionResult."""
     t0 = time.perf_counter()
     renderer = window_renderer(bench.model, artefact_objects(position, artefacts), bench.sensor,
                                bench.projector_blur_px)
@@ -248,17 +250,29 @@ def _artefact_trial(bench: Bench, position: Position, artefacts: ArtefactSet, *,
     measurement = replace(bench.measurement, calibration=rig.calibration)
     at = measurement.of_scan(decoded, used)
 
-    def uncertainties(pixels: np.ndarray) -> Any:
-        unc = at(pixels)
-        if noise_scale == 1.0:
-            return unc
-        assert unc.noise is not None, "the bench's measurement model has a noise model"
-        return replace(unc, noise=unc.noise.scaled(noise_scale))
+    def uncertainties(noise_scale: float) -> Callable[[np.ndarray], Any]:
+        def scaled(pixels: np.ndarray) -> Any:
+            unc = at(pixels)
+            if noise_scale == 1.0:
+                return unc
+            assert unc.noise is not None, "the bench's measurement model has a noise model"
+            return replace(unc, noise=unc.noise.scaled(noise_scale))
 
-    result = evaluate(position, ScanData(points, uncertainties), artefacts)
-    if result.error:
-        raise RuntimeError(f"trial at {position.pose[:3, 3].round(1).tolist()}: {result.error}")
-    return Trial(read(result), truth, time.perf_counter() - t0)
+        return scaled
+
+    estimates = []
+    for noise_scale in noise_scales:
+        result = evaluate(position, ScanData(points, uncertainties(noise_scale)), artefacts)
+        if result.error:
+            raise RuntimeError(f"trial at {position.pose[:3, 3].round(1).tolist()}: {result.error}")
+        estimates.append(read(result))
+    dt_s = (time.perf_counter() - t0) / len(noise_scales)
+    return tuple(Trial(e, truth, dt_s) for e in estimates)
+
+
+def _scaled_figures(figure: str, noise_scales: tuple[float, ...]) -> tuple[str, ...]:
+    """The figure's name for each noise model scale (1: the name itself)."""
+    return tuple(figure if s == 1.0 else f"{figure} (noise model x{s:.3g})" for s in noise_scales)
 
 
 def _inner_estimate(fields: dict[str, Any], name: str) -> Estimate:
@@ -267,36 +281,38 @@ def _inner_estimate(fields: dict[str, Any], name: str) -> Estimate:
 
 
 def sphere_radius(bench: Bench, artefacts: ArtefactSet, n: int, *, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (),
-                  noise_scale: float = 1.0, processes: int = 1,
-                  progress: Callable[[str], None] | None = None) -> CoverageResult:
+                  noise_scales: tuple[float, ...] = (1.0,), processes: int = 1,
+                  progress: Callable[[str], None] | None = None) -> tuple[CoverageResult, ...]:
     """Coverage of the sphere radius as `slscan verify` measures it (inner variant, with
-    its model U): the artefact set's sphere at random places."""
+    its model U): the artefact set's sphere at random places; one result per noise model
+    scale of `noise_scales`, from the same scans."""
     s = artefacts.sphere
     assert s is not None
     half = np.array(bench.acceptance.size_mm) / 2 - s.radius_mm - 2.0
     c0 = np.array(bench.acceptance.centre_mm)
 
-    def trial(k: int) -> tuple[Trial]:
+    def trial(k: int) -> tuple[Trial, ...]:
         rng = np.random.default_rng((seed, k))
         position = Position("sphere", k, pose_of(np.eye(3), c0 + rng.uniform(-half, half)), "")
-        return (_artefact_trial(bench, position, artefacts, read=lambda r: _inner_estimate(r.detail["inner"], "radius"),
-                                truth=s.radius_mm, rng=rng, rig=_rig_for(k, bench, rigs), noise_scale=noise_scale),)
+        return _artefact_trial(bench, position, artefacts, read=lambda r: _inner_estimate(r.detail["inner"], "radius"),
+                               truth=s.radius_mm, rng=rng, rig=_rig_for(k, bench, rigs), noise_scales=noise_scales)
 
-    return run_trials(("sphere radius",), trial, n, processes, progress)[0]
+    return run_trials(_scaled_figures("sphere radius", noise_scales), trial, n, processes, progress)
 
 
 def ball_bar_length(bench: Bench, artefacts: ArtefactSet, n: int, *, seed: int = 0, rigs: tuple[MeasuringRig, ...] = (),
-                    noise_scale: float = 1.0, processes: int = 1,
-                    progress: Callable[[str], None] | None = None) -> CoverageResult:
+                    noise_scales: tuple[float, ...] = (1.0,), processes: int = 1,
+                    progress: Callable[[str], None] | None = None) -> tuple[CoverageResult, ...]:
     """Coverage of the ball bar's centre distance as `slscan verify` measures it (inner
     variant, with its model U): random directions (kept inside the measuring volume)
-    through random places near its centre."""
+    through random places near its centre; one result per noise model scale of
+    `noise_scales`, from the same scans."""
     b = artefacts.ball_bar
     assert b is not None
     half = np.array(bench.acceptance.size_mm) / 2
     c0 = np.array(bench.acceptance.centre_mm)
 
-    def trial(k: int) -> tuple[Trial]:
+    def trial(k: int) -> tuple[Trial, ...]:
         rng = np.random.default_rng((seed, k))
         while True:  # a direction and a place whose spheres fit the volume and do not hide each other
             d = rng.normal(size=3)
@@ -308,11 +324,11 @@ def ball_bar_length(bench: Bench, artefacts: ArtefactSet, n: int, *, seed: int =
             if (room > 0).all() and lateral > 2.2 * b.radius_mm:
                 break
         position = Position("ball_bar", k, pose_of(R, c0 + rng.uniform(-room, room)), "")
-        return (_artefact_trial(bench, position, artefacts, read=lambda r: _inner_estimate(r.detail["inner"],
-                                                                                           "distance"),
-                                truth=b.length_mm, rng=rng, rig=_rig_for(k, bench, rigs), noise_scale=noise_scale),)
+        return _artefact_trial(bench, position, artefacts, read=lambda r: _inner_estimate(r.detail["inner"],
+                                                                                          "distance"),
+                               truth=b.length_mm, rng=rng, rig=_rig_for(k, bench, rigs), noise_scales=noise_scales)
 
-    return run_trials(("ball-bar length",), trial, n, processes, progress)[0]
+    return run_trials(_scaled_figures("ball-bar length", noise_scales), trial, n, processes, progress)
 
 
 # ------------------------------------------------------------------- flatness and Sq

@@ -1,14 +1,20 @@
 """Scenes the registration tests share: the demo part's STEP file, a plain block's (symmetric:
-its half turn fits as well), and simulated views of a model, placed or from a random start."""
+its half turn fits as well), and simulated views of a model, placed or from a random start;
+and one registration shared by the inspections of one cloud."""
 
 from __future__ import annotations
 
+import hashlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
+from inspection import inspect_scan
 from inspection.measured_cloud import ScanCloud, make_scan
 from inspection.sampling import sample_model
 from scanner.config import CONFIG_DIR
@@ -73,3 +79,30 @@ def write_ply(scan: Any, path: Path) -> Path:
     pc.normals = o3d.utility.Vector3dVector(scan.normals)
     o3d.io.write_point_cloud(str(path), pc)
     return path
+
+
+@contextmanager
+def shared_registrations() -> Iterator[None]:
+    """Inside, `inspection.inspect_scan.inspect` registers a part cloud once: its global
+    registration (no prior) is kept by its inputs (the part's points and normals, the
+    target's samples, the settings) and given again to an inspection of the same inputs,
+    e.g. `slscan inspect` of one session with other tolerances. The registration is
+    repeatable bit for bit (test_inspection_sim.py's four of one session: the same
+    transform, fitness, covariance and free motions; 5 s each)."""
+    register = inspect_scan.register_with_prior
+    done: dict[tuple[str, str], Any] = {}
+
+    def once(scan: ScanCloud, target: Any, prior: Any, settings: Any) -> Any:
+        if prior is not None:
+            return register(scan, target, prior, settings)
+        digest = hashlib.sha256()
+        for a in (scan.points, scan.normals, target.dense.points, target.dense.normals):
+            digest.update(np.ascontiguousarray(a).tobytes())
+        key = (digest.hexdigest(), repr(settings))
+        if key not in done:
+            done[key] = register(scan, target, prior, settings)
+        return done[key]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(inspect_scan, "register_with_prior", once)
+        yield

@@ -39,6 +39,14 @@ def demo():
     return model, ModelTarget.from_cad(model)
 
 
+@pytest.fixture(scope="module")
+def steep_view(demo) -> tuple[np.ndarray, ScanCloud]:
+    """The demo part tilted (0.5, 0.2) and its view (pose, view): three tests' scan, made once (1 s)."""
+    model, _ = demo
+    pose = lying_pose(model.tessellation.vertices, 0.35, 400.0, (0.5, 0.2))
+    return pose, virtual_view(model, pose)
+
+
 def test_shot_is_invariant_to_rigid_motion(demo) -> None:
     _model, target = demo
     pts, nrm = target.coarse.points, target.coarse.normals
@@ -238,12 +246,10 @@ def test_nothing_to_register_is_an_error() -> None:
         make_scan(np.random.default_rng(0).normal(size=(100, 3)) + [0, 0, 400], None, "tiny", np.zeros(3))
 
 
-def test_register_and_cad_commands(demo, tmp_path: Path, capsys) -> None:
+def test_register_and_cad_commands(steep_view, tmp_path: Path, capsys) -> None:
     import open3d as o3d
 
-    model, _ = demo
-    pose = lying_pose(model.tessellation.vertices, 0.35, 400.0, (0.5, 0.2))
-    view = virtual_view(model, pose)
+    pose, view = steep_view
     cloud = tmp_path / "view.ply"
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(view.points))
     pc.normals = o3d.utility.Vector3dVector(view.normals)
@@ -261,10 +267,9 @@ def test_register_and_cad_commands(demo, tmp_path: Path, capsys) -> None:
 
 
 @pytest.mark.parametrize("coarse", ["ransac", "ndt"])
-def test_alternative_coarse_methods(demo, coarse: str) -> None:
-    model, target = demo
-    pose = lying_pose(model.tessellation.vertices, 0.35, 400.0, (0.5, 0.2))
-    view = virtual_view(model, pose)
+def test_alternative_coarse_methods(demo, steep_view, coarse: str) -> None:
+    _, target = demo
+    pose, view = steep_view
     G = np.eye(4)
     G[:3, :3] = Rotation.random(random_state=5).as_matrix()
     G[:3, 3] = [120.0, -80.0, 40.0]

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import io
 import json
+from collections.abc import Iterator
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 from types import SimpleNamespace
@@ -24,7 +25,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from defective_part import defective_run, form_row, true_form
-from registration_support import STEP
+from registration_support import STEP, shared_registrations
 from scipy.spatial import cKDTree
 
 from inspection.cad import load_cad
@@ -38,6 +39,14 @@ from scanner.rig import RigConfig, open_rig
 from slscan import cli
 
 BOW, LOBES, TAPER, TEXTURE = 0.06, 0.02, 0.0015, 0.07  # mm; the texture is 5x the ~14 um depth noise
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_registration() -> Iterator[None]:
+    """The module's four inspections of one session (here and by `slscan inspect`) register
+    its cloud once (`shared_registrations`): 15 s of its 80 s."""
+    with shared_registrations():
+        yield
 
 
 @pytest.fixture(scope="module")

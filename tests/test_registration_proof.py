@@ -18,6 +18,7 @@ from registration_support import box_step, moved_view, write_ply
 from scipy.stats import binomtest
 
 from inspection.cad import load_cad
+from inspection.measured_cloud import ScanCloud
 from inspection.registration import ModelTarget, RegistrationSettings, pose_difference, register
 from inspection.registration.evidence import ResidualCorrelation, _expected_variance, pose_covariance, sign_test
 from sim.parts_demo import write_step
@@ -290,15 +291,22 @@ def test_random_part_is_proven(tmp_path: Path) -> None:
     assert reg.covariance is not None and all(u < 0.05 for u in reg.covariance.bounds())
 
 
-def test_top_view_leaves_the_turn_about_the_boss_free() -> None:
+@pytest.fixture(scope="module")
+def top_view() -> tuple[Any, ScanCloud, np.ndarray]:
+    """The demo part seen from straight above from a random start: (model, scan, the true
+    pose), two tests' view made once."""
+    from scanner.config import CONFIG_DIR
+
+    model = load_cad(CONFIG_DIR / "parts" / "demo_part.step")
+    return (model, *moved_view(model, (0.0, 0.0), seed=2))
+
+
+def test_top_view_leaves_the_turn_about_the_boss_free(top_view: tuple[Any, ScanCloud, np.ndarray]) -> None:
     """The demo part seen from straight above: its walls are grazing, so nothing the fit
     rests on fixes its turn about the boss's axis (the boss and its bore are coaxial). The
     pose is "free" (register would exit 1), the motion named: about z through the boss
     centre (20, 0) mm; it is not a symmetry of the part."""
-    from scanner.config import CONFIG_DIR
-
-    model = load_cad(CONFIG_DIR / "parts" / "demo_part.step")
-    scan, truth = moved_view(model, (0.0, 0.0), seed=2)
+    model, scan, truth = top_view
     reg = register(scan, ModelTarget.from_cad(model), RegistrationSettings(seed=3))
     assert reg.status == "free" and not reg.proven, reg.reason
     turn = [m for m in reg.free if m.kind == "rotation"]
@@ -317,7 +325,8 @@ def test_top_view_leaves_the_turn_about_the_boss_free() -> None:
     assert record["pose_u_note"].startswith("not bounded: rotation about the axis")
 
 
-def test_climb_refuses_a_pose_turned_about_the_boss_and_keeps_the_truth() -> None:
+def test_climb_refuses_a_pose_turned_about_the_boss_and_keeps_the_truth(
+        top_view: tuple[Any, ScanCloud, np.ndarray]) -> None:
     """The demo part seen from above, posed 1.4 deg off about its boss axis (what nothing the
     exact fit rests on fixes: pose-coverage campaign 635461529 scan 49) with a covariance
     stating 0.01 deg, loosest about the boss: the climb along the pose's principal motions finds a pose nearer the
@@ -328,10 +337,8 @@ def test_climb_refuses_a_pose_turned_about_the_boss_and_keeps_the_truth() -> Non
     from inspection.registration.alternatives import climb
     from inspection.registration.evidence import PoseCovariance
     from inspection.registration.rigid import transform_points
-    from scanner.config import CONFIG_DIR
 
-    model = load_cad(CONFIG_DIR / "parts" / "demo_part.step")
-    scan, truth = moved_view(model, (0.0, 0.0), seed=2)
+    model, scan, truth = top_view
     target = ModelTarget.from_cad(model)
     settings = RegistrationSettings(seed=3)
     turn = np.eye(4)

@@ -42,8 +42,7 @@ def test_ball_bar_coverage_quick_and_it_falls_with_an_underestimated_noise(bench
     """10 scans: most inside ±U; the same scans judged with a third of the noise model
     (and of the fringe error) mostly outside."""
     art = load_artefacts(DEFAULT_ARTEFACTS)
-    honest = ball_bar_length(bench, art, 10, seed=11)
-    low = ball_bar_length(bench, art, 10, seed=11, noise_scale=1.0 / 3.0)
+    honest, low = ball_bar_length(bench, art, 10, seed=11, noise_scales=(1.0, 1.0 / 3.0))
     print(honest.summary())
     print(low.summary())
     assert honest.fraction >= 0.8
@@ -54,8 +53,8 @@ def test_trials_do_not_depend_on_how_they_are_shared_out(bench: Bench) -> None:
     """Each trial draws from its own seed: two trials run in one process and over two
     forked workers give the same estimates, in order."""
     art = load_artefacts(DEFAULT_ARTEFACTS)
-    one = sphere_radius(bench, art, 2, seed=5)
-    two = sphere_radius(bench, art, 2, seed=5, processes=2)
+    one = sphere_radius(bench, art, 2, seed=5)[0]
+    two = sphere_radius(bench, art, 2, seed=5, processes=2)[0]
     assert [(t.estimate.value, t.estimate.u, t.truth) for t in one.trials] == \
         [(t.estimate.value, t.estimate.u, t.truth) for t in two.trials]
     assert one.trials[0].estimate.value != one.trials[1].estimate.value

@@ -116,9 +116,9 @@ def cmd_coverage(args: argparse.Namespace) -> int:
             results[f"{name}-flatness"], results[f"{name}-sq"] = rs.plate_figures(bench, args.scans, plate=plate,
                                                                                    **common)
     if "sphere-radius" in cases:
-        results["sphere-radius"] = rs.sphere_radius(bench, load_artefacts(DEFAULT_ARTEFACTS), args.scans, **common)
+        results["sphere-radius"] = rs.sphere_radius(bench, load_artefacts(DEFAULT_ARTEFACTS), args.scans, **common)[0]
     if "ball-bar" in cases:
-        results["ball-bar"] = rs.ball_bar_length(bench, load_artefacts(DEFAULT_ARTEFACTS), args.scans, **common)
+        results["ball-bar"] = rs.ball_bar_length(bench, load_artefacts(DEFAULT_ARTEFACTS), args.scans, **common)[0]
     demo = tuple(c for c in rs.DEMO_PART_FIGURES if c in cases)  # one inspection per scan serves both
     if demo:
         results.update(zip(demo, rs.demo_part_coverage(bench, args.scans, demo, **common)))
