@@ -17,7 +17,7 @@ from registration_support import STEP
 
 from inspection.cad import load_cad
 from inspection.measured_cloud import ScanCloud
-from inspection.registration.fine import _inside_outline, mixed_pixels
+from inspection.registration.fine import _inside_outline, mixed_pixels, mixing
 from inspection.registration.gauss_newton import gauss_newton, information
 from inspection.registration.settings import RegistrationSettings
 from inspection.registration.target import DEFAULT_TARGET_SETTINGS
@@ -65,7 +65,8 @@ def _scene(demo, *, offset_mm: float, wall: str, seed: int = 1) -> tuple[np.ndar
 
 def _mixed(demo, band: np.ndarray):
     model = demo[0]
-    return mixed_pixels(band, voxel_mm=model.diagonal_mm / DEFAULT_TARGET_SETTINGS.voxel_fraction, settings=SETTINGS)
+    voxel = model.diagonal_mm / DEFAULT_TARGET_SETTINGS.voxel_fraction
+    return mixed_pixels(band, np.where(band, 0.3, 0.0), voxel_mm=voxel, settings=SETTINGS)
 
 
 def test_biased_crease_points_turn_the_plain_fit_but_not_the_bounded_one(demo) -> None:
@@ -127,6 +128,30 @@ def test_a_crease_is_an_outline_though_no_step_in_depth() -> None:
     assert not creased[middle & near].any()
     assert creased[middle & ~near & (pixels[:, 0] > EDGE_MARGIN_PX) & (pixels[:, 0] < 39 - EDGE_MARGIN_PX)].all()
 
+
+def test_a_pixels_light_from_beyond_its_outline_is_the_blurred_edges() -> None:
+    """The same creased grid with its top rows left empty: each pixel's share of light from
+    beyond the nearest outline is the integral over its own square of a Gaussian-blurred
+    step (sigma the camera's blur) at the outline pixel's far edge: Phi(-(d + 1/2) / s),
+    s^2 = sigma^2 + 1/12, d its distance in pixels from the nearest outline pixel (the
+    crease's two columns, the image's last row and column, the row below the empty ones),
+    computed here from the grid's geometry alone."""
+    from scipy.stats import norm
+
+    rows, cols = np.mgrid[0:40, 0:40]
+    keep = rows.ravel() >= 5
+    pixels = np.stack([cols.ravel(), rows.ravel()], axis=1)[keep]
+    points = np.stack([0.1 * pixels[:, 0], 0.1 * pixels[:, 1], np.zeros(len(pixels))], axis=1)
+    normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    scan = ScanCloud(points, normals, "grid", np.array([2.0, 2.0, 100.0]), pixels, (40, 40))
+    face = (pixels[:, 0] >= 20).astype(int)
+    c, r = pixels[:, 0], pixels[:, 1]
+    d = np.minimum.reduce([np.minimum(np.abs(c - 19), np.abs(c - 20)), c, 39 - c, r - 5, 39 - r])  # along rows/cols
+    for sigma in (0.6, 1.0):
+        share = mixing(scan, face, max_incidence_deg=SETTINGS.max_incidence_deg, blur_px=sigma)
+        expected = norm.cdf(-(d + 0.5) / np.sqrt(sigma ** 2 + 1.0 / 12.0))
+        assert np.allclose(share, expected, rtol=1e-6, atol=1e-12)
+    assert np.allclose(mixing(ScanCloud(points, normals, "bare"), face, max_incidence_deg=75.0, blur_px=1.0), 0.0)
 
 
 def test_a_grazing_face_is_no_outline_along_itself() -> None:

@@ -20,11 +20,12 @@ seen near a depth step is all mixed pixels: on the simulated bench a 12 mm step 
 the demo part read 34 um inside the material, and, the wall being what fixed the part's
 turn, turned it 0.025 deg): with the CAD faces given, the residuals are split into each
 face's mean and the noise about it; the blocks above estimate the noise's part, and the
-faces' offsets are a random effect, independent across faces with one variance tau^2
-estimated from the faces' mean residuals (each shrunk by the share of its offset the fit
-absorbs, less its noise's part; `_face_offsets`: with a handful of faces the moment estimate
-is often 0, so tau^2 is taken as its mean over the estimate's own sampling uncertainty),
-added as tau^2 A^-1 (sum_f m_f m_f') A^-1, m_f the sum of the face's J_i. (A cluster
+faces' offsets are a random effect, independent across faces, of a variance that grows
+with the face's share of light from beyond its outline (`_face_offsets`), estimated from the
+faces' mean residuals (each shrunk by the share of its offset the fit absorbs, less its
+noise's part; with a handful of faces the moment estimate is often 0, so each variance is
+taken as its mean over the estimate's own sampling uncertainty), added as
+A^-1 (sum_f tau_f^2 m_f m_f') A^-1, m_f the sum of the face's J_i. (A cluster
 sandwich over the faces instead, the few clusters each scaled up for what the fit absorbs,
 was noisy and short of rank: on repeat scans of the demo part and a random part through
 `slscan register` its covariance was up to 99 times the independent one, refusing right
@@ -92,6 +93,7 @@ MIN_BLOCKS = 30  # fewer blocks than this estimate their covariance too poorly t
 SYMMETRY_ZERO = 1e-3  # a motion moving the whole model's surface by less than this share of itself: a symmetry
 U_DRAWS = 20000  # draws from the covariance for the 95 % bounds of the rotation angle and the displacement
 U_LEVEL = 0.95  # the coverage probability of every pose U stated (k = 2)
+MAX_SHARE = 0.5  # the most of a pixel's light the blur can bring from beyond an outline (`fine.mixing`)
 
 
 def jacobian(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -239,14 +241,14 @@ class PoseCovariance:
 
 def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, where: np.ndarray, unit: str,
                     faces: np.ndarray | None = None, *, in_fit: np.ndarray | None = None,
-                    edge: np.ndarray | None = None, offset_bound_mm: float | None = None) -> PoseCovariance:
+                    mixing: np.ndarray | None = None, offset_bound_mm: float | None = None) -> PoseCovariance:
     """The covariance of the pose fitted to model-frame `points` with their faces' `normals`
     and residuals `r` (mm); `where` the points' image positions (or scan positions) and `unit`
     their lag unit, for the residuals' correlation; `faces` the CAD face of each point, for
     offsets of a face's measurement as a whole (module docstring); `in_fit` the points the
     pose was fitted to (default all; the others' faces only inform the offsets' variance);
-    `edge` which points lie in an outline band (None: not known), for the two kinds of face
-    whose offsets' variances are estimated apart (`_face_offsets`); `offset_bound_mm` the
+    `mixing` each point's share of light from beyond its surface's outline (`fine.mixing`;
+    None: not known), which a face's offset grows with (`_face_offsets`); `offset_bound_mm` the
     largest offset a face's points could have and still be assigned to it (None: no bound)."""
     in_fit = np.ones(len(points), bool) if in_fit is None else in_fit
     centre = points[in_fit].mean(axis=0)
@@ -280,10 +282,11 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
             pair = _pair_correlation(psi[in_fit], label[in_fit])
             cov, corr, chosen = blocked, ResidualCorrelation(float(size), pair, unit), label
     if faces is not None:
-        edge_face = np.zeros(int(face.max()) + 1, bool)
-        if edge is not None:  # a face mostly in outline bands: the scanner's edge errors dominate its offset
-            edge_face = np.bincount(face, weights=edge, minlength=len(edge_face)) > 0.5 * n_f
-        cov = cov + _face_offsets(r, e, face, block=chosen, J=J_all, inside=inside, Ainv=Ainv, kind=edge_face,
+        loading = np.zeros((len(n_f), 2))
+        loading[:, 1] = 1.0
+        if mixing is not None:  # the blur's offset grows with the face's mean share of light from beyond
+            loading[:, 0] = (np.bincount(face, weights=mixing, minlength=len(n_f)) / n_f / MAX_SHARE) ** 2
+        cov = cov + _face_offsets(r, e, face, block=chosen, J=J_all, inside=inside, Ainv=Ainv, loading=loading,
                                   bound=offset_bound_mm)
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)
@@ -292,58 +295,44 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
 
 
 def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.ndarray, J: np.ndarray,
-                  inside: np.ndarray, Ainv: np.ndarray, kind: np.ndarray, bound: float | None) -> np.ndarray:
+                  inside: np.ndarray, Ainv: np.ndarray, loading: np.ndarray, bound: float | None) -> np.ndarray:
     """The pose covariance that offsets of whole faces give (module docstring): each face's
-    measurement off by b_f, independent across faces with one variance tau_k^2 per kind of
-    face (`kind[f]`), the pose moved by -A^-1 sum_g m_g b_g (m_g the sum of face g's rows of
-    `J` over the points the fit rests on, `inside`). The variances by moments from the faces'
-    mean residuals: rbar_f = sum_g R_fg b_g + noise, R = I - H, H_fg = jbar_f' A^-1 m_g (jbar_f
-    the mean row of face f over all its points: what of the offsets the fit moves into f's
-    mean), so E[rbar_f^2] = sum_g R_fg^2 tau_k(g)^2 + v_f, v_f the variance of f's mean noise
-    (from the sums over `block`s of the residuals `e` about the face's mean); summed over
-    each kind's faces, two equations in tau_0^2, tau_1^2, solved non-negative. With a handful
-    of faces per kind that moment estimate is exactly 0 on many scans whose faces are off
-    (the demo part, whose chamfer reads -1.5 um, bore wall +1.1 um and a boss ring -0.25 um
-    in every scan: tau^2 = 0 on 6 of the 9 scans of 100 farthest outside their U, translation
-    coverage 88 %), so each kind's tau^2 is then taken as its mean over the estimate's own
-    sampling uncertainty, the other kind held at its moment estimate (`_expected_variance`):
-    the offset variance a scan is expected to carry given what its faces show, not a bound on
-    it, at most the largest variance a kind's offsets could have (below). On 100 stored demo
-    scans (seed 635461529) coverage went from 92 / 86 / 77 % (rotation / translation /
-    ellipsoid) to 96 / 96 / 96 %, the median U 1.6 times wider; of the 87 poses proven
-    before, one 1.4 deg off is now refused, two right ones too (rotation U 0.057 and 0.084
-    deg against the 0.05 deg tolerance: false refusals), one refitted on more points; on
-    another 100 (seed 2104375800) from 98 / 87 / 79 % to 99 / 96 / 95 %, three of 84 right
-    poses refused. It is no 95 % bound on the pose:
-    where offsets dominate the error and few faces measure them (synthetic: 9 faces of
-    random orientation, 3 left over the fit's 6 motions) the 95 % ellipsoid holds 71 % (the
-    moment estimate's 61 %). A 95 % one-sided upper confidence limit per kind instead (the
-    same chi-square sum) stated every scan's tau^2 at a value its faces would undershoot 1
-    time in 20, several times the moment estimate with 2-4 faces: on 40 of those scans
-    translation and ellipsoid coverage 100 % (the target 95 +- 3 %), the median translation
-    U doubled, two right poses refused. Faces with
-    fewer than `MIN_BLOCKS` points are no measure of their offset (a few stray points) and
-    are left out of the sums, not of the effect; a kind with fewer than two faces to measure
-    its variance by takes the most its faces' offsets could be, uniform within `bound` (mm,
-    the distance within which points are assigned to a face: variance bound^2 / 3), when
-    one is given (a random part whose turn across y rested on four walls of 4-14 points,
-    112-235 um off as a whole, was held 0.149 mm off with a U of 0.046 mm). The bound refuses
-    some right poses (campaign 1273036622 part_016: its translation along y resting on one
-    wall, the only measurable face of its kind, U 0.18 mm, the pose 0.3 um off), but the two
-    estimates tried instead lied: one variance pooled over both kinds at its 95 % upper
-    confidence limit (Satterthwaite's degrees of freedom) gave the outline-band walls the
-    tops' few um, and campaign 905155588 part_011, its turn resting on walls of 4-14 fit
-    points each (none of 30 to measure the kind by; their faces' offsets 17-89 um), was
-    proven 0.059 deg off with a U of 0.030 deg, exit 0; each face split into its band and
-    its inner part, each part's offset apart, gave walls' inner parts the tops' variance,
-    yet they read 14-28 um off (part_016 and part_033 of campaign 1273036622, fitted on
-    their walls' inner points: 0.014 and 0.028 mm off with U 0.010 and 0.018 mm).
-    The kinds: faces measured mostly in
-    outline bands, where the camera's blur mixes a surface with what lies beyond (a 12 mm
-    step wall of the demo part read 34 um off as a whole), and the rest, whose offsets are a
-    few um: one variance for both gives the walls the tops' (a random part's one x-facing
-    wall in the fit, 58 um off, held its pose 0.081 mm off with a U of 0.03 mm) or the tops
-    the walls'."""
+    measurement off by b_f, independent across faces, of variance tau_f^2 = L_f0 theta_0 +
+    L_f1 theta_1 (`loading` (faces, 2): L_f0 = (s_f / `MAX_SHARE`)^2, s_f the face's mean
+    share of light from beyond its outline (`fine.mixing`), L_f1 = 1), the pose moved by
+    -A^-1 sum_g m_g b_g (m_g the sum of face g's rows of `J` over the points the fit rests on,
+    `inside`). The model: the camera's blur mixes a face's pixels near its outline with what
+    lies beyond (a 12 mm step wall of the demo part read 34 um off as a whole), so a face's
+    offset grows with its share; over 701 faces of 43 scans of random parts at the true pose
+    (campaign 1501789337, bench blur 0.6 px) the faces' mean residuals spread by 130-325 um
+    per unit share in each eighth of the shares from 0.002 to 0.23 (pooled: 235 um; the
+    faces' z against that model: RMS 0.96, 5.8 % beyond 1.96, 1.4 % beyond 3), while the
+    part's own faces, far from any outline, read a few um (theta_1). The two variances by
+    moments from the faces' mean residuals: rbar_f = sum_g R_fg b_g + noise, R = I - H,
+    H_fg = jbar_f' A^-1 m_g (jbar_f the mean row of face f over all its points: what of the
+    offsets the fit moves into f's mean), so E[rbar_f^2] = sum_g R_fg^2 tau_g^2 + v_f, v_f
+    the variance of f's mean noise (from the sums over `block`s of the residuals `e` about
+    the face's mean), weighted by each face's loadings and solved non-negative. With a
+    handful of faces that estimate is exactly 0 on many scans whose faces are off (the demo
+    part's chamfer reads -1.5 um, its bore wall +1.1 um in every scan: translation coverage
+    88 % on 100 scans), so each theta is taken as its mean over the estimate's own sampling
+    uncertainty, the other at its moment estimate (`_expected_variance`), the faces' squares
+    weighted by what each tells of it (the Gaussian likelihood's score, G_fc / s_f^4: a strip
+    of outline pixels 114 um off says nothing of the inner faces' few um), at most the
+    largest variance an offset could have: uniform within `bound` (mm, the distance within
+    which points are assigned to a face), bound^2 / 3 (a face all of whose light came half
+    from beyond). It is no 95 % bound on the pose: where offsets dominate the error and few
+    faces measure them (synthetic: 9 faces of random orientation) the 95 % ellipsoid holds
+    71 % (the moment estimate's 61 %). Faces with fewer than `MIN_BLOCKS` points are no
+    measure of their offset (a few stray points) and are left out of the sums, not of the
+    effect; with fewer than two faces to measure by, both variances take the bound.
+    Measured against the faces split into two kinds (mostly within `EDGE_MARGIN_PX` of a depth
+    step, and the rest, a variance each, the bound for a kind of one face): on 100 repeat
+    scans of the demo part (pose-coverage seed 1164172154) 91 poses proven instead of 83,
+    none beyond the pose tolerance, coverage of rotation / translation / ellipsoid 97.8 /
+    96.7 / 96.7 % (100 / 97.6 / 97.6 %); on the 43 scans of campaign 1501789337, 36 within
+    the tolerance instead of 38, none wrong (two right poses newly refused: a translation's
+    U 0.051 mm against the 0.05 mm tolerance, and an alternative 0.1 deg away)."""
     from scipy.optimize import nnls
 
     g = int(face.max()) + 1
@@ -358,21 +347,24 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.n
             / np.maximum(n, 1.0)[:, None])
     R2 = (np.eye(g) - jbar @ Ainv @ m.T) ** 2
     told = n >= MIN_BLOCKS
-    kinds = [kind, ~kind]
-    rows = [told & k for k in kinds]
-    lhs = np.array([np.sum(mean[x] ** 2 - v[x]) for x in rows])
-    coef = np.array([[np.sum(R2[np.ix_(x, k)]) for k in kinds] for x in rows])
+    L = loading[told]
+    G = R2[told] @ loading  # each told face's mean square per unit of each component
+    lhs = L.T @ (mean[told] ** 2 - v[told])
+    coef = L.T @ G
     tau2 = nnls(coef, np.maximum(lhs, 0.0))[0] if coef.any() else np.zeros(2)
-    if bound is not None:  # each kind's tau^2 as expected from its faces' means (`_expected_variance`)
+    if bound is not None:  # each component as expected from the faces' means (`_expected_variance`)
         cap = bound ** 2 / 3.0
-        tau2 = np.array([_expected_variance(mean[x] ** 2, R2[np.ix_(x, k)].sum(axis=1),
-                                            R2[np.ix_(x, o)].sum(axis=1) * tau2[1 - a] + v[x], cap=cap)
-                         if np.sum(x) >= 2 else cap for a, (x, k, o) in enumerate(zip(rows, kinds, kinds[::-1]))])
-    weight = np.where(kind, tau2[0], tau2[1])
+        s2 = np.maximum(G @ tau2 + v[told], 1e-30)  # each face's mean square expected at the moment estimates
+        score = G / s2[:, None] ** 2  # how much each face's square tells of each component (likelihood score)
+        tau2 = np.array([_expected_variance(mean[told] ** 2, G[:, c], G[:, 1 - c] * tau2[1 - c] + v[told],
+                                            weight=score[:, c], cap=cap)
+                         if told.sum() >= 2 else cap for c in (0, 1)])
+    weight = loading @ tau2
     return Ainv @ ((m * weight[:, None]).T @ m) @ Ainv
 
 
-def _expected_variance(squares: np.ndarray, gain: np.ndarray, rest: np.ndarray, *, cap: float) -> float:
+def _expected_variance(squares: np.ndarray, gain: np.ndarray, rest: np.ndarray, *, cap: float,
+                       weight: np.ndarray | None = None) -> float:
     """One kind's face-offset variance tau^2 (mm^2) as expected from its faces' means, at most
     `cap`: `squares` the faces' mean residuals squared, each of variance s_f^2 = `gain`_f
     tau^2 + `rest`_f (the other kind's offsets at their moment estimate and the face's mean
@@ -383,10 +375,11 @@ def _expected_variance(squares: np.ndarray, gain: np.ndarray, rest: np.ndarray, 
     from scipy.integrate import quad
     from scipy.stats import chi2
 
-    q = float(np.sum(squares))
+    w = np.ones(len(squares)) if weight is None else weight
+    q = float(np.sum(w * squares))
 
     def below(t: float) -> float:
-        s2 = gain * t + rest
+        s2 = w * (gain * t + rest)
         if np.sum(s2) <= 0.0:
             return 1.0  # Q is 0 for certain
         c = float(np.sum(s2 ** 2) / np.sum(s2))

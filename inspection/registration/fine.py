@@ -66,8 +66,9 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
         return T, FinalFit(sel[np.isfinite(d)])
     fit = None
     faces = assigned_faces(scan, target, T, settings)
-    mixed = mixed_pixels(blurred(scan, faces, max_incidence_deg=settings.max_incidence_deg), voxel_mm=v,
-                         settings=settings)
+    mixed = mixed_pixels(blurred(scan, faces, max_incidence_deg=settings.max_incidence_deg),
+                         mixing(scan, faces, max_incidence_deg=settings.max_incidence_deg,
+                                blur_px=settings.camera_blur_px), voxel_mm=v, settings=settings)
     for points in _from_best_seen(scan, settings.max_incidence_deg):  # the best measured first
         sel = rng.choice(points, size=min(settings.exact_points, len(points)), replace=False)  # any will do
         fit = refine_exact(scan, sel, T, target=target, faces=faces, settings=settings, offset_limit_mm=0.5 * v,
@@ -198,27 +199,39 @@ def blurred(scan: ScanCloud, face: np.ndarray, *, max_incidence_deg: float) -> n
     return ~_inside_outline(scan, max_incidence_deg, face=face)
 
 
-def mixed_pixels(band: np.ndarray, *, voxel_mm: float, settings: RegistrationSettings) -> MixedPixels:
+def mixed_pixels(band: np.ndarray, share: np.ndarray, *, voxel_mm: float,
+                 settings: RegistrationSettings) -> MixedPixels:
     """The exact fit's blurred-pixel model (`gauss_newton.MixedPixels`) for the scan points
     `band` flags (`blurred`): each face's band points off by a common offset uniform within
     the assignment bound (`ASSIGN_VOXELS` voxels of `voxel_mm`: a point farther off is not
-    assigned), tau^2 = bound^2 / 3; steps bounded to the pose tolerance of `settings`."""
+    assigned), tau^2 = bound^2 / 3; steps bounded to the pose tolerance of `settings`;
+    `share` each point's light from beyond its outline (`mixing`)."""
     return MixedPixels(band, (ASSIGN_VOXELS * voxel_mm) ** 2 / 3.0, settings.pose_tolerance_deg,
-                       settings.pose_tolerance_mm)
+                       settings.pose_tolerance_mm, share)
 
 
 def _inside_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarray | None = None) -> np.ndarray:
     """Which points of an organised scan lie at least `EDGE_MARGIN_PX` inside the outline
-    of their surface (`well_seen`): neighbours further apart than the image's median step
-    at `max_incidence_deg` are a depth step. With `face` (one CAD face id per point, -1
-    none), a crease between two faces counts as outline too, and two neighbours on one face
-    are no step however far apart: that gap is the face's slope, seen near grazing
-    (`blurred`; such points read their face to a few um at the true pose, where points
-    within the margin of a crease read tens)."""
+    of their surface (`well_seen`, `_off_outline`)."""
     import cv2
 
     from inspection.acceptance import EDGE_MARGIN_PX
 
+    assert scan.pixels is not None
+    kernel = np.ones((2 * EDGE_MARGIN_PX + 1,) * 2, np.uint8)
+    surface = _off_outline(scan, max_incidence_deg, face=face)
+    inner = cv2.erode(surface.view(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    return inner[scan.pixels[:, 1], scan.pixels[:, 0]]
+
+
+def _off_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarray | None = None) -> np.ndarray:
+    """The image (H, W) bool of an organised scan's points that are not on an outline of
+    their surface: neighbours further apart than the image's median step at
+    `max_incidence_deg` are a depth step, both pixels on it. With `face` (one CAD face id per
+    point, -1 none), a crease between two faces counts as outline too, and two neighbours on
+    one face are no step however far apart: that gap is the face's slope, seen near grazing
+    (`blurred`; such points read their face to a few um at the true pose, where points
+    within the margin of a crease read tens)."""
     assert scan.pixels is not None and scan.image_shape is not None
     col, row = scan.pixels[:, 0], scan.pixels[:, 1]
     grid = np.full(scan.image_shape + (3,), np.nan)
@@ -242,9 +255,31 @@ def _inside_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarr
     surface[1:] &= ~jump0
     surface[:, :-1] &= ~jump1
     surface[:, 1:] &= ~jump1
-    kernel = np.ones((2 * EDGE_MARGIN_PX + 1,) * 2, np.uint8)
-    inner = cv2.erode(surface.view(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-    return inner[row, col]
+    return surface
+
+
+def mixing(scan: ScanCloud, face: np.ndarray, *, max_incidence_deg: float, blur_px: float) -> np.ndarray:
+    """The share of each point's light (0 to 1/2) that comes from beyond its surface's
+    outline (a depth step or a crease, as `blurred` finds them with `face`): a pixel whose
+    centre lies d + 1/2 px from the outline (d the distance in pixels from the nearest outline
+    pixel, 0 on it) sees the far side through the camera's blur, a Gaussian of sigma
+    `blur_px`, integrated over its own square (variance 1/12 px^2): Phi(-(d + 1/2) / s),
+    s^2 = `blur_px`^2 + 1/12. A face's offset as a whole grows with its points' mean share
+    (`evidence._face_offsets`). Zeros for a bare cloud (no image to tell outlines by)."""
+    import cv2
+    from scipy.special import ndtr
+
+    if scan.pixels is None or scan.image_shape is None:
+        return np.zeros(len(scan))
+    col, row = scan.pixels[:, 0], scan.pixels[:, 1]
+    present = np.zeros(scan.image_shape, bool)
+    present[row, col] = True
+    surface = _off_outline(scan, max_incidence_deg, face=face)
+    whole = cv2.erode(present.view(np.uint8), np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8),
+                      borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    outline = present & ~(surface & whole)  # on a step or crease, or beside a pixel with no point
+    d = cv2.distanceTransform((~outline).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[row, col]
+    return ndtr(-(d + 0.5) / np.sqrt(blur_px ** 2 + 1.0 / 12.0))
 
 
 def refine_exact(scan: ScanCloud, sel: np.ndarray, T: np.ndarray, *, target: ModelTarget, faces: np.ndarray,
@@ -313,9 +348,9 @@ def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fin
         normal = target.dense.normals[j]
         r = np.einsum("ij,ij->i", q - target.dense.points[j], normal)
     if scan.pixels is not None:
-        edge = None if scan.image_shape is None else ~_inside_outline(scan, max_incidence_deg)[index]
+        share = None if fit.mixed is None else fit.mixed.mixing[index]
         cov = pose_covariance(q, normal, r, scan.pixels[index].astype(np.float64), "px", face, in_fit=in_fit,
-                              edge=edge, offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm)
+                              mixing=share, offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm)
     else:
         where = scan.points[index]
         spacing = point_spacing(scan.points[fit.index], len(scan))

@@ -45,16 +45,19 @@ class MixedPixels:
     points (an offset uniform within the assignment bound B has B^2/3; a larger tau^2
     refuses more poses as free, a smaller one lets band points turn the pose again);
     `tolerance_deg` / `tolerance_mm` the pose tolerance a direction's standard deviation
-    must be within (rotations at the points' RMS radius) for the fit to step along it."""
+    must be within (rotations at the points' RMS radius) for the fit to step along it;
+    `mixing` (N,) the share of each point's light from beyond its surface's outline
+    (`fine.mixing`), for the pose covariance's face offsets."""
 
     band: np.ndarray
     offset_variance_mm2: float
     tolerance_deg: float
     tolerance_mm: float
+    mixing: np.ndarray
 
     def subset(self, keep: np.ndarray) -> MixedPixels:
         """The model for the points `keep` (a mask or indices) of these."""
-        return replace(self, band=self.band[keep])
+        return replace(self, band=self.band[keep], mixing=self.mixing[keep])
 
 
 @dataclass(frozen=True)

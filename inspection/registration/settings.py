@@ -88,6 +88,12 @@ class RegistrationSettings:
     # fine step: points seen more obliquely than this are left out (deg): grazing views
     # measure a surface worst (mixed pixels, widest footprint)
     max_incidence_deg: float = 75.0
+    # the camera's blur (Gaussian sigma, px): the share of a pixel's light from beyond an
+    # outline (`fine.mixing`), which a face's offset as a whole grows with. The rig's
+    # [camera.sensor] blur_sigma_px where the scan's rig is known; else 1 px is assumed, a
+    # camera focused on the part (wider than the simulated bench's 0.6 px, which states the
+    # faces' offsets conservatively: module docstring of `evidence`)
+    camera_blur_px: float = 1.0
     # points in the exact-distance (Gauss-Newton) refinement (points): any point will do,
     # so this bounds its cost (each step projects every point onto its face)
     exact_points: int = 40000
@@ -115,8 +121,9 @@ class RegistrationSettings:
             raise ValueError(f"descriptors must be a non-empty subset of {DESCRIPTORS}, got {self.descriptors}")
         _check_positive(self, ("hypotheses", "verify", "min_fitness", "max_normal_deg", "max_points", "prescored",
                                "explored", "explore_prescore_stride", "explore_top", "max_incidence_deg",
-                               "exact_points", "face_bias_sigma", "offset_noise_ratio", "big_face_fraction",
-                               "pose_tolerance_deg", "pose_tolerance_mm", "false_accept", "eval_points"))
+                               "camera_blur_px", "exact_points", "face_bias_sigma", "offset_noise_ratio",
+                               "big_face_fraction", "pose_tolerance_deg", "pose_tolerance_mm", "false_accept",
+                               "eval_points"))
         if not self.spheres or any(m <= 0 for m in self.spheres):
             raise ValueError(f"RegistrationSettings.spheres must be positive sphere counts, got {self.spheres}")
         if self.ambiguity_margin < 0 or not 0 <= self.tangential_weight < 1:

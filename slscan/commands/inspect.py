@@ -158,7 +158,9 @@ def _register(args: argparse.Namespace, json_out: dict[str, Any] | None = None) 
     from inspection.measured_cloud import isolate_part, load_source
     from inspection.registration import RegistrationSettings, register
 
-    settings = RegistrationSettings(descriptors=tuple(args.descriptors.split(",")), coarse=args.coarse, seed=args.seed)
+    blur = {} if args.camera_blur_px is None else {"camera_blur_px": args.camera_blur_px}
+    settings = RegistrationSettings(descriptors=tuple(args.descriptors.split(",")), coarse=args.coarse, seed=args.seed,
+                                    **blur)
     if not _is_model(args.target):
         return _register_views(args, settings, json_out)
     from inspection.registration import ModelTarget
@@ -172,7 +174,8 @@ def _register(args: argparse.Namespace, json_out: dict[str, Any] | None = None) 
             scan = isolate_part(scan, target.diagonal_mm)
         reg = register(scan, target, settings)
     if json_out is not None:
-        json_out.update(registration_record(reg))
+        json_out.update(registration_record(reg), camera_blur_px=settings.camera_blur_px,
+                        camera_blur="given" if blur else "assumed")
         return registration_exit(reg)
     if not reg.proven:
         print(f"{args.source}: not registered: {reg.reason}", file=sys.stderr)
@@ -184,7 +187,8 @@ def _register(args: argparse.Namespace, json_out: dict[str, Any] | None = None) 
     print(f"fitness {reg.fitness:.4f} (points within {reg.inlier_mm:.3g} mm), RMSE {reg.rmse_mm:.4f} mm, "
           f"{reg.method}, {reg.timings_s.get('total', 0):.2f} s"
           + (f"; pose U {u[0]:.4f} deg, {u[1]:.4f} mm (95 %)" if u else "")
-          + "".join(f"; free: {m.describe()}" for m in reg.free))
+          + "".join(f"; free: {m.describe()}" for m in reg.free)
+          + ("" if blur else f"; camera blur {settings.camera_blur_px:g} px assumed"))
     return registration_exit(reg)
 
 
@@ -430,6 +434,9 @@ def register(sub: Any) -> None:
     r.add_argument("--descriptors", default="fpfh,shot", help="fpfh, shot or fpfh,shot (multivariate)")
     r.add_argument("--no-isolate", action="store_true", help="keep every source point (no table removal)")
     r.add_argument("--seed", type=int, default=0, help="random seed of the coarse search (default 0)")
+    r.add_argument("--camera-blur-px", type=float, metavar="SIGMA",
+                   help="the camera's blur (Gaussian sigma, px), for how far a face's points near its outline may "
+                        "read off (default: 1 px, assumed)")
     r.add_argument("--overlap", type=float, metavar="SHARE", help="cloud targets: the share of SOURCE the target "
                                                                    "also saw (default: estimated)")
     r.add_argument("--json", action="store_true", help="print {status, transform (null unless proven), fitness, "
