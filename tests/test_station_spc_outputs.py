@@ -193,6 +193,38 @@ def test_the_chart_has_whole_part_numbers_and_its_legend_apart() -> None:
     assert "no limits: 7 values, limits need 25" in fig._suptitle.get_text()
 
 
+def test_a_chart_is_drawn_again_only_when_what_it_shows_or_its_file_changed(tmp_path: Path) -> None:
+    """The report after a cycle that changed no chart keeps the PNG files; a chart whose
+    values changed, or whose file someone replaced, is drawn again."""
+    import dataclasses
+
+    from slscan.station.charts import write_charts
+    from slscan.station.quality import ChartPoint, RunningStats, characteristic_stats
+
+    program = load_program(PROGRAM)
+    program = dataclasses.replace(program, characteristics=program.characteristics[:2])
+    x = np.random.default_rng(7).normal(0.012, 0.003, 6)
+
+    def stats(n: int) -> RunningStats:
+        per = [characteristic_stats(c, [ChartPoint(k + 1, f"S{k}", T0, float(v), "pass") for k, v in enumerate(x[:n])])
+               for c in program.characteristics]
+        return RunningStats(n, n, 0, 0, tuple(per))
+
+    def stamps() -> list[tuple[int, int]]:
+        return [(p.stat().st_ino, p.stat().st_mtime_ns) for p in files.values()]
+
+    files = write_charts(tmp_path, program, stats(5))
+    first = stamps()
+    assert write_charts(tmp_path, program, stats(5)) == files and stamps() == first
+    replaced = files[program.characteristics[1].name]
+    replaced.write_bytes(b"not a chart")
+    write_charts(tmp_path, program, stats(5))
+    assert stamps()[0] == first[0] and replaced.read_bytes().startswith(b"\x89PNG")
+    kept = stamps()
+    write_charts(tmp_path, program, stats(6))
+    assert all(a != b for a, b in zip(stamps(), kept))
+
+
 def test_exclusions_are_recorded_with_who_and_when_and_applied_later(tmp_path: Path, capsys) -> None:
     """`--exclude ID=REASON --by NAME` is stored in the results database (reason, who, when),
     listed by `--exclusions`, applied by every later export and report without being given

@@ -23,6 +23,7 @@ timeline (the result id as the sequence number), beside its tolerance:
 
 from __future__ import annotations
 
+import hashlib
 import os
 import uuid
 from collections.abc import Sequence
@@ -41,6 +42,7 @@ from slscan.station.results import ResultRow, ValueRecord
 
 FIGURE_IN = (11.0, 5.4)  # width, height in inches; at DPI: 1100 x 540 px
 DPI = 100
+PNG_FAST = {"compress_level": 3}  # zlib level 3: the same pixels, a 5 % larger file, encoded in half the time of 6
 _BLUE, _RED, _GREY, _ORANGE, _GREEN, _PURPLE = "#1f5fa8", "#c01818", "#8a8a8a", "#e07b00", "#1a7a1a", "#7b2fbf"
 
 
@@ -188,16 +190,49 @@ def draw_chart(c: Characteristic, s: CharacteristicStats) -> Any:
     return fig
 
 
+def _write_png(fig: Any, path: Path) -> None:
+    """The figure as a PNG file with the pixels `savefig` gives, for about 10 % less: the
+    constrained layout done, then one draw (`savefig` draws twice with a layout engine,
+    the first time only to lay out), encoded at `PNG_FAST`."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.image import imsave
+
+    canvas = FigureCanvasAgg(fig)
+    fig.get_layout_engine().execute(fig)
+    fig.set_layout_engine("none")
+    canvas.draw()
+    imsave(path, canvas.buffer_rgba(), format="png", dpi=fig.dpi, pil_kwargs=PNG_FAST)
+
+
+def _stamp(path: Path) -> tuple[int, int, int] | None:
+    """The file's inode, size and modification time (ns); None when it is not there."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return None
+    return st.st_ino, st.st_size, st.st_mtime_ns
+
+
+# chart file -> (digest of the characteristic and statistics it shows, its stamp) as this process wrote it
+_DRAWN: dict[Path, tuple[bytes, tuple[int, int, int] | None]] = {}
+
+
 def write_charts(folder: Path, program: PartProgram, stats: RunningStats) -> dict[str, Path]:
     """One PNG per characteristic in `folder` (each written atomically; names made safe);
-    returns name -> file."""
+    returns name -> file. A file this process wrote from the same characteristic and
+    statistics, and nobody replaced since, is kept, not drawn again (about 0.3 s a chart):
+    the station rewrites the report after every stored cycle, also after one that changes
+    no chart (aborted), and `--auto` once more after its last cycle."""
     folder.mkdir(parents=True, exist_ok=True)
     out = {}
     for c, s in zip(program.characteristics, stats.characteristics):
         path = child(folder, c.name, ".png")
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
-        draw_chart(c, s).savefig(tmp, format="png")
-        tmp.replace(path)
+        digest = hashlib.sha256(repr((c, s)).encode()).digest()
+        if _DRAWN.get(path) != (digest, _stamp(path)):
+            tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+            _write_png(draw_chart(c, s), tmp)
+            tmp.replace(path)
+            _DRAWN[path] = digest, _stamp(path)
         out[c.name] = path
     return out
 
