@@ -94,6 +94,27 @@ def test_biased_crease_points_turn_the_plain_fit_but_not_the_bounded_one(demo) -
     assert np.hypot(*(through - BOSS)[:2]) < 0.5
 
 
+def test_band_points_far_from_their_outline_bound_the_turn(demo) -> None:
+    """The same three crease points, read right, with a share of light from beyond of 9e-5
+    (2 px from an outline at a blur of 0.6 px): their face's offset variance, B^2/3 times
+    (share / 0.5)^2, is below what the turn's tolerance needs, so they bound it as plain
+    points do (3 points 20 mm from the axis, noise 10 um: sd 0.017 deg against 0.05), and the
+    bounded fit's turn is the plain fit's; at a share of 0.3 (on the outline) they do not."""
+    from inspection.segmentation import project_to_faces
+
+    model = demo[0]
+    p, face, band = _scene(demo, offset_mm=0.0, wall="crease only")
+    _, _, n, r = project_to_faces(model, p, face)
+    voxel = model.diagonal_mm / DEFAULT_TARGET_SETTINGS.voxel_fraction
+    for share, free in ((9e-5, 0), (0.3, 1)):
+        mixed = mixed_pixels(band, np.where(band, share, 0.0), voxel_mm=voxel, settings=SETTINGS)
+        info = information(p, n, r, face, mixed)
+        assert info.directions(mixed.tolerance_deg, mixed.tolerance_mm)[1].shape[1] == free
+    far = mixed_pixels(band, np.where(band, 9e-5, 0.0), voxel_mm=voxel, settings=SETTINGS)
+    assert _turn(gauss_newton(p, face, np.eye(4), model, 10, mixed=far)) == pytest.approx(
+        _turn(gauss_newton(p, face, np.eye(4), model, 10)), abs=1e-9)
+
+
 def test_unbiased_crease_with_the_wall_seen_costs_no_precision(demo) -> None:
     """The wall well seen bounds the turn: the bounded fit takes the same steps as the plain
     one (the model leaves every direction bounded, so it costs nothing), and its turn is

@@ -14,9 +14,10 @@ as fully informative (leverage 1 where it alone has a lever arm): on top-down vi
 demo part one to four crease pixels 50-130 um off their face were all that fixed the turn
 about the boss axis, and the fit turned the part until they read 0 (stored pose-coverage
 scan 635461529/88: 0.19 deg; scan 49: 1.41 deg). So the band points of each face share one
-unknown offset b_f of variance tau^2, taken out of the information (its Schur complement):
-A = H - sum_f m_f m_f' / (sum_(i in band f) w_i + sigma^2 / tau^2), m_f = sum_(i in band f)
-w_i J_i; a lone band point then counts with variance sigma^2 + tau^2, while many band points
+unknown offset b_f of variance tau_f^2 (growing with their share of light from beyond:
+`MixedPixels`), taken out of the information (its Schur complement):
+A = H - sum_f m_f m_f' / (sum_(i in band f) w_i + sigma^2 / tau_f^2), m_f = sum_(i in band f)
+w_i J_i; a lone band point then counts with variance sigma^2 + tau_f^2, while many band points
 on one face still fix what their face's shape fixes. A step is taken only along the
 eigen-directions of A whose standard deviation sigma / sqrt(eigenvalue) is within the pose
 tolerance; along the others the pose stays where the previous stage put it, and
@@ -31,7 +32,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from inspection.cad import CadModel
-from inspection.registration.evidence import huber_weights, jacobian, residual_scale
+from inspection.registration.evidence import MAX_SHARE, huber_weights, jacobian, residual_scale
 from inspection.registration.point_to_plane import point_to_plane_step
 from inspection.registration.rigid import transform_points, twist_matrix
 from inspection.segmentation import project_to_faces
@@ -42,8 +43,11 @@ class MixedPixels:
     """The exact fit's model of blurred points (module docstring): `band` (N,) bool, which
     of the fit's points lie within the blur of an outline (`fine.blurred`);
     `offset_variance_mm2` tau^2 (mm^2), the variance of the common offset of one face's band
-    points (an offset uniform within the assignment bound B has B^2/3; a larger tau^2
-    refuses more poses as free, a smaller one lets band points turn the pose again);
+    points were half their light from beyond the outline (an offset uniform within the
+    assignment bound B has B^2/3; a larger tau^2 refuses more poses as free, a smaller one
+    lets band points turn the pose again); a face's band whose points' mean share of light
+    from beyond is s has (s / `MAX_SHARE`)^2 of it, as the faces' offsets grow
+    (`evidence._face_offsets`);
     `tolerance_deg` / `tolerance_mm` the pose tolerance a direction's standard deviation
     must be within (rotations at the points' RMS radius) for the fit to step along it;
     `mixing` (N,) the share of each point's light from beyond its surface's outline
@@ -97,8 +101,8 @@ def information(q: np.ndarray, normal: np.ndarray, r: np.ndarray, face: np.ndarr
                 mixed: MixedPixels) -> Information:
     """The exact fit's `Information` at model-frame points `q` (N, 3) with their faces'
     `normal`s and residuals `r` (mm), Huber-weighted as `gauss_newton` weighs them; each
-    face's band points (`mixed`) sharing one offset of variance tau^2 (one rank-one update
-    per face)."""
+    face's band points (`mixed`) sharing one offset of variance tau^2 scaled by their mean
+    share of light from beyond (one rank-one update per face)."""
     sigma = max(residual_scale(r), 1e-6)
     w = huber_weights(r, sigma)
     centre = q.mean(axis=0)
@@ -113,7 +117,9 @@ def information(q: np.ndarray, normal: np.ndarray, r: np.ndarray, face: np.ndarr
         _, group = np.unique(face[band], return_inverse=True)
         group = group.ravel()
         m = np.stack([np.bincount(group, weights=col) for col in wJ[band].T], axis=1)  # (faces, 6)
-        denom = np.bincount(group, weights=w[band]) + sigma ** 2 / mixed.offset_variance_mm2
+        share = np.bincount(group, weights=mixed.mixing[band]) / np.bincount(group)
+        tau2 = np.maximum(mixed.offset_variance_mm2 * (share / MAX_SHARE) ** 2, 1e-30)
+        denom = np.bincount(group, weights=w[band]) + sigma ** 2 / tau2
         A -= (m / denom[:, None]).T @ m
     return Information(centre, radius, S, H, wJ.T @ r, A, sigma)
 
