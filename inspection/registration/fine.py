@@ -202,10 +202,11 @@ def blurred(scan: ScanCloud, face: np.ndarray, *, max_incidence_deg: float) -> n
 def mixed_pixels(band: np.ndarray, share: np.ndarray, *, voxel_mm: float,
                  settings: RegistrationSettings) -> MixedPixels:
     """The exact fit's blurred-pixel model (`gauss_newton.MixedPixels`) for the scan points
-    `band` flags (`blurred`): each face's band points off by a common offset uniform within
+    `band` flags (`blurred`): each face's band points off by a common offset, uniform within
     the assignment bound (`ASSIGN_VOXELS` voxels of `voxel_mm`: a point farther off is not
-    assigned), tau^2 = bound^2 / 3; steps bounded to the pose tolerance of `settings`;
-    `share` each point's light from beyond its outline (`mixing`)."""
+    assigned) for a band half of whose light came from beyond, tau^2 = bound^2 / 3, scaled
+    by the band's mean `share` of light from beyond (`mixing`); steps bounded to the pose
+    tolerance of `settings`."""
     return MixedPixels(band, (ASSIGN_VOXELS * voxel_mm) ** 2 / 3.0, settings.pose_tolerance_deg,
                        settings.pose_tolerance_mm, share)
 
