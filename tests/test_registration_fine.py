@@ -17,7 +17,7 @@ from registration_support import STEP
 
 from inspection.cad import load_cad
 from inspection.measured_cloud import ScanCloud
-from inspection.registration.fine import _inside_outline, mixed_pixels, mixing
+from inspection.registration.fine import _inside_outline, mixed_pixels, mixing, off_outline
 from inspection.registration.gauss_newton import gauss_newton, information
 from inspection.registration.settings import RegistrationSettings
 from inspection.registration.target import DEFAULT_TARGET_SETTINGS
@@ -169,10 +169,11 @@ def test_a_pixels_light_from_beyond_its_outline_is_the_blurred_edges() -> None:
     c, r = pixels[:, 0], pixels[:, 1]
     d = np.minimum.reduce([np.minimum(np.abs(c - 19), np.abs(c - 20)), c, 39 - c, r - 5, 39 - r])  # along rows/cols
     for sigma in (0.6, 1.0):
-        share = mixing(scan, face, max_incidence_deg=SETTINGS.max_incidence_deg, blur_px=sigma)
+        share = mixing(scan, off_outline(scan, SETTINGS.max_incidence_deg, face=face), blur_px=sigma)
         expected = norm.cdf(-(d + 0.5) / np.sqrt(sigma ** 2 + 1.0 / 12.0))
         assert np.allclose(share, expected, rtol=1e-6, atol=1e-12)
-    assert np.allclose(mixing(ScanCloud(points, normals, "bare"), face, max_incidence_deg=75.0, blur_px=1.0), 0.0)
+    bare = ScanCloud(points, normals, "bare")
+    assert off_outline(bare, 75.0, face=face) is None and np.allclose(mixing(bare, None, blur_px=1.0), 0.0)
 
 
 def test_a_grazing_face_is_no_outline_along_itself() -> None:

@@ -365,11 +365,12 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.n
 
 def _expected_variance(squares: np.ndarray, gain: np.ndarray, rest: np.ndarray, *, cap: float,
                        weight: np.ndarray | None = None) -> float:
-    """One kind's face-offset variance tau^2 (mm^2) as expected from its faces' means, at most
-    `cap`: `squares` the faces' mean residuals squared, each of variance s_f^2 = `gain`_f
-    tau^2 + `rest`_f (the other kind's offsets at their moment estimate and the face's mean
-    noise); their sum Q, a weighted sum of chi-square(1) terms, taken as c chi-square(nu)
-    (Satterthwaite: c = sum s^4 / sum s^2, nu = (sum s^2)^2 / sum s^4), F(t) = P(Q <= the
+    """One component of the face offsets' variance, tau^2 (mm^2), as expected from the faces'
+    means, at most `cap`: `squares` the faces' mean residuals squared, each of variance
+    s_f^2 = `gain`_f tau^2 + `rest`_f (the other component at its moment estimate and the
+    face's mean noise); their sum Q weighted by `weight` (default 1 each), a weighted sum of
+    chi-square(1) terms, taken as c chi-square(nu) (Satterthwaite on the weighted terms
+    a_f = weight_f s_f^2: c = sum a^2 / sum a, nu = (sum a)^2 / sum a^2), F(t) = P(Q <= the
     observed Q | tau^2 = t); tau^2's confidence distribution puts P(tau^2 > t) = F(t), so its
     mean, capped, is the integral of F from 0 to `cap`."""
     from scipy.integrate import quad

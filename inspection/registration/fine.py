@@ -66,9 +66,9 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
         return T, FinalFit(sel[np.isfinite(d)])
     fit = None
     faces = assigned_faces(scan, target, T, settings)
-    mixed = mixed_pixels(blurred(scan, faces, max_incidence_deg=settings.max_incidence_deg),
-                         mixing(scan, faces, max_incidence_deg=settings.max_incidence_deg,
-                                blur_px=settings.camera_blur_px), voxel_mm=v, settings=settings)
+    surface = off_outline(scan, settings.max_incidence_deg, face=faces)  # one outline for the band and the shares
+    mixed = mixed_pixels(blurred(scan, surface), mixing(scan, surface, blur_px=settings.camera_blur_px), voxel_mm=v,
+                         settings=settings)
     for points in _from_best_seen(scan, settings.max_incidence_deg):  # the best measured first
         sel = rng.choice(points, size=min(settings.exact_points, len(points)), replace=False)  # any will do
         fit = refine_exact(scan, sel, T, target=target, faces=faces, settings=settings, offset_limit_mm=0.5 * v,
@@ -187,16 +187,16 @@ def assigned_faces(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings
     return np.where(seg.assigned, seg.face, -1)
 
 
-def blurred(scan: ScanCloud, face: np.ndarray, *, max_incidence_deg: float) -> np.ndarray:
+def blurred(scan: ScanCloud, surface: np.ndarray | None) -> np.ndarray:
     """Which points of the scan (bool per point) the camera's blur mixes with another
-    surface: within `EDGE_MARGIN_PX` of their surface's outline in the image, a depth step
-    (`_inside_outline` at `max_incidence_deg`) or a crease, two neighbouring pixels on
-    different CAD faces (`face`, one per point, -1 none: `assigned_faces`). A convex crease
-    is no step in depth, yet its pixels read a mix of both faces (on top-down views of the
-    demo part 50-130 um off their face). None for a bare cloud (no image to tell it by)."""
-    if scan.pixels is None or scan.image_shape is None:
+    surface: within `EDGE_MARGIN_PX` of their surface's outline in the image (`surface`,
+    `off_outline` with the points' CAD faces: a depth step or a crease, two neighbouring
+    pixels on different faces). A convex crease is no step in depth, yet its pixels read a
+    mix of both faces (on top-down views of the demo part 50-130 um off their face). None
+    for a bare cloud (no image to tell it by)."""
+    if surface is None:
         return np.zeros(len(scan), bool)
-    return ~_inside_outline(scan, max_incidence_deg, face=face)
+    return ~_inner(scan, surface)
 
 
 def mixed_pixels(band: np.ndarray, share: np.ndarray, *, voxel_mm: float,
@@ -213,27 +213,35 @@ def mixed_pixels(band: np.ndarray, share: np.ndarray, *, voxel_mm: float,
 
 def _inside_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarray | None = None) -> np.ndarray:
     """Which points of an organised scan lie at least `EDGE_MARGIN_PX` inside the outline
-    of their surface (`well_seen`, `_off_outline`)."""
+    of their surface (`well_seen`, `off_outline`)."""
+    surface = off_outline(scan, max_incidence_deg, face=face)
+    assert surface is not None
+    return _inner(scan, surface)
+
+
+def _inner(scan: ScanCloud, surface: np.ndarray) -> np.ndarray:
+    """Which points of an organised scan lie at least `EDGE_MARGIN_PX` inside `surface`
+    (`off_outline`)."""
     import cv2
 
     from inspection.acceptance import EDGE_MARGIN_PX
 
     assert scan.pixels is not None
     kernel = np.ones((2 * EDGE_MARGIN_PX + 1,) * 2, np.uint8)
-    surface = _off_outline(scan, max_incidence_deg, face=face)
     inner = cv2.erode(surface.view(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
     return inner[scan.pixels[:, 1], scan.pixels[:, 0]]
 
 
-def _off_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarray | None = None) -> np.ndarray:
+def off_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarray | None = None) -> np.ndarray | None:
     """The image (H, W) bool of an organised scan's points that are not on an outline of
-    their surface: neighbours further apart than the image's median step at
+    their surface (None for a bare cloud): neighbours further apart than the image's median step at
     `max_incidence_deg` are a depth step, both pixels on it. With `face` (one CAD face id per
     point, -1 none), a crease between two faces counts as outline too, and two neighbours on
     one face are no step however far apart: that gap is the face's slope, seen near grazing
     (`blurred`; such points read their face to a few um at the true pose, where points
     within the margin of a crease read tens)."""
-    assert scan.pixels is not None and scan.image_shape is not None
+    if scan.pixels is None or scan.image_shape is None:
+        return None
     col, row = scan.pixels[:, 0], scan.pixels[:, 1]
     grid = np.full(scan.image_shape + (3,), np.nan)
     grid[row, col] = scan.points
@@ -259,9 +267,9 @@ def _off_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarray 
     return surface
 
 
-def mixing(scan: ScanCloud, face: np.ndarray, *, max_incidence_deg: float, blur_px: float) -> np.ndarray:
+def mixing(scan: ScanCloud, surface: np.ndarray | None, *, blur_px: float) -> np.ndarray:
     """The share of each point's light (0 to 1/2) that comes from beyond its surface's
-    outline (a depth step or a crease, as `blurred` finds them with `face`): a pixel whose
+    outline (`surface`, `off_outline`: a depth step or a crease, as for `blurred`): a pixel whose
     centre lies d + 1/2 px from the outline (d the distance in pixels from the nearest outline
     pixel, 0 on it) sees the far side through the camera's blur, a Gaussian of sigma
     `blur_px`, integrated over its own square (variance 1/12 px^2): Phi(-(d + 1/2) / s),
@@ -270,12 +278,12 @@ def mixing(scan: ScanCloud, face: np.ndarray, *, max_incidence_deg: float, blur_
     import cv2
     from scipy.special import ndtr
 
-    if scan.pixels is None or scan.image_shape is None:
+    if surface is None:
         return np.zeros(len(scan))
+    assert scan.pixels is not None
     col, row = scan.pixels[:, 0], scan.pixels[:, 1]
-    present = np.zeros(scan.image_shape, bool)
+    present = np.zeros(surface.shape, bool)
     present[row, col] = True
-    surface = _off_outline(scan, max_incidence_deg, face=face)
     whole = cv2.erode(present.view(np.uint8), np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8),
                       borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
     outline = present & ~(surface & whole)  # on a step or crease, or beside a pixel with no point
