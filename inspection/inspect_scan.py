@@ -156,7 +156,7 @@ def _inspect(scan: ScanCloud, model: CadModel, tolerances: Tolerances | None, *,
         form = measure_face(face, part.points[sel], None if unc is None else unc.subset(sel), R=R, points=q[sel],
                             deviation=seg.deviation_mm[sel], uv=seg.uv[sel], normals=seg.normal[sel],
                             settings=settings.form, pose=pose)
-        form = pose.added_to(form, q[sel], seg.normal[sel])
+        form = pose.added_to(form, q[sel], seg.normal[sel], face=face.index)
         return _face_row(face, form, tolerances, rule)
 
     def report_of(done: dict[int, FaceRow]) -> InspectionReport:

@@ -196,6 +196,35 @@ class FreeMotion:
 
 
 @dataclass(frozen=True)
+class FaceOffsets:
+    """The faces' part of a pose covariance, per CAD face the covariance knows (`faces` (F,),
+    CAD ids): `follow` (F, 6) the pose's correction (omega rad, t mm about the centre) per mm
+    that the face's measurement is off as a whole, S A^-1 m_f (`_face_offsets`), so a face of
+    mean Jacobian row j keeps 1 - j . follow_f of its own offset; `offset_variance` (F,) tau_f^2
+    and `noise_variance` (F,) the variance of the face's mean noise (mm^2). The covariance holds
+    sum_f follow_f follow_f' tau_f^2; a face's own deviation carries its offset and the
+    pose's error less the part of both the fit took from that face (`own_variance`)."""
+
+    faces: np.ndarray
+    follow: np.ndarray
+    offset_variance: np.ndarray
+    noise_variance: np.ndarray
+
+    def own_variance(self, face: int, j: np.ndarray) -> float:
+        """What face `face`'s mean deviation's variance (mm^2) differs by from j C j (j its
+        points' mean Jacobian row, C the pose covariance) and its own noise: its offset
+        tau_f^2, less twice the covariance of its offset and noise with the pose's error along
+        j, which the fit took from this face: tau_f^2 - 2 (j . follow_f)(tau_f^2 + v_f).
+        0 for a face the covariance does not know (neither fitted nor told apart)."""
+        at = np.flatnonzero(self.faces == face)
+        if len(at) == 0:
+            return 0.0
+        k = at[0]
+        return float(self.offset_variance[k]
+                     - 2.0 * (j @ self.follow[k]) * (self.offset_variance[k] + self.noise_variance[k]))
+
+
+@dataclass(frozen=True)
 class PoseCovariance:
     """The pose's covariance (6, 6: a small rotation (rad) about `centre` and a translation
     (mm) of the scan in the model frame) from the final fit (module docstring): `sigma_mm`
@@ -205,7 +234,8 @@ class PoseCovariance:
     motions the fit has no information on at all (a ring's turn about its axis), whose
     variance `covariance` leaves at 0, and those only blurred pixels inform, which the fit
     does not step along (`fine.fit_covariance`; `covariance` keeps their variance), the
-    last `blurred` rows of `unbounded`."""
+    last `blurred` rows of `unbounded`; `offsets` the faces' part, per face (None without
+    the points' faces)."""
 
     covariance: np.ndarray
     centre: np.ndarray
@@ -216,6 +246,7 @@ class PoseCovariance:
     radius_mm: float
     unbounded: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     blurred: int = 0
+    offsets: FaceOffsets | None = None
 
     def bounds(self) -> tuple[float, float]:
         """(rotation angle deg, displacement of the centre mm) that the pose's error stays
@@ -272,7 +303,7 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
     psi = np.clip(e, -k, k)
     score = J * psi[:, None]
     indep = Ainv @ (score.T @ score) @ Ainv
-    cov, corr, chosen = indep, ResidualCorrelation(0.0, 0.0, unit), np.arange(len(r))
+    cov, corr, chosen, offsets = indep, ResidualCorrelation(0.0, 0.0, unit), np.arange(len(r)), None
     for size in BLOCKS:
         label = _blocks(where, size)
         blocked = _clustered(score, label, Ainv)
@@ -286,17 +317,23 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
         loading[:, 1] = 1.0
         if mixing is not None:  # the blur's offset grows with the face's mean share of light from beyond
             loading[:, 0] = (np.bincount(face, weights=mixing, minlength=len(n_f)) / n_f / MAX_SHARE) ** 2
-        cov = cov + _face_offsets(r, e, face, block=chosen, J=J_all, inside=inside, Ainv=Ainv, loading=loading,
-                                  bound=offset_bound_mm)
+        tau2, m, noise = _face_offsets(r, e, face, block=chosen, J=J_all, inside=inside, Ainv=Ainv,
+                                       loading=loading, bound=offset_bound_mm)
+        follow = Ainv @ m.T  # (6, faces): the fit's correction per unit offset of each face
+        cov = cov + (follow * tau2) @ follow.T
+        offsets = FaceOffsets(np.unique(faces), (S @ follow).T, tau2, noise)
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)
     return PoseCovariance(0.5 * (S @ cov @ S + (S @ cov @ S).T), centre, sigma, int(in_fit.sum()), corr,
-                          float(np.trace(cov) / max(np.trace(indep), 1e-300)), radius, unbounded)
+                          float(np.trace(cov) / max(np.trace(indep), 1e-300)), radius, unbounded, offsets=offsets)
 
 
 def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.ndarray, J: np.ndarray,
-                  inside: np.ndarray, Ainv: np.ndarray, loading: np.ndarray, bound: float | None) -> np.ndarray:
-    """The pose covariance that offsets of whole faces give (module docstring): each face's
+                  inside: np.ndarray, Ainv: np.ndarray, loading: np.ndarray,
+                  bound: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per face, (tau_f^2 (mm^2), m_f (6,), the variance of its mean noise v_f (mm^2)): the
+    pose covariance offsets of whole faces give is A^-1 (sum_f tau_f^2 m_f m_f') A^-1 (module
+    docstring). Each face's
     measurement off by b_f, independent across faces, of variance tau_f^2 = L_f0 theta_0 +
     L_f1 theta_1 (`loading` (faces, 2): L_f0 = (s_f / `MAX_SHARE`)^2, s_f the face's mean
     share of light from beyond its outline (`fine.mixing`), L_f1 = 1), the pose moved by
@@ -359,8 +396,7 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.n
         tau2 = np.array([_expected_variance(mean[told] ** 2, G[:, c], G[:, 1 - c] * tau2[1 - c] + v[told],
                                             weight=score[:, c], cap=cap)
                          if told.sum() >= 2 else cap for c in (0, 1)])
-    weight = loading @ tau2
-    return Ainv @ ((m * weight[:, None]).T @ m) @ Ainv
+    return loading @ tau2, m, v
 
 
 def _expected_variance(squares: np.ndarray, gain: np.ndarray, rest: np.ndarray, *, cap: float,
