@@ -341,10 +341,11 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.n
     `inside`). The model: the camera's blur mixes a face's pixels near its outline with what
     lies beyond (a 12 mm step wall of the demo part read 34 um off as a whole), so a face's
     offset grows with its share; over 701 faces of 43 scans of random parts at the true pose
-    (campaign 1501789337, bench blur 0.6 px) the faces' mean residuals spread by 130-325 um
-    per unit share in each eighth of the shares from 0.002 to 0.23 (pooled: 235 um; the
-    faces' z against that model: RMS 0.96, 5.8 % beyond 1.96, 1.4 % beyond 3), while the
-    part's own faces, far from any outline, read a few um (theta_1). The two variances by
+    (campaign 1501789337, bench blur 0.6 px, `python -m studies.face_offsets`) the faces' mean
+    residuals spread by 180-320 um per unit share in each eighth of the shares from 0.001 to
+    0.23 (by likelihood 214 um and a floor of 1 um; the faces' z RMS per eighth 0.85-1.19,
+    7.1 % beyond 1.96, 1.4 % beyond 3), while the part's own faces, far from any outline,
+    read a few um (theta_1). The two variances by
     moments from the faces' mean residuals: rbar_f = sum_g R_fg b_g + noise, R = I - H,
     H_fg = jbar_f' A^-1 m_g (jbar_f the mean row of face f over all its points: what of the
     offsets the fit moves into f's mean), so E[rbar_f^2] = sum_g R_fg^2 tau_g^2 + v_f, v_f
