@@ -312,9 +312,9 @@ def check_signature(stack: np.ndarray, patterns: PatternSet, projector_shape: tu
         if len(ks) <= 3:
             continue  # three frames fit any coordinate: nothing to judge
         extent = projector_shape[1] if orientation == "vertical" else projector_shape[0]
-        values = stack[ks].reshape(len(ks), -1).astype(np.float32)
+        values = stack[ks].reshape(len(ks), -1)
         step = max(1, int(np.sqrt(values.shape[1] / (20 * SIGNATURE_PIXELS))))
-        sub = values[:, ::step]
+        sub = values[:, ::step].astype(np.float32)
         lit = (sub.max(axis=0) < full) & (sub.min(axis=0) > 0)  # not clipped
         spread = np.where(lit, sub.std(axis=0), 0.0)
         order = np.argsort(spread)[::-1][:SIGNATURE_PIXELS]
@@ -333,8 +333,12 @@ def check_signature(stack: np.ndarray, patterns: PatternSet, projector_shape: tu
             model = np.stack([np.interp(grid, c, patterns.profile(specs[k], extent)) for k in g])
             model -= model.mean(axis=0, keepdims=True)
             var = (model ** 2).sum(axis=0)
-            cov = np.maximum(intensity @ model, 0.0)  # gains are non-negative
-            explained += np.divide(cov ** 2, var, out=np.zeros_like(cov, dtype=np.float64), where=var > 1e-12)
+            cov = intensity @ model
+            np.maximum(cov, 0.0, out=cov)  # gains are non-negative; in place, as below: (pixels, grid) is tens of MB
+            np.square(cov, out=cov)
+            np.divide(cov, var, out=cov, where=var > 1e-12)
+            cov[:, var <= 1e-12] = 0.0
+            explained += cov
         scores = _frame_scores(pixels, groups, grid[explained.argmax(axis=1)], c=c, patterns=patterns, specs=specs,
                                extent=extent)
         worst = max(scores, key=scores.__getitem__)

@@ -76,18 +76,21 @@ def _open(kind: str, path: str) -> NativePool | None:
     return None
 
 
-_known: dict[tuple[str, str], NativePool | None] = {}
+_known: dict[tuple[str, str], NativePool | None] = {}  # every library looked at, None: not a pool of that kind
 
 
 def loaded_pools(kinds: tuple[str, ...] = ("blas",)) -> list[NativePool]:
     """The thread pools of every loaded library of these kinds (numpy, scipy and OpenCV
-    each bundle their own OpenBLAS; Open3D brings OpenMP)."""
+    each bundle their own OpenBLAS; Open3D brings OpenMP). Each library's name is looked
+    at once: a call costs the read of the map, not a look at its hundred-odd libraries
+    (40 ms a call when the renderer limited BLAS per scene, with Open3D loaded)."""
     paths = _mapped_libraries()
     with _lock:
         for kind in kinds:
             for path in paths:
-                if (kind, path) not in _known and any(n in Path(path).name.lower() for n in _NAMES[kind]):
-                    _known[kind, path] = _open(kind, path)
+                if (kind, path) not in _known:
+                    named = any(n in Path(path).name.lower() for n in _NAMES[kind])
+                    _known[kind, path] = _open(kind, path) if named else None
         return [pool for (kind, _), pool in _known.items() if pool is not None and kind in kinds]
 
 

@@ -172,6 +172,19 @@ def robust_second_moment(v: np.ndarray, rounds: int = 5) -> np.ndarray:
     return 0.5 * (S + S.T)
 
 
+def _unique_lags(h: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`np.unique(h, axis=0, return_inverse=True, return_counts=True)` of integer lags (n, 2),
+    by counting them in the box they span (n is pairs x views: millions, which the row sort
+    of `np.unique` takes seconds over)."""
+    lo = h.min(axis=0)
+    rows = int(h[:, 1].max() - lo[1] + 1)
+    key = (h[:, 0] - lo[0]) * rows + (h[:, 1] - lo[1])
+    counts = np.bincount(key)
+    present = np.flatnonzero(counts)
+    rank = np.cumsum(counts > 0) - 1
+    return np.column_stack([present // rows + lo[0], present % rows + lo[1]]), rank[key], counts[present]
+
+
 def _grid(obj: np.ndarray, square_mm: float) -> np.ndarray:
     """Board corners' (N, 3) integer grid positions (N, 2), in squares."""
     return np.rint(obj[:, :2] / square_mm).astype(int)
@@ -242,13 +255,12 @@ class CornerNoise:
             lag_parts.append(h[canonical])
             product_parts.append((r[a][:, :, None] * r[b][:, None, :]).reshape(-1, 9))
             vector_parts.append(np.where((a == b)[:, None], r[a], r[b] - r[a]))  # lag 0: the residual itself
-        lags, inverse, pairs = np.unique(np.concatenate(lag_parts), axis=0, return_inverse=True, return_counts=True)
-        inverse = inverse.ravel()
+        lags, inverse, pairs = _unique_lags(np.concatenate(lag_parts))
         values = np.concatenate(product_parts)
         sums = np.stack([np.bincount(inverse, values[:, c], len(lags)) for c in range(9)], axis=1)
         products = (sums / pairs[:, None]).reshape(-1, 3, 3)
-        vectors = np.concatenate(vector_parts)
-        moments = np.stack([robust_second_moment(vectors[inverse == k]) for k in range(len(lags))])
+        by_lag = np.split(np.concatenate(vector_parts)[np.argsort(inverse, kind="stable")], np.cumsum(pairs)[:-1])
+        moments = np.stack([robust_second_moment(v) for v in by_lag])
         zero = np.all(lags == 0, axis=1)
         c0 = moments[zero][0]
         cov = c0 - 0.5 * moments + 0.5 * (products - np.transpose(products, (0, 2, 1)))
