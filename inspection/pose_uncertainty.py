@@ -115,16 +115,19 @@ class PoseUncertainty:
     def added_to(self, form: FaceForm, points: np.ndarray, normals: np.ndarray, *, face: int) -> FaceForm:
         """The face's deviation figures with the fit's pose uncertainty added (the mean move
         of the face along its normals; twice that for the profile zone 2 max|d|): j C j (j the
-        points' mean Jacobian row, C the fit's covariance) with CAD face `face`'s own offset
-        and less what the fit took from the face itself (`FaceOffsets.own_variance`: the fit
-        follows a face it rests on, so that face's deviation does not carry the pose's error
-        its own offset and noise caused; on the demo part a top face the fit rests on read
-        0.01-0.3 um off where j C j alone said 1-2 um)."""
+        points' mean Jacobian row, C the fit's covariance) and the part of CAD face `face`'s own
+        offset the fit did not take from it (`FaceOffsets.kept_variance`). j C j holds the part it
+        took; a face with little say in the fit keeps nearly all of its offset, which j C j alone
+        understated (Monte Carlo: small faces' spread stated at a median 0.6 of the truth). An
+        upper bound: the fit's following of the face is not subtracted, since on the demo part
+        the subtraction the covariance's linear model gives left faces the fit rests on at a U of
+        0.03-0.12 um against errors of 0.1-0.7 um (the fit's weights and the face's area-weighted
+        mean are not the model's), so a face the fit rests on is stated wider than it reads."""
         if form.status != "ok" or self.covariance is None:
             return form
         j = jacobian(points, normals, self.covariance.centre).mean(axis=0)
-        own = 0.0 if self.covariance.offsets is None else self.covariance.offsets.own_variance(face, j)
-        u = float(np.sqrt(max(j @ self.covariance.covariance @ j + own, 0.0)))
+        kept = 0.0 if self.covariance.offsets is None else self.covariance.offsets.kept_variance(face, j)
+        u = float(np.sqrt(max(j @ self.covariance.covariance @ j + kept, 0.0)))
         changes: dict[str, Any] = {}  # FaceForm's figure fields by name: replace() cannot check them
         for name, scale in (("deviation_min", 1.0), ("deviation_max", 1.0), ("deviation_mean", 1.0),
                             ("profile", 2.0)):

@@ -201,27 +201,21 @@ class FaceOffsets:
     CAD ids): `follow` (F, 6) the pose's correction (omega rad, t mm about the centre) per mm
     that the face's measurement is off as a whole, S A^-1 m_f (`_face_offsets`), so a face of
     mean Jacobian row j keeps 1 - j . follow_f of its own offset; `offset_variance` (F,) tau_f^2
-    and `noise_variance` (F,) the variance of the face's mean noise (mm^2). The covariance holds
-    sum_f follow_f follow_f' tau_f^2; a face's own deviation carries its offset and the
-    pose's error less the part of both the fit took from that face (`own_variance`)."""
+    (mm^2). The covariance holds sum_f follow_f follow_f' tau_f^2 (`kept_variance`)."""
 
     faces: np.ndarray
     follow: np.ndarray
     offset_variance: np.ndarray
-    noise_variance: np.ndarray
 
-    def own_variance(self, face: int, j: np.ndarray) -> float:
-        """What face `face`'s mean deviation's variance (mm^2) differs by from j C j (j its
-        points' mean Jacobian row, C the pose covariance) and its own noise: its offset
-        tau_f^2, less twice the covariance of its offset and noise with the pose's error along
-        j, which the fit took from this face: tau_f^2 - 2 (j . follow_f)(tau_f^2 + v_f).
-        0 for a face the covariance does not know (neither fitted nor told apart)."""
+    def kept_variance(self, face: int, j: np.ndarray) -> float:
+        """The variance (mm^2) of the part of face `face`'s own offset that the fit did not take
+        from it, (1 - j . follow_f)^2 tau_f^2 (j the face's points' mean Jacobian row), which its
+        mean deviation carries beside the pose's error along j; 0 for a face the covariance
+        does not know (neither fitted nor told apart)."""
         at = np.flatnonzero(self.faces == face)
         if len(at) == 0:
             return 0.0
-        k = at[0]
-        return float(self.offset_variance[k]
-                     - 2.0 * (j @ self.follow[k]) * (self.offset_variance[k] + self.noise_variance[k]))
+        return float((1.0 - j @ self.follow[at[0]]) ** 2 * self.offset_variance[at[0]])
 
 
 @dataclass(frozen=True)
@@ -317,11 +311,11 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
         loading[:, 1] = 1.0
         if mixing is not None:  # the blur's offset grows with the face's mean share of light from beyond
             loading[:, 0] = (np.bincount(face, weights=mixing, minlength=len(n_f)) / n_f / MAX_SHARE) ** 2
-        tau2, m, noise = _face_offsets(r, e, face, block=chosen, J=J_all, inside=inside, Ainv=Ainv,
-                                       loading=loading, bound=offset_bound_mm)
+        tau2, m = _face_offsets(r, e, face, block=chosen, J=J_all, inside=inside, Ainv=Ainv, loading=loading,
+                                bound=offset_bound_mm)
         follow = Ainv @ m.T  # (6, faces): the fit's correction per unit offset of each face
         cov = cov + (follow * tau2) @ follow.T
-        offsets = FaceOffsets(np.unique(faces), (S @ follow).T, tau2, noise)
+        offsets = FaceOffsets(np.unique(faces), (S @ follow).T, tau2)
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)
     return PoseCovariance(0.5 * (S @ cov @ S + (S @ cov @ S).T), centre, sigma, int(in_fit.sum()), corr,
@@ -330,8 +324,8 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
 
 def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.ndarray, J: np.ndarray,
                   inside: np.ndarray, Ainv: np.ndarray, loading: np.ndarray,
-                  bound: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per face, (tau_f^2 (mm^2), m_f (6,), the variance of its mean noise v_f (mm^2)): the
+                  bound: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per face, (tau_f^2 (mm^2), m_f (6,)): the
     pose covariance offsets of whole faces give is A^-1 (sum_f tau_f^2 m_f m_f') A^-1 (module
     docstring). Each face's
     measurement off by b_f, independent across faces, of variance tau_f^2 = L_f0 theta_0 +
@@ -397,7 +391,7 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.n
         tau2 = np.array([_expected_variance(mean[told] ** 2, G[:, c], G[:, 1 - c] * tau2[1 - c] + v[told],
                                             weight=score[:, c], cap=cap)
                          if told.sum() >= 2 else cap for c in (0, 1)])
-    return loading @ tau2, m, v
+    return loading @ tau2, m
 
 
 def _expected_variance(squares: np.ndarray, gain: np.ndarray, rest: np.ndarray, *, cap: float,
