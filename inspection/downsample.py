@@ -22,12 +22,15 @@ Units: mm.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from inspection.errors import CloudError, SegmentationError
 
 METHODS = ("average", "density_centre")
+QUERY_CELLS = 64  # cells along a cloud's longest side whose order its points are asked in (`coherent_order`)
 
 
 @dataclass(frozen=True, eq=False)
@@ -110,6 +113,29 @@ def downsample(points: np.ndarray, voxel_mm: float | None = None, method: str = 
     off = pts[order] - centre[cell[order]]
     keep = order[first_minimum_per_run(cell[order], np.einsum("ij,ij->i", off, off))]
     return Downsampled(pts[keep], cell, keep, size)
+
+
+def coherent_order(points: np.ndarray) -> np.ndarray:
+    """Indices putting `points` (N, 3) in the order of the cells (`QUERY_CELLS` along their
+    longest side) they lie in, for `query_in_order`: a scan in random order (a subsample, a
+    view of CAD samples) asked so is 1.4x (4000 points) to 4x (40 000 points) faster against
+    the demo part's 285 k dense samples. A rigid motion of the points keeps it coherent."""
+    if not len(points):
+        return np.zeros(0, np.int64)
+    cell = max(float(np.ptp(points, axis=0).max()) / QUERY_CELLS, 1e-9)
+    c = ((points - points.min(axis=0)) / cell).astype(np.int64)
+    n = c.max(axis=0) + 1
+    return np.argsort((c[:, 0] * n[1] + c[:, 1]) * n[2] + c[:, 2])
+
+
+def query_in_order(tree: cKDTree, q: np.ndarray, order: np.ndarray, **options: Any) -> tuple[np.ndarray, np.ndarray]:
+    """`tree.query(q, **options)` with the points `q` (N, 3) asked in `order`
+    (`coherent_order`): each point's answer is its own, so the same as asked in any order,
+    but the tree's branches are still in cache from the point before."""
+    d, j = tree.query(q[order], **options)
+    dist, idx = np.empty_like(d), np.empty_like(j)
+    dist[order], idx[order] = d, j
+    return dist, idx
 
 
 def first_minimum_per_run(key: np.ndarray, values: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from defective_part import defective_run, form_row, true_form
-from registration_support import STEP, shared_registrations
+from registration_support import STEP, shared_inspections
 from scipy.spatial import cKDTree
 
 from inspection.cad import load_cad
@@ -44,8 +44,9 @@ BOW, LOBES, TAPER, TEXTURE = 0.06, 0.02, 0.0015, 0.07  # mm; the texture is 5x t
 @pytest.fixture(scope="module", autouse=True)
 def _one_registration() -> Iterator[None]:
     """The module's four inspections of one session (here and by `slscan inspect`) register
-    its cloud once (`shared_registrations`): 15 s of its 80 s."""
-    with shared_registrations():
+    its cloud once, and the three by `slscan inspect` (the same noise model) measure each
+    face once (`shared_inspections`)."""
+    with shared_inspections():
         yield
 
 

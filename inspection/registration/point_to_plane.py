@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from inspection.downsample import coherent_order, query_in_order
 from inspection.registration.clouds import Samples
 from inspection.registration.rigid import cross_rows, transform_points, twist_matrix
 from inspection.registration.settings import RegistrationSettings
@@ -21,10 +22,11 @@ def icp(src: np.ndarray, src_nrm: np.ndarray, target: Samples, *, T: np.ndarray,
     alone does not see; a large one widens the basin of convergence along large planes."""
     cos_max = np.cos(np.radians(max_normal_deg))
     thr = max_dist
+    order = coherent_order(src)
     for _ in range(iterations):
         q = transform_points(T, src)
         n = src_nrm @ T[:3, :3].T
-        d, j = target.tree.query(q, distance_upper_bound=thr, workers=-1 if len(q) > 20000 else 1)
+        d, j = query_in_order(target.tree, q, order, distance_upper_bound=thr, workers=-1 if len(q) > 20000 else 1)
         ok = np.isfinite(d)
         j = np.where(ok, j, 0)
         tn = target.normals[j]

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from inspection.downsample import coherent_order, query_in_order
 from inspection.registration.clouds import Samples
 from inspection.registration.point_to_plane import icp
 from inspection.registration.rigid import transform_points
@@ -21,7 +22,8 @@ def fitness(src: np.ndarray, src_nrm: np.ndarray, target: Samples, *, T: np.ndar
     `workers` threads, -1 all)."""
     q = np.einsum("hij,nj->hni", T[:, :3, :3], src) + T[:, None, :3, 3]
     n = np.einsum("hij,nj->hni", T[:, :3, :3], src_nrm)
-    d, j = target.tree.query(q.reshape(-1, 3), distance_upper_bound=inlier_mm, workers=workers)
+    order = (len(src) * np.arange(len(T))[:, None] + coherent_order(src)).ravel()  # pose by pose
+    d, j = query_in_order(target.tree, q.reshape(-1, 3), order, distance_upper_bound=inlier_mm, workers=workers)
     ok = np.isfinite(d)
     j = np.where(ok, j, 0)
     ok &= np.einsum("ij,ij->i", n.reshape(-1, 3), target.normals[j]) > np.cos(np.radians(max_normal_deg))
@@ -33,7 +35,8 @@ def evaluate_pose(src: np.ndarray, src_nrm: np.ndarray, target: Samples, T: np.n
     """(fitness, RMSE mm): fraction of points within inlier_mm of the model with normals
     agreeing, and the RMS distance of those."""
     q = transform_points(T, src)
-    d, j = target.tree.query(q, distance_upper_bound=inlier_mm, workers=-1 if len(q) > 20000 else 1)
+    d, j = query_in_order(target.tree, q, coherent_order(src), distance_upper_bound=inlier_mm,
+                          workers=-1 if len(q) > 20000 else 1)
     ok = np.isfinite(d)
     j = np.where(ok, j, 0)
     ok &= np.einsum("ij,ij->i", src_nrm @ T[:3, :3].T, target.normals[j]) > np.cos(np.radians(max_normal_deg))
@@ -48,7 +51,7 @@ def explained(src: np.ndarray, src_nrm: np.ndarray, target: ModelTarget, *, T: n
     samples with normals agreeing within `max_normal_deg`, and not hidden from `viewpoint`
     behind the posed model (`ModelTarget.hidden`, at twice the inlier distance)."""
     q = transform_points(T, src)
-    d, j = target.dense.tree.query(q, distance_upper_bound=inlier_mm, workers=1)
+    d, j = query_in_order(target.dense.tree, q, coherent_order(src), distance_upper_bound=inlier_mm, workers=1)
     ok = np.isfinite(d)
     j = np.where(ok, j, 0)
     ok &= np.einsum("ij,ij->i", src_nrm @ T[:3, :3].T, target.dense.normals[j]) > np.cos(np.radians(max_normal_deg))
