@@ -333,12 +333,11 @@ def check_signature(stack: np.ndarray, patterns: PatternSet, projector_shape: tu
             model = np.stack([np.interp(grid, c, patterns.profile(specs[k], extent)) for k in g])
             model -= model.mean(axis=0, keepdims=True)
             var = (model ** 2).sum(axis=0)
-            cov = intensity @ model
-            np.maximum(cov, 0.0, out=cov)  # gains are non-negative; in place, as below: (pixels, grid) is tens of MB
-            np.square(cov, out=cov)
-            np.divide(cov, var, out=cov, where=var > 1e-12)
-            cov[:, var <= 1e-12] = 0.0
-            explained += cov
+            share = intensity @ model
+            np.maximum(share, 0.0, out=share)  # gains are non-negative
+            np.square(share, out=share)
+            share /= np.where(var > 1e-12, var, np.inf)  # in place (P x 2 extent doubles); 0 where no signal
+            explained += share
         scores = _frame_scores(pixels, groups, grid[explained.argmax(axis=1)], c=c, patterns=patterns, specs=specs,
                                extent=extent)
         worst = max(scores, key=scores.__getitem__)

@@ -22,6 +22,7 @@ import json
 import os
 import stat
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -29,6 +30,7 @@ from pathlib import Path
 from scanner.errors import SessionError
 
 LOCK_FILE = ".slscan-lock"
+HOLDER_READ_S = 0.2  # how long a refused writer waits for the holder's record being written (s)
 _held: dict[Path, int] = {}  # real session folder -> how many holders in this process
 _fds: dict[Path, int] = {}
 _guard = threading.Lock()
@@ -39,14 +41,20 @@ class SessionBusy(SessionError):
 
 
 def _holder(fd: int) -> str:
-    try:
-        os.lseek(fd, 0, os.SEEK_SET)
-        info = json.loads(os.read(fd, 4096) or b"{}")
-        pid = int(info["pid"])
-        command, since = str(info.get("command", "?"))[:60], str(info.get("since", "?"))[:19]
-        return f"PID {pid} ({command}, since {since})"
-    except (OSError, ValueError, KeyError, TypeError):
-        return "another process"
+    """Who holds the lock, from the record it writes just after taking it. Found empty or
+    partial (taken an instant ago: two writers started together), the record is read again
+    for up to HOLDER_READ_S, so the refusal still names the PID."""
+    deadline = time.monotonic() + HOLDER_READ_S
+    while True:
+        try:
+            info = json.loads(os.pread(fd, 4096, 0) or b"{}")
+            pid = int(info["pid"])
+            command, since = str(info.get("command", "?"))[:60], str(info.get("since", "?"))[:19]
+            return f"PID {pid} ({command}, since {since})"
+        except (OSError, ValueError, KeyError, TypeError):
+            if time.monotonic() > deadline:
+                return "another process"
+            time.sleep(0.005)
 
 
 def is_leftover(name: str) -> bool:
@@ -119,8 +127,6 @@ def folder_lock(folder: str | Path, *, timeout_s: float = 30.0) -> Iterator[None
     """A short exclusive section among processes writing one shared file in `folder` (two
     stations replacing their reports): waits up to `timeout_s` for the other holder, then
     SessionBusy. Nothing is cleaned (other writers' temporary files in a shared folder are live)."""
-    import time
-
     path = Path(folder) / LOCK_FILE
     fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     try:

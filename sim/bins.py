@@ -40,13 +40,12 @@ from pydantic import Field
 from inspection.bins.part_file import TabPart, inside_loops, outline_loops, tab_part
 from scanner import schema
 from scanner.errors import ConfigError
-from sim.scene import Scene, SceneObject
+from sim.scene import BIN_SCENE_PREFIX, Scene, SceneObject
 
 if TYPE_CHECKING:
     from scanner.geometry import RigModel
     from scanner.pointcloud import OrganisedCloud
 
-BIN_SCENE_PREFIX = "bin:"
 BIN_TRUTH_FILE = "bin_truth.json"
 BIN_TRUTH_FORMAT = "slscan-bin-truth"
 BIN_TRUTH_VERSION = 1

@@ -81,6 +81,7 @@ from scanner.geometry import pose_from_dict
 from scanner.schema import Bool, Matrix4, Schema, Str, Vector3
 
 DEFAULT_SCENE = CONFIG_DIR / "scenes" / "demo.toml"
+BIN_SCENE_PREFIX = "bin:"  # a simulated bin of parts (`sim.bins.bin_spec`), not a scene file
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 KINDS = ("mesh", "sphere", "plane", "box")
 BACKGROUND_ID = 0

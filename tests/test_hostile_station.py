@@ -21,12 +21,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 from hostile import campaign_seed
 from session_support import small_rig_toml
+from store_opener import open_store
 
 from scanner.config import CONFIG_DIR
 
@@ -183,16 +183,6 @@ def test_a_station_on_a_full_disk_stops_with_one_line(bench: Path, tmp_path: Pat
         subprocess.run(["umount", "-l", str(disk)], capture_output=True)
 
 
-def _open_store(path: str, results: Any) -> None:
-    from slscan.station.results import open_results
-
-    try:
-        with open_results(f"sqlite:{path}"):
-            results.put("ok")
-    except Exception as exc:  # reported to the test
-        results.put(f"{type(exc).__name__}: {exc}")
-
-
 def test_stations_opening_one_new_database_at_once_make_one_schema(tmp_path: Path) -> None:
     """Four processes open one new SQLite results database at the same moment, five times:
     every one opens it, and it holds one schema version (they had both found it empty and
@@ -203,7 +193,7 @@ def test_stations_opening_one_new_database_at_once_make_one_schema(tmp_path: Pat
     for trial in range(5):
         path = tmp_path / f"r{trial}.sqlite"
         results = ctx.Queue()
-        procs = [ctx.Process(target=_open_store, args=(str(path), results)) for _ in range(4)]
+        procs = [ctx.Process(target=open_store, args=(str(path), results)) for _ in range(4)]
         for p in procs:
             p.start()
         for p in procs:

@@ -47,9 +47,6 @@ class Tracer:
     """First hits of rays against a scene placed in the camera frame (float64 results)."""
 
     def __init__(self, scene: Scene, cam_from_world: np.ndarray) -> None:
-        import open3d as o3d
-
-        self._o3d = o3d
         self.analytic: list[tuple[int, str, np.ndarray, SceneObject]] = []
         self.rc = None
         meshes = [(oid, obj) for oid, obj in sorted(scene.by_id().items()) if obj.kind == "mesh"]
@@ -57,6 +54,8 @@ class Tracer:
             if obj.kind != "mesh":
                 self.analytic.append((oid, obj.kind, cam_from_world @ obj.pose, obj))
         if meshes:
+            import open3d as o3d  # only for meshes: an analytic scene's scan skips its import (~0.4 s CPU)
+
             self.rc = o3d.t.geometry.RaycastingScene()
             verts, tris, tri_offset, v_offset = [], [], [], 0
             geom_to_oid: list[int] = []
@@ -109,7 +108,8 @@ class Tracer:
 
     def _cast_meshes(self, o: np.ndarray, dirs: np.ndarray, t_min: float, t_best: np.ndarray,
                      oid: np.ndarray, normal: np.ndarray) -> None:
-        o3d = self._o3d
+        import open3d as o3d
+
         rays = np.empty((len(dirs), 6), dtype=np.float32)
         rays[:, :3] = o
         rays[:, 3:] = dirs

@@ -124,7 +124,12 @@ def _level(args: argparse.Namespace) -> str | None:
 
 def _bin_scene(options: dict[str, Any], config: Any) -> Any:
     """For `--scene bin:SEED[:N_PARTS]`: the simulated bin put in `options` as the scene,
-    and its truth (`sim.bins.BinTruth`) to save in the session; None for other scenes."""
+    and its truth (`sim.bins.BinTruth`) to save in the session; None for other scenes
+    (without importing `sim.bins`: its part files load SciPy's spatial module, ~0.3 s)."""
+    from sim.scene import BIN_SCENE_PREFIX
+
+    if not str(options["scene"]).startswith(BIN_SCENE_PREFIX):
+        return None
     from sim.bins import BinTruth, bin_scene, bin_spec
 
     spec = bin_spec(str(options["scene"]))

@@ -38,14 +38,14 @@ def _config(args: argparse.Namespace) -> Any:
 
 
 def cmd_station(args: argparse.Namespace) -> int:
-    from slscan.progress import ProgressLine
-    from slscan.station.app import open_station, run_auto
-    from slscan.station.measure import load_measurement
-
     if args.json and not args.auto:
         raise ScannerError("--json applies to --auto runs (the operator screen is the terminal)")
     if not args.auto and not (sys.stdin.isatty() and sys.stdout.isatty()):
         raise ScannerError("the operator screen needs a terminal; use --auto --parts N to run without one")
+    from slscan.progress import ProgressLine  # the station's libraries after the refusals above (~1.5 s)
+    from slscan.station.app import open_station, run_auto
+    from slscan.station.measure import load_measurement
+
     config = _config(args)
     measurement = load_measurement(args.measurement) if args.measurement else None
     with open_station(args.program, config, args.operator or "", measurement, rig_path=args.rig) as run:
