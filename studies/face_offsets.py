@@ -16,7 +16,9 @@ mean residuals as z scores against tau_f and the noise: their RMS per eighth (1 
 form holds across the shares; pooled, the likelihood makes it 1) and the fractions beyond 1.96
 and 3 of all (5 % and 0.3 % if the offsets are Gaussian); and
 per distance of a pixel from its outline (0, 1, 2-3, 4+ px) the median and 90th percentile of
-|mean residual| over (face, distance) groups of 10 points or more. `--blur-px` is the camera
+|mean residual| over (face, distance) groups of 10 points or more; and per kind of face (outline
+pixels only; the others by share) the RMS of the faces' mean residuals beside the RMS of their
+linear trend across the image (`evidence._face_trends`). `--blur-px` is the camera
 blur assumed in the shares (the bench renders 0.6 px; the registration assumes 1.0 px unless
 told): the pooled kappa and the z scores say how either assumption fits.
 """
@@ -47,6 +49,8 @@ class FaceOffset:
     mean_mm: float
     noise_se_mm: float
     share: float
+    trend_rms_mm: float = 0.0  # RMS over the face's points of its residuals' linear trend across the image
+    outline_only: bool = False  # every point on the outline (0 px from it)
 
 
 @dataclass(frozen=True)
@@ -73,6 +77,7 @@ class Findings:
     beyond_1_96: float
     beyond_3: float
     by_distance: dict[str, tuple[int, float, float]]  # "0", "1", "2-3", "4+": groups, median, p90 |mean| (mm)
+    trends: dict[str, tuple[int, float, float]]  # by kind of face: faces, RMS mean, RMS trend (mm)
 
 
 def scan_faces(npz: Path, step: str, scale: float, *, blur_px: float,
@@ -117,9 +122,29 @@ def scan_faces(npz: Path, step: str, scale: float, *, blur_px: float,
         k = np.bincount(f, weights=m)
         s = np.bincount(f, weights=np.where(m, r, 0.0))
         groups[label].extend(np.abs(s[k >= MIN_POINTS] / k[k >= MIN_POINTS]).tolist())
+    trend = _trend_rms(pixels.astype(np.float64), r, f, ok)
+    only = np.bincount(f, weights=ok & (px == 0)) == n
     keep = n >= MIN_POINTS
-    return [FaceOffset(npz.stem, round(i), int(c), float(a), noise / np.sqrt(c), float(s))
-            for i, c, a, s in zip(ids[keep], n[keep], mean[keep], mean_share[keep], strict=True)]
+    return [FaceOffset(npz.stem, round(i), int(c), float(a), noise / np.sqrt(c), float(s), float(t), bool(o))
+            for i, c, a, s, t, o in zip(ids[keep], n[keep], mean[keep], mean_share[keep], trend[keep], only[keep],
+                                        strict=True)]
+
+
+def _trend_rms(where: np.ndarray, r: np.ndarray, f: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Per face (`f`, the points `ok`), the RMS over its points of the least-squares linear
+    trend of its residuals `r` across its image positions `where` (mm): the part of a face's
+    offset that tilts it (`evidence._face_trends`)."""
+    g = int(f.max()) + 1
+    n = np.maximum(np.bincount(f, weights=ok, minlength=g), 1.0)
+    sums = np.stack([np.bincount(f, weights=np.where(ok, where[:, c], 0.0), minlength=g) for c in (0, 1)], 1)
+    mean = sums / n[:, None]
+    d = np.where(ok[:, None], where - mean[f], 0.0)
+    rr = np.where(ok, r, 0.0)
+    dd = np.stack([np.stack([np.bincount(f, weights=d[:, a] * d[:, b], minlength=g) for b in (0, 1)], 1)
+                   for a in (0, 1)], 1)
+    dr = np.stack([np.bincount(f, weights=d[:, a] * rr, minlength=g) for a in (0, 1)], 1)
+    slope = np.einsum("fab,fb->fa", np.linalg.pinv(dd), dr)  # (faces, 2): mm per px
+    return np.sqrt(np.bincount(f, weights=np.einsum("na,na->n", d, slope[f]) ** 2, minlength=g) / n)
 
 
 def _likeliest(mean: np.ndarray, se: np.ndarray, share: np.ndarray) -> tuple[float, float]:
@@ -153,9 +178,15 @@ def findings(faces: list[FaceOffset], groups: dict[str, list[float]], *, blur_px
         rms, z_rms = float(np.sqrt(np.mean(mean[s] ** 2))), float(np.sqrt(np.mean(z[s] ** 2)))
         octiles.append(Octile(float(share[s].min()), float(share[s].max()), len(s), rms, float(kappa), z_rms))
     by_distance = {k: (len(v), float(np.median(v)), float(np.quantile(v, 0.9))) for k, v in groups.items() if v}
+    only = np.array([f.outline_only for f in faces])
+    trend = np.array([f.trend_rms_mm for f in faces])
+    kinds = {"outline pixels only": only, "others, share > 0.05": ~only & (share > 0.05),
+             "others, share <= 0.05": ~only & (share <= 0.05)}
+    trends = {k: (int(m.sum()), float(np.sqrt(np.mean(mean[m] ** 2))), float(np.sqrt(np.mean(trend[m] ** 2))))
+              for k, m in kinds.items() if m.any()}
     return Findings(len({f.scan for f in faces}), len(faces), blur_px, octiles, float(np.sqrt(kappa2)),
                     float(np.sqrt(floor2)), float(np.mean(np.abs(z) > 1.96)), float(np.mean(np.abs(z) > 3.0)),
-                    by_distance)
+                    by_distance, trends)
 
 
 def study(out: Path, *, blur_px: float) -> Findings:
@@ -183,6 +214,9 @@ def table(f: Findings) -> str:
                  f"{100 * f.beyond_1_96:.1f} % beyond 1.96, {100 * f.beyond_3:.1f} % beyond 3")
     lines.append("px from the outline  groups  median |mean| um  90 % um")
     lines += [f"{k:>19} {n:7d} {m * 1e3:17.1f} {p * 1e3:8.1f}" for k, (n, m, p) in f.by_distance.items()]
+    lines.append("kind of face            faces  RMS mean um  RMS trend um  trend / mean")
+    lines += [f"{k:22} {n:6d} {m * 1e3:12.1f} {t * 1e3:13.1f} {t / max(m, 1e-12):13.2f}"
+              for k, (n, m, t) in f.trends.items()]
     return "\n".join(lines)
 
 

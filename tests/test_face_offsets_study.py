@@ -8,6 +8,7 @@ stray from 1 where the model's form is wrong."""
 import secrets
 
 import numpy as np
+import pytest
 
 from studies.face_offsets import FaceOffset, findings
 
@@ -48,3 +49,24 @@ def test_a_model_of_the_wrong_form_shows_in_the_eighths_z_scores() -> None:
                         x.noise_se_mm, x.share) for x in faces]
     f = findings(wrong, {"0": [1e-3]}, blur_px=0.6)
     assert max(abs(o.z_rms - 1.0) for o in f.octiles) > 0.15, [o.z_rms for o in f.octiles]
+
+
+def test_a_faces_trend_is_its_residuals_linear_part_across_the_image() -> None:
+    """Two faces whose residuals are exactly a + b . (u, v): the trend's RMS is |b| times the
+    RMS of the positions about their mean along b (closed form); a one-row strip's trend
+    across its width is none; points not `ok` do not count."""
+    from studies.face_offsets import _trend_rms
+
+    u, v = np.meshgrid(np.arange(20.0), np.arange(5.0))
+    area = np.stack([u.ravel(), v.ravel()], 1)
+    strip = np.stack([np.arange(30.0), np.full(30, 7.0)], 1)
+    where = np.concatenate([area, strip])
+    f = np.concatenate([np.zeros(len(area), int), np.ones(len(strip), int)])
+    r = np.where(f == 0, 0.01 + 0.002 * where[:, 0] - 0.001 * where[:, 1], -0.02 + 0.0005 * where[:, 0])
+    ok = np.ones(len(r), bool)
+    ok[3] = False
+    r[3] = 5.0  # an outlier left out
+    got = _trend_rms(where, r, f, ok)
+    d = area[ok[: len(area)]] - area[ok[: len(area)]].mean(axis=0)
+    assert got[0] == pytest.approx(np.sqrt(np.mean((d @ [0.002, -0.001]) ** 2)), rel=1e-9)
+    assert got[1] == pytest.approx(0.0005 * np.std(strip[:, 0]), rel=1e-9)
