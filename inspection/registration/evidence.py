@@ -314,45 +314,12 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
         tau2, m = _face_offsets(r, e, face, block=chosen, J=J_all, inside=inside, Ainv=Ainv, loading=loading,
                                 bound=offset_bound_mm)
         follow = Ainv @ m.T  # (6, faces): the fit's correction per unit offset of each face
-        cov = cov + (follow * tau2) @ follow.T + Ainv @ _face_trends(J_all, where, face, inside, tau2) @ Ainv
+        cov = cov + (follow * tau2) @ follow.T
         offsets = FaceOffsets(np.unique(faces), (S @ follow).T, tau2)
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)
     return PoseCovariance(0.5 * (S @ cov @ S + (S @ cov @ S).T), centre, sigma, int(in_fit.sum()), corr,
                           float(np.trace(cov) / max(np.trace(indep), 1e-300)), radius, unbounded, offsets=offsets)
-
-
-def _face_trends(J: np.ndarray, where: np.ndarray, face: np.ndarray, inside: np.ndarray,
-                 tau2: np.ndarray) -> np.ndarray:
-    """sum_f M_f' V_f M_f (6, 6, scaled coordinates): the information-side sum of the faces'
-    trends, a face's measurement off by a linear trend across it as well as by a whole
-    offset. At the true pose of 1367 faces of the 86 scans of campaigns 1501789337 and
-    1435581477 (`studies.face_offsets`' scans), the trend of each face's residuals over its
-    image positions spread as much as the faces' mean offsets: RMS 56-62 um against 59-74
-    um on faces of outline pixels only, 25-29 against 21-22 um on the other faces with a
-    mean share above 0.05, 6.5-7.4 against 4.4 um on the rest. A strip of outline pixels
-    that alone fixes a turn turns the pose by its trend (the demo part, coverage seed 55805,
-    trial 1: 11 points +26 um off, the pose proven 0.061 deg off with U 0.042 deg). So each
-    face's positions `where` are whitened about their mean (t_i, unit second moment per
-    direction; a direction the face does not extend along carries none), its residuals take
-    g_f . t_i, g_f of variance tau_f^2 per direction: the trend's RMS over a face is then
-    sqrt(k) times the offset's sd, k the directions it extends along (1 for a strip of one
-    row, 1.41 for an area; measured 0.76-1.04 on faces of outline pixels only, 1.22-1.68 on
-    the others), and the pose moves by -A^-1 M_f' g_f, M_f (D, 6) = sum over the fit's points
-    of t_i J_i'."""
-    g, dim = len(tau2), where.shape[1]
-    n = np.maximum(np.bincount(face, minlength=g).astype(np.float64), 1.0)
-    mean = np.stack([np.bincount(face, weights=where[:, c], minlength=g) for c in range(dim)], 1) / n[:, None]
-    d = where - mean[face]
-    second = np.stack([np.stack([np.bincount(face, weights=d[:, a] * d[:, b], minlength=g) for b in range(dim)], 1)
-                       for a in range(dim)], 1) / n[:, None, None]  # (faces, dim, dim)
-    w, v = np.linalg.eigh(second)
-    extends = w > 1e-6 * np.maximum(w.max(axis=1, keepdims=True), 1e-300)  # a numerical zero: no extent that way
-    whiten = np.einsum("fab,fb->fab", v, np.where(extends, 1.0 / np.sqrt(np.maximum(w, 1e-300)), 0.0))
-    t = np.einsum("nab,na->nb", whiten[face], d)  # (points, dim): unit second moment over each face
-    M = np.stack([np.stack([np.bincount(face, weights=t[:, k] * J[:, c] * inside, minlength=g) for c in range(6)], 1)
-                  for k in range(dim)], 1)  # (faces, dim, 6)
-    return np.einsum("f,fkc,fkd->cd", tau2, M, M)
 
 
 def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.ndarray, J: np.ndarray,
