@@ -288,7 +288,7 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
     info = w > 1e-9 * w.max()  # below: no information at all, a numerical zero
     Ainv = (v[:, info] / w[info]) @ v[:, info].T
     if faces is not None:  # the noise about each face's mean; the face offsets apart (`_face_offsets`)
-        _, face = np.unique(faces, return_inverse=True)
+        ids, face = np.unique(faces, return_inverse=True)
         face = face.ravel()
         n_f = np.bincount(face).astype(np.float64)
         e = r - (np.bincount(face, weights=r) / n_f)[face]
@@ -315,7 +315,7 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
                                 bound=offset_bound_mm)
         follow = Ainv @ m.T  # (6, faces): the fit's correction per unit offset of each face
         cov = cov + (follow * tau2) @ follow.T
-        offsets = FaceOffsets(np.unique(faces), (S @ follow).T, tau2)
+        offsets = FaceOffsets(ids, (S @ follow).T, tau2)
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)
     return PoseCovariance(0.5 * (S @ cov @ S + (S @ cov @ S).T), centre, sigma, int(in_fit.sum()), corr,
@@ -325,10 +325,9 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
 def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.ndarray, J: np.ndarray,
                   inside: np.ndarray, Ainv: np.ndarray, loading: np.ndarray,
                   bound: float | None) -> tuple[np.ndarray, np.ndarray]:
-    """Per face, (tau_f^2 (mm^2), m_f (6,)): the
-    pose covariance offsets of whole faces give is A^-1 (sum_f tau_f^2 m_f m_f') A^-1 (module
-    docstring). Each face's
-    measurement off by b_f, independent across faces, of variance tau_f^2 = L_f0 theta_0 +
+    """Per face, (tau_f^2 (mm^2), m_f (6,)): the pose covariance offsets of whole faces give
+    is A^-1 (sum_f tau_f^2 m_f m_f') A^-1 (module docstring). Each face's measurement off by b_f,
+    independent across faces, of variance tau_f^2 = L_f0 theta_0 +
     L_f1 theta_1 (`loading` (faces, 2): L_f0 = (s_f / `MAX_SHARE`)^2, s_f the face's mean
     share of light from beyond its outline (`fine.mixing`), L_f1 = 1), the pose moved by
     -A^-1 sum_g m_g b_g (m_g the sum of face g's rows of `J` over the points the fit rests on,
