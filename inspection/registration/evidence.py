@@ -85,6 +85,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.special import betainc
 
+from inspection.registration.band_effects import BandEffects
 from inspection.registration.rigid import transform_points
 
 HUBER_K = 1.345  # Huber's threshold in robust sigmas: 95 % efficiency at normal noise (Huber 1964)
@@ -266,7 +267,8 @@ class PoseCovariance:
 
 def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, where: np.ndarray, unit: str,
                     faces: np.ndarray | None = None, *, in_fit: np.ndarray | None = None,
-                    mixing: np.ndarray | None = None, offset_bound_mm: float | None = None) -> PoseCovariance:
+                    mixing: np.ndarray | None = None, offset_bound_mm: float | None = None,
+                    band: BandEffects | None = None) -> PoseCovariance:
     """The covariance of the pose fitted to model-frame `points` with their faces' `normals`
     and residuals `r` (mm); `where` the points' image positions (or scan positions) and `unit`
     their lag unit, for the residuals' correlation; `faces` the CAD face of each point, for
@@ -274,7 +276,11 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
     pose was fitted to (default all; the others' faces only inform the offsets' variance);
     `mixing` each point's share of light from beyond its surface's outline (`fine.mixing`;
     None: not known), which a face's offset grows with (`_face_offsets`); `offset_bound_mm` the
-    largest offset a face's points could have and still be assigned to it (None: no bound)."""
+    largest offset a face's points could have and still be assigned to it (None: no bound);
+    `band` the blurred points' offsets and trends the fit estimated with the pose
+    (`band_effects`; None: a plain fit): the pose's error is then linear in the residuals
+    through its rows c_i, not J_i, and each face's trend across its blurred points moves it
+    as a random effect of the face's offset variance, as the offset does."""
     in_fit = np.ones(len(points), bool) if in_fit is None else in_fit
     centre = points[in_fit].mean(axis=0)
     radius = float(np.sqrt(np.mean(np.sum((points[in_fit] - centre) ** 2, axis=1))))
@@ -284,7 +290,9 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
     sigma = residual_scale(r[in_fit])
     k = HUBER_K * max(sigma, 1e-12)
     inside = (np.abs(r) < k) & in_fit
-    w, v = np.linalg.eigh(J[inside].T @ J[inside])
+    C = J if band is None else band.rows(J, inside.astype(np.float64), max(sigma, 1e-12))  # the estimator's rows
+    A = C[inside].T @ J[inside]
+    w, v = np.linalg.eigh(0.5 * (A + A.T))
     info = w > 1e-9 * w.max()  # below: no information at all, a numerical zero
     Ainv = (v[:, info] / w[info]) @ v[:, info].T
     if faces is not None:  # the noise about each face's mean; the face offsets apart (`_face_offsets`)
@@ -295,7 +303,7 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
     else:
         e = r
     psi = np.clip(e, -k, k)
-    score = J * psi[:, None]
+    score = C * psi[:, None]
     indep = Ainv @ (score.T @ score) @ Ainv
     cov, corr, chosen, offsets = indep, ResidualCorrelation(0.0, 0.0, unit), np.arange(len(r)), None
     for size in BLOCKS:
@@ -311,10 +319,12 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
         loading[:, 1] = 1.0
         if mixing is not None:  # the blur's offset grows with the face's mean share of light from beyond
             loading[:, 0] = (np.bincount(face, weights=mixing, minlength=len(n_f)) / n_f / MAX_SHARE) ** 2
-        tau2, m = _face_offsets(r, e, face, block=chosen, J=J_all, inside=inside, Ainv=Ainv, loading=loading,
+        tau2, m = _face_offsets(r, e, face, block=chosen, J=J_all, C=C, inside=inside, Ainv=Ainv, loading=loading,
                                 bound=offset_bound_mm)
         follow = Ainv @ m.T  # (6, faces): the fit's correction per unit offset of each face
         cov = cov + (follow * tau2) @ follow.T
+        if band is not None:
+            cov = cov + Ainv @ band.trends(C, inside.astype(np.float64), tau2[face]) @ Ainv
         offsets = FaceOffsets(ids, (S @ follow).T, tau2)
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)
@@ -323,15 +333,16 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
 
 
 def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.ndarray, J: np.ndarray,
-                  inside: np.ndarray, Ainv: np.ndarray, loading: np.ndarray,
+                  C: np.ndarray, inside: np.ndarray, Ainv: np.ndarray, loading: np.ndarray,
                   bound: float | None) -> tuple[np.ndarray, np.ndarray]:
     """Per face, (tau_f^2 (mm^2), m_f (6,)): the pose covariance offsets of whole faces give
     is A^-1 (sum_f tau_f^2 m_f m_f') A^-1 (module docstring). Each face's measurement off by b_f,
     independent across faces, of variance tau_f^2 = L_f0 theta_0 +
     L_f1 theta_1 (`loading` (faces, 2): L_f0 = (s_f / `MAX_SHARE`)^2, s_f the face's mean
     share of light from beyond its outline (`fine.mixing`), L_f1 = 1), the pose moved by
-    -A^-1 sum_g m_g b_g (m_g the sum of face g's rows of `J` over the points the fit rests on,
-    `inside`). The model: the camera's blur mixes a face's pixels near its outline with what
+    -A^-1 sum_g m_g b_g (m_g the sum of face g's estimator rows `C` over the points the fit
+    rests on, `inside`: `J`'s rows in a plain fit, `band_effects` rows where it estimated the
+    blurred points' offsets too). The model: the camera's blur mixes a face's pixels near its outline with what
     lies beyond (a 12 mm step wall of the demo part read 34 um off as a whole), so a face's
     offset grows with its share; over 701 faces of 43 scans of random parts at the true pose
     (campaign 1501789337, bench blur 0.6 px, `python -m studies.face_offsets`) the faces' mean
@@ -373,7 +384,7 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.n
     cell_face = np.zeros(int(cell.max()) + 1, np.int64)
     cell_face[cell.ravel()] = face
     v = np.bincount(cell_face, weights=np.bincount(cell.ravel(), weights=e) ** 2, minlength=g) / np.maximum(n, 1.0) ** 2
-    m = np.stack([np.bincount(face, weights=J[:, c] * inside, minlength=g) for c in range(6)], axis=1)
+    m = np.stack([np.bincount(face, weights=C[:, c] * inside, minlength=g) for c in range(6)], axis=1)
     jbar = (np.stack([np.bincount(face, weights=J[:, c], minlength=g) for c in range(6)], axis=1)
             / np.maximum(n, 1.0)[:, None])
     R2 = (np.eye(g) - jbar @ Ainv @ m.T) ** 2

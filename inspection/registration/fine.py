@@ -67,8 +67,8 @@ def fine_pose(scan: ScanCloud, target: ModelTarget, T: np.ndarray, settings: Reg
     fit = None
     faces = assigned_faces(scan, target, T, settings)
     surface = off_outline(scan, settings.max_incidence_deg, face=faces)  # one outline for the band and the shares
-    mixed = mixed_pixels(blurred(scan, surface), mixing(scan, surface, blur_px=settings.camera_blur_px), voxel_mm=v,
-                         settings=settings)
+    mixed = mixed_pixels(blurred(scan, surface), mixing(scan, surface, blur_px=settings.camera_blur_px),
+                         pixels=scan.pixels, voxel_mm=v, settings=settings)
     for points in _from_best_seen(scan, settings.max_incidence_deg):  # the best measured first
         sel = rng.choice(points, size=min(settings.exact_points, len(points)), replace=False)  # any will do
         fit = refine_exact(scan, sel, T, target=target, faces=faces, settings=settings, offset_limit_mm=0.5 * v,
@@ -199,16 +199,19 @@ def blurred(scan: ScanCloud, surface: np.ndarray | None) -> np.ndarray:
     return ~_inner(scan, surface)
 
 
-def mixed_pixels(band: np.ndarray, share: np.ndarray, *, voxel_mm: float,
+def mixed_pixels(band: np.ndarray, share: np.ndarray, *, pixels: np.ndarray | None, voxel_mm: float,
                  settings: RegistrationSettings) -> MixedPixels:
     """The exact fit's blurred-pixel model (`gauss_newton.MixedPixels`) for the scan points
-    `band` flags (`blurred`): each face's band points off by a common offset, uniform within
+    `band` flags (`blurred`) at image positions `pixels` (N, 2; None for a bare cloud, which
+    has no band): each face's band points off by a common offset and a trend across the
+    image (`band_effects`), the offset uniform within
     the assignment bound (`ASSIGN_VOXELS` voxels of `voxel_mm`: a point farther off is not
     assigned) for a band half of whose light came from beyond, tau^2 = bound^2 / 3, scaled
     by the band's mean `share` of light from beyond (`mixing`); steps bounded to the pose
     tolerance of `settings`."""
+    where = np.zeros((len(band), 2)) if pixels is None else pixels.astype(np.float64)
     return MixedPixels(band, (ASSIGN_VOXELS * voxel_mm) ** 2 / 3.0, settings.pose_tolerance_deg,
-                       settings.pose_tolerance_mm, share)
+                       settings.pose_tolerance_mm, share, where)
 
 
 def _inside_outline(scan: ScanCloud, max_incidence_deg: float, *, face: np.ndarray | None = None) -> np.ndarray:
@@ -358,8 +361,9 @@ def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fin
         r = np.einsum("ij,ij->i", q - target.dense.points[j], normal)
     if scan.pixels is not None:
         share = None if fit.mixed is None else fit.mixed.mixing[index]
+        band = None if fit.mixed is None or face is None else fit.mixed.subset(index).effects(face, within=in_fit)
         cov = pose_covariance(q, normal, r, scan.pixels[index].astype(np.float64), "px", face, in_fit=in_fit,
-                              mixing=share, offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm)
+                              mixing=share, offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm, band=band)
     else:
         where = scan.points[index]
         spacing = point_spacing(scan.points[fit.index], len(scan))

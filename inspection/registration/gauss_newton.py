@@ -13,12 +13,14 @@ both surfaces, off its face by up to the assignment bound. Least squares takes s
 as fully informative (leverage 1 where it alone has a lever arm): on top-down views of the
 demo part one to four crease pixels 50-130 um off their face were all that fixed the turn
 about the boss axis, and the fit turned the part until they read 0 (stored pose-coverage
-scan 635461529/88: 0.19 deg; scan 49: 1.41 deg). So the band points of each face share one
-unknown offset b_f of variance tau_f^2 (growing with their share of light from beyond:
-`MixedPixels`), taken out of the information (its Schur complement):
-A = H - sum_f m_f m_f' / (sum_(i in band f) w_i + sigma^2 / tau_f^2), m_f = sum_(i in band f)
-w_i J_i; a lone band point then counts with variance sigma^2 + tau_f^2, while many band points
-on one face still fix what their face's shape fixes. A step is taken only along the
+scan 635461529/88: 0.19 deg; scan 49: 1.41 deg); an 11-point outline strip 25 um off, and
+tilted as much, turned it 0.061 deg (coverage seed 55805, trial 1). So the band points of
+each face share one unknown offset and linear trend across the image, of variance tau_f^2
+growing with their share of light from beyond (`MixedPixels`), and the fit estimates them
+with the pose under that prior and keeps the pose's part (`band_effects`: the Schur
+complement A of the normal matrix, and the gradient reduced alike): a lone band point counts
+with variance sigma^2 + tau_f^2, a strip's tilt is its own, while many band points on one face
+still fix what their face's shape fixes beyond a plane's tilt. A step is taken only along the
 eigen-directions of A whose standard deviation sigma / sqrt(eigenvalue) is within the pose
 tolerance; along the others the pose stays where the previous stage put it, and
 `fine.fit_covariance` names those directions free: a pose is never accepted along a motion
@@ -32,6 +34,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from inspection.cad import CadModel
+from inspection.registration.band_effects import BandEffects
 from inspection.registration.evidence import MAX_SHARE, huber_weights, jacobian, residual_scale
 from inspection.registration.point_to_plane import point_to_plane_step
 from inspection.registration.rigid import transform_points, twist_matrix
@@ -42,41 +45,51 @@ from inspection.segmentation import project_to_faces
 class MixedPixels:
     """The exact fit's model of blurred points (module docstring): `band` (N,) bool, which
     of the fit's points lie within the blur of an outline (`fine.blurred`);
-    `offset_variance_mm2` tau^2 (mm^2), the variance of the common offset of one face's band
-    points were half their light from beyond the outline (an offset uniform within the
-    assignment bound B has B^2/3; a larger tau^2 refuses more poses as free, a smaller one
-    lets band points turn the pose again); a face's band whose points' mean share of light
-    from beyond is s has (s / `MAX_SHARE`)^2 of it, as the faces' offsets grow
-    (`evidence._face_offsets`);
+    `offset_variance_mm2` tau^2 (mm^2), the variance of the common offset (and of each trend
+    coefficient, `band_effects`) of one face's band points were half their light from beyond
+    the outline (an offset uniform within the assignment bound B has B^2/3; a larger tau^2
+    refuses more poses as free, a smaller one lets band points turn the pose again); a face's
+    band whose points' mean share of light from beyond is s has (s / `MAX_SHARE`)^2 of it, as
+    the faces' offsets grow (`evidence._face_offsets`);
     `tolerance_deg` / `tolerance_mm` the pose tolerance a direction's standard deviation
     must be within (rotations at the points' RMS radius) for the fit to step along it;
     `mixing` (N,) the share of each point's light from beyond its surface's outline
-    (`fine.mixing`), for the pose covariance's face offsets."""
+    (`fine.mixing`), for the pose covariance's face offsets; `pixels` (N, 2) the points'
+    image positions (px), over which a band's trend runs."""
 
     band: np.ndarray
     offset_variance_mm2: float
     tolerance_deg: float
     tolerance_mm: float
     mixing: np.ndarray
+    pixels: np.ndarray
 
     def subset(self, keep: np.ndarray) -> MixedPixels:
         """The model for the points `keep` (a mask or indices) of these."""
-        return replace(self, band=self.band[keep], mixing=self.mixing[keep])
+        return replace(self, band=self.band[keep], mixing=self.mixing[keep], pixels=self.pixels[keep])
+
+    def effects(self, face: np.ndarray, *, within: np.ndarray | None = None) -> BandEffects:
+        """The band points' offsets and trends per CAD face (`face` (N,)) as random effects
+        (`band_effects`), a face's tau^2 scaled by its band's mean share of light from beyond;
+        only the band points `within` flags (default all)."""
+        band = self.band if within is None else self.band & within
+        return BandEffects.of(face, band, self.pixels, loading=self.mixing / MAX_SHARE,
+                              variance_mm2=self.offset_variance_mm2)
 
 
 @dataclass(frozen=True)
 class Information:
     """The exact fit's weighted least-squares system at one pose, in scaled coordinates
-    z = S^-1 (omega, t) about `centre` (rotations as mm at `radius_mm`; `scale` = S): `H` =
-    sum w J J', `gradient` = sum w r J, `A` what is left of H once each face's band points'
-    common offset is taken out (module docstring), `sigma` the residuals' scale (mm)."""
+    z = S^-1 (omega, t) about `centre` (rotations as mm at `radius_mm`; `scale` = S): `A` the
+    normal matrix and `gradient` sum w c r once each face's band points' offset and trend are
+    taken out (module docstring; c the rows `band_effects` gives), `sigma` the residuals'
+    scale (mm)."""
 
     centre: np.ndarray
     radius_mm: float
     scale: np.ndarray
-    H: np.ndarray
-    gradient: np.ndarray
     A: np.ndarray
+    gradient: np.ndarray
     sigma: float
 
     def directions(self, tolerance_deg: float, tolerance_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -101,27 +114,17 @@ def information(q: np.ndarray, normal: np.ndarray, r: np.ndarray, face: np.ndarr
                 mixed: MixedPixels) -> Information:
     """The exact fit's `Information` at model-frame points `q` (N, 3) with their faces'
     `normal`s and residuals `r` (mm), Huber-weighted as `gauss_newton` weighs them; each
-    face's band points (`mixed`) sharing one offset of variance tau^2 scaled by their mean
-    share of light from beyond (one rank-one update per face)."""
+    face's band points (`mixed`) sharing one offset and trend (`band_effects`) of variance
+    tau^2 scaled by their mean share of light from beyond."""
     sigma = max(residual_scale(r), 1e-6)
     w = huber_weights(r, sigma)
     centre = q.mean(axis=0)
     radius = max(float(np.sqrt(np.mean(np.sum((q - centre) ** 2, axis=1)))), 1e-9)
     S = np.diag([1.0 / radius] * 3 + [1.0] * 3)
     J = jacobian(q, normal, centre) @ S
-    wJ = J * w[:, None]
-    H = wJ.T @ J
-    A = H.copy()
-    band = mixed.band
-    if band.any() and mixed.offset_variance_mm2 > 0:
-        _, group = np.unique(face[band], return_inverse=True)
-        group = group.ravel()
-        m = np.stack([np.bincount(group, weights=col) for col in wJ[band].T], axis=1)  # (faces, 6)
-        share = np.bincount(group, weights=mixed.mixing[band]) / np.bincount(group)
-        tau2 = np.maximum(mixed.offset_variance_mm2 * (share / MAX_SHARE) ** 2, 1e-30)
-        denom = np.bincount(group, weights=w[band]) + sigma ** 2 / tau2
-        A -= (m / denom[:, None]).T @ m
-    return Information(centre, radius, S, H, wJ.T @ r, A, sigma)
+    wC = mixed.effects(face).rows(J, w, sigma) * w[:, None]
+    A = wC.T @ J
+    return Information(centre, radius, S, 0.5 * (A + A.T), wC.T @ r, sigma)
 
 
 def gauss_newton(src: np.ndarray, face: np.ndarray, T: np.ndarray, model: CadModel, iterations: int, *,
@@ -153,7 +156,7 @@ def _bounded_step(info: Information, mixed: MixedPixels) -> np.ndarray:
     U, _ = info.directions(mixed.tolerance_deg, mixed.tolerance_mm)
     if U.shape[1] == 0:
         return np.zeros(6)
-    reduced = U.T @ info.H @ U
+    reduced = U.T @ info.A @ U
     z = -U @ np.linalg.solve(reduced + 1e-12 * np.abs(np.diag(reduced)).max() * np.eye(U.shape[1]),
                              U.T @ info.gradient)
     x = info.scale @ z  # (omega, t) about the centre
