@@ -59,6 +59,7 @@ import cv2
 import numpy as np
 
 from scanner.decode import DecodeResult
+from scanner.decode_checks import normal_isf
 from scanner.errors import ConfigError, DecodeError
 from scanner.geometry import Pinhole, perturbed_pose
 from scanner.pointcloud import OrganisedCloud
@@ -77,14 +78,6 @@ def parameter_names(cameras: tuple[str, str]) -> list[str]:
     """The rows of a stereo covariance: each camera's intrinsics by its name ('left.fx', ...), then
     'extrinsic.rx', ... 'extrinsic.tz'."""
     return [f"{c}.{n}" for c in cameras for n in INTRINSIC_NAMES] + [f"extrinsic.{n}" for n in EXTRINSIC_NAMES]
-
-
-def two_sided_z(alpha: float) -> float:
-    """The standard normal's two-sided critical value for `alpha` (scipy.stats imported here,
-    when first matched: it takes ~0.5 s, and a mono `decode` imports this module without matching)."""
-    from scipy.stats import norm
-
-    return float(norm.isf(alpha / 2))
 
 
 @dataclass(frozen=True, eq=False)
@@ -556,7 +549,7 @@ class _Search:
     def of(cls, rect: Rectification, left: CameraPhase, right: CameraPhase, o: str, c: np.ndarray,
            yl: np.ndarray) -> _Search:
         """The search for left coordinates `c` (N,) of orientation `o` at rectified rows `yl` (N,)."""
-        z_gate = two_sided_z(GRADIENT_FALSE_ACCEPT)
+        z_gate = normal_isf(GRADIENT_FALSE_ACCEPT / 2)
         grid_r = rect.right
         gy = yl - grid_r.y0
         j = np.floor(gy)
@@ -765,7 +758,7 @@ def projector_consistency(X: np.ndarray, c: np.ndarray, sigma: np.ndarray) -> tu
     poly = k[0] + u_all * (k[1] + u_all * (k[3] + u_all * k[6])) + y * (k[2] + u_all * (k[4] + u_all * k[7])
                                                                       + y * (k[5] + u_all * k[8] + y * k[9]))
     res_all = (c - cm) - cs * u_all - poly
-    keep = np.abs(res_all / sigma) <= two_sided_z(CHECK_FALSE_REFUSE) * spread
+    keep = np.abs(res_all / sigma) <= normal_isf(CHECK_FALSE_REFUSE / 2) * spread
     return keep, {"projector_fit_sigma": spread, "projector_fit_refused": float((~keep).sum())}
 
 
@@ -781,7 +774,7 @@ def _second_orientation(rect: Rectification, left: CameraPhase, right: CameraPha
     s2 += (np.nan_to_num(g_y) * np.float32(rect.model.epipolar_sigma_px)) ** 2
     r = left.coordinate[p].ravel()[pix] - c_right
     judged = ahead & np.isfinite(r)
-    consistent = judged & (np.abs(r) <= np.float32(two_sided_z(CHECK_FALSE_REFUSE)) * np.sqrt(s2))
+    consistent = judged & (np.abs(r) <= np.float32(normal_isf(CHECK_FALSE_REFUSE / 2)) * np.sqrt(s2))
     offset = (r / g_y)[judged & (np.abs(g_y) > 0)].astype(np.float64)
     return consistent, {"second_orientation_refused": float((judged & ~consistent).sum()),
                         "second_orientation_missing": float((ahead & ~judged).sum()),
