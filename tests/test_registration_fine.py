@@ -91,7 +91,7 @@ def test_biased_crease_points_turn_the_plain_fit_but_not_the_bounded_one(demo) -
     from inspection.segmentation import project_to_faces
 
     _, _, n, r = project_to_faces(model, p, face)
-    info = information(p, n, r, face, mixed)
+    info = information(p, n, r, mixed.effects(face))
     bounded, only_blurred = info.directions(mixed.tolerance_deg, mixed.tolerance_mm)
     assert only_blurred.shape[1] == 1 and bounded.shape[1] == 5
     omega, t = np.split(info.scale @ only_blurred[:, 0], 2)  # about info.centre
@@ -114,7 +114,7 @@ def test_band_points_far_from_their_outline_bound_the_turn(demo) -> None:
     voxel = model.diagonal_mm / DEFAULT_TARGET_SETTINGS.voxel_fraction
     for share, free in ((9e-5, 0), (0.3, 1)):
         mixed = mixed_pixels(band, np.where(band, share, 0.0), pixels=_pixels(p), voxel_mm=voxel, settings=SETTINGS)
-        info = information(p, n, r, face, mixed)
+        info = information(p, n, r, mixed.effects(face))
         assert info.directions(mixed.tolerance_deg, mixed.tolerance_mm)[1].shape[1] == free
     far = mixed_pixels(band, np.where(band, 9e-5, 0.0), pixels=_pixels(p), voxel_mm=voxel, settings=SETTINGS)
     assert _turn(gauss_newton(p, face, np.eye(4), model, 10, mixed=far)) == pytest.approx(

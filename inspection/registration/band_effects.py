@@ -63,6 +63,11 @@ class BandEffects:
         design[band, 1:] = np.einsum("na,nab->nb", d, whiten[g])
         return cls(group, design, variance_mm2 * (np.bincount(g, weights=loading[band]) / n) ** 2)
 
+    def subset(self, keep: np.ndarray) -> BandEffects:
+        """The effects for the points `keep` (a mask or indices) of these, which must hold
+        every point of a group (its design was whitened over all of them)."""
+        return BandEffects(self.group[keep], self.design[keep], self.prior)
+
     def rows(self, J: np.ndarray, weight: np.ndarray, sigma: float) -> np.ndarray:
         """The estimating equation's rows c_i (N, k) for Jacobian rows `J` (N, k) under the
         points' `weight`s (N,) and the residuals' scale `sigma` (mm) (module docstring)."""

@@ -290,7 +290,8 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
     sigma = residual_scale(r[in_fit])
     k = HUBER_K * max(sigma, 1e-12)
     inside = (np.abs(r) < k) & in_fit
-    C = J if band is None else band.rows(J, inside.astype(np.float64), max(sigma, 1e-12))  # the estimator's rows
+    weight = inside.astype(np.float64)  # psi': the M-estimator's sensitivity per point
+    C = J if band is None else band.rows(J, weight, max(sigma, 1e-12))  # the estimator's rows
     A = C[inside].T @ J[inside]
     w, v = np.linalg.eigh(0.5 * (A + A.T))
     info = w > 1e-9 * w.max()  # below: no information at all, a numerical zero
@@ -324,7 +325,7 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
         follow = Ainv @ m.T  # (6, faces): the fit's correction per unit offset of each face
         cov = cov + (follow * tau2) @ follow.T
         if band is not None:
-            cov = cov + Ainv @ band.trends(C, inside.astype(np.float64), tau2[face]) @ Ainv
+            cov = cov + Ainv @ band.trends(C, weight, tau2[face]) @ Ainv
         offsets = FaceOffsets(ids, (S @ follow).T, tau2)
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)

@@ -359,21 +359,20 @@ def fit_covariance(scan: ScanCloud, target: ModelTarget, T: np.ndarray, fit: Fin
         _, j = target.dense.tree.query(q)
         normal = target.dense.normals[j]
         r = np.einsum("ij,ij->i", q - target.dense.points[j], normal)
+    effects = None if fit.mixed is None or face is None else fit.mixed.subset(index).effects(face, within=in_fit)
     if scan.pixels is not None:
         share = None if fit.mixed is None else fit.mixed.mixing[index]
-        band = None if fit.mixed is None or face is None else fit.mixed.subset(index).effects(face, within=in_fit)
         cov = pose_covariance(q, normal, r, scan.pixels[index].astype(np.float64), "px", face, in_fit=in_fit,
-                              mixing=share, offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm, band=band)
+                              mixing=share, offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm, band=effects)
     else:
         where = scan.points[index]
         spacing = point_spacing(scan.points[fit.index], len(scan))
         cov = pose_covariance(q, normal, r, where / max(spacing, 1e-9), f"x {spacing:.3g} mm", face, in_fit=in_fit,
                               offset_bound_mm=ASSIGN_VOXELS * target.voxel_mm)
-    if fit.mixed is None or face is None:
+    if fit.mixed is None or effects is None:
         return cov
-    mixed = fit.mixed.subset(fit.index)
-    info = information(q[in_fit], normal[in_fit], r[in_fit], face[in_fit], mixed)
-    _, only_blurred = info.directions(mixed.tolerance_deg, mixed.tolerance_mm)
+    info = information(q[in_fit], normal[in_fit], r[in_fit], effects.subset(in_fit))
+    _, only_blurred = info.directions(fit.mixed.tolerance_deg, fit.mixed.tolerance_mm)
     return _with_unbounded(cov, info.motions(only_blurred, cov.centre))
 
 

@@ -110,19 +110,18 @@ class Information:
         return m
 
 
-def information(q: np.ndarray, normal: np.ndarray, r: np.ndarray, face: np.ndarray,
-                mixed: MixedPixels) -> Information:
+def information(q: np.ndarray, normal: np.ndarray, r: np.ndarray, effects: BandEffects) -> Information:
     """The exact fit's `Information` at model-frame points `q` (N, 3) with their faces'
     `normal`s and residuals `r` (mm), Huber-weighted as `gauss_newton` weighs them; each
-    face's band points (`mixed`) sharing one offset and trend (`band_effects`) of variance
-    tau^2 scaled by their mean share of light from beyond."""
+    face's band points sharing one offset and trend (`effects`, `MixedPixels.effects`) of
+    variance tau^2 scaled by their mean share of light from beyond."""
     sigma = max(residual_scale(r), 1e-6)
     w = huber_weights(r, sigma)
     centre = q.mean(axis=0)
     radius = max(float(np.sqrt(np.mean(np.sum((q - centre) ** 2, axis=1)))), 1e-9)
     S = np.diag([1.0 / radius] * 3 + [1.0] * 3)
     J = jacobian(q, normal, centre) @ S
-    wC = mixed.effects(face).rows(J, w, sigma) * w[:, None]
+    wC = effects.rows(J, w, sigma) * w[:, None]
     A = wC.T @ J
     return Information(centre, radius, S, 0.5 * (A + A.T), wC.T @ r, sigma)
 
@@ -136,14 +135,15 @@ def gauss_newton(src: np.ndarray, face: np.ndarray, T: np.ndarray, model: CadMod
     With `mixed`, each step is the least-squares step within the directions the points
     bound to the pose tolerance once their band points' offsets are allowed for (module
     docstring); along the others the pose stays as T has it."""
+    effects = None if mixed is None else mixed.effects(face)  # the points and their faces stay: one model
     for _ in range(iterations):
         q = transform_points(T, src)
         _, foot, normal, r = project_to_faces(model, q, face)
-        if mixed is None:
+        if mixed is None or effects is None:
             w = huber_weights(r, max(residual_scale(r), 1e-6))
             step, _ = point_to_plane_step(q, foot, normal, damping=1e-9, weights=w)
         else:
-            step = _bounded_step(information(q, normal, r, face, mixed), mixed)
+            step = _bounded_step(information(q, normal, r, effects), mixed)
         T = twist_matrix(step) @ T
         if np.linalg.norm(step) < 1e-9:
             break
