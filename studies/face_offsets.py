@@ -18,7 +18,7 @@ and 3 of all (5 % and 0.3 % if the offsets are Gaussian); and
 per distance of a pixel from its outline (0, 1, 2-3, 4+ px) the median and 90th percentile of
 |mean residual| over (face, distance) groups of 10 points or more; and per kind of face (outline
 pixels only; the others by share) the RMS of the faces' mean residuals beside the RMS of their
-linear trend across the image (`evidence._face_trends`). `--blur-px` is the camera
+linear trend across the image (`band_effects`). `--blur-px` is the camera
 blur assumed in the shares (the bench renders 0.6 px; the registration assumes 1.0 px unless
 told): the pooled kappa and the z scores say how either assumption fits.
 """
@@ -32,6 +32,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+
+from inspection.registration.band_effects import image_spread
 
 MIN_POINTS = 10  # points of a face (or of a face's distance class) for its mean to count
 INNER_PX = 4  # pixels this far from every outline carry no light from beyond (Phi(-4.5/0.6) ~ 1e-14)
@@ -133,17 +135,13 @@ def scan_faces(npz: Path, step: str, scale: float, *, blur_px: float,
 def _trend_rms(where: np.ndarray, r: np.ndarray, f: np.ndarray, ok: np.ndarray) -> np.ndarray:
     """Per face (`f`, the points `ok`), the RMS over its points of the least-squares linear
     trend of its residuals `r` across its image positions `where` (mm): the part of a face's
-    offset that tilts it (`evidence._face_trends`)."""
-    g = int(f.max()) + 1
-    n = np.maximum(np.bincount(f, weights=ok, minlength=g), 1.0)
-    sums = np.stack([np.bincount(f, weights=np.where(ok, where[:, c], 0.0), minlength=g) for c in (0, 1)], 1)
-    mean = sums / n[:, None]
-    d = np.where(ok[:, None], where - mean[f], 0.0)
-    rr = np.where(ok, r, 0.0)
-    dd = np.stack([np.stack([np.bincount(f, weights=d[:, a] * d[:, b], minlength=g) for b in (0, 1)], 1)
-                   for a in (0, 1)], 1)
-    dr = np.stack([np.bincount(f, weights=d[:, a] * rr, minlength=g) for a in (0, 1)], 1)
-    slope = np.einsum("fab,fb->fa", np.linalg.pinv(dd), dr)  # (faces, 2): mm per px
+    offset that tilts it (`band_effects`)."""
+    weight = ok.astype(np.float64)
+    d, second = image_spread(where, f, weight)
+    g = len(second)
+    n = np.maximum(np.bincount(f, weights=weight, minlength=g), 1.0)
+    dr = np.stack([np.bincount(f, weights=weight * d[:, a] * r, minlength=g) for a in (0, 1)], 1) / n[:, None]
+    slope = np.einsum("fab,fb->fa", np.linalg.pinv(second), dr)  # (faces, 2): mm per px
     return np.sqrt(np.bincount(f, weights=np.einsum("na,na->n", d, slope[f]) ** 2, minlength=g) / n)
 
 

@@ -51,10 +51,7 @@ class BandEffects:
         g = g.ravel()
         group[band] = g
         n = np.bincount(g).astype(np.float64)
-        xy = where[band].astype(np.float64)
-        d = xy - np.stack([np.bincount(g, weights=xy[:, c]) for c in range(2)], axis=1)[g] / n[g, None]
-        second = np.stack([np.stack([np.bincount(g, weights=d[:, a] * d[:, b]) for b in range(2)], axis=1)
-                           for a in range(2)], axis=1) / n[:, None, None]  # (G, 2, 2)
+        d, second = image_spread(where[band].astype(np.float64), g, np.ones(len(g)))
         lam, vec = np.linalg.eigh(second)
         extends = lam > 1e-6 * np.maximum(lam.max(axis=1, keepdims=True), 1e-12)  # a numerical zero: no extent
         whiten = vec * np.where(extends, 1.0 / np.sqrt(np.maximum(lam, 1e-300)), 0.0)[:, None, :]
@@ -103,3 +100,16 @@ class BandEffects:
         n = np.stack([np.stack([np.bincount(g, weights=wt[:, a] * C[inband, c], minlength=G) for c in range(k)], 1)
                       for a in range(2)], 1)  # (G, 2, k)
         return np.einsum("g,gac,gad->cd", tau2, n, n)
+
+
+def image_spread(where: np.ndarray, group: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(d (N, 2), second (G, 2, 2)): each point's image position `where` (N, 2 px) about its
+    `group`'s (N,) `weight`ed (N,) mean (0 where its weight is 0), and each group's weighted
+    mean square of them (px^2): the spread a face's trend across the image runs over."""
+    G = int(group.max()) + 1
+    n = np.maximum(np.bincount(group, weights=weight, minlength=G), 1e-300)
+    mean = np.stack([np.bincount(group, weights=weight * where[:, c], minlength=G) for c in range(2)], 1) / n[:, None]
+    d = np.where(weight[:, None] > 0, where - mean[group], 0.0)
+    second = np.stack([np.stack([np.bincount(group, weights=weight * d[:, a] * d[:, b], minlength=G)
+                                 for b in range(2)], 1) for a in range(2)], 1) / n[:, None, None]
+    return d, second
