@@ -22,7 +22,6 @@ from inspection.measured_cloud import ScanCloud
 from inspection.registration import ModelTarget, RegistrationSettings, pose_difference, register
 from inspection.registration.evidence import (
     ResidualCorrelation,
-    _expected_variance,
     jacobian,
     pose_covariance,
     sign_test,
@@ -252,22 +251,6 @@ def test_a_faces_deviation_carries_the_offset_the_fit_did_not_take() -> None:
     assert new[small].min() > 0.6 and new[small].max() < 3.0 and 0.8 < np.median(new[small]) < 1.25, new
     assert np.median(old[small]) < 0.7, old
     assert np.all(new[large] > 1.0), new
-
-
-def test_face_offset_variance_is_the_mean_of_its_confidence_distribution() -> None:
-    """K faces whose means carry all of their offset and no noise: their sum of squares Q is
-    tau^2 chi-square(K), so tau^2's confidence distribution is Q / chi-square(K), of mean
-    Q / (K - 2) for K > 2 (infinite for K <= 2: the cap, the most a face's offset could be,
-    decides it); with noise larger than the faces' spread (the moment estimate 0) it stays
-    above 0."""
-    rng = np.random.default_rng(14)
-    squares = rng.uniform(0, 1e-6, 6)
-    q = float(squares.sum())
-    assert _expected_variance(squares, np.ones(6), np.zeros(6), cap=1e3) == pytest.approx(q / 4.0, rel=1e-3)
-    two = [_expected_variance(squares[:2], np.ones(2), np.zeros(2), cap=c) for c in (1e-3, 1e-2)]
-    assert two[0] < two[1] <= 1e-2
-    noisy = _expected_variance(squares, np.ones(6), np.full(6, q), cap=1e-2)  # noise: Q below its mean at tau = 0
-    assert 0.0 < noisy < q
 
 
 @pytest.fixture(scope="module")

@@ -84,6 +84,16 @@ class BandEffects:
         C[inband] -= np.einsum("na,nak->nk", phi, K[g])
         return C
 
+    def group_mean(self, values: np.ndarray) -> np.ndarray:
+        """Each point's group mean of `values` (N,) (0 for a point in no group)."""
+        inband = self.group >= 0
+        out = np.zeros(len(values))
+        if inband.any():
+            g = self.group[inband]
+            out[inband] = (np.bincount(g, weights=values[inband], minlength=len(self.prior))
+                           / np.maximum(np.bincount(g, minlength=len(self.prior)), 1))[g]
+        return out
+
     def trends(self, C: np.ndarray, weight: np.ndarray, variance: np.ndarray) -> np.ndarray:
         """sum_g sum_k tau_g^2 n_gk n_gk' (k, k): what the groups' trends put into the normal
         equations' right-hand side, n_gk = sum_(i in g) weight_i t_ik c_i (`C` (N, k) the

@@ -23,9 +23,14 @@ face's mean and the noise about it; the blocks above estimate the noise's part, 
 faces' offsets are a random effect, independent across faces, of a variance that grows
 with the face's share of light from beyond its outline (`_face_offsets`), estimated from the
 faces' mean residuals (each shrunk by the share of its offset the fit absorbs, less its
-noise's part; with a handful of faces the moment estimate is often 0, so each variance is
-taken as its mean over the estimate's own sampling uncertainty), added as
-A^-1 (sum_f tau_f^2 m_f m_f') A^-1, m_f the sum of the face's J_i. (A cluster
+noise's part), added as A^-1 (sum_f tau_f^2 m_f m_f') A^-1, m_f the sum of the face's J_i.
+Both parts are estimated from what one scan shows: the noise's along each of its principal
+motions from the blocks that carry it (as few as one: seven points of a grazing strip that
+alone fix a turn), the offsets' variances from a handful of faces. Each is taken with its
+confidence distribution (`variance_law`): its Student-t equivalent shapes the covariance,
+and the covariance is sized so that its 95 % ellipsoid holds the error as often as stated
+when the variances are drawn from those distributions (the predictive region; for one
+variance on nu degrees of freedom exactly the t, Hotelling's F in k dimensions). (A cluster
 sandwich over the faces instead, the few clusters each scaled up for what the fit absorbs,
 was noisy and short of rank: on repeat scans of the demo part and a random part through
 `slscan register` its covariance was up to 99 times the independent one, refusing right
@@ -87,6 +92,7 @@ from scipy.special import betainc
 
 from inspection.registration.band_effects import BandEffects
 from inspection.registration.rigid import transform_points
+from inspection.registration.variance_law import VarianceLaw, law, predictive, sandwich_dof
 
 HUBER_K = 1.345  # Huber's threshold in robust sigmas: 95 % efficiency at normal noise (Huber 1964)
 BLOCKS = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0)  # block sides tried for the residuals' correlation (lag units)
@@ -199,24 +205,27 @@ class FreeMotion:
 @dataclass(frozen=True)
 class FaceOffsets:
     """The faces' part of a pose covariance, per CAD face the covariance knows (`faces` (F,),
-    CAD ids): `follow` (F, 6) the pose's correction (omega rad, t mm about the centre) per mm
-    that the face's measurement is off as a whole, S A^-1 m_f (`_face_offsets`), so a face of
-    mean Jacobian row j keeps 1 - j . follow_f of its own offset; `offset_variance` (F,) tau_f^2
-    (mm^2). The covariance holds sum_f follow_f follow_f' tau_f^2 (`kept_variance`)."""
+    CAD ids), for each of a face's two offsets (`_face_offsets`: the blur's, read by each point
+    in proportion to its share of light from beyond, and the face's own, read whole):
+    `follow` (F, 2, 6) the pose's correction (omega rad, t mm about the centre) per mm of it,
+    S A^-1 m_fc; `reads` (F, 2) how much of it the face's points read on average (a_fc);
+    `variance` (2,) its variance theta_c (mm^2). The covariance holds
+    sum_fc follow_fc follow_fc' theta_c (`kept_variance`)."""
 
     faces: np.ndarray
     follow: np.ndarray
-    offset_variance: np.ndarray
+    reads: np.ndarray
+    variance: np.ndarray
 
     def kept_variance(self, face: int, j: np.ndarray) -> float:
-        """The variance (mm^2) of the part of face `face`'s own offset that the fit did not take
-        from it, (1 - j . follow_f)^2 tau_f^2 (j the face's points' mean Jacobian row), which its
-        mean deviation carries beside the pose's error along j; 0 for a face the covariance
-        does not know (neither fitted nor told apart)."""
+        """The variance (mm^2) of the part of face `face`'s own offsets that the fit did not
+        take from it, sum_c (a_fc - j . follow_fc)^2 theta_c (j the face's points' mean
+        Jacobian row), which its mean deviation carries beside the pose's error along j; 0 for
+        a face the covariance does not know (neither fitted nor told apart)."""
         at = np.flatnonzero(self.faces == face)
         if len(at) == 0:
             return 0.0
-        return float((1.0 - j @ self.follow[at[0]]) ** 2 * self.offset_variance[at[0]])
+        return float(np.sum((self.reads[at[0]] - self.follow[at[0]] @ j) ** 2 * self.variance))
 
 
 @dataclass(frozen=True)
@@ -315,18 +324,27 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
         if np.trace(blocked) > np.trace(cov):
             pair = _pair_correlation(psi[in_fit], label[in_fit])
             cov, corr, chosen = blocked, ResidualCorrelation(float(size), pair, unit), label
+    parts: tuple[np.ndarray, ...] = ()
+    laws: tuple[VarianceLaw, ...] = ()
     if faces is not None:
-        loading = np.zeros((len(n_f), 2))
-        loading[:, 1] = 1.0
-        if mixing is not None:  # the blur's offset grows with the face's mean share of light from beyond
-            loading[:, 0] = (np.bincount(face, weights=mixing, minlength=len(n_f)) / n_f / MAX_SHARE) ** 2
-        tau2, m = _face_offsets(r, e, face, block=chosen, J=J_all, C=C, inside=inside, Ainv=Ainv, loading=loading,
-                                bound=offset_bound_mm)
-        follow = Ainv @ m.T  # (6, faces): the fit's correction per unit offset of each face
-        cov = cov + (follow * tau2) @ follow.T
-        if band is not None:
-            cov = cov + Ainv @ band.trends(C, weight, tau2[face]) @ Ainv
-        offsets = FaceOffsets(ids, (S @ follow).T, tau2)
+        load = np.ones((len(r), 2))  # each point's offset per unit of each face's two offsets (`_face_offsets`)
+        load[:, 0] = 0.0 if mixing is None else mixing / MAX_SHARE
+        laws, m, kept = _face_offsets(r, e, face, block=chosen, J=J_all, C=C, inside=inside, Ainv=Ainv, load=load,
+                                      bound=offset_bound_mm)
+        follow = np.einsum("ij,cfj->cif", Ainv, m)  # (2, 6, faces): the fit's correction per unit offset
+        trend = np.zeros((2, 6, 6))
+        if band is not None and mixing is not None:  # the blur's trend across a band, as its offset (`band_effects`)
+            trend[0] = Ainv @ band.trends(C, weight, band.group_mean(load[:, 0]) ** 2) @ Ainv
+        parts = tuple(follow[c] @ follow[c].T + trend[c] for c in (0, 1))  # the covariance per unit of each variance
+    lam, axes = np.linalg.eigh(v[:, info].T @ cov @ v[:, info])  # the noise's part, along its own axes
+    axes = v[:, info] @ axes
+    sums = np.stack([np.bincount(chosen, weights=score[:, c]) for c in range(6)], axis=1) @ Ainv
+    noise = tuple(max(x, 0.0) * np.outer(a, a) for x, a in zip(lam, axes.T, strict=True))
+    scale = predictive(noise + parts, tuple(VarianceLaw.scaled(d) for d in sandwich_dof(axes.T, sums)) + laws,
+                       basis=v[:, info], level=U_LEVEL)
+    cov = sum((t * part for t, part in zip(scale, noise + parts, strict=True)), np.zeros((6, 6)))
+    if faces is not None:
+        offsets = FaceOffsets(ids, np.einsum("ij,cjf->fci", S, follow), kept, scale[len(noise):])
     unbounded = (S @ v[:, ~info]).T
     unbounded /= np.maximum(np.linalg.norm(unbounded, axis=1, keepdims=True), 1e-300)
     return PoseCovariance(0.5 * (S @ cov @ S + (S @ cov @ S).T), centre, sigma, int(in_fit.sum()), corr,
@@ -334,48 +352,39 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
 
 
 def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.ndarray, J: np.ndarray,
-                  C: np.ndarray, inside: np.ndarray, Ainv: np.ndarray, loading: np.ndarray,
-                  bound: float | None) -> tuple[np.ndarray, np.ndarray]:
-    """Per face, (tau_f^2 (mm^2), m_f (6,)): the pose covariance offsets of whole faces give
-    is A^-1 (sum_f tau_f^2 m_f m_f') A^-1 (module docstring). Each face's measurement off by b_f,
-    independent across faces, of variance tau_f^2 = L_f0 theta_0 +
-    L_f1 theta_1 (`loading` (faces, 2): L_f0 = (s_f / `MAX_SHARE`)^2, s_f the face's mean
-    share of light from beyond its outline (`fine.mixing`), L_f1 = 1), the pose moved by
-    -A^-1 sum_g m_g b_g (m_g the sum of face g's estimator rows `C` over the points the fit
-    rests on, `inside`: `J`'s rows in a plain fit, `band_effects` rows where it estimated the
-    blurred points' offsets too). The model: the camera's blur mixes a face's pixels near its outline with what
-    lies beyond (a 12 mm step wall of the demo part read 34 um off as a whole), so a face's
-    offset grows with its share; over 701 faces of 43 scans of random parts at the true pose
+                  C: np.ndarray, inside: np.ndarray, Ainv: np.ndarray, load: np.ndarray,
+                  bound: float | None) -> tuple[tuple[VarianceLaw, VarianceLaw], np.ndarray, np.ndarray]:
+    """(laws, m (2, faces, 6), a (faces, 2)): the faces' offsets as the pose covariance takes
+    them (module docstring). Each face f is off by two offsets, independent across faces and of
+    each other: beta_f, of variance theta_0, which point i of it reads as `load`_i0 beta_f
+    (`load` (N, 2): l_i0 = s_i / `MAX_SHARE`, s_i the point's share of light from beyond its
+    surface's outline, `fine.mixing`), and gamma_f, of variance theta_1, read whole
+    (l_i1 = 1). The model: the camera's blur mixes a pixel near an outline with what lies
+    beyond, so a point's offset grows with its share (a 12 mm step wall of the demo part read
+    34 um off as a whole); over 701 faces of 43 scans of random parts at the true pose
     (campaign 1501789337, bench blur 0.6 px, `python -m studies.face_offsets`) the faces' mean
-    residuals spread by 180-320 um per unit share in each eighth of the shares from 0.001 to
-    0.23 (by likelihood 214 um and a floor of 1 um; the faces' z RMS per eighth 0.85-1.19,
-    7.1 % beyond 1.96, 1.4 % beyond 3), while the part's own faces, far from any outline,
-    read a few um (theta_1). The two variances by
-    moments from the faces' mean residuals: rbar_f = sum_g R_fg b_g + noise, R = I - H,
-    H_fg = jbar_f' A^-1 m_g (jbar_f the mean row of face f over all its points: what of the
-    offsets the fit moves into f's mean), so E[rbar_f^2] = sum_g R_fg^2 tau_g^2 + v_f, v_f
-    the variance of f's mean noise (from the sums over `block`s of the residuals `e` about
-    the face's mean), weighted by each face's loadings and solved non-negative. With a
-    handful of faces that estimate is exactly 0 on many scans whose faces are off (the demo
-    part's chamfer reads -1.5 um, its bore wall +1.1 um in every scan: translation coverage
-    88 % on 100 scans), so each theta is taken as its mean over the estimate's own sampling
-    uncertainty, the other at its moment estimate (`_expected_variance`), the faces' squares
-    weighted by what each tells of it (the Gaussian likelihood's score, G_fc / s_f^4: a strip
-    of outline pixels 114 um off says nothing of the inner faces' few um), at most the
-    largest variance an offset could have: uniform within `bound` (mm, the distance within
-    which points are assigned to a face), bound^2 / 3 (a face all of whose light came half
-    from beyond). It is no 95 % bound on the pose: where offsets dominate the error and few
-    faces measure them (synthetic: 9 faces of random orientation) the 95 % ellipsoid holds
-    71 % (the moment estimate's 61 %). Faces with fewer than `MIN_BLOCKS` points are no
-    measure of their offset (a few stray points) and are left out of the sums, not of the
-    effect; with fewer than two faces to measure by, both variances take the bound.
-    Measured against the faces split into two kinds (mostly within `EDGE_MARGIN_PX` of a depth
-    step, and the rest, a variance each, the bound for a kind of one face): on 100 repeat
-    scans of the demo part (pose-coverage seed 1164172154) 91 poses proven instead of 83,
-    none beyond the pose tolerance, coverage of rotation / translation / ellipsoid 97.8 /
-    96.7 / 96.7 % (100 / 97.6 / 97.6 %); on the 43 scans of campaign 1501789337, 36 within
-    the tolerance instead of 38, none wrong (two right poses newly refused: a translation's
-    U 0.051 mm against the 0.05 mm tolerance, and an alternative 0.1 deg away)."""
+    residuals spread by 180-320 um per unit mean share in each eighth of the shares from 0.001
+    to 0.23 (by likelihood 214 um and a floor of 1 um; the faces' z RMS per eighth 0.85-1.19,
+    7.1 % beyond 1.96, 1.4 % beyond 3), while the part's own faces, far from any outline, read
+    a few um (gamma). The pose moves by -A^-1 sum_g (m_g0 beta_g + m_g1 gamma_g), m_gc the
+    sum of face g's estimator rows `C` times l_ic over the points the fit rests on (`inside`;
+    `J`'s rows in a plain fit, `band_effects` rows where it estimated the blurred points'
+    offsets too, which then take most of beta out), and face f's mean residual by
+    rbar_f = sum_c sum_g R_c,fg x_cg + noise, R_c = diag(a_c) - jbar A^-1 m_c' (a_fc the
+    face's mean l_ic over all its points, `a`; jbar_f its mean row of `J`: what the fit moves
+    into its mean), so E[rbar_f^2] = sum_c theta_c G_fc + v_f, G_fc = sum_g R_c,fg^2, v_f the
+    variance of f's mean noise (from the sums over `block`s of the residuals `e` about the
+    face's mean). Each theta's confidence distribution (`variance_law.law`, the other at its
+    moment estimate; faces' squares weighted by what each tells of it, the Gaussian
+    likelihood's score G_fc / s_f^4: a strip of outline pixels 114 um off says nothing of the
+    inner faces' few um), at most the largest variance an offset could have: uniform within
+    `bound` (mm, the distance within which points are assigned to a face), bound^2 / 3. The
+    moment estimates (weighted by a^2, solved non-negative) alone are often 0 with a handful
+    of faces whose offsets are not (the demo part's chamfer reads -1.5 um, its bore wall
+    +1.1 um in every scan: translation coverage 88 % on 100 scans). Faces with fewer than
+    `MIN_BLOCKS` points are no measure of their offset (a few stray points) and are left out
+    of the sums, not of the effect; with fewer than two faces to measure by, both variances
+    take the bound; with no `bound`, the moment estimates are taken as known."""
     from scipy.optimize import nnls
 
     g = int(face.max()) + 1
@@ -385,53 +394,28 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.n
     cell_face = np.zeros(int(cell.max()) + 1, np.int64)
     cell_face[cell.ravel()] = face
     v = np.bincount(cell_face, weights=np.bincount(cell.ravel(), weights=e) ** 2, minlength=g) / np.maximum(n, 1.0) ** 2
-    m = np.stack([np.bincount(face, weights=C[:, c] * inside, minlength=g) for c in range(6)], axis=1)
-    jbar = (np.stack([np.bincount(face, weights=J[:, c], minlength=g) for c in range(6)], axis=1)
-            / np.maximum(n, 1.0)[:, None])
-    R2 = (np.eye(g) - jbar @ Ainv @ m.T) ** 2
+
+    def per_face(w: np.ndarray) -> np.ndarray:  # (N, k) -> (faces, k): each face's sums
+        return np.stack([np.bincount(face, weights=w[:, k], minlength=g) for k in range(w.shape[1])], axis=1)
+
+    m = np.stack([per_face(C * (inside * load[:, c])[:, None]) for c in (0, 1)])
+    a = per_face(load) / np.maximum(n, 1.0)[:, None]
+    jbar = per_face(J) / np.maximum(n, 1.0)[:, None]
     told = n >= MIN_BLOCKS
-    L = loading[told]
-    G = R2[told] @ loading  # each told face's mean square per unit of each component
-    lhs = L.T @ (mean[told] ** 2 - v[told])
+    G = np.stack([np.sum((np.diag(a[:, c]) - jbar @ Ainv @ m[c].T)[told] ** 2, axis=1) for c in (0, 1)], axis=1)
+    L = a[told] ** 2
     coef = L.T @ G
-    tau2 = nnls(coef, np.maximum(lhs, 0.0))[0] if coef.any() else np.zeros(2)
-    if bound is not None:  # each component as expected from the faces' means (`_expected_variance`)
-        cap = bound ** 2 / 3.0
-        s2 = np.maximum(G @ tau2 + v[told], 1e-30)  # each face's mean square expected at the moment estimates
-        score = G / s2[:, None] ** 2  # how much each face's square tells of each component (likelihood score)
-        tau2 = np.array([_expected_variance(mean[told] ** 2, G[:, c], G[:, 1 - c] * tau2[1 - c] + v[told],
-                                            weight=score[:, c], cap=cap)
-                         if told.sum() >= 2 else cap for c in (0, 1)])
-    return loading @ tau2, m
-
-
-def _expected_variance(squares: np.ndarray, gain: np.ndarray, rest: np.ndarray, *, cap: float,
-                       weight: np.ndarray | None = None) -> float:
-    """One component of the face offsets' variance, tau^2 (mm^2), as expected from the faces'
-    means, at most `cap`: `squares` the faces' mean residuals squared, each of variance
-    s_f^2 = `gain`_f tau^2 + `rest`_f (the other component at its moment estimate and the
-    face's mean noise); their sum Q weighted by `weight` (default 1 each), a weighted sum of
-    chi-square(1) terms, taken as c chi-square(nu) (Satterthwaite on the weighted terms
-    a_f = weight_f s_f^2: c = sum a^2 / sum a, nu = (sum a)^2 / sum a^2), F(t) = P(Q <= the
-    observed Q | tau^2 = t); tau^2's confidence distribution puts P(tau^2 > t) = F(t), so its
-    mean, capped, is the integral of F from 0 to `cap`."""
-    from scipy.integrate import quad
-    from scipy.stats import chi2
-
-    w = np.ones(len(squares)) if weight is None else weight
-    q = float(np.sum(w * squares))
-
-    def below(t: float) -> float:
-        s2 = w * (gain * t + rest)
-        if np.sum(s2) <= 0.0:
-            return 1.0  # Q is 0 for certain
-        c = float(np.sum(s2 ** 2) / np.sum(s2))
-        return float(chi2.cdf(q / c, np.sum(s2) / c))
-
-    if q <= 0.0 or cap <= 0.0:
-        return 0.0
-    low = 1e-12 * cap  # below: at most this much of the mean, a numerical zero
-    return low * below(0.0) + quad(lambda x: below(np.exp(x)) * np.exp(x), np.log(low), np.log(cap), limit=200)[0]
+    tau2 = nnls(coef, np.maximum(L.T @ (mean[told] ** 2 - v[told]), 0.0))[0] if coef.any() else np.zeros(2)
+    if bound is None:
+        return (VarianceLaw.point(tau2[0]), VarianceLaw.point(tau2[1])), m, a
+    cap = bound ** 2 / 3.0
+    if told.sum() < 2:
+        return (VarianceLaw.point(cap), VarianceLaw.point(cap)), m, a
+    s2 = np.maximum(G @ tau2 + v[told], 1e-30)  # each face's mean square expected at the moment estimates
+    score = G / s2[:, None] ** 2  # how much each face's square tells of each component (likelihood score)
+    laws = tuple(law(mean[told] ** 2, G[:, c], G[:, 1 - c] * tau2[1 - c] + v[told], weight=score[:, c], cap=cap)
+                 for c in (0, 1))
+    return (laws[0], laws[1]), m, a
 
 
 def _clustered(score: np.ndarray, label: np.ndarray, Ainv: np.ndarray, scale: np.ndarray | None = None,
