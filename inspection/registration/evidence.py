@@ -340,8 +340,9 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
     axes = v[:, info] @ axes
     sums = np.stack([np.bincount(chosen, weights=score[:, c]) for c in range(6)], axis=1) @ Ainv
     noise = tuple(max(x, 0.0) * np.outer(a, a) for x, a in zip(lam, axes.T, strict=True))
-    scale = predictive(noise + parts, tuple(VarianceLaw.scaled(d) for d in sandwich_dof(axes.T, sums)) + laws,
-                       basis=v[:, info], level=U_LEVEL)
+    told = tuple(VarianceLaw.scaled(d) if d > 0.0 else VarianceLaw.point(1.0)  # 0: no noise along it at all
+                 for d in sandwich_dof(axes.T, sums))
+    scale = predictive(noise + parts, told + laws, basis=v[:, info], level=U_LEVEL)
     cov = sum((t * part for t, part in zip(scale, noise + parts, strict=True)), np.zeros((6, 6)))
     if faces is not None:
         offsets = FaceOffsets(ids, np.einsum("ij,cjf->fci", S, follow), kept, scale[len(noise):])
