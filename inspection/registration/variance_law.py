@@ -118,6 +118,7 @@ def equivalent(law: VarianceLaw, *, level: float) -> float:
     """The variance (mm^2) whose normal interval at `level` is as wide as that of sqrt(theta) z
     with theta drawn from `law` and z standard normal (for nu / chi-square(nu) times s^2:
     (t_nu / z)^2 s^2, Student's t over the normal's quantile, squared)."""
+    from scipy.optimize import brentq
     from scipy.special import ndtr
     from scipy.stats import norm
 
@@ -130,11 +131,12 @@ def equivalent(law: VarianceLaw, *, level: float) -> float:
         with np.errstate(divide="ignore"):
             return float(np.mean(2.0 * ndtr(z * np.sqrt(t / theta)) - 1.0))
 
-    lo, hi = 1e-30 * float(theta.max()), float(theta.max())
-    for _ in range(80):  # bisection in log to 1e-9 of the value; below lo: a numerical zero
-        mid = float(np.sqrt(lo * hi))
-        lo, hi = (lo, mid) if covered(mid) >= level else (mid, hi)
-    return hi
+    lo, hi = np.log(1e-30 * float(theta.max())), np.log(float(theta.max()))  # below lo: a numerical zero
+    if covered(float(np.exp(lo))) >= level:
+        return 0.0
+    if covered(float(np.exp(hi))) < level:
+        return float(np.exp(hi))
+    return float(np.exp(brentq(lambda x: covered(float(np.exp(x))) - level, lo, hi, xtol=1e-9)))
 
 
 def sandwich_dof(directions: np.ndarray, sums: np.ndarray) -> np.ndarray:
