@@ -20,10 +20,12 @@ seen near a depth step is all mixed pixels: on the simulated bench a 12 mm step 
 the demo part read 34 um inside the material, and, the wall being what fixed the part's
 turn, turned it 0.025 deg): with the CAD faces given, the residuals are split into each
 face's mean and the noise about it; the blocks above estimate the noise's part, and the
-faces' offsets are a random effect, independent across faces, of a variance that grows
-with the face's share of light from beyond its outline (`_face_offsets`), estimated from the
-faces' mean residuals (each shrunk by the share of its offset the fit absorbs, less its
-noise's part), added as A^-1 (sum_f tau_f^2 m_f m_f') A^-1, m_f the sum of the face's J_i.
+faces' offsets are random effects, independent across faces: the blur's, which each point
+reads in proportion to its share of light from beyond its surface's outline, and the face's
+own, read whole (`_face_offsets`), their two variances estimated from the faces' mean
+residuals (each shrunk by the share of its offset the fit absorbs, less its noise's part),
+added as A^-1 (sum_fc theta_c m_fc m_fc') A^-1, m_fc the sum of the face's J_i, each times
+how much of offset c the point reads.
 Both parts are estimated from what one scan shows: the noise's along each of its principal
 motions from the blocks that carry it (as few as one: seven points of a grazing strip that
 alone fix a turn), the offsets' variances from a handful of faces. Each is taken with its
