@@ -167,6 +167,12 @@ def _dense_labels(keys: np.ndarray) -> np.ndarray:
     return (np.cumsum(present) - 1)[cell]
 
 
+def _label_sums(values: np.ndarray, label: np.ndarray, count: int | None = None) -> np.ndarray:
+    """Each label's sums of the rows of `values` (N, k): (labels, k), at least `count` rows."""
+    return np.stack([np.bincount(label, weights=values[:, c], minlength=count or 0)
+                     for c in range(values.shape[1])], axis=1)
+
+
 @dataclass(frozen=True)
 class FreeMotion:
     """A motion the fit does not fix: `kind` "rotation" (about `axis` through `point`) or
@@ -340,7 +346,7 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
         parts = tuple(follow[c] @ follow[c].T + trend[c] for c in (0, 1))  # the covariance per unit of each variance
     lam, axes = np.linalg.eigh(v[:, info].T @ cov @ v[:, info])  # the noise's part, along its own axes
     axes = v[:, info] @ axes
-    sums = np.stack([np.bincount(chosen, weights=score[:, c]) for c in range(6)], axis=1) @ Ainv
+    sums = _label_sums(score, chosen) @ Ainv
     noise = tuple(max(x, 0.0) * np.outer(a, a) for x, a in zip(lam, axes.T, strict=True))
     told = tuple(VarianceLaw.scaled(d) if d > 0.0 else VarianceLaw.point(1.0)  # 0: no noise along it at all
                  for d in sandwich_dof(axes.T, sums))
@@ -397,13 +403,9 @@ def _face_offsets(r: np.ndarray, e: np.ndarray, face: np.ndarray, *, block: np.n
     cell_face = np.zeros(int(cell.max()) + 1, np.int64)
     cell_face[cell.ravel()] = face
     v = np.bincount(cell_face, weights=np.bincount(cell.ravel(), weights=e) ** 2, minlength=g) / np.maximum(n, 1.0) ** 2
-
-    def per_face(w: np.ndarray) -> np.ndarray:  # (N, k) -> (faces, k): each face's sums
-        return np.stack([np.bincount(face, weights=w[:, k], minlength=g) for k in range(w.shape[1])], axis=1)
-
-    m = np.stack([per_face(C * (inside * load[:, c])[:, None]) for c in (0, 1)])
-    a = per_face(load) / np.maximum(n, 1.0)[:, None]
-    jbar = per_face(J) / np.maximum(n, 1.0)[:, None]
+    m = np.stack([_label_sums(C * (inside * load[:, c])[:, None], face, g) for c in (0, 1)])
+    a = _label_sums(load, face, g) / np.maximum(n, 1.0)[:, None]
+    jbar = _label_sums(J, face, g) / np.maximum(n, 1.0)[:, None]
     told = n >= MIN_BLOCKS
     G = np.stack([np.sum((np.diag(a[:, c]) - jbar @ Ainv @ m[c].T)[told] ** 2, axis=1) for c in (0, 1)], axis=1)
     L = a[told] ** 2
@@ -428,7 +430,7 @@ def _clustered(score: np.ndarray, label: np.ndarray, Ainv: np.ndarray, scale: np
     g = int(label.max()) + 1
     if g < min_groups:
         return None
-    sums = np.stack([np.bincount(label, weights=score[:, c], minlength=g) for c in range(6)], axis=1)
+    sums = _label_sums(score, label, g)
     if scale is not None:
         sums = sums * scale[:, None]
     return Ainv @ (sums.T @ sums) @ Ainv * g / (g - 1.0)
