@@ -13,9 +13,10 @@ Method, per scan (millimetres, pixels; OpenCV frames):
    by exact bilinear interpolation in float32 (not `cv2.remap`, whose 1/32 px position
    quantisation would add ~0.01 projector px of error), NaN wherever a neighbour is invalid.
 2. Matching (`match`): on a rectified right row, consecutive valid samples (x, x+1) span an
-   interval of projector coordinate [c(x), c(x+1)). Every interval of every row is put on one
-   number line (row·span + c), sorted once; for each left pixel, two `searchsorted` calls count
-   the intervals of a row holding its coordinate. The match is kept only when exactly one
+   interval of projector coordinate [c(x), c(x+1)). A row's intervals form monotone runs (`_Runs`),
+   each of which holds a coordinate in at most one interval; the runs of every row are put on one
+   number line (row·span + c), and for each left pixel two `searchsorted` calls count the runs,
+   hence the intervals, of a row holding its coordinate. The match is kept only when exactly one
    interval holds it on both rows around y_l (the sub-pixel x on each by linear interpolation
    within the interval, then linearly between the rows: iso-coordinate lines are straight to
    first order), and when each interval's step |c(x+1) − c(x)| exceeds z·σ_step, σ_step the
@@ -396,132 +397,142 @@ class BinocularResult:
         return idx, self.model.right.project(pts)
 
 
-def _intervals(c: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The intervals between horizontal neighbours of `c` (Hg, Wg) that hold a change of
-    coordinate: (base, span, their flat indices into (Hg, Wg − 1), lower and upper ends as
-    keys row·span + (c − base), float64, the flat grid index of each one's left sample, and its
-    step: the right sample's coordinate minus the left's, float32)."""
-    low, high = np.fmin.reduce(c, axis=None), np.fmax.reduce(c, axis=None)  # NaN: no sample has a coordinate
-    base = float(low) - 1.0 if np.isfinite(low) else 0.0
-    span = float(high - base) + 2.0 if np.isfinite(low) else 1.0
-    step = c[:, 1:] - c[:, :-1]
-    has = np.isfinite(step)
-    has &= step != 0
-    idx = np.flatnonzero(has)
-    per_row = np.count_nonzero(has, axis=1)
-    del step, has
-    p = idx + np.repeat(np.arange(c.shape[0]), per_row)  # interval k joins grid samples p(k) and p(k) + 1
-    flat = c.ravel()
-    av, bv = flat.take(p), flat[1:].take(p)
-    keys = np.repeat(np.arange(c.shape[0], dtype=np.float64) * span - base, per_row)
-    lo = np.minimum(av, bv) + keys
-    keys += np.maximum(av, bv)
-    return base, span, idx, lo, keys, p, bv - av
-
-
 def _at_most(keys: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """How many of the sorted keys (positive, float64, as `_intervals` makes them) are ≤ each q
-    (finite float64): `np.searchsorted(keys, q, side="right")` on the numbers' bits as int64. IEEE 754
-    doubles ≥ +0 order as their bits do, and a negative q's bits are a negative integer, below every
+    """How many of the sorted keys (positive float64) are ≤ each q (finite float64):
+    `np.searchsorted(keys, q, side="right")` on the numbers' bits as int64. IEEE 754 doubles
+    ≥ +0 order as their bits do, and a negative q's bits are a negative integer, below every
     key's as its value is; integer comparisons skip the NaN handling of float ones (~25% faster)."""
     return np.searchsorted(keys.view(np.int64), q.view(np.int64), side="right")
 
 
 @dataclass(frozen=True, eq=False)
-class _Rows:
-    """The projector-coordinate intervals between horizontal neighbours of a rectified grid
-    (Hg, Wg): every row's on one number line, key = row·span + (c − base), sorted once by
-    their lower and by their upper ends. `gate` (Hg, Wg − 1): the interval's step passes the
-    gradient gate (|step| ≥ z·σ_step)."""
+class _Runs:
+    """The monotone runs of a rectified grid's rows (Hg, Wg) of projector coordinate `c`: a run is
+    a stretch of consecutive samples whose coordinate rises at every step, or falls at every step
+    (a NaN or a zero step ends it). The intervals [min, max) between a run's neighbouring samples
+    tile the run's range [min, max) once, so the intervals of a row holding a coordinate number
+    the row's runs whose range holds it: a few runs per row are searched, not ~Wg intervals, and
+    the one interval of a run holding it is found among the run's samples, in order by construction.
+
+    `lo`, `hi`: the runs' ranges as keys on one number line of all rows, row·span + (c − base),
+    sorted; `lo_sums`, `hi_sums` the running sums of their run numbers in that order. `keys`: every run's
+    samples on another line, run·span + (c − base) on a rising run and run·span + (top − c) on a
+    falling one (top = base + span), ascending; `samples` their flat grid indices (a turning
+    sample in both its runs). `gate` (Hg·(Wg − 1),), where the runs are built with the noise
+    `sigma`: the interval between horizontal neighbours passes the gradient gate (|step| ≥ z·σ_step)."""
 
     c: np.ndarray
-    sigma: np.ndarray
+    sigma: np.ndarray | None
+    gate: np.ndarray | None
     lo: np.ndarray
-    lo_index: np.ndarray
+    lo_sums: np.ndarray
     hi: np.ndarray
-    hi_index: np.ndarray
-    gate: np.ndarray
+    hi_sums: np.ndarray
+    falling: np.ndarray
+    samples: np.ndarray
+    keys: np.ndarray
     base: float
     span: float
 
     @classmethod
-    def of(cls, c: np.ndarray, sigma: np.ndarray, z: float) -> _Rows:
-        base, span, idx, lo, hi, p, step = _intervals(c)
-        gate = np.zeros(c.shape[0] * (c.shape[1] - 1), bool)
-        flat = sigma.ravel()
-        sa, sb = flat.take(p), flat[1:].take(p)
-        sa *= sa
-        sb *= sb
-        sa += sb
-        gate[idx] = np.abs(step) >= np.float32(z) * np.sqrt(sa, out=sa)
-        order_lo, order_hi = np.argsort(lo, kind="stable"), np.argsort(hi, kind="stable")
-        return cls(c, sigma, lo.take(order_lo), idx.take(order_lo), hi.take(order_hi), idx.take(order_hi), gate,
-                   base, span)
+    def of(cls, c: np.ndarray, sigma: np.ndarray | None = None, z: float = 0.0) -> _Runs:
+        """The runs of `c` (Hg, Wg); with `sigma` (c's noise, same shape) the gate at `z` too."""
+        low, high = np.fmin.reduce(c, axis=None), np.fmax.reduce(c, axis=None)  # NaN: no sample has a coordinate
+        base = float(low) - 1.0 if np.isfinite(low) else 0.0
+        span = float(high - base) + 2.0 if np.isfinite(low) else 1.0
+        width = c.shape[1]
+        step = c[:, 1:] - c[:, :-1]
+        rising, falling = step > 0, step < 0  # a NaN step: neither
+        gate = None
+        if sigma is not None:
+            s2 = sigma[:, 1:] ** 2
+            s2 += sigma[:, :-1] ** 2
+            gate = (np.abs(step) >= np.float32(z) * np.sqrt(s2, out=s2)).ravel()
+        del step
+        # a run starts at an interval going the other way than its left neighbour (or first in its row)
+        start = rising.copy()
+        start[:, 1:] &= ~rising[:, :-1]
+        turn = falling.copy()
+        turn[:, 1:] &= ~falling[:, :-1]
+        start |= turn
+        del turn
+        k = np.flatnonzero((rising | falling).ravel())  # interval k joins grid samples p = k + row and p + 1
+        first = np.flatnonzero(start.ravel().take(k))  # each run's first interval, as a position in k
+        last = np.r_[first[1:], len(k)] - 1
+        p = k + k // (width - 1)
+        k_first = k.take(first)
+        del k, start
+        run_falling = falling.ravel().take(k_first)
+        row = (k_first // (width - 1)).astype(np.float64)
+        del rising, falling, k_first
+        samples = np.insert(p, last + 1, p.take(last) + 1)  # a run's intervals' left samples, then its last right one
+        del p
+        flat = c.ravel()
+        v = flat.take(samples).astype(np.float64)
+        ends = first + np.arange(len(first))  # each run's first sample, as a position in samples
+        v_first, v_last = v.take(ends), v.take(last + np.arange(len(first)) + 1)
+        count = last - first + 2
+        oriented = np.repeat(np.where(run_falling, base + span, -base), count)
+        oriented += np.where(np.repeat(run_falling, count), -v, v)
+        keys = np.repeat(np.arange(len(first)) * span, count)
+        keys += oriented
+        del v, oriented
+        offset = row * span - base
+        run_lo, run_hi = offset + np.fmin(v_first, v_last), offset + np.fmax(v_first, v_last)
+        order_lo, order_hi = np.argsort(run_lo, kind="stable"), np.argsort(run_hi, kind="stable")
+        return cls(c, sigma, gate, run_lo.take(order_lo), np.r_[0, np.cumsum(order_lo)], run_hi.take(order_hi),
+                   np.r_[0, np.cumsum(order_hi)], run_falling, samples, keys, base, span)
 
     def _counts(self, c: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        q = c.astype(np.float64) + rows.astype(np.float64) * self.span - self.base
+        # c beyond the grid's range is held by none of its intervals: kept at the row's ends on the line,
+        # not in a neighbouring row's stretch of it
+        q = np.clip(c.astype(np.float64), self.base, self.base + self.span)
+        q += rows.astype(np.float64) * self.span - self.base
         n_lo, n_hi = _at_most(self.lo, q), _at_most(self.hi, q)
         return n_lo - n_hi, n_lo, n_hi
 
+    def count(self, c: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """How many intervals of row `rows` (N,) hold each coordinate `c` (N,) (min ≤ c < max)."""
+        count, _, _ = self._counts(c, rows)
+        return count
+
     def find(self, c: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, ...]:
         """For coordinates `c` (N,) on rows `rows` (N,): how many intervals hold each; the flat
-        index of the one holding it when that is unique (else -1); the match's sub-pixel grid
-        x; the interval's step (projector px per px) and the noise interpolated at the match."""
+        index (in (Hg, Wg − 1)) of the one holding it when that is unique (else -1); the match's
+        sub-pixel grid x; the interval's step (projector px per px) and the noise interpolated at
+        the match (with `sigma`)."""
         count, n_lo, n_hi = self._counts(c, rows)
         if not self.lo.size:
-            none = np.full(c.shape, -1)
-            return count, none, np.full(c.shape, np.nan), np.full(c.shape, np.nan), np.full(c.shape, np.nan)
-        unique = count == 1
-        flat, width = self.c.ravel(), self.c.shape[1]  # interval k joins grid samples p(k) and p(k) + 1
-        # the holding interval is the last one starting at or below c, unless a wider one
-        # encloses that one: then it is the first one ending above c (looked up only there)
-
-        def ends(k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            p = k + k // (width - 1)
-            return p, flat.take(p), flat[1:].take(p)
-
-        def holds(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-            return (np.minimum(a, b) <= c) & (c < np.maximum(a, b))
-
-        k = np.where(unique, self.lo_index.take(np.maximum(n_lo - 1, 0)), -1)
-        p, a, b = ends(np.maximum(k, 0))
-        held = (k >= 0) & holds(a, b, c)
-        other = np.flatnonzero(unique & ~held)
-        if other.size:
-            k2 = self.hi_index[np.minimum(n_hi[other], len(self.hi_index) - 1)]
-            p2, a2, b2 = ends(k2)
-            held2 = holds(a2, b2, c[other])
-            k[other] = np.where(held2, k2, -1)
-            p[other] = np.where(held2, p2, 0)
-            a[other], b[other] = flat[p[other]], flat[p[other] + 1]
-        u = (c - a) / (b - a)
-        sigma = self.sigma.ravel()
-        s = (1 - u) * sigma.take(p) + u * sigma[1:].take(p)
-        column = np.maximum(k, 0)
-        column -= (p - column) * (width - 1)  # k mod (Wg − 1): p − k is the interval's row
-        del p
-        return count, k, column + u, b - a, s
-
-
-@dataclass(frozen=True, eq=False)
-class _Counts:
-    """The intervals of a rectified grid's rows as `_Rows` puts them on one number line, only to
-    count how many of a row hold a coordinate: the ends sorted, no indices kept."""
-
-    lo: np.ndarray
-    hi: np.ndarray
-    base: float
-    span: float
-
-    @classmethod
-    def of(cls, c: np.ndarray) -> _Counts:
-        base, span, _, lo, hi, _, _ = _intervals(c)
-        return cls(np.sort(lo, kind="stable"), np.sort(hi, kind="stable"), base, span)  # nearly sorted rows
-
-    def count(self, c: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """How many intervals of row `rows` (N,) hold each coordinate `c` (N,) (lo ≤ c < hi)."""
-        q = c.astype(np.float64) + rows.astype(np.float64) * self.span - self.base
-        return _at_most(self.lo, q) - _at_most(self.hi, q)
+            nan = np.full(c.shape, np.nan)
+            return count, np.full(c.shape, -1), nan, nan, nan
+        # the runs holding c are those starting at or below it less those ending at or below it: where
+        # that is one run, its number is the sum of the first set's numbers less the second's
+        held = count == 1
+        r = self.lo_sums.take(n_lo)
+        r -= self.hi_sums.take(n_hi)
+        r[~held] = 0
+        del n_lo, n_hi
+        down = self.falling.take(r)
+        c64 = c.astype(np.float64)
+        qk = np.where(down, self.base + self.span - c64, c64 - self.base)
+        del c64
+        qk += r * self.span
+        # on a falling run the interval [b, a) holds c when its left sample's key is below c's: < is ≤ c's bits − 1
+        i = np.searchsorted(self.keys.view(np.int64), qk.view(np.int64) - down, side="right")
+        i -= 1
+        np.clip(i, 0, len(self.samples) - 2, out=i)
+        p = self.samples.take(i)
+        del qk, i, down
+        flat = self.c.ravel()
+        a, b = flat.take(p), flat[1:].take(p)
+        with np.errstate(divide="ignore", invalid="ignore"):  # where no run holds c, p is any sample
+            u = (c - a) / (b - a)
+            x = (p - rows * self.c.shape[1]) + u
+            s = np.full(c.shape, np.nan, np.float32)
+            if self.sigma is not None:
+                sigma = self.sigma.ravel()
+                s = (1 - u) * sigma.take(p) + u * sigma[1:].take(p)
+        return count, np.where(held, p - rows, -1), x, b - a, s
 
 
 @dataclass(frozen=True, eq=False)
@@ -561,16 +572,18 @@ class _Search:
         jl = np.clip(np.rint(yl - rect.left.y0), 0, rect.left.shape[0] - 1)
         # numpy's sorts and searches release the GIL: the right rows are built while the left ones count
         with ThreadPoolExecutor(3, thread_name_prefix="binocular match") as pool:
-            building = pool.submit(lambda: _Rows.of(grid_r.resample(right.coordinate[o]),
+            building = pool.submit(lambda: _Runs.of(grid_r.resample(right.coordinate[o]),
                                                     grid_r.resample(right.sigma[o]), z_gate))
-            left_rows = _Counts.of(rect.left.resample(left.coordinate[o]))  # counted only: no gate, no noise
+            left_rows = _Runs.of(rect.left.resample(left.coordinate[o]))  # counted only: no gate, no noise
             left_count = pool.submit(left_rows.count, c, jl)
             right_rows = building.result()
             rows_found = [pool.submit(right_rows.find, c, rows) for rows in (j, j + 1)]
             (n0, k0, x0, step0, s0), (n1, k1, x1, step1, s1) = (f.result() for f in rows_found)
             once = left_count.result() <= 1
         unique = inside & (n0 == 1) & (n1 == 1) & (k0 >= 0) & (k1 >= 0) & once
-        steep = unique & right_rows.gate.take(np.maximum(k0, 0)) & right_rows.gate.take(np.maximum(k1, 0))
+        gate = right_rows.gate
+        assert gate is not None
+        steep = unique & gate.take(np.maximum(k0, 0)) & gate.take(np.maximum(k1, 0))
         s = 1 - t
         return cls(inside, inside & ((n0 == 0) | (n1 == 0)), unique, steep,
                    s * x0 + t * x1,  # on the rectified row through the left pixel

@@ -16,7 +16,7 @@ from scanner.binocular import (
     CameraPhase,
     Rectification,
     StereoModel,
-    _Rows,
+    _Runs,
     bilinear,
     match,
     reconstructor_for,
@@ -162,22 +162,50 @@ def test_the_gradient_gate_passes_flat_steps_at_its_stated_rate() -> None:
     sigma = 0.03
     c = (np.repeat(np.arange(400, dtype=np.float32)[:, None], 1001, 1) + rng.normal(0, sigma, (400, 1001))
          ).astype(np.float32)
-    rows = _Rows.of(c, np.full(c.shape, sigma, np.float32), 3.2905267314919255)  # z for α = 1e-3
+    rows = _Runs.of(c, np.full(c.shape, sigma, np.float32), 3.2905267314919255)  # z for α = 1e-3
     n = rows.gate.size
     lo, hi = binom.ppf([0.0005, 0.9995], n, GRADIENT_FALSE_ACCEPT)
     print(f"{rows.gate.sum()} of {n} pass (expected {n * GRADIENT_FALSE_ACCEPT:.0f})")
     assert lo <= rows.gate.sum() <= hi
 
 
-def test_an_interval_enclosing_a_later_one_is_found() -> None:
-    """The one interval holding a coordinate is found when a later, narrower interval of the row
-    starts below the coordinate without holding it (the lookup by upper ends)."""
-    nan = np.nan
-    c = np.array([[0.0, 10.0, nan, 2.0, 3.0], [0.0, 1.0, 2.0, 3.0, 4.0]], np.float32)
-    rows = _Rows.of(c, np.full(c.shape, 0.01, np.float32), 3.0)
-    count, k, x, step, sigma = rows.find(np.array([5.0, 2.5], np.float32), np.array([0, 1]))
-    assert count.tolist() == [1, 1] and k.tolist() == [0, 6]  # intervals: 4 per row, flat
-    assert np.allclose(x, [0.5, 2.5]) and np.allclose(step, [10.0, 1.0]) and np.allclose(sigma, 0.01)
+def _holding(row: np.ndarray, c: float) -> np.ndarray:
+    """The intervals between neighbours of `row` holding c (min <= c < max), one at a time: the count's definition."""
+    return np.array([k for k in range(len(row) - 1) if min(row[k], row[k + 1]) <= c < max(row[k], row[k + 1])], int)
+
+
+def test_runs_count_and_find_as_the_intervals_do_one_by_one() -> None:
+    """On random rows (rising, falling and turning, NaN holes, zero steps, and runs nested in
+    wider ones: a short run inside the range of a long one), for coordinates inside and beyond
+    the rows' range: the count and the holding interval agree with the intervals taken one by
+    one, and the match's x interpolates the row there."""
+    rng = np.random.default_rng(_seed())
+    h, w = 12, 60
+    c = np.cumsum(rng.normal(0.2, 1.0, (h, w)), axis=1) + 10
+    c[rng.random(c.shape) < 0.08] = np.nan
+    c[:, 20] = c[:, 19]  # a zero step in every row
+    c[0] = np.nan
+    c[0, :5] = [0.0, 50.0, np.nan, 20.0, 25.0]  # a run nested in a wider, earlier one
+    c = c.astype(np.float32)
+    runs = _Runs.of(c, np.full(c.shape, 0.02, np.float32), 3.0)
+    n = 3000
+    rows = rng.integers(0, h, n)
+    q = rng.uniform(np.nanmin(c) - 5, np.nanmax(c) + 5, n).astype(np.float32)
+    q[:200] = c[rows[:200], rng.integers(0, w, 200)]  # exactly on samples: the half-open ends
+    q[:200] = np.where(np.isfinite(q[:200]), q[:200], 15.0)
+    rows[-1], q[-1] = 0, 30.0  # held once, by the wide interval (0, 50) only: (20, 25) is below, past a hole
+    count, k, x, step, _ = runs.find(q, rows)
+    assert np.array_equal(count, runs.count(q, rows))
+    for i in range(n):
+        held = _holding(c[rows[i]], q[i])
+        assert count[i] == len(held), (i, rows[i], q[i], held)
+        if len(held) == 1:
+            a, b = c[rows[i], held[0]], c[rows[i], held[0] + 1]
+            assert k[i] == rows[i] * (w - 1) + held[0]
+            assert x[i] == pytest.approx(held[0] + (q[i] - a) / (b - a), abs=1e-4) and step[i] == b - a
+        else:
+            assert k[i] == -1
+    assert count[-1] == 1 and k[-1] == 0
 
 
 def test_reconstructors_are_kept_by_the_models_content(scene: tuple) -> None:
