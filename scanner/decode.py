@@ -616,27 +616,32 @@ def spatial_noise(stack: np.ndarray, block: list[int], orientation: str, full_sc
     difference of neighbours, I[i−1] − 2I[i] + I[i+1], has variance 6·σ_I² plus the scene's
     fine texture and the fringes' tilt: an upper bound of the noise, from every 8th line of
     the phase frames of `block`, medians in background bins (χ²_1 unbiased)."""
-    lines = stack[block][:, :, ::8] if orientation == "vertical" else np.swapaxes(stack[block][:, ::8, :], 1, 2)
+    lines = stack[block, :, ::8] if orientation == "vertical" else np.swapaxes(stack[block, ::8, :], 1, 2)
     f = lines.astype(np.float64)  # (frames, along the fringes, across)
     d2 = f[:, :-2] - 2.0 * f[:, 1:-1] + f[:, 2:]
     inside = (f.max(axis=0) < full_scale) & (f.min(axis=0) > 0)  # not clipped in any frame
     ok = inside[:-2] & inside[1:-1] & inside[2:]
     if ok.sum() < 50:
         return NoiseModel(1.0, 0.0)
-    return _noise_line(f[:, 1:-1][:, ok].ravel(), (d2[:, ok] ** 2 / 6.0).ravel(), _CHI2_MEDIAN[0])
+    return _noise_line(lines[:, 1:-1][:, ok].ravel(), (d2[:, ok] ** 2 / 6.0).ravel(), _CHI2_MEDIAN[0])
 
 
 def _noise_line(a: np.ndarray, v: np.ndarray, unbias: float) -> NoiseModel:
     """σ_I² = read + shot·A through per-pixel variance samples `v` at levels `a`: the median
     of each of 8 level bins (divided by `unbias`, the median of the samples' χ² over its
-    mean), a line with non-negative terms, read at least the quantisation 1/12 DN²."""
+    mean), a line with non-negative terms, read at least the quantisation 1/12 DN². The
+    samples are put in order of level once (a radix sort where the levels are the frames'
+    integers), so each bin is a slice."""
+    order = np.argsort(a, kind="stable")
+    a = a.take(order).astype(np.float64)
+    v = v.take(order)
     edges = np.quantile(a, np.linspace(0, 1, 9))
     centres, medians = [], []
     for lo, hi in pairwise(edges):
-        sel = (a >= lo) & (a <= hi)
-        if sel.sum() >= 10:
-            centres.append(np.median(a[sel]))
-            medians.append(np.median(v[sel]) / unbias)
+        i0, i1 = np.searchsorted(a, lo, side="left"), np.searchsorted(a, hi, side="right")  # lo <= a <= hi
+        if i1 - i0 >= 10:
+            centres.append(np.median(a[i0:i1]))
+            medians.append(np.median(v[i0:i1]) / unbias)
     c, m = np.array(centres), np.array(medians)
     shot, read = np.polyfit(c, m, 1) if len(c) >= 2 and np.ptp(c) > 0.05 * max(c.max(), 1.0) else (0.0, np.mean(m))
     if shot < 0:  # no shot noise visible: a constant
