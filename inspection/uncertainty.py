@@ -196,13 +196,13 @@ def coverage_factor(u_normal: float, other: np.ndarray) -> float:
     standard deviations, not 1.96), so where it dominates, k < K."""
     if len(other) == 0 or not np.std(other) > 0:
         return K
-    from scipy.stats import norm
+    from scipy.special import ndtr  # the standard normal's cdf as a bare ufunc: 60 bisections call it 120 times
 
     u = float(np.hypot(u_normal, np.std(other)))
     sigma = max(u_normal, 1e-9 * u)
 
     def inside(half: float) -> float:
-        return float(np.mean(norm.cdf((half - other) / sigma) - norm.cdf((-half - other) / sigma)))
+        return float(np.mean(ndtr((half - other) / sigma) - ndtr((-half - other) / sigma)))
 
     lo, hi = 0.0, float(np.max(np.abs(other))) + 6.0 * sigma
     for _ in range(60):  # bisection to ~1e-18 of the span
