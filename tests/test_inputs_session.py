@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 from cli_support import run_cli
+from recording_support import release_abandoned_recordings
 from session_support import PATTERNS, SCENE, edit_manifest, frame, one_error_line, small_rig_toml
 
 from scanner import session as session_module
@@ -301,6 +302,11 @@ def test_recording_close_is_bounded_when_the_writer_hangs(tmp_path: Path, monkey
     assert finished.wait(30), "close() waited on the writer without a timeout"
     release.set()
     assert raised and "did not finish within 1 s" in str(raised[0])
+    # the writer released, the close's own worker goes on to disconnect the stream: let it end before
+    # the abandoned stream is disconnected again after the test (two at once can deadlock Rerun)
+    for worker in [t for t in threading.enumerate() if t.name == "close recording.rrd"]:
+        worker.join(30)
+        assert not worker.is_alive(), "the released writer's close did not end"
 
 
 def test_recording_writer_that_died_gives_one_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -349,8 +355,12 @@ def small_disk(tmp_path: Path):
         pytest.skip("mounting a small tmpfs needs root (a real full disk); the ENOSPC wrapper test covers the rest")
     try:
         yield mount
-    finally:
-        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
+    finally:  # the recording the full disk stopped is let go while its disk is still there, with room again
+        subprocess.run(["mount", "-o", "remount,size=64m", str(mount)], capture_output=True)
+        try:
+            release_abandoned_recordings()
+        finally:
+            subprocess.run(["umount", "-l", str(mount)], capture_output=True)
 
 
 def test_real_full_disk_gives_one_error_and_keeps_every_frame(small_disk: Path, tmp_path: Path) -> None:
