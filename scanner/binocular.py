@@ -458,7 +458,7 @@ class _Runs:
         del turn
         k = np.flatnonzero((rising | falling).ravel())  # interval k joins grid samples p = k + row and p + 1
         first = np.flatnonzero(start.ravel().take(k))  # each run's first interval, as a position in k
-        last = np.r_[first[1:], len(k)] - 1
+        last = np.r_[first[1:], len(k)][:len(first)] - 1  # (none without a run)
         p = k + k // (width - 1)
         k_first = k.take(first)
         del k, start

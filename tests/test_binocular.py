@@ -206,6 +206,10 @@ def test_runs_count_and_find_as_the_intervals_do_one_by_one() -> None:
         else:
             assert k[i] == -1
     assert count[-1] == 1 and k[-1] == 0
+    for empty in (np.full((3, 5), np.nan, np.float32), np.full((3, 5), 2.0, np.float32)):  # nothing seen; flat
+        count, k, *_ = _Runs.of(empty, np.full(empty.shape, 0.02, np.float32), 3.0).find(
+            np.array([1.0, 2.0], np.float32), np.array([0, 2]))
+        assert count.tolist() == [0, 0] and k.tolist() == [-1, -1]
 
 
 def test_reconstructors_are_kept_by_the_models_content(scene: tuple) -> None:
