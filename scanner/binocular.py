@@ -405,6 +405,11 @@ def _at_most(keys: np.ndarray, q: np.ndarray) -> np.ndarray:
     return np.searchsorted(keys.view(np.int64), q.view(np.int64), side="right")
 
 
+def _last(first: np.ndarray, intervals: int) -> np.ndarray:
+    """Each run's last interval (positions in a list of `intervals`) from its first (none without a run)."""
+    return np.r_[first[1:], intervals][:len(first)] - 1
+
+
 @dataclass(frozen=True, eq=False)
 class _Runs:
     """The monotone runs of a rectified grid's rows (Hg, Wg) of projector coordinate `c`: a run is
@@ -415,10 +420,11 @@ class _Runs:
     the one interval of a run holding it is found among the run's samples, in order by construction.
 
     `lo`, `hi`: the runs' ranges as keys on one number line of all rows, row·span + (c − base),
-    sorted; `lo_sums`, `hi_sums` the running sums of their run numbers in that order. `keys`: every run's
-    samples on another line, run·span + (c − base) on a rising run and run·span + (top − c) on a
-    falling one (top = base + span), ascending; `samples` their flat grid indices (a turning
-    sample in both its runs). `gate` (Hg·(Wg − 1),), where the runs are built with the noise
+    sorted; `lo_sums`, `hi_sums` the running sums of their run numbers in that order. `_line`: every
+    run's samples on another line, run·span + (c − base) on a rising run and run·span + (top − c) on
+    a falling one (top = base + span), ascending, built from `left` (each interval's left sample, flat
+    in the grid) and `first` (each run's first interval, as a position in `left`) only when `find`
+    needs it. `gate` (Hg·(Wg − 1),), where the runs are built with the noise
     `sigma`: the interval between horizontal neighbours passes the gradient gate (|step| ≥ z·σ_step)."""
 
     c: np.ndarray
@@ -429,8 +435,8 @@ class _Runs:
     hi: np.ndarray
     hi_sums: np.ndarray
     falling: np.ndarray
-    samples: np.ndarray
-    keys: np.ndarray
+    left: np.ndarray
+    first: np.ndarray
     base: float
     span: float
 
@@ -458,30 +464,35 @@ class _Runs:
         del turn
         k = np.flatnonzero((rising | falling).ravel())  # interval k joins grid samples p = k + row and p + 1
         first = np.flatnonzero(start.ravel().take(k))  # each run's first interval, as a position in k
-        last = np.r_[first[1:], len(k)][:len(first)] - 1  # (none without a run)
-        p = k + k // (width - 1)
+        left = k + k // (width - 1)
         k_first = k.take(first)
         del k, start
         run_falling = falling.ravel().take(k_first)
         row = (k_first // (width - 1)).astype(np.float64)
         del rising, falling, k_first
-        samples = np.insert(p, last + 1, p.take(last) + 1)  # a run's intervals' left samples, then its last right one
-        del p
         flat = c.ravel()
-        v = flat.take(samples).astype(np.float64)
-        ends = first + np.arange(len(first))  # each run's first sample, as a position in samples
-        v_first, v_last = v.take(ends), v.take(last + np.arange(len(first)) + 1)
-        count = last - first + 2
-        oriented = np.repeat(np.where(run_falling, base + span, -base), count)
-        oriented += np.where(np.repeat(run_falling, count), -v, v)
-        keys = np.repeat(np.arange(len(first)) * span, count)
-        keys += oriented
-        del v, oriented
+        v_first = flat.take(left.take(first)).astype(np.float64)
+        v_last = flat.take(left.take(_last(first, len(left))) + 1).astype(np.float64)
         offset = row * span - base
         run_lo, run_hi = offset + np.fmin(v_first, v_last), offset + np.fmax(v_first, v_last)
         order_lo, order_hi = np.argsort(run_lo, kind="stable"), np.argsort(run_hi, kind="stable")
         return cls(c, sigma, gate, run_lo.take(order_lo), np.r_[0, np.cumsum(order_lo)], run_hi.take(order_hi),
-                   np.r_[0, np.cumsum(order_hi)], run_falling, samples, keys, base, span)
+                   np.r_[0, np.cumsum(order_hi)], run_falling, left, first, base, span)
+
+    @cached_property
+    def _line(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every run's samples on one line, for `find` (a grid only counted never builds it): their
+        flat grid indices (a run's intervals' left samples, then its last right one: a turning sample
+        in both its runs) and their keys, ascending."""
+        first, last = self.first, _last(self.first, len(self.left))
+        samples = np.insert(self.left, last + 1, self.left.take(last) + 1)
+        v = self.c.ravel().take(samples).astype(np.float64)
+        length = last - first + 2
+        oriented = np.repeat(np.where(self.falling, self.base + self.span, -self.base), length)
+        oriented += np.where(np.repeat(self.falling, length), -v, v)
+        keys = np.repeat(np.arange(len(first)) * self.span, length)
+        keys += oriented
+        return samples, keys
 
     def _counts(self, c: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         # c beyond the grid's range is held by none of its intervals: kept at the row's ends on the line,
@@ -518,10 +529,11 @@ class _Runs:
         del c64
         qk += r * self.span
         # on a falling run the interval [b, a) holds c when its left sample's key is below c's: < is ≤ c's bits − 1
-        i = np.searchsorted(self.keys.view(np.int64), qk.view(np.int64) - down, side="right")
+        samples, keys = self._line
+        i = np.searchsorted(keys.view(np.int64), qk.view(np.int64) - down, side="right")
         i -= 1
-        np.clip(i, 0, len(self.samples) - 2, out=i)
-        p = self.samples.take(i)
+        np.clip(i, 0, len(samples) - 2, out=i)
+        p = samples.take(i)
         del qk, i, down
         flat = self.c.ravel()
         a, b = flat.take(p), flat[1:].take(p)
