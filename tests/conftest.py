@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 import recording_support
-from recording_support import release_abandoned_recordings
 
 from scanner.geometry import RigModel
 from scanner.rig import RigConfig
@@ -59,7 +58,7 @@ def _recordings_abandoned_by_the_test() -> Iterator[None]:
     A recording that does not disconnect fails this test, once, and is kept apart (`recording_support.STUCK`):
     neither the module's release nor the exit handler waits on it (they would never end)."""
     yield
-    release_abandoned_recordings()
+    recording_support.release_abandoned_recordings()
 
 
 @pytest.fixture(autouse=True, scope="module")
