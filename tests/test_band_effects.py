@@ -24,15 +24,17 @@ def _case(seed: int):
     face[:12], face[12:29], face[29] = 7, 8, 9
     where = rng.uniform(0, 500, (n, 2))
     where[12:29, 1] = 40.0  # a strip along the image's rows: one trend direction
-    effects = BandEffects.of(face, band, where, loading=rng.uniform(0.2, 1.0, n), variance_mm2=4e-4)
-    return J, w, r, face, band, where, effects
+    loading = rng.uniform(0.2, 1.0, n)
+    effects = BandEffects.of(face, band, where, loading=loading, variance_mm2=4e-4)
+    return J, w, r, face, band, where, loading, effects
 
 
-def _joint(J, w, r, face, band, where, effects, sigma):
+def _joint(J, w, r, face, band, where, loading, effects, sigma):
     """The pose part of the joint weighted least-squares solution, written out: unknowns
-    (z, b_g, c_g1, c_g2) per group, residual model r_i = J_i z + b_g + c_g . t_i, each
-    effect with its prior N(0, tau_g^2) as an extra equation of weight sigma^2 / tau_g^2;
-    t_i the group's positions about their mean, whitened over the group."""
+    (z, b_g, c_g1, c_g2) per group, residual model r_i = J_i z + l_i (b_g + c_g . t_i) (l_i
+    the point's `loading`), each effect with its prior N(0, tau^2) as an extra equation of
+    weight sigma^2 / tau^2; t_i the group's positions about their mean, whitened over the
+    group."""
     groups = np.unique(face[band])
     cols = [J]
     prior = []
@@ -45,7 +47,7 @@ def _joint(J, w, r, face, band, where, effects, sigma):
         X = np.zeros((len(J), 1 + keep.sum()))
         X[at, 0] = 1.0
         X[np.flatnonzero(at)[:, None], 1 + np.arange(keep.sum())] = t
-        cols.append(X)
+        cols.append(X * loading[:, None])
         prior += [effects.prior[k]] * X.shape[1]
     X = np.concatenate(cols, axis=1)
     P = np.zeros((X.shape[1], X.shape[1]))
@@ -56,12 +58,12 @@ def _joint(J, w, r, face, band, where, effects, sigma):
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_the_schur_complement_is_the_joint_solution(seed: int) -> None:
-    J, w, r, face, band, where, effects = _case(seed)
+    J, w, r, face, band, where, loading, effects = _case(seed)
     sigma = 0.01
     C = effects.rows(J, w, sigma)
     A = (C * w[:, None]).T @ J
     z = -np.linalg.solve(A, (C * w[:, None]).T @ r)
-    z_joint, cov_joint = _joint(J, w, r, face, band, where, effects, sigma)
+    z_joint, cov_joint = _joint(J, w, r, face, band, where, loading, effects, sigma)
     assert np.allclose(z, z_joint, rtol=1e-9, atol=1e-12)
     assert np.allclose(np.linalg.inv(A), cov_joint, rtol=1e-8, atol=1e-14)
     assert np.allclose(A, A.T, atol=1e-9 * np.abs(A).max())
@@ -70,7 +72,7 @@ def test_the_schur_complement_is_the_joint_solution(seed: int) -> None:
 def test_a_group_does_not_move_the_pose_by_its_own_offset_and_trend_beyond_the_prior() -> None:
     """Residuals that are exactly one group's offset plus trend: a group with a huge prior
     (the effect free) leaves the pose unmoved; the plain rows move it."""
-    J, w, _, face, band, where, _ = _case(4)
+    J, w, _, face, band, where, _, _ = _case(4)
     effects = BandEffects.of(face, band, where, loading=np.ones(len(face)), variance_mm2=1e6)
     at = band & (face == 8)
     r = np.where(at, 0.05 + 0.002 * (where[:, 0] - where[at, 0].mean()), 0.0)
@@ -91,7 +93,7 @@ def test_no_band_leaves_the_rows_alone() -> None:
 def test_the_trends_covariance_is_what_drawn_trends_do_to_the_pose() -> None:
     """`trends`: the pose's covariance from the groups' trend coefficients drawn with their
     variance, by Monte Carlo through the estimator itself (4000 draws: within 10 %)."""
-    J, w, _, face, band, _, effects = _case(6)
+    J, w, _, face, band, _, _, effects = _case(6)
     sigma = 0.01
     C = effects.rows(J, w, sigma)
     Ainv = np.linalg.inv((C * w[:, None]).T @ J)

@@ -1,9 +1,20 @@
 """Blurred points' error as random effects of their face (`gauss_newton.MixedPixels`): the
 points of one face within the camera's blur of an outline read off their surface by one
-common offset plus a linear trend across the image, b_g + t_i . c_g, b_g and each
-coefficient of c_g of variance tau_g^2 (mm^2), t_i the point's image position whitened over
-its group (unit second moment along each direction the group extends; none along a
-direction it does not, so a strip of one pixel row carries one trend coefficient).
+common offset plus a linear trend across the image, each point by its own loading l_i (its
+share of light from beyond the outline over `MAX_SHARE`: a pixel reads the mix it sees),
+l_i (b_g + t_i . c_g), b_g and each coefficient of c_g of variance tau^2 (mm^2), t_i the
+point's image position whitened over its group (unit second moment along each direction the
+group extends; none along a direction it does not, so a strip of one pixel row carries one
+trend coefficient).
+
+Why per point: a band's pixels two pixels inside the outline take under 1 % of their light
+from beyond, those on it about a third. At the true pose of a random part (campaign
+1435581477, part_029, bench blur 0.6 px against the 1 px assumed) a wall seen at 84 deg
+read +0.2 +- 5.9 um on its outline pixels, -0.0 +- 2.4 um one pixel in and +0.2 +- 1.6 um
+two pixels in, while the tops' outline pixels read +39 to +132 um (sd 550-740 um) and one
+pixel in -1 to +3 um. One offset shared by the whole band at its mean loading made such a
+wall's inner band pixels as uncertain as its outline: the wall fixed nothing, and the view
+was refused as "fixed only by blurred pixels" (6 of that campaign's 43 scans).
 
 Why a trend: at the true pose of the 1367 faces of two random-part campaigns
 (`studies.face_offsets`, 1501789337 and 1435581477), the linear trend of a face's residuals
@@ -42,8 +53,8 @@ class BandEffects:
     def of(cls, face: np.ndarray, band: np.ndarray, where: np.ndarray, *, loading: np.ndarray,
            variance_mm2: float) -> BandEffects:
         """The effects of the points `band` flags (bool (N,)), one group per CAD face
-        (`face` (N,)), at image positions `where` (N, 2 px); a group's tau^2 is `variance_mm2`
-        times the square of its points' mean `loading` (N,)."""
+        (`face` (N,)), at image positions `where` (N, 2 px), each point's effect times its own
+        `loading` (N,); every group's tau^2 is `variance_mm2`."""
         group = np.full(len(face), -1)
         if not band.any():
             return cls(group, np.zeros((len(face), 3)), np.zeros(0))
@@ -58,7 +69,8 @@ class BandEffects:
         design = np.zeros((len(face), 3))
         design[band, 0] = 1.0
         design[band, 1:] = np.einsum("na,nab->nb", d, whiten[g])
-        return cls(group, design, variance_mm2 * (np.bincount(g, weights=loading[band]) / n) ** 2)
+        design[band] *= loading[band, None]
+        return cls(group, design, np.full(len(n), float(variance_mm2)))
 
     def subset(self, keep: np.ndarray) -> BandEffects:
         """The effects for the points `keep` (a mask or indices) of these, which must hold
@@ -83,16 +95,6 @@ class BandEffects:
         C = J.copy()
         C[inband] -= np.einsum("na,nak->nk", phi, K[g])
         return C
-
-    def group_mean(self, values: np.ndarray) -> np.ndarray:
-        """Each point's group mean of `values` (N,) (0 for a point in no group)."""
-        inband = self.group >= 0
-        out = np.zeros(len(values))
-        if inband.any():
-            g = self.group[inband]
-            out[inband] = (np.bincount(g, weights=values[inband], minlength=len(self.prior))
-                           / np.maximum(np.bincount(g, minlength=len(self.prior)), 1))[g]
-        return out
 
     def trends(self, C: np.ndarray, weight: np.ndarray, variance: np.ndarray) -> np.ndarray:
         """sum_g sum_k tau_g^2 n_gk n_gk' (k, k): what the groups' trends put into the normal

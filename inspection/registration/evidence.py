@@ -342,7 +342,7 @@ def pose_covariance(points: np.ndarray, normals: np.ndarray, r: np.ndarray, wher
         follow = np.einsum("ij,cfj->cif", Ainv, m)  # (2, 6, faces): the fit's correction per unit offset
         trend = np.zeros((2, 6, 6))
         if band is not None and mixing is not None:  # the blur's trend across a band, as its offset (`band_effects`)
-            trend[0] = Ainv @ band.trends(C, weight, band.group_mean(load[:, 0]) ** 2) @ Ainv
+            trend[0] = Ainv @ band.trends(C, weight, np.ones(len(r))) @ Ainv
         parts = tuple(follow[c] @ follow[c].T + trend[c] for c in (0, 1))  # the covariance per unit of each variance
     lam, axes = np.linalg.eigh(v[:, info].T @ cov @ v[:, info])  # the noise's part, along its own axes
     axes = v[:, info] @ axes

@@ -15,8 +15,8 @@ demo part one to four crease pixels 50-130 um off their face were all that fixed
 about the boss axis, and the fit turned the part until they read 0 (stored pose-coverage
 scan 635461529/88: 0.19 deg; scan 49: 1.41 deg); an 11-point outline strip 25 um off, and
 tilted as much, turned it 0.061 deg (coverage seed 55805, trial 1). So the band points of
-each face share one unknown offset and linear trend across the image, of variance tau_f^2
-growing with their share of light from beyond (`MixedPixels`), and the fit estimates them
+each face share one unknown offset and linear trend across the image, which each point reads
+in proportion to its share of light from beyond (`MixedPixels`), and the fit estimates them
 with the pose under that prior and keeps the pose's part (`band_effects`: the Schur
 complement A of the normal matrix, and the gradient reduced alike): a lone band point counts
 with variance sigma^2 + tau_f^2, a strip's tilt is its own, while many band points on one face
@@ -48,9 +48,9 @@ class MixedPixels:
     `offset_variance_mm2` tau^2 (mm^2), the variance of the common offset (and of each trend
     coefficient, `band_effects`) of one face's band points were half their light from beyond
     the outline (an offset uniform within the assignment bound B has B^2/3; a larger tau^2
-    refuses more poses as free, a smaller one lets band points turn the pose again); a face's
-    band whose points' mean share of light from beyond is s has (s / `MAX_SHARE`)^2 of it, as
-    the faces' offsets grow (`evidence._face_offsets`);
+    refuses more poses as free, a smaller one lets band points turn the pose again); a point
+    whose share of light from beyond is s reads s / `MAX_SHARE` of it, as the faces' offsets
+    grow (`evidence._face_offsets`);
     `tolerance_deg` / `tolerance_mm` the pose tolerance a direction's standard deviation
     must be within (rotations at the points' RMS radius) for the fit to step along it;
     `mixing` (N,) the share of each point's light from beyond its surface's outline
@@ -70,7 +70,7 @@ class MixedPixels:
 
     def effects(self, face: np.ndarray, *, within: np.ndarray | None = None) -> BandEffects:
         """The band points' offsets and trends per CAD face (`face` (N,)) as random effects
-        (`band_effects`), a face's tau^2 scaled by its band's mean share of light from beyond;
+        (`band_effects`), each point's scaled by its own share of light from beyond;
         only the band points `within` flags (default all)."""
         band = self.band if within is None else self.band & within
         return BandEffects.of(face, band, self.pixels, loading=self.mixing / MAX_SHARE,
@@ -114,7 +114,7 @@ def information(q: np.ndarray, normal: np.ndarray, r: np.ndarray, effects: BandE
     """The exact fit's `Information` at model-frame points `q` (N, 3) with their faces'
     `normal`s and residuals `r` (mm), Huber-weighted as `gauss_newton` weighs them; each
     face's band points sharing one offset and trend (`effects`, `MixedPixels.effects`) of
-    variance tau^2 scaled by their mean share of light from beyond."""
+    variance tau^2, each point's scaled by its share of light from beyond."""
     sigma = max(residual_scale(r), 1e-6)
     w = huber_weights(r, sigma)
     centre = q.mean(axis=0)
