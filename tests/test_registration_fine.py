@@ -121,6 +121,38 @@ def test_band_points_far_from_their_outline_bound_the_turn(demo) -> None:
         _turn(gauss_newton(p, face, np.eye(4), model, 10)), abs=1e-9)
 
 
+def test_a_band_point_reads_the_offset_by_its_own_share(demo) -> None:
+    """One band of three crease points: the first on the outline (share 0.3 of its light from
+    beyond) reading `b` off its face, the other two 2 px in (share 9e-5) reading it right,
+    as a wall's pixels read at the truth (outline pixels off, those two in within a few um).
+    Each point takes its face's offset by its own share: the two inner ones bound the turn
+    and the outline one hardly turns the part, where the plain (Huber) fit turns it by the
+    capped pull of that point: more than 5 % of the turn that zeroes its residual (0.23 deg).
+    (Taking the band at its mean share, 0.1, left the turn free.)"""
+    from inspection.segmentation import project_to_faces
+
+    model = demo[0]
+    b = 0.08
+    p, face, band = _scene(demo, offset_mm=0.0, wall="crease only")
+    first = np.flatnonzero(band)[0]
+    _, _, n, _ = project_to_faces(model, p, face)
+    p[first] += b * n[first]
+    share = np.where(band, 9e-5, 0.0)
+    share[first] = 0.3
+    voxel = model.diagonal_mm / DEFAULT_TARGET_SETTINGS.voxel_fraction
+    mixed = mixed_pixels(band, share, pixels=_pixels(p), voxel_mm=voxel, settings=SETTINGS)
+    _, _, n, r = project_to_faces(model, p, face)
+    info = information(p, n, r, mixed.effects(face))
+    assert info.directions(mixed.tolerance_deg, mixed.tolerance_mm)[1].shape[1] == 0
+    unbiased = gauss_newton(*_scene(demo, offset_mm=0.0, wall="crease only")[:2], np.eye(4), model, 10)
+    whole = -b / (CREASE_Y - BOSS[1])  # the turn that zeroes the outline point's residual
+    plain = gauss_newton(p, face, np.eye(4), model, 10)
+    pulled = abs(_turn(plain) - _turn(unbiased))
+    assert pulled > 0.05 * abs(whole)
+    fixed = gauss_newton(p, face, np.eye(4), model, 10, mixed=mixed)
+    assert abs(_turn(fixed) - _turn(unbiased)) < 0.2 * pulled
+
+
 def test_unbiased_crease_with_the_wall_seen_costs_no_precision(demo) -> None:
     """The wall well seen bounds the turn: the bounded fit, which estimates the three crease
     points' offset and trend with the pose (`band_effects`), turns the part as the plain fit
