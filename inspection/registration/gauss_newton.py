@@ -19,13 +19,14 @@ each face share one unknown offset and linear trend across the image, which each
 in proportion to its share of light from beyond (`MixedPixels`), and the fit estimates them
 with the pose under that prior and keeps the pose's part (`band_effects`: the Schur
 complement A of the normal matrix, and the gradient reduced alike): a lone band point counts
-with variance sigma^2 + tau_f^2, a strip's tilt is its own, while many band points on one face
-still fix what their face's shape fixes beyond a plane's tilt. A step is taken only along the
-eigen-directions of A whose standard deviation sigma / sqrt(eigenvalue) is within the pose
-tolerance; along the others the pose stays where the previous stage put it, and
-`fine.fit_covariance` names those directions free: a pose is never accepted along a motion
-only band points fix (false accept), at the price of refusing as free a pose whose only
-lever along some motion is band points that happen to read right (false refusal)."""
+with variance sigma^2 + l^2 tau^2 (l its share over the most), a strip's tilt is its own,
+while many band points on one face still fix what their face's shape fixes beyond a plane's
+tilt. A step is taken only along the eigen-directions of A whose standard deviation
+sigma / sqrt(eigenvalue) is within the pose tolerance; along the others the pose stays where
+the previous stage put it, and `fine.fit_covariance` names those directions free: a pose is
+never accepted along a motion only band points fix (false accept), at the price of refusing
+as free a pose whose only lever along some motion is band points that happen to read right
+(false refusal)."""
 
 from __future__ import annotations
 
