@@ -61,7 +61,6 @@ class BandEffects:
         _, g = np.unique(face[band], return_inverse=True)
         g = g.ravel()
         group[band] = g
-        n = np.bincount(g).astype(np.float64)
         d, second = image_spread(where[band].astype(np.float64), g, np.ones(len(g)))
         lam, vec = np.linalg.eigh(second)
         extends = lam > 1e-6 * np.maximum(lam.max(axis=1, keepdims=True), 1e-12)  # a numerical zero: no extent
@@ -70,7 +69,7 @@ class BandEffects:
         design[band, 0] = 1.0
         design[band, 1:] = np.einsum("na,nab->nb", d, whiten[g])
         design[band] *= loading[band, None]
-        return cls(group, design, np.full(len(n), float(variance_mm2)))
+        return cls(group, design, np.full(len(second), float(variance_mm2)))
 
     def subset(self, keep: np.ndarray) -> BandEffects:
         """The effects for the points `keep` (a mask or indices) of these, which must hold
